@@ -1,0 +1,58 @@
+"""`omnidata` command line: the composition root (DESIGN.md section 8).
+
+Each subcommand lives in its service as `add_arguments(parser)` + `run(args) -> int`, imported lazily
+so `omnidata --help` starts fast and the API/scheduler never import bpy.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# subcommand -> (module, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "plan": ("services.scheduler.plan_cli", "sample cameras, points and views of spaces (no rendering)"),
+    "generate": ("services.generate_cli", "plan and render a dataset locally (SQLite, local folder, local workers)"),
+    "serve": ("services.api.cli", "run the REST API and dashboard"),
+    "scheduler": ("services.scheduler.cli", "run the scheduler (plans jobs, dispatches tasks)"),
+    "worker": ("services.worker.cli", "run a Celery render worker"),
+    "submit": ("services.submit_cli", "submit a job to a running service and follow its progress"),
+}
+
+
+class CliError(Exception):
+    """A user mistake on the command line; printed as `omnidata: error: ...`, exit status 2."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="omnidata", description="Omnidata: multi-task vision datasets from 3D scans")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (module, help_text) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        p.set_defaults(_module=module)
+        if name in sys.argv[1:2]:  # only import the module whose arguments are needed
+            importlib.import_module(module).add_arguments(p)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    sys.argv = [sys.argv[0], *argv]
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not args.command:
+        parser.print_help()
+        return 2
+    try:
+        return int(importlib.import_module(args._module).run(args) or 0)
+    except CliError as e:
+        print(f"omnidata {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"omnidata {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

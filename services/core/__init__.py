@@ -1,0 +1,1 @@
+"""Shared domain package: cue catalog, JobSpec, keys, camera conventions, settings, DB models, storage."""

@@ -18,6 +18,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "scheduler": ("services.scheduler.cli", "run the scheduler (plans jobs, dispatches tasks)"),
     "worker": ("services.worker.cli", "run a Celery render worker"),
     "submit": ("services.submit_cli", "submit a job to a running service and follow its progress"),
+    "sheet": ("services.contact_sheet", "draw a contact sheet PNG of every cue of a few views of an output folder"),
 }
 
 

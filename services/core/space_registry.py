@@ -1,0 +1,180 @@
+"""Registering spaces in object storage and fetching them back for planning and rendering.
+
+A space's source is stored as ONE object under `<key_prefix>/<space id>/<file>`: a .ply/.glb/.zip as
+given, or a zip of the files a mesh needs (an .obj with its .mtl and textures, a .gltf with its buffers
+and images, or a whole folder). Validation happens before anything is stored, so a refused upload
+leaves no row and no object.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+import shutil
+import tempfile
+import zipfile
+from pathlib import Path
+
+from sqlalchemy.orm import Session
+
+from services.core.keys import check_name
+from services.core.models import Space
+from services.core.spaces import LoadedSpace, SpaceError, load_space, resolve_source
+from services.core.storage.base import ObjectStore
+
+SINGLE_FILE_SUFFIXES = {".ply", ".glb", ".stl", ".off", ".zip"}
+MAX_PACKED_BYTES = 4 << 30
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while chunk := f.read(1 << 20):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _obj_companions(obj: Path) -> list[Path]:
+    """The .mtl files an .obj names and the texture maps those name (relative paths only)."""
+    out: list[Path] = []
+    mtl_re = re.compile(r"^\s*mtllib\s+(.+?)\s*$")
+    map_re = re.compile(r"^\s*(map_\w+|bump|disp|decal|norm)\s+(?:-\S+\s+\S+\s+)*(.+?)\s*$", re.IGNORECASE)
+    with open(obj, errors="replace") as f:
+        mtls = [m.group(1) for line in f if (m := mtl_re.match(line))]
+    for name in mtls:
+        mtl = obj.parent / name
+        if not mtl.is_file():
+            continue
+        out.append(mtl)
+        for line in mtl.read_text(errors="replace").splitlines():
+            if m := map_re.match(line):
+                tex = mtl.parent / m.group(2)
+                if tex.is_file():
+                    out.append(tex)
+    return out
+
+
+def _gltf_companions(gltf: Path) -> list[Path]:
+    """Buffers and images a .gltf references by relative URI."""
+    try:
+        doc = json.loads(gltf.read_text())
+    except (OSError, ValueError) as e:
+        raise SpaceError(f"{gltf.name}: not valid glTF JSON ({e})") from None
+    uris = [b.get("uri") for b in doc.get("buffers", [])] + [i.get("uri") for i in doc.get("images", [])]
+    return [gltf.parent / u for u in uris if u and not u.startswith("data:") and (gltf.parent / u).is_file()]
+
+
+def _files_to_pack(source: Path, mesh_file: Path) -> tuple[Path, list[Path]]:
+    """(base folder, files) that a mesh needs, for zipping."""
+    if source.is_dir():
+        files = [p for p in sorted(source.rglob("*")) if p.is_file() and not p.is_symlink()]
+        return source, files
+    companions = _obj_companions(mesh_file) if mesh_file.suffix.lower() == ".obj" else _gltf_companions(mesh_file)
+    base = mesh_file.parent
+    files = [mesh_file] + [c for c in dict.fromkeys(companions) if base in c.resolve().parents]
+    return base, files
+
+
+def pack_source(source: Path, mesh_file: Path, workdir: Path) -> Path:
+    """The single file to upload for `source`: itself, or a deterministic zip of what the mesh needs."""
+    if source.is_file() and source.suffix.lower() in SINGLE_FILE_SUFFIXES:
+        return source
+    base, files = _files_to_pack(source, mesh_file)
+    total = sum(f.stat().st_size for f in files)
+    if total > MAX_PACKED_BYTES:
+        raise SpaceError(f"{source.name}: {total} bytes of mesh files exceed the limit {MAX_PACKED_BYTES}")
+    out = workdir / f"{mesh_file.stem}.zip"
+    with zipfile.ZipFile(out, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        for f in files:
+            info = zipfile.ZipInfo(f.relative_to(base).as_posix(), date_time=(1980, 1, 1, 0, 0, 0))
+            info.compress_type = zipfile.ZIP_DEFLATED
+            zf.writestr(info, f.read_bytes())  # fixed timestamps: same files -> same checksum
+    return out
+
+
+def validate_source(source_path: str | Path, *, up_axis: str = "auto", unit_scale: float = 1.0) -> LoadedSpace:
+    """Load and validate a space without storing it (SpaceError says what is wrong)."""
+    return load_space(source_path, up_axis=up_axis, unit_scale=unit_scale)
+
+
+def register_space(
+    session: Session,
+    store: ObjectStore,
+    *,
+    owner: str,
+    name: str,
+    source_path: str | Path,
+    key_prefix: str = "spaces",
+    up_axis: str = "auto",
+    unit_scale: float = 1.0,
+) -> Space:
+    """Validate a space, upload its source and add its row (flushed, not committed)."""
+    try:
+        check_name("space name", name)
+    except ValueError as e:
+        raise SpaceError(str(e)) from None
+    source = Path(source_path)
+    if session.query(Space.id).filter_by(owner=owner, name=name).first() is not None:
+        raise SpaceError(f"a space named {name!r} already exists")
+    with tempfile.TemporaryDirectory(prefix="omnidata-register-") as tmp:
+        work = Path(tmp)
+        mesh_file = resolve_source(source, work / "x") if source.suffix.lower() == ".zip" else resolve_source(source)
+        loaded = load_space(source, up_axis=up_axis, unit_scale=unit_scale)
+        packed = pack_source(source, mesh_file, work)
+        checksum = _sha256(packed)
+        space = Space(
+            owner=owner,
+            name=name,
+            source_key="",
+            source_format=mesh_file.suffix.lower().lstrip("."),
+            checksum=checksum,
+            unit_scale=unit_scale,
+            up_axis=up_axis,
+            source_to_world=loaded.source_to_world.tolist(),
+            bounds=loaded.bounds.tolist(),
+            face_count=int(loaded.face_count),
+            vertex_count=int(len(loaded.mesh.vertices)),
+            has_texture=bool(loaded.has_texture or loaded.has_vertex_colors),
+            has_semantics=bool(loaded.has_semantics),
+            validation={
+                "mesh_file": mesh_file.name,
+                "up_method": loaded.up_method,
+                "warnings": list(loaded.warnings),
+                "has_uv_texture": bool(loaded.has_texture),
+                "has_vertex_colors": bool(loaded.has_vertex_colors),
+            },
+        )
+        session.add(space)
+        session.flush()  # assigns the id used in the key
+        space.source_key = f"{key_prefix.strip('/')}/{space.id}/{packed.name}"
+        store.put_file(space.source_key, packed)
+        session.flush()
+    return space
+
+
+def fetch_space(store: ObjectStore, space: Space, cache_dir: str | Path) -> Path:
+    """Local path of a space's mesh file, downloaded (and unzipped) once per checksum into `cache_dir`."""
+    cache = Path(cache_dir) / space.checksum
+    done_marker = cache / ".ready"
+    if not done_marker.exists():
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{space.checksum[:12]}-", dir=cache.parent))
+        try:
+            fname = Path(space.source_key).name
+            store.get_file(space.source_key, tmp / fname)
+            if fname.lower().endswith(".zip"):
+                resolve_source(tmp / fname, tmp / "src")
+                (tmp / fname).unlink()
+            (tmp / ".ready").write_text(space.checksum)
+            try:
+                os.rename(tmp, cache)  # atomic: concurrent fetchers keep whichever lands first
+            except OSError:
+                if not done_marker.exists():
+                    raise
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+    return resolve_source(cache / "src") if (cache / "src").is_dir() else resolve_source(next(
+        p for p in cache.iterdir() if p.is_file() and p.name != ".ready"
+    ))

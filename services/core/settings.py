@@ -1,0 +1,120 @@
+"""Service settings (DESIGN.md section 6, STYLE.md item 7): one pydantic-settings class, env prefix `OMNIDATA_`.
+
+Defaults are the embedded setup (SQLite file and a local object folder under `data_dir`), so nothing has
+to be configured on a laptop. There is no global settings object: call `get_settings()` where needed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import re
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import Field, SecretStr, field_validator, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+DEFAULT_SECRET_KEY = "dev-secret-change-me"
+MIN_SECRET_KEY_LEN = 32  # characters of a production secret
+_HEX64 = re.compile(r"^[0-9a-f]{64}$")
+
+
+def hash_token(token: str) -> str:
+    """sha256 hex digest of an API token: what `api_tokens` stores instead of the token itself."""
+    return hashlib.sha256(token.encode("utf-8")).hexdigest()
+
+
+class Settings(BaseSettings):
+    """Every knob of the service processes; read from `OMNIDATA_*` environment variables (and `.env`)."""
+
+    model_config = SettingsConfigDict(
+        env_prefix="OMNIDATA_", env_file=".env", env_file_encoding="utf-8", extra="ignore", frozen=True
+    )
+
+    env: Literal["development", "production"] = "development"
+    data_dir: Path = Field(default_factory=lambda: Path.home() / ".omnidata")
+    database_url: str = Field("", description="SQLAlchemy URL; default sqlite:///{data_dir}/omnidata.db")
+    broker_url: str = "redis://127.0.0.1:6379/0"
+    storage_url: str = Field("", description="file:///abs/path or s3://bucket/prefix; default {data_dir}/objects")
+    s3_endpoint_url: str | None = None
+    s3_region: str = "us-east-1"
+    aws_access_key_id: SecretStr | None = None
+    aws_secret_access_key: SecretStr | None = None
+    secret_key: SecretStr = SecretStr(DEFAULT_SECRET_KEY)
+    api_tokens: dict[str, str] = Field(
+        default_factory=dict, description="sha256-hex(token) -> tenant; tokens are never stored in clear"
+    )
+    upload_max_bytes: int = Field(2 * 1024**3, gt=0)
+    presign_expiry_s: int = Field(3600, gt=0, le=7 * 24 * 3600)
+    lease_s: int = Field(300, gt=0, description="seconds a running task holds its lease")
+    max_attempts: int = Field(3, ge=1)
+    dispatch_window: int = Field(2000, ge=1, description="queued tasks per job at most")
+    worker_max_tasks: int = Field(500, ge=1, description="a worker process recycles after this many tasks")
+    worker_max_memory_mb: int = Field(4096, ge=64, description="a worker recycles above this resident size")
+    render_device: Literal["auto", "cpu", "cuda", "optix"] = "auto"
+    queue_render: str = Field("render", min_length=1, description="heavy queue: tasks that render")
+    queue_derive: str = Field("derive", min_length=1, description="light queue: derived cues, plan cues")
+
+    @field_validator("data_dir")
+    @classmethod
+    def _expand(cls, v: Path) -> Path:
+        return v.expanduser().resolve()
+
+    @field_validator("api_tokens")
+    @classmethod
+    def _hashed(cls, v: dict[str, str]) -> dict[str, str]:
+        for digest, tenant in v.items():
+            if not _HEX64.match(digest):
+                raise ValueError(
+                    "api_tokens keys must be sha256 hex digests of tokens (64 lowercase hex characters); "
+                    "use services.core.settings.hash_token(token)"
+                )
+            if not tenant:
+                raise ValueError(f"api_tokens entry {digest[:8]}... has an empty tenant")
+        return v
+
+    @model_validator(mode="before")
+    @classmethod
+    def _fill_defaults(cls, data: Any) -> Any:
+        # database_url and storage_url default to paths under data_dir, so derive them after data_dir is known.
+        if not isinstance(data, dict):
+            return data
+        data_dir = Path(data.get("data_dir") or Path.home() / ".omnidata").expanduser().resolve()
+        if not data.get("database_url"):
+            data["database_url"] = f"sqlite:///{data_dir / 'omnidata.db'}"
+        if not data.get("storage_url"):
+            data["storage_url"] = (data_dir / "objects").as_uri()
+        return data
+
+    @model_validator(mode="after")
+    def _refuse_default_secret(self) -> Settings:
+        if self.env == "production":
+            secret = self.secret_key.get_secret_value()
+            if secret == DEFAULT_SECRET_KEY or len(secret) < MIN_SECRET_KEY_LEN:
+                raise ValueError(
+                    "OMNIDATA_SECRET_KEY must be set to a random value of at least "
+                    f"{MIN_SECRET_KEY_LEN} characters when OMNIDATA_ENV=production "
+                    "(the development default is refused); e.g. `python -c 'import secrets; "
+                    "print(secrets.token_urlsafe(48))'`"
+                )
+        return self
+
+    @property
+    def is_sqlite(self) -> bool:
+        """True for the embedded database (SQLite)."""
+        return self.database_url.startswith("sqlite")
+
+    def tenant_for_token(self, token: str) -> str | None:
+        """The tenant a clear-text API token belongs to, or None (constant-time comparison of digests)."""
+        digest = hash_token(token)
+        found = None
+        for known, tenant in self.api_tokens.items():
+            if hmac.compare_digest(known, digest):
+                found = tenant
+        return found
+
+
+def get_settings(**overrides: Any) -> Settings:
+    """Build a fresh Settings from the environment; keyword overrides win over the environment."""
+    return Settings(**overrides)

@@ -1,0 +1,161 @@
+"""Object storage contract (STYLE.md item 10): a small Protocol with a local-folder and an S3 backend.
+
+Keys are '/'-separated relative paths ("rgb/omnidata/bunny/point_0_view_0_domain_rgb.png"). Absolute keys,
+empty segments, '.', '..' and backslashes are refused with ValueError, so no key escapes a store's root.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol, runtime_checkable
+
+
+@dataclass(frozen=True)
+class ObjectInfo:
+    """What a store knows about one object: size in bytes and sha256 hex when recorded."""
+
+    key: str
+    size: int
+    sha256: str | None = None
+
+
+class ObjectNotFoundError(FileNotFoundError):
+    """The key names no object."""
+
+    def __init__(self, key: str):
+        self.key = key
+        super().__init__(f"no object with key {key!r}")
+
+
+def check_key(key: str) -> str:
+    """Return `key` if it is a safe relative object key, else raise ValueError saying why."""
+    if not isinstance(key, str) or not key:
+        raise ValueError(f"object key must be a non-empty string, got {key!r}")
+    if key.startswith("/"):
+        raise ValueError(f"object key {key!r} is absolute; keys are relative '/'-separated paths")
+    if "\\" in key or "\x00" in key:
+        raise ValueError(f"object key {key!r} contains a backslash or NUL")
+    for seg in key.split("/"):
+        if seg in ("", ".", ".."):
+            raise ValueError(f"object key {key!r} has an empty, '.' or '..' segment")
+    return key
+
+
+def check_prefix(prefix: str) -> str:
+    """Return a safe listing prefix ('' = everything; a trailing '/' is allowed), else raise ValueError."""
+    if prefix == "":
+        return prefix
+    check_key(prefix[:-1] if prefix.endswith("/") else prefix)
+    return prefix
+
+
+def join_key(prefix: str, key: str) -> str:
+    """`prefix/key` with exactly one '/' between them ('' prefix: key itself)."""
+    prefix = prefix.strip("/")
+    return f"{prefix}/{key}" if prefix else key
+
+
+@runtime_checkable
+class ObjectStore(Protocol):
+    """A flat key -> bytes store. Writes are atomic: readers see the old object or the new one, never a part."""
+
+    def put_bytes(self, key: str, data: bytes, content_type: str | None = None) -> ObjectInfo:
+        """Store `data` under `key`, replacing any object there."""
+        ...
+
+    def put_file(self, key: str, path: str | Path, content_type: str | None = None) -> ObjectInfo:
+        """Store the file at `path` under `key` (multipart upload for big files on S3)."""
+        ...
+
+    def get_bytes(self, key: str) -> bytes:
+        """The object's content; ObjectNotFoundError when missing."""
+        ...
+
+    def get_file(self, key: str, path: str | Path) -> Path:
+        """Download the object to `path` (parent folders created); ObjectNotFoundError when missing."""
+        ...
+
+    def exists(self, key: str) -> bool:
+        """Whether an object is stored under `key`."""
+        ...
+
+    def stat(self, key: str) -> ObjectInfo | None:
+        """Size (and sha256 when known) of the object, or None when missing."""
+        ...
+
+    def delete(self, key: str) -> bool:
+        """Remove the object; True if it existed (deleting a missing key is not an error)."""
+        ...
+
+    def delete_prefix(self, prefix: str) -> int:
+        """Remove every object whose key starts with `prefix`; returns how many."""
+        ...
+
+    def list(self, prefix: str = "") -> Iterator[str]:
+        """Keys starting with `prefix`, in sorted (byte) order."""
+        ...
+
+    def presigned_url(self, key: str, expires_s: int = 3600) -> str:
+        """A URL that fetches the object without credentials (S3: pre-signed GET; local: file:// URI)."""
+        ...
+
+
+class PrefixedStore:
+    """A view of a store rooted at `prefix`: keys are relative to it, listings strip it."""
+
+    def __init__(self, store: ObjectStore, prefix: str):
+        self.store = store
+        self.prefix = check_key(prefix.rstrip("/"))
+
+    def _k(self, key: str) -> str:
+        return join_key(self.prefix, check_key(key))
+
+    def put_bytes(self, key: str, data: bytes, content_type: str | None = None) -> ObjectInfo:
+        info = self.store.put_bytes(self._k(key), data, content_type)
+        return ObjectInfo(key, info.size, info.sha256)
+
+    def put_file(self, key: str, path: str | Path, content_type: str | None = None) -> ObjectInfo:
+        info = self.store.put_file(self._k(key), path, content_type)
+        return ObjectInfo(key, info.size, info.sha256)
+
+    def get_bytes(self, key: str) -> bytes:
+        try:
+            return self.store.get_bytes(self._k(key))
+        except ObjectNotFoundError:
+            raise ObjectNotFoundError(key) from None
+
+    def get_file(self, key: str, path: str | Path) -> Path:
+        try:
+            return self.store.get_file(self._k(key), path)
+        except ObjectNotFoundError:
+            raise ObjectNotFoundError(key) from None
+
+    def exists(self, key: str) -> bool:
+        return self.store.exists(self._k(key))
+
+    def stat(self, key: str) -> ObjectInfo | None:
+        info = self.store.stat(self._k(key))
+        return None if info is None else ObjectInfo(key, info.size, info.sha256)
+
+    def delete(self, key: str) -> bool:
+        return self.store.delete(self._k(key))
+
+    def delete_prefix(self, prefix: str) -> int:
+        return self.store.delete_prefix(self.prefix + "/" + check_prefix(prefix))
+
+    def list(self, prefix: str = "") -> Iterator[str]:
+        cut = len(self.prefix) + 1
+        for key in self.store.list(self.prefix + "/" + check_prefix(prefix)):
+            yield key[cut:]
+
+    def presigned_url(self, key: str, expires_s: int = 3600) -> str:
+        return self.store.presigned_url(self._k(key), expires_s)
+
+
+def prefixed(store: ObjectStore, prefix: str) -> ObjectStore:
+    """A view of `store` rooted at `prefix` (e.g. a job's output root); '' returns the store itself."""
+    if not prefix.rstrip("/"):
+        return store
+    return PrefixedStore(store, prefix)

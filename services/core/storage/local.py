@@ -1,0 +1,156 @@
+"""Object store in a local folder (the embedded default): one file per key under `root`."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import re
+import shutil
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+
+from services.core.storage.base import ObjectInfo, ObjectNotFoundError, check_key, check_prefix
+
+_TMP = re.compile(r"^\..+\.tmp-[0-9a-f]{32}$")  # in-flight writes, never listed
+_CHUNK = 1024 * 1024
+
+
+def _sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with path.open("rb") as f:
+        while block := f.read(_CHUNK):
+            h.update(block)
+    return h.hexdigest()
+
+
+class LocalStore:
+    """Keys map to files under `root`; writes go to a temp file in the same folder, then os.replace (atomic)."""
+
+    def __init__(self, root: str | Path, *, fsync: bool = True):
+        self.root = Path(root).expanduser().resolve()
+        self.root.mkdir(parents=True, exist_ok=True)
+        self.fsync = fsync  # flush data before the rename so a committed task's output survives a crash
+
+    def __repr__(self) -> str:
+        return f"LocalStore({str(self.root)!r})"
+
+    def path(self, key: str) -> Path:
+        """The file that holds `key` (validated; never outside root)."""
+        return self.root.joinpath(*check_key(key).split("/"))
+
+    def _tmp(self, target: Path) -> Path:
+        return target.with_name(f".{target.name}.tmp-{uuid.uuid4().hex}")
+
+    def _commit(self, tmp: Path, target: Path) -> None:
+        if self.fsync:
+            fd = os.open(tmp, os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+        os.replace(tmp, target)
+
+    def put_bytes(self, key: str, data: bytes, content_type: str | None = None) -> ObjectInfo:
+        target = self.path(key)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        tmp = self._tmp(target)
+        try:
+            tmp.write_bytes(data)
+            self._commit(tmp, target)
+        finally:
+            tmp.unlink(missing_ok=True)
+        return ObjectInfo(key, len(data), hashlib.sha256(data).hexdigest())
+
+    def put_file(self, key: str, path: str | Path, content_type: str | None = None) -> ObjectInfo:
+        target = self.path(key)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        tmp = self._tmp(target)
+        h = hashlib.sha256()
+        size = 0
+        try:
+            with open(path, "rb") as src, tmp.open("wb") as dst:
+                while block := src.read(_CHUNK):
+                    h.update(block)
+                    dst.write(block)
+                    size += len(block)
+            self._commit(tmp, target)
+        finally:
+            tmp.unlink(missing_ok=True)
+        return ObjectInfo(key, size, h.hexdigest())
+
+    def get_bytes(self, key: str) -> bytes:
+        try:
+            return self.path(key).read_bytes()
+        except (FileNotFoundError, IsADirectoryError, NotADirectoryError):
+            raise ObjectNotFoundError(key) from None
+
+    def get_file(self, key: str, path: str | Path) -> Path:
+        src = self.path(key)
+        if not src.is_file():
+            raise ObjectNotFoundError(key)
+        dest = Path(path)
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        tmp = self._tmp(dest)
+        try:
+            shutil.copyfile(src, tmp)
+            os.replace(tmp, dest)
+        finally:
+            tmp.unlink(missing_ok=True)
+        return dest
+
+    def exists(self, key: str) -> bool:
+        return self.path(key).is_file()
+
+    def stat(self, key: str) -> ObjectInfo | None:
+        """Size and sha256 (computed from the file: O(size))."""
+        p = self.path(key)
+        if not p.is_file():
+            return None
+        return ObjectInfo(key, p.stat().st_size, _sha256_file(p))
+
+    def delete(self, key: str) -> bool:
+        p = self.path(key)
+        try:
+            p.unlink()
+        except (FileNotFoundError, IsADirectoryError, NotADirectoryError):
+            return False
+        self._prune(p.parent)
+        return True
+
+    def _prune(self, folder: Path) -> None:
+        # Remove folders left empty by deletes, up to the root; a concurrent writer may refill one: ignore.
+        while folder != self.root and self.root in folder.parents:
+            try:
+                folder.rmdir()
+            except OSError:
+                return
+            folder = folder.parent
+
+    def delete_prefix(self, prefix: str) -> int:
+        n = 0
+        for key in list(self.list(prefix)):
+            n += self.delete(key)
+        return n
+
+    def list(self, prefix: str = "") -> Iterator[str]:
+        check_prefix(prefix)
+        # Walk only the deepest folder the prefix names, then filter by the string prefix (S3 semantics).
+        folder_part = prefix.rsplit("/", 1)[0] if "/" in prefix else ""
+        base = self.root.joinpath(*folder_part.split("/")) if folder_part else self.root
+        if not base.is_dir():
+            return iter(())
+        keys = []
+        for dirpath, _dirs, files in os.walk(base):
+            rel = Path(dirpath).relative_to(self.root).as_posix()
+            for name in files:
+                if _TMP.match(name):
+                    continue
+                key = name if rel == "." else f"{rel}/{name}"
+                if key.startswith(prefix):
+                    keys.append(key)
+        return iter(sorted(keys))
+
+    def presigned_url(self, key: str, expires_s: int = 3600) -> str:
+        """file:// URI of the object (local files need no signature; `expires_s` is ignored)."""
+        return self.path(key).as_uri()

@@ -1,0 +1,200 @@
+"""Object store on S3 (or any S3-compatible endpoint: MinIO, moto) through boto3."""
+
+from __future__ import annotations
+
+import hashlib
+import mimetypes
+import os
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import boto3
+from boto3.s3.transfer import TransferConfig
+from botocore.config import Config
+from botocore.exceptions import ClientError
+
+from services.core.storage.base import ObjectInfo, ObjectNotFoundError, check_key, check_prefix, join_key
+
+MULTIPART_THRESHOLD = 8 * 1024 * 1024  # bytes; S3's minimum part size is 5 MiB
+_CHUNK = 1024 * 1024
+_NOT_FOUND = {"404", "NoSuchKey", "NotFound"}
+
+
+def _sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with path.open("rb") as f:
+        while block := f.read(_CHUNK):
+            h.update(block)
+    return h.hexdigest()
+
+
+_session_lock = threading.Lock()
+_sessions: dict[int, boto3.session.Session] = {}
+
+
+def _boto_session() -> boto3.session.Session:
+    """One boto3 session per process: creating clients from it reuses the loaded service models (~0.3 s each)."""
+    with _session_lock:  # boto3 sessions are not thread-safe while creating clients
+        pid = os.getpid()  # a forked child (Celery prefork) builds its own
+        if pid not in _sessions:
+            _sessions.clear()
+            _sessions[pid] = boto3.session.Session()
+        return _sessions[pid]
+
+
+def _missing(e: ClientError) -> bool:
+    return str(e.response.get("Error", {}).get("Code")) in _NOT_FOUND
+
+
+class S3Store:
+    """Keys live under `prefix` in `bucket`; the sha256 of each object is kept in its metadata."""
+
+    def __init__(
+        self,
+        bucket: str,
+        prefix: str = "",
+        *,
+        endpoint_url: str | None = None,
+        region: str = "us-east-1",
+        credentials: tuple[str, str] | None = None,
+        client: Any = None,
+    ):
+        if not bucket:
+            raise ValueError("S3Store needs a bucket name")
+        self.bucket = bucket
+        self.prefix = check_key(prefix.strip("/")) if prefix.strip("/") else ""
+        if client is None:
+            config = Config(
+                region_name=region,
+                signature_version="s3v4",
+                retries={"max_attempts": 10, "mode": "standard"},  # throttling and 5xx are retried with backoff
+                max_pool_connections=32,
+                connect_timeout=10,
+                read_timeout=120,
+                # MinIO/moto endpoints have no per-bucket DNS names
+                s3={"addressing_style": "path" if endpoint_url else "auto"},
+            )
+            kwargs: dict[str, Any] = {"endpoint_url": endpoint_url, "config": config}
+            if credentials is not None:
+                kwargs["aws_access_key_id"], kwargs["aws_secret_access_key"] = credentials
+            session = _boto_session()
+            with _session_lock:
+                client = session.client("s3", **kwargs)
+        self.client = client
+        self.transfer = TransferConfig(
+            multipart_threshold=MULTIPART_THRESHOLD, multipart_chunksize=MULTIPART_THRESHOLD, max_concurrency=4
+        )
+
+    def __repr__(self) -> str:
+        return f"S3Store(s3://{self.bucket}/{self.prefix})"
+
+    def _k(self, key: str) -> str:
+        return join_key(self.prefix, check_key(key))
+
+    def _strip(self, full: str) -> str:
+        return full[len(self.prefix) + 1 :] if self.prefix else full
+
+    def put_bytes(self, key: str, data: bytes, content_type: str | None = None) -> ObjectInfo:
+        digest = hashlib.sha256(data).hexdigest()
+        self.client.put_object(
+            Bucket=self.bucket,
+            Key=self._k(key),
+            Body=data,
+            ContentType=content_type or mimetypes.guess_type(key)[0] or "application/octet-stream",
+            Metadata={"sha256": digest},
+        )
+        return ObjectInfo(key, len(data), digest)
+
+    def put_file(self, key: str, path: str | Path, content_type: str | None = None) -> ObjectInfo:
+        path = Path(path)
+        digest = _sha256_file(path)
+        extra = {
+            "ContentType": content_type or mimetypes.guess_type(key)[0] or "application/octet-stream",
+            "Metadata": {"sha256": digest},
+        }
+        self.client.upload_file(str(path), self.bucket, self._k(key), ExtraArgs=extra, Config=self.transfer)
+        return ObjectInfo(key, path.stat().st_size, digest)
+
+    def get_bytes(self, key: str) -> bytes:
+        try:
+            resp = self.client.get_object(Bucket=self.bucket, Key=self._k(key))
+        except ClientError as e:
+            if _missing(e):
+                raise ObjectNotFoundError(key) from None
+            raise
+        data: bytes = resp["Body"].read()
+        return data
+
+    def get_file(self, key: str, path: str | Path) -> Path:
+        dest = Path(path)
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            # s3transfer downloads to a temporary name and renames, so `dest` is never half-written
+            self.client.download_file(self.bucket, self._k(key), str(dest), Config=self.transfer)
+        except ClientError as e:
+            if _missing(e):
+                raise ObjectNotFoundError(key) from None
+            raise
+        return dest
+
+    def _head(self, key: str) -> dict[str, Any] | None:
+        try:
+            head: dict[str, Any] = self.client.head_object(Bucket=self.bucket, Key=self._k(key))
+            return head
+        except ClientError as e:
+            if _missing(e):
+                return None
+            raise
+
+    def exists(self, key: str) -> bool:
+        return self._head(key) is not None
+
+    def stat(self, key: str) -> ObjectInfo | None:
+        """Size, and the sha256 recorded at upload (None for objects written by other tools)."""
+        head = self._head(key)
+        if head is None:
+            return None
+        return ObjectInfo(key, int(head["ContentLength"]), head.get("Metadata", {}).get("sha256"))
+
+    def delete(self, key: str) -> bool:
+        existed = self.exists(key)
+        self.client.delete_object(Bucket=self.bucket, Key=self._k(key))
+        return existed
+
+    def delete_prefix(self, prefix: str) -> int:
+        n = 0
+        batch: list[str] = []
+        for key in self.list(prefix):
+            batch.append(self._k(key))
+            if len(batch) == 1000:  # DeleteObjects takes at most 1000 keys
+                n += self._delete_many(batch)
+                batch = []
+        if batch:
+            n += self._delete_many(batch)
+        return n
+
+    def _delete_many(self, full_keys: list[str]) -> int:
+        resp = self.client.delete_objects(
+            Bucket=self.bucket, Delete={"Objects": [{"Key": k} for k in full_keys], "Quiet": True}
+        )
+        errors = resp.get("Errors", [])
+        if errors:
+            raise OSError(f"S3 refused to delete {len(errors)} object(s), first: {errors[0]}")
+        return len(full_keys)
+
+    def list(self, prefix: str = "") -> Iterator[str]:
+        check_prefix(prefix)
+        full = join_key(self.prefix, prefix) if prefix else (self.prefix + "/" if self.prefix else "")
+        paginator = self.client.get_paginator("list_objects_v2")
+        for page in paginator.paginate(Bucket=self.bucket, Prefix=full):
+            for obj in page.get("Contents", []):  # S3 lists in UTF-8 byte order, which is sorted order
+                yield self._strip(obj["Key"])
+
+    def presigned_url(self, key: str, expires_s: int = 3600) -> str:
+        """Pre-signed GET URL valid for `expires_s` seconds."""
+        url: str = self.client.generate_presigned_url(
+            "get_object", Params={"Bucket": self.bucket, "Key": self._k(key)}, ExpiresIn=int(expires_s)
+        )
+        return url

@@ -1,0 +1,220 @@
+"""Shared fixtures: real Postgres, Redis and an S3 endpoint over HTTP (STYLE.md items 10, 11).
+
+Nothing is skipped when a service is down: the fixture fails with a message (`make services` starts them).
+Database tests run the Alembic migrations once per session and roll back each test's work.
+"""
+
+from __future__ import annotations
+
+import os
+import secrets
+import socket
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from urllib.parse import urlparse
+
+import pytest
+from sqlalchemy import Engine, create_engine, text
+from sqlalchemy.engine import make_url
+from sqlalchemy.orm import Session
+
+from services.core.db import make_engine, migrate
+from services.core.settings import Settings, get_settings
+from services.core.storage import LocalStore
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+PG_ADMIN_URL = os.environ.get("OMNIDATA_TEST_PG_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/postgres")
+REDIS_TEST_URL = os.environ.get("OMNIDATA_TEST_REDIS_URL", "redis://127.0.0.1:6379/15")
+
+
+def _reachable(host: str, port: int) -> bool:
+    try:
+        with socket.create_connection((host, port), timeout=2):
+            return True
+    except OSError:
+        return False
+
+
+def _need(host: str, port: int, what: str) -> None:
+    if not _reachable(host, port):
+        pytest.fail(f"{what} is not reachable on {host}:{port}; start it with `make services`", pytrace=False)
+
+
+@pytest.fixture(scope="session")
+def repo_root() -> Path:
+    """The repository root (the folder holding pyproject.toml)."""
+    return REPO_ROOT
+
+
+@pytest.fixture(scope="session")
+def scenes_dir(repo_root: Path) -> Path:
+    """The test scenes: <repo>/../shared/scenes (CI clones the repo with shared/ beside it)."""
+    d = (repo_root.parent / "shared" / "scenes").resolve()
+    if not d.is_dir():
+        pytest.fail(f"test scenes not found at {d}: check out shared/ next to the repository", pytrace=False)
+    return d
+
+
+# ------------------------------------------------------------------------------------------------ Postgres
+
+
+def create_pg_database(admin_url: str = PG_ADMIN_URL, prefix: str = "omnidata_test") -> str:
+    """Create an empty database `<prefix>_<pid>_<rand>` and return its URL."""
+    u = make_url(admin_url)
+    _need(u.host or "127.0.0.1", u.port or 5432, "PostgreSQL")
+    name = f"{prefix}_{os.getpid()}_{secrets.token_hex(4)}"
+    admin = create_engine(admin_url, isolation_level="AUTOCOMMIT")
+    try:
+        with admin.connect() as c:
+            c.execute(text(f'CREATE DATABASE "{name}"'))
+    finally:
+        admin.dispose()
+    return u.set(database=name).render_as_string(hide_password=False)
+
+
+def drop_pg_database(url: str, admin_url: str = PG_ADMIN_URL) -> None:
+    """Drop the database at `url`, disconnecting whoever still uses it."""
+    name = make_url(url).database
+    admin = create_engine(admin_url, isolation_level="AUTOCOMMIT")
+    try:
+        with admin.connect() as c:
+            c.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+    finally:
+        admin.dispose()
+
+
+@pytest.fixture(scope="session")
+def pg_url() -> Iterator[str]:
+    """URL of a fresh, migrated Postgres database for this test session (dropped at the end)."""
+    url = create_pg_database()
+    try:
+        migrate(url)
+        yield url
+    finally:
+        drop_pg_database(url)
+
+
+@pytest.fixture(scope="session")
+def pg_engine(pg_url: str) -> Iterator[Engine]:
+    """Engine on the session's Postgres database."""
+    engine = make_engine(pg_url)
+    yield engine
+    engine.dispose()
+
+
+@pytest.fixture()
+def db_session(pg_engine: Engine) -> Iterator[Session]:
+    """A Session inside a transaction that is rolled back after the test (commits become savepoints)."""
+    conn = pg_engine.connect()
+    outer = conn.begin()
+    session = Session(bind=conn, join_transaction_mode="create_savepoint", expire_on_commit=False)
+    try:
+        yield session
+    finally:
+        session.close()
+        outer.rollback()
+        conn.close()
+
+
+# ------------------------------------------------------------------------------------------------ SQLite
+
+
+@pytest.fixture()
+def sqlite_url(tmp_path: Path) -> str:
+    """URL of a fresh, migrated SQLite database file under tmp_path."""
+    url = f"sqlite:///{tmp_path / 'omnidata.db'}"
+    migrate(url)
+    return url
+
+
+@pytest.fixture()
+def sqlite_session(sqlite_url: str) -> Iterator[Session]:
+    """A Session on a fresh migrated SQLite file (committed work stays in that file)."""
+    engine = make_engine(sqlite_url)
+    session = Session(bind=engine, expire_on_commit=False)
+    try:
+        yield session
+    finally:
+        session.close()
+        engine.dispose()
+
+
+# ------------------------------------------------------------------------------------------------ Redis
+
+
+@pytest.fixture()
+def redis_url() -> Iterator[str]:
+    """redis://127.0.0.1:6379/15, flushed before and after the test."""
+    import redis
+
+    u = urlparse(REDIS_TEST_URL)
+    _need(u.hostname or "127.0.0.1", u.port or 6379, "Redis")
+    client = redis.Redis.from_url(REDIS_TEST_URL)
+    client.flushdb()
+    try:
+        yield REDIS_TEST_URL
+    finally:
+        client.flushdb()
+        client.close()
+
+
+# ------------------------------------------------------------------------------------------------ S3
+
+
+@dataclass
+class S3Server:
+    """A running S3 endpoint (moto over HTTP) with one bucket, and the settings that point at it."""
+
+    endpoint_url: str
+    bucket: str
+    region: str = "us-east-1"
+    access_key: str = "test-access-key"
+    secret_key: str = "test-secret-key"
+    env: dict[str, str] = field(default_factory=dict)
+
+    def settings(self, prefix: str = "", **overrides: object) -> Settings:
+        """Settings whose storage_url is s3://bucket/prefix on this endpoint."""
+        values: dict[str, object] = {
+            "storage_url": f"s3://{self.bucket}/{prefix}".rstrip("/"),
+            "s3_endpoint_url": self.endpoint_url,
+            "s3_region": self.region,
+            "aws_access_key_id": self.access_key,
+            "aws_secret_access_key": self.secret_key,
+        }
+        values.update(overrides)
+        return get_settings(**values)
+
+
+@pytest.fixture(scope="session")
+def s3_server() -> Iterator[S3Server]:
+    """moto's ThreadedMotoServer on 127.0.0.1 (free port, plain HTTP) with a bucket; boto3 talks to it as to S3."""
+    import boto3
+    from moto.server import ThreadedMotoServer
+
+    server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
+    server.start()
+    host, port = server.get_host_and_port()
+    s3 = S3Server(endpoint_url=f"http://{host}:{port}", bucket=f"omnidata-test-{secrets.token_hex(4)}")
+    s3.env = {
+        "OMNIDATA_STORAGE_URL": f"s3://{s3.bucket}",
+        "OMNIDATA_S3_ENDPOINT_URL": s3.endpoint_url,
+        "OMNIDATA_S3_REGION": s3.region,
+        "OMNIDATA_AWS_ACCESS_KEY_ID": s3.access_key,
+        "OMNIDATA_AWS_SECRET_ACCESS_KEY": s3.secret_key,
+    }
+    client = boto3.client(
+        "s3", endpoint_url=s3.endpoint_url, region_name=s3.region,
+        aws_access_key_id=s3.access_key, aws_secret_access_key=s3.secret_key,
+    )
+    client.create_bucket(Bucket=s3.bucket)
+    try:
+        yield s3
+    finally:
+        server.stop()
+
+
+@pytest.fixture()
+def local_store(tmp_path: Path) -> LocalStore:
+    """A LocalStore rooted in a fresh folder."""
+    return LocalStore(tmp_path / "objects")

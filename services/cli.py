@@ -56,4 +56,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # `python -m services.cli` runs this file as __main__; use the importable module so that
+    # CliError raised by subcommands is the same class we catch.
+    from services.cli import main as _main
+
+    sys.exit(_main())

@@ -1,0 +1,344 @@
+"""A space's plan as plain data (cameras, points of interest, views), its JSON form, and the
+plan-stage cues built from it: point_info, nonfixated and vanishing_points (DESIGN.md section 5).
+
+Frames and units: world frame in metres, +Z up (the space's frame after `source_to_world`); angles in
+radians; `world_to_camera` is 4x4 into OpenCV camera axes (x right, y down, z forward); pixel
+coordinates are continuous with the centre of pixel u at u + 0.5 (services.core.camera.CONVENTIONS).
+No trimesh objects here: the worker and the API read plans without loading meshes.
+"""
+
+from __future__ import annotations
+
+import json
+import weakref
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from services.core.camera import (
+    CONVENTIONS,
+    blender_matrix_world,
+    camera_center,
+    intrinsics,
+    project,
+    rotation_to_euler_xyz,
+    rotation_to_quaternion_wxyz,
+)
+
+PLAN_FORMAT = "omnidata.plan/1"
+CAMERA_SOURCES = ("generated", "provided", "object")
+
+
+class PlanError(ValueError):
+    """A plan that cannot be made from these inputs (an impossible combination), with the reason."""
+
+
+def _frozen_array(a: Any, shape: tuple[int, ...]) -> np.ndarray:
+    arr = np.array(a, dtype=np.float64)
+    if arr.shape != shape:
+        raise ValueError(f"expected shape {shape}, got {arr.shape}")
+    arr.flags.writeable = False
+    return arr
+
+
+@dataclass(frozen=True, eq=False)
+class CameraPose:
+    """A camera position (world metres); fixated views choose the rotation per point."""
+
+    idx: int
+    position: np.ndarray  # (3,)
+    source: str  # generated | provided | object
+    uuid: str
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "position", _frozen_array(self.position, (3,)))
+        if self.source not in CAMERA_SOURCES:
+            raise ValueError(f"camera source {self.source!r} is not one of {CAMERA_SOURCES}")
+
+
+@dataclass(frozen=True, eq=False)
+class PointOfInterest:
+    """A surface point (world metres) with its unit normal and every camera with line of sight to it."""
+
+    idx: int
+    position: np.ndarray  # (3,)
+    normal: np.ndarray  # (3,) unit, facing the cameras that see it
+    uuid: str
+    camera_idxs: tuple[int, ...]  # all cameras with line of sight (not only those with views)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "position", _frozen_array(self.position, (3,)))
+        object.__setattr__(self, "normal", _frozen_array(self.normal, (3,)))
+        object.__setattr__(self, "camera_idxs", tuple(np.asarray(self.camera_idxs, dtype=np.int64).tolist()))
+
+
+@dataclass(frozen=True, eq=False)
+class PlannedView:
+    """View v of a point: a camera fixated on the point (world_to_camera maps it to the image centre)."""
+
+    point_idx: int
+    v: int  # 0..n-1 within the point
+    camera_idx: int  # the camera it was taken from (trajectory frames: the nearest camera)
+    world_to_camera: np.ndarray  # (4, 4) world metres -> OpenCV camera axes
+    fov: float  # radians, horizontal = vertical (square images)
+    roll: float  # radians about the optical axis relative to gravity (camera.look_at)
+    resolution: int  # square image size, pixels
+    obliqueness: float  # radians between the point normal and the direction to the camera
+    in_sight: bool  # line of sight from the camera centre to the point
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "world_to_camera", _frozen_array(self.world_to_camera, (4, 4)))
+
+    @property
+    def position(self) -> np.ndarray:
+        """Camera centre in world metres."""
+        return camera_center(self.world_to_camera)
+
+    @property
+    def K(self) -> np.ndarray:
+        """3x3 intrinsics in pixels."""
+        return intrinsics(self.fov, self.resolution)
+
+
+@dataclass(frozen=True, eq=False)
+class SpacePlan:
+    """Everything sampled for one space of a job. Views are sorted by (point_idx, v)."""
+
+    space_name: str
+    cameras: tuple[CameraPose, ...]
+    points: tuple[PointOfInterest, ...]
+    views: tuple[PlannedView, ...]
+    shortfall: str | None = None
+
+    def views_of(self, point_idx: int) -> tuple[PlannedView, ...]:
+        """The views of one point, v = 0..n-1."""
+        return _index(self).by_point.get(point_idx, ())
+
+    def view(self, point_idx: int, v: int) -> PlannedView:
+        """View v of a point; KeyError when there is none."""
+        views = self.views_of(point_idx)
+        if not 0 <= v < len(views):
+            raise KeyError(f"point {point_idx} has no view {v} ({len(views)} views)")
+        return views[v]
+
+
+# ---------------------------------------------------------------------------------------------
+# indexes kept beside (not inside) the frozen plan
+
+
+class _Index:
+    def __init__(self, plan: SpacePlan):
+        by_point: dict[int, list[PlannedView]] = {}
+        for view in plan.views:
+            by_point.setdefault(view.point_idx, []).append(view)
+        self.by_point = {k: tuple(sorted(v, key=lambda x: x.v)) for k, v in by_point.items()}
+        seen_by: dict[int, list[int]] = {}
+        for p in plan.points:
+            for c in p.camera_idxs:
+                seen_by.setdefault(c, []).append(p.idx)
+        self.points_seen_by = {c: np.array(v, dtype=np.int64) for c, v in seen_by.items()}
+        self.positions = (
+            np.stack([p.position for p in plan.points]) if plan.points else np.zeros((0, 3))
+        )
+
+
+_INDEXES: weakref.WeakKeyDictionary[SpacePlan, _Index] = weakref.WeakKeyDictionary()
+
+
+def _index(plan: SpacePlan) -> _Index:
+    idx = _INDEXES.get(plan)
+    if idx is None:
+        idx = _INDEXES[plan] = _Index(plan)
+    return idx
+
+
+def points_in_view(plan: SpacePlan, view: PlannedView) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Other points visible in a view: (point indices, (n, 2) pixel coordinates, (n,) depth along z, metres).
+
+    Visible = the view's camera has line of sight to the point (recorded when the point was accepted)
+    and the point projects inside the image in front of the camera. Trajectory frames use the line of
+    sight of their nearest camera (an approximation between cameras).
+    """
+    ix = _index(plan)
+    cand = ix.points_seen_by.get(view.camera_idx, np.zeros(0, dtype=np.int64))
+    cand = cand[cand != view.point_idx]
+    if len(cand) == 0:
+        return cand, np.zeros((0, 2)), np.zeros(0)
+    uv, z = project(ix.positions[cand], view.K, view.world_to_camera)
+    res = view.resolution
+    ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < res) & (uv[:, 1] >= 0) & (uv[:, 1] < res)
+    return cand[ok], uv[ok], z[ok]
+
+
+# ---------------------------------------------------------------------------------------------
+# plan-stage cues
+
+
+def _floats(a: np.ndarray) -> list[Any]:
+    return np.asarray(a, dtype=np.float64).tolist()
+
+
+def point_info(plan: SpacePlan, view: PlannedView) -> dict[str, Any]:
+    """The point_info JSON of one view: Omnidata's keys plus K, world_to_camera and conventions.
+
+    camera_rotation_final is the Blender XYZ Euler (radians) of the Blender camera object
+    (looking down its -z, y up); the quaternion is wxyz of the same rotation.
+    """
+    point = plan.points[view.point_idx]
+    camera = plan.cameras[view.camera_idx]
+    W = view.world_to_camera
+    centre = camera_center(W)
+    R_blender = blender_matrix_world(W)[:3, :3]
+    others, _, _ = points_in_view(plan, view)
+    return {
+        "point_uuid": point.uuid,
+        "view_id": int(view.v),
+        "camera_uuid": camera.uuid,
+        "camera_location": _floats(centre),
+        "camera_rotation_final": _floats(rotation_to_euler_xyz(R_blender)),
+        "camera_rotation_final_quaternion": _floats(rotation_to_quaternion_wxyz(R_blender)),
+        "field_of_view_rads": float(view.fov),
+        "resolution": int(view.resolution),
+        "point_location": _floats(point.position),
+        "point_normal": _floats(point.normal),
+        "obliqueness_angle": float(view.obliqueness),
+        "camera_distance": float(np.linalg.norm(centre - point.position)),
+        "nonfixated_points_in_view": [int(i) for i in others],
+        # ours
+        "K": _floats(view.K),
+        "world_to_camera": _floats(W),
+        "conventions": dict(CONVENTIONS),
+        "space": plan.space_name,
+        "point_idx": int(view.point_idx),
+        "camera_idx": int(view.camera_idx),
+        "roll_rads": float(view.roll),
+        "in_sight": bool(view.in_sight),
+    }
+
+
+def nonfixated(plan: SpacePlan, point_idx: int) -> dict[str, Any]:
+    """The nonfixated JSON of a point: for each of its views, the pixels of the other points visible in it."""
+    point = plan.points[point_idx]
+    views = []
+    for view in plan.views_of(point_idx):
+        idxs, uv, z = points_in_view(plan, view)
+        views.append({
+            "view_id": int(view.v),
+            "camera_uuid": plan.cameras[view.camera_idx].uuid,
+            "camera_location": _floats(view.position),
+            "points": [
+                {
+                    "point_idx": int(i),
+                    "point_uuid": plan.points[int(i)].uuid,
+                    "pixel": _floats(uv[k]),
+                    "depth_zbuffer_m": float(z[k]),
+                }
+                for k, i in enumerate(idxs)
+            ],
+        })
+    return {
+        "point_uuid": point.uuid,
+        "point_idx": int(point_idx),
+        "point_location": _floats(point.position),
+        "space": plan.space_name,
+        "views": views,
+        "conventions": {
+            "pixel": "continuous (u, v); the centre of pixel u is at u + 0.5; origin top-left",
+            "visibility": "line of sight from the view's camera (trajectory frames: nearest camera) "
+                          "and inside the image, in front of the camera",
+        },
+    }
+
+
+def vanishing_points(info: dict[str, Any]) -> dict[str, Any]:
+    """Vanishing points of the world X, Y, Z axes for a point_info dict.
+
+    `image`: pixel coordinates (continuous, centre of pixel u at u + 0.5), or None when the axis is
+    parallel to the image plane (vanishing point at infinity). `direction`: the world axis in OpenCV
+    camera axes (unit). `gaussian_sphere`: the same line's unit vector on the Gaussian sphere, signed
+    to point in front of the camera (z >= 0), whose central projection is the image vanishing point.
+    """
+    K = np.asarray(info["K"], dtype=np.float64)
+    W = np.asarray(info["world_to_camera"], dtype=np.float64)
+    R = W[:3, :3]
+    out: dict[str, Any] = {}
+    for k, name in enumerate("xyz"):
+        d = R[:, k] / np.linalg.norm(R[:, k])
+        image: list[float] | None = None
+        if abs(d[2]) > 1e-12:
+            uv = K[:2, :2] @ (d[:2] / d[2]) + K[:2, 2]
+            image = _floats(uv)
+        g = d if d[2] >= 0 else -d
+        out[name] = {"image": image, "direction": _floats(d), "gaussian_sphere": _floats(g)}
+    out["conventions"] = {
+        "image": "pixels, centre of pixel u at u + 0.5; null = at infinity (axis parallel to the image)",
+        "direction": "world axis in OpenCV camera axes (x right, y down, z forward)",
+        "gaussian_sphere": "unit vector of the axis' line through the camera centre, z >= 0",
+    }
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# JSON
+
+
+def plan_to_dict(plan: SpacePlan) -> dict[str, Any]:
+    """The plan as JSON-ready data (lists of floats, exact round trip)."""
+    return {
+        "format": PLAN_FORMAT,
+        "space_name": plan.space_name,
+        "shortfall": plan.shortfall,
+        "cameras": [
+            {"idx": c.idx, "position": _floats(c.position), "source": c.source, "uuid": c.uuid}
+            for c in plan.cameras
+        ],
+        "points": [
+            {
+                "idx": p.idx, "position": _floats(p.position), "normal": _floats(p.normal), "uuid": p.uuid,
+                "camera_idxs": list(p.camera_idxs),
+            }
+            for p in plan.points
+        ],
+        "views": [
+            {
+                "point_idx": v.point_idx, "v": v.v, "camera_idx": v.camera_idx,
+                "world_to_camera": _floats(v.world_to_camera), "fov": float(v.fov), "roll": float(v.roll),
+                "resolution": int(v.resolution), "obliqueness": float(v.obliqueness),
+                "in_sight": bool(v.in_sight),
+            }
+            for v in plan.views
+        ],
+    }
+
+
+def plan_to_json(plan: SpacePlan) -> str:
+    """Deterministic JSON text of a plan (sorted keys, shortest round-trip floats)."""
+    return json.dumps(plan_to_dict(plan), sort_keys=True, separators=(",", ":"), allow_nan=False)
+
+
+def plan_from_dict(data: dict[str, Any]) -> SpacePlan:
+    """Inverse of plan_to_dict."""
+    if data.get("format") != PLAN_FORMAT:
+        raise ValueError(f"not a plan: format {data.get('format')!r}, expected {PLAN_FORMAT!r}")
+    return SpacePlan(
+        space_name=data["space_name"],
+        cameras=tuple(CameraPose(c["idx"], c["position"], c["source"], c["uuid"]) for c in data["cameras"]),
+        points=tuple(
+            PointOfInterest(p["idx"], p["position"], p["normal"], p["uuid"], tuple(p["camera_idxs"]))
+            for p in data["points"]
+        ),
+        views=tuple(
+            PlannedView(
+                v["point_idx"], v["v"], v["camera_idx"], v["world_to_camera"], v["fov"], v["roll"],
+                v["resolution"], v["obliqueness"], v["in_sight"],
+            )
+            for v in data["views"]
+        ),
+        shortfall=data.get("shortfall"),
+    )
+
+
+def plan_from_json(text: str | bytes) -> SpacePlan:
+    """Inverse of plan_to_json."""
+    return plan_from_dict(json.loads(text))

@@ -1,0 +1,151 @@
+"""Planning: cameras, points of interest and views of one space, as a pure function of its inputs.
+
+`make_plan(space, spec, rng, space_name)` runs cameras -> points -> views with the given
+`numpy.random.Generator` only (no global RNG, bpy, SQL, S3 or Celery), so the same seed and inputs
+give a byte-identical `plan_to_json`. World frame: metres, +Z up (see services.core.spaces).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import time
+import uuid as uuidlib
+
+import numpy as np
+
+from services.core.jobspec import CameraSpec, JobSpec
+from services.core.keys import check_name
+from services.core.plan import CameraPose, PlanError, PlannedView, PointOfInterest, SpacePlan
+from services.core.spaces import LoadedSpace
+from services.scheduler.planning.cameras import generate_cameras, object_cameras, provided_cameras
+from services.scheduler.planning.points import SampledPoints, sample_points
+from services.scheduler.planning.trajectory import trajectory
+from services.scheduler.planning.views import ViewArrays, nonfixated_keep, wide_baseline
+from services.scheduler.planning.visibility import MeshQueries
+
+__all__ = ["make_plan", "space_rng", "PlanError"]
+
+
+def space_rng(seed: int, space_name: str) -> np.random.Generator:
+    """The Generator for one space of a job: depends on the job seed and the space name only, so
+    adding a space to a job does not change the plans of the others."""
+    digest = hashlib.sha256(space_name.encode()).digest()
+    return np.random.default_rng([int(seed), int.from_bytes(digest[:8], "little")])
+
+
+def _uuid(salt: bytes, kind: str, idx: int) -> str:
+    h = hashlib.sha256(salt + f"/{kind}/{idx}".encode()).digest()
+    return str(uuidlib.UUID(bytes=h[:16], version=4))
+
+
+def make_plan(
+    space: LoadedSpace,
+    spec: JobSpec,
+    rng: np.random.Generator,
+    space_name: str,
+    *,
+    timings: dict[str, float] | None = None,
+) -> SpacePlan:
+    """Sample cameras, points and views of `space` as `spec` says; `timings` (if given) receives
+    seconds per stage and the number of rays cast."""
+    check_name("space", space_name)
+    t0 = time.perf_counter()
+    stamp: dict[str, float] = {}
+    q = MeshQueries(space.mesh)
+    salt = rng.bytes(16)
+    cs = spec.cameras
+    if cs.mode == "generate":
+        cams, source = generate_cameras(q, cs, rng), "generated"
+    elif cs.mode == "provided":
+        cams, source = provided_cameras(cs), "provided"
+    else:
+        cams, _, _ = object_cameras(space.mesh, cs, rng)
+        source = "object"
+    t1 = time.perf_counter()
+    stamp["cameras"] = t1 - t0
+    ps = spec.points
+    if len(cams) < ps.min_views:
+        raise PlanError(
+            f"space {space_name!r} has {len(cams)} cameras (mode {cs.mode!r}) but points.min_views is "
+            f"{ps.min_views}: no point could be seen by enough cameras; lower min_views or "
+            "cameras.min_spacing_m, or raise cameras.max_count"
+        )
+    count = ps.count if ps.count is not None else max(1, int(round(ps.per_camera * len(cams))))
+    sampled = sample_points(q, cams, ps, count, rng)
+    t2 = time.perf_counter()
+    stamp["points"] = t2 - t1
+
+    vs = spec.views
+    if vs.mode == "wide_baseline":
+        views = wide_baseline(sampled.positions, sampled.normals, sampled.visible, cams, vs, ps.max_views, rng)
+    else:
+        views = trajectory(
+            sampled.positions, sampled.normals, sampled.visible, cams, vs, ps.max_views, q,
+            ps.los_tolerance_m, rng,
+        )
+    shortfall = sampled.shortfall
+    keep_points = np.arange(len(sampled.positions))
+    if vs.nonfixated_pruning and len(views):
+        views = views.subset(nonfixated_keep(views, sampled.positions, sampled.visible, vs.resolution))
+        n_views = np.bincount(views.point_idx, minlength=len(sampled.positions))
+        keep_points = np.flatnonzero(n_views >= ps.min_views)
+        views = views.subset(np.isin(views.point_idx, keep_points))
+        if len(keep_points) < len(sampled.positions):
+            note = (
+                f"nonfixated pruning kept {len(keep_points)} of {len(sampled.positions)} points "
+                f"(>= {ps.min_views} views that each see another point)"
+            )
+            shortfall = f"{shortfall}; {note}" if shortfall else note
+    t3 = time.perf_counter()
+    stamp["views"] = t3 - t2
+
+    plan = _assemble(space_name, salt, cams, source, cs, sampled, keep_points, views, vs.resolution, shortfall)
+    stamp["assemble"] = time.perf_counter() - t3
+    if timings is not None:
+        timings.update(stamp)
+        timings["rays"] = float(q.rays)
+        timings["total"] = time.perf_counter() - t0
+    return plan
+
+
+def _assemble(
+    space_name: str,
+    salt: bytes,
+    cams: np.ndarray,
+    source: str,
+    cs: CameraSpec,
+    sampled: SampledPoints,
+    keep_points: np.ndarray,
+    views: ViewArrays,
+    resolution: int,
+    shortfall: str | None,
+) -> SpacePlan:
+    given = [p.uuid for p in cs.poses] if source == "provided" and cs.poses else [None] * len(cams)
+    cameras = tuple(
+        CameraPose(idx=i, position=cams[i], source=source, uuid=given[i] or _uuid(salt, "camera", i))
+        for i in range(len(cams))
+    )
+    new_idx = np.full(len(sampled.positions), -1, dtype=np.int64)
+    new_idx[keep_points] = np.arange(len(keep_points))
+    points = tuple(
+        PointOfInterest(
+            idx=k, position=sampled.positions[p], normal=sampled.normals[p],
+            uuid=_uuid(salt, "point", k), camera_idxs=sampled.visible[p],
+        )
+        for k, p in enumerate(keep_points)
+    )
+    # renumber v within each point after pruning
+    pidx = new_idx[views.point_idx]
+    order = np.lexsort((views.v, pidx))
+    pidx = pidx[order]
+    counts = np.bincount(pidx, minlength=len(points)) if len(pidx) else np.zeros(len(points), dtype=np.int64)
+    v = np.arange(len(pidx)) - np.repeat(np.cumsum(counts) - counts, counts)
+    planned = tuple(
+        PlannedView(
+            point_idx=int(pidx[i]), v=int(v[i]), camera_idx=int(views.camera_idx[o]),
+            world_to_camera=views.world_to_camera[o], fov=float(views.fov[o]), roll=float(views.roll[o]),
+            resolution=int(resolution), obliqueness=float(views.obliqueness[o]), in_sight=bool(views.in_sight[o]),
+        )
+        for i, o in enumerate(order)
+    )
+    return SpacePlan(space_name=space_name, cameras=cameras, points=points, views=planned, shortfall=shortfall)

@@ -1,0 +1,151 @@
+"""Fixated views (world metres, radians; world_to_camera into OpenCV axes, see services.core.camera).
+
+wide_baseline: one view per camera-point pair with line of sight; when a point is seen by more than
+max_views cameras, max_views of them are chosen by the rng. Each view looks from the camera straight
+at the point (the point projects to the image centre), with
+  fov ~ normal(fov_mean, fov_std) truncated to [fov_min, fov_max] (inverse-CDF sampling),
+  roll ~ U[-roll_max, roll_max] about the optical axis, relative to gravity (camera.look_at),
+  obliqueness = angle between the point normal and the direction from the point to the camera.
+
+nonfixated_pruning: a view is kept only when its camera also sees (line of sight, inside the image)
+another point that has at least two views, so every kept view carries a cross-view correspondence;
+one pass over the unpruned view counts. Points left with fewer than min_views views are then dropped.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.special import ndtr, ndtri
+
+from services.core.camera import intrinsics
+from services.core.jobspec import ViewSpec
+
+
+@dataclass(frozen=True)
+class ViewArrays:
+    """Views as parallel arrays, sorted by (point_idx, v)."""
+
+    point_idx: np.ndarray  # (n,) int
+    v: np.ndarray  # (n,) int, 0..k-1 within each point
+    camera_idx: np.ndarray  # (n,) int
+    world_to_camera: np.ndarray  # (n, 4, 4)
+    fov: np.ndarray  # (n,) radians
+    roll: np.ndarray  # (n,) radians
+    obliqueness: np.ndarray  # (n,) radians
+    in_sight: np.ndarray  # (n,) bool
+
+    def __len__(self) -> int:
+        return len(self.point_idx)
+
+    def subset(self, keep: np.ndarray) -> ViewArrays:
+        """The views where `keep` is true (v is not renumbered)."""
+        return ViewArrays(*(getattr(self, f)[keep] for f in self.__dataclass_fields__))
+
+
+def truncated_normal(
+    rng: np.random.Generator, mean: float, std: float, lo: float, hi: float, size: int
+) -> np.ndarray:
+    """Samples of normal(mean, std) truncated to [lo, hi] by inverse-CDF (one uniform per sample)."""
+    u = rng.random(size)
+    if std <= 0:
+        return np.full(size, float(np.clip(mean, lo, hi)))
+    a, b = (lo - mean) / std, (hi - mean) / std
+    if a > 0:  # deep in the upper tail: mirror to the lower tail where ndtr keeps its precision
+        x = -ndtri(ndtr(-b) + u * (ndtr(-a) - ndtr(-b)))
+    else:
+        x = ndtri(ndtr(a) + u * (ndtr(b) - ndtr(a)))
+    return np.clip(mean + std * x, lo, hi)
+
+
+def look_at_batch(positions: np.ndarray, targets: np.ndarray, rolls: np.ndarray) -> np.ndarray:
+    """(n, 4, 4) world_to_camera, the vectorised twin of services.core.camera.look_at (same result)."""
+    positions = np.asarray(positions, dtype=np.float64)
+    z = np.asarray(targets, dtype=np.float64) - positions
+    norm = np.linalg.norm(z, axis=1, keepdims=True)
+    if (norm == 0).any():
+        raise ValueError("camera position and target coincide")
+    z = z / norm
+    x = np.cross(z, np.array([0.0, 0.0, 1.0]))
+    flat = np.linalg.norm(x, axis=1) < 1e-9
+    if flat.any():
+        x[flat] = np.cross(z[flat], np.array([0.0, 1.0, 0.0]))
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    y = np.cross(z, x)
+    c, s = np.cos(rolls)[:, None], np.sin(rolls)[:, None]
+    x, y = c * x + s * y, -s * x + c * y
+    W = np.zeros((len(positions), 4, 4))
+    W[:, 0, :3], W[:, 1, :3], W[:, 2, :3] = x, y, z
+    W[:, :3, 3] = -np.einsum("nij,nj->ni", W[:, :3, :3], positions)
+    W[:, 3, 3] = 1.0
+    return W
+
+
+def obliqueness(normals: np.ndarray, points: np.ndarray, cameras: np.ndarray) -> np.ndarray:
+    """Angles (radians) between point normals and the directions from the points to the cameras."""
+    d = cameras - points
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    return np.arccos(np.clip(np.einsum("ij,ij->i", normals, d), -1.0, 1.0))
+
+
+def wide_baseline(
+    positions: np.ndarray,
+    normals: np.ndarray,
+    visible: tuple[np.ndarray, ...],
+    cameras: np.ndarray,
+    spec: ViewSpec,
+    max_views: int | None,
+    rng: np.random.Generator,
+) -> ViewArrays:
+    """One fixated view per visible camera-point pair (at most max_views per point, chosen by rng)."""
+    pidx: list[np.ndarray] = []
+    cidx: list[np.ndarray] = []
+    vidx: list[np.ndarray] = []
+    for p, cams in enumerate(visible):
+        cams = np.asarray(cams, dtype=np.int64)
+        if max_views is not None and len(cams) > max_views:
+            cams = np.sort(rng.choice(cams, size=max_views, replace=False))
+        pidx.append(np.full(len(cams), p, dtype=np.int64))
+        cidx.append(cams)
+        vidx.append(np.arange(len(cams), dtype=np.int64))
+    P = np.concatenate(pidx) if pidx else np.zeros(0, dtype=np.int64)
+    C = np.concatenate(cidx) if cidx else np.zeros(0, dtype=np.int64)
+    V = np.concatenate(vidx) if vidx else np.zeros(0, dtype=np.int64)
+    n = len(P)
+    fov = truncated_normal(
+        rng, np.radians(spec.fov_mean_deg), np.radians(spec.fov_std_deg),
+        np.radians(spec.fov_min_deg), np.radians(spec.fov_max_deg), n,
+    )
+    rmax = np.radians(spec.roll_max_deg)
+    roll = rng.uniform(-rmax, rmax, n)
+    W = look_at_batch(cameras[C], positions[P], roll) if n else np.zeros((0, 4, 4))
+    obl = obliqueness(normals[P], positions[P], cameras[C]) if n else np.zeros(0)
+    return ViewArrays(P, V, C, W, fov, roll, obl, np.ones(n, dtype=bool))
+
+
+def nonfixated_keep(
+    views: ViewArrays, positions: np.ndarray, visible: tuple[np.ndarray, ...], resolution: int
+) -> np.ndarray:
+    """(n_views,) bool: the view's camera sees another point with >= 2 views inside the image."""
+    n_views = np.bincount(views.point_idx, minlength=len(positions))
+    seen_by: dict[int, list[int]] = {}
+    for p, cams in enumerate(visible):
+        if n_views[p] >= 2:
+            for c in cams:
+                seen_by.setdefault(int(c), []).append(p)
+    keep = np.zeros(len(views), dtype=bool)
+    for i in range(len(views)):
+        cand = np.array(seen_by.get(int(views.camera_idx[i]), []), dtype=np.int64)
+        cand = cand[cand != views.point_idx[i]]
+        if len(cand) == 0:
+            continue
+        W = views.world_to_camera[i]
+        cam = positions[cand] @ W[:3, :3].T + W[:3, 3]
+        front = cam[:, 2] > 0
+        if not front.any():
+            continue
+        K = intrinsics(float(views.fov[i]), resolution)
+        uv = cam[front, :2] / cam[front, 2:3] * K[0, 0] + K[:2, 2]
+        keep[i] = bool(((uv >= 0) & (uv < resolution)).all(axis=1).any())
+    return keep

@@ -124,8 +124,19 @@ class CueParams(_Strict):
         (1.0, 1.0, 1.0), description="weights of log-depth, normals, occlusion edges"
     )
     edge_scale: float = Field(
-        1000.0, gt=0, description="16-bit edge/keypoint images store round(response * edge_scale)"
+        1000.0, gt=0, description="16-bit edge images (edge_texture, edge_occlusion) store round(response * edge_scale)"
     )
+    keypoints2d_scale: float = Field(
+        250_000.0, gt=0,
+        description="keypoints2d stores round(DoH response * scale); the DoH of a [0,1] image peaks near 0.06-0.25",
+    )
+    segment_max_superpixels: int = Field(
+        512, ge=2, le=4096, description="Felzenszwalb regions before normalized cuts, at most (bounds the cost)"
+    )
+    segment_ncut_sigma: float = Field(
+        255.0, gt=0, description="RAG similarity exp(-|mean difference|^2 / sigma), features on a 0..255 scale"
+    )
+    segment_num_cuts: int = Field(10, ge=1, le=100, description="thresholds tried per normalized cut")
 
 
 class JobSpec(_Strict):

@@ -1,0 +1,212 @@
+"""Benchmark: render throughput of one worker process on one CPU core, 512x512, all default cues (DESIGN.md s7).
+
+For each real scan (ycb_banana: textured OBJ; stanford_bunny full resolution: untextured PLY) it plans a few
+fixated views (cameras on a sphere, object mode; fov ~ truncated normal, roll +-10 deg), then:
+- amortised: one render per view, every default cue derived from its passes (including point_info, nonfixated
+  and vanishing_points, one point per view), timed end to end including loading the space (Blender scene,
+  curvature) - and in steady state (space already loaded);
+- naive: one full render per label (a fresh context per cue: render + that cue's inputs + the cue), for the
+  first view of each scan, measured in the same run; the ratio is amortised / naive labels per second.
+The process pins itself to one core (like `taskset -c 0`) before importing numpy/bpy unless --cores is given.
+Writes bench/results/render.json. Run: .venv/bin/python bench/render.py [--views 4] [--resolution 512]
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+# One core, one thread everywhere, before numpy/bpy start their pools.
+if "--cores" not in sys.argv and hasattr(os, "sched_setaffinity"):
+    os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
+for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_v, "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import platform  # noqa: E402
+import time  # noqa: E402
+from collections import defaultdict  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+import trimesh  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from services.core.camera import look_at  # noqa: E402
+from services.core.cues import default_cues  # noqa: E402
+from services.core.jobspec import CueParams  # noqa: E402
+from services.core.plan import CameraPose, PlannedView, PointOfInterest, SpacePlan  # noqa: E402
+from services.core.spaces import load_space  # noqa: E402
+from services.worker.executor import make_context, produce  # noqa: E402
+from services.worker.space_cache import SpaceContext, peak_rss_bytes, rss_bytes  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "bench" / "results"
+SCENES = {
+    "ycb_banana": ROOT.parent / "shared" / "scenes" / "ycb_banana" / "textured_simple_reoriented.obj",
+    "stanford_bunny": ROOT.parent / "shared" / "scenes" / "stanford_bunny" / "bun_zipper.ply",
+}
+
+
+def plan_views(mesh: object, n: int, resolution: int, rng: np.random.Generator) -> SpacePlan:
+    """n fixated views of random surface points from cameras on a sphere (2x the bounding radius)."""
+    centre = mesh.bounds.mean(axis=0)  # type: ignore[attr-defined]
+    radius = float(np.linalg.norm(mesh.extents)) / 2  # type: ignore[attr-defined]
+    pts, fidx = trimesh.sample.sample_surface(mesh, n, seed=int(rng.integers(1 << 31)))[:2]
+    normals = mesh.face_normals[fidx]  # type: ignore[attr-defined]
+    cams, points, views = [], [], []
+    for i in range(n):
+        d = normals[i] + rng.normal(scale=0.4, size=3)  # a camera on the side the point faces
+        pos = centre + d / np.linalg.norm(d) * 2.0 * radius
+        fov = float(np.radians(np.clip(rng.normal(77.5, 15.0), 30.0, 125.0)))
+        roll = float(np.radians(rng.uniform(-10, 10)))
+        W = look_at(pos, pts[i], roll_rad=roll)
+        cams.append(CameraPose(i, pos, "object", f"cam-{i}"))
+        points.append(PointOfInterest(i, pts[i], normals[i], f"pt-{i}", (i,)))
+        to_cam = (pos - pts[i]) / np.linalg.norm(pos - pts[i])
+        obl = float(np.arccos(np.clip(abs(np.dot(to_cam, normals[i])), -1, 1)))
+        views.append(PlannedView(i, 0, i, W, fov, roll, resolution, obl, True))
+    return SpacePlan("bench", tuple(cams), tuple(points), tuple(views))
+
+
+def run_scene(name: str, path: Path, n_views: int, resolution: int, naive_views: int,
+              rng: np.random.Generator) -> dict:
+    """Amortised and naive throughput for one scan."""
+    params = CueParams()
+    t_load0 = time.perf_counter()
+    loaded = load_space(path)
+    space = SpaceContext.from_loaded(loaded, key=name)
+    t_loaded = time.perf_counter()
+    plan = plan_views(loaded.mesh, n_views, resolution, rng)
+    cues = default_cues(space.has_semantics)
+    per_cue: defaultdict[str, float] = defaultdict(float)
+    intermediates: defaultdict[str, float] = defaultdict(float)
+    render_s: list[float] = []
+    labels, view_s = 0, []
+    t0 = time.perf_counter()
+    for view in plan.views:
+        tv = time.perf_counter()
+        ctx = make_context(space, view, cues, params, plan=plan)
+        files = {c: produce(c, ctx) for c in cues}
+        view_s.append(time.perf_counter() - tv)
+        labels += len(files)
+        render_s.append(ctx.timings.get("render", 0.0))
+        for k, v in ctx.timings.items():
+            if k.startswith("cue:"):
+                per_cue[k[4:]] += v
+            elif k.startswith("encode:"):
+                per_cue[k[7:]] += v
+            elif k != "render":
+                intermediates[k] += v
+    amortised_s = time.perf_counter() - t0
+    scene_setup_s = space.stats.get("scene_build_s", 0.0) + space.stats.get("curvature_s", 0.0)
+    steady_s = sum(view_s[1:]) if len(view_s) > 1 else view_s[0]
+    steady_labels = labels - len(cues) if len(view_s) > 1 else labels
+
+    # Naive: one full render per label for the first views (same loaded scene, fresh context per cue).
+    naive_labels, t1 = 0, time.perf_counter()
+    naive_renders = 0
+    for view in plan.views[:naive_views]:
+        for cue in cues:
+            ctx = make_context(space, view, [cue], params, plan=plan)
+            produce(cue, ctx)
+            naive_renders += "render" in ctx.timings
+            naive_labels += 1
+    naive_s = time.perf_counter() - t1
+    space.close()
+
+    # Naive and cold: every label also loads its space (Blender scene, curvature) as a one-shot renderer does.
+    cold_cues = [c for c in ("rgb", "depth_zbuffer", "principal_curvature") if c in cues]
+    t2 = time.perf_counter()
+    for cue in cold_cues:
+        cold = SpaceContext.from_loaded(loaded, key=f"{name}-cold")
+        produce(cue, make_context(cold, plan.views[0], [cue], params, plan=plan))
+        cold.close()
+    cold_s = time.perf_counter() - t2
+
+    amortised_incl_load = labels / (amortised_s + (t_loaded - t_load0))
+    return {
+        "faces": int(loaded.face_count),
+        "textured": bool(loaded.has_texture),
+        "views": n_views,
+        "labels": labels,
+        "cues": cues,
+        "load_space_s": round(t_loaded - t_load0, 3),
+        "scene_build_and_curvature_s": round(scene_setup_s, 3),
+        "amortised_s": round(amortised_s, 3),
+        "labels_per_s_amortised": round(labels / amortised_s, 2),
+        "labels_per_s_amortised_incl_load": round(amortised_incl_load, 2),
+        "labels_per_s_steady": round(steady_labels / steady_s, 2),
+        "view_s": [round(v, 3) for v in view_s],
+        "render_s_first": round(render_s[0], 3),
+        "render_s_mean_after_first": round(float(np.mean(render_s[1:] or render_s)), 3),
+        "per_cue_s_mean": {k: round(v / n_views, 4) for k, v in sorted(per_cue.items(), key=lambda kv: -kv[1])},
+        "intermediates_s_mean": {k: round(v / n_views, 4)
+                                 for k, v in sorted(intermediates.items(), key=lambda kv: -kv[1])},
+        "naive_labels": naive_labels,
+        "naive_renders": naive_renders,
+        "naive_s": round(naive_s, 3),
+        "labels_per_s_naive": round(naive_labels / naive_s, 2),
+        "speedup_vs_naive": round((labels / amortised_s) / (naive_labels / naive_s), 2),
+        "naive_cold_labels": len(cold_cues),
+        "labels_per_s_naive_cold": round(len(cold_cues) / cold_s, 2),
+        "speedup_vs_naive_cold": round((labels / amortised_s) / (len(cold_cues) / cold_s), 2),
+    }
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--views", type=int, default=8, help="views per scan")
+    ap.add_argument("--naive-views", type=int, default=1, help="views per scan measured the naive way")
+    ap.add_argument("--resolution", type=int, default=512)
+    ap.add_argument("--scenes", default=",".join(SCENES), help="comma-separated: " + ",".join(SCENES))
+    ap.add_argument("--cores", type=int, default=None, help="do not pin to one core (for comparison)")
+    ap.add_argument("--out", type=Path, default=RESULTS / "render.json")
+    args = ap.parse_args()
+    rng = np.random.default_rng(0)
+    t0 = time.perf_counter()
+    scenes = {n: run_scene(n, SCENES[n], args.views, args.resolution, args.naive_views, rng)
+              for n in args.scenes.split(",")}
+    total_labels = sum(s["labels"] for s in scenes.values())
+    total_s = sum(s["amortised_s"] for s in scenes.values())
+    naive_labels = sum(s["naive_labels"] for s in scenes.values())
+    naive_s = sum(s["naive_s"] for s in scenes.values())
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    result = {
+        "benchmark": "render",
+        "resolution": args.resolution,
+        "cores": cores,
+        "device": "cpu",
+        "labels_per_s_per_core_amortised": round(total_labels / total_s / cores, 2),
+        "labels_per_s_per_core_naive": round(naive_labels / naive_s / cores, 2),
+        "speedup_vs_naive": round((total_labels / total_s) / (naive_labels / naive_s), 2),
+        "speedup_vs_naive_cold": round((total_labels / total_s) / (
+            sum(s["naive_cold_labels"] for s in scenes.values())
+            / sum(s["naive_cold_labels"] / s["labels_per_s_naive_cold"] for s in scenes.values())), 2),
+        "target_labels_per_s_per_core": 10,
+        "peak_rss_mb": round(peak_rss_bytes() / 2**20, 1),
+        "rss_end_mb": round(rss_bytes() / 2**20, 1),
+        "wall_s": round(time.perf_counter() - t0, 2),
+        "scenes": scenes,
+        "machine": {"python": platform.python_version(), "platform": platform.platform(),
+                    "cpu": platform.processor() or platform.machine()},
+        "notes": "amortised = all views incl. the first render (Cycles kernel/scene sync) and the space's curvature;"
+                 " labels_per_s_amortised_incl_load adds load_space; steady = views after the first;"
+                 " naive = one render per label with the scene kept loaded (Cycles persistent data);"
+                 " naive_cold = one render per label that also builds the Blender scene (+ curvature when needed)",
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=1) + "\n")
+    print(json.dumps({k: v for k, v in result.items() if k != "scenes"}, indent=1))
+    for n, s in scenes.items():
+        print(n, {k: s[k] for k in ("labels_per_s_amortised", "labels_per_s_steady", "labels_per_s_naive",
+                                    "speedup_vs_naive", "labels_per_s_naive_cold", "render_s_first",
+                                    "render_s_mean_after_first", "scene_build_and_curvature_s")})
+        print("  per cue (s/view):", s["per_cue_s_mean"])
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

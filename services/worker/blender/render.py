@@ -1,0 +1,224 @@
+"""Cycles set-up and the one render per view: every pass lands in one multilayer float32 EXR, read back to numpy.
+
+Camera: Blender's camera looks down its local -Z with +Y up; from an OpenCV world_to_camera W (metres),
+matrix_world = inverse(W) @ diag(1, -1, -1, 1) (services.core.camera.blender_matrix_world). sensor_fit HORIZONTAL
+and `angle` = the horizontal fov (radians) give f = (W/2)/tan(fov/2) pixels; square images, zero shift, so the
+principal point is the image centre and pixel (u, v) is sampled at its centre (u + 0.5, v + 0.5): one sample per
+pixel with a 0.01 px box filter, fixed seed, no denoising, 0 light bounces.
+
+Passes read back (linear float32, row 0 = top):
+- Combined: the emission shader = unlit colour (scene-linear; sRGB-encoded here so that 8-bit output reproduces
+  the texture's 8-bit values: the same as view transform Standard, look None, exposure 0, gamma 1, display sRGB);
+- Depth: Cycles' Z pass is the distance along the camera's optical axis (planar z), 1e10 where nothing is hit;
+- Normal: world-space shading normal; faces are flat-shaded, so it is the triangle's geometric normal, and Cycles
+  turns it towards the incoming ray for back-facing hits;
+- AOVs (float32, exact integers below 2^24): face index + 1 split into two 16-bit halves (exact for any mesh
+  below 2^32 - 1 faces, so no ray-cast fallback is needed), class and instance ids, curvature k1 and k2
+  (per-vertex values interpolated barycentrically over the triangle).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import sys
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Literal
+
+import bpy
+import numpy as np
+import OpenEXR
+from mathutils import Matrix
+
+from services.core.camera import blender_matrix_world
+from services.worker.passes import NO_FACE, NO_LABEL, ViewGeometry, ViewPasses
+
+log = logging.getLogger(__name__)
+
+Device = Literal["auto", "cpu", "cuda", "optix"]
+DEVICES: tuple[str, ...] = ("auto", "cpu", "cuda", "optix")
+
+# AOV names (view-layer passes) filled by the material in scene.py.
+AOV_FACE_HI = "omni_face_hi"
+AOV_FACE_LO = "omni_face_lo"
+AOV_CLASS = "omni_class"
+AOV_INSTANCE = "omni_instance"
+AOV_K1 = "omni_k1"
+AOV_K2 = "omni_k2"
+AOVS = (AOV_FACE_HI, AOV_FACE_LO, AOV_CLASS, AOV_INSTANCE, AOV_K1, AOV_K2)
+
+CLIP_START_M = 1e-4
+CLIP_END_M = 1e6
+_MISS_DEPTH = 1e9  # Cycles writes 1e10 where a ray hits nothing
+
+
+@dataclass(frozen=True)
+class RenderOptions:
+    """How to run Cycles: device ("auto" tries OptiX then CUDA, else CPU) and CPU threads (None: this process's
+    CPU affinity, so `taskset -c 0` gives one thread)."""
+
+    device: Device = "cpu"
+    threads: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.device not in DEVICES:
+            raise ValueError(f"render device {self.device!r} is not one of {', '.join(DEVICES)}")
+
+
+def configure_device(scene: bpy.types.Scene, device: str) -> str:
+    """Select the Cycles device; returns the one in use ("cpu", "cuda" or "optix"), falling back to the CPU."""
+    scene.cycles.device = "CPU"
+    if device == "cpu":
+        return "cpu"
+    prefs = bpy.context.preferences.addons["cycles"].preferences
+    kinds = ["OPTIX", "CUDA"] if device == "auto" else [device.upper()]
+    for kind in kinds:
+        try:
+            prefs.compute_device_type = kind
+            prefs.refresh_devices()
+        except (TypeError, ValueError, RuntimeError):  # backend not compiled into this bpy build
+            continue
+        gpus = [d for d in prefs.devices if d.type == kind]
+        if gpus:
+            for d in prefs.devices:
+                d.use = d.type == kind
+            scene.cycles.device = "GPU"
+            log.info("Cycles renders on %s: %s", kind, ", ".join(d.name for d in gpus))
+            return kind.lower()
+    prefs.compute_device_type = "NONE"
+    level = logging.INFO if device == "auto" else logging.WARNING
+    log.log(level, "render device %r requested but no %s device found: rendering on the CPU", device,
+            "/".join(kinds))
+    return "cpu"
+
+
+def configure_scene(scene: bpy.types.Scene, options: RenderOptions, output_path: str) -> str:
+    """Cycles settings for pixel-centre, noise-free pass rendering; returns the device in use."""
+    scene.render.engine = "CYCLES"
+    cy = scene.cycles
+    cy.samples = 1
+    cy.use_adaptive_sampling = False
+    cy.use_denoising = False
+    cy.seed = 0
+    cy.pixel_filter_type = "BOX"
+    cy.filter_width = 0.01
+    for attr in ("max_bounces", "diffuse_bounces", "glossy_bounces", "transmission_bounces",
+                 "volume_bounces", "transparent_max_bounces"):
+        setattr(cy, attr, 0)
+    cy.caustics_reflective = False
+    cy.caustics_refractive = False
+    cy.use_auto_tile = False
+    r = scene.render
+    r.use_persistent_data = True  # keep the BVH and textures between the views of a space
+    r.film_transparent = True
+    r.use_compositing = False
+    r.use_sequencer = False
+    r.resolution_percentage = 100
+    r.pixel_aspect_x = r.pixel_aspect_y = 1.0
+    r.threads_mode = "FIXED"
+    r.threads = options.threads or len(os.sched_getaffinity(0))
+    r.use_file_extension = False
+    r.filepath = output_path
+    im = r.image_settings
+    im.file_format = "OPEN_EXR_MULTILAYER"
+    im.color_depth = "32"  # float: the index AOVs must stay exact
+    im.exr_codec = "NONE"  # the file lives for milliseconds in a temp dir: do not spend time compressing
+    vs = scene.view_settings
+    for attr, value in (("view_transform", "Standard"), ("look", "None")):
+        try:
+            setattr(vs, attr, value)
+        except TypeError:  # some bpy builds ship a reduced OCIO config; we encode sRGB ourselves anyway
+            log.debug("view setting %s=%s unavailable", attr, value)
+    vs.exposure = 0.0
+    vs.gamma = 1.0
+    with contextlib.suppress(TypeError):
+        scene.display_settings.display_device = "sRGB"
+    layer = scene.view_layers[0]
+    layer.use_pass_combined = True
+    layer.use_pass_z = True
+    layer.use_pass_normal = True
+    for name in AOVS:
+        if name not in [a.name for a in layer.aovs]:
+            aov = layer.aovs.add()
+            aov.name = name
+            aov.type = "VALUE"
+    return configure_device(scene, options.device)
+
+
+def set_camera(scene: bpy.types.Scene, cam: bpy.types.Object, g: ViewGeometry) -> None:
+    """Pose the camera from an OpenCV world_to_camera and a horizontal fov (radians); square resolution."""
+    cam.matrix_world = Matrix(blender_matrix_world(g.world_to_camera).tolist())
+    data = cam.data
+    data.type = "PERSP"
+    data.sensor_fit = "HORIZONTAL"
+    data.lens_unit = "FOV"
+    data.angle = float(g.fov)
+    data.shift_x = data.shift_y = 0.0
+    data.clip_start = CLIP_START_M
+    data.clip_end = CLIP_END_M
+    scene.render.resolution_x = scene.render.resolution_y = int(g.resolution)
+
+
+@contextlib.contextmanager
+def _quiet_stdout() -> Iterator[None]:
+    """Silence Blender's per-render progress lines (C-level stdout) so worker logs stay readable."""
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):  # stdout replaced by something without a descriptor
+        yield
+        return
+    sys.stdout.flush()
+    saved = os.dup(fd)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, fd)
+        yield
+    finally:
+        os.dup2(saved, fd)
+        os.close(saved)
+        os.close(devnull)
+
+
+def srgb_encode(linear: np.ndarray) -> np.ndarray:
+    """Scene-linear [0, 1] -> 8-bit sRGB (IEC 61966-2-1 piecewise curve), uint8."""
+    x = np.clip(linear, 0.0, 1.0)
+    s = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+    return np.rint(s * 255.0).astype(np.uint8)
+
+
+def render_passes(scene: bpy.types.Scene, cam: bpy.types.Object, g: ViewGeometry, *, labelled: bool,
+                  curvature: bool) -> ViewPasses:
+    """Render one view and return its passes (see the module docstring for frames and units)."""
+    set_camera(scene, cam, g)
+    with _quiet_stdout():
+        bpy.ops.render.render(write_still=True)
+    channels = {name: ch.pixels for name, ch in OpenEXR.File(scene.render.filepath).parts[0].channels.items()}
+    layer = scene.view_layers[0].name
+
+    def ch(name: str) -> np.ndarray:
+        return channels[f"{layer}.{name}"]
+
+    def aov(name: str) -> np.ndarray:
+        key = f"{layer}.{name}"
+        return channels[key] if key in channels else channels[f"{key}.X"]  # value AOVs come as one channel
+
+    face1 = aov(AOV_FACE_HI).astype(np.int64) * 65536 + aov(AOV_FACE_LO).astype(np.int64)  # face index + 1
+    depth = ch("Depth.Z") if f"{layer}.Depth.Z" in channels else ch("Depth")
+    hit = (face1 > 0) & (depth < _MISS_DEPTH)
+    face_index = np.where(hit, face1 - 1, int(NO_FACE)).astype(np.uint32)
+    depth_z = np.where(hit, depth, np.inf).astype(np.float32)
+    normal = np.stack([ch("Normal.X"), ch("Normal.Y"), ch("Normal.Z")], axis=-1)
+    norm = np.linalg.norm(normal, axis=-1, keepdims=True)
+    normal = np.where(hit[..., None] & (norm > 0), normal / np.maximum(norm, 1e-12), 0.0).astype(np.float32)
+    combined = ch("Combined")
+    rgb = np.where(hit[..., None], srgb_encode(combined[..., :3]), 0).astype(np.uint8)
+    passes = ViewPasses(geometry=g, depth_z=depth_z, normal_world=normal, rgb=rgb, face_index=face_index)
+    if labelled:
+        passes.face_class = np.where(hit, np.rint(aov(AOV_CLASS)), NO_LABEL).astype(np.int32)
+        passes.face_instance = np.where(hit, np.rint(aov(AOV_INSTANCE)), NO_LABEL).astype(np.int32)
+    if curvature:
+        k = np.stack([aov(AOV_K1), aov(AOV_K2)], axis=-1)
+        passes.curvature = np.where(hit[..., None], k, np.nan).astype(np.float32)
+    return passes

@@ -1,0 +1,89 @@
+"""ViewContext: everything one view's cues are computed from, with per-view memoisation of intermediates.
+
+A context holds the view geometry, the cue parameters, and either a ready pass set (loaded from the `passes`
+cache) or the space to render it from (rendered at most once, on first use). Intermediate arrays (valid mask,
+camera-space normals, euclidean distance, superpixels...) and cue values are memoised, so derived cues compute
+their inputs from the passes once per view.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any, TypeVar
+
+from services.core.jobspec import CueParams
+from services.worker.passes import ViewGeometry, ViewPasses
+
+if TYPE_CHECKING:
+    from services.worker.space_cache import SpaceContext
+
+T = TypeVar("T")
+
+
+class SemanticsUnavailableError(ValueError):
+    """A semantic cue was asked of a view whose space has no face labels."""
+
+
+class ViewContext:
+    """Inputs and memo of one view. `view` is a ViewGeometry or anything with world_to_camera/fov/resolution."""
+
+    def __init__(self, view: Any, params: CueParams | None = None, *, passes: ViewPasses | None = None,
+                 space: SpaceContext | None = None, plan: Any = None, point_info: dict | None = None,
+                 render_curvature: bool = True):
+        self.view = view
+        self.geometry = passes.geometry if passes is not None and view is None else ViewGeometry.of(view)
+        self.params = params or CueParams()
+        self.space = space
+        self.plan = plan
+        self.point_info_override = point_info
+        self.render_curvature = render_curvature
+        self._passes = passes
+        self._memo: dict[str, Any] = {}
+        self.timings: dict[str, float] = {}  # exclusive seconds per cue value / intermediate / "render"
+        self._nested: list[float] = []
+
+    @property
+    def has_passes(self) -> bool:
+        """True once the pass set exists (given or rendered)."""
+        return self._passes is not None
+
+    @property
+    def passes(self) -> ViewPasses:
+        """The view's pass set, rendering it from the space on first use (one render per view)."""
+        if self._passes is None:
+            if self.space is None:
+                raise RuntimeError("this view has neither a pass set nor a space to render it from")
+            space = self.space
+            self._passes = self.memo(
+                "render", lambda: space.render(self.geometry, self.params, curvature=self.render_curvature)
+            )
+        return self._passes
+
+    @property
+    def resolution(self) -> int:
+        """Square image size in pixels."""
+        return self.geometry.resolution
+
+    def memo(self, key: str, fn: Callable[[], T]) -> T:
+        """Compute `fn()` once per view under `key` and record how long it took."""
+        if key not in self._memo:
+            # Exclusive timings: time spent in nested memo entries (e.g. the render) is booked to them.
+            t0 = time.perf_counter()
+            self._nested.append(0.0)
+            try:
+                self._memo[key] = fn()
+            finally:
+                nested = self._nested.pop()
+                dt = time.perf_counter() - t0
+                self.timings[key] = dt - nested
+                if self._nested:
+                    self._nested[-1] += dt
+        return self._memo[key]
+
+    def value(self, cue: str) -> Any:
+        """The value of `cue` for this view (array, dict or bytes), computed once."""
+        from services.worker.cues import get_impl
+
+        impl = get_impl(cue)
+        return self.memo(f"cue:{cue}", lambda: impl.fn(self))

@@ -1,0 +1,18 @@
+"""Cue implementations, one module per family, collected into one registry (STYLE.md item 5).
+
+Adding a cue: a catalog entry in services/core/cues.py, an `@register("name")` function in a family module
+below, and (for a new family) one import line here.
+"""
+
+from services.worker.cues import (  # noqa: F401  (imported for their @register side effect)
+    basic,
+    edges,
+    keypoints,
+    plan_cues,
+    segmentation,
+    semantic,
+)
+from services.worker.cues.encoding import encode
+from services.worker.cues.registry import REGISTRY, CueImpl, get_impl, register
+
+__all__ = ["REGISTRY", "CueImpl", "encode", "get_impl", "register"]

@@ -1,0 +1,110 @@
+"""Cues read (almost) directly from the pass set: rgb, normal, depths, mask, reshading, curvature, position,
+fragments, and the internal `passes` cue (DESIGN.md section 5 encodings; units in metres)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from services.worker.context import ViewContext
+from services.worker.cues.common import (
+    euclidean_m,
+    hit,
+    normal_cam,
+    ray_dirs_cam,
+    to_uint16_depth,
+    valid,
+)
+from services.worker.cues.registry import register
+from services.worker.passes import NO_FACE
+
+NORMAL_BACKGROUND = 128
+CURVATURE_BACKGROUND = 0  # R = G = B = 0 where nothing is seen (use mask_valid); B is always 0
+CURVATURE_FLAT = 127
+
+
+@register("passes")
+def passes(ctx: ViewContext) -> bytes:
+    """The whole pass set as .npz bytes (the worker-side cache every render cue can be made from)."""
+    return ctx.passes.to_bytes()
+
+
+@register("rgb")
+def rgb(ctx: ViewContext) -> np.ndarray:
+    """uint8 H x W x 3 unlit sRGB colour (texture / vertex colour / grey); black where nothing is seen."""
+    return np.ascontiguousarray(ctx.passes.rgb, dtype=np.uint8)
+
+
+@register("normal")
+def normal(ctx: ViewContext) -> np.ndarray:
+    """uint8 H x W x 3: 255*(0.5-0.5x, 0.5+0.5y, 0.5+0.5z) of the camera-space normal; 128 where nothing is seen."""
+    n = normal_cam(ctx)
+    px = np.rint(255.0 * (0.5 + 0.5 * n * np.array([-1.0, 1.0, 1.0], dtype=np.float32)))
+    return np.where(hit(ctx)[..., None], np.clip(px, 0, 255), NORMAL_BACKGROUND).astype(np.uint8)
+
+
+@register("depth_zbuffer")
+def depth_zbuffer(ctx: ViewContext) -> np.ndarray:
+    """uint16 H x W optical-axis depth in 1/512 m (depth_units_per_m); 65535 = none or deeper than max_depth_m."""
+    return to_uint16_depth(ctx, ctx.passes.depth_z, valid(ctx))
+
+
+@register("depth_euclidean")
+def depth_euclidean(ctx: ViewContext) -> np.ndarray:
+    """uint16 H x W distance to the camera centre, same units; 65535 where depth_zbuffer is none (or overflow)."""
+    return to_uint16_depth(ctx, euclidean_m(ctx), valid(ctx))
+
+
+@register("mask_valid")
+def mask_valid(ctx: ViewContext) -> np.ndarray:
+    """uint8 H x W: 255 where depth_zbuffer is valid, else 0."""
+    return np.where(valid(ctx), 255, 0).astype(np.uint8)
+
+
+def reshading_intensity(ctx: ViewContext) -> np.ndarray:
+    """float32 H x W: albedo * max(0, n.l), l = unit vector from the surface to the camera (no falloff)."""
+    n_cv = normal_cam(ctx) * np.array([1.0, -1.0, -1.0], dtype=np.float32)  # back to OpenCV axes
+    cos = -np.einsum("hwc,hwc->hw", n_cv, ray_dirs_cam(ctx))  # l = -ray direction
+    return (ctx.params.reshading_albedo * np.maximum(cos, 0.0)).astype(np.float32)
+
+
+@register("reshading")
+def reshading(ctx: ViewContext) -> np.ndarray:
+    """uint8 H x W grey albedo lit by a point light at the camera, no indirect light, no distance falloff.
+
+    Analytic from the rendered normal and the view ray: I = albedo * max(0, n.l) with l the unit vector from the
+    surface point to the camera centre; px = round(255 * I); 0 where nothing is seen. The light's intensity does
+    not fall off with distance (a 1/d^2 falloff would make the image depend on the scene's scale and need an
+    exposure knob; shading is what this cue is about).
+    """
+    i = reshading_intensity(ctx)
+    return np.where(hit(ctx), np.rint(255.0 * i), 0).astype(np.uint8)
+
+
+@register("principal_curvature")
+def principal_curvature(ctx: ViewContext) -> np.ndarray:
+    """uint8 H x W x 3: R, G = k1, k2 clipped to +-1/curvature_clip_m mapped linearly to 0..254 (127 = flat), B = 0.
+
+    Curvature is per vertex (services.worker.curvature, 1/m, positive = convex, k1 >= k2), interpolated over the
+    seen triangle by the renderer. Where nothing is seen all three channels are 0 (background, see mask_valid).
+    """
+    k = ctx.passes.curvature
+    if k is None:
+        raise RuntimeError("principal_curvature needs a pass set rendered with curvature (render_curvature=True)")
+    kmax = 1.0 / ctx.params.curvature_clip_m
+    px = np.rint((np.clip(np.nan_to_num(k), -kmax, kmax) / kmax + 1.0) * CURVATURE_FLAT)
+    out = np.zeros(k.shape[:2] + (3,), dtype=np.uint8)
+    out[..., :2] = np.where(hit(ctx)[..., None], px, CURVATURE_BACKGROUND)
+    return out
+
+
+@register("position")
+def position(ctx: ViewContext) -> np.ndarray:
+    """float32 H x W x 3 world XYZ (metres) of the seen surface, NaN where nothing is seen; from depth and pose."""
+    return ctx.passes.position_world()
+
+
+@register("fragments")
+def fragments(ctx: ViewContext) -> np.ndarray:
+    """uint32 H x W index of the seen triangle in the space's mesh faces, 4294967295 = none."""
+    f = np.asarray(ctx.passes.face_index, dtype=np.uint32)
+    return np.where(hit(ctx), f, NO_FACE).astype(np.uint32)

@@ -1,0 +1,92 @@
+"""Per-view intermediates shared by several cues, each memoised in the ViewContext.
+
+Frames: `normal_cam` uses DESIGN.md's camera axes for normals (x right, y up, z towards the viewer);
+`ray_dirs_cam` uses OpenCV camera axes (x right, y down, z forward). Depth in metres.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from services.worker.context import ViewContext
+
+UINT16_NONE = 65535
+
+
+def hit(ctx: ViewContext) -> np.ndarray:
+    """bool H x W: some surface is seen (regardless of max depth)."""
+    return ctx.memo("hit", lambda: ctx.passes.hit)
+
+
+def depth_m(ctx: ViewContext) -> np.ndarray:
+    """float32 H x W optical-axis depth in metres, inf where nothing is seen."""
+    return ctx.passes.depth_z
+
+
+def ray_dirs_cam(ctx: ViewContext) -> np.ndarray:
+    """float32 H x W x 3 unit pixel-centre ray directions, OpenCV camera axes."""
+    return ctx.memo("ray_dirs_cam", lambda: ctx.geometry.ray_directions_cam().astype(np.float32))
+
+
+def euclidean_m(ctx: ViewContext) -> np.ndarray:
+    """float32 H x W distance from the camera centre in metres (z / cos of the ray's angle to the axis), inf = none."""
+    return ctx.memo("euclidean_m", lambda: (depth_m(ctx) / ray_dirs_cam(ctx)[..., 2]).astype(np.float32))
+
+
+def valid(ctx: ViewContext) -> np.ndarray:
+    """bool H x W: depth is representable: a surface, z <= max_depth_m, and round(z * units) <= 65534."""
+
+    def compute() -> np.ndarray:
+        p = ctx.params
+        z = depth_m(ctx)
+        with np.errstate(invalid="ignore", over="ignore"):
+            return hit(ctx) & (z <= p.max_depth_m) & (np.rint(z * p.depth_units_per_m) < UINT16_NONE)
+
+    return ctx.memo("valid", compute)
+
+
+def to_uint16_depth(ctx: ViewContext, metres: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """round(metres * units) as uint16 where mask (and representable), 65535 elsewhere."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        q = np.rint(np.where(mask, metres, 0.0) * ctx.params.depth_units_per_m)
+    ok = mask & (q < UINT16_NONE)
+    return np.where(ok, q, UINT16_NONE).astype(np.uint16)
+
+
+def normal_cam(ctx: ViewContext) -> np.ndarray:
+    """float32 H x W x 3 unit normals in camera axes x right, y up, z towards the viewer; 0 where no surface."""
+
+    def compute() -> np.ndarray:
+        R = ctx.geometry.rotation.astype(np.float32)
+        n_cv = ctx.passes.normal_world @ R.T  # world -> OpenCV camera axes
+        # Face the camera: Cycles already flips back-facing hits; this guards interpolated or user normals.
+        facing = np.einsum("hwc,hwc->hw", n_cv, ray_dirs_cam(ctx)) > 0
+        n_cv = np.where(facing[..., None], -n_cv, n_cv)
+        n = n_cv * np.array([1.0, -1.0, -1.0], dtype=np.float32)  # OpenCV (x right, y down, z fwd) -> DESIGN axes
+        return np.where(hit(ctx)[..., None], n, 0.0).astype(np.float32)
+
+    return ctx.memo("normal_cam", compute)
+
+
+def grey(ctx: ViewContext) -> np.ndarray:
+    """float32 H x W luma (Rec. 601 weights) of the 8-bit sRGB colour, in [0, 1]."""
+
+    def compute() -> np.ndarray:
+        rgb = ctx.passes.rgb.astype(np.float32)
+        return (rgb @ np.array([0.299, 0.587, 0.114], dtype=np.float32)) / 255.0
+
+    return ctx.memo("grey", compute)
+
+
+def sobel_magnitude(img: np.ndarray) -> np.ndarray:
+    """Sobel gradient magnitude (scipy's unnormalised 3x3 kernels: a unit step gives 4), float32."""
+    from scipy.ndimage import sobel
+
+    gx = sobel(img, axis=1, mode="nearest")
+    gy = sobel(img, axis=0, mode="nearest")
+    return np.hypot(gx, gy).astype(np.float32)
+
+
+def to_uint16_scaled(values: np.ndarray, scale: float) -> np.ndarray:
+    """round(values * scale) clipped to 0..65535, uint16."""
+    return np.clip(np.rint(values * scale), 0, 65535).astype(np.uint16)

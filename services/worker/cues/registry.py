@@ -1,0 +1,57 @@
+"""The cue registry: each cue family module declares its cues with `@register(name)` (STYLE.md item 5).
+
+A cue function takes the view's ViewContext and returns the cue's value: a numpy array in the catalog's dtype and
+shape (H x W or H x W x 3), a JSON-able dict for plan cues, or bytes for the internal `passes` cue. Encoding to
+file bytes is separate (services.worker.cues.encoding) and driven by the catalog entry.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+from services.core.cues import CATALOG, Cue, UnknownCueError
+
+if TYPE_CHECKING:
+    from services.worker.context import ViewContext
+
+CueFn = Callable[["ViewContext"], Any]
+
+
+@dataclass(frozen=True)
+class CueImpl:
+    """A registered cue: its catalog entry and the function computing its value from a ViewContext."""
+
+    name: str
+    fn: CueFn
+
+    @property
+    def spec(self) -> Cue:
+        """The catalog entry (file type, dtype, channels, inputs)."""
+        return CATALOG[self.name]
+
+
+REGISTRY: dict[str, CueImpl] = {}
+
+
+def register(name: str) -> Callable[[CueFn], CueFn]:
+    """Decorator declaring the function of catalog cue `name` (one function per cue)."""
+    if name not in CATALOG:
+        raise UnknownCueError([name])
+
+    def deco(fn: CueFn) -> CueFn:
+        if name in REGISTRY:
+            raise ValueError(f"cue {name!r} is registered twice ({REGISTRY[name].fn.__module__}, {fn.__module__})")
+        REGISTRY[name] = CueImpl(name, fn)
+        return fn
+
+    return deco
+
+
+def get_impl(name: str) -> CueImpl:
+    """The registered implementation of `name`; UnknownCueError (listing the known cues) otherwise."""
+    try:
+        return REGISTRY[name]
+    except KeyError:
+        raise UnknownCueError([name]) from None

@@ -1,0 +1,98 @@
+"""Cue registry and file encodings: every catalog cue is registered, files have the documented format."""
+
+from __future__ import annotations
+
+import io
+import json
+import struct
+import zlib
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from services.core.cues import CATALOG, OUTPUT_CUES, UnknownCueError
+from services.worker.cues import REGISTRY, encode, get_impl
+from services.worker.cues.encoding import decode_exr_rgb, encode_png
+from services.worker.cues.semantic import pack_panoptic, unpack_panoptic
+
+
+def png_header(data: bytes) -> tuple[int, int, int, int]:
+    """(width, height, bit depth, colour type) from a PNG's IHDR chunk, checking signature and CRC."""
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    length, kind = struct.unpack(">I4s", data[8:16])
+    assert kind == b"IHDR" and length == 13
+    body = data[16:29]
+    assert struct.unpack(">I", data[29:33])[0] == zlib.crc32(kind + body)
+    w, h, depth, ctype = struct.unpack(">IIBB", body[:10])
+    return w, h, depth, ctype
+
+
+def test_every_catalog_cue_is_registered() -> None:
+    assert set(REGISTRY) == set(CATALOG)
+
+
+def test_unknown_cue_error_lists_known_cues() -> None:
+    with pytest.raises(UnknownCueError) as e:
+        get_impl("depth_banana")
+    msg = str(e.value)
+    assert "depth_banana" in msg
+    assert all(c in msg for c in OUTPUT_CUES)
+
+
+def test_png_16bit_is_real_16bit_and_round_trips() -> None:
+    a = (np.arange(64 * 48, dtype=np.uint32) * 21 % 65536).astype(np.uint16).reshape(48, 64)
+    data = encode("depth_zbuffer", a)
+    assert png_header(data) == (64, 48, 16, 0)  # 16-bit greyscale
+    back = np.array(Image.open(io.BytesIO(data)))
+    np.testing.assert_array_equal(back.astype(np.uint16), a)
+    assert back.max() > 255
+
+
+def test_png_8bit_rgb_and_grey() -> None:
+    rgb = np.random.default_rng(0).integers(0, 256, (16, 20, 3)).astype(np.uint8)
+    data = encode("normal", rgb)
+    assert png_header(data) == (20, 16, 8, 2)
+    np.testing.assert_array_equal(np.array(Image.open(io.BytesIO(data))), rgb)
+    grey = rgb[..., 0]
+    assert png_header(encode("mask_valid", grey)) == (20, 16, 8, 0)
+
+
+def test_encode_refuses_wrong_dtype_and_shape() -> None:
+    with pytest.raises(TypeError, match="uint16"):
+        encode("depth_zbuffer", np.zeros((4, 4), dtype=np.float32))
+    with pytest.raises(ValueError, match="shape"):
+        encode("rgb", np.zeros((4, 4), dtype=np.uint8))
+    with pytest.raises(TypeError):
+        encode_png(np.zeros((4, 4), dtype=np.int32))
+
+
+def test_npy_and_exr_round_trip() -> None:
+    f = np.array([[0, 7], [4294967295, 123456789]], dtype=np.uint32)
+    back = np.load(io.BytesIO(encode("fragments", f)))
+    assert back.dtype == np.uint32
+    np.testing.assert_array_equal(back, f)
+    pos = np.random.default_rng(1).normal(size=(8, 6, 3)).astype(np.float32)
+    pos[0, 0] = np.nan
+    data = encode("position", pos)
+    assert data[:4] == b"\x76\x2f\x31\x01"  # OpenEXR magic
+    np.testing.assert_array_equal(decode_exr_rgb(data), pos)
+
+
+def test_json_is_deterministic_and_plain() -> None:
+    a = {"b": np.float64(1.5), "a": np.arange(3), "c": {"z": np.int64(2), "y": (1, 2)}}
+    b = {"c": {"y": (1, 2), "z": 2}, "a": [0, 1, 2], "b": 1.5}
+    assert encode("point_info", a) == encode("point_info", b)
+    assert json.loads(encode("point_info", a)) == {"a": [0, 1, 2], "b": 1.5, "c": {"y": [1, 2], "z": 2}}
+
+
+def test_panoptic_packing_round_trips() -> None:
+    rng = np.random.default_rng(2)
+    cls = rng.integers(0, 256, (32, 32)).astype(np.uint8)
+    inst = rng.integers(0, 65536, (32, 32)).astype(np.uint16)
+    packed = pack_panoptic(cls, inst)
+    assert packed.dtype == np.uint8 and packed.shape == (32, 32, 3)
+    np.testing.assert_array_equal(packed[..., 1].astype(int) * 256 + packed[..., 2], inst)
+    c2, i2 = unpack_panoptic(np.array(Image.open(io.BytesIO(encode("segment_panoptic", packed)))))
+    np.testing.assert_array_equal(c2, cls)
+    np.testing.assert_array_equal(i2, inst)

@@ -33,9 +33,16 @@ bench: venv services
 	@mkdir -p bench/results
 	@set -e; for f in bench/*.py; do echo "== $$f"; $(BIN)/python $$f; done
 
-# Placeholder until the end-to-end demo lands.
+# The main job on the embedded default (SQLite + local folder + local worker processes): two real scans,
+# every default cue, then a contact sheet. Running it again resumes and renders only what is missing.
+DEMO_OUT ?= demo-out
+SCENES ?= ../shared/scenes
 demo: venv
-	$(BIN)/omnidata --help
+	$(BIN)/omnidata generate $(SCENES)/ycb_banana $(SCENES)/stanford_bunny/bun_zipper_res2.ply \
+		--out $(DEMO_OUT) --spec examples/objects.yaml
+	$(BIN)/omnidata sheet $(DEMO_OUT) --views 6
+	@echo "outputs: $(abspath $(DEMO_OUT)) (manifest.jsonl, job.json, <cue>/<component>/<space>/...)"
+	@echo "contact sheet: $(abspath $(DEMO_OUT))/contact_sheet.png"
 
 clean:
 	rm -rf .pytest_cache .mypy_cache .ruff_cache build dist out demo-out test-artifacts

@@ -74,10 +74,25 @@ def display_image(cue: str, path: Path) -> np.ndarray | None:
         return _colourise_ids(img.astype(np.int64))
     if img.dtype == np.uint16 or img.dtype == np.int32:
         valid = img < 65535 if cue.startswith("depth") else None
-        img = _stretch(img.astype(np.float64), valid)
+        shown = _stretch(img.astype(np.float64), valid)
+        img = shown if valid is None else np.where(valid, shown, 0).astype(np.uint8)
     if img.ndim == 2:
         img = np.stack([img] * 3, axis=-1)
     return img[..., :3].astype(np.uint8)
+
+
+def _pick_views(lines: list[dict], n: int) -> list[dict]:
+    """Up to n manifest lines, taken round-robin across spaces so every space shows."""
+    by_space: dict[str, list[dict]] = {}
+    for line in lines:
+        by_space.setdefault(line["space"], []).append(line)
+    picked: list[dict] = []
+    queues = list(by_space.values())
+    while len(picked) < n and any(queues):
+        for q in queues:
+            if q and len(picked) < n:
+                picked.append(q.pop(0))
+    return picked
 
 
 def build_sheet(root: Path, *, views: int = 4, thumb: int = 128) -> Image.Image:
@@ -85,7 +100,7 @@ def build_sheet(root: Path, *, views: int = 4, thumb: int = 128) -> Image.Image:
     manifest = root / "manifest.jsonl"
     if not manifest.is_file():
         raise CliError(f"{root} holds no manifest.jsonl: is it the output folder of `omnidata generate`?")
-    lines = [json.loads(x) for x in manifest.read_text().splitlines() if x.strip()][:views]
+    lines = _pick_views([json.loads(x) for x in manifest.read_text().splitlines() if x.strip()], views)
     if not lines:
         raise CliError(f"{manifest} lists no views")
     cues = [c for c in CATALOG if any(c in ln["outputs"] for ln in lines) and CATALOG[c].ext != "json"]

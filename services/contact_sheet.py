@@ -42,7 +42,9 @@ def _stretch(a: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
     if vals.size == 0:
         return np.zeros(a.shape, np.uint8)
     lo, hi = np.percentile(vals, [1, 99])
-    out = np.clip((a - lo) / max(hi - lo, 1e-9), 0, 1)
+    if hi - lo < 1e-9:  # a constant image shows mid-grey, not black
+        lo, hi = lo - 1.0, lo + 1.0
+    out = np.clip((a - lo) / (hi - lo), 0, 1)
     out = np.nan_to_num(out, nan=0.0)
     return (out * 255).astype(np.uint8)
 

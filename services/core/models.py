@@ -219,7 +219,7 @@ class Task(Base):
     __table_args__ = (
         UniqueConstraint("job_id", "space_id", "point_idx", "view_idx", "cue"),
         Index("ix_task_job_id_state", "job_id", "state"),
-        Index("ix_task_job_id_state_id", "job_id", "state", "id"),  # dispatch: ready tasks oldest first (0002)
+        Index("ix_task_job_id_state_cue_id", "job_id", "state", "cue", "id"),  # dispatch: oldest first per cue (0002)
         Index("ix_task_state_lease_until", "state", "lease_until"),
         CheckConstraint(_state_check(TASK_STATES), name="state"),
     )

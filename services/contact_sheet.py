@@ -121,7 +121,7 @@ def build_sheet(root: Path, *, views: int = 4, thumb: int = 128) -> Image.Image:
                 continue
             img = display_image(cue, root / out["key"])
             if img is not None:
-                tile = Image.fromarray(img).resize((thumb, thumb), Image.NEAREST)
+                tile = Image.fromarray(img).resize((thumb, thumb), Image.Resampling.NEAREST)
                 sheet.paste(tile, (pad + j * (thumb + pad), y + label_h))
     return sheet
 

@@ -1,0 +1,129 @@
+"""The FastAPI application (DESIGN.md sections 1, 3, 7): `create_app(settings)` wires routes, storage and the database.
+
+Routes live in feature folders (spaces, jobs, views, outputs, workers, progress, ops), each with endpoints.py
+(HTTP), schemas.py (API models, separate from ORM rows) and service.py (logic taking keyword arguments).
+The dashboard is static HTML/JS/CSS served at /ui. This service imports only services.core (never the
+scheduler, the worker or bpy).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from dataclasses import dataclass
+from typing import Any
+
+from fastapi import FastAPI
+from fastapi.responses import RedirectResponse
+from sqlalchemy import Engine
+
+from services.api.dashboard.endpoints import mount_dashboard
+from services.api.errors import install_error_handlers
+from services.api.jobs.endpoints import router as jobs_router
+from services.api.jobs.service import RateTracker
+from services.api.ops.endpoints import router as ops_router
+from services.api.outputs.endpoints import router as outputs_router
+from services.api.progress.endpoints import router as progress_router
+from services.api.spaces.endpoints import router as spaces_router
+from services.api.views.endpoints import router as views_router
+from services.api.workers.endpoints import router as workers_router
+from services.core.db import make_engine, make_sessionmaker
+from services.core.settings import Settings, get_settings
+from services.core.storage import ObjectStore, open_store
+
+log = logging.getLogger("omnidata.api")
+
+API_VERSION = "0.1.0"
+
+OPENAPI_TAGS = [
+    {"name": "spaces", "description": "Upload and register scans (meshes, or .zip/.glb with textures)."},
+    {"name": "jobs", "description": "Generation jobs: create, list, progress, cancel/pause/resume/retry, delete."},
+    {"name": "views", "description": "Plans and tasks of a job: cameras, points, views, task states and errors."},
+    {"name": "outputs", "description": "Pre-signed links to a view's cue files; the job's manifest and job.json."},
+    {"name": "progress", "description": "Server-sent events with live progress counters."},
+    {"name": "workers", "description": "Render workers and their heartbeats."},
+    {"name": "ops", "description": "Health, readiness and Prometheus metrics."},
+]
+
+
+@dataclass(frozen=True)
+class SSEConfig:
+    """How often the SSE routes poll the counters and send heartbeat comments (seconds)."""
+
+    poll_s: float = 0.5
+    heartbeat_s: float = 15.0
+
+
+def create_app(
+    settings: Settings | None = None,
+    *,
+    store: ObjectStore | None = None,
+    engine: Engine | None = None,
+    sse: SSEConfig | None = None,
+) -> FastAPI:
+    """Build the API for `settings` (default: from the environment); `store`/`engine` override the settings'."""
+    settings = settings or get_settings()
+    # 50+ concurrent progress pollers share the pool with SSE pollers: a bigger pool than SQLAlchemy's 5+10.
+    # No pre-ping: it is one more round trip per request (a third of a progress poll). After a Postgres
+    # restart the first request on a dead connection gets a 503, SQLAlchemy invalidates the pool, and the
+    # next requests reconnect.
+    engine_kwargs: dict[str, Any] = (
+        {} if settings.is_sqlite else {"pool_size": 20, "max_overflow": 20, "pool_pre_ping": False, "pool_recycle": 1800}
+    )
+    engine = engine or make_engine(settings.database_url, **engine_kwargs)
+    store = store if store is not None else open_store(settings.storage_url, settings)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        yield
+        redis = app.state.redis
+        if redis is not None:
+            redis.close()
+        engine.dispose()
+
+    app = FastAPI(
+        title="Omnidata API",
+        version=API_VERSION,
+        description=(
+            "Steerable multi-task vision datasets from 3D scans. Every route but /health needs "
+            "`Authorization: Bearer <token>`; a tenant only sees its own spaces, jobs and outputs."
+        ),
+        openapi_tags=OPENAPI_TAGS,
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+    app.state.engine = engine
+    app.state.sessionmaker = make_sessionmaker(engine)
+    # Reads (progress polls, lists) need no transaction: autocommit saves the BEGIN and ROLLBACK round trips.
+    read_engine = engine if settings.is_sqlite else engine.execution_options(isolation_level="AUTOCOMMIT")
+    app.state.read_sessionmaker = make_sessionmaker(read_engine)
+    app.state.store = store
+    app.state.redis = None  # created on first use by ops.service.redis_client
+    app.state.rates = RateTracker()
+    app.state.sse = sse or SSEConfig()
+    app.state.metrics_cache = {}
+
+    install_error_handlers(app)
+    for router in (
+        ops_router,
+        spaces_router,
+        jobs_router,
+        views_router,
+        outputs_router,
+        progress_router,
+        workers_router,
+    ):
+        app.include_router(router)
+    mount_dashboard(app)
+
+    @app.get("/", include_in_schema=False)
+    def root() -> RedirectResponse:
+        return RedirectResponse("/ui/")
+
+    return app
+
+
+def app_from_env() -> FastAPI:
+    """Factory for `uvicorn --factory services.api.app:app_from_env` (settings from OMNIDATA_* variables)."""
+    return create_app(get_settings())

@@ -1,0 +1,1 @@
+"""dashboard feature of the API."""

@@ -1,0 +1,84 @@
+"""Exception handlers: every error is JSON `{"detail": "<clear message>"}`; client mistakes are never a 500.
+
+Validation errors keep pydantic's field locations in `errors` ([{loc, msg, type}]) and summarise them in
+`detail` ("body.spec.views.resolution: Input should be less than or equal to 4096").
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from fastapi import FastAPI, Request, status
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from sqlalchemy.exc import DataError, IntegrityError, OperationalError
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+log = logging.getLogger("omnidata.api")
+
+
+def _loc(loc: Any) -> list[str | int]:
+    return [p if isinstance(p, int) else str(p) for p in loc]
+
+
+def validation_errors(errors: Any) -> list[dict[str, Any]]:
+    """Pydantic errors reduced to JSON-safe {loc, msg, type} (inputs are not echoed back)."""
+    return [{"loc": _loc(e.get("loc", ())), "msg": str(e.get("msg", "")), "type": str(e.get("type", ""))} for e in errors]
+
+
+def summarize(errors: list[dict[str, Any]]) -> str:
+    """One line naming each failing field: `loc.path: message; ...`."""
+    parts = []
+    for e in errors[:10]:
+        where = ".".join(str(p) for p in e["loc"])
+        parts.append(f"{where}: {e['msg']}" if where else e["msg"])
+    if len(errors) > 10:
+        parts.append(f"... and {len(errors) - 10} more")
+    return "; ".join(parts) or "invalid request"
+
+
+def error_response(status_code: int, detail: str, **extra: Any) -> JSONResponse:
+    """A JSON error response with `detail` and optional extra fields."""
+    return JSONResponse({"detail": detail, **extra}, status_code=status_code)
+
+
+async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+    detail = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
+    return JSONResponse({"detail": detail}, status_code=exc.status_code, headers=getattr(exc, "headers", None))
+
+
+async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
+    errors = validation_errors(exc.errors())
+    return error_response(status.HTTP_422_UNPROCESSABLE_CONTENT, summarize(errors), errors=errors)
+
+
+async def _data_error(request: Request, exc: DataError) -> JSONResponse:
+    # The database refused a value the request carried (out of range, bad encoding): the client's mistake.
+    msg = str(getattr(exc, "orig", exc)).splitlines()[0]
+    return error_response(status.HTTP_422_UNPROCESSABLE_CONTENT, f"invalid value: {msg}")
+
+
+async def _integrity_error(request: Request, exc: IntegrityError) -> JSONResponse:
+    msg = str(getattr(exc, "orig", exc)).splitlines()[0]
+    return error_response(status.HTTP_409_CONFLICT, f"conflict with existing data: {msg}")
+
+
+async def _operational_error(request: Request, exc: OperationalError) -> JSONResponse:
+    log.warning("database unavailable: %s", exc)
+    return error_response(status.HTTP_503_SERVICE_UNAVAILABLE, "database unavailable, try again shortly")
+
+
+async def _unhandled(request: Request, exc: Exception) -> JSONResponse:
+    log.exception("unhandled error on %s %s", request.method, request.url.path)
+    return error_response(status.HTTP_500_INTERNAL_SERVER_ERROR, "internal server error")
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    """Register the handlers above on `app`."""
+    app.add_exception_handler(StarletteHTTPException, _http_error)  # type: ignore[arg-type]
+    app.add_exception_handler(RequestValidationError, _validation_error)  # type: ignore[arg-type]
+    app.add_exception_handler(DataError, _data_error)  # type: ignore[arg-type]
+    app.add_exception_handler(IntegrityError, _integrity_error)  # type: ignore[arg-type]
+    app.add_exception_handler(OperationalError, _operational_error)  # type: ignore[arg-type]
+    app.add_exception_handler(Exception, _unhandled)

@@ -1,0 +1,198 @@
+"""Readiness checks (database, broker, storage) and Prometheus metrics built from the database and Redis.
+
+Metrics come from the progress counters (tasks by state, dispatch and completion counts), Redis LLEN of the
+queues, worker heartbeats, and one aggregate over task durations for the histogram; the whole text is
+cached for a few seconds so frequent scrapes of a 1M-task database stay cheap.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from datetime import timedelta
+from typing import Any
+
+import redis as redis_lib
+from fastapi import FastAPI
+from sqlalchemy import case, func, select, text
+from sqlalchemy.orm import Session
+
+from services.api.workers.service import WORKER_STALE_S
+from services.core.models import JOB_STATES, TASK_STATES, Job, JobCounter, Task, Worker, utcnow
+
+CHECK_TIMEOUT_S = 3.0
+METRICS_TTL_S = 5.0
+DURATION_BUCKETS_S = (0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0, 120.0, 300.0)
+_metrics_lock = threading.Lock()
+
+
+def redis_client(app: FastAPI) -> redis_lib.Redis | None:
+    """The app's Redis client for the broker URL (None when the broker is not Redis)."""
+    url: str = app.state.settings.broker_url
+    if not url.startswith(("redis://", "rediss://", "unix://")):
+        return None
+    if app.state.redis is None:
+        app.state.redis = redis_lib.Redis.from_url(url, socket_timeout=2.0, socket_connect_timeout=2.0)
+    client: redis_lib.Redis = app.state.redis
+    return client
+
+
+@dataclass
+class Check:
+    """Outcome of one readiness check."""
+
+    ok: bool
+    latency_ms: float
+    error: str | None = None
+    skipped: bool = False
+
+
+async def _run(fn: Callable[[], Any]) -> Check:
+    t0 = time.perf_counter()
+    try:
+        await asyncio.wait_for(asyncio.to_thread(fn), timeout=CHECK_TIMEOUT_S)
+        return Check(ok=True, latency_ms=round((time.perf_counter() - t0) * 1000, 2))
+    except TimeoutError:
+        return Check(False, round((time.perf_counter() - t0) * 1000, 2), f"no answer within {CHECK_TIMEOUT_S:.0f} s")
+    except Exception as e:  # any failure of a dependency means "not ready", with the reason
+        return Check(False, round((time.perf_counter() - t0) * 1000, 2), f"{type(e).__name__}: {e}"[:300])
+
+
+async def readiness(app: FastAPI) -> dict[str, Check]:
+    """Check the database (SELECT 1), the broker (Redis PING) and the object store, concurrently."""
+
+    def db() -> None:
+        with app.state.engine.connect() as conn:
+            conn.execute(text("SELECT 1"))
+
+    def storage() -> None:
+        app.state.store.exists("_ready/probe")
+
+    client = redis_client(app)
+
+    def broker() -> None:
+        assert client is not None
+        if not client.ping():
+            raise ConnectionError("PING was not answered with PONG")
+
+    names = ["database", "storage"] + (["broker"] if client is not None else [])
+    fns: list[Callable[[], Any]] = [db, storage] + ([broker] if client is not None else [])
+    results = await asyncio.gather(*(_run(f) for f in fns))
+    checks = dict(zip(names, results, strict=True))
+    if client is None:
+        checks["broker"] = Check(ok=True, latency_ms=0.0, skipped=True)
+    return checks
+
+
+# ---------------------------------------------------------------------------------------------- metrics
+
+
+def _esc(v: str) -> str:
+    return v.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n")
+
+
+def _fmt(v: float) -> str:
+    return str(int(v)) if float(v).is_integer() else repr(float(v))
+
+
+class _Text:
+    def __init__(self) -> None:
+        self.lines: list[str] = []
+
+    def family(self, name: str, kind: str, help_text: str) -> None:
+        self.lines.append(f"# HELP {name} {help_text}")
+        self.lines.append(f"# TYPE {name} {kind}")
+
+    def sample(self, name: str, value: float, **labels: str) -> None:
+        lab = ",".join(f'{k}="{_esc(v)}"' for k, v in labels.items())
+        self.lines.append(f"{name}{{{lab}}} {_fmt(value)}" if lab else f"{name} {_fmt(value)}")
+
+    def render(self) -> str:
+        return "\n".join(self.lines) + "\n"
+
+
+def queue_depths(app: FastAPI) -> dict[str, int | None]:
+    """LLEN of the render and derive queues (None when Redis cannot be reached or is not the broker)."""
+    settings = app.state.settings
+    queues = [settings.queue_render, settings.queue_derive]
+    client = redis_client(app)
+    if client is None:
+        return dict.fromkeys(queues)
+    try:
+        pipe = client.pipeline()
+        for q in queues:
+            pipe.llen(q)
+        return {q: int(n) for q, n in zip(queues, pipe.execute(), strict=True)}
+    except redis_lib.RedisError:
+        return dict.fromkeys(queues)
+
+
+def build_metrics(session: Session, app: FastAPI) -> str:
+    """The Prometheus text exposition of the service's state."""
+    out = _Text()
+    by_state = dict.fromkeys(TASK_STATES, 0)
+    for state, n in session.execute(select(JobCounter.state, func.sum(JobCounter.n)).group_by(JobCounter.state)):
+        by_state[state] = int(n or 0)
+    out.family("omnidata_tasks", "gauge", "Tasks by state over all jobs (from the progress counters).")
+    for s in TASK_STATES:
+        out.sample("omnidata_tasks", by_state.get(s, 0), state=s)
+
+    jobs = dict.fromkeys(JOB_STATES, 0)
+    for state, n in session.execute(select(Job.state, func.count()).group_by(Job.state)):
+        jobs[state] = int(n)
+    out.family("omnidata_jobs", "gauge", "Jobs by state.")
+    for s in JOB_STATES:
+        out.sample("omnidata_jobs", jobs.get(s, 0), state=s)
+
+    dispatched = sum(by_state[s] for s in ("queued", "running", "done", "failed"))
+    out.family(
+        "omnidata_tasks_dispatched_total", "counter", "Tasks handed to the broker at least once (existing jobs)."
+    )
+    out.sample("omnidata_tasks_dispatched_total", dispatched)
+    out.family("omnidata_tasks_completed_total", "counter", "Tasks that finished, by result (existing jobs).")
+    out.sample("omnidata_tasks_completed_total", by_state["done"], result="done")
+    out.sample("omnidata_tasks_completed_total", by_state["failed"], result="failed")
+
+    out.family("omnidata_queue_depth", "gauge", "Messages waiting in a broker queue (Redis LLEN); -1 if unknown.")
+    for q, n in queue_depths(app).items():
+        out.sample("omnidata_queue_depth", -1 if n is None else n, queue=q)
+
+    cutoff = utcnow() - timedelta(seconds=WORKER_STALE_S)
+    alive = session.scalar(select(func.count()).select_from(Worker).where(Worker.last_heartbeat >= cutoff)) or 0
+    total_workers = session.scalar(select(func.count()).select_from(Worker)) or 0
+    out.family("omnidata_workers", "gauge", f"Workers by heartbeat (alive: within {WORKER_STALE_S:.0f} s).")
+    out.sample("omnidata_workers", alive, status="alive")
+    out.sample("omnidata_workers", total_workers - alive, status="stale")
+
+    cols = [func.sum(case((Task.duration_s <= b, 1), else_=0)) for b in DURATION_BUCKETS_S]
+    rows = session.execute(
+        select(Task.cue, *cols, func.count(), func.sum(Task.duration_s))
+        .where(Task.state == "done", Task.duration_s.is_not(None))
+        .group_by(Task.cue)
+        .order_by(Task.cue)
+    ).all()
+    out.family("omnidata_task_duration_seconds", "histogram", "Run time of finished tasks, by cue.")
+    for row in rows:
+        cue, counts, n, total_s = row[0], row[1 : 1 + len(DURATION_BUCKETS_S)], row[-2], row[-1]
+        for b, c in zip(DURATION_BUCKETS_S, counts, strict=True):
+            out.sample("omnidata_task_duration_seconds_bucket", int(c or 0), cue=cue, le=_fmt(b))
+        out.sample("omnidata_task_duration_seconds_bucket", int(n), cue=cue, le="+Inf")
+        out.sample("omnidata_task_duration_seconds_sum", float(total_s or 0.0), cue=cue)
+        out.sample("omnidata_task_duration_seconds_count", int(n), cue=cue)
+    return out.render()
+
+
+def cached_metrics(app: FastAPI) -> str:
+    """build_metrics, reused for METRICS_TTL_S seconds (one builder at a time)."""
+    cache: dict[str, Any] = app.state.metrics_cache
+    with _metrics_lock:
+        hit = cache.get("text")
+        if hit is not None and time.monotonic() - hit[0] < METRICS_TTL_S:
+            return str(hit[1])
+        with app.state.read_sessionmaker() as session:
+            body = build_metrics(session, app)
+        cache["text"] = (time.monotonic(), body)
+        return body

@@ -1,0 +1,1 @@
+"""outputs feature of the API."""

@@ -1,0 +1,121 @@
+"""Output routes: a view's cue files as pre-signed links, the job's manifest.jsonl and job.json, signed blobs."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Annotated
+
+from fastapi import APIRouter, HTTPException, Path, Query, Request, status
+from fastapi.responses import FileResponse, JSONResponse, Response, StreamingResponse
+from sqlalchemy import select
+
+from services.api.deps import ReadSessionDep, SettingsDep, StoreDep, TenantDep
+from services.api.jobs.service import get_job
+from services.api.outputs import service
+from services.api.outputs.schemas import ViewOutputs
+from services.api.spaces.service import not_found
+from services.core.manifest import iter_manifest_lines, job_document
+from services.core.models import Space, View
+from services.core.storage import LocalStore, ObjectNotFoundError, check_key
+
+router = APIRouter(tags=["outputs"])
+
+JobId = Annotated[int, Path(ge=1, le=2**63 - 1)]
+SpaceId = Annotated[int, Path(ge=1, le=2**63 - 1)]
+Index = Annotated[int, Path(ge=0, le=2**31 - 1)]
+
+
+@router.get(
+    "/jobs/{job_id}/views/{space_id}/{point}/{view}/outputs",
+    response_model=ViewOutputs,
+    summary="Output files of a view (pre-signed links)",
+)
+def view_outputs(
+    job_id: JobId,
+    space_id: SpaceId,
+    point: Index,
+    view: Index,
+    request: Request,
+    session: ReadSessionDep,
+    store: StoreDep,
+    settings: SettingsDep,
+    tenant: TenantDep,
+) -> ViewOutputs:
+    """Links to every finished cue file of view `view` of point `point`; they expire after presign_expiry_s."""
+    job = get_job(session, owner=tenant, job_id=job_id)
+    row = session.execute(
+        select(View.v, Space.name)
+        .join(Space, Space.id == View.space_id)
+        .where(View.job_id == job.id, View.space_id == space_id, View.point_idx == point, View.v == view)
+    ).first()
+    if row is None:
+        raise not_found("view", f"{space_id}/{point}/{view} of job {job_id}")
+    tasks = service.view_tasks(session, job=job, space_id=space_id, point=point, view=view)
+    outputs = service.links(
+        store, settings, job=job, space_name=row[1], tasks=tasks, base_url=str(request.base_url)
+    )
+    return ViewOutputs(job_id=job.id, space_id=space_id, space=row[1], point=point, view=view, outputs=outputs)
+
+
+@router.get(
+    "/jobs/{job_id}/manifest.jsonl",
+    summary="The job's manifest (one JSON line per view)",
+    response_class=StreamingResponse,
+    responses={200: {"content": {"application/x-ndjson": {}}}},
+)
+def manifest(job_id: JobId, request: Request, session: ReadSessionDep, tenant: TenantDep) -> StreamingResponse:
+    """manifest.jsonl rebuilt from the database: {space, point, view, outputs: {cue: {key, size, sha256}}} per line."""
+    get_job(session, owner=tenant, job_id=job_id)  # 404 before the stream starts
+    maker = request.app.state.read_sessionmaker
+
+    def lines() -> Iterator[bytes]:
+        # The request's session may be closed before the body is sent: stream from a session of our own.
+        with maker() as s:
+            job = get_job(s, owner=tenant, job_id=job_id)
+            for line in iter_manifest_lines(s, job):
+                yield line.encode("utf-8")
+
+    return StreamingResponse(
+        lines(),
+        media_type="application/x-ndjson",
+        headers={"Content-Disposition": f'attachment; filename="job-{job_id}-manifest.jsonl"'},
+    )
+
+
+@router.get("/jobs/{job_id}/job.json", summary="The job's job.json (spec, conventions, cue encodings, spaces)")
+def job_json(job_id: JobId, session: ReadSessionDep, tenant: TenantDep) -> JSONResponse:
+    """job.json rebuilt from the database."""
+    job = get_job(session, owner=tenant, job_id=job_id)
+    return JSONResponse(job_document(session, job))
+
+
+@router.get(
+    "/blobs/{key:path}",
+    summary="Fetch an output through a signed link (local stores)",
+    responses={200: {"content": {"application/octet-stream": {}}}, 403: {"description": "bad or expired link"}},
+)
+def blob(
+    key: str,
+    store: StoreDep,
+    settings: SettingsDep,
+    expires: Annotated[int, Query(ge=0, le=2**62)],
+    signature: Annotated[str, Query(pattern="^[0-9a-f]{64}$", description="hex HMAC from the link")],
+) -> Response:
+    """Serve an object named by a link from the outputs routes; the signature is the credential."""
+    service.verify_blob(settings, key=key, expires=expires, signature=signature)
+    try:
+        check_key(key)
+    except ValueError:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, "no such object") from None
+    headers = {"Cache-Control": "private, max-age=300"}
+    media = service.content_type(key)
+    if isinstance(store, LocalStore):
+        path = store.path(key)
+        if not path.is_file():
+            raise HTTPException(status.HTTP_404_NOT_FOUND, "no such object")
+        return FileResponse(path, media_type=media, headers=headers)
+    try:
+        data = store.get_bytes(key)
+    except ObjectNotFoundError:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, "no such object") from None
+    return Response(data, media_type=media, headers=headers)

@@ -1,0 +1,120 @@
+"""Output links: pre-signed URLs that expire (S3's own; for a local store, HMAC-signed links served by the API).
+
+A job's outputs are the done tasks' objects under its output root. S3 stores sign their own GET URLs; a local
+folder store has no URL a browser can fetch, so the API signs `/blobs/<key>?expires=&signature=` with
+HMAC-SHA256(secret_key) and serves the file only while the signature is valid and unexpired.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import time
+from collections.abc import Iterable
+from datetime import UTC, datetime
+from urllib.parse import quote
+
+from fastapi import HTTPException, status
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from services.api.outputs.schemas import OutputLink
+from services.core.cues import CATALOG
+from services.core.jobs import job_root, root_key
+from services.core.keys import output_key
+from services.core.models import Job, Task
+from services.core.settings import Settings
+from services.core.storage import ObjectStore
+
+CONTENT_TYPES = {
+    "png": "image/png",
+    "json": "application/json",
+    "jsonl": "application/x-ndjson",
+    "npy": "application/octet-stream",
+    "npz": "application/octet-stream",
+    "exr": "image/x-exr",
+}
+PUBLIC_CUES = tuple(n for n, c in CATALOG.items() if not c.internal)
+
+
+def content_type(key: str) -> str:
+    """MIME type from the key's extension."""
+    return CONTENT_TYPES.get(key.rsplit(".", 1)[-1].lower(), "application/octet-stream")
+
+
+def blob_signature(settings: Settings, key: str, expires: int) -> str:
+    """HMAC-SHA256 (hex) of `key` and its expiry (unix seconds) under the service's secret key."""
+    msg = f"{key}\n{expires}".encode()
+    return hmac.new(settings.secret_key.get_secret_value().encode(), msg, hashlib.sha256).hexdigest()
+
+
+def verify_blob(settings: Settings, *, key: str, expires: int, signature: str, now: float | None = None) -> None:
+    """403 unless `signature` signs `key` until `expires` and that time has not passed."""
+    if not hmac.compare_digest(blob_signature(settings, key, expires).encode(), signature.encode("utf-8", "replace")):
+        raise HTTPException(status.HTTP_403_FORBIDDEN, "invalid link signature")
+    if (time.time() if now is None else now) > expires:
+        raise HTTPException(status.HTTP_403_FORBIDDEN, "link expired; ask the API for a fresh one")
+
+
+def presign(store: ObjectStore, settings: Settings, *, key: str, base_url: str) -> tuple[str, datetime]:
+    """A URL fetching `key` without a token until the returned time (settings.presign_expiry_s from now)."""
+    expiry_s = settings.presign_expiry_s
+    expires = int(time.time()) + expiry_s
+    url = store.presigned_url(key, expiry_s)
+    if not url.startswith(("http://", "https://")):
+        sig = blob_signature(settings, key, expires)
+        url = f"{base_url.rstrip('/')}/blobs/{quote(key)}?expires={expires}&signature={sig}"
+    return url, datetime.fromtimestamp(expires, UTC)
+
+
+def task_store_key(job: Job, task: Task, space_name: str) -> str:
+    """The store key of a done task's output (workers may record it with or without the job's root)."""
+    root = job_root(job)
+    key = task.output_key
+    if not key:
+        return root_key(job, output_key(task.cue, job.name, space_name, task.point_idx, task.view_idx))
+    if not root or key.startswith(root + "/"):
+        return key
+    return root_key(job, key)
+
+
+def relative_key(job: Job, key: str) -> str:
+    """A store key relative to the job's output root."""
+    root = job_root(job)
+    return key[len(root) + 1 :] if root and key.startswith(root + "/") else key
+
+
+def links(
+    store: ObjectStore, settings: Settings, *, job: Job, space_name: str, tasks: Iterable[Task], base_url: str
+) -> dict[str, OutputLink]:
+    """Pre-signed links to the outputs of done, public (non-internal) tasks, by cue in catalog order."""
+    found: dict[str, OutputLink] = {}
+    for t in tasks:
+        if t.state != "done" or t.cue not in PUBLIC_CUES:
+            continue
+        key = task_store_key(job, t, space_name)
+        url, expires_at = presign(store, settings, key=key, base_url=base_url)
+        found[t.cue] = OutputLink(
+            cue=t.cue,
+            key=relative_key(job, key),
+            url=url,
+            expires_at=expires_at,
+            size=t.size,
+            sha256=t.sha256,
+            content_type=content_type(key),
+        )
+    return {c: found[c] for c in PUBLIC_CUES if c in found}
+
+
+def view_tasks(session: Session, *, job: Job, space_id: int, point: int, view: int) -> list[Task]:
+    """The tasks of one view, plus the per-point cues of its point (stored on view 0)."""
+    per_point = [n for n, c in CATALOG.items() if c.per_point]
+    rows = session.scalars(
+        select(Task).where(
+            Task.job_id == job.id,
+            Task.space_id == space_id,
+            Task.point_idx == point,
+            (Task.view_idx == view) | ((Task.view_idx == 0) & Task.cue.in_(per_point)),
+        )
+    ).all()
+    return list(rows)

@@ -1,0 +1,1 @@
+"""spaces feature of the API."""

@@ -1,0 +1,129 @@
+"""Space routes: upload (multipart, streamed, size-limited), register a staged object, list, get, delete."""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Request, Response, status
+from fastapi import Path as PathParam
+from fastapi.concurrency import run_in_threadpool
+from fastapi.exceptions import RequestValidationError
+from pydantic import ValidationError
+
+from services.api.deps import ReadSessionDep, SessionDep, SettingsDep, StoreDep, TenantDep
+from services.api.errors import validation_errors
+from services.api.pagination import Page, PageDep
+from services.api.spaces import service
+from services.api.spaces.schemas import SpaceOptions, SpaceRead, SpaceRegister
+from services.api.spaces.upload import receive_upload
+
+router = APIRouter(prefix="/spaces", tags=["spaces"])
+
+SpaceId = Annotated[int, PathParam(ge=1, le=2**63 - 1, description="space id")]
+
+_UPLOAD_BODY: dict[str, Any] = {
+    "requestBody": {
+        "required": True,
+        "content": {
+            "multipart/form-data": {
+                "schema": {
+                    "type": "object",
+                    "required": ["file"],
+                    "properties": {
+                        "file": {
+                            "type": "string",
+                            "format": "binary",
+                            "description": "a mesh (.ply, .obj, .glb, .gltf) or a .zip with mesh + textures",
+                        },
+                        "name": {"type": "string", "description": "default: the file name without extension"},
+                        "up_axis": {"type": "string", "enum": ["auto", "+x", "-x", "+y", "-y", "+z", "-z"]},
+                        "unit_scale": {"type": "number", "exclusiveMinimum": 0, "maximum": 1000},
+                    },
+                }
+            }
+        },
+    }
+}
+
+
+@router.post(
+    "",
+    status_code=status.HTTP_201_CREATED,
+    response_model=SpaceRead,
+    openapi_extra=_UPLOAD_BODY,
+    summary="Upload a scan",
+    responses={413: {"description": "larger than the upload limit"}, 422: {"description": "unusable scan"}},
+)
+async def upload_space(
+    request: Request, response: Response, session: SessionDep, store: StoreDep, settings: SettingsDep, tenant: TenantDep
+) -> SpaceRead:
+    """Upload a mesh or archive; it is validated (format, counts, units, bounds) before it is stored."""
+    with tempfile.TemporaryDirectory(prefix="omnidata-upload-") as tmp:
+        upload = await receive_upload(request, dest_dir=Path(tmp), max_bytes=settings.upload_max_bytes)
+        assert upload.path is not None and upload.filename is not None
+        try:
+            opts = SpaceOptions.model_validate(upload.fields)
+        except ValidationError as e:
+            errors = validation_errors(e.errors())
+            raise RequestValidationError([{**err, "loc": ["body", *err["loc"]]} for err in errors]) from None
+        space = await run_in_threadpool(
+            service.create_space,
+            session,
+            store,
+            owner=tenant,
+            name=opts.name or service.default_name(upload.filename),
+            source_path=upload.path,
+            up_axis=opts.up_axis,
+            unit_scale=opts.unit_scale,
+        )
+    response.headers["Location"] = f"/spaces/{space.id}"
+    return SpaceRead.from_row(space)
+
+
+@router.post(
+    "/register",
+    status_code=status.HTTP_201_CREATED,
+    response_model=SpaceRead,
+    summary="Register a scan already in object storage",
+)
+def register_space(
+    body: SpaceRegister, response: Response, session: SessionDep, store: StoreDep, settings: SettingsDep, tenant: TenantDep
+) -> SpaceRead:
+    """Register an object staged under `uploads/<tenant>/` in the service's store (validated like an upload)."""
+    key = service.staged_key(settings, owner=tenant, key=body.key, uri=body.uri)
+    space = service.register_staged(
+        session,
+        store,
+        settings,
+        owner=tenant,
+        key=key,
+        name=body.name,
+        up_axis=body.up_axis,
+        unit_scale=body.unit_scale,
+    )
+    response.headers["Location"] = f"/spaces/{space.id}"
+    return SpaceRead.from_row(space)
+
+
+@router.get("", response_model=Page[SpaceRead], summary="List spaces")
+def list_spaces(session: ReadSessionDep, tenant: TenantDep, page: PageDep) -> Page[SpaceRead]:
+    """The caller's spaces, newest first."""
+    rows, total = service.list_spaces(session, owner=tenant, page=page)
+    return Page[SpaceRead](
+        items=[SpaceRead.from_row(s) for s in rows], total=total, limit=page.limit, offset=page.offset
+    )
+
+
+@router.get("/{space_id}", response_model=SpaceRead, summary="Get a space")
+def get_space(space_id: SpaceId, session: ReadSessionDep, tenant: TenantDep) -> SpaceRead:
+    """One of the caller's spaces."""
+    return SpaceRead.from_row(service.get_space(session, owner=tenant, space_id=space_id))
+
+
+@router.delete("/{space_id}", status_code=status.HTTP_204_NO_CONTENT, summary="Delete a space")
+def delete_space(space_id: SpaceId, session: SessionDep, store: StoreDep, tenant: TenantDep) -> Response:
+    """Delete a space and its stored source (409 while a job uses it)."""
+    service.delete_space(session, store, owner=tenant, space_id=space_id)
+    return Response(status_code=status.HTTP_204_NO_CONTENT)

@@ -1,0 +1,101 @@
+"""API models of spaces (separate from the ORM row `services.core.models.Space`)."""
+
+from __future__ import annotations
+
+import math
+from datetime import datetime
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from services.core.cues import default_cues
+from services.core.keys import check_name
+from services.core.models import Space
+
+UpAxis = Literal["auto", "+x", "-x", "+y", "-y", "+z", "-z"]
+
+
+def _finite_scale(v: float) -> float:
+    if not math.isfinite(v):
+        raise ValueError("unit_scale must be a finite number of metres per source unit")
+    return v
+
+
+class SpaceOptions(BaseModel):
+    """How to read a scan: its name, up axis and unit scale (metres per source unit)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str | None = Field(None, description="unique per tenant; default: the file name without extension")
+    up_axis: UpAxis = Field("auto", description="source axis pointing up; auto detects floors")
+    unit_scale: float = Field(1.0, gt=0, le=1000, description="metres per source unit")
+
+    @field_validator("name")
+    @classmethod
+    def _name(cls, v: str | None) -> str | None:
+        return None if v is None else check_name("name", v)
+
+    @field_validator("unit_scale")
+    @classmethod
+    def _scale(cls, v: float) -> float:
+        return _finite_scale(v)
+
+
+class SpaceRegister(SpaceOptions):
+    """Register a scan already in the service's object store (uploaded there directly, e.g. with the AWS CLI)."""
+
+    key: str | None = Field(
+        None,
+        min_length=1,
+        max_length=1024,
+        description="object key under `uploads/<your tenant>/` in the service's store",
+    )
+    uri: str | None = Field(
+        None,
+        min_length=1,
+        max_length=2048,
+        description="the same object as a URI of the service's store (s3://bucket/prefix/uploads/<tenant>/...)",
+    )
+
+
+class SpaceRead(BaseModel):
+    """A registered space and what validation found in it."""
+
+    id: int
+    name: str
+    source_key: str
+    source_format: str
+    checksum: str = Field(description="sha256 hex of the uploaded bytes")
+    unit_scale: float
+    up_axis: str
+    bounds: list[Any] | None = Field(None, description="[[minx,miny,minz],[maxx,maxy,maxz]] in metres, world frame")
+    source_to_world: list[Any] | None = None
+    face_count: int
+    vertex_count: int
+    has_texture: bool
+    has_semantics: bool
+    supported_cues: list[str] = Field(description="cues a job may request for this space")
+    validation: dict[str, Any] | None = None
+    created_at: datetime
+
+    @classmethod
+    def from_row(cls, s: Space) -> SpaceRead:
+        """Build from the ORM row."""
+        return cls(
+            id=s.id,
+            name=s.name,
+            source_key=s.source_key,
+            source_format=s.source_format,
+            checksum=s.checksum,
+            unit_scale=s.unit_scale,
+            up_axis=s.up_axis,
+            bounds=s.bounds,
+            source_to_world=s.source_to_world,
+            face_count=s.face_count,
+            vertex_count=s.vertex_count,
+            has_texture=s.has_texture,
+            has_semantics=s.has_semantics,
+            supported_cues=default_cues(s.has_semantics),
+            validation=s.validation,
+            created_at=s.created_at,
+        )

@@ -1,0 +1,187 @@
+"""Streaming multipart upload: the file part goes straight to a temp file, refused (413) past a size limit.
+
+Starlette's form parser spools any file to disk without a bound, so a client could fill the disk before
+the route runs; this parser counts bytes as they arrive and stops at `max_bytes`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO
+
+import anyio
+from fastapi import HTTPException, Request, status
+from python_multipart.multipart import MultipartParser, MultipartState, parse_options_header
+
+FILE_FIELD = "file"
+MAX_FIELDS = 16
+MAX_FIELD_BYTES = 4096
+MULTIPART_OVERHEAD = 64 * 1024  # headers and boundaries a Content-Length may add on top of the file
+_SAFE_CHARS = re.compile(r"[^A-Za-z0-9._-]+")
+
+
+@dataclass
+class Upload:
+    """A received upload: the form's text fields and the file saved under `path`."""
+
+    fields: dict[str, str] = field(default_factory=dict)
+    filename: str | None = None
+    path: Path | None = None
+    size: int = 0
+    sha256: str = ""
+
+
+@dataclass
+class _Part:
+    """Parser state of the part being read."""
+
+    name: str = ""
+    is_file: bool = False
+    buf: bytearray = field(default_factory=bytearray)
+    hname: bytes = b""
+    hval: bytes = b""
+
+
+def safe_filename(raw: str) -> str:
+    """The client's file name reduced to a safe single path segment (no folders, no traversal)."""
+    base = raw.replace("\\", "/").rsplit("/", 1)[-1]
+    base = _SAFE_CHARS.sub("_", base).lstrip("._-")[:128]
+    if not base or "." not in base:
+        raise HTTPException(
+            status.HTTP_422_UNPROCESSABLE_CONTENT,
+            f"upload file name {raw!r} has no usable name or extension (e.g. scan.ply, room.zip)",
+        )
+    return base
+
+
+def _too_large(max_bytes: int) -> HTTPException:
+    return HTTPException(
+        status.HTTP_413_CONTENT_TOO_LARGE,
+        f"upload exceeds the limit of {max_bytes} bytes ({max_bytes / 2**20:.1f} MiB); "
+        "register large scans from object storage instead (POST /spaces/register)",
+    )
+
+
+async def receive_upload(request: Request, *, dest_dir: Path, max_bytes: int) -> Upload:
+    """Parse a multipart/form-data body, writing its `file` part to `dest_dir`; 413 past `max_bytes`."""
+    ctype, params = parse_options_header(request.headers.get("content-type", ""))
+    if ctype != b"multipart/form-data" or b"boundary" not in params:
+        raise HTTPException(
+            status.HTTP_415_UNSUPPORTED_MEDIA_TYPE,
+            "send the space as multipart/form-data with a 'file' part (and optional name, up_axis, unit_scale)",
+        )
+    declared = request.headers.get("content-length")
+    if declared and declared.isdigit() and int(declared) > max_bytes + MULTIPART_OVERHEAD:
+        raise _too_large(max_bytes)
+
+    up = Upload()
+    sha = hashlib.sha256()
+    part = _Part()
+    headers: dict[bytes, bytes] = {}
+    out: IO[bytes] | None = None
+    pending: list[bytes] = []  # file bytes parsed from the current chunk, written after the callbacks
+    errors: list[HTTPException] = []
+
+    def fail(code: int, msg: str) -> None:
+        if not errors:
+            errors.append(HTTPException(code, msg))
+
+    def on_part_begin() -> None:
+        nonlocal part
+        headers.clear()
+        part = _Part()
+
+    def on_header_field(data: bytes, start: int, end: int) -> None:
+        part.hname += data[start:end]
+
+    def on_header_value(data: bytes, start: int, end: int) -> None:
+        part.hval += data[start:end]
+
+    def on_header_end() -> None:
+        headers[part.hname.lower()] = part.hval
+        part.hname, part.hval = b"", b""
+
+    def on_headers_finished() -> None:
+        nonlocal out
+        _disp, opts = parse_options_header(headers.get(b"content-disposition", b""))
+        part.name = opts.get(b"name", b"").decode("utf-8", "replace")
+        if b"filename" in opts:
+            if part.name != FILE_FIELD:
+                fail(status.HTTP_422_UNPROCESSABLE_CONTENT, f"unexpected file part {part.name!r}: send the scan as 'file'")
+                return
+            if up.filename is not None:
+                fail(status.HTTP_422_UNPROCESSABLE_CONTENT, "send exactly one 'file' part")
+                return
+            try:
+                up.filename = safe_filename(opts[b"filename"].decode("utf-8", "replace"))
+            except HTTPException as e:
+                errors.append(e)
+                return
+            up.path = dest_dir / up.filename
+            out = up.path.open("wb")
+            part.is_file = True
+        elif len(up.fields) >= MAX_FIELDS:
+            fail(status.HTTP_422_UNPROCESSABLE_CONTENT, f"too many form fields (at most {MAX_FIELDS})")
+
+    def on_part_data(data: bytes, start: int, end: int) -> None:
+        if errors:
+            return
+        chunk = data[start:end]
+        if part.is_file:
+            up.size += len(chunk)
+            if up.size > max_bytes:
+                errors.append(_too_large(max_bytes))
+                return
+            sha.update(chunk)
+            pending.append(chunk)
+        elif len(part.buf) + len(chunk) > MAX_FIELD_BYTES:
+            fail(status.HTTP_422_UNPROCESSABLE_CONTENT, f"form field {part.name!r} is too long")
+        else:
+            part.buf.extend(chunk)
+
+    def on_part_end() -> None:
+        if errors or part.is_file or not part.name:
+            return
+        up.fields[part.name] = part.buf.decode("utf-8", "replace")
+
+    parser = MultipartParser(
+        params[b"boundary"],
+        {
+            "on_part_begin": on_part_begin,
+            "on_part_data": on_part_data,
+            "on_part_end": on_part_end,
+            "on_header_field": on_header_field,
+            "on_header_value": on_header_value,
+            "on_header_end": on_header_end,
+            "on_headers_finished": on_headers_finished,
+        },
+    )
+    try:
+        async for chunk in request.stream():
+            try:
+                parser.write(chunk)
+            except Exception as e:  # python-multipart raises its own errors on malformed bodies
+                raise HTTPException(status.HTTP_400_BAD_REQUEST, f"malformed multipart body: {e}") from None
+            if errors:
+                raise errors[0]
+            if pending and out is not None:
+                data = b"".join(pending)
+                pending.clear()
+                await anyio.to_thread.run_sync(out.write, data)
+        if errors:
+            raise errors[0]
+        if parser.state != MultipartState.END:
+            # python-multipart's finalize() does not check this: a body cut short would pass as a short file
+            raise HTTPException(status.HTTP_400_BAD_REQUEST, "incomplete multipart body: no closing boundary")
+    finally:
+        if out is not None:
+            out.close()
+    if up.path is None:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "the form has no 'file' part with the scan")
+    if up.size == 0:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"uploaded file {up.filename!r} is empty")
+    up.sha256 = sha.hexdigest()
+    return up

@@ -1,0 +1,1 @@
+"""views feature of the API."""

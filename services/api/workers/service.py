@@ -1,0 +1,61 @@
+"""Workers: heartbeat ages and current tasks; another tenant's task is reported as busy, without details."""
+
+from __future__ import annotations
+
+from datetime import datetime, timedelta
+
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from services.api.pagination import PageParams
+from services.api.workers.schemas import CurrentTask, WorkerRead
+from services.core.models import Job, Task, Worker, utcnow
+
+WORKER_STALE_S = 30.0  # heartbeats come every 5 s; six missed ones mean the worker is gone
+
+
+def list_workers(
+    session: Session, *, tenant: str, page: PageParams, alive: bool | None = None, now: datetime | None = None
+) -> tuple[list[WorkerRead], int]:
+    """Workers by most recent heartbeat, optionally only live (or only stale) ones."""
+    now = now or utcnow()
+    cutoff = now - timedelta(seconds=WORKER_STALE_S)
+    cond = []
+    if alive is True:
+        cond.append(Worker.last_heartbeat >= cutoff)
+    elif alive is False:
+        cond.append(Worker.last_heartbeat < cutoff)
+    total = session.scalar(select(func.count()).select_from(Worker).where(*cond)) or 0
+    workers = session.scalars(
+        select(Worker).where(*cond).order_by(Worker.last_heartbeat.desc(), Worker.id).limit(page.limit).offset(page.offset)
+    ).all()
+    task_ids = [w.current_task_id for w in workers if w.current_task_id is not None]
+    own: dict[int, Task] = {}
+    if task_ids:
+        rows = session.scalars(
+            select(Task).join(Job, Job.id == Task.job_id).where(Task.id.in_(task_ids), Job.owner == tenant)
+        ).all()
+        own = {t.id: t for t in rows}
+    items = []
+    for w in workers:
+        t = own.get(w.current_task_id) if w.current_task_id is not None else None
+        age = max(0.0, (now - w.last_heartbeat).total_seconds())
+        items.append(
+            WorkerRead(
+                id=w.id,
+                host=w.host,
+                queues=list(w.queues or []),
+                started_at=w.started_at,
+                last_heartbeat=w.last_heartbeat,
+                heartbeat_age_s=round(age, 3),
+                alive=age < WORKER_STALE_S,
+                busy=w.current_task_id is not None,
+                current_task=None
+                if t is None
+                else CurrentTask(id=t.id, job_id=t.job_id, cue=t.cue, space_id=t.space_id, point=t.point_idx, view=t.view_idx),
+                tasks_done=int(w.tasks_done or 0),
+                labels_per_s=float(w.labels_per_s or 0.0),
+                labels=dict(w.labels or {}),
+            )
+        )
+    return items, int(total)

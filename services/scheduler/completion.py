@@ -1,0 +1,111 @@
+"""Completion: finish running jobs whose counters say nothing is pending, queued or running.
+
+For each such job: write manifest.jsonl and job.json (services.core.manifest), delete the internal pass
+cache, and set the job done, or failed with a summary when any task failed. Reads counters only.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+from sqlalchemy import exists, select
+from sqlalchemy.orm import Session
+
+from services.core.db import job_progress
+from services.core.jobs import root_key
+from services.core.manifest import write_job_files
+from services.core.models import Job, JobCounter, Task, utcnow
+from services.core.storage import ObjectStore
+
+log = logging.getLogger(__name__)
+
+ACTIVE_TASK_STATES = ("pending", "queued", "running")
+PASS_CACHE_PREFIX = "_cache/"  # keys.passes_key puts every pass set under it
+
+
+@dataclass(frozen=True)
+class Finished:
+    """A job that completion finished."""
+
+    job_id: int
+    state: str
+    error: str | None
+
+
+def finished_job_ids(session: Session) -> list[int]:
+    """Running jobs with tasks, none of which is pending, queued or running (counters only)."""
+    c = JobCounter
+    active = exists().where(c.job_id == Job.id, c.state.in_(ACTIVE_TASK_STATES), c.n > 0)
+    rows = session.execute(
+        select(Job.id).where(Job.state == "running", Job.total_tasks > 0, ~active).order_by(Job.id)
+    ).all()
+    return [int(r[0]) for r in rows]
+
+
+def failure_summary(session: Session, job: Job, progress: dict[str, dict[str, int]]) -> str | None:
+    """'N of M tasks failed (cue: n, ...); first: <error>' or None when nothing failed."""
+    failed = {cue: s["failed"] for cue, s in progress.items() if s.get("failed")}
+    if not failed:
+        return None
+    total = sum(sum(s.values()) for s in progress.values())
+    first = session.execute(
+        select(Task.id, Task.cue, Task.point_idx, Task.view_idx, Task.error)
+        .where(Task.job_id == job.id, Task.state == "failed")
+        .order_by(Task.id)
+        .limit(1)
+    ).first()
+    per_cue = ", ".join(f"{cue}: {n}" for cue, n in sorted(failed.items()))
+    msg = f"{sum(failed.values())} of {total} tasks failed ({per_cue})"
+    if first is not None:
+        err = (first.error or "no error recorded").strip().splitlines()
+        head = err[0] if err else ""
+        tail = err[-1] if len(err) > 1 else ""
+        msg += f"; first: task {first.id} ({first.cue}, point {first.point_idx}, view {first.view_idx}): {head}"
+        if tail and tail != head:
+            msg += f" ... {tail}"
+    return msg
+
+
+def complete_job(session: Session, store: ObjectStore, job_id: int) -> Finished | None:
+    """Finish one job if it is still running with no active task; commits. None when it was not finished."""
+    stmt = select(Job).where(Job.id == job_id).execution_options(populate_existing=True)
+    if session.get_bind().dialect.name == "postgresql":
+        stmt = stmt.with_for_update(skip_locked=True)  # another scheduler finishing it: leave it
+    job = session.scalars(stmt).first()
+    if job is None or job.state != "running":
+        session.rollback()
+        return None
+    progress = job_progress(session, job.id)
+    if any(s.get(st) for s in progress.values() for st in ACTIVE_TASK_STATES):
+        session.rollback()
+        return None
+    error = failure_summary(session, job, progress)
+    job.state = "failed" if error else "done"
+    job.error = error
+    job.finished_at = utcnow()
+    session.flush()
+    try:
+        write_job_files(session, store, job)
+        store.delete_prefix(root_key(job, PASS_CACHE_PREFIX))
+    except Exception:
+        session.rollback()  # the job stays running; the next pass tries again
+        raise
+    session.commit()
+    log.info("job %d finished: %s%s", job.id, job.state, f" ({error})" if error else "")
+    return Finished(job.id, job.state, error)
+
+
+def complete_once(session: Session, store: ObjectStore) -> list[Finished]:
+    """Finish every running job that has nothing left to do; a job whose files fail to write is retried later."""
+    done: list[Finished] = []
+    for job_id in finished_job_ids(session):
+        session.rollback()  # end the read transaction before taking the job's lock
+        try:
+            fin = complete_job(session, store, job_id)
+        except Exception:
+            log.exception("finishing job %d failed; will retry", job_id)
+            continue
+        if fin is not None:
+            done.append(fin)
+    return done

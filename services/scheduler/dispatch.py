@@ -1,0 +1,318 @@
+"""Dispatch: pick ready tasks (cue DAG satisfied), mark them queued, commit, then send them.
+
+A pending task is ready when its `not_before` has passed and every input cue task of the same
+(job, space, point, view) is done (per-point inputs: the point's view 0). Readiness is checked in SQL
+per cue: an ordered scan of the cue's pending tasks (index job_id, state, cue, id) with a correlated
+lookup of the inputs' states over the task table's unique index. The counters bound each scan: cue c
+can have at most min(done inputs) - (c tasks no longer pending) ready tasks, and at most the number of
+in-flight or failed input tasks of blocked ones ahead of them, so a pass never walks the thousands of
+tasks whose inputs have not even started. A task whose input failed for good can never run: it fails
+too ("UpstreamFailed"), so the job can finish.
+
+Each running job keeps at most `window` tasks queued + running (counters, never COUNT(*)). Jobs are
+served by priority (higher first, strictly); jobs of equal priority split the pass budget evenly,
+starting from a rotating position (round robin). Ready tasks of a job go out oldest (lowest id) first,
+which is view by view: a view's derived cues before the next view's render. Postgres and SQLite.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import defaultdict
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from datetime import datetime
+from itertools import groupby
+from typing import Any
+
+from sqlalchemy import case, func, literal, or_, select, text
+from sqlalchemy.orm import Session
+
+from services.core.cues import CATALOG
+from services.core.db import transition
+from services.core.models import Job, JobCounter, Task, utcnow
+from services.scheduler.transport import Transport
+
+log = logging.getLogger(__name__)
+
+DEFAULT_BUDGET = 20_000  # tasks dispatched per pass at most (bounds one transaction)
+SEND_CHUNK = 1_000  # tasks per transport.send call: the first messages reach workers while the rest are built
+SCAN_MARGIN = 64  # extra rows looked at per cue beyond what the counters predict
+SCAN_CAP = 200_000  # rows looked at per cue and pass at most
+INFLIGHT = ("queued", "running")
+UPSTREAM_FAILED = ("failed", "cancelled")
+
+
+@dataclass
+class DispatchResult:
+    """What one dispatch pass did: tasks sent per job, put back after a failed send, failed upstream."""
+
+    per_job: dict[int, int] = field(default_factory=dict)
+    requeued: int = 0
+    upstream_failed: int = 0
+    stalled: list[int] = field(default_factory=list)  # jobs with pending tasks, none ready, none in flight
+
+    @property
+    def sent(self) -> int:
+        """Number of tasks handed to the transport."""
+        return sum(self.per_job.values())
+
+
+@dataclass
+class JobLoad:
+    """A running job's dispatch inputs, from its counters: priority and task counts by cue and state."""
+
+    job_id: int
+    priority: int
+    counts: dict[str, dict[str, int]] = field(default_factory=dict)
+
+    def n(self, cue: str, *states: str) -> int:
+        """Tasks of `cue` in any of `states`."""
+        per = self.counts.get(cue, {})
+        return sum(per.get(s, 0) for s in states)
+
+    @property
+    def pending(self) -> int:
+        """Pending tasks of the job."""
+        return sum(per.get("pending", 0) for per in self.counts.values())
+
+    @property
+    def inflight(self) -> int:
+        """Queued + running tasks of the job."""
+        return sum(per.get(s, 0) for per in self.counts.values() for s in INFLIGHT)
+
+
+def running_job_loads(session: Session) -> list[JobLoad]:
+    """Every running job with its counters, highest priority first."""
+    c = JobCounter.__table__.c
+    rows = session.execute(
+        select(Job.id, Job.priority, c.cue, c.state, c.n)
+        .join(JobCounter, JobCounter.job_id == Job.id, isouter=True)
+        .where(Job.state == "running")
+    ).all()
+    loads: dict[int, JobLoad] = {}
+    for job_id, prio, cue, state, n in rows:
+        load = loads.setdefault(int(job_id), JobLoad(int(job_id), int(prio or 0)))
+        if cue is not None and n:
+            load.counts.setdefault(str(cue), {})[str(state)] = int(n)
+    return sorted(loads.values(), key=lambda j: (-j.priority, j.job_id))
+
+
+def _input_rank(cue: str, t: Any, i: Any) -> Any:
+    """Correlated SQL scalar: 0/NULL all inputs done, 1 an input not done yet, 2 an input failed or cancelled."""
+    inputs = CATALOG[cue].inputs
+    view_inputs = [c for c in inputs if not CATALOG[c].per_point]
+    point_inputs = [c for c in inputs if CATALOG[c].per_point]
+    which = []
+    if view_inputs:
+        which.append((i.view_idx == t.view_idx) & i.cue.in_(view_inputs))
+    if point_inputs:  # per-point cues exist on view 0 only
+        which.append((i.view_idx == 0) & i.cue.in_(point_inputs))
+    rank = case((i.state == "done", 0), (i.state.in_(UPSTREAM_FAILED), 2), else_=1)
+    return (
+        select(func.max(rank))
+        .where(i.job_id == t.job_id, i.space_id == t.space_id, i.point_idx == t.point_idx, or_(*which))
+        .scalar_subquery()
+    )
+
+
+def scan_cue(
+    session: Session, job_id: int, cue: str, want: int, now: datetime, max_rows: int = SCAN_CAP,
+) -> tuple[list[int], list[int]]:
+    """Oldest-first pending tasks of one cue: (up to `want` ready ids, ids whose input failed for good).
+
+    Reads pages (doubling in size) until `want` ready tasks are found, the cue has no more pending
+    tasks, or `max_rows` rows were read.
+    """
+    if max_rows <= 0:
+        return [], []
+    t = Task.__table__.alias("t")
+    i = Task.__table__.alias("i")
+    rank = _input_rank(cue, t.c, i.c) if CATALOG[cue].inputs else literal(0)
+    base = select(t.c.id, rank).where(
+        t.c.job_id == job_id,
+        t.c.state == "pending",
+        t.c.cue == cue,
+        or_(t.c.not_before.is_(None), t.c.not_before <= now),
+    )
+    if session.get_bind().dialect.name == "postgresql":
+        # Concurrent schedulers take disjoint tasks instead of queueing behind each other's row locks.
+        base = base.with_for_update(of=t, skip_locked=True)
+    ready: list[int] = []
+    doomed: list[int] = []
+    last = 0
+    scanned = 0
+    page = min(max_rows, max(want, 1) + SCAN_MARGIN)
+    while scanned < max_rows:
+        rows = session.execute(base.where(t.c.id > last).order_by(t.c.id).limit(page)).all()
+        for tid, r in rows:
+            if not r:
+                ready.append(int(tid))
+            elif r == 2:
+                doomed.append(int(tid))
+        scanned += len(rows)
+        if len(rows) < page or len(ready) >= want:
+            break
+        last = int(rows[-1][0])
+        page = min(2 * page, max_rows - scanned)
+    return ready[:want], doomed
+
+
+def ready_tasks(
+    session: Session, job_id: int, limit: int, now: datetime | None = None, load: JobLoad | None = None,
+    thorough: bool = False,
+) -> tuple[list[tuple[int, str]], list[int]]:
+    """Up to `limit` ready (task_id, cue) pairs of the job, oldest first, and ids that failed upstream.
+
+    With `load` (the job's counters) cues that cannot have ready tasks are skipped and scans are
+    bounded; `thorough` (or no load) scans every cue with pending tasks up to SCAN_CAP rows.
+    """
+    now = now or utcnow()
+    if limit <= 0:
+        return [], []
+    if load is None:
+        thorough = True
+        load = next((j for j in _loads_of(session, [job_id])), JobLoad(job_id, 0))
+    plans: list[tuple[str, int, int]] = []  # (cue, ready wanted, rows to read at most)
+    for cue, per in load.counts.items():
+        if not per.get("pending") or cue not in CATALOG:
+            continue
+        inputs = CATALOG[cue].inputs
+        if not inputs:
+            plans.append((cue, limit, limit))
+        elif thorough:
+            plans.append((cue, limit, SCAN_CAP))
+        else:
+            # ready <= views whose inputs are done minus this cue's tasks already past pending;
+            # rows ahead of them are blocked by in-flight inputs or doomed by failed ones.
+            past_pending = sum(n for s, n in per.items() if s != "pending")
+            possible = min(load.n(x, "done") for x in inputs) - past_pending
+            failed_inputs = sum(load.n(x, *UPSTREAM_FAILED) for x in inputs)
+            undoomed = failed_inputs - per.get("failed", 0)
+            if possible <= 0 and undoomed <= 0:
+                continue  # every pending task of this cue waits for an input that has not finished
+            blocked_ahead = sum(load.n(x, *INFLIGHT) for x in inputs) + max(undoomed, 0)
+            plans.append((cue, max(possible, 0), blocked_ahead + SCAN_MARGIN))
+    # Share `limit` among the cues in proportion to what each can give, so a pass reads about `limit`
+    # ready rows in all instead of `limit` per cue (derived cues cost a correlated lookup per row).
+    total = sum(w for _, w, _ in plans)
+    candidates: list[tuple[int, str]] = []
+    doomed: list[int] = []
+    for cue, possible, extra in plans:
+        if thorough or not CATALOG[cue].inputs:
+            want, max_rows = possible, extra
+        else:
+            want = min(possible, -(-limit * possible // total)) if total > limit else possible
+            max_rows = want + extra
+        ready, failed = scan_cue(session, job_id, cue, want, now, max_rows)
+        candidates.extend((tid, cue) for tid in ready)
+        doomed.extend(failed)
+    candidates.sort()
+    return candidates[:limit], doomed
+
+
+def _loads_of(session: Session, job_ids: list[int]) -> list[JobLoad]:
+    c = JobCounter.__table__.c
+    loads: dict[int, JobLoad] = {j: JobLoad(j, 0) for j in job_ids}
+    for job_id, cue, state, n in session.execute(
+        select(c.job_id, c.cue, c.state, c.n).where(c.job_id.in_(job_ids), c.n != 0)
+    ):
+        loads[int(job_id)].counts.setdefault(str(cue), {})[str(state)] = int(n)
+    return list(loads.values())
+
+
+def plan_turns(loads: Sequence[JobLoad], window: int, rotation: int = 0) -> list[list[JobLoad]]:
+    """Jobs that may receive tasks, grouped by priority (highest first), each group rotated for fairness."""
+    groups = []
+    eligible = [j for j in loads if j.pending > 0 and j.inflight < window]
+    for _prio, grp in groupby(eligible, key=lambda j: j.priority):
+        members = list(grp)
+        k = rotation % len(members)
+        groups.append(members[k:] + members[:k])
+    return groups
+
+
+def dispatch_once(
+    session: Session,
+    transport: Transport,
+    *,
+    window: int,
+    budget: int = DEFAULT_BUDGET,
+    rotation: int = 0,
+    now: datetime | None = None,
+    thorough: bool = False,
+) -> DispatchResult:
+    """One dispatch pass: mark up to `budget` ready tasks queued, COMMIT, then send them.
+
+    Within a priority group each job gets an even share of what is left of the budget (jobs after it
+    inherit what it could not use). If a send fails, its tasks go back to pending at once (a duplicate
+    of a message that did get through is harmless: the worker's claim needs state 'queued'); if even
+    that fails, the reaper puts them back after the lease time. `thorough` ignores the counter-based
+    scan bounds (the loop does this now and then as a safety net).
+    """
+    now = now or utcnow()
+    if session.get_bind().dialect.name == "postgresql":
+        # The scans are cheap index walks; the planner's cost estimates would trigger a slow JIT compile.
+        session.execute(text("SET LOCAL jit = off"))
+    result = DispatchResult()
+    picked: list[tuple[int, list[tuple[int, str]]]] = []
+    for group in plan_turns(running_job_loads(session), window, rotation):
+        for k, load in enumerate(group):
+            if budget <= 0:
+                break
+            share = -(-budget // (len(group) - k))  # ceil: the first jobs in rotation order get the remainder
+            take = min(share, window - load.inflight)
+            ready, doomed = ready_tasks(session, load.job_id, take, now, load, thorough)
+            if doomed:
+                result.upstream_failed += len(transition(
+                    session, job_id=load.job_id, task_ids=doomed, from_state="pending", to_state="failed",
+                    finished_at=now, error="UpstreamFailed: an input cue task of this view failed or was cancelled",
+                ))
+            if not ready:
+                if load.inflight == 0 and not doomed:
+                    result.stalled.append(load.job_id)
+                continue
+            moved = transition(
+                session, job_id=load.job_id, task_ids=[tid for tid, _ in ready],
+                from_state="pending", to_state="queued", queued_at=now,
+            )
+            if moved:
+                picked.append((load.job_id, moved))
+                budget -= len(moved)
+    session.commit()  # queued is durable before any message exists
+    broken = False  # after one failed send the broker is presumed down: the rest goes back unsent
+    for job_id, moved in picked:
+        for k in range(0, len(moved), SEND_CHUNK):
+            part = moved[k : k + SEND_CHUNK]
+            if not broken:
+                try:
+                    transport.send(part)
+                    result.per_job[job_id] = result.per_job.get(job_id, 0) + len(part)
+                    continue
+                except Exception:
+                    broken = True
+                    log.exception("sending tasks of job %d failed; putting the unsent ones back to pending", job_id)
+            result.requeued += _unqueue(session, job_id, part)
+    return result
+
+
+def _unqueue(session: Session, job_id: int, moved: list[tuple[int, str]]) -> int:
+    try:
+        back = transition(
+            session, job_id=job_id, task_ids=[tid for tid, _ in moved],
+            from_state="queued", to_state="pending", queued_at=None,
+        )
+        session.commit()
+        return len(back)
+    except Exception:
+        session.rollback()
+        log.exception("could not put job %d's unsent tasks back; the reaper will", job_id)
+        return 0
+
+
+def pending_by_job(session: Session) -> dict[int, int]:
+    """Pending tasks per running job, from the counters (for logs and tests)."""
+    out: dict[int, int] = defaultdict(int)
+    for load in running_job_loads(session):
+        out[load.job_id] = load.pending
+    return dict(out)

@@ -1,0 +1,283 @@
+"""The scheduler loop: plan claimed jobs, dispatch ready tasks, reap lost ones, finish completed jobs.
+
+Each step opens its own short session, so a dropped database connection (Postgres restarted) costs one
+failed step: `run_forever` logs it, backs off and carries on; the engine's pool_pre_ping reconnects.
+Several schedulers may run at once: job claims use SKIP LOCKED and every task move is conditional.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import threading
+import time
+import traceback
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from datetime import timedelta
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from sqlalchemy import select
+from sqlalchemy.orm import Session, sessionmaker
+
+from services.core.jobs import claim_pending_jobs, job_spaces, job_spec
+from services.core.jobspec import JobSpec
+from services.core.models import Job, Space, utcnow
+from services.core.plan import SpacePlan
+from services.core.settings import Settings
+from services.core.storage import ObjectStore
+from services.scheduler.compile import compile_tasks
+from services.scheduler.completion import Finished, complete_once
+from services.scheduler.dispatch import DEFAULT_BUDGET, DispatchResult, dispatch_once
+from services.scheduler.persist import clear_plan, persist_space
+from services.scheduler.reaper import ReapResult, reap_once
+from services.scheduler.transport import Transport
+
+log = logging.getLogger(__name__)
+
+REAP_INTERVAL_S = 5.0
+THOROUGH_DISPATCH_S = 60.0  # a dispatch pass that ignores the counter-based scan bounds (a safety net) ...
+THOROUGH_STALLED_S = 5.0  # ... and sooner when a job has pending tasks but nothing ready or in flight
+MAX_BACKOFF_S = 30.0
+PLAN_RETRY_S = 30  # a planning attempt that failed for a transient reason is retried after this
+MAX_PLAN_ATTEMPTS = 3
+
+
+# make_plan(space: LoadedSpace, spec: JobSpec, rng: numpy.random.Generator, space_name: str) -> SpacePlan
+PlanFn = Callable[[Any, JobSpec, np.random.Generator, str], SpacePlan]
+
+
+class PlanningError(Exception):
+    """A job that cannot be planned (bad source, impossible spec, a space with no views): it fails."""
+
+
+def default_scheduler_id() -> str:
+    """`host:pid` of this process."""
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
+def _permanent(exc: BaseException) -> bool:
+    """Errors that re-planning cannot fix (the job fails), as opposed to connection trouble (retried)."""
+    from services.core.plan import PlanError
+    from services.core.spaces import SpaceError
+    from services.core.storage import ObjectNotFoundError
+
+    return isinstance(exc, PlanningError | PlanError | SpaceError | ObjectNotFoundError | ValueError | KeyError)
+
+
+@dataclass
+class TickResult:
+    """What one tick did."""
+
+    planned: list[int] = field(default_factory=list)
+    dispatched: DispatchResult = field(default_factory=DispatchResult)
+    reaped: ReapResult | None = None
+    finished: list[Finished] = field(default_factory=list)
+
+    budget: int = DEFAULT_BUDGET
+
+    @property
+    def busy(self) -> bool:
+        """Whether there is probably more work right away (a full dispatch budget or a job planned)."""
+        return bool(self.planned) or self.dispatched.sent >= self.budget
+
+
+class Scheduler:
+    """One scheduler process: plans jobs, dispatches tasks, reaps lost tasks and finishes jobs."""
+
+    def __init__(
+        self,
+        sessionmaker: sessionmaker[Session],
+        store: ObjectStore,
+        transport: Transport,
+        settings: Settings,
+        scheduler_id: str | None = None,
+        *,
+        cache_dir: Path | None = None,
+        budget: int = DEFAULT_BUDGET,
+        plan_fn: PlanFn | None = None,
+    ) -> None:
+        self.sessionmaker = sessionmaker
+        self.store = store
+        self.transport = transport
+        self.settings = settings
+        self.scheduler_id = scheduler_id or default_scheduler_id()
+        self.cache_dir = cache_dir or settings.data_dir / "cache" / "spaces"
+        self.budget = budget
+        self.plan_fn = plan_fn
+        self._rotation = 0
+        self._last_reap = 0.0
+        self._last_thorough = time.monotonic()  # the first passes use the (cheap) bounded scans
+        self._stalled = False
+
+    # ------------------------------------------------------------------------------------------ planning
+
+    def fetch_source(self, space: Space) -> Path:
+        """Local path of a space's mesh, downloaded (and unzipped) once per checksum into the cache folder."""
+        from services.core.space_registry import fetch_space
+
+        return Path(fetch_space(self.store, space, self.cache_dir))
+
+    def plan_pending(self, limit: int = 1) -> list[int]:
+        """Claim up to `limit` pending jobs and plan them; returns the ids of jobs now running."""
+        with self.sessionmaker() as s:
+            jobs = claim_pending_jobs(s, self.scheduler_id, limit)
+            ids = [j.id for j in jobs]
+            s.commit()
+        planned = []
+        for job_id in ids:
+            if self.plan_job(job_id):
+                planned.append(job_id)
+        return planned
+
+    def plan_job(self, job_id: int) -> bool:
+        """Plan a job this scheduler has claimed, in one transaction; True when it is now running."""
+        from services.core.spaces import load_space
+
+        if self.plan_fn is None:
+            from services.scheduler.planning import make_plan as default_plan
+
+            self.plan_fn = default_plan
+        make_plan = self.plan_fn
+        t0 = time.perf_counter()
+        try:
+            with self.sessionmaker() as s:
+                job = s.get(Job, job_id)
+                if job is None or job.state != "planning" or job.planner != self.scheduler_id:
+                    return False
+                spec = job_spec(job)
+                clear_plan(s, job.id)
+                summary: dict[str, Any] = {"spaces": {}, "attempts": (job.plan_summary or {}).get("attempts", 0) + 1}
+                total = 0
+                for js, sp in job_spaces(s, job.id):
+                    loaded = load_space(self.fetch_source(sp), up_axis=spec.up_axis, unit_scale=spec.unit_scale)
+                    rng = np.random.default_rng([spec.seed, js.position])
+                    plan = make_plan(loaded, spec, rng, sp.name)
+                    if not plan.views:
+                        raise PlanningError(
+                            f"space {sp.name!r} yields no views"
+                            + (f": {plan.shortfall}" if plan.shortfall else " (no point is seen by enough cameras)")
+                        )
+                    tasks = compile_tasks(plan, js.cues, sp.id)
+                    done = persist_space(s, self.store, job, sp.id, plan, tasks)
+                    total += done.tasks
+                    summary["spaces"][sp.name] = {
+                        "cameras": done.cameras, "points": done.points, "views": done.views, "tasks": done.tasks,
+                        "shortfall": plan.shortfall, "plan_key": done.plan_key,
+                        "source_to_world": np.asarray(loaded.source_to_world, dtype=float).tolist(),
+                        "bounds": np.asarray(loaded.bounds, dtype=float).tolist(),
+                        "up_axis": spec.up_axis, "up_method": getattr(loaded, "up_method", None),
+                        "unit_scale": spec.unit_scale, "warnings": list(getattr(loaded, "warnings", ()) or ()),
+                    }
+                summary["shortfall"] = any(v["shortfall"] for v in summary["spaces"].values())
+                summary["planning_s"] = round(time.perf_counter() - t0, 3)
+                # The job may have been cancelled (or taken over) while we planned: then keep nothing.
+                stmt = select(Job).where(Job.id == job_id).execution_options(populate_existing=True)
+                if s.get_bind().dialect.name == "postgresql":
+                    stmt = stmt.with_for_update()
+                job = s.scalars(stmt).one()
+                if job.state != "planning" or job.planner != self.scheduler_id:
+                    s.rollback()
+                    log.info("job %d changed to %s while planning; plan dropped", job_id, job.state)
+                    return False
+                job.state = "running"
+                job.total_tasks = total
+                job.plan_summary = summary
+                job.planner_lease_until = None
+                s.commit()
+        except Exception as exc:
+            self._planning_failed(job_id, exc)
+            return False
+        log.info("job %d planned: %d tasks in %.2f s", job_id, total, time.perf_counter() - t0)
+        return True
+
+    def _planning_failed(self, job_id: int, exc: BaseException) -> None:
+        permanent = _permanent(exc)
+        log.log(
+            logging.WARNING if permanent else logging.ERROR, "planning job %d failed: %s", job_id, exc,
+            exc_info=not permanent,
+        )
+        with self.sessionmaker() as s:
+            job = s.get(Job, job_id)
+            if job is None or job.state != "planning" or job.planner != self.scheduler_id:
+                return
+            summary = dict(job.plan_summary or {})
+            attempts = int(summary.get("attempts", 0)) + 1
+            summary["attempts"] = attempts
+            job.plan_summary = summary
+            if permanent or attempts >= MAX_PLAN_ATTEMPTS:
+                job.state = "failed"
+                job.finished_at = utcnow()
+                tail = "".join(traceback.format_exception_only(type(exc), exc)).strip()
+                job.error = f"planning failed: {tail}" if not isinstance(exc, PlanningError) else str(exc)
+            else:  # leave it claimed; any scheduler may take it again once the lease runs out
+                job.planner_lease_until = utcnow() + timedelta(seconds=PLAN_RETRY_S)
+            s.commit()
+
+    # ------------------------------------------------------------------------------------------ steps
+
+    def dispatch_once(self) -> DispatchResult:
+        """Dispatch ready tasks of running jobs (window, priorities, fairness)."""
+        since = time.monotonic() - self._last_thorough
+        thorough = since >= THOROUGH_DISPATCH_S or (self._stalled and since >= THOROUGH_STALLED_S)
+        t0 = time.perf_counter()
+        with self.sessionmaker() as s:
+            res = dispatch_once(
+                s, self.transport, window=self.settings.dispatch_window, budget=self.budget,
+                rotation=self._rotation, thorough=thorough,
+            )
+        if thorough:
+            self._last_thorough = time.monotonic()
+        self._stalled = bool(res.stalled)
+        log.debug("dispatch pass: %d sent in %.3f s%s", res.sent, time.perf_counter() - t0,
+                  " (thorough)" if thorough else "")
+        self._rotation += 1
+        return res
+
+    def reap_once(self) -> ReapResult:
+        """Return expired and lost tasks to pending (or fail them when out of attempts)."""
+        with self.sessionmaker() as s:
+            res = reap_once(s, queued_timeout_s=self.settings.lease_s, default_max_attempts=self.settings.max_attempts)
+        self._last_reap = time.monotonic()
+        return res
+
+    def complete_once(self) -> list[Finished]:
+        """Finish running jobs with nothing left to do (manifest, job.json, pass cache removed)."""
+        with self.sessionmaker() as s:
+            return complete_once(s, self.store)
+
+    def tick(self) -> TickResult:
+        """One round of every step (the reaper only every REAP_INTERVAL_S)."""
+        res = TickResult(budget=self.budget)
+        res.planned = self.plan_pending()
+        if time.monotonic() - self._last_reap >= REAP_INTERVAL_S:
+            res.reaped = self.reap_once()
+        res.dispatched = self.dispatch_once()
+        res.finished = self.complete_once()
+        return res
+
+    def run_forever(self, stop_event: threading.Event, interval: float = 1.0) -> None:
+        """Tick until `stop_event` is set; errors (a database restart) are logged and backed off, never fatal."""
+        backoff = 0.0
+        log.info("scheduler %s started (interval %.1f s)", self.scheduler_id, interval)
+        while not stop_event.is_set():
+            try:
+                res = self.tick()
+            except Exception as exc:
+                backoff = min(MAX_BACKOFF_S, max(1.0, backoff * 2))
+                log.error("scheduler tick failed (%s: %s); retrying in %.0f s", type(exc).__name__, exc, backoff)
+                log.debug("tick failure", exc_info=True)
+                stop_event.wait(backoff)
+                continue
+            if backoff:
+                log.info("scheduler recovered")
+            backoff = 0.0
+            if res.dispatched.sent or res.planned or res.finished:
+                log.debug("tick: planned %s, sent %d, finished %s", res.planned, res.dispatched.sent,
+                          [f.job_id for f in res.finished])
+            if not res.busy:
+                stop_event.wait(interval)
+        log.info("scheduler %s stopped", self.scheduler_id)

@@ -103,9 +103,19 @@ def pg_engine(pg_url: str) -> Iterator[Engine]:
     engine.dispose()
 
 
+def truncate_all(engine: Engine) -> None:
+    """Empty every table: other tests (API, end-to-end) commit for real on the shared database."""
+    from services.core.models import Base
+
+    names = ", ".join(f'"{t.name}"' for t in Base.metadata.sorted_tables)
+    with engine.begin() as conn:
+        conn.exec_driver_sql(f"TRUNCATE {names} RESTART IDENTITY CASCADE")
+
+
 @pytest.fixture()
 def db_session(pg_engine: Engine) -> Iterator[Session]:
-    """A Session inside a transaction that is rolled back after the test (commits become savepoints)."""
+    """A Session on an empty database inside a transaction rolled back after the test (commits become savepoints)."""
+    truncate_all(pg_engine)
     conn = pg_engine.connect()
     outer = conn.begin()
     session = Session(bind=conn, join_transaction_mode="create_savepoint", expire_on_commit=False)

@@ -25,6 +25,7 @@ from services.core.plan import CameraPose, PlannedView, PointOfInterest, SpacePl
 from services.core.storage import ObjectStore
 from services.scheduler.compile import compile_tasks
 from services.scheduler.persist import persist_space
+from tests.conftest import truncate_all
 
 
 def synthetic_plan(space_name: str, n_points: int, views_per_point: int, resolution: int = 64,
@@ -146,8 +147,10 @@ def task_ids(session: Session, job_id: int, **where: Any) -> list[int]:
 def pg_sm(pg_engine: Engine) -> Iterator[sessionmaker[Session]]:
     """Sessions on one Postgres connection inside a transaction rolled back after the test.
 
-    Commits inside the code under test become savepoints, so each test starts from an empty database.
+    Commits inside the code under test become savepoints; rows other tests committed are truncated first,
+    so each test starts from an empty database.
     """
+    truncate_all(pg_engine)
     conn = pg_engine.connect()
     outer = conn.begin()
     sm = sessionmaker(bind=conn, join_transaction_mode="create_savepoint", expire_on_commit=False)

@@ -8,7 +8,6 @@ leaves no row and no object.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import re
@@ -21,19 +20,11 @@ from sqlalchemy.orm import Session
 
 from services.core.keys import check_name
 from services.core.models import Space
-from services.core.spaces import LoadedSpace, SpaceError, load_space, resolve_source
+from services.core.spaces import LoadedSpace, SpaceError, load_space, resolve_source, sha256_file
 from services.core.storage.base import ObjectStore
 
 SINGLE_FILE_SUFFIXES = {".ply", ".glb", ".stl", ".off", ".zip"}
 MAX_PACKED_BYTES = 4 << 30
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while chunk := f.read(1 << 20):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def _obj_companions(obj: Path) -> list[Path]:
@@ -123,7 +114,7 @@ def register_space(
         mesh_file = resolve_source(source, work / "x") if source.suffix.lower() == ".zip" else resolve_source(source)
         loaded = load_space(source, up_axis=up_axis, unit_scale=unit_scale)
         packed = pack_source(source, mesh_file, work)
-        checksum = _sha256(packed)
+        checksum = sha256_file(packed)
         space = Space(
             owner=owner,
             name=name,

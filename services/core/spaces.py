@@ -441,7 +441,8 @@ def _classes_from_info_semantic(source: Path, face_instance: np.ndarray, notes: 
 # loading
 
 
-def _sha256(path: Path) -> str:
+def sha256_file(path: Path) -> str:
+    """sha256 hex of a file, read in 1 MiB chunks."""
     h = hashlib.sha256()
     with open(path, "rb") as f:
         while chunk := f.read(1 << 20):
@@ -564,7 +565,7 @@ def _load(source: Path, recorded: Path, up_axis: str, unit_scale: float) -> Load
         face_instance=face_instance,
         has_semantics=face_class is not None and face_instance is not None,
         bounds=np.array(mesh.bounds, dtype=np.float64),
-        checksum=_sha256(source),
+        checksum=sha256_file(source),
         face_count=int(len(mesh.faces)),
         up_source=np.asarray(up, dtype=np.float64),
         up_method=method,

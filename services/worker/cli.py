@@ -1,0 +1,74 @@
+"""`omnidata worker [--queues render,derive] [--concurrency N] [--loglevel L]`: a Celery render worker.
+
+Configured by OMNIDATA_* variables (database, broker, storage); several workers on several machines share the
+work. Each child process runs one task at a time (prefetch 1, acks late) and recycles itself after
+OMNIDATA_WORKER_MAX_TASKS tasks or above OMNIDATA_WORKER_MAX_MEMORY_MB.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import socket
+
+from services.cli import CliError
+
+LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of `omnidata worker`."""
+    parser.add_argument("--queues", "-Q", default=None,
+                        help="comma-separated queues to consume (default: the render and derive queues)")
+    parser.add_argument("--concurrency", "-c", type=int, default=1,
+                        help="worker processes (default 1; each renders with all the cores it may use)")
+    parser.add_argument("--loglevel", "-l", default="INFO", type=str.upper, choices=LOG_LEVELS)
+    parser.add_argument("--hostname", "-n", default=None, help="Celery node name (default omnidata-<pid>@<host>)")
+    parser.add_argument("--render-threads", type=int, default=None,
+                        help="Cycles CPU threads per process (default: the process's CPU affinity)")
+    parser.add_argument("--pool", default="prefork", choices=["prefork", "solo", "threads"],
+                        help="Celery pool (default prefork: crashes and leaks stay in a child process)")
+
+
+def worker_argv(args: argparse.Namespace, queues: list[str]) -> list[str]:
+    """The argv given to Celery's `worker` command."""
+    node = args.hostname or f"omnidata-{os.getpid()}@{socket.gethostname()}"
+    return [
+        "worker",
+        f"--queues={','.join(queues)}",
+        f"--concurrency={args.concurrency}",
+        f"--loglevel={args.loglevel}",
+        f"--hostname={node}",
+        f"--pool={args.pool}",
+        "--without-gossip",  # no worker-to-worker chatter: the database knows who is alive (heartbeats)
+        "--without-mingle",
+        "--without-heartbeat",
+    ]
+
+
+def run(args: argparse.Namespace) -> int:
+    """Start the worker; returns when Celery stops (SIGTERM: warm shutdown after the current task)."""
+    from services.core.settings import get_settings
+    from services.worker.celery_app import create_app
+
+    if args.concurrency < 1:
+        raise CliError(f"--concurrency must be at least 1, got {args.concurrency}")
+    if args.render_threads is not None:
+        if args.render_threads < 1:
+            raise CliError(f"--render-threads must be at least 1, got {args.render_threads}")
+        os.environ["OMNIDATA_RENDER_THREADS"] = str(args.render_threads)  # read by each child's runtime
+        # numeric libraries in the children get the same budget (numpy is not loaded yet in this process)
+        for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
+            os.environ.setdefault(var, str(args.render_threads))
+    try:
+        settings = get_settings()
+    except Exception as e:  # a bad OMNIDATA_* value: say which, without a traceback
+        raise CliError(f"invalid settings: {e}") from None
+    queues = [q.strip() for q in (args.queues or f"{settings.queue_render},{settings.queue_derive}").split(",")]
+    queues = [q for q in queues if q]
+    if not queues:
+        raise CliError("--queues names no queue")
+    app = create_app(settings)
+    app.conf["omnidata_queues"] = queues
+    app.worker_main(worker_argv(args, queues))
+    return 0

@@ -1,0 +1,158 @@
+"""Worker heartbeat (execution contract: Reaper): a thread that keeps the worker's row fresh and extends the
+lease of the task it is running, every few seconds.
+
+The `worker` row (id host:pid) carries host, queues, last heartbeat, current task, tasks done, labels per
+cue and labels/s over the last minute; the dashboard reads it. A worker that stops beating (kill -9, lost
+node) lets its task's lease run out, and the scheduler's reaper gives the task to another worker.
+"""
+
+from __future__ import annotations
+
+import logging
+import socket
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Sequence
+from datetime import timedelta
+
+from sqlalchemy import update
+from sqlalchemy.orm import Session
+
+from services.core.models import Task, Worker, utcnow
+
+log = logging.getLogger(__name__)
+
+HEARTBEAT_INTERVAL_S = 5.0
+RATE_WINDOW_S = 60.0  # labels/s is measured over this trailing window
+
+
+def heartbeat_interval(lease_s: float) -> float:
+    """Seconds between beats: 5 s, or a third of the lease when leases are shorter (tests), never below 0.5 s."""
+    return max(0.5, min(HEARTBEAT_INTERVAL_S, lease_s / 3.0))
+
+
+class Heartbeat:
+    """Beats for one worker process: `start()` runs `beat()` in a daemon thread every `interval_s` seconds."""
+
+    def __init__(
+        self,
+        sessionmaker: Callable[[], Session],
+        worker_id: str,
+        *,
+        queues: Sequence[str] = (),
+        lease_s: float = 300.0,
+        interval_s: float | None = None,
+        host: str | None = None,
+    ) -> None:
+        self._sessionmaker = sessionmaker
+        self.worker_id = worker_id
+        self.host = host or socket.gethostname()
+        self.queues = list(queues)
+        self.lease_s = float(lease_s)
+        self.interval_s = heartbeat_interval(lease_s) if interval_s is None else float(interval_s)
+        self._lock = threading.Lock()
+        self._current: int | None = None
+        self._tasks_done = 0
+        self._labels: dict[str, int] = {}
+        self._recent: deque[tuple[float, int]] = deque()  # (monotonic time, labels) of recent tasks
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.beats = 0
+        self.last_error: str | None = None
+
+    # ------------------------------------------------------------------ called by the runner
+
+    def set_current(self, task_id: int | None) -> None:
+        """The task this worker now runs (its lease is extended by each beat), or None when idle."""
+        with self._lock:
+            self._current = task_id
+
+    def record_done(self, cue: str, labels: int = 1) -> None:
+        """Count a finished task and the labels (output files) it produced."""
+        now = time.monotonic()
+        with self._lock:
+            self._tasks_done += 1
+            if labels:
+                self._labels[cue] = self._labels.get(cue, 0) + labels
+                self._recent.append((now, labels))
+            self._trim(now)
+
+    @property
+    def tasks_done(self) -> int:
+        """Tasks this worker finished since it started."""
+        with self._lock:
+            return self._tasks_done
+
+    def labels_per_s(self) -> float:
+        """Labels produced per second over the trailing window (or since the first label, if shorter)."""
+        now = time.monotonic()
+        with self._lock:
+            self._trim(now)
+            if not self._recent:
+                return 0.0
+            span = max(now - self._recent[0][0], 1.0)
+            return sum(n for _, n in self._recent) / min(span, RATE_WINDOW_S)
+
+    def _trim(self, now: float) -> None:
+        while self._recent and now - self._recent[0][0] > RATE_WINDOW_S:
+            self._recent.popleft()
+
+    # ------------------------------------------------------------------ the beat
+
+    def beat(self) -> None:
+        """Upsert the worker row and extend the current task's lease (only while it is still ours and running)."""
+        rate = self.labels_per_s()
+        with self._lock:
+            current, done, labels = self._current, self._tasks_done, dict(self._labels)
+        now = utcnow()
+        with self._sessionmaker() as session, session.begin():
+            row = session.get(Worker, self.worker_id)
+            if row is None:
+                row = Worker(id=self.worker_id, host=self.host, started_at=now)
+                session.add(row)
+            row.host = self.host
+            row.queues = self.queues
+            row.last_heartbeat = now
+            row.current_task_id = current
+            row.tasks_done = done
+            row.labels_per_s = rate
+            row.labels = labels
+            if current is not None:
+                # Not a state change (counters untouched): only pushes the deadline of a task we hold.
+                session.execute(
+                    update(Task)
+                    .where(Task.id == current, Task.worker_id == self.worker_id, Task.state == "running")
+                    .values(lease_until=now + timedelta(seconds=self.lease_s))
+                    .execution_options(synchronize_session=False)
+                )
+        self.beats += 1
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                self.beat()
+                self.last_error = None
+            except Exception as e:  # a database hiccup must not kill the thread: the next beat retries
+                self.last_error = f"{type(e).__name__}: {e}"
+                log.warning("heartbeat of %s failed: %s", self.worker_id, self.last_error)
+            self._stop.wait(self.interval_s)
+
+    def start(self) -> Heartbeat:
+        """Start beating in a daemon thread (idempotent)."""
+        if self._thread is None or not self._thread.is_alive():
+            self._stop.clear()
+            self._thread = threading.Thread(target=self._run, name=f"heartbeat-{self.worker_id}", daemon=True)
+            self._thread.start()
+        return self
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """Stop the thread and mark the worker idle (best effort)."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+        self.set_current(None)
+        try:
+            self.beat()
+        except Exception:
+            pass

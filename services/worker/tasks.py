@@ -1,0 +1,144 @@
+"""Celery tasks of the worker (STYLE.md item 6): thin wrappers that validate the payload, call the TaskRunner
+and map transient errors to retries. Everything else (state, results, errors) lives in the database.
+
+Each worker child process builds its own runtime (database engine, object store, TaskRunner, heartbeat thread)
+after the fork, on first use: connections and threads must not cross a fork.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+from dataclasses import dataclass
+from typing import Any
+
+from celery import Task as CeleryTask
+from celery import shared_task
+from celery.signals import worker_process_init, worker_process_shutdown
+
+from services.core.celery_config import TASK_RENDER_CUE
+from services.core.settings import Settings, get_settings
+
+log = logging.getLogger(__name__)
+
+MAX_TRANSIENT_RETRIES = 20  # broker-level retries of a task whose claim could not reach the database
+RETRY_CAP_S = 30.0
+
+
+@dataclass
+class Runtime:
+    """What one worker process holds: settings, engine, store, runner and heartbeat."""
+
+    pid: int
+    settings: Settings
+    engine: Any
+    runner: Any
+    heartbeat: Any
+
+    def close(self) -> None:
+        """Stop the heartbeat, free the space and close database connections."""
+        try:
+            self.heartbeat.stop()
+        finally:
+            self.runner.close()
+            self.engine.dispose()
+
+
+_runtime: Runtime | None = None
+_lock = threading.Lock()
+
+
+def _settings_from_app(app: Any) -> Settings:
+    s = app.conf.get("omnidata_settings") if app is not None else None
+    return s if isinstance(s, Settings) else get_settings()
+
+
+def build_runtime(settings: Settings, *, queues: list[str] | None = None) -> Runtime:
+    """Engine, store, TaskRunner and a started heartbeat for this process (worker id host:pid)."""
+    from services.core.db import make_engine, make_sessionmaker
+    from services.core.storage import open_store
+    from services.worker.heartbeat import Heartbeat
+    from services.worker.runner import TaskRunner, default_worker_id
+
+    engine = make_engine(settings.database_url)
+    sm = make_sessionmaker(engine)
+    store = open_store(settings.storage_url, settings)
+    worker_id = default_worker_id()
+    threads = os.environ.get("OMNIDATA_RENDER_THREADS")
+    hb = Heartbeat(sm, worker_id, queues=queues or [settings.queue_render, settings.queue_derive],
+                   lease_s=settings.lease_s)
+    runner = TaskRunner(sm, store, settings, worker_id, heartbeat=hb,
+                        render_threads=int(threads) if threads else None)
+    hb.start()
+    return Runtime(os.getpid(), settings, engine, runner, hb)
+
+
+def get_runtime(app: Any = None) -> Runtime:
+    """This process's runtime, built on first use (and again after a fork)."""
+    global _runtime
+    with _lock:
+        if _runtime is None or _runtime.pid != os.getpid():
+            settings = _settings_from_app(app)
+            queues = app.conf.get("omnidata_queues") if app is not None else None
+            _runtime = build_runtime(settings, queues=queues)
+        return _runtime
+
+
+@worker_process_init.connect
+def _init_child(**_: Any) -> None:
+    # A fresh child: forget the parent's runtime (its threads did not survive the fork) and start beating
+    # right away, so the dashboard sees idle workers too. Building it is quick: bpy loads on the first render.
+    global _runtime
+    _runtime = None
+    try:
+        from celery import current_app
+
+        get_runtime(current_app)
+    except Exception:  # the first task will try again and report the error properly
+        log.exception("worker runtime could not start; will retry on the first task")
+
+
+@worker_process_shutdown.connect
+def _shutdown_child(**_: Any) -> None:
+    global _runtime
+    if _runtime is not None and _runtime.pid == os.getpid():
+        try:
+            _runtime.close()
+        except Exception:
+            log.exception("closing the worker runtime failed")
+        _runtime = None
+
+
+def _task_id(payload: Any) -> int | None:
+    if isinstance(payload, bool):
+        return None
+    if isinstance(payload, int):
+        return payload if payload > 0 else None
+    if isinstance(payload, str) and payload.isdigit():
+        return int(payload) or None
+    return None
+
+
+@shared_task(name=TASK_RENDER_CUE, bind=True, acks_late=True, reject_on_worker_lost=True, ignore_result=True,
+             max_retries=MAX_TRANSIENT_RETRIES)
+def render_cue(self: CeleryTask, task_id: Any) -> str:
+    """Run one point-view-cue task by id; returns the outcome status (done, skipped, retry, failed, ...)."""
+    from services.worker.runner import TransientError
+
+    tid = _task_id(task_id)
+    if tid is None:  # a malformed message can never succeed: drop it (acked), do not retry
+        log.error("render.cue: invalid task id %r; message dropped", task_id)
+        return "invalid"
+    try:
+        outcome = get_runtime(self.app).runner.run(tid)
+    except TransientError as exc:
+        countdown = min(RETRY_CAP_S, 2.0 ** self.request.retries)
+        log.warning("render.cue(%d): %s; retrying in %.0f s", tid, exc, countdown)
+        raise self.retry(exc=exc, countdown=countdown) from None
+    log.info("render.cue(%d) %s: %s in %.2f s%s", tid, outcome.cue, outcome.status, outcome.duration_s,
+             f" ({outcome.error.splitlines()[0]})" if outcome.error and outcome.status != "skipped" else "")
+    if outcome.recycle:
+        # worker_max_tasks_per_child / worker_max_memory_per_child recycle the child after this task.
+        log.info("worker process %d reached its memory or task limit; Celery recycles it", os.getpid())
+    return outcome.status

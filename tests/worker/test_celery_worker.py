@@ -159,7 +159,9 @@ def test_real_worker_consumes_heartbeats_and_recycles_its_child(pg_url, pg_sm, r
     finally:
         os.killpg(proc.pid, signal.SIGTERM)  # warm shutdown
         try:
-            proc.wait(timeout=30)
+            # bounded like deploy/k8s terminationGracePeriodSeconds: on a loaded 2-core machine the pool
+            # children (each with Blender loaded) can take tens of seconds to exit
+            proc.wait(timeout=120)
         except subprocess.TimeoutExpired:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()

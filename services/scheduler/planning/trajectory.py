@@ -22,7 +22,13 @@ from scipy.interpolate import CubicSpline
 from scipy.spatial import cKDTree
 
 from services.core.jobspec import ViewSpec
-from services.scheduler.planning.views import ViewArrays, look_at_batch, obliqueness, truncated_normal
+from services.scheduler.planning.views import (
+    ViewArrays,
+    cap_views,
+    look_at_batch,
+    obliqueness,
+    truncated_normal,
+)
 from services.scheduler.planning.visibility import MeshQueries
 
 DENSE_PER_SEGMENT = 256
@@ -117,9 +123,7 @@ def trajectory(
     R: list[np.ndarray] = []
     FOV: list[np.ndarray] = []
     for p, cams in enumerate(visible):
-        cams = np.asarray(cams, dtype=np.int64)
-        if max_views is not None and len(cams) > max_views:
-            cams = np.sort(rng.choice(cams, size=max_views, replace=False))
+        cams = cap_views(cams, max_views, rng)
         way = cameras[cams][order_path(cameras[cams])]
         rolls = rng.uniform(-rmax, rmax, len(way))
         fov = float(truncated_normal(rng, *fov_args, 1)[0])

@@ -14,6 +14,7 @@ one pass over the unpruned view counts. Points left with fewer than min_views vi
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -89,6 +90,14 @@ def obliqueness(normals: np.ndarray, points: np.ndarray, cameras: np.ndarray) ->
     return np.arccos(np.clip(np.einsum("ij,ij->i", normals, d), -1.0, 1.0))
 
 
+def cap_views(cams: Sequence[int] | np.ndarray, max_views: int | None, rng: np.random.Generator) -> np.ndarray:
+    """The cameras of a point, at most max_views of them chosen by rng (kept in index order)."""
+    cams = np.asarray(cams, dtype=np.int64)
+    if max_views is not None and len(cams) > max_views:
+        cams = np.sort(rng.choice(cams, size=max_views, replace=False))
+    return cams
+
+
 def wide_baseline(
     positions: np.ndarray,
     normals: np.ndarray,
@@ -103,9 +112,7 @@ def wide_baseline(
     cidx: list[np.ndarray] = []
     vidx: list[np.ndarray] = []
     for p, cams in enumerate(visible):
-        cams = np.asarray(cams, dtype=np.int64)
-        if max_views is not None and len(cams) > max_views:
-            cams = np.sort(rng.choice(cams, size=max_views, replace=False))
+        cams = cap_views(cams, max_views, rng)
         pidx.append(np.full(len(cams), p, dtype=np.int64))
         cidx.append(cams)
         vidx.append(np.arange(len(cams), dtype=np.int64))

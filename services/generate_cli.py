@@ -138,6 +138,7 @@ class Source:
     name: str
     checksum: str
     has_semantics: bool | None = None  # known once validated (None: already registered, trusted)
+    loaded: Any = None  # the validated LoadedSpace, handed to register_space so the mesh loads once
 
 
 def source_checksum(path: Path) -> str:
@@ -184,6 +185,7 @@ def validate_sources(sources: list[Source], spec: Any) -> None:
             loaded = load_space(src.path, up_axis=spec.up_axis, unit_scale=spec.unit_scale)
         except SpaceError as e:
             raise CliError(str(e)) from None
+        src.loaded = loaded
         src.has_semantics = bool(loaded.has_semantics)
         try:
             cues_for_space(spec, has_semantics=src.has_semantics)
@@ -289,9 +291,11 @@ def prepare_job(sm: Any, store: Any, spec: Any, sources: list[Source]) -> Prepar
             if sp is None:
                 try:
                     sp = register_space(s, store, owner=OWNER, name=src.name, source_path=src.path,
-                                        key_prefix=SPACES_PREFIX, up_axis=spec.up_axis, unit_scale=spec.unit_scale)
+                                        key_prefix=SPACES_PREFIX, up_axis=spec.up_axis, unit_scale=spec.unit_scale,
+                                        loaded=src.loaded)
                 except SpaceError as e:
                     raise CliError(str(e)) from None
+            src.loaded = None  # the workers load their own copy; do not keep the mesh in this process
             ordered.append(sp)
         try:
             job = create_job(s, owner=OWNER, spec=spec, spaces=ordered, output_root="")

@@ -100,8 +100,13 @@ def register_space(
     key_prefix: str = "spaces",
     up_axis: str = "auto",
     unit_scale: float = 1.0,
+    loaded: LoadedSpace | None = None,
 ) -> Space:
-    """Validate a space, upload its source and add its row (flushed, not committed)."""
+    """Validate a space, upload its source and add its row (flushed, not committed).
+
+    `loaded`: the result of `validate_source` for the same path and options, so a caller that validated
+    first does not load the mesh twice.
+    """
     try:
         check_name("space name", name)
     except ValueError as e:
@@ -112,7 +117,8 @@ def register_space(
     with tempfile.TemporaryDirectory(prefix="omnidata-register-") as tmp:
         work = Path(tmp)
         mesh_file = resolve_source(source, work / "x") if source.suffix.lower() == ".zip" else resolve_source(source)
-        loaded = load_space(source, up_axis=up_axis, unit_scale=unit_scale)
+        if loaded is None:
+            loaded = load_space(source, up_axis=up_axis, unit_scale=unit_scale)
         packed = pack_source(source, mesh_file, work)
         checksum = sha256_file(packed)
         space = Space(

@@ -10,12 +10,13 @@ import os
 import secrets
 import socket
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from urllib.parse import urlparse
 
 import pytest
-from sqlalchemy import Engine, create_engine, text
+from sqlalchemy import Connection, Engine, create_engine, text
 from sqlalchemy.engine import make_url
 from sqlalchemy.orm import Session
 
@@ -112,19 +113,31 @@ def truncate_all(engine: Engine) -> None:
         conn.exec_driver_sql(f"TRUNCATE {names} RESTART IDENTITY CASCADE")
 
 
+@contextmanager
+def rolled_back(engine: Engine) -> Iterator[Connection]:
+    """A connection to an emptied database inside a transaction that is rolled back at the end.
+
+    Sessions bound to it with join_transaction_mode="create_savepoint" turn their commits into savepoints.
+    """
+    truncate_all(engine)
+    conn = engine.connect()
+    outer = conn.begin()
+    try:
+        yield conn
+    finally:
+        outer.rollback()
+        conn.close()
+
+
 @pytest.fixture()
 def db_session(pg_engine: Engine) -> Iterator[Session]:
     """A Session on an empty database inside a transaction rolled back after the test (commits become savepoints)."""
-    truncate_all(pg_engine)
-    conn = pg_engine.connect()
-    outer = conn.begin()
-    session = Session(bind=conn, join_transaction_mode="create_savepoint", expire_on_commit=False)
-    try:
-        yield session
-    finally:
-        session.close()
-        outer.rollback()
-        conn.close()
+    with rolled_back(pg_engine) as conn:
+        session = Session(bind=conn, join_transaction_mode="create_savepoint", expire_on_commit=False)
+        try:
+            yield session
+        finally:
+            session.close()
 
 
 # ------------------------------------------------------------------------------------------------ SQLite

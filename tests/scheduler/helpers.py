@@ -25,7 +25,7 @@ from services.core.plan import CameraPose, PlannedView, PointOfInterest, SpacePl
 from services.core.storage import ObjectStore
 from services.scheduler.compile import compile_tasks
 from services.scheduler.persist import persist_space
-from tests.conftest import truncate_all
+from tests.conftest import rolled_back
 
 
 def synthetic_plan(space_name: str, n_points: int, views_per_point: int, resolution: int = 64,
@@ -150,15 +150,8 @@ def pg_sm(pg_engine: Engine) -> Iterator[sessionmaker[Session]]:
     Commits inside the code under test become savepoints; rows other tests committed are truncated first,
     so each test starts from an empty database.
     """
-    truncate_all(pg_engine)
-    conn = pg_engine.connect()
-    outer = conn.begin()
-    sm = sessionmaker(bind=conn, join_transaction_mode="create_savepoint", expire_on_commit=False)
-    try:
-        yield sm
-    finally:
-        outer.rollback()
-        conn.close()
+    with rolled_back(pg_engine) as conn:
+        yield sessionmaker(bind=conn, join_transaction_mode="create_savepoint", expire_on_commit=False)
 
 
 @pytest.fixture()

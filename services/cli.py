@@ -19,6 +19,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "worker": ("services.worker.cli", "run a Celery render worker"),
     "submit": ("services.submit_cli", "submit a job to a running service and follow its progress"),
     "sheet": ("services.contact_sheet", "draw a contact sheet PNG of every cue of a few views of an output folder"),
+    "export": ("services.datasets.export", "export an output as WebDataset shards or the public Omnidata loader's tree"),
+    "preview": ("services.datasets.preview_cli", "preview PNGs of an output's cues, or one MP4 per cue (--video)"),
 }
 
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 import io
 import itertools
 import math
+import re
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
@@ -22,6 +23,7 @@ from PIL import Image, ImageDraw
 
 from services.core.cues import get_cue
 from services.core.jobspec import CueParams
+from services.core.keys import file_name
 from services.core.storage import ObjectStore
 from services.datasets.decode import UINT16_NONE, UINT32_NONE, as_uint16, curvature_per_m, read_raw
 
@@ -229,6 +231,23 @@ def preview_key(output_key: str, cue: str, point: int, view: int) -> str:
     folder = output_key.rsplit("/", 1)[0]
     get_cue(cue)
     return f"{PREVIEW_PREFIX}/{folder}/point_{point}_view_{view}_domain_{cue}.png"
+
+
+_PREVIEW_NAME = re.compile(r"^point_(?P<point>\d+)_view_(?P<view>\d+)_domain_(?P<cue>\w+)\.png$")
+
+
+def parse_preview_key(key: str) -> tuple[str, str, str, int, int]:
+    """(job root, output key relative to it, cue, point, view) of a preview key; ValueError if it names none."""
+    marker = PREVIEW_PREFIX + "/"
+    root, sep, rest = key.rpartition("/" + marker) if not key.startswith(marker) else ("", marker, key[len(marker):])
+    parts = rest.split("/")
+    m = _PREVIEW_NAME.match(parts[-1]) if sep and len(parts) == 4 else None
+    if m is None or m["cue"] != parts[0]:
+        raise ValueError(f"{key!r} is not a preview key")
+    cue, point, view = m["cue"], int(m["point"]), int(m["view"])
+    if get_cue(cue).internal:
+        raise ValueError(f"{key!r} names an internal cue")
+    return root, f"{'/'.join(parts[:3])}/{file_name(cue, point, view)}", cue, point, view
 
 
 def cached_preview(

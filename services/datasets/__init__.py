@@ -4,7 +4,7 @@ bpy-free (the API imports the previews); torch is optional (`pip install -e '.[t
 """
 
 from services.datasets.dataset import OmnidataDataset, camera_of
-from services.datasets.decode import decode
+from services.datasets.decode import decode_cue
 from services.datasets.source import DatasetIntegrityError
 from services.datasets.splits import assign_splits, read_split_csv, split_of
 
@@ -13,7 +13,7 @@ __all__ = [
     "OmnidataDataset",
     "assign_splits",
     "camera_of",
-    "decode",
+    "decode_cue",
     "read_split_csv",
     "split_of",
 ]

@@ -17,7 +17,7 @@ from services.core.camera import intrinsics, world_to_camera_from_blender
 from services.core.cues import validate_cue_names
 from services.core.settings import Settings
 from services.core.storage import ObjectStore
-from services.datasets.decode import cue_params, decode
+from services.datasets.decode import cue_params, decode_cue
 from services.datasets.source import (
     ViewRecord,
     check_sha256,
@@ -153,7 +153,7 @@ class OmnidataDataset:
 
     def load_view(self, record: ViewRecord) -> Item:
         """One view: every requested cue decoded, plus K, world_to_camera (when it has point_info) and its names."""
-        item: Item = {cue: decode(cue, self.read(record, cue), self.params) for cue in self.cues}
+        item: Item = {cue: decode_cue(cue, self.read(record, cue), self.params) for cue in self.cues}
         if "point_info" in record.files:
             text = item["point_info"] if "point_info" in item else self.read(record, "point_info").decode("utf-8")
             item["K"], item["world_to_camera"] = camera_of(json.loads(text))

@@ -145,7 +145,7 @@ def curvature_per_m(raw: np.ndarray, params: CueParams) -> np.ndarray:
     return k.astype(np.float32)
 
 
-def decode(cue: str, data: bytes, params: CueParams | None = None) -> np.ndarray | str:
+def decode_cue(cue: str, data: bytes, params: CueParams | None = None) -> np.ndarray | str:
     """The cue file `data` as a channels-first array in the units of the module docstring (JSON: its text)."""
     spec = get_cue(cue)
     if spec.ext == "json":

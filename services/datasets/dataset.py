@@ -24,6 +24,7 @@ from services.datasets.source import (
     index_root,
     job_document,
     open_root,
+    select_cues,
 )
 from services.datasets.splits import DEFAULT_RATIOS, SPLITS, assign_splits, read_split_csv
 
@@ -92,10 +93,8 @@ class OmnidataDataset:
             records = [r for r in records if r.space in wanted]
         if split is not None:
             records = self._in_split(records, split, split_csv, split_seed, split_ratios)
-        present = {c for r in records for c in r.files}
-        missing = [c for c in self.cues if c not in present]
-        if records and missing:
-            raise ValueError(f"cue(s) {missing} are in no view of {self.root}; it has {sorted(present)}")
+        if records:
+            select_cues(records, self.cues)  # a cue no view has is a mistake, not an empty dataset
         complete = [r for r in records if all(c in r.files for c in self.cues)]
         self.incomplete_views = len(records) - len(complete)  # views lacking a requested cue
         self.views: list[ViewRecord] = complete

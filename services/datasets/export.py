@@ -38,6 +38,7 @@ from services.datasets.source import (
     index_root,
     job_document,
     open_root,
+    select_cues,
 )
 from services.datasets.splits import DEFAULT_RATIOS, assign_splits, read_split_csv, split_csv_text
 
@@ -93,11 +94,10 @@ class Exporter:
         self.records = index_root(store)
         if not self.records:
             raise CliError(f"{store} lists no views")
-        present = [c for c in CATALOG if any(c in r.files for r in self.records)]
-        self.cues = present if cues is None else cues
-        missing = [c for c in self.cues if c not in present]
-        if missing:
-            raise CliError(f"cue(s) {', '.join(missing)} are not in this dataset; it has {', '.join(present)}")
+        try:
+            self.cues = select_cues(self.records, cues)
+        except ValueError as e:
+            raise CliError(str(e)) from None
 
     def read(self, record: ViewRecord, cue: str) -> bytes:
         ref = record.files[cue]

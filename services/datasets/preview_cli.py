@@ -18,11 +18,11 @@ import numpy as np
 from PIL import Image
 
 from services.cli import CliError
-from services.core.cues import CATALOG, UnknownCueError, validate_cue_names
+from services.core.cues import UnknownCueError, validate_cue_names
 from services.core.storage import LocalStore, ObjectStore
 from services.datasets.decode import cue_params
 from services.datasets.previews import PREVIEW_PREFIX, cached_preview, write_video
-from services.datasets.source import ViewRecord, index_root, job_document, open_root
+from services.datasets.source import ViewRecord, index_root, job_document, open_root, select_cues
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -87,18 +87,14 @@ def videos(store: ObjectStore, records: list[ViewRecord], cues: list[str], out: 
 
 def run(args: argparse.Namespace) -> int:
     try:
-        cues = None if args.cues is None else validate_cue_names(c.strip() for c in args.cues.split(",") if c.strip())
+        wanted = None if args.cues is None else validate_cue_names(c.strip() for c in args.cues.split(",") if c.strip())
         store = open_root(args.source)
         records = index_root(store)
+        cues = select_cues(records, wanted)
     except (UnknownCueError, FileNotFoundError, ValueError) as e:
         raise CliError(str(e)) from None
     if not records:
         raise CliError(f"{args.source} lists no views")
-    present = [c for c in CATALOG if any(c in r.files for r in records)]
-    cues = present if cues is None else cues
-    missing = [c for c in cues if c not in present]
-    if missing:
-        raise CliError(f"cue(s) {', '.join(missing)} are not in this dataset; it has {', '.join(present)}")
     if not args.video:
         pv = Previewer(store)
         n = sum(len(pv.previews(r, cues)) for r in _progress(records, "previews", not args.no_progress))

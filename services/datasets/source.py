@@ -161,6 +161,17 @@ def index_root(store: ObjectStore) -> list[ViewRecord]:
     )
 
 
+def select_cues(records: list[ViewRecord], cues: list[str] | None) -> list[str]:
+    """The requested cues (default: every cue some view has), in catalog order; ValueError naming any absent one."""
+    present = [c for c in CATALOG if any(c in r.files for r in records)]
+    if cues is None:
+        return present
+    missing = [c for c in cues if c not in present]
+    if missing:
+        raise ValueError(f"cue(s) {', '.join(missing)} are not in this dataset; it has {', '.join(present)}")
+    return [c for c in CATALOG if c in cues]
+
+
 def job_document(store: ObjectStore) -> dict[str, Any] | None:
     """The root's job.json, or None (starter datasets have none)."""
     return read_json(store, JOB_JSON_KEY)

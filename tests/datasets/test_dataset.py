@@ -254,7 +254,7 @@ def test_bad_arguments_are_refused_with_the_reason(small_job: Path, tmp_path: Pa
         OmnidataDataset(small_job, ["rgb"], views_per_sample=0)
     with pytest.raises(ValueError, match="split ratios"):
         OmnidataDataset(small_job, ["rgb"], split="train", split_ratios=(0.5, 0.5, 0.5))
-    with pytest.raises(ValueError, match=r"segment_semantic.*in no view"):
+    with pytest.raises(ValueError, match=r"segment_semantic are not in this dataset"):
         OmnidataDataset(small_job, ["rgb", "segment_semantic"])
     with pytest.raises(FileNotFoundError, match="is not a folder"):
         OmnidataDataset(tmp_path / "missing", ["rgb"])

@@ -67,9 +67,13 @@ def stretch(a: np.ndarray, valid: np.ndarray | None = None, lo_pct: float = 1, h
 
 
 def hashed_colours(ids: np.ndarray, none: int | None = None) -> np.ndarray:
-    """HxWx3 uint8: a stable pseudo-random colour per integer id (Knuth's multiplicative hash); `none` is black."""
-    h = (ids.astype(np.uint64) * np.uint64(2654435761)) & np.uint64(0xFFFFFF)
-    rgb = np.stack([(h >> np.uint64(s)) & np.uint64(255) for s in (16, 8, 0)], axis=-1).astype(np.uint8)
+    """HxWx3 uint8: a stable pseudo-random colour per integer id (Knuth's multiplicative hash); `none` is black.
+
+    Colours stay above a floor of 48 per channel, so no id (label 0 included) looks like "none".
+    """
+    h = ((ids.astype(np.uint64) + np.uint64(1)) * np.uint64(2654435761)) & np.uint64(0xFFFFFF)
+    channels = [(h >> np.uint64(s)) & np.uint64(255) for s in (16, 8, 0)]
+    rgb = np.stack([48 + c.astype(np.uint16) * 207 // 255 for c in channels], axis=-1).astype(np.uint8)
     if none is not None:
         rgb[ids == none] = NO_SURFACE
     return rgb

@@ -10,7 +10,8 @@ omnidata: the tree the public Omnidata dataloader (omnidata_tools/torch/dataload
 that loader parses every name as point_<p>_view_<v>_domain_<cue>), and its split CSV
 `OUT/component_datasets/<component>/train_val_test_<component>.csv` (id,train,val,test by space).
 
-SOURCE is a job's output folder or s3://bucket/prefix of a job root (read through its manifest). The output is
+SOURCE is a job's output folder, s3://bucket/prefix of a job root, or a service job's id (its root `jobs/<id>` in
+OMNIDATA_STORAGE_URL), read through its manifest. The output is
 built in a temporary sibling folder and renamed into place at the end, so a failed export leaves nothing.
 """
 
@@ -46,7 +47,7 @@ FORMATS = ("webdataset", "omnidata")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("source", help="output folder of a job, or s3://bucket/prefix of a job root")
+    p.add_argument("source", help="output folder of a job, s3://bucket/prefix of a job root, or a service job id")
     p.add_argument("--format", required=True, choices=FORMATS, help="webdataset tar shards or the Omnidata tree")
     p.add_argument("--out", required=True, type=Path, help="folder to create (must not exist or be empty)")
     p.add_argument("--shard-size", type=int, default=1000, help="webdataset: samples (views) per shard")

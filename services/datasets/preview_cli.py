@@ -26,7 +26,7 @@ from services.datasets.source import ViewRecord, index_root, job_document, open_
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("source", help="output folder of a job, or s3://bucket/prefix of a job root")
+    p.add_argument("source", help="output folder of a job, s3://bucket/prefix of a job root, or a service job id")
     p.add_argument("--video", action="store_true", help="one MP4 per cue and trajectory (point), a frame per view")
     p.add_argument("--out", type=Path, default=None, help="folder for the videos (default SOURCE/_previews/video)")
     p.add_argument("--cues", default=None, help="comma-separated cues (default: every cue the job has)")

@@ -17,10 +17,12 @@ from typing import Any
 from services.core.cues import CATALOG, OUTPUT_CUES
 from services.core.keys import JOB_JSON_KEY, MANIFEST_KEY
 from services.core.settings import Settings
-from services.core.storage import LocalStore, ObjectNotFoundError, ObjectStore, open_store
+from services.core.storage import LocalStore, ObjectNotFoundError, ObjectStore, open_store, prefixed
 
 # Omnidata's file names; per-point cues (nonfixated) drop the view
 FILE_RE = re.compile(r"^point_(?P<point>\d+)(?:_view_(?P<view>\d+))?_domain_(?P<cue>\w+?)\.(?P<ext>[A-Za-z0-9]+)$")
+
+JOB_REF = re.compile(r"^(?:job:)?(?P<id>[1-9][0-9]{0,18})$")
 
 # Folder names in released Omnidata components that differ from our cue names
 STARTER_ALIASES = {"normals": "normal", "keypoint_unsup2d": "keypoints2d", "keypoint_unsup25d": "keypoints3d"}
@@ -56,14 +58,21 @@ class DatasetIntegrityError(ValueError):
 
 
 def open_root(root: str | Path | ObjectStore, settings: Settings | None = None) -> ObjectStore:
-    """The store of a dataset root: a folder path, file:// or s3://bucket/prefix URL, or an open store."""
+    """The store of a dataset root: a folder path, file:// or s3://bucket/prefix URL, an open store, or the id of
+    a service job (`42` or `job:42`: its outputs under `jobs/<id>` of the service's OMNIDATA_STORAGE_URL)."""
     if isinstance(root, ObjectStore):
         return root
     text = str(root)
+    job = JOB_REF.match(text)
+    if job and not Path(text).exists():
+        from services.core.settings import get_settings
+
+        s = settings or get_settings()
+        return prefixed(open_store(s.storage_url, s), f"jobs/{job['id']}")
     if "://" not in text:
         path = Path(text).expanduser()
         if not path.is_dir():
-            raise FileNotFoundError(f"{path} is not a folder (give a job's output folder or an s3:// URL)")
+            raise FileNotFoundError(f"{path} is not a folder (give a job's output folder, job id or s3:// URL)")
         return LocalStore(path, fsync=False)
     return open_store(text, settings)
 

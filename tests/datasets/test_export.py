@@ -121,7 +121,7 @@ def test_omnidata_tree_follows_the_public_loaders_rules(
 
 def test_export_from_s3(small_job: Path, s3_server: S3Server, tmp_path: Path, capsys: pytest.CaptureFixture[str],
                         monkeypatch: pytest.MonkeyPatch) -> None:
-    settings = s3_server.settings(prefix="exports/job")
+    settings = s3_server.settings(prefix="exports/jobs/7")
     store = open_store(settings.storage_url, settings)
     _upload(small_job, store)
     for k, v in s3_server.env.items():
@@ -129,6 +129,14 @@ def test_export_from_s3(small_job: Path, s3_server: S3Server, tmp_path: Path, ca
     code, out, err = run(capsys, settings.storage_url, "--format", "webdataset", "--out", tmp_path / "wds", "--verify")
     assert code == 0, err
     assert len(read_shards(tmp_path / "wds")) == 4
+    # a service job by id: its root jobs/<id> in the service's store
+    monkeypatch.setenv("OMNIDATA_STORAGE_URL", f"s3://{s3_server.bucket}/exports")
+    code, out, err = run(capsys, "job:7", "--format", "omnidata", "--out", tmp_path / "omni")
+    assert code == 0, err
+    assert (tmp_path / "omni/rgb/tiny/ycb_banana/point_1_view_1_domain_rgb.png").read_bytes() == (
+        small_job / "rgb/tiny/ycb_banana/point_1_view_1_domain_rgb.png").read_bytes()
+    code, out, err = run(capsys, "8", "--format", "omnidata", "--out", tmp_path / "none")
+    assert code == 2 and "manifest" in err and not (tmp_path / "none").exists()
     store.delete_prefix("")
 
 

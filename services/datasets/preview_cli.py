@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import io
-import json
 import sys
 from collections.abc import Iterable
 from pathlib import Path
@@ -20,8 +19,7 @@ from PIL import Image
 from services.cli import CliError
 from services.core.cues import UnknownCueError, validate_cue_names
 from services.core.storage import LocalStore, ObjectStore
-from services.datasets.decode import cue_params
-from services.datasets.previews import PREVIEW_PREFIX, cached_preview, write_video
+from services.datasets.previews import PREVIEW_PREFIX, Previewer, write_video
 from services.datasets.source import ViewRecord, index_root, job_document, open_root, select_cues
 
 
@@ -32,29 +30,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cues", default=None, help="comma-separated cues (default: every cue the job has)")
     p.add_argument("--fps", type=float, default=10.0, help="video frames per second")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-
-
-class Previewer:
-    """Cached previews of a dataset root's outputs, with each view's resolution for the drawn JSON cues."""
-
-    def __init__(self, store: ObjectStore):
-        self.store = store
-        self.params = cue_params(job_document(store))
-
-    def resolution(self, record: ViewRecord) -> int | None:
-        if "point_info" not in record.files:
-            return None
-        res = json.loads(self.store.get_bytes(record.files["point_info"].key)).get("resolution")
-        return None if res is None else int(res)
-
-    def previews(self, record: ViewRecord, cues: Iterable[str]) -> dict[str, bytes]:
-        """PNG bytes of the view's preview per cue (made and stored when not cached yet)."""
-        res = self.resolution(record)
-        return {
-            cue: cached_preview(self.store, record.files[cue].key, cue, point=record.point, view=record.view,
-                                params=self.params, resolution=res)[1]
-            for cue in cues if cue in record.files
-        }
 
 
 def _progress(items: list, what: str, enabled: bool) -> Iterable:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import io
 import itertools
+import json
 import math
 import re
 from collections.abc import Iterable, Sequence
@@ -25,7 +26,15 @@ from services.core.cues import get_cue
 from services.core.jobspec import CueParams
 from services.core.keys import file_name
 from services.core.storage import ObjectStore
-from services.datasets.decode import UINT16_NONE, UINT32_NONE, as_uint16, curvature_per_m, read_raw
+from services.datasets.decode import (
+    UINT16_NONE,
+    UINT32_NONE,
+    as_uint16,
+    cue_params,
+    curvature_per_m,
+    read_raw,
+)
+from services.datasets.source import ViewRecord, job_document
 
 PREVIEW_VERSION = 1  # bump when the mapping changes: cached previews live under a versioned prefix
 PREVIEW_PREFIX = f"_previews/v{PREVIEW_VERSION}"
@@ -271,6 +280,29 @@ def cached_preview(
     data = png_bytes(preview_array(cue, store.get_bytes(output_key), params, view=view, resolution=resolution))
     store.put_bytes(key, data, content_type="image/png")
     return key, data
+
+
+class Previewer:
+    """Cached previews of a dataset root's outputs, with each view's resolution for the drawn JSON cues."""
+
+    def __init__(self, store: ObjectStore):
+        self.store = store
+        self.params = cue_params(job_document(store))
+
+    def resolution(self, record: ViewRecord) -> int | None:
+        if "point_info" not in record.files:
+            return None
+        res = json.loads(self.store.get_bytes(record.files["point_info"].key)).get("resolution")
+        return None if res is None else int(res)
+
+    def previews(self, record: ViewRecord, cues: Iterable[str]) -> dict[str, bytes]:
+        """PNG bytes of the view's preview per cue (made and stored when not cached yet)."""
+        res = self.resolution(record)
+        return {
+            cue: cached_preview(self.store, record.files[cue].key, cue, point=record.point, view=record.view,
+                                params=self.params, resolution=res)[1]
+            for cue in cues if cue in record.files
+        }
 
 
 # ---------------------------------------------------------------------------------------------- video

@@ -127,14 +127,13 @@ def depth_metres(raw: np.ndarray, params: CueParams) -> np.ndarray:
 
 def normal_vectors(raw: np.ndarray) -> np.ndarray:
     """HxWx3 float32 unit camera-frame normals of an 8-bit normal image; NaN on the grey background (128)."""
-    px = raw[..., :3].astype(np.float64) / 255.0
-    n = np.stack([1.0 - 2.0 * px[..., 0], 2.0 * px[..., 1] - 1.0, 2.0 * px[..., 2] - 1.0], axis=-1)
-    length = np.linalg.norm(n, axis=-1, keepdims=True)
-    background = (raw[..., :3] == 128).all(axis=-1) | (length[..., 0] < 0.5)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        n = n / length
-    n[background] = np.nan
-    return n.astype(np.float32)
+    n = raw[..., :3].astype(np.float32) * np.float32(2.0 / 255.0) - np.float32(1.0)
+    n[..., 0] *= -1.0  # px_x = 255 * (0.5 - 0.5 x)
+    length = np.sqrt(np.einsum("hwc,hwc->hw", n, n))
+    background = (raw[..., 0] == 128) & (raw[..., 1] == 128) & (raw[..., 2] == 128) | (length < 0.5)
+    with np.errstate(divide="ignore"):
+        n *= np.where(background, np.float32(np.nan), 1.0 / length)[..., None]
+    return n
 
 
 def curvature_per_m(raw: np.ndarray, params: CueParams) -> np.ndarray:

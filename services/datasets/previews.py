@@ -42,6 +42,7 @@ MAX_PREVIEW_PX = 256  # previews are thumbnails: larger outputs are subsampled t
 JSON_TILE_PX = 256
 LABEL_CUES = {"segment_unsup2d", "segment_unsup25d", "segment_semantic", "segment_instance"}
 MAGNITUDE_CUES = {"edge_texture", "edge_occlusion", "keypoints2d", "keypoints3d"}
+PIXEL_JSON_CUES = {"nonfixated", "vanishing_points"}  # JSON cues holding pixel positions (need the resolution)
 
 # Colour maps as anchor colours, linearly interpolated (0 -> first anchor, 1 -> last).
 SEQUENTIAL = ((0, 0, 4), (80, 18, 123), (183, 55, 121), (252, 137, 97), (252, 253, 191))
@@ -296,7 +297,8 @@ class Previewer:
 
     def previews(self, record: ViewRecord, cues: Iterable[str]) -> dict[str, bytes]:
         """PNG bytes of the view's preview per cue (made and stored when not cached yet)."""
-        res = self.resolution(record)
+        cues = list(cues)
+        res = self.resolution(record) if PIXEL_JSON_CUES.intersection(cues) else None
         return {
             cue: cached_preview(self.store, record.files[cue].key, cue, point=record.point, view=record.view,
                                 params=self.params, resolution=res)[1]

@@ -19,7 +19,7 @@ from services.core import keys
 from services.core.manifest import iter_manifest_lines, job_document
 from services.core.models import Space, View
 from services.core.storage import LocalStore, ObjectNotFoundError, check_key, prefixed
-from services.datasets.previews import cached_preview, parse_preview_key
+from services.datasets.previews import PIXEL_JSON_CUES, cached_preview, parse_preview_key
 
 router = APIRouter(tags=["outputs"])
 
@@ -143,12 +143,14 @@ def preview(
     except ValueError:
         raise HTTPException(status.HTTP_404_NOT_FOUND, "no such preview") from None
     job_store = prefixed(store, root)
-    _cue, component, space = output_key.split("/")[:3]
-    info_key = keys.output_key("point_info", component, space, point, view)
-    try:
-        resolution = json.loads(job_store.get_bytes(info_key)).get("resolution") if cue != "point_info" else None
-    except (ObjectNotFoundError, ValueError):
-        resolution = None  # only the drawn JSON cues use it
+    resolution = None
+    if cue in PIXEL_JSON_CUES:  # drawn at pixel positions: the view's resolution is in its point_info
+        _cue, component, space = output_key.split("/")[:3]
+        try:
+            info = job_store.get_bytes(keys.output_key("point_info", component, space, point, view))
+            resolution = json.loads(info).get("resolution")
+        except (ObjectNotFoundError, ValueError):
+            pass  # drawn on a default-size tile
     try:
         _key, data = cached_preview(job_store, output_key, cue, point=point, view=view, resolution=resolution)
     except ObjectNotFoundError:

@@ -4,6 +4,7 @@ multi-view items, the released starter layout, and torch's DataLoader with its d
 from __future__ import annotations
 
 import json
+import pickle
 import shutil
 import subprocess
 import sys
@@ -212,6 +213,8 @@ def test_s3_reads_only_the_manifests_keys_and_checks_sha256(small_job: Path, s3_
     # the same through a URL (what users type), and a changed object is caught
     by_url = OmnidataDataset(settings.storage_url, ["depth_zbuffer"], settings=settings, verify_sha256=True)
     np.testing.assert_array_equal(by_url[0]["depth_zbuffer"], local[0]["depth_zbuffer"])
+    copy = pickle.loads(pickle.dumps(by_url))  # what a spawned DataLoader worker gets: it opens its own client
+    assert copy._store is None and np.array_equal(copy[1]["depth_zbuffer"], local[1]["depth_zbuffer"], equal_nan=True)
     s3.put_bytes("depth_zbuffer/tiny/ycb_banana/point_0_view_0_domain_depth_zbuffer.png", b"\x89PNG broken")
     with pytest.raises(DatasetIntegrityError, match="point_0_view_0_domain_depth_zbuffer.png: sha256"):
         by_url[0]

@@ -28,7 +28,7 @@ from services.api.progress.endpoints import router as progress_router
 from services.api.spaces.endpoints import router as spaces_router
 from services.api.views.endpoints import router as views_router
 from services.api.workers.endpoints import router as workers_router
-from services.core.db import make_engine, make_sessionmaker
+from services.core.db import make_engine, make_sessionmaker, schema_heads
 from services.core.settings import Settings, get_settings
 from services.core.storage import ObjectStore, open_store
 
@@ -103,6 +103,7 @@ def create_app(
     app.state.rates = RateTracker()
     app.state.sse = sse or SSEConfig()
     app.state.metrics_cache = {}
+    app.state.schema_heads = schema_heads()  # what /ready expects the database's revision to be
 
     install_error_handlers(app)
     for router in (

@@ -48,7 +48,8 @@ def worker_argv(args: argparse.Namespace, queues: list[str]) -> list[str]:
 
 def run(args: argparse.Namespace) -> int:
     """Start the worker; returns when Celery stops (SIGTERM: warm shutdown after the current task)."""
-    from services.core.settings import get_settings
+    from services.core.db import require_schema
+    from services.core.settings import load_settings
     from services.worker.celery_app import create_app
 
     if args.concurrency < 1:
@@ -60,10 +61,8 @@ def run(args: argparse.Namespace) -> int:
         # numeric libraries in the children get the same budget (numpy is not loaded yet in this process)
         for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
             os.environ.setdefault(var, str(args.render_threads))
-    try:
-        settings = get_settings()
-    except Exception as e:  # a bad OMNIDATA_* value: say which, without a traceback
-        raise CliError(f"invalid settings: {e}") from None
+    settings = load_settings()
+    require_schema(settings.database_url)
     queues = [q.strip() for q in (args.queues or f"{settings.queue_render},{settings.queue_derive}").split(",")]
     queues = [q for q in queues if q]
     if not queues:

@@ -21,6 +21,7 @@ from sqlalchemy import case, func, select, text
 from sqlalchemy.orm import Session
 
 from services.api.workers.service import WORKER_STALE_S
+from services.core.db import SchemaNotCurrent, schema_problem
 from services.core.models import JOB_STATES, TASK_STATES, Job, JobCounter, Task, Worker, utcnow
 
 CHECK_TIMEOUT_S = 3.0
@@ -62,14 +63,20 @@ async def _run(fn: Callable[[], Any]) -> Check:
 
 
 async def readiness(app: FastAPI) -> dict[str, Check]:
-    """Check the database (SELECT 1), the broker (Redis PING) and the object store, concurrently."""
+    """Check the database (SELECT 1, then its schema revision), the broker (Redis PING) and the object store
+    (bucket there and writable), concurrently."""
 
     def db() -> None:
         with app.state.engine.connect() as conn:
             conn.execute(text("SELECT 1"))
 
+    def schema() -> None:
+        problem = schema_problem(app.state.engine, app.state.schema_heads)
+        if problem:
+            raise SchemaNotCurrent(problem)
+
     def storage() -> None:
-        app.state.store.exists("_ready/probe")
+        app.state.store.probe()
 
     client = redis_client(app)
 
@@ -84,6 +91,10 @@ async def readiness(app: FastAPI) -> dict[str, Check]:
     checks = dict(zip(names, results, strict=True))
     if client is None:
         checks["broker"] = Check(ok=True, latency_ms=0.0, skipped=True)
+    # An unreachable database is reported once (database), not again as a schema failure.
+    checks["schema"] = (
+        await _run(schema) if checks["database"].ok else Check(False, 0.0, "database unreachable", skipped=True)
+    )
     return checks
 
 

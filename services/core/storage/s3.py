@@ -6,6 +6,7 @@ import hashlib
 import mimetypes
 import os
 import threading
+from contextlib import contextmanager
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -13,9 +14,18 @@ from typing import Any
 import boto3
 from boto3.s3.transfer import TransferConfig
 from botocore.config import Config
-from botocore.exceptions import ClientError
+from boto3.exceptions import S3UploadFailedError
+from botocore.exceptions import BotoCoreError, ClientError
 
-from services.core.storage.base import ObjectInfo, ObjectNotFoundError, check_key, check_prefix, join_key
+from services.core.storage.base import (
+    PROBE_KEY,
+    ObjectInfo,
+    ObjectNotFoundError,
+    StorageError,
+    check_key,
+    check_prefix,
+    join_key,
+)
 
 MULTIPART_THRESHOLD = 8 * 1024 * 1024  # bytes; S3's minimum part size is 5 MiB
 _CHUNK = 1024 * 1024
@@ -46,6 +56,13 @@ def _boto_session() -> boto3.session.Session:
 
 def _missing(e: ClientError) -> bool:
     return str(e.response.get("Error", {}).get("Code")) in _NOT_FOUND
+
+
+def _code(e: Exception) -> str:
+    if isinstance(e, ClientError):
+        return str(e.response.get("Error", {}).get("Code"))
+    cause = e.__context__  # S3UploadFailedError wraps the ClientError of the part that failed
+    return _code(cause) if isinstance(cause, ClientError) else ""
 
 
 class S3Store:
@@ -96,15 +113,32 @@ class S3Store:
     def _strip(self, full: str) -> str:
         return full[len(self.prefix) + 1 :] if self.prefix else full
 
+    @contextmanager
+    def _writing(self) -> Iterator[None]:
+        """Turn a failed write into a StorageError that names the bucket and the problem."""
+        try:
+            yield
+        except (ClientError, S3UploadFailedError, BotoCoreError) as e:
+            code = _code(e)
+            where = f"s3://{self.bucket}"
+            if code in ("NoSuchBucket", "404"):
+                problem = f"the bucket {where} does not exist"
+            elif code in ("AccessDenied", "403", "AllAccessDisabled"):
+                problem = f"no permission to write to {where}"
+            else:
+                problem = f"writing to {where} failed: {type(e).__name__}: {str(e).splitlines()[0][:200]}"
+            raise StorageError(problem) from e
+
     def put_bytes(self, key: str, data: bytes, content_type: str | None = None) -> ObjectInfo:
         digest = hashlib.sha256(data).hexdigest()
-        self.client.put_object(
-            Bucket=self.bucket,
-            Key=self._k(key),
-            Body=data,
-            ContentType=content_type or mimetypes.guess_type(key)[0] or "application/octet-stream",
-            Metadata={"sha256": digest},
-        )
+        with self._writing():
+            self.client.put_object(
+                Bucket=self.bucket,
+                Key=self._k(key),
+                Body=data,
+                ContentType=content_type or mimetypes.guess_type(key)[0] or "application/octet-stream",
+                Metadata={"sha256": digest},
+            )
         return ObjectInfo(key, len(data), digest)
 
     def put_file(self, key: str, path: str | Path, content_type: str | None = None) -> ObjectInfo:
@@ -114,7 +148,8 @@ class S3Store:
             "ContentType": content_type or mimetypes.guess_type(key)[0] or "application/octet-stream",
             "Metadata": {"sha256": digest},
         }
-        self.client.upload_file(str(path), self.bucket, self._k(key), ExtraArgs=extra, Config=self.transfer)
+        with self._writing():
+            self.client.upload_file(str(path), self.bucket, self._k(key), ExtraArgs=extra, Config=self.transfer)
         return ObjectInfo(key, path.stat().st_size, digest)
 
     def get_bytes(self, key: str) -> bytes:
@@ -198,3 +233,10 @@ class S3Store:
             "get_object", Params={"Bucket": self.bucket, "Key": self._k(key)}, ExpiresIn=int(expires_s)
         )
         return url
+
+    def probe(self) -> None:
+        """The bucket exists and takes a write (a small object under the prefix, deleted again)."""
+        with self._writing():
+            self.client.head_bucket(Bucket=self.bucket)
+            self.client.put_object(Bucket=self.bucket, Key=self._k(PROBE_KEY), Body=b"ok")
+            self.client.delete_object(Bucket=self.bucket, Key=self._k(PROBE_KEY))

@@ -25,6 +25,7 @@ from services.api.jobs.service import RateTracker
 from services.api.ops.endpoints import router as ops_router
 from services.api.outputs.endpoints import router as outputs_router
 from services.api.progress.endpoints import router as progress_router
+from services.api.query_token import QueryTokenScrubber
 from services.api.spaces.endpoints import router as spaces_router
 from services.api.views.endpoints import router as views_router
 from services.api.workers.endpoints import router as workers_router
@@ -106,6 +107,7 @@ def create_app(
     app.state.schema_heads = schema_heads()  # what /ready expects the database's revision to be
 
     install_error_handlers(app)
+    app.add_middleware(QueryTokenScrubber)  # ?token= never reaches a log line
     for router in (
         ops_router,
         spaces_router,

@@ -164,7 +164,8 @@ def load_settings(**overrides: Any) -> Settings:
         raise InvalidSettings("invalid settings: " + "; ".join(parts)) from None
     except SettingsError as e:
         # pydantic-settings could not decode a complex value (JSON) from the environment
-        field = re.search(r'field "(\w+)"', str(e))
-        name = f"OMNIDATA_{field.group(1).upper()}" if field else "an OMNIDATA_* variable"
-        hint = TOKENS_HINT if field and field.group(1) in ("api_tokens", "operator_tokens") else "expected JSON"
+        found = re.search(r'field "(\w+)"', str(e))
+        bad = found.group(1) if found else ""
+        name = f"OMNIDATA_{bad.upper()}" if bad else "an OMNIDATA_* variable"
+        hint = TOKENS_HINT if bad in ("api_tokens", "operator_tokens") else "expected JSON"
         raise InvalidSettings(f"invalid settings: {name} is not valid JSON ({hint})") from None

@@ -30,9 +30,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="Celery pool (default prefork: crashes and leaks stay in a child process)")
 
 
+def node_name(hostname: str | None) -> str:
+    """The Celery node name: `--hostname` with Celery's %h/%n/%d expanded, default omnidata-<pid>@<host>.
+
+    It is also the worker's id in /workers (a child process of a --concurrency N worker adds -1 ... -(N-1)).
+    """
+    from celery.utils.nodenames import default_nodename, host_format
+
+    return host_format(default_nodename(hostname or f"omnidata-{os.getpid()}@{socket.gethostname()}"))
+
+
 def worker_argv(args: argparse.Namespace, queues: list[str]) -> list[str]:
     """The argv given to Celery's `worker` command."""
-    node = args.hostname or f"omnidata-{os.getpid()}@{socket.gethostname()}"
+    node = node_name(args.hostname)
     return [
         "worker",
         f"--queues={','.join(queues)}",
@@ -69,5 +79,6 @@ def run(args: argparse.Namespace) -> int:
         raise CliError("--queues names no queue")
     app = create_app(settings)
     app.conf["omnidata_queues"] = queues
+    app.conf["omnidata_worker_name"] = node_name(args.hostname)  # the children's worker id
     app.worker_main(worker_argv(args, queues))
     return 0

@@ -156,3 +156,16 @@ class Heartbeat:
             self.beat()
         except Exception:
             pass
+
+
+def expire_leases(sessionmaker: Callable[[], Session], worker_ids: Sequence[str]) -> int:
+    """Let the reaper take back the tasks of workers that died (their leases end now); returns how many."""
+    if not worker_ids:
+        return 0
+    with sessionmaker() as session:
+        res = session.execute(
+            update(Task).where(Task.state == "running", Task.worker_id.in_(list(worker_ids)))
+            .values(lease_until=utcnow() - timedelta(seconds=1)).execution_options(synchronize_session=False)
+        )
+        session.commit()
+        return int(res.rowcount or 0)  # type: ignore[attr-defined]

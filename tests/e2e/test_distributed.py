@@ -51,7 +51,7 @@ def submit(cluster: Cluster, space: Path, spec: Path, *extra: str, timeout: floa
 
 def submit_direct(cluster: Cluster, space: Path, spec: Path) -> int:
     """`omnidata submit` without an API: registers the space and creates the job in the database."""
-    res = submit(cluster, space, spec, "--no-follow")
+    res = submit(cluster, space, spec, "--no-follow", "--direct")
     assert res.returncode == 0, res.stderr
     return int(res.stdout.strip().splitlines()[-1])
 

@@ -141,18 +141,30 @@ def queue_depths(app: FastAPI) -> dict[str, int | None]:
         return dict.fromkeys(queues)
 
 
-def build_metrics(session: Session, app: FastAPI) -> str:
-    """The Prometheus text exposition of the service's state."""
+def _owned(stmt: Any, owner: str | None, job_id: Any = None) -> Any:
+    """`stmt` limited to the jobs of `owner` (None: every job), joining Job on the `job_id` column if given."""
+    if owner is None:
+        return stmt
+    if job_id is not None:
+        stmt = stmt.join(Job, Job.id == job_id)
+    return stmt.where(Job.owner == owner)
+
+
+def build_metrics(session: Session, app: FastAPI, owner: str | None = None) -> str:
+    """The Prometheus text exposition of the service's state; `owner` limits tasks and jobs to one tenant's
+    (and leaves out the broker queues, which carry every tenant's work)."""
     out = _Text()
+    scope = "all jobs" if owner is None else "your jobs"
     by_state = dict.fromkeys(TASK_STATES, 0)
-    for state, n in session.execute(select(JobCounter.state, func.sum(JobCounter.n)).group_by(JobCounter.state)):
+    counters = _owned(select(JobCounter.state, func.sum(JobCounter.n)), owner, JobCounter.job_id).group_by(JobCounter.state)
+    for state, n in session.execute(counters):
         by_state[state] = int(n or 0)
-    out.family("omnidata_tasks", "gauge", "Tasks by state over all jobs (from the progress counters).")
+    out.family("omnidata_tasks", "gauge", f"Tasks by state over {scope} (from the progress counters).")
     for s in TASK_STATES:
         out.sample("omnidata_tasks", by_state.get(s, 0), state=s)
 
     jobs = dict.fromkeys(JOB_STATES, 0)
-    for state, n in session.execute(select(Job.state, func.count()).group_by(Job.state)):
+    for state, n in session.execute(_owned(select(Job.state, func.count()), owner).group_by(Job.state)):
         jobs[state] = int(n)
     out.family("omnidata_jobs", "gauge", "Jobs by state.")
     for s in JOB_STATES:
@@ -167,9 +179,10 @@ def build_metrics(session: Session, app: FastAPI) -> str:
     out.sample("omnidata_tasks_completed_total", by_state["done"], result="done")
     out.sample("omnidata_tasks_completed_total", by_state["failed"], result="failed")
 
-    out.family("omnidata_queue_depth", "gauge", "Messages waiting in a broker queue (Redis LLEN); -1 if unknown.")
-    for q, n in queue_depths(app).items():
-        out.sample("omnidata_queue_depth", -1 if n is None else n, queue=q)
+    if owner is None:
+        out.family("omnidata_queue_depth", "gauge", "Messages waiting in a broker queue (Redis LLEN); -1 if unknown.")
+        for q, n in queue_depths(app).items():
+            out.sample("omnidata_queue_depth", -1 if n is None else n, queue=q)
 
     cutoff = utcnow() - timedelta(seconds=WORKER_STALE_S)
     alive = session.scalar(select(func.count()).select_from(Worker).where(Worker.last_heartbeat >= cutoff)) or 0
@@ -180,7 +193,7 @@ def build_metrics(session: Session, app: FastAPI) -> str:
 
     cols = [func.sum(case((Task.duration_s <= b, 1), else_=0)) for b in DURATION_BUCKETS_S]
     rows = session.execute(
-        select(Task.cue, *cols, func.count(), func.sum(Task.duration_s))
+        _owned(select(Task.cue, *cols, func.count(), func.sum(Task.duration_s)), owner, Task.job_id)
         .where(Task.state == "done", Task.duration_s.is_not(None))
         .group_by(Task.cue)
         .order_by(Task.cue)
@@ -196,14 +209,14 @@ def build_metrics(session: Session, app: FastAPI) -> str:
     return out.render()
 
 
-def cached_metrics(app: FastAPI) -> str:
-    """build_metrics, reused for METRICS_TTL_S seconds (one builder at a time)."""
-    cache: dict[str, Any] = app.state.metrics_cache
+def cached_metrics(app: FastAPI, owner: str | None = None) -> str:
+    """build_metrics for `owner` (None: service-wide), reused for METRICS_TTL_S seconds (one builder at a time)."""
+    cache: dict[str | None, Any] = app.state.metrics_cache
     with _metrics_lock:
-        hit = cache.get("text")
+        hit = cache.get(owner)
         if hit is not None and time.monotonic() - hit[0] < METRICS_TTL_S:
             return str(hit[1])
         with app.state.read_sessionmaker() as session:
-            body = build_metrics(session, app)
-        cache["text"] = (time.monotonic(), body)
+            body = build_metrics(session, app, owner)
+        cache[owner] = (time.monotonic(), body)
         return body

@@ -7,8 +7,8 @@ import os
 import re
 import shutil
 import uuid
-from contextlib import contextmanager
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from services.core.storage.base import (

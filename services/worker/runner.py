@@ -486,5 +486,5 @@ def default_worker_id(name: str | None = None) -> str:
 
     if not name:
         return f"{socket.gethostname()}:{os.getpid()}"
-    index = current_process_index()
+    index = current_process_index(base=0)  # pool child 0, 1, ...; None outside a pool
     return f"{name}-{index}" if index else name

@@ -197,10 +197,10 @@ def validate_sources(sources: list[Source], spec: Any) -> None:
 
 def embedded_settings(out: Path, workers: int) -> Any:
     """Settings of the embedded mode: SQLite and the object folder in DIR, whatever OMNIDATA_* says."""
-    from services.core.settings import get_settings
+    from services.core.settings import load_settings
 
     state = out / STATE_DIR
-    return get_settings(
+    return load_settings(
         data_dir=str(state), database_url=f"sqlite:///{state / 'state.db'}", storage_url=str(out),
         dispatch_window=max(64, 32 * workers), env="development",
     )

@@ -105,6 +105,7 @@ def create_app(
     app.state.sse = sse or SSEConfig()
     app.state.metrics_cache = {}
     app.state.schema_heads = schema_heads()  # what /ready expects the database's revision to be
+    app.state.storage_probe = None  # (time, outcome) of /ready's last storage probe
 
     install_error_handlers(app)
     app.add_middleware(QueryTokenScrubber)  # ?token= never reaches a log line

@@ -23,7 +23,8 @@ class QueryTokenScrubber:
         self.app = app
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] == "http" and _PARAM.encode() in scope.get("query_string", b""):
+        # Parsed whenever there is a query string: a cheap substring test would miss `%74oken=`.
+        if scope["type"] == "http" and scope.get("query_string"):
             pairs = parse_qsl(scope["query_string"].decode("latin-1"), keep_blank_values=True)
             tokens = [v for k, v in pairs if k == _PARAM]
             if tokens:

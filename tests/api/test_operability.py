@@ -66,6 +66,8 @@ def test_ready_fails_when_the_object_folder_is_gone(pg_url: str, tmp_path: Path)
         assert api.client.get("/ready").status_code == 200
         assert not list(store.list())  # the probe cleans up after itself
         shutil.rmtree(store.root)
+        assert api.client.get("/ready").status_code == 200  # the probe's outcome is kept a few seconds
+        api.app.state.storage_probe = None
         r = api.client.get("/ready", headers=api.a.headers)
         assert r.status_code == 503 and r.json()["failed"] == ["storage"]
         assert f"object folder {store.root} does not exist" in r.json()["detail"]

@@ -26,6 +26,7 @@ from services.core.models import JOB_STATES, TASK_STATES, Job, JobCounter, Task,
 
 CHECK_TIMEOUT_S = 3.0
 METRICS_TTL_S = 5.0
+STORAGE_PROBE_TTL_S = 5.0
 DURATION_BUCKETS_S = (0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0, 120.0, 300.0)
 _metrics_lock = threading.Lock()
 
@@ -62,6 +63,16 @@ async def _run(fn: Callable[[], Any]) -> Check:
         return Check(False, round((time.perf_counter() - t0) * 1000, 2), f"{type(e).__name__}: {e}"[:300])
 
 
+async def _storage_check(app: FastAPI) -> Check:
+    """The store's probe (a write and a delete), at most once per STORAGE_PROBE_TTL_S: /ready needs no token."""
+    last: tuple[float, Check] | None = app.state.storage_probe
+    if last is not None and time.monotonic() - last[0] < STORAGE_PROBE_TTL_S:
+        return last[1]
+    check = await _run(app.state.store.probe)
+    app.state.storage_probe = (time.monotonic(), check)
+    return check
+
+
 async def readiness(app: FastAPI) -> dict[str, Check]:
     """Check the database (SELECT 1, then its schema revision), the broker (Redis PING) and the object store
     (bucket there and writable), concurrently."""
@@ -75,9 +86,6 @@ async def readiness(app: FastAPI) -> dict[str, Check]:
         if problem:
             raise SchemaNotCurrent(problem)
 
-    def storage() -> None:
-        app.state.store.probe()
-
     client = redis_client(app)
 
     def broker() -> None:
@@ -86,8 +94,8 @@ async def readiness(app: FastAPI) -> dict[str, Check]:
             raise ConnectionError("PING was not answered with PONG")
 
     names = ["database", "storage"] + (["broker"] if client is not None else [])
-    fns: list[Callable[[], Any]] = [db, storage] + ([broker] if client is not None else [])
-    results = await asyncio.gather(*(_run(f) for f in fns))
+    runs = [_run(db), _storage_check(app)] + ([_run(broker)] if client is not None else [])
+    results = await asyncio.gather(*runs)
     checks = dict(zip(names, results, strict=True))
     if client is None:
         checks["broker"] = Check(ok=True, latency_ms=0.0, skipped=True)
@@ -154,7 +162,7 @@ def build_metrics(session: Session, app: FastAPI, owner: str | None = None) -> s
     """The Prometheus text exposition of the service's state; `owner` limits tasks and jobs to one tenant's
     (and leaves out the broker queues, which carry every tenant's work)."""
     out = _Text()
-    scope = "all jobs" if owner is None else "your jobs"
+    scope = "all jobs" if owner is None else "the caller's jobs"
     by_state = dict.fromkeys(TASK_STATES, 0)
     counters = _owned(select(JobCounter.state, func.sum(JobCounter.n)), owner, JobCounter.job_id).group_by(JobCounter.state)
     for state, n in session.execute(counters):

@@ -8,7 +8,7 @@ import re
 import shutil
 import uuid
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 
 from services.core.storage.base import (
@@ -69,7 +69,8 @@ class LocalStore:
         except OSError as e:  # permission, read-only or full file system
             raise StorageError(f"cannot write to the object folder {self.root}: {e.strerror or e}") from e
         finally:
-            tmp.unlink(missing_ok=True)
+            with suppress(OSError):  # the folder may not exist (the failure above): nothing to remove
+                tmp.unlink(missing_ok=True)
 
     def put_bytes(self, key: str, data: bytes, content_type: str | None = None) -> ObjectInfo:
         target = self.path(key)

@@ -114,8 +114,9 @@ class S3Store:
         return full[len(self.prefix) + 1 :] if self.prefix else full
 
     @contextmanager
-    def _writing(self) -> Iterator[None]:
-        """Turn a failed write into a StorageError that names the bucket and the problem."""
+    def _failures(self, doing: str) -> Iterator[None]:
+        """Turn a failed S3 call (`doing`: "write to", "read from") into a StorageError naming the bucket and
+        the problem. A missing object is not a failure: callers turn it into ObjectNotFoundError first."""
         try:
             yield
         except (ClientError, S3UploadFailedError, BotoCoreError) as e:
@@ -124,14 +125,14 @@ class S3Store:
             if code in ("NoSuchBucket", "404"):
                 problem = f"the bucket {where} does not exist"
             elif code in ("AccessDenied", "403", "AllAccessDisabled"):
-                problem = f"no permission to write to {where}"
+                problem = f"no permission to {doing} {where}"
             else:
-                problem = f"writing to {where} failed: {type(e).__name__}: {str(e).splitlines()[0][:200]}"
+                problem = f"cannot {doing} {where}: {type(e).__name__}: {str(e).splitlines()[0][:200]}"
             raise StorageError(problem) from e
 
     def put_bytes(self, key: str, data: bytes, content_type: str | None = None) -> ObjectInfo:
         digest = hashlib.sha256(data).hexdigest()
-        with self._writing():
+        with self._failures("write to"):
             self.client.put_object(
                 Bucket=self.bucket,
                 Key=self._k(key),
@@ -148,40 +149,43 @@ class S3Store:
             "ContentType": content_type or mimetypes.guess_type(key)[0] or "application/octet-stream",
             "Metadata": {"sha256": digest},
         }
-        with self._writing():
+        with self._failures("write to"):
             self.client.upload_file(str(path), self.bucket, self._k(key), ExtraArgs=extra, Config=self.transfer)
         return ObjectInfo(key, path.stat().st_size, digest)
 
     def get_bytes(self, key: str) -> bytes:
-        try:
-            resp = self.client.get_object(Bucket=self.bucket, Key=self._k(key))
-        except ClientError as e:
-            if _missing(e):
-                raise ObjectNotFoundError(key) from None
-            raise
-        data: bytes = resp["Body"].read()
+        with self._failures("read from"):
+            try:
+                resp = self.client.get_object(Bucket=self.bucket, Key=self._k(key))
+            except ClientError as e:
+                if _missing(e):
+                    raise ObjectNotFoundError(key) from None
+                raise
+            data: bytes = resp["Body"].read()
         return data
 
     def get_file(self, key: str, path: str | Path) -> Path:
         dest = Path(path)
         dest.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            # s3transfer downloads to a temporary name and renames, so `dest` is never half-written
-            self.client.download_file(self.bucket, self._k(key), str(dest), Config=self.transfer)
-        except ClientError as e:
-            if _missing(e):
-                raise ObjectNotFoundError(key) from None
-            raise
+        with self._failures("read from"):
+            try:
+                # s3transfer downloads to a temporary name and renames, so `dest` is never half-written
+                self.client.download_file(self.bucket, self._k(key), str(dest), Config=self.transfer)
+            except ClientError as e:
+                if _missing(e):
+                    raise ObjectNotFoundError(key) from None
+                raise
         return dest
 
     def _head(self, key: str) -> dict[str, Any] | None:
-        try:
-            head: dict[str, Any] = self.client.head_object(Bucket=self.bucket, Key=self._k(key))
-            return head
-        except ClientError as e:
-            if _missing(e):
-                return None
-            raise
+        with self._failures("read from"):
+            try:
+                head: dict[str, Any] = self.client.head_object(Bucket=self.bucket, Key=self._k(key))
+                return head
+            except ClientError as e:
+                if _missing(e):
+                    return None
+                raise
 
     def exists(self, key: str) -> bool:
         return self._head(key) is not None
@@ -236,7 +240,7 @@ class S3Store:
 
     def probe(self) -> None:
         """The bucket exists and takes a write (a small object under the prefix, deleted again)."""
-        with self._writing():
+        with self._failures("write to"):
             self.client.head_bucket(Bucket=self.bucket)
             self.client.put_object(Bucket=self.bucket, Key=self._k(PROBE_KEY), Body=b"ok")
             self.client.delete_object(Bucket=self.bucket, Key=self._k(PROBE_KEY))

@@ -28,9 +28,7 @@ def hash_token(token: str) -> str:
 
 def _check_digest(digest: str, what: str) -> None:
     if not _HEX64.match(digest):
-        raise ValueError(
-            f"{what} must be sha256 hex digests of tokens (64 lowercase hex characters)"
-        )
+        raise ValueError(f"{what} must be sha256 hex digests of tokens (64 lowercase hex characters)")
 
 
 class Settings(BaseSettings):
@@ -158,9 +156,10 @@ def load_settings(**overrides: Any) -> Settings:
     except ValidationError as e:
         parts = []
         for err in e.errors():
-            field = "_".join(str(p) for p in err["loc"][:1]) or "settings"
+            field = str(err["loc"][0]) if err["loc"] else ""  # empty for checks of the whole model (secret key)
+            where = f"OMNIDATA_{field.upper()}: " if field else ""
             hint = f" ({TOKENS_HINT})" if field in ("api_tokens", "operator_tokens") else ""
-            parts.append(f"OMNIDATA_{field.upper()}: {err['msg'].removeprefix('Value error, ')}{hint}")
+            parts.append(f"{where}{err['msg'].removeprefix('Value error, ')}{hint}")
         raise InvalidSettings("invalid settings: " + "; ".join(parts)) from None
     except SettingsError as e:
         # pydantic-settings could not decode a complex value (JSON) from the environment

@@ -2,8 +2,8 @@
 lease of the task it is running, every few seconds.
 
 The `worker` row (id: the worker's name, or host:pid) carries host, queues, last heartbeat, current task, tasks
-done, labels per cue and labels/s over the last minute; the dashboard reads it. A worker that stops beating (kill -9, lost
-node) lets its task's lease run out, and the scheduler's reaper gives the task to another worker.
+done, labels per cue and labels/s over the last minute; the dashboard reads it. A worker that stops beating
+(kill -9, lost node) lets its task's lease run out, and the scheduler's reaper gives the task to another worker.
 """
 
 from __future__ import annotations

@@ -113,3 +113,26 @@ def test_token_create_prints_a_token_and_the_entry_that_enables_it(
 
     assert main(["token", "create", "--tenant", "bad name!"]) == 2
     assert "--tenant 'bad name!'" in capsys.readouterr().err
+
+
+def test_a_database_from_newer_code_is_refused_not_downgraded(
+    empty_pg_url: str, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    from sqlalchemy import text
+
+    from services.core.db import migrate
+
+    migrate(empty_pg_url)
+    engine = make_engine(empty_pg_url)
+    try:
+        with engine.begin() as conn:
+            conn.execute(text("UPDATE alembic_version SET version_num = 'f00dcafe'"))
+    finally:
+        engine.dispose()
+    monkeypatch.setenv("OMNIDATA_DATABASE_URL", empty_pg_url)
+    monkeypatch.setenv("OMNIDATA_DATA_DIR", str(tmp_path))
+    assert main(["migrate", "--check"]) == 1
+    assert "revision f00dcafe, which this code does not know" in capsys.readouterr().err
+    assert main(["migrate"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("omnidata migrate: error: cannot migrate the database: ") and "\n" not in err

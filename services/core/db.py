@@ -73,13 +73,20 @@ def alembic_config(url: str | None = None) -> Any:
 
 
 def migrate(url: str, revision: str = "head") -> None:
-    """Upgrade the database at `url` to `revision` (Alembic `upgrade`); creates a SQLite file if needed."""
+    """Upgrade the database at `url` to `revision` (Alembic `upgrade`); creates a SQLite file if needed.
+
+    SchemaNotCurrent when Alembic refuses (e.g. the database is at a revision this code does not know).
+    """
     from alembic import command
+    from alembic.util import CommandError
 
     u = make_url(url)
     if u.get_backend_name() == "sqlite" and u.database and u.database != ":memory:":
         Path(u.database).expanduser().parent.mkdir(parents=True, exist_ok=True)
-    command.upgrade(alembic_config(url), revision)
+    try:
+        command.upgrade(alembic_config(url), revision)
+    except CommandError as e:
+        raise SchemaNotCurrent(f"cannot migrate the database: {e}") from None
 
 
 class SchemaNotCurrent(ConfigurationError):

@@ -10,10 +10,15 @@ from __future__ import annotations
 import argparse
 import os
 import socket
+from typing import TYPE_CHECKING
 
 from services.cli import CliError
 
+if TYPE_CHECKING:
+    from services.core.settings import Settings
+
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
+WORKER_NAME_HELD_S = 30.0  # a heartbeat this recent means the name is in use (beats come every 5 s)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -56,6 +61,17 @@ def worker_argv(args: argparse.Namespace, queues: list[str]) -> list[str]:
     ]
 
 
+def _live_holder(settings: Settings, node: str) -> str | None:
+    from services.core.db import make_engine, make_sessionmaker
+    from services.worker.heartbeat import live_holder
+
+    engine = make_engine(settings.database_url)
+    try:
+        return live_holder(make_sessionmaker(engine), node, within_s=WORKER_NAME_HELD_S)
+    finally:
+        engine.dispose()
+
+
 def run(args: argparse.Namespace) -> int:
     """Start the worker; returns when Celery stops (SIGTERM: warm shutdown after the current task)."""
     from services.core.db import require_schema
@@ -73,12 +89,16 @@ def run(args: argparse.Namespace) -> int:
             os.environ.setdefault(var, str(args.render_threads))
     settings = load_settings()
     require_schema(settings.database_url)
+    node = node_name(args.hostname)
+    holder = _live_holder(settings, node)
+    if holder is not None:
+        raise CliError(f"a worker named {node!r} is alive on {holder}: give this one another --hostname")
     queues = [q.strip() for q in (args.queues or f"{settings.queue_render},{settings.queue_derive}").split(",")]
     queues = [q for q in queues if q]
     if not queues:
         raise CliError("--queues names no queue")
     app = create_app(settings)
     app.conf["omnidata_queues"] = queues
-    app.conf["omnidata_worker_name"] = node_name(args.hostname)  # the children's worker id
+    app.conf["omnidata_worker_name"] = node  # the children's worker id
     app.worker_main(worker_argv(args, queues))
     return 0

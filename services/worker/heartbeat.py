@@ -174,3 +174,17 @@ def expire_leases(sessionmaker: Callable[[], Session], worker_ids: Sequence[str]
         )
         session.commit()
         return int(res.rowcount or 0)  # type: ignore[attr-defined]
+
+
+def live_holder(sessionmaker: Callable[[], Session], worker_id: str, *, within_s: float) -> str | None:
+    """The host of another machine's worker beating under `worker_id` in the last `within_s` seconds, if any.
+
+    Two workers must not share a name: each new process of a name ends the leases its predecessor held.
+    A row of this host is not counted: it is this worker's own previous run.
+    """
+    with sessionmaker() as session:
+        row = session.get(Worker, worker_id)
+        if row is None or row.host == socket.gethostname():
+            return None
+        age = (utcnow() - row.last_heartbeat).total_seconds()
+        return row.host if age < within_s else None

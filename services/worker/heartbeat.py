@@ -1,9 +1,9 @@
 """Worker heartbeat (execution contract: Reaper): a thread that keeps the worker's row fresh and extends the
 lease of the task it is running, every few seconds.
 
-The `worker` row (id host:pid) carries host, queues, last heartbeat, current task, tasks done, labels per
-cue and labels/s over the last minute; the dashboard reads it. A worker that stops beating (kill -9, lost
-node) lets its task's lease run out, and the scheduler's reaper gives the task to another worker.
+The `worker` row (id: the worker's name, or host:pid) carries host, queues, last heartbeat, current task, tasks
+done, labels per cue and labels/s over the last minute; the dashboard reads it. A worker that stops beating
+(kill -9, lost node) lets its task's lease run out, and the scheduler's reaper gives the task to another worker.
 """
 
 from __future__ import annotations
@@ -56,6 +56,7 @@ class Heartbeat:
         self._tasks_done = 0
         self._labels: dict[str, int] = {}
         self._recent: deque[tuple[float, int]] = deque()  # (monotonic time, labels) of recent tasks
+        self._inherited: tuple[int, dict[str, int]] | None = None  # the row's counts when this process took it
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.beats = 0
@@ -111,13 +112,17 @@ class Heartbeat:
             if row is None:
                 row = Worker(id=self.worker_id, host=self.host, started_at=now)
                 session.add(row)
+            if self._inherited is None:
+                # A named worker's row outlives its child processes (recycling): carry on its counts.
+                self._inherited = (int(row.tasks_done or 0), dict(row.labels or {}))
+            base_done, base_labels = self._inherited
             row.host = self.host
             row.queues = self.queues
             row.last_heartbeat = now
             row.current_task_id = current
-            row.tasks_done = done
+            row.tasks_done = base_done + done
             row.labels_per_s = rate
-            row.labels = labels
+            row.labels = {cue: int(base_labels.get(cue, 0)) + labels.get(cue, 0) for cue in {*base_labels, *labels}}
             if current is not None:
                 # Not a state change (counters untouched): only pushes the deadline of a task we hold.
                 session.execute(
@@ -156,3 +161,30 @@ class Heartbeat:
             self.beat()
         except Exception:
             pass
+
+
+def expire_leases(sessionmaker: Callable[[], Session], worker_ids: Sequence[str]) -> int:
+    """Let the reaper take back the tasks of workers that died (their leases end now); returns how many."""
+    if not worker_ids:
+        return 0
+    with sessionmaker() as session:
+        res = session.execute(
+            update(Task).where(Task.state == "running", Task.worker_id.in_(list(worker_ids)))
+            .values(lease_until=utcnow() - timedelta(seconds=1)).execution_options(synchronize_session=False)
+        )
+        session.commit()
+        return int(res.rowcount or 0)  # type: ignore[attr-defined]
+
+
+def live_holder(sessionmaker: Callable[[], Session], worker_id: str, *, within_s: float) -> str | None:
+    """The host of another machine's worker beating under `worker_id` in the last `within_s` seconds, if any.
+
+    Two workers must not share a name: each new process of a name ends the leases its predecessor held.
+    A row of this host is not counted: it is this worker's own previous run.
+    """
+    with sessionmaker() as session:
+        row = session.get(Worker, worker_id)
+        if row is None or row.host == socket.gethostname():
+            return None
+        age = (utcnow() - row.last_heartbeat).total_seconds()
+        return row.host if age < within_s else None

@@ -109,7 +109,7 @@ class Cluster:
 
     def start_worker(self, name: str) -> Proc:
         return self.start(name, "worker", "--concurrency", "1", "--render-threads", "1", "--loglevel", "INFO",
-                          app_name=WORKER_APP)
+                          "--hostname", f"{name}@%h", app_name=WORKER_APP)  # worker id: name@host
 
     def start_scheduler(self) -> Proc:
         return self.start("scheduler", "scheduler", "--interval", "0.3", app_name=SCHEDULER_APP)

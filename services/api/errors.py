@@ -17,14 +17,32 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 log = logging.getLogger("omnidata.api")
 
+MAX_ERRORS = 20  # a 10,000-item list of bad values gets 20 errors back, not 10,000
+MAX_ERROR_TEXT = 300  # characters of a message or location part: messages may quote the input
+
+
+def clip(text: str, limit: int = MAX_ERROR_TEXT) -> str:
+    """`text` cut to `limit` characters, saying how much was left out (error responses never echo huge inputs)."""
+    if len(text) <= limit:
+        return text
+    return f"{text[:limit]}... ({len(text) - limit} more characters)"
+
 
 def _loc(loc: Any) -> list[str | int]:
-    return [p if isinstance(p, int) else str(p) for p in loc]
+    # a location names the input's own keys (an unknown field), so it is clipped like a message
+    return [p if isinstance(p, int) else clip(str(p), 100) for p in loc]
 
 
 def validation_errors(errors: Any) -> list[dict[str, Any]]:
-    """Pydantic errors reduced to JSON-safe {loc, msg, type} (inputs are not echoed back)."""
-    return [{"loc": _loc(e.get("loc", ())), "msg": str(e.get("msg", "")), "type": str(e.get("type", ""))} for e in errors]
+    """Pydantic errors reduced to JSON-safe {loc, msg, type}: inputs are not echoed, messages are clipped."""
+    errors = list(errors)
+    out = [
+        {"loc": _loc(e.get("loc", ())), "msg": clip(str(e.get("msg", ""))), "type": str(e.get("type", ""))}
+        for e in errors[:MAX_ERRORS]
+    ]
+    if len(errors) > MAX_ERRORS:
+        out.append({"loc": [], "msg": f"... and {len(errors) - MAX_ERRORS} more errors", "type": "too_many_errors"})
+    return out
 
 
 def summarize(errors: list[dict[str, Any]]) -> str:
@@ -44,7 +62,7 @@ def error_response(status_code: int, detail: str, **extra: Any) -> JSONResponse:
 
 
 async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
-    detail = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
+    detail = clip(exc.detail if isinstance(exc.detail, str) else str(exc.detail), 2000)
     return JSONResponse({"detail": detail}, status_code=exc.status_code, headers=getattr(exc, "headers", None))
 
 

@@ -20,6 +20,7 @@ from sqlalchemy import Engine
 
 from services.api.dashboard.endpoints import mount_dashboard
 from services.api.errors import install_error_handlers
+from services.api.guard import RequestGuard
 from services.api.jobs.endpoints import router as jobs_router
 from services.api.jobs.service import RateTracker
 from services.api.ops.endpoints import router as ops_router
@@ -105,6 +106,7 @@ def create_app(
     app.state.metrics_cache = {}
 
     install_error_handlers(app)
+    app.add_middleware(RequestGuard, settings=settings)  # token and size checked before a body is read
     for router in (
         ops_router,
         spaces_router,

@@ -46,6 +46,9 @@ class Settings(BaseSettings):
         default_factory=dict, description="sha256-hex(token) -> tenant; tokens are never stored in clear"
     )
     upload_max_bytes: int = Field(2 * 1024**3, gt=0)
+    request_max_bytes: int = Field(
+        8 * 1024**2, gt=0, description="largest request body other than an upload (JSON job specs), bytes"
+    )
     presign_expiry_s: int = Field(3600, gt=0, le=7 * 24 * 3600)
     lease_s: int = Field(300, gt=0, description="seconds a running task holds its lease")
     max_attempts: int = Field(3, ge=1)

@@ -46,6 +46,11 @@ class Settings(BaseSettings):
         default_factory=dict, description="sha256-hex(token) -> tenant; tokens are never stored in clear"
     )
     upload_max_bytes: int = Field(2 * 1024**3, gt=0)
+    upload_max_faces: int = Field(20_000_000, gt=0, description="an uploaded mesh with more faces is refused")
+    upload_parse_memory_mb: int = Field(
+        4096, ge=512, description="address-space limit of the process that reads an uploaded mesh, MiB"
+    )
+    upload_parse_timeout_s: float = Field(300.0, gt=0, description="time limit for reading an uploaded mesh, s")
     request_max_bytes: int = Field(
         8 * 1024**2, gt=0, description="largest request body other than an upload (JSON job specs), bytes"
     )

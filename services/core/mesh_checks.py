@@ -108,7 +108,9 @@ def _check_obj(source: Path, max_faces: int) -> list[str]:
     with open(source, encoding="utf-8", errors="replace", newline="") as f:
         for lineno, line in enumerate(f, 1):
             last = line
-            head, _, rest = line.partition(" ")
+            head, _, rest = line.lstrip().partition(" ")
+            if "\t" in head:  # tab-separated statement
+                head, _, rest = line.lstrip().partition("\t")
             if head == "v":
                 vertices += 1
             elif head == "f":

@@ -17,7 +17,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 log = logging.getLogger("omnidata.api")
 
-MAX_ERRORS = 20  # a 10,000-item list of bad values gets 20 errors back, not 10,000
+MAX_ERRORS = 20  # a 10,000-item list of bad values gets 20 errors listed back, not 10,000
 MAX_ERROR_TEXT = 300  # characters of a message or location part: messages may quote the input
 
 
@@ -35,24 +35,21 @@ def _loc(loc: Any) -> list[str | int]:
 
 def validation_errors(errors: Any) -> list[dict[str, Any]]:
     """Pydantic errors reduced to JSON-safe {loc, msg, type}: inputs are not echoed, messages are clipped."""
-    errors = list(errors)
-    out = [
+    return [
         {"loc": _loc(e.get("loc", ())), "msg": clip(str(e.get("msg", ""))), "type": str(e.get("type", ""))}
-        for e in errors[:MAX_ERRORS]
+        for e in list(errors)[:MAX_ERRORS]
     ]
-    if len(errors) > MAX_ERRORS:
-        out.append({"loc": [], "msg": f"... and {len(errors) - MAX_ERRORS} more errors", "type": "too_many_errors"})
-    return out
 
 
-def summarize(errors: list[dict[str, Any]]) -> str:
-    """One line naming each failing field: `loc.path: message; ...`."""
+def summarize(errors: list[dict[str, Any]], total: int | None = None) -> str:
+    """One line naming each failing field: `loc.path: message; ...` (`total`: errors before clipping)."""
+    total = len(errors) if total is None else total
     parts = []
     for e in errors[:10]:
         where = ".".join(str(p) for p in e["loc"])
         parts.append(f"{where}: {e['msg']}" if where else e["msg"])
-    if len(errors) > 10:
-        parts.append(f"... and {len(errors) - 10} more")
+    if total > 10:
+        parts.append(f"... and {total - 10} more")
     return "; ".join(parts) or "invalid request"
 
 
@@ -67,8 +64,9 @@ async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResp
 
 
 async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
-    errors = validation_errors(exc.errors())
-    return error_response(status.HTTP_422_UNPROCESSABLE_CONTENT, summarize(errors), errors=errors)
+    raw = exc.errors()
+    errors = validation_errors(raw)  # at most MAX_ERRORS; `detail` still says how many there were
+    return error_response(status.HTTP_422_UNPROCESSABLE_CONTENT, summarize(errors, len(raw)), errors=errors)
 
 
 async def _data_error(request: Request, exc: DataError) -> JSONResponse:

@@ -83,3 +83,10 @@ def test_validation_errors_do_not_echo_huge_inputs(pg_url: str, local_store: Loc
             assert r.status_code == 422, r.text[:300]
             assert len(r.content) < 20_000, (len(r.content), r.text[:300])
             assert r.json()["detail"]
+
+
+def test_many_errors_are_listed_up_to_a_limit_and_counted(api: Api) -> None:
+    body = {"space_ids": [1], "spec": {"cues": [f"c{i}" for i in range(5)], **{f"x{i}": 1 for i in range(50)}}}
+    r = api.client.post("/jobs", json=body, headers=api.a.headers)
+    assert r.status_code == 422
+    assert len(r.json()["errors"]) == 20 and r.json()["detail"].endswith("... and 41 more")  # 51 errors: the cues and 50 unknown fields, r.json()["detail"][-80:]

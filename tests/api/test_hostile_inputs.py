@@ -142,3 +142,20 @@ def test_every_jobspec_field_out_of_range_is_422_naming_it(api: Api, space_id: i
         assert r.status_code == 422 and "space_ids.0" in r.json()["detail"], r.text
     r = api.client.post("/jobs", json={"space_ids": [space_id], "spec": {"points": {"count": 3}}}, headers=api.a.headers)
     assert r.status_code == 201, r.text
+
+
+@pytest.mark.parametrize(
+    ("raw", "needle"),
+    [
+        (b'{"space_ids": [1], "spec": {"views": {"fov_mean_deg": NaN}}}', "fov_mean_deg (nan)"),
+        (b'{"space_ids": [1], "spec": {"unit_scale": Infinity}}', "unit_scale"),
+        (b'{"space_ids": [1], "spec": {"params": {"segment25d_weights": [1, -Infinity, 1]}}}', "segment25d_weights"),
+        (b'{"space_ids": [1], "spec": {"name": "a\\u0000b"}}', "name"),
+        (b'{"space_ids": [1], "spec": ', "json"),
+        (b'[' * 100_000, "pars"),  # nested past the parser's depth: FastAPI's 400
+    ],
+)
+def test_non_finite_and_malformed_json_is_4xx(api: Api, raw: bytes, needle: str) -> None:
+    r = api.client.post("/jobs", content=raw, headers={**api.a.headers, "Content-Type": "application/json"})
+    assert r.status_code in (400, 422) and needle in r.text.lower(), r.text[:300]
+    assert _rows(api, Job) == 0 and api.client.get("/health").status_code == 200

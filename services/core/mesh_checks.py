@@ -77,8 +77,10 @@ def _check_ply(source: Path, max_faces: int) -> None:
     with open(source, "rb") as f:
         header = f.read(MAX_HEADER_BYTES)
         end = header.find(b"end_header")
-        if not header.startswith(b"ply") or end < 0:
-            return  # not a PLY header we can read: trimesh's own error is clear enough
+        if not header.startswith(b"ply"):
+            return  # not a PLY at all: trimesh's own error is clear enough
+        if end < 0:
+            raise SpaceError(f"{name}: no 'end_header' in the first {MAX_HEADER_BYTES:,} bytes: not a readable PLY mesh")
         lines = header[:end].splitlines()
         counts = {m.group(1).decode("latin-1"): int(m.group(2)) for ln in lines if (m := _PLY_ELEMENT.match(ln.strip()))}
         check_face_count(name, counts.get("face", 0), max_faces)

@@ -2,7 +2,7 @@
 
 A hostile mesh (a header declaring billions of faces, a deflate stream that never ends, a file that sends
 the parser into a pathological path) must not take the API down: `load_space_limited` runs `load_space` in
-a child process that caps its own address space (RLIMIT_AS) and CPU time (RLIMIT_CPU) and is killed when it
+a child process that caps the growth of its address space (RLIMIT_AS) and CPU time (RLIMIT_CPU) and is killed when it
 runs past `timeout_s`. The child sends back the LoadedSpace with a slimmed mesh (vertices and faces only)
 for `register_space`; every failure becomes a SpaceError whose message names the limit that was hit.
 """
@@ -72,6 +72,17 @@ def _died(name: str, exitcode: int | None, memory_mb: int, timeout_s: float) -> 
     return f"{name}: the mesh reader stopped (exit code {exitcode}; memory limit {memory_mb} MiB)"
 
 
+def _mapped_bytes() -> int:
+    """Virtual memory this process has mapped (VmSize), 0 where /proc is missing."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmSize:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 0
+
+
 def _child(sender: Connection, path: str, up_axis: str, unit_scale: float, limits: dict[str, Any]) -> None:
     """Child side: set the limits, load and check the space, send ("ok", slim LoadedSpace) or the error."""
     import resource
@@ -81,7 +92,8 @@ def _child(sender: Connection, path: str, up_axis: str, unit_scale: float, limit
     from services.core.mesh_checks import check_face_count
     from services.core.spaces import load_space
 
-    memory = int(limits["memory_mb"]) * 2**20
+    # on top of what the process has mapped already (thread arenas and libraries: GBs on many-core hosts)
+    memory = _mapped_bytes() + int(limits["memory_mb"]) * 2**20
     resource.setrlimit(resource.RLIMIT_AS, (memory, memory))
     resource.setrlimit(resource.RLIMIT_CPU, (int(limits["cpu_s"]), int(limits["cpu_s"]) + 1))
     try:
@@ -90,8 +102,8 @@ def _child(sender: Connection, path: str, up_axis: str, unit_scale: float, limit
         # register_space reads the counts and transforms, not the visuals or parser metadata: leave those here
         slim = trimesh.Trimesh(vertices=loaded.mesh.vertices, faces=loaded.mesh.faces, process=False)
         result: tuple[str, object] = ("ok", dataclasses.replace(loaded, mesh=slim))
-    except SpaceError as e:
-        result = ("space_error", str(e))
+    except SpaceError as e:  # load_space reports a parser's MemoryError as unreadable: name the limit instead
+        result = ("memory", None) if "MemoryError" in str(e) else ("space_error", str(e))
     except MemoryError:
         result = ("memory", None)
     sender.send(result)

@@ -48,7 +48,7 @@ class Settings(BaseSettings):
     upload_max_bytes: int = Field(2 * 1024**3, gt=0)
     upload_max_faces: int = Field(20_000_000, gt=0, description="an uploaded mesh with more faces is refused")
     upload_parse_memory_mb: int = Field(
-        4096, ge=512, description="address-space limit of the process that reads an uploaded mesh, MiB"
+        4096, ge=512, description="memory the process reading an uploaded mesh may map on top of its own, MiB"
     )
     upload_parse_timeout_s: float = Field(300.0, gt=0, description="time limit for reading an uploaded mesh, s")
     request_max_bytes: int = Field(

@@ -21,6 +21,7 @@ MAX_SIGMA_PX = 64.0  # Gaussian blurs: the kernel grows with sigma (a sigma of 1
 MAX_KEYPOINT_SCALES = 16  # every scale is one more blur of the whole image
 MAX_PROVIDED_POSES = 50_000
 MAX_PLANNED_VIEWS = 20_000_000  # upper estimate of the views a spec can plan (points x views per point)
+MAX_SAMPLE_BUDGET = 200_000_000  # surface samples the point sampler may draw (points x max_tries_per_point)
 
 
 def _list_as_tuple(v: Any) -> Any:
@@ -214,7 +215,8 @@ class JobSpec(_Strict):
         return self
 
     def _check_plan_size(self) -> None:
-        """Refuse a spec whose plan could exceed MAX_PLANNED_VIEWS (its rows and tasks would exhaust memory)."""
+        """Refuse a spec whose plan could exceed MAX_PLANNED_VIEWS (its rows and tasks would exhaust memory) or
+        whose point sampling could draw more than MAX_SAMPLE_BUDGET samples (hours of ray casts)."""
         cams, pts = self.cameras, self.points
         n_cameras = {"generate": cams.max_count, "object": cams.object_count}.get(cams.mode, len(cams.poses or ()))
         n_points = pts.count if pts.count is not None else math.ceil(pts.per_camera * n_cameras)
@@ -223,6 +225,12 @@ class JobSpec(_Strict):
         else:
             per_point = min(pts.max_views or n_cameras, n_cameras)
             what = "points.max_views" if pts.max_views is not None else "the camera count"
+        if n_points * pts.max_tries_per_point > MAX_SAMPLE_BUDGET:
+            raise ValueError(
+                f"{n_points} points x points.max_tries_per_point ({pts.max_tries_per_point}) could draw "
+                f"{n_points * pts.max_tries_per_point:,} surface samples, above the limit of {MAX_SAMPLE_BUDGET:,}: "
+                "lower one of them"
+            )
         if n_points * per_point > MAX_PLANNED_VIEWS:
             source = "points.count" if pts.count is not None else "points.per_camera x cameras"
             raise ValueError(

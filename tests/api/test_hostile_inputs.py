@@ -94,6 +94,7 @@ EXTRA_SPEC_CASES: list[tuple[str, Any, str]] = [
     ("params.segment2d_sigma", 1e9, "params.segment2d_sigma"),
     ("params.segment25d_weights", [1, 1, 1e9], "params.segment25d_weights.2"),
     ("points.count", 1_000_000, "could plan"),
+    ("points", {"count": 100_000, "max_views": 3, "max_tries_per_point": 100_000}, "points.max_tries_per_point"),
     # loose types: no coercion
     ("points.count", "3", "points.count"),
     ("points.count", True, "points.count"),

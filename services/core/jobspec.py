@@ -6,9 +6,10 @@ where used). Every refusal names the field and the reason (pydantic reports the 
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+import math
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator, model_validator
 
 from services.core.cues import validate_cue_names
 from services.core.keys import check_name
@@ -16,17 +17,31 @@ from services.core.keys import check_name
 MAX_RESOLUTION = 4096
 MIN_RESOLUTION = 16
 FOV_LIMITS_DEG = (1.0, 179.0)
+MAX_SIGMA_PX = 64.0  # Gaussian blurs: the kernel grows with sigma (a sigma of 1e9 asks for a 60 GiB kernel)
+MAX_KEYPOINT_SCALES = 16  # every scale is one more blur of the whole image
+MAX_PROVIDED_POSES = 50_000
+MAX_PLANNED_VIEWS = 20_000_000  # upper estimate of the views a spec can plan (points x views per point)
+MAX_SAMPLE_BUDGET = 200_000_000  # surface samples the point sampler may draw (points x max_tries_per_point)
+
+
+def _list_as_tuple(v: Any) -> Any:
+    # JSON (and a spec stored as JSON) has no tuples: take a list as one, with its items still checked strictly.
+    return tuple(v) if isinstance(v, list) else v
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # strict: "3" or true is not an int, "0.5" is not a float (an int is accepted where a float is expected)
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
+
+
+Vector3 = Annotated[tuple[float, float, float], BeforeValidator(_list_as_tuple)]
 
 
 class ProvidedPose(_Strict):
     """One provided camera (Omnidata camera_poses.json): location in the world frame and wxyz quaternion."""
 
-    location: tuple[float, float, float]
-    quaternion: tuple[float, float, float, float] | None = Field(
+    location: Vector3
+    quaternion: Annotated[tuple[float, float, float, float] | None, BeforeValidator(_list_as_tuple)] = Field(
         None, description="wxyz rotation of the Blender camera; ignored for fixated views"
     )
     uuid: str | None = None
@@ -41,7 +56,9 @@ class CameraSpec(_Strict):
     height_max_m: float = Field(2.0, gt=0, le=100, description="camera height above the floor, upper bound")
     clearance_m: float = Field(0.1, ge=0, le=10, description="minimum distance from a camera to the mesh")
     max_count: int = Field(1000, ge=1, le=100_000, description="at most this many generated cameras")
-    poses: list[ProvidedPose] | None = Field(None, description="cameras for mode=provided")
+    poses: list[ProvidedPose] | None = Field(
+        None, max_length=MAX_PROVIDED_POSES, description="cameras for mode=provided"
+    )
     object_count: int = Field(32, ge=1, le=100_000, description="cameras on the sphere (mode=object)")
     object_distance_factor: float = Field(
         2.0, gt=1.0, le=100, description="sphere radius / bounding-sphere radius (mode=object)"
@@ -107,34 +124,45 @@ class ViewSpec(_Strict):
 class CueParams(_Strict):
     """Parameters of the cue derivations (DESIGN.md section 5)."""
 
-    depth_units_per_m: float = Field(512.0, gt=0, description="depth PNG units per metre")
+    depth_units_per_m: float = Field(512.0, gt=0, le=1e6, description="depth PNG units per metre")
     max_depth_m: float = Field(128.0, gt=0, le=10_000, description="deeper surfaces are 'no surface'")
-    curvature_clip_m: float = Field(0.03, gt=0, description="k1,k2 clipped to +-1/curvature_clip_m")
-    curvature_radius_m: float = Field(0.05, gt=0, description="neighbourhood radius of curvature fitting")
+    curvature_clip_m: float = Field(0.03, gt=0, le=100, description="k1,k2 clipped to +-1/curvature_clip_m")
+    curvature_radius_m: float = Field(
+        0.05, gt=0, le=5, description="neighbourhood radius of curvature fitting (its cost grows with it)"
+    )
     reshading_albedo: float = Field(0.8, gt=0, le=1, description="constant grey albedo")
     edge_texture_sigma: float = Field(2.0, ge=0, le=50, description="Gaussian blur before Sobel")
     edge_occlusion_sigma: float = Field(1.0, ge=0, le=50, description="blur of sqrt(depth) before Sobel")
-    keypoints2d_sigmas: tuple[float, ...] = Field((1.0, 2.0, 4.0, 8.0), min_length=1)
+    keypoints2d_sigmas: Annotated[
+        tuple[Annotated[float, Field(gt=0, le=MAX_SIGMA_PX)], ...], BeforeValidator(_list_as_tuple)
+    ] = Field(
+        (1.0, 2.0, 4.0, 8.0), min_length=1, max_length=MAX_KEYPOINT_SCALES, description="blob scales, px"
+    )
     keypoints3d_support_m: float = Field(0.1, gt=0, le=10, description="NARF-like support size")
-    segment2d_scale: float = Field(200.0, gt=0)
-    segment2d_sigma: float = Field(0.8, ge=0)
-    segment2d_min_size: int = Field(50, ge=1)
-    segment_ncut_thresh: float = Field(0.005, gt=0)
-    segment25d_weights: tuple[float, float, float] = Field(
+    segment2d_scale: float = Field(200.0, gt=0, le=1e6)
+    segment2d_sigma: float = Field(0.8, ge=0, le=MAX_SIGMA_PX, description="Gaussian blur before Felzenszwalb, px")
+    segment2d_min_size: int = Field(50, ge=1, le=MAX_RESOLUTION**2)
+    segment_ncut_thresh: float = Field(0.005, gt=0, le=10)
+    segment25d_weights: Annotated[
+        tuple[Annotated[float, Field(ge=0, le=1000)], Annotated[float, Field(ge=0, le=1000)],
+              Annotated[float, Field(ge=0, le=1000)]],
+        BeforeValidator(_list_as_tuple),
+    ] = Field(
         (1.0, 1.0, 1.0), description="weights of log-depth, normals, occlusion edges"
     )
     edge_scale: float = Field(
-        1000.0, gt=0, description="16-bit edge images (edge_texture, edge_occlusion) store round(response * edge_scale)"
+        1000.0, gt=0, le=1e9,
+        description="16-bit edge images (edge_texture, edge_occlusion) store round(response * edge_scale)",
     )
     keypoints2d_scale: float = Field(
-        250_000.0, gt=0,
+        250_000.0, gt=0, le=1e12,
         description="keypoints2d stores round(DoH response * scale); the DoH of a [0,1] image peaks near 0.06-0.25",
     )
     segment_max_superpixels: int = Field(
         512, ge=2, le=4096, description="Felzenszwalb regions before normalized cuts, at most (bounds the cost)"
     )
     segment_ncut_sigma: float = Field(
-        255.0, gt=0, description="RAG similarity exp(-|mean difference|^2 / sigma), features on a 0..255 scale"
+        255.0, gt=0, le=1e9, description="RAG similarity exp(-|mean difference|^2 / sigma), features on a 0..255 scale"
     )
     segment_num_cuts: int = Field(10, ge=1, le=100, description="thresholds tried per normalized cut")
 
@@ -143,7 +171,7 @@ class JobSpec(_Strict):
     """What to generate: the steering knobs of a job."""
 
     name: str = Field("omnidata", description="component name in the output layout")
-    cues: list[str] | None = Field(None, description="subset of the catalog; None = all the space supports")
+    cues: list[str] | None = Field(None, max_length=256, description="subset of the catalog; None = all the space supports")
     seed: int = Field(0, ge=0, le=2**63 - 1)
     up_axis: Literal["auto", "+x", "-x", "+y", "-y", "+z", "-z"] = Field(
         "auto", description="source axis that points up; auto detects floors"
@@ -183,7 +211,33 @@ class JobSpec(_Strict):
                 f"points.min_views ({self.points.min_views}) exceeds cameras.object_count "
                 f"({cams.object_count}): no point could ever be accepted"
             )
+        self._check_plan_size()
         return self
+
+    def _check_plan_size(self) -> None:
+        """Refuse a spec whose plan could exceed MAX_PLANNED_VIEWS (its rows and tasks would exhaust memory) or
+        whose point sampling could draw more than MAX_SAMPLE_BUDGET samples (hours of ray casts)."""
+        cams, pts = self.cameras, self.points
+        n_cameras = {"generate": cams.max_count, "object": cams.object_count}.get(cams.mode, len(cams.poses or ()))
+        n_points = pts.count if pts.count is not None else math.ceil(pts.per_camera * n_cameras)
+        if self.views.mode == "trajectory":
+            per_point, what = self.views.trajectory_max_frames, "views.trajectory_max_frames"
+        else:
+            per_point = min(pts.max_views or n_cameras, n_cameras)
+            what = "points.max_views" if pts.max_views is not None else "the camera count"
+        if n_points * pts.max_tries_per_point > MAX_SAMPLE_BUDGET:
+            raise ValueError(
+                f"{n_points} points x points.max_tries_per_point ({pts.max_tries_per_point}) could draw "
+                f"{n_points * pts.max_tries_per_point:,} surface samples, above the limit of {MAX_SAMPLE_BUDGET:,}: "
+                "lower one of them"
+            )
+        if n_points * per_point > MAX_PLANNED_VIEWS:
+            source = "points.count" if pts.count is not None else "points.per_camera x cameras"
+            raise ValueError(
+                f"{source} ({n_points} points) x {what} ({per_point} views per point) could plan "
+                f"{n_points * per_point:,} views, above the limit of {MAX_PLANNED_VIEWS:,}: "
+                "lower the point count or set points.max_views"
+            )
 
 
 Resolution = Annotated[int, Field(ge=MIN_RESOLUTION, le=MAX_RESOLUTION)]

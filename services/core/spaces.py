@@ -48,6 +48,7 @@ import shutil
 import stat
 import tempfile
 import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Any
@@ -128,7 +129,7 @@ def safe_extract_zip(
     name = zip_path.name
     try:
         zf = zipfile.ZipFile(zip_path)
-    except (zipfile.BadZipFile, OSError) as e:
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as e:
         raise SpaceError(f"{name}: not a readable zip archive ({e})") from None
     with zf:
         infos = zf.infolist()
@@ -179,17 +180,21 @@ def safe_extract_zip(
                 continue
             target.parent.mkdir(parents=True, exist_ok=True)
             # stream with our own count: the sizes in the headers can lie
-            with zf.open(info) as src, open(target, "wb") as out:
-                member_bytes = 0
-                while chunk := src.read(1 << 20):
-                    member_bytes += len(chunk)
-                    written += len(chunk)
-                    if member_bytes > info.file_size or written > max_total_bytes:
-                        raise SpaceError(
-                            f"{name}: member {info.filename!r} inflates past its declared size: "
-                            "refusing a possible zip bomb"
-                        )
-                    out.write(chunk)
+            try:
+                with zf.open(info) as src, open(target, "wb") as out:
+                    member_bytes = 0
+                    while chunk := src.read(1 << 20):
+                        member_bytes += len(chunk)
+                        written += len(chunk)
+                        if member_bytes > info.file_size or written > max_total_bytes:
+                            raise SpaceError(
+                                f"{name}: member {info.filename!r} inflates past its declared size: "
+                                "refusing a possible zip bomb"
+                            )
+                        out.write(chunk)
+            except (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError, ValueError) as e:
+                # bad CRC, corrupt deflate stream, cut-off member, unknown compression method
+                raise SpaceError(f"{name}: member {info.filename!r} is corrupt ({e}); re-create the archive") from None
 
 
 def resolve_source(
@@ -515,6 +520,9 @@ def load_space(
 
 def _load(source: Path, recorded: Path, up_axis: str, unit_scale: float) -> LoadedSpace:
     name = source.name
+    from services.core.mesh_checks import check_source  # it imports SpaceError from here
+
+    source_notes = check_source(source)  # truncation, counts over the limits, unsafe paths: before parsing
     try:
         mesh = trimesh.load(source, force="mesh")
     except Exception as e:  # trimesh raises many kinds on corrupt input
@@ -545,6 +553,7 @@ def _load(source: Path, recorded: Path, up_axis: str, unit_scale: float) -> Load
         raise SpaceError(f"{name}: every face is degenerate (zero total area)")
 
     face_class, face_instance, notes = _read_ply_semantics(mesh, source)
+    notes = source_notes + notes
     if up_axis == "auto":
         up, method = detect_up(mesh, source.suffix.lower())
     else:

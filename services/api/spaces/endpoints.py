@@ -72,6 +72,7 @@ async def upload_space(
             service.create_space,
             session,
             store,
+            settings,
             owner=tenant,
             name=opts.name or service.default_name(upload.filename),
             source_path=upload.path,

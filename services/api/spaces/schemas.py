@@ -44,6 +44,8 @@ class SpaceOptions(BaseModel):
 class SpaceRegister(SpaceOptions):
     """Register a scan already in the service's object store (uploaded there directly, e.g. with the AWS CLI)."""
 
+    model_config = ConfigDict(extra="forbid", strict=True)  # a JSON body, unlike the upload's form fields
+
     key: str | None = Field(
         None,
         min_length=1,

@@ -102,6 +102,7 @@ function listen(path, onJob, onDeleted) {
   es.addEventListener("error", () => { live.classList.add("off"); });
   es.addEventListener("job", (e) => onJob(JSON.parse(e.data)));
   if (onDeleted) es.addEventListener("deleted", (e) => onDeleted(JSON.parse(e.data)));
+  es.addEventListener("end", () => es.close());  // a finished job's stream closes: do not reconnect
   state.sources.push(es);
   return es;
 }

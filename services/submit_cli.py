@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from services.cli import CliError
+from services.frame_args import add_frame_arguments
 
 FINAL_STATES = ("done", "failed", "cancelled")
 
@@ -36,6 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--resolution", type=int, metavar="R", help="override views.resolution")
     parser.add_argument("--seed", type=int, metavar="S", help="override the seed")
     parser.add_argument("--name", metavar="COMPONENT", help="override the spec's name")
+    add_frame_arguments(parser)
     parser.add_argument("--api", default=os.environ.get("OMNIDATA_API_URL"), metavar="URL",
                         help="API base URL (default $OMNIDATA_API_URL); without one, write to the database directly")
     parser.add_argument("--token", default=os.environ.get("OMNIDATA_API_TOKEN"), metavar="T",
@@ -185,7 +187,7 @@ def submit_db(settings: Any, spec: Any, sources: list[Any], owner: str) -> int:
                 if sp is None:
                     try:
                         sp = register_space(s, store, owner=owner, name=src.name, source_path=src.path,
-                                            up_axis=spec.up_axis, unit_scale=spec.unit_scale)
+                                            **spec.space_frame())
                     except SpaceError as e:
                         raise CliError(str(e)) from None
                     print(f"omnidata submit: registered space {src.name!r} (id {sp.id})", file=sys.stderr)

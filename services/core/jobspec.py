@@ -20,6 +20,7 @@ MIN_RESOLUTION = 16
 FOV_LIMITS_DEG = (1.0, 179.0)
 
 MAX_UNIT_SCALE = 1000.0
+UP_AXES = ("auto", "+x", "-x", "+y", "-y", "+z", "-z")
 Row4 = tuple[float, float, float, float]
 
 
@@ -93,6 +94,11 @@ class ViewSpec(_Strict):
     nonfixated_pruning: bool = Field(False, description="keep only views that also see another point")
     trajectory_spacing_m: float = Field(0.1, gt=0, le=100, description="frame spacing along the path")
     trajectory_max_frames: int = Field(300, ge=2, le=100_000, description="frames per point at most")
+    # holes in scans (issue 9): views predicted to see too little surface are dropped at planning time
+    min_valid_fraction: float = Field(
+        0.0, ge=0, le=1, description="drop views whose share of pixels with a surface (a low-resolution ray cast "
+        "at planning time) is below this; 0 keeps all, as Omnidata"
+    )
 
     @model_validator(mode="after")
     def _check(self) -> ViewSpec:
@@ -191,16 +197,7 @@ class JobSpec(_Strict):
     @field_validator("unit_scale", mode="plain")
     @classmethod
     def _unit_scale(cls, v: Any) -> float | str:
-        if v == "auto":
-            return "auto"
-        try:
-            x = float(v) if isinstance(v, int | float | str) and not isinstance(v, bool) else math.nan
-        except ValueError:
-            x = math.nan
-        if not (math.isfinite(x) and 0 < x <= MAX_UNIT_SCALE):
-            raise ValueError(f"unit_scale must be 'auto' or a number of metres per source unit greater than 0 "
-                             f"and at most {MAX_UNIT_SCALE:g}, got {v!r}")
-        return x
+        return parse_unit_scale(v)
 
     @field_validator("up")
     @classmethod
@@ -245,6 +242,20 @@ class JobSpec(_Strict):
 
 
 Resolution = Annotated[int, Field(ge=MIN_RESOLUTION, le=MAX_RESOLUTION)]
+
+
+def parse_unit_scale(v: Any) -> float | str:
+    """'auto' or metres per source unit in (0, MAX_UNIT_SCALE]; ValueError naming unit_scale otherwise."""
+    if v == "auto":
+        return "auto"
+    try:
+        x = float(v) if isinstance(v, int | float | str) and not isinstance(v, bool) else math.nan
+    except ValueError:
+        x = math.nan
+    if not (math.isfinite(x) and 0 < x <= MAX_UNIT_SCALE):
+        raise ValueError(f"unit_scale must be 'auto' or a number of metres per source unit greater than 0 "
+                         f"and at most {MAX_UNIT_SCALE:g}, got {v!r}")
+    return x
 
 
 def similarity_scale(matrix: Any) -> float:

@@ -53,14 +53,20 @@ from services.core.gravity import (
     estimate_up,
     floor_evidence,
 )
-from services.core.jobspec import similarity_scale
-from services.core.pointcloud import CLOUD_SUFFIXES, CloudError, cloud_from_ply, mesh_cloud_cached, read_text_cloud
+from services.core.jobspec import UP_AXES, similarity_scale
+from services.core.pointcloud import (
+    CLOUD_SUFFIXES,
+    CloudError,
+    cloud_from_ply,
+    mesh_cloud_cached,
+    read_text_cloud,
+)
 from services.core.scan_formats import SCANNET_MESH_SUFFIX, ScanFormatError, scannet_vertex_labels
 
 log = logging.getLogger(__name__)
 
 MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", *CLOUD_SUFFIXES)
-UP_AXES = ("auto", "+x", "-x", "+y", "-y", "+z", "-z")
+__all__ = ["UP_AXES", "LoadedSpace", "SpaceError", "load_space", "resolve_source", "rotation_to_z"]
 
 MAX_EXTENT_M = 10_000.0  # a 10 km scan means the units are wrong
 MIN_EXTENT_M = 0.001  # everything inside 1 mm: same
@@ -124,6 +130,16 @@ class LoadedSpace:
         if "units" in rec:
             line += f"; units: {rec['units']['unit']} x{rec['units']['unit_scale']:g} ({rec['units']['reason']})"
         return line
+
+
+FRAME_KEYS = ("up", "units", "reconstruction", "class_names", "valid_fraction")
+
+
+def frame_of(record: dict[str, Any] | None) -> dict[str, Any] | None:
+    """The frame part of a space record (validation, plan summary): what the API shows; None when absent."""
+    if not record:
+        return None
+    return {k: record[k] for k in FRAME_KEYS if k in record} or None
 
 
 # ---------------------------------------------------------------------------------------------

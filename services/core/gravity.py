@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 import trimesh
 from scipy import sparse
-from scipy.spatial import ConvexHull, QhullError
+from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 CONVENTION_UP = {".obj": "+y", ".gltf": "+y", ".glb": "+y", ".ply": "+z"}
 
@@ -136,6 +136,12 @@ _BINS = _fibonacci_hemisphere(_N_BINS)
 
 
 @functools.cache
+def _bin_tree() -> cKDTree:
+    """Nearest bin of a normal: a tree over the bins and their antipodes (index modulo the bin count)."""
+    return cKDTree(np.vstack([_BINS, -_BINS]))
+
+
+@functools.cache
 def _bin_neighbours() -> sparse.csr_matrix:
     """Bins within 6 degrees of each other (antipodes folded): smooths the histogram into peaks."""
     near = np.abs(_BINS @ _BINS.T) > np.cos(np.radians(6.0))
@@ -167,10 +173,8 @@ def plane_families(normals: np.ndarray, areas: np.ndarray) -> list[tuple[np.ndar
         votes_n, votes_w = normals[pick], np.full(_SAMPLE_FACES, total / _SAMPLE_FACES)
     else:
         votes_n, votes_w = normals, areas
-    hist = np.zeros(_N_BINS)
-    for start in range(0, len(votes_n), 10_000):
-        nearest = np.argmax(np.abs(votes_n[start:start + 10_000] @ _BINS.T), axis=1)
-        hist += np.bincount(nearest, weights=votes_w[start:start + 10_000], minlength=_N_BINS)
+    _, nearest = _bin_tree().query(votes_n)
+    hist = np.bincount(nearest % _N_BINS, weights=votes_w, minlength=_N_BINS)
     score = _bin_neighbours() @ hist
     families: list[tuple[np.ndarray, float]] = []
     for _ in range(_MAX_FAMILIES):

@@ -167,6 +167,7 @@ class Scheduler:
                     summary["spaces"][sp.name] = {
                         "cameras": done.cameras, "points": done.points, "views": done.views, "tasks": done.tasks,
                         "shortfall": plan.shortfall, "plan_key": done.plan_key,
+                        "valid_fraction": getattr(plan, "valid_fraction", None),
                         "source_to_world": np.asarray(loaded.source_to_world, dtype=float).tolist(),
                         "bounds": np.asarray(loaded.bounds, dtype=float).tolist(),
                         "up_axis": spec.up_axis, "up_method": getattr(loaded, "up_method", None),

@@ -200,6 +200,7 @@ def run(args: argparse.Namespace) -> int:
         record.update({
             "counts": {"cameras": len(plan.cameras), "points": len(plan.points), "views": len(plan.views)},
             "shortfall": plan.shortfall,
+            "valid_fraction": plan.valid_fraction,
             "plan": plan_key,
         })
         spaces[name] = record

@@ -12,7 +12,7 @@ another point that has at least two views, so every kept view carries a cross-vi
 one pass over the unpruned view counts. Points left with fewer than min_views views are then dropped.
 
 valid fraction (holes in scans): each view's share of pixels that see a surface is predicted by a
-12 x 12 ray cast; views.min_valid_fraction drops views below it (points then as above).
+8 x 8 ray cast; views.min_valid_fraction drops views below it (points then as above).
 """
 
 from __future__ import annotations
@@ -163,7 +163,7 @@ def nonfixated_keep(
     return keep
 
 
-VALID_PROBE_PX = 12  # rays per side of the low-resolution cast that predicts a view's share of surface
+VALID_PROBE_PX = 8  # rays per side of the low-resolution cast that predicts a view's share of surface (64 rays)
 
 
 def valid_fractions(q: MeshQueries, views: ViewArrays, max_depth_m: float, size: int = VALID_PROBE_PX) -> np.ndarray:

@@ -55,7 +55,7 @@ def synthetic_room(rng: np.random.Generator, name: str, noise_m: float = 0.01) -
     at random angles, vertices jittered by `noise_m` (metres, standard deviation)."""
     size = np.array([rng.uniform(3.0, 8.0), rng.uniform(3.0, 7.0), rng.uniform(2.4, 3.2)])
     room = scenes.box_room(size=tuple(size))
-    centers, normals = room.triangles_center, room.face_normals
+    normals = room.face_normals
     keep = np.ones(len(room.faces), dtype=bool)
     if rng.random() < 0.6:  # reconstructions rarely see the ceiling
         keep &= ~(normals[:, 2] < -0.9)

@@ -209,8 +209,10 @@ def mesh_cloud_cached(cloud_loader: Any, checksum: str, name: str,
             pass
     built, record = reconstruct(cloud_loader(), name)
     data = built.export(file_type="ply")
+    assert isinstance(data, bytes)  # trimesh writes binary PLY
     # the mesh as the cache will give it back, so the first load and later ones agree to the bit
     mesh = trimesh.load(trimesh.util.wrap_as_stream(data), file_type="ply", force="mesh", process=False)
+    assert isinstance(mesh, trimesh.Trimesh)
     try:
         cache.mkdir(parents=True, exist_ok=True)
         for path, blob in ((ply, data), (meta, json.dumps(record).encode())):

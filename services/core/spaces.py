@@ -361,7 +361,7 @@ def _ply_triangle_polygons(mesh: trimesh.Trimesh, notes: list[str]) -> tuple[Any
     """(raw PLY face data, padded polygon vertex indices, raw polygon of each triangle), verified on positions."""
     raw = mesh.metadata.get("_ply_raw") if isinstance(mesh.metadata, dict) else None
     data = raw["face"].get("data") if raw and "face" in raw else None
-    if data is None:
+    if raw is None or data is None:
         return None
     n_raw = len(data)
     polys = _polygon_lengths(data, n_raw)
@@ -376,7 +376,7 @@ def _ply_triangle_polygons(mesh: trimesh.Trimesh, notes: list[str]) -> tuple[Any
         )
         return None
     # verify on positions: each triangle's first vertex must be a vertex of its polygon
-    vdata = raw.get("vertex", {}).get("data")
+    vdata = raw["vertex"].get("data") if "vertex" in raw else None
     padded = polys
     try:
         raw_xyz = np.column_stack([np.asarray(vdata[c], dtype=np.float64) for c in "xyz"])

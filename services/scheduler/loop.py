@@ -171,7 +171,7 @@ class Scheduler:
                         "source_to_world": np.asarray(loaded.source_to_world, dtype=float).tolist(),
                         "bounds": np.asarray(loaded.bounds, dtype=float).tolist(),
                         "up_axis": spec.up_axis, "up_method": getattr(loaded, "up_method", None),
-                        "unit_scale": loaded.units.scale if getattr(loaded, "units", None) else spec.unit_scale,
+                        "unit_scale": loaded.units.scale if loaded.units is not None else spec.unit_scale,
                         "warnings": list(getattr(loaded, "warnings", ()) or ()),
                         **(loaded.frame_record() if hasattr(loaded, "frame_record") else {}),
                     }

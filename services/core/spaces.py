@@ -376,7 +376,7 @@ def _ply_triangle_polygons(mesh: trimesh.Trimesh, notes: list[str]) -> tuple[Any
         )
         return None
     # verify on positions: each triangle's first vertex must be a vertex of its polygon
-    vdata = raw["vertex"].get("data") if "vertex" in raw else None
+    vdata: Any = raw["vertex"].get("data") if "vertex" in raw else None
     padded = polys
     try:
         raw_xyz = np.column_stack([np.asarray(vdata[c], dtype=np.float64) for c in "xyz"])

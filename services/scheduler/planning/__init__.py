@@ -32,6 +32,8 @@ from services.scheduler.planning.visibility import MeshQueries
 
 __all__ = ["make_plan", "space_rng", "PlanError"]
 
+VALID_REPORT_VIEWS = 2000  # views probed for job.json's valid-fraction distribution when none are dropped
+
 
 def space_rng(seed: int, space_name: str) -> np.random.Generator:
     """The Generator for one space of a job: depends on the job seed and the space name only, so
@@ -103,8 +105,13 @@ def make_plan(
                 f"(>= {ps.min_views} views that each see another point)"
             )
             shortfall = f"{shortfall}; {note}" if shortfall else note
-    fractions = valid_fractions(q, views, spec.params.max_depth_m)
-    valid_summary = fraction_summary(fractions, vs.min_valid_fraction)
+    if vs.min_valid_fraction > 0:
+        fractions = valid_fractions(q, views, spec.params.max_depth_m)
+        valid_summary = fraction_summary(fractions, vs.min_valid_fraction)
+    else:  # only reported: an even sample of the views bounds the cost on big plans
+        sample = np.unique(np.linspace(0, len(views) - 1, min(len(views), VALID_REPORT_VIEWS)).astype(np.int64))
+        valid_summary = fraction_summary(valid_fractions(q, views.subset(sample), spec.params.max_depth_m), 0.0)
+        valid_summary["sampled_of"] = len(views)
     if vs.min_valid_fraction > 0 and len(views):
         views = views.subset(fractions >= vs.min_valid_fraction)
         n_views = np.bincount(views.point_idx, minlength=len(sampled.positions))

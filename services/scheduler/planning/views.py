@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 from scipy.special import ndtr, ndtri
 
-from services.core.camera import intrinsics, pixel_rays
+from services.core.camera import intrinsics
 from services.core.jobspec import ViewSpec
 from services.scheduler.planning.visibility import MeshQueries
 
@@ -169,17 +169,22 @@ VALID_PROBE_PX = 8  # rays per side of the low-resolution cast that predicts a v
 def valid_fractions(q: MeshQueries, views: ViewArrays, max_depth_m: float, size: int = VALID_PROBE_PX) -> np.ndarray:
     """(n,) predicted share of each view's pixels that see a surface nearer than `max_depth_m` (z-depth, metres),
     from a `size` x `size` ray cast through pixel centres (the cue `mask_valid` at low resolution)."""
-    if not len(views):
+    n = len(views)
+    if not n:
         return np.zeros(0)
-    origins, dirs, cosines = [], [], []
-    for w2c, fov in zip(views.world_to_camera, views.fov, strict=True):
-        o, d = pixel_rays(intrinsics(float(fov), size), w2c, size, size)
-        origins.append(o)
-        dirs.append(d)
-        cosines.append(d @ w2c[2, :3])  # the camera's forward axis in world coordinates
-    dist, _ = q.first_hit(np.concatenate(origins), np.concatenate(dirs))
-    valid = np.isfinite(dist) & (dist * np.concatenate(cosines) < max_depth_m)
-    return valid.reshape(len(views), size * size).mean(axis=1)
+    # pixel centres in units of the half-width: camera ray (g_x tan(fov/2), g_y tan(fov/2), 1), as camera.pixel_rays
+    g = (np.arange(size) + 0.5) / (size / 2) - 1.0
+    gx, gy = np.meshgrid(g, g)
+    t = np.tan(views.fov / 2)[:, None]
+    d_cam = np.stack([gx.ravel() * t, gy.ravel() * t, np.ones((n, size * size))], axis=-1)
+    d_cam /= np.linalg.norm(d_cam, axis=-1, keepdims=True)
+    R = views.world_to_camera[:, :3, :3]
+    dirs = np.einsum("npc,ncw->npw", d_cam, R)  # R^T d per view
+    centres = -np.einsum("ncw,nc->nw", R, views.world_to_camera[:, :3, 3])
+    origins = np.repeat(centres, size * size, axis=0)
+    dist, _ = q.first_hit(origins, dirs.reshape(-1, 3))
+    valid = np.isfinite(dist) & (dist * d_cam[..., 2].ravel() < max_depth_m)
+    return valid.reshape(n, size * size).mean(axis=1)
 
 
 def fraction_summary(fractions: np.ndarray, threshold: float) -> dict[str, Any]:

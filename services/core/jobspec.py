@@ -157,7 +157,7 @@ class JobSpec(_Strict):
     cues: list[str] | None = Field(None, description="subset of the catalog; None = all the space supports")
     seed: int = Field(0, ge=0, le=2**63 - 1)
     # --- space frame (DESIGN.md 4): how source coordinates become world metres, +Z up
-    up_axis: Literal["auto", "+x", "-x", "+y", "-y", "+z", "-z"] = Field(
+    up_axis: Literal["auto", "+x", "-x", "+y", "-y", "+z", "-z"] = Field(  # UP_AXES
         "auto", description="source axis that points up; auto detects floors in any orientation"
     )
     unit_scale: float | Literal["auto"] = Field(

@@ -66,7 +66,6 @@ from services.core.scan_formats import SCANNET_MESH_SUFFIX, ScanFormatError, sca
 log = logging.getLogger(__name__)
 
 MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", *CLOUD_SUFFIXES)
-__all__ = ["UP_AXES", "LoadedSpace", "SpaceError", "load_space", "resolve_source", "rotation_to_z"]
 
 MAX_EXTENT_M = 10_000.0  # a 10 km scan means the units are wrong
 MIN_EXTENT_M = 0.001  # everything inside 1 mm: same

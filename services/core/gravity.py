@@ -57,7 +57,7 @@ _SAMPLE_FACES = 50_000  # faces (drawn by area) that vote for bins; refinement u
 _SUPPRESS_COS = float(np.cos(np.radians(25.0)))
 _MAX_FAMILIES = 6
 _MIN_FAMILY_SHARE = 0.03
-_HULL_POINTS = 20_000
+_HULL_POINTS = 5_000
 LOW_MARGIN = 1.25  # best score / runner-up below this: low confidence
 
 # storey height (floor to top of the scan) that a room must have once scaled, metres
@@ -191,17 +191,34 @@ def plane_families(normals: np.ndarray, areas: np.ndarray) -> list[tuple[np.ndar
     return families
 
 
-def _cross_section(vertices: np.ndarray, u: np.ndarray) -> float:
-    """Area of the convex hull of the vertices projected on the plane across `u` (rotation invariant)."""
+def _cross_section(pts: np.ndarray, u: np.ndarray) -> float:
+    """Area of the convex hull of the points projected on the plane across `u` (rotation invariant)."""
     a = np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0])
     a /= np.linalg.norm(a)
     b = np.cross(u, a)
-    pts = vertices if len(vertices) <= _HULL_POINTS else vertices[:: len(vertices) // _HULL_POINTS + 1]
     uv = np.column_stack([pts @ a, pts @ b])
     try:
         return float(ConvexHull(uv).volume)  # 2-D hull: volume is the area
     except (QhullError, ValueError):
         return 0.0
+
+
+@dataclass(frozen=True)
+class _Geometry:
+    """The per-face and per-vertex arrays of a mesh, read once (trimesh re-hashes on every cached access)."""
+
+    normals: np.ndarray
+    areas: np.ndarray
+    centers: np.ndarray
+    vertices: np.ndarray
+    hull_points: np.ndarray  # a subsample of the vertices for cross-sections
+
+    @classmethod
+    def of(cls, mesh: trimesh.Trimesh) -> _Geometry:
+        v = np.asarray(mesh.vertices)
+        step = len(v) // _HULL_POINTS + 1
+        return cls(np.asarray(mesh.face_normals), np.asarray(mesh.area_faces), np.asarray(mesh.triangles_center),
+                   v, v[::step])
 
 
 @dataclass(frozen=True)
@@ -214,11 +231,11 @@ class _Candidate:
     height: float  # extent along up, source units
 
 
-def _floor_candidate(mesh: trimesh.Trimesh, u: np.ndarray) -> _Candidate:
-    normals, areas = mesh.face_normals, mesh.area_faces
-    hv = mesh.vertices @ u
+def _floor_candidate(geom: _Geometry, u: np.ndarray) -> _Candidate:
+    normals, areas = geom.normals, geom.areas
+    hv = geom.vertices @ u
     lo, hi = float(hv.min()), float(hv.max())
-    h = mesh.triangles_center @ u
+    h = geom.centers @ u
     c = normals @ u
     facing_up, facing_down = c > _CONE_COS, c < -_CONE_COS
     floor = facing_up & (h < 0.5 * (lo + hi))
@@ -226,13 +243,13 @@ def _floor_candidate(mesh: trimesh.Trimesh, u: np.ndarray) -> _Candidate:
     band = _END_BAND * (hi - lo)
     middle = (h > lo + band) & (h < hi - band)  # furniture, not floor or ceiling
     surplus = max(0.0, float(areas[facing_up & middle].sum() - areas[facing_down & middle].sum()))
-    cross = _cross_section(mesh.vertices, u)
+    cross = _cross_section(geom.hull_points, u)
     fraction = floor_area / cross if cross > 0 else 0.0
     return _Candidate(u, floor_area + surplus, floor_area, fraction, floor, hi - lo)
 
 
-def _refine_floor(mesh: trimesh.Trimesh, cand: _Candidate) -> np.ndarray:
-    normals, areas = mesh.face_normals, mesh.area_faces
+def _refine_floor(geom: _Geometry, cand: _Candidate) -> np.ndarray:
+    normals, areas = geom.normals, geom.areas
     sel = cand.floor_faces
     up = cand.up
     for cone in (15.0, 5.0):
@@ -246,7 +263,7 @@ def _refine_floor(mesh: trimesh.Trimesh, cand: _Candidate) -> np.ndarray:
 
 def floor_evidence(mesh: trimesh.Trimesh, up: np.ndarray) -> UpEstimate | None:
     """The floor along a given up direction, or None when the scan has none (an object)."""
-    cand = _floor_candidate(mesh, np.asarray(up, dtype=np.float64) / np.linalg.norm(up))
+    cand = _floor_candidate(_Geometry.of(mesh), np.asarray(up, dtype=np.float64) / np.linalg.norm(up))
     if cand.floor_fraction < _FLOOR_MIN_FRACTION:
         return None
     return UpEstimate(cand.up, "given", cand.floor_area, cand.floor_fraction, storey_height=cand.height)
@@ -259,10 +276,11 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
 def estimate_up(mesh: trimesh.Trimesh, suffix: str) -> UpEstimate:
     """Up direction in the source frame and how it was found (see the module docstring)."""
     conv = axis_vector(CONVENTION_UP.get(suffix, "+z"))
-    families = plane_families(mesh.face_normals, mesh.area_faces)
+    geom = _Geometry.of(mesh)
+    families = plane_families(geom.normals, geom.areas)
     if not families:
         return UpEstimate(conv, "convention")
-    cands = [_floor_candidate(mesh, s * f) for f, _ in families for s in (1.0, -1.0)]
+    cands = [_floor_candidate(geom, s * f) for f, _ in families for s in (1.0, -1.0)]
     floors = sorted((c for c in cands if c.floor_fraction >= _FLOOR_MIN_FRACTION), key=lambda c: -c.score)
     if floors:
         best = floors[0]
@@ -275,21 +293,21 @@ def estimate_up(mesh: trimesh.Trimesh, suffix: str) -> UpEstimate:
             sign = float(np.sign(conv @ best.up)) or 1.0
             up = snap_to_axis(sign * best.up)
             return UpEstimate(up, "convention-tie", best.floor_area, best.floor_fraction, angle, margin, best.height)
-        return UpEstimate(_refine_floor(mesh, best), "floor", best.floor_area, best.floor_fraction, angle, margin,
+        return UpEstimate(_refine_floor(geom, best), "floor", best.floor_area, best.floor_fraction, angle, margin,
                           best.height)
-    base = _support_base(mesh, [f for f, _ in families])
+    base = _support_base(geom, [f for f, _ in families])
     return base if base is not None else UpEstimate(conv, "convention")
 
 
-def _support_base(mesh: trimesh.Trimesh, axes: list[np.ndarray]) -> UpEstimate | None:
-    normals, areas, centers = mesh.face_normals, mesh.area_faces, mesh.triangles_center
+def _support_base(geom: _Geometry, axes: list[np.ndarray]) -> UpEstimate | None:
+    normals, areas, centers = geom.normals, geom.areas, geom.centers
     found: list[tuple[float, np.ndarray, float]] = []
     for f in axes:
-        hv = mesh.vertices @ f
+        hv = geom.vertices @ f
         lo, hi = float(hv.min()), float(hv.max())
         band = _END_BAND * (hi - lo)
         h, c = centers @ f, normals @ f
-        cross = max(_cross_section(mesh.vertices, f), 1e-300)
+        cross = max(_cross_section(geom.hull_points, f), 1e-300)
         at_low = float(areas[(h <= lo + band) & (c < -_CONE_COS)].sum())  # base at the low end: up = +f
         at_high = float(areas[(h >= hi - band) & (c > _CONE_COS)].sum())
         for base, opposite, up in ((at_low, at_high, f), (at_high, at_low, -f)):

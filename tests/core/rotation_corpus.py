@@ -79,13 +79,17 @@ def synthetic_room(rng: np.random.Generator, name: str, noise_m: float = 0.01) -
     return Room(name, mesh, np.array([0.0, 0.0, 1.0]))
 
 
-def icl_room(scenes_dir: Path, keep_fraction: float = 1.0) -> Room:
-    """The ICL-NUIM living room (stored with -Y up), optionally a random share of its faces (fast tests)."""
+def icl_room(scenes_dir: Path, faces: int | None = None) -> Room:
+    """The ICL-NUIM living room (stored with -Y up), optionally decimated to about `faces` (fast tests)."""
     mesh = trimesh.load(scenes_dir / "icl_livingroom" / "livingroom.obj", force="mesh")
-    if keep_fraction < 1.0:
-        pick = np.random.default_rng(7).random(len(mesh.faces)) < keep_fraction
-        mesh = trimesh.Trimesh(mesh.vertices, mesh.faces[pick], process=False)
-        mesh.remove_unreferenced_vertices()
+    if faces is not None and faces < len(mesh.faces):
+        import pymeshlab
+
+        ms = pymeshlab.MeshSet()
+        ms.add_mesh(pymeshlab.Mesh(mesh.vertices, mesh.faces))
+        ms.meshing_decimation_quadric_edge_collapse(targetfacenum=faces, planarquadric=True, preservenormal=True)
+        out = ms.current_mesh()
+        mesh = trimesh.Trimesh(out.vertex_matrix(), out.face_matrix(), process=False)
     return Room("icl_livingroom", mesh, np.array([0.0, -1.0, 0.0]))
 
 

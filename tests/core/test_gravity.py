@@ -17,7 +17,7 @@ from tests.scheduler import scenes
 @pytest.fixture(scope="module")
 def rooms(scenes_dir: Path) -> list[corpus.Room]:
     rng = np.random.default_rng(3)
-    return [corpus.icl_room(scenes_dir), corpus.synthetic_room(rng, "noisy"),
+    return [corpus.icl_room(scenes_dir, faces=6000), corpus.synthetic_room(rng, "noisy"),
             corpus.synthetic_room(rng, "clean", noise_m=0.0)]
 
 

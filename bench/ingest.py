@@ -6,9 +6,10 @@ Writes bench/results/ingest.json.
 
 Corpus (tests/core/rotation_corpus.py): the ICL-NUIM living room of ../shared/scenes (a real
 reconstruction, stored with -Y up) and synthetic furnished rooms (ceiling often missing, holes in the
-walls, furniture at random angles, 1 cm vertex noise), each in uniformly random rotations plus the 24
-axis-aligned ones, exported in millimetres, centimetres, inches and metres in turn. Each case runs the
-same detection as `load_space` (plane families -> floor -> units from the storey height).
+walls, furniture at random angles, 1 cm vertex noise; a few keep their whole ceiling), each in uniformly
+random rotations plus the 24 axis-aligned ones, exported in millimetres, centimetres, inches and metres in
+turn. Each case runs the same detection as `load_space` (plane families -> floor -> units from the storey
+height).
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rotations", type=int, default=60, help="random rotations per room (plus 24 axis-aligned)")
     ap.add_argument("--synthetic", type=int, default=8, help="synthetic furnished rooms")
+    ap.add_argument("--closed", type=int, default=4, help="synthetic rooms with their whole ceiling")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--scenes", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "scenes")
     ap.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "results" / "ingest.json")
@@ -51,6 +53,8 @@ def main() -> None:
 
     rng = np.random.default_rng(args.seed)
     rooms = [corpus.icl_room(args.scenes)] + [corpus.synthetic_room(rng, f"synthetic_{i}") for i in range(args.synthetic)]
+    # the hard case: a complete ceiling, so only furniture tells the floor from the ceiling
+    rooms += [corpus.synthetic_room(rng, f"closed_{i}", ceiling_missing_p=0.0) for i in range(args.closed)]
     rows: list[dict] = []
     seconds: list[float] = []
     for case in corpus.cases(rooms, args.rotations, seed=args.seed):

@@ -50,14 +50,14 @@ def _open_box(size: np.ndarray, centre_xy: np.ndarray, z0: float, keep_bottom: b
     return box
 
 
-def synthetic_room(rng: np.random.Generator, name: str, noise_m: float = 0.01) -> Room:
+def synthetic_room(rng: np.random.Generator, name: str, noise_m: float = 0.01, ceiling_missing_p: float = 0.6) -> Room:
     """A furnished room like a reconstruction: random size, ceiling often missing, holes in walls, furniture
     at random angles, vertices jittered by `noise_m` (metres, standard deviation)."""
     size = np.array([rng.uniform(3.0, 8.0), rng.uniform(3.0, 7.0), rng.uniform(2.4, 3.2)])
     room = scenes.box_room(size=tuple(size))
     normals = room.face_normals
     keep = np.ones(len(room.faces), dtype=bool)
-    if rng.random() < 0.6:  # reconstructions rarely see the ceiling
+    if rng.random() < ceiling_missing_p:  # reconstructions rarely see the ceiling
         keep &= ~(normals[:, 2] < -0.9)
     wall = (np.abs(normals[:, 2]) < 0.1) & (rng.random(len(keep)) < 0.3)  # a missing wall triangle (window, door)
     keep &= ~wall

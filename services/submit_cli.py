@@ -116,7 +116,7 @@ class Api:
             if not page["items"] or offset >= page["total"]:
                 return None
 
-    def upload_space(self, path: Path, *, name: str, up_axis: str, unit_scale: float) -> dict[str, Any]:
+    def upload_space(self, path: Path, *, name: str, up_axis: str, unit_scale: float | str) -> dict[str, Any]:
         """POST /spaces (multipart: file, name, up_axis, unit_scale)."""
         with open(path, "rb") as fh:
             return dict(self._call("POST", "/spaces", files={"file": (path.name, fh)},
@@ -137,6 +137,7 @@ class Api:
 
 def submit_http(api: Api, spec: Any, sources: list[Any]) -> int:
     """Upload (or reuse) the spaces and create the job over HTTP; returns the job id."""
+    from services.core.jobspec import similarity_scale
     from services.core.space_registry import pack_source
     from services.core.spaces import resolve_source
 
@@ -152,7 +153,9 @@ def submit_http(api: Api, spec: Any, sources: list[Any]) -> int:
             work = Path(tmp)
             mesh = resolve_source(src.path, work / "x") if src.path.suffix.lower() == ".zip" else resolve_source(src.path)
             upload = pack_source(src.path, mesh, work)  # the file itself, or a zip with its .mtl and textures
-            created = api.upload_space(upload, name=src.name, up_axis=spec.up_axis, unit_scale=spec.unit_scale)
+            # the space's own record; the job's spec (up, source_to_world) still decides its frame when planned
+            scale = spec.unit_scale if spec.source_to_world is None else similarity_scale(spec.source_to_world)
+            created = api.upload_space(upload, name=src.name, up_axis=spec.up_axis, unit_scale=scale)
         print(f"omnidata submit: uploaded space {src.name!r} (id {created['id']})", file=sys.stderr)
         ids.append(int(created["id"]))
     job = api.create_job(ids, spec.model_dump(mode="json"))

@@ -180,6 +180,7 @@ def reconstruct(cloud: Cloud, name: str) -> tuple[trimesh.Trimesh, dict[str, Any
                        "version": RECONSTRUCTION_VERSION},
         "point_count": int(len(pts)),
         "face_count": int(len(mesh.faces)),
+        "fragments": "face indices of this reconstruction (the cached mesh), which source_to_world also maps",
         "has_colors": cloud.colors is not None,
     }
     return mesh, record

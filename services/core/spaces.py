@@ -547,7 +547,7 @@ def load_space(
     if p.is_file() and p.suffix.lower() == ".zip" and extract_dir is None:
         tmp = Path(tempfile.mkdtemp(prefix="omnidata-space-"))
         extract_dir = tmp
-    frame = _FrameRequest(up_axis, unit_scale, None if up is None else np.asarray(up, dtype=np.float64),
+    frame = FrameRequest(up_axis, unit_scale, None if up is None else np.asarray(up, dtype=np.float64),
                           None if source_to_world is None else np.asarray(source_to_world, dtype=np.float64))
     try:
         source = resolve_source(p, extract_dir)
@@ -559,7 +559,9 @@ def load_space(
 
 
 @dataclass(frozen=True)
-class _FrameRequest:
+class FrameRequest:
+    """How the caller asked for the frame: source_to_world, else up or up_axis (or auto), and unit_scale."""
+
     up_axis: str
     unit_scale: float | str
     up: np.ndarray | None
@@ -579,7 +581,10 @@ def _read_mesh(source: Path, cloud_cache_dir: Path | None) -> tuple[trimesh.Trim
         except Exception as e:  # trimesh raises many kinds on corrupt input
             raise SpaceError(f"{name}: could not read the mesh ({type(e).__name__}: {e})") from None
         if suffix == ".ply" and isinstance(mesh, trimesh.Trimesh) and len(mesh.faces) == 0:
-            points = trimesh.load(source)  # a PLY of points: force="mesh" drops them
+            try:
+                points = trimesh.load(source)  # a PLY of points: force="mesh" drops them
+            except Exception:  # noqa: BLE001 - then it is not a readable cloud either: report the empty mesh
+                points = None
             if len(getattr(points, "vertices", ())) > 0:
                 return mesh_cloud_cached(lambda: cloud_from_ply(points), checksum, name, cloud_cache_dir)
     except CloudError as e:
@@ -589,7 +594,7 @@ def _read_mesh(source: Path, cloud_cache_dir: Path | None) -> tuple[trimesh.Trim
     return mesh, None
 
 
-def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: _FrameRequest) -> tuple[np.ndarray, UpEstimate, UnitChoice]:
+def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: FrameRequest) -> tuple[np.ndarray, UpEstimate, UnitChoice]:
     """(source_to_world 4x4, how up was found, the units) of a mesh in its source frame."""
     if frame.source_to_world is not None:
         T = frame.source_to_world
@@ -614,7 +619,7 @@ def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: _FrameRequest) -> t
     return source_to_world_matrix(est.up, units.scale), est, units
 
 
-def _load(source: Path, recorded: Path, frame: _FrameRequest, cloud_cache_dir: Path | None) -> LoadedSpace:
+def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Path | None) -> LoadedSpace:
     name = source.name
     mesh, reconstruction = _read_mesh(source, cloud_cache_dir)
     if len(mesh.vertices) == 0:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 from typing import Annotated, Any, Literal
 
+import numpy as np
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator, model_validator
 
 from services.core.cues import validate_cue_names
@@ -29,12 +30,22 @@ def _list_as_tuple(v: Any) -> Any:
     return tuple(v) if isinstance(v, list) else v
 
 
+def _rows_as_tuples(v: Any) -> Any:
+    return tuple(_list_as_tuple(r) for r in v) if isinstance(v, (list, tuple)) else v
+
+
+MAX_UNIT_SCALE = 1000.0
+UP_AXES = ("auto", "+x", "-x", "+y", "-y", "+z", "-z")
+Row4 = tuple[float, float, float, float]
+
+
 class _Strict(BaseModel):
     # strict: "3" or true is not an int, "0.5" is not a float (an int is accepted where a float is expected)
     model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
 
 
 Vector3 = Annotated[tuple[float, float, float], BeforeValidator(_list_as_tuple)]
+Matrix4 = Annotated[tuple[Row4, Row4, Row4, Row4], BeforeValidator(_rows_as_tuples)]
 
 
 class ProvidedPose(_Strict):
@@ -105,6 +116,11 @@ class ViewSpec(_Strict):
     nonfixated_pruning: bool = Field(False, description="keep only views that also see another point")
     trajectory_spacing_m: float = Field(0.1, gt=0, le=100, description="frame spacing along the path")
     trajectory_max_frames: int = Field(300, ge=2, le=100_000, description="frames per point at most")
+    # holes in scans (issue 9): views predicted to see too little surface are dropped at planning time
+    min_valid_fraction: float = Field(
+        0.0, ge=0, le=1, description="drop views whose share of pixels with a surface (a low-resolution ray cast "
+        "at planning time) is below this; 0 keeps all, as Omnidata"
+    )
 
     @model_validator(mode="after")
     def _check(self) -> ViewSpec:
@@ -173,10 +189,23 @@ class JobSpec(_Strict):
     name: str = Field("omnidata", description="component name in the output layout")
     cues: list[str] | None = Field(None, max_length=256, description="subset of the catalog; None = all the space supports")
     seed: int = Field(0, ge=0, le=2**63 - 1)
-    up_axis: Literal["auto", "+x", "-x", "+y", "-y", "+z", "-z"] = Field(
-        "auto", description="source axis that points up; auto detects floors"
+    # --- space frame (DESIGN.md 4): how source coordinates become world metres, +Z up
+    up_axis: Literal["auto", "+x", "-x", "+y", "-y", "+z", "-z"] = Field(  # UP_AXES
+        "auto", description="source axis that points up; auto detects floors in any orientation"
     )
-    unit_scale: float = Field(1.0, gt=0, le=1000, description="metres per source unit")
+    unit_scale: float | Literal["auto"] = Field(
+        "auto", description="metres per source unit; auto: from the storey height of rooms (m, cm, mm or inches)",
+        json_schema_extra={"anyOf": [{"type": "number", "exclusiveMinimum": 0, "maximum": MAX_UNIT_SCALE},
+                                     {"const": "auto"}]},
+    )
+    up: Vector3 | None = Field(
+        None, description="up direction in source coordinates, instead of up_axis"
+    )
+    source_to_world: Matrix4 | None = Field(
+        None, description="4x4 source -> world metres (+Z up): rotation, uniform scale, translation; "
+        "overrides detection, up and unit_scale"
+    )
+    # ---
     priority: int = Field(0, ge=-100, le=100)
     max_attempts: int = Field(3, ge=1, le=20)
     cameras: CameraSpec = CameraSpec()
@@ -198,8 +227,39 @@ class JobSpec(_Strict):
             raise ValueError("cues must name at least one cue (or be omitted for all)")
         return validate_cue_names(v)
 
+    @field_validator("unit_scale", mode="plain")
+    @classmethod
+    def _unit_scale(cls, v: Any) -> float | str:
+        return parse_unit_scale(v)
+
+    @field_validator("up")
+    @classmethod
+    def _up(cls, v: tuple[float, float, float] | None) -> tuple[float, float, float] | None:
+        if v is not None and (not all(math.isfinite(x) for x in v) or math.hypot(*v) < 1e-9):
+            raise ValueError(f"up {list(v)} must be a finite, non-zero direction [x, y, z]")
+        return v
+
+    @field_validator("source_to_world")
+    @classmethod
+    def _source_to_world(cls, v: tuple[Row4, ...] | None) -> tuple[Row4, ...] | None:
+        if v is not None:
+            similarity_scale(v)
+        return v
+
+    def space_frame(self) -> dict[str, Any]:
+        """The keyword arguments of `services.core.spaces.load_space` that set the space frame."""
+        return {"up_axis": self.up_axis, "unit_scale": self.unit_scale, "up": self.up,
+                "source_to_world": self.source_to_world}
+
     @model_validator(mode="after")
     def _check(self) -> JobSpec:
+        if self.source_to_world is not None:
+            given = [f for f, default in (("up_axis", "auto"), ("unit_scale", "auto"), ("up", None))
+                     if getattr(self, f) != default]
+            if given:
+                raise ValueError(f"source_to_world sets the whole frame: leave {', '.join(given)} unset")
+        if self.up is not None and self.up_axis != "auto":
+            raise ValueError("give either up (a vector) or up_axis (an axis name), not both")
         cams = self.cameras
         if cams.mode == "provided" and cams.poses is not None and len(cams.poses) < self.points.min_views:
             raise ValueError(
@@ -241,6 +301,43 @@ class JobSpec(_Strict):
 
 
 Resolution = Annotated[int, Field(ge=MIN_RESOLUTION, le=MAX_RESOLUTION)]
+
+
+def parse_unit_scale(v: Any) -> float | str:
+    """'auto' or metres per source unit in (0, MAX_UNIT_SCALE]; ValueError naming unit_scale otherwise."""
+    if v == "auto":
+        return "auto"
+    try:
+        x = float(v) if isinstance(v, int | float | str) and not isinstance(v, bool) else math.nan
+    except ValueError:
+        x = math.nan
+    if not (math.isfinite(x) and 0 < x <= MAX_UNIT_SCALE):
+        raise ValueError(f"unit_scale must be 'auto' or a number of metres per source unit greater than 0 "
+                         f"and at most {MAX_UNIT_SCALE:g}, got {v!r}")
+    return x
+
+
+def similarity_scale(matrix: Any) -> float:
+    """The uniform scale of a 4x4 rotation + uniform scale + translation; ValueError saying what is wrong."""
+    m = np.asarray(matrix, dtype=np.float64)
+    if m.shape != (4, 4) or not np.isfinite(m).all():
+        raise ValueError(f"source_to_world must be a finite 4x4 matrix, got shape {list(m.shape)}")
+    if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9):
+        raise ValueError(f"source_to_world: the last row must be [0, 0, 0, 1], got {m[3].tolist()} (no projection)")
+    sv = np.linalg.svd(m[:3, :3], compute_uv=False)
+    if sv[-1] <= 1e-12 * max(sv[0], 1e-300):
+        raise ValueError("source_to_world is degenerate: its 3x3 part is singular (it flattens the scan)")
+    if sv[0] - sv[-1] > 1e-4 * sv[0]:
+        raise ValueError(
+            f"source_to_world must be a rotation times a uniform scale (rigid); its 3x3 part scales axes by "
+            f"{', '.join(f'{x:.6g}' for x in sv)} (shear or non-uniform scale)"
+        )
+    if np.linalg.det(m[:3, :3]) < 0:
+        raise ValueError("source_to_world mirrors the scan (negative determinant): use a proper rotation")
+    scale = float(np.cbrt(np.linalg.det(m[:3, :3])))
+    if not 1e-6 <= scale <= 1000:
+        raise ValueError(f"source_to_world scales by {scale:.4g} metres per unit, outside [1e-6, 1000]")
+    return scale
 
 
 def cues_for_space(spec: JobSpec, *, has_semantics: bool) -> list[str]:

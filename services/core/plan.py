@@ -110,6 +110,7 @@ class SpacePlan:
     points: tuple[PointOfInterest, ...]
     views: tuple[PlannedView, ...]
     shortfall: str | None = None
+    valid_fraction: dict[str, Any] | None = None  # predicted share of pixels with a surface per view (summary)
 
     def views_of(self, point_idx: int) -> tuple[PlannedView, ...]:
         """The views of one point, v = 0..n-1."""
@@ -289,6 +290,7 @@ def plan_to_dict(plan: SpacePlan) -> dict[str, Any]:
         "format": PLAN_FORMAT,
         "space_name": plan.space_name,
         "shortfall": plan.shortfall,
+        "valid_fraction": plan.valid_fraction,
         "cameras": [
             {"idx": c.idx, "position": _floats(c.position), "source": c.source, "uuid": c.uuid}
             for c in plan.cameras
@@ -336,6 +338,7 @@ def plan_from_dict(data: dict[str, Any]) -> SpacePlan:
             for v in data["views"]
         ),
         shortfall=data.get("shortfall"),
+        valid_fraction=data.get("valid_fraction"),
     )
 
 

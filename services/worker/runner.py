@@ -20,6 +20,7 @@ Bytes, not files, flow through here; all geometry is in the plan (world metres, 
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import time
@@ -412,11 +413,11 @@ class TaskRunner:
         from services.worker.space_cache import SpaceContext
 
         spec = job.spec
-        key = f"{space.checksum}:{spec.up_axis}:{spec.unit_scale!r}"
+        key = f"{space.checksum}:{json.dumps(spec.space_frame(), sort_keys=True)}"
 
         def loader() -> SpaceContext:
             path = fetch_space(self.store, space, self.cache_dir)
-            loaded = load_space(path, up_axis=spec.up_axis, unit_scale=spec.unit_scale)
+            loaded = load_space(path, **spec.space_frame())
             return SpaceContext.from_loaded(loaded, key=key, device=self.render_device, threads=self.render_threads)
 
         return self.space_cache.get(key, loader)

@@ -162,7 +162,8 @@ def brute_force_visible(mesh: trimesh.Trimesh, origins: np.ndarray, targets: np.
 
 
 def write_ply_with_labels(path: Path, vertices: np.ndarray, polygons: list[list[int]], class_id, inst_id,
-                          instance_name: str = "instance_id", binary: bool = False) -> None:
+                          instance_name: str = "instance_id", binary: bool = False,
+                          class_name: str = "class_id") -> None:
     """A PLY with per-face class/instance properties (polygons may mix triangles and quads)."""
     lines = [
         "ply", f"format {'binary_little_endian' if binary else 'ascii'} 1.0",
@@ -170,7 +171,7 @@ def write_ply_with_labels(path: Path, vertices: np.ndarray, polygons: list[list[
         f"element face {len(polygons)}", "property list uchar int vertex_indices",
     ]
     if class_id is not None:
-        lines.append("property int class_id")
+        lines.append(f"property int {class_name}")
     if inst_id is not None:
         lines.append(f"property int {instance_name}")
     lines.append("end_header")

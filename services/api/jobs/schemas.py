@@ -82,6 +82,12 @@ class JobSpaceRead(BaseModel):
     name: str
     position: int
     cues: list[str]
+    frame: dict[str, Any] | None = Field(
+        None, description="once planned: up (source direction, method, confidence), units and, for point clouds, "
+        "the reconstruction"
+    )
+
+
 
 
 class JobRead(BaseModel):

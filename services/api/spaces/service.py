@@ -65,7 +65,7 @@ def create_space(
     name: str,
     source_path: Path,
     up_axis: str,
-    unit_scale: float,
+    unit_scale: float | str,
 ) -> Space:
     """Validate the scan at `source_path` and register it (stored under spaces/<id>/); 422 when it is unusable."""
     _check_name_free(session, owner=owner, name=name)
@@ -125,7 +125,7 @@ def register_staged(
     key: str,
     name: str | None,
     up_axis: str,
-    unit_scale: float,
+    unit_scale: float | str,
 ) -> Space:
     """Register the staged object `key` as a space (copied to spaces/<id>/; the staged object is kept)."""
     info = store.stat(key)

@@ -7,6 +7,7 @@ give a byte-identical `plan_to_json`. World frame: metres, +Z up (see services.c
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import time
 import uuid as uuidlib
@@ -20,10 +21,18 @@ from services.core.spaces import LoadedSpace
 from services.scheduler.planning.cameras import generate_cameras, object_cameras, provided_cameras
 from services.scheduler.planning.points import SampledPoints, sample_points
 from services.scheduler.planning.trajectory import trajectory
-from services.scheduler.planning.views import ViewArrays, nonfixated_keep, wide_baseline
+from services.scheduler.planning.views import (
+    ViewArrays,
+    fraction_summary,
+    nonfixated_keep,
+    valid_fractions,
+    wide_baseline,
+)
 from services.scheduler.planning.visibility import MeshQueries
 
 __all__ = ["make_plan", "space_rng", "PlanError"]
+
+VALID_REPORT_VIEWS = 2000  # views probed for job.json's valid-fraction distribution when none are dropped
 
 
 def space_rng(seed: int, space_name: str) -> np.random.Generator:
@@ -96,10 +105,30 @@ def make_plan(
                 f"(>= {ps.min_views} views that each see another point)"
             )
             shortfall = f"{shortfall}; {note}" if shortfall else note
+    if vs.min_valid_fraction > 0:
+        fractions = valid_fractions(q, views, spec.params.max_depth_m)
+        valid_summary = fraction_summary(fractions, vs.min_valid_fraction)
+    else:  # only reported: an even sample of the views bounds the cost on big plans
+        sample = np.unique(np.linspace(0, len(views) - 1, min(len(views), VALID_REPORT_VIEWS)).astype(np.int64))
+        valid_summary = fraction_summary(valid_fractions(q, views.subset(sample), spec.params.max_depth_m), 0.0)
+        valid_summary["sampled_of"] = len(views)
+    if vs.min_valid_fraction > 0 and len(views):
+        views = views.subset(fractions >= vs.min_valid_fraction)
+        n_views = np.bincount(views.point_idx, minlength=len(sampled.positions))
+        kept = keep_points[n_views[keep_points] >= ps.min_views]
+        views = views.subset(np.isin(views.point_idx, kept))
+        if valid_summary["dropped"] or len(kept) < len(keep_points):
+            note = (
+                f"views.min_valid_fraction {vs.min_valid_fraction} dropped {valid_summary['dropped']} views; "
+                f"{len(kept)} of {len(keep_points)} points keep >= {ps.min_views} views"
+            )
+            shortfall = f"{shortfall}; {note}" if shortfall else note
+        keep_points = kept
     t3 = time.perf_counter()
     stamp["views"] = t3 - t2
 
     plan = _assemble(space_name, salt, cams, source, cs, sampled, keep_points, views, vs.resolution, shortfall)
+    plan = dataclasses.replace(plan, valid_fraction=valid_summary)
     stamp["assemble"] = time.perf_counter() - t3
     if timings is not None:
         timings.update(stamp)

@@ -143,6 +143,8 @@ class Scheduler:
 
             self.plan_fn = default_plan
         make_plan = self.plan_fn
+        from services.scheduler.planning import space_rng  # the one seeding rule (DESIGN.md section 4)
+
         t0 = time.perf_counter()
         try:
             with self.sessionmaker() as s:
@@ -155,8 +157,7 @@ class Scheduler:
                 total = 0
                 for js, sp in job_spaces(s, job.id):
                     loaded = load_space(self.fetch_source(sp), **spec.space_frame())
-                    rng = np.random.default_rng([spec.seed, js.position])
-                    plan = make_plan(loaded, spec, rng, sp.name)
+                    plan = make_plan(loaded, spec, space_rng(spec.seed, sp.name), sp.name)
                     if not plan.views:
                         raise PlanningError(
                             f"space {sp.name!r} yields no views"

@@ -46,13 +46,14 @@ from sqlalchemy.engine import make_url
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from services.core.cues import OUTPUT_CUES  # noqa: E402
-from services.core.db import job_progress, make_engine, make_sessionmaker, migrate, transition  # noqa: E402
+from services.core.db import job_progress, make_engine, make_sessionmaker, migrate  # noqa: E402
 from services.core.jobs import create_job  # noqa: E402
 from services.core.jobspec import JobSpec  # noqa: E402
 from services.core.models import Job, Space, Task, utcnow  # noqa: E402
 from services.core.plan import CameraPose, PlannedView, PointOfInterest, SpacePlan  # noqa: E402
 from services.core.settings import get_settings  # noqa: E402
 from services.core.space_registry import register_space  # noqa: E402
+from services.core.states import transition  # noqa: E402
 from services.core.storage import LocalStore  # noqa: E402
 from services.scheduler.compile import compile_tasks  # noqa: E402
 from services.scheduler.completion import complete_once  # noqa: E402
@@ -270,7 +271,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             with sm() as s:
                 ids = [int(i) for (i,) in s.execute(
                     select(Task.id).where(Task.job_id == job_id, Task.state == "queued"))]
-                transition(s, job_id=job_id, task_ids=ids, from_state="queued", to_state="done")
+                transition(s, job_id=job_id, task_ids=ids, from_state="queued", to_state="running")
+                transition(s, job_id=job_id, task_ids=ids, from_state="running", to_state="done")
                 s.commit()
 
         drain()

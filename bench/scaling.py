@@ -46,7 +46,7 @@ def run_job(sm: Any, sched: Any, pool: Any, job_id: int, timeout: float = 1800) 
 
     from services.core.cues import CATALOG
     from services.core.models import Task, View
-    from services.generate_cli import run_until_final
+    from services.embedded.job import run_until_final
 
     state, planned_at = run_until_final(sm, sched, pool, job_id, timeout=timeout)
     elapsed = time.monotonic() - (planned_at or time.monotonic())
@@ -64,16 +64,12 @@ def measure(workers: int, args: argparse.Namespace) -> dict[str, Any]:
     """Warm up `workers` processes, then time the measured job."""
     from services.core.db import make_engine, make_sessionmaker, migrate
     from services.core.storage import LocalStore
-    from services.generate_cli import (
-        LocalPool,
-        QueueTransport,
-        WorkerConfig,
-        check_sources,
-        embedded_settings,
-        prepare_job,
-        validate_sources,
-    )
+    from services.embedded.cli import validate_sources
+    from services.embedded.job import SECRET_SETTINGS, embedded_settings, prepare_job
+    from services.embedded.pool import LocalPool, WorkerConfig
     from services.scheduler.loop import Scheduler
+    from services.scheduler.transport import QueueTransport
+    from services.spec_args import check_sources
 
     with tempfile.TemporaryDirectory(prefix=f"omnidata-scaling-{workers}-") as tmp:
         out = Path(tmp) / "out"
@@ -82,8 +78,7 @@ def measure(workers: int, args: argparse.Namespace) -> dict[str, Any]:
         engine = make_engine(settings.database_url)
         sm = make_sessionmaker(engine)
         store = LocalStore(out)
-        conf = WorkerConfig(out=str(out), settings=settings.model_dump(
-            mode="json", exclude={"api_tokens", "secret_key", "aws_access_key_id", "aws_secret_access_key"}),
+        conf = WorkerConfig(out=str(out), settings=settings.model_dump(mode="json", exclude=SECRET_SETTINGS),
             render_threads=1, parent_pid=os.getpid())
         pool = LocalPool(workers, conf)
         sched = Scheduler(sm, store, QueueTransport(pool.tasks), settings, scheduler_id=f"bench:{os.getpid()}",

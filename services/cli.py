@@ -13,7 +13,7 @@ import sys
 # subcommand -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "plan": ("services.scheduler.plan_cli", "sample cameras, points and views of spaces (no rendering)"),
-    "generate": ("services.generate_cli", "plan and render a dataset locally (SQLite, local folder, local workers)"),
+    "generate": ("services.embedded.cli", "plan and render a dataset locally (SQLite, local folder, local workers)"),
     "serve": ("services.api.cli", "run the REST API and dashboard"),
     "scheduler": ("services.scheduler.cli", "run the scheduler (plans jobs, dispatches tasks)"),
     "worker": ("services.worker.cli", "run a Celery render worker"),

@@ -22,23 +22,15 @@ from pathlib import Path
 from typing import Any
 
 from services.cli import CliError
-from services.frame_args import add_frame_arguments
-
-FINAL_STATES = ("done", "failed", "cancelled")
+from services.core.models import JOB_TERMINAL_STATES, TASK_TERMINAL_STATES, JobState
+from services.spec_args import add_spec_arguments, build_spec, check_sources
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `omnidata submit`."""
     parser.add_argument("spaces", nargs="+", metavar="SPACE",
                         help="mesh file (.obj with .mtl/textures, .ply, .glb/.gltf) or a folder or .zip holding one")
-    parser.add_argument("--spec", required=True, metavar="job.yaml", help="JobSpec as YAML or JSON")
-    parser.add_argument("--cues", metavar="a,b,...", help="override the spec's cues")
-    parser.add_argument("--points", type=int, metavar="N", help="override points.count")
-    parser.add_argument("--min-views", type=int, metavar="K", help="override points.min_views")
-    parser.add_argument("--resolution", type=int, metavar="R", help="override views.resolution")
-    parser.add_argument("--seed", type=int, metavar="S", help="override the seed")
-    parser.add_argument("--name", metavar="COMPONENT", help="override the spec's name")
-    add_frame_arguments(parser)
+    add_spec_arguments(parser, spec_required=True)
     parser.add_argument("--api", default=os.environ.get("OMNIDATA_API_URL"), metavar="URL",
                         help="API base URL (default $OMNIDATA_API_URL)")
     parser.add_argument("--direct", action="store_true",
@@ -74,7 +66,7 @@ class Status:
             parts.append(f"{self.failed} failed")
         if self.labels_per_s:
             parts.append(f"{self.labels_per_s:.1f} labels/s")
-        if self.eta_s is not None and self.state not in FINAL_STATES:
+        if self.eta_s is not None and self.state not in JOB_TERMINAL_STATES:
             parts.append(f"ETA {self.eta_s:.0f} s")
         return ", ".join(parts)
 
@@ -227,7 +219,7 @@ def db_status_fn(settings: Any) -> tuple[Callable[[int], Status], Callable[[], N
                 raise CliError(f"job {job_id} does not exist")
             prog = job_progress(s, job_id)
         total = sum(sum(st.values()) for st in prog.values())
-        finished = sum(st.get(k, 0) for st in prog.values() for k in FINAL_STATES)
+        finished = sum(st.get(k, 0) for st in prog.values() for k in TASK_TERMINAL_STATES)
         labels = sum(st.get("done", 0) for cue, st in prog.items() if not CATALOG[cue].internal)
         first_labels = labels if first_labels is None else first_labels
         dt = time.monotonic() - t0
@@ -250,15 +242,13 @@ def follow(job_id: int, status: Callable[[int], Status], interval: float) -> Sta
         if line != last:
             print(line, file=sys.stderr, flush=True)
             last = line
-        if st.state in FINAL_STATES:
+        if st.state in JOB_TERMINAL_STATES:
             return st
         time.sleep(interval)
 
 
 def run(args: argparse.Namespace) -> int:
     """Submit the job; with --follow, return 0 when it finished done and 1 otherwise."""
-    from services.generate_cli import build_spec, check_sources
-
     if args.interval <= 0:
         raise CliError(f"--interval must be positive, got {args.interval}")
     if not args.api and not args.direct:
@@ -286,7 +276,7 @@ def run(args: argparse.Namespace) -> int:
         final = follow(job_id, status, args.interval)
     finally:
         close()
-    if final.state == "done":
+    if final.state == JobState.DONE:
         return 0
     print(f"omnidata submit: job {job_id} {final.state}" + (f": {final.error}" if final.error else ""),
           file=sys.stderr)

@@ -15,7 +15,7 @@ from services.cli import CliError, main
 from services.core.db import make_engine, make_sessionmaker
 from services.core.jobspec import JobSpec
 from services.core.models import Job, JobSpace, Space
-from services.generate_cli import check_sources
+from services.spec_args import check_sources
 from services.submit_cli import Api, Status, submit_http
 
 SPEC = "cameras: {mode: object, object_count: 6}\npoints: {count: 1, min_views: 2, max_views: 2}\n"

@@ -1,21 +1,20 @@
 """Database helpers: engines, migrations, fast bulk inserts and the incremental progress counters.
 
 Works on Postgres (the service) and SQLite (the embedded default) with the same calls. Task state changes go
-through `transition()`, which moves tasks and adjusts `job_counter` in the same transaction, so progress is
-read from a handful of counter rows (`job_progress`) instead of COUNT(*) over millions of tasks.
+through services.core.states.transition(), which moves tasks and adjusts `job_counter` (add_counts) in the same
+transaction, so progress is read from a handful of counter rows (`job_progress`) instead of COUNT(*).
 """
 
 from __future__ import annotations
 
 import io
 import json
-from collections import defaultdict
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import JSON, Engine, Table, create_engine, event, insert, select, update
+from sqlalchemy import JSON, Engine, Table, create_engine, event, insert, select
 from sqlalchemy.dialects.postgresql import insert as pg_insert
 from sqlalchemy.dialects.sqlite import insert as sqlite_insert
 from sqlalchemy.engine import Connection, make_url
@@ -23,7 +22,7 @@ from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import DeclarativeBase, Session, sessionmaker
 from sqlalchemy.pool import NullPool
 
-from services.core.models import JobCounter, Task, UTCDateTime
+from services.core.models import JobCounter, UTCDateTime
 from services.core.settings import ConfigurationError
 
 MIGRATIONS_DIR = Path(__file__).resolve().parents[2] / "migrations"
@@ -292,49 +291,6 @@ def add_counts(session: Session | Connection, job_id: int, deltas: Mapping[tuple
 def init_counts(session: Session | Connection, job_id: int, pending: Mapping[str, int]) -> None:
     """Record freshly planned tasks: `pending[cue]` tasks of each cue in state 'pending'."""
     add_counts(session, job_id, {(cue, "pending"): n for cue, n in pending.items()})
-
-
-def transition(
-    session: Session | Connection,
-    *,
-    job_id: int,
-    task_ids: Iterable[int],
-    from_state: str,
-    to_state: str,
-    **extra_values: Any,
-) -> list[tuple[int, str]]:
-    """Move the job's tasks in `task_ids` that are in `from_state` to `to_state`, and adjust the counters.
-
-    `extra_values` are further columns to set (values or SQL expressions, e.g. attempts=Task.attempts + 1).
-    Tasks not in `from_state` (or not of this job) are left alone, which makes racing transitions safe: only
-    the (id, cue) pairs returned were moved, and only those are counted. Runs in the caller's transaction.
-    Task objects already loaded in a Session are not refreshed (reload with populate_existing=True).
-    """
-    ids = list(dict.fromkeys(int(i) for i in task_ids))
-    if from_state == to_state:
-        raise ValueError(f"transition from {from_state!r} to itself")
-    conn = _connection(session)
-    t = _table(Task)
-    moved: list[tuple[int, str]] = []
-    for start in range(0, len(ids), _IN_CHUNK):
-        chunk = ids[start : start + _IN_CHUNK]
-        stmt = (
-            update(t)
-            .where(t.c.id.in_(chunk), t.c.job_id == job_id, t.c.state == from_state)
-            .values(state=to_state, **extra_values)
-            .returning(t.c.id, t.c.cue)
-        )
-        moved.extend((int(r[0]), str(r[1])) for r in conn.execute(stmt))
-    if moved:
-        per_cue: dict[str, int] = defaultdict(int)
-        for _, cue in moved:
-            per_cue[cue] += 1
-        deltas: dict[tuple[str, str], int] = {}
-        for cue, k in per_cue.items():
-            deltas[(cue, from_state)] = -k
-            deltas[(cue, to_state)] = k
-        add_counts(conn, job_id, deltas)
-    return moved
 
 
 def job_progress(session: Session | Connection, job_id: int) -> dict[str, dict[str, int]]:

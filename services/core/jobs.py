@@ -1,22 +1,20 @@
 """Job lifecycle operations shared by the API, the scheduler and `generate` (execution contract).
 
 Job states: pending -> planning -> running -> done | failed; running <-> paused; any non-final -> cancelled.
-Every task state change goes through services.core.db (transition / add_counts) in the caller's
-transaction, so the progress counters stay exact. No function here commits: the caller does.
+Every state change goes through services.core.states (the allowed transitions, and the task counters in the
+caller's transaction). No function here commits: the caller does.
 """
 
 from __future__ import annotations
 
-from collections import Counter
 from collections.abc import Sequence
+from dataclasses import dataclass
 from datetime import datetime, timedelta
-from typing import Any
 
-from sqlalchemy import Table, and_, delete, or_, select, update
+from sqlalchemy import and_, delete, func, or_, select, update
 from sqlalchemy.orm import Session
 
-from services.core.cues import closure
-from services.core.db import add_counts
+from services.core.cues import CATALOG, closure
 from services.core.jobspec import JobSpec, cues_for_space
 from services.core.models import (
     JOB_TERMINAL_STATES,
@@ -24,13 +22,16 @@ from services.core.models import (
     Job,
     JobCounter,
     JobSpace,
+    JobState,
     Point,
     Space,
     Task,
+    TaskState,
     View,
     WorkerBlock,
     utcnow,
 )
+from services.core.states import check_job_edge, set_job_state, transition
 from services.core.storage import ObjectStore
 
 RETRY_BACKOFF_BASE_S = 5.0
@@ -97,7 +98,7 @@ def create_job(
         owner=owner,
         name=spec.name,
         spec=spec.model_dump(mode="json"),
-        state="pending",
+        state=JobState.PENDING,
         priority=spec.priority,
         output_root=(output_root or "").strip("/"),
         total_tasks=0,
@@ -131,25 +132,6 @@ def job_cues(session: Session, job_id: int) -> list[str]:
     return [c for c in closure(names) if c in names]
 
 
-def _move_all(session: Session, job_id: int, from_state: str, to_state: str, **values: Any) -> dict[str, int]:
-    """Move every task of the job in `from_state` to `to_state` in one UPDATE; counters follow."""
-    t = Task.__table__
-    assert isinstance(t, Table)
-    stmt = (
-        update(t)
-        .where(t.c.job_id == job_id, t.c.state == from_state)
-        .values(state=to_state, **values)
-        .returning(t.c.cue)
-    )
-    per_cue = Counter(str(r[0]) for r in session.execute(stmt))
-    deltas: dict[tuple[str, str], int] = {}
-    for cue, n in per_cue.items():
-        deltas[(cue, from_state)] = -n
-        deltas[(cue, to_state)] = n
-    add_counts(session, job_id, deltas)
-    return dict(per_cue)
-
-
 def _lock_job(session: Session, job: Job) -> Job:
     # Re-read the row under a lock so racing operations (cancel vs. complete) serialise on Postgres.
     stmt = select(Job).where(Job.id == job.id).execution_options(populate_existing=True)
@@ -169,34 +151,35 @@ def cancel_job(session: Session, job: Job) -> int:
     if job.state in JOB_TERMINAL_STATES:
         raise JobStateError(f"job {job.id} is {job.state}; only unfinished jobs can be cancelled")
     now = utcnow()
-    job.state = "cancelled"
-    job.finished_at = now
+    set_job_state(job, JobState.CANCELLED, finished_at=now)
     session.flush()
     # pending first, then queued: a task a dispatcher moves pending -> queued meanwhile is caught second.
-    n = sum(_move_all(session, job.id, "pending", "cancelled", finished_at=now).values())
-    n += sum(_move_all(session, job.id, "queued", "cancelled", finished_at=now).values())
+    n = len(transition(session, job_id=job.id, from_state=TaskState.PENDING, to_state=TaskState.CANCELLED,
+                       finished_at=now))
+    n += len(transition(session, job_id=job.id, from_state=TaskState.QUEUED, to_state=TaskState.CANCELLED,
+                        finished_at=now))
     return n
 
 
 def pause_job(session: Session, job: Job) -> None:
     """Pause a running job: nothing more is dispatched; queued tasks go back to pending when received."""
     job = _lock_job(session, job)
-    if job.state == "paused":
+    if job.state == JobState.PAUSED:
         return
-    if job.state != "running":
+    if job.state != JobState.RUNNING:
         raise JobStateError(f"job {job.id} is {job.state}; only a running job can be paused")
-    job.state = "paused"
+    set_job_state(job, JobState.PAUSED)
     session.flush()
 
 
 def resume_job(session: Session, job: Job) -> None:
     """Resume a paused job."""
     job = _lock_job(session, job)
-    if job.state == "running":
+    if job.state == JobState.RUNNING:
         return
-    if job.state != "paused":
+    if job.state != JobState.PAUSED:
         raise JobStateError(f"job {job.id} is {job.state}; only a paused job can be resumed")
-    job.state = "running"
+    set_job_state(job, JobState.RUNNING)
     session.flush()
 
 
@@ -206,20 +189,16 @@ def retry_failed(session: Session, job: Job) -> int:
     Returns the number of tasks retried. Raises JobStateError for a cancelled job or one not planned yet.
     """
     job = _lock_job(session, job)
-    if job.state in ("cancelled", "pending", "planning"):
+    if job.state in (JobState.CANCELLED, JobState.PENDING, JobState.PLANNING):
         raise JobStateError(f"job {job.id} is {job.state}; failed tasks can only be retried once it has run")
-    n = sum(
-        _move_all(
-            session, job.id, "failed", "pending",
-            attempts=0, error=None, not_before=None, worker_id=None, lease_until=None, finished_at=None,
-        ).values()
-    )
+    n = len(transition(
+        session, job_id=job.id, from_state=TaskState.FAILED, to_state=TaskState.PENDING,
+        attempts=0, error=None, not_before=None, worker_id=None, lease_until=None, finished_at=None,
+    ))
     # A worker blocked on this job for repeated failures gets another chance after an explicit retry.
     session.execute(delete(WorkerBlock).where(WorkerBlock.job_id == job.id))
-    if n and job.state in ("done", "failed"):
-        job.state = "running"
-        job.error = None
-        job.finished_at = None
+    if n and job.state in (JobState.DONE, JobState.FAILED):
+        set_job_state(job, JobState.RUNNING, error=None, finished_at=None)
     session.flush()
     return n
 
@@ -266,19 +245,20 @@ def claim_pending_jobs(
     """
     now = now or utcnow()
     cond = or_(
-        Job.state == "pending",
-        and_(Job.state == "planning", or_(Job.planner_lease_until.is_(None), Job.planner_lease_until < now)),
+        Job.state == JobState.PENDING,
+        and_(Job.state == JobState.PLANNING, or_(Job.planner_lease_until.is_(None), Job.planner_lease_until < now)),
     )
     stmt = select(Job.id, Job.state).where(cond).order_by(Job.priority.desc(), Job.id).limit(limit)
     if session.get_bind().dialect.name == "postgresql":
         stmt = stmt.with_for_update(skip_locked=True)
     claimed: list[int] = []
     for job_id, seen in session.execute(stmt).all():
+        check_job_edge(seen, JobState.PLANNING)
         res = session.execute(
             update(Job)
             .where(Job.id == job_id, Job.state == seen, cond)
             .values(
-                state="planning", planner=planner_id, planner_lease_until=now + timedelta(seconds=lease_s),
+                state=JobState.PLANNING.value, planner=planner_id, planner_lease_until=now + timedelta(seconds=lease_s),
                 started_at=now, error=None,
             )
             .execution_options(synchronize_session=False)
@@ -292,3 +272,62 @@ def claim_pending_jobs(
         .execution_options(populate_existing=True)
     ).all()
     return list(jobs)
+
+
+# ---------------------------------------------------------------------------------------------- resume
+
+
+@dataclass
+class Reopened:
+    """What reopening a job of an earlier run did."""
+
+    requeued: int = 0  # interrupted tasks put back to pending
+    redo: int = 0  # done tasks whose file was missing
+    retried: int = 0  # failed tasks given another chance
+
+
+def requeue_inflight(session: Session, job_id: int) -> int:
+    """Queued and running tasks of the job back to pending, their attempt not counted (the run was stopped,
+    the task did not fail); returns how many moved."""
+    n = len(transition(
+        session, job_id=job_id, from_state=TaskState.RUNNING, to_state=TaskState.PENDING,
+        attempts=func.max(Task.attempts - 1, 0), worker_id=None, lease_until=None, queued_at=None, not_before=None,
+    ))
+    n += len(transition(session, job_id=job_id, from_state=TaskState.QUEUED, to_state=TaskState.PENDING,
+                        queued_at=None))
+    return n
+
+
+def reopen_job(session: Session, store: ObjectStore, job: Job) -> Reopened:
+    """Make a job of an earlier run resumable: in-flight tasks back to pending, missing outputs made again,
+    failed tasks retried. A job interrupted while planning plans again from scratch."""
+    done = Reopened()
+    if job.state == JobState.PLANNING:
+        set_job_state(job, JobState.PENDING, planner=None, planner_lease_until=None)
+        session.flush()
+        return done
+    if job.state == JobState.PENDING:
+        return done
+    if job.state == JobState.PAUSED:
+        set_job_state(job, JobState.RUNNING)
+    done.requeued = requeue_inflight(session, job.id)
+    # Done outputs whose file is gone are made again (the internal pass cache is rebuilt on demand).
+    internal = [n for n, c in CATALOG.items() if c.internal]
+    missing = [
+        tid for tid, key in session.execute(
+            select(Task.id, Task.output_key).where(
+                Task.job_id == job.id, Task.state == TaskState.DONE, Task.cue.not_in(internal)
+            )
+        )
+        if not key or not store.exists(key)
+    ]
+    done.redo = len(transition(
+        session, job_id=job.id, task_ids=missing, from_state=TaskState.DONE, to_state=TaskState.PENDING,
+        attempts=0, error=None, output_key=None, size=None, sha256=None, finished_at=None, not_before=None,
+    ))
+    if job.state in (JobState.DONE, JobState.FAILED, JobState.RUNNING):
+        done.retried = retry_failed(session, job)
+    if done.redo and job.state in (JobState.DONE, JobState.FAILED):
+        set_job_state(job, JobState.RUNNING, error=None, finished_at=None)
+    session.flush()
+    return done

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import re
+from pathlib import Path
 
 from services.core.cues import get_cue
 
 _SAFE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
+_UNSAFE = re.compile(r"[^A-Za-z0-9._-]+")
 
 MANIFEST_KEY = "manifest.jsonl"
 JOB_JSON_KEY = "job.json"
@@ -20,6 +22,14 @@ def check_name(kind: str, value: str) -> str:
             "starting with a letter or digit"
         )
     return value
+
+
+def space_name(path: Path) -> str:
+    """A space's name in the output layout from its path: the folder name, or the file name without its
+    extension; characters other than letters, digits, '.', '_' and '-' become '_', and those three are
+    stripped from both ends (`scan_.obj` is `scan`)."""
+    raw = path.name if path.is_dir() else path.stem
+    return check_name("space", _UNSAFE.sub("_", raw).strip("._-")[:128] or "space")
 
 
 def file_name(cue: str, point: int, view: int) -> str:

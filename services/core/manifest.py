@@ -23,7 +23,7 @@ from services.core.cues import CATALOG
 from services.core.db import job_progress
 from services.core.jobs import job_cues, job_root, job_spaces, root_key
 from services.core.keys import JOB_JSON_KEY, MANIFEST_KEY, output_key
-from services.core.models import Job, Task, View
+from services.core.models import Job, Task, TaskState, View
 from services.core.storage import ObjectStore
 
 POINT_CHUNK = 2_000  # points read per query while streaming the manifest (bounds memory on 1M-task jobs)
@@ -31,14 +31,24 @@ LAYOUT = "<cue>/<component>/<space>/point_<p>_view_<v>_domain_<cue>.<ext>"
 
 
 def code_version() -> str:
-    """Version of the code that produced a job: $OMNIDATA_CODE_VERSION (e.g. a git sha) or the package's."""
+    """Version of the code that produced a job or plan: $OMNIDATA_CODE_VERSION, else the package's version
+    plus the git commit when run from a checkout (`0.1.0+g0123456789ab`)."""
     env = os.environ.get("OMNIDATA_CODE_VERSION")
     if env:
         return env
     try:
-        return metadata.version("omnidata-service")
+        version = metadata.version("omnidata-service")
     except metadata.PackageNotFoundError:
-        return "unknown"
+        version = "unknown"
+    git = Path(__file__).resolve().parents[2] / ".git"
+    try:
+        head = (git / "HEAD").read_text().strip()
+        if head.startswith("ref: "):
+            ref = git / head[5:]
+            head = ref.read_text().strip() if ref.is_file() else head
+        return f"{version}+g{head[:12]}"
+    except OSError:  # not a checkout (or a worktree, whose .git is a file)
+        return version
 
 
 def _relative(job: Job, key: str | None, fallback: str) -> str:
@@ -77,7 +87,7 @@ def iter_manifest(session: Session, job: Job) -> Iterator[dict[str, Any]]:
             rows = session.execute(
                 select(Task.point_idx, Task.view_idx, Task.cue, Task.output_key, Task.size, Task.sha256)
                 .where(
-                    Task.job_id == job.id, Task.space_id == sp.id, Task.state == "done",
+                    Task.job_id == job.id, Task.space_id == sp.id, Task.state == TaskState.DONE,
                     Task.point_idx >= p0, Task.point_idx < p1, Task.cue.in_(public),
                 )
                 .order_by(Task.point_idx, Task.view_idx, Task.cue)

@@ -7,6 +7,7 @@ Job progress lives in `job_counter` rows maintained incrementally (services.core
 from __future__ import annotations
 
 from datetime import UTC, datetime
+from enum import StrEnum
 from typing import Any
 
 from sqlalchemy import (
@@ -33,10 +34,35 @@ from sqlalchemy.engine import Dialect
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 from sqlalchemy.types import TypeDecorator
 
-JOB_STATES: tuple[str, ...] = ("pending", "planning", "running", "paused", "done", "failed", "cancelled")
-JOB_TERMINAL_STATES: tuple[str, ...] = ("done", "failed", "cancelled")
-TASK_STATES: tuple[str, ...] = ("pending", "queued", "running", "done", "failed", "cancelled")
-TASK_TERMINAL_STATES: tuple[str, ...] = ("done", "failed", "cancelled")
+
+class JobState(StrEnum):
+    """A job's lifecycle state (the allowed changes: services/core/states.py)."""
+
+    PENDING = "pending"
+    PLANNING = "planning"
+    RUNNING = "running"
+    PAUSED = "paused"
+    DONE = "done"
+    FAILED = "failed"
+    CANCELLED = "cancelled"
+
+
+class TaskState(StrEnum):
+    """A task's state (the allowed changes: services/core/states.py)."""
+
+    PENDING = "pending"
+    QUEUED = "queued"
+    RUNNING = "running"
+    DONE = "done"
+    FAILED = "failed"
+    CANCELLED = "cancelled"
+
+
+JOB_STATES: tuple[str, ...] = tuple(JobState)
+JOB_TERMINAL_STATES: tuple[str, ...] = (JobState.DONE, JobState.FAILED, JobState.CANCELLED)
+TASK_STATES: tuple[str, ...] = tuple(TaskState)
+TASK_TERMINAL_STATES: tuple[str, ...] = (TaskState.DONE, TaskState.FAILED, TaskState.CANCELLED)
+TASK_ACTIVE_STATES: tuple[str, ...] = (TaskState.PENDING, TaskState.QUEUED, TaskState.RUNNING)
 
 # Constraint names are deterministic so Alembic migrations can refer to them on both dialects.
 NAMING_CONVENTION = {

@@ -28,7 +28,6 @@ triangles by the majority of each triangle's vertices.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import re
@@ -63,6 +62,7 @@ from services.core.pointcloud import (
     read_text_cloud,
 )
 from services.core.scan_formats import SCANNET_MESH_SUFFIX, ScanFormatError, scannet_vertex_labels
+from services.core.storage.base import sha256_file
 
 log = logging.getLogger(__name__)
 
@@ -474,15 +474,6 @@ def _classes_from_info_semantic(source: Path, face_instance: np.ndarray, notes: 
 
 # ---------------------------------------------------------------------------------------------
 # loading
-
-
-def sha256_file(path: Path) -> str:
-    """sha256 hex of a file, read in 1 MiB chunks."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while chunk := f.read(1 << 20):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 _OBJ_NONFINITE = re.compile(rb"^v[ \t][^\n]*?(nan|inf)", re.IGNORECASE | re.MULTILINE)

@@ -15,12 +15,12 @@ from sqlalchemy.orm import Session
 from services.core.db import job_progress
 from services.core.jobs import root_key
 from services.core.manifest import write_job_files
-from services.core.models import Job, JobCounter, Task, utcnow
+from services.core.models import TASK_ACTIVE_STATES, Job, JobCounter, JobState, Task, TaskState, utcnow
+from services.core.states import set_job_state
 from services.core.storage import ObjectStore
 
 log = logging.getLogger(__name__)
 
-ACTIVE_TASK_STATES = ("pending", "queued", "running")
 PASS_CACHE_PREFIX = "_cache/"  # keys.passes_key puts every pass set under it
 
 
@@ -36,9 +36,9 @@ class Finished:
 def finished_job_ids(session: Session) -> list[int]:
     """Running jobs with tasks, none of which is pending, queued or running (counters only)."""
     c = JobCounter
-    active = exists().where(c.job_id == Job.id, c.state.in_(ACTIVE_TASK_STATES), c.n > 0)
+    active = exists().where(c.job_id == Job.id, c.state.in_(TASK_ACTIVE_STATES), c.n > 0)
     rows = session.execute(
-        select(Job.id).where(Job.state == "running", Job.total_tasks > 0, ~active).order_by(Job.id)
+        select(Job.id).where(Job.state == JobState.RUNNING, Job.total_tasks > 0, ~active).order_by(Job.id)
     ).all()
     return [int(r[0]) for r in rows]
 
@@ -51,7 +51,7 @@ def failure_summary(session: Session, job: Job, progress: dict[str, dict[str, in
     total = sum(sum(s.values()) for s in progress.values())
     first = session.execute(
         select(Task.id, Task.cue, Task.point_idx, Task.view_idx, Task.error)
-        .where(Task.job_id == job.id, Task.state == "failed")
+        .where(Task.job_id == job.id, Task.state == TaskState.FAILED)
         .order_by(Task.id)
         .limit(1)
     ).first()
@@ -73,17 +73,15 @@ def complete_job(session: Session, store: ObjectStore, job_id: int) -> Finished 
     if session.get_bind().dialect.name == "postgresql":
         stmt = stmt.with_for_update(skip_locked=True)  # another scheduler finishing it: leave it
     job = session.scalars(stmt).first()
-    if job is None or job.state != "running":
+    if job is None or job.state != JobState.RUNNING:
         session.rollback()
         return None
     progress = job_progress(session, job.id)
-    if any(s.get(st) for s in progress.values() for st in ACTIVE_TASK_STATES):
+    if any(s.get(st) for s in progress.values() for st in TASK_ACTIVE_STATES):
         session.rollback()
         return None
     error = failure_summary(session, job, progress)
-    job.state = "failed" if error else "done"
-    job.error = error
-    job.finished_at = utcnow()
+    set_job_state(job, JobState.FAILED if error else JobState.DONE, error=error, finished_at=utcnow())
     session.flush()
     try:
         write_job_files(session, store, job)

@@ -29,8 +29,8 @@ from sqlalchemy import case, func, literal, or_, select, text
 from sqlalchemy.orm import Session
 
 from services.core.cues import CATALOG
-from services.core.db import transition
-from services.core.models import Job, JobCounter, Task, utcnow
+from services.core.models import Job, JobCounter, JobState, Task, TaskState, utcnow
+from services.core.states import transition
 from services.scheduler.transport import Transport
 
 log = logging.getLogger(__name__)
@@ -88,7 +88,7 @@ def running_job_loads(session: Session) -> list[JobLoad]:
     rows = session.execute(
         select(Job.id, Job.priority, c.cue, c.state, c.n)
         .join(JobCounter, JobCounter.job_id == Job.id, isouter=True)
-        .where(Job.state == "running")
+        .where(Job.state == JobState.RUNNING)
     ).all()
     loads: dict[int, JobLoad] = {}
     for job_id, prio, cue, state, n in rows:
@@ -108,7 +108,7 @@ def _input_rank(cue: str, t: Any, i: Any) -> Any:
         which.append((i.view_idx == t.view_idx) & i.cue.in_(view_inputs))
     if point_inputs:  # per-point cues exist on view 0 only
         which.append((i.view_idx == 0) & i.cue.in_(point_inputs))
-    rank = case((i.state == "done", 0), (i.state.in_(UPSTREAM_FAILED), 2), else_=1)
+    rank = case((i.state == TaskState.DONE, 0), (i.state.in_(UPSTREAM_FAILED), 2), else_=1)
     return (
         select(func.max(rank))
         .where(i.job_id == t.job_id, i.space_id == t.space_id, i.point_idx == t.point_idx, or_(*which))
@@ -131,7 +131,7 @@ def scan_cue(
     rank = _input_rank(cue, t.c, i.c) if CATALOG[cue].inputs else literal(0)
     base = select(t.c.id, rank).where(
         t.c.job_id == job_id,
-        t.c.state == "pending",
+        t.c.state == TaskState.PENDING,
         t.c.cue == cue,
         or_(t.c.not_before.is_(None), t.c.not_before <= now),
     )
@@ -265,7 +265,7 @@ def dispatch_once(
             ready, doomed = ready_tasks(session, load.job_id, take, now, load, thorough)
             if doomed:
                 result.upstream_failed += len(transition(
-                    session, job_id=load.job_id, task_ids=doomed, from_state="pending", to_state="failed",
+                    session, job_id=load.job_id, task_ids=doomed, from_state=TaskState.PENDING, to_state=TaskState.FAILED,
                     finished_at=now, error="UpstreamFailed: an input cue task of this view failed or was cancelled",
                 ))
             if not ready:
@@ -274,7 +274,7 @@ def dispatch_once(
                 continue
             moved = transition(
                 session, job_id=load.job_id, task_ids=[tid for tid, _ in ready],
-                from_state="pending", to_state="queued", queued_at=now,
+                from_state=TaskState.PENDING, to_state=TaskState.QUEUED, queued_at=now,
             )
             if moved:
                 picked.append((load.job_id, moved))
@@ -300,7 +300,7 @@ def _unqueue(session: Session, job_id: int, moved: list[tuple[int, str]]) -> int
     try:
         back = transition(
             session, job_id=job_id, task_ids=[tid for tid, _ in moved],
-            from_state="queued", to_state="pending", queued_at=None,
+            from_state=TaskState.QUEUED, to_state=TaskState.PENDING, queued_at=None,
         )
         session.commit()
         return len(back)

@@ -25,9 +25,10 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from services.core.jobs import claim_pending_jobs, job_spaces, job_spec
 from services.core.jobspec import JobSpec
-from services.core.models import Job, Space, utcnow
+from services.core.models import Job, JobState, Space, utcnow
 from services.core.plan import SpacePlan
 from services.core.settings import Settings
+from services.core.states import set_job_state
 from services.core.storage import ObjectStore
 from services.scheduler.compile import compile_tasks
 from services.scheduler.completion import Finished, complete_once
@@ -149,7 +150,7 @@ class Scheduler:
         try:
             with self.sessionmaker() as s:
                 job = s.get(Job, job_id)
-                if job is None or job.state != "planning" or job.planner != self.scheduler_id:
+                if job is None or job.state != JobState.PLANNING or job.planner != self.scheduler_id:
                     return False
                 spec = job_spec(job)
                 clear_plan(s, job.id)
@@ -184,14 +185,12 @@ class Scheduler:
                 if s.get_bind().dialect.name == "postgresql":
                     stmt = stmt.with_for_update()
                 job = s.scalars(stmt).one()
-                if job.state != "planning" or job.planner != self.scheduler_id:
+                if job.state != JobState.PLANNING or job.planner != self.scheduler_id:
                     s.rollback()
                     log.info("job %d changed to %s while planning; plan dropped", job_id, job.state)
                     return False
-                job.state = "running"
-                job.total_tasks = total
-                job.plan_summary = summary
-                job.planner_lease_until = None
+                set_job_state(job, JobState.RUNNING, total_tasks=total, plan_summary=summary,
+                              planner_lease_until=None)
                 s.commit()
         except Exception as exc:
             self._planning_failed(job_id, exc)
@@ -207,17 +206,16 @@ class Scheduler:
         )
         with self.sessionmaker() as s:
             job = s.get(Job, job_id)
-            if job is None or job.state != "planning" or job.planner != self.scheduler_id:
+            if job is None or job.state != JobState.PLANNING or job.planner != self.scheduler_id:
                 return
             summary = dict(job.plan_summary or {})
             attempts = int(summary.get("attempts", 0)) + 1
             summary["attempts"] = attempts
             job.plan_summary = summary
             if permanent or attempts >= MAX_PLAN_ATTEMPTS:
-                job.state = "failed"
-                job.finished_at = utcnow()
                 tail = "".join(traceback.format_exception_only(type(exc), exc)).strip()
-                job.error = f"planning failed: {tail}" if not isinstance(exc, PlanningError) else str(exc)
+                set_job_state(job, JobState.FAILED, finished_at=utcnow(),
+                              error=f"planning failed: {tail}" if not isinstance(exc, PlanningError) else str(exc))
             else:  # leave it claimed; any scheduler may take it again once the lease runs out
                 job.planner_lease_until = utcnow() + timedelta(seconds=PLAN_RETRY_S)
             s.commit()

@@ -20,9 +20,9 @@ from typing import Any
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from services.core.db import transition
 from services.core.jobs import retry_backoff_s
-from services.core.models import Job, Task, utcnow
+from services.core.models import Job, JobState, Task, TaskState, utcnow
+from services.core.states import transition
 
 log = logging.getLogger(__name__)
 
@@ -61,7 +61,7 @@ def reap_once(
         session,
         select(Task.id, Task.job_id, Task.attempts, Task.worker_id, Job.state, Job.spec)
         .join(Job, Job.id == Task.job_id)
-        .where(Task.state == "running", Task.lease_until < now)
+        .where(Task.state == TaskState.RUNNING, Task.lease_until < now)
         .order_by(Task.id)
         .limit(REAP_BATCH),
     )
@@ -70,10 +70,10 @@ def reap_once(
         by_job[int(row.job_id)].append(row)
     for job_id, rows in by_job.items():
         job_state, spec = rows[0].state, rows[0].spec or {}
-        if job_state == "cancelled":
+        if job_state == JobState.CANCELLED:
             res.expired_cancelled += len(transition(
-                session, job_id=job_id, task_ids=[r.id for r in rows], from_state="running",
-                to_state="cancelled", finished_at=now, lease_until=None,
+                session, job_id=job_id, task_ids=[r.id for r in rows], from_state=TaskState.RUNNING,
+                to_state=TaskState.CANCELLED, finished_at=now, lease_until=None,
             ))
             continue
         max_attempts = int(spec.get("max_attempts") or default_max_attempts)
@@ -86,14 +86,14 @@ def reap_once(
                 fail.append(r)
         for backoff, ids in retry.items():
             res.expired_retried += len(transition(
-                session, job_id=job_id, task_ids=ids, from_state="running", to_state="pending",
+                session, job_id=job_id, task_ids=ids, from_state=TaskState.RUNNING, to_state=TaskState.PENDING,
                 lease_until=None, worker_id=None, queued_at=None,
                 not_before=now + timedelta(seconds=backoff),
                 error="lease expired: the worker stopped heart-beating (lost or killed); retrying",
             ))
         for r in fail:  # one by one: each keeps its own error text (few: only tasks out of attempts)
             res.expired_failed += len(transition(
-                session, job_id=job_id, task_ids=[r.id], from_state="running", to_state="failed",
+                session, job_id=job_id, task_ids=[r.id], from_state=TaskState.RUNNING, to_state=TaskState.FAILED,
                 lease_until=None, finished_at=now,
                 error=(
                     f"LeaseExpired: worker {r.worker_id} stopped heart-beating while running this task; "
@@ -105,7 +105,7 @@ def reap_once(
     lost = _locked(
         session,
         select(Task.id, Task.job_id)
-        .where(Task.state == "queued", Task.queued_at < cutoff)
+        .where(Task.state == TaskState.QUEUED, Task.queued_at < cutoff)
         .order_by(Task.id)
         .limit(REAP_BATCH),
     )
@@ -114,7 +114,7 @@ def reap_once(
         lost_by_job[int(row.job_id)].append(int(row.id))
     for job_id, ids in lost_by_job.items():
         res.lost_requeued += len(transition(
-            session, job_id=job_id, task_ids=ids, from_state="queued", to_state="pending", queued_at=None,
+            session, job_id=job_id, task_ids=ids, from_state=TaskState.QUEUED, to_state=TaskState.PENDING, queued_at=None,
         ))
     session.commit()
     if res.total:

@@ -43,6 +43,20 @@ class NullTransport:
         self.sent.extend((int(i), str(c)) for i, c in batch)
 
 
+class QueueTransport:
+    """Sends task ids into a queue (a multiprocessing queue of the embedded mode's local workers)."""
+
+    def __init__(self, q: Any) -> None:
+        self.q = q
+        self.sent = 0
+
+    def send(self, batch: Sequence[tuple[int, str]]) -> None:
+        """Put one task id per message on the queue."""
+        for task_id, _cue in batch:
+            self.q.put(int(task_id))
+        self.sent += len(batch)
+
+
 class CeleryTransport:
     """Sends `render.cue(task_id)` by name through Celery; passes go to the render queue, the rest to derive.
 

@@ -83,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
     if args.render_threads is not None:
         if args.render_threads < 1:
             raise CliError(f"--render-threads must be at least 1, got {args.render_threads}")
-        os.environ["OMNIDATA_RENDER_THREADS"] = str(args.render_threads)  # read by each child's runtime
+        os.environ["OMNIDATA_RENDER_THREADS"] = str(args.render_threads)  # Settings.render_threads of each child
         # numeric libraries in the children get the same budget (numpy is not loaded yet in this process)
         for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
             os.environ.setdefault(var, str(args.render_threads))

@@ -19,7 +19,7 @@ from datetime import timedelta
 from sqlalchemy import update
 from sqlalchemy.orm import Session
 
-from services.core.models import Task, Worker, utcnow
+from services.core.models import Task, TaskState, Worker, utcnow
 
 log = logging.getLogger(__name__)
 
@@ -127,7 +127,7 @@ class Heartbeat:
                 # Not a state change (counters untouched): only pushes the deadline of a task we hold.
                 session.execute(
                     update(Task)
-                    .where(Task.id == current, Task.worker_id == self.worker_id, Task.state == "running")
+                    .where(Task.id == current, Task.worker_id == self.worker_id, Task.state == TaskState.RUNNING)
                     .values(lease_until=now + timedelta(seconds=self.lease_s))
                     .execution_options(synchronize_session=False)
                 )
@@ -169,7 +169,7 @@ def expire_leases(sessionmaker: Callable[[], Session], worker_ids: Sequence[str]
         return 0
     with sessionmaker() as session:
         res = session.execute(
-            update(Task).where(Task.state == "running", Task.worker_id.in_(list(worker_ids)))
+            update(Task).where(Task.state == TaskState.RUNNING, Task.worker_id.in_(list(worker_ids)))
             .values(lease_until=utcnow() - timedelta(seconds=1)).execution_options(synchronize_session=False)
         )
         session.commit()

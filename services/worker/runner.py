@@ -1,4 +1,4 @@
-"""TaskRunner: run one task of the execution contract (DESIGN.md section 6, notes/execution.md).
+"""TaskRunner: run one task of the execution contract (DESIGN.md section 6).
 
     runner = TaskRunner(sessionmaker, store, settings, worker_id)
     outcome = runner.run(task_id)
@@ -32,18 +32,18 @@ from datetime import timedelta
 from pathlib import Path
 from typing import Any, TypeVar
 
-from sqlalchemy import or_, select, update
+from sqlalchemy import or_, select
 from sqlalchemy.exc import DBAPIError, DisconnectionError, InterfaceError, OperationalError
 from sqlalchemy.orm import Session
 
 from services.core.cues import CATALOG, closure
-from services.core.db import add_counts, transition
 from services.core.jobs import job_root, retry_backoff_s
 from services.core.jobspec import JobSpec
 from services.core.keys import output_key, passes_key
-from services.core.models import Job, Space, Task, WorkerBlock, utcnow
+from services.core.models import Job, JobState, Space, Task, TaskState, WorkerBlock, utcnow
 from services.core.plan import SpacePlan, plan_from_json
 from services.core.settings import Settings
+from services.core.states import transition
 from services.core.storage import ObjectStore
 
 log = logging.getLogger(__name__)
@@ -155,7 +155,7 @@ class TaskRunner:
         self.worker_id = worker_id
         self.heartbeat = heartbeat
         self.cache_dir = Path(cache_dir) if cache_dir is not None else settings.data_dir / "cache" / "spaces"
-        self.render_threads = render_threads
+        self.render_threads = render_threads if render_threads is not None else settings.render_threads
         self.render_device = render_device or settings.render_device
         self.db_retry_s = db_retry_s
         self.space_cache = SpaceCache()
@@ -239,27 +239,27 @@ class TaskRunner:
                 return _Claimed(task_id, int(row.job_id), int(row.space_id), int(row.point_idx),
                                 int(row.view_idx), str(row.cue), attempts)
 
-            if row.state == "running" and row.worker_id == self.worker_id and row.job_state == "running":
+            if row.state == TaskState.RUNNING and row.worker_id == self.worker_id and row.job_state == JobState.RUNNING:
                 # Ours already: a claim whose commit reply was lost in a connection drop, retried. This process
                 # runs one task at a time, so nothing else here is running it.
                 return claimed(int(row.attempts))
-            if row.state != "queued":
+            if row.state != TaskState.QUEUED:
                 return Outcome(task_id, "skipped", cue=row.cue, job_id=row.job_id,
                                error=f"task is {row.state}, not queued (stale or duplicate message)")
-            if row.job_state == "paused":
-                transition(s, job_id=row.job_id, task_ids=[task_id], from_state="queued", to_state="pending",
+            if row.job_state == JobState.PAUSED:
+                transition(s, job_id=row.job_id, task_ids=[task_id], from_state=TaskState.QUEUED, to_state=TaskState.PENDING,
                            queued_at=None)
                 s.commit()
                 return Outcome(task_id, "paused", cue=row.cue, job_id=row.job_id)
-            if row.job_state != "running":
+            if row.job_state != JobState.RUNNING:
                 return Outcome(task_id, "skipped", cue=row.cue, job_id=row.job_id, error=f"job is {row.job_state}")
             if self._blocked(s, int(row.job_id), now):
-                transition(s, job_id=row.job_id, task_ids=[task_id], from_state="queued", to_state="pending",
+                transition(s, job_id=row.job_id, task_ids=[task_id], from_state=TaskState.QUEUED, to_state=TaskState.PENDING,
                            queued_at=None, not_before=now + HANDBACK_DELAY)
                 s.commit()
                 return Outcome(task_id, "blocked", cue=row.cue, job_id=row.job_id)
             moved = transition(
-                s, job_id=row.job_id, task_ids=[task_id], from_state="queued", to_state="running",
+                s, job_id=row.job_id, task_ids=[task_id], from_state=TaskState.QUEUED, to_state=TaskState.RUNNING,
                 worker_id=self.worker_id, attempts=Task.attempts + 1, started_at=now, finished_at=None,
                 lease_until=now + timedelta(seconds=self.settings.lease_s),
             )
@@ -277,18 +277,9 @@ class TaskRunner:
         ).first() is not None
 
     def _move_mine(self, s: Session, t: _Claimed, to_state: str, **values: Any) -> bool:
-        """running -> to_state for a task still held by this worker; counters follow (db.add_counts)."""
-        rows = s.execute(
-            update(Task)
-            .where(Task.id == t.id, Task.job_id == t.job_id, Task.state == "running",
-                   Task.worker_id == self.worker_id)
-            .values(state=to_state, **values)
-            .returning(Task.cue)
-            .execution_options(synchronize_session=False)
-        ).all()
-        if rows:
-            add_counts(s, t.job_id, {(t.cue, "running"): -1, (t.cue, to_state): 1})
-        return bool(rows)
+        """running -> to_state for a task still held by this worker; counters follow (states.transition)."""
+        return bool(transition(s, job_id=t.job_id, task_ids=[t.id], from_state=TaskState.RUNNING, to_state=to_state,
+                               where=[Task.worker_id == self.worker_id], **values))
 
     def _record_done(self, t: _Claimed, key: str, info: Any, duration: float) -> Outcome:
         def step() -> bool:

@@ -69,11 +69,9 @@ def build_runtime(settings: Settings, *, queues: list[str] | None = None, name: 
         # One process holds a named id at a time: a task still running under it was left by the child this
         # process replaces (killed mid-task). End its lease so the reaper retries it now, not minutes later.
         expire_leases(sm, [worker_id])
-    threads = os.environ.get("OMNIDATA_RENDER_THREADS")
     hb = Heartbeat(sm, worker_id, queues=queues or [settings.queue_render, settings.queue_derive],
                    lease_s=settings.lease_s)
-    runner = TaskRunner(sm, store, settings, worker_id, heartbeat=hb,
-                        render_threads=int(threads) if threads else None)
+    runner = TaskRunner(sm, store, settings, worker_id, heartbeat=hb)
     hb.start()
     return Runtime(os.getpid(), settings, engine, runner, hb)
 

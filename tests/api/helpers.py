@@ -28,11 +28,12 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from services.core.cues import CATALOG, closure
-from services.core.db import bulk_insert, init_counts, transition
+from services.core.db import bulk_insert, init_counts
 from services.core.jobs import job_spaces, root_key
 from services.core.keys import output_key
 from services.core.models import Camera, Job, Point, Task, View, utcnow
 from services.core.settings import hash_token
+from services.core.states import transition
 from services.core.storage import ObjectStore
 
 

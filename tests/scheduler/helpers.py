@@ -17,11 +17,12 @@ from sqlalchemy import Engine, func, select
 from sqlalchemy.orm import Session, sessionmaker
 
 from services.core.camera import look_at
-from services.core.db import job_progress, make_engine, make_sessionmaker, transition
+from services.core.db import job_progress, make_engine, make_sessionmaker
 from services.core.jobs import create_job, job_spaces
 from services.core.jobspec import JobSpec
 from services.core.models import Job, Space, Task, utcnow
 from services.core.plan import CameraPose, PlannedView, PointOfInterest, SpacePlan
+from services.core.states import transition
 from services.core.storage import ObjectStore
 from services.scheduler.compile import compile_tasks
 from services.scheduler.persist import persist_space

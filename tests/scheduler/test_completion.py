@@ -75,7 +75,7 @@ def test_a_failed_task_fails_the_job_with_a_summary(any_sm, local_store):
         ids = [i for i, _ in tr.sent]
         finish(s, job, ids[1:])
         claim(s, job.id, ids[:1])
-        from services.core.db import transition
+        from services.core.states import transition
 
         transition(s, job_id=job.id, task_ids=ids[:1], from_state="running", to_state="failed",
                    error="RuntimeError: boom\n  File x.py line 3\nRuntimeError: boom at the end")

@@ -196,7 +196,7 @@ def test_a_send_failure_midway_puts_back_only_the_unsent(pg_sm, local_store, mon
 
 
 def test_tasks_whose_input_failed_fail_too_and_the_job_finishes(any_sm, local_store):
-    from services.core.db import transition
+    from services.core.states import transition
     from services.scheduler.completion import complete_once
 
     with any_sm() as s:

@@ -12,7 +12,7 @@ import pytest
 from sqlalchemy import Engine, delete, func, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
-from services.core.db import make_sessionmaker, transition
+from services.core.db import make_sessionmaker
 from services.core.jobs import (
     JobStateError,
     cancel_job,
@@ -25,6 +25,7 @@ from services.core.jobs import (
 )
 from services.core.jobspec import JobSpec
 from services.core.models import Job, JobSpace, Space, Task, View, utcnow
+from services.core.states import transition
 from services.scheduler.dispatch import dispatch_once
 from services.scheduler.reaper import reap_once
 from services.scheduler.transport import NullTransport

@@ -102,7 +102,7 @@ def test_plan_from_a_zip_and_a_shortfall_warning(tmp_path: Path, room: Path, cap
         ({"views": {"resolution": 8}}, [], "views.resolution: Input should be greater than or equal to 16"),
         ({"cues": ["segment_semantic"]}, [], "needs semantic labels"),
         ({"cameras": {"max_count": 2}}, [], "has 2 cameras"),
-        ({}, ["--name", "../up"], "name (--name): Value error, name '../up' is not a valid name"),
+        ({}, ["--name", "../up"], "name (--name): name '../up' is not a valid name"),
     ],
 )
 def test_bad_specs_are_refused_naming_the_field(tmp_path: Path, room: Path, capsys, spec, extra, message) -> None:
@@ -125,13 +125,13 @@ def test_bad_inputs_are_refused_clearly(tmp_path: Path, room: Path, capsys) -> N
     refuse([str(tmp_path / "nope.ply")], "nope.ply: no such file or folder")
     (tmp_path / "bad.yaml").write_text("points: [1, 2\n")
     refuse([str(room), "--spec", str(tmp_path / "bad.yaml")], "not valid YAML")
-    refuse([str(room), "--spec", str(tmp_path / "missing.yaml")], "cannot read it")
+    refuse([str(room), "--spec", str(tmp_path / "missing.yaml")], "missing.yaml: no such file")
     (tmp_path / "list.yaml").write_text("- 1\n")
     refuse([str(room), "--spec", str(tmp_path / "list.yaml")], "expected a mapping of JobSpec fields")
     twin = tmp_path / "other" / "my room.ply"
     twin.parent.mkdir()
     twin.write_bytes(room.read_bytes())
-    refuse([str(room), str(twin)], "several spaces would be named my_room")
+    refuse([str(room), str(twin)], "two spaces would share the name 'my_room'")
     (tmp_path / "evil.zip").write_bytes(b"PK\x03\x04 not really")
     refuse([str(tmp_path / "evil.zip")], "not a readable zip archive")
     refuse([str(room), "--unit-scale", "0.0001"], "check unit_scale")

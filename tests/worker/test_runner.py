@@ -22,7 +22,7 @@ from PIL import Image
 from sqlalchemy import Engine, select
 from sqlalchemy.orm import Session, sessionmaker
 
-from services.core.db import job_progress, make_engine, make_sessionmaker, migrate, transition
+from services.core.db import job_progress, make_engine, make_sessionmaker, migrate
 from services.core.jobs import create_job, root_key
 from services.core.jobspec import JobSpec
 from services.core.keys import output_key, passes_key
@@ -31,6 +31,7 @@ from services.core.plan import SpacePlan
 from services.core.settings import get_settings
 from services.core.space_registry import register_space
 from services.core.spaces import load_space
+from services.core.states import transition
 from services.core.storage import LocalStore, ObjectInfo
 from services.scheduler.compile import compile_tasks
 from services.scheduler.persist import persist_space

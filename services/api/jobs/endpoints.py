@@ -9,8 +9,9 @@ from fastapi.concurrency import run_in_threadpool
 
 from services.api.deps import ReadSessionDep, SessionDep, StoreDep, TenantDep
 from services.api.jobs import service
-from services.api.jobs.schemas import JobCreate, JobDetail, JobRead, JobState
+from services.api.jobs.schemas import JobCreate, JobDetail, JobRead
 from services.api.pagination import Page, PageDep
+from services.core.models import JobState
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])
 

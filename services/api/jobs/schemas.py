@@ -4,15 +4,13 @@ from __future__ import annotations
 
 import math
 from datetime import datetime
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from services.core.jobspec import JobSpec
 from services.core.models import TASK_STATES
 
-JobState = Literal["pending", "planning", "running", "paused", "done", "failed", "cancelled"]
-TaskState = Literal["pending", "queued", "running", "done", "failed", "cancelled"]
 DbId = Annotated[int, Field(ge=1, le=2**63 - 1)]
 
 

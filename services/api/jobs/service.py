@@ -39,6 +39,7 @@ from services.core.models import (
     Job,
     JobCounter,
     JobSpace,
+    JobState,
     Space,
     utcnow,
 )
@@ -132,11 +133,11 @@ def compute_progress(
     if total:
         fraction = finished / total
     else:
-        fraction = 1.0 if job.state == "done" else 0.0
+        fraction = 1.0 if job.state == JobState.DONE else 0.0
 
     rate: float | None = None
     label_rate: float | None = None
-    recent = rates.observe(job.id, finished, labels_done) if rates is not None and job.state == "running" else None
+    recent = rates.observe(job.id, finished, labels_done) if rates is not None and job.state == JobState.RUNNING else None
     if recent is not None:
         rate, label_rate = recent
     elif job.started_at is not None and finished:
@@ -146,8 +147,8 @@ def compute_progress(
             rate, label_rate = finished / span, labels_done / span
     eta: float | None = None
     if job.state in JOB_TERMINAL_STATES:
-        eta = 0.0 if job.state == "done" else None
-    elif job.state == "running" and rate and rate > 0:
+        eta = 0.0 if job.state == JobState.DONE else None
+    elif job.state == JobState.RUNNING and rate and rate > 0:
         eta = remaining / rate
     progress = Progress(
         total=total,

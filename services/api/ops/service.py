@@ -22,7 +22,7 @@ from sqlalchemy.orm import Session
 
 from services.api.workers.service import WORKER_STALE_S
 from services.core.db import SchemaNotCurrent, schema_problem
-from services.core.models import JOB_STATES, TASK_STATES, Job, JobCounter, Task, Worker, utcnow
+from services.core.models import JOB_STATES, TASK_STATES, Job, JobCounter, Task, TaskState, Worker, utcnow
 
 CHECK_TIMEOUT_S = 3.0
 METRICS_TTL_S = 5.0
@@ -202,7 +202,7 @@ def build_metrics(session: Session, app: FastAPI, owner: str | None = None) -> s
     cols = [func.sum(case((Task.duration_s <= b, 1), else_=0)) for b in DURATION_BUCKETS_S]
     rows = session.execute(
         _owned(select(Task.cue, *cols, func.count(), func.sum(Task.duration_s)), owner, Task.job_id)
-        .where(Task.state == "done", Task.duration_s.is_not(None))
+        .where(Task.state == TaskState.DONE, Task.duration_s.is_not(None))
         .group_by(Task.cue)
         .order_by(Task.cue)
     ).all()

@@ -22,7 +22,7 @@ from services.api.outputs.schemas import OutputLink
 from services.core.cues import CATALOG
 from services.core.jobs import job_root, root_key
 from services.core.keys import output_key
-from services.core.models import Job, Task
+from services.core.models import Job, Task, TaskState
 from services.core.settings import Settings
 from services.core.storage import ObjectStore
 from services.datasets.previews import preview_key
@@ -102,7 +102,7 @@ def links(
     """
     found: dict[str, OutputLink] = {}
     for t in tasks:
-        if t.state != "done" or t.cue not in PUBLIC_CUES:
+        if t.state != TaskState.DONE or t.cue not in PUBLIC_CUES:
             continue
         key = task_store_key(job, t, space_name)
         url, expires_at = presign(store, settings, key=key, base_url=base_url)

@@ -7,7 +7,6 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Path, Query, Request
 
 from services.api.deps import ReadSessionDep, SettingsDep, StoreDep, TenantDep
-from services.api.jobs.schemas import TaskState
 from services.api.jobs.service import get_job
 from services.api.outputs.service import links
 from services.api.pagination import Page, PageDep
@@ -15,7 +14,7 @@ from services.api.spaces.service import not_found
 from services.api.views import service
 from services.api.views.schemas import Plan, TaskRead, Throughput, ViewRead
 from services.core.cues import CATALOG
-from services.core.models import Task
+from services.core.models import Task, TaskState
 
 router = APIRouter(prefix="/jobs/{job_id}", tags=["views"])
 

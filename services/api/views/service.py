@@ -16,7 +16,7 @@ from services.api.jobs.service import read_counters
 from services.api.pagination import PageParams
 from services.api.views.schemas import PlanSpace, TaskBrief, TaskRead, ThroughputBucket, ViewRead
 from services.core.cues import CATALOG
-from services.core.models import Camera, Job, JobSpace, Point, Space, Task, View, utcnow
+from services.core.models import Camera, Job, JobSpace, Point, Space, Task, TaskState, View, utcnow
 
 MAX_PLAN_ITEMS = 20_000  # cameras or points per space in one plan response
 PER_POINT = tuple(n for n, c in CATALOG.items() if c.per_point)
@@ -252,7 +252,7 @@ def throughput(session: Session, *, job: Job, buckets: int = 60) -> tuple[float,
         return cached
     first, last = session.execute(
         select(func.min(Task.finished_at), func.max(Task.finished_at)).where(
-            Task.job_id == job.id, Task.state == "done"
+            Task.job_id == job.id, Task.state == TaskState.DONE
         )
     ).one()
     if first is None:
@@ -271,7 +271,7 @@ def throughput(session: Session, *, job: Job, buckets: int = 60) -> tuple[float,
         idx = cast(offset_s / bucket_s, Integer)
     rows = session.execute(
         select(idx.label("k"), func.count())
-        .where(Task.job_id == job.id, Task.state == "done", Task.finished_at.is_not(None))
+        .where(Task.job_id == job.id, Task.state == TaskState.DONE, Task.finished_at.is_not(None))
         .group_by(literal_column("k"))
         .order_by(literal_column("k"))
     ).all()

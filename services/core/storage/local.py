@@ -18,18 +18,11 @@ from services.core.storage.base import (
     StorageError,
     check_key,
     check_prefix,
+    sha256_file,
 )
 
 _TMP = re.compile(r"^\..+\.tmp-[0-9a-f]{32}$")  # in-flight writes, never listed
 _CHUNK = 1024 * 1024
-
-
-def _sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with path.open("rb") as f:
-        while block := f.read(_CHUNK):
-            h.update(block)
-    return h.hexdigest()
 
 
 class LocalStore:
@@ -127,7 +120,7 @@ class LocalStore:
         p = self.path(key)
         if not p.is_file():
             return None
-        return ObjectInfo(key, p.stat().st_size, _sha256_file(p))
+        return ObjectInfo(key, p.stat().st_size, sha256_file(p))
 
     def delete(self, key: str) -> bool:
         p = self.path(key)

@@ -25,19 +25,11 @@ from services.core.storage.base import (
     check_key,
     check_prefix,
     join_key,
+    sha256_file,
 )
 
 MULTIPART_THRESHOLD = 8 * 1024 * 1024  # bytes; S3's minimum part size is 5 MiB
-_CHUNK = 1024 * 1024
 _NOT_FOUND = {"404", "NoSuchKey", "NotFound"}
-
-
-def _sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with path.open("rb") as f:
-        while block := f.read(_CHUNK):
-            h.update(block)
-    return h.hexdigest()
 
 
 _session_lock = threading.Lock()
@@ -144,7 +136,7 @@ class S3Store:
 
     def put_file(self, key: str, path: str | Path, content_type: str | None = None) -> ObjectInfo:
         path = Path(path)
-        digest = _sha256_file(path)
+        digest = sha256_file(path)
         extra = {
             "ContentType": content_type or mimetypes.guess_type(key)[0] or "application/octet-stream",
             "Metadata": {"sha256": digest},

@@ -22,8 +22,8 @@ from PIL import Image
 from services.cli import main
 from services.core.cues import CATALOG, default_cues
 from services.core.keys import output_key
+from tests.fixtures.cli import REPO, omnidata
 
-REPO = Path(__file__).resolve().parents[1]
 TINY = """
 cameras: {mode: object, object_count: 6}
 points: {count: 2, min_views: 2, max_views: 2}
@@ -33,8 +33,7 @@ views: {resolution: 32}
 
 def generate(*args: str | Path, timeout: float = 300) -> subprocess.CompletedProcess[str]:
     """Run `omnidata generate` in a fresh interpreter (as the console script does)."""
-    cmd = [sys.executable, "-m", "services.cli", "generate", *map(str, args), "--no-progress"]
-    return subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=timeout)
+    return omnidata("generate", *args, "--no-progress", timeout=timeout)
 
 
 def start_generate(*args: str | Path) -> subprocess.Popen[str]:
@@ -346,7 +345,8 @@ def test_unknown_and_unsupported_cues_are_refused(capsys, scenes_dir, tmp_path):
 
 def test_helpers_name_spaces_and_fingerprint_requests(scenes_dir):
     from services.core.jobspec import JobSpec
-    from services.generate_cli import job_fingerprint, space_name
+    from services.core.keys import space_name
+    from services.embedded.job import job_fingerprint
 
     assert space_name(scenes_dir / "ycb_banana") == "ycb_banana"
     assert space_name(Path("/x/My Scan (2).ply")) == "My_Scan_2"

@@ -1,0 +1,206 @@
+"""The embedded job of `omnidata generate`: SQLite and a local folder under --out, the same job reused to resume,
+and the scheduler's loop driving W local worker processes until the job is final.
+
+Resuming (in-flight tasks back to pending, missing outputs made again) and requeueing on Ctrl-C are the
+service's own operations (services.core.jobs.reopen_job / requeue_inflight).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session, sessionmaker
+
+from services.cli import CliError
+from services.core.jobs import cancel_job, create_job, job_spaces, reopen_job, requeue_inflight
+from services.core.jobspec import JobSpec
+from services.core.keys import JOB_JSON_KEY, MANIFEST_KEY
+from services.core.manifest import write_job_files
+from services.core.models import JOB_TERMINAL_STATES, Job, JobState, Space
+from services.core.settings import Settings, load_settings
+from services.core.space_registry import register_space
+from services.core.spaces import SpaceError
+from services.core.storage import ObjectStore
+from services.embedded.pool import STATE_DIR, LocalPool, WorkerConfig, cpu_count
+from services.embedded.report import Progress, build_report, print_report
+from services.scheduler.loop import Scheduler
+from services.scheduler.transport import QueueTransport
+from services.spec_args import Source
+from services.worker.heartbeat import expire_leases
+
+OWNER = "local"
+SPACES_PREFIX = ".omnidata/spaces"
+TICK_S = 0.1  # scheduler ticks at most 10 times a second (planning, dispatch, reaper, completion)
+SECRET_SETTINGS = {"api_tokens", "secret_key", "aws_access_key_id", "aws_secret_access_key"}
+
+
+def embedded_settings(out: Path, workers: int) -> Settings:
+    """Settings of the embedded mode: SQLite and the object folder in DIR, whatever OMNIDATA_* says."""
+    state = out / STATE_DIR
+    return load_settings(
+        data_dir=str(state), database_url=f"sqlite:///{state / 'state.db'}", storage_url=str(out),
+        dispatch_window=max(64, 32 * workers), env="development",
+    )
+
+
+def job_fingerprint(spec: JobSpec, checksums: Sequence[str]) -> str:
+    """sha256 of the canonical spec and the space checksums (in order): the same request gives the same job."""
+    doc = json.dumps({"spec": spec.model_dump(mode="json"), "spaces": list(checksums)}, sort_keys=True)
+    return hashlib.sha256(doc.encode()).hexdigest()
+
+
+def find_spaces(session: Session, sources: list[Source]) -> dict[str, Space]:
+    """Registered spaces of this folder by name; CliError when one has the same name but other content."""
+    rows = {sp.name: sp for sp in session.scalars(select(Space).where(Space.owner == OWNER))}
+    found = {}
+    for src in sources:
+        sp = rows.get(src.name)
+        if sp is None:
+            continue
+        if sp.checksum != src.checksum:
+            raise CliError(
+                f"the output folder already holds a different space named {src.name!r} (its files changed); "
+                "use a new --out folder"
+            )
+        found[src.name] = sp
+        src.has_semantics = bool(sp.has_semantics)
+    return found
+
+
+def find_job(session: Session, spec: JobSpec, sources: list[Source]) -> Job | None:
+    """The newest job of this folder made from the same spec and spaces (not cancelled), or None."""
+    want = job_fingerprint(spec, [s.checksum for s in sources])
+    for job in session.scalars(select(Job).where(Job.owner == OWNER, Job.state != JobState.CANCELLED).order_by(Job.id.desc())):
+        try:
+            job_spec = JobSpec.model_validate(job.spec)
+        except ValueError:
+            continue
+        checksums = [sp.checksum for _js, sp in job_spaces(session, job.id)]
+        if job_fingerprint(job_spec, checksums) == want:
+            return job
+    return None
+
+
+@dataclass
+class Prepared:
+    """The job to run and what resuming it did."""
+
+    job_id: int
+    resumed: bool
+    requeued: int = 0  # interrupted tasks put back to pending
+    redo: int = 0  # done tasks whose file was missing
+    retried: int = 0  # failed tasks given another chance
+
+
+def prepare_job(sm: sessionmaker[Session], store: ObjectStore, spec: JobSpec, sources: list[Source]) -> Prepared:
+    """Register the spaces and create the job, or find the same job again and make it resumable."""
+    with sm() as s:
+        spaces = find_spaces(s, sources)
+        job = find_job(s, spec, sources) if len(spaces) == len(sources) else None
+        if job is not None:
+            done = reopen_job(s, store, job)
+            s.commit()
+            return Prepared(job.id, resumed=True, requeued=done.requeued, redo=done.redo, retried=done.retried)
+        # A new request in this folder: unfinished jobs of earlier requests stop (their files stay).
+        for old in s.scalars(select(Job).where(Job.owner == OWNER, Job.state.not_in(JOB_TERMINAL_STATES))):
+            cancel_job(s, old)
+        ordered = []
+        for src in sources:
+            sp = spaces.get(src.name)
+            if sp is None:
+                try:
+                    sp = register_space(s, store, owner=OWNER, name=src.name, source_path=src.path,
+                                        key_prefix=SPACES_PREFIX, **spec.space_frame(),
+                                        loaded=src.loaded)
+                except SpaceError as e:
+                    raise CliError(str(e)) from None
+            src.loaded = None  # the workers load their own copy; do not keep the mesh in this process
+            ordered.append(sp)
+        try:
+            job = create_job(s, owner=OWNER, spec=spec, spaces=ordered, output_root="")
+        except ValueError as e:
+            raise CliError(str(e)) from None
+        s.commit()
+        return Prepared(job.id, resumed=False)
+
+
+def run_until_final(sm: sessionmaker[Session], sched: Scheduler, pool: LocalPool, job_id: int, bar: Progress | None = None,
+                    *, timeout: float | None = None) -> tuple[str, float | None]:
+    """Tick the scheduler (at most every TICK_S) until the job is final; keep the pool full and the bar fresh.
+
+    Returns (final state, time.monotonic() when the job's planning finished, or None if it was planned before).
+    Ticks are rate-limited because on a small machine the loop competes with the workers for the CPU; the
+    dispatch window is wide enough that workers never wait for a tick.
+    """
+    bar = bar or Progress(False)
+    planned_at: float | None = None
+    deadline = None if timeout is None else time.monotonic() + timeout
+    next_tick = 0.0
+    while True:
+        now = time.monotonic()
+        if now >= next_tick:
+            res = sched.tick()
+            if job_id in res.planned:
+                planned_at = time.monotonic()
+            with sm() as s:
+                job = s.get(Job, job_id)
+                assert job is not None
+                state = job.state
+                bar.update(sm, job, final=state in JOB_TERMINAL_STATES)
+            if state in JOB_TERMINAL_STATES:
+                return state, planned_at
+            dead = pool.replace_dead()
+            if dead:
+                expire_leases(sm, dead)
+            if deadline is not None and time.monotonic() > deadline:
+                raise TimeoutError(f"job {job_id} did not finish in {timeout} s")
+            next_tick = time.monotonic() + (0.0 if res.busy else TICK_S)
+        pool.drain(max(0.0, next_tick - time.monotonic()))
+
+
+def drive(sm: sessionmaker[Session], store: ObjectStore, settings: Settings, out: Path, job_id: int, workers: int, *, progress: bool) -> int:
+    """Run the scheduler loop with W local workers until the job is final; returns the exit status."""
+    with sm() as s:
+        job = s.get(Job, job_id)
+        assert job is not None
+        if job.state in JOB_TERMINAL_STATES:  # nothing to redo: make sure the job files are there and report
+            if not (store.exists(MANIFEST_KEY) and store.exists(JOB_JSON_KEY)):
+                write_job_files(s, store, job)
+            rep = build_report(sm, store, job_id)
+            print_report(rep, out)
+            return 0 if rep.ok else 1
+
+    threads = max(1, cpu_count() // workers)
+    conf = WorkerConfig(out=str(out), settings=settings.model_dump(mode="json", exclude=SECRET_SETTINGS),
+                        render_threads=threads, parent_pid=os.getpid())
+    pool = LocalPool(workers, conf)
+    transport = QueueTransport(pool.tasks)
+    sched = Scheduler(sm, store, transport, settings, scheduler_id=f"generate:{os.getpid()}",
+                      cache_dir=out / STATE_DIR / "cache")
+    bar = Progress(progress)
+    try:
+        pool.start()
+        run_until_final(sm, sched, pool, job_id, bar)
+    except KeyboardInterrupt:
+        bar.close()
+        print("omnidata generate: interrupted; stopping workers (run the same command again to resume)",
+              file=sys.stderr)
+        pool.stop()
+        with sm() as s:
+            requeue_inflight(s, job_id)
+            s.commit()
+        return 130
+    finally:
+        bar.close()
+        pool.stop()
+    rep = build_report(sm, store, job_id)
+    print_report(rep, out)
+    return 0 if rep.ok else 1

@@ -1,0 +1,179 @@
+"""Local worker processes of `omnidata generate`: W spawned processes each running the worker's TaskRunner,
+fed task ids through a multiprocessing queue (the embedded mode's stand-in for Redis)."""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import os
+import queue
+import signal
+import socket
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger("omnidata.generate")
+
+STATE_DIR = ".omnidata"  # the embedded mode's state under --out: state.db, space sources, pass cache
+STOP_GRACE_S = 5.0  # a worker finishing its task on Ctrl-C gets this long before it is terminated
+
+
+def cpu_count() -> int:
+    """CPU cores this process may use."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+@dataclass(frozen=True)
+class WorkerConfig:
+    """What a local worker process needs (plain data: it crosses a spawn)."""
+
+    out: str
+    settings: dict[str, Any]
+    render_threads: int
+    parent_pid: int
+    log_level: int = logging.WARNING
+
+
+def worker_main(conf: WorkerConfig, tasks: Any, results: Any, stop: Any) -> None:
+    """Body of a local worker process: take task ids from `tasks`, run them, report outcomes on `results`."""
+    # Ctrl-C reaches the whole process group: the parent decides when workers stop. SIGTERM (sent when
+    # the grace period is over) unwinds the stack, so an in-flight write removes its temporary file.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
+    # W workers share the cores: numeric libraries get the same thread budget as Cycles (set before numpy loads).
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
+        os.environ.setdefault(var, str(conf.render_threads))
+    logging.basicConfig(level=conf.log_level, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s")
+    # Imported here, after the thread variables above: numpy reads them when it loads.
+    from services.core.db import make_engine, make_sessionmaker
+    from services.core.settings import get_settings
+    from services.core.storage import LocalStore
+    from services.worker.heartbeat import Heartbeat
+    from services.worker.runner import TaskRunner, TransientError
+
+    settings = get_settings(**{**conf.settings, "render_threads": conf.render_threads})
+    engine = make_engine(settings.database_url)
+    sm = make_sessionmaker(engine)
+    store = LocalStore(conf.out)
+    worker_id = f"{socket.gethostname()}:{os.getpid()}"
+    hb = Heartbeat(sm, worker_id, queues=["local"], lease_s=settings.lease_s).start()
+    runner = TaskRunner(sm, store, settings, worker_id, heartbeat=hb, cache_dir=Path(conf.out) / STATE_DIR / "cache")
+    results.put(("ready", os.getpid(), worker_id))
+    try:
+        while not stop.is_set():
+            if os.getppid() != conf.parent_pid:  # the parent died: do not linger as an orphan
+                break
+            try:
+                task_id = tasks.get(timeout=0.5)
+            except queue.Empty:
+                continue
+            if task_id is None:
+                break
+            try:
+                o = runner.run(int(task_id))
+            except TransientError as e:  # the database was busy for a long time: try the message again later
+                log.warning("task %s: %s", task_id, e)
+                time.sleep(1.0)
+                tasks.put(task_id)
+                continue
+            results.put(("outcome", os.getpid(), o.task_id, o.status, o.cue, o.labels, o.error))
+            if o.recycle:  # memory or task limit: exit, the parent starts a fresh process
+                results.put(("recycle", os.getpid(), worker_id))
+                break
+    finally:
+        hb.stop(timeout=1.0)
+        runner.close()
+        engine.dispose()
+        results.close()
+        results.join_thread()  # our messages are flushed before we leave
+    # Skip interpreter teardown: Blender's static destructors only print noise ("Freeing memory after the
+    # leak detector has run") and nothing is left to flush.
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(0)
+
+
+@dataclass
+class LocalPool:
+    """W worker processes (spawn context) fed by one task queue; dead or recycled ones are replaced."""
+
+    size: int
+    conf: WorkerConfig
+    ctx: Any = field(default_factory=lambda: mp.get_context("spawn"))
+    procs: list[Any] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.tasks = self.ctx.Queue()
+        self.results = self.ctx.Queue()
+        self.stop_event = self.ctx.Event()
+        self.worker_ids: dict[int, str] = {}
+        self.started = 0
+        self.stopped = False
+
+    def _spawn(self) -> None:
+        p = self.ctx.Process(target=worker_main, args=(self.conf, self.tasks, self.results, self.stop_event),
+                             name=f"omnidata-worker-{self.started}", daemon=False)
+        p.start()
+        self.started += 1
+        self.worker_ids[p.pid] = f"{socket.gethostname()}:{p.pid}"
+        self.procs.append(p)
+
+    def start(self) -> None:
+        """Start the workers."""
+        for _ in range(self.size):
+            self._spawn()
+
+    def replace_dead(self) -> list[str]:
+        """Start a new process for each one that exited; returns the worker ids of those that exited."""
+        gone = []
+        for p in list(self.procs):
+            if not p.is_alive():
+                p.join(0)
+                self.procs.remove(p)
+                gone.append(self.worker_ids.get(p.pid, f"{socket.gethostname()}:{p.pid}"))
+                self._spawn()
+        return gone
+
+    def drain(self, timeout: float) -> list[tuple[Any, ...]]:
+        """Messages from workers: waits up to `timeout` for the first one, then takes what is there."""
+        msgs = []
+        try:
+            msgs.append(self.results.get(timeout=timeout))
+            while True:
+                msgs.append(self.results.get_nowait())
+        except queue.Empty:
+            pass
+        return msgs
+
+    def stop(self, grace: float = STOP_GRACE_S) -> None:
+        """Ask every worker to stop after its task; terminate those still busy after `grace` seconds."""
+        if self.stopped:
+            return
+        self.stopped = True
+        self.stop_event.set()
+        for _ in self.procs:
+            try:
+                self.tasks.put_nowait(None)
+            except Exception:
+                pass
+        deadline = time.monotonic() + grace
+        for p in self.procs:
+            p.join(max(0.0, deadline - time.monotonic()))
+        for p in self.procs:
+            if p.is_alive():
+                p.terminate()
+        for p in self.procs:
+            p.join(3.0)
+            if p.is_alive():
+                p.kill()
+                p.join(1.0)
+        self.procs.clear()
+        for q in (self.tasks, self.results):
+            q.cancel_join_thread()  # do not block exit on messages nobody will read
+            q.close()

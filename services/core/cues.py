@@ -54,7 +54,7 @@ CATALOG: dict[str, Cue] = {
         Cue("keypoints2d", "png", "16-bit max-over-scales determinant-of-Hessian", "uint16", 1, "derive",
             ("rgb",)),
         Cue("keypoints3d", "png", "16-bit NARF-like 3D interest from the range image", "uint16", 1, "derive",
-            ("depth_zbuffer", "point_info")),
+            ("depth_zbuffer",)),
         Cue("segment_unsup2d", "png", "16-bit labels, Felzenszwalb + normalized cuts on colour", "uint16", 1,
             "derive", ("rgb",)),
         Cue("segment_unsup25d", "png", "16-bit labels on log-depth, normals and occlusion edges", "uint16", 1,
@@ -120,6 +120,13 @@ def unsupported_cues(names: Iterable[str], *, has_semantics: bool) -> dict[str, 
         if get_cue(n).needs_semantics and not has_semantics:
             out[n] = "needs semantic labels, and the space has none (unlabelled scan)"
     return out
+
+
+def require_supported(names: Iterable[str], *, has_semantics: bool, error: type[Exception] = ValueError) -> None:
+    """Raise `error` naming each cue the space cannot give and why (the one check of the API, CLIs and worker)."""
+    bad = unsupported_cues(names, has_semantics=has_semantics)
+    if bad:
+        raise error("; ".join(f"cue {n!r} {why}" for n, why in bad.items()))
 
 
 def closure(names: Iterable[str]) -> list[str]:

@@ -342,11 +342,9 @@ def similarity_scale(matrix: Any) -> float:
 
 def cues_for_space(spec: JobSpec, *, has_semantics: bool) -> list[str]:
     """The output cues a job renders for one space; raises ValueError naming unsupported cues."""
-    from services.core.cues import default_cues, unsupported_cues
+    from services.core.cues import default_cues, require_supported
 
     if spec.cues is None:
         return default_cues(has_semantics)
-    bad = unsupported_cues(spec.cues, has_semantics=has_semantics)
-    if bad:
-        raise ValueError("; ".join(f"cue {n!r} {why}" for n, why in bad.items()))
+    require_supported(spec.cues, has_semantics=has_semantics)
     return list(spec.cues)

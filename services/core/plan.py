@@ -345,3 +345,23 @@ def plan_from_dict(data: dict[str, Any]) -> SpacePlan:
 def plan_from_json(text: str | bytes) -> SpacePlan:
     """Inverse of plan_to_json."""
     return plan_from_dict(json.loads(text))
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.integer):
+        return int(o)
+    if isinstance(o, np.floating):
+        return float(o)
+    if isinstance(o, np.bool_):
+        return bool(o)
+    if isinstance(o, tuple | set | frozenset):
+        return sorted(o) if isinstance(o, set | frozenset) else list(o)
+    raise TypeError(f"not JSON-serialisable: {type(o).__name__}")
+
+
+def encode_json(obj: Any) -> bytes:
+    """A JSON cue file's bytes, the same from `omnidata plan` and the workers: sorted keys, indent 1, numpy
+    scalars/arrays as plain numbers/lists, UTF-8."""
+    return json.dumps(obj, sort_keys=True, default=_json_default, indent=1).encode("utf-8")

@@ -24,14 +24,13 @@ from __future__ import annotations
 
 import io
 import json
-import os
-import tempfile
 from typing import Any
 
 import numpy as np
 from PIL import Image
 
 from services.core.cues import get_cue
+from services.core.exr import decode_exr_rgb
 from services.core.jobspec import CueParams
 
 UINT16_NONE = 65535
@@ -73,23 +72,6 @@ def read_png(data: bytes) -> np.ndarray:
         return as_uint16(arr) if arr.dtype.kind in "iu" and arr.itemsize >= 2 else arr
 
 
-def read_exr_rgb(data: bytes) -> np.ndarray:
-    """HxWx3 float32 of an RGB EXR file."""
-    import OpenEXR
-
-    fd, path = tempfile.mkstemp(suffix=".exr", dir="/dev/shm" if os.access("/dev/shm", os.W_OK) else None)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        with OpenEXR.File(path) as f:
-            ch = f.channels()
-            if "RGB" in ch:
-                return np.array(ch["RGB"].pixels, dtype=np.float32)
-            return np.stack([np.array(ch[c].pixels, dtype=np.float32) for c in "RGB"], axis=-1)
-    finally:
-        os.remove(path)
-
-
 def read_npy(data: bytes) -> np.ndarray:
     """The array of a .npy file (no pickles)."""
     return np.load(io.BytesIO(data), allow_pickle=False)
@@ -104,7 +86,7 @@ def read_raw(cue: str, data: bytes) -> np.ndarray | dict[str, Any]:
     if ext == "npy":
         return read_npy(data)
     if ext == "exr":
-        return read_exr_rgb(data)
+        return decode_exr_rgb(data)
     if data[:8] == PNG_SIGNATURE:
         return read_png(data)
     with Image.open(io.BytesIO(data)) as img:  # starter datasets hold a few JPEGs

@@ -21,7 +21,7 @@ from services.core.camera import CONVENTIONS
 from services.core.jobspec import cues_for_space
 from services.core.keys import JOB_JSON_KEY, output_key
 from services.core.manifest import code_version
-from services.core.plan import PlanError, nonfixated, plan_to_json, point_info, vanishing_points
+from services.core.plan import PlanError, encode_json, nonfixated, plan_to_json, point_info, vanishing_points
 from services.core.spaces import LoadedSpace, SpaceError, load_space
 from services.scheduler.planning import make_plan, space_rng
 from services.spec_args import add_spec_arguments, build_spec, distinct_space_names
@@ -40,7 +40,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _write_json(root: Path, key: str, data: Any) -> None:
     path = root / key
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(data, sort_keys=True, allow_nan=False))
+    path.write_bytes(encode_json(data))
 
 
 def _space_record(given: str, space: LoadedSpace) -> dict[str, Any]:

@@ -80,10 +80,3 @@ class ViewContext:
                 if self._nested:
                     self._nested[-1] += dt
         return self._memo[key]
-
-    def value(self, cue: str) -> Any:
-        """The value of `cue` for this view (array, dict or bytes), computed once."""
-        from services.worker.cues import get_impl
-
-        impl = get_impl(cue)
-        return self.memo(f"cue:{cue}", lambda: impl.fn(self))

@@ -14,10 +14,11 @@ import time
 from collections.abc import Iterable
 from typing import Any
 
-from services.core.cues import get_cue
+from services.core.cues import require_supported
 from services.core.jobspec import CueParams
 from services.worker.context import SemanticsUnavailableError, ViewContext
 from services.worker.cues import encode, get_impl
+from services.worker.cues.registry import cue_value
 from services.worker.space_cache import SpaceContext
 
 __all__ = ["SemanticsUnavailableError", "ViewContext", "check_cues", "make_context", "produce", "render_view_cues"]
@@ -28,12 +29,7 @@ def check_cues(cues: Iterable[str], *, has_semantics: bool) -> list[str]:
     names = list(dict.fromkeys(cues))
     for name in names:
         get_impl(name)
-    if not has_semantics:
-        bad = [n for n in names if get_cue(n).needs_semantics]
-        if bad:
-            raise SemanticsUnavailableError(
-                f"cue(s) {', '.join(bad)} need semantic labels, and the space has none (unlabelled scan)"
-            )
+    require_supported(names, has_semantics=has_semantics, error=SemanticsUnavailableError)
     return names
 
 
@@ -48,7 +44,7 @@ def make_context(space: SpaceContext | None, view: Any, cues: Iterable[str], par
 def produce(cue: str, ctx: ViewContext) -> bytes:
     """The file bytes of `cue` for the view of `ctx` (its inputs computed once per context)."""
     get_impl(cue)
-    value = ctx.value(cue)
+    value = cue_value(ctx, cue)
     t0 = time.perf_counter()
     data = encode(cue, value)
     ctx.timings[f"encode:{cue}"] = time.perf_counter() - t0

@@ -40,7 +40,7 @@ def test_closure_adds_inputs_in_topological_order() -> None:
     assert set(order) == {"passes", "depth_zbuffer", "normal", "edge_occlusion", "segment_unsup25d"}
     _assert_topological(order)
     assert order[-1] == "segment_unsup25d"
-    assert closure(["keypoints3d"]) == ["passes", "point_info", "depth_zbuffer", "keypoints3d"]  # by dependency level
+    assert closure(["keypoints3d"]) == ["passes", "depth_zbuffer", "keypoints3d"]  # by dependency level
     assert closure(["point_info"]) == ["point_info"]  # plan cues need no render
 
 

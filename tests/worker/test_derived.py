@@ -11,14 +11,15 @@ from PIL import Image
 
 from services.core.camera import look_at
 from services.core.jobspec import CueParams
-from services.core.plan import CameraPose, PlannedView, PointOfInterest, SpacePlan, point_info
 from services.core.plan import nonfixated as plan_nonfixated
+from services.core.plan import point_info
 from services.core.plan import vanishing_points as plan_vanishing_points
 from services.worker.context import SemanticsUnavailableError, ViewContext
 from services.worker.cues.encoding import encode_json
 from services.worker.executor import produce
 from services.worker.passes import ViewGeometry, ViewPasses
-from tests.worker.conftest import raycast, raycast_passes
+from tests.fixtures.plans import small_plan
+from tests.fixtures.raycast import raycast, raycast_passes
 
 RES = 64
 
@@ -230,20 +231,6 @@ def test_passes_round_trip_gives_identical_cues() -> None:
     for cue in ("rgb", "normal", "depth_euclidean", "principal_curvature", "segment_panoptic", "fragments",
                 "keypoints3d", "position"):
         assert produce(cue, a) == produce(cue, b), cue
-
-
-def small_plan() -> SpacePlan:
-    """Two points seen from two cameras (hand-made, in the cube scene's frame)."""
-    cams = (CameraPose(0, np.array([2.0, -2.0, 2.0]), "generated", "cam-0"),
-            CameraPose(1, np.array([-2.0, -2.0, 1.5]), "generated", "cam-1"))
-    pts = (PointOfInterest(0, np.array([0.5, 0.0, 0.2]), np.array([1.0, 0, 0]), "pt-0", (0, 1)),
-           PointOfInterest(1, np.array([0.0, -0.5, 0.1]), np.array([0, -1.0, 0]), "pt-1", (0, 1)))
-    views = []
-    for p in pts:
-        for v, c in enumerate(cams):
-            views.append(PlannedView(p.idx, v, c.idx, look_at(c.position, p.position), np.radians(60), 0.0, 64,
-                                     0.3, True))
-    return SpacePlan("cube", cams, pts, tuple(views))
 
 
 def test_plan_cues_are_the_plan_functions_json() -> None:

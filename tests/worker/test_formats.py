@@ -17,7 +17,7 @@ from services.worker.executor import render_view_cues
 from services.worker.passes import ViewGeometry
 from services.worker.space_cache import SpaceContext
 from tests.core.test_scan_formats import room_cloud, scannet_scene
-from tests.worker.conftest import object_view, raycast, smooth_mask
+from tests.fixtures.raycast import object_view, raycast, smooth_mask
 from tests.worker.test_render import sample_texture
 
 

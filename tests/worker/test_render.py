@@ -26,7 +26,7 @@ from services.worker.cues.encoding import decode_exr_rgb
 from services.worker.executor import make_context, produce, render_view_cues
 from services.worker.passes import ViewGeometry, ViewPasses
 from services.worker.space_cache import SpaceCache, SpaceContext, rss_bytes
-from tests.worker.conftest import (
+from tests.fixtures.raycast import (
     ROOM_CLASSES,
     SPHERE_RADIUS,
     Cast,

@@ -7,7 +7,6 @@ never silently converted, so a cue can not drift from its documented encoding.
 from __future__ import annotations
 
 import io
-import json
 import os
 import tempfile
 from typing import Any
@@ -17,6 +16,8 @@ import OpenEXR
 from PIL import Image
 
 from services.core.cues import get_cue
+from services.core.exr import decode_exr_rgb  # noqa: F401  (re-exported: the inverse of encode_exr_rgb)
+from services.core.plan import encode_json
 
 # zlib level 3: ~2x faster than Pillow's default 6 at 512x512, files within a few % of its size.
 PNG_COMPRESS_LEVEL = 3
@@ -83,37 +84,3 @@ def encode_exr_rgb(arr: np.ndarray) -> bytes:
             return fh.read()
     finally:
         os.remove(path)
-
-
-def decode_exr_rgb(data: bytes) -> np.ndarray:
-    """Inverse of encode_exr_rgb: H x W x 3 float32."""
-    fd, path = tempfile.mkstemp(suffix=".exr", dir="/dev/shm" if os.access("/dev/shm", os.W_OK) else None)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        with OpenEXR.File(path) as f:
-            ch = f.channels()
-            if "RGB" in ch:
-                return np.array(ch["RGB"].pixels, dtype=np.float32)
-            return np.stack([np.array(ch[c].pixels, dtype=np.float32) for c in "RGB"], axis=-1)
-    finally:
-        os.remove(path)
-
-
-def _json_default(o: Any) -> Any:
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, np.integer):
-        return int(o)
-    if isinstance(o, np.floating):
-        return float(o)
-    if isinstance(o, np.bool_):
-        return bool(o)
-    if isinstance(o, tuple | set | frozenset):
-        return sorted(o) if isinstance(o, set | frozenset) else list(o)
-    raise TypeError(f"not JSON-serialisable: {type(o).__name__}")
-
-
-def encode_json(obj: Any) -> bytes:
-    """Deterministic JSON: sorted keys, numpy scalars/arrays as plain numbers/lists, UTF-8."""
-    return json.dumps(obj, sort_keys=True, default=_json_default, indent=1).encode("utf-8")

@@ -8,7 +8,7 @@ from __future__ import annotations
 from typing import Any
 
 from services.worker.context import ViewContext
-from services.worker.cues.registry import register
+from services.worker.cues.registry import cue_value, register
 
 
 def _need_plan(ctx: ViewContext, cue: str) -> Any:
@@ -44,4 +44,4 @@ def vanishing_points(ctx: ViewContext) -> dict:
     """Image-space and Gaussian-sphere vanishing points of the world axes, from point_info."""
     from services.core import plan as plan_mod
 
-    return plan_mod.vanishing_points(ctx.value("point_info"))
+    return plan_mod.vanishing_points(cue_value(ctx, "point_info"))

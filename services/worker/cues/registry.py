@@ -55,3 +55,13 @@ def get_impl(name: str) -> CueImpl:
         return REGISTRY[name]
     except KeyError:
         raise UnknownCueError([name]) from None
+
+
+def cue_value(ctx: ViewContext, name: str) -> Any:
+    """The value of cue `name` for the view of `ctx` (array, dict or bytes), computed once per view.
+
+    Lives here, not on ViewContext, so the context never looks cues up (no run-time cycle); a cue reading
+    another cue calls this with a name from its catalog `inputs` (tests/worker/cues check the declarations).
+    """
+    impl = get_impl(name)
+    return ctx.memo(f"cue:{name}", lambda: impl.fn(ctx))

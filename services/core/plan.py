@@ -110,6 +110,9 @@ class SpacePlan:
     points: tuple[PointOfInterest, ...]
     views: tuple[PlannedView, ...]
     shortfall: str | None = None
+    # trajectory clips cut short or dropped by the motion/clearance/visibility checks: point_idx (None
+    # when dropped), outcome, frames, planned_frames, reasons {check: failed frames}
+    clip_notes: tuple[dict[str, Any], ...] = ()
 
     def views_of(self, point_idx: int) -> tuple[PlannedView, ...]:
         """The views of one point, v = 0..n-1."""
@@ -121,6 +124,44 @@ class SpacePlan:
         if not 0 <= v < len(views):
             raise KeyError(f"point {point_idx} has no view {v} ({len(views)} views)")
         return views[v]
+
+
+# The checks a trajectory frame must pass (services.scheduler.planning.trajectory), as clip_notes name them.
+CLIP_CHECKS = {
+    "clearance": "closer to the mesh than cameras.clearance_m",
+    "outside": "a surface between the frame and its route (outside the free space)",
+    "hidden": "the point is not in sight",
+    "turn": "the direction of motion turns faster than views.trajectory_max_turn_deg_per_m",
+    "view": "the camera rotates faster than views.trajectory_max_view_deg_per_m",
+    "route": "no second camera that sees the point is reachable through free space",
+}
+
+
+def clip_summary(clip_notes: tuple[dict[str, Any], ...]) -> dict[str, Any]:
+    """Counts of trajectory clips shortened and dropped, and of the frames that failed each check."""
+    failed: dict[str, int] = {}
+    for note in clip_notes:
+        for k, n in note["reasons"].items():
+            failed[k] = failed.get(k, 0) + int(n)
+    return {
+        "shortened": sum(n["outcome"] == "shortened" for n in clip_notes),
+        "dropped": sum(n["outcome"] == "dropped" for n in clip_notes),
+        "failed_frames": dict(sorted(failed.items())),
+    }
+
+
+def clip_shortfall(clip_notes: tuple[dict[str, Any], ...], n_points: int) -> str | None:
+    """One line on the clips the checks cut short or dropped, most frequent failure first."""
+    if not clip_notes:
+        return None
+    s = clip_summary(clip_notes)
+    why = ", ".join(
+        f"{CLIP_CHECKS[k]} ({n})" for k, n in sorted(s["failed_frames"].items(), key=lambda kv: -kv[1])
+    )
+    return (
+        f"trajectory clips of {n_points} points: {s['shortened']} shortened, {s['dropped']} dropped "
+        f"(frames failing: {why}); per clip in the plan's clip_notes"
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -289,6 +330,7 @@ def plan_to_dict(plan: SpacePlan) -> dict[str, Any]:
         "format": PLAN_FORMAT,
         "space_name": plan.space_name,
         "shortfall": plan.shortfall,
+        "clip_notes": list(plan.clip_notes),
         "cameras": [
             {"idx": c.idx, "position": _floats(c.position), "source": c.source, "uuid": c.uuid}
             for c in plan.cameras
@@ -336,6 +378,7 @@ def plan_from_dict(data: dict[str, Any]) -> SpacePlan:
             for v in data["views"]
         ),
         shortfall=data.get("shortfall"),
+        clip_notes=tuple(data.get("clip_notes", ())),
     )
 
 

@@ -10,16 +10,17 @@ from __future__ import annotations
 import hashlib
 import time
 import uuid as uuidlib
+from typing import Any
 
 import numpy as np
 
 from services.core.jobspec import CameraSpec, JobSpec
 from services.core.keys import check_name
-from services.core.plan import CameraPose, PlanError, PlannedView, PointOfInterest, SpacePlan
+from services.core.plan import CameraPose, PlanError, PlannedView, PointOfInterest, SpacePlan, clip_shortfall
 from services.core.spaces import LoadedSpace
 from services.scheduler.planning.cameras import generate_cameras, object_cameras, provided_cameras
 from services.scheduler.planning.points import SampledPoints, sample_points
-from services.scheduler.planning.trajectory import trajectory
+from services.scheduler.planning.trajectory import ClipNote, trajectory
 from services.scheduler.planning.views import ViewArrays, nonfixated_keep, wide_baseline
 from services.scheduler.planning.visibility import MeshQueries
 
@@ -76,15 +77,16 @@ def make_plan(
     stamp["points"] = t2 - t1
 
     vs = spec.views
+    notes: list[ClipNote] = []
     if vs.mode == "wide_baseline":
         views = wide_baseline(sampled.positions, sampled.normals, sampled.visible, cams, vs, ps.max_views, rng)
     else:
-        views = trajectory(
+        views, notes = trajectory(
             sampled.positions, sampled.normals, sampled.visible, cams, vs, ps.max_views, q,
-            ps.los_tolerance_m, rng,
+            ps.los_tolerance_m, cs.clearance_m, rng,
         )
     shortfall = sampled.shortfall
-    keep_points = np.arange(len(sampled.positions))
+    keep_points = np.unique(views.point_idx) if notes else np.arange(len(sampled.positions))
     if vs.nonfixated_pruning and len(views):
         views = views.subset(nonfixated_keep(views, sampled.positions, sampled.visible, vs.resolution))
         n_views = np.bincount(views.point_idx, minlength=len(sampled.positions))
@@ -95,17 +97,28 @@ def make_plan(
                 f"nonfixated pruning kept {len(keep_points)} of {len(sampled.positions)} points "
                 f"(>= {ps.min_views} views that each see another point)"
             )
-            shortfall = f"{shortfall}; {note}" if shortfall else note
+            shortfall = _join(shortfall, note)
+    new_idx = np.full(len(sampled.positions), -1, dtype=np.int64)
+    new_idx[keep_points] = np.arange(len(keep_points))
+    clip_notes = tuple(n.as_dict(int(new_idx[n.point]) if new_idx[n.point] >= 0 else None) for n in notes)
+    shortfall = _join(shortfall, clip_shortfall(clip_notes, len(sampled.positions)))
     t3 = time.perf_counter()
     stamp["views"] = t3 - t2
 
-    plan = _assemble(space_name, salt, cams, source, cs, sampled, keep_points, views, vs.resolution, shortfall)
+    plan = _assemble(
+        space_name, salt, cams, source, cs, sampled, keep_points, views, vs.resolution, shortfall, clip_notes
+    )
     stamp["assemble"] = time.perf_counter() - t3
     if timings is not None:
         timings.update(stamp)
         timings["rays"] = float(q.rays)
         timings["total"] = time.perf_counter() - t0
     return plan
+
+
+def _join(*parts: str | None) -> str | None:
+    text = "; ".join(p for p in parts if p)
+    return text or None
 
 
 def _assemble(
@@ -119,6 +132,7 @@ def _assemble(
     views: ViewArrays,
     resolution: int,
     shortfall: str | None,
+    clip_notes: tuple[dict[str, Any], ...],
 ) -> SpacePlan:
     given = [p.uuid for p in cs.poses] if source == "provided" and cs.poses else [None] * len(cams)
     cameras = tuple(
@@ -148,4 +162,7 @@ def _assemble(
         )
         for i, o in enumerate(order)
     )
-    return SpacePlan(space_name=space_name, cameras=cameras, points=points, views=planned, shortfall=shortfall)
+    return SpacePlan(
+        space_name=space_name, cameras=cameras, points=points, views=planned, shortfall=shortfall,
+        clip_notes=clip_notes,
+    )

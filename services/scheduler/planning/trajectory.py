@@ -1,24 +1,44 @@
-"""Trajectory views: a smooth camera path per point, frames at regular spacing, each fixated on the point.
+"""Trajectory views: per point a clip a camera could fly, smooth, in free space, at the spec's spacing.
 
-World metres, radians. For each point:
-  1. the cameras that see it (at most max_views, chosen by the rng) are ordered into an open path:
-     nearest neighbour from the camera farthest from their centroid, then 2-opt until no move
-     shortens the path;
-  2. a natural cubic spline (C2, scipy CubicSpline) through the camera positions, parametrised by
-     chord length, is re-parametrised by arc length (dense table, 256 samples per segment);
-  3. frames every trajectory_spacing_m along the arc (when that exceeds trajectory_max_frames,
-     that many frames evenly spread over the whole path), each looking at the point;
-  4. roll: a value ~ U[-roll_max, roll_max] per camera, interpolated as roll_max * sin(phi(t)) with
-     phi a C2 spline through arcsin(roll_i / roll_max), so it is smooth, exact at the cameras and never
-     leaves the bounds; the fov is one truncated-normal draw per point (a constant zoom per clip);
-  5. in_sight per frame by a line-of-sight ray to the point (the path may pass behind an obstacle
-     between two cameras); camera_idx = the nearest camera to the frame.
+World metres, radians; world_to_camera into OpenCV axes (services.core.camera). Once per plan:
+  1. free-space graph: the cameras (all in free space, clear of the mesh) are the nodes; an edge joins
+     two cameras closer than EDGE_REACH x the median nearest-camera distance (or among each other's
+     EDGE_KNN nearest) when nothing blocks the segment and samples along it every <= clearance/2 keep
+     the clearance to the mesh; its weight is its length.
+For each point:
+  2. waypoints: a handful of the cameras that see the point. The first is chosen by the rng among those
+     at least the view-speed radius (1 / max view rate) from the point, so fixating it turns the view
+     slowly; each next one is the camera that makes the longest leg within the remaining budget
+     (trajectory_spacing_m x (trajectory_max_frames - 1), plus a margin for cuts), at least
+     WAYPOINT_SEP_M from the route so far and turning less than 90 degrees from the heading, so the
+     clip never reverses. Legs are shortest paths in the graph restricted to cameras that see the
+     point (the route stays where the point is visible).
+  3. smoothing: the route (a polyline) is resampled every spacing/4 and low-pass filtered along its
+     arc (Gaussian, ends mirrored by point reflection so they stay put: approximating, not through
+     the cameras), sigma growing until the turn per metre is within trajectory_max_turn_deg_per_m.
+  4. frames every trajectory_spacing_m along the smoothed arc, each verified: clearance >=
+     cameras.clearance_m (exact distance), a clear segment to the route and to the previous frame
+     (still inside the free space the cameras are in), the point in sight (fixated clips), the turn
+     of the direction of motion and the camera rotation to the next frame within the limits. The clip
+     is the longest run of frames that pass, at most trajectory_max_frames (the path is shortened,
+     the spacing never stretched); a clip cut by a check is reported with the counts of failed checks,
+     and one shorter than trajectory_min_frames is dropped.
+  5. view: look: point fixates the point (the point projects to the image centre); look: ahead looks
+     along the path's tangent (the turn bound then also keeps the view rate). Roll goes from one
+     U[-roll_max, roll_max] draw to another along a smoothstep, its rate at most ROLL_SHARE of the
+     view limit (the remaining share bounds the look direction); the fov is one truncated-normal draw
+     per clip (a constant zoom). camera_idx = the nearest camera to the frame.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+from typing import Any
+
 import numpy as np
-from scipy.interpolate import CubicSpline
+from scipy import sparse
+from scipy.ndimage import gaussian_filter1d
+from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
 from services.core.jobspec import ViewSpec
@@ -31,75 +51,183 @@ from services.scheduler.planning.views import (
 )
 from services.scheduler.planning.visibility import MeshQueries
 
-DENSE_PER_SEGMENT = 256
+EDGE_REACH = 2.5  # edge length limit in median nearest-camera distances
+EDGE_KNN = 6  # and each camera's nearest neighbours, so sparse cameras stay connected
+MAX_WAYPOINTS = 4
+WAYPOINT_SEP_M = 1.0
+MIN_WAYPOINT_DEGREE = 3
+MAX_LEG_TURN_COS = 0.0  # a new leg heads within 90 degrees of the last one, LEAD_M along it: no reversals
+LEAD_M = 1.0
+BUDGET_MARGIN = 1.25  # route this much longer than the clip: verification may cut some of it
+DENSE_PER_FRAME = 4  # smoothing samples per frame spacing
+SIGMA_GROWTH = 1.5
+SMOOTHING_ROUNDS = 3  # a larger sigma would straighten the route through obstacles; cusps are cut instead
+ROLL_SHARE = 0.1  # of the view-rate limit that roll may use
+LIMIT_SLACK = 1.0 + 1e-6
+
+@dataclass
+class ClipNote:
+    """Why a point's clip is shorter than planned (or missing): sampled point index, frames kept and
+    planned, and how many frames failed each check (keys of services.core.plan.CLIP_CHECKS)."""
+
+    point: int
+    frames: int
+    planned: int
+    reasons: dict[str, int] = field(default_factory=dict)
+
+    def as_dict(self, point_idx: int | None) -> dict[str, Any]:
+        return {
+            "point_idx": point_idx, "outcome": "dropped" if self.frames == 0 else "shortened",
+            "frames": self.frames, "planned_frames": self.planned, "reasons": dict(sorted(self.reasons.items())),
+        }
 
 
-def order_path(xyz: np.ndarray) -> np.ndarray:
-    """Indices ordering the points into a short open path (nearest neighbour + 2-opt)."""
-    n = len(xyz)
-    if n <= 2:
-        return np.arange(n)
-    D = np.linalg.norm(xyz[:, None, :] - xyz[None, :, :], axis=2)
-    start = int(np.argmax(np.linalg.norm(xyz - xyz.mean(axis=0), axis=1)))
-    path = [start]
-    free = np.ones(n, dtype=bool)
-    free[start] = False
-    for _ in range(n - 1):
-        d = np.where(free, D[path[-1]], np.inf)
-        nxt = int(np.argmin(d))
-        path.append(nxt)
-        free[nxt] = False
-    p = np.array(path)
-    for _ in range(100):
-        improved = False
-        for i in range(-1, n - 2):
-            j = np.arange(i + 2, n)
-            # reverse p[i+1..j]: edges (i, i+1) and (j, j+1) become (i, j) and (i+1, j+1)
-            old = np.zeros(len(j))
-            new = np.zeros(len(j))
-            if i >= 0:
-                old += D[p[i], p[i + 1]]
-                new += D[p[i], p[j]]
-            has_next = j + 1 < n
-            jn = np.minimum(j + 1, n - 1)
-            old += np.where(has_next, D[p[j], p[jn]], 0.0)
-            new += np.where(has_next, D[p[i + 1], p[jn]], 0.0)
-            gain = old - new
-            k = int(np.argmax(gain))
-            if gain[k] > 1e-12:
-                jj = int(j[k])
-                p[i + 1:jj + 1] = p[i + 1:jj + 1][::-1]
-                improved = True
-        if not improved:
+def free_space_graph(cameras: np.ndarray, q: MeshQueries, clearance: float) -> sparse.csr_matrix:
+    """(n, n) symmetric sparse graph of collision-free edges between cameras, weights in metres."""
+    n = len(cameras)
+    if n < 2:
+        return sparse.csr_matrix((n, n))
+    tree = cKDTree(cameras)
+    k = min(EDGE_KNN + 1, n)
+    d, nn = tree.query(cameras, k=k)
+    reach = EDGE_REACH * float(np.median(d[:, 1]))
+    near = tree.query_pairs(reach, output_type="ndarray").reshape(-1, 2)
+    knn = np.stack([np.repeat(np.arange(n), k - 1), nn[:, 1:].ravel()], axis=1)
+    pairs = np.unique(np.sort(np.concatenate([near, knn]), axis=1), axis=0)
+    pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+    a, b = cameras[pairs[:, 0]], cameras[pairs[:, 1]]
+    ok = q.line_of_sight(a, b, 0.0)
+    length = np.linalg.norm(b - a, axis=1)
+    if clearance > 0 and ok.any():
+        live = np.flatnonzero(ok)
+        steps = np.maximum(np.ceil(length[live] / (clearance / 2)).astype(np.int64), 1)
+        edge = np.repeat(live, steps - 1)
+        t = (np.arange(len(edge)) - np.repeat(np.cumsum(steps - 1) - (steps - 1), steps - 1) + 1) / np.repeat(steps, steps - 1)
+        samples = a[edge] + t[:, None] * (b[edge] - a[edge])
+        ok[np.unique(edge[q.near_mesh(samples, clearance)])] = False
+    i, j, w = pairs[ok, 0], pairs[ok, 1], length[ok]
+    return sparse.csr_matrix((np.concatenate([w, w]), (np.concatenate([i, j]), np.concatenate([j, i]))), shape=(n, n))
+
+
+def choose_route(
+    graph: sparse.csr_matrix, xyz: np.ndarray, point: np.ndarray, budget: float, view_radius: float,
+    rng: np.random.Generator,
+) -> np.ndarray:
+    """Node indices (into xyz) of a route through a handful of waypoints (module docstring, step 2)."""
+    far = np.linalg.norm(xyz - point, axis=1) >= view_radius
+    # waypoints where the route can go on: not dead ends (corners, under furniture)
+    degree = np.diff(graph.indptr)
+    open_ = degree >= MIN_WAYPOINT_DEGREE if (degree >= MIN_WAYPOINT_DEGREE).any() else degree >= 0
+    start = far & open_
+    pool = np.flatnonzero(start) if start.any() else np.array([int(np.argmax(np.where(open_, np.linalg.norm(xyz - point, axis=1), -1)))])
+    route = [int(rng.choice(pool))]
+    waypoints = list(route)
+    remaining = budget
+    for _ in range(MAX_WAYPOINTS - 1):
+        if remaining <= 0:
             break
-    return p
+        dist, pred = csgraph.dijkstra(graph, indices=route[-1], return_predecessors=True)
+        clear = np.linalg.norm(xyz[:, None] - xyz[waypoints][None], axis=2).min(axis=1) >= WAYPOINT_SEP_M
+        cand = np.flatnonzero(np.isfinite(dist) & clear & open_)
+        if len(route) > 1 and len(cand):
+            heading = _unit(xyz[route[-1]] - xyz[route[-2]])
+            lead = np.array([_lead(pred, dist, route[-1], c) for c in cand])
+            cand = cand[_unit(xyz[lead] - xyz[route[-1]]) @ heading > MAX_LEG_TURN_COS]
+        if not len(cand):
+            break
+        # the longest leg within the budget, halved for cameras close to the point (fast view turns)
+        score = np.minimum(dist[cand], remaining) * np.where(far[cand], 1.0, 0.5) - 1e-9 * dist[cand]
+        nxt = int(cand[np.argmax(score)])
+        remaining -= float(dist[nxt])
+        route.extend(_path(pred, route[-1], nxt)[1:])
+        waypoints.append(nxt)
+    return np.array(route, dtype=np.int64)
 
 
-def camera_path(waypoints: np.ndarray) -> tuple[CubicSpline | None, np.ndarray]:
-    """Natural cubic spline through the waypoints over chord length; (None, [0]) for a single point."""
-    keep = np.concatenate([[True], np.linalg.norm(np.diff(waypoints, axis=0), axis=1) > 1e-9])
-    w = waypoints[keep]
-    if len(w) < 2:
-        return None, np.zeros(1)
-    t = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(w, axis=0), axis=1))])
-    return CubicSpline(t, w, bc_type="natural"), t
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
-def arc_length_frames(spline: CubicSpline, knots: np.ndarray, spacing: float, max_frames: int) -> np.ndarray:
-    """Spline parameters of frames at equal arc-length spacing along the path (see module docstring)."""
-    ts = np.concatenate([
-        np.linspace(knots[i], knots[i + 1], DENSE_PER_SEGMENT, endpoint=False) for i in range(len(knots) - 1)
-    ] + [knots[-1:]])
-    pts = spline(ts)
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
-    length = float(s[-1])
-    n = int(np.floor(length / spacing + 1e-9)) + 1
-    if n > max_frames:
-        n = max_frames
-        targets = np.linspace(0.0, length, n)
-    else:
-        targets = np.arange(n) * spacing
-    return np.interp(targets, s, ts)
+def _path(pred: np.ndarray, src: int, dst: int) -> list[int]:
+    out = [dst]
+    while out[-1] != src:
+        out.append(int(pred[out[-1]]))
+    return out[::-1]
+
+
+def _lead(pred: np.ndarray, dist: np.ndarray, src: int, dst: int) -> int:
+    """The first node of the path src -> dst at least LEAD_M along it (dst when the path is shorter)."""
+    path = _path(pred, src, dst)
+    far = [n for n in path if dist[n] >= LEAD_M]
+    return far[0] if far else dst
+
+
+def resample(poly: np.ndarray, step: float, *, keep_end: bool = True) -> np.ndarray:
+    """Points every `step` metres of arc along a polyline from its start; keep_end adds its end point
+    after the last whole step (a shorter last step)."""
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(poly, axis=0), axis=1))])
+    if s[-1] <= 0:
+        return poly[:1]
+    targets = np.arange(int(np.floor(s[-1] / step + 1e-9)) + 1) * step
+    if keep_end and s[-1] - targets[-1] > 1e-9:
+        targets = np.append(targets, s[-1])
+    return np.stack([np.interp(targets, s, poly[:, k]) for k in range(3)], axis=1)
+
+
+def turn_angles(pts: np.ndarray) -> np.ndarray:
+    """(n-2,) radians between consecutive displacement vectors of a polyline."""
+    d = np.diff(pts, axis=0)
+    d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)
+    return np.arccos(np.clip(np.einsum("ij,ij->i", d[:-1], d[1:]), -1.0, 1.0))
+
+
+def rotation_angles(world_to_camera: np.ndarray) -> np.ndarray:
+    """(n-1,) radians of the rotation between consecutive camera orientations."""
+    R = world_to_camera[:, :3, :3]
+    tr = np.einsum("nij,nij->n", R[:-1], R[1:])  # trace(R_a R_b^T)
+    return np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0))
+
+
+def smooth_path(route: np.ndarray, spacing: float, max_turn_per_m: float) -> np.ndarray:
+    """Dense points (every spacing / DENSE_PER_FRAME) of a smoothed route whose direction turns at most
+    max_turn_per_m radians per metre where the smoothing rounds allow (module docstring, step 3)."""
+    h = spacing / DENSE_PER_FRAME
+    dense = resample(route, h)
+    if len(dense) < 3:
+        return dense
+    sigma = 0.5 / max_turn_per_m  # about half the smallest allowed radius of curvature, metres
+    smooth = dense
+    for _ in range(SMOOTHING_ROUNDS):
+        w = int(4.0 * sigma / h + 0.5) + 1  # the filter's reach, samples
+        padded = np.pad(dense, ((w, w), (0, 0)), mode="reflect", reflect_type="odd")
+        smooth = gaussian_filter1d(padded, sigma / h, axis=0, mode="nearest", truncate=4.0)[w:w + len(dense)]
+        frames = resample(smooth, spacing, keep_end=False)
+        if len(frames) < 3 or turn_angles(frames).max() <= max_turn_per_m * spacing:
+            break
+        sigma *= SIGMA_GROWTH
+    return smooth
+
+
+def longest_run(good: np.ndarray, link: np.ndarray) -> tuple[int, int]:
+    """[start, stop) of the longest run of good frames joined by good links (link[i]: frame i to i+1)."""
+    best, start = (0, 0), 0
+    for i in range(len(good)):
+        if not good[i]:
+            start = i + 1
+            continue
+        if i > start and not link[i - 1]:
+            start = i
+        if i + 1 - start > best[1] - best[0]:
+            best = (start, i + 1)
+    return best
+
+
+@dataclass
+class _Clip:
+    frames: np.ndarray  # (n, 3)
+    look: np.ndarray  # (n, 3) targets
+    roll: np.ndarray
+    note: ClipNote | None
 
 
 def trajectory(
@@ -111,51 +239,122 @@ def trajectory(
     max_views: int | None,
     q: MeshQueries,
     tol: float,
+    clearance: float,
     rng: np.random.Generator,
-) -> ViewArrays:
-    """Frames of a smooth fixated path per point (module docstring); v numbers the frames."""
+) -> tuple[ViewArrays, list[ClipNote]]:
+    """Frames of one clip per point (module docstring) and notes on the clips cut short or dropped;
+    v numbers the frames of a point."""
     rmax = np.radians(spec.roll_max_deg)
     fov_args = (np.radians(spec.fov_mean_deg), np.radians(spec.fov_std_deg),
                 np.radians(spec.fov_min_deg), np.radians(spec.fov_max_deg))
+    view_rate = np.radians(spec.trajectory_max_view_deg_per_m)
+    turn_rate = np.radians(spec.trajectory_max_turn_deg_per_m)
+    ahead = spec.trajectory_look == "ahead"
+    if ahead:  # the view follows the direction of motion
+        turn_rate = min(turn_rate, (1.0 - ROLL_SHARE) * view_rate)
+    spacing = spec.trajectory_spacing_m
+    budget = BUDGET_MARGIN * spacing * (spec.trajectory_max_frames - 1)
+    graph = free_space_graph(cameras, q, clearance)
     tree = cKDTree(cameras)
     P: list[np.ndarray] = []
     F: list[np.ndarray] = []
+    T: list[np.ndarray] = []
     R: list[np.ndarray] = []
     FOV: list[np.ndarray] = []
+    notes: list[ClipNote] = []
     for p, cams in enumerate(visible):
         cams = cap_views(cams, max_views, rng)
-        way = cameras[cams][order_path(cameras[cams])]
-        rolls = rng.uniform(-rmax, rmax, len(way))
+        sub = graph[cams][:, cams]
+        node = choose_route(sub, cameras[cams], positions[p], budget, 1.0 / view_rate, rng)
+        roll_pair = rng.uniform(-rmax, rmax, 2)
         fov = float(truncated_normal(rng, *fov_args, 1)[0])
-        spline, knots = camera_path(way)
-        if spline is None:
-            frames, frame_roll = way[:1], rolls[:1]
-        else:
-            t = arc_length_frames(spline, knots, spec.trajectory_spacing_m, spec.trajectory_max_frames)
-            frames = spline(t)
-            if rmax > 0:
-                keep = np.concatenate([[True], np.linalg.norm(np.diff(way, axis=0), axis=1) > 1e-9])
-                phi = CubicSpline(knots, np.arcsin(np.clip(rolls[keep] / rmax, -1, 1)), bc_type="natural")
-                frame_roll = rmax * np.sin(phi(t))
-            else:
-                frame_roll = np.zeros(len(t))
-        ok = np.linalg.norm(frames - positions[p], axis=1) > 1e-6  # never look at the point from itself
-        P.append(np.full(int(ok.sum()), p, dtype=np.int64))
-        F.append(frames[ok])
-        R.append(frame_roll[ok])
-        FOV.append(np.full(int(ok.sum()), fov))
-    if not P:
+        clip = _fly(cameras[cams][node], positions[p], spec, q, tol, clearance, turn_rate, view_rate, ahead, roll_pair, p)
+        if clip.note is not None:
+            notes.append(clip.note)
+        n = len(clip.frames)
+        P.append(np.full(n, p, dtype=np.int64))
+        F.append(clip.frames)
+        T.append(clip.look)
+        R.append(clip.roll)
+        FOV.append(np.full(n, fov))
+    pidx = np.concatenate(P) if P else np.zeros(0, dtype=np.int64)
+    if not len(pidx):
         z = np.zeros(0)
         return ViewArrays(z.astype(np.int64), z.astype(np.int64), z.astype(np.int64), np.zeros((0, 4, 4)),
-                          z, z, z, z.astype(bool))
-    pidx = np.concatenate(P)
+                          z, z, z, z.astype(bool)), notes
     frames = np.concatenate(F)
     roll = np.concatenate(R)
-    fov = np.concatenate(FOV)
+    fov_all = np.concatenate(FOV)
     counts = np.bincount(pidx, minlength=len(visible))
     v = np.arange(len(pidx)) - np.repeat(np.cumsum(counts) - counts, counts)
-    W = look_at_batch(frames, positions[pidx], roll)
+    W = look_at_batch(frames, np.concatenate(T), roll)
     _, nearest = tree.query(frames)
     in_sight = q.line_of_sight(frames, positions[pidx], tol)
     obl = obliqueness(normals[pidx], positions[pidx], frames)
-    return ViewArrays(pidx, v, np.asarray(nearest, dtype=np.int64), W, fov, roll, obl, in_sight)
+    return ViewArrays(pidx, v, np.asarray(nearest, dtype=np.int64), W, fov_all, roll, obl, in_sight), notes
+
+
+def _fly(
+    route: np.ndarray, point: np.ndarray, spec: ViewSpec, q: MeshQueries, tol: float, clearance: float,
+    turn_rate: float, view_rate: float, ahead: bool, roll_pair: np.ndarray, p: int,
+) -> _Clip:
+    """Smooth, sample, verify and cut one clip (module docstring, steps 3-5)."""
+    spacing = spec.trajectory_spacing_m
+    keep = np.concatenate([[True], np.linalg.norm(np.diff(route, axis=0), axis=1) > 1e-9])
+    route = route[keep]
+    frames = resample(smooth_path(route, spacing, turn_rate), spacing, keep_end=False) if len(route) > 1 else route[:1]
+    n = len(frames)
+    fail: dict[str, np.ndarray] = {}
+    fail["clearance"] = q.near_mesh(frames, clearance) if clearance > 0 else np.zeros(n, dtype=bool)
+    nearest_node = route[cKDTree(route).query(frames)[1]]
+    link_clear = q.line_of_sight(frames[:-1], frames[1:], 0.0) if n > 1 else np.ones(0, dtype=bool)
+    fail["outside"] = ~q.line_of_sight(frames, nearest_node, 0.0)
+    fail["hidden"] = np.zeros(n, dtype=bool) if ahead else ~q.line_of_sight(frames, np.tile(point, (n, 1)), tol)
+    fail["hidden"] |= np.linalg.norm(frames - point, axis=1) < 1e-6  # never look at the point from itself
+    turn = np.zeros(n, dtype=bool)
+    if n > 2:
+        turn[1:-1] = turn_angles(frames) > turn_rate * spacing * LIMIT_SLACK
+    fail["turn"] = turn
+    look = _look_targets(frames, point, ahead)
+    view_ok = np.ones(max(n - 1, 0), dtype=bool)
+    if n > 1:
+        W0 = look_at_batch(frames, look, np.zeros(n))
+        view_ok = rotation_angles(W0) <= (1.0 - ROLL_SHARE) * view_rate * spacing * LIMIT_SLACK
+    fail["view"] = np.zeros(n, dtype=bool)
+    fail["view"][1:] |= ~view_ok
+    good = ~(fail["clearance"] | fail["outside"] | fail["hidden"] | fail["turn"])
+    a, b = longest_run(good, link_clear & view_ok)
+    planned = min(n, spec.trajectory_max_frames)
+    if b - a > spec.trajectory_max_frames:  # shorten the path, keep its middle
+        a += (b - a - spec.trajectory_max_frames) // 2
+        b = a + spec.trajectory_max_frames
+    note = None
+    if b - a < planned or len(route) == 1 and spec.trajectory_max_frames > 1:
+        reasons = {k: int(v.sum()) for k, v in fail.items() if v.any()}
+        if len(route) == 1:
+            reasons["route"] = 1
+        if b - a < spec.trajectory_min_frames:
+            a = b
+        note = ClipNote(point=p, frames=b - a, planned=planned, reasons=reasons)
+    frames, look = frames[a:b], look[a:b]
+    return _Clip(frames, look, _roll(roll_pair, len(frames), spacing, view_rate), note)
+
+
+def _look_targets(frames: np.ndarray, point: np.ndarray, ahead: bool) -> np.ndarray:
+    """Where each frame looks: the point, or one metre along the path's tangent (central differences)."""
+    if not ahead or len(frames) < 2:
+        return np.tile(point, (len(frames), 1))
+    t = np.gradient(frames, axis=0)
+    return frames + t / np.linalg.norm(t, axis=1, keepdims=True)
+
+
+def _roll(pair: np.ndarray, n: int, spacing: float, view_rate: float) -> np.ndarray:
+    """Roll from pair[0] towards pair[1] along a smoothstep over the clip, at most ROLL_SHARE x view_rate
+    radians per metre (smoothstep's steepest slope is 1.5 / length)."""
+    if n < 2:
+        return pair[:n].copy()
+    length = spacing * (n - 1)
+    limit = ROLL_SHARE * view_rate * length / 1.5
+    span = float(np.clip(pair[1] - pair[0], -limit, limit))
+    s = np.linspace(0.0, 1.0, n)
+    return pair[0] + span * s * s * (3.0 - 2.0 * s)

@@ -126,6 +126,8 @@ class SpacePlan:
         return views[v]
 
 
+CLIP_NOTES_IN_SUMMARY = 50  # clip notes copied into a job summary / job.json (the plan JSON has all)
+
 # The checks a trajectory frame must pass (services.scheduler.planning.trajectory), as clip_notes name them.
 CLIP_CHECKS = {
     "clearance": "closer to the mesh than cameras.clearance_m",
@@ -137,8 +139,9 @@ CLIP_CHECKS = {
 }
 
 
-def clip_summary(clip_notes: tuple[dict[str, Any], ...]) -> dict[str, Any]:
-    """Counts of trajectory clips shortened and dropped, and of the frames that failed each check."""
+def clip_summary(clip_notes: tuple[dict[str, Any], ...], max_notes: int = 0) -> dict[str, Any]:
+    """Counts of trajectory clips shortened and dropped, of the frames that failed each check, and the
+    first max_notes notes themselves (a job summary stays small; the plan JSON holds them all)."""
     failed: dict[str, int] = {}
     for note in clip_notes:
         for k, n in note["reasons"].items():
@@ -147,6 +150,7 @@ def clip_summary(clip_notes: tuple[dict[str, Any], ...]) -> dict[str, Any]:
         "shortened": sum(n["outcome"] == "shortened" for n in clip_notes),
         "dropped": sum(n["outcome"] == "dropped" for n in clip_notes),
         "failed_frames": dict(sorted(failed.items())),
+        "notes": list(clip_notes[:max_notes]),
     }
 
 

@@ -10,9 +10,10 @@ For each point:
      at least the view-speed radius (1 / max view rate) from the point, so fixating it turns the view
      slowly; each next one is the camera that makes the longest leg within the remaining budget
      (trajectory_spacing_m x (trajectory_max_frames - 1), plus a margin for cuts), at least
-     WAYPOINT_SEP_M from the route so far and turning less than 90 degrees from the heading, so the
-     clip never reverses. Legs are shortest paths in the graph restricted to cameras that see the
-     point (the route stays where the point is visible).
+     WAYPOINT_SEP_M from the waypoints so far and heading within 90 degrees of the last leg, so the
+     clip never reverses; waypoints are not dead ends of the graph. Legs are shortest paths in the
+     graph restricted to cameras that see the point and to edges whose middle sees it, weighted up
+     near the point (point_graph), so the route stays where the point is visible and the view slow.
   3. smoothing: the route (a polyline) is resampled every spacing/4 and low-pass filtered along its
      arc (Gaussian, ends mirrored by point reflection so they stay put: approximating, not through
      the cameras), sigma growing until the turn per metre is within trajectory_max_turn_deg_per_m.
@@ -107,6 +108,22 @@ def free_space_graph(cameras: np.ndarray, q: MeshQueries, clearance: float) -> s
         ok[np.unique(edge[q.near_mesh(samples, clearance)])] = False
     i, j, w = pairs[ok, 0], pairs[ok, 1], length[ok]
     return sparse.csr_matrix((np.concatenate([w, w]), (np.concatenate([i, j]), np.concatenate([j, i]))), shape=(n, n))
+
+
+def point_graph(
+    graph: sparse.csr_matrix, xyz: np.ndarray, point: np.ndarray, radius: float, q: MeshQueries, tol: float
+) -> sparse.csr_matrix:
+    """The free-space graph of the cameras that see a point, for routes that keep it in sight: edges
+    whose middle does not see the point are dropped, and weights are raised by
+    (radius / distance of the middle to the point)^2 inside the radius, where fixating the point would
+    turn the view too fast."""
+    coo = sparse.triu(graph).tocoo()
+    middle = (xyz[coo.row] + xyz[coo.col]) / 2
+    sees = q.line_of_sight(middle, np.tile(point, (len(middle), 1)), tol)
+    near = np.maximum(radius / np.maximum(np.linalg.norm(middle - point, axis=1), 1e-9), 1.0)
+    i, j, w = coo.row[sees], coo.col[sees], (coo.data * near**2)[sees]
+    return sparse.csr_matrix((np.concatenate([w, w]), (np.concatenate([i, j]), np.concatenate([j, i]))),
+                             shape=graph.shape)
 
 
 def choose_route(
@@ -264,7 +281,7 @@ def trajectory(
     notes: list[ClipNote] = []
     for p, cams in enumerate(visible):
         cams = cap_views(cams, max_views, rng)
-        sub = graph[cams][:, cams]
+        sub = point_graph(graph[cams][:, cams], cameras[cams], positions[p], 1.0 / view_rate, q, tol)
         node = choose_route(sub, cameras[cams], positions[p], budget, 1.0 / view_rate, rng)
         roll_pair = rng.uniform(-rmax, rmax, 2)
         fov = float(truncated_normal(rng, *fov_args, 1)[0])
@@ -336,7 +353,8 @@ def _fly(
         if b - a < spec.trajectory_min_frames:
             a = b
         note = ClipNote(point=p, frames=b - a, planned=planned, reasons=reasons)
-    frames, look = frames[a:b], look[a:b]
+    frames = frames[a:b]
+    look = _look_targets(frames, point, ahead)  # the tangent at a cut end is one-sided
     return _Clip(frames, look, _roll(roll_pair, len(frames), spacing, view_rate), note)
 
 

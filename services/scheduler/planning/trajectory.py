@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 from scipy import sparse
-from scipy.ndimage import gaussian_filter1d
+from scipy.ndimage import gaussian_filter1d, maximum_filter1d
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
@@ -54,15 +54,18 @@ from services.scheduler.planning.visibility import MeshQueries
 
 EDGE_REACH = 2.5  # edge length limit in median nearest-camera distances
 EDGE_KNN = 6  # and each camera's nearest neighbours, so sparse cameras stay connected
-MAX_WAYPOINTS = 4
+MAX_WAYPOINTS = 16
+LEG_M = 3.0  # a leg ends at a camera at most this far (straight line) from where it starts
 WAYPOINT_SEP_M = 1.0
 MIN_WAYPOINT_DEGREE = 3
 MAX_LEG_TURN_COS = 0.0  # a new leg heads within 90 degrees of the last one, LEAD_M along it: no reversals
 LEAD_M = 1.0
+MAX_NODE_TURN = float(np.radians(100.0))  # sharpest turn at a camera on the route
 BUDGET_MARGIN = 1.25  # route this much longer than the clip: verification may cut some of it
-DENSE_PER_FRAME = 4  # smoothing samples per frame spacing
+DENSE_PER_FRAME = 2  # smoothing samples per frame spacing
 SIGMA_GROWTH = 1.5
-SMOOTHING_ROUNDS = 3  # a larger sigma would straighten the route through obstacles; cusps are cut instead
+SMOOTHING_LEVELS = 9
+FAIRING_MARGIN = 0.8  # smooth to this share of the limit: frames span several dense samples
 ROLL_SHARE = 0.1  # of the view-rate limit that roll may use
 LIMIT_SLACK = 1.0 + 1e-6
 
@@ -111,17 +114,23 @@ def free_space_graph(cameras: np.ndarray, q: MeshQueries, clearance: float) -> s
 
 
 def point_graph(
-    graph: sparse.csr_matrix, xyz: np.ndarray, point: np.ndarray, radius: float, q: MeshQueries, tol: float
+    graph: sparse.csr_matrix, xyz: np.ndarray, point: np.ndarray, view_rate: float, q: MeshQueries, tol: float
 ) -> sparse.csr_matrix:
-    """The free-space graph of the cameras that see a point, for routes that keep it in sight: edges
-    whose middle does not see the point are dropped, and weights are raised by
-    (radius / distance of the middle to the point)^2 inside the radius, where fixating the point would
-    turn the view too fast."""
+    """The free-space graph of the cameras that see a point, keeping the edges a fixated clip can fly:
+    the middle sees the point, and moving along the edge turns the view towards the point by at most
+    view_rate radians per metre (|direction x unit vector to the point| / distance, at the ends and the
+    middle): moving sideways close to the point turns the view fast, moving towards it does not."""
     coo = sparse.triu(graph).tocoo()
-    middle = (xyz[coo.row] + xyz[coo.col]) / 2
-    sees = q.line_of_sight(middle, np.tile(point, (len(middle), 1)), tol)
-    near = np.maximum(radius / np.maximum(np.linalg.norm(middle - point, axis=1), 1e-9), 1.0)
-    i, j, w = coo.row[sees], coo.col[sees], (coo.data * near**2)[sees]
+    a, b = xyz[coo.row], xyz[coo.col]
+    t = _unit(b - a)
+    rate = np.zeros(len(a))
+    for x in (a, (a + b) / 2, b):
+        d = point - x
+        r = np.maximum(np.linalg.norm(d, axis=1), 1e-9)
+        rate = np.maximum(rate, np.linalg.norm(np.cross(t, d / r[:, None]), axis=1) / r)
+    keep = rate <= view_rate
+    keep[keep] = q.line_of_sight((a[keep] + b[keep]) / 2, np.tile(point, (int(keep.sum()), 1)), tol)
+    i, j, w = coo.row[keep], coo.col[keep], coo.data[keep]
     return sparse.csr_matrix((np.concatenate([w, w]), (np.concatenate([i, j]), np.concatenate([j, i]))),
                              shape=graph.shape)
 
@@ -139,26 +148,48 @@ def choose_route(
     pool = np.flatnonzero(start) if start.any() else np.array([int(np.argmax(np.where(open_, np.linalg.norm(xyz - point, axis=1), -1)))])
     route = [int(rng.choice(pool))]
     waypoints = list(route)
-    remaining = budget
+    length = 0.0
     for _ in range(MAX_WAYPOINTS - 1):
-        if remaining <= 0:
+        if length >= budget:
             break
-        dist, pred = csgraph.dijkstra(graph, indices=route[-1], return_predecessors=True)
+        cost, pred = csgraph.dijkstra(graph, indices=route[-1], return_predecessors=True)
+        here = xyz[route[-1]]
         clear = np.linalg.norm(xyz[:, None] - xyz[waypoints][None], axis=2).min(axis=1) >= WAYPOINT_SEP_M
-        cand = np.flatnonzero(np.isfinite(dist) & clear & open_)
-        if len(route) > 1 and len(cand):
-            heading = _unit(xyz[route[-1]] - xyz[route[-2]])
-            lead = np.array([_lead(pred, dist, route[-1], c) for c in cand])
-            cand = cand[_unit(xyz[lead] - xyz[route[-1]]) @ heading > MAX_LEG_TURN_COS]
+        cand = np.flatnonzero(np.isfinite(cost) & clear & open_ & (np.linalg.norm(xyz - here, axis=1) <= LEG_M))
         if not len(cand):
             break
-        # the longest leg within the budget, halved for cameras close to the point (fast view turns)
-        score = np.minimum(dist[cand], remaining) * np.where(far[cand], 1.0, 0.5) - 1e-9 * dist[cand]
-        nxt = int(cand[np.argmax(score)])
-        remaining -= float(dist[nxt])
+        legs = [xyz[_path(pred, route[-1], int(c))] for c in cand]
+        leg_length = np.array([_length(leg) for leg in legs])
+        bend = np.ones(len(cand))
+        if len(route) > 1:
+            heading = _unit(here - xyz[route[-2]])
+            bend = np.array([_unit(_lead(leg) - here) @ heading for leg in legs])
+        # no node of the leg (nor its joint with the route) doubles back: a cusp cannot be smoothed
+        joint = [np.vstack([xyz[route[-2:-1]], leg]) for leg in legs]
+        sharpest = np.array([turn_angles(j).max() if len(j) > 2 else 0.0 for j in joint])
+        bend[sharpest > MAX_NODE_TURN] = -1.0
+        # long legs that go straight on, away from the point (fixating a near point turns the view fast)
+        score = (np.minimum(leg_length, budget - length) * np.where(far[cand], 1.0, 0.5) * (1.0 + bend)
+                 - 1e-9 * leg_length)
+        score[bend <= MAX_LEG_TURN_COS] = -np.inf
+        best = int(np.argmax(score))
+        if not np.isfinite(score[best]):
+            break
+        nxt = int(cand[best])
+        length += float(leg_length[best])
         route.extend(_path(pred, route[-1], nxt)[1:])
         waypoints.append(nxt)
     return np.array(route, dtype=np.int64)
+
+
+def _length(poly: np.ndarray) -> float:
+    return float(np.linalg.norm(np.diff(poly, axis=0), axis=1).sum())
+
+
+def _lead(leg: np.ndarray) -> np.ndarray:
+    """The first point of a leg at least LEAD_M from its start (its end when none is): its heading."""
+    far = np.flatnonzero(np.linalg.norm(leg - leg[0], axis=1) >= LEAD_M)
+    return leg[far[0]] if len(far) else leg[-1]
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -170,13 +201,6 @@ def _path(pred: np.ndarray, src: int, dst: int) -> list[int]:
     while out[-1] != src:
         out.append(int(pred[out[-1]]))
     return out[::-1]
-
-
-def _lead(pred: np.ndarray, dist: np.ndarray, src: int, dst: int) -> int:
-    """The first node of the path src -> dst at least LEAD_M along it (dst when the path is shorter)."""
-    path = _path(pred, src, dst)
-    far = [n for n in path if dist[n] >= LEAD_M]
-    return far[0] if far else dst
 
 
 def resample(poly: np.ndarray, step: float, *, keep_end: bool = True) -> np.ndarray:
@@ -205,23 +229,55 @@ def rotation_angles(world_to_camera: np.ndarray) -> np.ndarray:
     return np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0))
 
 
+def _gaussian(dense: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian low-pass along the samples (sigma in samples); the ends are mirrored by point reflection,
+    so they stay put and the path runs straight on past them."""
+    w = int(4.0 * sigma + 0.5) + 1  # the filter's reach
+    padded = np.pad(dense, ((w, w), (0, 0)), mode="reflect", reflect_type="odd")
+    return gaussian_filter1d(padded, sigma, axis=0, mode="nearest", truncate=4.0)[w:w + len(dense)]
+
+
+def _curvature(pts: np.ndarray) -> np.ndarray:
+    """(n,) turn per metre at each sample (0 at the ends): turn angle / mean of the adjacent steps."""
+    out = np.zeros(len(pts))
+    if len(pts) > 2:
+        step = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+        out[1:-1] = turn_angles(pts) / np.maximum((step[:-1] + step[1:]) / 2, 1e-12)
+    return out
+
+
 def smooth_path(route: np.ndarray, spacing: float, max_turn_per_m: float) -> np.ndarray:
     """Dense points (every spacing / DENSE_PER_FRAME) of a smoothed route whose direction turns at most
-    max_turn_per_m radians per metre where the smoothing rounds allow (module docstring, step 3)."""
+    max_turn_per_m radians per metre wherever smoothing can make it so (module docstring, step 3).
+
+    Adaptive bandwidth: Gaussian smoothings of growing sigma, and at each sample the least smoothing
+    whose curvature within a radius of curvature is below the bound, blended with a smooth weight, so
+    straight stretches keep their place (and clearance) and only sharp bends are rounded more. A
+    reversal (cusp) cannot be rounded and is cut by the frame checks."""
     h = spacing / DENSE_PER_FRAME
     dense = resample(route, h)
     if len(dense) < 3:
         return dense
-    sigma = 0.5 / max_turn_per_m  # about half the smallest allowed radius of curvature, metres
-    smooth = dense
-    for _ in range(SMOOTHING_ROUNDS):
-        w = int(4.0 * sigma / h + 0.5) + 1  # the filter's reach, samples
-        padded = np.pad(dense, ((w, w), (0, 0)), mode="reflect", reflect_type="odd")
-        smooth = gaussian_filter1d(padded, sigma / h, axis=0, mode="nearest", truncate=4.0)[w:w + len(dense)]
+    sigma0 = 0.15 / max_turn_per_m / h  # a small share of the smallest allowed radius of curvature, samples
+    levels = np.stack([_gaussian(dense, sigma0 * SIGMA_GROWTH**k) for k in range(SMOOTHING_LEVELS)])
+    reach = max(1, int(round(1.0 / max_turn_per_m / h)))
+    need = np.full(len(dense), SMOOTHING_LEVELS - 1.0)
+    for k in range(SMOOTHING_LEVELS - 1, -1, -1):
+        ok = maximum_filter1d(_curvature(levels[k]), 2 * reach + 1) <= FAIRING_MARGIN * max_turn_per_m
+        need[ok] = k
+    # the level map itself varies slowly, so blending adds little curvature of its own; where the
+    # blend is still too sharp, one more level everywhere
+    level = gaussian_filter1d(maximum_filter1d(need, 6 * reach + 1), 3 * reach, mode="nearest")
+    idx = np.arange(len(dense))
+    for extra in range(SMOOTHING_LEVELS):
+        at = np.clip(level + extra, 0, SMOOTHING_LEVELS - 1)
+        lo = np.floor(at).astype(np.int64)
+        hi = np.minimum(lo + 1, SMOOTHING_LEVELS - 1)
+        t = (at - lo)[:, None]
+        smooth = resample((1 - t) * levels[lo, idx] + t * levels[hi, idx], h)
         frames = resample(smooth, spacing, keep_end=False)
         if len(frames) < 3 or turn_angles(frames).max() <= max_turn_per_m * spacing:
             break
-        sigma *= SIGMA_GROWTH
     return smooth
 
 
@@ -281,7 +337,9 @@ def trajectory(
     notes: list[ClipNote] = []
     for p, cams in enumerate(visible):
         cams = cap_views(cams, max_views, rng)
-        sub = point_graph(graph[cams][:, cams], cameras[cams], positions[p], 1.0 / view_rate, q, tol)
+        sub = graph[cams][:, cams]
+        if not ahead:
+            sub = point_graph(sub, cameras[cams], positions[p], (1.0 - ROLL_SHARE) * view_rate, q, tol)
         node = choose_route(sub, cameras[cams], positions[p], budget, 1.0 / view_rate, rng)
         roll_pair = rng.uniform(-rmax, rmax, 2)
         fov = float(truncated_normal(rng, *fov_args, 1)[0])

@@ -135,7 +135,8 @@ CLIP_CHECKS = {
     "hidden": "the point is not in sight",
     "turn": "the direction of motion turns faster than views.trajectory_max_turn_deg_per_m",
     "view": "the camera rotates faster than views.trajectory_max_view_deg_per_m",
-    "route": "no second camera that sees the point is reachable through free space",
+    "route": "no route through free space to another camera that sees the point (for fixated clips, "
+             "on which the view turns slowly enough)",
 }
 
 
@@ -164,7 +165,7 @@ def clip_shortfall(clip_notes: tuple[dict[str, Any], ...], n_points: int) -> str
     )
     return (
         f"trajectory clips of {n_points} points: {s['shortened']} shortened, {s['dropped']} dropped "
-        f"(frames failing: {why}); per clip in the plan's clip_notes"
+        f"(failed, in frames or for route in clips: {why}); per clip in the plan's clip_notes"
     )
 
 

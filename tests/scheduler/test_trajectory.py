@@ -146,13 +146,14 @@ def test_clips_the_limits_cut_are_reported_and_dropped_points_removed() -> None:
     mesh = scenes.random_furnished_room(np.random.default_rng(41))
     spec = JobSpec.model_validate({
         "seed": 1, "points": {"count": 6},
-        "views": {"mode": "trajectory", "trajectory_max_frames": 100, "trajectory_max_view_deg_per_m": 8,
+        "views": {"mode": "trajectory", "trajectory_max_frames": 100, "trajectory_max_view_deg_per_m": 20,
                   "trajectory_min_frames": 10, "resolution": 64},
     })
     plan = make_plan(scenes.as_space(mesh), spec, space_rng(1, "r"), "r")
     notes = plan.clip_notes
     assert notes and plan.shortfall and "trajectory clips of 6 points" in plan.shortfall
-    assert any("view" in n["reasons"] for n in notes)
+    assert any(n["outcome"] == "shortened" and "view" in n["reasons"] for n in notes)
+    assert any(n["outcome"] == "dropped" for n in notes)
     dropped = [n for n in notes if n["outcome"] == "dropped"]
     assert len(plan.points) == 6 - len(dropped)
     for n in notes:

@@ -6,17 +6,20 @@ World metres, radians; world_to_camera into OpenCV axes (services.core.camera). 
      EDGE_KNN nearest) when nothing blocks the segment and samples along it every <= clearance/2 keep
      the clearance to the mesh; its weight is its length.
 For each point:
-  2. waypoints: a handful of the cameras that see the point. The first is chosen by the rng among those
-     at least the view-speed radius (1 / max view rate) from the point, so fixating it turns the view
-     slowly; each next one is the camera that makes the longest leg within the remaining budget
-     (trajectory_spacing_m x (trajectory_max_frames - 1), plus a margin for cuts), at least
-     WAYPOINT_SEP_M from the waypoints so far and heading within 90 degrees of the last leg, so the
-     clip never reverses; waypoints are not dead ends of the graph. Legs are shortest paths in the
-     graph restricted to cameras that see the point and to edges whose middle sees it, weighted up
-     near the point (point_graph), so the route stays where the point is visible and the view slow.
-  3. smoothing: the route (a polyline) is resampled every spacing/4 and low-pass filtered along its
-     arc (Gaussian, ends mirrored by point reflection so they stay put: approximating, not through
-     the cameras), sigma growing until the turn per metre is within trajectory_max_turn_deg_per_m.
+  2. route: the cameras that see the point, and for fixated clips only the edges whose middle sees it
+     and along which the view turns at most the view limit (point_graph: moving sideways close to
+     the point turns the view fast, moving towards it does not). The first waypoint is chosen by the
+     rng among cameras at least 1 / view rate from the point; each next one ends the best leg, a
+     shortest path in that graph: long (up to LEG_M straight-line, within the budget
+     trajectory_spacing_m x (trajectory_max_frames - 1) plus BUDGET_MARGIN for cuts), away from
+     the point, heading straight on (within 90 degrees of the last leg LEAD_M along it, no turn
+     sharper than MAX_NODE_TURN at a camera: a reversal cannot be smoothed), at least WAYPOINT_SEP_M
+     from the earlier waypoints, and not at a dead end of the graph.
+  3. smoothing (approximating, not through the cameras): the route is resampled every spacing / 2 and
+     filtered by Gaussians of growing sigma along its arc (ends mirrored by point reflection, so they
+     stay put); at each sample the least sigma whose curvature nearby is within
+     FAIRING_MARGIN x trajectory_max_turn_deg_per_m is used, blended by a slowly varying weight, so
+     straight stretches keep their place (and clearance) and only sharp bends are rounded more.
   4. frames every trajectory_spacing_m along the smoothed arc, each verified: clearance >=
      cameras.clearance_m (exact distance), a clear segment to the route and to the previous frame
      (still inside the free space the cameras are in), the point in sight (fixated clips), the turn
@@ -69,6 +72,7 @@ FAIRING_MARGIN = 0.8  # smooth to this share of the limit: frames span several d
 ROLL_SHARE = 0.1  # of the view-rate limit that roll may use
 LIMIT_SLACK = 1.0 + 1e-6
 
+
 @dataclass
 class ClipNote:
     """Why a point's clip is shorter than planned (or missing): sampled point index, frames kept and
@@ -105,11 +109,16 @@ def free_space_graph(cameras: np.ndarray, q: MeshQueries, clearance: float) -> s
     if clearance > 0 and ok.any():
         live = np.flatnonzero(ok)
         steps = np.maximum(np.ceil(length[live] / (clearance / 2)).astype(np.int64), 1)
-        edge = np.repeat(live, steps - 1)
-        t = (np.arange(len(edge)) - np.repeat(np.cumsum(steps - 1) - (steps - 1), steps - 1) + 1) / np.repeat(steps, steps - 1)
-        samples = a[edge] + t[:, None] * (b[edge] - a[edge])
+        inner = steps - 1  # samples strictly between the cameras, k / steps of the way for k = 1..inner
+        edge = np.repeat(live, inner)
+        k = np.arange(len(edge)) - np.repeat(np.cumsum(inner) - inner, inner) + 1
+        samples = a[edge] + (k / np.repeat(steps, inner))[:, None] * (b[edge] - a[edge])
         ok[np.unique(edge[q.near_mesh(samples, clearance)])] = False
-    i, j, w = pairs[ok, 0], pairs[ok, 1], length[ok]
+    return _symmetric(pairs[ok, 0], pairs[ok, 1], length[ok], n)
+
+
+def _symmetric(i: np.ndarray, j: np.ndarray, w: np.ndarray, n: int) -> sparse.csr_matrix:
+    """(n, n) undirected graph with edges (i, j) of weight w."""
     return sparse.csr_matrix((np.concatenate([w, w]), (np.concatenate([i, j]), np.concatenate([j, i]))), shape=(n, n))
 
 
@@ -130,9 +139,7 @@ def point_graph(
         rate = np.maximum(rate, np.linalg.norm(np.cross(t, d / r[:, None]), axis=1) / r)
     keep = rate <= view_rate
     keep[keep] = q.line_of_sight((a[keep] + b[keep]) / 2, np.tile(point, (int(keep.sum()), 1)), tol)
-    i, j, w = coo.row[keep], coo.col[keep], coo.data[keep]
-    return sparse.csr_matrix((np.concatenate([w, w]), (np.concatenate([i, j]), np.concatenate([j, i]))),
-                             shape=graph.shape)
+    return _symmetric(coo.row[keep], coo.col[keep], coo.data[keep], graph.shape[0])
 
 
 def choose_route(
@@ -159,7 +166,7 @@ def choose_route(
         if not len(cand):
             break
         legs = [xyz[_path(pred, route[-1], int(c))] for c in cand]
-        leg_length = np.array([_length(leg) for leg in legs])
+        leg_length = cost[cand]  # edge weights are lengths, metres
         bend = np.ones(len(cand))
         if len(route) > 1:
             heading = _unit(here - xyz[route[-2]])
@@ -180,10 +187,6 @@ def choose_route(
         route.extend(_path(pred, route[-1], nxt)[1:])
         waypoints.append(nxt)
     return np.array(route, dtype=np.int64)
-
-
-def _length(poly: np.ndarray) -> float:
-    return float(np.linalg.norm(np.diff(poly, axis=0), axis=1).sum())
 
 
 def _lead(leg: np.ndarray) -> np.ndarray:
@@ -404,7 +407,7 @@ def _fly(
         a += (b - a - spec.trajectory_max_frames) // 2
         b = a + spec.trajectory_max_frames
     note = None
-    if b - a < planned or len(route) == 1 and spec.trajectory_max_frames > 1:
+    if b - a < planned or (len(route) == 1 and spec.trajectory_max_frames > 1):
         reasons = {k: int(v.sum()) for k, v in fail.items() if v.any()}
         if len(route) == 1:
             reasons["route"] = 1

@@ -70,6 +70,7 @@ SIGMA_GROWTH = 1.5
 SMOOTHING_LEVELS = 9
 FAIRING_MARGIN = 0.8  # smooth to this share of the limit: frames span several dense samples
 ROLL_SHARE = 0.1  # of the view-rate limit that roll may use
+ROUTE_VIEW_SHARE = 1.0 - ROLL_SHARE  # of the view-rate limit that route edges may need
 LIMIT_SLACK = 1.0 + 1e-6
 
 
@@ -342,7 +343,7 @@ def trajectory(
         cams = cap_views(cams, max_views, rng)
         sub = graph[cams][:, cams]
         if not ahead:
-            sub = point_graph(sub, cameras[cams], positions[p], (1.0 - ROLL_SHARE) * view_rate, q, tol)
+            sub = point_graph(sub, cameras[cams], positions[p], ROUTE_VIEW_SHARE * view_rate, q, tol)
         node = choose_route(sub, cameras[cams], positions[p], budget, 1.0 / view_rate, rng)
         roll_pair = rng.uniform(-rmax, rmax, 2)
         fov = float(truncated_normal(rng, *fov_args, 1)[0])

@@ -10,18 +10,19 @@ For each point:
      and along which the view turns at most the view limit (point_graph: moving sideways close to
      the point turns the view fast, moving towards it does not). The first waypoint is chosen by the
      rng among cameras at least 1 / view rate from the point; each next one ends the best leg, a
-     shortest path in that graph: long (up to LEG_M straight-line, within the budget
+     shortest path in that graph: long (up to LEG camera spacings straight-line, within the budget
      trajectory_spacing_m x (trajectory_max_frames - 1) plus BUDGET_MARGIN for cuts), away from
-     the point, heading straight on (within 90 degrees of the last leg LEAD_M along it, no turn
-     sharper than MAX_NODE_TURN at a camera: a reversal cannot be smoothed), at least WAYPOINT_SEP_M
-     from the earlier waypoints, and not at a dead end of the graph.
+     the point, heading straight on (within 90 degrees of the last leg, LEAD spacings along it; no
+     turn sharper than MAX_NODE_TURN at a camera: a reversal cannot be smoothed), at least
+     WAYPOINT_SEP spacings from the earlier waypoints, and not at a dead end of the graph.
   3. smoothing (approximating, not through the cameras): the route is resampled every spacing / 2 and
      filtered by Gaussians of growing sigma along its arc (ends mirrored by point reflection, so they
      stay put); at each sample the least sigma whose curvature nearby is within
      FAIRING_MARGIN x trajectory_max_turn_deg_per_m is used, blended by a slowly varying weight, so
      straight stretches keep their place (and clearance) and only sharp bends are rounded more.
   4. frames every trajectory_spacing_m along the smoothed arc, each verified: clearance >=
-     cameras.clearance_m (exact distance), a clear segment to the route and to the previous frame
+     cameras.clearance_m (exact distance; lowered to what the cameras themselves keep for provided or
+     object cameras, attainable_clearance), a clear segment to the route and to the previous frame
      (still inside the free space the cameras are in), the point in sight (fixated clips), the turn
      of the direction of motion and the camera rotation to the next frame within the limits. The clip
      is the longest run of frames that pass, at most trajectory_max_frames (the path is shortened,
@@ -58,11 +59,13 @@ from services.scheduler.planning.visibility import MeshQueries
 EDGE_REACH = 2.5  # edge length limit in median nearest-camera distances
 EDGE_KNN = 6  # and each camera's nearest neighbours, so sparse cameras stay connected
 MAX_WAYPOINTS = 16
-LEG_M = 3.0  # a leg ends at a camera at most this far (straight line) from where it starts
-WAYPOINT_SEP_M = 1.0
+# lengths in camera spacings (the median nearest-camera distance: about 0.5 m in rooms), so the same
+# rules fit a room and cameras around an object
+LEG = 6.0  # a leg ends at a camera at most this far (straight line) from where it starts
+WAYPOINT_SEP = 2.0  # from earlier waypoints
+LEAD = 2.0  # a leg's heading: towards its first camera this far from its start
 MIN_WAYPOINT_DEGREE = 3
-MAX_LEG_TURN_COS = 0.0  # a new leg heads within 90 degrees of the last one, LEAD_M along it: no reversals
-LEAD_M = 1.0
+MAX_LEG_TURN_COS = 0.0  # a new leg heads within 90 degrees of the last one: no reversals
 MAX_NODE_TURN = float(np.radians(100.0))  # sharpest turn at a camera on the route
 BUDGET_MARGIN = 1.25  # route this much longer than the clip: verification may cut some of it
 DENSE_PER_FRAME = 2  # smoothing samples per frame spacing
@@ -91,6 +94,25 @@ class ClipNote:
         }
 
 
+def attainable_clearance(cameras: np.ndarray, q: MeshQueries, clearance: float) -> float:
+    """The clearance (m) frames are held to: `clearance`, or for provided or object cameras closer to
+    the mesh than that, the largest clearance / 2^k (k <= 10) that every camera keeps (generated
+    cameras always keep cameras.clearance_m)."""
+    for _ in range(11):
+        if clearance <= 0 or not q.near_mesh(cameras, clearance).any():
+            return clearance
+        clearance /= 2
+    return 0.0
+
+
+def camera_spacing(cameras: np.ndarray) -> float:
+    """Median distance (m) from a camera to its nearest other camera (1 for fewer than two)."""
+    if len(cameras) < 2:
+        return 1.0
+    d, _ = cKDTree(cameras).query(cameras, k=2)
+    return float(np.median(d[:, 1]))
+
+
 def free_space_graph(cameras: np.ndarray, q: MeshQueries, clearance: float) -> sparse.csr_matrix:
     """(n, n) symmetric sparse graph of collision-free edges between cameras, weights in metres."""
     n = len(cameras)
@@ -98,8 +120,8 @@ def free_space_graph(cameras: np.ndarray, q: MeshQueries, clearance: float) -> s
         return sparse.csr_matrix((n, n))
     tree = cKDTree(cameras)
     k = min(EDGE_KNN + 1, n)
-    d, nn = tree.query(cameras, k=k)
-    reach = EDGE_REACH * float(np.median(d[:, 1]))
+    _, nn = tree.query(cameras, k=k)
+    reach = EDGE_REACH * camera_spacing(cameras)
     near = tree.query_pairs(reach, output_type="ndarray").reshape(-1, 2)
     knn = np.stack([np.repeat(np.arange(n), k - 1), nn[:, 1:].ravel()], axis=1)
     pairs = np.unique(np.sort(np.concatenate([near, knn]), axis=1), axis=0)
@@ -145,9 +167,10 @@ def point_graph(
 
 def choose_route(
     graph: sparse.csr_matrix, xyz: np.ndarray, point: np.ndarray, budget: float, view_radius: float,
-    rng: np.random.Generator,
+    unit: float, rng: np.random.Generator,
 ) -> np.ndarray:
-    """Node indices (into xyz) of a route through a handful of waypoints (module docstring, step 2)."""
+    """Node indices (into xyz) of a route through a handful of waypoints (module docstring, step 2);
+    unit: the camera spacing, metres."""
     far = np.linalg.norm(xyz - point, axis=1) >= view_radius
     # waypoints where the route can go on: not dead ends (corners, under furniture)
     degree = np.diff(graph.indptr)
@@ -162,8 +185,8 @@ def choose_route(
             break
         cost, pred = csgraph.dijkstra(graph, indices=route[-1], return_predecessors=True)
         here = xyz[route[-1]]
-        clear = np.linalg.norm(xyz[:, None] - xyz[waypoints][None], axis=2).min(axis=1) >= WAYPOINT_SEP_M
-        cand = np.flatnonzero(np.isfinite(cost) & clear & open_ & (np.linalg.norm(xyz - here, axis=1) <= LEG_M))
+        clear = np.linalg.norm(xyz[:, None] - xyz[waypoints][None], axis=2).min(axis=1) >= WAYPOINT_SEP * unit
+        cand = np.flatnonzero(np.isfinite(cost) & clear & open_ & (np.linalg.norm(xyz - here, axis=1) <= LEG * unit))
         if not len(cand):
             break
         legs = [xyz[_path(pred, route[-1], int(c))] for c in cand]
@@ -171,7 +194,7 @@ def choose_route(
         bend = np.ones(len(cand))
         if len(route) > 1:
             heading = _unit(here - xyz[route[-2]])
-            bend = np.array([_unit(_lead(leg) - here) @ heading for leg in legs])
+            bend = np.array([_unit(_lead(leg, LEAD * unit) - here) @ heading for leg in legs])
         # no node of the leg (nor its joint with the route) doubles back: a cusp cannot be smoothed
         joint = [np.vstack([xyz[route[-2:-1]], leg]) for leg in legs]
         sharpest = np.array([turn_angles(j).max() if len(j) > 2 else 0.0 for j in joint])
@@ -190,9 +213,9 @@ def choose_route(
     return np.array(route, dtype=np.int64)
 
 
-def _lead(leg: np.ndarray) -> np.ndarray:
-    """The first point of a leg at least LEAD_M from its start (its end when none is): its heading."""
-    far = np.flatnonzero(np.linalg.norm(leg - leg[0], axis=1) >= LEAD_M)
+def _lead(leg: np.ndarray, reach: float) -> np.ndarray:
+    """The first point of a leg at least `reach` metres from its start (its end when none is): its heading."""
+    far = np.flatnonzero(np.linalg.norm(leg - leg[0], axis=1) >= reach)
     return leg[far[0]] if len(far) else leg[-1]
 
 
@@ -331,7 +354,9 @@ def trajectory(
         turn_rate = min(turn_rate, (1.0 - ROLL_SHARE) * view_rate)
     spacing = spec.trajectory_spacing_m
     budget = BUDGET_MARGIN * spacing * (spec.trajectory_max_frames - 1)
+    clearance = attainable_clearance(cameras, q, clearance)
     graph = free_space_graph(cameras, q, clearance)
+    unit = camera_spacing(cameras)
     tree = cKDTree(cameras)
     P: list[np.ndarray] = []
     F: list[np.ndarray] = []
@@ -344,7 +369,7 @@ def trajectory(
         sub = graph[cams][:, cams]
         if not ahead:
             sub = point_graph(sub, cameras[cams], positions[p], ROUTE_VIEW_SHARE * view_rate, q, tol)
-        node = choose_route(sub, cameras[cams], positions[p], budget, 1.0 / view_rate, rng)
+        node = choose_route(sub, cameras[cams], positions[p], budget, 1.0 / view_rate, unit, rng)
         roll_pair = rng.uniform(-rmax, rmax, 2)
         fov = float(truncated_normal(rng, *fov_args, 1)[0])
         clip = _fly(cameras[cams][node], positions[p], spec, q, tol, clearance, turn_rate, view_rate, ahead, roll_pair, p)

@@ -98,7 +98,7 @@ class ViewSpec(_Strict):
         30.0, gt=0, le=3600, description="largest rotation of the camera (view and roll) per metre of path"
     )
     trajectory_min_frames: int = Field(
-        1, ge=1, le=100_000, description="a clip cut shorter than this by the limits is dropped (reported)"
+        1, ge=1, le=100_000, description="a clip shorter than this (cut by the limits, or a short route) is dropped (reported)"
     )
 
     @model_validator(mode="after")

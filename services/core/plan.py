@@ -137,6 +137,7 @@ CLIP_CHECKS = {
     "view": "the camera rotates faster than views.trajectory_max_view_deg_per_m",
     "route": "no route through free space to another camera that sees the point (for fixated clips, "
              "on which the view turns slowly enough)",
+    "short": "the route through free space is shorter than views.trajectory_min_frames",
 }
 
 

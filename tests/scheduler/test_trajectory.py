@@ -11,6 +11,7 @@ from services.core.jobspec import JobSpec, ViewSpec
 from services.core.plan import SpacePlan, plan_from_json, plan_to_json
 from services.scheduler.planning import make_plan, space_rng
 from services.scheduler.planning.trajectory import (
+    fly_clip,
     free_space_graph,
     longest_run,
     resample,
@@ -142,28 +143,40 @@ def test_planning_is_deterministic_for_a_seed() -> None:
     assert a == b and a != c
 
 
-def test_clips_the_limits_cut_are_reported_and_dropped_points_removed() -> None:
+def test_short_and_cut_clips_are_reported_and_dropped_points_removed() -> None:
     mesh = scenes.random_furnished_room(np.random.default_rng(41))
     spec = JobSpec.model_validate({
         "seed": 1, "points": {"count": 6},
-        "views": {"mode": "trajectory", "trajectory_max_frames": 100, "trajectory_max_view_deg_per_m": 20,
-                  "trajectory_min_frames": 10, "resolution": 64},
+        "views": {"mode": "trajectory", "trajectory_max_frames": 100, "trajectory_min_frames": 30, "resolution": 64},
     })
     plan = make_plan(scenes.as_space(mesh), spec, space_rng(1, "r"), "r")
     notes = plan.clip_notes
     assert notes and plan.shortfall and "trajectory clips of 6 points" in plan.shortfall
-    assert any(n["outcome"] == "shortened" and "view" in n["reasons"] for n in notes)
-    assert any(n["outcome"] == "dropped" for n in notes)
     dropped = [n for n in notes if n["outcome"] == "dropped"]
-    assert len(plan.points) == 6 - len(dropped)
+    assert dropped and len(plan.points) == 6 - len(dropped)
     for n in notes:
-        assert n["frames"] < n["planned_frames"] or "route" in n["reasons"]
+        assert n["reasons"]
         if n["outcome"] == "dropped":
-            assert n["point_idx"] is None and n["frames"] < 10
+            assert n["point_idx"] is None and n["frames"] == 0
         else:
-            assert len(plan.views_of(n["point_idx"])) == n["frames"] >= 10
+            assert len(plan.views_of(n["point_idx"])) == n["frames"] >= 30
+    assert all(len(plan.views_of(p.idx)) >= 30 for p in plan.points)
     assert plan_from_json(plan_to_json(plan)).clip_notes == notes
     _check_clip_limits(plan, spec, mesh)
+
+
+def test_a_route_through_an_obstacle_is_cut_with_reasons() -> None:
+    mesh = scenes.pillar_room()
+    q = MeshQueries(mesh)
+    route = np.array([[0.8, 2.0, 1.2], [2.5, 2.0, 1.2], [4.0, 2.05, 1.2], [5.5, 2.0, 1.2]])  # through the pillar
+    point = np.array([5.9, 3.5, 1.0])  # on the +x wall, seen from both sides of the pillar
+    spec = ViewSpec(mode="trajectory", trajectory_spacing_m=0.05)
+    clip = fly_clip(route, point, spec, q, 0.001, 0.1, np.radians(60), np.radians(30), False, np.zeros(2), 0)
+    note = clip.note
+    assert note is not None and note.frames == len(clip.frames) < note.planned
+    assert {"clearance", "outside"} <= set(note.reasons)
+    assert scenes.brute_force_distance(mesh, clip.frames).min() >= 0.1
+    assert clip.frames[:, 0].max() < 3.6  # the kept run is the longer stretch before the pillar
 
 
 def test_fixated_clip_around_a_pillar_stays_in_sight() -> None:

@@ -27,7 +27,7 @@ For each point:
      of the direction of motion and the camera rotation to the next frame within the limits. The clip
      is the longest run of frames that pass, at most trajectory_max_frames (the path is shortened,
      the spacing never stretched); a clip cut by a check is reported with the counts of failed checks,
-     and one shorter than trajectory_min_frames is dropped.
+     and one shorter than trajectory_min_frames (cut, or its route too short) is dropped.
   5. view: look: point fixates the point (the point projects to the image centre); look: ahead looks
      along the path's tangent (the turn bound then also keeps the view rate). Roll goes from one
      U[-roll_max, roll_max] draw to another along a smoothstep, its rate at most ROLL_SHARE of the
@@ -63,6 +63,7 @@ MAX_WAYPOINTS = 16
 # rules fit a room and cameras around an object
 LEG = 6.0  # a leg ends at a camera at most this far (straight line) from where it starts
 WAYPOINT_SEP = 2.0  # from earlier waypoints
+GOOD_LEG = 3.0  # legs longer than this (along the path) score no better
 LEAD = 2.0  # a leg's heading: towards its first camera this far from its start
 MIN_WAYPOINT_DEGREE = 3
 MAX_LEG_TURN_COS = 0.0  # a new leg heads within 90 degrees of the last one: no reversals
@@ -73,7 +74,7 @@ SIGMA_GROWTH = 1.5
 SMOOTHING_LEVELS = 9
 FAIRING_MARGIN = 0.8  # smooth to this share of the limit: frames span several dense samples
 ROLL_SHARE = 0.1  # of the view-rate limit that roll may use
-ROUTE_VIEW_SHARE = 1.0 - ROLL_SHARE  # of the view-rate limit that route edges may need
+ROUTE_VIEW_SHARE = 0.75  # of the view-rate limit that route edges may need: smoothing moves the path
 LIMIT_SLACK = 1.0 + 1e-6
 
 
@@ -149,17 +150,20 @@ def point_graph(
     graph: sparse.csr_matrix, xyz: np.ndarray, point: np.ndarray, view_rate: float, q: MeshQueries, tol: float
 ) -> sparse.csr_matrix:
     """The free-space graph of the cameras that see a point, keeping the edges a fixated clip can fly:
-    the middle sees the point, and moving along the edge turns the view towards the point by at most
-    view_rate radians per metre (|direction x unit vector to the point| / distance, at the ends and the
-    middle): moving sideways close to the point turns the view fast, moving towards it does not."""
+    the middle sees the point, and moving along the edge turns the camera fixated on the point by at
+    most view_rate radians per metre (at the ends and the middle): moving sideways close to the point
+    turns it fast, moving towards it does not."""
     coo = sparse.triu(graph).tocoo()
     a, b = xyz[coo.row], xyz[coo.col]
     t = _unit(b - a)
     rate = np.zeros(len(a))
+    eps = 1e-3  # metres: the rotation of the fixated camera over a small step, as the frames measure it
+    targets = np.tile(point, (len(a), 1))
     for x in (a, (a + b) / 2, b):
-        d = point - x
-        r = np.maximum(np.linalg.norm(d, axis=1), 1e-9)
-        rate = np.maximum(rate, np.linalg.norm(np.cross(t, d / r[:, None]), axis=1) / r)
+        pair = np.stack([look_at_batch(x, targets, np.zeros(len(x))),
+                         look_at_batch(x + eps * t, targets, np.zeros(len(x)))], axis=1)
+        angle = np.arccos(np.clip((np.einsum("nij,nij->n", pair[:, 0, :3, :3], pair[:, 1, :3, :3]) - 1) / 2, -1, 1))
+        rate = np.maximum(rate, angle / eps)
     keep = rate <= view_rate
     keep[keep] = q.line_of_sight((a[keep] + b[keep]) / 2, np.tile(point, (int(keep.sum()), 1)), tol)
     return _symmetric(coo.row[keep], coo.col[keep], coo.data[keep], graph.shape[0])
@@ -199,9 +203,10 @@ def choose_route(
         joint = [np.vstack([xyz[route[-2:-1]], leg]) for leg in legs]
         sharpest = np.array([turn_angles(j).max() if len(j) > 2 else 0.0 for j in joint])
         bend[sharpest > MAX_NODE_TURN] = -1.0
-        # long legs that go straight on, away from the point (fixating a near point turns the view fast)
-        score = (np.minimum(leg_length, budget - length) * np.where(far[cand], 1.0, 0.5) * (1.0 + bend)
-                 - 1e-9 * leg_length)
+        # legs that go straight on, away from the point (fixating a near point turns the view fast), long
+        # but not so long that they end at a wall with nowhere to go on
+        score = (np.minimum(leg_length, min(GOOD_LEG * unit, budget - length)) * np.where(far[cand], 1.0, 0.5)
+                 * (1.0 + bend) - 1e-9 * leg_length)
         score[bend <= MAX_LEG_TURN_COS] = -np.inf
         best = int(np.argmax(score))
         if not np.isfinite(score[best]):
@@ -323,7 +328,7 @@ def longest_run(good: np.ndarray, link: np.ndarray) -> tuple[int, int]:
 
 
 @dataclass
-class _Clip:
+class Clip:
     frames: np.ndarray  # (n, 3)
     look: np.ndarray  # (n, 3) targets
     roll: np.ndarray
@@ -372,7 +377,7 @@ def trajectory(
         node = choose_route(sub, cameras[cams], positions[p], budget, 1.0 / view_rate, unit, rng)
         roll_pair = rng.uniform(-rmax, rmax, 2)
         fov = float(truncated_normal(rng, *fov_args, 1)[0])
-        clip = _fly(cameras[cams][node], positions[p], spec, q, tol, clearance, turn_rate, view_rate, ahead, roll_pair, p)
+        clip = fly_clip(cameras[cams][node], positions[p], spec, q, tol, clearance, turn_rate, view_rate, ahead, roll_pair, p)
         if clip.note is not None:
             notes.append(clip.note)
         n = len(clip.frames)
@@ -398,10 +403,10 @@ def trajectory(
     return ViewArrays(pidx, v, np.asarray(nearest, dtype=np.int64), W, fov_all, roll, obl, in_sight), notes
 
 
-def _fly(
+def fly_clip(
     route: np.ndarray, point: np.ndarray, spec: ViewSpec, q: MeshQueries, tol: float, clearance: float,
     turn_rate: float, view_rate: float, ahead: bool, roll_pair: np.ndarray, p: int,
-) -> _Clip:
+) -> Clip:
     """Smooth, sample, verify and cut one clip (module docstring, steps 3-5)."""
     spacing = spec.trajectory_spacing_m
     keep = np.concatenate([[True], np.linalg.norm(np.diff(route, axis=0), axis=1) > 1e-9])
@@ -433,16 +438,21 @@ def _fly(
         a += (b - a - spec.trajectory_max_frames) // 2
         b = a + spec.trajectory_max_frames
     note = None
-    if b - a < planned or (len(route) == 1 and spec.trajectory_max_frames > 1):
-        reasons = {k: int(v.sum()) for k, v in fail.items() if v.any()}
-        if len(route) == 1:
+    cut = b - a < planned
+    lone = len(route) == 1 and spec.trajectory_max_frames > 1
+    short = b - a < spec.trajectory_min_frames
+    if cut or lone or short:
+        reasons = {k: int(v.sum()) for k, v in fail.items() if v.any()} if cut else {}
+        if lone:
             reasons["route"] = 1
-        if b - a < spec.trajectory_min_frames:
+        elif short and not cut:
+            reasons["short"] = 1
+        if short:
             a = b
         note = ClipNote(point=p, frames=b - a, planned=planned, reasons=reasons)
     frames = frames[a:b]
     look = _look_targets(frames, point, ahead)  # the tangent at a cut end is one-sided
-    return _Clip(frames, look, _roll(roll_pair, len(frames), spacing, view_rate), note)
+    return Clip(frames, look, _roll(roll_pair, len(frames), spacing, view_rate), note)
 
 
 def _look_targets(frames: np.ndarray, point: np.ndarray, ahead: bool) -> np.ndarray:

@@ -18,6 +18,7 @@ from services.scheduler.planning.trajectory import (
     rotation_angles,
     smooth_path,
     trajectory,
+    trim,
     turn_angles,
 )
 from services.scheduler.planning.visibility import MeshQueries
@@ -55,6 +56,13 @@ def test_smoothing_bounds_the_turn_keeps_the_ends_and_spacing() -> None:
     assert np.abs(step - 0.1).max() < 0.1 * 0.01
     assert turn_angles(frames).max() <= limit * 0.1
     assert turn_angles(resample(route, 0.1, keep_end=False)).max() > np.radians(30)  # it was zig-zag
+
+
+def test_trim_keeps_the_first_metres() -> None:
+    poly = np.array([[0.0, 0, 0], [1, 0, 0], [1, 2, 0]])
+    np.testing.assert_allclose(trim(poly, 1.5), [[0, 0, 0], [1, 0, 0], [1, 0.5, 0]])
+    np.testing.assert_allclose(trim(poly, 1.0), [[0, 0, 0], [1, 0, 0], [1, 0, 0]])
+    assert trim(poly, 5.0) is poly
 
 
 def test_longest_run_needs_good_frames_and_links() -> None:

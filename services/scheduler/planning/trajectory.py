@@ -15,9 +15,9 @@ For each point:
      the point, heading straight on (within 90 degrees of the last leg, LEAD spacings along it; no
      turn sharper than MAX_NODE_TURN at a camera: a reversal cannot be smoothed), at least
      WAYPOINT_SEP spacings from the earlier waypoints, and not at a dead end of the graph.
-  3. smoothing (approximating, not through the cameras): the route is resampled every spacing / 2 and
-     filtered by Gaussians of growing sigma along its arc (ends mirrored by point reflection, so they
-     stay put); at each sample the least sigma whose curvature nearby is within
+  3. smoothing (approximating, not through the cameras): the route is resampled every spacing / 2 (at
+     most MAX_SAMPLES_PER_RADIUS per smallest radius of curvature) and filtered by Gaussians of
+     growing sigma along its arc (ends mirrored by point reflection, so they stay put); at each sample the least sigma whose curvature nearby is within
      FAIRING_MARGIN x trajectory_max_turn_deg_per_m is used, blended by a slowly varying weight, so
      straight stretches keep their place (and clearance) and only sharp bends are rounded more.
   4. frames every trajectory_spacing_m along the smoothed arc, each verified: clearance >=
@@ -42,6 +42,7 @@ from typing import Any
 
 import numpy as np
 from scipy import sparse
+from scipy.interpolate import CubicSpline
 from scipy.ndimage import gaussian_filter1d, maximum_filter1d
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
@@ -69,7 +70,8 @@ MIN_WAYPOINT_DEGREE = 3
 MAX_LEG_TURN_COS = 0.0  # a new leg heads within 90 degrees of the last one: no reversals
 MAX_NODE_TURN = float(np.radians(100.0))  # sharpest turn at a camera on the route
 BUDGET_MARGIN = 1.25  # route this much longer than the clip: verification may cut some of it
-DENSE_PER_FRAME = 2  # smoothing samples per frame spacing
+DENSE_PER_FRAME = 2  # smoothing samples per frame spacing ...
+MAX_SAMPLES_PER_RADIUS = 40  # ... or per smallest radius of curvature when frames are closer
 SIGMA_GROWTH = 1.5
 SMOOTHING_LEVELS = 9
 FAIRING_MARGIN = 0.8  # smooth to this share of the limit: frames span several dense samples
@@ -247,6 +249,27 @@ def resample(poly: np.ndarray, step: float, *, keep_end: bool = True) -> np.ndar
     return np.stack([np.interp(targets, s, poly[:, k]) for k in range(3)], axis=1)
 
 
+def trim(poly: np.ndarray, length: float) -> np.ndarray:
+    """The first `length` metres of a polyline (the whole of a shorter one)."""
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(poly, axis=0), axis=1))])
+    if s[-1] <= length:
+        return poly
+    k = int(np.searchsorted(s, length, side="right"))  # poly[:k] lies within the length
+    t = (length - s[k - 1]) / (s[k] - s[k - 1])
+    return np.vstack([poly[:k], poly[k - 1] + t * (poly[k] - poly[k - 1])])
+
+
+def frames_along(dense: np.ndarray, spacing: float) -> np.ndarray:
+    """Points every `spacing` metres along a smooth dense polyline, from its start: on a C2 cubic
+    spline through the samples over their chord length, so frames closer than the samples still turn
+    smoothly."""
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(dense, axis=0), axis=1))])
+    if len(dense) < 3 or s[-1] <= 0:
+        return resample(dense, spacing, keep_end=False)
+    spline = CubicSpline(s, dense, bc_type="natural")
+    return spline(np.arange(int(np.floor(s[-1] / spacing + 1e-9)) + 1) * spacing)
+
+
 def turn_angles(pts: np.ndarray) -> np.ndarray:
     """(n-2,) radians between consecutive displacement vectors of a polyline."""
     d = np.diff(pts, axis=0)
@@ -286,7 +309,8 @@ def smooth_path(route: np.ndarray, spacing: float, max_turn_per_m: float) -> np.
     whose curvature within a radius of curvature is below the bound, blended with a smooth weight, so
     straight stretches keep their place (and clearance) and only sharp bends are rounded more. A
     reversal (cusp) cannot be rounded and is cut by the frame checks."""
-    h = spacing / DENSE_PER_FRAME
+    # dense enough for the frames and for the bends, but a bounded number of samples per bend
+    h = max(spacing / DENSE_PER_FRAME, 1.0 / max_turn_per_m / MAX_SAMPLES_PER_RADIUS)
     dense = resample(route, h)
     if len(dense) < 3:
         return dense
@@ -307,7 +331,7 @@ def smooth_path(route: np.ndarray, spacing: float, max_turn_per_m: float) -> np.
         hi = np.minimum(lo + 1, SMOOTHING_LEVELS - 1)
         t = (at - lo)[:, None]
         smooth = resample((1 - t) * levels[lo, idx] + t * levels[hi, idx], h)
-        frames = resample(smooth, spacing, keep_end=False)
+        frames = frames_along(smooth, spacing)
         if len(frames) < 3 or turn_angles(frames).max() <= max_turn_per_m * spacing:
             break
     return smooth
@@ -329,6 +353,9 @@ def longest_run(good: np.ndarray, link: np.ndarray) -> tuple[int, int]:
 
 @dataclass
 class Clip:
+    """One point's clip: frame positions (world metres), look-at targets, roll (radians), and the note
+    when it was cut short or dropped."""
+
     frames: np.ndarray  # (n, 3)
     look: np.ndarray  # (n, 3) targets
     roll: np.ndarray
@@ -409,9 +436,10 @@ def fly_clip(
 ) -> Clip:
     """Smooth, sample, verify and cut one clip (module docstring, steps 3-5)."""
     spacing = spec.trajectory_spacing_m
-    keep = np.concatenate([[True], np.linalg.norm(np.diff(route, axis=0), axis=1) > 1e-9])
-    route = route[keep]
-    frames = resample(smooth_path(route, spacing, turn_rate), spacing, keep_end=False) if len(route) > 1 else route[:1]
+    # at most the budget of path: bounds the smoothing samples whatever the spacing
+    route = trim(route, BUDGET_MARGIN * spacing * (spec.trajectory_max_frames - 1))
+    route = route[np.concatenate([[True], np.linalg.norm(np.diff(route, axis=0), axis=1) > 1e-9])]
+    frames = frames_along(smooth_path(route, spacing, turn_rate), spacing) if len(route) > 1 else route[:1]
     n = len(frames)
     fail: dict[str, np.ndarray] = {}
     fail["clearance"] = q.near_mesh(frames, clearance) if clearance > 0 else np.zeros(n, dtype=bool)

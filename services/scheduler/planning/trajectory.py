@@ -14,7 +14,8 @@ For each point:
      trajectory_spacing_m x (trajectory_max_frames - 1) plus BUDGET_MARGIN for cuts), away from
      the point, heading straight on (within 90 degrees of the last leg, LEAD spacings along it; no
      turn sharper than MAX_NODE_TURN at a camera: a reversal cannot be smoothed), at least
-     WAYPOINT_SEP spacings from the earlier waypoints, and not at a dead end of the graph.
+     WAYPOINT_SEP spacings from the earlier waypoints, and not at a dead end of the graph. The route
+     grows forwards, then backwards from the first waypoint, while the budget lasts.
   3. smoothing (approximating, not through the cameras): the route is resampled every spacing / 2 (at
      most MAX_SAMPLES_PER_RADIUS per smallest radius of curvature) and filtered by Gaussians of
      growing sigma along its arc (ends mirrored by point reflection, so they stay put); at each sample the least sigma whose curvature nearby is within
@@ -186,7 +187,19 @@ def choose_route(
     route = [int(rng.choice(pool))]
     waypoints = list(route)
     length = 0.0
-    for _ in range(MAX_WAYPOINTS - 1):
+    # grow forwards, then backwards from the start (the reversed route grows at its end)
+    length = _grow(graph, xyz, route, waypoints, far, open_, length, budget, unit)
+    route.reverse()
+    _grow(graph, xyz, route, waypoints, far, open_, length, budget, unit)
+    return np.array(route, dtype=np.int64)
+
+
+def _grow(
+    graph: sparse.csr_matrix, xyz: np.ndarray, route: list[int], waypoints: list[int], far: np.ndarray,
+    open_: np.ndarray, length: float, budget: float, unit: float,
+) -> float:
+    """Append legs to `route` (and their ends to `waypoints`) while the budget lasts; the new length."""
+    for _ in range(MAX_WAYPOINTS - len(waypoints)):
         if length >= budget:
             break
         cost, pred = csgraph.dijkstra(graph, indices=route[-1], return_predecessors=True)
@@ -217,7 +230,7 @@ def choose_route(
         length += float(leg_length[best])
         route.extend(_path(pred, route[-1], nxt)[1:])
         waypoints.append(nxt)
-    return np.array(route, dtype=np.int64)
+    return length
 
 
 def _lead(leg: np.ndarray, reach: float) -> np.ndarray:

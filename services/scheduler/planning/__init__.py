@@ -10,7 +10,6 @@ from __future__ import annotations
 import hashlib
 import time
 import uuid as uuidlib
-from typing import Any
 
 import numpy as np
 
@@ -98,15 +97,11 @@ def make_plan(
                 f"(>= {ps.min_views} views that each see another point)"
             )
             shortfall = _join(shortfall, note)
-    new_idx = np.full(len(sampled.positions), -1, dtype=np.int64)
-    new_idx[keep_points] = np.arange(len(keep_points))
-    clip_notes = tuple(n.as_dict(int(new_idx[n.point]) if new_idx[n.point] >= 0 else None) for n in notes)
-    shortfall = _join(shortfall, clip_shortfall(clip_notes, len(sampled.positions)))
     t3 = time.perf_counter()
     stamp["views"] = t3 - t2
 
     plan = _assemble(
-        space_name, salt, cams, source, cs, sampled, keep_points, views, vs.resolution, shortfall, clip_notes
+        space_name, salt, cams, source, cs, sampled, keep_points, views, vs.resolution, shortfall, notes
     )
     stamp["assemble"] = time.perf_counter() - t3
     if timings is not None:
@@ -132,7 +127,7 @@ def _assemble(
     views: ViewArrays,
     resolution: int,
     shortfall: str | None,
-    clip_notes: tuple[dict[str, Any], ...],
+    notes: list[ClipNote],
 ) -> SpacePlan:
     given = [p.uuid for p in cs.poses] if source == "provided" and cs.poses else [None] * len(cams)
     cameras = tuple(
@@ -162,6 +157,9 @@ def _assemble(
         )
         for i, o in enumerate(order)
     )
+    # clip notes name the points by their index in the plan (None: dropped)
+    clip_notes = tuple(n.as_dict(int(new_idx[n.point]) if new_idx[n.point] >= 0 else None) for n in notes)
+    shortfall = _join(shortfall, clip_shortfall(clip_notes, len(sampled.positions)))
     return SpacePlan(
         space_name=space_name, cameras=cameras, points=points, views=planned, shortfall=shortfall,
         clip_notes=clip_notes,

@@ -92,8 +92,9 @@ class ClipNote:
     reasons: dict[str, int] = field(default_factory=dict)
 
     def as_dict(self, point_idx: int | None) -> dict[str, Any]:
+        """The JSON form, naming the point by its index in the plan (None: not in the plan)."""
         return {
-            "point_idx": point_idx, "outcome": "dropped" if self.frames == 0 else "shortened",
+            "point_idx": point_idx, "outcome": "dropped" if self.frames == 0 or point_idx is None else "shortened",
             "frames": self.frames, "planned_frames": self.planned, "reasons": dict(sorted(self.reasons.items())),
         }
 

@@ -25,7 +25,15 @@ from services.cli import CliError
 from services.core.camera import CONVENTIONS
 from services.core.jobspec import JobSpec, cues_for_space
 from services.core.keys import JOB_JSON_KEY, check_name, output_key
-from services.core.plan import PlanError, nonfixated, plan_to_json, point_info, vanishing_points
+from services.core.plan import (
+    CLIP_NOTES_IN_SUMMARY,
+    PlanError,
+    clip_summary,
+    nonfixated,
+    plan_to_json,
+    point_info,
+    vanishing_points,
+)
 from services.core.spaces import LoadedSpace, SpaceError, load_space
 from services.frame_args import add_frame_arguments
 from services.scheduler.planning import make_plan, space_rng
@@ -201,6 +209,7 @@ def run(args: argparse.Namespace) -> int:
             "counts": {"cameras": len(plan.cameras), "points": len(plan.points), "views": len(plan.views)},
             "shortfall": plan.shortfall,
             "valid_fraction": plan.valid_fraction,
+            "clips": clip_summary(plan.clip_notes, CLIP_NOTES_IN_SUMMARY),
             "plan": plan_key,
         })
         spaces[name] = record

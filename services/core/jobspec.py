@@ -116,6 +116,18 @@ class ViewSpec(_Strict):
     nonfixated_pruning: bool = Field(False, description="keep only views that also see another point")
     trajectory_spacing_m: float = Field(0.1, gt=0, le=100, description="frame spacing along the path")
     trajectory_max_frames: int = Field(300, ge=2, le=100_000, description="frames per point at most")
+    trajectory_look: Literal["point", "ahead"] = Field(
+        "point", description="point: every frame fixated on the point; ahead: look along the path (walk-through)"
+    )
+    trajectory_max_turn_deg_per_m: float = Field(
+        60.0, gt=0, le=3600, description="largest turn of the direction of motion per metre of path"
+    )
+    trajectory_max_view_deg_per_m: float = Field(
+        30.0, gt=0, le=3600, description="largest rotation of the camera (view and roll) per metre of path"
+    )
+    trajectory_min_frames: int = Field(
+        1, ge=1, le=100_000, description="a clip shorter than this (cut by the limits, or a short route) is dropped (reported)"
+    )
     # holes in scans (issue 9): views predicted to see too little surface are dropped at planning time
     min_valid_fraction: float = Field(
         0.0, ge=0, le=1, description="drop views whose share of pixels with a surface (a low-resolution ray cast "
@@ -133,6 +145,11 @@ class ViewSpec(_Strict):
             raise ValueError(
                 f"fov_mean_deg ({self.fov_mean_deg}) must lie in [fov_min_deg, fov_max_deg] = "
                 f"[{self.fov_min_deg}, {self.fov_max_deg}]"
+            )
+        if self.trajectory_min_frames > self.trajectory_max_frames:
+            raise ValueError(
+                f"trajectory_min_frames ({self.trajectory_min_frames}) exceeds trajectory_max_frames "
+                f"({self.trajectory_max_frames})"
             )
         return self
 

@@ -26,7 +26,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from services.core.jobs import claim_pending_jobs, job_spaces, job_spec
 from services.core.jobspec import JobSpec
 from services.core.models import Job, JobState, Space, utcnow
-from services.core.plan import SpacePlan
+from services.core.plan import CLIP_NOTES_IN_SUMMARY, SpacePlan, clip_summary
 from services.core.settings import Settings
 from services.core.states import set_job_state
 from services.core.storage import ObjectStore
@@ -171,6 +171,7 @@ class Scheduler:
                         "cameras": done.cameras, "points": done.points, "views": done.views, "tasks": done.tasks,
                         "shortfall": plan.shortfall, "plan_key": done.plan_key,
                         "valid_fraction": getattr(plan, "valid_fraction", None),
+                        "clips": clip_summary(plan.clip_notes, CLIP_NOTES_IN_SUMMARY),
                         "source_to_world": np.asarray(loaded.source_to_world, dtype=float).tolist(),
                         "bounds": np.asarray(loaded.bounds, dtype=float).tolist(),
                         "up_axis": spec.up_axis, "up_method": getattr(loaded, "up_method", None),

@@ -21,7 +21,16 @@ from services.core.camera import CONVENTIONS
 from services.core.jobspec import cues_for_space
 from services.core.keys import JOB_JSON_KEY, output_key
 from services.core.manifest import code_version
-from services.core.plan import PlanError, encode_json, nonfixated, plan_to_json, point_info, vanishing_points
+from services.core.plan import (
+    CLIP_NOTES_IN_SUMMARY,
+    PlanError,
+    clip_summary,
+    encode_json,
+    nonfixated,
+    plan_to_json,
+    point_info,
+    vanishing_points,
+)
 from services.core.spaces import LoadedSpace, SpaceError, load_space
 from services.scheduler.planning import make_plan, space_rng
 from services.spec_args import add_spec_arguments, build_spec, distinct_space_names
@@ -105,6 +114,7 @@ def run(args: argparse.Namespace) -> int:
             "counts": {"cameras": len(plan.cameras), "points": len(plan.points), "views": len(plan.views)},
             "shortfall": plan.shortfall,
             "valid_fraction": plan.valid_fraction,
+            "clips": clip_summary(plan.clip_notes, CLIP_NOTES_IN_SUMMARY),
             "plan": plan_key,
         })
         spaces[name] = record

@@ -47,6 +47,9 @@ def test_create_job(api: Api, space_id: int) -> None:
         ({"bogus": 1}, ["body", "spec", "bogus"], "Extra inputs are not permitted"),
         ({"cameras": {"mode": "provided", "poses": [{"location": [0, 0, float("nan")]}] * 3}}, ["body", "spec"], "finite"),
         ({"name": "../x"}, ["body", "spec", "name"], "not a valid name"),
+        ({"views": {"trajectory_look": "up"}}, ["body", "spec", "views", "trajectory_look"], "'point' or 'ahead'"),
+        ({"views": {"trajectory_min_frames": 40, "trajectory_max_frames": 20}}, ["body", "spec", "views"],
+         "trajectory_min_frames (40) exceeds"),
     ],
 )
 def test_invalid_spec_is_422_naming_the_field(api: Api, space_id: int, spec: dict, loc: list, needle: str) -> None:

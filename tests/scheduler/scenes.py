@@ -128,6 +128,23 @@ def furnished_room() -> trimesh.Trimesh:
     return trimesh.util.concatenate([box_room(), table()])
 
 
+def random_furnished_room(rng: np.random.Generator) -> trimesh.Trimesh:
+    """A closed box room (4-7 x 3-6 x 2.5-3 m) with 3-6 closed furniture blocks (0.4-1.8 m wide,
+    0.4-2 m high, without bottoms) standing on the floor, inside the walls, and a pillar in half of them."""
+    size = rng.uniform([4.0, 3.0, 2.5], [7.0, 6.0, 3.0])
+    parts = [box_room(tuple(size))]
+    for _ in range(int(rng.integers(3, 7))):
+        ext = rng.uniform([0.4, 0.4, 0.4], [1.8, 1.2, 2.0])
+        lo = rng.uniform([0.0, 0.0], size[:2] - ext[:2])
+        block = trimesh.creation.box(extents=ext)
+        block.apply_translation([lo[0] + ext[0] / 2, lo[1] + ext[1] / 2, ext[2] / 2])
+        block.update_faces(block.face_normals[:, 2] > -0.5)
+        parts.append(block)
+    if rng.random() < 0.5:
+        parts.append(pillar(tuple(rng.uniform([1.5, 1.5], size[:2] - 1.5)), 0.2, 0.0, float(size[2])))
+    return trimesh.util.concatenate(parts)
+
+
 def as_space(mesh: trimesh.Trimesh) -> LoadedSpace:
     """Wrap an in-memory world-frame mesh as a LoadedSpace (identity source_to_world)."""
     return LoadedSpace(

@@ -186,3 +186,22 @@ def test_frame_flags_refused_clearly(tmp_path: Path, room: Path, capsys) -> None
             main(["plan", str(room), "--out", str(tmp_path / "o"), flag, value])
         assert e.value.code == 2
     assert not (tmp_path / "o").exists()
+
+
+def test_plan_reports_trajectory_clips_in_job_json(tmp_path: Path, capsys) -> None:
+    room = tmp_path / "room.ply"
+    scenes.random_furnished_room(np.random.default_rng(41)).export(room)
+    spec = tmp_path / "video.yaml"
+    spec.write_text(yaml.safe_dump({
+        "points": {"count": 6},
+        "views": {"mode": "trajectory", "trajectory_max_frames": 60, "trajectory_min_frames": 30, "resolution": 32},
+    }))
+    out = tmp_path / "out"
+    assert main(["plan", str(room), "--out", str(out), "--spec", str(spec), "--seed", "1"]) == 0
+    assert "trajectory clips of 6 points" in capsys.readouterr().err
+    rec = json.loads((out / "job.json").read_text())["spaces"]["room"]
+    plan = plan_from_json((out / rec["plan"]).read_text())
+    clips = rec["clips"]
+    assert clips["dropped"] == sum(n["outcome"] == "dropped" for n in plan.clip_notes) > 0
+    assert clips["shortened"] + clips["dropped"] == len(plan.clip_notes) == len(clips["notes"])
+    assert rec["counts"]["points"] == 6 - clips["dropped"] and "trajectory clips" in rec["shortfall"]

@@ -16,11 +16,11 @@ import numpy as np
 
 from services.core.jobspec import CameraSpec, JobSpec
 from services.core.keys import check_name
-from services.core.plan import CameraPose, PlanError, PlannedView, PointOfInterest, SpacePlan
+from services.core.plan import CameraPose, PlanError, PlannedView, PointOfInterest, SpacePlan, clip_shortfall
 from services.core.spaces import LoadedSpace
 from services.scheduler.planning.cameras import generate_cameras, object_cameras, provided_cameras
 from services.scheduler.planning.points import SampledPoints, sample_points
-from services.scheduler.planning.trajectory import trajectory
+from services.scheduler.planning.trajectory import ClipNote, trajectory
 from services.scheduler.planning.views import (
     ViewArrays,
     fraction_summary,
@@ -85,15 +85,16 @@ def make_plan(
     stamp["points"] = t2 - t1
 
     vs = spec.views
+    notes: list[ClipNote] = []
     if vs.mode == "wide_baseline":
         views = wide_baseline(sampled.positions, sampled.normals, sampled.visible, cams, vs, ps.max_views, rng)
     else:
-        views = trajectory(
+        views, notes = trajectory(
             sampled.positions, sampled.normals, sampled.visible, cams, vs, ps.max_views, q,
-            ps.los_tolerance_m, rng,
+            ps.los_tolerance_m, cs.clearance_m, rng,
         )
     shortfall = sampled.shortfall
-    keep_points = np.arange(len(sampled.positions))
+    keep_points = np.unique(views.point_idx) if notes else np.arange(len(sampled.positions))
     if vs.nonfixated_pruning and len(views):
         views = views.subset(nonfixated_keep(views, sampled.positions, sampled.visible, vs.resolution))
         n_views = np.bincount(views.point_idx, minlength=len(sampled.positions))
@@ -104,7 +105,7 @@ def make_plan(
                 f"nonfixated pruning kept {len(keep_points)} of {len(sampled.positions)} points "
                 f"(>= {ps.min_views} views that each see another point)"
             )
-            shortfall = f"{shortfall}; {note}" if shortfall else note
+            shortfall = _join(shortfall, note)
     if vs.min_valid_fraction > 0:
         fractions = valid_fractions(q, views, spec.params.max_depth_m)
         valid_summary = fraction_summary(fractions, vs.min_valid_fraction)
@@ -122,12 +123,14 @@ def make_plan(
                 f"views.min_valid_fraction {vs.min_valid_fraction} dropped {valid_summary['dropped']} views; "
                 f"{len(kept)} of {len(keep_points)} points keep >= {ps.min_views} views"
             )
-            shortfall = f"{shortfall}; {note}" if shortfall else note
+            shortfall = _join(shortfall, note)
         keep_points = kept
     t3 = time.perf_counter()
     stamp["views"] = t3 - t2
 
-    plan = _assemble(space_name, salt, cams, source, cs, sampled, keep_points, views, vs.resolution, shortfall)
+    plan = _assemble(
+        space_name, salt, cams, source, cs, sampled, keep_points, views, vs.resolution, shortfall, notes
+    )
     plan = dataclasses.replace(plan, valid_fraction=valid_summary)
     stamp["assemble"] = time.perf_counter() - t3
     if timings is not None:
@@ -135,6 +138,11 @@ def make_plan(
         timings["rays"] = float(q.rays)
         timings["total"] = time.perf_counter() - t0
     return plan
+
+
+def _join(*parts: str | None) -> str | None:
+    text = "; ".join(p for p in parts if p)
+    return text or None
 
 
 def _assemble(
@@ -148,6 +156,7 @@ def _assemble(
     views: ViewArrays,
     resolution: int,
     shortfall: str | None,
+    notes: list[ClipNote],
 ) -> SpacePlan:
     given = [p.uuid for p in cs.poses] if source == "provided" and cs.poses else [None] * len(cams)
     cameras = tuple(
@@ -177,4 +186,10 @@ def _assemble(
         )
         for i, o in enumerate(order)
     )
-    return SpacePlan(space_name=space_name, cameras=cameras, points=points, views=planned, shortfall=shortfall)
+    # clip notes name the points by their index in the plan (None: dropped)
+    clip_notes = tuple(n.as_dict(int(new_idx[n.point]) if new_idx[n.point] >= 0 else None) for n in notes)
+    shortfall = _join(shortfall, clip_shortfall(clip_notes, len(sampled.positions)))
+    return SpacePlan(
+        space_name=space_name, cameras=cameras, points=points, views=planned, shortfall=shortfall,
+        clip_notes=clip_notes,
+    )

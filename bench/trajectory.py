@@ -2,7 +2,7 @@
 
 Plans trajectory views (spacing 0.1 m, up to 300 frames per point) on the ICL-NUIM living room
 (`../shared/scenes/icl_livingroom`, stored -Y up, so the spec gives up_axis "-y") and on synthetic
-furnished rooms (tests.scheduler.scenes.random_furnished_room), fixated ("point") and walk-through
+furnished rooms (tests.fixtures.scenes.random_furnished_room), fixated ("point") and walk-through
 ("ahead") clips, and measures over every clip, independently of the planner's own checks:
   turn of the direction of motion per frame (angle between consecutive camera displacements), the
   camera rotation per frame (angle of R_b R_a^T, view and roll), frame spacing, the exact distance of
@@ -41,7 +41,7 @@ from services.core.plan import SpacePlan, clip_summary  # noqa: E402
 from services.core.spaces import LoadedSpace, load_space  # noqa: E402
 from services.scheduler.planning import make_plan, space_rng  # noqa: E402
 from services.scheduler.planning.trajectory import rotation_angles, turn_angles  # noqa: E402
-from tests.scheduler.scenes import as_space, random_furnished_room  # noqa: E402
+from tests.fixtures.scenes import as_space, random_furnished_room  # noqa: E402
 
 SCENES = ROOT.parent / "shared" / "scenes"
 

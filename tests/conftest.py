@@ -2,13 +2,18 @@
 
 Nothing is skipped when a service is down: the fixture fails with a message (`make services` starts them).
 Database tests run the Alembic migrations once per session and roll back each test's work.
+Tests that need Blender (bpy, in this process or in the commands they run) are marked `bpy`:
+`pytest -m "not bpy"` runs the pure ones; with OMNIDATA_TEST_WITHOUT_BPY=1 importing bpy here fails, to prove it.
 """
 
 from __future__ import annotations
 
+import importlib.abc
 import os
+import re
 import secrets
 import socket
+import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -16,6 +21,7 @@ from pathlib import Path
 from urllib.parse import urlparse
 
 import pytest
+from _pytest.mark.expression import Expression
 from sqlalchemy import Connection, Engine, create_engine, text
 from sqlalchemy.engine import make_url
 from sqlalchemy.orm import Session
@@ -23,6 +29,29 @@ from sqlalchemy.orm import Session
 from services.core.db import make_engine, migrate
 from services.core.settings import Settings, get_settings
 from services.core.storage import LocalStore
+
+
+class _NoBpy(importlib.abc.MetaPathFinder):
+    def find_spec(self, name: str, path: object = None, target: object = None) -> None:
+        if name == "bpy" or name.startswith("bpy."):
+            raise ModuleNotFoundError("bpy is blocked by OMNIDATA_TEST_WITHOUT_BPY (a test not marked bpy needs it)")
+
+
+if os.environ.get("OMNIDATA_TEST_WITHOUT_BPY"):
+    sys.meta_path.insert(0, _NoBpy())
+
+_BPY_MODULE = re.compile(r"^pytestmark = .*pytest\.mark\.bpy\b", re.MULTILINE)
+
+
+def pytest_ignore_collect(collection_path: Path, config: pytest.Config) -> bool | None:
+    """Do not even import a module marked `bpy` as a whole when the -m expression deselects bpy tests."""
+    expr = config.option.markexpr
+    if not expr or collection_path.suffix != ".py" or not collection_path.name.startswith("test_"):
+        return None
+    if Expression.compile(expr).evaluate(lambda name: name == "bpy"):
+        return None
+    return True if _BPY_MODULE.search(collection_path.read_text(encoding="utf-8")) else None
+
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 PG_ADMIN_URL = os.environ.get("OMNIDATA_TEST_PG_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/postgres")

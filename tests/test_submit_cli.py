@@ -115,7 +115,7 @@ def test_submit_without_a_service_says_so_and_writes_nothing(
 
 
 def test_submit_over_http_uploads_once_and_reads_progress(pg_url, local_store, scenes_dir):
-    from tests.api.helpers import make_api
+    from tests.fixtures.api import make_api
 
     spec = JobSpec.model_validate({"cameras": {"mode": "object", "object_count": 6},
                                    "points": {"count": 1, "min_views": 2, "max_views": 2}})

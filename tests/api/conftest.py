@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from services.core.storage import LocalStore
-from tests.api.helpers import Api, make_api
+from tests.fixtures.api import Api, make_api
 
 
 @pytest.fixture()

@@ -6,7 +6,7 @@ import re
 
 import pytest
 
-from tests.api.helpers import Api
+from tests.fixtures.api import Api
 
 PUBLIC = {"/health", "/ready", "/blobs/{key}", "/previews/{key}"}  # signed links: the signature is the credential
 

@@ -14,7 +14,7 @@ import pytest
 
 from services.cli import main
 from services.core.settings import hash_token
-from tests.api.helpers import free_port
+from tests.fixtures.api import free_port
 
 
 def test_serve_refuses_a_bad_port(capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:

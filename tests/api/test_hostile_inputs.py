@@ -14,7 +14,7 @@ from sqlalchemy import func, select
 from services.core.jobspec import JobSpec
 from services.core.models import Job, Space
 from services.core.storage import LocalStore
-from tests.api.helpers import Api, make_api
+from tests.fixtures.api import Api, make_api
 from tests.hostile_corpus import HOSTILE_FILES, VALID_FILES
 
 

@@ -9,7 +9,7 @@ from sqlalchemy import select
 
 from services.api.jobs.service import RateTracker
 from services.core.models import Job, JobCounter, Task
-from tests.api.helpers import Api, fake_plan, run_tasks, task_ids
+from tests.fixtures.api import Api, fake_plan, run_tasks, task_ids
 
 
 @pytest.fixture()

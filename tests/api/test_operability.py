@@ -21,8 +21,8 @@ from services.core.models import Space, Task, Worker, utcnow
 from services.core.settings import hash_token
 from services.core.storage import LocalStore, open_store
 from services.scheduler.worker_rows import expire_worker_rows
-from tests.api.helpers import Api, fake_plan, live_server, make_api, task_ids
 from tests.conftest import S3Server, create_pg_database, drop_pg_database
+from tests.fixtures.api import Api, fake_plan, live_server, make_api, task_ids
 
 OPERATOR_TOKEN = secrets.token_urlsafe(24)
 OPERATOR = {"Authorization": f"Bearer {OPERATOR_TOKEN}"}

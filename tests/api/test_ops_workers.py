@@ -11,7 +11,7 @@ import redis
 from services.core.models import Worker, utcnow
 from services.core.settings import hash_token
 from services.core.storage import LocalStore
-from tests.api.helpers import Api, fake_plan, free_port, make_api, run_tasks, task_ids
+from tests.fixtures.api import Api, fake_plan, free_port, make_api, run_tasks, task_ids
 
 OPERATOR_TOKEN = secrets.token_urlsafe(24)
 OPERATOR = {"Authorization": f"Bearer {OPERATOR_TOKEN}"}  # service-wide /metrics (Prometheus)

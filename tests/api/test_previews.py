@@ -12,8 +12,8 @@ import numpy as np
 from PIL import Image
 
 from services.api.outputs.service import blob_signature
-from tests.api.helpers import Api, run_tasks, task_ids
 from tests.api.test_views_outputs import _job, _space
+from tests.fixtures.api import Api, run_tasks, task_ids
 
 
 def _png_pixels(data: bytes) -> np.ndarray:
@@ -81,7 +81,7 @@ def test_preview_links_are_checked(api: Api, bunny: Path) -> None:
 
 def test_previews_on_s3(pg_url: str, s3_server, bunny: Path) -> None:  # type: ignore[no-untyped-def]
     from services.core.storage import open_store
-    from tests.api.helpers import make_api
+    from tests.fixtures.api import make_api
 
     settings = s3_server.settings(prefix="preview-test")
     store = open_store(settings.storage_url, settings)

@@ -12,7 +12,7 @@ from urllib.parse import urlparse
 import httpx
 
 from services.core.storage import LocalStore
-from tests.api.helpers import Api, live_server, make_api
+from tests.fixtures.api import Api, live_server, make_api
 
 BIG = 50 * 1024**2
 

@@ -14,7 +14,7 @@ from schemathesis import runner
 from schemathesis.checks import not_a_server_error
 from schemathesis.runner import events
 
-from tests.api.helpers import Api, fake_plan, run_tasks, task_ids
+from tests.fixtures.api import Api, fake_plan, run_tasks, task_ids
 
 
 def test_no_server_errors_over_the_schema(api: Api, bunny: Path) -> None:

@@ -12,7 +12,7 @@ import pytest
 from sqlalchemy import func, select
 
 from services.core.models import Space
-from tests.api.helpers import Api, make_api
+from tests.fixtures.api import Api, make_api
 
 
 def upload(api: Api, filename: str, data: bytes, headers: dict[str, str] | None = None, **fields: str):  # type: ignore[no-untyped-def]
@@ -215,7 +215,7 @@ def test_upload_reports_the_detected_frame_and_refuses_bad_units(api: Api, tmp_p
     import numpy as np
     import trimesh
 
-    from tests.scheduler import scenes
+    from tests.fixtures import scenes
 
     room = scenes.furnished_room().apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
     room.apply_scale(100.0)

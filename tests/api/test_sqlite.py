@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from services.core.storage import LocalStore
-from tests.api.helpers import fake_plan, make_api, run_tasks, task_ids
+from tests.fixtures.api import fake_plan, make_api, run_tasks, task_ids
 
 
 def test_api_on_sqlite(sqlite_url: str, local_store: LocalStore, scenes_dir: Path) -> None:

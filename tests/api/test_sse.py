@@ -11,7 +11,7 @@ from typing import Any
 import httpx
 import pytest
 
-from tests.api.helpers import Api, fake_plan, live_server, run_tasks, task_ids
+from tests.fixtures.api import Api, fake_plan, live_server, run_tasks, task_ids
 
 
 class SSEReader:

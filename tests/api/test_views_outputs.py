@@ -11,7 +11,7 @@ import httpx
 import pytest
 
 from services.core.storage import open_store
-from tests.api.helpers import Api, fake_plan, make_api, run_tasks, task_ids
+from tests.fixtures.api import Api, fake_plan, make_api, run_tasks, task_ids
 
 
 def _job(api: Api, bunny: Path, cues: list[str], points: int = 3, views: int = 2) -> int:

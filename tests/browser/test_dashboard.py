@@ -16,7 +16,7 @@ from sqlalchemy import select
 
 from services.core.models import Job, Worker, utcnow
 from services.core.storage import LocalStore
-from tests.api.helpers import fake_plan, live_server, make_api, run_tasks, task_ids
+from tests.fixtures.api import fake_plan, live_server, make_api, run_tasks, task_ids
 
 pytestmark = pytest.mark.slow
 

@@ -12,8 +12,9 @@ from services.core.jobs import root_key
 from services.core.keys import output_key
 from services.core.models import Job
 from services.core.storage import LocalStore
-from tests.api.helpers import fake_plan, live_server, make_api, run_tasks, task_ids
-from tests.datasets.conftest import WIDE, generate
+from tests.fixtures.api import fake_plan, live_server, make_api, run_tasks, task_ids
+from tests.fixtures.cli import WIDE
+from tests.fixtures.cli import generate_output as generate
 
 pytestmark = pytest.mark.slow
 

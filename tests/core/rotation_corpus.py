@@ -15,7 +15,7 @@ import numpy as np
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from tests.scheduler import scenes
+from tests.fixtures import scenes
 
 # metres per source unit of the exports: millimetres, centimetres, inches, metres
 SCALES = (0.001, 0.01, 0.0254, 1.0)

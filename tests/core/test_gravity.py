@@ -11,7 +11,7 @@ import trimesh
 from services.core.gravity import UnitError, choose_unit_scale, estimate_up, plane_families
 from services.core.spaces import SpaceError, load_space
 from tests.core import rotation_corpus as corpus
-from tests.scheduler import scenes
+from tests.fixtures import scenes
 
 
 @pytest.fixture(scope="module")

@@ -15,7 +15,7 @@ from scipy.spatial import cKDTree
 from services.core.pointcloud import CloudError, poisson_depth, read_text_cloud
 from services.core.space_registry import pack_source
 from services.core.spaces import SpaceError, load_space, resolve_source
-from tests.scheduler import scenes
+from tests.fixtures import scenes
 
 # --- ScanNet ---------------------------------------------------------------------------------------
 

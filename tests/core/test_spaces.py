@@ -14,7 +14,7 @@ import trimesh
 from PIL import Image
 
 from services.core.spaces import SpaceError, load_space, resolve_source, rotation_to_z
-from tests.scheduler import scenes
+from tests.fixtures import scenes
 
 
 @pytest.fixture(scope="module")

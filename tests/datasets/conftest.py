@@ -2,34 +2,12 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[2]
-WIDE = """
-cameras: {mode: object, object_count: 6}
-points: {count: 2, min_views: 2, max_views: 2}
-views: {resolution: 32}
-"""
-TRAJECTORY = """
-cameras: {mode: object, object_count: 6}
-points: {count: 1, min_views: 2}
-views: {resolution: 32, mode: trajectory, trajectory_max_frames: 5}
-"""
-
-
-def generate(scene: Path, out: Path, spec_text: str, name: str, seed: int) -> Path:
-    """Run `omnidata generate` (every default cue) in a fresh interpreter; returns the output folder."""
-    spec = out.parent / f"{name}.yaml"
-    spec.write_text(spec_text)
-    cmd = [sys.executable, "-m", "services.cli", "generate", str(scene), "--out", str(out), "--spec", str(spec),
-           "--seed", str(seed), "--workers", "1", "--name", name, "--no-progress"]
-    res = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=300)
-    assert res.returncode == 0, res.stderr
-    return out
+from tests.fixtures.cli import TRAJECTORY, WIDE
+from tests.fixtures.cli import generate_output as generate
 
 
 @pytest.fixture(scope="session")

@@ -9,7 +9,7 @@ import pytest
 
 from services.core.cues import CATALOG, OUTPUT_CUES, default_cues
 from services.scheduler.compile import check_dag, compile_tasks
-from tests.scheduler.helpers import synthetic_plan
+from tests.fixtures.jobs import synthetic_plan
 
 
 def test_counts_follow_the_closure_and_per_point_cues():

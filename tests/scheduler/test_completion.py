@@ -1,4 +1,4 @@
-# ruff: noqa: F811  -- the fixtures imported from tests.scheduler.helpers are redefined as test arguments
+# ruff: noqa: F811  -- the fixtures imported from tests.fixtures.jobs are redefined as test arguments
 """Completion: a finished job gets manifest.jsonl (one line per view) and job.json; failures are summarised."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from services.core.models import Job
 from services.scheduler.completion import complete_once, finished_job_ids
 from services.scheduler.dispatch import dispatch_once
 from services.scheduler.transport import NullTransport
-from tests.scheduler.helpers import any_sm, claim, finish, make_running_job, pg_sm, sqlite_sm, task_ids  # noqa: F401  (fixtures)
+from tests.fixtures.jobs import any_sm, claim, finish, make_running_job, pg_sm, sqlite_sm, task_ids  # noqa: F401  (fixtures)
 
 
 def _run_all(s, job):

@@ -1,4 +1,4 @@
-# ruff: noqa: F811  -- the fixtures imported from tests.scheduler.helpers are redefined as test arguments
+# ruff: noqa: F811  -- the fixtures imported from tests.fixtures.jobs are redefined as test arguments
 """Dispatch: the cue DAG, the per-job window, priorities, fairness, cancel and pause (Postgres and SQLite)."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from services.core.jobs import cancel_job, pause_job, resume_job
 from services.core.models import Task, utcnow
 from services.scheduler.dispatch import dispatch_once, ready_tasks
 from services.scheduler.transport import NullTransport
-from tests.scheduler.helpers import (  # noqa: F401  (fixtures)
+from tests.fixtures.jobs import (  # noqa: F401  (fixtures)
     any_sm,
     assert_counters_exact,
     claim,

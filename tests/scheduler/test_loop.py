@@ -1,4 +1,4 @@
-# ruff: noqa: F811  -- the fixtures imported from tests.scheduler.helpers are redefined as test arguments
+# ruff: noqa: F811  -- the fixtures imported from tests.fixtures.jobs are redefined as test arguments
 """The scheduler loop end to end: plan with the real planner, dispatch, finish; real Redis; DB restarts."""
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from services.core.storage import LocalStore
 from services.scheduler.loop import Scheduler
 from services.scheduler.transport import CeleryTransport, NullTransport
 from tests.conftest import PG_ADMIN_URL, create_pg_database, drop_pg_database
-from tests.scheduler.helpers import any_sm, assert_counters_exact, finish, pg_sm, sqlite_sm, task_ids  # noqa: F401  (fixtures)
+from tests.fixtures.jobs import any_sm, assert_counters_exact, finish, pg_sm, sqlite_sm, task_ids  # noqa: F401  (fixtures)
 
 SPEC = {
     "cues": ["point_info", "rgb"],
@@ -145,7 +145,7 @@ def test_postgres_scheduler_puts_messages_on_redis(own_sm, redis_url, tmp_path, 
 
 
 def test_two_schedulers_never_send_a_task_twice(own_sm, tmp_path):
-    from tests.scheduler.helpers import make_running_job
+    from tests.fixtures.jobs import make_running_job
 
     store = LocalStore(tmp_path / "objects")
     with own_sm() as s:

@@ -15,7 +15,7 @@ from services.cli import main
 from services.core.keys import file_name
 from services.core.plan import nonfixated, plan_from_json, point_info, vanishing_points
 from services.core.spaces import load_space
-from tests.scheduler import scenes
+from tests.fixtures import scenes
 
 SPEC = {
     "name": "demo",

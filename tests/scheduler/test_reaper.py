@@ -1,4 +1,4 @@
-# ruff: noqa: F811  -- the fixtures imported from tests.scheduler.helpers are redefined as test arguments
+# ruff: noqa: F811  -- the fixtures imported from tests.fixtures.jobs are redefined as test arguments
 """Reaper: expired leases go back to pending (or fail when out of attempts); lost queued tasks are re-sent."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from services.core.models import Task, utcnow
 from services.scheduler.dispatch import dispatch_once
 from services.scheduler.reaper import reap_once
 from services.scheduler.transport import NullTransport
-from tests.scheduler.helpers import (  # noqa: F401  (fixtures)
+from tests.fixtures.jobs import (  # noqa: F401  (fixtures)
     any_sm,
     assert_counters_exact,
     claim,

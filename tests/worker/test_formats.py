@@ -7,6 +7,7 @@ import io
 from pathlib import Path
 
 import numpy as np
+import pytest
 import trimesh
 from PIL import Image
 
@@ -19,6 +20,8 @@ from services.worker.space_cache import SpaceContext
 from tests.core.test_scan_formats import room_cloud, scannet_scene
 from tests.fixtures.raycast import object_view, raycast, smooth_mask
 from tests.worker.test_render import sample_texture
+
+pytestmark = pytest.mark.bpy  # every test renders
 
 
 def test_glb_renders_its_base_colour_texture(tmp_path: Path, banana_path: Path) -> None:

@@ -32,7 +32,7 @@ from services.core.plan import (
 )
 from services.core.spaces import load_space
 from services.scheduler.planning import make_plan, space_rng
-from tests.scheduler import scenes
+from tests.fixtures import scenes
 
 OMNIDATA_KEYS = {
     "point_uuid", "view_id", "camera_uuid", "camera_location", "camera_rotation_final",

@@ -18,7 +18,7 @@ from services.scheduler.planning.cameras import (
     provided_cameras,
 )
 from services.scheduler.planning.visibility import MeshQueries
-from tests.scheduler import scenes
+from tests.fixtures import scenes
 
 SPEC = CameraSpec(min_spacing_m=0.5, height_min_m=0.2, height_max_m=2.0, clearance_m=0.1, max_count=1000)
 

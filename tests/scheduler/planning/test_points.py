@@ -12,7 +12,7 @@ from services.scheduler.planning import make_plan
 from services.scheduler.planning.cameras import generate_cameras
 from services.scheduler.planning.points import sample_points, visibility_matrix
 from services.scheduler.planning.visibility import MeshQueries, require_embree
-from tests.scheduler import scenes
+from tests.fixtures import scenes
 
 CAMS = CameraSpec(max_count=40, min_spacing_m=0.7)
 

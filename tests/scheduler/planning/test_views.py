@@ -13,7 +13,7 @@ from services.scheduler.planning.cameras import generate_cameras
 from services.scheduler.planning.points import sample_points
 from services.scheduler.planning.views import look_at_batch, nonfixated_keep, truncated_normal, wide_baseline
 from services.scheduler.planning.visibility import MeshQueries
-from tests.scheduler import scenes
+from tests.fixtures import scenes
 
 
 @pytest.fixture(scope="module")

@@ -22,7 +22,7 @@ from services.scheduler.planning.trajectory import (
     turn_angles,
 )
 from services.scheduler.planning.visibility import MeshQueries
-from tests.scheduler import scenes
+from tests.fixtures import scenes
 
 
 def _centres(W: np.ndarray) -> np.ndarray:

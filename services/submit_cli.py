@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from services.cli import CliError
-from services.core.models import JOB_TERMINAL_STATES, TASK_TERMINAL_STATES, JobState
+from services.core.models import JOB_TERMINAL_STATES, TASK_TERMINAL_STATES, JobState, TaskState
 from services.spec_args import add_spec_arguments, build_spec, check_sources
 
 
@@ -126,7 +126,7 @@ class Api:
         job = self._call("GET", f"/jobs/{job_id}")
         p = job.get("progress") or {}
         by = p.get("by_state") or {}
-        return Status(job["state"], int(p.get("total", 0)), int(p.get("finished", 0)), int(by.get("failed", 0)),
+        return Status(job["state"], int(p.get("total", 0)), int(p.get("finished", 0)), int(by.get(TaskState.FAILED, 0)),
                       p.get("labels_per_s"), p.get("eta_s"), job.get("error"))
 
 
@@ -220,11 +220,11 @@ def db_status_fn(settings: Any) -> tuple[Callable[[int], Status], Callable[[], N
             prog = job_progress(s, job_id)
         total = sum(sum(st.values()) for st in prog.values())
         finished = sum(st.get(k, 0) for st in prog.values() for k in TASK_TERMINAL_STATES)
-        labels = sum(st.get("done", 0) for cue, st in prog.items() if not CATALOG[cue].internal)
+        labels = sum(st.get(TaskState.DONE, 0) for cue, st in prog.items() if not CATALOG[cue].internal)
         first_labels = labels if first_labels is None else first_labels
         dt = time.monotonic() - t0
         rate = (labels - first_labels) / dt if dt > 1 else None
-        return Status(job.state, total, finished, sum(st.get("failed", 0) for st in prog.values()), rate, None,
+        return Status(job.state, total, finished, sum(st.get(TaskState.FAILED, 0) for st in prog.values()), rate, None,
                       job.error)
 
     return status, engine.dispose

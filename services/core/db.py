@@ -22,7 +22,7 @@ from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import DeclarativeBase, Session, sessionmaker
 from sqlalchemy.pool import NullPool
 
-from services.core.models import JobCounter, UTCDateTime
+from services.core.models import JobCounter, TaskState, UTCDateTime
 from services.core.settings import ConfigurationError
 
 MIGRATIONS_DIR = Path(__file__).resolve().parents[2] / "migrations"
@@ -290,7 +290,7 @@ def add_counts(session: Session | Connection, job_id: int, deltas: Mapping[tuple
 
 def init_counts(session: Session | Connection, job_id: int, pending: Mapping[str, int]) -> None:
     """Record freshly planned tasks: `pending[cue]` tasks of each cue in state 'pending'."""
-    add_counts(session, job_id, {(cue, "pending"): n for cue, n in pending.items()})
+    add_counts(session, job_id, {(cue, TaskState.PENDING): n for cue, n in pending.items()})
 
 
 def job_progress(session: Session | Connection, job_id: int) -> dict[str, dict[str, int]]:

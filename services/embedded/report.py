@@ -41,8 +41,8 @@ class Progress:
                 done, total = views_done(s, job.id)
                 self.views_text = f"views {done}/{total}"
         total = sum(n for cue, st in prog.items() if not CATALOG[cue].internal for st_name, n in st.items()
-                    if st_name != "cancelled")
-        done = sum(st.get("done", 0) for cue, st in prog.items() if not CATALOG[cue].internal)
+                    if st_name != TaskState.CANCELLED)
+        done = sum(st.get(TaskState.DONE, 0) for cue, st in prog.items() if not CATALOG[cue].internal)
         if total == 0:
             return
         if self.bar is None:

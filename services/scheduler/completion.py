@@ -45,7 +45,7 @@ def finished_job_ids(session: Session) -> list[int]:
 
 def failure_summary(session: Session, job: Job, progress: dict[str, dict[str, int]]) -> str | None:
     """'N of M tasks failed (cue: n, ...); first: <error>' or None when nothing failed."""
-    failed = {cue: s["failed"] for cue, s in progress.items() if s.get("failed")}
+    failed = {cue: s[TaskState.FAILED] for cue, s in progress.items() if s.get(TaskState.FAILED)}
     if not failed:
         return None
     total = sum(sum(s.values()) for s in progress.values())

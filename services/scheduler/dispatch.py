@@ -39,8 +39,8 @@ DEFAULT_BUDGET = 20_000  # tasks dispatched per pass at most (bounds one transac
 SEND_CHUNK = 1_000  # tasks per transport.send call: the first messages reach workers while the rest are built
 SCAN_MARGIN = 64  # extra rows looked at per cue beyond what the counters predict
 SCAN_CAP = 200_000  # rows looked at per cue and pass at most
-INFLIGHT = ("queued", "running")
-UPSTREAM_FAILED = ("failed", "cancelled")
+INFLIGHT = (TaskState.QUEUED, TaskState.RUNNING)
+UPSTREAM_FAILED = (TaskState.FAILED, TaskState.CANCELLED)
 
 
 @dataclass
@@ -74,7 +74,7 @@ class JobLoad:
     @property
     def pending(self) -> int:
         """Pending tasks of the job."""
-        return sum(per.get("pending", 0) for per in self.counts.values())
+        return sum(per.get(TaskState.PENDING, 0) for per in self.counts.values())
 
     @property
     def inflight(self) -> int:
@@ -175,7 +175,7 @@ def ready_tasks(
         load = next((j for j in _loads_of(session, [job_id])), JobLoad(job_id, 0))
     plans: list[tuple[str, int, int]] = []  # (cue, ready wanted, rows to read at most)
     for cue, per in load.counts.items():
-        if not per.get("pending") or cue not in CATALOG:
+        if not per.get(TaskState.PENDING) or cue not in CATALOG:
             continue
         inputs = CATALOG[cue].inputs
         if not inputs:
@@ -185,10 +185,10 @@ def ready_tasks(
         else:
             # ready <= views whose inputs are done minus this cue's tasks already past pending;
             # rows ahead of them are blocked by in-flight inputs or doomed by failed ones.
-            past_pending = sum(n for s, n in per.items() if s != "pending")
-            possible = min(load.n(x, "done") for x in inputs) - past_pending
+            past_pending = sum(n for s, n in per.items() if s != TaskState.PENDING)
+            possible = min(load.n(x, TaskState.DONE) for x in inputs) - past_pending
             failed_inputs = sum(load.n(x, *UPSTREAM_FAILED) for x in inputs)
-            undoomed = failed_inputs - per.get("failed", 0)
+            undoomed = failed_inputs - per.get(TaskState.FAILED, 0)
             if possible <= 0 and undoomed <= 0:
                 continue  # every pending task of this cue waits for an input that has not finished
             blocked_ahead = sum(load.n(x, *INFLIGHT) for x in inputs) + max(undoomed, 0)

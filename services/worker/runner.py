@@ -285,7 +285,7 @@ class TaskRunner:
         def step() -> bool:
             with self.sessionmaker() as s:
                 ok = self._move_mine(
-                    s, t, "done", output_key=key, size=int(info.size), sha256=info.sha256,
+                    s, t, TaskState.DONE, output_key=key, size=int(info.size), sha256=info.sha256,
                     duration_s=float(duration), finished_at=utcnow(), lease_until=None, error=None,
                 )
                 s.commit()
@@ -314,12 +314,12 @@ class TaskRunner:
                 if t.attempts < max_attempts:
                     status = "retry"
                     ok = self._move_mine(
-                        s, t, "pending", error=error, lease_until=None, queued_at=None, worker_id=None,
+                        s, t, TaskState.PENDING, error=error, lease_until=None, queued_at=None, worker_id=None,
                         not_before=now + timedelta(seconds=retry_backoff_s(t.attempts)),
                     )
                 else:
                     status = "failed"
-                    ok = self._move_mine(s, t, "failed", error=error, lease_until=None, finished_at=now,
+                    ok = self._move_mine(s, t, TaskState.FAILED, error=error, lease_until=None, finished_at=now,
                                          duration_s=float(duration))
                 self._count_failure(s, t.job_id, now)
                 s.commit()

@@ -35,19 +35,22 @@ from services.core import jobs as core_jobs
 from services.core.cues import CATALOG
 from services.core.models import (
     JOB_TERMINAL_STATES,
+    TASK_ACTIVE_STATES,
     TASK_STATES,
+    TASK_TERMINAL_STATES,
     Job,
     JobCounter,
     JobSpace,
     JobState,
     Space,
+    TaskState,
     utcnow,
 )
 from services.core.spaces import frame_of
 from services.core.storage import ObjectStore
 
-FINISHED_STATES = ("done", "failed", "cancelled")
-REMAINING_STATES = ("pending", "queued", "running")
+FINISHED_STATES = TASK_TERMINAL_STATES
+REMAINING_STATES = TASK_ACTIVE_STATES
 
 Counters = dict[str, dict[str, int]]  # cue -> state -> n
 _CUE_ORDER = {name: i for i, name in enumerate(CATALOG)}
@@ -125,8 +128,8 @@ def compute_progress(
         for s, n in by.items():
             totals[s] += n
         if cue in CATALOG and not CATALOG[cue].internal:
-            labels_done += by["done"]
-        cues[cue] = CueProgress(by_state=by, total=total, done=by["done"], fraction=fin / total if total else 0.0)
+            labels_done += by[TaskState.DONE]
+        cues[cue] = CueProgress(by_state=by, total=total, done=by[TaskState.DONE], fraction=fin / total if total else 0.0)
     total = sum(totals.values())
     finished = sum(totals[s] for s in FINISHED_STATES)
     remaining = sum(totals[s] for s in REMAINING_STATES)

@@ -178,14 +178,14 @@ def build_metrics(session: Session, app: FastAPI, owner: str | None = None) -> s
     for s in JOB_STATES:
         out.sample("omnidata_jobs", jobs.get(s, 0), state=s)
 
-    dispatched = sum(by_state[s] for s in ("queued", "running", "done", "failed"))
+    dispatched = sum(by_state[s] for s in (TaskState.QUEUED, TaskState.RUNNING, TaskState.DONE, TaskState.FAILED))
     out.family(
         "omnidata_tasks_dispatched_total", "counter", "Tasks handed to the broker at least once (existing jobs)."
     )
     out.sample("omnidata_tasks_dispatched_total", dispatched)
     out.family("omnidata_tasks_completed_total", "counter", "Tasks that finished, by result (existing jobs).")
-    out.sample("omnidata_tasks_completed_total", by_state["done"], result="done")
-    out.sample("omnidata_tasks_completed_total", by_state["failed"], result="failed")
+    out.sample("omnidata_tasks_completed_total", by_state[TaskState.DONE], result="done")
+    out.sample("omnidata_tasks_completed_total", by_state[TaskState.FAILED], result="failed")
 
     if owner is None:
         out.family("omnidata_queue_depth", "gauge", "Messages waiting in a broker queue (Redis LLEN); -1 if unknown.")

@@ -16,22 +16,34 @@ from services.api.jobs.service import read_counters
 from services.api.pagination import PageParams
 from services.api.views.schemas import PlanSpace, TaskBrief, TaskRead, ThroughputBucket, ViewRead
 from services.core.cues import CATALOG
-from services.core.models import Camera, Job, JobSpace, Point, Space, Task, TaskState, View, utcnow
+from services.core.models import (
+    JOB_TERMINAL_STATES,
+    Camera,
+    Job,
+    JobSpace,
+    Point,
+    Space,
+    Task,
+    TaskState,
+    View,
+    utcnow,
+)
 
 MAX_PLAN_ITEMS = 20_000  # cameras or points per space in one plan response
 PER_POINT = tuple(n for n, c in CATALOG.items() if c.per_point)
-_STATE_ORDER = ("failed", "running", "queued", "pending", "cancelled", "done")
+_STATE_ORDER = (TaskState.FAILED, TaskState.RUNNING, TaskState.QUEUED, TaskState.PENDING, TaskState.CANCELLED,
+                TaskState.DONE)
 
 
 def view_state(states: Sequence[str]) -> str:
     """One state for a view from its tasks' states (failed > running > queued > pending > cancelled > done)."""
     if not states:
-        return "pending"
+        return TaskState.PENDING
     present = set(states)
     for s in _STATE_ORDER:
         if s in present:
             return s
-    return "pending"
+    return TaskState.PENDING
 
 
 def _task_of_view(state: str | None = None, cue: str | None = None, not_state: str | None = None):  # type: ignore[no-untyped-def]
@@ -72,7 +84,7 @@ def list_views(
         cond.append(_task_of_view(state=state, cue=cue))
     if complete:
         cond.append(_task_of_view())
-        cond.append(~_task_of_view(not_state="done"))
+        cond.append(~_task_of_view(not_state=TaskState.DONE))
     total = session.scalar(select(func.count()).select_from(View).where(*cond)) or 0
     rows = session.execute(
         select(View, Space.name)
@@ -260,7 +272,7 @@ def throughput(session: Session, *, job: Job, buckets: int = 60) -> tuple[float,
         _throughput_cache.put((job.id, buckets), result)
         return result
     start: datetime = job.started_at if job.started_at and job.started_at <= first else first
-    end: datetime = max(last, job.finished_at or last) if job.state in ("done", "failed", "cancelled") else utcnow()
+    end: datetime = max(last, job.finished_at or last) if job.state in JOB_TERMINAL_STATES else utcnow()
     span = max((end - start).total_seconds(), 1.0)
     bucket_s = max(1.0, math.ceil(span / buckets))
     idx: ColumnElement[Any]

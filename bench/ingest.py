@@ -51,7 +51,7 @@ def cloud_figures(n_points: int, seed: int) -> dict[str, float | int]:
     from services.core.camera import look_at
     from services.core.spaces import load_space
     from services.worker.passes import ViewGeometry
-    from tests.core.test_scan_formats import room_cloud
+    from tests.fixtures.scans import room_cloud
 
     room, pts, _normals, colours = room_cloud(n_points, seed=seed)
     with tempfile.TemporaryDirectory() as tmp:

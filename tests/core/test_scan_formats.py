@@ -16,40 +16,7 @@ from services.core.pointcloud import CloudError, poisson_depth, read_text_cloud
 from services.core.space_registry import pack_source
 from services.core.spaces import SpaceError, load_space, resolve_source
 from tests.fixtures import scenes
-
-# --- ScanNet ---------------------------------------------------------------------------------------
-
-# (label, objectId or None for unlabelled) of each part of the fixture; parts are separate vertex sets
-SCANNET_PARTS = [("floor", 0), ("chair", 1), ("chair", 2), ("table", 3), (None, None)]
-
-
-def scannet_scene(folder: Path, scene: str = "scene0000_00") -> tuple[Path, list[tuple[int, int, int]]]:
-    """A tiny ScanNet scene: `<scene>_vh_clean_2.ply` (vertex colours), segs.json, aggregation.json.
-
-    Returns the mesh path and, per part, (class id, instance id, faces) expected from the file's own label names.
-    """
-    folder.mkdir(parents=True, exist_ok=True)
-    parts = [trimesh.creation.box(extents=(4.0, 4.0, 0.1)),
-             trimesh.creation.box(extents=(0.5, 0.5, 0.9)).apply_translation([1, 1, 0.5]),
-             trimesh.creation.box(extents=(0.5, 0.5, 0.9)).apply_translation([-1, 1, 0.5]),
-             trimesh.creation.box(extents=(1.2, 0.8, 0.8)).apply_translation([0, -1, 0.45]),
-             trimesh.creation.icosphere(subdivisions=1, radius=0.3).apply_translation([1.5, -1.5, 1.0])]
-    verts, faces, seg_idx = [], [], []
-    for k, part in enumerate(parts):
-        faces.append(part.faces + sum(len(v) for v in verts))
-        verts.append(part.vertices)
-        seg_idx += [100 + 2 * k + (i % 2) for i in range(len(part.vertices))]  # two segments per part
-    mesh = trimesh.Trimesh(np.vstack(verts), np.vstack(faces), process=False,
-                           vertex_colors=np.tile([200, 120, 40, 255], (sum(len(v) for v in verts), 1)))
-    ply = folder / f"{scene}_vh_clean_2.ply"
-    mesh.export(ply)
-    (folder / f"{scene}_vh_clean_2.0.010000.segs.json").write_text(json.dumps({"sceneId": scene, "segIndices": seg_idx}))
-    groups = [{"id": oid, "objectId": oid, "label": label, "segments": [100 + 2 * k, 101 + 2 * k]}
-              for k, (label, oid) in enumerate(SCANNET_PARTS) if oid is not None]
-    (folder / f"{scene}.aggregation.json").write_text(json.dumps({"sceneId": scene, "segGroups": groups}))
-    names = sorted({label for label, oid in SCANNET_PARTS if label})
-    return ply, [(names.index(label) + 1 if label else 0, oid + 1 if oid is not None else 0, len(part.faces))
-                 for (label, oid), part in zip(SCANNET_PARTS, parts, strict=True)]
+from tests.fixtures.scans import room_cloud, scannet_scene
 
 
 def test_scannet_labels_from_segments_and_aggregation(tmp_path: Path) -> None:
@@ -121,15 +88,6 @@ def test_glb_with_texture_and_glb_with_vertex_colours(tmp_path: Path) -> None:
 
 
 # --- point clouds ----------------------------------------------------------------------------------
-
-
-def room_cloud(n: int, seed: int = 0) -> tuple[trimesh.Trimesh, np.ndarray, np.ndarray, np.ndarray]:
-    """Points on the furnished room (no ceiling: a scan from inside), their inward normals and colours."""
-    room = scenes.furnished_room()
-    room.update_faces(room.face_normals[:, 2] > -0.9)
-    pts, face = trimesh.sample.sample_surface(room, n, seed=seed)
-    colours = np.clip(pts / [6.0, 4.0, 2.7] * 255, 0, 255).astype(np.uint8)
-    return room, pts, room.face_normals[face], colours
 
 
 def _write_point_ply(path: Path, pts: np.ndarray, normals: np.ndarray | None, colours: np.ndarray) -> None:

@@ -17,8 +17,8 @@ from services.worker.blender import srgb_encode, srgb_to_linear
 from services.worker.executor import render_view_cues
 from services.worker.passes import ViewGeometry
 from services.worker.space_cache import SpaceContext
-from tests.core.test_scan_formats import room_cloud, scannet_scene
 from tests.fixtures.raycast import object_view, raycast, smooth_mask
+from tests.fixtures.scans import room_cloud, scannet_scene
 from tests.worker.test_render import sample_texture
 
 pytestmark = pytest.mark.bpy  # every test renders

@@ -82,6 +82,23 @@ def test_invalid_values_name_the_field(clean_env: Path, monkeypatch: pytest.Monk
     assert e.value.errors()[0]["loc"] == ("lease_s",)
 
 
+def test_render_threads_is_a_setting_the_runner_uses(clean_env: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from services.core.storage import LocalStore
+    from services.worker.runner import TaskRunner
+
+    assert get_settings().render_threads is None  # Blender's own choice
+    monkeypatch.setenv("OMNIDATA_RENDER_THREADS", "3")
+    settings = get_settings()
+    assert settings.render_threads == 3
+    runner = TaskRunner(None, LocalStore(clean_env), settings, "w:1")  # type: ignore[arg-type]
+    assert runner.render_threads == 3
+    assert TaskRunner(None, LocalStore(clean_env), settings, "w:1", render_threads=1).render_threads == 1  # type: ignore[arg-type]
+    monkeypatch.setenv("OMNIDATA_RENDER_THREADS", "0")
+    with pytest.raises(ValidationError) as e:
+        get_settings()
+    assert e.value.errors()[0]["loc"] == ("render_threads",)
+
+
 def test_production_refuses_default_and_short_secrets(clean_env: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("OMNIDATA_ENV", "production")
     with pytest.raises(ValidationError, match="OMNIDATA_SECRET_KEY"):

@@ -1,0 +1,65 @@
+"""services/spec_args.py: the one parser of SPACE arguments and JobSpec flags for plan, generate and submit."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import pytest
+
+from services.cli import CliError, build_parser
+from services.core.keys import space_name
+from services.spec_args import build_spec, check_sources, distinct_space_names
+
+SPEC_FLAGS = {"--spec", "--cues", "--points", "--min-views", "--resolution", "--seed", "--name", "--up-axis", "--up",
+              "--unit-scale", "--source-to-world"}
+
+
+def options(command: str) -> set[str]:
+    parser = build_parser([command])
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return {s for a in sub.choices[command]._actions for s in a.option_strings}
+
+
+@pytest.mark.parametrize("command", ["plan", "generate", "submit"])
+def test_every_command_takes_the_same_spec_flags(command: str) -> None:
+    assert SPEC_FLAGS <= options(command)
+
+
+def test_space_names_strip_both_ends_and_unsafe_characters(tmp_path: Path) -> None:
+    assert space_name(Path("/x/scan_.obj")) == "scan"
+    assert space_name(Path("/x/_scan.obj")) == "scan"
+    assert space_name(Path("/x/My Scan (2).ply")) == "My_Scan_2"
+    assert space_name(Path("/x/___.ply")) == "space"
+    (tmp_path / "room.v2").mkdir()
+    assert space_name(tmp_path / "room.v2") == "room.v2"  # a folder keeps its whole name
+    with pytest.raises(CliError, match="two spaces would share the name 'scan'"):
+        distinct_space_names([Path("a/scan.obj"), Path("b/scan_.ply")])
+
+
+def parse(*argv: str) -> argparse.Namespace:
+    return build_parser(["plan"]).parse_args(["plan", "x.obj", "--out", "o", *argv])
+
+
+def test_flags_override_the_spec_file_and_errors_name_field_and_flag(tmp_path: Path) -> None:
+    spec = tmp_path / "job.yaml"
+    spec.write_text("seed: 1\npoints:\nviews: {resolution: 64}\ncues: [rgb]\n")
+    got = build_spec(parse("--spec", str(spec), "--points", "4", "--cues", "rgb, normal", "--seed", "9"))
+    assert (got.seed, got.points.count, got.views.resolution, got.cues) == (9, 4, 64, ["rgb", "normal"])
+    with pytest.raises(CliError, match=r"points.min_views \(--min-views\): Input should be greater than or equal to 1"):
+        build_spec(parse("--min-views", "0"))
+    with pytest.raises(CliError, match=r"^invalid job spec: name \(--name\): name '\.\./x' is not a valid name"):
+        build_spec(parse("--name", "../x"))
+    with pytest.raises(CliError, match="missing.yaml: no such file"):
+        build_spec(parse("--spec", str(tmp_path / "missing.yaml")))
+    (tmp_path / "list.yaml").write_text("- 1\n")
+    with pytest.raises(CliError, match="expected a mapping of JobSpec fields, got list"):
+        build_spec(parse("--spec", str(tmp_path / "list.yaml")))
+
+
+def test_sources_are_checked_before_anything_is_loaded(tmp_path: Path, scenes_dir: Path) -> None:
+    with pytest.raises(CliError, match="nope.obj: no such file or folder"):
+        check_sources([str(tmp_path / "nope.obj")])
+    bunny = scenes_dir / "stanford_bunny" / "bun_zipper_res2.ply"
+    (src,) = check_sources([str(bunny)])
+    assert src.name == "bun_zipper_res2" and len(src.checksum) == 64 and src.path == bunny.resolve()

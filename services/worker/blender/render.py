@@ -23,6 +23,7 @@ import contextlib
 import logging
 import os
 import sys
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Literal
@@ -96,6 +97,31 @@ def configure_device(scene: bpy.types.Scene, device: str) -> str:
 
 def configure_scene(scene: bpy.types.Scene, options: RenderOptions, output_path: str) -> str:
     """Cycles settings for pixel-centre, noise-free pass rendering; returns the device in use."""
+    _configure_cycles(scene, options)
+    r = scene.render
+    r.use_file_extension = False
+    r.filepath = output_path
+    im = r.image_settings
+    im.file_format = "OPEN_EXR_MULTILAYER"
+    im.color_depth = "32"  # float: the index AOVs must stay exact
+    im.exr_codec = "NONE"  # the file lives for milliseconds in a temp dir: do not spend time compressing
+    layer = scene.view_layers[0]
+    for name in AOVS:
+        if name not in [a.name for a in layer.aovs]:
+            aov = layer.aovs.add()
+            aov.name = name
+            aov.type = "VALUE"
+    return configure_device(scene, options.device)
+
+
+def configure_floor_scene(scene: bpy.types.Scene, options: RenderOptions) -> str:
+    """The same Cycles settings with Image, Depth and Normal passes only (no AOVs): the bare render."""
+    _configure_cycles(scene, options)
+    return configure_device(scene, options.device)
+
+
+def _configure_cycles(scene: bpy.types.Scene, options: RenderOptions) -> None:
+    """Engine, sampling, threads, colour management and the Combined, Depth and Normal passes."""
     scene.render.engine = "CYCLES"
     cy = scene.cycles
     cy.samples = 1
@@ -119,12 +145,6 @@ def configure_scene(scene: bpy.types.Scene, options: RenderOptions, output_path:
     r.pixel_aspect_x = r.pixel_aspect_y = 1.0
     r.threads_mode = "FIXED"
     r.threads = options.threads or len(os.sched_getaffinity(0))
-    r.use_file_extension = False
-    r.filepath = output_path
-    im = r.image_settings
-    im.file_format = "OPEN_EXR_MULTILAYER"
-    im.color_depth = "32"  # float: the index AOVs must stay exact
-    im.exr_codec = "NONE"  # the file lives for milliseconds in a temp dir: do not spend time compressing
     vs = scene.view_settings
     for attr, value in (("view_transform", "Standard"), ("look", "None")):
         try:
@@ -139,12 +159,6 @@ def configure_scene(scene: bpy.types.Scene, options: RenderOptions, output_path:
     layer.use_pass_combined = True
     layer.use_pass_z = True
     layer.use_pass_normal = True
-    for name in AOVS:
-        if name not in [a.name for a in layer.aovs]:
-            aov = layer.aovs.add()
-            aov.name = name
-            aov.type = "VALUE"
-    return configure_device(scene, options.device)
 
 
 def set_camera(scene: bpy.types.Scene, cam: bpy.types.Object, g: ViewGeometry) -> None:
@@ -186,6 +200,15 @@ def srgb_encode(linear: np.ndarray) -> np.ndarray:
     x = np.clip(linear, 0.0, 1.0)
     s = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
     return np.rint(s * 255.0).astype(np.uint8)
+
+
+def render_floor(scene: bpy.types.Scene, cam: bpy.types.Object, g: ViewGeometry) -> float:
+    """Seconds of one render of `scene` from view `g`, nothing written (the bare-render floor of the benchmarks)."""
+    set_camera(scene, cam, g)
+    t0 = time.perf_counter()
+    with _quiet_stdout():
+        bpy.ops.render.render(write_still=False, scene=scene.name)
+    return time.perf_counter() - t0
 
 
 def render_passes(scene: bpy.types.Scene, cam: bpy.types.Object, g: ViewGeometry, *, labelled: bool,

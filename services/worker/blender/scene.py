@@ -33,6 +33,8 @@ from services.worker.blender.render import (
     AOV_K2,
     RenderOptions,
     configure_scene,
+    configure_floor_scene,
+    render_floor,
     render_passes,
 )
 from services.worker.passes import ViewGeometry, ViewPasses
@@ -72,6 +74,7 @@ class BlenderScene:
         self.closed: bool = False
         self._textured: bool = False
         self.renders = 0
+        self._floor: bpy.types.Scene | None = None
         self.has_curvature = False
         self.labelled = face_class is not None or face_instance is not None
         self._tmp = tempfile.mkdtemp(prefix="omnidata-render-", dir=_temp_root())
@@ -253,6 +256,19 @@ class BlenderScene:
         passes.meta["render_s"] = time.perf_counter() - t0
         self.renders += 1
         return passes
+
+    def render_floor(self, view: ViewGeometry) -> float:
+        """Seconds of one bare render of `view` (the benchmarks' floor): same mesh, camera, samples and threads,
+        Image, Depth and Normal passes only, no AOVs, nothing written or read back. A scene of its own, so its
+        Cycles persistent data does not disturb the pass scene's."""
+        self._check_open()
+        if self._floor is None:
+            self._floor = bpy.data.scenes.new("floor")
+            self._floor.collection.objects.link(self.object)
+            self._floor.collection.objects.link(self.camera)
+            self._floor.camera = self.camera
+            configure_floor_scene(self._floor, self.options)
+        return render_floor(self._floor, self.camera, view)
 
     def _check_open(self) -> None:
         if self.closed:

@@ -13,7 +13,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from services.core.jobspec import CueParams
-from services.worker.passes import ViewGeometry, ViewPasses
+from services.worker.passes import RENDER_PASSES, ViewGeometry, ViewPasses
 
 if TYPE_CHECKING:
     from services.worker.space_cache import SpaceContext
@@ -30,14 +30,14 @@ class ViewContext:
 
     def __init__(self, view: Any, params: CueParams | None = None, *, passes: ViewPasses | None = None,
                  space: SpaceContext | None = None, plan: Any = None, point_info: dict | None = None,
-                 render_curvature: bool = True):
+                 render_passes: frozenset[str] = RENDER_PASSES):
         self.view = view
         self.geometry = passes.geometry if passes is not None and view is None else ViewGeometry.of(view)
         self.params = params or CueParams()
         self.space = space
         self.plan = plan
         self.point_info_override = point_info
-        self.render_curvature = render_curvature
+        self.render_passes = render_passes  # optional passes rendered (passes.RENDER_PASSES); colour, depth always
         self._passes = passes
         self._memo: dict[str, Any] = {}
         self.timings: dict[str, float] = {}  # exclusive seconds per cue value / intermediate / "render"
@@ -56,7 +56,7 @@ class ViewContext:
                 raise RuntimeError("this view has neither a pass set nor a space to render it from")
             space = self.space
             self._passes = self.memo(
-                "render", lambda: space.render(self.geometry, self.params, curvature=self.render_curvature)
+                "render", lambda: space.render(self.geometry, self.params, passes=self.render_passes)
             )
         return self._passes
 

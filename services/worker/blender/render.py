@@ -34,7 +34,7 @@ import OpenEXR
 from mathutils import Matrix
 
 from services.core.camera import blender_matrix_world
-from services.worker.passes import NO_FACE, NO_LABEL, ViewGeometry, ViewPasses
+from services.worker.passes import NO_FACE, NO_LABEL, RENDER_PASSES, ViewGeometry, ViewPasses
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +49,7 @@ AOV_INSTANCE = "omni_instance"
 AOV_K1 = "omni_k1"
 AOV_K2 = "omni_k2"
 AOVS = (AOV_FACE_HI, AOV_FACE_LO, AOV_CLASS, AOV_INSTANCE, AOV_K1, AOV_K2)
+AOV_GROUPS = {"faces": (AOV_FACE_HI, AOV_FACE_LO), "labels": (AOV_CLASS, AOV_INSTANCE), "curvature": (AOV_K1, AOV_K2)}
 
 CLIP_START_M = 1e-4
 CLIP_END_M = 1e6
@@ -105,13 +106,28 @@ def configure_scene(scene: bpy.types.Scene, options: RenderOptions, output_path:
     im.file_format = "OPEN_EXR_MULTILAYER"
     im.color_depth = "32"  # float: the index AOVs must stay exact
     im.exr_codec = "NONE"  # the file lives for milliseconds in a temp dir: do not spend time compressing
-    layer = scene.view_layers[0]
-    for name in AOVS:
-        if name not in [a.name for a in layer.aovs]:
-            aov = layer.aovs.add()
-            aov.name = name
-            aov.type = "VALUE"
+    use_passes(scene, RENDER_PASSES)
     return configure_device(scene, options.device)
+
+
+def use_passes(scene: bpy.types.Scene, passes: frozenset[str]) -> None:
+    """Enable the Normal pass and the AOVs of the optional `passes` (passes.RENDER_PASSES), disable the rest.
+
+    Settings are only touched when they change: a job renders all its views with one pass set, so Cycles keeps
+    its compiled kernels and persistent scene between views.
+    """
+    layer = scene.view_layers[0]
+    if layer.use_pass_normal != ("normal" in passes):
+        layer.use_pass_normal = "normal" in passes
+    wanted = [name for group, names in AOV_GROUPS.items() if group in passes for name in names]
+    if [a.name for a in layer.aovs] == wanted:
+        return
+    while len(layer.aovs):
+        layer.aovs.remove(layer.aovs[0])
+    for name in wanted:
+        aov = layer.aovs.add()
+        aov.name = name
+        aov.type = "VALUE"
 
 
 def configure_floor_scene(scene: bpy.types.Scene, options: RenderOptions) -> str:
@@ -211,13 +227,20 @@ def render_floor(scene: bpy.types.Scene, cam: bpy.types.Object, g: ViewGeometry)
     return time.perf_counter() - t0
 
 
-def render_passes(scene: bpy.types.Scene, cam: bpy.types.Object, g: ViewGeometry, *, labelled: bool,
-                  curvature: bool) -> ViewPasses:
-    """Render one view and return its passes (see the module docstring for frames and units)."""
+def render_passes(scene: bpy.types.Scene, cam: bpy.types.Object, g: ViewGeometry,
+                  passes: frozenset[str] = RENDER_PASSES) -> ViewPasses:
+    """Render one view with colour, depth and the optional `passes`; returns them (module docstring: frames, units).
+
+    "labels" and "curvature" need the scene's label and curvature attributes (BlenderScene checks).
+    """
+    use_passes(scene, passes)
     set_camera(scene, cam, g)
+    t0 = time.perf_counter()
     with _quiet_stdout():
         bpy.ops.render.render(write_still=True)
+    t1 = time.perf_counter()
     channels = {name: ch.pixels for name, ch in OpenEXR.File(scene.render.filepath).parts[0].channels.items()}
+    t2 = time.perf_counter()
     layer = scene.view_layers[0].name
 
     def ch(name: str) -> np.ndarray:
@@ -227,21 +250,27 @@ def render_passes(scene: bpy.types.Scene, cam: bpy.types.Object, g: ViewGeometry
         key = f"{layer}.{name}"
         return channels[key] if key in channels else channels[f"{key}.X"]  # value AOVs come as one channel
 
-    face1 = aov(AOV_FACE_HI).astype(np.int64) * 65536 + aov(AOV_FACE_LO).astype(np.int64)  # face index + 1
     depth = ch("Depth.Z") if f"{layer}.Depth.Z" in channels else ch("Depth")
-    hit = (face1 > 0) & (depth < _MISS_DEPTH)
-    face_index = np.where(hit, face1 - 1, int(NO_FACE)).astype(np.uint32)
+    hit = depth < _MISS_DEPTH
+    face_index = None
+    if "faces" in passes:
+        face1 = aov(AOV_FACE_HI).astype(np.int64) * 65536 + aov(AOV_FACE_LO).astype(np.int64)  # face index + 1
+        hit &= face1 > 0
+        face_index = np.where(hit, face1 - 1, int(NO_FACE)).astype(np.uint32)
     depth_z = np.where(hit, depth, np.inf).astype(np.float32)
-    normal = np.stack([ch("Normal.X"), ch("Normal.Y"), ch("Normal.Z")], axis=-1)
-    norm = np.linalg.norm(normal, axis=-1, keepdims=True)
-    normal = np.where(hit[..., None] & (norm > 0), normal / np.maximum(norm, 1e-12), 0.0).astype(np.float32)
+    normal = None
+    if "normal" in passes:
+        n = np.stack([ch("Normal.X"), ch("Normal.Y"), ch("Normal.Z")], axis=-1)
+        norm = np.linalg.norm(n, axis=-1, keepdims=True)
+        normal = np.where(hit[..., None] & (norm > 0), n / np.maximum(norm, 1e-12), 0.0).astype(np.float32)
     combined = ch("Combined")
     rgb = np.where(hit[..., None], srgb_encode(combined[..., :3]), 0).astype(np.uint8)
-    passes = ViewPasses(geometry=g, depth_z=depth_z, normal_world=normal, rgb=rgb, face_index=face_index)
-    if labelled:
-        passes.face_class = np.where(hit, np.rint(aov(AOV_CLASS)), NO_LABEL).astype(np.int32)
-        passes.face_instance = np.where(hit, np.rint(aov(AOV_INSTANCE)), NO_LABEL).astype(np.int32)
-    if curvature:
+    out = ViewPasses(geometry=g, depth_z=depth_z, normal_world=normal, rgb=rgb, face_index=face_index)
+    if "labels" in passes:
+        out.face_class = np.where(hit, np.rint(aov(AOV_CLASS)), NO_LABEL).astype(np.int32)
+        out.face_instance = np.where(hit, np.rint(aov(AOV_INSTANCE)), NO_LABEL).astype(np.int32)
+    if "curvature" in passes:
         k = np.stack([aov(AOV_K1), aov(AOV_K2)], axis=-1)
-        passes.curvature = np.where(hit[..., None], k, np.nan).astype(np.float32)
-    return passes
+        out.curvature = np.where(hit[..., None], k, np.nan).astype(np.float32)
+    out.meta.update(render_call_s=t1 - t0, exr_read_s=t2 - t1, decode_s=time.perf_counter() - t2)
+    return out

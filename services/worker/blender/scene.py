@@ -32,12 +32,12 @@ from services.worker.blender.render import (
     AOV_K1,
     AOV_K2,
     RenderOptions,
-    configure_scene,
     configure_floor_scene,
+    configure_scene,
     render_floor,
     render_passes,
 )
-from services.worker.passes import ViewGeometry, ViewPasses
+from services.worker.passes import RENDER_PASSES, ViewGeometry, ViewPasses
 
 log = logging.getLogger(__name__)
 
@@ -247,15 +247,19 @@ class BlenderScene:
         self.mesh_data.update()
         self.has_curvature = True
 
-    def render(self, view: ViewGeometry) -> ViewPasses:
-        """Render one view (one Cycles render) and return all its passes."""
+    def render(self, view: ViewGeometry, passes: frozenset[str] = RENDER_PASSES) -> ViewPasses:
+        """Render one view (one Cycles render): colour, depth and the optional `passes` this scene can give."""
         self._check_open()
         t0 = time.perf_counter()
-        passes = render_passes(self.scene, self.camera, view, labelled=self.labelled,
-                               curvature=self.has_curvature)
-        passes.meta["render_s"] = time.perf_counter() - t0
+        wanted = set(passes)
+        if not self.labelled:
+            wanted.discard("labels")
+        if not self.has_curvature:
+            wanted.discard("curvature")
+        out = render_passes(self.scene, self.camera, view, frozenset(wanted))
+        out.meta["render_s"] = time.perf_counter() - t0
         self.renders += 1
-        return passes
+        return out
 
     def render_floor(self, view: ViewGeometry) -> float:
         """Seconds of one bare render of `view` (the benchmarks' floor): same mesh, camera, samples and threads,

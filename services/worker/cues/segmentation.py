@@ -164,7 +164,7 @@ def features25d(ctx: ViewContext) -> np.ndarray:
     return np.concatenate([wd * logd[..., None], wn * n], axis=-1).astype(np.float32)
 
 
-@register("segment_unsup25d")
+@register("segment_unsup25d", passes={"normal"})
 def segment_unsup25d(ctx: ViewContext) -> np.ndarray:
     """uint16 H x W segmentation of log-depth, normals and occlusion edges: labels 1..K, 0 off valid depth.
 

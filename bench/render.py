@@ -23,23 +23,27 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_v, "1")
 
 import argparse  # noqa: E402
+import io  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
+import tempfile  # noqa: E402
 import time  # noqa: E402
 from collections import defaultdict  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 import trimesh  # noqa: E402
+from PIL import Image  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from services.core.camera import look_at  # noqa: E402
-from services.core.cues import default_cues  # noqa: E402
+from services.core.cues import CATALOG, default_cues  # noqa: E402
 from services.core.jobspec import CueParams, JobSpec  # noqa: E402
 from services.core.plan import CameraPose, PlannedView, PointOfInterest, SpacePlan  # noqa: E402
 from services.core.spaces import load_space  # noqa: E402
 from services.scheduler.planning import make_plan, space_rng  # noqa: E402
+from services.worker.cues.encoding import encode_png  # noqa: E402
 from services.worker.executor import make_context, produce  # noqa: E402
 from services.worker.passes import ViewGeometry  # noqa: E402
 from services.worker.space_cache import SpaceContext, peak_rss_bytes, rss_bytes  # noqa: E402
@@ -60,6 +64,45 @@ def room_plan(loaded: object, resolution: int, seed: int = 0) -> SpacePlan:
     return make_plan(loaded, spec, space_rng(seed, ROOM_NAME), ROOM_NAME)  # type: ignore[arg-type]
 
 
+PNG_SETTINGS = ((0, 0), (1, 0), (3, 0), (6, 0), (1, 3), (3, 3))  # (zlib level, strategy: 0 default, 3 RLE)
+
+
+def png_settings(arrays: dict[str, np.ndarray], repeats: int = 3) -> dict[str, dict]:
+    """Seconds and bytes to encode one view's PNG cues per zlib (level, strategy); every file must decode back."""
+    out = {}
+    for level, strategy in PNG_SETTINGS:
+        times, size = [], 0
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            files = {c: encode_png(a, level, strategy) for c, a in arrays.items()}
+            times.append(time.perf_counter() - t0)
+        for c, data in files.items():
+            with Image.open(io.BytesIO(data)) as im:
+                back = np.asarray(im).astype(arrays[c].dtype)
+            assert np.array_equal(back, arrays[c]), f"{c}: PNG level {level} strategy {strategy} is not lossless"
+            size += len(data)
+        out[f"level{level}_strategy{strategy}"] = {"s": round(float(np.median(times)), 4), "bytes": size}
+    return out
+
+
+def exr_settings(position: np.ndarray, repeats: int = 3) -> dict[str, dict]:
+    """Seconds and bytes of the position EXR with ZIP (what the cue writes) and without compression."""
+    import OpenEXR
+
+    out = {}
+    for name, codec in (("zip", OpenEXR.ZIP_COMPRESSION), ("none", OpenEXR.NO_COMPRESSION)):
+        times = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            with tempfile.NamedTemporaryFile(suffix=".exr") as fh:
+                with OpenEXR.File({"compression": codec, "type": OpenEXR.scanlineimage}, {"RGB": position}) as f:
+                    f.write(fh.name)
+                size = os.path.getsize(fh.name)
+            times.append(time.perf_counter() - t0)
+        out[name] = {"s": round(float(np.median(times)), 4), "bytes": size}
+    return out
+
+
 def run_room(n_views: int, resolution: int, repeats: int) -> dict:
     """Per cue seconds per view on the room against the bare-render floor, measured interleaved in one run.
 
@@ -75,7 +118,11 @@ def run_room(n_views: int, resolution: int, repeats: int) -> dict:
     t1 = time.perf_counter()
     plan = room_plan(loaded, resolution)
     plan_s = time.perf_counter() - t1
-    views = plan.views[:: max(1, len(plan.views) // n_views)][:n_views]  # spread over the room's points
+    # Two consecutive views of points spread over the room, as a worker meets them (a point's views are
+    # dispatched together; per-point outputs such as nonfixated are shared by them).
+    points = sorted({v.point_idx for v in plan.views})
+    points = points[:: max(1, len(points) // max(1, n_views // 2))][: max(1, n_views // 2)]
+    views = [v for p in points for v in plan.views_of(p)[:2]]
     cues = default_cues(space.has_semantics)
     scene = space.scene()
     space.curvature(params.curvature_radius_m)  # space set-up, not per view
@@ -85,6 +132,7 @@ def run_room(n_views: int, resolution: int, repeats: int) -> dict:
     view_s: list[float] = []
     per_cue: defaultdict[str, list[float]] = defaultdict(list)
     inter: defaultdict[str, list[float]] = defaultdict(list)
+    render_parts: defaultdict[str, list[float]] = defaultdict(list)
     for _ in range(repeats):
         for view in views:
             floor_s.append(scene.render_floor(ViewGeometry.of(view)))
@@ -93,6 +141,8 @@ def run_room(n_views: int, resolution: int, repeats: int) -> dict:
             for c in cues:
                 produce(c, ctx)
             view_s.append(time.perf_counter() - tv)
+            for k in ("render_call_s", "exr_read_s", "decode_s"):
+                render_parts[k].append(ctx.passes.meta.get(k, 0.0))
             cue_s: defaultdict[str, float] = defaultdict(float)
             for k, v in ctx.timings.items():
                 if k.startswith(("cue:", "encode:")):
@@ -101,6 +151,8 @@ def run_room(n_views: int, resolution: int, repeats: int) -> dict:
                     inter[k].append(v)
             for c in cues:
                 per_cue[c].append(cue_s[c])
+    png = png_settings({c: ctx.value(c) for c in cues if CATALOG[c].ext == "png"})
+    exr = exr_settings(ctx.value("position"))
     space.close()
     floor = float(np.median(floor_s))
     view_med = float(np.median(view_s))
@@ -120,6 +172,9 @@ def run_room(n_views: int, resolution: int, repeats: int) -> dict:
         "per_cue_s_median": dict(sorted(med.items(), key=lambda kv: -kv[1])),
         "intermediates_s_median": {k: round(float(np.median(v)), 4)
                                    for k, v in sorted(inter.items(), key=lambda kv: -float(np.median(kv[1])))},
+        "render_parts_s_median": {k: round(float(np.median(v)), 4) for k, v in render_parts.items()},
+        "png_settings": png,
+        "position_exr": exr,
         "floor_s": [round(v, 4) for v in floor_s],
         "view_s": [round(v, 4) for v in view_s],
     }

@@ -49,7 +49,6 @@ AOV_INSTANCE = "omni_instance"
 AOV_K1 = "omni_k1"
 AOV_K2 = "omni_k2"
 AOVS = (AOV_FACE_HI, AOV_FACE_LO, AOV_CLASS, AOV_INSTANCE, AOV_K1, AOV_K2)
-AOV_GROUPS = {"faces": (AOV_FACE_HI, AOV_FACE_LO), "labels": (AOV_CLASS, AOV_INSTANCE), "curvature": (AOV_K1, AOV_K2)}
 
 CLIP_START_M = 1e-4
 CLIP_END_M = 1e6
@@ -106,28 +105,16 @@ def configure_scene(scene: bpy.types.Scene, options: RenderOptions, output_path:
     im.file_format = "OPEN_EXR_MULTILAYER"
     im.color_depth = "32"  # float: the index AOVs must stay exact
     im.exr_codec = "NONE"  # the file lives for milliseconds in a temp dir: do not spend time compressing
-    use_passes(scene, RENDER_PASSES)
-    return configure_device(scene, options.device)
-
-
-def use_passes(scene: bpy.types.Scene, passes: frozenset[str]) -> None:
-    """Enable the Normal pass and the AOVs of the optional `passes` (passes.RENDER_PASSES), disable the rest.
-
-    Settings are only touched when they change: a job renders all its views with one pass set, so Cycles keeps
-    its compiled kernels and persistent scene between views.
-    """
+    # Every pass stays enabled for every view: Cycles' persistent session compiles its shaders for the AOVs present
+    # at the first render and writes zeros into AOVs added later, and the AOVs cost little in the render itself
+    # (see bench/results/render.json: render_parts_s_median vs the floor). A view's cues choose what is read back.
     layer = scene.view_layers[0]
-    if layer.use_pass_normal != ("normal" in passes):
-        layer.use_pass_normal = "normal" in passes
-    wanted = [name for group, names in AOV_GROUPS.items() if group in passes for name in names]
-    if [a.name for a in layer.aovs] == wanted:
-        return
-    while len(layer.aovs):
-        layer.aovs.remove(layer.aovs[0])
-    for name in wanted:
-        aov = layer.aovs.add()
-        aov.name = name
-        aov.type = "VALUE"
+    for name in AOVS:
+        if name not in [a.name for a in layer.aovs]:
+            aov = layer.aovs.add()
+            aov.name = name
+            aov.type = "VALUE"
+    return configure_device(scene, options.device)
 
 
 def configure_floor_scene(scene: bpy.types.Scene, options: RenderOptions) -> str:
@@ -229,11 +216,10 @@ def render_floor(scene: bpy.types.Scene, cam: bpy.types.Object, g: ViewGeometry)
 
 def render_passes(scene: bpy.types.Scene, cam: bpy.types.Object, g: ViewGeometry,
                   passes: frozenset[str] = RENDER_PASSES) -> ViewPasses:
-    """Render one view with colour, depth and the optional `passes`; returns them (module docstring: frames, units).
+    """Render one view and read back colour, depth and the optional `passes` (module docstring: frames, units).
 
     "labels" and "curvature" need the scene's label and curvature attributes (BlenderScene checks).
     """
-    use_passes(scene, passes)
     set_camera(scene, cam, g)
     t0 = time.perf_counter()
     with _quiet_stdout():

@@ -26,6 +26,7 @@ import argparse  # noqa: E402
 import io  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
+import subprocess  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
 from collections import defaultdict  # noqa: E402
@@ -101,6 +102,56 @@ def exr_settings(position: np.ndarray, repeats: int = 3) -> dict[str, dict]:
             times.append(time.perf_counter() - t0)
         out[name] = {"s": round(float(np.median(times)), 4), "bytes": size}
     return out
+
+
+IDLE_PROBE = """
+import os, sys, time
+os.sched_setaffinity(0, set(range(os.cpu_count())))  # a worker on a multi-core host, not this bench's one core
+sys.path.insert(0, sys.argv[2])
+if sys.argv[1] == "plain-import":
+    import bpy  # noqa: F401  (what the worker did before: Blender's thread pool sized to every CPU)
+import numpy as np, trimesh
+from services.core.jobspec import CueParams
+from services.worker.passes import ViewGeometry
+from services.core.camera import look_at
+from services.worker.space_cache import SpaceContext
+space = SpaceContext(key="box", mesh=trimesh.creation.box(), threads=1)
+space.render(ViewGeometry(look_at(np.array([3.0, 2.0, 1.0]), np.zeros(3)), 1.0, 64), CueParams())
+time.sleep(1.0)
+c0, t0 = sum(os.times()[:2]), time.monotonic()
+time.sleep(float(sys.argv[3]))
+print((sum(os.times()[:2]) - c0) / (time.monotonic() - t0))
+"""
+
+
+def idle_cpu(seconds: float = 5.0) -> dict:
+    """CPU (fraction of one core) of an idle process that rendered once with 1 render thread on all CPUs: as the
+    worker imports bpy now (services.worker.bpy_threads) and with a plain `import bpy` (the sched_yield spin)."""
+    out: dict = {"cpus": os.cpu_count(), "seconds": seconds}
+    for mode in ("worker", "plain-import"):
+        run = subprocess.run([sys.executable, "-c", IDLE_PROBE, mode, str(ROOT), str(seconds)], capture_output=True,
+                             text=True, check=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
+        out[mode.replace("-", "_")] = round(float(run.stdout.strip().splitlines()[-1]), 3)
+    return out
+
+
+def end_to_end(points: int, max_views: int, resolution: int, out_dir: Path) -> dict:
+    """`omnidata generate --workers 1` on the room, pinned to one core (scheduler, worker and planning share it)."""
+    spec = out_dir / "room-spec.json"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    spec.write_text(json.dumps({"points": {"count": points, "max_views": max_views},
+                                "views": {"resolution": resolution}}))
+    target = out_dir / "out"
+    core = str(sorted(os.sched_getaffinity(0))[0])
+    t0 = time.perf_counter()
+    subprocess.run(["taskset", "-c", core, sys.executable, "-m", "services.cli", "generate", str(ROOM),
+                    "--out", str(target), "--spec", str(spec), "--workers", "1", "--seed", "0", "--no-progress"],
+                   cwd=ROOT, check=True, capture_output=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    wall = time.perf_counter() - t0
+    lines = (target / "manifest.jsonl").read_text().splitlines()
+    labels = sum(len(json.loads(line)["outputs"]) for line in lines)
+    return {"views": len(lines), "labels": labels, "wall_s": round(wall, 2),
+            "labels_per_s_per_core": round(labels / wall, 2), "s_per_view": round(wall / max(1, len(lines)), 3)}
 
 
 def run_room(n_views: int, resolution: int, repeats: int) -> dict:
@@ -294,6 +345,9 @@ def main() -> int:
     ap.add_argument("--scenes", default=",".join(SCENES), help="comma-separated: " + ",".join(SCENES))
     ap.add_argument("--room-views", type=int, default=6, help="views of the room (0: skip the room)")
     ap.add_argument("--room-repeats", type=int, default=2, help="passes over the room's views (medians)")
+    ap.add_argument("--e2e-points", type=int, default=8, help="room end to end: points (0: skip)")
+    ap.add_argument("--e2e-max-views", type=int, default=5, help="room end to end: views per point")
+    ap.add_argument("--idle-s", type=float, default=5.0, help="idle worker CPU probe duration (0: skip)")
     ap.add_argument("--cores", type=int, default=None, help="do not pin to one core (for comparison)")
     ap.add_argument("--out", type=Path, default=RESULTS / "render.json")
     args = ap.parse_args()
@@ -307,6 +361,11 @@ def main() -> int:
                     "target_labels_per_s_per_core": 10, "target_ratio_to_floor": 5.0}
     if room is not None:
         result["room"] = {ROOM_NAME: room}
+    if args.e2e_points > 0:
+        with tempfile.TemporaryDirectory(prefix="omnidata-bench-") as tmp:
+            result["room_end_to_end"] = end_to_end(args.e2e_points, args.e2e_max_views, args.resolution, Path(tmp))
+    if args.idle_s > 0:
+        result["idle_worker_cpu"] = idle_cpu(args.idle_s)
     if scenes:
         total_labels = sum(s["labels"] for s in scenes.values())
         total_s = sum(s["amortised_s"] for s in scenes.values())

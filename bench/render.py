@@ -57,6 +57,11 @@ SCENES = {
 }
 ROOM = ROOT.parent / "shared" / "scenes" / "icl_livingroom"
 ROOM_NAME = "icl_livingroom"
+# The room's figures before issue 10's changes (this bench's room part on commit 564a87b, same machine), kept to
+# compare: bench/results/render_room_before.json.
+BEFORE = RESULTS / "render_room_before.json"
+GPU_NOTE = ("no accelerator was lent to this task (device tool: not drawn, can_start_another false), so no GPU figures;"
+            " a CUDA/OptiX/auto request falls back to the CPU with a log line (tests/worker/test_render.py)")
 
 
 def room_plan(loaded: object, resolution: int, seed: int = 0) -> SpacePlan:
@@ -359,8 +364,17 @@ def main() -> int:
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     result: dict = {"benchmark": "render", "resolution": args.resolution, "cores": cores, "device": "cpu",
                     "target_labels_per_s_per_core": 10, "target_ratio_to_floor": 5.0}
+    result["gpu"] = GPU_NOTE
     if room is not None:
         result["room"] = {ROOM_NAME: room}
+        if BEFORE.exists():
+            before = json.loads(BEFORE.read_text())
+            b = before["room"][ROOM_NAME]
+            room["before"] = {k: b[k] for k in ("floor_s_median", "view_s_median", "ratio_view_to_floor",
+                                                "labels_per_s_per_core", "per_cue_s_median",
+                                                "intermediates_s_median")}
+            if "room_end_to_end" in before:
+                room["before"]["end_to_end"] = before["room_end_to_end"]
     if args.e2e_points > 0:
         with tempfile.TemporaryDirectory(prefix="omnidata-bench-") as tmp:
             result["room_end_to_end"] = end_to_end(args.e2e_points, args.e2e_max_views, args.resolution, Path(tmp))

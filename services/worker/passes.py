@@ -21,8 +21,9 @@ from services.core.camera import camera_center, intrinsics, pixel_rays
 NO_FACE = np.uint32(0xFFFFFFFF)
 NO_LABEL = -1
 
-# Passes a render may leave out when no requested cue needs them (colour and depth are always rendered):
-# camera-facing normals, the face-index AOVs, the class/instance AOVs (labelled spaces), the curvature AOVs.
+# Passes read back from a render only when a requested cue needs them (colour and depth always are): normals,
+# the face-index AOVs, the class/instance AOVs (labelled spaces) and the curvature AOVs (whose per-vertex
+# curvature is then not computed either).
 RENDER_PASSES: frozenset[str] = frozenset({"normal", "faces", "labels", "curvature"})
 
 
@@ -79,10 +80,10 @@ class ViewPasses:
 
     depth_z: float32 H x W, metres along the optical axis (Cycles' Z pass is planar z), inf = no surface.
     normal_world: float32 H x W x 3, unit geometric normal of the seen triangle in world axes, turned to face
-        the camera (Cycles flips back-facing hits); 0 = no surface. None when not rendered (pass "normal").
+        the camera (Cycles flips back-facing hits); 0 = no surface. None when not read back (pass "normal").
     rgb: uint8 H x W x 3, unlit sRGB colour (texture / vertex colour / constant grey), 0 = no surface.
     face_index: uint32 H x W, index of the seen triangle in the space's mesh, 4294967295 = no surface. None when
-        not rendered (pass "faces").
+        not read back (pass "faces").
     face_class, face_instance: int32 H x W or None (unlabelled space): the space's ids as given (a scan may use
         negative ids for unlabelled faces), -1 where nothing is seen (tell the two apart with `hit`).
     curvature: float32 H x W x 2 (k1 >= k2, 1/m, positive = convex) or None when not rendered; NaN = no surface.
@@ -109,7 +110,7 @@ class ViewPasses:
         """The array `name` (normal_world, face_index, face_class, ...), or a clear error when it was not rendered."""
         value = getattr(self, name)
         if value is None:
-            raise RuntimeError(f"this view's pass set has no {name} (not rendered: the cues asked of the render "
+            raise RuntimeError(f"this view's pass set has no {name} (not read back: the cues asked of the render "
                                "did not need it)")
         return value
 

@@ -58,7 +58,8 @@ SCENES = {
 }
 ROOM = ROOT.parent / "shared" / "scenes" / "icl_livingroom"
 ROOM_NAME = "icl_livingroom"
-# The room's figures before issue 10's changes (this bench's room part on commit 564a87b, same machine), kept to
+# The room's figures before issue 10's changes (this bench's room part run on commit 564a87b with only the floor
+# render and the CPU-clock hook added, same machine, same hour), kept to
 # compare: bench/results/render_room_before.json.
 BEFORE = RESULTS / "render_room_before.json"
 GPU_NOTE = ("no accelerator was lent to this task (device tool: not drawn, can_start_another false), so no GPU figures;"

@@ -19,6 +19,8 @@ with occlusion edges weakening the graph's links (segment25d_weights; see segmen
 
 from __future__ import annotations
 
+import hashlib
+
 import numpy as np
 from scipy.linalg import eigh
 from scipy.ndimage import distance_transform_edt
@@ -121,6 +123,17 @@ def _relabel(labels: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return out
 
 
+def nearest_in_mask(ctx: ViewContext, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column of the nearest mask pixel for every pixel; memoised per mask (both segmentations of a view
+    usually share theirs: surface seen = valid depth)."""
+    known: dict[bytes, tuple[np.ndarray, np.ndarray]] = ctx.memo("nearest_in_mask", dict)
+    key = hashlib.blake2b(np.packbits(mask).tobytes(), digest_size=16).digest()
+    if key not in known:
+        iy, ix = distance_transform_edt(~mask, return_indices=True)[1]
+        known[key] = (iy, ix)
+    return known[key]
+
+
 def segment(ctx: ViewContext, features: np.ndarray, mask: np.ndarray, *, sigma: float,
             boundary: np.ndarray | None = None) -> np.ndarray:
     """Felzenszwalb + normalized cuts on an H x W x C feature image in ~[0, 1]; uint16 labels, 0 off mask."""
@@ -128,7 +141,7 @@ def segment(ctx: ViewContext, features: np.ndarray, mask: np.ndarray, *, sigma: 
     if mask.any() and not mask.all():
         # Background pixels take the nearest surface pixel's features, so silhouettes do not spawn thin
         # mixed-colour regions (Felzenszwalb blurs first) and the background merges into its neighbours.
-        _, (iy, ix) = distance_transform_edt(~mask, return_indices=True)
+        iy, ix = nearest_in_mask(ctx, mask)
         features = features[iy, ix]
     sp = superpixels(features, p.segment2d_scale, sigma, p.segment2d_min_size, p.segment_max_superpixels)
     W = region_graph(sp, features * 255.0, p.segment_ncut_sigma, boundary)

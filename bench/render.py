@@ -423,7 +423,9 @@ def main() -> int:
         "scenes": scenes,
         "machine": {"python": platform.python_version(), "platform": platform.platform(),
                     "cpu": platform.processor() or platform.machine()},
-        "notes": "room: medians over views x repeats, the floor (a bare 1-sample render of the same view: Image,"
+        "notes": "the machine may be shared (these figures: 2 cores under other engineers' builds and tests), so room"
+                 " timings are this process's CPU seconds and end to end is per CPU second of its process tree;"
+                 " room: medians over views x repeats, the floor (a bare 1-sample render of the same view: Image,"
                  " Depth and Normal passes, no AOVs, nothing written or read back) timed just before each view;"
                  " amortised = all views incl. the first render (Cycles kernel/scene sync) and the space's curvature;"
                  " labels_per_s_amortised_incl_load adds load_space; steady = views after the first;"

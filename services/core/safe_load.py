@@ -30,7 +30,7 @@ def load_space_limited(
     path: str | Path,
     *,
     up_axis: str = "auto",
-    unit_scale: float | str = 1.0,
+    unit_scale: float | str = "auto",
     max_faces: int,
     memory_mb: int,
     timeout_s: float,

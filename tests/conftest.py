@@ -53,6 +53,18 @@ def pytest_ignore_collect(collection_path: Path, config: pytest.Config) -> bool 
     return True if _BPY_MODULE.search(collection_path.read_text(encoding="utf-8")) else None
 
 
+# Fixtures that render with Blender (here or in an `omnidata generate` they run): their tests are `bpy` tests.
+BPY_FIXTURES = frozenset({"small_job", "trajectory_job", "banana_run", "room_passes", "banana_passes"})
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Mark `bpy` the tests that use a rendering fixture (before -m selects)."""
+    for item in items:
+        if BPY_FIXTURES & set(getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.bpy)
+
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 PG_ADMIN_URL = os.environ.get("OMNIDATA_TEST_PG_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/postgres")
 REDIS_TEST_URL = os.environ.get("OMNIDATA_TEST_REDIS_URL", "redis://127.0.0.1:6379/15")

@@ -6,7 +6,7 @@ import json
 from collections.abc import Iterator
 from typing import Annotated
 
-from fastapi import APIRouter, HTTPException, Path, Query, Request, status
+from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request, status
 from fastapi.responses import FileResponse, JSONResponse, Response, StreamingResponse
 from sqlalchemy import select
 
@@ -26,6 +26,20 @@ router = APIRouter(tags=["outputs"])
 JobId = Annotated[int, Path(ge=1, le=2**63 - 1)]
 SpaceId = Annotated[int, Path(ge=1, le=2**63 - 1)]
 Index = Annotated[int, Path(ge=0, le=2**31 - 1)]
+
+
+def signed_key(
+    key: str,
+    settings: SettingsDep,
+    expires: Annotated[int, Query(ge=0, le=2**62)],
+    signature: Annotated[str, Query(pattern="^[0-9a-f]{64}$", description="hex HMAC from the link")],
+) -> str:
+    """The `{key:path}` of a signed link, once its signature checked out (403 otherwise)."""
+    service.verify_blob(settings, key=key, expires=expires, signature=signature)
+    return key
+
+
+SignedKey = Annotated[str, Depends(signed_key)]
 
 
 @router.get(
@@ -97,15 +111,8 @@ def job_json(job_id: JobId, session: ReadSessionDep, tenant: TenantDep) -> JSONR
     summary="Fetch an output through a signed link (local stores)",
     responses={200: {"content": {"application/octet-stream": {}}}, 403: {"description": "bad or expired link"}},
 )
-def blob(
-    key: str,
-    store: StoreDep,
-    settings: SettingsDep,
-    expires: Annotated[int, Query(ge=0, le=2**62)],
-    signature: Annotated[str, Query(pattern="^[0-9a-f]{64}$", description="hex HMAC from the link")],
-) -> Response:
+def blob(key: SignedKey, store: StoreDep) -> Response:
     """Serve an object named by a link from the outputs routes; the signature is the credential."""
-    service.verify_blob(settings, key=key, expires=expires, signature=signature)
     try:
         check_key(key)
     except ValueError:
@@ -129,15 +136,8 @@ def blob(
     summary="A cue file's preview PNG through a signed link (made on first request, then cached)",
     responses={200: {"content": {"image/png": {}}}, 403: {"description": "bad or expired link"}},
 )
-def preview(
-    key: str,
-    store: StoreDep,
-    settings: SettingsDep,
-    expires: Annotated[int, Query(ge=0, le=2**62)],
-    signature: Annotated[str, Query(pattern="^[0-9a-f]{64}$", description="hex HMAC from the link")],
-) -> Response:
+def preview(key: SignedKey, store: StoreDep) -> Response:
     """Serve the preview named by a `preview_url` of the outputs routes, making and storing it when missing."""
-    service.verify_blob(settings, key=key, expires=expires, signature=signature)
     try:
         root, output_key, cue, point, view = parse_preview_key(check_key(key))
     except ValueError:

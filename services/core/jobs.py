@@ -163,23 +163,22 @@ def cancel_job(session: Session, job: Job) -> int:
 
 def pause_job(session: Session, job: Job) -> None:
     """Pause a running job: nothing more is dispatched; queued tasks go back to pending when received."""
-    job = _lock_job(session, job)
-    if job.state == JobState.PAUSED:
-        return
-    if job.state != JobState.RUNNING:
-        raise JobStateError(f"job {job.id} is {job.state}; only a running job can be paused")
-    set_job_state(job, JobState.PAUSED)
-    session.flush()
+    _switch(session, job, JobState.RUNNING, JobState.PAUSED, "paused")
 
 
 def resume_job(session: Session, job: Job) -> None:
     """Resume a paused job."""
+    _switch(session, job, JobState.PAUSED, JobState.RUNNING, "resumed")
+
+
+def _switch(session: Session, job: Job, src: JobState, dst: JobState, done: str) -> None:
+    # Idempotent: a job already in `dst` is left alone; any state but `src` is refused.
     job = _lock_job(session, job)
-    if job.state == JobState.RUNNING:
+    if job.state == dst:
         return
-    if job.state != JobState.PAUSED:
-        raise JobStateError(f"job {job.id} is {job.state}; only a paused job can be resumed")
-    set_job_state(job, JobState.RUNNING)
+    if job.state != src:
+        raise JobStateError(f"job {job.id} is {job.state}; only a {src} job can be {done}")
+    set_job_state(job, dst)
     session.flush()
 
 

@@ -41,6 +41,8 @@ from tests.worker.test_encoding import png_header
 
 SCENES = ("banana", "bunny", "room")
 
+pytestmark = pytest.mark.bpy  # every test renders with Cycles
+
 
 @dataclass
 class Rendered:

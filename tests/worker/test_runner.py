@@ -181,6 +181,7 @@ def test_duplicate_delivery_leaves_one_output_and_one_done_row(sm, banana):
     assert counters_match(sm, job_id)
 
 
+@pytest.mark.bpy
 def test_render_once_then_derive_from_the_pass_cache(sm, banana):
     job_id = make_job(sm, banana)
     r = runner(sm, banana)

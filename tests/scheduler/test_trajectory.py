@@ -11,6 +11,7 @@ from services.core.jobspec import JobSpec, ViewSpec
 from services.core.plan import SpacePlan, plan_from_json, plan_to_json
 from services.scheduler.planning import make_plan, space_rng
 from services.scheduler.planning.trajectory import (
+    Limits,
     fly_clip,
     free_space_graph,
     longest_run,
@@ -178,8 +179,8 @@ def test_a_route_through_an_obstacle_is_cut_with_reasons() -> None:
     q = MeshQueries(mesh)
     route = np.array([[0.8, 2.0, 1.2], [2.5, 2.0, 1.2], [4.0, 2.05, 1.2], [5.5, 2.0, 1.2]])  # through the pillar
     point = np.array([5.9, 3.5, 1.0])  # on the +x wall, seen from both sides of the pillar
-    spec = ViewSpec(mode="trajectory", trajectory_spacing_m=0.05)
-    clip = fly_clip(route, point, spec, q, 0.001, 0.1, np.radians(60), np.radians(30), False, np.zeros(2), 0)
+    lim = Limits.of(ViewSpec(mode="trajectory", trajectory_spacing_m=0.05), 0.1, 0.001)
+    clip = fly_clip(route, point, lim, q, np.zeros(2), 0)
     note = clip.note
     assert note is not None and note.frames == len(clip.frames) < note.planned
     assert {"clearance", "outside"} <= set(note.reasons)

@@ -38,6 +38,7 @@ For each point:
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -79,6 +80,15 @@ FAIRING_MARGIN = 0.8  # smooth to this share of the limit: frames span several d
 ROLL_SHARE = 0.1  # of the view-rate limit that roll may use
 ROUTE_VIEW_SHARE = 0.75  # of the view-rate limit that route edges may need: smoothing moves the path
 LIMIT_SLACK = 1.0 + 1e-6
+PUSH_MARGIN = 1.05  # frames too near the mesh are pushed to this x the clearance ...
+PUSH_ROUNDS = 3  # ... at most this many times (a push can bring a neighbour near)
+LOOP_CANDIDATES = 4  # loop centres tried per point (rooms) ...
+LOOP_PROBES = 16  # ... of those whose free radius, probed by this many level rays, is largest
+LOOP_RADIUS_GROWTH = 1.25  # loop radius: this x the smallest the turn limit allows, where the room allows
+LOOP_HEIGHT_SWING = 0.15  # metres up and down: each lap at another height ...
+LOOP_SWING_RATE = 0.37  # ... swinging this many cycles per radian of lap (no whole fraction: laps differ)
+OBJECT_REFERENCE_M = 5.0  # object clips are planned as if their camera sphere had this radius (step 6)
+ORBIT_TILT_DEG = (42.0, 8.0)  # object orbits: angle between the axis and the camera, mean and swing
 
 
 @dataclass
@@ -376,6 +386,31 @@ class Clip:
     note: ClipNote | None
 
 
+@dataclass(frozen=True)
+class Limits:
+    """What every clip of a plan is held to (lengths in metres, rates in radians per metre)."""
+
+    spacing: float
+    turn_rate: float
+    view_rate: float
+    max_frames: int
+    min_frames: int
+    ahead: bool
+    clearance: float
+    tol: float  # line-of-sight tolerance to the point
+
+    @classmethod
+    def of(cls, spec: ViewSpec, clearance: float, tol: float, scale: float = 1.0) -> Limits:
+        """The spec's limits, lengths multiplied by `scale` (object clips, module docstring step 6)."""
+        view_rate = np.radians(spec.trajectory_max_view_deg_per_m) / scale
+        turn_rate = np.radians(spec.trajectory_max_turn_deg_per_m) / scale
+        ahead = spec.trajectory_look == "ahead"
+        if ahead:  # the view follows the direction of motion
+            turn_rate = min(turn_rate, (1.0 - ROLL_SHARE) * view_rate)
+        return cls(spec.trajectory_spacing_m * scale, float(turn_rate), float(view_rate), spec.trajectory_max_frames,
+                   spec.trajectory_min_frames, ahead, clearance, tol)
+
+
 def trajectory(
     positions: np.ndarray,
     normals: np.ndarray,
@@ -387,21 +422,18 @@ def trajectory(
     tol: float,
     clearance: float,
     rng: np.random.Generator,
+    orbit: tuple[np.ndarray, float] | None = None,
 ) -> tuple[ViewArrays, list[ClipNote]]:
     """Frames of one clip per point (module docstring) and notes on the clips cut short or dropped;
-    v numbers the frames of a point."""
+    v numbers the frames of a point. orbit: (centre, radius m) of an object's camera sphere (cameras.mode
+    object): clips orbit the point, their lengths scaled by radius / OBJECT_REFERENCE_M."""
     rmax = np.radians(spec.roll_max_deg)
     fov_args = (np.radians(spec.fov_mean_deg), np.radians(spec.fov_std_deg),
                 np.radians(spec.fov_min_deg), np.radians(spec.fov_max_deg))
-    view_rate = np.radians(spec.trajectory_max_view_deg_per_m)
-    turn_rate = np.radians(spec.trajectory_max_turn_deg_per_m)
-    ahead = spec.trajectory_look == "ahead"
-    if ahead:  # the view follows the direction of motion
-        turn_rate = min(turn_rate, (1.0 - ROLL_SHARE) * view_rate)
-    spacing = spec.trajectory_spacing_m
-    budget = BUDGET_MARGIN * spacing * (spec.trajectory_max_frames - 1)
     clearance = attainable_clearance(cameras, q, clearance)
-    graph = free_space_graph(cameras, q, clearance)
+    lim = Limits.of(spec, clearance, tol, orbit[1] / OBJECT_REFERENCE_M if orbit is not None else 1.0)
+    budget = BUDGET_MARGIN * lim.spacing * (lim.max_frames - 1)
+    graph = free_space_graph(cameras, q, clearance) if orbit is None else None
     unit = camera_spacing(cameras)
     tree = cKDTree(cameras)
     P: list[np.ndarray] = []
@@ -412,13 +444,21 @@ def trajectory(
     notes: list[ClipNote] = []
     for p, cams in enumerate(visible):
         cams = cap_views(cams, max_views, rng)
-        sub = graph[cams][:, cams]
-        if not ahead:
-            sub = point_graph(sub, cameras[cams], positions[p], ROUTE_VIEW_SHARE * view_rate, q, tol)
-        node = choose_route(sub, cameras[cams], positions[p], budget, 1.0 / view_rate, unit, rng)
         roll_pair = rng.uniform(-rmax, rmax, 2)
         fov = float(truncated_normal(rng, *fov_args, 1)[0])
-        clip = fly_clip(cameras[cams][node], positions[p], spec, q, tol, clearance, turn_rate, view_rate, ahead, roll_pair, p)
+        clips: list[Clip] = []
+        if graph is not None:
+            sub = graph[cams][:, cams]
+            if not lim.ahead:
+                sub = point_graph(sub, cameras[cams], positions[p], ROUTE_VIEW_SHARE * lim.view_rate, q, tol)
+            node = choose_route(sub, cameras[cams], positions[p], budget, 1.0 / lim.view_rate, unit, rng)
+            clips.append(fly_clip(cameras[cams][node], positions[p], lim, q, roll_pair, p))
+            loops = room_loops(positions[p], cameras[cams], lim, q, rng)
+        else:
+            assert orbit is not None
+            loops = object_orbits(positions[p], normals[p], cameras[cams], orbit[1], lim, rng)
+        clips += [verify_clip(frames, anchors, positions[p], lim, q, roll_pair, p) for frames, anchors in loops]
+        clip = max(clips, key=lambda c: len(c.frames))  # the first of the longest
         if clip.note is not None:
             notes.append(clip.note)
         n = len(clip.frames)
@@ -444,45 +484,136 @@ def trajectory(
     return ViewArrays(pidx, v, np.asarray(nearest, dtype=np.int64), W, fov_all, roll, obl, in_sight), notes
 
 
-def fly_clip(
-    route: np.ndarray, point: np.ndarray, spec: ViewSpec, q: MeshQueries, tol: float, clearance: float,
-    turn_rate: float, view_rate: float, ahead: bool, roll_pair: np.ndarray, p: int,
-) -> Clip:
-    """Smooth, sample, verify and cut one clip (module docstring, steps 3-5)."""
-    spacing = spec.trajectory_spacing_m
+def fly_clip(route: np.ndarray, point: np.ndarray, lim: Limits, q: MeshQueries, roll_pair: np.ndarray, p: int) -> Clip:
+    """Smooth, sample, verify and cut one clip along a route of cameras (module docstring, steps 3-5)."""
     # at most the budget of path: bounds the smoothing samples whatever the spacing
-    route = trim(route, BUDGET_MARGIN * spacing * (spec.trajectory_max_frames - 1))
+    route = trim(route, BUDGET_MARGIN * lim.spacing * (lim.max_frames - 1))
     route = route[np.concatenate([[True], np.linalg.norm(np.diff(route, axis=0), axis=1) > 1e-9])]
-    frames = frames_along(smooth_path(route, spacing, turn_rate), spacing) if len(route) > 1 else route[:1]
+    if len(route) == 1:
+        return verify_clip(route[:1], route, point, lim, q, roll_pair, p, lone=lim.max_frames > 1)
+    frames = frames_along(smooth_path(route, lim.spacing, lim.turn_rate), lim.spacing)
+    return verify_clip(frames, route, point, lim, q, roll_pair, p)
+
+
+def spiral(
+    base: np.ndarray, axis: np.ndarray, radius: Callable[[np.ndarray], np.ndarray],
+    along: Callable[[np.ndarray], np.ndarray], lim: Limits, rng: np.random.Generator,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Frames every lim.spacing (at most lim.max_frames) of a loop around the line through `base` along
+    `axis`: at lap angle phi (from a random start, either way round) the camera is radius(phi) from the
+    line and along(phi) along it; and the points of the line the loop winds round (its anchors)."""
+    axis = _unit(axis)
+    u = _unit(np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0]))
+    w = np.cross(axis, u)
+    length = lim.spacing * (lim.max_frames - 1)
+    probe = radius(np.linspace(0.0, 2 * np.pi / LOOP_SWING_RATE, 256))  # a whole swing
+    r_lo, r_hi = float(probe.min()), float(probe.max())
+    phi = np.arange(0.0, 1.5 * length / r_lo + 1e-9, lim.spacing / (8.0 * r_hi))
+    start, sense = rng.uniform(0.0, 2 * np.pi), rng.choice([-1.0, 1.0])
+    turn = start + sense * phi
+    ring = np.cos(turn)[:, None] * u + np.sin(turn)[:, None] * w
+    dense = base + along(phi)[:, None] * axis + radius(phi)[:, None] * ring
+    return resample(dense, lim.spacing, keep_end=False)[:lim.max_frames], base + along(phi)[::8, None] * axis
+
+
+def room_loops(
+    point: np.ndarray, cams: np.ndarray, lim: Limits, q: MeshQueries, rng: np.random.Generator,
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Level loops round the cameras with the most free space about them, far enough from the point that
+    the view turns slowly where the loop passes it (module docstring, step 2b)."""
+    near_pass = 1.0 / (ROUTE_VIEW_SHARE * lim.view_rate)  # the view turns 1 / distance per metre moved sideways
+    tight = 1.0 / (FAIRING_MARGIN * lim.turn_rate)  # the smallest radius the turn limit allows
+    reach = np.linalg.norm((cams - point)[:, :2], axis=1) - near_pass
+    ok = np.flatnonzero(reach >= tight)
+    if not len(ok):
+        return []
+    # free radius: the nearest wall along LOOP_PROBES level rays, less a margin for the clearance
+    angle = np.arange(LOOP_PROBES) * 2 * np.pi / LOOP_PROBES
+    dirs = np.stack([np.cos(angle), np.sin(angle), np.zeros(LOOP_PROBES)], axis=1)
+    hit, _ = q.first_hit(np.repeat(cams[ok], LOOP_PROBES, axis=0), np.tile(dirs, (len(ok), 1)))
+    free = hit.reshape(len(ok), LOOP_PROBES).min(axis=1) - 2 * lim.clearance
+    radius = np.minimum(np.minimum(reach[ok], free), LOOP_RADIUS_GROWTH * tight)
+    best = np.argsort(-radius, kind="stable")[:LOOP_CANDIDATES]
+    return [
+        spiral(cams[ok[i]], np.array([0.0, 0.0, 1.0]), lambda phi, r=float(radius[i]): np.full(len(phi), r),
+               lambda phi: LOOP_HEIGHT_SWING * np.sin(LOOP_SWING_RATE * phi), lim, rng)
+        for i in best if radius[i] >= tight
+    ]
+
+
+def object_orbits(
+    point: np.ndarray, normal: np.ndarray, cams: np.ndarray, distance: float, lim: Limits, rng: np.random.Generator,
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Orbits `distance` from the point round an axis through it (its normal; the mean direction to the
+    cameras that see it), tilted ORBIT_TILT_DEG from the axis with a slow swing (module docstring, 2b)."""
+    mean_tilt, swing = np.radians(ORBIT_TILT_DEG)
+    axes = [normal] + ([_unit(_unit(cams - point).mean(axis=0))] if len(cams) else [])
+    out = []
+    for a in axes:
+        def tilt(phi: np.ndarray) -> np.ndarray:
+            return mean_tilt + swing * np.sin(LOOP_SWING_RATE * phi)
+        out.append(spiral(point, a, lambda phi: distance * np.sin(tilt(phi)),
+                          lambda phi: distance * np.cos(tilt(phi)), lim, rng))
+    return out
+
+
+def push_out(frames: np.ndarray, q: MeshQueries, lim: Limits) -> np.ndarray:
+    """Frames moved away from the mesh where they come closer than the clearance: along the direction
+    from the nearest surface point (the distance gradient), by a Gaussian bump about one smallest radius
+    of curvature wide so the path stays smooth, then resampled every spacing (module docstring, 4)."""
+    if lim.clearance <= 0 or len(frames) < 3:
+        return frames
+    sigma = max(1.0, 1.0 / lim.turn_rate / lim.spacing)  # frames
+    impulse = np.zeros(int(8 * sigma) + 1)
+    impulse[len(impulse) // 2] = 1.0
+    peak = float(gaussian_filter1d(impulse, sigma, mode="constant").max())
+    for _ in range(PUSH_ROUNDS):
+        dist, closest = q.closest_within(frames, lim.clearance)
+        near = np.flatnonzero((dist < lim.clearance) & (dist > 1e-9))
+        if not len(near):
+            break
+        shift = np.zeros_like(frames)
+        shift[near] = (frames[near] - closest[near]) / dist[near, None] * (PUSH_MARGIN * lim.clearance - dist[near, None])
+        frames = frames_along(frames + gaussian_filter1d(shift, sigma, axis=0, mode="constant") / peak, lim.spacing)
+    return frames
+
+
+def verify_clip(
+    frames: np.ndarray, anchors: np.ndarray, point: np.ndarray, lim: Limits, q: MeshQueries, roll_pair: np.ndarray,
+    p: int, *, lone: bool = False,
+) -> Clip:
+    """Push out, verify and cut the frames of one clip (module docstring, steps 4-5); anchors: points in
+    the free space the clip was planned through (its route's cameras, the axis of a loop), each frame in
+    sight of its nearest."""
+    frames = push_out(frames, q, lim)
     n = len(frames)
     fail: dict[str, np.ndarray] = {}
-    fail["clearance"] = q.near_mesh(frames, clearance) if clearance > 0 else np.zeros(n, dtype=bool)
-    nearest_node = route[cKDTree(route).query(frames)[1]]
+    fail["clearance"] = q.near_mesh(frames, lim.clearance) if lim.clearance > 0 else np.zeros(n, dtype=bool)
+    nearest_anchor = anchors[cKDTree(anchors).query(frames)[1]]
     link_clear = q.line_of_sight(frames[:-1], frames[1:], 0.0) if n > 1 else np.ones(0, dtype=bool)
-    fail["outside"] = ~q.line_of_sight(frames, nearest_node, 0.0)
-    fail["hidden"] = np.zeros(n, dtype=bool) if ahead else ~q.line_of_sight(frames, np.tile(point, (n, 1)), tol)
+    fail["outside"] = ~q.line_of_sight(frames, nearest_anchor, 0.0)
+    fail["hidden"] = np.zeros(n, dtype=bool) if lim.ahead else ~q.line_of_sight(frames, np.tile(point, (n, 1)), lim.tol)
     fail["hidden"] |= np.linalg.norm(frames - point, axis=1) < 1e-6  # never look at the point from itself
     turn = np.zeros(n, dtype=bool)
     if n > 2:
-        turn[1:-1] = turn_angles(frames) > turn_rate * spacing * LIMIT_SLACK
+        turn[1:-1] = turn_angles(frames) > lim.turn_rate * lim.spacing * LIMIT_SLACK
     fail["turn"] = turn
-    look = _look_targets(frames, point, ahead)
+    look = _look_targets(frames, point, lim.ahead)
     view_ok = np.ones(max(n - 1, 0), dtype=bool)
     if n > 1:
         W0 = look_at_batch(frames, look, np.zeros(n))
-        view_ok = rotation_angles(W0) <= (1.0 - ROLL_SHARE) * view_rate * spacing * LIMIT_SLACK
+        view_ok = rotation_angles(W0) <= (1.0 - ROLL_SHARE) * lim.view_rate * lim.spacing * LIMIT_SLACK
     fail["view"] = np.zeros(n, dtype=bool)
     fail["view"][1:] |= ~view_ok
     good = ~(fail["clearance"] | fail["outside"] | fail["hidden"] | fail["turn"])
     a, b = longest_run(good, link_clear & view_ok)
-    planned = min(n, spec.trajectory_max_frames)
-    if b - a > spec.trajectory_max_frames:  # shorten the path, keep its middle
-        a += (b - a - spec.trajectory_max_frames) // 2
-        b = a + spec.trajectory_max_frames
+    planned = min(n, lim.max_frames)
+    if b - a > lim.max_frames:  # shorten the path, keep its middle
+        a += (b - a - lim.max_frames) // 2
+        b = a + lim.max_frames
     note = None
     cut = b - a < planned
-    lone = len(route) == 1 and spec.trajectory_max_frames > 1
-    short = b - a < spec.trajectory_min_frames
+    short = b - a < lim.min_frames
     if cut or lone or short:
         reasons = {k: int(v.sum()) for k, v in fail.items() if v.any()} if cut else {}
         if lone:
@@ -493,8 +624,8 @@ def fly_clip(
             a = b
         note = ClipNote(point=p, frames=b - a, planned=planned, reasons=reasons)
     frames = frames[a:b]
-    look = _look_targets(frames, point, ahead)  # the tangent at a cut end is one-sided
-    return Clip(frames, look, _roll(roll_pair, len(frames), spacing, view_rate), note)
+    look = _look_targets(frames, point, lim.ahead)  # the tangent at a cut end is one-sided
+    return Clip(frames, look, _roll(roll_pair, len(frames), lim), note)
 
 
 def _look_targets(frames: np.ndarray, point: np.ndarray, ahead: bool) -> np.ndarray:
@@ -505,13 +636,13 @@ def _look_targets(frames: np.ndarray, point: np.ndarray, ahead: bool) -> np.ndar
     return frames + t / np.linalg.norm(t, axis=1, keepdims=True)
 
 
-def _roll(pair: np.ndarray, n: int, spacing: float, view_rate: float) -> np.ndarray:
+def _roll(pair: np.ndarray, n: int, lim: Limits) -> np.ndarray:
     """Roll from pair[0] towards pair[1] along a smoothstep over the clip, at most ROLL_SHARE x view_rate
     radians per metre (smoothstep's steepest slope is 1.5 / length)."""
     if n < 2:
         return pair[:n].copy()
-    length = spacing * (n - 1)
-    limit = ROLL_SHARE * view_rate * length / 1.5
+    length = lim.spacing * (n - 1)
+    limit = ROLL_SHARE * lim.view_rate * length / 1.5
     span = float(np.clip(pair[1] - pair[0], -limit, limit))
     s = np.linspace(0.0, 1.0, n)
     return pair[0] + span * s * s * (3.0 - 2.0 * s)

@@ -48,6 +48,7 @@ from scipy.interpolate import CubicSpline
 from scipy.ndimage import gaussian_filter1d, maximum_filter1d
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
+from scipy.special import erf
 
 from services.core.jobspec import ViewSpec
 from services.scheduler.planning.views import (
@@ -545,9 +546,10 @@ def object_orbits(
     point: np.ndarray, normal: np.ndarray, cams: np.ndarray, distance: float, lim: Limits, rng: np.random.Generator,
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """Orbits `distance` from the point round an axis through it (its normal; the mean direction to the
-    cameras that see it), tilted ORBIT_TILT_DEG from the axis with a slow swing (module docstring, 2b)."""
+    cameras that see it; up), tilted ORBIT_TILT_DEG from the axis with a slow swing (module docstring, 2b)."""
     mean_tilt, swing = np.radians(ORBIT_TILT_DEG)
-    axes = [normal] + ([_unit(_unit(cams - point).mean(axis=0))] if len(cams) else [])
+    # and up: a steep axis would carry the camera over the point, where looking down spins the view
+    axes = [normal] + ([_unit(_unit(cams - point).mean(axis=0))] if len(cams) else []) + [np.array([0.0, 0.0, 1.0])]
     out = []
     for a in axes:
         def tilt(phi: np.ndarray) -> np.ndarray:
@@ -564,17 +566,23 @@ def push_out(frames: np.ndarray, q: MeshQueries, lim: Limits) -> np.ndarray:
     if lim.clearance <= 0 or len(frames) < 3:
         return frames
     sigma = max(1.0, 1.0 / lim.turn_rate / lim.spacing)  # frames
-    impulse = np.zeros(int(8 * sigma) + 1)
-    impulse[len(impulse) // 2] = 1.0
-    peak = float(gaussian_filter1d(impulse, sigma, mode="constant").max())
+    plateau = 2 * int(np.ceil(2 * sigma)) + 1  # the bump's full height spans +-2 sigma about each push ...
+    full = float(erf(np.sqrt(2.0)))  # ... of which the Gaussian keeps this share at the pushed frame
     for _ in range(PUSH_ROUNDS):
         dist, closest = q.closest_within(frames, lim.clearance)
         near = np.flatnonzero((dist < lim.clearance) & (dist > 1e-9))
         if not len(near):
             break
-        shift = np.zeros_like(frames)
-        shift[near] = (frames[near] - closest[near]) / dist[near, None] * (PUSH_MARGIN * lim.clearance - dist[near, None])
-        frames = frames_along(frames + gaussian_filter1d(shift, sigma, axis=0, mode="constant") / peak, lim.spacing)
+        need = np.zeros(len(frames))
+        need[near] = PUSH_MARGIN * lim.clearance - dist[near]
+        away = np.zeros_like(frames)
+        away[near] = (frames[near] - closest[near]) / dist[near, None] * need[near, None]
+        # height: the largest push nearby, smoothed; direction: the pushes nearby, averaged
+        height = gaussian_filter1d(maximum_filter1d(need, plateau, mode="constant"), sigma, mode="constant") / full
+        direction = gaussian_filter1d(away, 2 * sigma, axis=0, mode="constant")
+        norm = np.linalg.norm(direction, axis=1, keepdims=True)
+        shift = np.where(norm > 0, direction / np.maximum(norm, 1e-300), 0.0) * height[:, None]
+        frames = frames_along(frames + shift, lim.spacing)
     return frames
 
 

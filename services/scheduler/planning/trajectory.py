@@ -16,15 +16,26 @@ For each point:
      turn sharper than MAX_NODE_TURN at a camera: a reversal cannot be smoothed), at least
      WAYPOINT_SEP spacings from the earlier waypoints, and not at a dead end of the graph. The route
      grows forwards, then backwards from the first waypoint, while the budget lasts.
+  2b. loops, besides the route (the longest verified clip of a point wins, the route on ties): level
+     circles (the widest allowed and the tightest) round the LOOP_CANDIDATES cameras that see the point with the most free space about them
+     (nearest wall along LOOP_PROBES level rays), of radius at least the turn limit's smallest
+     (1 / (LOOP_SHARE x turn rate)), at most LOOP_RADIUS_GROWTH x that, and passing the point no nearer
+     than 1 / (LOOP_SHARE x the look's share of the view rate) (where a loop passes nearest it moves
+     sideways, and the view turns 1 / distance per metre); each lap at another height (LOOP_HEIGHT_SWING), so
+     the laps of a clip of trajectory_max_frames differ. Their frames are exact, no smoothing needed.
   3. smoothing (approximating, not through the cameras): the route is resampled every spacing / 2 (at
      most MAX_SAMPLES_PER_RADIUS per smallest radius of curvature) and filtered by Gaussians of
-     growing sigma along its arc (ends mirrored by point reflection, so they stay put); at each sample the least sigma whose curvature nearby is within
-     FAIRING_MARGIN x trajectory_max_turn_deg_per_m is used, blended by a slowly varying weight, so
+     growing sigma along its arc (ends mirrored by point reflection, so they stay put); at each sample
+     the least sigma whose curvature nearby is within FAIRING_MARGIN x trajectory_max_turn_deg_per_m is used, blended by a slowly varying weight, so
      straight stretches keep their place (and clearance) and only sharp bends are rounded more.
-  4. frames every trajectory_spacing_m along the smoothed arc, each verified: clearance >=
+  4. frames every trajectory_spacing_m along the smoothed arc; frames nearer the mesh than the clearance
+     are first pushed out along the distance gradient (from the nearest surface point) to PUSH_MARGIN x
+     the clearance, by a bump as wide as the smallest radius of curvature (so the turn stays bounded),
+     and the path resampled (PUSH_ROUNDS times at most); then each frame is verified: clearance >=
      cameras.clearance_m (exact distance; lowered to what the cameras themselves keep for provided or
-     object cameras, attainable_clearance), a clear segment to the route and to the previous frame
-     (still inside the free space the cameras are in), the point in sight (fixated clips), the turn
+     object cameras, attainable_clearance), a clear segment to the nearest anchor (a camera of the
+     route, a point of a loop's axis) and to the previous frame (still inside the free space the
+     cameras are in), the point in sight (fixated clips), the turn
      of the direction of motion and the camera rotation to the next frame within the limits. The clip
      is the longest run of frames that pass, at most trajectory_max_frames (the path is shortened,
      the spacing never stretched); a clip cut by a check is reported with the counts of failed checks,
@@ -34,6 +45,13 @@ For each point:
      U[-roll_max, roll_max] draw to another along a smoothstep, its rate at most ROLL_SHARE of the
      view limit (the remaining share bounds the look direction); the fov is one truncated-normal draw
      per clip (a constant zoom). camera_idx = the nearest camera to the frame.
+  6. objects (cameras.mode object, cameras on a sphere of radius r round the object): per-metre limits
+     fixed for rooms would leave a small object no clip at all, so its clips are planned as if the
+     sphere had a radius of OBJECT_REFERENCE_M: the spacing is trajectory_spacing_m x r /
+     OBJECT_REFERENCE_M and the per-metre limits are divided by that factor (the per-frame figures, and
+     the frame count, are those of a room). The clip orbits the point at distance r round an axis through
+     it (its normal, the mean direction to the cameras that see it, or up: the longest verified clip
+     wins), ORBIT_TILT_DEG from the axis with a slow swing, so laps differ.
 """
 
 from __future__ import annotations
@@ -83,8 +101,10 @@ ROUTE_VIEW_SHARE = 0.75  # of the view-rate limit that route edges may need: smo
 LIMIT_SLACK = 1.0 + 1e-6
 PUSH_MARGIN = 1.05  # frames too near the mesh are pushed to this x the clearance ...
 PUSH_ROUNDS = 3  # ... at most this many times (a push can bring a neighbour near)
+DENSE_PER_PUSH = 8  # spline samples per frame spacing when a pushed path is resampled
 LOOP_CANDIDATES = 4  # loop centres tried per point (rooms) ...
 LOOP_PROBES = 16  # ... of those whose free radius, probed by this many level rays, is largest
+LOOP_SHARE = 0.9  # of the limits a loop may use (its frames are exact: no smoothing moves them)
 LOOP_RADIUS_GROWTH = 1.25  # loop radius: this x the smallest the turn limit allows, where the room allows
 LOOP_HEIGHT_SWING = 0.15  # metres up and down: each lap at another height ...
 LOOP_SWING_RATE = 0.37  # ... swinging this many cycles per radian of lap (no whole fraction: laps differ)
@@ -522,8 +542,9 @@ def room_loops(
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """Level loops round the cameras with the most free space about them, far enough from the point that
     the view turns slowly where the loop passes it (module docstring, step 2b)."""
-    near_pass = 1.0 / (ROUTE_VIEW_SHARE * lim.view_rate)  # the view turns 1 / distance per metre moved sideways
-    tight = 1.0 / (FAIRING_MARGIN * lim.turn_rate)  # the smallest radius the turn limit allows
+    # the view turns 1 / distance per metre moved sideways; the radius of a circle is its turn per metre
+    near_pass = 0.0 if lim.ahead else 1.0 / (LOOP_SHARE * (1.0 - ROLL_SHARE) * lim.view_rate)
+    tight = 1.0 / (LOOP_SHARE * lim.turn_rate)
     reach = np.linalg.norm((cams - point)[:, :2], axis=1) - near_pass
     ok = np.flatnonzero(reach >= tight)
     if not len(ok):
@@ -535,10 +556,12 @@ def room_loops(
     free = hit.reshape(len(ok), LOOP_PROBES).min(axis=1) - 2 * lim.clearance
     radius = np.minimum(np.minimum(reach[ok], free), LOOP_RADIUS_GROWTH * tight)
     best = np.argsort(-radius, kind="stable")[:LOOP_CANDIDATES]
+    # each centre with its widest loop and its tightest (less often hidden by furniture in part)
+    loops = [(ok[i], r) for i in best if radius[i] >= tight for r in sorted({float(radius[i]), tight}, reverse=True)]
     return [
-        spiral(cams[ok[i]], np.array([0.0, 0.0, 1.0]), lambda phi, r=float(radius[i]): np.full(len(phi), r),
+        spiral(cams[c], np.array([0.0, 0.0, 1.0]), lambda phi, r=r: np.full(len(phi), r),
                lambda phi: LOOP_HEIGHT_SWING * np.sin(LOOP_SWING_RATE * phi), lim, rng)
-        for i in best if radius[i] >= tight
+        for c, r in loops
     ]
 
 
@@ -582,7 +605,8 @@ def push_out(frames: np.ndarray, q: MeshQueries, lim: Limits) -> np.ndarray:
         direction = gaussian_filter1d(away, 2 * sigma, axis=0, mode="constant")
         norm = np.linalg.norm(direction, axis=1, keepdims=True)
         shift = np.where(norm > 0, direction / np.maximum(norm, 1e-300), 0.0) * height[:, None]
-        frames = frames_along(frames + shift, lim.spacing)
+        # resampled along the arc of a fine spline: a push along the path must not bunch the frames
+        frames = resample(frames_along(frames + shift, lim.spacing / DENSE_PER_PUSH), lim.spacing, keep_end=False)
     return frames
 
 

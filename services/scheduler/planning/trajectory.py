@@ -558,11 +558,18 @@ def room_loops(
     best = np.argsort(-radius, kind="stable")[:LOOP_CANDIDATES]
     # each centre with its widest loop and its tightest (less often hidden by furniture in part)
     loops = [(ok[i], r) for i in best if radius[i] >= tight for r in sorted({float(radius[i]), tight}, reverse=True)]
-    return [
-        spiral(cams[c], np.array([0.0, 0.0, 1.0]), lambda phi, r=r: np.full(len(phi), r),
-               lambda phi: LOOP_HEIGHT_SWING * np.sin(LOOP_SWING_RATE * phi), lim, rng)
-        for c, r in loops
-    ]
+    up = np.array([0.0, 0.0, 1.0])
+    return [spiral(cams[c], up, _constant(r), _height_swing, lim, rng) for c, r in loops]
+
+
+def _constant(value: float) -> Callable[[np.ndarray], np.ndarray]:
+    def at(phi: np.ndarray) -> np.ndarray:
+        return np.full(len(phi), value)
+    return at
+
+
+def _height_swing(phi: np.ndarray) -> np.ndarray:
+    return LOOP_HEIGHT_SWING * np.sin(LOOP_SWING_RATE * phi)
 
 
 def object_orbits(

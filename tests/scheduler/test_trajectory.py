@@ -225,14 +225,25 @@ def test_fixated_clip_around_a_pillar_stays_in_sight() -> None:
     assert np.abs(np.diff(views.roll, 2)).max() < 1e-3  # smooth roll
 
 
-def test_single_camera_gives_one_frame_and_a_note() -> None:
-    q = MeshQueries(scenes.box_room())
+def test_a_single_camera_gives_a_loop_or_arc_not_one_frame_and_a_note() -> None:
+    mesh = scenes.box_room()  # 6 x 4 x 2.7 m, empty
+    q = MeshQueries(mesh)
     cams = np.array([[1.0, 1.0, 1.0], [3.0, 3.0, 1.0]])
-    views, notes = trajectory(np.array([[6.0, 2.0, 1.0]]), np.array([[-1.0, 0, 0]]), (np.array([1]),), cams,
+    point = np.array([6.0, 2.0, 1.0])
+    lim = Limits.of(ViewSpec(mode="trajectory"), 0.1, 0.001)
+    # no route: the camera alone, one frame, reported
+    clip = fly_clip(cams[1:], point, lim, q, np.zeros(2), 0)
+    assert len(clip.frames) == 1 and clip.note is not None and clip.note.reasons == {"route": 1}
+    np.testing.assert_allclose(clip.frames[0], cams[1])
+    # but a loop (round the camera, or an arc round the point) stays in the room, in sight, within the limits
+    views, notes = trajectory(point[None], np.array([[-1.0, 0, 0]]), (np.array([1]),), cams,
                               ViewSpec(mode="trajectory"), None, q, 0.001, 0.1, np.random.default_rng(0))
-    assert len(views) == 1 and views.camera_idx[0] == 1
-    np.testing.assert_allclose(np.linalg.inv(views.world_to_camera[0])[:3, 3], cams[1], atol=1e-12)
-    assert len(notes) == 1 and notes[0].reasons == {"route": 1} and notes[0].frames == 1
+    pos = _centres(views.world_to_camera)
+    assert len(views) > 30 and views.in_sight.all()
+    ring = np.linalg.norm((pos - point)[:, :2], axis=1)
+    assert ring.min() > 2.0  # nearer, moving sideways would turn the view faster than 30 deg/m
+    assert scenes.brute_force_distance(mesh, pos).min() >= 0.1
+    assert turn_angles(pos).max() <= np.radians(6.0) + 1e-9 and rotation_angles(views.world_to_camera).max() <= np.radians(3.0)
 
 
 def test_trajectory_knobs_are_validated() -> None:

@@ -16,13 +16,15 @@ For each point:
      turn sharper than MAX_NODE_TURN at a camera: a reversal cannot be smoothed), at least
      WAYPOINT_SEP spacings from the earlier waypoints, and not at a dead end of the graph. The route
      grows forwards, then backwards from the first waypoint, while the budget lasts.
-  2b. loops, besides the route (the longest verified clip of a point wins, the route on ties): level
+  2b. loops and arcs, besides the route (the longest verified clip of a point wins, the route on ties): level
      circles (the widest allowed and the tightest) round the LOOP_CANDIDATES cameras that see the point with the most free space about them
      (nearest wall along LOOP_PROBES level rays), of radius at least the turn limit's smallest
      (1 / (LOOP_SHARE x turn rate)), at most LOOP_RADIUS_GROWTH x that, and passing the point no nearer
      than 1 / (LOOP_SHARE x the look's share of the view rate) (where a loop passes nearest it moves
      sideways, and the view turns 1 / distance per metre); each lap at another height (LOOP_HEIGHT_SWING), so
-     the laps of a clip of trajectory_max_frames differ. Their frames are exact, no smoothing needed.
+     the laps of a clip of trajectory_max_frames differ; and level circles round the point itself at
+     the cameras' median height, ARC_RADII x the least radius both limits allow, of which the
+     verification keeps the longest arc in the room and in sight. Their frames are exact, no smoothing.
   3. smoothing (approximating, not through the cameras): the route is resampled every spacing / 2 (at
      most MAX_SAMPLES_PER_RADIUS per smallest radius of curvature) and filtered by Gaussians of
      growing sigma along its arc (ends mirrored by point reflection, so they stay put); at each sample
@@ -108,6 +110,7 @@ LOOP_SHARE = 0.9  # of the limits a loop may use (its frames are exact: no smoot
 LOOP_RADIUS_GROWTH = 1.25  # loop radius: this x the smallest the turn limit allows, where the room allows
 LOOP_HEIGHT_SWING = 0.15  # metres up and down: each lap at another height ...
 LOOP_SWING_RATE = 0.37  # ... swinging this many cycles per radian of lap (no whole fraction: laps differ)
+ARC_RADII = (1.05, 1.4)  # circles round a point: radii in the least the limits allow
 OBJECT_REFERENCE_M = 5.0  # object clips are planned as if their camera sphere had this radius (step 6)
 ORBIT_TILT_DEG = (42.0, 8.0)  # object orbits: angle between the axis and the camera, mean and swing
 
@@ -474,7 +477,7 @@ def trajectory(
                 sub = point_graph(sub, cameras[cams], positions[p], ROUTE_VIEW_SHARE * lim.view_rate, q, tol)
             node = choose_route(sub, cameras[cams], positions[p], budget, 1.0 / lim.view_rate, unit, rng)
             clips.append(fly_clip(cameras[cams][node], positions[p], lim, q, roll_pair, p))
-            loops = room_loops(positions[p], cameras[cams], lim, q, rng)
+            loops = room_loops(positions[p], cameras[cams], lim, q, rng) + point_arcs(positions[p], cameras[cams], lim, rng)
         else:
             assert orbit is not None
             loops = object_orbits(positions[p], normals[p], cameras[cams], orbit[1], lim, rng)
@@ -560,6 +563,21 @@ def room_loops(
     loops = [(ok[i], r) for i in best if radius[i] >= tight for r in sorted({float(radius[i]), tight}, reverse=True)]
     up = np.array([0.0, 0.0, 1.0])
     return [spiral(cams[c], up, _constant(r), _height_swing, lim, rng) for c, r in loops]
+
+
+def point_arcs(point: np.ndarray, cams: np.ndarray, lim: Limits, rng: np.random.Generator) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Level circles round the point itself at the cameras' median height (module docstring, step 2b):
+    where the room allows no loop in front of a point, the arc of such a circle that stays in the room
+    and in sight is often longer than a route; the cameras that see the point are its anchors."""
+    if not len(cams):
+        return []
+    base = np.array([point[0], point[1], float(np.median(cams[:, 2]))])
+    nearest = max(1.0 / (LOOP_SHARE * (1.0 - ROLL_SHARE) * lim.view_rate), 1.0 / (LOOP_SHARE * lim.turn_rate))
+    out = []
+    for growth in ARC_RADII:
+        frames, _ = spiral(base, np.array([0.0, 0.0, 1.0]), _constant(growth * nearest), _height_swing, lim, rng)
+        out.append((frames, cams))
+    return out
 
 
 def _constant(value: float) -> Callable[[np.ndarray], np.ndarray]:

@@ -16,20 +16,22 @@ For each point:
      turn sharper than MAX_NODE_TURN at a camera: a reversal cannot be smoothed), at least
      WAYPOINT_SEP spacings from the earlier waypoints, and not at a dead end of the graph. The route
      grows forwards, then backwards from the first waypoint, while the budget lasts.
-  2b. loops and arcs, besides the route (the longest verified clip of a point wins, the route on ties): level
-     circles (the widest allowed and the tightest) round the LOOP_CANDIDATES cameras that see the point with the most free space about them
-     (nearest wall along LOOP_PROBES level rays), of radius at least the turn limit's smallest
-     (1 / (LOOP_SHARE x turn rate)), at most LOOP_RADIUS_GROWTH x that, and passing the point no nearer
-     than 1 / (LOOP_SHARE x the look's share of the view rate) (where a loop passes nearest it moves
-     sideways, and the view turns 1 / distance per metre); each lap at another height (LOOP_HEIGHT_SWING), so
-     the laps of a clip of trajectory_max_frames differ; and level circles round the point itself at
-     the cameras' median height, ARC_RADII x the least radius both limits allow, of which the
-     verification keeps the longest arc in the room and in sight. Their frames are exact, no smoothing.
+  2b. loops and arcs, besides the route (the longest verified clip of a point wins, the route on
+     ties): level circles (the widest allowed and the tightest) round the LOOP_CANDIDATES cameras that
+     see the point with the most free space about them (nearest wall along LOOP_PROBES level rays), of
+     radius at least the turn limit's smallest (1 / (LOOP_SHARE x turn rate)), at most
+     LOOP_RADIUS_GROWTH x that, passing the point no nearer than 1 / (LOOP_SHARE x the look's share of
+     the view rate) (where a loop passes nearest it moves sideways, and the view turns 1 / distance
+     per metre), each lap at another height (LOOP_HEIGHT_SWING) so the laps of a long clip differ; and
+     level circles round the point itself at the cameras' median height, ARC_RADII x the least radius
+     both limits allow, of which verification keeps the longest arc in the room and in sight. Their
+     frames are exact: no smoothing.
   3. smoothing (approximating, not through the cameras): the route is resampled every spacing / 2 (at
      most MAX_SAMPLES_PER_RADIUS per smallest radius of curvature) and filtered by Gaussians of
      growing sigma along its arc (ends mirrored by point reflection, so they stay put); at each sample
-     the least sigma whose curvature nearby is within FAIRING_MARGIN x trajectory_max_turn_deg_per_m is used, blended by a slowly varying weight, so
-     straight stretches keep their place (and clearance) and only sharp bends are rounded more.
+     the least sigma whose curvature nearby is within FAIRING_MARGIN x trajectory_max_turn_deg_per_m
+     is used, blended by a slowly varying weight, so straight stretches keep their place (and
+     clearance) and only sharp bends are rounded more.
   4. frames every trajectory_spacing_m along the smoothed arc; frames nearer the mesh than the clearance
      are first pushed out along the distance gradient (from the nearest surface point) to PUSH_MARGIN x
      the clearance, by a bump as wide as the smallest radius of curvature (so the turn stays bounded),
@@ -457,7 +459,7 @@ def trajectory(
     clearance = attainable_clearance(cameras, q, clearance)
     lim = Limits.of(spec, clearance, tol, orbit[1] / OBJECT_REFERENCE_M if orbit is not None else 1.0)
     budget = BUDGET_MARGIN * lim.spacing * (lim.max_frames - 1)
-    graph = free_space_graph(cameras, q, clearance) if orbit is None else None
+    graph = free_space_graph(cameras, q, clearance) if orbit is None else sparse.csr_matrix((len(cameras),) * 2)
     unit = camera_spacing(cameras)
     tree = cKDTree(cameras)
     P: list[np.ndarray] = []
@@ -471,16 +473,15 @@ def trajectory(
         roll_pair = rng.uniform(-rmax, rmax, 2)
         fov = float(truncated_normal(rng, *fov_args, 1)[0])
         clips: list[Clip] = []
-        if graph is not None:
+        if orbit is not None:
+            loops = object_orbits(positions[p], normals[p], cameras[cams], orbit[1], lim, rng)
+        else:
             sub = graph[cams][:, cams]
             if not lim.ahead:
                 sub = point_graph(sub, cameras[cams], positions[p], ROUTE_VIEW_SHARE * lim.view_rate, q, tol)
             node = choose_route(sub, cameras[cams], positions[p], budget, 1.0 / lim.view_rate, unit, rng)
             clips.append(fly_clip(cameras[cams][node], positions[p], lim, q, roll_pair, p))
             loops = room_loops(positions[p], cameras[cams], lim, q, rng) + point_arcs(positions[p], cameras[cams], lim, rng)
-        else:
-            assert orbit is not None
-            loops = object_orbits(positions[p], normals[p], cameras[cams], orbit[1], lim, rng)
         clips += [verify_clip(frames, anchors, positions[p], lim, q, roll_pair, p) for frames, anchors in loops]
         clip = max(clips, key=lambda c: len(c.frames))  # the first of the longest
         if clip.note is not None:
@@ -598,13 +599,17 @@ def object_orbits(
     mean_tilt, swing = np.radians(ORBIT_TILT_DEG)
     # and up: a steep axis would carry the camera over the point, where looking down spins the view
     axes = [normal] + ([_unit(_unit(cams - point).mean(axis=0))] if len(cams) else []) + [np.array([0.0, 0.0, 1.0])]
-    out = []
-    for a in axes:
-        def tilt(phi: np.ndarray) -> np.ndarray:
-            return mean_tilt + swing * np.sin(LOOP_SWING_RATE * phi)
-        out.append(spiral(point, a, lambda phi: distance * np.sin(tilt(phi)),
-                          lambda phi: distance * np.cos(tilt(phi)), lim, rng))
-    return out
+
+    def tilt(phi: np.ndarray) -> np.ndarray:
+        return mean_tilt + swing * np.sin(LOOP_SWING_RATE * phi)
+
+    def off_axis(phi: np.ndarray) -> np.ndarray:
+        return distance * np.sin(tilt(phi))
+
+    def along_axis(phi: np.ndarray) -> np.ndarray:
+        return distance * np.cos(tilt(phi))
+
+    return [spiral(point, a, off_axis, along_axis, lim, rng) for a in axes]
 
 
 def push_out(frames: np.ndarray, q: MeshQueries, lim: Limits) -> np.ndarray:

@@ -30,7 +30,7 @@ def load_space_limited(
     path: str | Path,
     *,
     up_axis: str = "auto",
-    unit_scale: float = 1.0,
+    unit_scale: float | str = "auto",
     max_faces: int,
     memory_mb: int,
     timeout_s: float,
@@ -83,7 +83,7 @@ def _mapped_bytes() -> int:
     return 0
 
 
-def _child(sender: Connection, path: str, up_axis: str, unit_scale: float, limits: dict[str, Any]) -> None:
+def _child(sender: Connection, path: str, up_axis: str, unit_scale: float | str, limits: dict[str, Any]) -> None:
     """Child side: set the limits, load and check the space, send ("ok", slim LoadedSpace) or the error."""
     import resource
 

@@ -106,13 +106,13 @@ LIMIT_SLACK = 1.0 + 1e-6
 PUSH_MARGIN = 1.05  # frames too near the mesh are pushed to this x the clearance ...
 PUSH_ROUNDS = 3  # ... at most this many times (a push can bring a neighbour near)
 DENSE_PER_PUSH = 8  # spline samples per frame spacing when a pushed path is resampled
-LOOP_CANDIDATES = 4  # loop centres tried per point (rooms) ...
+LOOP_CANDIDATES = 8  # loop centres tried per point (rooms) ...
 LOOP_PROBES = 16  # ... of those whose free radius, probed by this many level rays, is largest
 LOOP_SHARE = 0.9  # of the limits a loop may use (its frames are exact: no smoothing moves them)
 LOOP_RADIUS_GROWTH = 1.25  # loop radius: this x the smallest the turn limit allows, where the room allows
 LOOP_HEIGHT_SWING = 0.15  # metres up and down: each lap at another height ...
 LOOP_SWING_RATE = 0.37  # ... swinging this many cycles per radian of lap (no whole fraction: laps differ)
-ARC_RADII = (1.05, 1.4)  # circles round a point: radii in the least the limits allow
+ARC_RADII = (1.05, 1.4, 1.8)  # circles round a point: radii in the least the limits allow
 OBJECT_REFERENCE_M = 5.0  # object clips are planned as if their camera sphere had this radius (step 6)
 ORBIT_TILT_DEG = (42.0, 8.0)  # object orbits: angle between the axis and the camera, mean and swing
 

@@ -386,8 +386,12 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             spans = [("done", 0, int(0.4 * n)), ("queued", int(0.4 * n), int(0.4 * n) + 2000),
                      ("running", int(0.4 * n) + 2000, int(0.4 * n) + 3000), ("failed", int(0.4 * n) + 3000,
                                                                              int(0.4 * n) + 3100)]
+            # along allowed transitions only (services/core/states.py): pending -> queued -> running -> final
+            path = {"queued": ["queued"], "running": ["queued", "running"], "done": ["queued", "running", "done"],
+                    "failed": ["queued", "running", "failed"]}
             for state, a, b in spans:
-                transition(s, job_id=big_id, task_ids=ids[a:b], from_state="pending", to_state=state)
+                for src, dst in zip(["pending", *path[state]], path[state], strict=False):
+                    transition(s, job_id=big_id, task_ids=ids[a:b], from_state=src, to_state=dst)
             s.commit()
             s.execute(text("ANALYZE"))
             s.commit()

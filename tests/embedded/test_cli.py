@@ -282,7 +282,7 @@ def test_failed_outputs_give_exit_1_and_a_summary(scenes_dir, tmp_path):
                    "--workers", 2)
     assert res.returncode == 1, res.stderr
     assert "job failed" in res.stderr
-    assert "normal: 4 failed; first error: FileExistsError" in res.stderr
+    assert "normal: 4 failed; first error: StorageError: cannot write to the object folder" in res.stderr
     assert "reshading: 4 failed; first error: UpstreamFailed" in res.stderr  # the job never hangs on them
     assert len(list((out / "rgb").rglob("*.png"))) == 4
 

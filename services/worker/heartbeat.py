@@ -3,7 +3,8 @@ lease of the task it is running, every few seconds.
 
 The `worker` row (id host:pid) carries host, queues, last heartbeat, current task, tasks done, labels per
 cue and labels/s over the last minute; the dashboard reads it. A worker that stops beating (kill -9, lost
-node) lets its task's lease run out, and the scheduler's reaper gives the task to another worker.
+node) is declared dead after OMNIDATA_HEARTBEAT_TIMEOUT_S, and the scheduler's reaper gives its task to
+another worker then, without waiting for the task's lease to run out.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ RATE_WINDOW_S = 60.0  # labels/s is measured over this trailing window
 
 
 def heartbeat_interval(lease_s: float) -> float:
-    """Seconds between beats: 5 s, or a third of the lease when leases are shorter (tests), never below 0.5 s."""
+    """Seconds between beats: 5 s, or a third of `lease_s` (the lease or heartbeat timeout) when shorter, >= 0.5 s."""
     return max(0.5, min(HEARTBEAT_INTERVAL_S, lease_s / 3.0))
 
 

@@ -58,7 +58,7 @@ def build_runtime(settings: Settings, *, queues: list[str] | None = None) -> Run
     """Engine, store, TaskRunner and a started heartbeat for this process (worker id host:pid)."""
     from services.core.db import make_engine, make_sessionmaker
     from services.core.storage import open_store
-    from services.worker.heartbeat import Heartbeat
+    from services.worker.heartbeat import Heartbeat, heartbeat_interval
     from services.worker.runner import TaskRunner, default_worker_id
 
     engine = make_engine(settings.database_url)
@@ -67,7 +67,8 @@ def build_runtime(settings: Settings, *, queues: list[str] | None = None) -> Run
     worker_id = default_worker_id()
     threads = os.environ.get("OMNIDATA_RENDER_THREADS")
     hb = Heartbeat(sm, worker_id, queues=queues or [settings.queue_render, settings.queue_derive],
-                   lease_s=settings.lease_s)
+                   lease_s=settings.lease_s,
+                   interval_s=heartbeat_interval(min(settings.lease_s, settings.heartbeat_timeout_s)))
     runner = TaskRunner(sm, store, settings, worker_id, heartbeat=hb,
                         render_threads=int(threads) if threads else None)
     hb.start()

@@ -375,7 +375,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--redis", default=REDIS_URL)
     p.add_argument("--label", default="", help="a note stored with the results (e.g. before/after a change)")
     p.add_argument("--out", type=Path, default=RESULTS / "scale.json")
+    p.add_argument("--before", type=Path, default=None,
+                   help="an earlier run's JSON (e.g. before a fix), kept in the results under `before`")
     args = p.parse_args(argv)
+    before = json.loads(args.before.read_text()) if args.before else None
     configs = []
     for n in [int(x) for x in args.workers.split(",") if x.strip()]:
         res = run_config(args, n)
@@ -384,6 +387,8 @@ def main(argv: list[str] | None = None) -> int:
     doc = {"benchmark": "scale_sim", "label": args.label, "configs": configs, "python": platform.python_version(),
            "cpus": os.cpu_count(), "note": "one shared host runs Postgres, Redis, the scheduler and every simulated "
            "worker; figures are floors, not capacity"}
+    if before is not None:
+        doc["before"] = {"label": before.get("label", ""), "configs": before.get("configs", [])}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(doc, indent=2) + "\n")
     print(f"wrote {args.out}")

@@ -45,11 +45,12 @@ from bench.fanout import create_database, drop_database, labelled_space, percent
 from services.core.db import make_engine, make_sessionmaker, migrate  # noqa: E402
 from services.core.jobs import create_job  # noqa: E402
 from services.core.jobspec import JobSpec  # noqa: E402
-from services.core.models import Job, Space, Task, utcnow  # noqa: E402
+from services.core.models import Space, Task  # noqa: E402
 from services.core.settings import Settings, get_settings  # noqa: E402
 from services.core.storage import LocalStore  # noqa: E402
 from services.worker.heartbeat import Heartbeat  # noqa: E402
 from services.worker.runner import TaskRunner, _Claimed  # noqa: E402
+from services.worker.tasks import worker_engine  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 REDIS_URL = os.environ.get("OMNIDATA_BENCH_REDIS_URL", "redis://127.0.0.1:6379/12")
@@ -70,9 +71,11 @@ class SleepingRunner(TaskRunner):
         self.task_s = task_s
         self.killed = killed
         self.rng = random.Random(hash(self.worker_id))
+        self.slept = 0.0
 
     def _execute(self, t: _Claimed) -> tuple[str, Any]:
-        if self.killed.wait(self.task_s * self.rng.uniform(0.8, 1.2)):
+        self.slept = self.task_s * self.rng.uniform(0.8, 1.2)
+        if self.killed.wait(self.slept):
             raise Killed(t.id)
         key = f"sim/{t.job_id}/{t.cue}/{t.point}_{t.view}"
         return key, self.store.put_bytes(key, f"{t.id}".encode())
@@ -96,12 +99,12 @@ def worker_process(
     """`n_workers` simulated workers (threads) sharing one connection pool; reports stats into `out`."""
     import redis
 
-    engine = make_engine(settings.database_url, pool_size=POOL_PER_PROCESS, max_overflow=0, pool_timeout=120)
+    engine = worker_engine(settings.database_url, pool_size=POOL_PER_PROCESS, max_overflow=0, pool_timeout=120)
     sm = make_sessionmaker(engine)
     store = LocalStore(settings.data_dir / "objects")
     queues = [settings.queue_render, settings.queue_derive]
     lock = threading.Lock()
-    stats: dict[str, Any] = {"done": 0, "skipped": 0, "killed": [], "beat_s": [], "wait_s": []}
+    stats: dict[str, Any] = {"done": 0, "skipped": 0, "killed": [], "beat_s": [], "overhead_s": []}
     beats: list[tuple[Heartbeat, threading.Event]] = []
 
     def run_worker(k: int) -> None:
@@ -117,6 +120,8 @@ def worker_process(
             if got is None:
                 continue
             tid = task_id_of(got[1])
+            t = time.perf_counter()
+            runner.slept = 0.0
             try:
                 outcome = runner.run(tid)
             except Killed:
@@ -125,6 +130,7 @@ def worker_process(
                 break  # dead: no more tasks, no more beats
             with lock:
                 stats["done" if outcome.status == "done" else "skipped"] += 1
+                stats["overhead_s"].append(time.perf_counter() - t - runner.slept)  # claim + record, not the work
         r.close()
 
     def drive_heartbeats() -> None:
@@ -284,12 +290,22 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
         requeued: dict[int, float] = {}
         held: list[int] = []
         killed_at: float | None = None
+        waits_pg: dict[str, int] = {}
+        next_wait_sample = 0.0
         with sm() as s:
             while time.monotonic() - t0 < args.seconds:
                 t = time.perf_counter()
                 fetch_job_detail(s, owner="bench", job_id=job_id, rates=None)
                 s.rollback()
                 progress_lat.append(time.perf_counter() - t)
+                if time.monotonic() >= next_wait_sample:  # what Postgres' busy backends are waiting for
+                    next_wait_sample = time.monotonic() + 0.5
+                    for kind, n in s.execute(text(
+                        "SELECT coalesce(wait_event_type || ':' || wait_event, 'CPU'), count(*) FROM pg_stat_activity "
+                        "WHERE datname = current_database() AND state = 'active' AND pid <> pg_backend_pid() GROUP BY 1"
+                    )):
+                        waits_pg[kind] = waits_pg.get(kind, 0) + int(n)
+                    s.rollback()
                 if killed_at is None and time.monotonic() - t0 >= args.seconds / 3:
                     held = [int(i) for (i,) in s.execute(select(Task.id).where(
                         Task.state == "running", Task.worker_id.in_(kill_ids)))]
@@ -315,6 +331,7 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
         sched_stats = next(x for x in results if "sent" in x)
         wstats = [x for x in results if "beat_s" in x]
         beat_s = [b for w in wstats for b in w["beat_s"]]
+        overhead_s = [b for w in wstats for b in w["overhead_s"]]
         with sm() as s:
             s.execute(text("UPDATE job SET state = 'cancelled' WHERE id = :j"), {"j": job_id})
             s.commit()
@@ -330,6 +347,8 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
             "ideal_tasks_per_s": round(n_workers / args.task_s, 1),
             "utilisation": round(rate * args.task_s / n_workers, 3),
             "queue_wait": pct(waits),
+            "task_overhead": pct(overhead_s),  # a worker's claim + record done (pool wait included), per task
+            "pg_active_backends_by_wait": dict(sorted(waits_pg.items(), key=lambda kv: -kv[1])),
             "dispatch": {
                 "tasks_sent": sched_stats["sent"],
                 "sent_per_s_over_run": round(sched_stats["sent"] / max(elapsed, 1e-9), 1),

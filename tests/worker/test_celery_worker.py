@@ -168,3 +168,18 @@ def test_real_worker_consumes_heartbeats_and_recycles_its_child(pg_url, pg_sm, r
             proc.wait()
         log.close()
     assert proc.returncode == 0, (tmp_path / "worker.log").read_text()[-3000:]
+
+
+def test_worker_engine_commits_without_waiting_for_the_wal_flush_on_postgres(pg_url, tmp_path):
+    from sqlalchemy import text
+
+    engine = tasks.worker_engine(pg_url)
+    try:
+        with engine.connect() as c:
+            assert c.execute(text("SHOW synchronous_commit")).scalar() == "off"
+    finally:
+        engine.dispose()
+    sqlite = tasks.worker_engine(f"sqlite:///{tmp_path / 'w.db'}")  # SQLite has no such option: engine as usual
+    with sqlite.connect() as c:
+        assert c.execute(text("SELECT 1")).scalar() == 1
+    sqlite.dispose()

@@ -33,10 +33,11 @@ bench: venv services
 	@mkdir -p bench/results
 	@set -e; for f in bench/*.py; do echo "== $$f"; $(BIN)/python $$f; done
 
-# The main job on the embedded default (SQLite + local folder + local worker processes): two real scans,
-# every default cue, then a contact sheet. Running it again resumes and renders only what is missing.
+# The main job on the embedded default (SQLite + local folder + local worker processes): two real scans
+# shipped in examples/scans (licenses in their SOURCE.md), every default cue, then a contact sheet.
+# Running it again resumes and renders only what is missing.
 DEMO_OUT ?= demo-out
-SCENES ?= ../shared/scenes
+SCENES ?= examples/scans
 demo: venv
 	$(BIN)/omnidata generate $(SCENES)/ycb_banana $(SCENES)/stanford_bunny/bun_zipper_res2.ply \
 		--out $(DEMO_OUT) --spec examples/objects.yaml

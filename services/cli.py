@@ -19,6 +19,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "worker": ("services.worker.cli", "run a Celery render worker"),
     "submit": ("services.submit_cli", "submit a job to a running service and follow its progress"),
     "sheet": ("services.contact_sheet", "draw a contact sheet PNG of every cue of a few views of an output folder"),
+    "export": ("services.datasets.export", "export an output as WebDataset shards or the public Omnidata loader's tree"),
+    "preview": ("services.datasets.preview_cli", "preview PNGs of an output's cues, or one MP4 per cue (--video)"),
+    "migrate": ("services.migrate_cli", "upgrade the database schema to this version's head (Alembic)"),
+    "token": ("services.token_cli", "create an API token for a tenant (or an operator) and print its settings entry"),
 }
 
 
@@ -48,6 +52,13 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(importlib.import_module(args._module).run(args) or 0)
     except CliError as e:
+        print(f"omnidata {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except Exception as e:
+        from services.core.settings import ConfigurationError  # loaded already if e is one
+
+        if not isinstance(e, ConfigurationError):
+            raise
         print(f"omnidata {args.command}: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

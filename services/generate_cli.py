@@ -28,7 +28,6 @@ import tempfile
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
@@ -198,10 +197,10 @@ def validate_sources(sources: list[Source], spec: Any) -> None:
 
 def embedded_settings(out: Path, workers: int) -> Any:
     """Settings of the embedded mode: SQLite and the object folder in DIR, whatever OMNIDATA_* says."""
-    from services.core.settings import get_settings
+    from services.core.settings import load_settings
 
     state = out / STATE_DIR
-    return get_settings(
+    return load_settings(
         data_dir=str(state), database_url=f"sqlite:///{state / 'state.db'}", storage_url=str(out),
         dispatch_window=max(64, 32 * workers), env="development",
     )
@@ -522,23 +521,6 @@ class LocalPool:
             q.close()
 
 
-def expire_leases(sm: Any, worker_ids: Sequence[str]) -> int:
-    """Let the reaper take back the tasks of workers that died (their leases end now)."""
-    from sqlalchemy import update
-
-    from services.core.models import Task, utcnow
-
-    if not worker_ids:
-        return 0
-    with sm() as s:
-        res = s.execute(
-            update(Task).where(Task.state == "running", Task.worker_id.in_(list(worker_ids)))
-            .values(lease_until=utcnow() - timedelta(seconds=1)).execution_options(synchronize_session=False)
-        )
-        s.commit()
-        return int(res.rowcount or 0)  # type: ignore[attr-defined]
-
-
 def requeue_inflight(sm: Any, job_id: int) -> int:
     """After stopping the workers: queued and running tasks of the job back to pending (attempt not counted)."""
     from sqlalchemy import func, select
@@ -751,6 +733,7 @@ def run_until_final(sm: Any, sched: Any, pool: LocalPool, job_id: int, bar: Prog
     dispatch window is wide enough that workers never wait for a tick.
     """
     from services.core.models import Job
+    from services.worker.heartbeat import expire_leases
 
     bar = bar or Progress(False)
     planned_at: float | None = None

@@ -1,9 +1,10 @@
 """`omnidata submit SPACE ... --spec job.yaml [--api URL --token T] [--no-follow]`: submit a job to the service.
 
 With an API URL (--api or $OMNIDATA_API_URL) the spaces are uploaded (POST /spaces, multipart) and the job is
-created over HTTP (POST /jobs {space_ids, spec}); its progress is read from GET /jobs/{id}. Without one, the
-spaces are registered and the job created directly in the configured database and object store
-(OMNIDATA_DATABASE_URL / OMNIDATA_STORAGE_URL), for operators on the cluster. Either way the job id is printed
+created over HTTP (POST /jobs {space_ids, spec}); its progress is read from GET /jobs/{id}. With --direct, the
+spaces are registered and the job created directly in the service's database and object store
+(OMNIDATA_DATABASE_URL, which must be set, / OMNIDATA_STORAGE_URL), for operators on the cluster. With neither,
+submit refuses (exit 2): a job written to a database no service reads would wait forever. Either way the job id is printed
 on stdout, then progress follows on stderr until the job is final (exit 0 when done, 1 when failed or
 cancelled). A space already registered under the same name with the same content is reused.
 """
@@ -37,7 +38,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, metavar="S", help="override the seed")
     parser.add_argument("--name", metavar="COMPONENT", help="override the spec's name")
     parser.add_argument("--api", default=os.environ.get("OMNIDATA_API_URL"), metavar="URL",
-                        help="API base URL (default $OMNIDATA_API_URL); without one, write to the database directly")
+                        help="API base URL (default $OMNIDATA_API_URL)")
+    parser.add_argument("--direct", action="store_true",
+                        help="no API: write to the service's database ($OMNIDATA_DATABASE_URL) directly (operators)")
     parser.add_argument("--token", default=os.environ.get("OMNIDATA_API_TOKEN"), metavar="T",
                         help="API token (default $OMNIDATA_API_TOKEN)")
     parser.add_argument("--owner", default=os.environ.get("OMNIDATA_OWNER", "local"),
@@ -164,7 +167,7 @@ def submit_db(settings: Any, spec: Any, sources: list[Any], owner: str) -> int:
     """Register (or reuse) the spaces and create the job in the configured database and store."""
     from sqlalchemy import select
 
-    from services.core.db import make_engine, make_sessionmaker, migrate
+    from services.core.db import make_engine, make_sessionmaker, migrate, require_schema
     from services.core.jobs import create_job
     from services.core.models import Space
     from services.core.space_registry import register_space
@@ -173,6 +176,7 @@ def submit_db(settings: Any, spec: Any, sources: list[Any], owner: str) -> int:
 
     if settings.is_sqlite:
         migrate(settings.database_url)
+    require_schema(settings.database_url)
     engine = make_engine(settings.database_url)
     store = open_store(settings.storage_url, settings)
     try:
@@ -252,6 +256,11 @@ def run(args: argparse.Namespace) -> int:
 
     if args.interval <= 0:
         raise CliError(f"--interval must be positive, got {args.interval}")
+    if not args.api and not args.direct:
+        raise CliError("no service configured: pass --api URL or set OMNIDATA_API_URL (--direct writes to "
+                       "OMNIDATA_DATABASE_URL instead; `omnidata generate` renders locally without a service)")
+    if args.direct and not os.environ.get("OMNIDATA_DATABASE_URL"):
+        raise CliError("--direct needs OMNIDATA_DATABASE_URL: the database the service's scheduler reads")
     spec = build_spec(args)
     sources = check_sources(args.spaces)
     if args.api:
@@ -260,12 +269,9 @@ def run(args: argparse.Namespace) -> int:
         status: Callable[[int], Status] = api.status
         close: Callable[[], None] = api.client.close
     else:
-        from services.core.settings import get_settings
+        from services.core.settings import load_settings
 
-        try:
-            settings = get_settings()
-        except Exception as e:
-            raise CliError(f"invalid settings: {e}") from None
+        settings = load_settings()
         job_id = submit_db(settings, spec, sources, args.owner)
         status, close = db_status_fn(settings)
     print(job_id, flush=True)

@@ -40,9 +40,9 @@ def embedded_env(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> str:
 
 def test_submit_to_the_database_prints_the_id_and_reuses_the_space(capsys, embedded_env, spec_file, scenes_dir):
     banana = scenes_dir / "ycb_banana"
-    assert main(["submit", str(banana), "--spec", str(spec_file), "--no-follow", "--owner", "ana"]) == 0
+    assert main(["submit", str(banana), "--spec", str(spec_file), "--no-follow", "--owner", "ana", "--direct"]) == 0
     first = int(capsys.readouterr().out.strip())
-    assert main(["submit", str(banana), "--spec", str(spec_file), "--seed", "5", "--no-follow", "--owner", "ana"]) == 0
+    assert main(["submit", str(banana), "--spec", str(spec_file), "--seed", "5", "--no-follow", "--owner", "ana", "--direct"]) == 0
     out = capsys.readouterr()
     second = int(out.out.strip())
     assert "registered space" not in out.err  # same name, same content: reused
@@ -80,7 +80,7 @@ def test_follow_ends_with_the_job_and_exit_1_unless_done(capsys, embedded_env, s
 
     t = threading.Thread(target=cancel_soon)
     t.start()
-    code = main(["submit", str(scenes_dir / "ycb_banana"), "--spec", str(spec_file), "--interval", "0.1"])
+    code = main(["submit", str(scenes_dir / "ycb_banana"), "--spec", str(spec_file), "--interval", "0.1", "--direct"])
     t.join()
     engine.dispose()
     out = capsys.readouterr()
@@ -89,13 +89,29 @@ def test_follow_ends_with_the_job_and_exit_1_unless_done(capsys, embedded_env, s
 
 
 def test_submit_refuses_bad_input_before_sending_anything(capsys, embedded_env, tmp_path, scenes_dir):
-    code = main(["submit", str(tmp_path / "none.ply"), "--spec", str(tmp_path / "none.yaml")])
+    code = main(["submit", str(tmp_path / "none.ply"), "--spec", str(tmp_path / "none.yaml"), "--direct"])
     assert code == 2 and "no such file" in capsys.readouterr().err
     bad = tmp_path / "bad.yaml"
     bad.write_text("views: {resolution: 1}\n")
-    code = main(["submit", str(scenes_dir / "ycb_banana"), "--spec", str(bad)])
+    code = main(["submit", str(scenes_dir / "ycb_banana"), "--spec", str(bad), "--direct"])
     assert code == 2 and "views.resolution" in capsys.readouterr().err
     assert not Path(embedded_env.removeprefix("sqlite:///")).exists()
+
+
+def test_submit_without_a_service_says_so_and_writes_nothing(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, tmp_path: Path, spec_file: Path,
+    scenes_dir: Path,
+) -> None:
+    for var in ("OMNIDATA_API_URL", "OMNIDATA_DATABASE_URL"):
+        monkeypatch.delenv(var, raising=False)
+    monkeypatch.setenv("OMNIDATA_DATA_DIR", str(tmp_path / "data"))  # where the embedded SQLite would go
+    banana = str(scenes_dir / "ycb_banana")
+    assert main(["submit", banana, "--spec", str(spec_file), "--no-follow"]) == 2
+    err = capsys.readouterr().err
+    assert "no service configured" in err and "--api" in err and len(err.strip().splitlines()) == 1
+    assert main(["submit", banana, "--spec", str(spec_file), "--no-follow", "--direct"]) == 2
+    assert "--direct needs OMNIDATA_DATABASE_URL" in capsys.readouterr().err
+    assert not (tmp_path / "data").exists()
 
 
 def test_submit_over_http_uploads_once_and_reads_progress(pg_url, local_store, scenes_dir):

@@ -25,10 +25,11 @@ from services.api.jobs.service import RateTracker
 from services.api.ops.endpoints import router as ops_router
 from services.api.outputs.endpoints import router as outputs_router
 from services.api.progress.endpoints import router as progress_router
+from services.api.query_token import QueryTokenScrubber
 from services.api.spaces.endpoints import router as spaces_router
 from services.api.views.endpoints import router as views_router
 from services.api.workers.endpoints import router as workers_router
-from services.core.db import make_engine, make_sessionmaker
+from services.core.db import make_engine, make_sessionmaker, schema_heads
 from services.core.settings import Settings, get_settings
 from services.core.storage import ObjectStore, open_store
 
@@ -103,8 +104,11 @@ def create_app(
     app.state.rates = RateTracker()
     app.state.sse = sse or SSEConfig()
     app.state.metrics_cache = {}
+    app.state.schema_heads = schema_heads()  # what /ready expects the database's revision to be
+    app.state.storage_probe = None  # (time, outcome) of /ready's last storage probe
 
     install_error_handlers(app)
+    app.add_middleware(QueryTokenScrubber)  # ?token= never reaches a log line
     for router in (
         ops_router,
         spaces_router,

@@ -19,24 +19,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Start uvicorn on the app factory; returns when the server stops."""
     import uvicorn
-    from pydantic import ValidationError
 
-    from services.core.settings import get_settings
+    from services.core.db import migrate, require_schema
+    from services.core.settings import load_settings
 
     if not 0 < args.port < 65536:
         raise CliError(f"--port {args.port} is not a TCP port (1-65535)")
     if args.workers < 1:
         raise CliError("--workers must be at least 1")
-    try:
-        settings = get_settings()
-    except ValidationError as e:
-        raise CliError(f"invalid OMNIDATA_* settings: {e}") from None
+    settings = load_settings()
     if not settings.api_tokens:
         print("omnidata serve: warning: OMNIDATA_API_TOKENS is empty, every request but /health will get 401")
     if args.migrate:
-        from services.core.db import migrate
-
         migrate(settings.database_url)
+    require_schema(settings.database_url)
     uvicorn.run(
         "services.api.app:app_from_env",
         factory=True,

@@ -10,12 +10,12 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from typing import Annotated
-from urllib.parse import urlencode
 
 from fastapi import Depends, HTTPException, Query, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session
 
+from services.api.query_token import QUERY_TOKEN_KEY
 from services.core.settings import Settings
 from services.core.storage.base import ObjectStore
 
@@ -72,15 +72,16 @@ async def get_tenant_sse(
     creds: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer_scheme)],
     token: Annotated[
         str | None,
-        Query(max_length=512, description="API token, for EventSource clients that cannot send headers"),
+        Query(description="API token, for EventSource clients that cannot send headers"),
     ] = None,
 ) -> str:
-    """Like get_tenant, but a `?token=` query parameter is accepted too (SSE routes only)."""
-    if token is not None and not creds:
-        # Access logs print the query string when the response starts: drop the token from it first.
-        kept = [(k, v) for k, v in request.query_params.multi_items() if k != "token"]
-        request.scope["query_string"] = urlencode(kept).encode("latin-1")
-    return _tenant_for(request.app.state.settings, creds.credentials if creds else token)
+    """Like get_tenant, but a `?token=` query parameter is accepted too (SSE routes only).
+
+    The `token` parameter is declared for the API docs; its value arrives through the scope, because
+    QueryTokenScrubber has already taken it off the query string so that no log ever shows it.
+    """
+    query_token = request.scope.get(QUERY_TOKEN_KEY, token)
+    return _tenant_for(request.app.state.settings, creds.credentials if creds else query_token)
 
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]

@@ -15,6 +15,8 @@ from fastapi.responses import JSONResponse
 from sqlalchemy.exc import DataError, IntegrityError, OperationalError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from services.core.storage import StorageError
+
 log = logging.getLogger("omnidata.api")
 
 
@@ -69,6 +71,12 @@ async def _operational_error(request: Request, exc: OperationalError) -> JSONRes
     return error_response(status.HTTP_503_SERVICE_UNAVAILABLE, "database unavailable, try again shortly")
 
 
+async def _storage_error(request: Request, exc: StorageError) -> JSONResponse:
+    # The object store is missing or refuses writes: the operator's problem, named, never a bare 500.
+    log.error("object storage failed on %s %s: %s", request.method, request.url.path, exc)
+    return error_response(status.HTTP_503_SERVICE_UNAVAILABLE, f"object storage unavailable: {exc}")
+
+
 async def _unhandled(request: Request, exc: Exception) -> JSONResponse:
     log.exception("unhandled error on %s %s", request.method, request.url.path)
     return error_response(status.HTTP_500_INTERNAL_SERVER_ERROR, "internal server error")
@@ -81,4 +89,5 @@ def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(DataError, _data_error)  # type: ignore[arg-type]
     app.add_exception_handler(IntegrityError, _integrity_error)  # type: ignore[arg-type]
     app.add_exception_handler(OperationalError, _operational_error)  # type: ignore[arg-type]
+    app.add_exception_handler(StorageError, _storage_error)  # type: ignore[arg-type]
     app.add_exception_handler(Exception, _unhandled)

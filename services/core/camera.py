@@ -142,3 +142,21 @@ def rotation_to_euler_xyz(R: np.ndarray) -> np.ndarray:
         x = np.arctan2(-R[1, 2], R[1, 1])
         z = 0.0
     return np.array([x, y, z])
+
+
+def euler_xyz_to_rotation(euler: np.ndarray) -> np.ndarray:
+    """Rotation matrix Rz @ Ry @ Rx of Blender 'XYZ' Euler angles (radians); inverse of rotation_to_euler_xyz."""
+    x, y, z = np.asarray(euler, dtype=np.float64)
+    cx, sx, cy, sy, cz, sz = np.cos(x), np.sin(x), np.cos(y), np.sin(y), np.cos(z), np.sin(z)
+    rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    return rz @ ry @ rx
+
+
+def world_to_camera_from_blender(location: np.ndarray, euler_xyz: np.ndarray) -> np.ndarray:
+    """OpenCV world_to_camera of a Blender camera given its location and 'XYZ' Euler rotation (Omnidata point_info)."""
+    matrix_world = np.eye(4)
+    matrix_world[:3, :3] = euler_xyz_to_rotation(euler_xyz)
+    matrix_world[:3, 3] = np.asarray(location, dtype=np.float64)
+    return np.linalg.inv(matrix_world @ CV_TO_BLENDER)

@@ -19,9 +19,12 @@ from sqlalchemy import JSON, Engine, Table, create_engine, event, insert, select
 from sqlalchemy.dialects.postgresql import insert as pg_insert
 from sqlalchemy.dialects.sqlite import insert as sqlite_insert
 from sqlalchemy.engine import Connection, make_url
+from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import DeclarativeBase, Session, sessionmaker
+from sqlalchemy.pool import NullPool
 
 from services.core.models import JobCounter, Task, UTCDateTime
+from services.core.settings import ConfigurationError
 
 MIGRATIONS_DIR = Path(__file__).resolve().parents[2] / "migrations"
 SQLITE_BUSY_TIMEOUT_MS = 30_000
@@ -70,13 +73,78 @@ def alembic_config(url: str | None = None) -> Any:
 
 
 def migrate(url: str, revision: str = "head") -> None:
-    """Upgrade the database at `url` to `revision` (Alembic `upgrade`); creates a SQLite file if needed."""
+    """Upgrade the database at `url` to `revision` (Alembic `upgrade`); creates a SQLite file if needed.
+
+    SchemaNotCurrent when Alembic refuses (e.g. the database is at a revision this code does not know).
+    """
     from alembic import command
+    from alembic.util import CommandError
 
     u = make_url(url)
     if u.get_backend_name() == "sqlite" and u.database and u.database != ":memory:":
         Path(u.database).expanduser().parent.mkdir(parents=True, exist_ok=True)
-    command.upgrade(alembic_config(url), revision)
+    try:
+        command.upgrade(alembic_config(url), revision)
+    except CommandError as e:
+        raise SchemaNotCurrent(f"cannot migrate the database: {e}") from None
+
+
+class SchemaNotCurrent(ConfigurationError):
+    """The database schema is not at this code's Alembic head; the message names the revisions and the fix."""
+
+
+class DatabaseUnreachable(ConfigurationError):
+    """The database did not answer at start-up; the message names the driver's reason."""
+
+
+def _scripts() -> Any:
+    from alembic.script import ScriptDirectory
+
+    return ScriptDirectory.from_config(alembic_config())
+
+
+def schema_heads() -> tuple[str, ...]:
+    """The Alembic head revision(s) of this code's migrations/ (what `migrate` upgrades to)."""
+    return tuple(sorted(_scripts().get_heads()))
+
+
+def schema_problem(engine: Engine, heads: Sequence[str] | None = None) -> str | None:
+    """None when the database at `engine` is at the code's head revision, else a one-line reason and fix.
+
+    Raises the driver's error when the database cannot be reached (that is not a schema problem).
+    """
+    from alembic.migration import MigrationContext
+
+    heads = tuple(heads) if heads is not None else schema_heads()
+    with engine.connect() as conn:
+        current = tuple(sorted(MigrationContext.configure(conn).get_current_heads()))
+    if current == heads:
+        return None
+    fix = "run `omnidata migrate` (or start the API with `omnidata serve --migrate`)"
+    if not current:
+        return f"the database is not migrated (no schema revision; this code needs {', '.join(heads)}): {fix}"
+    known = {script.revision for script in _scripts().walk_revisions()}
+    if not set(current) <= known:
+        return (f"the database is at schema revision {', '.join(current)}, which this code does not know "
+                f"(newer code migrated it?): run the matching omnidata version")
+    return f"the database schema is at revision {', '.join(current)}, this code needs {', '.join(heads)}: {fix}"
+
+
+def require_schema(url: str) -> None:
+    """Raise SchemaNotCurrent (one line naming the fix) unless the database at `url` is at the code's head.
+
+    DatabaseUnreachable when it does not answer.
+    """
+    engine = make_engine(url, poolclass=NullPool)
+    try:
+        problem = schema_problem(engine)
+    except OperationalError as e:
+        reason = str(e.orig or e).strip().splitlines()[0]
+        raise DatabaseUnreachable(f"cannot reach the database ({reason}): check OMNIDATA_DATABASE_URL") from None
+    finally:
+        engine.dispose()
+    if problem:
+        raise SchemaNotCurrent(problem)
 
 
 def downgrade(url: str, revision: str = "base") -> None:

@@ -12,17 +12,23 @@ import re
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import Field, SecretStr, field_validator, model_validator
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic import Field, SecretStr, ValidationError, field_validator, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict, SettingsError
 
 DEFAULT_SECRET_KEY = "dev-secret-change-me"
 MIN_SECRET_KEY_LEN = 32  # characters of a production secret
 _HEX64 = re.compile(r"^[0-9a-f]{64}$")
+TOKENS_HINT = 'a JSON object {"<sha256 hex of a token>": "<tenant>"}; `omnidata token create --tenant NAME` prints one'
 
 
 def hash_token(token: str) -> str:
     """sha256 hex digest of an API token: what `api_tokens` stores instead of the token itself."""
     return hashlib.sha256(token.encode("utf-8")).hexdigest()
+
+
+def _check_digest(digest: str, what: str) -> None:
+    if not _HEX64.match(digest):
+        raise ValueError(f"{what} must be sha256 hex digests of tokens (64 lowercase hex characters)")
 
 
 class Settings(BaseSettings):
@@ -45,6 +51,10 @@ class Settings(BaseSettings):
     api_tokens: dict[str, str] = Field(
         default_factory=dict, description="sha256-hex(token) -> tenant; tokens are never stored in clear"
     )
+    operator_tokens: list[str] = Field(
+        default_factory=list, description="sha256-hex of operator tokens: service-wide /metrics (Prometheus)"
+    )
+    worker_expiry_s: int = Field(3600, gt=0, description="rows of workers silent this long are removed")
     upload_max_bytes: int = Field(2 * 1024**3, gt=0)
     presign_expiry_s: int = Field(3600, gt=0, le=7 * 24 * 3600)
     lease_s: int = Field(300, gt=0, description="seconds a running task holds its lease")
@@ -68,13 +78,16 @@ class Settings(BaseSettings):
     @classmethod
     def _hashed(cls, v: dict[str, str]) -> dict[str, str]:
         for digest, tenant in v.items():
-            if not _HEX64.match(digest):
-                raise ValueError(
-                    "api_tokens keys must be sha256 hex digests of tokens (64 lowercase hex characters); "
-                    "use services.core.settings.hash_token(token)"
-                )
+            _check_digest(digest, "api_tokens keys")
             if not tenant:
                 raise ValueError(f"api_tokens entry {digest[:8]}... has an empty tenant")
+        return v
+
+    @field_validator("operator_tokens")
+    @classmethod
+    def _hashed_operators(cls, v: list[str]) -> list[str]:
+        for digest in v:
+            _check_digest(digest, "operator_tokens entries")
         return v
 
     @model_validator(mode="before")
@@ -108,6 +121,11 @@ class Settings(BaseSettings):
         """True for the embedded database (SQLite)."""
         return self.database_url.startswith("sqlite")
 
+    def is_operator_token(self, token: str) -> bool:
+        """True when `token` is one of the operator tokens (constant-time comparison of digests)."""
+        digest = hash_token(token)
+        return any([hmac.compare_digest(known, digest) for known in self.operator_tokens])
+
     def tenant_for_token(self, token: str) -> str | None:
         """The tenant a clear-text API token belongs to, or None (constant-time comparison of digests)."""
         digest = hash_token(token)
@@ -121,3 +139,35 @@ class Settings(BaseSettings):
 def get_settings(**overrides: Any) -> Settings:
     """Build a fresh Settings from the environment; keyword overrides win over the environment."""
     return Settings(**overrides)
+
+
+class ConfigurationError(ValueError):
+    """The service is not set up right (settings, database schema); the message is one line naming the fix.
+
+    The command line prints it as `omnidata CMD: error: ...` (exit 2) instead of a traceback.
+    """
+
+
+class InvalidSettings(ConfigurationError):
+    """OMNIDATA_* settings that cannot be used; the message names each bad variable."""
+
+
+def load_settings(**overrides: Any) -> Settings:
+    """get_settings() for the command line: a bad OMNIDATA_* value raises InvalidSettings with one clear line."""
+    try:
+        return get_settings(**overrides)
+    except ValidationError as e:
+        parts = []
+        for err in e.errors():
+            field = str(err["loc"][0]) if err["loc"] else ""  # empty for checks of the whole model (secret key)
+            where = f"OMNIDATA_{field.upper()}: " if field else ""
+            hint = f" ({TOKENS_HINT})" if field in ("api_tokens", "operator_tokens") else ""
+            parts.append(f"{where}{err['msg'].removeprefix('Value error, ')}{hint}")
+        raise InvalidSettings("invalid settings: " + "; ".join(parts)) from None
+    except SettingsError as e:
+        # pydantic-settings could not decode a complex value (JSON) from the environment
+        found = re.search(r'field "(\w+)"', str(e))
+        bad = found.group(1) if found else ""
+        name = f"OMNIDATA_{bad.upper()}" if bad else "an OMNIDATA_* variable"
+        hint = TOKENS_HINT if bad in ("api_tokens", "operator_tokens") else "expected JSON"
+        raise InvalidSettings(f"invalid settings: {name} is not valid JSON ({hint})") from None

@@ -22,24 +22,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Start the scheduler; returns the exit status (0 on a clean stop by SIGTERM/SIGINT)."""
-    from services.core.db import make_engine, make_sessionmaker, migrate
-    from services.core.settings import get_settings
+    from services.core.db import make_engine, make_sessionmaker, migrate, require_schema
+    from services.core.settings import load_settings
     from services.core.storage import open_store
     from services.scheduler.loop import Scheduler
     from services.scheduler.transport import CeleryTransport
 
     if args.interval <= 0:
         raise CliError(f"--interval must be positive, got {args.interval}")
+    settings = load_settings()
+    if settings.is_sqlite:
+        migrate(settings.database_url)  # embedded: nobody else runs the migrations
+    require_schema(settings.database_url)  # before logging is set up: a refusal is one line, not Alembic's chatter
     logging.basicConfig(
         level=getattr(logging, args.log_level), stream=sys.stderr,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
-    try:
-        settings = get_settings()
-    except Exception as e:  # a bad OMNIDATA_* value: say which, do not print a traceback
-        raise CliError(f"invalid settings: {e}") from None
-    if settings.is_sqlite:
-        migrate(settings.database_url)  # embedded: nobody else runs the migrations
     engine = make_engine(settings.database_url)
     store = open_store(settings.storage_url, settings)
     transport = CeleryTransport(settings=settings)

@@ -35,6 +35,7 @@ from services.scheduler.dispatch import DEFAULT_BUDGET, DispatchResult, dispatch
 from services.scheduler.persist import clear_plan, persist_space
 from services.scheduler.reaper import ReapResult, reap_once
 from services.scheduler.transport import Transport
+from services.scheduler.worker_rows import expire_worker_rows
 
 log = logging.getLogger(__name__)
 
@@ -242,6 +243,7 @@ class Scheduler:
         with self.sessionmaker() as s:
             res = reap_once(s, queued_timeout_s=self.settings.lease_s, default_max_attempts=self.settings.max_attempts,
                             dead_after_s=self.settings.heartbeat_timeout_s)
+            expire_worker_rows(s, older_than_s=self.settings.worker_expiry_s)
         self._last_reap = time.monotonic()
         return res
 

@@ -10,10 +10,15 @@ from __future__ import annotations
 import argparse
 import os
 import socket
+from typing import TYPE_CHECKING
 
 from services.cli import CliError
 
+if TYPE_CHECKING:
+    from services.core.settings import Settings
+
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
+WORKER_NAME_HELD_S = 30.0  # a heartbeat this recent means the name is in use (beats come every 5 s)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -30,9 +35,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="Celery pool (default prefork: crashes and leaks stay in a child process)")
 
 
+def node_name(hostname: str | None) -> str:
+    """The Celery node name: `--hostname` with Celery's %h/%n/%d expanded, default omnidata-<pid>@<host>.
+
+    It is also the worker's id in /workers (a child process of a --concurrency N worker adds -1 ... -(N-1)).
+    """
+    from celery.utils.nodenames import default_nodename, host_format
+
+    return host_format(default_nodename(hostname or f"omnidata-{os.getpid()}@{socket.gethostname()}"))
+
+
 def worker_argv(args: argparse.Namespace, queues: list[str]) -> list[str]:
     """The argv given to Celery's `worker` command."""
-    node = args.hostname or f"omnidata-{os.getpid()}@{socket.gethostname()}"
+    node = node_name(args.hostname)
     return [
         "worker",
         f"--queues={','.join(queues)}",
@@ -46,9 +61,21 @@ def worker_argv(args: argparse.Namespace, queues: list[str]) -> list[str]:
     ]
 
 
+def _live_holder(settings: Settings, node: str) -> str | None:
+    from services.core.db import make_engine, make_sessionmaker
+    from services.worker.heartbeat import live_holder
+
+    engine = make_engine(settings.database_url)
+    try:
+        return live_holder(make_sessionmaker(engine), node, within_s=WORKER_NAME_HELD_S)
+    finally:
+        engine.dispose()
+
+
 def run(args: argparse.Namespace) -> int:
     """Start the worker; returns when Celery stops (SIGTERM: warm shutdown after the current task)."""
-    from services.core.settings import get_settings
+    from services.core.db import require_schema
+    from services.core.settings import load_settings
     from services.worker.celery_app import create_app
 
     if args.concurrency < 1:
@@ -60,15 +87,18 @@ def run(args: argparse.Namespace) -> int:
         # numeric libraries in the children get the same budget (numpy is not loaded yet in this process)
         for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
             os.environ.setdefault(var, str(args.render_threads))
-    try:
-        settings = get_settings()
-    except Exception as e:  # a bad OMNIDATA_* value: say which, without a traceback
-        raise CliError(f"invalid settings: {e}") from None
+    settings = load_settings()
+    require_schema(settings.database_url)
+    node = node_name(args.hostname)
+    holder = _live_holder(settings, node)
+    if holder is not None:
+        raise CliError(f"a worker named {node!r} is alive on {holder}: give this one another --hostname")
     queues = [q.strip() for q in (args.queues or f"{settings.queue_render},{settings.queue_derive}").split(",")]
     queues = [q for q in queues if q]
     if not queues:
         raise CliError("--queues names no queue")
     app = create_app(settings)
     app.conf["omnidata_queues"] = queues
+    app.conf["omnidata_worker_name"] = node  # the children's worker id
     app.worker_main(worker_argv(args, queues))
     return 0

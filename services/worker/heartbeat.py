@@ -1,10 +1,10 @@
 """Worker heartbeat (execution contract: Reaper): a thread that keeps the worker's row fresh every few seconds
 and extends the lease of the task it is running before the lease runs out.
 
-The `worker` row (id host:pid) carries host, queues, last heartbeat, current task, tasks done, labels per
-cue and labels/s over the last minute; the dashboard reads it. A worker that stops beating (kill -9, lost
-node) is declared dead after OMNIDATA_HEARTBEAT_TIMEOUT_S, and the scheduler's reaper gives its task to
-another worker then, without waiting for the task's lease to run out.
+The `worker` row (id: the worker's name, or host:pid) carries host, queues, last heartbeat, current task, tasks
+done, labels per cue and labels/s over the last minute; the dashboard reads it. A worker that stops beating
+(kill -9, lost node) is declared dead after OMNIDATA_HEARTBEAT_TIMEOUT_S, and the scheduler's reaper gives its
+task to another worker then, without waiting for the task's lease to run out.
 """
 
 from __future__ import annotations
@@ -62,6 +62,7 @@ class Heartbeat:
         self._tasks_done = 0
         self._labels: dict[str, int] = {}
         self._recent: deque[tuple[float, int]] = deque()  # (monotonic time, labels) of recent tasks
+        self._inherited: tuple[int, dict[str, int]] | None = None  # the row's counts when this process took it
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.beats = 0
@@ -116,9 +117,18 @@ class Heartbeat:
             current, done, labels = self._current, self._tasks_done, dict(self._labels)
             extend = current is not None and time.monotonic() - self._leased_at >= self.extend_after_s
         now = utcnow()
-        row = {"id": self.worker_id, "host": self.host, "queues": self.queues, "started_at": now, "last_heartbeat": now,
-               "current_task_id": current, "tasks_done": done, "labels_per_s": rate, "labels": labels}
         with self._sessionmaker() as session, session.begin():
+            if self._inherited is None:
+                # A named worker's row outlives its child processes (recycling): carry on its counts.
+                prev = session.get(Worker, self.worker_id)
+                self._inherited = (int(prev.tasks_done or 0), dict(prev.labels or {})) if prev is not None else (0, {})
+            base_done, base_labels = self._inherited
+            row = {
+                "id": self.worker_id, "host": self.host, "queues": self.queues, "started_at": now,
+                "last_heartbeat": now, "current_task_id": current, "tasks_done": base_done + done,
+                "labels_per_s": rate,
+                "labels": {cue: int(base_labels.get(cue, 0)) + labels.get(cue, 0) for cue in {*base_labels, *labels}},
+            }
             upsert(session, Worker, row, key=["id"], insert_only=["started_at"])
             if extend:
                 # Not a state change (counters untouched): only pushes the deadline of a task we hold.
@@ -161,3 +171,30 @@ class Heartbeat:
             self.beat()
         except Exception:
             pass
+
+
+def expire_leases(sessionmaker: Callable[[], Session], worker_ids: Sequence[str]) -> int:
+    """Let the reaper take back the tasks of workers that died (their leases end now); returns how many."""
+    if not worker_ids:
+        return 0
+    with sessionmaker() as session:
+        res = session.execute(
+            update(Task).where(Task.state == "running", Task.worker_id.in_(list(worker_ids)))
+            .values(lease_until=utcnow() - timedelta(seconds=1)).execution_options(synchronize_session=False)
+        )
+        session.commit()
+        return int(res.rowcount or 0)  # type: ignore[attr-defined]
+
+
+def live_holder(sessionmaker: Callable[[], Session], worker_id: str, *, within_s: float) -> str | None:
+    """The host of another machine's worker beating under `worker_id` in the last `within_s` seconds, if any.
+
+    Two workers must not share a name: each new process of a name ends the leases its predecessor held.
+    A row of this host is not counted: it is this worker's own previous run.
+    """
+    with sessionmaker() as session:
+        row = session.get(Worker, worker_id)
+        if row is None or row.host == socket.gethostname():
+            return None
+        age = (utcnow() - row.last_heartbeat).total_seconds()
+        return row.host if age < within_s else None

@@ -477,8 +477,14 @@ class TaskRunner:
         return key, info
 
 
-def default_worker_id() -> str:
-    """`host:pid` of this process."""
+def default_worker_id(name: str | None = None) -> str:
+    """This process's worker id: `name` (the worker's --hostname) plus `-<i>` for pool child i > 0, so it
+    stays the same when Celery replaces a recycled child; `host:pid` without a name."""
     import socket
 
-    return f"{socket.gethostname()}:{os.getpid()}"
+    from celery.utils.log import current_process_index
+
+    if not name:
+        return f"{socket.gethostname()}:{os.getpid()}"
+    index = current_process_index(base=0)  # pool child 0, 1, ...; None outside a pool
+    return f"{name}-{index}" if index else name

@@ -72,17 +72,21 @@ def worker_engine(database_url: str, **kwargs: Any) -> Any:
     return make_engine(database_url, **kwargs)
 
 
-def build_runtime(settings: Settings, *, queues: list[str] | None = None) -> Runtime:
-    """Engine, store, TaskRunner and a started heartbeat for this process (worker id host:pid)."""
+def build_runtime(settings: Settings, *, queues: list[str] | None = None, name: str | None = None) -> Runtime:
+    """Engine, store, TaskRunner and a started heartbeat for this process (worker id: see default_worker_id)."""
     from services.core.db import make_sessionmaker
     from services.core.storage import open_store
-    from services.worker.heartbeat import Heartbeat, heartbeat_interval
+    from services.worker.heartbeat import Heartbeat, expire_leases, heartbeat_interval
     from services.worker.runner import TaskRunner, default_worker_id
 
     engine = worker_engine(settings.database_url)
     sm = make_sessionmaker(engine)
     store = open_store(settings.storage_url, settings)
-    worker_id = default_worker_id()
+    worker_id = default_worker_id(name)
+    if name:
+        # One process holds a named id at a time: a task still running under it was left by the child this
+        # process replaces (killed mid-task). End its lease so the reaper retries it now, not minutes later.
+        expire_leases(sm, [worker_id])
     threads = os.environ.get("OMNIDATA_RENDER_THREADS")
     hb = Heartbeat(sm, worker_id, queues=queues or [settings.queue_render, settings.queue_derive],
                    lease_s=settings.lease_s,
@@ -100,7 +104,8 @@ def get_runtime(app: Any = None) -> Runtime:
         if _runtime is None or _runtime.pid != os.getpid():
             settings = _settings_from_app(app)
             queues = app.conf.get("omnidata_queues") if app is not None else None
-            _runtime = build_runtime(settings, queues=queues)
+            name = app.conf.get("omnidata_worker_name") if app is not None else None
+            _runtime = build_runtime(settings, queues=queues, name=name)
         return _runtime
 
 

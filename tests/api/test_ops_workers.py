@@ -9,8 +9,12 @@ from pathlib import Path
 import redis
 
 from services.core.models import Worker, utcnow
+from services.core.settings import hash_token
 from services.core.storage import LocalStore
 from tests.api.helpers import Api, fake_plan, free_port, make_api, run_tasks, task_ids
+
+OPERATOR_TOKEN = secrets.token_urlsafe(24)
+OPERATOR = {"Authorization": f"Bearer {OPERATOR_TOKEN}"}  # service-wide /metrics (Prometheus)
 
 
 def test_health_needs_no_token(api: Api) -> None:
@@ -23,7 +27,8 @@ def test_ready_checks_database_broker_storage(api: Api, redis_url: str) -> None:
     assert r.status_code == 200, r.text
     body = r.json()
     assert body["status"] == "ready" and body["failed"] == []
-    assert set(body["checks"]) == {"database", "broker", "storage"} and all(c["ok"] for c in body["checks"].values())
+    assert set(body["checks"]) == {"database", "schema", "broker", "storage"}
+    assert all(c["ok"] for c in body["checks"].values())
 
 
 def test_ready_names_the_failed_dependency(pg_url: str, local_store: LocalStore) -> None:
@@ -41,7 +46,8 @@ def test_ready_names_the_failed_dependency(pg_url: str, local_store: LocalStore)
 def test_metrics(pg_url: str, local_store: LocalStore, bunny: Path, redis_url: str) -> None:
     # queue names of our own: other tests may use the same Redis database at the same time
     queue = f"render-{secrets.token_hex(4)}"
-    with make_api(pg_url, local_store, queue_render=queue, broker_url=redis_url) as api:
+    with make_api(pg_url, local_store, queue_render=queue, broker_url=redis_url,
+                  operator_tokens=[hash_token(OPERATOR_TOKEN)]) as api:
         _check_metrics(api, bunny, redis_url, queue)
 
 
@@ -58,7 +64,7 @@ def _check_metrics(api: Api, bunny: Path, redis_url: str, queue: str) -> None:
         s.add(Worker(id="w-metrics:1", host="h", queues=["render"], last_heartbeat=utcnow()))
         s.commit()
     api.app.state.metrics_cache.clear()
-    r = api.client.get("/metrics", headers=api.a.headers)
+    r = api.client.get("/metrics", headers=OPERATOR)
     assert r.status_code == 200 and r.headers["content-type"].startswith("text/plain")
     text = r.text
     assert "# TYPE omnidata_task_duration_seconds histogram" in text
@@ -76,7 +82,7 @@ def _check_metrics(api: Api, bunny: Path, redis_url: str, queue: str) -> None:
 def _metric_values(api: Api, text: str | None = None) -> dict[str, float]:
     if text is None:
         api.app.state.metrics_cache.clear()
-        text = api.client.get("/metrics", headers=api.a.headers).text
+        text = api.client.get("/metrics", headers=OPERATOR).text
     out = {}
     for line in text.splitlines():
         if line and not line.startswith("#"):

@@ -125,6 +125,7 @@ def _run(api: Any, base: str, ctx: Any, bunny: Path, artifacts: Path) -> None:
     )
     imgs = rows[0].query_selector_all("img")
     assert [i.get_attribute("alt") for i in imgs] == ["rgb", "normal", "depth_zbuffer"]  # 16-bit depth shown too
+    assert all("/previews/" in (i.get_attribute("src") or "") for i in imgs)  # readable previews, not raw files
     assert "No failed tasks" in page.inner_text("#job-failures")
     page.screenshot(path=str(artifacts / "dashboard-04-job-page.png"), full_page=True)
 

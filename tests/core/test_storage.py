@@ -16,6 +16,7 @@ from services.core.storage import (
     LocalStore,
     ObjectNotFoundError,
     ObjectStore,
+    StorageError,
     open_store,
     prefixed,
 )
@@ -217,3 +218,43 @@ def test_open_store_urls(tmp_path: Path, s3_server: S3Server) -> None:
         open_store("ftp://host/x")
     with pytest.raises(ValueError, match="names a host"):
         open_store("file://host/x")
+
+
+def test_probe_writes_and_cleans_up(store: ObjectStore) -> None:
+    store.probe()
+    store.probe()
+    assert list(store.list()) == []
+    prefixed(store, "jobs/1").probe()  # a view probes the store it is a view of
+
+
+def test_a_missing_bucket_is_a_named_storage_error(s3_server: S3Server, tmp_path: Path) -> None:
+    missing = f"missing-{secrets.token_hex(4)}"
+    settings = s3_server.settings()
+    st = open_store(f"s3://{missing}/data", settings)
+    src = tmp_path / "src.bin"
+    src.write_bytes(b"x" * 100)
+    calls = {
+        "probe": st.probe,
+        "put_bytes": lambda: st.put_bytes("a/b", b"x"),
+        "put_file": lambda: st.put_file("a/c", src),
+        "get_bytes": lambda: st.get_bytes("a/b"),
+    }
+    for name, call in calls.items():
+        with pytest.raises(StorageError, match=rf"^the bucket s3://{missing} does not exist$"):
+            call()
+            pytest.fail(f"{name} did not fail")
+    # get_file and exists start with a HEAD, whose 404 cannot tell a missing bucket from a missing key
+    assert st.exists("a/b") is False
+
+
+def test_a_local_store_that_cannot_write_is_a_named_storage_error(tmp_path: Path) -> None:
+    st = LocalStore(tmp_path / "objects")
+    (st.root / "spaces").write_bytes(b"a file where a folder must go")
+    with pytest.raises(StorageError, match=rf"cannot write to the object folder {st.root}: "):
+        st.put_bytes("spaces/1/scan.ply", b"ply")
+    assert [p.name for p in st.root.iterdir()] == ["spaces"]  # no temp file left behind
+    (st.root / "spaces").unlink()
+    st.root.rmdir()
+    with pytest.raises(StorageError, match="does not exist"):
+        st.probe()
+    assert not st.root.exists()

@@ -109,7 +109,7 @@ class Cluster:
 
     def start_worker(self, name: str, **env: str) -> Proc:
         return self.start(name, "worker", "--concurrency", "1", "--render-threads", "1", "--loglevel", "INFO",
-                          app_name=WORKER_APP, **env)
+                          "--hostname", f"{name}@%h", app_name=WORKER_APP, **env)  # worker id: name@host
 
     def start_scheduler(self, **env: str) -> Proc:
         return self.start("scheduler", "scheduler", "--interval", "0.3", app_name=SCHEDULER_APP, **env)

@@ -49,10 +49,10 @@ JOBS = [("ycb_banana", 1), (BUNNY, 2), ("ycb_banana", 3), (BUNNY, 4)]  # (scene 
 
 
 def held_tasks(cluster: Cluster, proc: Proc) -> list[int]:
-    """Tasks the worker's pool processes are running now (worker ids are host:pid)."""
-    ids = [f"{socket.gethostname()}:{pid}" for pid in proc.children()]
+    """Tasks the worker is running now (its id is its --hostname, name@host)."""
+    worker_id = f"{proc.name}@{socket.gethostname()}"
     with cluster.sm() as s:
-        return [int(i) for (i,) in s.execute(select(Task.id).where(Task.state == "running", Task.worker_id.in_(ids)))]
+        return [int(i) for (i,) in s.execute(select(Task.id).where(Task.state == "running", Task.worker_id == worker_id))]
 
 
 def kill_9(cluster: Cluster, proc: Proc, patience_s: float = 3.0) -> list[int]:

@@ -57,7 +57,7 @@ def submit(cluster: Cluster, space: Path, spec: Path, *extra: str, timeout: floa
 
 def submit_direct(cluster: Cluster, space: Path, spec: Path) -> int:
     """`omnidata submit` without an API: registers the space and creates the job in the database."""
-    res = submit(cluster, space, spec, "--no-follow")
+    res = submit(cluster, space, spec, "--no-follow", "--direct")
     assert res.returncode == 0, res.stderr
     return int(res.stdout.strip().splitlines()[-1])
 
@@ -152,19 +152,17 @@ def test_job_over_the_api_completes_and_matches_generate(cluster: Cluster, gener
 
 def kill_9_mid_task(cluster: Cluster, victim: Proc, job_id: int) -> tuple[list[int], list[str]]:
     """kill -9 the victim (Celery parent and pool child) while it runs a task; returns (its tasks, its worker ids)."""
-    host = socket.gethostname()
+    victim_ids = [f"{victim.name}@{socket.gethostname()}"]  # its --hostname, kept by every pool child
 
     def victim_running() -> list[int]:
-        ids = [f"{host}:{pid}" for pid in victim.children()]
         with cluster.sm() as s:
             return [int(i) for (i,) in s.execute(select(Task.id).where(
-                Task.job_id == job_id, Task.state == "running", Task.worker_id.in_(ids)))]
+                Task.job_id == job_id, Task.state == "running", Task.worker_id.in_(victim_ids)))]
 
     # Freeze the victim, and kill it only when frozen in the middle of a task (tasks take milliseconds).
     deadline = time.monotonic() + 60
     while True:
         os.killpg(victim.popen.pid, signal.SIGSTOP)
-        victim_ids = [f"{host}:{pid}" for pid in victim.children()]
         held = victim_running()
         if held:
             break

@@ -6,7 +6,9 @@ recycling its child process.
 from __future__ import annotations
 
 import os
+import secrets
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -123,9 +125,10 @@ def test_real_worker_consumes_heartbeats_and_recycles_its_child(pg_url, pg_sm, r
 
     env = worker_env(pg_url, redis_url, banana.store.root, tmp_path / "data", OMNIDATA_WORKER_MAX_TASKS="2")
     log = (tmp_path / "worker.log").open("wb")
+    name = f"w-{secrets.token_hex(3)}@%h"
     proc = subprocess.Popen([sys.executable, "-m", "services.cli", "worker", "--concurrency", "1",
-                             "--render-threads", "1"], cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT,
-                            start_new_session=True)
+                             "--render-threads", "1", "--hostname", name], cwd=REPO, env=env, stdout=log,
+                            stderr=subprocess.STDOUT, start_new_session=True)
     try:
         def workers() -> list[Worker]:
             with pg_sm() as s:
@@ -148,14 +151,15 @@ def test_real_worker_consumes_heartbeats_and_recycles_its_child(pg_url, pg_sm, r
         wait_until(lambda: states() == {"done"}, 180, "the tasks to finish", proc)
         with pg_sm() as s:
             ran_by = set(s.scalars(select(Task.worker_id).where(Task.id.in_(ids))))
-        # worker_max_tasks=2: the child process was replaced after two tasks (different host:pid ids)
-        assert len(ran_by) == 2, ran_by
-        assert ran_by <= {w.id for w in workers()} - before  # each child beat under its own id
+        # worker_max_tasks=2: the child process was replaced after two tasks, and both ran under the given name
+        assert ran_by == {name.replace("%h", socket.gethostname())}, ran_by
+        assert ran_by == {w.id for w in workers()} - before  # one row, kept across the recycle
 
         def counted() -> int:
             return sum(w.tasks_done for w in workers() if w.id in ran_by)
 
-        wait_until(lambda: counted() == 4, 30, "heartbeats to count the tasks", proc)
+        wait_until(lambda: counted() == 4, 30, "heartbeats to count the tasks of both children", proc)
+        assert b"Celery recycles it" in (tmp_path / "worker.log").read_bytes()
     finally:
         # Warm shutdown as an orchestrator does it (k8s, docker stop): SIGTERM to the main process only, which
         # then stops its pool. Signalling the whole group kills the children outright (Celery resets their

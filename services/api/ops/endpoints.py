@@ -10,7 +10,7 @@ from fastapi.responses import JSONResponse, PlainTextResponse
 from fastapi.security import HTTPAuthorizationCredentials
 from pydantic import BaseModel
 
-from services.api.deps import TenantDep, bearer_scheme
+from services.api.deps import bearer_scheme, get_tenant
 from services.api.ops import service
 
 router = APIRouter(tags=["ops"])
@@ -31,7 +31,7 @@ def health(request: Request) -> Health:
 
 @router.get(
     "/ready",
-    summary="Readiness: database, broker and storage reachable",
+    summary="Readiness: database reachable and migrated, broker reachable, storage writable",
     responses={503: {"description": "a dependency failed; `failed` names it"}},
 )
 async def ready(
@@ -44,7 +44,7 @@ async def ready(
     """
     checks = await service.readiness(request.app)
     authed = creds is not None and request.app.state.settings.tenant_for_token(creds.credentials) is not None
-    failed = [name for name, c in checks.items() if not c.ok]
+    failed = [name for name, c in checks.items() if not c.ok and not c.skipped]
     body = {
         "status": "ready" if not failed else "unavailable",
         "failed": failed,
@@ -72,7 +72,16 @@ async def ready(
     summary="Prometheus metrics",
     responses={200: {"content": {"text/plain": {}}}},
 )
-async def metrics(request: Request, tenant: TenantDep) -> PlainTextResponse:
-    """Tasks by state, dispatch/completion counts, queue depth, workers and the task duration histogram."""
-    body = await run_in_threadpool(service.cached_metrics, request.app)
+async def metrics(
+    request: Request, creds: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer_scheme)]
+) -> PlainTextResponse:
+    """Tasks by state, dispatch/completion counts, workers and the task duration histogram.
+
+    An operator token (OMNIDATA_OPERATOR_TOKENS, for Prometheus) sees the whole service and the broker queue
+    depths; a tenant's token sees the figures of its own jobs only.
+    """
+    settings = request.app.state.settings
+    operator = creds is not None and settings.is_operator_token(creds.credentials)
+    owner = None if operator else await get_tenant(request, creds)
+    body = await run_in_threadpool(service.cached_metrics, request.app, owner)
     return PlainTextResponse(body, media_type="text/plain; version=0.0.4; charset=utf-8")

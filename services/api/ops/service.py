@@ -21,10 +21,12 @@ from sqlalchemy import case, func, select, text
 from sqlalchemy.orm import Session
 
 from services.api.workers.service import WORKER_STALE_S
+from services.core.db import SchemaNotCurrent, schema_problem
 from services.core.models import JOB_STATES, TASK_STATES, Job, JobCounter, Task, Worker, utcnow
 
 CHECK_TIMEOUT_S = 3.0
 METRICS_TTL_S = 5.0
+STORAGE_PROBE_TTL_S = 5.0
 DURATION_BUCKETS_S = (0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0, 120.0, 300.0)
 _metrics_lock = threading.Lock()
 
@@ -61,15 +63,28 @@ async def _run(fn: Callable[[], Any]) -> Check:
         return Check(False, round((time.perf_counter() - t0) * 1000, 2), f"{type(e).__name__}: {e}"[:300])
 
 
+async def _storage_check(app: FastAPI) -> Check:
+    """The store's probe (a write and a delete), at most once per STORAGE_PROBE_TTL_S: /ready needs no token."""
+    last: tuple[float, Check] | None = app.state.storage_probe
+    if last is not None and time.monotonic() - last[0] < STORAGE_PROBE_TTL_S:
+        return last[1]
+    check = await _run(app.state.store.probe)
+    app.state.storage_probe = (time.monotonic(), check)
+    return check
+
+
 async def readiness(app: FastAPI) -> dict[str, Check]:
-    """Check the database (SELECT 1), the broker (Redis PING) and the object store, concurrently."""
+    """Check the database (SELECT 1, then its schema revision), the broker (Redis PING) and the object store
+    (bucket there and writable), concurrently."""
 
     def db() -> None:
         with app.state.engine.connect() as conn:
             conn.execute(text("SELECT 1"))
 
-    def storage() -> None:
-        app.state.store.exists("_ready/probe")
+    def schema() -> None:
+        problem = schema_problem(app.state.engine, app.state.schema_heads)
+        if problem:
+            raise SchemaNotCurrent(problem)
 
     client = redis_client(app)
 
@@ -79,11 +94,15 @@ async def readiness(app: FastAPI) -> dict[str, Check]:
             raise ConnectionError("PING was not answered with PONG")
 
     names = ["database", "storage"] + (["broker"] if client is not None else [])
-    fns: list[Callable[[], Any]] = [db, storage] + ([broker] if client is not None else [])
-    results = await asyncio.gather(*(_run(f) for f in fns))
+    runs = [_run(db), _storage_check(app)] + ([_run(broker)] if client is not None else [])
+    results = await asyncio.gather(*runs)
     checks = dict(zip(names, results, strict=True))
     if client is None:
         checks["broker"] = Check(ok=True, latency_ms=0.0, skipped=True)
+    # An unreachable database is reported once (database), not again as a schema failure.
+    checks["schema"] = (
+        await _run(schema) if checks["database"].ok else Check(False, 0.0, "database unreachable", skipped=True)
+    )
     return checks
 
 
@@ -130,18 +149,30 @@ def queue_depths(app: FastAPI) -> dict[str, int | None]:
         return dict.fromkeys(queues)
 
 
-def build_metrics(session: Session, app: FastAPI) -> str:
-    """The Prometheus text exposition of the service's state."""
+def _owned(stmt: Any, owner: str | None, job_id: Any = None) -> Any:
+    """`stmt` limited to the jobs of `owner` (None: every job), joining Job on the `job_id` column if given."""
+    if owner is None:
+        return stmt
+    if job_id is not None:
+        stmt = stmt.join(Job, Job.id == job_id)
+    return stmt.where(Job.owner == owner)
+
+
+def build_metrics(session: Session, app: FastAPI, owner: str | None = None) -> str:
+    """The Prometheus text exposition of the service's state; `owner` limits tasks and jobs to one tenant's
+    (and leaves out the broker queues, which carry every tenant's work)."""
     out = _Text()
+    scope = "all jobs" if owner is None else "the caller's jobs"
     by_state = dict.fromkeys(TASK_STATES, 0)
-    for state, n in session.execute(select(JobCounter.state, func.sum(JobCounter.n)).group_by(JobCounter.state)):
+    counters = _owned(select(JobCounter.state, func.sum(JobCounter.n)), owner, JobCounter.job_id).group_by(JobCounter.state)
+    for state, n in session.execute(counters):
         by_state[state] = int(n or 0)
-    out.family("omnidata_tasks", "gauge", "Tasks by state over all jobs (from the progress counters).")
+    out.family("omnidata_tasks", "gauge", f"Tasks by state over {scope} (from the progress counters).")
     for s in TASK_STATES:
         out.sample("omnidata_tasks", by_state.get(s, 0), state=s)
 
     jobs = dict.fromkeys(JOB_STATES, 0)
-    for state, n in session.execute(select(Job.state, func.count()).group_by(Job.state)):
+    for state, n in session.execute(_owned(select(Job.state, func.count()), owner).group_by(Job.state)):
         jobs[state] = int(n)
     out.family("omnidata_jobs", "gauge", "Jobs by state.")
     for s in JOB_STATES:
@@ -156,9 +187,10 @@ def build_metrics(session: Session, app: FastAPI) -> str:
     out.sample("omnidata_tasks_completed_total", by_state["done"], result="done")
     out.sample("omnidata_tasks_completed_total", by_state["failed"], result="failed")
 
-    out.family("omnidata_queue_depth", "gauge", "Messages waiting in a broker queue (Redis LLEN); -1 if unknown.")
-    for q, n in queue_depths(app).items():
-        out.sample("omnidata_queue_depth", -1 if n is None else n, queue=q)
+    if owner is None:
+        out.family("omnidata_queue_depth", "gauge", "Messages waiting in a broker queue (Redis LLEN); -1 if unknown.")
+        for q, n in queue_depths(app).items():
+            out.sample("omnidata_queue_depth", -1 if n is None else n, queue=q)
 
     cutoff = utcnow() - timedelta(seconds=WORKER_STALE_S)
     alive = session.scalar(select(func.count()).select_from(Worker).where(Worker.last_heartbeat >= cutoff)) or 0
@@ -169,7 +201,7 @@ def build_metrics(session: Session, app: FastAPI) -> str:
 
     cols = [func.sum(case((Task.duration_s <= b, 1), else_=0)) for b in DURATION_BUCKETS_S]
     rows = session.execute(
-        select(Task.cue, *cols, func.count(), func.sum(Task.duration_s))
+        _owned(select(Task.cue, *cols, func.count(), func.sum(Task.duration_s)), owner, Task.job_id)
         .where(Task.state == "done", Task.duration_s.is_not(None))
         .group_by(Task.cue)
         .order_by(Task.cue)
@@ -185,14 +217,14 @@ def build_metrics(session: Session, app: FastAPI) -> str:
     return out.render()
 
 
-def cached_metrics(app: FastAPI) -> str:
-    """build_metrics, reused for METRICS_TTL_S seconds (one builder at a time)."""
-    cache: dict[str, Any] = app.state.metrics_cache
+def cached_metrics(app: FastAPI, owner: str | None = None) -> str:
+    """build_metrics for `owner` (None: service-wide), reused for METRICS_TTL_S seconds (one builder at a time)."""
+    cache: dict[str | None, Any] = app.state.metrics_cache
     with _metrics_lock:
-        hit = cache.get("text")
+        hit = cache.get(owner)
         if hit is not None and time.monotonic() - hit[0] < METRICS_TTL_S:
             return str(hit[1])
         with app.state.read_sessionmaker() as session:
-            body = build_metrics(session, app)
-        cache["text"] = (time.monotonic(), body)
+            body = build_metrics(session, app, owner)
+        cache[owner] = (time.monotonic(), body)
         return body

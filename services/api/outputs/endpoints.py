@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from collections.abc import Iterator
 from typing import Annotated
 
@@ -14,9 +15,11 @@ from services.api.jobs.service import get_job
 from services.api.outputs import service
 from services.api.outputs.schemas import ViewOutputs
 from services.api.spaces.service import not_found
+from services.core import keys
 from services.core.manifest import iter_manifest_lines, job_document
 from services.core.models import Space, View
-from services.core.storage import LocalStore, ObjectNotFoundError, check_key
+from services.core.storage import LocalStore, ObjectNotFoundError, check_key, prefixed
+from services.datasets.previews import PIXEL_JSON_CUES, cached_preview, parse_preview_key
 
 router = APIRouter(tags=["outputs"])
 
@@ -52,7 +55,7 @@ def view_outputs(
         raise not_found("view", f"{space_id}/{point}/{view} of job {job_id}")
     tasks = service.view_tasks(session, job=job, space_id=space_id, point=point, view=view)
     outputs = service.links(
-        store, settings, job=job, space_name=row[1], tasks=tasks, base_url=str(request.base_url)
+        store, settings, job=job, space_name=row[1], tasks=tasks, base_url=str(request.base_url), view=view
     )
     return ViewOutputs(job_id=job.id, space_id=space_id, space=row[1], point=point, view=view, outputs=outputs)
 
@@ -119,3 +122,37 @@ def blob(
     except ObjectNotFoundError:
         raise HTTPException(status.HTTP_404_NOT_FOUND, "no such object") from None
     return Response(data, media_type=media, headers=headers)
+
+
+@router.get(
+    "/previews/{key:path}",
+    summary="A cue file's preview PNG through a signed link (made on first request, then cached)",
+    responses={200: {"content": {"image/png": {}}}, 403: {"description": "bad or expired link"}},
+)
+def preview(
+    key: str,
+    store: StoreDep,
+    settings: SettingsDep,
+    expires: Annotated[int, Query(ge=0, le=2**62)],
+    signature: Annotated[str, Query(pattern="^[0-9a-f]{64}$", description="hex HMAC from the link")],
+) -> Response:
+    """Serve the preview named by a `preview_url` of the outputs routes, making and storing it when missing."""
+    service.verify_blob(settings, key=key, expires=expires, signature=signature)
+    try:
+        root, output_key, cue, point, view = parse_preview_key(check_key(key))
+    except ValueError:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, "no such preview") from None
+    job_store = prefixed(store, root)
+    resolution = None
+    if cue in PIXEL_JSON_CUES:  # drawn at pixel positions: the view's resolution is in its point_info
+        _cue, component, space = output_key.split("/")[:3]
+        try:
+            info = job_store.get_bytes(keys.output_key("point_info", component, space, point, view))
+            resolution = json.loads(info).get("resolution")
+        except (ObjectNotFoundError, ValueError):
+            pass  # drawn on a default-size tile
+    try:
+        _key, data = cached_preview(job_store, output_key, cue, point=point, view=view, resolution=resolution)
+    except ObjectNotFoundError:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, "no such output") from None
+    return Response(data, media_type="image/png", headers={"Cache-Control": "private, max-age=300"})

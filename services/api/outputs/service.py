@@ -25,6 +25,7 @@ from services.core.keys import output_key
 from services.core.models import Job, Task
 from services.core.settings import Settings
 from services.core.storage import ObjectStore
+from services.datasets.previews import preview_key
 
 CONTENT_TYPES = {
     "png": "image/png",
@@ -84,19 +85,34 @@ def relative_key(job: Job, key: str) -> str:
     return key[len(root) + 1 :] if root and key.startswith(root + "/") else key
 
 
+def signed_preview_url(settings: Settings, *, key: str, base_url: str) -> str:
+    """`/previews/<preview key>?expires=&signature=`: the API makes the preview on first use, then serves the cache."""
+    expires = int(time.time()) + settings.presign_expiry_s
+    sig = blob_signature(settings, key, expires)
+    return f"{base_url.rstrip('/')}/previews/{quote(key)}?expires={expires}&signature={sig}"
+
+
 def links(
-    store: ObjectStore, settings: Settings, *, job: Job, space_name: str, tasks: Iterable[Task], base_url: str
+    store: ObjectStore, settings: Settings, *, job: Job, space_name: str, tasks: Iterable[Task], base_url: str,
+    view: int | None = None,
 ) -> dict[str, OutputLink]:
-    """Pre-signed links to the outputs of done, public (non-internal) tasks, by cue in catalog order."""
+    """Pre-signed links to the outputs of done, public (non-internal) tasks, by cue in catalog order.
+
+    Each link has a preview link too; `view` names the view shown (per-point cues are drawn per view).
+    """
     found: dict[str, OutputLink] = {}
     for t in tasks:
         if t.state != "done" or t.cue not in PUBLIC_CUES:
             continue
         key = task_store_key(job, t, space_name)
         url, expires_at = presign(store, settings, key=key, base_url=base_url)
+        rel = relative_key(job, key)
+        shown = t.view_idx if view is None else view
+        pkey = root_key(job, preview_key(rel, t.cue, t.point_idx, shown))
         found[t.cue] = OutputLink(
             cue=t.cue,
-            key=relative_key(job, key),
+            key=rel,
+            preview_url=signed_preview_url(settings, key=pkey, base_url=base_url),
             url=url,
             expires_at=expires_at,
             size=t.size,

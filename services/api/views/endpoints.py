@@ -53,7 +53,8 @@ def list_views(
         item = service.view_read(view, space_name, tasks)
         if urls:
             item.outputs = links(
-                store, settings, job=job, space_name=space_name, tasks=tasks, base_url=str(request.base_url)
+                store, settings, job=job, space_name=space_name, tasks=tasks, base_url=str(request.base_url),
+                view=view.v,
             )
         items.append(item)
     return Page[ViewRead](items=items, total=total, limit=page.limit, offset=page.offset)

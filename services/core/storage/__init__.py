@@ -11,6 +11,7 @@ from services.core.storage.base import (
     ObjectNotFoundError,
     ObjectStore,
     PrefixedStore,
+    StorageError,
     check_key,
     prefixed,
 )
@@ -25,6 +26,7 @@ __all__ = [
     "ObjectNotFoundError",
     "ObjectStore",
     "PrefixedStore",
+    "StorageError",
     "check_key",
     "open_store",
     "prefixed",

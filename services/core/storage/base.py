@@ -29,6 +29,16 @@ class ObjectNotFoundError(FileNotFoundError):
         super().__init__(f"no object with key {key!r}")
 
 
+class StorageError(OSError):
+    """The object store itself failed (bucket missing, no write permission, endpoint down, disk full).
+
+    The message names the store and the problem; the API answers it with 503 instead of a bare 500.
+    """
+
+
+PROBE_KEY = "_ready/probe"  # written and deleted by `probe()`
+
+
 def check_key(key: str) -> str:
     """Return `key` if it is a safe relative object key, else raise ValueError saying why."""
     if not isinstance(key, str) or not key:
@@ -101,6 +111,10 @@ class ObjectStore(Protocol):
         """A URL that fetches the object without credentials (S3: pre-signed GET; local: file:// URI)."""
         ...
 
+    def probe(self) -> None:
+        """Check the store is there and writable (write and delete a small object); StorageError if not."""
+        ...
+
 
 class PrefixedStore:
     """A view of a store rooted at `prefix`: keys are relative to it, listings strip it."""
@@ -152,6 +166,9 @@ class PrefixedStore:
 
     def presigned_url(self, key: str, expires_s: int = 3600) -> str:
         return self.store.presigned_url(self._k(key), expires_s)
+
+    def probe(self) -> None:
+        self.store.probe()
 
 
 def prefixed(store: ObjectStore, prefix: str) -> ObjectStore:

@@ -8,9 +8,17 @@ import re
 import shutil
 import uuid
 from collections.abc import Iterator
+from contextlib import contextmanager, suppress
 from pathlib import Path
 
-from services.core.storage.base import ObjectInfo, ObjectNotFoundError, check_key, check_prefix
+from services.core.storage.base import (
+    PROBE_KEY,
+    ObjectInfo,
+    ObjectNotFoundError,
+    StorageError,
+    check_key,
+    check_prefix,
+)
 
 _TMP = re.compile(r"^\..+\.tmp-[0-9a-f]{32}$")  # in-flight writes, never listed
 _CHUNK = 1024 * 1024
@@ -51,33 +59,45 @@ class LocalStore:
                 os.close(fd)
         os.replace(tmp, target)
 
-    def put_bytes(self, key: str, data: bytes, content_type: str | None = None) -> ObjectInfo:
-        target = self.path(key)
-        target.parent.mkdir(parents=True, exist_ok=True)
+    @contextmanager
+    def _writing(self, target: Path) -> Iterator[Path]:
+        """A temp file beside `target`, renamed onto it by the caller; failures to write name the folder."""
         tmp = self._tmp(target)
         try:
+            target.parent.mkdir(parents=True, exist_ok=True)
+            yield tmp
+        except OSError as e:  # permission, read-only or full file system
+            raise StorageError(f"cannot write to the object folder {self.root}: {e.strerror or e}") from e
+        finally:
+            with suppress(OSError):  # the folder may not exist (the failure above): nothing to remove
+                tmp.unlink(missing_ok=True)
+
+    def put_bytes(self, key: str, data: bytes, content_type: str | None = None) -> ObjectInfo:
+        target = self.path(key)
+        with self._writing(target) as tmp:
             tmp.write_bytes(data)
             self._commit(tmp, target)
-        finally:
-            tmp.unlink(missing_ok=True)
         return ObjectInfo(key, len(data), hashlib.sha256(data).hexdigest())
 
     def put_file(self, key: str, path: str | Path, content_type: str | None = None) -> ObjectInfo:
         target = self.path(key)
-        target.parent.mkdir(parents=True, exist_ok=True)
-        tmp = self._tmp(target)
         h = hashlib.sha256()
         size = 0
-        try:
-            with open(path, "rb") as src, tmp.open("wb") as dst:
+        with open(path, "rb") as src, self._writing(target) as tmp:
+            with tmp.open("wb") as dst:
                 while block := src.read(_CHUNK):
                     h.update(block)
                     dst.write(block)
                     size += len(block)
             self._commit(tmp, target)
-        finally:
-            tmp.unlink(missing_ok=True)
         return ObjectInfo(key, size, h.hexdigest())
+
+    def probe(self) -> None:
+        """The root folder exists (it is not re-created here: a vanished mount must show) and takes writes."""
+        if not self.root.is_dir():
+            raise StorageError(f"the object folder {self.root} does not exist")
+        self.put_bytes(PROBE_KEY, b"ok")
+        self.delete(PROBE_KEY)
 
     def get_bytes(self, key: str) -> bytes:
         try:

@@ -7,15 +7,25 @@ import mimetypes
 import os
 import threading
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import boto3
+from boto3.exceptions import S3UploadFailedError
 from boto3.s3.transfer import TransferConfig
 from botocore.config import Config
-from botocore.exceptions import ClientError
+from botocore.exceptions import BotoCoreError, ClientError
 
-from services.core.storage.base import ObjectInfo, ObjectNotFoundError, check_key, check_prefix, join_key
+from services.core.storage.base import (
+    PROBE_KEY,
+    ObjectInfo,
+    ObjectNotFoundError,
+    StorageError,
+    check_key,
+    check_prefix,
+    join_key,
+)
 
 MULTIPART_THRESHOLD = 8 * 1024 * 1024  # bytes; S3's minimum part size is 5 MiB
 _CHUNK = 1024 * 1024
@@ -46,6 +56,13 @@ def _boto_session() -> boto3.session.Session:
 
 def _missing(e: ClientError) -> bool:
     return str(e.response.get("Error", {}).get("Code")) in _NOT_FOUND
+
+
+def _code(e: Exception) -> str:
+    if isinstance(e, ClientError):
+        return str(e.response.get("Error", {}).get("Code"))
+    cause = e.__context__  # S3UploadFailedError wraps the ClientError of the part that failed
+    return _code(cause) if isinstance(cause, ClientError) else ""
 
 
 class S3Store:
@@ -96,15 +113,33 @@ class S3Store:
     def _strip(self, full: str) -> str:
         return full[len(self.prefix) + 1 :] if self.prefix else full
 
+    @contextmanager
+    def _failures(self, doing: str) -> Iterator[None]:
+        """Turn a failed S3 call (`doing`: "write to", "read from") into a StorageError naming the bucket and
+        the problem. A missing object is not a failure: callers turn it into ObjectNotFoundError first."""
+        try:
+            yield
+        except (ClientError, S3UploadFailedError, BotoCoreError) as e:
+            code = _code(e)
+            where = f"s3://{self.bucket}"
+            if code in ("NoSuchBucket", "404"):
+                problem = f"the bucket {where} does not exist"
+            elif code in ("AccessDenied", "403", "AllAccessDisabled"):
+                problem = f"no permission to {doing} {where}"
+            else:
+                problem = f"cannot {doing} {where}: {type(e).__name__}: {str(e).splitlines()[0][:200]}"
+            raise StorageError(problem) from e
+
     def put_bytes(self, key: str, data: bytes, content_type: str | None = None) -> ObjectInfo:
         digest = hashlib.sha256(data).hexdigest()
-        self.client.put_object(
-            Bucket=self.bucket,
-            Key=self._k(key),
-            Body=data,
-            ContentType=content_type or mimetypes.guess_type(key)[0] or "application/octet-stream",
-            Metadata={"sha256": digest},
-        )
+        with self._failures("write to"):
+            self.client.put_object(
+                Bucket=self.bucket,
+                Key=self._k(key),
+                Body=data,
+                ContentType=content_type or mimetypes.guess_type(key)[0] or "application/octet-stream",
+                Metadata={"sha256": digest},
+            )
         return ObjectInfo(key, len(data), digest)
 
     def put_file(self, key: str, path: str | Path, content_type: str | None = None) -> ObjectInfo:
@@ -114,39 +149,43 @@ class S3Store:
             "ContentType": content_type or mimetypes.guess_type(key)[0] or "application/octet-stream",
             "Metadata": {"sha256": digest},
         }
-        self.client.upload_file(str(path), self.bucket, self._k(key), ExtraArgs=extra, Config=self.transfer)
+        with self._failures("write to"):
+            self.client.upload_file(str(path), self.bucket, self._k(key), ExtraArgs=extra, Config=self.transfer)
         return ObjectInfo(key, path.stat().st_size, digest)
 
     def get_bytes(self, key: str) -> bytes:
-        try:
-            resp = self.client.get_object(Bucket=self.bucket, Key=self._k(key))
-        except ClientError as e:
-            if _missing(e):
-                raise ObjectNotFoundError(key) from None
-            raise
-        data: bytes = resp["Body"].read()
+        with self._failures("read from"):
+            try:
+                resp = self.client.get_object(Bucket=self.bucket, Key=self._k(key))
+            except ClientError as e:
+                if _missing(e):
+                    raise ObjectNotFoundError(key) from None
+                raise
+            data: bytes = resp["Body"].read()
         return data
 
     def get_file(self, key: str, path: str | Path) -> Path:
         dest = Path(path)
         dest.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            # s3transfer downloads to a temporary name and renames, so `dest` is never half-written
-            self.client.download_file(self.bucket, self._k(key), str(dest), Config=self.transfer)
-        except ClientError as e:
-            if _missing(e):
-                raise ObjectNotFoundError(key) from None
-            raise
+        with self._failures("read from"):
+            try:
+                # s3transfer downloads to a temporary name and renames, so `dest` is never half-written
+                self.client.download_file(self.bucket, self._k(key), str(dest), Config=self.transfer)
+            except ClientError as e:
+                if _missing(e):
+                    raise ObjectNotFoundError(key) from None
+                raise
         return dest
 
     def _head(self, key: str) -> dict[str, Any] | None:
-        try:
-            head: dict[str, Any] = self.client.head_object(Bucket=self.bucket, Key=self._k(key))
-            return head
-        except ClientError as e:
-            if _missing(e):
-                return None
-            raise
+        with self._failures("read from"):
+            try:
+                head: dict[str, Any] = self.client.head_object(Bucket=self.bucket, Key=self._k(key))
+                return head
+            except ClientError as e:
+                if _missing(e):
+                    return None
+                raise
 
     def exists(self, key: str) -> bool:
         return self._head(key) is not None
@@ -198,3 +237,10 @@ class S3Store:
             "get_object", Params={"Bucket": self.bucket, "Key": self._k(key)}, ExpiresIn=int(expires_s)
         )
         return url
+
+    def probe(self) -> None:
+        """The bucket exists and takes a write (a small object under the prefix, deleted again)."""
+        with self._failures("write to"):
+            self.client.head_bucket(Bucket=self.bucket)
+            self.client.put_object(Bucket=self.bucket, Key=self._k(PROBE_KEY), Body=b"ok")
+            self.client.delete_object(Bucket=self.bucket, Key=self._k(PROBE_KEY))

@@ -351,9 +351,10 @@ function throughputChart(tp) {
 
 function outputTile(cue, link) {
   if (!link) return h("div", { class: "tile missing" }, h("span", {}, cue));
-  const isImg = link.content_type === "image/png";
+  // Previews are readable renderings of every cue (colour maps, palettes, drawn JSON); the link opens the raw file.
+  const src = link.preview_url || (link.content_type === "image/png" ? link.url : null);
   return h("a", { class: "tile", href: link.url, target: "_blank", rel: "noopener", title: `${cue}: ${link.key}` },
-    isImg ? h("img", { src: link.url, alt: cue, loading: "lazy" }) : h("div", { class: "file" }, link.key.split(".").pop()),
+    src ? h("img", { src, alt: cue, loading: "lazy" }) : h("div", { class: "file" }, link.key.split(".").pop()),
     h("span", {}, cue));
 }
 

@@ -1,0 +1,217 @@
+"""`omnidata export SOURCE --format webdataset|omnidata --out OUT`: a job's output for other loaders.
+
+webdataset: tar shards `OUT/shard-000000.tar`, ... with one sample per view keyed `<space>/point_<p>_view_<v>`
+(or `<space>__point_<p>_view_<v>` with --flat-keys), one member per cue named `<key>.<cue>.<ext>` holding the
+file's bytes unchanged, and `<key>.json` with {space, component, point, view, point_info}. Per-point cues
+(nonfixated) go into every view of their point, so each sample stands alone.
+
+omnidata: the tree the public Omnidata dataloader (omnidata_tools/torch/dataloader) reads with no glue:
+`OUT/<cue>/<component>/<space>/point_<p>_view_<v>_domain_<cue>.<ext>` (per-point files copied per view, since
+that loader parses every name as point_<p>_view_<v>_domain_<cue>), and its split CSV
+`OUT/component_datasets/<component>/train_val_test_<component>.csv` (id,train,val,test by space).
+
+SOURCE is a job's output folder, s3://bucket/prefix of a job root, or a service job's id (its root `jobs/<id>` in
+OMNIDATA_STORAGE_URL), read through its manifest. The output is
+built in a temporary sibling folder and renamed into place at the end, so a failed export leaves nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import shutil
+import sys
+import tarfile
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+from services.cli import CliError
+from services.core.cues import CATALOG, UnknownCueError, validate_cue_names
+from services.core.keys import JOB_JSON_KEY, check_name
+from services.core.storage import ObjectStore
+from services.datasets.source import (
+    DatasetIntegrityError,
+    ViewRecord,
+    check_sha256,
+    index_root,
+    job_document,
+    open_root,
+    select_cues,
+)
+from services.datasets.splits import DEFAULT_RATIOS, assign_splits, read_split_csv, split_csv_text
+
+FORMATS = ("webdataset", "omnidata")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("source", help="output folder of a job, s3://bucket/prefix of a job root, or a service job id")
+    p.add_argument("--format", required=True, choices=FORMATS, help="webdataset tar shards or the Omnidata tree")
+    p.add_argument("--out", required=True, type=Path, help="folder to create (must not exist or be empty)")
+    p.add_argument("--shard-size", type=int, default=1000, help="webdataset: samples (views) per shard")
+    p.add_argument("--flat-keys", action="store_true", help="webdataset: keys without '/' (<space>__point_..)")
+    p.add_argument("--cues", default=None, help="comma-separated cues to export (default: all the job has)")
+    p.add_argument("--component", default=None, help="omnidata: component folder name (default: the job's)")
+    p.add_argument("--split-seed", type=int, default=0, help="omnidata: seed of the split by space")
+    p.add_argument("--split-ratios", default=",".join(map(str, DEFAULT_RATIOS)),
+                   help="omnidata: train,val,test fractions of spaces")
+    p.add_argument("--split-csv", type=Path, default=None, help="omnidata: use this split CSV (id,train,val,test)")
+    p.add_argument("--verify", action="store_true", help="check every file's sha256 against the manifest")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def sample_key(record: ViewRecord, flat: bool = False) -> str:
+    """WebDataset key of a view: `<space>/point_<p>_view_<v>` (flat: '__' instead of '/')."""
+    return record.key.replace("/", "__") if flat else record.key
+
+
+def omnidata_path(cue: str, component: str, record: ViewRecord) -> str:
+    """Path of a cue file of a view in the public loader's tree (every cue named per view)."""
+    return (f"{cue}/{component}/{record.space}/"
+            f"point_{record.point}_view_{record.view}_domain_{cue}.{CATALOG[cue].ext}")
+
+
+def split_csv_path(component: str) -> str:
+    """Where the public loader's convention puts a component's split CSV, relative to the export root."""
+    return f"component_datasets/{component}/train_val_test_{component}.csv"
+
+
+def _tar_member(tar: tarfile.TarFile, name: str, data: bytes) -> None:
+    info = tarfile.TarInfo(name)
+    info.size, info.mtime, info.mode = len(data), 0, 0o644  # fixed metadata: identical input, identical shards
+    tar.addfile(info, io.BytesIO(data))
+
+
+class Exporter:
+    """Reads a dataset root's views and files (sha256-checked on request) and writes one of the formats."""
+
+    def __init__(self, store: ObjectStore, cues: list[str] | None, *, verify: bool, progress: bool):
+        self.store = store
+        self.verify = verify
+        self.progress = progress
+        self.job = job_document(store)
+        self.records = index_root(store)
+        if not self.records:
+            raise CliError(f"{store} lists no views")
+        try:
+            self.cues = select_cues(self.records, cues)
+        except ValueError as e:
+            raise CliError(str(e)) from None
+
+    def read(self, record: ViewRecord, cue: str) -> bytes:
+        ref = record.files[cue]
+        data = self.store.get_bytes(ref.key)
+        return check_sha256(ref, data) if self.verify else data
+
+    def _views(self, what: str) -> Iterator[ViewRecord]:
+        if not self.progress:
+            yield from self.records
+            return
+        from tqdm import tqdm
+
+        yield from tqdm(self.records, desc=what, unit="view", file=sys.stderr, dynamic_ncols=True)
+
+    def sample_json(self, record: ViewRecord) -> dict[str, Any]:
+        doc: dict[str, Any] = {"space": record.space, "component": record.component, "point": record.point,
+                               "view": record.view}
+        if "point_info" in record.files:
+            doc["point_info"] = json.loads(self.read(record, "point_info"))
+        return doc
+
+    def webdataset(self, out: Path, *, shard_size: int, flat_keys: bool) -> list[Path]:
+        """Write the shards; returns their paths."""
+        shards: list[Path] = []
+        tar: tarfile.TarFile | None = None
+        for i, record in enumerate(self._views("webdataset")):
+            if i % shard_size == 0:
+                if tar is not None:
+                    tar.close()
+                shards.append(out / f"shard-{len(shards):06d}.tar")
+                tar = tarfile.open(shards[-1], "w", format=tarfile.USTAR_FORMAT)
+            assert tar is not None
+            key = sample_key(record, flat_keys)
+            for cue in self.cues:
+                if cue in record.files:
+                    _tar_member(tar, f"{key}.{cue}.{CATALOG[cue].ext}", self.read(record, cue))
+            _tar_member(tar, f"{key}.json", json.dumps(self.sample_json(record), sort_keys=True).encode())
+        if tar is not None:
+            tar.close()
+        return shards
+
+    def omnidata(self, out: Path, *, component: str, splits: dict[str, str]) -> int:
+        """Write the public loader's tree and split CSV; returns the number of files written."""
+        n = 0
+        for record in self._views("omnidata"):
+            for cue in self.cues:
+                if cue in record.files:
+                    target = out / omnidata_path(cue, component, record)
+                    target.parent.mkdir(parents=True, exist_ok=True)
+                    target.write_bytes(self.read(record, cue))
+                    n += 1
+        csv = out / split_csv_path(component)
+        csv.parent.mkdir(parents=True)
+        csv.write_text(split_csv_text(splits))
+        if self.job is not None:
+            (out / JOB_JSON_KEY).write_text(json.dumps(self.job, indent=2))
+        return n
+
+
+def _prepare_out(out: Path) -> Path:
+    """A fresh temporary folder beside `out` (which must not exist or be empty)."""
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise CliError(f"--out {out} exists and is not an empty folder")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.parent / f".{out.name}.partial-{uuid.uuid4().hex[:8]}"
+    tmp.mkdir()
+    return tmp
+
+
+def _splits(args: argparse.Namespace, spaces: list[str]) -> dict[str, str]:
+    if args.split_csv is not None:
+        try:
+            members = read_split_csv(args.split_csv)
+        except (OSError, ValueError) as e:
+            raise CliError(f"--split-csv: {e}") from None
+        return {s: next((name for name, ids in members.items() if s in ids), "none") for s in spaces}
+    try:
+        ratios = [float(x) for x in args.split_ratios.split(",")]
+        return assign_splits(spaces, seed=args.split_seed, ratios=ratios)
+    except ValueError as e:
+        raise CliError(f"--split-ratios: {e}") from None
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.shard_size < 1:
+        raise CliError(f"--shard-size must be >= 1, got {args.shard_size}")
+    try:
+        cues = None if args.cues is None else validate_cue_names(c.strip() for c in args.cues.split(",") if c.strip())
+        store = open_root(args.source)
+        exporter = Exporter(store, cues, verify=args.verify, progress=not args.no_progress)
+    except (UnknownCueError, FileNotFoundError, ValueError) as e:
+        raise CliError(str(e)) from None
+    component = args.component or (exporter.job or {}).get("job", {}).get("name") or exporter.records[0].component
+    try:
+        check_name("--component", component)
+    except ValueError as e:
+        raise CliError(str(e)) from None
+    splits = _splits(args, sorted({r.space for r in exporter.records})) if args.format == "omnidata" else {}
+    tmp = _prepare_out(args.out)
+    try:
+        if args.format == "webdataset":
+            shards = exporter.webdataset(tmp, shard_size=args.shard_size, flat_keys=args.flat_keys)
+            summary = f"{len(exporter.records)} samples in {len(shards)} shard(s)"
+        else:
+            n = exporter.omnidata(tmp, component=component, splits=splits)
+            summary = f"{n} files of {len(exporter.records)} views, split CSV {split_csv_path(component)}"
+        if args.out.exists():
+            args.out.rmdir()
+        tmp.rename(args.out)
+    except DatasetIntegrityError as e:
+        raise CliError(str(e)) from None
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp)
+    print(f"omnidata export: {summary} in {args.out}")
+    return 0

@@ -3,7 +3,7 @@
 A simulated worker is a thread that does what a real worker child does, through the same code: it pops a real
 `render.cue` message (made by the real scheduler's CeleryTransport) from the real Redis queues, runs it with the
 worker's TaskRunner (claim, record done, counters) whose compute step sleeps `--task-s` instead of rendering
-and stores a few bytes, and has a real Heartbeat (worker row upsert + lease extension every 5 s; the beats of
+and stores a few bytes, and has a real Heartbeat (worker row upsert every 5 s, lease extension when due; the beats of
 a process's workers are driven by one thread there instead of one thread each). Workers are spread over a few
 processes; each process shares a small connection pool, as a deployment of this size would share PgBouncer.
 The scheduler is the real Scheduler loop (dispatch, reaper, completion) in its own process, planning a
@@ -17,6 +17,15 @@ For each worker count (default 100, 300, 1000), on a fresh database, for `--seco
   word and stop beating): seconds until each of their tasks was requeued, with a 300 s lease and a
   `--heartbeat-timeout-s` heartbeat timeout (requeued at the timeout, not at lease expiry);
 - progress query: p50/p99 of the API's job detail query (one statement) polled every 50 ms meanwhile.
+
+What it showed first (results kept under `before` in scale.json): at 1,000 workers heartbeats fell behind (each
+was a SELECT, an ORM UPDATE, a lease UPDATE of the task row and a commit waiting for the WAL flush) and live
+workers were declared dead: the reaper requeued hundreds of tasks that were still running. Fixed: a beat is
+one upsert, the task's lease is pushed only once a third of it has passed (liveness is the worker row's job
+now), and worker connections commit without waiting for the flush. What limits next: claims and results wait on the row locks
+of the job's few counter rows (`pg_active_backends_by_wait`: Lock:transactionid), held across a client round
+trip; here the clients are threads starved of a shared 2-core host, so it shows far earlier than in a fleet of
+real processes. Sharding the counter rows would remove it.
 
 Writes bench/results/scale.json. Run: .venv/bin/python bench/scale_sim.py [--workers 100,300,1000] [--seconds 30]
 """

@@ -45,7 +45,7 @@ cues: [rgb, normal, depth_zbuffer, edge_texture, point_info, segment_unsup2d]
 seed: {seed}
 """
 BUNNY = "stanford_bunny/bun_zipper_res2.ply"
-JOBS = [("ycb_banana", 1), (BUNNY, 2), ("ycb_banana", 3), (BUNNY, 4)]  # (scene under scenes_dir, seed)
+JOBS = [("ycb_banana", 1), (BUNNY, 2), ("ycb_banana", 3), (BUNNY, 4), ("ycb_banana", 5), (BUNNY, 6)]  # (scene, seed)
 
 
 def held_tasks(cluster: Cluster, proc: Proc) -> list[int]:
@@ -139,13 +139,15 @@ def test_chaos_soak(cluster: Cluster, scenes_dir: Path, tmp_path: Path) -> None:
     held = [t for _, ids in kills for t in ids]
     with cluster.sm() as s:
         tasks = s.scalar(select(func.count()).select_from(Task).where(Task.job_id.in_(job_ids)))
+        first, last = s.execute(select(func.min(Job.created_at), func.max(Job.finished_at)).where(Job.id.in_(job_ids))).one()
         rerun = {int(r.id): r for r in s.execute(
             select(Task.id, Task.attempts, Task.finished_at).where(Task.id.in_(held)))}
     assert held, "no worker was killed mid-task"
     assert all(r.attempts >= 2 for r in rerun.values()), rerun  # each killed worker's task was reaped and rerun
     recovery = [(rerun[t].finished_at - when).total_seconds() for when, ids in kills for t in ids]
     figures = {
-        "run_s": round(run_s, 1), "chaos_s": round(chaos_s, 1), "faults": dict(faults),
+        "run_s": round(run_s, 1), "chaos_s": round(chaos_s, 1), "workload_s": round((last - first).total_seconds(), 1),
+        "faults": dict(faults),
         "faults_total": sum(faults.values()), "jobs_done": len(jobs), "tasks_done": int(tasks or 0),
         "outputs_once_sha256_ok": outputs, "killed_mid_task": len(held),
         "recovery_after_kill9_s": {"max": round(max(recovery), 1), "mean": round(sum(recovery) / len(recovery), 1)}

@@ -23,23 +23,31 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_v, "1")
 
 import argparse  # noqa: E402
+import io  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
+import resource  # noqa: E402
+import subprocess  # noqa: E402
+import tempfile  # noqa: E402
 import time  # noqa: E402
 from collections import defaultdict  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 import trimesh  # noqa: E402
+from PIL import Image  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from services.core.camera import look_at  # noqa: E402
-from services.core.cues import default_cues  # noqa: E402
-from services.core.jobspec import CueParams  # noqa: E402
+from services.core.cues import CATALOG, default_cues  # noqa: E402
+from services.core.jobspec import CueParams, JobSpec  # noqa: E402
 from services.core.plan import CameraPose, PlannedView, PointOfInterest, SpacePlan  # noqa: E402
 from services.core.spaces import load_space  # noqa: E402
+from services.scheduler.planning import make_plan, space_rng  # noqa: E402
+from services.worker.cues.encoding import encode_png  # noqa: E402
 from services.worker.executor import make_context, produce  # noqa: E402
+from services.worker.passes import ViewGeometry  # noqa: E402
 from services.worker.space_cache import SpaceContext, peak_rss_bytes, rss_bytes  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -48,6 +56,207 @@ SCENES = {
     "ycb_banana": ROOT.parent / "shared" / "scenes" / "ycb_banana" / "textured_simple_reoriented.obj",
     "stanford_bunny": ROOT.parent / "shared" / "scenes" / "stanford_bunny" / "bun_zipper.ply",
 }
+ROOM = ROOT.parent / "shared" / "scenes" / "icl_livingroom"
+ROOM_NAME = "icl_livingroom"
+# The room's figures before issue 10's changes (this bench's room part run on commit 564a87b with only the floor
+# render and the CPU-clock hook added, same machine, same hour), kept to
+# compare: bench/results/render_room_before.json.
+BEFORE = RESULTS / "render_room_before.json"
+GPU_NOTE = ("no accelerator was lent to this task (device tool: not drawn, can_start_another false), so no GPU figures;"
+            " a CUDA/OptiX/auto request falls back to the CPU with a log line (tests/worker/test_render.py)")
+
+
+def room_plan(loaded: object, resolution: int, seed: int = 0) -> SpacePlan:
+    """The real planner's plan of the room (Poisson-disc cameras in free space, job defaults)."""
+    spec = JobSpec.model_validate({"views": {"resolution": resolution}})
+    return make_plan(loaded, spec, space_rng(seed, ROOM_NAME), ROOM_NAME)  # type: ignore[arg-type]
+
+
+PNG_SETTINGS = ((0, 0), (1, 0), (3, 0), (6, 0), (1, 3), (3, 3))  # (zlib level, strategy: 0 default, 3 RLE)
+
+
+def png_settings(arrays: dict[str, np.ndarray], repeats: int = 3) -> dict[str, dict]:
+    """Seconds and bytes to encode one view's PNG cues per zlib (level, strategy); every file must decode back."""
+    out = {}
+    for level, strategy in PNG_SETTINGS:
+        times, size = [], 0
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            files = {c: encode_png(a, level, strategy) for c, a in arrays.items()}
+            times.append(time.perf_counter() - t0)
+        for c, data in files.items():
+            with Image.open(io.BytesIO(data)) as im:
+                back = np.asarray(im).astype(arrays[c].dtype)
+            assert np.array_equal(back, arrays[c]), f"{c}: PNG level {level} strategy {strategy} is not lossless"
+            size += len(data)
+        out[f"level{level}_strategy{strategy}"] = {"s": round(float(np.median(times)), 4), "bytes": size}
+    return out
+
+
+def exr_settings(position: np.ndarray, repeats: int = 3) -> dict[str, dict]:
+    """Seconds and bytes of the position EXR with ZIP (what the cue writes) and without compression."""
+    import OpenEXR
+
+    out = {}
+    for name, codec in (("zip", OpenEXR.ZIP_COMPRESSION), ("none", OpenEXR.NO_COMPRESSION)):
+        times = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            with tempfile.NamedTemporaryFile(suffix=".exr") as fh:
+                with OpenEXR.File({"compression": codec, "type": OpenEXR.scanlineimage}, {"RGB": position}) as f:
+                    f.write(fh.name)
+                size = os.path.getsize(fh.name)
+            times.append(time.perf_counter() - t0)
+        out[name] = {"s": round(float(np.median(times)), 4), "bytes": size}
+    return out
+
+
+IDLE_PROBE = """
+import os, sys, time
+os.sched_setaffinity(0, set(range(os.cpu_count())))  # a worker on a multi-core host, not this bench's one core
+sys.path.insert(0, sys.argv[2])
+if sys.argv[1] == "plain-import":
+    import bpy  # noqa: F401  (what the worker did before: Blender's thread pool sized to every CPU)
+import numpy as np, trimesh
+from services.core.jobspec import CueParams
+from services.worker.passes import ViewGeometry
+from services.core.camera import look_at
+from services.worker.space_cache import SpaceContext
+space = SpaceContext(key="box", mesh=trimesh.creation.box(), threads=1)
+space.render(ViewGeometry(look_at(np.array([3.0, 2.0, 1.0]), np.zeros(3)), 1.0, 64), CueParams())
+time.sleep(1.0)
+c0, t0 = sum(os.times()[:2]), time.monotonic()
+time.sleep(float(sys.argv[3]))
+print((sum(os.times()[:2]) - c0) / (time.monotonic() - t0))
+"""
+
+
+def idle_cpu(seconds: float = 5.0) -> dict:
+    """CPU (fraction of one core) of an idle process that rendered once with 1 render thread on all CPUs: as the
+    worker imports bpy now (services.worker.bpy_threads) and with a plain `import bpy` (the sched_yield spin)."""
+    out: dict = {"cpus": os.cpu_count(), "seconds": seconds}
+    for mode in ("worker", "plain-import"):
+        run = subprocess.run([sys.executable, "-c", IDLE_PROBE, mode, str(ROOT), str(seconds)], capture_output=True,
+                             text=True, check=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
+        out[mode.replace("-", "_")] = round(float(run.stdout.strip().splitlines()[-1]), 3)
+    return out
+
+
+def end_to_end(points: int, max_views: int, resolution: int, out_dir: Path) -> dict:
+    """`omnidata generate --workers 1` on the room, pinned to one core (scheduler, worker and planning share it).
+
+    Labels per second of wall time, and per CPU second of the whole process tree (generate, its worker and
+    planning processes: RUSAGE_CHILDREN), which is labels/s/core on an otherwise idle core."""
+    spec = out_dir / "room-spec.json"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    spec.write_text(json.dumps({"points": {"count": points, "max_views": max_views},
+                                "views": {"resolution": resolution}}))
+    target = out_dir / "out"
+    core = str(sorted(os.sched_getaffinity(0))[0])
+    t0, cpu0 = time.perf_counter(), _children_cpu_s()
+    subprocess.run(["taskset", "-c", core, sys.executable, "-m", "services.cli", "generate", str(ROOM),
+                    "--out", str(target), "--spec", str(spec), "--workers", "1", "--seed", "0", "--no-progress"],
+                   cwd=ROOT, check=True, capture_output=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    wall, cpu = time.perf_counter() - t0, _children_cpu_s() - cpu0
+    lines = (target / "manifest.jsonl").read_text().splitlines()
+    labels = sum(len(json.loads(line)["outputs"]) for line in lines)
+    return {"views": len(lines), "labels": labels, "wall_s": round(wall, 2), "cpu_s": round(cpu, 2),
+            "labels_per_cpu_s": round(labels / cpu, 2), "cpu_s_per_view": round(cpu / max(1, len(lines)), 3),
+            "labels_per_s_wall": round(labels / wall, 2), "wall_s_per_view": round(wall / max(1, len(lines)), 3)}
+
+
+def _children_cpu_s() -> float:
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
+def run_room(n_views: int, resolution: int, repeats: int) -> dict:
+    """Per cue seconds per view on the room against the bare-render floor, measured interleaved in one run.
+
+    Each repeat walks the views; for each view it first times a bare 1-sample render (services.worker.blender
+    BlenderScene.render_floor: Image, Depth and Normal only, same resolution and threads), then makes every
+    default cue from one pass render. Medians over views x repeats, so a busy neighbour moves both alike.
+    Times are this process's CPU seconds (time.process_time, all its threads), which other processes on a shared
+    machine do not inflate; on an idle core they equal wall time (the wall-clock medians are reported beside).
+    """
+    params = CueParams()
+    t0 = time.perf_counter()
+    loaded = load_space(ROOM)
+    space = SpaceContext.from_loaded(loaded, key=ROOM_NAME)
+    load_s = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    plan = room_plan(loaded, resolution)
+    plan_s = time.perf_counter() - t1
+    # Two consecutive views of points spread over the room, as a worker meets them (a point's views are
+    # dispatched together; per-point outputs such as nonfixated are shared by them).
+    points = sorted({v.point_idx for v in plan.views})
+    points = points[:: max(1, len(points) // max(1, n_views // 2))][: max(1, n_views // 2)]
+    views = [v for p in points for v in plan.views_of(p)[:2]]
+    cues = default_cues(space.has_semantics)
+    scene = space.scene()
+    space.curvature(params.curvature_radius_m)  # space set-up, not per view
+    scene.render_floor(ViewGeometry.of(views[0]))  # warm both Cycles sessions before timing
+    _ = make_context(space, views[0], cues, params, plan=plan).passes
+    floor_s: list[float] = []
+    view_s: list[float] = []
+    floor_wall: list[float] = []
+    view_wall: list[float] = []
+    per_cue: defaultdict[str, list[float]] = defaultdict(list)
+    inter: defaultdict[str, list[float]] = defaultdict(list)
+    render_parts: defaultdict[str, list[float]] = defaultdict(list)
+    for _ in range(repeats):
+        for view in views:
+            c0 = time.process_time()
+            floor_wall.append(scene.render_floor(ViewGeometry.of(view)))
+            floor_s.append(time.process_time() - c0)
+            tv, c0 = time.perf_counter(), time.process_time()
+            ctx = make_context(space, view, cues, params, plan=plan)
+            ctx.clock = time.process_time
+            for c in cues:
+                produce(c, ctx)
+            view_s.append(time.process_time() - c0)
+            view_wall.append(time.perf_counter() - tv)
+            for k in ("render_call_s", "exr_read_s", "decode_s"):
+                render_parts[k].append(ctx.passes.meta.get(k, 0.0))
+            cue_s: defaultdict[str, float] = defaultdict(float)
+            for k, v in ctx.timings.items():
+                if k.startswith(("cue:", "encode:")):
+                    cue_s[k.split(":", 1)[1]] += v
+                else:
+                    inter[k].append(v)
+            for c in cues:
+                per_cue[c].append(cue_s[c])
+    png = png_settings({c: ctx.value(c) for c in cues if CATALOG[c].ext == "png"})
+    exr = exr_settings(ctx.value("position"))
+    space.close()
+    floor = float(np.median(floor_s))
+    view_med = float(np.median(view_s))
+    med = {c: round(float(np.median(v)), 4) for c, v in per_cue.items()}
+    return {
+        "faces": int(loaded.face_count),
+        "views": len(views),
+        "repeats": repeats,
+        "resolution": resolution,
+        "cues": cues,
+        "load_space_s": round(load_s, 3),
+        "plan_s": round(plan_s, 3),
+        "clock": "process CPU seconds (time.process_time)",
+        "floor_s_median": round(floor, 4),
+        "view_s_median": round(view_med, 4),
+        "ratio_view_to_floor": round(view_med / floor, 2),
+        "wall_clock": {"floor_s_median": round(float(np.median(floor_wall)), 4),
+                       "view_s_median": round(float(np.median(view_wall)), 4),
+                       "ratio_view_to_floor": round(float(np.median(view_wall) / np.median(floor_wall)), 2)},
+        "labels_per_s_per_core": round(len(cues) / view_med, 2),
+        "per_cue_s_median": dict(sorted(med.items(), key=lambda kv: -kv[1])),
+        "intermediates_s_median": {k: round(float(np.median(v)), 4)
+                                   for k, v in sorted(inter.items(), key=lambda kv: -float(np.median(kv[1])))},
+        "render_parts_s_median": {k: round(float(np.median(v)), 4) for k, v in render_parts.items()},
+        "png_settings": png,
+        "position_exr": exr,
+        "floor_s": [round(v, 4) for v in floor_s],
+        "view_s": [round(v, 4) for v in view_s],
+    }
 
 
 def plan_views(mesh: object, n: int, resolution: int, rng: np.random.Generator) -> SpacePlan:
@@ -162,44 +371,75 @@ def main() -> int:
     ap.add_argument("--naive-views", type=int, default=1, help="views per scan measured the naive way")
     ap.add_argument("--resolution", type=int, default=512)
     ap.add_argument("--scenes", default=",".join(SCENES), help="comma-separated: " + ",".join(SCENES))
+    ap.add_argument("--room-views", type=int, default=6, help="views of the room (0: skip the room)")
+    ap.add_argument("--room-repeats", type=int, default=2, help="passes over the room's views (medians)")
+    ap.add_argument("--e2e-points", type=int, default=8, help="room end to end: points (0: skip)")
+    ap.add_argument("--e2e-max-views", type=int, default=5, help="room end to end: views per point")
+    ap.add_argument("--idle-s", type=float, default=5.0, help="idle worker CPU probe duration (0: skip)")
     ap.add_argument("--cores", type=int, default=None, help="do not pin to one core (for comparison)")
     ap.add_argument("--out", type=Path, default=RESULTS / "render.json")
     args = ap.parse_args()
     rng = np.random.default_rng(0)
     t0 = time.perf_counter()
+    room = run_room(args.room_views, args.resolution, args.room_repeats) if args.room_views > 0 else None
     scenes = {n: run_scene(n, SCENES[n], args.views, args.resolution, args.naive_views, rng)
-              for n in args.scenes.split(",")}
-    total_labels = sum(s["labels"] for s in scenes.values())
-    total_s = sum(s["amortised_s"] for s in scenes.values())
-    naive_labels = sum(s["naive_labels"] for s in scenes.values())
-    naive_s = sum(s["naive_s"] for s in scenes.values())
+              for n in args.scenes.split(",") if n}
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    result = {
-        "benchmark": "render",
-        "resolution": args.resolution,
-        "cores": cores,
-        "device": "cpu",
-        "labels_per_s_per_core_amortised": round(total_labels / total_s / cores, 2),
-        "labels_per_s_per_core_naive": round(naive_labels / naive_s / cores, 2),
-        "speedup_vs_naive": round((total_labels / total_s) / (naive_labels / naive_s), 2),
-        "speedup_vs_naive_cold": round((total_labels / total_s) / (
-            sum(s["naive_cold_labels"] for s in scenes.values())
-            / sum(s["naive_cold_labels"] / s["labels_per_s_naive_cold"] for s in scenes.values())), 2),
-        "target_labels_per_s_per_core": 10,
+    result: dict = {"benchmark": "render", "resolution": args.resolution, "cores": cores, "device": "cpu",
+                    "target_labels_per_s_per_core": 10, "target_ratio_to_floor": 5.0}
+    result["gpu"] = GPU_NOTE
+    if room is not None:
+        result["room"] = {ROOM_NAME: room}
+        if BEFORE.exists():
+            before = json.loads(BEFORE.read_text())
+            b = before["room"][ROOM_NAME]
+            room["before"] = {k: b[k] for k in ("floor_s_median", "view_s_median", "ratio_view_to_floor",
+                                                "labels_per_s_per_core", "per_cue_s_median",
+                                                "intermediates_s_median")}
+            if "room_end_to_end" in before:
+                room["before"]["end_to_end"] = before["room_end_to_end"]
+    if args.e2e_points > 0:
+        with tempfile.TemporaryDirectory(prefix="omnidata-bench-") as tmp:
+            result["room_end_to_end"] = end_to_end(args.e2e_points, args.e2e_max_views, args.resolution, Path(tmp))
+    if args.idle_s > 0:
+        result["idle_worker_cpu"] = idle_cpu(args.idle_s)
+    if scenes:
+        total_labels = sum(s["labels"] for s in scenes.values())
+        total_s = sum(s["amortised_s"] for s in scenes.values())
+        naive_labels = sum(s["naive_labels"] for s in scenes.values())
+        naive_s = sum(s["naive_s"] for s in scenes.values())
+        result.update({
+            "labels_per_s_per_core_amortised": round(total_labels / total_s / cores, 2),
+            "labels_per_s_per_core_naive": round(naive_labels / naive_s / cores, 2),
+            "speedup_vs_naive": round((total_labels / total_s) / (naive_labels / naive_s), 2),
+            "speedup_vs_naive_cold": round((total_labels / total_s) / (
+                sum(s["naive_cold_labels"] for s in scenes.values())
+                / sum(s["naive_cold_labels"] / s["labels_per_s_naive_cold"] for s in scenes.values())), 2),
+        })
+    result.update({
         "peak_rss_mb": round(peak_rss_bytes() / 2**20, 1),
         "rss_end_mb": round(rss_bytes() / 2**20, 1),
         "wall_s": round(time.perf_counter() - t0, 2),
         "scenes": scenes,
         "machine": {"python": platform.python_version(), "platform": platform.platform(),
                     "cpu": platform.processor() or platform.machine()},
-        "notes": "amortised = all views incl. the first render (Cycles kernel/scene sync) and the space's curvature;"
+        "notes": "the machine may be shared (these figures: 2 cores under other engineers' builds and tests), so room"
+                 " timings are this process's CPU seconds and end to end is per CPU second of its process tree;"
+                 " room: medians over views x repeats, the floor (a bare 1-sample render of the same view: Image,"
+                 " Depth and Normal passes, no AOVs, nothing written or read back) timed just before each view;"
+                 " amortised = all views incl. the first render (Cycles kernel/scene sync) and the space's curvature;"
                  " labels_per_s_amortised_incl_load adds load_space; steady = views after the first;"
                  " naive = one render per label with the scene kept loaded (Cycles persistent data);"
                  " naive_cold = one render per label that also builds the Blender scene (+ curvature when needed)",
-    }
+    })
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1) + "\n")
-    print(json.dumps({k: v for k, v in result.items() if k != "scenes"}, indent=1))
+    print(json.dumps({k: v for k, v in result.items() if k not in ("scenes", "room")}, indent=1))
+    if room is not None:
+        print(ROOM_NAME, {k: room[k] for k in ("floor_s_median", "view_s_median", "ratio_view_to_floor",
+                                               "labels_per_s_per_core")})
+        print("  per cue (s/view):", room["per_cue_s_median"])
+        print("  intermediates (s/view):", room["intermediates_s_median"])
     for n, s in scenes.items():
         print(n, {k: s[k] for k in ("labels_per_s_amortised", "labels_per_s_steady", "labels_per_s_naive",
                                     "speedup_vs_naive", "labels_per_s_naive_cold", "render_s_first",

@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from services.cli import CliError
+from services.frame_args import add_frame_arguments, frame_overrides
 
 log = logging.getLogger("omnidata.generate")
 
@@ -61,6 +62,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--workers", type=int, metavar="W", help="local worker processes (default: CPU cores)")
     parser.add_argument("--name", metavar="COMPONENT", help="component name in the output layout (spec name)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar (log lines only)")
+    add_frame_arguments(parser)
 
 
 def cpu_count() -> int:
@@ -113,6 +115,7 @@ def build_spec(args: argparse.Namespace) -> Any:
         data["seed"] = args.seed
     if args.name is not None:
         data["name"] = args.name
+    data.update(frame_overrides(args))
     try:
         return JobSpec.model_validate(data)
     except ValidationError as e:
@@ -181,7 +184,7 @@ def validate_sources(sources: list[Source], spec: Any) -> None:
         if src.has_semantics is not None:
             continue
         try:
-            loaded = load_space(src.path, up_axis=spec.up_axis, unit_scale=spec.unit_scale)
+            loaded = load_space(src.path, **spec.space_frame())
         except SpaceError as e:
             raise CliError(str(e)) from None
         src.loaded = loaded
@@ -290,7 +293,7 @@ def prepare_job(sm: Any, store: Any, spec: Any, sources: list[Source]) -> Prepar
             if sp is None:
                 try:
                     sp = register_space(s, store, owner=OWNER, name=src.name, source_path=src.path,
-                                        key_prefix=SPACES_PREFIX, up_axis=spec.up_axis, unit_scale=spec.unit_scale,
+                                        key_prefix=SPACES_PREFIX, **spec.space_frame(),
                                         loaded=src.loaded)
                 except SpaceError as e:
                     raise CliError(str(e)) from None

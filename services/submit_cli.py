@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from services.cli import CliError
+from services.frame_args import add_frame_arguments
 
 FINAL_STATES = ("done", "failed", "cancelled")
 
@@ -37,6 +38,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--resolution", type=int, metavar="R", help="override views.resolution")
     parser.add_argument("--seed", type=int, metavar="S", help="override the seed")
     parser.add_argument("--name", metavar="COMPONENT", help="override the spec's name")
+    add_frame_arguments(parser)
     parser.add_argument("--api", default=os.environ.get("OMNIDATA_API_URL"), metavar="URL",
                         help="API base URL (default $OMNIDATA_API_URL)")
     parser.add_argument("--direct", action="store_true",
@@ -117,7 +119,7 @@ class Api:
             if not page["items"] or offset >= page["total"]:
                 return None
 
-    def upload_space(self, path: Path, *, name: str, up_axis: str, unit_scale: float) -> dict[str, Any]:
+    def upload_space(self, path: Path, *, name: str, up_axis: str, unit_scale: float | str) -> dict[str, Any]:
         """POST /spaces (multipart: file, name, up_axis, unit_scale)."""
         with open(path, "rb") as fh:
             return dict(self._call("POST", "/spaces", files={"file": (path.name, fh)},
@@ -138,6 +140,7 @@ class Api:
 
 def submit_http(api: Api, spec: Any, sources: list[Any]) -> int:
     """Upload (or reuse) the spaces and create the job over HTTP; returns the job id."""
+    from services.core.jobspec import similarity_scale
     from services.core.space_registry import pack_source
     from services.core.spaces import resolve_source
 
@@ -153,7 +156,9 @@ def submit_http(api: Api, spec: Any, sources: list[Any]) -> int:
             work = Path(tmp)
             mesh = resolve_source(src.path, work / "x") if src.path.suffix.lower() == ".zip" else resolve_source(src.path)
             upload = pack_source(src.path, mesh, work)  # the file itself, or a zip with its .mtl and textures
-            created = api.upload_space(upload, name=src.name, up_axis=spec.up_axis, unit_scale=spec.unit_scale)
+            # the space's own record; the job's spec (up, source_to_world) still decides its frame when planned
+            scale = spec.unit_scale if spec.source_to_world is None else similarity_scale(spec.source_to_world)
+            created = api.upload_space(upload, name=src.name, up_axis=spec.up_axis, unit_scale=scale)
         print(f"omnidata submit: uploaded space {src.name!r} (id {created['id']})", file=sys.stderr)
         ids.append(int(created["id"]))
     job = api.create_job(ids, spec.model_dump(mode="json"))
@@ -189,7 +194,7 @@ def submit_db(settings: Any, spec: Any, sources: list[Any], owner: str) -> int:
                 if sp is None:
                     try:
                         sp = register_space(s, store, owner=owner, name=src.name, source_path=src.path,
-                                            up_axis=spec.up_axis, unit_scale=spec.unit_scale)
+                                            **spec.space_frame())
                     except SpaceError as e:
                         raise CliError(str(e)) from None
                     print(f"omnidata submit: registered space {src.name!r} (id {sp.id})", file=sys.stderr)

@@ -320,6 +320,12 @@ def test_bad_spec_files_and_values_are_refused(capsys, scenes_dir, tmp_path):
     assert code == 2 and "pionts" in err
     code, err = run_cli(capsys, banana, "--out", out, "--workers", "0")
     assert code == 2 and "--workers" in err
+    squash = tmp_path / "squash.json"
+    squash.write_text(json.dumps([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0.5, 0], [0, 0, 0, 1]]))
+    code, err = run_cli(capsys, banana, "--out", out, "--source-to-world", squash)
+    assert code == 2 and "source_to_world" in err and "uniform scale" in err and len(err.strip().splitlines()) == 1
+    code, err = run_cli(capsys, banana, "--out", out, "--unit-scale", "5000")  # a 1 km banana
+    assert code == 2 and "unit_scale" in err
     assert not out.exists()
 
 

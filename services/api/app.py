@@ -20,6 +20,7 @@ from sqlalchemy import Engine
 
 from services.api.dashboard.endpoints import mount_dashboard
 from services.api.errors import install_error_handlers
+from services.api.guard import RequestGuard
 from services.api.jobs.endpoints import router as jobs_router
 from services.api.jobs.service import RateTracker
 from services.api.ops.endpoints import router as ops_router
@@ -108,6 +109,7 @@ def create_app(
     app.state.storage_probe = None  # (time, outcome) of /ready's last storage probe
 
     install_error_handlers(app)
+    app.add_middleware(RequestGuard, settings=settings)  # token and size checked before a body is read
     app.add_middleware(QueryTokenScrubber)  # ?token= never reaches a log line
     for router in (
         ops_router,

@@ -19,24 +19,39 @@ from services.core.storage import StorageError
 
 log = logging.getLogger("omnidata.api")
 
+MAX_ERRORS = 20  # a 10,000-item list of bad values gets 20 errors listed back, not 10,000
+MAX_ERROR_TEXT = 300  # characters of a message or location part: messages may quote the input
+
+
+def clip(text: str, limit: int = MAX_ERROR_TEXT) -> str:
+    """`text` cut to `limit` characters, saying how much was left out (error responses never echo huge inputs)."""
+    if len(text) <= limit:
+        return text
+    return f"{text[:limit]}... ({len(text) - limit} more characters)"
+
 
 def _loc(loc: Any) -> list[str | int]:
-    return [p if isinstance(p, int) else str(p) for p in loc]
+    # a location names the input's own keys (an unknown field), so it is clipped like a message
+    return [p if isinstance(p, int) else clip(str(p), 100) for p in loc]
 
 
 def validation_errors(errors: Any) -> list[dict[str, Any]]:
-    """Pydantic errors reduced to JSON-safe {loc, msg, type} (inputs are not echoed back)."""
-    return [{"loc": _loc(e.get("loc", ())), "msg": str(e.get("msg", "")), "type": str(e.get("type", ""))} for e in errors]
+    """Pydantic errors reduced to JSON-safe {loc, msg, type}: inputs are not echoed, messages are clipped."""
+    return [
+        {"loc": _loc(e.get("loc", ())), "msg": clip(str(e.get("msg", ""))), "type": str(e.get("type", ""))}
+        for e in list(errors)[:MAX_ERRORS]
+    ]
 
 
-def summarize(errors: list[dict[str, Any]]) -> str:
-    """One line naming each failing field: `loc.path: message; ...`."""
+def summarize(errors: list[dict[str, Any]], total: int | None = None) -> str:
+    """One line naming each failing field: `loc.path: message; ...` (`total`: errors before clipping)."""
+    total = len(errors) if total is None else total
     parts = []
     for e in errors[:10]:
         where = ".".join(str(p) for p in e["loc"])
         parts.append(f"{where}: {e['msg']}" if where else e["msg"])
-    if len(errors) > 10:
-        parts.append(f"... and {len(errors) - 10} more")
+    if total > 10:
+        parts.append(f"... and {total - 10} more")
     return "; ".join(parts) or "invalid request"
 
 
@@ -46,13 +61,14 @@ def error_response(status_code: int, detail: str, **extra: Any) -> JSONResponse:
 
 
 async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
-    detail = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
+    detail = clip(exc.detail if isinstance(exc.detail, str) else str(exc.detail), 2000)
     return JSONResponse({"detail": detail}, status_code=exc.status_code, headers=getattr(exc, "headers", None))
 
 
 async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
-    errors = validation_errors(exc.errors())
-    return error_response(status.HTTP_422_UNPROCESSABLE_CONTENT, summarize(errors), errors=errors)
+    raw = exc.errors()
+    errors = validation_errors(raw)  # at most MAX_ERRORS; `detail` still says how many there were
+    return error_response(status.HTTP_422_UNPROCESSABLE_CONTENT, summarize(errors, len(raw)), errors=errors)
 
 
 async def _data_error(request: Request, exc: DataError) -> JSONResponse:

@@ -110,6 +110,10 @@ class SpacePlan:
     points: tuple[PointOfInterest, ...]
     views: tuple[PlannedView, ...]
     shortfall: str | None = None
+    valid_fraction: dict[str, Any] | None = None  # predicted share of pixels with a surface per view (summary)
+    # trajectory clips cut short or dropped by the motion/clearance/visibility checks: point_idx (None
+    # when dropped), outcome, frames, planned_frames, reasons {check: failed frames}
+    clip_notes: tuple[dict[str, Any], ...] = ()
 
     def views_of(self, point_idx: int) -> tuple[PlannedView, ...]:
         """The views of one point, v = 0..n-1."""
@@ -121,6 +125,50 @@ class SpacePlan:
         if not 0 <= v < len(views):
             raise KeyError(f"point {point_idx} has no view {v} ({len(views)} views)")
         return views[v]
+
+
+CLIP_NOTES_IN_SUMMARY = 50  # clip notes copied into a job summary / job.json (the plan JSON has all)
+
+# The checks a trajectory frame must pass (services.scheduler.planning.trajectory), as clip_notes name them.
+CLIP_CHECKS = {
+    "clearance": "closer to the mesh than cameras.clearance_m",
+    "outside": "a surface between the frame and its route (outside the free space)",
+    "hidden": "the point is not in sight",
+    "turn": "the direction of motion turns faster than views.trajectory_max_turn_deg_per_m",
+    "view": "the camera rotates faster than views.trajectory_max_view_deg_per_m",
+    "route": "no route through free space to another camera that sees the point (for fixated clips, "
+             "on which the view turns slowly enough)",
+    "short": "the route through free space is shorter than views.trajectory_min_frames",
+}
+
+
+def clip_summary(clip_notes: tuple[dict[str, Any], ...], max_notes: int = 0) -> dict[str, Any]:
+    """Counts of trajectory clips shortened and dropped, of the frames that failed each check, and the
+    first max_notes notes themselves (a job summary stays small; the plan JSON holds them all)."""
+    failed: dict[str, int] = {}
+    for note in clip_notes:
+        for k, n in note["reasons"].items():
+            failed[k] = failed.get(k, 0) + int(n)
+    return {
+        "shortened": sum(n["outcome"] == "shortened" for n in clip_notes),
+        "dropped": sum(n["outcome"] == "dropped" for n in clip_notes),
+        "failed_frames": dict(sorted(failed.items())),
+        "notes": list(clip_notes[:max_notes]),
+    }
+
+
+def clip_shortfall(clip_notes: tuple[dict[str, Any], ...], n_points: int) -> str | None:
+    """One line on the clips the checks cut short or dropped, most frequent failure first."""
+    if not clip_notes:
+        return None
+    s = clip_summary(clip_notes)
+    why = ", ".join(
+        f"{CLIP_CHECKS[k]} ({n})" for k, n in sorted(s["failed_frames"].items(), key=lambda kv: -kv[1])
+    )
+    return (
+        f"trajectory clips of {n_points} points: {s['shortened']} shortened, {s['dropped']} dropped "
+        f"(failed, in frames or for route in clips: {why}); per clip in the plan's clip_notes"
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -289,6 +337,8 @@ def plan_to_dict(plan: SpacePlan) -> dict[str, Any]:
         "format": PLAN_FORMAT,
         "space_name": plan.space_name,
         "shortfall": plan.shortfall,
+        "valid_fraction": plan.valid_fraction,
+        "clip_notes": list(plan.clip_notes),
         "cameras": [
             {"idx": c.idx, "position": _floats(c.position), "source": c.source, "uuid": c.uuid}
             for c in plan.cameras
@@ -336,6 +386,8 @@ def plan_from_dict(data: dict[str, Any]) -> SpacePlan:
             for v in data["views"]
         ),
         shortfall=data.get("shortfall"),
+        valid_fraction=data.get("valid_fraction"),
+        clip_notes=tuple(data.get("clip_notes", ())),
     )
 
 

@@ -56,6 +56,14 @@ class Settings(BaseSettings):
     )
     worker_expiry_s: int = Field(3600, gt=0, description="rows of workers silent this long are removed")
     upload_max_bytes: int = Field(2 * 1024**3, gt=0)
+    upload_max_faces: int = Field(20_000_000, gt=0, description="an uploaded mesh with more faces is refused")
+    upload_parse_memory_mb: int = Field(
+        4096, ge=512, description="memory the process reading an uploaded mesh may map on top of its own, MiB"
+    )
+    upload_parse_timeout_s: float = Field(300.0, gt=0, description="time limit for reading an uploaded mesh, s")
+    request_max_bytes: int = Field(
+        8 * 1024**2, gt=0, description="largest request body other than an upload (JSON job specs), bytes"
+    )
     presign_expiry_s: int = Field(3600, gt=0, le=7 * 24 * 3600)
     lease_s: int = Field(300, gt=0, description="seconds a running task holds its lease")
     heartbeat_timeout_s: int = Field(

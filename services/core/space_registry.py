@@ -15,15 +15,17 @@ import shutil
 import tempfile
 import zipfile
 from pathlib import Path
+from typing import Any
 
 from sqlalchemy.orm import Session
 
 from services.core.keys import check_name
 from services.core.models import Space
+from services.core.scan_formats import scannet_companions
 from services.core.spaces import LoadedSpace, SpaceError, load_space, resolve_source, sha256_file
 from services.core.storage.base import ObjectStore
 
-SINGLE_FILE_SUFFIXES = {".ply", ".glb", ".stl", ".off", ".zip"}
+SINGLE_FILE_SUFFIXES = {".ply", ".glb", ".stl", ".off", ".zip", ".xyz", ".pts"}
 MAX_PACKED_BYTES = 4 << 30
 
 
@@ -62,7 +64,13 @@ def _files_to_pack(source: Path, mesh_file: Path) -> tuple[Path, list[Path]]:
     if source.is_dir():
         files = [p for p in sorted(source.rglob("*")) if p.is_file() and not p.is_symlink()]
         return source, files
-    companions = _obj_companions(mesh_file) if mesh_file.suffix.lower() == ".obj" else _gltf_companions(mesh_file)
+    scannet = scannet_companions(mesh_file)
+    if scannet is not None:  # a ScanNet mesh keeps its label files
+        companions = list(scannet)
+    elif mesh_file.suffix.lower() == ".obj":
+        companions = _obj_companions(mesh_file)
+    else:
+        companions = _gltf_companions(mesh_file)
     base = mesh_file.parent
     files = [mesh_file] + [c for c in dict.fromkeys(companions) if base in c.resolve().parents]
     return base, files
@@ -70,7 +78,7 @@ def _files_to_pack(source: Path, mesh_file: Path) -> tuple[Path, list[Path]]:
 
 def pack_source(source: Path, mesh_file: Path, workdir: Path) -> Path:
     """The single file to upload for `source`: itself, or a deterministic zip of what the mesh needs."""
-    if source.is_file() and source.suffix.lower() in SINGLE_FILE_SUFFIXES:
+    if source.is_file() and source.suffix.lower() in SINGLE_FILE_SUFFIXES and scannet_companions(source) is None:
         return source
     base, files = _files_to_pack(source, mesh_file)
     total = sum(f.stat().st_size for f in files)
@@ -85,9 +93,14 @@ def pack_source(source: Path, mesh_file: Path, workdir: Path) -> Path:
     return out
 
 
-def validate_source(source_path: str | Path, *, up_axis: str = "auto", unit_scale: float = 1.0) -> LoadedSpace:
-    """Load and validate a space without storing it (SpaceError says what is wrong)."""
-    return load_space(source_path, up_axis=up_axis, unit_scale=unit_scale)
+def validate_source(source_path: str | Path, **frame: Any) -> LoadedSpace:
+    """Load and validate a space without storing it (SpaceError says what is wrong); `frame`: load_space's."""
+    return load_space(source_path, **frame)
+
+
+def _frame_name(up_axis: str, up: Any, source_to_world: Any) -> str:
+    """What the space row's up_axis column records: the axis name, or how the frame was given."""
+    return "matrix" if source_to_world is not None else "vector" if up is not None else up_axis
 
 
 def register_space(
@@ -99,7 +112,9 @@ def register_space(
     source_path: str | Path,
     key_prefix: str = "spaces",
     up_axis: str = "auto",
-    unit_scale: float = 1.0,
+    unit_scale: float | str = "auto",
+    up: Any = None,
+    source_to_world: Any = None,
     loaded: LoadedSpace | None = None,
 ) -> Space:
     """Validate a space, upload its source and add its row (flushed, not committed).
@@ -118,7 +133,7 @@ def register_space(
         work = Path(tmp)
         mesh_file = resolve_source(source, work / "x") if source.suffix.lower() == ".zip" else resolve_source(source)
         if loaded is None:
-            loaded = load_space(source, up_axis=up_axis, unit_scale=unit_scale)
+            loaded = load_space(source, up_axis=up_axis, unit_scale=unit_scale, up=up, source_to_world=source_to_world)
         packed = pack_source(source, mesh_file, work)
         checksum = sha256_file(packed)
         space = Space(
@@ -127,8 +142,8 @@ def register_space(
             source_key="",
             source_format=mesh_file.suffix.lower().lstrip("."),
             checksum=checksum,
-            unit_scale=unit_scale,
-            up_axis=up_axis,
+            unit_scale=loaded.units.scale if loaded.units is not None else float(unit_scale),
+            up_axis=_frame_name(up_axis, up, source_to_world),
             source_to_world=loaded.source_to_world.tolist(),
             bounds=loaded.bounds.tolist(),
             face_count=int(loaded.face_count),
@@ -138,6 +153,7 @@ def register_space(
             validation={
                 "mesh_file": mesh_file.name,
                 "up_method": loaded.up_method,
+                **loaded.frame_record(),
                 "warnings": list(loaded.warnings),
                 "has_uv_texture": bool(loaded.has_texture),
                 "has_vertex_colors": bool(loaded.has_vertex_colors),

@@ -6,36 +6,24 @@ poses the planner chose. Frames and units:
 - *source frame*: the coordinates `trimesh.load(source, force="mesh")` gives for the file, in the
   file's units. Its face order is the reference for the `fragments` cue (DESIGN.md section 5).
 - *world frame*: metres, +Z up. `source_to_world` (4x4) = uniform scale `unit_scale` (metres per
-  source unit) followed by the rotation that takes the detected up direction to +Z. There is **no
-  translation** (a rotation-and-scale only: heights are measured from detected floors by the planner,
-  not from z = 0), so the source origin stays the world origin.
+  source unit) followed by the rotation that takes the up direction to +Z, with **no translation**
+  (heights are measured from detected floors by the planner, not from z = 0), unless the user gives a
+  whole `source_to_world` (rotation, uniform scale and translation), which is used as it is.
 
-Up-axis detection (`up_axis="auto"`), area-weighted normal clustering on axis-aligned families:
-
-1. *Family*: for each source axis a, the area of faces whose normal lies within 15 degrees of +-a;
-   the axis with the largest area is the vertical family (floors and ceilings of rooms, which are
-   wider than tall, outweigh each pair of walls).
-2. *Floor* (spaces scanned from inside, normals facing the free space): along the family axis, the
-   area of faces in the lower half of the extent facing +a (a floor seen from above) and in the
-   upper half facing -a (the same for the reversed axis). If the larger one covers >= 30 % of the
-   bounding-box cross-section, the space has a floor and up points away from it: the end with more
-   inward-facing horizontal area is the floor. Ties (a closed empty box: floor = ceiling) are broken
-   by the total area facing each way (furniture tops face up and their bottoms are not scanned),
-   then by the file convention.
-   The direction is then refined to the area-weighted mean normal of those floor faces, so a slightly
-   tilted scan is levelled (a floor built exactly on an axis stays exactly on it).
-3. *Support base* (single objects, normals facing outwards): outward-facing area in the end 10 % that
-   covers >= 15 % of the cross-section and >= 3 times the opposite end (the flat base of the bunny):
-   up points away from the base, exactly along the axis.
-4. Otherwise (a single object with no floor or base) the file convention: +Y up for .obj/.gltf/.glb,
-   +Z up for .ply.
+Up is given (`up_axis` name or `up` vector in source coordinates) or detected in any orientation
+(`services.core.gravity`: plane families of the face normals, then the floor, a support base or the
+file convention); units are given or chosen from the storey height of rooms. How, and how sure, is
+kept in `LoadedSpace.frame_record()` for job.json. Point clouds (.xyz, .pts, PLY without faces) are
+meshed first (`services.core.pointcloud`); that mesh's faces are then the `fragments` reference.
 
 Semantic labels come from PLY face properties `class_id` and `instance_id` (Replica's `object_id` is
-accepted as the instance). They are read from the raw PLY elements trimesh keeps in
+accepted as the instance, Matterport3D's `category_id` and `segment_id` as class and instance). They are read from the raw PLY elements trimesh keeps in
 `mesh.metadata['_ply_raw']` and mapped onto the triangles the way trimesh triangulates polygons
 (triangles, then first and second halves of quads, then fans), and that mapping is verified on the
 vertex positions. A Replica-style `info_semantic.json` (`id_to_label`) beside the mesh supplies
-classes when only object ids are present.
+classes when only object ids are present. Matterport3D's `category_id`/`segment_id` face properties
+are read the same way; ScanNet's per-vertex segment files (`services.core.scan_formats`) are mapped to
+triangles by the majority of each triangle's vertices.
 """
 
 from __future__ import annotations
@@ -48,6 +36,8 @@ import shutil
 import stat
 import tempfile
 import zipfile
+import zlib
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Any
@@ -55,12 +45,28 @@ from typing import Any
 import numpy as np
 import trimesh
 
+from services.core.gravity import (
+    UnitChoice,
+    UnitError,
+    UpEstimate,
+    axis_vector,
+    choose_unit_scale,
+    estimate_up,
+    floor_evidence,
+)
+from services.core.jobspec import UP_AXES, similarity_scale
+from services.core.pointcloud import (
+    CLOUD_SUFFIXES,
+    CloudError,
+    cloud_from_ply,
+    mesh_cloud_cached,
+    read_text_cloud,
+)
+from services.core.scan_formats import SCANNET_MESH_SUFFIX, ScanFormatError, scannet_vertex_labels
+
 log = logging.getLogger(__name__)
 
-MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf")
-UP_AXES = ("auto", "+x", "-x", "+y", "-y", "+z", "-z")
-# file convention when no floor or base is found (DESIGN: glTF is +Y up; OBJ exporters mostly too)
-CONVENTION_UP = {".obj": "+y", ".gltf": "+y", ".glb": "+y", ".ply": "+z"}
+MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", *CLOUD_SUFFIXES)
 
 MAX_EXTENT_M = 10_000.0  # a 10 km scan means the units are wrong
 MIN_EXTENT_M = 0.001  # everything inside 1 mm: same
@@ -68,12 +74,6 @@ ZIP_MAX_TOTAL_BYTES = 8 * 1024**3  # uncompressed size of all members
 ZIP_MAX_RATIO = 200.0  # uncompressed / compressed, per member and in total
 ZIP_MAX_MEMBERS = 20_000
 
-_CONE_COS = float(np.cos(np.radians(15.0)))
-_END_BAND = 0.10
-_FLOOR_MIN_FRACTION = 0.30
-_BASE_MIN_FRACTION = 0.15
-_BASE_DOMINANCE = 3.0
-_TIE_REL = 0.02
 
 
 class SpaceError(ValueError):
@@ -96,8 +96,50 @@ class LoadedSpace:
     checksum: str  # sha256 hex of the mesh file
     face_count: int
     up_source: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))  # up, source frame
-    up_method: str = "given"  # given | floor | base | convention | convention-tie
+    up_method: str = "given"  # given | floor | base | convention | convention-tie | source_to_world
     warnings: tuple[str, ...] = ()
+    up_estimate: UpEstimate | None = None  # how up was found and how sure
+    units: UnitChoice | None = None  # the unit scale and why
+    reconstruction: dict[str, Any] | None = None  # point clouds: how they were meshed
+    class_names: dict[int, str] | None = None  # class id -> name, when the file names its classes
+
+    def frame_record(self) -> dict[str, Any]:
+        """What was detected about the frame, for job.json and `omnidata plan` (JSON-ready)."""
+        scale = self.units.scale if self.units is not None else float(np.cbrt(np.linalg.det(self.source_to_world[:3, :3])))
+        est = self.up_estimate or UpEstimate(self.up_source, self.up_method)
+        out: dict[str, Any] = {"up": est.record(scale)}
+        if self.units is not None:
+            out["units"] = self.units.record()
+        if self.reconstruction is not None:
+            out["reconstruction"] = self.reconstruction
+        if self.class_names:
+            out["class_names"] = {str(k): v for k, v in sorted(self.class_names.items())}
+        return out
+
+    def frame_summary(self) -> str:
+        """One line: up, method, confidence and units (printed by `omnidata plan`)."""
+        rec = self.frame_record()
+        up = rec["up"]
+        direction = ", ".join(f"{x:.4g}" for x in up["source_direction"])
+        line = f"up [{direction}] ({up['method']}, {up['confidence']} confidence"
+        if up["floor_area_m2"]:
+            line += f", floor {up['floor_area_m2']:.3g} m2"
+        if up["runner_up_angle_deg"] is not None:
+            line += f", runner-up {up['runner_up_angle_deg']:.0f} deg away"
+        line += ")"
+        if "units" in rec:
+            line += f"; units: {rec['units']['unit']} x{rec['units']['unit_scale']:g} ({rec['units']['reason']})"
+        return line
+
+
+FRAME_KEYS = ("up", "units", "reconstruction", "class_names", "valid_fraction")
+
+
+def frame_of(record: dict[str, Any] | None) -> dict[str, Any] | None:
+    """The frame part of a space record (validation, plan summary): what the API shows; None when absent."""
+    if not record:
+        return None
+    return {k: record[k] for k in FRAME_KEYS if k in record} or None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -128,7 +170,7 @@ def safe_extract_zip(
     name = zip_path.name
     try:
         zf = zipfile.ZipFile(zip_path)
-    except (zipfile.BadZipFile, OSError) as e:
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as e:
         raise SpaceError(f"{name}: not a readable zip archive ({e})") from None
     with zf:
         infos = zf.infolist()
@@ -179,17 +221,21 @@ def safe_extract_zip(
                 continue
             target.parent.mkdir(parents=True, exist_ok=True)
             # stream with our own count: the sizes in the headers can lie
-            with zf.open(info) as src, open(target, "wb") as out:
-                member_bytes = 0
-                while chunk := src.read(1 << 20):
-                    member_bytes += len(chunk)
-                    written += len(chunk)
-                    if member_bytes > info.file_size or written > max_total_bytes:
-                        raise SpaceError(
-                            f"{name}: member {info.filename!r} inflates past its declared size: "
-                            "refusing a possible zip bomb"
-                        )
-                    out.write(chunk)
+            try:
+                with zf.open(info) as src, open(target, "wb") as out:
+                    member_bytes = 0
+                    while chunk := src.read(1 << 20):
+                        member_bytes += len(chunk)
+                        written += len(chunk)
+                        if member_bytes > info.file_size or written > max_total_bytes:
+                            raise SpaceError(
+                                f"{name}: member {info.filename!r} inflates past its declared size: "
+                                "refusing a possible zip bomb"
+                            )
+                        out.write(chunk)
+            except (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError, ValueError) as e:
+                # bad CRC, corrupt deflate stream, cut-off member, unknown compression method
+                raise SpaceError(f"{name}: member {info.filename!r} is corrupt ({e}); re-create the archive") from None
 
 
 def resolve_source(
@@ -225,6 +271,9 @@ def _one_mesh(folder: Path, what: str) -> Path:
     meshes = _meshes_in(folder)
     if not meshes:
         raise SpaceError(f"{what} holds no mesh ({', '.join(MESH_SUFFIXES)})")
+    scannet = [m for m in meshes if m.name.endswith(SCANNET_MESH_SUFFIX)]
+    if len(meshes) > 1 and len(scannet) == 1:  # a ScanNet scene folder: its other PLYs are derived copies
+        return scannet[0]
     if len(meshes) > 1:
         listed = ", ".join(str(m.relative_to(folder)) for m in meshes[:20])
         more = f" and {len(meshes) - 20} more" if len(meshes) > 20 else ""
@@ -234,12 +283,6 @@ def _one_mesh(folder: Path, what: str) -> Path:
 
 # ---------------------------------------------------------------------------------------------
 # up axis and the source -> world transform
-
-
-def _axis_vector(code: str) -> np.ndarray:
-    v = np.zeros(3)
-    v["xyz".index(code[1])] = 1.0 if code[0] == "+" else -1.0
-    return v
 
 
 def rotation_to_z(up: np.ndarray) -> np.ndarray:
@@ -262,59 +305,6 @@ def rotation_to_z(up: np.ndarray) -> np.ndarray:
     return R
 
 
-def detect_up(mesh: trimesh.Trimesh, suffix: str) -> tuple[np.ndarray, str]:
-    """Up direction in the source frame and how it was found (see the module docstring)."""
-    normals = mesh.face_normals
-    areas = mesh.area_faces
-    centers = mesh.triangles_center
-    ext = mesh.extents
-    fam = [float(areas[np.abs(normals[:, a]) > _CONE_COS].sum()) for a in range(3)]
-    a = int(np.argmax(fam))
-    conv = _axis_vector(CONVENTION_UP.get(suffix, "+z"))
-    if fam[a] <= 0:
-        return conv, "convention"
-    others = [i for i in range(3) if i != a]
-    cross = max(float(ext[others[0]] * ext[others[1]]), 1e-300)
-    lo, hi = mesh.bounds[:, a]
-    band = _END_BAND * (hi - lo)
-    mid = 0.5 * (lo + hi)
-    n_a = normals[:, a]
-    low = centers[:, a] <= lo + band
-    high = centers[:, a] >= hi - band
-    # halves rather than thin end bands: a tilted floor spans a good part of the height
-    floor_pos = (centers[:, a] < mid) & (n_a > _CONE_COS)  # floor in the low half, up = +a
-    floor_neg = (centers[:, a] > mid) & (n_a < -_CONE_COS)  # floor in the high half, up = -a
-    fp, fn = float(areas[floor_pos].sum()), float(areas[floor_neg].sum())
-    e = np.zeros(3)
-    e[a] = 1.0
-    if max(fp, fn) >= _FLOOR_MIN_FRACTION * cross:
-        sign = 0.0
-        if abs(fp - fn) > _TIE_REL * max(fp, fn):
-            sign = 1.0 if fp > fn else -1.0
-        else:
-            up_area = float(areas[n_a > _CONE_COS].sum())
-            down_area = float(areas[n_a < -_CONE_COS].sum())
-            if abs(up_area - down_area) > _TIE_REL * max(up_area, down_area):
-                sign = 1.0 if up_area > down_area else -1.0
-        if sign == 0.0:
-            # symmetric (a closed, empty box): the file convention decides when it names this axis
-            sign = float(conv[a]) if conv[a] != 0 else 1.0
-            return sign * e, "convention-tie"
-        sel = floor_pos if sign > 0 else floor_neg
-        mean = (normals[sel] * areas[sel, None]).sum(axis=0)
-        up = mean / np.linalg.norm(mean)
-        if np.arccos(np.clip(up @ (sign * e), -1.0, 1.0)) < 1e-9:
-            up = sign * e
-        return up, "floor"
-    base_pos = float(areas[low & (n_a < -_CONE_COS)].sum())  # flat base at the low end facing down
-    base_neg = float(areas[high & (n_a > _CONE_COS)].sum())
-    if base_pos >= _BASE_MIN_FRACTION * cross and base_pos >= _BASE_DOMINANCE * base_neg:
-        return e.copy(), "base"
-    if base_neg >= _BASE_MIN_FRACTION * cross and base_neg >= _BASE_DOMINANCE * base_pos:
-        return -e, "base"
-    return conv, "convention"
-
-
 def source_to_world_matrix(up_source: np.ndarray, unit_scale: float) -> np.ndarray:
     """4x4 source -> world: scale by `unit_scale` (metres per unit), rotate `up_source` to +Z, no translation."""
     T = np.eye(4)
@@ -325,8 +315,9 @@ def source_to_world_matrix(up_source: np.ndarray, unit_scale: float) -> np.ndarr
 # ---------------------------------------------------------------------------------------------
 # semantics from PLY face properties
 
-_CLASS_FIELDS = ("class_id",)
-_INSTANCE_FIELDS = ("instance_id", "object_id")
+# Replica: class_id + object_id; Matterport3D region/house PLYs: category_id + segment_id
+_CLASS_FIELDS = ("class_id", "category_id")
+_INSTANCE_FIELDS = ("instance_id", "object_id", "segment_id")
 
 
 def _field(data: Any, name: str) -> np.ndarray | None:
@@ -370,39 +361,31 @@ def _triangle_to_polygon(polys: list[np.ndarray] | np.ndarray) -> np.ndarray:
     return np.concatenate([tri, quad, quad, np.repeat(poly, lengths[poly] - 2)]).astype(np.int64)
 
 
-def _read_ply_semantics(
-    mesh: trimesh.Trimesh, source: Path
-) -> tuple[np.ndarray | None, np.ndarray | None, list[str]]:
+def _ply_triangle_polygons(mesh: trimesh.Trimesh, notes: list[str]) -> tuple[Any, np.ndarray, np.ndarray] | None:
+    """(raw PLY face data, padded polygon vertex indices, raw polygon of each triangle), verified on positions."""
     raw = mesh.metadata.get("_ply_raw") if isinstance(mesh.metadata, dict) else None
-    notes: list[str] = []
-    if not raw or "face" not in raw:
-        return None, None, notes
-    face = raw["face"]
-    data = face.get("data")
-    cls = next((c for c in (_field(data, f) for f in _CLASS_FIELDS) if c is not None), None)
-    inst = next((c for c in (_field(data, f) for f in _INSTANCE_FIELDS) if c is not None), None)
-    if cls is None and inst is None:
-        return None, None, notes
-    n_raw = len(cls if cls is not None else inst)  # type: ignore[arg-type]
+    data = raw["face"].get("data") if raw and "face" in raw else None
+    if raw is None or data is None:
+        return None
+    n_raw = len(data)
     polys = _polygon_lengths(data, n_raw)
     if polys is None:
         notes.append("PLY face labels ignored: faces have no vertex_indices property")
-        return None, None, notes
+        return None
     tri_to_poly = _triangle_to_polygon(polys)
     if len(tri_to_poly) != len(mesh.faces):
         notes.append(
             f"PLY face labels ignored: {len(tri_to_poly)} triangles expected from {n_raw} polygons, "
             f"trimesh made {len(mesh.faces)}"
         )
-        return None, None, notes
+        return None
     # verify on positions: each triangle's first vertex must be a vertex of its polygon
-    vdata = raw.get("vertex", {}).get("data")
+    vdata: Any = raw["vertex"].get("data") if "vertex" in raw else None
+    padded = polys
     try:
         raw_xyz = np.column_stack([np.asarray(vdata[c], dtype=np.float64) for c in "xyz"])
         first = mesh.vertices[mesh.faces[:, 0]]
-        if isinstance(polys, np.ndarray):
-            padded = polys
-        else:  # ragged polygons: pad with a repeat of their first vertex
+        if not isinstance(polys, np.ndarray):  # ragged polygons: pad with a repeat of their first vertex
             kmax = max(len(p) for p in polys)
             padded = np.array([np.pad(p, (0, kmax - len(p)), mode="edge") for p in polys])
         cand = raw_xyz[padded[tri_to_poly]]  # (F, k, 3)
@@ -412,12 +395,64 @@ def _read_ply_semantics(
         ok = np.zeros(1, dtype=bool)
     if not ok.all():
         notes.append("PLY face labels ignored: could not align them with trimesh's triangles")
+        return None
+    return data, np.asarray(padded), tri_to_poly
+
+
+def _read_ply_semantics(
+    mesh: trimesh.Trimesh, source: Path
+) -> tuple[np.ndarray | None, np.ndarray | None, list[str]]:
+    notes: list[str] = []
+    raw = mesh.metadata.get("_ply_raw") if isinstance(mesh.metadata, dict) else None
+    data = raw["face"].get("data") if raw and "face" in raw else None
+    cls = next((c for c in (_field(data, f) for f in _CLASS_FIELDS) if c is not None), None)
+    inst = next((c for c in (_field(data, f) for f in _INSTANCE_FIELDS) if c is not None), None)
+    if cls is None and inst is None:
         return None, None, notes
+    table = _ply_triangle_polygons(mesh, notes)
+    if table is None:
+        return None, None, notes
+    tri_to_poly = table[2]
     face_class = cls[tri_to_poly].astype(np.int32) if cls is not None else None
     face_instance = inst[tri_to_poly].astype(np.int32) if inst is not None else None
     if face_class is None and face_instance is not None:
         face_class = _classes_from_info_semantic(source, face_instance, notes)
     return face_class, face_instance, notes
+
+
+def _majority(labels: np.ndarray) -> np.ndarray:
+    """Per row of (F, k) vertex labels: the label most of its vertices carry (ties: the first vertex's)."""
+    best = labels[:, 0].copy()
+    best_count = (labels == best[:, None]).sum(axis=1)
+    for j in range(1, labels.shape[1]):
+        count = (labels == labels[:, j:j + 1]).sum(axis=1)
+        better = count > best_count
+        best[better], best_count[better] = labels[better, j], count[better]
+    return best
+
+
+def scannet_labels(
+    mesh: trimesh.Trimesh, source: Path
+) -> tuple[np.ndarray, np.ndarray, dict[int, str], list[str]] | None:
+    """Per-triangle (class, instance, class names, notes) of a ScanNet `*_vh_clean_2.ply`, or None."""
+    notes: list[str] = []
+    raw = mesh.metadata.get("_ply_raw") if isinstance(mesh.metadata, dict) else None
+    if not raw or "vertex" not in raw:
+        return None
+    try:
+        found = scannet_vertex_labels(source, len(raw["vertex"]["data"]))
+    except ScanFormatError as e:
+        raise SpaceError(str(e)) from None
+    if found is None:
+        return None
+    vertex_class, vertex_instance, names = found
+    table = _ply_triangle_polygons(mesh, notes)
+    if table is None:
+        raise SpaceError(f"{source.name}: ScanNet labels found but the faces could not be matched: {'; '.join(notes)}")
+    _, polys, tri_to_poly = table
+    poly_class = _majority(vertex_class[polys])
+    poly_instance = _majority(vertex_instance[polys])
+    return poly_class[tri_to_poly].astype(np.int32), poly_instance[tri_to_poly].astype(np.int32), names, notes
 
 
 def _classes_from_info_semantic(source: Path, face_instance: np.ndarray, notes: list[str]) -> np.ndarray | None:
@@ -487,69 +522,153 @@ def load_space(
     path: str | Path,
     *,
     up_axis: str = "auto",
-    unit_scale: float = 1.0,
+    unit_scale: float | str = "auto",
+    up: Sequence[float] | None = None,
+    source_to_world: Sequence[Sequence[float]] | None = None,
     extract_dir: str | Path | None = None,
+    cloud_cache_dir: str | Path | None = None,
 ) -> LoadedSpace:
-    """Load a space (mesh file, folder or zip), validate it and bring it into the world frame.
+    """Load a space (mesh file, point cloud, folder or zip), validate it and bring it into the world frame.
 
-    The mesh comes from `trimesh.load(source, force="mesh")` exactly; `source_to_world` maps those
-    coordinates to world metres (+Z up). A zip is extracted into `extract_dir` (kept) or into a
-    temporary folder removed after loading (then `source_path` is the zip itself).
+    The mesh comes from `trimesh.load(source, force="mesh")` exactly (a point cloud: its cached
+    reconstruction); `source_to_world` maps those coordinates to world metres (+Z up). The frame is
+    `source_to_world` when given, else `up` (a source vector) or `up_axis` (a name, or "auto": detected),
+    and `unit_scale` (metres per unit, or "auto": from the storey height). A zip is extracted into
+    `extract_dir` (kept) or into a temporary folder removed after loading (then `source_path` is the zip).
     """
     if up_axis not in UP_AXES:
         raise SpaceError(f"up_axis {up_axis!r} is not one of {', '.join(UP_AXES)}")
-    if not np.isfinite(unit_scale) or unit_scale <= 0:
-        raise SpaceError(f"unit_scale must be a positive number of metres per unit, got {unit_scale}")
+    if unit_scale != "auto" and (isinstance(unit_scale, str) or not np.isfinite(unit_scale) or unit_scale <= 0):
+        raise SpaceError(f"unit_scale must be 'auto' or a positive number of metres per unit, got {unit_scale!r}")
+    if up is not None and (len(up) != 3 or not np.isfinite(up).all() or np.linalg.norm(up) < 1e-9):
+        raise SpaceError(f"up must be a finite, non-zero vector [x, y, z], got {list(up)}")
+    if source_to_world is not None:
+        try:
+            similarity_scale(source_to_world)
+        except ValueError as e:
+            raise SpaceError(str(e)) from None
     p = Path(path)
     tmp: Path | None = None
     if p.is_file() and p.suffix.lower() == ".zip" and extract_dir is None:
         tmp = Path(tempfile.mkdtemp(prefix="omnidata-space-"))
         extract_dir = tmp
+    frame = FrameRequest(up_axis, unit_scale, None if up is None else np.asarray(up, dtype=np.float64),
+                          None if source_to_world is None else np.asarray(source_to_world, dtype=np.float64))
     try:
         source = resolve_source(p, extract_dir)
-        return _load(source, p if tmp is not None else source, up_axis, unit_scale)
+        return _load(source, p if tmp is not None else source, frame,
+                     None if cloud_cache_dir is None else Path(cloud_cache_dir))
     finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)
 
 
-def _load(source: Path, recorded: Path, up_axis: str, unit_scale: float) -> LoadedSpace:
+@dataclass(frozen=True)
+class FrameRequest:
+    """How the caller asked for the frame: source_to_world, else up or up_axis (or auto), and unit_scale."""
+
+    up_axis: str
+    unit_scale: float | str
+    up: np.ndarray | None
+    source_to_world: np.ndarray | None
+
+
+def _read_mesh(source: Path, cloud_cache_dir: Path | None) -> tuple[trimesh.Trimesh, dict[str, Any] | None]:
+    """The triangle mesh of a source, and the reconstruction record when it was a point cloud."""
     name = source.name
+    suffix = source.suffix.lower()
+    checksum = sha256_file(source)
     try:
-        mesh = trimesh.load(source, force="mesh")
-    except Exception as e:  # trimesh raises many kinds on corrupt input
-        raise SpaceError(f"{name}: could not read the mesh ({type(e).__name__}: {e})") from None
+        if suffix in CLOUD_SUFFIXES:
+            return mesh_cloud_cached(lambda: read_text_cloud(source), checksum, name, cloud_cache_dir)
+        try:
+            mesh = trimesh.load(source, force="mesh")
+        except Exception as e:  # trimesh raises many kinds on corrupt input
+            raise SpaceError(f"{name}: could not read the mesh ({type(e).__name__}: {e})") from None
+        if suffix == ".ply" and isinstance(mesh, trimesh.Trimesh) and len(mesh.faces) == 0:
+            try:
+                points = trimesh.load(source)  # a PLY of points: force="mesh" drops them
+            except Exception:  # noqa: BLE001 - then it is not a readable cloud either: report the empty mesh
+                points = None
+            if len(getattr(points, "vertices", ())) > 0:
+                return mesh_cloud_cached(lambda: cloud_from_ply(points), checksum, name, cloud_cache_dir)
+    except CloudError as e:
+        raise SpaceError(str(e)) from None
     if not isinstance(mesh, trimesh.Trimesh):
         raise SpaceError(f"{name}: holds no triangle mesh (got {type(mesh).__name__})")
+    return mesh, None
+
+
+def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: FrameRequest) -> tuple[np.ndarray, UpEstimate, UnitChoice]:
+    """(source_to_world 4x4, how up was found, the units) of a mesh in its source frame."""
+    if frame.source_to_world is not None:
+        T = frame.source_to_world
+        scale = similarity_scale(T)
+        up = T[:3, :3].T @ [0.0, 0.0, 1.0] / scale
+        return T, UpEstimate(up / np.linalg.norm(up), "source_to_world"), UnitChoice(
+            scale, "source_to_world", "the scale of the given source_to_world")
+    if frame.up is not None or frame.up_axis != "auto":
+        given = frame.up if frame.up is not None else axis_vector(frame.up_axis)
+        given = given / np.linalg.norm(given)
+        est = floor_evidence(mesh, given) or UpEstimate(given, "given")
+        est = UpEstimate(given, "given", est.floor_area, est.floor_fraction, storey_height=est.storey_height)
+    else:
+        est = estimate_up(mesh, suffix)
+    if frame.unit_scale == "auto":
+        try:
+            units = choose_unit_scale(est.storey_height, float(mesh.extents.max()))
+        except UnitError as e:
+            raise SpaceError(str(e)) from None
+    else:
+        units = UnitChoice(float(frame.unit_scale), "given", "unit_scale given")
+    return source_to_world_matrix(est.up, units.scale), est, units
+
+
+def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Path | None) -> LoadedSpace:
+    name = source.name
+    from services.core.mesh_checks import check_source  # it imports SpaceError from here
+
+    source_notes = check_source(source)  # truncation, counts over the limits, unsafe paths: before parsing
+    mesh, reconstruction = _read_mesh(source, cloud_cache_dir)
     if len(mesh.vertices) == 0:
         raise SpaceError(f"{name}: the mesh is empty (no vertices)")
     if len(mesh.faces) == 0:
-        raise SpaceError(f"{name}: the mesh has no faces (a point cloud?); a triangle mesh is needed")
-    bad = _nonfinite_vertices(source, mesh)
+        raise SpaceError(f"{name}: the mesh has no faces; a triangle mesh or a point cloud is needed")
+    bad = _nonfinite_vertices(source, mesh) if reconstruction is None else 0
     if bad:
         raise SpaceError(f"{name}: {bad} vertices have NaN or infinite coordinates")
     if mesh.faces.max() >= len(mesh.vertices) or mesh.faces.min() < 0:
         raise SpaceError(f"{name}: faces refer to vertices that do not exist")
-    extent_m = float(mesh.extents.max()) * unit_scale
+    if float(mesh.area) <= 0:
+        raise SpaceError(f"{name}: every face is degenerate (zero total area)")
+
+    face_class, face_instance, notes = _read_ply_semantics(mesh, source) if reconstruction is None else (None, None, [])
+    notes = source_notes + notes
+    class_names = None
+    if face_class is None and face_instance is None and reconstruction is None:
+        scannet = scannet_labels(mesh, source) if source.suffix.lower() == ".ply" else None
+        if scannet is not None:
+            face_class, face_instance, class_names, more = scannet
+            notes.extend(more)
+    T, est, units = resolve_frame(mesh, source.suffix.lower(), frame)
+    scale = units.scale
+    extent_m = float(mesh.extents.max()) * scale
     if extent_m > MAX_EXTENT_M:
         raise SpaceError(
-            f"{name}: the mesh is {extent_m:.4g} m across with unit_scale {unit_scale} m/unit "
+            f"{name}: the mesh is {extent_m:.4g} m across with unit_scale {scale} m/unit "
             f"(more than {MAX_EXTENT_M / 1000:.0f} km): check unit_scale"
         )
     if extent_m < MIN_EXTENT_M:
         raise SpaceError(
-            f"{name}: the mesh is {extent_m:.3g} m across with unit_scale {unit_scale} m/unit "
+            f"{name}: the mesh is {extent_m:.3g} m across with unit_scale {scale} m/unit "
             f"(less than {MIN_EXTENT_M * 1000:.0f} mm): check unit_scale"
         )
-    if float(mesh.area) <= 0:
-        raise SpaceError(f"{name}: every face is degenerate (zero total area)")
-
-    face_class, face_instance, notes = _read_ply_semantics(mesh, source)
-    if up_axis == "auto":
-        up, method = detect_up(mesh, source.suffix.lower())
-    else:
-        up, method = _axis_vector(up_axis), "given"
-    T = source_to_world_matrix(up, unit_scale)
+    if est.low_confidence:
+        rec = est.record(scale)
+        notes.append(
+            f"up found with low confidence ({rec['method']}, margin {rec['margin']} over a candidate "
+            f"{rec['runner_up_angle_deg']} deg away): check it with `omnidata plan`, or set up/up_axis"
+        )
     has_texture = _has_texture(mesh)
     has_vertex_colors = getattr(mesh.visual, "kind", None) == "vertex"
     mesh.apply_transform(T)
@@ -567,7 +686,11 @@ def _load(source: Path, recorded: Path, up_axis: str, unit_scale: float) -> Load
         bounds=np.array(mesh.bounds, dtype=np.float64),
         checksum=sha256_file(source),
         face_count=int(len(mesh.faces)),
-        up_source=np.asarray(up, dtype=np.float64),
-        up_method=method,
+        up_source=np.asarray(est.up, dtype=np.float64),
+        up_method=est.method,
         warnings=tuple(notes),
+        up_estimate=est,
+        units=units,
+        reconstruction=reconstruction,
+        class_names=class_names,
     )

@@ -26,7 +26,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from services.core.jobs import claim_pending_jobs, job_spaces, job_spec
 from services.core.jobspec import JobSpec
 from services.core.models import Job, Space, utcnow
-from services.core.plan import SpacePlan
+from services.core.plan import CLIP_NOTES_IN_SUMMARY, SpacePlan, clip_summary
 from services.core.settings import Settings
 from services.core.storage import ObjectStore
 from services.scheduler.compile import compile_tasks
@@ -154,7 +154,7 @@ class Scheduler:
                 summary: dict[str, Any] = {"spaces": {}, "attempts": (job.plan_summary or {}).get("attempts", 0) + 1}
                 total = 0
                 for js, sp in job_spaces(s, job.id):
-                    loaded = load_space(self.fetch_source(sp), up_axis=spec.up_axis, unit_scale=spec.unit_scale)
+                    loaded = load_space(self.fetch_source(sp), **spec.space_frame())
                     rng = np.random.default_rng([spec.seed, js.position])
                     plan = make_plan(loaded, spec, rng, sp.name)
                     if not plan.views:
@@ -168,10 +168,14 @@ class Scheduler:
                     summary["spaces"][sp.name] = {
                         "cameras": done.cameras, "points": done.points, "views": done.views, "tasks": done.tasks,
                         "shortfall": plan.shortfall, "plan_key": done.plan_key,
+                        "valid_fraction": getattr(plan, "valid_fraction", None),
+                        "clips": clip_summary(plan.clip_notes, CLIP_NOTES_IN_SUMMARY),
                         "source_to_world": np.asarray(loaded.source_to_world, dtype=float).tolist(),
                         "bounds": np.asarray(loaded.bounds, dtype=float).tolist(),
                         "up_axis": spec.up_axis, "up_method": getattr(loaded, "up_method", None),
-                        "unit_scale": spec.unit_scale, "warnings": list(getattr(loaded, "warnings", ()) or ()),
+                        "unit_scale": loaded.units.scale if loaded.units is not None else spec.unit_scale,
+                        "warnings": list(getattr(loaded, "warnings", ()) or ()),
+                        **(loaded.frame_record() if hasattr(loaded, "frame_record") else {}),
                     }
                 summary["shortfall"] = any(v["shortfall"] for v in summary["spaces"].values())
                 summary["planning_s"] = round(time.perf_counter() - t0, 3)

@@ -25,8 +25,17 @@ from services.cli import CliError
 from services.core.camera import CONVENTIONS
 from services.core.jobspec import JobSpec, cues_for_space
 from services.core.keys import JOB_JSON_KEY, check_name, output_key
-from services.core.plan import PlanError, nonfixated, plan_to_json, point_info, vanishing_points
-from services.core.spaces import UP_AXES, LoadedSpace, SpaceError, load_space
+from services.core.plan import (
+    CLIP_NOTES_IN_SUMMARY,
+    PlanError,
+    clip_summary,
+    nonfixated,
+    plan_to_json,
+    point_info,
+    vanishing_points,
+)
+from services.core.spaces import LoadedSpace, SpaceError, load_space
+from services.frame_args import add_frame_arguments
 from services.scheduler.planning import make_plan, space_rng
 
 PLAN_CUES = ("point_info", "nonfixated", "vanishing_points")
@@ -40,6 +49,8 @@ _OVERRIDES: dict[str, tuple[tuple[str, ...], str]] = {
     "resolution": (("views", "resolution"), "--resolution"),
     "up_axis": (("up_axis",), "--up-axis"),
     "unit_scale": (("unit_scale",), "--unit-scale"),
+    "up": (("up",), "--up"),
+    "source_to_world": (("source_to_world",), "--source-to-world"),
 }
 
 
@@ -54,8 +65,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, metavar="S", help="random seed (same seed, same plan)")
     parser.add_argument("--name", metavar="COMPONENT", help="component name in the output layout")
     parser.add_argument("--resolution", type=int, metavar="R", help="square image size in pixels")
-    parser.add_argument("--up-axis", choices=UP_AXES, help="source axis pointing up (default: auto); write negative axes as --up-axis=-y")
-    parser.add_argument("--unit-scale", type=float, metavar="M", help="metres per source unit")
+    add_frame_arguments(parser)
 
 
 def _read_spec_file(path: Path) -> dict[str, Any]:
@@ -141,6 +151,7 @@ def _space_record(given: str, space: LoadedSpace) -> dict[str, Any]:
         "checksum_sha256": space.checksum,
         "source_to_world": space.source_to_world.tolist(),
         "up_axis": {"source_direction": space.up_source.tolist(), "method": space.up_method},
+        **space.frame_record(),
         "bounds_world_m": space.bounds.tolist(),
         "face_count": space.face_count,
         "has_texture": space.has_texture,
@@ -166,8 +177,7 @@ def run(args: argparse.Namespace) -> int:
         loaded: list[tuple[str, str, LoadedSpace]] = []
         for i, (given, name) in enumerate(zip(args.spaces, names, strict=True)):
             try:
-                space = load_space(given, up_axis=spec.up_axis, unit_scale=spec.unit_scale,
-                                   extract_dir=Path(tmp) / str(i))
+                space = load_space(given, **spec.space_frame(), extract_dir=Path(tmp) / str(i))
                 cues_for_space(spec, has_semantics=space.has_semantics)
             except SpaceError as e:
                 raise CliError(str(e)) from None
@@ -198,10 +208,15 @@ def run(args: argparse.Namespace) -> int:
         record.update({
             "counts": {"cameras": len(plan.cameras), "points": len(plan.points), "views": len(plan.views)},
             "shortfall": plan.shortfall,
+            "valid_fraction": plan.valid_fraction,
+            "clips": clip_summary(plan.clip_notes, CLIP_NOTES_IN_SUMMARY),
             "plan": plan_key,
         })
         spaces[name] = record
         print(f"{name}: {len(plan.cameras)} cameras, {len(plan.points)} points, {len(plan.views)} views")
+        print(f"{name}: {space.frame_summary()}")
+        for note in space.warnings:
+            print(f"omnidata plan: warning: {name}: {note}", file=sys.stderr)
         if plan.shortfall:
             print(f"omnidata plan: warning: {name}: {plan.shortfall}", file=sys.stderr)
     job = {

@@ -13,7 +13,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from services.core.jobspec import CueParams
-from services.worker.passes import ViewGeometry, ViewPasses
+from services.worker.passes import RENDER_PASSES, ViewGeometry, ViewPasses
 
 if TYPE_CHECKING:
     from services.worker.space_cache import SpaceContext
@@ -30,17 +30,20 @@ class ViewContext:
 
     def __init__(self, view: Any, params: CueParams | None = None, *, passes: ViewPasses | None = None,
                  space: SpaceContext | None = None, plan: Any = None, point_info: dict | None = None,
-                 render_curvature: bool = True):
+                 render_passes: frozenset[str] = RENDER_PASSES):
         self.view = view
         self.geometry = passes.geometry if passes is not None and view is None else ViewGeometry.of(view)
         self.params = params or CueParams()
         self.space = space
         self.plan = plan
         self.point_info_override = point_info
-        self.render_curvature = render_curvature
+        self.render_passes = render_passes  # optional passes rendered (passes.RENDER_PASSES); colour, depth always
         self._passes = passes
         self._memo: dict[str, Any] = {}
         self.timings: dict[str, float] = {}  # exclusive seconds per cue value / intermediate / "render"
+        # The clock of `timings`: wall time; a benchmark on a shared machine may set time.process_time (CPU
+        # seconds of this process, all threads), which other processes' load does not inflate.
+        self.clock: Callable[[], float] = time.perf_counter
         self._nested: list[float] = []
 
     @property
@@ -56,7 +59,7 @@ class ViewContext:
                 raise RuntimeError("this view has neither a pass set nor a space to render it from")
             space = self.space
             self._passes = self.memo(
-                "render", lambda: space.render(self.geometry, self.params, curvature=self.render_curvature)
+                "render", lambda: space.render(self.geometry, self.params, passes=self.render_passes)
             )
         return self._passes
 
@@ -69,13 +72,13 @@ class ViewContext:
         """Compute `fn()` once per view under `key` and record how long it took."""
         if key not in self._memo:
             # Exclusive timings: time spent in nested memo entries (e.g. the render) is booked to them.
-            t0 = time.perf_counter()
+            t0 = self.clock()
             self._nested.append(0.0)
             try:
                 self._memo[key] = fn()
             finally:
                 nested = self._nested.pop()
-                dt = time.perf_counter() - t0
+                dt = self.clock() - t0
                 self.timings[key] = dt - nested
                 if self._nested:
                     self._nested[-1] += dt

@@ -10,17 +10,18 @@ every render/derived cue without Blender. Plan cues need `plan` (services.core.p
 
 from __future__ import annotations
 
-import time
 from collections.abc import Iterable
 from typing import Any
 
-from services.core.cues import get_cue
+from services.core.cues import closure, get_cue
 from services.core.jobspec import CueParams
 from services.worker.context import SemanticsUnavailableError, ViewContext
 from services.worker.cues import encode, get_impl
+from services.worker.passes import RENDER_PASSES
 from services.worker.space_cache import SpaceContext
 
-__all__ = ["SemanticsUnavailableError", "ViewContext", "check_cues", "make_context", "produce", "render_view_cues"]
+__all__ = ["SemanticsUnavailableError", "ViewContext", "check_cues", "make_context", "produce", "render_passes_for",
+           "render_view_cues"]
 
 
 def check_cues(cues: Iterable[str], *, has_semantics: bool) -> list[str]:
@@ -37,21 +38,44 @@ def check_cues(cues: Iterable[str], *, has_semantics: bool) -> list[str]:
     return names
 
 
+def render_passes_for(cues: Iterable[str]) -> frozenset[str]:
+    """The optional render passes (passes.RENDER_PASSES) that `cues` and the cues they are made from read.
+
+    The internal `passes` cue (the cached pass set) is an input of every render cue in the catalog; it asks for
+    every pass only when it is requested itself.
+    """
+    names = set(cues)
+    if "passes" in names:
+        return RENDER_PASSES
+    return frozenset().union(*(get_impl(c).passes for c in closure(names) if c != "passes"))
+
+
 def make_context(space: SpaceContext | None, view: Any, cues: Iterable[str], params: CueParams | None = None, *,
                  plan: Any = None, point_info: dict | None = None) -> ViewContext:
-    """A ViewContext that renders from `space` on first need; curvature is rendered only if a cue needs it."""
+    """A ViewContext that renders from `space` on first need, only the passes the cues need."""
     names = check_cues(cues, has_semantics=space.has_semantics if space is not None else True)
     return ViewContext(view, params, space=space, plan=plan, point_info=point_info,
-                       render_curvature=bool({"principal_curvature", "passes"} & set(names)))
+                       render_passes=render_passes_for(names))
+
+
+# The last JSON value encoded per cue and its bytes: a value shared by several views (the nonfixated dict of a
+# point, the same object for each of its views) is encoded once. Kept by identity, so a new value never hits.
+_last_json: dict[str, tuple[dict, bytes]] = {}
 
 
 def produce(cue: str, ctx: ViewContext) -> bytes:
     """The file bytes of `cue` for the view of `ctx` (its inputs computed once per context)."""
     get_impl(cue)
     value = ctx.value(cue)
-    t0 = time.perf_counter()
-    data = encode(cue, value)
-    ctx.timings[f"encode:{cue}"] = time.perf_counter() - t0
+    t0 = ctx.clock()
+    last = _last_json.get(cue)
+    if last is not None and last[0] is value:
+        data = last[1]
+    else:
+        data = encode(cue, value)
+        if isinstance(value, dict):
+            _last_json[cue] = (value, data)
+    ctx.timings[f"encode:{cue}"] = ctx.clock() - t0
     return data
 
 

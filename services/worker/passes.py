@@ -21,6 +21,11 @@ from services.core.camera import camera_center, intrinsics, pixel_rays
 NO_FACE = np.uint32(0xFFFFFFFF)
 NO_LABEL = -1
 
+# Passes read back from a render only when a requested cue needs them (colour and depth always are): normals,
+# the face-index AOVs, the class/instance AOVs (labelled spaces) and the curvature AOVs (whose per-vertex
+# curvature is then not computed either).
+RENDER_PASSES: frozenset[str] = frozenset({"normal", "faces", "labels", "curvature"})
+
 
 @dataclass(frozen=True)
 class ViewGeometry:
@@ -66,15 +71,19 @@ class ViewGeometry:
         return pixel_rays(self.K, self.world_to_camera, self.resolution, self.resolution)
 
 
+OPTIONAL_ARRAYS = ("normal_world", "face_index", "face_class", "face_instance", "curvature")
+
+
 @dataclass
 class ViewPasses:
     """Every per-pixel quantity one Cycles render gives for a view (see the module docstring for 'none' markers).
 
     depth_z: float32 H x W, metres along the optical axis (Cycles' Z pass is planar z), inf = no surface.
     normal_world: float32 H x W x 3, unit geometric normal of the seen triangle in world axes, turned to face
-        the camera (Cycles flips back-facing hits); 0 = no surface.
+        the camera (Cycles flips back-facing hits); 0 = no surface. None when not read back (pass "normal").
     rgb: uint8 H x W x 3, unlit sRGB colour (texture / vertex colour / constant grey), 0 = no surface.
-    face_index: uint32 H x W, index of the seen triangle in the space's mesh, 4294967295 = no surface.
+    face_index: uint32 H x W, index of the seen triangle in the space's mesh, 4294967295 = no surface. None when
+        not read back (pass "faces").
     face_class, face_instance: int32 H x W or None (unlabelled space): the space's ids as given (a scan may use
         negative ids for unlabelled faces), -1 where nothing is seen (tell the two apart with `hit`).
     curvature: float32 H x W x 2 (k1 >= k2, 1/m, positive = convex) or None when not rendered; NaN = no surface.
@@ -82,9 +91,9 @@ class ViewPasses:
 
     geometry: ViewGeometry
     depth_z: np.ndarray
-    normal_world: np.ndarray
+    normal_world: np.ndarray | None
     rgb: np.ndarray
-    face_index: np.ndarray
+    face_index: np.ndarray | None
     face_class: np.ndarray | None = None
     face_instance: np.ndarray | None = None
     curvature: np.ndarray | None = None
@@ -92,8 +101,18 @@ class ViewPasses:
 
     @property
     def hit(self) -> np.ndarray:
-        """bool H x W: a surface was seen."""
-        return self.face_index != NO_FACE
+        """bool H x W: a surface was seen (depth is inf exactly where no face is, so either pass tells)."""
+        if self.face_index is not None:
+            return self.face_index != NO_FACE
+        return np.isfinite(self.depth_z)
+
+    def require(self, name: str) -> np.ndarray:
+        """The array `name` (normal_world, face_index, face_class, ...), or a clear error when it was not rendered."""
+        value = getattr(self, name)
+        if value is None:
+            raise RuntimeError(f"this view's pass set has no {name} (not read back: the cues asked of the render "
+                               "did not need it)")
+        return value
 
     def position_world(self) -> np.ndarray:
         """float32 H x W x 3 world position (metres) of the seen surface, NaN = none; from depth and pose."""
@@ -112,11 +131,9 @@ class ViewPasses:
             "fov": np.asarray(self.geometry.fov, dtype=np.float64),
             "resolution": np.asarray(self.geometry.resolution, dtype=np.int64),
             "depth_z": self.depth_z,
-            "normal_world": self.normal_world,
             "rgb": self.rgb,
-            "face_index": self.face_index,
         }
-        for name in ("face_class", "face_instance", "curvature"):
+        for name in OPTIONAL_ARRAYS:
             value = getattr(self, name)
             if value is not None:
                 arrays[name] = value
@@ -131,12 +148,6 @@ class ViewPasses:
             geometry = ViewGeometry(
                 world_to_camera=z["world_to_camera"], fov=float(z["fov"]), resolution=int(z["resolution"])
             )
-            opt = {n: z[n] for n in ("face_class", "face_instance", "curvature") if n in z.files}
-            return cls(
-                geometry=geometry,
-                depth_z=z["depth_z"],
-                normal_world=z["normal_world"],
-                rgb=z["rgb"],
-                face_index=z["face_index"],
-                **opt,
-            )
+            opt = {n: z[n] for n in OPTIONAL_ARRAYS if n in z.files}
+            return cls(geometry=geometry, depth_z=z["depth_z"], rgb=z["rgb"],
+                       **{"normal_world": None, "face_index": None, **opt})

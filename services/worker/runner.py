@@ -20,6 +20,7 @@ Bytes, not files, flow through here; all geometry is in the plan (world metres, 
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import time
@@ -412,11 +413,11 @@ class TaskRunner:
         from services.worker.space_cache import SpaceContext
 
         spec = job.spec
-        key = f"{space.checksum}:{spec.up_axis}:{spec.unit_scale!r}"
+        key = f"{space.checksum}:{json.dumps(spec.space_frame(), sort_keys=True)}"
 
         def loader() -> SpaceContext:
             path = fetch_space(self.store, space, self.cache_dir)
-            loaded = load_space(path, up_axis=spec.up_axis, unit_scale=spec.unit_scale)
+            loaded = load_space(path, **spec.space_frame())
             return SpaceContext.from_loaded(loaded, key=key, device=self.render_device, threads=self.render_threads)
 
         return self.space_cache.get(key, loader)
@@ -446,13 +447,21 @@ class TaskRunner:
             ctx = ViewContext(view, params, passes=passes, plan=plan)
         else:
             space_ctx: SpaceContext = self._space_context(job, space)
-            ctx = ViewContext(view, params, space=space_ctx, plan=plan, render_curvature=True)
+            ctx = ViewContext(view, params, space=space_ctx, plan=plan, render_passes=self._job_passes(job))
             _ = ctx.passes  # render now, so the time is booked to this task
             self.renders += 1
         self._views[vk] = ctx
         while len(self._views) > VIEW_CACHE_SIZE:
             self._views.popitem(last=False)
         return ctx
+
+    @staticmethod
+    def _job_passes(job: _JobInfo) -> frozenset[str]:
+        """The render passes the job's cues read: the cached pass set holds those only."""
+        from services.core.cues import OUTPUT_CUES
+        from services.worker.executor import render_passes_for
+
+        return render_passes_for(job.spec.cues if job.spec.cues is not None else OUTPUT_CUES)
 
     def _execute(self, t: _Claimed) -> tuple[str, Any]:
         """Compute the task's bytes and store them at the deterministic key; returns (key, ObjectInfo)."""

@@ -22,7 +22,7 @@ import trimesh
 
 from services.core.jobspec import CueParams
 from services.worker.curvature import principal_curvatures
-from services.worker.passes import ViewGeometry, ViewPasses
+from services.worker.passes import RENDER_PASSES, ViewGeometry, ViewPasses
 
 if TYPE_CHECKING:
     from services.worker.blender import BlenderScene
@@ -80,6 +80,9 @@ class SpaceContext:
     def scene(self) -> BlenderScene:
         """The Blender scene of this space (built on first use; this is the only place that loads bpy)."""
         if self._scene is None or self._scene.closed:
+            from services.worker.bpy_threads import import_bpy
+
+            import_bpy(self.threads)  # before the first `import bpy`: size Blender's thread pool to the budget
             from services.worker.blender import BlenderScene, RenderOptions
 
             self._scene = BlenderScene(self.mesh, face_class=self.face_class, face_instance=self.face_instance,
@@ -88,13 +91,15 @@ class SpaceContext:
             self.stats["scene_build_s"] = self._scene.build_s
         return self._scene
 
-    def render(self, view: ViewGeometry, params: CueParams, *, curvature: bool = True) -> ViewPasses:
-        """One render of `view` giving every pass (curvature too when asked)."""
+    def render(self, view: ViewGeometry, params: CueParams, *,
+               passes: frozenset[str] = RENDER_PASSES) -> ViewPasses:
+        """One render of `view` with colour, depth and the optional `passes` (the space's curvature only when
+        "curvature" is among them)."""
         scene = self.scene()
-        if curvature and self._scene_curvature_radius != params.curvature_radius_m:
+        if "curvature" in passes and self._scene_curvature_radius != params.curvature_radius_m:
             scene.set_curvature(self.curvature(params.curvature_radius_m))
             self._scene_curvature_radius = params.curvature_radius_m
-        return scene.render(view)
+        return scene.render(view, passes)
 
     def close(self) -> None:
         """Free the Blender scene and cached arrays."""

@@ -48,6 +48,9 @@ def test_create_job(api: Api, space_id: int) -> None:
         ({"bogus": 1}, ["body", "spec", "bogus"], "Extra inputs are not permitted"),
         ({"cameras": {"mode": "provided", "poses": [{"location": [0, 0, float("nan")]}] * 3}}, ["body", "spec"], "finite"),
         ({"name": "../x"}, ["body", "spec", "name"], "not a valid name"),
+        ({"views": {"trajectory_look": "up"}}, ["body", "spec", "views", "trajectory_look"], "'point' or 'ahead'"),
+        ({"views": {"trajectory_min_frames": 40, "trajectory_max_frames": 20}}, ["body", "spec", "views"],
+         "trajectory_min_frames (40) exceeds"),
     ],
 )
 def test_invalid_spec_is_422_naming_the_field(api: Api, space_id: int, spec: dict, loc: list, needle: str) -> None:
@@ -204,3 +207,19 @@ def test_isolation_and_not_found(api: Api, space_id: int) -> None:
     assert api.client.get("/jobs/0", headers=api.a.headers).status_code == 422
     assert api.client.get("/jobs/99999999999999999999999", headers=api.a.headers).status_code == 422
     assert api.client.get("/jobs/abc", headers=api.a.headers).status_code == 422
+
+
+def test_job_spaces_show_the_planned_frame(api: Api, space_id: int) -> None:
+    r = create(api, [space_id], {"source_to_world": [[1, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1]]})
+    assert r.status_code == 201, r.text
+    job = r.json()
+    assert job["spaces"][0]["frame"] is None  # not planned yet
+    up = {"source_direction": [0.0, 1.0, 0.0], "method": "source_to_world", "confidence": "high"}
+    with api.session() as s:
+        row = s.get(Job, job["id"])
+        row.plan_summary = {"spaces": {job["spaces"][0]["name"]: {"views": 3, "up": up, "warnings": []}}}
+        s.commit()
+    got = api.client.get(f"/jobs/{job['id']}", headers=api.a.headers).json()
+    assert got["spaces"][0]["frame"] == {"up": up}
+    bad = create(api, [space_id], {"source_to_world": [[1, 0, 0, 0], [0, 2, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]})
+    assert bad.status_code == 422 and "source_to_world" in bad.text and "uniform scale" in bad.text

@@ -208,3 +208,30 @@ def test_list_get_delete_and_isolation(api: Api, bunny: Path) -> None:
     r = api.client.delete(f"/spaces/{ids[1]}", headers=api.a.headers)
     assert r.status_code == 409 and str(r.json()["detail"]).startswith(f"space {ids[1]} is used by job")
     assert api.client.get("/spaces?limit=0", headers=api.a.headers).status_code == 422
+
+
+def test_upload_reports_the_detected_frame_and_refuses_bad_units(api: Api, tmp_path: Path) -> None:
+    """A room in centimetres stored -Y up: the read model says up, method, confidence and the units chosen."""
+    import numpy as np
+    import trimesh
+
+    from tests.scheduler import scenes
+
+    room = scenes.furnished_room().apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
+    room.apply_scale(100.0)
+    data = room.export(file_type="ply")
+    r = upload(api, "room.ply", data)
+    assert r.status_code == 201, r.text
+    body = r.json()
+    assert body["unit_scale"] == 0.01
+    frame = body["frame"]
+    assert frame["up"]["method"] == "floor" and frame["up"]["source_direction"] == [0.0, -1.0, 0.0]
+    assert frame["up"]["confidence"] in ("high", "low") and frame["up"]["floor_area_m2"] > 20
+    assert frame["units"]["unit"] == "centimetres"
+    assert api.client.get(f"/spaces/{body['id']}", headers=api.a.headers).json()["frame"] == frame
+    r = upload(api, "room.ply", data, name="r2", unit_scale="feet")
+    assert r.status_code == 422 and r.json()["errors"][0]["loc"] == ["body", "unit_scale"]
+    ball = trimesh.creation.icosphere(subdivisions=1).apply_scale(300.0).export(file_type="ply")  # 600 units
+    r = upload(api, "ball.ply", ball)
+    assert r.status_code == 422 and "unit_scale" in r.json()["detail"]
+    assert _spaces_of(api, api.a.name) == 1

@@ -122,3 +122,28 @@ def test_query_token_is_not_logged(api: Api, job_id: int, caplog: pytest.LogCapt
     logged = [rec.getMessage() for rec in caplog.records if rec.name == "uvicorn.access"]
     assert any(f"/jobs/{job_id}/events?x=1" in m for m in logged), logged
     assert not any(api.a.token in m for m in logged)
+
+
+def test_job_stream_closes_after_a_final_state(api: Api, job_id: int) -> None:
+    with api.session() as s:
+        fake_plan(s, job_id)
+    with live_server(api.app) as base:
+        with httpx.stream("GET", f"{base}/jobs/{job_id}/events", headers=api.a.headers, timeout=10) as r:
+            sse = SSEReader(r)
+            assert sse.next_event()[1]["state"] == "running"
+            with api.session() as s:
+                run_tasks(s, api.store, job_id, task_ids(s, job_id))
+                api.client.post(f"/jobs/{job_id}/cancel", headers=api.a.headers)  # final even if not yet done
+            events = []
+            for line in sse.lines:  # ends only when the server closes the stream
+                if line.startswith("event:"):
+                    events.append(line.split(":", 1)[1].strip())
+            assert events[-1] == "end"
+        # a stream opened on a finished job sends the job, then `end`, and closes at once
+        t0 = time.monotonic()
+        with httpx.stream("GET", f"{base}/jobs/{job_id}/events", headers=api.a.headers, timeout=10) as r:
+            text = r.read().decode()
+        assert time.monotonic() - t0 < 5
+        assert text.count("event: job") == 1 and "event: end" in text
+        end = json.loads(text.split("event: end\ndata: ", 1)[1].split("\n", 1)[0])
+        assert end["id"] == job_id and end["state"] in ("done", "cancelled")

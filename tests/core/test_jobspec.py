@@ -59,6 +59,17 @@ def test_json_round_trip_is_exact() -> None:
         ({"views": {"fov_mean_deg": 20}}, ("views",), "fov_mean_deg"),
         ({"views": {"fov_max_deg": 200}}, ("views",), "fov_max_deg (200.0)"),
         ({"cameras": {"mode": "object", "object_count": 2}}, (), "points.min_views (3) exceeds cameras.object_count"),
+        ({"unit_scale": "feet"}, ("unit_scale",), "'auto' or a number of metres per source unit"),
+        ({"up": [0, 0, 0]}, ("up",), "non-zero direction"),
+        ({"up": [1, 2]}, ("up", 2), "Field required"),
+        ({"source_to_world": [[1, 0, 0, 0], [1, 0, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}, ("source_to_world",),
+         "degenerate"),
+        ({"source_to_world": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 3, 0], [0, 0, 0, 1]]}, ("source_to_world",),
+         "rotation times a uniform scale"),
+        ({"up": [0, 0, 1], "up_axis": "+z"}, (), "either up (a vector) or up_axis"),
+        ({"source_to_world": [[2, 0, 0, 1], [0, 2, 0, 0], [0, 0, 2, 0], [0, 0, 0, 1]], "unit_scale": 1}, (),
+         "leave unit_scale unset"),
+        ({"views": {"min_valid_fraction": 1.5}}, ("views", "min_valid_fraction"), "less than or equal to 1"),
     ],
 )
 def test_refusals_name_the_field(data: dict[str, Any], loc: tuple[Any, ...], words: str) -> None:
@@ -67,7 +78,8 @@ def test_refusals_name_the_field(data: dict[str, Any], loc: tuple[Any, ...], wor
     assert words in msg
     # model-level refusals carry the field name in the message itself
     if got_loc in ((), ("cameras",), ("points",), ("views",)):
-        assert any(field in msg for field in ("height_min_m", "poses", "max_views", "fov_", "min_views"))
+        assert any(field in msg for field in ("height_min_m", "poses", "max_views", "fov_", "min_views", "up_axis",
+                                              "unit_scale"))
 
 
 def test_provided_cameras_fewer_than_min_views_refused() -> None:
@@ -91,3 +103,12 @@ def test_cues_for_space_refuses_semantic_cues_on_unlabelled_scans() -> None:
     assert cues_for_space(spec, has_semantics=True) == ["rgb", "segment_semantic"]
     everything = cues_for_space(JobSpec(), has_semantics=False)
     assert "rgb" in everything and "segment_semantic" not in everything
+
+
+def test_space_frame_fields() -> None:
+    spec = JobSpec.model_validate({"unit_scale": "0.0254", "up": [0, 2, 0]})
+    assert spec.unit_scale == 0.0254 and JobSpec().unit_scale == "auto"
+    assert spec.space_frame() == {"up_axis": "auto", "unit_scale": 0.0254, "up": (0.0, 2.0, 0.0), "source_to_world": None}
+    T = [[0, -2, 0, 1], [2, 0, 0, 2], [0, 0, 2, 3], [0, 0, 0, 1]]  # a turn, 2 m per unit, a shift: accepted
+    assert JobSpec.model_validate({"source_to_world": T}).space_frame()["source_to_world"][0] == (0, -2, 0, 1)
+    assert JobSpec.model_validate_json(spec.model_dump_json()) == spec

@@ -128,6 +128,23 @@ def furnished_room() -> trimesh.Trimesh:
     return trimesh.util.concatenate([box_room(), table()])
 
 
+def random_furnished_room(rng: np.random.Generator) -> trimesh.Trimesh:
+    """A closed box room (4-7 x 3-6 x 2.5-3 m) with 3-6 closed furniture blocks (0.4-1.8 m wide,
+    0.4-2 m high, without bottoms) standing on the floor, inside the walls, and a pillar in half of them."""
+    size = rng.uniform([4.0, 3.0, 2.5], [7.0, 6.0, 3.0])
+    parts = [box_room(tuple(size))]
+    for _ in range(int(rng.integers(3, 7))):
+        ext = rng.uniform([0.4, 0.4, 0.4], [1.8, 1.2, 2.0])
+        lo = rng.uniform([0.0, 0.0], size[:2] - ext[:2])
+        block = trimesh.creation.box(extents=ext)
+        block.apply_translation([lo[0] + ext[0] / 2, lo[1] + ext[1] / 2, ext[2] / 2])
+        block.update_faces(block.face_normals[:, 2] > -0.5)
+        parts.append(block)
+    if rng.random() < 0.5:
+        parts.append(pillar(tuple(rng.uniform([1.5, 1.5], size[:2] - 1.5)), 0.2, 0.0, float(size[2])))
+    return trimesh.util.concatenate(parts)
+
+
 def as_space(mesh: trimesh.Trimesh) -> LoadedSpace:
     """Wrap an in-memory world-frame mesh as a LoadedSpace (identity source_to_world)."""
     return LoadedSpace(
@@ -162,7 +179,8 @@ def brute_force_visible(mesh: trimesh.Trimesh, origins: np.ndarray, targets: np.
 
 
 def write_ply_with_labels(path: Path, vertices: np.ndarray, polygons: list[list[int]], class_id, inst_id,
-                          instance_name: str = "instance_id", binary: bool = False) -> None:
+                          instance_name: str = "instance_id", binary: bool = False,
+                          class_name: str = "class_id") -> None:
     """A PLY with per-face class/instance properties (polygons may mix triangles and quads)."""
     lines = [
         "ply", f"format {'binary_little_endian' if binary else 'ascii'} 1.0",
@@ -170,7 +188,7 @@ def write_ply_with_labels(path: Path, vertices: np.ndarray, polygons: list[list[
         f"element face {len(polygons)}", "property list uchar int vertex_indices",
     ]
     if class_id is not None:
-        lines.append("property int class_id")
+        lines.append(f"property int {class_name}")
     if inst_id is not None:
         lines.append(f"property int {instance_name}")
     lines.append("end_header")

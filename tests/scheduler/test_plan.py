@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+import trimesh
 
 from services.core.camera import (
     CONVENTIONS,
@@ -13,6 +14,7 @@ from services.core.camera import (
     camera_center,
     intrinsics,
     look_at,
+    pixel_rays,
     project,
     quaternion_wxyz_to_rotation,
 )
@@ -233,3 +235,34 @@ def test_dataclasses_are_frozen_values() -> None:
     assert p.camera_idxs == (2, 1)
     with pytest.raises(ValueError, match="shape"):
         PlannedView(0, 0, 0, np.eye(3), 1.0, 0.0, 64, 0.0, True)
+
+
+def _probe_fraction(mesh, view, size: int) -> float:
+    """Independent share of pixels with a surface: trimesh's own ray caster through the K/world_to_camera pixels."""
+    from trimesh.ray.ray_pyembree import RayMeshIntersector
+
+    origins, dirs = pixel_rays(intrinsics(view.fov, size), view.world_to_camera, size, size)
+    return float(RayMeshIntersector(mesh).intersects_any(origins, dirs).mean())
+
+
+def test_min_valid_fraction_drops_views_into_holes() -> None:
+    """A room without ceiling and with a missing wall: views facing the holes see little surface."""
+    from services.scheduler.planning.views import VALID_PROBE_PX
+
+    room = scenes.box_room(size=(6.0, 4.0, 2.7))
+    room.update_faces((room.face_normals[:, 2] > -0.9) & ~(room.face_normals[:, 0] < -0.9))
+    space = scenes.as_space(trimesh.util.concatenate([room, scenes.table()]))
+    base = {"cameras": {"max_count": 20, "min_spacing_m": 0.8}, "points": {"count": 20, "min_views": 1},
+            "views": {"resolution": 64, "fov_mean_deg": 90, "fov_std_deg": 0}}
+    all_views = make_plan(space, JobSpec.model_validate(base), np.random.default_rng(1), "holes")
+    fractions = np.array([_probe_fraction(space.mesh, v, VALID_PROBE_PX) for v in all_views.views])
+    summary = all_views.valid_fraction
+    assert summary["views"] == len(all_views.views) and summary["dropped"] == 0 and summary["threshold"] == 0
+    assert summary["median"] == pytest.approx(float(np.median(fractions)), abs=1 / VALID_PROBE_PX**2)
+    assert summary["min"] < 0.9 < summary["max"]  # some views look into the holes
+    strict = JobSpec.model_validate({**base, "views": {**base["views"], "min_valid_fraction": 0.9}})
+    kept = make_plan(space, strict, np.random.default_rng(1), "holes")
+    assert kept.valid_fraction["dropped"] == int((fractions < 0.9).sum()) > 0
+    assert len(kept.views) <= len(all_views.views) - kept.valid_fraction["dropped"]
+    assert all(_probe_fraction(space.mesh, v, VALID_PROBE_PX) >= 0.9 for v in kept.views)
+    assert "min_valid_fraction" in (kept.shortfall or "")

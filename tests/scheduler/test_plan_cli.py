@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import trimesh
 import yaml
 
 from services.cli import main
@@ -139,3 +140,68 @@ def test_bad_inputs_are_refused_clearly(tmp_path: Path, room: Path, capsys) -> N
         main(["plan", str(room), "--out", str(tmp_path / "o"), "--up-axis", "sideways"])
     assert e.value.code == 2
     assert "invalid choice: 'sideways'" in capsys.readouterr().err
+
+
+def test_plan_prints_and_records_the_detected_frame(tmp_path: Path, capsys) -> None:
+    """A room in millimetres, tilted off every axis: plan says what it found; --up and --source-to-world override."""
+    R = trimesh.geometry.align_vectors([0, 0, 1], [1.0, 2.0, 2.0])
+    src = tmp_path / "scan.ply"
+    scenes.furnished_room().apply_transform(R).apply_scale(1000.0).export(src)
+    out = tmp_path / "out"
+    assert main(["plan", str(src), "--out", str(out), "--points", "3", "--resolution", "32"]) == 0
+    printed = capsys.readouterr().out
+    assert "scan: up [0.3333, 0.6667, 0.6667] (floor," in printed and "units: millimetres x0.001" in printed
+    rec = json.loads((out / "job.json").read_text())["spaces"]["scan"]
+    assert rec["up"]["method"] == "floor" and rec["up"]["confidence"] in ("high", "low")
+    np.testing.assert_allclose(rec["up"]["source_direction"], [1 / 3, 2 / 3, 2 / 3], atol=1e-6)
+    assert rec["units"] == {"unit_scale": 0.001, "unit": "millimetres", "reason": rec["units"]["reason"]}
+    assert rec["valid_fraction"]["views"] == rec["counts"]["views"] and 0 < rec["valid_fraction"]["median"] <= 1
+
+    T = np.eye(4)
+    T[:3, :3] = 0.001 * R[:3, :3].T
+    matrix = tmp_path / "s2w.json"
+    matrix.write_text(json.dumps(T.tolist()))
+    assert main(["plan", str(src), "--out", str(tmp_path / "o2"), "--points", "3", "--resolution", "32",
+                 "--source-to-world", str(matrix)]) == 0
+    rec = json.loads((tmp_path / "o2" / "job.json").read_text())["spaces"]["scan"]
+    np.testing.assert_allclose(rec["source_to_world"], T)
+    assert rec["up"]["method"] == "source_to_world"
+    assert main(["plan", str(src), "--out", str(tmp_path / "o3"), "--points", "3", "--resolution", "32",
+                 "--up", "1,2,2", "--unit-scale", "0.001"]) == 0
+    rec = json.loads((tmp_path / "o3" / "job.json").read_text())["spaces"]["scan"]
+    assert rec["up"]["method"] == "given" and rec["units"]["unit"] == "given"
+
+
+def test_frame_flags_refused_clearly(tmp_path: Path, room: Path, capsys) -> None:
+    shear = tmp_path / "shear.txt"
+    shear.write_text("1 0.5 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n")
+    rc = main(["plan", str(room), "--out", str(tmp_path / "o"), "--source-to-world", str(shear)])
+    err = capsys.readouterr().err
+    assert rc == 2 and "source_to_world" in err and "rotation times a uniform scale" in err, err
+    assert len(err.strip().splitlines()) == 1
+    rc = main(["plan", str(room), "--out", str(tmp_path / "o"), "--up", "0,0,1", "--up-axis=+y"])
+    assert rc == 2 and "either up" in capsys.readouterr().err
+    for flag, value in (("--up", "1,2"), ("--unit-scale", "big")):
+        with pytest.raises(SystemExit) as e:
+            main(["plan", str(room), "--out", str(tmp_path / "o"), flag, value])
+        assert e.value.code == 2
+    assert not (tmp_path / "o").exists()
+
+
+def test_plan_reports_trajectory_clips_in_job_json(tmp_path: Path, capsys) -> None:
+    room = tmp_path / "room.ply"
+    scenes.random_furnished_room(np.random.default_rng(41)).export(room)
+    spec = tmp_path / "video.yaml"
+    spec.write_text(yaml.safe_dump({
+        "points": {"count": 6},
+        "views": {"mode": "trajectory", "trajectory_max_frames": 60, "trajectory_min_frames": 30, "resolution": 32},
+    }))
+    out = tmp_path / "out"
+    assert main(["plan", str(room), "--out", str(out), "--spec", str(spec), "--seed", "1"]) == 0
+    assert "trajectory clips of 6 points" in capsys.readouterr().err
+    rec = json.loads((out / "job.json").read_text())["spaces"]["room"]
+    plan = plan_from_json((out / rec["plan"]).read_text())
+    clips = rec["clips"]
+    assert clips["dropped"] == sum(n["outcome"] == "dropped" for n in plan.clip_notes) > 0
+    assert clips["shortened"] + clips["dropped"] == len(plan.clip_notes) == len(clips["notes"])
+    assert rec["counts"]["points"] == 6 - clips["dropped"] and "trajectory clips" in rec["shortfall"]

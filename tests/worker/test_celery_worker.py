@@ -174,6 +174,63 @@ def test_real_worker_consumes_heartbeats_and_recycles_its_child(pg_url, pg_sm, r
     assert proc.returncode == 0, (tmp_path / "worker.log").read_text()[-3000:]
 
 
+def tree_cpu_s(root_pid: int) -> float:
+    """CPU seconds (user + system, from /proc) used so far by a process and all its descendants alive now."""
+    tick = os.sysconf("SC_CLK_TCK")
+    stats: dict[int, tuple[int, float]] = {}  # pid -> (parent pid, cpu seconds)
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:  # exited meanwhile
+            continue
+        stats[int(entry.name)] = (int(fields[1]), (int(fields[11]) + int(fields[12])) / tick)
+    tree, grown = {root_pid}, True
+    while grown:
+        children = {pid for pid, (ppid, _) in stats.items() if ppid in tree} - tree
+        grown = bool(children)
+        tree |= children
+    return sum(stats[pid][1] for pid in tree if pid in stats)
+
+
+@pytest.mark.slow
+def test_idle_worker_with_one_render_thread_does_not_spin(pg_url, pg_sm, redis_url, banana, tmp_path):  # noqa: F811
+    """After a render, a worker started with --render-threads 1 sleeps: its process tree uses < 5% of a core."""
+    from services.scheduler.transport import CeleryTransport
+
+    env = worker_env(pg_url, redis_url, banana.store.root, tmp_path / "data")
+    log = (tmp_path / "worker.log").open("wb")
+    proc = subprocess.Popen([sys.executable, "-m", "services.cli", "worker", "--concurrency", "1",
+                             "--render-threads", "1"], cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT,
+                            start_new_session=True)
+    try:
+        job_id = make_job(pg_sm, banana)
+        tid = queue(pg_sm, job_id, "passes", 0, 0)
+        transport = CeleryTransport(settings=get_settings(broker_url=redis_url))
+        transport.send([(tid, "passes")])
+        transport.close()
+
+        def state() -> str | None:
+            with pg_sm() as s:
+                return s.scalar(select(Task.state).where(Task.id == tid))
+
+        wait_until(lambda: state() == "done", 180, "the render task", proc)
+        time.sleep(2.0)  # let the task's bookkeeping (ack, heartbeat) settle
+        cpu0, t0 = tree_cpu_s(proc.pid), time.monotonic()
+        time.sleep(10.0)
+        idle = (tree_cpu_s(proc.pid) - cpu0) / (time.monotonic() - t0)
+        assert idle < 0.05, f"idle worker used {idle:.0%} of a core"
+    finally:
+        os.kill(proc.pid, signal.SIGTERM)
+        try:
+            proc.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+        log.close()
+
+
 def test_worker_engine_commits_without_waiting_for_the_wal_flush_on_postgres(pg_url, tmp_path):
     from sqlalchemy import text
 

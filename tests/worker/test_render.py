@@ -351,3 +351,61 @@ def test_gpu_request_falls_back_to_cpu(caplog: pytest.LogCaptureFixture,
             assert bpy.context.scene.cycles.device == "GPU"
     finally:
         scene.close()
+
+
+@pytest.mark.parametrize("device", ["auto", "optix"])
+def test_worker_device_selection_renders_on_the_cpu_when_no_gpu_is_found(
+        device: str, caplog: pytest.LogCaptureFixture, rendered: dict[str, Rendered]) -> None:
+    """The worker's path (SpaceContext -> BlenderScene -> configure_device): a GPU request on a machine without one
+    logs the fallback naming what was asked and renders the same view as a CPU scene would."""
+    box = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    g = object_view(box, np.array([1.0, 0.7, 0.5]), 32)
+    cpu = SpaceContext(key="box-cpu", mesh=box, device="cpu")
+    want = cpu.render(g, CueParams(), passes=frozenset())
+    cpu.close()
+    space = SpaceContext(key=f"box-{device}", mesh=box, device=device)
+    with caplog.at_level(logging.INFO, logger="services.worker.blender"):
+        got = space.render(g, CueParams(), passes=frozenset())
+    try:
+        if space.scene().device == "cpu":
+            assert f"render device {device!r} requested but no" in caplog.text
+            assert "rendering on the CPU" in caplog.text
+            np.testing.assert_array_equal(got.depth_z, want.depth_z)
+        else:  # a machine with a GPU: the log names it, and the depth agrees to float precision
+            assert "Cycles renders on" in caplog.text
+            np.testing.assert_allclose(got.depth_z, want.depth_z, rtol=1e-4)
+        assert got.normal_world is None and got.face_index is None  # passes=frozenset(): colour and depth only
+        assert got.hit.sum() > 100
+    finally:
+        space.close()
+
+
+def test_a_view_renders_only_the_passes_its_cues_need(rendered: dict[str, Rendered]) -> None:
+    from services.worker.executor import render_passes_for
+    from services.worker.passes import RENDER_PASSES
+
+    assert render_passes_for(["rgb", "depth_zbuffer", "edge_occlusion", "keypoints3d"]) == frozenset()
+    assert render_passes_for(["segment_unsup25d", "reshading"]) == {"normal"}
+    assert render_passes_for(["segment_panoptic"]) == {"labels"}
+    assert render_passes_for(["fragments", "principal_curvature"]) == {"faces", "curvature"}
+    assert render_passes_for(["passes"]) == RENDER_PASSES
+    box = trimesh.creation.box(extents=(1.0, 0.6, 0.4))
+    g = object_view(box, np.array([1.0, 0.7, 0.5]), 48)
+    space = SpaceContext(key="box-passes", mesh=box)
+    try:
+        lean = make_context(space, g, ["rgb", "depth_zbuffer"])
+        files = {c: produce(c, lean) for c in ("rgb", "depth_zbuffer")}
+        p = lean.passes
+        assert p.normal_world is None and p.face_index is None and p.curvature is None
+        assert space.stats.get("curvature_s") is None  # the mesh's curvature was never computed
+        with pytest.raises(RuntimeError, match="no face_index"):
+            produce("fragments", lean)
+        full = make_context(space, g, ["passes"])
+        assert full.passes.face_index is not None and full.passes.curvature is not None
+        assert all(produce(c, full) == data for c, data in files.items())  # same files either way
+        np.testing.assert_array_equal(full.passes.hit, p.hit)
+        # A pass set without the optional passes survives the worker's cache.
+        again = ViewPasses.from_bytes(p.to_bytes())
+        assert again.face_index is None and np.array_equal(again.hit, p.hit)
+    finally:
+        space.close()

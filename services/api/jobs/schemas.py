@@ -34,7 +34,7 @@ def _walk(value: Any, path: str) -> None:
 class JobCreate(BaseModel):
     """A job request: the spaces to render (in order) and the JobSpec knobs."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)  # "3" or true is not a space id
 
     space_ids: list[DbId] = Field(min_length=1, max_length=256, description="ids of your spaces, in order")
     spec: JobSpec = Field(default_factory=lambda: JobSpec.model_validate({}), description="steering knobs (DESIGN.md section 4)")
@@ -82,6 +82,12 @@ class JobSpaceRead(BaseModel):
     name: str
     position: int
     cues: list[str]
+    frame: dict[str, Any] | None = Field(
+        None, description="once planned: up (source direction, method, confidence), units and, for point clouds, "
+        "the reconstruction"
+    )
+
+
 
 
 class JobRead(BaseModel):

@@ -42,6 +42,7 @@ from services.core.models import (
     Space,
     utcnow,
 )
+from services.core.spaces import frame_of
 from services.core.storage import ObjectStore
 
 FINISHED_STATES = ("done", "failed", "cancelled")
@@ -261,9 +262,11 @@ def fetch_job_detail(session: Session, *, owner: str, job_id: int, rates: RateTr
     counters: Counters = {}
     for cue, state, n in _json_list(row.counters):
         counters.setdefault(cue, {})[state] = int(n)
+    planned = (row.plan_summary or {}).get("spaces", {})
     spaces = sorted(
         (
-            JobSpaceRead(space_id=int(sid), name=name, position=int(pos), cues=list(cues if isinstance(cues, list) else json.loads(cues)))
+            JobSpaceRead(space_id=int(sid), name=name, position=int(pos), cues=list(cues if isinstance(cues, list) else json.loads(cues)),
+                         frame=frame_of(planned.get(name)))
             for sid, name, pos, cues in _json_list(row.spaces)
         ),
         key=lambda sp: (sp.position, sp.space_id),

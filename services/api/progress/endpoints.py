@@ -2,7 +2,8 @@
 
 Both accept the token as `Authorization: Bearer` or, for browsers' EventSource, as `?token=`.
 Events: `job` (JSON like JobEvent) when a job's counters or state change, `deleted` ({"id"}) when it is gone;
-comment lines are heartbeats.
+comment lines are heartbeats. A job's own stream ends with an `end` event ({"id", "state"}) and closes once the
+job reaches a final state (done, failed, cancelled); /events stays open.
 """
 
 from __future__ import annotations
@@ -34,7 +35,12 @@ def _stream(request: Request, tenant: str, job_id: int | None) -> StreamingRespo
 
     cfg = app.state.sse
     gen = event_stream(
-        request, poll, poll_s=cfg.poll_s, heartbeat_s=cfg.heartbeat_s, stop_when_gone=job_id is not None
+        request,
+        poll,
+        poll_s=cfg.poll_s,
+        heartbeat_s=cfg.heartbeat_s,
+        stop_when_gone=job_id is not None,
+        stop_when_final=job_id is not None,
     )
     return StreamingResponse(gen, media_type="text/event-stream", headers=_SSE_HEADERS)
 
@@ -48,7 +54,7 @@ def _stream(request: Request, tenant: str, job_id: int | None) -> StreamingRespo
 async def job_events(
     job_id: Annotated[int, Path(ge=1, le=2**63 - 1)], request: Request, tenant: SSETenantDep
 ) -> StreamingResponse:
-    """Sends the job at once, then again whenever its counters or state change."""
+    """Sends the job at once, then again whenever its counters or state change; closes after a final state."""
 
     def check() -> None:
         with request.app.state.read_sessionmaker() as session:

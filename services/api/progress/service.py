@@ -97,8 +97,13 @@ async def event_stream(
     poll_s: float,
     heartbeat_s: float,
     stop_when_gone: bool = False,
+    stop_when_final: bool = False,
 ) -> AsyncIterator[str]:
-    """Yield SSE text: `job` events for changed jobs, `deleted` for removed ones, heartbeat comments."""
+    """Yield SSE text: `job` events for changed jobs, `deleted` for removed ones, heartbeat comments.
+
+    `stop_when_final`: once every followed job is in a final state (done, failed, cancelled), send an `end`
+    event ({"id", "state"}; EventSource clients close on it instead of reconnecting) and close the stream.
+    """
     snap = Snapshot()
     seq = 0
     yield "retry: 2000\n: connected\n\n"
@@ -125,5 +130,10 @@ async def event_stream(
             yield f": heartbeat {int(time.time())}\n\n"
             last_sent = time.monotonic()
         if stop_when_gone and deleted:
+            return
+        if stop_when_final and snap.states and all(st in JOB_TERMINAL_STATES for st in snap.states.values()):
+            for jid, st in snap.states.items():
+                seq += 1
+                yield sse("end", {"id": jid, "state": st}, seq)
             return
         await anyio.sleep(poll_s)

@@ -35,11 +35,15 @@ _UPLOAD_BODY: dict[str, Any] = {
                         "file": {
                             "type": "string",
                             "format": "binary",
-                            "description": "a mesh (.ply, .obj, .glb, .gltf) or a .zip with mesh + textures",
+                            "description": "a mesh (.ply, .obj, .glb, .gltf), a point cloud (.ply, .xyz, .pts) "
+                            "or a .zip with mesh + textures",
                         },
                         "name": {"type": "string", "description": "default: the file name without extension"},
                         "up_axis": {"type": "string", "enum": ["auto", "+x", "-x", "+y", "-y", "+z", "-z"]},
-                        "unit_scale": {"type": "number", "exclusiveMinimum": 0, "maximum": 1000},
+                        "unit_scale": {
+                            "anyOf": [{"type": "number", "exclusiveMinimum": 0, "maximum": 1000}, {"const": "auto"}],
+                            "description": "metres per source unit, or auto (default: from the storey height)",
+                        },
                     },
                 }
             }
@@ -72,6 +76,7 @@ async def upload_space(
             service.create_space,
             session,
             store,
+            settings,
             owner=tenant,
             name=opts.name or service.default_name(upload.filename),
             source_path=upload.path,

@@ -2,23 +2,18 @@
 
 from __future__ import annotations
 
-import math
 from datetime import datetime
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from services.core.cues import default_cues
+from services.core.jobspec import parse_unit_scale
 from services.core.keys import check_name
 from services.core.models import Space
+from services.core.spaces import frame_of
 
 UpAxis = Literal["auto", "+x", "-x", "+y", "-y", "+z", "-z"]
-
-
-def _finite_scale(v: float) -> float:
-    if not math.isfinite(v):
-        raise ValueError("unit_scale must be a finite number of metres per source unit")
-    return v
 
 
 class SpaceOptions(BaseModel):
@@ -27,22 +22,27 @@ class SpaceOptions(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     name: str | None = Field(None, description="unique per tenant; default: the file name without extension")
-    up_axis: UpAxis = Field("auto", description="source axis pointing up; auto detects floors")
-    unit_scale: float = Field(1.0, gt=0, le=1000, description="metres per source unit")
+    up_axis: UpAxis = Field("auto", description="source axis pointing up; auto detects floors in any orientation")
+    unit_scale: float | Literal["auto"] = Field(
+        "auto", description="metres per source unit, or auto (from the storey height of rooms)",
+        json_schema_extra={"anyOf": [{"type": "number", "exclusiveMinimum": 0, "maximum": 1000}, {"const": "auto"}]},
+    )
 
     @field_validator("name")
     @classmethod
     def _name(cls, v: str | None) -> str | None:
         return None if v is None else check_name("name", v)
 
-    @field_validator("unit_scale")
+    @field_validator("unit_scale", mode="plain")
     @classmethod
-    def _scale(cls, v: float) -> float:
-        return _finite_scale(v)
+    def _scale(cls, v: Any) -> float | str:
+        return parse_unit_scale(v)
 
 
 class SpaceRegister(SpaceOptions):
     """Register a scan already in the service's object store (uploaded there directly, e.g. with the AWS CLI)."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)  # a JSON body, unlike the upload's form fields
 
     key: str | None = Field(
         None,
@@ -76,6 +76,9 @@ class SpaceRead(BaseModel):
     has_semantics: bool
     supported_cues: list[str] = Field(description="cues a job may request for this space")
     validation: dict[str, Any] | None = None
+    frame: dict[str, Any] | None = Field(
+        None, description="how the frame was found: up (source direction, method, confidence), units, reconstruction"
+    )
     created_at: datetime
 
     @classmethod
@@ -97,5 +100,6 @@ class SpaceRead(BaseModel):
             has_semantics=s.has_semantics,
             supported_cues=default_cues(s.has_semantics),
             validation=s.validation,
+            frame=frame_of(s.validation),
             created_at=s.created_at,
         )

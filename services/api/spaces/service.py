@@ -11,6 +11,7 @@ from sqlalchemy.orm import Session
 
 from services.api.pagination import PageParams
 from services.core.models import Job, JobSpace, Space
+from services.core.safe_load import load_space_limited
 from services.core.settings import Settings
 from services.core.space_registry import register_space
 from services.core.spaces import SpaceError
@@ -58,18 +59,29 @@ def default_name(filename: str) -> str:
 def create_space(
     session: Session,
     store: ObjectStore,
+    settings: Settings,
     *,
     owner: str,
     name: str,
     source_path: Path,
     up_axis: str,
-    unit_scale: float,
+    unit_scale: float | str,
 ) -> Space:
     """Validate the scan at `source_path` and register it (stored under spaces/<id>/); 422 when it is unusable."""
     _check_name_free(session, owner=owner, name=name)
     try:
+        # parsed in a child process with memory and time limits: a hostile file cannot take the API down
+        loaded = load_space_limited(
+            source_path,
+            up_axis=up_axis,
+            unit_scale=unit_scale,
+            max_faces=settings.upload_max_faces,
+            memory_mb=settings.upload_parse_memory_mb,
+            timeout_s=settings.upload_parse_timeout_s,
+        )
         space = register_space(
-            session, store, owner=owner, name=name, source_path=source_path, up_axis=up_axis, unit_scale=unit_scale
+            session, store, owner=owner, name=name, source_path=source_path, up_axis=up_axis, unit_scale=unit_scale,
+            loaded=loaded,
         )
         session.commit()
     except SpaceError as e:
@@ -113,7 +125,7 @@ def register_staged(
     key: str,
     name: str | None,
     up_axis: str,
-    unit_scale: float,
+    unit_scale: float | str,
 ) -> Space:
     """Register the staged object `key` as a space (copied to spaces/<id>/; the staged object is kept)."""
     info = store.stat(key)
@@ -134,7 +146,7 @@ def register_staged(
         except ObjectNotFoundError:
             raise not_found("object", repr(key)) from None
         return create_space(
-            session, store, owner=owner, name=name, source_path=path, up_axis=up_axis, unit_scale=unit_scale
+            session, store, settings, owner=owner, name=name, source_path=path, up_axis=up_axis, unit_scale=unit_scale
         )
 
 

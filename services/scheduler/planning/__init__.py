@@ -7,6 +7,7 @@ give a byte-identical `plan_to_json`. World frame: metres, +Z up (see services.c
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import time
 import uuid as uuidlib
@@ -15,15 +16,23 @@ import numpy as np
 
 from services.core.jobspec import CameraSpec, JobSpec
 from services.core.keys import check_name
-from services.core.plan import CameraPose, PlanError, PlannedView, PointOfInterest, SpacePlan
+from services.core.plan import CameraPose, PlanError, PlannedView, PointOfInterest, SpacePlan, clip_shortfall
 from services.core.spaces import LoadedSpace
 from services.scheduler.planning.cameras import generate_cameras, object_cameras, provided_cameras
 from services.scheduler.planning.points import SampledPoints, sample_points
-from services.scheduler.planning.trajectory import trajectory
-from services.scheduler.planning.views import ViewArrays, nonfixated_keep, wide_baseline
+from services.scheduler.planning.trajectory import ClipNote, trajectory
+from services.scheduler.planning.views import (
+    ViewArrays,
+    fraction_summary,
+    nonfixated_keep,
+    valid_fractions,
+    wide_baseline,
+)
 from services.scheduler.planning.visibility import MeshQueries
 
 __all__ = ["make_plan", "space_rng", "PlanError"]
+
+VALID_REPORT_VIEWS = 2000  # views probed for job.json's valid-fraction distribution when none are dropped
 
 
 def space_rng(seed: int, space_name: str) -> np.random.Generator:
@@ -54,13 +63,14 @@ def make_plan(
     q = MeshQueries(space.mesh)
     salt = rng.bytes(16)
     cs = spec.cameras
+    orbit = None  # an object's camera sphere: trajectory clips orbit its points
     if cs.mode == "generate":
         cams, source = generate_cameras(q, cs, rng), "generated"
     elif cs.mode == "provided":
         cams, source = provided_cameras(cs), "provided"
     else:
-        cams, _, _ = object_cameras(space.mesh, cs, rng)
-        source = "object"
+        cams, centre, radius = object_cameras(space.mesh, cs, rng)
+        source, orbit = "object", (centre, radius)
     t1 = time.perf_counter()
     stamp["cameras"] = t1 - t0
     ps = spec.points
@@ -76,15 +86,16 @@ def make_plan(
     stamp["points"] = t2 - t1
 
     vs = spec.views
+    notes: list[ClipNote] = []
     if vs.mode == "wide_baseline":
         views = wide_baseline(sampled.positions, sampled.normals, sampled.visible, cams, vs, ps.max_views, rng)
     else:
-        views = trajectory(
+        views, notes = trajectory(
             sampled.positions, sampled.normals, sampled.visible, cams, vs, ps.max_views, q,
-            ps.los_tolerance_m, rng,
+            ps.los_tolerance_m, cs.clearance_m, rng, orbit,
         )
     shortfall = sampled.shortfall
-    keep_points = np.arange(len(sampled.positions))
+    keep_points = np.unique(views.point_idx) if notes else np.arange(len(sampled.positions))
     if vs.nonfixated_pruning and len(views):
         views = views.subset(nonfixated_keep(views, sampled.positions, sampled.visible, vs.resolution))
         n_views = np.bincount(views.point_idx, minlength=len(sampled.positions))
@@ -95,17 +106,44 @@ def make_plan(
                 f"nonfixated pruning kept {len(keep_points)} of {len(sampled.positions)} points "
                 f"(>= {ps.min_views} views that each see another point)"
             )
-            shortfall = f"{shortfall}; {note}" if shortfall else note
+            shortfall = _join(shortfall, note)
+    if vs.min_valid_fraction > 0:
+        fractions = valid_fractions(q, views, spec.params.max_depth_m)
+        valid_summary = fraction_summary(fractions, vs.min_valid_fraction)
+    else:  # only reported: an even sample of the views bounds the cost on big plans
+        sample = np.unique(np.linspace(0, len(views) - 1, min(len(views), VALID_REPORT_VIEWS)).astype(np.int64))
+        valid_summary = fraction_summary(valid_fractions(q, views.subset(sample), spec.params.max_depth_m), 0.0)
+        valid_summary["sampled_of"] = len(views)
+    if vs.min_valid_fraction > 0 and len(views):
+        views = views.subset(fractions >= vs.min_valid_fraction)
+        n_views = np.bincount(views.point_idx, minlength=len(sampled.positions))
+        kept = keep_points[n_views[keep_points] >= ps.min_views]
+        views = views.subset(np.isin(views.point_idx, kept))
+        if valid_summary["dropped"] or len(kept) < len(keep_points):
+            note = (
+                f"views.min_valid_fraction {vs.min_valid_fraction} dropped {valid_summary['dropped']} views; "
+                f"{len(kept)} of {len(keep_points)} points keep >= {ps.min_views} views"
+            )
+            shortfall = _join(shortfall, note)
+        keep_points = kept
     t3 = time.perf_counter()
     stamp["views"] = t3 - t2
 
-    plan = _assemble(space_name, salt, cams, source, cs, sampled, keep_points, views, vs.resolution, shortfall)
+    plan = _assemble(
+        space_name, salt, cams, source, cs, sampled, keep_points, views, vs.resolution, shortfall, notes
+    )
+    plan = dataclasses.replace(plan, valid_fraction=valid_summary)
     stamp["assemble"] = time.perf_counter() - t3
     if timings is not None:
         timings.update(stamp)
         timings["rays"] = float(q.rays)
         timings["total"] = time.perf_counter() - t0
     return plan
+
+
+def _join(*parts: str | None) -> str | None:
+    text = "; ".join(p for p in parts if p)
+    return text or None
 
 
 def _assemble(
@@ -119,6 +157,7 @@ def _assemble(
     views: ViewArrays,
     resolution: int,
     shortfall: str | None,
+    notes: list[ClipNote],
 ) -> SpacePlan:
     given = [p.uuid for p in cs.poses] if source == "provided" and cs.poses else [None] * len(cams)
     cameras = tuple(
@@ -148,4 +187,10 @@ def _assemble(
         )
         for i, o in enumerate(order)
     )
-    return SpacePlan(space_name=space_name, cameras=cameras, points=points, views=planned, shortfall=shortfall)
+    # clip notes name the points by their index in the plan (None: dropped)
+    clip_notes = tuple(n.as_dict(int(new_idx[n.point]) if new_idx[n.point] >= 0 else None) for n in notes)
+    shortfall = _join(shortfall, clip_shortfall(clip_notes, len(sampled.positions)))
+    return SpacePlan(
+        space_name=space_name, cameras=cameras, points=points, views=planned, shortfall=shortfall,
+        clip_notes=clip_notes,
+    )

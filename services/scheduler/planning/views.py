@@ -10,18 +10,23 @@ at the point (the point projects to the image centre), with
 nonfixated_pruning: a view is kept only when its camera also sees (line of sight, inside the image)
 another point that has at least two views, so every kept view carries a cross-view correspondence;
 one pass over the unpruned view counts. Points left with fewer than min_views views are then dropped.
+
+valid fraction (holes in scans): each view's share of pixels that see a surface is predicted by a
+8 x 8 ray cast; views.min_valid_fraction drops views below it (points then as above).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.special import ndtr, ndtri
 
 from services.core.camera import intrinsics
 from services.core.jobspec import ViewSpec
+from services.scheduler.planning.visibility import MeshQueries
 
 
 @dataclass(frozen=True)
@@ -156,3 +161,40 @@ def nonfixated_keep(
         uv = cam[front, :2] / cam[front, 2:3] * K[0, 0] + K[:2, 2]
         keep[i] = bool(((uv >= 0) & (uv < resolution)).all(axis=1).any())
     return keep
+
+
+VALID_PROBE_PX = 8  # rays per side of the low-resolution cast that predicts a view's share of surface (64 rays)
+
+
+def valid_fractions(q: MeshQueries, views: ViewArrays, max_depth_m: float, size: int = VALID_PROBE_PX) -> np.ndarray:
+    """(n,) predicted share of each view's pixels that see a surface nearer than `max_depth_m` (z-depth, metres),
+    from a `size` x `size` ray cast through pixel centres (the cue `mask_valid` at low resolution)."""
+    n = len(views)
+    if not n:
+        return np.zeros(0)
+    # pixel centres in units of the half-width: camera ray (g_x tan(fov/2), g_y tan(fov/2), 1), as camera.pixel_rays
+    g = (np.arange(size) + 0.5) / (size / 2) - 1.0
+    gx, gy = np.meshgrid(g, g)
+    t = np.tan(views.fov / 2)[:, None]
+    d_cam = np.stack([gx.ravel() * t, gy.ravel() * t, np.ones((n, size * size))], axis=-1)
+    d_cam /= np.linalg.norm(d_cam, axis=-1, keepdims=True)
+    R = views.world_to_camera[:, :3, :3]
+    dirs = np.einsum("npc,ncw->npw", d_cam, R)  # R^T d per view
+    centres = -np.einsum("ncw,nc->nw", R, views.world_to_camera[:, :3, 3])
+    origins = np.repeat(centres, size * size, axis=0)
+    dist, _ = q.first_hit(origins, dirs.reshape(-1, 3))
+    valid = np.isfinite(dist) & (dist * d_cam[..., 2].ravel() < max_depth_m)
+    return valid.reshape(n, size * size).mean(axis=1)
+
+
+def fraction_summary(fractions: np.ndarray, threshold: float) -> dict[str, Any]:
+    """The distribution of predicted valid fractions (job.json): quantiles, and how many fall below `threshold`."""
+    if not len(fractions):
+        return {"views": 0, "threshold": threshold, "dropped": 0}
+    q = np.quantile(fractions, [0.0, 0.05, 0.25, 0.5, 0.75, 1.0])
+    return {
+        "views": int(len(fractions)), "threshold": threshold, "probe_px": VALID_PROBE_PX,
+        "min": float(q[0]), "p05": float(q[1]), "p25": float(q[2]), "median": float(q[3]), "p75": float(q[4]),
+        "max": float(q[5]), "mean": float(fractions.mean()),
+        "dropped": int((fractions < threshold).sum()) if threshold > 0 else 0,
+    }

@@ -23,6 +23,7 @@ import contextlib
 import logging
 import os
 import sys
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Literal
@@ -33,7 +34,7 @@ import OpenEXR
 from mathutils import Matrix
 
 from services.core.camera import blender_matrix_world
-from services.worker.passes import NO_FACE, NO_LABEL, ViewGeometry, ViewPasses
+from services.worker.passes import NO_FACE, NO_LABEL, RENDER_PASSES, ViewGeometry, ViewPasses
 
 log = logging.getLogger(__name__)
 
@@ -96,6 +97,34 @@ def configure_device(scene: bpy.types.Scene, device: str) -> str:
 
 def configure_scene(scene: bpy.types.Scene, options: RenderOptions, output_path: str) -> str:
     """Cycles settings for pixel-centre, noise-free pass rendering; returns the device in use."""
+    _configure_cycles(scene, options)
+    r = scene.render
+    r.use_file_extension = False
+    r.filepath = output_path
+    im = r.image_settings
+    im.file_format = "OPEN_EXR_MULTILAYER"
+    im.color_depth = "32"  # float: the index AOVs must stay exact
+    im.exr_codec = "NONE"  # the file lives for milliseconds in a temp dir: do not spend time compressing
+    # Every pass stays enabled for every view: Cycles' persistent session compiles its shaders for the AOVs present
+    # at the first render and writes zeros into AOVs added later, and the AOVs cost little in the render itself
+    # (see bench/results/render.json: render_parts_s_median vs the floor). A view's cues choose what is read back.
+    layer = scene.view_layers[0]
+    for name in AOVS:
+        if name not in [a.name for a in layer.aovs]:
+            aov = layer.aovs.add()
+            aov.name = name
+            aov.type = "VALUE"
+    return configure_device(scene, options.device)
+
+
+def configure_floor_scene(scene: bpy.types.Scene, options: RenderOptions) -> str:
+    """The same Cycles settings with Image, Depth and Normal passes only (no AOVs): the bare render."""
+    _configure_cycles(scene, options)
+    return configure_device(scene, options.device)
+
+
+def _configure_cycles(scene: bpy.types.Scene, options: RenderOptions) -> None:
+    """Engine, sampling, threads, colour management and the Combined, Depth and Normal passes."""
     scene.render.engine = "CYCLES"
     cy = scene.cycles
     cy.samples = 1
@@ -119,12 +148,6 @@ def configure_scene(scene: bpy.types.Scene, options: RenderOptions, output_path:
     r.pixel_aspect_x = r.pixel_aspect_y = 1.0
     r.threads_mode = "FIXED"
     r.threads = options.threads or len(os.sched_getaffinity(0))
-    r.use_file_extension = False
-    r.filepath = output_path
-    im = r.image_settings
-    im.file_format = "OPEN_EXR_MULTILAYER"
-    im.color_depth = "32"  # float: the index AOVs must stay exact
-    im.exr_codec = "NONE"  # the file lives for milliseconds in a temp dir: do not spend time compressing
     vs = scene.view_settings
     for attr, value in (("view_transform", "Standard"), ("look", "None")):
         try:
@@ -139,12 +162,6 @@ def configure_scene(scene: bpy.types.Scene, options: RenderOptions, output_path:
     layer.use_pass_combined = True
     layer.use_pass_z = True
     layer.use_pass_normal = True
-    for name in AOVS:
-        if name not in [a.name for a in layer.aovs]:
-            aov = layer.aovs.add()
-            aov.name = name
-            aov.type = "VALUE"
-    return configure_device(scene, options.device)
 
 
 def set_camera(scene: bpy.types.Scene, cam: bpy.types.Object, g: ViewGeometry) -> None:
@@ -188,13 +205,28 @@ def srgb_encode(linear: np.ndarray) -> np.ndarray:
     return np.rint(s * 255.0).astype(np.uint8)
 
 
-def render_passes(scene: bpy.types.Scene, cam: bpy.types.Object, g: ViewGeometry, *, labelled: bool,
-                  curvature: bool) -> ViewPasses:
-    """Render one view and return its passes (see the module docstring for frames and units)."""
+def render_floor(scene: bpy.types.Scene, cam: bpy.types.Object, g: ViewGeometry) -> float:
+    """Seconds of one render of `scene` from view `g`, nothing written (the bare-render floor of the benchmarks)."""
     set_camera(scene, cam, g)
+    t0 = time.perf_counter()
+    with _quiet_stdout():
+        bpy.ops.render.render(write_still=False, scene=scene.name)
+    return time.perf_counter() - t0
+
+
+def render_passes(scene: bpy.types.Scene, cam: bpy.types.Object, g: ViewGeometry,
+                  passes: frozenset[str] = RENDER_PASSES) -> ViewPasses:
+    """Render one view and read back colour, depth and the optional `passes` (module docstring: frames, units).
+
+    "labels" and "curvature" need the scene's label and curvature attributes (BlenderScene checks).
+    """
+    set_camera(scene, cam, g)
+    t0 = time.perf_counter()
     with _quiet_stdout():
         bpy.ops.render.render(write_still=True)
+    t1 = time.perf_counter()
     channels = {name: ch.pixels for name, ch in OpenEXR.File(scene.render.filepath).parts[0].channels.items()}
+    t2 = time.perf_counter()
     layer = scene.view_layers[0].name
 
     def ch(name: str) -> np.ndarray:
@@ -204,21 +236,27 @@ def render_passes(scene: bpy.types.Scene, cam: bpy.types.Object, g: ViewGeometry
         key = f"{layer}.{name}"
         return channels[key] if key in channels else channels[f"{key}.X"]  # value AOVs come as one channel
 
-    face1 = aov(AOV_FACE_HI).astype(np.int64) * 65536 + aov(AOV_FACE_LO).astype(np.int64)  # face index + 1
     depth = ch("Depth.Z") if f"{layer}.Depth.Z" in channels else ch("Depth")
-    hit = (face1 > 0) & (depth < _MISS_DEPTH)
-    face_index = np.where(hit, face1 - 1, int(NO_FACE)).astype(np.uint32)
+    hit = depth < _MISS_DEPTH
+    face_index = None
+    if "faces" in passes:
+        face1 = aov(AOV_FACE_HI).astype(np.int64) * 65536 + aov(AOV_FACE_LO).astype(np.int64)  # face index + 1
+        hit &= face1 > 0
+        face_index = np.where(hit, face1 - 1, int(NO_FACE)).astype(np.uint32)
     depth_z = np.where(hit, depth, np.inf).astype(np.float32)
-    normal = np.stack([ch("Normal.X"), ch("Normal.Y"), ch("Normal.Z")], axis=-1)
-    norm = np.linalg.norm(normal, axis=-1, keepdims=True)
-    normal = np.where(hit[..., None] & (norm > 0), normal / np.maximum(norm, 1e-12), 0.0).astype(np.float32)
+    normal = None
+    if "normal" in passes:
+        n = np.stack([ch("Normal.X"), ch("Normal.Y"), ch("Normal.Z")], axis=-1)
+        norm = np.linalg.norm(n, axis=-1, keepdims=True)
+        normal = np.where(hit[..., None] & (norm > 0), n / np.maximum(norm, 1e-12), 0.0).astype(np.float32)
     combined = ch("Combined")
     rgb = np.where(hit[..., None], srgb_encode(combined[..., :3]), 0).astype(np.uint8)
-    passes = ViewPasses(geometry=g, depth_z=depth_z, normal_world=normal, rgb=rgb, face_index=face_index)
-    if labelled:
-        passes.face_class = np.where(hit, np.rint(aov(AOV_CLASS)), NO_LABEL).astype(np.int32)
-        passes.face_instance = np.where(hit, np.rint(aov(AOV_INSTANCE)), NO_LABEL).astype(np.int32)
-    if curvature:
+    out = ViewPasses(geometry=g, depth_z=depth_z, normal_world=normal, rgb=rgb, face_index=face_index)
+    if "labels" in passes:
+        out.face_class = np.where(hit, np.rint(aov(AOV_CLASS)), NO_LABEL).astype(np.int32)
+        out.face_instance = np.where(hit, np.rint(aov(AOV_INSTANCE)), NO_LABEL).astype(np.int32)
+    if "curvature" in passes:
         k = np.stack([aov(AOV_K1), aov(AOV_K2)], axis=-1)
-        passes.curvature = np.where(hit[..., None], k, np.nan).astype(np.float32)
-    return passes
+        out.curvature = np.where(hit[..., None], k, np.nan).astype(np.float32)
+    out.meta.update(render_call_s=t1 - t0, exr_read_s=t2 - t1, decode_s=time.perf_counter() - t2)
+    return out

@@ -32,10 +32,12 @@ from services.worker.blender.render import (
     AOV_K1,
     AOV_K2,
     RenderOptions,
+    configure_floor_scene,
     configure_scene,
+    render_floor,
     render_passes,
 )
-from services.worker.passes import ViewGeometry, ViewPasses
+from services.worker.passes import RENDER_PASSES, ViewGeometry, ViewPasses
 
 log = logging.getLogger(__name__)
 
@@ -72,6 +74,7 @@ class BlenderScene:
         self.closed: bool = False
         self._textured: bool = False
         self.renders = 0
+        self._floor: bpy.types.Scene | None = None
         self.has_curvature = False
         self.labelled = face_class is not None or face_instance is not None
         self._tmp = tempfile.mkdtemp(prefix="omnidata-render-", dir=_temp_root())
@@ -244,15 +247,32 @@ class BlenderScene:
         self.mesh_data.update()
         self.has_curvature = True
 
-    def render(self, view: ViewGeometry) -> ViewPasses:
-        """Render one view (one Cycles render) and return all its passes."""
+    def render(self, view: ViewGeometry, passes: frozenset[str] = RENDER_PASSES) -> ViewPasses:
+        """Render one view (one Cycles render): colour, depth and the optional `passes` this scene can give."""
         self._check_open()
         t0 = time.perf_counter()
-        passes = render_passes(self.scene, self.camera, view, labelled=self.labelled,
-                               curvature=self.has_curvature)
-        passes.meta["render_s"] = time.perf_counter() - t0
+        wanted = set(passes)
+        if not self.labelled:
+            wanted.discard("labels")
+        if not self.has_curvature:
+            wanted.discard("curvature")
+        out = render_passes(self.scene, self.camera, view, frozenset(wanted))
+        out.meta["render_s"] = time.perf_counter() - t0
         self.renders += 1
-        return passes
+        return out
+
+    def render_floor(self, view: ViewGeometry) -> float:
+        """Seconds of one bare render of `view` (the benchmarks' floor): same mesh, camera, samples and threads,
+        Image, Depth and Normal passes only, no AOVs, nothing written or read back. A scene of its own, so its
+        Cycles persistent data does not disturb the pass scene's."""
+        self._check_open()
+        if self._floor is None:
+            self._floor = bpy.data.scenes.new("floor")
+            self._floor.collection.objects.link(self.object)
+            self._floor.collection.objects.link(self.camera)
+            self._floor.camera = self.camera
+            configure_floor_scene(self._floor, self.options)
+        return render_floor(self._floor, self.camera, view)
 
     def _check_open(self) -> None:
         if self.closed:

@@ -15,14 +15,14 @@ from services.worker.cues.common import (
     valid,
 )
 from services.worker.cues.registry import register
-from services.worker.passes import NO_FACE
+from services.worker.passes import NO_FACE, RENDER_PASSES
 
 NORMAL_BACKGROUND = 128
 CURVATURE_BACKGROUND = 0  # R = G = B = 0 where nothing is seen (use mask_valid); B is always 0
 CURVATURE_FLAT = 127
 
 
-@register("passes")
+@register("passes", passes=RENDER_PASSES)
 def passes(ctx: ViewContext) -> bytes:
     """The whole pass set as .npz bytes (the worker-side cache every render cue can be made from)."""
     return ctx.passes.to_bytes()
@@ -34,7 +34,7 @@ def rgb(ctx: ViewContext) -> np.ndarray:
     return np.ascontiguousarray(ctx.passes.rgb, dtype=np.uint8)
 
 
-@register("normal")
+@register("normal", passes={"normal"})
 def normal(ctx: ViewContext) -> np.ndarray:
     """uint8 H x W x 3: 255*(0.5-0.5x, 0.5+0.5y, 0.5+0.5z) of the camera-space normal; 128 where nothing is seen."""
     n = normal_cam(ctx)
@@ -67,7 +67,7 @@ def reshading_intensity(ctx: ViewContext) -> np.ndarray:
     return (ctx.params.reshading_albedo * np.maximum(cos, 0.0)).astype(np.float32)
 
 
-@register("reshading")
+@register("reshading", passes={"normal"})
 def reshading(ctx: ViewContext) -> np.ndarray:
     """uint8 H x W grey albedo lit by a point light at the camera, no indirect light, no distance falloff.
 
@@ -80,7 +80,7 @@ def reshading(ctx: ViewContext) -> np.ndarray:
     return np.where(hit(ctx), np.rint(255.0 * i), 0).astype(np.uint8)
 
 
-@register("principal_curvature")
+@register("principal_curvature", passes={"curvature"})
 def principal_curvature(ctx: ViewContext) -> np.ndarray:
     """uint8 H x W x 3: R, G = k1, k2 clipped to +-1/curvature_clip_m mapped linearly to 0..254 (127 = flat), B = 0.
 
@@ -89,7 +89,7 @@ def principal_curvature(ctx: ViewContext) -> np.ndarray:
     """
     k = ctx.passes.curvature
     if k is None:
-        raise RuntimeError("principal_curvature needs a pass set rendered with curvature (render_curvature=True)")
+        raise RuntimeError("principal_curvature needs a pass set rendered with curvature (render pass 'curvature')")
     kmax = 1.0 / ctx.params.curvature_clip_m
     px = np.rint((np.clip(np.nan_to_num(k), -kmax, kmax) / kmax + 1.0) * CURVATURE_FLAT)
     out = np.zeros(k.shape[:2] + (3,), dtype=np.uint8)
@@ -103,8 +103,8 @@ def position(ctx: ViewContext) -> np.ndarray:
     return ctx.passes.position_world()
 
 
-@register("fragments")
+@register("fragments", passes={"faces"})
 def fragments(ctx: ViewContext) -> np.ndarray:
     """uint32 H x W index of the seen triangle in the space's mesh faces, 4294967295 = none."""
-    f = np.asarray(ctx.passes.face_index, dtype=np.uint32)
+    f = np.asarray(ctx.passes.require("face_index"), dtype=np.uint32)
     return np.where(hit(ctx), f, NO_FACE).astype(np.uint32)

@@ -58,7 +58,7 @@ def normal_cam(ctx: ViewContext) -> np.ndarray:
 
     def compute() -> np.ndarray:
         R = ctx.geometry.rotation.astype(np.float32)
-        n_cv = ctx.passes.normal_world @ R.T  # world -> OpenCV camera axes
+        n_cv = ctx.passes.require("normal_world") @ R.T  # world -> OpenCV camera axes
         # Face the camera: Cycles already flips back-facing hits; this guards interpolated or user normals.
         facing = np.einsum("hwc,hwc->hw", n_cv, ray_dirs_cam(ctx)) > 0
         n_cv = np.where(facing[..., None], -n_cv, n_cv)

@@ -22,6 +22,8 @@ account object boundaries", ICRA 2011), computed from the depth image and the in
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 from scipy.ndimage import gaussian_filter, sobel, uniform_filter
 
@@ -31,6 +33,7 @@ from services.worker.cues.registry import register
 
 KP3D_SCALES_PX = (1, 2, 4, 8, 16, 32, 64)
 BORDER_FOOTPRINTS = 10.0
+PYRAMID_MIN_RADIUS_PX = 4  # wider blurs run on block means (a radius of >= 4 low-res pixels), then upsampled
 
 
 def doh_response(g: np.ndarray, sigmas: tuple[float, ...]) -> np.ndarray:
@@ -67,11 +70,65 @@ def _shift(a: np.ndarray, dy: int, dx: int, fill: float) -> np.ndarray:
 
 
 def _blur(x: np.ndarray, radius_px: int) -> np.ndarray:
-    """Approximately Gaussian blur with sigma ~ radius/2: three box passes of width ~radius (O(1) per pixel)."""
+    """Approximately Gaussian blur with sigma ~ radius/2: three box passes of width ~radius (O(1) per pixel).
+
+    x is H x W, or C x H x W (channel planes blurred independently)."""
     size = max(1, int(radius_px)) | 1
+    sizes = (1,) * (x.ndim - 2) + (size, size)
     for _ in range(3):
-        x = uniform_filter(x, size, mode="constant")
+        x = uniform_filter(x, sizes, mode="constant")
     return x
+
+
+def _half(x: np.ndarray) -> np.ndarray:
+    """2 x 2 block means of a C x H x W array (edge-padded to even size)."""
+    h, w = x.shape[1:]
+    if h % 2 or w % 2:
+        x = np.pad(x, ((0, 0), (0, h % 2), (0, w % 2)), mode="edge")
+    return (x[:, 0::2, 0::2] + x[:, 1::2, 0::2] + x[:, 0::2, 1::2] + x[:, 1::2, 1::2]) * 0.25
+
+
+def _double(x: np.ndarray) -> np.ndarray:
+    """Bilinear 2x upsampling at pixel centres (weights 3/4, 1/4; edges clamped) of an H x W array."""
+    for axis in (0, 1):
+        n = x.shape[axis]
+        prev = np.take(x, np.r_[0, 0:n - 1], axis=axis)
+        nxt = np.take(x, np.r_[1:n, n - 1], axis=axis)
+        pair = np.stack([0.75 * x + 0.25 * prev, 0.75 * x + 0.25 * nxt], axis=axis + 1)
+        x = pair.reshape(x.shape[:axis] + (2 * n,) + x.shape[axis + 1:])
+    return x
+
+
+class _Pyramid:
+    """Blurs of one C x H x W image at several radii, the wide ones computed on 2^k x 2^k block means.
+
+    A blur of radius r (three box passes of width r | 1: variance 3 ((r|1)^2 - 1) / 12 px^2) runs at the level
+    f = 2^k <= r / PYRAMID_MIN_RADIUS_PX as a Gaussian of the same variance less what the block means and the
+    bilinear upsampling add, so the result keeps the blur's width; fields blurred that wide are smooth at f.
+    """
+
+    def __init__(self, x: np.ndarray):
+        self.shape = x.shape[1:]
+        self.levels = [x]
+
+    def level(self, k: int) -> np.ndarray:
+        while len(self.levels) <= k:
+            self.levels.append(_half(self.levels[-1]))
+        return self.levels[k]
+
+    def blurred(self, radius_px: int, fn: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+        """fn(blur(x, radius)) at full resolution (fn maps C x H x W to H x W, applied before upsampling)."""
+        k = max(0, int(np.log2(max(1, int(radius_px)) // PYRAMID_MIN_RADIUS_PX or 1)))
+        if k == 0:
+            return fn(_blur(self.levels[0], radius_px))
+        f = 2**k
+        size = max(1, int(radius_px)) | 1
+        var = 3 * (size * size - 1) / 12 - (f * f - 1) / 12 - f * f / 8  # less block means and upsampling
+        low = gaussian_filter(self.level(k), (0,) + (np.sqrt(max(var, 1.0)) / f,) * 2, mode="constant")
+        out = fn(low)
+        for _ in range(k):
+            out = _double(out)
+        return out[:self.shape[0], :self.shape[1]]
 
 
 def narf_interest(ctx: ViewContext) -> np.ndarray:
@@ -114,26 +171,29 @@ def narf_interest(ctx: ViewContext) -> np.ndarray:
     def blend(out: np.ndarray, ki: int, value: np.ndarray) -> None:
         out += np.where(k0 == ki, (1 - t) * value, 0.0) + np.where(k1 == ki, t * value, 0.0)
 
+    def surface_change(b: np.ndarray) -> np.ndarray:  # b = blurred [w, n * w]: spread of the mean normal
+        cnt, m = b[0], b[1:] / np.maximum(b[:1], 1e-6)
+        c = np.sqrt(np.clip(1.0 - np.einsum("chw,chw->hw", m, m), 0.0, 1.0))
+        return np.where(cnt > 1e-6, c, 0.0).astype(np.float32)
+
+    def isotropy(b: np.ndarray) -> np.ndarray:  # b = blurred structure tensor [jxx, jyy, jxy]
+        a, bb, c = b[0], b[1], b[2]
+        tr = a + bb
+        disc = np.sqrt(np.maximum((a - bb) ** 2 / 4 + c * c, 0.0))
+        lo, hi = tr / 2 - disc, tr / 2 + disc
+        return np.where(tr > 1e-6, 2 * np.maximum(lo, 0.0) / np.maximum(lo + hi, 1e-12), 0.0).astype(np.float32)
+
+    wn = _Pyramid(np.concatenate([w[None], np.moveaxis(n, -1, 0)]).astype(np.float32))
     change = np.zeros(v.shape, dtype=np.float32)
     for ki in used:
-        radius = KP3D_SCALES_PX[ki]
-        cnt = _blur(w, radius)
-        m = np.stack([_blur(n[..., c], radius) for c in range(3)], axis=-1)
-        m /= np.maximum(cnt, 1e-6)[..., None]
-        c = np.sqrt(np.clip(1.0 - np.einsum("hwc,hwc->hw", m, m), 0.0, 1.0))
-        blend(change, int(ki), np.where(cnt > 1e-6, c, 0.0).astype(np.float32))
+        blend(change, int(ki), wn.blurred(KP3D_SCALES_PX[ki], surface_change))
     change[border] = 1.0
     change[~v] = 0.0
     gx, gy = sobel(change, axis=1, mode="nearest"), sobel(change, axis=0, mode="nearest")
-    jxx, jyy, jxy = gx * gx, gy * gy, gx * gy
+    tensor = _Pyramid(np.stack([gx * gx, gy * gy, gx * gy]))
     iso = np.zeros(v.shape, dtype=np.float32)
     for ki in used:
-        a, b, c = (_blur(x, KP3D_SCALES_PX[ki]) for x in (jxx, jyy, jxy))
-        tr = a + b
-        disc = np.sqrt(np.maximum((a - b) ** 2 / 4 + c * c, 0.0))
-        lo, hi = tr / 2 - disc, tr / 2 + disc
-        val = np.where(tr > 1e-6, 2 * np.maximum(lo, 0.0) / np.maximum(lo + hi, 1e-12), 0.0)
-        blend(iso, int(ki), val.astype(np.float32))
+        blend(iso, int(ki), tensor.blurred(KP3D_SCALES_PX[ki], isotropy))
     iso[~v] = 0.0
     return np.clip(change * iso, 0.0, 1.0).astype(np.float32)
 

@@ -5,6 +5,7 @@ A context may carry a ready `point_info` dict (e.g. read back from the database)
 
 from __future__ import annotations
 
+import weakref
 from typing import Any
 
 from services.worker.context import ViewContext
@@ -31,12 +32,24 @@ def point_info(ctx: ViewContext) -> dict:
     return ctx.memo("point_info", compute)
 
 
+# nonfixated JSON per (plan, point): every view of a point has the same file, and on a room it is megabytes.
+_NONFIXATED: weakref.WeakKeyDictionary[Any, dict[int, dict]] = weakref.WeakKeyDictionary()
+NONFIXATED_POINTS_KEPT = 8
+
+
 @register("nonfixated")
 def nonfixated(ctx: ViewContext) -> dict:
-    """Per point: pixel positions of the other points visible in each of its views."""
+    """Per point: pixel positions of the other points visible in each of its views (one dict per point, shared)."""
     from services.core import plan as plan_mod
 
-    return plan_mod.nonfixated(_need_plan(ctx, "nonfixated"), int(ctx.view.point_idx))
+    plan = _need_plan(ctx, "nonfixated")
+    point = int(ctx.view.point_idx)
+    per_point = _NONFIXATED.setdefault(plan, {})
+    if point not in per_point:
+        while len(per_point) >= NONFIXATED_POINTS_KEPT:
+            per_point.pop(next(iter(per_point)))
+        per_point[point] = plan_mod.nonfixated(plan, point)
+    return per_point[point]
 
 
 @register("vanishing_points")

@@ -7,11 +7,12 @@ file bytes is separate (services.worker.cues.encoding) and driven by the catalog
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from services.core.cues import CATALOG, Cue, UnknownCueError
+from services.worker.passes import RENDER_PASSES
 
 if TYPE_CHECKING:
     from services.worker.context import ViewContext
@@ -25,6 +26,7 @@ class CueImpl:
 
     name: str
     fn: CueFn
+    passes: frozenset[str] = frozenset()  # optional render passes it reads (passes.RENDER_PASSES); depth, rgb always
 
     @property
     def spec(self) -> Cue:
@@ -35,15 +37,19 @@ class CueImpl:
 REGISTRY: dict[str, CueImpl] = {}
 
 
-def register(name: str) -> Callable[[CueFn], CueFn]:
-    """Decorator declaring the function of catalog cue `name` (one function per cue)."""
+def register(name: str, passes: Iterable[str] = ()) -> Callable[[CueFn], CueFn]:
+    """Decorator declaring the function of catalog cue `name` (one function per cue) and the optional render
+    passes it reads itself (those of the cues it is made from are found through the catalog's inputs)."""
     if name not in CATALOG:
         raise UnknownCueError([name])
+    unknown = set(passes) - RENDER_PASSES
+    if unknown:
+        raise ValueError(f"cue {name!r}: unknown render passes {sorted(unknown)}; known: {sorted(RENDER_PASSES)}")
 
     def deco(fn: CueFn) -> CueFn:
         if name in REGISTRY:
             raise ValueError(f"cue {name!r} is registered twice ({REGISTRY[name].fn.__module__}, {fn.__module__})")
-        REGISTRY[name] = CueImpl(name, fn)
+        REGISTRY[name] = CueImpl(name, fn, frozenset(passes))
         return fn
 
     return deco

@@ -19,34 +19,30 @@ with occlusion edges weakening the graph's links (segment25d_weights; see segmen
 
 from __future__ import annotations
 
-import warnings
+import hashlib
 
 import numpy as np
 from scipy.linalg import eigh
 from scipy.ndimage import distance_transform_edt
-from skimage.segmentation import felzenszwalb
 
 from services.worker.context import ViewContext
 from services.worker.cues.common import depth_m, hit, normal_cam, valid
 from services.worker.cues.edges import occlusion_response
+from services.worker.cues.felzenszwalb import Felzenszwalb
 from services.worker.cues.registry import register
 
 
 def superpixels(features: np.ndarray, scale: float, sigma: float, min_size: int, max_count: int) -> np.ndarray:
     """int64 H x W Felzenszwalb labels 0..n-1 with n <= max_count (min_size grown when needed)."""
-    def run(min_size: int) -> np.ndarray:
-        with warnings.catch_warnings():  # skimage warns about >4 channels; multichannel is what we mean
-            warnings.simplefilter("ignore", RuntimeWarning)
-            return felzenszwalb(features, scale=scale, sigma=sigma, min_size=min_size, channel_axis=-1)
-
-    labels = run(min_size)
+    fz = Felzenszwalb(features, scale, sigma)  # the merge pass does not depend on min_size: done once
+    labels = fz.labels(min_size)
     for _ in range(4):
         n = int(labels.max()) + 1
         if n <= max_count:
             break
         min_size = int(np.ceil(min_size * n / max_count * 1.2))
-        labels = run(min_size)
-    return labels.astype(np.int64)
+        labels = fz.labels(min_size)
+    return labels
 
 
 def region_graph(labels: np.ndarray, features255: np.ndarray, sigma: float,
@@ -95,17 +91,16 @@ def normalized_cuts(W: np.ndarray, thresh: float, num_cuts: int) -> np.ndarray:
             A = (np.diag(d) - w) * dis[:, None] * dis[None, :]
             _, vecs = eigh(A, subset_by_index=[0, 1], driver="evr")
             ev = vecs[:, 1] * dis
-            best = np.inf
-            for t in np.linspace(ev.min(), ev.max(), num_cuts, endpoint=False):
-                mask = ev > t
-                if mask.all() or not mask.any():
-                    continue
-                cut = w[np.ix_(mask, ~mask)].sum()
-                cost = cut / d[mask].sum() + cut / d[~mask].sum()
-                if cost < best:
-                    best, best_mask = cost, mask
-            if best >= thresh:
-                best_mask = None
+            # All thresholds at once: row t of `masks` is one candidate split, cut_t = m_t^T w (1 - m_t).
+            masks = ev[None, :] > np.linspace(ev.min(), ev.max(), num_cuts, endpoint=False)[:, None]
+            m = masks.astype(np.float64)
+            cut = ((m @ w) * (1.0 - m)).sum(axis=1)
+            assoc = m @ d
+            proper = masks.any(axis=1) & ~masks.all(axis=1)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                cost = np.where(proper, cut / assoc + cut / (d.sum() - assoc), np.inf)
+            best = int(np.argmin(cost))  # the first of equal minima, as the loop over thresholds took
+            best_mask = masks[best] if cost[best] < thresh else None
         if best_mask is None:
             out[idx] = next_id
             next_id += 1
@@ -128,6 +123,17 @@ def _relabel(labels: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return out
 
 
+def nearest_in_mask(ctx: ViewContext, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column of the nearest mask pixel for every pixel; memoised per mask (both segmentations of a view
+    usually share theirs: surface seen = valid depth)."""
+    known: dict[bytes, tuple[np.ndarray, np.ndarray]] = ctx.memo("nearest_in_mask", dict)
+    key = hashlib.blake2b(np.packbits(mask).tobytes(), digest_size=16).digest()
+    if key not in known:
+        iy, ix = distance_transform_edt(~mask, return_indices=True)[1]
+        known[key] = (iy, ix)
+    return known[key]
+
+
 def segment(ctx: ViewContext, features: np.ndarray, mask: np.ndarray, *, sigma: float,
             boundary: np.ndarray | None = None) -> np.ndarray:
     """Felzenszwalb + normalized cuts on an H x W x C feature image in ~[0, 1]; uint16 labels, 0 off mask."""
@@ -135,7 +141,7 @@ def segment(ctx: ViewContext, features: np.ndarray, mask: np.ndarray, *, sigma: 
     if mask.any() and not mask.all():
         # Background pixels take the nearest surface pixel's features, so silhouettes do not spawn thin
         # mixed-colour regions (Felzenszwalb blurs first) and the background merges into its neighbours.
-        _, (iy, ix) = distance_transform_edt(~mask, return_indices=True)
+        iy, ix = nearest_in_mask(ctx, mask)
         features = features[iy, ix]
     sp = superpixels(features, p.segment2d_scale, sigma, p.segment2d_min_size, p.segment_max_superpixels)
     W = region_graph(sp, features * 255.0, p.segment_ncut_sigma, boundary)
@@ -171,7 +177,7 @@ def features25d(ctx: ViewContext) -> np.ndarray:
     return np.concatenate([wd * logd[..., None], wn * n], axis=-1).astype(np.float32)
 
 
-@register("segment_unsup25d")
+@register("segment_unsup25d", passes={"normal"})
 def segment_unsup25d(ctx: ViewContext) -> np.ndarray:
     """uint16 H x W segmentation of log-depth, normals and occlusion edges: labels 1..K, 0 off valid depth.
 

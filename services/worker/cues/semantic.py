@@ -33,14 +33,14 @@ def _labels(ctx: ViewContext, cue: str) -> tuple[np.ndarray, np.ndarray]:
     return cls, inst
 
 
-@register("segment_semantic")
+@register("segment_semantic", passes={"labels"})
 def segment_semantic(ctx: ViewContext) -> np.ndarray:
     """uint8 H x W class id per pixel (0 where nothing is seen)."""
     cls, _ = _labels(ctx, "segment_semantic")
     return cls.astype(np.uint8)
 
 
-@register("segment_instance")
+@register("segment_instance", passes={"labels"})
 def segment_instance(ctx: ViewContext) -> np.ndarray:
     """uint16 H x W instance id per pixel (0 where nothing is seen)."""
     _, inst = _labels(ctx, "segment_instance")

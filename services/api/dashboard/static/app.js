@@ -102,6 +102,7 @@ function listen(path, onJob, onDeleted) {
   es.addEventListener("error", () => { live.classList.add("off"); });
   es.addEventListener("job", (e) => onJob(JSON.parse(e.data)));
   if (onDeleted) es.addEventListener("deleted", (e) => onDeleted(JSON.parse(e.data)));
+  es.addEventListener("end", () => es.close());  // a finished job's stream closes: do not reconnect
   state.sources.push(es);
   return es;
 }
@@ -228,7 +229,7 @@ function uploadForm(onUploaded) {
   const file = h("input", { id: "upload-file", type: "file", required: true, accept: ".ply,.obj,.glb,.gltf,.zip" });
   const name = h("input", { id: "upload-name", placeholder: "default: file name" });
   const up = h("select", { id: "upload-up" }, ["auto", "+z", "+y", "-z", "-y", "+x", "-x"].map((a) => h("option", { value: a }, a)));
-  const scale = h("input", { id: "upload-scale", type: "number", step: "any", value: 1, min: 0.000001 });
+  const scale = h("input", { id: "upload-scale", type: "text", value: "auto", title: "metres per source unit, or auto" });
   const status = h("p", { class: "muted" });
   const btn = h("button", { type: "submit", id: "upload-submit" }, "Upload");
   return h("form", { class: "card", id: "upload", onsubmit: async (e) => {
@@ -244,16 +245,26 @@ function uploadForm(onUploaded) {
     try {
       const s = await api("/spaces", { method: "POST", body: fd });
       status.textContent = `Space "${s.name}" registered: ${fmtNum(s.face_count, 0)} faces` +
-        (s.has_texture ? ", textured" : "") + ".";
+        (s.has_texture ? ", textured" : "") + ". " + frameText(s.frame);
       onUploaded(s);
     } catch (ex) { status.className = "error"; status.textContent = ex.message; }
     btn.disabled = false;
   } },
     h("h2", {}, "Upload a space"),
-    h("p", { class: "muted" }, "A mesh (.ply, .obj, .glb, .gltf) or a .zip with the mesh and its textures."),
+    h("p", { class: "muted" }, "A mesh (.ply, .obj, .glb, .gltf), a point cloud (.ply, .xyz, .pts) or a .zip with the mesh and its textures."),
     h("div", { class: "grid" }, h("label", {}, "File", file), h("label", {}, "Name", name),
       h("label", {}, "Up axis", up), h("label", {}, "Metres per unit", scale)),
     btn, status);
+}
+
+// What ingest found about a space's frame (SpaceRead.frame / JobSpaceRead.frame): up, how, how sure; units.
+function frameText(frame) {
+  if (!frame || !frame.up) return "";
+  const u = frame.up;
+  let text = `Up [${u.source_direction.map((x) => fmtNum(x, 3)).join(", ")}] (${u.method}, ${u.confidence} confidence)`;
+  if (frame.units) text += `; units: ${frame.units.unit} (x${frame.units.unit_scale})`;
+  if (frame.reconstruction) text += `; meshed from ${fmtNum(frame.reconstruction.point_count, 0)} points`;
+  return text + ".";
 }
 
 async function viewJobs(root) {
@@ -382,6 +393,9 @@ async function viewJob(root, id) {
         ` · pending ${p.by_state.pending}, queued ${p.by_state.queued}, running ${p.by_state.running},` +
         ` done ${p.by_state.done}, failed ${p.by_state.failed}, cancelled ${p.by_state.cancelled}`),
       cueBars(job.cues),
+      ...(job.spaces || []).filter((sp) => sp.frame).map((sp) =>
+        h("p", { class: sp.frame.up && sp.frame.up.confidence === "low" ? "error" : "muted" },
+          `${sp.name}: ${frameText(sp.frame)}`)),
       actionButtons(job, (name) => { if (name === "delete") location.hash = "#/jobs"; else reload(); }),
     ].filter(Boolean));
   };

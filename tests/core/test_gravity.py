@@ -1,0 +1,129 @@
+"""Gravity and units of scans in any orientation and unit (services.core.gravity, through load_space too)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from services.core.gravity import UnitError, choose_unit_scale, estimate_up, plane_families
+from services.core.spaces import SpaceError, load_space
+from tests.core import rotation_corpus as corpus
+from tests.scheduler import scenes
+
+
+@pytest.fixture(scope="module")
+def rooms(scenes_dir: Path) -> list[corpus.Room]:
+    rng = np.random.default_rng(3)
+    return [corpus.icl_room(scenes_dir, faces=6000), corpus.synthetic_room(rng, "noisy"),
+            corpus.synthetic_room(rng, "clean", noise_m=0.0)]
+
+
+def test_rotation_corpus_levelled_and_units_right(rooms: list[corpus.Room]) -> None:
+    """>= 50 random rotations per room (plus the 24 axis-aligned ones) in mm, cm, inches and metres."""
+    for case in corpus.cases(rooms, n_random=50, seed=11):
+        est = estimate_up(case.mesh, ".ply")
+        err = corpus.up_error_deg(est.up, case.up)
+        assert est.method == "floor", (case.room, case.kind)
+        assert err < 3.0, (case.room, case.kind, err)
+        units = choose_unit_scale(est.storey_height, float(case.mesh.extents.max()))
+        assert units.scale == case.scale, (case.room, units)
+        if case.kind == "axis" and case.room in ("clean", "icl_livingroom"):
+            # planar floors on an axis give that axis exactly, no rounding noise
+            np.testing.assert_array_equal(est.up, np.round(case.up))
+
+
+def test_plane_families_find_tilted_walls_and_floor() -> None:
+    R = trimesh.transformations.rotation_matrix(np.radians(37), [1, 1, 0.3])
+    room = scenes.box_room(size=(6.0, 4.0, 2.7)).apply_transform(R)
+    fams = plane_families(room.face_normals, room.area_faces)
+    assert len(fams) == 3
+    want = [R[:3, :3] @ e for e in np.eye(3)]
+    for axis, _ in fams:
+        assert max(abs(float(axis @ w)) for w in want) > 1 - 1e-9
+
+
+def test_confidence_recorded_and_low_for_a_symmetric_box(tmp_path: Path) -> None:
+    room = scenes.furnished_room()
+    room.update_faces(room.face_normals[:, 2] > -0.9)  # no ceiling, as in most reconstructions
+    rec = estimate_up(room, ".ply").record()
+    assert rec["method"] == "floor" and rec["confidence"] == "high"
+    assert rec["floor_area_m2"] == pytest.approx(6 * 4 + 1.2 * 0.8, rel=1e-6)  # the floor and the table top
+    assert rec["runner_up_angle_deg"] == 90.0 and rec["margin"] > 1.25
+    # with its ceiling, only the table tells floor from ceiling: found, but flagged
+    closed = estimate_up(scenes.furnished_room(), ".ply").record()
+    assert closed["method"] == "floor" and closed["confidence"] == "low" and closed["runner_up_angle_deg"] == 180.0
+    box = scenes.box_room(size=(6.0, 4.0, 2.7))
+    src = tmp_path / "box.ply"
+    box.export(src)
+    space = load_space(src)
+    assert space.up_method == "convention-tie"
+    assert space.frame_record()["up"]["confidence"] == "low"
+    assert any("low confidence" in w for w in space.warnings)
+
+
+@pytest.mark.parametrize(
+    ("storey", "extent", "scale", "unit"),
+    [(2.5, 6.0, 1.0, "metres"), (270.0, 800.0, 0.01, "centimetres"), (2600.0, 7000.0, 0.001, "millimetres"),
+     (100.0, 300.0, 0.0254, "inches"), (None, 0.15, 1.0, "metres")],
+)
+def test_units_from_storey_height(storey: float | None, extent: float, scale: float, unit: str) -> None:
+    got = choose_unit_scale(storey, extent)
+    assert (got.scale, got.unit) == (scale, unit)
+    assert got.reason
+
+
+def test_implausible_object_refused_naming_unit_scale(tmp_path: Path) -> None:
+    with pytest.raises(UnitError, match="unit_scale"):
+        choose_unit_scale(None, 120.0)
+    bunny = trimesh.creation.icosphere(subdivisions=2)
+    bunny.apply_scale(400.0)  # an 800 m "ball": an object in the wrong units
+    src = tmp_path / "ball.ply"
+    bunny.export(src)
+    with pytest.raises(SpaceError, match="set unit_scale"):
+        load_space(src)
+    assert load_space(src, unit_scale=0.001).units.unit == "given"  # an explicit unit_scale always wins
+
+
+def test_a_room_in_millimetres_far_from_every_axis_loads_levelled(tmp_path: Path) -> None:
+    """The issue's case: a furnished room stored in its first camera's frame (up ~37-55 degrees from every
+    axis), exported in millimetres."""
+    up_src = np.array([1.0, 1.0, 1.0]) / np.sqrt(3)  # 54.7 degrees from each axis
+    R = trimesh.geometry.align_vectors([0, 0, 1], up_src)
+    room = scenes.furnished_room().apply_transform(R).apply_scale(1000.0)
+    src = tmp_path / "scan.ply"
+    room.export(src)
+    space = load_space(src)
+    assert space.up_method == "floor" and space.units.unit == "millimetres"
+    np.testing.assert_allclose(space.up_source, up_src, atol=1e-6)
+    mesh = space.mesh  # metres again, level
+    assert mesh.extents[2] == pytest.approx(2.7, abs=1e-4)
+    assert mesh.area == pytest.approx(scenes.furnished_room().area, rel=1e-6)
+    floor = mesh.face_normals[:, 2] > 1 - 1e-9
+    assert mesh.area_faces[floor].sum() == pytest.approx(6 * 4 + 1.2 * 0.8, rel=1e-6)
+
+
+def test_given_up_vector_and_source_to_world(tmp_path: Path) -> None:
+    src = tmp_path / "room.ply"
+    scenes.furnished_room().apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0])).export(src)
+    given = load_space(src, up=[0.0, -2.0, 0.0])  # any length; +Z went to -Y
+    assert given.up_method == "given" and given.units.unit == "metres"  # storey height from the given up
+    np.testing.assert_allclose(given.source_to_world[:3, :3] @ [0, -1, 0], [0, 0, 1], atol=1e-12)
+    T = np.eye(4)
+    T[:3, :3] = 2.0 * trimesh.transformations.rotation_matrix(-np.pi / 2, [1, 0, 0])[:3, :3]
+    T[:3, 3] = [1.0, 2.0, 3.0]
+    space = load_space(src, source_to_world=T.tolist())
+    assert space.up_method == "source_to_world" and space.units.scale == pytest.approx(2.0)
+    np.testing.assert_allclose(space.source_to_world, T)
+    ref = trimesh.load(src, force="mesh")
+    np.testing.assert_allclose(space.mesh.vertices, trimesh.transform_points(ref.vertices, T), atol=1e-9)
+    for bad, msg in [
+        (np.diag([1.0, 2.0, 1.0, 1.0]), "uniform scale"),
+        (np.diag([1.0, 1.0, -1.0, 1.0]), "mirrors"),
+        (np.diag([1.0, 1.0, 0.0, 1.0]), "degenerate"),
+        (np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 1, 1.0]]), "last row"),
+    ]:
+        with pytest.raises(SpaceError, match=msg):
+            load_space(src, source_to_world=bad.tolist())

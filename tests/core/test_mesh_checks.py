@@ -1,0 +1,59 @@
+"""Pre-parse checks of mesh files: valid OBJ variants pass, damage is named (the hostile corpus covers the rest)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from services.core.mesh_checks import check_source
+from services.core.spaces import SpaceError
+
+QUAD = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\n"
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        QUAD + "f 1 2 3\nf 2 4 3\n",
+        QUAD.replace("v ", "v\t") + "f\t1 2 3\r\nf 2/1 4/2/3 3//1\r\n",  # tabs, CRLF, uv/normal refs
+        QUAD + "f -4 -3 -2\n  f 2 4 3\n",  # relative indices, indented statements
+        "# comment\n" + QUAD + "g group\nusemtl none\nf 1 2 3\n",
+    ],
+)
+def test_valid_obj_variants_pass(tmp_path: Path, text: str) -> None:
+    path = tmp_path / "ok.obj"
+    path.write_bytes(text.encode())
+    assert check_source(path) == []
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        (QUAD + "f 1 2 3\nf 2 4", "stops mid-statement"),
+        (QUAD + "f 1 2 3\nv 0.5 0.", "stops mid-statement"),
+        (QUAD + "f 1 2 5\n", "refers to vertex 5 but only 4"),
+        (QUAD + "f -5 1 2\n", "refers to vertex -5"),
+        (QUAD + "f 1 2 3\nf 0 1 2\n", "refers to vertex 0"),
+        (QUAD, "4 vertices but no faces"),
+    ],
+)
+def test_damaged_obj_is_refused(tmp_path: Path, text: str, message: str) -> None:
+    path = tmp_path / "bad.obj"
+    path.write_bytes(text.encode())
+    with pytest.raises(SpaceError, match=message):
+        check_source(path)
+
+
+def test_a_whole_last_line_without_newline_is_a_warning(tmp_path: Path) -> None:
+    path = tmp_path / "cut.obj"
+    path.write_bytes((QUAD + "f 1 2 3\nf 2 4 3").encode())
+    assert any("may be truncated" in w for w in check_source(path))
+
+
+def test_face_limit_counts_obj_faces(tmp_path: Path) -> None:
+    obj = tmp_path / "many.obj"
+    obj.write_bytes((QUAD + "f 1 2 3\n" * 5).encode())
+    with pytest.raises(SpaceError, match="more than the limit of 4"):
+        check_source(obj, max_faces=4)
+    assert check_source(obj, max_faces=5) == []

@@ -1,0 +1,205 @@
+"""Public scan dataset formats and point clouds, from small fixtures generated here (no downloads)."""
+
+from __future__ import annotations
+
+import json
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from PIL import Image
+from scipy.spatial import cKDTree
+
+from services.core.pointcloud import CloudError, poisson_depth, read_text_cloud
+from services.core.space_registry import pack_source
+from services.core.spaces import SpaceError, load_space, resolve_source
+from tests.scheduler import scenes
+
+# --- ScanNet ---------------------------------------------------------------------------------------
+
+# (label, objectId or None for unlabelled) of each part of the fixture; parts are separate vertex sets
+SCANNET_PARTS = [("floor", 0), ("chair", 1), ("chair", 2), ("table", 3), (None, None)]
+
+
+def scannet_scene(folder: Path, scene: str = "scene0000_00") -> tuple[Path, list[tuple[int, int, int]]]:
+    """A tiny ScanNet scene: `<scene>_vh_clean_2.ply` (vertex colours), segs.json, aggregation.json.
+
+    Returns the mesh path and, per part, (class id, instance id, faces) expected from the file's own label names.
+    """
+    folder.mkdir(parents=True, exist_ok=True)
+    parts = [trimesh.creation.box(extents=(4.0, 4.0, 0.1)),
+             trimesh.creation.box(extents=(0.5, 0.5, 0.9)).apply_translation([1, 1, 0.5]),
+             trimesh.creation.box(extents=(0.5, 0.5, 0.9)).apply_translation([-1, 1, 0.5]),
+             trimesh.creation.box(extents=(1.2, 0.8, 0.8)).apply_translation([0, -1, 0.45]),
+             trimesh.creation.icosphere(subdivisions=1, radius=0.3).apply_translation([1.5, -1.5, 1.0])]
+    verts, faces, seg_idx = [], [], []
+    for k, part in enumerate(parts):
+        faces.append(part.faces + sum(len(v) for v in verts))
+        verts.append(part.vertices)
+        seg_idx += [100 + 2 * k + (i % 2) for i in range(len(part.vertices))]  # two segments per part
+    mesh = trimesh.Trimesh(np.vstack(verts), np.vstack(faces), process=False,
+                           vertex_colors=np.tile([200, 120, 40, 255], (sum(len(v) for v in verts), 1)))
+    ply = folder / f"{scene}_vh_clean_2.ply"
+    mesh.export(ply)
+    (folder / f"{scene}_vh_clean_2.0.010000.segs.json").write_text(json.dumps({"sceneId": scene, "segIndices": seg_idx}))
+    groups = [{"id": oid, "objectId": oid, "label": label, "segments": [100 + 2 * k, 101 + 2 * k]}
+              for k, (label, oid) in enumerate(SCANNET_PARTS) if oid is not None]
+    (folder / f"{scene}.aggregation.json").write_text(json.dumps({"sceneId": scene, "segGroups": groups}))
+    names = sorted({label for label, oid in SCANNET_PARTS if label})
+    return ply, [(names.index(label) + 1 if label else 0, oid + 1 if oid is not None else 0, len(part.faces))
+                 for (label, oid), part in zip(SCANNET_PARTS, parts, strict=True)]
+
+
+def test_scannet_labels_from_segments_and_aggregation(tmp_path: Path) -> None:
+    ply, expected = scannet_scene(tmp_path / "scene0000_00")
+    (tmp_path / "scene0000_00" / "scene0000_00_vh_clean_2.labels.ply").write_bytes(ply.read_bytes())  # ignored
+    space = load_space(tmp_path / "scene0000_00")  # the folder: its _vh_clean_2.ply is the mesh
+    assert space.source_path == ply and space.has_semantics and space.has_vertex_colors
+    assert space.class_names == {1: "chair", 2: "floor", 3: "table"}
+    pairs = list(zip(space.face_class.tolist(), space.face_instance.tolist(), strict=True))
+    for cls, inst, n_faces in expected:
+        assert pairs.count((cls, inst)) == n_faces, (cls, inst)
+    assert space.frame_record()["class_names"] == {"1": "chair", "2": "floor", "3": "table"}
+
+
+def test_scannet_single_file_is_packed_with_its_label_files(tmp_path: Path) -> None:
+    ply, _ = scannet_scene(tmp_path / "s")
+    packed = pack_source(ply, ply, tmp_path)
+    with zipfile.ZipFile(packed) as zf:
+        assert sorted(zf.namelist()) == sorted(["scene0000_00_vh_clean_2.ply", "scene0000_00.aggregation.json",
+                                                "scene0000_00_vh_clean_2.0.010000.segs.json"])
+    again = load_space(resolve_source(packed, tmp_path / "x"))
+    assert again.has_semantics and again.class_names == {1: "chair", 2: "floor", 3: "table"}
+
+
+def test_scannet_mismatched_segments_refused(tmp_path: Path) -> None:
+    ply, _ = scannet_scene(tmp_path / "s")
+    segs = next(ply.parent.glob("*.segs.json"))
+    segs.write_text(json.dumps({"segIndices": [0, 1, 2]}))
+    with pytest.raises(SpaceError, match="3 segIndices for the"):
+        load_space(ply)
+
+
+# --- Matterport3D ----------------------------------------------------------------------------------
+
+
+def test_matterport_category_and_segment_face_properties(tmp_path: Path) -> None:
+    room = scenes.furnished_room()
+    polys = room.faces.tolist()
+    category = np.where(room.face_normals[:, 2] > 0.9, 3, 7)  # floor-like vs the rest
+    segment = np.arange(len(polys)) // 2 + 1
+    src = tmp_path / "region0.ply"
+    scenes.write_ply_with_labels(src, room.vertices, polys, category, segment, instance_name="segment_id",
+                                 class_name="category_id", binary=True)
+    space = load_space(src)
+    assert space.has_semantics
+    assert int((space.face_class == 3).sum()) == int((category == 3).sum())
+    np.testing.assert_array_equal(space.face_instance, segment)
+
+
+# --- glTF / GLB ------------------------------------------------------------------------------------
+
+
+def test_glb_with_texture_and_glb_with_vertex_colours(tmp_path: Path) -> None:
+    room = scenes.furnished_room()
+    uv = np.column_stack([room.vertices[:, 0] / 6.0, room.vertices[:, 1] / 4.0])
+    img = Image.fromarray(np.random.default_rng(0).integers(0, 255, (16, 16, 3), dtype=np.uint8))
+    textured = trimesh.Trimesh(room.vertices, room.faces, process=False,
+                               visual=trimesh.visual.TextureVisuals(uv=uv, image=img))
+    textured.export(tmp_path / "t.glb")
+    coloured = trimesh.Trimesh(room.vertices, room.faces, process=False,
+                               vertex_colors=np.tile([10, 200, 30, 255], (len(room.vertices), 1)))
+    coloured.export(tmp_path / "c.glb")
+    t, c = load_space(tmp_path / "t.glb"), load_space(tmp_path / "c.glb")
+    assert t.has_texture and not t.has_vertex_colors
+    assert c.has_vertex_colors and not c.has_texture
+    for s in (t, c):  # glTF is +Y up: trimesh turns the +Z room on its side, levelling turns it back
+        assert s.up_method == "floor" and s.face_count == len(room.faces)
+        assert s.mesh.extents[2] == pytest.approx(2.7, abs=1e-5)
+
+
+# --- point clouds ----------------------------------------------------------------------------------
+
+
+def room_cloud(n: int, seed: int = 0) -> tuple[trimesh.Trimesh, np.ndarray, np.ndarray, np.ndarray]:
+    """Points on the furnished room (no ceiling: a scan from inside), their inward normals and colours."""
+    room = scenes.furnished_room()
+    room.update_faces(room.face_normals[:, 2] > -0.9)
+    pts, face = trimesh.sample.sample_surface(room, n, seed=seed)
+    colours = np.clip(pts / [6.0, 4.0, 2.7] * 255, 0, 255).astype(np.uint8)
+    return room, pts, room.face_normals[face], colours
+
+
+def _write_point_ply(path: Path, pts: np.ndarray, normals: np.ndarray | None, colours: np.ndarray) -> None:
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")] if normals is not None else []
+    fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    data = np.zeros(len(pts), dtype=fields)
+    for i, c in enumerate("xyz"):
+        data[c] = pts[:, i]
+        if normals is not None:
+            data["n" + c] = normals[:, i]
+    for i, c in enumerate(("red", "green", "blue")):
+        data[c] = colours[:, i]
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(pts)}"]
+    header += [f"property {'float' if t == '<f4' else 'uchar'} {n}" for n, t in fields] + ["end_header", ""]
+    path.write_bytes("\n".join(header).encode() + data.tobytes())
+
+
+def test_point_cloud_ply_is_meshed_near_the_points_and_cached(tmp_path: Path) -> None:
+    room, pts, normals, colours = room_cloud(20_000)
+    src = tmp_path / "cloud.ply"
+    _write_point_ply(src, pts, normals, colours)
+    space = load_space(src, cloud_cache_dir=tmp_path / "cache")
+    rec = space.reconstruction
+    assert rec is not None and rec["point_count"] == 20_000 and rec["face_count"] == space.face_count
+    assert rec["parameters"]["normals"] == "given" and rec["parameters"]["depth"] == poisson_depth(20_000)
+    assert rec["cached"] is False and space.has_vertex_colors
+    assert space.up_method == "floor" and space.units.unit == "metres"
+    # no invented surface: every vertex lies near the true room, and the room is covered
+    dense, _ = trimesh.sample.sample_surface(room, 200_000, seed=1)
+    assert np.percentile(cKDTree(dense).query(space.mesh.vertices)[0], 99) < 0.06
+    assert np.percentile(cKDTree(space.mesh.vertices).query(pts)[0], 95) < 0.05
+    again = load_space(src, cloud_cache_dir=tmp_path / "cache")
+    assert again.reconstruction["cached"] is True
+    np.testing.assert_array_equal(again.mesh.faces, space.mesh.faces)
+    np.testing.assert_array_equal(again.mesh.vertices, space.mesh.vertices)
+    assert space.frame_record()["reconstruction"]["point_count"] == 20_000
+
+
+def test_text_clouds_and_their_columns(tmp_path: Path) -> None:
+    _, pts, normals, colours = room_cloud(1500)
+    xyz = tmp_path / "a.xyz"
+    np.savetxt(xyz, np.column_stack([pts, normals, colours]), fmt="%.6f")
+    got = read_text_cloud(xyz)
+    np.testing.assert_allclose(got.normals, normals, atol=1e-6)
+    np.testing.assert_array_equal(got.colors, colours)
+    pts_file = tmp_path / "b.pts"  # Leica: a count line, then x y z intensity r g b
+    pts_file.write_text(f"{len(pts)}\n" + "\n".join(
+        f"{p[0]:.6f} {p[1]:.6f} {p[2]:.6f} 0.5 {c[0]} {c[1]} {c[2]}" for p, c in zip(pts, colours, strict=True)))
+    got = read_text_cloud(pts_file)
+    assert got.normals is None
+    np.testing.assert_array_equal(got.colors, colours)
+    space = load_space(pts_file, cloud_cache_dir=tmp_path / "cache")  # normals estimated
+    assert space.reconstruction["parameters"]["normals"].startswith("estimated")
+    assert space.face_count > 1000
+
+
+def test_bad_clouds_refused_clearly(tmp_path: Path) -> None:
+    _, pts, normals, colours = room_cloud(200)
+    sparse = tmp_path / "sparse.ply"
+    _write_point_ply(sparse, pts, normals, colours)
+    with pytest.raises(SpaceError, match="too sparse to mesh"):
+        load_space(sparse, cloud_cache_dir=tmp_path / "c")
+    line = tmp_path / "line.xyz"
+    np.savetxt(line, np.column_stack([np.linspace(0, 1, 2000), np.zeros(2000), np.zeros(2000)]))
+    with pytest.raises(SpaceError, match="on a line"):
+        load_space(line, cloud_cache_dir=tmp_path / "c")
+    junk = tmp_path / "junk.xyz"
+    junk.write_text("1 2\n3 4\n")
+    with pytest.raises(SpaceError, match="at least x y z"):
+        load_space(junk, cloud_cache_dir=tmp_path / "c")
+    with pytest.raises(CloudError):
+        read_text_cloud(tmp_path / "missing.xyz")

@@ -1,0 +1,163 @@
+"""The unsupervised segmentations as implemented before issue 10 (skimage's felzenszwalb, dense normalized cuts),
+kept only as the reference of the equivalence tests (test_segmentation_equivalence.py). Not used by the service.
+
+segment_unsup2d works on the colour image, segment_unsup25d on a feature image of weighted log-depth and normals
+with occlusion edges weakening the graph's links (segment25d_weights; see segment_unsup25d). Steps:
+1. skimage.segmentation.felzenszwalb(features in ~[0, 1], segment2d_scale, segment2d_sigma, segment2d_min_size);
+   when it yields more than segment_max_superpixels regions it is rerun with a proportionally larger min_size,
+   which bounds the cost of step 3 (a dense eigenproblem per split);
+2. region adjacency graph (4-connectivity) with similarity weights exp(-|mean_a - mean_b|^2 / segment_ncut_sigma)
+   of the regions' mean features on a 0..255 scale (2.5d: times exp(-5 * occlusion strength along the shared
+   boundary)), plus self-loops of weight 1 (as skimage.graph.cut_normalized);
+3. recursive two-way normalized cuts (Shi & Malik 2000) exactly as skimage.graph.cut_normalized: the second
+   smallest eigenvector of D^-1/2 (D - W) D^-1/2, segment_num_cuts thresholds, split while the best ncut value
+   is below segment_ncut_thresh. Written here on dense matrices (scipy.linalg.eigh, two eigenpairs) because
+   skimage's sparse/networkx version takes seconds per image;
+4. labels 1..K numbered in raster order of first appearance; 0 = no surface (2d: nothing seen; 2.5d: no valid
+   depth). Pixels off the surface take the nearest surface pixel's features before step 1, so the background
+   neither forms segments nor leaves halo regions along silhouettes.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+from scipy.linalg import eigh
+from scipy.ndimage import distance_transform_edt
+from skimage.segmentation import felzenszwalb
+
+from services.worker.context import ViewContext
+from services.worker.cues.common import hit, valid
+from services.worker.cues.edges import occlusion_response
+from services.worker.cues.segmentation import BOUNDARY_GAIN, features25d
+
+
+def superpixels(features: np.ndarray, scale: float, sigma: float, min_size: int, max_count: int) -> np.ndarray:
+    """int64 H x W Felzenszwalb labels 0..n-1 with n <= max_count (min_size grown when needed)."""
+    def run(min_size: int) -> np.ndarray:
+        with warnings.catch_warnings():  # skimage warns about >4 channels; multichannel is what we mean
+            warnings.simplefilter("ignore", RuntimeWarning)
+            return felzenszwalb(features, scale=scale, sigma=sigma, min_size=min_size, channel_axis=-1)
+
+    labels = run(min_size)
+    for _ in range(4):
+        n = int(labels.max()) + 1
+        if n <= max_count:
+            break
+        min_size = int(np.ceil(min_size * n / max_count * 1.2))
+        labels = run(min_size)
+    return labels.astype(np.int64)
+
+
+def region_graph(labels: np.ndarray, features255: np.ndarray, sigma: float,
+                 boundary: np.ndarray | None = None) -> np.ndarray:
+    """Dense n x n similarity matrix of 4-adjacent regions (mean-feature RBF), self-loops of weight 1.
+
+    `boundary` (H x W in [0, 1], optional) weakens the link of two regions by exp(-BOUNDARY_GAIN * b), b = the mean
+    over their shared pixel pairs of the larger boundary value of the two pixels.
+    """
+    n = int(labels.max()) + 1
+    flat = labels.ravel()
+    cnt = np.bincount(flat, minlength=n).astype(np.float64)
+    means = np.stack([np.bincount(flat, weights=features255[..., c].ravel(), minlength=n)
+                      for c in range(features255.shape[-1])], axis=1) / np.maximum(cnt, 1)[:, None]
+    a = np.concatenate([labels[:, :-1].ravel(), labels[:-1, :].ravel()])
+    b = np.concatenate([labels[:, 1:].ravel(), labels[1:, :].ravel()])
+    m = a != b
+    a, b = np.minimum(a[m], b[m]), np.maximum(a[m], b[m])
+    pair, inv = np.unique(a * n + b, return_inverse=True)
+    ea, eb = pair // n, pair % n
+    w = np.exp(-((means[ea] - means[eb]) ** 2).sum(axis=1) / sigma)
+    if boundary is not None:
+        bd = np.concatenate([np.maximum(boundary[:, :-1], boundary[:, 1:]).ravel(),
+                             np.maximum(boundary[:-1, :], boundary[1:, :]).ravel()])[m]
+        strength = np.bincount(inv, weights=bd, minlength=len(pair)) / np.bincount(inv, minlength=len(pair))
+        w = w * np.exp(-BOUNDARY_GAIN * strength)
+    W = np.zeros((n, n), dtype=np.float64)
+    W[ea, eb] = w
+    W[eb, ea] = w
+    np.fill_diagonal(W, 1.0)
+    return W
+
+
+def normalized_cuts(W: np.ndarray, thresh: float, num_cuts: int) -> np.ndarray:
+    """Recursive two-way normalized cuts on a dense similarity matrix; returns a segment id per node."""
+    out = np.zeros(len(W), dtype=np.int64)
+    next_id = 0
+    stack = [np.arange(len(W))]
+    while stack:
+        idx = stack.pop()
+        best_mask = None
+        if len(idx) > 2:
+            w = W[np.ix_(idx, idx)]
+            d = w.sum(axis=1)
+            dis = 1.0 / np.sqrt(d)
+            A = (np.diag(d) - w) * dis[:, None] * dis[None, :]
+            _, vecs = eigh(A, subset_by_index=[0, 1], driver="evr")
+            ev = vecs[:, 1] * dis
+            best = np.inf
+            for t in np.linspace(ev.min(), ev.max(), num_cuts, endpoint=False):
+                mask = ev > t
+                if mask.all() or not mask.any():
+                    continue
+                cut = w[np.ix_(mask, ~mask)].sum()
+                cost = cut / d[mask].sum() + cut / d[~mask].sum()
+                if cost < best:
+                    best, best_mask = cost, mask
+            if best >= thresh:
+                best_mask = None
+        if best_mask is None:
+            out[idx] = next_id
+            next_id += 1
+        else:
+            stack.append(idx[~best_mask])
+            stack.append(idx[best_mask])
+    return out
+
+
+def _relabel(labels: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """uint16 labels 1..K in raster order of first appearance inside mask, 0 outside."""
+    out = np.zeros(labels.shape, dtype=np.uint16)
+    vals = labels[mask]
+    if vals.size == 0:
+        return out
+    uniq, first, inv = np.unique(vals, return_index=True, return_inverse=True)
+    rank = np.empty(len(uniq), dtype=np.int64)
+    rank[np.argsort(first)] = np.arange(1, len(uniq) + 1)
+    out[mask] = np.minimum(rank[inv], 65535).astype(np.uint16)
+    return out
+
+
+def segment(ctx: ViewContext, features: np.ndarray, mask: np.ndarray, *, sigma: float,
+            boundary: np.ndarray | None = None) -> np.ndarray:
+    """Felzenszwalb + normalized cuts on an H x W x C feature image in ~[0, 1]; uint16 labels, 0 off mask."""
+    p = ctx.params
+    if mask.any() and not mask.all():
+        # Background pixels take the nearest surface pixel's features, so silhouettes do not spawn thin
+        # mixed-colour regions (Felzenszwalb blurs first) and the background merges into its neighbours.
+        _, (iy, ix) = distance_transform_edt(~mask, return_indices=True)
+        features = features[iy, ix]
+    sp = superpixels(features, p.segment2d_scale, sigma, p.segment2d_min_size, p.segment_max_superpixels)
+    W = region_graph(sp, features * 255.0, p.segment_ncut_sigma, boundary)
+    merged = normalized_cuts(W, p.segment_ncut_thresh, p.segment_num_cuts)[sp]
+    return _relabel(merged, mask)
+
+
+def segment_unsup2d(ctx: ViewContext) -> np.ndarray:
+    """uint16 H x W colour segmentation labels 1..K, 0 where nothing is seen."""
+    rgb = ctx.passes.rgb.astype(np.float32) / 255.0
+    return segment(ctx, rgb, hit(ctx), sigma=ctx.params.segment2d_sigma)
+
+
+def segment_unsup25d(ctx: ViewContext) -> np.ndarray:
+    """uint16 H x W segmentation of log-depth, normals and occlusion edges: labels 1..K, 0 off valid depth.
+
+    Superpixels come from log-depth and normals without pre-blur (rendered geometry is noise-free; blurring would
+    leave strips of averaged normals along creases); occlusion edges (edge_occlusion's response over its maximum
+    in the view, times the third weight) weaken the links across them in the normalized-cut graph.
+    """
+    _, _, we = ctx.params.segment25d_weights
+    occ = occlusion_response(ctx)
+    boundary = np.clip(we * occ / max(float(occ.max()), 1e-6), 0.0, None)
+    return segment(ctx, features25d(ctx), valid(ctx), sigma=0.0, boundary=boundary)

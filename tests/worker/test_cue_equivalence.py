@@ -1,0 +1,148 @@
+"""The faster cue implementations of issue 10 give the same outputs as the ones they replaced, on real room views.
+
+Views: the real planner's cameras inside ../shared/scenes/icl_livingroom (a furnished room, every pixel a surface)
+rendered by Cycles at 192 x 192. The room is untextured (its colour image is one grey), so the colour
+segmentation is compared on the rendered normal image used as the colour input, and on the textured banana.
+References: the implementations before issue 10, kept in reference_segmentation.py and reference_keypoints3d.py.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from skimage.segmentation import felzenszwalb
+
+from services.core.cues import default_cues
+from services.core.jobspec import CueParams, JobSpec
+from services.core.spaces import load_space
+from services.scheduler.planning import make_plan, space_rng
+from services.worker.context import ViewContext
+from services.worker.cues.common import valid
+from services.worker.cues.felzenszwalb import Felzenszwalb
+from services.worker.cues.keypoints import narf_interest
+from services.worker.cues.segmentation import segment_unsup2d, segment_unsup25d
+from services.worker.executor import make_context, produce
+from services.worker.passes import ViewGeometry, ViewPasses
+from services.worker.space_cache import SpaceContext
+from tests.worker import reference_keypoints3d, reference_segmentation
+from tests.worker.conftest import object_view
+from tests.worker.test_derived import decode_png
+
+RESOLUTION = 192
+N_VIEWS = 4
+
+
+def adjusted_rand_index(a: np.ndarray, b: np.ndarray) -> float:
+    """Hubert & Arabie's adjusted Rand index of two labelings of the same pixels (1 = identical partitions)."""
+    a = np.unique(a.ravel(), return_inverse=True)[1]
+    b = np.unique(b.ravel(), return_inverse=True)[1]
+    pairs = np.bincount(a * (b.max() + 1) + b).astype(np.float64)
+
+    def comb2(counts: np.ndarray) -> float:
+        return float((counts * (counts - 1) / 2).sum())
+
+    both, in_a, in_b = comb2(pairs), comb2(np.bincount(a).astype(np.float64)), comb2(np.bincount(b).astype(np.float64))
+    expected = in_a * in_b / (a.size * (a.size - 1) / 2)
+    top = (in_a + in_b) / 2
+    return 1.0 if top == expected else (both - expected) / (top - expected)
+
+
+def test_adjusted_rand_index_is_one_for_relabelings_and_low_for_unrelated_partitions():
+    rng = np.random.default_rng(0)
+    a = rng.integers(0, 5, (40, 40))
+    assert adjusted_rand_index(a, (a + 3) * 7) == pytest.approx(1.0)
+    assert abs(adjusted_rand_index(a, rng.integers(0, 5, (40, 40)))) < 0.05
+
+
+@pytest.fixture(scope="module")
+def room_passes(scenes_dir: Path) -> list[ViewPasses]:
+    """Pass sets of N_VIEWS planner views of the real room (spread over its points), rendered by Cycles."""
+    loaded = load_space(scenes_dir / "icl_livingroom")
+    plan = make_plan(loaded, JobSpec(), space_rng(0, "icl_livingroom"), "icl_livingroom")
+    views = plan.views[:: len(plan.views) // N_VIEWS][:N_VIEWS]
+    space = SpaceContext.from_loaded(loaded, key="icl_livingroom-equivalence")
+    try:
+        return [make_context(space, ViewGeometry(v.world_to_camera, v.fov, RESOLUTION), ["passes"]).passes
+                for v in views]
+    finally:
+        space.close()
+
+
+@pytest.fixture(scope="module")
+def banana_passes(banana_path: Path) -> list[ViewPasses]:
+    loaded = load_space(banana_path)
+    space = SpaceContext.from_loaded(loaded, key="banana-equivalence")
+    try:
+        return [make_context(space, object_view(loaded.mesh, d, RESOLUTION, fill=1.6), ["passes"]).passes
+                for d in ([1.0, 0.3, 0.8], [-0.5, 1.0, 0.6])]
+    finally:
+        space.close()
+
+
+def colour_from_normals(p: ViewPasses) -> ViewPasses:
+    """The view with its rendered normal image as the colour image (the room scan itself is one grey)."""
+    normal_png = produce("normal", ViewContext(None, passes=p))
+    return ViewPasses(geometry=p.geometry, depth_z=p.depth_z, normal_world=p.normal_world,
+                      rgb=decode_png(normal_png), face_index=p.face_index)
+
+
+def assert_same_segmentation(old: np.ndarray, new: np.ndarray) -> None:
+    assert np.array_equal(old == 0, new == 0)  # the same pixels are "no surface"
+    assert adjusted_rand_index(old, new) >= 0.9
+    assert abs(int(new.max()) - int(old.max())) <= max(1, 0.2 * int(old.max())), (old.max(), new.max())
+
+
+def test_segment_unsup25d_matches_the_previous_implementation_on_room_views(room_passes):
+    counts = []
+    for p in room_passes:
+        old = reference_segmentation.segment_unsup25d(ViewContext(None, passes=p))
+        new = segment_unsup25d(ViewContext(None, passes=p))
+        assert_same_segmentation(old, new)
+        counts.append(int(old.max()))
+    assert sum(counts) >= 10 * len(counts)  # real views with many segments, not a trivial comparison
+
+
+def test_segment_unsup2d_matches_the_previous_implementation_on_colour_views(room_passes, banana_passes):
+    counts = []
+    for p in [colour_from_normals(p) for p in room_passes] + banana_passes:
+        old = reference_segmentation.segment_unsup2d(ViewContext(None, passes=p))
+        new = segment_unsup2d(ViewContext(None, passes=p))
+        assert_same_segmentation(old, new)
+        counts.append(int(old.max()))
+    assert sum(counts) >= 5 * len(counts)
+
+
+def test_felzenszwalb_kernel_matches_skimage_superpixels(room_passes):
+    params = CueParams()
+    for p in room_passes:
+        img = decode_png(produce("normal", ViewContext(None, passes=p))).astype(np.float32) / 255.0
+        old = felzenszwalb(img, scale=params.segment2d_scale, sigma=params.segment2d_sigma,
+                           min_size=params.segment2d_min_size, channel_axis=-1)
+        new = Felzenszwalb(img, params.segment2d_scale, params.segment2d_sigma).labels(params.segment2d_min_size)
+        assert new.shape == old.shape and new.min() == 0
+        assert adjusted_rand_index(old, new) >= 0.9
+        assert abs(int(new.max()) - int(old.max())) <= 0.2 * int(old.max())
+
+
+def test_keypoints3d_matches_the_previous_implementation_on_room_views(room_passes):
+    for p in room_passes:
+        ctx = ViewContext(None, passes=p)
+        old = reference_keypoints3d.narf_interest(ctx)
+        new = narf_interest(ctx)
+        assert np.all(new[~valid(ctx)] == 0)
+        assert np.corrcoef(old.ravel(), new.ravel())[0, 1] >= 0.98
+        assert np.linalg.norm(new - old) <= 0.2 * np.linalg.norm(old)
+        # The keypoints themselves: the strongest responses of the old image stay strong in the new one.
+        top_old = old >= np.quantile(old, 0.99)
+        assert np.mean(new[top_old] >= np.quantile(new, 0.95)) >= 0.9
+
+
+def test_every_png_cue_of_a_room_view_decodes_to_its_array(room_passes):
+    """The PNG encoder's zlib level trades size for speed only: files decode to the exact arrays."""
+    ctx = ViewContext(None, CueParams(), passes=room_passes[0])
+    pngs = [c for c in default_cues(False) if c not in ("fragments", "position", "point_info", "nonfixated",
+                                                        "vanishing_points")]
+    for cue in pngs:
+        assert np.array_equal(decode_png(produce(cue, ctx)), ctx.value(cue)), cue

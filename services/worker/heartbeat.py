@@ -58,6 +58,7 @@ class Heartbeat:
         self.extend_after_s = self.lease_s / 3.0
         self._leased_at = 0.0  # monotonic time of the current task's claim or last lease extension
         self._lock = threading.Lock()
+        self._beat_lock = threading.Lock()
         self._current: int | None = None
         self._tasks_done = 0
         self._labels: dict[str, int] = {}
@@ -112,6 +113,10 @@ class Heartbeat:
     def beat(self) -> None:
         """Upsert the worker row (one statement) and, once `extend_after_s` has passed since the claim or the last
         extension, extend the current task's lease (only while it is still ours and running)."""
+        with self._beat_lock:  # the thread's beat and a direct call (stop, tests) land in the order they were made
+            self._beat()
+
+    def _beat(self) -> None:
         rate = self.labels_per_s()
         with self._lock:
             current, done, labels = self._current, self._tasks_done, dict(self._labels)

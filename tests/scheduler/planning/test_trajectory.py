@@ -1,4 +1,4 @@
-# ruff: noqa: F811  -- the fixtures imported from tests.scheduler.helpers are redefined as test arguments
+# ruff: noqa: F811  -- the fixtures imported from tests.fixtures.jobs are redefined as test arguments
 """Trajectory views: free-space routes, curvature-bounded smoothing, verified frames, limits, notes."""
 
 from __future__ import annotations

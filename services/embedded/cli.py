@@ -87,6 +87,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         prepared = prepare_job(sm, store, spec, sources)
         if prepared.resumed:
+            store.remove_temp_files()  # writes the interrupted run never committed; no worker runs yet
             print(f"omnidata generate: resuming job {prepared.job_id} in {out} ({prepared.requeued} interrupted, "
                   f"{prepared.redo} missing, {prepared.retried} failed tasks to redo)", file=sys.stderr)
         return drive(sm, store, settings, out, prepared.job_id, workers, progress=not args.no_progress)

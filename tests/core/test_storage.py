@@ -186,6 +186,17 @@ def test_local_writes_are_atomic_and_leave_no_temp_files(local_store: LocalStore
     assert local_store.presigned_url("a/b.bin").startswith("file://")
 
 
+def test_local_temp_files_of_killed_writers_are_removed(local_store: LocalStore) -> None:
+    local_store.put_bytes("a/b.bin", b"x")
+    stale = local_store.root / "a" / "deep" / ".c.png.tmp-0123456789abcdef0123456789abcdef"
+    stale.parent.mkdir(parents=True)
+    stale.write_bytes(b"partial")
+    lookalike = local_store.root / "a" / ".c.png.tmp-not-a-uuid"  # not ours: kept
+    lookalike.write_bytes(b"keep")
+    assert local_store.remove_temp_files() == 1
+    assert not stale.exists() and lookalike.exists() and local_store.get_bytes("a/b.bin") == b"x"
+
+
 def test_local_delete_prunes_empty_folders(local_store: LocalStore) -> None:
     local_store.put_bytes("x/y/z/1", b"1")
     local_store.delete("x/y/z/1")

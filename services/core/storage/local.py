@@ -164,6 +164,19 @@ class LocalStore:
                     keys.append(key)
         return iter(sorted(keys))
 
+    def remove_temp_files(self) -> int:
+        """Delete the temp files of writes that never committed (a writer killed mid-write); returns how many.
+
+        Only for when no writer is running on this folder, e.g. before an interrupted job is resumed.
+        """
+        removed = 0
+        for dirpath, _dirs, files in os.walk(self.root):
+            for name in files:
+                if _TMP.match(name):
+                    (Path(dirpath) / name).unlink(missing_ok=True)
+                    removed += 1
+        return removed
+
     def presigned_url(self, key: str, expires_s: int = 3600) -> str:
         """file:// URI of the object (local files need no signature; `expires_s` is ignored)."""
         return self.path(key).as_uri()

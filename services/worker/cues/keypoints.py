@@ -2,7 +2,7 @@
 
 keypoints2d: max over scales s in keypoints2d_sigmas (px) of the scale-normalised determinant of the Hessian
 s^4 (Lxx Lyy - Lxy^2) of the Gaussian-blurred grey image in [0, 1] (blurred incrementally from scale to scale,
-second derivatives by central differences), negative responses (saddles) set to 0, stored as
+kernels cut at 3 sigmas, second derivatives by central differences), negative responses (saddles) set to 0, stored as
 round(response * keypoints2d_scale) clipped to 0..65535. Whole image, like the other image-space cues.
 
 keypoints3d: a NARF-like interest image (Steder et al., "Point feature extraction on 3D range scans taking into
@@ -32,6 +32,9 @@ from services.worker.cues.common import depth_m, grey, ray_dirs_cam, to_uint16_s
 from services.worker.cues.registry import register
 
 KP3D_SCALES_PX = (1, 2, 4, 8, 16, 32, 64)
+# keypoints2d's Gaussian kernels end at 3 sigmas (scipy's default is 4): 25% fewer taps, the 0.3% of weight past
+# 3 sigmas moves responses by ~2% (tests/worker/test_cue_equivalence.py).
+DOH_TRUNCATE_SIGMAS = 3.0
 BORDER_FOOTPRINTS = 10.0
 PYRAMID_MIN_RADIUS_PX = 4  # wider blurs run on block means (a radius of >= 4 low-res pixels), then upsampled
 
@@ -40,16 +43,28 @@ def doh_response(g: np.ndarray, sigmas: tuple[float, ...]) -> np.ndarray:
     """float32 H x W max over scales of the scale-normalised determinant of Hessian (>= 0)."""
     out = np.zeros(g.shape, dtype=np.float32)
     L, prev = g.astype(np.float32), 0.0
+    P = np.empty((g.shape[0] + 2, g.shape[1] + 2), dtype=np.float32)  # L edge-padded by one pixel
     for s in sorted(sigmas):
         inc = float(np.sqrt(max(s * s - prev * prev, 0.0)))
         if inc > 0:
-            L = gaussian_filter(L, inc, mode="nearest")
+            L = gaussian_filter(L, inc, mode="nearest", truncate=DOH_TRUNCATE_SIGMAS)
         prev = s
-        P = np.pad(L, 1, mode="edge")
-        lxx = P[1:-1, 2:] - 2 * L + P[1:-1, :-2]
-        lyy = P[2:, 1:-1] - 2 * L + P[:-2, 1:-1]
-        lxy = (P[2:, 2:] - P[2:, :-2] - P[:-2, 2:] + P[:-2, :-2]) * 0.25
-        np.maximum(out, (s**4) * (lxx * lyy - lxy * lxy), out=out)
+        P[1:-1, 1:-1] = L
+        P[0, 1:-1], P[-1, 1:-1] = L[0], L[-1]
+        P[:, 0], P[:, -1] = P[:, 1], P[:, -2]
+        # In place: lxx * lyy - lxy^2 with lxy = (the four-corner difference) / 4.
+        lxx = P[1:-1, 2:] + P[1:-1, :-2]
+        lxx -= 2 * L
+        lyy = P[2:, 1:-1] + P[:-2, 1:-1]
+        lyy -= 2 * L
+        lxy = P[2:, 2:] - P[2:, :-2]
+        lxy -= P[:-2, 2:]
+        lxy += P[:-2, :-2]
+        lxx *= lyy
+        lxy *= lxy
+        lxx -= lxy * 0.0625
+        lxx *= s**4
+        np.maximum(out, lxx, out=out)
     return out
 
 

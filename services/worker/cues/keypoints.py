@@ -84,6 +84,17 @@ def _shift(a: np.ndarray, dy: int, dx: int, fill: float) -> np.ndarray:
     return out
 
 
+def _central_difference(a: np.ndarray, axis: int) -> np.ndarray:
+    """a[i + 1] - a[i - 1] along axis 0 or 1 of an H x W (x C) array, 0 taken outside."""
+    out = np.empty_like(a)
+    src = np.moveaxis(a, axis, 0)
+    dst = np.moveaxis(out, axis, 0)
+    dst[1:-1] = src[2:] - src[:-2]
+    dst[0] = src[1]
+    dst[-1] = -src[-2]
+    return out
+
+
 def _blur(x: np.ndarray, radius_px: int) -> np.ndarray:
     """Approximately Gaussian blur with sigma ~ radius/2: three box passes of width ~radius (O(1) per pixel).
 
@@ -165,11 +176,11 @@ def narf_interest(ctx: ViewContext) -> np.ndarray:
             border |= v & (rq - rng > thresh)
     # 1. normals from central differences where both neighbours on each axis are valid surface.
     smooth = v & ~border
-    du = _shift(P, 0, 1, 0.0) - _shift(P, 0, -1, 0.0)
-    dv = _shift(P, 1, 0, 0.0) - _shift(P, -1, 0, 0.0)
+    du, dv = _central_difference(P, axis=1), _central_difference(P, axis=0)
     ok = smooth & _shift(smooth, 0, 1, False) & _shift(smooth, 0, -1, False) \
         & _shift(smooth, 1, 0, False) & _shift(smooth, -1, 0, False)
-    n = np.cross(du, dv)
+    n = np.stack([du[..., 1] * dv[..., 2] - du[..., 2] * dv[..., 1], du[..., 2] * dv[..., 0] - du[..., 0] * dv[..., 2],
+                  du[..., 0] * dv[..., 1] - du[..., 1] * dv[..., 0]], axis=-1)  # du x dv (np.cross is slower)
     n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
     n = np.where((np.einsum("hwc,hwc->hw", n, d) > 0)[..., None], -n, n)
     w = ok.astype(np.float32)
@@ -181,10 +192,14 @@ def narf_interest(ctx: ViewContext) -> np.ndarray:
     k0 = np.floor(kf).astype(np.int64)
     k1 = np.minimum(k0 + 1, len(KP3D_SCALES_PX) - 1)
     t = (kf - k0).astype(np.float32)
-    used = np.unique(np.concatenate([k0[v], k1[v]]))
+    used = np.flatnonzero(np.bincount(k0[v], minlength=len(KP3D_SCALES_PX)) + np.bincount(k1[v], minlength=len(
+        KP3D_SCALES_PX)))
+    # Per scale: each pixel's weight of it (1 - t at its lower scale, t at its upper one), shared by both blends.
+    weights = {int(ki): np.where(k0 == ki, 1 - t, 0.0).astype(np.float32) + np.where(k1 == ki, t, 0.0)
+               for ki in used}
 
     def blend(out: np.ndarray, ki: int, value: np.ndarray) -> None:
-        out += np.where(k0 == ki, (1 - t) * value, 0.0) + np.where(k1 == ki, t * value, 0.0)
+        out += weights[ki] * value
 
     def surface_change(b: np.ndarray) -> np.ndarray:  # b = blurred [w, n * w]: spread of the mean normal
         cnt, m = b[0], b[1:] / np.maximum(b[:1], 1e-6)

@@ -21,6 +21,7 @@ from services.core.spaces import load_space
 from services.scheduler.planning import make_plan, space_rng
 from services.worker.context import ViewContext
 from services.worker.cues.common import grey, to_uint16_scaled, valid
+from services.worker.cues.encoding import decode_exr_rgb
 from services.worker.cues.felzenszwalb import Felzenszwalb
 from services.worker.cues.keypoints import keypoints2d, narf_interest
 from services.worker.cues.segmentation import segment_unsup2d, segment_unsup25d
@@ -160,3 +161,19 @@ def test_every_png_cue_of_a_room_view_decodes_to_its_array(room_passes):
                                                         "vanishing_points")]
     for cue in pngs:
         assert np.array_equal(decode_png(produce(cue, ctx)), ctx.value(cue)), cue
+
+
+def test_position_exr_of_a_room_view_decodes_to_its_array_bit_for_bit(room_passes):
+    ctx = ViewContext(None, CueParams(), passes=room_passes[0])
+    position = ctx.value("position")
+    back = decode_exr_rgb(produce("position", ctx))
+    assert back.dtype == np.float32 and np.array_equal(back.view(np.uint32), position.view(np.uint32))
+
+
+@pytest.mark.parametrize("resolution,fov", [(1, 1.0), (7, 0.3), (64, 2.1), (192, 1.35)])
+def test_ray_directions_match_the_meshgrid_construction_exactly(resolution, fov):
+    g = ViewGeometry(np.eye(4), fov, resolution)
+    K = g.K
+    u, v = np.meshgrid(np.arange(resolution) + 0.5, np.arange(resolution) + 0.5)
+    d = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=-1)
+    assert np.array_equal(g.ray_directions_cam(), d / np.linalg.norm(d, axis=-1, keepdims=True))

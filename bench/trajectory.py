@@ -10,6 +10,9 @@ furnished rooms (tests.scheduler.scenes.random_furnished_room), fixated ("point"
   point is hidden (Embree first hit before the point), and the clips shortened or dropped with reasons.
 Targets (issue 14): turn p95 <= 10 deg and max <= 30 deg, view p95 <= 3 deg, median spacing within
 15 % of the spec, 0 frames inside the clearance, < 1 % hidden (fixated clips).
+Objects too (the Stanford bunny, cameras.mode object, fixated): their clips orbit the point, lengths
+scaled by camera radius / OBJECT_REFERENCE_M, so the spacing target is the scaled one.
+mean_frames_per_clip_before: the figures of the first implementation (commit 1445d4a), for comparison.
 Run: `.venv/bin/python bench/trajectory.py`; writes bench/results/trajectory.json.
 """
 
@@ -40,10 +43,13 @@ from services.core.jobspec import JobSpec  # noqa: E402
 from services.core.plan import SpacePlan, clip_summary  # noqa: E402
 from services.core.spaces import LoadedSpace, load_space  # noqa: E402
 from services.scheduler.planning import make_plan, space_rng  # noqa: E402
-from services.scheduler.planning.trajectory import rotation_angles, turn_angles  # noqa: E402
+from services.scheduler.planning.trajectory import OBJECT_REFERENCE_M, rotation_angles, turn_angles  # noqa: E402
 from tests.scheduler.scenes import as_space, random_furnished_room  # noqa: E402
 
 SCENES = ROOT.parent / "shared" / "scenes"
+# mean frames per clip of the first implementation (commit 1445d4a; objects: single frames, notes "route")
+BEFORE = {"icl_livingroom/point": 36.5, "synthetic_furnished_rooms/point": 31.4, "icl_livingroom/ahead": 28.8,
+          "synthetic_furnished_rooms/ahead": 28.6, "stanford_bunny_object/point": 1.0}
 
 
 def exact_distance(mesh: trimesh.Trimesh, points: np.ndarray) -> np.ndarray:
@@ -89,10 +95,13 @@ def frame_figures(plan: SpacePlan, mesh: trimesh.Trimesh) -> dict[str, np.ndarra
     first[rays] = np.linalg.norm(locs - c[rays], axis=1)
     hidden = first < reach - max(1e-3, 1e-5 * float(mesh.scale))
     return {"turn": np.concatenate(turn), "view": np.concatenate(view), "spacing": np.concatenate(spacing),
+            "length": np.array([len(c) for c in centres]),
             "clearance": dist, "hidden": hidden}
 
 
-def summarise(figs: dict[str, np.ndarray], spec: JobSpec, plans: list[SpacePlan], seconds: float) -> dict[str, Any]:
+def summarise(
+    figs: dict[str, np.ndarray], spec: JobSpec, plans: list[SpacePlan], seconds: float, scale: float = 1.0,
+) -> dict[str, Any]:
     def pct(x: np.ndarray, q: float) -> float | None:
         return round(float(np.percentile(x, q)), 3) if len(x) else None
 
@@ -104,11 +113,13 @@ def summarise(figs: dict[str, np.ndarray], spec: JobSpec, plans: list[SpacePlan]
         "clips": clips,
         "frames": frames,
         "mean_frames_per_clip": round(frames / max(clips, 1), 1),
+        "frames_per_clip": {"median": pct(figs["length"], 50), "min": pct(figs["length"], 0),
+                            "max": pct(figs["length"], 100)},
         "turn_deg_per_frame": {"median": pct(figs["turn"], 50), "p95": pct(figs["turn"], 95),
                                "max": pct(figs["turn"], 100)},
         "view_deg_per_frame": {"median": pct(figs["view"], 50), "p95": pct(figs["view"], 95),
                                "max": pct(figs["view"], 100)},
-        "spacing_m": {"spec": spec.views.trajectory_spacing_m, "median": pct(figs["spacing"], 50),
+        "spacing_m": {"spec": round(spec.views.trajectory_spacing_m * scale, 6), "median": pct(figs["spacing"], 50),
                       "min": pct(figs["spacing"], 0), "max": pct(figs["spacing"], 100)},
         "frames_closer_than_clearance": int((figs["clearance"] < clearance - 1e-9).sum()),
         "min_clearance_m": pct(figs["clearance"], 0),
@@ -133,7 +144,8 @@ def meets_targets(fig: dict[str, Any]) -> bool:
     return bool(ok and (fig["look"] == "ahead" or fig["hidden_fraction"] < 0.01))
 
 
-def run(name: str, spaces: list[tuple[str, LoadedSpace]], spec: JobSpec) -> dict[str, Any]:
+def run(name: str, spaces: list[tuple[str, LoadedSpace]], spec: JobSpec, scale: float = 1.0) -> dict[str, Any]:
+    """Plan every space and measure its clips; scale: object clip lengths (module docstring)."""
     plans, figs = [], []
     t0 = time.perf_counter()
     for space_name, space in spaces:
@@ -142,7 +154,7 @@ def run(name: str, spaces: list[tuple[str, LoadedSpace]], spec: JobSpec) -> dict
     for plan, (_, space) in zip(plans, spaces, strict=True):
         figs.append(frame_figures(plan, space.mesh))
     merged = {k: np.concatenate([f[k] for f in figs]) for k in figs[0]}
-    out = summarise(merged, spec, plans, seconds)
+    out = summarise(merged, spec, plans, seconds, scale)
     out["scene"] = name
     out["look"] = spec.views.trajectory_look
     out["meets_targets"] = meets_targets(out)
@@ -171,11 +183,20 @@ def main() -> int:
         })
         results.append(run("icl_livingroom", [("icl_livingroom", icl)], spec))
         results.append(run("synthetic_furnished_rooms", rooms, spec.model_copy(update={"up_axis": "auto"})))
+    # an object (0.1 m bunny): cameras on a sphere, clips orbit the point; 2 cm clearance for a small object
+    bunny = load_space(SCENES / "stanford_bunny" / "bun_zipper_res2.ply")
+    spec = JobSpec.model_validate({
+        "seed": 3, "cameras": {"mode": "object", "clearance_m": 0.02}, "points": {"count": args.points},
+        "views": {"mode": "trajectory", "trajectory_spacing_m": 0.1, "trajectory_max_frames": 300},
+    })
+    radius = spec.cameras.object_distance_factor * float(bunny.mesh.bounding_sphere.primitive.radius)
+    results.append(run("stanford_bunny_object", [("bunny", bunny)], spec, radius / OBJECT_REFERENCE_M))
     result = {
         "benchmark": "trajectory",
         "targets": {"turn_deg_per_frame": {"p95": 10, "max": 30}, "view_deg_per_frame": {"p95": 3},
                     "spacing_median_within": 0.15, "frames_closer_than_clearance": 0, "hidden_fraction_below": 0.01},
         "runs": results,
+        "mean_frames_per_clip_before": BEFORE,
         "load_average_1m": round(os.getloadavg()[0], 2),  # other processes on the machine inflate times
         "machine": platform.platform(),
         "python": platform.python_version(),

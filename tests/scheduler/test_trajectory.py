@@ -1,16 +1,27 @@
+# ruff: noqa: F811  -- the fixtures imported from tests.scheduler.helpers are redefined as test arguments
 """Trajectory views: free-space routes, curvature-bounded smoothing, verified frames, limits, notes."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
+import trimesh
 from pydantic import ValidationError
 
 from services.core.camera import camera_center, intrinsics, project
+from services.core.jobs import create_job
 from services.core.jobspec import JobSpec, ViewSpec
-from services.core.plan import SpacePlan, plan_from_json, plan_to_json
+from services.core.models import Job
+from services.core.plan import CLIP_NOTES_IN_SUMMARY, SpacePlan, clip_summary, plan_from_json, plan_to_json
+from services.core.settings import get_settings
+from services.core.space_registry import register_space
+from services.scheduler.loop import Scheduler
 from services.scheduler.planning import make_plan, space_rng
 from services.scheduler.planning.trajectory import (
+    OBJECT_REFERENCE_M,
+    Limits,
     fly_clip,
     free_space_graph,
     longest_run,
@@ -20,9 +31,12 @@ from services.scheduler.planning.trajectory import (
     trajectory,
     trim,
     turn_angles,
+    verify_clip,
 )
 from services.scheduler.planning.visibility import MeshQueries
+from services.scheduler.transport import NullTransport
 from tests.scheduler import scenes
+from tests.scheduler.helpers import finish, sqlite_sm  # noqa: F401  (fixtures)
 
 
 def _centres(W: np.ndarray) -> np.ndarray:
@@ -92,9 +106,12 @@ def test_free_space_graph_edges_are_clear() -> None:
     assert free_space_graph(pair, q, 0.1).nnz == 0
 
 
-def _check_clip_limits(plan: SpacePlan, spec: JobSpec, mesh) -> int:
-    """Assert every clip of a plan against the spec's limits by independent geometry; frames checked."""
+def _check_clip_limits(plan: SpacePlan, spec: JobSpec, mesh, scale: float = 1.0, clearance: float | None = None) -> int:
+    """Assert every clip of a plan against the spec's limits by independent geometry, lengths (spacing,
+    per-metre limits) multiplied by `scale`; frames checked."""
     vs = spec.views
+    spacing = vs.trajectory_spacing_m * scale
+    clearance = spec.cameras.clearance_m if clearance is None else clearance
     checked = 0
     for point in plan.points:
         views = plan.views_of(point.idx)
@@ -103,11 +120,11 @@ def _check_clip_limits(plan: SpacePlan, spec: JobSpec, mesh) -> int:
         c = _centres(W)
         if len(c) > 1:
             step = np.linalg.norm(np.diff(c, axis=0), axis=1)
-            assert np.abs(step - vs.trajectory_spacing_m).max() < 0.01 * vs.trajectory_spacing_m
-            assert rotation_angles(W).max() <= np.radians(vs.trajectory_max_view_deg_per_m) * step.max() + 1e-9
+            assert np.abs(step - spacing).max() < 0.01 * spacing
+            assert rotation_angles(W).max() <= np.radians(vs.trajectory_max_view_deg_per_m) * step.max() / scale + 1e-9
         if len(c) > 2:
             assert turn_angles(c).max() <= np.radians(vs.trajectory_max_turn_deg_per_m) * vs.trajectory_spacing_m + 1e-9
-        assert scenes.brute_force_distance(mesh, c).min() >= spec.cameras.clearance_m
+        assert scenes.brute_force_distance(mesh, c).min() >= clearance
         seen = scenes.brute_force_visible(mesh, c, np.tile(point.position, (len(c), 1)), 1e-3)
         np.testing.assert_array_equal([v.in_sight for v in views], seen)
         if vs.trajectory_look == "point":
@@ -138,7 +155,7 @@ def test_clips_in_generated_rooms_meet_the_limits(look: str) -> None:
         plan = make_plan(scenes.as_space(mesh), spec, space_rng(spec.seed, f"room{k}"), f"room{k}")
         assert plan.points
         frames += _check_clip_limits(plan, spec, mesh)
-    assert frames > 12 * 10  # clips, not single frames
+    assert frames > 12 * (40 if look == "point" else 25)  # long clips (loops for fixated ones), not single frames
 
 
 def test_planning_is_deterministic_for_a_seed() -> None:
@@ -178,8 +195,8 @@ def test_a_route_through_an_obstacle_is_cut_with_reasons() -> None:
     q = MeshQueries(mesh)
     route = np.array([[0.8, 2.0, 1.2], [2.5, 2.0, 1.2], [4.0, 2.05, 1.2], [5.5, 2.0, 1.2]])  # through the pillar
     point = np.array([5.9, 3.5, 1.0])  # on the +x wall, seen from both sides of the pillar
-    spec = ViewSpec(mode="trajectory", trajectory_spacing_m=0.05)
-    clip = fly_clip(route, point, spec, q, 0.001, 0.1, np.radians(60), np.radians(30), False, np.zeros(2), 0)
+    lim = Limits.of(ViewSpec(mode="trajectory", trajectory_spacing_m=0.05), 0.1, 0.001)
+    clip = fly_clip(route, point, lim, q, np.zeros(2), 0)
     note = clip.note
     assert note is not None and note.frames == len(clip.frames) < note.planned
     assert {"clearance", "outside"} <= set(note.reasons)
@@ -208,14 +225,25 @@ def test_fixated_clip_around_a_pillar_stays_in_sight() -> None:
     assert np.abs(np.diff(views.roll, 2)).max() < 1e-3  # smooth roll
 
 
-def test_single_camera_gives_one_frame_and_a_note() -> None:
-    q = MeshQueries(scenes.box_room())
+def test_a_single_camera_gives_a_loop_or_arc_not_one_frame_and_a_note() -> None:
+    mesh = scenes.box_room()  # 6 x 4 x 2.7 m, empty
+    q = MeshQueries(mesh)
     cams = np.array([[1.0, 1.0, 1.0], [3.0, 3.0, 1.0]])
-    views, notes = trajectory(np.array([[6.0, 2.0, 1.0]]), np.array([[-1.0, 0, 0]]), (np.array([1]),), cams,
+    point = np.array([6.0, 2.0, 1.0])
+    lim = Limits.of(ViewSpec(mode="trajectory"), 0.1, 0.001)
+    # no route: the camera alone, one frame, reported
+    clip = fly_clip(cams[1:], point, lim, q, np.zeros(2), 0)
+    assert len(clip.frames) == 1 and clip.note is not None and clip.note.reasons == {"route": 1}
+    np.testing.assert_allclose(clip.frames[0], cams[1])
+    # but a loop (round the camera, or an arc round the point) stays in the room, in sight, within the limits
+    views, notes = trajectory(point[None], np.array([[-1.0, 0, 0]]), (np.array([1]),), cams,
                               ViewSpec(mode="trajectory"), None, q, 0.001, 0.1, np.random.default_rng(0))
-    assert len(views) == 1 and views.camera_idx[0] == 1
-    np.testing.assert_allclose(np.linalg.inv(views.world_to_camera[0])[:3, 3], cams[1], atol=1e-12)
-    assert len(notes) == 1 and notes[0].reasons == {"route": 1} and notes[0].frames == 1
+    pos = _centres(views.world_to_camera)
+    assert len(views) > 30 and views.in_sight.all()
+    ring = np.linalg.norm((pos - point)[:, :2], axis=1)
+    assert ring.min() > 2.0  # nearer, moving sideways would turn the view faster than 30 deg/m
+    assert scenes.brute_force_distance(mesh, pos).min() >= 0.1
+    assert turn_angles(pos).max() <= np.radians(6.0) + 1e-9 and rotation_angles(views.world_to_camera).max() <= np.radians(3.0)
 
 
 def test_trajectory_knobs_are_validated() -> None:
@@ -225,3 +253,94 @@ def test_trajectory_knobs_are_validated() -> None:
         ViewSpec.model_validate({"trajectory_look": "behind"})
     with pytest.raises(ValidationError, match="trajectory_max_turn_deg_per_m"):
         ViewSpec.model_validate({"trajectory_max_turn_deg_per_m": 0})
+
+
+def _object(rng: np.random.Generator) -> trimesh.Trimesh:
+    """A closed object about 0.3 m across: an ellipsoid with a post through it (a concave joint)."""
+    body = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
+    body.apply_scale(rng.uniform([1.0, 0.8, 0.6], [1.6, 1.2, 1.0]))
+    post = trimesh.creation.box(extents=[0.04, 0.04, 0.3])
+    return trimesh.util.concatenate([body, post])
+
+
+@pytest.mark.parametrize("look", ["point", "ahead"])
+def test_object_mode_clips_orbit_the_point_with_lengths_scaled_to_the_sphere(look: str) -> None:
+    mesh = _object(np.random.default_rng(4))
+    spec = JobSpec.model_validate({
+        "seed": 4, "cameras": {"mode": "object"}, "points": {"count": 4},
+        "views": {"mode": "trajectory", "trajectory_look": look, "resolution": 64},
+    })
+    plan = make_plan(scenes.as_space(mesh), spec, space_rng(4, "obj"), "obj")
+    radius = spec.cameras.object_distance_factor * float(mesh.bounding_sphere.primitive.radius)
+    scale = radius / OBJECT_REFERENCE_M  # a 0.1 m spacing on a 5 m sphere: the same per-frame figures
+    cams = np.stack([c.position for c in plan.cameras])
+    own = float(scenes.brute_force_distance(mesh, cams).min())  # object cameras may sit nearer than 0.1 m
+    frames = _check_clip_limits(plan, spec, mesh, scale, clearance=min(spec.cameras.clearance_m, own / 2))
+    assert len(plan.points) == 4 and frames >= 4 * 150  # videos, not the single frames of fixed limits
+    for point in plan.points:  # an orbit: the camera keeps its distance to the point
+        c = _centres(np.stack([v.world_to_camera for v in plan.views_of(point.idx)]))
+        np.testing.assert_allclose(np.linalg.norm(c - point.position, axis=1), radius, rtol=0.02)
+
+
+def test_frames_near_a_wall_are_pushed_out_not_cut() -> None:
+    mesh = scenes.pillar_room()  # pillar x 3.7..4.3, y 1.7..2.3
+    q = MeshQueries(mesh)
+    line = np.stack([np.linspace(1.0, 5.5, 91), np.full(91, 1.63), np.full(91, 1.2)], axis=1)  # 7 cm from the pillar
+    lim = Limits.of(ViewSpec(mode="trajectory"), 0.1, 0.001)
+    point = np.array([5.95, 1.63, 1.2])  # on the +x wall, ahead: the view hardly turns
+    clip = verify_clip(line, line, point, lim, q, np.zeros(2), 0)
+    assert clip.note is None and len(clip.frames) >= 44  # nothing cut (the path got a little longer)
+    dist = scenes.brute_force_distance(mesh, clip.frames)
+    assert dist.min() >= 0.1 and scenes.brute_force_distance(mesh, line).min() < 0.08
+    assert turn_angles(clip.frames).max() <= lim.turn_rate * lim.spacing + 1e-9
+    step = np.linalg.norm(np.diff(clip.frames, axis=0), axis=1)
+    assert np.abs(step - 0.1).max() < 1e-3
+    far = np.abs(clip.frames[:, 0] - 4.0) > 3.0  # far from the pillar the path stays put
+    np.testing.assert_allclose(clip.frames[far, 1], 1.63, atol=1e-3)
+
+
+def test_closest_within_matches_brute_force() -> None:
+    mesh = scenes.pillar_room()
+    q = MeshQueries(mesh)
+    pts = np.random.default_rng(1).uniform([0.05, 0.05, 0.05], [5.95, 3.95, 2.65], (200, 3))
+    dist, closest = q.closest_within(pts, 0.3)
+    truth = scenes.brute_force_distance(mesh, pts)
+    near = truth < 0.3
+    np.testing.assert_allclose(dist[near], truth[near], atol=1e-9)
+    assert np.isinf(dist[~near]).all()
+    np.testing.assert_allclose(np.linalg.norm(closest[near] - pts[near], axis=1), truth[near], atol=1e-9)
+
+
+def test_scheduler_plans_a_trajectory_job_and_reports_its_clips(sqlite_sm, local_store, scenes_dir, tmp_path) -> None:
+    spec = JobSpec.model_validate({
+        "cues": ["point_info"], "cameras": {"mode": "object", "object_count": 16}, "points": {"count": 2},
+        "views": {"mode": "trajectory", "trajectory_max_frames": 24, "trajectory_min_frames": 20,
+                  "trajectory_max_view_deg_per_m": 20, "resolution": 64},
+    })
+    with sqlite_sm() as s:
+        space = register_space(s, local_store, owner="alice", name="bunny",
+                               source_path=scenes_dir / "stanford_bunny" / "bun_zipper_res2.ply")
+        job_id = create_job(s, owner="alice", spec=spec, spaces=[space]).id
+        s.commit()
+    tr = NullTransport()
+    sched = Scheduler(sqlite_sm, local_store, tr, get_settings(data_dir=tmp_path, dispatch_window=100), "sched-1")
+    assert sched.tick().planned == [job_id]
+    plan = plan_from_json(local_store.get_bytes(f"jobs/{job_id}/_plan/bunny.json"))
+    with sqlite_sm() as s:
+        job = s.get(Job, job_id)
+        planned = job.plan_summary["spaces"]["bunny"]
+        assert planned["clips"] == clip_summary(plan.clip_notes, CLIP_NOTES_IN_SUMMARY)
+        assert planned["views"] == len(plan.views) == sum(len(plan.views_of(p.idx)) for p in plan.points)
+        assert all(len(plan.views_of(p.idx)) >= 20 for p in plan.points)  # videos
+        assert planned["shortfall"] == plan.shortfall
+        for _ in range(5):
+            finish(s, job, [i for i, _ in tr.sent])
+            tr.sent.clear()
+            res = sched.tick()
+            if res.finished:
+                break
+        assert [(f.job_id, f.state) for f in res.finished] == [(job_id, "done")]
+    doc = json.loads(local_store.get_bytes(f"jobs/{job_id}/job.json"))
+    assert doc["spaces"]["bunny"]["plan"]["clips"] == planned["clips"]
+    lines = local_store.get_bytes(f"jobs/{job_id}/manifest.jsonl").decode().splitlines()
+    assert len(lines) == len(plan.views)

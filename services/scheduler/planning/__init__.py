@@ -63,13 +63,14 @@ def make_plan(
     q = MeshQueries(space.mesh)
     salt = rng.bytes(16)
     cs = spec.cameras
+    orbit = None  # an object's camera sphere: trajectory clips orbit its points
     if cs.mode == "generate":
         cams, source = generate_cameras(q, cs, rng), "generated"
     elif cs.mode == "provided":
         cams, source = provided_cameras(cs), "provided"
     else:
-        cams, _, _ = object_cameras(space.mesh, cs, rng)
-        source = "object"
+        cams, centre, radius = object_cameras(space.mesh, cs, rng)
+        source, orbit = "object", (centre, radius)
     t1 = time.perf_counter()
     stamp["cameras"] = t1 - t0
     ps = spec.points
@@ -91,7 +92,7 @@ def make_plan(
     else:
         views, notes = trajectory(
             sampled.positions, sampled.normals, sampled.visible, cams, vs, ps.max_views, q,
-            ps.los_tolerance_m, cs.clearance_m, rng,
+            ps.los_tolerance_m, cs.clearance_m, rng, orbit,
         )
     shortfall = sampled.shortfall
     keep_points = np.unique(views.point_idx) if notes else np.arange(len(sampled.positions))

@@ -16,15 +16,30 @@ For each point:
      turn sharper than MAX_NODE_TURN at a camera: a reversal cannot be smoothed), at least
      WAYPOINT_SEP spacings from the earlier waypoints, and not at a dead end of the graph. The route
      grows forwards, then backwards from the first waypoint, while the budget lasts.
+  2b. loops and arcs, besides the route (the longest verified clip of a point wins, the route on
+     ties): level circles (the widest allowed and the tightest) round the LOOP_CANDIDATES cameras that
+     see the point with the most free space about them (nearest wall along LOOP_PROBES level rays), of
+     radius at least the turn limit's smallest (1 / (LOOP_SHARE x turn rate)), at most
+     LOOP_RADIUS_GROWTH x that, passing the point no nearer than 1 / (LOOP_SHARE x the look's share of
+     the view rate) (where a loop passes nearest it moves sideways, and the view turns 1 / distance
+     per metre), each lap at another height (LOOP_HEIGHT_SWING) so the laps of a long clip differ; and
+     level circles round the point itself at the cameras' median height, ARC_RADII x the least radius
+     both limits allow, of which verification keeps the longest arc in the room and in sight. Their
+     frames are exact: no smoothing.
   3. smoothing (approximating, not through the cameras): the route is resampled every spacing / 2 (at
      most MAX_SAMPLES_PER_RADIUS per smallest radius of curvature) and filtered by Gaussians of
-     growing sigma along its arc (ends mirrored by point reflection, so they stay put); at each sample the least sigma whose curvature nearby is within
-     FAIRING_MARGIN x trajectory_max_turn_deg_per_m is used, blended by a slowly varying weight, so
-     straight stretches keep their place (and clearance) and only sharp bends are rounded more.
-  4. frames every trajectory_spacing_m along the smoothed arc, each verified: clearance >=
+     growing sigma along its arc (ends mirrored by point reflection, so they stay put); at each sample
+     the least sigma whose curvature nearby is within FAIRING_MARGIN x trajectory_max_turn_deg_per_m
+     is used, blended by a slowly varying weight, so straight stretches keep their place (and
+     clearance) and only sharp bends are rounded more.
+  4. frames every trajectory_spacing_m along the smoothed arc; frames nearer the mesh than the clearance
+     are first pushed out along the distance gradient (from the nearest surface point) to PUSH_MARGIN x
+     the clearance, by a bump as wide as the smallest radius of curvature (so the turn stays bounded),
+     and the path resampled (PUSH_ROUNDS times at most); then each frame is verified: clearance >=
      cameras.clearance_m (exact distance; lowered to what the cameras themselves keep for provided or
-     object cameras, attainable_clearance), a clear segment to the route and to the previous frame
-     (still inside the free space the cameras are in), the point in sight (fixated clips), the turn
+     object cameras, attainable_clearance), a clear segment to the nearest anchor (a camera of the
+     route, a point of a loop's axis) and to the previous frame (still inside the free space the
+     cameras are in), the point in sight (fixated clips), the turn
      of the direction of motion and the camera rotation to the next frame within the limits. The clip
      is the longest run of frames that pass, at most trajectory_max_frames (the path is shortened,
      the spacing never stretched); a clip cut by a check is reported with the counts of failed checks,
@@ -34,10 +49,18 @@ For each point:
      U[-roll_max, roll_max] draw to another along a smoothstep, its rate at most ROLL_SHARE of the
      view limit (the remaining share bounds the look direction); the fov is one truncated-normal draw
      per clip (a constant zoom). camera_idx = the nearest camera to the frame.
+  6. objects (cameras.mode object, cameras on a sphere of radius r round the object): per-metre limits
+     fixed for rooms would leave a small object no clip at all, so its clips are planned as if the
+     sphere had a radius of OBJECT_REFERENCE_M: the spacing is trajectory_spacing_m x r /
+     OBJECT_REFERENCE_M and the per-metre limits are divided by that factor (the per-frame figures, and
+     the frame count, are those of a room). The clip orbits the point at distance r round an axis through
+     it (its normal, the mean direction to the cameras that see it, or up: the longest verified clip
+     wins), ORBIT_TILT_DEG from the axis with a slow swing, so laps differ.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -47,6 +70,7 @@ from scipy.interpolate import CubicSpline
 from scipy.ndimage import gaussian_filter1d, maximum_filter1d
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
+from scipy.special import erf
 
 from services.core.jobspec import ViewSpec
 from services.scheduler.planning.views import (
@@ -79,6 +103,18 @@ FAIRING_MARGIN = 0.8  # smooth to this share of the limit: frames span several d
 ROLL_SHARE = 0.1  # of the view-rate limit that roll may use
 ROUTE_VIEW_SHARE = 0.75  # of the view-rate limit that route edges may need: smoothing moves the path
 LIMIT_SLACK = 1.0 + 1e-6
+PUSH_MARGIN = 1.05  # frames too near the mesh are pushed to this x the clearance ...
+PUSH_ROUNDS = 3  # ... at most this many times (a push can bring a neighbour near)
+DENSE_PER_PUSH = 8  # spline samples per frame spacing when a pushed path is resampled
+LOOP_CANDIDATES = 8  # loop centres tried per point (rooms) ...
+LOOP_PROBES = 16  # ... of those whose free radius, probed by this many level rays, is largest
+LOOP_SHARE = 0.9  # of the limits a loop may use (its frames are exact: no smoothing moves them)
+LOOP_RADIUS_GROWTH = 1.25  # loop radius: this x the smallest the turn limit allows, where the room allows
+LOOP_HEIGHT_SWING = 0.15  # metres up and down: each lap at another height ...
+LOOP_SWING_RATE = 0.37  # ... swinging this many cycles per radian of lap (no whole fraction: laps differ)
+ARC_RADII = (1.05, 1.4, 1.8)  # circles round a point: radii in the least the limits allow
+OBJECT_REFERENCE_M = 5.0  # object clips are planned as if their camera sphere had this radius (step 6)
+ORBIT_TILT_DEG = (42.0, 8.0)  # object orbits: angle between the axis and the camera, mean and swing
 
 
 @dataclass
@@ -376,6 +412,31 @@ class Clip:
     note: ClipNote | None
 
 
+@dataclass(frozen=True)
+class Limits:
+    """What every clip of a plan is held to (lengths in metres, rates in radians per metre)."""
+
+    spacing: float
+    turn_rate: float
+    view_rate: float
+    max_frames: int
+    min_frames: int
+    ahead: bool
+    clearance: float
+    tol: float  # line-of-sight tolerance to the point
+
+    @classmethod
+    def of(cls, spec: ViewSpec, clearance: float, tol: float, scale: float = 1.0) -> Limits:
+        """The spec's limits, lengths multiplied by `scale` (object clips, module docstring step 6)."""
+        view_rate = np.radians(spec.trajectory_max_view_deg_per_m) / scale
+        turn_rate = np.radians(spec.trajectory_max_turn_deg_per_m) / scale
+        ahead = spec.trajectory_look == "ahead"
+        if ahead:  # the view follows the direction of motion
+            turn_rate = min(turn_rate, (1.0 - ROLL_SHARE) * view_rate)
+        return cls(spec.trajectory_spacing_m * scale, float(turn_rate), float(view_rate), spec.trajectory_max_frames,
+                   spec.trajectory_min_frames, ahead, clearance, tol)
+
+
 def trajectory(
     positions: np.ndarray,
     normals: np.ndarray,
@@ -387,21 +448,18 @@ def trajectory(
     tol: float,
     clearance: float,
     rng: np.random.Generator,
+    orbit: tuple[np.ndarray, float] | None = None,
 ) -> tuple[ViewArrays, list[ClipNote]]:
     """Frames of one clip per point (module docstring) and notes on the clips cut short or dropped;
-    v numbers the frames of a point."""
+    v numbers the frames of a point. orbit: (centre, radius m) of an object's camera sphere (cameras.mode
+    object): clips orbit the point, their lengths scaled by radius / OBJECT_REFERENCE_M."""
     rmax = np.radians(spec.roll_max_deg)
     fov_args = (np.radians(spec.fov_mean_deg), np.radians(spec.fov_std_deg),
                 np.radians(spec.fov_min_deg), np.radians(spec.fov_max_deg))
-    view_rate = np.radians(spec.trajectory_max_view_deg_per_m)
-    turn_rate = np.radians(spec.trajectory_max_turn_deg_per_m)
-    ahead = spec.trajectory_look == "ahead"
-    if ahead:  # the view follows the direction of motion
-        turn_rate = min(turn_rate, (1.0 - ROLL_SHARE) * view_rate)
-    spacing = spec.trajectory_spacing_m
-    budget = BUDGET_MARGIN * spacing * (spec.trajectory_max_frames - 1)
     clearance = attainable_clearance(cameras, q, clearance)
-    graph = free_space_graph(cameras, q, clearance)
+    lim = Limits.of(spec, clearance, tol, orbit[1] / OBJECT_REFERENCE_M if orbit is not None else 1.0)
+    budget = BUDGET_MARGIN * lim.spacing * (lim.max_frames - 1)
+    graph = free_space_graph(cameras, q, clearance) if orbit is None else sparse.csr_matrix((len(cameras),) * 2)
     unit = camera_spacing(cameras)
     tree = cKDTree(cameras)
     P: list[np.ndarray] = []
@@ -412,13 +470,20 @@ def trajectory(
     notes: list[ClipNote] = []
     for p, cams in enumerate(visible):
         cams = cap_views(cams, max_views, rng)
-        sub = graph[cams][:, cams]
-        if not ahead:
-            sub = point_graph(sub, cameras[cams], positions[p], ROUTE_VIEW_SHARE * view_rate, q, tol)
-        node = choose_route(sub, cameras[cams], positions[p], budget, 1.0 / view_rate, unit, rng)
         roll_pair = rng.uniform(-rmax, rmax, 2)
         fov = float(truncated_normal(rng, *fov_args, 1)[0])
-        clip = fly_clip(cameras[cams][node], positions[p], spec, q, tol, clearance, turn_rate, view_rate, ahead, roll_pair, p)
+        clips: list[Clip] = []
+        if orbit is not None:
+            loops = object_orbits(positions[p], normals[p], cameras[cams], orbit[1], lim, rng)
+        else:
+            sub = graph[cams][:, cams]
+            if not lim.ahead:
+                sub = point_graph(sub, cameras[cams], positions[p], ROUTE_VIEW_SHARE * lim.view_rate, q, tol)
+            node = choose_route(sub, cameras[cams], positions[p], budget, 1.0 / lim.view_rate, unit, rng)
+            clips.append(fly_clip(cameras[cams][node], positions[p], lim, q, roll_pair, p))
+            loops = room_loops(positions[p], cameras[cams], lim, q, rng) + point_arcs(positions[p], cameras[cams], lim, rng)
+        clips += [verify_clip(frames, anchors, positions[p], lim, q, roll_pair, p) for frames, anchors in loops]
+        clip = max(clips, key=lambda c: len(c.frames))  # the first of the longest
         if clip.note is not None:
             notes.append(clip.note)
         n = len(clip.frames)
@@ -444,45 +509,173 @@ def trajectory(
     return ViewArrays(pidx, v, np.asarray(nearest, dtype=np.int64), W, fov_all, roll, obl, in_sight), notes
 
 
-def fly_clip(
-    route: np.ndarray, point: np.ndarray, spec: ViewSpec, q: MeshQueries, tol: float, clearance: float,
-    turn_rate: float, view_rate: float, ahead: bool, roll_pair: np.ndarray, p: int,
-) -> Clip:
-    """Smooth, sample, verify and cut one clip (module docstring, steps 3-5)."""
-    spacing = spec.trajectory_spacing_m
+def fly_clip(route: np.ndarray, point: np.ndarray, lim: Limits, q: MeshQueries, roll_pair: np.ndarray, p: int) -> Clip:
+    """Smooth, sample, verify and cut one clip along a route of cameras (module docstring, steps 3-5)."""
     # at most the budget of path: bounds the smoothing samples whatever the spacing
-    route = trim(route, BUDGET_MARGIN * spacing * (spec.trajectory_max_frames - 1))
+    route = trim(route, BUDGET_MARGIN * lim.spacing * (lim.max_frames - 1))
     route = route[np.concatenate([[True], np.linalg.norm(np.diff(route, axis=0), axis=1) > 1e-9])]
-    frames = frames_along(smooth_path(route, spacing, turn_rate), spacing) if len(route) > 1 else route[:1]
+    if len(route) == 1:
+        return verify_clip(route[:1], route, point, lim, q, roll_pair, p, lone=lim.max_frames > 1)
+    frames = frames_along(smooth_path(route, lim.spacing, lim.turn_rate), lim.spacing)
+    return verify_clip(frames, route, point, lim, q, roll_pair, p)
+
+
+def spiral(
+    base: np.ndarray, axis: np.ndarray, radius: Callable[[np.ndarray], np.ndarray],
+    along: Callable[[np.ndarray], np.ndarray], lim: Limits, rng: np.random.Generator,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Frames every lim.spacing (at most lim.max_frames) of a loop around the line through `base` along
+    `axis`: at lap angle phi (from a random start, either way round) the camera is radius(phi) from the
+    line and along(phi) along it; and the points of the line the loop winds round (its anchors)."""
+    axis = _unit(axis)
+    u = _unit(np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0]))
+    w = np.cross(axis, u)
+    length = lim.spacing * (lim.max_frames - 1)
+    probe = radius(np.linspace(0.0, 2 * np.pi / LOOP_SWING_RATE, 256))  # a whole swing
+    r_lo, r_hi = float(probe.min()), float(probe.max())
+    phi = np.arange(0.0, 1.5 * length / r_lo + 1e-9, lim.spacing / (8.0 * r_hi))
+    start, sense = rng.uniform(0.0, 2 * np.pi), rng.choice([-1.0, 1.0])
+    turn = start + sense * phi
+    ring = np.cos(turn)[:, None] * u + np.sin(turn)[:, None] * w
+    dense = base + along(phi)[:, None] * axis + radius(phi)[:, None] * ring
+    return resample(dense, lim.spacing, keep_end=False)[:lim.max_frames], base + along(phi)[::8, None] * axis
+
+
+def room_loops(
+    point: np.ndarray, cams: np.ndarray, lim: Limits, q: MeshQueries, rng: np.random.Generator,
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Level loops round the cameras with the most free space about them, far enough from the point that
+    the view turns slowly where the loop passes it (module docstring, step 2b)."""
+    # the view turns 1 / distance per metre moved sideways; the radius of a circle is its turn per metre
+    near_pass = 0.0 if lim.ahead else 1.0 / (LOOP_SHARE * (1.0 - ROLL_SHARE) * lim.view_rate)
+    tight = 1.0 / (LOOP_SHARE * lim.turn_rate)
+    reach = np.linalg.norm((cams - point)[:, :2], axis=1) - near_pass
+    ok = np.flatnonzero(reach >= tight)
+    if not len(ok):
+        return []
+    # free radius: the nearest wall along LOOP_PROBES level rays, less a margin for the clearance
+    angle = np.arange(LOOP_PROBES) * 2 * np.pi / LOOP_PROBES
+    dirs = np.stack([np.cos(angle), np.sin(angle), np.zeros(LOOP_PROBES)], axis=1)
+    hit, _ = q.first_hit(np.repeat(cams[ok], LOOP_PROBES, axis=0), np.tile(dirs, (len(ok), 1)))
+    free = hit.reshape(len(ok), LOOP_PROBES).min(axis=1) - 2 * lim.clearance
+    radius = np.minimum(np.minimum(reach[ok], free), LOOP_RADIUS_GROWTH * tight)
+    best = np.argsort(-radius, kind="stable")[:LOOP_CANDIDATES]
+    # each centre with its widest loop and its tightest (less often hidden by furniture in part)
+    loops = [(ok[i], r) for i in best if radius[i] >= tight for r in sorted({float(radius[i]), tight}, reverse=True)]
+    up = np.array([0.0, 0.0, 1.0])
+    return [spiral(cams[c], up, _constant(r), _height_swing, lim, rng) for c, r in loops]
+
+
+def point_arcs(point: np.ndarray, cams: np.ndarray, lim: Limits, rng: np.random.Generator) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Level circles round the point itself at the cameras' median height (module docstring, step 2b):
+    where the room allows no loop in front of a point, the arc of such a circle that stays in the room
+    and in sight is often longer than a route; the cameras that see the point are its anchors."""
+    if not len(cams):
+        return []
+    base = np.array([point[0], point[1], float(np.median(cams[:, 2]))])
+    nearest = max(1.0 / (LOOP_SHARE * (1.0 - ROLL_SHARE) * lim.view_rate), 1.0 / (LOOP_SHARE * lim.turn_rate))
+    out = []
+    for growth in ARC_RADII:
+        frames, _ = spiral(base, np.array([0.0, 0.0, 1.0]), _constant(growth * nearest), _height_swing, lim, rng)
+        out.append((frames, cams))
+    return out
+
+
+def _constant(value: float) -> Callable[[np.ndarray], np.ndarray]:
+    def at(phi: np.ndarray) -> np.ndarray:
+        return np.full(len(phi), value)
+    return at
+
+
+def _height_swing(phi: np.ndarray) -> np.ndarray:
+    return LOOP_HEIGHT_SWING * np.sin(LOOP_SWING_RATE * phi)
+
+
+def object_orbits(
+    point: np.ndarray, normal: np.ndarray, cams: np.ndarray, distance: float, lim: Limits, rng: np.random.Generator,
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Orbits `distance` from the point round an axis through it (its normal; the mean direction to the
+    cameras that see it; up), tilted ORBIT_TILT_DEG from the axis with a slow swing (module docstring, 2b)."""
+    mean_tilt, swing = np.radians(ORBIT_TILT_DEG)
+    # and up: a steep axis would carry the camera over the point, where looking down spins the view
+    axes = [normal] + ([_unit(_unit(cams - point).mean(axis=0))] if len(cams) else []) + [np.array([0.0, 0.0, 1.0])]
+
+    def tilt(phi: np.ndarray) -> np.ndarray:
+        return mean_tilt + swing * np.sin(LOOP_SWING_RATE * phi)
+
+    def off_axis(phi: np.ndarray) -> np.ndarray:
+        return distance * np.sin(tilt(phi))
+
+    def along_axis(phi: np.ndarray) -> np.ndarray:
+        return distance * np.cos(tilt(phi))
+
+    return [spiral(point, a, off_axis, along_axis, lim, rng) for a in axes]
+
+
+def push_out(frames: np.ndarray, q: MeshQueries, lim: Limits) -> np.ndarray:
+    """Frames moved away from the mesh where they come closer than the clearance: along the direction
+    from the nearest surface point (the distance gradient), by a Gaussian bump about one smallest radius
+    of curvature wide so the path stays smooth, then resampled every spacing (module docstring, 4)."""
+    if lim.clearance <= 0 or len(frames) < 3:
+        return frames
+    sigma = max(1.0, 1.0 / lim.turn_rate / lim.spacing)  # frames
+    plateau = 2 * int(np.ceil(2 * sigma)) + 1  # the bump's full height spans +-2 sigma about each push ...
+    full = float(erf(np.sqrt(2.0)))  # ... of which the Gaussian keeps this share at the pushed frame
+    for _ in range(PUSH_ROUNDS):
+        dist, closest = q.closest_within(frames, lim.clearance)
+        near = np.flatnonzero((dist < lim.clearance) & (dist > 1e-9))
+        if not len(near):
+            break
+        need = np.zeros(len(frames))
+        need[near] = PUSH_MARGIN * lim.clearance - dist[near]
+        away = np.zeros_like(frames)
+        away[near] = (frames[near] - closest[near]) / dist[near, None] * need[near, None]
+        # height: the largest push nearby, smoothed; direction: the pushes nearby, averaged
+        height = gaussian_filter1d(maximum_filter1d(need, plateau, mode="constant"), sigma, mode="constant") / full
+        direction = gaussian_filter1d(away, 2 * sigma, axis=0, mode="constant")
+        norm = np.linalg.norm(direction, axis=1, keepdims=True)
+        shift = np.where(norm > 0, direction / np.maximum(norm, 1e-300), 0.0) * height[:, None]
+        # resampled along the arc of a fine spline: a push along the path must not bunch the frames
+        frames = resample(frames_along(frames + shift, lim.spacing / DENSE_PER_PUSH), lim.spacing, keep_end=False)
+    return frames
+
+
+def verify_clip(
+    frames: np.ndarray, anchors: np.ndarray, point: np.ndarray, lim: Limits, q: MeshQueries, roll_pair: np.ndarray,
+    p: int, *, lone: bool = False,
+) -> Clip:
+    """Push out, verify and cut the frames of one clip (module docstring, steps 4-5); anchors: points in
+    the free space the clip was planned through (its route's cameras, the axis of a loop), each frame in
+    sight of its nearest."""
+    frames = push_out(frames, q, lim)
     n = len(frames)
     fail: dict[str, np.ndarray] = {}
-    fail["clearance"] = q.near_mesh(frames, clearance) if clearance > 0 else np.zeros(n, dtype=bool)
-    nearest_node = route[cKDTree(route).query(frames)[1]]
+    fail["clearance"] = q.near_mesh(frames, lim.clearance) if lim.clearance > 0 else np.zeros(n, dtype=bool)
+    nearest_anchor = anchors[cKDTree(anchors).query(frames)[1]]
     link_clear = q.line_of_sight(frames[:-1], frames[1:], 0.0) if n > 1 else np.ones(0, dtype=bool)
-    fail["outside"] = ~q.line_of_sight(frames, nearest_node, 0.0)
-    fail["hidden"] = np.zeros(n, dtype=bool) if ahead else ~q.line_of_sight(frames, np.tile(point, (n, 1)), tol)
+    fail["outside"] = ~q.line_of_sight(frames, nearest_anchor, 0.0)
+    fail["hidden"] = np.zeros(n, dtype=bool) if lim.ahead else ~q.line_of_sight(frames, np.tile(point, (n, 1)), lim.tol)
     fail["hidden"] |= np.linalg.norm(frames - point, axis=1) < 1e-6  # never look at the point from itself
     turn = np.zeros(n, dtype=bool)
     if n > 2:
-        turn[1:-1] = turn_angles(frames) > turn_rate * spacing * LIMIT_SLACK
+        turn[1:-1] = turn_angles(frames) > lim.turn_rate * lim.spacing * LIMIT_SLACK
     fail["turn"] = turn
-    look = _look_targets(frames, point, ahead)
+    look = _look_targets(frames, point, lim.ahead)
     view_ok = np.ones(max(n - 1, 0), dtype=bool)
     if n > 1:
         W0 = look_at_batch(frames, look, np.zeros(n))
-        view_ok = rotation_angles(W0) <= (1.0 - ROLL_SHARE) * view_rate * spacing * LIMIT_SLACK
+        view_ok = rotation_angles(W0) <= (1.0 - ROLL_SHARE) * lim.view_rate * lim.spacing * LIMIT_SLACK
     fail["view"] = np.zeros(n, dtype=bool)
     fail["view"][1:] |= ~view_ok
     good = ~(fail["clearance"] | fail["outside"] | fail["hidden"] | fail["turn"])
     a, b = longest_run(good, link_clear & view_ok)
-    planned = min(n, spec.trajectory_max_frames)
-    if b - a > spec.trajectory_max_frames:  # shorten the path, keep its middle
-        a += (b - a - spec.trajectory_max_frames) // 2
-        b = a + spec.trajectory_max_frames
+    planned = min(n, lim.max_frames)
+    if b - a > lim.max_frames:  # shorten the path, keep its middle
+        a += (b - a - lim.max_frames) // 2
+        b = a + lim.max_frames
     note = None
     cut = b - a < planned
-    lone = len(route) == 1 and spec.trajectory_max_frames > 1
-    short = b - a < spec.trajectory_min_frames
+    short = b - a < lim.min_frames
     if cut or lone or short:
         reasons = {k: int(v.sum()) for k, v in fail.items() if v.any()} if cut else {}
         if lone:
@@ -493,8 +686,8 @@ def fly_clip(
             a = b
         note = ClipNote(point=p, frames=b - a, planned=planned, reasons=reasons)
     frames = frames[a:b]
-    look = _look_targets(frames, point, ahead)  # the tangent at a cut end is one-sided
-    return Clip(frames, look, _roll(roll_pair, len(frames), spacing, view_rate), note)
+    look = _look_targets(frames, point, lim.ahead)  # the tangent at a cut end is one-sided
+    return Clip(frames, look, _roll(roll_pair, len(frames), lim), note)
 
 
 def _look_targets(frames: np.ndarray, point: np.ndarray, ahead: bool) -> np.ndarray:
@@ -505,13 +698,13 @@ def _look_targets(frames: np.ndarray, point: np.ndarray, ahead: bool) -> np.ndar
     return frames + t / np.linalg.norm(t, axis=1, keepdims=True)
 
 
-def _roll(pair: np.ndarray, n: int, spacing: float, view_rate: float) -> np.ndarray:
+def _roll(pair: np.ndarray, n: int, lim: Limits) -> np.ndarray:
     """Roll from pair[0] towards pair[1] along a smoothstep over the clip, at most ROLL_SHARE x view_rate
     radians per metre (smoothstep's steepest slope is 1.5 / length)."""
     if n < 2:
         return pair[:n].copy()
-    length = spacing * (n - 1)
-    limit = ROLL_SHARE * view_rate * length / 1.5
+    length = lim.spacing * (n - 1)
+    limit = ROLL_SHARE * lim.view_rate * length / 1.5
     span = float(np.clip(pair[1] - pair[0], -limit, limit))
     s = np.linspace(0.0, 1.0, n)
     return pair[0] + span * s * s * (3.0 - 2.0 * s)

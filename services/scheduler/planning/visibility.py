@@ -118,6 +118,13 @@ class MeshQueries:
             self._faces = _FaceIndex(self.mesh)
         return self._faces.near(np.asarray(points, dtype=np.float64), float(radius))
 
+    def closest_within(self, points: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+        """Exact distance (m; inf when the mesh is farther than `radius`) and the closest mesh point
+        ((n, 3); the point itself when farther) of each point."""
+        if self._faces is None:
+            self._faces = _FaceIndex(self.mesh)
+        return self._faces.closest(np.asarray(points, dtype=np.float64), float(radius))
+
 
 class _FaceIndex:
     """Exact point-to-mesh distance tests. Faces are grouped by bounding radius into levels growing 4x
@@ -143,6 +150,25 @@ class _FaceIndex:
             cp = trimesh.triangles.closest_point(self.tris[f], p)
             out[s:s + _PAIR_CHUNK] = np.linalg.norm(cp - p, axis=1) < radius
         return out
+
+    def closest(self, points: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+        dist = np.full(len(points), np.inf)
+        closest = points.copy()
+        for ids, rmax, tree in self.levels:
+            lists = tree.query_ball_point(points, radius + rmax)
+            lens = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
+            if not lens.sum():
+                continue
+            pi = np.repeat(np.arange(len(points)), lens)
+            fi = ids[np.concatenate([np.asarray(x, dtype=np.int64) for x in lists])]
+            cp = trimesh.triangles.closest_point(self.tris[fi], points[pi])
+            d = np.linalg.norm(cp - points[pi], axis=1)
+            order = np.lexsort((d, pi))  # per point, its nearest candidate first
+            first = order[np.r_[True, pi[order][1:] != pi[order][:-1]]]
+            better = (d[first] < radius) & (d[first] < dist[pi[first]])
+            dist[pi[first][better]] = d[first][better]
+            closest[pi[first][better]] = cp[first][better]
+        return dist, closest
 
     def near(self, points: np.ndarray, radius: float) -> np.ndarray:
         near = np.zeros(len(points), dtype=bool)

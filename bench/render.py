@@ -62,8 +62,8 @@ ROOM_NAME = "icl_livingroom"
 # render and the CPU-clock hook added, same machine, same hour), kept to
 # compare: bench/results/render_room_before.json.
 BEFORE = RESULTS / "render_room_before.json"
-# The figures after issue 10's first pass (segmentations, NARF pyramid, pass selection, PNG settings), the
-# baseline of its second pass (keypoints2d kernels, EXR codecs): bench/results/render_issue10_first.json.
+# The figures of issue 10's first pass (segmentations, NARF pyramid, pass selection, PNG settings: commit 7469639, run
+# in the same hour on the same views), the baseline of its second pass: bench/results/render_issue10_first.json.
 FIRST_PASS = RESULTS / "render_issue10_first.json"
 GPU_NOTE = ("no accelerator was lent to this task (device tool: not drawn, can_start_another false), so no GPU figures;"
             " a CUDA/OptiX/auto request falls back to the CPU with a log line (tests/worker/test_render.py)")

@@ -289,6 +289,17 @@ def add_counts(session: Session | Connection, job_id: int, deltas: Mapping[tuple
     conn.execute(stmt)
 
 
+def upsert(
+    session: Session | Connection, model_or_table: type[DeclarativeBase] | Table, row: Mapping[str, Any],
+    key: Sequence[str], insert_only: Sequence[str] = (),
+) -> None:
+    """INSERT `row`, or where its `key` exists UPDATE every other column but `insert_only`: one statement."""
+    table = _table(model_or_table)
+    ins = _upsert(_connection(session))(table).values(dict(row))
+    changes = {c: ins.excluded[c] for c in row if c not in key and c not in insert_only}
+    _connection(session).execute(ins.on_conflict_do_update(index_elements=list(key), set_=changes))
+
+
 def init_counts(session: Session | Connection, job_id: int, pending: Mapping[str, int]) -> None:
     """Record freshly planned tasks: `pending[cue]` tasks of each cue in state 'pending'."""
     add_counts(session, job_id, {(cue, "pending"): n for cue, n in pending.items()})

@@ -66,6 +66,9 @@ class Settings(BaseSettings):
     )
     presign_expiry_s: int = Field(3600, gt=0, le=7 * 24 * 3600)
     lease_s: int = Field(300, gt=0, description="seconds a running task holds its lease")
+    heartbeat_timeout_s: int = Field(
+        30, gt=0, description="a worker without a heartbeat this long is dead: its running tasks are requeued"
+    )
     max_attempts: int = Field(3, ge=1)
     dispatch_window: int = Field(2000, ge=1, description="queued tasks per job at most")
     worker_max_tasks: int = Field(500, ge=1, description="a worker process recycles after this many tasks")

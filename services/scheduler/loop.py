@@ -243,9 +243,10 @@ class Scheduler:
         return res
 
     def reap_once(self) -> ReapResult:
-        """Return expired and lost tasks to pending (or fail them when out of attempts)."""
+        """Return dead workers' tasks, expired and lost tasks to pending (or fail them when out of attempts)."""
         with self.sessionmaker() as s:
-            res = reap_once(s, queued_timeout_s=self.settings.lease_s, default_max_attempts=self.settings.max_attempts)
+            res = reap_once(s, queued_timeout_s=self.settings.lease_s, default_max_attempts=self.settings.max_attempts,
+                            dead_after_s=self.settings.heartbeat_timeout_s)
             expire_worker_rows(s, older_than_s=self.settings.worker_expiry_s)
         self._last_reap = time.monotonic()
         return res

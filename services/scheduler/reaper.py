@@ -1,7 +1,10 @@
-"""Reaper: give back tasks whose worker died (lease expired) or whose message was lost (queued too long).
+"""Reaper: give back tasks whose worker died (declared dead, or lease expired) or whose message was lost.
 
-- running, lease_until < now: the worker stopped heart-beating (kill -9, node lost). The attempt it
-  made counts: with attempts < max_attempts the task goes back to pending after a backoff, else it
+- running, and its worker declared dead: the worker's row has had no heartbeat for `dead_after_s`
+  (kill -9, node lost; beats come every 5 s) and the task started before that too. This requeues a
+  dead worker's task within about a minute instead of when its lease of minutes runs out.
+- running, lease_until < now: the lease ran out (a worker with no heartbeat row, e.g. the embedded
+  runner, or one whose beats stopped extending it). Either way the attempt it made counts: with attempts < max_attempts the task goes back to pending after a backoff, else it
   fails for good with the reason kept. Tasks of a cancelled job are cancelled instead.
 - queued, queued_at < now - queued_timeout: the message never reached a worker (Redis restarted
   without persistence); back to pending with attempts unchanged, to be sent again.
@@ -17,12 +20,12 @@ from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import Any
 
-from sqlalchemy import select
+from sqlalchemy import and_, or_, select
 from sqlalchemy.orm import Session
 
 from services.core.db import transition
 from services.core.jobs import retry_backoff_s
-from services.core.models import Job, Task, utcnow
+from services.core.models import Job, Task, Worker, utcnow
 
 log = logging.getLogger(__name__)
 
@@ -33,10 +36,11 @@ REAP_BATCH = 10_000  # rows looked at per kind per pass
 class ReapResult:
     """Tasks moved by one reaper pass."""
 
-    expired_retried: int = 0  # running -> pending (lease expired, attempts left)
+    expired_retried: int = 0  # running -> pending (worker dead or lease expired, attempts left)
     expired_failed: int = 0  # running -> failed (lease expired, no attempts left)
     expired_cancelled: int = 0  # running -> cancelled (job cancelled meanwhile)
     lost_requeued: int = 0  # queued -> pending (message lost)
+    dead_worker: int = 0  # of the running tasks moved, those whose worker was declared dead before the lease ran out
 
     @property
     def total(self) -> int:
@@ -50,21 +54,39 @@ def _locked(session: Session, stmt: Any) -> Any:
     return session.execute(stmt).all()
 
 
+def _why(row: Any, now: datetime, dead_after_s: float | None) -> str:
+    """How the worker of an expired row was lost, for the task's error text."""
+    if row.lease_until is not None and row.lease_until < now:
+        return f"LeaseExpired: worker {row.worker_id} stopped heart-beating (lost or killed)"
+    return f"WorkerDead: worker {row.worker_id} sent no heartbeat for over {dead_after_s:.0f} s (lost or killed)"
+
+
 def reap_once(
-    session: Session, *, queued_timeout_s: float, now: datetime | None = None, default_max_attempts: int = 3
+    session: Session, *, queued_timeout_s: float, now: datetime | None = None, default_max_attempts: int = 3,
+    dead_after_s: float | None = None,
 ) -> ReapResult:
-    """One reaper pass over expired leases and lost queued tasks; commits. Returns the counts."""
+    """One reaper pass over dead workers' tasks, expired leases and lost queued tasks; commits. Returns the counts.
+
+    `dead_after_s`: a worker whose last heartbeat is older than this is dead (None: leases only).
+    """
     now = now or utcnow()
     res = ReapResult()
 
+    lost_worker = Task.lease_until < now
+    if dead_after_s is not None:
+        silent_since = now - timedelta(seconds=dead_after_s)
+        # started_at too: a task claimed after the worker's last beat proves the worker was alive then
+        lost_worker = or_(lost_worker, and_(Worker.last_heartbeat < silent_since, Task.started_at < silent_since))
     expired = _locked(
         session,
-        select(Task.id, Task.job_id, Task.attempts, Task.worker_id, Job.state, Job.spec)
+        select(Task.id, Task.job_id, Task.attempts, Task.worker_id, Task.lease_until, Job.state, Job.spec)
         .join(Job, Job.id == Task.job_id)
-        .where(Task.state == "running", Task.lease_until < now)
+        .join(Worker, Worker.id == Task.worker_id, isouter=True)
+        .where(Task.state == "running", lost_worker)
         .order_by(Task.id)
         .limit(REAP_BATCH),
     )
+    res.dead_worker = sum(1 for r in expired if r.lease_until is None or r.lease_until >= now)
     by_job: dict[int, list[Any]] = defaultdict(list)
     for row in expired:
         by_job[int(row.job_id)].append(row)
@@ -77,26 +99,25 @@ def reap_once(
             ))
             continue
         max_attempts = int(spec.get("max_attempts") or default_max_attempts)
-        retry: dict[float, list[int]] = defaultdict(list)
+        retry: dict[tuple[float, str], list[int]] = defaultdict(list)
         fail: list[Any] = []
         for r in rows:
             if int(r.attempts) < max_attempts:
-                retry[retry_backoff_s(int(r.attempts))].append(int(r.id))
+                retry[retry_backoff_s(int(r.attempts)), _why(r, now, dead_after_s)].append(int(r.id))
             else:
                 fail.append(r)
-        for backoff, ids in retry.items():
+        for (backoff, why), ids in retry.items():
             res.expired_retried += len(transition(
                 session, job_id=job_id, task_ids=ids, from_state="running", to_state="pending",
                 lease_until=None, worker_id=None, queued_at=None,
-                not_before=now + timedelta(seconds=backoff),
-                error="lease expired: the worker stopped heart-beating (lost or killed); retrying",
+                not_before=now + timedelta(seconds=backoff), error=f"{why}; retrying",
             ))
         for r in fail:  # one by one: each keeps its own error text (few: only tasks out of attempts)
             res.expired_failed += len(transition(
                 session, job_id=job_id, task_ids=[r.id], from_state="running", to_state="failed",
                 lease_until=None, finished_at=now,
                 error=(
-                    f"LeaseExpired: worker {r.worker_id} stopped heart-beating while running this task; "
+                    f"{_why(r, now, dead_after_s)} while running this task; "
                     f"gave up after {r.attempts} attempt(s) (max_attempts={max_attempts})"
                 ),
             ))
@@ -119,7 +140,8 @@ def reap_once(
     session.commit()
     if res.total:
         log.info(
-            "reaper: %d expired leases retried, %d failed, %d cancelled; %d lost queued tasks requeued",
-            res.expired_retried, res.expired_failed, res.expired_cancelled, res.lost_requeued,
+            "reaper: %d tasks of lost workers retried, %d failed, %d cancelled (%d of dead workers, before "
+            "their lease ran out); %d lost queued tasks requeued",
+            res.expired_retried, res.expired_failed, res.expired_cancelled, res.dead_worker, res.lost_requeued,
         )
     return res

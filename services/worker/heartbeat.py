@@ -1,9 +1,10 @@
-"""Worker heartbeat (execution contract: Reaper): a thread that keeps the worker's row fresh and extends the
-lease of the task it is running, every few seconds.
+"""Worker heartbeat (execution contract: Reaper): a thread that keeps the worker's row fresh every few seconds
+and extends the lease of the task it is running before the lease runs out.
 
 The `worker` row (id: the worker's name, or host:pid) carries host, queues, last heartbeat, current task, tasks
 done, labels per cue and labels/s over the last minute; the dashboard reads it. A worker that stops beating
-(kill -9, lost node) lets its task's lease run out, and the scheduler's reaper gives the task to another worker.
+(kill -9, lost node) is declared dead after OMNIDATA_HEARTBEAT_TIMEOUT_S, and the scheduler's reaper gives its
+task to another worker then, without waiting for the task's lease to run out.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from datetime import timedelta
 from sqlalchemy import update
 from sqlalchemy.orm import Session
 
+from services.core.db import upsert
 from services.core.models import Task, Worker, utcnow
 
 log = logging.getLogger(__name__)
@@ -28,7 +30,7 @@ RATE_WINDOW_S = 60.0  # labels/s is measured over this trailing window
 
 
 def heartbeat_interval(lease_s: float) -> float:
-    """Seconds between beats: 5 s, or a third of the lease when leases are shorter (tests), never below 0.5 s."""
+    """Seconds between beats: 5 s, or a third of `lease_s` (the lease or heartbeat timeout) when shorter, >= 0.5 s."""
     return max(0.5, min(HEARTBEAT_INTERVAL_S, lease_s / 3.0))
 
 
@@ -51,7 +53,12 @@ class Heartbeat:
         self.queues = list(queues)
         self.lease_s = float(lease_s)
         self.interval_s = heartbeat_interval(lease_s) if interval_s is None else float(interval_s)
+        # The worker row says it is alive every beat (the reaper's heartbeat timeout); the task row, written far
+        # less often, only needs its lease pushed before it runs out: a third of the way in, not every 5 s.
+        self.extend_after_s = self.lease_s / 3.0
+        self._leased_at = 0.0  # monotonic time of the current task's claim or last lease extension
         self._lock = threading.Lock()
+        self._beat_lock = threading.Lock()
         self._current: int | None = None
         self._tasks_done = 0
         self._labels: dict[str, int] = {}
@@ -65,8 +72,10 @@ class Heartbeat:
     # ------------------------------------------------------------------ called by the runner
 
     def set_current(self, task_id: int | None) -> None:
-        """The task this worker now runs (its lease is extended by each beat), or None when idle."""
+        """The task this worker has just claimed with a full lease (beats extend it), or None when idle."""
         with self._lock:
+            if task_id != self._current:
+                self._leased_at = time.monotonic()
             self._current = task_id
 
     def record_done(self, cue: str, labels: int = 1) -> None:
@@ -102,28 +111,31 @@ class Heartbeat:
     # ------------------------------------------------------------------ the beat
 
     def beat(self) -> None:
-        """Upsert the worker row and extend the current task's lease (only while it is still ours and running)."""
+        """Upsert the worker row (one statement) and, once `extend_after_s` has passed since the claim or the last
+        extension, extend the current task's lease (only while it is still ours and running)."""
+        with self._beat_lock:  # the thread's beat and a direct call (stop, tests) land in the order they were made
+            self._beat()
+
+    def _beat(self) -> None:
         rate = self.labels_per_s()
         with self._lock:
             current, done, labels = self._current, self._tasks_done, dict(self._labels)
+            extend = current is not None and time.monotonic() - self._leased_at >= self.extend_after_s
         now = utcnow()
         with self._sessionmaker() as session, session.begin():
-            row = session.get(Worker, self.worker_id)
-            if row is None:
-                row = Worker(id=self.worker_id, host=self.host, started_at=now)
-                session.add(row)
             if self._inherited is None:
                 # A named worker's row outlives its child processes (recycling): carry on its counts.
-                self._inherited = (int(row.tasks_done or 0), dict(row.labels or {}))
+                prev = session.get(Worker, self.worker_id)
+                self._inherited = (int(prev.tasks_done or 0), dict(prev.labels or {})) if prev is not None else (0, {})
             base_done, base_labels = self._inherited
-            row.host = self.host
-            row.queues = self.queues
-            row.last_heartbeat = now
-            row.current_task_id = current
-            row.tasks_done = base_done + done
-            row.labels_per_s = rate
-            row.labels = {cue: int(base_labels.get(cue, 0)) + labels.get(cue, 0) for cue in {*base_labels, *labels}}
-            if current is not None:
+            row = {
+                "id": self.worker_id, "host": self.host, "queues": self.queues, "started_at": now,
+                "last_heartbeat": now, "current_task_id": current, "tasks_done": base_done + done,
+                "labels_per_s": rate,
+                "labels": {cue: int(base_labels.get(cue, 0)) + labels.get(cue, 0) for cue in {*base_labels, *labels}},
+            }
+            upsert(session, Worker, row, key=["id"], insert_only=["started_at"])
+            if extend:
                 # Not a state change (counters untouched): only pushes the deadline of a task we hold.
                 session.execute(
                     update(Task)
@@ -131,6 +143,9 @@ class Heartbeat:
                     .values(lease_until=now + timedelta(seconds=self.lease_s))
                     .execution_options(synchronize_session=False)
                 )
+        if extend:
+            with self._lock:
+                self._leased_at = time.monotonic()
         self.beats += 1
 
     def _run(self) -> None:

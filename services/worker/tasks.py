@@ -54,14 +54,32 @@ def _settings_from_app(app: Any) -> Settings:
     return s if isinstance(s, Settings) else get_settings()
 
 
+def worker_engine(database_url: str, **kwargs: Any) -> Any:
+    """The worker's database engine; on Postgres its commits do not wait for the WAL flush (synchronous_commit off).
+
+    Every claim and result of the whole fleet updates the same few counter rows of a job, and a commit that holds
+    their row locks through an fsync serialises the workers (bench/scale_sim.py: at 1,000 workers backends wait
+    on those locks and claims take seconds). A server crash can lose the last fraction of a second of worker
+    commits, which tasks survive by design: a lost claim leaves a queued task the reaper sends again, a lost
+    result a running task whose lease runs out and whose rerun writes identical bytes.
+    """
+    from sqlalchemy.engine import make_url
+
+    from services.core.db import make_engine
+
+    if make_url(database_url).get_backend_name() == "postgresql":
+        kwargs.setdefault("connect_args", {"options": "-c synchronous_commit=off"})
+    return make_engine(database_url, **kwargs)
+
+
 def build_runtime(settings: Settings, *, queues: list[str] | None = None, name: str | None = None) -> Runtime:
     """Engine, store, TaskRunner and a started heartbeat for this process (worker id: see default_worker_id)."""
-    from services.core.db import make_engine, make_sessionmaker
+    from services.core.db import make_sessionmaker
     from services.core.storage import open_store
-    from services.worker.heartbeat import Heartbeat, expire_leases
+    from services.worker.heartbeat import Heartbeat, expire_leases, heartbeat_interval
     from services.worker.runner import TaskRunner, default_worker_id
 
-    engine = make_engine(settings.database_url)
+    engine = worker_engine(settings.database_url)
     sm = make_sessionmaker(engine)
     store = open_store(settings.storage_url, settings)
     worker_id = default_worker_id(name)
@@ -71,7 +89,8 @@ def build_runtime(settings: Settings, *, queues: list[str] | None = None, name: 
         expire_leases(sm, [worker_id])
     threads = os.environ.get("OMNIDATA_RENDER_THREADS")
     hb = Heartbeat(sm, worker_id, queues=queues or [settings.queue_render, settings.queue_derive],
-                   lease_s=settings.lease_s)
+                   lease_s=settings.lease_s,
+                   interval_s=heartbeat_interval(min(settings.lease_s, settings.heartbeat_timeout_s)))
     runner = TaskRunner(sm, store, settings, worker_id, heartbeat=hb,
                         render_threads=int(threads) if threads else None)
     hb.start()

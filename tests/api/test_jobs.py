@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import pytest
 from sqlalchemy import select
 
-from services.api.jobs.service import RateTracker
+from services.api.jobs.service import RateTracker, compute_progress
 from services.core.models import Job, JobCounter, Task
 from tests.api.helpers import Api, fake_plan, run_tasks, task_ids
 
@@ -136,6 +137,19 @@ def test_rate_tracker_uses_recent_window() -> None:
     rate = rt.observe(1, 140, 70, now=120.0)  # the first samples fell out of the 10 s window
     assert rate is not None and rate[0] == pytest.approx(100 / 16)
     assert rt.observe(1, 5, 0, now=121.0) is None  # counters went down (retry): window restarts
+
+
+def test_rate_tracker_idle_time_makes_a_stalled_jobs_eta_unknown() -> None:
+    rt = RateTracker(window_s=60.0, min_span_s=2.0)
+    t0 = time.monotonic() - 40.0
+    for k in range(10):  # a task finished every second, then none for 30 s
+        rt.observe(7, k, k, now=t0 + k)
+    assert rt.idle_s(7, now=t0 + 9) == pytest.approx(0.0)
+    job = Job(id=7, state="running", owner="t", spec={})
+    assert rt.idle_s(7, now=t0 + 39) == pytest.approx(30.0)
+    progress, _ = compute_progress(job, {"rgb": {"done": 9, "running": 1}}, rt)
+    assert progress.throughput_per_s and progress.throughput_per_s > 0  # the window remembers the progress ...
+    assert progress.eta_s is None  # ... but the ETA is unknown, not the 4 s the old rate would promise
 
 
 def test_actions(api: Api, space_id: int) -> None:

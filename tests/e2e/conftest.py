@@ -29,7 +29,7 @@ from services.core.storage import ObjectStore, open_store
 from tests.conftest import S3Server, create_pg_database, drop_pg_database
 
 REPO = Path(__file__).resolve().parents[2]
-REDIS_DB_URL = "redis://127.0.0.1:6379/13"
+REDIS_DB_URL = os.environ.get("OMNIDATA_TEST_REDIS_URL", "redis://127.0.0.1:6379/13")  # flushed per module
 LEASE_S = 10  # short leases: a killed worker's task comes back within seconds
 WORKER_APP = "omnidata-e2e-worker"
 SCHEDULER_APP = "omnidata-e2e-scheduler"
@@ -107,12 +107,12 @@ class Cluster:
         self.procs.append(proc)
         return proc
 
-    def start_worker(self, name: str) -> Proc:
+    def start_worker(self, name: str, **env: str) -> Proc:
         return self.start(name, "worker", "--concurrency", "1", "--render-threads", "1", "--loglevel", "INFO",
-                          "--hostname", f"{name}@%h", app_name=WORKER_APP)  # worker id: name@host
+                          "--hostname", f"{name}@%h", app_name=WORKER_APP, **env)  # worker id: name@host
 
-    def start_scheduler(self) -> Proc:
-        return self.start("scheduler", "scheduler", "--interval", "0.3", app_name=SCHEDULER_APP)
+    def start_scheduler(self, **env: str) -> Proc:
+        return self.start("scheduler", "scheduler", "--interval", "0.3", app_name=SCHEDULER_APP, **env)
 
     def start_api(self) -> str:
         port = free_port()

@@ -21,7 +21,7 @@ from sqlalchemy import func, select
 from services.core.cues import CATALOG
 from services.core.db import job_progress
 from services.core.models import Job, Task
-from tests.e2e.conftest import REPO, SCHEDULER_APP, WORKER_APP, Cluster, restart_redis
+from tests.e2e.conftest import REPO, SCHEDULER_APP, WORKER_APP, Cluster, Proc, restart_redis
 
 pytestmark = pytest.mark.slow
 
@@ -29,6 +29,12 @@ SAME_AS_GENERATE = """
 cameras: {mode: object, object_count: 6}
 points: {count: 2, min_views: 2, max_views: 2}
 views: {resolution: 32}
+"""
+SMALL = """
+cameras: {mode: object, object_count: 6}
+points: {count: 2, min_views: 2, max_views: 2}
+views: {resolution: 32}
+cues: [rgb, normal, depth_zbuffer]
 """
 FAULTS = """
 cameras: {mode: object, object_count: 8}
@@ -144,10 +150,8 @@ def test_job_over_the_api_completes_and_matches_generate(cluster: Cluster, gener
     assert job_doc["spec"] == json.loads((generated / "job.json").read_text())["spec"]
 
 
-def test_kill_9_of_a_worker_mid_task(cluster: Cluster, scenes_dir, tmp_path):
-    job_id = submit_direct(cluster, scenes_dir / "ycb_banana", write_spec(tmp_path, FAULTS))
-    victim = next(p for p in cluster.procs if p.name == "worker-a")
-    wait(lambda: done_count(cluster, job_id) >= 2, 120, "first outputs", cluster)
+def kill_9_mid_task(cluster: Cluster, victim: Proc, job_id: int) -> tuple[list[int], list[str]]:
+    """kill -9 the victim (Celery parent and pool child) while it runs a task; returns (its tasks, its worker ids)."""
     victim_ids = [f"{victim.name}@{socket.gethostname()}"]  # its --hostname, kept by every pool child
 
     def victim_running() -> list[int]:
@@ -165,13 +169,42 @@ def test_kill_9_of_a_worker_mid_task(cluster: Cluster, scenes_dir, tmp_path):
         os.killpg(victim.popen.pid, signal.SIGCONT)
         assert time.monotonic() < deadline, "the victim never ran a task\n" + cluster.logs()
         time.sleep(0.03)
-    victim.stop(signal.SIGKILL)  # the Celery parent and its pool child, mid-task
+    victim.stop(signal.SIGKILL)
     assert not victim.alive()
-    wait_done(cluster, job_id, 180)
-    assert_exactly_once(cluster, job_id)
+    return held, victim_ids
+
+
+def assert_rerun_elsewhere(cluster: Cluster, held: list[int], victim_ids: list[str]) -> None:
     with cluster.sm() as s:
         rows = s.execute(select(Task.id, Task.attempts, Task.worker_id).where(Task.id.in_(held))).all()
     assert held and all(r.attempts >= 2 and r.worker_id not in victim_ids for r in rows), rows  # reaped, rerun
+
+
+def test_kill_9_of_a_worker_mid_task(cluster: Cluster, scenes_dir, tmp_path):
+    job_id = submit_direct(cluster, scenes_dir / "ycb_banana", write_spec(tmp_path, FAULTS))
+    victim = next(p for p in cluster.procs if p.name == "worker-a")
+    wait(lambda: done_count(cluster, job_id) >= 2, 120, "first outputs", cluster)
+    held, victim_ids = kill_9_mid_task(cluster, victim, job_id)
+    wait_done(cluster, job_id, 180)
+    assert_exactly_once(cluster, job_id)
+    assert_rerun_elsewhere(cluster, held, victim_ids)
+
+
+def test_dead_workers_task_is_requeued_at_the_heartbeat_timeout_not_the_lease(cluster: Cluster, scenes_dir, tmp_path):
+    # The deployment's defaults: 300 s leases, workers declared dead after 30 s without a heartbeat.
+    for p in cluster.procs:
+        p.stop()
+    cluster.start_scheduler(OMNIDATA_LEASE_S="300", OMNIDATA_HEARTBEAT_TIMEOUT_S="30")
+    workers = [cluster.start_worker(f"worker-{n}-300", OMNIDATA_LEASE_S="300", OMNIDATA_HEARTBEAT_TIMEOUT_S="30")
+               for n in ("a", "b")]
+    job_id = submit_direct(cluster, scenes_dir / "ycb_banana", write_spec(tmp_path, SMALL))
+    wait(lambda: done_count(cluster, job_id) >= 1, 120, "first outputs", cluster)
+    held, victim_ids = kill_9_mid_task(cluster, workers[0], job_id)
+    killed_at = time.monotonic()
+    wait_done(cluster, job_id, 90)  # DESIGN section 7: a small job finishes within 90 s of a kill -9
+    print(f"\njob done {time.monotonic() - killed_at:.1f} s after the kill -9 (lease 300 s, heartbeat timeout 30 s)")
+    assert_exactly_once(cluster, job_id)
+    assert_rerun_elsewhere(cluster, held, victim_ids)
 
 
 def test_redis_restart_mid_job(cluster: Cluster, scenes_dir, tmp_path):

@@ -8,7 +8,7 @@ from datetime import timedelta
 from sqlalchemy import select, update
 
 from services.core.jobs import cancel_job
-from services.core.models import Task, utcnow
+from services.core.models import Task, Worker, utcnow
 from services.scheduler.dispatch import dispatch_once
 from services.scheduler.reaper import reap_once
 from services.scheduler.transport import NullTransport
@@ -91,3 +91,37 @@ def test_cancelled_jobs_dead_tasks_are_cancelled(any_sm, local_store):
         assert reap_once(s, queued_timeout_s=300).expired_cancelled == 1
         assert set(states(s, task_ids(s, job.id)).values()) == {"cancelled"}
         assert_counters_exact(s, job.id)
+
+
+def _worker(s, worker_id, beat_age_s):
+    s.add(Worker(id=worker_id, host="h", last_heartbeat=utcnow() - timedelta(seconds=beat_age_s)))
+    s.commit()
+
+
+def test_dead_workers_tasks_are_requeued_before_their_lease_runs_out(any_sm, local_store):
+    with any_sm() as s:
+        job = make_running_job(s, local_store, cues=["point_info"], n_points=4, views=1)
+        tr = NullTransport()
+        dispatch_once(s, tr, window=4)
+        ids = [i for i, _ in tr.sent]
+        started = utcnow() - timedelta(seconds=60)
+        for k, (worker, beat_age_s) in enumerate([("w-dead", 45), ("w-alive", 2), ("w-no-row", None)]):
+            claim(s, job.id, [ids[k]], worker=worker, lease_s=300)
+            s.execute(update(Task).where(Task.id == ids[k]).values(started_at=started))
+            if beat_age_s is not None:
+                _worker(s, worker, beat_age_s)
+        # a task claimed after its worker's last beat: that worker was alive then
+        claim(s, job.id, [ids[3]], worker="w-dead", lease_s=300)
+        s.commit()
+
+        assert reap_once(s, queued_timeout_s=300).total == 0  # without a heartbeat timeout: leases only
+        res = reap_once(s, queued_timeout_s=300, dead_after_s=30)
+        assert (res.expired_retried, res.dead_worker, res.expired_failed) == (1, 1, 0)
+        assert states(s, ids) == {ids[0]: "pending", ids[1]: "running", ids[2]: "running", ids[3]: "running"}
+        t = s.scalars(select(Task).where(Task.id == ids[0]).execution_options(populate_existing=True)).one()
+        assert t.worker_id is None and t.attempts == 1 and "WorkerDead" in t.error and "w-dead" in t.error
+        assert_counters_exact(s, job.id)
+
+        # the worker with no heartbeat row (the embedded runner) still loses its task when the lease runs out
+        res = reap_once(s, queued_timeout_s=3600, dead_after_s=30, now=utcnow() + timedelta(seconds=301))
+        assert res.expired_retried == 3 and res.dead_worker == 0

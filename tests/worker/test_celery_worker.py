@@ -229,3 +229,18 @@ def test_idle_worker_with_one_render_thread_does_not_spin(pg_url, pg_sm, redis_u
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
         log.close()
+
+
+def test_worker_engine_commits_without_waiting_for_the_wal_flush_on_postgres(pg_url, tmp_path):
+    from sqlalchemy import text
+
+    engine = tasks.worker_engine(pg_url)
+    try:
+        with engine.connect() as c:
+            assert c.execute(text("SHOW synchronous_commit")).scalar() == "off"
+    finally:
+        engine.dispose()
+    sqlite = tasks.worker_engine(f"sqlite:///{tmp_path / 'w.db'}")  # SQLite has no such option: engine as usual
+    with sqlite.connect() as c:
+        assert c.execute(text("SELECT 1")).scalar() == 1
+    sqlite.dispose()

@@ -396,6 +396,14 @@ def test_heartbeat_upserts_the_worker_and_extends_only_its_own_lease(sm, banana)
         w = s.get(Worker, "hb")
         assert w is not None and w.queues == ["render", "derive"] and w.current_task_id == mine
         assert w.tasks_done == 1 and w.labels == {"rgb": 1} and w.labels_per_s > 0
+        first_beat, started = w.last_heartbeat, w.started_at
+        # just claimed (with a full lease): the task row is left alone until a third of the lease has passed
+        assert s.get(Task, mine).lease_until == past
+    hb.extend_after_s = 0.0  # as if 40 s had passed
+    hb.beat()
+    with sm() as s:
+        w = s.get(Worker, "hb")
+        assert w.last_heartbeat > first_beat and w.started_at == started  # the upsert keeps the start time
         assert s.get(Task, mine).lease_until > utcnow() + timedelta(seconds=100)
         assert s.get(Task, theirs).lease_until < utcnow()
     hb.set_current(None)

@@ -49,6 +49,8 @@ FINISHED_STATES = ("done", "failed", "cancelled")
 REMAINING_STATES = ("pending", "queued", "running")
 
 Counters = dict[str, dict[str, int]]  # cue -> state -> n
+STALL_MIN_S = 10.0  # a running job that finished nothing for this long, and ...
+STALL_INTERVALS = 5.0  # ... for this many of its mean intervals between finishes, has no ETA
 _CUE_ORDER = {name: i for i, name in enumerate(CATALOG)}
 
 
@@ -85,6 +87,20 @@ class RateTracker:
                 q.append((t1, n1, l1))
                 return None
             return (n1 - n0) / (t1 - t0), max(0, l1 - l0) / (t1 - t0)
+
+    def idle_s(self, job_id: int, now: float | None = None) -> float:
+        """Seconds since the job's finished count last changed, as far as the kept readings tell (0 if unknown)."""
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            q = self._samples.get(job_id)
+            if not q:
+                return 0.0
+            since = q[0][0]
+            for k in range(len(q) - 1, 0, -1):
+                if q[k - 1][1] != q[k][1]:
+                    since = q[k][0]
+                    break
+            return max(0.0, now - since)
 
     def _evict(self, now: float) -> None:
         stale = [j for j, q in self._samples.items() if not q or now - q[-1][0] > self.window_s]
@@ -149,6 +165,10 @@ def compute_progress(
         eta = 0.0 if job.state == "done" else None
     elif job.state == "running" and rate and rate > 0:
         eta = remaining / rate
+        # No task finished for much longer than the rate predicts (a dead worker's task waits for the reaper):
+        # the ETA is unknown, not the few seconds the old rate would promise.
+        if rates is not None and rates.idle_s(job.id) > max(STALL_MIN_S, STALL_INTERVALS / rate):
+            eta = None
     progress = Progress(
         total=total,
         by_state=totals,

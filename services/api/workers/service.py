@@ -10,8 +10,10 @@ from sqlalchemy.orm import Session
 from services.api.pagination import PageParams
 from services.api.workers.schemas import CurrentTask, WorkerRead
 from services.core.models import Job, Task, Worker, utcnow
+from services.core.settings import Settings
 
-WORKER_STALE_S = 30.0  # heartbeats come every 5 s; six missed ones mean the worker is gone
+# heartbeats come every 5 s; the scheduler's reaper declares a worker dead (and requeues its task) at this age
+WORKER_STALE_S = float(Settings.model_fields["heartbeat_timeout_s"].default)
 
 
 def list_workers(

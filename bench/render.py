@@ -62,6 +62,9 @@ ROOM_NAME = "icl_livingroom"
 # render and the CPU-clock hook added, same machine, same hour), kept to
 # compare: bench/results/render_room_before.json.
 BEFORE = RESULTS / "render_room_before.json"
+# The figures of issue 10's first pass (segmentations, NARF pyramid, pass selection, PNG settings: commit 7469639, run
+# in the same hour on the same views), the baseline of its second pass: bench/results/render_issue10_first.json.
+FIRST_PASS = RESULTS / "render_issue10_first.json"
 GPU_NOTE = ("no accelerator was lent to this task (device tool: not drawn, can_start_another false), so no GPU figures;"
             " a CUDA/OptiX/auto request falls back to the CPU with a log line (tests/worker/test_render.py)")
 
@@ -93,20 +96,31 @@ def png_settings(arrays: dict[str, np.ndarray], repeats: int = 3) -> dict[str, d
     return out
 
 
+# The position EXR's lossless codecs every OpenEXR reader knows (ZSTD, new in OpenEXR 3.5, and HTJ2K are left out:
+# older readers such as OpenCV's can not open them; PXR24, B44, DWA are lossy for float32).
+EXR_CODECS = ("zip", "zips", "piz", "rle", "none")
+
+
 def exr_settings(position: np.ndarray, repeats: int = 3) -> dict[str, dict]:
-    """Seconds and bytes of the position EXR with ZIP (what the cue writes) and without compression."""
+    """CPU seconds and bytes of the position EXR per lossless codec (the cue writes ZIP); each decodes back."""
     import OpenEXR
 
+    codecs = {"zip": OpenEXR.ZIP_COMPRESSION, "zips": OpenEXR.ZIPS_COMPRESSION, "piz": OpenEXR.PIZ_COMPRESSION,
+              "rle": OpenEXR.RLE_COMPRESSION, "none": OpenEXR.NO_COMPRESSION}
     out = {}
-    for name, codec in (("zip", OpenEXR.ZIP_COMPRESSION), ("none", OpenEXR.NO_COMPRESSION)):
+    for name in EXR_CODECS:
         times = []
         for _ in range(repeats):
-            t0 = time.perf_counter()
             with tempfile.NamedTemporaryFile(suffix=".exr") as fh:
-                with OpenEXR.File({"compression": codec, "type": OpenEXR.scanlineimage}, {"RGB": position}) as f:
+                t0 = time.process_time()
+                with OpenEXR.File({"compression": codecs[name], "type": OpenEXR.scanlineimage},
+                                  {"RGB": position}) as f:
                     f.write(fh.name)
+                times.append(time.process_time() - t0)
                 size = os.path.getsize(fh.name)
-            times.append(time.perf_counter() - t0)
+                with OpenEXR.File(fh.name) as f:
+                    back = np.asarray(f.channels()["RGB"].pixels, dtype=np.float32)
+            assert np.array_equal(back.view(np.uint32), position.view(np.uint32)), f"EXR {name} is not lossless"
         out[name] = {"s": round(float(np.median(times)), 4), "bytes": size}
     return out
 
@@ -398,6 +412,12 @@ def main() -> int:
                                                 "intermediates_s_median")}
             if "room_end_to_end" in before:
                 room["before"]["end_to_end"] = before["room_end_to_end"]
+        if FIRST_PASS.exists():
+            first = json.loads(FIRST_PASS.read_text())
+            room["first_pass"] = {k: first["room"][ROOM_NAME][k] for k in (
+                "floor_s_median", "view_s_median", "ratio_view_to_floor", "labels_per_s_per_core",
+                "per_cue_s_median", "intermediates_s_median")}
+            room["first_pass"]["end_to_end"] = first["room_end_to_end"]
     if args.e2e_points > 0:
         with tempfile.TemporaryDirectory(prefix="omnidata-bench-") as tmp:
             result["room_end_to_end"] = end_to_end(args.e2e_points, args.e2e_max_views, args.resolution, Path(tmp))

@@ -13,7 +13,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from services.core.jobspec import CueParams
-from services.worker.passes import RENDER_PASSES, ViewGeometry, ViewPasses
+from services.worker.passes import OPTIONAL_ARRAYS, RENDER_PASSES, ViewGeometry, ViewPasses
 
 if TYPE_CHECKING:
     from services.worker.space_cache import SpaceContext
@@ -62,6 +62,14 @@ class ViewContext:
                 "render", lambda: space.render(self.geometry, self.params, passes=self.render_passes)
             )
         return self._passes
+
+    def nbytes(self) -> int:
+        """Bytes of the arrays this context holds (pass set, memoised values): what keeping it in a cache costs."""
+        values: list[Any] = list(self._memo.values())
+        if self._passes is not None:
+            values += [getattr(self._passes, n) for n in ("depth_z", "rgb", *OPTIONAL_ARRAYS)]
+        flat = [x for v in values for x in (v if isinstance(v, tuple | list) else (v,))]
+        return sum(x.nbytes if hasattr(x, "nbytes") else len(x) if isinstance(x, bytes) else 0 for x in flat)
 
     @property
     def resolution(self) -> int:

@@ -55,7 +55,12 @@ BLOCK_FOR = timedelta(minutes=10)
 HANDBACK_DELAY = timedelta(seconds=1)  # a blocked worker's hand-back waits a little, so others get it first
 DB_RETRY_S = 60.0  # how long one database step is retried through a connection drop before giving up
 PLAN_CACHE_SIZE = 4  # (job, space) plans kept in memory
-VIEW_CACHE_SIZE = 4  # views (pass set + memoised intermediates) kept in memory
+# Views (pass set + memoised intermediates) kept in memory, least recently used first out, while they hold more than
+# this fraction of worker_max_memory_mb (and always the last VIEW_CACHE_MIN): a job's renders are dispatched ahead
+# of its derived cues, so a worker meets a view's cues after rendering many other views; each view it dropped
+# meant reading its pass set back and recomputing its intermediates (3x per view on a room, ~0.1 CPU-s a view).
+VIEW_CACHE_MEMORY_FRACTION = 0.25
+VIEW_CACHE_MIN = 4
 ERROR_MAX_CHARS = 4000
 
 STATUSES = ("done", "skipped", "paused", "blocked", "retry", "failed", "discarded", "lost")
@@ -442,8 +447,7 @@ class TaskRunner:
             _ = ctx.passes  # render now, so the time is booked to this task
             self.renders += 1
         self._views[vk] = ctx
-        while len(self._views) > VIEW_CACHE_SIZE:
-            self._views.popitem(last=False)
+        trim_lru(self._views, int(VIEW_CACHE_MEMORY_FRACTION * self.settings.worker_max_memory_mb * 2**20))
         return ctx
 
     @staticmethod
@@ -475,6 +479,18 @@ class TaskRunner:
         data = produce(t.cue, ctx)
         info = self.store.put_bytes(key, data)
         return key, info
+
+
+def trim_lru(views: OrderedDict[Any, Any], budget_bytes: int, keep: int = VIEW_CACHE_MIN) -> None:
+    """Drop the least recently used entries (first in `views`, each with .nbytes()) while they hold more than
+    budget_bytes, keeping at least the `keep` most recent."""
+    sizes = [c.nbytes() for c in views.values()]
+    total = sum(sizes)
+    for size in sizes[:max(0, len(sizes) - keep)]:
+        if total <= budget_bytes:
+            break
+        views.popitem(last=False)
+        total -= size
 
 
 def default_worker_id(name: str | None = None) -> str:

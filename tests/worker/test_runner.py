@@ -37,7 +37,7 @@ from services.scheduler.compile import compile_tasks
 from services.scheduler.persist import persist_space
 from services.scheduler.reaper import reap_once
 from services.worker.heartbeat import Heartbeat
-from services.worker.runner import Outcome, TaskRunner, format_error
+from services.worker.runner import Outcome, TaskRunner, format_error, trim_lru
 
 SPEC = {
     "cameras": {"mode": "object", "object_count": 6},
@@ -206,6 +206,41 @@ def test_render_once_then_derive_from_the_pass_cache(sm, banana):
     assert img.shape == (32, 32, 3) and m.shape == (32, 32)
     assert 0 < (m == 255).sum() < m.size  # the banana is in view, with background around it
     assert counters_match(sm, job_id)
+
+
+@dataclass
+class Sized:
+    size: int
+
+    def nbytes(self) -> int:
+        return self.size
+
+
+def test_view_cache_keeps_views_within_its_byte_budget_least_recently_used_out():
+    from collections import OrderedDict
+
+    views = OrderedDict((k, Sized(100)) for k in "abcdefgh")
+    trim_lru(views, budget_bytes=1000, keep=2)
+    assert list(views) == list("abcdefgh")  # 800 bytes: all kept (more than the old fixed 4 views)
+    views["i"], views["j"], views["k"] = Sized(100), Sized(100), Sized(350)
+    trim_lru(views, budget_bytes=1000, keep=2)
+    assert list(views) == list("efghijk")  # oldest out until <= 1000 bytes
+    trim_lru(views, budget_bytes=10, keep=2)
+    assert list(views) == ["j", "k"]  # the most recent ones stay even over budget
+
+
+def test_view_context_nbytes_counts_its_pass_set_and_memoised_arrays():
+    from services.worker.context import ViewContext
+    from services.worker.passes import ViewGeometry, ViewPasses
+
+    n = 8
+    passes = ViewPasses(geometry=ViewGeometry(np.eye(4), 1.0, n), depth_z=np.ones((n, n), np.float32),
+                        normal_world=None, rgb=np.zeros((n, n, 3), np.uint8), face_index=None)
+    ctx = ViewContext(None, passes=passes)
+    assert ctx.nbytes() == n * n * 4 + n * n * 3
+    ctx.memo("pair", lambda: (np.zeros(10, np.float64), np.zeros(5, np.uint8)))
+    ctx.memo("file", lambda: b"12345")
+    assert ctx.nbytes() == n * n * 7 + 80 + 5 + 5
 
 
 # ------------------------------------------------------------------------------------------ failures

@@ -79,6 +79,9 @@ def encode_npy(arr: np.ndarray) -> bytes:
 
 def encode_exr_rgb(arr: np.ndarray) -> bytes:
     """A scanline float32 EXR with R, G, B channels (ZIP compressed) of an H x W x 3 float32 array."""
+    # ZIP stays (bench/render.py, position_exr, on a room view at 512 px: ~0.02 CPU-s, 1.8 MB): of the lossless
+    # codecs every OpenEXR reader knows, ZIPS is ~15% faster for ~15% more bytes, RLE and none 3-7x faster for 1.7x
+    # the bytes, PIZ 4x slower; ZSTD (OpenEXR 3.5) is faster and smaller but older readers can not open it.
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     fd, path = tempfile.mkstemp(suffix=".exr", dir="/dev/shm" if os.access("/dev/shm", os.W_OK) else None)
     os.close(fd)

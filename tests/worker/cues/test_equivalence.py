@@ -3,8 +3,8 @@
 Views: the real planner's cameras inside ../shared/scenes/icl_livingroom (a furnished room, every pixel a surface)
 rendered by Cycles at 192 x 192. The room is untextured (its colour image is one grey), so the colour
 segmentation is compared on the rendered normal image used as the colour input, and on the textured banana.
-References: the implementations before issue 10, kept in tests/fixtures/reference_segmentation.py and
-reference_keypoints3d.py.
+References: the implementations before issue 10, kept in tests/fixtures/reference_segmentation.py,
+reference_keypoints2d.py and reference_keypoints3d.py.
 """
 
 from __future__ import annotations
@@ -16,19 +16,20 @@ import pytest
 from skimage.segmentation import felzenszwalb
 
 from services.core.cues import default_cues
+from services.core.exr import decode_exr_rgb
 from services.core.jobspec import CueParams, JobSpec
 from services.core.spaces import load_space
 from services.scheduler.planning import make_plan, space_rng
 from services.worker.context import ViewContext
-from services.worker.cues.common import valid
+from services.worker.cues.common import grey, to_uint16_scaled, valid
 from services.worker.cues.felzenszwalb import Felzenszwalb
-from services.worker.cues.keypoints import narf_interest
+from services.worker.cues.keypoints import keypoints2d, narf_interest
 from services.worker.cues.registry import cue_value
 from services.worker.cues.segmentation import segment_unsup2d, segment_unsup25d
 from services.worker.executor import make_context, produce
 from services.worker.passes import ViewGeometry, ViewPasses
 from services.worker.space_cache import SpaceContext
-from tests.fixtures import reference_keypoints3d, reference_segmentation
+from tests.fixtures import reference_keypoints2d, reference_keypoints3d, reference_segmentation
 from tests.fixtures.raycast import decode_png, object_view
 
 pytestmark = pytest.mark.bpy  # the views are Cycles renders
@@ -129,17 +130,30 @@ def test_felzenszwalb_kernel_matches_skimage_superpixels(room_passes):
         assert abs(int(new.max()) - int(old.max())) <= 0.2 * int(old.max())
 
 
+def assert_same_response(old: np.ndarray, new: np.ndarray, min_corr: float, max_rel_err: float) -> None:
+    """Two interest images agree: correlated, close in L2, and the strongest responses of the old stay strong."""
+    assert np.corrcoef(old.ravel(), new.ravel())[0, 1] >= min_corr
+    assert np.linalg.norm(new - old) <= max_rel_err * np.linalg.norm(old)
+    top_old = old >= np.quantile(old, 0.99)
+    assert np.mean(new[top_old] >= np.quantile(new, 0.95)) >= 0.9
+
+
 def test_keypoints3d_matches_the_previous_implementation_on_room_views(room_passes):
     for p in room_passes:
         ctx = ViewContext(None, passes=p)
-        old = reference_keypoints3d.narf_interest(ctx)
         new = narf_interest(ctx)
         assert np.all(new[~valid(ctx)] == 0)
-        assert np.corrcoef(old.ravel(), new.ravel())[0, 1] >= 0.98
-        assert np.linalg.norm(new - old) <= 0.2 * np.linalg.norm(old)
-        # The keypoints themselves: the strongest responses of the old image stay strong in the new one.
-        top_old = old >= np.quantile(old, 0.99)
-        assert np.mean(new[top_old] >= np.quantile(new, 0.95)) >= 0.9
+        assert_same_response(reference_keypoints3d.narf_interest(ctx), new, 0.98, 0.2)
+
+
+def test_keypoints2d_matches_the_previous_implementation_on_colour_views(room_passes, banana_passes):
+    params = CueParams()
+    for p in [colour_from_normals(p) for p in room_passes] + banana_passes:
+        ctx = ViewContext(None, params, passes=p)
+        old = reference_keypoints2d.doh_response(grey(ctx), params.keypoints2d_sigmas)
+        new = keypoints2d(ctx).astype(np.float64)
+        assert new.max() > 1000  # a view with blobs, not an empty comparison
+        assert_same_response(to_uint16_scaled(old, params.keypoints2d_scale).astype(np.float64), new, 0.995, 0.05)
 
 
 def test_every_png_cue_of_a_room_view_decodes_to_its_array(room_passes):
@@ -149,3 +163,19 @@ def test_every_png_cue_of_a_room_view_decodes_to_its_array(room_passes):
                                                         "vanishing_points")]
     for cue in pngs:
         assert np.array_equal(decode_png(produce(cue, ctx)), cue_value(ctx, cue)), cue
+
+
+def test_position_exr_of_a_room_view_decodes_to_its_array_bit_for_bit(room_passes):
+    ctx = ViewContext(None, CueParams(), passes=room_passes[0])
+    position = cue_value(ctx, "position")
+    back = decode_exr_rgb(produce("position", ctx))
+    assert back.dtype == np.float32 and np.array_equal(back.view(np.uint32), position.view(np.uint32))
+
+
+@pytest.mark.parametrize("resolution,fov", [(1, 1.0), (7, 0.3), (64, 2.1), (192, 1.35)])
+def test_ray_directions_match_the_meshgrid_construction_exactly(resolution, fov):
+    g = ViewGeometry(np.eye(4), fov, resolution)
+    K = g.K
+    u, v = np.meshgrid(np.arange(resolution) + 0.5, np.arange(resolution) + 0.5)
+    d = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=-1)
+    assert np.array_equal(g.ray_directions_cam(), d / np.linalg.norm(d, axis=-1, keepdims=True))

@@ -669,6 +669,8 @@ def verify_clip(
     fail["view"][1:] |= ~view_ok
     good = ~(fail["clearance"] | fail["outside"] | fail["hidden"] | fail["turn"])
     a, b = longest_run(good, link_clear & view_ok)
+    # a surface between two frames cuts the clip too (a link, not a frame): reported as the later frame outside
+    fail["outside"][1:] |= ~link_clear
     planned = min(n, lim.max_frames)
     if b - a > lim.max_frames:  # shorten the path, keep its middle
         a += (b - a - lim.max_frames) // 2

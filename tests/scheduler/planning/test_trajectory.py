@@ -282,6 +282,16 @@ def test_object_mode_clips_orbit_the_point_with_lengths_scaled_to_the_sphere(loo
         np.testing.assert_allclose(np.linalg.norm(c - point.position, axis=1), radius, rtol=0.02)
 
 
+def test_a_clip_cut_between_two_frames_reports_why() -> None:
+    wall = trimesh.Trimesh(vertices=[[1.05, -1, -1], [1.05, 1, -1], [1.05, 1, 1], [1.05, -1, 1]],
+                           faces=[[0, 1, 2], [0, 2, 3]])  # a thin wall between frames 10 and 11
+    line = np.stack([np.linspace(0.0, 2.0, 21), np.zeros(21), np.zeros(21)], axis=1)
+    lim = Limits.of(ViewSpec(mode="trajectory", trajectory_look="ahead"), 0.0, 0.001)
+    clip = verify_clip(line, line, np.array([5.0, 0.0, 0.0]), lim, MeshQueries(wall), np.zeros(2), 0)
+    assert clip.note is not None and len(clip.frames) == clip.note.frames == 11
+    assert clip.note.reasons == {"outside": 1}
+
+
 def test_frames_near_a_wall_are_pushed_out_not_cut() -> None:
     mesh = scenes.pillar_room()  # pillar x 3.7..4.3, y 1.7..2.3
     q = MeshQueries(mesh)

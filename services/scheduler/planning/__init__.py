@@ -20,7 +20,7 @@ from services.core.plan import CameraPose, PlanError, PlannedView, PointOfIntere
 from services.core.spaces import LoadedSpace
 from services.scheduler.planning.cameras import generate_cameras, object_cameras, provided_cameras
 from services.scheduler.planning.points import SampledPoints, sample_points
-from services.scheduler.planning.trajectory import ClipNote, trajectory
+from services.scheduler.planning.trajectory import ClipNote, longest_run, trajectory
 from services.scheduler.planning.views import (
     ViewArrays,
     fraction_summary,
@@ -115,13 +115,18 @@ def make_plan(
         valid_summary = fraction_summary(valid_fractions(q, views.subset(sample), spec.params.max_depth_m), 0.0)
         valid_summary["sampled_of"] = len(views)
     if vs.min_valid_fraction > 0 and len(views):
-        views = views.subset(fractions >= vs.min_valid_fraction)
+        passing = fractions >= vs.min_valid_fraction
+        if vs.mode == "trajectory":  # a frame dropped from inside a clip would make its video jump
+            passing = _longest_runs(views.point_idx, passing, vs.trajectory_min_frames)
+        views = views.subset(passing)
         n_views = np.bincount(views.point_idx, minlength=len(sampled.positions))
         kept = keep_points[n_views[keep_points] >= ps.min_views]
         views = views.subset(np.isin(views.point_idx, kept))
-        if valid_summary["dropped"] or len(kept) < len(keep_points):
+        dropped = int((~passing).sum())
+        if dropped or len(kept) < len(keep_points):
+            cut = " (each clip keeps its longest run of frames above it)" if vs.mode == "trajectory" else ""
             note = (
-                f"views.min_valid_fraction {vs.min_valid_fraction} dropped {valid_summary['dropped']} views; "
+                f"views.min_valid_fraction {vs.min_valid_fraction} dropped {dropped} views{cut}; "
                 f"{len(kept)} of {len(keep_points)} points keep >= {ps.min_views} views"
             )
             shortfall = _join(shortfall, note)
@@ -139,6 +144,18 @@ def make_plan(
         timings["rays"] = float(q.rays)
         timings["total"] = time.perf_counter() - t0
     return plan
+
+
+def _longest_runs(point_idx: np.ndarray, ok: np.ndarray, min_frames: int) -> np.ndarray:
+    """Of views sorted by point (the frames of each point's clip in order), the longest run of `ok` frames per
+    point, or none where that run is shorter than `min_frames`."""
+    keep = np.zeros(len(ok), dtype=bool)
+    bounds = np.flatnonzero(np.diff(point_idx)) + 1
+    for lo, hi in zip(np.r_[0, bounds], np.r_[bounds, len(ok)], strict=True):
+        a, b = longest_run(ok[lo:hi], np.ones(hi - lo, dtype=bool))
+        if b - a >= min_frames:
+            keep[lo + a:lo + b] = True
+    return keep
 
 
 def _join(*parts: str | None) -> str | None:

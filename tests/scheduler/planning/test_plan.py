@@ -30,7 +30,7 @@ from services.core.plan import (
     point_info,
     vanishing_points,
 )
-from services.core.spaces import load_space
+from services.core.spaces import LoadedSpace, load_space
 from services.scheduler.planning import make_plan, space_rng
 from tests.fixtures import scenes
 
@@ -245,13 +245,17 @@ def _probe_fraction(mesh, view, size: int) -> float:
     return float(RayMeshIntersector(mesh).intersects_any(origins, dirs).mean())
 
 
-def test_min_valid_fraction_drops_views_into_holes() -> None:
+def _room_with_holes() -> LoadedSpace:
     """A room without ceiling and with a missing wall: views facing the holes see little surface."""
-    from services.scheduler.planning.views import VALID_PROBE_PX
-
     room = scenes.box_room(size=(6.0, 4.0, 2.7))
     room.update_faces((room.face_normals[:, 2] > -0.9) & ~(room.face_normals[:, 0] < -0.9))
-    space = scenes.as_space(trimesh.util.concatenate([room, scenes.table()]))
+    return scenes.as_space(trimesh.util.concatenate([room, scenes.table()]))
+
+
+def test_min_valid_fraction_drops_views_into_holes() -> None:
+    from services.scheduler.planning.views import VALID_PROBE_PX
+
+    space = _room_with_holes()
     base = {"cameras": {"max_count": 20, "min_spacing_m": 0.8}, "points": {"count": 20, "min_views": 1},
             "views": {"resolution": 64, "fov_mean_deg": 90, "fov_std_deg": 0}}
     all_views = make_plan(space, JobSpec.model_validate(base), np.random.default_rng(1), "holes")
@@ -266,3 +270,18 @@ def test_min_valid_fraction_drops_views_into_holes() -> None:
     assert len(kept.views) <= len(all_views.views) - kept.valid_fraction["dropped"]
     assert all(_probe_fraction(space.mesh, v, VALID_PROBE_PX) >= 0.9 for v in kept.views)
     assert "min_valid_fraction" in (kept.shortfall or "")
+
+
+def test_min_valid_fraction_cuts_trajectory_clips_without_gaps() -> None:
+    space = _room_with_holes()
+    spec = JobSpec.model_validate({
+        "points": {"count": 4, "min_views": 1},
+        "views": {"mode": "trajectory", "resolution": 64, "fov_mean_deg": 90, "fov_std_deg": 0,
+                  "trajectory_max_frames": 60, "trajectory_min_frames": 5, "min_valid_fraction": 0.8},
+    })
+    plan = make_plan(space, spec, np.random.default_rng(1), "holes")
+    assert plan.valid_fraction["dropped"] > 0 and plan.points
+    for point in plan.points:  # every clip is one run of frames at the spec's spacing: no frame cut from inside
+        centres = np.stack([camera_center(v.world_to_camera) for v in plan.views_of(point.idx)])
+        assert len(centres) >= 5
+        np.testing.assert_allclose(np.linalg.norm(np.diff(centres, axis=0), axis=1), 0.1, atol=0.01)

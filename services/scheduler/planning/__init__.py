@@ -97,7 +97,10 @@ def make_plan(
     shortfall = sampled.shortfall
     keep_points = np.unique(views.point_idx) if notes else np.arange(len(sampled.positions))
     if vs.nonfixated_pruning and len(views):
-        views = views.subset(nonfixated_keep(views, sampled.positions, sampled.visible, vs.resolution))
+        crossing = nonfixated_keep(views, sampled.positions, sampled.visible, vs.resolution)
+        if vs.mode == "trajectory":  # as for min_valid_fraction below: no gaps inside a clip
+            crossing = _longest_runs(views.point_idx, crossing, vs.trajectory_min_frames)
+        views = views.subset(crossing)
         n_views = np.bincount(views.point_idx, minlength=len(sampled.positions))
         keep_points = np.flatnonzero(n_views >= ps.min_views)
         views = views.subset(np.isin(views.point_idx, keep_points))

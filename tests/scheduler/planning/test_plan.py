@@ -281,7 +281,19 @@ def test_min_valid_fraction_cuts_trajectory_clips_without_gaps() -> None:
     })
     plan = make_plan(space, spec, np.random.default_rng(1), "holes")
     assert plan.valid_fraction["dropped"] > 0 and plan.points
+    _assert_clips_without_gaps(plan, min_frames=5)
+
+
+def test_nonfixated_pruning_cuts_trajectory_clips_without_gaps() -> None:
+    spec = JobSpec.model_validate({"seed": 1, "points": {"count": 5, "min_views": 1}, "views": {
+        "mode": "trajectory", "resolution": 64, "trajectory_max_frames": 60, "nonfixated_pruning": True}})
+    plan = make_plan(scenes.as_space(scenes.furnished_room()), spec, space_rng(1, "r"), "r")
+    assert "nonfixated pruning" in (plan.shortfall or "") and plan.points
+    _assert_clips_without_gaps(plan, min_frames=1)
+
+
+def _assert_clips_without_gaps(plan: SpacePlan, min_frames: int) -> None:
     for point in plan.points:  # every clip is one run of frames at the spec's spacing: no frame cut from inside
         centres = np.stack([camera_center(v.world_to_camera) for v in plan.views_of(point.idx)])
-        assert len(centres) >= 5
+        assert len(centres) >= min_frames
         np.testing.assert_allclose(np.linalg.norm(np.diff(centres, axis=0), axis=1), 0.1, atol=0.01)

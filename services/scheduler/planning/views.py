@@ -10,6 +10,8 @@ at the point (the point projects to the image centre), with
 nonfixated_pruning: a view is kept only when its camera also sees (line of sight, inside the image)
 another point that has at least two views, so every kept view carries a cross-view correspondence;
 one pass over the unpruned view counts. Points left with fewer than min_views views are then dropped.
+A trajectory clip keeps only its longest run of kept frames (at least trajectory_min_frames), so that
+no frame is missing inside a clip; this applies to min_valid_fraction below too.
 
 valid fraction (holes in scans): each view's share of pixels that see a surface is predicted by a
 8 x 8 ray cast; views.min_valid_fraction drops views below it (points then as above).

@@ -33,7 +33,7 @@ from services.worker.cues.registry import register
 
 KP3D_SCALES_PX = (1, 2, 4, 8, 16, 32, 64)
 # keypoints2d's Gaussian kernels end at 3 sigmas (scipy's default is 4): 25% fewer taps, the 0.3% of weight past
-# 3 sigmas moves responses by ~2% (tests/worker/test_cue_equivalence.py).
+# 3 sigmas moves responses by ~2% (tests/worker/cues/test_equivalence.py).
 DOH_TRUNCATE_SIGMAS = 3.0
 BORDER_FOOTPRINTS = 10.0
 PYRAMID_MIN_RADIUS_PX = 4  # wider blurs run on block means (a radius of >= 4 low-res pixels), then upsampled

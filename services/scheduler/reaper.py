@@ -4,8 +4,10 @@
   (kill -9, node lost; beats come every 5 s) and the task started before that too. This requeues a
   dead worker's task within about a minute instead of when its lease of minutes runs out.
 - running, lease_until < now: the lease ran out (a worker with no heartbeat row, e.g. the embedded
-  runner, or one whose beats stopped extending it). Either way the attempt it made counts: with attempts < max_attempts the task goes back to pending after a backoff, else it
-  fails for good with the reason kept. Tasks of a cancelled job are cancelled instead.
+  runner, or one whose beats stopped extending it).
+  Either way the attempt it made counts: with attempts < max_attempts the task goes back to pending
+  after a backoff, else it fails for good with the reason kept. Tasks of a cancelled job are cancelled
+  instead.
 - queued, queued_at < now - queued_timeout: the message never reached a worker (Redis restarted
   without persistence); back to pending with attempts unchanged, to be sent again.
 Rows are locked (FOR UPDATE SKIP LOCKED on Postgres) between the check and the move, so a worker

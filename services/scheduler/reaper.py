@@ -39,7 +39,7 @@ class ReapResult:
     """Tasks moved by one reaper pass."""
 
     expired_retried: int = 0  # running -> pending (worker dead or lease expired, attempts left)
-    expired_failed: int = 0  # running -> failed (lease expired, no attempts left)
+    expired_failed: int = 0  # running -> failed (worker dead or lease expired, no attempts left)
     expired_cancelled: int = 0  # running -> cancelled (job cancelled meanwhile)
     lost_requeued: int = 0  # queued -> pending (message lost)
     dead_worker: int = 0  # of the running tasks moved, those whose worker was declared dead before the lease ran out

@@ -7,6 +7,9 @@ fixated views (cameras on a sphere, object mode; fov ~ truncated normal, roll +-
   curvature) - and in steady state (space already loaded);
 - naive: one full render per label (a fresh context per cue: render + that cue's inputs + the cue), for the
   first view of each scan, measured in the same run; the ratio is amortised / naive labels per second.
+On the room scan (../shared/scenes/icl_livingroom, every pixel a surface; issue 10): per cue CPU seconds per
+view against a bare 1-sample render of the same view (run_room), and `omnidata generate --workers 1` end to
+end pinned to one core (end_to_end); --room-views 0 and --e2e-points 0 skip them.
 The process pins itself to one core (like `taskset -c 0`) before importing numpy/bpy unless --cores is given.
 Writes bench/results/render.json. Run: .venv/bin/python bench/render.py [--views 4] [--resolution 512]
 """

@@ -91,6 +91,15 @@ class UpEstimate:
             return True
         return self.margin is not None and self.margin < LOW_MARGIN
 
+    def doubt(self) -> str:
+        """Why the estimate is low confidence, in words for a warning."""
+        if self.method == "convention":
+            return "no floor or support base was found, so the file format's convention decided"
+        if self.method == "convention-tie":
+            return "floor and ceiling look alike, so the file format's convention picked the sign"
+        angle = "?" if self.runner_up_angle_deg is None else f"{self.runner_up_angle_deg:.0f}"
+        return f"{self.method}, scoring only {self.margin:.2f}x a candidate {angle} deg away"
+
     def record(self, unit_scale: float = 1.0) -> dict[str, Any]:
         """JSON-ready summary (areas in m^2 with `unit_scale` metres per source unit)."""
         margin = None if self.margin is None else (None if not np.isfinite(self.margin) else round(self.margin, 3))

@@ -655,11 +655,7 @@ def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Pa
             f"(less than {MIN_EXTENT_M * 1000:.0f} mm): check unit_scale"
         )
     if est.low_confidence:
-        rec = est.record(scale)
-        notes.append(
-            f"up found with low confidence ({rec['method']}, margin {rec['margin']} over a candidate "
-            f"{rec['runner_up_angle_deg']} deg away): check it with `omnidata plan`, or set up/up_axis"
-        )
+        notes.append(f"up found with low confidence ({est.doubt()}): check it with `omnidata plan`, or set up/up_axis")
     has_texture = _has_texture(mesh)
     has_vertex_colors = getattr(mesh.visual, "kind", None) == "vertex"
     mesh.apply_transform(T)

@@ -61,7 +61,9 @@ def test_confidence_recorded_and_low_for_a_symmetric_box(tmp_path: Path) -> None
     space = load_space(src)
     assert space.up_method == "convention-tie"
     assert space.frame_record()["up"]["confidence"] == "low"
-    assert any("low confidence" in w for w in space.warnings)
+    assert any("low confidence (floor and ceiling look alike" in w for w in space.warnings)
+    doubt = estimate_up(scenes.furnished_room(), ".ply").doubt()
+    assert doubt.startswith("floor, scoring only ") and doubt.endswith("x a candidate 180 deg away"), doubt
 
 
 @pytest.mark.parametrize(

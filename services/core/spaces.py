@@ -86,7 +86,7 @@ class LoadedSpace:
 
     mesh: trimesh.Trimesh  # world frame; faces in the order of trimesh.load(source, force="mesh")
     source_path: Path  # the mesh file that was loaded (a zip's path when extracted to a temporary folder)
-    source_to_world: np.ndarray  # 4x4: source coordinates -> world metres (+Z up), no translation
+    source_to_world: np.ndarray  # 4x4: source coordinates -> world metres (+Z up); translation only when given
     has_texture: bool  # UV coordinates and a texture image
     has_vertex_colors: bool
     face_class: np.ndarray | None  # int32 class id per face

@@ -615,6 +615,18 @@ def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: FrameRequest) -> tu
     return source_to_world_matrix(est.up, units.scale), est, units
 
 
+def _low_confidence_note(est: UpEstimate) -> str:
+    """The warning for an up direction found with low confidence, saying what decided it."""
+    if est.method == "convention":
+        why = "no floor or support base found: the file's axis convention decided"
+    elif est.method == "convention-tie":
+        why = "floor and ceiling look alike: the file's axis convention picked the sign"
+    else:
+        rec = est.record()
+        why = f"{rec['method']}, margin {rec['margin']} over a candidate {rec['runner_up_angle_deg']} deg away"
+    return f"up found with low confidence ({why}): check it with `omnidata plan`, or set up/up_axis"
+
+
 def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Path | None) -> LoadedSpace:
     name = source.name
     from services.core.mesh_checks import check_source  # it imports SpaceError from here
@@ -655,11 +667,7 @@ def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Pa
             f"(less than {MIN_EXTENT_M * 1000:.0f} mm): check unit_scale"
         )
     if est.low_confidence:
-        rec = est.record(scale)
-        notes.append(
-            f"up found with low confidence ({rec['method']}, margin {rec['margin']} over a candidate "
-            f"{rec['runner_up_angle_deg']} deg away): check it with `omnidata plan`, or set up/up_axis"
-        )
+        notes.append(_low_confidence_note(est))
     has_texture = _has_texture(mesh)
     has_vertex_colors = getattr(mesh.visual, "kind", None) == "vertex"
     mesh.apply_transform(T)

@@ -17,13 +17,12 @@ kept in `LoadedSpace.frame_record()` for job.json. Point clouds (.xyz, .pts, PLY
 meshed first (`services.core.pointcloud`); that mesh's faces are then the `fragments` reference.
 
 Semantic labels come from PLY face properties `class_id` and `instance_id` (Replica's `object_id` is
-accepted as the instance, Matterport3D's `category_id` and `segment_id` as class and instance). They are read from the raw PLY elements trimesh keeps in
-`mesh.metadata['_ply_raw']` and mapped onto the triangles the way trimesh triangulates polygons
-(triangles, then first and second halves of quads, then fans), and that mapping is verified on the
-vertex positions. A Replica-style `info_semantic.json` (`id_to_label`) beside the mesh supplies
-classes when only object ids are present. Matterport3D's `category_id`/`segment_id` face properties
-are read the same way; ScanNet's per-vertex segment files (`services.core.scan_formats`) are mapped to
-triangles by the majority of each triangle's vertices.
+accepted as the instance, Matterport3D's `category_id` and `segment_id` as class and instance). They are
+read from the raw PLY elements trimesh keeps in `mesh.metadata['_ply_raw']` and mapped onto the triangles
+the way trimesh triangulates polygons (triangles, then first and second halves of quads, then fans), and
+that mapping is verified on the vertex positions. A Replica-style `info_semantic.json` (`id_to_label`)
+beside the mesh supplies classes when only object ids are present. ScanNet's per-vertex segment files
+(`services.core.scan_formats`) are mapped to triangles by the majority of each triangle's vertices.
 """
 
 from __future__ import annotations
@@ -73,7 +72,6 @@ MIN_EXTENT_M = 0.001  # everything inside 1 mm: same
 ZIP_MAX_TOTAL_BYTES = 8 * 1024**3  # uncompressed size of all members
 ZIP_MAX_RATIO = 200.0  # uncompressed / compressed, per member and in total
 ZIP_MAX_MEMBERS = 20_000
-
 
 
 class SpaceError(ValueError):

@@ -562,11 +562,12 @@ class FrameRequest:
     source_to_world: np.ndarray | None
 
 
-def _read_mesh(source: Path, cloud_cache_dir: Path | None) -> tuple[trimesh.Trimesh, dict[str, Any] | None]:
-    """The triangle mesh of a source, and the reconstruction record when it was a point cloud."""
+def _read_mesh(
+    source: Path, checksum: str, cloud_cache_dir: Path | None
+) -> tuple[trimesh.Trimesh, dict[str, Any] | None]:
+    """The triangle mesh of a source (sha256 `checksum`), and the reconstruction record when it was a point cloud."""
     name = source.name
     suffix = source.suffix.lower()
-    checksum = sha256_file(source)
     try:
         if suffix in CLOUD_SUFFIXES:
             return mesh_cloud_cached(lambda: read_text_cloud(source), checksum, name, cloud_cache_dir)
@@ -630,7 +631,8 @@ def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Pa
     from services.core.mesh_checks import check_source  # it imports SpaceError from here
 
     source_notes = check_source(source)  # truncation, counts over the limits, unsafe paths: before parsing
-    mesh, reconstruction = _read_mesh(source, cloud_cache_dir)
+    checksum = sha256_file(source)
+    mesh, reconstruction = _read_mesh(source, checksum, cloud_cache_dir)
     if len(mesh.vertices) == 0:
         raise SpaceError(f"{name}: the mesh is empty (no vertices)")
     if len(mesh.faces) == 0:
@@ -681,7 +683,7 @@ def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Pa
         face_instance=face_instance,
         has_semantics=face_class is not None and face_instance is not None,
         bounds=np.array(mesh.bounds, dtype=np.float64),
-        checksum=sha256_file(source),
+        checksum=checksum,
         face_count=int(len(mesh.faces)),
         up_source=np.asarray(est.up, dtype=np.float64),
         up_method=est.method,

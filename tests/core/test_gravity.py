@@ -10,7 +10,7 @@ import trimesh
 
 from services.core.gravity import UnitError, choose_unit_scale, estimate_up, plane_families
 from services.core.spaces import SpaceError, load_space
-from tests.core import rotation_corpus as corpus
+from tests.fixtures import rotation_corpus as corpus
 from tests.fixtures import scenes
 
 

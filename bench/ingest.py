@@ -4,7 +4,7 @@ DESIGN.md section 7 target: real scans in any orientation levelled within 3 degr
 100 % of axis-aligned input) and units right (100 %). Run: `.venv/bin/python bench/ingest.py`.
 Writes bench/results/ingest.json.
 
-Corpus (tests/core/rotation_corpus.py): the ICL-NUIM living room of ../shared/scenes (a real
+Corpus (tests/fixtures/rotation_corpus.py): the ICL-NUIM living room of ../shared/scenes (a real
 reconstruction, stored with -Y up) and synthetic furnished rooms (ceiling often missing, holes in the
 walls, furniture at random angles, 1 cm vertex noise; a few keep their whole ceiling), each in uniformly
 random rotations plus the 24 axis-aligned ones, exported in millimetres, centimetres, inches and metres in
@@ -27,7 +27,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from services.core.gravity import UnitError, choose_unit_scale, estimate_up  # noqa: E402
-from tests.core import rotation_corpus as corpus  # noqa: E402
+from tests.fixtures import rotation_corpus as corpus  # noqa: E402
 
 
 def _summary(errors: list[float], units_ok: list[bool]) -> dict[str, float | int]:

@@ -10,11 +10,8 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
-from typing import Any
 
 from services.core.jobspec import UP_AXES
-
-FRAME_FIELDS = ("up_axis", "up", "unit_scale", "source_to_world")
 
 
 def add_frame_arguments(parser: argparse.ArgumentParser) -> None:
@@ -66,8 +63,3 @@ def _matrix_file(text: str) -> list[list[float]]:
     if not (isinstance(data, list) and len(data) == 4 and all(isinstance(r, list) and len(r) == 4 for r in data)):
         raise argparse.ArgumentTypeError(f"{text}: expected a 4x4 matrix as JSON or 4 lines of 4 numbers")
     return data
-
-
-def frame_overrides(args: argparse.Namespace) -> dict[str, Any]:
-    """The JobSpec fields the frame flags set (those given)."""
-    return {f: getattr(args, f) for f in FRAME_FIELDS if getattr(args, f, None) is not None}

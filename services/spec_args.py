@@ -23,7 +23,7 @@ from services.core.keys import space_name
 from services.core.space_registry import pack_source
 from services.core.spaces import LoadedSpace, SpaceError, resolve_source
 from services.core.storage.base import sha256_file
-from services.frame_args import add_frame_arguments, frame_overrides
+from services.frame_args import add_frame_arguments
 
 # argparse dest -> (JobSpec field path, flag shown in errors)
 SPEC_FLAGS: dict[str, tuple[tuple[str, ...], str]] = {
@@ -79,11 +79,10 @@ def build_spec(args: argparse.Namespace) -> JobSpec:
     """The JobSpec from --spec and the flags given; CliError naming the field (and the flag)."""
     data = read_spec_file(args.spec) if getattr(args, "spec", None) else {}
     flags: dict[str, str] = {}
-    given = {**{dest: getattr(args, dest, None) for dest in SPEC_FLAGS}, **frame_overrides(args)}
-    for dest, value in given.items():
+    for dest, (path, flag) in SPEC_FLAGS.items():
+        value = getattr(args, dest, None)
         if value is None:
             continue
-        path, flag = SPEC_FLAGS[dest]
         node = data
         for key in path[:-1]:
             sub = node.get(key)

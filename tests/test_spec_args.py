@@ -63,3 +63,14 @@ def test_sources_are_checked_before_anything_is_loaded(tmp_path: Path, scenes_di
     bunny = scenes_dir / "stanford_bunny" / "bun_zipper_res2.ply"
     (src,) = check_sources([str(bunny)])
     assert src.name == "bun_zipper_res2" and len(src.checksum) == 64 and src.path == bunny.resolve()
+
+
+def test_frame_flags_set_the_frame_fields(tmp_path: Path) -> None:
+    got = build_spec(parse("--up", "0,1,0", "--unit-scale", "0.01"))
+    assert (got.up, got.unit_scale, got.up_axis) == ((0.0, 1.0, 0.0), 0.01, "auto")
+    matrix = tmp_path / "m.txt"
+    matrix.write_text("0 0 2 1\n2 0 0 0\n0 2 0 0\n0 0 0 1\n")
+    got = build_spec(parse("--source-to-world", str(matrix)))
+    assert got.source_to_world is not None and got.source_to_world[0] == (0.0, 0.0, 2.0, 1.0)
+    with pytest.raises(CliError, match="source_to_world sets the whole frame: leave up_axis unset"):
+        build_spec(parse("--source-to-world", str(matrix), "--up-axis=+y"))

@@ -247,7 +247,7 @@ def _floor_candidate(geom: _Geometry, u: np.ndarray) -> _Candidate:
     h = geom.centers @ u
     c = normals @ u
     facing_up, facing_down = c > _CONE_COS, c < -_CONE_COS
-    floor = facing_up & (h < 0.5 * (lo + hi))
+    floor = facing_up & (h <= 0.5 * (lo + hi))  # <=: a scan of a flat floor alone has lo == hi
     floor_area = float(areas[floor].sum())
     band = _END_BAND * (hi - lo)
     middle = (h > lo + band) & (h < hi - band)  # furniture, not floor or ceiling

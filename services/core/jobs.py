@@ -11,7 +11,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import datetime, timedelta
 
-from sqlalchemy import and_, delete, func, or_, select, update
+from sqlalchemy import and_, case, delete, or_, select, update
 from sqlalchemy.orm import Session
 
 from services.core.cues import CATALOG, closure
@@ -287,10 +287,10 @@ class Reopened:
 
 def requeue_inflight(session: Session, job_id: int) -> int:
     """Queued and running tasks of the job back to pending, their attempt not counted (the run was stopped,
-    the task did not fail); returns how many moved."""
+    the task did not fail); returns how many moved. (CASE, not two-argument max(): Postgres has no such max.)"""
     n = len(transition(
         session, job_id=job_id, from_state=TaskState.RUNNING, to_state=TaskState.PENDING,
-        attempts=func.max(Task.attempts - 1, 0), worker_id=None, lease_until=None, queued_at=None, not_before=None,
+        attempts=case((Task.attempts > 0, Task.attempts - 1), else_=0), worker_id=None, lease_until=None, queued_at=None, not_before=None,
     ))
     n += len(transition(session, job_id=job_id, from_state=TaskState.QUEUED, to_state=TaskState.PENDING,
                         queued_at=None))

@@ -29,7 +29,7 @@ from services.core.spaces import SpaceError
 
 MAX_FACES = 50_000_000  # beyond every scan we render; trimesh needs ~100 bytes per face while loading
 MAX_VERTICES = 3 * MAX_FACES
-MAX_HEADER_BYTES = 1 << 20  # a PLY header or GLB JSON chunk larger than this is not a scan
+MAX_HEADER_BYTES = 1 << 20  # a PLY header larger than this is not a scan
 
 _PLY_ELEMENT = re.compile(rb"^element\s+(\S+)\s+(\d+)\s*$")
 _OBJ_REF = re.compile(r"^-?\d+(/-?\d*)?(/-?\d+)?$")
@@ -186,8 +186,7 @@ def _check_mtllibs(obj: Path, mtllibs: list[str]) -> list[str]:
 
 
 def _gltf_json(source: Path) -> dict[str, object]:
-    if source.stat().st_size > 64 * MAX_HEADER_BYTES:
-        return {}
+    # read whatever its size (embedded data: buffers make big ones): skipping a big file would skip its references
     try:
         doc = json.loads(source.read_bytes())
     except (ValueError, UnicodeDecodeError) as e:
@@ -207,8 +206,10 @@ def _glb_json(source: Path) -> dict[str, object]:
             raise SpaceError(
                 f"{name}: the file is truncated or corrupt: its header declares {length:,} bytes, it has {size:,}"
             )
-        if chunk_type != 0x4E4F534A or chunk_len > min(size - 20, MAX_HEADER_BYTES * 64):
-            return {}
+        if chunk_type != 0x4E4F534A:
+            return {}  # no JSON chunk first: not a valid GLB, trimesh names it
+        if chunk_len > size - 20:
+            raise SpaceError(f"{name}: the file is truncated or corrupt: its JSON chunk runs past the end of the file")
         raw = f.read(chunk_len)
     try:
         doc = json.loads(raw)

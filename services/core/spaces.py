@@ -17,13 +17,12 @@ kept in `LoadedSpace.frame_record()` for job.json. Point clouds (.xyz, .pts, PLY
 meshed first (`services.core.pointcloud`); that mesh's faces are then the `fragments` reference.
 
 Semantic labels come from PLY face properties `class_id` and `instance_id` (Replica's `object_id` is
-accepted as the instance, Matterport3D's `category_id` and `segment_id` as class and instance). They are read from the raw PLY elements trimesh keeps in
-`mesh.metadata['_ply_raw']` and mapped onto the triangles the way trimesh triangulates polygons
-(triangles, then first and second halves of quads, then fans), and that mapping is verified on the
-vertex positions. A Replica-style `info_semantic.json` (`id_to_label`) beside the mesh supplies
-classes when only object ids are present. Matterport3D's `category_id`/`segment_id` face properties
-are read the same way; ScanNet's per-vertex segment files (`services.core.scan_formats`) are mapped to
-triangles by the majority of each triangle's vertices.
+accepted as the instance, Matterport3D's `category_id` and `segment_id` as class and instance). They are
+read from the raw PLY elements trimesh keeps in `mesh.metadata['_ply_raw']` and mapped onto the triangles
+the way trimesh triangulates polygons (triangles, then first and second halves of quads, then fans), and
+that mapping is verified on the vertex positions. A Replica-style `info_semantic.json` (`id_to_label`)
+beside the mesh supplies classes when only object ids are present. ScanNet's per-vertex segment files
+(`services.core.scan_formats`) are mapped to triangles by the majority of each triangle's vertices.
 """
 
 from __future__ import annotations
@@ -75,7 +74,6 @@ ZIP_MAX_RATIO = 200.0  # uncompressed / compressed, per member and in total
 ZIP_MAX_MEMBERS = 20_000
 
 
-
 class SpaceError(ValueError):
     """A space that cannot be used, with a message meant for the user who uploaded it."""
 
@@ -86,7 +84,7 @@ class LoadedSpace:
 
     mesh: trimesh.Trimesh  # world frame; faces in the order of trimesh.load(source, force="mesh")
     source_path: Path  # the mesh file that was loaded (a zip's path when extracted to a temporary folder)
-    source_to_world: np.ndarray  # 4x4: source coordinates -> world metres (+Z up), no translation
+    source_to_world: np.ndarray  # 4x4: source coordinates -> world metres (+Z up); translation only when given
     has_texture: bool  # UV coordinates and a texture image
     has_vertex_colors: bool
     face_class: np.ndarray | None  # int32 class id per face
@@ -564,11 +562,12 @@ class FrameRequest:
     source_to_world: np.ndarray | None
 
 
-def _read_mesh(source: Path, cloud_cache_dir: Path | None) -> tuple[trimesh.Trimesh, dict[str, Any] | None]:
-    """The triangle mesh of a source, and the reconstruction record when it was a point cloud."""
+def _read_mesh(
+    source: Path, checksum: str, cloud_cache_dir: Path | None
+) -> tuple[trimesh.Trimesh, dict[str, Any] | None]:
+    """The triangle mesh of a source (sha256 `checksum`), and the reconstruction record when it was a point cloud."""
     name = source.name
     suffix = source.suffix.lower()
-    checksum = sha256_file(source)
     try:
         if suffix in CLOUD_SUFFIXES:
             return mesh_cloud_cached(lambda: read_text_cloud(source), checksum, name, cloud_cache_dir)
@@ -620,7 +619,8 @@ def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Pa
     from services.core.mesh_checks import check_source  # it imports SpaceError from here
 
     source_notes = check_source(source)  # truncation, counts over the limits, unsafe paths: before parsing
-    mesh, reconstruction = _read_mesh(source, cloud_cache_dir)
+    checksum = sha256_file(source)
+    mesh, reconstruction = _read_mesh(source, checksum, cloud_cache_dir)
     if len(mesh.vertices) == 0:
         raise SpaceError(f"{name}: the mesh is empty (no vertices)")
     if len(mesh.faces) == 0:
@@ -671,7 +671,7 @@ def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Pa
         face_instance=face_instance,
         has_semantics=face_class is not None and face_instance is not None,
         bounds=np.array(mesh.bounds, dtype=np.float64),
-        checksum=sha256_file(source),
+        checksum=checksum,
         face_count=int(len(mesh.faces)),
         up_source=np.asarray(est.up, dtype=np.float64),
         up_method=est.method,

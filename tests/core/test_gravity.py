@@ -10,7 +10,7 @@ import trimesh
 
 from services.core.gravity import UnitError, choose_unit_scale, estimate_up, plane_families
 from services.core.spaces import SpaceError, load_space
-from tests.core import rotation_corpus as corpus
+from tests.fixtures import rotation_corpus as corpus
 from tests.fixtures import scenes
 
 
@@ -129,3 +129,16 @@ def test_given_up_vector_and_source_to_world(tmp_path: Path) -> None:
     ]:
         with pytest.raises(SpaceError, match=msg):
             load_space(src, source_to_world=bad.tolist())
+
+
+@pytest.mark.parametrize("normal", [[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [0.3, -0.5, 0.81]])
+def test_a_flat_scan_is_seen_from_the_side_its_faces_face(normal: list[float]) -> None:
+    """A scan of a floor alone (no height at all) is a floor: up is its normal, not the opposite."""
+    grid = trimesh.creation.box((3.0, 2.0, 1.0))
+    flat = trimesh.Trimesh(*trimesh.remesh.subdivide(grid.vertices, grid.faces[grid.face_normals[:, 2] > 0.9]))
+    flat.vertices[:, 2] = 0.0
+    n = np.asarray(normal) / np.linalg.norm(normal)
+    R = trimesh.geometry.align_vectors([0.0, 0.0, 1.0], n)
+    est = estimate_up(flat.apply_transform(R), ".obj")
+    assert est.method == "floor"
+    assert corpus.up_error_deg(est.up, n) < 1e-6

@@ -20,6 +20,7 @@ from services.core.jobs import (
     create_job,
     delete_job,
     pause_job,
+    reopen_job,
     resume_job,
     retry_failed,
 )
@@ -227,3 +228,21 @@ def test_counters_equal_count_star_after_random_transitions(pg_sm, local_store, 
         s.commit()
         assert_counters_exact(s, job.id)
         assert not {"pending", "queued"} & set(states(s, task_ids(s, job.id)).values())
+
+
+def test_reopen_job_requeues_inflight_tasks_without_counting_the_attempt(any_sm, local_store):
+    """The embedded resume path is a core operation: it must run on Postgres as well as on SQLite."""
+    with any_sm() as s:
+        job = make_running_job(s, local_store, cues=["point_info"], n_points=3, views=1)
+        tr = NullTransport()
+        dispatch_once(s, tr, window=10)
+        ids = [i for i, _ in tr.sent]
+        claim(s, job.id, ids[:2])  # two running (attempt 1), one still queued
+        s.commit()
+        done = reopen_job(s, local_store, job)
+        s.commit()
+        assert done.requeued == 3
+        rows = s.execute(select(Task.state, Task.attempts, Task.worker_id).where(Task.id.in_(ids))
+                         .execution_options(populate_existing=True)).all()
+        assert {tuple(r) for r in rows} == {("pending", 0, None)}
+        assert_counters_exact(s, job.id)

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import json
+import struct
 from pathlib import Path
 
 import pytest
 
+from services.core import mesh_checks
 from services.core.mesh_checks import check_source
 from services.core.spaces import SpaceError
 
@@ -57,3 +60,34 @@ def test_face_limit_counts_obj_faces(tmp_path: Path) -> None:
     with pytest.raises(SpaceError, match="more than the limit of 4"):
         check_source(obj, max_faces=4)
     assert check_source(obj, max_faces=5) == []
+
+
+def _glb(doc: dict[str, object]) -> bytes:
+    chunk = json.dumps(doc).encode()
+    chunk += b" " * (-len(chunk) % 4)
+    return struct.pack("<4sIIII", b"glTF", 2, 20 + len(chunk), len(chunk), 0x4E4F534A) + chunk
+
+
+@pytest.mark.parametrize("suffix", [".gltf", ".glb"])
+def test_references_of_big_gltf_files_are_checked_too(
+    tmp_path: Path, suffix: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A glTF's size does not exempt it: padding one past the header limit must not let '../' through."""
+    monkeypatch.setattr(mesh_checks, "MAX_HEADER_BYTES", 1024)  # a small limit keeps the file small
+    (tmp_path / "outside.bin").write_bytes(b"\0" * 36)
+    doc: dict[str, object] = {"asset": {"version": "2.0"}, "buffers": [{"uri": "../outside.bin", "byteLength": 36}],
+                              "extras": "x" * (70 * mesh_checks.MAX_HEADER_BYTES)}
+    (tmp_path / "sub").mkdir()
+    path = tmp_path / "sub" / f"big{suffix}"
+    path.write_bytes(json.dumps(doc).encode() if suffix == ".gltf" else _glb(doc))
+    with pytest.raises(SpaceError, match="climbs out of the mesh's folder"):
+        check_source(path)
+
+
+def test_a_glb_whose_json_chunk_runs_past_the_end_is_refused(tmp_path: Path) -> None:
+    data = bytearray(_glb({"asset": {"version": "2.0"}}))
+    data[12:16] = struct.pack("<I", 10_000)  # the JSON chunk's length
+    path = tmp_path / "cut.glb"
+    path.write_bytes(bytes(data))
+    with pytest.raises(SpaceError, match="truncated or corrupt"):
+        check_source(path)

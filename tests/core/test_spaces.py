@@ -210,6 +210,11 @@ def test_up_fallbacks_and_explicit_axis(tmp_path: Path, shared_scenes: Path) -> 
     ball = load_space(sphere)
     assert ball.up_method == "convention"
     np.testing.assert_allclose(ball.up_source, [0, 0, 1])
+    # the warning says what decided, not an empty margin and angle
+    (note,) = [w for w in ball.warnings if "low confidence" in w]
+    assert "file format's convention decided" in note and "None" not in note
+    (note,) = [w for w in sp.warnings if "low confidence" in w]
+    assert "floor and ceiling look alike" in note and "None" not in note
 
 
 @pytest.mark.parametrize("up", [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1], [0.1, -0.2, 0.97]])

@@ -249,6 +249,9 @@ def test_a_missing_bucket_is_a_named_storage_error(s3_server: S3Server, tmp_path
         "put_bytes": lambda: st.put_bytes("a/b", b"x"),
         "put_file": lambda: st.put_file("a/c", src),
         "get_bytes": lambda: st.get_bytes("a/b"),
+        "list": lambda: next(iter(st.list("a/")), None),
+        "delete": lambda: st.delete("a/b"),
+        "delete_prefix": lambda: st.delete_prefix("a/"),
     }
     for name, call in calls.items():
         with pytest.raises(StorageError, match=rf"^the bucket s3://{missing} does not exist$"):

@@ -191,7 +191,8 @@ class S3Store:
 
     def delete(self, key: str) -> bool:
         existed = self.exists(key)
-        self.client.delete_object(Bucket=self.bucket, Key=self._k(key))
+        with self._failures("delete from"):
+            self.client.delete_object(Bucket=self.bucket, Key=self._k(key))
         return existed
 
     def delete_prefix(self, prefix: str) -> int:
@@ -207,21 +208,24 @@ class S3Store:
         return n
 
     def _delete_many(self, full_keys: list[str]) -> int:
-        resp = self.client.delete_objects(
-            Bucket=self.bucket, Delete={"Objects": [{"Key": k} for k in full_keys], "Quiet": True}
-        )
+        with self._failures("delete from"):
+            resp = self.client.delete_objects(
+                Bucket=self.bucket, Delete={"Objects": [{"Key": k} for k in full_keys], "Quiet": True}
+            )
         errors = resp.get("Errors", [])
         if errors:
-            raise OSError(f"S3 refused to delete {len(errors)} object(s), first: {errors[0]}")
+            raise StorageError(f"S3 refused to delete {len(errors)} object(s) from s3://{self.bucket}, "
+                               f"first: {errors[0]}")
         return len(full_keys)
 
     def list(self, prefix: str = "") -> Iterator[str]:
         check_prefix(prefix)
         full = join_key(self.prefix, prefix) if prefix else (self.prefix + "/" if self.prefix else "")
         paginator = self.client.get_paginator("list_objects_v2")
-        for page in paginator.paginate(Bucket=self.bucket, Prefix=full):
-            for obj in page.get("Contents", []):  # S3 lists in UTF-8 byte order, which is sorted order
-                yield self._strip(obj["Key"])
+        with self._failures("list"):  # pages are fetched as the caller iterates: failures surface here
+            for page in paginator.paginate(Bucket=self.bucket, Prefix=full):
+                for obj in page.get("Contents", []):  # S3 lists in UTF-8 byte order, which is sorted order
+                    yield self._strip(obj["Key"])
 
     def presigned_url(self, key: str, expires_s: int = 3600) -> str:
         """Pre-signed GET URL valid for `expires_s` seconds."""

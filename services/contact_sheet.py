@@ -15,8 +15,9 @@ from PIL import Image, ImageDraw
 
 from services.cli import CliError
 from services.core.keys import MANIFEST_KEY
+from services.core.storage import ObjectNotFoundError
 from services.datasets.previews import Previewer
-from services.datasets.source import ViewRecord, index_manifest, open_root, select_cues
+from services.datasets.source import ViewRecord, index_manifest, missing_file_message, open_root, select_cues
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -74,6 +75,10 @@ def run(args: argparse.Namespace) -> int:
     if args.out is None and "://" in args.dir:
         raise CliError("give --out for a dataset on object storage")
     out = args.out or Path(args.dir) / "contact_sheet.png"
-    build_sheet(args.dir, views=args.views, thumb=args.thumb).save(out)
+    try:
+        sheet = build_sheet(args.dir, views=args.views, thumb=args.thumb)
+    except ObjectNotFoundError as e:
+        raise CliError(missing_file_message(e)) from None
+    sheet.save(out)
     print(f"contact sheet: {out}")
     return 0

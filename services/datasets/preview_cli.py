@@ -72,11 +72,11 @@ def run(args: argparse.Namespace) -> int:
         wanted = None if args.cues is None else validate_cue_names(c.strip() for c in args.cues.split(",") if c.strip())
         store = open_root(args.source)
         records = index_root(store)
+        if not records:
+            raise CliError(f"{args.source} lists no views")
         cues = select_cues(records, wanted)
     except (UnknownCueError, FileNotFoundError, ValueError) as e:
         raise CliError(str(e)) from None
-    if not records:
-        raise CliError(f"{args.source} lists no views")
     try:
         return _write(args, store, records, cues)
     except ObjectNotFoundError as e:

@@ -15,12 +15,13 @@ from PIL import Image, ImageDraw
 
 from services.cli import CliError
 from services.core.keys import MANIFEST_KEY
+from services.core.storage import LocalStore, ObjectNotFoundError
 from services.datasets.previews import Previewer
-from services.datasets.source import ViewRecord, index_manifest, open_root, select_cues
+from services.datasets.source import ViewRecord, index_manifest, missing_file_message, open_root, select_cues
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("dir", help="output folder of `omnidata generate` (holds manifest.jsonl), or s3://bucket/prefix")
+    p.add_argument("dir", help="output folder of `omnidata generate` (holds manifest.jsonl), s3://bucket/prefix or a service job id")
     p.add_argument("--out", type=Path, default=None, help="PNG to write (default DIR/contact_sheet.png)")
     p.add_argument("--views", type=int, default=4, help="how many views (rows)")
     p.add_argument("--thumb", type=int, default=128, help="thumbnail size in pixels")
@@ -71,9 +72,21 @@ def build_sheet(root: Path | str, *, views: int = 4, thumb: int = 128) -> Image.
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.out is None and "://" in args.dir:
-        raise CliError("give --out for a dataset on object storage")
-    out = args.out or Path(args.dir) / "contact_sheet.png"
-    build_sheet(args.dir, views=args.views, thumb=args.thumb).save(out)
+    if args.views < 1 or args.thumb < 1:
+        raise CliError(f"--views and --thumb must be at least 1, got {args.views} and {args.thumb}")
+    out = args.out
+    if out is None:  # the default is inside the dataset's folder: a folder it must be (not s3:// or a job id)
+        try:
+            store = open_root(args.dir)
+        except FileNotFoundError as e:
+            raise CliError(str(e)) from None
+        if not isinstance(store, LocalStore):
+            raise CliError(f"give --out: {args.dir} is not a local folder to write the sheet into")
+        out = store.root / "contact_sheet.png"
+    try:
+        sheet = build_sheet(args.dir, views=args.views, thumb=args.thumb)
+    except ObjectNotFoundError as e:
+        raise CliError(missing_file_message(e)) from None
+    sheet.save(out)
     print(f"contact sheet: {out}")
     return 0

@@ -126,6 +126,16 @@ def drop_pg_database(url: str, admin_url: str = PG_ADMIN_URL) -> None:
         admin.dispose()
 
 
+@pytest.fixture()
+def empty_pg_url() -> Iterator[str]:
+    """A fresh Postgres database that nobody migrated."""
+    url = create_pg_database()
+    try:
+        yield url
+    finally:
+        drop_pg_database(url)
+
+
 @pytest.fixture(scope="session")
 def pg_url() -> Iterator[str]:
     """URL of a fresh, migrated Postgres database for this test session (dropped at the end)."""

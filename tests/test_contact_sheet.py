@@ -52,3 +52,17 @@ def test_missing_manifest_is_a_cli_error(tmp_path, capsys):
         build_sheet(tmp_path)
     assert main(["sheet", str(tmp_path)]) == 2
     assert "no manifest.jsonl" in capsys.readouterr().err
+
+
+def test_sheet_of_a_service_job_needs_out_and_bad_sizes_are_refused(tmp_path, capsys, monkeypatch):
+    # `omnidata sheet 42` reads job 42 of OMNIDATA_STORAGE_URL: no folder to put the default sheet in
+    _dataset(tmp_path / "objects" / "jobs" / "42")
+    monkeypatch.setenv("OMNIDATA_STORAGE_URL", (tmp_path / "objects").as_uri())
+    monkeypatch.chdir(tmp_path)
+    assert main(["sheet", "42"]) == 2
+    assert "give --out" in capsys.readouterr().err
+    assert main(["sheet", "42", "--out", str(tmp_path / "job42.png"), "--thumb", "16"]) == 0
+    assert Image.open(tmp_path / "job42.png").size[0] > 16
+    for flag in ("--views", "--thumb"):
+        assert main(["sheet", str(tmp_path / "objects" / "jobs" / "42"), flag, "0"]) == 2
+        assert "must be at least 1" in capsys.readouterr().err

@@ -8,7 +8,6 @@ import os
 import shlex
 import subprocess
 import sys
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -16,17 +15,7 @@ import pytest
 from services.cli import main
 from services.core.db import make_engine, schema_problem
 from services.core.settings import Settings, get_settings, hash_token
-from tests.conftest import REPO_ROOT, create_pg_database, drop_pg_database
-
-
-@pytest.fixture()
-def empty_pg_url() -> Iterator[str]:
-    """A fresh Postgres database that nobody migrated."""
-    url = create_pg_database()
-    try:
-        yield url
-    finally:
-        drop_pg_database(url)
+from tests.conftest import REPO_ROOT
 
 
 def omnidata(*args: str, **env: str) -> subprocess.CompletedProcess[str]:

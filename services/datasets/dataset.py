@@ -20,10 +20,10 @@ from services.core.storage import ObjectStore
 from services.datasets.decode import cue_params, decode_cue
 from services.datasets.source import (
     ViewRecord,
-    check_sha256,
     index_root,
     job_document,
     open_root,
+    read_file,
     select_cues,
 )
 from services.datasets.splits import DEFAULT_RATIOS, SPLITS, assign_splits, read_split_csv
@@ -141,9 +141,7 @@ class OmnidataDataset:
 
     def read(self, record: ViewRecord, cue: str) -> bytes:
         """The bytes of one cue file of a view (sha256-checked when verify_sha256)."""
-        ref = record.files[cue]
-        data = self.store.get_bytes(ref.key)
-        return check_sha256(ref, data) if self.verify_sha256 else data
+        return read_file(self.store, record.files[cue], verify=self.verify_sha256)
 
     # ------------------------------------------------------------------ items
 

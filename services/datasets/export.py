@@ -31,14 +31,15 @@ from typing import Any
 from services.cli import CliError
 from services.core.cues import CATALOG, UnknownCueError, validate_cue_names
 from services.core.keys import JOB_JSON_KEY, check_name
-from services.core.storage import ObjectStore
+from services.core.storage import ObjectNotFoundError, ObjectStore
 from services.datasets.source import (
     DatasetIntegrityError,
     ViewRecord,
-    check_sha256,
     index_root,
     job_document,
+    missing_file_message,
     open_root,
+    read_file,
     select_cues,
 )
 from services.datasets.splits import DEFAULT_RATIOS, assign_splits, read_split_csv, split_csv_text
@@ -101,9 +102,7 @@ class Exporter:
             raise CliError(str(e)) from None
 
     def read(self, record: ViewRecord, cue: str) -> bytes:
-        ref = record.files[cue]
-        data = self.store.get_bytes(ref.key)
-        return check_sha256(ref, data) if self.verify else data
+        return read_file(self.store, record.files[cue], verify=self.verify)
 
     def _views(self, what: str) -> Iterator[ViewRecord]:
         if not self.progress:
@@ -210,6 +209,8 @@ def run(args: argparse.Namespace) -> int:
         tmp.rename(args.out)
     except DatasetIntegrityError as e:
         raise CliError(str(e)) from None
+    except ObjectNotFoundError as e:
+        raise CliError(missing_file_message(e)) from None
     finally:
         if tmp.exists():
             shutil.rmtree(tmp)

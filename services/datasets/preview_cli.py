@@ -18,9 +18,16 @@ from PIL import Image
 
 from services.cli import CliError
 from services.core.cues import UnknownCueError, validate_cue_names
-from services.core.storage import LocalStore, ObjectStore
+from services.core.storage import LocalStore, ObjectNotFoundError, ObjectStore
 from services.datasets.previews import PREVIEW_PREFIX, Previewer, write_video
-from services.datasets.source import ViewRecord, index_root, job_document, open_root, select_cues
+from services.datasets.source import (
+    ViewRecord,
+    index_root,
+    job_document,
+    missing_file_message,
+    open_root,
+    select_cues,
+)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -65,11 +72,19 @@ def run(args: argparse.Namespace) -> int:
         wanted = None if args.cues is None else validate_cue_names(c.strip() for c in args.cues.split(",") if c.strip())
         store = open_root(args.source)
         records = index_root(store)
+        if not records:
+            raise CliError(f"{args.source} lists no views")
         cues = select_cues(records, wanted)
     except (UnknownCueError, FileNotFoundError, ValueError) as e:
         raise CliError(str(e)) from None
-    if not records:
-        raise CliError(f"{args.source} lists no views")
+    try:
+        return _write(args, store, records, cues)
+    except ObjectNotFoundError as e:
+        raise CliError(missing_file_message(e)) from None
+
+
+def _write(args: argparse.Namespace, store: ObjectStore, records: list[ViewRecord], cues: list[str]) -> int:
+    """The preview PNGs, or with --video the MP4s, of the selected views and cues."""
     if not args.video:
         pv = Previewer(store)
         n = sum(len(pv.previews(r, cues)) for r in _progress(records, "previews", not args.no_progress))

@@ -93,6 +93,17 @@ def check_sha256(ref: FileRef, data: bytes) -> bytes:
     return data
 
 
+def read_file(store: ObjectStore, ref: FileRef, *, verify: bool) -> bytes:
+    """The bytes of one listed file, sha256-checked when `verify` (ObjectNotFoundError when it is gone)."""
+    data = store.get_bytes(ref.key)
+    return check_sha256(ref, data) if verify else data
+
+
+def missing_file_message(e: ObjectNotFoundError) -> str:
+    """One line for a file the dataset lists but its root lacks (the commands print it instead of a traceback)."""
+    return f"{e.key}: listed in manifest.jsonl but missing from the dataset root (deleted or moved?)"
+
+
 def _component_of(key: str) -> str:
     parts = key.split("/")
     return parts[1] if len(parts) >= 4 else ""

@@ -60,9 +60,14 @@ class Progress:
             self.bar = None
 
 
+def view_count(s: Session, job_id: int) -> int:
+    """Views planned for the job."""
+    return int(s.scalar(select(func.count()).select_from(View).where(View.job_id == job_id)) or 0)
+
+
 def views_done(s: Session, job_id: int) -> tuple[int, int]:
     """(views whose every task is done, views planned)."""
-    total = int(s.scalar(select(func.count()).select_from(View).where(View.job_id == job_id)) or 0)
+    total = view_count(s, job_id)
     per_view = (
         select(Task.space_id, Task.point_idx, Task.view_idx)
         .where(Task.job_id == job_id)
@@ -98,7 +103,7 @@ def build_report(sm: sessionmaker[Session], store: ObjectStore, job_id: int) -> 
         job = s.get(Job, job_id)
         assert job is not None
         rep = Report(state=job.state, error=job.error)
-        rep.views = len(s.execute(select(View.point_idx).where(View.job_id == job_id)).all())
+        rep.views = view_count(s, job_id)
         rows = s.execute(
             select(Task.cue, Task.state, Task.output_key, Task.error, Task.point_idx, Task.view_idx)
             .where(Task.job_id == job_id, Task.cue.not_in(internal)).order_by(Task.id)

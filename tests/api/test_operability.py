@@ -7,7 +7,6 @@ from __future__ import annotations
 import secrets
 import shutil
 import time
-from collections.abc import Iterator
 from contextlib import AbstractContextManager
 from datetime import timedelta
 from pathlib import Path
@@ -21,21 +20,11 @@ from services.core.models import Space, Task, Worker, utcnow
 from services.core.settings import hash_token
 from services.core.storage import LocalStore, open_store
 from services.scheduler.worker_rows import expire_worker_rows
-from tests.conftest import S3Server, create_pg_database, drop_pg_database
+from tests.conftest import S3Server
 from tests.fixtures.api import Api, fake_plan, live_server, make_api, task_ids
 
 OPERATOR_TOKEN = secrets.token_urlsafe(24)
 OPERATOR = {"Authorization": f"Bearer {OPERATOR_TOKEN}"}
-
-
-@pytest.fixture()
-def empty_pg_url() -> Iterator[str]:
-    """A fresh Postgres database that nobody migrated."""
-    url = create_pg_database()
-    try:
-        yield url
-    finally:
-        drop_pg_database(url)
 
 
 # ---------------------------------------------------------------------------------------------- /ready

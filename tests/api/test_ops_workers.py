@@ -112,3 +112,17 @@ def test_workers_list_hides_other_tenants_tasks(api: Api, bunny: Path) -> None:
     assert other[wid + ":1"]["busy"] is True and other[wid + ":1"]["current_task"] is None
     alive = api.client.get("/workers?alive=true&limit=1000", headers=api.a.headers).json()["items"]
     assert wid + ":1" in {w["id"] for w in alive} and wid + ":2" not in {w["id"] for w in alive}
+
+
+def test_worker_liveness_follows_the_configured_heartbeat_timeout(pg_url: str, local_store: LocalStore) -> None:
+    # The reaper declares a worker dead at OMNIDATA_HEARTBEAT_TIMEOUT_S: /workers and /metrics must agree with it.
+    with make_api(pg_url, local_store, heartbeat_timeout_s=10, operator_tokens=[hash_token(OPERATOR_TOKEN)]) as api:
+        wid = f"w-timeout-{secrets.token_hex(4)}"
+        with api.session() as s:
+            s.add(Worker(id=wid, host="h", queues=["render"], last_heartbeat=utcnow() - timedelta(seconds=20)))
+            s.commit()
+        items = {w["id"]: w for w in api.client.get("/workers?limit=1000", headers=api.a.headers).json()["items"]}
+        assert items[wid]["alive"] is False
+        stale = api.client.get("/workers?alive=false&limit=1000", headers=api.a.headers).json()["items"]
+        assert wid in {w["id"] for w in stale}
+        assert "alive: within 10 s" in api.client.get("/metrics", headers=OPERATOR).text

@@ -166,3 +166,22 @@ def test_bad_exports_are_refused_and_leave_nothing(
     code, _, err = run(capsys, bad, "--format", "webdataset", "--out", tmp_path / "g", "--verify")
     assert code == 2 and "sha256" in err and not (tmp_path / "g").exists()
     assert not list(tmp_path.glob(".g.partial-*"))
+
+
+def test_a_listed_file_gone_missing_is_one_line_not_a_traceback(
+    small_job: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    holes = tmp_path / "holes"
+    shutil.copytree(small_job, holes)
+    gone = "rgb/tiny/ycb_banana/point_1_view_1_domain_rgb.png"
+    (holes / gone).unlink()
+    commands = [
+        ["export", str(holes), "--format", "webdataset", "--out", str(tmp_path / "shards"), "--no-progress"],
+        ["preview", str(holes), "--cues", "rgb", "--no-progress"],
+        ["sheet", str(holes), "--views", "4", "--out", str(tmp_path / "sheet.png")],
+    ]
+    for argv in commands:
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert f"{gone}: listed in manifest.jsonl but missing" in err and "Traceback" not in err, (argv, err)
+    assert not (tmp_path / "shards").exists() and not (tmp_path / "sheet.png").exists()

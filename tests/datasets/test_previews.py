@@ -109,5 +109,10 @@ def test_preview_cli_errors(trajectory_job: Path, tmp_path: Path, capsys: pytest
     assert "is not a folder" in capsys.readouterr().err
     assert main(["preview", str(trajectory_job), "--cues", "rgb,nope", "--no-progress"]) == 2
     assert "unknown cue" in capsys.readouterr().err
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    (empty / "manifest.jsonl").write_text("")
+    assert main(["preview", str(empty), "--cues", "rgb", "--no-progress"]) == 2
+    assert "lists no views" in capsys.readouterr().err
     assert main(["preview", str(trajectory_job), "--video", "--fps", "0", "--out", str(tmp_path / "v")]) == 2
     assert "--fps" in capsys.readouterr().err and not (tmp_path / "v").exists()

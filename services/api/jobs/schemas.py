@@ -86,8 +86,6 @@ class JobSpaceRead(BaseModel):
     )
 
 
-
-
 class JobRead(BaseModel):
     """A job with its live progress."""
 

@@ -20,7 +20,6 @@ from fastapi import FastAPI
 from sqlalchemy import case, func, select, text
 from sqlalchemy.orm import Session
 
-from services.api.workers.service import WORKER_STALE_S
 from services.core.db import SchemaNotCurrent, schema_problem
 from services.core.models import JOB_STATES, TASK_STATES, Job, JobCounter, Task, TaskState, Worker, utcnow
 
@@ -192,10 +191,11 @@ def build_metrics(session: Session, app: FastAPI, owner: str | None = None) -> s
         for q, n in queue_depths(app).items():
             out.sample("omnidata_queue_depth", -1 if n is None else n, queue=q)
 
-    cutoff = utcnow() - timedelta(seconds=WORKER_STALE_S)
+    stale_s = app.state.settings.heartbeat_timeout_s  # the reaper's "dead" age, as /workers uses
+    cutoff = utcnow() - timedelta(seconds=stale_s)
     alive = session.scalar(select(func.count()).select_from(Worker).where(Worker.last_heartbeat >= cutoff)) or 0
     total_workers = session.scalar(select(func.count()).select_from(Worker)) or 0
-    out.family("omnidata_workers", "gauge", f"Workers by heartbeat (alive: within {WORKER_STALE_S:.0f} s).")
+    out.family("omnidata_workers", "gauge", f"Workers by heartbeat (alive: within {stale_s:.0f} s).")
     out.sample("omnidata_workers", alive, status="alive")
     out.sample("omnidata_workers", total_workers - alive, status="stale")
 

@@ -57,14 +57,19 @@ def verify_blob(settings: Settings, *, key: str, expires: int, signature: str, n
         raise HTTPException(status.HTTP_403_FORBIDDEN, "link expired; ask the API for a fresh one")
 
 
+def signed_link(settings: Settings, route: str, *, key: str, base_url: str, expires: int) -> str:
+    """`<base_url>/<route>/<key>?expires=&signature=`: an API route that serves `key` while the HMAC holds."""
+    sig = blob_signature(settings, key, expires)
+    return f"{base_url.rstrip('/')}/{route}/{quote(key)}?expires={expires}&signature={sig}"
+
+
 def presign(store: ObjectStore, settings: Settings, *, key: str, base_url: str) -> tuple[str, datetime]:
     """A URL fetching `key` without a token until the returned time (settings.presign_expiry_s from now)."""
     expiry_s = settings.presign_expiry_s
     expires = int(time.time()) + expiry_s
     url = store.presigned_url(key, expiry_s)
     if not url.startswith(("http://", "https://")):
-        sig = blob_signature(settings, key, expires)
-        url = f"{base_url.rstrip('/')}/blobs/{quote(key)}?expires={expires}&signature={sig}"
+        url = signed_link(settings, "blobs", key=key, base_url=base_url, expires=expires)
     return url, datetime.fromtimestamp(expires, UTC)
 
 
@@ -88,8 +93,7 @@ def relative_key(job: Job, key: str) -> str:
 def signed_preview_url(settings: Settings, *, key: str, base_url: str) -> str:
     """`/previews/<preview key>?expires=&signature=`: the API makes the preview on first use, then serves the cache."""
     expires = int(time.time()) + settings.presign_expiry_s
-    sig = blob_signature(settings, key, expires)
-    return f"{base_url.rstrip('/')}/previews/{quote(key)}?expires={expires}&signature={sig}"
+    return signed_link(settings, "previews", key=key, base_url=base_url, expires=expires)
 
 
 def links(

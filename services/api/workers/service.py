@@ -10,18 +10,24 @@ from sqlalchemy.orm import Session
 from services.api.pagination import PageParams
 from services.api.workers.schemas import CurrentTask, WorkerRead
 from services.core.models import Job, Task, Worker, utcnow
-from services.core.settings import Settings
-
-# heartbeats come every 5 s; the scheduler's reaper declares a worker dead (and requeues its task) at this age
-WORKER_STALE_S = float(Settings.model_fields["heartbeat_timeout_s"].default)
 
 
 def list_workers(
-    session: Session, *, tenant: str, page: PageParams, alive: bool | None = None, now: datetime | None = None
+    session: Session,
+    *,
+    tenant: str,
+    page: PageParams,
+    stale_s: float,
+    alive: bool | None = None,
+    now: datetime | None = None,
 ) -> tuple[list[WorkerRead], int]:
-    """Workers by most recent heartbeat, optionally only live (or only stale) ones."""
+    """Workers by most recent heartbeat, optionally only live (or only stale) ones.
+
+    stale_s: heartbeat age past which a worker is not alive; the scheduler's reaper declares it dead (and
+    requeues its task) at Settings.heartbeat_timeout_s, so callers pass that.
+    """
     now = now or utcnow()
-    cutoff = now - timedelta(seconds=WORKER_STALE_S)
+    cutoff = now - timedelta(seconds=stale_s)
     cond = []
     if alive is True:
         cond.append(Worker.last_heartbeat >= cutoff)
@@ -50,7 +56,7 @@ def list_workers(
                 started_at=w.started_at,
                 last_heartbeat=w.last_heartbeat,
                 heartbeat_age_s=round(age, 3),
-                alive=age < WORKER_STALE_S,
+                alive=age < stale_s,
                 busy=w.current_task_id is not None,
                 current_task=None
                 if t is None

@@ -155,12 +155,14 @@ def test_same_seed_gives_identical_bytes_and_a_rerun_renders_nothing(banana_run,
 @pytest.mark.slow
 def test_ctrl_c_then_kill_then_resume_renders_only_what_is_missing(scenes_dir, tmp_path):
     spec = tmp_path / "job.yaml"
-    spec.write_text("cameras: {mode: object, object_count: 8}\npoints: {count: 4, min_views: 3, max_views: 3}\n"
-                    "views: {resolution: 48}\n")
+    # big enough that the interrupts below land mid-run however fast the renders are
+    points = 12
+    spec.write_text(f"cameras: {{mode: object, object_count: 8}}\npoints: {{count: {points}, min_views: 3, max_views: 3}}\n"
+                    "views: {resolution: 96}\n")
     out = tmp_path / "out"
     args = (scenes_dir / "ycb_banana", "--out", out, "--spec", spec, "--cues",
             "rgb,normal,depth_zbuffer,edge_texture,point_info", "--workers", 2)
-    total = 12 * 5
+    total = points * 3 * 5
 
     # 1. Ctrl-C (SIGINT to the whole process group, as a terminal sends it): clean stop, exit 130.
     proc = start_generate(*args)
@@ -199,7 +201,7 @@ def test_ctrl_c_then_kill_then_resume_renders_only_what_is_missing(scenes_dir, t
     for p, stamp in files.items():
         assert p.stat().st_mtime_ns == stamp, f"{p} was rewritten"
     entries = manifest(out)
-    assert len(entries) == 12
+    assert len(entries) == points * 3
     assert sum(len(e["outputs"]) for e in entries) == total
     for e in entries:
         for o in e["outputs"].values():

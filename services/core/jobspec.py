@@ -320,10 +320,15 @@ class JobSpec(_Strict):
 Resolution = Annotated[int, Field(ge=MIN_RESOLUTION, le=MAX_RESOLUTION)]
 
 
-def parse_unit_scale(v: Any) -> float | str:
-    """'auto' or metres per source unit in (0, MAX_UNIT_SCALE]; ValueError naming unit_scale otherwise."""
+def parse_unit_scale(v: Any, *, numbers_as_text: bool = False) -> float | str:
+    """'auto' or metres per source unit in (0, MAX_UNIT_SCALE]; ValueError naming unit_scale otherwise.
+
+    `numbers_as_text`: form fields carry numbers as text; JSON and specs must send a number.
+    """
     if v == "auto":
         return "auto"
+    if isinstance(v, str) and not numbers_as_text:
+        raise ValueError(f"unit_scale must be 'auto' or a number of metres per source unit, not the string {v[:40]!r}")
     try:
         x = float(v) if isinstance(v, int | float | str) and not isinstance(v, bool) else math.nan
     except ValueError:

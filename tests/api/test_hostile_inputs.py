@@ -103,6 +103,7 @@ EXTRA_SPEC_CASES: list[tuple[str, Any, str]] = [
     ("seed", "7", "seed"),
     ("views.nonfixated_pruning", "yes", "views.nonfixated_pruning"),
     ("views.fov_mean_deg", "77.5", "views.fov_mean_deg"),
+    ("unit_scale", "0.01", "unit_scale"),
     ("cues", "rgb", "cues"),
     ("cues", ["rgb", "not_a_cue"], "not_a_cue"),
     ("name", "../escape", "name"),

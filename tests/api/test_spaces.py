@@ -178,6 +178,8 @@ def test_register_staged_object(api: Api, bunny: Path) -> None:
     assert r.status_code == 404
     r = api.client.post("/spaces/register", json={"key": "../x"}, headers=api.a.headers)
     assert r.status_code == 422
+    r = api.client.post("/spaces/register", json={"key": key, "unit_scale": "3"}, headers=api.a.headers)
+    assert r.status_code == 422 and r.json()["errors"][0]["loc"] == ["body", "unit_scale"]  # JSON: a number
     r = api.client.post("/spaces/register", json={}, headers=api.a.headers)
     assert r.status_code == 422 and "exactly one" in r.json()["detail"]
     r = api.client.post("/spaces/register", json={"uri": "s3://elsewhere/x.ply"}, headers=api.a.headers)

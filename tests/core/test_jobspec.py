@@ -106,7 +106,9 @@ def test_cues_for_space_refuses_semantic_cues_on_unlabelled_scans() -> None:
 
 
 def test_space_frame_fields() -> None:
-    spec = JobSpec.model_validate({"unit_scale": "0.0254", "up": [0, 2, 0]})
+    with pytest.raises(ValidationError, match="not the string '0.0254'"):  # strict: a number, as every field
+        JobSpec.model_validate({"unit_scale": "0.0254"})
+    spec = JobSpec.model_validate({"unit_scale": 0.0254, "up": [0, 2, 0]})
     assert spec.unit_scale == 0.0254 and JobSpec().unit_scale == "auto"
     assert spec.space_frame() == {"up_axis": "auto", "unit_scale": 0.0254, "up": (0.0, 2.0, 0.0), "source_to_world": None}
     T = [[0, -2, 0, 1], [2, 0, 0, 2], [0, 0, 2, 3], [0, 0, 0, 1]]  # a turn, 2 m per unit, a shift: accepted

@@ -36,7 +36,7 @@ class SpaceOptions(BaseModel):
     @field_validator("unit_scale", mode="plain")
     @classmethod
     def _scale(cls, v: Any) -> float | str:
-        return parse_unit_scale(v)
+        return parse_unit_scale(v, numbers_as_text=True)  # multipart form fields are text
 
 
 class SpaceRegister(SpaceOptions):
@@ -56,6 +56,11 @@ class SpaceRegister(SpaceOptions):
         max_length=2048,
         description="the same object as a URI of the service's store (s3://bucket/prefix/uploads/<tenant>/...)",
     )
+
+    @field_validator("unit_scale", mode="plain")
+    @classmethod
+    def _scale(cls, v: Any) -> float | str:
+        return parse_unit_scale(v)  # strict: a JSON number (or "auto"), never a numeric string
 
 
 class SpaceRead(BaseModel):

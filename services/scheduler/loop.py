@@ -170,14 +170,14 @@ class Scheduler:
                     summary["spaces"][sp.name] = {
                         "cameras": done.cameras, "points": done.points, "views": done.views, "tasks": done.tasks,
                         "shortfall": plan.shortfall, "plan_key": done.plan_key,
-                        "valid_fraction": getattr(plan, "valid_fraction", None),
+                        "valid_fraction": plan.valid_fraction,
                         "clips": clip_summary(plan.clip_notes, CLIP_NOTES_IN_SUMMARY),
                         "source_to_world": np.asarray(loaded.source_to_world, dtype=float).tolist(),
                         "bounds": np.asarray(loaded.bounds, dtype=float).tolist(),
-                        "up_axis": spec.up_axis, "up_method": getattr(loaded, "up_method", None),
+                        "up_axis": spec.up_axis, "up_method": loaded.up_method,
                         "unit_scale": loaded.units.scale if loaded.units is not None else spec.unit_scale,
-                        "warnings": list(getattr(loaded, "warnings", ()) or ()),
-                        **(loaded.frame_record() if hasattr(loaded, "frame_record") else {}),
+                        "warnings": list(loaded.warnings),
+                        **loaded.frame_record(),
                     }
                 summary["shortfall"] = any(v["shortfall"] for v in summary["spaces"].values())
                 summary["planning_s"] = round(time.perf_counter() - t0, 3)

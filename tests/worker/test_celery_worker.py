@@ -120,6 +120,18 @@ def wait_until(cond: Any, timeout: float, what: str, proc: subprocess.Popen[byte
 
 
 @pytest.mark.slow
+def stop_worker(proc: subprocess.Popen[bytes]) -> None:
+    """Warm shutdown as an orchestrator does it (k8s, docker stop): SIGTERM to the main process only, which then
+    stops its pool. Signalling the whole group kills the children outright (Celery resets their SIGTERM to the
+    default) and races billiard's pool shutdown. The group is killed only if that hangs."""
+    os.kill(proc.pid, signal.SIGTERM)
+    try:
+        proc.wait(timeout=60)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+
+
 def test_real_worker_consumes_heartbeats_and_recycles_its_child(pg_url, pg_sm, redis_url, banana, tmp_path):  # noqa: F811
     from services.scheduler.transport import CeleryTransport
 
@@ -161,15 +173,7 @@ def test_real_worker_consumes_heartbeats_and_recycles_its_child(pg_url, pg_sm, r
         wait_until(lambda: counted() == 4, 30, "heartbeats to count the tasks of both children", proc)
         assert b"Celery recycles it" in (tmp_path / "worker.log").read_bytes()
     finally:
-        # Warm shutdown as an orchestrator does it (k8s, docker stop): SIGTERM to the main process only, which
-        # then stops its pool. Signalling the whole group kills the children outright (Celery resets their
-        # SIGTERM to the default) and races billiard's pool shutdown.
-        os.kill(proc.pid, signal.SIGTERM)
-        try:
-            proc.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
+        stop_worker(proc)
         log.close()
     assert proc.returncode == 0, (tmp_path / "worker.log").read_text()[-3000:]
 
@@ -222,12 +226,7 @@ def test_idle_worker_with_one_render_thread_does_not_spin(pg_url, pg_sm, redis_u
         idle = (tree_cpu_s(proc.pid) - cpu0) / (time.monotonic() - t0)
         assert idle < 0.05, f"idle worker used {idle:.0%} of a core"
     finally:
-        os.kill(proc.pid, signal.SIGTERM)
-        try:
-            proc.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
+        stop_worker(proc)
         log.close()
 
 

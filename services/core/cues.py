@@ -8,6 +8,12 @@ from typing import Literal
 
 Source = Literal["plan", "render", "derive", "internal"]
 
+# Stored values with a meaning of their own (DESIGN.md section 5), shared by the worker that writes them and the
+# readers (services.datasets).
+UINT16_NONE = 65535  # 16-bit depth: no surface
+FRAGMENT_NONE = 4294967295  # fragments (uint32): no triangle seen
+CURVATURE_FLAT = 127  # principal_curvature pixel of k = 0 (0..254 spans -kmax..kmax)
+
 
 @dataclass(frozen=True)
 class Cue:

@@ -29,13 +29,10 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
-from services.core.cues import get_cue
+from services.core.cues import CURVATURE_FLAT, FRAGMENT_NONE, UINT16_NONE, get_cue
 from services.core.exr import decode_exr_rgb
 from services.core.jobspec import CueParams
 
-UINT16_NONE = 65535
-UINT32_NONE = 4294967295
-CURVATURE_FLAT = 127  # principal_curvature pixel of k = 0 (0..254 spans -kmax..kmax)
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
@@ -160,7 +157,7 @@ def decode_cue(cue: str, data: bytes, params: CueParams | None = None) -> np.nda
         return _chw((as_uint16(g) if g.dtype.itemsize >= 2 else g).astype(np.int64))
     if cue == "fragments":
         f = _grey(raw).astype(np.int64)
-        return _chw(np.where(f == UINT32_NONE, -1, f))
+        return _chw(np.where(f == FRAGMENT_NONE, -1, f))
     if cue == "position":
         return _chw(raw.astype(np.float32))
     raise ValueError(f"cue {cue!r}: no decoder")  # a new catalog entry needs one here

@@ -22,13 +22,11 @@ from typing import Any
 import numpy as np
 from PIL import Image, ImageDraw
 
-from services.core.cues import get_cue
+from services.core.cues import FRAGMENT_NONE, UINT16_NONE, get_cue
 from services.core.jobspec import CueParams
 from services.core.keys import file_name
 from services.core.storage import ObjectStore
 from services.datasets.decode import (
-    UINT16_NONE,
-    UINT32_NONE,
     as_uint16,
     cue_params,
     curvature_per_m,
@@ -120,7 +118,7 @@ def _image_preview(cue: str, raw: np.ndarray, params: CueParams) -> np.ndarray:
         rgb = raw.astype(np.int64)
         return hashed_colours(rgb[..., 0] * 65536 + rgb[..., 1] * 256 + rgb[..., 2])
     if cue == "fragments":
-        return hashed_colours(raw, none=UINT32_NONE)
+        return hashed_colours(raw, none=FRAGMENT_NONE)
     if cue == "position":
         valid = np.isfinite(raw).all(axis=-1)
         out = np.stack([stretch(raw[..., i], valid, 0, 100) for i in range(3)], axis=-1)

@@ -17,8 +17,9 @@ from typing import Any
 import numpy as np
 
 from services.core.camera import camera_center, intrinsics, pixel_rays
+from services.core.cues import FRAGMENT_NONE
 
-NO_FACE = np.uint32(0xFFFFFFFF)
+NO_FACE = np.uint32(FRAGMENT_NONE)
 NO_LABEL = -1
 
 # Passes read back from a render only when a requested cue needs them (colour and depth always are): normals,

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from services.core.cues import CURVATURE_FLAT
 from services.worker.context import ViewContext
 from services.worker.cues.common import (
     euclidean_m,
@@ -19,7 +20,6 @@ from services.worker.passes import NO_FACE, RENDER_PASSES
 
 NORMAL_BACKGROUND = 128
 CURVATURE_BACKGROUND = 0  # R = G = B = 0 where nothing is seen (use mask_valid); B is always 0
-CURVATURE_FLAT = 127
 
 
 @register("passes", passes=RENDER_PASSES)

@@ -8,9 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from services.core.cues import UINT16_NONE
 from services.worker.context import ViewContext
-
-UINT16_NONE = 65535
 
 
 def hit(ctx: ViewContext) -> np.ndarray:

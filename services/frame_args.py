@@ -11,7 +11,7 @@ import argparse
 import json
 from pathlib import Path
 
-from services.core.jobspec import UP_AXES, parse_unit_scale
+from services.core.jobspec import UP_AXES
 
 
 def add_frame_arguments(parser: argparse.ArgumentParser) -> None:
@@ -37,10 +37,12 @@ def _vector(text: str) -> list[float]:
 
 
 def _unit_scale(text: str) -> float | str:
+    if text == "auto":
+        return text
     try:
-        return parse_unit_scale(text, numbers_as_text=True)  # the JobSpec's own rule
-    except ValueError as e:
-        raise argparse.ArgumentTypeError(str(e)) from None
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of metres per unit or auto, got {text!r}") from None
 
 
 def _matrix_file(text: str) -> list[list[float]]:

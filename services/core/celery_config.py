@@ -41,7 +41,8 @@ def celery_conf(settings: Settings) -> dict[str, Any]:
         "result_backend": None,
         "task_ignore_result": True,  # results live in Postgres, not in the broker
         "task_acks_late": True,  # a worker killed mid-task leaves the message to be redelivered
-        "worker_prefetch_multiplier": 1,  # long tasks: never hoard messages another worker could run
+        # long tasks: never hoard messages another worker could run (a dead worker's reserved ones are re-sent)
+        "worker_prefetch_multiplier": settings.worker_prefetch,
         "task_default_queue": settings.queue_derive,
         "task_create_missing_queues": True,
         "task_routes": {TASK_RENDER_CUE: {"queue": settings.queue_derive}},  # overridden per send by cue

@@ -73,6 +73,9 @@ class Settings(BaseSettings):
     dispatch_window: int = Field(2000, ge=1, description="queued tasks per job at most")
     worker_max_tasks: int = Field(500, ge=1, description="a worker process recycles after this many tasks")
     worker_max_memory_mb: int = Field(4096, ge=64, description="a worker recycles above this resident size")
+    worker_prefetch: int = Field(
+        1, ge=1, le=64, description="messages a worker process reserves (running included); more suits tiny tasks"
+    )
     render_threads: int | None = Field(None, ge=1, description="CPU threads per render (default: Blender's choice)")
     render_device: Literal["auto", "cpu", "cuda", "optix"] = "auto"
     queue_render: str = Field("render", min_length=1, description="heavy queue: tasks that render")

@@ -35,6 +35,7 @@ from services.scheduler.completion import Finished, complete_once
 from services.scheduler.dispatch import DEFAULT_BUDGET, DispatchResult, dispatch_once
 from services.scheduler.persist import clear_plan, persist_space
 from services.scheduler.reaper import ReapResult, reap_once
+from services.scheduler.resend import IdleWatch, resend_stuck
 from services.scheduler.transport import Transport
 from services.scheduler.worker_rows import expire_worker_rows
 
@@ -114,6 +115,7 @@ class Scheduler:
         self._last_reap = 0.0
         self._last_thorough = time.monotonic()  # the first passes use the (cheap) bounded scans
         self._stalled = False
+        self._idle_watch = IdleWatch()
 
     # ------------------------------------------------------------------------------------------ planning
 
@@ -247,6 +249,9 @@ class Scheduler:
             res = reap_once(s, queued_timeout_s=self.settings.lease_s, default_max_attempts=self.settings.max_attempts,
                             dead_after_s=self.settings.heartbeat_timeout_s)
             expire_worker_rows(s, older_than_s=self.settings.worker_expiry_s)
+        with self.sessionmaker() as s:  # messages a dead worker held, or stuck while workers sit idle
+            resend_stuck(s, self.transport, self.settings, self._idle_watch,
+                         dead_after_s=self.settings.heartbeat_timeout_s, stuck_after_s=self.settings.heartbeat_timeout_s)
         self._last_reap = time.monotonic()
         return res
 

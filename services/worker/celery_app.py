@@ -28,7 +28,7 @@ def worker_conf(settings: Settings) -> dict[str, Any]:
             "task_acks_late": True,
             "task_reject_on_worker_lost": True,  # a killed child's message goes back to the queue
             "task_acks_on_failure_or_timeout": True,  # failures are recorded in Postgres; never loop a message
-            "worker_prefetch_multiplier": 1,
+            "worker_prefetch_multiplier": settings.worker_prefetch,
             "broker_connection_retry_on_startup": True,
             "broker_connection_retry": True,
             "broker_connection_max_retries": None,  # a restarted Redis is waited for, however long it takes

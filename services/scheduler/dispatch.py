@@ -9,9 +9,9 @@ in-flight or failed input tasks of blocked ones ahead of them, so a pass never w
 tasks whose inputs have not even started. A task whose input failed for good can never run: it fails
 too ("UpstreamFailed"), so the job can finish.
 
-Each running job keeps at most `window` tasks queued + running (counters, never COUNT(*)). Jobs are
-served by priority (higher first, strictly); jobs of equal priority split the pass budget evenly,
-starting from a rotating position (round robin). Ready tasks of a job go out oldest (lowest id) first,
+Each running job keeps at most `window` tasks queued + running (counters, never COUNT(*)). Tenants
+split the pass budget evenly; within a tenant jobs are served by priority (higher first, strictly) and
+jobs of equal priority split evenly, each from a rotating position (round robin; `fairness` module). Ready tasks of a job go out oldest (lowest id) first,
 which is view by view: a view's derived cues before the next view's render. Postgres and SQLite.
 """
 
@@ -19,10 +19,8 @@ from __future__ import annotations
 
 import logging
 from collections import defaultdict
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
-from itertools import groupby
 from typing import Any
 
 from sqlalchemy import case, func, literal, or_, select, text
@@ -31,6 +29,7 @@ from sqlalchemy.orm import Session
 from services.core.cues import CATALOG
 from services.core.models import Job, JobCounter, JobState, Task, TaskState, utcnow
 from services.core.states import transition
+from services.scheduler.fairness import queued_now, tenant_turns
 from services.scheduler.transport import Transport
 
 log = logging.getLogger(__name__)
@@ -65,6 +64,7 @@ class JobLoad:
     job_id: int
     priority: int
     counts: dict[str, dict[str, int]] = field(default_factory=dict)
+    owner: str = ""  # the tenant: dispatch is shared fairly between tenants
 
     def n(self, cue: str, *states: str) -> int:
         """Tasks of `cue` in any of `states`."""
@@ -83,16 +83,16 @@ class JobLoad:
 
 
 def running_job_loads(session: Session) -> list[JobLoad]:
-    """Every running job with its counters, highest priority first."""
+    """Every running job with its counters and tenant, highest priority first."""
     c = JobCounter.__table__.c
     rows = session.execute(
-        select(Job.id, Job.priority, c.cue, c.state, c.n)
+        select(Job.id, Job.priority, Job.owner, c.cue, c.state, c.n)
         .join(JobCounter, JobCounter.job_id == Job.id, isouter=True)
         .where(Job.state == JobState.RUNNING)
     ).all()
     loads: dict[int, JobLoad] = {}
-    for job_id, prio, cue, state, n in rows:
-        load = loads.setdefault(int(job_id), JobLoad(int(job_id), int(prio or 0)))
+    for job_id, prio, owner, cue, state, n in rows:
+        load = loads.setdefault(int(job_id), JobLoad(int(job_id), int(prio or 0), owner=str(owner or "")))
         if cue is not None and n:
             load.counts.setdefault(str(cue), {})[str(state)] = int(n)
     return sorted(loads.values(), key=lambda j: (-j.priority, j.job_id))
@@ -221,17 +221,6 @@ def _loads_of(session: Session, job_ids: list[int]) -> list[JobLoad]:
     return list(loads.values())
 
 
-def plan_turns(loads: Sequence[JobLoad], window: int, rotation: int = 0) -> list[list[JobLoad]]:
-    """Jobs that may receive tasks, grouped by priority (highest first), each group rotated for fairness."""
-    groups = []
-    eligible = [j for j in loads if j.pending > 0 and j.inflight < window]
-    for _prio, grp in groupby(eligible, key=lambda j: j.priority):
-        members = list(grp)
-        k = rotation % len(members)
-        groups.append(members[k:] + members[:k])
-    return groups
-
-
 def dispatch_once(
     session: Session,
     transport: Transport,
@@ -241,6 +230,7 @@ def dispatch_once(
     rotation: int = 0,
     now: datetime | None = None,
     thorough: bool = False,
+    queued_cap: int | None = None,
 ) -> DispatchResult:
     """One dispatch pass: mark up to `budget` ready tasks queued, COMMIT, then send them.
 
@@ -248,7 +238,8 @@ def dispatch_once(
     inherit what it could not use). If a send fails, its tasks go back to pending at once (a duplicate
     of a message that did get through is harmless: the worker's claim needs state 'queued'); if even
     that fails, the reaper puts them back after the lease time. `thorough` ignores the counter-based
-    scan bounds (the loop does this now and then as a safety net).
+    scan bounds (the loop does this now and then as a safety net). `queued_cap` bounds the tasks queued
+    (sent, not claimed) over all jobs after the pass.
     """
     now = now or utcnow()
     if session.get_bind().dialect.name == "postgresql":
@@ -256,29 +247,22 @@ def dispatch_once(
         session.execute(text("SET LOCAL jit = off"))
     result = DispatchResult()
     picked: list[tuple[int, list[tuple[int, str]]]] = []
-    for group in plan_turns(running_job_loads(session), window, rotation):
-        for k, load in enumerate(group):
-            if budget <= 0:
-                break
-            share = -(-budget // (len(group) - k))  # ceil: the first jobs in rotation order get the remainder
-            take = min(share, window - load.inflight)
-            ready, doomed = ready_tasks(session, load.job_id, take, now, load, thorough)
-            if doomed:
-                result.upstream_failed += len(transition(
-                    session, job_id=load.job_id, task_ids=doomed, from_state=TaskState.PENDING, to_state=TaskState.FAILED,
-                    finished_at=now, error="UpstreamFailed: an input cue task of this view failed or was cancelled",
-                ))
-            if not ready:
-                if load.inflight == 0 and not doomed:
-                    result.stalled.append(load.job_id)
-                continue
-            moved = transition(
-                session, job_id=load.job_id, task_ids=[tid for tid, _ in ready],
-                from_state=TaskState.PENDING, to_state=TaskState.QUEUED, queued_at=now,
-            )
-            if moved:
-                picked.append((load.job_id, moved))
-                budget -= len(moved)
+    loads = running_job_loads(session)
+    if queued_cap is not None:  # a short broker queue: a newcomer's tasks wait behind few others
+        budget = min(budget, max(0, queued_cap - queued_now(loads)))
+    tenants = tenant_turns(loads, window, rotation)
+    for t, groups in enumerate(tenants):
+        share = -(-budget // (len(tenants) - t))  # ceil: what earlier tenants could not use carries over
+        for group in groups:  # strict priority within the tenant
+            for k, load in enumerate(group):
+                if share <= 0:
+                    break
+                take = min(-(-share // (len(group) - k)), window - load.inflight)
+                moved = _pick(session, load, take, now, thorough, result)
+                if moved:
+                    picked.append((load.job_id, moved))
+                    share -= len(moved)
+                    budget -= len(moved)
     session.commit()  # queued is durable before any message exists
     broken = False  # after one failed send the broker is presumed down: the rest goes back unsent
     for job_id, moved in picked:
@@ -294,6 +278,26 @@ def dispatch_once(
                     log.exception("sending tasks of job %d failed; putting the unsent ones back to pending", job_id)
             result.requeued += _unqueue(session, job_id, part)
     return result
+
+
+def _pick(
+    session: Session, load: JobLoad, take: int, now: datetime, thorough: bool, result: DispatchResult,
+) -> list[tuple[int, str]]:
+    """Mark up to `take` ready tasks of one job queued (not committed); fails those whose input failed for good."""
+    ready, doomed = ready_tasks(session, load.job_id, take, now, load, thorough)
+    if doomed:
+        result.upstream_failed += len(transition(
+            session, job_id=load.job_id, task_ids=doomed, from_state=TaskState.PENDING, to_state=TaskState.FAILED,
+            finished_at=now, error="UpstreamFailed: an input cue task of this view failed or was cancelled",
+        ))
+    if not ready:
+        if load.inflight == 0 and not doomed:
+            result.stalled.append(load.job_id)
+        return []
+    return transition(
+        session, job_id=load.job_id, task_ids=[tid for tid, _ in ready],
+        from_state=TaskState.PENDING, to_state=TaskState.QUEUED, queued_at=now,
+    )
 
 
 def _unqueue(session: Session, job_id: int, moved: list[tuple[int, str]]) -> int:

@@ -33,6 +33,7 @@ from services.core.storage import ObjectStore
 from services.scheduler.compile import compile_tasks
 from services.scheduler.completion import Finished, complete_once
 from services.scheduler.dispatch import DEFAULT_BUDGET, DispatchResult, dispatch_once
+from services.scheduler.fairness import queued_cap
 from services.scheduler.persist import clear_plan, persist_space
 from services.scheduler.reaper import ReapResult, reap_once
 from services.scheduler.resend import IdleWatch, resend_stuck
@@ -234,6 +235,7 @@ class Scheduler:
             res = dispatch_once(
                 s, self.transport, window=self.settings.dispatch_window, budget=self.budget,
                 rotation=self._rotation, thorough=thorough,
+                queued_cap=queued_cap(s, alive_within_s=self.settings.heartbeat_timeout_s),
             )
         if thorough:
             self._last_thorough = time.monotonic()

@@ -9,6 +9,7 @@ faults, jobs and tasks completed, recovery time after each kill -9) are printed 
 
 from __future__ import annotations
 
+import base64
 import json
 import os
 import random
@@ -30,13 +31,18 @@ from tests.e2e.test_distributed import assert_exactly_once, submit_direct, wait,
 
 pytestmark = pytest.mark.slow
 
-CHAOS_S = 50.0  # seconds of fault injection
-FAULTS = ["kill_worker"] * 4 + ["kill_scheduler", "drop_postgres", "drop_redis"] * 2  # injected in random order
+CHAOS_S = 70.0  # seconds of fault injection
+FAULTS = ["kill_worker"] * 8 + ["kill_scheduler", "drop_postgres", "drop_redis"] * 2  # injected in random order
 SETTLE_S = 120.0  # then every job must be done within this
 N_WORKERS = 3
-# Short enough for a bounded run, in the same order as the deployment's defaults: a worker is declared
-# dead after 6 s without a heartbeat (its task comes back then), leases and the lost-message timeout are 20 s.
-CHAOS_ENV = {"OMNIDATA_LEASE_S": "20", "OMNIDATA_HEARTBEAT_TIMEOUT_S": "6", "OMNIDATA_DISPATCH_WINDOW": "8"}
+# A worker is declared dead after 6 s without a heartbeat (its running task comes back then, and the messages it
+# may have reserved are sent again); leases and the lost-message timeout are 120 s, longer than the promised
+# recovery (heartbeat timeout + 30 s), so they cannot be what meets it. Workers reserve 2 messages each, so a kill
+# often lands on a worker holding a reserved message.
+HEARTBEAT_TIMEOUT_S = 6
+CHAOS_ENV = {"OMNIDATA_LEASE_S": "120", "OMNIDATA_HEARTBEAT_TIMEOUT_S": str(HEARTBEAT_TIMEOUT_S),
+             "OMNIDATA_DISPATCH_WINDOW": "8", "OMNIDATA_WORKER_PREFETCH": "2"}
+RESULTS = Path(__file__).resolve().parents[2] / "bench" / "results" / "chaos.json"
 SPEC = """
 cameras: {{mode: object, object_count: 6}}
 points: {{count: 4, min_views: 2, max_views: 2}}
@@ -67,6 +73,17 @@ def kill_9(cluster: Cluster, proc: Proc, patience_s: float = 3.0) -> list[int]:
         time.sleep(0.05)
     proc.stop(signal.SIGKILL)
     return held
+
+
+def unacked_queued(cluster: Cluster) -> list[int]:
+    """Tasks still queued whose message Redis holds as delivered to some worker but not acknowledged."""
+    r = redis.Redis.from_url(REDIS_DB_URL)
+    try:
+        ids = [int(json.loads(base64.b64decode(json.loads(raw)[0]["body"]))[0][0]) for raw in r.hvals("unacked")]
+    finally:
+        r.close()
+    with cluster.sm() as s:
+        return [int(i) for i in s.scalars(select(Task.id).where(Task.id.in_(ids), Task.state == "queued"))]
 
 
 def drop_redis_clients(url: str) -> int:
@@ -100,6 +117,7 @@ def test_chaos_soak(cluster: Cluster, scenes_dir: Path, tmp_path: Path) -> None:
     wait(running, 120, "a job to be planned", cluster)
     faults: Counter[str] = Counter()
     kills: list[tuple[datetime, list[int]]] = []  # (when, tasks the worker held)
+    reserved: list[list[int]] = []  # per kill: tasks queued whose message was reserved by some worker
     schedule = FAULTS.copy()
     rng.shuffle(schedule)
     n_worker = N_WORKERS
@@ -107,8 +125,9 @@ def test_chaos_soak(cluster: Cluster, scenes_dir: Path, tmp_path: Path) -> None:
         time.sleep(rng.uniform(0.5, 1.5) * CHAOS_S / len(schedule))
         if fault == "kill_worker":
             victim = rng.choice([w for w in workers if w.alive()])
-            when = utcnow()
-            kills.append((when, kill_9(cluster, victim)))
+            held_by_victim = kill_9(cluster, victim)
+            kills.append((utcnow(), held_by_victim))
+            reserved.append(unacked_queued(cluster))
             workers.remove(victim)
             workers.append(cluster.start_worker(f"worker-{n_worker}", **CHAOS_ENV))  # as an orchestrator would
             n_worker += 1
@@ -141,16 +160,25 @@ def test_chaos_soak(cluster: Cluster, scenes_dir: Path, tmp_path: Path) -> None:
         tasks = s.scalar(select(func.count()).select_from(Task).where(Task.job_id.in_(job_ids)))
         first, last = s.execute(select(func.min(Job.created_at), func.max(Job.finished_at)).where(Job.id.in_(job_ids))).one()
         rerun = {int(r.id): r for r in s.execute(
-            select(Task.id, Task.attempts, Task.finished_at).where(Task.id.in_(held)))}
+            select(Task.id, Task.attempts, Task.finished_at).where(Task.id.in_(held + [t for r in reserved for t in r])))}
     assert held, "no worker was killed mid-task"
-    assert all(r.attempts >= 2 for r in rerun.values()), rerun  # each killed worker's task was reaped and rerun
-    recovery = [(rerun[t].finished_at - when).total_seconds() for when, ids in kills for t in ids]
+    assert all(rerun[t].attempts >= 2 for t in held), rerun  # each killed worker's task was reaped and rerun
+    # A kill's recovery: from the kill to the last of the tasks it interrupted (running on the victim, or queued with
+    # a reserved message, possibly the victim's) being done.
+    recovery = [max((rerun[t].finished_at - when).total_seconds() for t in [*ids, *res])
+                for (when, ids), res in zip(kills, reserved, strict=True) if ids or res]
     figures = {
         "run_s": round(run_s, 1), "chaos_s": round(chaos_s, 1), "workload_s": round((last - first).total_seconds(), 1),
         "faults": dict(faults),
         "faults_total": sum(faults.values()), "jobs_done": len(jobs), "tasks_done": int(tasks or 0),
         "outputs_once_sha256_ok": outputs, "killed_mid_task": len(held),
-        "recovery_after_kill9_s": {"max": round(max(recovery), 1), "mean": round(sum(recovery) / len(recovery), 1)}
-        if recovery else None,
+        "reserved_at_kill": sum(len(r) for r in reserved),
+        "recovery_after_kill9_s": {"worst": round(max(recovery), 1), "each": [round(x, 1) for x in recovery]},
+        "kills_that_interrupted_work": len(recovery),
+        "bound_s": HEARTBEAT_TIMEOUT_S + 30,
+        "note": "2-core machine shared with other developers' work",
     }
     print("\nchaos soak:", json.dumps(figures))
+    runs = json.loads(RESULTS.read_text()) if RESULTS.exists() else []
+    RESULTS.write_text(json.dumps([*runs, {"at": utcnow().isoformat(timespec="seconds"), **figures}], indent=1) + "\n")
+    assert max(recovery) <= HEARTBEAT_TIMEOUT_S + 30, recovery  # the promise, for the worst kill, not the mean

@@ -291,9 +291,12 @@ class JobSpec(_Strict):
         self._check_plan_size()
         return self
 
-    def _check_plan_size(self) -> None:
-        """Refuse a spec whose plan could exceed MAX_PLANNED_VIEWS (its rows and tasks would exhaust memory) or
-        whose point sampling could draw more than MAX_SAMPLE_BUDGET samples (hours of ray casts)."""
+    def views_upper_bound(self) -> int:
+        """Most views one space of this spec can plan (points x views per point)."""
+        return self._plan_size()[0]
+
+    def _plan_size(self) -> tuple[int, int, int, str]:
+        """(views upper bound, points, views per point, the knob that bounds views per point)."""
         cams, pts = self.cameras, self.points
         n_cameras = {"generate": cams.max_count, "object": cams.object_count}.get(cams.mode, len(cams.poses or ()))
         n_points = pts.count if pts.count is not None else math.ceil(pts.per_camera * n_cameras)
@@ -302,6 +305,13 @@ class JobSpec(_Strict):
         else:
             per_point = min(pts.max_views or n_cameras, n_cameras)
             what = "points.max_views" if pts.max_views is not None else "the camera count"
+        return n_points * per_point, n_points, per_point, what
+
+    def _check_plan_size(self) -> None:
+        """Refuse a spec whose plan could exceed MAX_PLANNED_VIEWS (its rows and tasks would exhaust memory) or
+        whose point sampling could draw more than MAX_SAMPLE_BUDGET samples (hours of ray casts)."""
+        pts = self.points
+        _views, n_points, per_point, what = self._plan_size()
         if n_points * pts.max_tries_per_point > MAX_SAMPLE_BUDGET:
             raise ValueError(
                 f"{n_points} points x points.max_tries_per_point ({pts.max_tries_per_point}) could draw "

@@ -73,6 +73,12 @@ class Settings(BaseSettings):
     dispatch_window: int = Field(2000, ge=1, description="queued tasks per job at most")
     worker_max_tasks: int = Field(500, ge=1, description="a worker process recycles after this many tasks")
     worker_max_memory_mb: int = Field(4096, ge=64, description="a worker recycles above this resident size")
+    plan_memory_mb: int = Field(
+        4096, ge=256, description="memory one job's planning may use (its process's limit); bigger specs are refused"
+    )
+    plan_timeout_s: int = Field(
+        900, ge=10, description="time one job's planning may take; its process is ended after it, bigger specs refused"
+    )
     worker_prefetch: int = Field(
         1, ge=1, le=64, description="messages a worker process reserves (running included); more suits tiny tasks"
     )

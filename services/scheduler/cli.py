@@ -41,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
     engine = make_engine(settings.database_url)
     store = open_store(settings.storage_url, settings)
     transport = CeleryTransport(settings=settings)
-    sched = Scheduler(make_sessionmaker(engine), store, transport, settings, args.scheduler_id)
+    sched = Scheduler(make_sessionmaker(engine), store, transport, settings, args.scheduler_id, plan_in_processes=True)
     try:
         if args.once:
             res = sched.tick()

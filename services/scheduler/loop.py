@@ -27,6 +27,7 @@ from services.core.jobs import claim_pending_jobs, job_spaces, job_spec
 from services.core.jobspec import JobSpec
 from services.core.models import Job, JobState, Space, utcnow
 from services.core.plan import CLIP_NOTES_IN_SUMMARY, SpacePlan, clip_summary
+from services.core.plan_budget import check_plan_budget
 from services.core.settings import Settings
 from services.core.states import set_job_state
 from services.core.storage import ObjectStore
@@ -35,6 +36,7 @@ from services.scheduler.completion import Finished, complete_once
 from services.scheduler.dispatch import DEFAULT_BUDGET, DispatchResult, dispatch_once
 from services.scheduler.fairness import queued_cap
 from services.scheduler.persist import clear_plan, persist_space
+from services.scheduler.planner_proc import PlannerProcesses
 from services.scheduler.reaper import ReapResult, reap_once
 from services.scheduler.resend import IdleWatch, resend_stuck
 from services.scheduler.transport import Transport
@@ -72,6 +74,31 @@ def _permanent(exc: BaseException) -> bool:
     return isinstance(exc, PlanningError | PlanError | SpaceError | ObjectNotFoundError | ValueError | KeyError)
 
 
+def record_planning_failure(sm: sessionmaker[Session], job_id: int, scheduler_id: str, exc: BaseException) -> None:
+    """Count a failed planning attempt of a job this scheduler holds: fail it (permanent error, or out of
+    attempts) or leave it claimed for a retry after PLAN_RETRY_S."""
+    permanent = _permanent(exc)
+    log.log(
+        logging.WARNING if permanent else logging.ERROR, "planning job %d failed: %s", job_id, exc,
+        exc_info=not permanent,
+    )
+    with sm() as s:
+        job = s.get(Job, job_id)
+        if job is None or job.state != JobState.PLANNING or job.planner != scheduler_id:
+            return
+        summary = dict(job.plan_summary or {})
+        attempts = int(summary.get("attempts", 0)) + 1
+        summary["attempts"] = attempts
+        job.plan_summary = summary
+        if permanent or attempts >= MAX_PLAN_ATTEMPTS:
+            tail = "".join(traceback.format_exception_only(type(exc), exc)).strip()
+            set_job_state(job, JobState.FAILED, finished_at=utcnow(),
+                          error=f"planning failed: {tail}" if not isinstance(exc, PlanningError) else str(exc))
+        else:  # leave it claimed; any scheduler may take it again once the lease runs out
+            job.planner_lease_until = utcnow() + timedelta(seconds=PLAN_RETRY_S)
+        s.commit()
+
+
 @dataclass
 class TickResult:
     """What one tick did."""
@@ -103,6 +130,7 @@ class Scheduler:
         cache_dir: Path | None = None,
         budget: int = DEFAULT_BUDGET,
         plan_fn: PlanFn | None = None,
+        plan_in_processes: bool = False,
     ) -> None:
         self.sessionmaker = sessionmaker
         self.store = store
@@ -117,6 +145,9 @@ class Scheduler:
         self._last_thorough = time.monotonic()  # the first passes use the (cheap) bounded scans
         self._stalled = False
         self._idle_watch = IdleWatch()
+        # The service plans in child processes (off this loop, memory-capped, leases beaten every tick); the
+        # embedded runner and tests plan inline.
+        self.planners = PlannerProcesses(sessionmaker, settings, self.scheduler_id) if plan_in_processes else None
 
     # ------------------------------------------------------------------------------------------ planning
 
@@ -127,7 +158,19 @@ class Scheduler:
         return Path(fetch_space(self.store, space, self.cache_dir))
 
     def plan_pending(self, limit: int = 1) -> list[int]:
-        """Claim up to `limit` pending jobs and plan them; returns the ids of jobs now running."""
+        """Claim up to `limit` pending jobs and plan them; returns the ids of jobs now running (with planner
+        processes: starts them, and returns the ids of jobs whose planning ended)."""
+        if self.planners is not None:
+            ended = self.planners.watch()
+            if self.planners.free > 0:
+                with self.sessionmaker() as s:
+                    jobs = claim_pending_jobs(s, self.scheduler_id, min(limit, self.planners.free),
+                                              lease_s=self.settings.heartbeat_timeout_s)
+                    ids = [j.id for j in jobs]
+                    s.commit()
+                for job_id in ids:
+                    self.planners.start(job_id)
+            return ended
         with self.sessionmaker() as s:
             jobs = claim_pending_jobs(s, self.scheduler_id, limit)
             ids = [j.id for j in jobs]
@@ -156,6 +199,7 @@ class Scheduler:
                 if job is None or job.state != JobState.PLANNING or job.planner != self.scheduler_id:
                     return False
                 spec = job_spec(job)
+                check_plan_budget(spec, memory_mb=self.settings.plan_memory_mb, timeout_s=self.settings.plan_timeout_s)  # refused before any work
                 clear_plan(s, job.id)
                 summary: dict[str, Any] = {"spaces": {}, "attempts": (job.plan_summary or {}).get("attempts", 0) + 1}
                 total = 0
@@ -203,26 +247,10 @@ class Scheduler:
         return True
 
     def _planning_failed(self, job_id: int, exc: BaseException) -> None:
-        permanent = _permanent(exc)
-        log.log(
-            logging.WARNING if permanent else logging.ERROR, "planning job %d failed: %s", job_id, exc,
-            exc_info=not permanent,
-        )
-        with self.sessionmaker() as s:
-            job = s.get(Job, job_id)
-            if job is None or job.state != JobState.PLANNING or job.planner != self.scheduler_id:
-                return
-            summary = dict(job.plan_summary or {})
-            attempts = int(summary.get("attempts", 0)) + 1
-            summary["attempts"] = attempts
-            job.plan_summary = summary
-            if permanent or attempts >= MAX_PLAN_ATTEMPTS:
-                tail = "".join(traceback.format_exception_only(type(exc), exc)).strip()
-                set_job_state(job, JobState.FAILED, finished_at=utcnow(),
-                              error=f"planning failed: {tail}" if not isinstance(exc, PlanningError) else str(exc))
-            else:  # leave it claimed; any scheduler may take it again once the lease runs out
-                job.planner_lease_until = utcnow() + timedelta(seconds=PLAN_RETRY_S)
-            s.commit()
+        if isinstance(exc, MemoryError):
+            exc = PlanningError(f"planning ran out of its memory budget of {self.settings.plan_memory_mb} MB "
+                                "(OMNIDATA_PLAN_MEMORY_MB): lower points.count or points.max_views")
+        record_planning_failure(self.sessionmaker, job_id, self.scheduler_id, exc)
 
     # ------------------------------------------------------------------------------------------ steps
 
@@ -293,4 +321,6 @@ class Scheduler:
                           [f.job_id for f in res.finished])
             if not res.busy:
                 stop_event.wait(interval)
+        if self.planners is not None:
+            self.planners.stop_all()
         log.info("scheduler %s stopped", self.scheduler_id)

@@ -7,7 +7,7 @@ from typing import Annotated
 from fastapi import APIRouter, Path, Query, Request, Response, status
 from fastapi.concurrency import run_in_threadpool
 
-from services.api.deps import ReadSessionDep, SessionDep, StoreDep, TenantDep
+from services.api.deps import ReadSessionDep, SessionDep, SettingsDep, StoreDep, TenantDep
 from services.api.jobs import service
 from services.api.jobs.schemas import JobCreate, JobDetail, JobRead
 from services.api.pagination import Page, PageDep
@@ -30,9 +30,12 @@ def _rates(request: Request) -> service.RateTracker:
     summary="Create a job",
     responses={404: {"description": "a space is not yours"}, 422: {"description": "invalid spec or cue"}},
 )
-def create_job(body: JobCreate, request: Request, response: Response, session: SessionDep, tenant: TenantDep) -> JobDetail:
+def create_job(
+    body: JobCreate, request: Request, response: Response, session: SessionDep, tenant: TenantDep, settings: SettingsDep,
+) -> JobDetail:
     """Create a generation job over your spaces; the scheduler plans and runs it."""
-    job = service.create_job(session, owner=tenant, body=body)
+    job = service.create_job(session, owner=tenant, body=body, plan_memory_mb=settings.plan_memory_mb,
+                             plan_timeout_s=settings.plan_timeout_s)
     response.headers["Location"] = f"/jobs/{job.id}"
     return service.job_detail(session, job, _rates(request))
 

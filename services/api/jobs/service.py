@@ -46,6 +46,7 @@ from services.core.models import (
     TaskState,
     utcnow,
 )
+from services.core.plan_budget import check_plan_budget
 from services.core.spaces import frame_of
 from services.core.storage import ObjectStore
 
@@ -308,8 +309,11 @@ def list_jobs(
     return [job_read(j, counters[j.id], spaces[j.id], rates) for j in jobs], int(total)
 
 
-def create_job(session: Session, *, owner: str, body: JobCreate) -> Job:
-    """Create a pending job over the tenant's spaces; 404 for a space that is not theirs, 422 for a cue it lacks."""
+def create_job(
+    session: Session, *, owner: str, body: JobCreate, plan_memory_mb: int | None = None, plan_timeout_s: float | None = None,
+) -> Job:
+    """Create a pending job over the tenant's spaces; 404 for a space that is not theirs, 422 for a cue it lacks
+    or a plan over the planning budget (`plan_memory_mb`, `plan_timeout_s`)."""
     found = {
         s.id: s
         for s in session.scalars(select(Space).where(Space.id.in_(body.space_ids), Space.owner == owner)).all()
@@ -318,6 +322,8 @@ def create_job(session: Session, *, owner: str, body: JobCreate) -> Job:
     if missing:
         raise not_found("space" if len(missing) == 1 else "spaces", ", ".join(map(str, missing)))
     try:
+        if plan_memory_mb is not None:
+            check_plan_budget(body.spec, memory_mb=plan_memory_mb, timeout_s=plan_timeout_s)
         job = core_jobs.create_job(session, owner=owner, spec=body.spec, spaces=[found[i] for i in body.space_ids])
     except ValueError as e:
         session.rollback()

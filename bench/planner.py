@@ -1,0 +1,213 @@
+"""Planning off the dispatch loop (issue 19 section 3): planner memory per view, and a 20M-view spec beside a small job.
+
+Real Postgres, a local folder store, the bunny in object mode, the real Scheduler with planner processes
+(`plan_in_processes=True`, as `omnidata scheduler` runs it) and a NullTransport (what is dispatched is counted).
+
+1. per view: plans two object-mode specs of different sizes (all default cues) and samples the planner child's
+   resident size (VmHWM from /proc); the slope is the planner's bytes per view (PLAN_BYTES_PER_VIEW is set above it).
+2. the issue's 20M-view spec: refused up front by the default budget (the message is recorded). Then, with the
+   budget check bypassed (the job written directly) and `plan_memory_mb` lowered to keep this shared machine
+   safe, tenant A's 20M-view job is planned while tenant B submits a small job 1 s later: the scheduler's RSS is
+   sampled, every tick timed, and B's plan and dispatch times recorded; A's planning ends at its memory limit
+   (the job fails naming the budget) or is cancelled, and the time from cancel to the child gone is measured.
+
+Writes bench/results/planner.json. Run: .venv/bin/python bench/planner.py  (about 2-4 minutes)
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench.fanout import create_database, drop_database  # noqa: E402
+from services.core.db import make_engine, make_sessionmaker, migrate  # noqa: E402
+from services.core.jobs import cancel_job, create_job  # noqa: E402
+from services.core.jobspec import JobSpec  # noqa: E402
+from services.core.models import Job, Task  # noqa: E402
+from services.core.plan_budget import PlanOverBudget, check_plan_budget  # noqa: E402
+from services.core.settings import get_settings  # noqa: E402
+from services.core.space_registry import register_space  # noqa: E402
+from services.core.storage import LocalStore  # noqa: E402
+from services.scheduler.loop import Scheduler  # noqa: E402
+from services.scheduler.transport import NullTransport  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+BUNNY = REPO.parent / "shared" / "scenes" / "stanford_bunny" / "bun_zipper_res2.ply"
+OUT = REPO / "bench" / "results" / "planner.json"
+SPEC_20M = {"cameras": {"mode": "object", "object_count": 100},
+            "points": {"count": 200000, "min_views": 2, "max_views": 100}}
+SMALL = {"cameras": {"mode": "object", "object_count": 4}, "points": {"count": 1, "min_views": 2, "max_views": 2},
+         "views": {"resolution": 32}, "cues": ["rgb"]}
+SIZES = [(40, 500), (40, 2000)]  # (cameras, points): 20k and 80k views, every default cue
+
+
+def rss_mb(pid: int, field: str = "VmRSS") -> float:
+    """A process's resident size (or its peak, VmHWM) in MB, 0 when it is gone."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith(field + ":"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return 0.0
+
+
+class Sampler:
+    """Samples this process's RSS and its planner children's peak RSS every 0.1 s in a thread."""
+
+    def __init__(self, sched: Scheduler) -> None:
+        self.sched = sched
+        self.scheduler_peak = 0.0
+        self.child_peak = 0.0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(0.1):
+            self.scheduler_peak = max(self.scheduler_peak, rss_mb(os.getpid()))
+            planners = self.sched.planners
+            for child in list(planners.children.values()) if planners else []:
+                if child.process.pid:
+                    self.child_peak = max(self.child_peak, rss_mb(child.process.pid, "VmHWM"))
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join()
+
+
+def new_job(sm: Any, store: LocalStore, owner: str, spec: dict[str, Any]) -> int:
+    """A pending job of `owner` over the bunny (registered for that tenant on first use)."""
+    from sqlalchemy import select
+
+    from services.core.models import Space
+
+    with sm() as s:
+        space = s.scalars(select(Space).where(Space.owner == owner)).first()
+        if space is None:
+            space = register_space(s, store, owner=owner, name="bunny", source_path=BUNNY)
+        job = create_job(s, owner=owner, spec=JobSpec.model_validate(spec), spaces=[space])
+        s.commit()
+        return int(job.id)
+
+
+def job_state(sm: Any, job_id: int) -> tuple[str, str | None]:
+    with sm() as s:
+        job = s.get(Job, job_id)
+        assert job is not None
+        return job.state, job.error
+
+
+def per_view(sm: Any, store: LocalStore, settings: Any) -> dict[str, Any]:
+    """Planner child peak RSS and time for two plan sizes, and the slope per view."""
+    rows = []
+    for cams, points in SIZES:
+        sched = Scheduler(sm, store, NullTransport(), settings, f"bench-size-{points}", plan_in_processes=True)
+        spec = {"cameras": {"mode": "object", "object_count": cams},
+                "points": {"count": points, "min_views": 2, "max_views": cams}}
+        job_id = new_job(sm, store, "size", spec)
+        sampler = Sampler(sched)
+        t0 = time.monotonic()
+        while job_state(sm, job_id)[0] in ("pending", "planning"):
+            sched.plan_pending()
+            time.sleep(0.1)
+        sampler.stop()
+        with sm() as s:
+            views = int(s.get(Job, job_id).plan_summary["spaces"]["bunny"]["views"])  # type: ignore[union-attr]
+            tasks = int(s.get(Job, job_id).total_tasks)  # type: ignore[union-attr]
+        rows.append({"views": views, "tasks": tasks, "state": job_state(sm, job_id)[0],
+                     "planner_peak_rss_mb": round(sampler.child_peak, 1), "planning_s": round(time.monotonic() - t0, 1)})
+        print("plan size:", rows[-1], flush=True)
+    (a, b) = rows
+    slope = (b["planner_peak_rss_mb"] - a["planner_peak_rss_mb"]) * 2**20 / max(1, b["views"] - a["views"])
+    return {"sizes": rows, "bytes_per_view": round(slope)}
+
+
+def big_beside_small(sm: Any, store: LocalStore, settings: Any) -> dict[str, Any]:
+    """Tenant A's 20M-view job planning while tenant B's small job is planned and dispatched."""
+    transport = NullTransport()
+    sched = Scheduler(sm, store, transport, settings, "bench-big", plan_in_processes=True)
+    sched.planners.max_children = 2  # type: ignore[union-attr]
+    big = new_job(sm, store, "tenant-a", SPEC_20M)
+    sampler = Sampler(sched)
+    t0 = time.monotonic()
+    ticks: list[float] = []
+    small = None
+    small_running = small_sent = cancelled_at = child_gone = None
+    while time.monotonic() - t0 < 150:
+        t = time.monotonic()
+        sched.tick()
+        ticks.append(time.monotonic() - t)
+        now = time.monotonic() - t0
+        if small is None and now > 1.0:
+            small = new_job(sm, store, "tenant-b", SMALL)
+        if small is not None and small_running is None and job_state(sm, small)[0] == "running":
+            small_running = now
+        if small is not None and small_sent is None and transport.sent:
+            with sm() as s:
+                ids = [i for i, _ in transport.sent]
+                if s.query(Task.id).filter(Task.job_id == small, Task.id.in_(ids)).first():
+                    small_sent = now
+        state, _ = job_state(sm, big)
+        if state == "planning" and cancelled_at is None and now > 90:
+            with sm() as s:
+                cancel_job(s, s.get(Job, big))  # type: ignore[arg-type]
+                s.commit()
+            cancelled_at = now
+        if state != "planning" and cancelled_at is not None and child_gone is None and not sched.planners.children:  # type: ignore[union-attr]
+            child_gone = now
+        if state not in ("pending", "planning") and small_sent is not None and (cancelled_at is None or child_gone):
+            break
+        time.sleep(0.05)
+    sampler.stop()
+    state, error = job_state(sm, big)
+    ticks.sort()
+    return {
+        "spec": SPEC_20M, "plan_memory_mb": settings.plan_memory_mb,
+        "big_job_end_state": state, "big_job_error": error,
+        "scheduler_peak_rss_mb": round(sampler.scheduler_peak, 1), "planner_child_peak_rss_mb": round(sampler.child_peak, 1),
+        "small_job_running_after_s": small_running and round(small_running - 1.0, 2),
+        "small_job_first_dispatch_after_s": small_sent and round(small_sent - 1.0, 2),
+        "tick_s": {"p50": round(ticks[len(ticks) // 2], 4), "max": round(ticks[-1], 4), "n": len(ticks)},
+        "cancel_to_planner_gone_s": (round(child_gone - cancelled_at, 2) if cancelled_at and child_gone else None),
+    }
+
+
+def main() -> None:
+    results: dict[str, Any] = {"machine": f"{platform.node()} ({os.cpu_count()} cores, loaded by other developers' work)"}
+    try:
+        check_plan_budget(JobSpec.model_validate(SPEC_20M), memory_mb=get_settings().plan_memory_mb)
+        results["refused_up_front"] = None
+    except PlanOverBudget as e:
+        results["refused_up_front"] = str(e)
+    url = create_database()
+    tmp = Path(tempfile.mkdtemp(prefix="bench-planner-"))
+    try:
+        migrate(url)
+        engine = make_engine(url)
+        sm = make_sessionmaker(engine)
+        store = LocalStore(tmp / "objects")
+        settings = get_settings(database_url=url, storage_url=f"file://{tmp / 'objects'}", data_dir=tmp / "data",
+                                plan_memory_mb=16_384, heartbeat_timeout_s=30)
+        results["per_view"] = per_view(sm, store, settings)
+        low = settings.model_copy(update={"plan_memory_mb": 1536})
+        results["big_beside_small"] = big_beside_small(sm, store, low)
+        engine.dispose()
+    finally:
+        drop_database(url)
+    print(json.dumps(results, indent=1))
+    runs = json.loads(OUT.read_text()) if OUT.exists() else []
+    OUT.write_text(json.dumps([*runs, results], indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,187 @@
+"""Planning off the dispatch loop: each claimed job is planned in a child process that the loop only watches.
+
+A big plan takes seconds to minutes of CPU and grows with its views; done inside the loop it stopped every
+other tenant's dispatch meanwhile and grew the scheduler itself. Here the loop claims a job, starts a child
+(forked from a fork server, so it shares no connection or thread with the loop) that plans and persists it in its own
+transaction under an address-space limit of `OMNIDATA_PLAN_MEMORY_MB`, and goes on dispatching. Each tick it
+
+- ends the child of a job that is no longer planning under this scheduler (cancelled, or re-taken): cancel
+  stops the planning within a tick, and the child's final check would drop its plan anyway;
+- extends the job's planner lease by the heartbeat timeout, a third of the way in: a scheduler killed while
+  planning stops extending it, so another scheduler re-takes the job after the heartbeat timeout, the same
+  "declared dead, then re-taken" rule as for workers (the fork server exits with the scheduler, and each
+  child with the fork server: PR_SET_PDEATHSIG);
+- records a child that died without a result (killed by the memory limit, crashed) as a failed attempt.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import logging
+import multiprocessing as mp
+import resource
+import signal
+import time
+from dataclasses import dataclass
+from datetime import timedelta
+from multiprocessing.process import BaseProcess
+
+from sqlalchemy import select, update
+from sqlalchemy.orm import Session, sessionmaker
+
+from services.core.models import Job, JobState, utcnow
+from services.core.settings import Settings
+
+log = logging.getLogger(__name__)
+
+PR_SET_PDEATHSIG = 1
+PRELOAD = ("services.scheduler.loop", "services.scheduler.planning", "services.core.spaces", "services.core.db")
+
+
+@dataclass
+class PlannerChild:
+    """A running planner process and when its job's lease was last extended (monotonic seconds)."""
+
+    job_id: int
+    process: BaseProcess
+    extended: float
+    started: float
+
+
+class PlannerProcesses:
+    """At most `max_children` planner processes of one scheduler, watched from its loop."""
+
+    def __init__(
+        self, sm: sessionmaker[Session], settings: Settings, scheduler_id: str, *, max_children: int = 1,
+    ) -> None:
+        self.sessionmaker = sm
+        self.settings = settings
+        self.scheduler_id = scheduler_id
+        self.max_children = max_children
+        self.lease_s = float(settings.heartbeat_timeout_s)
+        self.children: dict[int, PlannerChild] = {}
+        # A fork server: started once (a fresh interpreter, nothing shared with this loop's threads and
+        # connections), it imports the planning stack up front and forks each planner from there in milliseconds.
+        self._ctx = mp.get_context("forkserver")
+        self._ctx.set_forkserver_preload(list(PRELOAD))
+
+    @property
+    def free(self) -> int:
+        """How many more jobs may be planned now."""
+        return self.max_children - len(self.children)
+
+    def start(self, job_id: int) -> None:
+        """Plan a job this scheduler has claimed (and committed) in a new child process."""
+        proc = self._ctx.Process(
+            target=plan_in_child, args=(job_id, self.scheduler_id, self.settings), name=f"planner-{job_id}",
+            daemon=True,
+        )
+        proc.start()
+        self.children[job_id] = PlannerChild(job_id, proc, time.monotonic(), time.monotonic())
+        log.info("job %d: planning in process %s", job_id, proc.pid)
+
+    def watch(self) -> list[int]:
+        """One look at every child: end those whose job is gone, extend leases, reap the exited; returns the ids of
+        jobs whose planning ended (planned, failed or dropped)."""
+        if not self.children:
+            return []
+        ended = []
+        ours = self._still_ours(list(self.children))
+        for job_id, child in list(self.children.items()):
+            if not child.process.is_alive():
+                child.process.join()
+                del self.children[job_id]
+                ended.append(job_id)
+                if child.process.exitcode != 0 and job_id in ours:
+                    self._died(job_id, child.process.exitcode)
+            elif job_id not in ours:
+                log.info("job %d is no longer planning under this scheduler; stopping its planner", job_id)
+                child.process.kill()
+                child.process.join(10)
+                del self.children[job_id]
+                ended.append(job_id)
+            elif time.monotonic() - child.started > self.settings.plan_timeout_s:
+                from services.scheduler.loop import PlanningError  # permanent: the job fails
+
+                child.process.kill()
+                child.process.join(10)
+                del self.children[job_id]
+                ended.append(job_id)
+                self._failed(job_id, PlanningError(
+                    f"planning took longer than its time budget of {self.settings.plan_timeout_s} s "
+                    "(OMNIDATA_PLAN_TIMEOUT_S): lower points.count or points.max_views, or split the job"))
+            elif time.monotonic() - child.extended >= self.lease_s / 3.0:
+                self._extend(job_id)
+                child.extended = time.monotonic()
+        return ended
+
+    def stop_all(self) -> None:
+        """Kill every child (the scheduler stops; the jobs are re-taken after their lease)."""
+        for child in self.children.values():
+            child.process.kill()
+            child.process.join(10)
+        self.children.clear()
+
+    def _still_ours(self, job_ids: list[int]) -> set[int]:
+        with self.sessionmaker() as s:
+            return {int(i) for i in s.scalars(select(Job.id).where(
+                Job.id.in_(job_ids), Job.state == JobState.PLANNING, Job.planner == self.scheduler_id))}
+
+    def _extend(self, job_id: int) -> None:
+        with self.sessionmaker() as s:
+            s.execute(
+                update(Job)
+                .where(Job.id == job_id, Job.state == JobState.PLANNING, Job.planner == self.scheduler_id)
+                .values(planner_lease_until=utcnow() + timedelta(seconds=self.lease_s))
+                .execution_options(synchronize_session=False)
+            )
+            s.commit()
+
+    def _died(self, job_id: int, exitcode: int | None) -> None:
+        why = (f"killed by signal {-exitcode}" if exitcode is not None and exitcode < 0 else f"exit code {exitcode}")
+        self._failed(job_id, PlannerDied(
+            f"the planner process died ({why}); planning is limited to OMNIDATA_PLAN_MEMORY_MB="
+            f"{self.settings.plan_memory_mb}"))
+
+    def _failed(self, job_id: int, exc: BaseException) -> None:
+        from services.scheduler.loop import record_planning_failure
+
+        record_planning_failure(self.sessionmaker, job_id, self.scheduler_id, exc)
+
+
+class PlannerDied(RuntimeError):
+    """A planner process ended without recording a result (killed, crashed): the attempt is counted and retried."""
+
+
+def _die_with_parent() -> None:
+    try:
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+    except (OSError, AttributeError):  # not Linux: the lease and the final ownership check still hold
+        pass
+
+
+def limit_memory(memory_mb: int) -> None:
+    """Cap this process's address space (allocations beyond it raise MemoryError instead of growing the host)."""
+    limit = int(memory_mb) * 2**20
+    _soft, hard = resource.getrlimit(resource.RLIMIT_AS)
+    resource.setrlimit(resource.RLIMIT_AS, (limit if hard == resource.RLIM_INFINITY else min(limit, hard), hard))
+
+
+def plan_in_child(job_id: int, scheduler_id: str, settings: Settings) -> None:
+    """Child process entry: plan and persist one job under the memory budget, as its claiming scheduler."""
+    from services.core.db import make_engine, make_sessionmaker
+    from services.core.storage import open_store
+    from services.scheduler.loop import Scheduler
+    from services.scheduler.transport import NullTransport
+
+    _die_with_parent()
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s planner: %(message)s")
+    limit_memory(settings.plan_memory_mb)
+    engine = make_engine(settings.database_url)
+    try:
+        sched = Scheduler(make_sessionmaker(engine), open_store(settings.storage_url, settings), NullTransport(),
+                          settings, scheduler_id)
+        sched.plan_job(job_id)
+    finally:
+        engine.dispose()

@@ -26,6 +26,7 @@ from services.api.jobs.service import RateTracker
 from services.api.ops.endpoints import router as ops_router
 from services.api.outputs.endpoints import router as outputs_router
 from services.api.progress.endpoints import router as progress_router
+from services.api.progress.limits import StreamLimits
 from services.api.query_token import QueryTokenScrubber
 from services.api.spaces.endpoints import router as spaces_router
 from services.api.views.endpoints import router as views_router
@@ -104,6 +105,7 @@ def create_app(
     app.state.redis = None  # created on first use by ops.service.redis_client
     app.state.rates = RateTracker()
     app.state.sse = sse or SSEConfig()
+    app.state.sse_limits = StreamLimits(settings.sse_max_per_tenant, settings.sse_poll_threads)
     app.state.metrics_cache = {}
     app.state.schema_heads = schema_heads()  # what /ready expects the database's revision to be
     app.state.storage_probe = None  # (time, outcome) of /ready's last storage probe

@@ -24,8 +24,9 @@ class Health(BaseModel):
 
 
 @router.get("/health", response_model=Health, summary="Liveness (no token needed)")
-def health(request: Request) -> Health:
-    """200 while the process serves requests; checks nothing else."""
+async def health(request: Request) -> Health:
+    """200 while the process serves requests; checks nothing else. Runs on the event loop, never in the
+    request thread pool, so a pool busy with uploads or queries does not delay it."""
     return Health(status="ok", version=request.app.version)
 
 

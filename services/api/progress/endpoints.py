@@ -3,19 +3,22 @@
 Both accept the token as `Authorization: Bearer` or, for browsers' EventSource, as `?token=`.
 Events: `job` (JSON like JobEvent) when a job's counters or state change, `deleted` ({"id"}) when it is gone;
 comment lines are heartbeats. A job's own stream ends with an `end` event ({"id", "state"}) and closes once the
-job reaches a final state (done, failed, cancelled); /events stays open.
+job reaches a final state (done, failed, cancelled); /events stays open. A tenant holds at most
+OMNIDATA_SSE_MAX_PER_TENANT streams at once (429 beyond).
 """
 
 from __future__ import annotations
 
+from collections.abc import AsyncIterator
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Path, Request
+from fastapi import APIRouter, HTTPException, Path, Request, status
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import StreamingResponse
 
 from services.api.deps import SSETenantDep
 from services.api.jobs.service import get_job
+from services.api.progress.limits import StreamLimits, TooManyStreams
 from services.api.progress.service import Snapshot, event_stream, poll_jobs
 
 router = APIRouter(tags=["progress"])
@@ -28,6 +31,11 @@ _SSE_RESPONSES: dict[int | str, dict[str, Any]] = {
 
 def _stream(request: Request, tenant: str, job_id: int | None) -> StreamingResponse:
     app = request.app
+    limits: StreamLimits = app.state.sse_limits
+    try:
+        limits.acquire(tenant)
+    except TooManyStreams as e:
+        raise HTTPException(status.HTTP_429_TOO_MANY_REQUESTS, str(e)) from None
 
     def poll(snap: Snapshot) -> tuple[list[dict[str, Any]], list[int]]:
         with app.state.read_sessionmaker() as session:
@@ -41,8 +49,17 @@ def _stream(request: Request, tenant: str, job_id: int | None) -> StreamingRespo
         heartbeat_s=cfg.heartbeat_s,
         stop_when_gone=job_id is not None,
         stop_when_final=job_id is not None,
+        limiter=limits.limiter,
     )
-    return StreamingResponse(gen, media_type="text/event-stream", headers=_SSE_HEADERS)
+
+    async def counted() -> AsyncIterator[str]:
+        try:
+            async for chunk in gen:
+                yield chunk
+        finally:
+            limits.release(tenant)
+
+    return StreamingResponse(counted(), media_type="text/event-stream", headers=_SSE_HEADERS)
 
 
 @router.get(

@@ -98,11 +98,13 @@ async def event_stream(
     heartbeat_s: float,
     stop_when_gone: bool = False,
     stop_when_final: bool = False,
+    limiter: anyio.CapacityLimiter | None = None,
 ) -> AsyncIterator[str]:
     """Yield SSE text: `job` events for changed jobs, `deleted` for removed ones, heartbeat comments.
 
     `stop_when_final`: once every followed job is in a final state (done, failed, cancelled), send an `end`
     event ({"id", "state"}; EventSource clients close on it instead of reconnecting) and close the stream.
+    Polls run in worker threads under `limiter` (default: anyio's pool, shared with the synchronous routes).
     """
     snap = Snapshot()
     seq = 0
@@ -112,7 +114,7 @@ async def event_stream(
         if await request.is_disconnected():
             return
         try:
-            changed, deleted = await anyio.to_thread.run_sync(poll, snap)
+            changed, deleted = await anyio.to_thread.run_sync(poll, snap, limiter=limiter)
         except OperationalError as e:  # database restarting: keep the stream, try again next tick
             log.warning("SSE poll failed: %s", e)
             yield ": database unavailable, retrying\n\n"

@@ -1,0 +1,50 @@
+"""Bounds on server-sent event streams: open streams per tenant, and threads their polls may use at once.
+
+A stream holds no thread between polls, but each poll (a short database read) runs in a worker thread; with
+the default pool shared by every synchronous route, a few hundred streams polling twice a second left the
+other routes waiting for a thread. Polls get their own small limiter instead, and a tenant may hold at most
+`OMNIDATA_SSE_MAX_PER_TENANT` streams (one more is answered 429 with a message).
+"""
+
+from __future__ import annotations
+
+import anyio
+
+
+class TooManyStreams(Exception):
+    """A tenant already holds as many event streams as allowed."""
+
+
+class StreamLimits:
+    """Open streams per tenant (counted on the event loop: no lock needed) and the poll threads' limiter."""
+
+    def __init__(self, per_tenant: int, poll_threads: int) -> None:
+        self.per_tenant = per_tenant
+        self.poll_threads = poll_threads
+        self.open: dict[str, int] = {}
+        self._limiter: anyio.CapacityLimiter | None = None
+
+    @property
+    def limiter(self) -> anyio.CapacityLimiter:
+        """The limiter every SSE poll runs under (made on first use, inside the event loop)."""
+        if self._limiter is None:
+            self._limiter = anyio.CapacityLimiter(self.poll_threads)
+        return self._limiter
+
+    def acquire(self, tenant: str) -> None:
+        """Count one more stream of `tenant`, or raise TooManyStreams."""
+        n = self.open.get(tenant, 0)
+        if n >= self.per_tenant:
+            raise TooManyStreams(
+                f"too many open event streams: {n} of at most {self.per_tenant} per tenant "
+                "(OMNIDATA_SSE_MAX_PER_TENANT); close one, or follow all your jobs with one /events stream"
+            )
+        self.open[tenant] = n + 1
+
+    def release(self, tenant: str) -> None:
+        """A stream of `tenant` ended."""
+        n = self.open.get(tenant, 0) - 1
+        if n > 0:
+            self.open[tenant] = n
+        else:
+            self.open.pop(tenant, None)

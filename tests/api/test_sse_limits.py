@@ -1,0 +1,69 @@
+"""Event streams per tenant are capped (429 with a message) and /health answers while the request pool is full."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterator
+
+import httpx
+import pytest
+
+from services.core.storage import LocalStore
+from tests.fixtures.api import Api, live_server, make_api
+
+
+@pytest.fixture()
+def capped(pg_url: str, local_store: LocalStore) -> Iterator[Api]:
+    with make_api(pg_url, local_store, sse_max_per_tenant=2) as api:
+        yield api
+
+
+def test_a_tenant_over_its_stream_cap_gets_429_and_others_are_unaffected(capped: Api) -> None:
+    api = capped
+    with live_server(api.app) as base, httpx.Client(timeout=10) as client:
+        first = client.stream("GET", f"{base}/events?token={api.a.token}").__enter__()
+        second = client.stream("GET", f"{base}/events?token={api.a.token}").__enter__()
+        assert first.status_code == second.status_code == 200
+        over = client.get(f"{base}/events?token={api.a.token}")
+        assert over.status_code == 429
+        assert "at most 2 per tenant" in over.json()["detail"] and "OMNIDATA_SSE_MAX_PER_TENANT" in over.json()["detail"]
+        with client.stream("GET", f"{base}/events?token={api.b.token}") as other:
+            assert other.status_code == 200  # another tenant's cap is its own
+        first.close()  # a closed stream frees its slot once the server notices (its next poll)
+        deadline = time.monotonic() + 5
+        while True:
+            with client.stream("GET", f"{base}/events?token={api.a.token}") as again:
+                if again.status_code == 200:
+                    break
+            assert time.monotonic() < deadline, "the closed stream's slot was never freed"
+            time.sleep(0.2)
+        second.close()
+
+
+def test_health_answers_while_every_pool_thread_is_busy(capped: Api) -> None:
+    release = threading.Event()
+    busy = threading.Semaphore(0)
+
+    def slow() -> dict:  # a synchronous route that holds its pool thread, as a slow query or upload write would
+        busy.release()
+        release.wait(30)
+        return {}
+
+    capped.app.add_api_route("/test-slow", slow, methods=["GET"])
+    pool = 40  # anyio's default thread limiter
+    with live_server(capped.app) as base:
+        holders = [threading.Thread(target=httpx.get, args=(f"{base}/test-slow",), kwargs={"timeout": 40}, daemon=True)
+                   for _ in range(pool + 10)]
+        for t in holders:
+            t.start()
+        for _ in range(pool):  # every thread of the pool is now held (the rest of the requests wait for one)
+            assert busy.acquire(timeout=30)
+        try:
+            r = httpx.get(f"{base}/health", timeout=5)  # a pool-bound /health would wait for the release
+            assert r.status_code == 200 and r.json()["status"] == "ok"
+            assert not release.is_set()
+        finally:
+            release.set()
+            for t in holders:
+                t.join(40)

@@ -50,6 +50,7 @@ class DispatchResult:
     requeued: int = 0
     upstream_failed: int = 0
     stalled: list[int] = field(default_factory=list)  # jobs with pending tasks, none ready, none in flight
+    capped: bool = False  # the broker queue's cap, not the ready tasks, bounded the pass
 
     @property
     def sent(self) -> int:
@@ -248,8 +249,9 @@ def dispatch_once(
     result = DispatchResult()
     picked: list[tuple[int, list[tuple[int, str]]]] = []
     loads = running_job_loads(session)
-    if queued_cap is not None:  # a short broker queue: a newcomer's tasks wait behind few others
-        budget = min(budget, max(0, queued_cap - queued_now(loads)))
+    if queued_cap is not None and queued_cap - queued_now(loads) < budget:
+        budget = max(0, queued_cap - queued_now(loads))  # a short broker queue: a newcomer waits behind few others
+        result.capped = True
     tenants = tenant_turns(loads, window, rotation)
     for t, groups in enumerate(tenants):
         share = -(-budget // (len(tenants) - t))  # ceil: what earlier tenants could not use carries over

@@ -27,8 +27,9 @@ from services.core.models import TaskState, Worker, utcnow
 if TYPE_CHECKING:
     from services.scheduler.dispatch import JobLoad
 
-QUEUED_PER_WORKER = 4  # tasks waiting in the broker per live worker (covers prefetch and one dispatch interval)
-QUEUED_MIN = 16  # ... and at least this many, so a fleet of one or two workers never starves between passes
+QUEUED_PER_WORKER = 2  # tasks waiting in the broker per live worker (the loop tops the queue up every CAPPED_WAIT_S)
+QUEUED_MIN = 8  # ... and at least this many, so a fleet of one or two workers never starves between passes
+CAPPED_WAIT_S = 0.1  # the loop's pause while the queue is at its cap (instead of its idle interval)
 
 
 def tenant_turns(loads: Sequence[JobLoad], window: int, rotation: int = 0) -> list[list[list[JobLoad]]]:

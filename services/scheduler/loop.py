@@ -34,7 +34,7 @@ from services.core.storage import ObjectStore
 from services.scheduler.compile import compile_tasks
 from services.scheduler.completion import Finished, complete_once
 from services.scheduler.dispatch import DEFAULT_BUDGET, DispatchResult, dispatch_once
-from services.scheduler.fairness import queued_cap
+from services.scheduler.fairness import CAPPED_WAIT_S, queued_cap
 from services.scheduler.persist import clear_plan, persist_space
 from services.scheduler.planner_proc import PlannerProcesses
 from services.scheduler.reaper import ReapResult, reap_once
@@ -319,7 +319,9 @@ class Scheduler:
             if res.dispatched.sent or res.planned or res.finished:
                 log.debug("tick: planned %s, sent %d, finished %s", res.planned, res.dispatched.sent,
                           [f.job_id for f in res.finished])
-            if not res.busy:
+            if res.dispatched.capped:  # workers drain a short queue fast: top it up soon
+                stop_event.wait(min(interval, CAPPED_WAIT_S))
+            elif not res.busy:
                 stop_event.wait(interval)
         if self.planners is not None:
             self.planners.stop_all()

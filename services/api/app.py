@@ -23,6 +23,7 @@ from services.api.errors import install_error_handlers
 from services.api.guard import RequestGuard
 from services.api.jobs.endpoints import router as jobs_router
 from services.api.jobs.service import RateTracker
+from services.api.limits import LazyLimiter
 from services.api.ops.endpoints import router as ops_router
 from services.api.outputs.endpoints import router as outputs_router
 from services.api.progress.endpoints import router as progress_router
@@ -106,6 +107,8 @@ def create_app(
     app.state.rates = RateTracker()
     app.state.sse = sse or SSEConfig()
     app.state.sse_limits = StreamLimits(settings.sse_max_per_tenant, settings.sse_poll_threads)
+    # Each upload's check is a CPU-bound child process: a few at a time, so 50 uploads do not starve the server.
+    app.state.upload_checks = LazyLimiter(settings.upload_parse_concurrency)
     app.state.metrics_cache = {}
     app.state.schema_heads = schema_heads()  # what /ready expects the database's revision to be
     app.state.storage_probe = None  # (time, outcome) of /ready's last storage probe

@@ -79,6 +79,9 @@ class Settings(BaseSettings):
     plan_timeout_s: int = Field(
         900, ge=10, description="time one job's planning may take; its process is ended after it, bigger specs refused"
     )
+    upload_parse_concurrency: int = Field(
+        2, ge=1, description="uploads checked at once (each in a child process); more wait, the API stays responsive"
+    )
     sse_max_per_tenant: int = Field(20, ge=1, description="open event streams per tenant; one more gets 429")
     sse_poll_threads: int = Field(4, ge=1, description="threads the event streams' database polls share")
     worker_prefetch: int = Field(

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import anyio
 
+from services.api.limits import LazyLimiter
+
 
 class TooManyStreams(Exception):
     """A tenant already holds as many event streams as allowed."""
@@ -20,16 +22,13 @@ class StreamLimits:
 
     def __init__(self, per_tenant: int, poll_threads: int) -> None:
         self.per_tenant = per_tenant
-        self.poll_threads = poll_threads
         self.open: dict[str, int] = {}
-        self._limiter: anyio.CapacityLimiter | None = None
+        self._polls = LazyLimiter(poll_threads)
 
     @property
     def limiter(self) -> anyio.CapacityLimiter:
-        """The limiter every SSE poll runs under (made on first use, inside the event loop)."""
-        if self._limiter is None:
-            self._limiter = anyio.CapacityLimiter(self.poll_threads)
-        return self._limiter
+        """The limiter every SSE poll runs under."""
+        return self._polls.get()
 
     def acquire(self, tenant: str) -> None:
         """Count one more stream of `tenant`, or raise TooManyStreams."""

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import functools
 import tempfile
 from pathlib import Path
 from typing import Annotated, Any
 
+import anyio
 from fastapi import APIRouter, Request, Response, status
 from fastapi import Path as PathParam
-from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from pydantic import ValidationError
 
@@ -72,7 +73,7 @@ async def upload_space(
         except ValidationError as e:
             errors = validation_errors(e.errors())
             raise RequestValidationError([{**err, "loc": ["body", *err["loc"]]} for err in errors]) from None
-        space = await run_in_threadpool(
+        create = functools.partial(
             service.create_space,
             session,
             store,
@@ -83,6 +84,7 @@ async def upload_space(
             up_axis=opts.up_axis,
             unit_scale=opts.unit_scale,
         )
+        space = await anyio.to_thread.run_sync(create, limiter=request.app.state.upload_checks.get())
     response.headers["Location"] = f"/spaces/{space.id}"
     return SpaceRead.from_row(space)
 

@@ -28,6 +28,7 @@ from services.api.ops.endpoints import router as ops_router
 from services.api.outputs.endpoints import router as outputs_router
 from services.api.progress.endpoints import router as progress_router
 from services.api.progress.limits import StreamLimits
+from services.api.progress.shared import SharedPolls
 from services.api.query_token import QueryTokenScrubber
 from services.api.spaces.endpoints import router as spaces_router
 from services.api.views.endpoints import router as views_router
@@ -107,6 +108,7 @@ def create_app(
     app.state.rates = RateTracker()
     app.state.sse = sse or SSEConfig()
     app.state.sse_limits = StreamLimits(settings.sse_max_per_tenant, settings.sse_poll_threads)
+    app.state.sse_polls = SharedPolls(app.state.read_sessionmaker, max_age_s=app.state.sse.poll_s / 2)
     # Each upload's check is a CPU-bound child process: a few at a time, so 50 uploads do not starve the server.
     app.state.upload_checks = LazyLimiter(settings.upload_parse_concurrency)
     app.state.metrics_cache = {}

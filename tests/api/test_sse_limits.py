@@ -67,3 +67,18 @@ def test_health_answers_while_every_pool_thread_is_busy(capped: Api) -> None:
             release.set()
             for t in holders:
                 t.join(40)
+
+
+def test_streams_of_a_tenant_share_one_read_per_interval(capped: Api) -> None:
+    from services.api.progress.service import Snapshot
+    from services.api.progress.shared import SharedPolls
+
+    shared = SharedPolls(capped.app.state.read_sessionmaker, max_age_s=0.5)
+    snaps = [Snapshot() for _ in range(20)]
+    for snap in snaps:  # 20 streams polling at once: one database read
+        shared.poll("tenant-x", None, snap, capped.app.state.rates)
+    assert shared.reads == 1
+    time.sleep(0.6)
+    shared.poll("tenant-x", None, snaps[0], capped.app.state.rates)
+    shared.poll("tenant-y", None, Snapshot(), capped.app.state.rates)  # another tenant reads its own jobs
+    assert shared.reads == 3

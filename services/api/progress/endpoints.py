@@ -19,7 +19,8 @@ from fastapi.responses import StreamingResponse
 from services.api.deps import SSETenantDep
 from services.api.jobs.service import get_job
 from services.api.progress.limits import StreamLimits, TooManyStreams
-from services.api.progress.service import Snapshot, event_stream, poll_jobs
+from services.api.progress.service import Snapshot, event_stream
+from services.api.progress.shared import SharedPolls
 
 router = APIRouter(tags=["progress"])
 
@@ -38,8 +39,8 @@ def _stream(request: Request, tenant: str, job_id: int | None) -> StreamingRespo
         raise HTTPException(status.HTTP_429_TOO_MANY_REQUESTS, str(e)) from None
 
     def poll(snap: Snapshot) -> tuple[list[dict[str, Any]], list[int]]:
-        with app.state.read_sessionmaker() as session:
-            return poll_jobs(session, owner=tenant, job_id=job_id, snap=snap, rates=app.state.rates)
+        shared: SharedPolls = app.state.sse_polls
+        return shared.poll(tenant, job_id, snap, app.state.rates)
 
     cfg = app.state.sse
     gen = event_stream(

@@ -13,7 +13,7 @@ import logging
 import time
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import anyio
 from fastapi import Request
@@ -39,37 +39,67 @@ class Snapshot:
     states: dict[int, str] = field(default_factory=dict)
 
 
-def _fingerprint(job: Job, counters: Counters) -> str:
-    return json.dumps([job.state, job.error, counters], sort_keys=True)
+@dataclass(frozen=True)
+class JobRow:
+    """The columns of a job an event needs, detached from any session (shared between streams' threads)."""
+
+    id: int
+    owner: str
+    name: str
+    state: str
+    error: str | None
+    started_at: Any
+    finished_at: Any
+    created_at: Any
 
 
-def poll_jobs(
-    session: Session, *, owner: str, job_id: int | None, snap: Snapshot, rates: RateTracker
-) -> tuple[list[dict[str, Any]], list[int]]:
-    """Changed jobs since `snap` (as JSON-ready dicts) and ids of deleted ones; updates `snap`."""
+@dataclass(frozen=True)
+class JobsRead:
+    """One read of a tenant's followed jobs: rows (newest first) and every listed job's counters."""
+
+    jobs: list[JobRow]
+    counters: dict[int, Counters]
+
+
+def read_jobs(
+    session: Session, *, owner: str, job_id: int | None, final: dict[int, tuple[Any, Counters]] | None = None,
+) -> JobsRead:
+    """The jobs a stream follows and their counters. `final` remembers counters of finished jobs (keyed by the
+    job's state and finish time: a retried job that finishes again is read again) and is updated in place."""
     q = select(Job).options(load_only(*_JOB_COLUMNS)).where(Job.owner == owner)
     if job_id is not None:
         q = q.where(Job.id == job_id)
     else:
         q = q.order_by(Job.id.desc()).limit(MAX_JOBS_PER_STREAM)
-    jobs = list(session.scalars(q).all())
+    jobs = [JobRow(j.id, j.owner, j.name, j.state, j.error, j.started_at, j.finished_at, j.created_at)
+            for j in session.scalars(q).all()]
+    session.rollback()  # end the read transaction: the next poll must see new commits
+    final = final if final is not None else {}
     # Counters of finished jobs do not move (unless a retry makes the job run again, which changes its state).
-    stale = [
-        j.id
-        for j in jobs
-        if j.id not in snap.counters or j.state not in JOB_TERMINAL_STATES or snap.states.get(j.id) != j.state
-    ]
-    fresh = read_counters(session, stale)
+    known = {j.id: final[j.id][1] for j in jobs
+             if j.state in JOB_TERMINAL_STATES and j.id in final and final[j.id][0] == (j.state, j.finished_at)}
+    fresh = read_counters(session, [j.id for j in jobs if j.id not in known])
+    session.rollback()
+    counters = {j.id: known.get(j.id, fresh.get(j.id, {})) for j in jobs}
+    final.clear()
+    final.update({j.id: ((j.state, j.finished_at), counters[j.id]) for j in jobs if j.state in JOB_TERMINAL_STATES})
+    return JobsRead(jobs, counters)
+
+
+def diff_jobs(
+    read: JobsRead, *, job_id: int | None, snap: Snapshot, rates: RateTracker
+) -> tuple[list[dict[str, Any]], list[int]]:
+    """Changed jobs since `snap` (as JSON-ready dicts) and ids of deleted ones; updates `snap`."""
     changed: list[dict[str, Any]] = []
-    for j in jobs:
-        counters = fresh.get(j.id, snap.counters.get(j.id, {}))
-        fp = _fingerprint(j, counters)
+    for j in read.jobs:
+        counters = read.counters.get(j.id, {})
+        fp = json.dumps([j.state, j.error, counters], sort_keys=True)
         snap.counters[j.id] = counters
         snap.states[j.id] = j.state
         if snap.fingerprints.get(j.id) != fp:
             snap.fingerprints[j.id] = fp
-            changed.append(job_event(j, counters, rates).model_dump(mode="json"))
-    seen = {j.id for j in jobs}
+            changed.append(job_event(cast(Job, j), counters, rates).model_dump(mode="json"))
+    seen = {j.id for j in read.jobs}
     oldest = min(seen) if seen else None
     deleted = []
     for jid in list(snap.fingerprints):
@@ -80,8 +110,14 @@ def poll_jobs(
             deleted.append(jid)
         for d in (snap.fingerprints, snap.counters, snap.states):
             d.pop(jid, None)
-    session.rollback()  # end the read transaction: the next poll must see new commits
     return changed, deleted
+
+
+def poll_jobs(
+    session: Session, *, owner: str, job_id: int | None, snap: Snapshot, rates: RateTracker
+) -> tuple[list[dict[str, Any]], list[int]]:
+    """Changed jobs since `snap` (as JSON-ready dicts) and ids of deleted ones; updates `snap`."""
+    return diff_jobs(read_jobs(session, owner=owner, job_id=job_id), job_id=job_id, snap=snap, rates=rates)
 
 
 def sse(event: str, data: Any, ident: int | None = None) -> str:

@@ -9,8 +9,8 @@ transaction under an address-space limit of `OMNIDATA_PLAN_MEMORY_MB`, and goes 
   stops the planning within a tick, and the child's final check would drop its plan anyway;
 - extends the job's planner lease by the heartbeat timeout, a third of the way in: a scheduler killed while
   planning stops extending it, so another scheduler re-takes the job after the heartbeat timeout, the same
-  "declared dead, then re-taken" rule as for workers (the fork server exits with the scheduler, and each
-  child with the fork server: PR_SET_PDEATHSIG);
+  "declared dead, then re-taken" rule as for workers (each child watches its scheduler and exits with it,
+  and the fork server exits once neither holds its liveness pipe);
 - records a child that died without a result (killed by the memory limit, crashed) as a failed attempt.
 """
 
@@ -19,8 +19,10 @@ from __future__ import annotations
 import ctypes
 import logging
 import multiprocessing as mp
+import os
 import resource
 import signal
+import threading
 import time
 from dataclasses import dataclass
 from datetime import timedelta
@@ -35,6 +37,7 @@ from services.core.settings import Settings
 log = logging.getLogger(__name__)
 
 PR_SET_PDEATHSIG = 1
+WATCHDOG_S = 0.5  # how often a planner checks that its scheduler is alive
 PRELOAD = ("services.scheduler.loop", "services.scheduler.planning", "services.core.spaces", "services.core.db")
 
 
@@ -73,7 +76,7 @@ class PlannerProcesses:
     def start(self, job_id: int) -> None:
         """Plan a job this scheduler has claimed (and committed) in a new child process."""
         proc = self._ctx.Process(
-            target=plan_in_child, args=(job_id, self.scheduler_id, self.settings), name=f"planner-{job_id}",
+            target=plan_in_child, args=(job_id, self.scheduler_id, self.settings, os.getpid()), name=f"planner-{job_id}",
             daemon=True,
         )
         proc.start()
@@ -153,12 +156,30 @@ class PlannerDied(RuntimeError):
     """A planner process ended without recording a result (killed, crashed): the attempt is counted and retried."""
 
 
-def _die_with_parent() -> None:
+def _die_with_scheduler(scheduler_pid: int) -> None:
+    """End this process when the scheduler that started it is gone (kill -9 included).
+
+    The fork server is this process's parent, and it lives as long as any process it forked holds its
+    liveness pipe, so the parent-death signal alone would keep both alive: a watchdog thread checks the
+    scheduler itself. (PR_SET_PDEATHSIG still covers the fork server dying first.)
+    """
     try:
         libc = ctypes.CDLL("libc.so.6", use_errno=True)
         libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
-    except (OSError, AttributeError):  # not Linux: the lease and the final ownership check still hold
+    except (OSError, AttributeError):  # not Linux: the watchdog, the lease and the final ownership check still hold
         pass
+
+    def watch() -> None:
+        while True:
+            try:
+                os.kill(scheduler_pid, 0)
+            except ProcessLookupError:
+                os._exit(3)
+            except PermissionError:  # alive, under another user (pid reused): keep watching
+                pass
+            time.sleep(WATCHDOG_S)
+
+    threading.Thread(target=watch, name="scheduler-watchdog", daemon=True).start()
 
 
 def limit_memory(memory_mb: int) -> None:
@@ -168,14 +189,14 @@ def limit_memory(memory_mb: int) -> None:
     resource.setrlimit(resource.RLIMIT_AS, (limit if hard == resource.RLIM_INFINITY else min(limit, hard), hard))
 
 
-def plan_in_child(job_id: int, scheduler_id: str, settings: Settings) -> None:
+def plan_in_child(job_id: int, scheduler_id: str, settings: Settings, scheduler_pid: int) -> None:
     """Child process entry: plan and persist one job under the memory budget, as its claiming scheduler."""
     from services.core.db import make_engine, make_sessionmaker
     from services.core.storage import open_store
     from services.scheduler.loop import Scheduler
     from services.scheduler.transport import NullTransport
 
-    _die_with_parent()
+    _die_with_scheduler(scheduler_pid)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s planner: %(message)s")
     limit_memory(settings.plan_memory_mb)
     engine = make_engine(settings.database_url)

@@ -11,15 +11,17 @@ from __future__ import annotations
 
 import base64
 import json
+import os
 import signal
 import socket
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 import redis
-from sqlalchemy import select, text
+from sqlalchemy import func, select, text
 
 from services.core.models import Job, Task, Worker, utcnow
 from tests.e2e.conftest import REDIS_DB_URL, WORKER_APP, Cluster, Proc
@@ -149,3 +151,73 @@ def test_kill_9_of_a_worker_mid_upload(quiet_cluster, scenes_dir: Path, tmp_path
         assert all(a == 2 for a in attempts.values()), attempts  # the interrupted upload's task ran again
     finally:
         proxy.close()
+
+
+def running(pid: int) -> bool:
+    """Whether the process exists and is not a zombie (a container's init may never reap those)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def descendants(pid: int) -> set[int]:
+    """Every process below `pid` (the fork server, planner processes)."""
+    out: set[int] = set()
+    todo = [pid]
+    while todo:
+        p = todo.pop()
+        try:
+            kids = [int(k) for k in Path(f"/proc/{p}/task/{p}/children").read_text().split()]
+        except OSError:
+            kids = []
+        out.update(kids)
+        todo.extend(kids)
+    return out
+
+
+def test_kill_9_of_the_scheduler_while_planning(quiet_cluster, scenes_dir: Path, tmp_path):
+    cluster = quiet_cluster
+    scheduler = next(p for p in cluster.procs if p.name == "scheduler" and p.alive())
+    slow = SPEC.replace("object_count: 4", "object_count: 40").replace("count: 1, min_views: 2, max_views: 2",
+                                                                        "count: 2000, min_views: 2, max_views: 40")
+    job_id = submit_direct(cluster, scenes_dir / "stanford_bunny" / "bun_zipper_res2.ply", write_spec(tmp_path, slow))
+
+    def planning() -> bool:
+        with cluster.sm() as s:
+            job = s.get(Job, job_id)
+            return job is not None and job.state == "planning" and len(descendants(scheduler.popen.pid)) >= 2
+
+    wait(planning, 120, "the scheduler to plan the job in a planner process", cluster)
+    with cluster.sm() as s:
+        first_planner = s.get(Job, job_id).planner  # type: ignore[union-attr]
+    below = descendants(scheduler.popen.pid)
+    os.kill(scheduler.popen.pid, signal.SIGKILL)  # the scheduler alone: its planner must die with it
+    killed = time.monotonic()
+    scheduler.popen.wait(10)
+    cluster.start_scheduler(**ENV)
+
+    def retaken() -> bool:
+        with cluster.sm() as s:
+            job = s.get(Job, job_id)
+            return job is not None and job.planner not in (None, first_planner)
+
+    wait(retaken, HEARTBEAT_TIMEOUT_S + 60, "another scheduler to take the job", cluster)
+    took = time.monotonic() - killed
+    print(f"\nscheduler kill -9 while planning -> job re-taken after {took:.1f} s (heartbeat timeout {HEARTBEAT_TIMEOUT_S} s)")
+    assert took <= HEARTBEAT_TIMEOUT_S + 15, took  # not the old 605 s planner lease
+    deadline = time.monotonic() + 5
+    while (survivors := [p for p in below if running(p)]) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not survivors, f"a planner process outlived its scheduler: {survivors}"
+    wait(lambda: job_state_of(cluster, job_id) == "running", 180, "the job to be planned again", cluster)
+    with cluster.sm() as s:
+        job = s.get(Job, job_id)
+        n = s.scalar(select(func.count()).select_from(Task).where(Task.job_id == job_id))
+        assert job is not None and n == job.total_tasks  # one plan's rows, nothing of the dead planner's
+
+
+def job_state_of(cluster: Cluster, job_id: int) -> str:
+    with cluster.sm() as s:
+        job = s.get(Job, job_id)
+        return job.state if job is not None else "missing"

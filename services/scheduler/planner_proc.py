@@ -52,15 +52,15 @@ class PlannerChild:
 
 
 class PlannerProcesses:
-    """At most `max_children` planner processes of one scheduler, watched from its loop."""
+    """At most `max_children` (OMNIDATA_PLAN_PROCESSES) planner processes of one scheduler, watched from its loop."""
 
     def __init__(
-        self, sm: sessionmaker[Session], settings: Settings, scheduler_id: str, *, max_children: int = 1,
+        self, sm: sessionmaker[Session], settings: Settings, scheduler_id: str, *, max_children: int | None = None,
     ) -> None:
         self.sessionmaker = sm
         self.settings = settings
         self.scheduler_id = scheduler_id
-        self.max_children = max_children
+        self.max_children = max_children or settings.plan_processes
         self.lease_s = float(settings.heartbeat_timeout_s)
         self.children: dict[int, PlannerChild] = {}
         # A fork server: started once (a fresh interpreter, nothing shared with this loop's threads and

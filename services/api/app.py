@@ -33,6 +33,7 @@ from services.api.workers.endpoints import router as workers_router
 from services.core.db import make_engine, make_sessionmaker, schema_heads
 from services.core.settings import Settings, get_settings
 from services.core.storage import ObjectStore, open_store
+from services.core.temp_dirs import UPLOAD_KINDS, sweep_orphans
 
 log = logging.getLogger("omnidata.api")
 
@@ -78,6 +79,7 @@ def create_app(
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        sweep_orphans(UPLOAD_KINDS)  # upload folders of an API (or mesh reader) killed mid-upload
         yield
         redis = app.state.redis
         if redis is not None:

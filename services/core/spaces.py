@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import re
 import shutil
 import stat
@@ -43,6 +44,13 @@ from typing import Any
 import numpy as np
 import trimesh
 
+from services.core.archive_rules import MAX_RATIO, expansion_refusal, file_expansion_refusal
+from services.core.confine import (
+    ConfinedResolver,
+    ReferenceRefused,
+    is_inside,
+    read_confined,
+)
 from services.core.gravity import (
     UnitChoice,
     UnitError,
@@ -62,6 +70,8 @@ from services.core.pointcloud import (
 )
 from services.core.scan_formats import SCANNET_MESH_SUFFIX, ScanFormatError, scannet_vertex_labels
 from services.core.storage.base import sha256_file
+from services.core.temp_dirs import owned_prefix
+from services.core.texture_limits import loaded_texture_refusal
 
 log = logging.getLogger(__name__)
 
@@ -70,7 +80,7 @@ MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", *CLOUD_SUFFIXES)
 MAX_EXTENT_M = 10_000.0  # a 10 km scan means the units are wrong
 MIN_EXTENT_M = 0.001  # everything inside 1 mm: same
 ZIP_MAX_TOTAL_BYTES = 8 * 1024**3  # uncompressed size of all members
-ZIP_MAX_RATIO = 200.0  # uncompressed / compressed, per member and in total
+ZIP_MAX_RATIO = MAX_RATIO  # uncompressed / compressed, per member and in total: one rule (archive_rules)
 ZIP_MAX_MEMBERS = 20_000
 
 
@@ -191,21 +201,15 @@ def safe_extract_zip(
                 raise SpaceError(f"{name}: member {raw!r} is encrypted")
             total += info.file_size
             total_compressed += info.compress_size
-            if info.file_size > 1_000_000 and info.file_size > max_ratio * max(info.compress_size, 1):
-                raise SpaceError(
-                    f"{name}: member {raw!r} expands {info.file_size / max(info.compress_size, 1):.0f}x "
-                    f"(limit {max_ratio:.0f}x): refusing a possible zip bomb"
-                )
+            if problem := expansion_refusal(f"member {raw!r}", info.file_size, info.compress_size, max_ratio):
+                raise SpaceError(f"{name}: {problem}")
         if total > max_total_bytes:
             raise SpaceError(
                 f"{name}: uncompressed size {total} bytes exceeds the limit {max_total_bytes}: "
                 "refusing a possible zip bomb"
             )
-        if total > 1_000_000 and total > max_ratio * max(total_compressed, 1):
-            raise SpaceError(
-                f"{name}: archive expands {total / max(total_compressed, 1):.0f}x (limit {max_ratio:.0f}x): "
-                "refusing a possible zip bomb"
-            )
+        if problem := expansion_refusal("archive", total, total_compressed, max_ratio):
+            raise SpaceError(f"{name}: {problem}")
         dest = dest.resolve()
         dest.mkdir(parents=True, exist_ok=True)
         written = 0
@@ -250,7 +254,7 @@ def resolve_source(
     if not p.exists():
         raise SpaceError(f"{p}: no such file or folder")
     if p.is_file() and p.suffix.lower() == ".zip":
-        dest = Path(extract_dir) if extract_dir is not None else Path(tempfile.mkdtemp(prefix="omnidata-space-"))
+        dest = Path(extract_dir) if extract_dir is not None else Path(tempfile.mkdtemp(prefix=owned_prefix("space")))
         safe_extract_zip(p, dest, **zip_limits)
         return _one_mesh(dest, f"archive {p.name}")
     if p.is_file():
@@ -458,7 +462,9 @@ def _classes_from_info_semantic(source: Path, face_instance: np.ndarray, notes: 
         if not cand.is_file():
             continue
         try:
-            id_to_label = np.asarray(json.loads(cand.read_text())["id_to_label"], dtype=np.int64)
+            id_to_label = np.asarray(json.loads(read_confined(cand, source))["id_to_label"], dtype=np.int64)
+        except ReferenceRefused as e:
+            raise SpaceError(f"{source.name}: {e}") from None
         except (OSError, ValueError, KeyError, TypeError) as e:
             notes.append(f"{cand.name} unreadable ({e}); no class labels")
             return None
@@ -539,12 +545,14 @@ def load_space(
     p = Path(path)
     tmp: Path | None = None
     if p.is_file() and p.suffix.lower() == ".zip" and extract_dir is None:
-        tmp = Path(tempfile.mkdtemp(prefix="omnidata-space-"))
+        tmp = Path(tempfile.mkdtemp(prefix=owned_prefix("space")))
         extract_dir = tmp
     frame = FrameRequest(up_axis, unit_scale, None if up is None else np.asarray(up, dtype=np.float64),
                           None if source_to_world is None else np.asarray(source_to_world, dtype=np.float64))
     try:
         source = resolve_source(p, extract_dir)
+        if p.is_dir() and not is_inside(source, Path(os.path.realpath(p))):
+            raise SpaceError(f"{source.name}: a symbolic link to a file outside the folder {p.name}; refusing it")
         return _load(source, p if tmp is not None else source, frame,
                      None if cloud_cache_dir is None else Path(cloud_cache_dir))
     finally:
@@ -562,6 +570,20 @@ class FrameRequest:
     source_to_world: np.ndarray | None
 
 
+def _load_confined(source: Path, **kwargs: Any) -> Any:
+    """`trimesh.load(source)` whose every named file comes from the mesh's own folder (SpaceError otherwise)."""
+    resolver = ConfinedResolver(source)
+    try:
+        loaded = trimesh.load(source, resolver=resolver, **kwargs)
+    except Exception as e:  # trimesh raises many kinds on corrupt input
+        refused = resolver.refusal()  # a refused buffer surfaces as trimesh's error: name the refusal instead
+        raise SpaceError(f"{source.name}: {refused or f'could not read the mesh ({type(e).__name__}: {e})'}") from None
+    refused = resolver.refusal() or loaded_texture_refusal(loaded)
+    if refused is not None:  # trimesh carried on without the file (an untextured mesh): refuse the scan
+        raise SpaceError(f"{source.name}: {refused}")
+    return loaded
+
+
 def _read_mesh(
     source: Path, checksum: str, cloud_cache_dir: Path | None
 ) -> tuple[trimesh.Trimesh, dict[str, Any] | None]:
@@ -571,14 +593,11 @@ def _read_mesh(
     try:
         if suffix in CLOUD_SUFFIXES:
             return mesh_cloud_cached(lambda: read_text_cloud(source), checksum, name, cloud_cache_dir)
-        try:
-            mesh = trimesh.load(source, force="mesh")
-        except Exception as e:  # trimesh raises many kinds on corrupt input
-            raise SpaceError(f"{name}: could not read the mesh ({type(e).__name__}: {e})") from None
+        mesh = _load_confined(source, force="mesh")
         if suffix == ".ply" and isinstance(mesh, trimesh.Trimesh) and len(mesh.faces) == 0:
             try:
-                points = trimesh.load(source)  # a PLY of points: force="mesh" drops them
-            except Exception:  # noqa: BLE001 - then it is not a readable cloud either: report the empty mesh
+                points = _load_confined(source)  # a PLY of points: force="mesh" drops them
+            except SpaceError:  # then it is not a readable cloud either: report the empty mesh
                 points = None
             if len(getattr(points, "vertices", ())) > 0:
                 return mesh_cloud_cached(lambda: cloud_from_ply(points), checksum, name, cloud_cache_dir)
@@ -618,6 +637,8 @@ def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Pa
     name = source.name
     from services.core.mesh_checks import check_source  # it imports SpaceError from here
 
+    if problem := file_expansion_refusal(source):  # the rule its packed zip meets when planned: before parsing
+        raise SpaceError(f"{name}: {problem}")
     source_notes = check_source(source)  # truncation, counts over the limits, unsafe paths: before parsing
     checksum = sha256_file(source)
     mesh, reconstruction = _read_mesh(source, checksum, cloud_cache_dir)

@@ -32,7 +32,7 @@ def test_docs_render_offline_under_the_csp(pg_url: str, local_store: LocalStore,
             page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
             page.on("pageerror", lambda e: errors.append(str(e)))
             page.goto(f"{base}/docs")
-            page.wait_for_selector("text=/spaces/register", timeout=30_000)
+            page.wait_for_selector(".opblock-summary-path[data-path=\"/spaces/register\"]", timeout=30_000)
             assert page.locator(".opblock").count() > 20  # the operations, rendered
             assert outside == [] and errors == [], (outside, errors)
         finally:

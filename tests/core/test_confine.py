@@ -132,8 +132,8 @@ def test_killed_api_leaves_no_upload_folder(tmp_path: Path, pg_url: str) -> None
 
     child = subprocess.Popen(
         [sys.executable, "-c", "import sys, time; sys.path.insert(0, '.');"
-         "from services.core.temp_dirs import owned_temp_dir; d = owned_temp_dir('upload'); print(d.name, flush=True);"
-         "open(d.name + '/scan.zip', 'wb').write(b'x' * 1000); time.sleep(60)"],
+         "from services.core.temp_dirs import owned_temp_dir; d = owned_temp_dir('upload');"
+         "open(d.name + '/scan.zip', 'wb').write(b'x' * 1000); print(d.name, flush=True); time.sleep(60)"],
         stdout=subprocess.PIPE, text=True, cwd=Path(__file__).resolve().parents[2],
     )
     assert child.stdout is not None

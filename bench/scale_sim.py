@@ -51,10 +51,10 @@ from sqlalchemy import func, select, text
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.fanout import create_database, drop_database, labelled_space, percentiles, synthetic_plan  # noqa: E402
-from services.core.db import make_engine, make_sessionmaker, migrate  # noqa: E402
-from services.core.jobs import create_job  # noqa: E402
-from services.core.jobspec import JobSpec  # noqa: E402
-from services.core.models import Space, Task  # noqa: E402
+from services.core.db.engine import make_engine, make_sessionmaker, migrate  # noqa: E402
+from services.core.db.jobs import create_job  # noqa: E402
+from services.core.db.models import Space, Task  # noqa: E402
+from services.core.domain.jobspec import JobSpec  # noqa: E402
 from services.core.settings import Settings, get_settings  # noqa: E402
 from services.core.storage import LocalStore  # noqa: E402
 from services.worker.heartbeat import Heartbeat  # noqa: E402

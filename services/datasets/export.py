@@ -29,8 +29,8 @@ from pathlib import Path
 from typing import Any
 
 from services.cli import CliError
-from services.core.cues import CATALOG, UnknownCueError, validate_cue_names
-from services.core.keys import JOB_JSON_KEY, check_name
+from services.core.domain.cues import CATALOG, UnknownCueError, validate_cue_names
+from services.core.domain.keys import JOB_JSON_KEY, check_name
 from services.core.storage import ObjectNotFoundError, ObjectStore
 from services.datasets.source import (
     DatasetIntegrityError,

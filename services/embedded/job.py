@@ -2,7 +2,7 @@
 and the scheduler's loop driving W local worker processes until the job is final.
 
 Resuming (in-flight tasks back to pending, missing outputs made again) and requeueing on Ctrl-C are the
-service's own operations (services.core.jobs.reopen_job / requeue_inflight).
+service's own operations (services.core.db.jobs.reopen_job / requeue_inflight).
 """
 
 from __future__ import annotations
@@ -20,20 +20,20 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from services.cli import CliError
-from services.core.jobs import cancel_job, create_job, job_spaces, reopen_job, requeue_inflight
-from services.core.jobspec import JobSpec
-from services.core.keys import JOB_JSON_KEY, MANIFEST_KEY
-from services.core.manifest import write_job_files
-from services.core.models import JOB_TERMINAL_STATES, Job, JobState, Space
+from services.cli.spec_args import Source
+from services.core.db.jobs import cancel_job, create_job, job_spaces, reopen_job, requeue_inflight
+from services.core.db.manifest import write_job_files
+from services.core.db.models import JOB_TERMINAL_STATES, Job, JobState, Space
+from services.core.domain.jobspec import JobSpec
+from services.core.domain.keys import JOB_JSON_KEY, MANIFEST_KEY
+from services.core.ingest.loading import SpaceError
+from services.core.ingest.registry import register_space
 from services.core.settings import Settings, load_settings
-from services.core.space_registry import register_space
-from services.core.spaces import SpaceError
 from services.core.storage import ObjectStore
 from services.embedded.pool import STATE_DIR, LocalPool, WorkerConfig, cpu_count
 from services.embedded.report import Progress, build_report, print_report
 from services.scheduler.loop import Scheduler
 from services.scheduler.transport import QueueTransport
-from services.spec_args import Source
 from services.worker.heartbeat import expire_leases
 
 OWNER = "local"

@@ -23,12 +23,13 @@ import numpy as np
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
-from services.core.jobs import claim_pending_jobs, job_spaces, job_spec
-from services.core.jobspec import JobSpec
-from services.core.models import Job, JobState, Space, utcnow
-from services.core.plan import CLIP_NOTES_IN_SUMMARY, SpacePlan, clip_summary
+from services.core.db.jobs import claim_pending_jobs, job_spaces, job_spec
+from services.core.db.models import Job, JobState, Space, utcnow
+from services.core.db.states import set_job_state
+from services.core.db.worker_rows import expire_worker_rows
+from services.core.domain.jobspec import JobSpec
+from services.core.domain.plan import CLIP_NOTES_IN_SUMMARY, SpacePlan, clip_summary
 from services.core.settings import Settings
-from services.core.states import set_job_state
 from services.core.storage import ObjectStore
 from services.scheduler.compile import compile_tasks
 from services.scheduler.completion import Finished, complete_once
@@ -36,7 +37,6 @@ from services.scheduler.dispatch import DEFAULT_BUDGET, DispatchResult, dispatch
 from services.scheduler.persist import clear_plan, persist_space
 from services.scheduler.reaper import ReapResult, reap_once
 from services.scheduler.transport import Transport
-from services.scheduler.worker_rows import expire_worker_rows
 
 log = logging.getLogger(__name__)
 
@@ -63,8 +63,8 @@ def default_scheduler_id() -> str:
 
 def _permanent(exc: BaseException) -> bool:
     """Errors that re-planning cannot fix (the job fails), as opposed to connection trouble (retried)."""
-    from services.core.plan import PlanError
-    from services.core.spaces import SpaceError
+    from services.core.domain.plan import PlanError
+    from services.core.ingest.loading import SpaceError
     from services.core.storage import ObjectNotFoundError
 
     return isinstance(exc, PlanningError | PlanError | SpaceError | ObjectNotFoundError | ValueError | KeyError)
@@ -119,7 +119,7 @@ class Scheduler:
 
     def fetch_source(self, space: Space) -> Path:
         """Local path of a space's mesh, downloaded (and unzipped) once per checksum into the cache folder."""
-        from services.core.space_registry import fetch_space
+        from services.core.ingest.registry import fetch_space
 
         return Path(fetch_space(self.store, space, self.cache_dir))
 
@@ -137,7 +137,7 @@ class Scheduler:
 
     def plan_job(self, job_id: int) -> bool:
         """Plan a job this scheduler has claimed, in one transaction; True when it is now running."""
-        from services.core.spaces import load_space
+        from services.core.ingest.loading import load_space
 
         if self.plan_fn is None:
             from services.scheduler.planning import make_plan as default_plan

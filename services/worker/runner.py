@@ -36,14 +36,14 @@ from sqlalchemy import or_, select
 from sqlalchemy.exc import DBAPIError, DisconnectionError, InterfaceError, OperationalError
 from sqlalchemy.orm import Session
 
-from services.core.cues import CATALOG, closure
-from services.core.jobs import job_root, retry_backoff_s
-from services.core.jobspec import JobSpec
-from services.core.keys import output_key, passes_key
-from services.core.models import Job, JobState, Space, Task, TaskState, WorkerBlock, utcnow
-from services.core.plan import SpacePlan, plan_from_json
+from services.core.db.jobs import job_root, retry_backoff_s
+from services.core.db.models import Job, JobState, Space, Task, TaskState, WorkerBlock, utcnow
+from services.core.db.states import transition
+from services.core.domain.cues import CATALOG, closure
+from services.core.domain.jobspec import JobSpec
+from services.core.domain.keys import output_key, passes_key
+from services.core.domain.plan import SpacePlan, plan_from_json
 from services.core.settings import Settings
-from services.core.states import transition
 from services.core.storage import ObjectStore
 
 log = logging.getLogger(__name__)
@@ -404,8 +404,8 @@ class TaskRunner:
 
     def _space_context(self, job: _JobInfo, space: Space) -> Any:
         """The space loaded into the world frame of this job (its up_axis/unit_scale), kept between tasks."""
-        from services.core.space_registry import fetch_space
-        from services.core.spaces import load_space
+        from services.core.ingest.loading import load_space
+        from services.core.ingest.registry import fetch_space
         from services.worker.space_cache import SpaceContext
 
         spec = job.spec
@@ -453,7 +453,7 @@ class TaskRunner:
     @staticmethod
     def _job_passes(job: _JobInfo) -> frozenset[str]:
         """The render passes the job's cues read: the cached pass set holds those only."""
-        from services.core.cues import OUTPUT_CUES
+        from services.core.domain.cues import OUTPUT_CUES
         from services.worker.executor import render_passes_for
 
         return render_passes_for(job.spec.cues if job.spec.cues is not None else OUTPUT_CUES)

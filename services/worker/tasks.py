@@ -65,7 +65,7 @@ def worker_engine(database_url: str, **kwargs: Any) -> Any:
     """
     from sqlalchemy.engine import make_url
 
-    from services.core.db import make_engine
+    from services.core.db.engine import make_engine
 
     if make_url(database_url).get_backend_name() == "postgresql":
         kwargs.setdefault("connect_args", {"options": "-c synchronous_commit=off"})
@@ -74,7 +74,7 @@ def worker_engine(database_url: str, **kwargs: Any) -> Any:
 
 def build_runtime(settings: Settings, *, queues: list[str] | None = None, name: str | None = None) -> Runtime:
     """Engine, store, TaskRunner and a started heartbeat for this process (worker id: see default_worker_id)."""
-    from services.core.db import make_sessionmaker
+    from services.core.db.engine import make_sessionmaker
     from services.core.storage import open_store
     from services.worker.heartbeat import Heartbeat, expire_leases, heartbeat_interval
     from services.worker.runner import TaskRunner, default_worker_id

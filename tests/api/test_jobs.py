@@ -9,7 +9,7 @@ import pytest
 from sqlalchemy import select
 
 from services.api.jobs.service import RateTracker, compute_progress
-from services.core.models import Job, JobCounter, Task
+from services.core.db.models import Job, JobCounter, Task
 from tests.fixtures.api import Api, fake_plan, run_tasks, task_ids
 
 

@@ -9,9 +9,9 @@ import pytest
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from services.core.db import add_counts, bulk_insert, init_counts, job_progress
-from services.core.models import Job, JobCounter, Task, View, Worker
-from services.core.states import transition
+from services.core.db.engine import add_counts, bulk_insert, init_counts, job_progress
+from services.core.db.models import Job, JobCounter, Task, View, Worker
+from services.core.db.states import transition
 
 CUES = ("rgb", "normal", "depth_zbuffer", "edge_texture")
 

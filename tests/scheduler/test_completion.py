@@ -7,10 +7,10 @@ import json
 
 from sqlalchemy import update
 
-from services.core.camera import CONVENTIONS
-from services.core.keys import passes_key
-from services.core.manifest import job_document, manifest_bytes
-from services.core.models import Job
+from services.core.db.manifest import job_document, manifest_bytes
+from services.core.db.models import Job
+from services.core.domain.camera import CONVENTIONS
+from services.core.domain.keys import passes_key
 from services.scheduler.completion import complete_once, finished_job_ids
 from services.scheduler.dispatch import dispatch_once
 from services.scheduler.transport import NullTransport
@@ -75,7 +75,7 @@ def test_a_failed_task_fails_the_job_with_a_summary(any_sm, local_store):
         ids = [i for i, _ in tr.sent]
         finish(s, job, ids[1:])
         claim(s, job.id, ids[:1])
-        from services.core.states import transition
+        from services.core.db.states import transition
 
         transition(s, job_id=job.id, task_ids=ids[:1], from_state="running", to_state="failed",
                    error="RuntimeError: boom\n  File x.py line 3\nRuntimeError: boom at the end")

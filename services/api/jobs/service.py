@@ -31,9 +31,8 @@ from services.api.jobs.schemas import (
 )
 from services.api.pagination import PageParams
 from services.api.spaces.service import not_found
-from services.core import jobs as core_jobs
-from services.core.cues import CATALOG
-from services.core.models import (
+from services.core.db import jobs as core_jobs
+from services.core.db.models import (
     JOB_TERMINAL_STATES,
     TASK_ACTIVE_STATES,
     TASK_STATES,
@@ -46,7 +45,8 @@ from services.core.models import (
     TaskState,
     utcnow,
 )
-from services.core.spaces import frame_of
+from services.core.domain.cues import CATALOG
+from services.core.ingest.loading import frame_of
 from services.core.storage import ObjectStore
 
 FINISHED_STATES = TASK_TERMINAL_STATES

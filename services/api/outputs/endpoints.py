@@ -15,9 +15,9 @@ from services.api.jobs.service import get_job
 from services.api.outputs import service
 from services.api.outputs.schemas import ViewOutputs
 from services.api.spaces.service import not_found
-from services.core import keys
-from services.core.manifest import iter_manifest_lines, job_document
-from services.core.models import Space, View
+from services.core.db.manifest import iter_manifest_lines, job_document
+from services.core.db.models import Space, View
+from services.core.domain import keys
 from services.core.storage import LocalStore, ObjectNotFoundError, check_key, prefixed
 from services.datasets.previews import PIXEL_JSON_CUES, cached_preview, parse_preview_key
 

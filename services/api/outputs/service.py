@@ -19,10 +19,10 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from services.api.outputs.schemas import OutputLink
-from services.core.cues import CATALOG
-from services.core.jobs import job_root, root_key
-from services.core.keys import output_key
-from services.core.models import Job, Task, TaskState
+from services.core.db.jobs import job_root, root_key
+from services.core.db.models import Job, Task, TaskState
+from services.core.domain.cues import CATALOG
+from services.core.domain.keys import output_key
 from services.core.settings import Settings
 from services.core.storage import ObjectStore
 from services.datasets.previews import preview_key

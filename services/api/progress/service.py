@@ -22,7 +22,7 @@ from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import Session, load_only
 
 from services.api.jobs.service import Counters, RateTracker, job_event, read_counters
-from services.core.models import JOB_TERMINAL_STATES, Job
+from services.core.db.models import JOB_TERMINAL_STATES, Job
 
 log = logging.getLogger("omnidata.api")
 

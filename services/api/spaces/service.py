@@ -10,11 +10,11 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from services.api.pagination import PageParams
-from services.core.models import Job, JobSpace, Space
-from services.core.safe_load import load_space_limited
+from services.core.db.models import Job, JobSpace, Space
+from services.core.ingest.loading import SpaceError
+from services.core.ingest.registry import register_space
+from services.core.ingest.safe_load import load_space_limited
 from services.core.settings import Settings
-from services.core.space_registry import register_space
-from services.core.spaces import SpaceError
 from services.core.storage import ObjectNotFoundError, ObjectStore, check_key
 
 STAGING_PREFIX = "uploads"  # tenants stage big scans under uploads/<tenant>/ and register them

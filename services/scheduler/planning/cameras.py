@@ -29,9 +29,9 @@ import trimesh
 from scipy import sparse
 from scipy.spatial import cKDTree
 
-from services.core.camera import quaternion_wxyz_to_rotation
-from services.core.jobspec import CameraSpec
-from services.core.plan import PlanError
+from services.core.domain.camera import quaternion_wxyz_to_rotation
+from services.core.domain.jobspec import CameraSpec
+from services.core.domain.plan import PlanError
 from services.scheduler.planning.visibility import MeshQueries
 
 FLOOR_CONE_COS = float(np.cos(np.radians(15.0)))

@@ -1,4 +1,4 @@
-"""Plan cues: JSON made from the plan alone by services.core.plan (the executor only encodes them).
+"""Plan cues: JSON made from the plan alone by services.core.domain.plan (the executor only encodes them).
 
 A context may carry a ready `point_info` dict (e.g. read back from the database) instead of the plan.
 """
@@ -20,12 +20,12 @@ def _need_plan(ctx: ViewContext, cue: str) -> Any:
 
 @register("point_info")
 def point_info(ctx: ViewContext) -> dict:
-    """Omnidata point_info keys plus K, world_to_camera and conventions (services.core.plan.point_info)."""
+    """Omnidata point_info keys plus K, world_to_camera and conventions (services.core.domain.plan.point_info)."""
 
     def compute() -> dict:
         if ctx.point_info_override is not None:
             return dict(ctx.point_info_override)
-        from services.core import plan as plan_mod
+        from services.core.domain import plan as plan_mod
 
         return plan_mod.point_info(_need_plan(ctx, "point_info"), ctx.view)
 
@@ -40,7 +40,7 @@ NONFIXATED_POINTS_KEPT = 8
 @register("nonfixated")
 def nonfixated(ctx: ViewContext) -> dict:
     """Per point: pixel positions of the other points visible in each of its views (one dict per point, shared)."""
-    from services.core import plan as plan_mod
+    from services.core.domain import plan as plan_mod
 
     plan = _need_plan(ctx, "nonfixated")
     point = int(ctx.view.point_idx)
@@ -55,6 +55,6 @@ def nonfixated(ctx: ViewContext) -> dict:
 @register("vanishing_points")
 def vanishing_points(ctx: ViewContext) -> dict:
     """Image-space and Gaussian-sphere vanishing points of the world axes, from point_info."""
-    from services.core import plan as plan_mod
+    from services.core.domain import plan as plan_mod
 
     return plan_mod.vanishing_points(cue_value(ctx, "point_info"))

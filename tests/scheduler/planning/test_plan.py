@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from services.core.camera import (
+from services.core.domain.camera import (
     CONVENTIONS,
     blender_matrix_world,
     camera_center,
@@ -18,8 +18,8 @@ from services.core.camera import (
     project,
     quaternion_wxyz_to_rotation,
 )
-from services.core.jobspec import JobSpec
-from services.core.plan import (
+from services.core.domain.jobspec import JobSpec
+from services.core.domain.plan import (
     CameraPose,
     PlannedView,
     PointOfInterest,
@@ -30,7 +30,7 @@ from services.core.plan import (
     point_info,
     vanishing_points,
 )
-from services.core.spaces import LoadedSpace, load_space
+from services.core.ingest.loading import LoadedSpace, load_space
 from services.scheduler.planning import make_plan, space_rng
 from tests.fixtures import scenes
 

@@ -17,7 +17,7 @@ import numpy as np
 from PIL import Image
 
 from services.cli import CliError
-from services.core.cues import UnknownCueError, validate_cue_names
+from services.core.domain.cues import UnknownCueError, validate_cue_names
 from services.core.storage import LocalStore, ObjectNotFoundError, ObjectStore
 from services.datasets.previews import PREVIEW_PREFIX, Previewer, write_video
 from services.datasets.source import (

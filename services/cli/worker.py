@@ -62,7 +62,7 @@ def worker_argv(args: argparse.Namespace, queues: list[str]) -> list[str]:
 
 
 def _live_holder(settings: Settings, node: str) -> str | None:
-    from services.core.db import make_engine, make_sessionmaker
+    from services.core.db.engine import make_engine, make_sessionmaker
     from services.worker.heartbeat import live_holder
 
     engine = make_engine(settings.database_url)
@@ -74,7 +74,7 @@ def _live_holder(settings: Settings, node: str) -> str | None:
 
 def run(args: argparse.Namespace) -> int:
     """Start the worker; returns when Celery stops (SIGTERM: warm shutdown after the current task)."""
-    from services.core.db import require_schema
+    from services.core.db.engine import require_schema
     from services.core.settings import load_settings
     from services.worker.celery_app import create_app
 

@@ -22,8 +22,8 @@ from pathlib import Path
 from typing import Any
 
 from services.cli import CliError
-from services.core.models import JOB_TERMINAL_STATES, TASK_TERMINAL_STATES, JobState, TaskState
-from services.spec_args import add_spec_arguments, build_spec, check_sources
+from services.cli.spec_args import add_spec_arguments, build_spec, check_sources
+from services.core.db.models import JOB_TERMINAL_STATES, TASK_TERMINAL_STATES, JobState, TaskState
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -132,9 +132,9 @@ class Api:
 
 def submit_http(api: Api, spec: Any, sources: list[Any]) -> int:
     """Upload (or reuse) the spaces and create the job over HTTP; returns the job id."""
-    from services.core.jobspec import similarity_scale
-    from services.core.space_registry import pack_source
-    from services.core.spaces import resolve_source
+    from services.core.domain.jobspec import similarity_scale
+    from services.core.ingest.loading import resolve_source
+    from services.core.ingest.registry import pack_source
 
     ids = []
     for src in sources:
@@ -164,11 +164,11 @@ def submit_db(settings: Any, spec: Any, sources: list[Any], owner: str) -> int:
     """Register (or reuse) the spaces and create the job in the configured database and store."""
     from sqlalchemy import select
 
-    from services.core.db import make_engine, make_sessionmaker, migrate, require_schema
-    from services.core.jobs import create_job
-    from services.core.models import Space
-    from services.core.space_registry import register_space
-    from services.core.spaces import SpaceError
+    from services.core.db.engine import make_engine, make_sessionmaker, migrate, require_schema
+    from services.core.db.jobs import create_job
+    from services.core.db.models import Space
+    from services.core.ingest.loading import SpaceError
+    from services.core.ingest.registry import register_space
     from services.core.storage import open_store
 
     if settings.is_sqlite:
@@ -203,9 +203,9 @@ def submit_db(settings: Any, spec: Any, sources: list[Any], owner: str) -> int:
 
 def db_status_fn(settings: Any) -> tuple[Callable[[int], Status], Callable[[], None]]:
     """A Status reader on the database (counters only) and its close function."""
-    from services.core.cues import CATALOG
-    from services.core.db import job_progress, make_engine, make_sessionmaker
-    from services.core.models import Job
+    from services.core.db.engine import job_progress, make_engine, make_sessionmaker
+    from services.core.db.models import Job
+    from services.core.domain.cues import CATALOG
 
     engine = make_engine(settings.database_url)
     sm = make_sessionmaker(engine)

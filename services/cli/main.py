@@ -10,24 +10,22 @@ import argparse
 import importlib
 import sys
 
+from services.cli.errors import CliError
+
 # subcommand -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
-    "plan": ("services.scheduler.plan_cli", "sample cameras, points and views of spaces (no rendering)"),
-    "generate": ("services.embedded.cli", "plan and render a dataset locally (SQLite, local folder, local workers)"),
-    "serve": ("services.api.cli", "run the REST API and dashboard"),
-    "scheduler": ("services.scheduler.cli", "run the scheduler (plans jobs, dispatches tasks)"),
-    "worker": ("services.worker.cli", "run a Celery render worker"),
-    "submit": ("services.submit_cli", "submit a job to a running service and follow its progress"),
-    "sheet": ("services.contact_sheet", "draw a contact sheet PNG of every cue of a few views of an output folder"),
+    "plan": ("services.cli.plan", "sample cameras, points and views of spaces (no rendering)"),
+    "generate": ("services.cli.generate", "plan and render a dataset locally (SQLite, local folder, local workers)"),
+    "serve": ("services.cli.serve", "run the REST API and dashboard"),
+    "scheduler": ("services.cli.scheduler", "run the scheduler (plans jobs, dispatches tasks)"),
+    "worker": ("services.cli.worker", "run a Celery render worker"),
+    "submit": ("services.cli.submit", "submit a job to a running service and follow its progress"),
+    "sheet": ("services.cli.contact_sheet", "draw a contact sheet PNG of every cue of a few views of an output folder"),
     "export": ("services.datasets.export", "export an output as WebDataset shards or the public Omnidata loader's tree"),
-    "preview": ("services.datasets.preview_cli", "preview PNGs of an output's cues, or one MP4 per cue (--video)"),
-    "migrate": ("services.migrate_cli", "upgrade the database schema to this version's head (Alembic)"),
-    "token": ("services.token_cli", "create an API token for a tenant (or an operator) and print its settings entry"),
+    "preview": ("services.cli.preview", "preview PNGs of an output's cues, or one MP4 per cue (--video)"),
+    "migrate": ("services.cli.migrate", "upgrade the database schema to this version's head (Alembic)"),
+    "token": ("services.cli.token_create", "create an API token for a tenant (or an operator) and print its settings entry"),
 }
-
-
-class CliError(Exception):
-    """A user mistake on the command line; printed as `omnidata: error: ...`, exit status 2."""
 
 
 def build_parser(argv: list[str]) -> argparse.ArgumentParser:
@@ -64,11 +62,3 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"omnidata {args.command}: interrupted", file=sys.stderr)
         return 130
-
-
-if __name__ == "__main__":
-    # `python -m services.cli` runs this file as __main__; use the importable module so that
-    # CliError raised by subcommands is the same class we catch.
-    from services.cli import main as _main
-
-    sys.exit(_main())

@@ -16,13 +16,13 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
-from services.core.spaces import LoadedSpace, SpaceError
+from services.core.ingest.loading import LoadedSpace, SpaceError
 
 # Children fork from a server process that has imported the loading code once: a check starts in
 # milliseconds instead of the second a fresh interpreter needs to import trimesh, and the fork happens in a
 # single-threaded process (the API's is not).
 _CONTEXT = multiprocessing.get_context("forkserver")
-_CONTEXT.set_forkserver_preload(["services.core.spaces", "services.core.mesh_checks", "trimesh"])
+_CONTEXT.set_forkserver_preload(["services.core.ingest.loading", "services.core.ingest.mesh_checks", "trimesh"])
 _RESULT_GRACE_S = 10.0  # for a child to exit once it has sent its result
 
 
@@ -89,8 +89,8 @@ def _child(sender: Connection, path: str, up_axis: str, unit_scale: float | str,
 
     import trimesh
 
-    from services.core.mesh_checks import check_face_count
-    from services.core.spaces import load_space
+    from services.core.ingest.loading import load_space
+    from services.core.ingest.mesh_checks import check_face_count
 
     # on top of what the process has mapped already (thread arenas and libraries: GBs on many-core hosts)
     memory = _mapped_bytes() + int(limits["memory_mb"]) * 2**20

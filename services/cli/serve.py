@@ -20,7 +20,7 @@ def run(args: argparse.Namespace) -> int:
     """Start uvicorn on the app factory; returns when the server stops."""
     import uvicorn
 
-    from services.core.db import migrate, require_schema
+    from services.core.db.engine import migrate, require_schema
     from services.core.settings import load_settings
 
     if not 0 < args.port < 65536:

@@ -18,12 +18,12 @@ from typing import Any
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from services.core.camera import CONVENTIONS
-from services.core.cues import CATALOG
-from services.core.db import job_progress
-from services.core.jobs import job_cues, job_root, job_spaces, root_key
-from services.core.keys import JOB_JSON_KEY, MANIFEST_KEY, output_key
-from services.core.models import Job, Task, TaskState, View
+from services.core.db.engine import job_progress
+from services.core.db.jobs import job_cues, job_root, job_spaces, root_key
+from services.core.db.models import Job, Task, TaskState, View
+from services.core.domain.camera import CONVENTIONS
+from services.core.domain.cues import CATALOG
+from services.core.domain.keys import JOB_JSON_KEY, MANIFEST_KEY, output_key
 from services.core.storage import ObjectStore
 
 POINT_CHUNK = 2_000  # points read per query while streaming the manifest (bounds memory on 1M-task jobs)
@@ -40,7 +40,7 @@ def code_version() -> str:
         version = metadata.version("omnidata-service")
     except metadata.PackageNotFoundError:
         version = "unknown"
-    git = Path(__file__).resolve().parents[2] / ".git"
+    git = Path(__file__).resolve().parents[3] / ".git"
     try:
         head = (git / "HEAD").read_text().strip()
         if head.startswith("ref: "):

@@ -11,10 +11,10 @@ poses the planner chose. Frames and units:
   whole `source_to_world` (rotation, uniform scale and translation), which is used as it is.
 
 Up is given (`up_axis` name or `up` vector in source coordinates) or detected in any orientation
-(`services.core.gravity`: plane families of the face normals, then the floor, a support base or the
+(`services.core.ingest.gravity`: plane families of the face normals, then the floor, a support base or the
 file convention); units are given or chosen from the storey height of rooms. How, and how sure, is
 kept in `LoadedSpace.frame_record()` for job.json. Point clouds (.xyz, .pts, PLY without faces) are
-meshed first (`services.core.pointcloud`); that mesh's faces are then the `fragments` reference.
+meshed first (`services.core.ingest.pointcloud`); that mesh's faces are then the `fragments` reference.
 
 Semantic labels come from PLY face properties `class_id` and `instance_id` (Replica's `object_id` is
 accepted as the instance, Matterport3D's `category_id` and `segment_id` as class and instance). They are
@@ -22,7 +22,7 @@ read from the raw PLY elements trimesh keeps in `mesh.metadata['_ply_raw']` and 
 the way trimesh triangulates polygons (triangles, then first and second halves of quads, then fans), and
 that mapping is verified on the vertex positions. A Replica-style `info_semantic.json` (`id_to_label`)
 beside the mesh supplies classes when only object ids are present. ScanNet's per-vertex segment files
-(`services.core.scan_formats`) are mapped to triangles by the majority of each triangle's vertices.
+(`services.core.ingest.formats`) are mapped to triangles by the majority of each triangle's vertices.
 """
 
 from __future__ import annotations
@@ -43,7 +43,9 @@ from typing import Any
 import numpy as np
 import trimesh
 
-from services.core.gravity import (
+from services.core.domain.jobspec import UP_AXES, similarity_scale
+from services.core.ingest.formats import SCANNET_MESH_SUFFIX, ScanFormatError, scannet_vertex_labels
+from services.core.ingest.gravity import (
     UnitChoice,
     UnitError,
     UpEstimate,
@@ -52,15 +54,13 @@ from services.core.gravity import (
     estimate_up,
     floor_evidence,
 )
-from services.core.jobspec import UP_AXES, similarity_scale
-from services.core.pointcloud import (
+from services.core.ingest.pointcloud import (
     CLOUD_SUFFIXES,
     CloudError,
     cloud_from_ply,
     mesh_cloud_cached,
     read_text_cloud,
 )
-from services.core.scan_formats import SCANNET_MESH_SUFFIX, ScanFormatError, scannet_vertex_labels
 from services.core.storage.base import sha256_file
 
 log = logging.getLogger(__name__)
@@ -616,7 +616,7 @@ def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: FrameRequest) -> tu
 
 def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Path | None) -> LoadedSpace:
     name = source.name
-    from services.core.mesh_checks import check_source  # it imports SpaceError from here
+    from services.core.ingest.mesh_checks import check_source  # it imports SpaceError from here
 
     source_notes = check_source(source)  # truncation, counts over the limits, unsafe paths: before parsing
     checksum = sha256_file(source)

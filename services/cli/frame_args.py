@@ -11,7 +11,7 @@ import argparse
 import json
 from pathlib import Path
 
-from services.core.jobspec import UP_AXES
+from services.core.domain.jobspec import UP_AXES
 
 
 def add_frame_arguments(parser: argparse.ArgumentParser) -> None:

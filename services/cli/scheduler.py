@@ -22,7 +22,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Start the scheduler; returns the exit status (0 on a clean stop by SIGTERM/SIGINT)."""
-    from services.core.db import make_engine, make_sessionmaker, migrate, require_schema
+    from services.core.db.engine import make_engine, make_sessionmaker, migrate, require_schema
     from services.core.settings import load_settings
     from services.core.storage import open_store
     from services.scheduler.loop import Scheduler

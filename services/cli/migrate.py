@@ -18,7 +18,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Upgrade (or only check) the configured database; prints one line with the outcome."""
-    from services.core.db import SchemaNotCurrent, migrate, require_schema, schema_heads
+    from services.core.db.engine import SchemaNotCurrent, migrate, require_schema, schema_heads
     from services.core.settings import load_settings
 
     settings = load_settings()

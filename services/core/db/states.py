@@ -16,8 +16,8 @@ from sqlalchemy import ColumnElement, Table, update
 from sqlalchemy.engine import Connection
 from sqlalchemy.orm import Session
 
-from services.core.db import _IN_CHUNK, _connection, add_counts
-from services.core.models import Job, JobState, Task, TaskState
+from services.core.db.engine import _IN_CHUNK, _connection, add_counts
+from services.core.db.models import Job, JobState, Task, TaskState
 
 __all__ = [
     "JOB_EDGES", "TASK_EDGES", "IllegalTransition", "JobState", "TaskState", "check_job_edge", "check_task_edge",

@@ -19,10 +19,10 @@ from typing import Any
 
 from sqlalchemy.orm import Session
 
-from services.core.keys import check_name
-from services.core.models import Space
-from services.core.scan_formats import scannet_companions
-from services.core.spaces import LoadedSpace, SpaceError, load_space, resolve_source, sha256_file
+from services.core.db.models import Space
+from services.core.domain.keys import check_name
+from services.core.ingest.formats import scannet_companions
+from services.core.ingest.loading import LoadedSpace, SpaceError, load_space, resolve_source, sha256_file
 from services.core.storage.base import ObjectStore
 
 SINGLE_FILE_SUFFIXES = {".ply", ".glb", ".stl", ".off", ".zip", ".xyz", ".pts"}

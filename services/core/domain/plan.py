@@ -3,7 +3,7 @@ plan-stage cues built from it: point_info, nonfixated and vanishing_points (DESI
 
 Frames and units: world frame in metres, +Z up (the space's frame after `source_to_world`); angles in
 radians; `world_to_camera` is 4x4 into OpenCV camera axes (x right, y down, z forward); pixel
-coordinates are continuous with the centre of pixel u at u + 0.5 (services.core.camera.CONVENTIONS).
+coordinates are continuous with the centre of pixel u at u + 0.5 (services.core.domain.camera.CONVENTIONS).
 No trimesh objects here: the worker and the API read plans without loading meshes.
 """
 
@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from services.core.camera import (
+from services.core.domain.camera import (
     CONVENTIONS,
     blender_matrix_world,
     camera_center,

@@ -12,8 +12,8 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator, model_validator
 
-from services.core.cues import validate_cue_names
-from services.core.keys import check_name
+from services.core.domain.cues import validate_cue_names
+from services.core.domain.keys import check_name
 
 MAX_RESOLUTION = 4096
 MIN_RESOLUTION = 16
@@ -264,7 +264,7 @@ class JobSpec(_Strict):
         return v
 
     def space_frame(self) -> dict[str, Any]:
-        """The keyword arguments of `services.core.spaces.load_space` that set the space frame."""
+        """The keyword arguments of `services.core.ingest.loading.load_space` that set the space frame."""
         return {"up_axis": self.up_axis, "unit_scale": self.unit_scale, "up": self.up,
                 "source_to_world": self.source_to_world}
 
@@ -364,7 +364,7 @@ def similarity_scale(matrix: Any) -> float:
 
 def cues_for_space(spec: JobSpec, *, has_semantics: bool) -> list[str]:
     """The output cues a job renders for one space; raises ValueError naming unsupported cues."""
-    from services.core.cues import default_cues, require_supported
+    from services.core.domain.cues import default_cues, require_supported
 
     if spec.cues is None:
         return default_cues(has_semantics)

@@ -2,7 +2,7 @@
 
 Writes, under --out DIR, in the dataset layout `<cue>/<component>/<space>/<file>` (DESIGN.md 5):
 point_info and vanishing_points JSON per view, nonfixated JSON per point; plus `plans/<space>.json`
-(the full SpacePlan, services.core.plan.plan_to_json) and `job.json` (spec, conventions, code version,
+(the full SpacePlan, services.core.domain.plan.plan_to_json) and `job.json` (spec, conventions, code version,
 and per space its source_to_world, checksum, counts and shortfall). A space that yields fewer points
 than requested is reported (stderr and job.json) but is not an error: exit status 0.
 """
@@ -17,11 +17,12 @@ from pathlib import Path
 from typing import Any
 
 from services.cli import CliError
-from services.core.camera import CONVENTIONS
-from services.core.jobspec import cues_for_space
-from services.core.keys import JOB_JSON_KEY, output_key
-from services.core.manifest import code_version
-from services.core.plan import (
+from services.cli.spec_args import add_spec_arguments, build_spec, distinct_space_names
+from services.core.db.manifest import code_version
+from services.core.domain.camera import CONVENTIONS
+from services.core.domain.jobspec import cues_for_space
+from services.core.domain.keys import JOB_JSON_KEY, output_key
+from services.core.domain.plan import (
     CLIP_NOTES_IN_SUMMARY,
     PlanError,
     clip_summary,
@@ -31,9 +32,8 @@ from services.core.plan import (
     point_info,
     vanishing_points,
 )
-from services.core.spaces import LoadedSpace, SpaceError, load_space
+from services.core.ingest.loading import LoadedSpace, SpaceError, load_space
 from services.scheduler.planning import make_plan, space_rng
-from services.spec_args import add_spec_arguments, build_spec, distinct_space_names
 
 PLAN_CUES = ("point_info", "nonfixated", "vanishing_points")
 

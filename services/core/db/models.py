@@ -1,7 +1,7 @@
 """Database rows (DESIGN.md section 3): SQLAlchemy 2.0 typed models, one module, for Postgres and SQLite.
 
 Units: positions in metres in the space's world frame (+Z up), angles in radians, times timezone-aware UTC.
-Job progress lives in `job_counter` rows maintained incrementally (services.core.db), never COUNT(*) on tasks.
+Job progress lives in `job_counter` rows maintained incrementally (services.core.db.engine), never COUNT(*) on tasks.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ from sqlalchemy.types import TypeDecorator
 
 
 class JobState(StrEnum):
-    """A job's lifecycle state (the allowed changes: services/core/states.py)."""
+    """A job's lifecycle state (the allowed changes: services/core/db/states.py)."""
 
     PENDING = "pending"
     PLANNING = "planning"
@@ -48,7 +48,7 @@ class JobState(StrEnum):
 
 
 class TaskState(StrEnum):
-    """A task's state (the allowed changes: services/core/states.py)."""
+    """A task's state (the allowed changes: services/core/db/states.py)."""
 
     PENDING = "pending"
     QUEUED = "queued"

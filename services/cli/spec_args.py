@@ -1,7 +1,7 @@
 """Command-line SPACE arguments and JobSpec flags, shared by `omnidata plan`, `generate` and `submit`.
 
 `--spec FILE` (YAML or JSON) gives the JobSpec; `--cues`, `--points`, `--min-views`, `--resolution`, `--seed`,
-`--name` and the frame flags (services/frame_args.py) override its fields. Errors are CliError naming the
+`--name` and the frame flags (services/cli/frame_args.py) override its fields. Errors are CliError naming the
 field and the flag that set it.
 """
 
@@ -18,12 +18,12 @@ import yaml
 from pydantic import ValidationError
 
 from services.cli import CliError
-from services.core.jobspec import JobSpec
-from services.core.keys import space_name
-from services.core.space_registry import pack_source
-from services.core.spaces import LoadedSpace, SpaceError, resolve_source
+from services.cli.frame_args import add_frame_arguments
+from services.core.domain.jobspec import JobSpec
+from services.core.domain.keys import space_name
+from services.core.ingest.loading import LoadedSpace, SpaceError, resolve_source
+from services.core.ingest.registry import pack_source
 from services.core.storage.base import sha256_file
-from services.frame_args import add_frame_arguments
 
 # argparse dest -> (JobSpec field path, flag shown in errors)
 SPEC_FLAGS: dict[str, tuple[tuple[str, ...], str]] = {

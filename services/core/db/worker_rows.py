@@ -12,7 +12,7 @@ from datetime import datetime, timedelta
 from sqlalchemy import delete, exists, select
 from sqlalchemy.orm import Session
 
-from services.core.models import Task, TaskState, Worker, utcnow
+from services.core.db.models import Task, TaskState, Worker, utcnow
 
 
 def expire_worker_rows(session: Session, *, older_than_s: float, now: datetime | None = None) -> int:

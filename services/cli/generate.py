@@ -19,13 +19,13 @@ import sys
 from pathlib import Path
 
 from services.cli import CliError
-from services.core.db import make_engine, make_sessionmaker, migrate
-from services.core.jobspec import JobSpec, cues_for_space
-from services.core.spaces import SpaceError, load_space
+from services.cli.spec_args import Source, add_spec_arguments, build_spec, check_sources
+from services.core.db.engine import make_engine, make_sessionmaker, migrate
+from services.core.domain.jobspec import JobSpec, cues_for_space
+from services.core.ingest.loading import SpaceError, load_space
 from services.core.storage import LocalStore
 from services.embedded.job import STATE_DIR, drive, embedded_settings, find_spaces, prepare_job
 from services.embedded.pool import cpu_count
-from services.spec_args import Source, add_spec_arguments, build_spec, check_sources
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

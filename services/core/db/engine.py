@@ -1,7 +1,7 @@
 """Database helpers: engines, migrations, fast bulk inserts and the incremental progress counters.
 
 Works on Postgres (the service) and SQLite (the embedded default) with the same calls. Task state changes go
-through services.core.states.transition(), which moves tasks and adjusts `job_counter` (add_counts) in the same
+through services.core.db.states.transition(), which moves tasks and adjusts `job_counter` (add_counts) in the same
 transaction, so progress is read from a handful of counter rows (`job_progress`) instead of COUNT(*).
 """
 
@@ -22,10 +22,10 @@ from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import DeclarativeBase, Session, sessionmaker
 from sqlalchemy.pool import NullPool
 
-from services.core.models import JobCounter, TaskState, UTCDateTime
+from services.core.db.models import JobCounter, TaskState, UTCDateTime
 from services.core.settings import ConfigurationError
 
-MIGRATIONS_DIR = Path(__file__).resolve().parents[2] / "migrations"
+MIGRATIONS_DIR = Path(__file__).resolve().parents[3] / "migrations"
 SQLITE_BUSY_TIMEOUT_MS = 30_000
 _IN_CHUNK = 5_000  # ids per UPDATE ... WHERE id IN (...): below SQLite's and psycopg's parameter limits
 _SQLITE_CHUNK = 50_000  # rows per executemany, bounds memory of the parameter list

@@ -1,7 +1,7 @@
 """Job lifecycle operations shared by the API, the scheduler and `generate` (execution contract).
 
 Job states: pending -> planning -> running -> done | failed; running <-> paused; any non-final -> cancelled.
-Every state change goes through services.core.states (the allowed transitions, and the task counters in the
+Every state change goes through services.core.db.states (the allowed transitions, and the task counters in the
 caller's transaction). No function here commits: the caller does.
 """
 
@@ -14,9 +14,7 @@ from datetime import datetime, timedelta
 from sqlalchemy import and_, case, delete, or_, select, update
 from sqlalchemy.orm import Session
 
-from services.core.cues import CATALOG, closure
-from services.core.jobspec import JobSpec, cues_for_space
-from services.core.models import (
+from services.core.db.models import (
     JOB_TERMINAL_STATES,
     Camera,
     Job,
@@ -31,7 +29,9 @@ from services.core.models import (
     WorkerBlock,
     utcnow,
 )
-from services.core.states import check_job_edge, set_job_state, transition
+from services.core.db.states import check_job_edge, set_job_state, transition
+from services.core.domain.cues import CATALOG, closure
+from services.core.domain.jobspec import JobSpec, cues_for_space
 from services.core.storage import ObjectStore
 
 RETRY_BACKOFF_BASE_S = 5.0

@@ -14,7 +14,7 @@ from pathlib import Path
 from PIL import Image, ImageDraw
 
 from services.cli import CliError
-from services.core.keys import MANIFEST_KEY
+from services.core.domain.keys import MANIFEST_KEY
 from services.core.storage import LocalStore, ObjectNotFoundError
 from services.datasets.previews import Previewer
 from services.datasets.source import ViewRecord, index_manifest, missing_file_message, open_root, select_cues

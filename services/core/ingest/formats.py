@@ -8,7 +8,7 @@ file's own sorted label names (0 = unlabelled for both), so every scene names it
 the names are recorded per space in job.json.
 
 Matterport3D region/house PLYs carry labels as face properties (`category_id`, `segment_id`) and
-Replica as `class_id`/`object_id`; those are read in `services.core.spaces`.
+Replica as `class_id`/`object_id`; those are read in `services.core.ingest.loading`.
 """
 
 from __future__ import annotations

@@ -32,7 +32,8 @@ from services.core.domain.plan import (
     point_info,
     vanishing_points,
 )
-from services.core.ingest.loading import LoadedSpace, SpaceError, load_space
+from services.core.ingest.errors import SpaceError
+from services.core.ingest.loading import LoadedSpace, load_space
 from services.scheduler.planning import make_plan, space_rng
 
 PLAN_CUES = ("point_info", "nonfixated", "vanishing_points")

@@ -21,7 +21,9 @@ from services.cli import CliError
 from services.cli.frame_args import add_frame_arguments
 from services.core.domain.jobspec import JobSpec
 from services.core.domain.keys import space_name
-from services.core.ingest.loading import LoadedSpace, SpaceError, resolve_source
+from services.core.ingest.archive import resolve_source
+from services.core.ingest.errors import SpaceError
+from services.core.ingest.loading import LoadedSpace
 from services.core.ingest.registry import pack_source
 from services.core.storage.base import sha256_file
 

@@ -133,7 +133,7 @@ class Api:
 def submit_http(api: Api, spec: Any, sources: list[Any]) -> int:
     """Upload (or reuse) the spaces and create the job over HTTP; returns the job id."""
     from services.core.domain.jobspec import similarity_scale
-    from services.core.ingest.loading import resolve_source
+    from services.core.ingest.archive import resolve_source
     from services.core.ingest.registry import pack_source
 
     ids = []
@@ -167,7 +167,7 @@ def submit_db(settings: Any, spec: Any, sources: list[Any], owner: str) -> int:
     from services.core.db.engine import make_engine, make_sessionmaker, migrate, require_schema
     from services.core.db.jobs import create_job
     from services.core.db.models import Space
-    from services.core.ingest.loading import SpaceError
+    from services.core.ingest.errors import SpaceError
     from services.core.ingest.registry import register_space
     from services.core.storage import open_store
 

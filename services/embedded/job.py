@@ -26,7 +26,7 @@ from services.core.db.manifest import write_job_files
 from services.core.db.models import JOB_TERMINAL_STATES, Job, JobState, Space
 from services.core.domain.jobspec import JobSpec
 from services.core.domain.keys import JOB_JSON_KEY, MANIFEST_KEY
-from services.core.ingest.loading import SpaceError
+from services.core.ingest.errors import SpaceError
 from services.core.ingest.registry import register_space
 from services.core.settings import Settings, load_settings
 from services.core.storage import ObjectStore

@@ -64,7 +64,7 @@ def default_scheduler_id() -> str:
 def _permanent(exc: BaseException) -> bool:
     """Errors that re-planning cannot fix (the job fails), as opposed to connection trouble (retried)."""
     from services.core.domain.plan import PlanError
-    from services.core.ingest.loading import SpaceError
+    from services.core.ingest.errors import SpaceError
     from services.core.storage import ObjectNotFoundError
 
     return isinstance(exc, PlanningError | PlanError | SpaceError | ObjectNotFoundError | ValueError | KeyError)

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from services.core.db.models import Space
-from services.core.ingest.loading import SpaceError, load_space
+from services.core.ingest.errors import SpaceError
+from services.core.ingest.loading import load_space
 from services.core.ingest.registry import fetch_space, register_space
 from services.core.storage import open_store
 

@@ -46,7 +46,7 @@ from services.core.db.models import (
     utcnow,
 )
 from services.core.domain.cues import CATALOG
-from services.core.ingest.loading import frame_of
+from services.core.ingest.frame import frame_of
 from services.core.storage import ObjectStore
 
 FINISHED_STATES = TASK_TERMINAL_STATES

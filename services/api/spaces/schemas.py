@@ -11,7 +11,7 @@ from services.core.db.models import Space
 from services.core.domain.cues import default_cues
 from services.core.domain.jobspec import parse_unit_scale
 from services.core.domain.keys import check_name
-from services.core.ingest.loading import frame_of
+from services.core.ingest.frame import frame_of
 
 UpAxis = Literal["auto", "+x", "-x", "+y", "-y", "+z", "-z"]
 

@@ -11,7 +11,7 @@ from sqlalchemy.orm import Session
 
 from services.api.pagination import PageParams
 from services.core.db.models import Job, JobSpace, Space
-from services.core.ingest.loading import SpaceError
+from services.core.ingest.errors import SpaceError
 from services.core.ingest.registry import register_space
 from services.core.ingest.safe_load import load_space_limited
 from services.core.settings import Settings

@@ -25,7 +25,7 @@ import struct
 from pathlib import Path, PurePosixPath
 from urllib.parse import unquote
 
-from services.core.ingest.loading import SpaceError
+from services.core.ingest.errors import SpaceError
 
 MAX_FACES = 50_000_000  # beyond every scan we render; trimesh needs ~100 bytes per face while loading
 MAX_VERTICES = 3 * MAX_FACES

@@ -21,9 +21,11 @@ from sqlalchemy.orm import Session
 
 from services.core.db.models import Space
 from services.core.domain.keys import check_name
+from services.core.ingest.archive import resolve_source
+from services.core.ingest.errors import SpaceError
 from services.core.ingest.formats import scannet_companions
-from services.core.ingest.loading import LoadedSpace, SpaceError, load_space, resolve_source, sha256_file
-from services.core.storage.base import ObjectStore
+from services.core.ingest.loading import LoadedSpace, load_space
+from services.core.storage.base import ObjectStore, sha256_file
 
 SINGLE_FILE_SUFFIXES = {".ply", ".glb", ".stl", ".off", ".zip", ".xyz", ".pts"}
 MAX_PACKED_BYTES = 4 << 30

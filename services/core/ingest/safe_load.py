@@ -16,7 +16,8 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
-from services.core.ingest.loading import LoadedSpace, SpaceError
+from services.core.ingest.errors import SpaceError
+from services.core.ingest.loading import LoadedSpace
 
 # Children fork from a server process that has imported the loading code once: a check starts in
 # milliseconds instead of the second a fresh interpreter needs to import trimesh, and the fork happens in a

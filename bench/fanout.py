@@ -15,7 +15,7 @@ On a fresh Postgres database and real Redis (Celery send_task by name, pipelined
    no-op consumer process pops the messages from Redis and marks the tasks done (queued -> running ->
    done, in batches). Reported: tasks / wall second from the first to the last send. Here the scheduler,
    the consumer, Postgres and Redis compete for the same cores, so this is a floor, not the capacity.
-3. progress: p50/p99 of services.core.db.engine.job_progress on a job with ~1M task rows (idle database), and
+3. progress: p50/p99 of services.core.db.counters.job_progress on a job with ~1M task rows (idle database), and
    under load (polled every 20 ms from another process during step 2b). COUNT(*) by state on the 1M job for comparison.
 
 Writes bench/results/fanout.json. Run: .venv/bin/python bench/fanout.py [--views 10000]
@@ -45,7 +45,8 @@ from sqlalchemy.engine import make_url
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from services.core.db.engine import job_progress, make_engine, make_sessionmaker, migrate  # noqa: E402
+from services.core.db.counters import job_progress
+from services.core.db.engine import make_engine, make_sessionmaker, migrate
 from services.core.db.jobs import create_job  # noqa: E402
 from services.core.db.models import Job, Space, Task, utcnow  # noqa: E402
 from services.core.db.states import transition  # noqa: E402

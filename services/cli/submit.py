@@ -203,7 +203,8 @@ def submit_db(settings: Any, spec: Any, sources: list[Any], owner: str) -> int:
 
 def db_status_fn(settings: Any) -> tuple[Callable[[int], Status], Callable[[], None]]:
     """A Status reader on the database (counters only) and its close function."""
-    from services.core.db.engine import job_progress, make_engine, make_sessionmaker
+    from services.core.db.counters import job_progress
+    from services.core.db.engine import make_engine, make_sessionmaker
     from services.core.db.models import Job
     from services.core.domain.cues import CATALOG
 

@@ -12,7 +12,7 @@ from sqlalchemy import case, func, select
 from sqlalchemy.orm import Session, sessionmaker
 from tqdm import tqdm
 
-from services.core.db.engine import job_progress
+from services.core.db.counters import job_progress
 from services.core.db.models import Job, JobState, Task, TaskState, View
 from services.core.domain.cues import CATALOG
 from services.core.storage import ObjectStore

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from sqlalchemy import exists, select
 from sqlalchemy.orm import Session
 
-from services.core.db.engine import job_progress
+from services.core.db.counters import job_progress
 from services.core.db.jobs import root_key
 from services.core.db.manifest import write_job_files
 from services.core.db.models import TASK_ACTIVE_STATES, Job, JobCounter, JobState, Task, TaskState, utcnow

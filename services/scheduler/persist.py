@@ -12,7 +12,8 @@ import numpy as np
 from sqlalchemy import delete
 from sqlalchemy.orm import Session
 
-from services.core.db.engine import bulk_insert, init_counts
+from services.core.db.bulk import bulk_insert
+from services.core.db.counters import init_counts
 from services.core.db.jobs import root_key
 from services.core.db.models import Camera, Job, JobCounter, Point, Task, View
 from services.core.domain.plan import SpacePlan, plan_to_json

@@ -20,7 +20,7 @@ from datetime import timedelta
 from sqlalchemy import update
 from sqlalchemy.orm import Session
 
-from services.core.db.engine import upsert
+from services.core.db.bulk import upsert
 from services.core.db.models import Task, TaskState, Worker, utcnow
 
 log = logging.getLogger(__name__)

@@ -11,7 +11,8 @@ import pytest
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from services.core.db.engine import add_counts, bulk_insert, job_progress
+from services.core.db.bulk import bulk_insert
+from services.core.db.counters import add_counts, job_progress
 from services.core.db.models import Job, JobState, Task, TaskState
 from services.core.db.states import (
     JOB_EDGES,

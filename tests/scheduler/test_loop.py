@@ -18,7 +18,8 @@ from kombu import Connection
 from sqlalchemy import create_engine, select, text
 from sqlalchemy.orm import Session, sessionmaker
 
-from services.core.db.engine import job_progress, make_engine, make_sessionmaker, migrate
+from services.core.db.counters import job_progress
+from services.core.db.engine import make_engine, make_sessionmaker, migrate
 from services.core.db.jobs import create_job
 from services.core.db.models import Job, Task
 from services.core.domain.jobspec import JobSpec

@@ -22,7 +22,8 @@ from PIL import Image
 from sqlalchemy import Engine, select
 from sqlalchemy.orm import Session, sessionmaker
 
-from services.core.db.engine import job_progress, make_engine, make_sessionmaker, migrate
+from services.core.db.counters import job_progress
+from services.core.db.engine import make_engine, make_sessionmaker, migrate
 from services.core.db.jobs import create_job, root_key
 from services.core.db.models import Job, Space, Task, Worker, WorkerBlock, utcnow
 from services.core.db.states import transition

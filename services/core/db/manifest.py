@@ -18,7 +18,7 @@ from typing import Any
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from services.core.db.engine import job_progress
+from services.core.db.counters import job_progress
 from services.core.db.jobs import job_cues, job_root, job_spaces, root_key
 from services.core.db.models import Job, Task, TaskState, View
 from services.core.domain.camera import CONVENTIONS

@@ -16,7 +16,8 @@ from sqlalchemy import ColumnElement, Table, update
 from sqlalchemy.engine import Connection
 from sqlalchemy.orm import Session
 
-from services.core.db.engine import _IN_CHUNK, _connection, add_counts
+from services.core.db.bulk import connection_of
+from services.core.db.counters import add_counts
 from services.core.db.models import Job, JobState, Task, TaskState
 
 __all__ = [
@@ -49,6 +50,8 @@ JOB_EDGES: Mapping[JobState, frozenset[JobState]] = {
     JobState.FAILED: frozenset({JobState.RUNNING}),
     JobState.CANCELLED: frozenset(),
 }
+
+IN_CHUNK = 5_000  # ids per UPDATE ... WHERE id IN (...): below SQLite's and psycopg's parameter limits
 
 
 class IllegalTransition(ValueError):
@@ -90,7 +93,7 @@ def transition(
     Task objects already loaded in a Session are not refreshed (reload with populate_existing=True).
     """
     src, dst = check_task_edge(from_state, to_state)
-    conn = _connection(session)
+    conn = connection_of(session)
     t = Task.__table__
     assert isinstance(t, Table)
     conds = [t.c.job_id == job_id, t.c.state == src.value, *where]
@@ -100,8 +103,8 @@ def transition(
         moved.extend((int(r[0]), str(r[1])) for r in conn.execute(stmt.where(*conds)))
     else:
         ids = list(dict.fromkeys(int(i) for i in task_ids))
-        for start in range(0, len(ids), _IN_CHUNK):
-            chunk = ids[start : start + _IN_CHUNK]
+        for start in range(0, len(ids), IN_CHUNK):
+            chunk = ids[start : start + IN_CHUNK]
             moved.extend((int(r[0]), str(r[1])) for r in conn.execute(stmt.where(t.c.id.in_(chunk), *conds)))
     per_cue = Counter(cue for _, cue in moved)
     deltas: dict[tuple[str, str], int] = {}

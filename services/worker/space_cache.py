@@ -25,7 +25,7 @@ from services.worker.curvature import principal_curvatures
 from services.worker.passes import RENDER_PASSES, ViewGeometry, ViewPasses
 
 if TYPE_CHECKING:
-    from services.worker.blender import BlenderScene
+    from services.worker.blender.scene import BlenderScene
 
 log = logging.getLogger(__name__)
 
@@ -83,7 +83,8 @@ class SpaceContext:
             from services.worker.blender.threads import import_bpy
 
             import_bpy(self.threads)  # before the first `import bpy`: size Blender's thread pool to the budget
-            from services.worker.blender import BlenderScene, RenderOptions
+            from services.worker.blender.render import RenderOptions
+            from services.worker.blender.scene import BlenderScene
 
             self._scene = BlenderScene(self.mesh, face_class=self.face_class, face_instance=self.face_instance,
                                        options=RenderOptions(device=self.device, threads=self.threads))  # type: ignore[arg-type]

@@ -337,7 +337,8 @@ def test_space_cache_keeps_and_frees_scenes(rendered: dict[str, Rendered]) -> No
 
 def test_gpu_request_falls_back_to_cpu(caplog: pytest.LogCaptureFixture,
                                        rendered: dict[str, Rendered]) -> None:
-    from services.worker.blender import BlenderScene, RenderOptions
+    from services.worker.blender.render import RenderOptions
+    from services.worker.blender.scene import BlenderScene
 
     with pytest.raises(ValueError, match="device"):
         RenderOptions(device="vulkan")  # type: ignore[arg-type]

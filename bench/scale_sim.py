@@ -57,8 +57,9 @@ from services.core.db.models import Space, Task  # noqa: E402
 from services.core.domain.jobspec import JobSpec  # noqa: E402
 from services.core.settings import Settings, get_settings  # noqa: E402
 from services.core.storage import LocalStore  # noqa: E402
+from services.worker.claim import Claimed
 from services.worker.heartbeat import Heartbeat  # noqa: E402
-from services.worker.runner import TaskRunner, _Claimed  # noqa: E402
+from services.worker.runner import TaskRunner
 from services.worker.tasks import worker_engine  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -82,7 +83,7 @@ class SleepingRunner(TaskRunner):
         self.rng = random.Random(hash(self.worker_id))
         self.slept = 0.0
 
-    def _execute(self, t: _Claimed) -> tuple[str, Any]:
+    def execute(self, t: Claimed) -> tuple[str, Any]:
         self.slept = self.task_s * self.rng.uniform(0.8, 1.2)
         if self.killed.wait(self.slept):
             raise Killed(t.id)

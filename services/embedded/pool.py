@@ -54,8 +54,9 @@ def worker_main(conf: WorkerConfig, tasks: Any, results: Any, stop: Any) -> None
     from services.core.db.engine import make_engine, make_sessionmaker
     from services.core.settings import get_settings
     from services.core.storage import LocalStore
+    from services.worker.claim import TransientError
     from services.worker.heartbeat import Heartbeat
-    from services.worker.runner import TaskRunner, TransientError
+    from services.worker.runner import TaskRunner
 
     settings = get_settings(**{**conf.settings, "render_threads": conf.render_threads})
     engine = make_engine(settings.database_url)

@@ -146,7 +146,7 @@ def _task_id(payload: Any) -> int | None:
              max_retries=MAX_TRANSIENT_RETRIES)
 def render_cue(self: CeleryTask, task_id: Any) -> str:
     """Run one point-view-cue task by id; returns the outcome status (done, skipped, retry, failed, ...)."""
-    from services.worker.runner import TransientError
+    from services.worker.claim import TransientError
 
     tid = _task_id(task_id)
     if tid is None:  # a malformed message can never succeed: drop it (acked), do not retry

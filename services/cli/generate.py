@@ -19,11 +19,12 @@ import sys
 from pathlib import Path
 
 from services.cli import CliError
-from services.cli.spec_args import Source, add_spec_arguments, build_spec, check_sources
+from services.cli.spec_args import add_spec_arguments, build_spec, check_sources
 from services.core.db.engine import make_engine, make_sessionmaker, migrate
 from services.core.domain.jobspec import JobSpec, cues_for_space
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.loading import load_space
+from services.core.ingest.registry import Source
 from services.core.storage import LocalStore
 from services.embedded.job import STATE_DIR, drive, embedded_settings, find_spaces, prepare_job
 from services.embedded.pool import cpu_count

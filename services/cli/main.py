@@ -1,7 +1,9 @@
-"""`omnidata` command line: the composition root (DESIGN.md section 8).
+"""`omnidata` command line: the composition root, the one place that wires the services together.
 
-Each subcommand lives in its service as `add_arguments(parser)` + `run(args) -> int`, imported lazily
-so `omnidata --help` starts fast and the API/scheduler never import bpy.
+Each subcommand is a module with `add_arguments(parser)` + `run(args) -> int`, imported only when named, so
+`omnidata --help` starts fast and the API/scheduler never import bpy. Errors the user can fix (CliError and
+the domain errors of the library) end as one line and exit status 2; anything else is a bug and keeps its
+traceback.
 """
 
 from __future__ import annotations
@@ -11,6 +13,7 @@ import importlib
 import sys
 
 from services.cli.errors import CliError
+from services.core.domain.errors import DomainError
 
 # subcommand -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -21,7 +24,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "worker": ("services.cli.worker", "run a Celery render worker"),
     "submit": ("services.cli.submit", "submit a job to a running service and follow its progress"),
     "sheet": ("services.cli.contact_sheet", "draw a contact sheet PNG of every cue of a few views of an output folder"),
-    "export": ("services.datasets.export", "export an output as WebDataset shards or the public Omnidata loader's tree"),
+    "export": ("services.cli.export", "export an output as WebDataset shards or the public Omnidata loader's tree"),
     "preview": ("services.cli.preview", "preview PNGs of an output's cues, or one MP4 per cue (--video)"),
     "migrate": ("services.cli.migrate", "upgrade the database schema to this version's head (Alembic)"),
     "token": ("services.cli.token_create", "create an API token for a tenant (or an operator) and print its settings entry"),
@@ -49,11 +52,13 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         return int(importlib.import_module(args._module).run(args) or 0)
-    except CliError as e:
+    except (CliError, DomainError) as e:
         print(f"omnidata {args.command}: error: {e}", file=sys.stderr)
         return 2
     except Exception as e:
-        from services.core.settings import ConfigurationError  # loaded already if e is one
+        from services.core.settings import (
+            ConfigurationError,  # loaded already if e is one (keeps --help fast)
+        )
 
         if not isinstance(e, ConfigurationError):
             raise

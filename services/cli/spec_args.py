@@ -8,9 +8,7 @@ field and the flag that set it.
 from __future__ import annotations
 
 import argparse
-import tempfile
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -21,11 +19,8 @@ from services.cli import CliError
 from services.cli.frame_args import add_frame_arguments
 from services.core.domain.jobspec import JobSpec
 from services.core.domain.keys import space_name
-from services.core.ingest.archive import resolve_source
 from services.core.ingest.errors import SpaceError
-from services.core.ingest.loading import LoadedSpace
-from services.core.ingest.registry import pack_source
-from services.core.storage.base import sha256_file
+from services.core.ingest.registry import Source, source_checksum
 
 # argparse dest -> (JobSpec field path, flag shown in errors)
 SPEC_FLAGS: dict[str, tuple[tuple[str, ...], str]] = {
@@ -114,25 +109,6 @@ def distinct_space_names(paths: list[Path]) -> list[str]:
     if dup:
         raise CliError(f"two spaces would share the name {dup[0]!r} in the output layout; rename one")
     return names
-
-
-@dataclass
-class Source:
-    """One SPACE argument: its path, name, and the checksum its registered source will have."""
-
-    path: Path
-    name: str
-    checksum: str
-    has_semantics: bool | None = None  # known once validated (None: already registered, trusted)
-    loaded: LoadedSpace | None = None  # the validated space, handed to register_space so the mesh loads once
-
-
-def source_checksum(path: Path) -> str:
-    """sha256 of the object register_space stores for `path` (the file itself, or its deterministic zip)."""
-    with tempfile.TemporaryDirectory(prefix="omnidata-source-") as tmp:
-        work = Path(tmp)
-        mesh = resolve_source(path, work / "x") if path.suffix.lower() == ".zip" else resolve_source(path)
-        return sha256_file(pack_source(path, mesh, work))
 
 
 def check_sources(paths: Sequence[str]) -> list[Source]:

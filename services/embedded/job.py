@@ -19,15 +19,13 @@ from pathlib import Path
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
-from services.cli import CliError
-from services.cli.spec_args import Source
 from services.core.db.jobs import cancel_job, create_job, job_spaces, reopen_job, requeue_inflight
 from services.core.db.manifest import write_job_files
 from services.core.db.models import JOB_TERMINAL_STATES, Job, JobState, Space
+from services.core.domain.errors import Conflict, Invalid
 from services.core.domain.jobspec import JobSpec
 from services.core.domain.keys import JOB_JSON_KEY, MANIFEST_KEY
-from services.core.ingest.errors import SpaceError
-from services.core.ingest.registry import register_space
+from services.core.ingest.registry import Source, register_space
 from services.core.settings import Settings, load_settings
 from services.core.storage import ObjectStore
 from services.embedded.pool import STATE_DIR, LocalPool, WorkerConfig, cpu_count
@@ -58,7 +56,7 @@ def job_fingerprint(spec: JobSpec, checksums: Sequence[str]) -> str:
 
 
 def find_spaces(session: Session, sources: list[Source]) -> dict[str, Space]:
-    """Registered spaces of this folder by name; CliError when one has the same name but other content."""
+    """Registered spaces of this folder by name; Conflict when one has the same name but other content."""
     rows = {sp.name: sp for sp in session.scalars(select(Space).where(Space.owner == OWNER))}
     found = {}
     for src in sources:
@@ -66,7 +64,7 @@ def find_spaces(session: Session, sources: list[Source]) -> dict[str, Space]:
         if sp is None:
             continue
         if sp.checksum != src.checksum:
-            raise CliError(
+            raise Conflict(
                 f"the output folder already holds a different space named {src.name!r} (its files changed); "
                 "use a new --out folder"
             )
@@ -116,18 +114,14 @@ def prepare_job(sm: sessionmaker[Session], store: ObjectStore, spec: JobSpec, so
         for src in sources:
             sp = spaces.get(src.name)
             if sp is None:
-                try:
-                    sp = register_space(s, store, owner=OWNER, name=src.name, source_path=src.path,
-                                        key_prefix=SPACES_PREFIX, **spec.space_frame(),
-                                        loaded=src.loaded)
-                except SpaceError as e:
-                    raise CliError(str(e)) from None
+                sp = register_space(s, store, owner=OWNER, name=src.name, source_path=src.path,
+                                    key_prefix=SPACES_PREFIX, **spec.space_frame(), loaded=src.loaded)
             src.loaded = None  # the workers load their own copy; do not keep the mesh in this process
             ordered.append(sp)
         try:
             job = create_job(s, owner=OWNER, spec=spec, spaces=ordered, output_root="")
         except ValueError as e:
-            raise CliError(str(e)) from None
+            raise Invalid(str(e)) from None
         s.commit()
         return Prepared(job.id, resumed=False)
 

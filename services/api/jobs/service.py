@@ -16,7 +16,6 @@ from collections.abc import Callable, Sequence
 from datetime import datetime
 from typing import Any
 
-from fastapi import HTTPException, status
 from sqlalchemy import bindparam, func, select
 from sqlalchemy.orm import Session, defer
 
@@ -46,6 +45,7 @@ from services.core.db.models import (
     utcnow,
 )
 from services.core.domain.cues import CATALOG
+from services.core.domain.errors import Conflict, Invalid
 from services.core.ingest.frame import frame_of
 from services.core.storage import ObjectStore
 
@@ -321,7 +321,7 @@ def create_job(session: Session, *, owner: str, body: JobCreate) -> Job:
         job = core_jobs.create_job(session, owner=owner, spec=body.spec, spaces=[found[i] for i in body.space_ids])
     except ValueError as e:
         session.rollback()
-        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(e)) from None
+        raise Invalid(str(e)) from None
     session.commit()
     return job
 
@@ -341,7 +341,7 @@ def apply_action(session: Session, *, owner: str, job_id: int, action: str) -> J
         ACTIONS[action](session, job)
     except core_jobs.JobStateError as e:
         session.rollback()
-        raise HTTPException(status.HTTP_409_CONFLICT, str(e)) from None
+        raise Conflict(str(e)) from None
     session.commit()
     session.refresh(job)
     return job

@@ -31,6 +31,7 @@ from services.core.db.models import (
 )
 from services.core.db.states import check_job_edge, set_job_state, transition
 from services.core.domain.cues import CATALOG, closure
+from services.core.domain.errors import Conflict
 from services.core.domain.jobspec import JobSpec, cues_for_space
 from services.core.storage import ObjectStore
 
@@ -39,7 +40,7 @@ RETRY_BACKOFF_CAP_S = 300.0
 PLANNING_LEASE_S = 600  # a planner that holds a job longer than this without finishing is presumed dead
 
 
-class JobStateError(ValueError):
+class JobStateError(Conflict, ValueError):
     """An operation that the job's current state does not allow (e.g. resuming a finished job)."""
 
 

@@ -6,6 +6,8 @@ without importing each other.
 
 from __future__ import annotations
 
+from services.core.domain.errors import Invalid
 
-class SpaceError(ValueError):
+
+class SpaceError(Invalid):
     """A space that cannot be used, with a message meant for the user who uploaded it."""

@@ -14,6 +14,7 @@ import re
 import shutil
 import tempfile
 import zipfile
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -193,3 +194,22 @@ def fetch_space(store: ObjectStore, space: Space, cache_dir: str | Path) -> Path
     return resolve_source(cache / "src") if (cache / "src").is_dir() else resolve_source(next(
         p for p in cache.iterdir() if p.is_file() and p.name != ".ready"
     ))
+
+
+@dataclass
+class Source:
+    """One SPACE argument: its path, name, and the checksum its registered source will have."""
+
+    path: Path
+    name: str
+    checksum: str
+    has_semantics: bool | None = None  # known once validated (None: already registered, trusted)
+    loaded: LoadedSpace | None = None  # the validated space, handed to register_space so the mesh loads once
+
+
+def source_checksum(path: Path) -> str:
+    """sha256 of the object register_space stores for `path` (the file itself, or its deterministic zip)."""
+    with tempfile.TemporaryDirectory(prefix="omnidata-source-") as tmp:
+        work = Path(tmp)
+        mesh = resolve_source(path, work / "x") if path.suffix.lower() == ".zip" else resolve_source(path)
+        return sha256_file(pack_source(path, mesh, work))

@@ -2,15 +2,14 @@
 
 Writes, under --out DIR, in the dataset layout `<cue>/<component>/<space>/<file>` (DESIGN.md 5):
 point_info and vanishing_points JSON per view, nonfixated JSON per point; plus `plans/<space>.json`
-(the full SpacePlan, services.core.domain.plan.plan_to_json) and `job.json` (spec, conventions, code version,
-and per space its source_to_world, checksum, counts and shortfall). A space that yields fewer points
+(the full SpacePlan, services.core.domain.plan.plan_to_json) and `job.json` in the one schema
+(services.core.domain.job_document, stage "plan"). A space that yields fewer points
 than requested is reported (stderr and job.json) but is not an error: exit status 0.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tempfile
 from pathlib import Path
@@ -18,14 +17,11 @@ from typing import Any
 
 from services.cli import CliError
 from services.cli.spec_args import add_spec_arguments, build_spec, distinct_space_names
-from services.core.db.manifest import code_version
-from services.core.domain.camera import CONVENTIONS
+from services.core.domain.job_document import job_document, job_json_bytes
 from services.core.domain.jobspec import cues_for_space
 from services.core.domain.keys import JOB_JSON_KEY, output_key
 from services.core.domain.plan import (
-    CLIP_NOTES_IN_SUMMARY,
     PlanError,
-    clip_summary,
     encode_json,
     nonfixated,
     plan_to_json,
@@ -33,8 +29,8 @@ from services.core.domain.plan import (
     vanishing_points,
 )
 from services.core.ingest.errors import SpaceError
-from services.core.ingest.loading import LoadedSpace, load_space
-from services.scheduler.planning import make_plan, space_rng
+from services.core.ingest.loading import LoadedSpace
+from services.scheduler.plan_space import load_for_job, plan_record, plan_space
 
 PLAN_CUES = ("point_info", "nonfixated", "vanishing_points")
 
@@ -53,23 +49,6 @@ def _write_json(root: Path, key: str, data: Any) -> None:
     path.write_bytes(encode_json(data))
 
 
-def _space_record(given: str, space: LoadedSpace) -> dict[str, Any]:
-    return {
-        "source": given,
-        "mesh_file": space.source_path.name,
-        "checksum_sha256": space.checksum,
-        "source_to_world": space.source_to_world.tolist(),
-        "up_axis": {"source_direction": space.up_source.tolist(), "method": space.up_method},
-        **space.frame_record(),
-        "bounds_world_m": space.bounds.tolist(),
-        "face_count": space.face_count,
-        "has_texture": space.has_texture,
-        "has_vertex_colors": space.has_vertex_colors,
-        "has_semantics": space.has_semantics,
-        "warnings": list(space.warnings),
-    }
-
-
 def run(args: argparse.Namespace) -> int:
     """Plan every SPACE and write the plan-stage cues; see the module docstring."""
     spec = build_spec(args)
@@ -83,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
         loaded: list[tuple[str, str, LoadedSpace]] = []
         for i, (given, name) in enumerate(zip(args.spaces, names, strict=True)):
             try:
-                space = load_space(given, **spec.space_frame(), extract_dir=Path(tmp) / str(i))
+                space = load_for_job(given, spec, extract_dir=Path(tmp) / str(i))
                 cues_for_space(spec, has_semantics=space.has_semantics)
             except SpaceError as e:
                 raise CliError(str(e)) from None
@@ -93,13 +72,13 @@ def run(args: argparse.Namespace) -> int:
         plans = []
         for given, name, space in loaded:
             try:
-                plan = make_plan(space, spec, space_rng(spec.seed, name), name)
+                plan = plan_space(space, spec, name)
             except PlanError as e:
                 raise CliError(f"{given}: {e}") from None
             plans.append((given, name, space, plan))
 
     out.mkdir(parents=True, exist_ok=True)
-    for given, name, space, plan in plans:
+    for position, (_given, name, space, plan) in enumerate(plans):
         for view in plan.views:
             info = point_info(plan, view)
             _write_json(out, output_key("point_info", component, name, view.point_idx, view.v), info)
@@ -110,31 +89,23 @@ def run(args: argparse.Namespace) -> int:
         plan_key = f"plans/{name}.json"
         (out / "plans").mkdir(parents=True, exist_ok=True)
         (out / plan_key).write_text(plan_to_json(plan))
-        record = _space_record(given, space)
-        record.update({
-            "counts": {"cameras": len(plan.cameras), "points": len(plan.points), "views": len(plan.views)},
-            "shortfall": plan.shortfall,
-            "valid_fraction": plan.valid_fraction,
-            "clips": clip_summary(plan.clip_notes, CLIP_NOTES_IN_SUMMARY),
-            "plan": plan_key,
-        })
-        spaces[name] = record
+        spaces[name] = plan_record(space, plan, spec, position=position, cues=list(PLAN_CUES), plan_key=plan_key)
         print(f"{name}: {len(plan.cameras)} cameras, {len(plan.points)} points, {len(plan.views)} views")
         print(f"{name}: {space.frame_summary()}")
         for note in space.warnings:
             print(f"omnidata plan: warning: {name}: {note}", file=sys.stderr)
         if plan.shortfall:
             print(f"omnidata plan: warning: {name}: {plan.shortfall}", file=sys.stderr)
-    job = {
-        "format": "omnidata.job/1",
-        "command": "plan",
-        "code_version": code_version(),
-        "spec": spec.model_dump(mode="json"),
-        "conventions": dict(CONVENTIONS),
-        "component": component,
-        "cues_written": list(PLAN_CUES),
-        "spaces": spaces,
-    }
-    (out / JOB_JSON_KEY).write_text(json.dumps(job, indent=2, sort_keys=True) + "\n")
+    views = sum(len(plan.views) for *_, plan in plans)
+    points = sum(len(plan.points) for *_, plan in plans)
+    job = job_document(
+        stage="plan",
+        job={"id": None, "name": component, "owner": None, "state": "planned", "error": None, "output_root": None,
+             "created_at": None, "started_at": None, "finished_at": None, "total_tasks": 0},
+        component=component, spec=spec.model_dump(mode="json"), cues=PLAN_CUES, spaces=spaces,
+        plan_summary={"shortfall": any(rec["shortfall"] for rec in spaces.values())},
+        counts={"point_info": {"done": views}, "vanishing_points": {"done": views}, "nonfixated": {"done": points}},
+    )
+    (out / JOB_JSON_KEY).write_bytes(job_json_bytes(job))
     print(f"wrote {out}")
     return 0

@@ -99,7 +99,7 @@ def test_embedded_sqlite_job_runs_to_done(sqlite_sm, local_store, scenes_dir, tm
     assert len(lines) == 6 and all(set(json.loads(x)["outputs"]) == {"point_info", "rgb"} for x in lines)
     doc = json.loads(local_store.get_bytes(f"jobs/{job_id}/job.json"))
     assert len(doc["spaces"]["bunny"]["source_to_world"]) == 4
-    planned = doc["spaces"]["bunny"]["plan"]  # how the frame was found, and the predicted surface share
+    planned = doc["spaces"]["bunny"]  # how the frame was found, and the predicted surface share (one job.json schema)
     assert planned["up"]["method"] == "base" and planned["up"]["source_direction"] == [0.0, 1.0, 0.0]
     assert planned["units"]["unit"] == "metres" and planned["valid_fraction"]["views"] == 6
 

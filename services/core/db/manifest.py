@@ -11,7 +11,6 @@ import json
 import os
 import tempfile
 from collections.abc import Iterator
-from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -21,34 +20,13 @@ from sqlalchemy.orm import Session
 from services.core.db.counters import job_progress
 from services.core.db.jobs import job_cues, job_root, job_spaces, root_key
 from services.core.db.models import Job, Task, TaskState, View
-from services.core.domain.camera import CONVENTIONS
 from services.core.domain.cues import CATALOG
+from services.core.domain.job_document import job_document as build_job_document
+from services.core.domain.job_document import job_json_bytes, space_record
 from services.core.domain.keys import JOB_JSON_KEY, MANIFEST_KEY, output_key
 from services.core.storage import ObjectStore
 
 POINT_CHUNK = 2_000  # points read per query while streaming the manifest (bounds memory on 1M-task jobs)
-LAYOUT = "<cue>/<component>/<space>/point_<p>_view_<v>_domain_<cue>.<ext>"
-
-
-def code_version() -> str:
-    """Version of the code that produced a job or plan: $OMNIDATA_CODE_VERSION, else the package's version
-    plus the git commit when run from a checkout (`0.1.0+g0123456789ab`)."""
-    env = os.environ.get("OMNIDATA_CODE_VERSION")
-    if env:
-        return env
-    try:
-        version = metadata.version("omnidata-service")
-    except metadata.PackageNotFoundError:
-        version = "unknown"
-    git = Path(__file__).resolve().parents[3] / ".git"
-    try:
-        head = (git / "HEAD").read_text().strip()
-        if head.startswith("ref: "):
-            ref = git / head[5:]
-            head = ref.read_text().strip() if ref.is_file() else head
-        return f"{version}+g{head[:12]}"
-    except OSError:  # not a checkout (or a worktree, whose .git is a file)
-        return version
 
 
 def _relative(job: Job, key: str | None, fallback: str) -> str:
@@ -120,53 +98,35 @@ def manifest_bytes(session: Session, job: Job) -> bytes:
     return "".join(iter_manifest_lines(session, job)).encode("utf-8")
 
 
-def _counts(progress: dict[str, dict[str, int]]) -> dict[str, Any]:
-    by_state: dict[str, int] = {}
-    for states in progress.values():
-        for state, n in states.items():
-            by_state[state] = by_state.get(state, 0) + n
-    return {"by_state": by_state, "by_cue": progress, "total": sum(by_state.values())}
-
-
 def _iso(dt: Any) -> str | None:
     return None if dt is None else dt.isoformat()
 
 
-def job_document(session: Session, job: Job) -> dict[str, Any]:
-    """The content of job.json: spec, conventions, cue encodings, spaces (with source_to_world), counts."""
+def _space_records(session: Session, job: Job) -> dict[str, dict[str, Any]]:
     plan_spaces = (job.plan_summary or {}).get("spaces", {})
-    spaces: dict[str, Any] = {}
+    spaces: dict[str, dict[str, Any]] = {}
     for js, sp in job_spaces(session, job.id):
         planned = plan_spaces.get(sp.name, {})
-        spaces[sp.name] = {
-            "space_id": sp.id,
-            "position": js.position,
-            "cues": list(js.cues),
+        spaces[sp.name] = space_record(
+            space_id=sp.id, position=js.position, cues=js.cues, checksum=sp.checksum, source_format=sp.source_format,
             # the job's own load (its up_axis/unit_scale) wins over the space's defaults
-            "source_to_world": planned.get("source_to_world", sp.source_to_world),
-            "checksum": sp.checksum,
-            "source_format": sp.source_format,
-            "unit_scale": planned.get("unit_scale", sp.unit_scale),
-            "up_axis": planned.get("up_axis", sp.up_axis),
-            "bounds": planned.get("bounds", sp.bounds),
-            "face_count": sp.face_count,
-            "has_texture": sp.has_texture,
-            "has_semantics": sp.has_semantics,
-            "plan": {k: v for k, v in planned.items() if k not in ("source_to_world", "bounds")},
-        }
-    cues = {
-        n: {
-            "ext": CATALOG[n].ext,
-            "encoding": CATALOG[n].encoding,
-            "dtype": CATALOG[n].dtype,
-            "channels": CATALOG[n].channels,
-            "per_point": CATALOG[n].per_point,
-            "inputs": [i for i in CATALOG[n].inputs if not CATALOG[i].internal],
-        }
-        for n in job_cues(session, job.id)
-    }
-    return {
-        "job": {
+            source_to_world=planned.get("source_to_world", sp.source_to_world),
+            unit_scale=planned.get("unit_scale", sp.unit_scale), up_axis=planned.get("up_axis", sp.up_axis),
+            bounds=planned.get("bounds", sp.bounds), face_count=sp.face_count, has_texture=sp.has_texture,
+            has_semantics=sp.has_semantics, counts=planned, shortfall=planned.get("shortfall"),
+            valid_fraction=planned.get("valid_fraction"), clips=planned.get("clips"),
+            plan=_relative(job, planned.get("plan_key"), "") or None, warnings=planned.get("warnings", []),
+            frame=planned,
+        )
+    return spaces
+
+
+def job_document(session: Session, job: Job) -> dict[str, Any]:
+    """The content of job.json (services.core.domain.job_document), from the job's rows."""
+    spec = job.spec or {}
+    return build_job_document(
+        stage="render",
+        job={
             "id": job.id,
             "name": job.name,
             "owner": job.owner,
@@ -178,15 +138,13 @@ def job_document(session: Session, job: Job) -> dict[str, Any]:
             "finished_at": _iso(job.finished_at),
             "total_tasks": int(job.total_tasks or 0),
         },
-        "spec": job.spec,
-        "layout": LAYOUT,
-        "conventions": CONVENTIONS,
-        "cues": cues,
-        "spaces": spaces,
-        "plan_summary": {k: v for k, v in (job.plan_summary or {}).items() if k != "spaces"},
-        "code_version": code_version(),
-        "counts": _counts(job_progress(session, job.id)),
-    }
+        component=job.name or spec.get("name", ""),
+        spec=spec,
+        cues=job_cues(session, job.id),
+        spaces=_space_records(session, job),
+        plan_summary={k: v for k, v in (job.plan_summary or {}).items() if k != "spaces"},
+        counts=job_progress(session, job.id),
+    )
 
 
 def write_job_files(session: Session, store: ObjectStore, job: Job) -> tuple[str, str]:
@@ -203,6 +161,5 @@ def write_job_files(session: Session, store: ObjectStore, job: Job) -> tuple[str
         store.put_file(mkey, Path(tmp), content_type="application/x-ndjson")
     finally:
         Path(tmp).unlink(missing_ok=True)
-    doc = json.dumps(job_document(session, job), indent=2, sort_keys=False).encode("utf-8")
-    store.put_bytes(jkey, doc, content_type="application/json")
+    store.put_bytes(jkey, job_json_bytes(job_document(session, job)), content_type="application/json")
     return mkey, jkey

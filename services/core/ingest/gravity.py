@@ -44,9 +44,12 @@ from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 CONVENTION_UP = {".obj": "+y", ".gltf": "+y", ".glb": "+y", ".ply": "+z"}
 
-_CONE_COS = float(np.cos(np.radians(15.0)))
+# The one floor rule: a floor face's normal lies within 15 degrees of up. The planner's detect_floors
+# (services.scheduler.planning.cameras) uses the same cone, so a scan levelled here has the floors planned there.
+FLOOR_CONE_DEG = 15.0
+FLOOR_CONE_COS = float(np.cos(np.radians(FLOOR_CONE_DEG)))
 _END_BAND = 0.10
-_FLOOR_MIN_FRACTION = 0.30
+_FLOOR_MIN_FRACTION = 0.30  # floor area / the scan's cross-section: below it the scan is an object, not a room
 _BASE_MIN_FRACTION = 0.15
 _BASE_DOMINANCE = 3.0
 _TIE_REL = 0.02
@@ -246,7 +249,7 @@ def _floor_candidate(geom: _Geometry, u: np.ndarray) -> _Candidate:
     lo, hi = float(hv.min()), float(hv.max())
     h = geom.centers @ u
     c = normals @ u
-    facing_up, facing_down = c > _CONE_COS, c < -_CONE_COS
+    facing_up, facing_down = c > FLOOR_CONE_COS, c < -FLOOR_CONE_COS
     floor = facing_up & (h <= 0.5 * (lo + hi))  # <=: a scan of a flat floor alone has lo == hi
     floor_area = float(areas[floor].sum())
     band = _END_BAND * (hi - lo)
@@ -317,8 +320,8 @@ def _support_base(geom: _Geometry, axes: list[np.ndarray]) -> UpEstimate | None:
         band = _END_BAND * (hi - lo)
         h, c = centers @ f, normals @ f
         cross = max(_cross_section(geom.hull_points, f), 1e-300)
-        at_low = float(areas[(h <= lo + band) & (c < -_CONE_COS)].sum())  # base at the low end: up = +f
-        at_high = float(areas[(h >= hi - band) & (c > _CONE_COS)].sum())
+        at_low = float(areas[(h <= lo + band) & (c < -FLOOR_CONE_COS)].sum())  # base at the low end: up = +f
+        at_high = float(areas[(h >= hi - band) & (c > FLOOR_CONE_COS)].sum())
         for base, opposite, up in ((at_low, at_high, f), (at_high, at_low, -f)):
             if base >= _BASE_MIN_FRACTION * cross and base >= _BASE_DOMINANCE * opposite:
                 found.append((base, up, base / cross))

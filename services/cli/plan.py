@@ -20,14 +20,8 @@ from services.cli.spec_args import add_spec_arguments, build_spec, distinct_spac
 from services.core.domain.job_document import job_document, job_json_bytes
 from services.core.domain.jobspec import cues_for_space
 from services.core.domain.keys import JOB_JSON_KEY, output_key
-from services.core.domain.plan import (
-    PlanError,
-    encode_json,
-    nonfixated,
-    plan_to_json,
-    point_info,
-    vanishing_points,
-)
+from services.core.domain.plan import PlanError, plan_to_json
+from services.core.domain.plan_cues import encode_json, nonfixated, point_info, vanishing_points
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.loading import LoadedSpace
 from services.scheduler.plan_space import load_for_job, plan_record, plan_space

@@ -1,5 +1,5 @@
-"""A space's plan as plain data (cameras, points of interest, views), its JSON form, and the
-plan-stage cues built from it: point_info, nonfixated and vanishing_points (DESIGN.md section 5).
+"""A space's plan as plain data (cameras, points of interest, views) and its JSON form; the plan-stage cues
+built from it are in services.core.domain.plan_cues.
 
 Frames and units: world frame in metres, +Z up (the space's frame after `source_to_world`); angles in
 radians; `world_to_camera` is 4x4 into OpenCV camera axes (x right, y down, z forward); pixel
@@ -17,13 +17,8 @@ from typing import Any
 import numpy as np
 
 from services.core.domain.camera import (
-    CONVENTIONS,
-    blender_matrix_world,
     camera_center,
     intrinsics,
-    project,
-    rotation_to_euler_xyz,
-    rotation_to_quaternion_wxyz,
 )
 
 PLAN_FORMAT = "omnidata.plan/1"
@@ -117,7 +112,7 @@ class SpacePlan:
 
     def views_of(self, point_idx: int) -> tuple[PlannedView, ...]:
         """The views of one point, v = 0..n-1."""
-        return _index(self).by_point.get(point_idx, ())
+        return plan_index(self).by_point.get(point_idx, ())
 
     def view(self, point_idx: int, v: int) -> PlannedView:
         """View v of a point; KeyError when there is none."""
@@ -171,11 +166,9 @@ def clip_shortfall(clip_notes: tuple[dict[str, Any], ...], n_points: int) -> str
     )
 
 
-# ---------------------------------------------------------------------------------------------
-# indexes kept beside (not inside) the frozen plan
+class PlanIndex:
+    """Lookups kept beside (not inside) a frozen plan: views by point, points seen by each camera, positions."""
 
-
-class _Index:
     def __init__(self, plan: SpacePlan):
         by_point: dict[int, list[PlannedView]] = {}
         for view in plan.views:
@@ -191,140 +184,20 @@ class _Index:
         )
 
 
-_INDEXES: weakref.WeakKeyDictionary[SpacePlan, _Index] = weakref.WeakKeyDictionary()
+_INDEXES: weakref.WeakKeyDictionary[SpacePlan, PlanIndex] = weakref.WeakKeyDictionary()
 
 
-def _index(plan: SpacePlan) -> _Index:
+def plan_index(plan: SpacePlan) -> PlanIndex:
+    """The plan's index, built on first use and dropped with the plan."""
     idx = _INDEXES.get(plan)
     if idx is None:
-        idx = _INDEXES[plan] = _Index(plan)
+        idx = _INDEXES[plan] = PlanIndex(plan)
     return idx
 
 
-def points_in_view(plan: SpacePlan, view: PlannedView) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Other points visible in a view: (point indices, (n, 2) pixel coordinates, (n,) depth along z, metres).
-
-    Visible = the view's camera has line of sight to the point (recorded when the point was accepted)
-    and the point projects inside the image in front of the camera. Trajectory frames use the line of
-    sight of their nearest camera (an approximation between cameras).
-    """
-    ix = _index(plan)
-    cand = ix.points_seen_by.get(view.camera_idx, np.zeros(0, dtype=np.int64))
-    cand = cand[cand != view.point_idx]
-    if len(cand) == 0:
-        return cand, np.zeros((0, 2)), np.zeros(0)
-    uv, z = project(ix.positions[cand], view.K, view.world_to_camera)
-    res = view.resolution
-    ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < res) & (uv[:, 1] >= 0) & (uv[:, 1] < res)
-    return cand[ok], uv[ok], z[ok]
-
-
-# ---------------------------------------------------------------------------------------------
-# plan-stage cues
-
-
-def _floats(a: np.ndarray) -> list[Any]:
+def float_list(a: np.ndarray) -> list[Any]:
+    """An array as nested lists of Python floats (JSON-ready, exact round trip)."""
     return np.asarray(a, dtype=np.float64).tolist()
-
-
-def point_info(plan: SpacePlan, view: PlannedView) -> dict[str, Any]:
-    """The point_info JSON of one view: Omnidata's keys plus K, world_to_camera and conventions.
-
-    camera_rotation_final is the Blender XYZ Euler (radians) of the Blender camera object
-    (looking down its -z, y up); the quaternion is wxyz of the same rotation.
-    """
-    point = plan.points[view.point_idx]
-    camera = plan.cameras[view.camera_idx]
-    W = view.world_to_camera
-    centre = camera_center(W)
-    R_blender = blender_matrix_world(W)[:3, :3]
-    others, _, _ = points_in_view(plan, view)
-    return {
-        "point_uuid": point.uuid,
-        "view_id": int(view.v),
-        "camera_uuid": camera.uuid,
-        "camera_location": _floats(centre),
-        "camera_rotation_final": _floats(rotation_to_euler_xyz(R_blender)),
-        "camera_rotation_final_quaternion": _floats(rotation_to_quaternion_wxyz(R_blender)),
-        "field_of_view_rads": float(view.fov),
-        "resolution": int(view.resolution),
-        "point_location": _floats(point.position),
-        "point_normal": _floats(point.normal),
-        "obliqueness_angle": float(view.obliqueness),
-        "camera_distance": float(np.linalg.norm(centre - point.position)),
-        "nonfixated_points_in_view": [int(i) for i in others],
-        # ours
-        "K": _floats(view.K),
-        "world_to_camera": _floats(W),
-        "conventions": dict(CONVENTIONS),
-        "space": plan.space_name,
-        "point_idx": int(view.point_idx),
-        "camera_idx": int(view.camera_idx),
-        "roll_rads": float(view.roll),
-        "in_sight": bool(view.in_sight),
-    }
-
-
-def nonfixated(plan: SpacePlan, point_idx: int) -> dict[str, Any]:
-    """The nonfixated JSON of a point: for each of its views, the pixels of the other points visible in it."""
-    point = plan.points[point_idx]
-    views = []
-    for view in plan.views_of(point_idx):
-        idxs, uv, z = points_in_view(plan, view)
-        views.append({
-            "view_id": int(view.v),
-            "camera_uuid": plan.cameras[view.camera_idx].uuid,
-            "camera_location": _floats(view.position),
-            "points": [
-                {
-                    "point_idx": int(i),
-                    "point_uuid": plan.points[int(i)].uuid,
-                    "pixel": _floats(uv[k]),
-                    "depth_zbuffer_m": float(z[k]),
-                }
-                for k, i in enumerate(idxs)
-            ],
-        })
-    return {
-        "point_uuid": point.uuid,
-        "point_idx": int(point_idx),
-        "point_location": _floats(point.position),
-        "space": plan.space_name,
-        "views": views,
-        "conventions": {
-            "pixel": "continuous (u, v); the centre of pixel u is at u + 0.5; origin top-left",
-            "visibility": "line of sight from the view's camera (trajectory frames: nearest camera) "
-                          "and inside the image, in front of the camera",
-        },
-    }
-
-
-def vanishing_points(info: dict[str, Any]) -> dict[str, Any]:
-    """Vanishing points of the world X, Y, Z axes for a point_info dict.
-
-    `image`: pixel coordinates (continuous, centre of pixel u at u + 0.5), or None when the axis is
-    parallel to the image plane (vanishing point at infinity). `direction`: the world axis in OpenCV
-    camera axes (unit). `gaussian_sphere`: the same line's unit vector on the Gaussian sphere, signed
-    to point in front of the camera (z >= 0), whose central projection is the image vanishing point.
-    """
-    K = np.asarray(info["K"], dtype=np.float64)
-    W = np.asarray(info["world_to_camera"], dtype=np.float64)
-    R = W[:3, :3]
-    out: dict[str, Any] = {}
-    for k, name in enumerate("xyz"):
-        d = R[:, k] / np.linalg.norm(R[:, k])
-        image: list[float] | None = None
-        if abs(d[2]) > 1e-12:
-            uv = K[:2, :2] @ (d[:2] / d[2]) + K[:2, 2]
-            image = _floats(uv)
-        g = d if d[2] >= 0 else -d
-        out[name] = {"image": image, "direction": _floats(d), "gaussian_sphere": _floats(g)}
-    out["conventions"] = {
-        "image": "pixels, centre of pixel u at u + 0.5; null = at infinity (axis parallel to the image)",
-        "direction": "world axis in OpenCV camera axes (x right, y down, z forward)",
-        "gaussian_sphere": "unit vector of the axis' line through the camera centre, z >= 0",
-    }
-    return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -340,12 +213,12 @@ def plan_to_dict(plan: SpacePlan) -> dict[str, Any]:
         "valid_fraction": plan.valid_fraction,
         "clip_notes": list(plan.clip_notes),
         "cameras": [
-            {"idx": c.idx, "position": _floats(c.position), "source": c.source, "uuid": c.uuid}
+            {"idx": c.idx, "position": float_list(c.position), "source": c.source, "uuid": c.uuid}
             for c in plan.cameras
         ],
         "points": [
             {
-                "idx": p.idx, "position": _floats(p.position), "normal": _floats(p.normal), "uuid": p.uuid,
+                "idx": p.idx, "position": float_list(p.position), "normal": float_list(p.normal), "uuid": p.uuid,
                 "camera_idxs": list(p.camera_idxs),
             }
             for p in plan.points
@@ -353,7 +226,7 @@ def plan_to_dict(plan: SpacePlan) -> dict[str, Any]:
         "views": [
             {
                 "point_idx": v.point_idx, "v": v.v, "camera_idx": v.camera_idx,
-                "world_to_camera": _floats(v.world_to_camera), "fov": float(v.fov), "roll": float(v.roll),
+                "world_to_camera": float_list(v.world_to_camera), "fov": float(v.fov), "roll": float(v.roll),
                 "resolution": int(v.resolution), "obliqueness": float(v.obliqueness),
                 "in_sight": bool(v.in_sight),
             }
@@ -396,23 +269,3 @@ def plan_from_json(text: str | bytes) -> SpacePlan:
     return plan_from_dict(json.loads(text))
 
 
-def _json_default(o: Any) -> Any:
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, np.integer):
-        return int(o)
-    if isinstance(o, np.floating):
-        return float(o)
-    if isinstance(o, np.bool_):
-        return bool(o)
-    if isinstance(o, tuple | set | frozenset):
-        return sorted(o) if isinstance(o, set | frozenset) else list(o)
-    raise TypeError(f"not JSON-serialisable: {type(o).__name__}")
-
-
-def encode_json(obj: Any) -> bytes:
-    """A JSON cue file's bytes, the same from `omnidata plan` and the workers: sorted keys, compact, numpy
-    scalars/arrays as plain numbers/lists, UTF-8."""
-    # Compact separators keep json's C encoder (indent forces the pure-Python one): 4x faster, 40% smaller
-    # files on the multi-megabyte nonfixated JSON of a room.
-    return json.dumps(obj, sort_keys=True, default=_json_default, separators=(",", ":")).encode("utf-8")

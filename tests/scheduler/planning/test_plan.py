@@ -24,12 +24,10 @@ from services.core.domain.plan import (
     PlannedView,
     PointOfInterest,
     SpacePlan,
-    nonfixated,
     plan_from_json,
     plan_to_json,
-    point_info,
-    vanishing_points,
 )
+from services.core.domain.plan_cues import nonfixated, point_info, vanishing_points
 from services.core.ingest.loading import LoadedSpace, load_space
 from services.scheduler.planning import make_plan, space_rng
 from tests.fixtures import scenes

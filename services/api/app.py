@@ -22,10 +22,10 @@ from services.api.dashboard.endpoints import mount_dashboard
 from services.api.errors import install_error_handlers
 from services.api.guard import RequestGuard
 from services.api.jobs.endpoints import router as jobs_router
-from services.api.jobs.service import RateTracker
 from services.api.ops.endpoints import router as ops_router
 from services.api.outputs.endpoints import router as outputs_router
 from services.api.progress.endpoints import router as progress_router
+from services.api.progress.rates import RateTracker
 from services.api.query_token import QueryTokenScrubber
 from services.api.spaces.endpoints import router as spaces_router
 from services.api.views.endpoints import router as views_router

@@ -12,8 +12,8 @@ from typing import Any
 from sqlalchemy import ColumnElement, Integer, and_, cast, exists, func, literal_column, select, tuple_
 from sqlalchemy.orm import Session
 
-from services.api.jobs.service import read_counters
 from services.api.pagination import PageParams
+from services.api.progress.compute import read_counters
 from services.api.views.schemas import PlanSpace, TaskBrief, TaskRead, ThroughputBucket, ViewRead
 from services.core.db.models import (
     JOB_TERMINAL_STATES,

@@ -57,7 +57,7 @@ def test_manifest_has_one_line_per_view_and_the_pass_cache_is_gone(any_sm, local
         assert doc["spec"]["cues"] == ["rgb", "nonfixated"]
         assert set(doc["cues"]) == {"rgb", "nonfixated"} and doc["cues"]["rgb"]["ext"] == "png"
         (sp,) = doc["spaces"].values()
-        assert sp["source_to_world"] and sp["checksum"] == "0" * 64
+        assert sp["source_to_world"] and sp["checksum_sha256"] == "0" * 64
         assert doc["counts"]["by_state"] == {"done": len(task_ids(s, job.id))}
         assert doc["code_version"] and doc["job"]["state"] == "done"
         assert doc == json.loads(json.dumps(job_document(s, job)))

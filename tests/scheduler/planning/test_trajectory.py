@@ -357,6 +357,6 @@ def test_scheduler_plans_a_trajectory_job_and_reports_its_clips(sqlite_sm, local
                 break
         assert [(f.job_id, f.state) for f in res.finished] == [(job_id, "done")]
     doc = json.loads(local_store.get_bytes(f"jobs/{job_id}/job.json"))
-    assert doc["spaces"]["bunny"]["plan"]["clips"] == planned["clips"]
+    assert doc["spaces"]["bunny"]["clips"] == planned["clips"]
     lines = local_store.get_bytes(f"jobs/{job_id}/manifest.jsonl").decode().splitlines()
     assert len(lines) == len(plan.views)

@@ -13,14 +13,16 @@ from pathlib import Path
 import pytest
 import trimesh
 
-from services.core.archive_rules import archive_refusal, file_expansion_refusal
-from services.core.confine import ConfinedResolver, ReferenceRefused
-from services.core.models import Space
-from services.core.space_registry import fetch_space
-from services.core.spaces import SpaceError, load_space, safe_extract_zip
+from services.core.db.models import Space
+from services.core.ingest.archive import safe_extract_zip
+from services.core.ingest.archive_rules import archive_refusal, file_expansion_refusal
+from services.core.ingest.confine import ConfinedResolver, ReferenceRefused
+from services.core.ingest.errors import SpaceError
+from services.core.ingest.loading import load_space
+from services.core.ingest.registry import fetch_space
+from services.core.ingest.texture_limits import MAX_TEXTURE_SIDE, texture_refusal
 from services.core.storage import LocalStore, ObjectNotFoundError
 from services.core.temp_dirs import owned_prefix, sweep_orphans
-from services.core.texture_limits import MAX_TEXTURE_SIDE, texture_refusal
 from tests.fixtures.file_watch import OpenWatch
 from tests.hostile_corpus import HOSTILE_FILES, png_declaring, secret_files
 

@@ -18,15 +18,15 @@ from collections.abc import Iterable
 from datetime import UTC, datetime
 from urllib.parse import quote
 
-from fastapi import HTTPException, status
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from services.api.outputs.schemas import OutputLink
-from services.core.cues import CATALOG
-from services.core.jobs import job_root, root_key
-from services.core.keys import output_key
-from services.core.models import Job, Task, TaskState
+from services.core.db.jobs import job_root, root_key
+from services.core.db.models import Job, Task, TaskState
+from services.core.domain.cues import CATALOG
+from services.core.domain.errors import Forbidden, NotFound
+from services.core.domain.keys import output_key
 from services.core.settings import Settings
 from services.core.storage import ObjectStore
 from services.datasets.previews import preview_key
@@ -64,9 +64,9 @@ def verify_blob(
     """403 unless `signature` signs (route, job, key) until `expires` and that time has not passed."""
     want = blob_signature(settings, key, expires, route=route, job_id=job_id)
     if not hmac.compare_digest(want.encode(), signature.encode("utf-8", "replace")):
-        raise HTTPException(status.HTTP_403_FORBIDDEN, "invalid link signature")
+        raise Forbidden("invalid link signature")
     if (time.time() if now is None else now) > expires:
-        raise HTTPException(status.HTTP_403_FORBIDDEN, "link expired; ask the API for a fresh one")
+        raise Forbidden("link expired; ask the API for a fresh one")
 
 
 def check_job_key(session: Session, *, job_id: int, key: str) -> Job:
@@ -74,7 +74,7 @@ def check_job_key(session: Session, *, job_id: int, key: str) -> Job:
     job = session.get(Job, job_id)
     root = job_root(job) if job is not None else ""
     if job is None or not root or not key.startswith(root + "/"):
-        raise HTTPException(status.HTTP_404_NOT_FOUND, "no such object")
+        raise NotFound("no such object")
     return job
 
 

@@ -15,6 +15,7 @@ from sqlalchemy import and_, case, delete, or_, select, update
 from sqlalchemy.orm import Session
 
 from services.core.cues import CATALOG, closure
+from services.core.frame_choice import check_frame_decided
 from services.core.jobspec import JobSpec, cues_for_space
 from services.core.models import (
     JOB_TERMINAL_STATES,
@@ -90,6 +91,7 @@ def create_job(
         seen_names.add(sp.name)
         if sp.owner != owner:
             raise ValueError(f"space {sp.name!r} (id {sp.id}) does not belong to {owner!r}")
+        check_frame_decided(spec, sp)
         try:
             per_space.append(cues_for_space(spec, has_semantics=bool(sp.has_semantics)))
         except ValueError as e:

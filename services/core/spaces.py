@@ -62,6 +62,7 @@ from services.core.pointcloud import (
 )
 from services.core.scan_formats import SCANNET_MESH_SUFFIX, ScanFormatError, scannet_vertex_labels
 from services.core.storage.base import sha256_file
+from services.core.up_evidence import ambiguity_line
 
 log = logging.getLogger(__name__)
 
@@ -76,6 +77,14 @@ ZIP_MAX_MEMBERS = 20_000
 
 class SpaceError(ValueError):
     """A space that cannot be used, with a message meant for the user who uploaded it."""
+
+
+class UpAmbiguous(SpaceError):
+    """Up detection could not tell two candidates apart; the message names both and the flag that picks one."""
+
+    def __init__(self, message: str, candidates: list[dict[str, Any]]):
+        super().__init__(message)
+        self.candidates = candidates
 
 
 @dataclass(frozen=True, eq=False)
@@ -516,6 +525,8 @@ def load_space(
     source_to_world: Sequence[Sequence[float]] | None = None,
     extract_dir: str | Path | None = None,
     cloud_cache_dir: str | Path | None = None,
+    accept_up_guess: bool = False,
+    capture_up: Sequence[float] | np.ndarray | None = None,
 ) -> LoadedSpace:
     """Load a space (mesh file, point cloud, folder or zip), validate it and bring it into the world frame.
 
@@ -524,6 +535,8 @@ def load_space(
     `source_to_world` when given, else `up` (a source vector) or `up_axis` (a name, or "auto": detected),
     and `unit_scale` (metres per unit, or "auto": from the storey height). A zip is extracted into
     `extract_dir` (kept) or into a temporary folder removed after loading (then `source_path` is the zip).
+    A detected up that does not clearly beat a candidate levelling the scan differently raises UpAmbiguous
+    unless `accept_up_guess`; `capture_up` (the capture's mean camera up, source frame) is strong evidence.
     """
     if up_axis not in UP_AXES:
         raise SpaceError(f"up_axis {up_axis!r} is not one of {', '.join(UP_AXES)}")
@@ -542,7 +555,8 @@ def load_space(
         tmp = Path(tempfile.mkdtemp(prefix="omnidata-space-"))
         extract_dir = tmp
     frame = FrameRequest(up_axis, unit_scale, None if up is None else np.asarray(up, dtype=np.float64),
-                          None if source_to_world is None else np.asarray(source_to_world, dtype=np.float64))
+                          None if source_to_world is None else np.asarray(source_to_world, dtype=np.float64),
+                          accept_up_guess, None if capture_up is None else np.asarray(capture_up, dtype=np.float64))
     try:
         source = resolve_source(p, extract_dir)
         return _load(source, p if tmp is not None else source, frame,
@@ -560,6 +574,8 @@ class FrameRequest:
     unit_scale: float | str
     up: np.ndarray | None
     source_to_world: np.ndarray | None
+    accept_up_guess: bool = False
+    capture_up: np.ndarray | None = None
 
 
 def _read_mesh(
@@ -589,8 +605,9 @@ def _read_mesh(
     return mesh, None
 
 
-def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: FrameRequest) -> tuple[np.ndarray, UpEstimate, UnitChoice]:
-    """(source_to_world 4x4, how up was found, the units) of a mesh in its source frame."""
+def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: FrameRequest,
+                  name: str = "the scan") -> tuple[np.ndarray, UpEstimate, UnitChoice]:
+    """(source_to_world 4x4, how up was found, the units) of a mesh in its source frame; UpAmbiguous (`name`)."""
     if frame.source_to_world is not None:
         T = frame.source_to_world
         scale = similarity_scale(T)
@@ -603,7 +620,7 @@ def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: FrameRequest) -> tu
         est = floor_evidence(mesh, given) or UpEstimate(given, "given")
         est = UpEstimate(given, "given", est.floor_area, est.floor_fraction, storey_height=est.storey_height)
     else:
-        est = estimate_up(mesh, suffix)
+        est = estimate_up(mesh, suffix, frame.capture_up)
     if frame.unit_scale == "auto":
         try:
             units = choose_unit_scale(est.storey_height, float(mesh.extents.max()))
@@ -611,6 +628,9 @@ def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: FrameRequest) -> tu
             raise SpaceError(str(e)) from None
     else:
         units = UnitChoice(float(frame.unit_scale), "given", "unit_scale given")
+    if est.ambiguous and not frame.accept_up_guess:
+        rec = est.record(units.scale)
+        raise UpAmbiguous(ambiguity_line(name, rec["candidates"], est.margin), rec["candidates"])
     return source_to_world_matrix(est.up, units.scale), est, units
 
 
@@ -641,7 +661,7 @@ def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Pa
         if scannet is not None:
             face_class, face_instance, class_names, more = scannet
             notes.extend(more)
-    T, est, units = resolve_frame(mesh, source.suffix.lower(), frame)
+    T, est, units = resolve_frame(mesh, source.suffix.lower(), frame, name)
     scale = units.scale
     extent_m = float(mesh.extents.max()) * scale
     if extent_m > MAX_EXTENT_M:

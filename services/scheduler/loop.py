@@ -23,6 +23,7 @@ import numpy as np
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
+from services.core.frame_choice import space_frame_for
 from services.core.jobs import claim_pending_jobs, job_spaces, job_spec
 from services.core.jobspec import JobSpec
 from services.core.models import Job, JobState, Space, utcnow
@@ -157,7 +158,7 @@ class Scheduler:
                 summary: dict[str, Any] = {"spaces": {}, "attempts": (job.plan_summary or {}).get("attempts", 0) + 1}
                 total = 0
                 for js, sp in job_spaces(s, job.id):
-                    loaded = load_space(self.fetch_source(sp), **spec.space_frame())
+                    loaded = load_space(self.fetch_source(sp), **space_frame_for(spec, sp))
                     plan = make_plan(loaded, spec, space_rng(spec.seed, sp.name), sp.name)
                     if not plan.views:
                         raise PlanningError(

@@ -404,16 +404,18 @@ class TaskRunner:
 
     def _space_context(self, job: _JobInfo, space: Space) -> Any:
         """The space loaded into the world frame of this job (its up_axis/unit_scale), kept between tasks."""
+        from services.core.frame_choice import space_frame_for
         from services.core.space_registry import fetch_space
         from services.core.spaces import load_space
         from services.worker.space_cache import SpaceContext
 
         spec = job.spec
-        key = f"{space.checksum}:{json.dumps(spec.space_frame(), sort_keys=True)}"
+        frame = space_frame_for(spec, space)  # the planner's frame: the spec's, else the space's chosen up
+        key = f"{space.checksum}:{json.dumps(frame, sort_keys=True)}"
 
         def loader() -> SpaceContext:
             path = fetch_space(self.store, space, self.cache_dir)
-            loaded = load_space(path, **spec.space_frame())
+            loaded = load_space(path, **frame)
             return SpaceContext.from_loaded(loaded, key=key, device=self.render_device, threads=self.render_threads)
 
         return self.space_cache.get(key, loader)

@@ -47,11 +47,13 @@ from scipy.spatial import ConvexHull, QhullError, cKDTree
 from services.core.up_evidence import CandidateFacts, UpDecision, decide, unit_capture_up
 
 CONVENTION_UP = {".obj": "+y", ".gltf": "+y", ".glb": "+y", ".ply": "+z"}
+_SPECIFIED_UP = (".gltf", ".glb")  # formats whose specification fixes up (+Y): no capture convention
 
 _CONE_COS = float(np.cos(np.radians(15.0)))
 _END_BAND = 0.10
 _FLOOR_MIN_FRACTION = 0.30
 _BASE_MIN_FRACTION = 0.15
+_TIE_REL = 0.02
 _BASE_DOMINANCE = 3.0
 _SNAP_RAD = 1e-3  # a direction this close to a source axis is that axis (1 mm per metre)
 _BASE_SNAP_RAD = np.radians(2.0)  # object bases are rougher than floors (the bunny's is 1.1 degrees off its axis)
@@ -338,15 +340,26 @@ def estimate_up(mesh: trimesh.Trimesh, suffix: str, capture_up: np.ndarray | Non
         return UpEstimate(conv, "convention")
     cands = [_floor_candidate(geom, s * f) for f, _ in families for s in (1.0, -1.0)]
     if any(c.floor_fraction >= _FLOOR_MIN_FRACTION for c in cands):
-        decision = decide([c.facts() for c in cands], cam_up, disabled_evidence)
+        decision = decide([c.facts() for c in cands], cam_up, suffix not in _SPECIFIED_UP, disabled_evidence)
         best = next(c for c in cands if c.up is decision.best.up)
         runner = decision.runner_up
         angle = _angle_deg(best.up, runner.up) if runner is not None else None
+        if runner is not None and angle is not None and angle > 179.0 and _alike(best.facts(), runner.facts):
+            # floor and ceiling alike (a closed, empty box): no evidence can pick, the file convention does
+            sign = float(np.sign(conv @ best.up)) or 1.0
+            return UpEstimate(snap_to_axis(sign * best.up), "convention-tie", best.floor_area, best.floor_fraction,
+                              angle, decision.margin, best.height)
         up = _refine_floor(geom, best) if best.floor_area > 0 else snap_to_axis(best.up)
         return UpEstimate(up, "floor", best.floor_area, best.floor_fraction, angle, decision.margin, best.height,
                           decision)
     base = _support_base(geom, [f for f, _ in families])
     return base if base is not None else UpEstimate(conv, "convention")
+
+
+def _alike(a: CandidateFacts, b: CandidateFacts) -> bool:
+    """Two opposite candidates that look the same from both sides: floor and ceiling areas, no furniture."""
+    return (abs(a.area_score - b.area_score) <= _TIE_REL * max(a.area_score, b.area_score)
+            and a.mid_up + a.mid_down <= _TIE_REL * a.area_score)
 
 
 def _support_base(geom: _Geometry, axes: list[np.ndarray]) -> UpEstimate | None:

@@ -17,7 +17,7 @@ candidate with the best one that would level the scan differently (more than `DI
 - `storey`: whether the extent along `u` is a storey (2.2-3.5 m, or 1.2-3.5 m for a scan without a
   ceiling: partial scans rarely see it) in one of the units we accept; a penalty when it fits none.
 - `capture_convention`: RGB-D reconstructions are stored in their first camera's OpenCV frame, so up
-  lies within ~50 degrees of -Y. Weak: a rotated file breaks it. Its weight is below `REFUSE_MARGIN`,
+  lies within ~50 degrees of -Y; not for glTF, whose specification says +Y. Weak: a rotated file breaks it. Its weight is below `REFUSE_MARGIN`,
   so on its own it can turn a guess into a refusal but never into a confident answer.
 - `capture_up`: the mean up vector of the capture's cameras (-Y of OpenCV cameras, averaged), when the
   caller has poses. Cameras are held upright, give or take their pitch: strong evidence.
@@ -35,8 +35,8 @@ from typing import Any
 import numpy as np
 
 DISTINCT_DEG = 30.0  # candidates closer than this level the scan the same way
-REFUSE_MARGIN = 1.0  # score margin below which the estimate is ambiguous
-CONFIDENCE_SLOPE = 2.2  # logistic slope of P(right | margin), fitted on the bench corpus
+REFUSE_MARGIN = 1.1  # score margin below which the estimate is ambiguous
+CONFIDENCE_SLOPE = 2.5  # logistic slope of P(right | margin), fitted on the bench corpus
 CAPTURE_CONE_DEG = 50.0
 POSE_CONE_DEG = 45.0
 STOREY_M = (2.2, 3.5)
@@ -45,7 +45,7 @@ UNIT_SCALES = (1.0, 0.01, 0.001, 0.0254)
 
 WEIGHTS = {
     "floor_area": 1.0,
-    "furniture": 1.0,
+    "furniture": 2.0,
     "extent": 2.0,
     "storey": 0.5,
     "capture_convention": 0.8,
@@ -135,8 +135,8 @@ def _storey_term(f: CandidateFacts) -> float:
     return 0.0 if fits else -1.0
 
 
-def evidence_terms(f: CandidateFacts, all_facts: list[CandidateFacts],
-                   capture_up: np.ndarray | None) -> dict[str, float]:
+def evidence_terms(f: CandidateFacts, all_facts: list[CandidateFacts], capture_up: np.ndarray | None,
+                   capture_convention: bool = True) -> dict[str, float]:
     """The log-odds terms of one candidate among all (see the module docstring)."""
     best_area = max(c.area_score for c in all_facts)
     ratios = [c.height / np.sqrt(c.cross_section) for c in all_facts if c.cross_section > 0 and c.height > 0]
@@ -148,8 +148,9 @@ def evidence_terms(f: CandidateFacts, all_facts: list[CandidateFacts],
         "extent": -WEIGHTS["extent"] * float(np.log(ratio / thinnest)),
         "storey": WEIGHTS["storey"] * _storey_term(f),
     }
-    cos_minus_y = -float(f.up[1])
-    terms["capture_convention"] = WEIGHTS["capture_convention"] if cos_minus_y > np.cos(np.radians(CAPTURE_CONE_DEG)) else 0.0
+    if capture_convention:
+        in_cone = -float(f.up[1]) > np.cos(np.radians(CAPTURE_CONE_DEG))
+        terms["capture_convention"] = WEIGHTS["capture_convention"] if in_cone else 0.0
     if capture_up is not None:
         cos_pose = float(f.up @ capture_up)
         terms["capture_up"] = WEIGHTS["capture_up"] * (1.0 if cos_pose > np.cos(np.radians(POSE_CONE_DEG)) else
@@ -168,15 +169,17 @@ def unit_capture_up(capture_up: Any) -> np.ndarray | None:
     return None if n < 1e-6 else v / n
 
 
-def decide(all_facts: list[CandidateFacts], capture_up: np.ndarray | None = None,
+def decide(all_facts: list[CandidateFacts], capture_up: np.ndarray | None = None, capture_convention: bool = True,
            disabled: tuple[str, ...] = ()) -> UpDecision:
     """Score every candidate and compare the best with the best that levels differently.
 
+    `capture_convention`: False for formats with an up convention of their own (glTF: +Y).
     `disabled`: evidence terms left out (the bench's ablation).
     """
     scored = []
     for f in all_facts:
-        terms = {k: v for k, v in evidence_terms(f, all_facts, capture_up).items() if k not in disabled}
+        terms = {k: v for k, v in evidence_terms(f, all_facts, capture_up, capture_convention).items()
+                 if k not in disabled}
         scored.append(ScoredCandidate(f, terms))
     ranked = tuple(sorted(scored, key=lambda c: -c.score))
     best = ranked[0]

@@ -28,6 +28,7 @@ from services.api.outputs.endpoints import router as outputs_router
 from services.api.progress.endpoints import router as progress_router
 from services.api.query_token import QueryTokenScrubber
 from services.api.spaces.endpoints import router as spaces_router
+from services.api.spaces.frame import router as space_frame_router
 from services.api.views.endpoints import router as views_router
 from services.api.workers.endpoints import router as workers_router
 from services.core.db import make_engine, make_sessionmaker, schema_heads
@@ -114,6 +115,7 @@ def create_app(
     for router in (
         ops_router,
         spaces_router,
+        space_frame_router,
         jobs_router,
         views_router,
         outputs_router,

@@ -8,6 +8,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from services.core.cues import default_cues
+from services.core.frame_choice import needs_frame
 from services.core.jobspec import parse_unit_scale
 from services.core.keys import check_name
 from services.core.models import Space
@@ -82,8 +83,12 @@ class SpaceRead(BaseModel):
     supported_cues: list[str] = Field(description="cues a job may request for this space")
     validation: dict[str, Any] | None = None
     frame: dict[str, Any] | None = Field(
-        None, description="how the frame was found: up (source direction, method, confidence), units, reconstruction"
+        None, description="how the frame was found: up (source direction, method, confidence, probability, "
+        "evidence, the two best candidates), units, reconstruction"
     )
+    needs_frame: bool = Field(False, description="up detection could not decide and nobody has picked one: "
+                              "jobs are refused until PUT /spaces/{id}/up (or a job spec that sets up)")
+    up_choice: dict[str, Any] | None = Field(None, description="the up a person picked (source coordinates), by whom")
     created_at: datetime
 
     @classmethod
@@ -106,5 +111,7 @@ class SpaceRead(BaseModel):
             supported_cues=default_cues(s.has_semantics),
             validation=s.validation,
             frame=frame_of(s.validation),
+            needs_frame=needs_frame(s),
+            up_choice=(s.validation or {}).get("up_choice"),
             created_at=s.created_at,
         )

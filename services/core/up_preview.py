@@ -3,7 +3,7 @@
 Frames: the scan in its source frame is rotated so the candidate up is +Z; the picture looks along the
 horizontal direction of least extent, so the long side of the room spans the width, up is the top of
 the picture and the floor should be the bottom edge. Pixels: surface samples (by area) splatted as a
-depth-shaded silhouette, nearer surfaces darker; pure numpy and Pillow, no renderer.
+section: the middle slab across the view in black, the rest in grey; pure numpy and Pillow, no renderer.
 """
 
 from __future__ import annotations
@@ -38,10 +38,12 @@ def side_view_png(mesh: trimesh.Trimesh, up: np.ndarray, seed: int = 0) -> bytes
     span = max(np.ptp(across) / (WIDTH - 8), np.ptp(z) / (HEIGHT - 8), 1e-12)
     col = ((across - across.min()) / span + 4).astype(int)
     row = (HEIGHT - 5 - (z - z.min()) / span).astype(int)
-    depth = (along - along.min()) / max(np.ptp(along), 1e-12)  # 0 = nearest
-    order = np.argsort(-depth)  # far first, near last: near samples win
+    # a section: the middle slab of the room in black over the rest in light grey, so the floor reads
+    # as a line along the bottom and the walls as lines up the sides
+    slab = np.abs(along - np.median(along)) < 0.12 * max(np.ptp(along), 1e-12)
     img = np.full((HEIGHT, WIDTH), 255, dtype=np.uint8)
-    img[row[order], col[order]] = (40 + 170 * depth[order]).astype(np.uint8)
+    img[row[~slab], col[~slab]] = 205
+    img[row[slab], col[slab]] = 20
     out = io.BytesIO()
     Image.fromarray(img, mode="L").save(out, format="PNG")
     return out.getvalue()

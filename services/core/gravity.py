@@ -28,7 +28,8 @@ the scan's extent, the capture convention, capture poses when given; `services.c
 winner's margin over the best candidate that levels the scan differently gives a calibrated confidence.
 Below `up_evidence.REFUSE_MARGIN` the estimate is *ambiguous*: loading refuses it unless guesses are accepted.
 
-Units (`choose_unit_scale`): a space with a floor is a storey, 1.8 to 6 m from the floor to its top;
+Units (`choose_unit_scale`): a space with a floor is a storey, 1.8 to 6 m from the floor to its top (then
+1.2 to 6 m, a partial scan without its ceiling);
 metres, centimetres, millimetres and inches are tried in that order and the first that brings the
 height into that range wins. Anything else keeps 1.0 unless its extent is implausible for an object.
 """
@@ -52,6 +53,7 @@ _SPECIFIED_UP = (".gltf", ".glb")  # formats whose specification fixes up (+Y): 
 _CONE_COS = float(np.cos(np.radians(15.0)))
 _END_BAND = 0.10
 _FLOOR_MIN_FRACTION = 0.30
+_GIVEN_FLOOR_MIN_FRACTION = 0.10
 _BASE_MIN_FRACTION = 0.15
 _TIE_REL = 0.02
 _BASE_DOMINANCE = 3.0
@@ -67,6 +69,9 @@ LOW_MARGIN = 1.25  # support bases: best area / runner-up below this is low conf
 
 # storey height (floor to top of the scan) that a room must have once scaled, metres
 STOREY_RANGE_M = (1.8, 6.0)
+# tried only when no unit fits STOREY_RANGE_M: a partial scan without its ceiling (a few seconds of RGB-D
+# capture reach 1.3-2 m above the floor)
+PARTIAL_STOREY_RANGE_M = (1.2, 6.0)
 # tried in this order: the first that puts the storey height in range wins (cm before inches: the
 # ranges overlap for 180-236 units, and centimetre exports are far more common)
 UNIT_CANDIDATES: tuple[tuple[str, float], ...] = (
@@ -313,9 +318,12 @@ def _refine_floor(geom: _Geometry, cand: _Candidate) -> np.ndarray:
 
 
 def floor_evidence(mesh: trimesh.Trimesh, up: np.ndarray) -> UpEstimate | None:
-    """The floor along a given up direction, or None when the scan has none (an object)."""
+    """The floor along a given up direction, or None when the scan has none (an object).
+
+    Up is given, so less floor is needed than to find it: a partial scan may see only a strip of its floor.
+    """
     cand = _floor_candidate(_Geometry.of(mesh), np.asarray(up, dtype=np.float64) / np.linalg.norm(up))
-    if cand.floor_fraction < _FLOOR_MIN_FRACTION:
+    if cand.floor_fraction < _GIVEN_FLOOR_MIN_FRACTION:
         return None
     return UpEstimate(cand.up, "given", cand.floor_area, cand.floor_fraction, storey_height=cand.height)
 
@@ -404,12 +412,12 @@ class UnitError(ValueError):
 
 def choose_unit_scale(storey_height: float | None, extent: float) -> UnitChoice:
     """Metres per source unit from a storey height (rooms) or a plausibility check (objects); source units."""
-    lo, hi = STOREY_RANGE_M
     if storey_height is not None and storey_height > 0:
-        for unit, scale in UNIT_CANDIDATES:
-            if lo <= storey_height * scale <= hi:
-                return UnitChoice(scale, unit, f"storey height {storey_height:.4g} units is "
-                                  f"{storey_height * scale:.3g} m in {unit} ({lo:g}-{hi:g} m)")
+        for lo, hi in (STOREY_RANGE_M, PARTIAL_STOREY_RANGE_M):
+            for unit, scale in UNIT_CANDIDATES:
+                if lo <= storey_height * scale <= hi:
+                    return UnitChoice(scale, unit, f"storey height {storey_height:.4g} units is "
+                                      f"{storey_height * scale:.3g} m in {unit} ({lo:g}-{hi:g} m)")
     omin, omax = OBJECT_EXTENT_RANGE_M
     if not omin <= extent <= omax:
         what = "a storey height" if storey_height else "an extent"

@@ -145,7 +145,7 @@ class UpEstimate:
         d = self.decision
         return {"probability": self.confidence, "ambiguous": d.ambiguous,
                 "evidence": d.best.record(unit_scale)["evidence"],
-                "candidates": [c.record(unit_scale) for c in (d.best, d.runner_up) if c is not None]}
+                "candidates": [c.record(unit_scale) for c in d.shown]}
 
 
 def axis_vector(code: str) -> np.ndarray:
@@ -362,6 +362,13 @@ def estimate_up(mesh: trimesh.Trimesh, suffix: str, capture_up: np.ndarray | Non
                           decision)
     base = _support_base(geom, [f for f, _ in families])
     return base if base is not None else UpEstimate(conv, "convention")
+
+
+def up_candidate_facts(mesh: trimesh.Trimesh) -> list[CandidateFacts]:
+    """What each plane-family direction (both signs) measures as an up candidate (the bench's ablation)."""
+    geom = _Geometry.of(mesh)
+    return [_floor_candidate(geom, s * f).facts() for f, _ in plane_families(geom.normals, geom.areas)
+            for s in (1.0, -1.0)]
 
 
 def _alike(a: CandidateFacts, b: CandidateFacts) -> bool:

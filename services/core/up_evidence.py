@@ -111,6 +111,12 @@ class UpDecision:
     runner_up: ScoredCandidate | None
     margin: float  # best score - runner-up score (inf without a runner-up)
     confidence: float  # calibrated P(the best is right | margin), 0.5-1
+    third: ScoredCandidate | None = None  # the best candidate levelling differently from both (shown on refusal)
+
+    @property
+    def shown(self) -> tuple[ScoredCandidate, ...]:
+        """The candidates a person chooses from: best, runner-up and the third when there is one."""
+        return tuple(c for c in (self.best, self.runner_up, self.third) if c is not None)
 
     @property
     def best(self) -> ScoredCandidate:
@@ -185,9 +191,11 @@ def decide(all_facts: list[CandidateFacts], capture_up: np.ndarray | None = None
     best = ranked[0]
     distinct_cos = np.cos(np.radians(DISTINCT_DEG))
     runner = next((c for c in ranked[1:] if float(c.up @ best.up) < distinct_cos), None)
+    third = None if runner is None else next(
+        (c for c in ranked[1:] if float(c.up @ best.up) < distinct_cos and float(c.up @ runner.up) < distinct_cos), None)
     margin = float("inf") if runner is None else best.score - runner.score
     confidence = 1.0 if runner is None else float(1.0 / (1.0 + np.exp(-CONFIDENCE_SLOPE * margin)))
-    return UpDecision(ranked, runner, margin, confidence)
+    return UpDecision(ranked, runner, margin, confidence, third)
 
 
 def _candidate_words(rec: dict[str, Any]) -> str:
@@ -198,9 +206,10 @@ def _candidate_words(rec: dict[str, Any]) -> str:
 
 
 def ambiguity_line(name: str, candidates: list[dict[str, Any]], margin: float | None) -> str:
-    """One line naming both candidates (source coordinates) and the flag that picks one."""
+    """One line naming both candidates (and a third, when recorded; source coordinates) and the flag that picks one."""
     first, second = candidates[0], candidates[1]
     by = "" if margin is None else f" by only {margin:.2f}"
-    return (f"{name}: up is ambiguous: {_candidate_words(first)} beats {_candidate_words(second)}{by}; "
+    third = f" (next: {_candidate_words(candidates[2])})" if len(candidates) > 2 else ""
+    return (f"{name}: up is ambiguous: {_candidate_words(first)} beats {_candidate_words(second)}{by}{third}; "
             f"pick one with --up X,Y,Z (e.g. --up {','.join(f'{x:.3g}' for x in first['up'])}; API: spec "
             "field up or the space's chosen up), or accept the guess with --accept-up-guess (accept_up_guess)")

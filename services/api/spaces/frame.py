@@ -33,7 +33,7 @@ from services.core.up_preview import side_view_png
 router = APIRouter(prefix="/spaces", tags=["spaces"])
 
 SpaceId = Annotated[int, PathParam(ge=1, le=2**63 - 1, description="space id")]
-CandidateIndex = Annotated[int, PathParam(ge=0, le=1, description="0: detection's best, 1: the runner-up")]
+CandidateIndex = Annotated[int, PathParam(ge=0, le=2, description="0: detection's best, 1: the runner-up, 2: the next")]
 
 
 class UpChoice(BaseModel):

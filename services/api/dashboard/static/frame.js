@@ -29,7 +29,7 @@ function upCandidateFigure(space, cand, index, status, onPicked) {
     } }, "This way up");
   return h("figure", { class: "up-candidate" }, img,
     h("figcaption", {},
-      h("strong", {}, index === 0 ? "Detection's best" : "Runner-up"),
+      h("strong", {}, ["Detection's best", "Runner-up", "Next"][index]),
       h("div", {}, `up [${cand.up.map((x) => fmtNum(x, 3)).join(", ")}]`),
       h("div", {}, `floor ${fmtNum(cand.floor_area_m2, 2)} m², storey ${fmtNum(cand.storey_height_m, 2)} m`),
       h("div", { class: "muted" }, `score ${fmtNum(cand.score, 2)}`)),
@@ -49,7 +49,7 @@ function needsFramePanel(spaces, onPicked) {
       const up = s.frame.up;
       return h("section", { class: "needs-frame-space", dataset: { space: String(s.id) } },
         h("h3", {}, `${s.name} (#${s.id}): ${fmtNum(100 * (up.probability || 0.5), 0)}% sure of the best`),
-        h("div", { class: "up-candidates" }, ...up.candidates.slice(0, 2).map((c, i) => upCandidateFigure(s, c, i, status, onPicked))),
+        h("div", { class: "up-candidates" }, ...up.candidates.slice(0, 3).map((c, i) => upCandidateFigure(s, c, i, status, onPicked))),
         status);
     }));
 }

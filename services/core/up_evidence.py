@@ -211,5 +211,5 @@ def ambiguity_line(name: str, candidates: list[dict[str, Any]], margin: float | 
     by = "" if margin is None else f" by only {margin:.2f}"
     third = f" (next: {_candidate_words(candidates[2])})" if len(candidates) > 2 else ""
     return (f"{name}: up is ambiguous: {_candidate_words(first)} beats {_candidate_words(second)}{by}{third}; "
-            f"pick one with --up X,Y,Z (e.g. --up {','.join(f'{x:.3g}' for x in first['up'])}; API: spec "
+            f"pick one with --up=X,Y,Z (e.g. --up={','.join(f'{x:.3g}' for x in first['up'])}; API: spec "
             "field up or the space's chosen up), or accept the guess with --accept-up-guess (accept_up_guess)")

@@ -40,7 +40,7 @@ def test_ambiguous_space_held_refused_previewed_then_picked(api: Api) -> None:
     r = api.client.post("/jobs", json={"space_ids": [space["id"]], "spec": SPEC}, headers=api.a.headers)
     assert r.status_code == 422, r.text
     detail = r.json()["detail"]
-    assert "up is ambiguous" in detail and "--up X,Y,Z" in detail and f"PUT /spaces/{space['id']}/up" in detail
+    assert "up is ambiguous" in detail and "--up=X,Y,Z" in detail and f"PUT /spaces/{space['id']}/up" in detail
     assert detail.count("floor ") == detail.count("storey ") == len(up["candidates"]) >= 2
     # ... unless the spec accepts the guess
     r = api.client.post("/jobs", json={"space_ids": [space["id"]], "spec": {**SPEC, "accept_up_guess": True}},

@@ -82,7 +82,7 @@ def test_a_wall_as_large_as_the_floor_is_refused_naming_both_candidates(tmp_path
     assert "\n" not in line and line.startswith("corner.ply: up is ambiguous: up ")
     named = {tuple(round(x) for x in c["up"]) for c in err.value.candidates[:2]}
     assert named == {(0, 0, 1), (1, 0, 0)}
-    assert "--up X,Y,Z" in line and "storey " in line and "floor 12 m2" in line
+    assert "--up=X,Y,Z" in line and "storey " in line and "floor 12 m2" in line
     space = load_space(src, accept_up_guess=True)
     rec = space.frame_record()["up"]
     assert rec["ambiguous"] and rec["confidence"] == "low" and 0.5 <= rec["probability"] < 0.95

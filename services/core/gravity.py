@@ -89,7 +89,7 @@ class UpEstimate:
     floor_area: float = 0.0  # source units^2 of the faces taken as floor (0 when none)
     floor_fraction: float = 0.0  # floor area / convex cross-section of the scan across up
     runner_up_angle_deg: float | None = None  # angle between up and the runner-up candidate
-    margin: float | None = None  # score of up / score of the runner-up (inf when it has none)
+    margin: float | None = None  # rooms: score of up - runner-up's (log-odds); bases: area ratio; inf: no runner-up
     storey_height: float | None = None  # source units, floor to top (spaces with a floor)
     decision: UpDecision | None = None  # rooms: every candidate's evidence, the runner-up and the confidence
 

@@ -129,6 +129,8 @@ class LoadedSpace:
         up = rec["up"]
         direction = ", ".join(f"{x:.4g}" for x in up["source_direction"])
         line = f"up [{direction}] ({up['method']}, {up['confidence']} confidence"
+        if up.get("probability") is not None:
+            line += f", {100 * up['probability']:.0f}% sure"
         if up["floor_area_m2"]:
             line += f", floor {up['floor_area_m2']:.3g} m2"
         if up["runner_up_angle_deg"] is not None:

@@ -17,8 +17,8 @@ from typing import Any
 import numpy as np
 import trimesh
 
-from services.core.gravity import UnitError, choose_unit_scale, estimate_up, up_candidate_facts
-from services.core.up_evidence import WEIGHTS, decide
+from services.core.ingest.gravity import UnitError, choose_unit_scale, estimate_up, up_candidate_facts
+from services.core.ingest.up_evidence import WEIGHTS, decide
 from tests.fixtures import rotation_corpus as corpus
 from tests.fixtures.real_corpus import RealCase, real_cases, real_rooms
 

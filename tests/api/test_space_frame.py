@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from services.core.frame_choice import space_frame_for
-from services.core.jobspec import JobSpec
-from services.core.models import Space
-from services.core.spaces import load_space
+from services.core.db.models import Space
+from services.core.domain.jobspec import JobSpec
+from services.core.ingest.frame_choice import space_frame_for
+from services.core.ingest.loading import load_space
 from tests.fixtures.api import Api
 
 # the BundleFusion copy room, decimated: a wall as large as the floor (see tests/fixtures/real_scans)

@@ -9,8 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.core.gravity import choose_unit_scale, estimate_up
-from services.core.spaces import UpAmbiguous, load_space
+from services.core.ingest.errors import UpAmbiguous
+from services.core.ingest.gravity import choose_unit_scale, estimate_up
+from services.core.ingest.loading import load_space
 from tests.fixtures.real_corpus import REAL_SCANS, real_cases, real_rooms
 from tests.fixtures.rotation_corpus import up_error_deg
 

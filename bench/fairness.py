@@ -29,8 +29,8 @@ from sqlalchemy import func, select
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.fanout import create_database, drop_database  # noqa: E402
-from services.core.db import make_engine, make_sessionmaker, migrate  # noqa: E402
-from services.core.models import Job, Task  # noqa: E402
+from services.core.db.engine import make_engine, make_sessionmaker, migrate  # noqa: E402
+from services.core.db.models import Job, Task  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 BUNNY = REPO.parent / "shared" / "scenes" / "stanford_bunny" / "bun_zipper_res2.ply"

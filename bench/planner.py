@@ -29,13 +29,13 @@ from typing import Any
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.fanout import create_database, drop_database  # noqa: E402
-from services.core.db import make_engine, make_sessionmaker, migrate  # noqa: E402
-from services.core.jobs import cancel_job, create_job  # noqa: E402
-from services.core.jobspec import JobSpec  # noqa: E402
-from services.core.models import Job, Task  # noqa: E402
-from services.core.plan_budget import PlanOverBudget, check_plan_budget  # noqa: E402
+from services.core.db.engine import make_engine, make_sessionmaker, migrate  # noqa: E402
+from services.core.db.jobs import cancel_job, create_job  # noqa: E402
+from services.core.db.models import Job, Task  # noqa: E402
+from services.core.domain.jobspec import JobSpec  # noqa: E402
+from services.core.domain.plan_budget import PlanOverBudget, check_plan_budget  # noqa: E402
+from services.core.ingest.registry import register_space  # noqa: E402
 from services.core.settings import get_settings  # noqa: E402
-from services.core.space_registry import register_space  # noqa: E402
 from services.core.storage import LocalStore  # noqa: E402
 from services.scheduler.loop import Scheduler  # noqa: E402
 from services.scheduler.transport import NullTransport  # noqa: E402
@@ -89,7 +89,7 @@ def new_job(sm: Any, store: LocalStore, owner: str, spec: dict[str, Any]) -> int
     """A pending job of `owner` over the bunny (registered for that tenant on first use)."""
     from sqlalchemy import select
 
-    from services.core.models import Space
+    from services.core.db.models import Space
 
     with sm() as s:
         space = s.scalars(select(Space).where(Space.owner == owner)).first()

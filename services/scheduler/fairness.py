@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from services.core.models import TaskState, Worker, utcnow
+from services.core.db.models import TaskState, Worker, utcnow
 
 if TYPE_CHECKING:
     from services.scheduler.dispatch import JobLoad

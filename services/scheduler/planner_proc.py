@@ -31,14 +31,14 @@ from multiprocessing.process import BaseProcess
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session, sessionmaker
 
-from services.core.models import Job, JobState, utcnow
+from services.core.db.models import Job, JobState, utcnow
 from services.core.settings import Settings
 
 log = logging.getLogger(__name__)
 
 PR_SET_PDEATHSIG = 1
 WATCHDOG_S = 0.5  # how often a planner checks that its scheduler is alive
-PRELOAD = ("services.scheduler.loop", "services.scheduler.planning", "services.core.spaces", "services.core.db")
+PRELOAD = ("services.scheduler.loop", "services.scheduler.planning", "services.core.ingest.loading", "services.core.db.engine")
 
 
 @dataclass
@@ -191,7 +191,7 @@ def limit_memory(memory_mb: int) -> None:
 
 def plan_in_child(job_id: int, scheduler_id: str, settings: Settings, scheduler_pid: int) -> None:
     """Child process entry: plan and persist one job under the memory budget, as its claiming scheduler."""
-    from services.core.db import make_engine, make_sessionmaker
+    from services.core.db.engine import make_engine, make_sessionmaker
     from services.core.storage import open_store
     from services.scheduler.loop import Scheduler
     from services.scheduler.transport import NullTransport

@@ -29,7 +29,7 @@ from sqlalchemy import and_, false, or_, select, update
 from sqlalchemy.orm import Session
 
 from services.core.celery_config import RENDER_CUES
-from services.core.models import Job, JobState, Task, TaskState, Worker, utcnow
+from services.core.db.models import Job, JobState, Task, TaskState, Worker, utcnow
 from services.core.settings import Settings
 from services.scheduler.transport import Transport
 

@@ -7,9 +7,9 @@ from pathlib import Path
 import pytest
 from sqlalchemy import func, select
 
-from services.core.jobspec import JobSpec
-from services.core.models import Job
-from services.core.plan_budget import PlanOverBudget, check_plan_budget, plan_memory_estimate_mb
+from services.core.db.models import Job
+from services.core.domain.jobspec import JobSpec
+from services.core.domain.plan_budget import PlanOverBudget, check_plan_budget, plan_memory_estimate_mb
 from tests.fixtures.api import Api
 
 SPEC_20M = {"cameras": {"mode": "object", "object_count": 100},

@@ -23,7 +23,7 @@ import pytest
 import redis
 from sqlalchemy import func, select, text
 
-from services.core.models import Job, Task, Worker, utcnow
+from services.core.db.models import Job, Task, Worker, utcnow
 from tests.e2e.conftest import REDIS_DB_URL, WORKER_APP, Cluster, Proc
 from tests.e2e.test_distributed import assert_exactly_once, submit_direct, wait, write_spec
 from tests.fixtures.holding_proxy import HoldingProxy

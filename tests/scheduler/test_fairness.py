@@ -7,7 +7,7 @@ from datetime import timedelta
 
 from sqlalchemy import select
 
-from services.core.models import Task, Worker, utcnow
+from services.core.db.models import Task, Worker, utcnow
 from services.scheduler.dispatch import JobLoad, dispatch_once
 from services.scheduler.fairness import QUEUED_MIN, QUEUED_PER_WORKER, queued_cap, tenant_turns
 from services.scheduler.transport import NullTransport

@@ -7,7 +7,7 @@ from datetime import timedelta
 
 from sqlalchemy import select, update
 
-from services.core.models import Task, Worker, utcnow
+from services.core.db.models import Task, Worker, utcnow
 from services.core.settings import get_settings
 from services.scheduler.dispatch import dispatch_once
 from services.scheduler.resend import IdleWatch, resend_stuck

@@ -43,7 +43,7 @@ def run(args: argparse.Namespace) -> int:
     transport = CeleryTransport(settings=settings)
     # The service loop plans in capped child processes; a single --once tick plans inline (it waits for it anyway).
     sched = Scheduler(make_sessionmaker(engine), store, transport, settings, args.scheduler_id,
-                      plan_in_processes=not args.once)
+                      plan_in_processes=not args.once, cap_queue=True)
     try:
         if args.once:
             res = sched.tick()

@@ -125,6 +125,7 @@ class Scheduler:
         budget: int = DEFAULT_BUDGET,
         plan_fn: PlanFn | None = None,
         plan_in_processes: bool = False,
+        cap_queue: bool = False,
     ) -> None:
         self.sessionmaker = sessionmaker
         self.store = store
@@ -142,6 +143,9 @@ class Scheduler:
         # The service plans in child processes (off this loop, memory-capped, leases beaten every tick); the
         # embedded runner and tests plan inline.
         self.planners = PlannerProcesses(sessionmaker, settings, self.scheduler_id) if plan_in_processes else None
+        # The service keeps the broker queue short (tenants share it fairly); the embedded runner, with one user
+        # and local workers fed between rate-limited ticks, keeps the whole window queued.
+        self.cap_queue = cap_queue
 
     # ------------------------------------------------------------------------------------------ planning
 
@@ -241,7 +245,7 @@ class Scheduler:
             res = dispatch_once(
                 s, self.transport, window=self.settings.dispatch_window, budget=self.budget,
                 rotation=self._rotation, thorough=thorough,
-                queued_cap=queued_cap(s, alive_within_s=self.settings.heartbeat_timeout_s),
+                queued_cap=queued_cap(s, alive_within_s=self.settings.heartbeat_timeout_s) if self.cap_queue else None,
             )
         if thorough:
             self._last_thorough = time.monotonic()

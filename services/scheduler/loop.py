@@ -213,7 +213,7 @@ class Scheduler:
                 # The job may have been cancelled (or taken over) while we planned: then keep nothing.
                 stmt = select(Job).where(Job.id == job_id).execution_options(populate_existing=True)
                 if s.get_bind().dialect.name == "postgresql":
-                    stmt = stmt.with_for_update()
+                    stmt = stmt.with_for_update(key_share=True)  # FOR NO KEY UPDATE
                 job = s.scalars(stmt).one()
                 if job.state != JobState.PLANNING or job.planner != self.scheduler_id:
                     s.rollback()

@@ -74,12 +74,15 @@ class PlannerProcesses:
         return self.max_children - len(self.children)
 
     def start(self, job_id: int) -> None:
-        """Plan a job this scheduler has claimed (and committed) in a new child process."""
+        """Plan a job this scheduler has claimed (and committed) in a new child process (once per job)."""
+        if job_id in self.children:  # re-claimed by this same scheduler: its planner is still at work
+            return
         proc = self._ctx.Process(
             target=plan_in_child, args=(job_id, self.scheduler_id, self.settings, os.getpid()), name=f"planner-{job_id}",
             daemon=True,
         )
-        proc.start()
+        proc.start()  # the first start also starts the fork server: seconds, so the lease starts over after it
+        self._extend(job_id)
         self.children[job_id] = PlannerChild(job_id, proc, time.monotonic(), time.monotonic())
         log.info("job %d: planning in process %s", job_id, proc.pid)
 
@@ -197,7 +200,7 @@ def plan_in_child(job_id: int, scheduler_id: str, settings: Settings, scheduler_
     from services.scheduler.transport import NullTransport
 
     _die_with_scheduler(scheduler_pid)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s planner: %(message)s")
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s planner %(process)d: %(message)s")
     limit_memory(settings.plan_memory_mb)
     engine = make_engine(settings.database_url)
     try:

@@ -148,3 +148,27 @@ def test_a_planner_that_dies_counts_an_attempt_and_the_20m_spec_fails_before_pla
     row = job(env, big)
     assert row.state == "failed" and "OMNIDATA_PLAN_" in (row.error or "") and "budget" in (row.error or "")
     assert took < 30
+
+
+def test_cancel_while_the_plan_is_being_written_does_not_wait_for_it(env: dict) -> None:
+    from sqlalchemy import text
+
+    sched = scheduler(env)
+    job_id = submit(env, SLOW)
+    sched.plan_pending()
+
+    def writing() -> bool:  # the planner's transaction is inserting rows that reference the job (KEY SHARE on it)
+        with env["sm"]() as s:
+            return bool(s.scalar(text(
+                "SELECT count(*) FROM pg_stat_activity WHERE datname = current_database() "
+                "AND pid <> pg_backend_pid() AND state = 'active' AND (query ILIKE 'COPY%' OR query ILIKE 'INSERT%')")))
+
+    tick_until(sched, writing, 120)
+    with env["sm"]() as s:
+        s.execute(text("SET LOCAL lock_timeout = '3s'"))  # a cancel queued behind the planning would fail here
+        cancel_job(s, s.get(Job, job_id))  # type: ignore[arg-type]
+        s.commit()
+    child = sched.planners.children[job_id].process  # type: ignore[union-attr]
+    sched.plan_pending()
+    assert not sched.planners.children and job(env, job_id).state == "cancelled"  # type: ignore[union-attr]
+    assert not child.is_alive() and child.exitcode is not None and child.exitcode < 0, child.exitcode  # killed

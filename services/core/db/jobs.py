@@ -136,10 +136,12 @@ def job_cues(session: Session, job_id: int) -> list[str]:
 
 
 def _lock_job(session: Session, job: Job) -> Job:
-    # Re-read the row under a lock so racing operations (cancel vs. complete) serialise on Postgres.
+    # Re-read the row under a lock so racing operations (cancel vs. complete) serialise on Postgres. NO KEY: a
+    # planner's open transaction holds KEY SHARE on the job row (its inserted rows reference it), and a cancel
+    # must not wait for the whole planning to commit.
     stmt = select(Job).where(Job.id == job.id).execution_options(populate_existing=True)
     if session.get_bind().dialect.name == "postgresql":
-        stmt = stmt.with_for_update()
+        stmt = stmt.with_for_update(key_share=True)  # FOR NO KEY UPDATE
     locked = session.scalars(stmt).one()
     return locked
 

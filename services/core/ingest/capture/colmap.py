@@ -41,19 +41,14 @@ def model_folders(files: list[Path]) -> list[Path]:
 def intrinsics(model: str, params: list[float]) -> tuple[np.ndarray, str, tuple[float, ...]] | None:
     """(K, distortion model, distortion params) of a COLMAP camera, None for an unsupported model."""
     p = params
-    if model == "SIMPLE_PINHOLE":
-        fx = fy = p[0]; cx, cy = p[1], p[2]; dist, dp = "none", ()  # noqa: E702
-    elif model == "PINHOLE":
-        fx, fy, cx, cy = p[:4]; dist, dp = "none", ()  # noqa: E702
-    elif model in ("SIMPLE_RADIAL", "RADIAL"):
-        fx = fy = p[0]; cx, cy = p[1], p[2]; dist, dp = "radial", tuple(p[3:])  # noqa: E702
-    elif model == "OPENCV":
-        fx, fy, cx, cy = p[:4]; dist, dp = "opencv", tuple(p[4:8])  # noqa: E702
-    elif model == "OPENCV_FISHEYE":
-        fx, fy, cx, cy = p[:4]; dist, dp = "fisheye", tuple(p[4:8])  # noqa: E702
-    else:
+    one_focal = model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL")
+    distortion = {"SIMPLE_PINHOLE": "none", "PINHOLE": "none", "SIMPLE_RADIAL": "radial", "RADIAL": "radial",
+                  "OPENCV": "opencv", "OPENCV_FISHEYE": "fisheye"}.get(model)
+    if distortion is None:
         return None
-    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]), dist, dp
+    fx, fy, cx, cy = (p[0], p[0], p[1], p[2]) if one_focal else (p[0], p[1], p[2], p[3])
+    dist_params: tuple[float, ...] = tuple(p[3:]) if one_focal else tuple(p[4:])
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]), distortion, dist_params
 
 
 def _read_cameras_txt(text: str, problems: list[str]) -> dict[int, Camera]:

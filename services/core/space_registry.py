@@ -168,7 +168,8 @@ def register_space(
 
 
 def fetch_space(store: ObjectStore, space: Space, cache_dir: str | Path) -> Path:
-    """Local path of a space's mesh file, downloaded (and unzipped) once per checksum into `cache_dir`."""
+    """Local path of a space's mesh file (or of the folder a zipped source unpacked to), downloaded (and unzipped)
+    once per checksum into `cache_dir`."""
     cache = Path(cache_dir) / space.checksum
     done_marker = cache / ".ready"
     if not done_marker.exists():
@@ -188,6 +189,7 @@ def fetch_space(store: ObjectStore, space: Space, cache_dir: str | Path) -> Path
                     raise
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
-    return resolve_source(cache / "src") if (cache / "src").is_dir() else resolve_source(next(
+    # a zipped source comes back as its folder, so what was packed beside the mesh (a capture) is found with it
+    return cache / "src" if (cache / "src").is_dir() else resolve_source(next(
         p for p in cache.iterdir() if p.is_file() and p.name != ".ready"
     ))

@@ -100,6 +100,7 @@ class LoadedSpace:
     units: UnitChoice | None = None  # the unit scale and why
     reconstruction: dict[str, Any] | None = None  # point clouds: how they were meshed
     class_names: dict[int, str] | None = None  # class id -> name, when the file names its classes
+    capture: Any = None  # a posed capture found with the scan (services.core.ingest.capture.Capture), world frame
 
     def frame_record(self) -> dict[str, Any]:
         """What was detected about the frame, for job.json and `omnidata plan` (JSON-ready)."""
@@ -112,6 +113,8 @@ class LoadedSpace:
             out["reconstruction"] = self.reconstruction
         if self.class_names:
             out["class_names"] = {str(k): v for k, v in sorted(self.class_names.items())}
+        if self.capture is not None:
+            out["capture"] = self.capture.summary()
         return out
 
     def frame_summary(self) -> str:
@@ -130,7 +133,7 @@ class LoadedSpace:
         return line
 
 
-FRAME_KEYS = ("up", "units", "reconstruction", "class_names", "valid_fraction")
+FRAME_KEYS = ("up", "units", "reconstruction", "class_names", "valid_fraction", "capture")
 
 
 def frame_of(record: dict[str, Any] | None) -> dict[str, Any] | None:
@@ -545,8 +548,11 @@ def load_space(
                           None if source_to_world is None else np.asarray(source_to_world, dtype=np.float64))
     try:
         source = resolve_source(p, extract_dir)
-        return _load(source, p if tmp is not None else source, frame,
-                     None if cloud_cache_dir is None else Path(cloud_cache_dir))
+        loaded = _load(source, p if tmp is not None else source, frame,
+                       None if cloud_cache_dir is None else Path(cloud_cache_dir))
+        from services.core.ingest.capture.attach import attach_capture  # a capture beside or around the scan
+
+        return attach_capture(loaded, Path(extract_dir) if p.suffix.lower() == ".zip" and extract_dir else p)
     finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)

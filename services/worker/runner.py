@@ -409,12 +409,16 @@ class TaskRunner:
         from services.worker.space_cache import SpaceContext
 
         spec = job.spec
-        key = f"{space.checksum}:{json.dumps(spec.space_frame(), sort_keys=True)}"
+        key = f"{space.checksum}:{json.dumps(spec.space_frame(), sort_keys=True)}:photos={spec.uses_photos()}"
 
         def loader() -> SpaceContext:
+            from services.worker.photos import painter_for
+
             path = fetch_space(self.store, space, self.cache_dir)
             loaded = load_space(path, **spec.space_frame())
-            return SpaceContext.from_loaded(loaded, key=key, device=self.render_device, threads=self.render_threads)
+            ctx = SpaceContext.from_loaded(loaded, key=key, device=self.render_device, threads=self.render_threads)
+            ctx.photos = painter_for(loaded, spec)
+            return ctx
 
         return self.space_cache.get(key, loader)
 

@@ -1,0 +1,36 @@
+"""Attaching the capture found with a scan to the loaded space, in its world frame.
+
+Where to look: the folder (or extracted zip) the user gave, else the mesh file's own folder. Only that folder
+is read (services.core.ingest.capture.detect bounds the walk), so a capture is never taken from elsewhere.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from pathlib import Path
+from typing import Any
+
+from services.core.ingest.capture.detect import find_capture
+
+log = logging.getLogger(__name__)
+
+
+def capture_root(given: Path) -> Path:
+    """The folder a capture of `given` (a scan file, its folder, or an extracted zip's folder) must lie in."""
+    return given if given.is_dir() else given.parent
+
+
+def attach_capture(loaded: Any, given: Path) -> Any:
+    """`loaded` (a LoadedSpace) with the capture found for `given` moved into its world frame, if there is one."""
+    root = capture_root(given)
+    try:
+        capture = find_capture(root)
+    except (OSError, ValueError) as e:  # an unreadable capture never stops the scan from loading
+        log.warning("%s: capture not read (%s)", root, e)
+        return loaded
+    if capture is None:
+        return loaded
+    for problem in capture.problems[:20]:
+        log.warning("%s capture: %s", capture.format, problem)
+    return dataclasses.replace(loaded, capture=capture.in_world(loaded.source_to_world))

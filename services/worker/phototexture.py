@@ -5,7 +5,8 @@ projected into the capture's photos. A photo colours the point only where it saw
 camera centre to the point must first meet the mesh at the point (a depth test, within DEPTH_TOLERANCE of the
 distance). Of the photos that saw it, the `k` with the largest weight are blended, weight = cos(angle between
 the surface normal and the direction to the photo's camera) x cos(angle between the view's ray and the photo's
-ray) / distance^2: head-on, close photos from nearby viewpoints count most. Pixels no photo saw are left black
+ray) / distance^2: head-on, close photos from nearby viewpoints count most; a photo seeing the surface more
+obliquely than MIN_COS is not used. Pixels no photo saw are left black
 and outside `photo_coverage` (the mask_photo cue). Photos are ranked per view first (how many of the view's
 sampled surface points they see) and only the best CANDIDATES_PER_K * k are tested per pixel.
 """
@@ -24,6 +25,7 @@ from services.worker.passes import ViewGeometry, ViewPasses
 
 DEPTH_TOLERANCE_M = 0.02  # plus 1% of the distance: TSDF meshes and photo poses are this good, not better
 CANDIDATES_PER_K = 3
+MIN_COS = 0.2  # a photo seeing the surface more obliquely than ~78 degrees smears it (and its silhouette) over it
 PROBE = 24  # probe points per side when ranking photos for a view
 
 
@@ -57,6 +59,20 @@ class PhotoTexturer:
             inside[idx[hidden]] = False
         return uv, inside
 
+    def _normals(self, centre: np.ndarray, view_dir: np.ndarray, passes: ViewPasses, idx: np.ndarray) -> np.ndarray:
+        """Unit surface normals, facing the view, of the surface points idx (the pass set's, else the mesh's faces
+        along the view's rays: the rgb cue alone does not read normals back)."""
+        if passes.normal_world is not None:
+            n = passes.normal_world.reshape(-1, 3)[idx].astype(np.float64)
+        else:
+            n = np.zeros((len(idx), 3))
+            tri, ray = self.mesh.ray.intersects_id(np.broadcast_to(centre, view_dir.shape), view_dir,
+                                                   multiple_hits=False)[:2]
+            n[ray] = np.asarray(self.mesh.face_normals)[tri]
+        flip = np.einsum("ij,ij->i", n, view_dir) > 0
+        n[flip] *= -1.0
+        return n
+
     def rank(self, points: np.ndarray) -> np.ndarray:
         """Frame indices, best first, by how many of the (probe) points each sees."""
         counts = np.array([self._seen_by(j, points)[1].sum() for j in range(len(self.capture.frames))])
@@ -79,7 +95,7 @@ class PhotoTexturer:
         pts = points[idx]
         view_dir = pts - view.center
         view_dir /= np.linalg.norm(view_dir, axis=1, keepdims=True)
-        normals = passes.normal_world.reshape(-1, 3)[idx] if passes.normal_world is not None else -view_dir
+        normals = self._normals(view.center, view_dir, passes, idx)
         weights = np.zeros((len(candidates), len(idx)), dtype=np.float64)
         colours = np.zeros((len(candidates), len(idx), 3), dtype=np.float32)
         for c, j in enumerate(candidates):
@@ -89,9 +105,9 @@ class PhotoTexturer:
             to_photo = self.centres[j] - pts
             dist = np.linalg.norm(to_photo, axis=1)
             to_photo /= dist[:, None]
-            w = np.clip(np.einsum("ij,ij->i", normals, to_photo), 0, None) \
-                * np.clip(-np.einsum("ij,ij->i", view_dir, to_photo), 0, None) / np.maximum(dist, 1e-3) ** 2
-            weights[c] = np.where(seen, w, 0.0)
+            facing = np.einsum("ij,ij->i", normals, to_photo)
+            w = facing * np.clip(-np.einsum("ij,ij->i", view_dir, to_photo), 0, None) / np.maximum(dist, 1e-3) ** 2
+            weights[c] = np.where(seen & (facing >= MIN_COS), w, 0.0)
             colours[c, seen] = sample_bilinear(photo(int(j)), uv[seen])
         if len(candidates) > self.k:  # keep the k largest weights per pixel
             cut = np.partition(weights, -self.k, axis=0)[-self.k]

@@ -85,3 +85,38 @@ def test_depth_and_normals_are_the_raycast_at_the_capture_camera(capture_renders
         cos = np.einsum("hwc,hwc->hw", n, cast_normals_cam(space.mesh, cast, g))[smooth]
         assert np.median(np.degrees(np.arccos(np.clip(cos, -1, 1)))) < 2.0
         np.testing.assert_array_equal(png(files["mask_valid"]) == 255, z < 65535 / 512.0)
+
+
+def test_photo_textured_novel_view(capture_renders, banana_path):
+    """rgb_source photos for a camera at no capture centre: the photos projected onto the surface the view sees
+    equal the mesh rgb where a photo saw it; the rest (seen by no photo) is masked."""
+    from services.core.camera import look_at
+    from services.core.plan import CameraPose, PlannedView, PointOfInterest, SpacePlan
+    from services.worker.phototexture import PhotoTexturer
+
+    space, frames, _, _ = capture_renders
+    mesh = space.mesh
+    centre = mesh.bounds.mean(axis=0)
+    radius = float(np.linalg.norm(mesh.extents)) / 2
+    between = (frames[0].camera_to_world[:3, 3] + frames[1].camera_to_world[:3, 3]) / 2
+    side = (between - centre) * np.array([1.0, 1.0, 0.0])
+    side = side / np.linalg.norm(side) + np.array([0.0, 0.0, -0.3])  # from below: the photos look down
+    position = centre + 1.4 * radius * side / np.linalg.norm(side)
+    W = look_at(position, centre)
+    view = PlannedView(0, 0, 0, W, np.radians(50), 0.0, 96, 0.3, True)
+    plan = SpacePlan("b", (CameraPose(0, position, "generated", "c"),),
+                     (PointOfInterest(0, centre, np.array([0, 0, 1.0]), "p", (0,)),), (view,))
+    painter = PhotoPainter(space.capture, texture=PhotoTexturer(mesh, space.capture, k=2))
+    textured = make_context(SpaceContext(key="tex", mesh=mesh, photos=painter), view,
+                            ["passes", "rgb", "mask_photo", "mask_valid"], plan=plan)
+    mesh_rgb = png(produce("rgb", make_context(SpaceContext(key="m", mesh=mesh), view, ["passes", "rgb"], plan=plan)))
+    rgb = png(produce("rgb", textured)).astype(np.float64)
+    covered = png(produce("mask_photo", textured)) == 255
+    valid = png(produce("mask_valid", textured)) == 255
+    smooth = smooth_mask(raycast(mesh, ViewGeometry.of(view)))
+    assert not (covered & ~valid).any()  # only surface a photo saw is coloured
+    assert covered[valid].mean() > 0.3  # the photos see much of what this view sees
+    assert covered[valid].mean() < 0.98  # ... but not the underside: masked, not invented
+    assert (rgb[~covered] == 0).all()
+    err = np.abs(rgb - mesh_rgb)[covered & smooth]
+    assert np.median(err) <= 4 and np.percentile(err, 90) <= 20, (np.median(err), np.percentile(err, 90))

@@ -178,6 +178,7 @@ class Scheduler:
                         "unit_scale": loaded.units.scale if loaded.units is not None else spec.unit_scale,
                         "warnings": list(loaded.warnings),
                         **loaded.frame_record(),
+                        **({"capture_plan": plan.capture} if plan.capture is not None else {}),
                     }
                 summary["shortfall"] = any(v["shortfall"] for v in summary["spaces"].values())
                 summary["planning_s"] = round(time.perf_counter() - t0, 3)

@@ -116,6 +116,7 @@ def run(args: argparse.Namespace) -> int:
             "valid_fraction": plan.valid_fraction,
             "clips": clip_summary(plan.clip_notes, CLIP_NOTES_IN_SUMMARY),
             "plan": plan_key,
+            **({"capture_plan": plan.capture} if plan.capture is not None else {}),
         })
         spaces[name] = record
         print(f"{name}: {len(plan.cameras)} cameras, {len(plan.points)} points, {len(plan.views)} views")

@@ -151,6 +151,7 @@ def exact_capture_plan(space: Any, spec: JobSpec, space_name: str, q: MeshQuerie
                     for v in plan.views)
     record = capture_record(capture, scores, vs.min_alignment, [float(c) for c in coverage], len(planned))
     record["dropped"] = dropped
+    record["view_alignment"] = {f"{v.point_idx}/{v.v}": v.alignment for v in planned}  # the manifest's per view
     return dataclasses.replace(plan, views=planned, valid_fraction=fraction_summary(fractions, vs.min_valid_fraction),
                                capture=record)
 

@@ -60,7 +60,13 @@ def _gltf_companions(gltf: Path) -> list[Path]:
 
 
 def _files_to_pack(source: Path, mesh_file: Path) -> tuple[Path, list[Path]]:
-    """(base folder, files) that a mesh needs, for zipping."""
+    """(base folder, files) that a mesh needs, for zipping (with a posed capture beside it: the capture too)."""
+    from services.core.ingest.capture.attach import capture_files_beside
+    from services.core.spaces import MESH_SUFFIXES
+
+    beside = capture_files_beside(mesh_file, MESH_SUFFIXES) if source.is_file() else []
+    if beside:
+        return mesh_file.parent, beside
     if source.is_dir():
         files = [p for p in sorted(source.rglob("*")) if p.is_file() and not p.is_symlink()]
         return source, files
@@ -79,7 +85,11 @@ def _files_to_pack(source: Path, mesh_file: Path) -> tuple[Path, list[Path]]:
 def pack_source(source: Path, mesh_file: Path, workdir: Path) -> Path:
     """The single file to upload for `source`: itself, or a deterministic zip of what the mesh needs."""
     if source.is_file() and source.suffix.lower() in SINGLE_FILE_SUFFIXES and scannet_companions(source) is None:
-        return source
+        from services.core.ingest.capture.attach import capture_files_beside
+        from services.core.spaces import MESH_SUFFIXES
+
+        if source.suffix.lower() == ".zip" or not capture_files_beside(source, MESH_SUFFIXES):
+            return source
     base, files = _files_to_pack(source, mesh_file)
     total = sum(f.stat().st_size for f in files)
     if total > MAX_PACKED_BYTES:

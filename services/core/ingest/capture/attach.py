@@ -34,3 +34,14 @@ def attach_capture(loaded: Any, given: Path) -> Any:
     for problem in capture.problems[:20]:
         log.warning("%s capture: %s", capture.format, problem)
     return dataclasses.replace(loaded, capture=capture.in_world(loaded.source_to_world))
+
+
+def capture_files_beside(mesh_file: Path, mesh_suffixes: tuple[str, ...]) -> list[Path]:
+    """Files to store with a single mesh file that has a capture in its folder (the folder's files, without the
+    other meshes there); [] when there is no capture beside it."""
+    from services.core.ingest.capture.detect import list_files
+
+    folder = mesh_file.parent
+    if find_capture(folder) is None:
+        return []
+    return [p for p in list_files(folder) if p == mesh_file or p.suffix.lower() not in mesh_suffixes]

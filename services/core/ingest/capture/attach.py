@@ -11,9 +11,13 @@ import logging
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from services.core.ingest.capture.detect import find_capture
 
 log = logging.getLogger(__name__)
+
+CAPTURE_UP_WARN_DEG = 10.0  # the cameras' up this far from the scan's: the levelling (or the capture) is suspect
 
 
 def capture_root(given: Path) -> Path:
@@ -33,7 +37,15 @@ def attach_capture(loaded: Any, given: Path) -> Any:
         return loaded
     for problem in capture.problems[:20]:
         log.warning("%s capture: %s", capture.format, problem)
-    return dataclasses.replace(loaded, capture=capture.in_world(loaded.source_to_world))
+    world = capture.in_world(loaded.source_to_world)
+    up = world.mean_up()  # the cameras' evidence of up, checked against the scan's levelling
+    if up is not None:
+        angle = float(np.degrees(np.arccos(np.clip(up[2], -1.0, 1.0))))
+        note = f"the cameras' up (right axes level) is {angle:.1f} deg from the scan's up"
+        world = dataclasses.replace(world, notes=(*world.notes, note), up_angle_deg=angle)
+        if angle > CAPTURE_UP_WARN_DEG:
+            loaded = dataclasses.replace(loaded, warnings=(*loaded.warnings, f"{note}: check the levelling"))
+    return dataclasses.replace(loaded, capture=world)
 
 
 def capture_files_beside(mesh_file: Path, mesh_suffixes: tuple[str, ...]) -> list[Path]:

@@ -93,6 +93,7 @@ class Capture:
     problems: tuple[str, ...] = ()
     frame_space: str = "source"  # source | world (after in_world)
     notes: tuple[str, ...] = field(default=())  # how the format was read (e.g. which intrinsics file)
+    up_angle_deg: float | None = None  # angle between the cameras' up (mean_up) and world +Z, once in the world
 
     @property
     def has_photos(self) -> bool:
@@ -156,6 +157,7 @@ class Capture:
             "problems": len(self.problems),
             "problem_messages": list(self.problems[:max_problems]),
             "notes": list(self.notes),
+            "up_angle_deg": self.up_angle_deg,
         }
         if self.frames and self.frames[0].K is not None:
             out["K_first"] = np.asarray(self.frames[0].K).tolist()

@@ -46,3 +46,13 @@ def test_registering_a_mesh_file_stores_its_capture_and_fetch_finds_it(db_sessio
     assert again.capture is not None and again.capture.has_photos and len(again.capture.frames) == 3
     assert all(again.capture.image_path(f).is_file() for f in again.capture.frames)
     np.testing.assert_array_equal(again.mesh.faces, load_space(ply).mesh.faces)
+
+
+def test_cameras_up_checks_the_levelling(scenes_dir):
+    kitchen = scenes_dir / "7scenes_redkitchen"
+    levelled = load_space(kitchen)
+    assert levelled.capture.up_angle_deg < 5.0
+    assert not any("check the levelling" in w for w in levelled.warnings)
+    wrong = load_space(kitchen, up_axis="+z")  # the scan's z is no up at all
+    assert wrong.capture.up_angle_deg > 45.0
+    assert any("cameras' up" in w and "check the levelling" in w for w in wrong.warnings)

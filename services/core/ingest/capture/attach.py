@@ -37,6 +37,10 @@ def attach_capture(loaded: Any, given: Path) -> Any:
         return loaded
     for problem in capture.problems[:20]:
         log.warning("%s capture: %s", capture.format, problem)
+    if capture.problems:  # shown by `omnidata plan` and kept in job.json with the other warnings
+        shown = "; ".join(capture.problems[:5]) + (f"; and {len(capture.problems) - 5} more" if len(capture.problems) > 5 else "")
+        note = f"{capture.format} capture: {len(capture.frames)} frames read, {len(capture.problems)} problems: {shown}"
+        loaded = dataclasses.replace(loaded, warnings=(*loaded.warnings, note))
     world = capture.in_world(loaded.source_to_world)
     up = world.mean_up()  # the cameras' evidence of up, checked against the scan's levelling
     if up is not None:

@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from services.core.ingest.capture import find_capture  # noqa: E402
 from services.core.ingest.capture.resample import load_photo  # noqa: E402
-from services.core.spaces import load_space  # noqa: E402
+from services.core.ingest.loading import load_space  # noqa: E402
 from tests.fixtures.captures import toy_frames, write_colmap, write_transforms  # noqa: E402
 
 KITCHEN = Path(__file__).resolve().parents[2] / "shared" / "scenes" / "7scenes_redkitchen"
@@ -62,7 +62,7 @@ def import_figures(tmp: Path) -> dict[str, float]:
 
 def view_cost(space, n_views: int, resolution: int) -> dict[str, float]:
     """CPU seconds per capture view (photo rgb) and per the same view with mesh rgb."""
-    from services.core.jobspec import JobSpec
+    from services.core.domain.jobspec import JobSpec
     from services.scheduler.planning import make_plan, space_rng
     from services.worker.executor import make_context, produce
     from services.worker.photos import PhotoPainter

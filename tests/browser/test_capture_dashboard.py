@@ -11,7 +11,7 @@ from typing import Any
 
 import pytest
 
-from services.core.models import Job, Space
+from services.core.db.models import Job, Space
 from services.core.settings import get_settings
 from services.core.storage import LocalStore
 from services.scheduler.loop import Scheduler

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from services.core.camera import intrinsics
+from services.core.domain.camera import intrinsics
+from services.core.domain.plan import plan_from_json
 from services.core.ingest.capture.resample import load_photo, photo_for_view
-from services.core.plan import plan_from_json
 from tests.fixtures.cli import omnidata
 from tests.fixtures.photo_capture import banana_capture
 

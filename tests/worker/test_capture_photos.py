@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from services.core.jobspec import JobSpec
+from services.core.domain.jobspec import JobSpec
 from services.scheduler.planning import make_plan, space_rng
 from services.worker.executor import make_context, produce
 from services.worker.passes import ViewGeometry
@@ -90,8 +90,8 @@ def test_depth_and_normals_are_the_raycast_at_the_capture_camera(capture_renders
 def test_photo_textured_novel_view(capture_renders, banana_path):
     """rgb_source photos for a camera at no capture centre: the photos projected onto the surface the view sees
     equal the mesh rgb where a photo saw it; the rest (seen by no photo) is masked."""
-    from services.core.camera import look_at
-    from services.core.plan import CameraPose, PlannedView, PointOfInterest, SpacePlan
+    from services.core.domain.camera import look_at
+    from services.core.domain.plan import CameraPose, PlannedView, PointOfInterest, SpacePlan
     from services.worker.phototexture import PhotoTexturer
 
     space, frames, _, _ = capture_renders

@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.ndimage import binary_erosion, gaussian_filter, sobel
 
-from services.core.camera import intrinsics
+from services.core.domain.camera import intrinsics
 from services.core.ingest.capture.model import CaptureFrame
 from services.core.ingest.capture.resample import photo_for_view
 from services.scheduler.planning.visibility import MeshQueries

@@ -20,11 +20,11 @@ from typing import Any
 
 import numpy as np
 
-from services.core.camera import intrinsics
+from services.core.domain.camera import intrinsics
+from services.core.domain.jobspec import JobSpec
+from services.core.domain.plan import PlanError, SpacePlan
 from services.core.ingest.capture.model import Capture
 from services.core.ingest.capture.resample import coverage_fraction, load_photo
-from services.core.jobspec import JobSpec
-from services.core.plan import PlanError, SpacePlan
 from services.scheduler.planning.alignment import alignment_score, score_summary
 from services.scheduler.planning.points import SampledPoints, visibility_matrix
 from services.scheduler.planning.views import ViewArrays, fraction_summary, obliqueness, valid_fractions
@@ -51,7 +51,7 @@ def capture_positions(capture: Capture) -> np.ndarray:
 
 
 def roll_about_axis(world_to_camera: np.ndarray) -> float:
-    """Roll (radians) of a camera about its optical axis relative to gravity, as services.core.camera.look_at
+    """Roll (radians) of a camera about its optical axis relative to gravity, as services.core.domain.camera.look_at
     defines it (0: image up as close to +Z as possible; positive turns the image clockwise)."""
     R = world_to_camera[:3, :3]
     z = R[2]

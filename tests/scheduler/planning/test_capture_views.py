@@ -9,11 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from services.core.domain.jobspec import JobSpec
+from services.core.domain.plan import PlanError, plan_from_json, plan_to_json
+from services.core.domain.plan_cues import point_info
 from services.core.ingest.capture.model import CaptureFrame
 from services.core.ingest.capture.resample import load_photo
-from services.core.jobspec import JobSpec
-from services.core.plan import PlanError, plan_from_json, plan_to_json, point_info
-from services.core.spaces import load_space
+from services.core.ingest.loading import load_space
 from services.scheduler.planning import make_plan, space_rng
 from services.scheduler.planning.alignment import alignment_score
 from services.scheduler.planning.visibility import MeshQueries

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from services.core.camera import CV_TO_BLENDER, quaternion_wxyz_to_rotation
+from services.core.domain.camera import CV_TO_BLENDER, quaternion_wxyz_to_rotation
 from services.core.ingest.capture.checks import FrameCollector, read_text
 from services.core.ingest.capture.model import Capture
 

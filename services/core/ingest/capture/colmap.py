@@ -15,7 +15,7 @@ from typing import BinaryIO
 
 import numpy as np
 
-from services.core.camera import quaternion_wxyz_to_rotation
+from services.core.domain.camera import quaternion_wxyz_to_rotation
 from services.core.ingest.capture.checks import MAX_FRAMES, FrameCollector, inside, read_text
 from services.core.ingest.capture.model import Capture
 

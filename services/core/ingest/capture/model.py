@@ -1,6 +1,6 @@
 """The posed-capture domain type: frames of real photographs with their cameras, in the scan's source frame.
 
-Conventions (the same as services.core.camera):
+Conventions (the same as services.core.domain.camera):
 - `K` is 3x3 in pixels with the centre of pixel u at u + 0.5 (COLMAP's convention; readers of formats that put
   pixel centres at integers add 0.5 to the principal point);
 - `camera_to_world` is 4x4 from OpenCV camera axes (x right, y down, z forward) to the scan's *source*

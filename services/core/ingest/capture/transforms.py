@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from services.core.camera import CV_TO_BLENDER
+from services.core.domain.camera import CV_TO_BLENDER
 from services.core.ingest.capture.checks import FrameCollector, inside, read_text
 from services.core.ingest.capture.model import Capture
 

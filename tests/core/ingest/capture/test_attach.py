@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from services.core.space_registry import fetch_space, register_space
-from services.core.spaces import load_space
+from services.core.ingest.loading import load_space
+from services.core.ingest.registry import fetch_space, register_space
 from tests.fixtures.captures import toy_frames, write_colmap, write_transforms
 
 

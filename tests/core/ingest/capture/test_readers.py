@@ -225,7 +225,7 @@ def test_capture_inside_a_zip(tmp_path):
         for p in src.rglob("*"):
             if p.is_file():
                 zf.write(p, p.relative_to(src).as_posix())
-    from services.core.spaces import safe_extract_zip
+    from services.core.ingest.archive import safe_extract_zip
 
     safe_extract_zip(zpath, tmp_path / "x")
     cap = find_capture(tmp_path / "x")

@@ -29,7 +29,7 @@ def test_generate_capture_views_from_a_folder(scenes_dir: Path, tmp_path: Path) 
                    "--workers", 1, "--no-progress", timeout=600)
     assert res.returncode == 0, res.stderr
     job = json.loads((out / "job.json").read_text())
-    record = job["spaces"]["banana_capture"]["plan"]
+    record = job["spaces"]["banana_capture"]
     assert record["capture"]["format"] == "colmap" and record["capture"]["frames"] == 3
     assert record["capture_plan"]["alignment"]["scored"] == 3
     lines = [json.loads(x) for x in (out / "manifest.jsonl").read_text().splitlines()]

@@ -36,6 +36,7 @@ import trimesh
 
 from services.core.domain.jobspec import UP_AXES, similarity_scale
 from services.core.ingest.archive import resolve_source
+from services.core.ingest.capture.attach import attach_capture, capture_near  # a capture with the scan
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.frame import FrameRequest, resolve_frame
 from services.core.ingest.gravity import (
@@ -188,16 +189,17 @@ def load_space(
     if p.is_file() and p.suffix.lower() == ".zip" and extract_dir is None:
         tmp = Path(tempfile.mkdtemp(prefix="omnidata-space-"))
         extract_dir = tmp
-    frame = FrameRequest(up_axis, unit_scale, None if up is None else np.asarray(up, dtype=np.float64),
-                          None if source_to_world is None else np.asarray(source_to_world, dtype=np.float64),
-                          accept_up_guess, None if capture_up is None else np.asarray(capture_up, dtype=np.float64))
     try:
         source = resolve_source(p, extract_dir)
+        capture = capture_near(Path(extract_dir) if p.suffix.lower() == ".zip" and extract_dir else p)
+        if capture_up is None and capture is not None:
+            capture_up = capture.mean_up()  # the cameras' up, source frame: evidence for levelling
+        frame = FrameRequest(up_axis, unit_scale, None if up is None else np.asarray(up, dtype=np.float64),
+                             None if source_to_world is None else np.asarray(source_to_world, dtype=np.float64),
+                             accept_up_guess, None if capture_up is None else np.asarray(capture_up, dtype=np.float64))
         loaded = _load(source, p if tmp is not None else source, frame,
                        None if cloud_cache_dir is None else Path(cloud_cache_dir))
-        from services.core.ingest.capture.attach import attach_capture  # a capture beside or around the scan
-
-        return attach_capture(loaded, Path(extract_dir) if p.suffix.lower() == ".zip" and extract_dir else p)
+        return attach_capture(loaded, capture)
     finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)

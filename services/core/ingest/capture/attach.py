@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from services.core.ingest.capture.detect import find_capture
+from services.core.ingest.capture.model import Capture
 
 log = logging.getLogger(__name__)
 
@@ -25,14 +26,18 @@ def capture_root(given: Path) -> Path:
     return given if given.is_dir() else given.parent
 
 
-def attach_capture(loaded: Any, given: Path) -> Any:
-    """`loaded` (a LoadedSpace) with the capture found for `given` moved into its world frame, if there is one."""
+def capture_near(given: Path) -> Capture | None:
+    """The capture found for `given` (a scan file, its folder, or an extracted zip's folder), source frame."""
     root = capture_root(given)
     try:
-        capture = find_capture(root)
+        return find_capture(root)
     except (OSError, ValueError) as e:  # an unreadable capture never stops the scan from loading
         log.warning("%s: capture not read (%s)", root, e)
-        return loaded
+        return None
+
+
+def attach_capture(loaded: Any, capture: Capture | None) -> Any:
+    """`loaded` (a LoadedSpace) with `capture` (source frame) moved into its world frame, when there is one."""
     if capture is None:
         return loaded
     for problem in capture.problems[:20]:

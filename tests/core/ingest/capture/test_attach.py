@@ -56,3 +56,20 @@ def test_cameras_up_checks_the_levelling(scenes_dir):
     wrong = load_space(kitchen, up_axis="+z")  # the scan's z is no up at all
     assert wrong.capture.up_angle_deg > 45.0
     assert any("cameras' up" in w and "check the levelling" in w for w in wrong.warnings)
+
+
+def test_capture_up_is_levelling_evidence(scenes_dir, tmp_path):
+    """The cameras' up goes into the up estimator (issue 17's capture_up evidence): the chosen up agrees with it,
+    the opposite candidate is marked down by it, and the result is within 3 degrees of the capture's gravity;
+    a mesh without its capture carries no such evidence."""
+    kitchen = scenes_dir / "7scenes_redkitchen"
+    with_capture = load_space(kitchen)
+    up = with_capture.frame_record()["up"]
+    assert up["evidence"]["capture_up"] > 0 and up["confidence"] == "high"
+    assert min(c["evidence"]["capture_up"] for c in up["candidates"]) < 0
+    gravity_up = -np.loadtxt(kitchen / "gravity-direction.txt")
+    gravity_up /= np.linalg.norm(gravity_up)
+    assert np.degrees(np.arccos(with_capture.up_source @ gravity_up)) < 3.0
+    alone = tmp_path / "mesh_only.ply"
+    shutil.copy(kitchen / "mesh_tsdf_2cm_from_1000frames.ply", alone)
+    assert "capture_up" not in load_space(alone, accept_up_guess=True).frame_record()["up"]["evidence"]

@@ -51,6 +51,15 @@ from sqlalchemy import func, select, text
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.fanout import create_database, drop_database, labelled_space, percentiles, synthetic_plan  # noqa: E402
+from bench.scale_cost import (  # noqa: E402
+    ROOM_CUES,
+    PrivateRedis,
+    ProcessCpu,
+    backend_pids,
+    mean_task_seconds,
+    sample_waits,
+    task_seconds,
+)
 from services.core.db import make_engine, make_sessionmaker, migrate  # noqa: E402
 from services.core.jobs import create_job  # noqa: E402
 from services.core.jobspec import JobSpec  # noqa: E402
@@ -62,7 +71,6 @@ from services.worker.runner import TaskRunner, _Claimed  # noqa: E402
 from services.worker.tasks import worker_engine  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
-REDIS_URL = os.environ.get("OMNIDATA_BENCH_REDIS_URL", "redis://127.0.0.1:6379/12")
 CUES = ["rgb", "normal", "depth_zbuffer"]
 LEASE_S = 300
 POOL_PER_PROCESS = 6  # Postgres connections per simulated-worker process (the server allows ~100 in all)
@@ -73,7 +81,10 @@ class Killed(BaseException):
 
 
 class SleepingRunner(TaskRunner):
-    """The worker's TaskRunner with its compute step replaced by a sleep and a few stored bytes."""
+    """The worker's TaskRunner with its compute step replaced by a sleep and a few stored bytes.
+
+    `task_s` > 0: every task sleeps task_s +-20%; 0: the real grain, each cue its measured time (CUE_SECONDS).
+    """
 
     def __init__(self, *args: Any, task_s: float, killed: threading.Event, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
@@ -83,7 +94,10 @@ class SleepingRunner(TaskRunner):
         self.slept = 0.0
 
     def _execute(self, t: _Claimed) -> tuple[str, Any]:
-        self.slept = self.task_s * self.rng.uniform(0.8, 1.2)
+        if self.task_s > 0:
+            self.slept = self.task_s * self.rng.uniform(0.8, 1.2)
+        else:
+            self.slept = task_seconds(t.cue, self.rng)
         if self.killed.wait(self.slept):
             raise Killed(t.id)
         key = f"sim/{t.job_id}/{t.cue}/{t.point}_{t.view}"
@@ -254,21 +268,26 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
     db_url = create_database()
     tmp = Path(tempfile.mkdtemp(prefix="omnidata-scale-sim-"))
     ctx = mp.get_context("spawn")  # no inherited connections
+    real_grain = args.task_s <= 0
+    cues = ROOM_CUES if real_grain else CUES
+    mean_s = mean_task_seconds(cues) if real_grain else args.task_s
     try:
         migrate(db_url)
         settings = get_settings(
             data_dir=tmp, database_url=db_url, broker_url=args.redis, storage_url=f"file://{tmp}/objects",
-            lease_s=LEASE_S, heartbeat_timeout_s=args.heartbeat_timeout_s, dispatch_window=max(20, 2 * n_workers),
+            lease_s=LEASE_S, heartbeat_timeout_s=args.heartbeat_timeout_s,
+            dispatch_window=args.window or max(20, 2 * n_workers),
         )
         engine = make_engine(db_url, pool_size=2)
         sm = make_sessionmaker(engine)
         store = LocalStore(tmp / "objects")
-        # enough views that the job outlasts the run: every worker busy all the time, 4 tasks per view
-        n_views = int(1.5 * n_workers * args.seconds / args.task_s / len(CUES)) + 100
+        # enough views that the job outlasts the run even at the ideal rate (4 views per point)
+        tasks_per_view = len(cues) + 1
+        n_views = int(1.5 * n_workers * (args.seconds + 60) / mean_s / tasks_per_view) + 100
         plan = synthetic_plan("scale", n_views // 4 + 1, 4, resolution=32)
         space_id = labelled_space(sm, store, "scale")
         with sm() as s:
-            job = create_job(s, owner="bench", spec=JobSpec(cues=CUES, name="scale"), spaces=[s.get(Space, space_id)])
+            job = create_job(s, owner="bench", spec=JobSpec(cues=cues, name="scale"), spaces=[s.get(Space, space_id)])
             s.commit()
             job_id = job.id
 
@@ -294,6 +313,16 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
         deadline = time.monotonic() + 120
         while count("running") < n_workers // 2 and time.monotonic() < deadline:
             time.sleep(0.5)  # planned, dispatched, workers started
+        time.sleep(args.warmup)
+
+        def groups() -> dict[str, list[int]]:
+            with sm() as s:
+                pg = backend_pids(s)
+            return {"scheduler": [int(sched.pid or 0)], "postgres": pg, "redis": [args.redis_pid] if args.redis_pid else [],
+                    "sim_workers": [int(p.pid or 0) for p in procs]}
+
+        cpu = ProcessCpu()
+        cpu.start(groups())
         t0, done0, stats0 = time.monotonic(), count("done"), pg_stats(sm, engine.url.database or "")
         progress_lat: list[float] = []
         requeued: dict[int, float] = {}
@@ -309,13 +338,8 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
                 progress_lat.append(time.perf_counter() - t)
                 if time.monotonic() >= next_wait_sample:  # what Postgres' busy backends are waiting for
                     next_wait_sample = time.monotonic() + 0.5
-                    for kind, n in s.execute(text(
-                        "SELECT coalesce(wait_event_type || ':' || wait_event, 'CPU'), count(*) FROM pg_stat_activity "
-                        "WHERE datname = current_database() AND state = 'active' AND pid <> pg_backend_pid() GROUP BY 1"
-                    )):
-                        waits_pg[kind] = waits_pg.get(kind, 0) + int(n)
-                    s.rollback()
-                if killed_at is None and time.monotonic() - t0 >= args.seconds / 3:
+                    sample_waits(s, waits_pg)
+                if args.kill_fraction > 0 and killed_at is None and time.monotonic() - t0 >= args.seconds / 3:
                     held = [int(i) for (i,) in s.execute(select(Task.id).where(
                         Task.state == "running", Task.worker_id.in_(kill_ids)))]
                     kill_at.set()
@@ -330,11 +354,13 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
                 time.sleep(0.05)
         elapsed = time.monotonic() - t0
         done1, stats1 = count("done"), pg_stats(sm, engine.url.database or "")
+        cpu_s = cpu.stop(groups())
         with sm() as s:
             waits = [(b - a).total_seconds() for a, b in s.execute(select(Task.queued_at, Task.started_at).where(
                 Task.job_id == job_id, Task.started_at.is_not(None), Task.queued_at.is_not(None)))]
         stop.set()
-        results = [outq.get(timeout=120) for _ in range(args.processes + 1)]
+        kill_at.set()
+        results = [outq.get(timeout=180) for _ in range(args.processes + 1)]
         for p in [sched, *procs]:
             p.join(30)
         sched_stats = next(x for x in results if "sent" in x)
@@ -345,18 +371,30 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
             s.execute(text("UPDATE job SET state = 'cancelled' WHERE id = :j"), {"j": job_id})
             s.commit()
         engine.dispose()
-        rate = (done1 - done0) / elapsed
+        n_done = done1 - done0
+        rate = n_done / elapsed
+        orchestration_s = cpu_s["scheduler"] + cpu_s["postgres"] + cpu_s["redis"]
+        per_task_ms = 1000 * orchestration_s / max(n_done, 1)
         return {
             "workers": n_workers,
             "processes": args.processes,
-            "task_s": args.task_s,
+            "grain": "real (per-cue times of a room, CUE_SECONDS)" if real_grain else f"{args.task_s} s per task",
+            "mean_task_s": round(mean_s, 4),
+            "dispatch_window": settings.dispatch_window,
             "measured_s": round(elapsed, 1),
-            "tasks_done": done1 - done0,
+            "tasks_done": n_done,
             "tasks_per_s": round(rate, 1),
-            "ideal_tasks_per_s": round(n_workers / args.task_s, 1),
-            "utilisation": round(rate * args.task_s / n_workers, 3),
+            "ideal_tasks_per_s": round(n_workers / mean_s, 1),
+            "utilisation": round(rate * mean_s / n_workers, 3),
             "queue_wait": pct(waits),
             "task_overhead": pct(overhead_s),  # a worker's claim + record done (pool wait included), per task
+            "cpu_s": cpu_s,
+            "orchestration_cpu_ms_per_task": {
+                "total": round(per_task_ms, 3),
+                **{k: round(1000 * cpu_s[k] / max(n_done, 1), 3) for k in ("scheduler", "postgres", "redis")},
+                "sim_workers": round(1000 * cpu_s["sim_workers"] / max(n_done, 1), 3),
+            },
+            "one_orchestrator_core_tasks_per_s": round(1000 / per_task_ms, 0) if per_task_ms > 0 else None,
             "pg_active_backends_by_wait": dict(sorted(waits_pg.items(), key=lambda kv: -kv[1])),
             "dispatch": {
                 "tasks_sent": sched_stats["sent"],
@@ -373,7 +411,7 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
                 "pg_task_row_writes_per_s": round((stats1["task_rows"] - stats0["task_rows"]) / elapsed, 1),
             },
             "reaper": {
-                "killed_workers": len(kill_ids),
+                "killed_workers": len(kill_ids) if args.kill_fraction > 0 else 0,
                 "tasks_held_by_killed": len(held),
                 "requeued": len(requeued),
                 "requeue_after_kill_s": {"max": round(max(requeued.values()), 1),
@@ -396,27 +434,49 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--workers", default="100,300,1000", help="comma-separated simulated worker counts")
     p.add_argument("--seconds", type=float, default=30.0, help="measured seconds per worker count")
-    p.add_argument("--task-s", type=float, default=5.0, help="seconds a simulated task sleeps (+-20%%)")
+    p.add_argument("--task-s", type=float, default=0.0,
+                   help="seconds a simulated task sleeps (+-20%%); 0 (default): the real per-cue grain")
     p.add_argument("--processes", type=int, default=4, help="processes the simulated workers are spread over")
     p.add_argument("--kill-fraction", type=float, default=0.02)
     p.add_argument("--heartbeat-timeout-s", type=int, default=10)
-    p.add_argument("--redis", default=REDIS_URL)
+    p.add_argument("--window", type=int, default=0, help="dispatch window (0: 2 x workers, at least 20)")
+    p.add_argument("--warmup", type=float, default=5.0, help="seconds after the workers got busy before measuring")
+    p.add_argument("--redis", default="", help="a running Redis (default: a private redis-server, CPU ours alone)")
+    p.add_argument("--step", default="",
+                   help="store the run under steps[STEP] of the results (each bottleneck removed is a step), "
+                        "keeping every other figure there; without it the top-level configs are replaced")
     p.add_argument("--label", default="", help="a note stored with the results (e.g. before/after a change)")
     p.add_argument("--out", type=Path, default=RESULTS / "scale.json")
     p.add_argument("--before", type=Path, default=None,
                    help="an earlier run's JSON (e.g. before a fix), kept in the results under `before`")
     args = p.parse_args(argv)
     before = json.loads(args.before.read_text()) if args.before else None
+    private = None
+    args.redis_pid = 0
+    if not args.redis:
+        private = PrivateRedis()
+        args.redis, args.redis_pid = private.url, private.pid
     configs = []
-    for n in [int(x) for x in args.workers.split(",") if x.strip()]:
-        res = run_config(args, n)
-        print(json.dumps(res), flush=True)
-        configs.append(res)
-    doc = {"benchmark": "scale_sim", "label": args.label, "configs": configs, "python": platform.python_version(),
-           "cpus": os.cpu_count(), "note": "one shared host runs Postgres, Redis, the scheduler and every simulated "
-           "worker; figures are floors, not capacity"}
-    if before is not None:
-        doc["before"] = {"label": before.get("label", ""), "configs": before.get("configs", [])}
+    try:
+        for n in [int(x) for x in args.workers.split(",") if x.strip()]:
+            res = run_config(args, n)
+            print(json.dumps(res), flush=True)
+            configs.append(res)
+    finally:
+        if private is not None:
+            private.close()
+    doc = json.loads(args.out.read_text()) if args.out.exists() else {"benchmark": "scale_sim"}
+    if args.step:
+        doc.setdefault("steps", {})[args.step] = {
+            "label": args.label, "configs": configs, "when": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        }
+    else:
+        doc.update({"label": args.label, "configs": configs})
+        if before is not None:
+            doc["before"] = {"label": before.get("label", ""), "configs": before.get("configs", [])}
+    doc.update({"python": platform.python_version(), "cpus": os.cpu_count(), "note": "one shared host (2 cores, "
+                "seven other developers' work) runs Postgres, Redis, the scheduler and every simulated worker; "
+                "figures are floors, not capacity"})
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(doc, indent=2) + "\n")
     print(f"wrote {args.out}")

@@ -2,7 +2,8 @@
 
 Works on Postgres (the service) and SQLite (the embedded default) with the same calls. Task state changes go
 through services.core.states.transition(), which moves tasks and adjusts `job_counter` (add_counts) in the same
-transaction, so progress is read from a handful of counter rows (`job_progress`) instead of COUNT(*).
+transaction, so progress is read from a handful of counter rows (`job_progress`) instead of COUNT(*); the
+rows are sharded (COUNTER_SHARDS per job, cue and state) so that concurrent writers do not queue on one lock.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import JSON, Engine, Table, create_engine, event, insert, select
+from sqlalchemy import JSON, Engine, Table, create_engine, event, func, insert, literal, select
 from sqlalchemy.dialects.postgresql import insert as pg_insert
 from sqlalchemy.dialects.sqlite import insert as sqlite_insert
 from sqlalchemy.engine import Connection, make_url
@@ -273,17 +274,31 @@ def _upsert(conn: Connection) -> Any:
     return pg_insert if conn.dialect.name == "postgresql" else sqlite_insert
 
 
+COUNTER_SHARDS = 16  # counter rows per (job, cue, state) that concurrent writers spread over (migration 0003)
+
+
+def counter_shard(conn: Connection) -> Any:
+    """The shard this connection's counter deltas go to: on Postgres its backend pid modulo COUNTER_SHARDS (a
+    connection runs one transaction at a time, so two transactions share a row only when their pids collide);
+    SQLite has one writer at a time anyway: shard 0."""
+    if conn.dialect.name == "postgresql":
+        return func.mod(func.pg_backend_pid(), COUNTER_SHARDS)
+    return literal(0)
+
+
 def add_counts(session: Session | Connection, job_id: int, deltas: Mapping[tuple[str, str], int]) -> None:
-    """Add `deltas[(cue, state)]` to the job's counters (UPSERT: n = n + excluded.n); zero deltas are skipped."""
+    """Add `deltas[(cue, state)]` to the job's counters (UPSERT into this connection's shard: n = n + excluded.n);
+    zero deltas are skipped."""
     items = sorted((k, d) for k, d in deltas.items() if d)  # fixed order: concurrent upserts lock rows alike
     if not items:
         return
     conn = _connection(session)
+    shard = counter_shard(conn)
     ins = _upsert(conn)(_table(JobCounter)).values(
-        [{"job_id": job_id, "cue": cue, "state": state, "n": d} for (cue, state), d in items]
+        [{"job_id": job_id, "cue": cue, "state": state, "shard": shard, "n": d} for (cue, state), d in items]
     )
     stmt = ins.on_conflict_do_update(
-        index_elements=["job_id", "cue", "state"], set_={"n": _table(JobCounter).c.n + ins.excluded.n}
+        index_elements=["job_id", "cue", "state", "shard"], set_={"n": _table(JobCounter).c.n + ins.excluded.n}
     )
     conn.execute(stmt)
 
@@ -304,13 +319,26 @@ def init_counts(session: Session | Connection, job_id: int, pending: Mapping[str
     add_counts(session, job_id, {(cue, TaskState.PENDING): n for cue, n in pending.items()})
 
 
+def summed_counters(job_ids: Any) -> Any:
+    """SELECT job_id, cue, state, n: the counters of `job_ids` (a list or a correlated column) summed over their
+    shards, zero counts left out."""
+    c = _table(JobCounter).c
+    listed = isinstance(job_ids, list | tuple)
+    n = func.sum(c.n)
+    stmt = (
+        select(c.job_id, c.cue, c.state, n.label("n"))
+        .where(c.job_id.in_(job_ids) if listed else c.job_id == job_ids)
+        .group_by(c.job_id, c.cue, c.state)
+        .having(n != 0)
+    )
+    return stmt if listed else stmt.correlate(job_ids.table)
+
+
 def job_progress(session: Session | Connection, job_id: int) -> dict[str, dict[str, int]]:
     """Task counts of a job as {cue: {state: n}}, read from job_counter only (zero counts omitted)."""
-    c = _table(JobCounter).c
     out: dict[str, dict[str, int]] = {}
-    rows = _connection(session).execute(
-        select(c.cue, c.state, c.n).where(c.job_id == job_id, c.n != 0).order_by(c.cue, c.state)
-    )
+    sub = summed_counters([job_id]).subquery()
+    rows = _connection(session).execute(select(sub.c.cue, sub.c.state, sub.c.n).order_by(sub.c.cue, sub.c.state))
     for cue, state, n in rows:
         out.setdefault(cue, {})[state] = int(n)
     return out

@@ -1,7 +1,7 @@
 """Where a task or a job changes state: the allowed transitions and the two functions that make them.
 
 Every task state change goes through `transition()`, which moves the tasks with one conditional UPDATE and
-adjusts the job's progress counters (`job_counter`) in the same transaction; every job state change goes
+adjusts the job's progress counters (`job_counter`) in the same transaction (on Postgres in the same statement); every job state change goes
 through `set_job_state()` (or, for the planner's conditional claim, `check_job_edge()` first). A change not in
 the tables below raises IllegalTransition, so a new code path cannot invent an edge silently.
 """
@@ -9,19 +9,20 @@ the tables below raises IllegalTransition, so a new code path cannot invent an e
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
-from sqlalchemy import ColumnElement, Table, update
+from sqlalchemy import ColumnElement, Table, func, literal, select, union_all, update
+from sqlalchemy.dialects.postgresql import insert as pg_insert
 from sqlalchemy.engine import Connection
 from sqlalchemy.orm import Session
 
-from services.core.db import _IN_CHUNK, _connection, add_counts
-from services.core.models import Job, JobState, Task, TaskState
+from services.core.db import _IN_CHUNK, COUNTER_SHARDS, _connection, add_counts
+from services.core.models import Job, JobCounter, JobState, Task, TaskState
 
 __all__ = [
     "JOB_EDGES", "TASK_EDGES", "IllegalTransition", "JobState", "TaskState", "check_job_edge", "check_task_edge",
-    "set_job_state", "transition",
+    "set_job_state", "transition", "transition_rows",
 ]
 
 # from -> the states a task may go to, and who takes that edge
@@ -74,7 +75,7 @@ def check_job_edge(from_state: str, to_state: str) -> tuple[JobState, JobState]:
 def transition(
     session: Session | Connection,
     *,
-    job_id: int,
+    job_id: int | None,
     from_state: str,
     to_state: str,
     task_ids: Iterable[int] | None = None,
@@ -87,29 +88,89 @@ def transition(
     conditions (e.g. the worker still holds it); `values` are further columns to set (values or SQL
     expressions, e.g. attempts=Task.attempts + 1). Tasks not in `from_state` are left alone, which makes
     racing transitions safe: only the (id, cue) pairs returned were moved, and only those are counted.
+    `job_id` None (a worker holding only a task id) moves the given tasks of whatever job they belong to.
     Task objects already loaded in a Session are not refreshed (reload with populate_existing=True).
     """
+    rows = transition_rows(session, job_id=job_id, from_state=from_state, to_state=to_state, task_ids=task_ids,
+                           where=where, **values)
+    return [(int(r[0]), str(r[1])) for r in rows]
+
+
+def transition_rows(
+    session: Session | Connection,
+    *,
+    job_id: int | None,
+    from_state: str,
+    to_state: str,
+    task_ids: Iterable[int] | None = None,
+    where: Iterable[ColumnElement[bool]] = (),
+    returning: Sequence[Any] = (),
+    **values: Any,
+) -> list[Any]:
+    """`transition`, returning rows of (id, cue, job_id, *returning) of the moved tasks.
+
+    On Postgres the move and its counter deltas are ONE statement (a data-modifying CTE): the counter rows are
+    locked for that statement only, and a worker's claim or result costs one round trip.
+    """
+    if job_id is None and task_ids is None:
+        raise ValueError("transition: give a job_id or the task_ids to move")
     src, dst = check_task_edge(from_state, to_state)
     conn = _connection(session)
     t = Task.__table__
     assert isinstance(t, Table)
-    conds = [t.c.job_id == job_id, t.c.state == src.value, *where]
-    stmt = update(t).values(state=dst.value, **values).returning(t.c.id, t.c.cue)
-    moved: list[tuple[int, str]] = []
-    if task_ids is None:
-        moved.extend((int(r[0]), str(r[1])) for r in conn.execute(stmt.where(*conds)))
-    else:
+    conds = [t.c.state == src.value, *where]
+    if job_id is not None:
+        conds.append(t.c.job_id == job_id)
+    stmt = update(t).values(state=dst.value, **values).returning(t.c.id, t.c.cue, t.c.job_id, *returning)
+    chunks: list[list[int] | None] = [None]
+    if task_ids is not None:
         ids = list(dict.fromkeys(int(i) for i in task_ids))
-        for start in range(0, len(ids), _IN_CHUNK):
-            chunk = ids[start : start + _IN_CHUNK]
-            moved.extend((int(r[0]), str(r[1])) for r in conn.execute(stmt.where(t.c.id.in_(chunk), *conds)))
-    per_cue = Counter(cue for _, cue in moved)
-    deltas: dict[tuple[str, str], int] = {}
-    for cue, k in per_cue.items():
-        deltas[(cue, src.value)] = -k
-        deltas[(cue, dst.value)] = k
-    add_counts(conn, job_id, deltas)
+        chunks = [ids[k : k + _IN_CHUNK] for k in range(0, len(ids), _IN_CHUNK)]
+    moved: list[Any] = []
+    for chunk in chunks:
+        part = stmt.where(*conds) if chunk is None else stmt.where(t.c.id.in_(chunk), *conds)
+        if conn.dialect.name == "postgresql":
+            moved.extend(conn.execute(_counted(part, src.value, dst.value)))
+            continue
+        got = list(conn.execute(part))
+        moved.extend(got)
+        per_job: dict[int, Counter[str]] = {}
+        for r in got:
+            per_job.setdefault(int(r[2]), Counter())[str(r[1])] += 1
+        for jid, per_cue in per_job.items():
+            deltas: dict[tuple[str, str], int] = {}
+            for cue, k in per_cue.items():
+                deltas[(cue, src.value)] = -k
+                deltas[(cue, dst.value)] = k
+            add_counts(conn, jid, deltas)
     return moved
+
+
+def _counted(move: Any, src: str, dst: str) -> Any:
+    """WITH moved AS (UPDATE task ... RETURNING ...), counted AS (INSERT INTO job_counter ... ON CONFLICT add)
+    SELECT * FROM moved: the move and its counter deltas in one statement (Postgres)."""
+    moved = move.cte("moved")
+    per_cue = (
+        select(moved.c.job_id, moved.c.cue, func.count().label("k")).group_by(moved.c.job_id, moved.c.cue).cte("per_cue")
+    )
+    shard = func.mod(func.pg_backend_pid(), COUNTER_SHARDS)
+    deltas = union_all(
+        select(per_cue.c.job_id, per_cue.c.cue, literal(src).label("state"), shard.label("shard"),
+               (-per_cue.c.k).label("n")),
+        select(per_cue.c.job_id, per_cue.c.cue, literal(dst).label("state"), shard.label("shard"),
+               per_cue.c.k.label("n")),
+    ).subquery()
+    counters = JobCounter.__table__
+    assert isinstance(counters, Table)
+    ins = pg_insert(counters).from_select(
+        ["job_id", "cue", "state", "shard", "n"],
+        # a fixed order, as add_counts: concurrent statements lock the rows of a shard alike
+        select(deltas).order_by(deltas.c.job_id, deltas.c.cue, deltas.c.state),
+    )
+    ins = ins.on_conflict_do_update(
+        index_elements=["job_id", "cue", "state", "shard"], set_={"n": counters.c.n + ins.excluded.n}
+    )
+    return select(moved).add_cte(ins.cte("counted"))
 
 
 def set_job_state(job: Job, to_state: str, **values: Any) -> None:

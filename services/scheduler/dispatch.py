@@ -93,8 +93,9 @@ def running_job_loads(session: Session) -> list[JobLoad]:
     loads: dict[int, JobLoad] = {}
     for job_id, prio, cue, state, n in rows:
         load = loads.setdefault(int(job_id), JobLoad(int(job_id), int(prio or 0)))
-        if cue is not None and n:
-            load.counts.setdefault(str(cue), {})[str(state)] = int(n)
+        if cue is not None and n:  # summed over the counter shards
+            per = load.counts.setdefault(str(cue), {})
+            per[str(state)] = per.get(str(state), 0) + int(n)
     return sorted(loads.values(), key=lambda j: (-j.priority, j.job_id))
 
 
@@ -217,7 +218,8 @@ def _loads_of(session: Session, job_ids: list[int]) -> list[JobLoad]:
     for job_id, cue, state, n in session.execute(
         select(c.job_id, c.cue, c.state, c.n).where(c.job_id.in_(job_ids), c.n != 0)
     ):
-        loads[int(job_id)].counts.setdefault(str(cue), {})[str(state)] = int(n)
+        per = loads[int(job_id)].counts.setdefault(str(cue), {})
+        per[str(state)] = per.get(str(state), 0) + int(n)  # summed over the counter shards
     return list(loads.values())
 
 

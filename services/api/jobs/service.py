@@ -33,13 +33,13 @@ from services.api.pagination import PageParams
 from services.api.spaces.service import not_found
 from services.core import jobs as core_jobs
 from services.core.cues import CATALOG
+from services.core.db import summed_counters
 from services.core.models import (
     JOB_TERMINAL_STATES,
     TASK_ACTIVE_STATES,
     TASK_STATES,
     TASK_TERMINAL_STATES,
     Job,
-    JobCounter,
     JobSpace,
     JobState,
     Space,
@@ -117,10 +117,7 @@ def read_counters(session: Session, job_ids: Sequence[int]) -> dict[int, Counter
     out: dict[int, Counters] = {j: {} for j in job_ids}
     if not job_ids:
         return out
-    c = JobCounter.__table__.c
-    rows = session.execute(
-        select(c.job_id, c.cue, c.state, c.n).where(c.job_id.in_(list(job_ids)), c.n != 0)
-    )
+    rows = session.execute(summed_counters(list(job_ids)))
     for job_id, cue, state, n in rows:
         out[int(job_id)].setdefault(cue, {})[state] = int(n)
     return out
@@ -244,8 +241,9 @@ def detail_statement(dialect: str) -> Any:
     """SELECT job + counters + spaces (json aggregates) for one job and owner; built once per dialect, so
     SQLAlchemy's memoized cache key is reused instead of re-traversing the statement on every poll."""
     agg, arr = (func.json_agg, func.json_build_array) if dialect == "postgresql" else (func.json_group_array, func.json_array)
-    c, js, t = JobCounter.__table__.c, JobSpace.__table__.c, Job.__table__.c
-    counters_q = select(agg(arr(c.cue, c.state, c.n))).where(c.job_id == t.id, c.n != 0).scalar_subquery()
+    js, t = JobSpace.__table__.c, Job.__table__.c
+    summed = summed_counters(t.id).subquery()  # the counter shards of the job, summed
+    counters_q = select(agg(arr(summed.c.cue, summed.c.state, summed.c.n))).scalar_subquery()
     spaces_q = (
         select(agg(arr(js.space_id, Space.name, js.position, js.cues)))
         .select_from(JobSpace.__table__.join(Space, Space.id == js.space_id))

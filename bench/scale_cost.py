@@ -83,14 +83,23 @@ class ProcessCpu:
                 for name, now in self.last.items()}
 
 
-def backend_pids(session: object) -> list[int]:
-    """Pids of the Postgres backends connected to the session's database (ours alone: a database per run)."""
+def backend_pids(session: object) -> dict[str, list[int]]:
+    """Pids of the Postgres backends connected to the session's database (ours alone: a database per run), by
+    the application_name their client gave (which part of the system they serve)."""
     rows = session.execute(text(  # type: ignore[attr-defined]
-        "SELECT pid FROM pg_stat_activity WHERE datname = current_database() AND backend_type = 'client backend'"
+        "SELECT application_name, pid FROM pg_stat_activity WHERE datname = current_database() "
+        "AND backend_type = 'client backend'"
     ))
-    pids = [int(r[0]) for r in rows]
+    out: dict[str, list[int]] = {}
+    for app, pid in rows:
+        out.setdefault(f"pg:{app or 'other'}", []).append(int(pid))
     session.rollback()  # type: ignore[attr-defined]
-    return pids
+    return out
+
+
+def with_app_name(url: str, name: str) -> str:
+    """The database URL with libpq's application_name set, so its backends' CPU can be told apart."""
+    return f"{url}{'&' if '?' in url else '?'}application_name={name}"
 
 
 def sample_waits(session: object, into: dict[str, int]) -> None:

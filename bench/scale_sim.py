@@ -59,6 +59,7 @@ from bench.scale_cost import (  # noqa: E402
     mean_task_seconds,
     sample_waits,
     task_seconds,
+    with_app_name,
 )
 from services.core.db import make_engine, make_sessionmaker, migrate  # noqa: E402
 from services.core.jobs import create_job  # noqa: E402
@@ -278,7 +279,7 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
             lease_s=LEASE_S, heartbeat_timeout_s=args.heartbeat_timeout_s,
             dispatch_window=args.window or max(20, 2 * n_workers),
         )
-        engine = make_engine(db_url, pool_size=2)
+        engine = make_engine(with_app_name(db_url, "api"), pool_size=2)  # the progress poller (and the bench)
         sm = make_sessionmaker(engine)
         store = LocalStore(tmp / "objects")
         # enough views that the job outlasts the run even at the ideal rate (4 views per point)
@@ -298,9 +299,11 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
         counts = [min(per_proc, n_workers - p * per_proc) for p in range(args.processes)]
         all_ids = [f"sim-{p}-{k}" for p in range(args.processes) for k in range(counts[p])]
         kill_ids = random.Random(7).sample(all_ids, max(1, int(args.kill_fraction * n_workers)))
-        sched = ctx.Process(target=scheduler_process, args=(settings, plan, stop, outq))
+        sched_settings = settings.model_copy(update={"database_url": with_app_name(db_url, "scheduler")})
+        worker_settings = settings.model_copy(update={"database_url": with_app_name(db_url, "workers")})
+        sched = ctx.Process(target=scheduler_process, args=(sched_settings, plan, stop, outq))
         sched.start()
-        procs = [ctx.Process(target=worker_process, args=(p, counts[p], settings, args.redis, args.task_s, kill_ids,
+        procs = [ctx.Process(target=worker_process, args=(p, counts[p], worker_settings, args.redis, args.task_s, kill_ids,
                                                           kill_at, stop, outq)) for p in range(args.processes)]
         for p in procs:
             p.start()
@@ -318,8 +321,9 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
         def groups() -> dict[str, list[int]]:
             with sm() as s:
                 pg = backend_pids(s)
-            return {"scheduler": [int(sched.pid or 0)], "postgres": pg, "redis": [args.redis_pid] if args.redis_pid else [],
-                    "sim_workers": [int(p.pid or 0) for p in procs]}
+            return {"scheduler": [int(sched.pid or 0)], "postgres": [p for ps in pg.values() for p in ps],
+                    "redis": [args.redis_pid] if args.redis_pid else [], "sim_workers": [int(p.pid or 0) for p in procs],
+                    **pg}
 
         cpu = ProcessCpu()
         cpu.start(groups())
@@ -393,6 +397,7 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
                 "total": round(per_task_ms, 3),
                 **{k: round(1000 * cpu_s[k] / max(n_done, 1), 3) for k in ("scheduler", "postgres", "redis")},
                 "sim_workers": round(1000 * cpu_s["sim_workers"] / max(n_done, 1), 3),
+                **{k: round(1000 * v / max(n_done, 1), 3) for k, v in cpu_s.items() if k.startswith("pg:")},
             },
             "one_orchestrator_core_tasks_per_s": round(1000 / per_task_ms, 0) if per_task_ms > 0 else None,
             "pg_active_backends_by_wait": dict(sorted(waits_pg.items(), key=lambda kv: -kv[1])),

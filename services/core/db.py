@@ -8,6 +8,7 @@ rows are sharded (COUNTER_SHARDS per job, cue and state) so that concurrent writ
 
 from __future__ import annotations
 
+import functools
 import io
 import json
 from collections.abc import Mapping, Sequence
@@ -15,9 +16,8 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import JSON, Engine, Table, create_engine, event, func, insert, literal, select
-from sqlalchemy.dialects.postgresql import insert as pg_insert
-from sqlalchemy.dialects.sqlite import insert as sqlite_insert
+from sqlalchemy import JSON, Engine, Table, bindparam, create_engine, event, func, insert, select, text
+from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.engine import Connection, make_url
 from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import DeclarativeBase, Session, sessionmaker
@@ -270,20 +270,22 @@ def _copy_postgres(conn: Connection, table: Table, names: list[str], cols: list[
 # ---------------------------------------------------------------------------------------------- counters
 
 
-def _upsert(conn: Connection) -> Any:
-    return pg_insert if conn.dialect.name == "postgresql" else sqlite_insert
+# Counter rows per (job, cue, state) that concurrent writers spread over (migration 0003): on Postgres a statement
+# adds its deltas to shard (backend pid mod COUNTER_SHARDS), and as a connection runs one transaction at a time,
+# two transactions share a row only when their pids collide. SQLite has one writer at a time anyway: shard 0.
+COUNTER_SHARDS = 16
 
 
-COUNTER_SHARDS = 16  # counter rows per (job, cue, state) that concurrent writers spread over (migration 0003)
-
-
-def counter_shard(conn: Connection) -> Any:
-    """The shard this connection's counter deltas go to: on Postgres its backend pid modulo COUNTER_SHARDS (a
-    connection runs one transaction at a time, so two transactions share a row only when their pids collide);
-    SQLite has one writer at a time anyway: shard 0."""
-    if conn.dialect.name == "postgresql":
-        return func.mod(func.pg_backend_pid(), COUNTER_SHARDS)
-    return literal(0)
+# Counter and row upserts are SQL text built once per shape: SQLAlchemy cannot cache the compiled form of its
+# INSERT ... ON CONFLICT DO UPDATE construct, and compiling it anew on every claim, result and heartbeat cost
+# more CPU than the database spent running it.
+@functools.cache
+def _add_counts_sql(dialect: str) -> Any:
+    shard = f"mod(pg_backend_pid(), {COUNTER_SHARDS})" if dialect == "postgresql" else "0"
+    return text(
+        f"INSERT INTO job_counter (job_id, cue, state, shard, n) VALUES (:job_id, :cue, :state, {shard}, :n) "
+        "ON CONFLICT (job_id, cue, state, shard) DO UPDATE SET n = job_counter.n + excluded.n"
+    )
 
 
 def add_counts(session: Session | Connection, job_id: int, deltas: Mapping[tuple[str, str], int]) -> None:
@@ -293,14 +295,26 @@ def add_counts(session: Session | Connection, job_id: int, deltas: Mapping[tuple
     if not items:
         return
     conn = _connection(session)
-    shard = counter_shard(conn)
-    ins = _upsert(conn)(_table(JobCounter)).values(
-        [{"job_id": job_id, "cue": cue, "state": state, "shard": shard, "n": d} for (cue, state), d in items]
+    conn.execute(_add_counts_sql(conn.dialect.name),
+                 [{"job_id": job_id, "cue": cue, "state": state, "n": d} for (cue, state), d in items])
+
+
+@functools.cache
+def _upsert_sql(dialect: str, table: Table, columns: tuple[str, ...], key: tuple[str, ...],
+                insert_only: tuple[str, ...]) -> Any:
+    prep = _DIALECTS[dialect].identifier_preparer
+    names = ", ".join(prep.quote(c) for c in columns)
+    changes = ", ".join(f"{prep.quote(c)} = excluded.{prep.quote(c)}" for c in columns
+                        if c not in key and c not in insert_only)
+    action = f"DO UPDATE SET {changes}" if changes else "DO NOTHING"
+    stmt = text(
+        f"INSERT INTO {prep.format_table(table)} ({names}) VALUES ({', '.join(':' + c for c in columns)}) "
+        f"ON CONFLICT ({', '.join(prep.quote(c) for c in key)}) {action}"
     )
-    stmt = ins.on_conflict_do_update(
-        index_elements=["job_id", "cue", "state", "shard"], set_={"n": _table(JobCounter).c.n + ins.excluded.n}
-    )
-    conn.execute(stmt)
+    return stmt.bindparams(*(bindparam(c, type_=table.c[c].type) for c in columns))
+
+
+_DIALECTS = {"postgresql": postgresql.dialect(), "sqlite": sqlite.dialect()}
 
 
 def upsert(
@@ -309,9 +323,9 @@ def upsert(
 ) -> None:
     """INSERT `row`, or where its `key` exists UPDATE every other column but `insert_only`: one statement."""
     table = _table(model_or_table)
-    ins = _upsert(_connection(session))(table).values(dict(row))
-    changes = {c: ins.excluded[c] for c in row if c not in key and c not in insert_only}
-    _connection(session).execute(ins.on_conflict_do_update(index_elements=list(key), set_=changes))
+    conn = _connection(session)
+    stmt = _upsert_sql(conn.dialect.name, table, tuple(row), tuple(key), tuple(insert_only))
+    conn.execute(stmt, dict(row))
 
 
 def init_counts(session: Session | Connection, job_id: int, pending: Mapping[str, int]) -> None:

@@ -43,7 +43,7 @@ from services.core.keys import output_key, passes_key
 from services.core.models import Job, JobState, Space, Task, TaskState, WorkerBlock, utcnow
 from services.core.plan import SpacePlan, plan_from_json
 from services.core.settings import Settings
-from services.core.states import transition
+from services.core.states import claim_task, finish_task, transition
 from services.core.storage import ObjectStore
 
 log = logging.getLogger(__name__)
@@ -229,6 +229,11 @@ class TaskRunner:
                 delay = min(delay * 2, 5.0)
 
     def _claim(self, task_id: int) -> _Claimed | Outcome:
+        fast = self._claim_queued(task_id)
+        if fast is not None:
+            return fast
+        # Not claimed in one statement: find out why (stale or duplicate message, paused job, blocked worker,
+        # a claim of ours whose reply was lost) and act on it.
         now = utcnow()
         with self.sessionmaker() as s:
             row = s.execute(
@@ -273,6 +278,18 @@ class TaskRunner:
                 return Outcome(task_id, "skipped", cue=row.cue, job_id=row.job_id, error="claimed by another worker")
             return claimed(int(row.attempts) + 1)
 
+    def _claim_queued(self, task_id: int) -> _Claimed | None:
+        """The common case in one statement (one round trip on Postgres): queued -> running for this worker while
+        its job runs and the worker is not kept off the job; None when that did not apply."""
+        now = utcnow()
+        with self.sessionmaker() as s:
+            r = claim_task(s, task_id=task_id, worker_id=self.worker_id, now=now,
+                           lease_until=now + timedelta(seconds=self.settings.lease_s))
+        if r is None:
+            return None
+        return _Claimed(task_id, int(r.job_id), int(r.space_id), int(r.point_idx), int(r.view_idx), str(r.cue),
+                        int(r.attempts))  # RETURNING gives the new values: attempts counts this attempt
+
     def _blocked(self, s: Session, job_id: int, now: Any) -> bool:
         return s.execute(
             select(WorkerBlock.job_id).where(
@@ -289,12 +306,8 @@ class TaskRunner:
     def _record_done(self, t: _Claimed, key: str, info: Any, duration: float) -> Outcome:
         def step() -> bool:
             with self.sessionmaker() as s:
-                ok = self._move_mine(
-                    s, t, TaskState.DONE, output_key=key, size=int(info.size), sha256=info.sha256,
-                    duration_s=float(duration), finished_at=utcnow(), lease_until=None, error=None,
-                )
-                s.commit()
-                return ok
+                return finish_task(s, task_id=t.id, job_id=t.job_id, worker_id=self.worker_id, key=key,
+                                   size=int(info.size), sha256=info.sha256, duration_s=float(duration), now=utcnow())
 
         try:
             ok = self._db(step, f"record task {t.id} done")

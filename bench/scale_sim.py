@@ -56,15 +56,17 @@ from bench.scale_cost import (  # noqa: E402
     ProcessCpu,
     backend_pids,
     mean_task_seconds,
+    publish_cost,
     sample_waits,
     with_app_name,
 )
-from bench.scale_procs import LEASE_S, scheduler_process, worker_process  # noqa: E402
+from bench.scale_procs import LEASE_S, isolated_overhead, scheduler_process, worker_process  # noqa: E402
 from services.core.db import make_engine, make_sessionmaker, migrate  # noqa: E402
 from services.core.jobs import create_job  # noqa: E402
 from services.core.jobspec import JobSpec  # noqa: E402
 from services.core.models import Space, Task  # noqa: E402
 from services.core.settings import get_settings  # noqa: E402
+from services.core.states import transition  # noqa: E402
 from services.core.storage import LocalStore  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -202,6 +204,12 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
         wstats = [x for x in results if "beat_s" in x]
         beat_s = [b for w in wstats for b in w["beat_s"]]
         overhead_s = [b for w in wstats for b in w["overhead_s"]]
+        with sm() as s:  # one worker alone, on the same database, once the fleet has stopped
+            alone = list(s.scalars(select(Task.id).where(Task.job_id == job_id, Task.state == "pending")
+                                   .order_by(Task.id).limit(500)))
+            transition(s, job_id=job_id, task_ids=alone, from_state="pending", to_state="queued")
+            s.commit()
+        overhead_alone = isolated_overhead(with_app_name(db_url, "alone"), worker_settings, alone)
         with sm() as s:
             s.execute(text("UPDATE job SET state = 'cancelled' WHERE id = :j"), {"j": job_id})
             s.commit()
@@ -223,6 +231,7 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
             "utilisation": round(rate * mean_s / n_workers, 3),
             "queue_wait": pct(waits),
             "task_overhead": pct(overhead_s),  # a worker's claim + record done (pool wait included), per task
+            "task_overhead_one_worker_alone": pct(overhead_alone[20:]),  # the same without the fleet's contention
             "cpu_s": cpu_s,
             "orchestration_cpu_ms_per_task": {
                 "total": round(per_task_ms, 3),
@@ -282,6 +291,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="store the run under steps[STEP] of the results (each bottleneck removed is a step), "
                         "keeping every other figure there; without it the top-level configs are replaced")
     p.add_argument("--label", default="", help="a note stored with the results (e.g. before/after a change)")
+    p.add_argument("--publish-cost", action="store_true",
+                   help="also measure the CPU per message of publishing alone (stored under `publishing`)")
     p.add_argument("--out", type=Path, default=RESULTS / "scale.json")
     p.add_argument("--before", type=Path, default=None,
                    help="an earlier run's JSON (e.g. before a fix), kept in the results under `before`")
@@ -310,6 +321,9 @@ def main(argv: list[str] | None = None) -> int:
         doc.update({"label": args.label, "configs": configs})
         if before is not None:
             doc["before"] = {"label": before.get("label", ""), "configs": before.get("configs", [])}
+    if args.publish_cost:
+        doc["publishing"] = publish_cost()
+        print(json.dumps(doc["publishing"]))
     doc.update({"python": platform.python_version(), "cpus": os.cpu_count(), "note": "one shared host (2 cores, "
                 "seven other developers' work) runs Postgres, Redis, the scheduler and every simulated worker; "
                 "figures are floors, not capacity"})

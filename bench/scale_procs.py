@@ -206,17 +206,27 @@ class _NoStore:
         return ObjectInfo(key, len(data), hashlib.sha256(data).hexdigest())
 
 
-def isolated_overhead(db_url: str, settings: Settings, task_ids: list[int]) -> list[float]:
-    """Seconds of claim + record done per task for one worker alone (no sleep, nothing stored): the task overhead
-    without the simulation's own contention (hundreds of threads per process sharing six connections)."""
+def isolated_overhead(db_url: str, settings: Settings, task_ids: list[int]) -> tuple[list[float], float]:
+    """Seconds of claim + record done per task for one worker alone (no sleep, nothing stored), and the CPU
+    milliseconds per task of its Postgres backend: the task overhead without the simulation's own contention
+    (hundreds of threads per process sharing six connections)."""
+    from sqlalchemy import text
+
+    from bench.scale_cost import cpu_seconds
+
     engine = worker_engine(db_url, pool_size=1)
-    runner = SleepingRunner(make_sessionmaker(engine), _NoStore(), settings, "alone",  # type: ignore[arg-type]
+    sm = make_sessionmaker(engine)
+    runner = SleepingRunner(sm, _NoStore(), settings, "alone",  # type: ignore[arg-type]
                             task_s=1e-6, killed=threading.Event())
+    with sm() as s:
+        backend = int(s.scalar(text("SELECT pg_backend_pid()")) or 0)
+    cpu0 = cpu_seconds(backend)
     out = []
     for tid in task_ids:
         t = time.perf_counter()
         outcome = runner.run(tid)
         out.append(time.perf_counter() - t - runner.slept)
         assert outcome.status == "done", outcome
+    pg_ms = 1000 * (cpu_seconds(backend) - cpu0) / max(len(task_ids), 1)
     engine.dispose()
-    return out
+    return out, pg_ms

@@ -209,7 +209,7 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
                                    .order_by(Task.id).limit(500)))
             transition(s, job_id=job_id, task_ids=alone, from_state="pending", to_state="queued")
             s.commit()
-        overhead_alone = isolated_overhead(with_app_name(db_url, "alone"), worker_settings, alone)
+        overhead_alone, alone_pg_ms = isolated_overhead(with_app_name(db_url, "alone"), worker_settings, alone)
         with sm() as s:
             s.execute(text("UPDATE job SET state = 'cancelled' WHERE id = :j"), {"j": job_id})
             s.commit()
@@ -232,6 +232,7 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
             "queue_wait": pct(waits),
             "task_overhead": pct(overhead_s),  # a worker's claim + record done (pool wait included), per task
             "task_overhead_one_worker_alone": pct(overhead_alone[20:]),  # the same without the fleet's contention
+            "postgres_cpu_ms_per_task_one_worker_alone": round(alone_pg_ms, 3),  # its claim + result statements
             "cpu_s": cpu_s,
             "orchestration_cpu_ms_per_task": {
                 "total": round(per_task_ms, 3),

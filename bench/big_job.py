@@ -34,12 +34,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.fanout import create_database, drop_database, labelled_space, percentiles  # noqa: E402
 from bench.scale_cost import ROOM_CUES  # noqa: E402
-from services.core.cues import CATALOG  # noqa: E402
-from services.core.db import bulk_insert, init_counts, make_engine, make_sessionmaker, migrate  # noqa: E402
-from services.core.jobs import create_job  # noqa: E402
-from services.core.jobspec import JobSpec  # noqa: E402
-from services.core.models import Job, Space, Task, View  # noqa: E402
-from services.core.states import transition  # noqa: E402
+from services.core.db.bulk import bulk_insert  # noqa: E402
+from services.core.db.counters import init_counts  # noqa: E402
+from services.core.db.engine import make_engine, make_sessionmaker, migrate  # noqa: E402
+from services.core.db.jobs import create_job  # noqa: E402
+from services.core.db.models import Job, Space, Task, View  # noqa: E402
+from services.core.db.states import transition  # noqa: E402
+from services.core.domain.cues import CATALOG  # noqa: E402
+from services.core.domain.jobspec import JobSpec  # noqa: E402
 from services.core.storage import LocalStore  # noqa: E402
 from services.scheduler.compile import task_cues  # noqa: E402
 from services.scheduler.dispatch import dispatch_once  # noqa: E402

@@ -26,7 +26,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from services.core.gravity import UnitError, choose_unit_scale, estimate_up  # noqa: E402
+from services.core.ingest.gravity import UnitError, choose_unit_scale, estimate_up  # noqa: E402
 from tests.fixtures import rotation_corpus as corpus  # noqa: E402
 
 
@@ -48,8 +48,8 @@ def cloud_figures(n_points: int, seed: int) -> dict[str, float | int]:
 
     from trimesh.ray.ray_pyembree import RayMeshIntersector
 
-    from services.core.camera import look_at
-    from services.core.spaces import load_space
+    from services.core.domain.camera import look_at
+    from services.core.ingest.loading import load_space
     from services.worker.passes import ViewGeometry
     from tests.fixtures.scans import room_cloud
 

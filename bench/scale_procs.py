@@ -16,11 +16,12 @@ import time
 from typing import Any
 
 from bench.scale_cost import task_seconds
-from services.core.db import make_engine, make_sessionmaker
+from services.core.db.engine import make_engine, make_sessionmaker
 from services.core.settings import Settings
 from services.core.storage import LocalStore
+from services.worker.claim import Claimed
 from services.worker.heartbeat import Heartbeat
-from services.worker.runner import TaskRunner, _Claimed
+from services.worker.runner import TaskRunner
 from services.worker.tasks import worker_engine
 
 LEASE_S = 300
@@ -44,7 +45,7 @@ class SleepingRunner(TaskRunner):
         self.rng = random.Random(hash(self.worker_id))
         self.slept = 0.0
 
-    def _execute(self, t: _Claimed) -> tuple[str, Any]:
+    def execute(self, t: Claimed) -> tuple[str, Any]:
         if self.task_s > 0:
             self.slept = self.task_s * self.rng.uniform(0.8, 1.2)
         else:

@@ -61,12 +61,12 @@ from bench.scale_cost import (  # noqa: E402
     with_app_name,
 )
 from bench.scale_procs import LEASE_S, isolated_overhead, scheduler_process, worker_process  # noqa: E402
-from services.core.db import make_engine, make_sessionmaker, migrate  # noqa: E402
-from services.core.jobs import create_job  # noqa: E402
-from services.core.jobspec import JobSpec  # noqa: E402
-from services.core.models import Space, Task  # noqa: E402
+from services.core.db.engine import make_engine, make_sessionmaker, migrate  # noqa: E402
+from services.core.db.jobs import create_job  # noqa: E402
+from services.core.db.models import Space, Task  # noqa: E402
+from services.core.db.states import transition  # noqa: E402
+from services.core.domain.jobspec import JobSpec  # noqa: E402
 from services.core.settings import get_settings  # noqa: E402
-from services.core.states import transition  # noqa: E402
 from services.core.storage import LocalStore  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"

@@ -22,15 +22,15 @@ from services.api.dashboard.endpoints import mount_dashboard
 from services.api.errors import install_error_handlers
 from services.api.guard import RequestGuard
 from services.api.jobs.endpoints import router as jobs_router
-from services.api.jobs.service import RateTracker
 from services.api.ops.endpoints import router as ops_router
 from services.api.outputs.endpoints import router as outputs_router
 from services.api.progress.endpoints import router as progress_router
+from services.api.progress.rates import RateTracker
 from services.api.query_token import QueryTokenScrubber
 from services.api.spaces.endpoints import router as spaces_router
 from services.api.views.endpoints import router as views_router
 from services.api.workers.endpoints import router as workers_router
-from services.core.db import make_engine, make_sessionmaker, schema_heads
+from services.core.db.engine import make_engine, make_sessionmaker, schema_heads
 from services.core.settings import Settings, get_settings
 from services.core.storage import ObjectStore, open_store
 

@@ -11,8 +11,8 @@ from annotated_types import Ge, Gt, Le, Lt
 from pydantic import BaseModel
 from sqlalchemy import func, select
 
-from services.core.jobspec import JobSpec
-from services.core.models import Job, Space
+from services.core.db.models import Job, Space
+from services.core.domain.jobspec import JobSpec
 from services.core.storage import LocalStore
 from tests.fixtures.api import Api, make_api
 from tests.hostile_corpus import HOSTILE_FILES, VALID_FILES

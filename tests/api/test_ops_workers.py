@@ -8,7 +8,7 @@ from pathlib import Path
 
 import redis
 
-from services.core.models import Worker, utcnow
+from services.core.db.models import Worker, utcnow
 from services.core.settings import hash_token
 from services.core.storage import LocalStore
 from tests.fixtures.api import Api, fake_plan, free_port, make_api, run_tasks, task_ids

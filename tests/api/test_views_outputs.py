@@ -31,7 +31,7 @@ def test_views_tasks_filters_and_pagination(api: Api, bunny: Path) -> None:
     with api.session() as s:
         ids = task_ids(s, job_id)
         # finish point 0 entirely; fail one rgb task of point 1
-        from services.core.models import Task
+        from services.core.db.models import Task
 
         p0 = [t.id for t in s.query(Task).filter(Task.job_id == job_id, Task.point_idx == 0)]
         run_tasks(s, api.store, job_id, p0)

@@ -12,9 +12,11 @@ import pytest
 from sqlalchemy import Engine, func, select
 from sqlalchemy.orm import Session
 
-from services.core.db import add_counts, bulk_insert, job_progress, make_engine, make_sessionmaker, migrate
-from services.core.models import Job, JobCounter, Task, WorkerBlock, utcnow
-from services.core.states import claim_task, finish_task, transition
+from services.core.db.bulk import bulk_insert
+from services.core.db.counters import add_counts, job_progress
+from services.core.db.engine import make_engine, make_sessionmaker, migrate
+from services.core.db.models import Job, JobCounter, Task, WorkerBlock, utcnow
+from services.core.db.states import claim_task, finish_task, transition
 from services.worker.tasks import worker_engine
 
 CUES = ["rgb", "normal", "depth_zbuffer"]

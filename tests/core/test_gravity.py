@@ -1,4 +1,4 @@
-"""Gravity and units of scans in any orientation and unit (services.core.gravity, through load_space too)."""
+"""Gravity and units of scans in any orientation and unit (services.core.ingest.gravity, through load_space too)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from services.core.gravity import UnitError, choose_unit_scale, estimate_up, plane_families
-from services.core.spaces import SpaceError, load_space
+from services.core.ingest.errors import SpaceError
+from services.core.ingest.gravity import UnitError, choose_unit_scale, estimate_up, plane_families
+from services.core.ingest.loading import load_space
 from tests.fixtures import rotation_corpus as corpus
 from tests.fixtures import scenes
 

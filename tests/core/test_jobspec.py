@@ -7,7 +7,7 @@ from typing import Any
 import pytest
 from pydantic import ValidationError
 
-from services.core.jobspec import JobSpec, cues_for_space
+from services.core.domain.jobspec import JobSpec, cues_for_space
 
 
 def _refusal(data: dict[str, Any]) -> tuple[tuple[Any, ...], str]:

@@ -6,7 +6,7 @@ import json
 from collections.abc import Iterator
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request, status
+from fastapi import APIRouter, Depends, Path, Query, Request
 from fastapi.responses import FileResponse, JSONResponse, Response, StreamingResponse
 from sqlalchemy import select
 
@@ -15,9 +15,10 @@ from services.api.jobs.service import get_job
 from services.api.outputs import service
 from services.api.outputs.schemas import ViewOutputs
 from services.api.spaces.service import not_found
-from services.core import keys
-from services.core.manifest import iter_manifest_lines, job_document
-from services.core.models import Space, View
+from services.core.db.manifest import iter_manifest_lines, job_document
+from services.core.db.models import Space, View
+from services.core.domain import keys
+from services.core.domain.errors import NotFound
 from services.core.storage import LocalStore, ObjectNotFoundError, check_key, prefixed
 from services.datasets.previews import PIXEL_JSON_CUES, cached_preview, parse_preview_key
 
@@ -116,18 +117,18 @@ def blob(key: SignedKey, store: StoreDep) -> Response:
     try:
         check_key(key)
     except ValueError:
-        raise HTTPException(status.HTTP_404_NOT_FOUND, "no such object") from None
+        raise NotFound("no such object") from None
     headers = {"Cache-Control": "private, max-age=300"}
     media = service.content_type(key)
     if isinstance(store, LocalStore):
         path = store.path(key)
         if not path.is_file():
-            raise HTTPException(status.HTTP_404_NOT_FOUND, "no such object")
+            raise NotFound("no such object")
         return FileResponse(path, media_type=media, headers=headers)
     try:
         data = store.get_bytes(key)
     except ObjectNotFoundError:
-        raise HTTPException(status.HTTP_404_NOT_FOUND, "no such object") from None
+        raise NotFound("no such object") from None
     return Response(data, media_type=media, headers=headers)
 
 
@@ -141,7 +142,7 @@ def preview(key: SignedKey, store: StoreDep) -> Response:
     try:
         root, output_key, cue, point, view = parse_preview_key(check_key(key))
     except ValueError:
-        raise HTTPException(status.HTTP_404_NOT_FOUND, "no such preview") from None
+        raise NotFound("no such preview") from None
     job_store = prefixed(store, root)
     resolution = None
     if cue in PIXEL_JSON_CUES:  # drawn at pixel positions: the view's resolution is in its point_info
@@ -154,5 +155,5 @@ def preview(key: SignedKey, store: StoreDep) -> Response:
     try:
         _key, data = cached_preview(job_store, output_key, cue, point=point, view=view, resolution=resolution)
     except ObjectNotFoundError:
-        raise HTTPException(status.HTTP_404_NOT_FOUND, "no such output") from None
+        raise NotFound("no such output") from None
     return Response(data, media_type="image/png", headers={"Cache-Control": "private, max-age=300"})

@@ -14,15 +14,15 @@ from collections.abc import Iterable
 from datetime import UTC, datetime
 from urllib.parse import quote
 
-from fastapi import HTTPException, status
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from services.api.outputs.schemas import OutputLink
-from services.core.cues import CATALOG
-from services.core.jobs import job_root, root_key
-from services.core.keys import output_key
-from services.core.models import Job, Task, TaskState
+from services.core.db.jobs import job_root, root_key
+from services.core.db.models import Job, Task, TaskState
+from services.core.domain.cues import CATALOG
+from services.core.domain.errors import Forbidden
+from services.core.domain.keys import output_key
 from services.core.settings import Settings
 from services.core.storage import ObjectStore
 from services.datasets.previews import preview_key
@@ -52,9 +52,9 @@ def blob_signature(settings: Settings, key: str, expires: int) -> str:
 def verify_blob(settings: Settings, *, key: str, expires: int, signature: str, now: float | None = None) -> None:
     """403 unless `signature` signs `key` until `expires` and that time has not passed."""
     if not hmac.compare_digest(blob_signature(settings, key, expires).encode(), signature.encode("utf-8", "replace")):
-        raise HTTPException(status.HTTP_403_FORBIDDEN, "invalid link signature")
+        raise Forbidden("invalid link signature")
     if (time.time() if now is None else now) > expires:
-        raise HTTPException(status.HTTP_403_FORBIDDEN, "link expired; ask the API for a fresh one")
+        raise Forbidden("link expired; ask the API for a fresh one")
 
 
 def signed_link(settings: Settings, route: str, *, key: str, base_url: str, expires: int) -> str:

@@ -1,4 +1,4 @@
-"""API models of spaces (separate from the ORM row `services.core.models.Space`)."""
+"""API models of spaces (separate from the ORM row `services.core.db.models.Space`)."""
 
 from __future__ import annotations
 
@@ -7,11 +7,11 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from services.core.cues import default_cues
-from services.core.jobspec import parse_unit_scale
-from services.core.keys import check_name
-from services.core.models import Space
-from services.core.spaces import frame_of
+from services.core.db.models import Space
+from services.core.domain.cues import default_cues
+from services.core.domain.jobspec import parse_unit_scale
+from services.core.domain.keys import check_name
+from services.core.ingest.frame import frame_of
 
 UpAxis = Literal["auto", "+x", "-x", "+y", "-y", "+z", "-z"]
 

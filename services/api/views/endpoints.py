@@ -13,8 +13,8 @@ from services.api.pagination import Page, PageDep
 from services.api.spaces.service import not_found
 from services.api.views import service
 from services.api.views.schemas import Plan, TaskRead, Throughput, ViewRead
-from services.core.cues import CATALOG
-from services.core.models import Task, TaskState
+from services.core.db.models import Task, TaskState
+from services.core.domain.cues import CATALOG
 
 router = APIRouter(prefix="/jobs/{job_id}", tags=["views"])
 

@@ -9,7 +9,7 @@ from sqlalchemy.orm import Session
 
 from services.api.pagination import PageParams
 from services.api.workers.schemas import CurrentTask, WorkerRead
-from services.core.models import Job, Task, Worker, utcnow
+from services.core.db.models import Job, Task, Worker, utcnow
 
 
 def list_workers(

@@ -18,6 +18,7 @@ from typing import Any
 
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.loading import LoadedSpace
+from services.core.temp_dirs import UPLOAD_KINDS, sweep_orphans
 
 # Children fork from a server process that has imported the loading code once: a check starts in
 # milliseconds instead of the second a fresh interpreter needs to import trimesh, and the fork happens in a
@@ -59,6 +60,8 @@ def load_space_limited(
         if proc.is_alive():
             proc.kill()
             proc.join()
+        if proc.exitcode != 0 and proc.pid is not None:  # killed by a limit: its zip extraction stays behind
+            sweep_orphans(UPLOAD_KINDS, only_pid=proc.pid)
     if kind == "ok":
         loaded: LoadedSpace = value
         return loaded
@@ -98,7 +101,8 @@ def _child(sender: Connection, path: str, up_axis: str, unit_scale: float | str,
     resource.setrlimit(resource.RLIMIT_AS, (memory, memory))
     resource.setrlimit(resource.RLIMIT_CPU, (int(limits["cpu_s"]), int(limits["cpu_s"]) + 1))
     try:
-        loaded = load_space(path, up_axis=up_axis, unit_scale=unit_scale)
+        # an ambiguous up is recorded, not refused: the space waits for a person to pick one
+        loaded = load_space(path, up_axis=up_axis, unit_scale=unit_scale, accept_up_guess=True)
         check_face_count(Path(path).name, loaded.face_count, int(limits["max_faces"]))
         # register_space reads the counts and transforms, not the visuals or parser metadata: leave those here
         slim = trimesh.Trimesh(vertices=loaded.mesh.vertices, faces=loaded.mesh.faces, process=False)

@@ -123,9 +123,13 @@ def test_sweep_removes_folders_of_dead_owners_only(tmp_path: Path) -> None:
         folder.mkdir()
         (folder / "scan.zip").write_bytes(b"x" * 10)
     os.utime(old_unnamed, (0, 0))
-    removed = sweep_orphans(("upload",), (tmp_path,))
-    assert sorted(removed) == sorted([theirs, old_unnamed])
-    assert mine.exists() and other_kind.exists() and not theirs.exists()
+    exr_dead = tmp_path / f"{owned_prefix('exr', dead_pid)}abc.exr"  # a worker killed while encoding
+    exr_live = tmp_path / f"{owned_prefix('exr')}abc.exr"
+    for f in (exr_dead, exr_live):
+        f.write_bytes(b"x")
+    removed = sweep_orphans(("upload", "exr"), (tmp_path,))
+    assert sorted(removed) == sorted([theirs, old_unnamed, exr_dead])
+    assert mine.exists() and other_kind.exists() and not theirs.exists() and exr_live.exists()
 
 
 def test_killed_api_leaves_no_upload_folder(tmp_path: Path, pg_url: str) -> None:

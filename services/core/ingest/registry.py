@@ -40,10 +40,15 @@ def _obj_companions(obj: Path) -> list[Path]:
     out: list[Path] = []
     mtl_re = re.compile(r"^\s*mtllib\s+(.+?)\s*$")
     map_re = re.compile(r"^\s*(map_\w+|bump|disp|decal|norm)\s+(?:-\S+\s+\S+\s+)*(.+?)\s*$", re.IGNORECASE)
+    mtls: list[str] = []
     with open(obj, errors="replace") as f:
-        mtls = [m.group(1) for line in f if (m := mtl_re.match(line))]
+        for line in f:
+            if not mtls and "mtllib" in line:  # trimesh reads the first 'mtllib' anywhere (a comment, a name)
+                mtls.append(line[line.index("mtllib") + len("mtllib"):].strip())
+            if m := mtl_re.match(line):
+                mtls.append(m.group(1))
     root = real_folder(obj)
-    for name in mtls:
+    for name in dict.fromkeys(n for n in mtls if n):
         mtl = obj.parent / name
         if not mtl.is_file() or not is_inside(mtl, root):  # never read (nor pack) a file outside the scan's folder
             continue

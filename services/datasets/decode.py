@@ -9,6 +9,7 @@ Units (what a training loop receives):
   normal               float32 3xHxW unit vectors, camera frame x right, y up, z towards the viewer; NaN = none
   depth_*              float32 1xHxW metres; NaN = no surface
   mask_valid           bool 1xHxW
+  mask_photo           bool 1xHxW (capture views: the rgb is a photo's here)
   reshading            float32 1xHxW in [0, 1]
   principal_curvature  float32 2xHxW k1, k2 in 1/m (clipped to +-1/curvature_clip_m); NaN = none
   edge_*               float32 1xHxW Sobel response (stored value / edge_scale)
@@ -137,7 +138,7 @@ def decode_cue(cue: str, data: bytes, params: CueParams | None = None) -> np.nda
         return _chw(normal_vectors(raw))
     if cue.startswith("depth_"):
         return _chw(depth_metres(raw, params))
-    if cue == "mask_valid":
+    if cue in ("mask_valid", "mask_photo"):
         return _chw(_grey(raw) > 0)
     if cue == "reshading":
         return _chw(_grey(raw).astype(np.float32) / 255.0)

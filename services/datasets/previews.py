@@ -98,7 +98,7 @@ def _grey_to_rgb(a: np.ndarray) -> np.ndarray:
 
 def _image_preview(cue: str, raw: np.ndarray, params: CueParams) -> np.ndarray:
     """HxWx3 uint8 of an image cue's stored array."""
-    if cue in ("rgb", "normal", "reshading", "mask_valid"):
+    if cue in ("rgb", "normal", "reshading", "mask_valid", "mask_photo"):
         return _grey_to_rgb(raw).astype(np.uint8)
     if cue.startswith("depth_"):
         d = as_uint16(raw)

@@ -84,6 +84,10 @@ class CameraSpec(_Strict):
         None, ge=FOV_LIMITS_DEG[0], le=FOV_LIMITS_DEG[1],
         description="field of view of exact capture views; None: the widest square the photo fills",
     )
+    capture_refine: bool = Field(
+        False, description="refine the capture's colour camera (focal length, principal point, offset) by "
+        "maximising the photo/geometry alignment score before planning; recorded in job.json"
+    )
 
     @model_validator(mode="after")
     def _check(self) -> CameraSpec:

@@ -71,15 +71,15 @@ def make_plan(
     salt = rng.bytes(16)
     cs = spec.cameras
     orbit = None  # an object's camera sphere: trajectory clips orbit its points
-    capture = None
+    capture, refined = None, None
     if cs.mode == "capture":
         from services.scheduler.planning import capture_views
 
-        capture = capture_views.require_capture(space, space_name)
         if cs.capture_views == "exact":
             return capture_views.exact_capture_plan(
                 space, spec, space_name, q, lambda name, pidx, cams, pts, views, short: _assemble(
                     name, salt, cams, "capture", cs, pts, np.unique(pidx), views, spec.views.resolution, short, []))
+        capture, refined = capture_views.planning_capture(space, spec, space_name, q)
         cams, source = capture_views.capture_positions(capture), "capture"
     elif cs.mode == "generate":
         cams, source = generate_cameras(q, cs, rng), "generated"
@@ -166,7 +166,7 @@ def make_plan(
     )
     plan = dataclasses.replace(plan, valid_fraction=valid_summary)
     if capture is not None:
-        plan = capture_views.annotate_fixated(plan, capture, vs.min_photo_coverage, photo_dropped)
+        plan = capture_views.annotate_fixated(plan, capture, vs.min_photo_coverage, photo_dropped, refined)
     stamp["assemble"] = time.perf_counter() - t3
     if timings is not None:
         timings.update(stamp)

@@ -5,10 +5,13 @@ webdataset: tar shards `OUT/shard-000000.tar`, ... with one sample per view keye
 file's bytes unchanged, and `<key>.json` with {space, component, point, view, point_info}. Per-point cues
 (nonfixated) go into every view of their point, so each sample stands alone.
 
-omnidata: the tree the public Omnidata dataloader (omnidata_tools/torch/dataloader) reads with no glue:
+omnidata: the tree the public Omnidata dataloader (omnidata_tools/torch/dataloader) reads:
 `OUT/<cue>/<component>/<space>/point_<p>_view_<v>_domain_<cue>.<ext>` (per-point files copied per view, since
-that loader parses every name as point_<p>_view_<v>_domain_<cue>), and its split CSV
-`OUT/component_datasets/<component>/train_val_test_<component>.csv` (id,train,val,test by space).
+that loader parses every name as point_<p>_view_<v>_domain_<cue>), and the split CSVs its component class opens
+(`OUT/component_datasets/<component>/train_val_test_*.csv`, id,train,val,test by space). That loader reads
+them only from its own package folder: `--loader-dir CHECKOUT` installs them there (also later, as
+`omnidata export OUT --loader-dir CHECKOUT`, which drops a stale `.data_cache` too); without it the one
+command that remains is printed. `--component` must name one of the loader's classes (public_loader.COMPONENTS).
 
 SOURCE is a job's output folder, s3://bucket/prefix of a job root, or a service job's id (its root `jobs/<id>` in
 OMNIDATA_STORAGE_URL), read through its manifest. The output is
@@ -32,6 +35,16 @@ from services.cli import CliError
 from services.core.cues import CATALOG, UnknownCueError, validate_cue_names
 from services.core.keys import JOB_JSON_KEY, check_name
 from services.core.storage import ObjectNotFoundError, ObjectStore
+from services.datasets.public_loader import (
+    COMPONENTS,
+    CUE_NOTES,
+    LoaderComponent,
+    LoaderDirError,
+    component,
+    find_dataloader,
+    install_splits,
+    split_rel_paths,
+)
 from services.datasets.source import (
     DatasetIntegrityError,
     ViewRecord,
@@ -42,19 +55,23 @@ from services.datasets.source import (
     read_file,
     select_cues,
 )
-from services.datasets.splits import DEFAULT_RATIOS, assign_splits, read_split_csv, split_csv_text
+from services.datasets.splits import DEFAULT_RATIOS, SPLITS, assign_splits, read_split_csv, split_csv_text
 
 FORMATS = ("webdataset", "omnidata")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("source", help="output folder of a job, s3://bucket/prefix of a job root, or a service job id")
-    p.add_argument("--format", required=True, choices=FORMATS, help="webdataset tar shards or the Omnidata tree")
-    p.add_argument("--out", required=True, type=Path, help="folder to create (must not exist or be empty)")
+    p.add_argument("--format", choices=FORMATS, help="webdataset tar shards or the Omnidata tree")
+    p.add_argument("--out", type=Path, help="folder to create (must not exist or be empty)")
     p.add_argument("--shard-size", type=int, default=1000, help="webdataset: samples (views) per shard")
     p.add_argument("--flat-keys", action="store_true", help="webdataset: keys without '/' (<space>__point_..)")
     p.add_argument("--cues", default=None, help="comma-separated cues to export (default: all the job has)")
-    p.add_argument("--component", default=None, help="omnidata: component folder name (default: the job's)")
+    p.add_argument("--component", default=None,
+                   help=f"omnidata: the loader class's component, one of {', '.join(COMPONENTS)} (default: the job's name)")
+    p.add_argument("--loader-dir", type=Path, default=None,
+                   help="omnidata: a checkout of the public dataloader to install the split CSVs into; with no "
+                        "--format, SOURCE is an omnidata export whose splits to install")
     p.add_argument("--split-seed", type=int, default=0, help="omnidata: seed of the split by space")
     p.add_argument("--split-ratios", default=",".join(map(str, DEFAULT_RATIOS)),
                    help="omnidata: train,val,test fractions of spaces")
@@ -72,11 +89,6 @@ def omnidata_path(cue: str, component: str, record: ViewRecord) -> str:
     """Path of a cue file of a view in the public loader's tree (every cue named per view)."""
     return (f"{cue}/{component}/{record.space}/"
             f"point_{record.point}_view_{record.view}_domain_{cue}.{CATALOG[cue].ext}")
-
-
-def split_csv_path(component: str) -> str:
-    """Where the public loader's convention puts a component's split CSV, relative to the export root."""
-    return f"component_datasets/{component}/train_val_test_{component}.csv"
 
 
 def _tar_member(tar: tarfile.TarFile, name: str, data: bytes) -> None:
@@ -139,19 +151,19 @@ class Exporter:
             tar.close()
         return shards
 
-    def omnidata(self, out: Path, *, component: str, splits: dict[str, str]) -> int:
-        """Write the public loader's tree and split CSV; returns the number of files written."""
+    def omnidata(self, out: Path, *, comp: LoaderComponent, splits: dict[str, str]) -> int:
+        """Write the public loader's tree and split CSVs; returns the number of files written."""
         n = 0
         for record in self._views("omnidata"):
             for cue in self.cues:
                 if cue in record.files:
-                    target = out / omnidata_path(cue, component, record)
+                    target = out / omnidata_path(cue, comp.name, record)
                     target.parent.mkdir(parents=True, exist_ok=True)
                     target.write_bytes(self.read(record, cue))
                     n += 1
-        csv = out / split_csv_path(component)
-        csv.parent.mkdir(parents=True)
-        csv.write_text(split_csv_text(splits))
+        for rel in split_rel_paths(comp):  # the same split under every name the class opens
+            (out / rel).parent.mkdir(parents=True, exist_ok=True)
+            (out / rel).write_text(split_csv_text(splits))
         if self.job is not None:
             (out / JOB_JSON_KEY).write_text(json.dumps(self.job, indent=2))
         return n
@@ -167,21 +179,60 @@ def _prepare_out(out: Path) -> Path:
     return tmp
 
 
-def _splits(args: argparse.Namespace, spaces: list[str]) -> dict[str, str]:
+def _splits(args: argparse.Namespace, comp: LoaderComponent, spaces: list[str]) -> dict[str, str]:
+    """Split per split-CSV id of the loader class (a Hypersim id groups the spaces that share its prefix)."""
+    ids = sorted({comp.split_id(s) for s in spaces})
     if args.split_csv is not None:
         try:
             members = read_split_csv(args.split_csv)
         except (OSError, ValueError) as e:
             raise CliError(f"--split-csv: {e}") from None
-        return {s: next((name for name, ids in members.items() if s in ids), "none") for s in spaces}
+        return {i: next((name for name, ids in members.items() if i in ids), "none") for i in ids}
     try:
         ratios = [float(x) for x in args.split_ratios.split(",")]
-        return assign_splits(spaces, seed=args.split_seed, ratios=ratios)
+        return assign_splits(ids, seed=args.split_seed, ratios=ratios)
     except ValueError as e:
         raise CliError(f"--split-ratios: {e}") from None
 
 
+def _split_warnings(splits: dict[str, str]) -> list[str]:
+    """One line per split that holds no space: the loader then gives 0 items for it, silently."""
+    empty = [s for s in SPLITS if s not in splits.values()]
+    if not empty:
+        return []
+    return [f"warning: the {' and '.join(empty)} split(s) hold no space ({len(splits)} space(s) in all): the "
+            "loader gives 0 items for them; choose with --split-csv or --split-ratios"]
+
+
+def _component(args: argparse.Namespace, exporter: Exporter) -> LoaderComponent:
+    name = args.component or (exporter.job or {}).get("job", {}).get("name") or exporter.records[0].component
+    try:
+        check_name("--component", name)
+        return component(name)
+    except ValueError as e:
+        hint = "" if args.component else " (the job's name; choose one with --component)"
+        raise CliError(f"--component: {e}{hint}") from None
+
+
+def _install(export_root: Path, loader_dir: Path) -> list[str]:
+    try:
+        return install_splits(export_root, loader_dir)
+    except (LoaderDirError, ValueError, OSError) as e:
+        raise CliError(f"--loader-dir: {e}") from None
+
+
+def _remaining_command(out: Path) -> str:
+    return ("the public loader reads split CSVs only from its own folder; one command remains: "
+            f"omnidata export {out} --loader-dir PATH_TO_YOUR_OMNIDATA_CHECKOUT")
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.format is None and args.loader_dir is not None:  # install the splits of an existing export
+        for line in _install(Path(args.source), args.loader_dir):
+            print(f"omnidata export: {line}")
+        return 0
+    if args.format is None or args.out is None:
+        raise CliError("--format and --out are required (or only --loader-dir, to install an export's splits)")
     if args.shard_size < 1:
         raise CliError(f"--shard-size must be >= 1, got {args.shard_size}")
     try:
@@ -190,20 +241,25 @@ def run(args: argparse.Namespace) -> int:
         exporter = Exporter(store, cues, verify=args.verify, progress=not args.no_progress)
     except (UnknownCueError, FileNotFoundError, ValueError) as e:
         raise CliError(str(e)) from None
-    component = args.component or (exporter.job or {}).get("job", {}).get("name") or exporter.records[0].component
-    try:
-        check_name("--component", component)
-    except ValueError as e:
-        raise CliError(str(e)) from None
-    splits = _splits(args, sorted({r.space for r in exporter.records})) if args.format == "omnidata" else {}
+    notes: list[str] = []
+    if args.format == "omnidata":
+        comp = _component(args, exporter)
+        if args.loader_dir is not None:
+            try:
+                find_dataloader(args.loader_dir)  # before writing anything
+            except LoaderDirError as e:
+                raise CliError(f"--loader-dir: {e}") from None
+        splits = _splits(args, comp, sorted({r.space for r in exporter.records}))
+        notes = _split_warnings(splits) + [f"note: {CUE_NOTES[c]}" for c in exporter.cues if c in CUE_NOTES]
     tmp = _prepare_out(args.out)
     try:
         if args.format == "webdataset":
             shards = exporter.webdataset(tmp, shard_size=args.shard_size, flat_keys=args.flat_keys)
             summary = f"{len(exporter.records)} samples in {len(shards)} shard(s)"
         else:
-            n = exporter.omnidata(tmp, component=component, splits=splits)
-            summary = f"{n} files of {len(exporter.records)} views, split CSV {split_csv_path(component)}"
+            n = exporter.omnidata(tmp, comp=comp, splits=splits)
+            summary = (f"{n} files of {len(exporter.records)} views for {comp.class_name}, "
+                       f"split CSV {split_rel_paths(comp)[0]}")
         if args.out.exists():
             args.out.rmdir()
         tmp.rename(args.out)
@@ -215,4 +271,10 @@ def run(args: argparse.Namespace) -> int:
         if tmp.exists():
             shutil.rmtree(tmp)
     print(f"omnidata export: {summary} in {args.out}")
+    for line in notes:
+        print(f"omnidata export: {line}", file=sys.stderr)
+    if args.format == "omnidata":
+        lines = _install(args.out, args.loader_dir) if args.loader_dir is not None else [_remaining_command(args.out)]
+        for line in lines:
+            print(f"omnidata export: {line}")
     return 0

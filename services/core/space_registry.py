@@ -19,6 +19,7 @@ from typing import Any
 
 from sqlalchemy.orm import Session
 
+from services.core.ingest.datasets import DatasetError, scene_mesh_in, scene_of
 from services.core.keys import check_name
 from services.core.models import Space
 from services.core.scan_formats import scannet_companions
@@ -59,8 +60,26 @@ def _gltf_companions(gltf: Path) -> list[Path]:
     return [gltf.parent / u for u in uris if u and not u.startswith("data:") and (gltf.parent / u).is_file()]
 
 
+def _dataset_pack(source: Path) -> tuple[Path, list[Path]] | None:
+    """(base folder, files) of a public dataset's scene (a scene folder or its mesh file): what it needs,
+    not its raw captures (e.g. ScanNet's .sens); None when `source` is not one."""
+    mesh = scene_mesh_in(source) if source.is_dir() else source
+    try:
+        scene = scene_of(mesh) if mesh is not None else None
+    except DatasetError as e:
+        raise SpaceError(str(e)) from None
+    if scene is None:
+        return None
+    extra = _obj_companions(scene.mesh) if scene.mesh.suffix.lower() == ".obj" else []
+    files = list(dict.fromkeys([*scene.files, *extra]))
+    base = source if source.is_dir() else Path(os.path.commonpath([f.parent for f in files]))
+    return base, [f for f in files if base in f.resolve().parents or base in f.parents]
+
+
 def _files_to_pack(source: Path, mesh_file: Path) -> tuple[Path, list[Path]]:
     """(base folder, files) that a mesh needs, for zipping."""
+    if (dataset := _dataset_pack(source)) is not None:
+        return dataset
     if source.is_dir():
         files = [p for p in sorted(source.rglob("*")) if p.is_file() and not p.is_symlink()]
         return source, files
@@ -78,7 +97,8 @@ def _files_to_pack(source: Path, mesh_file: Path) -> tuple[Path, list[Path]]:
 
 def pack_source(source: Path, mesh_file: Path, workdir: Path) -> Path:
     """The single file to upload for `source`: itself, or a deterministic zip of what the mesh needs."""
-    if source.is_file() and source.suffix.lower() in SINGLE_FILE_SUFFIXES and scannet_companions(source) is None:
+    if (source.is_file() and source.suffix.lower() in SINGLE_FILE_SUFFIXES and scannet_companions(source) is None
+            and _dataset_pack(source) is None):
         return source
     base, files = _files_to_pack(source, mesh_file)
     total = sum(f.stat().st_size for f in files)

@@ -52,6 +52,7 @@ from services.core.gravity import (
     estimate_up,
     floor_evidence,
 )
+from services.core.ingest.datasets import DatasetError, DatasetScene, scene_mesh_in, scene_of
 from services.core.jobspec import UP_AXES, similarity_scale
 from services.core.pointcloud import (
     CLOUD_SUFFIXES,
@@ -266,6 +267,9 @@ def resolve_source(
 
 
 def _one_mesh(folder: Path, what: str) -> Path:
+    dataset_mesh = scene_mesh_in(folder)  # a public dataset's scene folder: the mesh its layout renders
+    if dataset_mesh is not None:
+        return dataset_mesh
     meshes = _meshes_in(folder)
     if not meshes:
         raise SpaceError(f"{what} holds no mesh ({', '.join(MESH_SUFFIXES)})")
@@ -614,8 +618,26 @@ def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: FrameRequest) -> tu
     return source_to_world_matrix(est.up, units.scale), est, units
 
 
+def _dataset_scene(source: Path, frame: FrameRequest) -> tuple[DatasetScene | None, FrameRequest]:
+    """The public dataset scene of a mesh (refusing an unusable release), and the frame: the dataset's
+    convention (up axis, units, a shipped alignment) wherever the caller left the frame to detection."""
+    try:
+        scene = scene_of(source)
+    except DatasetError as e:
+        raise SpaceError(str(e)) from None
+    if scene is None:
+        return None, frame
+    auto_up = frame.up_axis == "auto" and frame.up is None and frame.source_to_world is None
+    if auto_up and frame.unit_scale == "auto" and scene.source_to_world is not None:
+        return scene, FrameRequest("auto", "auto", None, scene.source_to_world)
+    up_axis = scene.up_axis if auto_up and scene.up_axis is not None else frame.up_axis
+    unit_scale = scene.unit_scale if frame.unit_scale == "auto" and scene.unit_scale is not None else frame.unit_scale
+    return scene, FrameRequest(up_axis, unit_scale, frame.up, frame.source_to_world)
+
+
 def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Path | None) -> LoadedSpace:
     name = source.name
+    scene, frame = _dataset_scene(source, frame)
     from services.core.mesh_checks import check_source  # it imports SpaceError from here
 
     source_notes = check_source(source)  # truncation, counts over the limits, unsafe paths: before parsing
@@ -636,6 +658,14 @@ def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Pa
     face_class, face_instance, notes = _read_ply_semantics(mesh, source) if reconstruction is None else (None, None, [])
     notes = source_notes + notes
     class_names = None
+    if scene is not None and face_class is None and face_instance is None:
+        try:
+            labels = scene.labels(mesh)
+        except DatasetError as e:
+            raise SpaceError(f"{scene.dataset} scene {scene.scene_id}: {e}") from None
+        if labels is not None:
+            face_class, face_instance, class_names = labels.face_class, labels.face_instance, labels.class_names
+            notes.extend(labels.notes)
     if face_class is None and face_instance is None and reconstruction is None:
         scannet = scannet_labels(mesh, source) if source.suffix.lower() == ".ply" else None
         if scannet is not None:

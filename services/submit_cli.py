@@ -23,7 +23,7 @@ from typing import Any
 
 from services.cli import CliError
 from services.core.models import JOB_TERMINAL_STATES, TASK_TERMINAL_STATES, JobState, TaskState
-from services.spec_args import add_spec_arguments, build_spec, check_sources
+from services.spec_args import add_spec_arguments, build_spec, check_sources, refused_summary, usable
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -258,6 +258,9 @@ def run(args: argparse.Namespace) -> int:
         raise CliError("--direct needs OMNIDATA_DATABASE_URL: the database the service's scheduler reads")
     spec = build_spec(args)
     sources = check_sources(args.spaces)
+    if refused := refused_summary(sources):
+        print(f"omnidata submit: refused scene(s), left out of the job:\n{refused}", file=sys.stderr)
+    sources = usable(sources)
     if args.api:
         api = Api(args.api, args.token)
         job_id = submit_http(api, spec, sources)

@@ -27,7 +27,8 @@ LAYOUTS: tuple[ModuleType, ...] = (
 
 MAX_ROOT_DEPTH = 3  # ScanNet/scans/<scene>, hm3d/train/<scene>, Matterport v1/scans/<house>
 
-__all__ = ["DatasetError", "DatasetScene", "SceneLabels", "ScenePath", "find_scenes", "scene_mesh_in", "scene_of"]
+__all__ = ["DatasetError", "DatasetScene", "SceneLabels", "ScenePath", "expand_roots", "find_scenes", "scene_mesh_in",
+           "scene_of"]
 
 
 def scene_mesh_in(folder: Path) -> Path | None:
@@ -92,3 +93,20 @@ def find_scenes(root: Path) -> list[ScenePath]:
                     below.append(child)
         level = below
     return found
+
+
+def is_dataset_root(path: Path) -> bool:
+    """A folder that is no scene itself but holds scenes of a known dataset below it."""
+    return path.is_dir() and scene_mesh_in(path) is None and bool(find_scenes(path))
+
+
+def expand_roots(paths: list[Path]) -> list[ScenePath]:
+    """Each path as a space: a dataset root becomes its scenes (named by scene id, refused ones kept with
+    the reason); anything else stays one space named by its own file or folder (dataset None)."""
+    out: list[ScenePath] = []
+    for path in paths:
+        if is_dataset_root(path):
+            out.extend(find_scenes(path))
+        else:
+            out.append(ScenePath(path.name, path, None))
+    return out

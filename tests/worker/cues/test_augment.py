@@ -17,8 +17,8 @@ from services.core.jobspec import CueParams, JobSpec
 from services.datasets.decode import decode_cue
 from services.worker.context import ViewContext
 from services.worker.cues.augment_params import draw, linear_to_srgb, srgb_to_linear
-from services.worker.cues.fog import fog
 from services.worker.cues.flash import flash
+from services.worker.cues.fog import fog
 from services.worker.cues.motion_blur import motion_blur
 from services.worker.cues.refocus import coc_radius_px, refocus
 from services.worker.executor import produce

@@ -56,22 +56,35 @@ def test_generate_on_dataset_roots(tmp_path: Path) -> None:
         ds.write_scannet_scene(scans, scene)
     ds.write_hm3d_scene(split)
     ds.write_hm3d_scene(split, "00801", "HaxA7YrQdEC", plain=False)  # only the Basis release: refused
+    roots = [scans, split, tmp_path / "v1" / "scans", tmp_path / "replica", tmp_path / "3RScan",
+             tmp_path / "scannetpp" / "data", tmp_path / "gibson"]
+    ds.write_matterport_house(roots[2])
+    ds.write_replica_scene(roots[3])
+    ds.write_3rscan_scene(roots[4])
+    ds.write_scannetpp_scene(roots[5])
+    ds.write_gibson_building(roots[6])  # unlabelled: refused for the semantic cues, the others go on
     spec = tmp_path / "spec.yaml"
     spec.write_text(SPEC)
     out = tmp_path / "out"
-    res = omnidata("generate", scans, split, "--out", out, "--spec", spec, "--workers", 1, "--name", "datasets",
-                   "--seed", 3, timeout=600)
+    res = omnidata("generate", *roots, "--out", out, "--spec", spec, "--workers", 1, "--name", "datasets",
+                   "--seed", 3, timeout=900)
     assert res.returncode == 0, res.stderr
     assert "refused scene(s)" in res.stderr and "00801-HaxA7YrQdEC: HaxA7YrQdEC.basis.glb" in res.stderr
     assert "HaxA7YrQdEC.glb" in res.stderr and "spaces: 100%" in res.stderr  # the bar over spaces
+    assert "Allensville: cue 'segment_semantic' needs semantic labels" in res.stderr
     job = json.loads((out / "job.json").read_text())
-    assert sorted(job["spaces"]) == ["00800-TEEsavR23oF", "scene0000_00", "scene0001_01"]
-    hm3d_ids = {"ceiling": 1, "floor": 2, "table": 3, "wall": 4}
+    hm3d_ids = {"ceiling": 1, "floor": 2, "table": 3, "wall": 4}  # sorted category names
+    in_order = {p: p + 1 for p in range(7)}
     expectations = {
-        "scene0000_00": (ds.NYU40, {p: p + 1 for p in range(7)}),
-        "scene0001_01": (ds.NYU40, {p: p + 1 for p in range(7)}),
-        "00800-TEEsavR23oF": (hm3d_ids, {p: p + 1 for p in range(7)}),
+        "scene0000_00": (ds.NYU40, in_order),
+        "scene0001_01": (ds.NYU40, in_order),
+        "00800-TEEsavR23oF": (hm3d_ids, in_order),
+        "17DRP5sb8fy": ({n: i for n, (i, _) in ds.MPCAT40.items()}, {0: 1, 1: 2, 2: 3, 4: 4, 6: 5, 3: 6, 5: 7}),
+        "room_0": (ds.REPLICA, {p: 3 * p + 2 for p in range(7)}),
+        "f62fd5fd-9a3f-2f44-883a-1e5cf819608e": (ds.NYU40, in_order),
+        "0a5c013435": (hm3d_ids, in_order),  # metadata/semantic_classes.txt happens to list them sorted
     }
+    assert sorted(job["spaces"]) == sorted(expectations)
     views = 0
     for space, (classes, instances) in expectations.items():
         for info in sorted((out / "point_info" / "datasets" / space).glob("*.json")):

@@ -18,6 +18,7 @@ from typing import Any
 
 from services.cli import CliError
 from services.core.camera import CONVENTIONS
+from services.core.ingest.datasets import expand_roots
 from services.core.jobspec import cues_for_space
 from services.core.keys import JOB_JSON_KEY, output_key
 from services.core.manifest import code_version
@@ -72,7 +73,14 @@ def _space_record(given: str, space: LoadedSpace) -> dict[str, Any]:
 def run(args: argparse.Namespace) -> int:
     """Plan every SPACE and write the plan-stage cues; see the module docstring."""
     spec = build_spec(args)
-    names = distinct_space_names([Path(s) for s in args.spaces])
+    scenes = expand_roots([Path(s) for s in args.spaces])  # a dataset root: its scenes, named by scene id
+    for scene in scenes:
+        if scene.refused is not None:
+            print(f"omnidata plan: refused scene {scene.scene_id}: {scene.refused}", file=sys.stderr)
+    given_spaces = [str(s.folder) for s in scenes if s.refused is None]
+    if not given_spaces:
+        raise CliError("every scene was refused")
+    names = distinct_space_names([Path(s) for s in given_spaces])
     out: Path = args.out
     if out.exists() and not out.is_dir():
         raise CliError(f"--out {out}: exists and is not a folder")
@@ -80,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
     spaces: dict[str, dict[str, Any]] = {}
     with tempfile.TemporaryDirectory(prefix="omnidata-plan-") as tmp:
         loaded: list[tuple[str, str, LoadedSpace]] = []
-        for i, (given, name) in enumerate(zip(args.spaces, names, strict=True)):
+        for i, (given, name) in enumerate(zip(given_spaces, names, strict=True)):
             try:
                 space = load_space(given, **spec.space_frame(), extract_dir=Path(tmp) / str(i))
                 cues_for_space(spec, has_semantics=space.has_semantics)

@@ -29,8 +29,8 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.render import ROOM, ROOM_NAME, room_plan  # noqa: E402
-from services.core.jobspec import CueParams  # noqa: E402
-from services.core.spaces import load_space  # noqa: E402
+from services.core.domain.jobspec import CueParams  # noqa: E402
+from services.core.ingest.loading import load_space  # noqa: E402
 from services.worker.executor import make_context, produce  # noqa: E402
 from services.worker.passes import ViewGeometry  # noqa: E402
 from services.worker.space_cache import SpaceContext  # noqa: E402

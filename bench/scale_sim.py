@@ -51,14 +51,15 @@ from sqlalchemy import func, select, text
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.fanout import create_database, drop_database, labelled_space, percentiles, synthetic_plan  # noqa: E402
-from services.core.db import make_engine, make_sessionmaker, migrate  # noqa: E402
-from services.core.jobs import create_job  # noqa: E402
-from services.core.jobspec import JobSpec  # noqa: E402
-from services.core.models import Space, Task  # noqa: E402
+from services.core.db.engine import make_engine, make_sessionmaker, migrate  # noqa: E402
+from services.core.db.jobs import create_job  # noqa: E402
+from services.core.db.models import Space, Task  # noqa: E402
+from services.core.domain.jobspec import JobSpec  # noqa: E402
 from services.core.settings import Settings, get_settings  # noqa: E402
 from services.core.storage import LocalStore  # noqa: E402
+from services.worker.claim import Claimed
 from services.worker.heartbeat import Heartbeat  # noqa: E402
-from services.worker.runner import TaskRunner, _Claimed  # noqa: E402
+from services.worker.runner import TaskRunner
 from services.worker.tasks import worker_engine  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -82,7 +83,7 @@ class SleepingRunner(TaskRunner):
         self.rng = random.Random(hash(self.worker_id))
         self.slept = 0.0
 
-    def _execute(self, t: _Claimed) -> tuple[str, Any]:
+    def execute(self, t: Claimed) -> tuple[str, Any]:
         self.slept = self.task_s * self.rng.uniform(0.8, 1.2)
         if self.killed.wait(self.slept):
             raise Killed(t.id)

@@ -1,4 +1,4 @@
-"""services/spec_args.py: the one parser of SPACE arguments and JobSpec flags for plan, generate and submit."""
+"""services/cli/spec_args.py: the one parser of SPACE arguments and JobSpec flags for plan, generate and submit."""
 
 from __future__ import annotations
 
@@ -7,9 +7,10 @@ from pathlib import Path
 
 import pytest
 
-from services.cli import CliError, build_parser
-from services.core.keys import space_name
-from services.spec_args import build_spec, check_sources, distinct_space_names
+from services.cli import CliError
+from services.cli.main import build_parser
+from services.cli.spec_args import build_spec, check_sources, distinct_space_names
+from services.core.domain.keys import space_name
 
 SPEC_FLAGS = {"--spec", "--cues", "--points", "--min-views", "--resolution", "--seed", "--name", "--up-axis", "--up",
               "--unit-scale", "--source-to-world"}
@@ -77,7 +78,7 @@ def test_frame_flags_set_the_frame_fields(tmp_path: Path) -> None:
 
 
 def test_a_dataset_root_is_one_source_per_scene_named_by_its_id(tmp_path: Path) -> None:
-    from services.spec_args import refused_summary, usable
+    from services.cli.spec_args import refused_summary, usable
     from tests.fixtures import scan_datasets as ds
 
     scans, split = tmp_path / "ScanNet" / "scans", tmp_path / "hm3d" / "train"

@@ -1,6 +1,6 @@
 """Completion: finish running jobs whose counters say nothing is pending, queued or running.
 
-For each such job: write manifest.jsonl and job.json (services.core.manifest), delete the internal pass
+For each such job: write manifest.jsonl and job.json (services.core.db.manifest), delete the internal pass
 cache, and set the job done, or failed with a summary when any task failed. Reads counters only.
 """
 
@@ -12,11 +12,11 @@ from dataclasses import dataclass
 from sqlalchemy import exists, select
 from sqlalchemy.orm import Session
 
-from services.core.db import job_progress
-from services.core.jobs import root_key
-from services.core.manifest import write_job_files
-from services.core.models import TASK_ACTIVE_STATES, Job, JobCounter, JobState, Task, TaskState, utcnow
-from services.core.states import set_job_state
+from services.core.db.counters import job_progress
+from services.core.db.jobs import root_key
+from services.core.db.manifest import write_job_files
+from services.core.db.models import TASK_ACTIVE_STATES, Job, JobCounter, JobState, Task, TaskState, utcnow
+from services.core.db.states import set_job_state
 from services.core.storage import ObjectStore
 
 log = logging.getLogger(__name__)

@@ -28,9 +28,9 @@ from typing import Any
 from sqlalchemy import case, func, literal, or_, select, text
 from sqlalchemy.orm import Session
 
-from services.core.cues import CATALOG
-from services.core.models import Job, JobCounter, JobState, Task, TaskState, utcnow
-from services.core.states import transition
+from services.core.db.models import Job, JobCounter, JobState, Task, TaskState, utcnow
+from services.core.db.states import transition
+from services.core.domain.cues import CATALOG
 from services.scheduler.transport import Transport
 
 log = logging.getLogger(__name__)

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from services.cli import main
-from services.datasets.export import _split_warnings
+from services.cli.export import _split_warnings
 from services.datasets.public_loader import COMPONENTS, TASKONOMY_DATA_AMOUNTS, component
 
 omnidata_tools = pytest.importorskip("omnidata_tools", reason="dev dependency omnidata-tools")

@@ -15,9 +15,9 @@ import numpy as np
 import OpenEXR
 from PIL import Image
 
-from services.core.cues import get_cue
-from services.core.exr import decode_exr_rgb  # noqa: F401  (re-exported: the inverse of encode_exr_rgb)
-from services.core.plan import encode_json
+from services.core.domain.cues import get_cue
+from services.core.domain.exr import decode_exr_rgb  # noqa: F401  (re-exported: the inverse of encode_exr_rgb)
+from services.core.domain.plan_cues import encode_json
 
 # zlib level 3 with the Z_RLE strategy: on a room's cue images (bench/render.py, png_settings) about 20% faster
 # than level 3's default strategy and 2-3x faster than Pillow's default level 6, files ~1% larger than level 3's.

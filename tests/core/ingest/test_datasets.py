@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from services.core.ingest.datasets import find_scenes, scene_mesh_in
-from services.core.space_registry import pack_source
-from services.core.spaces import LoadedSpace, SpaceError, load_space, resolve_source
+from services.core.ingest.loading import LoadedSpace, SpaceError, load_space, resolve_source
+from services.core.ingest.registry import pack_source
 from tests.fixtures import scan_datasets as ds
 from tests.fixtures.scan_datasets import MPCAT40, NYU40, PARTS, REPLICA
 

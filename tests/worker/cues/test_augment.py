@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from services.core.augment_spec import AugmentParams, Dist
-from services.core.jobspec import CueParams, JobSpec
+from services.core.domain.augment_spec import AugmentParams, Dist
+from services.core.domain.jobspec import CueParams, JobSpec
 from services.datasets.decode import decode_cue
 from services.worker.context import ViewContext
 from services.worker.cues.augment_params import draw, linear_to_srgb, srgb_to_linear

@@ -12,6 +12,7 @@ from services.worker.cues import (  # noqa: F401  (imported for their @register 
     fog,
     keypoints,
     motion_blur,
+    photo,
     plan_cues,
     refocus,
     segmentation,

@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import sqlite3
 import subprocess
 import sys
@@ -72,6 +73,12 @@ def median(values: list[float]) -> float:
     return s[n // 2] if n % 2 else 0.5 * (s[n // 2 - 1] + s[n // 2])
 
 
+def children_cpu_s() -> float:
+    """CPU seconds of every finished child process tree (generate reaps its workers, so theirs count too)."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
 def generate(room: str, cores: str, out: Path, spec: Path, workers: int | None) -> dict:
     """Run `omnidata generate` pinned to `cores`; wall seconds, views, and per-cue task seconds from its task rows."""
     space, extra = ROOMS[room]
@@ -80,10 +87,10 @@ def generate(room: str, cores: str, out: Path, spec: Path, workers: int | None) 
     if workers is not None:
         cmd += ["--workers", str(workers)]
     before = load()
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), children_cpu_s()
     run = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True,
                          env={**os.environ, "PYTHONPATH": str(ROOT)})
-    wall = time.perf_counter() - t0
+    wall, cpu = time.perf_counter() - t0, children_cpu_s() - cpu0
     if run.returncode != 0:
         raise RuntimeError(f"generate {room} failed ({run.returncode}): {run.stderr[-2000:]}")
     views = len((out / "manifest.jsonl").read_text().splitlines())
@@ -91,7 +98,8 @@ def generate(room: str, cores: str, out: Path, spec: Path, workers: int | None) 
         rows = db.execute("SELECT cue, SUM(duration_s), COUNT(*) FROM task WHERE state = 'done' GROUP BY cue")
         per_cue = {cue: round(total / views, 4) for cue, total, _ in rows}
     return {"views": views, "wall_s": round(wall, 2), "wall_s_per_view": round(wall / views, 4),
-            "views_per_s": round(views / wall, 3), "load_before": before, "load_after": load(),
+            "views_per_s": round(views / wall, 3), "cpu_s": round(cpu, 2), "cpu_s_per_view": round(cpu / views, 4),
+            "load_before": before, "load_after": load(),
             "task_s_per_view": dict(sorted(per_cue.items(), key=lambda kv: -kv[1])),
             "task_s_per_view_total": round(sum(per_cue.values()), 4)}
 
@@ -108,7 +116,8 @@ def floor(room: str, core: str, out: Path, frame: dict) -> dict:
     wall = times["wall"]
     return {"views": len(wall), "s_per_view_median": round(median(wall), 4), "s_per_view_mean": round(
         sum(wall) / len(wall), 4), "s_per_view_worst": round(max(wall), 4),
-            "cpu_s_per_view_median": round(median(times["cpu"]), 4), "load_before": before, "load_after": load()}
+            "cpu_s_per_view_median": round(median(times["cpu"]), 4),
+            "cpu_s_per_view_mean": round(sum(times["cpu"]) / len(wall), 4), "load_before": before, "load_after": load()}
 
 
 DERIVED_EXCLUDE = ("passes",)  # the render task; every other task is a derivation (and its encoding)
@@ -117,10 +126,12 @@ DERIVED_EXCLUDE = ("passes",)  # the render task; every other task is a derivati
 def summarise(repeats: list[dict]) -> dict:
     """Per-repeat ratios to the floor (mean floor per view, as the end-to-end figure is a mean), median and worst."""
     e2e = [r["generate"]["wall_s_per_view"] / r["floor"]["s_per_view_mean"] for r in repeats]
+    e2e_cpu = [r["generate"]["cpu_s_per_view"] / r["floor"]["cpu_s_per_view_mean"] for r in repeats]
     passes = [r["generate"]["task_s_per_view"].get("passes", 0.0) / r["floor"]["s_per_view_mean"] for r in repeats]
     derived = [sum(v for k, v in r["generate"]["task_s_per_view"].items() if k not in DERIVED_EXCLUDE)
                / r["floor"]["s_per_view_mean"] for r in repeats]
     out = {"end_to_end_to_floor": {"median": round(median(e2e), 2), "worst": round(max(e2e), 2)},
+           "end_to_end_cpu_to_floor_cpu": {"median": round(median(e2e_cpu), 2), "worst": round(max(e2e_cpu), 2)},
            "passes_task_to_floor": {"median": round(median(passes), 2), "worst": round(max(passes), 2)},
            "derivations_to_floor": {"median": round(median(derived), 2), "worst": round(max(derived), 2)}}
     multi = [r["all_cores"]["views_per_s"] / r["generate"]["views_per_s"] for r in repeats if "all_cores" in r]

@@ -35,10 +35,13 @@ from sqlalchemy.orm import Session
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from services.api.jobs.service import RateTracker, detail_statement, fetch_job_detail  # noqa: E402
-from services.core.cues import closure, default_cues  # noqa: E402
-from services.core.db import bulk_insert, init_counts, make_engine, migrate  # noqa: E402
-from services.core.models import Job, JobCounter, JobSpace, Space, Task, utcnow  # noqa: E402
+from services.api.jobs.service import detail_statement, fetch_job_detail
+from services.api.progress.rates import RateTracker
+from services.core.db.bulk import bulk_insert
+from services.core.db.counters import init_counts
+from services.core.db.engine import make_engine, migrate
+from services.core.db.models import Job, JobCounter, JobSpace, Space, Task, utcnow  # noqa: E402
+from services.core.domain.cues import closure, default_cues  # noqa: E402
 from services.core.settings import hash_token  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -102,7 +105,7 @@ def populate(url: str, owner: str) -> tuple[int, int]:
         init_counts(s, job.id, dict.fromkeys(cues, views))
         job.total_tasks = n
         s.commit()
-        # a third of the tasks done: counters moved as services.core.db.transition would
+        # a third of the tasks done: counters moved as services.core.db.states.transition would
         s.execute(
             update(Task).where(Task.job_id == job.id, Task.id % 3 == 0)
             .values(state="done", duration_s=0.5, finished_at=utcnow())

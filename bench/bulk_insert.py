@@ -1,4 +1,4 @@
-"""Benchmark: 200k task rows through services.core.db.bulk_insert on a fresh Postgres database and on SQLite.
+"""Benchmark: 200k task rows through services.core.db.bulk.bulk_insert on a fresh Postgres database and on SQLite.
 
 Writes bench/results/bulk_insert.json. Times include the commit. Run: .venv/bin/python bench/bulk_insert.py
 """
@@ -22,8 +22,9 @@ from sqlalchemy.orm import Session
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from services.core.db import bulk_insert, make_engine, migrate  # noqa: E402
-from services.core.models import Job, Task  # noqa: E402
+from services.core.db.bulk import bulk_insert
+from services.core.db.engine import make_engine, migrate
+from services.core.db.models import Job, Task  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 PG_ADMIN_URL = os.environ.get("OMNIDATA_TEST_PG_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/postgres")
@@ -84,7 +85,7 @@ def main() -> int:
 
     result = {
         "benchmark": "bulk_insert",
-        "what": "task rows inserted by services.core.db.bulk_insert in one transaction (commit included)",
+        "what": "task rows inserted by services.core.db.bulk.bulk_insert in one transaction (commit included)",
         "postgres_copy": pg,
         "sqlite_executemany": lite,
         "python": platform.python_version(),

@@ -24,7 +24,7 @@ from typing import Any
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from services.cli import main  # noqa: E402
-from services.core.cues import default_cues  # noqa: E402
+from services.core.domain.cues import default_cues  # noqa: E402
 from services.core.storage import LocalStore  # noqa: E402
 from services.datasets import OmnidataDataset  # noqa: E402
 from services.datasets.previews import cached_preview  # noqa: E402

@@ -15,7 +15,7 @@ On a fresh Postgres database and real Redis (Celery send_task by name, pipelined
    no-op consumer process pops the messages from Redis and marks the tasks done (queued -> running ->
    done, in batches). Reported: tasks / wall second from the first to the last send. Here the scheduler,
    the consumer, Postgres and Redis compete for the same cores, so this is a floor, not the capacity.
-3. progress: p50/p99 of services.core.db.job_progress on a job with ~1M task rows (idle database), and
+3. progress: p50/p99 of services.core.db.counters.job_progress on a job with ~1M task rows (idle database), and
    under load (polled every 20 ms from another process during step 2b). COUNT(*) by state on the 1M job for comparison.
 
 Writes bench/results/fanout.json. Run: .venv/bin/python bench/fanout.py [--views 10000]
@@ -45,15 +45,16 @@ from sqlalchemy.engine import make_url
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from services.core.cues import OUTPUT_CUES  # noqa: E402
-from services.core.db import job_progress, make_engine, make_sessionmaker, migrate  # noqa: E402
-from services.core.jobs import create_job  # noqa: E402
-from services.core.jobspec import JobSpec  # noqa: E402
-from services.core.models import Job, Space, Task, utcnow  # noqa: E402
-from services.core.plan import CameraPose, PlannedView, PointOfInterest, SpacePlan  # noqa: E402
+from services.core.db.counters import job_progress
+from services.core.db.engine import make_engine, make_sessionmaker, migrate
+from services.core.db.jobs import create_job  # noqa: E402
+from services.core.db.models import Job, Space, Task, utcnow  # noqa: E402
+from services.core.db.states import transition  # noqa: E402
+from services.core.domain.cues import OUTPUT_CUES  # noqa: E402
+from services.core.domain.jobspec import JobSpec  # noqa: E402
+from services.core.domain.plan import CameraPose, PlannedView, PointOfInterest, SpacePlan  # noqa: E402
+from services.core.ingest.registry import register_space  # noqa: E402
 from services.core.settings import get_settings  # noqa: E402
-from services.core.space_registry import register_space  # noqa: E402
-from services.core.states import transition  # noqa: E402
 from services.core.storage import LocalStore  # noqa: E402
 from services.scheduler.compile import compile_tasks  # noqa: E402
 from services.scheduler.completion import complete_once  # noqa: E402
@@ -386,7 +387,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             spans = [("done", 0, int(0.4 * n)), ("queued", int(0.4 * n), int(0.4 * n) + 2000),
                      ("running", int(0.4 * n) + 2000, int(0.4 * n) + 3000), ("failed", int(0.4 * n) + 3000,
                                                                              int(0.4 * n) + 3100)]
-            # along allowed transitions only (services/core/states.py): pending -> queued -> running -> final
+            # along allowed transitions only (services/core/db/states.py): pending -> queued -> running -> final
             path = {"queued": ["queued"], "running": ["queued", "running"], "done": ["queued", "running", "done"],
                     "failed": ["queued", "running", "failed"]}
             for state, a, b in spans:

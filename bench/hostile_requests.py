@@ -28,7 +28,7 @@ import httpx
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from services.core.db import migrate  # noqa: E402
+from services.core.db.engine import migrate  # noqa: E402
 from services.core.settings import hash_token  # noqa: E402
 
 BODY_MB = 50

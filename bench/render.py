@@ -42,11 +42,11 @@ from PIL import Image  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from services.core.camera import look_at  # noqa: E402
-from services.core.cues import CATALOG, default_cues  # noqa: E402
-from services.core.jobspec import CueParams, JobSpec  # noqa: E402
-from services.core.plan import CameraPose, PlannedView, PointOfInterest, SpacePlan  # noqa: E402
-from services.core.spaces import load_space  # noqa: E402
+from services.core.domain.camera import look_at  # noqa: E402
+from services.core.domain.cues import CATALOG, default_cues  # noqa: E402
+from services.core.domain.jobspec import CueParams, JobSpec  # noqa: E402
+from services.core.domain.plan import CameraPose, PlannedView, PointOfInterest, SpacePlan  # noqa: E402
+from services.core.ingest.loading import load_space  # noqa: E402
 from services.scheduler.planning import make_plan, space_rng  # noqa: E402
 from services.worker.cues.encoding import encode_png  # noqa: E402
 from services.worker.cues.registry import cue_value  # noqa: E402
@@ -136,9 +136,9 @@ sys.path.insert(0, sys.argv[2])
 if sys.argv[1] == "plain-import":
     import bpy  # noqa: F401  (what the worker did before: Blender's thread pool sized to every CPU)
 import numpy as np, trimesh
-from services.core.jobspec import CueParams
+from services.core.domain.jobspec import CueParams
 from services.worker.passes import ViewGeometry
-from services.core.camera import look_at
+from services.core.domain.camera import look_at
 from services.worker.space_cache import SpaceContext
 space = SpaceContext(key="box", mesh=trimesh.creation.box(), threads=1)
 space.render(ViewGeometry(look_at(np.array([3.0, 2.0, 1.0]), np.zeros(3)), 1.0, 64), CueParams())
@@ -151,7 +151,7 @@ print((sum(os.times()[:2]) - c0) / (time.monotonic() - t0))
 
 def idle_cpu(seconds: float = 5.0) -> dict:
     """CPU (fraction of one core) of an idle process that rendered once with 1 render thread on all CPUs: as the
-    worker imports bpy now (services.worker.bpy_threads) and with a plain `import bpy` (the sched_yield spin)."""
+    worker imports bpy now (services.worker.blender.threads) and with a plain `import bpy` (the sched_yield spin)."""
     out: dict = {"cpus": os.cpu_count(), "seconds": seconds}
     for mode in ("worker", "plain-import"):
         run = subprocess.run([sys.executable, "-c", IDLE_PROBE, mode, str(ROOT), str(seconds)], capture_output=True,

@@ -27,9 +27,9 @@ import trimesh  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from services.core.jobspec import JobSpec  # noqa: E402
-from services.core.plan import plan_to_json  # noqa: E402
-from services.core.spaces import LoadedSpace  # noqa: E402
+from services.core.domain.jobspec import JobSpec  # noqa: E402
+from services.core.domain.plan import plan_to_json  # noqa: E402
+from services.core.ingest.loading import LoadedSpace  # noqa: E402
 from services.scheduler.planning import make_plan, space_rng  # noqa: E402
 
 

@@ -30,7 +30,7 @@ SCENE = Path(__file__).resolve().parents[2] / "shared" / "scenes" / "ycb_banana"
 
 def job_spec(resolution: int, points: int, views: int, seed: int) -> Any:
     """The benchmark job: object cameras around the banana, every default cue."""
-    from services.core.jobspec import JobSpec
+    from services.core.domain.jobspec import JobSpec
 
     return JobSpec.model_validate({
         "seed": seed,
@@ -44,8 +44,8 @@ def run_job(sm: Any, sched: Any, pool: Any, job_id: int, timeout: float = 1800) 
     """Drive the job with generate's loop; returns (seconds from the end of planning to done, labels, views)."""
     from sqlalchemy import func, select
 
-    from services.core.cues import CATALOG
-    from services.core.models import Task, View
+    from services.core.db.models import Task, View
+    from services.core.domain.cues import CATALOG
     from services.embedded.job import run_until_final
 
     state, planned_at = run_until_final(sm, sched, pool, job_id, timeout=timeout)
@@ -62,14 +62,14 @@ def run_job(sm: Any, sched: Any, pool: Any, job_id: int, timeout: float = 1800) 
 
 def measure(workers: int, args: argparse.Namespace) -> dict[str, Any]:
     """Warm up `workers` processes, then time the measured job."""
-    from services.core.db import make_engine, make_sessionmaker, migrate
+    from services.cli.generate import validate_sources
+    from services.cli.spec_args import check_sources
+    from services.core.db.engine import make_engine, make_sessionmaker, migrate
     from services.core.storage import LocalStore
-    from services.embedded.cli import validate_sources
     from services.embedded.job import SECRET_SETTINGS, embedded_settings, prepare_job
     from services.embedded.pool import LocalPool, WorkerConfig
     from services.scheduler.loop import Scheduler
     from services.scheduler.transport import QueueTransport
-    from services.spec_args import check_sources
 
     with tempfile.TemporaryDirectory(prefix=f"omnidata-scaling-{workers}-") as tmp:
         out = Path(tmp) / "out"

@@ -38,10 +38,10 @@ from scipy.spatial import cKDTree  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from services.core.camera import camera_center  # noqa: E402
-from services.core.jobspec import JobSpec  # noqa: E402
-from services.core.plan import SpacePlan, clip_summary  # noqa: E402
-from services.core.spaces import LoadedSpace, load_space  # noqa: E402
+from services.core.domain.camera import camera_center  # noqa: E402
+from services.core.domain.jobspec import JobSpec  # noqa: E402
+from services.core.domain.plan import SpacePlan, clip_summary  # noqa: E402
+from services.core.ingest.loading import LoadedSpace, load_space  # noqa: E402
 from services.scheduler.planning import make_plan, space_rng  # noqa: E402
 from services.scheduler.planning.trajectory import OBJECT_REFERENCE_M, rotation_angles, turn_angles  # noqa: E402
 from tests.fixtures.scenes import as_space, random_furnished_room  # noqa: E402

@@ -8,8 +8,8 @@ from alembic import context
 from sqlalchemy import pool, text
 from sqlalchemy.engine import Connection
 
-from services.core.db import make_engine
-from services.core.models import Base
+from services.core.db.engine import make_engine
+from services.core.db.models import Base
 from services.core.settings import get_settings
 
 config = context.config
@@ -22,7 +22,7 @@ _PG_LOCK_ID = 0x0A1E_0B1C
 
 
 def database_url() -> str:
-    """The URL to migrate: set by services.core.db.migrate, else -x url=..., else ini, else settings."""
+    """The URL to migrate: set by services.core.db.engine.migrate, else -x url=..., else ini, else settings."""
     url = config.attributes.get("url")
     url = url or context.get_x_argument(as_dictionary=True).get("url")
     url = url or config.get_main_option("sqlalchemy.url")

@@ -26,7 +26,7 @@ from sqlalchemy import Connection, Engine, create_engine, text
 from sqlalchemy.engine import make_url
 from sqlalchemy.orm import Session
 
-from services.core.db import make_engine, migrate
+from services.core.db.engine import make_engine, migrate
 from services.core.settings import Settings, get_settings
 from services.core.storage import LocalStore
 
@@ -157,7 +157,7 @@ def pg_engine(pg_url: str) -> Iterator[Engine]:
 
 def truncate_all(engine: Engine) -> None:
     """Empty every table: other tests (API, end-to-end) commit for real on the shared database."""
-    from services.core.models import Base
+    from services.core.db.models import Base
 
     names = ", ".join(f'"{t.name}"' for t in Base.metadata.sorted_tables)
     with engine.begin() as conn:

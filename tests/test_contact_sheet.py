@@ -9,7 +9,7 @@ import pytest
 from PIL import Image
 
 from services.cli import CliError, main
-from services.contact_sheet import build_sheet
+from services.cli.contact_sheet import build_sheet
 
 
 def _dataset(root, spaces=("a", "b")):

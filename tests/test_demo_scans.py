@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from services.core.spaces import load_space
+from services.core.ingest.loading import load_space
 from tests.conftest import REPO_ROOT
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from services.cli import COMMANDS
+from services.cli.main import COMMANDS
 from services.core.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[1]

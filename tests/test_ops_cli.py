@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from services.cli import main
-from services.core.db import make_engine, schema_problem
+from services.core.db.engine import make_engine, schema_problem
 from services.core.settings import Settings, get_settings, hash_token
 from tests.conftest import REPO_ROOT
 
@@ -109,7 +109,7 @@ def test_a_database_from_newer_code_is_refused_not_downgraded(
 ) -> None:
     from sqlalchemy import text
 
-    from services.core.db import migrate
+    from services.core.db.engine import migrate
 
     migrate(empty_pg_url)
     engine = make_engine(empty_pg_url)

@@ -1,4 +1,4 @@
-"""services/spec_args.py: the one parser of SPACE arguments and JobSpec flags for plan, generate and submit."""
+"""services/cli/spec_args.py: the one parser of SPACE arguments and JobSpec flags for plan, generate and submit."""
 
 from __future__ import annotations
 
@@ -7,9 +7,10 @@ from pathlib import Path
 
 import pytest
 
-from services.cli import CliError, build_parser
-from services.core.keys import space_name
-from services.spec_args import build_spec, check_sources, distinct_space_names
+from services.cli import CliError
+from services.cli.main import build_parser
+from services.cli.spec_args import build_spec, check_sources, distinct_space_names
+from services.core.domain.keys import space_name
 
 SPEC_FLAGS = {"--spec", "--cues", "--points", "--min-views", "--resolution", "--seed", "--name", "--up-axis", "--up",
               "--unit-scale", "--source-to-world"}

@@ -12,11 +12,11 @@ from sqlalchemy import select
 from sqlalchemy.exc import OperationalError
 
 from services.cli import CliError, main
-from services.core.db import make_engine, make_sessionmaker
-from services.core.jobspec import JobSpec
-from services.core.models import Job, JobSpace, Space
-from services.spec_args import check_sources
-from services.submit_cli import Api, Status, submit_http
+from services.cli.spec_args import check_sources
+from services.cli.submit import Api, Status, submit_http
+from services.core.db.engine import make_engine, make_sessionmaker
+from services.core.db.models import Job, JobSpace, Space
+from services.core.domain.jobspec import JobSpec
 
 SPEC = "cameras: {mode: object, object_count: 6}\npoints: {count: 1, min_views: 2, max_views: 2}\n"
 
@@ -59,7 +59,7 @@ def test_submit_to_the_database_prints_the_id_and_reuses_the_space(capsys, embed
 
 
 def test_follow_ends_with_the_job_and_exit_1_unless_done(capsys, embedded_env, spec_file, scenes_dir):
-    from services.core.jobs import cancel_job
+    from services.core.db.jobs import cancel_job
 
     engine = make_engine(embedded_env)
     sm = make_sessionmaker(engine)

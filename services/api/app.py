@@ -19,20 +19,23 @@ from fastapi.responses import RedirectResponse
 from sqlalchemy import Engine
 
 from services.api.dashboard.endpoints import mount_dashboard
+from services.api.docs_page import mount_docs
 from services.api.errors import install_error_handlers
 from services.api.guard import RequestGuard
 from services.api.jobs.endpoints import router as jobs_router
-from services.api.jobs.service import RateTracker
 from services.api.ops.endpoints import router as ops_router
 from services.api.outputs.endpoints import router as outputs_router
 from services.api.progress.endpoints import router as progress_router
+from services.api.progress.rates import RateTracker
 from services.api.query_token import QueryTokenScrubber
+from services.api.security_headers import SecurityHeaders
 from services.api.spaces.endpoints import router as spaces_router
 from services.api.views.endpoints import router as views_router
 from services.api.workers.endpoints import router as workers_router
-from services.core.db import make_engine, make_sessionmaker, schema_heads
+from services.core.db.engine import make_engine, make_sessionmaker, schema_heads
 from services.core.settings import Settings, get_settings
 from services.core.storage import ObjectStore, open_store
+from services.core.temp_dirs import UPLOAD_KINDS, sweep_orphans
 
 log = logging.getLogger("omnidata.api")
 
@@ -78,6 +81,7 @@ def create_app(
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        sweep_orphans(UPLOAD_KINDS)  # upload folders of an API (or mesh reader) killed mid-upload
         yield
         redis = app.state.redis
         if redis is not None:
@@ -93,6 +97,8 @@ def create_app(
         ),
         openapi_tags=OPENAPI_TAGS,
         lifespan=lifespan,
+        docs_url=None,  # FastAPI's pages load Swagger UI and ReDoc from a CDN: /docs is served offline below
+        redoc_url=None,
     )
     app.state.settings = settings
     app.state.engine = engine
@@ -111,6 +117,7 @@ def create_app(
     install_error_handlers(app)
     app.add_middleware(RequestGuard, settings=settings)  # token and size checked before a body is read
     app.add_middleware(QueryTokenScrubber)  # ?token= never reaches a log line
+    app.add_middleware(SecurityHeaders, settings=settings)  # CSP, no framing, nosniff
     for router in (
         ops_router,
         spaces_router,
@@ -122,6 +129,7 @@ def create_app(
     ):
         app.include_router(router)
     mount_dashboard(app)
+    mount_docs(app)
 
     @app.get("/", include_in_schema=False)
     def root() -> RedirectResponse:

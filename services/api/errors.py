@@ -1,5 +1,8 @@
 """Exception handlers: every error is JSON `{"detail": "<clear message>"}`; client mistakes are never a 500.
 
+The services raise domain errors (services.core.domain.errors); `_domain_error` is the one place that turns
+them into HTTP statuses.
+
 Validation errors keep pydantic's field locations in `errors` ([{loc, msg, type}]) and summarise them in
 `detail` ("body.spec.views.resolution: Input should be less than or equal to 4096").
 """
@@ -15,6 +18,7 @@ from fastapi.responses import JSONResponse
 from sqlalchemy.exc import DataError, IntegrityError, OperationalError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from services.core.domain.errors import Conflict, DomainError, Forbidden, Invalid, NotFound, TooLarge
 from services.core.storage import StorageError
 
 log = logging.getLogger("omnidata.api")
@@ -65,6 +69,25 @@ async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResp
     return JSONResponse({"detail": detail}, status_code=exc.status_code, headers=getattr(exc, "headers", None))
 
 
+# most specific first: a domain error class is matched by isinstance in this order
+DOMAIN_STATUS: tuple[tuple[type[DomainError], int], ...] = (
+    (NotFound, status.HTTP_404_NOT_FOUND),
+    (Conflict, status.HTTP_409_CONFLICT),
+    (Forbidden, status.HTTP_403_FORBIDDEN),
+    (TooLarge, status.HTTP_413_CONTENT_TOO_LARGE),
+    (Invalid, status.HTTP_422_UNPROCESSABLE_CONTENT),
+)
+
+
+def domain_status(exc: DomainError) -> int:
+    """The HTTP status of a domain error (422 for one of no listed kind: the request cannot be done as asked)."""
+    return next((code for cls, code in DOMAIN_STATUS if isinstance(exc, cls)), status.HTTP_422_UNPROCESSABLE_CONTENT)
+
+
+async def _domain_error(request: Request, exc: DomainError) -> JSONResponse:
+    return error_response(domain_status(exc), clip(str(exc), 2000))
+
+
 async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
     raw = exc.errors()
     errors = validation_errors(raw)  # at most MAX_ERRORS; `detail` still says how many there were
@@ -101,6 +124,7 @@ async def _unhandled(request: Request, exc: Exception) -> JSONResponse:
 def install_error_handlers(app: FastAPI) -> None:
     """Register the handlers above on `app`."""
     app.add_exception_handler(StarletteHTTPException, _http_error)  # type: ignore[arg-type]
+    app.add_exception_handler(DomainError, _domain_error)  # type: ignore[arg-type]
     app.add_exception_handler(RequestValidationError, _validation_error)  # type: ignore[arg-type]
     app.add_exception_handler(DataError, _data_error)  # type: ignore[arg-type]
     app.add_exception_handler(IntegrityError, _integrity_error)  # type: ignore[arg-type]

@@ -13,8 +13,8 @@ from typing import Any
 
 import numpy as np
 
-from services.core.camera import intrinsics, world_to_camera_from_blender
-from services.core.cues import validate_cue_names
+from services.core.domain.camera import intrinsics, world_to_camera_from_blender
+from services.core.domain.cues import validate_cue_names
 from services.core.settings import Settings
 from services.core.storage import ObjectStore
 from services.datasets.decode import cue_params, decode_cue

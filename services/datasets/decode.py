@@ -29,9 +29,9 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
-from services.core.cues import CURVATURE_FLAT, FRAGMENT_NONE, UINT16_NONE, get_cue
-from services.core.exr import decode_exr_rgb
-from services.core.jobspec import CueParams
+from services.core.domain.cues import CURVATURE_FLAT, FRAGMENT_NONE, UINT16_NONE, get_cue
+from services.core.domain.exr import decode_exr_rgb
+from services.core.domain.jobspec import CueParams
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 

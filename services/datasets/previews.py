@@ -22,9 +22,9 @@ from typing import Any
 import numpy as np
 from PIL import Image, ImageDraw
 
-from services.core.cues import FRAGMENT_NONE, UINT16_NONE, get_cue
-from services.core.jobspec import CueParams
-from services.core.keys import file_name
+from services.core.domain.cues import FRAGMENT_NONE, UINT16_NONE, get_cue
+from services.core.domain.jobspec import CueParams
+from services.core.domain.keys import file_name
 from services.core.storage import ObjectStore
 from services.datasets.decode import (
     as_uint16,
@@ -143,7 +143,7 @@ def _dot(draw: ImageDraw.ImageDraw, xy: tuple[float, float], r: float, colour: t
 
 def _draw_point_info(doc: dict[str, Any], size: int) -> Image.Image:
     """The fixated point where the view sees it, and the camera's field of view and distance."""
-    from services.core.camera import project
+    from services.core.domain.camera import project
     from services.datasets.dataset import camera_of
 
     img, draw = _tile(size)

@@ -14,8 +14,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from services.core.cues import CATALOG, OUTPUT_CUES
-from services.core.keys import JOB_JSON_KEY, MANIFEST_KEY
+from services.core.domain.cues import CATALOG, OUTPUT_CUES
+from services.core.domain.keys import JOB_JSON_KEY, MANIFEST_KEY
 from services.core.settings import Settings
 from services.core.storage import LocalStore, ObjectNotFoundError, ObjectStore, open_store, prefixed
 

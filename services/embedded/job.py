@@ -2,7 +2,7 @@
 and the scheduler's loop driving W local worker processes until the job is final.
 
 Resuming (in-flight tasks back to pending, missing outputs made again) and requeueing on Ctrl-C are the
-service's own operations (services.core.jobs.reopen_job / requeue_inflight).
+service's own operations (services.core.db.jobs.reopen_job / requeue_inflight).
 """
 
 from __future__ import annotations
@@ -19,21 +19,19 @@ from pathlib import Path
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
-from services.cli import CliError
-from services.core.jobs import cancel_job, create_job, job_spaces, reopen_job, requeue_inflight
-from services.core.jobspec import JobSpec
-from services.core.keys import JOB_JSON_KEY, MANIFEST_KEY
-from services.core.manifest import write_job_files
-from services.core.models import JOB_TERMINAL_STATES, Job, JobState, Space
+from services.core.db.jobs import cancel_job, create_job, job_spaces, reopen_job, requeue_inflight
+from services.core.db.manifest import write_job_files
+from services.core.db.models import JOB_TERMINAL_STATES, Job, JobState, Space
+from services.core.domain.errors import Conflict, Invalid
+from services.core.domain.jobspec import JobSpec
+from services.core.domain.keys import JOB_JSON_KEY, MANIFEST_KEY
+from services.core.ingest.registry import Source, register_space
 from services.core.settings import Settings, load_settings
-from services.core.space_registry import register_space
-from services.core.spaces import SpaceError
 from services.core.storage import ObjectStore
 from services.embedded.pool import STATE_DIR, LocalPool, WorkerConfig, cpu_count
 from services.embedded.report import Progress, build_report, print_report
 from services.scheduler.loop import Scheduler
 from services.scheduler.transport import QueueTransport
-from services.spec_args import Source
 from services.worker.heartbeat import expire_leases
 
 OWNER = "local"
@@ -63,7 +61,7 @@ def job_fingerprint(spec: JobSpec, checksums: Sequence[str]) -> str:
 
 
 def find_spaces(session: Session, sources: list[Source]) -> dict[str, Space]:
-    """Registered spaces of this folder by name; CliError when one has the same name but other content."""
+    """Registered spaces of this folder by name; Conflict when one has the same name but other content."""
     rows = {sp.name: sp for sp in session.scalars(select(Space).where(Space.owner == OWNER))}
     found = {}
     for src in sources:
@@ -71,7 +69,7 @@ def find_spaces(session: Session, sources: list[Source]) -> dict[str, Space]:
         if sp is None:
             continue
         if sp.checksum != src.checksum:
-            raise CliError(
+            raise Conflict(
                 f"the output folder already holds a different space named {src.name!r} (its files changed); "
                 "use a new --out folder"
             )
@@ -121,18 +119,14 @@ def prepare_job(sm: sessionmaker[Session], store: ObjectStore, spec: JobSpec, so
         for src in sources:
             sp = spaces.get(src.name)
             if sp is None:
-                try:
-                    sp = register_space(s, store, owner=OWNER, name=src.name, source_path=src.path,
-                                        key_prefix=SPACES_PREFIX, **spec.space_frame(),
-                                        loaded=src.loaded)
-                except SpaceError as e:
-                    raise CliError(str(e)) from None
+                sp = register_space(s, store, owner=OWNER, name=src.name, source_path=src.path,
+                                    key_prefix=SPACES_PREFIX, **spec.space_frame(), loaded=src.loaded)
             src.loaded = None  # the workers load their own copy; do not keep the mesh in this process
             ordered.append(sp)
         try:
             job = create_job(s, owner=OWNER, spec=spec, spaces=ordered, output_root="")
         except ValueError as e:
-            raise CliError(str(e)) from None
+            raise Invalid(str(e)) from None
         s.commit()
         return Prepared(job.id, resumed=False)
 

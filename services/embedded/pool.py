@@ -51,11 +51,12 @@ def worker_main(conf: WorkerConfig, tasks: Any, results: Any, stop: Any) -> None
         os.environ.setdefault(var, str(conf.render_threads))
     logging.basicConfig(level=conf.log_level, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s")
     # Imported here, after the thread variables above: numpy reads them when it loads.
-    from services.core.db import make_engine, make_sessionmaker
+    from services.core.db.engine import make_engine, make_sessionmaker
     from services.core.settings import get_settings
     from services.core.storage import LocalStore
+    from services.worker.claim import TransientError
     from services.worker.heartbeat import Heartbeat
-    from services.worker.runner import TaskRunner, TransientError
+    from services.worker.runner import TaskRunner
 
     settings = get_settings(**{**conf.settings, "render_threads": conf.render_threads})
     engine = make_engine(settings.database_url)

@@ -12,9 +12,9 @@ from sqlalchemy import case, func, select
 from sqlalchemy.orm import Session, sessionmaker
 from tqdm import tqdm
 
-from services.core.cues import CATALOG
-from services.core.db import job_progress
-from services.core.models import Job, JobState, Task, TaskState, View
+from services.core.db.counters import job_progress
+from services.core.db.models import Job, JobState, Task, TaskState, View
+from services.core.domain.cues import CATALOG
 from services.core.storage import ObjectStore
 
 VIEWS_REFRESH_S = 2.0

@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.core.cues import CATALOG, closure
-from services.core.plan import SpacePlan
+from services.core.domain.cues import CATALOG, closure
+from services.core.domain.plan import SpacePlan
 
 
 @dataclass(frozen=True)

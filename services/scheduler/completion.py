@@ -1,6 +1,6 @@
 """Completion: finish running jobs whose counters say nothing is pending, queued or running.
 
-For each such job: write manifest.jsonl and job.json (services.core.manifest), delete the internal pass
+For each such job: write manifest.jsonl and job.json (services.core.db.manifest), delete the internal pass
 cache, and set the job done, or failed with a summary when any task failed. Reads counters only.
 """
 
@@ -9,14 +9,14 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 
-from sqlalchemy import exists, select
+from sqlalchemy import exists, func, select
 from sqlalchemy.orm import Session
 
-from services.core.db import job_progress
-from services.core.jobs import root_key
-from services.core.manifest import write_job_files
-from services.core.models import TASK_ACTIVE_STATES, Job, JobCounter, JobState, Task, TaskState, utcnow
-from services.core.states import set_job_state
+from services.core.db.counters import job_progress
+from services.core.db.jobs import root_key
+from services.core.db.manifest import write_job_files
+from services.core.db.models import TASK_ACTIVE_STATES, Job, JobCounter, JobState, Task, TaskState, utcnow
+from services.core.db.states import set_job_state
 from services.core.storage import ObjectStore
 
 log = logging.getLogger(__name__)
@@ -36,7 +36,11 @@ class Finished:
 def finished_job_ids(session: Session) -> list[int]:
     """Running jobs with tasks, none of which is pending, queued or running (counters only)."""
     c = JobCounter
-    active = exists().where(c.job_id == Job.id, c.state.in_(TASK_ACTIVE_STATES), c.n > 0)
+    # counts are sums over the counter shards: some shard of an active state may be negative, another positive
+    active = exists(
+        select(c.cue).where(c.job_id == Job.id, c.state.in_(TASK_ACTIVE_STATES))
+        .group_by(c.cue, c.state).having(func.sum(c.n) > 0)
+    )
     rows = session.execute(
         select(Job.id).where(Job.state == JobState.RUNNING, Job.total_tasks > 0, ~active).order_by(Job.id)
     ).all()

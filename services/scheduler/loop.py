@@ -13,30 +13,28 @@ import socket
 import threading
 import time
 import traceback
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
-from services.core.jobs import claim_pending_jobs, job_spaces, job_spec
-from services.core.jobspec import JobSpec
-from services.core.models import Job, JobState, Space, utcnow
-from services.core.plan import CLIP_NOTES_IN_SUMMARY, SpacePlan, clip_summary
+from services.core.db.jobs import claim_pending_jobs, job_spaces, job_spec
+from services.core.db.models import Job, JobState, Space, utcnow
+from services.core.db.states import set_job_state
+from services.core.db.worker_rows import expire_worker_rows
+from services.core.ingest.frame_choice import space_frame_for
 from services.core.settings import Settings
-from services.core.states import set_job_state
 from services.core.storage import ObjectStore
 from services.scheduler.compile import compile_tasks
 from services.scheduler.completion import Finished, complete_once
 from services.scheduler.dispatch import DEFAULT_BUDGET, DispatchResult, dispatch_once
 from services.scheduler.persist import clear_plan, persist_space
+from services.scheduler.plan_space import PlanFn, load_for_job, plan_space, plan_summary_of
 from services.scheduler.reaper import ReapResult, reap_once
 from services.scheduler.transport import Transport
-from services.scheduler.worker_rows import expire_worker_rows
 
 log = logging.getLogger(__name__)
 
@@ -46,10 +44,6 @@ THOROUGH_STALLED_S = 5.0  # ... and sooner when a job has pending tasks but noth
 MAX_BACKOFF_S = 30.0
 PLAN_RETRY_S = 30  # a planning attempt that failed for a transient reason is retried after this
 MAX_PLAN_ATTEMPTS = 3
-
-
-# make_plan(space: LoadedSpace, spec: JobSpec, rng: numpy.random.Generator, space_name: str) -> SpacePlan
-PlanFn = Callable[[Any, JobSpec, np.random.Generator, str], SpacePlan]
 
 
 class PlanningError(Exception):
@@ -63,8 +57,8 @@ def default_scheduler_id() -> str:
 
 def _permanent(exc: BaseException) -> bool:
     """Errors that re-planning cannot fix (the job fails), as opposed to connection trouble (retried)."""
-    from services.core.plan import PlanError
-    from services.core.spaces import SpaceError
+    from services.core.domain.plan import PlanError
+    from services.core.ingest.errors import SpaceError
     from services.core.storage import ObjectNotFoundError
 
     return isinstance(exc, PlanningError | PlanError | SpaceError | ObjectNotFoundError | ValueError | KeyError)
@@ -119,7 +113,7 @@ class Scheduler:
 
     def fetch_source(self, space: Space) -> Path:
         """Local path of a space's mesh, downloaded (and unzipped) once per checksum into the cache folder."""
-        from services.core.space_registry import fetch_space
+        from services.core.ingest.registry import fetch_space
 
         return Path(fetch_space(self.store, space, self.cache_dir))
 
@@ -137,15 +131,6 @@ class Scheduler:
 
     def plan_job(self, job_id: int) -> bool:
         """Plan a job this scheduler has claimed, in one transaction; True when it is now running."""
-        from services.core.spaces import load_space
-
-        if self.plan_fn is None:
-            from services.scheduler.planning import make_plan as default_plan
-
-            self.plan_fn = default_plan
-        make_plan = self.plan_fn
-        from services.scheduler.planning import space_rng  # the one seeding rule (DESIGN.md section 4)
-
         t0 = time.perf_counter()
         try:
             with self.sessionmaker() as s:
@@ -157,8 +142,8 @@ class Scheduler:
                 summary: dict[str, Any] = {"spaces": {}, "attempts": (job.plan_summary or {}).get("attempts", 0) + 1}
                 total = 0
                 for js, sp in job_spaces(s, job.id):
-                    loaded = load_space(self.fetch_source(sp), **spec.space_frame())
-                    plan = make_plan(loaded, spec, space_rng(spec.seed, sp.name), sp.name)
+                    loaded = load_for_job(self.fetch_source(sp), spec, frame=space_frame_for(spec, sp))
+                    plan = plan_space(loaded, spec, sp.name, self.plan_fn)
                     if not plan.views:
                         raise PlanningError(
                             f"space {sp.name!r} yields no views"
@@ -169,15 +154,7 @@ class Scheduler:
                     total += done.tasks
                     summary["spaces"][sp.name] = {
                         "cameras": done.cameras, "points": done.points, "views": done.views, "tasks": done.tasks,
-                        "shortfall": plan.shortfall, "plan_key": done.plan_key,
-                        "valid_fraction": plan.valid_fraction,
-                        "clips": clip_summary(plan.clip_notes, CLIP_NOTES_IN_SUMMARY),
-                        "source_to_world": np.asarray(loaded.source_to_world, dtype=float).tolist(),
-                        "bounds": np.asarray(loaded.bounds, dtype=float).tolist(),
-                        "up_axis": spec.up_axis, "up_method": loaded.up_method,
-                        "unit_scale": loaded.units.scale if loaded.units is not None else spec.unit_scale,
-                        "warnings": list(loaded.warnings),
-                        **loaded.frame_record(),
+                        "plan_key": done.plan_key, **plan_summary_of(loaded, plan, spec),
                     }
                 summary["shortfall"] = any(v["shortfall"] for v in summary["spaces"].values())
                 summary["planning_s"] = round(time.perf_counter() - t0, 3)

@@ -12,10 +12,11 @@ import numpy as np
 from sqlalchemy import delete
 from sqlalchemy.orm import Session
 
-from services.core.db import bulk_insert, init_counts
-from services.core.jobs import root_key
-from services.core.models import Camera, Job, JobCounter, Point, Task, View
-from services.core.plan import SpacePlan, plan_to_json
+from services.core.db.bulk import bulk_insert
+from services.core.db.counters import init_counts
+from services.core.db.jobs import root_key
+from services.core.db.models import Camera, Job, JobCounter, Point, Task, View
+from services.core.domain.plan import SpacePlan, plan_to_json
 from services.core.storage import ObjectStore
 from services.scheduler.compile import CompiledTasks
 

@@ -25,9 +25,9 @@ from typing import Any
 from sqlalchemy import and_, or_, select
 from sqlalchemy.orm import Session
 
-from services.core.jobs import retry_backoff_s
-from services.core.models import Job, JobState, Task, TaskState, Worker, utcnow
-from services.core.states import transition
+from services.core.db.jobs import retry_backoff_s
+from services.core.db.models import Job, JobState, Task, TaskState, Worker, utcnow
+from services.core.db.states import transition
 
 log = logging.getLogger(__name__)
 

@@ -12,7 +12,7 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, TypeVar
 
-from services.core.jobspec import CueParams
+from services.core.domain.jobspec import CueParams
 from services.worker.passes import OPTIONAL_ARRAYS, RENDER_PASSES, ViewGeometry, ViewPasses
 
 if TYPE_CHECKING:

@@ -5,7 +5,7 @@
     files = render_view_cues(space, view, cues, params)  # {cue: bytes} for a whole view
 
 A context built from a cached pass set (ViewContext(view, params, passes=ViewPasses.from_bytes(...))) produces
-every render/derived cue without Blender. Plan cues need `plan` (services.core.plan) or a ready `point_info`.
+every render/derived cue without Blender. Plan cues need `plan` (services.core.domain.plan) or a ready `point_info`.
 """
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ from __future__ import annotations
 from collections.abc import Iterable
 from typing import Any
 
-from services.core.cues import closure, require_supported
-from services.core.jobspec import CueParams
+from services.core.domain.cues import closure, require_supported
+from services.core.domain.jobspec import CueParams
 from services.worker.context import SemanticsUnavailableError, ViewContext
 from services.worker.cues import encode, get_impl
 from services.worker.cues.registry import cue_value

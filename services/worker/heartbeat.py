@@ -20,8 +20,8 @@ from datetime import timedelta
 from sqlalchemy import update
 from sqlalchemy.orm import Session
 
-from services.core.db import upsert
-from services.core.models import Task, TaskState, Worker, utcnow
+from services.core.db.bulk import upsert
+from services.core.db.models import Task, TaskState, Worker, utcnow
 
 log = logging.getLogger(__name__)
 

@@ -1,6 +1,6 @@
 """The pass set of one rendered view (the internal `passes` cue) and the view geometry it was rendered with.
 
-Frames and units (DESIGN.md section 8, services/core/camera.py):
+Frames and units (DESIGN.md section 8, services/core/domain/camera.py):
 - world: metres, +Z up; `world_to_camera` takes world points to OpenCV camera axes (x right, y down, z forward);
 - pixel (u, v) has its centre at (u + 0.5, v + 0.5); K = [[f,0,W/2],[0,f,H/2],[0,0,1]], f = (W/2)/tan(fov/2).
 
@@ -16,8 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from services.core.camera import camera_center, intrinsics, pixel_rays
-from services.core.cues import FRAGMENT_NONE
+from services.core.domain.camera import camera_center, intrinsics, pixel_rays
+from services.core.domain.cues import FRAGMENT_NONE
 
 NO_FACE = np.uint32(FRAGMENT_NONE)
 NO_LABEL = -1

@@ -20,12 +20,12 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import trimesh
 
-from services.core.jobspec import CueParams
+from services.core.domain.jobspec import CueParams
 from services.worker.curvature import principal_curvatures
 from services.worker.passes import RENDER_PASSES, ViewGeometry, ViewPasses
 
 if TYPE_CHECKING:
-    from services.worker.blender import BlenderScene
+    from services.worker.blender.scene import BlenderScene
 
 log = logging.getLogger(__name__)
 
@@ -51,7 +51,7 @@ class SpaceContext:
     @classmethod
     def from_loaded(cls, loaded: Any, *, key: str | None = None, device: str = "cpu",
                     threads: int | None = None) -> SpaceContext:
-        """Wrap a services.core.spaces.LoadedSpace (mesh in the world frame, optional per-face labels)."""
+        """Wrap a services.core.ingest.loading.LoadedSpace (mesh in the world frame, optional per-face labels)."""
         fc = getattr(loaded, "face_class", None)
         fi = getattr(loaded, "face_instance", None)
         if fc is not None and fi is None:  # class-only labels: every face its own "stuff" instance 0
@@ -80,10 +80,11 @@ class SpaceContext:
     def scene(self) -> BlenderScene:
         """The Blender scene of this space (built on first use; this is the only place that loads bpy)."""
         if self._scene is None or self._scene.closed:
-            from services.worker.bpy_threads import import_bpy
+            from services.worker.blender.threads import import_bpy
 
             import_bpy(self.threads)  # before the first `import bpy`: size Blender's thread pool to the budget
-            from services.worker.blender import BlenderScene, RenderOptions
+            from services.worker.blender.render import RenderOptions
+            from services.worker.blender.scene import BlenderScene
 
             self._scene = BlenderScene(self.mesh, face_class=self.face_class, face_instance=self.face_instance,
                                        options=RenderOptions(device=self.device, threads=self.threads))  # type: ignore[arg-type]

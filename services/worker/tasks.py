@@ -65,16 +65,20 @@ def worker_engine(database_url: str, **kwargs: Any) -> Any:
     """
     from sqlalchemy.engine import make_url
 
-    from services.core.db import make_engine
+    from services.core.db.engine import make_engine
 
     if make_url(database_url).get_backend_name() == "postgresql":
         kwargs.setdefault("connect_args", {"options": "-c synchronous_commit=off"})
+        # No SELECT 1 before every checkout: a claim or result is one statement, and a ping doubled its round
+        # trips. A connection that died meanwhile (Postgres restarted) fails its statement instead, which the
+        # runner retries (TaskRunner._db) on a fresh one and the heartbeat retries on its next beat.
+        kwargs.setdefault("pool_pre_ping", False)
     return make_engine(database_url, **kwargs)
 
 
 def build_runtime(settings: Settings, *, queues: list[str] | None = None, name: str | None = None) -> Runtime:
     """Engine, store, TaskRunner and a started heartbeat for this process (worker id: see default_worker_id)."""
-    from services.core.db import make_sessionmaker
+    from services.core.db.engine import make_sessionmaker
     from services.core.storage import open_store
     from services.worker.heartbeat import Heartbeat, expire_leases, heartbeat_interval
     from services.worker.runner import TaskRunner, default_worker_id
@@ -146,7 +150,7 @@ def _task_id(payload: Any) -> int | None:
              max_retries=MAX_TRANSIENT_RETRIES)
 def render_cue(self: CeleryTask, task_id: Any) -> str:
     """Run one point-view-cue task by id; returns the outcome status (done, skipped, retry, failed, ...)."""
-    from services.worker.runner import TransientError
+    from services.worker.claim import TransientError
 
     tid = _task_id(task_id)
     if tid is None:  # a malformed message can never succeed: drop it (acked), do not retry

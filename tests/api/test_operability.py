@@ -15,11 +15,11 @@ import httpx
 import pytest
 from sqlalchemy import func, select
 
-from services.core.db import downgrade, migrate
-from services.core.models import Space, Task, Worker, utcnow
+from services.core.db.engine import downgrade, migrate
+from services.core.db.models import Space, Task, Worker, utcnow
+from services.core.db.worker_rows import expire_worker_rows
 from services.core.settings import hash_token
 from services.core.storage import LocalStore, open_store
-from services.scheduler.worker_rows import expire_worker_rows
 from tests.conftest import S3Server
 from tests.fixtures.api import Api, fake_plan, live_server, make_api, task_ids
 

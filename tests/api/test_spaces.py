@@ -11,7 +11,7 @@ from typing import Any
 import pytest
 from sqlalchemy import func, select
 
-from services.core.models import Space
+from services.core.db.models import Space
 from tests.fixtures.api import Api, make_api
 
 

@@ -14,7 +14,7 @@ from typing import Any
 import pytest
 from sqlalchemy import select
 
-from services.core.models import Job, Worker, utcnow
+from services.core.db.models import Job, Worker, utcnow
 from services.core.storage import LocalStore
 from tests.fixtures.api import fake_plan, live_server, make_api, run_tasks, task_ids
 

@@ -8,9 +8,9 @@ from typing import Any
 
 import pytest
 
-from services.core.jobs import root_key
-from services.core.keys import output_key
-from services.core.models import Job
+from services.core.db.jobs import root_key
+from services.core.db.models import Job
+from services.core.domain.keys import output_key
 from services.core.storage import LocalStore
 from tests.fixtures.api import fake_plan, live_server, make_api, run_tasks, task_ids
 from tests.fixtures.cli import WIDE

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from services.core.cues import (
+from services.core.domain.cues import (
     CATALOG,
     OUTPUT_CUES,
     Cue,

@@ -9,9 +9,10 @@ import pytest
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from services.core.db import add_counts, bulk_insert, init_counts, job_progress
-from services.core.models import Job, JobCounter, Task, View, Worker
-from services.core.states import transition
+from services.core.db.bulk import bulk_insert
+from services.core.db.counters import add_counts, init_counts, job_progress
+from services.core.db.models import Job, JobCounter, Task, View, Worker
+from services.core.db.states import transition
 
 CUES = ("rgb", "normal", "depth_zbuffer", "edge_texture")
 

@@ -1,5 +1,5 @@
 # ruff: noqa: F811  -- the fixtures imported from tests.fixtures.jobs are redefined as test arguments
-"""services.core.jobs: creating, claiming, cancelling, retrying and deleting jobs; counters stay exact."""
+"""services.core.db.jobs: creating, claiming, cancelling, retrying and deleting jobs; counters stay exact."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ import pytest
 from sqlalchemy import Engine, delete, func, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
-from services.core.db import make_sessionmaker
-from services.core.jobs import (
+from services.core.db.engine import make_sessionmaker
+from services.core.db.jobs import (
     JobStateError,
     cancel_job,
     claim_pending_jobs,
@@ -24,9 +24,9 @@ from services.core.jobs import (
     resume_job,
     retry_failed,
 )
-from services.core.jobspec import JobSpec
-from services.core.models import Job, JobSpace, Space, Task, View, utcnow
-from services.core.states import transition
+from services.core.db.models import Job, JobSpace, Space, Task, View, utcnow
+from services.core.db.states import transition
+from services.core.domain.jobspec import JobSpec
 from services.scheduler.dispatch import dispatch_once
 from services.scheduler.reaper import reap_once
 from services.scheduler.transport import NullTransport

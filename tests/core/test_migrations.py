@@ -14,8 +14,8 @@ from alembic.migration import MigrationContext
 from alembic.script import ScriptDirectory
 from sqlalchemy import inspect, text
 
-from services.core.db import MIGRATIONS_DIR, alembic_config, downgrade, make_engine, migrate
-from services.core.models import Base
+from services.core.db.engine import MIGRATIONS_DIR, alembic_config, downgrade, make_engine, migrate
+from services.core.db.models import Base
 from tests.conftest import create_pg_database, drop_pg_database
 
 TABLES = {"space", "job", "job_space", "job_counter", "camera", "point", "view", "task", "worker", "worker_block"}

@@ -9,8 +9,7 @@ from sqlalchemy import delete, func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from services.core.jobspec import JobSpec
-from services.core.models import (
+from services.core.db.models import (
     JOB_STATES,
     TASK_STATES,
     Base,
@@ -24,6 +23,7 @@ from services.core.models import (
     Worker,
     WorkerBlock,
 )
+from services.core.domain.jobspec import JobSpec
 
 
 @pytest.fixture(params=["postgresql", "sqlite"])

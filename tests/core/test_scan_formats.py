@@ -12,9 +12,11 @@ import trimesh
 from PIL import Image
 from scipy.spatial import cKDTree
 
-from services.core.pointcloud import CloudError, poisson_depth, read_text_cloud
-from services.core.space_registry import pack_source
-from services.core.spaces import SpaceError, load_space, resolve_source
+from services.core.ingest.archive import resolve_source
+from services.core.ingest.errors import SpaceError
+from services.core.ingest.loading import load_space
+from services.core.ingest.pointcloud import CloudError, poisson_depth, read_text_cloud
+from services.core.ingest.registry import pack_source
 from tests.fixtures import scenes
 from tests.fixtures.scans import room_cloud, scannet_scene
 

@@ -8,9 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.core.models import Space
-from services.core.space_registry import fetch_space, register_space
-from services.core.spaces import SpaceError, load_space
+from services.core.db.models import Space
+from services.core.ingest.errors import SpaceError
+from services.core.ingest.loading import load_space
+from services.core.ingest.registry import fetch_space, register_space
 from services.core.storage import open_store
 
 

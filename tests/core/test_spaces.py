@@ -1,4 +1,4 @@
-"""services.core.spaces: finding, validating, levelling and labelling spaces."""
+"""services.core.ingest.loading: finding, validating, levelling and labelling spaces."""
 
 from __future__ import annotations
 
@@ -13,7 +13,10 @@ import pytest
 import trimesh
 from PIL import Image
 
-from services.core.spaces import SpaceError, load_space, resolve_source, rotation_to_z
+from services.core.ingest.archive import resolve_source
+from services.core.ingest.errors import SpaceError
+from services.core.ingest.frame import rotation_to_z
+from services.core.ingest.loading import load_space
 from tests.fixtures import scenes
 
 

@@ -1,4 +1,4 @@
-"""services.core.states: every allowed task and job transition works (tasks move, counters follow in the same
+"""services.core.db.states: every allowed task and job transition works (tasks move, counters follow in the same
 transaction), and every other one is refused without touching a row."""
 
 from __future__ import annotations
@@ -11,9 +11,10 @@ import pytest
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from services.core.db import add_counts, bulk_insert, job_progress
-from services.core.models import Job, JobState, Task, TaskState
-from services.core.states import (
+from services.core.db.bulk import bulk_insert
+from services.core.db.counters import add_counts, job_progress
+from services.core.db.models import Job, JobState, Task, TaskState
+from services.core.db.states import (
     JOB_EDGES,
     TASK_EDGES,
     IllegalTransition,
@@ -95,13 +96,13 @@ def test_job_transition(src: JobState, dst: JobState) -> None:
 
 
 def test_no_state_is_assigned_outside_the_states_module() -> None:
-    # "Where does a task or a job change state?": services/core/states.py (the planner's conditional claim
-    # UPDATE in core/jobs.py checks its edge there first).
+    # "Where does a task or a job change state?": services/core/db/states.py (the planner's conditional claim
+    # UPDATE in core/db/jobs.py checks its edge there first).
     root = Path(__file__).resolve().parents[2] / "services"
     assign = re.compile(r"\.state\s*=(?!=)")
     offenders = [
         f"{path.relative_to(root)}:{n}"
-        for path in root.rglob("*.py") if path.relative_to(root).as_posix() != "core/states.py"
+        for path in root.rglob("*.py") if path.relative_to(root).as_posix() != "core/db/states.py"
         for n, line in enumerate(path.read_text().splitlines(), 1) if assign.search(line)
     ]
     assert offenders == []

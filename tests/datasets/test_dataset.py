@@ -14,8 +14,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from services.core.camera import camera_center, project
-from services.core.cues import UnknownCueError, default_cues
+from services.core.domain.camera import camera_center, project
+from services.core.domain.cues import UnknownCueError, default_cues
 from services.core.storage import ObjectStore, open_store
 from services.core.storage.s3 import S3Store
 from services.datasets import DatasetIntegrityError, OmnidataDataset, assign_splits, camera_of, split_of

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from services.core.jobspec import CueParams
+from services.core.domain.jobspec import CueParams
 from services.datasets import decode as dec
 
 # 0 m, 2.5 m, the int16 edge on both sides, 78.125 m (wraps negative as int16), and "no surface"

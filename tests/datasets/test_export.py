@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from services.cli import main
-from services.core.cues import CATALOG
+from services.core.domain.cues import CATALOG
 from services.core.storage import open_store
 from services.datasets import OmnidataDataset
 from services.datasets.decode import decode_cue

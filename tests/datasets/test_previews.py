@@ -14,7 +14,7 @@ import pytest
 from PIL import Image
 
 from services.cli import main
-from services.core.cues import CATALOG
+from services.core.domain.cues import CATALOG
 from services.core.storage import LocalStore
 from services.datasets import previews
 from services.datasets.previews import cached_preview, preview_array, preview_key

@@ -23,7 +23,7 @@ import redis
 from sqlalchemy import Engine, text
 from sqlalchemy.orm import Session, sessionmaker
 
-from services.core.db import make_engine, make_sessionmaker, migrate
+from services.core.db.engine import make_engine, make_sessionmaker, migrate
 from services.core.settings import Settings, hash_token
 from services.core.storage import ObjectStore, open_store
 from tests.conftest import S3Server, create_pg_database, drop_pg_database

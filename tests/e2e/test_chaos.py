@@ -24,7 +24,7 @@ import pytest
 import redis
 from sqlalchemy import func, select
 
-from services.core.models import Job, Task, utcnow
+from services.core.db.models import Job, Task, utcnow
 from tests.e2e.conftest import REDIS_DB_URL, SCHEDULER_APP, WORKER_APP, Cluster, Proc
 from tests.e2e.test_distributed import assert_exactly_once, submit_direct, wait, write_spec
 

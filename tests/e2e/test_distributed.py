@@ -18,9 +18,9 @@ from pathlib import Path
 import pytest
 from sqlalchemy import func, select
 
-from services.core.cues import CATALOG
-from services.core.db import job_progress
-from services.core.models import Job, Task
+from services.core.db.counters import job_progress
+from services.core.db.models import Job, Task
+from services.core.domain.cues import CATALOG
 from tests.e2e.conftest import REPO, SCHEDULER_APP, WORKER_APP, Cluster, Proc, restart_redis
 
 pytestmark = pytest.mark.slow

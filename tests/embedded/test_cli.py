@@ -20,8 +20,8 @@ import trimesh
 from PIL import Image
 
 from services.cli import main
-from services.core.cues import CATALOG, default_cues
-from services.core.keys import output_key
+from services.core.domain.cues import CATALOG, default_cues
+from services.core.domain.keys import output_key
 from tests.fixtures.cli import REPO, omnidata
 
 TINY = """
@@ -346,8 +346,8 @@ def test_unknown_and_unsupported_cues_are_refused(capsys, scenes_dir, tmp_path):
 
 
 def test_helpers_name_spaces_and_fingerprint_requests(scenes_dir):
-    from services.core.jobspec import JobSpec
-    from services.core.keys import space_name
+    from services.core.domain.jobspec import JobSpec
+    from services.core.domain.keys import space_name
     from services.embedded.job import job_fingerprint
 
     assert space_name(scenes_dir / "ycb_banana") == "ycb_banana"

@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from services.core.cues import CATALOG, OUTPUT_CUES, default_cues
+from services.core.domain.cues import CATALOG, OUTPUT_CUES, default_cues
 from services.scheduler.compile import check_dag, compile_tasks
 from tests.fixtures.jobs import synthetic_plan
 

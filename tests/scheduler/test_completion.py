@@ -7,10 +7,10 @@ import json
 
 from sqlalchemy import update
 
-from services.core.camera import CONVENTIONS
-from services.core.keys import passes_key
-from services.core.manifest import job_document, manifest_bytes
-from services.core.models import Job
+from services.core.db.manifest import job_document, manifest_bytes
+from services.core.db.models import Job
+from services.core.domain.camera import CONVENTIONS
+from services.core.domain.keys import passes_key
 from services.scheduler.completion import complete_once, finished_job_ids
 from services.scheduler.dispatch import dispatch_once
 from services.scheduler.transport import NullTransport
@@ -57,7 +57,7 @@ def test_manifest_has_one_line_per_view_and_the_pass_cache_is_gone(any_sm, local
         assert doc["spec"]["cues"] == ["rgb", "nonfixated"]
         assert set(doc["cues"]) == {"rgb", "nonfixated"} and doc["cues"]["rgb"]["ext"] == "png"
         (sp,) = doc["spaces"].values()
-        assert sp["source_to_world"] and sp["checksum"] == "0" * 64
+        assert sp["source_to_world"] and sp["checksum_sha256"] == "0" * 64
         assert doc["counts"]["by_state"] == {"done": len(task_ids(s, job.id))}
         assert doc["code_version"] and doc["job"]["state"] == "done"
         assert doc == json.loads(json.dumps(job_document(s, job)))
@@ -75,7 +75,7 @@ def test_a_failed_task_fails_the_job_with_a_summary(any_sm, local_store):
         ids = [i for i, _ in tr.sent]
         finish(s, job, ids[1:])
         claim(s, job.id, ids[:1])
-        from services.core.states import transition
+        from services.core.db.states import transition
 
         transition(s, job_id=job.id, task_ids=ids[:1], from_state="running", to_state="failed",
                    error="RuntimeError: boom\n  File x.py line 3\nRuntimeError: boom at the end")

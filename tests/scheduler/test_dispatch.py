@@ -9,9 +9,9 @@ from datetime import timedelta
 import pytest
 from sqlalchemy import select, update
 
-from services.core.cues import CATALOG
-from services.core.jobs import cancel_job, pause_job, resume_job
-from services.core.models import Task, utcnow
+from services.core.db.jobs import cancel_job, pause_job, resume_job
+from services.core.db.models import Task, utcnow
+from services.core.domain.cues import CATALOG
 from services.scheduler.dispatch import dispatch_once, ready_tasks
 from services.scheduler.transport import NullTransport
 from tests.fixtures.jobs import (  # noqa: F401  (fixtures)
@@ -196,7 +196,7 @@ def test_a_send_failure_midway_puts_back_only_the_unsent(pg_sm, local_store, mon
 
 
 def test_tasks_whose_input_failed_fail_too_and_the_job_finishes(any_sm, local_store):
-    from services.core.states import transition
+    from services.core.db.states import transition
     from services.scheduler.completion import complete_once
 
     with any_sm() as s:

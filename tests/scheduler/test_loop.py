@@ -18,12 +18,13 @@ from kombu import Connection
 from sqlalchemy import create_engine, select, text
 from sqlalchemy.orm import Session, sessionmaker
 
-from services.core.db import job_progress, make_engine, make_sessionmaker, migrate
-from services.core.jobs import create_job
-from services.core.jobspec import JobSpec
-from services.core.models import Job, Task
+from services.core.db.counters import job_progress
+from services.core.db.engine import make_engine, make_sessionmaker, migrate
+from services.core.db.jobs import create_job
+from services.core.db.models import Job, Task
+from services.core.domain.jobspec import JobSpec
+from services.core.ingest.registry import register_space
 from services.core.settings import get_settings
-from services.core.space_registry import register_space
 from services.core.storage import LocalStore
 from services.scheduler.loop import Scheduler
 from services.scheduler.transport import CeleryTransport, NullTransport
@@ -98,7 +99,7 @@ def test_embedded_sqlite_job_runs_to_done(sqlite_sm, local_store, scenes_dir, tm
     assert len(lines) == 6 and all(set(json.loads(x)["outputs"]) == {"point_info", "rgb"} for x in lines)
     doc = json.loads(local_store.get_bytes(f"jobs/{job_id}/job.json"))
     assert len(doc["spaces"]["bunny"]["source_to_world"]) == 4
-    planned = doc["spaces"]["bunny"]["plan"]  # how the frame was found, and the predicted surface share
+    planned = doc["spaces"]["bunny"]  # how the frame was found, and the predicted surface share (one job.json schema)
     assert planned["up"]["method"] == "base" and planned["up"]["source_direction"] == [0.0, 1.0, 0.0]
     assert planned["units"]["unit"] == "metres" and planned["valid_fraction"]["views"] == 6
 
@@ -251,7 +252,7 @@ def test_cli_once_plans_and_dispatches(own_pg, own_sm, redis_url, tmp_path, scen
 
 
 def test_a_job_cancelled_while_planning_keeps_no_plan(own_sm, tmp_path, scenes_dir):
-    from services.core.jobs import cancel_job
+    from services.core.db.jobs import cancel_job
     from services.scheduler.planning import make_plan
 
     store = LocalStore(tmp_path / "objects")
@@ -273,7 +274,7 @@ def test_a_job_cancelled_while_planning_keeps_no_plan(own_sm, tmp_path, scenes_d
 def test_planning_errors_are_retried_then_fail_the_job(sqlite_sm, local_store, scenes_dir, tmp_path):
     from sqlalchemy import update
 
-    from services.core.models import utcnow
+    from services.core.db.models import utcnow
 
     job_id = _submit(sqlite_sm, local_store, scenes_dir)
     calls = []

@@ -12,9 +12,10 @@ import trimesh
 import yaml
 
 from services.cli import main
-from services.core.keys import file_name
-from services.core.plan import nonfixated, plan_from_json, point_info, vanishing_points
-from services.core.spaces import load_space
+from services.core.domain.keys import file_name
+from services.core.domain.plan import plan_from_json
+from services.core.domain.plan_cues import nonfixated, point_info, vanishing_points
+from services.core.ingest.loading import load_space
 from tests.fixtures import scenes
 
 SPEC = {

@@ -7,8 +7,8 @@ from datetime import timedelta
 
 from sqlalchemy import select, update
 
-from services.core.jobs import cancel_job
-from services.core.models import Task, Worker, utcnow
+from services.core.db.jobs import cancel_job
+from services.core.db.models import Task, Worker, utcnow
 from services.scheduler.dispatch import dispatch_once
 from services.scheduler.reaper import reap_once
 from services.scheduler.transport import NullTransport

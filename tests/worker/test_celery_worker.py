@@ -20,14 +20,15 @@ import pytest
 from sqlalchemy import Engine, select
 from sqlalchemy.orm import Session, sessionmaker
 
+from services.cli.worker import worker_argv
 from services.core.celery_config import TASK_RENDER_CUE
-from services.core.db import make_engine, make_sessionmaker
-from services.core.models import Task, Worker
+from services.core.db.engine import make_engine, make_sessionmaker
+from services.core.db.models import Task, Worker
 from services.core.settings import get_settings
 from services.worker import tasks
 from services.worker.celery_app import create_app
-from services.worker.cli import worker_argv
-from services.worker.runner import TaskRunner, TransientError
+from services.worker.claim import TransientError
+from services.worker.runner import TaskRunner
 from tests.worker.test_runner import banana, make_job, queue  # noqa: F401  (banana is a fixture)
 
 REPO = Path(__file__).resolve().parents[2]

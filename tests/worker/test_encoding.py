@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from services.core.cues import CATALOG, OUTPUT_CUES, UnknownCueError
+from services.core.domain.cues import CATALOG, OUTPUT_CUES, UnknownCueError
 from services.worker.cues import REGISTRY, encode, get_impl
 from services.worker.cues.encoding import decode_exr_rgb, encode_png
 from services.worker.cues.semantic import pack_panoptic, unpack_panoptic

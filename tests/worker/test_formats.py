@@ -11,9 +11,10 @@ import pytest
 import trimesh
 from PIL import Image
 
-from services.core.camera import look_at
-from services.core.spaces import load_space
-from services.worker.blender import srgb_encode, srgb_to_linear
+from services.core.domain.camera import look_at
+from services.core.ingest.loading import load_space
+from services.worker.blender.render import srgb_encode
+from services.worker.blender.scene import srgb_to_linear
 from services.worker.executor import render_view_cues
 from services.worker.passes import ViewGeometry
 from services.worker.space_cache import SpaceContext

@@ -16,11 +16,11 @@ import pytest
 import trimesh
 from PIL import Image
 
-from services.core.camera import camera_center
-from services.core.cues import CATALOG, default_cues
-from services.core.jobspec import CueParams
-from services.core.plan import CameraPose, PlannedView, PointOfInterest, SpacePlan
-from services.core.spaces import load_space
+from services.core.domain.camera import camera_center
+from services.core.domain.cues import CATALOG, default_cues
+from services.core.domain.jobspec import CueParams
+from services.core.domain.plan import CameraPose, PlannedView, PointOfInterest, SpacePlan
+from services.core.ingest.loading import load_space
 from services.worker.context import SemanticsUnavailableError, ViewContext
 from services.worker.cues.encoding import decode_exr_rgb
 from services.worker.executor import make_context, produce, render_view_cues
@@ -63,7 +63,7 @@ class Rendered:
 
 
 def plan_for(name: str, g: ViewGeometry, target: np.ndarray) -> tuple[SpacePlan, PlannedView]:
-    """A one-view plan fixated on `target`, so plan cues go through services.core.plan."""
+    """A one-view plan fixated on `target`, so plan cues go through services.core.domain.plan."""
     cam = CameraPose(0, camera_center(g.world_to_camera), "provided", f"{name}-cam")
     point = PointOfInterest(0, target, np.array([0.0, 0.0, 1.0]), f"{name}-pt", (0,))
     view = PlannedView(0, 0, 0, g.world_to_camera, g.fov, 0.0, g.resolution, 0.5, True)
@@ -337,7 +337,8 @@ def test_space_cache_keeps_and_frees_scenes(rendered: dict[str, Rendered]) -> No
 
 def test_gpu_request_falls_back_to_cpu(caplog: pytest.LogCaptureFixture,
                                        rendered: dict[str, Rendered]) -> None:
-    from services.worker.blender import BlenderScene, RenderOptions
+    from services.worker.blender.render import RenderOptions
+    from services.worker.blender.scene import BlenderScene
 
     with pytest.raises(ValueError, match="device"):
         RenderOptions(device="vulkan")  # type: ignore[arg-type]

@@ -22,22 +22,25 @@ from PIL import Image
 from sqlalchemy import Engine, select
 from sqlalchemy.orm import Session, sessionmaker
 
-from services.core.db import job_progress, make_engine, make_sessionmaker, migrate
-from services.core.jobs import create_job, root_key
-from services.core.jobspec import JobSpec
-from services.core.keys import output_key, passes_key
-from services.core.models import Job, Space, Task, Worker, WorkerBlock, utcnow
-from services.core.plan import SpacePlan
+from services.core.db.counters import job_progress
+from services.core.db.engine import make_engine, make_sessionmaker, migrate
+from services.core.db.jobs import create_job, root_key
+from services.core.db.models import Job, Space, Task, Worker, WorkerBlock, utcnow
+from services.core.db.states import transition
+from services.core.domain.jobspec import JobSpec
+from services.core.domain.keys import output_key, passes_key
+from services.core.domain.plan import SpacePlan
+from services.core.ingest.loading import load_space
+from services.core.ingest.registry import register_space
 from services.core.settings import get_settings
-from services.core.space_registry import register_space
-from services.core.spaces import load_space
-from services.core.states import transition
 from services.core.storage import LocalStore, ObjectInfo
 from services.scheduler.compile import compile_tasks
 from services.scheduler.persist import persist_space
 from services.scheduler.reaper import reap_once
+from services.worker.caches import trim_lru
+from services.worker.claim import Outcome, format_error
 from services.worker.heartbeat import Heartbeat
-from services.worker.runner import Outcome, TaskRunner, format_error, trim_lru
+from services.worker.runner import TaskRunner
 
 SPEC = {
     "cameras": {"mode": "object", "object_count": 6},
@@ -321,7 +324,7 @@ def test_paused_job_task_is_handed_back_and_cancelled_job_task_is_ignored(sm, ba
         s.commit()
     tid = queue_again(sm, job_id, tid)
     with sm() as s:
-        from services.core.jobs import cancel_job
+        from services.core.db.jobs import cancel_job
 
         cancel_job(s, s.get(Job, job_id))
         s.commit()

@@ -12,10 +12,10 @@ from billiard import process as billiard_process
 from sqlalchemy import update
 
 from services.cli import main
-from services.core.models import Task, Worker, utcnow
+from services.cli.worker import WORKER_NAME_HELD_S, node_name
+from services.core.db.models import Task, Worker, utcnow
 from services.core.settings import get_settings
 from services.worker import tasks
-from services.worker.cli import WORKER_NAME_HELD_S, node_name
 from services.worker.heartbeat import live_holder
 from services.worker.runner import default_worker_id
 from tests.worker.test_celery_worker import pg_sm, runtime_reset  # noqa: F401  (fixtures)

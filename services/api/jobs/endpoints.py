@@ -11,7 +11,7 @@ from services.api.deps import ReadSessionDep, SessionDep, StoreDep, TenantDep
 from services.api.jobs import service
 from services.api.jobs.schemas import JobCreate, JobDetail, JobRead
 from services.api.pagination import Page, PageDep
-from services.core.models import JobState
+from services.core.db.models import JobState
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])
 

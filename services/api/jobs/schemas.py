@@ -8,8 +8,8 @@ from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from services.core.jobspec import JobSpec
-from services.core.models import TASK_STATES
+from services.core.db.models import TASK_STATES
+from services.core.domain.jobspec import JobSpec
 
 DbId = Annotated[int, Field(ge=1, le=2**63 - 1)]
 

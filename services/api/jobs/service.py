@@ -1,188 +1,36 @@
-"""Job logic: create, list, progress (from JobCounter rows only), lifecycle actions, delete.
-
-Progress never counts task rows: it reads the job's handful of `job_counter` rows, so GET /jobs/{id} costs
-the same on a 1M-task job as on a 10-task one. Throughput is measured from successive counter readings
-kept in memory (RateTracker), falling back to the average since the job started.
-"""
+"""Job logic: create, list, read with progress (services.api.progress.compute), lifecycle actions, delete."""
 
 from __future__ import annotations
 
 import functools
 import json
-import threading
-import time
-from collections import deque
 from collections.abc import Callable, Sequence
-from datetime import datetime
 from typing import Any
 
-from fastapi import HTTPException, status
 from sqlalchemy import bindparam, func, select
 from sqlalchemy.orm import Session, defer
 
 from services.api.jobs.schemas import (
-    CueProgress,
     JobCreate,
     JobDetail,
     JobEvent,
     JobRead,
     JobSpaceRead,
-    Progress,
 )
 from services.api.pagination import PageParams
+from services.api.progress.compute import Counters, compute_progress, read_counters
+from services.api.progress.rates import RateTracker
 from services.api.spaces.service import not_found
-from services.core import jobs as core_jobs
-from services.core.cues import CATALOG
-from services.core.models import (
-    JOB_TERMINAL_STATES,
-    TASK_ACTIVE_STATES,
-    TASK_STATES,
-    TASK_TERMINAL_STATES,
+from services.core.db import jobs as core_jobs
+from services.core.db.counters import summed_counters
+from services.core.db.models import (
     Job,
-    JobCounter,
     JobSpace,
-    JobState,
     Space,
-    TaskState,
-    utcnow,
 )
-from services.core.spaces import frame_of
+from services.core.domain.errors import Conflict, Invalid
+from services.core.ingest.frame import frame_of
 from services.core.storage import ObjectStore
-
-FINISHED_STATES = TASK_TERMINAL_STATES
-REMAINING_STATES = TASK_ACTIVE_STATES
-
-Counters = dict[str, dict[str, int]]  # cue -> state -> n
-STALL_MIN_S = 10.0  # a running job that finished nothing for this long, and ...
-STALL_INTERVALS = 5.0  # ... for this many of its mean intervals between finishes, has no ETA
-_CUE_ORDER = {name: i for i, name in enumerate(CATALOG)}
-
-
-class RateTracker:
-    """Recent finish rate per job from successive counter readings (thread-safe, bounded memory)."""
-
-    def __init__(self, window_s: float = 60.0, min_span_s: float = 2.0, max_jobs: int = 10_000):
-        self.window_s = window_s
-        self.min_span_s = min_span_s
-        self.max_jobs = max_jobs
-        self._samples: dict[int, deque[tuple[float, int, int]]] = {}
-        self._lock = threading.Lock()
-
-    def observe(self, job_id: int, finished: int, labels: int, now: float | None = None) -> tuple[float, float] | None:
-        """Record a reading (monotonic seconds); return (tasks/s, labels/s) over the window, or None if too short."""
-        now = time.monotonic() if now is None else now
-        with self._lock:
-            q = self._samples.get(job_id)
-            if q is None:
-                if len(self._samples) >= self.max_jobs:
-                    self._evict(now)
-                q = self._samples[job_id] = deque()
-            if not q or now - q[-1][0] >= 0.2 or q[-1][1] != finished:
-                q.append((now, finished, labels))
-            # Keep one sample older than the window so the rate always spans the whole window.
-            while len(q) > 2 and now - q[1][0] >= self.window_s:
-                q.popleft()
-            t0, n0, l0 = q[0]
-            t1, n1, l1 = q[-1]
-            if t1 - t0 < self.min_span_s:
-                return None
-            if n1 < n0:  # counters went down (retry of failed tasks): restart the window
-                q.clear()
-                q.append((t1, n1, l1))
-                return None
-            return (n1 - n0) / (t1 - t0), max(0, l1 - l0) / (t1 - t0)
-
-    def idle_s(self, job_id: int, now: float | None = None) -> float:
-        """Seconds since the job's finished count last changed, as far as the kept readings tell (0 if unknown)."""
-        now = time.monotonic() if now is None else now
-        with self._lock:
-            q = self._samples.get(job_id)
-            if not q:
-                return 0.0
-            since = q[0][0]
-            for k in range(len(q) - 1, 0, -1):
-                if q[k - 1][1] != q[k][1]:
-                    since = q[k][0]
-                    break
-            return max(0.0, now - since)
-
-    def _evict(self, now: float) -> None:
-        stale = [j for j, q in self._samples.items() if not q or now - q[-1][0] > self.window_s]
-        for j in stale or list(self._samples)[: len(self._samples) // 2]:
-            del self._samples[j]
-
-
-def read_counters(session: Session, job_ids: Sequence[int]) -> dict[int, Counters]:
-    """Counters of several jobs in one query: {job_id: {cue: {state: n}}} (zero rows omitted)."""
-    out: dict[int, Counters] = {j: {} for j in job_ids}
-    if not job_ids:
-        return out
-    c = JobCounter.__table__.c
-    rows = session.execute(
-        select(c.job_id, c.cue, c.state, c.n).where(c.job_id.in_(list(job_ids)), c.n != 0)
-    )
-    for job_id, cue, state, n in rows:
-        out[int(job_id)].setdefault(cue, {})[state] = int(n)
-    return out
-
-
-def _by_state(counts: dict[str, int]) -> dict[str, int]:
-    return {s: int(counts.get(s, 0)) for s in TASK_STATES}
-
-
-def compute_progress(
-    job: Job, counters: Counters, rates: RateTracker | None, now: datetime | None = None
-) -> tuple[Progress, dict[str, CueProgress]]:
-    """Overall and per-cue progress of `job` from its counters; throughput and ETA from `rates`."""
-    totals: dict[str, int] = dict.fromkeys(TASK_STATES, 0)
-    cues: dict[str, CueProgress] = {}
-    labels_done = 0
-    for cue in sorted(counters, key=lambda c: _CUE_ORDER.get(c, len(_CUE_ORDER))):
-        by = _by_state(counters[cue])
-        total = sum(by.values())
-        fin = sum(by[s] for s in FINISHED_STATES)
-        for s, n in by.items():
-            totals[s] += n
-        if cue in CATALOG and not CATALOG[cue].internal:
-            labels_done += by[TaskState.DONE]
-        cues[cue] = CueProgress(by_state=by, total=total, done=by[TaskState.DONE], fraction=fin / total if total else 0.0)
-    total = sum(totals.values())
-    finished = sum(totals[s] for s in FINISHED_STATES)
-    remaining = sum(totals[s] for s in REMAINING_STATES)
-    if total:
-        fraction = finished / total
-    else:
-        fraction = 1.0 if job.state == JobState.DONE else 0.0
-
-    rate: float | None = None
-    label_rate: float | None = None
-    recent = rates.observe(job.id, finished, labels_done) if rates is not None and job.state == JobState.RUNNING else None
-    if recent is not None:
-        rate, label_rate = recent
-    elif job.started_at is not None and finished:
-        end = job.finished_at if job.state in JOB_TERMINAL_STATES and job.finished_at else (now or utcnow())
-        span = (end - job.started_at).total_seconds()
-        if span > 0:
-            rate, label_rate = finished / span, labels_done / span
-    eta: float | None = None
-    if job.state in JOB_TERMINAL_STATES:
-        eta = 0.0 if job.state == JobState.DONE else None
-    elif job.state == JobState.RUNNING and rate and rate > 0:
-        eta = remaining / rate
-        # No task finished for much longer than the rate predicts (a dead worker's task waits for the reaper):
-        # the ETA is unknown, not the few seconds the old rate would promise.
-        if rates is not None and rates.idle_s(job.id) > max(STALL_MIN_S, STALL_INTERVALS / rate):
-            eta = None
-    progress = Progress(
-        total=total,
-        by_state=totals,
-        finished=finished,
-        fraction=round(fraction, 6),
-        throughput_per_s=None if rate is None else round(rate, 4),
-        labels_per_s=None if label_rate is None else round(label_rate, 4),
-        eta_s=None if eta is None else round(eta, 1),
-    )
-    return progress, cues
 
 
 def _space_ids(session: Session, job_ids: Sequence[int]) -> dict[int, list[int]]:
@@ -244,8 +92,9 @@ def detail_statement(dialect: str) -> Any:
     """SELECT job + counters + spaces (json aggregates) for one job and owner; built once per dialect, so
     SQLAlchemy's memoized cache key is reused instead of re-traversing the statement on every poll."""
     agg, arr = (func.json_agg, func.json_build_array) if dialect == "postgresql" else (func.json_group_array, func.json_array)
-    c, js, t = JobCounter.__table__.c, JobSpace.__table__.c, Job.__table__.c
-    counters_q = select(agg(arr(c.cue, c.state, c.n))).where(c.job_id == t.id, c.n != 0).scalar_subquery()
+    js, t = JobSpace.__table__.c, Job.__table__.c
+    summed = summed_counters(t.id).subquery()  # the counter shards of the job, summed
+    counters_q = select(agg(arr(summed.c.cue, summed.c.state, summed.c.n))).scalar_subquery()
     spaces_q = (
         select(agg(arr(js.space_id, Space.name, js.position, js.cues)))
         .select_from(JobSpace.__table__.join(Space, Space.id == js.space_id))
@@ -321,7 +170,7 @@ def create_job(session: Session, *, owner: str, body: JobCreate) -> Job:
         job = core_jobs.create_job(session, owner=owner, spec=body.spec, spaces=[found[i] for i in body.space_ids])
     except ValueError as e:
         session.rollback()
-        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(e)) from None
+        raise Invalid(str(e)) from None
     session.commit()
     return job
 
@@ -341,7 +190,7 @@ def apply_action(session: Session, *, owner: str, job_id: int, action: str) -> J
         ACTIONS[action](session, job)
     except core_jobs.JobStateError as e:
         session.rollback()
-        raise HTTPException(status.HTTP_409_CONFLICT, str(e)) from None
+        raise Conflict(str(e)) from None
     session.commit()
     session.refresh(job)
     return job

@@ -20,8 +20,8 @@ from fastapi import FastAPI
 from sqlalchemy import case, func, select, text
 from sqlalchemy.orm import Session
 
-from services.core.db import SchemaNotCurrent, schema_problem
-from services.core.models import JOB_STATES, TASK_STATES, Job, JobCounter, Task, TaskState, Worker, utcnow
+from services.core.db.engine import SchemaNotCurrent, schema_problem
+from services.core.db.models import JOB_STATES, TASK_STATES, Job, JobCounter, Task, TaskState, Worker, utcnow
 
 CHECK_TIMEOUT_S = 3.0
 METRICS_TTL_S = 5.0

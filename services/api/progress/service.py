@@ -21,8 +21,10 @@ from sqlalchemy import select
 from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import Session, load_only
 
-from services.api.jobs.service import Counters, RateTracker, job_event, read_counters
-from services.core.models import JOB_TERMINAL_STATES, Job
+from services.api.jobs.service import job_event
+from services.api.progress.compute import Counters, read_counters
+from services.api.progress.rates import RateTracker
+from services.core.db.models import JOB_TERMINAL_STATES, Job
 
 log = logging.getLogger("omnidata.api")
 

@@ -2,27 +2,27 @@
 
 from __future__ import annotations
 
-import tempfile
 from pathlib import Path
 
-from fastapi import HTTPException, status
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from services.api.pagination import PageParams
-from services.core.models import Job, JobSpace, Space
-from services.core.safe_load import load_space_limited
+from services.core.db.models import Job, JobSpace, Space
+from services.core.domain.errors import Conflict, Invalid, NotFound, TooLarge
+from services.core.ingest.errors import SpaceError
+from services.core.ingest.registry import register_space
+from services.core.ingest.safe_load import load_space_limited
 from services.core.settings import Settings
-from services.core.space_registry import register_space
-from services.core.spaces import SpaceError
 from services.core.storage import ObjectNotFoundError, ObjectStore, check_key
+from services.core.temp_dirs import owned_temp_dir
 
 STAGING_PREFIX = "uploads"  # tenants stage big scans under uploads/<tenant>/ and register them
 
 
-def not_found(kind: str, ident: object) -> HTTPException:
-    """404 for a missing object, and for another tenant's (never 403: existence is not revealed)."""
-    return HTTPException(status.HTTP_404_NOT_FOUND, f"{kind} {ident} not found")
+def not_found(kind: str, ident: object) -> NotFound:
+    """NotFound (404) for a missing object, and for another tenant's (never 403: existence is not revealed)."""
+    return NotFound(f"{kind} {ident} not found")
 
 
 def list_spaces(session: Session, *, owner: str, page: PageParams) -> tuple[list[Space], int]:
@@ -45,10 +45,7 @@ def get_space(session: Session, *, owner: str, space_id: int) -> Space:
 def _check_name_free(session: Session, *, owner: str, name: str) -> None:
     existing = session.scalar(select(Space.id).where(Space.owner == owner, Space.name == name))
     if existing is not None:
-        raise HTTPException(
-            status.HTTP_409_CONFLICT,
-            f"a space named {name!r} already exists (id {existing}); choose another name or delete it first",
-        )
+        raise Conflict(f"a space named {name!r} already exists (id {existing}); choose another name or delete it first")
 
 
 def default_name(filename: str) -> str:
@@ -86,33 +83,27 @@ def create_space(
         session.commit()
     except SpaceError as e:
         session.rollback()
-        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"space rejected: {e}") from None
+        raise Invalid(f"space rejected: {e}") from None
     return space
 
 
 def staged_key(settings: Settings, *, owner: str, key: str | None, uri: str | None) -> str:
     """The object key a register request names; it must lie in the tenant's staging area uploads/<tenant>/."""
     if (key is None) == (uri is None):
-        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "give exactly one of 'key' or 'uri'")
+        raise Invalid("give exactly one of 'key' or 'uri'")
     if uri is not None:
         root = settings.storage_url.rstrip("/") + "/"
         if not uri.startswith(root):
-            raise HTTPException(
-                status.HTTP_422_UNPROCESSABLE_CONTENT,
-                f"uri {uri!r} is not in this service's object store ({root}...)",
-            )
+            raise Invalid(f"uri {uri!r} is not in this service's object store ({root}...)")
         key = uri[len(root) :]
     assert key is not None
     try:
         check_key(key)
     except ValueError as e:
-        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(e)) from None
+        raise Invalid(str(e)) from None
     area = f"{STAGING_PREFIX}/{owner}/"
     if not key.startswith(area):
-        raise HTTPException(
-            status.HTTP_422_UNPROCESSABLE_CONTENT,
-            f"key {key!r} is outside your staging area: stage scans under '{area}' and register them from there",
-        )
+        raise Invalid(f"key {key!r} is outside your staging area: stage scans under '{area}' and register them from there")
     return key
 
 
@@ -132,14 +123,11 @@ def register_staged(
     if info is None:
         raise not_found("object", repr(key))
     if info.size > settings.upload_max_bytes:
-        raise HTTPException(
-            status.HTTP_413_CONTENT_TOO_LARGE,
-            f"object {key!r} has {info.size} bytes, above the limit of {settings.upload_max_bytes}",
-        )
+        raise TooLarge(f"object {key!r} has {info.size} bytes, above the limit of {settings.upload_max_bytes}")
     filename = key.rsplit("/", 1)[-1]
     name = name or default_name(filename)
     _check_name_free(session, owner=owner, name=name)
-    with tempfile.TemporaryDirectory(prefix="omnidata-register-") as tmp:
+    with owned_temp_dir("register") as tmp:
         path = Path(tmp) / filename
         try:
             store.get_file(key, path)
@@ -157,10 +145,7 @@ def delete_space(session: Session, store: ObjectStore, *, owner: str, space_id: 
         select(JobSpace.job_id).join(Job, Job.id == JobSpace.job_id).where(JobSpace.space_id == space.id).limit(20)
     ).all()
     if job_ids:
-        raise HTTPException(
-            status.HTTP_409_CONFLICT,
-            f"space {space_id} is used by job(s) {', '.join(map(str, job_ids))}; delete those jobs first",
-        )
+        raise Conflict(f"space {space_id} is used by job(s) {', '.join(map(str, job_ids))}; delete those jobs first")
     session.delete(space)
     session.commit()
     store.delete_prefix(f"spaces/{space_id}/")

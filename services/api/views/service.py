@@ -12,11 +12,10 @@ from typing import Any
 from sqlalchemy import ColumnElement, Integer, and_, cast, exists, func, literal_column, select, tuple_
 from sqlalchemy.orm import Session
 
-from services.api.jobs.service import read_counters
 from services.api.pagination import PageParams
+from services.api.progress.compute import read_counters
 from services.api.views.schemas import PlanSpace, TaskBrief, TaskRead, ThroughputBucket, ViewRead
-from services.core.cues import CATALOG
-from services.core.models import (
+from services.core.db.models import (
     JOB_TERMINAL_STATES,
     Camera,
     Job,
@@ -28,6 +27,7 @@ from services.core.models import (
     View,
     utcnow,
 )
+from services.core.domain.cues import CATALOG
 
 MAX_PLAN_ITEMS = 20_000  # cameras or points per space in one plan response
 PER_POINT = tuple(n for n, c in CATALOG.items() if c.per_point)

@@ -2,7 +2,7 @@
 
 `make_plan(space, spec, rng, space_name)` runs cameras -> points -> views with the given
 `numpy.random.Generator` only (no global RNG, bpy, SQL, S3 or Celery), so the same seed and inputs
-give a byte-identical `plan_to_json`. World frame: metres, +Z up (see services.core.spaces).
+give a byte-identical `plan_to_json`. World frame: metres, +Z up (see services.core.ingest.loading).
 """
 
 from __future__ import annotations
@@ -14,10 +14,17 @@ import uuid as uuidlib
 
 import numpy as np
 
-from services.core.jobspec import CameraSpec, JobSpec
-from services.core.keys import check_name
-from services.core.plan import CameraPose, PlanError, PlannedView, PointOfInterest, SpacePlan, clip_shortfall
-from services.core.spaces import LoadedSpace
+from services.core.domain.jobspec import CameraSpec, JobSpec
+from services.core.domain.keys import check_name
+from services.core.domain.plan import (
+    CameraPose,
+    PlanError,
+    PlannedView,
+    PointOfInterest,
+    SpacePlan,
+    clip_shortfall,
+)
+from services.core.ingest.loading import LoadedSpace
 from services.scheduler.planning.cameras import generate_cameras, object_cameras, provided_cameras
 from services.scheduler.planning.points import SampledPoints, sample_points
 from services.scheduler.planning.trajectory import ClipNote, longest_run, trajectory

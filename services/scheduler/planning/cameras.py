@@ -1,8 +1,8 @@
 """Camera positions (world metres, +Z up): generated in free space, provided, or on a sphere (objects).
 
 generate: a 3D Poisson-disc sample of the free space inside the scan.
-  1. Floors: faces whose normal is within 15 degrees of +Z, grouped by height (a gap > 5 cm starts a
-     new group); groups with >= 20 % of the largest group's area (and >= 0.5 m^2) are floors, so each
+  1. Floors: faces whose normal is within 15 degrees of +Z (the floor rule of core.ingest.gravity),
+     grouped by height (a gap > 5 cm starts a new group); groups with >= 20 % of the largest group's area (and >= 0.5 m^2) are floors, so each
      storey of a multi-floor scan counts and table tops or stair steps do not.
   2. Candidates: area-uniform points on the floor faces, raised by a height ~ U[height_min, height_max].
   3. Filters, cheapest first: the vertical segment from the floor point to the camera (plus the
@@ -29,14 +29,14 @@ import trimesh
 from scipy import sparse
 from scipy.spatial import cKDTree
 
-from services.core.camera import quaternion_wxyz_to_rotation
-from services.core.jobspec import CameraSpec
-from services.core.plan import PlanError
+from services.core.domain.camera import quaternion_wxyz_to_rotation
+from services.core.domain.jobspec import CameraSpec
+from services.core.domain.plan import PlanError
+from services.core.ingest.gravity import FLOOR_CONE_COS
 from services.scheduler.planning.visibility import MeshQueries
 
-FLOOR_CONE_COS = float(np.cos(np.radians(15.0)))
 FLOOR_GAP_M = 0.05
-FLOOR_MIN_FRACTION = 0.2
+FLOOR_MIN_FRACTION = 0.2  # of the largest floor group's area: every storey counts, table tops do not
 FLOOR_MIN_AREA_M2 = 0.5
 MAX_CANDIDATES = 100_000
 CANDIDATES_PER_CAMERA = 30

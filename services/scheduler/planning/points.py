@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from services.core.jobspec import PointSpec
+from services.core.domain.jobspec import PointSpec
 from services.scheduler.planning.visibility import RAY_BATCH, MeshQueries
 
 

@@ -1,6 +1,6 @@
 """Trajectory views: per point a clip a camera could fly, smooth, in free space, at the spec's spacing.
 
-World metres, radians; world_to_camera into OpenCV axes (services.core.camera). Once per plan:
+World metres, radians; world_to_camera into OpenCV axes (services.core.domain.camera). Once per plan:
   1. free-space graph: the cameras (all in free space, clear of the mesh) are the nodes; an edge joins
      two cameras closer than EDGE_REACH x the median nearest-camera distance (or among each other's
      EDGE_KNN nearest) when nothing blocks the segment and samples along it every <= clearance/2 keep
@@ -72,7 +72,7 @@ from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 from scipy.special import erf
 
-from services.core.jobspec import ViewSpec
+from services.core.domain.jobspec import ViewSpec
 from services.scheduler.planning.views import (
     ViewArrays,
     cap_views,
@@ -120,7 +120,7 @@ ORBIT_TILT_DEG = (42.0, 8.0)  # object orbits: angle between the axis and the ca
 @dataclass
 class ClipNote:
     """Why a point's clip is shorter than planned (or missing): sampled point index, frames kept and
-    planned, and how many frames failed each check (keys of services.core.plan.CLIP_CHECKS)."""
+    planned, and how many frames failed each check (keys of services.core.domain.plan.CLIP_CHECKS)."""
 
     point: int
     frames: int

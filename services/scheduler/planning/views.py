@@ -1,4 +1,4 @@
-"""Fixated views (world metres, radians; world_to_camera into OpenCV axes, see services.core.camera).
+"""Fixated views (world metres, radians; world_to_camera into OpenCV axes, see services.core.domain.camera).
 
 wide_baseline: one view per camera-point pair with line of sight; when a point is seen by more than
 max_views cameras, max_views of them are chosen by the rng. Each view looks from the camera straight
@@ -26,8 +26,8 @@ from typing import Any
 import numpy as np
 from scipy.special import ndtr, ndtri
 
-from services.core.camera import intrinsics
-from services.core.jobspec import ViewSpec
+from services.core.domain.camera import intrinsics
+from services.core.domain.jobspec import ViewSpec
 from services.scheduler.planning.visibility import MeshQueries
 
 
@@ -68,7 +68,7 @@ def truncated_normal(
 
 
 def look_at_batch(positions: np.ndarray, targets: np.ndarray, rolls: np.ndarray) -> np.ndarray:
-    """(n, 4, 4) world_to_camera, the vectorised twin of services.core.camera.look_at (same result)."""
+    """(n, 4, 4) world_to_camera, the vectorised twin of services.core.domain.camera.look_at (same result)."""
     positions = np.asarray(positions, dtype=np.float64)
     z = np.asarray(targets, dtype=np.float64) - positions
     norm = np.linalg.norm(z, axis=1, keepdims=True)

@@ -15,7 +15,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from services.core.plan import PlanError
+from services.core.domain.plan import PlanError
 
 RAY_BATCH = 1 << 19  # rays per Embree call: bounds the temporary arrays (~50 MB)
 _LEVEL_GROWTH = 4.0  # face-size levels of the distance index

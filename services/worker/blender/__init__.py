@@ -1,10 +1,6 @@
-"""The only bpy-importing part of the service: build a space's scene and render views to pass sets.
+"""The only bpy-importing part of the service: build a space's scene (scene.py) and render views to pass sets
+(render.py); threads.py imports bpy with Blender's thread pool sized to the render budget.
 
-Import it lazily (`from services.worker.blender import BlenderScene`) where a render is needed: importing bpy
-takes about a second and a few hundred MB.
+Import the modules lazily where a render is needed: importing bpy takes about a second and a few hundred MB.
+This package file imports nothing, so `services.worker.blender.threads` can import bpy first, its way.
 """
-
-from services.worker.blender.render import DEVICES, RenderOptions, srgb_encode
-from services.worker.blender.scene import BlenderScene, srgb_to_linear
-
-__all__ = ["DEVICES", "BlenderScene", "RenderOptions", "srgb_encode", "srgb_to_linear"]

@@ -1,7 +1,7 @@
 """Cycles set-up and the one render per view: every pass lands in one multilayer float32 EXR, read back to numpy.
 
 Camera: Blender's camera looks down its local -Z with +Y up; from an OpenCV world_to_camera W (metres),
-matrix_world = inverse(W) @ diag(1, -1, -1, 1) (services.core.camera.blender_matrix_world). sensor_fit HORIZONTAL
+matrix_world = inverse(W) @ diag(1, -1, -1, 1) (services.core.domain.camera.blender_matrix_world). sensor_fit HORIZONTAL
 and `angle` = the horizontal fov (radians) give f = (W/2)/tan(fov/2) pixels; square images, zero shift, so the
 principal point is the image centre and pixel (u, v) is sampled at its centre (u + 0.5, v + 0.5): one sample per
 pixel with a 0.01 px box filter, fixed seed, no denoising, 0 light bounces.
@@ -33,7 +33,7 @@ import numpy as np
 import OpenEXR
 from mathutils import Matrix
 
-from services.core.camera import blender_matrix_world
+from services.core.domain.camera import blender_matrix_world
 from services.worker.passes import NO_FACE, NO_LABEL, RENDER_PASSES, ViewGeometry, ViewPasses
 
 log = logging.getLogger(__name__)

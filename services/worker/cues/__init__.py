@@ -1,6 +1,6 @@
 """Cue implementations, one module per family, collected into one registry (STYLE.md item 5).
 
-Adding a cue: a catalog entry in services/core/cues.py, an `@register("name")` function in a family module
+Adding a cue: a catalog entry in services/core/domain/cues.py, an `@register("name")` function in a family module
 below, and (for a new family) one import line here.
 """
 

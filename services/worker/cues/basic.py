@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.core.cues import CURVATURE_FLAT
+from services.core.domain.cues import CURVATURE_FLAT
 from services.worker.context import ViewContext
 from services.worker.cues.common import (
     euclidean_m,

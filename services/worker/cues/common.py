@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.core.cues import UINT16_NONE
+from services.core.domain.cues import UINT16_NONE
 from services.worker.context import ViewContext
 
 

@@ -1,4 +1,4 @@
-"""Plan cues: JSON made from the plan alone by services.core.plan (the executor only encodes them).
+"""Plan cues registered with the executor: JSON made from the plan alone by services.core.domain.plan_cues.
 
 A context may carry a ready `point_info` dict (e.g. read back from the database) instead of the plan.
 """
@@ -8,6 +8,7 @@ from __future__ import annotations
 import weakref
 from typing import Any
 
+from services.core.domain import plan_cues
 from services.worker.context import ViewContext
 from services.worker.cues.registry import cue_value, register
 
@@ -20,14 +21,12 @@ def _need_plan(ctx: ViewContext, cue: str) -> Any:
 
 @register("point_info")
 def point_info(ctx: ViewContext) -> dict:
-    """Omnidata point_info keys plus K, world_to_camera and conventions (services.core.plan.point_info)."""
+    """Omnidata point_info keys plus K, world_to_camera and conventions (services.core.domain.plan_cues.point_info)."""
 
     def compute() -> dict:
         if ctx.point_info_override is not None:
             return dict(ctx.point_info_override)
-        from services.core import plan as plan_mod
-
-        return plan_mod.point_info(_need_plan(ctx, "point_info"), ctx.view)
+        return plan_cues.point_info(_need_plan(ctx, "point_info"), ctx.view)
 
     return ctx.memo("point_info", compute)
 
@@ -40,21 +39,17 @@ NONFIXATED_POINTS_KEPT = 8
 @register("nonfixated")
 def nonfixated(ctx: ViewContext) -> dict:
     """Per point: pixel positions of the other points visible in each of its views (one dict per point, shared)."""
-    from services.core import plan as plan_mod
-
     plan = _need_plan(ctx, "nonfixated")
     point = int(ctx.view.point_idx)
     per_point = _NONFIXATED.setdefault(plan, {})
     if point not in per_point:
         while len(per_point) >= NONFIXATED_POINTS_KEPT:
             per_point.pop(next(iter(per_point)))
-        per_point[point] = plan_mod.nonfixated(plan, point)
+        per_point[point] = plan_cues.nonfixated(plan, point)
     return per_point[point]
 
 
 @register("vanishing_points")
 def vanishing_points(ctx: ViewContext) -> dict:
     """Image-space and Gaussian-sphere vanishing points of the world axes, from point_info."""
-    from services.core import plan as plan_mod
-
-    return plan_mod.vanishing_points(cue_value(ctx, "point_info"))
+    return plan_cues.vanishing_points(cue_value(ctx, "point_info"))

@@ -11,7 +11,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from services.core.cues import CATALOG, Cue, UnknownCueError
+from services.core.domain.cues import CATALOG, Cue, UnknownCueError
 from services.worker.passes import RENDER_PASSES
 
 if TYPE_CHECKING:

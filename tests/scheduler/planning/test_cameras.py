@@ -7,8 +7,8 @@ import pytest
 import trimesh
 from scipy.spatial.distance import pdist
 
-from services.core.jobspec import CameraSpec
-from services.core.plan import PlanError
+from services.core.domain.jobspec import CameraSpec
+from services.core.domain.plan import PlanError
 from services.scheduler.planning.cameras import (
     detect_floors,
     generate_cameras,
@@ -124,7 +124,7 @@ def test_near_mesh_is_exact_on_mixed_face_sizes() -> None:
 
 
 def test_object_cameras_exactly_on_the_sphere(shared_scenes) -> None:
-    from services.core.spaces import load_space
+    from services.core.ingest.loading import load_space
 
     bunny = load_space(shared_scenes / "stanford_bunny" / "bun_zipper_res2.ply").mesh
     spec = CameraSpec(mode="object", object_count=200, object_distance_factor=2.5)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from services.core.camera import (
+from services.core.domain.camera import (
     CONVENTIONS,
     blender_matrix_world,
     camera_center,
@@ -18,19 +18,17 @@ from services.core.camera import (
     project,
     quaternion_wxyz_to_rotation,
 )
-from services.core.jobspec import JobSpec
-from services.core.plan import (
+from services.core.domain.jobspec import JobSpec
+from services.core.domain.plan import (
     CameraPose,
     PlannedView,
     PointOfInterest,
     SpacePlan,
-    nonfixated,
     plan_from_json,
     plan_to_json,
-    point_info,
-    vanishing_points,
 )
-from services.core.spaces import LoadedSpace, load_space
+from services.core.domain.plan_cues import nonfixated, point_info, vanishing_points
+from services.core.ingest.loading import LoadedSpace, load_space
 from services.scheduler.planning import make_plan, space_rng
 from tests.fixtures import scenes
 

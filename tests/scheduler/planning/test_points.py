@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from services.core.jobspec import CameraSpec, JobSpec, PointSpec
-from services.core.plan import PlanError
+from services.core.domain.jobspec import CameraSpec, JobSpec, PointSpec
+from services.core.domain.plan import PlanError
 from services.scheduler.planning import make_plan
 from services.scheduler.planning.cameras import generate_cameras
 from services.scheduler.planning.points import sample_points, visibility_matrix

@@ -10,13 +10,19 @@ import pytest
 import trimesh
 from pydantic import ValidationError
 
-from services.core.camera import camera_center, intrinsics, project
-from services.core.jobs import create_job
-from services.core.jobspec import JobSpec, ViewSpec
-from services.core.models import Job
-from services.core.plan import CLIP_NOTES_IN_SUMMARY, SpacePlan, clip_summary, plan_from_json, plan_to_json
+from services.core.db.jobs import create_job
+from services.core.db.models import Job
+from services.core.domain.camera import camera_center, intrinsics, project
+from services.core.domain.jobspec import JobSpec, ViewSpec
+from services.core.domain.plan import (
+    CLIP_NOTES_IN_SUMMARY,
+    SpacePlan,
+    clip_summary,
+    plan_from_json,
+    plan_to_json,
+)
+from services.core.ingest.registry import register_space
 from services.core.settings import get_settings
-from services.core.space_registry import register_space
 from services.scheduler.loop import Scheduler
 from services.scheduler.planning import make_plan, space_rng
 from services.scheduler.planning.trajectory import (
@@ -351,6 +357,6 @@ def test_scheduler_plans_a_trajectory_job_and_reports_its_clips(sqlite_sm, local
                 break
         assert [(f.job_id, f.state) for f in res.finished] == [(job_id, "done")]
     doc = json.loads(local_store.get_bytes(f"jobs/{job_id}/job.json"))
-    assert doc["spaces"]["bunny"]["plan"]["clips"] == planned["clips"]
+    assert doc["spaces"]["bunny"]["clips"] == planned["clips"]
     lines = local_store.get_bytes(f"jobs/{job_id}/manifest.jsonl").decode().splitlines()
     assert len(lines) == len(plan.views)

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from services.core.camera import intrinsics, look_at, project
-from services.core.jobspec import CameraSpec, JobSpec, PointSpec, ViewSpec
+from services.core.domain.camera import intrinsics, look_at, project
+from services.core.domain.jobspec import CameraSpec, JobSpec, PointSpec, ViewSpec
 from services.scheduler.planning import make_plan
 from services.scheduler.planning.cameras import generate_cameras
 from services.scheduler.planning.points import sample_points

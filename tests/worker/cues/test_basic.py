@@ -7,7 +7,7 @@ import io
 import numpy as np
 import pytest
 
-from services.core.jobspec import CueParams
+from services.core.domain.jobspec import CueParams
 from services.worker.context import ViewContext
 from services.worker.executor import produce
 from tests.fixtures.raycast import cube_scene, decode_png, plane_scene, raycast, raycast_passes

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from services.core.cues import CATALOG
+from services.core.domain.cues import CATALOG
 from services.worker.context import ViewContext
 from services.worker.cues import REGISTRY
 from services.worker.executor import produce

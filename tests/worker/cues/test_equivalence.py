@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 from skimage.segmentation import felzenszwalb
 
-from services.core.cues import default_cues
-from services.core.exr import decode_exr_rgb
-from services.core.jobspec import CueParams, JobSpec
-from services.core.spaces import load_space
+from services.core.domain.cues import default_cues
+from services.core.domain.exr import decode_exr_rgb
+from services.core.domain.jobspec import CueParams, JobSpec
+from services.core.ingest.loading import load_space
 from services.scheduler.planning import make_plan, space_rng
 from services.worker.context import ViewContext
 from services.worker.cues.common import grey, to_uint16_scaled, valid

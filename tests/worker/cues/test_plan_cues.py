@@ -1,12 +1,12 @@
-"""Plan cues (services/worker/cues/plan_cues.py): the JSON of services.core.plan's functions."""
+"""Plan cues (services/worker/cues/plan_cues.py): the JSON of services.core.domain.plan's functions."""
 
 from __future__ import annotations
 
 import pytest
 
-from services.core.plan import nonfixated as plan_nonfixated
-from services.core.plan import point_info
-from services.core.plan import vanishing_points as plan_vanishing_points
+from services.core.domain.plan_cues import nonfixated as plan_nonfixated
+from services.core.domain.plan_cues import point_info
+from services.core.domain.plan_cues import vanishing_points as plan_vanishing_points
 from services.worker.context import ViewContext
 from services.worker.cues.encoding import encode_json
 from services.worker.executor import produce

@@ -1,0 +1,97 @@
+"""`omnidata generate SPACE [SPACE ...] --out DIR`: plan and render a dataset on this machine, no services.
+
+The embedded default of DESIGN.md sections 1 and 8, composed from the SAME parts as the service: SQLite at
+DIR/.omnidata/state.db, a LocalStore rooted at DIR (space sources under `.omnidata/spaces`, outputs with an empty
+output root), the scheduler's planning/dispatch/reaper/completion loop in this process, and W local worker
+processes (spawned) each running the worker's TaskRunner. A multiprocessing queue replaces Redis.
+
+At the end DIR holds `<cue>/<component>/<space>/point_<p>_view_<v>_domain_<cue>.<ext>`, `manifest.jsonl` and
+`job.json`. Exit status: 0 when every requested output exists; 1 with a summary of what failed; 2 for bad input
+(nothing is created); 130 on Ctrl-C (writes are atomic; run the same command again to resume: the same job is
+reused, interrupted tasks go back to pending, missing files are made again, nothing else renders).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+from services.cli import CliError
+from services.cli.spec_args import add_spec_arguments, build_spec, check_sources
+from services.core.db.engine import make_engine, make_sessionmaker, migrate
+from services.core.domain.jobspec import JobSpec, cues_for_space
+from services.core.ingest.errors import SpaceError
+from services.core.ingest.loading import load_space
+from services.core.ingest.registry import Source
+from services.core.storage import LocalStore
+from services.embedded.job import STATE_DIR, drive, embedded_settings, find_spaces, prepare_job
+from services.embedded.pool import cpu_count
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of `omnidata generate` (DESIGN.md section 8)."""
+    parser.add_argument("spaces", nargs="+", metavar="SPACE",
+                        help="mesh file (.obj with .mtl/textures, .ply, .glb/.gltf) or a folder or .zip holding one")
+    parser.add_argument("--out", "-o", required=True, metavar="DIR", help="output folder (created; reused to resume)")
+    add_spec_arguments(parser)
+    parser.add_argument("--workers", type=int, metavar="W", help="local worker processes (default: CPU cores)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar (log lines only)")
+
+
+def validate_sources(sources: list[Source], spec: JobSpec) -> None:
+    """Load every (not yet registered) space and check it can give the requested cues; CliError otherwise."""
+    for src in sources:
+        if src.has_semantics is not None:
+            continue
+        try:
+            loaded = load_space(src.path, **spec.space_frame())
+        except SpaceError as e:
+            raise CliError(str(e)) from None
+        src.loaded = loaded
+        src.has_semantics = bool(loaded.has_semantics)
+        try:
+            cues_for_space(spec, has_semantics=src.has_semantics)
+        except ValueError as e:
+            raise CliError(f"space {src.name!r}: {e}") from None
+
+
+def run(args: argparse.Namespace) -> int:
+    """Plan and render the dataset into --out; see the module docstring for exit statuses."""
+    logging.basicConfig(level=logging.WARNING, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s")
+    for noisy in ("alembic", "trimesh"):
+        logging.getLogger(noisy).setLevel(logging.WARNING)
+    workers = args.workers if args.workers is not None else cpu_count()
+    if workers < 1:
+        raise CliError(f"--workers must be at least 1, got {workers}")
+    spec = build_spec(args)
+    sources = check_sources(args.spaces)
+    out = Path(args.out).expanduser().resolve()
+    if out.exists() and not out.is_dir():
+        raise CliError(f"--out {args.out}: exists and is not a folder")
+    state_db = out / STATE_DIR / "state.db"
+
+    settings = embedded_settings(out, workers)
+    if state_db.exists():  # a folder of an earlier run: spaces it already holds need no second validation
+        engine = make_engine(settings.database_url)
+        migrate(settings.database_url)
+        sm = make_sessionmaker(engine)
+        with sm() as s:
+            find_spaces(s, sources)
+        engine.dispose()
+    validate_sources(sources, spec)  # loads new spaces: bad input is refused before anything is created
+
+    migrate(settings.database_url)
+    engine = make_engine(settings.database_url)
+    sm = make_sessionmaker(engine)
+    store = LocalStore(out)
+    try:
+        prepared = prepare_job(sm, store, spec, sources)
+        if prepared.resumed:
+            store.remove_temp_files()  # writes the interrupted run never committed; no worker runs yet
+            print(f"omnidata generate: resuming job {prepared.job_id} in {out} ({prepared.requeued} interrupted, "
+                  f"{prepared.redo} missing, {prepared.retried} failed tasks to redo)", file=sys.stderr)
+        return drive(sm, store, settings, out, prepared.job_id, workers, progress=not args.no_progress)
+    finally:
+        engine.dispose()

@@ -1,0 +1,104 @@
+"""`omnidata worker [--queues render,derive] [--concurrency N] [--loglevel L]`: a Celery render worker.
+
+Configured by OMNIDATA_* variables (database, broker, storage); several workers on several machines share the
+work. Each child process runs one task at a time (prefetch 1, acks late) and recycles itself after
+OMNIDATA_WORKER_MAX_TASKS tasks or above OMNIDATA_WORKER_MAX_MEMORY_MB.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import socket
+from typing import TYPE_CHECKING
+
+from services.cli import CliError
+
+if TYPE_CHECKING:
+    from services.core.settings import Settings
+
+LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
+WORKER_NAME_HELD_S = 30.0  # a heartbeat this recent means the name is in use (beats come every 5 s)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of `omnidata worker`."""
+    parser.add_argument("--queues", "-Q", default=None,
+                        help="comma-separated queues to consume (default: the render and derive queues)")
+    parser.add_argument("--concurrency", "-c", type=int, default=1,
+                        help="worker processes (default 1; each renders with all the cores it may use)")
+    parser.add_argument("--loglevel", "-l", default="INFO", type=str.upper, choices=LOG_LEVELS)
+    parser.add_argument("--hostname", "-n", default=None, help="Celery node name (default omnidata-<pid>@<host>)")
+    parser.add_argument("--render-threads", type=int, default=None,
+                        help="Cycles CPU threads per process (default: the process's CPU affinity)")
+    parser.add_argument("--pool", default="prefork", choices=["prefork", "solo", "threads"],
+                        help="Celery pool (default prefork: crashes and leaks stay in a child process)")
+
+
+def node_name(hostname: str | None) -> str:
+    """The Celery node name: `--hostname` with Celery's %h/%n/%d expanded, default omnidata-<pid>@<host>.
+
+    It is also the worker's id in /workers (a child process of a --concurrency N worker adds -1 ... -(N-1)).
+    """
+    from celery.utils.nodenames import default_nodename, host_format
+
+    return host_format(default_nodename(hostname or f"omnidata-{os.getpid()}@{socket.gethostname()}"))
+
+
+def worker_argv(args: argparse.Namespace, queues: list[str]) -> list[str]:
+    """The argv given to Celery's `worker` command."""
+    node = node_name(args.hostname)
+    return [
+        "worker",
+        f"--queues={','.join(queues)}",
+        f"--concurrency={args.concurrency}",
+        f"--loglevel={args.loglevel}",
+        f"--hostname={node}",
+        f"--pool={args.pool}",
+        "--without-gossip",  # no worker-to-worker chatter: the database knows who is alive (heartbeats)
+        "--without-mingle",
+        "--without-heartbeat",
+    ]
+
+
+def _live_holder(settings: Settings, node: str) -> str | None:
+    from services.core.db.engine import make_engine, make_sessionmaker
+    from services.worker.heartbeat import live_holder
+
+    engine = make_engine(settings.database_url)
+    try:
+        return live_holder(make_sessionmaker(engine), node, within_s=WORKER_NAME_HELD_S)
+    finally:
+        engine.dispose()
+
+
+def run(args: argparse.Namespace) -> int:
+    """Start the worker; returns when Celery stops (SIGTERM: warm shutdown after the current task)."""
+    from services.core.db.engine import require_schema
+    from services.core.settings import load_settings
+    from services.worker.celery_app import create_app
+
+    if args.concurrency < 1:
+        raise CliError(f"--concurrency must be at least 1, got {args.concurrency}")
+    if args.render_threads is not None:
+        if args.render_threads < 1:
+            raise CliError(f"--render-threads must be at least 1, got {args.render_threads}")
+        os.environ["OMNIDATA_RENDER_THREADS"] = str(args.render_threads)  # Settings.render_threads of each child
+        # numeric libraries in the children get the same budget (numpy is not loaded yet in this process)
+        for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
+            os.environ.setdefault(var, str(args.render_threads))
+    settings = load_settings()
+    require_schema(settings.database_url)
+    node = node_name(args.hostname)
+    holder = _live_holder(settings, node)
+    if holder is not None:
+        raise CliError(f"a worker named {node!r} is alive on {holder}: give this one another --hostname")
+    queues = [q.strip() for q in (args.queues or f"{settings.queue_render},{settings.queue_derive}").split(",")]
+    queues = [q for q in queues if q]
+    if not queues:
+        raise CliError("--queues names no queue")
+    app = create_app(settings)
+    app.conf["omnidata_queues"] = queues
+    app.conf["omnidata_worker_name"] = node  # the children's worker id
+    app.worker_main(worker_argv(args, queues))
+    return 0

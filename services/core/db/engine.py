@@ -1,0 +1,148 @@
+"""Database engines and the schema check: SQLAlchemy engines, Alembic migrations, refusing a stale schema.
+
+Works on Postgres (the service) and SQLite (the embedded default) with the same calls. Bulk writes are in
+services.core.db.bulk, the progress counters in services.core.db.counters; task state changes go through
+services.core.db.states.transition(), which adjusts the counters in the same transaction.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import Engine, create_engine, event
+from sqlalchemy.engine import make_url
+from sqlalchemy.exc import OperationalError
+from sqlalchemy.orm import Session, sessionmaker
+from sqlalchemy.pool import NullPool
+
+from services.core.settings import ConfigurationError
+
+MIGRATIONS_DIR = Path(__file__).resolve().parents[3] / "migrations"
+SQLITE_BUSY_TIMEOUT_MS = 30_000
+
+
+def make_engine(url: str, **kwargs: Any) -> Engine:
+    """Engine for `url`: SQLite gets WAL, a 30 s busy timeout and foreign keys; Postgres gets pool_pre_ping."""
+    u = make_url(url)
+    if u.get_backend_name() == "sqlite":
+        if u.database and u.database != ":memory:":
+            Path(u.database).expanduser().parent.mkdir(parents=True, exist_ok=True)
+        connect_args = {"timeout": SQLITE_BUSY_TIMEOUT_MS / 1000, "check_same_thread": False}
+        connect_args.update(kwargs.pop("connect_args", {}))
+        engine = create_engine(url, connect_args=connect_args, **kwargs)
+
+        @event.listens_for(engine, "connect")
+        def _sqlite_pragmas(dbapi_conn: Any, _record: Any) -> None:
+            cur = dbapi_conn.cursor()
+            cur.execute("PRAGMA journal_mode=WAL")  # readers do not block the writer (API vs workers)
+            cur.execute(f"PRAGMA busy_timeout={SQLITE_BUSY_TIMEOUT_MS}")
+            cur.execute("PRAGMA foreign_keys=ON")
+            cur.execute("PRAGMA synchronous=NORMAL")  # safe with WAL, much faster commits
+            cur.close()
+
+        return engine
+    kwargs.setdefault("pool_pre_ping", True)
+    return create_engine(url, **kwargs)
+
+
+def make_sessionmaker(engine: Engine) -> sessionmaker[Session]:
+    """Session factory; objects stay readable after commit (expire_on_commit=False)."""
+    return sessionmaker(bind=engine, expire_on_commit=False)
+
+
+def alembic_config(url: str | None = None) -> Any:
+    """Alembic Config pointing at migrations/ without needing alembic.ini; `url` overrides the settings."""
+    from alembic.config import Config
+
+    cfg = Config()
+    cfg.set_main_option("script_location", str(MIGRATIONS_DIR))
+    if url is not None:
+        cfg.attributes["url"] = url
+    return cfg
+
+
+def migrate(url: str, revision: str = "head") -> None:
+    """Upgrade the database at `url` to `revision` (Alembic `upgrade`); creates a SQLite file if needed.
+
+    SchemaNotCurrent when Alembic refuses (e.g. the database is at a revision this code does not know).
+    """
+    from alembic import command
+    from alembic.util import CommandError
+
+    u = make_url(url)
+    if u.get_backend_name() == "sqlite" and u.database and u.database != ":memory:":
+        Path(u.database).expanduser().parent.mkdir(parents=True, exist_ok=True)
+    try:
+        command.upgrade(alembic_config(url), revision)
+    except CommandError as e:
+        raise SchemaNotCurrent(f"cannot migrate the database: {e}") from None
+
+
+class SchemaNotCurrent(ConfigurationError):
+    """The database schema is not at this code's Alembic head; the message names the revisions and the fix."""
+
+
+class DatabaseUnreachable(ConfigurationError):
+    """The database did not answer at start-up; the message names the driver's reason."""
+
+
+def _scripts() -> Any:
+    from alembic.script import ScriptDirectory
+
+    return ScriptDirectory.from_config(alembic_config())
+
+
+def schema_heads() -> tuple[str, ...]:
+    """The Alembic head revision(s) of this code's migrations/ (what `migrate` upgrades to)."""
+    return tuple(sorted(_scripts().get_heads()))
+
+
+def schema_problem(engine: Engine, heads: Sequence[str] | None = None) -> str | None:
+    """None when the database at `engine` is at the code's head revision, else a one-line reason and fix.
+
+    Raises the driver's error when the database cannot be reached (that is not a schema problem).
+    """
+    from alembic.migration import MigrationContext
+
+    heads = tuple(heads) if heads is not None else schema_heads()
+    with engine.connect() as conn:
+        current = tuple(sorted(MigrationContext.configure(conn).get_current_heads()))
+    if current == heads:
+        return None
+    fix = "run `omnidata migrate` (or start the API with `omnidata serve --migrate`)"
+    if not current:
+        return f"the database is not migrated (no schema revision; this code needs {', '.join(heads)}): {fix}"
+    known = {script.revision for script in _scripts().walk_revisions()}
+    if not set(current) <= known:
+        return (f"the database is at schema revision {', '.join(current)}, which this code does not know "
+                f"(newer code migrated it?): run the matching omnidata version")
+    return f"the database schema is at revision {', '.join(current)}, this code needs {', '.join(heads)}: {fix}"
+
+
+def require_schema(url: str) -> None:
+    """Raise SchemaNotCurrent (one line naming the fix) unless the database at `url` is at the code's head.
+
+    DatabaseUnreachable when it does not answer.
+    """
+    engine = make_engine(url, poolclass=NullPool)
+    try:
+        problem = schema_problem(engine)
+    except OperationalError as e:
+        reason = str(e.orig or e).strip().splitlines()[0]
+        raise DatabaseUnreachable(f"cannot reach the database ({reason}): check OMNIDATA_DATABASE_URL") from None
+    finally:
+        engine.dispose()
+    if problem:
+        raise SchemaNotCurrent(problem)
+
+
+def downgrade(url: str, revision: str = "base") -> None:
+    """Downgrade the database at `url` to `revision` (Alembic `downgrade`)."""
+    from alembic import command
+
+    command.downgrade(alembic_config(url), revision)
+
+
+

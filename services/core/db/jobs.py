@@ -1,0 +1,335 @@
+"""Job lifecycle operations shared by the API, the scheduler and `generate` (execution contract).
+
+Job states: pending -> planning -> running -> done | failed; running <-> paused; any non-final -> cancelled.
+Every state change goes through services.core.db.states (the allowed transitions, and the task counters in the
+caller's transaction). No function here commits: the caller does.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from datetime import datetime, timedelta
+
+from sqlalchemy import and_, case, delete, or_, select, update
+from sqlalchemy.orm import Session
+
+from services.core.db.models import (
+    JOB_TERMINAL_STATES,
+    Camera,
+    Job,
+    JobCounter,
+    JobSpace,
+    JobState,
+    Point,
+    Space,
+    Task,
+    TaskState,
+    View,
+    WorkerBlock,
+    utcnow,
+)
+from services.core.db.states import check_job_edge, set_job_state, transition
+from services.core.domain.cues import CATALOG, closure
+from services.core.domain.errors import Conflict
+from services.core.domain.jobspec import JobSpec, cues_for_space
+from services.core.ingest.frame_choice import check_frame_decided
+from services.core.storage import ObjectStore
+
+RETRY_BACKOFF_BASE_S = 5.0
+RETRY_BACKOFF_CAP_S = 300.0
+PLANNING_LEASE_S = 600  # a planner that holds a job longer than this without finishing is presumed dead
+
+
+class JobStateError(Conflict, ValueError):
+    """An operation that the job's current state does not allow (e.g. resuming a finished job)."""
+
+
+def retry_backoff_s(attempts: int) -> float:
+    """Seconds to wait before retrying a task that has failed `attempts` times (exponential, capped)."""
+    return float(min(RETRY_BACKOFF_CAP_S, RETRY_BACKOFF_BASE_S * 2 ** max(0, attempts - 1)))
+
+
+def job_spec(job: Job) -> JobSpec:
+    """The job's JobSpec, parsed from its stored JSON."""
+    return JobSpec.model_validate(job.spec)
+
+
+def job_root(job: Job) -> str:
+    """The job's output root without a trailing '/' ('' for the embedded layout)."""
+    return (job.output_root or "").strip("/")
+
+
+def root_key(job: Job, key: str) -> str:
+    """`key` (relative to the job's output root) as a key of the object store."""
+    root = job_root(job)
+    return f"{root}/{key}" if root else key
+
+
+def create_job(
+    session: Session,
+    *,
+    owner: str,
+    spec: JobSpec,
+    spaces: Sequence[Space],
+    output_root: str | None = None,
+) -> Job:
+    """Create a pending job over `spaces` (in order) with its per-space cue lists; flushes, does not commit.
+
+    Raises ValueError when there is no space, a space is listed twice or two share a name (their outputs
+    would collide), a space belongs to another owner, or a space cannot give a requested cue (naming the
+    cue and the reason). `output_root` defaults to `jobs/<id>`.
+    """
+    if not spaces:
+        raise ValueError("a job needs at least one space")
+    seen_ids: set[int] = set()
+    seen_names: set[str] = set()
+    per_space: list[list[str]] = []
+    for sp in spaces:
+        if sp.id in seen_ids or sp.name in seen_names:
+            raise ValueError(f"space {sp.name!r} is listed twice (space names must be distinct within a job)")
+        seen_ids.add(sp.id)
+        seen_names.add(sp.name)
+        if sp.owner != owner:
+            raise ValueError(f"space {sp.name!r} (id {sp.id}) does not belong to {owner!r}")
+        check_frame_decided(spec, sp)
+        try:
+            per_space.append(cues_for_space(spec, has_semantics=bool(sp.has_semantics)))
+        except ValueError as e:
+            raise ValueError(f"space {sp.name!r}: {e}") from None
+    job = Job(
+        owner=owner,
+        name=spec.name,
+        spec=spec.model_dump(mode="json"),
+        state=JobState.PENDING,
+        priority=spec.priority,
+        output_root=(output_root or "").strip("/"),
+        total_tasks=0,
+    )
+    session.add(job)
+    session.flush()
+    if output_root is None:
+        job.output_root = f"jobs/{job.id}"
+    for pos, (sp, cues) in enumerate(zip(spaces, per_space, strict=True)):
+        session.add(JobSpace(job_id=job.id, space_id=sp.id, position=pos, cues=cues))
+    session.flush()
+    return job
+
+
+def job_spaces(session: Session, job_id: int) -> list[tuple[JobSpace, Space]]:
+    """The job's spaces in submission order, each with its JobSpace row."""
+    rows = session.execute(
+        select(JobSpace, Space)
+        .join(Space, Space.id == JobSpace.space_id)
+        .where(JobSpace.job_id == job_id)
+        .order_by(JobSpace.position, JobSpace.space_id)
+    ).all()
+    return [(js, sp) for js, sp in rows]
+
+
+def job_cues(session: Session, job_id: int) -> list[str]:
+    """Output cues requested on any space of the job, in catalog order."""
+    names: set[str] = set()
+    for js, _sp in job_spaces(session, job_id):
+        names.update(js.cues)
+    return [c for c in closure(names) if c in names]
+
+
+def _lock_job(session: Session, job: Job) -> Job:
+    # Re-read the row under a lock so racing operations (cancel vs. complete) serialise on Postgres.
+    stmt = select(Job).where(Job.id == job.id).execution_options(populate_existing=True)
+    if session.get_bind().dialect.name == "postgresql":
+        stmt = stmt.with_for_update()
+    locked = session.scalars(stmt).one()
+    return locked
+
+
+def cancel_job(session: Session, job: Job) -> int:
+    """Cancel a non-final job: job -> cancelled, its pending and queued tasks -> cancelled at once.
+
+    Running tasks finish (their result is kept) or are discarded by the worker. Returns the number of
+    tasks cancelled. Raises JobStateError for a job that is already done, failed or cancelled.
+    """
+    job = _lock_job(session, job)
+    if job.state in JOB_TERMINAL_STATES:
+        raise JobStateError(f"job {job.id} is {job.state}; only unfinished jobs can be cancelled")
+    now = utcnow()
+    set_job_state(job, JobState.CANCELLED, finished_at=now)
+    session.flush()
+    # pending first, then queued: a task a dispatcher moves pending -> queued meanwhile is caught second.
+    n = len(transition(session, job_id=job.id, from_state=TaskState.PENDING, to_state=TaskState.CANCELLED,
+                       finished_at=now))
+    n += len(transition(session, job_id=job.id, from_state=TaskState.QUEUED, to_state=TaskState.CANCELLED,
+                        finished_at=now))
+    return n
+
+
+def pause_job(session: Session, job: Job) -> None:
+    """Pause a running job: nothing more is dispatched; queued tasks go back to pending when received."""
+    _switch(session, job, JobState.RUNNING, JobState.PAUSED, "paused")
+
+
+def resume_job(session: Session, job: Job) -> None:
+    """Resume a paused job."""
+    _switch(session, job, JobState.PAUSED, JobState.RUNNING, "resumed")
+
+
+def _switch(session: Session, job: Job, src: JobState, dst: JobState, done: str) -> None:
+    # Idempotent: a job already in `dst` is left alone; any state but `src` is refused.
+    job = _lock_job(session, job)
+    if job.state == dst:
+        return
+    if job.state != src:
+        raise JobStateError(f"job {job.id} is {job.state}; only a {src} job can be {done}")
+    set_job_state(job, dst)
+    session.flush()
+
+
+def retry_failed(session: Session, job: Job) -> int:
+    """Put the job's failed tasks back to pending with attempts reset; a failed/done job runs again.
+
+    Returns the number of tasks retried. Raises JobStateError for a cancelled job or one not planned yet.
+    """
+    job = _lock_job(session, job)
+    if job.state in (JobState.CANCELLED, JobState.PENDING, JobState.PLANNING):
+        raise JobStateError(f"job {job.id} is {job.state}; failed tasks can only be retried once it has run")
+    n = len(transition(
+        session, job_id=job.id, from_state=TaskState.FAILED, to_state=TaskState.PENDING,
+        attempts=0, error=None, not_before=None, worker_id=None, lease_until=None, finished_at=None,
+    ))
+    # A worker blocked on this job for repeated failures gets another chance after an explicit retry.
+    session.execute(delete(WorkerBlock).where(WorkerBlock.job_id == job.id))
+    if n and job.state in (JobState.DONE, JobState.FAILED):
+        set_job_state(job, JobState.RUNNING, error=None, finished_at=None)
+    session.flush()
+    return n
+
+
+def delete_job(session: Session, store: ObjectStore, job: Job) -> int:
+    """Delete a job: its outputs in the store, then its rows (tasks, plan, counters); returns objects deleted.
+
+    An unfinished job is cancelled first. With an empty output root (embedded layout) only the job's
+    own files are removed, never the rest of the folder.
+    """
+    job = _lock_job(session, job)
+    if job.state not in JOB_TERMINAL_STATES:
+        cancel_job(session, job)
+    deleted = 0
+    root = job_root(job)
+    if root:
+        deleted += store.delete_prefix(root + "/")
+    else:
+        spec = job_spec(job)
+        for _js, sp in job_spaces(session, job.id):
+            for cue in closure(_js.cues):
+                deleted += store.delete_prefix(f"{cue}/{spec.name}/{sp.name}/")
+        for prefix in ("_plan/", "_cache/"):
+            deleted += store.delete_prefix(prefix)
+        for key in ("manifest.jsonl", "job.json"):
+            deleted += int(store.delete(key))
+    for model in (Task, View, Point, Camera, JobCounter, JobSpace, WorkerBlock):
+        session.execute(delete(model).where(model.job_id == job.id))  # type: ignore[attr-defined]
+    session.execute(delete(Job).where(Job.id == job.id))
+    session.expunge(job)
+    session.flush()
+    return deleted
+
+
+def claim_pending_jobs(
+    session: Session, planner_id: str, limit: int = 1, *, now: datetime | None = None,
+    lease_s: float = PLANNING_LEASE_S,
+) -> list[Job]:
+    """Claim up to `limit` jobs to plan: pending ones, or planning ones whose planner's lease ran out.
+
+    Postgres: SELECT ... FOR UPDATE SKIP LOCKED, so concurrent schedulers never take the same job.
+    SQLite: a plain SELECT; the conditional UPDATE below still lets only one claimer win. Claimed jobs
+    are in state 'planning' with `planner = planner_id`; the caller commits.
+    """
+    now = now or utcnow()
+    cond = or_(
+        Job.state == JobState.PENDING,
+        and_(Job.state == JobState.PLANNING, or_(Job.planner_lease_until.is_(None), Job.planner_lease_until < now)),
+    )
+    stmt = select(Job.id, Job.state).where(cond).order_by(Job.priority.desc(), Job.id).limit(limit)
+    if session.get_bind().dialect.name == "postgresql":
+        stmt = stmt.with_for_update(skip_locked=True)
+    claimed: list[int] = []
+    for job_id, seen in session.execute(stmt).all():
+        check_job_edge(seen, JobState.PLANNING)
+        res = session.execute(
+            update(Job)
+            .where(Job.id == job_id, Job.state == seen, cond)
+            .values(
+                state=JobState.PLANNING.value, planner=planner_id, planner_lease_until=now + timedelta(seconds=lease_s),
+                started_at=now, error=None,
+            )
+            .execution_options(synchronize_session=False)
+        )
+        if res.rowcount == 1:  # type: ignore[attr-defined]
+            claimed.append(int(job_id))
+    if not claimed:
+        return []
+    jobs = session.scalars(
+        select(Job).where(Job.id.in_(claimed)).order_by(Job.priority.desc(), Job.id)
+        .execution_options(populate_existing=True)
+    ).all()
+    return list(jobs)
+
+
+# ---------------------------------------------------------------------------------------------- resume
+
+
+@dataclass
+class Reopened:
+    """What reopening a job of an earlier run did."""
+
+    requeued: int = 0  # interrupted tasks put back to pending
+    redo: int = 0  # done tasks whose file was missing
+    retried: int = 0  # failed tasks given another chance
+
+
+def requeue_inflight(session: Session, job_id: int) -> int:
+    """Queued and running tasks of the job back to pending, their attempt not counted (the run was stopped,
+    the task did not fail); returns how many moved. (CASE, not two-argument max(): Postgres has no such max.)"""
+    n = len(transition(
+        session, job_id=job_id, from_state=TaskState.RUNNING, to_state=TaskState.PENDING,
+        attempts=case((Task.attempts > 0, Task.attempts - 1), else_=0), worker_id=None, lease_until=None, queued_at=None, not_before=None,
+    ))
+    n += len(transition(session, job_id=job_id, from_state=TaskState.QUEUED, to_state=TaskState.PENDING,
+                        queued_at=None))
+    return n
+
+
+def reopen_job(session: Session, store: ObjectStore, job: Job) -> Reopened:
+    """Make a job of an earlier run resumable: in-flight tasks back to pending, missing outputs made again,
+    failed tasks retried. A job interrupted while planning plans again from scratch."""
+    done = Reopened()
+    if job.state == JobState.PLANNING:
+        set_job_state(job, JobState.PENDING, planner=None, planner_lease_until=None)
+        session.flush()
+        return done
+    if job.state == JobState.PENDING:
+        return done
+    if job.state == JobState.PAUSED:
+        set_job_state(job, JobState.RUNNING)
+    done.requeued = requeue_inflight(session, job.id)
+    # Done outputs whose file is gone are made again (the internal pass cache is rebuilt on demand).
+    internal = [n for n, c in CATALOG.items() if c.internal]
+    missing = [
+        tid for tid, key in session.execute(
+            select(Task.id, Task.output_key).where(
+                Task.job_id == job.id, Task.state == TaskState.DONE, Task.cue.not_in(internal)
+            )
+        )
+        if not key or not store.exists(key)
+    ]
+    done.redo = len(transition(
+        session, job_id=job.id, task_ids=missing, from_state=TaskState.DONE, to_state=TaskState.PENDING,
+        attempts=0, error=None, output_key=None, size=None, sha256=None, finished_at=None, not_before=None,
+    ))
+    if job.state in (JobState.DONE, JobState.FAILED, JobState.RUNNING):
+        done.retried = retry_failed(session, job)
+    if done.redo and job.state in (JobState.DONE, JobState.FAILED):
+        set_job_state(job, JobState.RUNNING, error=None, finished_at=None)
+    session.flush()
+    return done

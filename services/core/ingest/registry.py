@@ -1,0 +1,225 @@
+"""Registering spaces in object storage and fetching them back for planning and rendering.
+
+A space's source is stored as ONE object under `<key_prefix>/<space id>/<file>`: a .ply/.glb/.zip as
+given, or a zip of the files a mesh needs (an .obj with its .mtl and textures, a .gltf with its buffers
+and images, or a whole folder). Validation happens before anything is stored, so a refused upload
+leaves no row and no object.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import tempfile
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy.orm import Session
+
+from services.core.db.models import Space
+from services.core.domain.keys import check_name
+from services.core.ingest.archive import resolve_source
+from services.core.ingest.archive_rules import archive_refusal
+from services.core.ingest.confine import is_inside, read_confined, real_folder
+from services.core.ingest.errors import SpaceError
+from services.core.ingest.formats import scannet_companions
+from services.core.ingest.loading import LoadedSpace, load_space
+from services.core.storage.base import ObjectStore, sha256_file
+from services.core.temp_dirs import owned_temp_dir
+
+SINGLE_FILE_SUFFIXES = {".ply", ".glb", ".stl", ".off", ".zip", ".xyz", ".pts"}
+MAX_PACKED_BYTES = 4 << 30
+
+
+def _obj_companions(obj: Path) -> list[Path]:
+    """The .mtl files an .obj names and the texture maps those name (relative paths only)."""
+    out: list[Path] = []
+    mtl_re = re.compile(r"^\s*mtllib\s+(.+?)\s*$")
+    map_re = re.compile(r"^\s*(map_\w+|bump|disp|decal|norm)\s+(?:-\S+\s+\S+\s+)*(.+?)\s*$", re.IGNORECASE)
+    with open(obj, errors="replace") as f:
+        mtls = [m.group(1) for line in f if (m := mtl_re.match(line))]
+    root = real_folder(obj)
+    for name in mtls:
+        mtl = obj.parent / name
+        if not mtl.is_file() or not is_inside(mtl, root):  # never read (nor pack) a file outside the scan's folder
+            continue
+        out.append(mtl)
+        for line in read_confined(mtl, obj).decode("utf-8", "replace").splitlines():
+            if m := map_re.match(line):
+                tex = mtl.parent / m.group(2)
+                if tex.is_file():
+                    out.append(tex)
+    return out
+
+
+def _gltf_companions(gltf: Path) -> list[Path]:
+    """Buffers and images a .gltf references by relative URI."""
+    try:
+        doc = json.loads(read_confined(gltf, gltf))
+    except (OSError, ValueError) as e:
+        raise SpaceError(f"{gltf.name}: not valid glTF JSON ({e})") from None
+    uris = [b.get("uri") for b in doc.get("buffers", [])] + [i.get("uri") for i in doc.get("images", [])]
+    return [gltf.parent / u for u in uris if u and not u.startswith("data:") and (gltf.parent / u).is_file()]
+
+
+def _files_to_pack(source: Path, mesh_file: Path) -> tuple[Path, list[Path]]:
+    """(base folder, files) that a mesh needs, for zipping."""
+    if source.is_dir():
+        files = [p for p in sorted(source.rglob("*")) if p.is_file() and not p.is_symlink()]
+        return source, files
+    scannet = scannet_companions(mesh_file)
+    if scannet is not None:  # a ScanNet mesh keeps its label files
+        companions = list(scannet)
+    elif mesh_file.suffix.lower() == ".obj":
+        companions = _obj_companions(mesh_file)
+    else:
+        companions = _gltf_companions(mesh_file)
+    base = mesh_file.parent
+    files = [mesh_file] + [c for c in dict.fromkeys(companions) if is_inside(c, real_folder(mesh_file))]
+    return base, files
+
+
+def pack_source(source: Path, mesh_file: Path, workdir: Path) -> Path:
+    """The single file to upload for `source`: itself, or a deterministic zip of what the mesh needs."""
+    if source.is_file() and source.suffix.lower() in SINGLE_FILE_SUFFIXES and scannet_companions(source) is None:
+        return source
+    base, files = _files_to_pack(source, mesh_file)
+    total = sum(f.stat().st_size for f in files)
+    if total > MAX_PACKED_BYTES:
+        raise SpaceError(f"{source.name}: {total} bytes of mesh files exceed the limit {MAX_PACKED_BYTES}")
+    out = workdir / f"{mesh_file.stem}.zip"
+    with zipfile.ZipFile(out, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        for f in files:
+            info = zipfile.ZipInfo(f.relative_to(base).as_posix(), date_time=(1980, 1, 1, 0, 0, 0))
+            info.compress_type = zipfile.ZIP_DEFLATED
+            zf.writestr(info, f.read_bytes())  # fixed timestamps: same files -> same checksum
+    return out
+
+
+def validate_source(source_path: str | Path, **frame: Any) -> LoadedSpace:
+    """Load and validate a space without storing it (SpaceError says what is wrong); `frame`: load_space's."""
+    return load_space(source_path, **frame)
+
+
+def _frame_name(up_axis: str, up: Any, source_to_world: Any) -> str:
+    """What the space row's up_axis column records: the axis name, or how the frame was given."""
+    return "matrix" if source_to_world is not None else "vector" if up is not None else up_axis
+
+
+def register_space(
+    session: Session,
+    store: ObjectStore,
+    *,
+    owner: str,
+    name: str,
+    source_path: str | Path,
+    key_prefix: str = "spaces",
+    up_axis: str = "auto",
+    unit_scale: float | str = "auto",
+    up: Any = None,
+    source_to_world: Any = None,
+    loaded: LoadedSpace | None = None,
+    accept_up_guess: bool = True,
+) -> Space:
+    """Validate a space, upload its source and add its row (flushed, not committed).
+
+    `loaded`: the result of `validate_source` for the same path and options, so a caller that validated
+    first does not load the mesh twice. An ambiguous up does not refuse the space: it is recorded (with
+    both candidates) and the space needs a frame before a job may plan it (`services.core.ingest.frame_choice`);
+    `accept_up_guess` is accepted for the frame keywords of a JobSpec and does not change that.
+    """
+    try:
+        check_name("space name", name)
+    except ValueError as e:
+        raise SpaceError(str(e)) from None
+    source = Path(source_path)
+    if session.query(Space.id).filter_by(owner=owner, name=name).first() is not None:
+        raise SpaceError(f"a space named {name!r} already exists")
+    with owned_temp_dir("register") as tmp:
+        work = Path(tmp)
+        mesh_file = resolve_source(source, work / "x") if source.suffix.lower() == ".zip" else resolve_source(source)
+        if loaded is None:
+            loaded = load_space(source, up_axis=up_axis, unit_scale=unit_scale, up=up, source_to_world=source_to_world,
+                                accept_up_guess=True)
+        packed = pack_source(source, mesh_file, work)
+        if packed.suffix.lower() == ".zip" and (problem := archive_refusal(packed)):
+            raise SpaceError(f"{source.name}: packed for storage, {problem}")  # planning would refuse it
+        checksum = sha256_file(packed)
+        space = Space(
+            owner=owner,
+            name=name,
+            source_key="",
+            source_format=mesh_file.suffix.lower().lstrip("."),
+            checksum=checksum,
+            unit_scale=loaded.units.scale if loaded.units is not None else float(unit_scale),
+            up_axis=_frame_name(up_axis, up, source_to_world),
+            source_to_world=loaded.source_to_world.tolist(),
+            bounds=loaded.bounds.tolist(),
+            face_count=int(loaded.face_count),
+            vertex_count=int(len(loaded.mesh.vertices)),
+            has_texture=bool(loaded.has_texture or loaded.has_vertex_colors),
+            has_semantics=bool(loaded.has_semantics),
+            validation={
+                "mesh_file": mesh_file.name,
+                "up_method": loaded.up_method,
+                **loaded.frame_record(),
+                "warnings": list(loaded.warnings),
+                "has_uv_texture": bool(loaded.has_texture),
+                "has_vertex_colors": bool(loaded.has_vertex_colors),
+            },
+        )
+        session.add(space)
+        session.flush()  # assigns the id used in the key
+        space.source_key = f"{key_prefix.strip('/')}/{space.id}/{packed.name}"
+        store.put_file(space.source_key, packed)
+        session.flush()
+    return space
+
+
+def fetch_space(store: ObjectStore, space: Space, cache_dir: str | Path) -> Path:
+    """Local path of a space's mesh file, downloaded (and unzipped) once per checksum into `cache_dir`."""
+    cache = Path(cache_dir) / space.checksum
+    done_marker = cache / ".ready"
+    if not done_marker.exists():
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{space.checksum[:12]}-", dir=cache.parent))
+        try:
+            fname = Path(space.source_key).name
+            store.get_file(space.source_key, tmp / fname)
+            if fname.lower().endswith(".zip"):
+                resolve_source(tmp / fname, tmp / "src")
+                (tmp / fname).unlink()
+            (tmp / ".ready").write_text(space.checksum)
+            try:
+                os.rename(tmp, cache)  # atomic: concurrent fetchers keep whichever lands first
+            except OSError:
+                if not done_marker.exists():
+                    raise
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+    return resolve_source(cache / "src") if (cache / "src").is_dir() else resolve_source(next(
+        p for p in cache.iterdir() if p.is_file() and p.name != ".ready"
+    ))
+
+
+@dataclass
+class Source:
+    """One SPACE argument: its path, name, and the checksum its registered source will have."""
+
+    path: Path
+    name: str
+    checksum: str
+    has_semantics: bool | None = None  # known once validated (None: already registered, trusted)
+    loaded: LoadedSpace | None = None  # the validated space, handed to register_space so the mesh loads once
+
+
+def source_checksum(path: Path) -> str:
+    """sha256 of the object register_space stores for `path` (the file itself, or its deterministic zip)."""
+    with tempfile.TemporaryDirectory(prefix="omnidata-source-") as tmp:
+        work = Path(tmp)
+        mesh = resolve_source(path, work / "x") if path.suffix.lower() == ".zip" else resolve_source(path)
+        return sha256_file(pack_source(path, mesh, work))

@@ -1,0 +1,68 @@
+"""Planning one space of a job: the steps the scheduler loop and `omnidata plan` share.
+
+Both load the space in the job's frame, plan it with the generator seeded by the job seed and the space's
+name (`space_rng`: the same plan whatever the order or number of spaces), and describe the result in the one
+job.json space record (services.core.domain.job_document.space_record).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from services.core.domain.job_document import space_record
+from services.core.domain.jobspec import JobSpec
+from services.core.domain.plan import CLIP_NOTES_IN_SUMMARY, SpacePlan, clip_summary
+from services.core.ingest.loading import LoadedSpace, load_space
+from services.scheduler.planning import make_plan, space_rng
+
+
+class PlanFn(Protocol):
+    """make_plan's signature: (space, spec, rng, space_name) -> SpacePlan."""
+
+    def __call__(self, space: Any, spec: JobSpec, rng: np.random.Generator, space_name: str, /) -> SpacePlan: ...
+
+
+def load_for_job(source: str | Path, spec: JobSpec, extract_dir: str | Path | None = None,
+                 frame: dict[str, Any] | None = None) -> LoadedSpace:
+    """The space loaded in the frame the job's spec asks for (up_axis, up, unit_scale, source_to_world), or in
+    `frame` (`load_space`'s frame keywords: a registered space's chosen up, `ingest.frame_choice`)."""
+    return load_space(source, **(frame if frame is not None else spec.space_frame()), extract_dir=extract_dir)
+
+
+def plan_space(loaded: LoadedSpace, spec: JobSpec, name: str, plan_fn: PlanFn | None = None) -> SpacePlan:
+    """The plan of one space of a job (PlanError when the spec cannot be met at all)."""
+    return (plan_fn or make_plan)(loaded, spec, space_rng(spec.seed, name), name)
+
+
+def plan_summary_of(loaded: LoadedSpace, plan: SpacePlan, spec: JobSpec) -> dict[str, Any]:
+    """What the scheduler keeps per space in `job.plan_summary` (JSON-ready; the counts are added by the caller)."""
+    return {
+        "shortfall": plan.shortfall,
+        "valid_fraction": plan.valid_fraction,
+        "clips": clip_summary(plan.clip_notes, CLIP_NOTES_IN_SUMMARY),
+        "source_to_world": np.asarray(loaded.source_to_world, dtype=float).tolist(),
+        "bounds": np.asarray(loaded.bounds, dtype=float).tolist(),
+        "up_axis": spec.up_axis, "up_method": loaded.up_method,
+        "unit_scale": loaded.units.scale if loaded.units is not None else spec.unit_scale,
+        "warnings": list(loaded.warnings),
+        **loaded.frame_record(),
+    }
+
+
+def plan_record(loaded: LoadedSpace, plan: SpacePlan, spec: JobSpec, *, position: int, cues: list[str],
+                plan_key: str) -> dict[str, Any]:
+    """The job.json space record of a space planned here (no database: `omnidata plan`)."""
+    summary = plan_summary_of(loaded, plan, spec)
+    return space_record(
+        space_id=None, position=position, cues=cues, checksum=loaded.checksum,
+        source_format=loaded.source_path.suffix.lower().lstrip("."),
+        source_to_world=summary["source_to_world"], unit_scale=summary["unit_scale"], up_axis=spec.up_axis,
+        bounds=summary["bounds"], face_count=loaded.face_count, has_texture=loaded.has_texture,
+        has_semantics=loaded.has_semantics,
+        counts={"cameras": len(plan.cameras), "points": len(plan.points), "views": len(plan.views)},
+        shortfall=plan.shortfall, valid_fraction=plan.valid_fraction, clips=summary["clips"], plan=plan_key,
+        warnings=summary["warnings"], frame=summary,
+    )

@@ -44,8 +44,8 @@ FLOOR_PROBE = r"""
 import json, sys, time
 from pathlib import Path
 sys.path.insert(0, sys.argv[1])
-from services.core.plan import plan_from_json
-from services.core.spaces import load_space
+from services.core.domain.plan import plan_from_json
+from services.core.ingest.loading import load_space
 from services.worker.passes import ViewGeometry
 from services.worker.space_cache import SpaceContext
 space_path, plan_path, frame = sys.argv[2], sys.argv[3], json.loads(sys.argv[4])

@@ -92,7 +92,7 @@ def main() -> int:
     figures = measure(args.views, args.resolution)
     doc = json.loads(args.out.read_text()) if args.out.exists() else {}
     doc["augmentations"] = figures
-    args.out.write_text(json.dumps(doc, indent=2) + "\n")
+    args.out.write_text(json.dumps(doc, indent=1) + "\n")  # the file's own layout
     print(json.dumps(figures, indent=2))
     return 0
 

@@ -5,7 +5,7 @@ from Pillow's raw buffer and reinterpreted as unsigned, so no Pillow version can
 that wrap 65535 ("no depth") or keypoint responses above 32767 negative.
 
 Units (what a training loop receives):
-  rgb                  float32 3xHxW in [0, 1]
+  rgb, rgb_*           float32 3xHxW in [0, 1] (rgb_refocus, rgb_fog, rgb_motion_blur, rgb_flash: augmentations)
   normal               float32 3xHxW unit vectors, camera frame x right, y up, z towards the viewer; NaN = none
   depth_*              float32 1xHxW metres; NaN = no surface
   mask_valid           bool 1xHxW
@@ -132,7 +132,7 @@ def decode_cue(cue: str, data: bytes, params: CueParams | None = None) -> np.nda
     params = params or CueParams()
     raw = read_raw(cue, data)
     assert isinstance(raw, np.ndarray)
-    if cue == "rgb":
+    if cue == "rgb" or cue.startswith("rgb_"):  # rgb_*: the 3D augmentations, sRGB like rgb
         return _chw((raw[..., :3] if raw.ndim == 3 else np.stack([raw] * 3, -1)).astype(np.float32) / 255.0)
     if cue == "normal":
         return _chw(normal_vectors(raw))

@@ -1,4 +1,4 @@
-"""Temporary folders named after the process that owns them, and the sweep that removes orphans.
+"""Temporary folders (and files) named after the process that owns them, and the sweep that removes orphans.
 
 A process killed with -9 (an API mid-upload, a worker mid-render, a mesh reader past its limit) never
 runs its cleanup, so its temporary folder would stay forever (uploads are gigabytes; /dev/shm is
@@ -69,7 +69,7 @@ def sweep_orphans(
             continue
         for entry in entries:
             m = _OURS.match(entry.name)
-            if m is None or m.group(1) not in wanted or not entry.is_dir(follow_symlinks=False):
+            if m is None or m.group(1) not in wanted or entry.is_symlink():
                 continue
             pid = int(m.group(2)) if m.group(2) else None
             if only_pid is not None and pid != only_pid:
@@ -82,7 +82,10 @@ def sweep_orphans(
             # without a pid (named before pids were recorded) goes once it is older than max_age_s
             orphan = (not _alive(pid) and pid != os.getpid()) if pid is not None else age > max_age_s
             if orphan:
-                shutil.rmtree(entry.path, ignore_errors=True)
+                if entry.is_dir(follow_symlinks=False):
+                    shutil.rmtree(entry.path, ignore_errors=True)
+                else:  # a temp file (an EXR being encoded)
+                    Path(entry.path).unlink(missing_ok=True)
                 removed.append(Path(entry.path))
     if removed:
         log.info("removed %d temporary folder(s) left by killed processes", len(removed))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from collections.abc import Iterator
@@ -21,24 +22,25 @@ def capped(pg_url: str, local_store: LocalStore) -> Iterator[Api]:
 
 def test_a_tenant_over_its_stream_cap_gets_429_and_others_are_unaffected(capped: Api) -> None:
     api = capped
-    with live_server(api.app) as base, httpx.Client(timeout=10) as client:
-        first = client.stream("GET", f"{base}/events?token={api.a.token}").__enter__()
-        second = client.stream("GET", f"{base}/events?token={api.a.token}").__enter__()
+    timeout = httpx.Timeout(10.0)
+    with live_server(api.app) as base, contextlib.ExitStack() as streams:
+        url_a = f"{base}/events?token={api.a.token}"
+        first = streams.enter_context(httpx.stream("GET", url_a, timeout=timeout))
+        second = streams.enter_context(httpx.stream("GET", url_a, timeout=timeout))
         assert first.status_code == second.status_code == 200
-        over = client.get(f"{base}/events?token={api.a.token}")
+        over = httpx.get(url_a, timeout=timeout)
         assert over.status_code == 429
         assert "at most 2 per tenant" in over.json()["detail"] and "OMNIDATA_SSE_MAX_PER_TENANT" in over.json()["detail"]
-        with client.stream("GET", f"{base}/events?token={api.b.token}") as other:
+        with httpx.stream("GET", f"{base}/events?token={api.b.token}", timeout=timeout) as other:
             assert other.status_code == 200  # another tenant's cap is its own
         first.close()  # a closed stream frees its slot once the server notices (its next poll)
         deadline = time.monotonic() + 5
         while True:
-            with client.stream("GET", f"{base}/events?token={api.a.token}") as again:
+            with httpx.stream("GET", url_a, timeout=timeout) as again:
                 if again.status_code == 200:
                     break
             assert time.monotonic() < deadline, "the closed stream's slot was never freed"
             time.sleep(0.2)
-        second.close()
 
 
 def test_health_answers_while_every_pool_thread_is_busy(capped: Api) -> None:

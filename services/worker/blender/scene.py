@@ -78,7 +78,7 @@ class BlenderScene:
         self._floor: bpy.types.Scene | None = None
         self.has_curvature = False
         self.labelled = face_class is not None or face_instance is not None
-        sweep_orphans(("render",), (_temp_root(),))  # folders of workers killed mid-render (kill -9 skips atexit)
+        sweep_orphans(("render", "exr"), (_temp_root(),))  # folders of workers killed mid-render (kill -9 skips atexit)
         self._tmp = tempfile.mkdtemp(prefix=owned_prefix("render"), dir=_temp_root())
         atexit.register(shutil.rmtree, self._tmp, True)  # also when the process dies without close()
         bpy.ops.wm.read_factory_settings(use_empty=True)

@@ -18,7 +18,6 @@ which is view by view: a view's derived cues before the next view's render. Post
 from __future__ import annotations
 
 import logging
-from collections import defaultdict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
@@ -308,11 +307,3 @@ def _unqueue(session: Session, job_id: int, moved: list[tuple[int, str]]) -> int
         session.rollback()
         log.exception("could not put job %d's unsent tasks back; the reaper will", job_id)
         return 0
-
-
-def pending_by_job(session: Session) -> dict[int, int]:
-    """Pending tasks per running job, from the counters (for logs and tests)."""
-    out: dict[int, int] = defaultdict(int)
-    for load in running_job_loads(session):
-        out[load.job_id] = load.pending
-    return dict(out)

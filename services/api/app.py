@@ -1,4 +1,4 @@
-"""The FastAPI application (DESIGN.md sections 1, 3, 7): `create_app(settings)` wires routes, storage and the database.
+"""The FastAPI application: `create_app(settings)` wires routes, storage and the database.
 
 Routes live in feature folders (spaces, jobs, views, outputs, workers, progress, ops), each with endpoints.py
 (HTTP), schemas.py (API models, separate from ORM rows) and service.py (logic taking keyword arguments).

@@ -1,6 +1,6 @@
 """`omnidata plan`: sample cameras, points and views of spaces and write the plan-stage cues.
 
-Writes, under --out DIR, in the dataset layout `<cue>/<component>/<space>/<file>` (DESIGN.md 5):
+Writes, under --out DIR, in the dataset layout `<cue>/<component>/<space>/<file>`:
 point_info and vanishing_points JSON per view, nonfixated JSON per point; plus `plans/<space>.json`
 (the full SpacePlan, services.core.domain.plan.plan_to_json) and `job.json` in the one schema
 (services.core.domain.job_document, stage "plan"). A space that yields fewer points

@@ -1,4 +1,4 @@
-"""JobSpec: every steering knob of DESIGN.md section 4 and every cue parameter of section 5.
+"""JobSpec: every steering knob of a job (cameras, points, views, frame) and every cue parameter.
 
 Defaults follow the Omnidata annotator. Units: metres and degrees in the spec (converted to radians
 where used). Every refusal names the field and the reason (pydantic reports the field path).
@@ -155,7 +155,7 @@ class ViewSpec(_Strict):
 
 
 class CueParams(_Strict):
-    """Parameters of the cue derivations (DESIGN.md section 5)."""
+    """Parameters of the cue derivations (clip ranges, scales, thresholds)."""
 
     depth_units_per_m: float = Field(512.0, gt=0, le=1e6, description="depth PNG units per metre")
     max_depth_m: float = Field(128.0, gt=0, le=10_000, description="deeper surfaces are 'no surface'")
@@ -206,7 +206,7 @@ class JobSpec(_Strict):
     name: str = Field("omnidata", description="component name in the output layout")
     cues: list[str] | None = Field(None, max_length=256, description="subset of the catalog; None = all the space supports")
     seed: int = Field(0, ge=0, le=2**63 - 1)
-    # --- space frame (DESIGN.md 4): how source coordinates become world metres, +Z up
+    # --- space frame: how source coordinates become world metres, +Z up
     up_axis: Literal["auto", "+x", "-x", "+y", "-y", "+z", "-z"] = Field(  # UP_AXES
         "auto", description="source axis that points up; auto detects floors in any orientation"
     )

@@ -4,7 +4,8 @@ The planner and the worker both call `load_space`, so the pixels the worker rend
 poses the planner chose. Frames and units:
 
 - *source frame*: the coordinates `trimesh.load(source, force="mesh")` gives for the file, in the
-  file's units. Its face order is the reference for the `fragments` cue (DESIGN.md section 5).
+  file's units. Its face order is the reference for the `fragments` cue (face indices a
+  user can look up in the file they gave us).
 - *world frame*: metres, +Z up. `source_to_world` (4x4) = uniform scale `unit_scale` (metres per
   source unit) followed by the rotation that takes the up direction to +Z, with **no translation**
   (heights are measured from detected floors by the planner, not from z = 0), unless the user gives a

@@ -69,21 +69,21 @@ def make_plan(
     stamp: dict[str, float] = {}
     q = MeshQueries(space.mesh)
     salt = rng.bytes(16)
-    cs = spec.cameras
+    camera_spec = spec.cameras
     orbit = None  # an object's camera sphere: trajectory clips orbit its points
-    if cs.mode == "generate":
-        cams, source = generate_cameras(q, cs, rng), "generated"
-    elif cs.mode == "provided":
-        cams, source = provided_cameras(cs), "provided"
+    if camera_spec.mode == "generate":
+        cams, source = generate_cameras(q, camera_spec, rng), "generated"
+    elif camera_spec.mode == "provided":
+        cams, source = provided_cameras(camera_spec), "provided"
     else:
-        cams, centre, radius = object_cameras(space.mesh, cs, rng)
+        cams, centre, radius = object_cameras(space.mesh, camera_spec, rng)
         source, orbit = "object", (centre, radius)
     t1 = time.perf_counter()
     stamp["cameras"] = t1 - t0
     ps = spec.points
     if len(cams) < ps.min_views:
         raise PlanError(
-            f"space {space_name!r} has {len(cams)} cameras (mode {cs.mode!r}) but points.min_views is "
+            f"space {space_name!r} has {len(cams)} cameras (mode {camera_spec.mode!r}) but points.min_views is "
             f"{ps.min_views}: no point could be seen by enough cameras; lower min_views or "
             "cameras.min_spacing_m, or raise cameras.max_count"
         )
@@ -99,7 +99,7 @@ def make_plan(
     else:
         views, notes = trajectory(
             sampled.positions, sampled.normals, sampled.visible, cams, vs, ps.max_views, q,
-            ps.los_tolerance_m, cs.clearance_m, rng, orbit,
+            ps.los_tolerance_m, camera_spec.clearance_m, rng, orbit,
         )
     shortfall = sampled.shortfall
     keep_points = np.unique(views.point_idx) if notes else np.arange(len(sampled.positions))
@@ -145,7 +145,7 @@ def make_plan(
     stamp["views"] = t3 - t2
 
     plan = _assemble(
-        space_name, salt, cams, source, cs, sampled, keep_points, views, vs.resolution, shortfall, notes
+        space_name, salt, cams, source, camera_spec, sampled, keep_points, views, vs.resolution, shortfall, notes
     )
     plan = dataclasses.replace(plan, valid_fraction=valid_summary)
     stamp["assemble"] = time.perf_counter() - t3
@@ -178,7 +178,7 @@ def _assemble(
     salt: bytes,
     cams: np.ndarray,
     source: str,
-    cs: CameraSpec,
+    camera_spec: CameraSpec,
     sampled: SampledPoints,
     keep_points: np.ndarray,
     views: ViewArrays,
@@ -186,7 +186,7 @@ def _assemble(
     shortfall: str | None,
     notes: list[ClipNote],
 ) -> SpacePlan:
-    given = [p.uuid for p in cs.poses] if source == "provided" and cs.poses else [None] * len(cams)
+    given = [p.uuid for p in camera_spec.poses] if source == "provided" and camera_spec.poses else [None] * len(cams)
     cameras = tuple(
         CameraPose(idx=i, position=cams[i], source=source, uuid=given[i] or _uuid(salt, "camera", i))
         for i in range(len(cams))

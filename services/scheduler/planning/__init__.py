@@ -26,8 +26,9 @@ from services.core.domain.plan import (
 )
 from services.core.ingest.loading import LoadedSpace
 from services.scheduler.planning.cameras import generate_cameras, object_cameras, provided_cameras
+from services.scheduler.planning.paths import longest_run
 from services.scheduler.planning.points import SampledPoints, sample_points
-from services.scheduler.planning.trajectory import ClipNote, longest_run, trajectory
+from services.scheduler.planning.trajectory import ClipNote, trajectory
 from services.scheduler.planning.views import (
     ViewArrays,
     fraction_summary,

@@ -279,7 +279,15 @@ def dispatch_once(
                 picked.append((load.job_id, moved))
                 budget -= len(moved)
     session.commit()  # queued is durable before any message exists
-    broken = False  # after one failed send the broker is presumed down: the rest goes back unsent
+    _send(session, transport, picked, result)
+    return result
+
+
+def _send(session: Session, transport: Transport, picked: list[tuple[int, list[tuple[int, str]]]],
+          result: DispatchResult) -> None:
+    """Send the queued tasks in chunks; after one failed send the broker is presumed down and the rest go
+    back to pending unsent."""
+    broken = False
     for job_id, moved in picked:
         for k in range(0, len(moved), SEND_CHUNK):
             part = moved[k : k + SEND_CHUNK]
@@ -292,7 +300,6 @@ def dispatch_once(
                     broken = True
                     log.exception("sending tasks of job %d failed; putting the unsent ones back to pending", job_id)
             result.requeued += _unqueue(session, job_id, part)
-    return result
 
 
 def _unqueue(session: Session, job_id: int, moved: list[tuple[int, str]]) -> int:

@@ -218,11 +218,9 @@ def _read_mesh(
     return mesh, None
 
 
-def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Path | None) -> LoadedSpace:
+def _check_mesh(source: Path, mesh: trimesh.Trimesh, reconstruction: dict[str, Any] | None) -> None:
+    """Refuse an empty mesh, one without faces, non-finite vertices, dangling faces or zero area."""
     name = source.name
-    source_notes = check_source(source)  # truncation, counts over the limits, unsafe paths: before parsing
-    checksum = sha256_file(source)
-    mesh, reconstruction = _read_mesh(source, checksum, cloud_cache_dir)
     if len(mesh.vertices) == 0:
         raise SpaceError(f"{name}: the mesh is empty (no vertices)")
     if len(mesh.faces) == 0:
@@ -235,17 +233,10 @@ def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Pa
     if float(mesh.area) <= 0:
         raise SpaceError(f"{name}: every face is degenerate (zero total area)")
 
-    face_class, face_instance, notes = read_ply_semantics(mesh, source) if reconstruction is None else (None, None, [])
-    notes = source_notes + notes
-    class_names = None
-    if face_class is None and face_instance is None and reconstruction is None:
-        scannet = scannet_labels(mesh, source) if source.suffix.lower() == ".ply" else None
-        if scannet is not None:
-            face_class, face_instance, class_names, more = scannet
-            notes.extend(more)
-    T, est, units = resolve_frame(mesh, source.suffix.lower(), frame)
-    scale = units.scale
-    extent_m = float(mesh.extents.max()) * scale
+
+def _check_extent(name: str, extent_source: float, scale: float) -> None:
+    """Refuse a size in metres no scan has: the units are wrong."""
+    extent_m = extent_source * scale
     if extent_m > MAX_EXTENT_M:
         raise SpaceError(
             f"{name}: the mesh is {extent_m:.4g} m across with unit_scale {scale} m/unit "
@@ -256,6 +247,25 @@ def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Pa
             f"{name}: the mesh is {extent_m:.3g} m across with unit_scale {scale} m/unit "
             f"(less than {MIN_EXTENT_M * 1000:.0f} mm): check unit_scale"
         )
+
+
+def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Path | None) -> LoadedSpace:
+    name = source.name
+    source_notes = check_source(source)  # truncation, counts over the limits, unsafe paths: before parsing
+    checksum = sha256_file(source)
+    mesh, reconstruction = _read_mesh(source, checksum, cloud_cache_dir)
+    _check_mesh(source, mesh, reconstruction)
+
+    face_class, face_instance, notes = read_ply_semantics(mesh, source) if reconstruction is None else (None, None, [])
+    notes = source_notes + notes
+    class_names = None
+    if face_class is None and face_instance is None and reconstruction is None:
+        scannet = scannet_labels(mesh, source) if source.suffix.lower() == ".ply" else None
+        if scannet is not None:
+            face_class, face_instance, class_names, more = scannet
+            notes.extend(more)
+    T, est, units = resolve_frame(mesh, source.suffix.lower(), frame)
+    _check_extent(name, float(mesh.extents.max()), units.scale)
     if est.low_confidence:
         notes.append(f"up found with low confidence ({est.doubt()}): check it with `omnidata plan`, or set up/up_axis")
     has_texture = _has_texture(mesh)

@@ -57,6 +57,23 @@ class SSEConfig:
     heartbeat_s: float = 15.0
 
 
+def _set_state(app: FastAPI, settings: Settings, engine: Engine, store: ObjectStore, sse: SSEConfig) -> None:
+    """What the routes find on `app.state`: settings, sessions, store, rate tracker, caches."""
+    app.state.settings = settings
+    app.state.engine = engine
+    app.state.sessionmaker = make_sessionmaker(engine)
+    # Reads (progress polls, lists) need no transaction: autocommit saves the BEGIN and ROLLBACK round trips.
+    read_engine = engine if settings.is_sqlite else engine.execution_options(isolation_level="AUTOCOMMIT")
+    app.state.read_sessionmaker = make_sessionmaker(read_engine)
+    app.state.store = store
+    app.state.redis = None  # created on first use by ops.service.redis_client
+    app.state.rates = RateTracker()
+    app.state.sse = sse
+    app.state.metrics_cache = {}
+    app.state.schema_heads = schema_heads()  # what /ready expects the database's revision to be
+    app.state.storage_probe = None  # (time, outcome) of /ready's last storage probe
+
+
 def create_app(
     settings: Settings | None = None,
     *,
@@ -94,20 +111,7 @@ def create_app(
         openapi_tags=OPENAPI_TAGS,
         lifespan=lifespan,
     )
-    app.state.settings = settings
-    app.state.engine = engine
-    app.state.sessionmaker = make_sessionmaker(engine)
-    # Reads (progress polls, lists) need no transaction: autocommit saves the BEGIN and ROLLBACK round trips.
-    read_engine = engine if settings.is_sqlite else engine.execution_options(isolation_level="AUTOCOMMIT")
-    app.state.read_sessionmaker = make_sessionmaker(read_engine)
-    app.state.store = store
-    app.state.redis = None  # created on first use by ops.service.redis_client
-    app.state.rates = RateTracker()
-    app.state.sse = sse or SSEConfig()
-    app.state.metrics_cache = {}
-    app.state.schema_heads = schema_heads()  # what /ready expects the database's revision to be
-    app.state.storage_probe = None  # (time, outcome) of /ready's last storage probe
-
+    _set_state(app, settings, engine, store, sse or SSEConfig())
     install_error_handlers(app)
     app.add_middleware(RequestGuard, settings=settings)  # token and size checked before a body is read
     app.add_middleware(QueryTokenScrubber)  # ?token= never reaches a log line

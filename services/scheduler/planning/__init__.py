@@ -71,14 +71,7 @@ def make_plan(
     q = MeshQueries(space.mesh)
     salt = rng.bytes(16)
     camera_spec = spec.cameras
-    orbit = None  # an object's camera sphere: trajectory clips orbit its points
-    if camera_spec.mode == "generate":
-        cams, source = generate_cameras(q, camera_spec, rng), "generated"
-    elif camera_spec.mode == "provided":
-        cams, source = provided_cameras(camera_spec), "provided"
-    else:
-        cams, centre, radius = object_cameras(space.mesh, camera_spec, rng)
-        source, orbit = "object", (centre, radius)
+    cams, source, orbit = _place_cameras(space, camera_spec, q, rng)
     t1 = time.perf_counter()
     stamp["cameras"] = t1 - t0
     ps = spec.points
@@ -94,30 +87,11 @@ def make_plan(
     stamp["points"] = t2 - t1
 
     vs = spec.views
-    notes: list[ClipNote] = []
-    if vs.mode == "wide_baseline":
-        views = wide_baseline(sampled.positions, sampled.normals, sampled.visible, cams, vs, ps.max_views, rng)
-    else:
-        views, notes = trajectory(
-            sampled.positions, sampled.normals, sampled.visible, cams, vs, ps.max_views, q,
-            ps.los_tolerance_m, camera_spec.clearance_m, rng, orbit,
-        )
+    views, notes = _choose_views(sampled, cams, spec, q, rng, orbit)
     shortfall = sampled.shortfall
     keep_points = np.unique(views.point_idx) if notes else np.arange(len(sampled.positions))
     if vs.nonfixated_pruning and len(views):
-        crossing = nonfixated_keep(views, sampled.positions, sampled.visible, vs.resolution)
-        if vs.mode == "trajectory":  # as for min_valid_fraction below: no gaps inside a clip
-            crossing = _longest_runs(views.point_idx, crossing, vs.trajectory_min_frames)
-        views = views.subset(crossing)
-        n_views = np.bincount(views.point_idx, minlength=len(sampled.positions))
-        keep_points = np.flatnonzero(n_views >= ps.min_views)
-        views = views.subset(np.isin(views.point_idx, keep_points))
-        if len(keep_points) < len(sampled.positions):
-            note = (
-                f"nonfixated pruning kept {len(keep_points)} of {len(sampled.positions)} points "
-                f"(>= {ps.min_views} views that each see another point)"
-            )
-            shortfall = _join(shortfall, note)
+        views, keep_points, shortfall = _prune_nonfixated(views, sampled, spec, shortfall)
     if vs.min_valid_fraction > 0:
         fractions = valid_fractions(q, views, spec.params.max_depth_m)
         valid_summary = fraction_summary(fractions, vs.min_valid_fraction)
@@ -126,22 +100,8 @@ def make_plan(
         valid_summary = fraction_summary(valid_fractions(q, views.subset(sample), spec.params.max_depth_m), 0.0)
         valid_summary["sampled_of"] = len(views)
     if vs.min_valid_fraction > 0 and len(views):
-        passing = fractions >= vs.min_valid_fraction
-        if vs.mode == "trajectory":  # a frame dropped from inside a clip would make its video jump
-            passing = _longest_runs(views.point_idx, passing, vs.trajectory_min_frames)
-        views = views.subset(passing)
-        n_views = np.bincount(views.point_idx, minlength=len(sampled.positions))
-        kept = keep_points[n_views[keep_points] >= ps.min_views]
-        views = views.subset(np.isin(views.point_idx, kept))
-        dropped = int((~passing).sum())
-        if dropped or len(kept) < len(keep_points):
-            cut = " (each clip keeps its longest run of frames above it)" if vs.mode == "trajectory" else ""
-            note = (
-                f"views.min_valid_fraction {vs.min_valid_fraction} dropped {dropped} views{cut}; "
-                f"{len(kept)} of {len(keep_points)} points keep >= {ps.min_views} views"
-            )
-            shortfall = _join(shortfall, note)
-        keep_points = kept
+        views, keep_points, shortfall = _drop_low_valid(views, fractions, len(sampled.positions), keep_points,
+                                                        spec, shortfall)
     t3 = time.perf_counter()
     stamp["views"] = t3 - t2
 
@@ -155,6 +115,71 @@ def make_plan(
         timings["rays"] = float(q.rays)
         timings["total"] = time.perf_counter() - t0
     return plan
+
+
+def _place_cameras(space: LoadedSpace, camera_spec: CameraSpec, q: MeshQueries, rng: np.random.Generator
+                   ) -> tuple[np.ndarray, str, tuple[np.ndarray, float] | None]:
+    """(camera positions, their source, an object's camera sphere (centre, radius) or None)."""
+    if camera_spec.mode == "generate":
+        return generate_cameras(q, camera_spec, rng), "generated", None
+    if camera_spec.mode == "provided":
+        return provided_cameras(camera_spec), "provided", None
+    cams, centre, radius = object_cameras(space.mesh, camera_spec, rng)
+    return cams, "object", (centre, radius)  # trajectory clips orbit the object's points
+
+
+def _choose_views(sampled: SampledPoints, cams: np.ndarray, spec: JobSpec, q: MeshQueries, rng: np.random.Generator,
+                  orbit: tuple[np.ndarray, float] | None) -> tuple[ViewArrays, list[ClipNote]]:
+    """The views of the sampled points: wide-baseline views, or trajectory clips (with notes on cut clips)."""
+    vs, ps = spec.views, spec.points
+    if vs.mode == "wide_baseline":
+        return wide_baseline(sampled.positions, sampled.normals, sampled.visible, cams, vs, ps.max_views, rng), []
+    return trajectory(
+        sampled.positions, sampled.normals, sampled.visible, cams, vs, ps.max_views, q,
+        ps.los_tolerance_m, spec.cameras.clearance_m, rng, orbit,
+    )
+
+
+def _prune_nonfixated(views: ViewArrays, sampled: SampledPoints, spec: JobSpec, shortfall: str | None
+                      ) -> tuple[ViewArrays, np.ndarray, str | None]:
+    """Keep the views that see another point, and the points left with enough of them."""
+    vs, ps = spec.views, spec.points
+    crossing = nonfixated_keep(views, sampled.positions, sampled.visible, vs.resolution)
+    if vs.mode == "trajectory":  # as for min_valid_fraction: no gaps inside a clip
+        crossing = _longest_runs(views.point_idx, crossing, vs.trajectory_min_frames)
+    views = views.subset(crossing)
+    n_views = np.bincount(views.point_idx, minlength=len(sampled.positions))
+    keep_points = np.flatnonzero(n_views >= ps.min_views)
+    views = views.subset(np.isin(views.point_idx, keep_points))
+    if len(keep_points) < len(sampled.positions):
+        note = (
+            f"nonfixated pruning kept {len(keep_points)} of {len(sampled.positions)} points "
+            f"(>= {ps.min_views} views that each see another point)"
+        )
+        shortfall = _join(shortfall, note)
+    return views, keep_points, shortfall
+
+
+def _drop_low_valid(views: ViewArrays, fractions: np.ndarray, n_points: int, keep_points: np.ndarray, spec: JobSpec,
+                    shortfall: str | None) -> tuple[ViewArrays, np.ndarray, str | None]:
+    """Drop views predicted to see too little surface, and the points left with too few views."""
+    vs, ps = spec.views, spec.points
+    passing = fractions >= vs.min_valid_fraction
+    if vs.mode == "trajectory":  # a frame dropped from inside a clip would make its video jump
+        passing = _longest_runs(views.point_idx, passing, vs.trajectory_min_frames)
+    views = views.subset(passing)
+    n_views = np.bincount(views.point_idx, minlength=n_points)
+    kept = keep_points[n_views[keep_points] >= ps.min_views]
+    views = views.subset(np.isin(views.point_idx, kept))
+    dropped = int((~passing).sum())
+    if dropped or len(kept) < len(keep_points):
+        cut = " (each clip keeps its longest run of frames above it)" if vs.mode == "trajectory" else ""
+        note = (
+            f"views.min_valid_fraction {vs.min_valid_fraction} dropped {dropped} views{cut}; "
+            f"{len(kept)} of {len(keep_points)} points keep >= {ps.min_views} views"
+        )
+        shortfall = _join(shortfall, note)
+    return views, kept, shortfall
 
 
 def _longest_runs(point_idx: np.ndarray, ok: np.ndarray, min_frames: int) -> np.ndarray:

@@ -191,21 +191,29 @@ def trajectory(
         T.append(clip.look)
         R.append(clip.roll)
         FOV.append(np.full(n, fov))
+    return _view_arrays(P, F, T, R, FOV, len(visible), positions, normals, tree, q, tol), notes
+
+
+def _view_arrays(P: list[np.ndarray], F: list[np.ndarray], T: list[np.ndarray], R: list[np.ndarray],
+                 FOV: list[np.ndarray], n_points: int, positions: np.ndarray, normals: np.ndarray, tree: cKDTree,
+                 q: MeshQueries, tol: float) -> ViewArrays:
+    """The clips' frames (per point: point index, positions, look targets, roll, fov) as the plan's views;
+    v numbers the frames of a point, camera_idx is the nearest camera."""
     pidx = np.concatenate(P) if P else np.zeros(0, dtype=np.int64)
     if not len(pidx):
         z = np.zeros(0)
         return ViewArrays(z.astype(np.int64), z.astype(np.int64), z.astype(np.int64), np.zeros((0, 4, 4)),
-                          z, z, z, z.astype(bool)), notes
+                          z, z, z, z.astype(bool))
     frames = np.concatenate(F)
     roll = np.concatenate(R)
     fov_all = np.concatenate(FOV)
-    counts = np.bincount(pidx, minlength=len(visible))
+    counts = np.bincount(pidx, minlength=n_points)
     v = np.arange(len(pidx)) - np.repeat(np.cumsum(counts) - counts, counts)
     W = look_at_batch(frames, np.concatenate(T), roll)
     _, nearest = tree.query(frames)
     in_sight = q.line_of_sight(frames, positions[pidx], tol)
     obl = obliqueness(normals[pidx], positions[pidx], frames)
-    return ViewArrays(pidx, v, np.asarray(nearest, dtype=np.int64), W, fov_all, roll, obl, in_sight), notes
+    return ViewArrays(pidx, v, np.asarray(nearest, dtype=np.int64), W, fov_all, roll, obl, in_sight)
 
 
 def fly_clip(route: np.ndarray, point: np.ndarray, lim: Limits, q: MeshQueries, roll_pair: np.ndarray, p: int) -> Clip:

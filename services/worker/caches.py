@@ -12,7 +12,7 @@ from __future__ import annotations
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Protocol, TypeVar
+from typing import Protocol, TypeVar
 
 from sqlalchemy.orm import Session
 
@@ -21,6 +21,7 @@ from services.core.db.models import Job, Space
 from services.core.domain.jobspec import JobSpec
 from services.core.domain.plan import SpacePlan, plan_from_json
 from services.core.storage import ObjectStore
+from services.worker.context import ViewContext
 
 T = TypeVar("T")
 
@@ -30,6 +31,16 @@ VIEW_CACHE_MEMORY_FRACTION = 0.25
 VIEW_CACHE_MIN = 4
 
 ViewKey = tuple[int, int, int, int]  # (job, space, point, view)
+K = TypeVar("K")
+
+
+class Measured(Protocol):
+    """Anything that says how many bytes it holds (a ViewContext)."""
+
+    def nbytes(self) -> int: ...
+
+
+Measured_T = TypeVar("Measured_T", bound=Measured)
 
 
 class DbStep(Protocol):
@@ -52,7 +63,7 @@ class JobInfo:
         return f"{self.root}/{key}" if self.root else key
 
 
-def trim_lru(views: OrderedDict[Any, Any], budget_bytes: int, keep: int = VIEW_CACHE_MIN) -> None:
+def trim_lru(views: OrderedDict[K, Measured_T], budget_bytes: int, keep: int = VIEW_CACHE_MIN) -> None:
     """Drop the least recently used entries (first in `views`, each with .nbytes()) while they hold more than
     budget_bytes, keeping at least the `keep` most recent."""
     sizes = [c.nbytes() for c in views.values()]
@@ -76,7 +87,7 @@ class TaskInputs:
         self.jobs: dict[int, JobInfo] = {}
         self.spaces: dict[int, Space] = {}
         self.plans: OrderedDict[tuple[int, int], SpacePlan] = OrderedDict()
-        self.views: OrderedDict[ViewKey, Any] = OrderedDict()  # -> ViewContext with passes
+        self.views: OrderedDict[ViewKey, ViewContext] = OrderedDict()  # contexts holding their pass set
 
     def job(self, job_id: int) -> JobInfo:
         """The job's spec, output root and component name."""
@@ -123,14 +134,14 @@ class TaskInputs:
             self.plans.move_to_end(k)
         return plan
 
-    def cached_view(self, key: ViewKey) -> Any:
+    def cached_view(self, key: ViewKey) -> ViewContext | None:
         """The kept ViewContext of a view (now the most recently used), or None."""
         ctx = self.views.get(key)
         if ctx is not None:
             self.views.move_to_end(key)
         return ctx
 
-    def keep_view(self, key: ViewKey, ctx: Any) -> None:
+    def keep_view(self, key: ViewKey, ctx: ViewContext) -> None:
         """Keep a view's context, dropping the least recently used ones beyond the byte budget."""
         self.views[key] = ctx
         trim_lru(self.views, self.view_budget_bytes)

@@ -25,7 +25,6 @@ import time
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
 
 from celery.utils.log import current_process_index
 from sqlalchemy.orm import Session
@@ -42,6 +41,7 @@ from services.worker.caches import VIEW_CACHE_MEMORY_FRACTION, JobInfo, TaskInpu
 from services.worker.claim import DB_RETRY_S, Claimed, Outcome, TaskLedger
 from services.worker.context import ViewContext
 from services.worker.executor import produce, render_passes_for
+from services.worker.heartbeat import Heartbeat
 from services.worker.passes import ViewPasses
 from services.worker.space_cache import SpaceCache, SpaceContext, should_recycle
 
@@ -62,7 +62,7 @@ class TaskRunner:
         settings: Settings,
         worker_id: str,
         *,
-        heartbeat: Any = None,
+        heartbeat: Heartbeat | None = None,
         cache_dir: str | Path | None = None,
         render_threads: int | None = None,
         render_device: str | None = None,
@@ -151,7 +151,7 @@ class TaskRunner:
     def _view_context(self, t: Claimed, job: JobInfo, space: Space, plan: SpacePlan, view: PlannedView) -> ViewContext:
         """A ViewContext holding the view's pass set: memory LRU, else the store's pass cache, else a render."""
         vk = (t.job_id, t.space_id, t.point, t.view)
-        ctx: ViewContext | None = self.inputs.cached_view(vk)
+        ctx = self.inputs.cached_view(vk)
         if ctx is not None:
             return ctx
         params = job.spec.params

@@ -12,7 +12,7 @@ import logging
 import os
 import threading
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from celery import Task as CeleryTask
 from celery import shared_task
@@ -20,6 +20,12 @@ from celery.signals import worker_process_init, worker_process_shutdown
 
 from services.core.celery_config import TASK_RENDER_CUE
 from services.core.settings import Settings, get_settings
+
+if TYPE_CHECKING:  # imported lazily at run time: the Celery app imports this module and must stay light
+    from sqlalchemy import Engine
+
+    from services.worker.heartbeat import Heartbeat
+    from services.worker.runner import TaskRunner
 
 log = logging.getLogger(__name__)
 
@@ -33,9 +39,9 @@ class Runtime:
 
     pid: int
     settings: Settings
-    engine: Any
-    runner: Any
-    heartbeat: Any
+    engine: Engine
+    runner: TaskRunner
+    heartbeat: Heartbeat
 
     def close(self) -> None:
         """Stop the heartbeat, free the space and close database connections."""
@@ -55,7 +61,7 @@ def _settings_from_app(app: Any) -> Settings:
     return s if isinstance(s, Settings) else get_settings()
 
 
-def worker_engine(database_url: str, **kwargs: Any) -> Any:
+def worker_engine(database_url: str, **kwargs: Any) -> Engine:
     """The worker's database engine; on Postgres its commits do not wait for the WAL flush (synchronous_commit off).
 
     Every claim and result of the whole fleet updates the same few counter rows of a job, and a commit that holds

@@ -26,6 +26,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.ingest_real import real_figures, summary  # noqa: E402
 from services.core.ingest.gravity import UnitError, choose_unit_scale, estimate_up  # noqa: E402
 from tests.fixtures import rotation_corpus as corpus  # noqa: E402
 
@@ -87,6 +88,7 @@ def main() -> None:
     ap.add_argument("--closed", type=int, default=4, help="synthetic rooms with their whole ceiling")
     ap.add_argument("--cloud-points", type=int, default=200_000, help="points of the meshed-cloud check (0: skip)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--real-rotations", type=int, default=30, help="random rotations per real scan (plus stored, 24 axis)")
     ap.add_argument("--scenes", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "scenes")
     ap.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "results" / "ingest.json")
     args = ap.parse_args()
@@ -107,7 +109,8 @@ def main() -> None:
         seconds.append(time.perf_counter() - t0)
         rows.append({"room": case.room, "kind": case.kind, "faces": len(case.mesh.faces),
                      "error": corpus.up_error_deg(est.up, case.up), "units_ok": scale == case.scale,
-                     "exact": bool(np.array_equal(est.up, np.round(case.up))), "low": est.low_confidence})
+                     "exact": bool(np.array_equal(est.up, np.round(case.up))), "low": est.low_confidence,
+                     "refused": est.ambiguous, "named_right": True})
 
     def pick(**kw: object) -> list[dict]:
         return [r for r in rows if all(r[k] == v for k, v in kw.items())]
@@ -127,6 +130,8 @@ def main() -> None:
                                           [r["units_ok"] for r in pick(kind="random", room="icl_livingroom")]),
         "per_room": per_room,
         "low_confidence_share": round(float(np.mean([r["low"] for r in rows])), 4),
+        "synthetic_and_icl_refusals": {k: v for k, v in summary(rows).items() if "share" in k},
+        "real_corpus": real_figures(args.scenes, args.real_rotations, args.seed, print),
         "point_cloud": cloud_figures(args.cloud_points, args.seed) if args.cloud_points else None,
         "seconds_per_case": {"median": round(float(np.median(seconds)), 4), "max": round(float(np.max(seconds)), 4),
                              "icl_median": round(float(np.median([s for s, r in zip(seconds, rows, strict=True)
@@ -134,10 +139,16 @@ def main() -> None:
         "machine": {"python": platform.python_version(), "cpu": platform.processor() or platform.machine(),
                     "note": "shared machine, loaded by other work"},
     }
+    if args.out.exists():  # keep the figures this run replaces beside the new ones
+        old = json.loads(args.out.read_text())
+        result["before"] = old.get("before") or {k: old[k] for k in ("all", "random_rotations", "axis_aligned",
+                                                                       "icl_livingroom_random", "low_confidence_share")
+                                                 if k in old}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
     print(json.dumps({k: result[k] for k in ("all", "random_rotations", "axis_aligned", "icl_livingroom_random",
-                                            "low_confidence_share", "seconds_per_case", "point_cloud")}, indent=2))
+                                            "low_confidence_share", "synthetic_and_icl_refusals", "real_corpus",
+                                            "seconds_per_case", "point_cloud")}, indent=2))
     print(f"wrote {args.out}")
 
 

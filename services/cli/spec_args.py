@@ -34,6 +34,7 @@ SPEC_FLAGS: dict[str, tuple[tuple[str, ...], str]] = {
     "up": (("up",), "--up"),
     "unit_scale": (("unit_scale",), "--unit-scale"),
     "source_to_world": (("source_to_world",), "--source-to-world"),
+    "accept_up_guess": (("accept_up_guess",), "--accept-up-guess"),
 }
 
 

@@ -25,6 +25,7 @@ from services.core.db.jobs import claim_pending_jobs, job_spaces, job_spec
 from services.core.db.models import Job, JobState, Space, utcnow
 from services.core.db.states import set_job_state
 from services.core.db.worker_rows import expire_worker_rows
+from services.core.ingest.frame_choice import space_frame_for
 from services.core.settings import Settings
 from services.core.storage import ObjectStore
 from services.scheduler.compile import compile_tasks
@@ -141,7 +142,7 @@ class Scheduler:
                 summary: dict[str, Any] = {"spaces": {}, "attempts": (job.plan_summary or {}).get("attempts", 0) + 1}
                 total = 0
                 for job_space, space in job_spaces(s, job.id):
-                    loaded = load_for_job(self.fetch_source(space), spec)
+                    loaded = load_for_job(self.fetch_source(space), spec, frame=space_frame_for(spec, space))
                     plan = plan_space(loaded, spec, space.name, self.plan_fn)
                     if not plan.views:
                         raise PlanningError(

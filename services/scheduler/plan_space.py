@@ -25,9 +25,11 @@ class PlanFn(Protocol):
     def __call__(self, space: Any, spec: JobSpec, rng: np.random.Generator, space_name: str, /) -> SpacePlan: ...
 
 
-def load_for_job(source: str | Path, spec: JobSpec, extract_dir: str | Path | None = None) -> LoadedSpace:
-    """The space loaded in the frame the job's spec asks for (up_axis, up, unit_scale, source_to_world)."""
-    return load_space(source, **spec.space_frame(), extract_dir=extract_dir)
+def load_for_job(source: str | Path, spec: JobSpec, extract_dir: str | Path | None = None,
+                 frame: dict[str, Any] | None = None) -> LoadedSpace:
+    """The space loaded in the frame the job's spec asks for (up_axis, up, unit_scale, source_to_world), or in
+    `frame` (`load_space`'s frame keywords: a registered space's chosen up, `ingest.frame_choice`)."""
+    return load_space(source, **(frame if frame is not None else spec.space_frame()), extract_dir=extract_dir)
 
 
 def plan_space(loaded: LoadedSpace, spec: JobSpec, name: str, plan_fn: PlanFn | None = None) -> SpacePlan:

@@ -33,6 +33,7 @@ from services.core.db.models import Space
 from services.core.domain.cues import OUTPUT_CUES, closure
 from services.core.domain.keys import output_key, passes_key
 from services.core.domain.plan import PlannedView, SpacePlan
+from services.core.ingest.frame_choice import space_frame_for
 from services.core.ingest.loading import load_space
 from services.core.ingest.registry import fetch_space
 from services.core.settings import Settings
@@ -139,11 +140,12 @@ class TaskRunner:
     def _space_context(self, job: JobInfo, space: Space) -> SpaceContext:
         """The space loaded into the world frame of this job (its up_axis/unit_scale), kept between tasks."""
         spec = job.spec
-        key = f"{space.checksum}:{json.dumps(spec.space_frame(), sort_keys=True)}"
+        frame = space_frame_for(spec, space)  # the planner's frame: the spec's, else the space's chosen up
+        key = f"{space.checksum}:{json.dumps(frame, sort_keys=True)}"
 
         def loader() -> SpaceContext:
             path = fetch_space(self.store, space, self.cache_dir)
-            loaded = load_space(path, **spec.space_frame())
+            loaded = load_space(path, **frame)
             return SpaceContext.from_loaded(loaded, key=key, device=self.render_device, threads=self.render_threads)
 
         return self.space_cache.get(key, loader)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from services.core.ingest.errors import SpaceError
+from services.core.ingest.errors import SpaceError, UpAmbiguous
 from services.core.ingest.gravity import UnitError, choose_unit_scale, estimate_up, plane_families
 from services.core.ingest.loading import load_space
 from tests.fixtures import rotation_corpus as corpus
@@ -46,16 +46,20 @@ def test_plane_families_find_tilted_walls_and_floor() -> None:
         assert max(abs(float(axis @ w)) for w in want) > 1 - 1e-9
 
 
-def test_confidence_recorded_and_low_for_a_symmetric_box(tmp_path: Path) -> None:
+def test_confidence_recorded_and_an_empty_box_refused_naming_both_candidates(tmp_path: Path) -> None:
     room = scenes.furnished_room()
     room.update_faces(room.face_normals[:, 2] > -0.9)  # no ceiling, as in most reconstructions
     rec = estimate_up(room, ".ply").record()
-    assert rec["method"] == "floor" and rec["confidence"] == "high"
+    assert rec["method"] == "floor" and rec["confidence"] == "high" and not rec["ambiguous"]
     assert rec["floor_area_m2"] == pytest.approx(6 * 4 + 1.2 * 0.8, rel=1e-6)  # the floor and the table top
-    assert rec["runner_up_angle_deg"] == 90.0 and rec["margin"] > 1.25
-    # with its ceiling, only the table tells floor from ceiling: found, but flagged
-    closed = estimate_up(scenes.furnished_room(), ".ply").record()
-    assert closed["method"] == "floor" and closed["confidence"] == "low" and closed["runner_up_angle_deg"] == 180.0
+    assert rec["runner_up_angle_deg"] == 90.0 and rec["margin"] > 1.0 and rec["probability"] > 0.9
+    assert [c["up"] for c in rec["candidates"]][0] == [0.0, 0.0, 1.0]
+    # with its ceiling, only the table (its top scanned, its underside not) tells floor from ceiling
+    closed = estimate_up(scenes.furnished_room(), ".ply")
+    assert closed.method == "floor" and closed.up.tolist() == [0.0, 0.0, 1.0] and closed.decision is not None
+    ceiling = next(c for c in closed.decision.ranked if c.up[2] < -0.99)
+    assert closed.record()["evidence"]["furniture"] == 0.0 and ceiling.terms["furniture"] < -1.0
+    # an empty closed box: nothing tells floor from ceiling, the file convention picks (flagged low)
     box = scenes.box_room(size=(6.0, 4.0, 2.7))
     src = tmp_path / "box.ply"
     box.export(src)
@@ -63,8 +67,29 @@ def test_confidence_recorded_and_low_for_a_symmetric_box(tmp_path: Path) -> None
     assert space.up_method == "convention-tie"
     assert space.frame_record()["up"]["confidence"] == "low"
     assert any("low confidence (floor and ceiling look alike" in w for w in space.warnings)
-    doubt = estimate_up(scenes.furnished_room(), ".ply").doubt()
-    assert doubt.startswith("floor, scoring only ") and doubt.endswith("x a candidate 180 deg away"), doubt
+
+
+def test_a_wall_as_large_as_the_floor_is_refused_naming_both_candidates(tmp_path: Path) -> None:
+    """An L-shaped partial scan (floor and one wall of the same size, no ceiling): refused, or taken with a guess."""
+    floor = trimesh.Trimesh([[0, 0, 0], [4, 0, 0], [4, 3, 0], [0, 3, 0]], [[0, 1, 2], [0, 2, 3]])
+    wall = trimesh.Trimesh([[0, 0, 0], [0, 3, 0], [0, 3, 4], [0, 0, 4]], [[0, 1, 2], [0, 2, 3]])
+    scan = trimesh.util.concatenate([floor, wall])
+    assert scan.face_normals[:2, 2].min() > 0.99 and scan.face_normals[2:, 0].min() > 0.99
+    src = tmp_path / "corner.ply"
+    scan.export(src)
+    with pytest.raises(UpAmbiguous) as err:
+        load_space(src)
+    line = str(err.value)
+    assert "\n" not in line and line.startswith("corner.ply: up is ambiguous: up ")
+    named = {tuple(round(x) for x in c["up"]) for c in err.value.candidates[:2]}
+    assert named == {(0, 0, 1), (1, 0, 0)}
+    assert "--up=X,Y,Z" in line and "storey " in line and "floor 12 m2" in line
+    space = load_space(src, accept_up_guess=True)
+    rec = space.frame_record()["up"]
+    assert rec["ambiguous"] and rec["confidence"] == "low" and 0.5 <= rec["probability"] < 0.95
+    # the capture's camera up settles it
+    space = load_space(src, capture_up=[0.2, 0.1, 1.0])
+    assert space.up_source.tolist() == [0.0, 0.0, 1.0] and not space.frame_record()["up"]["ambiguous"]
 
 
 @pytest.mark.parametrize(

@@ -110,7 +110,9 @@ def test_space_frame_fields() -> None:
         JobSpec.model_validate({"unit_scale": "0.0254"})
     spec = JobSpec.model_validate({"unit_scale": 0.0254, "up": [0, 2, 0]})
     assert spec.unit_scale == 0.0254 and JobSpec().unit_scale == "auto"
-    assert spec.space_frame() == {"up_axis": "auto", "unit_scale": 0.0254, "up": (0.0, 2.0, 0.0), "source_to_world": None}
+    assert spec.space_frame() == {"up_axis": "auto", "unit_scale": 0.0254, "up": (0.0, 2.0, 0.0), "source_to_world": None,
+                                  "accept_up_guess": False}
+    assert JobSpec.model_validate({"accept_up_guess": True}).space_frame()["accept_up_guess"] is True
     T = [[0, -2, 0, 1], [2, 0, 0, 2], [0, 0, 2, 3], [0, 0, 0, 1]]  # a turn, 2 m per unit, a shift: accepted
     assert JobSpec.model_validate({"source_to_world": T}).space_frame()["source_to_world"][0] == (0, -2, 0, 1)
     assert JobSpec.model_validate_json(spec.model_dump_json()) == spec

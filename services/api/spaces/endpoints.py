@@ -1,4 +1,5 @@
-"""Space routes: upload (multipart, streamed, size-limited), register a staged object, list, get, delete."""
+"""Space routes: upload (multipart, streamed, size-limited), register a staged object, list, get, delete; the
+side views of an ambiguous space's up candidates and the person's pick."""
 
 from __future__ import annotations
 
@@ -15,8 +16,8 @@ from pydantic import ValidationError
 from services.api.deps import ReadSessionDep, SessionDep, SettingsDep, StoreDep, TenantDep
 from services.api.errors import validation_errors
 from services.api.pagination import Page, PageDep
-from services.api.spaces import service
-from services.api.spaces.schemas import SpaceOptions, SpaceRead, SpaceRegister
+from services.api.spaces import service, up_choice
+from services.api.spaces.schemas import SpaceOptions, SpaceRead, SpaceRegister, UpChoice
 from services.api.spaces.upload import receive_upload
 
 router = APIRouter(prefix="/spaces", tags=["spaces"])
@@ -132,3 +133,25 @@ def delete_space(space_id: SpaceId, session: SessionDep, store: StoreDep, tenant
     """Delete a space and its stored source (409 while a job uses it)."""
     service.delete_space(session, store, owner=tenant, space_id=space_id)
     return Response(status_code=status.HTTP_204_NO_CONTENT)
+
+
+CandidateIndex = Annotated[int, PathParam(ge=0, le=2, description="0: detection's best, 1: the runner-up, 2: the next")]
+
+
+@router.get("/{space_id}/up-candidates/{index}.png", summary="Side view of a space under an up candidate",
+            response_class=Response, responses={200: {"content": {"image/png": {}}}})
+async def up_candidate_preview(space_id: SpaceId, index: CandidateIndex, session: ReadSessionDep, store: StoreDep,
+                               settings: SettingsDep, tenant: TenantDep) -> Response:
+    """A small PNG: the scan seen from the side with up candidate `index` pointing to the top of the picture."""
+    space = service.get_space(session, owner=tenant, space_id=space_id)
+    png = await run_in_threadpool(up_choice.candidate_preview, store, settings, space, index)
+    return Response(png, media_type="image/png", headers={"Cache-Control": "private, max-age=3600"})
+
+
+@router.put("/{space_id}/up", response_model=SpaceRead, summary="Pick the up direction of a space")
+async def choose_up(space_id: SpaceId, body: UpChoice, session: SessionDep, store: StoreDep, settings: SettingsDep,
+                    tenant: TenantDep) -> SpaceRead:
+    """Store the up a person picked (source coordinates); later jobs plan the space in that frame."""
+    space = service.get_space(session, owner=tenant, space_id=space_id)
+    space = await run_in_threadpool(up_choice.choose_up, session, store, settings, space, body.up, tenant)
+    return SpaceRead.from_row(space)

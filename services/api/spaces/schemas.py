@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from datetime import datetime
 from typing import Any, Literal
 
@@ -12,6 +13,7 @@ from services.core.domain.cues import default_cues
 from services.core.domain.jobspec import parse_unit_scale
 from services.core.domain.keys import check_name
 from services.core.ingest.frame import frame_of
+from services.core.ingest.frame_choice import needs_frame
 
 UpAxis = Literal["auto", "+x", "-x", "+y", "-y", "+z", "-z"]
 
@@ -63,6 +65,21 @@ class SpaceRegister(SpaceOptions):
         return parse_unit_scale(v)  # strict: a JSON number (or "auto"), never a numeric string
 
 
+class UpChoice(BaseModel):
+    """The up direction a person picked for a space, in the scan's source coordinates."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+    up: list[float] = Field(min_length=3, max_length=3, description="[x, y, z], source coordinates; any length")
+
+    @field_validator("up")
+    @classmethod
+    def _finite(cls, v: list[float]) -> list[float]:
+        if not all(math.isfinite(x) for x in v) or math.hypot(*v) < 1e-9:
+            raise ValueError(f"up {v} must be a finite, non-zero direction [x, y, z]")
+        return v
+
+
 class SpaceRead(BaseModel):
     """A registered space and what validation found in it."""
 
@@ -82,8 +99,12 @@ class SpaceRead(BaseModel):
     supported_cues: list[str] = Field(description="cues a job may request for this space")
     validation: dict[str, Any] | None = None
     frame: dict[str, Any] | None = Field(
-        None, description="how the frame was found: up (source direction, method, confidence), units, reconstruction"
+        None, description="how the frame was found: up (source direction, method, confidence, probability, "
+        "evidence, the two best candidates), units, reconstruction"
     )
+    needs_frame: bool = Field(False, description="up detection could not decide and nobody has picked one: "
+                              "jobs are refused until PUT /spaces/{id}/up (or a job spec that sets up)")
+    up_choice: dict[str, Any] | None = Field(None, description="the up a person picked (source coordinates), by whom")
     created_at: datetime
 
     @classmethod
@@ -106,5 +127,7 @@ class SpaceRead(BaseModel):
             supported_cues=default_cues(s.has_semantics),
             validation=s.validation,
             frame=frame_of(s.validation),
+            needs_frame=needs_frame(s),
+            up_choice=(s.validation or {}).get("up_choice"),
             created_at=s.created_at,
         )

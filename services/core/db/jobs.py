@@ -33,6 +33,7 @@ from services.core.db.states import check_job_edge, set_job_state, transition
 from services.core.domain.cues import CATALOG, closure
 from services.core.domain.errors import Conflict
 from services.core.domain.jobspec import JobSpec, cues_for_space
+from services.core.ingest.frame_choice import check_frame_decided
 from services.core.storage import ObjectStore
 
 RETRY_BACKOFF_BASE_S = 5.0
@@ -91,6 +92,7 @@ def create_job(
         seen_names.add(space.name)
         if space.owner != owner:
             raise ValueError(f"space {space.name!r} (id {space.id}) does not belong to {owner!r}")
+        check_frame_decided(spec, space)
         try:
             per_space.append(cues_for_space(spec, has_semantics=bool(space.has_semantics)))
         except ValueError as e:

@@ -222,6 +222,10 @@ class JobSpec(_Strict):
         None, description="4x4 source -> world metres (+Z up): rotation, uniform scale, translation; "
         "overrides detection, up and unit_scale"
     )
+    accept_up_guess: bool = Field(
+        False, description="when detection cannot tell two up candidates apart, plan on the better one anyway "
+        "(default: refuse the space, naming both candidates)"
+    )
     # ---
     priority: int = Field(0, ge=-100, le=100)
     max_attempts: int = Field(3, ge=1, le=20)
@@ -266,7 +270,7 @@ class JobSpec(_Strict):
     def space_frame(self) -> dict[str, Any]:
         """The keyword arguments of `services.core.ingest.loading.load_space` that set the space frame."""
         return {"up_axis": self.up_axis, "unit_scale": self.unit_scale, "up": self.up,
-                "source_to_world": self.source_to_world}
+                "source_to_world": self.source_to_world, "accept_up_guess": self.accept_up_guess}
 
     @model_validator(mode="after")
     def _check(self) -> JobSpec:

@@ -6,8 +6,18 @@ without importing each other.
 
 from __future__ import annotations
 
+from typing import Any
+
 from services.core.domain.errors import Invalid
 
 
 class SpaceError(Invalid):
     """A space that cannot be used, with a message meant for the user who uploaded it."""
+
+
+class UpAmbiguous(SpaceError):
+    """Up detection could not tell two candidates apart; the message names both and the flag that picks one."""
+
+    def __init__(self, message: str, candidates: list[dict[str, Any]]):
+        super().__init__(message)
+        self.candidates = candidates

@@ -14,7 +14,7 @@ import numpy as np
 import trimesh
 
 from services.core.domain.jobspec import similarity_scale
-from services.core.ingest.errors import SpaceError
+from services.core.ingest.errors import SpaceError, UpAmbiguous
 from services.core.ingest.gravity import (
     UnitChoice,
     UnitError,
@@ -24,6 +24,7 @@ from services.core.ingest.gravity import (
     estimate_up,
     floor_evidence,
 )
+from services.core.ingest.up_evidence import ambiguity_line
 
 FRAME_KEYS = ("up", "units", "reconstruction", "class_names", "valid_fraction")
 
@@ -70,10 +71,13 @@ class FrameRequest:
     unit_scale: float | str
     up: np.ndarray | None
     source_to_world: np.ndarray | None
+    accept_up_guess: bool = False
+    capture_up: np.ndarray | None = None
 
 
-def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: FrameRequest) -> tuple[np.ndarray, UpEstimate, UnitChoice]:
-    """(source_to_world 4x4, how up was found, the units) of a mesh in its source frame."""
+def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: FrameRequest,
+                  name: str = "the scan") -> tuple[np.ndarray, UpEstimate, UnitChoice]:
+    """(source_to_world 4x4, how up was found, the units) of a mesh in its source frame; UpAmbiguous (`name`)."""
     if frame.source_to_world is not None:
         T = frame.source_to_world
         scale = similarity_scale(T)
@@ -86,7 +90,7 @@ def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: FrameRequest) -> tu
         est = floor_evidence(mesh, given) or UpEstimate(given, "given")
         est = UpEstimate(given, "given", est.floor_area, est.floor_fraction, storey_height=est.storey_height)
     else:
-        est = estimate_up(mesh, suffix)
+        est = estimate_up(mesh, suffix, frame.capture_up)
     if frame.unit_scale == "auto":
         try:
             units = choose_unit_scale(est.storey_height, float(mesh.extents.max()))
@@ -94,4 +98,7 @@ def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: FrameRequest) -> tu
             raise SpaceError(str(e)) from None
     else:
         units = UnitChoice(float(frame.unit_scale), "given", "unit_scale given")
+    if est.ambiguous and not frame.accept_up_guess:
+        rec = est.record(units.scale)
+        raise UpAmbiguous(ambiguity_line(name, rec["candidates"], est.margin), rec["candidates"])
     return source_to_world_matrix(est.up, units.scale), est, units

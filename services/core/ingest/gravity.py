@@ -23,10 +23,13 @@ gives, in the file's units); directions are unit 3-vectors in that frame.
    the bunny): up points away from the base.
 4. Otherwise the file convention: +Y up for .obj/.gltf/.glb, +Z up for .ply and point clouds.
 
-Confidence: the floor area, the angle to the runner-up candidate and the score margin over it; a
-margin below `LOW_MARGIN` is reported as low confidence.
+Confidence (rooms): every candidate direction is scored on more evidence than plane area (storey height,
+the scan's extent, the capture convention, capture poses when given; `services.core.ingest.up_evidence`), and the
+winner's margin over the best candidate that levels the scan differently gives a calibrated confidence.
+Below `up_evidence.REFUSE_MARGIN` the estimate is *ambiguous*: loading refuses it unless guesses are accepted.
 
-Units (`choose_unit_scale`): a space with a floor is a storey, 1.8 to 6 m from the floor to its top;
+Units (`choose_unit_scale`): a space with a floor is a storey, 1.8 to 6 m from the floor to its top (then
+1.2 to 6 m, a partial scan without its ceiling);
 metres, centimetres, millimetres and inches are tried in that order and the first that brings the
 height into that range wins. Anything else keeps 1.0 unless its extent is implausible for an object.
 """
@@ -42,7 +45,10 @@ import trimesh
 from scipy import sparse
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
+from services.core.ingest.up_evidence import CandidateFacts, UpDecision, decide, unit_capture_up
+
 CONVENTION_UP = {".obj": "+y", ".gltf": "+y", ".glb": "+y", ".ply": "+z"}
+_SPECIFIED_UP = (".gltf", ".glb")  # formats whose specification fixes up (+Y): no capture convention
 
 # The one floor rule: a floor face's normal lies within 15 degrees of up. The planner's detect_floors
 # (services.scheduler.planning.cameras) uses the same cone, so a scan levelled here has the floors planned there.
@@ -50,9 +56,10 @@ FLOOR_CONE_DEG = 15.0
 FLOOR_CONE_COS = float(np.cos(np.radians(FLOOR_CONE_DEG)))
 _END_BAND = 0.10
 _FLOOR_MIN_FRACTION = 0.30  # floor area / the scan's cross-section: below it the scan is an object, not a room
+_GIVEN_FLOOR_MIN_FRACTION = 0.10  # up given: a partial scan may see only a strip of its floor
 _BASE_MIN_FRACTION = 0.15
-_BASE_DOMINANCE = 3.0
 _TIE_REL = 0.02
+_BASE_DOMINANCE = 3.0
 _SNAP_RAD = 1e-3  # a direction this close to a source axis is that axis (1 mm per metre)
 _BASE_SNAP_RAD = np.radians(2.0)  # object bases are rougher than floors (the bunny's is 1.1 degrees off its axis)
 _N_BINS = 2000  # Fibonacci bins on the hemisphere (about 2.6 degrees apart)
@@ -61,10 +68,13 @@ _SUPPRESS_COS = float(np.cos(np.radians(25.0)))
 _MAX_FAMILIES = 6
 _MIN_FAMILY_SHARE = 0.03
 _HULL_POINTS = 5_000
-LOW_MARGIN = 1.25  # best score / runner-up below this: low confidence
+LOW_MARGIN = 1.25  # support bases: best area / runner-up below this is low confidence
 
 # storey height (floor to top of the scan) that a room must have once scaled, metres
 STOREY_RANGE_M = (1.8, 6.0)
+# tried only when no unit fits STOREY_RANGE_M: a partial scan without its ceiling (a few seconds of RGB-D
+# capture reach 1.3-2 m above the floor)
+PARTIAL_STOREY_RANGE_M = (1.2, 6.0)
 # tried in this order: the first that puts the storey height in range wins (cm before inches: the
 # ranges overlap for 180-236 units, and centimetre exports are far more common)
 UNIT_CANDIDATES: tuple[tuple[str, float], ...] = (
@@ -82,8 +92,14 @@ class UpEstimate:
     floor_area: float = 0.0  # source units^2 of the faces taken as floor (0 when none)
     floor_fraction: float = 0.0  # floor area / convex cross-section of the scan across up
     runner_up_angle_deg: float | None = None  # angle between up and the runner-up candidate
-    margin: float | None = None  # score of up / score of the runner-up (inf when it has none)
+    margin: float | None = None  # rooms: score of up - runner-up's (log-odds); bases: area ratio; inf: no runner-up
     storey_height: float | None = None  # source units, floor to top (spaces with a floor)
+    decision: UpDecision | None = None  # rooms: every candidate's evidence, the runner-up and the confidence
+
+    @property
+    def ambiguous(self) -> bool:
+        """True when a room's winner does not clearly beat a candidate that levels it differently."""
+        return self.decision is not None and self.decision.ambiguous
 
     @property
     def low_confidence(self) -> bool:
@@ -92,7 +108,14 @@ class UpEstimate:
             return False
         if self.method in ("convention", "convention-tie"):
             return True
+        if self.decision is not None:
+            return self.decision.ambiguous
         return self.margin is not None and self.margin < LOW_MARGIN
+
+    @property
+    def confidence(self) -> float | None:
+        """Calibrated probability that a room's up is right (None for objects, conventions and given frames)."""
+        return None if self.decision is None else round(self.decision.confidence, 4)
 
     def doubt(self) -> str:
         """Why the estimate is low confidence, in words for a warning."""
@@ -101,6 +124,8 @@ class UpEstimate:
         if self.method == "convention-tie":
             return "floor and ceiling look alike, so the file format's convention picked the sign"
         angle = "?" if self.runner_up_angle_deg is None else f"{self.runner_up_angle_deg:.0f}"
+        if self.decision is not None:
+            return f"{self.method}, scoring only {self.margin:.2f} above a candidate {angle} deg away"
         return f"{self.method}, scoring only {self.margin:.2f}x a candidate {angle} deg away"
 
     def record(self, unit_scale: float = 1.0) -> dict[str, Any]:
@@ -114,7 +139,16 @@ class UpEstimate:
             "floor_fraction": round(self.floor_fraction, 4),
             "runner_up_angle_deg": None if self.runner_up_angle_deg is None else round(self.runner_up_angle_deg, 2),
             "margin": margin,
+            **self._decision_record(unit_scale),
         }
+
+    def _decision_record(self, unit_scale: float) -> dict[str, Any]:
+        if self.decision is None:
+            return {}
+        d = self.decision
+        return {"probability": self.confidence, "ambiguous": d.ambiguous,
+                "evidence": d.best.record(unit_scale)["evidence"],
+                "candidates": [c.record(unit_scale) for c in d.shown]}
 
 
 def axis_vector(code: str) -> np.ndarray:
@@ -241,6 +275,16 @@ class _Candidate:
     floor_fraction: float
     floor_faces: np.ndarray  # bool per face
     height: float  # extent along up, source units
+    cross_section: float  # convex cross-section across up, source units^2
+    ceiling_area: float  # area facing down in the upper half
+    mid_up: float  # area facing up between the end bands (furniture tops)
+    mid_down: float  # area facing down between the end bands (furniture undersides, rarely scanned)
+
+    def facts(self) -> CandidateFacts:
+        """The measurements the evidence scoring needs."""
+        ceiling = self.ceiling_area / self.cross_section if self.cross_section > 0 else 0.0
+        return CandidateFacts(self.up, self.score, self.floor_area, self.floor_fraction, self.height,
+                              self.cross_section, ceiling, self.mid_up, self.mid_down)
 
 
 def _floor_candidate(geom: _Geometry, u: np.ndarray) -> _Candidate:
@@ -254,10 +298,13 @@ def _floor_candidate(geom: _Geometry, u: np.ndarray) -> _Candidate:
     floor_area = float(areas[floor].sum())
     band = _END_BAND * (hi - lo)
     middle = (h > lo + band) & (h < hi - band)  # furniture, not floor or ceiling
-    surplus = max(0.0, float(areas[facing_up & middle].sum() - areas[facing_down & middle].sum()))
+    mid_up, mid_down = float(areas[facing_up & middle].sum()), float(areas[facing_down & middle].sum())
+    surplus = max(0.0, mid_up - mid_down)
     cross = _cross_section(geom.hull_points, u)
     fraction = floor_area / cross if cross > 0 else 0.0
-    return _Candidate(u, floor_area + surplus, floor_area, fraction, floor, hi - lo)
+    ceiling_area = float(areas[facing_down & (h >= 0.5 * (lo + hi))].sum())
+    return _Candidate(u, floor_area + surplus, floor_area, fraction, floor, hi - lo, cross, ceiling_area,
+                      mid_up, mid_down)
 
 
 def _refine_floor(geom: _Geometry, cand: _Candidate) -> np.ndarray:
@@ -274,9 +321,12 @@ def _refine_floor(geom: _Geometry, cand: _Candidate) -> np.ndarray:
 
 
 def floor_evidence(mesh: trimesh.Trimesh, up: np.ndarray) -> UpEstimate | None:
-    """The floor along a given up direction, or None when the scan has none (an object)."""
+    """The floor along a given up direction, or None when the scan has none (an object).
+
+    Up is given, so less floor is needed than to find it: a partial scan may see only a strip of its floor.
+    """
     cand = _floor_candidate(_Geometry.of(mesh), np.asarray(up, dtype=np.float64) / np.linalg.norm(up))
-    if cand.floor_fraction < _FLOOR_MIN_FRACTION:
+    if cand.floor_fraction < _GIVEN_FLOOR_MIN_FRACTION:
         return None
     return UpEstimate(cand.up, "given", cand.floor_area, cand.floor_fraction, storey_height=cand.height)
 
@@ -285,30 +335,49 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(float(a @ b), -1.0, 1.0))))
 
 
-def estimate_up(mesh: trimesh.Trimesh, suffix: str) -> UpEstimate:
-    """Up direction in the source frame and how it was found (see the module docstring)."""
+def estimate_up(mesh: trimesh.Trimesh, suffix: str, capture_up: np.ndarray | None = None,
+                *, disabled_evidence: tuple[str, ...] = ()) -> UpEstimate:
+    """Up direction in the source frame, how it was found and how sure (see the module docstring).
+
+    `capture_up`: the mean up vector of the capture's cameras in the source frame (-Y of OpenCV camera
+    axes, averaged over the poses), when the caller has poses; strong evidence for rooms.
+    `disabled_evidence`: evidence terms left out (the bench's ablation).
+    """
     conv = axis_vector(CONVENTION_UP.get(suffix, "+z"))
+    cam_up = unit_capture_up(capture_up)
     geom = _Geometry.of(mesh)
     families = plane_families(geom.normals, geom.areas)
     if not families:
         return UpEstimate(conv, "convention")
     cands = [_floor_candidate(geom, s * f) for f, _ in families for s in (1.0, -1.0)]
-    floors = sorted((c for c in cands if c.floor_fraction >= _FLOOR_MIN_FRACTION), key=lambda c: -c.score)
-    if floors:
-        best = floors[0]
-        others = [c for c in cands if c is not best]
-        runner = max(others, key=lambda c: c.score) if others else None
-        margin = best.score / runner.score if runner is not None and runner.score > 0 else float("inf")
+    if any(c.floor_fraction >= _FLOOR_MIN_FRACTION for c in cands):
+        decision = decide([c.facts() for c in cands], cam_up, suffix not in _SPECIFIED_UP, disabled_evidence)
+        best = next(c for c in cands if c.up is decision.best.up)
+        runner = decision.runner_up
         angle = _angle_deg(best.up, runner.up) if runner is not None else None
-        if runner is not None and angle is not None and angle > 179.0 and margin < 1 + _TIE_REL:
-            # floor and ceiling alike (a closed, empty box): the file convention picks the sign
+        if runner is not None and angle is not None and angle > 179.0 and _alike(best.facts(), runner.facts):
+            # floor and ceiling alike (a closed, empty box): no evidence can pick, the file convention does
             sign = float(np.sign(conv @ best.up)) or 1.0
-            up = snap_to_axis(sign * best.up)
-            return UpEstimate(up, "convention-tie", best.floor_area, best.floor_fraction, angle, margin, best.height)
-        return UpEstimate(_refine_floor(geom, best), "floor", best.floor_area, best.floor_fraction, angle, margin,
-                          best.height)
+            return UpEstimate(snap_to_axis(sign * best.up), "convention-tie", best.floor_area, best.floor_fraction,
+                              angle, decision.margin, best.height)
+        up = _refine_floor(geom, best) if best.floor_area > 0 else snap_to_axis(best.up)
+        return UpEstimate(up, "floor", best.floor_area, best.floor_fraction, angle, decision.margin, best.height,
+                          decision)
     base = _support_base(geom, [f for f, _ in families])
     return base if base is not None else UpEstimate(conv, "convention")
+
+
+def up_candidate_facts(mesh: trimesh.Trimesh) -> list[CandidateFacts]:
+    """What each plane-family direction (both signs) measures as an up candidate (the bench's ablation)."""
+    geom = _Geometry.of(mesh)
+    return [_floor_candidate(geom, s * f).facts() for f, _ in plane_families(geom.normals, geom.areas)
+            for s in (1.0, -1.0)]
+
+
+def _alike(a: CandidateFacts, b: CandidateFacts) -> bool:
+    """Two opposite candidates that look the same from both sides: floor and ceiling areas, no furniture."""
+    return (abs(a.area_score - b.area_score) <= _TIE_REL * max(a.area_score, b.area_score)
+            and a.mid_up + a.mid_down <= _TIE_REL * a.area_score)
 
 
 def _support_base(geom: _Geometry, axes: list[np.ndarray]) -> UpEstimate | None:
@@ -353,12 +422,12 @@ class UnitError(ValueError):
 
 def choose_unit_scale(storey_height: float | None, extent: float) -> UnitChoice:
     """Metres per source unit from a storey height (rooms) or a plausibility check (objects); source units."""
-    lo, hi = STOREY_RANGE_M
     if storey_height is not None and storey_height > 0:
-        for unit, scale in UNIT_CANDIDATES:
-            if lo <= storey_height * scale <= hi:
-                return UnitChoice(scale, unit, f"storey height {storey_height:.4g} units is "
-                                  f"{storey_height * scale:.3g} m in {unit} ({lo:g}-{hi:g} m)")
+        for lo, hi in (STOREY_RANGE_M, PARTIAL_STOREY_RANGE_M):
+            for unit, scale in UNIT_CANDIDATES:
+                if lo <= storey_height * scale <= hi:
+                    return UnitChoice(scale, unit, f"storey height {storey_height:.4g} units is "
+                                      f"{storey_height * scale:.3g} m in {unit} ({lo:g}-{hi:g} m)")
     omin, omax = OBJECT_EXTENT_RANGE_M
     if not omin <= extent <= omax:
         what = "a storey height" if storey_height else "an extent"

@@ -103,6 +103,8 @@ class LoadedSpace:
         up = rec["up"]
         direction = ", ".join(f"{x:.4g}" for x in up["source_direction"])
         line = f"up [{direction}] ({up['method']}, {up['confidence']} confidence"
+        if up.get("probability") is not None:
+            line += f", {100 * up['probability']:.0f}% sure"
         if up["floor_area_m2"]:
             line += f", floor {up['floor_area_m2']:.3g} m2"
         if up["runner_up_angle_deg"] is not None:
@@ -155,6 +157,8 @@ def load_space(
     source_to_world: Sequence[Sequence[float]] | None = None,
     extract_dir: str | Path | None = None,
     cloud_cache_dir: str | Path | None = None,
+    accept_up_guess: bool = False,
+    capture_up: Sequence[float] | np.ndarray | None = None,
 ) -> LoadedSpace:
     """Load a space (mesh file, point cloud, folder or zip), validate it and bring it into the world frame.
 
@@ -163,6 +167,8 @@ def load_space(
     `source_to_world` when given, else `up` (a source vector) or `up_axis` (a name, or "auto": detected),
     and `unit_scale` (metres per unit, or "auto": from the storey height). A zip is extracted into
     `extract_dir` (kept) or into a temporary folder removed after loading (then `source_path` is the zip).
+    A detected up that does not clearly beat a candidate levelling the scan differently raises UpAmbiguous
+    unless `accept_up_guess`; `capture_up` (the capture's mean camera up, source frame) is strong evidence.
     """
     if up_axis not in UP_AXES:
         raise SpaceError(f"up_axis {up_axis!r} is not one of {', '.join(UP_AXES)}")
@@ -181,7 +187,8 @@ def load_space(
         tmp = Path(tempfile.mkdtemp(prefix="omnidata-space-"))
         extract_dir = tmp
     frame = FrameRequest(up_axis, unit_scale, None if up is None else np.asarray(up, dtype=np.float64),
-                          None if source_to_world is None else np.asarray(source_to_world, dtype=np.float64))
+                          None if source_to_world is None else np.asarray(source_to_world, dtype=np.float64),
+                          accept_up_guess, None if capture_up is None else np.asarray(capture_up, dtype=np.float64))
     try:
         source = resolve_source(p, extract_dir)
         return _load(source, p if tmp is not None else source, frame,
@@ -264,7 +271,7 @@ def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Pa
         if scannet is not None:
             face_class, face_instance, class_names, more = scannet
             notes.extend(more)
-    T, est, units = resolve_frame(mesh, source.suffix.lower(), frame)
+    T, est, units = resolve_frame(mesh, source.suffix.lower(), frame, name)
     _check_extent(name, float(mesh.extents.max()), units.scale)
     if est.low_confidence:
         notes.append(f"up found with low confidence ({est.doubt()}): check it with `omnidata plan`, or set up/up_axis")

@@ -147,11 +147,14 @@ def register_space(
     up: Any = None,
     source_to_world: Any = None,
     loaded: LoadedSpace | None = None,
+    accept_up_guess: bool = True,
 ) -> Space:
     """Validate a space, upload its source and add its row (flushed, not committed).
 
     `loaded`: the result of `validate_source` for the same path and options, so a caller that validated
-    first does not load the mesh twice.
+    first does not load the mesh twice. An ambiguous up does not refuse the space: it is recorded (with
+    both candidates) and the space needs a frame before a job may plan it (`services.core.ingest.frame_choice`);
+    `accept_up_guess` is accepted for the frame keywords of a JobSpec and does not change that.
     """
     try:
         check_name("space name", name)
@@ -164,7 +167,8 @@ def register_space(
         work = Path(tmp)
         mesh_file = resolve_source(source, work / "x") if source.suffix.lower() == ".zip" else resolve_source(source)
         if loaded is None:
-            loaded = load_space(source, up_axis=up_axis, unit_scale=unit_scale, up=up, source_to_world=source_to_world)
+            loaded = load_space(source, up_axis=up_axis, unit_scale=unit_scale, up=up, source_to_world=source_to_world,
+                                accept_up_guess=True)
         packed = pack_source(source, mesh_file, work)
         checksum = sha256_file(packed)
         space = _space_row(owner, name, mesh_file, checksum, loaded,

@@ -98,7 +98,8 @@ def _child(sender: Connection, path: str, up_axis: str, unit_scale: float | str,
     resource.setrlimit(resource.RLIMIT_AS, (memory, memory))
     resource.setrlimit(resource.RLIMIT_CPU, (int(limits["cpu_s"]), int(limits["cpu_s"]) + 1))
     try:
-        loaded = load_space(path, up_axis=up_axis, unit_scale=unit_scale)
+        # an ambiguous up is recorded, not refused: the space waits for a person to pick one
+        loaded = load_space(path, up_axis=up_axis, unit_scale=unit_scale, accept_up_guess=True)
         check_face_count(Path(path).name, loaded.face_count, int(limits["max_faces"]))
         # register_space reads the counts and transforms, not the visuals or parser metadata: leave those here
         slim = trimesh.Trimesh(vertices=loaded.mesh.vertices, faces=loaded.mesh.faces, process=False)

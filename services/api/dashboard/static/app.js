@@ -261,7 +261,9 @@ function uploadForm(onUploaded) {
 function frameText(frame) {
   if (!frame || !frame.up) return "";
   const u = frame.up;
-  let text = `Up [${u.source_direction.map((x) => fmtNum(x, 3)).join(", ")}] (${u.method}, ${u.confidence} confidence)`;
+  let text = `Up [${u.source_direction.map((x) => fmtNum(x, 3)).join(", ")}] (${u.method}, ${u.confidence} confidence` +
+    (u.probability !== undefined && u.probability !== null ? `, ${fmtNum(100 * u.probability, 0)}% sure` : "") + ")";
+  if (u.ambiguous) text += u.candidates && u.candidates.length > 1 ? "; ambiguous: pick its up above before a job" : "; ambiguous";
   if (frame.units) text += `; units: ${frame.units.unit} (x${frame.units.unit_scale})`;
   if (frame.reconstruction) text += `; meshed from ${fmtNum(frame.reconstruction.point_count, 0)} points`;
   return text + ".";
@@ -284,13 +286,15 @@ async function viewJobs(root) {
     if (!page.items.length) table.append(h("tr", {}, h("td", { colspan: 6, class: "muted" }, "No jobs yet.")));
   };
   const jobFormSlot = h("div", {});
+  const frameSlot = h("div", {});
   const refreshJobForm = async (selectId) => {
     const spaces = (await api("/spaces?limit=1000")).items;
+    frameSlot.replaceChildren(...[needsFramePanel(spaces, () => refreshJobForm())].filter(Boolean));
     const form = newJobForm(spaces, refresh);
     if (selectId) { form.querySelector("#job-space").value = String(selectId); form.querySelector("#job-space").dispatchEvent(new Event("change")); }
     jobFormSlot.replaceChildren(form);
   };
-  forms.replaceChildren(jobFormSlot, uploadForm((space) => refreshJobForm(space.id)));
+  forms.replaceChildren(frameSlot, jobFormSlot, uploadForm((space) => refreshJobForm(space.id)));
   await Promise.all([refresh(), refreshJobForm()]);
   listen("/events", (ev) => {
     const tr = rows.get(ev.id);

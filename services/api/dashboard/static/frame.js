@@ -1,0 +1,55 @@
+/* Spaces whose up detection could not decide: the two candidates side by side, each with a side view of
+   the scan under that up (a server-made PNG), and one click to pick. Loaded before app.js; uses its
+   helpers (h, api, fmtNum, token, API) only when called. */
+"use strict";
+
+async function authedImageUrl(path) {
+  // <img> cannot send the Authorization header: fetch the picture and show it from a blob URL.
+  const r = await fetch(API + path, { headers: { Authorization: `Bearer ${token()}` } });
+  if (!r.ok) throw new Error(`HTTP ${r.status}`);
+  return URL.createObjectURL(await r.blob());
+}
+
+function upCandidateFigure(space, cand, index, status, onPicked) {
+  const img = h("img", { class: "up-preview", width: 240, height: 150,
+                         alt: `${space.name} seen from the side with candidate ${index + 1} as up` });
+  authedImageUrl(`/spaces/${space.id}/up-candidates/${index}.png`)
+    .then((url) => { img.src = url; })
+    .catch(() => { img.alt = "side view unavailable"; });
+  const pick = h("button", { type: "button", class: "pick-up", dataset: { space: String(space.id), index: String(index) },
+    onclick: async () => {
+      pick.disabled = true;
+      status.className = "muted";
+      status.textContent = "Saving…";
+      try {
+        const saved = await api(`/spaces/${space.id}/up`, { method: "PUT", body: { up: cand.up } });
+        status.textContent = `Up of "${saved.name}" set to [${saved.up_choice.up.map((x) => fmtNum(x, 3)).join(", ")}].`;
+        onPicked(saved);
+      } catch (ex) { status.className = "error"; status.textContent = ex.message; pick.disabled = false; }
+    } }, "This way up");
+  return h("figure", { class: "up-candidate" }, img,
+    h("figcaption", {},
+      h("strong", {}, ["Detection's best", "Runner-up", "Next"][index]),
+      h("div", {}, `up [${cand.up.map((x) => fmtNum(x, 3)).join(", ")}]`),
+      h("div", {}, `floor ${fmtNum(cand.floor_area_m2, 2)} m², storey ${fmtNum(cand.storey_height_m, 2)} m`),
+      h("div", { class: "muted" }, `score ${fmtNum(cand.score, 2)}`)),
+    pick);
+}
+
+// A card listing every space that needs its up picked (null when none does).
+function needsFramePanel(spaces, onPicked) {
+  const pending = spaces.filter((s) => s.needs_frame && s.frame && s.frame.up && (s.frame.up.candidates || []).length >= 2);
+  if (!pending.length) return null;
+  return h("div", { class: "card", id: "needs-frame" },
+    h("h2", {}, "Which way is up?"),
+    h("p", { class: "muted" }, "Up detection could not tell these candidates apart, so jobs over these spaces are held. " +
+      "Each picture shows the scan from the side with that candidate pointing up: pick the one standing on its floor."),
+    ...pending.map((s) => {
+      const status = h("p", { class: "muted", role: "status" });
+      const up = s.frame.up;
+      return h("section", { class: "needs-frame-space", dataset: { space: String(s.id) } },
+        h("h3", {}, `${s.name} (#${s.id}): ${fmtNum(100 * (up.probability || 0.5), 0)}% sure of the best`),
+        h("div", { class: "up-candidates" }, ...up.candidates.slice(0, 3).map((c, i) => upCandidateFigure(s, c, i, status, onPicked))),
+        status);
+    }));
+}

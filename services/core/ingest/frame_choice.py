@@ -1,0 +1,70 @@
+"""A space's up direction when detection could not decide: held as "needs frame" until someone picks one.
+
+A space registered with an ambiguous up (`validation["up"]["ambiguous"]`) keeps both candidates in its
+validation record. A job over it is refused (ValueError naming both candidates and the `up` that picks
+one) unless its spec sets the frame (`up`, `up_axis`, `source_to_world`), accepts the guess
+(`accept_up_guess`), or the space carries a chosen up (`validation["up_choice"]`, stored by
+`choose_up`). The planner and the workers load such a space with the chosen up (`space_frame_for`), so
+both see the same world frame.
+"""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from typing import Any
+
+import numpy as np
+
+from services.core.db.models import Space
+from services.core.domain.jobspec import JobSpec
+from services.core.ingest.up_evidence import ambiguity_line
+
+
+def chosen_up(space: Space) -> list[float] | None:
+    """The up a person picked for this space (source coordinates), or None."""
+    choice = (space.validation or {}).get("up_choice")
+    return None if not choice else [float(x) for x in choice["up"]]
+
+
+def needs_frame(space: Space) -> bool:
+    """True when detection could not decide the space's up and nobody has picked one yet."""
+    up = (space.validation or {}).get("up") or {}
+    return bool(up.get("ambiguous")) and chosen_up(space) is None
+
+
+def _spec_sets_frame(spec: JobSpec) -> bool:
+    return spec.up is not None or spec.up_axis != "auto" or spec.source_to_world is not None
+
+
+def space_frame_for(spec: JobSpec, space: Space) -> dict[str, Any]:
+    """`load_space` keyword arguments for this space under this spec: the spec's frame, else the chosen up."""
+    frame = spec.space_frame()
+    choice = chosen_up(space)
+    if choice is not None and not _spec_sets_frame(spec):
+        frame["up"] = choice
+    return frame
+
+
+def check_frame_decided(spec: JobSpec, space: Space) -> None:
+    """ValueError (one line naming both candidates) when a job would plan this space on a guess."""
+    if not needs_frame(space) or _spec_sets_frame(spec) or spec.accept_up_guess:
+        return
+    up = (space.validation or {}).get("up") or {}
+    candidates = up.get("candidates") or []
+    if len(candidates) < 2:
+        raise ValueError(f"space {space.name!r}: up is ambiguous; pick one (PUT /spaces/{space.id}/up) or set up")
+    raise ValueError(ambiguity_line(f"space {space.name!r}", candidates, up.get("margin"))
+                     + f"; or pick one for the space: PUT /spaces/{space.id}/up")
+
+
+def record_choice(space: Space, up: np.ndarray, source_to_world: np.ndarray, bounds: np.ndarray,
+                  unit_scale: float, by: str) -> None:
+    """Store a picked up with the space (its validation record and frame columns); the caller commits."""
+    validation = dict(space.validation or {})
+    validation["up_choice"] = {"up": [float(x) for x in up], "by": by,
+                               "at": datetime.now(UTC).isoformat(timespec="seconds")}
+    space.validation = validation  # a new dict: the JSON column sees the change
+    space.up_axis = "vector"
+    space.source_to_world = np.asarray(source_to_world, dtype=float).tolist()
+    space.bounds = np.asarray(bounds, dtype=float).tolist()
+    space.unit_scale = float(unit_scale)

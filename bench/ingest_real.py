@@ -68,6 +68,18 @@ def run_case(case: RealCase, posed: bool) -> dict[str, Any]:
             "probability": est.confidence}
 
 
+def calibration(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Stated probability against the observed share of right winners (refused or not), in bins."""
+    out = []
+    for lo, hi in ((0.5, 0.7), (0.7, 0.9), (0.9, 0.97), (0.97, 1.01)):
+        sel = [r for r in rows if r["probability"] is not None and lo <= r["probability"] < hi]
+        if sel:
+            out.append({"probability": f"{lo:g}-{min(hi, 1.0):g}", "cases": len(sel),
+                        "stated_mean": round(float(np.mean([r["probability"] for r in sel])), 4),
+                        "observed_right": round(float(np.mean([r["error"] < 3.0 for r in sel])), 4)})
+    return out
+
+
 def ablation(cases: Iterable[tuple[Any, np.ndarray, np.ndarray | None]]) -> dict[str, Any]:
     """Per evidence term: the figures with that term left out (the winner's unrefined direction)."""
     facts = [(up_candidate_facts(mesh), truth, capture) for mesh, truth, capture in cases]
@@ -114,6 +126,7 @@ def real_figures(scenes: Path, n_random: int, seed: int, log: Callable[[str], No
         "without_poses_as_stored": summary(pick(posed=False, kind="stored")),
         "with_capture_poses": summary(pick(posed=True)),
         "per_room_without_poses": {n: summary(pick(posed=False, room=n)) for n in names},
+        "calibration_without_poses": calibration(pick(posed=False)),
         "ablation_without_poses": ablation(ablation_cases),
         "ablation_with_capture_poses": ablation(posed_cases),
     }

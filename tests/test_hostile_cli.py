@@ -1,5 +1,6 @@
-"""Hostile scan files on the command line (issue 11, item 15): `omnidata plan` and `omnidata generate` refuse
-each with one line on stderr and exit status 2, before anything is written."""
+"""Hostile scan files on the command line (issues 11 and 19): `omnidata plan` and `omnidata generate` refuse
+each with one line on stderr and exit status 2, before anything is written, and never open a file outside
+the scan's folder (the server's secret files are watched with inotify)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,8 @@ from pathlib import Path
 import pytest
 
 from services.cli import main
-from tests.hostile_corpus import HOSTILE_FILES
+from tests.fixtures.file_watch import OpenWatch
+from tests.hostile_corpus import HOSTILE_FILES, HOSTILE_FOLDERS, secret_files
 
 
 def _write(tmp_path: Path, case: str) -> Path:
@@ -46,3 +48,35 @@ def test_generate_refuses_corrupt_files_in_one_line(tmp_path: Path, capsys: pyte
     assert code == 2 and len(lines) == 1 and lines[0].startswith("omnidata generate: error: "), lines
     assert any(n in lines[0] for n in HOSTILE_FILES[case][2]) and "Traceback" not in lines[0]
     assert not out.exists()
+
+
+def _refused_in_one_line(code: int, err: str, command: str, needles: tuple[str, ...]) -> bool:
+    lines = err.strip().splitlines()
+    return (code == 2 and len(lines) == 1 and lines[0].startswith(f"omnidata {command}: error: ")
+            and any(n.lower() in err.lower() for n in needles) and "Traceback" not in err)
+
+
+def test_plan_and_generate_never_open_a_file_outside_the_scan(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    secrets = secret_files()
+    files = {case: _write(tmp_path, case) for case in HOSTILE_FILES}
+    folders = {}
+    for case, (build, _needles) in HOSTILE_FOLDERS.items():
+        folders[case] = tmp_path / "folders" / case
+        folders[case].mkdir(parents=True)
+        build(folders[case])
+    failures = []
+    with OpenWatch(secrets.values()) as watch:
+        for case, path in [*files.items(), *folders.items()]:
+            needles = HOSTILE_FILES[case][2] if case in HOSTILE_FILES else HOSTILE_FOLDERS[case][1]
+            for command in ("plan", "generate") if case in HOSTILE_FOLDERS else ("plan",):
+                out = tmp_path / "out" / command / case
+                extra = ["--no-progress"] if command == "generate" else []
+                code = main([command, str(path), "--out", str(out), *extra])
+                err = capsys.readouterr().err
+                if not _refused_in_one_line(code, err, command, needles) or out.exists():
+                    failures.append((command, case, code, err[-300:]))
+        opened = watch.opened()
+    assert not failures, failures
+    assert opened == [], f"a hostile scan made the CLI open {opened}"

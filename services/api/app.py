@@ -19,6 +19,7 @@ from fastapi.responses import RedirectResponse
 from sqlalchemy import Engine
 
 from services.api.dashboard.endpoints import mount_dashboard
+from services.api.docs_page import mount_docs
 from services.api.errors import install_error_handlers
 from services.api.guard import RequestGuard
 from services.api.jobs.endpoints import router as jobs_router
@@ -27,12 +28,14 @@ from services.api.outputs.endpoints import router as outputs_router
 from services.api.progress.endpoints import router as progress_router
 from services.api.progress.rates import RateTracker
 from services.api.query_token import QueryTokenScrubber
+from services.api.security_headers import SecurityHeaders
 from services.api.spaces.endpoints import router as spaces_router
 from services.api.views.endpoints import router as views_router
 from services.api.workers.endpoints import router as workers_router
 from services.core.db.engine import make_engine, make_sessionmaker, schema_heads
 from services.core.settings import Settings, get_settings
 from services.core.storage import ObjectStore, open_store
+from services.core.temp_dirs import UPLOAD_KINDS, sweep_orphans
 
 log = logging.getLogger("omnidata.api")
 
@@ -95,6 +98,7 @@ def create_app(
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        sweep_orphans(UPLOAD_KINDS)  # upload folders of an API (or mesh reader) killed mid-upload
         yield
         redis = app.state.redis
         if redis is not None:
@@ -110,22 +114,19 @@ def create_app(
         ),
         openapi_tags=OPENAPI_TAGS,
         lifespan=lifespan,
+        docs_url=None,  # FastAPI's pages load Swagger UI and ReDoc from a CDN: /docs is served offline below
+        redoc_url=None,
     )
     _set_state(app, settings, engine, store, sse or SSEConfig())
     install_error_handlers(app)
     app.add_middleware(RequestGuard, settings=settings)  # token and size checked before a body is read
     app.add_middleware(QueryTokenScrubber)  # ?token= never reaches a log line
-    for router in (
-        ops_router,
-        spaces_router,
-        jobs_router,
-        views_router,
-        outputs_router,
-        progress_router,
-        workers_router,
-    ):
+    app.add_middleware(SecurityHeaders, settings=settings)  # CSP, no framing, nosniff
+    routers = (ops_router, spaces_router, jobs_router, views_router, outputs_router, progress_router, workers_router)
+    for router in routers:
         app.include_router(router)
     mount_dashboard(app)
+    mount_docs(app)
 
     @app.get("/", include_in_schema=False)
     def root() -> RedirectResponse:

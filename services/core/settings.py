@@ -65,6 +65,11 @@ class Settings(BaseSettings):
         8 * 1024**2, gt=0, description="largest request body other than an upload (JSON job specs), bytes"
     )
     presign_expiry_s: int = Field(3600, gt=0, le=7 * 24 * 3600)
+    public_base_url: str | None = Field(
+        None,
+        description="the URL clients reach the API at (https://omnidata.example.org); signed links start with it, "
+        "never with a request's Host header. Unset: links are root-relative (/blobs/...)",
+    )
     lease_s: int = Field(300, gt=0, description="seconds a running task holds its lease")
     heartbeat_timeout_s: int = Field(
         30, gt=0, description="a worker without a heartbeat this long is dead: its running tasks are requeued"
@@ -82,6 +87,15 @@ class Settings(BaseSettings):
     @classmethod
     def _expand(cls, v: Path) -> Path:
         return v.expanduser().resolve()
+
+    @field_validator("public_base_url")
+    @classmethod
+    def _base_url(cls, v: str | None) -> str | None:
+        if v is None or v == "":
+            return None
+        if not re.match(r"^https?://[^/?#\s]+(/[^?#\s]*)?$", v):
+            raise ValueError(f"public_base_url must be an http(s) URL without query or fragment, got {v!r}")
+        return v.rstrip("/")
 
     @field_validator("api_tokens")
     @classmethod

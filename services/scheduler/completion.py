@@ -9,7 +9,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 
-from sqlalchemy import exists, select
+from sqlalchemy import exists, func, select
 from sqlalchemy.orm import Session
 
 from services.core.db.counters import job_progress
@@ -36,7 +36,11 @@ class Finished:
 def finished_job_ids(session: Session) -> list[int]:
     """Running jobs with tasks, none of which is pending, queued or running (counters only)."""
     c = JobCounter
-    active = exists().where(c.job_id == Job.id, c.state.in_(TASK_ACTIVE_STATES), c.n > 0)
+    # counts are sums over the counter shards: some shard of an active state may be negative, another positive
+    active = exists(
+        select(c.cue).where(c.job_id == Job.id, c.state.in_(TASK_ACTIVE_STATES))
+        .group_by(c.cue, c.state).having(func.sum(c.n) > 0)
+    )
     rows = session.execute(
         select(Job.id).where(Job.state == JobState.RUNNING, Job.total_tasks > 0, ~active).order_by(Job.id)
     ).all()

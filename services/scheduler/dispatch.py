@@ -38,6 +38,10 @@ DEFAULT_BUDGET = 20_000  # tasks dispatched per pass at most (bounds one transac
 SEND_CHUNK = 1_000  # tasks per transport.send call: the first messages reach workers while the rest are built
 SCAN_MARGIN = 64  # extra rows looked at per cue beyond what the counters predict
 SCAN_CAP = 200_000  # rows looked at per cue and pass at most
+# Rows per cue a thorough pass (the safety net, every minute) reads, oldest first: each costs a lookup of its
+# inputs, so reading up to SCAN_CAP of every cue took 17 s a pass on a 620k-task job under load and would take
+# minutes on a starter-sized one (bench/scale_sim.py, bench/big_job.py). Ready tasks are the oldest ones.
+THOROUGH_SCAN_ROWS = 10_000
 INFLIGHT = (TaskState.QUEUED, TaskState.RUNNING)
 UPSTREAM_FAILED = (TaskState.FAILED, TaskState.CANCELLED)
 
@@ -92,8 +96,9 @@ def running_job_loads(session: Session) -> list[JobLoad]:
     loads: dict[int, JobLoad] = {}
     for job_id, prio, cue, state, n in rows:
         load = loads.setdefault(int(job_id), JobLoad(int(job_id), int(prio or 0)))
-        if cue is not None and n:
-            load.counts.setdefault(str(cue), {})[str(state)] = int(n)
+        if cue is not None and n:  # summed over the counter shards
+            per = load.counts.setdefault(str(cue), {})
+            per[str(state)] = per.get(str(state), 0) + int(n)
     return sorted(loads.values(), key=lambda j: (-j.priority, j.job_id))
 
 
@@ -164,7 +169,7 @@ def ready_tasks(
     """Up to `limit` ready (task_id, cue) pairs of the job, oldest first, and ids that failed upstream.
 
     With `load` (the job's counters) cues that cannot have ready tasks are skipped and scans are
-    bounded; `thorough` (or no load) scans every cue with pending tasks up to SCAN_CAP rows.
+    bounded; `thorough` (or no load) scans every cue with pending tasks up to THOROUGH_SCAN_ROWS rows.
     """
     now = now or utcnow()
     if limit <= 0:
@@ -180,7 +185,7 @@ def ready_tasks(
         if not inputs:
             plans.append((cue, limit, limit))
         elif thorough:
-            plans.append((cue, limit, SCAN_CAP))
+            plans.append((cue, limit, THOROUGH_SCAN_ROWS))
         else:
             # ready <= views whose inputs are done minus this cue's tasks already past pending;
             # rows ahead of them are blocked by in-flight inputs or doomed by failed ones.
@@ -216,7 +221,8 @@ def _loads_of(session: Session, job_ids: list[int]) -> list[JobLoad]:
     for job_id, cue, state, n in session.execute(
         select(c.job_id, c.cue, c.state, c.n).where(c.job_id.in_(job_ids), c.n != 0)
     ):
-        loads[int(job_id)].counts.setdefault(str(cue), {})[str(state)] = int(n)
+        per = loads[int(job_id)].counts.setdefault(str(cue), {})
+        per[str(state)] = per.get(str(state), 0) + int(n)  # summed over the counter shards
     return list(loads.values())
 
 

@@ -24,7 +24,7 @@ from sqlalchemy.exc import DBAPIError, DisconnectionError, InterfaceError, Opera
 from sqlalchemy.orm import Session
 
 from services.core.db.models import Job, JobState, Task, TaskState, utcnow
-from services.core.db.states import transition
+from services.core.db.states import claim_task, finish_task, transition
 from services.core.domain.cues import CATALOG
 from services.core.storage import ObjectInfo
 from services.worker.failure_policy import HANDBACK_DELAY, count_failure, is_blocked, retry_delay
@@ -137,6 +137,11 @@ class TaskLedger:
             raise
 
     def _claim(self, task_id: int) -> Claimed | Outcome:
+        fast = self._claim_queued(task_id)
+        if fast is not None:
+            return fast
+        # Not claimed in one statement: find out why (stale or duplicate message, paused job, blocked worker,
+        # a claim of ours whose reply was lost) and act on it.
         now = utcnow()
         with self.sessionmaker() as s:
             row = s.execute(
@@ -174,6 +179,18 @@ class TaskLedger:
                 return Outcome(task_id, "skipped", cue=row.cue, job_id=row.job_id, error="claimed by another worker")
             return claimed(int(row.attempts) + 1)
 
+    def _claim_queued(self, task_id: int) -> Claimed | None:
+        """The common case in one statement (one round trip on Postgres): queued -> running for this worker while
+        its job runs and the worker is not kept off the job; None when that did not apply."""
+        now = utcnow()
+        with self.sessionmaker() as s:
+            r = claim_task(s, task_id=task_id, worker_id=self.worker_id, now=now,
+                           lease_until=now + timedelta(seconds=self.lease_s))
+        if r is None:
+            return None
+        return Claimed(task_id, int(r.job_id), int(r.space_id), int(r.point_idx), int(r.view_idx), str(r.cue),
+                       int(r.attempts))  # RETURNING gives the new values: attempts counts this attempt
+
     def _hand_back(self, s: Session, task_id: int, job_id: int, job_state: str, now: datetime) -> str | None:
         """queued -> pending for a paused job ('paused') or a job this worker is blocked on ('blocked')."""
         if job_state == JobState.PAUSED:
@@ -197,12 +214,8 @@ class TaskLedger:
         """running -> done with the stored object's size and sha256; 'lost' when the database stays away."""
         def step() -> bool:
             with self.sessionmaker() as s:
-                ok = self._move_mine(
-                    s, t, TaskState.DONE, output_key=key, size=int(info.size), sha256=info.sha256,
-                    duration_s=float(duration), finished_at=utcnow(), lease_until=None, error=None,
-                )
-                s.commit()
-                return ok
+                return finish_task(s, task_id=t.id, job_id=t.job_id, worker_id=self.worker_id, key=key,
+                                   size=int(info.size), sha256=info.sha256, duration_s=float(duration), now=utcnow())
 
         try:
             ok = self.db(step, f"record task {t.id} done")

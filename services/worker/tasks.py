@@ -76,6 +76,10 @@ def worker_engine(database_url: str, **kwargs: Any) -> Engine:
 
     if make_url(database_url).get_backend_name() == "postgresql":
         kwargs.setdefault("connect_args", {"options": "-c synchronous_commit=off"})
+        # No SELECT 1 before every checkout: a claim or result is one statement, and a ping doubled its round
+        # trips. A connection that died meanwhile (Postgres restarted) fails its statement instead, which the
+        # runner retries (TaskRunner._db) on a fresh one and the heartbeat retries on its next beat.
+        kwargs.setdefault("pool_pre_ping", False)
     return make_engine(database_url, **kwargs)
 
 

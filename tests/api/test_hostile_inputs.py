@@ -1,5 +1,6 @@
-"""Hostile inputs through the real API (issue 11, item 15): every file of the corpus, every JobSpec field out of
-range and loosely typed values get a 4xx naming the problem; the service stays up and stores nothing."""
+"""Hostile inputs through the real API (issues 11 and 19): every file of the corpus, every JobSpec field out of
+range and loosely typed values get a 4xx naming the problem; the service stays up and stores nothing, and no
+upload or registration makes it open a file outside the upload (watched with inotify)."""
 
 from __future__ import annotations
 
@@ -15,7 +16,8 @@ from services.core.db.models import Job, Space
 from services.core.domain.jobspec import JobSpec
 from services.core.storage import LocalStore
 from tests.fixtures.api import Api, make_api
-from tests.hostile_corpus import HOSTILE_FILES, VALID_FILES
+from tests.fixtures.file_watch import OpenWatch
+from tests.hostile_corpus import ACCEPTED_UNREAD, HOSTILE_FILES, VALID_FILES, secret_files
 
 
 def _upload(api: Api, filename: str, data: bytes) -> Any:
@@ -47,6 +49,41 @@ def test_every_hostile_file_is_refused_and_nothing_is_stored(api: Api) -> None:
     for case, (filename, make) in VALID_FILES.items():
         r = _upload(api, filename, make())
         assert r.status_code == 201, (case, r.text)
+
+
+def test_no_upload_makes_the_service_open_a_file_outside_it(api: Api) -> None:
+    secrets = secret_files()
+    hostile = {case: (filename, make(), needles) for case, (filename, make, needles) in HOSTILE_FILES.items()}
+    accepted = {case: (filename, make()) for case, (filename, make) in ACCEPTED_UNREAD.items()}
+    with OpenWatch(secrets.values()) as watch:  # built above: from here on nobody has a reason to open them
+        for case, (filename, data, needles) in hostile.items():
+            r = _upload(api, filename, data)
+            assert 400 <= r.status_code < 500 and any(n in r.json()["detail"].lower() for n in needles), (case, r.text)
+            _assert_nothing_stored(api)
+        # MTL fields trimesh does not read, behind a commented mtllib the pre-checks do not see: accepted, unread
+        for case, (filename, data) in accepted.items():
+            r = _upload(api, filename, data)
+            assert r.status_code == 201, (case, r.text)
+            assert api.client.delete(f"/spaces/{r.json()['id']}", headers=api.a.headers).status_code == 204
+        assert watch.opened() == [], "a hostile upload made the service open a file outside it"
+
+
+def test_register_never_follows_a_link_out_of_the_staging_area(api: Api, local_store: LocalStore) -> None:
+    secrets = secret_files()
+    area = local_store.path(f"uploads/{api.a.name}/x").parent
+    area.mkdir(parents=True)
+    (area / "secret.obj").symlink_to(secrets["obj"])  # a file of the server
+    other = f"uploads/{api.b.name}/theirs.ply"  # and another tenant's staged scan, inside the store
+    _, make = VALID_FILES["ply_binary"]
+    local_store.put_bytes(other, make())
+    (area / "theirs.ply").symlink_to(local_store.path(other))
+    (area / "linked").symlink_to(secrets["obj"].parent, target_is_directory=True)
+    with OpenWatch([*secrets.values(), local_store.path(other)]) as watch:
+        for key in ("secret.obj", "theirs.ply", "linked/outside.obj"):
+            r = api.client.post("/spaces/register", json={"key": f"uploads/{api.a.name}/{key}"}, headers=api.a.headers)
+            assert r.status_code == 404 and "not found" in r.json()["detail"], (key, r.text)
+            _assert_nothing_stored(api)
+        assert watch.opened() == []
 
 
 def test_upload_limits_of_the_settings(pg_url: str, local_store: LocalStore, bunny: Path) -> None:

@@ -123,7 +123,8 @@ def test_progress_counters_throughput_and_eta(api: Api, space_id: int) -> None:
     assert p["labels_per_s"] == 0.0  # passes are internal, rgb tasks failed: no label yet
     # counters are the only source: a counter row changed behind the API's back shows up as is
     with api.session() as s:
-        row = s.get(JobCounter, (job_id, "normal", "pending"))
+        row = s.scalars(select(JobCounter).where(JobCounter.job_id == job_id, JobCounter.cue == "normal",
+                                                 JobCounter.state == "pending").limit(1)).first()
         assert row is not None
         row.n += 1000
         s.commit()

@@ -110,6 +110,9 @@ def test_workers_list_hides_other_tenants_tasks(api: Api, bunny: Path) -> None:
     assert w2["alive"] is False and w2["current_task"] is None and w2["busy"] is False
     other = {w["id"]: w for w in api.client.get("/workers?limit=1000", headers=api.b.headers).json()["items"]}
     assert other[wid + ":1"]["busy"] is True and other[wid + ":1"]["current_task"] is None
+    # per-cue counts sum every tenant's work: neither tenant sees them (b would learn what a renders)
+    assert other[wid + ":1"]["labels"] == {} and w1["labels"] == {}
+    assert "rgb" not in api.client.get("/workers?limit=1000", headers=api.b.headers).text
     alive = api.client.get("/workers?alive=true&limit=1000", headers=api.a.headers).json()["items"]
     assert wid + ":1" in {w["id"] for w in alive} and wid + ":2" not in {w["id"] for w in alive}
 

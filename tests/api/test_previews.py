@@ -58,14 +58,16 @@ def test_preview_links_are_checked(api: Api, bunny: Path) -> None:
                           headers=api.a.headers).json()["outputs"]["rgb"]["preview_url"]
     url = urlparse(link)
     q = parse_qs(url.query)
-    assert api.client.get(f"{url.path}?expires={q['expires'][0]}&signature={'0' * 64}").status_code == 403
+    assert api.client.get(f"{url.path}?job={job_id}&expires={q['expires'][0]}&signature={'0' * 64}").status_code == 403
     other = url.path.replace("view_0", "view_1")
-    assert api.client.get(f"{other}?expires={q['expires'][0]}&signature={q['signature'][0]}").status_code == 403
+    assert api.client.get(
+        f"{other}?job={job_id}&expires={q['expires'][0]}&signature={q['signature'][0]}").status_code == 403
     settings = api.app.state.settings
     future = int(time.time()) + 60
 
     def signed(key: str) -> str:
-        return f"/previews/{key}?expires={future}&signature={blob_signature(settings, key, future)}"
+        sig = blob_signature(settings, key, future, route="previews", job_id=job_id)
+        return f"/previews/{key}?job={job_id}&expires={future}&signature={sig}"
 
     # signed, but not a preview key, or a preview of an output that does not exist: 404 and nothing stored
     assert api.client.get(signed(f"jobs/{job_id}/rgb/omnidata/bunny/point_0_view_0_domain_rgb.png")).status_code == 404
@@ -75,7 +77,8 @@ def test_preview_links_are_checked(api: Api, bunny: Path) -> None:
     assert api.client.get(signed(passes)).status_code == 404
     past = int(time.time()) - 5
     key = unquote(url.path)[len("/previews/"):]
-    expired = api.client.get(f"{url.path}?expires={past}&signature={blob_signature(settings, key, past)}")
+    sig = blob_signature(settings, key, past, route="previews", job_id=job_id)
+    expired = api.client.get(f"{url.path}?job={job_id}&expires={past}&signature={sig}")
     assert expired.status_code == 403 and "expired" in expired.json()["detail"]
 
 

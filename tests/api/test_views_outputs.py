@@ -101,15 +101,16 @@ def test_outputs_local_signed_links(api: Api, bunny: Path) -> None:
     q = parse_qs(urlparse(rgb["url"]).query)
     assert int(q["expires"][0]) - time.time() == pytest.approx(3600, abs=30)
     path = urlparse(rgb["url"]).path
-    bad = api.client.get(f"{path}?expires={q['expires'][0]}&signature={'0' * 64}")
+    bad = api.client.get(f"{path}?job={job_id}&expires={q['expires'][0]}&signature={'0' * 64}")
     assert bad.status_code == 403 and "signature" in bad.json()["detail"]
-    other = api.client.get(f"{path.replace('rgb.png', 'x.png')}?expires={q['expires'][0]}&signature={q['signature'][0]}")
+    other = api.client.get(
+        f"{path.replace('rgb.png', 'x.png')}?job={job_id}&expires={q['expires'][0]}&signature={q['signature'][0]}")
     assert other.status_code == 403
     from services.api.outputs.service import blob_signature
 
     past = int(time.time()) - 5
-    sig = blob_signature(api.app.state.settings, f"jobs/{job_id}/{rgb['key']}", past)
-    expired = api.client.get(f"{path}?expires={past}&signature={sig}")
+    sig = blob_signature(api.app.state.settings, f"jobs/{job_id}/{rgb['key']}", past, job_id=job_id)
+    expired = api.client.get(f"{path}?job={job_id}&expires={past}&signature={sig}")
     assert expired.status_code == 403 and "expired" in expired.json()["detail"]
     # the gallery gets the same links in one call
     views = api.client.get(f"/jobs/{job_id}/views?urls=true&complete=true", headers=h).json()

@@ -42,7 +42,7 @@ def test_pick_up_with_one_click(pg_url: str, local_store: LocalStore, browser: A
                 ".every((img) => img.complete && img.naturalWidth === 240)", timeout=30_000)
             captions = [f.inner_text() for f in figures]
             assert "Detection's best" in captions[0] and "Runner-up" in captions[1]
-            assert all("floor" in c and "storey" in c for c in captions)
+            assert all("floor" in c and "storey" in c and "extent" in c for c in captions)  # the evidence too
             page.screenshot(path=str(artifacts / "dashboard-pick-up.png"), full_page=True)
             page.click('#needs-frame button.pick-up[data-index="1"]')
             page.wait_for_selector("#needs-frame", state="detached", timeout=30_000)  # the panel goes once picked

@@ -22,9 +22,9 @@ from services.api.progress.compute import Counters, compute_progress, read_count
 from services.api.progress.rates import RateTracker
 from services.api.spaces.service import not_found
 from services.core.db import jobs as core_jobs
+from services.core.db.counters import summed_counters
 from services.core.db.models import (
     Job,
-    JobCounter,
     JobSpace,
     Space,
 )
@@ -92,8 +92,9 @@ def detail_statement(dialect: str) -> Any:
     """SELECT job + counters + spaces (json aggregates) for one job and owner; built once per dialect, so
     SQLAlchemy's memoized cache key is reused instead of re-traversing the statement on every poll."""
     agg, arr = (func.json_agg, func.json_build_array) if dialect == "postgresql" else (func.json_group_array, func.json_array)
-    c, job_space_cols, t = JobCounter.__table__.c, JobSpace.__table__.c, Job.__table__.c
-    counters_q = select(agg(arr(c.cue, c.state, c.n))).where(c.job_id == t.id, c.n != 0).scalar_subquery()
+    job_space_cols, t = JobSpace.__table__.c, Job.__table__.c
+    summed = summed_counters(t.id).subquery()  # the counter shards of the job, summed
+    counters_q = select(agg(arr(summed.c.cue, summed.c.state, summed.c.n))).scalar_subquery()
     spaces_q = (
         select(agg(arr(job_space_cols.space_id, Space.name, job_space_cols.position, job_space_cols.cues)))
         .select_from(JobSpace.__table__.join(Space, Space.id == job_space_cols.space_id))

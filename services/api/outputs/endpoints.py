@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Iterator
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Path, Query, Request
 from fastapi.responses import FileResponse, JSONResponse, Response, StreamingResponse
@@ -29,18 +29,25 @@ SpaceId = Annotated[int, Path(ge=1, le=2**63 - 1)]
 Index = Annotated[int, Path(ge=0, le=2**31 - 1)]
 
 
-def signed_key(
-    key: str,
-    settings: SettingsDep,
-    expires: Annotated[int, Query(ge=0, le=2**62)],
-    signature: Annotated[str, Query(pattern="^[0-9a-f]{64}$", description="hex HMAC from the link")],
-) -> str:
-    """The `{key:path}` of a signed link, once its signature checked out (403 otherwise)."""
-    service.verify_blob(settings, key=key, expires=expires, signature=signature)
-    return key
+def _signed_key(route: str) -> Any:
+    def signed_key(
+        key: str,
+        settings: SettingsDep,
+        session: ReadSessionDep,
+        job: Annotated[int, Query(ge=1, le=2**63 - 1, description="the job the link belongs to")],
+        expires: Annotated[int, Query(ge=0, le=2**62)],
+        signature: Annotated[str, Query(pattern="^[0-9a-f]{64}$", description="hex HMAC from the link")],
+    ) -> str:
+        """The `{key:path}` of a signed link, once its signature checked out (403) and it is the job's (404)."""
+        service.verify_blob(settings, route=route, job_id=job, key=key, expires=expires, signature=signature)
+        service.check_job_key(session, job_id=job, key=key)
+        return key
+
+    return signed_key
 
 
-SignedKey = Annotated[str, Depends(signed_key)]
+SignedBlobKey = Annotated[str, Depends(_signed_key("blobs"))]
+SignedPreviewKey = Annotated[str, Depends(_signed_key("previews"))]
 
 
 @router.get(
@@ -53,7 +60,6 @@ def view_outputs(
     space_id: SpaceId,
     point: Index,
     view: Index,
-    request: Request,
     session: ReadSessionDep,
     store: StoreDep,
     settings: SettingsDep,
@@ -70,7 +76,7 @@ def view_outputs(
         raise not_found("view", f"{space_id}/{point}/{view} of job {job_id}")
     tasks = service.view_tasks(session, job=job, space_id=space_id, point=point, view=view)
     outputs = service.links(
-        store, settings, job=job, space_name=row[1], tasks=tasks, base_url=str(request.base_url), view=view
+        store, settings, job=job, space_name=row[1], tasks=tasks, base_url=service.link_base(settings), view=view
     )
     return ViewOutputs(job_id=job.id, space_id=space_id, space=row[1], point=point, view=view, outputs=outputs)
 
@@ -112,7 +118,7 @@ def job_json(job_id: JobId, session: ReadSessionDep, tenant: TenantDep) -> JSONR
     summary="Fetch an output through a signed link (local stores)",
     responses={200: {"content": {"application/octet-stream": {}}}, 403: {"description": "bad or expired link"}},
 )
-def blob(key: SignedKey, store: StoreDep) -> Response:
+def blob(key: SignedBlobKey, store: StoreDep) -> Response:
     """Serve an object named by a link from the outputs routes; the signature is the credential."""
     try:
         check_key(key)
@@ -121,7 +127,10 @@ def blob(key: SignedKey, store: StoreDep) -> Response:
     headers = {"Cache-Control": "private, max-age=300"}
     media = service.content_type(key)
     if isinstance(store, LocalStore):
-        path = store.path(key)
+        try:
+            path = store.path(key)
+        except ObjectNotFoundError:  # a link in the store: not an object
+            raise NotFound("no such object") from None
         if not path.is_file():
             raise NotFound("no such object")
         return FileResponse(path, media_type=media, headers=headers)
@@ -137,7 +146,7 @@ def blob(key: SignedKey, store: StoreDep) -> Response:
     summary="A cue file's preview PNG through a signed link (made on first request, then cached)",
     responses={200: {"content": {"image/png": {}}}, 403: {"description": "bad or expired link"}},
 )
-def preview(key: SignedKey, store: StoreDep) -> Response:
+def preview(key: SignedPreviewKey, store: StoreDep) -> Response:
     """Serve the preview named by a `preview_url` of the outputs routes, making and storing it when missing."""
     try:
         root, output_key, cue, point, view = parse_preview_key(check_key(key))

@@ -1,8 +1,12 @@
 """Output links: pre-signed URLs that expire (S3's own; for a local store, HMAC-signed links served by the API).
 
 A job's outputs are the done tasks' objects under its output root. S3 stores sign their own GET URLs; a local
-folder store has no URL a browser can fetch, so the API signs `/blobs/<key>?expires=&signature=` with
-HMAC-SHA256(secret_key) and serves the file only while the signature is valid and unexpired.
+folder store has no URL a browser can fetch, so the API signs `/blobs/<key>?job=&expires=&signature=` with
+HMAC-SHA256(secret_key) over the route, the job, the key and the expiry, and serves the file only while the
+signature is valid and unexpired and the key lies under that job's own output root: a link names one job's
+files, whatever else the store holds. Links start with `public_base_url` (the address clients reach the API
+at, configured), never with the request's Host header, which any client can set; without one they are
+root-relative.
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ from services.api.outputs.schemas import OutputLink
 from services.core.db.jobs import job_root, root_key
 from services.core.db.models import Job, Task, TaskState
 from services.core.domain.cues import CATALOG
-from services.core.domain.errors import Forbidden
+from services.core.domain.errors import Forbidden, NotFound
 from services.core.domain.keys import output_key
 from services.core.settings import Settings
 from services.core.storage import ObjectStore
@@ -43,33 +47,50 @@ def content_type(key: str) -> str:
     return CONTENT_TYPES.get(key.rsplit(".", 1)[-1].lower(), "application/octet-stream")
 
 
-def blob_signature(settings: Settings, key: str, expires: int) -> str:
-    """HMAC-SHA256 (hex) of `key` and its expiry (unix seconds) under the service's secret key."""
-    msg = f"{key}\n{expires}".encode()
+def link_base(settings: Settings) -> str:
+    """What signed links start with: the configured public base URL, else '' (root-relative links)."""
+    return (settings.public_base_url or "").rstrip("/")
+
+
+def blob_signature(settings: Settings, key: str, expires: int, *, route: str = "blobs", job_id: int = 0) -> str:
+    """HMAC-SHA256 (hex) of the route, job, `key` and expiry (unix seconds) under the service's secret key."""
+    msg = f"{route}\n{job_id}\n{key}\n{expires}".encode()
     return hmac.new(settings.secret_key.get_secret_value().encode(), msg, hashlib.sha256).hexdigest()
 
 
-def verify_blob(settings: Settings, *, key: str, expires: int, signature: str, now: float | None = None) -> None:
-    """403 unless `signature` signs `key` until `expires` and that time has not passed."""
-    if not hmac.compare_digest(blob_signature(settings, key, expires).encode(), signature.encode("utf-8", "replace")):
+def verify_blob(
+    settings: Settings, *, route: str, job_id: int, key: str, expires: int, signature: str, now: float | None = None
+) -> None:
+    """403 unless `signature` signs (route, job, key) until `expires` and that time has not passed."""
+    want = blob_signature(settings, key, expires, route=route, job_id=job_id)
+    if not hmac.compare_digest(want.encode(), signature.encode("utf-8", "replace")):
         raise Forbidden("invalid link signature")
     if (time.time() if now is None else now) > expires:
         raise Forbidden("link expired; ask the API for a fresh one")
 
 
-def signed_link(settings: Settings, route: str, *, key: str, base_url: str, expires: int) -> str:
-    """`<base_url>/<route>/<key>?expires=&signature=`: an API route that serves `key` while the HMAC holds."""
-    sig = blob_signature(settings, key, expires)
-    return f"{base_url.rstrip('/')}/{route}/{quote(key)}?expires={expires}&signature={sig}"
+def check_job_key(session: Session, *, job_id: int, key: str) -> Job:
+    """The job a signed link names, when `key` lies under its own output root; 404 otherwise."""
+    job = session.get(Job, job_id)
+    root = job_root(job) if job is not None else ""
+    if job is None or not root or not key.startswith(root + "/"):
+        raise NotFound("no such object")
+    return job
 
 
-def presign(store: ObjectStore, settings: Settings, *, key: str, base_url: str) -> tuple[str, datetime]:
+def signed_link(settings: Settings, route: str, *, job_id: int, key: str, base_url: str, expires: int) -> str:
+    """`<base_url>/<route>/<key>?job=&expires=&signature=`: an API route serving `key` while the HMAC holds."""
+    sig = blob_signature(settings, key, expires, route=route, job_id=job_id)
+    return f"{base_url.rstrip('/')}/{route}/{quote(key)}?job={job_id}&expires={expires}&signature={sig}"
+
+
+def presign(store: ObjectStore, settings: Settings, *, job_id: int, key: str, base_url: str) -> tuple[str, datetime]:
     """A URL fetching `key` without a token until the returned time (settings.presign_expiry_s from now)."""
     expiry_s = settings.presign_expiry_s
     expires = int(time.time()) + expiry_s
     url = store.presigned_url(key, expiry_s)
     if not url.startswith(("http://", "https://")):
-        url = signed_link(settings, "blobs", key=key, base_url=base_url, expires=expires)
+        url = signed_link(settings, "blobs", job_id=job_id, key=key, base_url=base_url, expires=expires)
     return url, datetime.fromtimestamp(expires, UTC)
 
 
@@ -90,10 +111,10 @@ def relative_key(job: Job, key: str) -> str:
     return key[len(root) + 1 :] if root and key.startswith(root + "/") else key
 
 
-def signed_preview_url(settings: Settings, *, key: str, base_url: str) -> str:
-    """`/previews/<preview key>?expires=&signature=`: the API makes the preview on first use, then serves the cache."""
+def signed_preview_url(settings: Settings, *, job_id: int, key: str, base_url: str) -> str:
+    """`/previews/<preview key>?job=&expires=&signature=`: the preview is made on first use, then served cached."""
     expires = int(time.time()) + settings.presign_expiry_s
-    return signed_link(settings, "previews", key=key, base_url=base_url, expires=expires)
+    return signed_link(settings, "previews", job_id=job_id, key=key, base_url=base_url, expires=expires)
 
 
 def links(
@@ -109,14 +130,14 @@ def links(
         if t.state != TaskState.DONE or t.cue not in PUBLIC_CUES:
             continue
         key = task_store_key(job, t, space_name)
-        url, expires_at = presign(store, settings, key=key, base_url=base_url)
+        url, expires_at = presign(store, settings, job_id=job.id, key=key, base_url=base_url)
         rel = relative_key(job, key)
         shown = t.view_idx if view is None else view
         pkey = root_key(job, preview_key(rel, t.cue, t.point_idx, shown))
         found[t.cue] = OutputLink(
             cue=t.cue,
             key=rel,
-            preview_url=signed_preview_url(settings, key=pkey, base_url=base_url),
+            preview_url=signed_preview_url(settings, job_id=job.id, key=pkey, base_url=base_url),
             url=url,
             expires_at=expires_at,
             size=t.size,

@@ -9,18 +9,17 @@ from __future__ import annotations
 from collections.abc import Sequence
 from datetime import datetime
 
-from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from services.api.jobs.schemas import CueProgress, Progress
 from services.api.progress.rates import RateTracker
+from services.core.db.counters import summed_counters
 from services.core.db.models import (
     JOB_TERMINAL_STATES,
     TASK_ACTIVE_STATES,
     TASK_STATES,
     TASK_TERMINAL_STATES,
     Job,
-    JobCounter,
     JobState,
     TaskState,
     utcnow,
@@ -50,10 +49,7 @@ def read_counters(session: Session, job_ids: Sequence[int]) -> dict[int, Counter
     out: dict[int, Counters] = {j: {} for j in job_ids}
     if not job_ids:
         return out
-    c = JobCounter.__table__.c
-    rows = session.execute(
-        select(c.job_id, c.cue, c.state, c.n).where(c.job_id.in_(list(job_ids)), c.n != 0)
-    )
+    rows = session.execute(summed_counters(list(job_ids)))  # the counter shards, summed
     for job_id, cue, state, n in rows:
         out[int(job_id)].setdefault(cue, {})[state] = int(n)
     return out

@@ -3,7 +3,6 @@ side views of an ambiguous space's up candidates and the person's pick."""
 
 from __future__ import annotations
 
-import tempfile
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -19,6 +18,7 @@ from services.api.pagination import Page, PageDep
 from services.api.spaces import service, up_choice
 from services.api.spaces.schemas import SpaceOptions, SpaceRead, SpaceRegister, UpChoice
 from services.api.spaces.upload import receive_upload
+from services.core.temp_dirs import owned_temp_dir
 
 router = APIRouter(prefix="/spaces", tags=["spaces"])
 
@@ -65,7 +65,7 @@ async def upload_space(
     request: Request, response: Response, session: SessionDep, store: StoreDep, settings: SettingsDep, tenant: TenantDep
 ) -> SpaceRead:
     """Upload a mesh or archive; it is validated (format, counts, units, bounds) before it is stored."""
-    with tempfile.TemporaryDirectory(prefix="omnidata-upload-") as tmp:
+    with owned_temp_dir("upload") as tmp:  # named after this process: swept at start-up if it is killed
         upload = await receive_upload(request, dest_dir=Path(tmp), max_bytes=settings.upload_max_bytes)
         assert upload.path is not None and upload.filename is not None
         try:

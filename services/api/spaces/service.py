@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import tempfile
 from pathlib import Path
 
 from sqlalchemy import func, select
@@ -16,6 +15,7 @@ from services.core.ingest.registry import register_space
 from services.core.ingest.safe_load import load_space_limited
 from services.core.settings import Settings
 from services.core.storage import ObjectNotFoundError, ObjectStore, check_key
+from services.core.temp_dirs import owned_temp_dir
 
 STAGING_PREFIX = "uploads"  # tenants stage big scans under uploads/<tenant>/ and register them
 
@@ -127,7 +127,7 @@ def register_staged(
     filename = key.rsplit("/", 1)[-1]
     name = name or default_name(filename)
     _check_name_free(session, owner=owner, name=name)
-    with tempfile.TemporaryDirectory(prefix="omnidata-register-") as tmp:
+    with owned_temp_dir("register") as tmp:
         path = Path(tmp) / filename
         try:
             store.get_file(key, path)

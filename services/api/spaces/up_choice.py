@@ -15,6 +15,7 @@ from sqlalchemy.orm import Session
 
 from services.core.db.models import Space
 from services.core.domain.errors import Invalid, NotFound
+from services.core.ingest.confine import ConfinedResolver
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.frame_choice import record_choice
 from services.core.ingest.loading import load_space
@@ -31,7 +32,7 @@ def _cache_dir(settings: Settings) -> Path:
 @functools.lru_cache(maxsize=8)
 def _source_mesh(path: str, checksum: str) -> trimesh.Trimesh:
     """The source-frame mesh of a space file (kept for a few spaces: its previews load it once)."""
-    mesh = trimesh.load(path, force="mesh")
+    mesh = trimesh.load(path, force="mesh", resolver=ConfinedResolver(path))  # never a file outside the scan
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise SpaceError(f"{Path(path).name}: holds no triangle mesh")
     return mesh

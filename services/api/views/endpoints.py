@@ -4,11 +4,11 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, Path, Query, Request
+from fastapi import APIRouter, Path, Query
 
 from services.api.deps import ReadSessionDep, SettingsDep, StoreDep, TenantDep
 from services.api.jobs.service import get_job
-from services.api.outputs.service import links
+from services.api.outputs.service import link_base, links
 from services.api.pagination import Page, PageDep
 from services.api.spaces.service import not_found
 from services.api.views import service
@@ -29,7 +29,6 @@ CueFilter = Annotated[CueName | None, Query(description="cue name")]  # type: ig
 @router.get("/views", response_model=Page[ViewRead], summary="Views of a job with their task states")
 def list_views(
     job_id: JobId,
-    request: Request,
     session: ReadSessionDep,
     store: StoreDep,
     settings: SettingsDep,
@@ -52,7 +51,7 @@ def list_views(
         item = service.view_read(view, space_name, tasks)
         if urls:
             item.outputs = links(
-                store, settings, job=job, space_name=space_name, tasks=tasks, base_url=str(request.base_url),
+                store, settings, job=job, space_name=space_name, tasks=tasks, base_url=link_base(settings),
                 view=view.v,
             )
         items.append(item)

@@ -33,4 +33,6 @@ class WorkerRead(BaseModel):
     current_task: CurrentTask | None
     tasks_done: int
     labels_per_s: float
-    labels: dict[str, Any] = Field(description="labels produced, by cue")
+    labels: dict[str, Any] = Field(
+        default_factory=dict, description="always empty for tenants: per-cue counts cover every tenant's work"
+    )

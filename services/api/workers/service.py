@@ -1,4 +1,8 @@
-"""Workers: heartbeat ages and current tasks; another tenant's task is reported as busy, without details."""
+"""Workers: heartbeat ages and current tasks; another tenant's task is reported as busy, without details.
+
+A worker's per-cue label counts sum every tenant's work, so a tenant is never shown them (they would tell
+which cues others render, and how much): `labels` is empty; throughput stays (the service's, not a job's).
+"""
 
 from __future__ import annotations
 
@@ -63,7 +67,7 @@ def list_workers(
                 else CurrentTask(id=t.id, job_id=t.job_id, cue=t.cue, space_id=t.space_id, point=t.point_idx, view=t.view_idx),
                 tasks_done=int(w.tasks_done or 0),
                 labels_per_s=float(w.labels_per_s or 0.0),
-                labels=dict(w.labels or {}),
+                labels={},  # per-cue counts of every tenant's work: not one tenant's to see
             )
         )
     return items, int(total)

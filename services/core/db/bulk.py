@@ -6,15 +6,15 @@ rows go straight to the table (the identity map is bypassed).
 
 from __future__ import annotations
 
+import functools
 import io
 import json
 from collections.abc import Mapping, Sequence
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import JSON, Table, insert
-from sqlalchemy.dialects.postgresql import insert as pg_insert
-from sqlalchemy.dialects.sqlite import insert as sqlite_insert
+from sqlalchemy import JSON, Table, bindparam, insert, text
+from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.engine import Connection
 from sqlalchemy.orm import DeclarativeBase, Session
 
@@ -133,8 +133,24 @@ def _copy_postgres(conn: Connection, table: Table, names: list[str], cols: list[
             copy.write(buf.getvalue())
 
 
-def insert_for_dialect(conn: Connection) -> Any:
-    return pg_insert if conn.dialect.name == "postgresql" else sqlite_insert
+# Upserts are SQL text built once per shape: SQLAlchemy cannot cache the compiled form of its INSERT ... ON
+# CONFLICT DO UPDATE construct, and compiling it anew on every heartbeat cost more CPU than the database spent.
+@functools.cache
+def _upsert_sql(dialect: str, table: Table, columns: tuple[str, ...], key: tuple[str, ...],
+                insert_only: tuple[str, ...]) -> Any:
+    prep = _DIALECTS[dialect].identifier_preparer
+    names = ", ".join(prep.quote(c) for c in columns)
+    changes = ", ".join(f"{prep.quote(c)} = excluded.{prep.quote(c)}" for c in columns
+                        if c not in key and c not in insert_only)
+    action = f"DO UPDATE SET {changes}" if changes else "DO NOTHING"
+    stmt = text(
+        f"INSERT INTO {prep.format_table(table)} ({names}) VALUES ({', '.join(':' + c for c in columns)}) "
+        f"ON CONFLICT ({', '.join(prep.quote(c) for c in key)}) {action}"
+    )
+    return stmt.bindparams(*(bindparam(c, type_=table.c[c].type) for c in columns))
+
+
+_DIALECTS = {"postgresql": postgresql.dialect(), "sqlite": sqlite.dialect()}  # type: ignore[no-untyped-call]
 
 
 def upsert(
@@ -143,6 +159,5 @@ def upsert(
 ) -> None:
     """INSERT `row`, or where its `key` exists UPDATE every other column but `insert_only`: one statement."""
     table = table_of(model_or_table)
-    ins = insert_for_dialect(connection_of(session))(table).values(dict(row))
-    changes = {c: ins.excluded[c] for c in row if c not in key and c not in insert_only}
-    connection_of(session).execute(ins.on_conflict_do_update(index_elements=list(key), set_=changes))
+    conn = connection_of(session)
+    conn.execute(_upsert_sql(conn.dialect.name, table, tuple(row), tuple(key), tuple(insert_only)), dict(row))

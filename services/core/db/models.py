@@ -22,6 +22,7 @@ from sqlalchemy import (
     Index,
     Integer,
     MetaData,
+    SmallInteger,
     String,
     Text,
     UniqueConstraint,
@@ -198,13 +199,16 @@ class JobSpace(Base):
 
 
 class JobCounter(Base):
-    """Number of a job's tasks of one cue in one state; updated in the transaction that moves the tasks."""
+    """A share of the number of a job's tasks of one cue in one state, updated in the transaction that moves the
+    tasks. Writers spread over `shard`s (so a fleet of workers does not queue on one row's lock); the count is
+    the sum over the shards."""
 
     __tablename__ = "job_counter"
 
     job_id: Mapped[int] = mapped_column(BigIntId, ForeignKey("job.id", ondelete="CASCADE"), primary_key=True)
     cue: Mapped[str] = mapped_column(String(64), primary_key=True)
     state: Mapped[TaskState] = mapped_column(StateColumn(TaskState), primary_key=True)
+    shard: Mapped[int] = mapped_column(SmallInteger, primary_key=True, default=0, server_default=text("0"))
     n: Mapped[int] = mapped_column(BigInteger, default=0, server_default=text("0"))
 
 

@@ -13,9 +13,11 @@ import zlib
 from pathlib import Path, PurePosixPath
 from typing import Any
 
+from services.core.ingest.archive_rules import MAX_RATIO, expansion_refusal
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.formats import SCANNET_MESH_SUFFIX
 from services.core.ingest.pointcloud import CLOUD_SUFFIXES
+from services.core.temp_dirs import owned_prefix
 
 MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", *CLOUD_SUFFIXES)
 
@@ -23,7 +25,7 @@ MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", *CLOUD_SUFFIXES)
 ZIP_MAX_TOTAL_BYTES = 8 * 1024**3  # uncompressed size of all members
 
 
-ZIP_MAX_RATIO = 200.0  # uncompressed / compressed, per member and in total
+ZIP_MAX_RATIO = MAX_RATIO  # uncompressed / compressed, per member and in total: one rule (archive_rules)
 
 
 ZIP_MAX_MEMBERS = 20_000
@@ -99,21 +101,15 @@ def _check_headers(name: str, infos: list[zipfile.ZipInfo], max_total_bytes: int
         _check_member(name, info)
         total += info.file_size
         total_compressed += info.compress_size
-        if info.file_size > 1_000_000 and info.file_size > max_ratio * max(info.compress_size, 1):
-            raise SpaceError(
-                f"{name}: member {info.filename!r} expands {info.file_size / max(info.compress_size, 1):.0f}x "
-                f"(limit {max_ratio:.0f}x): refusing a possible zip bomb"
-            )
+        if problem := expansion_refusal(f"member {info.filename!r}", info.file_size, info.compress_size, max_ratio):
+            raise SpaceError(f"{name}: {problem}")
     if total > max_total_bytes:
         raise SpaceError(
             f"{name}: uncompressed size {total} bytes exceeds the limit {max_total_bytes}: "
             "refusing a possible zip bomb"
         )
-    if total > 1_000_000 and total > max_ratio * max(total_compressed, 1):
-        raise SpaceError(
-            f"{name}: archive expands {total / max(total_compressed, 1):.0f}x (limit {max_ratio:.0f}x): "
-            "refusing a possible zip bomb"
-        )
+    if problem := expansion_refusal("archive", total, total_compressed, max_ratio):
+        raise SpaceError(f"{name}: {problem}")
 
 
 def _extract_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, target: Path, name: str, written: int,
@@ -152,7 +148,7 @@ def resolve_source(
     if not p.exists():
         raise SpaceError(f"{p}: no such file or folder")
     if p.is_file() and p.suffix.lower() == ".zip":
-        dest = Path(extract_dir) if extract_dir is not None else Path(tempfile.mkdtemp(prefix="omnidata-space-"))
+        dest = Path(extract_dir) if extract_dir is not None else Path(tempfile.mkdtemp(prefix=owned_prefix("space")))
         safe_extract_zip(p, dest, **zip_limits)
         return _one_mesh(dest, f"archive {p.name}")
     if p.is_file():

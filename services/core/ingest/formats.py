@@ -18,6 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from services.core.ingest.confine import read_confined
+
 SCANNET_MESH_SUFFIX = "_vh_clean_2.ply"
 
 
@@ -44,9 +46,9 @@ def scannet_companions(mesh_path: Path) -> tuple[Path, Path] | None:
     return segs[0], aggs[0]
 
 
-def _read_json(path: Path) -> dict:
+def _read_json(path: Path, mesh_path: Path) -> dict:
     try:
-        doc = json.loads(path.read_text())
+        doc = json.loads(read_confined(path, mesh_path))  # never through a link out of the scan's folder
     except (OSError, ValueError) as e:
         raise ScanFormatError(f"{path.name}: not readable JSON ({e})") from None
     if not isinstance(doc, dict):
@@ -61,8 +63,8 @@ def scannet_vertex_labels(mesh_path: Path, n_vertices: int) -> tuple[np.ndarray,
         return None
     segs_path, agg_path = found
     try:
-        seg_of_vertex = np.asarray(_read_json(segs_path)["segIndices"], dtype=np.int64)
-        groups = _read_json(agg_path)["segGroups"]
+        seg_of_vertex = np.asarray(_read_json(segs_path, mesh_path)["segIndices"], dtype=np.int64)
+        groups = _read_json(agg_path, mesh_path)["segGroups"]
         objects = [(int(g["objectId"]), str(g["label"]), [int(s) for s in g["segments"]]) for g in groups]
     except (KeyError, TypeError, ValueError) as e:
         raise ScanFormatError(f"{segs_path.name} / {agg_path.name}: missing or malformed field ({e})") from None

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 import trimesh
 
+from services.core.ingest.confine import ReferenceRefused, read_confined
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.formats import ScanFormatError, scannet_vertex_labels
 
@@ -169,7 +170,9 @@ def _classes_from_info_semantic(source: Path, face_instance: np.ndarray, notes: 
         if not cand.is_file():
             continue
         try:
-            id_to_label = np.asarray(json.loads(cand.read_text())["id_to_label"], dtype=np.int64)
+            id_to_label = np.asarray(json.loads(read_confined(cand, source))["id_to_label"], dtype=np.int64)
+        except ReferenceRefused as e:
+            raise SpaceError(f"{source.name}: {e}") from None
         except (OSError, ValueError, KeyError, TypeError) as e:
             notes.append(f"{cand.name} unreadable ({e}); no class labels")
             return None

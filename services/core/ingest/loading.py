@@ -24,6 +24,7 @@ Semantic labels are read by `services.core.ingest.labels`, the zip/folder is res
 from __future__ import annotations
 
 import logging
+import os
 import re
 import shutil
 import tempfile
@@ -37,6 +38,8 @@ import trimesh
 
 from services.core.domain.jobspec import UP_AXES, similarity_scale
 from services.core.ingest.archive import resolve_source
+from services.core.ingest.archive_rules import file_expansion_refusal
+from services.core.ingest.confine import ConfinedResolver, is_inside
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.frame import FrameRequest, resolve_frame
 from services.core.ingest.gravity import (
@@ -52,7 +55,9 @@ from services.core.ingest.pointcloud import (
     mesh_cloud_cached,
     read_text_cloud,
 )
+from services.core.ingest.texture_limits import loaded_texture_refusal
 from services.core.storage.base import sha256_file
+from services.core.temp_dirs import owned_prefix
 
 log = logging.getLogger(__name__)
 
@@ -184,18 +189,34 @@ def load_space(
     p = Path(path)
     tmp: Path | None = None
     if p.is_file() and p.suffix.lower() == ".zip" and extract_dir is None:
-        tmp = Path(tempfile.mkdtemp(prefix="omnidata-space-"))
+        tmp = Path(tempfile.mkdtemp(prefix=owned_prefix("space")))
         extract_dir = tmp
     frame = FrameRequest(up_axis, unit_scale, None if up is None else np.asarray(up, dtype=np.float64),
                           None if source_to_world is None else np.asarray(source_to_world, dtype=np.float64),
                           accept_up_guess, None if capture_up is None else np.asarray(capture_up, dtype=np.float64))
     try:
         source = resolve_source(p, extract_dir)
+        if p.is_dir() and not is_inside(source, Path(os.path.realpath(p))):
+            raise SpaceError(f"{source.name}: a symbolic link to a file outside the folder {p.name}; refusing it")
         return _load(source, p if tmp is not None else source, frame,
                      None if cloud_cache_dir is None else Path(cloud_cache_dir))
     finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _load_confined(source: Path, **kwargs: Any) -> Any:
+    """`trimesh.load(source)` whose every named file comes from the mesh's own folder (SpaceError otherwise)."""
+    resolver = ConfinedResolver(source)
+    try:
+        loaded = trimesh.load(source, resolver=resolver, **kwargs)
+    except Exception as e:  # trimesh raises many kinds on corrupt input
+        refused = resolver.refusal()  # a refused buffer surfaces as trimesh's error: name the refusal instead
+        raise SpaceError(f"{source.name}: {refused or f'could not read the mesh ({type(e).__name__}: {e})'}") from None
+    refused = resolver.refusal() or loaded_texture_refusal(loaded)
+    if refused is not None:  # trimesh carried on without the file (an untextured mesh): refuse the scan
+        raise SpaceError(f"{source.name}: {refused}")
+    return loaded
 
 
 def _read_mesh(
@@ -207,14 +228,11 @@ def _read_mesh(
     try:
         if suffix in CLOUD_SUFFIXES:
             return mesh_cloud_cached(lambda: read_text_cloud(source), checksum, name, cloud_cache_dir)
-        try:
-            mesh = trimesh.load(source, force="mesh")
-        except Exception as e:  # trimesh raises many kinds on corrupt input
-            raise SpaceError(f"{name}: could not read the mesh ({type(e).__name__}: {e})") from None
+        mesh = _load_confined(source, force="mesh")
         if suffix == ".ply" and isinstance(mesh, trimesh.Trimesh) and len(mesh.faces) == 0:
             try:
-                points = trimesh.load(source)  # a PLY of points: force="mesh" drops them
-            except Exception:  # noqa: BLE001 - then it is not a readable cloud either: report the empty mesh
+                points = _load_confined(source)  # a PLY of points: force="mesh" drops them
+            except SpaceError:  # then it is not a readable cloud either: report the empty mesh
                 points = None
             if len(getattr(points, "vertices", ())) > 0:
                 return mesh_cloud_cached(lambda: cloud_from_ply(points), checksum, name, cloud_cache_dir)
@@ -258,6 +276,8 @@ def _check_extent(name: str, extent_source: float, scale: float) -> None:
 
 def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Path | None) -> LoadedSpace:
     name = source.name
+    if problem := file_expansion_refusal(source):  # the rule its packed zip meets when planned: before parsing
+        raise SpaceError(f"{name}: {problem}")
     source_notes = check_source(source)  # truncation, counts over the limits, unsafe paths: before parsing
     checksum = sha256_file(source)
     mesh, reconstruction = _read_mesh(source, checksum, cloud_cache_dir)

@@ -11,7 +11,9 @@ user when:
 - a PLY header or an OBJ declares more faces than MAX_FACES (refused before any array is allocated);
 - an OBJ has vertices but no faces (a triangle mesh is needed);
 - a material library, texture, glTF buffer or image is named by an absolute path or one climbing out of the
-  mesh's folder ('..'), or a texture an .mtl names is missing.
+  mesh's folder ('..'), or a texture an .mtl names is missing (these give the clearer messages; that no
+  file outside the scan's folder is ever read is the confined resolver's guarantee, `services.core.ingest.confine`);
+- an image a GLB or glTF embeds declares more pixels than the texture limit (`services.core.ingest.texture_limits`).
 
 It returns warnings: an .mtl that is missing (the mesh renders untextured), an OBJ whose last line is whole
 but has no newline (exporters end with one: it may have been cut at a token's end).
@@ -25,7 +27,9 @@ import struct
 from pathlib import Path, PurePosixPath
 from urllib.parse import unquote
 
+from services.core.ingest.confine import ReferenceRefused, read_confined
 from services.core.ingest.errors import SpaceError
+from services.core.ingest.texture_limits import embedded_refusal, glb_bin_offset
 
 MAX_FACES = 50_000_000  # beyond every scan we render; trimesh needs ~100 bytes per face while loading
 MAX_VERTICES = 3 * MAX_FACES
@@ -45,9 +49,13 @@ def check_source(source: Path, *, max_faces: int = MAX_FACES) -> list[str]:
     elif suffix == ".obj":
         return _check_obj(source, max_faces)
     elif suffix == ".gltf":
-        _check_gltf_refs(source, _gltf_json(source))
+        doc = _gltf_json(source)
+        _check_gltf_refs(source, doc)
+        _check_embedded_images(source, doc, None)
     elif suffix == ".glb":
-        _check_gltf_refs(source, _glb_json(source))
+        doc = _glb_json(source)
+        _check_gltf_refs(source, doc)
+        _check_embedded_images(source, doc, glb_bin_offset(source))
     return []
 
 
@@ -171,7 +179,11 @@ def _check_mtllibs(obj: Path, mtllibs: list[str]) -> list[str]:
         if not mtl.is_file():
             warnings.append(f"material library {ref!r} is missing: the mesh renders untextured")
             continue
-        for line in mtl.read_text(encoding="utf-8", errors="replace").splitlines():
+        try:
+            text = read_confined(mtl, obj).decode("utf-8", errors="replace")
+        except ReferenceRefused as e:
+            raise SpaceError(f"{obj.name}: material library {e}") from None
+        for line in text.splitlines():
             if m := _MTL_MAP.match(line):
                 tex = check_reference(mtl, m.group(2), "texture")
                 if not tex.is_file():
@@ -216,6 +228,12 @@ def _glb_json(source: Path) -> dict[str, object]:
     except (ValueError, UnicodeDecodeError) as e:
         raise SpaceError(f"{name}: the GLB's JSON chunk is corrupt ({e})") from None
     return doc if isinstance(doc, dict) else {}
+
+
+def _check_embedded_images(source: Path, doc: dict[str, object], bin_offset: int | None) -> None:
+    problem = embedded_refusal(source, doc, bin_offset)
+    if problem is not None:
+        raise SpaceError(f"{source.name}: {problem}")
 
 
 def _check_gltf_refs(source: Path, doc: dict[str, object]) -> None:

@@ -24,6 +24,8 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
+from services.core.ingest.confine import ConfinedResolver
+
 CLOUD_SUFFIXES = (".xyz", ".pts")
 MIN_POINTS = 1000
 POISSON_SAMPLES_PER_NODE = 1.5
@@ -202,7 +204,8 @@ def mesh_cloud_cached(cloud_loader: Any, checksum: str, name: str,
     ply, meta = cache / f"{key}.ply", cache / f"{key}.json"
     if ply.is_file() and meta.is_file():
         try:
-            mesh = trimesh.load(ply, force="mesh", process=False)
+            # our own file, but read like any scan: nothing it names is opened outside the cache folder
+            mesh = trimesh.load(ply, force="mesh", process=False, resolver=ConfinedResolver(ply))
             record = json.loads(meta.read_text())
             if isinstance(mesh, trimesh.Trimesh) and len(mesh.faces) == record.get("face_count"):
                 return mesh, {**record, "cached": True}

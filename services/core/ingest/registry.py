@@ -23,10 +23,13 @@ from sqlalchemy.orm import Session
 from services.core.db.models import Space
 from services.core.domain.keys import check_name
 from services.core.ingest.archive import resolve_source
+from services.core.ingest.archive_rules import archive_refusal
+from services.core.ingest.confine import is_inside, read_confined, real_folder
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.formats import scannet_companions
 from services.core.ingest.loading import LoadedSpace, load_space
 from services.core.storage.base import ObjectStore, sha256_file
+from services.core.temp_dirs import owned_temp_dir
 
 SINGLE_FILE_SUFFIXES = {".ply", ".glb", ".stl", ".off", ".zip", ".xyz", ".pts"}
 MAX_PACKED_BYTES = 4 << 30
@@ -39,12 +42,13 @@ def _obj_companions(obj: Path) -> list[Path]:
     map_re = re.compile(r"^\s*(map_\w+|bump|disp|decal|norm)\s+(?:-\S+\s+\S+\s+)*(.+?)\s*$", re.IGNORECASE)
     with open(obj, errors="replace") as f:
         mtls = [m.group(1) for line in f if (m := mtl_re.match(line))]
+    root = real_folder(obj)
     for name in mtls:
         mtl = obj.parent / name
-        if not mtl.is_file():
+        if not mtl.is_file() or not is_inside(mtl, root):  # never read (nor pack) a file outside the scan's folder
             continue
         out.append(mtl)
-        for line in mtl.read_text(errors="replace").splitlines():
+        for line in read_confined(mtl, obj).decode("utf-8", "replace").splitlines():
             if m := map_re.match(line):
                 tex = mtl.parent / m.group(2)
                 if tex.is_file():
@@ -55,7 +59,7 @@ def _obj_companions(obj: Path) -> list[Path]:
 def _gltf_companions(gltf: Path) -> list[Path]:
     """Buffers and images a .gltf references by relative URI."""
     try:
-        doc = json.loads(gltf.read_text())
+        doc = json.loads(read_confined(gltf, gltf))
     except (OSError, ValueError) as e:
         raise SpaceError(f"{gltf.name}: not valid glTF JSON ({e})") from None
     uris = [b.get("uri") for b in doc.get("buffers", [])] + [i.get("uri") for i in doc.get("images", [])]
@@ -75,7 +79,7 @@ def _files_to_pack(source: Path, mesh_file: Path) -> tuple[Path, list[Path]]:
     else:
         companions = _gltf_companions(mesh_file)
     base = mesh_file.parent
-    files = [mesh_file] + [c for c in dict.fromkeys(companions) if base in c.resolve().parents]
+    files = [mesh_file] + [c for c in dict.fromkeys(companions) if is_inside(c, real_folder(mesh_file))]
     return base, files
 
 
@@ -163,13 +167,15 @@ def register_space(
     source = Path(source_path)
     if session.query(Space.id).filter_by(owner=owner, name=name).first() is not None:
         raise SpaceError(f"a space named {name!r} already exists")
-    with tempfile.TemporaryDirectory(prefix="omnidata-register-") as tmp:
+    with owned_temp_dir("register") as tmp:
         work = Path(tmp)
         mesh_file = resolve_source(source, work / "x") if source.suffix.lower() == ".zip" else resolve_source(source)
         if loaded is None:
             loaded = load_space(source, up_axis=up_axis, unit_scale=unit_scale, up=up, source_to_world=source_to_world,
                                 accept_up_guess=True)
         packed = pack_source(source, mesh_file, work)
+        if packed.suffix.lower() == ".zip" and (problem := archive_refusal(packed)):
+            raise SpaceError(f"{source.name}: packed for storage, {problem}")  # planning would refuse it
         checksum = sha256_file(packed)
         space = _space_row(owner, name, mesh_file, checksum, loaded,
                            unit_scale=unit_scale, frame_name=_frame_name(up_axis, up, source_to_world))

@@ -18,6 +18,7 @@ from typing import Any
 
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.loading import LoadedSpace
+from services.core.temp_dirs import UPLOAD_KINDS, sweep_orphans
 
 # Children fork from a server process that has imported the loading code once: a check starts in
 # milliseconds instead of the second a fresh interpreter needs to import trimesh, and the fork happens in a
@@ -59,6 +60,8 @@ def load_space_limited(
         if proc.is_alive():
             proc.kill()
             proc.join()
+        if proc.exitcode != 0 and proc.pid is not None:  # killed by a limit: its zip extraction stays behind
+            sweep_orphans(UPLOAD_KINDS, only_pid=proc.pid)
     if kind == "ok":
         loaded: LoadedSpace = value
         return loaded

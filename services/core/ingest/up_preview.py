@@ -22,15 +22,8 @@ SAMPLES = 60_000
 
 def side_view_png(mesh: trimesh.Trimesh, up: np.ndarray, seed: int = 0) -> bytes:
     """PNG bytes of the scan seen from the side with `up` (source frame) at the top of the picture."""
-    rng = np.random.default_rng(seed)
-    areas = np.asarray(mesh.area_faces, dtype=np.float64)
-    faces = rng.choice(len(areas), size=SAMPLES, p=areas / areas.sum())
-    tri = np.asarray(mesh.triangles)[faces]
-    a, b = rng.random((2, SAMPLES, 1))
-    flip = (a + b) > 1
-    a, b = np.where(flip, 1 - a, a), np.where(flip, 1 - b, b)
-    pts = tri[:, 0] + a * (tri[:, 1] - tri[:, 0]) + b * (tri[:, 2] - tri[:, 0])
-    pts = pts @ rotation_to_z(np.asarray(up, dtype=np.float64)).T
+    pts, _ = trimesh.sample.sample_surface(mesh, SAMPLES, seed=seed)
+    pts = np.asarray(pts) @ rotation_to_z(np.asarray(up, dtype=np.float64)).T
     horiz = pts[:, :2] - pts[:, :2].mean(axis=0)
     _, vecs = np.linalg.eigh(horiz.T @ horiz)
     across, along = horiz @ vecs[:, 1], horiz @ vecs[:, 0]  # width: the longest horizontal direction

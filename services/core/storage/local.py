@@ -37,8 +37,15 @@ class LocalStore:
         return f"LocalStore({str(self.root)!r})"
 
     def path(self, key: str) -> Path:
-        """The file that holds `key` (validated; never outside root)."""
-        return self.root.joinpath(*check_key(key).split("/"))
+        """The file that holds `key` (validated; never outside root, never through a symbolic link).
+
+        A link under the root (a tenant's staging folder pointing at /etc, or at another tenant's
+        objects) is not an object: ObjectNotFoundError, so nothing is ever read or written through it.
+        """
+        path = self.root.joinpath(*check_key(key).split("/"))
+        if os.path.realpath(path) != str(path):
+            raise ObjectNotFoundError(key)
+        return path
 
     def _tmp(self, target: Path) -> Path:
         return target.with_name(f".{target.name}.tmp-{uuid.uuid4().hex}")
@@ -113,18 +120,24 @@ class LocalStore:
         return dest
 
     def exists(self, key: str) -> bool:
-        return self.path(key).is_file()
+        try:
+            return self.path(key).is_file()
+        except ObjectNotFoundError:
+            return False
 
     def stat(self, key: str) -> ObjectInfo | None:
         """Size and sha256 (computed from the file: O(size))."""
-        p = self.path(key)
+        try:
+            p = self.path(key)
+        except ObjectNotFoundError:
+            return None
         if not p.is_file():
             return None
         return ObjectInfo(key, p.stat().st_size, sha256_file(p))
 
     def delete(self, key: str) -> bool:
-        p = self.path(key)
         try:
+            p = self.path(key)
             p.unlink()
         except (FileNotFoundError, IsADirectoryError, NotADirectoryError):
             return False

@@ -24,6 +24,7 @@ import numpy as np
 import trimesh
 from PIL import Image
 
+from services.core.temp_dirs import owned_prefix, sweep_orphans
 from services.worker.blender.render import (
     AOV_CLASS,
     AOV_FACE_HI,
@@ -77,7 +78,8 @@ class BlenderScene:
         self._floor: bpy.types.Scene | None = None
         self.has_curvature = False
         self.labelled = face_class is not None or face_instance is not None
-        self._tmp = tempfile.mkdtemp(prefix="omnidata-render-", dir=_temp_root())
+        sweep_orphans(("render", "exr"), (_temp_root(),))  # folders of workers killed mid-render (kill -9 skips atexit)
+        self._tmp = tempfile.mkdtemp(prefix=owned_prefix("render"), dir=_temp_root())
         atexit.register(shutil.rmtree, self._tmp, True)  # also when the process dies without close()
         bpy.ops.wm.read_factory_settings(use_empty=True)
         self.scene = bpy.context.scene

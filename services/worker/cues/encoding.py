@@ -19,6 +19,7 @@ from PIL import Image
 from services.core.domain.cues import get_cue
 from services.core.domain.exr import decode_exr_rgb  # noqa: F401  (re-exported: the inverse of encode_exr_rgb)
 from services.core.domain.plan_cues import encode_json
+from services.core.temp_dirs import owned_prefix
 
 # zlib level 3 with the Z_RLE strategy: on a room's cue images (bench/render.py, png_settings) about 20% faster
 # than level 3's default strategy and 2-3x faster than Pillow's default level 6, files ~1% larger than level 3's.
@@ -84,7 +85,7 @@ def encode_exr_rgb(arr: np.ndarray) -> bytes:
     # codecs every OpenEXR reader knows, ZIPS is ~15% faster for ~15% more bytes, RLE and none 3-7x faster for 1.7x
     # the bytes, PIZ 4x slower; ZSTD (OpenEXR 3.5) is faster and smaller but older readers can not open it.
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    fd, path = tempfile.mkstemp(suffix=".exr", dir="/dev/shm" if os.access("/dev/shm", os.W_OK) else None)
+    fd, path = tempfile.mkstemp(prefix=owned_prefix("exr"), suffix=".exr", dir="/dev/shm" if os.access("/dev/shm", os.W_OK) else None)
     os.close(fd)
     try:
         with OpenEXR.File(header, {"RGB": np.ascontiguousarray(arr, dtype=np.float32)}) as f:

@@ -32,7 +32,9 @@ function upCandidateFigure(space, cand, index, status, onPicked) {
       h("strong", {}, ["Detection's best", "Runner-up", "Next"][index]),
       h("div", {}, `up [${cand.up.map((x) => fmtNum(x, 3)).join(", ")}]`),
       h("div", {}, `floor ${fmtNum(cand.floor_area_m2, 2)} m², storey ${fmtNum(cand.storey_height_m, 2)} m`),
-      h("div", { class: "muted" }, `score ${fmtNum(cand.score, 2)}`)),
+      h("div", { class: "muted evidence", title: "evidence terms (log-odds): 0 is best, negative speaks against" },
+        `score ${fmtNum(cand.score, 2)}: ` + Object.entries(cand.evidence || {})
+          .map(([k, v]) => `${k.replace(/_/g, " ")} ${fmtNum(v, 2)}`).join(", "))),
     pick);
 }
 

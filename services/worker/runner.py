@@ -141,12 +141,16 @@ class TaskRunner:
         """The space loaded into the world frame of this job (its up_axis/unit_scale), kept between tasks."""
         spec = job.spec
         frame = space_frame_for(spec, space)  # the planner's frame: the spec's, else the space's chosen up
-        key = f"{space.checksum}:{json.dumps(frame, sort_keys=True)}"
+        key = f"{space.checksum}:{json.dumps(frame, sort_keys=True)}:photos={spec.uses_photos()}"
 
         def loader() -> SpaceContext:
+            from services.worker.photos import painter_for
+
             path = fetch_space(self.store, space, self.cache_dir)
             loaded = load_space(path, **frame)
-            return SpaceContext.from_loaded(loaded, key=key, device=self.render_device, threads=self.render_threads)
+            ctx = SpaceContext.from_loaded(loaded, key=key, device=self.render_device, threads=self.render_threads)
+            ctx.photos = painter_for(loaded, spec)
+            return ctx
 
         return self.space_cache.get(key, loader)
 

@@ -82,6 +82,8 @@ CATALOG: dict[str, Cue] = {
             "json", 0, "derive", ("point_info",)),
         Cue("position", "exr", "float32 RGB world XYZ in metres, NaN = none", "float32", 3, "render",
             ("passes",)),
+        Cue("mask_photo", "png", "8-bit, 255 where the rgb came from a photo (capture views), else 0", "uint8", 1,
+            "render", ("passes",), default=False),
     ]
 }
 

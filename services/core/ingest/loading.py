@@ -39,6 +39,7 @@ import trimesh
 from services.core.domain.jobspec import UP_AXES, similarity_scale
 from services.core.ingest.archive import resolve_source
 from services.core.ingest.archive_rules import file_expansion_refusal
+from services.core.ingest.capture.attach import attach_capture, capture_near  # a capture with the scan
 from services.core.ingest.confine import ConfinedResolver, is_inside
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.frame import FrameRequest, resolve_frame
@@ -88,6 +89,7 @@ class LoadedSpace:
     units: UnitChoice | None = None  # the unit scale and why
     reconstruction: dict[str, Any] | None = None  # point clouds: how they were meshed
     class_names: dict[int, str] | None = None  # class id -> name, when the file names its classes
+    capture: Any = None  # a posed capture found with the scan (services.core.ingest.capture.Capture), world frame
 
     def frame_record(self) -> dict[str, Any]:
         """What was detected about the frame, for job.json and `omnidata plan` (JSON-ready)."""
@@ -100,6 +102,8 @@ class LoadedSpace:
             out["reconstruction"] = self.reconstruction
         if self.class_names:
             out["class_names"] = {str(k): v for k, v in sorted(self.class_names.items())}
+        if self.capture is not None:
+            out["capture"] = self.capture.summary()
         return out
 
     def frame_summary(self) -> str:
@@ -191,15 +195,19 @@ def load_space(
     if p.is_file() and p.suffix.lower() == ".zip" and extract_dir is None:
         tmp = Path(tempfile.mkdtemp(prefix=owned_prefix("space")))
         extract_dir = tmp
-    frame = FrameRequest(up_axis, unit_scale, None if up is None else np.asarray(up, dtype=np.float64),
-                          None if source_to_world is None else np.asarray(source_to_world, dtype=np.float64),
-                          accept_up_guess, None if capture_up is None else np.asarray(capture_up, dtype=np.float64))
     try:
         source = resolve_source(p, extract_dir)
         if p.is_dir() and not is_inside(source, Path(os.path.realpath(p))):
             raise SpaceError(f"{source.name}: a symbolic link to a file outside the folder {p.name}; refusing it")
-        return _load(source, p if tmp is not None else source, frame,
-                     None if cloud_cache_dir is None else Path(cloud_cache_dir))
+        capture = capture_near(Path(extract_dir) if p.suffix.lower() == ".zip" and extract_dir else p)
+        if capture_up is None and capture is not None:
+            capture_up = capture.mean_up()  # the cameras' up, source frame: evidence for levelling
+        frame = FrameRequest(up_axis, unit_scale, None if up is None else np.asarray(up, dtype=np.float64),
+                             None if source_to_world is None else np.asarray(source_to_world, dtype=np.float64),
+                             accept_up_guess, None if capture_up is None else np.asarray(capture_up, dtype=np.float64))
+        loaded = _load(source, p if tmp is not None else source, frame,
+                       None if cloud_cache_dir is None else Path(cloud_cache_dir))
+        return attach_capture(loaded, capture)
     finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)

@@ -40,10 +40,15 @@ def _obj_companions(obj: Path) -> list[Path]:
     out: list[Path] = []
     mtl_re = re.compile(r"^\s*mtllib\s+(.+?)\s*$")
     map_re = re.compile(r"^\s*(map_\w+|bump|disp|decal|norm)\s+(?:-\S+\s+\S+\s+)*(.+?)\s*$", re.IGNORECASE)
+    mtls: list[str] = []
     with open(obj, errors="replace") as f:
-        mtls = [m.group(1) for line in f if (m := mtl_re.match(line))]
+        for line in f:
+            if not mtls and "mtllib" in line:  # trimesh reads the first 'mtllib' anywhere (a comment, a name)
+                mtls.append(line[line.index("mtllib") + len("mtllib"):].strip())
+            if m := mtl_re.match(line):
+                mtls.append(m.group(1))
     root = real_folder(obj)
-    for name in mtls:
+    for name in dict.fromkeys(n for n in mtls if n):
         mtl = obj.parent / name
         if not mtl.is_file() or not is_inside(mtl, root):  # never read (nor pack) a file outside the scan's folder
             continue
@@ -67,7 +72,13 @@ def _gltf_companions(gltf: Path) -> list[Path]:
 
 
 def _files_to_pack(source: Path, mesh_file: Path) -> tuple[Path, list[Path]]:
-    """(base folder, files) that a mesh needs, for zipping."""
+    """(base folder, files) that a mesh needs, for zipping (with a posed capture beside it: the capture too)."""
+    from services.core.ingest.archive import MESH_SUFFIXES
+    from services.core.ingest.capture.attach import capture_files_beside
+
+    beside = capture_files_beside(mesh_file, MESH_SUFFIXES) if source.is_file() else []
+    if beside:
+        return mesh_file.parent, beside
     if source.is_dir():
         files = [p for p in sorted(source.rglob("*")) if p.is_file() and not p.is_symlink()]
         return source, files
@@ -86,7 +97,11 @@ def _files_to_pack(source: Path, mesh_file: Path) -> tuple[Path, list[Path]]:
 def pack_source(source: Path, mesh_file: Path, workdir: Path) -> Path:
     """The single file to upload for `source`: itself, or a deterministic zip of what the mesh needs."""
     if source.is_file() and source.suffix.lower() in SINGLE_FILE_SUFFIXES and scannet_companions(source) is None:
-        return source
+        from services.core.ingest.archive import MESH_SUFFIXES
+        from services.core.ingest.capture.attach import capture_files_beside
+
+        if source.suffix.lower() == ".zip" or not capture_files_beside(source, MESH_SUFFIXES):
+            return source
     base, files = _files_to_pack(source, mesh_file)
     total = sum(f.stat().st_size for f in files)
     if total > MAX_PACKED_BYTES:
@@ -188,7 +203,8 @@ def register_space(
 
 
 def fetch_space(store: ObjectStore, space: Space, cache_dir: str | Path) -> Path:
-    """Local path of a space's mesh file, downloaded (and unzipped) once per checksum into `cache_dir`."""
+    """Local path of a space's mesh file (or of the folder a zipped source unpacked to), downloaded (and unzipped)
+    once per checksum into `cache_dir`."""
     cache = Path(cache_dir) / space.checksum
     done_marker = cache / ".ready"
     if not done_marker.exists():
@@ -208,7 +224,8 @@ def fetch_space(store: ObjectStore, space: Space, cache_dir: str | Path) -> Path
                     raise
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
-    return resolve_source(cache / "src") if (cache / "src").is_dir() else resolve_source(next(
+    # a zipped source comes back as its folder, so what was packed beside the mesh (a capture) is found with it
+    return cache / "src" if (cache / "src").is_dir() else resolve_source(next(
         p for p in cache.iterdir() if p.is_file() and p.name != ".ready"
     ))
 

@@ -11,6 +11,7 @@ import dataclasses
 import hashlib
 import time
 import uuid as uuidlib
+from typing import Any
 
 import numpy as np
 
@@ -24,6 +25,7 @@ from services.core.domain.plan import (
     SpacePlan,
     clip_shortfall,
 )
+from services.core.ingest.capture.model import Capture
 from services.core.ingest.loading import LoadedSpace
 from services.scheduler.planning.cameras import generate_cameras, object_cameras, provided_cameras
 from services.scheduler.planning.paths import longest_run
@@ -71,16 +73,20 @@ def make_plan(
     q = MeshQueries(space.mesh)
     salt = rng.bytes(16)
     camera_spec = spec.cameras
-    cams, source, orbit = _place_cameras(space, camera_spec, q, rng)
+    capture = None
+    if camera_spec.mode == "capture":
+        from services.scheduler.planning import capture_views
+
+        capture = capture_views.require_capture(space, space_name)
+        if camera_spec.capture_views == "exact":
+            return _exact_capture_plan(space, spec, space_name, q, salt)
+        cams, source, orbit = capture_views.capture_positions(capture), "capture", None
+    else:
+        cams, source, orbit = _place_cameras(space, camera_spec, q, rng)
     t1 = time.perf_counter()
     stamp["cameras"] = t1 - t0
     ps = spec.points
-    if len(cams) < ps.min_views:
-        raise PlanError(
-            f"space {space_name!r} has {len(cams)} cameras (mode {camera_spec.mode!r}) but points.min_views is "
-            f"{ps.min_views}: no point could be seen by enough cameras; lower min_views or "
-            "cameras.min_spacing_m, or raise cameras.max_count"
-        )
+    _check_enough_cameras(len(cams), spec, space_name)
     count = ps.count if ps.count is not None else max(1, int(round(ps.per_camera * len(cams))))
     sampled = sample_points(q, cams, ps, count, rng)
     t2 = time.perf_counter()
@@ -89,32 +95,73 @@ def make_plan(
     vs = spec.views
     views, notes = _choose_views(sampled, cams, spec, q, rng, orbit)
     shortfall = sampled.shortfall
-    keep_points = np.unique(views.point_idx) if notes else np.arange(len(sampled.positions))
+    photo_dropped = 0  # fixated views at capture positions: enough of the photo in view
+    if capture is not None and len(views):
+        views, photo_dropped = _keep_photo_covered(capture, views, len(sampled.positions), spec)
+    keep_points = np.unique(views.point_idx) if notes or photo_dropped else np.arange(len(sampled.positions))
     if vs.nonfixated_pruning and len(views):
         views, keep_points, shortfall = _prune_nonfixated(views, sampled, spec, shortfall)
-    if vs.min_valid_fraction > 0:
-        fractions = valid_fractions(q, views, spec.params.max_depth_m)
-        valid_summary = fraction_summary(fractions, vs.min_valid_fraction)
-    else:  # only reported: an even sample of the views bounds the cost on big plans
-        sample = np.unique(np.linspace(0, len(views) - 1, min(len(views), VALID_REPORT_VIEWS)).astype(np.int64))
-        valid_summary = fraction_summary(valid_fractions(q, views.subset(sample), spec.params.max_depth_m), 0.0)
-        valid_summary["sampled_of"] = len(views)
-    if vs.min_valid_fraction > 0 and len(views):
+    fractions, valid_summary = _valid_fractions(q, views, spec)
+    if fractions is not None and len(views):
         views, keep_points, shortfall = _drop_low_valid(views, fractions, len(sampled.positions), keep_points,
                                                         spec, shortfall)
     t3 = time.perf_counter()
     stamp["views"] = t3 - t2
 
-    plan = _assemble(
-        space_name, salt, cams, source, camera_spec, sampled, keep_points, views, vs.resolution, shortfall, notes
-    )
+    plan = _assemble(space_name, salt, cams, source, camera_spec, sampled, keep_points, views, vs.resolution,
+                     shortfall, notes)
     plan = dataclasses.replace(plan, valid_fraction=valid_summary)
+    if capture is not None:
+        plan = capture_views.annotate_fixated(plan, capture, vs.min_photo_coverage, photo_dropped)
     stamp["assemble"] = time.perf_counter() - t3
     if timings is not None:
-        timings.update(stamp)
-        timings["rays"] = float(q.rays)
-        timings["total"] = time.perf_counter() - t0
+        timings.update(stamp, rays=float(q.rays), total=time.perf_counter() - t0)
     return plan
+
+
+def _exact_capture_plan(space: LoadedSpace, spec: JobSpec, space_name: str, q: MeshQueries, salt: bytes) -> SpacePlan:
+    """The plan of capture_views: exact (the captured photos' own poses are the views)."""
+    from services.scheduler.planning import capture_views
+
+    return capture_views.exact_capture_plan(
+        space, spec, space_name, q, lambda name, pidx, cams, pts, views, short: _assemble(
+            name, salt, cams, "capture", spec.cameras, pts, np.unique(pidx), views, spec.views.resolution,
+            short, []))
+
+
+def _check_enough_cameras(n_cameras: int, spec: JobSpec, space_name: str) -> None:
+    """PlanError when fewer cameras exist than a point needs views: no point could be planned."""
+    ps = spec.points
+    if n_cameras < ps.min_views:
+        raise PlanError(
+            f"space {space_name!r} has {n_cameras} cameras (mode {spec.cameras.mode!r}) but points.min_views is "
+            f"{ps.min_views}: no point could be seen by enough cameras; lower min_views or "
+            "cameras.min_spacing_m, or raise cameras.max_count"
+        )
+
+
+def _keep_photo_covered(capture: Capture, views: ViewArrays, n_points: int, spec: JobSpec) -> tuple[ViewArrays, int]:
+    """Capture views that show enough of their photo, and points left with enough of them; (views, dropped)."""
+    from services.scheduler.planning import capture_views
+
+    covered, _ = capture_views.fixated_coverage_keep(capture, views, spec.views.min_photo_coverage)
+    photo_dropped = int((~covered).sum())
+    views = views.subset(covered)
+    n_covered = np.bincount(views.point_idx, minlength=n_points)
+    return views.subset(n_covered[views.point_idx] >= spec.points.min_views), photo_dropped
+
+
+def _valid_fractions(q: MeshQueries, views: ViewArrays, spec: JobSpec) -> tuple[np.ndarray | None, dict[str, Any]]:
+    """(each view's predicted valid fraction when views.min_valid_fraction filters, else None; the summary)."""
+    vs = spec.views
+    if vs.min_valid_fraction > 0:
+        fractions = valid_fractions(q, views, spec.params.max_depth_m)
+        return fractions, fraction_summary(fractions, vs.min_valid_fraction)
+    # only reported: an even sample of the views bounds the cost on big plans
+    sample = np.unique(np.linspace(0, len(views) - 1, min(len(views), VALID_REPORT_VIEWS)).astype(np.int64))
+    summary = fraction_summary(valid_fractions(q, views.subset(sample), spec.params.max_depth_m), 0.0)
+    summary["sampled_of"] = len(views)
+    return None, summary
 
 
 def _place_cameras(space: LoadedSpace, camera_spec: CameraSpec, q: MeshQueries, rng: np.random.Generator

@@ -9,6 +9,7 @@ from services.worker.cues import (  # noqa: F401  (imported for their @register 
     basic,
     edges,
     keypoints,
+    photo,
     plan_cues,
     segmentation,
     semantic,

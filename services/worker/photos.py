@@ -69,13 +69,18 @@ class PhotoPainter:
         return passes
 
 
-def painter_for(loaded: Any, spec: Any) -> PhotoPainter | None:
-    """The painter a job needs for a loaded space (None when its rgb comes from the mesh)."""
+def painter_for(loaded: Any, spec: Any, refined: dict[str, Any] | None = None) -> PhotoPainter | None:
+    """The painter a job needs for a loaded space (None when its rgb comes from the mesh); `refined`: the plan's
+    record of a refined colour camera (cameras.capture_refine), applied to the capture as the planner did."""
     if not spec.uses_photos():
         return None
     capture = getattr(loaded, "capture", None)
     if capture is None:
         raise ValueError("the job takes rgb from photos, but no capture was found with the scan")
+    if refined is not None:
+        from services.core.ingest.capture.calibration import ColourCorrection
+
+        capture = ColourCorrection.from_dict(refined["correction"]).capture(capture)
     texture = None
     if spec.cameras.mode != "capture":
         from services.worker.phototexture import PhotoTexturer

@@ -34,6 +34,10 @@ def test_generate_capture_views_from_a_folder(scenes_dir: Path, tmp_path: Path) 
     assert record["capture_plan"]["alignment"]["scored"] == 3
     lines = [json.loads(x) for x in (out / "manifest.jsonl").read_text().splitlines()]
     assert len(lines) == 3 and all("alignment" in x and "mask_photo" in x["outputs"] for x in lines)
+    from services.datasets import OmnidataDataset
+
+    item = OmnidataDataset(out, ["rgb", "mask_photo"])[0]  # the dataset reader decodes the new mask
+    assert item["mask_photo"].dtype == bool and item["mask_photo"].all()
     plan = plan_from_json((out / "_plan" / "banana_capture.json").read_bytes())
     for view in plan.views:
         # the rgb file is exactly the photo resampled to the view (nothing of the mesh texture in it)

@@ -12,6 +12,7 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator, model_validator
 
+from services.core.domain.augment_spec import AugmentParams
 from services.core.domain.cues import validate_cue_names
 from services.core.domain.keys import check_name
 
@@ -83,6 +84,10 @@ class CameraSpec(_Strict):
     capture_fov_deg: float | None = Field(
         None, ge=FOV_LIMITS_DEG[0], le=FOV_LIMITS_DEG[1],
         description="field of view of exact capture views; None: the widest square the photo fills",
+    )
+    capture_refine: bool = Field(
+        False, description="refine the capture's colour camera (focal length, principal point, offset) by "
+        "maximising the photo/geometry alignment score before planning; recorded in job.json"
     )
 
     @model_validator(mode="after")
@@ -223,6 +228,7 @@ class CueParams(_Strict):
         255.0, gt=0, le=1e9, description="RAG similarity exp(-|mean difference|^2 / sigma), features on a 0..255 scale"
     )
     segment_num_cuts: int = Field(10, ge=1, le=100, description="thresholds tried per normalized cut")
+    augment: AugmentParams = Field(AugmentParams(), description="distributions of the 3D augmentation cues' parameters")
 
 
 class JobSpec(_Strict):

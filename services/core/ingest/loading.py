@@ -29,7 +29,7 @@ import re
 import shutil
 import tempfile
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -41,6 +41,7 @@ from services.core.ingest.archive import resolve_source
 from services.core.ingest.archive_rules import file_expansion_refusal
 from services.core.ingest.capture.attach import attach_capture, capture_near  # a capture with the scan
 from services.core.ingest.confine import ConfinedResolver, is_inside
+from services.core.ingest.datasets import DatasetError, DatasetScene, scene_of
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.frame import FrameRequest, resolve_frame
 from services.core.ingest.gravity import (
@@ -251,6 +252,23 @@ def _read_mesh(
     return mesh, None
 
 
+def _dataset_scene(source: Path, frame: FrameRequest) -> tuple[DatasetScene | None, FrameRequest]:
+    """The public dataset scene of a mesh (refusing an unusable release), and the frame: the dataset's
+    convention (up axis, units, a shipped alignment) wherever the caller left the frame to detection."""
+    try:
+        scene = scene_of(source)
+    except DatasetError as e:
+        raise SpaceError(str(e)) from None
+    if scene is None:
+        return None, frame
+    auto_up = frame.up_axis == "auto" and frame.up is None and frame.source_to_world is None
+    if auto_up and frame.unit_scale == "auto" and scene.source_to_world is not None:
+        return scene, replace(frame, up_axis="auto", unit_scale="auto", up=None, source_to_world=scene.source_to_world)
+    up_axis = scene.up_axis if auto_up and scene.up_axis is not None else frame.up_axis
+    unit_scale = scene.unit_scale if frame.unit_scale == "auto" and scene.unit_scale is not None else frame.unit_scale
+    return scene, replace(frame, up_axis=up_axis, unit_scale=unit_scale)
+
+
 def _check_mesh(source: Path, mesh: trimesh.Trimesh, reconstruction: dict[str, Any] | None) -> None:
     """Refuse an empty mesh, one without faces, non-finite vertices, dangling faces or zero area."""
     name = source.name
@@ -284,6 +302,7 @@ def _check_extent(name: str, extent_source: float, scale: float) -> None:
 
 def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Path | None) -> LoadedSpace:
     name = source.name
+    scene, frame = _dataset_scene(source, frame)
     if problem := file_expansion_refusal(source):  # the rule its packed zip meets when planned: before parsing
         raise SpaceError(f"{name}: {problem}")
     source_notes = check_source(source)  # truncation, counts over the limits, unsafe paths: before parsing
@@ -294,6 +313,14 @@ def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Pa
     face_class, face_instance, notes = read_ply_semantics(mesh, source) if reconstruction is None else (None, None, [])
     notes = source_notes + notes
     class_names = None
+    if scene is not None and face_class is None and face_instance is None:
+        try:
+            labels = scene.labels(mesh)
+        except DatasetError as e:
+            raise SpaceError(f"{scene.dataset} scene {scene.scene_id}: {e}") from None
+        if labels is not None:
+            face_class, face_instance, class_names = labels.face_class, labels.face_instance, labels.class_names
+            notes.extend(labels.notes)
     if face_class is None and face_instance is None and reconstruction is None:
         scannet = scannet_labels(mesh, source) if source.suffix.lower() == ".ply" else None
         if scannet is not None:

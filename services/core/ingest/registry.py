@@ -25,6 +25,7 @@ from services.core.domain.keys import check_name
 from services.core.ingest.archive import resolve_source
 from services.core.ingest.archive_rules import archive_refusal
 from services.core.ingest.confine import is_inside, read_confined, real_folder
+from services.core.ingest.datasets import DatasetError, scene_mesh_in, scene_of
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.formats import scannet_companions
 from services.core.ingest.loading import LoadedSpace, load_space
@@ -71,11 +72,34 @@ def _gltf_companions(gltf: Path) -> list[Path]:
     return [gltf.parent / u for u in uris if u and not u.startswith("data:") and (gltf.parent / u).is_file()]
 
 
+def _dataset_pack(source: Path) -> tuple[Path, list[Path]] | None:
+    """(base folder, files) of a public dataset's scene (a scene folder or its mesh file): what it needs,
+    not its raw captures (e.g. ScanNet's .sens); None when `source` is not one."""
+    mesh = scene_mesh_in(source) if source.is_dir() else source
+    try:
+        scene = scene_of(mesh) if mesh is not None else None
+    except DatasetError as e:
+        raise SpaceError(str(e)) from None
+    if scene is None:
+        return None
+    from services.core.ingest.archive import MESH_SUFFIXES
+    from services.core.ingest.capture.attach import capture_files_beside
+
+    extra = _obj_companions(scene.mesh) if scene.mesh.suffix.lower() == ".obj" else []
+    capture = capture_files_beside(scene.mesh, MESH_SUFFIXES)  # a posed capture beside the scan goes along
+    files = list(dict.fromkeys([*scene.files, *extra, *capture]))
+    base = source if source.is_dir() else Path(os.path.commonpath([f.parent for f in files]))
+    root = Path(os.path.realpath(base))  # no file whose real path leaves the scene (a link out of it)
+    return base, [f for f in files if not f.is_symlink() and is_inside(f, root)]
+
+
 def _files_to_pack(source: Path, mesh_file: Path) -> tuple[Path, list[Path]]:
     """(base folder, files) that a mesh needs, for zipping (with a posed capture beside it: the capture too)."""
     from services.core.ingest.archive import MESH_SUFFIXES
     from services.core.ingest.capture.attach import capture_files_beside
 
+    if (dataset := _dataset_pack(source)) is not None:
+        return dataset
     beside = capture_files_beside(mesh_file, MESH_SUFFIXES) if source.is_file() else []
     if beside:
         return mesh_file.parent, beside
@@ -96,7 +120,8 @@ def _files_to_pack(source: Path, mesh_file: Path) -> tuple[Path, list[Path]]:
 
 def pack_source(source: Path, mesh_file: Path, workdir: Path) -> Path:
     """The single file to upload for `source`: itself, or a deterministic zip of what the mesh needs."""
-    if source.is_file() and source.suffix.lower() in SINGLE_FILE_SUFFIXES and scannet_companions(source) is None:
+    if (source.is_file() and source.suffix.lower() in SINGLE_FILE_SUFFIXES and scannet_companions(source) is None
+            and _dataset_pack(source) is None):
         from services.core.ingest.archive import MESH_SUFFIXES
         from services.core.ingest.capture.attach import capture_files_beside
 
@@ -239,6 +264,8 @@ class Source:
     checksum: str
     has_semantics: bool | None = None  # known once validated (None: already registered, trusted)
     loaded: LoadedSpace | None = None  # the validated space, handed to register_space so the mesh loads once
+    from_root: bool = False  # one scene of a dataset root: refused alone (the others go on) when unusable
+    refused: str | None = None  # why this scene of a dataset root cannot be used
 
 
 def source_checksum(path: Path) -> str:

@@ -73,13 +73,13 @@ def make_plan(
     q = MeshQueries(space.mesh)
     salt = rng.bytes(16)
     camera_spec = spec.cameras
-    capture = None
+    capture, refined = None, None
     if camera_spec.mode == "capture":
         from services.scheduler.planning import capture_views
 
-        capture = capture_views.require_capture(space, space_name)
         if camera_spec.capture_views == "exact":
             return _exact_capture_plan(space, spec, space_name, q, salt)
+        capture, refined = capture_views.planning_capture(space, spec, space_name, q)
         cams, source, orbit = capture_views.capture_positions(capture), "capture", None
     else:
         cams, source, orbit = _place_cameras(space, camera_spec, q, rng)
@@ -112,7 +112,7 @@ def make_plan(
                      shortfall, notes)
     plan = dataclasses.replace(plan, valid_fraction=valid_summary)
     if capture is not None:
-        plan = capture_views.annotate_fixated(plan, capture, vs.min_photo_coverage, photo_dropped)
+        plan = capture_views.annotate_fixated(plan, capture, vs.min_photo_coverage, photo_dropped, refined)
     stamp["assemble"] = time.perf_counter() - t3
     if timings is not None:
         timings.update(stamp, rays=float(q.rays), total=time.perf_counter() - t0)

@@ -45,6 +45,17 @@ def require_capture(space: Any, space_name: str) -> Capture:
     return capture
 
 
+def planning_capture(space: Any, spec: JobSpec, space_name: str, q: MeshQueries) -> tuple[Capture, dict[str, Any] | None]:
+    """The capture the plan uses, its colour camera refined when cameras.capture_refine asks (with the record)."""
+    capture = require_capture(space, space_name)
+    if not (spec.cameras.capture_refine and capture.has_photos):
+        return capture, None
+    from services.scheduler.planning.refine import refine_colour_camera
+
+    correction, record = refine_colour_camera(q, capture)
+    return correction.capture(capture), record
+
+
 def capture_positions(capture: Capture) -> np.ndarray:
     """(n, 3) camera centres, world metres."""
     return np.stack([f.center for f in capture.frames])
@@ -123,7 +134,7 @@ def photo_coverages(capture: Capture, views: ViewArrays) -> np.ndarray:
 def exact_capture_plan(space: Any, spec: JobSpec, space_name: str, q: MeshQueries,
                        assemble: Callable[..., SpacePlan]) -> SpacePlan:
     """The plan of cameras.mode capture with capture_views exact (see the module docstring)."""
-    capture = require_capture(space, space_name)
+    capture, refined = planning_capture(space, spec, space_name, q)
     points, views, notes = exact_views(q, capture, spec)
     vs = spec.views
     scores = alignment_scores(q, capture, views)
@@ -152,6 +163,8 @@ def exact_capture_plan(space: Any, spec: JobSpec, space_name: str, q: MeshQuerie
     record = capture_record(capture, scores, vs.min_alignment, [float(c) for c in coverage], len(planned))
     record["dropped"] = dropped
     record["view_alignment"] = {f"{v.point_idx}/{v.v}": v.alignment for v in planned}  # the manifest's per view
+    if refined is not None:
+        record["refined"] = refined
     return dataclasses.replace(plan, views=planned, valid_fraction=fraction_summary(fractions, vs.min_valid_fraction),
                                capture=record)
 
@@ -162,7 +175,8 @@ def fixated_coverage_keep(capture: Capture, views: ViewArrays, min_coverage: flo
     return coverage >= min_coverage, coverage
 
 
-def annotate_fixated(plan: SpacePlan, capture: Capture, min_coverage: float, dropped: int) -> SpacePlan:
+def annotate_fixated(plan: SpacePlan, capture: Capture, min_coverage: float, dropped: int,
+                     refined: dict[str, Any] | None = None) -> SpacePlan:
     """A fixated capture plan with each view's photo coverage and the capture record."""
     planned = []
     for v in plan.views:
@@ -172,6 +186,8 @@ def annotate_fixated(plan: SpacePlan, capture: Capture, min_coverage: float, dro
     record = capture_record(capture, [], 0.0, [v.photo_coverage or 0.0 for v in planned], len(planned))
     record["dropped"] = {"photo_coverage": dropped}
     record["min_photo_coverage"] = min_coverage
+    if refined is not None:
+        record["refined"] = refined
     return dataclasses.replace(plan, views=tuple(planned), capture=record)
 
 

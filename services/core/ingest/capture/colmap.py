@@ -162,6 +162,22 @@ def read_model(root: Path, model_dir: Path) -> tuple[dict[int, Camera], list[tup
     return cams, images, problems
 
 
+def point_count_note(root: Path, model_dir: Path) -> list[str]:
+    """How many sparse points the model's points3D holds (a note; the points themselves are not needed)."""
+    try:
+        if (model_dir / "points3D.txt").is_file():
+            text = read_text(model_dir / "points3D.txt", root)
+            n = sum(1 for line in text.splitlines() if line.strip() and not line.lstrip().startswith("#"))
+        elif (model_dir / "points3D.bin").is_file() and inside(root, (model_dir / "points3D.bin").relative_to(root).as_posix()):
+            with open(model_dir / "points3D.bin", "rb") as f:
+                (n,) = _unpack(f, "<Q")
+        else:
+            return []
+    except (OSError, ValueError, EOFError, struct.error):
+        return ["points3D unreadable"]
+    return [f"points3D: {n} sparse points"]
+
+
 def read_colmap(root: Path, model_dir: Path) -> Capture:
     """The registered images of the COLMAP model in `model_dir` (see the module docstring)."""
     col = FrameCollector(root)
@@ -189,5 +205,6 @@ def read_colmap(root: Path, model_dir: Path) -> Capture:
         c2w = np.linalg.inv(w2c) if np.isfinite(w2c).all() else w2c
         col.add(name, f"{prefix}/{name}" if prefix else name, c2w, K=K, size=(cam[1], cam[2]), distortion=dist,
                 params=dp)
-    notes = (f"COLMAP model in {model_dir.relative_to(root).as_posix() or '.'}, images in {prefix or '.'}",)
+    notes = (f"COLMAP model in {model_dir.relative_to(root).as_posix() or '.'}, images in {prefix or '.'}",
+             *point_count_note(root, model_dir))
     return Capture("colmap", root, tuple(col.frames), tuple(col.problems), notes=notes)

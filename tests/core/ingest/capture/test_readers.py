@@ -68,6 +68,7 @@ def test_colmap_models(tmp_path, binary, model, params):
     _same_cameras(cap, frames)
     for f in cap.frames:
         assert f.distortion == model and f.distortion_params == pytest.approx(params)
+    assert "points3D: 1 sparse points" in cap.notes
 
 
 def test_colmap_unsupported_model_and_missing_image(tmp_path):

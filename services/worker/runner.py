@@ -140,7 +140,9 @@ class TaskRunner:
     def _space_context(self, job: JobInfo, space: Space) -> SpaceContext:
         """The space loaded into the world frame of this job (its up_axis/unit_scale), kept between tasks."""
         spec = job.spec
-        frame = space_frame_for(spec, space)  # the planner's frame: the spec's, else the space's chosen up
+        planned = job.planned_frames.get(space.name)
+        # exactly the planner's frame (recorded when it planned); before that record existed, recompute it
+        frame = {"source_to_world": planned} if planned is not None else space_frame_for(spec, space)
         key = f"{space.checksum}:{json.dumps(frame, sort_keys=True)}"
 
         def loader() -> SpaceContext:

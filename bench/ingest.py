@@ -143,6 +143,8 @@ def main() -> None:
         result["before"] = old.get("before") or {k: old[k] for k in ("all", "random_rotations", "axis_aligned",
                                                                        "icl_livingroom_random", "low_confidence_share")
                                                  if k in old}
+        if result["point_cloud"] is None and old.get("point_cloud"):  # not re-run: keep its last figures
+            result["point_cloud"] = {**old["point_cloud"], "note": "kept from the previous run (--cloud-points 0)"}
         if "before_unit_evidence" not in old and "real_corpus" in old:  # units by storey height alone
             real = old["real_corpus"]
             result["before_unit_evidence"] = {

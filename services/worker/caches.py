@@ -20,6 +20,7 @@ from services.core.db.jobs import job_root
 from services.core.db.models import Job, Space
 from services.core.domain.jobspec import JobSpec
 from services.core.domain.plan import SpacePlan, plan_from_json
+from services.core.ingest.frame_choice import space_frame_for
 from services.core.storage import ObjectStore
 
 T = TypeVar("T")
@@ -53,6 +54,12 @@ class JobInfo:
     def root_key(self, key: str) -> str:
         """`key` under this job's output root."""
         return f"{self.root}/{key}" if self.root else key
+
+    def frame_for(self, space: Space) -> dict[str, Any]:
+        """`load_space` keyword arguments of a space: exactly its planner's frame (recorded when it planned);
+        for a job planned before that record existed, the frame recomputed from the spec and the space."""
+        planned = self.planned_frames.get(space.name)
+        return {"source_to_world": planned} if planned is not None else space_frame_for(self.spec, space)
 
 
 def planned_frames(plan_summary: dict[str, Any] | None) -> dict[str, list[list[float]]]:

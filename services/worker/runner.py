@@ -34,7 +34,6 @@ from services.core.db.models import Space
 from services.core.domain.cues import OUTPUT_CUES, closure
 from services.core.domain.keys import output_key, passes_key
 from services.core.domain.plan import PlannedView, SpacePlan
-from services.core.ingest.frame_choice import space_frame_for
 from services.core.ingest.loading import load_space
 from services.core.ingest.registry import fetch_space
 from services.core.settings import Settings
@@ -139,10 +138,7 @@ class TaskRunner:
 
     def _space_context(self, job: JobInfo, space: Space) -> SpaceContext:
         """The space loaded into the world frame of this job (its up_axis/unit_scale), kept between tasks."""
-        spec = job.spec
-        planned = job.planned_frames.get(space.name)
-        # exactly the planner's frame (recorded when it planned); before that record existed, recompute it
-        frame = {"source_to_world": planned} if planned is not None else space_frame_for(spec, space)
+        frame = job.frame_for(space)  # exactly the planner's: a re-pick of the space's up cannot change it
         key = f"{space.checksum}:{json.dumps(frame, sort_keys=True)}"
 
         def loader() -> SpaceContext:

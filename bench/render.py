@@ -49,6 +49,7 @@ from services.core.domain.plan import CameraPose, PlannedView, PointOfInterest, 
 from services.core.ingest.loading import load_space  # noqa: E402
 from services.scheduler.planning import make_plan, space_rng  # noqa: E402
 from services.worker.cues.encoding import encode_png  # noqa: E402
+from services.worker.cues.registry import cue_value  # noqa: E402
 from services.worker.executor import make_context, produce  # noqa: E402
 from services.worker.passes import ViewGeometry  # noqa: E402
 from services.worker.space_cache import SpaceContext, peak_rss_bytes, rss_bytes  # noqa: E402
@@ -243,8 +244,8 @@ def run_room(n_views: int, resolution: int, repeats: int) -> dict:
                     inter[k].append(v)
             for c in cues:
                 per_cue[c].append(cue_s[c])
-    png = png_settings({c: ctx.value(c) for c in cues if CATALOG[c].ext == "png"})
-    exr = exr_settings(ctx.value("position"))
+    png = png_settings({c: cue_value(ctx, c) for c in cues if CATALOG[c].ext == "png"})
+    exr = exr_settings(cue_value(ctx, "position"))
     space.close()
     floor = float(np.median(floor_s))
     view_med = float(np.median(view_s))

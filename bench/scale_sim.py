@@ -115,6 +115,9 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
         # enough views that the job outlasts the run even at the ideal rate (4 views per point)
         tasks_per_view = len(cues) + 1
         n_views = int(1.5 * n_workers * (args.seconds + 60) / mean_s / tasks_per_view) + 100
+        # ... but no more than this host can plan and get through (at the ideal rate of 1,000 workers the job would
+        # be 2M tasks, and the planner would still be persisting them when the measurement starts)
+        n_views = min(n_views, args.max_views)
         plan = synthetic_plan("scale", n_views // 4 + 1, 4, resolution=32)
         space_id = labelled_space(sm, store, "scale")
         with sm() as s:
@@ -144,7 +147,7 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
                 return int(s.scalar(select(func.count()).select_from(Task).where(
                     Task.job_id == job_id, Task.state == state)) or 0)
 
-        deadline = time.monotonic() + 120
+        deadline = time.monotonic() + 300
         while count("running") < n_workers // 2 and time.monotonic() < deadline:
             time.sleep(0.5)  # planned, dispatched, workers started
         time.sleep(args.warmup)
@@ -286,6 +289,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--kill-fraction", type=float, default=0.02)
     p.add_argument("--heartbeat-timeout-s", type=int, default=10)
     p.add_argument("--window", type=int, default=0, help="dispatch window (0: 2 x workers, at least 20)")
+    p.add_argument("--max-views", type=int, default=20_000, help="views of the simulated job at most")
     p.add_argument("--warmup", type=float, default=5.0, help="seconds after the workers got busy before measuring")
     p.add_argument("--redis", default="", help="a running Redis (default: a private redis-server, CPU ours alone)")
     p.add_argument("--step", default="",

@@ -75,3 +75,23 @@ def test_frame_flags_set_the_frame_fields(tmp_path: Path) -> None:
     assert got.source_to_world is not None and got.source_to_world[0] == (0.0, 0.0, 2.0, 1.0)
     with pytest.raises(CliError, match="source_to_world sets the whole frame: leave up_axis unset"):
         build_spec(parse("--source-to-world", str(matrix), "--up-axis=+y"))
+
+
+def test_a_dataset_root_is_one_source_per_scene_named_by_its_id(tmp_path: Path) -> None:
+    from services.cli.spec_args import refused_summary, usable
+    from tests.fixtures import scan_datasets as ds
+
+    scans, split = tmp_path / "ScanNet" / "scans", tmp_path / "hm3d" / "train"
+    ds.write_scannet_scene(scans, "scene0000_00")
+    ds.write_scannet_scene(scans, "scene0707_00")
+    ds.write_hm3d_scene(split, "00801", "HaxA7YrQdEC", plain=False)
+    single = ds.write_replica_scene(tmp_path / "replica")  # a scene folder given as itself: one space
+    sources = check_sources([str(scans), str(split), str(single)])
+    assert [(s.name, s.from_root, s.refused is None) for s in sources] == [
+        ("scene0000_00", True, True), ("scene0707_00", True, True), ("00801-HaxA7YrQdEC", True, False),
+        ("room_0", False, True)]
+    assert all(s.checksum for s in sources if s.refused is None)
+    assert "00801-HaxA7YrQdEC: HaxA7YrQdEC.basis.glb" in refused_summary(sources)
+    assert [s.name for s in usable(sources)] == ["scene0000_00", "scene0707_00", "room_0"]
+    with pytest.raises(CliError, match="every scene was refused"):
+        usable(check_sources([str(split)]))

@@ -19,7 +19,7 @@ import sys
 from pathlib import Path
 
 from services.cli import CliError
-from services.cli.spec_args import add_spec_arguments, build_spec, check_sources
+from services.cli.spec_args import add_spec_arguments, build_spec, check_sources, refused_summary, usable
 from services.core.db.engine import make_engine, make_sessionmaker, migrate
 from services.core.domain.jobspec import JobSpec, cues_for_space
 from services.core.ingest.errors import SpaceError
@@ -40,20 +40,30 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar (log lines only)")
 
 
-def validate_sources(sources: list[Source], spec: JobSpec) -> None:
-    """Load every (not yet registered) space and check it can give the requested cues; CliError otherwise."""
-    for src in sources:
-        if src.has_semantics is not None:
-            continue
+def validate_sources(sources: list[Source], spec: JobSpec, *, progress: bool = False) -> None:
+    """Load every (not yet registered) space and check it can give the requested cues; CliError otherwise,
+    except for a scene of a dataset root, which is marked refused (the others go on)."""
+    todo = [s for s in sources if s.has_semantics is None and s.refused is None]
+    if progress and len(todo) > 1:
+        from tqdm import tqdm
+
+        todo = tqdm(todo, desc="spaces", unit="space", file=sys.stderr, dynamic_ncols=True)
+    for src in todo:
         try:
             loaded = load_space(src.path, **spec.space_frame())
         except SpaceError as e:
+            if src.from_root:
+                src.refused = str(e)
+                continue
             raise CliError(str(e)) from None
         src.loaded = loaded
         src.has_semantics = bool(loaded.has_semantics)
         try:
             cues_for_space(spec, has_semantics=src.has_semantics)
         except ValueError as e:
+            if src.from_root:
+                src.refused = str(e)
+                continue
             raise CliError(f"space {src.name!r}: {e}") from None
 
 
@@ -80,7 +90,11 @@ def run(args: argparse.Namespace) -> int:
         with sm() as s:
             find_spaces(s, sources)
         engine.dispose()
-    validate_sources(sources, spec)  # loads new spaces: bad input is refused before anything is created
+    validate_sources(sources, spec, progress=not args.no_progress)  # bad input refused before anything is created
+    refused = refused_summary(sources)
+    sources = usable(sources)
+    if refused:
+        print(f"omnidata generate: refused scene(s), left out of the job:\n{refused}", file=sys.stderr)
 
     migrate(settings.database_url)
     engine = make_engine(settings.database_url)
@@ -92,6 +106,9 @@ def run(args: argparse.Namespace) -> int:
             store.remove_temp_files()  # writes the interrupted run never committed; no worker runs yet
             print(f"omnidata generate: resuming job {prepared.job_id} in {out} ({prepared.requeued} interrupted, "
                   f"{prepared.redo} missing, {prepared.retried} failed tasks to redo)", file=sys.stderr)
-        return drive(sm, store, settings, out, prepared.job_id, workers, progress=not args.no_progress)
+        status = drive(sm, store, settings, out, prepared.job_id, workers, progress=not args.no_progress)
+        if refused:
+            print(f"omnidata generate: {len(sources)} space(s) done; refused scene(s):\n{refused}", file=sys.stderr)
+        return status
     finally:
         engine.dispose()

@@ -22,6 +22,7 @@ from services.core.domain.jobspec import cues_for_space
 from services.core.domain.keys import JOB_JSON_KEY, output_key
 from services.core.domain.plan import PlanError, plan_to_json
 from services.core.domain.plan_cues import encode_json, nonfixated, point_info, vanishing_points
+from services.core.ingest.datasets import expand_roots
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.loading import LoadedSpace
 from services.scheduler.plan_space import load_for_job, plan_record, plan_space
@@ -46,7 +47,14 @@ def _write_json(root: Path, key: str, data: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     """Plan every SPACE and write the plan-stage cues; see the module docstring."""
     spec = build_spec(args)
-    names = distinct_space_names([Path(s) for s in args.spaces])
+    scenes = expand_roots([Path(s) for s in args.spaces])  # a dataset root: its scenes, named by scene id
+    for scene in scenes:
+        if scene.refused is not None:
+            print(f"omnidata plan: refused scene {scene.scene_id}: {scene.refused}", file=sys.stderr)
+    given_spaces = [str(s.folder) for s in scenes if s.refused is None]
+    if not given_spaces:
+        raise CliError("every scene was refused")
+    names = distinct_space_names([Path(s) for s in given_spaces])
     out: Path = args.out
     if out.exists() and not out.is_dir():
         raise CliError(f"--out {out}: exists and is not a folder")
@@ -54,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
     spaces: dict[str, dict[str, Any]] = {}
     with tempfile.TemporaryDirectory(prefix="omnidata-plan-") as tmp:
         loaded: list[tuple[str, str, LoadedSpace]] = []
-        for i, (given, name) in enumerate(zip(args.spaces, names, strict=True)):
+        for i, (given, name) in enumerate(zip(given_spaces, names, strict=True)):
             try:
                 space = load_for_job(given, spec, extract_dir=Path(tmp) / str(i))
                 cues_for_space(spec, has_semantics=space.has_semantics)

@@ -19,6 +19,7 @@ from services.cli import CliError
 from services.cli.frame_args import add_frame_arguments
 from services.core.domain.jobspec import JobSpec
 from services.core.domain.keys import space_name
+from services.core.ingest.datasets import expand_roots
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.registry import Source, source_checksum
 
@@ -113,16 +114,40 @@ def distinct_space_names(paths: list[Path]) -> list[str]:
 
 
 def check_sources(paths: Sequence[str]) -> list[Source]:
-    """Each SPACE exists, holds exactly one mesh and has a distinct name; CliError otherwise."""
+    """Each SPACE exists and has a distinct name; a dataset root (e.g. ScanNet/scans/) becomes one space per
+    scene, named by its scene id, its unusable scenes marked refused; anything else must hold exactly one
+    mesh. CliError otherwise."""
     for raw in paths:
         if not Path(raw).expanduser().exists():
             raise CliError(f"{raw}: no such file or folder")
-    resolved = [Path(raw).expanduser().resolve() for raw in paths]
-    names = distinct_space_names([Path(raw).expanduser() for raw in paths])
+    scenes = expand_roots([Path(raw).expanduser() for raw in paths])
+    roots = {Path(raw).expanduser() for raw in paths}
+    names = distinct_space_names([s.folder for s in scenes])
     sources = []
-    for path, name in zip(resolved, names, strict=True):
+    for scene, name in zip(scenes, names, strict=True):
+        from_root = scene.folder not in roots
+        if scene.refused is not None:
+            sources.append(Source(scene.folder.resolve(), name, "", from_root=True, refused=scene.refused))
+            continue
         try:
-            sources.append(Source(path, name, source_checksum(path)))
+            sources.append(Source(scene.folder.resolve(), name, source_checksum(scene.folder.resolve()),
+                                  from_root=from_root))
         except SpaceError as e:
-            raise CliError(str(e)) from None
+            if not from_root:
+                raise CliError(str(e)) from None
+            sources.append(Source(scene.folder.resolve(), name, "", from_root=True, refused=str(e)))
     return sources
+
+
+def usable(sources: list[Source]) -> list[Source]:
+    """The sources that are not refused; CliError when none is left."""
+    ok = [s for s in sources if s.refused is None]
+    if not ok:
+        raise CliError("every scene was refused:\n" + refused_summary(sources))
+    return ok
+
+
+def refused_summary(sources: list[Source]) -> str:
+    """One line per refused scene of a dataset root ('' when none)."""
+    refused = [s for s in sources if s.refused is not None]
+    return "\n".join(f"  {s.name}: {s.refused}" for s in refused)

@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from services.cli import CliError
-from services.cli.spec_args import add_spec_arguments, build_spec, check_sources
+from services.cli.spec_args import add_spec_arguments, build_spec, check_sources, refused_summary, usable
 from services.core.db.models import JOB_TERMINAL_STATES, TASK_TERMINAL_STATES, JobState, TaskState
 
 
@@ -259,6 +259,9 @@ def run(args: argparse.Namespace) -> int:
         raise CliError("--direct needs OMNIDATA_DATABASE_URL: the database the service's scheduler reads")
     spec = build_spec(args)
     sources = check_sources(args.spaces)
+    if refused := refused_summary(sources):
+        print(f"omnidata submit: refused scene(s), left out of the job:\n{refused}", file=sys.stderr)
+    sources = usable(sources)
     if args.api:
         api = Api(args.api, args.token)
         job_id = submit_http(api, spec, sources)

@@ -5,10 +5,11 @@ from Pillow's raw buffer and reinterpreted as unsigned, so no Pillow version can
 that wrap 65535 ("no depth") or keypoint responses above 32767 negative.
 
 Units (what a training loop receives):
-  rgb                  float32 3xHxW in [0, 1]
+  rgb, rgb_*           float32 3xHxW in [0, 1] (rgb_refocus, rgb_fog, rgb_motion_blur, rgb_flash: augmentations)
   normal               float32 3xHxW unit vectors, camera frame x right, y up, z towards the viewer; NaN = none
   depth_*              float32 1xHxW metres; NaN = no surface
   mask_valid           bool 1xHxW
+  mask_photo           bool 1xHxW (capture views: the rgb is a photo's here)
   reshading            float32 1xHxW in [0, 1]
   principal_curvature  float32 2xHxW k1, k2 in 1/m (clipped to +-1/curvature_clip_m); NaN = none
   edge_*               float32 1xHxW Sobel response (stored value / edge_scale)
@@ -131,13 +132,13 @@ def decode_cue(cue: str, data: bytes, params: CueParams | None = None) -> np.nda
     params = params or CueParams()
     raw = read_raw(cue, data)
     assert isinstance(raw, np.ndarray)
-    if cue == "rgb":
+    if cue == "rgb" or cue.startswith("rgb_"):  # rgb_*: the 3D augmentations, sRGB like rgb
         return _chw((raw[..., :3] if raw.ndim == 3 else np.stack([raw] * 3, -1)).astype(np.float32) / 255.0)
     if cue == "normal":
         return _chw(normal_vectors(raw))
     if cue.startswith("depth_"):
         return _chw(depth_metres(raw, params))
-    if cue == "mask_valid":
+    if cue in ("mask_valid", "mask_photo"):
         return _chw(_grey(raw) > 0)
     if cue == "reshading":
         return _chw(_grey(raw).astype(np.float32) / 255.0)

@@ -5,10 +5,12 @@ webdataset: tar shards `OUT/shard-000000.tar`, ... with one sample per view keye
 file's bytes unchanged, and `<key>.json` with {space, component, point, view, point_info}. Per-point cues
 (nonfixated) go into every view of their point, so each sample stands alone.
 
-omnidata: the tree the public Omnidata dataloader (omnidata_tools/torch/dataloader) reads with no glue:
+omnidata: the tree the public Omnidata dataloader (omnidata_tools/torch/dataloader) reads:
 `OUT/<cue>/<component>/<space>/point_<p>_view_<v>_domain_<cue>.<ext>` (per-point files copied per view, since
-that loader parses every name as point_<p>_view_<v>_domain_<cue>), and its split CSV
-`OUT/component_datasets/<component>/train_val_test_<component>.csv` (id,train,val,test by space).
+that loader parses every name as point_<p>_view_<v>_domain_<cue>), and the split CSVs its component class opens
+(`OUT/component_datasets/<component>/train_val_test_*.csv`, id,train,val,test by space). That loader reads
+them only from its own package folder: the command's `--loader-dir CHECKOUT` installs them there
+(services.datasets.public_loader), or prints the one command that remains.
 
 SOURCE is a job's output folder, s3://bucket/prefix of a job root, or a service job's id (its root `jobs/<id>` in
 OMNIDATA_STORAGE_URL), read through its manifest. The output is
@@ -29,6 +31,7 @@ from services.core.domain.cues import CATALOG
 from services.core.domain.errors import Invalid
 from services.core.domain.keys import JOB_JSON_KEY
 from services.core.storage import ObjectStore
+from services.datasets.public_loader import LoaderComponent, split_rel_paths
 from services.datasets.source import (
     ViewRecord,
     index_root,
@@ -50,11 +53,6 @@ def omnidata_path(cue: str, component: str, record: ViewRecord) -> str:
     """Path of a cue file of a view in the public loader's tree (every cue named per view)."""
     return (f"{cue}/{component}/{record.space}/"
             f"point_{record.point}_view_{record.view}_domain_{cue}.{CATALOG[cue].ext}")
-
-
-def split_csv_path(component: str) -> str:
-    """Where the public loader's convention puts a component's split CSV, relative to the export root."""
-    return f"component_datasets/{component}/train_val_test_{component}.csv"
 
 
 def _tar_member(tar: tarfile.TarFile, name: str, data: bytes) -> None:
@@ -114,19 +112,19 @@ class Exporter:
             tar.close()
         return shards
 
-    def omnidata(self, out: Path, *, component: str, splits: dict[str, str]) -> int:
-        """Write the public loader's tree and split CSV; returns the number of files written."""
+    def omnidata(self, out: Path, *, comp: LoaderComponent, splits: dict[str, str]) -> int:
+        """Write the public loader's tree and split CSVs; returns the number of files written."""
         n = 0
         for record in self._views("omnidata"):
             for cue in self.cues:
                 if cue in record.files:
-                    target = out / omnidata_path(cue, component, record)
+                    target = out / omnidata_path(cue, comp.name, record)
                     target.parent.mkdir(parents=True, exist_ok=True)
                     target.write_bytes(self.read(record, cue))
                     n += 1
-        csv = out / split_csv_path(component)
-        csv.parent.mkdir(parents=True)
-        csv.write_text(split_csv_text(splits))
+        for rel in split_rel_paths(comp):  # the same split under every name the class opens
+            (out / rel).parent.mkdir(parents=True, exist_ok=True)
+            (out / rel).write_text(split_csv_text(splits))
         if self.job is not None:
             (out / JOB_JSON_KEY).write_text(json.dumps(self.job, indent=2))
         return n

@@ -98,7 +98,7 @@ def _grey_to_rgb(a: np.ndarray) -> np.ndarray:
 
 def _image_preview(cue: str, raw: np.ndarray, params: CueParams) -> np.ndarray:
     """HxWx3 uint8 of an image cue's stored array."""
-    if cue in ("rgb", "normal", "reshading", "mask_valid"):
+    if cue in ("rgb", "normal", "reshading", "mask_valid", "mask_photo") or cue.startswith("rgb_"):  # rgb_*: augmentations
         return _grey_to_rgb(raw).astype(np.uint8)
     if cue.startswith("depth_"):
         d = as_uint16(raw)
@@ -197,6 +197,22 @@ def _draw_vanishing_points(doc: dict[str, Any], size: int, resolution: int) -> I
     return img
 
 
+def _draw_augment_params(doc: dict[str, Any], size: int) -> Image.Image:
+    """The drawn augmentation parameters of the view, one line per cue."""
+    img, draw = _tile(size)
+    refocus, fog = doc.get("rgb_refocus", {}), doc.get("rgb_fog", {})
+    motion, flash = doc.get("rgb_motion_blur", {}), doc.get("rgb_flash", {})
+    lines = [
+        f"focus {refocus.get('focus_distance_m', 0):.2f} m f/{refocus.get('f_number', 0):.1f}",
+        f"fog beta {fog.get('beta_per_m', 0):.3f}/m A {fog.get('airlight', 0):.2f}",
+        "move " + " ".join(f"{1000 * float(x):.0f}" for x in motion.get("translation_m", [])) + " mm",
+        f"flash {flash.get('power_m2', 0):.2f} amb {flash.get('ambient', 0):.2f}",
+    ]
+    for i, line in enumerate(lines):
+        draw.text((4, 4 + i * 14), line, fill=(230, 230, 230))
+    return img
+
+
 def json_preview(cue: str, doc: dict[str, Any], *, view: int = 0, resolution: int | None = None) -> np.ndarray:
     """HxWx3 uint8 drawing of a JSON cue (pixel positions scaled from `resolution` to the tile)."""
     res = int(resolution or doc.get("resolution") or JSON_TILE_PX)
@@ -207,6 +223,8 @@ def json_preview(cue: str, doc: dict[str, Any], *, view: int = 0, resolution: in
         img = _draw_nonfixated(doc, size, view, res)
     elif cue == "vanishing_points":
         img = _draw_vanishing_points(doc, size, res)
+    elif cue == "augment_params":
+        img = _draw_augment_params(doc, max(size, 160))
     else:
         raise ValueError(f"cue {cue!r}: no preview drawing")
     return np.asarray(img)

@@ -37,6 +37,11 @@ from services.worker.heartbeat import expire_leases
 OWNER = "local"
 SPACES_PREFIX = ".omnidata/spaces"
 TICK_S = 0.1  # scheduler ticks at most 10 times a second (planning, dispatch, reaper, completion)
+# ... and at most TICK_CPU_SHARE of one core: a tick costs tens of milliseconds of CPU (SQLite scans through the
+# ORM) whatever the job's size, and with one core the workers pay for it (issue 20: ~0.1-0.3 CPU-s per view at
+# 10 ticks a second). A slower tick starves nobody: the dispatch window holds seconds of work per worker.
+TICK_CPU_SHARE = 0.05
+TICK_MAX_S = 1.0  # the slowest rate, so a finished job or a dead worker is still seen within a second
 SECRET_SETTINGS = {"api_tokens", "secret_key", "aws_access_key_id", "aws_secret_access_key"}
 
 
@@ -45,7 +50,7 @@ def embedded_settings(out: Path, workers: int) -> Settings:
     state = out / STATE_DIR
     return load_settings(
         data_dir=str(state), database_url=f"sqlite:///{state / 'state.db'}", storage_url=str(out),
-        dispatch_window=max(64, 32 * workers), env="development",
+        dispatch_window=max(128, 64 * workers), env="development",
     )
 
 
@@ -141,6 +146,7 @@ def run_until_final(sm: sessionmaker[Session], sched: Scheduler, pool: LocalPool
     while True:
         now = time.monotonic()
         if now >= next_tick:
+            cpu0 = time.process_time()
             res = sched.tick()
             if job_id in res.planned:
                 planned_at = time.monotonic()
@@ -156,8 +162,13 @@ def run_until_final(sm: sessionmaker[Session], sched: Scheduler, pool: LocalPool
                 expire_leases(sm, dead)
             if deadline is not None and time.monotonic() > deadline:
                 raise TimeoutError(f"job {job_id} did not finish in {timeout} s")
-            next_tick = time.monotonic() + (0.0 if res.busy else TICK_S)
+            next_tick = time.monotonic() + (0.0 if res.busy else tick_interval(time.process_time() - cpu0))
         pool.drain(max(0.0, next_tick - time.monotonic()))
+
+
+def tick_interval(tick_cpu_s: float) -> float:
+    """Seconds until the next tick after one that took `tick_cpu_s` CPU seconds (TICK_CPU_SHARE of a core)."""
+    return min(TICK_MAX_S, max(TICK_S, tick_cpu_s / TICK_CPU_SHARE))
 
 
 def drive(sm: sessionmaker[Session], store: ObjectStore, settings: Settings, out: Path, job_id: int, workers: int, *, progress: bool) -> int:

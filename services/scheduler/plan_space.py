@@ -49,6 +49,7 @@ def plan_summary_of(loaded: LoadedSpace, plan: SpacePlan, spec: JobSpec) -> dict
         "unit_scale": loaded.units.scale if loaded.units is not None else spec.unit_scale,
         "warnings": list(loaded.warnings),
         **loaded.frame_record(),
+        **({"capture_plan": plan.capture} if plan.capture is not None else {}),
     }
 
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 import trimesh
+from numba import njit
 from scipy.spatial import cKDTree
 
 MAX_SAMPLES = 4_000_000  # ~200 MB of samples; beyond it (huge area, tiny radius) neighbourhoods thin out
@@ -87,24 +88,59 @@ def _fit_chunk(p: np.ndarray, n: np.ndarray, pts: np.ndarray, snormals: np.ndarr
     k = min(MAX_NEIGHBOURS, len(pts))
     dist, idx = tree.query(p, k=k, distance_upper_bound=radius)
     dist, idx = dist.reshape(len(p), k), idx.reshape(len(p), k)
-    present = np.isfinite(dist)
-    idx = np.where(present, idx, 0)
-    d = pts[idx] - p[:, None, :]  # B x k x 3
-    agree = np.einsum("bkc,bc->bk", snormals[idx], n)
-    sigma = radius / 2.0
-    w = np.where(present & (np.abs(agree) > 0.35), np.exp(-0.5 * (np.where(present, dist, 0) / sigma) ** 2), 0.0)
     t1, t2 = _tangent_frames(n)
-    # Scale coordinates by the radius so the normal equations are well conditioned for any mesh unit.
-    u = np.einsum("bkc,bc->bk", d, t1) / radius
-    v = np.einsum("bkc,bc->bk", d, t2) / radius
-    h = np.einsum("bkc,bc->bk", d, n) / radius
-    phi = np.stack([u * u, u * v, v * v, u, v, np.ones_like(u)], axis=-1)  # B x k x 6
-    A = np.einsum("bki,bk,bkj->bij", phi, w, phi)
-    rhs = np.einsum("bki,bk,bk->bi", phi, w, h)
-    count = (w > 0).sum(axis=1)
-    A += np.eye(6) * 1e-9 * (np.trace(A, axis1=1, axis2=2)[:, None, None] + 1e-12)
-    coef = np.linalg.solve(A, rhs[..., None])[..., 0]
-    a, b, c, du, dv = (coef[:, i] for i in range(5))
+    return _fit_kernel(p, n, t1, t2, pts, snormals, dist, idx, float(radius))
+
+
+@njit(cache=True, nogil=True)
+def _fit_kernel(p: np.ndarray, n: np.ndarray, t1: np.ndarray, t2: np.ndarray, pts: np.ndarray,
+                snormals: np.ndarray, dist: np.ndarray, idx: np.ndarray, radius: float) -> np.ndarray:
+    """One vertex at a time (compiled: no B x k x 6 temporaries): weighted least squares of
+    h = a u^2 + b uv + c v^2 + d u + e v + g on the neighbours, then the shape operator's eigenvalues."""
+    out = np.zeros((len(p), 2), np.float32)
+    sigma = radius / 2.0
+    phi = np.empty(6)
+    for b in range(len(p)):
+        A = np.zeros((6, 6))
+        rhs = np.zeros(6)
+        count = 0
+        for j in range(dist.shape[1]):
+            dj = dist[b, j]
+            if not np.isfinite(dj):
+                continue
+            q = idx[b, j]
+            agree = snormals[q, 0] * n[b, 0] + snormals[q, 1] * n[b, 1] + snormals[q, 2] * n[b, 2]
+            if not abs(agree) > 0.35:
+                continue
+            w = np.exp(-0.5 * (dj / sigma) ** 2)
+            if w > 0:
+                count += 1
+            dx, dy, dz = pts[q, 0] - p[b, 0], pts[q, 1] - p[b, 1], pts[q, 2] - p[b, 2]
+            # Scale coordinates by the radius so the normal equations are well conditioned for any mesh unit.
+            u = (dx * t1[b, 0] + dy * t1[b, 1] + dz * t1[b, 2]) / radius
+            v = (dx * t2[b, 0] + dy * t2[b, 1] + dz * t2[b, 2]) / radius
+            h = (dx * n[b, 0] + dy * n[b, 1] + dz * n[b, 2]) / radius
+            phi[0], phi[1], phi[2], phi[3], phi[4], phi[5] = u * u, u * v, v * v, u, v, 1.0
+            for r in range(6):
+                wr = w * phi[r]
+                rhs[r] += wr * h
+                for c in range(6):
+                    A[r, c] += wr * phi[c]
+        if count < 8:
+            continue
+        trace = 0.0
+        for r in range(6):
+            trace += A[r, r]
+        for r in range(6):
+            A[r, r] += 1e-9 * (trace + 1e-12)
+        coef = np.linalg.solve(A, rhs)
+        out[b, 0], out[b, 1] = _principal(coef[0], coef[1], coef[2], coef[3], coef[4], radius)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _principal(a: float, b: float, c: float, du: float, dv: float, radius: float) -> tuple[float, float]:
+    """(k1, k2) of the Monge patch h = a u^2 + b uv + c v^2 + du u + dv v at the origin, 0 if not finite."""
     # Back to mesh units: h/r = a (u/r)^2 + ... => second derivatives scale by 1/r, first are unitless.
     a, b, c = a / radius, b / radius, c / radius
     E, F, G = 1 + du * du, du * dv, 1 + dv * dv
@@ -117,10 +153,11 @@ def _fit_chunk(p: np.ndarray, n: np.ndarray, pts: np.ndarray, snormals: np.ndarr
     s21 = (E * M - F * L) / det_i
     s22 = (E * N - F * M) / det_i
     tr, det = s11 + s22, s11 * s22 - s12 * s21
-    disc = np.sqrt(np.maximum(tr * tr / 4 - det, 0.0))
+    disc = np.sqrt(max(tr * tr / 4 - det, 0.0))
     e_hi, e_lo = tr / 2 + disc, tr / 2 - disc
     # h is measured along the normal, so a convex bump (surface bending away from the normal) has negative
     # eigenvalues; flip so convex is positive, and keep k1 >= k2.
     k1, k2 = -e_lo, -e_hi
-    ok = (count >= 8) & np.isfinite(k1) & np.isfinite(k2)
-    return np.stack([np.where(ok, k1, 0.0), np.where(ok, k2, 0.0)], axis=1).astype(np.float32)
+    if not (np.isfinite(k1) and np.isfinite(k2)):
+        return 0.0, 0.0
+    return k1, k2

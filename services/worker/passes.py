@@ -77,7 +77,7 @@ class ViewGeometry:
         return pixel_rays(self.K, self.world_to_camera, self.resolution, self.resolution)
 
 
-OPTIONAL_ARRAYS = ("normal_world", "face_index", "face_class", "face_instance", "curvature")
+OPTIONAL_ARRAYS = ("normal_world", "face_index", "face_class", "face_instance", "curvature", "photo_coverage")
 
 
 @dataclass
@@ -93,6 +93,7 @@ class ViewPasses:
     face_class, face_instance: int32 H x W or None (unlabelled space): the space's ids as given (a scan may use
         negative ids for unlabelled faces), -1 where nothing is seen (tell the two apart with `hit`).
     curvature: float32 H x W x 2 (k1 >= k2, 1/m, positive = convex) or None when not rendered; NaN = no surface.
+    photo_coverage: bool H x W where rgb is a photograph's (services.worker.photos), None for mesh rgb.
     """
 
     geometry: ViewGeometry
@@ -103,6 +104,7 @@ class ViewPasses:
     face_class: np.ndarray | None = None
     face_instance: np.ndarray | None = None
     curvature: np.ndarray | None = None
+    photo_coverage: np.ndarray | None = None  # bool H x W: rgb came from a photo here (capture views); else None
     meta: dict[str, float] = field(default_factory=dict)  # render timings etc., not part of the contract
 
     @property

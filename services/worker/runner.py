@@ -136,15 +136,22 @@ class TaskRunner:
         info = self.store.put_bytes(key, data)
         return key, info
 
-    def _space_context(self, job: JobInfo, space: Space) -> SpaceContext:
+    def _space_context(self, job: JobInfo, space: Space, plan: SpacePlan | None = None) -> SpaceContext:
         """The space loaded into the world frame of this job (its up_axis/unit_scale), kept between tasks."""
+        spec = job.spec
         frame = job.frame_for(space)  # exactly the planner's: a re-pick of the space's up cannot change it
-        key = f"{space.checksum}:{json.dumps(frame, sort_keys=True)}"
+        refined = (plan.capture or {}).get("refined") if plan is not None else None  # the planner's colour camera
+        photos = f"{spec.uses_photos()}:{json.dumps(refined and refined['correction'], sort_keys=True)}"
+        key = f"{space.checksum}:{json.dumps(frame, sort_keys=True)}:photos={photos}"
 
         def loader() -> SpaceContext:
+            from services.worker.photos import painter_for
+
             path = fetch_space(self.store, space, self.cache_dir)
             loaded = load_space(path, **frame)
-            return SpaceContext.from_loaded(loaded, key=key, device=self.render_device, threads=self.render_threads)
+            ctx = SpaceContext.from_loaded(loaded, key=key, device=self.render_device, threads=self.render_threads)
+            ctx.photos = painter_for(loaded, spec, refined)
+            return ctx
 
         return self.space_cache.get(key, loader)
 
@@ -165,7 +172,7 @@ class TaskRunner:
         if passes is not None:
             ctx = ViewContext(view, params, passes=passes, plan=plan)
         else:
-            space_ctx = self._space_context(job, space)
+            space_ctx = self._space_context(job, space, plan)
             ctx = ViewContext(view, params, space=space_ctx, plan=plan, render_passes=self._job_passes(job))
             _ = ctx.passes  # render now, so the time is booked to this task
             self.renders += 1

@@ -44,6 +44,7 @@ class SpaceContext:
     device: str = "cpu"
     threads: int | None = None
     stats: dict[str, float] = field(default_factory=dict)
+    photos: Any = None  # a services.worker.photos.PhotoPainter when rgb comes from a capture's photos
     _curvature: dict[float, np.ndarray] = field(default_factory=dict, repr=False)
     _scene: BlenderScene | None = field(default=None, repr=False)
     _scene_curvature_radius: float | None = field(default=None, repr=False)
@@ -100,7 +101,8 @@ class SpaceContext:
         if "curvature" in passes and self._scene_curvature_radius != params.curvature_radius_m:
             scene.set_curvature(self.curvature(params.curvature_radius_m))
             self._scene_curvature_radius = params.curvature_radius_m
-        return scene.render(view, passes)
+        out = scene.render(view, passes)
+        return self.photos.paint(view, out) if self.photos is not None else out
 
     def close(self) -> None:
         """Free the Blender scene and cached arrays."""

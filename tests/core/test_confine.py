@@ -24,7 +24,7 @@ from services.core.ingest.texture_limits import MAX_TEXTURE_SIDE, texture_refusa
 from services.core.storage import LocalStore, ObjectNotFoundError
 from services.core.temp_dirs import owned_prefix, sweep_orphans
 from tests.fixtures.file_watch import OpenWatch
-from tests.hostile_corpus import HOSTILE_FILES, png_declaring, secret_files
+from tests.hostile_corpus import HOSTILE_FILES, UV_FACES, png_declaring, secret_files
 
 
 def test_resolver_serves_inside_and_refuses_everything_else(tmp_path: Path) -> None:
@@ -150,3 +150,18 @@ def test_killed_api_leaves_no_upload_folder(tmp_path: Path, pg_url: str) -> None
     assert folder.exists()  # kill -9: nothing cleaned
     with make_api(pg_url, LocalStore(tmp_path / "objects")):
         assert not folder.exists()
+
+
+def test_packing_keeps_the_library_trimesh_reads_behind_a_comment(tmp_path: Path) -> None:
+    """What the loader textured at upload is what the stored zip holds, so planning renders the same."""
+    from services.core.ingest.archive import resolve_source
+    from services.core.ingest.registry import pack_source
+
+    (tmp_path / "scan").mkdir()
+    obj = tmp_path / "scan" / "scan.obj"
+    obj.write_bytes(b"# mtllib evil.mtl\nusemtl m\n" + UV_FACES)
+    (obj.parent / "evil.mtl").write_text("newmtl m\nmap_Kd tex.png\n")
+    (obj.parent / "tex.png").write_bytes(png_declaring(4, 4))
+    packed = pack_source(obj, resolve_source(obj), tmp_path)
+    with zipfile.ZipFile(packed) as zf:
+        assert sorted(zf.namelist()) == ["evil.mtl", "scan.obj", "tex.png"]

@@ -116,3 +116,19 @@ def test_space_frame_fields() -> None:
     T = [[0, -2, 0, 1], [2, 0, 0, 2], [0, 0, 2, 3], [0, 0, 0, 1]]  # a turn, 2 m per unit, a shift: accepted
     assert JobSpec.model_validate({"source_to_world": T}).space_frame()["source_to_world"][0] == (0, -2, 0, 1)
     assert JobSpec.model_validate_json(spec.model_dump_json()) == spec
+
+
+def test_capture_fields() -> None:
+    spec = JobSpec.model_validate({"cameras": {"mode": "capture"}})
+    assert spec.uses_photos() and spec.cameras.capture_views == "exact"
+    assert "mask_photo" in cues_for_space(spec, has_semantics=False)
+    assert not JobSpec().uses_photos() and "mask_photo" not in cues_for_space(JobSpec(), has_semantics=False)
+    assert JobSpec.model_validate({"views": {"rgb_source": "photos"}}).uses_photos()
+    assert not JobSpec.model_validate({"cameras": {"mode": "capture"}, "views": {"rgb_source": "mesh"}}).uses_photos()
+    with pytest.raises(ValidationError, match="mask_photo"):
+        JobSpec.model_validate({"cues": ["rgb", "mask_photo"]})
+    for bad in ({"cameras": {"mode": "capture", "capture_fov_deg": 0.5}}, {"views": {"min_alignment": -1}},
+                {"views": {"min_photo_coverage": 1.5}}, {"views": {"rgb_source": "texture"}},
+                {"cameras": {"capture_views": "orbit"}}, {"views": {"photo_count": 0}}):
+        with pytest.raises(ValidationError):
+            JobSpec.model_validate(bad)

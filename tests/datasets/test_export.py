@@ -131,9 +131,9 @@ def test_export_from_s3(small_job: Path, s3_server: S3Server, tmp_path: Path, ca
     assert len(read_shards(tmp_path / "wds")) == 4
     # a service job by id: its root jobs/<id> in the service's store
     monkeypatch.setenv("OMNIDATA_STORAGE_URL", f"s3://{s3_server.bucket}/exports")
-    code, out, err = run(capsys, "job:7", "--format", "omnidata", "--out", tmp_path / "omni")
+    code, out, err = run(capsys, "job:7", "--format", "omnidata", "--out", tmp_path / "omni", "--component", "replica")
     assert code == 0, err
-    assert (tmp_path / "omni/rgb/tiny/ycb_banana/point_1_view_1_domain_rgb.png").read_bytes() == (
+    assert (tmp_path / "omni/rgb/replica/ycb_banana/point_1_view_1_domain_rgb.png").read_bytes() == (
         small_job / "rgb/tiny/ycb_banana/point_1_view_1_domain_rgb.png").read_bytes()
     code, out, err = run(capsys, "8", "--format", "omnidata", "--out", tmp_path / "none")
     assert code == 2 and "manifest" in err and not (tmp_path / "none").exists()
@@ -151,9 +151,15 @@ def test_bad_exports_are_refused_and_leave_nothing(
         ((small_job, "--format", "webdataset", "--out", tmp_path / "a", "--cues", "rgb,bogus"), "unknown cue"),
         ((small_job, "--format", "webdataset", "--out", tmp_path / "b", "--cues", "segment_semantic"), "not in this dataset"),
         ((small_job, "--format", "webdataset", "--out", tmp_path / "c", "--shard-size", 0), "--shard-size"),
-        ((small_job, "--format", "omnidata", "--out", tmp_path / "d", "--split-ratios", "0.5,0.6,0"), "--split-ratios"),
+        ((small_job, "--format", "omnidata", "--out", tmp_path / "d", "--component", "replica",
+          "--split-ratios", "0.5,0.6,0"), "--split-ratios"),
         ((small_job, "--format", "omnidata", "--out", tmp_path / "e", "--component", "../up"), "not a valid name"),
         ((tmp_path / "missing", "--format", "omnidata", "--out", tmp_path / "f"), "is not a folder"),
+        # a component no loader class reads: named, and the known ones listed (the job's name 'tiny' too)
+        ((small_job, "--format", "omnidata", "--out", tmp_path / "h", "--component", "gso"), "known: taskonomy"),
+        ((small_job, "--format", "omnidata", "--out", tmp_path / "i"), "'tiny' is not one the public Omnidata loader"),
+        ((small_job, "--format", "omnidata", "--out", tmp_path / "j", "--component", "replica",
+          "--loader-dir", tmp_path / "taken"), "is not the public Omnidata dataloader"),
     ]
     for args, message in cases:
         code, _, err = run(capsys, *args)

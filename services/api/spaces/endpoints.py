@@ -39,6 +39,12 @@ _UPLOAD_BODY: dict[str, Any] = {
                             "description": "a mesh (.ply, .obj, .glb, .gltf), a point cloud (.ply, .xyz, .pts) "
                             "or a .zip with mesh + textures",
                         },
+                        "capture": {
+                            "type": "string",
+                            "format": "binary",
+                            "description": "optional: a .zip of the scan's posed capture (COLMAP, transforms.json, "
+                            "ScanNet export, 7-Scenes frames, camera_poses.json), stored with the scan",
+                        },
                         "name": {"type": "string", "description": "default: the file name without extension"},
                         "up_axis": {"type": "string", "enum": ["auto", "+x", "-x", "+y", "-y", "+z", "-z"]},
                         "unit_scale": {
@@ -73,6 +79,12 @@ async def upload_space(
         except ValidationError as e:
             errors = validation_errors(e.errors())
             raise RequestValidationError([{**err, "loc": ["body", *err["loc"]]} for err in errors]) from None
+        source = upload.path
+        if upload.capture_path is not None:  # scan + capture as two parts: one folder, stored together
+            from services.core.ingest.capture.bundle import bundle_scan_and_capture
+
+            source = await run_in_threadpool(bundle_scan_and_capture, upload.path, upload.capture_path,
+                                             Path(tmp) / "bundle" / Path(upload.filename).stem)
         space = await run_in_threadpool(
             service.create_space,
             session,
@@ -80,7 +92,7 @@ async def upload_space(
             settings,
             owner=tenant,
             name=opts.name or service.default_name(upload.filename),
-            source_path=upload.path,
+            source_path=source,
             up_axis=opts.up_axis,
             unit_scale=opts.unit_scale,
         )

@@ -17,6 +17,7 @@ from fastapi import HTTPException, Request, status
 from python_multipart.multipart import MultipartParser, MultipartState, parse_options_header
 
 FILE_FIELD = "file"
+CAPTURE_FIELD = "capture"  # optional: a .zip of the scan's posed capture (photos + poses), sent beside the scan
 MAX_FIELDS = 16
 MAX_FIELD_BYTES = 4096
 MULTIPART_OVERHEAD = 64 * 1024  # headers and boundaries a Content-Length may add on top of the file
@@ -31,6 +32,7 @@ class Upload:
     filename: str | None = None
     path: Path | None = None
     size: int = 0
+    capture_path: Path | None = None  # the capture .zip part, when one was sent
     sha256: str = ""
 
 
@@ -108,9 +110,22 @@ async def receive_upload(request: Request, *, dest_dir: Path, max_bytes: int) ->
         nonlocal out
         _disp, opts = parse_options_header(headers.get(b"content-disposition", b""))
         part.name = opts.get(b"name", b"").decode("utf-8", "replace")
-        if b"filename" in opts:
+        if b"filename" in opts and part.name == CAPTURE_FIELD:
+            if up.capture_path is not None:
+                fail(status.HTTP_422_UNPROCESSABLE_CONTENT, "send at most one 'capture' part")
+                return
+            name = opts[b"filename"].decode("utf-8", "replace")
+            if not name.lower().endswith(".zip"):
+                fail(status.HTTP_422_UNPROCESSABLE_CONTENT, "the 'capture' part must be a .zip of the capture")
+                return
+            (dest_dir / CAPTURE_FIELD).mkdir(exist_ok=True)
+            up.capture_path = dest_dir / CAPTURE_FIELD / "capture.zip"
+            out = up.capture_path.open("wb")
+            part.is_file = True
+        elif b"filename" in opts:
             if part.name != FILE_FIELD:
-                fail(status.HTTP_422_UNPROCESSABLE_CONTENT, f"unexpected file part {part.name!r}: send the scan as 'file'")
+                fail(status.HTTP_422_UNPROCESSABLE_CONTENT,
+                     f"unexpected file part {part.name!r}: send the scan as 'file' (and a capture .zip as 'capture')")
                 return
             if up.filename is not None:
                 fail(status.HTTP_422_UNPROCESSABLE_CONTENT, "send exactly one 'file' part")
@@ -143,6 +158,13 @@ async def receive_upload(request: Request, *, dest_dir: Path, max_bytes: int) ->
             part.buf.extend(chunk)
 
     def on_part_end() -> None:
+        nonlocal out
+        if part.is_file and out is not None:  # the next file part opens its own file: finish this one now
+            if pending:
+                out.write(b"".join(pending))
+                pending.clear()
+            out.close()
+            out = None
         if errors or part.is_file or not part.name:
             return
         up.fields[part.name] = part.buf.decode("utf-8", "replace")

@@ -40,7 +40,8 @@ def _relative(job: Job, key: str | None, fallback: str) -> str:
 
 
 def iter_manifest(session: Session, job: Job) -> Iterator[dict[str, Any]]:
-    """One dict per view: {"space", "point", "view", "outputs": {cue: {"key", "size", "sha256"}}}.
+    """One dict per view: {"space", "point", "view", "outputs": {cue: {"key", "size", "sha256"}}}, plus "alignment"
+    (the photo/geometry score) for views at capture cameras.
 
     Sorted by space name, point, view; internal cues (the pass cache) are left out; per-point cues
     appear on view 0 of their point; only done tasks are listed.
@@ -48,7 +49,10 @@ def iter_manifest(session: Session, job: Job) -> Iterator[dict[str, Any]]:
     component = job.name
     public = [n for n, c in CATALOG.items() if not c.internal]
     spaces = sorted(job_spaces(session, job.id), key=lambda pair: pair[1].name)
+    planned = (job.plan_summary or {}).get("spaces", {})
     for _js, sp in spaces:
+        # capture views: the photo/geometry alignment score of each view, "point/view" -> score
+        alignment = (planned.get(sp.name, {}).get("capture_plan") or {}).get("view_alignment") or {}
         max_point = session.scalar(
             select(func.max(View.point_idx)).where(View.job_id == job.id, View.space_id == sp.id)
         )
@@ -84,6 +88,7 @@ def iter_manifest(session: Session, job: Job) -> Iterator[dict[str, Any]]:
                     "point": int(p),
                     "view": int(v),
                     "outputs": {c: outs[c] for c in public if c in outs},  # catalog order
+                    **({"alignment": alignment[f"{p}/{v}"]} if f"{p}/{v}" in alignment else {}),
                 }
 
 

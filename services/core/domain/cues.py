@@ -81,6 +81,19 @@ CATALOG: dict[str, Cue] = {
             "json", 0, "derive", ("point_info",)),
         Cue("position", "exr", "float32 RGB world XYZ in metres, NaN = none", "float32", 3, "render",
             ("passes",)),
+        Cue("mask_photo", "png", "8-bit, 255 where the rgb came from a photo (capture views), else 0", "uint8", 1,
+            "render", ("passes",), default=False),
+        # 3D augmentations (ours, optional): rgb corrupted with the view's depth; parameters drawn per view
+        Cue("augment_params", "json", "the augmentation parameters drawn for this view", "json", 0, "derive",
+            ("depth_zbuffer",), default=False),
+        Cue("rgb_refocus", "png", "8-bit RGB, thin-lens defocus at a drawn focus distance and f-number", "uint8", 3,
+            "derive", ("rgb", "depth_zbuffer", "augment_params"), default=False),
+        Cue("rgb_fog", "png", "8-bit RGB, J t + A (1 - t), t = exp(-beta d)", "uint8", 3, "derive",
+            ("rgb", "depth_euclidean", "augment_params"), default=False),
+        Cue("rgb_motion_blur", "png", "8-bit RGB, camera translation during the exposure, warped by depth", "uint8",
+            3, "derive", ("rgb", "depth_zbuffer", "augment_params"), default=False),
+        Cue("rgb_flash", "png", "8-bit RGB, a flash at the camera: ambient + power x shading / d^2", "uint8", 3,
+            "derive", ("rgb", "depth_euclidean", "reshading", "augment_params"), default=False),
     ]
 }
 

@@ -21,7 +21,7 @@ JOB_FORMAT = "omnidata.job/2"
 LAYOUT = "<cue>/<component>/<space>/point_<p>_view_<v>_domain_<cue>.<ext>"
 STAGES = ("plan", "render")
 # what LoadedSpace.frame_record() may hold; always present in a space record (null when not detected/given)
-FRAME_RECORD_KEYS = ("up", "units", "reconstruction", "class_names")
+FRAME_RECORD_KEYS = ("up", "units", "reconstruction", "class_names", "capture", "capture_plan")
 
 
 def code_version() -> str:

@@ -12,6 +12,7 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator, model_validator
 
+from services.core.domain.augment_spec import AugmentParams
 from services.core.domain.cues import validate_cue_names
 from services.core.domain.keys import check_name
 
@@ -59,8 +60,9 @@ class ProvidedPose(_Strict):
 
 
 class CameraSpec(_Strict):
-    mode: Literal["generate", "provided", "object"] = Field(
-        "generate", description="generate: Poisson-disc in free space; provided: poses; object: on a sphere"
+    mode: Literal["generate", "provided", "object", "capture"] = Field(
+        "generate", description="generate: Poisson-disc in free space; provided: poses; object: on a sphere; "
+        "capture: the cameras of the posed capture next to the scan (services.core.ingest.capture)"
     )
     min_spacing_m: float = Field(0.5, gt=0, le=100, description="Poisson-disc minimum spacing")
     height_min_m: float = Field(0.2, ge=0, le=100, description="camera height above the floor, lower bound")
@@ -73,6 +75,19 @@ class CameraSpec(_Strict):
     object_count: int = Field(32, ge=1, le=100_000, description="cameras on the sphere (mode=object)")
     object_distance_factor: float = Field(
         2.0, gt=1.0, le=100, description="sphere radius / bounding-sphere radius (mode=object)"
+    )
+    # posed captures (issue 18): mode=capture
+    capture_views: Literal["exact", "fixated"] = Field(
+        "exact", description="exact: one view at each capture camera (its photo as RGB); fixated: the usual points "
+        "and views from the capture positions (the photo turned by a rotation homography)"
+    )
+    capture_fov_deg: float | None = Field(
+        None, ge=FOV_LIMITS_DEG[0], le=FOV_LIMITS_DEG[1],
+        description="field of view of exact capture views; None: the widest square the photo fills",
+    )
+    capture_refine: bool = Field(
+        False, description="refine the capture's colour camera (focal length, principal point, offset) by "
+        "maximising the photo/geometry alignment score before planning; recorded in job.json"
     )
 
     @model_validator(mode="after")
@@ -133,6 +148,21 @@ class ViewSpec(_Strict):
         0.0, ge=0, le=1, description="drop views whose share of pixels with a surface (a low-resolution ray cast "
         "at planning time) is below this; 0 keeps all, as Omnidata"
     )
+
+    # posed captures (issue 18)
+    rgb_source: Literal["auto", "mesh", "photos"] = Field(
+        "auto", description="rgb from the mesh texture or the capture's photos; auto: photos for cameras.mode "
+        "capture, else the mesh"
+    )
+    min_alignment: float = Field(
+        0.0, ge=0, le=100, description="drop capture views whose photo/geometry alignment score is below this "
+        "(~1 is chance; 0 keeps all)"
+    )
+    min_photo_coverage: float = Field(
+        0.5, ge=0, le=1, description="drop views whose share of pixels the photos cover is below this "
+        "(capture views and rgb_source photos)"
+    )
+    photo_count: int = Field(3, ge=1, le=16, description="photos blended per pixel for rgb_source photos")
 
     @model_validator(mode="after")
     def _check(self) -> ViewSpec:
@@ -198,6 +228,7 @@ class CueParams(_Strict):
         255.0, gt=0, le=1e9, description="RAG similarity exp(-|mean difference|^2 / sigma), features on a 0..255 scale"
     )
     segment_num_cuts: int = Field(10, ge=1, le=100, description="thresholds tried per normalized cut")
+    augment: AugmentParams = Field(AugmentParams(), description="distributions of the 3D augmentation cues' parameters")
 
 
 class JobSpec(_Strict):
@@ -268,6 +299,10 @@ class JobSpec(_Strict):
             similarity_scale(v)
         return v
 
+    def uses_photos(self) -> bool:
+        """True when rgb comes from the capture's photos (rgb_source photos, or auto with capture cameras)."""
+        return self.views.rgb_source == "photos" or (self.views.rgb_source == "auto" and self.cameras.mode == "capture")
+
     def space_frame(self) -> dict[str, Any]:
         """The keyword arguments of `services.core.ingest.loading.load_space` that set the space frame."""
         return {"up_axis": self.up_axis, "unit_scale": self.unit_scale, "up": self.up,
@@ -282,6 +317,8 @@ class JobSpec(_Strict):
                 raise ValueError(f"source_to_world sets the whole frame: leave {', '.join(given)} unset")
         if self.up is not None and self.up_axis != "auto":
             raise ValueError("give either up (a vector) or up_axis (an axis name), not both")
+        if self.cues is not None and "mask_photo" in self.cues and not self.uses_photos():
+            raise ValueError("cue 'mask_photo' needs rgb from photos: cameras.mode capture or views.rgb_source photos")
         cams = self.cameras
         if cams.mode == "provided" and cams.poses is not None and len(cams.poses) < self.points.min_views:
             raise ValueError(
@@ -372,6 +409,6 @@ def cues_for_space(spec: JobSpec, *, has_semantics: bool) -> list[str]:
     from services.core.domain.cues import default_cues, require_supported
 
     if spec.cues is None:
-        return default_cues(has_semantics)
+        return default_cues(has_semantics) + (["mask_photo"] if spec.uses_photos() else [])
     require_supported(spec.cues, has_semantics=has_semantics)
     return list(spec.cues)

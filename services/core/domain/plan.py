@@ -22,7 +22,7 @@ from services.core.domain.camera import (
 )
 
 PLAN_FORMAT = "omnidata.plan/1"
-CAMERA_SOURCES = ("generated", "provided", "object")
+CAMERA_SOURCES = ("generated", "provided", "object", "capture")
 
 
 class PlanError(ValueError):
@@ -81,6 +81,8 @@ class PlannedView:
     resolution: int  # square image size, pixels
     obliqueness: float  # radians between the point normal and the direction to the camera
     in_sight: bool  # line of sight from the camera centre to the point
+    alignment: float | None = None  # capture views: photo/geometry alignment score (~1 chance)
+    photo_coverage: float | None = None  # views with photo rgb: predicted share of pixels a photo covers
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "world_to_camera", _frozen_array(self.world_to_camera, (4, 4)))
@@ -109,6 +111,7 @@ class SpacePlan:
     # trajectory clips cut short or dropped by the motion/clearance/visibility checks: point_idx (None
     # when dropped), outcome, frames, planned_frames, reasons {check: failed frames}
     clip_notes: tuple[dict[str, Any], ...] = ()
+    capture: dict[str, Any] | None = None  # capture plans: frames used and dropped, alignment distribution
 
     def views_of(self, point_idx: int) -> tuple[PlannedView, ...]:
         """The views of one point, v = 0..n-1."""
@@ -229,9 +232,12 @@ def plan_to_dict(plan: SpacePlan) -> dict[str, Any]:
                 "world_to_camera": float_list(v.world_to_camera), "fov": float(v.fov), "roll": float(v.roll),
                 "resolution": int(v.resolution), "obliqueness": float(v.obliqueness),
                 "in_sight": bool(v.in_sight),
+                **({"alignment": v.alignment} if v.alignment is not None else {}),
+                **({"photo_coverage": v.photo_coverage} if v.photo_coverage is not None else {}),
             }
             for v in plan.views
         ],
+        **({"capture": plan.capture} if plan.capture is not None else {}),
     }
 
 
@@ -254,13 +260,14 @@ def plan_from_dict(data: dict[str, Any]) -> SpacePlan:
         views=tuple(
             PlannedView(
                 v["point_idx"], v["v"], v["camera_idx"], v["world_to_camera"], v["fov"], v["roll"],
-                v["resolution"], v["obliqueness"], v["in_sight"],
+                v["resolution"], v["obliqueness"], v["in_sight"], v.get("alignment"), v.get("photo_coverage"),
             )
             for v in data["views"]
         ),
         shortfall=data.get("shortfall"),
         valid_fraction=data.get("valid_fraction"),
         clip_notes=tuple(data.get("clip_notes", ())),
+        capture=data.get("capture"),
     )
 
 

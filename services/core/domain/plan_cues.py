@@ -76,6 +76,8 @@ def point_info(plan: SpacePlan, view: PlannedView) -> dict[str, Any]:
         "camera_idx": int(view.camera_idx),
         "roll_rads": float(view.roll),
         "in_sight": bool(view.in_sight),
+        **({"alignment_score": view.alignment} if view.alignment is not None else {}),
+        **({"photo_coverage": view.photo_coverage} if view.photo_coverage is not None else {}),
     }
 
 

@@ -1,0 +1,1 @@
+"""Reading what users upload: scans and the captures that come with them."""

@@ -14,6 +14,7 @@ from pathlib import Path, PurePosixPath
 from typing import Any
 
 from services.core.ingest.archive_rules import MAX_RATIO, expansion_refusal
+from services.core.ingest.datasets import scene_mesh_in
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.formats import SCANNET_MESH_SUFFIX
 from services.core.ingest.pointcloud import CLOUD_SUFFIXES
@@ -147,6 +148,9 @@ def resolve_source(
 
 
 def _one_mesh(folder: Path, what: str) -> Path:
+    dataset_mesh = scene_mesh_in(folder)  # a public dataset's scene folder: the mesh its layout renders
+    if dataset_mesh is not None:
+        return dataset_mesh
     meshes = _meshes_in(folder)
     if not meshes:
         raise SpaceError(f"{what} holds no mesh ({', '.join(MESH_SUFFIXES)})")

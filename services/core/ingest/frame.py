@@ -26,7 +26,7 @@ from services.core.ingest.gravity import (
 from services.core.ingest.unit_evidence import choose_units, units_ambiguity_line
 from services.core.ingest.up_evidence import ambiguity_line
 
-FRAME_KEYS = ("up", "units", "reconstruction", "class_names", "valid_fraction")
+FRAME_KEYS = ("up", "units", "reconstruction", "class_names", "valid_fraction", "capture")
 
 
 def frame_of(record: dict[str, Any] | None) -> dict[str, Any] | None:

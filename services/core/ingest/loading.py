@@ -28,7 +28,7 @@ import re
 import shutil
 import tempfile
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -38,7 +38,9 @@ import trimesh
 from services.core.domain.jobspec import UP_AXES, similarity_scale
 from services.core.ingest.archive import resolve_source
 from services.core.ingest.archive_rules import file_expansion_refusal
+from services.core.ingest.capture.attach import attach_capture, capture_near  # a capture with the scan
 from services.core.ingest.confine import ConfinedResolver, is_inside
+from services.core.ingest.datasets import DatasetError, DatasetScene, scene_of
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.frame import FrameRequest, resolve_frame
 from services.core.ingest.gravity import (
@@ -87,6 +89,7 @@ class LoadedSpace:
     units: UnitChoice | None = None  # the unit scale and why
     reconstruction: dict[str, Any] | None = None  # point clouds: how they were meshed
     class_names: dict[int, str] | None = None  # class id -> name, when the file names its classes
+    capture: Any = None  # a posed capture found with the scan (services.core.ingest.capture.Capture), world frame
 
     def frame_record(self) -> dict[str, Any]:
         """What was detected about the frame, for job.json and `omnidata plan` (JSON-ready)."""
@@ -99,6 +102,8 @@ class LoadedSpace:
             out["reconstruction"] = self.reconstruction
         if self.class_names:
             out["class_names"] = {str(k): v for k, v in sorted(self.class_names.items())}
+        if self.capture is not None:
+            out["capture"] = self.capture.summary()
         return out
 
     def frame_summary(self) -> str:
@@ -190,15 +195,19 @@ def load_space(
     if p.is_file() and p.suffix.lower() == ".zip" and extract_dir is None:
         tmp = Path(tempfile.mkdtemp(prefix=owned_prefix("space")))
         extract_dir = tmp
-    frame = FrameRequest(up_axis, unit_scale, None if up is None else np.asarray(up, dtype=np.float64),
-                          None if source_to_world is None else np.asarray(source_to_world, dtype=np.float64),
-                          accept_up_guess, None if capture_up is None else np.asarray(capture_up, dtype=np.float64))
     try:
         source = resolve_source(p, extract_dir)
         if p.is_dir() and not is_inside(source, Path(os.path.realpath(p))):
             raise SpaceError(f"{source.name}: a symbolic link to a file outside the folder {p.name}; refusing it")
-        return _load(source, p if tmp is not None else source, frame,
-                     None if cloud_cache_dir is None else Path(cloud_cache_dir))
+        capture = capture_near(Path(extract_dir) if p.suffix.lower() == ".zip" and extract_dir else p)
+        if capture_up is None and capture is not None:
+            capture_up = capture.mean_up()  # the cameras' up, source frame: evidence for levelling
+        frame = FrameRequest(up_axis, unit_scale, None if up is None else np.asarray(up, dtype=np.float64),
+                             None if source_to_world is None else np.asarray(source_to_world, dtype=np.float64),
+                             accept_up_guess, None if capture_up is None else np.asarray(capture_up, dtype=np.float64))
+        loaded = _load(source, p if tmp is not None else source, frame,
+                       None if cloud_cache_dir is None else Path(cloud_cache_dir))
+        return attach_capture(loaded, capture)
     finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)
@@ -242,8 +251,26 @@ def _read_mesh(
     return mesh, None
 
 
+def _dataset_scene(source: Path, frame: FrameRequest) -> tuple[DatasetScene | None, FrameRequest]:
+    """The public dataset scene of a mesh (refusing an unusable release), and the frame: the dataset's
+    convention (up axis, units, a shipped alignment) wherever the caller left the frame to detection."""
+    try:
+        scene = scene_of(source)
+    except DatasetError as e:
+        raise SpaceError(str(e)) from None
+    if scene is None:
+        return None, frame
+    auto_up = frame.up_axis == "auto" and frame.up is None and frame.source_to_world is None
+    if auto_up and frame.unit_scale == "auto" and scene.source_to_world is not None:
+        return scene, replace(frame, up_axis="auto", unit_scale="auto", up=None, source_to_world=scene.source_to_world)
+    up_axis = scene.up_axis if auto_up and scene.up_axis is not None else frame.up_axis
+    unit_scale = scene.unit_scale if frame.unit_scale == "auto" and scene.unit_scale is not None else frame.unit_scale
+    return scene, replace(frame, up_axis=up_axis, unit_scale=unit_scale)
+
+
 def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Path | None) -> LoadedSpace:
     name = source.name
+    scene, frame = _dataset_scene(source, frame)
     if problem := file_expansion_refusal(source):  # the rule its packed zip meets when planned: before parsing
         raise SpaceError(f"{name}: {problem}")
     source_notes = check_source(source)  # truncation, counts over the limits, unsafe paths: before parsing
@@ -264,6 +291,14 @@ def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Pa
     face_class, face_instance, notes = read_ply_semantics(mesh, source) if reconstruction is None else (None, None, [])
     notes = source_notes + notes
     class_names = None
+    if scene is not None and face_class is None and face_instance is None:
+        try:
+            labels = scene.labels(mesh)
+        except DatasetError as e:
+            raise SpaceError(f"{scene.dataset} scene {scene.scene_id}: {e}") from None
+        if labels is not None:
+            face_class, face_instance, class_names = labels.face_class, labels.face_instance, labels.class_names
+            notes.extend(labels.notes)
     if face_class is None and face_instance is None and reconstruction is None:
         scannet = scannet_labels(mesh, source) if source.suffix.lower() == ".ply" else None
         if scannet is not None:

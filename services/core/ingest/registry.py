@@ -25,6 +25,7 @@ from services.core.domain.keys import check_name
 from services.core.ingest.archive import resolve_source
 from services.core.ingest.archive_rules import archive_refusal
 from services.core.ingest.confine import is_inside, read_confined, real_folder
+from services.core.ingest.datasets import DatasetError, scene_mesh_in, scene_of
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.formats import scannet_companions
 from services.core.ingest.loading import LoadedSpace, load_space
@@ -40,10 +41,15 @@ def _obj_companions(obj: Path) -> list[Path]:
     out: list[Path] = []
     mtl_re = re.compile(r"^\s*mtllib\s+(.+?)\s*$")
     map_re = re.compile(r"^\s*(map_\w+|bump|disp|decal|norm)\s+(?:-\S+\s+\S+\s+)*(.+?)\s*$", re.IGNORECASE)
+    mtls: list[str] = []
     with open(obj, errors="replace") as f:
-        mtls = [m.group(1) for line in f if (m := mtl_re.match(line))]
+        for line in f:
+            if not mtls and "mtllib" in line:  # trimesh reads the first 'mtllib' anywhere (a comment, a name)
+                mtls.append(line[line.index("mtllib") + len("mtllib"):].strip())
+            if m := mtl_re.match(line):
+                mtls.append(m.group(1))
     root = real_folder(obj)
-    for name in mtls:
+    for name in dict.fromkeys(n for n in mtls if n):
         mtl = obj.parent / name
         if not mtl.is_file() or not is_inside(mtl, root):  # never read (nor pack) a file outside the scan's folder
             continue
@@ -66,8 +72,37 @@ def _gltf_companions(gltf: Path) -> list[Path]:
     return [gltf.parent / u for u in uris if u and not u.startswith("data:") and (gltf.parent / u).is_file()]
 
 
+def _dataset_pack(source: Path) -> tuple[Path, list[Path]] | None:
+    """(base folder, files) of a public dataset's scene (a scene folder or its mesh file): what it needs,
+    not its raw captures (e.g. ScanNet's .sens); None when `source` is not one."""
+    mesh = scene_mesh_in(source) if source.is_dir() else source
+    try:
+        scene = scene_of(mesh) if mesh is not None else None
+    except DatasetError as e:
+        raise SpaceError(str(e)) from None
+    if scene is None:
+        return None
+    from services.core.ingest.archive import MESH_SUFFIXES
+    from services.core.ingest.capture.attach import capture_files_beside
+
+    extra = _obj_companions(scene.mesh) if scene.mesh.suffix.lower() == ".obj" else []
+    capture = capture_files_beside(scene.mesh, MESH_SUFFIXES)  # a posed capture beside the scan goes along
+    files = list(dict.fromkeys([*scene.files, *extra, *capture]))
+    base = source if source.is_dir() else Path(os.path.commonpath([f.parent for f in files]))
+    root = Path(os.path.realpath(base))  # no file whose real path leaves the scene (a link out of it)
+    return base, [f for f in files if not f.is_symlink() and is_inside(f, root)]
+
+
 def _files_to_pack(source: Path, mesh_file: Path) -> tuple[Path, list[Path]]:
-    """(base folder, files) that a mesh needs, for zipping."""
+    """(base folder, files) that a mesh needs, for zipping (with a posed capture beside it: the capture too)."""
+    from services.core.ingest.archive import MESH_SUFFIXES
+    from services.core.ingest.capture.attach import capture_files_beside
+
+    if (dataset := _dataset_pack(source)) is not None:
+        return dataset
+    beside = capture_files_beside(mesh_file, MESH_SUFFIXES) if source.is_file() else []
+    if beside:
+        return mesh_file.parent, beside
     if source.is_dir():
         files = [p for p in sorted(source.rglob("*")) if p.is_file() and not p.is_symlink()]
         return source, files
@@ -85,8 +120,13 @@ def _files_to_pack(source: Path, mesh_file: Path) -> tuple[Path, list[Path]]:
 
 def pack_source(source: Path, mesh_file: Path, workdir: Path) -> Path:
     """The single file to upload for `source`: itself, or a deterministic zip of what the mesh needs."""
-    if source.is_file() and source.suffix.lower() in SINGLE_FILE_SUFFIXES and scannet_companions(source) is None:
-        return source
+    if (source.is_file() and source.suffix.lower() in SINGLE_FILE_SUFFIXES and scannet_companions(source) is None
+            and _dataset_pack(source) is None):
+        from services.core.ingest.archive import MESH_SUFFIXES
+        from services.core.ingest.capture.attach import capture_files_beside
+
+        if source.suffix.lower() == ".zip" or not capture_files_beside(source, MESH_SUFFIXES):
+            return source
     base, files = _files_to_pack(source, mesh_file)
     total = sum(f.stat().st_size for f in files)
     if total > MAX_PACKED_BYTES:
@@ -181,7 +221,8 @@ def register_space(
 
 
 def fetch_space(store: ObjectStore, space: Space, cache_dir: str | Path) -> Path:
-    """Local path of a space's mesh file, downloaded (and unzipped) once per checksum into `cache_dir`."""
+    """Local path of a space's mesh file (or of the folder a zipped source unpacked to), downloaded (and unzipped)
+    once per checksum into `cache_dir`."""
     cache = Path(cache_dir) / space.checksum
     done_marker = cache / ".ready"
     if not done_marker.exists():
@@ -201,7 +242,8 @@ def fetch_space(store: ObjectStore, space: Space, cache_dir: str | Path) -> Path
                     raise
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
-    return resolve_source(cache / "src") if (cache / "src").is_dir() else resolve_source(next(
+    # a zipped source comes back as its folder, so what was packed beside the mesh (a capture) is found with it
+    return cache / "src" if (cache / "src").is_dir() else resolve_source(next(
         p for p in cache.iterdir() if p.is_file() and p.name != ".ready"
     ))
 
@@ -215,6 +257,8 @@ class Source:
     checksum: str
     has_semantics: bool | None = None  # known once validated (None: already registered, trusted)
     loaded: LoadedSpace | None = None  # the validated space, handed to register_space so the mesh loads once
+    from_root: bool = False  # one scene of a dataset root: refused alone (the others go on) when unusable
+    refused: str | None = None  # why this scene of a dataset root cannot be used
 
 
 def source_checksum(path: Path) -> str:

@@ -71,7 +71,17 @@ def make_plan(
     salt = rng.bytes(16)
     cs = spec.cameras
     orbit = None  # an object's camera sphere: trajectory clips orbit its points
-    if cs.mode == "generate":
+    capture, refined = None, None
+    if cs.mode == "capture":
+        from services.scheduler.planning import capture_views
+
+        if cs.capture_views == "exact":
+            return capture_views.exact_capture_plan(
+                space, spec, space_name, q, lambda name, pidx, cams, pts, views, short: _assemble(
+                    name, salt, cams, "capture", cs, pts, np.unique(pidx), views, spec.views.resolution, short, []))
+        capture, refined = capture_views.planning_capture(space, spec, space_name, q)
+        cams, source = capture_views.capture_positions(capture), "capture"
+    elif cs.mode == "generate":
         cams, source = generate_cameras(q, cs, rng), "generated"
     elif cs.mode == "provided":
         cams, source = provided_cameras(cs), "provided"
@@ -102,7 +112,14 @@ def make_plan(
             ps.los_tolerance_m, cs.clearance_m, rng, orbit,
         )
     shortfall = sampled.shortfall
-    keep_points = np.unique(views.point_idx) if notes else np.arange(len(sampled.positions))
+    photo_dropped = 0
+    if capture is not None and len(views):  # fixated views at capture positions: enough of the photo in view
+        covered, _ = capture_views.fixated_coverage_keep(capture, views, vs.min_photo_coverage)
+        photo_dropped = int((~covered).sum())
+        views = views.subset(covered)
+        n_covered = np.bincount(views.point_idx, minlength=len(sampled.positions))
+        views = views.subset(n_covered[views.point_idx] >= ps.min_views)
+    keep_points = np.unique(views.point_idx) if notes or photo_dropped else np.arange(len(sampled.positions))
     if vs.nonfixated_pruning and len(views):
         crossing = nonfixated_keep(views, sampled.positions, sampled.visible, vs.resolution)
         if vs.mode == "trajectory":  # as for min_valid_fraction below: no gaps inside a clip
@@ -148,6 +165,8 @@ def make_plan(
         space_name, salt, cams, source, cs, sampled, keep_points, views, vs.resolution, shortfall, notes
     )
     plan = dataclasses.replace(plan, valid_fraction=valid_summary)
+    if capture is not None:
+        plan = capture_views.annotate_fixated(plan, capture, vs.min_photo_coverage, photo_dropped, refined)
     stamp["assemble"] = time.perf_counter() - t3
     if timings is not None:
         timings.update(stamp)

@@ -5,10 +5,16 @@ below, and (for a new family) one import line here.
 """
 
 from services.worker.cues import (  # noqa: F401  (imported for their @register side effect)
+    augment_params,
     basic,
     edges,
+    flash,
+    fog,
     keypoints,
+    motion_blur,
+    photo,
     plan_cues,
+    refocus,
     segmentation,
     semantic,
 )

@@ -7,7 +7,8 @@ internal differences Int(C) + k / |C| with k = scale / 255, then a second pass o
 component smaller than min_size with its neighbour. Differences from skimage, none of which changes the
 definition: features stay float32; edges are ordered by a stable counting sort of the weight quantised to 2^16
 levels of the image's largest weight (equal-looking weights keep raster order, where skimage's quicksort order is
-arbitrary); union by size; and the merge pass is kept so a larger min_size can be applied without redoing it.
+arbitrary); union by size; and the merge pass is kept so a larger min_size can be applied without redoing it (the min-size pass walks only
+the edges that still join two components after the merge pass, a few percent of them).
 About 10x faster than skimage at 512 x 512 with 3-4 channels (no 2 x E int64 edge table, no float64 argsort).
 """
 
@@ -99,14 +100,39 @@ def _merge(a: np.ndarray, b: np.ndarray, cost: np.ndarray, order: np.ndarray, n:
 
 
 @njit(cache=True, nogil=True)
-def _enforce_min_size(a: np.ndarray, b: np.ndarray, order: np.ndarray, parent: np.ndarray, size: np.ndarray,
+def _crossing(a: np.ndarray, b: np.ndarray, order: np.ndarray, parent: np.ndarray) -> tuple[np.ndarray, np.ndarray,
+                                                                                             np.ndarray]:
+    """The merge pass's forest flattened (every pixel's root) and, in edge order, the ends of the edges that join
+    two of its components: the only edges the min-size pass can act on, since components only grow."""
+    n = len(parent)
+    root = np.empty(n, np.int32)
+    for i in range(n):
+        root[i] = _find(parent, i)
+    count = 0
+    for e in order:
+        if root[a[e]] != root[b[e]]:
+            count += 1
+    ca = np.empty(count, np.int32)
+    cb = np.empty(count, np.int32)
+    j = 0
+    for e in order:
+        if root[a[e]] != root[b[e]]:
+            ca[j] = a[e]
+            cb[j] = b[e]
+            j += 1
+    return root, ca, cb
+
+
+@njit(cache=True, nogil=True)
+def _enforce_min_size(ca: np.ndarray, cb: np.ndarray, parent: np.ndarray, size: np.ndarray,
                       min_size: int) -> np.ndarray:
-    """Merge components below min_size along the same edge order; labels 0..n-1 in raster order."""
+    """Merge components below min_size along the crossing edges (ends ca, cb, in the merge order); labels 0..n-1
+    in raster order."""
     parent = parent.copy()
     size = size.copy()
-    for e in order:
-        r0 = _find(parent, a[e])
-        r1 = _find(parent, b[e])
+    for e in range(len(ca)):
+        r0 = _find(parent, ca[e])
+        r1 = _find(parent, cb[e])
         if r0 != r1 and (size[r0] < min_size or size[r1] < min_size):
             if size[r0] < size[r1]:
                 r0, r1 = r1, r0
@@ -135,12 +161,12 @@ class Felzenszwalb:
         if sigma > 0:
             img = np.stack([gaussian_filter(img[..., c], sigma) for c in range(img.shape[-1])], axis=-1)
         self.shape = img.shape[:2]
-        self._a, self._b, cost = _edges(img)
-        self._order = _counting_order(cost, SORT_LEVELS)
-        self._parent, self._size = _merge(self._a, self._b, cost, self._order, self.shape[0] * self.shape[1],
-                                          float(scale) / 255.0)
+        a, b, cost = _edges(img)
+        order = _counting_order(cost, SORT_LEVELS)
+        parent, self._size = _merge(a, b, cost, order, self.shape[0] * self.shape[1], float(scale) / 255.0)
+        self._parent, self._ca, self._cb = _crossing(a, b, order, parent)
 
     def labels(self, min_size: int) -> np.ndarray:
         """int64 H x W labels 0..n-1 (raster order of first appearance)."""
-        flat = _enforce_min_size(self._a, self._b, self._order, self._parent, self._size, int(min_size))
+        flat = _enforce_min_size(self._ca, self._cb, self._parent, self._size, int(min_size))
         return flat.reshape(self.shape)

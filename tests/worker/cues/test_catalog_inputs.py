@@ -50,6 +50,7 @@ def context() -> RecordingContext:
     labels = np.arange(len(cube.faces)) // 2
     passes = raycast_passes(cube, ViewGeometry.of(view), face_class=labels, face_instance=labels)
     passes.curvature = np.zeros((*passes.depth_z.shape, 2), dtype=np.float32)
+    passes.photo_coverage = np.ones(passes.depth_z.shape, dtype=bool)  # as on a capture view (mask_photo)
     return RecordingContext(view, plan=plan, passes=passes)
 
 

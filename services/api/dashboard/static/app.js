@@ -347,6 +347,41 @@ function planPlot(space) {
     (space.truncated ? " – truncated" : "") + "; top-down, metres, +x right, +y up"));
 }
 
+// A posed capture found with a space (frame.capture) and, once planned, its views' alignment (plan_summary
+// capture_plan): frames, intrinsics, lens, problems, and a histogram of the photo/geometry alignment scores.
+function captureCard(name, capture, planned) {
+  const focal = capture.focal_px ? `focal ${capture.focal_px.map((x) => fmtNum(x, 1)).join(" / ")} px (min/median/max)` : "no intrinsics";
+  const sizes = capture.image_sizes.map((s) => s.join("x")).join(", ") || "no photos";
+  const lines = [
+    h("p", {}, `${name}: ${capture.format} capture, ${capture.frames} frames${capture.has_photos ? "" : " (poses only)"};` +
+      ` ${sizes}; ${focal}; lens ${capture.distortion.join(", ")}` +
+      (capture.up_angle_deg === null || capture.up_angle_deg === undefined ? "" : `; cameras' up ${fmtNum(capture.up_angle_deg, 1)}° from the scan's`)),
+  ];
+  if (capture.problems) lines.push(h("p", { class: "error" }, `${capture.problems} problem(s): ${capture.problem_messages.slice(0, 3).join("; ")}`));
+  const al = planned && planned.alignment;
+  if (al && al.histogram) lines.push(alignmentChart(al));
+  return h("div", { class: "capture", dataset: { space: name } }, ...lines);
+}
+
+function alignmentChart(al) {
+  const W = 420, H = 140, pad = 24;
+  const counts = al.histogram.counts, edges = al.histogram.edges;
+  const max = Math.max(1, ...counts);
+  const bw = (W - 2 * pad) / counts.length;
+  const g = svg("svg", { viewBox: `0 0 ${W} ${H}`, class: "chart alignment", role: "img", "aria-label": "alignment score histogram" });
+  g.append(svg("line", { x1: pad, y1: H - pad, x2: W - pad, y2: H - pad, class: "axis" }));
+  counts.forEach((c, i) => {
+    const bh = (H - 2 * pad) * (c / max);
+    g.append(svg("rect", { x: pad + i * bw + 0.5, y: H - pad - bh, width: Math.max(bw - 1, 0.5), height: bh },
+      svg("title", {}, `${c} views scored ${fmtNum(edges[i], 2)}–${fmtNum(edges[i + 1], 2)}`)));
+  });
+  g.append(svg("text", { x: pad, y: 14, class: "chart-label" },
+    `alignment of ${al.scored} views: median ${fmtNum(al.median, 2)} (~1 is chance)`));
+  g.append(svg("text", { x: pad, y: H - 6, class: "chart-label" }, fmtNum(edges[0], 2)));
+  g.append(svg("text", { x: W - pad, y: H - 6, class: "chart-label", "text-anchor": "end" }, fmtNum(edges[edges.length - 1], 2)));
+  return g;
+}
+
 function throughputChart(tp) {
   const W = 420, H = 140, pad = 24;
   const n = tp.buckets.length;
@@ -401,6 +436,8 @@ async function viewJob(root, id) {
       ...(job.spaces || []).filter((sp) => sp.frame).map((sp) =>
         h("p", { class: sp.frame.up && sp.frame.up.confidence === "low" ? "error" : "muted" },
           `${sp.name}: ${frameText(sp.frame)}`)),
+      ...(job.spaces || []).filter((sp) => sp.frame && sp.frame.capture).map((sp) =>
+        captureCard(sp.name, sp.frame.capture, ((job.plan_summary || {}).spaces || {})[sp.name]?.capture_plan)),
       actionButtons(job, (name) => { if (name === "delete") location.hash = "#/jobs"; else reload(); }),
     ].filter(Boolean));
   };

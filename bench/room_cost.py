@@ -1,0 +1,188 @@
+"""Benchmark: cost per view on real rooms as a user sees it, against the bare render of the same views (issue 20).
+
+For each room it runs, on one core (`taskset -c CORE`, so the whole process tree shares it), interleaved:
+1. `omnidata generate ROOM --workers 1` at 512x512 with every default cue: wall time per view end to end
+   (start-up, planning, space loading, render, derivations, orchestration), and the job's own task rows
+   (sum of `duration_s` per cue / views) from its SQLite state;
+2. in a fresh process on the same core, the bare 1-sample Cycles render (Image + Depth + Normal, no AOVs, nothing
+   read back) of the very views that job rendered (its stored plan): wall seconds per view.
+Each repeat runs 1 then 2, so a neighbour's load moves both; the ratio is taken per repeat and reported as the
+median and the worst case over repeats, with the load average beside each figure.
+With --cores 0,1 it also runs generate with its default worker settings on those cores (all-cores figure) and
+compares views/s with the one-core run of the same repeat.
+
+Figures go to bench/results/render.json under "room_cost" (the previous run's figures kept as
+"room_cost_before"; the rest of the file, written by bench/render.py, is left as it is).
+Run: .venv/bin/python bench/room_cost.py [--points 14] [--max-views 3] [--repeats 2] [--core 1]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import sqlite3
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "bench" / "results" / "render.json"
+SCENES = ROOT.parent / "shared" / "scenes"
+# name -> (SPACE argument, extra generate flags). The kitchen's fused mesh is not gravity aligned; its capture
+# ships the gravity direction (gravity-direction.txt: up is its negative), given so no low-confidence guess is used.
+ROOMS: dict[str, tuple[Path, list[str]]] = {
+    "icl_livingroom": (SCENES / "icl_livingroom", []),
+    "7scenes_redkitchen": (SCENES / "7scenes_redkitchen" / "mesh_tsdf_2cm_from_1000frames.ply",
+                           ["--up", "0.009,-0.904,-0.427"]),
+}
+
+FLOOR_PROBE = r"""
+import json, sys, time
+from pathlib import Path
+sys.path.insert(0, sys.argv[1])
+from services.core.domain.plan import plan_from_json
+from services.core.ingest.loading import load_space
+from services.worker.passes import ViewGeometry
+from services.worker.space_cache import SpaceContext
+space_path, plan_path, frame = sys.argv[2], sys.argv[3], json.loads(sys.argv[4])
+plan = plan_from_json(Path(plan_path).read_bytes())
+scene = SpaceContext.from_loaded(load_space(space_path, **frame), key="floor").scene()
+views = [ViewGeometry.of(v) for v in plan.views]
+scene.render_floor(views[0])  # Cycles kernels and the BVH: a worker pays them once per space, not per view
+walls, cpus = [], []
+for g in views:
+    c0 = time.process_time()
+    walls.append(scene.render_floor(g))
+    cpus.append(time.process_time() - c0)
+print(json.dumps({"wall": walls, "cpu": cpus}))
+"""
+
+
+def load() -> list[float]:
+    """The 1, 5 and 15 minute load averages (other developers share this machine)."""
+    return [round(x, 2) for x in os.getloadavg()]
+
+
+def median(values: list[float]) -> float:
+    s = sorted(values)
+    n = len(s)
+    return s[n // 2] if n % 2 else 0.5 * (s[n // 2 - 1] + s[n // 2])
+
+
+def children_cpu_s() -> float:
+    """CPU seconds of every finished child process tree (generate reaps its workers, so theirs count too)."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
+def generate(room: str, cores: str, out: Path, spec: Path, workers: int | None) -> dict:
+    """Run `omnidata generate` pinned to `cores`; wall seconds, views, and per-cue task seconds from its task rows."""
+    space, extra = ROOMS[room]
+    cmd = ["taskset", "-c", cores, sys.executable, "-m", "services.cli", "generate", str(space), "--out", str(out),
+           "--spec", str(spec), "--seed", "0", "--no-progress", *extra]
+    if workers is not None:
+        cmd += ["--workers", str(workers)]
+    before = load()
+    t0, cpu0 = time.perf_counter(), children_cpu_s()
+    run = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True,
+                         env={**os.environ, "PYTHONPATH": str(ROOT)})
+    wall, cpu = time.perf_counter() - t0, children_cpu_s() - cpu0
+    if run.returncode != 0:
+        raise RuntimeError(f"generate {room} failed ({run.returncode}): {run.stderr[-2000:]}")
+    views = len((out / "manifest.jsonl").read_text().splitlines())
+    with sqlite3.connect(out / ".omnidata" / "state.db") as db:
+        rows = db.execute("SELECT cue, SUM(duration_s), COUNT(*) FROM task WHERE state = 'done' GROUP BY cue")
+        per_cue = {cue: round(total / views, 4) for cue, total, _ in rows}
+    return {"views": views, "wall_s": round(wall, 2), "wall_s_per_view": round(wall / views, 4),
+            "views_per_s": round(views / wall, 3), "cpu_s": round(cpu, 2), "cpu_s_per_view": round(cpu / views, 4),
+            "load_before": before, "load_after": load(),
+            "task_s_per_view": dict(sorted(per_cue.items(), key=lambda kv: -kv[1])),
+            "task_s_per_view_total": round(sum(per_cue.values()), 4)}
+
+
+def floor(room: str, core: str, out: Path, frame: dict) -> dict:
+    """Bare 1-sample renders of the views `generate` planned into `out`, in a fresh process on `core`."""
+    space, _ = ROOMS[room]
+    plans = sorted((out / "_plan").glob("*.json"))
+    before = load()
+    run = subprocess.run(["taskset", "-c", core, sys.executable, "-c", FLOOR_PROBE, str(ROOT), str(space),
+                          str(plans[0]), json.dumps(frame)], cwd=ROOT, capture_output=True, text=True, check=True,
+                         env={**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"})
+    times = json.loads(run.stdout.strip().splitlines()[-1])
+    wall = times["wall"]
+    return {"views": len(wall), "s_per_view_median": round(median(wall), 4), "s_per_view_mean": round(
+        sum(wall) / len(wall), 4), "s_per_view_worst": round(max(wall), 4),
+            "cpu_s_per_view_median": round(median(times["cpu"]), 4),
+            "cpu_s_per_view_mean": round(sum(times["cpu"]) / len(wall), 4), "load_before": before, "load_after": load()}
+
+
+DERIVED_EXCLUDE = ("passes",)  # the render task; every other task is a derivation (and its encoding)
+
+
+def summarise(repeats: list[dict]) -> dict:
+    """Per-repeat ratios to the floor (mean floor per view, as the end-to-end figure is a mean), median and worst."""
+    e2e = [r["generate"]["wall_s_per_view"] / r["floor"]["s_per_view_mean"] for r in repeats]
+    e2e_cpu = [r["generate"]["cpu_s_per_view"] / r["floor"]["cpu_s_per_view_mean"] for r in repeats]
+    passes = [r["generate"]["task_s_per_view"].get("passes", 0.0) / r["floor"]["s_per_view_mean"] for r in repeats]
+    derived = [sum(v for k, v in r["generate"]["task_s_per_view"].items() if k not in DERIVED_EXCLUDE)
+               / r["floor"]["s_per_view_mean"] for r in repeats]
+    out = {"end_to_end_to_floor": {"median": round(median(e2e), 2), "worst": round(max(e2e), 2)},
+           "end_to_end_cpu_to_floor_cpu": {"median": round(median(e2e_cpu), 2), "worst": round(max(e2e_cpu), 2)},
+           "passes_task_to_floor": {"median": round(median(passes), 2), "worst": round(max(passes), 2)},
+           "derivations_to_floor": {"median": round(median(derived), 2), "worst": round(max(derived), 2)}}
+    multi = [r["all_cores"]["views_per_s"] / r["generate"]["views_per_s"] for r in repeats if "all_cores" in r]
+    if multi:
+        out["all_cores_to_one_core_views_per_s"] = {"median": round(median(multi), 2), "worst": round(min(multi), 2)}
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--rooms", default=",".join(ROOMS), help="comma-separated: " + ",".join(ROOMS))
+    ap.add_argument("--points", type=int, default=14, help="points per room (x max-views = views)")
+    ap.add_argument("--max-views", type=int, default=3)
+    ap.add_argument("--resolution", type=int, default=512)
+    ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--core", default=str(sorted(os.sched_getaffinity(0))[-1]), help="the one core")
+    ap.add_argument("--cores", default="", help="also run generate's defaults on these cores, e.g. 0,1")
+    ap.add_argument("--out", type=Path, default=RESULTS)
+    args = ap.parse_args()
+    t0 = time.perf_counter()
+    result: dict = {"resolution": args.resolution, "core": args.core, "clock": "wall seconds",
+                    "machine": f"{os.cpu_count()} cores, shared with other developers' work (load averages beside "
+                               "each figure)", "rooms": {}}
+    with tempfile.TemporaryDirectory(prefix="omnidata-roomcost-") as tmp:
+        spec = Path(tmp) / "spec.json"
+        spec.write_text(json.dumps({"points": {"count": args.points, "max_views": args.max_views},
+                                    "views": {"resolution": args.resolution}}))
+        for room in args.rooms.split(","):
+            repeats = []
+            for i in range(args.repeats):
+                out = Path(tmp) / f"{room}-{i}"
+                rep: dict = {"generate": generate(room, args.core, out, spec, 1)}
+                frame = json.loads((out / "job.json").read_text()).get("spec", {})
+                frame = {k: frame[k] for k in ("up_axis", "up", "unit_scale", "source_to_world") if k in frame}
+                rep["floor"] = floor(room, args.core, out, frame)
+                if args.cores:
+                    rep["all_cores"] = generate(room, args.cores, Path(tmp) / f"{room}-{i}-all", spec, None)
+                    rep["all_cores"]["cores"] = args.cores
+                repeats.append(rep)
+                print(room, i, json.dumps({k: {kk: v for kk, v in r.items() if kk != "task_s_per_view"}
+                                           for k, r in rep.items()}), flush=True)
+            result["rooms"][room] = {"summary": summarise(repeats), "repeats": repeats}
+            print(room, json.dumps(result["rooms"][room]["summary"]), flush=True)
+    result["wall_s"] = round(time.perf_counter() - t0, 1)
+    doc = json.loads(args.out.read_text()) if args.out.exists() else {}
+    if "room_cost" in doc:
+        doc["room_cost_before"] = doc["room_cost"]
+    doc["room_cost"] = result
+    args.out.write_text(json.dumps(doc, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

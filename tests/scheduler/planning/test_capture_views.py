@@ -1,0 +1,171 @@
+"""Planning views of a posed capture on the real 7-Scenes capture: views at exactly the capture cameras, the
+alignment score separating the raw depth-camera poses from the fitted colour camera (SOURCE.md) on every frame
+and dropping 2-degree perturbations, views.min_alignment, fixated views from capture positions."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from services.core.domain.jobspec import JobSpec
+from services.core.domain.plan import PlanError, plan_from_json, plan_to_json
+from services.core.domain.plan_cues import point_info
+from services.core.ingest.capture.model import CaptureFrame
+from services.core.ingest.capture.resample import load_photo
+from services.core.ingest.loading import load_space
+from services.scheduler.planning import make_plan, space_rng
+from services.scheduler.planning.alignment import alignment_score
+from services.scheduler.planning.visibility import MeshQueries
+
+KITCHEN = Path(__file__).resolve().parents[3] / "../shared/scenes/7scenes_redkitchen"
+# SOURCE.md's fitted colour camera: K (integer pixel centres: +0.5 here) and the colour-from-depth translation
+COLOUR_K = np.array([[526.0, 0.0, 324.5], [0.0, 526.0, 235.5], [0.0, 0.0, 1.0]])
+COLOUR_FROM_DEPTH = np.array([-0.035, 0.010, 0.0])
+
+
+@pytest.fixture(scope="module")
+def kitchen():
+    return load_space(KITCHEN)
+
+
+def _plan(space, **spec):
+    return make_plan(space, JobSpec.model_validate(spec), space_rng(0, "kitchen"), "kitchen")
+
+
+def colour_camera(frame: CaptureFrame) -> CaptureFrame:
+    """The frame as SOURCE.md's fitted colour camera sees it (same photo)."""
+    depth_from_colour = np.eye(4)
+    depth_from_colour[:3, 3] = -COLOUR_FROM_DEPTH
+    return CaptureFrame(frame.name, frame.image, frame.width, frame.height, COLOUR_K, "none", (),
+                        frame.camera_to_world @ depth_from_colour)
+
+
+def turned(frame: CaptureFrame, degrees: float, axis: int) -> CaptureFrame:
+    a = np.radians(degrees)
+    c, s = np.cos(a), np.sin(a)
+    R = np.eye(3)
+    i, j = [(1, 2), (0, 2), (0, 1)][axis]
+    R[i, i], R[i, j], R[j, i], R[j, j] = c, -s, s, c
+    c2w = frame.camera_to_world.copy()
+    c2w[:3, :3] = c2w[:3, :3] @ R
+    return CaptureFrame(frame.name, frame.image, frame.width, frame.height, frame.K, "none", (), c2w)
+
+
+def test_exact_views_at_every_capture_camera(kitchen):
+    plan = _plan(kitchen, cameras={"mode": "capture"}, views={"resolution": 64})
+    assert len(plan.views) == 100 and plan.capture["frames"] == 100
+    for view in plan.views:
+        frame = kitchen.capture.frames[view.camera_idx]
+        np.testing.assert_allclose(view.world_to_camera, frame.world_to_camera, atol=1e-12)
+        assert view.fov == pytest.approx(2 * np.arctan(239.5 / 585))  # the photo's inscribed square
+        info = point_info(plan, view)
+        assert info["alignment_score"] == view.alignment and info["photo_coverage"] == pytest.approx(1.0)
+        # the point of interest is on the optical axis (image centre)
+        point = plan.points[view.point_idx].position
+        cam = view.world_to_camera[:3, :3] @ point + view.world_to_camera[:3, 3]
+        assert abs(cam[0]) < 1e-6 * cam[2] and abs(cam[1]) < 1e-6 * cam[2]
+    again = plan_from_json(plan_to_json(plan))
+    assert [v.alignment for v in again.views] == [v.alignment for v in plan.views]
+    hist = plan.capture["alignment"]["histogram"]
+    assert sum(hist["counts"]) == 100
+
+
+def separation(kitchen, stride: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
+    """Scores of every stride-th frame: raw depth camera, fitted colour camera, and the colour camera turned by
+    2 degrees up, down, left and right (n, 4)."""
+    q = MeshQueries(kitchen.mesh)
+    raw, colour, perturbed, names = [], [], [], []
+    for frame in kitchen.capture.frames[::stride]:
+        photo = load_photo(str(kitchen.capture.image_path(frame)), frame)
+
+        def score(f: CaptureFrame) -> float | None:
+            return alignment_score(q, photo, f, f.world_to_camera, f.inscribed_fov())  # noqa: B023
+
+        fitted = colour_camera(frame)
+        raw.append(score(frame))
+        colour.append(score(fitted))
+        perturbed.append([score(turned(fitted, d, axis)) for axis in (0, 1) for d in (-2.0, 2.0)])
+        names.append(frame.name)
+    return tuple(np.array(x, dtype=float) for x in (raw, colour, perturbed)) + (names,)  # type: ignore[return-value]
+
+
+def check_separation(raw, colour, perturbed, names) -> None:
+    assert np.isfinite(raw).all() and np.isfinite(colour).all() and np.isfinite(perturbed).all()
+    # The fitted colour camera is one global fit; on frame 800 the raw depth camera lines up better (an overlay of
+    # the cast edges on the photo shows it: Kinect colour and depth are not exposed at the same instant, and the
+    # camera moves), so that frame is the one allowed exception.
+    worse = [names[i] for i in np.flatnonzero(colour <= raw)]
+    assert set(worse) <= {"frames/frame-000800"}, worse
+    assert np.median(colour) > np.median(raw) + 0.2
+    # turned 2 degrees, a view scores lower: on every frame against the mean of the four directions, and in at
+    # least 90% of single turns (one direction can make up part of a frame's own residual misregistration)
+    assert (colour > perturbed.mean(axis=1)).all(), np.flatnonzero(colour <= perturbed.mean(axis=1))
+    assert (colour[:, None] > perturbed).mean() >= 0.9
+
+
+def test_alignment_separates_raw_colour_and_perturbed_on_every_tenth_frame(kitchen):
+    check_separation(*separation(kitchen, 10))
+
+
+@pytest.mark.slow
+def test_alignment_separates_raw_colour_and_perturbed_on_every_frame(kitchen):
+    check_separation(*separation(kitchen, 1))
+
+
+def test_min_alignment_drops_views_below_it(kitchen):
+    base = _plan(kitchen, cameras={"mode": "capture"}, views={"resolution": 32})
+    scores = np.array([v.alignment for v in base.views])
+    cut = float(np.median(scores))
+    plan = _plan(kitchen, cameras={"mode": "capture"}, views={"resolution": 32, "min_alignment": cut})
+    assert len(plan.views) == int((scores >= cut).sum())
+    assert all(v.alignment >= cut for v in plan.views)
+    assert "alignment" in plan.shortfall and plan.capture["dropped"]["alignment"] == int((scores < cut).sum())
+
+
+def test_fixated_views_from_capture_positions(kitchen):
+    plan = _plan(kitchen, cameras={"mode": "capture", "capture_views": "fixated"}, points={"count": 10},
+                 views={"resolution": 32, "min_photo_coverage": 0.6})
+    centres = np.stack([f.center for f in kitchen.capture.frames])
+    assert plan.views
+    for view in plan.views:
+        np.testing.assert_allclose(view.position, centres[view.camera_idx], atol=1e-9)
+        assert view.photo_coverage >= 0.6
+    loose = _plan(kitchen, cameras={"mode": "capture", "capture_views": "fixated"}, points={"count": 10},
+                  views={"resolution": 32, "min_photo_coverage": 0.0})
+    assert len(loose.views) > len(plan.views) and plan.capture["dropped"]["photo_coverage"] > 0
+
+
+def test_capture_mode_without_a_capture_is_refused(scenes_dir):
+    bunny = load_space(scenes_dir / "stanford_bunny" / "bun_zipper_res2.ply")
+    with pytest.raises(PlanError, match="needs a posed capture"):
+        _plan(bunny, cameras={"mode": "capture"})
+
+
+def test_refining_the_colour_camera_moves_towards_the_fitted_one(kitchen):
+    """Maximising the alignment score from the raw depth camera finds a shorter focal length like SOURCE.md's
+    fitted colour camera (526 / 585 = 0.90) and a better score; the record says what was refined."""
+    from services.scheduler.planning.refine import refine_colour_camera
+
+    correction, record = refine_colour_camera(MeshQueries(kitchen.mesh), kitchen.capture, frames=6, halvings=1)
+    assert 0.85 <= correction.focal_scale <= 0.95, record
+    assert record["score_after"] > record["score_before"] + 0.2
+    assert "focal length" in record["refined"] and record["frames_scored"] == 6
+
+
+@pytest.mark.slow
+def test_capture_refine_plan_and_worker_agree(kitchen):
+    from services.core.ingest.capture.calibration import ColourCorrection
+    from services.worker.photos import painter_for
+
+    spec = JobSpec.model_validate({"cameras": {"mode": "capture", "capture_refine": True}, "views": {"resolution": 32}})
+    plan = make_plan(kitchen, spec, space_rng(0, "kitchen"), "kitchen")
+    refined = plan.capture["refined"]
+    corrected = ColourCorrection.from_dict(refined["correction"]).capture(kitchen.capture)
+    for view in plan.views:
+        np.testing.assert_allclose(view.world_to_camera, corrected.frames[view.camera_idx].world_to_camera, atol=1e-12)
+    painter = painter_for(kitchen, spec, refined)
+    assert all(len(painter.frames_at(v.position)) == 1 for v in plan.views)  # the worker finds each refined camera
+    base = _plan(kitchen, cameras={"mode": "capture"}, views={"resolution": 32})
+    assert np.median([v.alignment for v in plan.views]) > np.median([v.alignment for v in base.views]) + 0.2

@@ -1,4 +1,4 @@
-"""A scan uploaded with its capture through the dashboard (headless Chromium, real uvicorn on Postgres): the
+"""A scan uploaded with its capture (two parts of the upload form) through the dashboard (headless Chromium, real uvicorn on Postgres): the
 photos are stored with the scan in object storage, the scheduler plans capture views for real, and the job page
 summarises the capture (frames, intrinsics, lens) with a histogram of the views' alignment scores."""
 
@@ -26,10 +26,12 @@ def test_capture_upload_plan_and_space_summary(pg_url: str, local_store: LocalSt
                                                artifacts: Path, tmp_path: Path) -> None:
     folder = tmp_path / "banana_capture"
     banana_capture(scenes_dir / "ycb_banana" / "textured_simple_reoriented.obj", folder)
-    upload = tmp_path / "banana_capture.zip"
-    with zipfile.ZipFile(upload, "w") as zf:
+    # two parts, as the form sends them: the scan (a zip of obj + mtl + texture) and the capture's zip
+    upload, capture_zip = tmp_path / "banana_capture.zip", tmp_path / "photos.zip"
+    with zipfile.ZipFile(upload, "w") as scan_zf, zipfile.ZipFile(capture_zip, "w") as cap_zf:
         for p in sorted(folder.rglob("*")):
             if p.is_file():
+                zf = scan_zf if p.parent == folder and p.suffix in (".obj", ".mtl", ".png") else cap_zf
                 zf.write(p, p.relative_to(folder).as_posix())
     with make_api(pg_url, local_store) as api, live_server(api.app) as base:
         ctx = browser.new_context(viewport={"width": 1280, "height": 900})
@@ -42,14 +44,15 @@ def test_capture_upload_plan_and_space_summary(pg_url: str, local_store: LocalSt
             page.click("#login-submit")
             page.wait_for_selector("h1:has-text('Jobs')")
             page.set_input_files("#upload-file", str(upload))
+            page.set_input_files("#upload-capture", str(capture_zip))
             page.fill("#upload-name", "banana_capture")
             page.click("#upload-submit")
-            page.wait_for_selector("#upload p:has-text('registered')", timeout=60_000)
+            page.wait_for_selector("#upload p:has-text('Capture: colmap, 3 frames')", timeout=60_000)
             with api.session() as s:
                 space = s.query(Space).filter_by(owner=api.a.name, name="banana_capture").one()
                 assert space.validation["capture"]["format"] == "colmap" and space.validation["capture"]["frames"] == 3
                 with zipfile.ZipFile(local_store.root / space.source_key) as zf:  # photos stored with the scan
-                    assert {"images/photo_0.jpg", "sparse/0/cameras.txt"} <= set(zf.namelist())
+                    assert {"capture/images/photo_0.jpg", "capture/sparse/0/cameras.txt"} <= set(zf.namelist())
                 space_id = space.id
             res = api.client.post("/jobs", headers=api.a.headers, json={
                 "space_ids": [space_id], "spec": {"cameras": {"mode": "capture"}, "views": {"resolution": 32},

@@ -119,6 +119,22 @@ def make_plan(
         views = views.subset(covered)
         n_covered = np.bincount(views.point_idx, minlength=len(sampled.positions))
         views = views.subset(n_covered[views.point_idx] >= ps.min_views)
+    elif spec.uses_photos() and len(views):  # photo-textured views: enough surface some photo saw
+        from services.scheduler.planning import capture_views as photo_views
+
+        textured = photo_views.textured_coverage(q, photo_views.require_capture(space, space_name), views.world_to_camera,
+                                                 views.fov)
+        ok = textured >= vs.min_photo_coverage
+        if vs.mode == "trajectory":  # as for min_valid_fraction: no gaps inside a clip
+            ok = _longest_runs(views.point_idx, ok, vs.trajectory_min_frames)
+        photo_dropped = int((~ok).sum())
+        views = views.subset(ok)
+        if vs.mode != "trajectory":
+            n_covered = np.bincount(views.point_idx, minlength=len(sampled.positions))
+            views = views.subset(n_covered[views.point_idx] >= ps.min_views)
+        if photo_dropped:
+            shortfall = _join(shortfall, f"views.min_photo_coverage {vs.min_photo_coverage} dropped {photo_dropped} "
+                                         "photo-textured views")
     keep_points = np.unique(views.point_idx) if notes or photo_dropped else np.arange(len(sampled.positions))
     if vs.nonfixated_pruning and len(views):
         crossing = nonfixated_keep(views, sampled.positions, sampled.visible, vs.resolution)

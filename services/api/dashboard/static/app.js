@@ -231,12 +231,14 @@ function uploadForm(onUploaded) {
   const name = h("input", { id: "upload-name", placeholder: "default: file name" });
   const up = h("select", { id: "upload-up" }, ["auto", "+z", "+y", "-z", "-y", "+x", "-x"].map((a) => h("option", { value: a }, a)));
   const scale = h("input", { id: "upload-scale", type: "text", value: "auto", title: "metres per source unit, or auto" });
+  const capture = h("input", { id: "upload-capture", type: "file", accept: ".zip", title: "optional: the scan's posed photos (a .zip)" });
   const status = h("p", { class: "muted" });
   const btn = h("button", { type: "submit", id: "upload-submit" }, "Upload");
   return h("form", { class: "card", id: "upload", onsubmit: async (e) => {
     e.preventDefault();
     const fd = new FormData();
     fd.append("file", file.files[0]);
+    if (capture.files.length) fd.append("capture", capture.files[0]);
     if (name.value) fd.append("name", name.value);
     fd.append("up_axis", up.value);
     fd.append("unit_scale", scale.value);
@@ -246,7 +248,8 @@ function uploadForm(onUploaded) {
     try {
       const s = await api("/spaces", { method: "POST", body: fd });
       status.textContent = `Space "${s.name}" registered: ${fmtNum(s.face_count, 0)} faces` +
-        (s.has_texture ? ", textured" : "") + ". " + frameText(s.frame);
+        (s.has_texture ? ", textured" : "") + ". " + frameText(s.frame) +
+        (s.frame && s.frame.capture ? ` Capture: ${s.frame.capture.format}, ${s.frame.capture.frames} frames.` : "");
       onUploaded(s);
     } catch (ex) { status.className = "error"; status.textContent = ex.message; }
     btn.disabled = false;
@@ -254,7 +257,8 @@ function uploadForm(onUploaded) {
     h("h2", {}, "Upload a space"),
     h("p", { class: "muted" }, "A mesh (.ply, .obj, .glb, .gltf), a point cloud (.ply, .xyz, .pts) or a .zip with the mesh and its textures."),
     h("div", { class: "grid" }, h("label", {}, "File", file), h("label", {}, "Name", name),
-      h("label", {}, "Up axis", up), h("label", {}, "Metres per unit", scale)),
+      h("label", {}, "Up axis", up), h("label", {}, "Metres per unit", scale),
+      h("label", {}, "Capture (.zip, optional)", capture)),
     btn, status);
 }
 

@@ -18,7 +18,7 @@ import numpy as np
 import trimesh
 
 from services.core.ingest.gravity import UnitError, estimate_up, floor_evidence, up_candidate_facts
-from services.core.ingest.unit_evidence import choose_units
+from services.core.ingest.unit_evidence import ScanMeasures, choose_units, decide_units, measure
 from services.core.ingest.up_evidence import WEIGHTS, decide
 from tests.fixtures import rotation_corpus as corpus
 from tests.fixtures.real_corpus import RealCase, real_cases, real_rooms
@@ -124,14 +124,35 @@ def ablation(cases: Iterable[tuple[Any, np.ndarray, np.ndarray | None]]) -> dict
     return out
 
 
+UNIT_TERMS = ("storey", "camera", "furniture", "spacing")
+
+
+def unit_ablation(measured: list[tuple[ScanMeasures, float]]) -> dict[str, Any]:
+    """Per unit evidence term: units right / refused / wrong with that term left out (the true up given,
+    cases where some unit makes the storey plausible)."""
+    out: dict[str, Any] = {}
+    for left_out in ("none", *UNIT_TERMS):
+        outcomes = []
+        for m, scale in measured:
+            d = decide_units(m, () if left_out == "none" else (left_out,))
+            if d.ranked:
+                outcomes.append("refused" if d.ambiguous else "right" if d.ranked[0].scale == scale else "wrong")
+        n = max(len(outcomes), 1)
+        out["all_terms" if left_out == "none" else f"without_{left_out}"] = {
+            "cases": len(outcomes), **{k: round(outcomes.count(k) / n, 4) for k in ("right", "refused", "wrong")}}
+    return out
+
+
 def real_figures(scenes: Path, n_random: int, seed: int, log: Callable[[str], None]) -> dict[str, Any]:
     """The real-corpus section of bench/results/ingest.json."""
     rooms = shared_rooms(scenes) + real_rooms()
     rows: list[dict[str, Any]] = []
     ablation_cases: list[tuple[Any, np.ndarray, np.ndarray | None]] = []
     posed_cases: list[tuple[Any, np.ndarray, np.ndarray | None]] = []
+    unit_cases: list[tuple[ScanMeasures, float]] = []
     for case in real_cases(rooms, n_random, seed=seed):
         rows.append(run_case(case, posed=False))
+        unit_cases.append((measure(case.mesh, case.up), case.scale))
         if case.capture_up is not None:
             rows.append(run_case(case, posed=True))
         if case.kind != "axis":
@@ -155,4 +176,5 @@ def real_figures(scenes: Path, n_random: int, seed: int, log: Callable[[str], No
         "calibration_without_poses": calibration(pick(posed=False)),
         "ablation_without_poses": ablation(ablation_cases),
         "ablation_with_capture_poses": ablation(posed_cases),
+        "unit_ablation_true_up": unit_ablation(unit_cases),
     }

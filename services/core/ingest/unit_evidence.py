@@ -147,12 +147,14 @@ class UnitDecision:
         return self.margin < REFUSE_MARGIN
 
 
-def decide_units(m: ScanMeasures) -> UnitDecision:
-    """Score every unit that makes the storey plausible (empty when none does)."""
+def decide_units(m: ScanMeasures, disabled: tuple[str, ...] = ()) -> UnitDecision:
+    """Score every unit that makes the storey plausible (empty when none does); `disabled`: terms left out
+    (the bench's ablation)."""
     cands = []
     for unit, scale in UNIT_SCALES:
         terms = _terms(m, scale)
         if terms is not None:
+            terms = {k: v for k, v in terms.items() if k not in disabled}
             extent = (m.extent[0] * scale, m.extent[1] * scale, m.extent[2] * scale)
             cands.append(UnitCandidate(unit, scale, m.storey * scale, extent, terms))
     order = {u: i for i, (u, _) in enumerate(UNIT_SCALES)}  # ties: the more common unit first

@@ -410,10 +410,15 @@ class UnitChoice:
     scale: float
     unit: str  # metres | centimetres | millimetres | inches | given | source_to_world
     reason: str
+    ambiguous: bool = False  # another unit is about as plausible (services.core.ingest.unit_evidence)
+    candidates: tuple[dict[str, Any], ...] = ()  # the plausible units, best first, when more than one
 
     def record(self) -> dict[str, Any]:
         """JSON-ready summary."""
-        return {"unit_scale": self.scale, "unit": self.unit, "reason": self.reason}
+        out: dict[str, Any] = {"unit_scale": self.scale, "unit": self.unit, "reason": self.reason}
+        if self.candidates:
+            out.update(ambiguous=self.ambiguous, candidates=list(self.candidates))
+        return out
 
 
 class UnitError(ValueError):

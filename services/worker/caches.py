@@ -11,8 +11,8 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import Protocol, TypeVar
+from dataclasses import dataclass, field
+from typing import Any, Protocol, TypeVar
 
 from sqlalchemy.orm import Session
 
@@ -20,6 +20,7 @@ from services.core.db.jobs import job_root
 from services.core.db.models import Job, Space
 from services.core.domain.jobspec import JobSpec
 from services.core.domain.plan import SpacePlan, plan_from_json
+from services.core.ingest.frame_choice import space_frame_for
 from services.core.storage import ObjectStore
 from services.worker.context import ViewContext
 
@@ -57,10 +58,26 @@ class JobInfo:
     spec: JobSpec
     root: str  # output root, '' for the embedded layout
     component: str
+    # space name -> the source_to_world its planner used (job.plan_summary): a re-pick of the space's up
+    # while the job renders cannot give its workers a frame other than its planner's
+    planned_frames: dict[str, list[list[float]]] = field(default_factory=dict)
 
     def root_key(self, key: str) -> str:
         """`key` under this job's output root."""
         return f"{self.root}/{key}" if self.root else key
+
+    def frame_for(self, space: Space) -> dict[str, Any]:
+        """`load_space` keyword arguments of a space: exactly its planner's frame (recorded when it planned);
+        for a job planned before that record existed, the frame recomputed from the spec and the space."""
+        planned = self.planned_frames.get(space.name)
+        return {"source_to_world": planned} if planned is not None else space_frame_for(self.spec, space)
+
+
+def planned_frames(plan_summary: dict[str, Any] | None) -> dict[str, list[list[float]]]:
+    """Space name -> the source_to_world (4x4) its planner loaded it with, from a job's plan summary."""
+    spaces = (plan_summary or {}).get("spaces") or {}
+    return {name: rec["source_to_world"] for name, rec in spaces.items()
+            if isinstance(rec, dict) and rec.get("source_to_world") is not None}
 
 
 def trim_lru(views: OrderedDict[K, Measured_T], budget_bytes: int, keep: int = VIEW_CACHE_MIN) -> None:
@@ -99,7 +116,8 @@ class TaskInputs:
                     if job is None:
                         raise LookupError(f"job {job_id} does not exist")
                     spec = JobSpec.model_validate(job.spec)
-                    return JobInfo(job.id, spec, job_root(job), job.name or spec.name)
+                    return JobInfo(job.id, spec, job_root(job), job.name or spec.name,
+                                   planned_frames(job.plan_summary))
 
             info = self.db(load, f"load job {job_id}")
             self.jobs[job_id] = info

@@ -33,7 +33,6 @@ from services.core.db.models import Space
 from services.core.domain.cues import OUTPUT_CUES, closure
 from services.core.domain.keys import output_key, passes_key
 from services.core.domain.plan import PlannedView, SpacePlan
-from services.core.ingest.frame_choice import space_frame_for
 from services.core.ingest.loading import load_space
 from services.core.ingest.registry import fetch_space
 from services.core.settings import Settings
@@ -140,7 +139,7 @@ class TaskRunner:
     def _space_context(self, job: JobInfo, space: Space, plan: SpacePlan | None = None) -> SpaceContext:
         """The space loaded into the world frame of this job (its up_axis/unit_scale), kept between tasks."""
         spec = job.spec
-        frame = space_frame_for(spec, space)  # the planner's frame: the spec's, else the space's chosen up
+        frame = job.frame_for(space)  # exactly the planner's: a re-pick of the space's up cannot change it
         refined = (plan.capture or {}).get("refined") if plan is not None else None  # the planner's colour camera
         photos = f"{spec.uses_photos()}:{json.dumps(refined and refined['correction'], sort_keys=True)}"
         key = f"{space.checksum}:{json.dumps(frame, sort_keys=True)}:photos={photos}"

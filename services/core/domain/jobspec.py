@@ -255,7 +255,8 @@ class JobSpec(_Strict):
     )
     accept_up_guess: bool = Field(
         False, description="when detection cannot tell two up candidates apart, plan on the better one anyway "
-        "(default: refuse the space, naming both candidates)"
+        "(default: refuse the space, naming both candidates); likewise when more than one unit (cm or inches) "
+        "makes the scan plausible: plan in the better one"
     )
     # ---
     priority: int = Field(0, ge=-100, le=100)

@@ -83,14 +83,12 @@ def make_plan(
         cams, source, orbit = capture_views.capture_positions(capture), "capture", None
     else:
         cams, source, orbit = _place_cameras(space, camera_spec, q, rng)
-    t1 = time.perf_counter()
-    stamp["cameras"] = t1 - t0
+    stamp["cameras"] = (t1 := time.perf_counter()) - t0
     ps = spec.points
     _check_enough_cameras(len(cams), spec, space_name)
     count = ps.count if ps.count is not None else max(1, int(round(ps.per_camera * len(cams))))
     sampled = sample_points(q, cams, ps, count, rng)
-    t2 = time.perf_counter()
-    stamp["points"] = t2 - t1
+    stamp["points"] = (t2 := time.perf_counter()) - t1
 
     vs = spec.views
     views, notes = _choose_views(sampled, cams, spec, q, rng, orbit)
@@ -98,6 +96,9 @@ def make_plan(
     photo_dropped = 0  # fixated views at capture positions: enough of the photo in view
     if capture is not None and len(views):
         views, photo_dropped = _keep_photo_covered(capture, views, len(sampled.positions), spec)
+    elif spec.uses_photos() and len(views):  # photo-textured views: enough surface some photo saw
+        views, photo_dropped, shortfall = _keep_photo_textured(space, space_name, q, views, len(sampled.positions),
+                                                               spec, shortfall)
     keep_points = np.unique(views.point_idx) if notes or photo_dropped else np.arange(len(sampled.positions))
     if vs.nonfixated_pruning and len(views):
         views, keep_points, shortfall = _prune_nonfixated(views, sampled, spec, shortfall)
@@ -105,8 +106,7 @@ def make_plan(
     if fractions is not None and len(views):
         views, keep_points, shortfall = _drop_low_valid(views, fractions, len(sampled.positions), keep_points,
                                                         spec, shortfall)
-    t3 = time.perf_counter()
-    stamp["views"] = t3 - t2
+    stamp["views"] = (t3 := time.perf_counter()) - t2
 
     plan = _assemble(space_name, salt, cams, source, camera_spec, sampled, keep_points, views, vs.resolution,
                      shortfall, notes)
@@ -149,6 +149,28 @@ def _keep_photo_covered(capture: Capture, views: ViewArrays, n_points: int, spec
     views = views.subset(covered)
     n_covered = np.bincount(views.point_idx, minlength=n_points)
     return views.subset(n_covered[views.point_idx] >= spec.points.min_views), photo_dropped
+
+
+def _keep_photo_textured(space: LoadedSpace, space_name: str, q: MeshQueries, views: ViewArrays, n_points: int,
+                         spec: JobSpec, shortfall: str | None) -> tuple[ViewArrays, int, str | None]:
+    """Photo-textured views that show enough surface some photo saw; (views, dropped, shortfall)."""
+    from services.scheduler.planning import capture_views as photo_views
+
+    vs, ps = spec.views, spec.points
+    textured = photo_views.textured_coverage(q, photo_views.require_capture(space, space_name), views.world_to_camera,
+                                             views.fov)
+    ok = textured >= vs.min_photo_coverage
+    if vs.mode == "trajectory":  # as for min_valid_fraction: no gaps inside a clip
+        ok = _longest_runs(views.point_idx, ok, vs.trajectory_min_frames)
+    photo_dropped = int((~ok).sum())
+    views = views.subset(ok)
+    if vs.mode != "trajectory":
+        n_covered = np.bincount(views.point_idx, minlength=n_points)
+        views = views.subset(n_covered[views.point_idx] >= ps.min_views)
+    if photo_dropped:
+        shortfall = _join(shortfall, f"views.min_photo_coverage {vs.min_photo_coverage} dropped {photo_dropped} "
+                                     "photo-textured views")
+    return views, photo_dropped, shortfall
 
 
 def _valid_fractions(q: MeshQueries, views: ViewArrays, spec: JobSpec) -> tuple[np.ndarray | None, dict[str, Any]]:

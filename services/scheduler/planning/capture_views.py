@@ -37,8 +37,8 @@ def require_capture(space: Any, space_name: str) -> Capture:
     """The space's capture in the world frame; PlanError saying what is missing otherwise."""
     capture = getattr(space, "capture", None)
     if capture is None:
-        raise PlanError(f"space {space_name!r}: cameras.mode 'capture' needs a posed capture next to the scan "
-                        f"(looked for {FORMATS_LOOKED_FOR}); none was found")
+        raise PlanError(f"space {space_name!r}: cameras.mode capture (or views.rgb_source photos) needs a posed capture "
+                        f"next to the scan (looked for {FORMATS_LOOKED_FOR}); none was found")
     if not capture.frames:
         why = "; ".join(capture.problems[:5]) or "no frames"
         raise PlanError(f"space {space_name!r}: the {capture.format} capture has no usable frame ({why})")
@@ -201,3 +201,49 @@ def capture_record(capture: Capture, scores: list[float | None], threshold: floa
         "alignment": score_summary(scores, threshold),
         "photo_coverage": {"mean": float(cov.mean()), "min": float(cov.min())} if len(cov) else None,
     }
+
+
+TEXTURE_PROBE_PX = 8  # probe rays per side when predicting a photo-textured view's coverage
+TEXTURE_NEAREST = 16  # photos tried per view (the nearest capture cameras)
+
+
+def textured_coverage(q: MeshQueries, capture: Capture, world_to_camera: np.ndarray, fov: np.ndarray) -> np.ndarray:
+    """(n,) predicted share of each view's surface pixels that some photo saw (views.rgb_source photos for cameras
+    away from the capture): an 8 x 8 probe's surface points projected into the nearest photos, depth-tested
+    from each photo's camera as the worker's texturing does (services.worker.phototexture)."""
+    from services.core.ingest.capture.distortion import project_to_photo
+
+    n = len(world_to_camera)
+    out = np.zeros(n)
+    centres = capture_positions(capture)
+    g = (np.arange(TEXTURE_PROBE_PX) + 0.5) / (TEXTURE_PROBE_PX / 2) - 1.0
+    gx, gy = np.meshgrid(g, g)
+    for i in range(n):
+        W = world_to_camera[i]
+        t = np.tan(fov[i] / 2)
+        d_cam = np.stack([gx.ravel() * t, gy.ravel() * t, np.ones(gx.size)], axis=1)
+        d_cam /= np.linalg.norm(d_cam, axis=1, keepdims=True)
+        centre = -W[:3, :3].T @ W[:3, 3]
+        dirs = d_cam @ W[:3, :3]
+        dist, _ = q.first_hit(np.broadcast_to(centre, dirs.shape).copy(), dirs)
+        hit = np.isfinite(dist)
+        if not hit.any():
+            continue
+        pts = centre + dirs[hit] * dist[hit, None]
+        seen = np.zeros(len(pts), dtype=bool)
+        for j in np.argsort(np.linalg.norm(centres - centre, axis=1))[:TEXTURE_NEAREST]:
+            f = capture.frames[int(j)]
+            if f.K is None or f.width is None or f.height is None:
+                continue
+            cam = pts @ f.world_to_camera[:3, :3].T + f.world_to_camera[:3, 3]
+            uv, front = project_to_photo(f.K, f.distortion, f.distortion_params, cam)
+            inside = front & (uv[:, 0] >= 0) & (uv[:, 0] <= f.width) & (uv[:, 1] >= 0) & (uv[:, 1] <= f.height)
+            idx = np.flatnonzero(inside & ~seen)
+            if not len(idx):
+                continue
+            to_pts = pts[idx] - centres[j]
+            d = np.linalg.norm(to_pts, axis=1)
+            first, _ = q.first_hit(np.broadcast_to(centres[j], to_pts.shape).copy(), to_pts / d[:, None])
+            seen[idx[first >= d - (0.02 + 0.01 * d)]] = True
+        out[i] = seen.mean()
+    return out

@@ -169,3 +169,21 @@ def test_capture_refine_plan_and_worker_agree(kitchen):
     assert all(len(painter.frames_at(v.position)) == 1 for v in plan.views)  # the worker finds each refined camera
     base = _plan(kitchen, cameras={"mode": "capture"}, views={"resolution": 32})
     assert np.median([v.alignment for v in plan.views]) > np.median([v.alignment for v in base.views]) + 0.2
+
+
+def test_photo_textured_views_need_photo_coverage(kitchen):
+    """views.rgb_source photos on generated cameras: views whose surface the photos saw too little of are dropped."""
+    from services.scheduler.planning.capture_views import textured_coverage
+
+    spec = {"cameras": {"mode": "generate", "max_count": 20, "min_spacing_m": 0.3}, "points": {"count": 12, "min_views": 1},
+            "views": {"resolution": 32, "rgb_source": "photos"}}
+    loose = _plan(kitchen, **{**spec, "views": {**spec["views"], "min_photo_coverage": 0.0}})
+    strict = _plan(kitchen, **{**spec, "views": {**spec["views"], "min_photo_coverage": 0.6}})
+    q = MeshQueries(kitchen.mesh)
+    cov_loose = textured_coverage(q, kitchen.capture, np.stack([v.world_to_camera for v in loose.views]),
+                                  np.array([v.fov for v in loose.views]))
+    cov_strict = textured_coverage(q, kitchen.capture, np.stack([v.world_to_camera for v in strict.views]),
+                                   np.array([v.fov for v in strict.views]))
+    assert (cov_loose < 0.6).any() and len(strict.views) < len(loose.views)
+    assert (cov_strict >= 0.6).all()
+    assert "min_photo_coverage" in strict.shortfall

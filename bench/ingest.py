@@ -26,8 +26,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.ingest_real import real_figures, summary  # noqa: E402
-from services.core.ingest.gravity import UnitError, choose_unit_scale, estimate_up  # noqa: E402
+from bench.ingest_real import real_figures, summary, units_outcome  # noqa: E402
+from services.core.ingest.gravity import estimate_up  # noqa: E402
 from tests.fixtures import rotation_corpus as corpus  # noqa: E402
 
 
@@ -102,13 +102,10 @@ def main() -> None:
     for case in corpus.cases(rooms, args.rotations, seed=args.seed):
         t0 = time.perf_counter()
         est = estimate_up(case.mesh, ".ply")
-        try:
-            scale = choose_unit_scale(est.storey_height, float(case.mesh.extents.max())).scale
-        except UnitError:
-            scale = float("nan")
+        units = units_outcome(case.mesh, est.up, est.storey_height, case.scale)
         seconds.append(time.perf_counter() - t0)
         rows.append({"room": case.room, "kind": case.kind, "faces": len(case.mesh.faces),
-                     "error": corpus.up_error_deg(est.up, case.up), "units_ok": scale == case.scale,
+                     "error": corpus.up_error_deg(est.up, case.up), "units_ok": units == "right", "units": units,
                      "exact": bool(np.array_equal(est.up, np.round(case.up))), "low": est.low_confidence,
                      "refused": est.ambiguous, "named_right": True})
 
@@ -131,6 +128,8 @@ def main() -> None:
         "per_room": per_room,
         "low_confidence_share": round(float(np.mean([r["low"] for r in rows])), 4),
         "synthetic_and_icl_refusals": {k: v for k, v in summary(rows).items() if "share" in k},
+        "synthetic_and_icl_units": {s: round(float(np.mean([r["units"] == s for r in rows])), 4)
+                                    for s in ("right", "refused", "wrong")},
         "real_corpus": real_figures(args.scenes, args.real_rotations, args.seed, print),
         "point_cloud": cloud_figures(args.cloud_points, args.seed) if args.cloud_points else None,
         "seconds_per_case": {"median": round(float(np.median(seconds)), 4), "max": round(float(np.max(seconds)), 4),
@@ -144,6 +143,16 @@ def main() -> None:
         result["before"] = old.get("before") or {k: old[k] for k in ("all", "random_rotations", "axis_aligned",
                                                                        "icl_livingroom_random", "low_confidence_share")
                                                  if k in old}
+        if result["point_cloud"] is None and old.get("point_cloud"):  # not re-run: keep its last figures
+            result["point_cloud"] = {**old["point_cloud"], "note": "kept from the previous run (--cloud-points 0)"}
+        if "before_unit_evidence" not in old and "real_corpus" in old:  # units by storey height alone
+            real = old["real_corpus"]
+            result["before_unit_evidence"] = {
+                "synthetic_and_icl_units_correct": old["all"]["units_correct"],
+                **{f"real_{k}_units_correct": real[k]["units_correct"]
+                   for k in ("without_poses", "without_poses_as_stored", "with_capture_poses")}}
+        elif "before_unit_evidence" in old:
+            result["before_unit_evidence"] = old["before_unit_evidence"]
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
     print(json.dumps({k: result[k] for k in ("all", "random_rotations", "axis_aligned", "icl_livingroom_random",

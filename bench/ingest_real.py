@@ -17,7 +17,8 @@ from typing import Any
 import numpy as np
 import trimesh
 
-from services.core.ingest.gravity import UnitError, choose_unit_scale, estimate_up, up_candidate_facts
+from services.core.ingest.gravity import UnitError, estimate_up, floor_evidence, up_candidate_facts
+from services.core.ingest.unit_evidence import ScanMeasures, choose_units, decide_units, measure
 from services.core.ingest.up_evidence import WEIGHTS, decide
 from tests.fixtures import rotation_corpus as corpus
 from tests.fixtures.real_corpus import RealCase, real_cases, real_rooms
@@ -51,19 +52,44 @@ def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "share_refusals_naming_the_right_candidate": (round(float(np.mean([r["named_right"] for r in refused])), 4)
                                                       if refused else None),
         "units_correct": round(float(np.mean([r["units_ok"] for r in rows])), 4),
+        **({"units": units_shares(rows, "units")} if rows and "units" in rows[0] else {}),
     }
+
+
+def units_shares(rows: list[dict[str, Any]], key: str) -> dict[str, Any]:
+    """Units right / refused as ambiguous / wrong: over every case (detected up, as the old units_correct),
+    over the cases whose up was levelled (what a user gets without any flag), and with the true up given
+    (what a user gets after picking up with --up)."""
+    def shares(sel: list[dict[str, Any]], k: str) -> dict[str, Any]:
+        n = max(len(sel), 1)
+        return {"cases": len(sel), **{s: round(sum(r[k] == s for r in sel) / n, 4) for s in ("right", "refused", "wrong")}}
+
+    out = {"detected_up_all": shares(rows, key),
+           "detected_up_levelled": shares([r for r in rows if not r["refused"]], key)}
+    if key + "_true_up" in rows[0]:
+        out["true_up_given"] = shares(rows, key + "_true_up")
+    return out
+
+
+def units_outcome(mesh: trimesh.Trimesh, up: np.ndarray, storey: float | None, scale: float) -> str:
+    """right | refused | wrong: the units `load_space` would choose along `up` (auto unit_scale)."""
+    try:
+        units = choose_units(mesh, up, storey)
+    except UnitError:
+        return "refused"
+    return "refused" if units.ambiguous else "right" if units.scale == scale else "wrong"
 
 
 def run_case(case: RealCase, posed: bool) -> dict[str, Any]:
     """Estimate up (with the capture's camera up when `posed`) and score it against the truth."""
     est = estimate_up(case.mesh, ".ply", case.capture_up if posed else None)
-    try:
-        scale = choose_unit_scale(est.storey_height, float(case.mesh.extents.max())).scale
-    except UnitError:
-        scale = float("nan")
+    units = units_outcome(case.mesh, est.up, est.storey_height, case.scale)
+    given = floor_evidence(case.mesh, case.up)
+    units_true_up = units_outcome(case.mesh, case.up, None if given is None else given.storey_height, case.scale)
     named = [est.up] + ([c.up for c in est.decision.shown] if est.decision is not None else [])
     return {"room": case.room, "kind": case.kind, "posed": posed, "refused": est.ambiguous,
-            "error": corpus.up_error_deg(est.up, case.up), "units_ok": scale == case.scale,
+            "error": corpus.up_error_deg(est.up, case.up), "units_ok": units == "right", "units": units,
+            "units_true_up": units_true_up,
             "named_right": min(corpus.up_error_deg(u, case.up) for u in named) < 5.0,
             "probability": est.confidence}
 
@@ -98,14 +124,35 @@ def ablation(cases: Iterable[tuple[Any, np.ndarray, np.ndarray | None]]) -> dict
     return out
 
 
+UNIT_TERMS = ("storey", "camera", "furniture", "spacing")
+
+
+def unit_ablation(measured: list[tuple[ScanMeasures, float]]) -> dict[str, Any]:
+    """Per unit evidence term: units right / refused / wrong with that term left out (the true up given,
+    cases where some unit makes the storey plausible)."""
+    out: dict[str, Any] = {}
+    for left_out in ("none", *UNIT_TERMS):
+        outcomes = []
+        for m, scale in measured:
+            d = decide_units(m, () if left_out == "none" else (left_out,))
+            if d.ranked:
+                outcomes.append("refused" if d.ambiguous else "right" if d.ranked[0].scale == scale else "wrong")
+        n = max(len(outcomes), 1)
+        out["all_terms" if left_out == "none" else f"without_{left_out}"] = {
+            "cases": len(outcomes), **{k: round(outcomes.count(k) / n, 4) for k in ("right", "refused", "wrong")}}
+    return out
+
+
 def real_figures(scenes: Path, n_random: int, seed: int, log: Callable[[str], None]) -> dict[str, Any]:
     """The real-corpus section of bench/results/ingest.json."""
     rooms = shared_rooms(scenes) + real_rooms()
     rows: list[dict[str, Any]] = []
     ablation_cases: list[tuple[Any, np.ndarray, np.ndarray | None]] = []
     posed_cases: list[tuple[Any, np.ndarray, np.ndarray | None]] = []
+    unit_cases: list[tuple[ScanMeasures, float]] = []
     for case in real_cases(rooms, n_random, seed=seed):
         rows.append(run_case(case, posed=False))
+        unit_cases.append((measure(case.mesh, case.up), case.scale))
         if case.capture_up is not None:
             rows.append(run_case(case, posed=True))
         if case.kind != "axis":
@@ -129,4 +176,5 @@ def real_figures(scenes: Path, n_random: int, seed: int, log: Callable[[str], No
         "calibration_without_poses": calibration(pick(posed=False)),
         "ablation_without_poses": ablation(ablation_cases),
         "ablation_with_capture_poses": ablation(posed_cases),
+        "unit_ablation_true_up": unit_ablation(unit_cases),
     }

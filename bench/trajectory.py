@@ -43,7 +43,8 @@ from services.core.domain.jobspec import JobSpec  # noqa: E402
 from services.core.domain.plan import SpacePlan, clip_summary  # noqa: E402
 from services.core.ingest.loading import LoadedSpace, load_space  # noqa: E402
 from services.scheduler.planning import make_plan, space_rng  # noqa: E402
-from services.scheduler.planning.trajectory import OBJECT_REFERENCE_M, rotation_angles, turn_angles  # noqa: E402
+from services.scheduler.planning.paths import rotation_angles, turn_angles  # noqa: E402
+from services.scheduler.planning.trajectory import OBJECT_REFERENCE_M  # noqa: E402
 from tests.fixtures.scenes import as_space, random_furnished_room  # noqa: E402
 
 SCENES = ROOT.parent / "shared" / "scenes"

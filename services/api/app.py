@@ -1,4 +1,4 @@
-"""The FastAPI application (DESIGN.md sections 1, 3, 7): `create_app(settings)` wires routes, storage and the database.
+"""The FastAPI application: `create_app(settings)` wires routes, storage and the database.
 
 Routes live in feature folders (spaces, jobs, views, outputs, workers, progress, ops), each with endpoints.py
 (HTTP), schemas.py (API models, separate from ORM rows) and service.py (logic taking keyword arguments).
@@ -63,6 +63,27 @@ class SSEConfig:
     heartbeat_s: float = 15.0
 
 
+def _set_state(app: FastAPI, settings: Settings, engine: Engine, store: ObjectStore, sse: SSEConfig) -> None:
+    """What the routes find on `app.state`: settings, sessions, store, rate tracker, caches."""
+    app.state.settings = settings
+    app.state.engine = engine
+    app.state.sessionmaker = make_sessionmaker(engine)
+    # Reads (progress polls, lists) need no transaction: autocommit saves the BEGIN and ROLLBACK round trips.
+    read_engine = engine if settings.is_sqlite else engine.execution_options(isolation_level="AUTOCOMMIT")
+    app.state.read_sessionmaker = make_sessionmaker(read_engine)
+    app.state.store = store
+    app.state.redis = None  # created on first use by ops.service.redis_client
+    app.state.rates = RateTracker()
+    app.state.sse = sse
+    app.state.sse_limits = StreamLimits(settings.sse_max_per_tenant, settings.sse_poll_threads)
+    app.state.sse_polls = SharedPolls(app.state.read_sessionmaker, max_age_s=sse.poll_s / 2)
+    # Each upload's check is a CPU-bound child process: a few at a time, so 50 uploads do not starve the server.
+    app.state.upload_checks = LazyLimiter(settings.upload_parse_concurrency)
+    app.state.metrics_cache = {}
+    app.state.schema_heads = schema_heads()  # what /ready expects the database's revision to be
+    app.state.storage_probe = None  # (time, outcome) of /ready's last storage probe
+
+
 def create_app(
     settings: Settings | None = None,
     *,
@@ -103,37 +124,13 @@ def create_app(
         docs_url=None,  # FastAPI's pages load Swagger UI and ReDoc from a CDN: /docs is served offline below
         redoc_url=None,
     )
-    app.state.settings = settings
-    app.state.engine = engine
-    app.state.sessionmaker = make_sessionmaker(engine)
-    # Reads (progress polls, lists) need no transaction: autocommit saves the BEGIN and ROLLBACK round trips.
-    read_engine = engine if settings.is_sqlite else engine.execution_options(isolation_level="AUTOCOMMIT")
-    app.state.read_sessionmaker = make_sessionmaker(read_engine)
-    app.state.store = store
-    app.state.redis = None  # created on first use by ops.service.redis_client
-    app.state.rates = RateTracker()
-    app.state.sse = sse or SSEConfig()
-    app.state.sse_limits = StreamLimits(settings.sse_max_per_tenant, settings.sse_poll_threads)
-    app.state.sse_polls = SharedPolls(app.state.read_sessionmaker, max_age_s=app.state.sse.poll_s / 2)
-    # Each upload's check is a CPU-bound child process: a few at a time, so 50 uploads do not starve the server.
-    app.state.upload_checks = LazyLimiter(settings.upload_parse_concurrency)
-    app.state.metrics_cache = {}
-    app.state.schema_heads = schema_heads()  # what /ready expects the database's revision to be
-    app.state.storage_probe = None  # (time, outcome) of /ready's last storage probe
-
+    _set_state(app, settings, engine, store, sse or SSEConfig())
     install_error_handlers(app)
     app.add_middleware(RequestGuard, settings=settings)  # token and size checked before a body is read
     app.add_middleware(QueryTokenScrubber)  # ?token= never reaches a log line
     app.add_middleware(SecurityHeaders, settings=settings)  # CSP, no framing, nosniff
-    for router in (
-        ops_router,
-        spaces_router,
-        jobs_router,
-        views_router,
-        outputs_router,
-        progress_router,
-        workers_router,
-    ):
+    routers = (ops_router, spaces_router, jobs_router, views_router, outputs_router, progress_router, workers_router)
+    for router in routers:
         app.include_router(router)
     mount_dashboard(app)
     mount_docs(app)

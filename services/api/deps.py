@@ -1,4 +1,5 @@
-"""Request dependencies (STYLE.md item 9): database session, object store, settings and the caller's tenant.
+"""Request dependencies (database session, object store, settings and the caller's tenant), injected so
+routes stay thin and tests can swap them.
 
 Routes take the `Annotated` aliases below. The cheap ones are `async def` so FastAPI runs them on the event
 loop instead of handing each to the thread pool. Authentication is a bearer token (`Authorization: Bearer <token>`)
@@ -47,7 +48,8 @@ async def get_store(request: Request) -> ObjectStore:
     return store
 
 
-def _tenant_for(settings: Settings, token: str | None) -> str:
+def tenant_for(settings: Settings, token: str | None) -> str:
+    """The tenant whose token this is (401 without one or with an unknown one); the body guard checks it too."""
     if not token:
         raise HTTPException(
             status.HTTP_401_UNAUTHORIZED,
@@ -64,7 +66,7 @@ async def get_tenant(
     request: Request, creds: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer_scheme)]
 ) -> str:
     """The tenant of the bearer token; 401 when it is missing or unknown."""
-    return _tenant_for(request.app.state.settings, creds.credentials if creds else None)
+    return tenant_for(request.app.state.settings, creds.credentials if creds else None)
 
 
 async def get_tenant_sse(
@@ -81,7 +83,7 @@ async def get_tenant_sse(
     QueryTokenScrubber has already taken it off the query string so that no log ever shows it.
     """
     query_token = request.scope.get(QUERY_TOKEN_KEY, token)
-    return _tenant_for(request.app.state.settings, creds.credentials if creds else query_token)
+    return tenant_for(request.app.state.settings, creds.credentials if creds else query_token)
 
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]

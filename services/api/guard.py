@@ -17,7 +17,7 @@ from starlette.datastructures import Headers
 from starlette.responses import JSONResponse
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from services.api.deps import _tenant_for
+from services.api.deps import tenant_for
 from services.core.settings import Settings
 
 
@@ -59,7 +59,7 @@ class RequestGuard:
             await self.app(scope, receive, send)
             return
         try:
-            _tenant_for(self.settings, _bearer(headers))
+            tenant_for(self.settings, _bearer(headers))
         except HTTPException as e:
             await JSONResponse({"detail": e.detail}, status_code=e.status_code, headers=e.headers)(scope, receive, send)
             return

@@ -1,6 +1,6 @@
 """`omnidata sheet DIR`: a contact sheet PNG showing every cue of a few views side by side.
 
-Reads a dataset (a folder in the DESIGN.md layout, or s3://bucket/prefix of a job root) through its
+Reads a dataset (a folder in the output layout, or s3://bucket/prefix of a job root) through its
 manifest.jsonl and draws each file's preview (services/datasets/previews.py: colour maps, palettes, hashed
 fragments, drawn JSON cues), cached under the root's `_previews/` like the dashboard's; the files are untouched.
 """

@@ -25,8 +25,8 @@ def add_frame_arguments(parser: argparse.ArgumentParser) -> None:
                         help="4x4 source -> world matrix (JSON, or 4 lines of 4 numbers): rotation, uniform scale, "
                         "translation; overrides detection")
     parser.add_argument("--accept-up-guess", action="store_true", default=None,
-                        help="plan on the better up candidate even when detection cannot tell two apart "
-                        "(default: stop, naming both and the --up that picks one)")
+                        help="plan on the better up candidate (and unit) even when detection cannot tell two apart "
+                        "(default: stop, naming them and the --up / --unit-scale that picks one)")
 
 
 def _vector(text: str) -> list[float]:

@@ -1,6 +1,6 @@
 """`omnidata generate SPACE [SPACE ...] --out DIR`: plan and render a dataset on this machine, no services.
 
-The embedded default of DESIGN.md sections 1 and 8, composed from the SAME parts as the service: SQLite at
+The embedded default (a laptop, no services), composed from the SAME parts as the service: SQLite at
 DIR/.omnidata/state.db, a LocalStore rooted at DIR (space sources under `.omnidata/spaces`, outputs with an empty
 output root), the scheduler's planning/dispatch/reaper/completion loop in this process, and W local worker
 processes (spawned) each running the worker's TaskRunner. A multiprocessing queue replaces Redis.
@@ -31,7 +31,7 @@ from services.embedded.pool import cpu_count
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of `omnidata generate` (DESIGN.md section 8)."""
+    """Options of `omnidata generate`."""
     parser.add_argument("spaces", nargs="+", metavar="SPACE",
                         help="mesh file (.obj with .mtl/textures, .ply, .glb/.gltf) or a folder or .zip holding one")
     parser.add_argument("--out", "-o", required=True, metavar="DIR", help="output folder (created; reused to resume)")
@@ -86,8 +86,8 @@ def run(args: argparse.Namespace) -> int:
     if state_db.exists():  # a folder of an earlier run: spaces it already holds need no second validation
         engine = make_engine(settings.database_url)
         migrate(settings.database_url)
-        sm = make_sessionmaker(engine)
-        with sm() as s:
+        sessions = make_sessionmaker(engine)
+        with sessions() as s:
             find_spaces(s, sources)
         engine.dispose()
     validate_sources(sources, spec, progress=not args.no_progress)  # bad input refused before anything is created
@@ -98,15 +98,15 @@ def run(args: argparse.Namespace) -> int:
 
     migrate(settings.database_url)
     engine = make_engine(settings.database_url)
-    sm = make_sessionmaker(engine)
+    sessions = make_sessionmaker(engine)
     store = LocalStore(out)
     try:
-        prepared = prepare_job(sm, store, spec, sources)
+        prepared = prepare_job(sessions, store, spec, sources)
         if prepared.resumed:
             store.remove_temp_files()  # writes the interrupted run never committed; no worker runs yet
             print(f"omnidata generate: resuming job {prepared.job_id} in {out} ({prepared.requeued} interrupted, "
                   f"{prepared.redo} missing, {prepared.retried} failed tasks to redo)", file=sys.stderr)
-        status = drive(sm, store, settings, out, prepared.job_id, workers, progress=not args.no_progress)
+        status = drive(sessions, store, settings, out, prepared.job_id, workers, progress=not args.no_progress)
         if refused:
             print(f"omnidata generate: {len(sources)} space(s) done; refused scene(s):\n{refused}", file=sys.stderr)
         return status

@@ -1,4 +1,4 @@
-"""`omnidata migrate [--check]`: bring the database schema to this code's Alembic head (DESIGN.md section 8).
+"""`omnidata migrate [--check]`: bring the database schema to this code's Alembic head.
 
 The services (serve, scheduler, worker) refuse to start on a database that is not at the head; this is the
 command their refusal names. Configured by OMNIDATA_DATABASE_URL like the services.

@@ -1,6 +1,6 @@
 """`omnidata plan`: sample cameras, points and views of spaces and write the plan-stage cues.
 
-Writes, under --out DIR, in the dataset layout `<cue>/<component>/<space>/<file>` (DESIGN.md 5):
+Writes, under --out DIR, in the dataset layout `<cue>/<component>/<space>/<file>`:
 point_info and vanishing_points JSON per view, nonfixated JSON per point; plus `plans/<space>.json`
 (the full SpacePlan, services.core.domain.plan.plan_to_json) and `job.json` in the one schema
 (services.core.domain.job_document, stage "plan"). A space that yields fewer points
@@ -18,9 +18,9 @@ from typing import Any
 from services.cli import CliError
 from services.cli.spec_args import add_spec_arguments, build_spec, distinct_space_names
 from services.core.domain.job_document import job_document, job_json_bytes
-from services.core.domain.jobspec import cues_for_space
+from services.core.domain.jobspec import JobSpec, cues_for_space
 from services.core.domain.keys import JOB_JSON_KEY, output_key
-from services.core.domain.plan import PlanError, plan_to_json
+from services.core.domain.plan import PlanError, SpacePlan, plan_to_json
 from services.core.domain.plan_cues import encode_json, nonfixated, point_info, vanishing_points
 from services.core.ingest.datasets import expand_roots
 from services.core.ingest.errors import SpaceError
@@ -42,6 +42,32 @@ def _write_json(root: Path, key: str, data: Any) -> None:
     path = root / key
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_bytes(encode_json(data))
+
+
+def _write_plan_cues(out: Path, component: str, name: str, plan: SpacePlan) -> None:
+    """point_info and vanishing_points per view, nonfixated per point, in the dataset layout."""
+    for view in plan.views:
+        info = point_info(plan, view)
+        _write_json(out, output_key("point_info", component, name, view.point_idx, view.v), info)
+        _write_json(out, output_key("vanishing_points", component, name, view.point_idx, view.v),
+                    vanishing_points(info))
+    for point in plan.points:
+        _write_json(out, output_key("nonfixated", component, name, point.idx, 0), nonfixated(plan, point.idx))
+
+
+def _plan_document(spec: JobSpec, component: str, spaces: dict[str, dict[str, Any]],
+                   plans: list[SpacePlan]) -> dict[str, Any]:
+    """job.json of a plan (stage "plan"): no job row, counts of the files written."""
+    views = sum(len(plan.views) for plan in plans)
+    points = sum(len(plan.points) for plan in plans)
+    return job_document(
+        stage="plan",
+        job={"id": None, "name": component, "owner": None, "state": "planned", "error": None, "output_root": None,
+             "created_at": None, "started_at": None, "finished_at": None, "total_tasks": 0},
+        component=component, spec=spec.model_dump(mode="json"), cues=PLAN_CUES, spaces=spaces,
+        plan_summary={"shortfall": any(rec["shortfall"] for rec in spaces.values())},
+        counts={"point_info": {"done": views}, "vanishing_points": {"done": views}, "nonfixated": {"done": points}},
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -81,13 +107,7 @@ def run(args: argparse.Namespace) -> int:
 
     out.mkdir(parents=True, exist_ok=True)
     for position, (_given, name, space, plan) in enumerate(plans):
-        for view in plan.views:
-            info = point_info(plan, view)
-            _write_json(out, output_key("point_info", component, name, view.point_idx, view.v), info)
-            _write_json(out, output_key("vanishing_points", component, name, view.point_idx, view.v),
-                        vanishing_points(info))
-        for point in plan.points:
-            _write_json(out, output_key("nonfixated", component, name, point.idx, 0), nonfixated(plan, point.idx))
+        _write_plan_cues(out, component, name, plan)
         plan_key = f"plans/{name}.json"
         (out / "plans").mkdir(parents=True, exist_ok=True)
         (out / plan_key).write_text(plan_to_json(plan))
@@ -98,16 +118,6 @@ def run(args: argparse.Namespace) -> int:
             print(f"omnidata plan: warning: {name}: {note}", file=sys.stderr)
         if plan.shortfall:
             print(f"omnidata plan: warning: {name}: {plan.shortfall}", file=sys.stderr)
-    views = sum(len(plan.views) for *_, plan in plans)
-    points = sum(len(plan.points) for *_, plan in plans)
-    job = job_document(
-        stage="plan",
-        job={"id": None, "name": component, "owner": None, "state": "planned", "error": None, "output_root": None,
-             "created_at": None, "started_at": None, "finished_at": None, "total_tasks": 0},
-        component=component, spec=spec.model_dump(mode="json"), cues=PLAN_CUES, spaces=spaces,
-        plan_summary={"shortfall": any(rec["shortfall"] for rec in spaces.values())},
-        counts={"point_info": {"done": views}, "vanishing_points": {"done": views}, "nonfixated": {"done": points}},
-    )
-    (out / JOB_JSON_KEY).write_bytes(job_json_bytes(job))
+    (out / JOB_JSON_KEY).write_bytes(job_json_bytes(_plan_document(spec, component, spaces, [p for *_, p in plans])))
     print(f"wrote {out}")
     return 0

@@ -104,9 +104,9 @@ class Api:
         offset = 0
         while True:
             page = self._call("GET", "/spaces", params={"limit": 200, "offset": offset})
-            for sp in page["items"]:
-                if sp["name"] == name:
-                    return dict(sp)
+            for space in page["items"]:
+                if space["name"] == name:
+                    return dict(space)
             offset += len(page["items"])
             if not page["items"] or offset >= page["total"]:
                 return None
@@ -180,17 +180,17 @@ def submit_db(settings: Any, spec: Any, sources: list[Any], owner: str) -> int:
         with make_sessionmaker(engine)() as s:
             spaces = []
             for src in sources:
-                sp = s.scalars(select(Space).where(Space.owner == owner, Space.name == src.name)).first()
-                if sp is not None and sp.checksum != src.checksum:
+                space = s.scalars(select(Space).where(Space.owner == owner, Space.name == src.name)).first()
+                if space is not None and space.checksum != src.checksum:
                     raise CliError(f"a different space named {src.name!r} already exists for {owner!r}; rename yours")
-                if sp is None:
+                if space is None:
                     try:
-                        sp = register_space(s, store, owner=owner, name=src.name, source_path=src.path,
+                        space = register_space(s, store, owner=owner, name=src.name, source_path=src.path,
                                             **spec.space_frame())
                     except SpaceError as e:
                         raise CliError(str(e)) from None
-                    print(f"omnidata submit: registered space {src.name!r} (id {sp.id})", file=sys.stderr)
-                spaces.append(sp)
+                    print(f"omnidata submit: registered space {src.name!r} (id {space.id})", file=sys.stderr)
+                spaces.append(space)
             try:
                 job = create_job(s, owner=owner, spec=spec, spaces=spaces)
             except ValueError as e:
@@ -209,12 +209,12 @@ def db_status_fn(settings: Any) -> tuple[Callable[[int], Status], Callable[[], N
     from services.core.domain.cues import CATALOG
 
     engine = make_engine(settings.database_url)
-    sm = make_sessionmaker(engine)
+    sessions = make_sessionmaker(engine)
     t0, first_labels = time.monotonic(), None
 
     def status(job_id: int) -> Status:
         nonlocal first_labels
-        with sm() as s:
+        with sessions() as s:
             job = s.get(Job, job_id)
             if job is None:
                 raise CliError(f"job {job_id} does not exist")

@@ -1,7 +1,7 @@
 """Celery wiring shared by the scheduler (sends tasks by name) and the worker (consumes them).
 
 Only names, queues and broker options live here, so the scheduler and API can build a bare Celery app
-that never imports the worker (STYLE.md items 1 and 6): tasks are sent with
+that never imports the worker (and so never bpy): tasks are sent with
 `app.send_task(TASK_RENDER_CUE, args=[task_id], queue=queue_for_cue(cue, settings))`.
 """
 

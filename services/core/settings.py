@@ -1,4 +1,4 @@
-"""Service settings (DESIGN.md section 6, STYLE.md item 7): one pydantic-settings class, env prefix `OMNIDATA_`.
+"""Service settings: one pydantic-settings class (validated once, at start-up), env prefix `OMNIDATA_`.
 
 Defaults are the embedded setup (SQLite file and a local object folder under `data_dir`), so nothing has
 to be configured on a laptop. There is no global settings object: call `get_settings()` where needed.

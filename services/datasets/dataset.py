@@ -35,7 +35,8 @@ def camera_of(point_info: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
     """K (3x3, pixels) and world_to_camera (4x4, OpenCV axes) of a point_info, float32.
 
     Our point_info carries both; the released Omnidata components only have the field of view, resolution and
-    Blender camera location and Euler rotation, from which the same matrices follow (DESIGN.md section 8).
+    Blender camera location and Euler rotation, from which the same matrices follow
+    (services.core.domain.camera).
     """
     if "K" in point_info and "world_to_camera" in point_info:
         return (np.asarray(point_info["K"], np.float32), np.asarray(point_info["world_to_camera"], np.float32))

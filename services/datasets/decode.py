@@ -1,4 +1,4 @@
-"""Decode cue files (DESIGN.md section 5) into arrays in physical units, channels first.
+"""Decode cue files (the encodings of the cue catalog) into arrays in physical units, channels first.
 
 Bytes in, numpy out, no I/O: the dataset, the exporter and the previews share these. 16-bit PNGs are read
 from Pillow's raw buffer and reinterpreted as unsigned, so no Pillow version can hand back int16 values
@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
-from services.core.domain.cues import CURVATURE_FLAT, FRAGMENT_NONE, UINT16_NONE, get_cue
+from services.core.domain.cues import CURVATURE_FLAT, FRAGMENT_NONE, NORMAL_BACKGROUND, UINT16_NONE, get_cue
 from services.core.domain.exr import decode_exr_rgb
 from services.core.domain.jobspec import CueParams
 
@@ -106,11 +106,13 @@ def depth_metres(raw: np.ndarray, params: CueParams) -> np.ndarray:
 
 
 def normal_vectors(raw: np.ndarray) -> np.ndarray:
-    """HxWx3 float32 unit camera-frame normals of an 8-bit normal image; NaN on the grey background (128)."""
+    """HxWx3 float32 unit camera-frame normals of an 8-bit normal image; NaN on the grey background
+    (NORMAL_BACKGROUND)."""
     n = raw[..., :3].astype(np.float32) * np.float32(2.0 / 255.0) - np.float32(1.0)
     n[..., 0] *= -1.0  # px_x = 255 * (0.5 - 0.5 x)
     length = np.sqrt(np.einsum("hwc,hwc->hw", n, n))
-    background = (raw[..., 0] == 128) & (raw[..., 1] == 128) & (raw[..., 2] == 128) | (length < 0.5)
+    grey = NORMAL_BACKGROUND
+    background = (raw[..., 0] == grey) & (raw[..., 1] == grey) & (raw[..., 2] == grey) | (length < 0.5)
     with np.errstate(divide="ignore"):
         n *= np.where(background, np.float32(np.nan), 1.0 / length)[..., None]
     return n

@@ -62,19 +62,19 @@ def job_fingerprint(spec: JobSpec, checksums: Sequence[str]) -> str:
 
 def find_spaces(session: Session, sources: list[Source]) -> dict[str, Space]:
     """Registered spaces of this folder by name; Conflict when one has the same name but other content."""
-    rows = {sp.name: sp for sp in session.scalars(select(Space).where(Space.owner == OWNER))}
+    rows = {space.name: space for space in session.scalars(select(Space).where(Space.owner == OWNER))}
     found = {}
     for src in sources:
-        sp = rows.get(src.name)
-        if sp is None:
+        space = rows.get(src.name)
+        if space is None:
             continue
-        if sp.checksum != src.checksum:
+        if space.checksum != src.checksum:
             raise Conflict(
                 f"the output folder already holds a different space named {src.name!r} (its files changed); "
                 "use a new --out folder"
             )
-        found[src.name] = sp
-        src.has_semantics = bool(sp.has_semantics)
+        found[src.name] = space
+        src.has_semantics = bool(space.has_semantics)
     return found
 
 
@@ -86,7 +86,7 @@ def find_job(session: Session, spec: JobSpec, sources: list[Source]) -> Job | No
             job_spec = JobSpec.model_validate(job.spec)
         except ValueError:
             continue
-        checksums = [sp.checksum for _js, sp in job_spaces(session, job.id)]
+        checksums = [space.checksum for _job_space, space in job_spaces(session, job.id)]
         if job_fingerprint(job_spec, checksums) == want:
             return job
     return None
@@ -103,9 +103,9 @@ class Prepared:
     retried: int = 0  # failed tasks given another chance
 
 
-def prepare_job(sm: sessionmaker[Session], store: ObjectStore, spec: JobSpec, sources: list[Source]) -> Prepared:
+def prepare_job(sessions: sessionmaker[Session], store: ObjectStore, spec: JobSpec, sources: list[Source]) -> Prepared:
     """Register the spaces and create the job, or find the same job again and make it resumable."""
-    with sm() as s:
+    with sessions() as s:
         spaces = find_spaces(s, sources)
         job = find_job(s, spec, sources) if len(spaces) == len(sources) else None
         if job is not None:
@@ -117,12 +117,12 @@ def prepare_job(sm: sessionmaker[Session], store: ObjectStore, spec: JobSpec, so
             cancel_job(s, old)
         ordered = []
         for src in sources:
-            sp = spaces.get(src.name)
-            if sp is None:
-                sp = register_space(s, store, owner=OWNER, name=src.name, source_path=src.path,
+            space = spaces.get(src.name)
+            if space is None:
+                space = register_space(s, store, owner=OWNER, name=src.name, source_path=src.path,
                                     key_prefix=SPACES_PREFIX, **spec.space_frame(), loaded=src.loaded)
             src.loaded = None  # the workers load their own copy; do not keep the mesh in this process
-            ordered.append(sp)
+            ordered.append(space)
         try:
             job = create_job(s, owner=OWNER, spec=spec, spaces=ordered, output_root="")
         except ValueError as e:
@@ -131,7 +131,7 @@ def prepare_job(sm: sessionmaker[Session], store: ObjectStore, spec: JobSpec, so
         return Prepared(job.id, resumed=False)
 
 
-def run_until_final(sm: sessionmaker[Session], sched: Scheduler, pool: LocalPool, job_id: int, bar: Progress | None = None,
+def run_until_final(sessions: sessionmaker[Session], sched: Scheduler, pool: LocalPool, job_id: int, bar: Progress | None = None,
                     *, timeout: float | None = None) -> tuple[str, float | None]:
     """Tick the scheduler (at most every TICK_S) until the job is final; keep the pool full and the bar fresh.
 
@@ -150,16 +150,16 @@ def run_until_final(sm: sessionmaker[Session], sched: Scheduler, pool: LocalPool
             res = sched.tick()
             if job_id in res.planned:
                 planned_at = time.monotonic()
-            with sm() as s:
+            with sessions() as s:
                 job = s.get(Job, job_id)
                 assert job is not None
                 state = job.state
-                bar.update(sm, job, final=state in JOB_TERMINAL_STATES)
+                bar.update(sessions, job, final=state in JOB_TERMINAL_STATES)
             if state in JOB_TERMINAL_STATES:
                 return state, planned_at
             dead = pool.replace_dead()
             if dead:
-                expire_leases(sm, dead)
+                expire_leases(sessions, dead)
             if deadline is not None and time.monotonic() > deadline:
                 raise TimeoutError(f"job {job_id} did not finish in {timeout} s")
             next_tick = time.monotonic() + (0.0 if res.busy else tick_interval(time.process_time() - cpu0))
@@ -171,15 +171,15 @@ def tick_interval(tick_cpu_s: float) -> float:
     return min(TICK_MAX_S, max(TICK_S, tick_cpu_s / TICK_CPU_SHARE))
 
 
-def drive(sm: sessionmaker[Session], store: ObjectStore, settings: Settings, out: Path, job_id: int, workers: int, *, progress: bool) -> int:
+def drive(sessions: sessionmaker[Session], store: ObjectStore, settings: Settings, out: Path, job_id: int, workers: int, *, progress: bool) -> int:
     """Run the scheduler loop with W local workers until the job is final; returns the exit status."""
-    with sm() as s:
+    with sessions() as s:
         job = s.get(Job, job_id)
         assert job is not None
         if job.state in JOB_TERMINAL_STATES:  # nothing to redo: make sure the job files are there and report
             if not (store.exists(MANIFEST_KEY) and store.exists(JOB_JSON_KEY)):
                 write_job_files(s, store, job)
-            rep = build_report(sm, store, job_id)
+            rep = build_report(sessions, store, job_id)
             print_report(rep, out)
             return 0 if rep.ok else 1
 
@@ -188,24 +188,24 @@ def drive(sm: sessionmaker[Session], store: ObjectStore, settings: Settings, out
                         render_threads=threads, parent_pid=os.getpid())
     pool = LocalPool(workers, conf)
     transport = QueueTransport(pool.tasks)
-    sched = Scheduler(sm, store, transport, settings, scheduler_id=f"generate:{os.getpid()}",
+    sched = Scheduler(sessions, store, transport, settings, scheduler_id=f"generate:{os.getpid()}",
                       cache_dir=out / STATE_DIR / "cache")
     bar = Progress(progress)
     try:
         pool.start()
-        run_until_final(sm, sched, pool, job_id, bar)
+        run_until_final(sessions, sched, pool, job_id, bar)
     except KeyboardInterrupt:
         bar.close()
         print("omnidata generate: interrupted; stopping workers (run the same command again to resume)",
               file=sys.stderr)
         pool.stop()
-        with sm() as s:
+        with sessions() as s:
             requeue_inflight(s, job_id)
             s.commit()
         return 130
     finally:
         bar.close()
         pool.stop()
-    rep = build_report(sm, store, job_id)
+    rep = build_report(sessions, store, job_id)
     print_report(rep, out)
     return 0 if rep.ok else 1

@@ -60,11 +60,11 @@ def worker_main(conf: WorkerConfig, tasks: Any, results: Any, stop: Any) -> None
 
     settings = get_settings(**{**conf.settings, "render_threads": conf.render_threads})
     engine = make_engine(settings.database_url)
-    sm = make_sessionmaker(engine)
+    sessions = make_sessionmaker(engine)
     store = LocalStore(conf.out)
     worker_id = f"{socket.gethostname()}:{os.getpid()}"
-    hb = Heartbeat(sm, worker_id, queues=["local"], lease_s=settings.lease_s).start()
-    runner = TaskRunner(sm, store, settings, worker_id, heartbeat=hb, cache_dir=Path(conf.out) / STATE_DIR / "cache")
+    hb = Heartbeat(sessions, worker_id, queues=["local"], lease_s=settings.lease_s).start()
+    runner = TaskRunner(sessions, store, settings, worker_id, heartbeat=hb, cache_dir=Path(conf.out) / STATE_DIR / "cache")
     results.put(("ready", os.getpid(), worker_id))
     try:
         while not stop.is_set():

@@ -29,11 +29,11 @@ class Progress:
         self._views_at = 0.0
         self.views_text = ""
 
-    def update(self, sm: sessionmaker[Session], job: Job, *, final: bool = False) -> None:
+    def update(self, sessions: sessionmaker[Session], job: Job, *, final: bool = False) -> None:
         """Refresh from the job's counters (and, every few seconds or at the end, the number of finished views)."""
         if not self.enabled:
             return
-        with sm() as s:
+        with sessions() as s:
             prog = job_progress(s, job.id)
             now = time.monotonic()
             if final or now - self._views_at > VIEWS_REFRESH_S:
@@ -96,10 +96,10 @@ class Report:
         return self.state == JobState.DONE and not self.missing and not self.failed
 
 
-def build_report(sm: sessionmaker[Session], store: ObjectStore, job_id: int) -> Report:
+def build_report(sessions: sessionmaker[Session], store: ObjectStore, job_id: int) -> Report:
     """Check every requested output against the folder and collect failures (cue, count, first error)."""
     internal = [n for n, c in CATALOG.items() if c.internal]
-    with sm() as s:
+    with sessions() as s:
         job = s.get(Job, job_id)
         assert job is not None
         rep = Report(state=job.state, error=job.error)

@@ -1,4 +1,5 @@
-"""Compile a space's plan into task rows (pure: no database, no storage; STYLE.md item 4).
+"""Compile a space's plan into task rows (pure: no database, no storage, so it is
+tested and benchmarked on plans alone).
 
 For every view of the plan, one task per cue in `closure(cues)` (the requested cues plus everything
 they depend on, the internal `passes` render included), in topological order within the view so the

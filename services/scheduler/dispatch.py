@@ -18,7 +18,6 @@ which is view by view: a view's derived cues before the next view's render. Post
 from __future__ import annotations
 
 import logging
-from collections import defaultdict
 from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Any
@@ -272,7 +271,15 @@ def dispatch_once(
                     share -= len(moved)
                     budget -= len(moved)
     session.commit()  # queued is durable before any message exists
-    broken = False  # after one failed send the broker is presumed down: the rest goes back unsent
+    _send(session, transport, picked, result)
+    return result
+
+
+def _send(session: Session, transport: Transport, picked: list[tuple[int, list[tuple[int, str]]]],
+          result: DispatchResult) -> None:
+    """Send the queued tasks in chunks; after one failed send the broker is presumed down and the rest go
+    back to pending unsent."""
+    broken = False
     for job_id, moved in picked:
         for k in range(0, len(moved), SEND_CHUNK):
             part = moved[k : k + SEND_CHUNK]
@@ -285,7 +292,6 @@ def dispatch_once(
                     broken = True
                     log.exception("sending tasks of job %d failed; putting the unsent ones back to pending", job_id)
             result.requeued += _unqueue(session, job_id, part)
-    return result
 
 
 def _pick(
@@ -320,11 +326,3 @@ def _unqueue(session: Session, job_id: int, moved: list[tuple[int, str]]) -> int
         session.rollback()
         log.exception("could not put job %d's unsent tasks back; the reaper will", job_id)
         return 0
-
-
-def pending_by_job(session: Session) -> dict[int, int]:
-    """Pending tasks per running job, from the counters (for logs and tests)."""
-    out: dict[int, int] = defaultdict(int)
-    for load in running_job_loads(session):
-        out[load.job_id] = load.pending
-    return dict(out)

@@ -193,18 +193,18 @@ class Scheduler:
                 clear_plan(s, job.id)
                 summary: dict[str, Any] = {"spaces": {}, "attempts": (job.plan_summary or {}).get("attempts", 0) + 1}
                 total = 0
-                for js, sp in job_spaces(s, job.id):
-                    loaded = load_for_job(self.fetch_source(sp), spec, frame=space_frame_for(spec, sp))
-                    plan = plan_space(loaded, spec, sp.name, self.plan_fn)
+                for job_space, space in job_spaces(s, job.id):
+                    loaded = load_for_job(self.fetch_source(space), spec, frame=space_frame_for(spec, space))
+                    plan = plan_space(loaded, spec, space.name, self.plan_fn)
                     if not plan.views:
                         raise PlanningError(
-                            f"space {sp.name!r} yields no views"
+                            f"space {space.name!r} yields no views"
                             + (f": {plan.shortfall}" if plan.shortfall else " (no point is seen by enough cameras)")
                         )
-                    tasks = compile_tasks(plan, js.cues, sp.id)
-                    done = persist_space(s, self.store, job, sp.id, plan, tasks)
+                    tasks = compile_tasks(plan, job_space.cues, space.id)
+                    done = persist_space(s, self.store, job, space.id, plan, tasks)
                     total += done.tasks
-                    summary["spaces"][sp.name] = {
+                    summary["spaces"][space.name] = {
                         "cameras": done.cameras, "points": done.points, "views": done.views, "tasks": done.tasks,
                         "plan_key": done.plan_key, **plan_summary_of(loaded, plan, spec),
                     }

@@ -40,7 +40,7 @@ def plan_key(job: Job, space_name: str) -> str:
 def clear_plan(session: Session, job_id: int) -> None:
     """Delete every planned row of a job (a re-plan after a planner died starts from nothing)."""
     for model in (Task, View, Point, Camera, JobCounter):
-        session.execute(delete(model).where(model.job_id == job_id))  # type: ignore[attr-defined]
+        session.execute(delete(model).where(model.job_id == job_id))
 
 
 def plan_rows(plan: SpacePlan, job_id: int, space_id: int) -> tuple[dict, dict, dict]:

@@ -73,7 +73,22 @@ def reap_once(
     """
     now = now or utcnow()
     res = ReapResult()
+    _reap_running(session, res, now, default_max_attempts, dead_after_s)
+    _requeue_lost(session, res, now, queued_timeout_s)
+    session.commit()
+    if res.total:
+        log.info(
+            "reaper: %d tasks of lost workers retried, %d failed, %d cancelled (%d of dead workers, before "
+            "their lease ran out); %d lost queued tasks requeued",
+            res.expired_retried, res.expired_failed, res.expired_cancelled, res.dead_worker, res.lost_requeued,
+        )
+    return res
 
+
+def _reap_running(session: Session, res: ReapResult, now: datetime, default_max_attempts: int,
+                  dead_after_s: float | None) -> None:
+    """Running tasks of dead workers or expired leases: retried after a backoff, failed when out of attempts,
+    cancelled with their job."""
     lost_worker = Task.lease_until < now
     if dead_after_s is not None:
         silent_since = now - timedelta(seconds=dead_after_s)
@@ -124,6 +139,9 @@ def reap_once(
                 ),
             ))
 
+
+def _requeue_lost(session: Session, res: ReapResult, now: datetime, queued_timeout_s: float) -> None:
+    """Tasks queued longer than `queued_timeout_s` (their message was lost) go back to pending."""
     cutoff = now - timedelta(seconds=queued_timeout_s)
     lost = _locked(
         session,
@@ -139,11 +157,3 @@ def reap_once(
         res.lost_requeued += len(transition(
             session, job_id=job_id, task_ids=ids, from_state=TaskState.QUEUED, to_state=TaskState.PENDING, queued_at=None,
         ))
-    session.commit()
-    if res.total:
-        log.info(
-            "reaper: %d tasks of lost workers retried, %d failed, %d cancelled (%d of dead workers, before "
-            "their lease ran out); %d lost queued tasks requeued",
-            res.expired_retried, res.expired_failed, res.expired_cancelled, res.dead_worker, res.lost_requeued,
-        )
-    return res

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Protocol, TypeVar
 
 from sqlalchemy.orm import Session
@@ -20,7 +20,9 @@ from services.core.db.jobs import job_root
 from services.core.db.models import Job, Space
 from services.core.domain.jobspec import JobSpec
 from services.core.domain.plan import SpacePlan, plan_from_json
+from services.core.ingest.frame_choice import space_frame_for
 from services.core.storage import ObjectStore
+from services.worker.context import ViewContext
 
 T = TypeVar("T")
 
@@ -30,6 +32,16 @@ VIEW_CACHE_MEMORY_FRACTION = 0.25
 VIEW_CACHE_MIN = 4
 
 ViewKey = tuple[int, int, int, int]  # (job, space, point, view)
+K = TypeVar("K")
+
+
+class Measured(Protocol):
+    """Anything that says how many bytes it holds (a ViewContext)."""
+
+    def nbytes(self) -> int: ...
+
+
+Measured_T = TypeVar("Measured_T", bound=Measured)
 
 
 class DbStep(Protocol):
@@ -46,13 +58,29 @@ class JobInfo:
     spec: JobSpec
     root: str  # output root, '' for the embedded layout
     component: str
+    # space name -> the source_to_world its planner used (job.plan_summary): a re-pick of the space's up
+    # while the job renders cannot give its workers a frame other than its planner's
+    planned_frames: dict[str, list[list[float]]] = field(default_factory=dict)
 
     def root_key(self, key: str) -> str:
         """`key` under this job's output root."""
         return f"{self.root}/{key}" if self.root else key
 
+    def frame_for(self, space: Space) -> dict[str, Any]:
+        """`load_space` keyword arguments of a space: exactly its planner's frame (recorded when it planned);
+        for a job planned before that record existed, the frame recomputed from the spec and the space."""
+        planned = self.planned_frames.get(space.name)
+        return {"source_to_world": planned} if planned is not None else space_frame_for(self.spec, space)
 
-def trim_lru(views: OrderedDict[Any, Any], budget_bytes: int, keep: int = VIEW_CACHE_MIN) -> None:
+
+def planned_frames(plan_summary: dict[str, Any] | None) -> dict[str, list[list[float]]]:
+    """Space name -> the source_to_world (4x4) its planner loaded it with, from a job's plan summary."""
+    spaces = (plan_summary or {}).get("spaces") or {}
+    return {name: rec["source_to_world"] for name, rec in spaces.items()
+            if isinstance(rec, dict) and rec.get("source_to_world") is not None}
+
+
+def trim_lru(views: OrderedDict[K, Measured_T], budget_bytes: int, keep: int = VIEW_CACHE_MIN) -> None:
     """Drop the least recently used entries (first in `views`, each with .nbytes()) while they hold more than
     budget_bytes, keeping at least the `keep` most recent."""
     sizes = [c.nbytes() for c in views.values()]
@@ -76,7 +104,7 @@ class TaskInputs:
         self.jobs: dict[int, JobInfo] = {}
         self.spaces: dict[int, Space] = {}
         self.plans: OrderedDict[tuple[int, int], SpacePlan] = OrderedDict()
-        self.views: OrderedDict[ViewKey, Any] = OrderedDict()  # -> ViewContext with passes
+        self.views: OrderedDict[ViewKey, ViewContext] = OrderedDict()  # contexts holding their pass set
 
     def job(self, job_id: int) -> JobInfo:
         """The job's spec, output root and component name."""
@@ -88,7 +116,8 @@ class TaskInputs:
                     if job is None:
                         raise LookupError(f"job {job_id} does not exist")
                     spec = JobSpec.model_validate(job.spec)
-                    return JobInfo(job.id, spec, job_root(job), job.name or spec.name)
+                    return JobInfo(job.id, spec, job_root(job), job.name or spec.name,
+                                   planned_frames(job.plan_summary))
 
             info = self.db(load, f"load job {job_id}")
             self.jobs[job_id] = info
@@ -123,14 +152,14 @@ class TaskInputs:
             self.plans.move_to_end(k)
         return plan
 
-    def cached_view(self, key: ViewKey) -> Any:
+    def cached_view(self, key: ViewKey) -> ViewContext | None:
         """The kept ViewContext of a view (now the most recently used), or None."""
         ctx = self.views.get(key)
         if ctx is not None:
             self.views.move_to_end(key)
         return ctx
 
-    def keep_view(self, key: ViewKey, ctx: Any) -> None:
+    def keep_view(self, key: ViewKey, ctx: ViewContext) -> None:
         """Keep a view's context, dropping the least recently used ones beyond the byte budget."""
         self.views[key] = ctx
         trim_lru(self.views, self.view_budget_bytes)

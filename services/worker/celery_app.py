@@ -1,4 +1,5 @@
-"""The worker's Celery app (STYLE.md item 6): the shared broker configuration plus worker-only options.
+"""The worker's Celery app: the shared broker configuration plus worker-only options, kept apart from the
+scheduler's so sending a task never imports the worker.
 
 Postgres is the source of truth; Redis only carries `render.cue(task_id)` messages. Messages are acked after
 the task ran (acks_late) and given back when the worker process dies (reject_on_worker_lost), one at a time

@@ -47,11 +47,6 @@ class ViewContext:
         self._nested: list[float] = []
 
     @property
-    def has_passes(self) -> bool:
-        """True once the pass set exists (given or rendered)."""
-        return self._passes is not None
-
-    @property
     def passes(self) -> ViewPasses:
         """The view's pass set, rendering it from the space on first use (one render per view)."""
         if self._passes is None:

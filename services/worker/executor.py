@@ -1,4 +1,5 @@
-"""Produce a view's cue files: one render per view, every cue derived from its pass set (DESIGN.md section 6).
+"""Produce a view's cue files: one render per view, every cue derived from its pass set, so
+a view costs one Cycles render however many cues it asks for.
 
     ctx = make_context(space, view, cues, params)      # nothing rendered yet
     data = produce("depth_zbuffer", ctx)               # renders once, then derives; bytes of the PNG

@@ -1,6 +1,6 @@
 """The pass set of one rendered view (the internal `passes` cue) and the view geometry it was rendered with.
 
-Frames and units (DESIGN.md section 8, services/core/domain/camera.py):
+Frames and units (services/core/domain/camera.py, the conventions planning and rendering share):
 - world: metres, +Z up; `world_to_camera` takes world points to OpenCV camera axes (x right, y down, z forward);
 - pixel (u, v) has its centre at (u + 0.5, v + 0.5); K = [[f,0,W/2],[0,f,H/2],[0,0,1]], f = (W/2)/tan(fov/2).
 

@@ -25,7 +25,6 @@ import time
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
 
 from celery.utils.log import current_process_index
 from sqlalchemy.orm import Session
@@ -34,7 +33,6 @@ from services.core.db.models import Space
 from services.core.domain.cues import OUTPUT_CUES, closure
 from services.core.domain.keys import output_key, passes_key
 from services.core.domain.plan import PlannedView, SpacePlan
-from services.core.ingest.frame_choice import space_frame_for
 from services.core.ingest.loading import load_space
 from services.core.ingest.registry import fetch_space
 from services.core.settings import Settings
@@ -43,6 +41,7 @@ from services.worker.caches import VIEW_CACHE_MEMORY_FRACTION, JobInfo, TaskInpu
 from services.worker.claim import DB_RETRY_S, Claimed, Outcome, TaskLedger
 from services.worker.context import ViewContext
 from services.worker.executor import produce, render_passes_for
+from services.worker.heartbeat import Heartbeat
 from services.worker.passes import ViewPasses
 from services.worker.space_cache import SpaceCache, SpaceContext, should_recycle
 
@@ -63,7 +62,7 @@ class TaskRunner:
         settings: Settings,
         worker_id: str,
         *,
-        heartbeat: Any = None,
+        heartbeat: Heartbeat | None = None,
         cache_dir: str | Path | None = None,
         render_threads: int | None = None,
         render_device: str | None = None,
@@ -140,7 +139,7 @@ class TaskRunner:
     def _space_context(self, job: JobInfo, space: Space, plan: SpacePlan | None = None) -> SpaceContext:
         """The space loaded into the world frame of this job (its up_axis/unit_scale), kept between tasks."""
         spec = job.spec
-        frame = space_frame_for(spec, space)  # the planner's frame: the spec's, else the space's chosen up
+        frame = job.frame_for(space)  # exactly the planner's: a re-pick of the space's up cannot change it
         refined = (plan.capture or {}).get("refined") if plan is not None else None  # the planner's colour camera
         photos = f"{spec.uses_photos()}:{json.dumps(refined and refined['correction'], sort_keys=True)}"
         key = f"{space.checksum}:{json.dumps(frame, sort_keys=True)}:photos={photos}"
@@ -159,7 +158,7 @@ class TaskRunner:
     def _view_context(self, t: Claimed, job: JobInfo, space: Space, plan: SpacePlan, view: PlannedView) -> ViewContext:
         """A ViewContext holding the view's pass set: memory LRU, else the store's pass cache, else a render."""
         vk = (t.job_id, t.space_id, t.point, t.view)
-        ctx: ViewContext | None = self.inputs.cached_view(vk)
+        ctx = self.inputs.cached_view(vk)
         if ctx is not None:
             return ctx
         params = job.spec.params

@@ -1,5 +1,6 @@
-"""Celery tasks of the worker (STYLE.md item 6): thin wrappers that validate the payload, call the TaskRunner
-and map transient errors to retries. Everything else (state, results, errors) lives in the database.
+"""Celery tasks of the worker: thin wrappers that validate the payload, call the TaskRunner and map transient
+errors to retries (so the logic is testable without Celery). Everything else (state, results, errors)
+lives in the database.
 
 Each worker child process builds its own runtime (database engine, object store, TaskRunner, heartbeat thread)
 after the fork, on first use: connections and threads must not cross a fork.
@@ -11,7 +12,7 @@ import logging
 import os
 import threading
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from celery import Task as CeleryTask
 from celery import shared_task
@@ -19,6 +20,12 @@ from celery.signals import worker_process_init, worker_process_shutdown
 
 from services.core.celery_config import TASK_RENDER_CUE
 from services.core.settings import Settings, get_settings
+
+if TYPE_CHECKING:  # imported lazily at run time: the Celery app imports this module and must stay light
+    from sqlalchemy import Engine
+
+    from services.worker.heartbeat import Heartbeat
+    from services.worker.runner import TaskRunner
 
 log = logging.getLogger(__name__)
 
@@ -32,9 +39,9 @@ class Runtime:
 
     pid: int
     settings: Settings
-    engine: Any
-    runner: Any
-    heartbeat: Any
+    engine: Engine
+    runner: TaskRunner
+    heartbeat: Heartbeat
 
     def close(self) -> None:
         """Stop the heartbeat, free the space and close database connections."""
@@ -54,7 +61,7 @@ def _settings_from_app(app: Any) -> Settings:
     return s if isinstance(s, Settings) else get_settings()
 
 
-def worker_engine(database_url: str, **kwargs: Any) -> Any:
+def worker_engine(database_url: str, **kwargs: Any) -> Engine:
     """The worker's database engine; on Postgres its commits do not wait for the WAL flush (synchronous_commit off).
 
     Every claim and result of the whole fleet updates the same few counter rows of a job, and a commit that holds
@@ -84,17 +91,17 @@ def build_runtime(settings: Settings, *, queues: list[str] | None = None, name: 
     from services.worker.runner import TaskRunner, default_worker_id
 
     engine = worker_engine(settings.database_url)
-    sm = make_sessionmaker(engine)
+    sessions = make_sessionmaker(engine)
     store = open_store(settings.storage_url, settings)
     worker_id = default_worker_id(name)
     if name:
         # One process holds a named id at a time: a task still running under it was left by the child this
         # process replaces (killed mid-task). End its lease so the reaper retries it now, not minutes later.
-        expire_leases(sm, [worker_id])
-    hb = Heartbeat(sm, worker_id, queues=queues or [settings.queue_render, settings.queue_derive],
+        expire_leases(sessions, [worker_id])
+    hb = Heartbeat(sessions, worker_id, queues=queues or [settings.queue_render, settings.queue_derive],
                    lease_s=settings.lease_s,
                    interval_s=heartbeat_interval(min(settings.lease_s, settings.heartbeat_timeout_s)))
-    runner = TaskRunner(sm, store, settings, worker_id, heartbeat=hb)
+    runner = TaskRunner(sessions, store, settings, worker_id, heartbeat=hb)
     hb.start()
     return Runtime(os.getpid(), settings, engine, runner, hb)
 

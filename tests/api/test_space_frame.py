@@ -84,3 +84,110 @@ def test_ambiguous_space_held_refused_previewed_then_picked(api: Api) -> None:
     assert frame["up"] == picked["up_choice"]["up"]
     loaded = load_space(COPYROOM, **frame)
     np.testing.assert_allclose(loaded.source_to_world, T, atol=1e-12)
+
+
+def test_a_repick_while_a_job_renders_keeps_the_planners_frame(api: Api, tmp_path: Path) -> None:
+    """The planner records the frame it planned with; the job's workers load exactly that one, whatever the
+    space's pick says by then (a later pick is for later jobs)."""
+    from datetime import timedelta
+
+    from services.core.db.models import Job, JobState, utcnow
+    from services.core.settings import get_settings
+    from services.scheduler.loop import Scheduler
+    from services.scheduler.transport import NullTransport
+    from services.worker.caches import TaskInputs
+
+    space = _upload(api)
+    first, second = space["frame"]["up"]["candidates"][:2]
+    r = api.client.put(f"/spaces/{space['id']}/up", json={"up": second["up"]}, headers=api.a.headers)
+    assert r.status_code == 200, r.text
+    planned_T = np.array(r.json()["source_to_world"])
+    r = api.client.post("/jobs", json={"space_ids": [space["id"]], "spec": SPEC}, headers=api.a.headers)
+    assert r.status_code == 201, r.text
+    job_id = r.json()["id"]
+    with api.sessions() as s:  # claim this job only (the database is shared with other tests' jobs)
+        job = s.get(Job, job_id)
+        assert job is not None
+        job.state, job.planner, job.planner_lease_until = JobState.PLANNING, "s17b", utcnow() + timedelta(minutes=5)
+        s.commit()
+    sched = Scheduler(api.sessions, api.store, NullTransport(), get_settings(data_dir=tmp_path), "s17b")
+    assert sched.plan_job(job_id)
+
+    # the space is re-picked while the job renders
+    r = api.client.put(f"/spaces/{space['id']}/up", json={"up": first["up"]}, headers=api.a.headers)
+    assert r.status_code == 200, r.text
+    assert not np.allclose(np.array(r.json()["source_to_world"]), planned_T)
+
+    inputs = TaskInputs(api.sessions, api.store, lambda fn, what: fn(), view_budget_bytes=1 << 20)
+    job_info = inputs.job(job_id)
+    with api.sessions() as s:
+        row = s.get(Space, space["id"])
+        assert row is not None
+        s.expunge(row)
+    frame = job_info.frame_for(row)
+    np.testing.assert_allclose(frame["source_to_world"], planned_T, atol=1e-12)
+    loaded = load_space(COPYROOM, **frame)  # what the worker renders: the planner's world, not the new pick
+    np.testing.assert_allclose(loaded.source_to_world, planned_T, atol=1e-12)
+    # a job planned now would take the new pick
+    assert space_frame_for(JobSpec.model_validate(SPEC), row)["up"] == row.validation["up_choice"]["up"]
+    assert not np.allclose(load_space(COPYROOM, **space_frame_for(JobSpec.model_validate(SPEC), row)).source_to_world,
+                           planned_T)
+
+
+def test_pick_and_preview_parse_the_scan_in_the_limited_child(api: Api, monkeypatch) -> None:
+    """Neither route parses the stored scan in the API process: with the parser disabled there, both still work."""
+    import trimesh
+
+    from services.api.spaces import up_choice
+
+    space = _upload(api)
+    second = space["frame"]["up"]["candidates"][1]
+
+    def no_parsing_here(*_a: object, **_k: object) -> None:
+        raise AssertionError("the API process parsed a scan")
+
+    monkeypatch.setattr(trimesh, "load", no_parsing_here)
+    monkeypatch.setattr("services.core.ingest.loading.load_space", no_parsing_here)
+    up_choice._source_mesh.cache_clear()
+    r = api.client.get(f"/spaces/{space['id']}/up-candidates/1.png", headers=api.a.headers)
+    assert r.status_code == 200, r.text
+    assert (np.asarray(Image.open(io.BytesIO(r.content))) < 200).mean() > 0.05
+    r = api.client.put(f"/spaces/{space['id']}/up", json={"up": second["up"]}, headers=api.a.headers)
+    assert r.status_code == 200, r.text
+    assert not r.json()["needs_frame"]
+
+
+def test_ambiguous_units_held_refused_then_picked(api: Api, tmp_path: Path) -> None:
+    """A partial scan in centimetres whose origin says nothing: cm or inches; the job is refused naming both."""
+    import trimesh
+
+    mesh = trimesh.load(COPYROOM.parent / "kitchen_partial_000.ply", process=False)
+    mesh.apply_scale(100.0)
+    mesh.apply_translation([5000.0, 0.0, 5000.0])
+    src = tmp_path / "partial_cm.ply"
+    mesh.export(src)
+    r = api.client.post("/spaces", files={"file": ("partial_cm.ply", src.read_bytes())}, data={"name": "partial"},
+                        headers=api.a.headers)
+    assert r.status_code == 201, r.text
+    space = r.json()
+    units = space["frame"]["units"]
+    assert space["needs_frame"] and units["ambiguous"] and not space["frame"]["up"].get("ambiguous")
+    assert {c["unit"] for c in units["candidates"]} == {"centimetres", "inches"}
+    r = api.client.post("/jobs", json={"space_ids": [space["id"]], "spec": SPEC}, headers=api.a.headers)
+    assert r.status_code == 422, r.text
+    detail = r.json()["detail"]
+    assert "units are ambiguous" in detail and "--unit-scale=0.01" in detail and "--unit-scale=0.0254" in detail
+    assert "storey" in detail and f"PUT /spaces/{space['id']}/up" in detail
+    ok = api.client.post("/jobs", json={"space_ids": [space["id"]], "spec": {**SPEC, "unit_scale": 0.01}},
+                         headers=api.a.headers)
+    assert ok.status_code == 201, ok.text
+    r = api.client.put(f"/spaces/{space['id']}/up", json={"unit_scale": 0.01}, headers=api.a.headers)
+    assert r.status_code == 200, r.text
+    picked = r.json()
+    assert not picked["needs_frame"] and picked["unit_scale"] == 0.01
+    r = api.client.post("/jobs", json={"space_ids": [space["id"]], "spec": SPEC}, headers=api.a.headers)
+    assert r.status_code == 201, r.text
+    with api.sessions() as s:
+        row = s.get(Space, space["id"])
+        assert row is not None
+        assert space_frame_for(JobSpec.model_validate(SPEC), row)["unit_scale"] == 0.01

@@ -55,3 +55,40 @@ def test_pick_up_with_one_click(pg_url: str, local_store: LocalStore, browser: A
         r = api.client.post("/jobs", json={"space_ids": [space["id"]], "spec": {"name": "lev", "cues": ["rgb"]}},
                             headers=api.a.headers)
         assert r.status_code == 201, r.text
+
+
+def test_pick_units_with_one_click(pg_url: str, local_store: LocalStore, browser: Any, tmp_path: Path) -> None:
+    """A partial scan in centimetres whose origin says nothing: cm or inches, each with the size it gives."""
+    import trimesh
+
+    mesh = trimesh.load(COPYROOM.parent / "kitchen_partial_000.ply", process=False)
+    mesh.apply_scale(100.0)
+    mesh.apply_translation([5000.0, 0.0, 5000.0])
+    src = tmp_path / "partial_cm.ply"
+    mesh.export(src)
+    with make_api(pg_url, local_store) as api, live_server(api.app) as base:
+        r = api.client.post("/spaces", files={"file": ("partial_cm.ply", src.read_bytes())}, data={"name": "partial"},
+                            headers=api.a.headers)
+        assert r.status_code == 201, r.text
+        space = r.json()
+        assert space["needs_frame"] and space["frame"]["units"]["ambiguous"]
+        ctx = browser.new_context(viewport={"width": 1280, "height": 900})
+        try:
+            page = ctx.new_page()
+            errors: list[str] = []
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.goto(f"{base}/ui/")
+            page.fill("#login-token", api.a.token)
+            page.click("#login-submit")
+            page.wait_for_selector("#needs-frame .unit-candidate", timeout=30_000)
+            assert page.query_selector_all("#needs-frame .up-candidate") == []  # its up is decided
+            captions = [f.inner_text() for f in page.query_selector_all("#needs-frame .unit-candidate")]
+            assert any("centimetres" in c and "storey 1.4" in c for c in captions)
+            assert any("inches" in c and "storey 3.7" in c for c in captions)
+            page.click('#needs-frame button.pick-units[data-unit="centimetres"]')
+            page.wait_for_selector("#needs-frame", state="detached", timeout=30_000)
+            assert errors == []
+        finally:
+            ctx.close()
+        stored = api.client.get(f"/spaces/{space['id']}", headers=api.a.headers).json()
+        assert not stored["needs_frame"] and stored["unit_scale"] == 0.01

@@ -168,3 +168,21 @@ def test_a_flat_scan_is_seen_from_the_side_its_faces_face(normal: list[float]) -
     est = estimate_up(flat.apply_transform(R), ".obj")
     assert est.method == "floor"
     assert corpus.up_error_deg(est.up, n) < 1e-6
+
+
+def test_unit_evidence_picks_centimetres_or_refuses_never_guesses() -> None:
+    from services.core.ingest.unit_evidence import ScanMeasures, decide_units
+
+    # 150 units tall, no ceiling: 1.5 m in cm or 3.81 m in inches
+    partial = ScanMeasures(storey=150.0, extent=(340.0, 250.0, 150.0), ceiling_seen=False, origin_height=145.0,
+                           furniture_low_top=75.0, median_edge=4.0)
+    d = decide_units(partial)
+    assert [c.unit for c in d.ranked] == ["centimetres", "inches"] and not d.ambiguous
+    assert d.ranked[1].terms["camera"] < 0 and d.ranked[1].terms["furniture"] < 0  # a 3.7 m camera, 1.9 m tables
+    # nothing but the storey: no camera at the origin, no furniture, coarse triangles
+    bare = ScanMeasures(150.0, (340.0, 250.0, 150.0), False, None, None, 100.0)
+    assert decide_units(bare).ambiguous
+    # a ceiling seen: 1.5 m is no storey, inches (3.81 m) is the only candidate
+    closed = decide_units(ScanMeasures(150.0, (340.0, 250.0, 150.0), True, None, None, 100.0))
+    assert [c.unit for c in closed.ranked] == ["inches"] and not closed.ambiguous
+    assert [c.unit for c in decide_units(ScanMeasures(2.5, (5.0, 4.0, 2.5), True, 1.2, 0.7, 0.03)).ranked] == ["metres"]

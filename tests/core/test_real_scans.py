@@ -1,6 +1,6 @@
 """Real reconstructions in any rotation and unit: levelled within 3 degrees, or refused naming both
 candidates (one of them right); never levelled wrong without a refusal. With the capture's camera poses,
-always levelled. Decimated copies of the real corpus (tests/fixtures/real_scans), fast enough for every CI run."""
+always levelled. Units: right or refused naming each candidate, never wrong. Decimated copies of the real corpus (tests/fixtures/real_scans), fast enough for every CI run."""
 
 from __future__ import annotations
 
@@ -9,9 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.core.ingest.errors import UpAmbiguous
-from services.core.ingest.gravity import choose_unit_scale, estimate_up
+from services.core.ingest.errors import UnitsAmbiguous, UpAmbiguous
+from services.core.ingest.gravity import estimate_up
 from services.core.ingest.loading import load_space
+from services.core.ingest.unit_evidence import choose_units
 from tests.fixtures.real_corpus import REAL_SCANS, real_cases, real_rooms
 from tests.fixtures.rotation_corpus import up_error_deg
 
@@ -22,7 +23,7 @@ def rooms() -> list:
 
 
 def test_real_scans_levelled_or_refused_never_wrong(rooms: list) -> None:
-    levelled = refused = 0
+    levelled = refused = units_right = 0
     for case in real_cases(rooms, n_random=6, seed=5, axis=False):
         est = estimate_up(case.mesh, ".ply")
         err = up_error_deg(est.up, case.up)
@@ -35,9 +36,11 @@ def test_real_scans_levelled_or_refused_never_wrong(rooms: list) -> None:
         else:
             levelled += 1
             assert err < 3.0, where
-            if est.storey_height is not None and case.kind == "stored":
-                assert choose_unit_scale(est.storey_height, float(case.mesh.extents.max())).scale == case.scale
+            units = choose_units(case.mesh, est.up, est.storey_height)  # right or refused, never wrong
+            assert units.ambiguous or units.scale == case.scale, (*where, units.unit)
+            units_right += not units.ambiguous
     assert levelled >= 10 and refused >= 1  # the corpus holds both kinds: the test can fail either way
+    assert units_right >= 0.9 * levelled
 
 
 def test_with_capture_poses_every_real_scan_is_levelled(rooms: list) -> None:
@@ -64,3 +67,41 @@ def test_partial_kitchen_scan_in_millimetres_refused_then_levelled_with_up(tmp_p
     space = load_space(src, up=right["up"])
     assert space.units is not None and space.units.scale == 0.001
     assert up_error_deg(space.source_to_world[:3, :3] @ truth, np.array([0.0, 0.0, 1.0])) < 3.0
+
+
+def _partial_cm(name: str, tmp_path: Path, shift: bool = False) -> tuple[Path, np.ndarray]:
+    """A partial kitchen scan exported in centimetres (its first camera at the origin, unless `shift`ed away)."""
+    import trimesh
+
+    mesh = trimesh.load(REAL_SCANS / f"{name}.ply", process=False)
+    mesh.apply_scale(100.0)
+    if shift:  # re-centred far from where the camera stood: the origin says nothing about the units
+        mesh.apply_translation([5000.0, 0.0, 5000.0])
+    src = tmp_path / f"{name}_cm.ply"
+    mesh.export(src)
+    return src, np.array(next(r for r, _ in real_rooms() if r.name == name).up)
+
+
+def test_partial_scan_in_centimetres_is_not_read_as_inches(tmp_path: Path) -> None:
+    """1.8 m tall without a ceiling: 180 units read as inches would make it a 4.6 m storey (the old answer)."""
+    src, truth = _partial_cm("kitchen_partial_170", tmp_path)
+    space = load_space(src, up=truth)
+    assert space.units is not None and space.units.scale == 0.01 and space.units.unit == "centimetres"
+    inches = next(c for c in space.units.candidates if c["unit"] == "inches")  # the alternative, and why it lost
+    assert inches["storey_height_m"] > 4 and inches["evidence"]["camera"] < 0 and not space.units.ambiguous
+    assert space.frame_record()["units"]["candidates"][0]["unit"] == "centimetres"
+
+
+def test_ambiguous_units_refused_naming_both_then_picked(tmp_path: Path) -> None:
+    """No camera at the origin and no furniture above 1.5 m either way: cm or inches is a coin toss; refused."""
+    src, truth = _partial_cm("kitchen_partial_000", tmp_path, shift=True)
+    with pytest.raises(UnitsAmbiguous) as err:
+        load_space(src, up=truth)
+    line = str(err.value)
+    assert "\n" not in line and "units are ambiguous" in line
+    assert "centimetres (--unit-scale=0.01: storey 1.4" in line and "inches (--unit-scale=0.0254: storey 3.7" in line
+    assert {c["unit"] for c in err.value.candidates} == {"centimetres", "inches"}
+    picked = load_space(src, up=truth, unit_scale=0.01).units
+    assert picked is not None and picked.scale == 0.01 and picked.unit == "given"
+    guessed = load_space(src, up=truth, accept_up_guess=True)
+    assert guessed.units is not None and guessed.units.ambiguous and guessed.frame_record()["units"]["ambiguous"]

@@ -67,3 +67,24 @@ def test_generate_stops_before_rendering(tmp_path: Path) -> None:
     res = omnidata("generate", src, "--out", tmp_path / "g", "--workers", 1, "--no-progress", timeout=120)
     assert res.returncode == 2, res.stdout + res.stderr
     assert "up is ambiguous" in res.stderr and "--up=X,Y,Z" in res.stderr and "--accept-up-guess" in res.stderr
+
+
+def test_plan_stops_on_ambiguous_units_then_plans_with_unit_scale(tmp_path: Path) -> None:
+    """A partial scan in centimetres, re-centred away from its camera: cm or inches; the line names both."""
+    room = next(r for r, _ in real_rooms() if r.name == "kitchen_partial_000")
+    mesh = trimesh.load(REAL_SCANS / "kitchen_partial_000.ply", process=False)
+    mesh.apply_scale(100.0)
+    mesh.apply_translation([5000.0, 0.0, 5000.0])
+    src = tmp_path / "partial_cm.ply"
+    mesh.export(src)
+    up = "--up=" + ",".join(f"{x:.6g}" for x in room.up)
+    args = ["--points", 2, "--min-views", 1, "--seed", 1]
+    res = omnidata("plan", src, "--out", tmp_path / "p", up, *args)
+    assert res.returncode == 2, res.stdout + res.stderr
+    line = res.stderr.strip()
+    assert "\n" not in line and "partial_cm.ply: units are ambiguous: centimetres (--unit-scale=0.01: storey" in line
+    assert "inches (--unit-scale=0.0254: storey" in line and not (tmp_path / "p" / "job.json").exists()
+    res = omnidata("plan", src, "--out", tmp_path / "q", up, "--unit-scale", "0.01", *args)
+    assert res.returncode == 0, res.stderr
+    _, space = _level_error(tmp_path / "q" / "job.json", room.up)
+    assert space["units"]["unit_scale"] == 0.01 and space["units"]["unit"] == "given"

@@ -35,7 +35,7 @@ class JobCreate(BaseModel):
     model_config = ConfigDict(extra="forbid", strict=True)  # "3" or true is not a space id
 
     space_ids: list[DbId] = Field(min_length=1, max_length=256, description="ids of your spaces, in order")
-    spec: JobSpec = Field(default_factory=lambda: JobSpec.model_validate({}), description="steering knobs (DESIGN.md section 4)")
+    spec: JobSpec = Field(default_factory=lambda: JobSpec.model_validate({}), description="steering knobs")
 
     @field_validator("space_ids")
     @classmethod

@@ -93,13 +93,13 @@ def detail_statement(dialect: str) -> Any:
     """SELECT job + counters + spaces (json aggregates) for one job and owner; built once per dialect, so
     SQLAlchemy's memoized cache key is reused instead of re-traversing the statement on every poll."""
     agg, arr = (func.json_agg, func.json_build_array) if dialect == "postgresql" else (func.json_group_array, func.json_array)
-    js, t = JobSpace.__table__.c, Job.__table__.c
+    job_space_cols, t = JobSpace.__table__.c, Job.__table__.c
     summed = summed_counters(t.id).subquery()  # the counter shards of the job, summed
     counters_q = select(agg(arr(summed.c.cue, summed.c.state, summed.c.n))).scalar_subquery()
     spaces_q = (
-        select(agg(arr(js.space_id, Space.name, js.position, js.cues)))
-        .select_from(JobSpace.__table__.join(Space, Space.id == js.space_id))
-        .where(js.job_id == t.id)
+        select(agg(arr(job_space_cols.space_id, Space.name, job_space_cols.position, job_space_cols.cues)))
+        .select_from(JobSpace.__table__.join(Space, Space.id == job_space_cols.space_id))
+        .where(job_space_cols.job_id == t.id)
         .scalar_subquery()
     )
     return select(*t, counters_q.label("counters"), spaces_q.label("spaces")).where(
@@ -123,9 +123,9 @@ def fetch_job_detail(session: Session, *, owner: str, job_id: int, rates: RateTr
                          frame=frame_of(planned.get(name)))
             for sid, name, pos, cues in _json_list(row.spaces)
         ),
-        key=lambda sp: (sp.position, sp.space_id),
+        key=lambda space: (space.position, space.space_id),
     )
-    base = job_read(row, counters, [sp.space_id for sp in spaces], rates)  # type: ignore[arg-type]
+    base = job_read(row, counters, [space.space_id for space in spaces], rates)  # type: ignore[arg-type]
     return JobDetail(
         **base.model_dump(), spec=row.spec, spaces=spaces, output_root=row.output_root, plan_summary=row.plan_summary
     )

@@ -166,7 +166,8 @@ async def up_candidate_preview(space_id: SpaceId, index: CandidateIndex, session
 @router.put("/{space_id}/up", response_model=SpaceRead, summary="Pick the up direction of a space")
 async def choose_up(space_id: SpaceId, body: UpChoice, session: SessionDep, store: StoreDep, settings: SettingsDep,
                     tenant: TenantDep) -> SpaceRead:
-    """Store the up a person picked (source coordinates); later jobs plan the space in that frame."""
+    """Store the up (source coordinates) and/or units a person picked; later jobs plan the space in that frame."""
     space = service.get_space(session, owner=tenant, space_id=space_id)
-    space = await run_in_threadpool(up_choice.choose_up, session, store, settings, space, body.up, tenant)
+    space = await run_in_threadpool(up_choice.choose_up, session, store, settings, space, body.up, tenant,
+                                    body.unit_scale)
     return SpaceRead.from_row(space)

@@ -10,7 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from services.core.db.models import Space
 from services.core.domain.cues import default_cues
-from services.core.domain.jobspec import parse_unit_scale
+from services.core.domain.jobspec import MAX_UNIT_SCALE, parse_unit_scale
 from services.core.domain.keys import check_name
 from services.core.ingest.frame import frame_of
 from services.core.ingest.frame_choice import needs_frame
@@ -66,18 +66,26 @@ class SpaceRegister(SpaceOptions):
 
 
 class UpChoice(BaseModel):
-    """The up direction a person picked for a space, in the scan's source coordinates."""
+    """The frame a person picked for a space: its up in the scan's source coordinates and/or its units."""
 
     model_config = ConfigDict(extra="forbid", strict=True)
 
-    up: list[float] = Field(min_length=3, max_length=3, description="[x, y, z], source coordinates; any length")
+    up: list[float] | None = Field(None, min_length=3, max_length=3,
+                                   description="[x, y, z], source coordinates; any length (omitted: the detected up)")
+    unit_scale: float | None = Field(None, gt=0, le=MAX_UNIT_SCALE, description="metres per source unit, when the "
+                                     "units were ambiguous (omitted: the upload's, or chosen from the storey)")
 
     @field_validator("up")
     @classmethod
-    def _finite(cls, v: list[float]) -> list[float]:
-        if not all(math.isfinite(x) for x in v) or math.hypot(*v) < 1e-9:
+    def _finite(cls, v: list[float] | None) -> list[float] | None:
+        if v is not None and (not all(math.isfinite(x) for x in v) or math.hypot(*v) < 1e-9):
             raise ValueError(f"up {v} must be a finite, non-zero direction [x, y, z]")
         return v
+
+    @field_validator("unit_scale", mode="before")
+    @classmethod
+    def _number(cls, v: Any) -> Any:
+        return float(v) if isinstance(v, int) and not isinstance(v, bool) else v
 
 
 class SpaceRead(BaseModel):

@@ -1,13 +1,16 @@
 """A space whose up detection could not decide: side views of its candidates and the person's pick.
 
 The pick is stored with the space (its validation record and frame columns, `ingest.frame_choice`), after
-which jobs plan it in that frame. Both load the space's stored source, already validated at upload.
+which jobs plan it in that frame. Both load the space's stored source in the upload's limited child process
+(`ingest.safe_load`), never in the API process.
 """
 
 from __future__ import annotations
 
 import functools
+import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import trimesh
@@ -15,11 +18,11 @@ from sqlalchemy.orm import Session
 
 from services.core.db.models import Space
 from services.core.domain.errors import Invalid, NotFound
-from services.core.ingest.confine import ConfinedResolver
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.frame_choice import record_choice
-from services.core.ingest.loading import load_space
+from services.core.ingest.loading import LoadedSpace
 from services.core.ingest.registry import fetch_space
+from services.core.ingest.safe_load import load_space_limited
 from services.core.ingest.up_preview import side_view_png
 from services.core.settings import Settings
 from services.core.storage import ObjectStore
@@ -29,12 +32,25 @@ def _cache_dir(settings: Settings) -> Path:
     return Path(settings.data_dir) / "api-space-cache"
 
 
+def _limits(settings: Settings) -> tuple[int, int, float]:
+    return settings.upload_max_faces, settings.upload_parse_memory_mb, settings.upload_parse_timeout_s
+
+
+def _load_limited(limits: tuple[int, int, float], path: Path, **frame: Any) -> LoadedSpace:
+    """`load_space` in the upload's memory-, CPU- and time-limited child: never the scan's parser in the API."""
+    max_faces, memory_mb, timeout_s = limits
+    return load_space_limited(path, max_faces=max_faces, memory_mb=memory_mb, timeout_s=timeout_s, **frame)
+
+
 @functools.lru_cache(maxsize=8)
-def _source_mesh(path: str, checksum: str) -> trimesh.Trimesh:
-    """The source-frame mesh of a space file (kept for a few spaces: its previews load it once)."""
-    mesh = trimesh.load(path, force="mesh", resolver=ConfinedResolver(path))  # never a file outside the scan
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise SpaceError(f"{Path(path).name}: holds no triangle mesh")
+def _source_mesh(path: str, checksum: str, source_to_world: str, limits: tuple[int, int, float]) -> trimesh.Trimesh:
+    """The source-frame mesh of a space file (kept for a few spaces: its previews load it once).
+
+    Loaded in the limited child in the space's stored frame, then taken back to source coordinates.
+    """
+    loaded = _load_limited(limits, Path(path), source_to_world=json.loads(source_to_world))
+    mesh = loaded.mesh.copy()
+    mesh.apply_transform(np.linalg.inv(loaded.source_to_world))
     return mesh
 
 
@@ -44,17 +60,23 @@ def candidate_preview(store: ObjectStore, settings: Settings, space: Space, inde
     if index >= len(candidates):
         raise NotFound(f"space {space.id} has no up candidate {index}")
     path = fetch_space(store, space, _cache_dir(settings))
-    return side_view_png(_source_mesh(str(path), space.checksum), np.asarray(candidates[index]["up"], dtype=float))
+    mesh = _source_mesh(str(path), space.checksum, json.dumps(space.source_to_world), _limits(settings))
+    return side_view_png(mesh, np.asarray(candidates[index]["up"], dtype=float))
 
 
-def choose_up(session: Session, store: ObjectStore, settings: Settings, space: Space, up: list[float],
-              by: str) -> Space:
-    """Store `up` (source coordinates) as the space's up, with the frame it gives; Invalid when it gives none."""
-    units = (space.validation or {}).get("units") or {}
-    unit_scale: float | str = space.unit_scale if units.get("unit") == "given" else "auto"
+def choose_up(session: Session, store: ObjectStore, settings: Settings, space: Space, up: list[float] | None,
+              by: str, unit_scale: float | None = None) -> Space:
+    """Store `up` (source coordinates; None: the detected one) and `unit_scale` (None: the upload's, or chosen
+    from the storey) as the space's frame; Invalid when they give none (ambiguous units name the candidates)."""
+    validation = space.validation or {}
+    if up is None:
+        up = [float(x) for x in (validation.get("up") or {}).get("source_direction", [0.0, 0.0, 1.0])]
+    units = validation.get("units") or {}
+    scale: float | str = unit_scale if unit_scale is not None else (
+        space.unit_scale if units.get("unit") == "given" else "auto")
     path = fetch_space(store, space, _cache_dir(settings))
     try:
-        loaded = load_space(path, up=up, unit_scale=unit_scale)
+        loaded = _load_limited(_limits(settings), path, up=up, unit_scale=scale, accept_up_guess=False)
     except SpaceError as e:
         raise Invalid(f"up {up} does not work for space {space.id}: {e}") from None
     record_choice(space, loaded.up_source, loaded.source_to_world, loaded.bounds,

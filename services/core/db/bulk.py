@@ -150,7 +150,7 @@ def _upsert_sql(dialect: str, table: Table, columns: tuple[str, ...], key: tuple
     return stmt.bindparams(*(bindparam(c, type_=table.c[c].type) for c in columns))
 
 
-_DIALECTS = {"postgresql": postgresql.dialect(), "sqlite": sqlite.dialect()}
+_DIALECTS = {"postgresql": postgresql.dialect(), "sqlite": sqlite.dialect()}  # type: ignore[no-untyped-call]
 
 
 def upsert(

@@ -85,18 +85,18 @@ def create_job(
     seen_ids: set[int] = set()
     seen_names: set[str] = set()
     per_space: list[list[str]] = []
-    for sp in spaces:
-        if sp.id in seen_ids or sp.name in seen_names:
-            raise ValueError(f"space {sp.name!r} is listed twice (space names must be distinct within a job)")
-        seen_ids.add(sp.id)
-        seen_names.add(sp.name)
-        if sp.owner != owner:
-            raise ValueError(f"space {sp.name!r} (id {sp.id}) does not belong to {owner!r}")
-        check_frame_decided(spec, sp)
+    for space in spaces:
+        if space.id in seen_ids or space.name in seen_names:
+            raise ValueError(f"space {space.name!r} is listed twice (space names must be distinct within a job)")
+        seen_ids.add(space.id)
+        seen_names.add(space.name)
+        if space.owner != owner:
+            raise ValueError(f"space {space.name!r} (id {space.id}) does not belong to {owner!r}")
+        check_frame_decided(spec, space)
         try:
-            per_space.append(cues_for_space(spec, has_semantics=bool(sp.has_semantics)))
+            per_space.append(cues_for_space(spec, has_semantics=bool(space.has_semantics)))
         except ValueError as e:
-            raise ValueError(f"space {sp.name!r}: {e}") from None
+            raise ValueError(f"space {space.name!r}: {e}") from None
     job = Job(
         owner=owner,
         name=spec.name,
@@ -110,8 +110,8 @@ def create_job(
     session.flush()
     if output_root is None:
         job.output_root = f"jobs/{job.id}"
-    for pos, (sp, cues) in enumerate(zip(spaces, per_space, strict=True)):
-        session.add(JobSpace(job_id=job.id, space_id=sp.id, position=pos, cues=cues))
+    for pos, (space, cues) in enumerate(zip(spaces, per_space, strict=True)):
+        session.add(JobSpace(job_id=job.id, space_id=space.id, position=pos, cues=cues))
     session.flush()
     return job
 
@@ -124,14 +124,14 @@ def job_spaces(session: Session, job_id: int) -> list[tuple[JobSpace, Space]]:
         .where(JobSpace.job_id == job_id)
         .order_by(JobSpace.position, JobSpace.space_id)
     ).all()
-    return [(js, sp) for js, sp in rows]
+    return [(job_space, space) for job_space, space in rows]
 
 
 def job_cues(session: Session, job_id: int) -> list[str]:
     """Output cues requested on any space of the job, in catalog order."""
     names: set[str] = set()
-    for js, _sp in job_spaces(session, job_id):
-        names.update(js.cues)
+    for job_space, _space in job_spaces(session, job_id):
+        names.update(job_space.cues)
     return [c for c in closure(names) if c in names]
 
 
@@ -222,15 +222,15 @@ def delete_job(session: Session, store: ObjectStore, job: Job) -> int:
         deleted += store.delete_prefix(root + "/")
     else:
         spec = job_spec(job)
-        for _js, sp in job_spaces(session, job.id):
-            for cue in closure(_js.cues):
-                deleted += store.delete_prefix(f"{cue}/{spec.name}/{sp.name}/")
+        for _job_space, space in job_spaces(session, job.id):
+            for cue in closure(_job_space.cues):
+                deleted += store.delete_prefix(f"{cue}/{spec.name}/{space.name}/")
         for prefix in ("_plan/", "_cache/"):
             deleted += store.delete_prefix(prefix)
         for key in ("manifest.jsonl", "job.json"):
             deleted += int(store.delete(key))
     for model in (Task, View, Point, Camera, JobCounter, JobSpace, WorkerBlock):
-        session.execute(delete(model).where(model.job_id == job.id))  # type: ignore[attr-defined]
+        session.execute(delete(model).where(model.job_id == job.id))
     session.execute(delete(Job).where(Job.id == job.id))
     session.expunge(job)
     session.flush()

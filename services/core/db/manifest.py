@@ -50,11 +50,11 @@ def iter_manifest(session: Session, job: Job) -> Iterator[dict[str, Any]]:
     public = [n for n, c in CATALOG.items() if not c.internal]
     spaces = sorted(job_spaces(session, job.id), key=lambda pair: pair[1].name)
     planned = (job.plan_summary or {}).get("spaces", {})
-    for _js, sp in spaces:
+    for _job_space, space in spaces:
         # capture views: the photo/geometry alignment score of each view, "point/view" -> score
-        alignment = (planned.get(sp.name, {}).get("capture_plan") or {}).get("view_alignment") or {}
+        alignment = (planned.get(space.name, {}).get("capture_plan") or {}).get("view_alignment") or {}
         max_point = session.scalar(
-            select(func.max(View.point_idx)).where(View.job_id == job.id, View.space_id == sp.id)
+            select(func.max(View.point_idx)).where(View.job_id == job.id, View.space_id == space.id)
         )
         if max_point is None:
             continue
@@ -62,20 +62,20 @@ def iter_manifest(session: Session, job: Job) -> Iterator[dict[str, Any]]:
             p1 = p0 + POINT_CHUNK
             views = session.execute(
                 select(View.point_idx, View.v)
-                .where(View.job_id == job.id, View.space_id == sp.id, View.point_idx >= p0, View.point_idx < p1)
+                .where(View.job_id == job.id, View.space_id == space.id, View.point_idx >= p0, View.point_idx < p1)
                 .order_by(View.point_idx, View.v)
             ).all()
             outputs: dict[tuple[int, int], dict[str, dict[str, Any]]] = {}
             rows = session.execute(
                 select(Task.point_idx, Task.view_idx, Task.cue, Task.output_key, Task.size, Task.sha256)
                 .where(
-                    Task.job_id == job.id, Task.space_id == sp.id, Task.state == TaskState.DONE,
+                    Task.job_id == job.id, Task.space_id == space.id, Task.state == TaskState.DONE,
                     Task.point_idx >= p0, Task.point_idx < p1, Task.cue.in_(public),
                 )
                 .order_by(Task.point_idx, Task.view_idx, Task.cue)
             )
             for p, v, cue, key, size, sha in rows:
-                fallback = output_key(cue, component, sp.name, int(p), int(v))
+                fallback = output_key(cue, component, space.name, int(p), int(v))
                 outputs.setdefault((int(p), int(v)), {})[cue] = {
                     "key": _relative(job, key, fallback),
                     "size": None if size is None else int(size),
@@ -84,7 +84,7 @@ def iter_manifest(session: Session, job: Job) -> Iterator[dict[str, Any]]:
             for p, v in views:
                 outs = outputs.get((int(p), int(v)), {})
                 yield {
-                    "space": sp.name,
+                    "space": space.name,
                     "point": int(p),
                     "view": int(v),
                     "outputs": {c: outs[c] for c in public if c in outs},  # catalog order
@@ -110,15 +110,15 @@ def _iso(dt: Any) -> str | None:
 def _space_records(session: Session, job: Job) -> dict[str, dict[str, Any]]:
     plan_spaces = (job.plan_summary or {}).get("spaces", {})
     spaces: dict[str, dict[str, Any]] = {}
-    for js, sp in job_spaces(session, job.id):
-        planned = plan_spaces.get(sp.name, {})
-        spaces[sp.name] = space_record(
-            space_id=sp.id, position=js.position, cues=js.cues, checksum=sp.checksum, source_format=sp.source_format,
+    for job_space, space in job_spaces(session, job.id):
+        planned = plan_spaces.get(space.name, {})
+        spaces[space.name] = space_record(
+            space_id=space.id, position=job_space.position, cues=job_space.cues, checksum=space.checksum, source_format=space.source_format,
             # the job's own load (its up_axis/unit_scale) wins over the space's defaults
-            source_to_world=planned.get("source_to_world", sp.source_to_world),
-            unit_scale=planned.get("unit_scale", sp.unit_scale), up_axis=planned.get("up_axis", sp.up_axis),
-            bounds=planned.get("bounds", sp.bounds), face_count=sp.face_count, has_texture=sp.has_texture,
-            has_semantics=sp.has_semantics, counts=planned, shortfall=planned.get("shortfall"),
+            source_to_world=planned.get("source_to_world", space.source_to_world),
+            unit_scale=planned.get("unit_scale", space.unit_scale), up_axis=planned.get("up_axis", space.up_axis),
+            bounds=planned.get("bounds", space.bounds), face_count=space.face_count, has_texture=space.has_texture,
+            has_semantics=space.has_semantics, counts=planned, shortfall=planned.get("shortfall"),
             valid_fraction=planned.get("valid_fraction"), clips=planned.get("clips"),
             plan=_relative(job, planned.get("plan_key"), "") or None, warnings=planned.get("warnings", []),
             frame=planned,

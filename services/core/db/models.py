@@ -1,7 +1,8 @@
-"""Database rows (DESIGN.md section 3): SQLAlchemy 2.0 typed models, one module, for Postgres and SQLite.
+"""Database rows: SQLAlchemy 2.0 typed models, one module, for Postgres and SQLite.
 
 Units: positions in metres in the space's world frame (+Z up), angles in radians, times timezone-aware UTC.
-Job progress lives in `job_counter` rows maintained incrementally (services.core.db.engine), never COUNT(*) on tasks.
+Job progress lives in `job_counter` rows maintained incrementally (services.core.db.counters), never
+COUNT(*) on tasks.
 """
 
 from __future__ import annotations
@@ -85,6 +86,27 @@ def utcnow() -> datetime:
     return datetime.now(UTC)
 
 
+class StateColumn(TypeDecorator[Any]):
+    """A state column: VARCHAR(16) in the database, the state enum in Python (JobState or TaskState).
+
+    Rows read back carry the enum, so `job.state` has the type its annotation says. Writes pass the text
+    through unchecked: the table's CHECK constraint is the one judge of a valid state.
+    """
+
+    impl = String(16)
+    cache_ok = True
+
+    def __init__(self, states: type[StrEnum]) -> None:
+        super().__init__()
+        self.states = states
+
+    def process_bind_param(self, value: str | None, dialect: Dialect) -> str | None:
+        return None if value is None else str(value)
+
+    def process_result_value(self, value: str | None, dialect: Dialect) -> StrEnum | None:
+        return None if value is None else self.states(value)
+
+
 class UTCDateTime(TypeDecorator[datetime]):
     """Timezone-aware UTC datetimes on both dialects (SQLite stores naive UTC text, we re-attach UTC)."""
 
@@ -149,7 +171,8 @@ class Job(Base):
     owner: Mapped[str] = mapped_column(String(128), index=True)
     name: Mapped[str] = mapped_column(String(128))
     spec: Mapped[dict[str, Any]] = mapped_column(JSONDoc, doc='JobSpec.model_dump(mode="json")')
-    state: Mapped[str] = mapped_column(String(16), default="pending", server_default="pending", index=True)
+    state: Mapped[JobState] = mapped_column(StateColumn(JobState), default=JobState.PENDING,
+                                            server_default="pending", index=True)
     priority: Mapped[int] = mapped_column(Integer, default=0, server_default=text("0"))
     error: Mapped[str | None] = mapped_column(Text)
     output_root: Mapped[str] = mapped_column(String(1024), default="", server_default="")
@@ -184,7 +207,7 @@ class JobCounter(Base):
 
     job_id: Mapped[int] = mapped_column(BigIntId, ForeignKey("job.id", ondelete="CASCADE"), primary_key=True)
     cue: Mapped[str] = mapped_column(String(64), primary_key=True)
-    state: Mapped[str] = mapped_column(String(16), primary_key=True)
+    state: Mapped[TaskState] = mapped_column(StateColumn(TaskState), primary_key=True)
     shard: Mapped[int] = mapped_column(SmallInteger, primary_key=True, default=0, server_default=text("0"))
     n: Mapped[int] = mapped_column(BigInteger, default=0, server_default=text("0"))
 
@@ -243,7 +266,8 @@ class View(Base):
 
 
 class Task(Base):
-    """One point-view-cue unit of work; Postgres is the source of truth for its state (DESIGN.md section 6)."""
+    """One point-view-cue unit of work; Postgres is the source of truth for its state (Redis
+    only carries its id, so a lost message loses nothing)."""
 
     __tablename__ = "task"
     __table_args__ = (
@@ -260,7 +284,8 @@ class Task(Base):
     point_idx: Mapped[int] = mapped_column(Integer)
     view_idx: Mapped[int] = mapped_column(Integer)
     cue: Mapped[str] = mapped_column(String(64))
-    state: Mapped[str] = mapped_column(String(16), default="pending", server_default="pending")
+    state: Mapped[TaskState] = mapped_column(StateColumn(TaskState), default=TaskState.PENDING,
+                                             server_default="pending")
     attempts: Mapped[int] = mapped_column(Integer, default=0, server_default=text("0"))
     lease_until: Mapped[datetime | None] = mapped_column(UTCDateTime())
     worker_id: Mapped[str | None] = mapped_column(String(255))

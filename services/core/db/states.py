@@ -179,7 +179,7 @@ def _counted(move: Any, src: str, dst: str) -> Any:
 def set_job_state(job: Job, to_state: str, **values: Any) -> None:
     """Move a loaded job to `to_state` (IllegalTransition if the table forbids it) and set other columns."""
     _, dst = check_job_edge(job.state, to_state)
-    job.state = dst.value
+    job.state = dst
     for name, value in values.items():
         setattr(job, name, value)
 

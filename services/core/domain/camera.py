@@ -1,4 +1,5 @@
-"""Camera conventions shared by planning and rendering (DESIGN.md section 8). Pure numpy.
+"""Camera conventions shared by planning and rendering, so a planned pose and a rendered pixel agree.
+Pure numpy.
 
 World frame: metres, +Z up (after the space's unit/up-axis normalisation).
 OpenCV camera axes: x right, y down, z forward. Blender camera axes: x right, y up, looking down -z.

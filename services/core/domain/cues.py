@@ -1,4 +1,4 @@
-"""The cue catalog (DESIGN.md section 5) as data, and the dependency DAG computed from it."""
+"""The cue catalog (every cue's file encoding, dtype and inputs) as data, and the dependency DAG from it."""
 
 from __future__ import annotations
 
@@ -8,11 +8,12 @@ from typing import Literal
 
 Source = Literal["plan", "render", "derive", "internal"]
 
-# Stored values with a meaning of their own (DESIGN.md section 5), shared by the worker that writes them and the
-# readers (services.datasets).
+# Stored values with a meaning of their own (no depth, no face, flat), shared by the worker that writes them
+# and the readers (services.datasets).
 UINT16_NONE = 65535  # 16-bit depth: no surface
 FRAGMENT_NONE = 4294967295  # fragments (uint32): no triangle seen
 CURVATURE_FLAT = 127  # principal_curvature pixel of k = 0 (0..254 spans -kmax..kmax)
+NORMAL_BACKGROUND = 128  # normal (8-bit RGB): every channel of a pixel where nothing is seen
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,4 @@
-"""JobSpec: every steering knob of DESIGN.md section 4 and every cue parameter of section 5.
+"""JobSpec: every steering knob of a job (cameras, points, views, frame) and every cue parameter.
 
 Defaults follow the Omnidata annotator. Units: metres and degrees in the spec (converted to radians
 where used). Every refusal names the field and the reason (pydantic reports the field path).
@@ -185,7 +185,7 @@ class ViewSpec(_Strict):
 
 
 class CueParams(_Strict):
-    """Parameters of the cue derivations (DESIGN.md section 5)."""
+    """Parameters of the cue derivations (clip ranges, scales, thresholds)."""
 
     depth_units_per_m: float = Field(512.0, gt=0, le=1e6, description="depth PNG units per metre")
     max_depth_m: float = Field(128.0, gt=0, le=10_000, description="deeper surfaces are 'no surface'")
@@ -237,7 +237,7 @@ class JobSpec(_Strict):
     name: str = Field("omnidata", description="component name in the output layout")
     cues: list[str] | None = Field(None, max_length=256, description="subset of the catalog; None = all the space supports")
     seed: int = Field(0, ge=0, le=2**63 - 1)
-    # --- space frame (DESIGN.md 4): how source coordinates become world metres, +Z up
+    # --- space frame: how source coordinates become world metres, +Z up
     up_axis: Literal["auto", "+x", "-x", "+y", "-y", "+z", "-z"] = Field(  # UP_AXES
         "auto", description="source axis that points up; auto detects floors in any orientation"
     )
@@ -255,7 +255,8 @@ class JobSpec(_Strict):
     )
     accept_up_guess: bool = Field(
         False, description="when detection cannot tell two up candidates apart, plan on the better one anyway "
-        "(default: refuse the space, naming both candidates)"
+        "(default: refuse the space, naming both candidates); likewise when more than one unit (cm or inches) "
+        "makes the scan plausible: plan in the better one"
     )
     # ---
     priority: int = Field(0, ge=-100, le=100)

@@ -1,4 +1,7 @@
-"""Output key naming (DESIGN.md section 5): `<cue>/<component>/<space>/point_<p>_view_<v>_domain_<cue>.<ext>`."""
+"""Output key naming: `<cue>/<component>/<space>/point_<p>_view_<v>_domain_<cue>.<ext>`.
+
+The released Omnidata starter dataset's layout, so its loaders read our outputs unchanged.
+"""
 
 from __future__ import annotations
 

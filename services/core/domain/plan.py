@@ -29,7 +29,9 @@ class PlanError(ValueError):
     """A plan that cannot be made from these inputs (an impossible combination), with the reason."""
 
 
-def _frozen_array(a: Any, shape: tuple[int, ...]) -> np.ndarray:
+def frozen_array(a: Any, shape: tuple[int, ...]) -> np.ndarray:
+    """`a` as a read-only float64 array of `shape` (ValueError otherwise): value objects cannot be changed
+    through an array they hand out."""
     arr = np.array(a, dtype=np.float64)
     if arr.shape != shape:
         raise ValueError(f"expected shape {shape}, got {arr.shape}")
@@ -47,7 +49,7 @@ class CameraPose:
     uuid: str
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "position", _frozen_array(self.position, (3,)))
+        object.__setattr__(self, "position", frozen_array(self.position, (3,)))
         if self.source not in CAMERA_SOURCES:
             raise ValueError(f"camera source {self.source!r} is not one of {CAMERA_SOURCES}")
 
@@ -63,8 +65,8 @@ class PointOfInterest:
     camera_idxs: tuple[int, ...]  # all cameras with line of sight (not only those with views)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "position", _frozen_array(self.position, (3,)))
-        object.__setattr__(self, "normal", _frozen_array(self.normal, (3,)))
+        object.__setattr__(self, "position", frozen_array(self.position, (3,)))
+        object.__setattr__(self, "normal", frozen_array(self.normal, (3,)))
         object.__setattr__(self, "camera_idxs", tuple(np.asarray(self.camera_idxs, dtype=np.int64).tolist()))
 
 
@@ -85,7 +87,7 @@ class PlannedView:
     photo_coverage: float | None = None  # views with photo rgb: predicted share of pixels a photo covers
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "world_to_camera", _frozen_array(self.world_to_camera, (4, 4)))
+        object.__setattr__(self, "world_to_camera", frozen_array(self.world_to_camera, (4, 4)))
 
     @property
     def position(self) -> np.ndarray:

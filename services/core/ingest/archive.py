@@ -62,32 +62,7 @@ def safe_extract_zip(
         infos = zf.infolist()
         if len(infos) > max_members:
             raise SpaceError(f"{name}: {len(infos)} members in the archive, more than the limit {max_members}")
-        total = 0
-        total_compressed = 0
-        for info in infos:
-            raw = info.filename
-            member = raw.replace("\\", "/")
-            pure = PurePosixPath(member)
-            if member.startswith("/") or (len(member) > 1 and member[1] == ":"):
-                raise SpaceError(f"{name}: member {raw!r} has an absolute path; refusing to extract")
-            if ".." in pure.parts:
-                raise SpaceError(f"{name}: member {raw!r} climbs out of the archive ('..'); refusing to extract")
-            mode = info.external_attr >> 16
-            if stat.S_ISLNK(mode):
-                raise SpaceError(f"{name}: member {raw!r} is a symbolic link; refusing to extract")
-            if info.flag_bits & 0x1:
-                raise SpaceError(f"{name}: member {raw!r} is encrypted")
-            total += info.file_size
-            total_compressed += info.compress_size
-            if problem := expansion_refusal(f"member {raw!r}", info.file_size, info.compress_size, max_ratio):
-                raise SpaceError(f"{name}: {problem}")
-        if total > max_total_bytes:
-            raise SpaceError(
-                f"{name}: uncompressed size {total} bytes exceeds the limit {max_total_bytes}: "
-                "refusing a possible zip bomb"
-            )
-        if problem := expansion_refusal("archive", total, total_compressed, max_ratio):
-            raise SpaceError(f"{name}: {problem}")
+        _check_headers(name, infos, max_total_bytes, max_ratio)
         dest = dest.resolve()
         dest.mkdir(parents=True, exist_ok=True)
         written = 0
@@ -100,22 +75,64 @@ def safe_extract_zip(
                 target.mkdir(parents=True, exist_ok=True)
                 continue
             target.parent.mkdir(parents=True, exist_ok=True)
-            # stream with our own count: the sizes in the headers can lie
-            try:
-                with zf.open(info) as src, open(target, "wb") as out:
-                    member_bytes = 0
-                    while chunk := src.read(1 << 20):
-                        member_bytes += len(chunk)
-                        written += len(chunk)
-                        if member_bytes > info.file_size or written > max_total_bytes:
-                            raise SpaceError(
-                                f"{name}: member {info.filename!r} inflates past its declared size: "
-                                "refusing a possible zip bomb"
-                            )
-                        out.write(chunk)
-            except (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError, ValueError) as e:
-                # bad CRC, corrupt deflate stream, cut-off member, unknown compression method
-                raise SpaceError(f"{name}: member {info.filename!r} is corrupt ({e}); re-create the archive") from None
+            written = _extract_member(zf, info, target, name, written, max_total_bytes)
+
+
+def _check_member(name: str, info: zipfile.ZipInfo) -> None:
+    """Refuse a member with an absolute path, a '..', a symbolic link or encryption."""
+    raw = info.filename
+    member = raw.replace("\\", "/")
+    pure = PurePosixPath(member)
+    if member.startswith("/") or (len(member) > 1 and member[1] == ":"):
+        raise SpaceError(f"{name}: member {raw!r} has an absolute path; refusing to extract")
+    if ".." in pure.parts:
+        raise SpaceError(f"{name}: member {raw!r} climbs out of the archive ('..'); refusing to extract")
+    mode = info.external_attr >> 16
+    if stat.S_ISLNK(mode):
+        raise SpaceError(f"{name}: member {raw!r} is a symbolic link; refusing to extract")
+    if info.flag_bits & 0x1:
+        raise SpaceError(f"{name}: member {raw!r} is encrypted")
+
+
+def _check_headers(name: str, infos: list[zipfile.ZipInfo], max_total_bytes: int, max_ratio: float) -> None:
+    """Every member's name, and the sizes the headers declare (per member and in total), before extracting."""
+    total = 0
+    total_compressed = 0
+    for info in infos:
+        _check_member(name, info)
+        total += info.file_size
+        total_compressed += info.compress_size
+        if problem := expansion_refusal(f"member {info.filename!r}", info.file_size, info.compress_size, max_ratio):
+            raise SpaceError(f"{name}: {problem}")
+    if total > max_total_bytes:
+        raise SpaceError(
+            f"{name}: uncompressed size {total} bytes exceeds the limit {max_total_bytes}: "
+            "refusing a possible zip bomb"
+        )
+    if problem := expansion_refusal("archive", total, total_compressed, max_ratio):
+        raise SpaceError(f"{name}: {problem}")
+
+
+def _extract_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, target: Path, name: str, written: int,
+                    max_total_bytes: int) -> int:
+    """Stream one member to `target` with our own count (the sizes in the headers can lie); returns the bytes
+    written by the extraction so far, this member included."""
+    try:
+        with zf.open(info) as src, open(target, "wb") as out:
+            member_bytes = 0
+            while chunk := src.read(1 << 20):
+                member_bytes += len(chunk)
+                written += len(chunk)
+                if member_bytes > info.file_size or written > max_total_bytes:
+                    raise SpaceError(
+                        f"{name}: member {info.filename!r} inflates past its declared size: "
+                        "refusing a possible zip bomb"
+                    )
+                out.write(chunk)
+    except (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError, ValueError) as e:
+        # bad CRC, corrupt deflate stream, cut-off member, unknown compression method
+        raise SpaceError(f"{name}: member {info.filename!r} is corrupt ({e}); re-create the archive") from None
+    return written
 
 
 def resolve_source(

@@ -15,9 +15,17 @@ class SpaceError(Invalid):
     """A space that cannot be used, with a message meant for the user who uploaded it."""
 
 
-class UpAmbiguous(SpaceError):
-    """Up detection could not tell two candidates apart; the message names both and the flag that picks one."""
+class FrameAmbiguous(SpaceError):
+    """Detection could not decide the frame (up or units); the message names the candidates and the flag that picks one."""
 
     def __init__(self, message: str, candidates: list[dict[str, Any]]):
         super().__init__(message)
         self.candidates = candidates
+
+
+class UpAmbiguous(FrameAmbiguous):
+    """Up detection could not tell two candidates apart; the message names both and the flag that picks one."""
+
+
+class UnitsAmbiguous(FrameAmbiguous):
+    """More than one unit makes the scan plausible; the message names each (storey and extent) and --unit-scale."""

@@ -14,16 +14,16 @@ import numpy as np
 import trimesh
 
 from services.core.domain.jobspec import similarity_scale
-from services.core.ingest.errors import SpaceError, UpAmbiguous
+from services.core.ingest.errors import SpaceError, UnitsAmbiguous, UpAmbiguous
 from services.core.ingest.gravity import (
     UnitChoice,
     UnitError,
     UpEstimate,
     axis_vector,
-    choose_unit_scale,
     estimate_up,
     floor_evidence,
 )
+from services.core.ingest.unit_evidence import choose_units, units_ambiguity_line
 from services.core.ingest.up_evidence import ambiguity_line
 
 FRAME_KEYS = ("up", "units", "reconstruction", "class_names", "valid_fraction", "capture")
@@ -77,7 +77,7 @@ class FrameRequest:
 
 def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: FrameRequest,
                   name: str = "the scan") -> tuple[np.ndarray, UpEstimate, UnitChoice]:
-    """(source_to_world 4x4, how up was found, the units) of a mesh in its source frame; UpAmbiguous (`name`)."""
+    """(source_to_world 4x4, how up was found, the units) of a mesh in its source frame; UpAmbiguous or UnitsAmbiguous (`name`)."""
     if frame.source_to_world is not None:
         T = frame.source_to_world
         scale = similarity_scale(T)
@@ -93,7 +93,7 @@ def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: FrameRequest,
         est = estimate_up(mesh, suffix, frame.capture_up)
     if frame.unit_scale == "auto":
         try:
-            units = choose_unit_scale(est.storey_height, float(mesh.extents.max()))
+            units = choose_units(mesh, est.up, est.storey_height)
         except UnitError as e:
             raise SpaceError(str(e)) from None
     else:
@@ -101,4 +101,6 @@ def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: FrameRequest,
     if est.ambiguous and not frame.accept_up_guess:
         rec = est.record(units.scale)
         raise UpAmbiguous(ambiguity_line(name, rec["candidates"], est.margin), rec["candidates"])
+    if units.ambiguous and not frame.accept_up_guess:
+        raise UnitsAmbiguous(units_ambiguity_line(name, list(units.candidates)), list(units.candidates))
     return source_to_world_matrix(est.up, units.scale), est, units

@@ -28,10 +28,10 @@ the scan's extent, the capture convention, capture poses when given; `services.c
 winner's margin over the best candidate that levels the scan differently gives a calibrated confidence.
 Below `up_evidence.REFUSE_MARGIN` the estimate is *ambiguous*: loading refuses it unless guesses are accepted.
 
-Units (`choose_unit_scale`): a space with a floor is a storey, 1.8 to 6 m from the floor to its top (then
-1.2 to 6 m, a partial scan without its ceiling);
-metres, centimetres, millimetres and inches are tried in that order and the first that brings the
-height into that range wins. Anything else keeps 1.0 unless its extent is implausible for an object.
+Units: rooms are scored on more than their storey height in `services.core.ingest.unit_evidence` (which
+refuses cm against inches when the evidence does not pick one); `choose_unit_scale` here is the storey rule
+alone (a storey is 1.8 to 6 m, then 1.2 to 6 m without a ceiling; metres, centimetres, millimetres and
+inches in that order) and the plausibility check of objects, which keep 1.0 unless their extent is implausible.
 """
 
 from __future__ import annotations
@@ -410,10 +410,15 @@ class UnitChoice:
     scale: float
     unit: str  # metres | centimetres | millimetres | inches | given | source_to_world
     reason: str
+    ambiguous: bool = False  # another unit is about as plausible (services.core.ingest.unit_evidence)
+    candidates: tuple[dict[str, Any], ...] = ()  # the plausible units, best first, when more than one
 
     def record(self) -> dict[str, Any]:
         """JSON-ready summary."""
-        return {"unit_scale": self.scale, "unit": self.unit, "reason": self.reason}
+        out: dict[str, Any] = {"unit_scale": self.scale, "unit": self.unit, "reason": self.reason}
+        if self.candidates:
+            out.update(ambiguous=self.ambiguous, candidates=list(self.candidates))
+        return out
 
 
 class UnitError(ValueError):

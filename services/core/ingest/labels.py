@@ -130,7 +130,7 @@ def read_ply_semantics(
     return face_class, face_instance, notes
 
 
-def _majority(labels: np.ndarray) -> np.ndarray:
+def majority(labels: np.ndarray) -> np.ndarray:
     """Per row of (F, k) vertex labels: the label most of its vertices carry (ties: the first vertex's)."""
     best = labels[:, 0].copy()
     best_count = (labels == best[:, None]).sum(axis=1)
@@ -160,8 +160,8 @@ def scannet_labels(
     if table is None:
         raise SpaceError(f"{source.name}: ScanNet labels found but the faces could not be matched: {'; '.join(notes)}")
     _, polys, tri_to_poly = table
-    poly_class = _majority(vertex_class[polys])
-    poly_instance = _majority(vertex_instance[polys])
+    poly_class = majority(vertex_class[polys])
+    poly_instance = majority(vertex_instance[polys])
     return poly_class[tri_to_poly].astype(np.int32), poly_instance[tri_to_poly].astype(np.int32), names, notes
 
 

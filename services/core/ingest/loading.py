@@ -4,7 +4,8 @@ The planner and the worker both call `load_space`, so the pixels the worker rend
 poses the planner chose. Frames and units:
 
 - *source frame*: the coordinates `trimesh.load(source, force="mesh")` gives for the file, in the
-  file's units. Its face order is the reference for the `fragments` cue (DESIGN.md section 5).
+  file's units. Its face order is the reference for the `fragments` cue (face indices a
+  user can look up in the file they gave us).
 - *world frame*: metres, +Z up. `source_to_world` (4x4) = uniform scale `unit_scale` (metres per
   source unit) followed by the rotation that takes the up direction to +Z, with **no translation**
   (heights are measured from detected floors by the planner, not from z = 0), unless the user gives a
@@ -268,14 +269,9 @@ def _dataset_scene(source: Path, frame: FrameRequest) -> tuple[DatasetScene | No
     return scene, replace(frame, up_axis=up_axis, unit_scale=unit_scale)
 
 
-def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Path | None) -> LoadedSpace:
+def _check_mesh(source: Path, mesh: trimesh.Trimesh, reconstruction: dict[str, Any] | None) -> None:
+    """Refuse an empty mesh, one without faces, non-finite vertices, dangling faces or zero area."""
     name = source.name
-    scene, frame = _dataset_scene(source, frame)
-    if problem := file_expansion_refusal(source):  # the rule its packed zip meets when planned: before parsing
-        raise SpaceError(f"{name}: {problem}")
-    source_notes = check_source(source)  # truncation, counts over the limits, unsafe paths: before parsing
-    checksum = sha256_file(source)
-    mesh, reconstruction = _read_mesh(source, checksum, cloud_cache_dir)
     if len(mesh.vertices) == 0:
         raise SpaceError(f"{name}: the mesh is empty (no vertices)")
     if len(mesh.faces) == 0:
@@ -287,6 +283,32 @@ def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Pa
         raise SpaceError(f"{name}: faces refer to vertices that do not exist")
     if float(mesh.area) <= 0:
         raise SpaceError(f"{name}: every face is degenerate (zero total area)")
+
+
+def _check_extent(name: str, extent_source: float, scale: float) -> None:
+    """Refuse a size in metres no scan has: the units are wrong."""
+    extent_m = extent_source * scale
+    if extent_m > MAX_EXTENT_M:
+        raise SpaceError(
+            f"{name}: the mesh is {extent_m:.4g} m across with unit_scale {scale} m/unit "
+            f"(more than {MAX_EXTENT_M / 1000:.0f} km): check unit_scale"
+        )
+    if extent_m < MIN_EXTENT_M:
+        raise SpaceError(
+            f"{name}: the mesh is {extent_m:.3g} m across with unit_scale {scale} m/unit "
+            f"(less than {MIN_EXTENT_M * 1000:.0f} mm): check unit_scale"
+        )
+
+
+def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Path | None) -> LoadedSpace:
+    name = source.name
+    scene, frame = _dataset_scene(source, frame)
+    if problem := file_expansion_refusal(source):  # the rule its packed zip meets when planned: before parsing
+        raise SpaceError(f"{name}: {problem}")
+    source_notes = check_source(source)  # truncation, counts over the limits, unsafe paths: before parsing
+    checksum = sha256_file(source)
+    mesh, reconstruction = _read_mesh(source, checksum, cloud_cache_dir)
+    _check_mesh(source, mesh, reconstruction)
 
     face_class, face_instance, notes = read_ply_semantics(mesh, source) if reconstruction is None else (None, None, [])
     notes = source_notes + notes
@@ -305,18 +327,7 @@ def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Pa
             face_class, face_instance, class_names, more = scannet
             notes.extend(more)
     T, est, units = resolve_frame(mesh, source.suffix.lower(), frame, name)
-    scale = units.scale
-    extent_m = float(mesh.extents.max()) * scale
-    if extent_m > MAX_EXTENT_M:
-        raise SpaceError(
-            f"{name}: the mesh is {extent_m:.4g} m across with unit_scale {scale} m/unit "
-            f"(more than {MAX_EXTENT_M / 1000:.0f} km): check unit_scale"
-        )
-    if extent_m < MIN_EXTENT_M:
-        raise SpaceError(
-            f"{name}: the mesh is {extent_m:.3g} m across with unit_scale {scale} m/unit "
-            f"(less than {MIN_EXTENT_M * 1000:.0f} mm): check unit_scale"
-        )
+    _check_extent(name, float(mesh.extents.max()), units.scale)
     if est.low_confidence:
         notes.append(f"up found with low confidence ({est.doubt()}): check it with `omnidata plan`, or set up/up_axis")
     has_texture = _has_texture(mesh)

@@ -215,7 +215,8 @@ def mesh_cloud_cached(cloud_loader: Any, checksum: str, name: str,
     data = built.export(file_type="ply")
     assert isinstance(data, bytes)  # trimesh writes binary PLY
     # the mesh as the cache will give it back, so the first load and later ones agree to the bit
-    mesh = trimesh.load(trimesh.util.wrap_as_stream(data), file_type="ply", force="mesh", process=False)
+    stream = trimesh.util.wrap_as_stream(data)  # type: ignore[no-untyped-call]  # trimesh is untyped
+    mesh = trimesh.load(stream, file_type="ply", force="mesh", process=False)
     assert isinstance(mesh, trimesh.Trimesh)
     try:
         cache.mkdir(parents=True, exist_ok=True)

@@ -150,6 +150,34 @@ def _frame_name(up_axis: str, up: Any, source_to_world: Any) -> str:
     return "matrix" if source_to_world is not None else "vector" if up is not None else up_axis
 
 
+def _space_row(owner: str, name: str, mesh_file: Path, checksum: str, loaded: LoadedSpace, *,
+               unit_scale: float | str, frame_name: str) -> Space:
+    """The Space row of a loaded source (no id or source key yet)."""
+    return Space(
+        owner=owner,
+        name=name,
+        source_key="",
+        source_format=mesh_file.suffix.lower().lstrip("."),
+        checksum=checksum,
+        unit_scale=loaded.units.scale if loaded.units is not None else float(unit_scale),
+        up_axis=frame_name,
+        source_to_world=loaded.source_to_world.tolist(),
+        bounds=loaded.bounds.tolist(),
+        face_count=int(loaded.face_count),
+        vertex_count=int(len(loaded.mesh.vertices)),
+        has_texture=bool(loaded.has_texture or loaded.has_vertex_colors),
+        has_semantics=bool(loaded.has_semantics),
+        validation={
+            "mesh_file": mesh_file.name,
+            "up_method": loaded.up_method,
+            **loaded.frame_record(),
+            "warnings": list(loaded.warnings),
+            "has_uv_texture": bool(loaded.has_texture),
+            "has_vertex_colors": bool(loaded.has_vertex_colors),
+        },
+    )
+
+
 def register_space(
     session: Session,
     store: ObjectStore,
@@ -189,29 +217,8 @@ def register_space(
         if packed.suffix.lower() == ".zip" and (problem := archive_refusal(packed)):
             raise SpaceError(f"{source.name}: packed for storage, {problem}")  # planning would refuse it
         checksum = sha256_file(packed)
-        space = Space(
-            owner=owner,
-            name=name,
-            source_key="",
-            source_format=mesh_file.suffix.lower().lstrip("."),
-            checksum=checksum,
-            unit_scale=loaded.units.scale if loaded.units is not None else float(unit_scale),
-            up_axis=_frame_name(up_axis, up, source_to_world),
-            source_to_world=loaded.source_to_world.tolist(),
-            bounds=loaded.bounds.tolist(),
-            face_count=int(loaded.face_count),
-            vertex_count=int(len(loaded.mesh.vertices)),
-            has_texture=bool(loaded.has_texture or loaded.has_vertex_colors),
-            has_semantics=bool(loaded.has_semantics),
-            validation={
-                "mesh_file": mesh_file.name,
-                "up_method": loaded.up_method,
-                **loaded.frame_record(),
-                "warnings": list(loaded.warnings),
-                "has_uv_texture": bool(loaded.has_texture),
-                "has_vertex_colors": bool(loaded.has_vertex_colors),
-            },
-        )
+        space = _space_row(owner, name, mesh_file, checksum, loaded,
+                           unit_scale=unit_scale, frame_name=_frame_name(up_axis, up, source_to_world))
         session.add(space)
         session.flush()  # assigns the id used in the key
         space.source_key = f"{key_prefix.strip('/')}/{space.id}/{packed.name}"

@@ -36,13 +36,22 @@ def load_space_limited(
     max_faces: int,
     memory_mb: int,
     timeout_s: float,
+    up: list[float] | None = None,
+    source_to_world: list[list[float]] | None = None,
+    accept_up_guess: bool = True,
 ) -> LoadedSpace:
-    """`load_space(path)` in a child process with limits; SpaceError for an unusable scan or a limit hit."""
+    """`load_space(path)` in a child process with limits; SpaceError for an unusable scan or a limit hit.
+
+    An upload accepts detection's guesses (`accept_up_guess`): an ambiguous frame is recorded, and the space
+    waits for a person to pick one; a pick (`up`) or a stored frame (`source_to_world`) is loaded as given.
+    """
     name = Path(path).name
     receiver, sender = _CONTEXT.Pipe(duplex=False)
     limits = {"memory_mb": memory_mb, "cpu_s": max(1, int(timeout_s)), "max_faces": max_faces}
+    frame = {"up_axis": up_axis, "unit_scale": unit_scale, "up": up, "source_to_world": source_to_world,
+             "accept_up_guess": accept_up_guess}
     proc = _CONTEXT.Process(
-        target=_child, args=(sender, str(path), up_axis, unit_scale, limits), name="omnidata-safe-load", daemon=True
+        target=_child, args=(sender, str(path), frame, limits), name="omnidata-safe-load", daemon=True
     )
     proc.start()
     sender.close()
@@ -87,7 +96,7 @@ def _mapped_bytes() -> int:
     return 0
 
 
-def _child(sender: Connection, path: str, up_axis: str, unit_scale: float | str, limits: dict[str, Any]) -> None:
+def _child(sender: Connection, path: str, frame: dict[str, Any], limits: dict[str, Any]) -> None:
     """Child side: set the limits, load and check the space, send ("ok", slim LoadedSpace) or the error."""
     import resource
 
@@ -101,8 +110,7 @@ def _child(sender: Connection, path: str, up_axis: str, unit_scale: float | str,
     resource.setrlimit(resource.RLIMIT_AS, (memory, memory))
     resource.setrlimit(resource.RLIMIT_CPU, (int(limits["cpu_s"]), int(limits["cpu_s"]) + 1))
     try:
-        # an ambiguous up is recorded, not refused: the space waits for a person to pick one
-        loaded = load_space(path, up_axis=up_axis, unit_scale=unit_scale, accept_up_guess=True)
+        loaded = load_space(path, **frame)
         check_face_count(Path(path).name, loaded.face_count, int(limits["max_faces"]))
         # register_space reads the counts and transforms, not the visuals or parser metadata: leave those here
         slim = trimesh.Trimesh(vertices=loaded.mesh.vertices, faces=loaded.mesh.faces, process=False)

@@ -1,4 +1,5 @@
-"""Object storage contract (STYLE.md item 10): a small Protocol with a local-folder and an S3 backend.
+"""Object storage contract: a small Protocol with a local-folder and an S3 backend, so every caller works on
+a folder and on S3 alike.
 
 Keys are '/'-separated relative paths ("rgb/omnidata/bunny/point_0_view_0_domain_rgb.png"). Absolute keys,
 empty segments, '.', '..' and backslashes are refused with ValueError, so no key escapes a store's root.

@@ -11,6 +11,7 @@ import dataclasses
 import hashlib
 import time
 import uuid as uuidlib
+from typing import Any
 
 import numpy as np
 
@@ -24,10 +25,12 @@ from services.core.domain.plan import (
     SpacePlan,
     clip_shortfall,
 )
+from services.core.ingest.capture.model import Capture
 from services.core.ingest.loading import LoadedSpace
 from services.scheduler.planning.cameras import generate_cameras, object_cameras, provided_cameras
+from services.scheduler.planning.paths import longest_run
 from services.scheduler.planning.points import SampledPoints, sample_points
-from services.scheduler.planning.trajectory import ClipNote, longest_run, trajectory
+from services.scheduler.planning.trajectory import ClipNote, trajectory
 from services.scheduler.planning.views import (
     ViewArrays,
     fraction_summary,
@@ -69,126 +72,183 @@ def make_plan(
     stamp: dict[str, float] = {}
     q = MeshQueries(space.mesh)
     salt = rng.bytes(16)
-    cs = spec.cameras
-    orbit = None  # an object's camera sphere: trajectory clips orbit its points
+    camera_spec = spec.cameras
     capture, refined = None, None
-    if cs.mode == "capture":
+    if camera_spec.mode == "capture":
         from services.scheduler.planning import capture_views
 
-        if cs.capture_views == "exact":
-            return capture_views.exact_capture_plan(
-                space, spec, space_name, q, lambda name, pidx, cams, pts, views, short: _assemble(
-                    name, salt, cams, "capture", cs, pts, np.unique(pidx), views, spec.views.resolution, short, []))
+        if camera_spec.capture_views == "exact":
+            return _exact_capture_plan(space, spec, space_name, q, salt)
         capture, refined = capture_views.planning_capture(space, spec, space_name, q)
-        cams, source = capture_views.capture_positions(capture), "capture"
-    elif cs.mode == "generate":
-        cams, source = generate_cameras(q, cs, rng), "generated"
-    elif cs.mode == "provided":
-        cams, source = provided_cameras(cs), "provided"
+        cams, source, orbit = capture_views.capture_positions(capture), "capture", None
     else:
-        cams, centre, radius = object_cameras(space.mesh, cs, rng)
-        source, orbit = "object", (centre, radius)
-    t1 = time.perf_counter()
-    stamp["cameras"] = t1 - t0
+        cams, source, orbit = _place_cameras(space, camera_spec, q, rng)
+    stamp["cameras"] = (t1 := time.perf_counter()) - t0
     ps = spec.points
-    if len(cams) < ps.min_views:
-        raise PlanError(
-            f"space {space_name!r} has {len(cams)} cameras (mode {cs.mode!r}) but points.min_views is "
-            f"{ps.min_views}: no point could be seen by enough cameras; lower min_views or "
-            "cameras.min_spacing_m, or raise cameras.max_count"
-        )
+    _check_enough_cameras(len(cams), spec, space_name)
     count = ps.count if ps.count is not None else max(1, int(round(ps.per_camera * len(cams))))
     sampled = sample_points(q, cams, ps, count, rng)
-    t2 = time.perf_counter()
-    stamp["points"] = t2 - t1
+    stamp["points"] = (t2 := time.perf_counter()) - t1
 
     vs = spec.views
-    notes: list[ClipNote] = []
-    if vs.mode == "wide_baseline":
-        views = wide_baseline(sampled.positions, sampled.normals, sampled.visible, cams, vs, ps.max_views, rng)
-    else:
-        views, notes = trajectory(
-            sampled.positions, sampled.normals, sampled.visible, cams, vs, ps.max_views, q,
-            ps.los_tolerance_m, cs.clearance_m, rng, orbit,
-        )
+    views, notes = _choose_views(sampled, cams, spec, q, rng, orbit)
     shortfall = sampled.shortfall
-    photo_dropped = 0
-    if capture is not None and len(views):  # fixated views at capture positions: enough of the photo in view
-        covered, _ = capture_views.fixated_coverage_keep(capture, views, vs.min_photo_coverage)
-        photo_dropped = int((~covered).sum())
-        views = views.subset(covered)
-        n_covered = np.bincount(views.point_idx, minlength=len(sampled.positions))
-        views = views.subset(n_covered[views.point_idx] >= ps.min_views)
+    photo_dropped = 0  # fixated views at capture positions: enough of the photo in view
+    if capture is not None and len(views):
+        views, photo_dropped = _keep_photo_covered(capture, views, len(sampled.positions), spec)
     elif spec.uses_photos() and len(views):  # photo-textured views: enough surface some photo saw
-        from services.scheduler.planning import capture_views as photo_views
-
-        textured = photo_views.textured_coverage(q, photo_views.require_capture(space, space_name), views.world_to_camera,
-                                                 views.fov)
-        ok = textured >= vs.min_photo_coverage
-        if vs.mode == "trajectory":  # as for min_valid_fraction: no gaps inside a clip
-            ok = _longest_runs(views.point_idx, ok, vs.trajectory_min_frames)
-        photo_dropped = int((~ok).sum())
-        views = views.subset(ok)
-        if vs.mode != "trajectory":
-            n_covered = np.bincount(views.point_idx, minlength=len(sampled.positions))
-            views = views.subset(n_covered[views.point_idx] >= ps.min_views)
-        if photo_dropped:
-            shortfall = _join(shortfall, f"views.min_photo_coverage {vs.min_photo_coverage} dropped {photo_dropped} "
-                                         "photo-textured views")
+        views, photo_dropped, shortfall = _keep_photo_textured(space, space_name, q, views, len(sampled.positions),
+                                                               spec, shortfall)
     keep_points = np.unique(views.point_idx) if notes or photo_dropped else np.arange(len(sampled.positions))
     if vs.nonfixated_pruning and len(views):
-        crossing = nonfixated_keep(views, sampled.positions, sampled.visible, vs.resolution)
-        if vs.mode == "trajectory":  # as for min_valid_fraction below: no gaps inside a clip
-            crossing = _longest_runs(views.point_idx, crossing, vs.trajectory_min_frames)
-        views = views.subset(crossing)
-        n_views = np.bincount(views.point_idx, minlength=len(sampled.positions))
-        keep_points = np.flatnonzero(n_views >= ps.min_views)
-        views = views.subset(np.isin(views.point_idx, keep_points))
-        if len(keep_points) < len(sampled.positions):
-            note = (
-                f"nonfixated pruning kept {len(keep_points)} of {len(sampled.positions)} points "
-                f"(>= {ps.min_views} views that each see another point)"
-            )
-            shortfall = _join(shortfall, note)
-    if vs.min_valid_fraction > 0:
-        fractions = valid_fractions(q, views, spec.params.max_depth_m)
-        valid_summary = fraction_summary(fractions, vs.min_valid_fraction)
-    else:  # only reported: an even sample of the views bounds the cost on big plans
-        sample = np.unique(np.linspace(0, len(views) - 1, min(len(views), VALID_REPORT_VIEWS)).astype(np.int64))
-        valid_summary = fraction_summary(valid_fractions(q, views.subset(sample), spec.params.max_depth_m), 0.0)
-        valid_summary["sampled_of"] = len(views)
-    if vs.min_valid_fraction > 0 and len(views):
-        passing = fractions >= vs.min_valid_fraction
-        if vs.mode == "trajectory":  # a frame dropped from inside a clip would make its video jump
-            passing = _longest_runs(views.point_idx, passing, vs.trajectory_min_frames)
-        views = views.subset(passing)
-        n_views = np.bincount(views.point_idx, minlength=len(sampled.positions))
-        kept = keep_points[n_views[keep_points] >= ps.min_views]
-        views = views.subset(np.isin(views.point_idx, kept))
-        dropped = int((~passing).sum())
-        if dropped or len(kept) < len(keep_points):
-            cut = " (each clip keeps its longest run of frames above it)" if vs.mode == "trajectory" else ""
-            note = (
-                f"views.min_valid_fraction {vs.min_valid_fraction} dropped {dropped} views{cut}; "
-                f"{len(kept)} of {len(keep_points)} points keep >= {ps.min_views} views"
-            )
-            shortfall = _join(shortfall, note)
-        keep_points = kept
-    t3 = time.perf_counter()
-    stamp["views"] = t3 - t2
+        views, keep_points, shortfall = _prune_nonfixated(views, sampled, spec, shortfall)
+    fractions, valid_summary = _valid_fractions(q, views, spec)
+    if fractions is not None and len(views):
+        views, keep_points, shortfall = _drop_low_valid(views, fractions, len(sampled.positions), keep_points,
+                                                        spec, shortfall)
+    stamp["views"] = (t3 := time.perf_counter()) - t2
 
-    plan = _assemble(
-        space_name, salt, cams, source, cs, sampled, keep_points, views, vs.resolution, shortfall, notes
-    )
+    plan = _assemble(space_name, salt, cams, source, camera_spec, sampled, keep_points, views, vs.resolution,
+                     shortfall, notes)
     plan = dataclasses.replace(plan, valid_fraction=valid_summary)
     if capture is not None:
         plan = capture_views.annotate_fixated(plan, capture, vs.min_photo_coverage, photo_dropped, refined)
     stamp["assemble"] = time.perf_counter() - t3
     if timings is not None:
-        timings.update(stamp)
-        timings["rays"] = float(q.rays)
-        timings["total"] = time.perf_counter() - t0
+        timings.update(stamp, rays=float(q.rays), total=time.perf_counter() - t0)
     return plan
+
+
+def _exact_capture_plan(space: LoadedSpace, spec: JobSpec, space_name: str, q: MeshQueries, salt: bytes) -> SpacePlan:
+    """The plan of capture_views: exact (the captured photos' own poses are the views)."""
+    from services.scheduler.planning import capture_views
+
+    return capture_views.exact_capture_plan(
+        space, spec, space_name, q, lambda name, pidx, cams, pts, views, short: _assemble(
+            name, salt, cams, "capture", spec.cameras, pts, np.unique(pidx), views, spec.views.resolution,
+            short, []))
+
+
+def _check_enough_cameras(n_cameras: int, spec: JobSpec, space_name: str) -> None:
+    """PlanError when fewer cameras exist than a point needs views: no point could be planned."""
+    ps = spec.points
+    if n_cameras < ps.min_views:
+        raise PlanError(
+            f"space {space_name!r} has {n_cameras} cameras (mode {spec.cameras.mode!r}) but points.min_views is "
+            f"{ps.min_views}: no point could be seen by enough cameras; lower min_views or "
+            "cameras.min_spacing_m, or raise cameras.max_count"
+        )
+
+
+def _keep_photo_covered(capture: Capture, views: ViewArrays, n_points: int, spec: JobSpec) -> tuple[ViewArrays, int]:
+    """Capture views that show enough of their photo, and points left with enough of them; (views, dropped)."""
+    from services.scheduler.planning import capture_views
+
+    covered, _ = capture_views.fixated_coverage_keep(capture, views, spec.views.min_photo_coverage)
+    photo_dropped = int((~covered).sum())
+    views = views.subset(covered)
+    n_covered = np.bincount(views.point_idx, minlength=n_points)
+    return views.subset(n_covered[views.point_idx] >= spec.points.min_views), photo_dropped
+
+
+def _keep_photo_textured(space: LoadedSpace, space_name: str, q: MeshQueries, views: ViewArrays, n_points: int,
+                         spec: JobSpec, shortfall: str | None) -> tuple[ViewArrays, int, str | None]:
+    """Photo-textured views that show enough surface some photo saw; (views, dropped, shortfall)."""
+    from services.scheduler.planning import capture_views as photo_views
+
+    vs, ps = spec.views, spec.points
+    textured = photo_views.textured_coverage(q, photo_views.require_capture(space, space_name), views.world_to_camera,
+                                             views.fov)
+    ok = textured >= vs.min_photo_coverage
+    if vs.mode == "trajectory":  # as for min_valid_fraction: no gaps inside a clip
+        ok = _longest_runs(views.point_idx, ok, vs.trajectory_min_frames)
+    photo_dropped = int((~ok).sum())
+    views = views.subset(ok)
+    if vs.mode != "trajectory":
+        n_covered = np.bincount(views.point_idx, minlength=n_points)
+        views = views.subset(n_covered[views.point_idx] >= ps.min_views)
+    if photo_dropped:
+        shortfall = _join(shortfall, f"views.min_photo_coverage {vs.min_photo_coverage} dropped {photo_dropped} "
+                                     "photo-textured views")
+    return views, photo_dropped, shortfall
+
+
+def _valid_fractions(q: MeshQueries, views: ViewArrays, spec: JobSpec) -> tuple[np.ndarray | None, dict[str, Any]]:
+    """(each view's predicted valid fraction when views.min_valid_fraction filters, else None; the summary)."""
+    vs = spec.views
+    if vs.min_valid_fraction > 0:
+        fractions = valid_fractions(q, views, spec.params.max_depth_m)
+        return fractions, fraction_summary(fractions, vs.min_valid_fraction)
+    # only reported: an even sample of the views bounds the cost on big plans
+    sample = np.unique(np.linspace(0, len(views) - 1, min(len(views), VALID_REPORT_VIEWS)).astype(np.int64))
+    summary = fraction_summary(valid_fractions(q, views.subset(sample), spec.params.max_depth_m), 0.0)
+    summary["sampled_of"] = len(views)
+    return None, summary
+
+
+def _place_cameras(space: LoadedSpace, camera_spec: CameraSpec, q: MeshQueries, rng: np.random.Generator
+                   ) -> tuple[np.ndarray, str, tuple[np.ndarray, float] | None]:
+    """(camera positions, their source, an object's camera sphere (centre, radius) or None)."""
+    if camera_spec.mode == "generate":
+        return generate_cameras(q, camera_spec, rng), "generated", None
+    if camera_spec.mode == "provided":
+        return provided_cameras(camera_spec), "provided", None
+    cams, centre, radius = object_cameras(space.mesh, camera_spec, rng)
+    return cams, "object", (centre, radius)  # trajectory clips orbit the object's points
+
+
+def _choose_views(sampled: SampledPoints, cams: np.ndarray, spec: JobSpec, q: MeshQueries, rng: np.random.Generator,
+                  orbit: tuple[np.ndarray, float] | None) -> tuple[ViewArrays, list[ClipNote]]:
+    """The views of the sampled points: wide-baseline views, or trajectory clips (with notes on cut clips)."""
+    vs, ps = spec.views, spec.points
+    if vs.mode == "wide_baseline":
+        return wide_baseline(sampled.positions, sampled.normals, sampled.visible, cams, vs, ps.max_views, rng), []
+    return trajectory(
+        sampled.positions, sampled.normals, sampled.visible, cams, vs, ps.max_views, q,
+        ps.los_tolerance_m, spec.cameras.clearance_m, rng, orbit,
+    )
+
+
+def _prune_nonfixated(views: ViewArrays, sampled: SampledPoints, spec: JobSpec, shortfall: str | None
+                      ) -> tuple[ViewArrays, np.ndarray, str | None]:
+    """Keep the views that see another point, and the points left with enough of them."""
+    vs, ps = spec.views, spec.points
+    crossing = nonfixated_keep(views, sampled.positions, sampled.visible, vs.resolution)
+    if vs.mode == "trajectory":  # as for min_valid_fraction: no gaps inside a clip
+        crossing = _longest_runs(views.point_idx, crossing, vs.trajectory_min_frames)
+    views = views.subset(crossing)
+    n_views = np.bincount(views.point_idx, minlength=len(sampled.positions))
+    keep_points = np.flatnonzero(n_views >= ps.min_views)
+    views = views.subset(np.isin(views.point_idx, keep_points))
+    if len(keep_points) < len(sampled.positions):
+        note = (
+            f"nonfixated pruning kept {len(keep_points)} of {len(sampled.positions)} points "
+            f"(>= {ps.min_views} views that each see another point)"
+        )
+        shortfall = _join(shortfall, note)
+    return views, keep_points, shortfall
+
+
+def _drop_low_valid(views: ViewArrays, fractions: np.ndarray, n_points: int, keep_points: np.ndarray, spec: JobSpec,
+                    shortfall: str | None) -> tuple[ViewArrays, np.ndarray, str | None]:
+    """Drop views predicted to see too little surface, and the points left with too few views."""
+    vs, ps = spec.views, spec.points
+    passing = fractions >= vs.min_valid_fraction
+    if vs.mode == "trajectory":  # a frame dropped from inside a clip would make its video jump
+        passing = _longest_runs(views.point_idx, passing, vs.trajectory_min_frames)
+    views = views.subset(passing)
+    n_views = np.bincount(views.point_idx, minlength=n_points)
+    kept = keep_points[n_views[keep_points] >= ps.min_views]
+    views = views.subset(np.isin(views.point_idx, kept))
+    dropped = int((~passing).sum())
+    if dropped or len(kept) < len(keep_points):
+        cut = " (each clip keeps its longest run of frames above it)" if vs.mode == "trajectory" else ""
+        note = (
+            f"views.min_valid_fraction {vs.min_valid_fraction} dropped {dropped} views{cut}; "
+            f"{len(kept)} of {len(keep_points)} points keep >= {ps.min_views} views"
+        )
+        shortfall = _join(shortfall, note)
+    return views, kept, shortfall
 
 
 def _longest_runs(point_idx: np.ndarray, ok: np.ndarray, min_frames: int) -> np.ndarray:
@@ -213,7 +273,7 @@ def _assemble(
     salt: bytes,
     cams: np.ndarray,
     source: str,
-    cs: CameraSpec,
+    camera_spec: CameraSpec,
     sampled: SampledPoints,
     keep_points: np.ndarray,
     views: ViewArrays,
@@ -221,7 +281,7 @@ def _assemble(
     shortfall: str | None,
     notes: list[ClipNote],
 ) -> SpacePlan:
-    given = [p.uuid for p in cs.poses] if source == "provided" and cs.poses else [None] * len(cams)
+    given = [p.uuid for p in camera_spec.poses] if source == "provided" and camera_spec.poses else [None] * len(cams)
     cameras = tuple(
         CameraPose(idx=i, position=cams[i], source=source, uuid=given[i] or _uuid(salt, "camera", i))
         for i in range(len(cams))

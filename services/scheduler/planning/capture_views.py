@@ -37,8 +37,8 @@ def require_capture(space: Any, space_name: str) -> Capture:
     """The space's capture in the world frame; PlanError saying what is missing otherwise."""
     capture = getattr(space, "capture", None)
     if capture is None:
-        raise PlanError(f"space {space_name!r}: cameras.mode 'capture' needs a posed capture next to the scan "
-                        f"(looked for {FORMATS_LOOKED_FOR}); none was found")
+        raise PlanError(f"space {space_name!r}: cameras.mode capture (or views.rgb_source photos) needs a posed capture "
+                        f"next to the scan (looked for {FORMATS_LOOKED_FOR}); none was found")
     if not capture.frames:
         why = "; ".join(capture.problems[:5]) or "no frames"
         raise PlanError(f"space {space_name!r}: the {capture.format} capture has no usable frame ({why})")

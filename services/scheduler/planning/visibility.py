@@ -147,7 +147,7 @@ class _FaceIndex:
         out = np.zeros(len(pts), dtype=bool)
         for s in range(0, len(pts), _PAIR_CHUNK):
             p, f = pts[s:s + _PAIR_CHUNK], faces[s:s + _PAIR_CHUNK]
-            cp = trimesh.triangles.closest_point(self.tris[f], p)
+            cp = trimesh.triangles.closest_point(self.tris[f], p)  # type: ignore[no-untyped-call]
             out[s:s + _PAIR_CHUNK] = np.linalg.norm(cp - p, axis=1) < radius
         return out
 
@@ -161,7 +161,7 @@ class _FaceIndex:
                 continue
             pi = np.repeat(np.arange(len(points)), lens)
             fi = ids[np.concatenate([np.asarray(x, dtype=np.int64) for x in lists])]
-            cp = trimesh.triangles.closest_point(self.tris[fi], points[pi])
+            cp = trimesh.triangles.closest_point(self.tris[fi], points[pi])  # type: ignore[no-untyped-call]
             d = np.linalg.norm(cp - points[pi], axis=1)
             order = np.lexsort((d, pi))  # per point, its nearest candidate first
             first = order[np.r_[True, pi[order][1:] != pi[order][:-1]]]

@@ -1,4 +1,5 @@
-"""Cue implementations, one module per family, collected into one registry (STYLE.md item 5).
+"""Cue implementations, one module per family, collected into one registry, so the executor
+looks cues up by name and a new cue touches one family module.
 
 Adding a cue: a catalog entry in services/core/domain/cues.py, an `@register("name")` function in a family module
 below, and (for a new family) one import line here.

@@ -1,11 +1,11 @@
 """Cues read (almost) directly from the pass set: rgb, normal, depths, mask, reshading, curvature, position,
-fragments, and the internal `passes` cue (DESIGN.md section 5 encodings; units in metres)."""
+fragments, and the internal `passes` cue (encodings from the cue catalog; units in metres)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from services.core.domain.cues import CURVATURE_FLAT
+from services.core.domain.cues import CURVATURE_FLAT, NORMAL_BACKGROUND
 from services.worker.context import ViewContext
 from services.worker.cues.common import (
     euclidean_m,
@@ -18,7 +18,6 @@ from services.worker.cues.common import (
 from services.worker.cues.registry import register
 from services.worker.passes import NO_FACE, RENDER_PASSES
 
-NORMAL_BACKGROUND = 128
 CURVATURE_BACKGROUND = 0  # R = G = B = 0 where nothing is seen (use mask_valid); B is always 0
 
 

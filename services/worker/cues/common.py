@@ -1,6 +1,6 @@
 """Per-view intermediates shared by several cues, each memoised in the ViewContext.
 
-Frames: `normal_cam` uses DESIGN.md's camera axes for normals (x right, y up, z towards the viewer);
+Frames: `normal_cam` uses the Omnidata camera axes for normals (x right, y up, z towards the viewer);
 `ray_dirs_cam` uses OpenCV camera axes (x right, y down, z forward). Depth in metres.
 """
 

@@ -1,4 +1,5 @@
-"""File encodings of the cue catalog (DESIGN.md section 5): PNG 8/16-bit, .npy, float32 EXR, JSON.
+"""File encodings of the cue catalog, the output contract readers decode: PNG 8/16-bit, .npy, float32 EXR,
+JSON.
 
 The catalog entry (ext, dtype, channels) decides the encoding; a value of the wrong dtype or shape is an error,
 never silently converted, so a cue can not drift from its documented encoding.

@@ -157,6 +157,22 @@ class _Pyramid:
         return out[:self.shape[0], :self.shape[1]]
 
 
+def _surface_change(b: np.ndarray) -> np.ndarray:
+    """Spread of the mean normal, from b = the blurred [w, n * w] (0 where no surface was averaged)."""
+    cnt, m = b[0], b[1:] / np.maximum(b[:1], 1e-6)
+    c = np.sqrt(np.clip(1.0 - np.einsum("chw,chw->hw", m, m), 0.0, 1.0))
+    return np.where(cnt > 1e-6, c, 0.0).astype(np.float32)
+
+
+def _isotropy(b: np.ndarray) -> np.ndarray:
+    """2 x the smaller eigenvalue over the trace of b = the blurred structure tensor [jxx, jyy, jxy]."""
+    a, bb, c = b[0], b[1], b[2]
+    tr = a + bb
+    disc = np.sqrt(np.maximum((a - bb) ** 2 / 4 + c * c, 0.0))
+    lo, hi = tr / 2 - disc, tr / 2 + disc
+    return np.where(tr > 1e-6, 2 * np.maximum(lo, 0.0) / np.maximum(lo + hi, 1e-12), 0.0).astype(np.float32)
+
+
 def narf_interest(ctx: ViewContext) -> np.ndarray:
     """float32 H x W NARF-like interest in [0, 1] (module docstring), 0 off valid depth."""
     v = valid(ctx)
@@ -201,29 +217,17 @@ def narf_interest(ctx: ViewContext) -> np.ndarray:
     def blend(out: np.ndarray, ki: int, value: np.ndarray) -> None:
         out += weights[ki] * value
 
-    def surface_change(b: np.ndarray) -> np.ndarray:  # b = blurred [w, n * w]: spread of the mean normal
-        cnt, m = b[0], b[1:] / np.maximum(b[:1], 1e-6)
-        c = np.sqrt(np.clip(1.0 - np.einsum("chw,chw->hw", m, m), 0.0, 1.0))
-        return np.where(cnt > 1e-6, c, 0.0).astype(np.float32)
-
-    def isotropy(b: np.ndarray) -> np.ndarray:  # b = blurred structure tensor [jxx, jyy, jxy]
-        a, bb, c = b[0], b[1], b[2]
-        tr = a + bb
-        disc = np.sqrt(np.maximum((a - bb) ** 2 / 4 + c * c, 0.0))
-        lo, hi = tr / 2 - disc, tr / 2 + disc
-        return np.where(tr > 1e-6, 2 * np.maximum(lo, 0.0) / np.maximum(lo + hi, 1e-12), 0.0).astype(np.float32)
-
     wn = _Pyramid(np.concatenate([w[None], np.moveaxis(n, -1, 0)]).astype(np.float32))
     change = np.zeros(v.shape, dtype=np.float32)
     for ki in used:
-        blend(change, int(ki), wn.blurred(KP3D_SCALES_PX[ki], surface_change))
+        blend(change, int(ki), wn.blurred(KP3D_SCALES_PX[ki], _surface_change))
     change[border] = 1.0
     change[~v] = 0.0
     gx, gy = sobel(change, axis=1, mode="nearest"), sobel(change, axis=0, mode="nearest")
     tensor = _Pyramid(np.stack([gx * gx, gy * gy, gx * gy]))
     iso = np.zeros(v.shape, dtype=np.float32)
     for ki in used:
-        blend(iso, int(ki), tensor.blurred(KP3D_SCALES_PX[ki], isotropy))
+        blend(iso, int(ki), tensor.blurred(KP3D_SCALES_PX[ki], _isotropy))
     iso[~v] = 0.0
     return np.clip(change * iso, 0.0, 1.0).astype(np.float32)
 

@@ -1,4 +1,5 @@
-"""The cue registry: each cue family module declares its cues with `@register(name)` (STYLE.md item 5).
+"""The cue registry: each cue family module declares its cues with `@register(name)`, so the
+executor finds a cue by its catalog name without a central table to keep in step.
 
 A cue function takes the view's ViewContext and returns the cue's value: a numpy array in the catalog's dtype and
 shape (H x W or H x W x 3), a JSON-able dict for plan cues, or bytes for the internal `passes` cue. Encoding to

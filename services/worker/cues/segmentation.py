@@ -143,9 +143,9 @@ def segment(ctx: ViewContext, features: np.ndarray, mask: np.ndarray, *, sigma: 
         # mixed-colour regions (Felzenszwalb blurs first) and the background merges into its neighbours.
         iy, ix = nearest_in_mask(ctx, mask)
         features = features[iy, ix]
-    sp = superpixels(features, p.segment2d_scale, sigma, p.segment2d_min_size, p.segment_max_superpixels)
-    W = region_graph(sp, features * 255.0, p.segment_ncut_sigma, boundary)
-    merged = normalized_cuts(W, p.segment_ncut_thresh, p.segment_num_cuts)[sp]
+    superpixel_ids = superpixels(features, p.segment2d_scale, sigma, p.segment2d_min_size, p.segment_max_superpixels)
+    W = region_graph(superpixel_ids, features * 255.0, p.segment_ncut_sigma, boundary)
+    merged = normalized_cuts(W, p.segment_ncut_thresh, p.segment_num_cuts)[superpixel_ids]
     return _relabel(merged, mask)
 
 

@@ -25,20 +25,17 @@ from services.core.ingest.registry import register_space
 from services.core.settings import get_settings
 from services.scheduler.loop import Scheduler
 from services.scheduler.planning import make_plan, space_rng
-from services.scheduler.planning.trajectory import (
-    OBJECT_REFERENCE_M,
+from services.scheduler.planning.paths import (
     Limits,
-    fly_clip,
-    free_space_graph,
     longest_run,
     resample,
     rotation_angles,
     smooth_path,
-    trajectory,
     trim,
     turn_angles,
-    verify_clip,
 )
+from services.scheduler.planning.routes import free_space_graph
+from services.scheduler.planning.trajectory import OBJECT_REFERENCE_M, fly_clip, trajectory, verify_clip
 from services.scheduler.planning.visibility import MeshQueries
 from services.scheduler.transport import NullTransport
 from tests.fixtures import scenes

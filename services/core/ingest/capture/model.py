@@ -19,19 +19,13 @@ from typing import Any
 
 import numpy as np
 
+from services.core.domain.plan import frozen_array
+
 DISTORTION_PARAMS = {"none": (0, 0), "radial": (1, 2), "opencv": (4, 5), "fisheye": (4, 4)}
 
 
 class CaptureError(ValueError):
     """A capture that cannot be used at all (no readable frame), with a message for the user."""
-
-
-def _frozen(a: Any, shape: tuple[int, ...]) -> np.ndarray:
-    arr = np.array(a, dtype=np.float64)
-    if arr.shape != shape:
-        raise ValueError(f"expected shape {shape}, got {arr.shape}")
-    arr.flags.writeable = False
-    return arr
 
 
 @dataclass(frozen=True, eq=False)
@@ -48,9 +42,9 @@ class CaptureFrame:
     camera_to_world: np.ndarray  # 4x4, OpenCV camera axes -> source (or, after in_world, world) coordinates
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "camera_to_world", _frozen(self.camera_to_world, (4, 4)))
+        object.__setattr__(self, "camera_to_world", frozen_array(self.camera_to_world, (4, 4)))
         if self.K is not None:
-            object.__setattr__(self, "K", _frozen(self.K, (3, 3)))
+            object.__setattr__(self, "K", frozen_array(self.K, (3, 3)))
         lo, hi = DISTORTION_PARAMS.get(self.distortion, (-1, -1))
         if lo < 0:
             raise ValueError(f"unknown distortion model {self.distortion!r}; known: {', '.join(DISTORTION_PARAMS)}")

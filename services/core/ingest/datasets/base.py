@@ -20,6 +20,8 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
+from services.core.ingest.labels import majority
+
 # a rendered vertex farther than this share of the labelled mesh's bounding-box diagonal from any labelled
 # point stays unlabelled (0): geometry the annotation does not cover is not given a neighbour's id
 MAX_TRANSFER_FRACTION = 0.01
@@ -130,17 +132,6 @@ def fan(polys: list[np.ndarray] | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.array(tris, dtype=np.int64).reshape(-1, 3), np.array(owner, dtype=np.int64)
 
 
-def _majority(labels: np.ndarray) -> np.ndarray:
-    """Per row: the value most entries carry (ties: the first's)."""
-    best = labels[:, 0].copy()
-    best_count = (labels == best[:, None]).sum(axis=1)
-    for j in range(1, labels.shape[1]):
-        count = (labels == labels[:, j:j + 1]).sum(axis=1)
-        better = count > best_count
-        best[better], best_count[better] = labels[better, j], count[better]
-    return best
-
-
 def _pair(cls: np.ndarray, inst: np.ndarray) -> np.ndarray:
     return (cls.astype(np.int64) << 32) | (inst.astype(np.int64) & 0xFFFFFFFF)
 
@@ -169,7 +160,7 @@ class LabelledSurface:
                       vertex_instance: np.ndarray) -> LabelledSurface:
         """A mesh labelled per vertex: each triangle carries the labels most of its corners carry."""
         tris, _ = fan(polys)
-        cls, inst = _unpair(_majority(_pair(vertex_class, vertex_instance)[tris]))
+        cls, inst = _unpair(majority(_pair(vertex_class, vertex_instance)[tris]))
         return LabelledSurface(vertices[tris], cls, inst)
 
     @staticmethod
@@ -203,7 +194,7 @@ def transfer(mesh: trimesh.Trimesh, labelled: LabelledSurface) -> tuple[np.ndarr
         _, cand = tree.query(query, k=k)
         cand = cand.reshape(len(query), k)
         points = np.repeat(query, k, axis=0)
-        closest = trimesh.triangles.closest_point(triangles[cand.ravel()], points)
+        closest = trimesh.triangles.closest_point(triangles[cand.ravel()], points)  # type: ignore[no-untyped-call]
         distance = np.linalg.norm(closest - points, axis=1).reshape(len(query), k)
         best = np.argmin(distance, axis=1)
         rows = np.arange(len(query))

@@ -122,11 +122,14 @@ def test_kill_9_of_a_worker_holding_a_reserved_message_and_one_mid_claim(quiet_c
         lock.rollback()
     cluster.start_worker("replacement", **ENV)
     with cluster.sm() as s:
-        assert set(s.scalars(select(Task.state).where(Task.id.in_(held)))) == {"queued"}  # the claim never committed
+        # The reserved one was never claimed; the blocked claim (one autocommit statement) may have gone through
+        # once the lock was released, under the dead worker's name: its task is then the dead worker's to reap.
+        states = dict(s.execute(select(Task.id, Task.state).where(Task.id.in_(held))).all())
+        assert "queued" in states.values() and set(states.values()) <= {"queued", "running"}, states
     finish_within_bound(cluster, job_id, killed_at)
     with cluster.sm() as s:
         rows = s.execute(select(Task.id, Task.worker_id, Task.attempts).where(Task.id.in_(held))).all()
-    assert all(w == f"replacement@{socket.gethostname()}" and a == 1 for _, w, a in rows), rows
+    assert all(w == f"replacement@{socket.gethostname()}" for _, w, _ in rows), rows
     r.close()
 
 
@@ -134,7 +137,7 @@ def test_kill_9_of_a_worker_mid_upload(quiet_cluster, scenes_dir: Path, tmp_path
     cluster = quiet_cluster
     proxy = HoldingProxy(s3_server.endpoint_url)
     try:
-        proxy.arm(f"PUT /{s3_server.bucket}/{cluster.prefix}/".encode())
+        proxy.arm(f"PUT /{s3_server.bucket}/{cluster.prefix}/jobs/".encode())  # a job's output (or pass cache)
         job_id = submit_direct(cluster, scenes_dir / "ycb_banana", write_spec(tmp_path, SPEC))
         victim = cluster.start_worker("victim", OMNIDATA_S3_ENDPOINT_URL=proxy.url, **ENV)
         wait(proxy.held.is_set, 180, "the victim to upload an output", cluster)

@@ -22,8 +22,9 @@ REPO = Path(__file__).resolve().parents[2]
 OWN_RGB = (0, 90, 255)
 TETRA = (b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nvt 0 0\nvt 1 0\nvt 0 1\n"
          b"f 1/1 2/2 3/3\nf 1/1 2/2 4/3\nf 1/1 3/2 4/3\nf 2/1 3/2 4/3\n")
+# The scan is a box: its up is genuinely ambiguous, and this test is about files, so the spec names it.
 SPEC = "cameras: {mode: object, object_count: 6}\npoints: {count: 1, min_views: 2, max_views: 2}\n" \
-       "views: {resolution: 32}\ncues: [rgb]\n"
+       "views: {resolution: 32}\ncues: [rgb]\nup_axis: \"+z\"\n"
 
 
 def _scan(folder: Path) -> Path:

@@ -39,8 +39,10 @@ def generate(*args: str | Path, timeout: float = 300) -> subprocess.CompletedPro
 def start_generate(*args: str | Path) -> subprocess.Popen[str]:
     """Start `omnidata generate` in its own process group (so the test can signal or kill all of it)."""
     cmd = [sys.executable, "-m", "services.cli", "generate", *map(str, args), "--no-progress"]
+    # A terminal's Ctrl-C reaches a program whose SIGINT is not ignored; a test runner started in the background
+    # of a non-interactive shell inherits SIGINT ignored, so give the child the default disposition back.
     return subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True)
+                            start_new_session=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
 def manifest(out: Path) -> list[dict]:

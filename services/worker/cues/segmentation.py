@@ -24,6 +24,8 @@ import hashlib
 import numpy as np
 from scipy.linalg import eigh
 from scipy.ndimage import distance_transform_edt
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import connected_components
 
 from services.worker.context import ViewContext
 from services.worker.cues.common import depth_m, hit, normal_cam, valid
@@ -76,8 +78,18 @@ def region_graph(labels: np.ndarray, features255: np.ndarray, sigma: float,
     return W
 
 
+# Links weaker than this count as absent when looking for disconnected parts (self-loops weigh 1; an RBF weight
+# this small is exp(-23)): a cut through them costs < 1e-9, far below any useful segment_ncut_thresh.
+LINK_EPS = 1e-10
+
+
 def normalized_cuts(W: np.ndarray, thresh: float, num_cuts: int) -> np.ndarray:
-    """Recursive two-way normalized cuts on a dense similarity matrix; returns a segment id per node."""
+    """Recursive two-way normalized cuts on a dense similarity matrix; returns a segment id per node.
+
+    A subgraph falling apart into (numerically) disconnected parts is split into them directly: its eigenproblem
+    then has a multiple zero eigenvalue, so the dense solver (O(n^3), most of a segmentation's cost at 512 px)
+    would only return some mix of the parts' indicator vectors, and every threshold between them cuts at ~0 cost:
+    the cuts end at the same parts, peeled off one eigenproblem at a time."""
     out = np.zeros(len(W), dtype=np.int64)
     next_id = 0
     stack = [np.arange(len(W))]
@@ -86,21 +98,11 @@ def normalized_cuts(W: np.ndarray, thresh: float, num_cuts: int) -> np.ndarray:
         best_mask = None
         if len(idx) > 2:
             w = W[np.ix_(idx, idx)]
-            d = w.sum(axis=1)
-            dis = 1.0 / np.sqrt(d)
-            A = (np.diag(d) - w) * dis[:, None] * dis[None, :]
-            _, vecs = eigh(A, subset_by_index=[0, 1], driver="evr")
-            ev = vecs[:, 1] * dis
-            # All thresholds at once: row t of `masks` is one candidate split, cut_t = m_t^T w (1 - m_t).
-            masks = ev[None, :] > np.linspace(ev.min(), ev.max(), num_cuts, endpoint=False)[:, None]
-            m = masks.astype(np.float64)
-            cut = ((m @ w) * (1.0 - m)).sum(axis=1)
-            assoc = m @ d
-            proper = masks.any(axis=1) & ~masks.all(axis=1)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                cost = np.where(proper, cut / assoc + cut / (d.sum() - assoc), np.inf)
-            best = int(np.argmin(cost))  # the first of equal minima, as the loop over thresholds took
-            best_mask = masks[best] if cost[best] < thresh else None
+            n_parts, part = connected_components(csr_matrix(w > LINK_EPS), directed=False)
+            if n_parts > 1:
+                stack.extend(idx[part == k] for k in range(n_parts))
+                continue
+            best_mask = _best_split(w, thresh, num_cuts)
         if best_mask is None:
             out[idx] = next_id
             next_id += 1
@@ -108,6 +110,25 @@ def normalized_cuts(W: np.ndarray, thresh: float, num_cuts: int) -> np.ndarray:
             stack.append(idx[~best_mask])
             stack.append(idx[best_mask])
     return out
+
+
+def _best_split(w: np.ndarray, thresh: float, num_cuts: int) -> np.ndarray | None:
+    """The two-way normalized cut of a connected similarity matrix (a node mask), None when none is below thresh."""
+    d = w.sum(axis=1)
+    dis = 1.0 / np.sqrt(d)
+    A = (np.diag(d) - w) * dis[:, None] * dis[None, :]
+    _, vecs = eigh(A, subset_by_index=[0, 1], driver="evr")
+    ev = vecs[:, 1] * dis
+    # All thresholds at once: row t of `masks` is one candidate split, cut_t = m_t^T w (1 - m_t).
+    masks = ev[None, :] > np.linspace(ev.min(), ev.max(), num_cuts, endpoint=False)[:, None]
+    m = masks.astype(np.float64)
+    cut = ((m @ w) * (1.0 - m)).sum(axis=1)
+    assoc = m @ d
+    proper = masks.any(axis=1) & ~masks.all(axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cost = np.where(proper, cut / assoc + cut / (d.sum() - assoc), np.inf)
+    best = int(np.argmin(cost))  # the first of equal minima, as the loop over thresholds took
+    return masks[best] if cost[best] < thresh else None
 
 
 def _relabel(labels: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -143,6 +164,10 @@ def segment(ctx: ViewContext, features: np.ndarray, mask: np.ndarray, *, sigma: 
         # mixed-colour regions (Felzenszwalb blurs first) and the background merges into its neighbours.
         iy, ix = nearest_in_mask(ctx, mask)
         features = features[iy, ix]
+    if not features.size or np.all(features == features.reshape(-1, features.shape[-1])[0]):
+        # One colour everywhere (an untextured scan's rgb): Felzenszwalb merges every zero-weight edge, so one
+        # superpixel and one segment, without building the graph.
+        return _relabel(np.zeros(mask.shape, dtype=np.int64), mask)
     superpixel_ids = superpixels(features, p.segment2d_scale, sigma, p.segment2d_min_size, p.segment_max_superpixels)
     W = region_graph(superpixel_ids, features * 255.0, p.segment_ncut_sigma, boundary)
     merged = normalized_cuts(W, p.segment_ncut_thresh, p.segment_num_cuts)[superpixel_ids]

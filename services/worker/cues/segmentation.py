@@ -22,10 +22,9 @@ from __future__ import annotations
 import hashlib
 
 import numpy as np
+from numba import njit
 from scipy.linalg import eigh
 from scipy.ndimage import distance_transform_edt
-from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import connected_components
 
 from services.worker.context import ViewContext
 from services.worker.cues.common import depth_m, hit, normal_cam, valid
@@ -83,6 +82,47 @@ def region_graph(labels: np.ndarray, features255: np.ndarray, sigma: float,
 LINK_EPS = 1e-10
 
 
+@njit(cache=True, nogil=True)
+def _components(w: np.ndarray, eps: float) -> tuple[int, np.ndarray]:
+    """Connected components of the graph whose links are the entries of w above eps: (count, id per node)."""
+    n = len(w)
+    part = np.full(n, -1, np.int64)
+    stack = np.empty(n, np.int64)
+    count = 0
+    for seed in range(n):
+        if part[seed] >= 0:
+            continue
+        part[seed] = count
+        stack[0] = seed
+        top = 1
+        while top:
+            top -= 1
+            i = stack[top]
+            for j in range(n):
+                if part[j] < 0 and w[i, j] > eps:
+                    part[j] = count
+                    stack[top] = j
+                    top += 1
+        count += 1
+    return count, part
+
+
+@njit(cache=True, nogil=True)
+def _first_appearance_ranks(labels: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """uint16 labels 1..K (capped at 65535) in raster order of first appearance inside mask, 0 outside."""
+    rank = np.zeros(labels.max() + 1, np.int64)
+    out = np.zeros(labels.shape, np.uint16)
+    count = 0
+    for i in range(labels.size):
+        if mask[i]:
+            lab = labels[i]
+            if rank[lab] == 0:
+                count += 1
+                rank[lab] = count
+            out[i] = min(rank[lab], 65535)
+    return out
+
+
 def normalized_cuts(W: np.ndarray, thresh: float, num_cuts: int) -> np.ndarray:
     """Recursive two-way normalized cuts on a dense similarity matrix; returns a segment id per node.
 
@@ -98,7 +138,7 @@ def normalized_cuts(W: np.ndarray, thresh: float, num_cuts: int) -> np.ndarray:
         best_mask = None
         if len(idx) > 2:
             w = W[np.ix_(idx, idx)]
-            n_parts, part = connected_components(csr_matrix(w > LINK_EPS), directed=False)
+            n_parts, part = _components(w, LINK_EPS)
             if n_parts > 1:
                 stack.extend(idx[part == k] for k in range(n_parts))
                 continue
@@ -132,16 +172,11 @@ def _best_split(w: np.ndarray, thresh: float, num_cuts: int) -> np.ndarray | Non
 
 
 def _relabel(labels: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """uint16 labels 1..K in raster order of first appearance inside mask, 0 outside."""
-    out = np.zeros(labels.shape, dtype=np.uint16)
-    vals = labels[mask]
-    if vals.size == 0:
-        return out
-    uniq, first, inv = np.unique(vals, return_index=True, return_inverse=True)
-    rank = np.empty(len(uniq), dtype=np.int64)
-    rank[np.argsort(first)] = np.arange(1, len(uniq) + 1)
-    out[mask] = np.minimum(rank[inv], 65535).astype(np.uint16)
-    return out
+    """uint16 labels 1..K in raster order of first appearance inside mask, 0 outside (labels >= 0)."""
+    if labels.size == 0:
+        return np.zeros(labels.shape, dtype=np.uint16)
+    flat = _first_appearance_ranks(np.ascontiguousarray(labels).ravel(), np.ascontiguousarray(mask).ravel())
+    return flat.reshape(labels.shape)
 
 
 def nearest_in_mask(ctx: ViewContext, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -159,15 +194,16 @@ def segment(ctx: ViewContext, features: np.ndarray, mask: np.ndarray, *, sigma: 
             boundary: np.ndarray | None = None) -> np.ndarray:
     """Felzenszwalb + normalized cuts on an H x W x C feature image in ~[0, 1]; uint16 labels, 0 off mask."""
     p = ctx.params
-    if mask.any() and not mask.all():
+    seen = features[mask] if not mask.all() else features.reshape(-1, features.shape[-1])
+    if not len(seen) or np.all(seen == seen[0]):
+        # One colour on the whole surface (an untextured scan's rgb): Felzenszwalb merges every zero-weight edge,
+        # so one superpixel and one segment (after the background fill below), without building the graph.
+        return _relabel(np.zeros(mask.shape, dtype=np.int64), mask)
+    if not mask.all():
         # Background pixels take the nearest surface pixel's features, so silhouettes do not spawn thin
         # mixed-colour regions (Felzenszwalb blurs first) and the background merges into its neighbours.
         iy, ix = nearest_in_mask(ctx, mask)
         features = features[iy, ix]
-    if not features.size or np.all(features == features.reshape(-1, features.shape[-1])[0]):
-        # One colour everywhere (an untextured scan's rgb): Felzenszwalb merges every zero-weight edge, so one
-        # superpixel and one segment, without building the graph.
-        return _relabel(np.zeros(mask.shape, dtype=np.int64), mask)
     superpixel_ids = superpixels(features, p.segment2d_scale, sigma, p.segment2d_min_size, p.segment_max_superpixels)
     W = region_graph(superpixel_ids, features * 255.0, p.segment_ncut_sigma, boundary)
     merged = normalized_cuts(W, p.segment_ncut_thresh, p.segment_num_cuts)[superpixel_ids]

@@ -7,7 +7,7 @@ Celery for that message once (`amqp.create_task_message`: the exact protocol-2 h
 kombu's Redis transport stores a message (a JSON envelope with a base64 body, `Channel._put`'s LPUSH onto the
 queue's list) with placeholders, and then fills the placeholders in per task: one LPUSH per queue and batch.
 
-The layout is kombu's, not a public API: tests/scheduler/test_envelope.py compares an Envelope's message with
+The layout is kombu's, not a public API: tests/scheduler/test_transport.py compares an Envelope's message with
 one kombu itself published, so an upgrade that changes the layout fails there rather than in production.
 """
 

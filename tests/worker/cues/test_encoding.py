@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import io
 import json
-import struct
-import zlib
 
 import numpy as np
 import pytest
@@ -15,17 +13,7 @@ from services.core.domain.cues import CATALOG, OUTPUT_CUES, UnknownCueError
 from services.worker.cues import REGISTRY, encode, get_impl
 from services.worker.cues.encoding import decode_exr_rgb, encode_png
 from services.worker.cues.semantic import pack_panoptic, unpack_panoptic
-
-
-def png_header(data: bytes) -> tuple[int, int, int, int]:
-    """(width, height, bit depth, colour type) from a PNG's IHDR chunk, checking signature and CRC."""
-    assert data[:8] == b"\x89PNG\r\n\x1a\n"
-    length, kind = struct.unpack(">I4s", data[8:16])
-    assert kind == b"IHDR" and length == 13
-    body = data[16:29]
-    assert struct.unpack(">I", data[29:33])[0] == zlib.crc32(kind + body)
-    w, h, depth, ctype = struct.unpack(">IIBB", body[:10])
-    return w, h, depth, ctype
+from tests.fixtures.png import png_header
 
 
 def test_every_catalog_cue_is_registered() -> None:

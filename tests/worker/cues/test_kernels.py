@@ -8,7 +8,8 @@ import pytest
 from services.worker.context import ViewContext
 from services.worker.cues.keypoints import _double
 from services.worker.cues.registry import cue_value
-from services.worker.cues.segmentation import _relabel, normalized_cuts
+from services.worker.cues.segmentation import _relabel, normalized_cuts, region_graph
+from tests.fixtures import reference_segmentation
 from tests.fixtures.raycast import cube_scene, raycast_passes
 
 
@@ -74,3 +75,17 @@ def test_position_cue_is_the_pass_sets_position_bit_for_bit() -> None:
     new, old = cue_value(ctx, "position"), passes.position_world()
     assert np.isnan(new).any() and np.isfinite(new).any()
     assert np.array_equal(new.view(np.uint32), old.view(np.uint32))
+
+
+@pytest.mark.parametrize("with_boundary", [False, True])
+def test_region_graph_is_bit_identical_to_the_numpy_version(with_boundary) -> None:
+    rng = np.random.default_rng(7)
+    # Blocky labels (regions of 6 x 6 pixels, ids shuffled) so regions have several neighbours and long borders.
+    blocks = rng.permutation(100).reshape(10, 10)
+    labels = np.kron(blocks, np.ones((6, 6), dtype=np.int64))
+    features = rng.random((60, 60, 4)).astype(np.float32) * 255.0
+    boundary = rng.random((60, 60)).astype(np.float32) if with_boundary else None
+    new = region_graph(labels, features, 255.0, boundary)
+    old = reference_segmentation.region_graph(labels, features, 255.0, boundary)
+    assert np.count_nonzero(new - np.diag(np.diag(new))) > 200  # real links, not an empty comparison
+    assert np.array_equal(new, old)

@@ -29,7 +29,7 @@ from numba import njit
 from scipy.ndimage import gaussian_filter, sobel, uniform_filter
 
 from services.worker.context import ViewContext
-from services.worker.cues.common import depth_m, grey, ray_dirs_cam, to_uint16_scaled, valid
+from services.worker.cues.common import depth_m, gaussian_blur, grey, ray_dirs_cam, to_uint16_scaled, valid
 from services.worker.cues.registry import register
 
 KP3D_SCALES_PX = (1, 2, 4, 8, 16, 32, 64)
@@ -47,7 +47,7 @@ def doh_response(g: np.ndarray, sigmas: tuple[float, ...]) -> np.ndarray:
     for s in sorted(sigmas):
         inc = float(np.sqrt(max(s * s - prev * prev, 0.0)))
         if inc > 0:
-            L = gaussian_filter(L, inc, mode="nearest", truncate=DOH_TRUNCATE_SIGMAS)
+            L = gaussian_blur(L, inc, DOH_TRUNCATE_SIGMAS)
         prev = s
         _max_doh(L, np.float32(s**4), out)
     return out

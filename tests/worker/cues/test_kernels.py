@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from services.core.domain.cues import NORMAL_BACKGROUND
 from services.worker.context import ViewContext
+from services.worker.cues.basic import _normal_pixels
 from services.worker.cues.common import gaussian_blur
 from services.worker.cues.keypoints import _blur, _double, doh_response
 from services.worker.cues.registry import cue_value
@@ -160,3 +162,14 @@ def test_box_blur_is_scipys_uniform_filter_bit_for_bit(radius) -> None:
             old = uniform_filter(old, (1,) * (x.ndim - 2) + (size, size), mode="constant")
         new = _blur(x, radius)
         assert new.dtype == np.float32 and new.shape == x.shape and np.array_equal(new, old), shape
+
+
+def test_normal_pixels_are_the_numpy_expressions_bit_for_bit() -> None:
+    rng = np.random.default_rng(5)
+    n = rng.uniform(-1, 1, (64, 64, 3)).astype(np.float32)
+    n[0] = ((np.arange(64, dtype=np.float32)[:, None] + 0.5) / 255 * 2 - 1)  # at the rounding boundaries
+    n[1, :3] = [[1, 1, 1], [-1, -1, -1], [0, 0, 0]]
+    seen = rng.random((64, 64)) > 0.1
+    px = np.rint(255.0 * (0.5 + 0.5 * n * np.array([-1.0, 1.0, 1.0], dtype=np.float32)))
+    old = np.where(seen[..., None], np.clip(px, 0, 255), NORMAL_BACKGROUND).astype(np.uint8)
+    assert np.array_equal(_normal_pixels(n, seen), old)

@@ -70,7 +70,7 @@ BEFORE = RESULTS / "render_room_before.json"
 # in the same hour on the same views), the baseline of its second pass: bench/results/render_issue10_first.json.
 FIRST_PASS = RESULTS / "render_issue10_first.json"
 GPU_NOTE = ("no accelerator was lent to this task (device tool: not drawn, can_start_another false), so no GPU figures;"
-            " a CUDA/OptiX/auto request falls back to the CPU with a log line (tests/worker/test_render.py)")
+            " a CUDA/OptiX/auto request falls back to the CPU with a log line (tests/worker/blender/test_render.py)")
 
 
 def room_plan(loaded: object, resolution: int, seed: int = 0) -> SpacePlan:

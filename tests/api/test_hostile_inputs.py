@@ -17,7 +17,7 @@ from services.core.domain.jobspec import JobSpec
 from services.core.storage import LocalStore
 from tests.fixtures.api import Api, make_api
 from tests.fixtures.file_watch import OpenWatch
-from tests.hostile_corpus import ACCEPTED_UNREAD, HOSTILE_FILES, VALID_FILES, secret_files
+from tests.fixtures.hostile_corpus import ACCEPTED_UNREAD, HOSTILE_FILES, VALID_FILES, secret_files
 
 
 def _upload(api: Api, filename: str, data: bytes) -> Any:

@@ -1,6 +1,6 @@
 """Property-based run over the OpenAPI schema (schemathesis): no generated request gets a server error.
 
-The SSE routes never end by themselves, so they are left to test_sse.py. Bounded examples keep it < 60 s.
+The SSE routes never end by themselves, so they are left to progress/test_sse.py. Bounded examples keep it < 60 s.
 """
 
 from __future__ import annotations

@@ -136,7 +136,8 @@ def _run(api: Any, base: str, ctx: Any, bunny: Path, artifacts: Path) -> None:
         s.commit()
     page.click("nav a[data-nav=workers]")
     page.wait_for_selector(f'tr[data-worker-id="browser-{api.a.name}:1"]')
-    assert "12.5" in page.inner_text(f'tr[data-worker-id="browser-{api.a.name}:1"]')
+    row = page.inner_text(f'tr[data-worker-id="browser-{api.a.name}:1"]')
+    assert "laptop" in row and "12.5" not in row  # service-wide throughput: operators only
     page.screenshot(path=str(artifacts / "dashboard-05-workers.png"), full_page=True)
 
     # logging out forgets the token

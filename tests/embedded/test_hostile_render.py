@@ -14,7 +14,7 @@ import pytest
 from PIL import Image
 
 from tests.fixtures.file_watch import OpenWatch
-from tests.hostile_corpus import SECRET_RGB, secret_files
+from tests.fixtures.hostile_corpus import SECRET_RGB, secret_files
 
 pytestmark = pytest.mark.slow
 

@@ -47,7 +47,8 @@ def env(empty_pg_url: str, tmp_path: Path, scenes_dir: Path) -> Iterator[dict]:
 
 def submit(env: dict, spec: dict, owner: str = "alice") -> int:
     with env["sm"]() as s:
-        space = register_space(s, env["store"], owner=owner, name=f"bunny-{owner}", source_path=env["bunny"])
+        n = s.scalar(select(func.count()).select_from(Job).where(Job.owner == owner))
+        space = register_space(s, env["store"], owner=owner, name=f"bunny-{owner}-{n}", source_path=env["bunny"])
         job = create_job(s, owner=owner, spec=JobSpec.model_validate(spec), spaces=[space])
         s.commit()
         return int(job.id)
@@ -172,3 +173,27 @@ def test_cancel_while_the_plan_is_being_written_does_not_wait_for_it(env: dict) 
     sched.plan_pending()
     assert not sched.planners.children and job(env, job_id).state == "cancelled"  # type: ignore[union-attr]
     assert not child.is_alive() and child.exitcode is not None and child.exitcode < 0, child.exitcode  # killed
+
+
+def test_planning_slots_are_shared_between_tenants(env: dict) -> None:
+    # tenant A's three big plans and tenant B's small one: B's plan starts before A's third, though A came first
+    sched = scheduler(env)  # two planning slots (OMNIDATA_PLAN_PROCESSES)
+    a_jobs = [submit(env, SLOW, owner="tenant-a") for _ in range(3)]
+    sched.plan_pending()
+    sched.plan_pending()  # one claim per tick
+    assert sorted(sched.planners.children) == a_jobs[:2]  # type: ignore[union-attr]  # no one else waits: A takes both
+    b_job = submit(env, SMALL, owner="tenant-b")
+    with env["sm"]() as s:  # a slot frees (sooner than A's plan would end)
+        cancel_job(s, s.get(Job, a_jobs[0]))  # type: ignore[arg-type]
+        s.commit()
+    tick_until(sched, lambda: job(env, b_job).state != "pending", 30)
+    assert job(env, a_jobs[2]).state == "pending"  # the first free slot went to B
+    with env["sm"]() as s:  # all four waiting at once: A, B, A, A (fewest plans under way first, then the oldest)
+        s.execute(update(Job).where(Job.id.in_([*a_jobs, b_job])).values(state="pending", planner=None,
+                                                                          planner_lease_until=None))
+        s.commit()
+    sched.planners.stop_all()  # type: ignore[union-attr]
+    with env["sm"]() as s:
+        first = [j.id for j in claim_pending_jobs(s, "probe", 2)]
+        s.rollback()
+    assert first == [a_jobs[0], b_job]

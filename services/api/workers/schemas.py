@@ -31,8 +31,8 @@ class WorkerRead(BaseModel):
     alive: bool = Field(description="heartbeat younger than the staleness limit")
     busy: bool = Field(description="running a task (of any tenant)")
     current_task: CurrentTask | None
-    tasks_done: int
-    labels_per_s: float
+    tasks_done: int | None = Field(description="tasks finished, every tenant's: operators only (null for tenants)")
+    labels_per_s: float | None = Field(description="throughput over every tenant's work: operators only")
     labels: dict[str, Any] = Field(
-        default_factory=dict, description="always empty for tenants: per-cue counts cover every tenant's work"
+        default_factory=dict, description="labels per cue over every tenant's work: operators only ({} for tenants)"
     )

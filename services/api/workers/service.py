@@ -1,7 +1,8 @@
 """Workers: heartbeat ages and current tasks; another tenant's task is reported as busy, without details.
 
-A worker's per-cue label counts sum every tenant's work, so a tenant is never shown them (they would tell
-which cues others render, and how much): `labels` is empty; throughput stays (the service's, not a job's).
+A worker's counts (tasks done, labels/s, per-cue labels) sum every tenant's work, so a tenant is never shown
+them (they would tell how much others render, and which cues): null and {}. An operator sees them all, and
+every worker's current task.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from services.core.db.models import Job, Task, Worker, utcnow
 def list_workers(
     session: Session,
     *,
-    tenant: str,
+    tenant: str | None,
     page: PageParams,
     stale_s: float,
     alive: bool | None = None,
@@ -29,6 +30,7 @@ def list_workers(
 
     stale_s: heartbeat age past which a worker is not alive; the scheduler's reaper declares it dead (and
     requeues its task) at Settings.heartbeat_timeout_s, so callers pass that.
+    tenant: the caller's tenant, or None for an operator (service-wide figures, every current task).
     """
     now = now or utcnow()
     cutoff = now - timedelta(seconds=stale_s)
@@ -44,9 +46,10 @@ def list_workers(
     task_ids = [w.current_task_id for w in workers if w.current_task_id is not None]
     own: dict[int, Task] = {}
     if task_ids:
-        rows = session.scalars(
-            select(Task).join(Job, Job.id == Task.job_id).where(Task.id.in_(task_ids), Job.owner == tenant)
-        ).all()
+        query = select(Task).where(Task.id.in_(task_ids))
+        if tenant is not None:
+            query = query.join(Job, Job.id == Task.job_id).where(Job.owner == tenant)
+        rows = session.scalars(query).all()
         own = {t.id: t for t in rows}
     items = []
     for w in workers:
@@ -65,9 +68,10 @@ def list_workers(
                 current_task=None
                 if t is None
                 else CurrentTask(id=t.id, job_id=t.job_id, cue=t.cue, space_id=t.space_id, point=t.point_idx, view=t.view_idx),
-                tasks_done=int(w.tasks_done or 0),
-                labels_per_s=float(w.labels_per_s or 0.0),
-                labels={},  # per-cue counts of every tenant's work: not one tenant's to see
+                # every tenant's work: an operator's to see, not one tenant's
+                tasks_done=int(w.tasks_done or 0) if tenant is None else None,
+                labels_per_s=float(w.labels_per_s or 0.0) if tenant is None else None,
+                labels=dict(w.labels or {}) if tenant is None else {},
             )
         )
     return items, int(total)

@@ -9,9 +9,8 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from datetime import datetime, timedelta
 
-from sqlalchemy import and_, case, delete, or_, select, update
+from sqlalchemy import case, delete, select
 from sqlalchemy.orm import Session
 
 from services.core.db.models import (
@@ -29,7 +28,9 @@ from services.core.db.models import (
     WorkerBlock,
     utcnow,
 )
-from services.core.db.states import check_job_edge, set_job_state, transition
+from services.core.db.plan_claims import PLANNING_LEASE_S as PLANNING_LEASE_S  # re-exported: their old home
+from services.core.db.plan_claims import claim_pending_jobs as claim_pending_jobs
+from services.core.db.states import set_job_state, transition
 from services.core.domain.cues import CATALOG, closure
 from services.core.domain.errors import Conflict
 from services.core.domain.jobspec import JobSpec, cues_for_space
@@ -38,7 +39,6 @@ from services.core.storage import ObjectStore
 
 RETRY_BACKOFF_BASE_S = 5.0
 RETRY_BACKOFF_CAP_S = 300.0
-PLANNING_LEASE_S = 600  # a planner that holds a job longer than this without finishing is presumed dead
 
 
 class JobStateError(Conflict, ValueError):
@@ -235,47 +235,6 @@ def delete_job(session: Session, store: ObjectStore, job: Job) -> int:
     session.expunge(job)
     session.flush()
     return deleted
-
-
-def claim_pending_jobs(
-    session: Session, planner_id: str, limit: int = 1, *, now: datetime | None = None,
-    lease_s: float = PLANNING_LEASE_S,
-) -> list[Job]:
-    """Claim up to `limit` jobs to plan: pending ones, or planning ones whose planner's lease ran out.
-
-    Postgres: SELECT ... FOR UPDATE SKIP LOCKED, so concurrent schedulers never take the same job.
-    SQLite: a plain SELECT; the conditional UPDATE below still lets only one claimer win. Claimed jobs
-    are in state 'planning' with `planner = planner_id`; the caller commits.
-    """
-    now = now or utcnow()
-    cond = or_(
-        Job.state == JobState.PENDING,
-        and_(Job.state == JobState.PLANNING, or_(Job.planner_lease_until.is_(None), Job.planner_lease_until < now)),
-    )
-    stmt = select(Job.id, Job.state).where(cond).order_by(Job.priority.desc(), Job.id).limit(limit)
-    if session.get_bind().dialect.name == "postgresql":
-        stmt = stmt.with_for_update(skip_locked=True)
-    claimed: list[int] = []
-    for job_id, seen in session.execute(stmt).all():
-        check_job_edge(seen, JobState.PLANNING)
-        res = session.execute(
-            update(Job)
-            .where(Job.id == job_id, Job.state == seen, cond)
-            .values(
-                state=JobState.PLANNING.value, planner=planner_id, planner_lease_until=now + timedelta(seconds=lease_s),
-                started_at=now, error=None,
-            )
-            .execution_options(synchronize_session=False)
-        )
-        if res.rowcount == 1:  # type: ignore[attr-defined]
-            claimed.append(int(job_id))
-    if not claimed:
-        return []
-    jobs = session.scalars(
-        select(Job).where(Job.id.in_(claimed)).order_by(Job.priority.desc(), Job.id)
-        .execution_options(populate_existing=True)
-    ).all()
-    return list(jobs)
 
 
 # ---------------------------------------------------------------------------------------------- resume

@@ -22,9 +22,25 @@ def depth_m(ctx: ViewContext) -> np.ndarray:
     return ctx.passes.depth_z
 
 
+def ray_dirs_cam64(ctx: ViewContext) -> np.ndarray:
+    """float64 H x W x 3 unit pixel-centre ray directions, OpenCV camera axes (ViewGeometry.ray_directions_cam)."""
+    return ctx.memo("ray_dirs_cam64", ctx.geometry.ray_directions_cam)
+
+
 def ray_dirs_cam(ctx: ViewContext) -> np.ndarray:
     """float32 H x W x 3 unit pixel-centre ray directions, OpenCV camera axes."""
-    return ctx.memo("ray_dirs_cam", lambda: ctx.geometry.ray_directions_cam().astype(np.float32))
+    return ctx.memo("ray_dirs_cam", lambda: ray_dirs_cam64(ctx).astype(np.float32))
+
+
+def position_world(ctx: ViewContext) -> np.ndarray:
+    """float32 H x W x 3 world position (metres) of the seen surface, NaN = none: ViewPasses.position_world's
+    arithmetic (float64, cast at the end) on the view's memoised rays."""
+    g = ctx.geometry
+    d_cam = ray_dirs_cam64(ctx)
+    t = depth_m(ctx).astype(np.float64) / d_cam[..., 2]  # euclidean distance along the unit ray
+    p = g.center + (d_cam @ g.rotation) * t[..., None]  # R^T d per pixel
+    p[~hit(ctx)] = np.nan
+    return p.astype(np.float32)
 
 
 def euclidean_m(ctx: ViewContext) -> np.ndarray:
@@ -60,9 +76,11 @@ def normal_cam(ctx: ViewContext) -> np.ndarray:
         n_cv = ctx.passes.require("normal_world") @ R.T  # world -> OpenCV camera axes
         # Face the camera: Cycles already flips back-facing hits; this guards interpolated or user normals.
         facing = np.einsum("hwc,hwc->hw", n_cv, ray_dirs_cam(ctx)) > 0
-        n_cv = np.where(facing[..., None], -n_cv, n_cv)
-        n = n_cv * np.array([1.0, -1.0, -1.0], dtype=np.float32)  # OpenCV (x right, y down, z fwd) -> DESIGN axes
-        return np.where(hit(ctx)[..., None], n, 0.0).astype(np.float32)
+        # Turning (-1 where facing) and the OpenCV (x right, y down, z fwd) -> DESIGN axes flip in one exact
+        # multiplication by +-1 per pixel and channel.
+        sign = np.where(facing, np.float32(-1.0), np.float32(1.0))[..., None] * np.array([1.0, -1.0, -1.0],
+                                                                                          dtype=np.float32)
+        return np.where(hit(ctx)[..., None], n_cv * sign, np.float32(0.0))
 
     return ctx.memo("normal_cam", compute)
 

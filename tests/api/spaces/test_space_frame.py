@@ -16,7 +16,7 @@ from services.core.ingest.loading import load_space
 from tests.fixtures.api import Api
 
 # the BundleFusion copy room, decimated: a wall as large as the floor (see tests/fixtures/real_scans)
-COPYROOM = Path(__file__).resolve().parents[1] / "fixtures" / "real_scans" / "copyroom.ply"
+COPYROOM = Path(__file__).resolve().parents[2] / "fixtures" / "real_scans" / "copyroom.ply"
 SPEC = {"name": "lev", "cues": ["rgb"], "points": {"count": 2, "min_views": 1}}
 
 

@@ -12,7 +12,7 @@ import numpy as np
 from PIL import Image
 
 from services.api.outputs.service import blob_signature
-from tests.api.test_views_outputs import _job, _space
+from tests.api.outputs.test_views_outputs import _job, _space
 from tests.fixtures.api import Api, run_tasks, task_ids
 
 

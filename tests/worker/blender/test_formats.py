@@ -20,7 +20,7 @@ from services.worker.passes import ViewGeometry
 from services.worker.space_cache import SpaceContext
 from tests.fixtures.raycast import object_view, raycast, smooth_mask
 from tests.fixtures.scans import room_cloud, scannet_scene
-from tests.worker.test_render import sample_texture
+from tests.worker.blender.test_render import sample_texture
 
 pytestmark = pytest.mark.bpy  # every test renders
 

@@ -24,7 +24,7 @@ from services.core.ingest.texture_limits import MAX_TEXTURE_SIDE, texture_refusa
 from services.core.storage import LocalStore, ObjectNotFoundError
 from services.core.temp_dirs import owned_prefix, sweep_orphans
 from tests.fixtures.file_watch import OpenWatch
-from tests.hostile_corpus import HOSTILE_FILES, UV_FACES, png_declaring, secret_files
+from tests.fixtures.hostile_corpus import HOSTILE_FILES, UV_FACES, png_declaring, secret_files
 
 
 def test_resolver_serves_inside_and_refuses_everything_else(tmp_path: Path) -> None:
@@ -140,7 +140,7 @@ def test_killed_api_leaves_no_upload_folder(tmp_path: Path, pg_url: str) -> None
         [sys.executable, "-c", "import sys, time; sys.path.insert(0, '.');"
          "from services.core.temp_dirs import owned_temp_dir; d = owned_temp_dir('upload');"
          "open(d.name + '/scan.zip', 'wb').write(b'x' * 1000); print(d.name, flush=True); time.sleep(60)"],
-        stdout=subprocess.PIPE, text=True, cwd=Path(__file__).resolve().parents[2],
+        stdout=subprocess.PIPE, text=True, cwd=Path(__file__).resolve().parents[3],
     )
     assert child.stdout is not None
     folder = Path(child.stdout.readline().strip())

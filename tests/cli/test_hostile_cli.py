@@ -10,7 +10,7 @@ import pytest
 
 from services.cli import main
 from tests.fixtures.file_watch import OpenWatch
-from tests.hostile_corpus import HOSTILE_FILES, HOSTILE_FOLDERS, secret_files
+from tests.fixtures.hostile_corpus import HOSTILE_FILES, HOSTILE_FOLDERS, secret_files
 
 
 def _write(tmp_path: Path, case: str) -> Path:

@@ -105,13 +105,14 @@ def test_workers_list_hides_other_tenants_tasks(api: Api, bunny: Path) -> None:
         s.commit()
     items = {w["id"]: w for w in api.client.get("/workers?limit=1000", headers=api.a.headers).json()["items"]}
     w1, w2 = items[wid + ":1"], items[wid + ":2"]
-    assert w1["alive"] is True and 2.5 < w1["heartbeat_age_s"] < 60 and w1["labels_per_s"] == 3.5
+    assert w1["alive"] is True and 2.5 < w1["heartbeat_age_s"] < 60
     assert w1["current_task"]["id"] == tid and w1["current_task"]["job_id"] == job_id and w1["busy"] is True
     assert w2["alive"] is False and w2["current_task"] is None and w2["busy"] is False
     other = {w["id"]: w for w in api.client.get("/workers?limit=1000", headers=api.b.headers).json()["items"]}
     assert other[wid + ":1"]["busy"] is True and other[wid + ":1"]["current_task"] is None
-    # per-cue counts sum every tenant's work: neither tenant sees them (b would learn what a renders)
-    assert other[wid + ":1"]["labels"] == {} and w1["labels"] == {}
+    # counts sum every tenant's work: neither tenant sees them (b would learn how much a renders, and what)
+    for shown in (w1, other[wid + ":1"]):
+        assert shown["labels"] == {} and shown["tasks_done"] is None and shown["labels_per_s"] is None
     assert "rgb" not in api.client.get("/workers?limit=1000", headers=api.b.headers).text
     alive = api.client.get("/workers?alive=true&limit=1000", headers=api.a.headers).json()["items"]
     assert wid + ":1" in {w["id"] for w in alive} and wid + ":2" not in {w["id"] for w in alive}
@@ -129,3 +130,24 @@ def test_worker_liveness_follows_the_configured_heartbeat_timeout(pg_url: str, l
         stale = api.client.get("/workers?alive=false&limit=1000", headers=api.a.headers).json()["items"]
         assert wid in {w["id"] for w in stale}
         assert "alive: within 10 s" in api.client.get("/metrics", headers=OPERATOR).text
+
+
+def test_workers_service_wide_figures_are_for_operators(pg_url: str, local_store: LocalStore, bunny: Path) -> None:
+    with make_api(pg_url, local_store, operator_tokens=[hash_token(OPERATOR_TOKEN)]) as api:
+        sid = api.client.post("/spaces", files={"file": ("b.ply", bunny.read_bytes())}, headers=api.a.headers).json()["id"]
+        job_id = api.client.post("/jobs", json={"space_ids": [sid], "spec": {"cues": ["rgb"]}},
+                                 headers=api.a.headers).json()["id"]
+        wid = f"w-op-{secrets.token_hex(4)}"
+        with api.session() as s:
+            fake_plan(s, job_id)
+            tid = task_ids(s, job_id)[0]
+            s.add(Worker(id=wid, host="h", queues=["render"], last_heartbeat=utcnow(), current_task_id=tid,
+                         tasks_done=12, labels_per_s=3.5, labels={"rgb": 12}))
+            s.commit()
+        seen = {w["id"]: w for w in api.client.get("/workers?limit=1000", headers=OPERATOR).json()["items"]}[wid]
+        assert seen["tasks_done"] == 12 and seen["labels_per_s"] == 3.5 and seen["labels"] == {"rgb": 12}
+        assert seen["current_task"]["id"] == tid  # an operator sees every tenant's current task
+        tenant_b = {w["id"]: w for w in api.client.get("/workers?limit=1000", headers=api.b.headers).json()["items"]}
+        assert tenant_b[wid]["tasks_done"] is None and tenant_b[wid]["current_task"] is None
+        assert api.client.get("/workers").status_code == 401
+        assert api.client.get("/workers", headers={"Authorization": "Bearer nope"}).status_code == 401

@@ -98,7 +98,7 @@ def test_job_transition(src: JobState, dst: JobState) -> None:
 def test_no_state_is_assigned_outside_the_states_module() -> None:
     # "Where does a task or a job change state?": services/core/db/states.py (the planner's conditional claim
     # UPDATE in core/db/jobs.py checks its edge there first).
-    root = Path(__file__).resolve().parents[2] / "services"
+    root = Path(__file__).resolve().parents[3] / "services"
     assign = re.compile(r"\.state\s*=(?!=)")
     offenders = [
         f"{path.relative_to(root)}:{n}"

@@ -26,6 +26,7 @@ from services.worker.cues.encoding import decode_exr_rgb
 from services.worker.executor import make_context, produce, render_view_cues
 from services.worker.passes import ViewGeometry, ViewPasses
 from services.worker.space_cache import SpaceCache, SpaceContext, rss_bytes
+from tests.fixtures.png import png_header
 from tests.fixtures.raycast import (
     ROOM_CLASSES,
     SPHERE_RADIUS,
@@ -37,7 +38,6 @@ from tests.fixtures.raycast import (
     room_view,
     smooth_mask,
 )
-from tests.worker.test_encoding import png_header
 
 SCENES = ("banana", "bunny", "room")
 

@@ -110,10 +110,26 @@ def principal_curvature(ctx: ViewContext) -> np.ndarray:
     k = ctx.passes.curvature
     if k is None:
         raise RuntimeError("principal_curvature needs a pass set rendered with curvature (render pass 'curvature')")
-    kmax = 1.0 / ctx.params.curvature_clip_m
-    px = np.rint((np.clip(np.nan_to_num(k), -kmax, kmax) / kmax + 1.0) * CURVATURE_FLAT)
-    out = np.zeros(k.shape[:2] + (3,), dtype=np.uint8)
-    out[..., :2] = np.where(hit(ctx)[..., None], px, CURVATURE_BACKGROUND)
+    return _curvature_pixels(k, hit(ctx), np.float32(1.0 / ctx.params.curvature_clip_m))
+
+
+@njit(cache=True, nogil=True)
+def _curvature_pixels(k: np.ndarray, seen: np.ndarray, kmax: np.float32) -> np.ndarray:
+    """rint((clip(nan_to_num(k), -kmax, kmax) / kmax + 1) * CURVATURE_FLAT) in R, G where seen, 0 elsewhere and in
+    B: the float32 operations of the numpy expression it replaced, in its order, in one pass."""
+    h, w, _ = k.shape
+    out = np.zeros((h, w, 3), np.uint8)
+    big = np.float32(np.finfo(np.float32).max)
+    for y in range(h):
+        for x in range(w):
+            if not seen[y, x]:
+                out[y, x, 0] = out[y, x, 1] = CURVATURE_BACKGROUND
+                continue
+            for c in range(2):
+                v = k[y, x, c]
+                v = np.float32(0.0) if np.isnan(v) else min(max(v, -big), big)  # nan_to_num
+                v = min(max(v, -kmax), kmax)
+                out[y, x, c] = np.uint8(np.rint((v / kmax + np.float32(1.0)) * np.float32(CURVATURE_FLAT)))
     return out
 
 

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.core.domain.cues import NORMAL_BACKGROUND
+from services.core.domain.cues import CURVATURE_FLAT, NORMAL_BACKGROUND
 from services.worker.context import ViewContext
-from services.worker.cues.basic import _normal_pixels
+from services.worker.cues.basic import _curvature_pixels, _normal_pixels
 from services.worker.cues.common import gaussian_blur
 from services.worker.cues.keypoints import _blur, _double, doh_response
 from services.worker.cues.registry import cue_value
@@ -173,3 +173,16 @@ def test_normal_pixels_are_the_numpy_expressions_bit_for_bit() -> None:
     px = np.rint(255.0 * (0.5 + 0.5 * n * np.array([-1.0, 1.0, 1.0], dtype=np.float32)))
     old = np.where(seen[..., None], np.clip(px, 0, 255), NORMAL_BACKGROUND).astype(np.uint8)
     assert np.array_equal(_normal_pixels(n, seen), old)
+
+
+def test_curvature_pixels_are_the_numpy_expressions_bit_for_bit() -> None:
+    rng = np.random.default_rng(1)
+    k = rng.normal(0, 40, (50, 50, 2)).astype(np.float32)
+    k[0, 0], k[0, 1, 0], k[0, 2, 1] = np.nan, np.inf, -np.inf
+    k[1, :, 0] = np.linspace(-40, 40, 50)  # across the clip limits and the rounding steps
+    seen = rng.random((50, 50)) > 0.1
+    kmax = 1.0 / 0.03
+    px = np.rint((np.clip(np.nan_to_num(k), -kmax, kmax) / kmax + 1.0) * CURVATURE_FLAT)
+    old = np.zeros((50, 50, 3), dtype=np.uint8)
+    old[..., :2] = np.where(seen[..., None], px, 0)
+    assert np.array_equal(_curvature_pixels(k, seen, np.float32(kmax)), old)

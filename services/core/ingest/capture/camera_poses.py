@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -18,7 +18,7 @@ from services.core.ingest.capture.checks import FrameCollector, read_text
 from services.core.ingest.capture.model import Capture
 
 
-def _pose(entry: dict[str, Any]) -> np.ndarray | None:
+def _pose(entry: Mapping[str, object]) -> np.ndarray | None:
     loc = entry.get("location")
     q = entry.get("quaternion", entry.get("rotation_quaternion"))
     try:

@@ -9,9 +9,9 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
-from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 from PIL import Image, UnidentifiedImageError
 
 from services.core.ingest.capture.model import CaptureFrame
@@ -41,7 +41,7 @@ def read_text(path: Path, root: Path) -> str:
     return path.read_text(errors="replace")
 
 
-def rigid_pose(matrix: Any) -> tuple[np.ndarray | None, str | None]:
+def rigid_pose(matrix: ArrayLike) -> tuple[np.ndarray | None, str | None]:
     """(4x4 camera_to_world with an exact rotation, None) or (None, what is wrong with it)."""
     try:
         m = np.asarray(matrix, dtype=np.float64)
@@ -88,7 +88,7 @@ class FrameCollector:
         """Record a problem (the frame it names is skipped)."""
         self.problems.append(message)
 
-    def add(self, name: str, image: str | None, pose: Any, *, K: Any = None, size: tuple[int, int] | None = None,
+    def add(self, name: str, image: str | None, pose: ArrayLike, *, K: ArrayLike | None = None, size: tuple[int, int] | None = None,
             distortion: str = "none", params: tuple[float, ...] = ()) -> None:
         """Check one frame and keep it when it is good. `size`: the (width, height) the camera says; None reads it
         from the image header."""
@@ -129,7 +129,7 @@ class FrameCollector:
         width, height = size if size is not None else (None, None)
         self.frames.append(CaptureFrame(name, image, width, height, K, distortion, tuple(params), c2w))
 
-    def add_pose_file(self, name: str, image: str, pose_file: Path, *, shown_as: str, K: Any = None,
+    def add_pose_file(self, name: str, image: str, pose_file: Path, *, shown_as: str, K: ArrayLike | None = None,
                       size: tuple[int, int] | None = None) -> None:
         """Add a frame whose pose is a text file of 16 numbers (a row-major 4x4), or record why it is skipped
         (`shown_as`: the pose file as the message names it)."""

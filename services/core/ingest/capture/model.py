@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import NotRequired, TypedDict
 
 import numpy as np
 
@@ -26,6 +26,22 @@ DISTORTION_PARAMS = {"none": (0, 0), "radial": (1, 2), "opencv": (4, 5), "fishey
 
 class CaptureError(ValueError):
     """A capture that cannot be used at all (no readable frame), with a message for the user."""
+
+
+class CaptureSummary(TypedDict):
+    """Capture.summary(): what job.json, the API and the dashboard show of a capture."""
+
+    format: str
+    frames: int
+    has_photos: bool
+    image_sizes: list[list[int | None]]  # [width, height] of each size the frames have
+    focal_px: list[float] | None  # min, median, max
+    distortion: list[str]
+    problems: int
+    problem_messages: list[str]
+    notes: list[str]
+    up_angle_deg: float | None
+    K_first: NotRequired[list[list[float]]]
 
 
 @dataclass(frozen=True, eq=False)
@@ -136,12 +152,12 @@ class Capture:
         n = float(np.linalg.norm(mean))
         return mean / n if n >= 0.5 else None
 
-    def summary(self, max_problems: int = 20) -> dict[str, Any]:
+    def summary(self, max_problems: int = 20) -> CaptureSummary:
         """JSON-ready summary for job.json, the API and the dashboard."""
         sizes = sorted({(f.width, f.height) for f in self.frames if f.width is not None})
         focal = [float(f.K[0, 0]) for f in self.frames if f.K is not None]
         models = sorted({f.distortion for f in self.frames})
-        out: dict[str, Any] = {
+        out: CaptureSummary = {
             "format": self.format,
             "frames": len(self.frames),
             "has_photos": self.has_photos,

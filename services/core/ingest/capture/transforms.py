@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -21,18 +21,18 @@ from services.core.ingest.capture.model import Capture
 GL_TO_CV = CV_TO_BLENDER  # diag(1, -1, -1, 1) maps either way
 
 
-def _num(d: dict[str, Any], key: str) -> float | None:
+def _num(d: Mapping[str, object], key: str) -> float | None:
     v = d.get(key)
     return float(v) if isinstance(v, int | float) and not isinstance(v, bool) else None
 
 
-def _camera(shared: dict[str, Any], frame: dict[str, Any]) -> dict[str, Any]:
+def _camera(shared: Mapping[str, object], frame: Mapping[str, object]) -> dict[str, object]:
     keys = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y", "k1", "k2", "k3", "k4", "p1",
             "p2", "camera_model")
     return {k: frame[k] if k in frame else shared.get(k) for k in keys}
 
 
-def _intrinsics(cam: dict[str, Any], size: tuple[int, int] | None) -> tuple[np.ndarray, tuple[int, int] | None] | str:
+def _intrinsics(cam: Mapping[str, object], size: tuple[int, int] | None) -> tuple[np.ndarray, tuple[int, int] | None] | str:
     w, h = _num(cam, "w"), _num(cam, "h")
     given = (int(w), int(h)) if w and h else None
     width, height = given or size or (None, None)
@@ -54,7 +54,7 @@ def _intrinsics(cam: dict[str, Any], size: tuple[int, int] | None) -> tuple[np.n
     return K, given
 
 
-def _distortion(cam: dict[str, Any]) -> tuple[str, tuple[float, ...]] | str:
+def _distortion(cam: Mapping[str, object]) -> tuple[str, tuple[float, ...]] | str:
     model = str(cam.get("camera_model") or "OPENCV").upper()
     k = [_num(cam, n) or 0.0 for n in ("k1", "k2", "k3", "k4", "p1", "p2")]
     if model == "OPENCV_FISHEYE":

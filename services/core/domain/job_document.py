@@ -16,8 +16,7 @@ from typing import TypedDict
 
 from services.core.domain.camera import CONVENTIONS
 from services.core.domain.cues import CATALOG
-from services.core.domain.json_types import JSONObject
-from services.core.domain.plan import ClipSummary
+from services.core.domain.plan import ClipSummary, ValidFractionSummary
 
 JOB_FORMAT = "omnidata.job/2"
 LAYOUT = "<cue>/<component>/<space>/point_<p>_view_<v>_domain_<cue>.<ext>"
@@ -65,7 +64,7 @@ class SpaceRecord(TypedDict):
     counts: SpaceCounts
     tasks: int | None
     shortfall: str | None
-    valid_fraction: JSONObject | None
+    valid_fraction: ValidFractionSummary | None
     clips: ClipSummary | None
     plan: str | None
     warnings: list[str]
@@ -156,7 +155,7 @@ def space_record(
     has_semantics: bool,
     counts: Mapping[str, int | None],
     shortfall: str | None,
-    valid_fraction: JSONObject | None,
+    valid_fraction: ValidFractionSummary | None,
     clips: ClipSummary | None,
     plan: str | None,
     warnings: Sequence[str],

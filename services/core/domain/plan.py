@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 import weakref
 from dataclasses import dataclass
-from typing import Any, NotRequired, TypedDict
+from typing import NotRequired, TypedDict
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -21,7 +21,7 @@ from services.core.domain.camera import (
     camera_center,
     intrinsics,
 )
-from services.core.domain.json_types import JSONObject
+from services.core.domain.capture_records import CapturePlanRecord
 
 PLAN_FORMAT = "omnidata.plan/1"
 CAMERA_SOURCES = ("generated", "provided", "object", "capture")
@@ -102,6 +102,24 @@ class PlannedView:
         return intrinsics(self.fov, self.resolution)
 
 
+class ValidFractionSummary(TypedDict):
+    """Predicted share of each view's pixels with a surface: quantiles over the views (or a sample of
+    `sampled_of` views, when only reported) and how many fell below `threshold`."""
+
+    views: int
+    threshold: float
+    dropped: int
+    probe_px: NotRequired[int]
+    min: NotRequired[float]
+    p05: NotRequired[float]
+    p25: NotRequired[float]
+    median: NotRequired[float]
+    p75: NotRequired[float]
+    max: NotRequired[float]
+    mean: NotRequired[float]
+    sampled_of: NotRequired[int]
+
+
 class ClipNoteRecord(TypedDict):
     """A trajectory clip cut short or dropped: point_idx (None when dropped), outcome, frames kept and planned,
     and frames failed per check (keys of CLIP_CHECKS)."""
@@ -122,11 +140,11 @@ class SpacePlan:
     points: tuple[PointOfInterest, ...]
     views: tuple[PlannedView, ...]
     shortfall: str | None = None
-    valid_fraction: JSONObject | None = None  # predicted share of pixels with a surface per view (summary)
+    valid_fraction: ValidFractionSummary | None = None  # predicted share of pixels with a surface per view (summary)
     # trajectory clips cut short or dropped by the motion/clearance/visibility checks: point_idx (None
     # when dropped), outcome, frames, planned_frames, reasons {check: failed frames}
     clip_notes: tuple[ClipNoteRecord, ...] = ()
-    capture: dict[str, Any] | None = None  # capture plans: frames used and dropped, alignment distribution
+    capture: CapturePlanRecord | None = None  # capture plans: frames used and dropped, alignment distribution
 
     def views_of(self, point_idx: int) -> tuple[PlannedView, ...]:
         """The views of one point, v = 0..n-1."""
@@ -261,12 +279,12 @@ class PlanRecord(TypedDict):
     format: str
     space_name: str
     shortfall: str | None
-    valid_fraction: JSONObject | None
+    valid_fraction: ValidFractionSummary | None
     clip_notes: list[ClipNoteRecord]
     cameras: list[CameraRecord]
     points: list[PointRecord]
     views: list[ViewRecord]
-    capture: NotRequired[dict[str, Any]]
+    capture: NotRequired[CapturePlanRecord]
 
 
 def _view_record(v: PlannedView) -> ViewRecord:

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from typing import NotRequired, TypedDict
 
+from services.core.domain.capture_records import CaptureSummary
 from services.core.domain.json_types import JSONObject
-from services.core.ingest.capture.model import CaptureSummary
 
 
 class UpCandidateRecord(TypedDict):

@@ -10,18 +10,11 @@ shift move the image alike.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import TypedDict
 
 import numpy as np
 
+from services.core.domain.capture_records import ColourCorrectionRecord
 from services.core.ingest.capture.model import Capture, CaptureFrame
-
-
-class ColourCorrectionRecord(TypedDict):
-    focal_scale: float
-    dcx: float
-    dcy: float
-    offset_m: list[float]
 
 
 @dataclass(frozen=True)

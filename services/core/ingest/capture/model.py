@@ -15,10 +15,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import NotRequired, TypedDict
 
 import numpy as np
 
+from services.core.domain.capture_records import CaptureSummary
 from services.core.domain.plan import frozen_array
 
 DISTORTION_PARAMS = {"none": (0, 0), "radial": (1, 2), "opencv": (4, 5), "fisheye": (4, 4)}
@@ -26,22 +26,6 @@ DISTORTION_PARAMS = {"none": (0, 0), "radial": (1, 2), "opencv": (4, 5), "fishey
 
 class CaptureError(ValueError):
     """A capture that cannot be used at all (no readable frame), with a message for the user."""
-
-
-class CaptureSummary(TypedDict):
-    """Capture.summary(): what job.json, the API and the dashboard show of a capture."""
-
-    format: str
-    frames: int
-    has_photos: bool
-    image_sizes: list[list[int | None]]  # [width, height] of each size the frames have
-    focal_px: list[float] | None  # min, median, max
-    distortion: list[str]
-    problems: int
-    problem_messages: list[str]
-    notes: list[str]
-    up_angle_deg: float | None
-    K_first: NotRequired[list[list[float]]]
 
 
 @dataclass(frozen=True, eq=False)

@@ -6,6 +6,7 @@ read outside it (absolute paths, '..', links leading out), so no capture makes u
 
 from __future__ import annotations
 
+import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
@@ -14,7 +15,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 from PIL import Image, UnidentifiedImageError
 
-from services.core.ingest.capture.model import CaptureFrame
+from services.core.ingest.capture.model import Capture, CaptureFrame
 
 ROTATION_TOLERANCE = 1e-3  # |R^T R - I| and |det R - 1| beyond this: not a rotation (re-orthonormalised below it)
 MAX_FRAMES = 100_000
@@ -39,6 +40,14 @@ def read_text(path: Path, root: Path) -> str:
     if path.stat().st_size > MAX_TEXT_BYTES:
         raise ValueError(f"{path.name} is larger than {MAX_TEXT_BYTES >> 20} MiB")
     return path.read_text(errors="replace")
+
+
+def read_capture_json(root: Path, path: Path, fmt: str) -> tuple[object, Capture | None]:
+    """(the parsed JSON of a capture file, None), or (None, an empty `fmt` capture naming why it is unreadable)."""
+    try:
+        return json.loads(read_text(path, root)), None
+    except (OSError, ValueError) as e:
+        return None, Capture(fmt, root, (), (f"{path.name}: not readable JSON ({e})",))
 
 
 def rigid_pose(matrix: ArrayLike) -> tuple[np.ndarray | None, str | None]:

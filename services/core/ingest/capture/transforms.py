@@ -7,7 +7,6 @@ leave out the extension: .png, then .jpg is tried). Poses are kept as written (a
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Mapping
 from pathlib import Path
@@ -15,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from services.core.domain.camera import CV_TO_BLENDER
-from services.core.ingest.capture.checks import FrameCollector, inside, read_text
+from services.core.ingest.capture.checks import FrameCollector, inside, read_capture_json
 from services.core.ingest.capture.model import Capture
 
 GL_TO_CV = CV_TO_BLENDER  # diag(1, -1, -1, 1) maps either way
@@ -82,12 +81,11 @@ def _image(root: Path, base: str, file_path: str) -> str:
 def read_transforms(root: Path, path: Path) -> Capture:
     """The frames of one transforms.json (see the module docstring)."""
     col = FrameCollector(root)
-    try:
-        doc = json.loads(read_text(path, root))
-    except (OSError, ValueError) as e:
-        return Capture("transforms", root, (), (f"{path.name}: not readable JSON ({e})",))
+    doc, unreadable = read_capture_json(root, path, "transforms")
+    if unreadable is not None:
+        return unreadable
     frames = doc.get("frames") if isinstance(doc, dict) else None
-    if not isinstance(frames, list):
+    if not isinstance(doc, dict) or not isinstance(frames, list):
         return Capture("transforms", root, (), (f"{path.name}: no 'frames' list",))
     base = path.parent.relative_to(root).as_posix()
     base = "" if base == "." else base

@@ -1,0 +1,162 @@
+"""Issue 20's faster kernels give the same values as the code they replaced (reference versions kept here)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from services.worker.context import ViewContext
+from services.worker.cues.common import gaussian_blur
+from services.worker.cues.keypoints import _blur, _double, doh_response
+from services.worker.cues.registry import cue_value
+from services.worker.cues.segmentation import _relabel, normalized_cuts, region_graph
+from tests.fixtures import reference_segmentation
+from tests.fixtures.raycast import cube_scene, raycast_passes
+
+
+def reference_double(x: np.ndarray) -> np.ndarray:
+    """keypoints' bilinear 2x upsampling before issue 20 (numpy take/stack)."""
+    for axis in (0, 1):
+        n = x.shape[axis]
+        prev = np.take(x, np.r_[0, 0:n - 1], axis=axis)
+        nxt = np.take(x, np.r_[1:n, n - 1], axis=axis)
+        pair = np.stack([0.75 * x + 0.25 * prev, 0.75 * x + 0.25 * nxt], axis=axis + 1)
+        x = pair.reshape(x.shape[:axis] + (2 * n,) + x.shape[axis + 1:])
+    return x
+
+
+def reference_relabel(labels: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """segmentation's relabelling before issue 20 (np.unique, first-appearance order)."""
+    out = np.zeros(labels.shape, dtype=np.uint16)
+    vals = labels[mask]
+    if vals.size == 0:
+        return out
+    uniq, first, inv = np.unique(vals, return_index=True, return_inverse=True)
+    rank = np.empty(len(uniq), dtype=np.int64)
+    rank[np.argsort(first)] = np.arange(1, len(uniq) + 1)
+    out[mask] = np.minimum(rank[inv], 65535).astype(np.uint16)
+    return out
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (2, 3), (31, 17), (128, 128)])
+def test_double_is_bit_identical_to_the_numpy_version(shape) -> None:
+    x = (np.random.default_rng(shape[0]).random(shape) * 3.7).astype(np.float32)
+    new, old = _double(x), reference_double(x)
+    assert new.dtype == old.dtype == np.float32
+    assert np.array_equal(new, old)
+
+
+def test_relabel_matches_the_unique_based_version() -> None:
+    rng = np.random.default_rng(3)
+    labels = rng.integers(0, 40, (50, 60)) * 7  # sparse label values, some missing
+    mask = rng.random((50, 60)) > 0.2
+    assert np.array_equal(_relabel(labels, mask), reference_relabel(labels, mask))
+    assert np.array_equal(_relabel(labels, np.zeros_like(mask)), np.zeros(labels.shape, np.uint16))
+
+
+def test_normalized_cuts_splits_disconnected_parts_without_mixing_them() -> None:
+    # Two 3-node cliques and a 4-node clique with no links between them: one segment each (no split of a
+    # clique, whose cut would cost far above the threshold).
+    W = np.zeros((10, 10))
+    for part in (range(0, 3), range(3, 6), range(6, 10)):
+        for i in part:
+            for j in part:
+                W[i, j] = 1.0
+    W[0, 3] = W[3, 0] = 1e-30  # numerically absent link
+    seg = normalized_cuts(W, thresh=0.005, num_cuts=10)
+    assert len(set(seg[:3])) == len(set(seg[3:6])) == len(set(seg[6:])) == 1
+    assert len({seg[0], seg[3], seg[6]}) == 3
+
+
+def test_position_cue_is_the_pass_sets_position_bit_for_bit() -> None:
+    mesh, g = cube_scene()
+    passes = raycast_passes(mesh, g)
+    ctx = ViewContext(g, passes=passes)
+    cue_value(ctx, "normal")  # the memoised rays shared with other cues
+    new, old = cue_value(ctx, "position"), passes.position_world()
+    assert np.isnan(new).any() and np.isfinite(new).any()
+    assert np.array_equal(new.view(np.uint32), old.view(np.uint32))
+
+
+@pytest.mark.parametrize("with_boundary", [False, True])
+def test_region_graph_is_bit_identical_to_the_numpy_version(with_boundary) -> None:
+    rng = np.random.default_rng(7)
+    # Blocky labels (regions of 6 x 6 pixels, ids shuffled) so regions have several neighbours and long borders.
+    blocks = rng.permutation(100).reshape(10, 10)
+    labels = np.kron(blocks, np.ones((6, 6), dtype=np.int64))
+    features = rng.random((60, 60, 4)).astype(np.float32) * 255.0
+    boundary = rng.random((60, 60)).astype(np.float32) if with_boundary else None
+    new = region_graph(labels, features, 255.0, boundary)
+    old = reference_segmentation.region_graph(labels, features, 255.0, boundary)
+    assert np.count_nonzero(new - np.diag(np.diag(new))) > 200  # real links, not an empty comparison
+    assert np.array_equal(new, old)
+
+
+def reference_doh_response(g: np.ndarray, sigmas: tuple[float, ...]) -> np.ndarray:
+    """keypoints2d's response before issue 20 (padded copy and in-place numpy arithmetic per scale)."""
+    from scipy.ndimage import gaussian_filter
+
+    out = np.zeros(g.shape, dtype=np.float32)
+    L, prev = g.astype(np.float32), 0.0
+    P = np.empty((g.shape[0] + 2, g.shape[1] + 2), dtype=np.float32)
+    for s in sorted(sigmas):
+        inc = float(np.sqrt(max(s * s - prev * prev, 0.0)))
+        if inc > 0:
+            L = gaussian_filter(L, inc, mode="nearest", truncate=3.0)
+        prev = s
+        P[1:-1, 1:-1] = L
+        P[0, 1:-1], P[-1, 1:-1] = L[0], L[-1]
+        P[:, 0], P[:, -1] = P[:, 1], P[:, -2]
+        lxx = P[1:-1, 2:] + P[1:-1, :-2]
+        lxx -= 2 * L
+        lyy = P[2:, 1:-1] + P[:-2, 1:-1]
+        lyy -= 2 * L
+        lxy = P[2:, 2:] - P[2:, :-2]
+        lxy -= P[:-2, 2:]
+        lxy += P[:-2, :-2]
+        lxx *= lyy
+        lxy *= lxy
+        lxx -= lxy * 0.0625
+        lxx *= s**4
+        np.maximum(out, lxx, out=out)
+    return out
+
+
+def test_doh_response_is_bit_identical_to_the_numpy_version() -> None:
+    rng = np.random.default_rng(11)
+    y, x = np.mgrid[0:96, 0:80]
+    g = (0.5 + 0.4 * np.sin(x / 5.0) * np.cos(y / 7.0) + 0.05 * rng.random((96, 80))).astype(np.float32)
+    sigmas = (1.0, 2.0, 4.0, 8.0)
+    new, old = doh_response(g, sigmas), reference_doh_response(g, sigmas)
+    assert new.max() > 0.01  # blobs found, not an empty comparison
+    assert np.array_equal(new, old)
+
+
+@pytest.mark.parametrize("mode", ["nearest", "reflect"])
+@pytest.mark.parametrize("sigma,truncate", [(0.8, 4.0), (1.0, 4.0), (2.0, 4.0), (1.0, 3.0), (12**0.5, 3.0),
+                                            (48**0.5, 3.0)])
+def test_gaussian_blur_is_scipys_gaussian_filter_bit_for_bit(mode, sigma, truncate) -> None:
+    from scipy.ndimage import gaussian_filter
+
+    rng = np.random.default_rng(int(sigma * 10))
+    for shape, scale in (((64, 48), 1.0), ((5, 7), 300.0), ((1, 30), 1e-3), ((37, 33), 1.0)):
+        img = (rng.random(shape) * scale).astype(np.float32)
+        new = gaussian_blur(img, sigma, truncate, mode)
+        old = gaussian_filter(img, sigma, mode=mode, truncate=truncate)
+        assert new.dtype == np.float32 and np.array_equal(new, old), shape
+
+
+@pytest.mark.parametrize("radius", [1, 2, 4, 9])
+def test_box_blur_is_scipys_uniform_filter_bit_for_bit(radius) -> None:
+    from scipy.ndimage import uniform_filter
+
+    rng = np.random.default_rng(radius)
+    for shape in ((4, 64, 48), (3, 7, 5), (1, 3, 40), (30, 20)):
+        x = rng.random(shape).astype(np.float32)
+        x[..., :2, :] = 0.0  # zero rows: the running sums pass through exact zeros
+        old = x
+        size = radius | 1
+        for _ in range(3):
+            old = uniform_filter(old, (1,) * (x.ndim - 2) + (size, size), mode="constant")
+        new = _blur(x, radius)
+        assert new.dtype == np.float32 and new.shape == x.shape and np.array_equal(new, old), shape

@@ -77,6 +77,10 @@ class Settings(BaseSettings):
     max_attempts: int = Field(3, ge=1)
     dispatch_window: int = Field(2000, ge=1, description="queued tasks per job at most")
     worker_max_tasks: int = Field(500, ge=1, description="a worker process recycles after this many tasks")
+    worker_batch_views: bool = Field(
+        True, description="a worker taking one of a view's cue tasks also claims the view's other queued cue tasks "
+        "(one statement) and derives them from the pass set it holds",
+    )
     worker_max_memory_mb: int = Field(4096, ge=64, description="a worker recycles above this resident size")
     plan_memory_mb: int = Field(
         4096, ge=256, description="memory one job's planning may use (its process's limit); bigger specs are refused"

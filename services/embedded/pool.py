@@ -90,7 +90,8 @@ def worker_main(conf: WorkerConfig, tasks: Queue[int | None], results: Queue[Wor
                 time.sleep(1.0)
                 tasks.put(task_id)
                 continue
-            results.put(("outcome", os.getpid(), o.task_id, o.status, o.cue, o.labels, o.error))
+            for each in o.all():  # the task of the message, then the rest of its view batch
+                results.put(("outcome", os.getpid(), each.task_id, each.status, each.cue, each.labels, each.error))
             if o.recycle:  # memory or task limit: exit, the parent starts a fresh process
                 results.put(("recycle", os.getpid(), worker_id))
                 break

@@ -171,6 +171,9 @@ def render_cue(self: CeleryTask, task_id: object) -> str:
         raise self.retry(exc=exc, countdown=countdown) from None
     log.info("render.cue(%d) %s: %s in %.2f s%s", tid, outcome.cue, outcome.status, outcome.duration_s,
              f" ({outcome.error.splitlines()[0]})" if outcome.error and outcome.status != "skipped" else "")
+    if outcome.batch:
+        log.info("render.cue(%d): with its view batch of %d more tasks: %s", tid, len(outcome.batch),
+                 ", ".join(f"{o.cue} {o.status}" for o in outcome.batch))
     if outcome.recycle:
         # worker_max_tasks_per_child / worker_max_memory_per_child recycle the child after this task.
         log.info("worker process %d reached its memory or task limit; Celery recycles it", os.getpid())

@@ -134,7 +134,7 @@ class Settings(BaseSettings):
 
     @model_validator(mode="before")
     @classmethod
-    def _fill_defaults(cls, data: Any) -> Any:
+    def _fill_defaults(cls, data: object) -> object:
         # database_url and storage_url default to paths under data_dir, so derive them after data_dir is known.
         if not isinstance(data, dict):
             return data
@@ -178,7 +178,7 @@ class Settings(BaseSettings):
         return found
 
 
-def get_settings(**overrides: Any) -> Settings:
+def get_settings(**overrides: Any) -> Settings:  # any Settings field (pydantic-settings checks them)
     """Build a fresh Settings from the environment; keyword overrides win over the environment."""
     return Settings(**overrides)
 
@@ -194,7 +194,7 @@ class InvalidSettings(ConfigurationError):
     """OMNIDATA_* settings that cannot be used; the message names each bad variable."""
 
 
-def load_settings(**overrides: Any) -> Settings:
+def load_settings(**overrides: Any) -> Settings:  # as get_settings
     """get_settings() for the command line: a bad OMNIDATA_* value raises InvalidSettings with one clear line."""
     try:
         return get_settings(**overrides)

@@ -1,7 +1,9 @@
 """Streaming multipart upload: the file part goes straight to a temp file, refused (413) past a size limit.
 
 Starlette's form parser spools any file to disk without a bound, so a client could fill the disk before
-the route runs; this parser counts bytes as they arrive and stops at `max_bytes`.
+the route runs; this parser counts bytes as they arrive and stops at `max_bytes`. Only the parsing runs on the
+event loop: the parser's callbacks queue the file work (open, write, hash, close: `_FileOps`), and each
+received chunk's queue runs in a worker thread, so fifty uploads never hold the loop on a slow disk.
 """
 
 from __future__ import annotations
@@ -47,6 +49,46 @@ class _Part:
     hval: bytes = b""
 
 
+class _FileOps:
+    """File work the parser's callbacks ask for, run later off the event loop (`run`, in a worker thread)."""
+
+    def __init__(self) -> None:
+        self.sha = hashlib.sha256()
+        self.queue: list[tuple[str, Path | bytes | None]] = []
+        self._out: IO[bytes] | None = None
+
+    def open(self, path: Path) -> None:
+        self.queue.append(("open", path))
+
+    def write(self, data: bytes) -> None:
+        self.queue.append(("write", data))
+
+    def close(self) -> None:
+        self.queue.append(("close", None))
+
+    def run(self) -> None:
+        """Do the queued work, in order (called in a worker thread; hashlib releases the GIL on big buffers)."""
+        queue, self.queue = self.queue, []
+        for op, arg in queue:
+            if op == "open":
+                assert isinstance(arg, Path)
+                self._out = arg.open("wb")
+            elif op == "write" and self._out is not None:
+                assert isinstance(arg, bytes)
+                self.sha.update(arg)
+                self._out.write(arg)
+            elif op == "close" and self._out is not None:
+                self._out.close()
+                self._out = None
+
+    def abandon(self) -> None:
+        """Close an open file (the request failed); queued work is dropped."""
+        self.queue.clear()
+        if self._out is not None:
+            self._out.close()
+            self._out = None
+
+
 def safe_filename(raw: str) -> str:
     """The client's file name reduced to a safe single path segment (no folders, no traversal)."""
     base = raw.replace("\\", "/").rsplit("/", 1)[-1]
@@ -80,11 +122,9 @@ async def receive_upload(request: Request, *, dest_dir: Path, max_bytes: int) ->
         raise _too_large(max_bytes)
 
     up = Upload()
-    sha = hashlib.sha256()
     part = _Part()
     headers: dict[bytes, bytes] = {}
-    out: IO[bytes] | None = None
-    pending: list[bytes] = []  # file bytes parsed from the current chunk, written after the callbacks
+    files = _FileOps()
     errors: list[HTTPException] = []
 
     def fail(code: int, msg: str) -> None:
@@ -107,7 +147,6 @@ async def receive_upload(request: Request, *, dest_dir: Path, max_bytes: int) ->
         part.hname, part.hval = b"", b""
 
     def on_headers_finished() -> None:
-        nonlocal out
         _disp, opts = parse_options_header(headers.get(b"content-disposition", b""))
         part.name = opts.get(b"name", b"").decode("utf-8", "replace")
         if b"filename" in opts and part.name == CAPTURE_FIELD:
@@ -120,7 +159,7 @@ async def receive_upload(request: Request, *, dest_dir: Path, max_bytes: int) ->
                 return
             (dest_dir / CAPTURE_FIELD).mkdir(exist_ok=True)
             up.capture_path = dest_dir / CAPTURE_FIELD / "capture.zip"
-            out = up.capture_path.open("wb")
+            files.open(up.capture_path)
             part.is_file = True
         elif b"filename" in opts:
             if part.name != FILE_FIELD:
@@ -136,7 +175,7 @@ async def receive_upload(request: Request, *, dest_dir: Path, max_bytes: int) ->
                 errors.append(e)
                 return
             up.path = dest_dir / up.filename
-            out = up.path.open("wb")
+            files.open(up.path)
             part.is_file = True
         elif len(up.fields) >= MAX_FIELDS:
             fail(status.HTTP_422_UNPROCESSABLE_CONTENT, f"too many form fields (at most {MAX_FIELDS})")
@@ -150,21 +189,15 @@ async def receive_upload(request: Request, *, dest_dir: Path, max_bytes: int) ->
             if up.size > max_bytes:
                 errors.append(_too_large(max_bytes))
                 return
-            sha.update(chunk)
-            pending.append(chunk)
+            files.write(chunk)
         elif len(part.buf) + len(chunk) > MAX_FIELD_BYTES:
             fail(status.HTTP_422_UNPROCESSABLE_CONTENT, f"form field {part.name!r} is too long")
         else:
             part.buf.extend(chunk)
 
     def on_part_end() -> None:
-        nonlocal out
-        if part.is_file and out is not None:  # the next file part opens its own file: finish this one now
-            if pending:
-                out.write(b"".join(pending))
-                pending.clear()
-            out.close()
-            out = None
+        if part.is_file:  # the next file part opens its own file
+            files.close()
         if errors or part.is_file or not part.name:
             return
         up.fields[part.name] = part.buf.decode("utf-8", "replace")
@@ -189,21 +222,18 @@ async def receive_upload(request: Request, *, dest_dir: Path, max_bytes: int) ->
                 raise HTTPException(status.HTTP_400_BAD_REQUEST, f"malformed multipart body: {e}") from None
             if errors:
                 raise errors[0]
-            if pending and out is not None:
-                data = b"".join(pending)
-                pending.clear()
-                await anyio.to_thread.run_sync(out.write, data)
+            if files.queue:
+                await anyio.to_thread.run_sync(files.run)
         if errors:
             raise errors[0]
         if parser.state != MultipartState.END:
             # python-multipart's finalize() does not check this: a body cut short would pass as a short file
             raise HTTPException(status.HTTP_400_BAD_REQUEST, "incomplete multipart body: no closing boundary")
     finally:
-        if out is not None:
-            out.close()
+        files.abandon()
     if up.path is None:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "the form has no 'file' part with the scan")
     if up.size == 0:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"uploaded file {up.filename!r} is empty")
-    up.sha256 = sha.hexdigest()
+    up.sha256 = files.sha.hexdigest()
     return up

@@ -191,7 +191,8 @@ class Scheduler:
                     return False
                 spec = job_spec(job)
                 # refused before any work: a spec over the planning budget (the API refuses it too)
-                check_plan_budget(spec, memory_mb=self.settings.plan_memory_mb, timeout_s=self.settings.plan_timeout_s)
+                check_plan_budget(spec, memory_mb=self.settings.plan_memory_mb, timeout_s=self.settings.plan_timeout_s,
+                                  chunk_views=self.settings.plan_chunk_views)
                 clear_plan(s, job.id)  # the chunks an earlier attempt left
                 attempts = (job.plan_summary or {}).get("attempts", 0) + 1
                 spaces = [(list(js.cues), space, plan_key(job, space.name)) for js, space in job_spaces(s, job.id)]

@@ -23,6 +23,7 @@ import numpy as np
 
 from services.core.domain.jobspec import JobSpec
 from services.core.domain.plan import CameraPose, PlannedView, PointOfInterest, SpacePlan
+from services.core.domain.plan_budget import plans_in_chunks
 from services.core.ingest.loading import LoadedSpace
 from services.scheduler.planning import (
     VALID_REPORT_VIEWS,
@@ -43,13 +44,6 @@ from services.scheduler.planning.views import (
     valid_fractions,
 )
 from services.scheduler.planning.visibility import MeshQueries
-
-
-def streamable(spec: JobSpec) -> bool:
-    """Whether `spec` is planned chunk by chunk (module docstring); other specs are planned whole, then cut."""
-    vs = spec.views
-    return (spec.cameras.mode in ("object", "generate", "provided") and vs.mode == "wide_baseline"
-            and not vs.nonfixated_pruning and vs.min_valid_fraction == 0 and not spec.uses_photos())
 
 
 @dataclass
@@ -74,7 +68,7 @@ class PlanChunks:
 def plan_chunks(space: LoadedSpace, spec: JobSpec, rng: np.random.Generator, space_name: str,
                 chunk_views: int) -> PlanChunks:
     """The plan of `space` in chunks of whole points holding about `chunk_views` views (at least one point)."""
-    if not streamable(spec):
+    if not plans_in_chunks(spec):  # planned whole, then cut
         plan = make_plan(space, spec, rng, space_name)
         out = PlanChunks(iter(()))
         out.chunks = _cut(plan, chunk_views, out)

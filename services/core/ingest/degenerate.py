@@ -64,11 +64,13 @@ def degenerate_refusal(source: Path, sample: FaceSample) -> None:
 
 
 def _vertices(source: Path, needed: set[int]) -> dict[int, tuple[float, float, float]]:
-    """The positions of the 1-based vertex indices `needed` (one pass, parsing only those lines)."""
+    """The positions of the 1-based vertex indices `needed` (one pass up to the last, parsing only those lines)."""
     found: dict[int, tuple[float, float, float]] = {}
-    n = 0
+    n, last = 0, max(needed, default=0)
     with open(source, "rb") as f:
         for line in f:
+            if n >= last:
+                break
             if line[:2] in (b"v ", b"v\t"):
                 n += 1
                 if n in needed:

@@ -29,7 +29,7 @@ from pathlib import Path, PurePosixPath
 from urllib.parse import unquote
 
 from services.core.ingest.confine import ReferenceRefused, read_confined
-from services.core.ingest.degenerate import FaceSample, degenerate_refusal
+from services.core.ingest.degenerate import CHECKED_FROM_FACES, FaceSample, degenerate_refusal
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.texture_limits import embedded_refusal, glb_bin_offset
 
@@ -121,6 +121,9 @@ def _check_obj(source: Path, max_faces: int) -> list[str]:
     with open(source, encoding="utf-8", errors="replace", newline="") as f:
         for lineno, line in enumerate(f, 1):
             last = line
+            if line.startswith("v "):  # most lines of a big scan: counted without splitting
+                vertices += 1
+                continue
             head, _, rest = line.lstrip().partition(" ")
             if "\t" in head:  # tab-separated statement
                 head, _, rest = line.lstrip().partition("\t")
@@ -131,6 +134,8 @@ def _check_obj(source: Path, max_faces: int) -> list[str]:
                 if faces > max_faces:
                     check_face_count(name, faces, max_faces)
                 sample.add(_check_face_refs(name, lineno, rest, vertices))
+                if faces == CHECKED_FROM_FACES:  # enough to judge: refused here, before the rest is read
+                    degenerate_refusal(source, sample)
             elif head == "mtllib" and rest.strip():
                 mtllibs.append(rest.strip())
     if last and not last.endswith("\n") and not _complete_obj_line(last):
@@ -139,7 +144,6 @@ def _check_obj(source: Path, max_faces: int) -> list[str]:
         )
     if faces == 0 and vertices > 0:
         raise SpaceError(f"{name}: {vertices:,} vertices but no faces; a triangle mesh is needed")
-    degenerate_refusal(source, sample)
     warnings = _check_mtllibs(source, mtllibs)
     if last and not last.endswith("\n"):  # whole, but exporters end with a newline: maybe cut at a token's end
         warnings.append(f"the last line {last[:80]!r} has no newline: the file may be truncated")

@@ -18,6 +18,7 @@ from kombu.utils.uuid import uuid
 
 from services.core.celery_config import TASK_RENDER_CUE, make_celery_app, queue_for_cue
 from services.core.settings import Settings, get_settings
+from services.scheduler.envelope import Envelope
 
 log = logging.getLogger(__name__)
 
@@ -60,15 +61,18 @@ class QueueTransport:
 class CeleryTransport:
     """Sends `render.cue(task_id)` by name through Celery; passes go to the render queue, the rest to derive.
 
-    One producer (one broker connection) is reused for a whole batch and, where kombu supports it
-    (Redis, kombu >= 5.6), messages are pipelined PUBLISH_BATCH at a time instead of one round trip each.
-    Messages are made by Celery itself: the fast path calls the two halves of `app.send_task`
-    (`amqp.create_task_message` + `amqp.send_task_message`, the same protocol-2 message by task name)
-    without its per-call routing and option merging, which doubles the rate; `fast=False` calls
-    `app.send_task(TASK_RENDER_CUE, args=[task_id], queue=...)` for each task.
+    One producer (one broker connection) is reused for a whole batch. On Redis the fast path builds each
+    queue's message once (services.scheduler.envelope: Celery's own protocol-2 message laid out as kombu stores
+    it) and pushes PUBLISH_BATCH messages per LPUSH: one round trip and ~10 us of CPU a message instead of ~50.
+    Other brokers get the two halves of `app.send_task` (`amqp.create_task_message` + `amqp.send_task_message`)
+    pipelined where kombu supports it (also on Redis with `prebuilt=False`); `fast=False` calls `app.send_task(TASK_RENDER_CUE, args=[task_id],
+    queue=...)` for each task.
     """
 
-    def __init__(self, app: Celery | str | None = None, settings: Settings | None = None, *, fast: bool = True) -> None:
+    def __init__(
+        self, app: Celery | str | None = None, settings: Settings | None = None, *, fast: bool = True,
+        prebuilt: bool = True,
+    ) -> None:
         self.settings = settings or get_settings()
         if isinstance(app, Celery):
             self.app = app
@@ -76,8 +80,10 @@ class CeleryTransport:
             s = self.settings if app is None else self.settings.model_copy(update={"broker_url": app})
             self.app = make_celery_app(s, main="omnidata-scheduler")
         self.fast = fast
+        self.prebuilt = prebuilt  # on Redis: prebuilt messages pushed directly (False: through kombu)
         self._declared: set[str] = set()
         self._origin = anon_nodename()
+        self._envelopes: dict[str, Envelope] = {}
 
     def send(self, batch: Sequence[tuple[int, str]]) -> None:
         """Publish one message per (task_id, cue); raises on broker errors (caller requeues)."""
@@ -90,6 +96,9 @@ class CeleryTransport:
                 # declare each queue once, not once per message (declare=[] below)
                 producer.maybe_declare(amqp.queues[name])
                 self._declared.add(name)
+            if self.fast and self.prebuilt and producer.connection.transport.driver_type == "redis":
+                self._push(producer, batch, queues)
+                return
             ctx: Any = (
                 producer.batch(max_size=PUBLISH_BATCH)
                 if getattr(producer, "supports_batch_publish", False)
@@ -112,6 +121,19 @@ class CeleryTransport:
                     amqp.send_task_message(
                         producer, TASK_RENDER_CUE, message, queue=queues[cue], declare=[], retry=True,
                     )
+
+    def _push(self, producer: Any, batch: Sequence[tuple[int, str]], queues: dict[str, str]) -> None:
+        """LPUSH prebuilt messages, one command per queue and PUBLISH_BATCH tasks (Redis only)."""
+        per_queue: dict[str, list[int]] = {}
+        for task_id, cue in batch:
+            per_queue.setdefault(queues[cue], []).append(int(task_id))
+        with producer.channel.conn_or_acquire() as client:
+            for queue, ids in per_queue.items():
+                envelope = self._envelopes.get(queue)
+                if envelope is None:
+                    envelope = self._envelopes[queue] = Envelope(self.app, queue, self._origin)
+                for k in range(0, len(ids), PUBLISH_BATCH):
+                    envelope.push(client, ids[k : k + PUBLISH_BATCH])
 
     def close(self) -> None:
         """Release broker connections."""

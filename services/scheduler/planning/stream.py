@@ -14,10 +14,10 @@ planned whole by `make_plan` and then cut into chunks (their memory is bounded b
 
 from __future__ import annotations
 
+import copy
 import dataclasses
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
@@ -132,9 +132,7 @@ def _stream(space: LoadedSpace, spec: JobSpec, rng: np.random.Generator, space_n
     cameras = tuple(CameraPose(idx=i, position=cams[i], source=source, uuid=given[i] or _uuid(salt, "camera", i))
                     for i in range(len(cams)))
     for i, (lo, hi) in enumerate(bounds):
-        chunk_rng = _copy(rng)
-        chunk_rng.bit_generator.state = starts[i]
-        views = _chunk_views(sampled, cams, lo, hi, spec, chunk_rng, fov_rng, roll_rng)
+        views = _chunk_views(sampled, cams, lo, hi, spec, starts[i], fov_rng, roll_rng)
         lo_view = int(first_view[lo])
         mine = sample[(sample >= lo_view) & (sample < lo_view + len(views))] - lo_view
         probed.append(valid_fractions(q, views.subset(mine), spec.params.max_depth_m))
@@ -147,26 +145,25 @@ def _stream(space: LoadedSpace, spec: JobSpec, rng: np.random.Generator, space_n
 
 
 def _copy(rng: np.random.Generator) -> np.random.Generator:
-    twin = np.random.Generator(np.random.PCG64())
-    twin.bit_generator.state = rng.bit_generator.state
-    return twin
+    """An independent generator at `rng`'s current state."""
+    return copy.deepcopy(rng)
 
 
 def _chunk_states(sampled: SampledPoints, bounds: list[tuple[int, int]], max_views: int | None,
-                  rng: np.random.Generator) -> list[Mapping[str, Any]]:
-    """The generator's state at each chunk's first point, replaying the camera choices; `rng` ends past them all
+                  rng: np.random.Generator) -> list[np.random.Generator]:
+    """Copies of the generator at each chunk's first point, replaying the camera choices; `rng` ends past them all
     (where make_plan draws the fovs)."""
     if not isinstance(rng.bit_generator, np.random.PCG64):
         raise TypeError(f"chunked planning needs a PCG64 generator (space_rng), not {type(rng.bit_generator)}")
-    starts: list[Mapping[str, Any]] = []
+    starts: list[np.random.Generator] = []
     chunk = 0
     for p, visible in enumerate(sampled.visible):
         if chunk < len(bounds) and p == bounds[chunk][0]:
-            starts.append(rng.bit_generator.state)
+            starts.append(_copy(rng))
             chunk += 1
         cap_views(visible, max_views, rng)
     while len(starts) < len(bounds):  # no points at all: one empty chunk
-        starts.append(rng.bit_generator.state)
+        starts.append(_copy(rng))
     return starts
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import functools
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated
 
 import anyio
 from fastapi import APIRouter, Request, Response, status
@@ -20,13 +20,14 @@ from services.api.pagination import Page, PageDep
 from services.api.spaces import service, up_choice
 from services.api.spaces.schemas import SpaceOptions, SpaceRead, SpaceRegister, UpChoice
 from services.api.spaces.upload import receive_upload
+from services.core.domain.json_types import JSONObject
 from services.core.temp_dirs import owned_temp_dir
 
 router = APIRouter(prefix="/spaces", tags=["spaces"])
 
 SpaceId = Annotated[int, PathParam(ge=1, le=2**63 - 1, description="space id")]
 
-_UPLOAD_BODY: dict[str, Any] = {
+_UPLOAD_BODY: JSONObject = {
     "requestBody": {
         "required": True,
         "content": {

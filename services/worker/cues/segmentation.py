@@ -204,7 +204,7 @@ def nearest_in_mask(ctx: ViewContext, mask: np.ndarray) -> tuple[np.ndarray, np.
     known: dict[bytes, tuple[np.ndarray, np.ndarray]] = ctx.memo("nearest_in_mask", dict)
     key = hashlib.blake2b(np.packbits(mask).tobytes(), digest_size=16).digest()
     if key not in known:
-        iy, ix = distance_transform_edt(~mask, return_indices=True)[1]
+        iy, ix = distance_transform_edt(~mask, return_distances=False, return_indices=True)
         known[key] = (iy, ix)
     return known[key]
 

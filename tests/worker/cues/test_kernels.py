@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from services.worker.context import ViewContext
-from services.worker.cues.keypoints import _double
+from services.worker.cues.common import gaussian_blur
+from services.worker.cues.keypoints import _blur, _double, doh_response
 from services.worker.cues.registry import cue_value
 from services.worker.cues.segmentation import _relabel, normalized_cuts, region_graph
 from tests.fixtures import reference_segmentation
@@ -89,3 +90,73 @@ def test_region_graph_is_bit_identical_to_the_numpy_version(with_boundary) -> No
     old = reference_segmentation.region_graph(labels, features, 255.0, boundary)
     assert np.count_nonzero(new - np.diag(np.diag(new))) > 200  # real links, not an empty comparison
     assert np.array_equal(new, old)
+
+
+def reference_doh_response(g: np.ndarray, sigmas: tuple[float, ...]) -> np.ndarray:
+    """keypoints2d's response before issue 20 (padded copy and in-place numpy arithmetic per scale)."""
+    from scipy.ndimage import gaussian_filter
+
+    out = np.zeros(g.shape, dtype=np.float32)
+    L, prev = g.astype(np.float32), 0.0
+    P = np.empty((g.shape[0] + 2, g.shape[1] + 2), dtype=np.float32)
+    for s in sorted(sigmas):
+        inc = float(np.sqrt(max(s * s - prev * prev, 0.0)))
+        if inc > 0:
+            L = gaussian_filter(L, inc, mode="nearest", truncate=3.0)
+        prev = s
+        P[1:-1, 1:-1] = L
+        P[0, 1:-1], P[-1, 1:-1] = L[0], L[-1]
+        P[:, 0], P[:, -1] = P[:, 1], P[:, -2]
+        lxx = P[1:-1, 2:] + P[1:-1, :-2]
+        lxx -= 2 * L
+        lyy = P[2:, 1:-1] + P[:-2, 1:-1]
+        lyy -= 2 * L
+        lxy = P[2:, 2:] - P[2:, :-2]
+        lxy -= P[:-2, 2:]
+        lxy += P[:-2, :-2]
+        lxx *= lyy
+        lxy *= lxy
+        lxx -= lxy * 0.0625
+        lxx *= s**4
+        np.maximum(out, lxx, out=out)
+    return out
+
+
+def test_doh_response_is_bit_identical_to_the_numpy_version() -> None:
+    rng = np.random.default_rng(11)
+    y, x = np.mgrid[0:96, 0:80]
+    g = (0.5 + 0.4 * np.sin(x / 5.0) * np.cos(y / 7.0) + 0.05 * rng.random((96, 80))).astype(np.float32)
+    sigmas = (1.0, 2.0, 4.0, 8.0)
+    new, old = doh_response(g, sigmas), reference_doh_response(g, sigmas)
+    assert new.max() > 0.01  # blobs found, not an empty comparison
+    assert np.array_equal(new, old)
+
+
+@pytest.mark.parametrize("mode", ["nearest", "reflect"])
+@pytest.mark.parametrize("sigma,truncate", [(0.8, 4.0), (1.0, 4.0), (2.0, 4.0), (1.0, 3.0), (12**0.5, 3.0),
+                                            (48**0.5, 3.0)])
+def test_gaussian_blur_is_scipys_gaussian_filter_bit_for_bit(mode, sigma, truncate) -> None:
+    from scipy.ndimage import gaussian_filter
+
+    rng = np.random.default_rng(int(sigma * 10))
+    for shape, scale in (((64, 48), 1.0), ((5, 7), 300.0), ((1, 30), 1e-3), ((37, 33), 1.0)):
+        img = (rng.random(shape) * scale).astype(np.float32)
+        new = gaussian_blur(img, sigma, truncate, mode)
+        old = gaussian_filter(img, sigma, mode=mode, truncate=truncate)
+        assert new.dtype == np.float32 and np.array_equal(new, old), shape
+
+
+@pytest.mark.parametrize("radius", [1, 2, 4, 9])
+def test_box_blur_is_scipys_uniform_filter_bit_for_bit(radius) -> None:
+    from scipy.ndimage import uniform_filter
+
+    rng = np.random.default_rng(radius)
+    for shape in ((4, 64, 48), (3, 7, 5), (1, 3, 40), (30, 20)):
+        x = rng.random(shape).astype(np.float32)
+        x[..., :2, :] = 0.0  # zero rows: the running sums pass through exact zeros
+        old = x
+        size = radius | 1
+        for _ in range(3):
+            old = uniform_filter(old, (1,) * (x.ndim - 2) + (size, size), mode="constant")
+        new = _blur(x, radius)
+        assert new.dtype == np.float32 and new.shape == x.shape and np.array_equal(new, old), shape

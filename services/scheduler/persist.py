@@ -11,7 +11,7 @@ import json
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TextIO
 
 import numpy as np
 from sqlalchemy import delete
@@ -21,7 +21,7 @@ from services.core.db.bulk import bulk_insert
 from services.core.db.counters import init_counts
 from services.core.db.jobs import root_key
 from services.core.db.models import Camera, Job, JobCounter, Point, Task, View
-from services.core.domain.plan import SpacePlan, plan_to_dict, plan_to_json
+from services.core.domain.plan import CameraRecord, SpacePlan, plan_to_dict, plan_to_json
 from services.core.storage import ObjectStore
 from services.scheduler.compile import CompiledTasks
 
@@ -125,7 +125,7 @@ def persist_chunk(session: Session, job_id: int, space_id: int, chunk: SpacePlan
     return n_tasks
 
 
-def _dumps(item: Any) -> str:
+def _dumps(item: object) -> str:
     """One element as plan_to_json writes it."""
     return json.dumps(item, sort_keys=True, separators=(",", ":"), allow_nan=False)
 
@@ -136,7 +136,7 @@ class PlanJsonFile:
 
     def __init__(self) -> None:
         self._dir = tempfile.TemporaryDirectory(prefix="omnidata-plan-")
-        self._cameras: list[Any] = []
+        self._cameras: list[CameraRecord] = []
         self._parts = {name: open(Path(self._dir.name) / name, "w", encoding="utf-8")  # noqa: SIM115
                        for name in ("points", "views")}
         self._first = {"points": True, "views": True}
@@ -148,16 +148,14 @@ class PlanJsonFile:
             for item in data[name]:
                 self._write(name, self._parts[name], item)
 
-    def _write(self, name: str, out: TextIO, item: Any) -> None:
+    def _write(self, name: str, out: TextIO, item: object) -> None:
         out.write(("" if self._first[name] else ",") + _dumps(item))
         self._first[name] = False
 
     def finish(self, whole: SpacePlan) -> Path:
         """The whole plan's JSON file (`whole`: the plan's own fields, no cameras, points or views)."""
-        head = plan_to_dict(whole)
-        head["cameras"] = self._cameras
-        marker = {"points": "\x00points\x00", "views": "\x00views\x00"}
-        head.update({name: [m] for name, m in marker.items()})
+        marker = {"points": "\x00points\x00", "views": "\x00views\x00"}  # stand-ins, replaced by the files
+        head = {**plan_to_dict(whole), "cameras": self._cameras, **{name: [m] for name, m in marker.items()}}
         text = _dumps(head)
         path = Path(self._dir.name) / "plan.json"
         with open(path, "w", encoding="utf-8") as out:

@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from services.core.domain.cues import CURVATURE_FLAT, NORMAL_BACKGROUND
 from services.worker.context import ViewContext
+from services.worker.cues.basic import _curvature_pixels, _normal_pixels
 from services.worker.cues.common import gaussian_blur
 from services.worker.cues.keypoints import _blur, _double, doh_response
 from services.worker.cues.registry import cue_value
@@ -160,3 +162,27 @@ def test_box_blur_is_scipys_uniform_filter_bit_for_bit(radius) -> None:
             old = uniform_filter(old, (1,) * (x.ndim - 2) + (size, size), mode="constant")
         new = _blur(x, radius)
         assert new.dtype == np.float32 and new.shape == x.shape and np.array_equal(new, old), shape
+
+
+def test_normal_pixels_are_the_numpy_expressions_bit_for_bit() -> None:
+    rng = np.random.default_rng(5)
+    n = rng.uniform(-1, 1, (64, 64, 3)).astype(np.float32)
+    n[0] = ((np.arange(64, dtype=np.float32)[:, None] + 0.5) / 255 * 2 - 1)  # at the rounding boundaries
+    n[1, :3] = [[1, 1, 1], [-1, -1, -1], [0, 0, 0]]
+    seen = rng.random((64, 64)) > 0.1
+    px = np.rint(255.0 * (0.5 + 0.5 * n * np.array([-1.0, 1.0, 1.0], dtype=np.float32)))
+    old = np.where(seen[..., None], np.clip(px, 0, 255), NORMAL_BACKGROUND).astype(np.uint8)
+    assert np.array_equal(_normal_pixels(n, seen), old)
+
+
+def test_curvature_pixels_are_the_numpy_expressions_bit_for_bit() -> None:
+    rng = np.random.default_rng(1)
+    k = rng.normal(0, 40, (50, 50, 2)).astype(np.float32)
+    k[0, 0], k[0, 1, 0], k[0, 2, 1] = np.nan, np.inf, -np.inf
+    k[1, :, 0] = np.linspace(-40, 40, 50)  # across the clip limits and the rounding steps
+    seen = rng.random((50, 50)) > 0.1
+    kmax = 1.0 / 0.03
+    px = np.rint((np.clip(np.nan_to_num(k), -kmax, kmax) / kmax + 1.0) * CURVATURE_FLAT)
+    old = np.zeros((50, 50, 3), dtype=np.uint8)
+    old[..., :2] = np.where(seen[..., None], px, 0)
+    assert np.array_equal(_curvature_pixels(k, seen, np.float32(kmax)), old)

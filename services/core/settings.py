@@ -85,6 +85,9 @@ class Settings(BaseSettings):
     plan_memory_mb: int = Field(
         4096, ge=256, description="memory one job's planning may use (its process's limit); bigger specs are refused"
     )
+    plan_chunk_views: int = Field(
+        20000, ge=1, description="views planned and written at a time: a planner's memory beyond the sampled points"
+    )
     plan_processes: int = Field(2, ge=1, le=64, description="jobs one scheduler plans at once, each in its own process")
     plan_timeout_s: int = Field(
         900, ge=10, description="time one job's planning may take; its process is ended after it, bigger specs refused"

@@ -348,12 +348,17 @@ class JobSpec(_Strict):
 
     def views_upper_bound(self) -> int:
         """Most views one space of this spec can plan (points x views per point)."""
-        return self._plan_size()[0]
+        return self.plan_size()[0]
 
-    def _plan_size(self) -> tuple[int, int, int, str]:
+    def camera_count_bound(self) -> int:
+        """Most cameras one space of this spec can have (capture: its poses, counted when planned: 0 here)."""
+        cams = self.cameras
+        return {"generate": cams.max_count, "object": cams.object_count}.get(cams.mode, len(cams.poses or ()))
+
+    def plan_size(self) -> tuple[int, int, int, str]:
         """(views upper bound, points, views per point, the knob that bounds views per point)."""
-        cams, pts = self.cameras, self.points
-        n_cameras = {"generate": cams.max_count, "object": cams.object_count}.get(cams.mode, len(cams.poses or ()))
+        pts = self.points
+        n_cameras = self.camera_count_bound()
         n_points = pts.count if pts.count is not None else math.ceil(pts.per_camera * n_cameras)
         if self.views.mode == "trajectory":
             per_point, what = self.views.trajectory_max_frames, "views.trajectory_max_frames"
@@ -366,7 +371,7 @@ class JobSpec(_Strict):
         """Refuse a spec whose plan could exceed MAX_PLANNED_VIEWS (its rows and tasks would exhaust memory) or
         whose point sampling could draw more than MAX_SAMPLE_BUDGET samples (hours of ray casts)."""
         pts = self.points
-        _views, n_points, per_point, what = self._plan_size()
+        _views, n_points, per_point, what = self.plan_size()
         if n_points * pts.max_tries_per_point > MAX_SAMPLE_BUDGET:
             raise ValueError(
                 f"{n_points} points x points.max_tries_per_point ({pts.max_tries_per_point}) could draw "

@@ -89,7 +89,8 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
             s.commit()
             job_id = job.id
         plan = synthetic_plan("orch", args.views // 4, 4, resolution=32)
-        transport = CeleryTransport(settings=settings, prebuilt=not args.kombu)
+        transport = CeleryTransport(settings=settings, **({"prebuilt": False} if args.kombu else {}))
+        prebuilt = hasattr(transport, "_push") and not args.kombu  # (a tree before prebuilt messages has kombu's only)
         sched = Scheduler(sched_part.sm, store, transport, settings, "orch", plan_fn=lambda *_a: plan,
                           cache_dir=tmp / "cache", budget=args.window)
         sched.plan_pending()
@@ -133,7 +134,7 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
         total = sum(per_task.values())
         return {
             "views": args.views, "cues": len(ROOM_CUES), "window": args.window, "rounds": args.rounds,
-            "tasks_measured": tasks, "transport": "kombu" if args.kombu else "prebuilt",
+            "tasks_measured": tasks, "transport": "prebuilt" if prebuilt else "kombu",
             "cpu_ms_per_task": {**per_task, "total": round(total, 4)},
             "one_core_tasks_per_s": round(1000 / total) if total else None,
             "fleet_assumed": {"workers": args.workers, "tasks_per_s": args.rate},

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import shutil
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from contextlib import AbstractContextManager, contextmanager
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -41,3 +43,28 @@ def browser() -> Iterator[object]:
             yield b
         finally:
             b.close()
+
+
+# (base URL, token) -> a context manager giving a logged-in dashboard page and the page errors it raises
+DashboardPage = Callable[[str, str], AbstractContextManager[tuple[Any, list[str]]]]
+
+
+@pytest.fixture()
+def dashboard_page(browser: Any) -> DashboardPage:
+    """Opens the dashboard of a live server in a fresh browser context and logs in with a token."""
+
+    @contextmanager
+    def open_page(base: str, token: str) -> Iterator[tuple[Any, list[str]]]:
+        ctx = browser.new_context(viewport={"width": 1280, "height": 900})
+        try:
+            page = ctx.new_page()
+            errors: list[str] = []
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.goto(f"{base}/ui/")
+            page.fill("#login-token", token)
+            page.click("#login-submit")
+            yield page, errors
+        finally:
+            ctx.close()
+
+    return open_page

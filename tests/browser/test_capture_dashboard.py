@@ -7,7 +7,6 @@ from __future__ import annotations
 import queue
 import zipfile
 from pathlib import Path
-from typing import Any
 
 import pytest
 
@@ -16,13 +15,14 @@ from services.core.settings import get_settings
 from services.core.storage import LocalStore
 from services.scheduler.loop import Scheduler
 from services.scheduler.transport import QueueTransport
+from tests.browser.conftest import DashboardPage
 from tests.fixtures.api import live_server, make_api
 from tests.fixtures.photo_capture import banana_capture
 
 pytestmark = pytest.mark.slow
 
 
-def test_capture_upload_plan_and_space_summary(pg_url: str, local_store: LocalStore, scenes_dir: Path, browser: Any,
+def test_capture_upload_plan_and_space_summary(pg_url: str, local_store: LocalStore, scenes_dir: Path, dashboard_page: DashboardPage,
                                                artifacts: Path, tmp_path: Path) -> None:
     folder = tmp_path / "banana_capture"
     banana_capture(scenes_dir / "ycb_banana" / "textured_simple_reoriented.obj", folder)
@@ -34,14 +34,7 @@ def test_capture_upload_plan_and_space_summary(pg_url: str, local_store: LocalSt
                 zf = scan_zf if p.parent == folder and p.suffix in (".obj", ".mtl", ".png") else cap_zf
                 zf.write(p, p.relative_to(folder).as_posix())
     with make_api(pg_url, local_store) as api, live_server(api.app) as base:
-        ctx = browser.new_context(viewport={"width": 1280, "height": 900})
-        try:
-            page = ctx.new_page()
-            errors: list[str] = []
-            page.on("pageerror", lambda e: errors.append(str(e)))
-            page.goto(f"{base}/ui/")
-            page.fill("#login-token", api.a.token)
-            page.click("#login-submit")
+        with dashboard_page(base, api.a.token) as (page, errors):
             page.wait_for_selector("h1:has-text('Jobs')")
             page.set_input_files("#upload-file", str(upload))
             page.set_input_files("#upload-capture", str(capture_zip))
@@ -75,5 +68,3 @@ def test_capture_upload_plan_and_space_summary(pg_url: str, local_store: LocalSt
             assert len(bars) == 10 and sum(h > 0 for h in bars) >= 1
             page.screenshot(path=str(artifacts / "dashboard-capture.png"), full_page=True)
             assert not errors
-        finally:
-            ctx.close()

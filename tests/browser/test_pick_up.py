@@ -4,12 +4,12 @@ and the choice stored with the space (headless Chromium against a real uvicorn s
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pytest
 
 from services.core.storage import LocalStore
+from tests.browser.conftest import DashboardPage
 from tests.fixtures.api import live_server, make_api
 
 pytestmark = pytest.mark.slow
@@ -17,7 +17,7 @@ pytestmark = pytest.mark.slow
 COPYROOM = Path(__file__).resolve().parents[1] / "fixtures" / "real_scans" / "copyroom.ply"
 
 
-def test_pick_up_with_one_click(pg_url: str, local_store: LocalStore, browser: Any, artifacts: Path) -> None:
+def test_pick_up_with_one_click(pg_url: str, local_store: LocalStore, dashboard_page: DashboardPage, artifacts: Path) -> None:
     with make_api(pg_url, local_store) as api, live_server(api.app) as base:
         r = api.client.post("/spaces", files={"file": ("copyroom.ply", COPYROOM.read_bytes())},
                             data={"name": "copyroom"}, headers=api.a.headers)
@@ -25,14 +25,7 @@ def test_pick_up_with_one_click(pg_url: str, local_store: LocalStore, browser: A
         space = r.json()
         assert space["needs_frame"]
         runner_up = space["frame"]["up"]["candidates"][1]["up"]
-        ctx = browser.new_context(viewport={"width": 1280, "height": 900})
-        try:
-            page = ctx.new_page()
-            errors: list[str] = []
-            page.on("pageerror", lambda e: errors.append(str(e)))
-            page.goto(f"{base}/ui/")
-            page.fill("#login-token", api.a.token)
-            page.click("#login-submit")
+        with dashboard_page(base, api.a.token) as (page, errors):
             page.wait_for_selector("#needs-frame .up-candidate", timeout=30_000)
             figures = page.query_selector_all(f'#needs-frame [data-space="{space["id"]}"] .up-candidate')
             assert len(figures) == len(space["frame"]["up"]["candidates"]) >= 2
@@ -47,8 +40,6 @@ def test_pick_up_with_one_click(pg_url: str, local_store: LocalStore, browser: A
             page.click('#needs-frame button.pick-up[data-index="1"]')
             page.wait_for_selector("#needs-frame", state="detached", timeout=30_000)  # the panel goes once picked
             assert errors == []
-        finally:
-            ctx.close()
         stored = api.client.get(f"/spaces/{space['id']}", headers=api.a.headers).json()
         assert not stored["needs_frame"]
         np.testing.assert_allclose(stored["up_choice"]["up"], runner_up, atol=1e-5)
@@ -57,7 +48,7 @@ def test_pick_up_with_one_click(pg_url: str, local_store: LocalStore, browser: A
         assert r.status_code == 201, r.text
 
 
-def test_pick_units_with_one_click(pg_url: str, local_store: LocalStore, browser: Any, tmp_path: Path) -> None:
+def test_pick_units_with_one_click(pg_url: str, local_store: LocalStore, dashboard_page: DashboardPage, tmp_path: Path) -> None:
     """A partial scan in centimetres whose origin says nothing: cm or inches, each with the size it gives."""
     import trimesh
 
@@ -72,14 +63,7 @@ def test_pick_units_with_one_click(pg_url: str, local_store: LocalStore, browser
         assert r.status_code == 201, r.text
         space = r.json()
         assert space["needs_frame"] and space["frame"]["units"]["ambiguous"]
-        ctx = browser.new_context(viewport={"width": 1280, "height": 900})
-        try:
-            page = ctx.new_page()
-            errors: list[str] = []
-            page.on("pageerror", lambda e: errors.append(str(e)))
-            page.goto(f"{base}/ui/")
-            page.fill("#login-token", api.a.token)
-            page.click("#login-submit")
+        with dashboard_page(base, api.a.token) as (page, errors):
             page.wait_for_selector("#needs-frame .unit-candidate", timeout=30_000)
             assert page.query_selector_all("#needs-frame .up-candidate") == []  # its up is decided
             captions = [f.inner_text() for f in page.query_selector_all("#needs-frame .unit-candidate")]
@@ -88,7 +72,5 @@ def test_pick_units_with_one_click(pg_url: str, local_store: LocalStore, browser
             page.click('#needs-frame button.pick-units[data-unit="centimetres"]')
             page.wait_for_selector("#needs-frame", state="detached", timeout=30_000)
             assert errors == []
-        finally:
-            ctx.close()
         stored = api.client.get(f"/spaces/{space['id']}", headers=api.a.headers).json()
         assert not stored["needs_frame"] and stored["unit_scale"] == 0.01

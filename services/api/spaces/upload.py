@@ -10,11 +10,14 @@ import hashlib
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO
+from typing import IO, TYPE_CHECKING
 
 import anyio
 from fastapi import HTTPException, Request, status
 from python_multipart.multipart import MultipartParser, MultipartState, parse_options_header
+
+if TYPE_CHECKING:  # defined for type checkers only
+    from python_multipart.multipart import MultipartCallbacks
 
 FILE_FIELD = "file"
 CAPTURE_FIELD = "capture"  # optional: a .zip of the scan's posed capture (photos + poses), sent beside the scan
@@ -67,8 +70,136 @@ def _too_large(max_bytes: int) -> HTTPException:
     )
 
 
-async def receive_upload(request: Request, *, dest_dir: Path, max_bytes: int) -> Upload:
-    """Parse a multipart/form-data body, writing its `file` part to `dest_dir`; 413 past `max_bytes`."""
+class _FormReader:
+    """The python-multipart callbacks of one request, sharing its parse state: the current part and its headers,
+    the open output file, file bytes parsed but not yet written, and the first error (raised after the chunk)."""
+
+    def __init__(self, dest_dir: Path, max_bytes: int) -> None:
+        self.dest_dir = dest_dir
+        self.max_bytes = max_bytes
+        self.up = Upload()
+        self.sha = hashlib.sha256()
+        self.part = _Part()
+        self.headers: dict[bytes, bytes] = {}
+        self.out: IO[bytes] | None = None
+        self.pending: list[bytes] = []  # file bytes parsed from the current chunk, written after the callbacks
+        self.errors: list[HTTPException] = []
+
+    def callbacks(self) -> MultipartCallbacks:
+        return {
+            "on_part_begin": self.on_part_begin,
+            "on_part_data": self.on_part_data,
+            "on_part_end": self.on_part_end,
+            "on_header_field": self.on_header_field,
+            "on_header_value": self.on_header_value,
+            "on_header_end": self.on_header_end,
+            "on_headers_finished": self.on_headers_finished,
+        }
+
+    def fail(self, code: int, msg: str) -> None:
+        if not self.errors:
+            self.errors.append(HTTPException(code, msg))
+
+    def on_part_begin(self) -> None:
+        self.headers.clear()
+        self.part = _Part()
+
+    def on_header_field(self, data: bytes, start: int, end: int) -> None:
+        self.part.hname += data[start:end]
+
+    def on_header_value(self, data: bytes, start: int, end: int) -> None:
+        self.part.hval += data[start:end]
+
+    def on_header_end(self) -> None:
+        self.headers[self.part.hname.lower()] = self.part.hval
+        self.part.hname, self.part.hval = b"", b""
+
+    def on_headers_finished(self) -> None:
+        _disp, opts = parse_options_header(self.headers.get(b"content-disposition", b""))
+        self.part.name = opts.get(b"name", b"").decode("utf-8", "replace")
+        if b"filename" in opts and self.part.name == CAPTURE_FIELD:
+            self._open_capture(opts[b"filename"].decode("utf-8", "replace"))
+        elif b"filename" in opts:
+            self._open_scan(opts[b"filename"].decode("utf-8", "replace"))
+        elif len(self.up.fields) >= MAX_FIELDS:
+            self.fail(status.HTTP_422_UNPROCESSABLE_CONTENT, f"too many form fields (at most {MAX_FIELDS})")
+
+    def _open_capture(self, name: str) -> None:
+        if self.up.capture_path is not None:
+            self.fail(status.HTTP_422_UNPROCESSABLE_CONTENT, "send at most one 'capture' part")
+            return
+        if not name.lower().endswith(".zip"):
+            self.fail(status.HTTP_422_UNPROCESSABLE_CONTENT, "the 'capture' part must be a .zip of the capture")
+            return
+        (self.dest_dir / CAPTURE_FIELD).mkdir(exist_ok=True)
+        self.up.capture_path = self.dest_dir / CAPTURE_FIELD / "capture.zip"
+        self.out = self.up.capture_path.open("wb")
+        self.part.is_file = True
+
+    def _open_scan(self, name: str) -> None:
+        if self.part.name != FILE_FIELD:
+            self.fail(status.HTTP_422_UNPROCESSABLE_CONTENT,
+                      f"unexpected file part {self.part.name!r}: send the scan as 'file' (and a capture .zip as 'capture')")
+            return
+        if self.up.filename is not None:
+            self.fail(status.HTTP_422_UNPROCESSABLE_CONTENT, "send exactly one 'file' part")
+            return
+        try:
+            self.up.filename = safe_filename(name)
+        except HTTPException as e:
+            self.errors.append(e)
+            return
+        self.up.path = self.dest_dir / self.up.filename
+        self.out = self.up.path.open("wb")
+        self.part.is_file = True
+
+    def on_part_data(self, data: bytes, start: int, end: int) -> None:
+        if self.errors:
+            return
+        chunk = data[start:end]
+        if self.part.is_file:
+            self.up.size += len(chunk)
+            if self.up.size > self.max_bytes:
+                self.errors.append(_too_large(self.max_bytes))
+                return
+            self.sha.update(chunk)
+            self.pending.append(chunk)
+        elif len(self.part.buf) + len(chunk) > MAX_FIELD_BYTES:
+            self.fail(status.HTTP_422_UNPROCESSABLE_CONTENT, f"form field {self.part.name!r} is too long")
+        else:
+            self.part.buf.extend(chunk)
+
+    def on_part_end(self) -> None:
+        part = self.part
+        if part.is_file and self.out is not None:  # the next file part opens its own file: finish this one now
+            if self.pending:
+                self.out.write(b"".join(self.pending))
+                self.pending.clear()
+            self.out.close()
+            self.out = None
+        if self.errors or part.is_file or not part.name:
+            return
+        self.up.fields[part.name] = part.buf.decode("utf-8", "replace")
+
+    def take_pending(self) -> bytes:
+        """The file bytes parsed from the last chunk, to write off the event loop."""
+        data = b"".join(self.pending)
+        self.pending.clear()
+        return data
+
+    def finished(self) -> Upload:
+        """The upload, once the body has been read to its closing boundary."""
+        up = self.up
+        if up.path is None:
+            raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "the form has no 'file' part with the scan")
+        if up.size == 0:
+            raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"uploaded file {up.filename!r} is empty")
+        up.sha256 = self.sha.hexdigest()
+        return up
+
+
+def _boundary(request: Request, max_bytes: int) -> bytes:
+    """The multipart boundary; 415 for another content type, 413 when the declared length is already too large."""
     ctype, params = parse_options_header(request.headers.get("content-type", ""))
     if ctype != b"multipart/form-data" or b"boundary" not in params:
         raise HTTPException(
@@ -78,132 +209,30 @@ async def receive_upload(request: Request, *, dest_dir: Path, max_bytes: int) ->
     declared = request.headers.get("content-length")
     if declared and declared.isdigit() and int(declared) > max_bytes + MULTIPART_OVERHEAD:
         raise _too_large(max_bytes)
+    return params[b"boundary"]
 
-    up = Upload()
-    sha = hashlib.sha256()
-    part = _Part()
-    headers: dict[bytes, bytes] = {}
-    out: IO[bytes] | None = None
-    pending: list[bytes] = []  # file bytes parsed from the current chunk, written after the callbacks
-    errors: list[HTTPException] = []
 
-    def fail(code: int, msg: str) -> None:
-        if not errors:
-            errors.append(HTTPException(code, msg))
-
-    def on_part_begin() -> None:
-        nonlocal part
-        headers.clear()
-        part = _Part()
-
-    def on_header_field(data: bytes, start: int, end: int) -> None:
-        part.hname += data[start:end]
-
-    def on_header_value(data: bytes, start: int, end: int) -> None:
-        part.hval += data[start:end]
-
-    def on_header_end() -> None:
-        headers[part.hname.lower()] = part.hval
-        part.hname, part.hval = b"", b""
-
-    def on_headers_finished() -> None:
-        nonlocal out
-        _disp, opts = parse_options_header(headers.get(b"content-disposition", b""))
-        part.name = opts.get(b"name", b"").decode("utf-8", "replace")
-        if b"filename" in opts and part.name == CAPTURE_FIELD:
-            if up.capture_path is not None:
-                fail(status.HTTP_422_UNPROCESSABLE_CONTENT, "send at most one 'capture' part")
-                return
-            name = opts[b"filename"].decode("utf-8", "replace")
-            if not name.lower().endswith(".zip"):
-                fail(status.HTTP_422_UNPROCESSABLE_CONTENT, "the 'capture' part must be a .zip of the capture")
-                return
-            (dest_dir / CAPTURE_FIELD).mkdir(exist_ok=True)
-            up.capture_path = dest_dir / CAPTURE_FIELD / "capture.zip"
-            out = up.capture_path.open("wb")
-            part.is_file = True
-        elif b"filename" in opts:
-            if part.name != FILE_FIELD:
-                fail(status.HTTP_422_UNPROCESSABLE_CONTENT,
-                     f"unexpected file part {part.name!r}: send the scan as 'file' (and a capture .zip as 'capture')")
-                return
-            if up.filename is not None:
-                fail(status.HTTP_422_UNPROCESSABLE_CONTENT, "send exactly one 'file' part")
-                return
-            try:
-                up.filename = safe_filename(opts[b"filename"].decode("utf-8", "replace"))
-            except HTTPException as e:
-                errors.append(e)
-                return
-            up.path = dest_dir / up.filename
-            out = up.path.open("wb")
-            part.is_file = True
-        elif len(up.fields) >= MAX_FIELDS:
-            fail(status.HTTP_422_UNPROCESSABLE_CONTENT, f"too many form fields (at most {MAX_FIELDS})")
-
-    def on_part_data(data: bytes, start: int, end: int) -> None:
-        if errors:
-            return
-        chunk = data[start:end]
-        if part.is_file:
-            up.size += len(chunk)
-            if up.size > max_bytes:
-                errors.append(_too_large(max_bytes))
-                return
-            sha.update(chunk)
-            pending.append(chunk)
-        elif len(part.buf) + len(chunk) > MAX_FIELD_BYTES:
-            fail(status.HTTP_422_UNPROCESSABLE_CONTENT, f"form field {part.name!r} is too long")
-        else:
-            part.buf.extend(chunk)
-
-    def on_part_end() -> None:
-        nonlocal out
-        if part.is_file and out is not None:  # the next file part opens its own file: finish this one now
-            if pending:
-                out.write(b"".join(pending))
-                pending.clear()
-            out.close()
-            out = None
-        if errors or part.is_file or not part.name:
-            return
-        up.fields[part.name] = part.buf.decode("utf-8", "replace")
-
-    parser = MultipartParser(
-        params[b"boundary"],
-        {
-            "on_part_begin": on_part_begin,
-            "on_part_data": on_part_data,
-            "on_part_end": on_part_end,
-            "on_header_field": on_header_field,
-            "on_header_value": on_header_value,
-            "on_header_end": on_header_end,
-            "on_headers_finished": on_headers_finished,
-        },
-    )
+async def receive_upload(request: Request, *, dest_dir: Path, max_bytes: int) -> Upload:
+    """Parse a multipart/form-data body, writing its `file` part to `dest_dir`; 413 past `max_bytes`."""
+    boundary = _boundary(request, max_bytes)
+    form = _FormReader(dest_dir, max_bytes)
+    parser = MultipartParser(boundary, form.callbacks())
     try:
         async for chunk in request.stream():
             try:
                 parser.write(chunk)
             except Exception as e:  # python-multipart raises its own errors on malformed bodies
                 raise HTTPException(status.HTTP_400_BAD_REQUEST, f"malformed multipart body: {e}") from None
-            if errors:
-                raise errors[0]
-            if pending and out is not None:
-                data = b"".join(pending)
-                pending.clear()
-                await anyio.to_thread.run_sync(out.write, data)
-        if errors:
-            raise errors[0]
+            if form.errors:
+                raise form.errors[0]
+            if form.pending and form.out is not None:
+                await anyio.to_thread.run_sync(form.out.write, form.take_pending())
+        if form.errors:
+            raise form.errors[0]
         if parser.state != MultipartState.END:
             # python-multipart's finalize() does not check this: a body cut short would pass as a short file
             raise HTTPException(status.HTTP_400_BAD_REQUEST, "incomplete multipart body: no closing boundary")
     finally:
-        if out is not None:
-            out.close()
-    if up.path is None:
-        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "the form has no 'file' part with the scan")
-    if up.size == 0:
-        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"uploaded file {up.filename!r} is empty")
-    up.sha256 = sha.hexdigest()
-    return up
+        if form.out is not None:
+            form.out.close()
+    return form.finished()

@@ -11,6 +11,7 @@ from services.worker.cues.common import (
     euclidean_m,
     hit,
     normal_cam,
+    position_world,
     ray_dirs_cam,
     to_uint16_depth,
     valid,
@@ -99,7 +100,7 @@ def principal_curvature(ctx: ViewContext) -> np.ndarray:
 @register("position")
 def position(ctx: ViewContext) -> np.ndarray:
     """float32 H x W x 3 world XYZ (metres) of the seen surface, NaN where nothing is seen; from depth and pose."""
-    return ctx.passes.position_world()
+    return position_world(ctx)
 
 
 @register("fragments", passes={"faces"})

@@ -22,9 +22,25 @@ def depth_m(ctx: ViewContext) -> np.ndarray:
     return ctx.passes.depth_z
 
 
+def ray_dirs_cam64(ctx: ViewContext) -> np.ndarray:
+    """float64 H x W x 3 unit pixel-centre ray directions, OpenCV camera axes (ViewGeometry.ray_directions_cam)."""
+    return ctx.memo("ray_dirs_cam64", ctx.geometry.ray_directions_cam)
+
+
 def ray_dirs_cam(ctx: ViewContext) -> np.ndarray:
     """float32 H x W x 3 unit pixel-centre ray directions, OpenCV camera axes."""
-    return ctx.memo("ray_dirs_cam", lambda: ctx.geometry.ray_directions_cam().astype(np.float32))
+    return ctx.memo("ray_dirs_cam", lambda: ray_dirs_cam64(ctx).astype(np.float32))
+
+
+def position_world(ctx: ViewContext) -> np.ndarray:
+    """float32 H x W x 3 world position (metres) of the seen surface, NaN = none: ViewPasses.position_world's
+    arithmetic (float64, cast at the end) on the view's memoised rays."""
+    g = ctx.geometry
+    d_cam = ray_dirs_cam64(ctx)
+    t = depth_m(ctx).astype(np.float64) / d_cam[..., 2]  # euclidean distance along the unit ray
+    p = g.center + (d_cam @ g.rotation) * t[..., None]  # R^T d per pixel
+    p[~hit(ctx)] = np.nan
+    return p.astype(np.float32)
 
 
 def euclidean_m(ctx: ViewContext) -> np.ndarray:

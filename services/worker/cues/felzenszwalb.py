@@ -33,59 +33,73 @@ def _find(parent: np.ndarray, i: int) -> int:
     return root
 
 
+_DIRECTIONS = ((0, 1), (1, 0), (1, 1), (-1, 1))  # right, down, down-right, up-right: skimage's edge set
+
+
 @njit(cache=True, nogil=True)
-def _edges(img: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """8-connected grid edges (right, down, down-right, up-right; skimage's set) and their feature distances."""
-    h, w, c = img.shape
-    n_edges = h * (w - 1) + (h - 1) * w + 2 * (h - 1) * (w - 1)
-    a = np.empty(n_edges, np.int32)
-    b = np.empty(n_edges, np.int32)
-    cost = np.empty(n_edges, np.float32)
+def _edge_count(h: int, w: int) -> int:
+    return h * (w - 1) + (h - 1) * w + 2 * (h - 1) * (w - 1)
+
+
+@njit(cache=True, nogil=True)
+def _distance(img: np.ndarray, y: int, x: int, y2: int, x2: int) -> float:
+    s = 0.0
+    for k in range(img.shape[2]):
+        d = img[y, x, k] - img[y2, x2, k]
+        s += d * d
+    return np.sqrt(s)
+
+
+@njit(cache=True, nogil=True)
+def _sorted_edges(img: np.ndarray, levels: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The 8-connected grid's edges (pixel ends a, b and feature distance) in increasing distance quantised to
+    `levels` steps of the largest, ties in generation order (a stable counting sort), so the merge passes read
+    them in sequence. Generation order: direction by direction, rows, columns (skimage's edge set)."""
+    h, w, _ = img.shape
+    cost = np.empty(_edge_count(h, w), np.float32)
     e = 0
-    for dy, dx, y0, y1, x1 in ((0, 1, 0, h, w - 1), (1, 0, 0, h - 1, w), (1, 1, 0, h - 1, w - 1),
-                               (-1, 1, 1, h, w - 1)):
-        for y in range(y0, y1):
-            for x in range(x1):
-                s = 0.0
-                for k in range(c):
-                    d = img[y, x, k] - img[y + dy, x + dx, k]
-                    s += d * d
-                a[e] = y * w + x
-                b[e] = (y + dy) * w + x + dx
-                cost[e] = np.sqrt(s)
+    for dy, dx in _DIRECTIONS:
+        for y in range(max(0, -dy), h - max(0, dy)):
+            for x in range(w - dx):
+                cost[e] = _distance(img, y, x, y + dy, x + dx)
                 e += 1
-    return a, b, cost
-
-
-@njit(cache=True, nogil=True)
-def _counting_order(cost: np.ndarray, levels: int) -> np.ndarray:
-    """Edge indices in increasing quantised cost, ties in index order (a stable counting sort)."""
     top = 0.0
     for v in cost:
         top = max(top, v)
     scale = (levels - 1) / top if top > 0 else 0.0
-    q = np.empty(len(cost), np.int32)
-    counts = np.zeros(levels + 1, np.int64)
-    for i in range(len(cost)):
-        q[i] = int(cost[i] * scale)
-        counts[q[i] + 1] += 1
+    start = np.zeros(levels + 1, np.int64)
+    for v in cost:
+        start[int(v * scale) + 1] += 1
     for i in range(levels):
-        counts[i + 1] += counts[i]
-    order = np.empty(len(cost), np.int32)
-    for i in range(len(cost)):
-        order[counts[q[i]]] = i
-        counts[q[i]] += 1
-    return order
+        start[i + 1] += start[i]
+    a = np.empty(len(cost), np.int32)
+    b = np.empty(len(cost), np.int32)
+    sorted_cost = np.empty(len(cost), np.float32)
+    e = 0
+    for dy, dx in _DIRECTIONS:
+        for y in range(max(0, -dy), h - max(0, dy)):
+            for x in range(w - dx):
+                q = int(cost[e] * scale)
+                j = start[q]
+                start[q] += 1
+                a[j] = y * w + x
+                b[j] = (y + dy) * w + x + dx
+                sorted_cost[j] = cost[e]
+                e += 1
+    return a, b, sorted_cost
 
 
 @njit(cache=True, nogil=True)
-def _merge(a: np.ndarray, b: np.ndarray, cost: np.ndarray, order: np.ndarray, n: int,
-           k: float) -> tuple[np.ndarray, np.ndarray]:
-    """The greedy merge pass: parent forest and component sizes."""
+def _merge(a: np.ndarray, b: np.ndarray, cost: np.ndarray, n: int, k: float) -> tuple[np.ndarray, np.ndarray,
+                                                                                       np.ndarray]:
+    """The greedy merge pass over the sorted edges: parent forest, component sizes, and the edges it did not
+    merge across (in order): the only ones that can still join two components afterwards."""
     parent = np.arange(n).astype(np.int32)
     size = np.ones(n, np.int32)
     internal = np.zeros(n, np.float32)
-    for e in order:
+    kept = np.empty(len(a), np.int32)
+    n_kept = 0
+    for e in range(len(a)):
         r0 = _find(parent, a[e])
         r1 = _find(parent, b[e])
         if r0 == r1:
@@ -96,31 +110,30 @@ def _merge(a: np.ndarray, b: np.ndarray, cost: np.ndarray, order: np.ndarray, n:
             parent[r1] = r0
             size[r0] += size[r1]
             internal[r0] = cost[e]
-    return parent, size
+        else:
+            kept[n_kept] = e
+            n_kept += 1
+    return parent, size, kept[:n_kept]
 
 
 @njit(cache=True, nogil=True)
-def _crossing(a: np.ndarray, b: np.ndarray, order: np.ndarray, parent: np.ndarray) -> tuple[np.ndarray, np.ndarray,
-                                                                                             np.ndarray]:
+def _crossing(a: np.ndarray, b: np.ndarray, kept: np.ndarray, parent: np.ndarray) -> tuple[np.ndarray, np.ndarray,
+                                                                                            np.ndarray]:
     """The merge pass's forest flattened (every pixel's root) and, in edge order, the ends of the edges that join
     two of its components: the only edges the min-size pass can act on, since components only grow."""
     n = len(parent)
     root = np.empty(n, np.int32)
     for i in range(n):
         root[i] = _find(parent, i)
-    count = 0
-    for e in order:
-        if root[a[e]] != root[b[e]]:
-            count += 1
-    ca = np.empty(count, np.int32)
-    cb = np.empty(count, np.int32)
+    ca = np.empty(len(kept), np.int32)
+    cb = np.empty(len(kept), np.int32)
     j = 0
-    for e in order:
+    for e in kept:
         if root[a[e]] != root[b[e]]:
             ca[j] = a[e]
             cb[j] = b[e]
             j += 1
-    return root, ca, cb
+    return root, ca[:j], cb[:j]
 
 
 @njit(cache=True, nogil=True)
@@ -161,10 +174,9 @@ class Felzenszwalb:
         if sigma > 0:
             img = np.stack([gaussian_filter(img[..., c], sigma) for c in range(img.shape[-1])], axis=-1)
         self.shape = img.shape[:2]
-        a, b, cost = _edges(img)
-        order = _counting_order(cost, SORT_LEVELS)
-        parent, self._size = _merge(a, b, cost, order, self.shape[0] * self.shape[1], float(scale) / 255.0)
-        self._parent, self._ca, self._cb = _crossing(a, b, order, parent)
+        a, b, cost = _sorted_edges(img, SORT_LEVELS)
+        parent, self._size, kept = _merge(a, b, cost, self.shape[0] * self.shape[1], float(scale) / 255.0)
+        self._parent, self._ca, self._cb = _crossing(a, b, kept, parent)
 
     def labels(self, min_size: int) -> np.ndarray:
         """int64 H x W labels 0..n-1 (raster order of first appearance)."""

@@ -25,6 +25,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
+from numba import njit
 from scipy.ndimage import gaussian_filter, sobel, uniform_filter
 
 from services.worker.context import ViewContext
@@ -115,14 +116,25 @@ def _half(x: np.ndarray) -> np.ndarray:
 
 
 def _double(x: np.ndarray) -> np.ndarray:
-    """Bilinear 2x upsampling at pixel centres (weights 3/4, 1/4; edges clamped) of an H x W array."""
-    for axis in (0, 1):
-        n = x.shape[axis]
-        prev = np.take(x, np.r_[0, 0:n - 1], axis=axis)
-        nxt = np.take(x, np.r_[1:n, n - 1], axis=axis)
-        pair = np.stack([0.75 * x + 0.25 * prev, 0.75 * x + 0.25 * nxt], axis=axis + 1)
-        x = pair.reshape(x.shape[:axis] + (2 * n,) + x.shape[axis + 1:])
-    return x
+    """Bilinear 2x upsampling at pixel centres (weights 3/4, 1/4; edges clamped) of an H x W float32 array: rows
+    first, then columns, each output 0.75 * x + 0.25 * neighbour in float32 (a compiled loop; numpy's version
+    spent most of its time building index and stacked temporaries)."""
+    return _double_axis(_double_axis(np.ascontiguousarray(x, dtype=np.float32)).T).T
+
+
+@njit(cache=True, nogil=True)
+def _double_axis(x: np.ndarray) -> np.ndarray:
+    """Rows of x doubled: out[2i] = 0.75 x[i] + 0.25 x[i-1], out[2i+1] = 0.75 x[i] + 0.25 x[i+1] (clamped)."""
+    n, m = x.shape
+    near, far = np.float32(0.75), np.float32(0.25)
+    out = np.empty((2 * n, m), np.float32)
+    for i in range(n):
+        prev, nxt = max(i - 1, 0), min(i + 1, n - 1)
+        for j in range(m):
+            c = near * x[i, j]
+            out[2 * i, j] = c + far * x[prev, j]
+            out[2 * i + 1, j] = c + far * x[nxt, j]
+    return out
 
 
 class _Pyramid:

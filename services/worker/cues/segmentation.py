@@ -22,6 +22,7 @@ from __future__ import annotations
 import hashlib
 
 import numpy as np
+from numba import njit
 from scipy.linalg import eigh
 from scipy.ndimage import distance_transform_edt
 
@@ -76,8 +77,59 @@ def region_graph(labels: np.ndarray, features255: np.ndarray, sigma: float,
     return W
 
 
+# Links weaker than this count as absent when looking for disconnected parts (self-loops weigh 1; an RBF weight
+# this small is exp(-23)): a cut through them costs < 1e-9, far below any useful segment_ncut_thresh.
+LINK_EPS = 1e-10
+
+
+@njit(cache=True, nogil=True)
+def _components(w: np.ndarray, eps: float) -> tuple[int, np.ndarray]:
+    """Connected components of the graph whose links are the entries of w above eps: (count, id per node)."""
+    n = len(w)
+    part = np.full(n, -1, np.int64)
+    stack = np.empty(n, np.int64)
+    count = 0
+    for seed in range(n):
+        if part[seed] >= 0:
+            continue
+        part[seed] = count
+        stack[0] = seed
+        top = 1
+        while top:
+            top -= 1
+            i = stack[top]
+            for j in range(n):
+                if part[j] < 0 and w[i, j] > eps:
+                    part[j] = count
+                    stack[top] = j
+                    top += 1
+        count += 1
+    return count, part
+
+
+@njit(cache=True, nogil=True)
+def _first_appearance_ranks(labels: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """uint16 labels 1..K (capped at 65535) in raster order of first appearance inside mask, 0 outside."""
+    rank = np.zeros(labels.max() + 1, np.int64)
+    out = np.zeros(labels.shape, np.uint16)
+    count = 0
+    for i in range(labels.size):
+        if mask[i]:
+            lab = labels[i]
+            if rank[lab] == 0:
+                count += 1
+                rank[lab] = count
+            out[i] = min(rank[lab], 65535)
+    return out
+
+
 def normalized_cuts(W: np.ndarray, thresh: float, num_cuts: int) -> np.ndarray:
-    """Recursive two-way normalized cuts on a dense similarity matrix; returns a segment id per node."""
+    """Recursive two-way normalized cuts on a dense similarity matrix; returns a segment id per node.
+
+    A subgraph falling apart into (numerically) disconnected parts is split into them directly: its eigenproblem
+    then has a multiple zero eigenvalue, so the dense solver (O(n^3), most of a segmentation's cost at 512 px)
+    would only return some mix of the parts' indicator vectors, and every threshold between them cuts at ~0 cost:
+    the cuts end at the same parts, peeled off one eigenproblem at a time."""
     out = np.zeros(len(W), dtype=np.int64)
     next_id = 0
     stack = [np.arange(len(W))]
@@ -86,21 +138,11 @@ def normalized_cuts(W: np.ndarray, thresh: float, num_cuts: int) -> np.ndarray:
         best_mask = None
         if len(idx) > 2:
             w = W[np.ix_(idx, idx)]
-            d = w.sum(axis=1)
-            dis = 1.0 / np.sqrt(d)
-            A = (np.diag(d) - w) * dis[:, None] * dis[None, :]
-            _, vecs = eigh(A, subset_by_index=[0, 1], driver="evr")
-            ev = vecs[:, 1] * dis
-            # All thresholds at once: row t of `masks` is one candidate split, cut_t = m_t^T w (1 - m_t).
-            masks = ev[None, :] > np.linspace(ev.min(), ev.max(), num_cuts, endpoint=False)[:, None]
-            m = masks.astype(np.float64)
-            cut = ((m @ w) * (1.0 - m)).sum(axis=1)
-            assoc = m @ d
-            proper = masks.any(axis=1) & ~masks.all(axis=1)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                cost = np.where(proper, cut / assoc + cut / (d.sum() - assoc), np.inf)
-            best = int(np.argmin(cost))  # the first of equal minima, as the loop over thresholds took
-            best_mask = masks[best] if cost[best] < thresh else None
+            n_parts, part = _components(w, LINK_EPS)
+            if n_parts > 1:
+                stack.extend(idx[part == k] for k in range(n_parts))
+                continue
+            best_mask = _best_split(w, thresh, num_cuts)
         if best_mask is None:
             out[idx] = next_id
             next_id += 1
@@ -110,17 +152,31 @@ def normalized_cuts(W: np.ndarray, thresh: float, num_cuts: int) -> np.ndarray:
     return out
 
 
+def _best_split(w: np.ndarray, thresh: float, num_cuts: int) -> np.ndarray | None:
+    """The two-way normalized cut of a connected similarity matrix (a node mask), None when none is below thresh."""
+    d = w.sum(axis=1)
+    dis = 1.0 / np.sqrt(d)
+    A = (np.diag(d) - w) * dis[:, None] * dis[None, :]
+    _, vecs = eigh(A, subset_by_index=[0, 1], driver="evr")
+    ev = vecs[:, 1] * dis
+    # All thresholds at once: row t of `masks` is one candidate split, cut_t = m_t^T w (1 - m_t).
+    masks = ev[None, :] > np.linspace(ev.min(), ev.max(), num_cuts, endpoint=False)[:, None]
+    m = masks.astype(np.float64)
+    cut = ((m @ w) * (1.0 - m)).sum(axis=1)
+    assoc = m @ d
+    proper = masks.any(axis=1) & ~masks.all(axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cost = np.where(proper, cut / assoc + cut / (d.sum() - assoc), np.inf)
+    best = int(np.argmin(cost))  # the first of equal minima, as the loop over thresholds took
+    return masks[best] if cost[best] < thresh else None
+
+
 def _relabel(labels: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """uint16 labels 1..K in raster order of first appearance inside mask, 0 outside."""
-    out = np.zeros(labels.shape, dtype=np.uint16)
-    vals = labels[mask]
-    if vals.size == 0:
-        return out
-    uniq, first, inv = np.unique(vals, return_index=True, return_inverse=True)
-    rank = np.empty(len(uniq), dtype=np.int64)
-    rank[np.argsort(first)] = np.arange(1, len(uniq) + 1)
-    out[mask] = np.minimum(rank[inv], 65535).astype(np.uint16)
-    return out
+    """uint16 labels 1..K in raster order of first appearance inside mask, 0 outside (labels >= 0)."""
+    if labels.size == 0:
+        return np.zeros(labels.shape, dtype=np.uint16)
+    flat = _first_appearance_ranks(np.ascontiguousarray(labels).ravel(), np.ascontiguousarray(mask).ravel())
+    return flat.reshape(labels.shape)
 
 
 def nearest_in_mask(ctx: ViewContext, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -138,7 +194,12 @@ def segment(ctx: ViewContext, features: np.ndarray, mask: np.ndarray, *, sigma: 
             boundary: np.ndarray | None = None) -> np.ndarray:
     """Felzenszwalb + normalized cuts on an H x W x C feature image in ~[0, 1]; uint16 labels, 0 off mask."""
     p = ctx.params
-    if mask.any() and not mask.all():
+    seen = features[mask] if not mask.all() else features.reshape(-1, features.shape[-1])
+    if not len(seen) or np.all(seen == seen[0]):
+        # One colour on the whole surface (an untextured scan's rgb): Felzenszwalb merges every zero-weight edge,
+        # so one superpixel and one segment (after the background fill below), without building the graph.
+        return _relabel(np.zeros(mask.shape, dtype=np.int64), mask)
+    if not mask.all():
         # Background pixels take the nearest surface pixel's features, so silhouettes do not spawn thin
         # mixed-colour regions (Felzenszwalb blurs first) and the background merges into its neighbours.
         iy, ix = nearest_in_mask(ctx, mask)

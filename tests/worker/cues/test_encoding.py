@@ -84,3 +84,40 @@ def test_panoptic_packing_round_trips() -> None:
     c2, i2 = unpack_panoptic(np.array(Image.open(io.BytesIO(encode("segment_panoptic", packed)))))
     np.testing.assert_array_equal(c2, cls)
     np.testing.assert_array_equal(i2, inst)
+
+
+def pillow_png(arr: np.ndarray) -> bytes:
+    """The encoder before issue 20 (Pillow, level 3, Z_RLE): the reference the hand-written PNGs must decode like."""
+    if arr.dtype == np.uint16:
+        img = Image.frombuffer("I;16", (arr.shape[1], arr.shape[0]), arr.astype("<u2").tobytes(), "raw", "I;16", 0, 1)
+    else:
+        img = Image.fromarray(arr)
+    buf = io.BytesIO()
+    img.save(buf, format="PNG", compress_level=3, compress_type=3)
+    return buf.getvalue()
+
+
+@pytest.mark.parametrize("shape,dtype", [((1, 1), np.uint16), ((7, 5), np.uint16), ((33, 64), np.uint8),
+                                         ((9, 1, 3), np.uint8), ((40, 31, 3), np.uint8), ((512, 512), np.uint16)])
+def test_png_files_decode_to_the_same_arrays_as_the_previous_pillow_encoder(shape, dtype) -> None:
+    rng = np.random.default_rng(sum(shape))
+    top = np.iinfo(dtype).max
+    # Smooth ramps (long runs after filtering), noise and the extreme values, so every filter byte wraps.
+    a = (np.add.outer(np.arange(shape[0]) * 97, np.arange(shape[1]) * 13) % (top + 1))
+    a = (a[..., None] if len(shape) == 3 else a) + rng.integers(0, 3, shape)
+    a = np.clip(a, 0, top).astype(dtype)
+    a.flat[:: max(1, a.size // 7)] = top
+    new, old = encode_png(a), pillow_png(a)
+    assert png_header(new) == png_header(old)
+    decoded_new = np.array(Image.open(io.BytesIO(new)))
+    decoded_old = np.array(Image.open(io.BytesIO(old)))
+    assert decoded_new.dtype == decoded_old.dtype
+    np.testing.assert_array_equal(decoded_new, decoded_old)
+    np.testing.assert_array_equal(decoded_new.astype(dtype), a)
+
+
+def test_png_refuses_unsupported_layouts() -> None:
+    with pytest.raises(ValueError, match="single-channel"):
+        encode_png(np.zeros((4, 4, 3), dtype=np.uint16))
+    with pytest.raises(ValueError, match="H x W x 3"):
+        encode_png(np.zeros((4, 4, 4), dtype=np.uint8))

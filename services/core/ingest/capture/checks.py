@@ -128,3 +128,17 @@ class FrameCollector:
             return
         width, height = size if size is not None else (None, None)
         self.frames.append(CaptureFrame(name, image, width, height, K, distortion, tuple(params), c2w))
+
+    def add_pose_file(self, name: str, image: str, pose_file: Path, *, shown_as: str, K: Any = None,
+                      size: tuple[int, int] | None = None) -> None:
+        """Add a frame whose pose is a text file of 16 numbers (a row-major 4x4), or record why it is skipped
+        (`shown_as`: the pose file as the message names it)."""
+        try:
+            pose = np.array([float(x) for x in read_text(pose_file, self.root).split()], dtype=np.float64)
+        except ValueError:
+            self.problem(f"frame {name}: {shown_as} is not 16 numbers; skipped")
+            return
+        if pose.size != 16:
+            self.problem(f"frame {name}: {shown_as} has {pose.size} numbers, expected 16 (4x4); skipped")
+            return
+        self.add(name, image, pose.reshape(4, 4), K=K, size=size)

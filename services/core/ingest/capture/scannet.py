@@ -44,14 +44,6 @@ def read_scannet(root: Path, folder: Path) -> Capture:
         if image is None:
             col.problem(f"frame {i}: color/{i}.jpg is missing; skipped")
             continue
-        try:
-            pose = _numbers(pose_file, root)
-        except ValueError:
-            col.problem(f"frame {i}: pose/{i}.txt is not numbers; skipped")
-            continue
-        if pose.size != 16:
-            col.problem(f"frame {i}: pose/{i}.txt has {pose.size} numbers, expected 16; skipped")
-            continue
-        col.add(i, image, pose.reshape(4, 4), K=K)
+        col.add_pose_file(i, image, pose_file, shown_as=f"pose/{i}.txt", K=K)
     return Capture("scannet", root, tuple(col.frames), tuple(col.problems),
                    notes=(f"ScanNet export in {prefix or './'}",))

@@ -89,13 +89,6 @@ def read_sevenscenes(root: Path, files: list[Path]) -> Capture:
             if image is None:
                 col.problem(f"frame {name}: no {stem}.color.jpg or .color.png beside its pose; skipped")
                 continue
-            try:
-                pose = np.array([float(x) for x in read_text(pose_file, root).split()], dtype=np.float64)
-            except ValueError:
-                col.problem(f"frame {name}: {pose_file.name} is not 16 numbers; skipped")
-                continue
-            if pose.size != 16:
-                col.problem(f"frame {name}: {pose_file.name} has {pose.size} numbers, expected 16 (4x4); skipped")
-                continue
-            col.add(name, image.relative_to(root).as_posix(), pose.reshape(4, 4), K=K, size=size)
+            col.add_pose_file(name, image.relative_to(root).as_posix(), pose_file, shown_as=pose_file.name, K=K,
+                              size=size)
     return Capture("7scenes", root, tuple(col.frames), tuple(col.problems), notes=tuple(dict.fromkeys(notes)))

@@ -101,6 +101,23 @@ def ply_elements(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     return _records(raw["vertex"]["data"]), None if face is None else _records(face)
 
 
+def ply_with_faces(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(vertex records, face records) of a labelled PLY, which must have faces."""
+    vertices, faces = ply_elements(path)
+    if faces is None:
+        raise DatasetError(f"{path.name}: has no faces")
+    return vertices, faces
+
+
+def segment_indices(segments_json: Path, vertices: int, mesh_name: str) -> np.ndarray:
+    """The segment of each vertex (`segIndices`, ScanNet's format), checked against the mesh it indexes."""
+    seg_indices = np.asarray(read_json(segments_json).get("segIndices", []), dtype=np.int64)
+    if len(seg_indices) != vertices:
+        raise DatasetError(f"{segments_json.name}: {len(seg_indices)} segIndices for the {vertices} vertices of "
+                           f"{mesh_name}")
+    return seg_indices
+
+
 def require_property(records: np.ndarray, name: str, path: Path) -> np.ndarray:
     if records.dtype.names is None or name not in records.dtype.names:
         raise DatasetError(f"{path.name}: has no '{name}' property (found {', '.join(records.dtype.names or ())})")
@@ -162,6 +179,18 @@ class LabelledSurface:
         tris, _ = fan(polys)
         cls, inst = _unpair(majority(_pair(vertex_class, vertex_instance)[tris]))
         return LabelledSurface(vertices[tris], cls, inst)
+
+    @staticmethod
+    def of_ply_faces(vertices: np.ndarray, faces: np.ndarray, face_class: np.ndarray,
+                     face_instance: np.ndarray) -> LabelledSurface:
+        """A PLY's surface (vertex and face records) labelled per face."""
+        return LabelledSurface.from_faces(xyz(vertices), polygons(faces), face_class, face_instance)
+
+    @staticmethod
+    def of_ply_vertices(vertices: np.ndarray, faces: np.ndarray, vertex_class: np.ndarray,
+                        vertex_instance: np.ndarray) -> LabelledSurface:
+        """A PLY's surface (vertex and face records) labelled per vertex."""
+        return LabelledSurface.from_vertices(xyz(vertices), polygons(faces), vertex_class, vertex_instance)
 
     @staticmethod
     def join(parts: list[LabelledSurface]) -> LabelledSurface:

@@ -5,15 +5,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from services.core.ingest.datasets.base import DatasetScene
+from services.core.ingest.datasets.base import DatasetScene, first_existing
 
 NAME = "gibson"
 MESH = "mesh_z_up.obj"
 
 
 def scene_mesh(folder: Path) -> Path | None:
-    mesh = folder / MESH
-    return mesh if mesh.is_file() else None
+    return first_existing(folder / MESH)
 
 
 def read(mesh: Path) -> DatasetScene | None:

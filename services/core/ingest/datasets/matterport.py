@@ -22,11 +22,9 @@ from services.core.ingest.datasets.base import (
     LabelledSurface,
     SceneLabels,
     ply_elements,
-    polygons,
     read_json,
     require_property,
     transfer,
-    xyz,
 )
 
 NAME = "matterport3d"
@@ -93,7 +91,7 @@ def read(mesh: Path) -> DatasetScene | None:
             instances = np.where(objects > 0, local + 1 + next_instance, 0)
             next_instance += int(local.max()) + 1 if len(local) else 0
             classes.append(np.maximum(category, 0))
-            surfaces.append(LabelledSurface.from_faces(xyz(vertices), polygons(faces), classes[-1], instances))
+            surfaces.append(LabelledSurface.of_ply_faces(vertices, faces, classes[-1], instances))
         cls, inst = transfer(loaded, LabelledSurface.join(surfaces))
         if categories:
             names = {index: name for index, name in categories.values() if index > 0}

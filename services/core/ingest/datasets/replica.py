@@ -19,12 +19,10 @@ from services.core.ingest.datasets.base import (
     DatasetScene,
     LabelledSurface,
     SceneLabels,
-    ply_elements,
-    polygons,
+    ply_with_faces,
     read_json,
     require_property,
     transfer,
-    xyz,
 )
 
 NAME = "replica"
@@ -48,14 +46,11 @@ def read(mesh: Path) -> DatasetScene | None:
             names = {int(c["id"]): str(c["name"]) for c in doc.get("classes", [])}
         except (KeyError, TypeError, ValueError) as e:
             raise DatasetError(f"{info.name}: expected id_to_label and classes ({e})") from None
-        vertices, faces = ply_elements(semantic)
-        if faces is None:
-            raise DatasetError(f"{semantic.name}: has no faces")
+        vertices, faces = ply_with_faces(semantic)
         object_id = require_property(faces, "object_id", semantic).astype(np.int64)
         known = (object_id >= 0) & (object_id < len(id_to_label))
         face_class = np.where(known, id_to_label[np.clip(object_id, 0, len(id_to_label) - 1)], 0)
-        surface = LabelledSurface.from_faces(xyz(vertices), polygons(faces), np.maximum(face_class, 0),
-                                             np.maximum(object_id, 0))
+        surface = LabelledSurface.of_ply_faces(vertices, faces, np.maximum(face_class, 0), np.maximum(object_id, 0))
         cls, inst = transfer(loaded, surface)
         return SceneLabels(cls, inst, names)
 

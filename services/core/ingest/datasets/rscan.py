@@ -17,15 +17,13 @@ import trimesh
 
 from services.core.ingest.datasets.base import (
     NYU40,
-    DatasetError,
     DatasetScene,
     LabelledSurface,
     SceneLabels,
-    ply_elements,
-    polygons,
+    first_existing,
+    ply_with_faces,
     require_property,
     transfer,
-    xyz,
 )
 
 NAME = "3rscan"
@@ -34,8 +32,7 @@ LABELS = "labels.instances.annotated.v2.ply"
 
 
 def scene_mesh(folder: Path) -> Path | None:
-    mesh = folder / MESH
-    return mesh if mesh.is_file() else None
+    return first_existing(folder / MESH)
 
 
 def read(mesh: Path) -> DatasetScene | None:
@@ -45,12 +42,10 @@ def read(mesh: Path) -> DatasetScene | None:
     labels_ply, semseg = folder / LABELS, folder / "semseg.v2.json"
 
     def label(loaded: trimesh.Trimesh) -> SceneLabels:
-        vertices, faces = ply_elements(labels_ply)
-        if faces is None:
-            raise DatasetError(f"{LABELS}: has no faces")
+        vertices, faces = ply_with_faces(labels_ply)
         object_id = require_property(vertices, "objectId", labels_ply).astype(np.int64)
         nyu40 = require_property(vertices, "NYU40", labels_ply).astype(np.int64)
-        cls, inst = transfer(loaded, LabelledSurface.from_vertices(xyz(vertices), polygons(faces), nyu40, object_id))
+        cls, inst = transfer(loaded, LabelledSurface.of_ply_vertices(vertices, faces, nyu40, object_id))
         return SceneLabels(cls, inst, dict(NYU40))
 
     files = [p for p in (mesh, labels_ply, semseg) if p.is_file()]

@@ -27,12 +27,11 @@ from services.core.ingest.datasets.base import (
     SceneLabels,
     first_existing,
     names_from_labels,
-    ply_elements,
-    polygons,
+    ply_with_faces,
     read_json,
     segment_groups,
+    segment_indices,
     transfer,
-    xyz,
 )
 
 NAME = "scannet"
@@ -82,18 +81,13 @@ def _labeller(folder: Path, scene: str) -> tuple[Callable[[trimesh.Trimesh], Sce
     points_ply = labels_ply if labels_ply.is_file() else folder / f"{scene}{LOW}"
 
     def label(mesh: trimesh.Trimesh) -> SceneLabels:
-        vertices, faces = ply_elements(points_ply)
-        if faces is None:
-            raise DatasetError(f"{points_ply.name}: has no faces")
+        vertices, faces = ply_with_faces(points_ply)
         n = len(vertices)
         vertex_class = np.zeros(n, dtype=np.int64)
         vertex_instance = np.zeros(n, dtype=np.int64)
         names: dict[int, str] = {}
         if segs and aggregation is not None:
-            seg_indices = np.asarray(read_json(segs[0]).get("segIndices", []), dtype=np.int64)
-            if len(seg_indices) != n:
-                raise DatasetError(f"{segs[0].name}: {len(seg_indices)} segIndices for the {n} vertices of "
-                                   f"{points_ply.name}")
+            seg_indices = segment_indices(segs[0], n, points_ply.name)
             groups = read_json(aggregation).get("segGroups", [])
             class_of_label = names_from_labels([str(g.get("label")) for g in groups])
             vertex_class, vertex_instance = segment_groups(seg_indices, groups, class_of_label, aggregation,
@@ -109,7 +103,7 @@ def _labeller(folder: Path, scene: str) -> tuple[Callable[[trimesh.Trimesh], Sce
             raise DatasetError(f"ScanNet scene {scene}: no labels ({labels_ply.name}, or segs.json + "
                                "aggregation.json) beside the mesh")
         face_class, face_instance = transfer(
-            mesh, LabelledSurface.from_vertices(xyz(vertices), polygons(faces), vertex_class, vertex_instance))
+            mesh, LabelledSurface.of_ply_vertices(vertices, faces, vertex_class, vertex_instance))
         if len(mesh.faces) != len(faces):
             notes.append(f"labels carried from {points_ply.name} to the high-resolution mesh by nearest surface")
         return SceneLabels(face_class, face_instance, names, tuple(notes))

@@ -12,21 +12,19 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 import trimesh
 
 from services.core.ingest.datasets.base import (
-    DatasetError,
     DatasetScene,
     LabelledSurface,
     SceneLabels,
+    first_existing,
     names_from_labels,
-    ply_elements,
-    polygons,
+    ply_with_faces,
     read_json,
     segment_groups,
+    segment_indices,
     transfer,
-    xyz,
 )
 
 NAME = "scannetpp"
@@ -35,10 +33,7 @@ SEMANTIC_MESH = "mesh_aligned_0.05_semantic.ply"
 
 
 def scene_mesh(folder: Path) -> Path | None:
-    for candidate in (folder / "scans" / MESH, folder / MESH):
-        if candidate.is_file():
-            return candidate
-    return None
+    return first_existing(folder / "scans" / MESH, folder / MESH)
 
 
 def _dataset_classes(scans: Path) -> dict[str, int] | None:
@@ -59,13 +54,8 @@ def read(mesh: Path) -> DatasetScene | None:
     segments, annotation = scans / "segments.json", scans / "segments_anno.json"
 
     def label(loaded: trimesh.Trimesh) -> SceneLabels:
-        vertices, faces = ply_elements(mesh)
-        if faces is None:
-            raise DatasetError(f"{mesh.name}: has no faces")
-        seg_indices = read_json(segments).get("segIndices", [])
-        if len(seg_indices) != len(vertices):
-            raise DatasetError(f"{segments.name}: {len(seg_indices)} segIndices for the {len(vertices)} vertices "
-                               f"of {MESH}")
+        vertices, faces = ply_with_faces(mesh)
+        seg_indices = segment_indices(segments, len(vertices), MESH)
         groups = read_json(annotation).get("segGroups", [])
         labels = [str(g.get("label")) for g in groups]
         classes = _dataset_classes(scans)
@@ -74,10 +64,9 @@ def read(mesh: Path) -> DatasetScene | None:
             classes = names_from_labels(labels)
         elif missing := sorted(set(labels) - set(classes)):
             notes = (f"labels not in metadata/semantic_classes.txt stay unlabelled: {', '.join(missing[:10])}",)
-        vertex_class, vertex_instance = segment_groups(
-            np.asarray(seg_indices, dtype=np.int64), groups, classes, annotation)
+        vertex_class, vertex_instance = segment_groups(seg_indices, groups, classes, annotation)
         face_class, face_instance = transfer(
-            loaded, LabelledSurface.from_vertices(xyz(vertices), polygons(faces), vertex_class, vertex_instance))
+            loaded, LabelledSurface.of_ply_vertices(vertices, faces, vertex_class, vertex_instance))
         used = set(labels)
         return SceneLabels(face_class, face_instance, {i: n for n, i in classes.items() if n in used}, notes)
 

@@ -1,0 +1,76 @@
+"""Issue 20's faster kernels give the same values as the code they replaced (reference versions kept here)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from services.worker.context import ViewContext
+from services.worker.cues.keypoints import _double
+from services.worker.cues.registry import cue_value
+from services.worker.cues.segmentation import _relabel, normalized_cuts
+from tests.fixtures.raycast import cube_scene, raycast_passes
+
+
+def reference_double(x: np.ndarray) -> np.ndarray:
+    """keypoints' bilinear 2x upsampling before issue 20 (numpy take/stack)."""
+    for axis in (0, 1):
+        n = x.shape[axis]
+        prev = np.take(x, np.r_[0, 0:n - 1], axis=axis)
+        nxt = np.take(x, np.r_[1:n, n - 1], axis=axis)
+        pair = np.stack([0.75 * x + 0.25 * prev, 0.75 * x + 0.25 * nxt], axis=axis + 1)
+        x = pair.reshape(x.shape[:axis] + (2 * n,) + x.shape[axis + 1:])
+    return x
+
+
+def reference_relabel(labels: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """segmentation's relabelling before issue 20 (np.unique, first-appearance order)."""
+    out = np.zeros(labels.shape, dtype=np.uint16)
+    vals = labels[mask]
+    if vals.size == 0:
+        return out
+    uniq, first, inv = np.unique(vals, return_index=True, return_inverse=True)
+    rank = np.empty(len(uniq), dtype=np.int64)
+    rank[np.argsort(first)] = np.arange(1, len(uniq) + 1)
+    out[mask] = np.minimum(rank[inv], 65535).astype(np.uint16)
+    return out
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (2, 3), (31, 17), (128, 128)])
+def test_double_is_bit_identical_to_the_numpy_version(shape) -> None:
+    x = (np.random.default_rng(shape[0]).random(shape) * 3.7).astype(np.float32)
+    new, old = _double(x), reference_double(x)
+    assert new.dtype == old.dtype == np.float32
+    assert np.array_equal(new, old)
+
+
+def test_relabel_matches_the_unique_based_version() -> None:
+    rng = np.random.default_rng(3)
+    labels = rng.integers(0, 40, (50, 60)) * 7  # sparse label values, some missing
+    mask = rng.random((50, 60)) > 0.2
+    assert np.array_equal(_relabel(labels, mask), reference_relabel(labels, mask))
+    assert np.array_equal(_relabel(labels, np.zeros_like(mask)), np.zeros(labels.shape, np.uint16))
+
+
+def test_normalized_cuts_splits_disconnected_parts_without_mixing_them() -> None:
+    # Two 3-node cliques and a 4-node clique with no links between them: one segment each (no split of a
+    # clique, whose cut would cost far above the threshold).
+    W = np.zeros((10, 10))
+    for part in (range(0, 3), range(3, 6), range(6, 10)):
+        for i in part:
+            for j in part:
+                W[i, j] = 1.0
+    W[0, 3] = W[3, 0] = 1e-30  # numerically absent link
+    seg = normalized_cuts(W, thresh=0.005, num_cuts=10)
+    assert len(set(seg[:3])) == len(set(seg[3:6])) == len(set(seg[6:])) == 1
+    assert len({seg[0], seg[3], seg[6]}) == 3
+
+
+def test_position_cue_is_the_pass_sets_position_bit_for_bit() -> None:
+    mesh, g = cube_scene()
+    passes = raycast_passes(mesh, g)
+    ctx = ViewContext(g, passes=passes)
+    cue_value(ctx, "normal")  # the memoised rays shared with other cues
+    new, old = cue_value(ctx, "position"), passes.position_world()
+    assert np.isnan(new).any() and np.isfinite(new).any()
+    assert np.array_equal(new.view(np.uint32), old.view(np.uint32))

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import case, func, literal, literal_column, or_, select, text
+from sqlalchemy import ColumnElement, case, func, literal, literal_column, or_, select, text
 from sqlalchemy.orm import Session
 
 from services.core.db.models import Job, JobCounter, JobState, Task, TaskState, utcnow
@@ -37,7 +37,7 @@ DEFAULT_BUDGET = 20_000  # tasks dispatched per pass at most (bounds one transac
 SEND_CHUNK = 1_000  # tasks per transport.send call: the first messages reach workers while the rest are built
 SCAN_MARGIN = 64  # extra rows looked at per cue beyond what the counters predict
 # the pending-task index is partial (migration 0004): scans name its predicate's literal
-PENDING_LITERAL = literal_column(f"'{TaskState.PENDING.value}'")
+PENDING_LITERAL: ColumnElement[str] = literal_column(f"'{TaskState.PENDING.value}'")
 SCAN_CAP = 200_000  # rows looked at per cue and pass at most
 # Rows per cue a thorough pass (the safety net, every minute) reads, oldest first: each costs a lookup of its
 # inputs, so reading up to SCAN_CAP of every cue took 17 s a pass on a 620k-task job under load and would take

@@ -76,9 +76,11 @@ def normal_cam(ctx: ViewContext) -> np.ndarray:
         n_cv = ctx.passes.require("normal_world") @ R.T  # world -> OpenCV camera axes
         # Face the camera: Cycles already flips back-facing hits; this guards interpolated or user normals.
         facing = np.einsum("hwc,hwc->hw", n_cv, ray_dirs_cam(ctx)) > 0
-        n_cv = np.where(facing[..., None], -n_cv, n_cv)
-        n = n_cv * np.array([1.0, -1.0, -1.0], dtype=np.float32)  # OpenCV (x right, y down, z fwd) -> DESIGN axes
-        return np.where(hit(ctx)[..., None], n, 0.0).astype(np.float32)
+        # Turning (-1 where facing) and the OpenCV (x right, y down, z fwd) -> DESIGN axes flip in one exact
+        # multiplication by +-1 per pixel and channel.
+        sign = np.where(facing, np.float32(-1.0), np.float32(1.0))[..., None] * np.array([1.0, -1.0, -1.0],
+                                                                                          dtype=np.float32)
+        return np.where(hit(ctx)[..., None], n_cv * sign, np.float32(0.0))
 
     return ctx.memo("normal_cam", compute)
 

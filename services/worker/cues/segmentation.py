@@ -58,17 +58,13 @@ def region_graph(labels: np.ndarray, features255: np.ndarray, sigma: float,
     cnt = np.bincount(flat, minlength=n).astype(np.float64)
     means = np.stack([np.bincount(flat, weights=features255[..., c].ravel(), minlength=n)
                       for c in range(features255.shape[-1])], axis=1) / np.maximum(cnt, 1)[:, None]
-    a = np.concatenate([labels[:, :-1].ravel(), labels[:-1, :].ravel()])
-    b = np.concatenate([labels[:, 1:].ravel(), labels[1:, :].ravel()])
-    m = a != b
-    a, b = np.minimum(a[m], b[m]), np.maximum(a[m], b[m])
-    pair, inv = np.unique(a * n + b, return_inverse=True)
-    ea, eb = pair // n, pair % n
+    has_boundary = boundary is not None
+    boundary_or_none = np.zeros((1, 1), np.float32) if boundary is None else boundary
+    links, boundary_sum = _adjacent_pairs(labels, boundary_or_none, n, has_boundary)
+    ea, eb = np.nonzero(links)  # row-major: pairs (a < b) in increasing a * n + b
     w = np.exp(-((means[ea] - means[eb]) ** 2).sum(axis=1) / sigma)
-    if boundary is not None:
-        bd = np.concatenate([np.maximum(boundary[:, :-1], boundary[:, 1:]).ravel(),
-                             np.maximum(boundary[:-1, :], boundary[1:, :]).ravel()])[m]
-        strength = np.bincount(inv, weights=bd, minlength=len(pair)) / np.bincount(inv, minlength=len(pair))
+    if has_boundary:
+        strength = boundary_sum[ea, eb] / links[ea, eb]
         w = w * np.exp(-BOUNDARY_GAIN * strength)
     W = np.zeros((n, n), dtype=np.float64)
     W[ea, eb] = w
@@ -121,6 +117,29 @@ def _first_appearance_ranks(labels: np.ndarray, mask: np.ndarray) -> np.ndarray:
                 rank[lab] = count
             out[i] = min(rank[lab], 65535)
     return out
+
+
+@njit(cache=True, nogil=True)
+def _adjacent_pairs(labels: np.ndarray, boundary: np.ndarray, n: int,
+                    has_boundary: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Per region pair (a < b): how many 4-adjacent pixel pairs join them, and the sum over those of the larger
+    boundary value of the two pixels; horizontal pairs first, then vertical, each in raster order (the float sums
+    add in the order numpy's bincount over the concatenated pairs did)."""
+    h, w = labels.shape
+    links = np.zeros((n, n), np.int64)
+    total = np.zeros((n, n), np.float64)
+    for vertical in (False, True):
+        for y in range(h - 1 if vertical else h):
+            for x in range(w if vertical else w - 1):
+                y2, x2 = (y + 1, x) if vertical else (y, x + 1)
+                la, lb = labels[y, x], labels[y2, x2]
+                if la == lb:
+                    continue
+                lo, hi = min(la, lb), max(la, lb)
+                links[lo, hi] += 1
+                if has_boundary:
+                    total[lo, hi] += np.float64(max(boundary[y, x], boundary[y2, x2]))
+    return links, total
 
 
 def normalized_cuts(W: np.ndarray, thresh: float, num_cuts: int) -> np.ndarray:
@@ -185,7 +204,7 @@ def nearest_in_mask(ctx: ViewContext, mask: np.ndarray) -> tuple[np.ndarray, np.
     known: dict[bytes, tuple[np.ndarray, np.ndarray]] = ctx.memo("nearest_in_mask", dict)
     key = hashlib.blake2b(np.packbits(mask).tobytes(), digest_size=16).digest()
     if key not in known:
-        iy, ix = distance_transform_edt(~mask, return_indices=True)[1]
+        iy, ix = distance_transform_edt(~mask, return_distances=False, return_indices=True)
         known[key] = (iy, ix)
     return known[key]
 

@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 
 from services.worker.context import ViewContext
-from services.worker.cues.keypoints import _double
+from services.worker.cues.keypoints import _double, doh_response
 from services.worker.cues.registry import cue_value
-from services.worker.cues.segmentation import _relabel, normalized_cuts
+from services.worker.cues.segmentation import _relabel, normalized_cuts, region_graph
+from tests.fixtures import reference_segmentation
 from tests.fixtures.raycast import cube_scene, raycast_passes
 
 
@@ -74,3 +75,57 @@ def test_position_cue_is_the_pass_sets_position_bit_for_bit() -> None:
     new, old = cue_value(ctx, "position"), passes.position_world()
     assert np.isnan(new).any() and np.isfinite(new).any()
     assert np.array_equal(new.view(np.uint32), old.view(np.uint32))
+
+
+@pytest.mark.parametrize("with_boundary", [False, True])
+def test_region_graph_is_bit_identical_to_the_numpy_version(with_boundary) -> None:
+    rng = np.random.default_rng(7)
+    # Blocky labels (regions of 6 x 6 pixels, ids shuffled) so regions have several neighbours and long borders.
+    blocks = rng.permutation(100).reshape(10, 10)
+    labels = np.kron(blocks, np.ones((6, 6), dtype=np.int64))
+    features = rng.random((60, 60, 4)).astype(np.float32) * 255.0
+    boundary = rng.random((60, 60)).astype(np.float32) if with_boundary else None
+    new = region_graph(labels, features, 255.0, boundary)
+    old = reference_segmentation.region_graph(labels, features, 255.0, boundary)
+    assert np.count_nonzero(new - np.diag(np.diag(new))) > 200  # real links, not an empty comparison
+    assert np.array_equal(new, old)
+
+
+def reference_doh_response(g: np.ndarray, sigmas: tuple[float, ...]) -> np.ndarray:
+    """keypoints2d's response before issue 20 (padded copy and in-place numpy arithmetic per scale)."""
+    from scipy.ndimage import gaussian_filter
+
+    out = np.zeros(g.shape, dtype=np.float32)
+    L, prev = g.astype(np.float32), 0.0
+    P = np.empty((g.shape[0] + 2, g.shape[1] + 2), dtype=np.float32)
+    for s in sorted(sigmas):
+        inc = float(np.sqrt(max(s * s - prev * prev, 0.0)))
+        if inc > 0:
+            L = gaussian_filter(L, inc, mode="nearest", truncate=3.0)
+        prev = s
+        P[1:-1, 1:-1] = L
+        P[0, 1:-1], P[-1, 1:-1] = L[0], L[-1]
+        P[:, 0], P[:, -1] = P[:, 1], P[:, -2]
+        lxx = P[1:-1, 2:] + P[1:-1, :-2]
+        lxx -= 2 * L
+        lyy = P[2:, 1:-1] + P[:-2, 1:-1]
+        lyy -= 2 * L
+        lxy = P[2:, 2:] - P[2:, :-2]
+        lxy -= P[:-2, 2:]
+        lxy += P[:-2, :-2]
+        lxx *= lyy
+        lxy *= lxy
+        lxx -= lxy * 0.0625
+        lxx *= s**4
+        np.maximum(out, lxx, out=out)
+    return out
+
+
+def test_doh_response_is_bit_identical_to_the_numpy_version() -> None:
+    rng = np.random.default_rng(11)
+    y, x = np.mgrid[0:96, 0:80]
+    g = (0.5 + 0.4 * np.sin(x / 5.0) * np.cos(y / 7.0) + 0.05 * rng.random((96, 80))).astype(np.float32)
+    sigmas = (1.0, 2.0, 4.0, 8.0)
+    new, old = doh_response(g, sigmas), reference_doh_response(g, sigmas)
+    assert new.max() > 0.01  # blobs found, not an empty comparison
+    assert np.array_equal(new + 0.0, old + 0.0)  # (+ 0.0: a -0.0 and a 0.0 compare equal either way)

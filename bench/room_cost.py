@@ -11,6 +11,9 @@ median and the worst case over repeats, with the load average beside each figure
 With --cores 0,1 it also runs generate with its default worker settings on those cores (all-cores figure) and
 compares views/s with the one-core run of the same repeat.
 
+A 3-view run of the same room on the same core (unless --no-startup) splits generate's CPU into what a run pays
+whatever its size (start-up: imports, space loads, curvature, planning) and the CPU of one more view (the slope),
+set against the floor's. `claims` counts task claims (a view batch claims a view's derived tasks at once).
 Figures go to bench/results/render.json under "room_cost" (the previous run's figures kept as
 "room_cost_before"; the rest of the file, written by bench/render.py, is left as it is).
 Run: .venv/bin/python bench/room_cost.py [--points 14] [--max-views 3] [--repeats 2] [--core 1]
@@ -97,9 +100,11 @@ def generate(room: str, cores: str, out: Path, spec: Path, workers: int | None) 
     with sqlite3.connect(out / ".omnidata" / "state.db") as db:
         rows = db.execute("SELECT cue, SUM(duration_s), COUNT(*) FROM task WHERE state = 'done' GROUP BY cue")
         per_cue = {cue: round(total / views, 4) for cue, total, _ in rows}
+        # a view batch's tasks share their claim's started_at: claims = distinct (worker, started_at)
+        tasks, claims = db.execute("SELECT COUNT(*), COUNT(DISTINCT worker_id || started_at) FROM task").fetchone()
     return {"views": views, "wall_s": round(wall, 2), "wall_s_per_view": round(wall / views, 4),
             "views_per_s": round(views / wall, 3), "cpu_s": round(cpu, 2), "cpu_s_per_view": round(cpu / views, 4),
-            "load_before": before, "load_after": load(),
+            "load_before": before, "load_after": load(), "tasks": tasks, "claims": claims,
             "task_s_per_view": dict(sorted(per_cue.items(), key=lambda kv: -kv[1])),
             "task_s_per_view_total": round(sum(per_cue.values()), 4)}
 
@@ -137,7 +142,21 @@ def summarise(repeats: list[dict]) -> dict:
     multi = [r["all_cores"]["views_per_s"] / r["generate"]["views_per_s"] for r in repeats if "all_cores" in r]
     if multi:
         out["all_cores_to_one_core_views_per_s"] = {"median": round(median(multi), 2), "worst": round(min(multi), 2)}
+    starts = [r for r in repeats if "startup" in r]
+    if starts:
+        # what a run pays whatever its size (imports, space loads, curvature, planning) and the cost of one more view
+        fixed = [r["startup"]["cpu_s"] - r["startup"]["views"] * marginal_cpu(r) for r in starts]
+        marginal = [marginal_cpu(r) / r["floor"]["cpu_s_per_view_mean"] for r in starts]
+        out["startup_cpu_s"] = {"median": round(median(fixed), 2), "worst": round(max(fixed), 2)}
+        out["marginal_cpu_per_view_to_floor_cpu"] = {"median": round(median(marginal), 2),
+                                                     "worst": round(max(marginal), 2)}
     return out
+
+
+def marginal_cpu(rep: dict) -> float:
+    """CPU seconds of one more view: the slope between the 3-view run and the full run of a repeat."""
+    big, small = rep["generate"], rep["startup"]
+    return (big["cpu_s"] - small["cpu_s"]) / max(1, big["views"] - small["views"])
 
 
 def main() -> int:
@@ -149,6 +168,8 @@ def main() -> int:
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--core", default=str(sorted(os.sched_getaffinity(0))[-1]), help="the one core")
     ap.add_argument("--cores", default="", help="also run generate's defaults on these cores, e.g. 0,1")
+    ap.add_argument("--no-startup", dest="startup", action="store_false",
+                    help="skip the 3-view run that splits the CPU into start-up and per-view cost")
     ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args()
     t0 = time.perf_counter()
@@ -167,6 +188,11 @@ def main() -> int:
                 frame = json.loads((out / "job.json").read_text()).get("spec", {})
                 frame = {k: frame[k] for k in ("up_axis", "up", "unit_scale", "source_to_world") if k in frame}
                 rep["floor"] = floor(room, args.core, out, frame)
+                if args.startup:
+                    small = Path(tmp) / "spec-small.json"
+                    small.write_text(json.dumps({"points": {"count": 1, "max_views": 3},
+                                                 "views": {"resolution": args.resolution}}))
+                    rep["startup"] = generate(room, args.core, Path(tmp) / f"{room}-{i}-small", small, 1)
                 if args.cores:
                     rep["all_cores"] = generate(room, args.cores, Path(tmp) / f"{room}-{i}-all", spec, None)
                     rep["all_cores"]["cores"] = args.cores

@@ -25,8 +25,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `omnidata worker`."""
     parser.add_argument("--queues", "-Q", default=None,
                         help="comma-separated queues to consume (default: the render and derive queues)")
-    parser.add_argument("--concurrency", "-c", type=int, default=1,
-                        help="worker processes (default 1; each renders with all the cores it may use)")
+    parser.add_argument("--concurrency", "-c", type=int, default=None,
+                        help="worker processes (default: one per core this process may use, so renders and "
+                             "derivations use every core; each renders with cores / processes threads)")
     parser.add_argument("--loglevel", "-l", default="INFO", type=str.upper, choices=LOG_LEVELS)
     parser.add_argument("--hostname", "-n", default=None, help="Celery node name (default omnidata-<pid>@<host>)")
     parser.add_argument("--render-threads", type=int, default=None,
@@ -43,6 +44,18 @@ def node_name(hostname: str | None) -> str:
     from celery.utils.nodenames import default_nodename, host_format
 
     return host_format(default_nodename(hostname or f"omnidata-{os.getpid()}@{socket.gethostname()}"))
+
+
+def process_layout(concurrency: int | None, render_threads: int | None, cores: int) -> tuple[int, int]:
+    """(worker processes, render threads per process) on `cores` cores: by default one process per core with one
+    thread each, as `omnidata generate` does (a view's derivations run on one core, so a single process with many
+    render threads would leave the other cores idle between renders); CliError for values below 1."""
+    if concurrency is not None and concurrency < 1:
+        raise CliError(f"--concurrency must be at least 1, got {concurrency}")
+    if render_threads is not None and render_threads < 1:
+        raise CliError(f"--render-threads must be at least 1, got {render_threads}")
+    processes = concurrency or cores
+    return processes, render_threads or max(1, cores // processes)
 
 
 def worker_argv(args: argparse.Namespace, queues: list[str]) -> list[str]:
@@ -76,17 +89,16 @@ def run(args: argparse.Namespace) -> int:
     """Start the worker; returns when Celery stops (SIGTERM: warm shutdown after the current task)."""
     from services.core.db.engine import require_schema
     from services.core.settings import load_settings
+    from services.embedded.pool import cpu_count
     from services.worker.celery_app import create_app
 
-    if args.concurrency < 1:
-        raise CliError(f"--concurrency must be at least 1, got {args.concurrency}")
-    if args.render_threads is not None:
-        if args.render_threads < 1:
-            raise CliError(f"--render-threads must be at least 1, got {args.render_threads}")
-        os.environ["OMNIDATA_RENDER_THREADS"] = str(args.render_threads)  # Settings.render_threads of each child
-        # numeric libraries in the children get the same budget (numpy is not loaded yet in this process)
-        for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
-            os.environ.setdefault(var, str(args.render_threads))
+    env_threads = os.environ.get("OMNIDATA_RENDER_THREADS", "")
+    wanted = args.render_threads or (int(env_threads) if env_threads.isdigit() else None)
+    args.concurrency, threads = process_layout(args.concurrency, wanted, cpu_count())
+    os.environ["OMNIDATA_RENDER_THREADS"] = str(threads)  # Settings.render_threads of each child
+    # numeric libraries in the children get the same budget (numpy is not loaded yet in this process)
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
+        os.environ.setdefault(var, str(threads))
     settings = load_settings()
     require_schema(settings.database_url)
     node = node_name(args.hostname)

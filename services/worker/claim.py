@@ -19,12 +19,12 @@ from datetime import datetime, timedelta
 from pathlib import Path
 from typing import Any, TypeVar
 
-from sqlalchemy import select
+from sqlalchemy import case, exists, or_, select
 from sqlalchemy.exc import DBAPIError, DisconnectionError, InterfaceError, OperationalError
 from sqlalchemy.orm import Session
 
-from services.core.db.models import Job, JobState, Task, TaskState, utcnow
-from services.core.db.states import claim_task, finish_task, transition
+from services.core.db.models import Job, JobState, Task, TaskState, WorkerBlock, utcnow
+from services.core.db.states import claim_task, finish_task, transition, transition_rows
 from services.core.domain.cues import CATALOG
 from services.core.storage import ObjectInfo
 from services.worker.failure_policy import HANDBACK_DELAY, count_failure, is_blocked, retry_delay
@@ -63,6 +63,11 @@ class Outcome:
     error: str | None = None
     duration_s: float = 0.0
     recycle: bool = False
+    batch: tuple[Outcome, ...] = ()  # the view's other tasks this worker ran along with this one (a view batch)
+
+    def all(self) -> tuple[Outcome, ...]:
+        """This outcome and those of its batch."""
+        return (self, *self.batch)
 
     @property
     def labels(self) -> int:
@@ -190,6 +195,88 @@ class TaskLedger:
             return None
         return Claimed(task_id, int(r.job_id), int(r.space_id), int(r.point_idx), int(r.view_idx), str(r.cue),
                        int(r.attempts))  # RETURNING gives the new values: attempts counts this attempt
+
+    def claim_view_rest(self, t: Claimed) -> list[Claimed]:
+        """The view batch: queued -> running for this worker, in ONE statement, of the other queued tasks of
+        `t`'s view (same job, space, point, view; not its `passes` task) while the job runs and the worker is not
+        kept off it. Queued means dispatched, so their inputs are done; their own messages, when they come,
+        find them running or done and are skipped at the claim. [] when the database is unreachable (the
+        messages of those tasks claim them one by one)."""
+        def step() -> list[Claimed]:
+            now = utcnow()
+            job_running = exists().where(Job.id == Task.job_id, Job.state == JobState.RUNNING)
+            blocked = exists().where(WorkerBlock.worker_id == self.worker_id, WorkerBlock.job_id == Task.job_id,
+                                     or_(WorkerBlock.until.is_(None), WorkerBlock.until > now))
+            with self.sessionmaker() as s:
+                rows = transition_rows(
+                    s, job_id=t.job_id, from_state=TaskState.QUEUED, to_state=TaskState.RUNNING,
+                    where=[Task.space_id == t.space_id, Task.point_idx == t.point, Task.view_idx == t.view,
+                           Task.cue != "passes", Task.id != t.id, job_running, ~blocked],
+                    returning=[Task.attempts], worker_id=self.worker_id, attempts=Task.attempts + 1,
+                    started_at=now, finished_at=None, lease_until=now + timedelta(seconds=self.lease_s),
+                )
+                s.commit()
+            return sorted((Claimed(int(r[0]), t.job_id, t.space_id, t.point, t.view, str(r[1]), int(r[3]))
+                           for r in rows), key=lambda c: c.id)
+
+        try:
+            return self.db(step, f"claim the view batch of task {t.id}")
+        except Exception as exc:
+            if not is_transient_db_error(exc):
+                raise
+            log.warning("task %d: view batch not claimed (%s)", t.id, format_error(exc, 0))
+            return []
+
+    def is_settled(self, task_id: int) -> bool:
+        """True when the task is neither queued nor pending (a read, no lock): a message for a task this worker
+        already ran in a view batch needs no claim attempt."""
+        def step() -> bool:
+            with self.sessionmaker() as s:
+                state = s.execute(select(Task.state).where(Task.id == task_id)).scalar_one_or_none()
+            return state is not None and state not in (TaskState.QUEUED, TaskState.PENDING)
+
+        try:
+            return self.db(step, f"read task {task_id}")
+        except Exception as exc:
+            if is_transient_db_error(exc):
+                return False  # the claim will tell (TransientError)
+            raise
+
+    def record_done_many(self, done: list[tuple[Claimed, str, ObjectInfo, float]]) -> list[Outcome]:
+        """running -> done, in ONE statement, of a batch's finished tasks (task, key, stored object, seconds),
+        each with its own key, size, sha256 and duration; a task no longer ours is 'discarded', and all are
+        'lost' when the database stays away (their leases run out and the reaper retries them)."""
+        if len(done) == 1:
+            return [self.record_done(*done[0])]
+        ids = [t.id for t, *_ in done]
+
+        def per_task(values: list[Any]) -> Any:
+            return case(dict(zip(ids, values, strict=True)), value=Task.id)
+
+        def step() -> set[int]:
+            now = utcnow()
+            with self.sessionmaker() as s:
+                moved = transition(
+                    s, job_id=done[0][0].job_id, task_ids=ids, from_state=TaskState.RUNNING,
+                    to_state=TaskState.DONE, where=[Task.worker_id == self.worker_id],
+                    output_key=per_task([key for _, key, _, _ in done]),
+                    size=per_task([int(info.size) for _, _, info, _ in done]),
+                    sha256=per_task([info.sha256 for _, _, info, _ in done]),
+                    duration_s=per_task([float(d) for *_, d in done]),
+                    finished_at=now, lease_until=None, error=None,
+                )
+                s.commit()
+            return {tid for tid, _ in moved}
+
+        try:
+            ours = self.db(step, f"record {len(done)} tasks of a view batch done")
+        except Exception as exc:
+            log.error("tasks %s: outputs stored but not recorded (%s); the reaper will retry them", ids,
+                      format_error(exc, 0))
+            return [Outcome(t.id, "lost", t.cue, t.job_id, key, info.size, info.sha256, format_error(exc), d)
+                    for t, key, info, d in done]
+        return [Outcome(t.id, "done" if t.id in ours else "discarded", t.cue, t.job_id, key, int(info.size),
+                        info.sha256, None, d) for t, key, info, d in done]
 
     def _hand_back(self, s: Session, task_id: int, job_id: int, job_state: str, now: datetime) -> str | None:
         """queued -> pending for a paused job ('paused') or a job this worker is blocked on ('blocked')."""

@@ -60,6 +60,7 @@ class Heartbeat:
         self._lock = threading.Lock()
         self._beat_lock = threading.Lock()
         self._current: int | None = None
+        self._batch: tuple[int, ...] = ()
         self._tasks_done = 0
         self._labels: dict[str, int] = {}
         self._recent: deque[tuple[float, int]] = deque()  # (monotonic time, labels) of recent tasks
@@ -71,12 +72,14 @@ class Heartbeat:
 
     # ------------------------------------------------------------------ called by the runner
 
-    def set_current(self, task_id: int | None) -> None:
-        """The task this worker has just claimed with a full lease (beats extend it), or None when idle."""
+    def set_current(self, task_id: int | None, batch: Sequence[int] = ()) -> None:
+        """The task this worker has just claimed with a full lease, and the other tasks of its view batch (beats
+        extend the leases of all of them), or None when idle."""
         with self._lock:
             if task_id != self._current:
                 self._leased_at = time.monotonic()
             self._current = task_id
+            self._batch = tuple(batch) if task_id is not None else ()
 
     def record_done(self, cue: str, labels: int = 1) -> None:
         """Count a finished task and the labels (output files) it produced."""
@@ -119,7 +122,7 @@ class Heartbeat:
     def _beat(self) -> None:
         rate = self.labels_per_s()
         with self._lock:
-            current, done, labels = self._current, self._tasks_done, dict(self._labels)
+            current, held, done, labels = self._current, (self._current, *self._batch), self._tasks_done, dict(self._labels)
             extend = current is not None and time.monotonic() - self._leased_at >= self.extend_after_s
         now = utcnow()
         with self._sessionmaker() as session, session.begin():
@@ -139,7 +142,7 @@ class Heartbeat:
                 # Not a state change (counters untouched): only pushes the deadline of a task we hold.
                 session.execute(
                     update(Task)
-                    .where(Task.id == current, Task.worker_id == self.worker_id, Task.state == TaskState.RUNNING)
+                    .where(Task.id.in_(held), Task.worker_id == self.worker_id, Task.state == TaskState.RUNNING)
                     .values(lease_until=now + timedelta(seconds=self.lease_s))
                     .execution_options(synchronize_session=False)
                 )

@@ -9,6 +9,10 @@
    cache; every other cue is derived from that pass set, read from this process's memory LRU or the store
    (and rendered again only if the cache is gone, e.g. after a resume of a finished job).
 4. Write the object atomically to its deterministic key, then record it done (services.worker.claim).
+   View batch (settings.worker_batch_views): a derived cue's task claims the other queued tasks of its view in
+   one statement, derives them all from the one pass set in memory, and records the finished ones in one
+   statement. Each task keeps its row and its message: a message whose task a batch ran is skipped (a read,
+   no claim). A batch whose worker dies stays `running` under its lease: the reaper re-queues every task of it.
 5. Failure: retry after a backoff or fail for good, and keep a failing worker off the job
    (services.worker.failure_policy).
 
@@ -22,6 +26,7 @@ import logging
 import os
 import socket
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -46,6 +51,8 @@ from services.worker.passes import ViewPasses
 from services.worker.space_cache import SpaceCache, SpaceContext, should_recycle
 
 log = logging.getLogger(__name__)
+
+BATCHED_MEMORY = 4096  # task ids of recent view batches remembered, so their late messages skip the claim
 
 
 def _needs_passes(cue: str) -> bool:
@@ -83,30 +90,53 @@ class TaskRunner:
         self.space_cache = SpaceCache()
         self.tasks_run = 0
         self.renders = 0  # pass sets rendered by this process (one per view, unless a cache was lost)
+        self.batched: deque[int] = deque(maxlen=BATCHED_MEMORY)  # ids this process ran in view batches lately
 
     def run(self, task_id: int) -> Outcome:
-        """Claim and run one task; never raises for task failures (they are recorded), only TransientError."""
+        """Claim and run one task, and with it the rest of its view's queued tasks (a view batch, when
+        settings.worker_batch_views); never raises for task failures (they are recorded), only TransientError.
+        The returned Outcome is the message's task's; `batch` holds the others'."""
         t0 = time.perf_counter()
+        if task_id in self.batched and self.ledger.is_settled(task_id):
+            # Its message came after a view batch of ours ran it: no claim attempt (no write lock) for a no-op.
+            return Outcome(task_id, "skipped", error="done in a view batch (duplicate message)")
         claimed = self.ledger.claim(task_id)
         if isinstance(claimed, Outcome):
             return claimed
-        self.tasks_run += 1
+        rest: list[Claimed] = []
+        if self.settings.worker_batch_views and claimed.cue != "passes":
+            rest = self.ledger.claim_view_rest(claimed)
+            self.batched.extend(c.id for c in rest)
+        self.tasks_run += 1 + len(rest)
         if self.heartbeat is not None:
-            self.heartbeat.set_current(claimed.id)
+            self.heartbeat.set_current(claimed.id, [c.id for c in rest])
         try:
-            try:
-                key, info = self.execute(claimed)
-            except Exception as exc:
-                max_attempts = self.inputs.max_attempts(claimed.job_id, self.settings.max_attempts)
-                outcome = self.ledger.record_failure(claimed, exc, time.perf_counter() - t0, max_attempts)
-            else:
-                outcome = self.ledger.record_done(claimed, key, info, time.perf_counter() - t0)
+            outcomes = self._run_claimed([claimed, *rest], t0)
         finally:
             if self.heartbeat is not None:
                 self.heartbeat.set_current(None)
-        if self.heartbeat is not None and outcome.status in ("done", "retry", "failed", "discarded"):
-            self.heartbeat.record_done(claimed.cue, outcome.labels)
-        return replace(outcome, recycle=self.should_recycle())
+        if self.heartbeat is not None:
+            for o in outcomes:
+                if o.status in ("done", "retry", "failed", "discarded"):
+                    self.heartbeat.record_done(str(o.cue), o.labels)
+        return replace(outcomes[0], batch=tuple(outcomes[1:]), recycle=self.should_recycle())
+
+    def _run_claimed(self, claimed: list[Claimed], t0: float) -> list[Outcome]:
+        """Compute and store each claimed task (the first one's time counts from `t0`, its claim); failures are
+        recorded one by one, the finished ones together (ledger.record_done_many). Outcomes in `claimed` order."""
+        failed: dict[int, Outcome] = {}
+        done: list[tuple[Claimed, str, ObjectInfo, float]] = []
+        for t in claimed:
+            try:
+                key, info = self.execute(t)
+            except Exception as exc:
+                max_attempts = self.inputs.max_attempts(t.job_id, self.settings.max_attempts)
+                failed[t.id] = self.ledger.record_failure(t, exc, time.perf_counter() - t0, max_attempts)
+            else:
+                done.append((t, key, info, time.perf_counter() - t0))
+            t0 = time.perf_counter()
+        recorded = {o.task_id: o for o in self.ledger.record_done_many(done)} if done else {}
+        return [failed.get(t.id) or recorded[t.id] for t in claimed]
 
     def should_recycle(self) -> bool:
         """True when this process should exit after the task: RSS above worker_max_memory_mb or too many tasks."""
@@ -140,7 +170,8 @@ class TaskRunner:
         """The space loaded into the world frame of this job (its up_axis/unit_scale), kept between tasks."""
         spec = job.spec
         frame = job.frame_for(space)  # exactly the planner's: a re-pick of the space's up cannot change it
-        refined = (plan.capture or {}).get("refined") if plan is not None else None  # the planner's colour camera
+        capture = plan.capture if plan is not None else None
+        refined = capture.get("refined") if capture is not None else None  # the planner's colour camera
         photos = f"{spec.uses_photos()}:{json.dumps(refined and refined['correction'], sort_keys=True)}"
         key = f"{space.checksum}:{json.dumps(frame, sort_keys=True)}:photos={photos}"
 

@@ -20,7 +20,8 @@ import pytest
 from sqlalchemy import Engine, select
 from sqlalchemy.orm import Session, sessionmaker
 
-from services.cli.worker import worker_argv
+from services.cli import CliError
+from services.cli.worker import process_layout, worker_argv
 from services.core.celery_config import TASK_RENDER_CUE
 from services.core.db.engine import make_engine, make_sessionmaker
 from services.core.db.models import Task, Worker
@@ -59,6 +60,17 @@ def test_worker_app_is_configured_for_long_idempotent_tasks():
     argv = worker_argv(type("A", (), {"hostname": None, "concurrency": 3, "loglevel": "INFO", "pool": "prefork"})(),
                        ["render", "derive"])
     assert "--queues=render,derive" in argv and "--concurrency=3" in argv
+
+
+def test_default_worker_uses_every_core_one_process_each():
+    assert process_layout(None, None, 8) == (8, 1)  # no tuning: every core renders and derives
+    assert process_layout(1, None, 8) == (1, 8)  # one process renders with every core
+    assert process_layout(2, None, 8) == (2, 4)
+    assert process_layout(3, None, 2) == (3, 1)
+    assert process_layout(None, 2, 8) == (8, 2)  # render threads as given
+    for bad in ((0, None), (None, 0)):
+        with pytest.raises(CliError):
+            process_layout(*bad, 8)
 
 
 def test_called_task_runs_the_runner_and_maps_outcomes(pg_sm, banana, runtime_reset):  # noqa: F811

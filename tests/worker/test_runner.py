@@ -280,7 +280,7 @@ def test_worker_failing_three_times_is_blocked_and_hands_tasks_back(sm, banana):
         job = s.get(Job, job_id)
         sp_name = s.get(Space, s.scalar(select(Task.space_id).where(Task.job_id == job_id).limit(1))).name
         banana.store.delete(root_key(job, f"_plan/{sp_name}.json"))
-    r = runner(sm, banana, "bad-worker")
+    r = runner(sm, banana, "bad-worker", worker_batch_views=False)  # one failure per message (no view batch)
     tids = [queue(sm, job_id, "point_info", 0, v) for v in (0, 1)] + [queue(sm, job_id, "vanishing_points", 0, 0)]
     assert [r.run(t).status for t in tids] == ["retry", "retry", "retry"]
     with sm() as s:

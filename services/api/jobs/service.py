@@ -7,7 +7,7 @@ import json
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from sqlalchemy import bindparam, func, select
+from sqlalchemy import Executable, bindparam, func, select
 from sqlalchemy.orm import Session, defer
 
 from services.api.jobs.schemas import (
@@ -81,7 +81,7 @@ def get_job(session: Session, *, owner: str, job_id: int) -> Job:
     return job
 
 
-def _json_list(value: Any) -> list[Any]:
+def _json_list(value: Any) -> list[Any]:  # a JSON aggregate's rows, as the driver returns them (untyped)
     # Postgres' json_agg arrives parsed; SQLite's json_group_array arrives as text; no rows gives NULL.
     if value is None:
         return []
@@ -89,7 +89,7 @@ def _json_list(value: Any) -> list[Any]:
 
 
 @functools.cache
-def detail_statement(dialect: str) -> Any:
+def detail_statement(dialect: str) -> Executable:
     """SELECT job + counters + spaces (json aggregates) for one job and owner; built once per dialect, so
     SQLAlchemy's memoized cache key is reused instead of re-traversing the statement on every poll."""
     agg, arr = (func.json_agg, func.json_build_array) if dialect == "postgresql" else (func.json_group_array, func.json_array)
@@ -181,7 +181,7 @@ def create_job(
     return job
 
 
-ACTIONS: dict[str, Callable[[Session, Job], Any]] = {
+ACTIONS: dict[str, Callable[[Session, Job], object]] = {
     "cancel": core_jobs.cancel_job,
     "pause": core_jobs.pause_job,
     "resume": core_jobs.resume_job,

@@ -7,6 +7,7 @@ Frames: `normal_cam` uses the Omnidata camera axes for normals (x right, y up, z
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 from services.core.domain.cues import UINT16_NONE
 from services.worker.context import ViewContext
@@ -107,3 +108,72 @@ def sobel_magnitude(img: np.ndarray) -> np.ndarray:
 def to_uint16_scaled(values: np.ndarray, scale: float) -> np.ndarray:
     """round(values * scale) clipped to 0..65535, uint16."""
     return np.clip(np.rint(values * scale), 0, 65535).astype(np.uint16)
+
+
+GAUSS_NEAREST, GAUSS_REFLECT = 0, 1  # scipy.ndimage modes "nearest" (edge repeated) and "reflect" (half-sample)
+
+
+def gaussian_blur(img: np.ndarray, sigma: float, truncate: float = 4.0, mode: str = "nearest") -> np.ndarray:
+    """scipy.ndimage.gaussian_filter(img, sigma, mode=mode, truncate=truncate) of an H x W float32 image, bit for
+    bit: the same kernel, taps added in the order scipy's symmetric correlate1d adds them (in float64, rounded to
+    float32 after each axis, rows first), as compiled loops over whole rows (about 2x faster than scipy's per-line
+    buffers at 512 px). Other inputs (dtype, shape, a kernel wider than a reflected image) go to scipy."""
+    from scipy.ndimage import gaussian_filter
+
+    radius = int(truncate * float(sigma) + 0.5)
+    if img.dtype != np.float32 or img.ndim != 2 or sigma <= 0 or mode not in ("nearest", "reflect") \
+            or (mode == "reflect" and radius >= min(img.shape)):
+        return gaussian_filter(img, sigma, mode=mode, truncate=truncate)
+    x = np.arange(-radius, radius + 1)
+    taps = np.exp(-0.5 / (sigma * sigma) * x**2)  # scipy's _gaussian_kernel1d, order 0
+    taps = taps / taps.sum()
+    code = GAUSS_NEAREST if mode == "nearest" else GAUSS_REFLECT
+    return _blur_cols(_blur_rows(np.ascontiguousarray(img), taps, code), taps, code)
+
+
+@njit(cache=True, nogil=True)
+def _extend(i: int, n: int, mode: int) -> int:
+    if mode == GAUSS_NEAREST:
+        return min(max(i, 0), n - 1)
+    return -i - 1 if i < 0 else (2 * n - i - 1 if i >= n else i)
+
+
+@njit(cache=True, nogil=True)
+def _blur_rows(img: np.ndarray, taps: np.ndarray, mode: int) -> np.ndarray:
+    """Along axis 0: out = x[0] w[0] + sum over j = -r..-1 of (x[j] + x[-j]) w[j], in float64, as scipy."""
+    h, w = img.shape
+    r = len(taps) // 2
+    out = np.empty((h, w), np.float32)
+    acc = np.empty(w, np.float64)
+    for y in range(h):
+        for x in range(w):
+            acc[x] = np.float64(img[y, x]) * taps[r]
+        for j in range(-r, 0):
+            ya, yb, wj = _extend(y + j, h, mode), _extend(y - j, h, mode), taps[r + j]
+            for x in range(w):
+                acc[x] += (np.float64(img[ya, x]) + np.float64(img[yb, x])) * wj
+        for x in range(w):
+            out[y, x] = np.float32(acc[x])
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _blur_cols(img: np.ndarray, taps: np.ndarray, mode: int) -> np.ndarray:
+    """Along axis 1, the same sums on an extended copy of each row."""
+    h, w = img.shape
+    r = len(taps) // 2
+    out = np.empty((h, w), np.float32)
+    line = np.empty(w + 2 * r, np.float64)
+    acc = np.empty(w, np.float64)
+    for y in range(h):
+        for x in range(w + 2 * r):
+            line[x] = img[y, _extend(x - r, w, mode)]
+        for x in range(w):
+            acc[x] = line[x + r] * taps[r]
+        for j in range(-r, 0):
+            wj = taps[r + j]
+            for x in range(w):
+                acc[x] += (line[x + r + j] + line[x + r - j]) * wj
+        for x in range(w):
+            out[y, x] = np.float32(acc[x])
+    return out

@@ -7,10 +7,9 @@ magnitude (a unit step gives 4): for texture edges of a [0, 1] grey image, for o
 from __future__ import annotations
 
 import numpy as np
-from scipy.ndimage import gaussian_filter
 
 from services.worker.context import ViewContext
-from services.worker.cues.common import depth_m, grey, sobel_magnitude, to_uint16_scaled, valid
+from services.worker.cues.common import depth_m, gaussian_blur, grey, sobel_magnitude, to_uint16_scaled, valid
 from services.worker.cues.registry import register
 
 
@@ -19,7 +18,7 @@ def edge_texture(ctx: ViewContext) -> np.ndarray:
     """uint16 H x W: Sobel magnitude of the Gaussian-blurred (edge_texture_sigma px) grey rgb, whole image."""
     g = grey(ctx)
     s = ctx.params.edge_texture_sigma
-    blurred = gaussian_filter(g, s, mode="nearest") if s > 0 else g
+    blurred = gaussian_blur(g, s) if s > 0 else g
     return to_uint16_scaled(sobel_magnitude(blurred), ctx.params.edge_scale)
 
 
@@ -36,7 +35,7 @@ def occlusion_response(ctx: ViewContext) -> np.ndarray:
         s = np.sqrt(d)
         sig = ctx.params.edge_occlusion_sigma
         if sig > 0:
-            s = gaussian_filter(s, sig, mode="nearest")
+            s = gaussian_blur(s, sig)
         return np.where(v, sobel_magnitude(s), 0.0).astype(np.float32)
 
     return ctx.memo("occlusion_response", compute)

@@ -16,7 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 from numba import njit
-from scipy.ndimage import gaussian_filter
+
+from services.worker.cues.common import gaussian_blur
 
 SORT_LEVELS = 1 << 16
 
@@ -172,7 +173,7 @@ class Felzenszwalb:
         if img.ndim == 2:
             img = img[..., None]
         if sigma > 0:
-            img = np.stack([gaussian_filter(img[..., c], sigma) for c in range(img.shape[-1])], axis=-1)
+            img = np.stack([gaussian_blur(img[..., c], sigma, mode="reflect") for c in range(img.shape[-1])], axis=-1)
         self.shape = img.shape[:2]
         a, b, cost = _sorted_edges(img, SORT_LEVELS)
         parent, self._size, kept = _merge(a, b, cost, self.shape[0] * self.shape[1], float(scale) / 255.0)

@@ -29,7 +29,7 @@ from numba import njit
 from scipy.ndimage import gaussian_filter, sobel, uniform_filter
 
 from services.worker.context import ViewContext
-from services.worker.cues.common import depth_m, grey, ray_dirs_cam, to_uint16_scaled, valid
+from services.worker.cues.common import depth_m, gaussian_blur, grey, ray_dirs_cam, to_uint16_scaled, valid
 from services.worker.cues.registry import register
 
 KP3D_SCALES_PX = (1, 2, 4, 8, 16, 32, 64)
@@ -47,7 +47,7 @@ def doh_response(g: np.ndarray, sigmas: tuple[float, ...]) -> np.ndarray:
     for s in sorted(sigmas):
         inc = float(np.sqrt(max(s * s - prev * prev, 0.0)))
         if inc > 0:
-            L = gaussian_filter(L, inc, mode="nearest", truncate=DOH_TRUNCATE_SIGMAS)
+            L = gaussian_blur(L, inc, DOH_TRUNCATE_SIGMAS)
         prev = s
         _max_doh(L, np.float32(s**4), out)
     return out
@@ -102,12 +102,65 @@ def _central_difference(a: np.ndarray, axis: int) -> np.ndarray:
 def _blur(x: np.ndarray, radius_px: int) -> np.ndarray:
     """Approximately Gaussian blur with sigma ~ radius/2: three box passes of width ~radius (O(1) per pixel).
 
-    x is H x W, or C x H x W (channel planes blurred independently)."""
+    x is H x W, or C x H x W (channel planes blurred independently). The passes are scipy's uniform_filter
+    (mode "constant") bit for bit: its running sums in float64, rounded to float32 after each axis, as compiled
+    loops (~3x faster than scipy's per-line buffers); inputs other than float32 go to scipy itself."""
     size = max(1, int(radius_px)) | 1
-    sizes = (1,) * (x.ndim - 2) + (size, size)
-    for _ in range(3):
-        x = uniform_filter(x, sizes, mode="constant")
-    return x
+    if x.dtype != np.float32:
+        sizes = (1,) * (x.ndim - 2) + (size, size)
+        for _ in range(3):
+            x = uniform_filter(x, sizes, mode="constant")
+        return x
+    planes = np.ascontiguousarray(x).reshape((-1,) + x.shape[-2:])
+    out = np.empty_like(planes)
+    for c, plane in enumerate(planes):
+        for _ in range(3):
+            plane = _box_cols(_box_rows(plane, size), size)
+        out[c] = plane
+    return out.reshape(x.shape)
+
+
+@njit(cache=True, nogil=True)
+def _box_rows(img: np.ndarray, size: int) -> np.ndarray:
+    """Mean over `size` rows centred on each pixel, zeros outside: scipy's running sum (sum += new - old)."""
+    h, w = img.shape
+    r = size // 2
+    out = np.empty((h, w), np.float32)
+    total = np.zeros(w, np.float64)
+    for y in range(-r, size - r):
+        if 0 <= y < h:
+            for x in range(w):
+                total[x] += np.float64(img[y, x])
+    for x in range(w):
+        out[0, x] = np.float32(total[x] / size)
+    for y in range(1, h):
+        y_in, y_out = y + size - 1 - r, y - 1 - r
+        for x in range(w):
+            new = np.float64(img[y_in, x]) if y_in < h else 0.0
+            old = np.float64(img[y_out, x]) if y_out >= 0 else 0.0
+            total[x] += new - old
+            out[y, x] = np.float32(total[x] / size)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _box_cols(img: np.ndarray, size: int) -> np.ndarray:
+    """Mean over `size` columns centred on each pixel, zeros outside (scipy's running sum along a line)."""
+    h, w = img.shape
+    r = size // 2
+    out = np.empty((h, w), np.float32)
+    line = np.zeros(w + size, np.float64)
+    for y in range(h):
+        for x in range(w):
+            line[x + r] = img[y, x]
+        total = 0.0
+        for k in range(size):
+            total += line[k]
+        out[y, 0] = np.float32(total / size)
+        for x in range(1, w):
+            total += line[x + size - 1] - line[x - 1]
+            out[y, x] = np.float32(total / size)
+    return out
 
 
 def _half(x: np.ndarray) -> np.ndarray:

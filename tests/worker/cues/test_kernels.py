@@ -5,8 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from services.core.domain.cues import CURVATURE_FLAT, NORMAL_BACKGROUND
 from services.worker.context import ViewContext
-from services.worker.cues.keypoints import _double, doh_response
+from services.worker.cues.basic import _curvature_pixels, _normal_pixels
+from services.worker.cues.common import gaussian_blur
+from services.worker.cues.keypoints import _blur, _double, doh_response
 from services.worker.cues.registry import cue_value
 from services.worker.cues.segmentation import _relabel, normalized_cuts, region_graph
 from tests.fixtures import reference_segmentation
@@ -128,4 +131,58 @@ def test_doh_response_is_bit_identical_to_the_numpy_version() -> None:
     sigmas = (1.0, 2.0, 4.0, 8.0)
     new, old = doh_response(g, sigmas), reference_doh_response(g, sigmas)
     assert new.max() > 0.01  # blobs found, not an empty comparison
-    assert np.array_equal(new + 0.0, old + 0.0)  # (+ 0.0: a -0.0 and a 0.0 compare equal either way)
+    assert np.array_equal(new, old)
+
+
+@pytest.mark.parametrize("mode", ["nearest", "reflect"])
+@pytest.mark.parametrize("sigma,truncate", [(0.8, 4.0), (1.0, 4.0), (2.0, 4.0), (1.0, 3.0), (12**0.5, 3.0),
+                                            (48**0.5, 3.0)])
+def test_gaussian_blur_is_scipys_gaussian_filter_bit_for_bit(mode, sigma, truncate) -> None:
+    from scipy.ndimage import gaussian_filter
+
+    rng = np.random.default_rng(int(sigma * 10))
+    for shape, scale in (((64, 48), 1.0), ((5, 7), 300.0), ((1, 30), 1e-3), ((37, 33), 1.0)):
+        img = (rng.random(shape) * scale).astype(np.float32)
+        new = gaussian_blur(img, sigma, truncate, mode)
+        old = gaussian_filter(img, sigma, mode=mode, truncate=truncate)
+        assert new.dtype == np.float32 and np.array_equal(new, old), shape
+
+
+@pytest.mark.parametrize("radius", [1, 2, 4, 9])
+def test_box_blur_is_scipys_uniform_filter_bit_for_bit(radius) -> None:
+    from scipy.ndimage import uniform_filter
+
+    rng = np.random.default_rng(radius)
+    for shape in ((4, 64, 48), (3, 7, 5), (1, 3, 40), (30, 20)):
+        x = rng.random(shape).astype(np.float32)
+        x[..., :2, :] = 0.0  # zero rows: the running sums pass through exact zeros
+        old = x
+        size = radius | 1
+        for _ in range(3):
+            old = uniform_filter(old, (1,) * (x.ndim - 2) + (size, size), mode="constant")
+        new = _blur(x, radius)
+        assert new.dtype == np.float32 and new.shape == x.shape and np.array_equal(new, old), shape
+
+
+def test_normal_pixels_are_the_numpy_expressions_bit_for_bit() -> None:
+    rng = np.random.default_rng(5)
+    n = rng.uniform(-1, 1, (64, 64, 3)).astype(np.float32)
+    n[0] = ((np.arange(64, dtype=np.float32)[:, None] + 0.5) / 255 * 2 - 1)  # at the rounding boundaries
+    n[1, :3] = [[1, 1, 1], [-1, -1, -1], [0, 0, 0]]
+    seen = rng.random((64, 64)) > 0.1
+    px = np.rint(255.0 * (0.5 + 0.5 * n * np.array([-1.0, 1.0, 1.0], dtype=np.float32)))
+    old = np.where(seen[..., None], np.clip(px, 0, 255), NORMAL_BACKGROUND).astype(np.uint8)
+    assert np.array_equal(_normal_pixels(n, seen), old)
+
+
+def test_curvature_pixels_are_the_numpy_expressions_bit_for_bit() -> None:
+    rng = np.random.default_rng(1)
+    k = rng.normal(0, 40, (50, 50, 2)).astype(np.float32)
+    k[0, 0], k[0, 1, 0], k[0, 2, 1] = np.nan, np.inf, -np.inf
+    k[1, :, 0] = np.linspace(-40, 40, 50)  # across the clip limits and the rounding steps
+    seen = rng.random((50, 50)) > 0.1
+    kmax = 1.0 / 0.03
+    px = np.rint((np.clip(np.nan_to_num(k), -kmax, kmax) / kmax + 1.0) * CURVATURE_FLAT)
+    old = np.zeros((50, 50, 3), dtype=np.uint8)
+    old[..., :2] = np.where(seen[..., None], px, 0)
+    assert np.array_equal(_curvature_pixels(k, seen, np.float32(kmax)), old)

@@ -22,7 +22,7 @@ from services.scheduler.planning import make_plan, space_rng
 class PlanFn(Protocol):
     """make_plan's signature: (space, spec, rng, space_name) -> SpacePlan."""
 
-    def __call__(self, space: Any, spec: JobSpec, rng: np.random.Generator, space_name: str, /) -> SpacePlan: ...
+    def __call__(self, space: LoadedSpace, spec: JobSpec, rng: np.random.Generator, space_name: str, /) -> SpacePlan: ...
 
 
 def load_for_job(source: str | Path, spec: JobSpec, extract_dir: str | Path | None = None,

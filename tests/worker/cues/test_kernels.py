@@ -11,7 +11,13 @@ from services.worker.cues.basic import _curvature_pixels, _normal_pixels
 from services.worker.cues.common import gaussian_blur
 from services.worker.cues.keypoints import _blur, _double, doh_response
 from services.worker.cues.registry import cue_value
-from services.worker.cues.segmentation import _relabel, normalized_cuts, region_graph
+from services.worker.cues.segmentation import (
+    _relabel,
+    _uniform_in_mask,
+    normalized_cuts,
+    region_graph,
+    segment_unsup2d,
+)
 from tests.fixtures import reference_segmentation
 from tests.fixtures.raycast import cube_scene, raycast_passes
 
@@ -186,3 +192,17 @@ def test_curvature_pixels_are_the_numpy_expressions_bit_for_bit() -> None:
     old = np.zeros((50, 50, 3), dtype=np.uint8)
     old[..., :2] = np.where(seen[..., None], px, 0)
     assert np.array_equal(_curvature_pixels(k, seen, np.float32(kmax)), old)
+
+
+def test_one_colour_surface_takes_the_shortcut_to_the_labels_felzenszwalb_gives() -> None:
+    mesh, g = cube_scene()
+    passes = raycast_passes(mesh, g, grey=128)  # one colour on every face
+    ctx = ViewContext(g, passes=passes)
+    assert _uniform_in_mask(passes.rgb.astype(np.float32), passes.hit)
+    new = segment_unsup2d(ctx)
+    old = reference_segmentation.segment_unsup2d(ViewContext(g, passes=passes))  # skimage + dense cuts
+    assert np.array_equal(new, old) and np.array_equal(new, passes.hit.astype(np.uint16))
+    rgb = passes.rgb.copy()
+    rgb[passes.hit.nonzero()[0][-1], passes.hit.nonzero()[1][-1]] = 7  # one pixel differs: no shortcut
+    assert not _uniform_in_mask(rgb.astype(np.float32), passes.hit)
+    assert _uniform_in_mask(rgb.astype(np.float32), np.zeros_like(passes.hit))

@@ -12,6 +12,10 @@ Real Postgres, a local folder store, the bunny in object mode, the real Schedule
    its rows are being written):
    B's plan and dispatch times, and the time from the cancel to the planner process gone.
 
+4. chunked planning (BENCH_STREAM_ONLY=1, sizes in BENCH_STREAM_VIEWS, e.g. 500000,2000000): rgb-only object-mode
+   plans with 100 cameras; the planner child's peak RSS (VmHWM) and CPU time per size: flat in the views when the
+   plan is written in chunks (run it on an older checkout for the whole-plan figures).
+
 Writes bench/results/planner.json. Run: .venv/bin/python bench/planner.py  (about 2-4 minutes)
 """
 

@@ -45,6 +45,7 @@ log = logging.getLogger(__name__)
 REAP_INTERVAL_S = 5.0
 THOROUGH_DISPATCH_S = 60.0  # a dispatch pass that ignores the counter-based scan bounds (a safety net) ...
 THOROUGH_STALLED_S = 5.0  # ... and sooner when a job has pending tasks but nothing ready or in flight
+COMPLETE_INTERVAL_S = 2.0  # completion's own look at the counters; sooner when a dispatch pass saw a job settle
 MAX_BACKOFF_S = 30.0
 PLAN_RETRY_S = 30  # a planning attempt that failed for a transient reason is retried after this
 MAX_PLAN_ATTEMPTS = 3
@@ -138,6 +139,7 @@ class Scheduler:
         self.plan_fn = plan_fn
         self._rotation = 0
         self._last_reap = 0.0
+        self._last_complete = 0.0
         self._last_thorough = time.monotonic()  # the first passes use the (cheap) bounded scans
         self._stalled = False
         self._idle_watch = IdleWatch()
@@ -287,13 +289,17 @@ class Scheduler:
             return complete_once(s, self.store)
 
     def tick(self) -> TickResult:
-        """One round of every step (the reaper only every REAP_INTERVAL_S)."""
+        """One round of every step (the reaper only every REAP_INTERVAL_S, completion when a job settled)."""
         res = TickResult(budget=self.budget)
         res.planned = self.plan_pending()
         if time.monotonic() - self._last_reap >= REAP_INTERVAL_S:
             res.reaped = self.reap_once()
         res.dispatched = self.dispatch_once()
-        res.finished = self.complete_once()
+        # the dispatch pass has just read every running job's counters: completion's own read of them (a scan of
+        # each job's counter shards) is needed only when a job settled there, or now and then as a safety net
+        if res.dispatched.settled or time.monotonic() - self._last_complete >= COMPLETE_INTERVAL_S:
+            res.finished = self.complete_once()
+            self._last_complete = time.monotonic()
         return res
 
     def run_forever(self, stop_event: threading.Event, interval: float = 1.0) -> None:

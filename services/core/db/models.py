@@ -273,7 +273,9 @@ class Task(Base):
     __table_args__ = (
         UniqueConstraint("job_id", "space_id", "point_idx", "view_idx", "cue"),
         Index("ix_task_job_id_state", "job_id", "state"),
-        Index("ix_task_job_id_state_cue_id", "job_id", "state", "cue", "id"),  # dispatch: oldest first per cue (0002)
+        # dispatch: the pending tasks of a cue, oldest first; partial, so leaving pending writes nothing here (0004)
+        Index("ix_task_pending_job_id_cue_id", "job_id", "cue", "id",
+              postgresql_where=text("state = 'pending'"), sqlite_where=text("state = 'pending'")),
         Index("ix_task_state_lease_until", "state", "lease_until"),
         CheckConstraint(_state_check(TASK_STATES), name="state"),
     )

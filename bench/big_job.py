@@ -149,6 +149,25 @@ def sizes(sm: Any, rows: int, views: int) -> dict[str, Any]:
     }
 
 
+def finish_all(sm: Any, db_url: str, job_id: int, rows: int, views: int) -> dict[str, Any]:
+    """Every task of the job done, as a finished job leaves them (output key, size, sha256, times), then VACUUM FULL:
+    the footprint a finished job keeps (the pending-only dispatch index holds nothing of it)."""
+    t0 = time.perf_counter()
+    with sm() as s:
+        s.execute(text(
+            "UPDATE task SET state = 'done', worker_id = 'w-' || (id % 1000), attempts = 1, "
+            "output_key = 'big/' || cue || '/point_' || point_idx || '_view_' || view_idx || '.png', "
+            "size = 40000 + id % 1000, sha256 = md5(id::text) || md5(cue), duration_s = 0.05, "
+            "queued_at = now(), started_at = now(), finished_at = now() WHERE job_id = :j"), {"j": job_id})
+        s.execute(text("DELETE FROM job_counter WHERE job_id = :j"), {"j": job_id})
+        s.commit()
+    vacuum = make_engine(db_url, isolation_level="AUTOCOMMIT")
+    with vacuum.connect() as c:
+        c.execute(text("VACUUM FULL task"))  # compacted: what the finished rows take, without update bloat
+    vacuum.dispose()
+    return {"finish_s": round(time.perf_counter() - t0, 1), **sizes(sm, rows, views)}
+
+
 def dispatch_passes(sm: Any, job_id: int, window: int, passes: int) -> dict[str, Any]:
     """`passes` dispatch passes over the big table; what each sent is finished (queued -> running -> done) after."""
     transport = NullTransport()
@@ -202,6 +221,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--chunk-views", type=int, default=50_000)
     p.add_argument("--window", type=int, default=2_000, help="dispatch window (2 x 1000 workers)")
     p.add_argument("--passes", type=int, default=20)
+    p.add_argument("--finish-all", action="store_true",
+                   help="then finish every task and measure the footprint of the finished job (size_finished)")
+    p.add_argument("--key", default="big_job", help="the key of scale.json the figures go to")
     p.add_argument("--out", type=Path, default=RESULTS / "scale.json")
     args = p.parse_args(argv)
     db_url = create_database()
@@ -225,13 +247,16 @@ def main(argv: list[str] | None = None) -> int:
         doc["dispatch"] = dispatch_passes(sm, job_id, args.window, args.passes)
         print(json.dumps(doc["dispatch"]), flush=True)
         doc["progress_after_dispatch"] = progress(sm, job_id, 200)
+        if args.finish_all:
+            doc["size_finished"] = finish_all(sm, db_url, job_id, doc["persist"]["task_rows"], args.views)
+            print(json.dumps(doc["size_finished"]), flush=True)
         doc["peak_rss_mb_bench_process"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
         doc["load_avg_1m_end"] = round(os.getloadavg()[0], 2)
         engine.dispose()
     finally:
         drop_database(db_url)
     out = json.loads(args.out.read_text()) if args.out.exists() else {"benchmark": "scale_sim"}
-    out["big_job"] = doc
+    out[args.key] = {**doc, "views_arg": args.views}
     args.out.write_text(json.dumps(out, indent=2) + "\n")
     print(json.dumps(doc, indent=2))
     return 0

@@ -171,6 +171,8 @@ def main() -> None:
             os.killpg(server.pid, signal.SIGTERM)
             server.wait(30)
         drop_database(url)
+    results["load_avg_end"] = [round(x, 2) for x in os.getloadavg()]  # 1, 5, 15 min: the machine is shared
+    results["label"] = os.environ.get("BENCH_LABEL", "")
     print(json.dumps(results, indent=1))
     runs = json.loads(OUT.read_text()) if OUT.exists() else []
     OUT.write_text(json.dumps([*runs, results], indent=1) + "\n")

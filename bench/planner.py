@@ -12,6 +12,10 @@ Real Postgres, a local folder store, the bunny in object mode, the real Schedule
    its rows are being written):
    B's plan and dispatch times, and the time from the cancel to the planner process gone.
 
+4. chunked planning (BENCH_STREAM_ONLY=1, sizes in BENCH_STREAM_VIEWS, e.g. 500000,2000000): rgb-only object-mode
+   plans with 100 cameras; the planner child's peak RSS (VmHWM) and CPU time per size: flat in the views when the
+   plan is written in chunks (run it on an older checkout for the whole-plan figures).
+
 Writes bench/results/planner.json. Run: .venv/bin/python bench/planner.py  (about 2-4 minutes)
 """
 
@@ -49,6 +53,8 @@ SPEC_20M = {"cameras": {"mode": "object", "object_count": 100},
 SMALL = {"cameras": {"mode": "object", "object_count": 4}, "points": {"count": 1, "min_views": 2, "max_views": 2},
          "views": {"resolution": 32}, "cues": ["rgb"]}
 SIZES = [(40, 500), (40, 2000)]  # (cameras, points): 20k and 80k views, every default cue
+# chunked planning: rgb only (the task rows per view stay few), 100 cameras per point; sizes from the command line
+STREAM_SIZES = [int(a) for a in os.environ.get("BENCH_STREAM_VIEWS", "100000,400000").split(",")]
 
 
 def rss_mb(pid: int, field: str = "VmRSS") -> float:
@@ -133,6 +139,44 @@ def per_view(sm: Any, store: LocalStore, settings: Any) -> dict[str, Any]:
     return {"sizes": rows, "bytes_per_view": round(slope)}
 
 
+def child_cpu_s(pid: int) -> float:
+    """User + system CPU seconds of a live process (from /proc/<pid>/stat), 0 when it is gone."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError):
+        return 0.0
+
+
+def streamed(sm: Any, store: LocalStore, settings: Any) -> dict[str, Any]:
+    """The planner child's peak RSS (VmHWM) as the plan grows: rgb-only object-mode plans of STREAM_SIZES views."""
+    rows = []
+    for views in STREAM_SIZES:
+        sched = Scheduler(sm, store, NullTransport(), settings, f"bench-stream-{views}", plan_in_processes=True)
+        spec = {"cameras": {"mode": "object", "object_count": 100},
+                "points": {"count": views // 34, "min_views": 2, "max_views": 100},
+                "cues": ["rgb"]}
+        job_id = new_job(sm, store, "stream", spec)
+        sampler = Sampler(sched)
+        t0, cpu = time.monotonic(), 0.0
+        while job_state(sm, job_id)[0] in ("pending", "planning"):
+            sched.plan_pending()
+            for child in list(sched.planners.children.values()):  # type: ignore[union-attr]
+                cpu = max(cpu, child_cpu_s(child.process.pid or 0))
+            time.sleep(0.1)
+        sampler.stop()
+        with sm() as s:
+            job = s.get(Job, job_id)
+            assert job is not None
+            planned = job.plan_summary["spaces"]["bunny"] if job.plan_summary and job.state == "running" else {}
+        rows.append({"views": planned.get("views"), "points": planned.get("points"), "tasks": job.total_tasks,
+                     "state": job.state, "error": job.error, "planner_peak_rss_mb": round(sampler.child_peak, 1),
+                     "planner_cpu_s": round(cpu, 1), "planning_wall_s": round(time.monotonic() - t0, 1),
+                     "load_avg_1m": round(os.getloadavg()[0], 2)})
+        print("streamed plan:", rows[-1], flush=True)
+    return {"chunk_views": getattr(settings, "plan_chunk_views", None), "sizes": rows}
+
+
 def big_beside_small(sm: Any, store: LocalStore, settings: Any, big_spec: dict[str, Any],
                      cancel_after_s: float) -> dict[str, Any]:
     """Tenant A's big job planning (cancelled after `cancel_after_s` if still planning) while tenant B's small job
@@ -200,6 +244,9 @@ def main() -> None:
         store = LocalStore(tmp / "objects")
         settings = get_settings(database_url=url, storage_url=f"file://{tmp / 'objects'}", data_dir=tmp / "data",
                                 plan_memory_mb=16_384, heartbeat_timeout_s=30)
+        if os.environ.get("BENCH_STREAM_ONLY"):  # only the chunked-planning figures (before/after comparisons)
+            results["streamed"] = streamed(sm, store, settings.model_copy(update={"plan_timeout_s": 36000}))
+            raise SystemExit(_save(results))
         results["per_view"] = per_view(sm, store, settings)
         low = settings.model_copy(update={"plan_memory_mb": 1536})
         # the 20M spec written past the API: the scheduler refuses it before planning, B goes on
@@ -211,9 +258,15 @@ def main() -> None:
         engine.dispose()
     finally:
         drop_database(url)
+    _save(results)
+
+
+def _save(results: dict[str, Any]) -> int:
+    results["label"] = os.environ.get("BENCH_LABEL", "")
     print(json.dumps(results, indent=1))
     runs = json.loads(OUT.read_text()) if OUT.exists() else []
     OUT.write_text(json.dumps([*runs, results], indent=1) + "\n")
+    return 0
 
 
 if __name__ == "__main__":

@@ -64,17 +64,27 @@ def task_id_of(raw: bytes) -> int:
 
 def worker_process(
     index: int, n_workers: int, settings: Settings, redis_url: str, task_s: float, kill_ids: list[str],
-    kill_at: Any, stop: Any, out: Any, measuring: Any,
+    kill_at: Any, stop: Any, out: Any, measuring: Any, nice: int = 0, probe: bool = False,
 ) -> None:
-    """`n_workers` simulated workers (threads) sharing one connection pool; reports stats into `out`."""
+    """`n_workers` simulated workers (threads) sharing one connection pool; reports stats into `out`.
+
+    `nice` lowers the process's CPU priority: a real fleet runs on other machines, so the host's orchestrator
+    (scheduler, Postgres, Redis, API) should not queue behind the simulation's threads for CPU. A `probe` is one
+    worker alone in its process at normal priority, as a real worker process is: its task overhead is what a
+    worker of the fleet would see, without the harness's hundreds of threads per interpreter.
+    """
+    import os
+
     import redis
 
+    if nice:
+        os.nice(nice)
     engine = worker_engine(settings.database_url, pool_size=POOL_PER_PROCESS, max_overflow=0, pool_timeout=120)
     sm = make_sessionmaker(engine)
     store = LocalStore(settings.data_dir / "objects")
     queues = [settings.queue_render, settings.queue_derive]
     lock = threading.Lock()
-    stats: dict[str, Any] = {"done": 0, "skipped": 0, "killed": [], "beat_s": [], "overhead_s": []}
+    stats: dict[str, Any] = {"done": 0, "skipped": 0, "killed": [], "beat_s": [], "overhead_s": [], "probe": probe}
     beats: list[tuple[Heartbeat, threading.Event]] = []
 
     def run_worker(k: int) -> None:

@@ -55,6 +55,7 @@ from bench.scale_cost import (  # noqa: E402
     PrivateRedis,
     ProcessCpu,
     backend_pids,
+    cpu_seconds,
     mean_task_seconds,
     publish_cost,
     sample_waits,
@@ -138,7 +139,11 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
         sched = ctx.Process(target=scheduler_process, args=(sched_settings, plan, stop, outq))
         sched.start()
         procs = [ctx.Process(target=worker_process, args=(p, counts[p], worker_settings, args.redis, args.task_s, kill_ids,
-                                                          kill_at, stop, outq, measuring)) for p in range(args.processes)]
+                                                          kill_at, stop, outq, measuring, args.worker_nice))
+                 for p in range(args.processes)]
+        # one more worker, alone in its process at normal priority (a real worker's view of the task overhead)
+        procs.append(ctx.Process(target=worker_process, args=(args.processes, 1, worker_settings, args.redis, args.task_s,
+                                                              [], kill_at, stop, outq, measuring, 0, True)))
         for p in procs:
             p.start()
 
@@ -169,12 +174,20 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
         killed_at: float | None = None
         waits_pg: dict[str, int] = {}
         next_wait_sample = 0.0
+        progress_cpu: list[float] = []
+        # GET /jobs/{id}'s own work (services.api.jobs.endpoints.get_job): an autocommit read session, one statement,
+        # the JSON; its wall time, and its CPU (this thread's plus its Postgres backend's)
+        poll_engine = make_engine(with_app_name(db_url, "api"), pool_size=1, max_overflow=0)
+        read_sm = make_sessionmaker(poll_engine.execution_options(isolation_level="AUTOCOMMIT"))
+        with read_sm() as probe_session:
+            api_pid = int(probe_session.scalar(text("SELECT pg_backend_pid()")) or 0)
         with sm() as s:
             while time.monotonic() - t0 < args.seconds:
-                t = time.perf_counter()
-                fetch_job_detail(s, owner="bench", job_id=job_id, rates=None)
-                s.rollback()
+                t, c, pc = time.perf_counter(), time.thread_time(), cpu_seconds(api_pid)
+                with read_sm() as rs:
+                    fetch_job_detail(rs, owner="bench", job_id=job_id, rates=None).model_dump_json()
                 progress_lat.append(time.perf_counter() - t)
+                progress_cpu.append(time.thread_time() - c + cpu_seconds(api_pid) - pc)
                 if time.monotonic() >= next_wait_sample:  # what Postgres' busy backends are waiting for
                     next_wait_sample = time.monotonic() + 0.5
                     sample_waits(s, waits_pg)
@@ -200,11 +213,12 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
         measuring.clear()
         stop.set()
         kill_at.set()
-        results = [outq.get(timeout=180) for _ in range(args.processes + 1)]
+        results = [outq.get(timeout=180) for _ in range(len(procs) + 1)]
         for p in [sched, *procs]:
             p.join(30)
         sched_stats = next(x for x in results if "sent" in x)
-        wstats = [x for x in results if "beat_s" in x]
+        wstats = [x for x in results if "beat_s" in x and not x["probe"]]
+        probe_overhead_s = [b for w in results if w.get("probe") for b in w["overhead_s"]]
         beat_s = [b for w in wstats for b in w["beat_s"]]
         overhead_s = [b for w in wstats for b in w["overhead_s"]]
         with sm() as s:  # one worker alone, on the same database, once the fleet has stopped
@@ -217,6 +231,7 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
             s.execute(text("UPDATE job SET state = 'cancelled' WHERE id = :j"), {"j": job_id})
             s.commit()
         engine.dispose()
+        poll_engine.dispose()
         n_done = done1 - done0
         rate = n_done / elapsed
         orchestration_s = cpu_s["scheduler"] + cpu_s["postgres"] + cpu_s["redis"]
@@ -234,6 +249,8 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
             "utilisation": round(rate * mean_s / n_workers, 3),
             "queue_wait": pct(waits),
             "task_overhead": pct(overhead_s),  # a worker's claim + record done (pool wait included), per task
+            "task_overhead_probe_worker": pct(probe_overhead_s),  # one worker in its own process, under the load
+            "worker_nice": args.worker_nice,
             "task_overhead_one_worker_alone": pct(overhead_alone[20:]),  # the same without the fleet's contention
             "postgres_cpu_ms_per_task_one_worker_alone": round(alone_pg_ms, 3),  # its claim + result statements
             "cpu_s": cpu_s,
@@ -271,6 +288,7 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
                 "reaped_total": sched_stats["reaped"],
             },
             "progress_query": pct(progress_lat),
+            "progress_query_cpu": pct(progress_cpu),  # the poller thread's + its Postgres backend's CPU per query
             "load_avg_1m": round(os.getloadavg()[0], 2),
         }
     finally:
@@ -290,6 +308,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--heartbeat-timeout-s", type=int, default=10)
     p.add_argument("--window", type=int, default=0, help="dispatch window (0: 2 x workers, at least 20)")
     p.add_argument("--max-views", type=int, default=20_000, help="views of the simulated job at most")
+    p.add_argument("--worker-nice", type=int, default=10,
+                   help="niceness of the simulated-worker processes (a real fleet's CPU is not the orchestrator's)")
     p.add_argument("--warmup", type=float, default=5.0, help="seconds after the workers got busy before measuring")
     p.add_argument("--redis", default="", help="a running Redis (default: a private redis-server, CPU ours alone)")
     p.add_argument("--step", default="",

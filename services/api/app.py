@@ -12,7 +12,6 @@ import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from dataclasses import dataclass
-from typing import Any
 
 from fastapi import FastAPI
 from fastapi.responses import RedirectResponse
@@ -97,7 +96,7 @@ def create_app(
     # No pre-ping: it is one more round trip per request (a third of a progress poll). After a Postgres
     # restart the first request on a dead connection gets a 503, SQLAlchemy invalidates the pool, and the
     # next requests reconnect.
-    engine_kwargs: dict[str, Any] = (
+    engine_kwargs: dict[str, int | bool] = (
         {} if settings.is_sqlite else {"pool_size": 20, "max_overflow": 20, "pool_pre_ping": False, "pool_recycle": 1800}
     )
     engine = engine or make_engine(settings.database_url, **engine_kwargs)

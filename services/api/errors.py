@@ -10,11 +10,13 @@ Validation errors keep pydantic's field locations in `errors` ([{loc, msg, type}
 from __future__ import annotations
 
 import logging
-from typing import Any
+from collections.abc import Iterable
+from typing import TypedDict
 
 from fastapi import FastAPI, Request, status
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from pydantic_core import ErrorDetails
 from sqlalchemy.exc import DataError, IntegrityError, OperationalError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
@@ -34,12 +36,20 @@ def clip(text: str, limit: int = MAX_ERROR_TEXT) -> str:
     return f"{text[:limit]}... ({len(text) - limit} more characters)"
 
 
-def _loc(loc: Any) -> list[str | int]:
+def _loc(loc: Iterable[str | int]) -> list[str | int]:
     # a location names the input's own keys (an unknown field), so it is clipped like a message
     return [p if isinstance(p, int) else clip(str(p), 100) for p in loc]
 
 
-def validation_errors(errors: Any) -> list[dict[str, Any]]:
+class FieldError(TypedDict):
+    """One failing field of a 422: where (path of keys and indexes), why, and pydantic's error type."""
+
+    loc: list[str | int]
+    msg: str
+    type: str
+
+
+def validation_errors(errors: Iterable[ErrorDetails]) -> list[FieldError]:
     """Pydantic errors reduced to JSON-safe {loc, msg, type}: inputs are not echoed, messages are clipped."""
     return [
         {"loc": _loc(e.get("loc", ())), "msg": clip(str(e.get("msg", ""))), "type": str(e.get("type", ""))}
@@ -47,7 +57,7 @@ def validation_errors(errors: Any) -> list[dict[str, Any]]:
     ]
 
 
-def summarize(errors: list[dict[str, Any]], total: int | None = None) -> str:
+def summarize(errors: list[FieldError], total: int | None = None) -> str:
     """One line naming each failing field: `loc.path: message; ...` (`total`: errors before clipping)."""
     total = len(errors) if total is None else total
     parts = []
@@ -59,7 +69,7 @@ def summarize(errors: list[dict[str, Any]], total: int | None = None) -> str:
     return "; ".join(parts) or "invalid request"
 
 
-def error_response(status_code: int, detail: str, **extra: Any) -> JSONResponse:
+def error_response(status_code: int, detail: str, **extra: object) -> JSONResponse:
     """A JSON error response with `detail` and optional extra fields."""
     return JSONResponse({"detail": detail, **extra}, status_code=status_code)
 

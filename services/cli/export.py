@@ -91,7 +91,8 @@ def _split_warnings(splits: dict[str, str]) -> list[str]:
 
 
 def _component(args: argparse.Namespace, exporter: Exporter) -> LoaderComponent:
-    name = args.component or (exporter.job or {}).get("job", {}).get("name") or exporter.records[0].component
+    job_name = exporter.job["job"].get("name") if exporter.job is not None else None
+    name = args.component or (job_name if isinstance(job_name, str) else None) or exporter.records[0].component
     try:
         check_name("--component", name)
         return component(name)

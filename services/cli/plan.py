@@ -13,11 +13,10 @@ import argparse
 import sys
 import tempfile
 from pathlib import Path
-from typing import Any
 
 from services.cli import CliError
 from services.cli.spec_args import add_spec_arguments, build_spec, distinct_space_names
-from services.core.domain.job_document import job_document, job_json_bytes
+from services.core.domain.job_document import JobDocument, SpaceRecord, job_document, job_json_bytes
 from services.core.domain.jobspec import JobSpec, cues_for_space
 from services.core.domain.keys import JOB_JSON_KEY, output_key
 from services.core.domain.plan import PlanError, SpacePlan, plan_to_json
@@ -38,7 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_spec_arguments(parser)
 
 
-def _write_json(root: Path, key: str, data: Any) -> None:
+def _write_json(root: Path, key: str, data: object) -> None:
     path = root / key
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_bytes(encode_json(data))
@@ -55,8 +54,8 @@ def _write_plan_cues(out: Path, component: str, name: str, plan: SpacePlan) -> N
         _write_json(out, output_key("nonfixated", component, name, point.idx, 0), nonfixated(plan, point.idx))
 
 
-def _plan_document(spec: JobSpec, component: str, spaces: dict[str, dict[str, Any]],
-                   plans: list[SpacePlan]) -> dict[str, Any]:
+def _plan_document(spec: JobSpec, component: str, spaces: dict[str, SpaceRecord],
+                   plans: list[SpacePlan]) -> JobDocument:
     """job.json of a plan (stage "plan"): no job row, counts of the files written."""
     views = sum(len(plan.views) for plan in plans)
     points = sum(len(plan.points) for plan in plans)
@@ -85,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
     if out.exists() and not out.is_dir():
         raise CliError(f"--out {out}: exists and is not a folder")
     component = spec.name
-    spaces: dict[str, dict[str, Any]] = {}
+    spaces: dict[str, SpaceRecord] = {}
     with tempfile.TemporaryDirectory(prefix="omnidata-plan-") as tmp:
         loaded: list[tuple[str, str, LoadedSpace]] = []
         for i, (given, name) in enumerate(zip(given_spaces, names, strict=True)):

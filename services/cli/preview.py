@@ -97,7 +97,10 @@ def _write(args: argparse.Namespace, store: ObjectStore, records: list[ViewRecor
         if not isinstance(store, LocalStore):
             raise CliError("give --out for a dataset on object storage")
         out = store.root / PREVIEW_PREFIX / "video"
-    mode = ((job_document(store) or {}).get("spec") or {}).get("views", {}).get("mode")
+    document = job_document(store)
+    spec = document.get("spec") if document is not None else None
+    views = spec.get("views") if spec else None
+    mode = views.get("mode") if isinstance(views, dict) else None
     if mode not in (None, "trajectory"):
         print(f"omnidata preview: note: views are {mode}, not a trajectory; frames jump between cameras")
     written = videos(store, records, cues, out, fps=args.fps, progress=not args.no_progress)

@@ -10,7 +10,6 @@ from __future__ import annotations
 import argparse
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 import yaml
 from pydantic import ValidationError
@@ -56,7 +55,7 @@ def add_spec_arguments(parser: argparse.ArgumentParser, *, spec_required: bool =
     add_frame_arguments(parser)
 
 
-def read_spec_file(raw: str | Path) -> dict[str, Any]:
+def read_spec_file(raw: str | Path) -> dict[str, object]:
     """The mapping of JobSpec fields in a YAML or JSON file (JSON is YAML); CliError naming the problem."""
     path = Path(raw)
     if not path.is_file():

@@ -16,14 +16,21 @@ import os
 import sys
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypedDict
 
 from services.cli import CliError
 from services.cli.spec_args import add_spec_arguments, build_spec, check_sources, refused_summary, usable
 from services.core.db.models import JOB_TERMINAL_STATES, TASK_TERMINAL_STATES, JobState, TaskState
+
+if TYPE_CHECKING:  # imported where used: `omnidata --help` stays fast
+    import httpx
+
+    from services.core.domain.jobspec import JobSpec
+    from services.core.ingest.registry import Source
+    from services.core.settings import Settings
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -74,17 +81,30 @@ class Status:
 # ---------------------------------------------------------------------------------------------- HTTP
 
 
+class SpaceReply(TypedDict):
+    """The keys `submit` reads of a space in the API's replies."""
+
+    id: int
+    name: str
+    checksum: str
+
+
+class JobReply(TypedDict):
+    id: int
+
+
 class Api:
     """The few API calls `submit` makes (httpx, bearer token); HTTP errors become CliError with the detail."""
 
-    def __init__(self, base_url: str, token: str | None, *, timeout: float = 300.0, client: Any = None) -> None:
+    def __init__(self, base_url: str, token: str | None, *, timeout: float = 300.0,
+                 client: httpx.Client | None = None) -> None:
         import httpx
 
         headers = {"Authorization": f"Bearer {token}"} if token else {}
         self.base_url = base_url.rstrip("/")
         self.client = client or httpx.Client(base_url=self.base_url, headers=headers, timeout=timeout)
 
-    def _call(self, method: str, path: str, **kw: Any) -> Any:
+    def _call(self, method: str, path: str, **kw: Any) -> Any:  # httpx's request keywords; its JSON is Any
         import httpx
 
         try:
@@ -99,27 +119,27 @@ class Api:
             raise CliError(f"{method} {path} failed with {r.status_code}: {detail}")
         return r.json() if r.content else None
 
-    def find_space(self, name: str) -> dict[str, Any] | None:
+    def find_space(self, name: str) -> SpaceReply | None:
         """The caller's space with this name, if any."""
         offset = 0
         while True:
             page = self._call("GET", "/spaces", params={"limit": 200, "offset": offset})
             for space in page["items"]:
                 if space["name"] == name:
-                    return dict(space)
+                    return space
             offset += len(page["items"])
             if not page["items"] or offset >= page["total"]:
                 return None
 
-    def upload_space(self, path: Path, *, name: str, up_axis: str, unit_scale: float | str) -> dict[str, Any]:
+    def upload_space(self, path: Path, *, name: str, up_axis: str, unit_scale: float | str) -> SpaceReply:
         """POST /spaces (multipart: file, name, up_axis, unit_scale)."""
         with open(path, "rb") as fh:
-            return dict(self._call("POST", "/spaces", files={"file": (path.name, fh)},
-                                   data={"name": name, "up_axis": up_axis, "unit_scale": str(unit_scale)}))
+            return self._call("POST", "/spaces", files={"file": (path.name, fh)},
+                              data={"name": name, "up_axis": up_axis, "unit_scale": str(unit_scale)})
 
-    def create_job(self, space_ids: list[int], spec: dict[str, Any]) -> dict[str, Any]:
+    def create_job(self, space_ids: list[int], spec: Mapping[str, object]) -> JobReply:
         """POST /jobs."""
-        return dict(self._call("POST", "/jobs", json={"space_ids": space_ids, "spec": spec}))
+        return self._call("POST", "/jobs", json={"space_ids": space_ids, "spec": spec})
 
     def status(self, job_id: int) -> Status:
         """GET /jobs/{id} reduced to a Status."""
@@ -130,7 +150,7 @@ class Api:
                       p.get("labels_per_s"), p.get("eta_s"), job.get("error"))
 
 
-def submit_http(api: Api, spec: Any, sources: list[Any]) -> int:
+def submit_http(api: Api, spec: JobSpec, sources: list[Source]) -> int:
     """Upload (or reuse) the spaces and create the job over HTTP; returns the job id."""
     from services.core.domain.jobspec import similarity_scale
     from services.core.ingest.archive import resolve_source
@@ -160,7 +180,7 @@ def submit_http(api: Api, spec: Any, sources: list[Any]) -> int:
 # ---------------------------------------------------------------------------------------------- database
 
 
-def submit_db(settings: Any, spec: Any, sources: list[Any], owner: str) -> int:
+def submit_db(settings: Settings, spec: JobSpec, sources: list[Source], owner: str) -> int:
     """Register (or reuse) the spaces and create the job in the configured database and store."""
     from sqlalchemy import select
 
@@ -201,7 +221,7 @@ def submit_db(settings: Any, spec: Any, sources: list[Any], owner: str) -> int:
         engine.dispose()
 
 
-def db_status_fn(settings: Any) -> tuple[Callable[[int], Status], Callable[[], None]]:
+def db_status_fn(settings: Settings) -> tuple[Callable[[int], Status], Callable[[], None]]:
     """A Status reader on the database (counters only) and its close function."""
     from services.core.db.counters import job_progress
     from services.core.db.engine import make_engine, make_sessionmaker

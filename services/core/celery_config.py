@@ -7,8 +7,6 @@ that never imports the worker (and so never bpy): tasks are sent with
 
 from __future__ import annotations
 
-from typing import Any
-
 from celery import Celery
 
 from services.core.settings import Settings
@@ -25,7 +23,7 @@ def queue_for_cue(cue: str, settings: Settings) -> str:
     return settings.queue_render if cue in RENDER_CUES else settings.queue_derive
 
 
-def celery_conf(settings: Settings) -> dict[str, Any]:
+def celery_conf(settings: Settings) -> dict[str, object]:
     """Celery configuration for both sides: JSON only, acks_late, prefetch 1, no result backend."""
     return {
         "broker_url": settings.broker_url,

@@ -85,6 +85,9 @@ class Settings(BaseSettings):
     plan_memory_mb: int = Field(
         4096, ge=256, description="memory one job's planning may use (its process's limit); bigger specs are refused"
     )
+    plan_chunk_views: int = Field(
+        20000, ge=1, description="views planned and written at a time: a planner's memory beyond the sampled points"
+    )
     plan_processes: int = Field(2, ge=1, le=64, description="jobs one scheduler plans at once, each in its own process")
     plan_timeout_s: int = Field(
         900, ge=10, description="time one job's planning may take; its process is ended after it, bigger specs refused"
@@ -134,7 +137,7 @@ class Settings(BaseSettings):
 
     @model_validator(mode="before")
     @classmethod
-    def _fill_defaults(cls, data: Any) -> Any:
+    def _fill_defaults(cls, data: object) -> object:
         # database_url and storage_url default to paths under data_dir, so derive them after data_dir is known.
         if not isinstance(data, dict):
             return data
@@ -178,7 +181,7 @@ class Settings(BaseSettings):
         return found
 
 
-def get_settings(**overrides: Any) -> Settings:
+def get_settings(**overrides: Any) -> Settings:  # any Settings field (pydantic-settings checks them)
     """Build a fresh Settings from the environment; keyword overrides win over the environment."""
     return Settings(**overrides)
 
@@ -194,7 +197,7 @@ class InvalidSettings(ConfigurationError):
     """OMNIDATA_* settings that cannot be used; the message names each bad variable."""
 
 
-def load_settings(**overrides: Any) -> Settings:
+def load_settings(**overrides: Any) -> Settings:  # as get_settings
     """get_settings() for the command line: a bad OMNIDATA_* value raises InvalidSettings with one clear line."""
     try:
         return get_settings(**overrides)

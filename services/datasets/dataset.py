@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TypedDict, cast
 
 import numpy as np
 
@@ -28,10 +28,27 @@ from services.datasets.source import (
 )
 from services.datasets.splits import DEFAULT_RATIOS, SPLITS, assign_splits, read_split_csv
 
-Item = dict[str, Any]
+# cue name -> decoded array (JSON cues: their text); space, point, view; K and world_to_camera. Items of several
+# views hold a list (text, names) or a stacked array per key.
+ItemValue = np.ndarray | str | int | list[np.ndarray | str | int]
+Item = dict[str, ItemValue]
 
 
-def camera_of(point_info: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+class StoredPointInfo(TypedDict, total=False):
+    """The point_info keys read back here: ours carry K and world_to_camera; the released Omnidata components
+    only the field of view, resolution and Blender camera."""
+
+    K: list[list[float]]
+    world_to_camera: list[list[float]]
+    resolution: int
+    field_of_view_rads: float
+    camera_location: list[float]
+    camera_rotation_final: list[float]
+    point_location: list[float]
+    camera_distance: float
+
+
+def camera_of(point_info: StoredPointInfo) -> tuple[np.ndarray, np.ndarray]:
     """K (3x3, pixels) and world_to_camera (4x4, OpenCV axes) of a point_info, float32.
 
     Our point_info carries both; the released Omnidata components only have the field of view, resolution and
@@ -42,7 +59,8 @@ def camera_of(point_info: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
         return (np.asarray(point_info["K"], np.float32), np.asarray(point_info["world_to_camera"], np.float32))
     res = int(point_info["resolution"])
     K = intrinsics(float(point_info["field_of_view_rads"]), res)
-    w2c = world_to_camera_from_blender(point_info["camera_location"], point_info["camera_rotation_final"])
+    w2c = world_to_camera_from_blender(np.asarray(point_info["camera_location"]),
+                                       np.asarray(point_info["camera_rotation_final"]))
     return K.astype(np.float32), w2c.astype(np.float32)
 
 
@@ -134,7 +152,7 @@ class OmnidataDataset:
             self._store = open_root(self.root, self.settings)
         return self._store
 
-    def __getstate__(self) -> dict[str, Any]:
+    def __getstate__(self) -> dict[str, object]:
         state = self.__dict__.copy()
         if not isinstance(self.root, ObjectStore):
             state["_store"] = None  # boto3 clients do not pickle; DataLoader workers open their own
@@ -154,7 +172,7 @@ class OmnidataDataset:
         item: Item = {cue: decode_cue(cue, self.read(record, cue), self.params) for cue in self.cues}
         if "point_info" in record.files:
             text = item["point_info"] if "point_info" in item else self.read(record, "point_info").decode("utf-8")
-            item["K"], item["world_to_camera"] = camera_of(json.loads(text))
+            item["K"], item["world_to_camera"] = camera_of(json.loads(cast(str, text)))
         item.update(space=record.space, point=record.point, view=record.view)
         return item
 
@@ -170,9 +188,9 @@ class OmnidataDataset:
             if key in out:
                 continue
             if isinstance(value, np.ndarray):
-                out[key] = np.stack([v[key] for v in views])
+                out[key] = np.stack([cast(np.ndarray, v[key]) for v in views])
             else:
-                out[key] = [v[key] for v in views]
+                out[key] = [cast(np.ndarray | str | int, v[key]) for v in views]
         return out
 
     def __repr__(self) -> str:

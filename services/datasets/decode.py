@@ -25,14 +25,15 @@ from __future__ import annotations
 
 import io
 import json
-from typing import Any
 
 import numpy as np
 from PIL import Image
 
 from services.core.domain.cues import CURVATURE_FLAT, FRAGMENT_NONE, NORMAL_BACKGROUND, UINT16_NONE, get_cue
 from services.core.domain.exr import decode_exr_rgb
+from services.core.domain.job_document import JobDocument
 from services.core.domain.jobspec import CueParams
+from services.core.domain.json_types import JSONObject
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
@@ -75,11 +76,11 @@ def read_npy(data: bytes) -> np.ndarray:
     return np.load(io.BytesIO(data), allow_pickle=False)
 
 
-def read_raw(cue: str, data: bytes) -> np.ndarray | dict[str, Any]:
+def read_raw(cue: str, data: bytes) -> np.ndarray | JSONObject:
     """A cue file as stored: HxW(xC) array in the file's dtype, or the parsed JSON."""
     ext = get_cue(cue).ext
     if ext == "json":
-        parsed: dict[str, Any] = json.loads(data)
+        parsed: JSONObject = json.loads(data)
         return parsed
     if ext == "npy":
         return read_npy(data)
@@ -166,7 +167,8 @@ def decode_cue(cue: str, data: bytes, params: CueParams | None = None) -> np.nda
     raise ValueError(f"cue {cue!r}: no decoder")  # a new catalog entry needs one here
 
 
-def cue_params(job_document: dict[str, Any] | None) -> CueParams:
+def cue_params(job_document: JobDocument | None) -> CueParams:
     """The job's cue parameters from its job.json (defaults for datasets without one)."""
-    params = ((job_document or {}).get("spec") or {}).get("params")
+    spec = job_document.get("spec") if job_document is not None else None
+    params = spec.get("params") if spec else None
     return CueParams.model_validate(params) if params else CueParams()

@@ -25,10 +25,10 @@ import sys
 import tarfile
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 from services.core.domain.cues import CATALOG
 from services.core.domain.errors import Invalid
+from services.core.domain.json_types import JSONObject
 from services.core.domain.keys import JOB_JSON_KEY
 from services.core.storage import ObjectStore
 from services.datasets.public_loader import LoaderComponent, split_rel_paths
@@ -85,8 +85,8 @@ class Exporter:
 
         yield from tqdm(self.records, desc=what, unit="view", file=sys.stderr, dynamic_ncols=True)
 
-    def sample_json(self, record: ViewRecord) -> dict[str, Any]:
-        doc: dict[str, Any] = {"space": record.space, "component": record.component, "point": record.point,
+    def sample_json(self, record: ViewRecord) -> JSONObject:
+        doc: JSONObject = {"space": record.space, "component": record.component, "point": record.point,
                                "view": record.view}
         if "point_info" in record.files:
             doc["point_info"] = json.loads(self.read(record, "point_info"))

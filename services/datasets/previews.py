@@ -15,16 +15,18 @@ import itertools
 import json
 import math
 import re
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Literal, cast
 
 import numpy as np
 from PIL import Image, ImageDraw
 
 from services.core.domain.cues import FRAGMENT_NONE, UINT16_NONE, get_cue
 from services.core.domain.jobspec import CueParams
+from services.core.domain.json_types import JSONObject, JSONValue
 from services.core.domain.keys import file_name
+from services.core.domain.plan_cues import Nonfixated, VanishingPoints
 from services.core.storage import ObjectStore
 from services.datasets.decode import (
     as_uint16,
@@ -34,10 +36,15 @@ from services.datasets.decode import (
 )
 from services.datasets.source import ViewRecord, job_document
 
+if TYPE_CHECKING:  # dataset.py imports this module
+    from services.datasets.dataset import StoredPointInfo
+
 PREVIEW_VERSION = 1  # bump when the mapping changes: cached previews live under a versioned prefix
 PREVIEW_PREFIX = f"_previews/v{PREVIEW_VERSION}"
 MAX_PREVIEW_PX = 256  # previews are thumbnails: larger outputs are subsampled to at most this size
 JSON_TILE_PX = 256
+_AXIS_COLOURS: tuple[tuple[Literal["x", "y", "z"], tuple[int, int, int]], ...] = (
+    ("x", (230, 60, 60)), ("y", (60, 200, 60)), ("z", (80, 120, 255)))
 LABEL_CUES = {"segment_unsup2d", "segment_unsup25d", "segment_semantic", "segment_instance"}
 MAGNITUDE_CUES = {"edge_texture", "edge_occlusion", "keypoints2d", "keypoints3d"}
 PIXEL_JSON_CUES = {"nonfixated", "vanishing_points"}  # JSON cues holding pixel positions (need the resolution)
@@ -141,7 +148,7 @@ def _dot(draw: ImageDraw.ImageDraw, xy: tuple[float, float], r: float, colour: t
     draw.ellipse([xy[0] - r, xy[1] - r, xy[0] + r, xy[1] + r], outline=colour, width=2)
 
 
-def _draw_point_info(doc: dict[str, Any], size: int) -> Image.Image:
+def _draw_point_info(doc: StoredPointInfo, size: int) -> Image.Image:
     """The fixated point where the view sees it, and the camera's field of view and distance."""
     from services.core.domain.camera import project
     from services.datasets.dataset import camera_of
@@ -159,12 +166,12 @@ def _draw_point_info(doc: dict[str, Any], size: int) -> Image.Image:
     return img
 
 
-def _draw_nonfixated(doc: dict[str, Any], size: int, view: int, resolution: int) -> Image.Image:
+def _draw_nonfixated(doc: Nonfixated, size: int, view: int, resolution: int) -> Image.Image:
     """Other points visible in this view, at their pixels (nearer points drawn larger)."""
     img, draw = _tile(size)
     scale = size / resolution
     entry = next((v for v in doc.get("views", []) if int(v.get("view_id", -1)) == view), None)
-    points = (entry or {}).get("points", [])
+    points = entry.get("points", []) if entry is not None else []
     for p in points:
         u, v = p["pixel"]
         r = max(2.0, size / 16 / max(float(p.get("depth_zbuffer_m", 1.0)), 0.25))
@@ -174,16 +181,17 @@ def _draw_nonfixated(doc: dict[str, Any], size: int, view: int, resolution: int)
     return img
 
 
-def _draw_vanishing_points(doc: dict[str, Any], size: int, resolution: int) -> Image.Image:
+def _draw_vanishing_points(doc: VanishingPoints, size: int, resolution: int) -> Image.Image:
     """Rays from the image centre towards the vanishing point of each world axis (x red, y green, z blue)."""
     img, draw = _tile(size)
     scale = size / resolution
     centre = np.array([size / 2, size / 2])
-    for axis, colour in (("x", (230, 60, 60)), ("y", (60, 200, 60)), ("z", (80, 120, 255))):
-        vp = doc.get(axis) or {}
-        d = np.asarray(vp.get("direction", [0, 0, 1]), dtype=np.float64)
-        if vp.get("image") is not None:
-            target = np.asarray(vp["image"], dtype=np.float64) * scale
+    for axis, colour in _AXIS_COLOURS:
+        vp = doc.get(axis)
+        d = np.asarray(vp.get("direction", [0, 0, 1]) if vp else [0, 0, 1], dtype=np.float64)
+        image = vp.get("image") if vp else None
+        if image is not None:
+            target = np.asarray(image, dtype=np.float64) * scale
             ray = target - centre
         else:  # parallel to the image: its direction in the image plane
             ray = d[:2]
@@ -197,7 +205,7 @@ def _draw_vanishing_points(doc: dict[str, Any], size: int, resolution: int) -> I
     return img
 
 
-def _draw_augment_params(doc: dict[str, Any], size: int) -> Image.Image:
+def _draw_augment_params(doc: Mapping[str, Mapping[str, JSONValue]], size: int) -> Image.Image:
     """The drawn augmentation parameters of the view, one line per cue."""
     img, draw = _tile(size)
     refocus, fog = doc.get("rgb_refocus", {}), doc.get("rgb_fog", {})
@@ -205,7 +213,8 @@ def _draw_augment_params(doc: dict[str, Any], size: int) -> Image.Image:
     lines = [
         f"focus {refocus.get('focus_distance_m', 0):.2f} m f/{refocus.get('f_number', 0):.1f}",
         f"fog beta {fog.get('beta_per_m', 0):.3f}/m A {fog.get('airlight', 0):.2f}",
-        "move " + " ".join(f"{1000 * float(x):.0f}" for x in motion.get("translation_m", [])) + " mm",
+        "move " + " ".join(f"{1000 * float(cast(float, x)):.0f}" for x in cast(list[JSONValue], motion.get("translation_m", [])))
+        + " mm",
         f"flash {flash.get('power_m2', 0):.2f} amb {flash.get('ambient', 0):.2f}",
     ]
     for i, line in enumerate(lines):
@@ -213,18 +222,19 @@ def _draw_augment_params(doc: dict[str, Any], size: int) -> Image.Image:
     return img
 
 
-def json_preview(cue: str, doc: dict[str, Any], *, view: int = 0, resolution: int | None = None) -> np.ndarray:
+def json_preview(cue: str, doc: JSONObject, *, view: int = 0, resolution: int | None = None) -> np.ndarray:
     """HxWx3 uint8 drawing of a JSON cue (pixel positions scaled from `resolution` to the tile)."""
-    res = int(resolution or doc.get("resolution") or JSON_TILE_PX)
+    declared = doc.get("resolution")
+    res = int(resolution or (declared if isinstance(declared, int | float) else 0) or JSON_TILE_PX)
     size = min(res, JSON_TILE_PX) if res >= 64 else 128
     if cue == "point_info":
-        img = _draw_point_info(doc, size)
+        img = _draw_point_info(cast("StoredPointInfo", doc), size)
     elif cue == "nonfixated":
-        img = _draw_nonfixated(doc, size, view, res)
+        img = _draw_nonfixated(cast(Nonfixated, doc), size, view, res)
     elif cue == "vanishing_points":
-        img = _draw_vanishing_points(doc, size, res)
+        img = _draw_vanishing_points(cast(VanishingPoints, doc), size, res)
     elif cue == "augment_params":
-        img = _draw_augment_params(doc, max(size, 160))
+        img = _draw_augment_params(cast(Mapping[str, Mapping[str, JSONValue]], doc), max(size, 160))
     else:
         raise ValueError(f"cue {cue!r}: no preview drawing")
     return np.asarray(img)

@@ -12,9 +12,11 @@ import json
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import cast
 
 from services.core.domain.cues import CATALOG, OUTPUT_CUES
+from services.core.domain.job_document import JobDocument
+from services.core.domain.json_types import JSONObject
 from services.core.domain.keys import JOB_JSON_KEY, MANIFEST_KEY
 from services.core.settings import Settings
 from services.core.storage import LocalStore, ObjectNotFoundError, ObjectStore, open_store, prefixed
@@ -77,10 +79,10 @@ def open_root(root: str | Path | ObjectStore, settings: Settings | None = None) 
     return open_store(text, settings)
 
 
-def read_json(store: ObjectStore, key: str) -> dict[str, Any] | None:
+def read_json(store: ObjectStore, key: str) -> JSONObject | None:
     """The JSON object stored at `key`, or None when there is none."""
     try:
-        doc: dict[str, Any] = json.loads(store.get_bytes(key))
+        doc: JSONObject = json.loads(store.get_bytes(key))
         return doc
     except ObjectNotFoundError:
         return None
@@ -192,6 +194,6 @@ def select_cues(records: list[ViewRecord], cues: list[str] | None) -> list[str]:
     return [c for c in CATALOG if c in cues]
 
 
-def job_document(store: ObjectStore) -> dict[str, Any] | None:
+def job_document(store: ObjectStore) -> JobDocument | None:
     """The root's job.json, or None (starter datasets have none)."""
-    return read_json(store, JOB_JSON_KEY)
+    return cast(JobDocument | None, read_json(store, JOB_JSON_KEY))  # our own schema (format omnidata.job/N)

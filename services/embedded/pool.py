@@ -12,8 +12,10 @@ import socket
 import sys
 import time
 from dataclasses import dataclass, field
+from multiprocessing.context import SpawnContext, SpawnProcess
+from multiprocessing.queues import Queue
+from multiprocessing.synchronize import Event
 from pathlib import Path
-from typing import Any
 
 log = logging.getLogger("omnidata.generate")
 
@@ -34,13 +36,18 @@ class WorkerConfig:
     """What a local worker process needs (plain data: it crosses a spawn)."""
 
     out: str
-    settings: dict[str, Any]
+    settings: dict[str, object]  # Settings.model_dump(mode="json"), secrets left out
     render_threads: int
     parent_pid: int
     log_level: int = logging.WARNING
 
 
-def worker_main(conf: WorkerConfig, tasks: Any, results: Any, stop: Any) -> None:
+# what a worker reports: ("ready", pid, worker id), ("outcome", pid, task id, status, cue, labels, error) or
+# ("recycle", pid, worker id)
+WorkerMessage = tuple[object, ...]
+
+
+def worker_main(conf: WorkerConfig, tasks: Queue[int | None], results: Queue[WorkerMessage], stop: Event) -> None:
     """Body of a local worker process: take task ids from `tasks`, run them, report outcomes on `results`."""
     # Ctrl-C reaches the whole process group: the parent decides when workers stop. SIGTERM (sent when
     # the grace period is over) unwinds the stack, so an in-flight write removes its temporary file.
@@ -107,14 +114,14 @@ class LocalPool:
 
     size: int
     conf: WorkerConfig
-    ctx: Any = field(default_factory=lambda: mp.get_context("spawn"))
-    procs: list[Any] = field(default_factory=list)
+    ctx: SpawnContext = field(default_factory=lambda: mp.get_context("spawn"))
+    procs: list[SpawnProcess] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         self.tasks = self.ctx.Queue()
         self.results = self.ctx.Queue()
         self.stop_event = self.ctx.Event()
-        self.worker_ids: dict[int, str] = {}
+        self.worker_ids: dict[int | None, str] = {}  # by pid (None only before a process starts)
         self.started = 0
         self.stopped = False
 
@@ -142,7 +149,7 @@ class LocalPool:
                 self._spawn()
         return gone
 
-    def drain(self, timeout: float) -> list[tuple[Any, ...]]:
+    def drain(self, timeout: float) -> list[WorkerMessage]:
         """Messages from workers: waits up to `timeout` for the first one, then takes what is there."""
         msgs = []
         try:

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import case, func, literal, or_, select, text
+from sqlalchemy import ColumnElement, case, func, literal, literal_column, or_, select, text
 from sqlalchemy.orm import Session
 
 from services.core.db.models import Job, JobCounter, JobState, Task, TaskState, utcnow
@@ -36,6 +36,8 @@ log = logging.getLogger(__name__)
 DEFAULT_BUDGET = 20_000  # tasks dispatched per pass at most (bounds one transaction)
 SEND_CHUNK = 1_000  # tasks per transport.send call: the first messages reach workers while the rest are built
 SCAN_MARGIN = 64  # extra rows looked at per cue beyond what the counters predict
+# the pending-task index is partial (migration 0004): scans name its predicate's literal
+PENDING_LITERAL: ColumnElement[str] = literal_column(f"'{TaskState.PENDING.value}'")
 SCAN_CAP = 200_000  # rows looked at per cue and pass at most
 # Rows per cue a thorough pass (the safety net, every minute) reads, oldest first: each costs a lookup of its
 # inputs, so reading up to SCAN_CAP of every cue took 17 s a pass on a 620k-task job under load and would take
@@ -54,6 +56,7 @@ class DispatchResult:
     upstream_failed: int = 0
     stalled: list[int] = field(default_factory=list)  # jobs with pending tasks, none ready, none in flight
     capped: bool = False  # the broker queue's cap, not the ready tasks, bounded the pass
+    settled: bool = False  # some running job had nothing pending, queued or running: completion has work
 
     @property
     def sent(self) -> int:
@@ -89,17 +92,22 @@ class JobLoad:
 def running_job_loads(session: Session) -> list[JobLoad]:
     """Every running job with its counters and tenant, highest priority first."""
     c = JobCounter.__table__.c
+    summed = (  # the shards summed in SQL: ~100 rows a job reach Python instead of ~1,500
+        select(c.job_id, c.cue, c.state, func.sum(c.n).label("n"))
+        .where(c.job_id.in_(select(Job.id).where(Job.state == JobState.RUNNING)))
+        .group_by(c.job_id, c.cue, c.state)
+        .subquery()
+    )
     rows = session.execute(
-        select(Job.id, Job.priority, Job.owner, c.cue, c.state, c.n)
-        .join(JobCounter, JobCounter.job_id == Job.id, isouter=True)
+        select(Job.id, Job.priority, Job.owner, summed.c.cue, summed.c.state, summed.c.n)
+        .join(summed, summed.c.job_id == Job.id, isouter=True)
         .where(Job.state == JobState.RUNNING)
     ).all()
     loads: dict[int, JobLoad] = {}
     for job_id, prio, owner, cue, state, n in rows:
         load = loads.setdefault(int(job_id), JobLoad(int(job_id), int(prio or 0), owner=str(owner or "")))
-        if cue is not None and n:  # summed over the counter shards
-            per = load.counts.setdefault(str(cue), {})
-            per[str(state)] = per.get(str(state), 0) + int(n)
+        if cue is not None and n:
+            load.counts.setdefault(str(cue), {})[str(state)] = int(n)
     return sorted(loads.values(), key=lambda j: (-j.priority, j.job_id))
 
 
@@ -136,7 +144,7 @@ def scan_cue(
     rank = _input_rank(cue, t.c, i.c) if CATALOG[cue].inputs else literal(0)
     base = select(t.c.id, rank).where(
         t.c.job_id == job_id,
-        t.c.state == TaskState.PENDING,
+        t.c.state == PENDING_LITERAL,  # inline, as the partial index's predicate (a bound value would not match it)
         t.c.cue == cue,
         or_(t.c.not_before.is_(None), t.c.not_before <= now),
     )
@@ -254,6 +262,7 @@ def dispatch_once(
     result = DispatchResult()
     picked: list[tuple[int, list[tuple[int, str]]]] = []
     loads = running_job_loads(session)
+    result.settled = any(load.pending == 0 and load.inflight == 0 for load in loads)
     if queued_cap is not None and queued_cap - queued_now(loads) < budget:
         budget = max(0, queued_cap - queued_now(loads))  # a short broker queue: a newcomer waits behind few others
         result.capped = True

@@ -29,12 +29,12 @@ from services.core.domain.plan_budget import check_plan_budget
 from services.core.ingest.frame_choice import space_frame_for
 from services.core.settings import Settings
 from services.core.storage import ObjectStore
-from services.scheduler.compile import compile_tasks
+from services.scheduler.chunked_plan import ChunkTarget, PlanDropped, plan_and_persist_space
 from services.scheduler.completion import Finished, complete_once
 from services.scheduler.dispatch import DEFAULT_BUDGET, DispatchResult, dispatch_once
 from services.scheduler.fairness import CAPPED_WAIT_S, queued_cap
-from services.scheduler.persist import clear_plan, persist_space
-from services.scheduler.plan_space import PlanFn, load_for_job, plan_space, plan_summary_of
+from services.scheduler.persist import clear_plan, plan_key
+from services.scheduler.plan_space import PlanFn, load_for_job, plan_summary_of
 from services.scheduler.planner_proc import PlannerProcesses
 from services.scheduler.reaper import ReapResult, reap_once
 from services.scheduler.resend import IdleWatch, resend_stuck
@@ -45,6 +45,7 @@ log = logging.getLogger(__name__)
 REAP_INTERVAL_S = 5.0
 THOROUGH_DISPATCH_S = 60.0  # a dispatch pass that ignores the counter-based scan bounds (a safety net) ...
 THOROUGH_STALLED_S = 5.0  # ... and sooner when a job has pending tasks but nothing ready or in flight
+COMPLETE_INTERVAL_S = 2.0  # completion's own look at the counters; sooner when a dispatch pass saw a job settle
 MAX_BACKOFF_S = 30.0
 PLAN_RETRY_S = 30  # a planning attempt that failed for a transient reason is retried after this
 MAX_PLAN_ATTEMPTS = 3
@@ -85,6 +86,7 @@ def record_planning_failure(sm: sessionmaker[Session], job_id: int, scheduler_id
         summary["attempts"] = attempts
         job.plan_summary = summary
         if permanent or attempts >= MAX_PLAN_ATTEMPTS:
+            clear_plan(s, job_id)  # the chunks written before the failure
             tail = "".join(traceback.format_exception_only(type(exc), exc)).strip()
             set_job_state(job, JobState.FAILED, finished_at=utcnow(),
                           error=f"planning failed: {tail}" if not isinstance(exc, PlanningError) else str(exc))
@@ -137,6 +139,7 @@ class Scheduler:
         self.plan_fn = plan_fn
         self._rotation = 0
         self._last_reap = 0.0
+        self._last_complete = 0.0
         self._last_thorough = time.monotonic()  # the first passes use the (cheap) bounded scans
         self._stalled = False
         self._idle_watch = IdleWatch()
@@ -180,7 +183,8 @@ class Scheduler:
         return planned
 
     def plan_job(self, job_id: int) -> bool:
-        """Plan a job this scheduler has claimed, in one transaction; True when it is now running."""
+        """Plan a job this scheduler has claimed, chunk by chunk (services.scheduler.chunked_plan), each chunk in
+        its own transaction, and the job's switch to running in the last; True when it is now running."""
         t0 = time.perf_counter()
         try:
             with self.sessionmaker() as s:
@@ -189,43 +193,55 @@ class Scheduler:
                     return False
                 spec = job_spec(job)
                 # refused before any work: a spec over the planning budget (the API refuses it too)
-                check_plan_budget(spec, memory_mb=self.settings.plan_memory_mb, timeout_s=self.settings.plan_timeout_s)
-                clear_plan(s, job.id)
-                summary: dict[str, Any] = {"spaces": {}, "attempts": (job.plan_summary or {}).get("attempts", 0) + 1}
-                total = 0
-                for job_space, space in job_spaces(s, job.id):
-                    loaded = load_for_job(self.fetch_source(space), spec, frame=space_frame_for(spec, space))
-                    plan = plan_space(loaded, spec, space.name, self.plan_fn)
-                    if not plan.views:
-                        raise PlanningError(
-                            f"space {space.name!r} yields no views"
-                            + (f": {plan.shortfall}" if plan.shortfall else " (no point is seen by enough cameras)")
-                        )
-                    tasks = compile_tasks(plan, job_space.cues, space.id)
-                    done = persist_space(s, self.store, job, space.id, plan, tasks)
-                    total += done.tasks
-                    summary["spaces"][space.name] = {
-                        "cameras": done.cameras, "points": done.points, "views": done.views, "tasks": done.tasks,
-                        "plan_key": done.plan_key, **plan_summary_of(loaded, plan, spec),
-                    }
-                summary["shortfall"] = any(v["shortfall"] for v in summary["spaces"].values())
-                summary["planning_s"] = round(time.perf_counter() - t0, 3)
-                # The job may have been cancelled (or taken over) while we planned: then keep nothing.
-                stmt = select(Job).where(Job.id == job_id).execution_options(populate_existing=True)
-                if s.get_bind().dialect.name == "postgresql":
-                    stmt = stmt.with_for_update(key_share=True)  # FOR NO KEY UPDATE
-                job = s.scalars(stmt).one()
-                if job.state != JobState.PLANNING or job.planner != self.scheduler_id:
-                    s.rollback()
-                    log.info("job %d changed to %s while planning; plan dropped", job_id, job.state)
-                    return False
-                set_job_state(job, JobState.RUNNING, total_tasks=total, plan_summary=summary,
-                              planner_lease_until=None)
+                check_plan_budget(spec, memory_mb=self.settings.plan_memory_mb, timeout_s=self.settings.plan_timeout_s,
+                                  chunk_views=self.settings.plan_chunk_views)
+                clear_plan(s, job.id)  # the chunks an earlier attempt left
+                attempts = (job.plan_summary or {}).get("attempts", 0) + 1
+                spaces = [(list(js.cues), space, plan_key(job, space.name)) for js, space in job_spaces(s, job.id)]
+                s.expunge_all()
                 s.commit()
+            summary: dict[str, Any] = {"spaces": {}, "attempts": attempts}
+            target = ChunkTarget(self.sessionmaker, self.store, job_id, self.scheduler_id,
+                                 self.settings.plan_chunk_views)
+            total = 0
+            for cues, space, key in spaces:
+                loaded = load_for_job(self.fetch_source(space), spec, frame=space_frame_for(spec, space))
+                done = plan_and_persist_space(target, loaded, spec, space, cues, key, self.plan_fn)
+                if not done.views:
+                    raise PlanningError(
+                        f"space {space.name!r} yields no views"
+                        + (f": {done.whole.shortfall}" if done.whole.shortfall else
+                           " (no point is seen by enough cameras)"))
+                total += done.tasks
+                summary["spaces"][space.name] = {
+                    "cameras": done.cameras, "points": done.points, "views": done.views, "tasks": done.tasks,
+                    "plan_key": key, **plan_summary_of(loaded, done.whole, spec),
+                }
+            summary["shortfall"] = any(v["shortfall"] for v in summary["spaces"].values())
+            summary["planning_s"] = round(time.perf_counter() - t0, 3)
+            if not self._planned(job_id, total, summary):
+                return False
+        except PlanDropped:
+            log.info("job %d changed while planning; plan dropped", job_id)
+            return False
         except Exception as exc:
             self._planning_failed(job_id, exc)
             return False
         log.info("job %d planned: %d tasks in %.2f s", job_id, total, time.perf_counter() - t0)
+        return True
+
+    def _planned(self, job_id: int, total: int, summary: dict[str, Any]) -> bool:
+        """Switch a planned job to running, unless it was cancelled (or taken over) meanwhile."""
+        with self.sessionmaker() as s:
+            stmt = select(Job).where(Job.id == job_id).execution_options(populate_existing=True)
+            if s.get_bind().dialect.name == "postgresql":
+                stmt = stmt.with_for_update(key_share=True)  # FOR NO KEY UPDATE
+            job = s.scalars(stmt).one()
+            if job.state != JobState.PLANNING or job.planner != self.scheduler_id:
+                log.info("job %d changed to %s while planning; plan dropped", job_id, job.state)
+                return False
+            set_job_state(job, JobState.RUNNING, total_tasks=total, plan_summary=summary, planner_lease_until=None)
+            s.commit()
         return True
 
     def _planning_failed(self, job_id: int, exc: BaseException) -> None:
@@ -273,13 +289,17 @@ class Scheduler:
             return complete_once(s, self.store)
 
     def tick(self) -> TickResult:
-        """One round of every step (the reaper only every REAP_INTERVAL_S)."""
+        """One round of every step (the reaper only every REAP_INTERVAL_S, completion when a job settled)."""
         res = TickResult(budget=self.budget)
         res.planned = self.plan_pending()
         if time.monotonic() - self._last_reap >= REAP_INTERVAL_S:
             res.reaped = self.reap_once()
         res.dispatched = self.dispatch_once()
-        res.finished = self.complete_once()
+        # the dispatch pass has just read every running job's counters: completion's own read of them (a scan of
+        # each job's counter shards) is needed only when a job settled there, or now and then as a safety net
+        if res.dispatched.settled or time.monotonic() - self._last_complete >= COMPLETE_INTERVAL_S:
+            res.finished = self.complete_once()
+            self._last_complete = time.monotonic()
         return res
 
     def run_forever(self, stop_event: threading.Event, interval: float = 1.0) -> None:

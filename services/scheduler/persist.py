@@ -1,12 +1,17 @@
 """Persist a space's plan: cameras, points, views and compiled tasks (bulk COPY), counters, plan JSON.
 
-Everything goes into the caller's transaction; nothing commits here, so a planner that dies leaves no
-half-planned job (another planner re-plans it from scratch after `clear_plan`).
+A plan is written chunk by chunk (`persist_chunk`, into the caller's transaction: one per chunk), and its
+JSON is written piece by piece to a temporary file (`PlanJsonFile`), byte for byte `plan_to_json` of the
+whole plan. A planner that dies leaves some chunks of its job: the next attempt starts with `clear_plan`.
 """
 
 from __future__ import annotations
 
+import json
+import tempfile
 from dataclasses import dataclass
+from pathlib import Path
+from typing import TextIO
 
 import numpy as np
 from sqlalchemy import delete
@@ -16,7 +21,7 @@ from services.core.db.bulk import bulk_insert
 from services.core.db.counters import init_counts
 from services.core.db.jobs import root_key
 from services.core.db.models import Camera, Job, JobCounter, Point, Task, View
-from services.core.domain.plan import SpacePlan, plan_to_json
+from services.core.domain.plan import CameraRecord, SpacePlan, plan_to_dict, plan_to_json
 from services.core.storage import ObjectStore
 from services.scheduler.compile import CompiledTasks
 
@@ -56,8 +61,9 @@ def plan_rows(plan: SpacePlan, job_id: int, space_id: int) -> tuple[dict, dict, 
         "uuid": [c.uuid for c in cams],
     }
     n_views = np.zeros(len(pts), dtype=np.int64)
-    if views:
-        counted = np.bincount(np.fromiter((v.point_idx for v in views), dtype=np.int64, count=len(views)),
+    if views and pts:  # a chunk's points are consecutive: count by offset from its first
+        first = pts[0].idx
+        counted = np.bincount(np.fromiter((v.point_idx - first for v in views), dtype=np.int64, count=len(views)),
                               minlength=len(pts))
         n_views[: len(counted)] = counted[: len(pts)]
     pos = np.array([p.position for p in pts], dtype=np.float64).reshape(-1, 3)
@@ -105,3 +111,66 @@ def persist_space(
     key = plan_key(job, plan.space_name)
     store.put_bytes(key, plan_to_json(plan).encode("utf-8"), content_type="application/json")
     return PersistedSpace(len(plan.cameras), len(plan.points), len(plan.views), n_tasks, key)
+
+
+def persist_chunk(session: Session, job_id: int, space_id: int, chunk: SpacePlan, tasks: CompiledTasks) -> int:
+    """Write one chunk of a space's plan (cameras, points, views), its task rows (pending) and their counts;
+    returns the number of tasks."""
+    cameras, points, views = plan_rows(chunk, job_id, space_id)
+    bulk_insert(session, Camera, cameras)
+    bulk_insert(session, Point, points)
+    bulk_insert(session, View, views)
+    n_tasks = bulk_insert(session, Task, tasks.columns(job_id))
+    init_counts(session, job_id, tasks.counts)
+    return n_tasks
+
+
+def _dumps(item: object) -> str:
+    """One element as plan_to_json writes it."""
+    return json.dumps(item, sort_keys=True, separators=(",", ":"), allow_nan=False)
+
+
+class PlanJsonFile:
+    """A plan's JSON built from its chunks in temporary files (points and views kept apart: `plan_to_json` sorts
+    the keys, and the plan's own fields come between them); `finish` gives the file of the whole text."""
+
+    def __init__(self) -> None:
+        self._dir = tempfile.TemporaryDirectory(prefix="omnidata-plan-")
+        self._cameras: list[CameraRecord] = []
+        self._parts = {name: open(Path(self._dir.name) / name, "w", encoding="utf-8")  # noqa: SIM115
+                       for name in ("points", "views")}
+        self._first = {"points": True, "views": True}
+
+    def add(self, chunk: SpacePlan) -> None:
+        data = plan_to_dict(chunk)
+        self._cameras.extend(data["cameras"])
+        for name in ("points", "views"):
+            for item in data[name]:
+                self._write(name, self._parts[name], item)
+
+    def _write(self, name: str, out: TextIO, item: object) -> None:
+        out.write(("" if self._first[name] else ",") + _dumps(item))
+        self._first[name] = False
+
+    def finish(self, whole: SpacePlan) -> Path:
+        """The whole plan's JSON file (`whole`: the plan's own fields, no cameras, points or views)."""
+        marker = {"points": "\x00points\x00", "views": "\x00views\x00"}  # stand-ins, replaced by the files
+        head = {**plan_to_dict(whole), "cameras": self._cameras, **{name: [m] for name, m in marker.items()}}
+        text = _dumps(head)
+        path = Path(self._dir.name) / "plan.json"
+        with open(path, "w", encoding="utf-8") as out:
+            rest = text
+            for name in ("points", "views"):  # sorted keys: points come before views
+                before, rest = rest.split(_dumps(marker[name]), 1)
+                out.write(before)
+                self._parts[name].close()
+                with open(Path(self._dir.name) / name, encoding="utf-8") as part:
+                    while block := part.read(1 << 20):
+                        out.write(block)
+            out.write(rest)
+        return path
+
+    def close(self) -> None:
+        for part in self._parts.values():
+            part.close()
+        self._dir.cleanup()

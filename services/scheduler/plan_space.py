@@ -12,8 +12,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from services.core.domain.job_document import space_record
-from services.core.domain.jobspec import JobSpec
+from services.core.domain.job_document import SpaceRecord, space_record
+from services.core.domain.jobspec import JobSpec, SpaceFrame
 from services.core.domain.plan import CLIP_NOTES_IN_SUMMARY, SpacePlan, clip_summary
 from services.core.ingest.loading import LoadedSpace, load_space
 from services.scheduler.planning import make_plan, space_rng
@@ -22,11 +22,11 @@ from services.scheduler.planning import make_plan, space_rng
 class PlanFn(Protocol):
     """make_plan's signature: (space, spec, rng, space_name) -> SpacePlan."""
 
-    def __call__(self, space: Any, spec: JobSpec, rng: np.random.Generator, space_name: str, /) -> SpacePlan: ...
+    def __call__(self, space: LoadedSpace, spec: JobSpec, rng: np.random.Generator, space_name: str, /) -> SpacePlan: ...
 
 
 def load_for_job(source: str | Path, spec: JobSpec, extract_dir: str | Path | None = None,
-                 frame: dict[str, Any] | None = None) -> LoadedSpace:
+                 frame: SpaceFrame | None = None) -> LoadedSpace:
     """The space loaded in the frame the job's spec asks for (up_axis, up, unit_scale, source_to_world), or in
     `frame` (`load_space`'s frame keywords: a registered space's chosen up, `ingest.frame_choice`)."""
     return load_space(source, **(frame if frame is not None else spec.space_frame()), extract_dir=extract_dir)
@@ -54,7 +54,7 @@ def plan_summary_of(loaded: LoadedSpace, plan: SpacePlan, spec: JobSpec) -> dict
 
 
 def plan_record(loaded: LoadedSpace, plan: SpacePlan, spec: JobSpec, *, position: int, cues: list[str],
-                plan_key: str) -> dict[str, Any]:
+                plan_key: str) -> SpaceRecord:
     """The job.json space record of a space planned here (no database: `omnidata plan`)."""
     summary = plan_summary_of(loaded, plan, spec)
     return space_record(

@@ -23,9 +23,8 @@ import logging
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
-from typing import Any
 
-from sqlalchemy import and_, false, or_, select, update
+from sqlalchemy import ColumnElement, and_, false, or_, select, update
 from sqlalchemy.orm import Session
 
 from services.core.celery_config import RENDER_CUES
@@ -87,7 +86,7 @@ class ResendResult:
         return self.after_death + self.idle_consumers
 
 
-def _queue_cues(queue: str, settings: Settings) -> Any:
+def _queue_cues(queue: str, settings: Settings) -> ColumnElement[bool]:
     """SQL condition: the task's cue is consumed from `queue`."""
     render = list(RENDER_CUES)
     parts = []
@@ -131,7 +130,7 @@ def resend_stuck(
     res = ResendResult()
     dead_at, idle = _cutoffs(session, settings, watch, now, dead_after_s)
     stuck_cutoff = now - timedelta(seconds=stuck_after_s)
-    reasons: list[tuple[str, Any]] = []
+    reasons: list[tuple[str, ColumnElement[bool]]] = []
     for queue, declared in dead_at.items():
         reasons.append(("after_death", and_(_queue_cues(queue, settings), Task.queued_at < declared)))
     for queue in idle:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from contextlib import nullcontext
+from contextlib import AbstractContextManager, nullcontext
 from typing import Any, Protocol
 
 from celery import Celery
@@ -44,10 +44,16 @@ class NullTransport:
         self.sent.extend((int(i), str(c)) for i, c in batch)
 
 
+class TaskIdQueue(Protocol):
+    """A queue of task ids: a multiprocessing queue (embedded workers) or queue.Queue (tests)."""
+
+    def put(self, item: int, /) -> None: ...
+
+
 class QueueTransport:
     """Sends task ids into a queue (a multiprocessing queue of the embedded mode's local workers)."""
 
-    def __init__(self, q: Any) -> None:
+    def __init__(self, q: TaskIdQueue) -> None:
         self.q = q
         self.sent = 0
 
@@ -99,7 +105,7 @@ class CeleryTransport:
             if self.fast and self.prebuilt and producer.connection.transport.driver_type == "redis":
                 self._push(producer, batch, queues)
                 return
-            ctx: Any = (
+            ctx: AbstractContextManager[object] = (
                 producer.batch(max_size=PUBLISH_BATCH)
                 if getattr(producer, "supports_batch_publish", False)
                 else nullcontext()

@@ -18,7 +18,7 @@ from sqlalchemy.orm import Session
 
 from services.core.db.jobs import job_root
 from services.core.db.models import Job, Space
-from services.core.domain.jobspec import JobSpec
+from services.core.domain.jobspec import JobSpec, SpaceFrame
 from services.core.domain.plan import SpacePlan, plan_from_json
 from services.core.ingest.frame_choice import space_frame_for
 from services.core.storage import ObjectStore
@@ -66,7 +66,7 @@ class JobInfo:
         """`key` under this job's output root."""
         return f"{self.root}/{key}" if self.root else key
 
-    def frame_for(self, space: Space) -> dict[str, Any]:
+    def frame_for(self, space: Space) -> SpaceFrame:
         """`load_space` keyword arguments of a space: exactly its planner's frame (recorded when it planned);
         for a job planned before that record existed, the frame recomputed from the spec and the space."""
         planned = self.planned_frames.get(space.name)

@@ -11,8 +11,6 @@ too long. Child processes recycle after `worker_max_tasks` tasks or above `worke
 
 from __future__ import annotations
 
-from typing import Any
-
 from celery import Celery
 
 from services.core.celery_config import celery_conf
@@ -21,7 +19,7 @@ from services.core.settings import Settings, get_settings
 TASK_MODULES = ("services.worker.tasks",)
 
 
-def worker_conf(settings: Settings) -> dict[str, Any]:
+def worker_conf(settings: Settings) -> dict[str, object]:
     """Celery configuration of a worker: the shared one plus worker-side reliability options."""
     conf = celery_conf(settings)
     conf.update(
@@ -58,7 +56,7 @@ def create_app(settings: Settings | None = None) -> Celery:
 _app: Celery | None = None
 
 
-def __getattr__(name: str) -> Any:
+def __getattr__(name: str) -> Celery:
     # `celery -A services.worker.celery_app` looks up `app`/`celery`: build it from the environment on demand,
     # so importing this module has no side effect.
     global _app

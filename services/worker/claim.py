@@ -292,7 +292,7 @@ class TaskLedger:
             return "blocked"
         return None
 
-    def _move_mine(self, s: Session, t: Claimed, to_state: TaskState, **values: Any) -> bool:
+    def _move_mine(self, s: Session, t: Claimed, to_state: TaskState, **values: object) -> bool:
         """running -> to_state for a task still held by this worker; counters follow (states.transition)."""
         return bool(transition(s, job_id=t.job_id, task_ids=[t.id], from_state=TaskState.RUNNING, to_state=to_state,
                                where=[Task.worker_id == self.worker_id], **values))

@@ -9,13 +9,14 @@ their inputs from the passes once per view.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
-from typing import TYPE_CHECKING, Any, TypeVar
+from collections.abc import Callable, Mapping
+from typing import TYPE_CHECKING, Any, TypeVar, cast
 
 from services.core.domain.jobspec import CueParams
 from services.worker.passes import OPTIONAL_ARRAYS, RENDER_PASSES, ViewGeometry, ViewPasses
 
 if TYPE_CHECKING:
+    from services.core.domain.plan import SpacePlan
     from services.worker.space_cache import SpaceContext
 
 T = TypeVar("T")
@@ -29,7 +30,8 @@ class ViewContext:
     """Inputs and memo of one view. `view` is a ViewGeometry or anything with world_to_camera/fov/resolution."""
 
     def __init__(self, view: Any, params: CueParams | None = None, *, passes: ViewPasses | None = None,
-                 space: SpaceContext | None = None, plan: Any = None, point_info: dict | None = None,
+                 space: SpaceContext | None = None, plan: SpacePlan | None = None,
+                 point_info: Mapping[str, object] | None = None,
                  render_passes: frozenset[str] = RENDER_PASSES):
         self.view = view
         self.geometry = passes.geometry if passes is not None and view is None else ViewGeometry.of(view)
@@ -39,7 +41,7 @@ class ViewContext:
         self.point_info_override = point_info
         self.render_passes = render_passes  # optional passes rendered (passes.RENDER_PASSES); colour, depth always
         self._passes = passes
-        self._memo: dict[str, Any] = {}
+        self._memo: dict[str, object] = {}
         self.timings: dict[str, float] = {}  # exclusive seconds per cue value / intermediate / "render"
         # The clock of `timings`: wall time; a benchmark on a shared machine may set time.process_time (CPU
         # seconds of this process, all threads), which other processes' load does not inflate.
@@ -60,7 +62,7 @@ class ViewContext:
 
     def nbytes(self) -> int:
         """Bytes of the arrays this context holds (pass set, memoised values): what keeping it in a cache costs."""
-        values: list[Any] = list(self._memo.values())
+        values: list[object] = list(self._memo.values())
         if self._passes is not None:
             values += [getattr(self._passes, n) for n in ("depth_z", "rgb", *OPTIONAL_ARRAYS)]
         flat = [x for v in values for x in (v if isinstance(v, tuple | list) else (v,))]
@@ -85,4 +87,4 @@ class ViewContext:
                 self.timings[key] = dt - nested
                 if self._nested:
                     self._nested[-1] += dt
-        return self._memo[key]
+        return cast(T, self._memo[key])  # what fn() returned for this key

@@ -11,11 +11,12 @@ every render/derived cue without Blender. Plan cues need `plan` (services.core.d
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from typing import Any
 
 from services.core.domain.cues import closure, require_supported
 from services.core.domain.jobspec import CueParams
+from services.core.domain.plan import SpacePlan
 from services.worker.context import SemanticsUnavailableError, ViewContext
 from services.worker.cues import encode, get_impl
 from services.worker.cues.registry import cue_value
@@ -48,7 +49,7 @@ def render_passes_for(cues: Iterable[str]) -> frozenset[str]:
 
 
 def make_context(space: SpaceContext | None, view: Any, cues: Iterable[str], params: CueParams | None = None, *,
-                 plan: Any = None, point_info: dict | None = None) -> ViewContext:
+                 plan: SpacePlan | None = None, point_info: Mapping[str, object] | None = None) -> ViewContext:
     """A ViewContext that renders from `space` on first need, only the passes the cues need."""
     names = check_cues(cues, has_semantics=space.has_semantics if space is not None else True)
     return ViewContext(view, params, space=space, plan=plan, point_info=point_info,
@@ -77,7 +78,7 @@ def produce(cue: str, ctx: ViewContext) -> bytes:
 
 
 def render_view_cues(space_ctx: SpaceContext, view: Any, cues: Iterable[str], params: CueParams | None = None,
-                     *, plan: Any = None, point_info: dict | None = None) -> dict[str, bytes]:
+                     *, plan: SpacePlan | None = None, point_info: Mapping[str, object] | None = None) -> dict[str, bytes]:
     """{cue: file bytes} for one view: one Cycles render, then every cue derived from its passes."""
     names = list(dict.fromkeys(cues))
     ctx = make_context(space_ctx, view, names, params, plan=plan, point_info=point_info)

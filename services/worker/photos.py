@@ -10,13 +10,19 @@ homography (services.core.ingest.capture.resample): exact, no parallax. Any othe
 from __future__ import annotations
 
 from collections import OrderedDict
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from services.core.ingest.capture.model import Capture
 from services.core.ingest.capture.resample import load_photo, photo_for_view
 from services.worker.passes import ViewGeometry, ViewPasses
+
+if TYPE_CHECKING:  # imported where used: the worker loads them only for jobs with photos
+    from services.core.domain.capture_records import RefinedCamera
+    from services.core.domain.jobspec import JobSpec
+    from services.core.ingest.loading import LoadedSpace
+    from services.worker.phototexture import PhotoTexturer
 
 SAME_CENTRE_M = 1e-5  # a view this close to a capture centre sees through it (parallax below a pixel)
 PHOTO_CACHE = 8  # decoded photos kept per worker process
@@ -25,7 +31,7 @@ PHOTO_CACHE = 8  # decoded photos kept per worker process
 class PhotoPainter:
     """Paints views from one capture's photos (world frame); keeps a few decoded photos."""
 
-    def __init__(self, capture: Capture, *, texture: Any = None):
+    def __init__(self, capture: Capture, *, texture: PhotoTexturer | None = None):
         if not capture.has_photos:
             raise ValueError(f"the {capture.format} capture has no photos with intrinsics to take rgb from")
         self.capture = capture
@@ -69,7 +75,7 @@ class PhotoPainter:
         return passes
 
 
-def painter_for(loaded: Any, spec: Any, refined: dict[str, Any] | None = None) -> PhotoPainter | None:
+def painter_for(loaded: LoadedSpace, spec: JobSpec, refined: RefinedCamera | None = None) -> PhotoPainter | None:
     """The painter a job needs for a loaded space (None when its rgb comes from the mesh); `refined`: the plan's
     record of a refined colour camera (cameras.capture_refine), applied to the capture as the planner did."""
     if not spec.uses_photos():

@@ -170,7 +170,8 @@ class TaskRunner:
         """The space loaded into the world frame of this job (its up_axis/unit_scale), kept between tasks."""
         spec = job.spec
         frame = job.frame_for(space)  # exactly the planner's: a re-pick of the space's up cannot change it
-        refined = (plan.capture or {}).get("refined") if plan is not None else None  # the planner's colour camera
+        capture = plan.capture if plan is not None else None
+        refined = capture.get("refined") if capture is not None else None  # the planner's colour camera
         photos = f"{spec.uses_photos()}:{json.dumps(refined and refined['correction'], sort_keys=True)}"
         key = f"{space.checksum}:{json.dumps(frame, sort_keys=True)}:photos={photos}"
 

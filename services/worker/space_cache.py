@@ -15,7 +15,7 @@ import resource
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 import trimesh
@@ -25,7 +25,9 @@ from services.worker.curvature import principal_curvatures
 from services.worker.passes import RENDER_PASSES, ViewGeometry, ViewPasses
 
 if TYPE_CHECKING:
+    from services.core.ingest.loading import LoadedSpace
     from services.worker.blender.scene import BlenderScene
+    from services.worker.photos import PhotoPainter
 
 log = logging.getLogger(__name__)
 
@@ -44,13 +46,13 @@ class SpaceContext:
     device: str = "cpu"
     threads: int | None = None
     stats: dict[str, float] = field(default_factory=dict)
-    photos: Any = None  # a services.worker.photos.PhotoPainter when rgb comes from a capture's photos
+    photos: PhotoPainter | None = None  # when rgb comes from a capture's photos
     _curvature: dict[float, np.ndarray] = field(default_factory=dict, repr=False)
     _scene: BlenderScene | None = field(default=None, repr=False)
     _scene_curvature_radius: float | None = field(default=None, repr=False)
 
     @classmethod
-    def from_loaded(cls, loaded: Any, *, key: str | None = None, device: str = "cpu",
+    def from_loaded(cls, loaded: LoadedSpace, *, key: str | None = None, device: str = "cpu",
                     threads: int | None = None) -> SpaceContext:
         """Wrap a services.core.ingest.loading.LoadedSpace (mesh in the world frame, optional per-face labels)."""
         fc = getattr(loaded, "face_class", None)

@@ -14,8 +14,8 @@ import threading
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+from celery import Celery, shared_task
 from celery import Task as CeleryTask
-from celery import shared_task
 from celery.signals import worker_process_init, worker_process_shutdown
 
 from services.core.celery_config import TASK_RENDER_CUE
@@ -56,7 +56,7 @@ _runtime: Runtime | None = None
 _lock = threading.Lock()
 
 
-def _settings_from_app(app: Any) -> Settings:
+def _settings_from_app(app: Celery | None) -> Settings:
     s = app.conf.get("omnidata_settings") if app is not None else None
     return s if isinstance(s, Settings) else get_settings()
 
@@ -106,7 +106,7 @@ def build_runtime(settings: Settings, *, queues: list[str] | None = None, name: 
     return Runtime(os.getpid(), settings, engine, runner, hb)
 
 
-def get_runtime(app: Any = None) -> Runtime:
+def get_runtime(app: Celery | None = None) -> Runtime:
     """This process's runtime, built on first use (and again after a fork)."""
     global _runtime
     with _lock:
@@ -119,7 +119,7 @@ def get_runtime(app: Any = None) -> Runtime:
 
 
 @worker_process_init.connect
-def _init_child(**_: Any) -> None:
+def _init_child(**_: object) -> None:
     # A fresh child: forget the parent's runtime (its threads did not survive the fork) and start beating
     # right away, so the dashboard sees idle workers too. Building it is quick: bpy loads on the first render.
     global _runtime
@@ -133,7 +133,7 @@ def _init_child(**_: Any) -> None:
 
 
 @worker_process_shutdown.connect
-def _shutdown_child(**_: Any) -> None:
+def _shutdown_child(**_: object) -> None:
     global _runtime
     if _runtime is not None and _runtime.pid == os.getpid():
         try:
@@ -143,7 +143,7 @@ def _shutdown_child(**_: Any) -> None:
         _runtime = None
 
 
-def _task_id(payload: Any) -> int | None:
+def _task_id(payload: object) -> int | None:
     if isinstance(payload, bool):
         return None
     if isinstance(payload, int):
@@ -155,7 +155,7 @@ def _task_id(payload: Any) -> int | None:
 
 @shared_task(name=TASK_RENDER_CUE, bind=True, acks_late=True, reject_on_worker_lost=True, ignore_result=True,
              max_retries=MAX_TRANSIENT_RETRIES)
-def render_cue(self: CeleryTask, task_id: Any) -> str:
+def render_cue(self: CeleryTask, task_id: object) -> str:
     """Run one point-view-cue task by id; returns the outcome status (done, skipped, retry, failed, ...)."""
     from services.worker.claim import TransientError
 

@@ -221,3 +221,34 @@ def test_tasks_whose_input_failed_fail_too_and_the_job_finishes(any_sm, local_st
         (fin,) = complete_once(s, local_store)
         assert fin.state == "failed" and "RenderError: Cycles crashed" in fin.error
         assert fin.error.startswith("3 of 6 tasks failed")
+
+
+def test_scans_use_the_pending_only_index_under_a_generic_plan(pg_sm, local_store):
+    """The dispatch index holds pending tasks only (migration 0004); the scan names the predicate's literal, so even a
+    generic plan (a prepared statement after a few executions) can use it, and finished tasks have no entry in it."""
+    from sqlalchemy import text
+    from sqlalchemy.dialects import postgresql
+
+    from services.scheduler.dispatch import PENDING_LITERAL
+
+    with pg_sm() as s:
+        job = make_running_job(s, local_store, cues=["point_info"], n_points=4, views=2)
+        definition = s.scalar(text("SELECT indexdef FROM pg_indexes WHERE indexname = 'ix_task_pending_job_id_cue_id'"))
+        assert definition is not None and "WHERE" in definition and "'pending'" in definition
+        scan = (select(Task.id).where(Task.job_id == job.id, Task.state == PENDING_LITERAL, Task.cue == "point_info")
+                .order_by(Task.id).limit(5))
+        sql = str(scan.compile(dialect=postgresql.dialect()))
+        s.execute(text("SET LOCAL plan_cache_mode = force_generic_plan"))
+        s.execute(text("SET LOCAL enable_seqscan = off"))
+        prepared = sql.replace("%(job_id_1)s", "$1").replace("%(cue_1)s", "$2").replace("%(param_1)s", "$3")
+        s.execute(text(f"PREPARE pending_scan (bigint, text, int) AS {prepared}"))
+        plan = "\n".join(r[0] for r in s.execute(text(f"EXPLAIN EXECUTE pending_scan ({job.id}, 'point_info', 5)")))
+        assert "ix_task_pending_job_id_cue_id" in plan, plan
+        s.execute(text("DEALLOCATE pending_scan"))
+        s.rollback()
+        tr = NullTransport()
+        dispatch_once(s, tr, window=100)
+        finish(s, job, [i for i, _ in tr.sent])
+        left = s.scalar(text("SELECT count(*) FROM task WHERE job_id = :j AND state = 'pending'"), {"j": job.id})
+        assert left == 0 and s.scalar(text("SELECT count(*) FROM task WHERE job_id = :j"), {"j": job.id}) == 8
+        assert_counters_exact(s, job.id)

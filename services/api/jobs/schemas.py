@@ -14,7 +14,7 @@ from services.core.domain.jobspec import JobSpec
 DbId = Annotated[int, Field(ge=1, le=2**63 - 1)]
 
 
-def _walk(value: Any, path: str) -> None:
+def _walk(value: object, path: str) -> None:
     # JSON allows NaN/Infinity and NUL characters in strings; Postgres JSONB stores neither, and a
     # non-finite coordinate is never meaningful: refuse them with the field's path.
     if isinstance(value, float) and not math.isfinite(value):

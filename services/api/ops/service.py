@@ -51,7 +51,7 @@ class Check:
     skipped: bool = False
 
 
-async def _run(fn: Callable[[], Any]) -> Check:
+async def _run(fn: Callable[[], object]) -> Check:
     t0 = time.perf_counter()
     try:
         await asyncio.wait_for(asyncio.to_thread(fn), timeout=CHECK_TIMEOUT_S)
@@ -148,7 +148,7 @@ def queue_depths(app: FastAPI) -> dict[str, int | None]:
         return dict.fromkeys(queues)
 
 
-def _owned(stmt: Any, owner: str | None, job_id: Any = None) -> Any:
+def _owned(stmt: Any, owner: str | None, job_id: Any = None) -> Any:  # any Select (SQLAlchemy's generics)
     """`stmt` limited to the jobs of `owner` (None: every job), joining Job on the `job_id` column if given."""
     if owner is None:
         return stmt
@@ -219,7 +219,7 @@ def build_metrics(session: Session, app: FastAPI, owner: str | None = None) -> s
 
 def cached_metrics(app: FastAPI, owner: str | None = None) -> str:
     """build_metrics for `owner` (None: service-wide), reused for METRICS_TTL_S seconds (one builder at a time)."""
-    cache: dict[str | None, Any] = app.state.metrics_cache
+    cache: dict[str | None, tuple[float, str]] = app.state.metrics_cache  # owner -> (built at, text)
     with _metrics_lock:
         hit = cache.get(owner)
         if hit is not None and time.monotonic() - hit[0] < METRICS_TTL_S:

@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator
-from typing import Annotated, Any
+from collections.abc import Callable, Iterator
+from typing import Annotated
 
 from fastapi import APIRouter, Depends, Path, Query, Request
 from fastapi.responses import FileResponse, JSONResponse, Response, StreamingResponse
@@ -29,7 +29,7 @@ SpaceId = Annotated[int, Path(ge=1, le=2**63 - 1)]
 Index = Annotated[int, Path(ge=0, le=2**31 - 1)]
 
 
-def _signed_key(route: str) -> Any:
+def _signed_key(route: str) -> Callable[..., str]:
     def signed_key(
         key: str,
         settings: SettingsDep,

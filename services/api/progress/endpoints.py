@@ -21,11 +21,12 @@ from services.api.jobs.service import get_job
 from services.api.progress.limits import StreamLimits, TooManyStreams
 from services.api.progress.service import Snapshot, event_stream
 from services.api.progress.shared import SharedPolls
+from services.core.domain.json_types import JSONObject
 
 router = APIRouter(tags=["progress"])
 
 _SSE_HEADERS = {"Cache-Control": "no-cache", "X-Accel-Buffering": "no", "Connection": "keep-alive"}
-_SSE_RESPONSES: dict[int | str, dict[str, Any]] = {
+_SSE_RESPONSES: dict[int | str, JSONObject] = {
     200: {"content": {"text/event-stream": {}}, "description": "a stream of `job` and `deleted` events"}
 }
 

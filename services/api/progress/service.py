@@ -13,6 +13,7 @@ import logging
 import time
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
+from datetime import datetime
 from typing import Any, cast
 
 import anyio
@@ -50,9 +51,13 @@ class JobRow:
     name: str
     state: str
     error: str | None
-    started_at: Any
-    finished_at: Any
-    created_at: Any
+    started_at: datetime | None
+    finished_at: datetime | None
+    created_at: datetime
+
+
+# job id -> ((state, finished_at) when read, its counters): finished jobs' counters, kept between reads
+FinalCounters = dict[int, tuple[tuple[str, datetime | None], Counters]]
 
 
 @dataclass(frozen=True)
@@ -64,7 +69,7 @@ class JobsRead:
 
 
 def read_jobs(
-    session: Session, *, owner: str, job_id: int | None, final: dict[int, tuple[Any, Counters]] | None = None,
+    session: Session, *, owner: str, job_id: int | None, final: FinalCounters | None = None,
 ) -> JobsRead:
     """The jobs a stream follows and their counters. `final` remembers counters of finished jobs (keyed by the
     job's state and finish time: a retried job that finishes again is read again) and is updated in place."""
@@ -122,7 +127,7 @@ def poll_jobs(
     return diff_jobs(read_jobs(session, owner=owner, job_id=job_id), job_id=job_id, snap=snap, rates=rates)
 
 
-def sse(event: str, data: Any, ident: int | None = None) -> str:
+def sse(event: str, data: object, ident: int | None = None) -> str:
     """One server-sent event."""
     head = f"id: {ident}\n" if ident is not None else ""
     return f"{head}event: {event}\ndata: {json.dumps(data, separators=(',', ':'))}\n\n"

@@ -16,8 +16,8 @@ from typing import Any
 
 from sqlalchemy.orm import Session
 
-from services.api.jobs.service import Counters, RateTracker
-from services.api.progress.service import JobsRead, Snapshot, diff_jobs, read_jobs
+from services.api.jobs.service import RateTracker
+from services.api.progress.service import FinalCounters, JobsRead, Snapshot, diff_jobs, read_jobs
 
 MAX_ENTRIES = 10_000  # (tenant, job) reads kept at most; the oldest are dropped beyond
 
@@ -31,7 +31,7 @@ class SharedPolls:
         self._guard = threading.Lock()
         self._locks: dict[tuple[str, int | None], threading.Lock] = {}
         self._reads: dict[tuple[str, int | None], tuple[float, JobsRead]] = {}
-        self._final: dict[tuple[str, int | None], dict[int, tuple[Any, Counters]]] = {}
+        self._final: dict[tuple[str, int | None], FinalCounters] = {}
         self.reads = 0  # database reads made (for tests and benchmarks)
 
     def read(self, owner: str, job_id: int | None) -> JobsRead:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import functools
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated
 
 import anyio
 from fastapi import APIRouter, Request, Response, status
@@ -20,13 +20,14 @@ from services.api.pagination import Page, PageDep
 from services.api.spaces import service, up_choice
 from services.api.spaces.schemas import SpaceOptions, SpaceRead, SpaceRegister, UpChoice
 from services.api.spaces.upload import receive_upload
+from services.core.domain.json_types import JSONObject
 from services.core.temp_dirs import owned_temp_dir
 
 router = APIRouter(prefix="/spaces", tags=["spaces"])
 
 SpaceId = Annotated[int, PathParam(ge=1, le=2**63 - 1, description="space id")]
 
-_UPLOAD_BODY: dict[str, Any] = {
+_UPLOAD_BODY: JSONObject = {
     "requestBody": {
         "required": True,
         "content": {
@@ -73,7 +74,10 @@ async def upload_space(
     request: Request, response: Response, session: SessionDep, store: StoreDep, settings: SettingsDep, tenant: TenantDep
 ) -> SpaceRead:
     """Upload a mesh or archive; it is validated (format, counts, units, bounds) before it is stored."""
-    with owned_temp_dir("upload") as tmp:  # named after this process: swept at start-up if it is killed
+    # named after this process (swept at start-up if it is killed); made and removed off the event loop
+    temp = await run_in_threadpool(owned_temp_dir, "upload")
+    tmp = temp.name
+    try:
         upload = await receive_upload(request, dest_dir=Path(tmp), max_bytes=settings.upload_max_bytes)
         assert upload.path is not None and upload.filename is not None
         try:
@@ -99,6 +103,8 @@ async def upload_space(
             unit_scale=opts.unit_scale,
         )
         space = await anyio.to_thread.run_sync(create, limiter=request.app.state.upload_checks.get())
+    finally:
+        await run_in_threadpool(temp.cleanup)
     response.headers["Location"] = f"/spaces/{space.id}"
     return SpaceRead.from_row(space)
 

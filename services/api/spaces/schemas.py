@@ -37,7 +37,7 @@ class SpaceOptions(BaseModel):
 
     @field_validator("unit_scale", mode="plain")
     @classmethod
-    def _scale(cls, v: Any) -> float | str:
+    def _scale(cls, v: object) -> float | str:
         return parse_unit_scale(v, numbers_as_text=True)  # multipart form fields are text
 
 
@@ -61,7 +61,7 @@ class SpaceRegister(SpaceOptions):
 
     @field_validator("unit_scale", mode="plain")
     @classmethod
-    def _scale(cls, v: Any) -> float | str:
+    def _scale(cls, v: object) -> float | str:
         return parse_unit_scale(v)  # strict: a JSON number (or "auto"), never a numeric string
 
 
@@ -84,7 +84,7 @@ class UpChoice(BaseModel):
 
     @field_validator("unit_scale", mode="before")
     @classmethod
-    def _number(cls, v: Any) -> Any:
+    def _number(cls, v: object) -> object:
         return float(v) if isinstance(v, int) and not isinstance(v, bool) else v
 
 
@@ -98,8 +98,8 @@ class SpaceRead(BaseModel):
     checksum: str = Field(description="sha256 hex of the uploaded bytes")
     unit_scale: float
     up_axis: str
-    bounds: list[Any] | None = Field(None, description="[[minx,miny,minz],[maxx,maxy,maxz]] in metres, world frame")
-    source_to_world: list[Any] | None = None
+    bounds: list[list[float]] | None = Field(None, description="[[minx,miny,minz],[maxx,maxy,maxz]] in metres, world frame")
+    source_to_world: list[list[float]] | None = None
     face_count: int
     vertex_count: int
     has_texture: bool

@@ -10,7 +10,7 @@ from __future__ import annotations
 import functools
 import json
 from pathlib import Path
-from typing import Any
+from typing import Unpack
 
 import numpy as np
 import trimesh
@@ -18,6 +18,7 @@ from sqlalchemy.orm import Session
 
 from services.core.db.models import Space
 from services.core.domain.errors import Invalid, NotFound
+from services.core.domain.jobspec import SpaceFrame
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.frame_choice import record_choice
 from services.core.ingest.loading import LoadedSpace
@@ -36,7 +37,7 @@ def _limits(settings: Settings) -> tuple[int, int, float]:
     return settings.upload_max_faces, settings.upload_parse_memory_mb, settings.upload_parse_timeout_s
 
 
-def _load_limited(limits: tuple[int, int, float], path: Path, **frame: Any) -> LoadedSpace:
+def _load_limited(limits: tuple[int, int, float], path: Path, **frame: Unpack[SpaceFrame]) -> LoadedSpace:
     """`load_space` in the upload's memory-, CPU- and time-limited child: never the scan's parser in the API."""
     max_faces, memory_mb, timeout_s = limits
     return load_space_limited(path, max_faces=max_faces, memory_mb=memory_mb, timeout_s=timeout_s, **frame)

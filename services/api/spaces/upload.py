@@ -1,7 +1,9 @@
 """Streaming multipart upload: the file part goes straight to a temp file, refused (413) past a size limit.
 
 Starlette's form parser spools any file to disk without a bound, so a client could fill the disk before
-the route runs; this parser counts bytes as they arrive and stops at `max_bytes`.
+the route runs; this parser counts bytes as they arrive and stops at `max_bytes`. Only the parsing runs on the
+event loop: the parser's callbacks queue the file work (open, write, hash, close: `_FileOps`), and each
+received chunk's queue runs in a worker thread, so fifty uploads never hold the loop on a slow disk.
 """
 
 from __future__ import annotations
@@ -50,6 +52,46 @@ class _Part:
     hval: bytes = b""
 
 
+class _FileOps:
+    """File work the parser's callbacks ask for, run later off the event loop (`run`, in a worker thread)."""
+
+    def __init__(self) -> None:
+        self.sha = hashlib.sha256()
+        self.queue: list[tuple[str, Path | bytes | None]] = []
+        self._out: IO[bytes] | None = None
+
+    def open(self, path: Path) -> None:
+        self.queue.append(("open", path))
+
+    def write(self, data: bytes) -> None:
+        self.queue.append(("write", data))
+
+    def close(self) -> None:
+        self.queue.append(("close", None))
+
+    def run(self) -> None:
+        """Do the queued work, in order (called in a worker thread; hashlib releases the GIL on big buffers)."""
+        queue, self.queue = self.queue, []
+        for op, arg in queue:
+            if op == "open":
+                assert isinstance(arg, Path)
+                self._out = arg.open("wb")
+            elif op == "write" and self._out is not None:
+                assert isinstance(arg, bytes)
+                self.sha.update(arg)
+                self._out.write(arg)
+            elif op == "close" and self._out is not None:
+                self._out.close()
+                self._out = None
+
+    def abandon(self) -> None:
+        """Close an open file (the request failed); queued work is dropped."""
+        self.queue.clear()
+        if self._out is not None:
+            self._out.close()
+            self._out = None
+
+
 def safe_filename(raw: str) -> str:
     """The client's file name reduced to a safe single path segment (no folders, no traversal)."""
     base = raw.replace("\\", "/").rsplit("/", 1)[-1]
@@ -72,17 +114,15 @@ def _too_large(max_bytes: int) -> HTTPException:
 
 class _FormReader:
     """The python-multipart callbacks of one request, sharing its parse state: the current part and its headers,
-    the open output file, file bytes parsed but not yet written, and the first error (raised after the chunk)."""
+    the file work queued for a worker thread, and the first error (raised after the chunk)."""
 
     def __init__(self, dest_dir: Path, max_bytes: int) -> None:
         self.dest_dir = dest_dir
         self.max_bytes = max_bytes
         self.up = Upload()
-        self.sha = hashlib.sha256()
         self.part = _Part()
         self.headers: dict[bytes, bytes] = {}
-        self.out: IO[bytes] | None = None
-        self.pending: list[bytes] = []  # file bytes parsed from the current chunk, written after the callbacks
+        self.files = _FileOps()
         self.errors: list[HTTPException] = []
 
     def callbacks(self) -> MultipartCallbacks:
@@ -133,7 +173,7 @@ class _FormReader:
             return
         (self.dest_dir / CAPTURE_FIELD).mkdir(exist_ok=True)
         self.up.capture_path = self.dest_dir / CAPTURE_FIELD / "capture.zip"
-        self.out = self.up.capture_path.open("wb")
+        self.files.open(self.up.capture_path)
         self.part.is_file = True
 
     def _open_scan(self, name: str) -> None:
@@ -150,7 +190,7 @@ class _FormReader:
             self.errors.append(e)
             return
         self.up.path = self.dest_dir / self.up.filename
-        self.out = self.up.path.open("wb")
+        self.files.open(self.up.path)
         self.part.is_file = True
 
     def on_part_data(self, data: bytes, start: int, end: int) -> None:
@@ -162,8 +202,7 @@ class _FormReader:
             if self.up.size > self.max_bytes:
                 self.errors.append(_too_large(self.max_bytes))
                 return
-            self.sha.update(chunk)
-            self.pending.append(chunk)
+            self.files.write(chunk)
         elif len(self.part.buf) + len(chunk) > MAX_FIELD_BYTES:
             self.fail(status.HTTP_422_UNPROCESSABLE_CONTENT, f"form field {self.part.name!r} is too long")
         else:
@@ -171,21 +210,11 @@ class _FormReader:
 
     def on_part_end(self) -> None:
         part = self.part
-        if part.is_file and self.out is not None:  # the next file part opens its own file: finish this one now
-            if self.pending:
-                self.out.write(b"".join(self.pending))
-                self.pending.clear()
-            self.out.close()
-            self.out = None
+        if part.is_file:  # the next file part opens its own file
+            self.files.close()
         if self.errors or part.is_file or not part.name:
             return
         self.up.fields[part.name] = part.buf.decode("utf-8", "replace")
-
-    def take_pending(self) -> bytes:
-        """The file bytes parsed from the last chunk, to write off the event loop."""
-        data = b"".join(self.pending)
-        self.pending.clear()
-        return data
 
     def finished(self) -> Upload:
         """The upload, once the body has been read to its closing boundary."""
@@ -194,7 +223,7 @@ class _FormReader:
             raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "the form has no 'file' part with the scan")
         if up.size == 0:
             raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"uploaded file {up.filename!r} is empty")
-        up.sha256 = self.sha.hexdigest()
+        up.sha256 = self.files.sha.hexdigest()
         return up
 
 
@@ -225,14 +254,13 @@ async def receive_upload(request: Request, *, dest_dir: Path, max_bytes: int) ->
                 raise HTTPException(status.HTTP_400_BAD_REQUEST, f"malformed multipart body: {e}") from None
             if form.errors:
                 raise form.errors[0]
-            if form.pending and form.out is not None:
-                await anyio.to_thread.run_sync(form.out.write, form.take_pending())
+            if form.files.queue:
+                await anyio.to_thread.run_sync(form.files.run)
         if form.errors:
             raise form.errors[0]
         if parser.state != MultipartState.END:
             # python-multipart's finalize() does not check this: a body cut short would pass as a short file
             raise HTTPException(status.HTTP_400_BAD_REQUEST, "incomplete multipart body: no closing boundary")
     finally:
-        if form.out is not None:
-            form.out.close()
+        form.files.abandon()
     return form.finished()

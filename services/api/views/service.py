@@ -7,7 +7,6 @@ import threading
 import time
 from collections.abc import Sequence
 from datetime import datetime, timedelta
-from typing import Any
 
 from sqlalchemy import ColumnElement, Integer, and_, cast, exists, func, literal_column, select, tuple_
 from sqlalchemy.orm import Session
@@ -275,7 +274,7 @@ def throughput(session: Session, *, job: Job, buckets: int = 60) -> tuple[float,
     end: datetime = max(last, job.finished_at or last) if job.state in JOB_TERMINAL_STATES else utcnow()
     span = max((end - start).total_seconds(), 1.0)
     bucket_s = max(1.0, math.ceil(span / buckets))
-    idx: ColumnElement[Any]
+    idx: ColumnElement[int]
     if session.get_bind().dialect.name == "postgresql":
         idx = func.floor(func.extract("epoch", Task.finished_at - start) / bucket_s)
     else:  # SQLite stores naive UTC text; julianday works on it (CAST truncates: offsets are >= 0)

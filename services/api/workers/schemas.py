@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Any
 
 from pydantic import BaseModel, Field
 
@@ -24,7 +23,7 @@ class WorkerRead(BaseModel):
 
     id: str
     host: str
-    queues: list[Any]
+    queues: list[str]
     started_at: datetime
     last_heartbeat: datetime
     heartbeat_age_s: float = Field(description="seconds since the last heartbeat")
@@ -33,6 +32,6 @@ class WorkerRead(BaseModel):
     current_task: CurrentTask | None
     tasks_done: int | None = Field(description="tasks finished, every tenant's: operators only (null for tenants)")
     labels_per_s: float | None = Field(description="throughput over every tenant's work: operators only")
-    labels: dict[str, Any] = Field(
+    labels: dict[str, int] = Field(
         default_factory=dict, description="labels per cue over every tenant's work: operators only ({} for tenants)"
     )

@@ -96,7 +96,7 @@ def bulk_insert(
 _COPY_ESCAPES = str.maketrans({"\\": "\\\\", "\t": "\\t", "\n": "\\n", "\r": "\\r"})
 
 
-def _copy_text(value: Any) -> str:
+def _copy_text(value: object) -> str:
     """One value in COPY text format (NULL is \\N); strings are escaped."""
     if value is None:
         return "\\N"

@@ -11,6 +11,7 @@ import json
 import os
 import tempfile
 from collections.abc import Iterator
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -21,8 +22,8 @@ from services.core.db.counters import job_progress
 from services.core.db.jobs import job_cues, job_root, job_spaces, root_key
 from services.core.db.models import Job, Task, TaskState, View
 from services.core.domain.cues import CATALOG
+from services.core.domain.job_document import JobDocument, SpaceRecord, job_json_bytes, space_record
 from services.core.domain.job_document import job_document as build_job_document
-from services.core.domain.job_document import job_json_bytes, space_record
 from services.core.domain.keys import JOB_JSON_KEY, MANIFEST_KEY, output_key
 from services.core.storage import ObjectStore
 
@@ -103,13 +104,13 @@ def manifest_bytes(session: Session, job: Job) -> bytes:
     return "".join(iter_manifest_lines(session, job)).encode("utf-8")
 
 
-def _iso(dt: Any) -> str | None:
+def _iso(dt: datetime | None) -> str | None:
     return None if dt is None else dt.isoformat()
 
 
-def _space_records(session: Session, job: Job) -> dict[str, dict[str, Any]]:
+def _space_records(session: Session, job: Job) -> dict[str, SpaceRecord]:
     plan_spaces = (job.plan_summary or {}).get("spaces", {})
-    spaces: dict[str, dict[str, Any]] = {}
+    spaces: dict[str, SpaceRecord] = {}
     for job_space, space in job_spaces(session, job.id):
         planned = plan_spaces.get(space.name, {})
         spaces[space.name] = space_record(
@@ -126,7 +127,7 @@ def _space_records(session: Session, job: Job) -> dict[str, dict[str, Any]]:
     return spaces
 
 
-def job_document(session: Session, job: Job) -> dict[str, Any]:
+def job_document(session: Session, job: Job) -> JobDocument:
     """The content of job.json (services.core.domain.job_document), from the job's rows."""
     spec = job.spec or {}
     return build_job_document(

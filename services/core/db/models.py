@@ -86,7 +86,7 @@ def utcnow() -> datetime:
     return datetime.now(UTC)
 
 
-class StateColumn(TypeDecorator[Any]):
+class StateColumn(TypeDecorator[str]):
     """A state column: VARCHAR(16) in the database, the state enum in Python (JobState or TaskState).
 
     Rows read back carry the enum, so `job.state` has the type its annotation says. Writes pass the text
@@ -151,8 +151,8 @@ class Space(Base):
     checksum: Mapped[str] = mapped_column(String(64), doc="sha256 hex of the uploaded bytes")
     unit_scale: Mapped[float] = mapped_column(Float, default=1.0, server_default=text("1.0"))
     up_axis: Mapped[str] = mapped_column(String(8), default="+z", server_default="+z")
-    source_to_world: Mapped[list[Any] | None] = mapped_column(JSONDoc, doc="4x4 row-major, source -> world")
-    bounds: Mapped[list[Any] | None] = mapped_column(JSONDoc, doc="[[minx,miny,minz],[maxx,maxy,maxz]] metres")
+    source_to_world: Mapped[list[list[float]] | None] = mapped_column(JSONDoc, doc="4x4 row-major, source -> world")
+    bounds: Mapped[list[list[float]] | None] = mapped_column(JSONDoc, doc="[[minx,miny,minz],[maxx,maxy,maxz]] metres")
     face_count: Mapped[int] = mapped_column(Integer, default=0, server_default=text("0"))
     vertex_count: Mapped[int] = mapped_column(Integer, default=0, server_default=text("0"))
     has_texture: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
@@ -195,7 +195,7 @@ class JobSpace(Base):
     job_id: Mapped[int] = mapped_column(BigIntId, ForeignKey("job.id", ondelete="CASCADE"), primary_key=True)
     space_id: Mapped[int] = mapped_column(BigIntId, ForeignKey("space.id", ondelete="RESTRICT"), primary_key=True, index=True)
     position: Mapped[int] = mapped_column(Integer, default=0, server_default=text("0"))
-    cues: Mapped[list[Any]] = mapped_column(JSONDoc, default=list)
+    cues: Mapped[list[str]] = mapped_column(JSONDoc, default=list)
 
 
 class JobCounter(Base):
@@ -261,7 +261,7 @@ class View(Base):
     roll: Mapped[float] = mapped_column(Float, default=0.0, server_default=text("0"))
     resolution: Mapped[int] = mapped_column(Integer)
     obliqueness: Mapped[float] = mapped_column(Float, default=0.0, server_default=text("0"))
-    world_to_camera: Mapped[list[Any]] = mapped_column(JSONDoc, doc="16 floats, row-major, OpenCV camera axes")
+    world_to_camera: Mapped[list[float]] = mapped_column(JSONDoc, doc="16 floats, row-major, OpenCV camera axes")
     in_sight: Mapped[bool] = mapped_column(Boolean, default=True, server_default=true())
 
 
@@ -273,7 +273,9 @@ class Task(Base):
     __table_args__ = (
         UniqueConstraint("job_id", "space_id", "point_idx", "view_idx", "cue"),
         Index("ix_task_job_id_state", "job_id", "state"),
-        Index("ix_task_job_id_state_cue_id", "job_id", "state", "cue", "id"),  # dispatch: oldest first per cue (0002)
+        # dispatch: the pending tasks of a cue, oldest first; partial, so leaving pending writes nothing here (0004)
+        Index("ix_task_pending_job_id_cue_id", "job_id", "cue", "id",
+              postgresql_where=text("state = 'pending'"), sqlite_where=text("state = 'pending'")),
         Index("ix_task_state_lease_until", "state", "lease_until"),
         CheckConstraint(_state_check(TASK_STATES), name="state"),
     )
@@ -307,7 +309,7 @@ class Worker(Base):
 
     id: Mapped[str] = mapped_column(String(255), primary_key=True)
     host: Mapped[str] = mapped_column(String(255))
-    queues: Mapped[list[Any]] = mapped_column(JSONDoc, default=list)
+    queues: Mapped[list[str]] = mapped_column(JSONDoc, default=list)
     started_at: Mapped[datetime] = _created_at()
     last_heartbeat: Mapped[datetime] = mapped_column(
         UTCDateTime(), default=utcnow, server_default=func.now(), index=True
@@ -315,7 +317,7 @@ class Worker(Base):
     current_task_id: Mapped[int | None] = mapped_column(BigInteger)
     tasks_done: Mapped[int] = mapped_column(BigInteger, default=0, server_default=text("0"))
     labels_per_s: Mapped[float] = mapped_column(Float, default=0.0, server_default=text("0"))
-    labels: Mapped[dict[str, Any]] = mapped_column(JSONDoc, default=dict)
+    labels: Mapped[dict[str, int]] = mapped_column(JSONDoc, default=dict)
 
 
 class WorkerBlock(Base):

@@ -176,7 +176,7 @@ def _counted(move: Any, src: str, dst: str) -> Any:
     return select(moved).add_cte(moved, counted)  # in this order: counted reads moved
 
 
-def set_job_state(job: Job, to_state: str, **values: Any) -> None:
+def set_job_state(job: Job, to_state: str, **values: object) -> None:
     """Move a loaded job to `to_state` (IllegalTransition if the table forbids it) and set other columns."""
     _, dst = check_job_edge(job.state, to_state)
     job.state = dst

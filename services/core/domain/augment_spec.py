@@ -9,7 +9,7 @@ Units: metres, 1/m, the f-number, millimetres of sensor width, pixels; [0, 1] fo
 from __future__ import annotations
 
 import math
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -28,7 +28,7 @@ class Dist(BaseModel):
 
     @model_validator(mode="before")
     @classmethod
-    def _number_is_constant(cls, v: Any) -> Any:
+    def _number_is_constant(cls, v: object) -> object:
         if isinstance(v, int | float) and not isinstance(v, bool):
             return {"dist": "constant", "low": float(v), "high": float(v)}
         return v

@@ -12,16 +12,86 @@ import os
 from collections.abc import Iterable, Mapping, Sequence
 from importlib import metadata
 from pathlib import Path
-from typing import Any
+from typing import TypedDict
 
 from services.core.domain.camera import CONVENTIONS
 from services.core.domain.cues import CATALOG
+from services.core.domain.plan import ClipSummary, ValidFractionSummary
 
 JOB_FORMAT = "omnidata.job/2"
 LAYOUT = "<cue>/<component>/<space>/point_<p>_view_<v>_domain_<cue>.<ext>"
 STAGES = ("plan", "render")
 # what LoadedSpace.frame_record() may hold; always present in a space record (null when not detected/given)
 FRAME_RECORD_KEYS = ("up", "units", "reconstruction", "class_names", "capture", "capture_plan")
+
+
+class CueEncoding(TypedDict):
+    ext: str
+    encoding: str
+    dtype: str
+    channels: int
+    per_point: bool
+    inputs: list[str]
+
+
+class FileCounts(TypedDict):
+    by_state: dict[str, int]
+    by_cue: dict[str, dict[str, int]]
+    total: int
+
+
+class SpaceCounts(TypedDict):
+    cameras: int | None
+    points: int | None
+    views: int | None
+
+
+class SpaceRecord(TypedDict):
+    """One space of job.json (see space_record)."""
+
+    space_id: int | None
+    position: int
+    cues: list[str]
+    checksum_sha256: str
+    source_format: str
+    source_to_world: list[list[float]] | None
+    unit_scale: float | str | None
+    up_axis: str
+    bounds_world_m: list[list[float]] | None
+    face_count: int
+    has_texture: bool
+    has_semantics: bool
+    counts: SpaceCounts
+    tasks: int | None
+    shortfall: str | None
+    valid_fraction: ValidFractionSummary | None
+    clips: ClipSummary | None
+    plan: str | None
+    warnings: list[str]
+    # the frame record (FRAME_RECORD_KEYS): open JSON objects written by ingest, null when not detected/given
+    up: object
+    units: object
+    reconstruction: object
+    class_names: object
+    capture: object
+    capture_plan: object
+
+
+class JobDocument(TypedDict):
+    """The whole job.json document (see job_document)."""
+
+    format: str
+    stage: str
+    code_version: str
+    job: dict[str, object]
+    component: str
+    spec: dict[str, object]
+    layout: str
+    conventions: dict[str, str]
+    cues: dict[str, CueEncoding]
+    spaces: dict[str, SpaceRecord]
+    plan_summary: dict[str, object]
+    counts: FileCounts
 
 
 def code_version() -> str:
@@ -45,7 +115,7 @@ def code_version() -> str:
         return version
 
 
-def cue_encodings(cues: Iterable[str]) -> dict[str, dict[str, Any]]:
+def cue_encodings(cues: Iterable[str]) -> dict[str, CueEncoding]:
     """How each cue's files are stored (extension, encoding, dtype, channels), from the cue catalog."""
     return {
         n: {
@@ -60,7 +130,7 @@ def cue_encodings(cues: Iterable[str]) -> dict[str, dict[str, Any]]:
     }
 
 
-def file_counts(by_cue: Mapping[str, Mapping[str, int]]) -> dict[str, Any]:
+def file_counts(by_cue: Mapping[str, Mapping[str, int]]) -> FileCounts:
     """Task (or file) counts as {by_state, by_cue, total} from {cue: {state: n}}."""
     by_state: dict[str, int] = {}
     for states in by_cue.values():
@@ -76,21 +146,21 @@ def space_record(
     cues: Sequence[str],
     checksum: str,
     source_format: str,
-    source_to_world: Any,
+    source_to_world: list[list[float]] | None,
     unit_scale: float | str | None,
     up_axis: str,
-    bounds: Any,
+    bounds: list[list[float]] | None,
     face_count: int,
     has_texture: bool,
     has_semantics: bool,
     counts: Mapping[str, int | None],
     shortfall: str | None,
-    valid_fraction: Any,
-    clips: Any,
+    valid_fraction: ValidFractionSummary | None,
+    clips: ClipSummary | None,
     plan: str | None,
     warnings: Sequence[str],
-    frame: Mapping[str, Any],
-) -> dict[str, Any]:
+    frame: Mapping[str, object],
+) -> SpaceRecord:
     """One space of job.json: the source, its frame (source_to_world, up, units), its plan and counts."""
     return {
         "space_id": space_id,
@@ -105,28 +175,33 @@ def space_record(
         "face_count": face_count,
         "has_texture": has_texture,
         "has_semantics": has_semantics,
-        "counts": {k: counts.get(k) for k in ("cameras", "points", "views")},
+        "counts": {"cameras": counts.get("cameras"), "points": counts.get("points"), "views": counts.get("views")},
         "tasks": counts.get("tasks"),  # tasks compiled by the scheduler; null for a plan
         "shortfall": shortfall,
         "valid_fraction": valid_fraction,
         "clips": clips,
         "plan": plan,
         "warnings": list(warnings),
-        **{k: frame.get(k) for k in FRAME_RECORD_KEYS},
+        "up": frame.get("up"),
+        "units": frame.get("units"),
+        "reconstruction": frame.get("reconstruction"),
+        "class_names": frame.get("class_names"),
+        "capture": frame.get("capture"),
+        "capture_plan": frame.get("capture_plan"),
     }
 
 
 def job_document(
     *,
     stage: str,
-    job: Mapping[str, Any],
+    job: Mapping[str, object],
     component: str,
-    spec: Mapping[str, Any],
+    spec: Mapping[str, object],
     cues: Iterable[str],
-    spaces: Mapping[str, dict[str, Any]],
-    plan_summary: Mapping[str, Any],
+    spaces: Mapping[str, SpaceRecord],
+    plan_summary: Mapping[str, object],
     counts: Mapping[str, Mapping[str, int]],
-) -> dict[str, Any]:
+) -> JobDocument:
     """The whole job.json document (see the module docstring); `job` is the job row's summary."""
     if stage not in STAGES:
         raise ValueError(f"stage {stage!r} is not one of {STAGES}")
@@ -146,6 +221,6 @@ def job_document(
     }
 
 
-def job_json_bytes(document: Mapping[str, Any]) -> bytes:
+def job_json_bytes(document: JobDocument) -> bytes:
     """job.json as written to a file: indented, keys sorted (the same bytes for the same document)."""
     return (json.dumps(document, indent=2, sort_keys=True) + "\n").encode("utf-8")

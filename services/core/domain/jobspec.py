@@ -7,9 +7,11 @@ where used). Every refusal names the field and the reason (pydantic reports the 
 from __future__ import annotations
 
 import math
-from typing import Annotated, Any, Literal
+from collections.abc import Sequence
+from typing import Annotated, Literal, TypedDict
 
 import numpy as np
+from numpy.typing import ArrayLike
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator, model_validator
 
 from services.core.domain.augment_spec import AugmentParams
@@ -26,18 +28,29 @@ MAX_PLANNED_VIEWS = 20_000_000  # upper estimate of the views a spec can plan (p
 MAX_SAMPLE_BUDGET = 200_000_000  # surface samples the point sampler may draw (points x max_tries_per_point)
 
 
-def _list_as_tuple(v: Any) -> Any:
+def _list_as_tuple(v: object) -> object:
     # JSON (and a spec stored as JSON) has no tuples: take a list as one, with its items still checked strictly.
     return tuple(v) if isinstance(v, list) else v
 
 
-def _rows_as_tuples(v: Any) -> Any:
+def _rows_as_tuples(v: object) -> object:
     return tuple(_list_as_tuple(r) for r in v) if isinstance(v, (list, tuple)) else v
 
 
 MAX_UNIT_SCALE = 1000.0
 UP_AXES = ("auto", "+x", "-x", "+y", "-y", "+z", "-z")
 Row4 = tuple[float, float, float, float]
+
+
+class SpaceFrame(TypedDict, total=False):
+    """The keyword arguments of `services.core.ingest.loading.load_space` that set a space's frame (a planned
+    frame may give source_to_world alone)."""
+
+    up_axis: str
+    unit_scale: float | str
+    up: Sequence[float] | None
+    source_to_world: Sequence[Sequence[float]] | None
+    accept_up_guess: bool
 
 
 class _Strict(BaseModel):
@@ -282,7 +295,7 @@ class JobSpec(_Strict):
 
     @field_validator("unit_scale", mode="plain")
     @classmethod
-    def _unit_scale(cls, v: Any) -> float | str:
+    def _unit_scale(cls, v: object) -> float | str:
         return parse_unit_scale(v)
 
     @field_validator("up")
@@ -303,7 +316,7 @@ class JobSpec(_Strict):
         """True when rgb comes from the capture's photos (rgb_source photos, or auto with capture cameras)."""
         return self.views.rgb_source == "photos" or (self.views.rgb_source == "auto" and self.cameras.mode == "capture")
 
-    def space_frame(self) -> dict[str, Any]:
+    def space_frame(self) -> SpaceFrame:
         """The keyword arguments of `services.core.ingest.loading.load_space` that set the space frame."""
         return {"up_axis": self.up_axis, "unit_scale": self.unit_scale, "up": self.up,
                 "source_to_world": self.source_to_world, "accept_up_guess": self.accept_up_guess}
@@ -335,12 +348,17 @@ class JobSpec(_Strict):
 
     def views_upper_bound(self) -> int:
         """Most views one space of this spec can plan (points x views per point)."""
-        return self._plan_size()[0]
+        return self.plan_size()[0]
 
-    def _plan_size(self) -> tuple[int, int, int, str]:
+    def camera_count_bound(self) -> int:
+        """Most cameras one space of this spec can have (capture: its poses, counted when planned: 0 here)."""
+        cams = self.cameras
+        return {"generate": cams.max_count, "object": cams.object_count}.get(cams.mode, len(cams.poses or ()))
+
+    def plan_size(self) -> tuple[int, int, int, str]:
         """(views upper bound, points, views per point, the knob that bounds views per point)."""
-        cams, pts = self.cameras, self.points
-        n_cameras = {"generate": cams.max_count, "object": cams.object_count}.get(cams.mode, len(cams.poses or ()))
+        pts = self.points
+        n_cameras = self.camera_count_bound()
         n_points = pts.count if pts.count is not None else math.ceil(pts.per_camera * n_cameras)
         if self.views.mode == "trajectory":
             per_point, what = self.views.trajectory_max_frames, "views.trajectory_max_frames"
@@ -353,7 +371,7 @@ class JobSpec(_Strict):
         """Refuse a spec whose plan could exceed MAX_PLANNED_VIEWS (its rows and tasks would exhaust memory) or
         whose point sampling could draw more than MAX_SAMPLE_BUDGET samples (hours of ray casts)."""
         pts = self.points
-        _views, n_points, per_point, what = self._plan_size()
+        _views, n_points, per_point, what = self.plan_size()
         if n_points * pts.max_tries_per_point > MAX_SAMPLE_BUDGET:
             raise ValueError(
                 f"{n_points} points x points.max_tries_per_point ({pts.max_tries_per_point}) could draw "
@@ -372,7 +390,7 @@ class JobSpec(_Strict):
 Resolution = Annotated[int, Field(ge=MIN_RESOLUTION, le=MAX_RESOLUTION)]
 
 
-def parse_unit_scale(v: Any, *, numbers_as_text: bool = False) -> float | str:
+def parse_unit_scale(v: object, *, numbers_as_text: bool = False) -> float | str:
     """'auto' or metres per source unit in (0, MAX_UNIT_SCALE]; ValueError naming unit_scale otherwise.
 
     `numbers_as_text`: form fields carry numbers as text; JSON and specs must send a number.
@@ -391,7 +409,7 @@ def parse_unit_scale(v: Any, *, numbers_as_text: bool = False) -> float | str:
     return x
 
 
-def similarity_scale(matrix: Any) -> float:
+def similarity_scale(matrix: ArrayLike) -> float:
     """The uniform scale of a 4x4 rotation + uniform scale + translation; ValueError saying what is wrong."""
     m = np.asarray(matrix, dtype=np.float64)
     if m.shape != (4, 4) or not np.isfinite(m).all():

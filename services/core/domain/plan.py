@@ -12,14 +12,16 @@ from __future__ import annotations
 import json
 import weakref
 from dataclasses import dataclass
-from typing import Any
+from typing import NotRequired, TypedDict
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from services.core.domain.camera import (
     camera_center,
     intrinsics,
 )
+from services.core.domain.capture_records import CapturePlanRecord
 
 PLAN_FORMAT = "omnidata.plan/1"
 CAMERA_SOURCES = ("generated", "provided", "object", "capture")
@@ -29,7 +31,7 @@ class PlanError(ValueError):
     """A plan that cannot be made from these inputs (an impossible combination), with the reason."""
 
 
-def frozen_array(a: Any, shape: tuple[int, ...]) -> np.ndarray:
+def frozen_array(a: ArrayLike, shape: tuple[int, ...]) -> np.ndarray:
     """`a` as a read-only float64 array of `shape` (ValueError otherwise): value objects cannot be changed
     through an array they hand out."""
     arr = np.array(a, dtype=np.float64)
@@ -100,6 +102,35 @@ class PlannedView:
         return intrinsics(self.fov, self.resolution)
 
 
+class ValidFractionSummary(TypedDict):
+    """Predicted share of each view's pixels with a surface: quantiles over the views (or a sample of
+    `sampled_of` views, when only reported) and how many fell below `threshold`."""
+
+    views: int
+    threshold: float
+    dropped: int
+    probe_px: NotRequired[int]
+    min: NotRequired[float]
+    p05: NotRequired[float]
+    p25: NotRequired[float]
+    median: NotRequired[float]
+    p75: NotRequired[float]
+    max: NotRequired[float]
+    mean: NotRequired[float]
+    sampled_of: NotRequired[int]
+
+
+class ClipNoteRecord(TypedDict):
+    """A trajectory clip cut short or dropped: point_idx (None when dropped), outcome, frames kept and planned,
+    and frames failed per check (keys of CLIP_CHECKS)."""
+
+    point_idx: int | None
+    outcome: str  # shortened | dropped
+    frames: int
+    planned_frames: int
+    reasons: dict[str, int]
+
+
 @dataclass(frozen=True, eq=False)
 class SpacePlan:
     """Everything sampled for one space of a job. Views are sorted by (point_idx, v)."""
@@ -109,11 +140,11 @@ class SpacePlan:
     points: tuple[PointOfInterest, ...]
     views: tuple[PlannedView, ...]
     shortfall: str | None = None
-    valid_fraction: dict[str, Any] | None = None  # predicted share of pixels with a surface per view (summary)
+    valid_fraction: ValidFractionSummary | None = None  # predicted share of pixels with a surface per view (summary)
     # trajectory clips cut short or dropped by the motion/clearance/visibility checks: point_idx (None
     # when dropped), outcome, frames, planned_frames, reasons {check: failed frames}
-    clip_notes: tuple[dict[str, Any], ...] = ()
-    capture: dict[str, Any] | None = None  # capture plans: frames used and dropped, alignment distribution
+    clip_notes: tuple[ClipNoteRecord, ...] = ()
+    capture: CapturePlanRecord | None = None  # capture plans: frames used and dropped, alignment distribution
 
     def views_of(self, point_idx: int) -> tuple[PlannedView, ...]:
         """The views of one point, v = 0..n-1."""
@@ -142,7 +173,16 @@ CLIP_CHECKS = {
 }
 
 
-def clip_summary(clip_notes: tuple[dict[str, Any], ...], max_notes: int = 0) -> dict[str, Any]:
+class ClipSummary(TypedDict):
+    """Clips shortened and dropped, frames failed per check, and the first notes."""
+
+    shortened: int
+    dropped: int
+    failed_frames: dict[str, int]
+    notes: list[ClipNoteRecord]
+
+
+def clip_summary(clip_notes: tuple[ClipNoteRecord, ...], max_notes: int = 0) -> ClipSummary:
     """Counts of trajectory clips shortened and dropped, of the frames that failed each check, and the
     first max_notes notes themselves (a job summary stays small; the plan JSON holds them all)."""
     failed: dict[str, int] = {}
@@ -157,7 +197,7 @@ def clip_summary(clip_notes: tuple[dict[str, Any], ...], max_notes: int = 0) -> 
     }
 
 
-def clip_shortfall(clip_notes: tuple[dict[str, Any], ...], n_points: int) -> str | None:
+def clip_shortfall(clip_notes: tuple[ClipNoteRecord, ...], n_points: int) -> str | None:
     """One line on the clips the checks cut short or dropped, most frequent failure first."""
     if not clip_notes:
         return None
@@ -200,47 +240,93 @@ def plan_index(plan: SpacePlan) -> PlanIndex:
     return idx
 
 
-def float_list(a: np.ndarray) -> list[Any]:
-    """An array as nested lists of Python floats (JSON-ready, exact round trip)."""
-    return np.asarray(a, dtype=np.float64).tolist()
-
-
 # ---------------------------------------------------------------------------------------------
 # JSON
 
 
-def plan_to_dict(plan: SpacePlan) -> dict[str, Any]:
+class CameraRecord(TypedDict):
+    idx: int
+    position: list[float]
+    source: str
+    uuid: str
+
+
+class PointRecord(TypedDict):
+    idx: int
+    position: list[float]
+    normal: list[float]
+    uuid: str
+    camera_idxs: list[int]
+
+
+class ViewRecord(TypedDict):
+    point_idx: int
+    v: int
+    camera_idx: int
+    world_to_camera: list[list[float]]
+    fov: float
+    roll: float
+    resolution: int
+    obliqueness: float
+    in_sight: bool
+    alignment: NotRequired[float]
+    photo_coverage: NotRequired[float]
+
+
+class PlanRecord(TypedDict):
+    """A SpacePlan as JSON (format PLAN_FORMAT)."""
+
+    format: str
+    space_name: str
+    shortfall: str | None
+    valid_fraction: ValidFractionSummary | None
+    clip_notes: list[ClipNoteRecord]
+    cameras: list[CameraRecord]
+    points: list[PointRecord]
+    views: list[ViewRecord]
+    capture: NotRequired[CapturePlanRecord]
+
+
+def _view_record(v: PlannedView) -> ViewRecord:
+    record: ViewRecord = {
+        "point_idx": v.point_idx, "v": v.v, "camera_idx": v.camera_idx,
+        "world_to_camera": np.asarray(v.world_to_camera, dtype=np.float64).tolist(), "fov": float(v.fov),
+        "roll": float(v.roll), "resolution": int(v.resolution), "obliqueness": float(v.obliqueness),
+        "in_sight": bool(v.in_sight),
+    }
+    if v.alignment is not None:
+        record["alignment"] = v.alignment
+    if v.photo_coverage is not None:
+        record["photo_coverage"] = v.photo_coverage
+    return record
+
+
+def plan_to_dict(plan: SpacePlan) -> PlanRecord:
     """The plan as JSON-ready data (lists of floats, exact round trip)."""
-    return {
+    record: PlanRecord = {
         "format": PLAN_FORMAT,
         "space_name": plan.space_name,
         "shortfall": plan.shortfall,
         "valid_fraction": plan.valid_fraction,
         "clip_notes": list(plan.clip_notes),
         "cameras": [
-            {"idx": c.idx, "position": float_list(c.position), "source": c.source, "uuid": c.uuid}
+            {"idx": c.idx, "position": np.asarray(c.position, dtype=np.float64).tolist(), "source": c.source,
+             "uuid": c.uuid}
             for c in plan.cameras
         ],
         "points": [
             {
-                "idx": p.idx, "position": float_list(p.position), "normal": float_list(p.normal), "uuid": p.uuid,
+                "idx": p.idx, "position": np.asarray(p.position, dtype=np.float64).tolist(),
+                "normal": np.asarray(p.normal, dtype=np.float64).tolist(), "uuid": p.uuid,
                 "camera_idxs": list(p.camera_idxs),
             }
             for p in plan.points
         ],
-        "views": [
-            {
-                "point_idx": v.point_idx, "v": v.v, "camera_idx": v.camera_idx,
-                "world_to_camera": float_list(v.world_to_camera), "fov": float(v.fov), "roll": float(v.roll),
-                "resolution": int(v.resolution), "obliqueness": float(v.obliqueness),
-                "in_sight": bool(v.in_sight),
-                **({"alignment": v.alignment} if v.alignment is not None else {}),
-                **({"photo_coverage": v.photo_coverage} if v.photo_coverage is not None else {}),
-            }
-            for v in plan.views
-        ],
-        **({"capture": plan.capture} if plan.capture is not None else {}),
+        "views": [_view_record(v) for v in plan.views],
     }
+    if plan.capture is not None:
+        record["capture"] = plan.capture
+    return record
 
 
 def plan_to_json(plan: SpacePlan) -> str:
@@ -248,27 +334,28 @@ def plan_to_json(plan: SpacePlan) -> str:
     return json.dumps(plan_to_dict(plan), sort_keys=True, separators=(",", ":"), allow_nan=False)
 
 
-def plan_from_dict(data: dict[str, Any]) -> SpacePlan:
+def plan_from_dict(data: PlanRecord) -> SpacePlan:
     """Inverse of plan_to_dict."""
     if data.get("format") != PLAN_FORMAT:
         raise ValueError(f"not a plan: format {data.get('format')!r}, expected {PLAN_FORMAT!r}")
     return SpacePlan(
         space_name=data["space_name"],
-        cameras=tuple(CameraPose(c["idx"], c["position"], c["source"], c["uuid"]) for c in data["cameras"]),
+        cameras=tuple(CameraPose(c["idx"], np.asarray(c["position"]), c["source"], c["uuid"]) for c in data["cameras"]),
         points=tuple(
-            PointOfInterest(p["idx"], p["position"], p["normal"], p["uuid"], tuple(p["camera_idxs"]))
+            PointOfInterest(p["idx"], np.asarray(p["position"]), np.asarray(p["normal"]), p["uuid"],
+                            tuple(p["camera_idxs"]))
             for p in data["points"]
         ),
         views=tuple(
             PlannedView(
-                v["point_idx"], v["v"], v["camera_idx"], v["world_to_camera"], v["fov"], v["roll"],
+                v["point_idx"], v["v"], v["camera_idx"], np.asarray(v["world_to_camera"]), v["fov"], v["roll"],
                 v["resolution"], v["obliqueness"], v["in_sight"], v.get("alignment"), v.get("photo_coverage"),
             )
             for v in data["views"]
         ),
         shortfall=data.get("shortfall"),
         valid_fraction=data.get("valid_fraction"),
-        clip_notes=tuple(data.get("clip_notes", ())),
+        clip_notes=tuple(data.get("clip_notes", [])),
         capture=data.get("capture"),
     )
 

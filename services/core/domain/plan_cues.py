@@ -8,7 +8,8 @@ centre of pixel u at u + 0.5; depths and positions are world metres.
 from __future__ import annotations
 
 import json
-from typing import Any
+from collections.abc import Mapping
+from typing import NotRequired, TypedDict
 
 import numpy as np
 
@@ -20,7 +21,8 @@ from services.core.domain.camera import (
     rotation_to_euler_xyz,
     rotation_to_quaternion_wxyz,
 )
-from services.core.domain.plan import PlannedView, SpacePlan, float_list, plan_index
+from services.core.domain.json_types import JSONValue
+from services.core.domain.plan import PlannedView, SpacePlan, plan_index
 
 
 def points_in_view(plan: SpacePlan, view: PlannedView) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -41,7 +43,83 @@ def points_in_view(plan: SpacePlan, view: PlannedView) -> tuple[np.ndarray, np.n
     return cand[ok], uv[ok], z[ok]
 
 
-def point_info(plan: SpacePlan, view: PlannedView) -> dict[str, Any]:
+class PointInfo(TypedDict):
+    """The point_info JSON of one view: Omnidata's keys, then ours (K, world_to_camera, conventions, ...)."""
+
+    point_uuid: str
+    view_id: int
+    camera_uuid: str
+    camera_location: list[float]
+    camera_rotation_final: list[float]
+    camera_rotation_final_quaternion: list[float]
+    field_of_view_rads: float
+    resolution: int
+    point_location: list[float]
+    point_normal: list[float]
+    obliqueness_angle: float
+    camera_distance: float
+    nonfixated_points_in_view: list[int]
+    K: list[list[float]]
+    world_to_camera: list[list[float]]
+    conventions: dict[str, str]
+    space: str
+    point_idx: int
+    camera_idx: int
+    roll_rads: float
+    in_sight: bool
+    alignment_score: NotRequired[float]
+    photo_coverage: NotRequired[float]
+
+
+class NonfixatedPoint(TypedDict):
+    point_idx: int
+    point_uuid: str
+    pixel: list[float]
+    depth_zbuffer_m: float
+
+
+class NonfixatedView(TypedDict):
+    view_id: int
+    camera_uuid: str
+    camera_location: list[float]
+    points: list[NonfixatedPoint]
+
+
+class Nonfixated(TypedDict):
+    """The nonfixated JSON of a point (one file per point)."""
+
+    point_uuid: str
+    point_idx: int
+    point_location: list[float]
+    space: str
+    views: list[NonfixatedView]
+    conventions: dict[str, str]
+
+
+class VanishingPoint(TypedDict):
+    image: list[float] | None  # pixels; None: at infinity
+    direction: list[float]
+    gaussian_sphere: list[float]
+
+
+class VanishingPoints(TypedDict):
+    """Vanishing points of the world X, Y, Z axes in one view."""
+
+    x: VanishingPoint
+    y: VanishingPoint
+    z: VanishingPoint
+    conventions: dict[str, str]
+
+
+def _floats(a: np.ndarray) -> list[float]:
+    return np.asarray(a, dtype=np.float64).tolist()
+
+
+def _matrix(a: np.ndarray) -> list[list[float]]:
+    return np.asarray(a, dtype=np.float64).tolist()
+
+
+def point_info(plan: SpacePlan, view: PlannedView) -> PointInfo:
     """The point_info JSON of one view: Omnidata's keys plus K, world_to_camera and conventions.
 
     camera_rotation_final is the Blender XYZ Euler (radians) of the Blender camera object
@@ -53,49 +131,52 @@ def point_info(plan: SpacePlan, view: PlannedView) -> dict[str, Any]:
     centre = camera_center(W)
     R_blender = blender_matrix_world(W)[:3, :3]
     others, _, _ = points_in_view(plan, view)
-    return {
+    info: PointInfo = {
         "point_uuid": point.uuid,
         "view_id": int(view.v),
         "camera_uuid": camera.uuid,
-        "camera_location": float_list(centre),
-        "camera_rotation_final": float_list(rotation_to_euler_xyz(R_blender)),
-        "camera_rotation_final_quaternion": float_list(rotation_to_quaternion_wxyz(R_blender)),
+        "camera_location": _floats(centre),
+        "camera_rotation_final": _floats(rotation_to_euler_xyz(R_blender)),
+        "camera_rotation_final_quaternion": _floats(rotation_to_quaternion_wxyz(R_blender)),
         "field_of_view_rads": float(view.fov),
         "resolution": int(view.resolution),
-        "point_location": float_list(point.position),
-        "point_normal": float_list(point.normal),
+        "point_location": _floats(point.position),
+        "point_normal": _floats(point.normal),
         "obliqueness_angle": float(view.obliqueness),
         "camera_distance": float(np.linalg.norm(centre - point.position)),
         "nonfixated_points_in_view": [int(i) for i in others],
         # ours
-        "K": float_list(view.K),
-        "world_to_camera": float_list(W),
+        "K": _matrix(view.K),
+        "world_to_camera": _matrix(W),
         "conventions": dict(CONVENTIONS),
         "space": plan.space_name,
         "point_idx": int(view.point_idx),
         "camera_idx": int(view.camera_idx),
         "roll_rads": float(view.roll),
         "in_sight": bool(view.in_sight),
-        **({"alignment_score": view.alignment} if view.alignment is not None else {}),
-        **({"photo_coverage": view.photo_coverage} if view.photo_coverage is not None else {}),
     }
+    if view.alignment is not None:
+        info["alignment_score"] = view.alignment
+    if view.photo_coverage is not None:
+        info["photo_coverage"] = view.photo_coverage
+    return info
 
 
-def nonfixated(plan: SpacePlan, point_idx: int) -> dict[str, Any]:
+def nonfixated(plan: SpacePlan, point_idx: int) -> Nonfixated:
     """The nonfixated JSON of a point: for each of its views, the pixels of the other points visible in it."""
     point = plan.points[point_idx]
-    views = []
+    views: list[NonfixatedView] = []
     for view in plan.views_of(point_idx):
         idxs, uv, z = points_in_view(plan, view)
         views.append({
             "view_id": int(view.v),
             "camera_uuid": plan.cameras[view.camera_idx].uuid,
-            "camera_location": float_list(view.position),
+            "camera_location": _floats(view.position),
             "points": [
                 {
                     "point_idx": int(i),
                     "point_uuid": plan.points[int(i)].uuid,
-                    "pixel": float_list(uv[k]),
+                    "pixel": _floats(uv[k]),
                     "depth_zbuffer_m": float(z[k]),
                 }
                 for k, i in enumerate(idxs)
@@ -104,7 +185,7 @@ def nonfixated(plan: SpacePlan, point_idx: int) -> dict[str, Any]:
     return {
         "point_uuid": point.uuid,
         "point_idx": int(point_idx),
-        "point_location": float_list(point.position),
+        "point_location": _floats(point.position),
         "space": plan.space_name,
         "views": views,
         "conventions": {
@@ -115,7 +196,7 @@ def nonfixated(plan: SpacePlan, point_idx: int) -> dict[str, Any]:
     }
 
 
-def vanishing_points(info: dict[str, Any]) -> dict[str, Any]:
+def vanishing_points(info: Mapping[str, object]) -> VanishingPoints:
     """Vanishing points of the world X, Y, Z axes for a point_info dict.
 
     `image`: pixel coordinates (continuous, centre of pixel u at u + 0.5), or None when the axis is
@@ -126,24 +207,27 @@ def vanishing_points(info: dict[str, Any]) -> dict[str, Any]:
     K = np.asarray(info["K"], dtype=np.float64)
     W = np.asarray(info["world_to_camera"], dtype=np.float64)
     R = W[:3, :3]
-    out: dict[str, Any] = {}
-    for k, name in enumerate("xyz"):
+    def axis(k: int) -> VanishingPoint:
         d = R[:, k] / np.linalg.norm(R[:, k])
         image: list[float] | None = None
         if abs(d[2]) > 1e-12:
-            uv = K[:2, :2] @ (d[:2] / d[2]) + K[:2, 2]
-            image = float_list(uv)
+            image = _floats(K[:2, :2] @ (d[:2] / d[2]) + K[:2, 2])
         g = d if d[2] >= 0 else -d
-        out[name] = {"image": image, "direction": float_list(d), "gaussian_sphere": float_list(g)}
-    out["conventions"] = {
-        "image": "pixels, centre of pixel u at u + 0.5; null = at infinity (axis parallel to the image)",
-        "direction": "world axis in OpenCV camera axes (x right, y down, z forward)",
-        "gaussian_sphere": "unit vector of the axis' line through the camera centre, z >= 0",
+        return {"image": image, "direction": _floats(d), "gaussian_sphere": _floats(g)}
+
+    return {
+        "x": axis(0),
+        "y": axis(1),
+        "z": axis(2),
+        "conventions": {
+            "image": "pixels, centre of pixel u at u + 0.5; null = at infinity (axis parallel to the image)",
+            "direction": "world axis in OpenCV camera axes (x right, y down, z forward)",
+            "gaussian_sphere": "unit vector of the axis' line through the camera centre, z >= 0",
+        },
     }
-    return out
 
 
-def _json_default(o: Any) -> Any:
+def _json_default(o: object) -> JSONValue:
     if isinstance(o, np.ndarray):
         return o.tolist()
     if isinstance(o, np.integer):
@@ -157,7 +241,7 @@ def _json_default(o: Any) -> Any:
     raise TypeError(f"not JSON-serialisable: {type(o).__name__}")
 
 
-def encode_json(obj: Any) -> bytes:
+def encode_json(obj: object) -> bytes:
     """A JSON cue file's bytes, the same from `omnidata plan` and the workers: sorted keys, compact, numpy
     scalars/arrays as plain numbers/lists, UTF-8."""
     # Compact separators keep json's C encoder (indent forces the pure-Python one): 4x faster, 40% smaller

@@ -11,7 +11,7 @@ import tempfile
 import zipfile
 import zlib
 from pathlib import Path, PurePosixPath
-from typing import Any
+from typing import TypedDict, Unpack
 
 from services.core.ingest.archive_rules import MAX_RATIO, expansion_refusal
 from services.core.ingest.datasets import scene_mesh_in
@@ -135,10 +135,18 @@ def _extract_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, target: Path, na
     return written
 
 
+class ZipLimits(TypedDict, total=False):
+    """Keyword arguments of safe_extract_zip that override its limits."""
+
+    max_total_bytes: int
+    max_ratio: float
+    max_members: int
+
+
 def resolve_source(
     path: str | Path,
     extract_dir: str | Path | None = None,
-    **zip_limits: Any,
+    **zip_limits: Unpack[ZipLimits],
 ) -> Path:
     """The one mesh file of a space: the file itself, the only mesh in a folder, or in a zip.
 

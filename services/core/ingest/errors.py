@@ -6,9 +6,12 @@ without importing each other.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING
 
 from services.core.domain.errors import Invalid
+
+if TYPE_CHECKING:
+    from services.core.ingest.frame_records import UnitCandidateRecord, UpCandidateRecord
 
 
 class SpaceError(Invalid):
@@ -18,7 +21,7 @@ class SpaceError(Invalid):
 class FrameAmbiguous(SpaceError):
     """Detection could not decide the frame (up or units); the message names the candidates and the flag that picks one."""
 
-    def __init__(self, message: str, candidates: list[dict[str, Any]]):
+    def __init__(self, message: str, candidates: list[UpCandidateRecord] | list[UnitCandidateRecord]):
         super().__init__(message)
         self.candidates = candidates
 

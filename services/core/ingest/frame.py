@@ -7,8 +7,8 @@ planner, not from z = 0), unless the user gives a whole `source_to_world`, which
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 import trimesh
@@ -29,7 +29,7 @@ from services.core.ingest.up_evidence import ambiguity_line
 FRAME_KEYS = ("up", "units", "reconstruction", "class_names", "valid_fraction", "capture")
 
 
-def frame_of(record: dict[str, Any] | None) -> dict[str, Any] | None:
+def frame_of(record: Mapping[str, object] | None) -> dict[str, object] | None:
     """The frame part of a space record (validation, plan summary): what the API shows; None when absent."""
     if not record:
         return None

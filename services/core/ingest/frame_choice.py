@@ -12,12 +12,11 @@ up and units (`space_frame_for`); its workers load it with the source_to_world t
 from __future__ import annotations
 
 from datetime import UTC, datetime
-from typing import Any
 
 import numpy as np
 
 from services.core.db.models import Space
-from services.core.domain.jobspec import JobSpec
+from services.core.domain.jobspec import JobSpec, SpaceFrame
 from services.core.ingest.unit_evidence import units_ambiguity_line
 from services.core.ingest.up_evidence import ambiguity_line
 
@@ -57,7 +56,7 @@ def _spec_sets_units(spec: JobSpec) -> bool:
     return spec.unit_scale != "auto" or spec.source_to_world is not None
 
 
-def space_frame_for(spec: JobSpec, space: Space) -> dict[str, Any]:
+def space_frame_for(spec: JobSpec, space: Space) -> SpaceFrame:
     """`load_space` keyword arguments for this space under this spec: the spec's frame, else the chosen one."""
     frame = spec.space_frame()
     choice = chosen_up(space)

@@ -38,13 +38,13 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 import trimesh
 from scipy import sparse
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
+from services.core.ingest.frame_records import UnitCandidateRecord, UnitsRecord, UpRecord
 from services.core.ingest.up_evidence import CandidateFacts, UpDecision, decide, unit_capture_up
 
 CONVENTION_UP = {".obj": "+y", ".gltf": "+y", ".glb": "+y", ".ply": "+z"}
@@ -128,10 +128,10 @@ class UpEstimate:
             return f"{self.method}, scoring only {self.margin:.2f} above a candidate {angle} deg away"
         return f"{self.method}, scoring only {self.margin:.2f}x a candidate {angle} deg away"
 
-    def record(self, unit_scale: float = 1.0) -> dict[str, Any]:
+    def record(self, unit_scale: float = 1.0) -> UpRecord:
         """JSON-ready summary (areas in m^2 with `unit_scale` metres per source unit)."""
         margin = None if self.margin is None else (None if not np.isfinite(self.margin) else round(self.margin, 3))
-        return {
+        out: UpRecord = {
             "source_direction": [float(x) for x in self.up],
             "method": self.method,
             "confidence": "low" if self.low_confidence else "high",
@@ -139,16 +139,14 @@ class UpEstimate:
             "floor_fraction": round(self.floor_fraction, 4),
             "runner_up_angle_deg": None if self.runner_up_angle_deg is None else round(self.runner_up_angle_deg, 2),
             "margin": margin,
-            **self._decision_record(unit_scale),
         }
-
-    def _decision_record(self, unit_scale: float) -> dict[str, Any]:
-        if self.decision is None:
-            return {}
-        d = self.decision
-        return {"probability": self.confidence, "ambiguous": d.ambiguous,
-                "evidence": d.best.record(unit_scale)["evidence"],
-                "candidates": [c.record(unit_scale) for c in d.shown]}
+        if self.decision is not None:  # scored by the evidence: its probability, terms and candidates
+            d = self.decision
+            out["probability"] = self.confidence
+            out["ambiguous"] = d.ambiguous
+            out["evidence"] = d.best.record(unit_scale)["evidence"]
+            out["candidates"] = [c.record(unit_scale) for c in d.shown]
+        return out
 
 
 def axis_vector(code: str) -> np.ndarray:
@@ -411,13 +409,14 @@ class UnitChoice:
     unit: str  # metres | centimetres | millimetres | inches | given | source_to_world
     reason: str
     ambiguous: bool = False  # another unit is about as plausible (services.core.ingest.unit_evidence)
-    candidates: tuple[dict[str, Any], ...] = ()  # the plausible units, best first, when more than one
+    candidates: tuple[UnitCandidateRecord, ...] = ()  # the plausible units, best first, when more than one
 
-    def record(self) -> dict[str, Any]:
+    def record(self) -> UnitsRecord:
         """JSON-ready summary."""
-        out: dict[str, Any] = {"unit_scale": self.scale, "unit": self.unit, "reason": self.reason}
+        out: UnitsRecord = {"unit_scale": self.scale, "unit": self.unit, "reason": self.reason}
         if self.candidates:
-            out.update(ambiguous=self.ambiguous, candidates=list(self.candidates))
+            out["ambiguous"] = self.ambiguous
+            out["candidates"] = list(self.candidates)
         return out
 
 

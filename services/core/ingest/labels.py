@@ -30,7 +30,7 @@ _CLASS_FIELDS = ("class_id", "category_id")
 _INSTANCE_FIELDS = ("instance_id", "object_id", "segment_id")
 
 
-def _field(data: Any, name: str) -> np.ndarray | None:
+def _field(data: object, name: str) -> np.ndarray | None:
     try:
         if isinstance(data, dict):
             return np.asarray(data[name]) if name in data else None
@@ -44,7 +44,7 @@ def _field(data: Any, name: str) -> np.ndarray | None:
     return None
 
 
-def _polygon_lengths(face_data: Any, n_faces: int) -> list[np.ndarray] | np.ndarray | None:
+def _polygon_lengths(face_data: object, n_faces: int) -> list[np.ndarray] | np.ndarray | None:
     for name in ("vertex_indices", "vertex_index"):
         idx = _field(face_data, name)
         if idx is None:
@@ -71,7 +71,7 @@ def _triangle_to_polygon(polys: list[np.ndarray] | np.ndarray) -> np.ndarray:
     return np.concatenate([tri, quad, quad, np.repeat(poly, lengths[poly] - 2)]).astype(np.int64)
 
 
-def _ply_triangle_polygons(mesh: trimesh.Trimesh, notes: list[str]) -> tuple[Any, np.ndarray, np.ndarray] | None:
+def _ply_triangle_polygons(mesh: trimesh.Trimesh, notes: list[str]) -> tuple[object, np.ndarray, np.ndarray] | None:
     """(raw PLY face data, padded polygon vertex indices, raw polygon of each triangle), verified on positions."""
     raw = mesh.metadata.get("_ply_raw") if isinstance(mesh.metadata, dict) else None
     data = raw["face"].get("data") if raw and "face" in raw else None
@@ -90,7 +90,7 @@ def _ply_triangle_polygons(mesh: trimesh.Trimesh, notes: list[str]) -> tuple[Any
         )
         return None
     # verify on positions: each triangle's first vertex must be a vertex of its polygon
-    vdata: Any = raw["vertex"].get("data") if "vertex" in raw else None
+    vdata: Any = raw["vertex"].get("data") if "vertex" in raw else None  # trimesh's raw PLY data: untyped
     padded = polys
     try:
         raw_xyz = np.column_stack([np.asarray(vdata[c], dtype=np.float64) for c in "xyz"])

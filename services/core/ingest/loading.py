@@ -37,13 +37,16 @@ import numpy as np
 import trimesh
 
 from services.core.domain.jobspec import UP_AXES, similarity_scale
+from services.core.domain.json_types import JSONObject
 from services.core.ingest.archive import resolve_source
 from services.core.ingest.archive_rules import file_expansion_refusal
 from services.core.ingest.capture.attach import attach_capture, capture_near  # a capture with the scan
+from services.core.ingest.capture.model import Capture
 from services.core.ingest.confine import ConfinedResolver, is_inside
 from services.core.ingest.datasets import DatasetError, DatasetScene, scene_of
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.frame import FrameRequest, resolve_frame
+from services.core.ingest.frame_records import FrameRecord
 from services.core.ingest.gravity import (
     UnitChoice,
     UpEstimate,
@@ -88,15 +91,15 @@ class LoadedSpace:
     warnings: tuple[str, ...] = ()
     up_estimate: UpEstimate | None = None  # how up was found and how sure
     units: UnitChoice | None = None  # the unit scale and why
-    reconstruction: dict[str, Any] | None = None  # point clouds: how they were meshed
+    reconstruction: JSONObject | None = None  # point clouds: how they were meshed
     class_names: dict[int, str] | None = None  # class id -> name, when the file names its classes
-    capture: Any = None  # a posed capture found with the scan (services.core.ingest.capture.Capture), world frame
+    capture: Capture | None = None  # a posed capture found with the scan, world frame
 
-    def frame_record(self) -> dict[str, Any]:
+    def frame_record(self) -> FrameRecord:
         """What was detected about the frame, for job.json and `omnidata plan` (JSON-ready)."""
         scale = self.units.scale if self.units is not None else float(np.cbrt(np.linalg.det(self.source_to_world[:3, :3])))
         est = self.up_estimate or UpEstimate(self.up_source, self.up_method)
-        out: dict[str, Any] = {"up": est.record(scale)}
+        out: FrameRecord = {"up": est.record(scale)}
         if self.units is not None:
             out["units"] = self.units.record()
         if self.reconstruction is not None:
@@ -113,8 +116,8 @@ class LoadedSpace:
         up = rec["up"]
         direction = ", ".join(f"{x:.4g}" for x in up["source_direction"])
         line = f"up [{direction}] ({up['method']}, {up['confidence']} confidence"
-        if up.get("probability") is not None:
-            line += f", {100 * up['probability']:.0f}% sure"
+        if (probability := up.get("probability")) is not None:
+            line += f", {100 * probability:.0f}% sure"
         if up["floor_area_m2"]:
             line += f", floor {up['floor_area_m2']:.3g} m2"
         if up["runner_up_angle_deg"] is not None:
@@ -214,7 +217,7 @@ def load_space(
             shutil.rmtree(tmp, ignore_errors=True)
 
 
-def _load_confined(source: Path, **kwargs: Any) -> Any:
+def _load_confined(source: Path, **kwargs: Any) -> Any:  # trimesh.load's keywords and its untyped result
     """`trimesh.load(source)` whose every named file comes from the mesh's own folder (SpaceError otherwise)."""
     resolver = ConfinedResolver(source)
     try:
@@ -230,7 +233,7 @@ def _load_confined(source: Path, **kwargs: Any) -> Any:
 
 def _read_mesh(
     source: Path, checksum: str, cloud_cache_dir: Path | None
-) -> tuple[trimesh.Trimesh, dict[str, Any] | None]:
+) -> tuple[trimesh.Trimesh, JSONObject | None]:
     """The triangle mesh of a source (sha256 `checksum`), and the reconstruction record when it was a point cloud."""
     name = source.name
     suffix = source.suffix.lower()
@@ -269,7 +272,7 @@ def _dataset_scene(source: Path, frame: FrameRequest) -> tuple[DatasetScene | No
     return scene, replace(frame, up_axis=up_axis, unit_scale=unit_scale)
 
 
-def _check_mesh(source: Path, mesh: trimesh.Trimesh, reconstruction: dict[str, Any] | None) -> None:
+def _check_mesh(source: Path, mesh: trimesh.Trimesh, reconstruction: JSONObject | None) -> None:
     """Refuse an empty mesh, one without faces, non-finite vertices, dangling faces or zero area."""
     name = source.name
     if len(mesh.vertices) == 0:

@@ -9,7 +9,8 @@ user when:
   an incomplete vertex or face, a face that refers to a vertex the file does not have, or a GLB shorter than
   its header's length;
 - a PLY header or an OBJ declares more faces than MAX_FACES (refused before any array is allocated);
-- an OBJ has vertices but no faces (a triangle mesh is needed);
+- an OBJ has vertices but no faces (a triangle mesh is needed), or is big and mostly degenerate faces
+  (`services.core.ingest.degenerate`: sampled, before the full parse);
 - a material library, texture, glTF buffer or image is named by an absolute path or one climbing out of the
   mesh's folder ('..'), or a texture an .mtl names is missing (these give the clearer messages; that no
   file outside the scan's folder is ever read is the confined resolver's guarantee, `services.core.ingest.confine`);
@@ -28,6 +29,7 @@ from pathlib import Path, PurePosixPath
 from urllib.parse import unquote
 
 from services.core.ingest.confine import ReferenceRefused, read_confined
+from services.core.ingest.degenerate import CHECKED_FROM_FACES, FaceSample, degenerate_refusal
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.texture_limits import embedded_refusal, glb_bin_offset
 
@@ -114,10 +116,14 @@ def _check_obj(source: Path, max_faces: int) -> list[str]:
     name = source.name
     vertices = faces = 0
     mtllibs: list[str] = []
+    sample = FaceSample()
     last = ""
     with open(source, encoding="utf-8", errors="replace", newline="") as f:
         for lineno, line in enumerate(f, 1):
             last = line
+            if line.startswith("v "):  # most lines of a big scan: counted without splitting
+                vertices += 1
+                continue
             head, _, rest = line.lstrip().partition(" ")
             if "\t" in head:  # tab-separated statement
                 head, _, rest = line.lstrip().partition("\t")
@@ -127,7 +133,9 @@ def _check_obj(source: Path, max_faces: int) -> list[str]:
                 faces += 1
                 if faces > max_faces:
                     check_face_count(name, faces, max_faces)
-                _check_face_refs(name, lineno, rest, vertices)
+                sample.add(_check_face_refs(name, lineno, rest, vertices))
+                if faces == CHECKED_FROM_FACES:  # enough to judge: refused here, before the rest is read
+                    degenerate_refusal(source, sample)
             elif head == "mtllib" and rest.strip():
                 mtllibs.append(rest.strip())
     if last and not last.endswith("\n") and not _complete_obj_line(last):
@@ -142,7 +150,9 @@ def _check_obj(source: Path, max_faces: int) -> list[str]:
     return warnings
 
 
-def _check_face_refs(name: str, lineno: int, rest: str, vertices: int) -> None:
+def _check_face_refs(name: str, lineno: int, rest: str, vertices: int) -> tuple[int, ...]:
+    """The face's vertex indices (1-based, negative ones resolved); SpaceError for one that does not exist."""
+    resolved = []
     for tok in rest.split():
         head = tok.split("/", 1)[0]
         if not head.lstrip("-").isdigit():
@@ -153,6 +163,8 @@ def _check_face_refs(name: str, lineno: int, rest: str, vertices: int) -> None:
                 f"{name}: face on line {lineno} refers to vertex {i} but only {vertices:,} vertices come before it: "
                 "the file is truncated or corrupt"
             )
+        resolved.append(i if i > 0 else vertices + 1 + i)
+    return tuple(resolved)
 
 
 def _complete_obj_line(line: str) -> bool:

@@ -16,14 +16,15 @@ import hashlib
 import json
 import os
 import tempfile
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
+from services.core.domain.json_types import JSONObject
 from services.core.ingest.confine import ConfinedResolver
 
 CLOUD_SUFFIXES = (".xyz", ".pts")
@@ -86,7 +87,7 @@ def read_text_cloud(path: Path) -> Cloud:
     return Cloud(pts, normals, colors)
 
 
-def cloud_from_ply(mesh: Any) -> Cloud:
+def cloud_from_ply(mesh: trimesh.PointCloud | trimesh.Trimesh) -> Cloud:
     """The points of a faceless PLY as trimesh loaded them (a PointCloud, or an empty-faced Trimesh)."""
     pts = np.asarray(mesh.vertices, dtype=np.float64)
     colors = None
@@ -137,14 +138,14 @@ def median_spacing(points: np.ndarray) -> float:
     return float(np.median(d[:, 1]))
 
 
-def reconstruct(cloud: Cloud, name: str) -> tuple[trimesh.Trimesh, dict[str, Any]]:
+def reconstruct(cloud: Cloud, name: str) -> tuple[trimesh.Trimesh, JSONObject]:
     """Mesh a cloud (see the module docstring); returns the mesh (source frame) and its job.json record."""
     import pymeshlab
 
     _check(cloud, name)
     pts = cloud.points
     ms = pymeshlab.MeshSet()
-    kwargs: dict[str, Any] = {"vertex_matrix": pts}
+    kwargs: dict[str, np.ndarray] = {"vertex_matrix": pts}
     if cloud.normals is not None:
         kwargs["v_normals_matrix"] = cloud.normals
     ms.add_mesh(pymeshlab.Mesh(**kwargs))
@@ -174,7 +175,7 @@ def reconstruct(cloud: Cloud, name: str) -> tuple[trimesh.Trimesh, dict[str, Any
         _, nearest = cKDTree(pts).query(mesh.vertices)
         rgba = np.column_stack([cloud.colors[nearest], np.full(len(nearest), 255, np.uint8)])
         mesh.visual = trimesh.visual.ColorVisuals(mesh, vertex_colors=rgba)
-    record = {
+    record: JSONObject = {
         "method": "screened_poisson (pymeshlab), trimmed by density and distance to the points",
         "parameters": {"depth": depth, "samples_per_node": POISSON_SAMPLES_PER_NODE, "trim_density_quantile": TRIM_DENSITY_QUANTILE,
                        "trim_spacings": TRIM_SPACINGS, "median_spacing": spacing,
@@ -193,8 +194,8 @@ def default_cache_dir() -> Path:
     return Path(os.environ.get("OMNIDATA_DATA_DIR") or Path.home() / ".omnidata").expanduser() / "meshed"
 
 
-def mesh_cloud_cached(cloud_loader: Any, checksum: str, name: str,
-                      cache_dir: Path | None = None) -> tuple[trimesh.Trimesh, dict[str, Any]]:
+def mesh_cloud_cached(cloud_loader: Callable[[], Cloud], checksum: str, name: str,
+                      cache_dir: Path | None = None) -> tuple[trimesh.Trimesh, JSONObject]:
     """The mesh of a cloud, reconstructed once per (checksum, method version) and then read from the cache.
 
     `cloud_loader()` returns the Cloud; it is only called on a cache miss.

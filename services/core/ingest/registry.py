@@ -14,13 +14,15 @@ import re
 import shutil
 import tempfile
 import zipfile
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Unpack
 
 from sqlalchemy.orm import Session
 
 from services.core.db.models import Space
+from services.core.domain.jobspec import SpaceFrame
 from services.core.domain.keys import check_name
 from services.core.ingest.archive import resolve_source
 from services.core.ingest.archive_rules import archive_refusal
@@ -140,12 +142,12 @@ def pack_source(source: Path, mesh_file: Path, workdir: Path) -> Path:
     return out
 
 
-def validate_source(source_path: str | Path, **frame: Any) -> LoadedSpace:
+def validate_source(source_path: str | Path, **frame: Unpack[SpaceFrame]) -> LoadedSpace:
     """Load and validate a space without storing it (SpaceError says what is wrong); `frame`: load_space's."""
     return load_space(source_path, **frame)
 
 
-def _frame_name(up_axis: str, up: Any, source_to_world: Any) -> str:
+def _frame_name(up_axis: str, up: Sequence[float] | None, source_to_world: Sequence[Sequence[float]] | None) -> str:
     """What the space row's up_axis column records: the axis name, or how the frame was given."""
     return "matrix" if source_to_world is not None else "vector" if up is not None else up_axis
 
@@ -188,8 +190,8 @@ def register_space(
     key_prefix: str = "spaces",
     up_axis: str = "auto",
     unit_scale: float | str = "auto",
-    up: Any = None,
-    source_to_world: Any = None,
+    up: Sequence[float] | None = None,
+    source_to_world: Sequence[Sequence[float]] | None = None,
     loaded: LoadedSpace | None = None,
     accept_up_guess: bool = True,
 ) -> Space:

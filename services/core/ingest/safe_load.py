@@ -12,10 +12,11 @@ from __future__ import annotations
 import dataclasses
 import multiprocessing
 import signal
+from collections.abc import Sequence
 from multiprocessing.connection import Connection
 from pathlib import Path
-from typing import Any
 
+from services.core.domain.jobspec import SpaceFrame
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.loading import LoadedSpace
 from services.core.temp_dirs import UPLOAD_KINDS, sweep_orphans
@@ -36,8 +37,8 @@ def load_space_limited(
     max_faces: int,
     memory_mb: int,
     timeout_s: float,
-    up: list[float] | None = None,
-    source_to_world: list[list[float]] | None = None,
+    up: Sequence[float] | None = None,
+    source_to_world: Sequence[Sequence[float]] | None = None,
     accept_up_guess: bool = True,
 ) -> LoadedSpace:
     """`load_space(path)` in a child process with limits; SpaceError for an unusable scan or a limit hit.
@@ -48,7 +49,7 @@ def load_space_limited(
     name = Path(path).name
     receiver, sender = _CONTEXT.Pipe(duplex=False)
     limits = {"memory_mb": memory_mb, "cpu_s": max(1, int(timeout_s)), "max_faces": max_faces}
-    frame = {"up_axis": up_axis, "unit_scale": unit_scale, "up": up, "source_to_world": source_to_world,
+    frame: SpaceFrame = {"up_axis": up_axis, "unit_scale": unit_scale, "up": up, "source_to_world": source_to_world,
              "accept_up_guess": accept_up_guess}
     proc = _CONTEXT.Process(
         target=_child, args=(sender, str(path), frame, limits), name="omnidata-safe-load", daemon=True
@@ -96,7 +97,7 @@ def _mapped_bytes() -> int:
     return 0
 
 
-def _child(sender: Connection, path: str, frame: dict[str, Any], limits: dict[str, Any]) -> None:
+def _child(sender: Connection, path: str, frame: SpaceFrame, limits: dict[str, int]) -> None:
     """Child side: set the limits, load and check the space, send ("ok", slim LoadedSpace) or the error."""
     import resource
 

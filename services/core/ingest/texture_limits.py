@@ -14,8 +14,9 @@ import binascii
 import io
 import struct
 import warnings
+from collections.abc import Mapping
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, BinaryIO
 
 from PIL import Image, UnidentifiedImageError
 
@@ -59,7 +60,7 @@ def texture_refusal(name: str, data: bytes) -> str | None:
 class _Window(io.RawIOBase):
     """A read-only view of `length` bytes of a file from `offset`: Pillow reads the header, nothing more."""
 
-    def __init__(self, f: Any, offset: int, length: int):
+    def __init__(self, f: BinaryIO, offset: int, length: int):
         self._f, self._start, self._end, self._pos = f, offset, offset + length, offset
 
     def readable(self) -> bool:
@@ -68,7 +69,7 @@ class _Window(io.RawIOBase):
     def seekable(self) -> bool:
         return True
 
-    def readinto(self, b: Any) -> int:
+    def readinto(self, b: Any) -> int:  # io's writable buffer protocol (typeshed: no len or slicing)
         n = max(0, min(len(b), self._end - self._pos))
         self._f.seek(self._pos)
         data = self._f.read(n)
@@ -85,7 +86,7 @@ class _Window(io.RawIOBase):
         return self._pos - self._start
 
 
-def embedded_refusal(source: Path, doc: dict[str, Any], bin_offset: int | None) -> str | None:
+def embedded_refusal(source: Path, doc: Mapping[str, object], bin_offset: int | None) -> str | None:
     """For a glTF document (`bin_offset`: where a GLB's binary chunk starts): refusal of an embedded image."""
     images, views = doc.get("images"), doc.get("bufferViews")
     if not isinstance(images, list):
@@ -131,7 +132,7 @@ _MATERIAL_IMAGES = ("image", "baseColorTexture", "normalTexture", "emissiveTextu
                     "occlusionTexture")
 
 
-def loaded_texture_refusal(loaded: Any) -> str | None:
+def loaded_texture_refusal(loaded: object) -> str | None:
     """After trimesh has loaded a scan: the refusal for any material image over the limit (sizes from headers)."""
     geometries = loaded.geometry.values() if hasattr(loaded, "geometry") else [loaded]
     for geometry in geometries:

@@ -24,11 +24,11 @@ it would make the scan (storey and extent in metres) and `--unit-scale`.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 import trimesh
 
+from services.core.ingest.frame_records import UnitCandidateRecord
 from services.core.ingest.gravity import UnitChoice, choose_unit_scale
 
 UNIT_SCALES: tuple[tuple[str, float], ...] = (
@@ -62,7 +62,7 @@ class UnitCandidate:
         """The sum of the evidence terms."""
         return float(sum(self.terms.values()))
 
-    def record(self) -> dict[str, Any]:
+    def record(self) -> UnitCandidateRecord:
         """JSON-ready: unit, scale, storey and extent in metres, score and terms."""
         return {"unit": self.unit, "unit_scale": self.scale, "storey_height_m": round(self.storey_m, 3),
                 "extent_m": [round(x, 2) for x in self.extent_m], "score": round(self.score, 3),
@@ -161,7 +161,7 @@ def decide_units(m: ScanMeasures, disabled: tuple[str, ...] = ()) -> UnitDecisio
     return UnitDecision(tuple(sorted(cands, key=lambda c: (-c.score, order[c.unit]))))
 
 
-def units_ambiguity_line(name: str, candidates: list[dict[str, Any]]) -> str:
+def units_ambiguity_line(name: str, candidates: list[UnitCandidateRecord]) -> str:
     """One line naming each candidate unit, what it makes the scan, and the flag that picks one."""
     words = [f"{c['unit']} (--unit-scale={c['unit_scale']:g}: storey {c['storey_height_m']:.3g} m, "
              f"{' x '.join(f'{x:.3g}' for x in c['extent_m'])} m)" for c in candidates]

@@ -30,9 +30,11 @@ planning does not go ahead on it unless the user accepted guesses.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
+
+from services.core.ingest.frame_records import UpCandidateRecord
 
 DISTINCT_DEG = 30.0  # candidates closer than this level the scan the same way
 # score margin below which the estimate is ambiguous: on the bench corpus (real and synthetic, random
@@ -87,10 +89,10 @@ class ScoredCandidate:
         """The sum of the evidence terms."""
         return float(sum(self.terms.values()))
 
-    def record(self, unit_scale: float | None = None) -> dict[str, Any]:
+    def record(self, unit_scale: float | None = None) -> UpCandidateRecord:
         """JSON-ready: direction, floor area and storey height (metres when `unit_scale` is known), terms."""
         f = self.facts
-        out: dict[str, Any] = {
+        out: UpCandidateRecord = {
             "up": [round(float(x), 6) for x in f.up],
             "score": round(self.score, 3),
             "evidence": {k: round(v, 3) for k, v in self.terms.items()},
@@ -166,7 +168,7 @@ def evidence_terms(f: CandidateFacts, all_facts: list[CandidateFacts], capture_u
     return terms
 
 
-def unit_capture_up(capture_up: Any) -> np.ndarray | None:
+def unit_capture_up(capture_up: ArrayLike | None) -> np.ndarray | None:
     """The mean camera up as a unit vector, or None when absent or degenerate (cameras pointing every way)."""
     if capture_up is None:
         return None
@@ -200,14 +202,14 @@ def decide(all_facts: list[CandidateFacts], capture_up: np.ndarray | None = None
     return UpDecision(ranked, runner, margin, confidence, third)
 
 
-def _candidate_words(rec: dict[str, Any]) -> str:
+def _candidate_words(rec: UpCandidateRecord) -> str:
     up = ",".join(f"{x:.3g}" for x in rec["up"])
     if "floor_area_m2" in rec:
         return f"up {up} (floor {rec['floor_area_m2']:.3g} m2, storey {rec['storey_height_m']:.3g} m)"
     return f"up {up} (floor {rec['floor_area_units2']:.4g} units2, storey {rec['storey_height_units']:.4g} units)"
 
 
-def ambiguity_line(name: str, candidates: list[dict[str, Any]], margin: float | None) -> str:
+def ambiguity_line(name: str, candidates: list[UpCandidateRecord], margin: float | None) -> str:
     """One line naming both candidates (and a third, when recorded; source coordinates) and the flag that picks one."""
     first, second = candidates[0], candidates[1]
     by = "" if margin is None else f" by only {margin:.2f}"

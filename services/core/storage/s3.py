@@ -68,7 +68,7 @@ class S3Store:
         endpoint_url: str | None = None,
         region: str = "us-east-1",
         credentials: tuple[str, str] | None = None,
-        client: Any = None,
+        client: Any = None,  # a boto3 S3 client (boto3 builds its clients at run time: untyped)
     ):
         if not bucket:
             raise ValueError("S3Store needs a bucket name")
@@ -85,7 +85,7 @@ class S3Store:
                 # MinIO/moto endpoints have no per-bucket DNS names
                 s3={"addressing_style": "path" if endpoint_url else "auto"},
             )
-            kwargs: dict[str, Any] = {"endpoint_url": endpoint_url, "config": config}
+            kwargs: dict[str, str | Config | None] = {"endpoint_url": endpoint_url, "config": config}
             if credentials is not None:
                 kwargs["aws_access_key_id"], kwargs["aws_secret_access_key"] = credentials
             session = _boto_session()
@@ -169,7 +169,7 @@ class S3Store:
                 raise
         return dest
 
-    def _head(self, key: str) -> dict[str, Any] | None:
+    def _head(self, key: str) -> dict[str, Any] | None:  # boto3's head_object reply
         with self._failures("read from"):
             try:
                 head: dict[str, Any] = self.client.head_object(Bucket=self.bucket, Key=self._k(key))

@@ -11,7 +11,6 @@ import dataclasses
 import hashlib
 import time
 import uuid as uuidlib
-from typing import Any
 
 import numpy as np
 
@@ -23,6 +22,7 @@ from services.core.domain.plan import (
     PlannedView,
     PointOfInterest,
     SpacePlan,
+    ValidFractionSummary,
     clip_shortfall,
 )
 from services.core.ingest.capture.model import Capture
@@ -173,7 +173,7 @@ def _keep_photo_textured(space: LoadedSpace, space_name: str, q: MeshQueries, vi
     return views, photo_dropped, shortfall
 
 
-def _valid_fractions(q: MeshQueries, views: ViewArrays, spec: JobSpec) -> tuple[np.ndarray | None, dict[str, Any]]:
+def _valid_fractions(q: MeshQueries, views: ViewArrays, spec: JobSpec) -> tuple[np.ndarray | None, ValidFractionSummary]:
     """(each view's predicted valid fraction when views.min_valid_fraction filters, else None; the summary)."""
     vs = spec.views
     if vs.min_valid_fraction > 0:

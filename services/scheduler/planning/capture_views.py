@@ -16,24 +16,28 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
 from services.core.domain.camera import intrinsics
+from services.core.domain.capture_records import CapturePlanRecord, RefinedCamera
 from services.core.domain.jobspec import JobSpec
 from services.core.domain.plan import PlanError, SpacePlan
-from services.core.ingest.capture.model import Capture
+from services.core.ingest.capture.model import Capture, CaptureFrame
 from services.core.ingest.capture.resample import coverage_fraction, load_photo
 from services.scheduler.planning.alignment import alignment_score, score_summary
 from services.scheduler.planning.points import SampledPoints, visibility_matrix
 from services.scheduler.planning.views import ViewArrays, fraction_summary, obliqueness, valid_fractions
 from services.scheduler.planning.visibility import MeshQueries
 
+if TYPE_CHECKING:  # loading imports the capture readers this module plans with
+    from services.core.ingest.loading import LoadedSpace
+
 FORMATS_LOOKED_FOR = "transforms.json, a COLMAP model, a ScanNet export, 7-Scenes/BundleFusion frames, camera_poses.json"
 
 
-def require_capture(space: Any, space_name: str) -> Capture:
+def require_capture(space: LoadedSpace, space_name: str) -> Capture:
     """The space's capture in the world frame; PlanError saying what is missing otherwise."""
     capture = getattr(space, "capture", None)
     if capture is None:
@@ -45,7 +49,8 @@ def require_capture(space: Any, space_name: str) -> Capture:
     return capture
 
 
-def planning_capture(space: Any, spec: JobSpec, space_name: str, q: MeshQueries) -> tuple[Capture, dict[str, Any] | None]:
+def planning_capture(space: LoadedSpace, spec: JobSpec, space_name: str, q: MeshQueries
+                     ) -> tuple[Capture, RefinedCamera | None]:
     """The capture the plan uses, its colour camera refined when cameras.capture_refine asks (with the record)."""
     capture = require_capture(space, space_name)
     if not (spec.cameras.capture_refine and capture.has_photos):
@@ -74,7 +79,7 @@ def roll_about_axis(world_to_camera: np.ndarray) -> float:
     return float(np.arctan2(R[0] @ y0, R[0] @ x0))
 
 
-def view_fov(spec: JobSpec, frame: Any) -> float:
+def view_fov(spec: JobSpec, frame: CaptureFrame) -> float:
     """Field of view (radians) of an exact capture view of `frame`."""
     chosen = spec.cameras.capture_fov_deg
     if chosen is not None:
@@ -131,7 +136,7 @@ def photo_coverages(capture: Capture, views: ViewArrays) -> np.ndarray:
                                        views.world_to_camera[i]) for i in range(len(views))])
 
 
-def exact_capture_plan(space: Any, spec: JobSpec, space_name: str, q: MeshQueries,
+def exact_capture_plan(space: LoadedSpace, spec: JobSpec, space_name: str, q: MeshQueries,
                        assemble: Callable[..., SpacePlan]) -> SpacePlan:
     """The plan of cameras.mode capture with capture_views exact (see the module docstring)."""
     capture, refined = planning_capture(space, spec, space_name, q)
@@ -176,7 +181,7 @@ def fixated_coverage_keep(capture: Capture, views: ViewArrays, min_coverage: flo
 
 
 def annotate_fixated(plan: SpacePlan, capture: Capture, min_coverage: float, dropped: int,
-                     refined: dict[str, Any] | None = None) -> SpacePlan:
+                     refined: RefinedCamera | None = None) -> SpacePlan:
     """A fixated capture plan with each view's photo coverage and the capture record."""
     planned = []
     for v in plan.views:
@@ -192,15 +197,15 @@ def annotate_fixated(plan: SpacePlan, capture: Capture, min_coverage: float, dro
 
 
 def capture_record(capture: Capture, scores: list[float | None], threshold: float, coverage: list[float],
-                   n_views: int) -> dict[str, Any]:
+                   n_views: int) -> CapturePlanRecord:
     """What job.json and the dashboard show of a capture plan."""
     cov = np.asarray(coverage, dtype=np.float64)
-    return {
+    return cast(CapturePlanRecord, {  # the summary's keys and the plan's (extra_checks: no ** into a TypedDict)
         **capture.summary(),
         "views": n_views,
         "alignment": score_summary(scores, threshold),
         "photo_coverage": {"mean": float(cov.mean()), "min": float(cov.min())} if len(cov) else None,
-    }
+    })
 
 
 TEXTURE_PROBE_PX = 8  # probe rays per side when predicting a photo-textured view's coverage

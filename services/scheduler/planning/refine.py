@@ -9,10 +9,10 @@ Steps halve when no move helps. The record says where it started, where it ended
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
 
 import numpy as np
 
+from services.core.domain.capture_records import RefinedCamera
 from services.core.ingest.capture.calibration import ColourCorrection
 from services.core.ingest.capture.model import Capture
 from services.core.ingest.capture.resample import load_photo
@@ -44,7 +44,7 @@ def _moved(c: ColourCorrection, name: str, delta: float) -> ColourCorrection:
 
 
 def refine_colour_camera(q: MeshQueries, capture: Capture, frames: int = REFINE_FRAMES,
-                         halvings: int = HALVINGS) -> tuple[ColourCorrection, dict[str, Any]]:
+                         halvings: int = HALVINGS) -> tuple[ColourCorrection, RefinedCamera]:
     """The correction that maximises the median alignment score, and the record of the search."""
     picks = sorted({int(i) for i in np.linspace(0, len(capture.frames) - 1, min(frames, len(capture.frames)))})
     photos = [load_photo(str(capture.image_path(capture.frames[i])), capture.frames[i]) for i in picks]
@@ -63,7 +63,7 @@ def refine_colour_camera(q: MeshQueries, capture: Capture, frames: int = REFINE_
                     if s > best_score + 1e-4:
                         best, best_score, improved = cand, s, True
                         break
-    record = {"correction": best.as_dict(), "score_before": start, "score_after": best_score,
+    record: RefinedCamera = {"correction": best.as_dict(), "score_before": start, "score_after": best_score,
               "frames_scored": len(picks), "evaluations": evaluations,
               "refined": "focal length scale, principal point, colour camera offset in x and y (shared by all frames)"}
     return best, record

@@ -61,7 +61,6 @@ For each point:
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 from scipy import sparse
@@ -70,6 +69,7 @@ from scipy.spatial import cKDTree
 from scipy.special import erf
 
 from services.core.domain.jobspec import ViewSpec
+from services.core.domain.plan import ClipNoteRecord
 from services.scheduler.planning.loops import object_orbits, point_arcs, room_loops
 from services.scheduler.planning.paths import (
     ROLL_SHARE,
@@ -117,7 +117,7 @@ class ClipNote:
     planned: int
     reasons: dict[str, int] = field(default_factory=dict)
 
-    def as_dict(self, point_idx: int | None) -> dict[str, Any]:
+    def as_dict(self, point_idx: int | None) -> ClipNoteRecord:
         """The JSON form, naming the point by its index in the plan (None: not in the plan)."""
         return {
             "point_idx": point_idx, "outcome": "dropped" if self.frames == 0 or point_idx is None else "shortened",

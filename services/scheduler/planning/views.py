@@ -21,13 +21,13 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 from scipy.special import ndtr, ndtri
 
 from services.core.domain.camera import intrinsics
 from services.core.domain.jobspec import ViewSpec
+from services.core.domain.plan import ValidFractionSummary
 from services.scheduler.planning.visibility import MeshQueries
 
 
@@ -189,7 +189,7 @@ def valid_fractions(q: MeshQueries, views: ViewArrays, max_depth_m: float, size:
     return valid.reshape(n, size * size).mean(axis=1)
 
 
-def fraction_summary(fractions: np.ndarray, threshold: float) -> dict[str, Any]:
+def fraction_summary(fractions: np.ndarray, threshold: float) -> ValidFractionSummary:
     """The distribution of predicted valid fractions (job.json): quantiles, and how many fall below `threshold`."""
     if not len(fractions):
         return {"views": 0, "threshold": threshold, "dropped": 0}

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import hashlib
 import math
-from typing import Any
+from typing import TypedDict
 
 import numpy as np
 
@@ -40,15 +40,51 @@ def view_generator(ctx: ViewContext) -> tuple[np.random.Generator, str]:
     return np.random.default_rng(seed), key
 
 
+class Refocus(TypedDict):
+    focus_quantile: float
+    focus_distance_m: float
+    f_number: float
+    focal_length_mm: float
+    sensor_width_mm: float
+    max_coc_px: float
+
+
+class Fog(TypedDict):
+    beta_per_m: float
+    airlight: float
+
+
+class MotionBlur(TypedDict):
+    translation_m: list[float]
+    frame: str
+    max_samples: int
+
+
+class Flash(TypedDict):
+    ambient: float
+    power_m2: float
+
+
+class AugmentParams(TypedDict):
+    """The augment_params JSON of a view: what each augmentation cue drew, and what seeded the draw."""
+
+    version: int
+    seeded_by: str
+    rgb_refocus: Refocus
+    rgb_fog: Fog
+    rgb_motion_blur: MotionBlur
+    rgb_flash: Flash
+
+
 def focal_px(ctx: ViewContext) -> float:
     """Focal length in pixels of the square view: (W / 2) / tan(fov / 2)."""
     return 0.5 * ctx.resolution / math.tan(0.5 * ctx.geometry.fov)
 
 
-def draw(ctx: ViewContext) -> dict[str, Any]:
+def draw(ctx: ViewContext) -> AugmentParams:
     """The view's augmentation parameters (JSON-ready), memoised per view."""
 
-    def compute() -> dict[str, Any]:
+    def compute() -> AugmentParams:
         spec = ctx.params.augment
         rng, key = view_generator(ctx)
         quantile = spec.refocus_focus_quantile.sample(rng)
@@ -78,7 +114,7 @@ def draw(ctx: ViewContext) -> dict[str, Any]:
 
 
 @register("augment_params")
-def augment_params(ctx: ViewContext) -> dict[str, Any]:
+def augment_params(ctx: ViewContext) -> AugmentParams:
     """JSON: the parameters every augmentation cue of this view used, and what seeded their draw."""
     return draw(ctx)
 

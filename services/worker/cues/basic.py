@@ -4,6 +4,7 @@ fragments, and the internal `passes` cue (encodings from the cue catalog; units 
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 from services.core.domain.cues import CURVATURE_FLAT, NORMAL_BACKGROUND
 from services.worker.context import ViewContext
@@ -37,9 +38,28 @@ def rgb(ctx: ViewContext) -> np.ndarray:
 @register("normal", passes={"normal"})
 def normal(ctx: ViewContext) -> np.ndarray:
     """uint8 H x W x 3: 255*(0.5-0.5x, 0.5+0.5y, 0.5+0.5z) of the camera-space normal; 128 where nothing is seen."""
-    n = normal_cam(ctx)
-    px = np.rint(255.0 * (0.5 + 0.5 * n * np.array([-1.0, 1.0, 1.0], dtype=np.float32)))
-    return np.where(hit(ctx)[..., None], np.clip(px, 0, 255), NORMAL_BACKGROUND).astype(np.uint8)
+    return _normal_pixels(normal_cam(ctx), hit(ctx))
+
+
+@njit(cache=True, nogil=True)
+def _normal_pixels(n: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """rint(255 (0.5 + 0.5 n (-1, 1, 1))) clipped to 0..255 where seen, NORMAL_BACKGROUND elsewhere: the float32
+    operations of the numpy expression it replaced, in its order, in one pass."""
+    h, w, _ = n.shape
+    half, full = np.float32(0.5), np.float32(255.0)
+    out = np.empty((h, w, 3), np.uint8)
+    for y in range(h):
+        for x in range(w):
+            for c in range(3):
+                if not seen[y, x]:
+                    out[y, x, c] = NORMAL_BACKGROUND
+                    continue
+                v = half * n[y, x, c]
+                if c == 0:
+                    v = -v
+                px = np.rint(full * (half + v))
+                out[y, x, c] = np.uint8(min(max(px, np.float32(0.0)), np.float32(255.0)))
+    return out
 
 
 @register("depth_zbuffer")
@@ -90,10 +110,26 @@ def principal_curvature(ctx: ViewContext) -> np.ndarray:
     k = ctx.passes.curvature
     if k is None:
         raise RuntimeError("principal_curvature needs a pass set rendered with curvature (render pass 'curvature')")
-    kmax = 1.0 / ctx.params.curvature_clip_m
-    px = np.rint((np.clip(np.nan_to_num(k), -kmax, kmax) / kmax + 1.0) * CURVATURE_FLAT)
-    out = np.zeros(k.shape[:2] + (3,), dtype=np.uint8)
-    out[..., :2] = np.where(hit(ctx)[..., None], px, CURVATURE_BACKGROUND)
+    return _curvature_pixels(k, hit(ctx), np.float32(1.0 / ctx.params.curvature_clip_m))
+
+
+@njit(cache=True, nogil=True)
+def _curvature_pixels(k: np.ndarray, seen: np.ndarray, kmax: np.float32) -> np.ndarray:
+    """rint((clip(nan_to_num(k), -kmax, kmax) / kmax + 1) * CURVATURE_FLAT) in R, G where seen, 0 elsewhere and in
+    B: the float32 operations of the numpy expression it replaced, in its order, in one pass."""
+    h, w, _ = k.shape
+    out = np.zeros((h, w, 3), np.uint8)
+    big = np.float32(np.finfo(np.float32).max)
+    for y in range(h):
+        for x in range(w):
+            if not seen[y, x]:
+                out[y, x, 0] = out[y, x, 1] = CURVATURE_BACKGROUND
+                continue
+            for c in range(2):
+                v = k[y, x, c]
+                v = np.float32(0.0) if np.isnan(v) else min(max(v, -big), big)  # nan_to_num
+                v = min(max(v, -kmax), kmax)
+                out[y, x, c] = np.uint8(np.rint((v / kmax + np.float32(1.0)) * np.float32(CURVATURE_FLAT)))
     return out
 
 

@@ -26,10 +26,18 @@ from collections.abc import Callable
 
 import numpy as np
 from numba import njit
-from scipy.ndimage import gaussian_filter, sobel, uniform_filter
+from scipy.ndimage import gaussian_filter, uniform_filter
 
 from services.worker.context import ViewContext
-from services.worker.cues.common import depth_m, gaussian_blur, grey, ray_dirs_cam, to_uint16_scaled, valid
+from services.worker.cues.common import (
+    depth_m,
+    gaussian_blur,
+    grey,
+    ray_dirs_cam,
+    sobel_xy,
+    to_uint16_scaled,
+    valid,
+)
 from services.worker.cues.registry import register
 
 KP3D_SCALES_PX = (1, 2, 4, 8, 16, 32, 64)
@@ -291,7 +299,7 @@ def narf_interest(ctx: ViewContext) -> np.ndarray:
         blend(change, int(ki), wn.blurred(KP3D_SCALES_PX[ki], _surface_change))
     change[border] = 1.0
     change[~v] = 0.0
-    gx, gy = sobel(change, axis=1, mode="nearest"), sobel(change, axis=0, mode="nearest")
+    gx, gy = sobel_xy(change)
     tensor = _Pyramid(np.stack([gx * gx, gy * gy, gx * gy]))
     iso = np.zeros(v.shape, dtype=np.float32)
     for ki in used:

@@ -6,24 +6,26 @@ A context may carry a ready `point_info` dict (e.g. read back from the database)
 from __future__ import annotations
 
 import weakref
-from typing import Any
+from collections.abc import Mapping
 
 from services.core.domain import plan_cues
+from services.core.domain.plan import SpacePlan
+from services.core.domain.plan_cues import Nonfixated, VanishingPoints
 from services.worker.context import ViewContext
 from services.worker.cues.registry import cue_value, register
 
 
-def _need_plan(ctx: ViewContext, cue: str) -> Any:
+def _need_plan(ctx: ViewContext, cue: str) -> SpacePlan:
     if ctx.plan is None:
         raise RuntimeError(f"cue {cue!r} is made from the plan, and this view context has no plan")
     return ctx.plan
 
 
 @register("point_info")
-def point_info(ctx: ViewContext) -> dict:
+def point_info(ctx: ViewContext) -> Mapping[str, object]:
     """Omnidata point_info keys plus K, world_to_camera and conventions (services.core.domain.plan_cues.point_info)."""
 
-    def compute() -> dict:
+    def compute() -> Mapping[str, object]:
         if ctx.point_info_override is not None:
             return dict(ctx.point_info_override)
         return plan_cues.point_info(_need_plan(ctx, "point_info"), ctx.view)
@@ -32,12 +34,12 @@ def point_info(ctx: ViewContext) -> dict:
 
 
 # nonfixated JSON per (plan, point): every view of a point has the same file, and on a room it is megabytes.
-_NONFIXATED: weakref.WeakKeyDictionary[Any, dict[int, dict]] = weakref.WeakKeyDictionary()
+_NONFIXATED: weakref.WeakKeyDictionary[SpacePlan, dict[int, Nonfixated]] = weakref.WeakKeyDictionary()
 NONFIXATED_POINTS_KEPT = 8
 
 
 @register("nonfixated")
-def nonfixated(ctx: ViewContext) -> dict:
+def nonfixated(ctx: ViewContext) -> Nonfixated:
     """Per point: pixel positions of the other points visible in each of its views (one dict per point, shared)."""
     plan = _need_plan(ctx, "nonfixated")
     point = int(ctx.view.point_idx)
@@ -50,6 +52,6 @@ def nonfixated(ctx: ViewContext) -> dict:
 
 
 @register("vanishing_points")
-def vanishing_points(ctx: ViewContext) -> dict:
+def vanishing_points(ctx: ViewContext) -> VanishingPoints:
     """Image-space and Gaussian-sphere vanishing points of the world axes, from point_info."""
     return plan_cues.vanishing_points(cue_value(ctx, "point_info"))

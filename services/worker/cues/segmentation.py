@@ -198,6 +198,36 @@ def _relabel(labels: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return flat.reshape(labels.shape)
 
 
+@njit(cache=True, nogil=True)
+def _uniform_in_mask(features: np.ndarray, mask: np.ndarray) -> bool:
+    """Every pixel inside mask has the same feature vector (True when mask is empty); stops at the first other."""
+    h, w, c = features.shape
+    first_y, first_x = -1, -1
+    for y in range(h):
+        for x in range(w):
+            if not mask[y, x]:
+                continue
+            if first_y < 0:
+                first_y, first_x = y, x
+                continue
+            for k in range(c):
+                if features[y, x, k] != features[first_y, first_x, k]:
+                    return False
+    return True
+
+
+@njit(cache=True, nogil=True)
+def _gather(features: np.ndarray, iy: np.ndarray, ix: np.ndarray) -> np.ndarray:
+    """features[iy, ix] (H x W x C) as one compiled pass."""
+    h, w, c = features.shape
+    out = np.empty_like(features)
+    for y in range(h):
+        for x in range(w):
+            for k in range(c):
+                out[y, x, k] = features[iy[y, x], ix[y, x], k]
+    return out
+
+
 def nearest_in_mask(ctx: ViewContext, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Row and column of the nearest mask pixel for every pixel; memoised per mask (both segmentations of a view
     usually share theirs: surface seen = valid depth)."""
@@ -213,8 +243,7 @@ def segment(ctx: ViewContext, features: np.ndarray, mask: np.ndarray, *, sigma: 
             boundary: np.ndarray | None = None) -> np.ndarray:
     """Felzenszwalb + normalized cuts on an H x W x C feature image in ~[0, 1]; uint16 labels, 0 off mask."""
     p = ctx.params
-    seen = features[mask] if not mask.all() else features.reshape(-1, features.shape[-1])
-    if not len(seen) or np.all(seen == seen[0]):
+    if _uniform_in_mask(features, mask):
         # One colour on the whole surface (an untextured scan's rgb): Felzenszwalb merges every zero-weight edge,
         # so one superpixel and one segment (after the background fill below), without building the graph.
         return _relabel(np.zeros(mask.shape, dtype=np.int64), mask)
@@ -222,7 +251,7 @@ def segment(ctx: ViewContext, features: np.ndarray, mask: np.ndarray, *, sigma: 
         # Background pixels take the nearest surface pixel's features, so silhouettes do not spawn thin
         # mixed-colour regions (Felzenszwalb blurs first) and the background merges into its neighbours.
         iy, ix = nearest_in_mask(ctx, mask)
-        features = features[iy, ix]
+        features = _gather(features, iy, ix)
     superpixel_ids = superpixels(features, p.segment2d_scale, sigma, p.segment2d_min_size, p.segment_max_superpixels)
     W = region_graph(superpixel_ids, features * 255.0, p.segment_ncut_sigma, boundary)
     merged = normalized_cuts(W, p.segment_ncut_thresh, p.segment_num_cuts)[superpixel_ids]

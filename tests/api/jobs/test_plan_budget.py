@@ -9,7 +9,12 @@ from sqlalchemy import func, select
 
 from services.core.db.models import Job
 from services.core.domain.jobspec import JobSpec
-from services.core.domain.plan_budget import PlanOverBudget, check_plan_budget, plan_memory_estimate_mb
+from services.core.domain.plan_budget import (
+    PlanOverBudget,
+    check_plan_budget,
+    plan_memory_estimate_mb,
+    plans_in_chunks,
+)
 from tests.fixtures.api import Api
 
 SPEC_20M = {"cameras": {"mode": "object", "object_count": 100},
@@ -41,12 +46,19 @@ def test_a_spec_within_the_budget_is_accepted(api: Api, space_id: int) -> None:
 
 
 def test_budget_names_memory_or_time_whichever_is_short() -> None:
-    spec = JobSpec.model_validate({"cameras": {"mode": "object", "object_count": 100},
-                                   "points": {"count": 10000, "max_views": 100}})  # 1M views
-    assert spec.views_upper_bound() == 1_000_000
+    whole = JobSpec.model_validate({"cameras": {"mode": "object", "object_count": 100},
+                                    "points": {"count": 10000, "max_views": 100},
+                                    "views": {"nonfixated_pruning": True}})  # 1M views, planned whole
+    assert whole.views_upper_bound() == 1_000_000 and not plans_in_chunks(whole)
     with pytest.raises(PlanOverBudget, match="planning budget of 4,096 MB"):
-        check_plan_budget(spec, memory_mb=4096)
-    check_plan_budget(spec, memory_mb=plan_memory_estimate_mb(spec))  # exactly enough memory: accepted
+        check_plan_budget(whole, memory_mb=4096)
+    check_plan_budget(whole, memory_mb=plan_memory_estimate_mb(whole))  # exactly enough memory: accepted
+    # planned in chunks, the same 1M views need memory for the points and one chunk only
+    spec = JobSpec.model_validate({"cameras": {"mode": "object", "object_count": 100},
+                                   "points": {"count": 10000, "max_views": 100}})
+    assert plans_in_chunks(spec) and plan_memory_estimate_mb(spec) < 1024
+    check_plan_budget(spec, memory_mb=1024)
+    assert plan_memory_estimate_mb(spec, chunk_views=10**6) > plan_memory_estimate_mb(spec)
     with pytest.raises(PlanOverBudget, match="time budget of 60 s"):
         check_plan_budget(spec, memory_mb=10**6, timeout_s=60)
 

@@ -91,3 +91,24 @@ def test_a_glb_whose_json_chunk_runs_past_the_end_is_refused(tmp_path: Path) -> 
     path.write_bytes(bytes(data))
     with pytest.raises(SpaceError, match="truncated or corrupt"):
         check_source(path)
+
+
+def test_a_big_obj_of_degenerate_faces_is_refused_before_the_rest_is_read(tmp_path: Path) -> None:
+    from tests.fixtures.hostile_corpus import varied_degenerate_obj
+
+    path = tmp_path / "line.obj"
+    # after the first 100k faces, a face naming a vertex that does not exist: never reached
+    path.write_bytes(varied_degenerate_obj(150_000, collinear=True) + b"f 1 2 999999999\n")
+    with pytest.raises(SpaceError, match="sampled faces .* are degenerate"):
+        check_source(path)
+
+
+def test_a_big_obj_of_good_faces_is_not_taken_for_degenerate(tmp_path: Path) -> None:
+    side = 300  # a 300 x 300 grid: 178,802 triangles, none degenerate
+    verts = "".join(f"v {x} {y} {(x * y) % 7 * 0.01}\n" for y in range(side) for x in range(side))
+    faces = "".join(f"f {y * side + x + 1} {y * side + x + 2} {(y + 1) * side + x + 1}\n"
+                    f"f {y * side + x + 2} {(y + 1) * side + x + 2} {(y + 1) * side + x + 1}\n"
+                    for y in range(side - 1) for x in range(side - 1))
+    path = tmp_path / "grid.obj"
+    path.write_text(verts + faces)
+    assert check_source(path) == []

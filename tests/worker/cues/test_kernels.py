@@ -5,11 +5,19 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from services.core.domain.cues import CURVATURE_FLAT, NORMAL_BACKGROUND
 from services.worker.context import ViewContext
-from services.worker.cues.common import gaussian_blur
+from services.worker.cues.basic import _curvature_pixels, _normal_pixels
+from services.worker.cues.common import gaussian_blur, sobel_xy
 from services.worker.cues.keypoints import _blur, _double, doh_response
 from services.worker.cues.registry import cue_value
-from services.worker.cues.segmentation import _relabel, normalized_cuts, region_graph
+from services.worker.cues.segmentation import (
+    _relabel,
+    _uniform_in_mask,
+    normalized_cuts,
+    region_graph,
+    segment_unsup2d,
+)
 from tests.fixtures import reference_segmentation
 from tests.fixtures.raycast import cube_scene, raycast_passes
 
@@ -160,3 +168,54 @@ def test_box_blur_is_scipys_uniform_filter_bit_for_bit(radius) -> None:
             old = uniform_filter(old, (1,) * (x.ndim - 2) + (size, size), mode="constant")
         new = _blur(x, radius)
         assert new.dtype == np.float32 and new.shape == x.shape and np.array_equal(new, old), shape
+
+
+def test_normal_pixels_are_the_numpy_expressions_bit_for_bit() -> None:
+    rng = np.random.default_rng(5)
+    n = rng.uniform(-1, 1, (64, 64, 3)).astype(np.float32)
+    n[0] = ((np.arange(64, dtype=np.float32)[:, None] + 0.5) / 255 * 2 - 1)  # at the rounding boundaries
+    n[1, :3] = [[1, 1, 1], [-1, -1, -1], [0, 0, 0]]
+    seen = rng.random((64, 64)) > 0.1
+    px = np.rint(255.0 * (0.5 + 0.5 * n * np.array([-1.0, 1.0, 1.0], dtype=np.float32)))
+    old = np.where(seen[..., None], np.clip(px, 0, 255), NORMAL_BACKGROUND).astype(np.uint8)
+    assert np.array_equal(_normal_pixels(n, seen), old)
+
+
+def test_curvature_pixels_are_the_numpy_expressions_bit_for_bit() -> None:
+    rng = np.random.default_rng(1)
+    k = rng.normal(0, 40, (50, 50, 2)).astype(np.float32)
+    k[0, 0], k[0, 1, 0], k[0, 2, 1] = np.nan, np.inf, -np.inf
+    k[1, :, 0] = np.linspace(-40, 40, 50)  # across the clip limits and the rounding steps
+    seen = rng.random((50, 50)) > 0.1
+    kmax = 1.0 / 0.03
+    px = np.rint((np.clip(np.nan_to_num(k), -kmax, kmax) / kmax + 1.0) * CURVATURE_FLAT)
+    old = np.zeros((50, 50, 3), dtype=np.uint8)
+    old[..., :2] = np.where(seen[..., None], px, 0)
+    assert np.array_equal(_curvature_pixels(k, seen, np.float32(kmax)), old)
+
+
+def test_one_colour_surface_takes_the_shortcut_to_the_labels_felzenszwalb_gives() -> None:
+    mesh, g = cube_scene()
+    passes = raycast_passes(mesh, g, grey=128)  # one colour on every face
+    ctx = ViewContext(g, passes=passes)
+    assert _uniform_in_mask(passes.rgb.astype(np.float32), passes.hit)
+    new = segment_unsup2d(ctx)
+    old = reference_segmentation.segment_unsup2d(ViewContext(g, passes=passes))  # skimage + dense cuts
+    assert np.array_equal(new, old) and np.array_equal(new, passes.hit.astype(np.uint16))
+    rgb = passes.rgb.copy()
+    rgb[passes.hit.nonzero()[0][-1], passes.hit.nonzero()[1][-1]] = 7  # one pixel differs: no shortcut
+    assert not _uniform_in_mask(rgb.astype(np.float32), passes.hit)
+    assert _uniform_in_mask(rgb.astype(np.float32), np.zeros_like(passes.hit))
+
+
+def test_sobel_is_scipys_bit_for_bit() -> None:
+    from scipy.ndimage import sobel
+
+    rng = np.random.default_rng(9)
+    for shape, scale in (((64, 48), 1.0), ((1, 1), 1.0), ((1, 7), 300.0), ((6, 1), 1e-3), ((33, 20), 5.0)):
+        img = ((rng.random(shape) - 0.5) * scale).astype(np.float32)
+        img.flat[0] = 0.0
+        gx, gy = sobel_xy(img)
+        for new, axis in ((gx, 1), (gy, 0)):
+            old = sobel(img, axis=axis, mode="nearest")
+            assert new.dtype == np.float32 and np.array_equal(new.view(np.uint32), old.view(np.uint32)), (shape, axis)

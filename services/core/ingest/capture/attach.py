@@ -9,12 +9,15 @@ from __future__ import annotations
 import dataclasses
 import logging
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from services.core.ingest.capture.detect import find_capture
 from services.core.ingest.capture.model import Capture
+
+if TYPE_CHECKING:  # loading.py imports this module
+    from services.core.ingest.loading import LoadedSpace
 
 log = logging.getLogger(__name__)
 
@@ -36,7 +39,7 @@ def capture_near(given: Path) -> Capture | None:
         return None
 
 
-def attach_capture(loaded: Any, capture: Capture | None) -> Any:
+def attach_capture(loaded: LoadedSpace, capture: Capture | None) -> LoadedSpace:
     """`loaded` (a LoadedSpace) with `capture` (source frame) moved into its world frame, when there is one."""
     if capture is None:
         return loaded

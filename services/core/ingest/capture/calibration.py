@@ -10,10 +10,10 @@ shift move the image alike.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Any
 
 import numpy as np
 
+from services.core.domain.capture_records import ColourCorrectionRecord
 from services.core.ingest.capture.model import Capture, CaptureFrame
 
 
@@ -26,12 +26,12 @@ class ColourCorrection:
     dcy: float = 0.0
     offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self) -> ColourCorrectionRecord:
         """JSON-ready (the plan's record, which the workers apply again)."""
         return {"focal_scale": self.focal_scale, "dcx": self.dcx, "dcy": self.dcy, "offset_m": list(self.offset_m)}
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> ColourCorrection:
+    def from_dict(cls, d: ColourCorrectionRecord) -> ColourCorrection:
         """Inverse of as_dict."""
         return cls(float(d["focal_scale"]), float(d["dcx"]), float(d["dcy"]),
                    tuple(float(x) for x in d["offset_m"]))  # type: ignore[arg-type]

@@ -6,19 +6,18 @@ it is a capture of poses only: views at those cameras take RGB from the mesh.
 
 from __future__ import annotations
 
-import json
 import math
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from services.core.domain.camera import CV_TO_BLENDER, quaternion_wxyz_to_rotation
-from services.core.ingest.capture.checks import FrameCollector, read_text
+from services.core.ingest.capture.checks import FrameCollector, read_capture_json
 from services.core.ingest.capture.model import Capture
 
 
-def _pose(entry: dict[str, Any]) -> np.ndarray | None:
+def _pose(entry: Mapping[str, object]) -> np.ndarray | None:
     loc = entry.get("location")
     q = entry.get("quaternion", entry.get("rotation_quaternion"))
     try:
@@ -39,10 +38,9 @@ def _pose(entry: dict[str, Any]) -> np.ndarray | None:
 def read_camera_poses(root: Path, path: Path) -> Capture:
     """The cameras of one camera_poses.json (see the module docstring)."""
     col = FrameCollector(root)
-    try:
-        doc = json.loads(read_text(path, root))
-    except (OSError, ValueError) as e:
-        return Capture("camera_poses", root, (), (f"{path.name}: not readable JSON ({e})",))
+    doc, unreadable = read_capture_json(root, path, "camera_poses")
+    if unreadable is not None:
+        return unreadable
     entries = doc.get("cameras", doc.get("poses")) if isinstance(doc, dict) else doc
     if not isinstance(entries, list):
         return Capture("camera_poses", root, (), (f"{path.name}: expected a list of cameras",))

@@ -6,15 +6,16 @@ read outside it (absolute paths, '..', links leading out), so no capture makes u
 
 from __future__ import annotations
 
+import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
-from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 from PIL import Image, UnidentifiedImageError
 
-from services.core.ingest.capture.model import CaptureFrame
+from services.core.ingest.capture.model import Capture, CaptureFrame
 
 ROTATION_TOLERANCE = 1e-3  # |R^T R - I| and |det R - 1| beyond this: not a rotation (re-orthonormalised below it)
 MAX_FRAMES = 100_000
@@ -41,7 +42,15 @@ def read_text(path: Path, root: Path) -> str:
     return path.read_text(errors="replace")
 
 
-def rigid_pose(matrix: Any) -> tuple[np.ndarray | None, str | None]:
+def read_capture_json(root: Path, path: Path, fmt: str) -> tuple[object, Capture | None]:
+    """(the parsed JSON of a capture file, None), or (None, an empty `fmt` capture naming why it is unreadable)."""
+    try:
+        return json.loads(read_text(path, root)), None
+    except (OSError, ValueError) as e:
+        return None, Capture(fmt, root, (), (f"{path.name}: not readable JSON ({e})",))
+
+
+def rigid_pose(matrix: ArrayLike) -> tuple[np.ndarray | None, str | None]:
     """(4x4 camera_to_world with an exact rotation, None) or (None, what is wrong with it)."""
     try:
         m = np.asarray(matrix, dtype=np.float64)
@@ -88,7 +97,7 @@ class FrameCollector:
         """Record a problem (the frame it names is skipped)."""
         self.problems.append(message)
 
-    def add(self, name: str, image: str | None, pose: Any, *, K: Any = None, size: tuple[int, int] | None = None,
+    def add(self, name: str, image: str | None, pose: ArrayLike, *, K: ArrayLike | None = None, size: tuple[int, int] | None = None,
             distortion: str = "none", params: tuple[float, ...] = ()) -> None:
         """Check one frame and keep it when it is good. `size`: the (width, height) the camera says; None reads it
         from the image header."""
@@ -129,7 +138,7 @@ class FrameCollector:
         width, height = size if size is not None else (None, None)
         self.frames.append(CaptureFrame(name, image, width, height, K, distortion, tuple(params), c2w))
 
-    def add_pose_file(self, name: str, image: str, pose_file: Path, *, shown_as: str, K: Any = None,
+    def add_pose_file(self, name: str, image: str, pose_file: Path, *, shown_as: str, K: ArrayLike | None = None,
                       size: tuple[int, int] | None = None) -> None:
         """Add a frame whose pose is a text file of 16 numbers (a row-major 4x4), or record why it is skipped
         (`shown_as`: the pose file as the message names it)."""

@@ -15,10 +15,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
+from services.core.domain.capture_records import CaptureSummary
 from services.core.domain.plan import frozen_array
 
 DISTORTION_PARAMS = {"none": (0, 0), "radial": (1, 2), "opencv": (4, 5), "fisheye": (4, 4)}
@@ -136,12 +136,12 @@ class Capture:
         n = float(np.linalg.norm(mean))
         return mean / n if n >= 0.5 else None
 
-    def summary(self, max_problems: int = 20) -> dict[str, Any]:
+    def summary(self, max_problems: int = 20) -> CaptureSummary:
         """JSON-ready summary for job.json, the API and the dashboard."""
         sizes = sorted({(f.width, f.height) for f in self.frames if f.width is not None})
         focal = [float(f.K[0, 0]) for f in self.frames if f.K is not None]
         models = sorted({f.distortion for f in self.frames})
-        out: dict[str, Any] = {
+        out: CaptureSummary = {
             "format": self.format,
             "frames": len(self.frames),
             "has_photos": self.has_photos,

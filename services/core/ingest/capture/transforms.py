@@ -7,32 +7,31 @@ leave out the extension: .png, then .jpg is tried). Poses are kept as written (a
 
 from __future__ import annotations
 
-import json
 import math
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from services.core.domain.camera import CV_TO_BLENDER
-from services.core.ingest.capture.checks import FrameCollector, inside, read_text
+from services.core.ingest.capture.checks import FrameCollector, inside, read_capture_json
 from services.core.ingest.capture.model import Capture
 
 GL_TO_CV = CV_TO_BLENDER  # diag(1, -1, -1, 1) maps either way
 
 
-def _num(d: dict[str, Any], key: str) -> float | None:
+def _num(d: Mapping[str, object], key: str) -> float | None:
     v = d.get(key)
     return float(v) if isinstance(v, int | float) and not isinstance(v, bool) else None
 
 
-def _camera(shared: dict[str, Any], frame: dict[str, Any]) -> dict[str, Any]:
+def _camera(shared: Mapping[str, object], frame: Mapping[str, object]) -> dict[str, object]:
     keys = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y", "k1", "k2", "k3", "k4", "p1",
             "p2", "camera_model")
     return {k: frame[k] if k in frame else shared.get(k) for k in keys}
 
 
-def _intrinsics(cam: dict[str, Any], size: tuple[int, int] | None) -> tuple[np.ndarray, tuple[int, int] | None] | str:
+def _intrinsics(cam: Mapping[str, object], size: tuple[int, int] | None) -> tuple[np.ndarray, tuple[int, int] | None] | str:
     w, h = _num(cam, "w"), _num(cam, "h")
     given = (int(w), int(h)) if w and h else None
     width, height = given or size or (None, None)
@@ -54,7 +53,7 @@ def _intrinsics(cam: dict[str, Any], size: tuple[int, int] | None) -> tuple[np.n
     return K, given
 
 
-def _distortion(cam: dict[str, Any]) -> tuple[str, tuple[float, ...]] | str:
+def _distortion(cam: Mapping[str, object]) -> tuple[str, tuple[float, ...]] | str:
     model = str(cam.get("camera_model") or "OPENCV").upper()
     k = [_num(cam, n) or 0.0 for n in ("k1", "k2", "k3", "k4", "p1", "p2")]
     if model == "OPENCV_FISHEYE":
@@ -82,12 +81,11 @@ def _image(root: Path, base: str, file_path: str) -> str:
 def read_transforms(root: Path, path: Path) -> Capture:
     """The frames of one transforms.json (see the module docstring)."""
     col = FrameCollector(root)
-    try:
-        doc = json.loads(read_text(path, root))
-    except (OSError, ValueError) as e:
-        return Capture("transforms", root, (), (f"{path.name}: not readable JSON ({e})",))
+    doc, unreadable = read_capture_json(root, path, "transforms")
+    if unreadable is not None:
+        return unreadable
     frames = doc.get("frames") if isinstance(doc, dict) else None
-    if not isinstance(frames, list):
+    if not isinstance(doc, dict) or not isinstance(frames, list):
         return Capture("transforms", root, (), (f"{path.name}: no 'frames' list",))
     base = path.parent.relative_to(root).as_posix()
     base = "" if base == "." else base

@@ -11,13 +11,14 @@ of its vertices carry.
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import trimesh
+from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
 
 from services.core.ingest.labels import majority
@@ -68,16 +69,16 @@ class DatasetScene:
         return None if self.labeller is None else self.labeller(mesh)
 
 
-def read_json(path: Path) -> Any:
+def read_json(path: Path) -> Any:  # json.loads; each reader checks the keys it uses
     try:
         return json.loads(path.read_text())
     except (OSError, ValueError) as e:
         raise DatasetError(f"{path.name}: not readable JSON ({e})") from None
 
 
-def _records(data: Any) -> np.ndarray:
+def _records(data: np.ndarray | Mapping[str, ArrayLike]) -> np.ndarray:
     """A PLY element as a structured array (trimesh gives ASCII files' elements as dicts of columns)."""
-    if not isinstance(data, dict):
+    if not isinstance(data, Mapping):
         return data
     columns = {name: np.asarray(col) for name, col in data.items()}
     columns = {name: col[:, 0] if col.ndim == 2 and col.shape[1] == 1 else col for name, col in columns.items()}

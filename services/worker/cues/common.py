@@ -142,6 +142,7 @@ def to_uint16_scaled(values: np.ndarray, scale: float) -> np.ndarray:
 
 
 GAUSS_NEAREST, GAUSS_REFLECT = 0, 1  # scipy.ndimage modes "nearest" (edge repeated) and "reflect" (half-sample)
+# ("constant", zeros outside, runs as "nearest" on a zero-padded copy)
 
 
 def gaussian_blur(img: np.ndarray, sigma: float, truncate: float = 4.0, mode: str = "nearest") -> np.ndarray:
@@ -152,12 +153,17 @@ def gaussian_blur(img: np.ndarray, sigma: float, truncate: float = 4.0, mode: st
     from scipy.ndimage import gaussian_filter
 
     radius = int(truncate * float(sigma) + 0.5)
-    if img.dtype != np.float32 or img.ndim != 2 or sigma <= 0 or mode not in ("nearest", "reflect") \
+    if img.dtype != np.float32 or img.ndim != 2 or sigma <= 0 or mode not in ("nearest", "reflect", "constant") \
             or (mode == "reflect" and radius >= min(img.shape)):
         return gaussian_filter(img, sigma, mode=mode, truncate=truncate)
     x = np.arange(-radius, radius + 1)
     taps = np.exp(-0.5 / (sigma * sigma) * x**2)  # scipy's _gaussian_kernel1d, order 0
     taps = taps / taps.sum()
+    if mode == "constant":  # zeros outside (cval 0): a zero border as wide as the kernel, then cropped
+        h, w = img.shape
+        padded = np.pad(img, radius)
+        out = _blur_cols(_blur_rows(padded, taps, GAUSS_NEAREST), taps, GAUSS_NEAREST)
+        return np.ascontiguousarray(out[radius:radius + h, radius:radius + w])
     code = GAUSS_NEAREST if mode == "nearest" else GAUSS_REFLECT
     return _blur_cols(_blur_rows(np.ascontiguousarray(img), taps, code), taps, code)
 

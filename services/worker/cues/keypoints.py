@@ -26,7 +26,7 @@ from collections.abc import Callable
 
 import numpy as np
 from numba import njit
-from scipy.ndimage import gaussian_filter, uniform_filter
+from scipy.ndimage import uniform_filter
 
 from services.worker.context import ViewContext
 from services.worker.cues.common import (
@@ -226,7 +226,8 @@ class _Pyramid:
         f = 2**k
         size = max(1, int(radius_px)) | 1
         var = 3 * (size * size - 1) / 12 - (f * f - 1) / 12 - f * f / 8  # less block means and upsampling
-        low = gaussian_filter(self.level(k), (0,) + (np.sqrt(max(var, 1.0)) / f,) * 2, mode="constant")
+        sigma = float(np.sqrt(max(var, 1.0)) / f)
+        low = np.stack([gaussian_blur(plane, sigma, mode="constant") for plane in self.level(k)])
         out = fn(low)
         for _ in range(k):
             out = _double(out)

@@ -140,7 +140,7 @@ def test_doh_response_is_bit_identical_to_the_numpy_version() -> None:
     assert np.array_equal(new, old)
 
 
-@pytest.mark.parametrize("mode", ["nearest", "reflect"])
+@pytest.mark.parametrize("mode", ["nearest", "reflect", "constant"])
 @pytest.mark.parametrize("sigma,truncate", [(0.8, 4.0), (1.0, 4.0), (2.0, 4.0), (1.0, 3.0), (12**0.5, 3.0),
                                             (48**0.5, 3.0)])
 def test_gaussian_blur_is_scipys_gaussian_filter_bit_for_bit(mode, sigma, truncate) -> None:

@@ -35,7 +35,7 @@ def create_job(
 ) -> JobDetail:
     """Create a generation job over your spaces; the scheduler plans and runs it."""
     job = service.create_job(session, owner=tenant, body=body, plan_memory_mb=settings.plan_memory_mb,
-                             plan_timeout_s=settings.plan_timeout_s)
+                             plan_timeout_s=settings.plan_timeout_s, plan_chunk_views=settings.plan_chunk_views)
     response.headers["Location"] = f"/jobs/{job.id}"
     return service.job_detail(session, job, _rates(request))
 

@@ -29,7 +29,7 @@ from services.core.db.models import (
     Space,
 )
 from services.core.domain.errors import Conflict, Invalid
-from services.core.domain.plan_budget import check_plan_budget
+from services.core.domain.plan_budget import DEFAULT_CHUNK_VIEWS, check_plan_budget
 from services.core.ingest.frame import frame_of
 from services.core.storage import ObjectStore
 
@@ -160,9 +160,10 @@ def list_jobs(
 
 def create_job(
     session: Session, *, owner: str, body: JobCreate, plan_memory_mb: int | None = None, plan_timeout_s: float | None = None,
+    plan_chunk_views: int = DEFAULT_CHUNK_VIEWS,
 ) -> Job:
     """Create a pending job over the tenant's spaces; 404 for a space that is not theirs, 422 for a cue it lacks
-    or a plan over the planning budget (`plan_memory_mb`, `plan_timeout_s`)."""
+    or a plan over the planning budget (`plan_memory_mb`, `plan_timeout_s`, planned in `plan_chunk_views`)."""
     found = {
         s.id: s
         for s in session.scalars(select(Space).where(Space.id.in_(body.space_ids), Space.owner == owner)).all()
@@ -172,7 +173,8 @@ def create_job(
         raise not_found("space" if len(missing) == 1 else "spaces", ", ".join(map(str, missing)))
     try:
         if plan_memory_mb is not None:
-            check_plan_budget(body.spec, memory_mb=plan_memory_mb, timeout_s=plan_timeout_s)
+            check_plan_budget(body.spec, memory_mb=plan_memory_mb, timeout_s=plan_timeout_s,
+                              chunk_views=plan_chunk_views)
         job = core_jobs.create_job(session, owner=owner, spec=body.spec, spaces=[found[i] for i in body.space_ids])
     except ValueError as e:
         session.rollback()

@@ -98,11 +98,42 @@ def grey(ctx: ViewContext) -> np.ndarray:
 
 def sobel_magnitude(img: np.ndarray) -> np.ndarray:
     """Sobel gradient magnitude (scipy's unnormalised 3x3 kernels: a unit step gives 4), float32."""
-    from scipy.ndimage import sobel
-
-    gx = sobel(img, axis=1, mode="nearest")
-    gy = sobel(img, axis=0, mode="nearest")
+    gx, gy = sobel_xy(img)
     return np.hypot(gx, gy).astype(np.float32)
+
+
+def sobel_xy(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """scipy.ndimage.sobel(img, axis=1 and axis=0, mode="nearest") of an H x W float32 image, bit for bit (scipy's
+    two correlate1d passes each, [-1, 0, 1] then [1, 2, 1], in float64 rounded to float32 after each), compiled;
+    other inputs go to scipy."""
+    if img.dtype != np.float32 or img.ndim != 2:
+        from scipy.ndimage import sobel
+
+        return sobel(img, axis=1, mode="nearest"), sobel(img, axis=0, mode="nearest")
+    return _sobel_xy(np.ascontiguousarray(img))
+
+
+@njit(cache=True, nogil=True)
+def _sobel_xy(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    h, w = img.shape
+    dx = np.empty((h, w), np.float32)  # [-1, 0, 1] along x (scipy's antisymmetric loop: x0 * 0 + (x-1 - x+1) * -1)
+    dy = np.empty((h, w), np.float32)
+    for y in range(h):
+        ym, yp = max(y - 1, 0), min(y + 1, h - 1)
+        for x in range(w):
+            xm, xp = max(x - 1, 0), min(x + 1, w - 1)
+            c = np.float64(img[y, x]) * 0.0
+            dx[y, x] = np.float32(c + (np.float64(img[y, xm]) - np.float64(img[y, xp])) * -1.0)
+            dy[y, x] = np.float32(c + (np.float64(img[ym, x]) - np.float64(img[yp, x])) * -1.0)
+    gx = np.empty((h, w), np.float32)  # then [1, 2, 1] across (scipy's symmetric loop: x0 * 2 + (x-1 + x+1) * 1)
+    gy = np.empty((h, w), np.float32)
+    for y in range(h):
+        ym, yp = max(y - 1, 0), min(y + 1, h - 1)
+        for x in range(w):
+            xm, xp = max(x - 1, 0), min(x + 1, w - 1)
+            gx[y, x] = np.float32(np.float64(dx[y, x]) * 2.0 + (np.float64(dx[ym, x]) + np.float64(dx[yp, x])) * 1.0)
+            gy[y, x] = np.float32(np.float64(dy[y, x]) * 2.0 + (np.float64(dy[y, xm]) + np.float64(dy[y, xp])) * 1.0)
+    return gx, gy
 
 
 def to_uint16_scaled(values: np.ndarray, scale: float) -> np.ndarray:
@@ -111,6 +142,7 @@ def to_uint16_scaled(values: np.ndarray, scale: float) -> np.ndarray:
 
 
 GAUSS_NEAREST, GAUSS_REFLECT = 0, 1  # scipy.ndimage modes "nearest" (edge repeated) and "reflect" (half-sample)
+# ("constant", zeros outside, runs as "nearest" on a zero-padded copy)
 
 
 def gaussian_blur(img: np.ndarray, sigma: float, truncate: float = 4.0, mode: str = "nearest") -> np.ndarray:
@@ -121,12 +153,17 @@ def gaussian_blur(img: np.ndarray, sigma: float, truncate: float = 4.0, mode: st
     from scipy.ndimage import gaussian_filter
 
     radius = int(truncate * float(sigma) + 0.5)
-    if img.dtype != np.float32 or img.ndim != 2 or sigma <= 0 or mode not in ("nearest", "reflect") \
+    if img.dtype != np.float32 or img.ndim != 2 or sigma <= 0 or mode not in ("nearest", "reflect", "constant") \
             or (mode == "reflect" and radius >= min(img.shape)):
         return gaussian_filter(img, sigma, mode=mode, truncate=truncate)
     x = np.arange(-radius, radius + 1)
     taps = np.exp(-0.5 / (sigma * sigma) * x**2)  # scipy's _gaussian_kernel1d, order 0
     taps = taps / taps.sum()
+    if mode == "constant":  # zeros outside (cval 0): a zero border as wide as the kernel, then cropped
+        h, w = img.shape
+        padded = np.pad(img, radius)
+        out = _blur_cols(_blur_rows(padded, taps, GAUSS_NEAREST), taps, GAUSS_NEAREST)
+        return np.ascontiguousarray(out[radius:radius + h, radius:radius + w])
     code = GAUSS_NEAREST if mode == "nearest" else GAUSS_REFLECT
     return _blur_cols(_blur_rows(np.ascontiguousarray(img), taps, code), taps, code)
 

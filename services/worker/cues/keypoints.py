@@ -26,10 +26,18 @@ from collections.abc import Callable
 
 import numpy as np
 from numba import njit
-from scipy.ndimage import gaussian_filter, sobel, uniform_filter
+from scipy.ndimage import uniform_filter
 
 from services.worker.context import ViewContext
-from services.worker.cues.common import depth_m, gaussian_blur, grey, ray_dirs_cam, to_uint16_scaled, valid
+from services.worker.cues.common import (
+    depth_m,
+    gaussian_blur,
+    grey,
+    ray_dirs_cam,
+    sobel_xy,
+    to_uint16_scaled,
+    valid,
+)
 from services.worker.cues.registry import register
 
 KP3D_SCALES_PX = (1, 2, 4, 8, 16, 32, 64)
@@ -218,7 +226,8 @@ class _Pyramid:
         f = 2**k
         size = max(1, int(radius_px)) | 1
         var = 3 * (size * size - 1) / 12 - (f * f - 1) / 12 - f * f / 8  # less block means and upsampling
-        low = gaussian_filter(self.level(k), (0,) + (np.sqrt(max(var, 1.0)) / f,) * 2, mode="constant")
+        sigma = float(np.sqrt(max(var, 1.0)) / f)
+        low = np.stack([gaussian_blur(plane, sigma, mode="constant") for plane in self.level(k)])
         out = fn(low)
         for _ in range(k):
             out = _double(out)
@@ -291,7 +300,7 @@ def narf_interest(ctx: ViewContext) -> np.ndarray:
         blend(change, int(ki), wn.blurred(KP3D_SCALES_PX[ki], _surface_change))
     change[border] = 1.0
     change[~v] = 0.0
-    gx, gy = sobel(change, axis=1, mode="nearest"), sobel(change, axis=0, mode="nearest")
+    gx, gy = sobel_xy(change)
     tensor = _Pyramid(np.stack([gx * gx, gy * gy, gx * gy]))
     iso = np.zeros(v.shape, dtype=np.float32)
     for ki in used:

@@ -8,7 +8,7 @@ import pytest
 from services.core.domain.cues import CURVATURE_FLAT, NORMAL_BACKGROUND
 from services.worker.context import ViewContext
 from services.worker.cues.basic import _curvature_pixels, _normal_pixels
-from services.worker.cues.common import gaussian_blur
+from services.worker.cues.common import gaussian_blur, sobel_xy
 from services.worker.cues.keypoints import _blur, _double, doh_response
 from services.worker.cues.registry import cue_value
 from services.worker.cues.segmentation import (
@@ -140,7 +140,7 @@ def test_doh_response_is_bit_identical_to_the_numpy_version() -> None:
     assert np.array_equal(new, old)
 
 
-@pytest.mark.parametrize("mode", ["nearest", "reflect"])
+@pytest.mark.parametrize("mode", ["nearest", "reflect", "constant"])
 @pytest.mark.parametrize("sigma,truncate", [(0.8, 4.0), (1.0, 4.0), (2.0, 4.0), (1.0, 3.0), (12**0.5, 3.0),
                                             (48**0.5, 3.0)])
 def test_gaussian_blur_is_scipys_gaussian_filter_bit_for_bit(mode, sigma, truncate) -> None:
@@ -206,3 +206,16 @@ def test_one_colour_surface_takes_the_shortcut_to_the_labels_felzenszwalb_gives(
     rgb[passes.hit.nonzero()[0][-1], passes.hit.nonzero()[1][-1]] = 7  # one pixel differs: no shortcut
     assert not _uniform_in_mask(rgb.astype(np.float32), passes.hit)
     assert _uniform_in_mask(rgb.astype(np.float32), np.zeros_like(passes.hit))
+
+
+def test_sobel_is_scipys_bit_for_bit() -> None:
+    from scipy.ndimage import sobel
+
+    rng = np.random.default_rng(9)
+    for shape, scale in (((64, 48), 1.0), ((1, 1), 1.0), ((1, 7), 300.0), ((6, 1), 1e-3), ((33, 20), 5.0)):
+        img = ((rng.random(shape) - 0.5) * scale).astype(np.float32)
+        img.flat[0] = 0.0
+        gx, gy = sobel_xy(img)
+        for new, axis in ((gx, 1), (gy, 0)):
+            old = sobel(img, axis=axis, mode="nearest")
+            assert new.dtype == np.float32 and np.array_equal(new.view(np.uint32), old.view(np.uint32)), (shape, axis)

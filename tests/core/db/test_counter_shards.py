@@ -17,7 +17,14 @@ from services.core.db.bulk import bulk_insert
 from services.core.db.counters import add_counts, job_progress
 from services.core.db.engine import make_engine, make_sessionmaker, migrate
 from services.core.db.models import Job, JobCounter, Task, WorkerBlock, utcnow
-from services.core.db.states import claim_task, claim_view_tasks, finish_task, finish_tasks, task_state, transition
+from services.core.db.states import (
+    claim_task,
+    claim_view_tasks,
+    finish_task,
+    finish_tasks,
+    task_state,
+    transition,
+)
 from services.worker.tasks import worker_engine
 
 CUES = ["rgb", "normal", "depth_zbuffer"]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from logging.config import fileConfig
 
 from alembic import context
@@ -38,12 +39,29 @@ def _configure(connection: Connection) -> None:
     )
 
 
+def _lock(connection: Connection) -> None:
+    """Take the migration lock for this connection's session (it outlives the commits of an autocommit block).
+    Polled, not waited on: a waiting statement holds a snapshot, which CREATE INDEX CONCURRENTLY in the
+    running migration would wait for in turn (a deadlock)."""
+    while not connection.execute(text(f"SELECT pg_try_advisory_lock({_PG_LOCK_ID})")).scalar():
+        connection.commit()
+        time.sleep(0.2)
+    connection.commit()
+
+
 def _run(connection: Connection) -> None:
-    _configure(connection)
-    with context.begin_transaction():
-        if connection.dialect.name == "postgresql":
-            connection.execute(text(f"SELECT pg_advisory_xact_lock({_PG_LOCK_ID})"))
-        context.run_migrations()
+    postgres = connection.dialect.name == "postgresql"
+    if postgres:
+        _lock(connection)
+    try:
+        _configure(connection)
+        with context.begin_transaction():
+            context.run_migrations()
+    finally:
+        if postgres:
+            connection.rollback()  # whatever a failed migration left open, so that the unlock can run
+            connection.execute(text(f"SELECT pg_advisory_unlock({_PG_LOCK_ID})"))
+            connection.commit()
 
 
 def run_migrations_offline() -> None:

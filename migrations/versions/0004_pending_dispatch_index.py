@@ -25,14 +25,25 @@ branch_labels: str | Sequence[str] | None = None
 depends_on: str | Sequence[str] | None = None
 
 PENDING = sa.text("state = 'pending'")
+NEW, OLD = "ix_task_pending_job_id_cue_id", "ix_task_job_id_state_cue_id"
+
+
+def _swap(create: tuple[str, list[str], sa.TextClause | None], drop: str) -> None:
+    """Create one index, then drop the other. On Postgres both CONCURRENTLY, outside the migration's
+    transaction: writes to a big task table go on meanwhile, and dispatch has an index throughout."""
+    name, columns, where = create
+    if op.get_bind().dialect.name != "postgresql":
+        op.drop_index(drop, table_name="task")
+        op.create_index(name, "task", columns, sqlite_where=where)
+        return
+    with op.get_context().autocommit_block():
+        op.create_index(name, "task", columns, postgresql_where=where, postgresql_concurrently=True)
+        op.drop_index(drop, table_name="task", postgresql_concurrently=True)
 
 
 def upgrade() -> None:
-    op.drop_index("ix_task_job_id_state_cue_id", table_name="task")
-    op.create_index("ix_task_pending_job_id_cue_id", "task", ["job_id", "cue", "id"],
-                    postgresql_where=PENDING, sqlite_where=PENDING)
+    _swap((NEW, ["job_id", "cue", "id"], PENDING), OLD)
 
 
 def downgrade() -> None:
-    op.drop_index("ix_task_pending_job_id_cue_id", table_name="task")
-    op.create_index("ix_task_job_id_state_cue_id", "task", ["job_id", "state", "cue", "id"])
+    _swap((OLD, ["job_id", "state", "cue", "id"], None), NEW)

@@ -101,6 +101,30 @@ def test_upgrade_downgrade_upgrade_postgres(fresh_pg: str) -> None:
         engine.dispose()
 
 
+def test_concurrent_migrations_on_postgres_wait_for_each_other(fresh_pg: str, repo_root: Path) -> None:
+    """API and scheduler starting together: one migrates, the other waits on the lock (polled, so 0004's
+    CREATE INDEX CONCURRENTLY is not left waiting on it) and then finds nothing to do."""
+    migrate(fresh_pg, "0003")
+    code = f"from services.core.db.engine import migrate; migrate({fresh_pg!r})"  # Alembic's context is per process
+    procs = [subprocess.Popen([sys.executable, "-c", code], cwd=repo_root, stderr=subprocess.PIPE, text=True)
+             for _ in range(3)]
+    for p in procs:
+        _, err = p.communicate(timeout=180)
+        assert p.returncode == 0, err
+    assert _revision(fresh_pg) == _head()
+    assert _diff(fresh_pg, server_defaults=True) == []
+    engine = make_engine(fresh_pg)
+    try:
+        with engine.connect() as conn:  # built concurrently and valid; the replaced index is gone
+            valid = dict(conn.execute(text(
+                "SELECT c.relname, i.indisvalid FROM pg_index AS i JOIN pg_class AS c ON c.oid = i.indexrelid "
+                "WHERE c.relname IN ('ix_task_pending_job_id_cue_id', 'ix_task_job_id_state_cue_id')")).all())
+            assert valid == {"ix_task_pending_job_id_cue_id": True}
+            assert conn.execute(text("SELECT count(*) FROM pg_locks WHERE locktype = 'advisory'")).scalar() == 0
+    finally:
+        engine.dispose()
+
+
 def test_migrate_creates_a_fresh_sqlite_file(tmp_path: Path) -> None:
     url = f"sqlite:///{tmp_path / 'new' / 'dir' / 'omnidata.db'}"
     migrate(url)

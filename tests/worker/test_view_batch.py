@@ -112,7 +112,9 @@ def test_a_batch_whose_worker_dies_is_requeued_and_run_once_by_another(sm, banan
     expire_leases(sm, ["dying"])  # what a named worker's successor, or the lease running out, does
     with sm() as s:
         res = reap_once(s, queued_timeout_s=3600, now=utcnow() + timedelta(seconds=1))
-    assert res.expired_retried == len(view0)
+    # The Postgres database is the whole session's: other tests' expired tasks may be reaped in the same pass.
+    assert res.expired_retried >= len(view0)
+    assert all(task(sm, tid).attempts == 1 and task(sm, tid).worker_id is None for tid in view0.values())
     with sm() as s:  # the retry backoff is over
         s.execute(Task.__table__.update().where(Task.id.in_(view0.values())).values(not_before=None))
         s.commit()

@@ -52,7 +52,7 @@ def space_rng(seed: int, space_name: str) -> np.random.Generator:
     return np.random.default_rng([int(seed), int.from_bytes(digest[:8], "little")])
 
 
-def _uuid(salt: bytes, kind: str, idx: int) -> str:
+def plan_uuid(salt: bytes, kind: str, idx: int) -> str:
     h = hashlib.sha256(salt + f"/{kind}/{idx}".encode()).digest()
     return str(uuidlib.UUID(bytes=h[:16], version=4))
 
@@ -82,10 +82,10 @@ def make_plan(
         capture, refined = capture_views.planning_capture(space, spec, space_name, q)
         cams, source, orbit = capture_views.capture_positions(capture), "capture", None
     else:
-        cams, source, orbit = _place_cameras(space, camera_spec, q, rng)
+        cams, source, orbit = place_cameras(space, camera_spec, q, rng)
     stamp["cameras"] = (t1 := time.perf_counter()) - t0
     ps = spec.points
-    _check_enough_cameras(len(cams), spec, space_name)
+    check_enough_cameras(len(cams), spec, space_name)
     count = ps.count if ps.count is not None else max(1, int(round(ps.per_camera * len(cams))))
     sampled = sample_points(q, cams, ps, count, rng)
     stamp["points"] = (t2 := time.perf_counter()) - t1
@@ -129,7 +129,7 @@ def _exact_capture_plan(space: LoadedSpace, spec: JobSpec, space_name: str, q: M
             short, []))
 
 
-def _check_enough_cameras(n_cameras: int, spec: JobSpec, space_name: str) -> None:
+def check_enough_cameras(n_cameras: int, spec: JobSpec, space_name: str) -> None:
     """PlanError when fewer cameras exist than a point needs views: no point could be planned."""
     ps = spec.points
     if n_cameras < ps.min_views:
@@ -168,7 +168,7 @@ def _keep_photo_textured(space: LoadedSpace, space_name: str, q: MeshQueries, vi
         n_covered = np.bincount(views.point_idx, minlength=n_points)
         views = views.subset(n_covered[views.point_idx] >= ps.min_views)
     if photo_dropped:
-        shortfall = _join(shortfall, f"views.min_photo_coverage {vs.min_photo_coverage} dropped {photo_dropped} "
+        shortfall = join_notes(shortfall, f"views.min_photo_coverage {vs.min_photo_coverage} dropped {photo_dropped} "
                                      "photo-textured views")
     return views, photo_dropped, shortfall
 
@@ -186,7 +186,7 @@ def _valid_fractions(q: MeshQueries, views: ViewArrays, spec: JobSpec) -> tuple[
     return None, summary
 
 
-def _place_cameras(space: LoadedSpace, camera_spec: CameraSpec, q: MeshQueries, rng: np.random.Generator
+def place_cameras(space: LoadedSpace, camera_spec: CameraSpec, q: MeshQueries, rng: np.random.Generator
                    ) -> tuple[np.ndarray, str, tuple[np.ndarray, float] | None]:
     """(camera positions, their source, an object's camera sphere (centre, radius) or None)."""
     if camera_spec.mode == "generate":
@@ -225,7 +225,7 @@ def _prune_nonfixated(views: ViewArrays, sampled: SampledPoints, spec: JobSpec, 
             f"nonfixated pruning kept {len(keep_points)} of {len(sampled.positions)} points "
             f"(>= {ps.min_views} views that each see another point)"
         )
-        shortfall = _join(shortfall, note)
+        shortfall = join_notes(shortfall, note)
     return views, keep_points, shortfall
 
 
@@ -247,7 +247,7 @@ def _drop_low_valid(views: ViewArrays, fractions: np.ndarray, n_points: int, kee
             f"views.min_valid_fraction {vs.min_valid_fraction} dropped {dropped} views{cut}; "
             f"{len(kept)} of {len(keep_points)} points keep >= {ps.min_views} views"
         )
-        shortfall = _join(shortfall, note)
+        shortfall = join_notes(shortfall, note)
     return views, kept, shortfall
 
 
@@ -263,7 +263,7 @@ def _longest_runs(point_idx: np.ndarray, ok: np.ndarray, min_frames: int) -> np.
     return keep
 
 
-def _join(*parts: str | None) -> str | None:
+def join_notes(*parts: str | None) -> str | None:
     text = "; ".join(p for p in parts if p)
     return text or None
 
@@ -283,7 +283,7 @@ def _assemble(
 ) -> SpacePlan:
     given = [p.uuid for p in camera_spec.poses] if source == "provided" and camera_spec.poses else [None] * len(cams)
     cameras = tuple(
-        CameraPose(idx=i, position=cams[i], source=source, uuid=given[i] or _uuid(salt, "camera", i))
+        CameraPose(idx=i, position=cams[i], source=source, uuid=given[i] or plan_uuid(salt, "camera", i))
         for i in range(len(cams))
     )
     new_idx = np.full(len(sampled.positions), -1, dtype=np.int64)
@@ -291,7 +291,7 @@ def _assemble(
     points = tuple(
         PointOfInterest(
             idx=k, position=sampled.positions[p], normal=sampled.normals[p],
-            uuid=_uuid(salt, "point", k), camera_idxs=sampled.visible[p],
+            uuid=plan_uuid(salt, "point", k), camera_idxs=sampled.visible[p],
         )
         for k, p in enumerate(keep_points)
     )
@@ -311,7 +311,7 @@ def _assemble(
     )
     # clip notes name the points by their index in the plan (None: dropped)
     clip_notes = tuple(n.as_dict(int(new_idx[n.point]) if new_idx[n.point] >= 0 else None) for n in notes)
-    shortfall = _join(shortfall, clip_shortfall(clip_notes, len(sampled.positions)))
+    shortfall = join_notes(shortfall, clip_shortfall(clip_notes, len(sampled.positions)))
     return SpacePlan(
         space_name=space_name, cameras=cameras, points=points, views=planned, shortfall=shortfall,
         clip_notes=clip_notes,

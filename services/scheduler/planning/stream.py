@@ -27,11 +27,11 @@ from services.core.domain.plan_budget import plans_in_chunks
 from services.core.ingest.loading import LoadedSpace
 from services.scheduler.planning import (
     VALID_REPORT_VIEWS,
-    _check_enough_cameras,
-    _join,
-    _place_cameras,
-    _uuid,
+    check_enough_cameras,
+    join_notes,
     make_plan,
+    place_cameras,
+    plan_uuid,
 )
 from services.scheduler.planning.points import SampledPoints, sample_points
 from services.scheduler.planning.views import (
@@ -112,9 +112,9 @@ def _stream(space: LoadedSpace, spec: JobSpec, rng: np.random.Generator, space_n
             out: PlanChunks) -> Iterator[SpacePlan]:
     q = MeshQueries(space.mesh)
     salt = rng.bytes(16)
-    cams, source, _orbit = _place_cameras(space, spec.cameras, q, rng)
+    cams, source, _orbit = place_cameras(space, spec.cameras, q, rng)
     ps = spec.points
-    _check_enough_cameras(len(cams), spec, space_name)
+    check_enough_cameras(len(cams), spec, space_name)
     count = ps.count if ps.count is not None else max(1, int(round(ps.per_camera * len(cams))))
     sampled = sample_points(q, cams, ps, count, rng)
     # first pass: each point's number of views, and the generator's state where each chunk starts
@@ -129,7 +129,7 @@ def _stream(space: LoadedSpace, spec: JobSpec, rng: np.random.Generator, space_n
     sample = np.unique(np.linspace(0, n_views - 1, min(n_views, VALID_REPORT_VIEWS)).astype(np.int64))
     probed: list[np.ndarray] = []
     given = [p.uuid for p in spec.cameras.poses] if source == "provided" and spec.cameras.poses else [None] * len(cams)
-    cameras = tuple(CameraPose(idx=i, position=cams[i], source=source, uuid=given[i] or _uuid(salt, "camera", i))
+    cameras = tuple(CameraPose(idx=i, position=cams[i], source=source, uuid=given[i] or plan_uuid(salt, "camera", i))
                     for i in range(len(cams)))
     for i, (lo, hi) in enumerate(bounds):
         views = _chunk_views(sampled, cams, lo, hi, spec, starts[i], fov_rng, roll_rng)
@@ -141,7 +141,7 @@ def _stream(space: LoadedSpace, spec: JobSpec, rng: np.random.Generator, space_n
     summary = fraction_summary(np.concatenate(probed) if probed else np.zeros(0), 0.0)
     summary["sampled_of"] = n_views
     out.whole = SpacePlan(space_name=space_name, cameras=(), points=(), views=(),
-                          shortfall=_join(sampled.shortfall), valid_fraction=summary)
+                          shortfall=join_notes(sampled.shortfall), valid_fraction=summary)
 
 
 def _copy(rng: np.random.Generator) -> np.random.Generator:
@@ -189,7 +189,7 @@ def _chunk_views(sampled: SampledPoints, cams: np.ndarray, lo: int, hi: int, spe
 
 def _points(sampled: SampledPoints, lo: int, hi: int, salt: bytes) -> tuple[PointOfInterest, ...]:
     return tuple(PointOfInterest(idx=p, position=sampled.positions[p], normal=sampled.normals[p],
-                                 uuid=_uuid(salt, "point", p), camera_idxs=tuple(sampled.visible[p].tolist()))
+                                 uuid=plan_uuid(salt, "point", p), camera_idxs=tuple(sampled.visible[p].tolist()))
                  for p in range(lo, hi))
 
 

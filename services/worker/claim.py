@@ -17,14 +17,21 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime, timedelta
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TypeVar
 
-from sqlalchemy import case, exists, or_, select
+from sqlalchemy import select
 from sqlalchemy.exc import DBAPIError, DisconnectionError, InterfaceError, OperationalError
 from sqlalchemy.orm import Session
 
-from services.core.db.models import Job, JobState, Task, TaskState, WorkerBlock, utcnow
-from services.core.db.states import claim_task, finish_task, transition, transition_rows
+from services.core.db.models import Job, JobState, Task, TaskState, utcnow
+from services.core.db.states import (
+    claim_task,
+    claim_view_tasks,
+    finish_task,
+    finish_tasks,
+    task_state,
+    transition,
+)
 from services.core.domain.cues import CATALOG
 from services.core.storage import ObjectInfo
 from services.worker.failure_policy import HANDBACK_DELAY, count_failure, is_blocked, retry_delay
@@ -204,18 +211,10 @@ class TaskLedger:
         messages of those tasks claim them one by one)."""
         def step() -> list[Claimed]:
             now = utcnow()
-            job_running = exists().where(Job.id == Task.job_id, Job.state == JobState.RUNNING)
-            blocked = exists().where(WorkerBlock.worker_id == self.worker_id, WorkerBlock.job_id == Task.job_id,
-                                     or_(WorkerBlock.until.is_(None), WorkerBlock.until > now))
             with self.sessionmaker() as s:
-                rows = transition_rows(
-                    s, job_id=t.job_id, from_state=TaskState.QUEUED, to_state=TaskState.RUNNING,
-                    where=[Task.space_id == t.space_id, Task.point_idx == t.point, Task.view_idx == t.view,
-                           Task.cue != "passes", Task.id != t.id, job_running, ~blocked],
-                    returning=[Task.attempts], worker_id=self.worker_id, attempts=Task.attempts + 1,
-                    started_at=now, finished_at=None, lease_until=now + timedelta(seconds=self.lease_s),
-                )
-                s.commit()
+                rows = claim_view_tasks(s, task_id=t.id, job_id=t.job_id, space_id=t.space_id, point=t.point,
+                                        view=t.view, worker_id=self.worker_id, now=now,
+                                        lease_until=now + timedelta(seconds=self.lease_s))
             return sorted((Claimed(int(r[0]), t.job_id, t.space_id, t.point, t.view, str(r[1]), int(r[3]))
                            for r in rows), key=lambda c: c.id)
 
@@ -228,11 +227,11 @@ class TaskLedger:
             return []
 
     def is_settled(self, task_id: int) -> bool:
-        """True when the task is neither queued nor pending (a read, no lock): a message for a task this worker
-        already ran in a view batch needs no claim attempt."""
+        """True when the task is neither queued nor pending (a read, no lock, no transaction on Postgres): a
+        message for a task this worker already ran in a view batch needs no claim attempt."""
         def step() -> bool:
             with self.sessionmaker() as s:
-                state = s.execute(select(Task.state).where(Task.id == task_id)).scalar_one_or_none()
+                state = task_state(s, task_id)
             return state is not None and state not in (TaskState.QUEUED, TaskState.PENDING)
 
         try:
@@ -249,24 +248,12 @@ class TaskLedger:
         if len(done) == 1:
             return [self.record_done(*done[0])]
         ids = [t.id for t, *_ in done]
-
-        def per_task(values: list[Any]) -> Any:
-            return case(dict(zip(ids, values, strict=True)), value=Task.id)
+        results = [(t.id, key, int(info.size), info.sha256, float(d)) for t, key, info, d in done]
 
         def step() -> set[int]:
-            now = utcnow()
             with self.sessionmaker() as s:
-                moved = transition(
-                    s, job_id=done[0][0].job_id, task_ids=ids, from_state=TaskState.RUNNING,
-                    to_state=TaskState.DONE, where=[Task.worker_id == self.worker_id],
-                    output_key=per_task([key for _, key, _, _ in done]),
-                    size=per_task([int(info.size) for _, _, info, _ in done]),
-                    sha256=per_task([info.sha256 for _, _, info, _ in done]),
-                    duration_s=per_task([float(d) for *_, d in done]),
-                    finished_at=now, lease_until=None, error=None,
-                )
-                s.commit()
-            return {tid for tid, _ in moved}
+                return finish_tasks(s, job_id=done[0][0].job_id, worker_id=self.worker_id, results=results,
+                                    now=utcnow())
 
         try:
             ours = self.db(step, f"record {len(done)} tasks of a view batch done")

@@ -14,7 +14,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import ColumnElement, Table, exists, or_, select, text, update
+from sqlalchemy import ColumnElement, Table, case, exists, or_, select, text, update
 from sqlalchemy.engine import Connection
 from sqlalchemy.orm import Session
 
@@ -24,7 +24,8 @@ from services.core.db.models import Job, JobState, Task, TaskState, WorkerBlock
 
 __all__ = [
     "JOB_EDGES", "TASK_EDGES", "IllegalTransition", "JobState", "TaskState", "check_job_edge", "check_task_edge",
-    "claim_task", "finish_task", "set_job_state", "transition", "transition_rows",
+    "claim_task", "claim_view_tasks", "finish_task", "finish_tasks", "set_job_state", "task_state", "transition",
+    "transition_rows",
 ]
 
 # from -> the states a task may go to, and who takes that edge
@@ -205,6 +206,29 @@ _FINISH_SQL = (
     "WHERE task.id = %(task_id)s AND task.state = 'running' AND task.worker_id = %(worker)s "
     "RETURNING task.id, task.cue, task.job_id), counted AS ({count}) SELECT * FROM moved"
 )
+# A view batch: the other queued tasks of one view in one claim, and the finished ones in one result (their
+# values as arrays, so the text stays the same whatever the batch's size).
+_CLAIM_VIEW_SQL = (
+    "WITH moved AS (UPDATE task SET state = 'running', worker_id = %(worker)s, attempts = task.attempts + 1, "
+    "started_at = %(now)s, finished_at = NULL, lease_until = %(lease)s "
+    "WHERE task.job_id = %(job_id)s AND task.space_id = %(space_id)s AND task.point_idx = %(point)s "
+    "AND task.view_idx = %(view)s AND task.cue <> 'passes' AND task.id <> %(task_id)s AND task.state = 'queued' "
+    "AND EXISTS (SELECT 1 FROM job WHERE job.id = task.job_id AND job.state = 'running') "
+    "AND NOT EXISTS (SELECT 1 FROM worker_block AS b WHERE b.worker_id = %(worker)s AND b.job_id = task.job_id "
+    "AND (b.until IS NULL OR b.until > %(now)s)) "
+    "RETURNING task.id, task.cue, task.job_id, task.attempts), counted AS ({count}) SELECT * FROM moved"
+)
+_FINISH_MANY_SQL = (
+    "WITH moved AS (UPDATE task SET state = 'done', output_key = v.key, size = v.size, sha256 = v.sha256, "
+    "duration_s = v.duration_s, finished_at = %(now)s, lease_until = NULL, error = NULL "
+    "FROM unnest(%(ids)s::bigint[], %(keys)s::text[], %(sizes)s::bigint[], %(sha256s)s::text[], "
+    "%(durations)s::float8[]) AS v (id, key, size, sha256, duration_s) "
+    "WHERE task.id = v.id AND task.state = 'running' AND task.worker_id = %(worker)s "
+    "RETURNING task.id, task.cue, task.job_id), counted AS ({count}) SELECT * FROM moved"
+)
+TASK_STATE_SQL = "SELECT state FROM task WHERE id = %(task_id)s"
+
+
 def _worker_sql(template: str, src: TaskState, dst: TaskState) -> str:
     check_task_edge(src, dst)
     return template.format(count=_COUNT_SQL.format(shards=COUNTER_SHARDS, src=src.value, dst=dst.value))
@@ -212,6 +236,16 @@ def _worker_sql(template: str, src: TaskState, dst: TaskState) -> str:
 
 CLAIM_SQL = _worker_sql(_CLAIM_SQL, TaskState.QUEUED, TaskState.RUNNING)
 FINISH_SQL = _worker_sql(_FINISH_SQL, TaskState.RUNNING, TaskState.DONE)
+CLAIM_VIEW_SQL = _worker_sql(_CLAIM_VIEW_SQL, TaskState.QUEUED, TaskState.RUNNING)
+FINISH_MANY_SQL = _worker_sql(_FINISH_MANY_SQL, TaskState.RUNNING, TaskState.DONE)
+
+
+def _autocommit(session: Session) -> Connection | None:
+    """The session's connection outside a transaction on Postgres (one fixed statement, one round trip); None
+    elsewhere."""
+    if session.get_bind().dialect.name != "postgresql":
+        return None
+    return session.connection(execution_options={"isolation_level": "AUTOCOMMIT"})
 
 
 def claim_task(session: Session, *, task_id: int, worker_id: str, now: datetime, lease_until: datetime) -> Any:
@@ -251,3 +285,64 @@ def finish_task(
     )
     session.commit()
     return bool(moved)
+
+
+def claim_view_tasks(
+    session: Session, *, task_id: int, job_id: int, space_id: int, point: int, view: int, worker_id: str,
+    now: datetime, lease_until: datetime,
+) -> list[Any]:
+    """queued -> running for `worker_id`, in one statement, of the view's other tasks (same job, space, point and
+    view; not `task_id`, not its `passes` task) while the job runs and the worker is not kept off it; returns the
+    rows (id, cue, job_id, attempts counting this one). Postgres: one fixed statement outside a transaction."""
+    conn = _autocommit(session)
+    if conn is not None:
+        return list(conn.exec_driver_sql(CLAIM_VIEW_SQL, {
+            "task_id": task_id, "job_id": job_id, "space_id": space_id, "point": point, "view": view,
+            "worker": worker_id, "now": now, "lease": lease_until}))
+    job_running = exists().where(Job.id == Task.job_id, Job.state == JobState.RUNNING)
+    blocked = exists().where(WorkerBlock.worker_id == worker_id, WorkerBlock.job_id == Task.job_id,
+                             or_(WorkerBlock.until.is_(None), WorkerBlock.until > now))
+    rows = transition_rows(
+        session, job_id=job_id, from_state=TaskState.QUEUED, to_state=TaskState.RUNNING,
+        where=[Task.space_id == space_id, Task.point_idx == point, Task.view_idx == view, Task.cue != "passes",
+               Task.id != task_id, job_running, ~blocked],
+        returning=[Task.attempts], worker_id=worker_id, attempts=Task.attempts + 1, started_at=now,
+        finished_at=None, lease_until=lease_until,
+    )
+    session.commit()
+    return rows
+
+
+def finish_tasks(
+    session: Session, *, job_id: int, worker_id: str, results: Sequence[tuple[int, str, int, str | None, float]],
+    now: datetime,
+) -> set[int]:
+    """running -> done, in one statement, of the tasks `worker_id` still holds, each with its own output
+    (task id, key, size, sha256, seconds); returns the ids moved. Postgres: one fixed statement over arrays,
+    outside a transaction."""
+    ids, keys, sizes, sha256s, durations = (list(col) for col in zip(*results, strict=True))
+    conn = _autocommit(session)
+    if conn is not None:
+        rows = conn.exec_driver_sql(FINISH_MANY_SQL, {
+            "ids": ids, "keys": keys, "sizes": sizes, "sha256s": sha256s, "durations": durations,
+            "worker": worker_id, "now": now})
+        return {int(r[0]) for r in rows}
+
+    def per_task(values: list[Any]) -> Any:
+        return case(dict(zip(ids, values, strict=True)), value=Task.id)
+
+    moved = transition(
+        session, job_id=job_id, task_ids=ids, from_state=TaskState.RUNNING, to_state=TaskState.DONE,
+        where=[Task.worker_id == worker_id], output_key=per_task(keys), size=per_task(sizes),
+        sha256=per_task(sha256s), duration_s=per_task(durations), finished_at=now, lease_until=None, error=None,
+    )
+    session.commit()
+    return {tid for tid, _ in moved}
+
+
+def task_state(session: Session, task_id: int) -> str | None:
+    """The task's state (None: no such task), read without a lock; Postgres: outside a transaction."""
+    conn = _autocommit(session)
+    if conn is not None:
+        return conn.exec_driver_sql(TASK_STATE_SQL, {"task_id": task_id}).scalar_one_or_none()
+    return session.execute(select(Task.state).where(Task.id == task_id)).scalar_one_or_none()

@@ -1,6 +1,7 @@
 """Sharded progress counters and a worker's one-statement moves (states.claim_task / finish_task), on a real
 Postgres with concurrent connections: the counts stay exact while writers spread over shards, and a claim
-still refuses a paused job, a blocked worker and a task that is not queued."""
+still refuses a paused job, a blocked worker and a task that is not queued; a view batch's claim and result
+(claim_view_tasks / finish_tasks, fixed statements over arrays) move exactly the rows they should."""
 
 from __future__ import annotations
 
@@ -16,7 +17,14 @@ from services.core.db.bulk import bulk_insert
 from services.core.db.counters import add_counts, job_progress
 from services.core.db.engine import make_engine, make_sessionmaker, migrate
 from services.core.db.models import Job, JobCounter, Task, WorkerBlock, utcnow
-from services.core.db.states import claim_task, finish_task, transition
+from services.core.db.states import (
+    claim_task,
+    claim_view_tasks,
+    finish_task,
+    finish_tasks,
+    task_state,
+    transition,
+)
 from services.worker.tasks import worker_engine
 
 CUES = ["rgb", "normal", "depth_zbuffer"]
@@ -124,4 +132,40 @@ def test_claim_refuses_paused_jobs_blocked_workers_and_tasks_not_queued(engine: 
     with sm() as s:
         assert claim_task(s, task_id=b, worker_id="good", now=now, lease_until=lease) is None  # job not running
         assert s.get(Task, c) is not None
+        assert job_progress(s, job_id) == _truth(s, job_id)
+
+
+def test_view_batch_claim_and_result_move_only_their_rows_and_keep_counters_exact(engine: Engine) -> None:
+    sm = make_sessionmaker(engine)
+    with sm() as s:
+        job_id = _queued_job(s, 2)
+        ids = {(int(p), str(c)): int(i) for i, p, c in s.execute(
+            select(Task.id, Task.point_idx, Task.cue).where(Task.job_id == job_id))}
+        now = utcnow()
+        lease = now + timedelta(seconds=60)
+        s.add(WorkerBlock(worker_id="bad", job_id=job_id, failures=3, until=now + timedelta(minutes=10)))
+        s.commit()
+    first = ids[(0, "rgb")]
+    view = {"task_id": first, "job_id": job_id, "space_id": 1, "point": 0, "view": 0, "now": now,
+            "lease_until": lease}
+    with sm() as s:
+        assert claim_view_tasks(s, worker_id="bad", **view) == []  # blocked on this job
+        assert claim_task(s, task_id=first, worker_id="w", now=now, lease_until=lease) is not None
+        rows = claim_view_tasks(s, worker_id="w", **view)
+        # the view's other tasks only: not the claimed one, not the other point's
+        assert sorted((int(r[0]), str(r[1]), int(r[3])) for r in rows) == sorted(
+            (ids[(0, c)], c, 1) for c in ("normal", "depth_zbuffer"))
+        assert claim_view_tasks(s, worker_id="w", **view) == []  # nothing queued left in the view
+        assert task_state(s, first) == "running" and task_state(s, ids[(1, "rgb")]) == "queued"
+        assert task_state(s, 10**12) is None
+        mine = [ids[(0, c)] for c in CUES]
+        results = [(tid, f"k{tid}", 10 + k, None if k == 1 else f"{k:064x}", 0.5 * k) for k, tid in enumerate(mine)]
+        not_mine = (ids[(1, "rgb")], "stray", 1, None, 0.0)  # queued, not held by "w": left alone
+        assert finish_tasks(s, job_id=job_id, worker_id="other", results=results, now=now) == set()
+        assert finish_tasks(s, job_id=job_id, worker_id="w", results=[*results, not_mine], now=now) == set(mine)
+        got = {int(r.id): (r.state, r.output_key, r.size, r.sha256, r.duration_s)
+               for r in s.execute(select(Task).where(Task.job_id == job_id)).scalars()}
+        for tid, key, size, sha, dur in results:
+            assert got[tid] == ("done", key, size, sha, dur)
+        assert got[not_mine[0]][:2] == ("queued", None)
         assert job_progress(s, job_id) == _truth(s, job_id)

@@ -106,7 +106,8 @@ def run(args: argparse.Namespace) -> int:
             store.remove_temp_files()  # writes the interrupted run never committed; no worker runs yet
             print(f"omnidata generate: resuming job {prepared.job_id} in {out} ({prepared.requeued} interrupted, "
                   f"{prepared.redo} missing, {prepared.retried} failed tasks to redo)", file=sys.stderr)
-        status = drive(sessions, store, settings, out, prepared.job_id, workers, progress=not args.no_progress)
+        status = drive(sessions, store, settings, out, prepared.job_id, workers, progress=not args.no_progress,
+                       loaded_spaces=prepared.loaded)
         if refused:
             print(f"omnidata generate: {len(sources)} space(s) done; refused scene(s):\n{refused}", file=sys.stderr)
         return status

@@ -13,7 +13,7 @@ import os
 import sys
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from sqlalchemy import select
@@ -25,12 +25,13 @@ from services.core.db.models import JOB_TERMINAL_STATES, Job, JobState, Space
 from services.core.domain.errors import Conflict, Invalid
 from services.core.domain.jobspec import JobSpec
 from services.core.domain.keys import JOB_JSON_KEY, MANIFEST_KEY
+from services.core.ingest.loading import LoadedSpace
 from services.core.ingest.registry import Source, register_space
 from services.core.settings import Settings, load_settings
 from services.core.storage import ObjectStore
 from services.embedded.pool import STATE_DIR, LocalPool, WorkerConfig, cpu_count
 from services.embedded.report import Progress, build_report, print_report
-from services.scheduler.loop import Scheduler
+from services.scheduler.loop import Scheduler, loaded_space_key
 from services.scheduler.transport import QueueTransport
 from services.worker.heartbeat import expire_leases
 
@@ -101,6 +102,8 @@ class Prepared:
     requeued: int = 0  # interrupted tasks put back to pending
     redo: int = 0  # done tasks whose file was missing
     retried: int = 0  # failed tasks given another chance
+    # spaces validated by this run, for the scheduler to plan from (`Scheduler(loaded_spaces=...)`): one parse
+    loaded: dict[str, LoadedSpace] = field(default_factory=dict)
 
 
 def prepare_job(sessions: sessionmaker[Session], store: ObjectStore, spec: JobSpec, sources: list[Source]) -> Prepared:
@@ -115,20 +118,22 @@ def prepare_job(sessions: sessionmaker[Session], store: ObjectStore, spec: JobSp
         # A new request in this folder: unfinished jobs of earlier requests stop (their files stay).
         for old in s.scalars(select(Job).where(Job.owner == OWNER, Job.state.not_in(JOB_TERMINAL_STATES))):
             cancel_job(s, old)
-        ordered = []
+        ordered, loaded = [], {}
         for src in sources:
             space = spaces.get(src.name)
             if space is None:
                 space = register_space(s, store, owner=OWNER, name=src.name, source_path=src.path,
                                     key_prefix=SPACES_PREFIX, **spec.space_frame(), loaded=src.loaded)
-            src.loaded = None  # the workers load their own copy; do not keep the mesh in this process
+            if src.loaded is not None:  # the scheduler plans from it, then drops it (the workers load their own)
+                loaded[loaded_space_key(space.checksum, spec.space_frame())] = src.loaded
+            src.loaded = None
             ordered.append(space)
         try:
             job = create_job(s, owner=OWNER, spec=spec, spaces=ordered, output_root="")
         except ValueError as e:
             raise Invalid(str(e)) from None
         s.commit()
-        return Prepared(job.id, resumed=False)
+        return Prepared(job.id, resumed=False, loaded=loaded)
 
 
 def run_until_final(sessions: sessionmaker[Session], sched: Scheduler, pool: LocalPool, job_id: int, bar: Progress | None = None,
@@ -171,8 +176,10 @@ def tick_interval(tick_cpu_s: float) -> float:
     return min(TICK_MAX_S, max(TICK_S, tick_cpu_s / TICK_CPU_SHARE))
 
 
-def drive(sessions: sessionmaker[Session], store: ObjectStore, settings: Settings, out: Path, job_id: int, workers: int, *, progress: bool) -> int:
-    """Run the scheduler loop with W local workers until the job is final; returns the exit status."""
+def drive(sessions: sessionmaker[Session], store: ObjectStore, settings: Settings, out: Path, job_id: int, workers: int, *,
+          progress: bool, loaded_spaces: dict[str, LoadedSpace] | None = None) -> int:
+    """Run the scheduler loop with W local workers until the job is final; returns the exit status.
+    `loaded_spaces`: spaces this run has loaded already (Prepared.loaded), planned without a second parse."""
     with sessions() as s:
         job = s.get(Job, job_id)
         assert job is not None
@@ -189,7 +196,7 @@ def drive(sessions: sessionmaker[Session], store: ObjectStore, settings: Setting
     pool = LocalPool(workers, conf)
     transport = QueueTransport(pool.tasks)
     sched = Scheduler(sessions, store, transport, settings, scheduler_id=f"generate:{os.getpid()}",
-                      cache_dir=out / STATE_DIR / "cache")
+                      cache_dir=out / STATE_DIR / "cache", loaded_spaces=loaded_spaces)
     bar = Progress(progress)
     try:
         pool.start()

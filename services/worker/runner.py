@@ -182,6 +182,7 @@ class TaskRunner:
             loaded = load_space(path, **frame)
             ctx = SpaceContext.from_loaded(loaded, key=key, device=self.render_device, threads=self.render_threads)
             ctx.photos = painter_for(loaded, spec, refined)
+            ctx.curvature_dir = self.cache_dir / "curvature"  # computed once for this machine's workers
             return ctx
 
         return self.space_cache.get(key, loader)

@@ -15,14 +15,15 @@ import resource
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 import trimesh
 
 from services.core.domain.jobspec import CueParams
-from services.worker.curvature import principal_curvatures
 from services.worker.passes import RENDER_PASSES, ViewGeometry, ViewPasses
+from services.worker.shared_curvature import shared_curvature
 
 if TYPE_CHECKING:
     from services.core.ingest.loading import LoadedSpace
@@ -47,6 +48,7 @@ class SpaceContext:
     threads: int | None = None
     stats: dict[str, float] = field(default_factory=dict)
     photos: PhotoPainter | None = None  # when rgb comes from a capture's photos
+    curvature_dir: Path | None = None  # where this machine's processes share computed curvature (None: not shared)
     _curvature: dict[float, np.ndarray] = field(default_factory=dict, repr=False)
     _scene: BlenderScene | None = field(default=None, repr=False)
     _scene_curvature_radius: float | None = field(default=None, repr=False)
@@ -74,9 +76,9 @@ class SpaceContext:
         r = float(radius_m)
         if r not in self._curvature:
             t0 = time.perf_counter()
-            self._curvature[r] = principal_curvatures(self.mesh, r)
+            self._curvature[r] = shared_curvature(self.mesh, r, self.curvature_dir)
             self.stats["curvature_s"] = time.perf_counter() - t0
-            log.info("space %s: curvature (r=%.3g m) of %d vertices in %.2f s", self.key, r,
+            log.info("space %s: curvature (r=%.3g m) of %d vertices in %.2f s (computed or shared)", self.key, r,
                      len(self.mesh.vertices), self.stats["curvature_s"])
         return self._curvature[r]
 

@@ -13,7 +13,6 @@ modelled: a sharp foreground's light spilling over a blurred background (occlusi
 from __future__ import annotations
 
 import numpy as np
-from scipy.signal import fftconvolve
 
 from services.worker.context import ViewContext
 from services.worker.cues.augment_params import draw, linear_to_srgb, srgb_to_linear
@@ -56,6 +55,10 @@ def disc_blur(image: np.ndarray, radius: float) -> np.ndarray:
     """H x W x C image convolved with disc_kernel(radius), edges extended."""
     if radius < 0.25:
         return image
+    # imported here: scipy.signal brings scipy.stats (~0.6 CPU-s), which every worker paid at start-up for a
+    # cue that is off by default
+    from scipy.signal import fftconvolve
+
     kernel = disc_kernel(radius)
     pad = kernel.shape[0] // 2
     padded = np.pad(image, ((pad, pad), (pad, pad), (0, 0)), mode="edge")

@@ -18,11 +18,12 @@ import json
 import os
 import re
 from collections.abc import Sequence
-from typing import Any
 
 from celery import Celery
+from redis import Redis
 
 from services.core.celery_config import TASK_RENDER_CUE
+from services.core.domain.json_types import JSONObject
 
 _ID = "\x00celery-id\x00"  # placeholders; they cannot occur in Celery's headers
 _TAG = "\x00delivery-tag\x00"
@@ -52,7 +53,7 @@ class Envelope:
             argsrepr=_ARGS, kwargsrepr="{}", ignore_result=True,
         )
         headers = {k: v for k, v in message.headers.items()}
-        envelope: dict[str, Any] = {
+        envelope: JSONObject = {
             "body": _BODY,
             "content-encoding": "utf-8",
             "content-type": "application/json",
@@ -90,7 +91,7 @@ class Envelope:
             out.append(part)
         return "".join(out)
 
-    def push(self, client: Any, task_ids: Sequence[int]) -> None:
+    def push(self, client: Redis, task_ids: Sequence[int]) -> None:
         """LPUSH one message per task onto the queue's list in one command (kept in order: workers pop the
         oldest first)."""
         if task_ids:

@@ -17,7 +17,6 @@ import traceback
 from dataclasses import dataclass, field
 from datetime import timedelta
 from pathlib import Path
-from typing import Any
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
@@ -37,7 +36,7 @@ from services.scheduler.completion import Finished, complete_once
 from services.scheduler.dispatch import DEFAULT_BUDGET, DispatchResult, dispatch_once
 from services.scheduler.fairness import CAPPED_WAIT_S, queued_cap
 from services.scheduler.persist import clear_plan, plan_key
-from services.scheduler.plan_space import PlanFn, load_for_job, plan_summary_of
+from services.scheduler.plan_space import JobPlanSummary, PlanFn, load_for_job, plan_summary_of
 from services.scheduler.planner_proc import PlannerProcesses
 from services.scheduler.reaper import ReapResult, reap_once
 from services.scheduler.resend import IdleWatch, resend_stuck
@@ -220,7 +219,7 @@ class Scheduler:
                 spaces = [(list(js.cues), space, plan_key(job, space.name)) for js, space in job_spaces(s, job.id)]
                 s.expunge_all()
                 s.commit()
-            summary: dict[str, Any] = {"spaces": {}, "attempts": attempts}
+            summary: JobPlanSummary = {"spaces": {}, "attempts": attempts}
             target = ChunkTarget(self.sessionmaker, self.store, job_id, self.scheduler_id,
                                  self.settings.plan_chunk_views)
             total = 0
@@ -252,7 +251,7 @@ class Scheduler:
         log.info("job %d planned: %d tasks in %.2f s", job_id, total, time.perf_counter() - t0)
         return True
 
-    def _planned(self, job_id: int, total: int, summary: dict[str, Any]) -> bool:
+    def _planned(self, job_id: int, total: int, summary: JobPlanSummary) -> bool:
         """Switch a planned job to running, unless it was cancelled (or taken over) meanwhile."""
         with self.sessionmaker() as s:
             stmt = select(Job).where(Job.id == job_id).execution_options(populate_existing=True)

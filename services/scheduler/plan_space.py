@@ -8,15 +8,61 @@ job.json space record (services.core.domain.job_document.space_record).
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Protocol
+from typing import NotRequired, Protocol, TypedDict
 
 import numpy as np
 
+from services.core.domain.capture_records import CapturePlanRecord
 from services.core.domain.job_document import SpaceRecord, space_record
 from services.core.domain.jobspec import JobSpec, SpaceFrame
-from services.core.domain.plan import CLIP_NOTES_IN_SUMMARY, SpacePlan, clip_summary
+from services.core.domain.plan import (
+    CLIP_NOTES_IN_SUMMARY,
+    ClipSummary,
+    SpacePlan,
+    ValidFractionSummary,
+    clip_summary,
+)
+from services.core.ingest.frame_records import FrameRecord
 from services.core.ingest.loading import LoadedSpace, load_space
 from services.scheduler.planning import make_plan, space_rng
+
+
+class PlanSpaceSummary(FrameRecord):
+    """One space's part of `job.plan_summary` (the scheduler adds the counts: PlannedSpaceSummary)."""
+
+    shortfall: str | None
+    valid_fraction: ValidFractionSummary | None
+    clips: ClipSummary
+    source_to_world: list[list[float]]
+    bounds: list[list[float]]
+    up_axis: str
+    up_method: str
+    unit_scale: float | str
+    warnings: list[str]
+    capture_plan: NotRequired[CapturePlanRecord]
+
+
+class PlannedSpaceSummary(PlanSpaceSummary):
+    """`job.plan_summary["spaces"][name]`: the summary and the counts the scheduler persisted."""
+
+    cameras: int
+    points: int
+    views: int
+    tasks: int
+    plan_key: str
+
+
+class JobPlanSummary(TypedDict):
+    """`job.plan_summary` once planned (after a failed attempt: only `attempts`)."""
+
+    spaces: dict[str, PlannedSpaceSummary]
+    attempts: int
+    shortfall: NotRequired[bool]
+    planning_s: NotRequired[float]
+
+
+class _CapturePlanPart(TypedDict, total=False):
+    capture_plan: CapturePlanRecord  # capture plans only
 
 
 class PlanFn(Protocol):
@@ -37,8 +83,9 @@ def plan_space(loaded: LoadedSpace, spec: JobSpec, name: str, plan_fn: PlanFn | 
     return (plan_fn or make_plan)(loaded, spec, space_rng(spec.seed, name), name)
 
 
-def plan_summary_of(loaded: LoadedSpace, plan: SpacePlan, spec: JobSpec) -> dict[str, Any]:
+def plan_summary_of(loaded: LoadedSpace, plan: SpacePlan, spec: JobSpec) -> PlanSpaceSummary:
     """What the scheduler keeps per space in `job.plan_summary` (JSON-ready; the counts are added by the caller)."""
+    capture_part: _CapturePlanPart = {"capture_plan": plan.capture} if plan.capture is not None else {}
     return {
         "shortfall": plan.shortfall,
         "valid_fraction": plan.valid_fraction,
@@ -49,7 +96,7 @@ def plan_summary_of(loaded: LoadedSpace, plan: SpacePlan, spec: JobSpec) -> dict
         "unit_scale": loaded.units.scale if loaded.units is not None else spec.unit_scale,
         "warnings": list(loaded.warnings),
         **loaded.frame_record(),
-        **({"capture_plan": plan.capture} if plan.capture is not None else {}),
+        **capture_part,
     }
 
 

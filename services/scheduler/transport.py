@@ -10,10 +10,11 @@ from __future__ import annotations
 import logging
 from collections.abc import Sequence
 from contextlib import AbstractContextManager, nullcontext
-from typing import Any, Protocol
+from typing import Protocol
 
 from celery import Celery
 from celery.utils.nodenames import anon_nodename
+from kombu import Producer
 from kombu.utils.uuid import uuid
 
 from services.core.celery_config import TASK_RENDER_CUE, make_celery_app, queue_for_cue
@@ -128,7 +129,7 @@ class CeleryTransport:
                         producer, TASK_RENDER_CUE, message, queue=queues[cue], declare=[], retry=True,
                     )
 
-    def _push(self, producer: Any, batch: Sequence[tuple[int, str]], queues: dict[str, str]) -> None:
+    def _push(self, producer: Producer, batch: Sequence[tuple[int, str]], queues: dict[str, str]) -> None:
         """LPUSH prebuilt messages, one command per queue and PUBLISH_BATCH tasks (Redis only)."""
         per_queue: dict[str, list[int]] = {}
         for task_id, cue in batch:

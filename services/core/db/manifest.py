@@ -144,7 +144,7 @@ def job_document(session: Session, job: Job) -> JobDocument:
             "finished_at": _iso(job.finished_at),
             "total_tasks": int(job.total_tasks or 0),
         },
-        component=job.name or spec.get("name", ""),
+        component=job.name or str(spec.get("name", "")),
         spec=spec,
         cues=job_cues(session, job.id),
         spaces=_space_records(session, job),

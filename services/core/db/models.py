@@ -36,6 +36,10 @@ from sqlalchemy.engine import Dialect
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 from sqlalchemy.types import TypeDecorator
 
+from services.core.domain.json_types import (
+    JSONValue,  # dict[str, JSONValue], not the JSONObject alias: SQLAlchemy evaluates it
+)
+
 
 class JobState(StrEnum):
     """A job's lifecycle state (the allowed changes: services/core/db/states.py)."""
@@ -170,7 +174,7 @@ class Job(Base):
     id: Mapped[int] = mapped_column(BigIntId, primary_key=True, autoincrement=True)
     owner: Mapped[str] = mapped_column(String(128), index=True)
     name: Mapped[str] = mapped_column(String(128))
-    spec: Mapped[dict[str, Any]] = mapped_column(JSONDoc, doc='JobSpec.model_dump(mode="json")')
+    spec: Mapped[dict[str, JSONValue]] = mapped_column(JSONDoc, doc='JobSpec.model_dump(mode="json")')
     state: Mapped[JobState] = mapped_column(StateColumn(JobState), default=JobState.PENDING,
                                             server_default="pending", index=True)
     priority: Mapped[int] = mapped_column(Integer, default=0, server_default=text("0"))

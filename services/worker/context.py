@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping
-from typing import TYPE_CHECKING, Any, TypeVar, cast
+from typing import TYPE_CHECKING, TypeVar, cast
 
 from services.core.domain.jobspec import CueParams
-from services.worker.passes import OPTIONAL_ARRAYS, RENDER_PASSES, ViewGeometry, ViewPasses
+from services.worker.passes import OPTIONAL_ARRAYS, RENDER_PASSES, ViewGeometry, ViewPasses, ViewPose
 
 if TYPE_CHECKING:
     from services.core.domain.plan import SpacePlan
@@ -29,12 +29,17 @@ class SemanticsUnavailableError(ValueError):
 class ViewContext:
     """Inputs and memo of one view. `view` is a ViewGeometry or anything with world_to_camera/fov/resolution."""
 
-    def __init__(self, view: Any, params: CueParams | None = None, *, passes: ViewPasses | None = None,
+    def __init__(self, view: ViewPose | None, params: CueParams | None = None, *, passes: ViewPasses | None = None,
                  space: SpaceContext | None = None, plan: SpacePlan | None = None,
                  point_info: Mapping[str, object] | None = None,
                  render_passes: frozenset[str] = RENDER_PASSES):
         self.view = view
-        self.geometry = passes.geometry if passes is not None and view is None else ViewGeometry.of(view)
+        if view is not None:
+            self.geometry = ViewGeometry.of(view)
+        elif passes is not None:
+            self.geometry = passes.geometry
+        else:
+            raise ValueError("a view context needs a view or a pass set")
         self.params = params or CueParams()
         self.space = space
         self.plan = plan

@@ -12,7 +12,6 @@ every render/derived cue without Blender. Plan cues need `plan` (services.core.d
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
-from typing import Any
 
 from services.core.domain.cues import closure, require_supported
 from services.core.domain.jobspec import CueParams
@@ -20,7 +19,7 @@ from services.core.domain.plan import SpacePlan
 from services.worker.context import SemanticsUnavailableError, ViewContext
 from services.worker.cues import encode, get_impl
 from services.worker.cues.registry import cue_value
-from services.worker.passes import RENDER_PASSES
+from services.worker.passes import RENDER_PASSES, ViewPose
 from services.worker.space_cache import SpaceContext
 
 __all__ = ["SemanticsUnavailableError", "ViewContext", "check_cues", "make_context", "produce", "render_passes_for",
@@ -48,7 +47,7 @@ def render_passes_for(cues: Iterable[str]) -> frozenset[str]:
     return frozenset().union(*(get_impl(c).passes for c in closure(names) if c != "passes"))
 
 
-def make_context(space: SpaceContext | None, view: Any, cues: Iterable[str], params: CueParams | None = None, *,
+def make_context(space: SpaceContext | None, view: ViewPose, cues: Iterable[str], params: CueParams | None = None, *,
                  plan: SpacePlan | None = None, point_info: Mapping[str, object] | None = None) -> ViewContext:
     """A ViewContext that renders from `space` on first need, only the passes the cues need."""
     names = check_cues(cues, has_semantics=space.has_semantics if space is not None else True)
@@ -77,7 +76,7 @@ def produce(cue: str, ctx: ViewContext) -> bytes:
     return data
 
 
-def render_view_cues(space_ctx: SpaceContext, view: Any, cues: Iterable[str], params: CueParams | None = None,
+def render_view_cues(space_ctx: SpaceContext, view: ViewPose, cues: Iterable[str], params: CueParams | None = None,
                      *, plan: SpacePlan | None = None, point_info: Mapping[str, object] | None = None) -> dict[str, bytes]:
     """{cue: file bytes} for one view: one Cycles render, then every cue derived from its passes."""
     names = list(dict.fromkeys(cues))

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import io
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Protocol
 
 import numpy as np
 
@@ -28,6 +28,17 @@ NO_LABEL = -1
 RENDER_PASSES: frozenset[str] = frozenset({"normal", "faces", "labels", "curvature"})
 
 
+class ViewPose(Protocol):
+    """What a view context reads of a view: a PlannedView or a ViewGeometry (read-only attributes)."""
+
+    @property
+    def world_to_camera(self) -> np.ndarray: ...
+    @property
+    def fov(self) -> float: ...
+    @property
+    def resolution(self) -> int: ...
+
+
 @dataclass(frozen=True)
 class ViewGeometry:
     """Pose and intrinsics of one view: OpenCV world_to_camera (4x4, metres), horizontal fov (radians), square size."""
@@ -37,7 +48,7 @@ class ViewGeometry:
     resolution: int
 
     @classmethod
-    def of(cls, view: Any) -> ViewGeometry:
+    def of(cls, view: ViewPose) -> ViewGeometry:
         """Accept a ViewGeometry, or anything with `world_to_camera`, `fov` (rad) and `resolution` (a PlannedView)."""
         if isinstance(view, ViewGeometry):
             return view

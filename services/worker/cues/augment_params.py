@@ -18,6 +18,7 @@ from typing import TypedDict
 
 import numpy as np
 
+from services.core.domain.plan import PlannedView
 from services.worker.context import ViewContext
 from services.worker.cues.common import depth_m, valid
 from services.worker.cues.registry import register
@@ -29,7 +30,7 @@ def view_generator(ctx: ViewContext) -> tuple[np.random.Generator, str]:
     """The view's generator and what seeded it ('<point uuid>/<view>', or the pose when there is no plan)."""
     view = ctx.view
     plan = ctx.plan
-    if plan is not None and hasattr(view, "point_idx"):
+    if plan is not None and isinstance(view, PlannedView):
         point = next(p for p in plan.points if p.idx == view.point_idx)
         key = f"{point.uuid}/{int(view.v)}"
     else:  # a bare view (tests, previews): its pose and fov identify it

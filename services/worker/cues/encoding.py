@@ -12,7 +12,6 @@ import os
 import struct
 import tempfile
 import zlib
-from typing import Any
 
 import numpy as np
 import OpenEXR
@@ -21,6 +20,7 @@ from services.core.domain.cues import get_cue
 from services.core.domain.exr import decode_exr_rgb  # noqa: F401  (re-exported: the inverse of encode_exr_rgb)
 from services.core.domain.plan_cues import encode_json
 from services.core.temp_dirs import owned_prefix
+from services.worker.cues.registry import CueValue
 
 # PNGs are written here, not by Pillow: every row "Up"-filtered (the difference to the row above, vectorised) and
 # deflated by zlib with the Z_RLE strategy. On a room view's 12 PNG cues at 512 px (bench/derivations.py) that is
@@ -32,7 +32,7 @@ _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _PNG_FILTER_UP = 2
 
 
-def encode(cue: str, value: Any) -> bytes:
+def encode(cue: str, value: CueValue) -> bytes:
     """Bytes of the file for `cue` holding `value` (array in the catalog dtype, dict for JSON, bytes for npz)."""
     spec = get_cue(cue)
     if spec.ext == "json":

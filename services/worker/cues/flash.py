@@ -14,7 +14,7 @@ from services.worker.context import ViewContext
 from services.worker.cues.augment_params import draw, linear_to_srgb, srgb_to_linear
 from services.worker.cues.basic import reshading_intensity
 from services.worker.cues.common import euclidean_m, valid
-from services.worker.cues.registry import cue_value, register
+from services.worker.cues.registry import cue_array, register
 
 
 def flash(linear: np.ndarray, cosine: np.ndarray, distance_m: np.ndarray, *, ambient: float,
@@ -32,5 +32,5 @@ def rgb_flash(ctx: ViewContext) -> np.ndarray:
     # reshading (a declared input, so the normal pass is rendered) is albedo x this cosine; the float is exact
     cosine = reshading_intensity(ctx) / ctx.params.reshading_albedo
     distance = np.where(valid(ctx), euclidean_m(ctx), np.inf)
-    return linear_to_srgb(flash(srgb_to_linear(cue_value(ctx, "rgb")), cosine, distance, ambient=p["ambient"],
+    return linear_to_srgb(flash(srgb_to_linear(cue_array(ctx, "rgb")), cosine, distance, ambient=p["ambient"],
                                 power_m2=p["power_m2"]))

@@ -12,7 +12,7 @@ import numpy as np
 from services.worker.context import ViewContext
 from services.worker.cues.augment_params import draw, linear_to_srgb, srgb_to_linear
 from services.worker.cues.common import euclidean_m, valid
-from services.worker.cues.registry import cue_value, register
+from services.worker.cues.registry import cue_array, register
 
 
 def transmittance(distance_m: np.ndarray, beta_per_m: float) -> np.ndarray:
@@ -32,5 +32,5 @@ def rgb_fog(ctx: ViewContext) -> np.ndarray:
     """uint8 H x W x 3 sRGB: rgb through fog of the view's drawn density and colour."""
     p = draw(ctx)["rgb_fog"]
     distance = np.where(valid(ctx), euclidean_m(ctx), np.inf)
-    return linear_to_srgb(fog(srgb_to_linear(cue_value(ctx, "rgb")), distance, beta_per_m=p["beta_per_m"],
+    return linear_to_srgb(fog(srgb_to_linear(cue_array(ctx, "rgb")), distance, beta_per_m=p["beta_per_m"],
                               airlight=p["airlight"]))

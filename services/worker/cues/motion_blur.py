@@ -19,7 +19,7 @@ from scipy.ndimage import map_coordinates
 from services.worker.context import ViewContext
 from services.worker.cues.augment_params import draw, focal_px, linear_to_srgb, srgb_to_linear
 from services.worker.cues.common import depth_m, valid
-from services.worker.cues.registry import cue_value, register
+from services.worker.cues.registry import cue_array, register
 
 NEAREST_Z_M = 1e-3  # a point the camera would reach during the exposure stays where it is
 
@@ -64,6 +64,6 @@ def rgb_motion_blur(ctx: ViewContext) -> np.ndarray:
     """uint8 H x W x 3 sRGB: rgb blurred by the view's drawn camera translation during the exposure."""
     p = draw(ctx)["rgb_motion_blur"]
     depth = np.where(valid(ctx), depth_m(ctx), np.inf)
-    blurred, _ = motion_blur(srgb_to_linear(cue_value(ctx, "rgb")), depth, np.asarray(p["translation_m"]),
+    blurred, _ = motion_blur(srgb_to_linear(cue_array(ctx, "rgb")), depth, np.asarray(p["translation_m"]),
                              focal_px(ctx), int(p["max_samples"]))
     return linear_to_srgb(blurred)

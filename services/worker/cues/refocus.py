@@ -17,7 +17,7 @@ import numpy as np
 from services.worker.context import ViewContext
 from services.worker.cues.augment_params import draw, linear_to_srgb, srgb_to_linear
 from services.worker.cues.common import depth_m, valid
-from services.worker.cues.registry import cue_value, register
+from services.worker.cues.registry import cue_array, register
 
 SUPERSAMPLE = 8  # disc kernels: coverage of each pixel by the disc, from 8 x 8 samples
 
@@ -85,4 +85,4 @@ def rgb_refocus(ctx: ViewContext) -> np.ndarray:
     radius = coc_radius_px(depth, focus_m=p["focus_distance_m"], f_number=p["f_number"],
                            focal_mm=p["focal_length_mm"], sensor_mm=p["sensor_width_mm"], width_px=ctx.resolution)
     radius = np.minimum(radius, p["max_coc_px"])
-    return linear_to_srgb(refocus(srgb_to_linear(cue_value(ctx, "rgb")), radius))
+    return linear_to_srgb(refocus(srgb_to_linear(cue_array(ctx, "rgb")), radius))

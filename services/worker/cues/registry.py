@@ -8,9 +8,11 @@ file bytes is separate (services.worker.cues.encoding) and driven by the catalog
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, TypeVar
+
+import numpy as np
 
 from services.core.domain.cues import CATALOG, Cue, UnknownCueError
 from services.worker.passes import RENDER_PASSES
@@ -18,7 +20,9 @@ from services.worker.passes import RENDER_PASSES
 if TYPE_CHECKING:
     from services.worker.context import ViewContext
 
-CueFn = Callable[["ViewContext"], Any]
+CueValue = np.ndarray | Mapping[str, object] | bytes  # an image cue's array, a plan cue's JSON, the `passes` npz
+CueFn = Callable[["ViewContext"], CueValue]
+_Fn = TypeVar("_Fn", bound=CueFn)
 
 
 @dataclass(frozen=True)
@@ -38,7 +42,7 @@ class CueImpl:
 REGISTRY: dict[str, CueImpl] = {}
 
 
-def register(name: str, passes: Iterable[str] = ()) -> Callable[[CueFn], CueFn]:
+def register(name: str, passes: Iterable[str] = ()) -> Callable[[_Fn], _Fn]:
     """Decorator declaring the function of catalog cue `name` (one function per cue) and the optional render
     passes it reads itself (those of the cues it is made from are found through the catalog's inputs)."""
     if name not in CATALOG:
@@ -47,7 +51,7 @@ def register(name: str, passes: Iterable[str] = ()) -> Callable[[CueFn], CueFn]:
     if unknown:
         raise ValueError(f"cue {name!r}: unknown render passes {sorted(unknown)}; known: {sorted(RENDER_PASSES)}")
 
-    def deco(fn: CueFn) -> CueFn:
+    def deco(fn: _Fn) -> _Fn:
         if name in REGISTRY:
             raise ValueError(f"cue {name!r} is registered twice ({REGISTRY[name].fn.__module__}, {fn.__module__})")
         REGISTRY[name] = CueImpl(name, fn, frozenset(passes))
@@ -64,7 +68,7 @@ def get_impl(name: str) -> CueImpl:
         raise UnknownCueError([name]) from None
 
 
-def cue_value(ctx: ViewContext, name: str) -> Any:
+def cue_value(ctx: ViewContext, name: str) -> CueValue:
     """The value of cue `name` for the view of `ctx` (array, dict or bytes), computed once per view.
 
     Lives here, not on ViewContext, so the context never looks cues up (no run-time cycle); a cue reading
@@ -72,3 +76,11 @@ def cue_value(ctx: ViewContext, name: str) -> Any:
     """
     impl = get_impl(name)
     return ctx.memo(f"cue:{name}", lambda: impl.fn(ctx))
+
+
+def cue_array(ctx: ViewContext, name: str) -> np.ndarray:
+    """`cue_value` of an image cue (rgb, segment_semantic, ...): its array."""
+    value = cue_value(ctx, name)
+    if not isinstance(value, np.ndarray):
+        raise TypeError(f"cue {name!r} is not an image cue (got {type(value).__name__})")
+    return value

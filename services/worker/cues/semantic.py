@@ -12,7 +12,7 @@ import numpy as np
 
 from services.worker.context import SemanticsUnavailableError, ViewContext
 from services.worker.cues.common import hit
-from services.worker.cues.registry import cue_value, register
+from services.worker.cues.registry import cue_array, register
 
 
 def _labels(ctx: ViewContext, cue: str) -> tuple[np.ndarray, np.ndarray]:
@@ -62,4 +62,4 @@ def unpack_panoptic(rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 @register("segment_panoptic")
 def segment_panoptic(ctx: ViewContext) -> np.ndarray:
     """uint8 H x W x 3 panoptic packing of segment_semantic and segment_instance."""
-    return pack_panoptic(cue_value(ctx, "segment_semantic"), cue_value(ctx, "segment_instance"))
+    return pack_panoptic(cue_array(ctx, "segment_semantic"), cue_array(ctx, "segment_instance"))

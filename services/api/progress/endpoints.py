@@ -10,7 +10,7 @@ OMNIDATA_SSE_MAX_PER_TENANT streams at once (429 beyond).
 from __future__ import annotations
 
 from collections.abc import AsyncIterator
-from typing import Annotated, Any
+from typing import Annotated
 
 from fastapi import APIRouter, HTTPException, Path, Request, status
 from fastapi.concurrency import run_in_threadpool
@@ -39,7 +39,7 @@ def _stream(request: Request, tenant: str, job_id: int | None) -> StreamingRespo
     except TooManyStreams as e:
         raise HTTPException(status.HTTP_429_TOO_MANY_REQUESTS, str(e)) from None
 
-    def poll(snap: Snapshot) -> tuple[list[dict[str, Any]], list[int]]:
+    def poll(snap: Snapshot) -> tuple[list[JSONObject], list[int]]:
         shared: SharedPolls = app.state.sse_polls
         return shared.poll(tenant, job_id, snap, app.state.rates)
 

@@ -14,7 +14,7 @@ import time
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
 from datetime import datetime
-from typing import Any, cast
+from typing import cast
 
 import anyio
 from fastapi import Request
@@ -26,6 +26,7 @@ from services.api.jobs.service import job_event
 from services.api.progress.compute import Counters, read_counters
 from services.api.progress.rates import RateTracker
 from services.core.db.models import JOB_TERMINAL_STATES, Job
+from services.core.domain.json_types import JSONObject
 
 log = logging.getLogger("omnidata.api")
 
@@ -95,9 +96,9 @@ def read_jobs(
 
 def diff_jobs(
     read: JobsRead, *, job_id: int | None, snap: Snapshot, rates: RateTracker
-) -> tuple[list[dict[str, Any]], list[int]]:
+) -> tuple[list[JSONObject], list[int]]:
     """Changed jobs since `snap` (as JSON-ready dicts) and ids of deleted ones; updates `snap`."""
-    changed: list[dict[str, Any]] = []
+    changed: list[JSONObject] = []
     for j in read.jobs:
         counters = read.counters.get(j.id, {})
         fp = json.dumps([j.state, j.error, counters], sort_keys=True)
@@ -122,7 +123,7 @@ def diff_jobs(
 
 def poll_jobs(
     session: Session, *, owner: str, job_id: int | None, snap: Snapshot, rates: RateTracker
-) -> tuple[list[dict[str, Any]], list[int]]:
+) -> tuple[list[JSONObject], list[int]]:
     """Changed jobs since `snap` (as JSON-ready dicts) and ids of deleted ones; updates `snap`."""
     return diff_jobs(read_jobs(session, owner=owner, job_id=job_id), job_id=job_id, snap=snap, rates=rates)
 
@@ -135,7 +136,7 @@ def sse(event: str, data: object, ident: int | None = None) -> str:
 
 async def event_stream(
     request: Request,
-    poll: Callable[[Snapshot], tuple[list[dict[str, Any]], list[int]]],
+    poll: Callable[[Snapshot], tuple[list[JSONObject], list[int]]],
     *,
     poll_s: float,
     heartbeat_s: float,

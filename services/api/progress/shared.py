@@ -12,12 +12,12 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
 
 from sqlalchemy.orm import Session
 
 from services.api.jobs.service import RateTracker
 from services.api.progress.service import FinalCounters, JobsRead, Snapshot, diff_jobs, read_jobs
+from services.core.domain.json_types import JSONObject
 
 MAX_ENTRIES = 10_000  # (tenant, job) reads kept at most; the oldest are dropped beyond
 
@@ -52,7 +52,7 @@ class SharedPolls:
                     self._forget_oldest()
             return read
 
-    def poll(self, owner: str, job_id: int | None, snap: Snapshot, rates: RateTracker) -> tuple[list[dict[str, Any]], list[int]]:
+    def poll(self, owner: str, job_id: int | None, snap: Snapshot, rates: RateTracker) -> tuple[list[JSONObject], list[int]]:
         """What a stream following (owner, job_id) has not sent yet: changed jobs and deleted ids; updates `snap`."""
         return diff_jobs(self.read(owner, job_id), job_id=job_id, snap=snap, rates=rates)
 

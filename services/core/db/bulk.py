@@ -13,7 +13,7 @@ from collections.abc import Mapping, Sequence
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import JSON, Table, bindparam, insert, text
+from sqlalchemy import JSON, Table, TextClause, bindparam, insert, text
 from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.engine import Connection
 from sqlalchemy.orm import DeclarativeBase, Session
@@ -137,7 +137,7 @@ def _copy_postgres(conn: Connection, table: Table, names: list[str], cols: list[
 # CONFLICT DO UPDATE construct, and compiling it anew on every heartbeat cost more CPU than the database spent.
 @functools.cache
 def _upsert_sql(dialect: str, table: Table, columns: tuple[str, ...], key: tuple[str, ...],
-                insert_only: tuple[str, ...]) -> Any:
+                insert_only: tuple[str, ...]) -> TextClause:
     prep = _DIALECTS[dialect].identifier_preparer
     names = ", ".join(prep.quote(c) for c in columns)
     changes = ", ".join(f"{prep.quote(c)} = excluded.{prep.quote(c)}" for c in columns

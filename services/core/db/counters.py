@@ -12,7 +12,7 @@ import functools
 from collections.abc import Mapping
 from typing import Any
 
-from sqlalchemy import func, select, text
+from sqlalchemy import TextClause, func, select, text
 from sqlalchemy.engine import Connection
 from sqlalchemy.orm import Session
 
@@ -28,7 +28,7 @@ COUNTER_SHARDS = 16
 # SQL text built once per dialect: SQLAlchemy cannot cache the compiled form of its INSERT ... ON CONFLICT DO
 # UPDATE construct, and compiling it anew on every state change cost more CPU than the database spent running it.
 @functools.cache
-def _add_counts_sql(dialect: str) -> Any:
+def _add_counts_sql(dialect: str) -> TextClause:
     shard = f"mod(pg_backend_pid(), {COUNTER_SHARDS})" if dialect == "postgresql" else "0"
     return text(
         f"INSERT INTO job_counter (job_id, cue, state, shard, n) VALUES (:job_id, :cue, :state, {shard}, :n) "

@@ -14,9 +14,23 @@ from collections.abc import Iterable, Mapping, Sequence
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import ColumnElement, Table, case, exists, or_, select, text, update
+from sqlalchemy import (
+    Case,
+    ColumnElement,
+    Row,
+    Select,
+    Table,
+    Update,
+    case,
+    exists,
+    or_,
+    select,
+    text,
+    update,
+)
 from sqlalchemy.engine import Connection
 from sqlalchemy.orm import Session
+from sqlalchemy.sql.selectable import TextualSelect
 
 from services.core.db.bulk import connection_of
 from services.core.db.counters import COUNTER_SHARDS, add_counts
@@ -85,7 +99,7 @@ def transition(
     to_state: str,
     task_ids: Iterable[int] | None = None,
     where: Iterable[ColumnElement[bool]] = (),
-    **values: Any,
+    **values: object,
 ) -> list[tuple[int, str]]:
     """Move the job's tasks in `from_state` to `to_state` and adjust the counters in the same transaction.
 
@@ -97,7 +111,7 @@ def transition(
     Task objects already loaded in a Session are not refreshed (reload with populate_existing=True).
     """
     rows = transition_rows(session, job_id=job_id, from_state=from_state, to_state=to_state, task_ids=task_ids,
-                           where=where, **values)
+                           where=where, returning=(), **values)
     return [(int(r[0]), str(r[1])) for r in rows]
 
 
@@ -109,9 +123,9 @@ def transition_rows(
     to_state: str,
     task_ids: Iterable[int] | None = None,
     where: Iterable[ColumnElement[bool]] = (),
-    returning: Sequence[Any] = (),
-    **values: Any,
-) -> list[Any]:
+    returning: Sequence[Any] = (),  # ORM attributes or columns (SQLAlchemy's column-clause argument)
+    **values: object,
+) -> list[Row[Any]]:
     """`transition`, returning rows of (id, cue, job_id, *returning) of the moved tasks.
 
     On Postgres the move and its counter deltas are ONE statement (a data-modifying CTE): the counter rows are
@@ -131,7 +145,7 @@ def transition_rows(
     if task_ids is not None:
         ids = list(dict.fromkeys(int(i) for i in task_ids))
         chunks = [ids[k : k + IN_CHUNK] for k in range(0, len(ids), IN_CHUNK)]
-    moved: list[Any] = []
+    moved: list[Row[Any]] = []
     for chunk in chunks:
         part = stmt.where(*conds) if chunk is None else stmt.where(t.c.id.in_(chunk), *conds)
         if conn.dialect.name == "postgresql":
@@ -165,11 +179,11 @@ _COUNT_SQL = (
 
 
 @functools.cache
-def _count_moved(src: str, dst: str) -> Any:
+def _count_moved(src: str, dst: str) -> TextualSelect:
     return text(_COUNT_SQL.format(shards=COUNTER_SHARDS, src=TaskState(src).value, dst=TaskState(dst).value)).columns()
 
 
-def _counted(move: Any, src: str, dst: str) -> Any:
+def _counted(move: Update, src: str, dst: str) -> Select[Any]:
     """WITH moved AS (UPDATE task ... RETURNING ...), counted AS (INSERT INTO job_counter ... ON CONFLICT add)
     SELECT * FROM moved: the move and its counter deltas in one statement (Postgres)."""
     moved = move.cte("moved")
@@ -248,7 +262,7 @@ def _autocommit(session: Session) -> Connection | None:
     return session.connection(execution_options={"isolation_level": "AUTOCOMMIT"})
 
 
-def claim_task(session: Session, *, task_id: int, worker_id: str, now: datetime, lease_until: datetime) -> Any:
+def claim_task(session: Session, *, task_id: int, worker_id: str, now: datetime, lease_until: datetime) -> Row[Any] | None:
     """queued -> running for `worker_id` while the task's job runs and the worker is not kept off the job (a
     current WorkerBlock); returns the row (id, cue, job_id, space_id, point_idx, view_idx, attempts, attempts
     counting this one), or None when nothing was claimed. Postgres: one statement outside a transaction."""
@@ -290,7 +304,7 @@ def finish_task(
 def claim_view_tasks(
     session: Session, *, task_id: int, job_id: int, space_id: int, point: int, view: int, worker_id: str,
     now: datetime, lease_until: datetime,
-) -> list[Any]:
+) -> list[Row[Any]]:
     """queued -> running for `worker_id`, in one statement, of the view's other tasks (same job, space, point and
     view; not `task_id`, not its `passes` task) while the job runs and the worker is not kept off it; returns the
     rows (id, cue, job_id, attempts counting this one). Postgres: one fixed statement outside a transaction."""
@@ -328,7 +342,7 @@ def finish_tasks(
             "worker": worker_id, "now": now})
         return {int(r[0]) for r in rows}
 
-    def per_task(values: list[Any]) -> Any:
+    def per_task(values: Sequence[str | int | float | None]) -> Case[Any]:
         return case(dict(zip(ids, values, strict=True)), value=Task.id)
 
     moved = transition(

@@ -18,16 +18,18 @@ from __future__ import annotations
 
 import logging
 from collections import defaultdict
+from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import datetime, timedelta
-from typing import Any
+from typing import TypeVar
 
-from sqlalchemy import and_, or_, select
+from sqlalchemy import Row, Select, and_, or_, select
 from sqlalchemy.orm import Session
 
 from services.core.db.jobs import retry_backoff_s
 from services.core.db.models import Job, JobState, Task, TaskState, Worker, utcnow
 from services.core.db.states import transition
+from services.core.domain.json_types import JSONValue
 
 log = logging.getLogger(__name__)
 
@@ -50,13 +52,18 @@ class ReapResult:
         return self.expired_retried + self.expired_failed + self.expired_cancelled + self.lost_requeued
 
 
-def _locked(session: Session, stmt: Any) -> Any:
+_Cols = TypeVar("_Cols", bound=tuple[object, ...])
+# (id, job_id, attempts, worker_id, lease_until, job state, job spec) of a running task of a lost worker
+_ExpiredRow = Row[tuple[int, int, int, str | None, datetime | None, JobState, dict[str, JSONValue]]]
+
+
+def _locked(session: Session, stmt: Select[_Cols]) -> Sequence[Row[_Cols]]:
     if session.get_bind().dialect.name == "postgresql":
         stmt = stmt.with_for_update(skip_locked=True, of=Task)
     return session.execute(stmt).all()
 
 
-def _why(row: Any, now: datetime, dead_after_s: float | None) -> str:
+def _why(row: _ExpiredRow, now: datetime, dead_after_s: float | None) -> str:
     """How the worker of an expired row was lost, for the task's error text."""
     if row.lease_until is not None and row.lease_until < now:
         return f"LeaseExpired: worker {row.worker_id} stopped heart-beating (lost or killed)"
@@ -104,7 +111,7 @@ def _reap_running(session: Session, res: ReapResult, now: datetime, default_max_
         .limit(REAP_BATCH),
     )
     res.dead_worker = sum(1 for r in expired if r.lease_until is None or r.lease_until >= now)
-    by_job: dict[int, list[Any]] = defaultdict(list)
+    by_job: dict[int, list[_ExpiredRow]] = defaultdict(list)
     for row in expired:
         by_job[int(row.job_id)].append(row)
     for job_id, rows in by_job.items():
@@ -117,7 +124,7 @@ def _reap_running(session: Session, res: ReapResult, now: datetime, default_max_
             continue
         max_attempts = int(spec.get("max_attempts") or default_max_attempts)
         retry: dict[tuple[float, str], list[int]] = defaultdict(list)
-        fail: list[Any] = []
+        fail: list[_ExpiredRow] = []
         for r in rows:
             if int(r.attempts) < max_attempts:
                 retry[retry_backoff_s(int(r.attempts)), _why(r, now, dead_after_s)].append(int(r.id))

@@ -13,12 +13,12 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import timedelta
-from typing import Any
+from typing import TypeVar
 
 import redis as redis_lib
 from fastapi import FastAPI
-from sqlalchemy import case, func, select, text
-from sqlalchemy.orm import Session
+from sqlalchemy import Select, case, func, select, text
+from sqlalchemy.orm import InstrumentedAttribute, Session
 
 from services.core.db.engine import SchemaNotCurrent, schema_problem
 from services.core.db.models import JOB_STATES, TASK_STATES, Job, JobCounter, Task, TaskState, Worker, utcnow
@@ -148,7 +148,10 @@ def queue_depths(app: FastAPI) -> dict[str, int | None]:
         return dict.fromkeys(queues)
 
 
-def _owned(stmt: Any, owner: str | None, job_id: Any = None) -> Any:  # any Select (SQLAlchemy's generics)
+_Cols = TypeVar("_Cols", bound=tuple[object, ...])
+
+
+def _owned(stmt: Select[_Cols], owner: str | None, job_id: InstrumentedAttribute[int] | None = None) -> Select[_Cols]:
     """`stmt` limited to the jobs of `owner` (None: every job), joining Job on the `job_id` column if given."""
     if owner is None:
         return stmt

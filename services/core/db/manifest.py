@@ -13,7 +13,7 @@ import tempfile
 from collections.abc import Iterator
 from datetime import datetime
 from pathlib import Path
-from typing import Any
+from typing import NotRequired, TypedDict
 
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
@@ -40,7 +40,23 @@ def _relative(job: Job, key: str | None, fallback: str) -> str:
     return key
 
 
-def iter_manifest(session: Session, job: Job) -> Iterator[dict[str, Any]]:
+class ManifestOutput(TypedDict):
+    key: str
+    size: int | None
+    sha256: str | None
+
+
+class ManifestEntry(TypedDict):
+    """One line of manifest.jsonl: a view and its done outputs."""
+
+    space: str
+    point: int
+    view: int
+    outputs: dict[str, ManifestOutput]
+    alignment: NotRequired[float]  # capture views: the photo/geometry alignment score
+
+
+def iter_manifest(session: Session, job: Job) -> Iterator[ManifestEntry]:
     """One dict per view: {"space", "point", "view", "outputs": {cue: {"key", "size", "sha256"}}}, plus "alignment"
     (the photo/geometry score) for views at capture cameras.
 
@@ -66,7 +82,7 @@ def iter_manifest(session: Session, job: Job) -> Iterator[dict[str, Any]]:
                 .where(View.job_id == job.id, View.space_id == space.id, View.point_idx >= p0, View.point_idx < p1)
                 .order_by(View.point_idx, View.v)
             ).all()
-            outputs: dict[tuple[int, int], dict[str, dict[str, Any]]] = {}
+            outputs: dict[tuple[int, int], dict[str, ManifestOutput]] = {}
             rows = session.execute(
                 select(Task.point_idx, Task.view_idx, Task.cue, Task.output_key, Task.size, Task.sha256)
                 .where(
@@ -84,13 +100,15 @@ def iter_manifest(session: Session, job: Job) -> Iterator[dict[str, Any]]:
                 }
             for p, v in views:
                 outs = outputs.get((int(p), int(v)), {})
-                yield {
+                entry: ManifestEntry = {
                     "space": space.name,
                     "point": int(p),
                     "view": int(v),
                     "outputs": {c: outs[c] for c in public if c in outs},  # catalog order
-                    **({"alignment": alignment[f"{p}/{v}"]} if f"{p}/{v}" in alignment else {}),
                 }
+                if f"{p}/{v}" in alignment:
+                    entry["alignment"] = alignment[f"{p}/{v}"]
+                yield entry
 
 
 def iter_manifest_lines(session: Session, job: Job) -> Iterator[str]:

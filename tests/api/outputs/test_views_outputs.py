@@ -35,7 +35,8 @@ def test_views_tasks_filters_and_pagination(api: Api, bunny: Path) -> None:
 
         p0 = [t.id for t in s.query(Task).filter(Task.job_id == job_id, Task.point_idx == 0)]
         run_tasks(s, api.store, job_id, p0)
-        rgb_p1 = [t.id for t in s.query(Task).filter(Task.job_id == job_id, Task.point_idx == 1, Task.cue == "rgb")]
+        rgb_p1 = [t.id for t in s.query(Task).filter(Task.job_id == job_id, Task.point_idx == 1, Task.cue == "rgb")
+                  .order_by(Task.view_idx)]  # view 0 first: a row order without ORDER BY is the heap's
         run_tasks(s, api.store, job_id, rgb_p1[:1], fail=True)
     r = api.client.get(f"/jobs/{job_id}/views?limit=4", headers=h).json()
     assert r["total"] == 6 and len(r["items"]) == 4

@@ -154,7 +154,7 @@ _DIALECTS = {"postgresql": postgresql.dialect(), "sqlite": sqlite.dialect()}  # 
 
 
 def upsert(
-    session: Session | Connection, model_or_table: type[DeclarativeBase] | Table, row: Mapping[str, Any],
+    session: Session | Connection, model_or_table: type[DeclarativeBase] | Table, row: Mapping[str, object],
     key: Sequence[str], insert_only: Sequence[str] = (),
 ) -> None:
     """INSERT `row`, or where its `key` exists UPDATE every other column but `insert_only`: one statement."""

@@ -10,9 +10,9 @@ intermediates (3x per view on a room, ~0.1 CPU-s a view).
 from __future__ import annotations
 
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, Protocol, TypeVar
+from typing import Protocol, TypeVar
 
 from sqlalchemy.orm import Session
 
@@ -73,9 +73,11 @@ class JobInfo:
         return {"source_to_world": planned} if planned is not None else space_frame_for(self.spec, space)
 
 
-def planned_frames(plan_summary: dict[str, Any] | None) -> dict[str, list[list[float]]]:
+def planned_frames(plan_summary: Mapping[str, object] | None) -> dict[str, list[list[float]]]:
     """Space name -> the source_to_world (4x4) its planner loaded it with, from a job's plan summary."""
     spaces = (plan_summary or {}).get("spaces") or {}
+    if not isinstance(spaces, dict):
+        return {}
     return {name: rec["source_to_world"] for name, rec in spaces.items()
             if isinstance(rec, dict) and rec.get("source_to_world") is not None}
 

@@ -20,6 +20,7 @@ from services.worker.cues.segmentation import (
 )
 from tests.fixtures import reference_segmentation
 from tests.fixtures.raycast import cube_scene, raycast_passes
+from tests.fixtures.reference_segmentation import reference_relabel
 
 
 def reference_double(x: np.ndarray) -> np.ndarray:
@@ -31,19 +32,6 @@ def reference_double(x: np.ndarray) -> np.ndarray:
         pair = np.stack([0.75 * x + 0.25 * prev, 0.75 * x + 0.25 * nxt], axis=axis + 1)
         x = pair.reshape(x.shape[:axis] + (2 * n,) + x.shape[axis + 1:])
     return x
-
-
-def reference_relabel(labels: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """segmentation's relabelling before issue 20 (np.unique, first-appearance order)."""
-    out = np.zeros(labels.shape, dtype=np.uint16)
-    vals = labels[mask]
-    if vals.size == 0:
-        return out
-    uniq, first, inv = np.unique(vals, return_index=True, return_inverse=True)
-    rank = np.empty(len(uniq), dtype=np.int64)
-    rank[np.argsort(first)] = np.arange(1, len(uniq) + 1)
-    out[mask] = np.minimum(rank[inv], 65535).astype(np.uint16)
-    return out
 
 
 @pytest.mark.parametrize("shape", [(1, 1), (2, 3), (31, 17), (128, 128)])

@@ -21,6 +21,7 @@ from sqlalchemy import (
     ForeignKey,
     Index,
     Integer,
+    LargeBinary,
     MetaData,
     SmallInteger,
     String,
@@ -304,6 +305,23 @@ class Task(Base):
     started_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
     finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
     not_before: Mapped[datetime | None] = mapped_column(UTCDateTime(), doc="retry backoff: not dispatched before")
+
+
+class ViewOutput(Base):
+    """The finished tasks of one view, compacted into one row (services.scheduler.compaction): what the manifest,
+    the views API and a resume need of them, packed by services.core.db.view_outputs (per task: id, cue, attempts,
+    size, sha256, duration, finish time, and the output key only where it is not the deterministic one).
+    `cue_mask` has bit i set for the catalog's i-th cue among them."""
+
+    __tablename__ = "view_output"
+
+    job_id: Mapped[int] = mapped_column(BigIntId, ForeignKey("job.id", ondelete="CASCADE"), primary_key=True)
+    space_id: Mapped[int] = mapped_column(BigIntId, primary_key=True)
+    point_idx: Mapped[int] = mapped_column(Integer, primary_key=True)
+    view_idx: Mapped[int] = mapped_column(Integer, primary_key=True)
+    cue_mask: Mapped[int] = mapped_column(BigInteger)
+    finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime(), doc="the last of its tasks to finish")
+    outputs: Mapped[bytes] = mapped_column(LargeBinary)
 
 
 class Worker(Base):

@@ -54,10 +54,8 @@ def region_graph(labels: np.ndarray, features255: np.ndarray, sigma: float,
     over their shared pixel pairs of the larger boundary value of the two pixels.
     """
     n = int(labels.max()) + 1
-    flat = labels.ravel()
-    cnt = np.bincount(flat, minlength=n).astype(np.float64)
-    means = np.stack([np.bincount(flat, weights=features255[..., c].ravel(), minlength=n)
-                      for c in range(features255.shape[-1])], axis=1) / np.maximum(cnt, 1)[:, None]
+    cnt, sums = _region_sums(np.ascontiguousarray(labels), np.ascontiguousarray(features255), n)
+    means = sums / np.maximum(cnt, 1)[:, None]
     has_boundary = boundary is not None
     boundary_or_none = np.zeros((1, 1), np.float32) if boundary is None else boundary
     links, boundary_sum = _adjacent_pairs(labels, boundary_or_none, n, has_boundary)
@@ -117,6 +115,22 @@ def _first_appearance_ranks(labels: np.ndarray, mask: np.ndarray) -> np.ndarray:
                 rank[lab] = count
             out[i] = min(rank[lab], 65535)
     return out
+
+
+@njit(cache=True, nogil=True)
+def _region_sums(labels: np.ndarray, features: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel count (float64) and per-channel feature sums (float64) of every region, in one pass: each sum adds
+    in raster order, as numpy's bincount with weights did channel by channel."""
+    h, w, c = features.shape
+    cnt = np.zeros(n, np.float64)
+    sums = np.zeros((n, c), np.float64)
+    for y in range(h):
+        for x in range(w):
+            lab = labels[y, x]
+            cnt[lab] += 1.0
+            for k in range(c):
+                sums[lab, k] += np.float64(features[y, x, k])
+    return cnt, sums
 
 
 @njit(cache=True, nogil=True)

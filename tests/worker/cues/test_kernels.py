@@ -9,6 +9,7 @@ from services.core.domain.cues import CURVATURE_FLAT, NORMAL_BACKGROUND
 from services.worker.context import ViewContext
 from services.worker.cues.basic import _curvature_pixels, _normal_pixels
 from services.worker.cues.common import gaussian_blur, sobel_xy
+from services.worker.cues.felzenszwalb import Felzenszwalb
 from services.worker.cues.keypoints import _blur, _double, doh_response
 from services.worker.cues.registry import cue_value
 from services.worker.cues.segmentation import (
@@ -18,7 +19,7 @@ from services.worker.cues.segmentation import (
     region_graph,
     segment_unsup2d,
 )
-from tests.fixtures import reference_segmentation
+from tests.fixtures import reference_felzenszwalb, reference_segmentation
 from tests.fixtures.raycast import cube_scene, raycast_passes
 from tests.fixtures.reference_segmentation import reference_relabel
 
@@ -207,3 +208,25 @@ def test_sobel_is_scipys_bit_for_bit() -> None:
         for new, axis in ((gx, 1), (gy, 0)):
             old = sobel(img, axis=axis, mode="nearest")
             assert new.dtype == np.float32 and np.array_equal(new.view(np.uint32), old.view(np.uint32)), (shape, axis)
+
+
+def _test_image(rng: np.random.Generator, h: int, w: int, c: int) -> np.ndarray:
+    """Blocks of flat colour (exact ties: zero-weight edges), a ramp and quantised noise (many equal weights)."""
+    blocks = rng.random((max(1, h // 8) + 1, max(1, w // 8) + 1, c))
+    img = np.kron(blocks, np.ones((8, 8, 1)))[:h, :w]
+    img = img + np.linspace(0, 0.3, w)[None, :, None] * (rng.random(c) > 0.5)
+    noisy = rng.random((h, w)) > 0.7
+    img[noisy] += np.round(rng.normal(0, 0.05, (int(noisy.sum()), c)), 2)
+    return img.astype(np.float32)
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (1, 9), (7, 1), (37, 53), (96, 80)])
+@pytest.mark.parametrize("channels,sigma", [(3, 0.8), (4, 0.0), (1, 0.0)])
+def test_felzenszwalb_is_the_previous_kernel_bit_for_bit(shape, channels, sigma) -> None:
+    img = _test_image(np.random.default_rng(shape[0] * 31 + channels), *shape, channels)
+    new, old = Felzenszwalb(img, 200.0, sigma), reference_felzenszwalb.Felzenszwalb(img, 200.0, sigma)
+    for min_size in (1, 5, 50, 400):
+        a, b = new.labels(min_size), old.labels(min_size)
+        assert a.dtype == b.dtype and np.array_equal(a, b), min_size
+    if shape[0] * shape[1] > 1000:
+        assert 1 < new.labels(5).max() < new.labels(1).max()  # real merges at both passes, not a trivial case

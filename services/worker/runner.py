@@ -9,10 +9,15 @@
    cache; every other cue is derived from that pass set, read from this process's memory LRU or the store
    (and rendered again only if the cache is gone, e.g. after a resume of a finished job).
 4. Write the object atomically to its deterministic key, then record it done (services.worker.claim).
-   View batch (settings.worker_batch_views): a derived cue's task claims the other queued tasks of its view in
-   one statement, derives them all from the one pass set in memory, and records the finished ones in one
-   statement. Each task keeps its row and its message: a message whose task a batch ran is skipped (a read,
-   no claim). A batch whose worker dies stays `running` under its lease: the reaper re-queues every task of it.
+   View batch (settings.worker_batch_views): the worker that rendered a view's `passes` claims, in one
+   statement, the rest of that view's tasks, pending or queued (every DAG level: all their inputs are cues of
+   the view, computed in memory by its ViewContext in topological order), derives and stores each, and records
+   them all done, `passes` included, in one statement: ~3 statements a view instead of ~2 per task. A derived
+   cue's task (a view the batch did not take whole, e.g. after a resume) claims its view's queued tasks alike.
+   Each task keeps its row; a pending task claimed so gets no message, a queued one's message is skipped when
+   it comes (a read, no claim). A task whose input failed in the batch is handed back to pending unrun. A batch
+   whose worker dies stays `running` under its lease (the beats extend all of it): the reaper re-queues every
+   task of it.
 5. Failure: retry after a backoff or fail for good, and keep a failing worker off the job
    (services.worker.failure_policy).
 
@@ -35,7 +40,7 @@ from celery.utils.log import current_process_index
 from sqlalchemy.orm import Session
 
 from services.core.db.models import Space
-from services.core.domain.cues import OUTPUT_CUES, closure
+from services.core.domain.cues import CATALOG, OUTPUT_CUES, closure
 from services.core.domain.keys import output_key, passes_key
 from services.core.domain.plan import PlannedView, SpacePlan
 from services.core.ingest.loading import load_space
@@ -49,6 +54,8 @@ from services.worker.executor import produce, render_passes_for
 from services.worker.heartbeat import Heartbeat
 from services.worker.passes import ViewPasses
 from services.worker.space_cache import SpaceCache, SpaceContext, should_recycle
+
+Recorded = tuple[Claimed, str, ObjectInfo, float]  # a stored task: its key, object and seconds
 
 log = logging.getLogger(__name__)
 
@@ -93,8 +100,9 @@ class TaskRunner:
         self.batched: deque[int] = deque(maxlen=BATCHED_MEMORY)  # ids this process ran in view batches lately
 
     def run(self, task_id: int) -> Outcome:
-        """Claim and run one task, and with it the rest of its view's queued tasks (a view batch, when
-        settings.worker_batch_views); never raises for task failures (they are recorded), only TransientError.
+        """Claim and run one task, and with it the rest of its view (a view batch, when
+        settings.worker_batch_views): after a `passes` task, the view's pending and queued tasks; after a derived
+        cue's, the view's queued ones. Never raises for task failures (they are recorded), only TransientError.
         The returned Outcome is the message's task's; `batch` holds the others'."""
         t0 = time.perf_counter()
         if task_id in self.batched and self.ledger.is_settled(task_id):
@@ -103,15 +111,16 @@ class TaskRunner:
         claimed = self.ledger.claim(task_id)
         if isinstance(claimed, Outcome):
             return claimed
-        rest: list[Claimed] = []
-        if self.settings.worker_batch_views and claimed.cue != "passes":
-            rest = self.ledger.claim_view_rest(claimed)
-            self.batched.extend(c.id for c in rest)
-        self.tasks_run += 1 + len(rest)
+        self.tasks_run += 1
         if self.heartbeat is not None:
-            self.heartbeat.set_current(claimed.id, [c.id for c in rest])
+            self.heartbeat.set_current(claimed.id)
         try:
-            outcomes = self._run_claimed([claimed, *rest], t0)
+            if not self.settings.worker_batch_views:
+                outcomes = self._run_claimed([claimed], t0)
+            elif claimed.cue == "passes":
+                outcomes = self._run_view(claimed, t0)
+            else:
+                outcomes = self._run_claimed([claimed, *self._claim_rest(claimed, with_pending=False)], t0)
         finally:
             if self.heartbeat is not None:
                 self.heartbeat.set_current(None)
@@ -121,22 +130,63 @@ class TaskRunner:
                     self.heartbeat.record_done(str(o.cue), o.labels)
         return replace(outcomes[0], batch=tuple(outcomes[1:]), recycle=self.should_recycle())
 
-    def _run_claimed(self, claimed: list[Claimed], t0: float) -> list[Outcome]:
-        """Compute and store each claimed task (the first one's time counts from `t0`, its claim); failures are
-        recorded one by one, the finished ones together (ledger.record_done_many). Outcomes in `claimed` order."""
+    def _claim_rest(self, claimed: Claimed, *, with_pending: bool) -> list[Claimed]:
+        """The rest of the claimed task's view (ledger.claim_view_rest), remembered, and leased by the beats."""
+        rest = self.ledger.claim_view_rest(claimed, with_pending=with_pending)
+        self.batched.extend(c.id for c in rest)
+        self.tasks_run += len(rest)
+        if self.heartbeat is not None:
+            self.heartbeat.set_current(claimed.id, [c.id for c in rest])
+        return rest
+
+    def _run_view(self, passes: Claimed, t0: float) -> list[Outcome]:
+        """The whole view on this worker: render its pass set (the `passes` task), then claim the rest of the view
+        in one statement, derive it from the pass set in memory, and record everything done in one statement.
+        A failed render is recorded alone: the rest of the view stays pending (the dispatcher fails it with it)."""
+        try:
+            key, info = self.execute(passes)
+        except Exception as exc:
+            return [self._record_failure(passes, exc, t0)]
+        rendered = (passes, key, info, time.perf_counter() - t0)
+        rest = self._claim_rest(passes, with_pending=True)
+        return self._run_claimed(rest, time.perf_counter(), done=[rendered], head=passes)
+
+    def _record_failure(self, t: Claimed, exc: Exception, t0: float) -> Outcome:
+        max_attempts = self.inputs.max_attempts(t.job_id, self.settings.max_attempts)
+        return self.ledger.record_failure(t, exc, time.perf_counter() - t0, max_attempts)
+
+    def _run_claimed(self, claimed: list[Claimed], t0: float, *, done: list[Recorded] | None = None,
+                     head: Claimed | None = None) -> list[Outcome]:
+        """Compute and store each claimed task (the first one's time counts from `t0`); `done` are tasks already
+        stored (`head`, the message's task, among them). Failures are recorded one by one; a task an input of
+        which failed here is handed back to pending unrun (the DAG's rule: a cue is queued when its inputs
+        exist); the finished ones are recorded together (ledger.record_done_many). Outcomes: head first, then
+        `claimed` order."""
         failed: dict[int, Outcome] = {}
-        done: list[tuple[Claimed, str, ObjectInfo, float]] = []
+        done = list(done or [])
+        unrun: list[Claimed] = []
+        lost: set[str] = set()  # cues of this view that failed or were handed back in this batch
+        failed_cues: list[str] = []
         for t in claimed:
+            if lost.intersection(CATALOG[t.cue].inputs):
+                unrun.append(t)
+                lost.add(t.cue)
+                continue
             try:
                 key, info = self.execute(t)
             except Exception as exc:
-                max_attempts = self.inputs.max_attempts(t.job_id, self.settings.max_attempts)
-                failed[t.id] = self.ledger.record_failure(t, exc, time.perf_counter() - t0, max_attempts)
+                failed[t.id] = self._record_failure(t, exc, t0)
+                lost.add(t.cue)
+                failed_cues.append(t.cue)
             else:
                 done.append((t, key, info, time.perf_counter() - t0))
             t0 = time.perf_counter()
+        if unrun:
+            why = f"handed back to pending unrun: {', '.join(failed_cues)} failed in its view batch"
+            failed.update((o.task_id, o) for o in self.ledger.hand_back(unrun, why))
         recorded = {o.task_id: o for o in self.ledger.record_done_many(done)} if done else {}
-        return [failed.get(t.id) or recorded[t.id] for t in claimed]
+        order = ([head] if head is not None else []) + claimed
+        return [failed.get(t.id) or recorded[t.id] for t in order]
 
     def should_recycle(self) -> bool:
         """True when this process should exit after the task: RSS above worker_max_memory_mb or too many tasks."""

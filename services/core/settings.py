@@ -77,7 +77,7 @@ class Settings(BaseSettings):
     max_attempts: int = Field(3, ge=1)
     dispatch_window: int = Field(2000, ge=1, description="queued tasks per job at most")
     compact_views: bool = Field(
-        False, description="the scheduler replaces the task rows of finished views by one packed row per view "
+        True, description="the scheduler replaces the task rows of finished views by one packed row per view "
         "(view_output), so a finished job's database holds ~1.2 KB a view instead of ~6 KB",
     )
     compact_after_s: float = Field(60.0, ge=0, description="a view is compacted once its last task finished this long ago")

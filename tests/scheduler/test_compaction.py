@@ -11,7 +11,7 @@ from services.core.db.compacted import compacted_tasks, expand_views, space_name
 from services.core.db.counters import job_progress
 from services.core.db.jobs import delete_job, reopen_job
 from services.core.db.manifest import manifest_bytes
-from services.core.db.models import Job, Task, ViewOutput
+from services.core.db.models import CompactedDuration, Job, Task, ViewOutput
 from services.core.db.states import transition
 from services.core.db.view_outputs import DoneTask, default_key, pack, unpack
 from services.embedded.report import build_report, views_done
@@ -125,11 +125,15 @@ def test_expanding_gives_back_the_same_tasks(any_sm, local_store):
     with any_sm() as s:
         job = make_running_job(s, local_store, cues=["rgb"], n_points=2, views=1)
         _run_all(s, job)
+        s.execute(update(Task).values(duration_s=0.3))
+        s.commit()
         before = sorted((t.cue, t.point_idx, t.output_key, t.size, t.sha256, t.finished_at)
                         for t in s.scalars(select(Task).where(Task.job_id == job.id)))
     Compactor(any_sm, after_s=0, pass_s=60).run_once()
     with any_sm() as s:
         job = s.get(Job, job.id)
+        assert s.execute(select(CompactedDuration.cue, CompactedDuration.bucket, CompactedDuration.n)
+                         .order_by(CompactedDuration.cue)).all() == [("passes", 3, 2), ("rgb", 3, 2)]
         assert expand_views(s, job, [(k[0], k[1], k[2]) for k in s.execute(
             select(ViewOutput.space_id, ViewOutput.point_idx, ViewOutput.view_idx))]) == 4
         s.commit()
@@ -137,6 +141,7 @@ def test_expanding_gives_back_the_same_tasks(any_sm, local_store):
                        for t in s.scalars(select(Task).where(Task.job_id == job.id, Task.state == "done")))
         assert after == before
         assert s.scalar(select(func.count()).select_from(ViewOutput)) == 0
+        assert s.scalar(select(func.sum(CompactedDuration.n))) == 0
 
 
 def test_deleting_a_job_deletes_its_compacted_views(any_sm, local_store):

@@ -6,13 +6,15 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from sqlalchemy import case, func, select
 from sqlalchemy.orm import Session, sessionmaker
 from tqdm import tqdm
 
+from services.core.db.compacted import compacted_tasks
 from services.core.db.counters import job_progress
-from services.core.db.models import Job, JobState, Task, TaskState, View
+from services.core.db.models import Job, JobState, Task, TaskState, View, ViewOutput
 from services.core.domain.cues import CATALOG
 from services.core.storage import ObjectStore
 
@@ -75,7 +77,8 @@ def views_done(s: Session, job_id: int) -> tuple[int, int]:
         .subquery()
     )
     done = int(s.scalar(select(func.count()).select_from(per_view)) or 0)
-    return done, total
+    compacted = int(s.scalar(select(func.count()).select_from(ViewOutput).where(ViewOutput.job_id == job_id)) or 0)
+    return done + compacted, total
 
 
 @dataclass
@@ -103,10 +106,12 @@ def build_report(sessions: sessionmaker[Session], store: ObjectStore, job_id: in
         assert job is not None
         rep = Report(state=job.state, error=job.error)
         rep.views = view_count(s, job_id)
-        rows = s.execute(
+        rows: list[tuple[Any, ...]] = [tuple(r) for r in s.execute(
             select(Task.cue, Task.state, Task.output_key, Task.error, Task.point_idx, Task.view_idx)
             .where(Task.job_id == job_id, Task.cue.not_in(internal)).order_by(Task.id)
-        ).all()
+        )]
+        rows += [(t.cue, t.state, t.output_key, t.error, t.point_idx, t.view_idx)
+                 for t in compacted_tasks(s, job) if t.cue not in internal]
         # Failed internal tasks (a render that kept failing) explain the missing outputs that depend on them.
         failed_internal = s.execute(
             select(Task.cue, Task.error).where(Task.job_id == job_id, Task.state == TaskState.FAILED, Task.cue.in_(internal))

@@ -32,6 +32,7 @@ from services.core.ingest.loading import LoadedSpace
 from services.core.settings import Settings
 from services.core.storage import ObjectStore
 from services.scheduler.chunked_plan import ChunkTarget, PlanDropped, plan_and_persist_space
+from services.scheduler.compaction import CompactionResult, Compactor
 from services.scheduler.completion import Finished, complete_once
 from services.scheduler.dispatch import DEFAULT_BUDGET, DispatchResult, dispatch_once
 from services.scheduler.fairness import CAPPED_WAIT_S, queued_cap
@@ -47,6 +48,7 @@ log = logging.getLogger(__name__)
 REAP_INTERVAL_S = 5.0
 THOROUGH_DISPATCH_S = 60.0  # a dispatch pass that ignores the counter-based scan bounds (a safety net) ...
 THOROUGH_STALLED_S = 5.0  # ... and sooner when a job has pending tasks but nothing ready or in flight
+COMPACT_INTERVAL_S = 1.0  # finished views compacted at most this often (each pass bounded by compact_pass_s)
 COMPLETE_INTERVAL_S = 2.0  # completion's own look at the counters; sooner when a dispatch pass saw a job settle
 MAX_BACKOFF_S = 30.0
 PLAN_RETRY_S = 30  # a planning attempt that failed for a transient reason is retried after this
@@ -110,6 +112,7 @@ class TickResult:
     dispatched: DispatchResult = field(default_factory=DispatchResult)
     reaped: ReapResult | None = None
     finished: list[Finished] = field(default_factory=list)
+    compacted: CompactionResult | None = None
 
     budget: int = DEFAULT_BUDGET
 
@@ -148,6 +151,9 @@ class Scheduler:
         self._rotation = 0
         self._last_reap = 0.0
         self._last_complete = 0.0
+        self._last_compact = 0.0
+        self.compactor = (Compactor(sessionmaker, after_s=settings.compact_after_s, pass_s=settings.compact_pass_s)
+                          if settings.compact_views else None)
         self._last_thorough = time.monotonic()  # the first passes use the (cheap) bounded scans
         self._stalled = False
         self._idle_watch = IdleWatch()
@@ -321,6 +327,9 @@ class Scheduler:
         if res.dispatched.settled or time.monotonic() - self._last_complete >= COMPLETE_INTERVAL_S:
             res.finished = self.complete_once()
             self._last_complete = time.monotonic()
+        if self.compactor is not None and time.monotonic() - self._last_compact >= COMPACT_INTERVAL_S:
+            res.compacted = self.compactor.run_once()
+            self._last_compact = time.monotonic()
         return res
 
     def run_forever(self, stop_event: threading.Event, interval: float = 1.0) -> None:

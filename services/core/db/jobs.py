@@ -13,9 +13,11 @@ from dataclasses import dataclass
 from sqlalchemy import case, delete, select
 from sqlalchemy.orm import Session
 
+from services.core.db.compacted import expand_missing
 from services.core.db.models import (
     JOB_TERMINAL_STATES,
     Camera,
+    CompactedDuration,
     Job,
     JobCounter,
     JobSpace,
@@ -25,6 +27,7 @@ from services.core.db.models import (
     Task,
     TaskState,
     View,
+    ViewOutput,
     WorkerBlock,
     utcnow,
 )
@@ -229,7 +232,7 @@ def delete_job(session: Session, store: ObjectStore, job: Job) -> int:
             deleted += store.delete_prefix(prefix)
         for key in ("manifest.jsonl", "job.json"):
             deleted += int(store.delete(key))
-    for model in (Task, View, Point, Camera, JobCounter, JobSpace, WorkerBlock):
+    for model in (Task, ViewOutput, CompactedDuration, View, Point, Camera, JobCounter, JobSpace, WorkerBlock):
         session.execute(delete(model).where(model.job_id == job.id))
     session.execute(delete(Job).where(Job.id == job.id))
     session.expunge(job)
@@ -274,7 +277,9 @@ def reopen_job(session: Session, store: ObjectStore, job: Job) -> Reopened:
     if job.state == JobState.PAUSED:
         set_job_state(job, JobState.RUNNING)
     done.requeued = requeue_inflight(session, job.id)
-    # Done outputs whose file is gone are made again (the internal pass cache is rebuilt on demand).
+    # Done outputs whose file is gone are made again (the internal pass cache is rebuilt on demand); a compacted
+    # view with such an output is put back as task rows first.
+    expand_missing(session, job, store.exists)
     internal = [n for n, c in CATALOG.items() if c.internal]
     missing = [
         tid for tid, key in session.execute(

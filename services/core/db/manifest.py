@@ -12,15 +12,17 @@ import os
 import tempfile
 from collections.abc import Iterator
 from datetime import datetime
+from itertools import chain
 from pathlib import Path
 from typing import NotRequired, TypedDict
 
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
+from services.core.db.compacted import iter_compacted, space_names
 from services.core.db.counters import job_progress
 from services.core.db.jobs import job_cues, job_root, job_spaces, root_key
-from services.core.db.models import Job, Task, TaskState, View
+from services.core.db.models import Job, Space, Task, TaskState, View, ViewOutput
 from services.core.domain.cues import CATALOG
 from services.core.domain.job_document import JobDocument, SpaceRecord, job_json_bytes, space_record
 from services.core.domain.job_document import job_document as build_job_document
@@ -56,15 +58,47 @@ class ManifestEntry(TypedDict):
     alignment: NotRequired[float]  # capture views: the photo/geometry alignment score
 
 
+def _done_outputs(
+    session: Session, job: Job, space: Space, points: tuple[int, int], public: list[str], names: dict[int, str],
+) -> dict[tuple[int, int], dict[str, ManifestOutput]]:
+    """(point, view) -> cue -> output, of the done public tasks of points [p0, p1) of a space: task rows and
+    compacted views."""
+    p0, p1 = points
+    rows = session.execute(
+        select(Task.point_idx, Task.view_idx, Task.cue, Task.output_key, Task.size, Task.sha256)
+        .where(
+            Task.job_id == job.id, Task.space_id == space.id, Task.state == TaskState.DONE,
+            Task.point_idx >= p0, Task.point_idx < p1, Task.cue.in_(public),
+        )
+        .order_by(Task.point_idx, Task.view_idx, Task.cue)
+    )
+    compacted = (
+        (p, v, t.cue, t.output_key, t.size, t.sha256)
+        for (_s, p, v), tasks in iter_compacted(
+            session, job, ViewOutput.space_id == space.id, ViewOutput.point_idx >= p0, ViewOutput.point_idx < p1,
+            names=names)
+        for t in tasks if t.cue in public
+    )
+    outputs: dict[tuple[int, int], dict[str, ManifestOutput]] = {}
+    for p, v, cue, key, size, sha in chain(rows, compacted):
+        fallback = output_key(cue, job.name, space.name, int(p), int(v))
+        outputs.setdefault((int(p), int(v)), {})[cue] = {
+            "key": _relative(job, key, fallback),
+            "size": None if size is None else int(size),
+            "sha256": sha,
+        }
+    return outputs
+
+
 def iter_manifest(session: Session, job: Job) -> Iterator[ManifestEntry]:
     """One dict per view: {"space", "point", "view", "outputs": {cue: {"key", "size", "sha256"}}}, plus "alignment"
     (the photo/geometry score) for views at capture cameras.
 
     Sorted by space name, point, view; internal cues (the pass cache) are left out; per-point cues
-    appear on view 0 of their point; only done tasks are listed.
+    appear on view 0 of their point; only done tasks are listed (task rows and compacted views alike).
     """
-    component = job.name
     public = [n for n, c in CATALOG.items() if not c.internal]
+    names = space_names(session, job.id)
     spaces = sorted(job_spaces(session, job.id), key=lambda pair: pair[1].name)
     planned = (job.plan_summary or {}).get("spaces", {})
     for _job_space, space in spaces:
@@ -82,22 +116,7 @@ def iter_manifest(session: Session, job: Job) -> Iterator[ManifestEntry]:
                 .where(View.job_id == job.id, View.space_id == space.id, View.point_idx >= p0, View.point_idx < p1)
                 .order_by(View.point_idx, View.v)
             ).all()
-            outputs: dict[tuple[int, int], dict[str, ManifestOutput]] = {}
-            rows = session.execute(
-                select(Task.point_idx, Task.view_idx, Task.cue, Task.output_key, Task.size, Task.sha256)
-                .where(
-                    Task.job_id == job.id, Task.space_id == space.id, Task.state == TaskState.DONE,
-                    Task.point_idx >= p0, Task.point_idx < p1, Task.cue.in_(public),
-                )
-                .order_by(Task.point_idx, Task.view_idx, Task.cue)
-            )
-            for p, v, cue, key, size, sha in rows:
-                fallback = output_key(cue, component, space.name, int(p), int(v))
-                outputs.setdefault((int(p), int(v)), {})[cue] = {
-                    "key": _relative(job, key, fallback),
-                    "size": None if size is None else int(size),
-                    "sha256": sha,
-                }
+            outputs = _done_outputs(session, job, space, (p0, p0 + POINT_CHUNK), public, names)
             for p, v in views:
                 outs = outputs.get((int(p), int(v)), {})
                 entry: ManifestEntry = {

@@ -21,6 +21,7 @@ from sqlalchemy import (
     ForeignKey,
     Index,
     Integer,
+    LargeBinary,
     MetaData,
     SmallInteger,
     String,
@@ -304,6 +305,35 @@ class Task(Base):
     started_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
     finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
     not_before: Mapped[datetime | None] = mapped_column(UTCDateTime(), doc="retry backoff: not dispatched before")
+
+
+class ViewOutput(Base):
+    """The finished tasks of one view, compacted into one row (services.scheduler.compaction): what the manifest,
+    the views API and a resume need of them, packed by services.core.db.view_outputs (per task: id, cue, attempts,
+    size, sha256, duration, finish time, and the output key only where it is not the deterministic one).
+    `cue_mask` has bit i set for the catalog's i-th cue among them."""
+
+    __tablename__ = "view_output"
+
+    job_id: Mapped[int] = mapped_column(BigIntId, ForeignKey("job.id", ondelete="CASCADE"), primary_key=True)
+    space_id: Mapped[int] = mapped_column(BigIntId, primary_key=True)
+    point_idx: Mapped[int] = mapped_column(Integer, primary_key=True)
+    view_idx: Mapped[int] = mapped_column(Integer, primary_key=True)
+    cue_mask: Mapped[int] = mapped_column(BigInteger)
+    finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime(), doc="the last of its tasks to finish")
+    outputs: Mapped[bytes] = mapped_column(LargeBinary)
+
+
+class CompactedDuration(Base):
+    """Run times of a job's compacted tasks of one cue in one histogram bucket (services.core.db.durations)."""
+
+    __tablename__ = "compacted_duration"
+
+    job_id: Mapped[int] = mapped_column(BigIntId, ForeignKey("job.id", ondelete="CASCADE"), primary_key=True)
+    cue: Mapped[str] = mapped_column(String(64), primary_key=True)
+    bucket: Mapped[int] = mapped_column(SmallInteger, primary_key=True)
+    n: Mapped[int] = mapped_column(BigInteger, default=0, server_default=text("0"))
+    sum_s: Mapped[float] = mapped_column(Float, default=0.0, server_default=text("0"))
 
 
 class Worker(Base):

@@ -32,6 +32,14 @@ _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _PNG_FILTER_UP = 2
 
 
+# The position EXR is stored uncompressed. bench/encodings.py on 12 room views at 512 px (bench/results/
+# derivations.json "encodings"), write CPU ms / MB: none 1.8 / 3.15, RLE 5.3 / 3.15, ZIPS 21 / 2.22, ZIP (before)
+# 23 / 1.93, PIZ 73 / 1.82, ZSTD 16 / 1.03, HTJ2K 13 / 0.97; all decode bit for bit. World XYZ floats hardly
+# compress, so ZIP spent 17% of a bare render's CPU (0.12 s) to save 1.2 MB; ZSTD and HTJ2K need OpenEXR >= 3.5 /
+# 3.4 (2025) to read, where an uncompressed file opens in every EXR reader.
+EXR_COMPRESSION = OpenEXR.NO_COMPRESSION
+
+
 def encode(cue: str, value: CueValue) -> bytes:
     """Bytes of the file for `cue` holding `value` (array in the catalog dtype, dict for JSON, bytes for npz)."""
     spec = get_cue(cue)
@@ -97,11 +105,8 @@ def encode_npy(arr: np.ndarray) -> bytes:
 
 
 def encode_exr_rgb(arr: np.ndarray) -> bytes:
-    """A scanline float32 EXR with R, G, B channels (ZIP compressed) of an H x W x 3 float32 array."""
-    # ZIP stays (bench/render.py, position_exr, on a room view at 512 px: ~0.02 CPU-s, 1.8 MB): of the lossless
-    # codecs every OpenEXR reader knows, ZIPS is ~15% faster for ~15% more bytes, RLE and none 3-7x faster for 1.7x
-    # the bytes, PIZ 4x slower; ZSTD (OpenEXR 3.5) is faster and smaller but older readers can not open it.
-    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    """A scanline float32 EXR with R, G, B channels (EXR_COMPRESSION) of an H x W x 3 float32 array."""
+    header = {"compression": EXR_COMPRESSION, "type": OpenEXR.scanlineimage}
     fd, path = tempfile.mkstemp(prefix=owned_prefix("exr"), suffix=".exr", dir="/dev/shm" if os.access("/dev/shm", os.W_OK) else None)
     os.close(fd)
     try:

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import io
 import json
+import tempfile
 
 import numpy as np
+import OpenEXR
 import pytest
 from PIL import Image
 
@@ -64,7 +66,21 @@ def test_npy_and_exr_round_trip() -> None:
     pos[0, 0] = np.nan
     data = encode("position", pos)
     assert data[:4] == b"\x76\x2f\x31\x01"  # OpenEXR magic
-    np.testing.assert_array_equal(decode_exr_rgb(data), pos)
+    back = decode_exr_rgb(data)
+    assert back.dtype == np.float32 and np.array_equal(back.view(np.uint32), pos.view(np.uint32))  # NaN bits too
+
+
+def test_position_exr_is_uncompressed_float32_rgb_any_reader_opens() -> None:
+    pos = np.random.default_rng(2).normal(size=(32, 20, 3)).astype(np.float32)
+    data = encode("position", pos)
+    with tempfile.NamedTemporaryFile(suffix=".exr") as f:
+        f.write(data)
+        f.flush()
+        with OpenEXR.File(f.name) as exr:  # (the header and channels are the open file's: checked inside)
+            assert exr.header()["compression"] == OpenEXR.NO_COMPRESSION
+            rgb = exr.channels()["RGB"].pixels
+            assert rgb.dtype == np.float32 and np.array_equal(rgb, pos)
+    assert len(data) >= pos.nbytes  # stored, not compressed
 
 
 def test_json_is_deterministic_and_plain() -> None:

@@ -13,7 +13,8 @@ from services.core.db.jobs import delete_job, reopen_job
 from services.core.db.manifest import manifest_bytes
 from services.core.db.models import CompactedDuration, Job, Task, ViewOutput
 from services.core.db.states import transition
-from services.core.db.view_outputs import DoneTask, default_key, pack, unpack
+from services.core.db.view_outputs import CUE_NAMES, DoneTask, default_key, pack, unpack
+from services.core.domain.cues import CATALOG
 from services.embedded.report import build_report, views_done
 from services.scheduler.compaction import _COLUMNS, Compactor, _compact, _group
 from services.scheduler.dispatch import dispatch_once
@@ -47,6 +48,11 @@ def _default_keys_for_half(s, job):
                                          .where(Task.job_id == job.id, Task.id % 2 == 0)).all():
         s.execute(update(Task).where(Task.id == tid).values(output_key=default_key(job, names[sid], cue, p, v)))
     s.commit()
+
+
+def test_every_cue_has_a_fixed_packed_index():
+    assert set(CATALOG) <= set(CUE_NAMES) and len(CUE_NAMES) <= 63  # cue_mask is a BIGINT
+    assert CUE_NAMES[:3] == ("passes", "rgb", "normal")  # indexes of stored rows never move
 
 
 def test_pack_round_trips_every_field():

@@ -216,12 +216,18 @@ class Felzenszwalb:
         parent, self._size, kept = _merge(code, cost, w, h * w, float(scale) / 255.0)
         self._parent, self._ca, self._cb = _crossing(kept, parent, w)
         self._components = _root_count(parent)
+        self._last: tuple[int, np.ndarray, int] | None = None
 
     def labels(self, min_size: int) -> np.ndarray:
         """int64 H x W labels 0..n-1 (raster order of first appearance)."""
-        parent, _ = _min_size_merges(self._ca, self._cb, self._parent, self._size, int(min_size))
-        return _raster_labels(parent).reshape(self.shape)
+        return _raster_labels(self._merged(min_size)[0]).reshape(self.shape)
 
     def count(self, min_size: int) -> int:
         """How many superpixels labels(min_size) has, without labelling the pixels."""
-        return self._components - _min_size_merges(self._ca, self._cb, self._parent, self._size, int(min_size))[1]
+        return self._components - self._merged(min_size)[1]
+
+    def _merged(self, min_size: int) -> tuple[np.ndarray, int]:
+        """The min-size pass's forest and merge count, the last one kept (count then labels: one pass)."""
+        if self._last is None or self._last[0] != min_size:
+            self._last = (min_size, *_min_size_merges(self._ca, self._cb, self._parent, self._size, int(min_size)))
+        return self._last[1], self._last[2]

@@ -205,21 +205,24 @@ class TaskLedger:
         return Claimed(task_id, int(r.job_id), int(r.space_id), int(r.point_idx), int(r.view_idx), str(r.cue),
                        int(r.attempts))  # RETURNING gives the new values: attempts counts this attempt
 
-    def claim_view_rest(self, t: Claimed, *, with_pending: bool = False) -> list[Claimed]:
+    def claim_view_rest(self, t: Claimed, *, with_pending: bool = False) -> tuple[list[Claimed], bool]:
         """The view batch: -> running for this worker, in ONE statement, of the rest of `t`'s view (same job,
         space, point, view; not its `passes` task) while the job runs and the worker is not kept off it: the
         queued tasks, and with `with_pending` (t is the view's rendered `passes`) the pending ones too. Every
         input of those is a cue of the same view, derived from the pass set this worker holds. A queued task's
         message, when it comes, finds it running or done and is skipped at the claim; a pending one has none.
-        In topological order of their cues; [] when the database is unreachable (they run one by one)."""
-        def step() -> list[Claimed]:
+        Returns them in topological order of their cues, and whether another task of the view that reads the
+        pass set may still run elsewhere (True when nothing was claimed: unknown). ([], True) when the database
+        is unreachable (they run one by one)."""
+        def step() -> tuple[list[Claimed], bool]:
             now = utcnow()
             with self.sessionmaker() as s:
                 rows = claim_view_tasks(s, task_id=t.id, job_id=t.job_id, space_id=t.space_id, point=t.point,
                                         view=t.view, worker_id=self.worker_id, now=now,
                                         lease_until=now + timedelta(seconds=self.lease_s), with_pending=with_pending)
-            return sorted((Claimed(int(r[0]), t.job_id, t.space_id, t.point, t.view, str(r[1]), int(r[3]))
-                           for r in rows), key=lambda c: (CUE_ORDER[c.cue], c.id))
+            claimed = sorted((Claimed(int(r[0]), t.job_id, t.space_id, t.point, t.view, str(r[1]), int(r[3]))
+                              for r in rows), key=lambda c: (CUE_ORDER[c.cue], c.id))
+            return claimed, not rows or int(rows[0][5]) > 0
 
         try:
             return self.db(step, f"claim the view batch of task {t.id}")
@@ -227,7 +230,7 @@ class TaskLedger:
             if not is_transient_db_error(exc):
                 raise
             log.warning("task %d: view batch not claimed (%s)", t.id, format_error(exc, 0))
-            return []
+            return [], True
 
     def hand_back(self, tasks: list[Claimed], why: str) -> list[Outcome]:
         """running -> pending, as before their claim (attempts, no worker, no lease), of batch tasks that did not

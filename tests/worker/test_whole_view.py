@@ -14,6 +14,7 @@ import pytest
 from sqlalchemy import select
 
 from services.core.db.models import Task, utcnow
+from services.core.db.states import transition
 from services.core.domain.cues import closure
 from services.scheduler.reaper import reap_once
 from services.worker.heartbeat import Heartbeat, expire_leases
@@ -44,7 +45,9 @@ def test_the_renderer_runs_the_whole_view_in_two_claims_and_the_same_bytes(sm, b
     assert [o.status for o in out.batch] == ["done"] * len(CUES)
     order = [o.cue for o in out.batch]
     assert order == [c for c in closure(CUES) if c in CUES]  # inputs before the cues made from them
-    assert r.renders == 1 and banana.store.exists(out.key)  # one render; the pass set is still stored
+    # one render; every reader of the pass set ran here, so it was never stored
+    assert r.renders == 1 and not banana.store.exists(out.key)
+    assert (task(sm, out.task_id).size, task(sm, out.task_id).sha256) == (0, None)
     rows = [task(sm, tid) for tid in view0.values()]
     assert {(t.state, t.worker_id, t.attempts) for t in rows} == {("done", "w1", 1)}
     assert len({t.started_at for t in rows}) == 1  # one claim for the rest of the view
@@ -66,6 +69,32 @@ def test_the_renderer_runs_the_whole_view_in_two_claims_and_the_same_bytes(sm, b
             assert one.run(queue(sm, single, cue, 0, 0)).status == "done"
     assert outputs(sm, banana, view_ids(sm, single)) == outputs(sm, banana, view0)
 
+    # a cue of the view made again later (its file lost; resume) renders the view again: the same bytes
+    before = outputs(sm, banana, view0)
+    with sm() as s:
+        transition(s, job_id=job_id, task_ids=[view0["mask_valid"]], from_state="done", to_state="pending")
+        s.commit()
+    fresh = runner(sm, banana, "w4")
+    assert fresh.run(queue(sm, job_id, "mask_valid", 0, 0)).status == "done" and fresh.renders == 1
+    assert outputs(sm, banana, view0) == before and counters_match(sm, job_id)
+
+
+def test_the_pass_set_is_stored_when_a_reader_of_it_runs_elsewhere(sm, banana):
+    job_id = make_job(sm, banana)
+    other = runner(sm, banana, "w9", worker_batch_views=False)
+    assert other.run(queue(sm, job_id, "passes", 0, 1)).status == "done"  # view 1 rendered alone: stored
+    mask = queue(sm, job_id, "mask_valid", 0, 1)
+    assert other.ledger.claim(mask)  # view 1's mask_valid held by another worker: not part of the batch
+    with sm() as s:  # view 1's render runs again (say its first worker's record was lost)
+        passes = s.scalar(select(Task.id).where(Task.job_id == job_id, Task.cue == "passes", Task.view_idx == 1))
+        transition(s, job_id=job_id, task_ids=[passes], from_state="done", to_state="pending")
+        s.commit()
+    banana.store.delete(task(sm, passes).output_key)
+    out = runner(sm, banana, "w1").run(queue(sm, job_id, "passes", 0, 1))
+    assert out.status == "done" and mask not in {o.task_id for o in out.batch}
+    assert banana.store.exists(out.key) and task(sm, passes).size == len(banana.store.get_bytes(out.key))
+    assert counters_match(sm, job_id)
+
 
 def test_a_failure_in_the_batch_hands_its_dependents_back_to_pending(sm, banana, monkeypatch):
     job_id = make_job(sm, banana)
@@ -85,6 +114,7 @@ def test_a_failure_in_the_batch_hands_its_dependents_back_to_pending(sm, banana,
     view0 = view_ids(sm, job_id)
     depth, mask = task(sm, view0["depth_zbuffer"]), task(sm, view0["mask_valid"])
     assert (depth.state, depth.attempts, "depth broke" in (depth.error or "")) == ("pending", 1, True)
+    assert banana.store.exists(out.key)  # a reader of the pass set is left: it was stored
     # never ran: back as it was before the claim, for the dispatcher to queue once depth_zbuffer is done
     assert (mask.state, mask.attempts, mask.worker_id, mask.lease_until) == ("pending", 0, None, None)
     assert counters_match(sm, job_id)
@@ -92,7 +122,7 @@ def test_a_failure_in_the_batch_hands_its_dependents_back_to_pending(sm, banana,
         s.execute(Task.__table__.update().where(Task.id == depth.id).values(not_before=None))
         s.commit()
     w2 = runner(sm, banana, "w2")
-    assert w2.run(queue(sm, job_id, "depth_zbuffer", 0, 0)).status == "done"
+    assert w2.run(queue(sm, job_id, "depth_zbuffer", 0, 0)).status == "done" and w2.renders == 0
     assert w2.run(queue(sm, job_id, "mask_valid", 0, 0)).status == "done"
     assert task(sm, mask.id).attempts == 1 and counters_match(sm, job_id)
 
@@ -111,7 +141,7 @@ def test_a_whole_view_whose_worker_dies_is_leased_by_its_beats_then_requeued_tas
     ran: list[str] = []
 
     def execute_then_die(self, t):
-        if len(ran) == 3:  # the render and two outputs stored, none recorded: the process is killed here
+        if len(ran) == 3:  # three outputs stored, none recorded: the process is killed here
             expire_leases(sm, ["dying"])
             hb.beat()  # a beat before it dies extends every task of the batch, the pending-claimed ones too
             assert all(task(sm, tid).lease_until > utcnow() for tid in view_ids(sm, job_id).values())
@@ -142,5 +172,6 @@ def test_a_whole_view_whose_worker_dies_is_leased_by_its_beats_then_requeued_tas
     for tid in view0.values():
         row = task(sm, tid)
         assert (row.state, row.worker_id, row.attempts) == ("done", "w2", 2)
-        assert hashlib.sha256(banana.store.get_bytes(row.output_key)).hexdigest() == row.sha256
+        if tid != passes:  # the whole view ran here: its pass set was not stored
+            assert hashlib.sha256(banana.store.get_bytes(row.output_key)).hexdigest() == row.sha256
     assert counters_match(sm, job_id)

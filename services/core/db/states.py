@@ -23,6 +23,7 @@ from sqlalchemy import (
     Update,
     case,
     exists,
+    func,
     literal,
     or_,
     select,
@@ -36,6 +37,7 @@ from sqlalchemy.sql.selectable import TextualSelect
 from services.core.db.bulk import connection_of
 from services.core.db.counters import COUNTER_SHARDS, add_counts
 from services.core.db.models import Job, JobState, Task, TaskState, WorkerBlock
+from services.core.domain.cues import CATALOG, closure
 
 __all__ = [
     "JOB_EDGES", "TASK_EDGES", "IllegalTransition", "JobState", "TaskState", "check_job_edge", "check_task_edge",
@@ -246,8 +248,13 @@ _CLAIM_VIEW_SQL = (
     "CROSS JOIN LATERAL (VALUES (m.old_state, -1), ('{dst}', 1)) AS d (state, sign) "
     "GROUP BY m.job_id, m.cue, d.state ORDER BY m.job_id, m.cue, d.state "
     "ON CONFLICT (job_id, cue, state, shard) DO UPDATE SET n = job_counter.n + excluded.n) "
-    "SELECT * FROM moved"
+    "SELECT moved.*, (SELECT count(*) FROM task AS v WHERE v.job_id = %(job_id)s AND v.space_id = %(space_id)s "
+    "AND v.point_idx = %(point)s AND v.view_idx = %(view)s AND v.state <> 'done' AND v.cue NOT IN ({no_passes}) "
+    "AND v.id NOT IN (SELECT id FROM moved)) AS reading_elsewhere FROM moved"
 )
+# Cues whose task never reads the view's pass set (the plan's), and `passes` itself: the claim's last column counts
+# the view's other unfinished tasks, which may still need the stored pass set.
+NO_PASSES: tuple[str, ...] = tuple(c for c in CATALOG if "passes" not in closure([c]) or c == "passes")
 _FINISH_MANY_SQL = (
     "WITH moved AS (UPDATE task SET state = 'done', output_key = v.key, size = v.size, sha256 = v.sha256, "
     "duration_s = v.duration_s, finished_at = %(now)s, lease_until = NULL, error = NULL "
@@ -266,7 +273,8 @@ def _worker_sql(template: str, src: TaskState, dst: TaskState) -> str:
 
 CLAIM_SQL = _worker_sql(_CLAIM_SQL, TaskState.QUEUED, TaskState.RUNNING)
 FINISH_SQL = _worker_sql(_FINISH_SQL, TaskState.RUNNING, TaskState.DONE)
-CLAIM_VIEW_SQL = _CLAIM_VIEW_SQL.format(shards=COUNTER_SHARDS, dst=TaskState.RUNNING.value)
+CLAIM_VIEW_SQL = _CLAIM_VIEW_SQL.format(shards=COUNTER_SHARDS, dst=TaskState.RUNNING.value,
+                                        no_passes=", ".join(f"'{c}'" for c in NO_PASSES))
 check_task_edge(TaskState.QUEUED, TaskState.RUNNING)
 check_task_edge(TaskState.PENDING, TaskState.RUNNING)
 FINISH_MANY_SQL = _worker_sql(_FINISH_MANY_SQL, TaskState.RUNNING, TaskState.DONE)
@@ -322,11 +330,12 @@ def finish_task(
 def claim_view_tasks(
     session: Session, *, task_id: int, job_id: int, space_id: int, point: int, view: int, worker_id: str,
     now: datetime, lease_until: datetime, with_pending: bool = False,
-) -> list[Row[Any]]:
+) -> list[Row[Any]] | list[tuple[Any, ...]]:
     """queued (and with `with_pending`, pending) -> running for `worker_id`, in one statement, of the view's other
     tasks (same job, space, point and view; not `task_id`, not its `passes` task) while the job runs and the worker
     is not kept off it; pending ones only while no task of the view failed. Returns the rows (id, cue, job_id,
-    attempts counting this one, old state). Postgres: one fixed statement outside a transaction."""
+    attempts counting this one, old state, reading_elsewhere: how many other tasks of the view that read its pass
+    set are not done and not claimed here). Postgres: one fixed statement outside a transaction."""
     conn = _autocommit(session)
     if conn is not None:
         return list(conn.exec_driver_sql(CLAIM_VIEW_SQL, {
@@ -335,7 +344,7 @@ def claim_view_tasks(
     job_running = exists().where(Job.id == Task.job_id, Job.state == JobState.RUNNING)
     blocked = exists().where(WorkerBlock.worker_id == worker_id, WorkerBlock.job_id == Task.job_id,
                              or_(WorkerBlock.until.is_(None), WorkerBlock.until > now))
-    same_view = [Task.space_id == space_id, Task.point_idx == point, Task.view_idx == view]
+    same_view = [Task.job_id == job_id, Task.space_id == space_id, Task.point_idx == point, Task.view_idx == view]
     rows: list[Row[Any]] = []
     for src in (TaskState.QUEUED, TaskState.PENDING) if with_pending else (TaskState.QUEUED,):
         where = [*same_view, Task.cue != "passes", Task.id != task_id, job_running, ~blocked]
@@ -343,14 +352,16 @@ def claim_view_tasks(
             f = aliased(Task)
             where.append(~exists().where(f.job_id == job_id, f.space_id == space_id, f.point_idx == point,
                                          f.view_idx == view, f.state == TaskState.FAILED))
-        got = transition_rows(
+        rows.extend(transition_rows(
             session, job_id=job_id, from_state=src, to_state=TaskState.RUNNING, where=where,
             returning=[Task.attempts, literal(src.value)], worker_id=worker_id, attempts=Task.attempts + 1,
             started_at=now, finished_at=None, lease_until=lease_until,
-        )
-        rows.extend(got)
+        ))
+    moved = [int(r[0]) for r in rows]
+    elsewhere = session.scalar(select(func.count()).select_from(Task).where(
+        *same_view, Task.state != TaskState.DONE, Task.cue.not_in(NO_PASSES), Task.id.not_in(moved)))
     session.commit()
-    return rows
+    return [(*r, int(elsewhere or 0)) for r in rows]
 
 
 def finish_tasks(

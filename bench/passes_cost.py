@@ -6,8 +6,10 @@ points, two views each), the space loaded once (load, curvature and the Blender 
 Per view, interleaved so that a neighbour's load moves every figure alike:
 - bare: a 1-sample render with Image + Depth + Normal only (BlenderScene.render_floor), nothing written;
 - aov:<set>: the same render with only these AOVs in the view layer (a scene of its own each), nothing written;
-- task: the passes task as the worker runs it (ViewContext render of every pass, produce("passes"), put_bytes
-  into a LocalStore), split into render call (Cycles + EXR write), EXR read, decode to arrays, npz encode, store put.
+- the passes task as the worker runs it (ViewContext render of every pass, produce("passes"), put_bytes into a
+  LocalStore): task_in_batch is what it costs when a worker's view batch takes the whole view (runner._run_view:
+  render, EXR read, decode; the pass set is never stored), task_stored adds the npz encode and the store put (a
+  view not batched whole); wall_render_call_s (Cycles + EXR write), wall_exr_read_s and wall_decode_s split it.
 Figures are CPU seconds of this process (time.process_time; all its threads) per view, medians over views x
 repeats, with wall medians and the load average beside them. Written to bench/results/passes_cost.json (the
 previous run kept under "before").
@@ -131,7 +133,7 @@ def task(space: SpaceContext, g: ViewGeometry, params: CueParams, store: LocalSt
     store.put_bytes(f"passes/{i}.npz", data)
     c3 = time.process_time()
     parts = {k: p.meta.get(k, 0.0) for k in ("render_call_s", "exr_read_s", "decode_s")}  # wall, one thread
-    return {"task": c3 - c0, "render": c1 - c0, "npz_encode": c2 - c1, "store_put": c3 - c2,
+    return {"task_stored": c3 - c0, "task_in_batch": c1 - c0, "npz_encode": c2 - c1, "store_put": c3 - c2,
             "npz_mb": len(data) / 1e6, **{"wall_" + k: v for k, v in parts.items()}}
 
 
@@ -155,10 +157,10 @@ def run_room(name: str, n_views: int, repeats: int, resolution: int) -> dict:
         for rep in range(repeats):
             # Blocks of views per variant: rendering another scene re-syncs Cycles' persistent data (a BVH
             # rebuild, 0.2 s on ICL), so each block starts with a render that is not counted.
-            keys = list(variants) + ["task"]
+            keys = list(variants) + ["task_stored"]
             for key in keys[rep % len(keys):] + keys[:rep % len(keys)]:
                 for i, g in enumerate([views[-1], *views]):
-                    if key == "task":
+                    if key == "task_stored":
                         t0 = time.perf_counter()
                         parts = task(space, g, params, store, rep * len(views) + i)
                         if i:

@@ -55,14 +55,16 @@ def tables() -> tuple[np.ndarray, np.ndarray]:
     return first, nxt
 
 
-def srgb_masked(rgba: np.ndarray, hit: np.ndarray) -> np.ndarray:
-    """uint8 H x W x 3: srgb_encode(rgba[..., :3]) where `hit`, 0 elsewhere (float32 H x W x C input, C >= 3)."""
+def srgb_masked(r: np.ndarray, g: np.ndarray, b: np.ndarray, hit: np.ndarray) -> np.ndarray:
+    """uint8 H x W x 3: srgb_encode of the float32 H x W channels r, g, b where `hit`, 0 elsewhere."""
     first, nxt = tables()
-    return _encode(np.ascontiguousarray(rgba, dtype=np.float32).view(np.uint32), hit, first, nxt)
+    r, g, b = (np.asarray(c, dtype=np.float32).view(np.uint32) for c in (r, g, b))
+    return _encode(r, g, b, hit, first, nxt)
 
 
 @njit(cache=True, nogil=True)
-def _encode(bits: np.ndarray, hit: np.ndarray, first: np.ndarray, nxt: np.ndarray) -> np.ndarray:
+def _encode(r: np.ndarray, g: np.ndarray, b: np.ndarray, hit: np.ndarray, first: np.ndarray, nxt: np.ndarray
+            ) -> np.ndarray:
     h, w = hit.shape
     out = np.zeros((h, w, 3), np.uint8)
     for y in range(h):
@@ -70,14 +72,14 @@ def _encode(bits: np.ndarray, hit: np.ndarray, first: np.ndarray, nxt: np.ndarra
             if not hit[y, x]:
                 continue
             for c in range(3):
-                b = bits[y, x, c]
-                if b > 0x7F800000:  # NaN, negative floats (-0.0 too, clipped to 0): the reference gives 0
+                v = r[y, x] if c == 0 else g[y, x] if c == 1 else b[y, x]
+                if v > 0x7F800000:  # NaN, negative floats (-0.0 too, clipped to 0): the reference gives 0
                     continue
-                if b >= _ONE_BITS:  # 1.0 and above, +inf: 255
+                if v >= _ONE_BITS:  # 1.0 and above, +inf: 255
                     out[y, x, c] = 255
                     continue
-                k = b >> _SHIFT
-                out[y, x, c] = first[k] + (1 if b >= nxt[k] else 0)
+                k = v >> _SHIFT
+                out[y, x, c] = first[k] + (1 if v >= nxt[k] else 0)
     return out
 
 

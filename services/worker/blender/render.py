@@ -43,6 +43,7 @@ from services.worker.blender.decode import (  # srgb_encode: the reference formu
     srgb_masked,
     unit_normals_kernel,
 )
+from services.worker.blender.exr import read_channels
 from services.worker.passes import NO_FACE, NO_LABEL, RENDER_PASSES, ViewGeometry, ViewPasses
 
 log = logging.getLogger(__name__)
@@ -251,10 +252,20 @@ def render_passes(scene: bpy.types.Scene, cam: bpy.types.Object, g: ViewGeometry
     with _quiet_stdout():
         bpy.ops.render.render(write_still=True, scene=scene.name)
     t1 = time.perf_counter()
-    channels = {name: ch.pixels for name, ch in OpenEXR.File(scene.render.filepath).parts[0].channels.items()}
+    channels = read_channels(scene.render.filepath) or _read_openexr(scene.render.filepath)
     t2 = time.perf_counter()
     out = _decode(channels, scene.view_layers[0].name, g, passes, labels)
     out.meta.update(render_call_s=t1 - t0, exr_read_s=t2 - t1, decode_s=time.perf_counter() - t2)
+    return out
+
+
+def _read_openexr(path: str) -> dict[str, np.ndarray]:
+    """Channel name -> H x W array with the OpenEXR module (RGBA layers come as one H x W x 4 array: split)."""
+    out = {}
+    for name, ch in OpenEXR.File(path).parts[0].channels.items():
+        px = ch.pixels
+        out.update({f"{name}.{c}": px[..., i] for i, c in enumerate("RGBA"[:px.shape[-1]])} if px.ndim == 3
+                   else {name: px})
     return out
 
 
@@ -285,7 +296,7 @@ def _decode(channels: dict[str, np.ndarray], layer: str, g: ViewGeometry, passes
     normal = None
     if "normal" in passes:
         normal = unit_normals_kernel(ch("Normal.X"), ch("Normal.Y"), ch("Normal.Z"), hit)
-    rgb = srgb_masked(ch("Combined"), hit)
+    rgb = srgb_masked(ch("Combined.R"), ch("Combined.G"), ch("Combined.B"), hit)
     out = ViewPasses(geometry=g, depth_z=depth_z, normal_world=normal, rgb=rgb,
                      face_index=face_index if "faces" in passes else None)
     if "labels" in passes and has(AOV_CLASS):

@@ -45,6 +45,13 @@ class SleepingRunner(TaskRunner):
         self.rng = random.Random(hash(self.worker_id))
         self.slept = 0.0
 
+    def render_view(self, t: Claimed) -> str:
+        """The whole-view path's render (kept in memory, nothing stored): the `passes` task's sleep."""
+        self.slept = self.task_s * self.rng.uniform(0.8, 1.2) if self.task_s > 0 else task_seconds(t.cue, self.rng)
+        if self.killed.wait(self.slept):
+            raise Killed(t.id)
+        return f"sim/{t.job_id}/{t.cue}/{t.point}_{t.view}"
+
     def execute(self, t: Claimed) -> tuple[str, Any]:
         if self.task_s > 0:
             self.slept = self.task_s * self.rng.uniform(0.8, 1.2)

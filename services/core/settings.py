@@ -77,15 +77,16 @@ class Settings(BaseSettings):
     max_attempts: int = Field(3, ge=1)
     dispatch_window: int = Field(2000, ge=1, description="queued tasks per job at most")
     compact_views: bool = Field(
-        False, description="the scheduler replaces the task rows of finished views by one packed row per view "
+        True, description="the scheduler replaces the task rows of finished views by one packed row per view "
         "(view_output), so a finished job's database holds ~1.2 KB a view instead of ~6 KB",
     )
     compact_after_s: float = Field(60.0, ge=0, description="a view is compacted once its last task finished this long ago")
     compact_pass_s: float = Field(0.25, gt=0, description="time one compaction pass of the scheduler may take, s")
     worker_max_tasks: int = Field(500, ge=1, description="a worker process recycles after this many tasks")
     worker_batch_views: bool = Field(
-        True, description="a worker taking one of a view's cue tasks also claims the view's other queued cue tasks "
-        "(one statement) and derives them from the pass set it holds",
+        True, description="the worker that rendered a view claims the rest of its tasks, pending or queued, in one "
+        "statement, derives them from the pass set it holds and records them in one statement (a derived cue's "
+        "task claims its view's queued tasks alike); false: one task per message",
     )
     worker_max_memory_mb: int = Field(4096, ge=64, description="a worker recycles above this resident size")
     plan_memory_mb: int = Field(

@@ -20,7 +20,7 @@ from sqlalchemy.orm import Session
 from services.core.db.bulk import bulk_insert
 from services.core.db.counters import init_counts
 from services.core.db.jobs import root_key
-from services.core.db.models import Camera, Job, JobCounter, Point, Task, View, ViewOutput
+from services.core.db.models import Camera, CompactedDuration, Job, JobCounter, Point, Task, View, ViewOutput
 from services.core.domain.plan import CameraRecord, SpacePlan, plan_to_dict, plan_to_json
 from services.core.storage import ObjectStore
 from services.scheduler.compile import CompiledTasks
@@ -44,7 +44,7 @@ def plan_key(job: Job, space_name: str) -> str:
 
 def clear_plan(session: Session, job_id: int) -> None:
     """Delete every planned row of a job (a re-plan after a planner died starts from nothing)."""
-    for model in (Task, ViewOutput, View, Point, Camera, JobCounter):
+    for model in (Task, ViewOutput, CompactedDuration, View, Point, Camera, JobCounter):
         session.execute(delete(model).where(model.job_id == job_id))
 
 

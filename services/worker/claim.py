@@ -32,7 +32,7 @@ from services.core.db.states import (
     task_state,
     transition,
 )
-from services.core.domain.cues import CATALOG
+from services.core.domain.cues import CATALOG, topological_order
 from services.core.storage import ObjectInfo
 from services.worker.failure_policy import HANDBACK_DELAY, count_failure, is_blocked, retry_delay
 
@@ -43,6 +43,7 @@ T = TypeVar("T")
 DB_RETRY_S = 60.0  # how long one database step is retried through a connection drop before giving up
 ERROR_MAX_CHARS = 4000
 
+CUE_ORDER = {cue: k for k, cue in enumerate(topological_order(CATALOG))}  # a batch runs inputs first
 STATUSES = ("done", "skipped", "paused", "blocked", "retry", "failed", "discarded", "lost")
 
 
@@ -54,7 +55,8 @@ class TransientError(Exception):
 class Outcome:
     """What `TaskRunner.run` did with one task.
 
-    status: done (output stored and recorded) | skipped (stale/duplicate message, or the job is not running) |
+    status: done (output stored and recorded) | skipped (stale/duplicate message, or the job is not running, or
+    handed back to pending unrun because an input failed in its view batch) |
     paused / blocked (handed back to pending) | retry (failed, back to pending after a backoff) | failed (for
     good) | discarded (computed, but the task was no longer ours: reaped or cancelled) | lost (could not record
     the result; the lease runs out and the reaper retries it).
@@ -203,20 +205,24 @@ class TaskLedger:
         return Claimed(task_id, int(r.job_id), int(r.space_id), int(r.point_idx), int(r.view_idx), str(r.cue),
                        int(r.attempts))  # RETURNING gives the new values: attempts counts this attempt
 
-    def claim_view_rest(self, t: Claimed) -> list[Claimed]:
-        """The view batch: queued -> running for this worker, in ONE statement, of the other queued tasks of
-        `t`'s view (same job, space, point, view; not its `passes` task) while the job runs and the worker is not
-        kept off it. Queued means dispatched, so their inputs are done; their own messages, when they come,
-        find them running or done and are skipped at the claim. [] when the database is unreachable (the
-        messages of those tasks claim them one by one)."""
-        def step() -> list[Claimed]:
+    def claim_view_rest(self, t: Claimed, *, with_pending: bool = False) -> tuple[list[Claimed], bool]:
+        """The view batch: -> running for this worker, in ONE statement, of the rest of `t`'s view (same job,
+        space, point, view; not its `passes` task) while the job runs and the worker is not kept off it: the
+        queued tasks, and with `with_pending` (t is the view's rendered `passes`) the pending ones too. Every
+        input of those is a cue of the same view, derived from the pass set this worker holds. A queued task's
+        message, when it comes, finds it running or done and is skipped at the claim; a pending one has none.
+        Returns them in topological order of their cues, and whether another task of the view that reads the
+        pass set may still run elsewhere (True when nothing was claimed: unknown). ([], True) when the database
+        is unreachable (they run one by one)."""
+        def step() -> tuple[list[Claimed], bool]:
             now = utcnow()
             with self.sessionmaker() as s:
                 rows = claim_view_tasks(s, task_id=t.id, job_id=t.job_id, space_id=t.space_id, point=t.point,
                                         view=t.view, worker_id=self.worker_id, now=now,
-                                        lease_until=now + timedelta(seconds=self.lease_s))
-            return sorted((Claimed(int(r[0]), t.job_id, t.space_id, t.point, t.view, str(r[1]), int(r[3]))
-                           for r in rows), key=lambda c: c.id)
+                                        lease_until=now + timedelta(seconds=self.lease_s), with_pending=with_pending)
+            claimed = sorted((Claimed(int(r[0]), t.job_id, t.space_id, t.point, t.view, str(r[1]), int(r[3]))
+                              for r in rows), key=lambda c: (CUE_ORDER[c.cue], c.id))
+            return claimed, not rows or int(rows[0][5]) > 0
 
         try:
             return self.db(step, f"claim the view batch of task {t.id}")
@@ -224,7 +230,29 @@ class TaskLedger:
             if not is_transient_db_error(exc):
                 raise
             log.warning("task %d: view batch not claimed (%s)", t.id, format_error(exc, 0))
-            return []
+            return [], True
+
+    def hand_back(self, tasks: list[Claimed], why: str) -> list[Outcome]:
+        """running -> pending, as before their claim (attempts, no worker, no lease), of batch tasks that did not
+        run because an input of theirs failed in the batch: the dispatcher queues them once their inputs are
+        done, or fails them with the input. 'lost' when the database stays away (the reaper retries them)."""
+        def step() -> set[int]:
+            with self.sessionmaker() as s:
+                moved = transition(s, job_id=tasks[0].job_id, task_ids=[t.id for t in tasks],
+                                   from_state=TaskState.RUNNING, to_state=TaskState.PENDING,
+                                   where=[Task.worker_id == self.worker_id], worker_id=None, lease_until=None,
+                                   started_at=None, queued_at=None, attempts=Task.attempts - 1)
+                s.commit()
+                return {tid for tid, _ in moved}
+
+        try:
+            ours = self.db(step, f"hand back {len(tasks)} tasks of a view batch")
+        except Exception as exc:
+            log.error("tasks %s: not handed back (%s); the reaper will retry them", [t.id for t in tasks],
+                      format_error(exc, 0))
+            return [Outcome(t.id, "lost", t.cue, t.job_id, error=format_error(exc)) for t in tasks]
+        return [Outcome(t.id, "skipped" if t.id in ours else "discarded", t.cue, t.job_id, error=why)
+                for t in tasks]
 
     def is_settled(self, task_id: int) -> bool:
         """True when the task is neither queued nor pending (a read, no lock, no transaction on Postgres): a

@@ -11,9 +11,10 @@ from services.core.db.compacted import compacted_tasks, expand_views, space_name
 from services.core.db.counters import job_progress
 from services.core.db.jobs import delete_job, reopen_job
 from services.core.db.manifest import manifest_bytes
-from services.core.db.models import Job, Task, ViewOutput
+from services.core.db.models import CompactedDuration, Job, Task, ViewOutput
 from services.core.db.states import transition
-from services.core.db.view_outputs import DoneTask, default_key, pack, unpack
+from services.core.db.view_outputs import CUE_NAMES, DoneTask, default_key, pack, unpack
+from services.core.domain.cues import CATALOG
 from services.embedded.report import build_report, views_done
 from services.scheduler.compaction import _COLUMNS, Compactor, _compact, _group
 from services.scheduler.dispatch import dispatch_once
@@ -47,6 +48,11 @@ def _default_keys_for_half(s, job):
                                          .where(Task.job_id == job.id, Task.id % 2 == 0)).all():
         s.execute(update(Task).where(Task.id == tid).values(output_key=default_key(job, names[sid], cue, p, v)))
     s.commit()
+
+
+def test_every_cue_has_a_fixed_packed_index():
+    assert set(CATALOG) <= set(CUE_NAMES) and len(CUE_NAMES) <= 63  # cue_mask is a BIGINT
+    assert CUE_NAMES[:3] == ("passes", "rgb", "normal")  # indexes of stored rows never move
 
 
 def test_pack_round_trips_every_field():
@@ -125,11 +131,15 @@ def test_expanding_gives_back_the_same_tasks(any_sm, local_store):
     with any_sm() as s:
         job = make_running_job(s, local_store, cues=["rgb"], n_points=2, views=1)
         _run_all(s, job)
+        s.execute(update(Task).values(duration_s=0.3))
+        s.commit()
         before = sorted((t.cue, t.point_idx, t.output_key, t.size, t.sha256, t.finished_at)
                         for t in s.scalars(select(Task).where(Task.job_id == job.id)))
     Compactor(any_sm, after_s=0, pass_s=60).run_once()
     with any_sm() as s:
         job = s.get(Job, job.id)
+        assert s.execute(select(CompactedDuration.cue, CompactedDuration.bucket, CompactedDuration.n)
+                         .order_by(CompactedDuration.cue)).all() == [("passes", 3, 2), ("rgb", 3, 2)]
         assert expand_views(s, job, [(k[0], k[1], k[2]) for k in s.execute(
             select(ViewOutput.space_id, ViewOutput.point_idx, ViewOutput.view_idx))]) == 4
         s.commit()
@@ -137,6 +147,7 @@ def test_expanding_gives_back_the_same_tasks(any_sm, local_store):
                        for t in s.scalars(select(Task).where(Task.job_id == job.id, Task.state == "done")))
         assert after == before
         assert s.scalar(select(func.count()).select_from(ViewOutput)) == 0
+        assert s.scalar(select(func.sum(CompactedDuration.n))) == 0
 
 
 def test_deleting_a_job_deletes_its_compacted_views(any_sm, local_store):
@@ -168,3 +179,30 @@ def test_a_task_taken_back_meanwhile_rolls_the_chunk_back(any_sm, local_store):
         s.commit()
         assert s.scalar(select(func.count()).select_from(ViewOutput)) == 0
         assert len(task_ids(s, job.id)) == 2
+
+
+def test_a_running_job_is_walked_from_its_start_and_a_settled_one_not_again(any_sm, local_store):
+    with any_sm() as s:
+        job = make_running_job(s, local_store, cues=["rgb"], n_points=10, views=2)
+        for _ in range(2):  # passes, then rgb: points 0 and 9 run, the others wait in the queue
+            dispatch_once(s, NullTransport(), window=1000)
+            finish(s, job, [i for p in (0, 9) for i in task_ids(s, job.id, point_idx=p, state="queued")])
+    comp = Compactor(any_sm, after_s=0, pass_s=60, chunk_rows=6)
+    for _ in range(3):
+        comp.run_once()
+    with any_sm() as s:
+        packed = {(int(p), int(v)) for p, v in s.execute(select(ViewOutput.point_idx, ViewOutput.view_idx))}
+        # point 9 finished too, but a chunk with nothing done sends the walk of a running job back to its start
+        assert packed == {(0, 0), (0, 1)}
+        s.execute(update(Job).where(Job.id == job.id).values(state="failed"))
+        s.commit()
+    comp.run_once()
+    with any_sm() as s:
+        packed = {(int(p), int(v)) for p, v in s.execute(select(ViewOutput.point_idx, ViewOutput.view_idx))}
+        assert packed == {(0, 0), (0, 1), (9, 0), (9, 1)}  # a finished job is walked to its end
+    comp.run_once()  # a walk that compacted nothing: the job is settled, not walked again while it stays failed
+    assert comp._settled == {job.id: "failed"}
+    calls = []
+    comp.compact_chunk = lambda *a, **k: calls.append(a) or (0, 0, False)  # type: ignore[method-assign]
+    comp.run_once()
+    assert calls == []

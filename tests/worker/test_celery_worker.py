@@ -148,7 +148,9 @@ def stop_worker(proc: subprocess.Popen[bytes]) -> None:
 def test_real_worker_consumes_heartbeats_and_recycles_its_child(pg_url, pg_sm, redis_url, banana, tmp_path):  # noqa: F811
     from services.scheduler.transport import CeleryTransport
 
-    env = worker_env(pg_url, redis_url, banana.store.root, tmp_path / "data", OMNIDATA_WORKER_MAX_TASKS="2")
+    # one task per message (no view batch), so that two messages are two tasks and recycle the child
+    env = worker_env(pg_url, redis_url, banana.store.root, tmp_path / "data", OMNIDATA_WORKER_MAX_TASKS="2",
+                     OMNIDATA_WORKER_BATCH_VIEWS="false")
     log = (tmp_path / "worker.log").open("wb")
     name = f"w-{secrets.token_hex(3)}@%h"
     proc = subprocess.Popen([sys.executable, "-m", "services.cli", "worker", "--concurrency", "1",

@@ -187,7 +187,7 @@ def test_duplicate_delivery_leaves_one_output_and_one_done_row(sm, banana):
 @pytest.mark.bpy
 def test_render_once_then_derive_from_the_pass_cache(sm, banana):
     job_id = make_job(sm, banana)
-    r = runner(sm, banana)
+    r = runner(sm, banana, worker_batch_views=False)  # one task a message: the render alone, then each cue
     p = r.run(queue(sm, job_id, "passes", 0, 0))
     assert p.status == "done" and p.labels == 0  # the pass set is internal, not a label
     with sm() as s:
@@ -201,7 +201,7 @@ def test_render_once_then_derive_from_the_pass_cache(sm, banana):
     assert (rgb.status, mask.status) == ("done", "done")
     assert r.renders == 1  # derived from the cached pass set, no second render
     # A fresh worker (no memory cache) reads the pass set from the store: same bytes as the first.
-    other = runner(sm, banana, "w2")
+    other = runner(sm, banana, "w2", worker_batch_views=False)
     depth = other.run(queue(sm, job_id, "depth_zbuffer", 0, 0))
     assert depth.status == "done" and other.renders == 0
     img = np.asarray(Image.open(io.BytesIO(banana.store.get_bytes(rgb.key))))

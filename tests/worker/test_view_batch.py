@@ -1,6 +1,6 @@
-"""View batches (issue 20): a worker taking one of a view's cue tasks claims the view's other queued tasks in one
-statement, derives them from the pass set it holds and records them in one statement. Postgres and SQLite, real
-renders of the banana, the real reaper. Every task keeps its row and its message; each output is stored and
+"""View batches (issue 20), the derived cue's kind (the whole-view kind, after a render: test_whole_view.py): a
+worker taking one of a view's cue tasks claims the view's other queued tasks in one statement, derives them from
+the pass set it holds and records them in one statement. Postgres and SQLite, real renders of the banana, the real reaper. Every task keeps its row and its message; each output is stored and
 counted exactly once.
 """
 
@@ -23,6 +23,12 @@ __all__ = ["banana", "sm"]  # fixtures used by name
 VIEW_CUES = [c for c in CUES if c != "point_info"]  # point_info is per point: view 0 only
 
 
+def render(sm, banana, job_id: int, point: int = 0, view: int = 0) -> None:
+    """The view's render alone (a worker without view batches), leaving its cues pending."""
+    r = runner(sm, banana, "w0", worker_batch_views=False)
+    assert r.run(queue(sm, job_id, "passes", point, view)).status == "done"
+
+
 def queue_view(sm, job_id: int, point: int, view: int) -> dict[str, int]:
     """Queue every task of one view but its render (done first, as the dispatcher would); {cue: task id}."""
     cues = CUES if view == 0 else VIEW_CUES
@@ -42,7 +48,7 @@ def outputs(sm, banana, tids: dict[str, int]) -> dict[str, bytes]:
 def test_a_view_batch_claims_runs_and_records_the_views_queued_tasks_once(sm, banana):
     job_id = make_job(sm, banana)
     r = runner(sm, banana, "w1")
-    assert r.run(queue(sm, job_id, "passes", 0, 0)).status == "done"
+    render(sm, banana, job_id)
     view0 = queue_view(sm, job_id, 0, 0)
     other_view = queue(sm, job_id, "rgb", 0, 1)  # another view's task: not part of view 0's batch
 
@@ -71,7 +77,7 @@ def test_batched_outputs_are_byte_identical_to_one_task_at_a_time(sm, banana):
     for batched in (True, False):
         job_id = make_job(sm, banana)
         r = runner(sm, banana, "w1", worker_batch_views=batched)
-        assert r.run(queue(sm, job_id, "passes", 0, 0)).status == "done"
+        render(sm, banana, job_id)
         view0 = queue_view(sm, job_id, 0, 0)
         outcomes = [r.run(tid) for tid in view0.values()]
         assert [o.status for o in outcomes] == (["done"] + ["skipped"] * (len(view0) - 1) if batched
@@ -88,7 +94,7 @@ class Died(BaseException):
 
 def test_a_batch_whose_worker_dies_is_requeued_and_run_once_by_another(sm, banana, monkeypatch):
     job_id = make_job(sm, banana)
-    assert runner(sm, banana, "w1").run(queue(sm, job_id, "passes", 0, 0)).status == "done"
+    render(sm, banana, job_id)
     view0 = queue_view(sm, job_id, 0, 0)
 
     dying = runner(sm, banana, "dying")

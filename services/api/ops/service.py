@@ -20,13 +20,23 @@ from fastapi import FastAPI
 from sqlalchemy import Select, case, func, select, text
 from sqlalchemy.orm import InstrumentedAttribute, Session
 
+from services.core.db.durations import DURATION_BUCKETS_S
 from services.core.db.engine import SchemaNotCurrent, schema_problem
-from services.core.db.models import JOB_STATES, TASK_STATES, Job, JobCounter, Task, TaskState, Worker, utcnow
+from services.core.db.models import (
+    JOB_STATES,
+    TASK_STATES,
+    CompactedDuration,
+    Job,
+    JobCounter,
+    Task,
+    TaskState,
+    Worker,
+    utcnow,
+)
 
 CHECK_TIMEOUT_S = 3.0
 METRICS_TTL_S = 5.0
 STORAGE_PROBE_TTL_S = 5.0
-DURATION_BUCKETS_S = (0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0, 120.0, 300.0)
 _metrics_lock = threading.Lock()
 
 
@@ -160,6 +170,29 @@ def _owned(stmt: Select[_Cols], owner: str | None, job_id: InstrumentedAttribute
     return stmt.where(Job.owner == owner)
 
 
+def _durations(session: Session, owner: str | None) -> dict[str, tuple[list[int], int, float]]:
+    """cue -> (cumulative bucket counts, count, sum) of done tasks' run times: task rows plus compacted tasks."""
+    cols = [func.sum(case((Task.duration_s <= b, 1), else_=0)) for b in DURATION_BUCKETS_S]
+    rows = session.execute(
+        _owned(select(Task.cue, *cols, func.count(), func.sum(Task.duration_s)), owner, Task.job_id)
+        .where(Task.state == TaskState.DONE, Task.duration_s.is_not(None))
+        .group_by(Task.cue)
+    ).all()
+    hist: dict[str, tuple[list[int], int, float]] = {
+        str(r[0]): ([int(c or 0) for c in r[1 : 1 + len(DURATION_BUCKETS_S)]], int(r[-2]), float(r[-1] or 0.0))
+        for r in rows
+    }
+    d = CompactedDuration
+    packed = session.execute(
+        _owned(select(d.cue, d.bucket, func.sum(d.n), func.sum(d.sum_s)), owner, d.job_id).group_by(d.cue, d.bucket)
+    ).all()
+    for cue, bucket, n, total_s in packed:
+        counts, count, total = hist.get(str(cue), ([0] * len(DURATION_BUCKETS_S), 0, 0.0))
+        counts = [c + (int(n) if int(bucket) <= i else 0) for i, c in enumerate(counts)]  # cumulative: le >= bucket
+        hist[str(cue)] = (counts, count + int(n), total + float(total_s or 0.0))
+    return hist
+
+
 def build_metrics(session: Session, app: FastAPI, owner: str | None = None) -> str:
     """The Prometheus text exposition of the service's state; `owner` limits tasks and jobs to one tenant's
     (and leaves out the broker queues, which carry every tenant's work)."""
@@ -202,21 +235,13 @@ def build_metrics(session: Session, app: FastAPI, owner: str | None = None) -> s
     out.sample("omnidata_workers", alive, status="alive")
     out.sample("omnidata_workers", total_workers - alive, status="stale")
 
-    cols = [func.sum(case((Task.duration_s <= b, 1), else_=0)) for b in DURATION_BUCKETS_S]
-    rows = session.execute(
-        _owned(select(Task.cue, *cols, func.count(), func.sum(Task.duration_s)), owner, Task.job_id)
-        .where(Task.state == TaskState.DONE, Task.duration_s.is_not(None))
-        .group_by(Task.cue)
-        .order_by(Task.cue)
-    ).all()
     out.family("omnidata_task_duration_seconds", "histogram", "Run time of finished tasks, by cue.")
-    for row in rows:
-        cue, counts, n, total_s = row[0], row[1 : 1 + len(DURATION_BUCKETS_S)], row[-2], row[-1]
+    for cue, (counts, n, total_s) in sorted(_durations(session, owner).items()):
         for b, c in zip(DURATION_BUCKETS_S, counts, strict=True):
-            out.sample("omnidata_task_duration_seconds_bucket", int(c or 0), cue=cue, le=_fmt(b))
-        out.sample("omnidata_task_duration_seconds_bucket", int(n), cue=cue, le="+Inf")
-        out.sample("omnidata_task_duration_seconds_sum", float(total_s or 0.0), cue=cue)
-        out.sample("omnidata_task_duration_seconds_count", int(n), cue=cue)
+            out.sample("omnidata_task_duration_seconds_bucket", c, cue=cue, le=_fmt(b))
+        out.sample("omnidata_task_duration_seconds_bucket", n, cue=cue, le="+Inf")
+        out.sample("omnidata_task_duration_seconds_sum", total_s, cue=cue)
+        out.sample("omnidata_task_duration_seconds_count", n, cue=cue)
     return out.render()
 
 

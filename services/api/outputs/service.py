@@ -22,8 +22,9 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from services.api.outputs.schemas import OutputLink
+from services.core.db.compacted import compacted_tasks
 from services.core.db.jobs import job_root, root_key
-from services.core.db.models import Job, Task, TaskState
+from services.core.db.models import Job, Task, TaskState, ViewOutput
 from services.core.domain.cues import CATALOG
 from services.core.domain.errors import Forbidden, NotFound
 from services.core.domain.keys import output_key
@@ -148,7 +149,7 @@ def links(
 
 
 def view_tasks(session: Session, *, job: Job, space_id: int, point: int, view: int) -> list[Task]:
-    """The tasks of one view, plus the per-point cues of its point (stored on view 0)."""
+    """The tasks of one view, plus the per-point cues of its point (stored on view 0); compacted views' too."""
     per_point = [n for n, c in CATALOG.items() if c.per_point]
     rows = session.scalars(
         select(Task).where(
@@ -158,4 +159,8 @@ def view_tasks(session: Session, *, job: Job, space_id: int, point: int, view: i
             (Task.view_idx == view) | ((Task.view_idx == 0) & Task.cue.in_(per_point)),
         )
     ).all()
-    return list(rows)
+    at = (ViewOutput.job_id == job.id) & (ViewOutput.space_id == space_id) & (ViewOutput.point_idx == point)
+    packed = compacted_tasks(session, job, at & (ViewOutput.view_idx == view))
+    if view != 0:
+        packed += [t for t in compacted_tasks(session, job, at & (ViewOutput.view_idx == 0)) if t.cue in per_point]
+    return [*rows, *packed]

@@ -12,7 +12,9 @@ from services.api.outputs.service import link_base, links
 from services.api.pagination import Page, PageDep
 from services.api.spaces.service import not_found
 from services.api.views import service
+from services.api.views.compacted import find_compacted_task
 from services.api.views.schemas import Plan, TaskRead, Throughput, ViewRead
+from services.core.db.compacted import has_compacted
 from services.core.db.models import Task, TaskState
 from services.core.domain.cues import CATALOG
 
@@ -68,7 +70,8 @@ def list_tasks(
     cue: CueFilter = None,
     space_id: SpaceFilter = None,
 ) -> Page[TaskRead]:
-    """Tasks by id with their state, attempts, worker, error (when failed), output key and duration."""
+    """Tasks by id with their state, attempts, worker, error (when failed), output key and duration; done tasks of
+    compacted views (services.scheduler.compaction) follow in view order, without worker or queued/started times."""
     job = get_job(session, owner=tenant, job_id=job_id)
     rows, total = service.list_tasks(session, job=job, page=page, state=state, cue=cue, space_id=space_id)
     return Page[TaskRead](items=[service.task_read(t) for t in rows], total=total, limit=page.limit, offset=page.offset)
@@ -84,6 +87,8 @@ def get_task(
     """A task with its error (when failed)."""
     job = get_job(session, owner=tenant, job_id=job_id)
     task = session.get(Task, task_id)
+    if task is None and has_compacted(session, job.id):
+        task = find_compacted_task(session, job, task_id)
     if task is None or task.job_id != job.id:
         raise not_found("task", task_id)
     return service.task_read(task)

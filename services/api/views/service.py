@@ -7,13 +7,16 @@ import threading
 import time
 from collections.abc import Sequence
 from datetime import datetime, timedelta
+from typing import Any
 
 from sqlalchemy import ColumnElement, Integer, and_, cast, exists, func, literal_column, select, tuple_
 from sqlalchemy.orm import Session
 
 from services.api.pagination import PageParams
 from services.api.progress.compute import read_counters
+from services.api.views.compacted import compacted_count, done_states, page_with_compacted
 from services.api.views.schemas import PlanSpace, TaskBrief, TaskRead, ThroughputBucket, ViewRead
+from services.core.db.compacted import compacted_tasks, cue_filter, has_compacted
 from services.core.db.models import (
     JOB_TERMINAL_STATES,
     Camera,
@@ -24,6 +27,7 @@ from services.core.db.models import (
     Task,
     TaskState,
     View,
+    ViewOutput,
     utcnow,
 )
 from services.core.domain.cues import CATALOG
@@ -62,6 +66,15 @@ def _task_of_view(state: str | None = None, cue: str | None = None, not_state: s
     return exists(select(literal_column("1")).select_from(Task).where(and_(*cond)))
 
 
+def _compacted_view(cue: str | None = None) -> ColumnElement[bool]:
+    """EXISTS condition: the view is compacted (and holds a task of `cue`)."""
+    cond = [ViewOutput.job_id == View.job_id, ViewOutput.space_id == View.space_id,
+            ViewOutput.point_idx == View.point_idx, ViewOutput.view_idx == View.v]
+    if cue is not None:
+        cond.append(cue_filter(cue))
+    return exists(select(literal_column("1")).select_from(ViewOutput).where(and_(*cond)))
+
+
 def list_views(
     session: Session,
     *,
@@ -80,10 +93,11 @@ def list_views(
     if point is not None:
         cond.append(View.point_idx == point)
     if state is not None or cue is not None:
-        cond.append(_task_of_view(state=state, cue=cue))
+        has = _task_of_view(state=state, cue=cue)
+        # a compacted view's tasks are all done
+        cond.append(has | _compacted_view(cue) if state in (None, TaskState.DONE) else has)
     if complete:
-        cond.append(_task_of_view())
-        cond.append(~_task_of_view(not_state=TaskState.DONE))
+        cond.append(_compacted_view() | (_task_of_view() & ~_task_of_view(not_state=TaskState.DONE)))
     total = session.scalar(select(func.count()).select_from(View).where(*cond)) or 0
     rows = session.execute(
         select(View, Space.name)
@@ -103,6 +117,8 @@ def list_views(
                 tuple_(Task.space_id, Task.point_idx).in_(point_keys),
             )
         ).all()
+        tasks = [*tasks, *compacted_tasks(
+            session, job, tuple_(ViewOutput.space_id, ViewOutput.point_idx).in_(point_keys))]
         views_of_point: dict[tuple[int, int], list[int]] = {}
         for s, p, v in keys:
             views_of_point.setdefault((s, p), []).append(v)
@@ -148,8 +164,10 @@ def list_tasks(
     cue: str | None = None,
     space_id: int | None = None,
 ) -> tuple[list[Task], int]:
-    """Tasks of the job by id, filtered; the total comes from the counters unless a space filter is given."""
+    """Tasks of the job by id, filtered, then the done tasks of compacted views (in view order); the total comes from
+    the counters unless a space filter is given."""
     cond = [Task.job_id == job.id]
+    compacted = done_states(state) and has_compacted(session, job.id)
     if state is not None:
         cond.append(Task.state == state)
     if cue is not None:
@@ -157,6 +175,8 @@ def list_tasks(
     if space_id is not None:
         cond.append(Task.space_id == space_id)
         total = int(session.scalar(select(func.count()).select_from(Task).where(*cond)) or 0)
+        if compacted:
+            total += compacted_count(session, job, cue, space_id)
     else:
         counters = read_counters(session, [job.id])[job.id]
         total = sum(
@@ -166,6 +186,8 @@ def list_tasks(
             for s, n in states.items()
             if state is None or s == state
         )
+    if compacted:
+        return page_with_compacted(session, job, cond, page, cue, space_id), total
     rows = session.scalars(select(Task).where(*cond).order_by(Task.id).limit(page.limit).offset(page.offset)).all()
     return list(rows), total
 
@@ -256,37 +278,50 @@ class _TTLCache:
 _throughput_cache = _TTLCache()
 
 
+def _bucket_counts(
+    session: Session, column: Any, where: list[ColumnElement[bool]], start: datetime,
+    bucket_s: float, *extra: Any,
+) -> list[tuple[int | None, ...]]:
+    """(bucket index, *extra, count) of the rows matching `where` by `column`'s time after `start`."""
+    idx: ColumnElement[int]
+    if session.get_bind().dialect.name == "postgresql":
+        idx = func.floor(func.extract("epoch", column - start) / bucket_s)
+    else:  # SQLite stores naive UTC text; julianday works on it (CAST truncates: offsets are >= 0)
+        offset_s = (func.julianday(column) - func.julianday(start.replace(tzinfo=None))) * 86400.0
+        idx = cast(offset_s / bucket_s, Integer)
+    rows = session.execute(
+        select(idx.label("k"), *extra, func.count()).where(*where).group_by(literal_column("k"), *extra)
+    ).all()
+    return [tuple(r) for r in rows]
+
+
 def throughput(session: Session, *, job: Job, buckets: int = 60) -> tuple[float, list[ThroughputBucket]]:
-    """Done tasks per time bucket from task finished_at, `buckets` equal buckets since the job started."""
+    """Done tasks per time bucket from task finished_at, `buckets` equal buckets since the job started; a compacted
+    view's tasks count at its last task's finish time."""
     cached = _throughput_cache.get((job.id, buckets))
     if cached is not None:
         return cached
-    first, last = session.execute(
-        select(func.min(Task.finished_at), func.max(Task.finished_at)).where(
-            Task.job_id == job.id, Task.state == TaskState.DONE
-        )
-    ).one()
-    if first is None:
+    done = [Task.job_id == job.id, Task.state == TaskState.DONE, Task.finished_at.is_not(None)]
+    packed = [ViewOutput.job_id == job.id, ViewOutput.finished_at.is_not(None)]
+    spans = [session.execute(select(func.min(col), func.max(col)).where(*where)).one()
+             for col, where in ((Task.finished_at, done), (ViewOutput.finished_at, packed))]
+    firsts, lasts = [a for a, _ in spans if a is not None], [b for _, b in spans if b is not None]
+    if not firsts:
         result: tuple[float, list[ThroughputBucket]] = (1.0, [])
         _throughput_cache.put((job.id, buckets), result)
         return result
+    first, last = min(firsts), max(lasts)
     start: datetime = job.started_at if job.started_at and job.started_at <= first else first
     end: datetime = max(last, job.finished_at or last) if job.state in JOB_TERMINAL_STATES else utcnow()
     span = max((end - start).total_seconds(), 1.0)
     bucket_s = max(1.0, math.ceil(span / buckets))
-    idx: ColumnElement[int]
-    if session.get_bind().dialect.name == "postgresql":
-        idx = func.floor(func.extract("epoch", Task.finished_at - start) / bucket_s)
-    else:  # SQLite stores naive UTC text; julianday works on it (CAST truncates: offsets are >= 0)
-        offset_s = (func.julianday(Task.finished_at) - func.julianday(start.replace(tzinfo=None))) * 86400.0
-        idx = cast(offset_s / bucket_s, Integer)
-    rows = session.execute(
-        select(idx.label("k"), func.count())
-        .where(Task.job_id == job.id, Task.state == TaskState.DONE, Task.finished_at.is_not(None))
-        .group_by(literal_column("k"))
-        .order_by(literal_column("k"))
-    ).all()
-    counts = {int(k): int(n) for k, n in rows if k is not None}
+    counts: dict[int, int] = {}
+    for k, n in _bucket_counts(session, Task.finished_at, done, start, bucket_s):
+        if k is not None:
+            counts[int(k)] = counts.get(int(k), 0) + int(n or 0)
+    for k, mask, n in _bucket_counts(session, ViewOutput.finished_at, packed, start, bucket_s, ViewOutput.cue_mask):
+        if k is not None:
+            counts[int(k)] = counts.get(int(k), 0) + int(mask or 0).bit_count() * int(n or 0)
     n_buckets = max(int(span // bucket_s) + 1, max(counts, default=-1) + 1)
     series = [
         ThroughputBucket(t=start + timedelta(seconds=i * bucket_s), done=counts.get(i, 0)) for i in range(n_buckets)

@@ -12,6 +12,7 @@ from typing import Any
 from sqlalchemy import ColumnElement, delete, insert, select, tuple_
 from sqlalchemy.orm import Session
 
+from services.core.db.durations import add_durations
 from services.core.db.models import Job, JobSpace, Space, Task, TaskState, ViewOutput
 from services.core.db.view_outputs import CUE_INDEX, DoneTask, as_task, keys_of, unpack
 from services.core.domain.cues import CATALOG
@@ -72,6 +73,7 @@ def expand_views(session: Session, job: Job, keys: Iterable[ViewKey]) -> int:
             for (s, p, v), tasks in iter_compacted(session, job, cond, names=names) for t in tasks
         ]
         session.execute(delete(ViewOutput).where(ViewOutput.job_id == job.id, cond))
+        add_durations(session, job.id, [(r["cue"], r["duration_s"]) for r in rows], sign=-1)
         if rows:
             session.execute(insert(Task), rows)
         made += len(rows)

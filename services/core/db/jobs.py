@@ -17,6 +17,7 @@ from services.core.db.compacted import expand_missing
 from services.core.db.models import (
     JOB_TERMINAL_STATES,
     Camera,
+    CompactedDuration,
     Job,
     JobCounter,
     JobSpace,
@@ -231,7 +232,7 @@ def delete_job(session: Session, store: ObjectStore, job: Job) -> int:
             deleted += store.delete_prefix(prefix)
         for key in ("manifest.jsonl", "job.json"):
             deleted += int(store.delete(key))
-    for model in (Task, ViewOutput, View, Point, Camera, JobCounter, JobSpace, WorkerBlock):
+    for model in (Task, ViewOutput, CompactedDuration, View, Point, Camera, JobCounter, JobSpace, WorkerBlock):
         session.execute(delete(model).where(model.job_id == job.id))
     session.execute(delete(Job).where(Job.id == job.id))
     session.expunge(job)

@@ -324,6 +324,18 @@ class ViewOutput(Base):
     outputs: Mapped[bytes] = mapped_column(LargeBinary)
 
 
+class CompactedDuration(Base):
+    """Run times of a job's compacted tasks of one cue in one histogram bucket (services.core.db.durations)."""
+
+    __tablename__ = "compacted_duration"
+
+    job_id: Mapped[int] = mapped_column(BigIntId, ForeignKey("job.id", ondelete="CASCADE"), primary_key=True)
+    cue: Mapped[str] = mapped_column(String(64), primary_key=True)
+    bucket: Mapped[int] = mapped_column(SmallInteger, primary_key=True)
+    n: Mapped[int] = mapped_column(BigInteger, default=0, server_default=text("0"))
+    sum_s: Mapped[float] = mapped_column(Float, default=0.0, server_default=text("0"))
+
+
 class Worker(Base):
     """A worker process (id host:pid) and its heartbeat; labels maps cue -> labels produced."""
 

@@ -23,18 +23,21 @@ from sqlalchemy import (
     Update,
     case,
     exists,
+    func,
+    literal,
     or_,
     select,
     text,
     update,
 )
 from sqlalchemy.engine import Connection
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, aliased
 from sqlalchemy.sql.selectable import TextualSelect
 
 from services.core.db.bulk import connection_of
 from services.core.db.counters import COUNTER_SHARDS, add_counts
 from services.core.db.models import Job, JobState, Task, TaskState, WorkerBlock
+from services.core.domain.cues import CATALOG, closure
 
 __all__ = [
     "JOB_EDGES", "TASK_EDGES", "IllegalTransition", "JobState", "TaskState", "check_job_edge", "check_task_edge",
@@ -44,11 +47,13 @@ __all__ = [
 
 # from -> the states a task may go to, and who takes that edge
 TASK_EDGES: Mapping[TaskState, frozenset[TaskState]] = {
-    # dispatch sends it; dispatch fails it (its pass failed for good); cancel_job
-    TaskState.PENDING: frozenset({TaskState.QUEUED, TaskState.FAILED, TaskState.CANCELLED}),
+    # dispatch sends it; dispatch fails it (its pass failed for good); cancel_job; a view batch claims it with
+    # its view's passes (the worker that rendered the view derives it from the pass set in memory: no message)
+    TaskState.PENDING: frozenset({TaskState.QUEUED, TaskState.FAILED, TaskState.CANCELLED, TaskState.RUNNING}),
     # dispatch/reaper/worker give it back (paused job, lost message, resume); the worker claims it; cancel_job
     TaskState.QUEUED: frozenset({TaskState.PENDING, TaskState.RUNNING, TaskState.CANCELLED}),
-    # reaper/requeue (lease ran out, interrupted); the worker finishes or fails it; reaper of a cancelled job
+    # reaper/requeue (lease ran out, interrupted), or a view batch hands back a task whose in-batch input failed;
+    # the worker finishes or fails it; reaper of a cancelled job
     TaskState.RUNNING: frozenset({TaskState.PENDING, TaskState.DONE, TaskState.FAILED, TaskState.CANCELLED}),
     TaskState.DONE: frozenset({TaskState.PENDING}),  # resume: its output file is gone
     TaskState.FAILED: frozenset({TaskState.PENDING}),  # retry_failed
@@ -220,18 +225,36 @@ _FINISH_SQL = (
     "WHERE task.id = %(task_id)s AND task.state = 'running' AND task.worker_id = %(worker)s "
     "RETURNING task.id, task.cue, task.job_id), counted AS ({count}) SELECT * FROM moved"
 )
-# A view batch: the other queued tasks of one view in one claim, and the finished ones in one result (their
-# values as arrays, so the text stays the same whatever the batch's size).
+# A view batch: the rest of one view's tasks in one claim, and the finished ones in one result (their values as
+# arrays, so the text stays the same whatever the batch's size). The claim takes queued tasks and, after the
+# view's render (%(pending)s), pending ones too, unless a task of the view failed (then the dispatcher's rule,
+# "fail what an input failed for", decides). The candidates are locked first (skipping rows another transaction
+# holds, e.g. a dispatch pass queueing them), so the counter deltas subtract from each row's own old state.
 _CLAIM_VIEW_SQL = (
-    "WITH moved AS (UPDATE task SET state = 'running', worker_id = %(worker)s, attempts = task.attempts + 1, "
-    "started_at = %(now)s, finished_at = NULL, lease_until = %(lease)s "
-    "WHERE task.job_id = %(job_id)s AND task.space_id = %(space_id)s AND task.point_idx = %(point)s "
-    "AND task.view_idx = %(view)s AND task.cue <> 'passes' AND task.id <> %(task_id)s AND task.state = 'queued' "
-    "AND EXISTS (SELECT 1 FROM job WHERE job.id = task.job_id AND job.state = 'running') "
-    "AND NOT EXISTS (SELECT 1 FROM worker_block AS b WHERE b.worker_id = %(worker)s AND b.job_id = task.job_id "
-    "AND (b.until IS NULL OR b.until > %(now)s)) "
-    "RETURNING task.id, task.cue, task.job_id, task.attempts), counted AS ({count}) SELECT * FROM moved"
+    "WITH cand AS (SELECT t.id, t.state AS old_state FROM task AS t "
+    "WHERE t.job_id = %(job_id)s AND t.space_id = %(space_id)s AND t.point_idx = %(point)s "
+    "AND t.view_idx = %(view)s AND t.cue <> 'passes' AND t.id <> %(task_id)s "
+    "AND (t.state = 'queued' OR (%(pending)s AND t.state = 'pending' AND NOT EXISTS (SELECT 1 FROM task AS f "
+    "WHERE f.job_id = t.job_id AND f.space_id = t.space_id AND f.point_idx = t.point_idx "
+    "AND f.view_idx = t.view_idx AND f.state = 'failed'))) "
+    "AND EXISTS (SELECT 1 FROM job WHERE job.id = t.job_id AND job.state = 'running') "
+    "AND NOT EXISTS (SELECT 1 FROM worker_block AS b WHERE b.worker_id = %(worker)s AND b.job_id = t.job_id "
+    "AND (b.until IS NULL OR b.until > %(now)s)) ORDER BY t.id FOR UPDATE OF t SKIP LOCKED), "
+    "moved AS (UPDATE task SET state = 'running', worker_id = %(worker)s, attempts = task.attempts + 1, "
+    "started_at = %(now)s, finished_at = NULL, lease_until = %(lease)s FROM cand "
+    "WHERE task.id = cand.id RETURNING task.id, task.cue, task.job_id, task.attempts, cand.old_state), "
+    "counted AS (INSERT INTO job_counter (job_id, cue, state, shard, n) "
+    "SELECT m.job_id, m.cue, d.state, mod(pg_backend_pid(), {shards}), sum(d.sign) FROM moved AS m "
+    "CROSS JOIN LATERAL (VALUES (m.old_state, -1), ('{dst}', 1)) AS d (state, sign) "
+    "GROUP BY m.job_id, m.cue, d.state ORDER BY m.job_id, m.cue, d.state "
+    "ON CONFLICT (job_id, cue, state, shard) DO UPDATE SET n = job_counter.n + excluded.n) "
+    "SELECT moved.*, (SELECT count(*) FROM task AS v WHERE v.job_id = %(job_id)s AND v.space_id = %(space_id)s "
+    "AND v.point_idx = %(point)s AND v.view_idx = %(view)s AND v.state <> 'done' AND v.cue NOT IN ({no_passes}) "
+    "AND v.id NOT IN (SELECT id FROM moved)) AS reading_elsewhere FROM moved"
 )
+# Cues whose task never reads the view's pass set (the plan's), and `passes` itself: the claim's last column counts
+# the view's other unfinished tasks, which may still need the stored pass set.
+NO_PASSES: tuple[str, ...] = tuple(c for c in CATALOG if "passes" not in closure([c]) or c == "passes")
 _FINISH_MANY_SQL = (
     "WITH moved AS (UPDATE task SET state = 'done', output_key = v.key, size = v.size, sha256 = v.sha256, "
     "duration_s = v.duration_s, finished_at = %(now)s, lease_until = NULL, error = NULL "
@@ -250,7 +273,10 @@ def _worker_sql(template: str, src: TaskState, dst: TaskState) -> str:
 
 CLAIM_SQL = _worker_sql(_CLAIM_SQL, TaskState.QUEUED, TaskState.RUNNING)
 FINISH_SQL = _worker_sql(_FINISH_SQL, TaskState.RUNNING, TaskState.DONE)
-CLAIM_VIEW_SQL = _worker_sql(_CLAIM_VIEW_SQL, TaskState.QUEUED, TaskState.RUNNING)
+CLAIM_VIEW_SQL = _CLAIM_VIEW_SQL.format(shards=COUNTER_SHARDS, dst=TaskState.RUNNING.value,
+                                        no_passes=", ".join(f"'{c}'" for c in NO_PASSES))
+check_task_edge(TaskState.QUEUED, TaskState.RUNNING)
+check_task_edge(TaskState.PENDING, TaskState.RUNNING)
 FINISH_MANY_SQL = _worker_sql(_FINISH_MANY_SQL, TaskState.RUNNING, TaskState.DONE)
 
 
@@ -303,28 +329,39 @@ def finish_task(
 
 def claim_view_tasks(
     session: Session, *, task_id: int, job_id: int, space_id: int, point: int, view: int, worker_id: str,
-    now: datetime, lease_until: datetime,
-) -> list[Row[Any]]:
-    """queued -> running for `worker_id`, in one statement, of the view's other tasks (same job, space, point and
-    view; not `task_id`, not its `passes` task) while the job runs and the worker is not kept off it; returns the
-    rows (id, cue, job_id, attempts counting this one). Postgres: one fixed statement outside a transaction."""
+    now: datetime, lease_until: datetime, with_pending: bool = False,
+) -> list[Row[Any]] | list[tuple[Any, ...]]:
+    """queued (and with `with_pending`, pending) -> running for `worker_id`, in one statement, of the view's other
+    tasks (same job, space, point and view; not `task_id`, not its `passes` task) while the job runs and the worker
+    is not kept off it; pending ones only while no task of the view failed. Returns the rows (id, cue, job_id,
+    attempts counting this one, old state, reading_elsewhere: how many other tasks of the view that read its pass
+    set are not done and not claimed here). Postgres: one fixed statement outside a transaction."""
     conn = _autocommit(session)
     if conn is not None:
         return list(conn.exec_driver_sql(CLAIM_VIEW_SQL, {
             "task_id": task_id, "job_id": job_id, "space_id": space_id, "point": point, "view": view,
-            "worker": worker_id, "now": now, "lease": lease_until}))
+            "worker": worker_id, "now": now, "lease": lease_until, "pending": with_pending}))
     job_running = exists().where(Job.id == Task.job_id, Job.state == JobState.RUNNING)
     blocked = exists().where(WorkerBlock.worker_id == worker_id, WorkerBlock.job_id == Task.job_id,
                              or_(WorkerBlock.until.is_(None), WorkerBlock.until > now))
-    rows = transition_rows(
-        session, job_id=job_id, from_state=TaskState.QUEUED, to_state=TaskState.RUNNING,
-        where=[Task.space_id == space_id, Task.point_idx == point, Task.view_idx == view, Task.cue != "passes",
-               Task.id != task_id, job_running, ~blocked],
-        returning=[Task.attempts], worker_id=worker_id, attempts=Task.attempts + 1, started_at=now,
-        finished_at=None, lease_until=lease_until,
-    )
+    same_view = [Task.job_id == job_id, Task.space_id == space_id, Task.point_idx == point, Task.view_idx == view]
+    rows: list[Row[Any]] = []
+    for src in (TaskState.QUEUED, TaskState.PENDING) if with_pending else (TaskState.QUEUED,):
+        where = [*same_view, Task.cue != "passes", Task.id != task_id, job_running, ~blocked]
+        if src == TaskState.PENDING:
+            f = aliased(Task)
+            where.append(~exists().where(f.job_id == job_id, f.space_id == space_id, f.point_idx == point,
+                                         f.view_idx == view, f.state == TaskState.FAILED))
+        rows.extend(transition_rows(
+            session, job_id=job_id, from_state=src, to_state=TaskState.RUNNING, where=where,
+            returning=[Task.attempts, literal(src.value)], worker_id=worker_id, attempts=Task.attempts + 1,
+            started_at=now, finished_at=None, lease_until=lease_until,
+        ))
+    moved = [int(r[0]) for r in rows]
+    elsewhere = session.scalar(select(func.count()).select_from(Task).where(
+        *same_view, Task.state != TaskState.DONE, Task.cue.not_in(NO_PASSES), Task.id.not_in(moved)))
     session.commit()
-    return rows
+    return [(*r, int(elsewhere or 0)) for r in rows]
 
 
 def finish_tasks(

@@ -18,8 +18,16 @@ from services.core.domain.cues import CATALOG
 from services.core.domain.keys import output_key, passes_key
 
 FORMAT = 1
-CUE_INDEX = {name: i for i, name in enumerate(CATALOG)}
-CUE_NAMES = tuple(CATALOG)
+# The cue of a packed task is its index here (and bit `index` of `cue_mask`): rows outlive a catalog change, so
+# this list only ever grows at its end (tests/scheduler/test_compaction.py checks that it covers the catalog).
+CUE_NAMES = (
+    "passes", "rgb", "normal", "depth_zbuffer", "depth_euclidean", "mask_valid", "reshading", "principal_curvature",
+    "edge_texture", "edge_occlusion", "keypoints2d", "keypoints3d", "segment_unsup2d", "segment_unsup25d",
+    "segment_semantic", "segment_instance", "segment_panoptic", "fragments", "point_info", "nonfixated",
+    "vanishing_points", "position", "mask_photo", "augment_params", "rgb_refocus", "rgb_fog", "rgb_motion_blur",
+    "rgb_flash",
+)
+CUE_INDEX = {name: i for i, name in enumerate(CUE_NAMES)}
 
 _HEAD = struct.Struct("<BB")  # format, number of tasks
 _FIXED = struct.Struct("<qBBHqdq")  # id, cue index, flags, attempts, size, duration_s, finished_at (us since epoch)

@@ -158,12 +158,13 @@ def _crossing(kept: np.ndarray, parent: np.ndarray, w: int) -> tuple[np.ndarray,
 
 
 @njit(cache=True, nogil=True)
-def _enforce_min_size(ca: np.ndarray, cb: np.ndarray, parent: np.ndarray, size: np.ndarray,
-                      min_size: int) -> np.ndarray:
-    """Merge components below min_size along the crossing edges (ends ca, cb, in the merge order); labels 0..n-1
-    in raster order."""
+def _min_size_merges(ca: np.ndarray, cb: np.ndarray, parent: np.ndarray, size: np.ndarray,
+                     min_size: int) -> tuple[np.ndarray, int]:
+    """Merge components below min_size along the crossing edges (ends ca, cb, in the merge order), on a copy of
+    the forest: (that forest, how many merges)."""
     parent = parent.copy()
     size = size.copy()
+    merges = 0
     for e in range(len(ca)):
         r0 = _find(parent, ca[e])
         r1 = _find(parent, cb[e])
@@ -172,6 +173,13 @@ def _enforce_min_size(ca: np.ndarray, cb: np.ndarray, parent: np.ndarray, size: 
                 r0, r1 = r1, r0
             parent[r1] = r0
             size[r0] += size[r1]
+            merges += 1
+    return parent, merges
+
+
+@njit(cache=True, nogil=True)
+def _raster_labels(parent: np.ndarray) -> np.ndarray:
+    """Labels 0..n-1 of the forest's trees in raster order of first appearance."""
     n = len(parent)
     label_of_root = np.full(n, -1, np.int64)
     out = np.empty(n, np.int64)
@@ -183,6 +191,14 @@ def _enforce_min_size(ca: np.ndarray, cb: np.ndarray, parent: np.ndarray, size: 
             count += 1
         out[i] = label_of_root[r]
     return out
+
+
+@njit(cache=True, nogil=True)
+def _root_count(parent: np.ndarray) -> int:
+    count = 0
+    for i in range(len(parent)):
+        count += parent[i] == i
+    return count
 
 
 class Felzenszwalb:
@@ -199,8 +215,19 @@ class Felzenszwalb:
         code, cost = _sorted_edges(img, SORT_LEVELS)
         parent, self._size, kept = _merge(code, cost, w, h * w, float(scale) / 255.0)
         self._parent, self._ca, self._cb = _crossing(kept, parent, w)
+        self._components = _root_count(parent)
+        self._last: tuple[int, np.ndarray, int] | None = None
 
     def labels(self, min_size: int) -> np.ndarray:
         """int64 H x W labels 0..n-1 (raster order of first appearance)."""
-        flat = _enforce_min_size(self._ca, self._cb, self._parent, self._size, int(min_size))
-        return flat.reshape(self.shape)
+        return _raster_labels(self._merged(min_size)[0]).reshape(self.shape)
+
+    def count(self, min_size: int) -> int:
+        """How many superpixels labels(min_size) has, without labelling the pixels."""
+        return self._components - self._merged(min_size)[1]
+
+    def _merged(self, min_size: int) -> tuple[np.ndarray, int]:
+        """The min-size pass's forest and merge count, the last one kept (count then labels: one pass)."""
+        if self._last is None or self._last[0] != min_size:
+            self._last = (min_size, *_min_size_merges(self._ca, self._cb, self._parent, self._size, int(min_size)))
+        return self._last[1], self._last[2]

@@ -38,6 +38,7 @@ from services.worker.cues.common import (
     to_uint16_scaled,
     valid,
 )
+from services.worker.cues.narf_kernels import blend, range_normals, scale_split, tensor_planes
 from services.worker.cues.registry import register
 
 KP3D_SCALES_PX = (1, 2, 4, 8, 16, 32, 64)
@@ -85,26 +86,6 @@ def keypoints2d(ctx: ViewContext) -> np.ndarray:
     """uint16 H x W multi-scale determinant-of-Hessian blob response of the grey image."""
     r = doh_response(grey(ctx), tuple(ctx.params.keypoints2d_sigmas))
     return to_uint16_scaled(r, ctx.params.keypoints2d_scale)
-
-
-def _shift(a: np.ndarray, dy: int, dx: int, fill: float) -> np.ndarray:
-    """a shifted so out[y, x] = a[y + dy, x + dx], `fill` outside."""
-    out = np.full_like(a, fill)
-    h, w = a.shape[:2]
-    out[max(0, -dy):h - max(0, dy), max(0, -dx):w - max(0, dx)] = a[max(0, dy):h - max(0, -dy),
-                                                                    max(0, dx):w - max(0, -dx)]
-    return out
-
-
-def _central_difference(a: np.ndarray, axis: int) -> np.ndarray:
-    """a[i + 1] - a[i - 1] along axis 0 or 1 of an H x W (x C) array, 0 taken outside."""
-    out = np.empty_like(a)
-    src = np.moveaxis(a, axis, 0)
-    dst = np.moveaxis(out, axis, 0)
-    dst[1:-1] = src[2:] - src[:-2]
-    dst[0] = src[1]
-    dst[-1] = -src[-2]
-    return out
 
 
 def _blur(x: np.ndarray, radius_px: int) -> np.ndarray:
@@ -251,60 +232,33 @@ def _isotropy(b: np.ndarray) -> np.ndarray:
 
 
 def narf_interest(ctx: ViewContext) -> np.ndarray:
-    """float32 H x W NARF-like interest in [0, 1] (module docstring), 0 off valid depth."""
+    """float32 H x W NARF-like interest in [0, 1] (module docstring), 0 off valid depth. The per-pixel steps run as
+    compiled passes (narf_kernels: the numpy expressions they replaced, bit for bit)."""
     v = valid(ctx)
     if not v.any():
         return np.zeros(v.shape, dtype=np.float32)
     f = float(ctx.geometry.K[0, 0])
-    d = ray_dirs_cam(ctx)
     z = np.where(v, depth_m(ctx), 0.0).astype(np.float32)
-    rng = np.where(v, z / d[..., 2], np.inf).astype(np.float32)  # euclidean range, inf = none
-    P = d * np.where(v, rng, 0.0)[..., None]
-    # 2. foreground borders: the neighbour is missing or much farther.
-    border = np.zeros(v.shape, dtype=bool)
-    thresh = BORDER_FOOTPRINTS * np.where(v, rng, 0.0) / f
-    for dy, dx in ((0, 1), (0, -1), (1, 0), (-1, 0)):
-        rq = _shift(rng, dy, dx, np.inf)
-        with np.errstate(invalid="ignore"):  # inf - inf off the surface; masked by v anyway
-            border |= v & (rq - rng > thresh)
-    # 1. normals from central differences where both neighbours on each axis are valid surface.
-    smooth = v & ~border
-    du, dv = _central_difference(P, axis=1), _central_difference(P, axis=0)
-    ok = smooth & _shift(smooth, 0, 1, False) & _shift(smooth, 0, -1, False) \
-        & _shift(smooth, 1, 0, False) & _shift(smooth, -1, 0, False)
-    n = np.stack([du[..., 1] * dv[..., 2] - du[..., 2] * dv[..., 1], du[..., 2] * dv[..., 0] - du[..., 0] * dv[..., 2],
-                  du[..., 0] * dv[..., 1] - du[..., 1] * dv[..., 0]], axis=-1)  # du x dv (np.cross is slower)
-    n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
-    n = np.where((np.einsum("hwc,hwc->hw", n, d) > 0)[..., None], -n, n)
-    w = ok.astype(np.float32)
-    n = n * w[..., None]
+    # 1./2. foreground borders, and normals from central differences where a pixel and its 4 neighbours are
+    # smooth surface: the planes [w, n * w] the surface change averages.
+    border, wn_planes = range_normals(v, z, ray_dirs_cam(ctx), f, BORDER_FOOTPRINTS)
     # 3./4. per-pixel scale from the metric support size, blended linearly in log2 between the two nearest
     # scales so the image has no seams where the depth crosses a scale boundary.
     support_px = f * ctx.params.keypoints3d_support_m / np.where(v, z, np.inf)
     kf = np.clip(np.log2(np.maximum(support_px, 1e-6)), 0, len(KP3D_SCALES_PX) - 1)
-    k0 = np.floor(kf).astype(np.int64)
-    k1 = np.minimum(k0 + 1, len(KP3D_SCALES_PX) - 1)
-    t = (kf - k0).astype(np.float32)
-    used = np.flatnonzero(np.bincount(k0[v], minlength=len(KP3D_SCALES_PX)) + np.bincount(k1[v], minlength=len(
-        KP3D_SCALES_PX)))
-    # Per scale: each pixel's weight of it (1 - t at its lower scale, t at its upper one), shared by both blends.
-    weights = {int(ki): np.where(k0 == ki, 1 - t, 0.0).astype(np.float32) + np.where(k1 == ki, t, 0.0)
-               for ki in used}
-
-    def blend(out: np.ndarray, ki: int, value: np.ndarray) -> None:
-        out += weights[ki] * value
-
-    wn = _Pyramid(np.concatenate([w[None], np.moveaxis(n, -1, 0)]).astype(np.float32))
+    k0, t, used = scale_split(kf, v, len(KP3D_SCALES_PX))
+    top = len(KP3D_SCALES_PX) - 1
+    wn = _Pyramid(wn_planes)
     change = np.zeros(v.shape, dtype=np.float32)
     for ki in used:
-        blend(change, int(ki), wn.blurred(KP3D_SCALES_PX[ki], _surface_change))
+        blend(change, k0, t, int(ki), top, wn.blurred(KP3D_SCALES_PX[ki], _surface_change))
     change[border] = 1.0
     change[~v] = 0.0
     gx, gy = sobel_xy(change)
-    tensor = _Pyramid(np.stack([gx * gx, gy * gy, gx * gy]))
+    tensor = _Pyramid(tensor_planes(gx, gy))
     iso = np.zeros(v.shape, dtype=np.float32)
     for ki in used:
-        blend(iso, int(ki), tensor.blurred(KP3D_SCALES_PX[ki], _isotropy))
+        blend(iso, k0, t, int(ki), top, tensor.blurred(KP3D_SCALES_PX[ki], _isotropy))
     iso[~v] = 0.0
     return np.clip(change * iso, 0.0, 1.0).astype(np.float32)
 

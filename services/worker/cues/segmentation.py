@@ -19,11 +19,12 @@ with occlusion edges weakening the graph's links (segment25d_weights; see segmen
 
 from __future__ import annotations
 
+import functools
 import hashlib
 
 import numpy as np
 from numba import njit
-from scipy.linalg import eigh
+from scipy.linalg.lapack import _compute_lwork, get_lapack_funcs
 from scipy.ndimage import distance_transform_edt
 
 from services.worker.context import ViewContext
@@ -36,14 +37,13 @@ from services.worker.cues.registry import register
 def superpixels(features: np.ndarray, scale: float, sigma: float, min_size: int, max_count: int) -> np.ndarray:
     """int64 H x W Felzenszwalb labels 0..n-1 with n <= max_count (min_size grown when needed)."""
     fz = Felzenszwalb(features, scale, sigma)  # the merge pass does not depend on min_size: done once
-    labels = fz.labels(min_size)
+    n = fz.count(min_size)  # counted without labelling the pixels: only the last min_size is labelled
     for _ in range(4):
-        n = int(labels.max()) + 1
         if n <= max_count:
             break
         min_size = int(np.ceil(min_size * n / max_count * 1.2))
-        labels = fz.labels(min_size)
-    return labels
+        n = fz.count(min_size)
+    return fz.labels(min_size)
 
 
 def region_graph(labels: np.ndarray, features255: np.ndarray, sigma: float,
@@ -185,13 +185,33 @@ def normalized_cuts(W: np.ndarray, thresh: float, num_cuts: int) -> np.ndarray:
     return out
 
 
+_SYEVR, _SYEVR_LWORK = get_lapack_funcs(("syevr", "syevr_lwork"), dtype=np.float64)
+
+
+@functools.lru_cache(maxsize=4096)
+def _syevr_work(n: int) -> tuple[int, int]:
+    """LAPACK's workspace sizes for dsyevr of an n x n matrix, as scipy.linalg.eigh asks for them."""
+    lwork, liwork = _compute_lwork(_SYEVR_LWORK, n=n, lower=True)
+    return int(lwork), int(liwork)
+
+
+def second_eigenvector(A: np.ndarray) -> np.ndarray:
+    """The eigenvector of the second smallest eigenvalue of a symmetric matrix: the dsyevr call of
+    scipy.linalg.eigh(A, subset_by_index=[0, 1], driver="evr"), same arguments and workspace, bit for bit, without
+    its checks and workspace query per call (a normalized cut makes ~100 such calls per view)."""
+    lwork, liwork = _syevr_work(len(A))
+    _, vecs, _, _, info = _SYEVR(A, compute_v=1, range="I", il=1, iu=2, lower=True, lwork=lwork, liwork=liwork)
+    if info != 0:
+        raise np.linalg.LinAlgError(f"dsyevr failed (info {info})")
+    return vecs[:, 1]
+
+
 def _best_split(w: np.ndarray, thresh: float, num_cuts: int) -> np.ndarray | None:
     """The two-way normalized cut of a connected similarity matrix (a node mask), None when none is below thresh."""
     d = w.sum(axis=1)
     dis = 1.0 / np.sqrt(d)
     A = (np.diag(d) - w) * dis[:, None] * dis[None, :]
-    _, vecs = eigh(A, subset_by_index=[0, 1], driver="evr")
-    ev = vecs[:, 1] * dis
+    ev = second_eigenvector(A) * dis
     # All thresholds at once: row t of `masks` is one candidate split, cut_t = m_t^T w (1 - m_t).
     masks = ev[None, :] > np.linspace(ev.min(), ev.max(), num_cuts, endpoint=False)[:, None]
     m = masks.astype(np.float64)

@@ -19,7 +19,7 @@ from services.core.db.models import Base
 from tests.conftest import create_pg_database, drop_pg_database
 
 TABLES = {"space", "job", "job_space", "job_counter", "camera", "point", "view", "task", "worker", "worker_block",
-          "view_output"}
+          "view_output", "compacted_duration"}
 
 
 def _tables(url: str) -> set[str]:

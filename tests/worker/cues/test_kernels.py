@@ -6,21 +6,23 @@ import numpy as np
 import pytest
 
 from services.core.domain.cues import CURVATURE_FLAT, NORMAL_BACKGROUND
+from services.core.domain.jobspec import CueParams
 from services.worker.context import ViewContext
 from services.worker.cues.basic import _curvature_pixels, _normal_pixels
 from services.worker.cues.common import gaussian_blur, sobel_xy
 from services.worker.cues.felzenszwalb import Felzenszwalb
-from services.worker.cues.keypoints import _blur, _double, doh_response
+from services.worker.cues.keypoints import _blur, _double, doh_response, narf_interest
 from services.worker.cues.registry import cue_value
 from services.worker.cues.segmentation import (
     _relabel,
     _uniform_in_mask,
     normalized_cuts,
     region_graph,
+    second_eigenvector,
     segment_unsup2d,
 )
-from tests.fixtures import reference_felzenszwalb, reference_segmentation
-from tests.fixtures.raycast import cube_scene, raycast_passes
+from tests.fixtures import reference_felzenszwalb, reference_narf, reference_segmentation
+from tests.fixtures.raycast import cube_scene, make_room, raycast_passes, room_view
 from tests.fixtures.reference_segmentation import reference_relabel
 
 
@@ -228,5 +230,44 @@ def test_felzenszwalb_is_the_previous_kernel_bit_for_bit(shape, channels, sigma)
     for min_size in (1, 5, 50, 400):
         a, b = new.labels(min_size), old.labels(min_size)
         assert a.dtype == b.dtype and np.array_equal(a, b), min_size
+        assert new.count(min_size) == int(a.max()) + 1
     if shape[0] * shape[1] > 1000:
         assert 1 < new.labels(5).max() < new.labels(1).max()  # real merges at both passes, not a trivial case
+
+
+def _narf_views() -> list[ViewContext]:
+    """A raycast room (boxes, a sphere: folds, corners, occlusion borders) with depth holes and a far cut, and a
+    cube on an empty background."""
+    room = make_room()[0]
+    g = room_view(96)
+    passes = raycast_passes(room, g)
+    depth = passes.depth_z.copy()
+    depth[40:52, 10:30] = np.inf  # a hole in the surface: borders all around it
+    passes.depth_z = depth
+    mesh, cube = cube_scene()
+    return [ViewContext(g, passes=passes), ViewContext(g, CueParams(max_depth_m=2.5), passes=passes),
+            ViewContext(cube, passes=raycast_passes(mesh, cube))]
+
+
+def test_narf_interest_is_the_numpy_version_bit_for_bit() -> None:
+    for ctx in _narf_views():
+        new, old = narf_interest(ctx), reference_narf.narf_interest(ctx)
+        assert new.dtype == old.dtype == np.float32
+        assert np.array_equal(new.view(np.uint32), old.view(np.uint32))
+        assert new.max() > 0.05 and (new == 0).mean() < 0.99  # real interest, not an empty comparison
+
+
+@pytest.mark.parametrize("n", [3, 4, 17, 64, 230])
+def test_second_eigenvector_is_scipys_eigh_bit_for_bit(n) -> None:
+    from scipy.linalg import eigh
+
+    rng = np.random.default_rng(n)
+    w = rng.random((n, n)) * (rng.random((n, n)) < 0.2)
+    w = w + w.T + np.eye(n)
+    d = w.sum(axis=1)
+    dis = 1.0 / np.sqrt(d)
+    A = (np.diag(d) - w) * dis[:, None] * dis[None, :]  # as a normalized cut builds it
+    old = eigh(A, subset_by_index=[0, 1], driver="evr")[1][:, 1]
+    for _ in range(2):  # the second call takes the cached workspace sizes
+        new = second_eigenvector(A)
+        assert np.array_equal(new, old)

@@ -18,6 +18,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 from urllib.parse import urlparse
 
 import pytest
@@ -120,6 +121,16 @@ def tiny_banana(tmp_path_factory: pytest.TempPathFactory, scenes_dir: Path) -> G
                    "--name", "tiny", "--no-progress")
     assert res.returncode == 0, res.stderr
     return GeneratedRun(out, res.stdout)
+
+
+@pytest.fixture(scope="session")
+def banana_capture_folder(tmp_path_factory: pytest.TempPathFactory, scenes_dir: Path) -> tuple[Path, Any, Any]:
+    """tests.fixtures.photo_capture.banana_capture made once: (folder, loaded space, world frames), read only."""
+    from tests.fixtures.photo_capture import banana_capture
+
+    folder = tmp_path_factory.mktemp("capture") / "banana_capture"
+    space, frames = banana_capture(scenes_dir / "ycb_banana" / "textured_simple_reoriented.obj", folder)
+    return folder, space, frames
 
 
 # ------------------------------------------------------------------------------------------------ Postgres

@@ -7,11 +7,16 @@ dispatched task (claim + record done; its compute step stores a few bytes), hear
 progress query. Each part has its own connection (application_name), so the CPU of the Postgres backend serving
 it is read from /proc, besides this process's own CPU while the scheduler code runs and Redis' CPU.
 
+Compaction (on by default in the product): after each round's tasks ran, the scheduler's Compactor packs the views
+that round finished (`compact_after_s` 0 here, so every finished view is packed once, as the scheduler would a
+minute later), on its own connection; its Python and its backend's CPU count as the scheduler's, per task
+(`compaction_py`, `pg_compaction`). `--no-compaction` leaves it out (the figures before compaction existed).
+
 Per task, orchestration = scheduler (Python) + its Postgres backend + Redis + the worker's claim/record backend
-+ heartbeats and reaper passes scaled to a fleet (`--workers` beating every 5 s, a reaper pass every 5 s, at
++ compaction (Python + backend) + heartbeats and reaper passes scaled to a fleet (`--workers` beating every 5 s, a reaper pass every 5 s, at
 `--rate` tasks/s). The worker's own Python is not orchestration (it scales with the workers).
 
-Writes bench/results/scale.json under `orchestration_cpu[--label]`.
+Writes bench/results/scale.json under `orchestration_cpu[--label]` (`--key` for another key).
 Run: .venv/bin/python bench/orchestration_cpu.py [--views 4000] [--rounds 6] [--label NAME]
 """
 
@@ -70,6 +75,7 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
     import redis
 
     from services.api.jobs.service import fetch_job_detail
+    from services.scheduler.compaction import Compactor
     from services.scheduler.loop import Scheduler
     from services.scheduler.reaper import reap_once
     from services.scheduler.transport import CeleryTransport
@@ -84,6 +90,11 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
         if args.no_view_batches and "worker_batch_views" in type(settings).model_fields:
             settings = settings.model_copy(update={"worker_batch_views": False})
         sched_part, worker_part, api_part = Part(url, "scheduler"), Part(url, "workers", worker=True), Part(url, "api")
+        compact_part = Part(url, "compaction")
+        # every finished view is due at once (the scheduler waits compact_after_s, then packs each view once);
+        # a pass as long as it takes, so each round's views are packed in that round
+        compactor = (None if args.no_compaction else
+                     Compactor(compact_part.sm, after_s=0.0, pass_s=3600.0))
         store = LocalStore(tmp / "o")
         space_id = labelled_space(sched_part.sm, store, "orch")
         with sched_part.sm() as s:
@@ -101,7 +112,8 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
         r = redis.Redis.from_url(red.url)
         queues = [settings.queue_render, settings.queue_derive]
         # warm-up: a pass and its tasks (caches loaded, statements prepared)
-        totals = {"sched_py": 0.0, "pg_sched": 0.0, "redis": 0.0, "pg_worker": 0.0, "tasks": 0, "sent": 0}
+        totals = {"sched_py": 0.0, "pg_sched": 0.0, "redis": 0.0, "pg_worker": 0.0, "compaction_py": 0.0,
+                  "pg_compaction": 0.0, "tasks": 0, "sent": 0, "views_compacted": 0, "tasks_compacted": 0}
         passes_ms: list[float] = []
         for rnd in range(args.rounds + 1):
             c0, p0, rd0 = time.process_time(), sched_part.cpu(), cpu_seconds(red.pid)
@@ -121,8 +133,16 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
                 assert out.status in ("done", "skipped"), out  # messages then skipped
                 n += sum(o.status == "done" for o in (out, *getattr(out, "batch", ())))
             rd1, w1 = cpu_seconds(red.pid), worker_part.cpu()
+            k0, kp0 = time.process_time(), compact_part.cpu()
+            packed = compactor.run_once() if compactor is not None else None
+            k1, kp1 = time.process_time(), compact_part.cpu()
             if rnd == 0:
                 continue
+            totals["compaction_py"] += k1 - k0
+            totals["pg_compaction"] += kp1 - kp0
+            if packed is not None:
+                totals["views_compacted"] += packed.views
+                totals["tasks_compacted"] += packed.tasks
             totals["sched_py"] += c1 - c0
             totals["pg_sched"] += p1 - p0
             totals["redis"] += rd1 - rd0
@@ -134,7 +154,8 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
         beat_ms = _cpu_ms(lambda: beat.beat(), worker_part, 200)
         reap_ms = _cpu_ms(lambda: _reap(sched_part.sm, reap_once, settings), sched_part, 20)
         progress_ms = _cpu_ms(lambda: _progress(api_part.sm, fetch_job_detail, job_id), api_part, 200)
-        per_task = {k: round(1000 * totals[k] / tasks, 4) for k in ("sched_py", "pg_sched", "redis", "pg_worker")}
+        per_task = {k: round(1000 * totals[k] / tasks, 4)
+                    for k in ("sched_py", "pg_sched", "redis", "pg_worker", "compaction_py", "pg_compaction")}
         # a fleet of `workers` beats every HEARTBEAT_INTERVAL_S (their Postgres side: a beat's Python is the worker's);
         # the reaper runs every 5 s; both spread over `rate` tasks/s
         per_task["heartbeats"] = round(beat_ms["postgres"] * args.workers / HEARTBEAT_INTERVAL_S / args.rate, 4)
@@ -144,6 +165,8 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
             "views": args.views, "cues": len(ROOM_CUES), "window": args.window, "rounds": args.rounds,
             "tasks_measured": tasks, "tasks_sent": int(totals["sent"]), "left_in_flight": args.leave, "transport": "prebuilt" if prebuilt else "kombu",
             "view_batches": bool(getattr(settings, "worker_batch_views", False)),
+            "compaction": compactor is not None,
+            "views_compacted": int(totals["views_compacted"]), "tasks_compacted": int(totals["tasks_compacted"]),
             "cpu_ms_per_task": {**per_task, "total": round(total, 4)},
             "one_core_tasks_per_s": round(1000 / total) if total else None,
             "fleet_assumed": {"workers": args.workers, "tasks_per_s": args.rate},
@@ -186,14 +209,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rate", type=float, default=2000.0, help="fleet tasks/s the heartbeat/reaper costs are spread over")
     p.add_argument("--leave", type=float, default=0.0, help="fraction of the queued tasks left in flight per round")
     p.add_argument("--no-view-batches", action="store_true", help="workers claim one task per message")
+    p.add_argument("--no-compaction", action="store_true", help="leave out compaction of finished views")
     p.add_argument("--kombu", action="store_true", help="publish through kombu (the path before prebuilt messages)")
     p.add_argument("--label", default="now")
+    p.add_argument("--key", default="orchestration_cpu", help="the key of scale.json the run is stored under")
     p.add_argument("--out", type=Path, default=RESULTS / "scale.json")
     args = p.parse_args(argv)
     res = measure(args)
     print(json.dumps(res), flush=True)
     doc = json.loads(args.out.read_text()) if args.out.exists() else {"benchmark": "scale_sim"}
-    doc.setdefault("orchestration_cpu", {})[args.label] = {
+    doc.setdefault(args.key, {})[args.label] = {
         **res, "when": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
     args.out.write_text(json.dumps(doc, indent=2) + "\n")

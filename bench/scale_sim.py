@@ -62,6 +62,7 @@ from bench.scale_cost import (  # noqa: E402
     with_app_name,
 )
 from bench.scale_procs import LEASE_S, isolated_overhead, scheduler_process, worker_process  # noqa: E402
+from services.core.db.counters import job_progress  # noqa: E402
 from services.core.db.engine import make_engine, make_sessionmaker, migrate  # noqa: E402
 from services.core.db.jobs import create_job  # noqa: E402
 from services.core.db.models import Space, Task  # noqa: E402
@@ -109,6 +110,7 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
             data_dir=tmp, database_url=db_url, broker_url=args.redis, storage_url=f"file://{tmp}/objects",
             lease_s=LEASE_S, heartbeat_timeout_s=args.heartbeat_timeout_s,
             dispatch_window=args.window or max(20, 2 * n_workers),
+            compact_views=args.compact_after_s >= 0, compact_after_s=max(args.compact_after_s, 0.0),
         )
         engine = make_engine(with_app_name(db_url, "api"), pool_size=2)  # the progress poller (and the bench)
         sm = make_sessionmaker(engine)
@@ -148,6 +150,9 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
             p.start()
 
         def count(state: str) -> int:
+            if state == "done":  # from the counters: compaction deletes done task rows, not their counts
+                with sm() as s:
+                    return sum(c.get("done", 0) for c in job_progress(s, job_id).values())
             with sm() as s:
                 return int(s.scalar(select(func.count()).select_from(Task).where(
                     Task.job_id == job_id, Task.state == state)) or 0)
@@ -221,6 +226,7 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
         probe_overhead_s = [b for w in results if w.get("probe") for b in w["overhead_s"]]
         beat_s = [b for w in wstats for b in w["beat_s"]]
         overhead_s = [b for w in wstats for b in w["overhead_s"]]
+        message_overhead_s = [b for w in wstats for b in w["message_overhead_s"]]
         with sm() as s:  # one worker alone, on the same database, once the fleet has stopped
             alone = list(s.scalars(select(Task.id).where(Task.job_id == job_id, Task.state == "pending")
                                    .order_by(Task.id).limit(500)))
@@ -247,8 +253,10 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
             "tasks_per_s": round(rate, 1),
             "ideal_tasks_per_s": round(n_workers / mean_s, 1),
             "utilisation": round(rate * mean_s / n_workers, 3),
-            "queue_wait": pct(waits),
+            "queue_wait": pct(waits),  # of the task rows still there at the end (compaction removed older ones)
             "task_overhead": pct(overhead_s),  # a worker's claim + record done (pool wait included), per task
+            # per message: a whole view (render + the rest of the view claimed and recorded) is one message
+            "message_overhead": pct(message_overhead_s),
             "task_overhead_probe_worker": pct(probe_overhead_s),  # one worker in its own process, under the load
             "worker_nice": args.worker_nice,
             "task_overhead_one_worker_alone": pct(overhead_alone[20:]),  # the same without the fleet's contention
@@ -268,6 +276,12 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
                 "passes": len(sched_stats["passes"]),
                 "pass_ms": pct(sched_stats["passes"]),
                 "broker_send_s_total": round(sched_stats["send_s"], 2),
+            },
+            "compaction": {
+                "after_s": args.compact_after_s if args.compact_after_s >= 0 else None,
+                "views": sched_stats["compacted_views"], "tasks": sched_stats["compacted_tasks"],
+                "passes": len(sched_stats["compact_passes"]), "pass_ms": pct(sched_stats["compact_passes"]),
+                "scheduler_cpu_s": round(sched_stats["compact_cpu_s"], 3),  # over the whole run, warm-up included
             },
             "heartbeats": {
                 "beats_per_s": round(len(beat_s) / max(elapsed, 1e-9), 1),
@@ -310,12 +324,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-views", type=int, default=20_000, help="views of the simulated job at most")
     p.add_argument("--worker-nice", type=int, default=10,
                    help="niceness of the simulated-worker processes (a real fleet's CPU is not the orchestrator's)")
+    p.add_argument("--compact-after-s", type=float, default=5.0,
+                   help="compact_after_s of the scheduler (the product's 60 s would compact nothing in a short run); "
+                        "negative: compaction off")
     p.add_argument("--warmup", type=float, default=5.0, help="seconds after the workers got busy before measuring")
     p.add_argument("--redis", default="", help="a running Redis (default: a private redis-server, CPU ours alone)")
     p.add_argument("--step", default="",
                    help="store the run under steps[STEP] of the results (each bottleneck removed is a step), "
                         "keeping every other figure there; without it the top-level configs are replaced")
     p.add_argument("--label", default="", help="a note stored with the results (e.g. before/after a change)")
+    p.add_argument("--key", default="", help="store the run under KEY[LABEL] of the results, every other key kept")
     p.add_argument("--publish-cost", action="store_true",
                    help="also measure the CPU per message of publishing alone (stored under `publishing`)")
     p.add_argument("--out", type=Path, default=RESULTS / "scale.json")
@@ -338,7 +356,11 @@ def main(argv: list[str] | None = None) -> int:
         if private is not None:
             private.close()
     doc = json.loads(args.out.read_text()) if args.out.exists() else {"benchmark": "scale_sim"}
-    if args.step:
+    if args.key:
+        doc.setdefault(args.key, {})[args.label or "run"] = {
+            "configs": configs, "when": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        }
+    elif args.step:
         doc.setdefault("steps", {})[args.step] = {
             "label": args.label, "configs": configs, "when": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         }

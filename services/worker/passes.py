@@ -23,8 +23,8 @@ NO_FACE = np.uint32(FRAGMENT_NONE)
 NO_LABEL = -1
 
 # Passes read back from a render only when a requested cue needs them (colour and depth always are): normals,
-# the face-index AOVs, the class/instance AOVs (labelled spaces) and the curvature AOVs (whose per-vertex
-# curvature is then not computed either).
+# the face index, the class/instance ids (labelled spaces; looked up from the face index) and the curvature AOVs
+# (whose per-vertex curvature is then not computed either).
 RENDER_PASSES: frozenset[str] = frozenset({"normal", "faces", "labels", "curvature"})
 
 

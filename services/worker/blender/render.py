@@ -12,9 +12,11 @@ Passes read back (linear float32, row 0 = top):
 - Depth: Cycles' Z pass is the distance along the camera's optical axis (planar z), 1e10 where nothing is hit;
 - Normal: world-space shading normal; faces are flat-shaded, so it is the triangle's geometric normal, and Cycles
   turns it towards the incoming ray for back-facing hits;
-- AOVs (float32, exact integers below 2^24): face index + 1 split into two 16-bit halves (exact for any mesh
-  below 2^32 - 1 faces, so no ray-cast fallback is needed), class and instance ids, curvature k1 and k2
-  (per-vertex values interpolated barycentrically over the triangle).
+- AOVs (float32, exact integers below 2^24): face index + 1 in one AOV when the mesh has fewer than 2^24 faces,
+  else split into two 16-bit halves (exact for any mesh below 2^32 - 1 faces, so no ray-cast fallback is
+  needed), curvature k1 and k2 (per-vertex values interpolated barycentrically over the triangle). Class and
+  instance ids are per face: looked up from the face index (the same values the class/instance AOVs give, which
+  the material still offers; each AOV costs render time and EXR channels, see bench/results/passes_cost.json).
 """
 
 from __future__ import annotations
@@ -34,6 +36,14 @@ import OpenEXR
 from mathutils import Matrix
 
 from services.core.domain.camera import blender_matrix_world
+from services.worker.blender.decode import (  # srgb_encode: the reference formula, imported from here before
+    curvature_pair,
+    faces_hit,
+    srgb_encode,  # noqa: F401
+    srgb_masked,
+    unit_normals_kernel,
+)
+from services.worker.blender.exr import read_channels
 from services.worker.passes import NO_FACE, NO_LABEL, RENDER_PASSES, ViewGeometry, ViewPasses
 
 log = logging.getLogger(__name__)
@@ -42,13 +52,20 @@ Device = Literal["auto", "cpu", "cuda", "optix"]
 DEVICES: tuple[str, ...] = ("auto", "cpu", "cuda", "optix")
 
 # AOV names (view-layer passes) filled by the material in scene.py.
+AOV_FACE = "omni_face"
 AOV_FACE_HI = "omni_face_hi"
 AOV_FACE_LO = "omni_face_lo"
 AOV_CLASS = "omni_class"
 AOV_INSTANCE = "omni_instance"
 AOV_K1 = "omni_k1"
 AOV_K2 = "omni_k2"
-AOVS = (AOV_FACE_HI, AOV_FACE_LO, AOV_CLASS, AOV_INSTANCE, AOV_K1, AOV_K2)
+AOVS = (AOV_FACE, AOV_FACE_HI, AOV_FACE_LO, AOV_CLASS, AOV_INSTANCE, AOV_K1, AOV_K2)  # what the material writes
+EXACT_FACES = 2**24 - 1  # face index + 1 is an exact float32 integer up to 2^24: one AOV holds it
+
+
+def pass_aovs(faces: int) -> tuple[str, ...]:
+    """The AOVs a pass render of a mesh with `faces` faces needs (class and instance come from the face index)."""
+    return ((AOV_FACE,) if faces <= EXACT_FACES else (AOV_FACE_HI, AOV_FACE_LO)) + (AOV_K1, AOV_K2)
 
 CLIP_START_M = 1e-4
 CLIP_END_M = 1e6
@@ -95,8 +112,9 @@ def configure_device(scene: bpy.types.Scene, device: str) -> str:
     return "cpu"
 
 
-def configure_scene(scene: bpy.types.Scene, options: RenderOptions, output_path: str) -> str:
-    """Cycles settings for pixel-centre, noise-free pass rendering; returns the device in use."""
+def configure_scene(scene: bpy.types.Scene, options: RenderOptions, output_path: str,
+                    aovs: tuple[str, ...] = AOVS) -> str:
+    """Cycles settings for pixel-centre, noise-free pass rendering with the AOVs `aovs`; returns the device in use."""
     _configure_cycles(scene, options)
     r = scene.render
     r.use_file_extension = False
@@ -105,11 +123,10 @@ def configure_scene(scene: bpy.types.Scene, options: RenderOptions, output_path:
     im.file_format = "OPEN_EXR_MULTILAYER"
     im.color_depth = "32"  # float: the index AOVs must stay exact
     im.exr_codec = "NONE"  # the file lives for milliseconds in a temp dir: do not spend time compressing
-    # Every pass stays enabled for every view: Cycles' persistent session compiles its shaders for the AOVs present
-    # at the first render and writes zeros into AOVs added later, and the AOVs cost little in the render itself
-    # (see bench/results/render.json: render_parts_s_median vs the floor). A view's cues choose what is read back.
+    # The AOVs stay the same for every view: Cycles' persistent session compiles its shaders for the AOVs present
+    # at the first render and writes zeros into AOVs added later. A view's cues choose what is read back.
     layer = scene.view_layers[0]
-    for name in AOVS:
+    for name in aovs:
         if name not in [a.name for a in layer.aovs]:
             aov = layer.aovs.add()
             aov.name = name
@@ -198,13 +215,6 @@ def _quiet_stdout() -> Iterator[None]:
         os.close(devnull)
 
 
-def srgb_encode(linear: np.ndarray) -> np.ndarray:
-    """Scene-linear [0, 1] -> 8-bit sRGB (IEC 61966-2-1 piecewise curve), uint8."""
-    x = np.clip(linear, 0.0, 1.0)
-    s = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-    return np.rint(s * 255.0).astype(np.uint8)
-
-
 def unit_normals(x: np.ndarray, y: np.ndarray, z: np.ndarray, hit: np.ndarray) -> np.ndarray:
     """H x W x 3 float32 unit normals from the Normal pass's channels, 0 where nothing (or a zero normal) is hit.
 
@@ -230,20 +240,38 @@ def render_floor(scene: bpy.types.Scene, cam: bpy.types.Object, g: ViewGeometry)
 
 
 def render_passes(scene: bpy.types.Scene, cam: bpy.types.Object, g: ViewGeometry,
-                  passes: frozenset[str] = RENDER_PASSES) -> ViewPasses:
+                  passes: frozenset[str] = RENDER_PASSES, labels: tuple[np.ndarray, np.ndarray] | None = None
+                  ) -> ViewPasses:
     """Render one view and read back colour, depth and the optional `passes` (module docstring: frames, units).
 
-    "labels" and "curvature" need the scene's label and curvature attributes (BlenderScene checks).
+    "curvature" needs the scene's curvature attribute, "labels" its label attribute (class and instance AOVs) or
+    `labels`: int32 class and instance ids per face, read at the face index (BlenderScene checks).
     """
     set_camera(scene, cam, g)
     t0 = time.perf_counter()
     with _quiet_stdout():
-        bpy.ops.render.render(write_still=True)
+        bpy.ops.render.render(write_still=True, scene=scene.name)
     t1 = time.perf_counter()
-    channels = {name: ch.pixels for name, ch in OpenEXR.File(scene.render.filepath).parts[0].channels.items()}
+    channels = read_channels(scene.render.filepath) or _read_openexr(scene.render.filepath)
     t2 = time.perf_counter()
-    layer = scene.view_layers[0].name
+    out = _decode(channels, scene.view_layers[0].name, g, passes, labels)
+    out.meta.update(render_call_s=t1 - t0, exr_read_s=t2 - t1, decode_s=time.perf_counter() - t2)
+    return out
 
+
+def _read_openexr(path: str) -> dict[str, np.ndarray]:
+    """Channel name -> H x W array with the OpenEXR module (RGBA layers come as one H x W x 4 array: split)."""
+    out = {}
+    for name, ch in OpenEXR.File(path).parts[0].channels.items():
+        px = ch.pixels
+        out.update({f"{name}.{c}": px[..., i] for i, c in enumerate("RGBA"[:px.shape[-1]])} if px.ndim == 3
+                   else {name: px})
+    return out
+
+
+def _decode(channels: dict[str, np.ndarray], layer: str, g: ViewGeometry, passes: frozenset[str],
+            labels: tuple[np.ndarray, np.ndarray] | None) -> ViewPasses:
+    """The pass set from the EXR's channels (`layer`.<pass>[.<channel>])."""
     def ch(name: str) -> np.ndarray:
         return channels[f"{layer}.{name}"]
 
@@ -251,25 +279,32 @@ def render_passes(scene: bpy.types.Scene, cam: bpy.types.Object, g: ViewGeometry
         key = f"{layer}.{name}"
         return channels[key] if key in channels else channels[f"{key}.X"]  # value AOVs come as one channel
 
+    def has(name: str) -> bool:
+        return f"{layer}.{name}" in channels or f"{layer}.{name}.X" in channels
+
     depth = ch("Depth.Z") if f"{layer}.Depth.Z" in channels else ch("Depth")
-    hit = depth < _MISS_DEPTH
     face_index = None
-    if "faces" in passes:
-        face1 = aov(AOV_FACE_HI).astype(np.int64) * 65536 + aov(AOV_FACE_LO).astype(np.int64)  # face index + 1
-        hit &= face1 > 0
-        face_index = np.where(hit, face1 - 1, int(NO_FACE)).astype(np.uint32)
-    depth_z = np.where(hit, depth, np.inf).astype(np.float32)
+    if "faces" in passes or ("labels" in passes and not has(AOV_CLASS)):
+        if has(AOV_FACE):
+            face1 = aov(AOV_FACE)  # face index + 1 (exact float32 integers)
+        else:
+            face1 = aov(AOV_FACE_HI).astype(np.int64) * 65536 + aov(AOV_FACE_LO).astype(np.int64)
+        hit, face_index, depth_z = faces_hit(depth, face1, _MISS_DEPTH, int(NO_FACE))
+    else:
+        hit = depth < _MISS_DEPTH
+        depth_z = np.where(hit, depth, np.inf).astype(np.float32)
     normal = None
     if "normal" in passes:
-        normal = unit_normals(ch("Normal.X"), ch("Normal.Y"), ch("Normal.Z"), hit)
-    combined = ch("Combined")
-    rgb = np.where(hit[..., None], srgb_encode(combined[..., :3]), 0).astype(np.uint8)
-    out = ViewPasses(geometry=g, depth_z=depth_z, normal_world=normal, rgb=rgb, face_index=face_index)
-    if "labels" in passes:
+        normal = unit_normals_kernel(ch("Normal.X"), ch("Normal.Y"), ch("Normal.Z"), hit)
+    rgb = srgb_masked(ch("Combined.R"), ch("Combined.G"), ch("Combined.B"), hit)
+    out = ViewPasses(geometry=g, depth_z=depth_z, normal_world=normal, rgb=rgb,
+                     face_index=face_index if "faces" in passes else None)
+    if "labels" in passes and has(AOV_CLASS):
         out.face_class = np.where(hit, np.rint(aov(AOV_CLASS)), NO_LABEL).astype(np.int32)
         out.face_instance = np.where(hit, np.rint(aov(AOV_INSTANCE)), NO_LABEL).astype(np.int32)
+    elif "labels" in passes and labels is not None and face_index is not None:
+        out.face_class, out.face_instance = (np.where(hit, lut[np.where(hit, face_index, 0)], NO_LABEL)
+                                             for lut in labels)
     if "curvature" in passes:
-        k = np.stack([aov(AOV_K1), aov(AOV_K2)], axis=-1)
-        out.curvature = np.where(hit[..., None], k, np.nan).astype(np.float32)
-    out.meta.update(render_call_s=t1 - t0, exr_read_s=t2 - t1, decode_s=time.perf_counter() - t2)
+        out.curvature = curvature_pair(aov(AOV_K1), aov(AOV_K2), hit)
     return out

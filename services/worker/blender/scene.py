@@ -27,6 +27,7 @@ from PIL import Image
 from services.core.temp_dirs import owned_prefix, sweep_orphans
 from services.worker.blender.render import (
     AOV_CLASS,
+    AOV_FACE,
     AOV_FACE_HI,
     AOV_FACE_LO,
     AOV_INSTANCE,
@@ -35,6 +36,7 @@ from services.worker.blender.render import (
     RenderOptions,
     configure_floor_scene,
     configure_scene,
+    pass_aovs,
     render_floor,
     render_passes,
 )
@@ -42,7 +44,7 @@ from services.worker.passes import RENDER_PASSES, ViewGeometry, ViewPasses
 
 log = logging.getLogger(__name__)
 
-ATTR_FACE = "omni_face"  # FACE domain float3: ((i+1) // 65536, (i+1) % 65536, 0)
+ATTR_FACE = "omni_face"  # FACE domain float3: ((i+1) // 65536, (i+1) % 65536, i+1), the last exact below 2^24
 ATTR_LABEL = "omni_label"  # FACE domain float3: (class, instance, 0)
 ATTR_CURV = "omni_curv"  # POINT domain float3: (k1, k2, 0)
 ATTR_COLOR = "omni_color"  # POINT or FACE domain float colour, scene-linear
@@ -78,6 +80,7 @@ class BlenderScene:
         self._floor: bpy.types.Scene | None = None
         self.has_curvature = False
         self.labelled = face_class is not None or face_instance is not None
+        self.labels: tuple[np.ndarray, np.ndarray] | None = None  # int32 class, instance per face (labelled)
         sweep_orphans(("render", "exr"), (_temp_root(),))  # folders of workers killed mid-render (kill -9 skips atexit)
         self._tmp = tempfile.mkdtemp(prefix=owned_prefix("render"), dir=_temp_root())
         atexit.register(shutil.rmtree, self._tmp, True)  # also when the process dies without close()
@@ -91,7 +94,8 @@ class BlenderScene:
         self.camera = bpy.data.objects.new("camera", cam_data)
         self.scene.collection.objects.link(self.camera)
         self.scene.camera = self.camera
-        self.device = configure_scene(self.scene, self.options, os.path.join(self._tmp, "passes.exr"))
+        self.device = configure_scene(self.scene, self.options, os.path.join(self._tmp, "passes.exr"),
+                                      pass_aovs(len(mesh.faces)))
         self.build_s = time.perf_counter() - t0
         _active = self
         log.info("Blender scene: %d faces, textured=%s, labelled=%s, device=%s, built in %.2f s",
@@ -117,11 +121,14 @@ class BlenderScene:
         # Flat shading: the normal pass is the triangle's geometric normal, faithful to the scanned mesh.
         me.polygons.foreach_set("use_smooth", np.zeros(nf, dtype=bool))
         idx1 = np.arange(1, nf + 1, dtype=np.int64)
-        self._set_attr(me, ATTR_FACE, "FACE", np.stack([idx1 // 65536, idx1 % 65536, np.zeros(nf)], axis=1))
+        self._set_attr(me, ATTR_FACE, "FACE", np.stack([idx1 // 65536, idx1 % 65536, idx1], axis=1))
         if self.labelled:
             cls = self._labels(face_class, nf, "face_class")
             inst = self._labels(face_instance, nf, "face_instance")
             self._set_attr(me, ATTR_LABEL, "FACE", np.stack([cls, inst, np.zeros(nf)], axis=1))
+            # What the class and instance AOVs give at a pixel: the float32 attribute, rounded.
+            self.labels = cls.astype(np.float32).round().astype(np.int32), inst.astype(np.float32).round().astype(
+                np.int32)
         visual: Any = mesh.visual
         uv = getattr(visual, "uv", None)
         if self._texture_image(mesh) is not None and uv is not None and len(uv) == len(verts):
@@ -214,14 +221,15 @@ class BlenderScene:
             if main is not None and getattr(mesh.visual, "kind", None) == "texture":
                 srgb = np.asarray(main)[:3]
             emit.inputs["Color"].default_value = (*srgb_to_linear(srgb).tolist(), 1.0)
-        for attr_name, outputs in ((ATTR_FACE, (AOV_FACE_HI, AOV_FACE_LO)), (ATTR_LABEL, (AOV_CLASS, AOV_INSTANCE)),
-                                   (ATTR_CURV, (AOV_K1, AOV_K2))):
+        # Every AOV the scene may give; a scene's view layer chooses which are rendered (render.pass_aovs).
+        for attr_name, outputs in ((ATTR_FACE, (AOV_FACE_HI, AOV_FACE_LO, AOV_FACE)),
+                                   (ATTR_LABEL, (AOV_CLASS, AOV_INSTANCE)), (ATTR_CURV, (AOV_K1, AOV_K2))):
             node = nt.nodes.new("ShaderNodeAttribute")
             node.attribute_type = "GEOMETRY"
             node.attribute_name = attr_name
             sep = nt.nodes.new("ShaderNodeSeparateXYZ")
             nt.links.new(node.outputs["Vector"], sep.inputs["Vector"])
-            for axis, aov_name in zip(("X", "Y"), outputs, strict=True):
+            for axis, aov_name in zip(("X", "Y", "Z"), outputs, strict=False):
                 aov = nt.nodes.new("ShaderNodeOutputAOV")
                 aov.aov_name = aov_name
                 nt.links.new(sep.outputs[axis], aov.inputs["Value"])
@@ -258,7 +266,7 @@ class BlenderScene:
             wanted.discard("labels")
         if not self.has_curvature:
             wanted.discard("curvature")
-        out = render_passes(self.scene, self.camera, view, frozenset(wanted))
+        out = render_passes(self.scene, self.camera, view, frozenset(wanted), self.labels)
         out.meta["render_s"] = time.perf_counter() - t0
         self.renders += 1
         return out

@@ -25,11 +25,11 @@ import hashlib
 import numpy as np
 from numba import njit
 from scipy.linalg.lapack import _compute_lwork, get_lapack_funcs
-from scipy.ndimage import distance_transform_edt
 
 from services.worker.context import ViewContext
 from services.worker.cues.common import depth_m, hit, normal_cam, valid
 from services.worker.cues.edges import occlusion_response
+from services.worker.cues.feature_transform import nearest_site
 from services.worker.cues.felzenszwalb import Felzenszwalb
 from services.worker.cues.registry import register
 
@@ -268,7 +268,7 @@ def nearest_in_mask(ctx: ViewContext, mask: np.ndarray) -> tuple[np.ndarray, np.
     known: dict[bytes, tuple[np.ndarray, np.ndarray]] = ctx.memo("nearest_in_mask", dict)
     key = hashlib.blake2b(np.packbits(mask).tobytes(), digest_size=16).digest()
     if key not in known:
-        iy, ix = distance_transform_edt(~mask, return_distances=False, return_indices=True)
+        iy, ix = nearest_site(np.ascontiguousarray(mask, dtype=bool))
         known[key] = (iy, ix)
     return known[key]
 

@@ -10,6 +10,7 @@ from services.core.domain.jobspec import CueParams
 from services.worker.context import ViewContext
 from services.worker.cues.basic import _curvature_pixels, _normal_pixels
 from services.worker.cues.common import gaussian_blur, sobel_xy
+from services.worker.cues.feature_transform import nearest_site
 from services.worker.cues.felzenszwalb import Felzenszwalb
 from services.worker.cues.keypoints import _blur, _double, doh_response, narf_interest
 from services.worker.cues.registry import cue_value
@@ -271,3 +272,29 @@ def test_second_eigenvector_is_scipys_eigh_bit_for_bit(n) -> None:
     for _ in range(2):  # the second call takes the cached workspace sizes
         new = second_eigenvector(A)
         assert np.array_equal(new, old)
+
+
+def _site_masks() -> list[np.ndarray]:
+    rng = np.random.default_rng(11)
+    masks = [rng.random(shape) < p for shape, p in (((1, 1), 1.0), ((1, 9), 0.3), ((9, 1), 0.3), ((37, 53), 0.01),
+                                                     ((64, 64), 0.5), ((50, 70), 0.003), ((96, 80), 0.9))]
+    hole = np.ones((60, 80), bool)
+    hole[10:50, 20:70] = False  # a big hole: long runs with ties between its borders
+    one = np.zeros((31, 31), bool)
+    one[15, 15] = True  # every pixel's nearest is the one site; rows and columns without any
+    grid = np.zeros((40, 40), bool)
+    grid[::6, ::6] = True  # equidistant sites: ties everywhere
+    return masks + [hole, one, grid, np.ones((5, 6), bool)]
+
+
+def test_nearest_site_is_scipys_feature_transform_index_for_index() -> None:
+    from scipy.ndimage import distance_transform_edt
+
+    for mask in _site_masks():
+        if not mask.any():
+            mask.flat[0] = True
+        old = distance_transform_edt(~mask, return_distances=False, return_indices=True)
+        iy, ix = nearest_site(mask)
+        assert iy.dtype == ix.dtype == np.int32
+        assert np.array_equal(iy, old[0]) and np.array_equal(ix, old[1]), mask.shape
+    assert (nearest_site(np.zeros((3, 4), bool))[0] == -1).all()

@@ -1,0 +1,102 @@
+"""The nearest mask pixel of every pixel of a 2D image: scipy.ndimage.distance_transform_edt(~mask,
+return_distances=False, return_indices=True), index for index, as a compiled kernel (3.5 against 11 CPU-ms on
+a room view's mask at 512 px).
+
+The same algorithm as scipy's (Maurer, Qi & Raghavan, PAMI 2003, as written in scipy's ni_morphology.c): a pass
+down every column keeping the nearest site of the column, then a pass along every row over those candidates
+with the same lower-envelope test and the same ties (the earlier candidate wins). Coordinates are integers, so the
+test's arithmetic is exact in int64 as in scipy's doubles (tests/worker/cues/test_kernels.py compares the two).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, nogil=True)
+def _envelope(fd: np.ndarray, fo: np.ndarray, other: int, g: np.ndarray) -> int:
+    """Indices (into g) of the candidates on the lower envelope of one line, in order; their count less one."""
+    last = -1
+    for i in range(len(fd)):
+        if fd[i] < 0:  # no candidate (fd, fo are -1 together)
+            continue
+        w_r = (fo[i] - other) ** 2
+        while last >= 1:
+            i1, i2 = g[last], g[last - 1]
+            a = fd[i1] - fd[i2]
+            b = fd[i] - fd[i1]
+            c = a + b
+            u_r = (fo[i2] - other) ** 2
+            v_r = (fo[i1] - other) ** 2
+            if c * v_r - b * u_r - a * w_r - a * b * c <= 0:
+                break
+            last -= 1
+        last += 1
+        g[last] = i
+    return last
+
+
+@njit(cache=True, nogil=True)
+def _nearest_on_row(fd: np.ndarray, fo: np.ndarray, other: int, g: np.ndarray, d0: np.ndarray,
+                    o0: np.ndarray) -> None:
+    """One row's candidates (column fd, row fo; -1 = none) replaced in place by the nearest of them to each
+    position of the row (d0, o0: scratch of the row's length)."""
+    top = _envelope(fd, fo, other, g)
+    if top < 0:
+        return
+    d0[:] = fd
+    o0[:] = fo
+    k = 0
+    for i in range(len(fd)):
+        d1 = (d0[g[k]] - i) ** 2 + (o0[g[k]] - other) ** 2
+        while k < top:
+            d2 = (d0[g[k + 1]] - i) ** 2 + (o0[g[k + 1]] - other) ** 2
+            if d1 <= d2:
+                break
+            d1 = d2
+            k += 1
+        fd[i] = d0[g[k]]
+        fo[i] = o0[g[k]]
+
+
+@njit(cache=True, nogil=True)
+def _nearest_in_columns(mask: np.ndarray) -> np.ndarray:
+    """Row of the nearest True pixel in each pixel's column, -1 when the column has none. Down a column every site
+    stays on the envelope (no cross terms), so the scan's pick is the site above unless the one below is strictly
+    nearer: found with one sweep down and one up, row by row."""
+    h, w = mask.shape
+    above = np.full((h, w), -1, np.int64)
+    last = np.full(w, -1, np.int64)
+    for y in range(h):
+        for x in range(w):
+            if mask[y, x]:
+                last[x] = y
+            above[y, x] = last[x]
+    last[:] = -1
+    for y in range(h - 1, -1, -1):
+        for x in range(w):
+            if mask[y, x]:
+                last[x] = y
+            up, down = above[y, x], last[x]
+            if down >= 0 and (up < 0 or down - y < y - up):
+                above[y, x] = down
+    return above
+
+
+@njit(cache=True, nogil=True)
+def nearest_site(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(row, column) int32 H x W of the nearest True pixel of mask to every pixel; -1 everywhere when mask has
+    none."""
+    h, w = mask.shape
+    iy = _nearest_in_columns(mask)
+    ix = np.empty((h, w), np.int64)
+    for y in range(h):
+        for x in range(w):
+            ix[y, x] = x if iy[y, x] >= 0 else -1
+    g = np.empty(w, np.int64)
+    d0 = np.empty(w, np.int64)
+    o0 = np.empty(w, np.int64)
+    for y in range(h):  # along each row: the line's coordinate is the column
+        _nearest_on_row(ix[y], iy[y], y, g, d0, o0)
+    return iy.astype(np.int32), ix.astype(np.int32)

@@ -18,6 +18,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 from urllib.parse import urlparse
 
 import pytest
@@ -54,7 +55,7 @@ def pytest_ignore_collect(collection_path: Path, config: pytest.Config) -> bool 
 
 
 # Fixtures that render with Blender (here or in an `omnidata generate` they run): their tests are `bpy` tests.
-BPY_FIXTURES = frozenset({"small_job", "trajectory_job", "banana_run", "room_passes", "banana_passes"})
+BPY_FIXTURES = frozenset({"tiny_banana", "small_job", "trajectory_job", "banana_run", "room_passes", "banana_passes"})
 
 
 @pytest.hookimpl(tryfirst=True)
@@ -96,6 +97,40 @@ def scenes_dir(repo_root: Path) -> Path:
     if not d.is_dir():
         pytest.fail(f"test scenes not found at {d}: check out shared/ next to the repository", pytrace=False)
     return d
+
+
+@dataclass(frozen=True)
+class GeneratedRun:
+    """What one `omnidata generate` wrote, and what it printed."""
+
+    out: Path
+    stdout: str
+
+
+@pytest.fixture(scope="session")
+def tiny_banana(tmp_path_factory: pytest.TempPathFactory, scenes_dir: Path) -> GeneratedRun:
+    """One real `omnidata generate` of the banana shared by the embedded, dataset, gallery and end-to-end tests:
+    2 points x 2 wide-baseline views (WIDE), every default cue, 32 px, seed 7, component 'tiny', 2 workers.
+    Tests only read it (copy it before changing anything)."""
+    from tests.fixtures.cli import WIDE, omnidata
+
+    out = tmp_path_factory.mktemp("tiny_banana") / "banana"
+    spec = out.parent / "tiny.yaml"
+    spec.write_text(WIDE)
+    res = omnidata("generate", scenes_dir / "ycb_banana", "--out", out, "--spec", spec, "--seed", 7, "--workers", 2,
+                   "--name", "tiny", "--no-progress")
+    assert res.returncode == 0, res.stderr
+    return GeneratedRun(out, res.stdout)
+
+
+@pytest.fixture(scope="session")
+def banana_capture_folder(tmp_path_factory: pytest.TempPathFactory, scenes_dir: Path) -> tuple[Path, Any, Any]:
+    """tests.fixtures.photo_capture.banana_capture made once: (folder, loaded space, world frames), read only."""
+    from tests.fixtures.photo_capture import banana_capture
+
+    folder = tmp_path_factory.mktemp("capture") / "banana_capture"
+    space, frames = banana_capture(scenes_dir / "ycb_banana" / "textured_simple_reoriented.obj", folder)
+    return folder, space, frames
 
 
 # ------------------------------------------------------------------------------------------------ Postgres

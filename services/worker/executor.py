@@ -69,7 +69,7 @@ def produce(cue: str, ctx: ViewContext) -> bytes:
     if last is not None and last[0] is value:
         data = last[1]
     else:
-        data = encode(cue, value)
+        data = encode(cue, value, exr_compression=ctx.params.position_compression)
         if isinstance(value, dict):
             _last_json[cue] = (value, data)
     ctx.timings[f"encode:{cue}"] = ctx.clock() - t0

@@ -17,15 +17,13 @@ from services.scheduler.loop import Scheduler
 from services.scheduler.transport import QueueTransport
 from tests.browser.conftest import DashboardPage
 from tests.fixtures.api import live_server, make_api
-from tests.fixtures.photo_capture import banana_capture
 
 pytestmark = pytest.mark.slow
 
 
-def test_capture_upload_plan_and_space_summary(pg_url: str, local_store: LocalStore, scenes_dir: Path, dashboard_page: DashboardPage,
-                                               artifacts: Path, tmp_path: Path) -> None:
-    folder = tmp_path / "banana_capture"
-    banana_capture(scenes_dir / "ycb_banana" / "textured_simple_reoriented.obj", folder)
+def test_capture_upload_plan_and_space_summary(pg_url: str, local_store: LocalStore, banana_capture_folder,
+                                               dashboard_page: DashboardPage, artifacts: Path, tmp_path: Path) -> None:
+    folder = banana_capture_folder[0]
     # two parts, as the form sends them: the scan (a zip of obj + mtl + texture) and the capture's zip
     upload, capture_zip = tmp_path / "banana_capture.zip", tmp_path / "photos.zip"
     with zipfile.ZipFile(upload, "w") as scan_zf, zipfile.ZipFile(capture_zip, "w") as cap_zf:

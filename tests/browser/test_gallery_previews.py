@@ -12,9 +12,8 @@ from services.core.db.jobs import root_key
 from services.core.db.models import Job
 from services.core.domain.keys import output_key
 from services.core.storage import LocalStore
+from tests.conftest import GeneratedRun
 from tests.fixtures.api import fake_plan, live_server, make_api, run_tasks, task_ids
-from tests.fixtures.cli import WIDE
-from tests.fixtures.cli import generate_output as generate
 
 pytestmark = pytest.mark.slow
 
@@ -32,9 +31,9 @@ PIXEL_STD = """() => [...document.querySelectorAll('#job-gallery img')].map((img
 
 
 def test_gallery_previews_of_real_renders(
-    pg_url: str, local_store: LocalStore, scenes_dir: Path, browser: Any, artifacts: Path, tmp_path: Path
+    pg_url: str, local_store: LocalStore, scenes_dir: Path, browser: Any, artifacts: Path, tiny_banana: GeneratedRun
 ) -> None:
-    rendered = generate(scenes_dir / "ycb_banana", tmp_path / "banana", WIDE, "tiny", 7)
+    rendered = tiny_banana.out
     bunny = scenes_dir / "stanford_bunny" / "bun_zipper_res2.ply"
     with make_api(pg_url, local_store) as api, live_server(api.app) as base:
         r = api.client.post("/spaces", files={"file": ("bunny.ply", bunny.read_bytes())}, headers=api.a.headers)

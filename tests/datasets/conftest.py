@@ -6,14 +6,15 @@ from pathlib import Path
 
 import pytest
 
-from tests.fixtures.cli import TRAJECTORY, WIDE
+from tests.conftest import GeneratedRun
+from tests.fixtures.cli import TRAJECTORY
 from tests.fixtures.cli import generate_output as generate
 
 
 @pytest.fixture(scope="session")
-def small_job(tmp_path_factory: pytest.TempPathFactory, scenes_dir: Path) -> Path:
-    """2 points x 2 wide-baseline views of the banana, every default cue, component 'tiny'."""
-    return generate(scenes_dir / "ycb_banana", tmp_path_factory.mktemp("job") / "banana", WIDE, "tiny", 7)
+def small_job(tiny_banana: GeneratedRun) -> Path:
+    """2 points x 2 wide-baseline views of the banana, every default cue, component 'tiny' (read only)."""
+    return tiny_banana.out
 
 
 @pytest.fixture(scope="session")

@@ -60,11 +60,19 @@ class Proc:
 
     def stop(self, sig: int = signal.SIGTERM, timeout: float = 20) -> None:
         """Signal the whole process group (the Celery parent and its children) and wait."""
+        self.send(sig)
+        self.wait(timeout)
+
+    def send(self, sig: int) -> None:
+        """Signal the whole process group (if it is still running)."""
         if self.alive():
             try:
                 os.killpg(self.popen.pid, sig)
             except ProcessLookupError:
                 pass
+
+    def wait(self, timeout: float = 20) -> None:
+        """Wait for the process to exit; kill its group when it takes longer than `timeout`."""
         try:
             self.popen.wait(timeout=timeout)
         except subprocess.TimeoutExpired:
@@ -132,6 +140,13 @@ class Cluster:
         self.api_url = url
         return url
 
+    def stop_all(self) -> None:
+        """SIGTERM every process, then wait for them all (their warm shutdowns overlap)."""
+        for p in self.procs:
+            p.send(signal.SIGTERM)
+        for p in self.procs:
+            p.wait()
+
     def logs(self) -> str:
         return "\n".join(f"===== {p.name} =====\n{p.tail()}" for p in self.procs)
 
@@ -180,9 +195,10 @@ def deployment(s3_server: S3Server, tmp_path_factory: pytest.TempPathFactory) ->
 
 
 @pytest.fixture()
-def cluster(deployment: dict[str, Any], s3_server: S3Server, tmp_path: Path,
-            request: pytest.FixtureRequest) -> Iterator[Cluster]:
-    """The deployment's environment plus the scheduler and two workers (stopped after the test)."""
+def bare_cluster(deployment: dict[str, Any], s3_server: S3Server, tmp_path: Path,
+                 request: pytest.FixtureRequest) -> Iterator[Cluster]:
+    """The deployment's environment with no process started yet (for tests that start theirs with other settings);
+    every process started on it is stopped after the test."""
     token = secrets.token_urlsafe(24)
     url, prefix = deployment["pg_url"], deployment["prefix"]
     env = {k: v for k, v in os.environ.items() if not k.startswith("OMNIDATA_")}
@@ -197,17 +213,22 @@ def cluster(deployment: dict[str, Any], s3_server: S3Server, tmp_path: Path,
     engine = make_engine(url)
     c = Cluster(env, settings, url, engine, make_sessionmaker(engine), open_store(settings.storage_url, settings),
                 prefix, tmp_path, token)
-    c.start_scheduler()
-    c.start_worker("worker-a")
-    c.start_worker("worker-b")
     try:
         yield c
     finally:
-        for p in c.procs:
-            p.stop()
+        c.stop_all()
         engine.dispose()
         if request.node.rep_call.failed if hasattr(request.node, "rep_call") else False:
             print(c.logs())
+
+
+@pytest.fixture()
+def cluster(bare_cluster: Cluster) -> Cluster:
+    """The deployment with the scheduler and two workers running (stopped after the test)."""
+    bare_cluster.start_scheduler()
+    bare_cluster.start_worker("worker-a")
+    bare_cluster.start_worker("worker-b")
+    return bare_cluster
 
 
 @pytest.hookimpl(hookwrapper=True, tryfirst=True)

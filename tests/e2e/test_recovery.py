@@ -15,7 +15,6 @@ import os
 import signal
 import socket
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -46,12 +45,10 @@ seed: 3
 
 
 @pytest.fixture()
-def quiet_cluster(cluster: Cluster) -> Iterator[Cluster]:
-    """The deployment with its default workers stopped and the scheduler restarted with the test's timeouts."""
-    for p in cluster.procs:
-        p.stop()
-    cluster.start_scheduler(**ENV)
-    yield cluster
+def quiet_cluster(bare_cluster: Cluster) -> Cluster:
+    """The deployment with only a scheduler, started with the test's timeouts (the tests start their workers)."""
+    bare_cluster.start_scheduler(**ENV)
+    return bare_cluster
 
 
 def worker_id(proc: Proc) -> str:

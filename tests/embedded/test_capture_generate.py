@@ -14,14 +14,12 @@ from services.core.domain.camera import intrinsics
 from services.core.domain.plan import plan_from_json
 from services.core.ingest.capture.resample import load_photo, photo_for_view
 from tests.fixtures.cli import omnidata
-from tests.fixtures.photo_capture import banana_capture
 
 pytestmark = [pytest.mark.slow, pytest.mark.bpy]
 
 
-def test_generate_capture_views_from_a_folder(scenes_dir: Path, tmp_path: Path) -> None:
-    folder = tmp_path / "banana_capture"
-    space, _ = banana_capture(scenes_dir / "ycb_banana" / "textured_simple_reoriented.obj", folder)
+def test_generate_capture_views_from_a_folder(banana_capture_folder, tmp_path: Path) -> None:
+    folder, space, _ = banana_capture_folder
     spec = tmp_path / "capture.yaml"
     spec.write_text("cameras: {mode: capture}\nviews: {resolution: 48}\n")
     out = tmp_path / "out"

@@ -22,13 +22,10 @@ from PIL import Image
 from services.cli import main
 from services.core.domain.cues import CATALOG, default_cues
 from services.core.domain.keys import output_key
-from tests.fixtures.cli import REPO, omnidata
+from tests.conftest import GeneratedRun
+from tests.fixtures.cli import REPO, WIDE, omnidata
 
-TINY = """
-cameras: {mode: object, object_count: 6}
-points: {count: 2, min_views: 2, max_views: 2}
-views: {resolution: 32}
-"""
+TINY = WIDE  # the spec of the shared tiny_banana run
 
 
 def generate(*args: str | Path, timeout: float = 300) -> subprocess.CompletedProcess[str]:
@@ -80,13 +77,9 @@ def tiny_spec(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 @pytest.fixture(scope="module")
-def banana_run(tmp_path_factory: pytest.TempPathFactory, scenes_dir: Path, tiny_spec: Path) -> tuple[Path, str]:
-    """One full run on the banana: every default cue, 2 points x 2 views, 32 px, 2 workers."""
-    out = tmp_path_factory.mktemp("gen") / "banana"
-    res = generate(scenes_dir / "ycb_banana", "--out", out, "--spec", tiny_spec, "--seed", 7, "--workers", 2,
-                   "--name", "tiny")
-    assert res.returncode == 0, res.stderr
-    return out, res.stdout
+def banana_run(tiny_banana: GeneratedRun) -> tuple[Path, str]:
+    """One full run on the banana: every default cue, 2 points x 2 views, 32 px, seed 7, 2 workers (read only)."""
+    return tiny_banana.out, tiny_banana.stdout
 
 
 # ------------------------------------------------------------------------------------------ a full run

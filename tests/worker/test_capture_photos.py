@@ -5,7 +5,6 @@ rendered at exactly the capture camera (depth and normals equal an independent r
 from __future__ import annotations
 
 import io
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,7 +16,6 @@ from services.worker.executor import make_context, produce
 from services.worker.passes import ViewGeometry
 from services.worker.photos import PhotoPainter
 from services.worker.space_cache import SpaceContext
-from tests.fixtures.photo_capture import banana_capture
 from tests.fixtures.raycast import cast_normals_cam, raycast, smooth_mask
 
 pytestmark = pytest.mark.bpy
@@ -30,8 +28,8 @@ def png(data: bytes) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def capture_renders(banana_path: Path, tmp_path_factory: pytest.TempPathFactory):
-    space, frames = banana_capture(banana_path, tmp_path_factory.mktemp("banana_capture"))
+def capture_renders(banana_capture_folder):
+    _, space, frames = banana_capture_folder
     spec = JobSpec.model_validate({"cameras": {"mode": "capture"}, "views": {"resolution": 96}})
     plan = make_plan(space, spec, space_rng(0, "banana"), "banana")
     photo_space = SpaceContext(key="photos", mesh=space.mesh, photos=PhotoPainter(space.capture))

@@ -132,7 +132,6 @@ def wait_until(cond: Any, timeout: float, what: str, proc: subprocess.Popen[byte
         time.sleep(0.2)
 
 
-@pytest.mark.slow
 def stop_worker(proc: subprocess.Popen[bytes]) -> None:
     """Warm shutdown as an orchestrator does it (k8s, docker stop): SIGTERM to the main process only, which then
     stops its pool. Signalling the whole group kills the children outright (Celery resets their SIGTERM to the
@@ -145,6 +144,7 @@ def stop_worker(proc: subprocess.Popen[bytes]) -> None:
         proc.wait()
 
 
+@pytest.mark.slow
 def test_real_worker_consumes_heartbeats_and_recycles_its_child(pg_url, pg_sm, redis_url, banana, tmp_path):  # noqa: F811
     from services.scheduler.transport import CeleryTransport
 

@@ -38,10 +38,12 @@ _PNG_FILTER_UP = 2
 # compress, so ZIP spent 17% of a bare render's CPU (0.12 s) to save 1.2 MB; ZSTD and HTJ2K need OpenEXR >= 3.5 /
 # 3.4 (2025) to read, where an uncompressed file opens in every EXR reader.
 EXR_COMPRESSION = OpenEXR.NO_COMPRESSION
+EXR_CODECS = {"none": OpenEXR.NO_COMPRESSION, "zip": OpenEXR.ZIP_COMPRESSION}  # CueParams.position_compression
 
 
-def encode(cue: str, value: CueValue) -> bytes:
-    """Bytes of the file for `cue` holding `value` (array in the catalog dtype, dict for JSON, bytes for npz)."""
+def encode(cue: str, value: CueValue, *, exr_compression: str = "none") -> bytes:
+    """Bytes of the file for `cue` holding `value` (array in the catalog dtype, dict for JSON, bytes for npz);
+    `exr_compression` is a key of EXR_CODECS (the job's position_compression)."""
     spec = get_cue(cue)
     if spec.ext == "json":
         return encode_json(value)
@@ -61,7 +63,7 @@ def encode(cue: str, value: CueValue) -> bytes:
     if spec.ext == "npy":
         return encode_npy(arr)
     if spec.ext == "exr":
-        return encode_exr_rgb(arr)
+        return encode_exr_rgb(arr, EXR_CODECS[exr_compression])
     raise ValueError(f"cue {cue!r}: no encoder for .{spec.ext}")
 
 
@@ -104,9 +106,9 @@ def encode_npy(arr: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-def encode_exr_rgb(arr: np.ndarray) -> bytes:
-    """A scanline float32 EXR with R, G, B channels (EXR_COMPRESSION) of an H x W x 3 float32 array."""
-    header = {"compression": EXR_COMPRESSION, "type": OpenEXR.scanlineimage}
+def encode_exr_rgb(arr: np.ndarray, compression: OpenEXR.Compression = EXR_COMPRESSION) -> bytes:
+    """A scanline float32 EXR with R, G, B channels of an H x W x 3 float32 array."""
+    header = {"compression": compression, "type": OpenEXR.scanlineimage}
     fd, path = tempfile.mkstemp(prefix=owned_prefix("exr"), suffix=".exr", dir="/dev/shm" if os.access("/dev/shm", os.W_OK) else None)
     os.close(fd)
     try:

@@ -89,6 +89,12 @@ def test_position_is_world_xyz_with_nan_background() -> None:
     assert pos.shape == (128, 128, 3) and pos.dtype == np.float32
     np.testing.assert_allclose(pos[cast.hit], cast.loc[cast.hit], atol=2e-5)
     assert np.all(np.isnan(pos[~cast.hit]))
+    # the job's position_compression reaches the file: ZIP, same floats bit for bit
+    zipped = produce("position", ViewContext(g, CueParams(position_compression="zip"),
+                                             passes=raycast_passes(mesh, g)))
+    assert zipped[:4] == b"\x76\x2f\x31\x01"  # OpenEXR magic
+    assert np.array_equal(decode_exr_rgb(zipped).view(np.uint32), pos.view(np.uint32))
+    assert len(zipped) < pos.nbytes  # an uncompressed file is at least the floats
 
 
 def test_curvature_encoding() -> None:

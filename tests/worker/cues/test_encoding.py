@@ -10,8 +10,10 @@ import numpy as np
 import OpenEXR
 import pytest
 from PIL import Image
+from pydantic import ValidationError
 
 from services.core.domain.cues import CATALOG, OUTPUT_CUES, UnknownCueError
+from services.core.domain.jobspec import CueParams
 from services.worker.cues import REGISTRY, encode, get_impl
 from services.worker.cues.encoding import decode_exr_rgb, encode_png
 from services.worker.cues.semantic import pack_panoptic, unpack_panoptic
@@ -81,6 +83,29 @@ def test_position_exr_is_uncompressed_float32_rgb_any_reader_opens() -> None:
             rgb = exr.channels()["RGB"].pixels
             assert rgb.dtype == np.float32 and np.array_equal(rgb, pos)
     assert len(data) >= pos.nbytes  # stored, not compressed
+
+
+def test_position_compression_zip_is_smaller_and_decodes_to_the_same_floats() -> None:
+    # smooth world coordinates (as a wall's), which ZIP does compress; NaN where nothing was hit
+    yy, xx = np.mgrid[0:64, 0:48].astype(np.float32)
+    pos = np.stack([xx * 0.01, yy * 0.01, np.full_like(xx, 2.5)], axis=-1)
+    pos[:4] = np.nan
+    plain = encode("position", pos)
+    zipped = encode("position", pos, exr_compression="zip")
+    assert len(zipped) < len(plain)
+    with tempfile.NamedTemporaryFile(suffix=".exr") as f:
+        f.write(zipped)
+        f.flush()
+        with OpenEXR.File(f.name) as exr:
+            assert exr.header()["compression"] == OpenEXR.ZIP_COMPRESSION
+    assert np.array_equal(decode_exr_rgb(zipped).view(np.uint32), pos.view(np.uint32))
+
+
+def test_position_compression_is_a_job_spec_field_that_refuses_unknown_codecs() -> None:
+    assert CueParams().position_compression == "none"
+    assert CueParams(position_compression="zip").position_compression == "zip"
+    with pytest.raises(ValidationError, match="position_compression"):
+        CueParams(position_compression="zstd")
 
 
 def test_json_is_deterministic_and_plain() -> None:

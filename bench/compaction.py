@@ -4,7 +4,8 @@ Persists a big_job-style job (`--views` views x the 18 cues of an unlabelled roo
 product's bulk path, finishes every task as workers would leave it (the deterministic output key with the job's
 root, size, a 64-hex sha256, duration, finish time two minutes ago), VACUUM FULL, and measures the task table per
 view; then runs the scheduler's Compactor (its own passes, `compact_pass_s` each) until nothing is left, timing
-wall, this process's CPU and the Postgres backends' CPU (/proc), VACUUM FULL again and measures task +
+wall, this process's CPU and the Postgres backends' CPU (/proc; autovacuum off on task meanwhile, the VACUUM
+the deleted rows need timed on its own after), VACUUM FULL again and measures task +
 view_output (+ compacted_duration) per view, with the starter dataset's extrapolation. It also times the manifest
 (iter_manifest_lines) over task rows and over compacted views, and checks that they are byte-identical.
 
@@ -77,6 +78,22 @@ def vacuum(db_url: str, *tables: str) -> None:
         for t in tables:
             c.execute(text(f"VACUUM FULL {t}"))
     engine.dispose()
+
+
+def vacuum_cpu_s(db_url: str) -> float:
+    """CPU seconds of a plain VACUUM of the task table (what autovacuum spends on the deleted rows)."""
+    engine = make_engine(db_url, isolation_level="AUTOCOMMIT")
+    with engine.connect() as c:
+        pid = int(c.execute(text("SELECT pg_backend_pid()")).scalar_one())
+
+        def cpu() -> float:
+            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+            return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+        c0 = cpu()
+        c.execute(text("VACUUM task"))
+        used = cpu() - c0
+    engine.dispose()
+    return used
 
 
 def table_bytes(sm: Any, table: str) -> int:
@@ -163,7 +180,11 @@ def main(argv: list[str] | None = None) -> int:
         vacuum(db_url, "task")
         before = table_bytes(sm, "task")
         sha_rows, wall_rows, cpu_rows = manifest_pass(sm, job_id)
+        with sm() as s:  # the vacuum the deletes need is measured on its own, after
+            s.execute(text("ALTER TABLE task SET (autovacuum_enabled = false)"))
+            s.commit()
         doc["compact"] = compact_all(sm, args.pass_s)
+        doc["compact"]["vacuum_task_cpu_s"] = round(vacuum_cpu_s(db_url), 2)
         print(json.dumps(doc["compact"]), flush=True)
         vacuum(db_url, "task", "view_output", "compacted_duration")
         after = {t: table_bytes(sm, t) for t in ("task", "view_output", "compacted_duration")}

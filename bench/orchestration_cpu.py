@@ -10,7 +10,10 @@ it is read from /proc, besides this process's own CPU while the scheduler code r
 Compaction (on by default in the product): after each round's tasks ran, the scheduler's Compactor packs the views
 that round finished (`compact_after_s` 0 here, so every finished view is packed once, as the scheduler would a
 minute later), on its own connection; its Python and its backend's CPU count as the scheduler's, per task
-(`compaction_py`, `pg_compaction`). `--no-compaction` leaves it out (the figures before compaction existed).
+(`compaction_py`, `pg_compaction`). Before it, a walker that finds nothing due reads the round's done rows (and a
+chunk of pending ones): the CPU per row a pass spends walking views finished less than `compact_after_s` ago; in
+steady state a pass a second walks `--rate` x compact_after_s such rows (at most compact_pass_s of it), which is
+`compaction_walk` per task (a walk that stops at the first chunk not due: its measured chunks a pass). `--no-compaction` leaves it all out (the figures before compaction existed).
 
 Per task, orchestration = scheduler (Python) + its Postgres backend + Redis + the worker's claim/record backend
 + compaction (Python + backend) + heartbeats and reaper passes scaled to a fleet (`--workers` beating every 5 s, a reaper pass every 5 s, at
@@ -95,6 +98,18 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
         # a pass as long as it takes, so each round's views are packed in that round
         compactor = (None if args.no_compaction else
                      Compactor(compact_part.sm, after_s=0.0, pass_s=3600.0))
+        # the product compacts a view compact_after_s after it finished, so each pass also walks the views finished
+        # since (done, not due yet): a walker that finds none due measures that walk's CPU per row read
+        walker = None if args.no_compaction else Compactor(compact_part.sm, after_s=1e9, pass_s=3600.0)
+        walk = {"cpu_s": 0.0, "chunks": 0, "passes": 0, "done_rows": 0}
+        if walker is not None:
+            walk_chunk = walker.compact_chunk
+
+            def counted_chunk(*a: Any, **k: Any) -> Any:
+                walk["chunks"] += 1
+                return walk_chunk(*a, **k)
+
+            walker.compact_chunk = counted_chunk  # type: ignore[method-assign]
         store = LocalStore(tmp / "o")
         space_id = labelled_space(sched_part.sm, store, "orch")
         with sched_part.sm() as s:
@@ -133,6 +148,12 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
                 assert out.status in ("done", "skipped"), out  # messages then skipped
                 n += sum(o.status == "done" for o in (out, *getattr(out, "batch", ())))
             rd1, w1 = cpu_seconds(red.pid), worker_part.cpu()
+            if walker is not None and rnd > 0:
+                k0, kp0 = time.process_time(), compact_part.cpu()
+                walker.run_once()  # walks this round's done rows (or stops at the first not due); packs nothing
+                walk["cpu_s"] += time.process_time() - k0 + compact_part.cpu() - kp0
+                walk["passes"] += 1
+                walk["done_rows"] += n
             k0, kp0 = time.process_time(), compact_part.cpu()
             packed = compactor.run_once() if compactor is not None else None
             k1, kp1 = time.process_time(), compact_part.cpu()
@@ -160,6 +181,16 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
         # the reaper runs every 5 s; both spread over `rate` tasks/s
         per_task["heartbeats"] = round(beat_ms["postgres"] * args.workers / HEARTBEAT_INTERVAL_S / args.rate, 4)
         per_task["reaper"] = round(reap_ms["total"] / 5.0 / args.rate, 4)
+        rows_read = walk["chunks"] * (walker.chunk_rows if walker is not None else 0)  # at most
+        walk_row_ms = 1000 * walk["cpu_s"] / rows_read if rows_read else 0.0
+        walked_all = rows_read >= walk["done_rows"]  # the walk read every done row, none due (before 23's fix)
+        if compactor is not None:
+            # a pass a second (at most compact_pass_s of it): in steady state `rate` x compact_after_s rows are done
+            # but not due; a walk that reads past them pays for them all, one that stops at them a chunk or two
+            steady_rows = (args.rate * settings.compact_after_s if walked_all
+                           else rows_read / max(walk["passes"], 1))
+            walk_pass_ms = min(1000 * settings.compact_pass_s, steady_rows * walk_row_ms)
+            per_task["compaction_walk"] = round(walk_pass_ms / args.rate, 4)
         total = sum(per_task.values())
         return {
             "views": args.views, "cues": len(ROOM_CUES), "window": args.window, "rounds": args.rounds,
@@ -167,6 +198,10 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
             "view_batches": bool(getattr(settings, "worker_batch_views", False)),
             "compaction": compactor is not None,
             "views_compacted": int(totals["views_compacted"]), "tasks_compacted": int(totals["tasks_compacted"]),
+            "compaction_walk": {"cpu_us_per_row": round(1000 * walk_row_ms, 2), "passes": walk["passes"],
+                                "chunks": walk["chunks"], "done_rows": walk["done_rows"],
+                                "reads_past_not_due": walked_all},
+            "compact_after_s": settings.compact_after_s, "compact_pass_s": settings.compact_pass_s,
             "cpu_ms_per_task": {**per_task, "total": round(total, 4)},
             "one_core_tasks_per_s": round(1000 / total) if total else None,
             "fleet_assumed": {"workers": args.workers, "tasks_per_s": args.rate},

@@ -8,8 +8,8 @@ count these tasks, which is what they are.
 
 Each job is walked in the order of its unique index (space, point, view, cue) from a cursor kept in memory, a chunk
 of rows at a time, for at most `compact_pass_s` a pass. Deleted rows leave the index, so the next walk from the start
-skips them; a chunk of a running job with no done row at all sends the cursor back to the start (dispatch runs
-oldest first, so the views after it have not run either). A terminal job whose whole walk compacted nothing is not
+skips them; a chunk of a running job with no done row at all, or with finished views but none due yet, sends the
+cursor back to the start (dispatch runs oldest first, so the views after it have not run, or finished later). A terminal job whose whole walk compacted nothing is not
 walked again until its state changes.
 """
 
@@ -120,6 +120,11 @@ class Compactor:
                 walk.cursor = (-1, -1, -1)  # the rest of a running job has not run yet
                 return 0, 0, False
             ready = {k: v for k, v in views.items() if _finished(v, cutoff)}
+            if not ready and not end and state == JobState.RUNNING and any(_finished(v, None) for v in views.values()):
+                # views finish about in walk order: after a chunk of views done but not due, the rest is not due
+                # either (walking it anew every pass cost ~8 us of CPU a row: 60 s of a fleet's views a second)
+                walk.cursor = (-1, -1, -1)
+                return 0, 0, False
             n_views, n_tasks = _compact(s, job_id, ready) if ready else (0, 0)
             s.commit()
         walk.compacted += n_views
@@ -145,10 +150,12 @@ def _group(rows: Sequence[Any], *, complete_only: bool) -> dict[ViewKey, list[An
     return views
 
 
-def _finished(rows: Sequence[Any], cutoff: datetime) -> bool:
-    """Every task of the view done, the last one before `cutoff`."""
+def _finished(rows: Sequence[Any], cutoff: datetime | None) -> bool:
+    """Every task of the view done, the last one before `cutoff` (None: whenever)."""
     if any(r.state != TaskState.DONE for r in rows):
         return False
+    if cutoff is None:
+        return True
     last = max((r.finished_at for r in rows if r.finished_at is not None), default=None)
     return last is None or last <= cutoff
 

@@ -206,3 +206,30 @@ def test_a_running_job_is_walked_from_its_start_and_a_settled_one_not_again(any_
     comp.compact_chunk = lambda *a, **k: calls.append(a) or (0, 0, False)  # type: ignore[method-assign]
     comp.run_once()
     assert calls == []
+
+
+def test_a_running_job_walk_stops_at_views_finished_but_not_due(any_sm, local_store):
+    with any_sm() as s:
+        job = make_running_job(s, local_store, cues=["rgb"], n_points=10, views=2)
+        _run_all(s, job)
+        old = datetime.now(UTC) - timedelta(hours=2)
+        s.execute(update(Task).where(Task.job_id == job.id, Task.point_idx < 2).values(finished_at=old))
+        s.commit()
+    comp = Compactor(any_sm, after_s=60, pass_s=60, chunk_rows=6)
+    chunks = []
+    inner = comp.compact_chunk
+    comp.compact_chunk = lambda *a, **k: chunks.append(a) or inner(*a, **k)  # type: ignore[method-assign]
+    comp.run_once()
+    with any_sm() as s:
+        packed = {(int(p), int(v)) for p, v in s.execute(select(ViewOutput.point_idx, ViewOutput.view_idx))}
+    assert packed == {(p, v) for p in (0, 1) for v in (0, 1)}
+    # the chunk of views finished a moment ago ends the walk: points 3-9 are not read (40 rows, 6 a chunk)
+    assert len(chunks) == 3
+    assert comp._walks[job.id].cursor == (-1, -1, -1)
+    with any_sm() as s:  # once they are due, the next pass packs them all
+        s.execute(update(Task).where(Task.job_id == job.id).values(finished_at=old))
+        s.commit()
+    comp.run_once()
+    with any_sm() as s:
+        assert s.scalar(select(func.count()).select_from(ViewOutput)) == 20
+        assert task_ids(s, job.id) == []

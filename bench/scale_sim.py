@@ -80,6 +80,18 @@ def pct(xs: list[float]) -> dict[str, float] | None:
     return percentiles(xs) if xs else None
 
 
+def run_delay(backend_pid: int) -> float:
+    """Seconds this thread and the Postgres backend `backend_pid` have waited runnable for a CPU so far
+    (/proc schedstat, nanoseconds; 0 where the kernel does not keep it)."""
+    total = 0.0
+    for path in ("/proc/thread-self/schedstat", f"/proc/{backend_pid}/schedstat"):
+        try:
+            total += int(Path(path).read_text().split()[1]) / 1e9
+        except (OSError, IndexError, ValueError):
+            pass
+    return total
+
+
 def pg_stats(sm: Any, db: str) -> dict[str, int]:
     """Cumulative commits of the database and row updates of the worker and task tables."""
     with sm() as s:
@@ -180,6 +192,7 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
         waits_pg: dict[str, int] = {}
         next_wait_sample = 0.0
         progress_cpu: list[float] = []
+        progress_runq: list[float] = []  # time the poller thread and its backend sat runnable without a CPU
         # GET /jobs/{id}'s own work (services.api.jobs.endpoints.get_job): an autocommit read session, one statement,
         # the JSON; its wall time, and its CPU (this thread's plus its Postgres backend's)
         poll_engine = make_engine(with_app_name(db_url, "api"), pool_size=1, max_overflow=0)
@@ -189,10 +202,12 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
         with sm() as s:
             while time.monotonic() - t0 < args.seconds:
                 t, c, pc = time.perf_counter(), time.thread_time(), cpu_seconds(api_pid)
+                rq = run_delay(api_pid)
                 with read_sm() as rs:
                     fetch_job_detail(rs, owner="bench", job_id=job_id, rates=None).model_dump_json()
                 progress_lat.append(time.perf_counter() - t)
                 progress_cpu.append(time.thread_time() - c + cpu_seconds(api_pid) - pc)
+                progress_runq.append(run_delay(api_pid) - rq)
                 if time.monotonic() >= next_wait_sample:  # what Postgres' busy backends are waiting for
                     next_wait_sample = time.monotonic() + 0.5
                     sample_waits(s, waits_pg)
@@ -303,6 +318,9 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
             },
             "progress_query": pct(progress_lat),
             "progress_query_cpu": pct(progress_cpu),  # the poller thread's + its Postgres backend's CPU per query
+            # (the backend's from /proc, in 10 ms ticks: a query's p99 is a tick; the mean is what it costs)
+            "progress_query_cpu_mean_ms": round(1000 * sum(progress_cpu) / max(len(progress_cpu), 1), 3),
+            "progress_query_runqueue_wait": pct(progress_runq),  # CPU starvation (schedstat run_delay) per query
             "load_avg_1m": round(os.getloadavg()[0], 2),
         }
     finally:

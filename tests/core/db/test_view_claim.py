@@ -27,13 +27,23 @@ VIEW = {"passes": "running", "rgb": "pending", "normal": "pending", "depth_zbuff
         "mask_valid": "pending", "point_info": "queued", "vanishing_points": "done"}
 
 
-@pytest.fixture(params=["postgres", "sqlite"])
-def engine(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Engine]:
-    url = request.getfixturevalue("empty_pg_url") if request.param == "postgres" else f"sqlite:///{tmp_path / 'v.db'}"
+def _migrated(url: str) -> Iterator[Engine]:
     migrate(url)
     eng = make_engine(url)
     yield eng
     eng.dispose()
+
+
+@pytest.fixture(params=["postgres", "sqlite"])
+def engine(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Engine]:
+    url = request.getfixturevalue("empty_pg_url") if request.param == "postgres" else f"sqlite:///{tmp_path / 'v.db'}"
+    yield from _migrated(url)
+
+
+@pytest.fixture
+def pg_engine_empty(empty_pg_url: str) -> Iterator[Engine]:
+    """Postgres only: concurrent claimers need a database with more than one writer (SQLite has one)."""
+    yield from _migrated(empty_pg_url)
 
 
 def _job(s: Session, n_points: int) -> int:
@@ -116,9 +126,8 @@ def test_a_mixed_pending_and_queued_batch_moves_its_rows_and_keeps_the_counters_
         assert job_progress(s, job_id) == _truth(s, job_id)
 
 
-def test_concurrent_batch_claims_of_one_view_take_each_task_once(engine: Engine) -> None:
-    if engine.dialect.name != "postgresql":
-        pytest.skip("SQLite has one writer at a time")
+def test_concurrent_batch_claims_of_one_view_take_each_task_once(pg_engine_empty: Engine) -> None:
+    engine = pg_engine_empty
     sm = make_sessionmaker(engine)
     with sm() as s:
         job_id = _job(s, 30)

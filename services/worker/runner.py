@@ -15,8 +15,8 @@
    the view, computed in memory by its ViewContext in topological order), derives and stores each, and records
    them all done, `passes` included, in one statement: ~3 statements a view instead of ~2 per task. When the
    batch made every task of the view that reads the pass set, the pass set is never stored (`passes` is
-   recorded with size 0, no sha256). A derived
-   cue's task (a view the batch did not take whole, e.g. after a resume) claims its view's queued tasks alike.
+   recorded with size 0, no sha256). A derived cue's task (a view the batch did not take whole, e.g. after a
+   resume) claims its view's queued tasks alike.
    Each task keeps its row; a pending task claimed so gets no message, a queued one's message is skipped when
    it comes (a read, no claim). A task whose input failed in the batch is handed back to pending unrun. A batch
    whose worker dies stays `running` under its lease (the beats extend all of it): the reaper re-queues every

@@ -9,8 +9,8 @@ count these tasks, which is what they are.
 Each job is walked in the order of its unique index (space, point, view, cue) from a cursor kept in memory, a chunk
 of rows at a time, for at most `compact_pass_s` a pass. Deleted rows leave the index, so the next walk from the start
 skips them; a chunk of a running job with no done row at all, or with finished views but none due yet, sends the
-cursor back to the start (dispatch runs oldest first, so the views after it have not run, or finished later). A terminal job whose whole walk compacted nothing is not
-walked again until its state changes.
+cursor back to the start (dispatch runs oldest first, so the views after it have not run, or finished later). A
+terminal job whose whole walk compacted nothing is not walked again until its state changes.
 """
 
 from __future__ import annotations

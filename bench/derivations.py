@@ -35,6 +35,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.rooms import ROOMS  # noqa: E402
 from services.core.domain.cues import default_cues  # noqa: E402
 from services.core.domain.jobspec import CueParams, JobSpec  # noqa: E402
 from services.core.domain.plan import SpacePlan  # noqa: E402
@@ -47,13 +48,6 @@ from services.worker.passes import RENDER_PASSES, ViewPasses  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results" / "derivations.json"
-SCENES = ROOT.parent / "shared" / "scenes"
-# name -> (space path, load_space frame arguments): as bench/room_cost.py gives them to `generate`.
-ROOMS: dict[str, tuple[Path, dict]] = {
-    "icl_livingroom": (SCENES / "icl_livingroom", {}),
-    "7scenes_redkitchen": (SCENES / "7scenes_redkitchen" / "mesh_tsdf_2cm_from_1000frames.ply",
-                           {"up": (0.009, -0.904, -0.427)}),
-}
 # Bare 1-sample render, CPU s per view, one core (bench/room_cost.py, issue 20's closing note).
 FLOOR_CPU_S = {"icl_livingroom": 0.077, "7scenes_redkitchen": 0.086}
 

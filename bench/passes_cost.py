@@ -37,6 +37,7 @@ from pathlib import Path  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.rooms import ROOMS  # noqa: E402
 from services.core.domain.jobspec import CueParams, JobSpec  # noqa: E402
 from services.core.ingest.loading import load_space  # noqa: E402
 from services.core.storage.local import LocalStore  # noqa: E402
@@ -48,13 +49,6 @@ from services.worker.space_cache import SpaceContext  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "bench" / "results" / "passes_cost.json"
-SCENES = ROOT.parent / "shared" / "scenes"
-# name -> (path, load_space frame); the kitchen's fused mesh ships its gravity direction (up is its negative)
-ROOMS: dict[str, tuple[Path, dict]] = {
-    "icl_livingroom": (SCENES / "icl_livingroom", {}),
-    "7scenes_redkitchen": (SCENES / "7scenes_redkitchen" / "mesh_tsdf_2cm_from_1000frames.ply",
-                           {"up": (0.009, -0.904, -0.427)}),
-}
 
 
 def median(values: list[float]) -> float:

@@ -18,12 +18,12 @@ import sys
 import tempfile
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench.rooms import ROOMS  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results" / "startup.json"
-SCENES = ROOT.parent / "shared" / "scenes"
-ROOMS = {"icl_livingroom": (SCENES / "icl_livingroom", {}),
-         "7scenes_redkitchen": (SCENES / "7scenes_redkitchen" / "mesh_tsdf_2cm_from_1000frames.ply",
-                                {"up": [0.009, -0.904, -0.427]})}
 
 PARENT = r"""
 import json, sys, time

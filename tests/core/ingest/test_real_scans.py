@@ -105,3 +105,28 @@ def test_ambiguous_units_refused_naming_both_then_picked(tmp_path: Path) -> None
     assert picked is not None and picked.scale == 0.01 and picked.unit == "given"
     guessed = load_space(src, up=truth, accept_up_guess=True)
     assert guessed.units is not None and guessed.units.ambiguous and guessed.frame_record()["units"]["ambiguous"]
+
+
+def test_rotated_7scenes_kitchen_in_mm_refused_naming_its_true_up_first(scenes_dir: Path, tmp_path: Path) -> None:
+    """The full fused 7-Scenes kitchen, turned by a rotation under which the capture-frame prior favours a wall and
+    exported in millimetres: refused (the margin falls below the line), the capture's gravity named first, and
+    levelled in millimetres with the --up the refusal suggests."""
+    import trimesh
+    from scipy.spatial.transform import Rotation
+
+    room = scenes_dir / "7scenes_redkitchen"
+    mesh = trimesh.load(room / "mesh_tsdf_2cm_from_1000frames.ply", force="mesh")
+    gravity = np.loadtxt(room / "gravity-direction.txt")
+    turn = Rotation.from_euler("xyz", [-88.2, -51.3, -27.7], degrees=True).as_matrix()
+    mesh.vertices = (mesh.vertices @ turn.T) * 1000.0
+    src = tmp_path / "kitchen_rot_mm.ply"
+    mesh.export(src)
+    truth = turn @ (-gravity / np.linalg.norm(gravity))
+    with pytest.raises(UpAmbiguous) as err:
+        load_space(src)
+    first = np.array(err.value.candidates[0]["up"])
+    assert up_error_deg(first, truth) < 3.0
+    assert f"--up={','.join(f'{x:.3g}' for x in first)}" in str(err.value)
+    space = load_space(src, up=first.tolist())
+    assert space.units is not None and space.units.scale == 0.001
+    assert up_error_deg(space.source_to_world[:3, :3] @ truth, np.array([0.0, 0.0, 1.0])) < 3.0

@@ -54,19 +54,59 @@ def region_graph(labels: np.ndarray, features255: np.ndarray, sigma: float,
     """
     n = int(labels.max()) + 1
     cnt, sums = _region_sums(np.ascontiguousarray(labels), np.ascontiguousarray(features255), n)
-    means = sums / np.maximum(cnt, 1)[:, None]
     has_boundary = boundary is not None
     boundary_or_none = np.zeros((1, 1), np.float32) if boundary is None else boundary
     links, boundary_sum = _adjacent_pairs(labels, boundary_or_none, n, has_boundary)
-    ea, eb = np.nonzero(links)  # row-major: pairs (a < b) in increasing a * n + b
-    w = np.exp(-((means[ea] - means[eb]) ** 2).sum(axis=1) / sigma)
+    ea, eb, dist2, strength = _link_terms(links, boundary_sum, cnt, sums)
+    w = np.exp(-dist2 / sigma)  # numpy's exp (its own vector code): kept, as every value it rounds
     if has_boundary:
-        strength = boundary_sum[ea, eb] / links[ea, eb]
         w = w * np.exp(-BOUNDARY_GAIN * strength)
-    W = np.zeros((n, n), dtype=np.float64)
-    W[ea, eb] = w
-    W[eb, ea] = w
-    np.fill_diagonal(W, 1.0)
+    return _dense_graph(n, ea, eb, w)
+
+
+@njit(cache=True, nogil=True)
+def _link_terms(links: np.ndarray, boundary_sum: np.ndarray, cnt: np.ndarray,
+                sums: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The linked pairs (a < b, increasing a * n + b: np.nonzero's order), the squared distance of their mean
+    features (channels added in order from 0, as numpy sums fewer than 8) and their mean boundary value."""
+    n, c = sums.shape
+    means = np.empty((n, c), np.float64)
+    for a in range(n):
+        for k in range(c):
+            means[a, k] = sums[a, k] / max(cnt[a], 1.0)
+    count = 0
+    for a in range(n):
+        for b in range(n):
+            count += links[a, b] != 0
+    ea = np.empty(count, np.int64)
+    eb = np.empty(count, np.int64)
+    dist2 = np.empty(count, np.float64)
+    strength = np.empty(count, np.float64)
+    e = 0
+    for a in range(n):
+        for b in range(n):
+            if links[a, b] == 0:
+                continue
+            ea[e], eb[e] = a, b
+            s = 0.0
+            for k in range(c):
+                t = means[a, k] - means[b, k]
+                s += t * t
+            dist2[e] = s
+            strength[e] = boundary_sum[a, b] / links[a, b]
+            e += 1
+    return ea, eb, dist2, strength
+
+
+@njit(cache=True, nogil=True)
+def _dense_graph(n: int, ea: np.ndarray, eb: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """n x n float64: w on the pairs both ways, 1 on the diagonal (self-loops), 0 elsewhere."""
+    W = np.zeros((n, n), np.float64)
+    for e in range(len(w)):
+        W[ea[e], eb[e]] = w[e]
+        W[eb[e], ea[e]] = w[e]
+    for i in range(n):
+        W[i, i] = 1.0
     return W
 
 
@@ -250,5 +290,16 @@ def segment_unsup25d(ctx: ViewContext) -> np.ndarray:
     """
     _, _, we = ctx.params.segment25d_weights
     occ = occlusion_response(ctx)
-    boundary = np.clip(we * occ / max(float(occ.max()), 1e-6), 0.0, None)
+    boundary = _boundary(occ, np.float32(we), np.float32(max(float(occ.max()), 1e-6)))
     return segment(ctx, features25d(ctx), valid(ctx), sigma=0.0, boundary=boundary)
+
+
+@njit(cache=True, nogil=True)
+def _boundary(occ: np.ndarray, we: np.float32, top: np.float32) -> np.ndarray:
+    """np.clip(we * occ / top, 0, None) in float32 (occ >= 0: no signed zeros or NaNs to order)."""
+    out = np.empty_like(occ)
+    for y in range(occ.shape[0]):
+        for x in range(occ.shape[1]):
+            v = we * occ[y, x] / top
+            out[y, x] = v if v >= 0 else np.float32(0.0)
+    return out

@@ -16,13 +16,21 @@ from services.core.ingest.loading import load_space
 from services.scheduler.planning import make_plan, space_rng
 from services.worker.context import ViewContext
 from services.worker.cues.common import valid
+from services.worker.cues.edges import occlusion_response
 from services.worker.cues.ncuts import _best_split, normalized_cuts
 from services.worker.cues.registry import cue_value
-from services.worker.cues.segmentation import _gather, features25d, nearest_in_mask, region_graph, superpixels
+from services.worker.cues.segmentation import (
+    _boundary,
+    _gather,
+    features25d,
+    nearest_in_mask,
+    region_graph,
+    superpixels,
+)
 from services.worker.executor import make_context, produce
 from services.worker.passes import ViewGeometry, ViewPasses
 from services.worker.space_cache import SpaceContext
-from tests.fixtures import reference_ncuts
+from tests.fixtures import reference_ncuts, reference_segmentation
 from tests.fixtures.raycast import decode_png
 
 pytestmark = pytest.mark.bpy  # the views are Cycles renders
@@ -102,3 +110,21 @@ def test_every_split_of_a_view_is_the_numpy_versions_bit_for_bit(room_views) -> 
                     assert np.array_equal(new, old)
                     splits += 1
     assert splits >= len(room_views)
+
+
+def test_boundary_and_region_graph_are_the_numpy_versions_bit_for_bit(room_views) -> None:
+    for p in room_views:
+        ctx = ViewContext(None, passes=p)
+        occ = occlusion_response(ctx)
+        for we in (1.0, 0.37, 0.0):
+            top = max(float(occ.max()), 1e-6)
+            new = _boundary(occ, np.float32(we), np.float32(top))
+            old = np.clip(we * occ / top, 0.0, None)
+            assert new.dtype == old.dtype == np.float32
+            assert np.array_equal(new.view(np.uint32), old.view(np.uint32))
+        features = features25d(ctx)
+        ids = superpixels(features, ctx.params.segment2d_scale, 0.0, 50, 512)
+        for b in (None, new, _boundary(occ, np.float32(1.0), np.float32(max(float(occ.max()), 1e-6)))):
+            W = region_graph(ids, features * 255.0, ctx.params.segment_ncut_sigma, b)
+            assert np.array_equal(W, reference_segmentation.region_graph(ids, features * 255.0,
+                                                                           ctx.params.segment_ncut_sigma, b))

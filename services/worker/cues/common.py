@@ -192,56 +192,61 @@ def to_uint16_scaled(values: np.ndarray, scale: float) -> np.ndarray:
     return np.clip(np.rint(values * scale), 0, 65535).astype(np.uint16)
 
 
-GAUSS_NEAREST, GAUSS_REFLECT = 0, 1  # scipy.ndimage modes "nearest" (edge repeated) and "reflect" (half-sample)
-# ("constant", zeros outside, runs as "nearest" on a zero-padded copy)
+GAUSS_NEAREST, GAUSS_REFLECT, GAUSS_CONSTANT = 0, 1, 2  # scipy.ndimage modes "nearest" (edge repeated),
+# "reflect" (half-sample) and "constant" (cval 0: +0.0 outside)
+_GAUSS_MODES = {"nearest": GAUSS_NEAREST, "reflect": GAUSS_REFLECT, "constant": GAUSS_CONSTANT}
 
 
 def gaussian_blur(img: np.ndarray, sigma: float, truncate: float = 4.0, mode: str = "nearest") -> np.ndarray:
     """scipy.ndimage.gaussian_filter(img, sigma, mode=mode, truncate=truncate) of an H x W float32 image, bit for
     bit: the same kernel, taps added in the order scipy's symmetric correlate1d adds them (in float64, rounded to
-    float32 after each axis, rows first), as compiled loops over whole rows (about 2x faster than scipy's per-line
+    float32 after each axis, rows first), as compiled loops over whole rows (about 3x faster than scipy's per-line
     buffers at 512 px). Other inputs (dtype, shape, a kernel wider than a reflected image) go to scipy."""
     from scipy.ndimage import gaussian_filter
 
     radius = int(truncate * float(sigma) + 0.5)
-    if img.dtype != np.float32 or img.ndim != 2 or sigma <= 0 or mode not in ("nearest", "reflect", "constant") \
+    if img.dtype != np.float32 or img.ndim != 2 or sigma <= 0 or mode not in _GAUSS_MODES \
             or (mode == "reflect" and radius >= min(img.shape)):
         return gaussian_filter(img, sigma, mode=mode, truncate=truncate)
     x = np.arange(-radius, radius + 1)
     taps = np.exp(-0.5 / (sigma * sigma) * x**2)  # scipy's _gaussian_kernel1d, order 0
     taps = taps / taps.sum()
-    if mode == "constant":  # zeros outside (cval 0): a zero border as wide as the kernel, then cropped
-        h, w = img.shape
-        padded = np.pad(img, radius)
-        out = _blur_cols(_blur_rows(padded, taps, GAUSS_NEAREST), taps, GAUSS_NEAREST)
-        return np.ascontiguousarray(out[radius:radius + h, radius:radius + w])
-    code = GAUSS_NEAREST if mode == "nearest" else GAUSS_REFLECT
+    code = _GAUSS_MODES[mode]
     return _blur_cols(_blur_rows(np.ascontiguousarray(img), taps, code), taps, code)
 
 
 @njit(cache=True, nogil=True)
 def _extend(i: int, n: int, mode: int) -> int:
+    """The index scipy's line extension reads for i outside 0..n-1 (-1: none, cval 0 in mode constant)."""
     if mode == GAUSS_NEAREST:
         return min(max(i, 0), n - 1)
+    if mode == GAUSS_CONSTANT:
+        return i if 0 <= i < n else -1
     return -i - 1 if i < 0 else (2 * n - i - 1 if i >= n else i)
 
 
 @njit(cache=True, nogil=True)
 def _blur_rows(img: np.ndarray, taps: np.ndarray, mode: int) -> np.ndarray:
-    """Along axis 0: out = x[0] w[0] + sum over j = -r..-1 of (x[j] + x[-j]) w[j], in float64, as scipy."""
+    """Along axis 0: out = x[0] w[0] + sum over j = -r..-1 of (x[j] + x[-j]) w[j], in float64, as scipy (rows
+    outside the image in mode constant are zeros: the same sums a zero-padded copy gives)."""
     h, w = img.shape
     r = len(taps) // 2
     out = np.empty((h, w), np.float32)
     acc = np.empty(w, np.float64)
+    zeros = np.zeros(w, np.float32)
     for y in range(h):
+        row = img[y]
         for x in range(w):
-            acc[x] = np.float64(img[y, x]) * taps[r]
+            acc[x] = np.float64(row[x]) * taps[r]
         for j in range(-r, 0):
             ya, yb, wj = _extend(y + j, h, mode), _extend(y - j, h, mode), taps[r + j]
+            a = img[ya] if ya >= 0 else zeros
+            b = img[yb] if yb >= 0 else zeros
             for x in range(w):
-                acc[x] += (np.float64(img[ya, x]) + np.float64(img[yb, x])) * wj
+                acc[x] += (np.float64(a[x]) + np.float64(b[x])) * wj
+        out_row = out[y]
         for x in range(w):
-            out[y, x] = np.float32(acc[x])
+            out_row[x] = np.float32(acc[x])
     return out
 
 
@@ -250,7 +255,9 @@ _COL_BLOCK = 16  # rows blurred together along x: longer inner loops over a bloc
 
 @njit(cache=True, nogil=True)
 def _blur_cols(img: np.ndarray, taps: np.ndarray, mode: int) -> np.ndarray:
-    """Along axis 1, the same sums on extended copies of the rows, a block of rows at a time."""
+    """Along axis 1, the same sums on extended copies of the rows, a block of rows at a time (the inner loops run
+    over row slices, whose non-negative indices let LLVM vectorise them: ~3x faster than indexing the 2-d
+    buffer)."""
     h, w = img.shape
     r = len(taps) // 2
     out = np.empty((h, w), np.float32)
@@ -259,19 +266,24 @@ def _blur_cols(img: np.ndarray, taps: np.ndarray, mode: int) -> np.ndarray:
     for y0 in range(0, h, _COL_BLOCK):
         nb = min(_COL_BLOCK, h - y0)
         for b in range(nb):
+            row, lb = img[y0 + b], line[b]
             for x in range(w):
-                line[b, x + r] = img[y0 + b, x]
+                lb[x + r] = row[x]
             for x in range(r):
-                line[b, x] = img[y0 + b, _extend(x - r, w, mode)]
-                line[b, w + r + x] = img[y0 + b, _extend(w + x, w, mode)]
+                xa, xb = _extend(x - r, w, mode), _extend(w + x, w, mode)
+                lb[x] = row[xa] if xa >= 0 else 0.0
+                lb[w + r + x] = row[xb] if xb >= 0 else 0.0
+            mid, ab = line[b, r:r + w], acc[b]
             for x in range(w):
-                acc[b, x] = line[b, x + r] * taps[r]
+                ab[x] = mid[x] * taps[r]
         for j in range(-r, 0):
             wj = taps[r + j]
             for b in range(nb):
+                lo, hi, ab = line[b, r + j:r + j + w], line[b, r - j:r - j + w], acc[b]
                 for x in range(w):
-                    acc[b, x] += (line[b, x + r + j] + line[b, x + r - j]) * wj
+                    ab[x] += (lo[x] + hi[x]) * wj
         for b in range(nb):
+            ab, ob = acc[b], out[y0 + b]
             for x in range(w):
-                out[y0 + b, x] = np.float32(acc[b, x])
+                ob[x] = np.float32(ab[x])
     return out

@@ -148,9 +148,23 @@ def grey(ctx: ViewContext) -> np.ndarray:
 
 
 def sobel_magnitude(img: np.ndarray) -> np.ndarray:
-    """Sobel gradient magnitude (scipy's unnormalised 3x3 kernels: a unit step gives 4), float32."""
-    gx, gy = sobel_xy(img)
-    return np.hypot(gx, gy).astype(np.float32)
+    """Sobel gradient magnitude (scipy's unnormalised 3x3 kernels: a unit step gives 4), float32: np.hypot of
+    sobel_xy's two images (the same libm hypotf numpy calls, per pixel in the compiled pass)."""
+    if img.dtype != np.float32 or img.ndim != 2:
+        gx, gy = sobel_xy(img)
+        return np.hypot(gx, gy).astype(np.float32)
+    return _hypot(*_sobel_xy(np.ascontiguousarray(img)))
+
+
+@njit(cache=True, nogil=True)
+def _hypot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    h, w = a.shape
+    out = np.empty((h, w), np.float32)
+    for y in range(h):
+        ra, rb, ro = a[y], b[y], out[y]
+        for x in range(w):
+            ro[x] = np.hypot(ra[x], rb[x])
+    return out
 
 
 def sobel_xy(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -166,30 +180,58 @@ def sobel_xy(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 @njit(cache=True, nogil=True)
 def _sobel_xy(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Row by row over row slices, the clamped first and last columns apart (unclamped inner loops vectorise:
+    ~3x faster than clamping every pixel)."""
     h, w = img.shape
     dx = np.empty((h, w), np.float32)  # [-1, 0, 1] along x (scipy's antisymmetric loop: x0 * 0 + (x-1 - x+1) * -1)
     dy = np.empty((h, w), np.float32)
     for y in range(h):
-        ym, yp = max(y - 1, 0), min(y + 1, h - 1)
+        row, up, down, ox, oy = img[y], img[max(y - 1, 0)], img[min(y + 1, h - 1)], dx[y], dy[y]
         for x in range(w):
+            oy[x] = np.float32(np.float64(row[x]) * 0.0 + (np.float64(up[x]) - np.float64(down[x])) * -1.0)
+        if w > 2:
+            mid, left, right, inner = row[1:w - 1], row[0:w - 2], row[2:w], ox[1:w - 1]
+            for x in range(w - 2):
+                inner[x] = np.float32(np.float64(mid[x]) * 0.0 + (np.float64(left[x]) - np.float64(right[x])) * -1.0)
+        for x in (0, w - 1):
             xm, xp = max(x - 1, 0), min(x + 1, w - 1)
-            c = np.float64(img[y, x]) * 0.0
-            dx[y, x] = np.float32(c + (np.float64(img[y, xm]) - np.float64(img[y, xp])) * -1.0)
-            dy[y, x] = np.float32(c + (np.float64(img[ym, x]) - np.float64(img[yp, x])) * -1.0)
+            ox[x] = np.float32(np.float64(row[x]) * 0.0 + (np.float64(row[xm]) - np.float64(row[xp])) * -1.0)
     gx = np.empty((h, w), np.float32)  # then [1, 2, 1] across (scipy's symmetric loop: x0 * 2 + (x-1 + x+1) * 1)
     gy = np.empty((h, w), np.float32)
     for y in range(h):
-        ym, yp = max(y - 1, 0), min(y + 1, h - 1)
+        row, up, down, ox = dx[y], dx[max(y - 1, 0)], dx[min(y + 1, h - 1)], gx[y]
         for x in range(w):
+            ox[x] = np.float32(np.float64(row[x]) * 2.0 + (np.float64(up[x]) + np.float64(down[x])) * 1.0)
+        row, oy = dy[y], gy[y]
+        if w > 2:
+            mid, left, right, inner = row[1:w - 1], row[0:w - 2], row[2:w], oy[1:w - 1]
+            for x in range(w - 2):
+                inner[x] = np.float32(np.float64(mid[x]) * 2.0 + (np.float64(left[x]) + np.float64(right[x])) * 1.0)
+        for x in (0, w - 1):
             xm, xp = max(x - 1, 0), min(x + 1, w - 1)
-            gx[y, x] = np.float32(np.float64(dx[y, x]) * 2.0 + (np.float64(dx[ym, x]) + np.float64(dx[yp, x])) * 1.0)
-            gy[y, x] = np.float32(np.float64(dy[y, x]) * 2.0 + (np.float64(dy[y, xm]) + np.float64(dy[y, xp])) * 1.0)
+            oy[x] = np.float32(np.float64(row[x]) * 2.0 + (np.float64(row[xm]) + np.float64(row[xp])) * 1.0)
     return gx, gy
 
 
 def to_uint16_scaled(values: np.ndarray, scale: float) -> np.ndarray:
-    """round(values * scale) clipped to 0..65535, uint16."""
-    return np.clip(np.rint(values * scale), 0, 65535).astype(np.uint16)
+    """round(values * scale) clipped to 0..65535, uint16 (a float32 image: one compiled pass)."""
+    if values.dtype != np.float32 or values.ndim != 2:
+        return np.clip(np.rint(values * scale), 0, 65535).astype(np.uint16)
+    return _to_uint16_scaled(np.ascontiguousarray(values), np.float32(scale))
+
+
+@njit(cache=True, nogil=True)
+def _to_uint16_scaled(values: np.ndarray, scale: np.float32) -> np.ndarray:
+    """numpy's float32 steps per pixel: rint(v * scale), clipped (NaN stays NaN, which numpy's cast makes 0)."""
+    h, w = values.shape
+    out = np.empty((h, w), np.uint16)
+    lo, hi = np.float32(0.0), np.float32(65535.0)
+    for y in range(h):
+        row, o = values[y], out[y]
+        for x in range(w):
+            q = np.rint(row[x] * scale)
+            o[x] = 0 if np.isnan(q) else np.uint16(min(max(q, lo), hi))
+    return out
 
 
 GAUSS_NEAREST, GAUSS_REFLECT, GAUSS_CONSTANT = 0, 1, 2  # scipy.ndimage modes "nearest" (edge repeated),

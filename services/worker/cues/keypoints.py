@@ -38,7 +38,16 @@ from services.worker.cues.common import (
     to_uint16_scaled,
     valid,
 )
-from services.worker.cues.narf_kernels import blend, range_normals, scale_split, tensor_planes
+from services.worker.cues.narf_kernels import (
+    blend,
+    double,
+    half_means,
+    isotropy,
+    range_normals,
+    scale_split,
+    surface_change,
+    tensor_planes,
+)
 from services.worker.cues.registry import register
 
 KP3D_SCALES_PX = (1, 2, 4, 8, 16, 32, 64)
@@ -165,33 +174,14 @@ def _box_cols(img: np.ndarray, size: int) -> np.ndarray:
 
 
 def _half(x: np.ndarray) -> np.ndarray:
-    """2 x 2 block means of a C x H x W array (edge-padded to even size)."""
-    h, w = x.shape[1:]
-    if h % 2 or w % 2:
-        x = np.pad(x, ((0, 0), (0, h % 2), (0, w % 2)), mode="edge")
-    return (x[:, 0::2, 0::2] + x[:, 1::2, 0::2] + x[:, 0::2, 1::2] + x[:, 1::2, 1::2]) * 0.25
+    """2 x 2 block means of a C x H x W float32 array (edge-padded to even size), one compiled pass."""
+    return half_means(np.ascontiguousarray(x, dtype=np.float32))
 
 
 def _double(x: np.ndarray) -> np.ndarray:
     """Bilinear 2x upsampling at pixel centres (weights 3/4, 1/4; edges clamped) of an H x W float32 array: rows
-    first, then columns, each output 0.75 * x + 0.25 * neighbour in float32 (a compiled loop; numpy's version
-    spent most of its time building index and stacked temporaries)."""
-    return _double_axis(_double_axis(np.ascontiguousarray(x, dtype=np.float32)).T).T
-
-
-@njit(cache=True, nogil=True)
-def _double_axis(x: np.ndarray) -> np.ndarray:
-    """Rows of x doubled: out[2i] = 0.75 x[i] + 0.25 x[i-1], out[2i+1] = 0.75 x[i] + 0.25 x[i+1] (clamped)."""
-    n, m = x.shape
-    near, far = np.float32(0.75), np.float32(0.25)
-    out = np.empty((2 * n, m), np.float32)
-    for i in range(n):
-        prev, nxt = max(i - 1, 0), min(i + 1, n - 1)
-        for j in range(m):
-            c = near * x[i, j]
-            out[2 * i, j] = c + far * x[prev, j]
-            out[2 * i + 1, j] = c + far * x[nxt, j]
-    return out
+    first, then columns, each output 0.75 * x + 0.25 * neighbour in float32 (one compiled pass, C order)."""
+    return double(np.ascontiguousarray(x, dtype=np.float32))
 
 
 class _Pyramid:
@@ -229,18 +219,12 @@ class _Pyramid:
 
 def _surface_change(b: np.ndarray) -> np.ndarray:
     """Spread of the mean normal, from b = the blurred [w, n * w] (0 where no surface was averaged)."""
-    cnt, m = b[0], b[1:] / np.maximum(b[:1], 1e-6)
-    c = np.sqrt(np.clip(1.0 - np.einsum("chw,chw->hw", m, m), 0.0, 1.0))
-    return np.where(cnt > 1e-6, c, 0.0).astype(np.float32)
+    return surface_change(np.ascontiguousarray(b, dtype=np.float32))
 
 
 def _isotropy(b: np.ndarray) -> np.ndarray:
     """2 x the smaller eigenvalue over the trace of b = the blurred structure tensor [jxx, jyy, jxy]."""
-    a, bb, c = b[0], b[1], b[2]
-    tr = a + bb
-    disc = np.sqrt(np.maximum((a - bb) ** 2 / 4 + c * c, 0.0))
-    lo, hi = tr / 2 - disc, tr / 2 + disc
-    return np.where(tr > 1e-6, 2 * np.maximum(lo, 0.0) / np.maximum(lo + hi, 1e-12), 0.0).astype(np.float32)
+    return isotropy(np.ascontiguousarray(b, dtype=np.float32))
 
 
 def narf_interest(ctx: ViewContext) -> np.ndarray:

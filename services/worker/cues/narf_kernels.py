@@ -147,3 +147,87 @@ def tensor_planes(gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
             out[1, y, x] = gy[y, x] * gy[y, x]
             out[2, y, x] = gx[y, x] * gy[y, x]
     return out
+
+
+@njit(cache=True, nogil=True)
+def half_means(x: np.ndarray) -> np.ndarray:
+    """2 x 2 block means of a C x H x W float32 array, edge-padded to even size: ((x00 + x10) + x01 + x11) * 0.25
+    in float32, the order numpy's sum of the four strided slices took."""
+    c, h, w = x.shape
+    hh, hw = (h + 1) // 2, (w + 1) // 2
+    out = np.empty((c, hh, hw), np.float32)
+    quarter = np.float32(0.25)
+    for p in range(c):
+        for i in range(hh):
+            top, bottom, o = x[p, 2 * i], x[p, min(2 * i + 1, h - 1)], out[p, i]
+            for j in range(hw):
+                j0, j1 = 2 * j, min(2 * j + 1, w - 1)
+                o[j] = (((top[j0] + bottom[j0]) + top[j1]) + bottom[j1]) * quarter
+    return out
+
+
+@njit(cache=True, nogil=True)
+def double(x: np.ndarray) -> np.ndarray:
+    """Bilinear 2x upsampling at pixel centres of an H x W float32 array, C order: rows first (row 2i + a of
+    0.75 x[i] + 0.25 x[i -+ 1], clamped), then columns alike, each output c + 0.25 neighbour with c = 0.75 x in
+    float32 (keypoints' two transposed passes, bit for bit, without the transposes)."""
+    n, m = x.shape
+    near, far = np.float32(0.75), np.float32(0.25)
+    out = np.empty((2 * n, 2 * m), np.float32)
+    row = np.empty(m, np.float32)
+    for i in range(n):
+        for a in range(2):
+            src, nb = x[i], x[max(i - 1, 0) if a == 0 else min(i + 1, n - 1)]
+            for j in range(m):
+                row[j] = near * src[j] + far * nb[j]
+            o = out[2 * i + a]
+            for j in range(m):
+                c = near * row[j]
+                o[2 * j] = c + far * row[max(j - 1, 0)]
+                o[2 * j + 1] = c + far * row[min(j + 1, m - 1)]
+    return out
+
+
+@njit(cache=True, nogil=True)
+def surface_change(b: np.ndarray) -> np.ndarray:
+    """Spread of the mean normal sqrt(clip(1 - |m|^2, 0, 1)), m = b[1:] / max(b[0], 1e-6), 0 where b[0] <= 1e-6,
+    from b = the blurred [w, n * w]: numpy's float32 steps per pixel (maximum and clip give their second operand
+    on ties, keep NaN; einsum adds the channels in order)."""
+    _, h, w = b.shape
+    out = np.empty((h, w), np.float32)
+    zero, one, tiny = np.float32(0.0), np.float32(1.0), np.float32(1e-6)
+    for y in range(h):
+        cnt, b1, b2, b3, o = b[0, y], b[1, y], b[2, y], b[3, y], out[y]
+        for x in range(w):
+            c = cnt[x]
+            den = c if c > tiny or np.isnan(c) else tiny
+            m1, m2, m3 = b1[x] / den, b2[x] / den, b3[x] / den
+            v = one - ((m1 * m1 + m2 * m2) + m3 * m3)
+            v = v if v > zero or np.isnan(v) else zero
+            v = v if v < one or np.isnan(v) else one
+            o[x] = np.sqrt(v) if c > tiny else zero
+    return out
+
+
+@njit(cache=True, nogil=True)
+def isotropy(b: np.ndarray) -> np.ndarray:
+    """2 max(lo, 0) / max(lo + hi, 1e-12) of the eigenvalues lo, hi = tr/2 -+ sqrt(max((a - b)^2 / 4 + c^2, 0))
+    of b = the blurred structure tensor [a, b, c], 0 where tr <= 1e-6: numpy's float32 steps per pixel."""
+    _, h, w = b.shape
+    out = np.empty((h, w), np.float32)
+    zero, two, four, tiny, eps = np.float32(0.0), np.float32(2.0), np.float32(4.0), np.float32(1e-6), \
+        np.float32(1e-12)
+    for y in range(h):
+        ra, rb, rc, o = b[0, y], b[1, y], b[2, y], out[y]
+        for x in range(w):
+            a, bb, c = ra[x], rb[x], rc[x]
+            tr = a + bb
+            diff = a - bb
+            q = (diff * diff) / four + c * c
+            disc = np.sqrt(q if q > zero or np.isnan(q) else zero)
+            half = tr / two
+            lo, hi = half - disc, half + disc
+            num = two * (lo if lo > zero or np.isnan(lo) else zero)
+            s = lo + hi
+            o[x] = num / (s if s > eps or np.isnan(s) else eps) if tr > tiny else zero
+    return out

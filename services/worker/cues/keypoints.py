@@ -42,7 +42,9 @@ from services.worker.cues.narf_kernels import (
     blend,
     double,
     half_means,
+    interest,
     isotropy,
+    mark_borders,
     range_normals,
     scale_split,
     surface_change,
@@ -248,15 +250,13 @@ def narf_interest(ctx: ViewContext) -> np.ndarray:
     change = np.zeros(v.shape, dtype=np.float32)
     for ki in used:
         blend(change, k0, t, int(ki), top, wn.blurred(KP3D_SCALES_PX[ki], _surface_change))
-    change[border] = 1.0
-    change[~v] = 0.0
+    mark_borders(change, border, v)
     gx, gy = sobel_xy(change)
     tensor = _Pyramid(tensor_planes(gx, gy))
     iso = np.zeros(v.shape, dtype=np.float32)
     for ki in used:
         blend(iso, k0, t, int(ki), top, tensor.blurred(KP3D_SCALES_PX[ki], _isotropy))
-    iso[~v] = 0.0
-    return np.clip(change * iso, 0.0, 1.0).astype(np.float32)
+    return interest(change, iso, v)
 
 
 @register("keypoints3d")

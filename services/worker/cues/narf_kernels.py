@@ -176,9 +176,10 @@ def half_means(x: np.ndarray) -> np.ndarray:
     for p in range(c):
         for i in range(hh):
             top, bottom, o = x[p, 2 * i], x[p, min(2 * i + 1, h - 1)], out[p, i]
-            for j in range(hw):
-                j0, j1 = 2 * j, min(2 * j + 1, w - 1)
-                o[j] = (((top[j0] + bottom[j0]) + top[j1]) + bottom[j1]) * quarter
+            for j in range(w // 2):
+                o[j] = (((top[2 * j] + bottom[2 * j]) + top[2 * j + 1]) + bottom[2 * j + 1]) * quarter
+            if w % 2:  # the last column edge-padded
+                o[hw - 1] = (((top[w - 1] + bottom[w - 1]) + top[w - 1]) + bottom[w - 1]) * quarter
     return out
 
 
@@ -246,4 +247,31 @@ def isotropy(b: np.ndarray) -> np.ndarray:
             num = two * (lo if lo > zero or np.isnan(lo) else zero)
             s = lo + hi
             o[x] = num / (s if s > eps or np.isnan(s) else eps) if tr > tiny else zero
+    return out
+
+
+@njit(cache=True, nogil=True)
+def mark_borders(change: np.ndarray, border: np.ndarray, v: np.ndarray) -> None:
+    """In place: change = 1 on borders, then 0 off valid depth."""
+    h, w = change.shape
+    for y in range(h):
+        for x in range(w):
+            if not v[y, x]:
+                change[y, x] = 0.0
+            elif border[y, x]:
+                change[y, x] = 1.0
+
+
+@njit(cache=True, nogil=True)
+def interest(change: np.ndarray, iso: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """clip(change * iso, 0, 1) with iso 0 off valid depth, in float32 (clip gives its bound on ties, keeps NaN)."""
+    h, w = change.shape
+    out = np.empty((h, w), np.float32)
+    zero, one = np.float32(0.0), np.float32(1.0)
+    for y in range(h):
+        c, i, m, o = change[y], iso[y], v[y], out[y]
+        for x in range(w):
+            p = c[x] * (i[x] if m[x] else zero)
+            p = p if p > zero or np.isnan(p) else zero
+            o[x] = p if p < one or np.isnan(p) else one
     return out

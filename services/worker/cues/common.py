@@ -147,23 +147,31 @@ def grey(ctx: ViewContext) -> np.ndarray:
     return ctx.memo("grey", compute)
 
 
-def sobel_magnitude(img: np.ndarray) -> np.ndarray:
-    """Sobel gradient magnitude (scipy's unnormalised 3x3 kernels: a unit step gives 4), float32: np.hypot of
-    sobel_xy's two images (the same libm hypotf numpy calls, per pixel in the compiled pass)."""
+def sobel_magnitude(img: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """Sobel gradient magnitude (scipy's unnormalised 3x3 kernels: a unit step gives 4), float32, 0 off `mask` if
+    given: np.hypot of sobel_xy's two images (the same libm hypotf numpy calls, per pixel in the compiled pass)."""
     if img.dtype != np.float32 or img.ndim != 2:
         gx, gy = sobel_xy(img)
-        return np.hypot(gx, gy).astype(np.float32)
-    return _hypot(*_sobel_xy(np.ascontiguousarray(img)))
+        mag = np.hypot(gx, gy).astype(np.float32)
+        return mag if mask is None else np.where(mask, mag, np.float32(0.0))
+    gx, gy = _sobel_xy(np.ascontiguousarray(img))
+    return _hypot(gx, gy, np.ones((1, 1), np.bool_) if mask is None else np.ascontiguousarray(mask, dtype=np.bool_),
+                  mask is not None)
 
 
 @njit(cache=True, nogil=True)
-def _hypot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def _hypot(a: np.ndarray, b: np.ndarray, mask: np.ndarray, masked: bool) -> np.ndarray:
     h, w = a.shape
     out = np.empty((h, w), np.float32)
     for y in range(h):
         ra, rb, ro = a[y], b[y], out[y]
         for x in range(w):
             ro[x] = np.hypot(ra[x], rb[x])
+        if masked:
+            m = mask[y]
+            for x in range(w):
+                if not m[x]:
+                    ro[x] = 0.0
     return out
 
 

@@ -6,6 +6,8 @@ Frames: `normal_cam` uses the Omnidata camera axes for normals (x right, y up, z
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 from llvmlite import ir
 from numba import njit, types
@@ -100,8 +102,7 @@ def _normal_cam_numpy(n_world: np.ndarray, R: np.ndarray, d: np.ndarray, seen: n
     return np.where(seen[..., None], n_cv * sign, np.float32(0.0))
 
 
-@intrinsic
-def _fma32(typingctx, a, b, c):  # type: ignore[no-untyped-def]
+def _fma32_typing(typingctx, a, b, c):  # type: ignore[no-untyped-def]
     """round(a * b + c) in float32 with one rounding (llvm.fma: the FMA instruction OpenBLAS's kernels use)."""
     sig = types.float32(types.float32, types.float32, types.float32)
 
@@ -111,6 +112,9 @@ def _fma32(typingctx, a, b, c):  # type: ignore[no-untyped-def]
         return builder.call(fn, args)
 
     return sig, codegen
+
+
+_fma32: Callable[[np.float32, np.float32, np.float32], np.float32] = intrinsic(_fma32_typing)  # type: ignore[assignment]
 
 
 @njit(cache=True, nogil=True)

@@ -194,3 +194,17 @@ def test_pyramid_steps_are_the_numpy_versions_bit_for_bit(shape) -> None:
         if shape[0] == 4:
             assert same_bits(keypoints._surface_change(b), reference_narf._surface_change(b))
         assert same_bits(keypoints._isotropy(tensor), reference_narf._isotropy(tensor))
+
+
+@pytest.mark.parametrize("radius", [1, 4, 9])
+def test_box_blur_is_scipys_uniform_filter_bit_for_bit_with_signed_zeros(radius) -> None:
+    from scipy.ndimage import uniform_filter
+
+    rng = np.random.default_rng(radius)
+    for shape in ((4, 64, 48), (3, 7, 5), (1, 3, 40), (2, 1, 1), (1, 13, 2)):
+        x = _awkward(rng, shape, 3.0)
+        x[~np.isfinite(x)] = -0.0
+        old = x
+        for _ in range(3):
+            old = uniform_filter(old, (1, radius | 1, radius | 1), mode="constant")
+        assert same_bits(keypoints._blur(x, radius), old), shape

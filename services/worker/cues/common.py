@@ -38,10 +38,26 @@ def position_world(ctx: ViewContext) -> np.ndarray:
     arithmetic (float64, cast at the end) on the view's memoised rays."""
     g = ctx.geometry
     d_cam = ray_dirs_cam64(ctx)
-    t = depth_m(ctx).astype(np.float64) / d_cam[..., 2]  # euclidean distance along the unit ray
-    p = g.center + (d_cam @ g.rotation) * t[..., None]  # R^T d per pixel
-    p[~hit(ctx)] = np.nan
-    return p.astype(np.float32)
+    return _position_world(depth_m(ctx), d_cam, d_cam @ g.rotation, np.asarray(g.center, dtype=np.float64), hit(ctx))
+
+
+@njit(cache=True, nogil=True)
+def _position_world(depth: np.ndarray, d_cam: np.ndarray, d_world: np.ndarray, center: np.ndarray,
+                    hit: np.ndarray) -> np.ndarray:
+    """centre + d_world * (depth / d_cam.z) per pixel in float64, cast to float32, NaN where nothing is hit: numpy's
+    operations one pixel at a time (the same roundings, ~5x less CPU than the whole-array temporaries); the matrix
+    product d_world = d_cam @ R stays numpy's."""
+    h, w = depth.shape
+    out = np.empty((h, w, 3), np.float32)
+    for y in range(h):
+        for x in range(w):
+            if not hit[y, x]:
+                out[y, x, 0] = out[y, x, 1] = out[y, x, 2] = np.float32(np.nan)
+                continue
+            t = np.float64(depth[y, x]) / d_cam[y, x, 2]  # euclidean distance along the unit ray
+            for k in range(3):
+                out[y, x, k] = np.float32(center[k] + d_world[y, x, k] * t)
+    return out
 
 
 def euclidean_m(ctx: ViewContext) -> np.ndarray:

@@ -1,6 +1,6 @@
 """Benchmark: the file codecs of a view's cues on real rooms (issue 20): time and bytes of every lossless EXR
-compression OpenEXR offers for the position cue, and of zlib settings for the PNG cues, decoded arrays checked
-identical to the values.
+compression OpenEXR offers for the position cue, and of deflaters (zlib settings, ISA-L) for the PNG cues, decoded
+arrays checked identical to the values.
 
 Views: the pass sets bench/derivations.py caches (run it first; the same planner views of ICL and the kitchen).
 Clock: process CPU seconds (time.process_time), one core, median over views x repeats.
@@ -31,7 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from services.core.domain.cues import default_cues, get_cue  # noqa: E402
 from services.core.domain.exr import decode_exr_rgb  # noqa: E402
 from services.worker.context import ViewContext  # noqa: E402
-from services.worker.cues.encoding import encode_png  # noqa: E402
+from services.worker.cues.encoding import deflate_png, encode_png, zlib_deflater  # noqa: E402
 from services.worker.cues.registry import cue_value  # noqa: E402
 from services.worker.passes import ViewPasses  # noqa: E402
 from tests.fixtures.raycast import decode_png  # noqa: E402
@@ -39,9 +39,12 @@ from tests.fixtures.raycast import decode_png  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results" / "derivations.json"
 EXR_CODECS = ("NO", "RLE", "ZIPS", "ZIP", "PIZ", "ZSTD", "HTJ2K32", "HTJ2K256")  # lossless ones; PXR24 is lossy
-PNG_SETTINGS = {"level 1, Z_RLE": (1, zlib.Z_RLE), "level 1, Z_FILTERED": (1, zlib.Z_FILTERED),
-                "level 1, default": (1, zlib.Z_DEFAULT_STRATEGY), "level 1, Z_HUFFMAN_ONLY": (1, zlib.Z_HUFFMAN_ONLY),
-                "level 6, default": (6, zlib.Z_DEFAULT_STRATEGY)}
+PNG_SETTINGS = {"level 1, Z_RLE": zlib_deflater(1, zlib.Z_RLE),
+                "level 1, Z_FILTERED": zlib_deflater(1, zlib.Z_FILTERED),
+                "level 1, default": zlib_deflater(1, zlib.Z_DEFAULT_STRATEGY),
+                "level 1, Z_HUFFMAN_ONLY": zlib_deflater(1, zlib.Z_HUFFMAN_ONLY),
+                "level 6, default": zlib_deflater(6, zlib.Z_DEFAULT_STRATEGY),
+                "isal level 1 (the encoder's)": deflate_png}  # the zlib ones: bench/encode_cost.py compares
 
 
 def _exr_bytes(arr: np.ndarray, codec: str, path: str) -> bytes:
@@ -79,14 +82,14 @@ def exr_figures(positions: list[np.ndarray], repeats: int) -> dict:
 
 
 def png_figures(values: list[dict[str, np.ndarray]], repeats: int) -> dict:
-    """Per zlib setting: CPU ms and MB of a view's PNG cues together, and whether every file decodes to its array."""
+    """Per deflater: CPU ms and MB of a view's PNG cues together, and whether every file decodes to its array."""
     out = {}
-    for name, (level, strategy) in PNG_SETTINGS.items():
+    for name, deflate in PNG_SETTINGS.items():
         per_view_s, per_view_b, same = [], [], True
         for v in values:
             t0 = time.process_time()
             for _ in range(repeats):
-                files = {c: encode_png(a, level, strategy) for c, a in v.items()}
+                files = {c: encode_png(a, deflate) for c, a in v.items()}
             per_view_s.append((time.process_time() - t0) / repeats)
             per_view_b.append(sum(len(f) for f in files.values()))
             same &= all(np.array_equal(decode_png(files[c]), a) for c, a in v.items())

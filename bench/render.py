@@ -48,7 +48,7 @@ from services.core.domain.jobspec import CueParams, JobSpec  # noqa: E402
 from services.core.domain.plan import CameraPose, PlannedView, PointOfInterest, SpacePlan  # noqa: E402
 from services.core.ingest.loading import load_space  # noqa: E402
 from services.scheduler.planning import make_plan, space_rng  # noqa: E402
-from services.worker.cues.encoding import encode_png  # noqa: E402
+from services.worker.cues.encoding import encode_png, zlib_deflater  # noqa: E402
 from services.worker.cues.registry import cue_value  # noqa: E402
 from services.worker.executor import make_context, produce  # noqa: E402
 from services.worker.passes import ViewGeometry  # noqa: E402
@@ -89,7 +89,7 @@ def png_settings(arrays: dict[str, np.ndarray], repeats: int = 3) -> dict[str, d
         times, size = [], 0
         for _ in range(repeats):
             t0 = time.perf_counter()
-            files = {c: encode_png(a, level, strategy) for c, a in arrays.items()}
+            files = {c: encode_png(a, zlib_deflater(level, strategy)) for c, a in arrays.items()}
             times.append(time.perf_counter() - t0)
         for c, data in files.items():
             with Image.open(io.BytesIO(data)) as im:

@@ -25,9 +25,10 @@ from services.core.domain.jobspec import JobSpec, cues_for_space
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.loading import load_space
 from services.core.ingest.registry import Source
+from services.core.settings import Settings
 from services.core.storage import LocalStore
-from services.embedded.job import STATE_DIR, drive, embedded_settings, find_spaces, prepare_job
-from services.embedded.pool import cpu_count
+from services.embedded.job import STATE_DIR, drive, embedded_settings, find_spaces, prepare_job, worker_pool
+from services.embedded.pool import LocalPool, cpu_count
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -83,6 +84,18 @@ def run(args: argparse.Namespace) -> int:
     state_db = out / STATE_DIR / "state.db"
 
     settings = embedded_settings(out, workers)
+    # The workers import (Python, numba kernels, Blender: ~2 CPU-s each) while this process validates and plans;
+    # held, they touch nothing until the job exists, and a refused input stops them at once.
+    pool = worker_pool(out, settings, workers)
+    pool.start(held=True)
+    try:
+        return _run(args, spec, sources, out, state_db, settings, workers, pool)
+    finally:
+        pool.stop()
+
+
+def _run(args: argparse.Namespace, spec: JobSpec, sources: list[Source], out: Path, state_db: Path,
+         settings: Settings, workers: int, pool: LocalPool) -> int:
     if state_db.exists():  # a folder of an earlier run: spaces it already holds need no second validation
         engine = make_engine(settings.database_url)
         migrate(settings.database_url)
@@ -107,7 +120,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"omnidata generate: resuming job {prepared.job_id} in {out} ({prepared.requeued} interrupted, "
                   f"{prepared.redo} missing, {prepared.retried} failed tasks to redo)", file=sys.stderr)
         status = drive(sessions, store, settings, out, prepared.job_id, workers, progress=not args.no_progress,
-                       loaded_spaces=prepared.loaded)
+                       loaded_spaces=prepared.loaded, pool=pool)
         if refused:
             print(f"omnidata generate: {len(sources)} space(s) done; refused scene(s):\n{refused}", file=sys.stderr)
         return status

@@ -82,7 +82,9 @@ class Settings(BaseSettings):
     )
     compact_after_s: float = Field(60.0, ge=0, description="a view is compacted once its last task finished this long ago")
     compact_pass_s: float = Field(0.25, gt=0, description="time one compaction pass of the scheduler may take, s")
-    worker_max_tasks: int = Field(500, ge=1, description="a worker process recycles after this many tasks")
+    worker_max_tasks: int = Field(
+        500, ge=1, description="a worker process recycles after running this many task messages (a view batch is one)"
+    )
     worker_batch_views: bool = Field(
         True, description="the worker that rendered a view claims the rest of its tasks, pending or queued, in one "
         "statement, derives them from the pass set it holds and records them in one statement (a derived cue's "

@@ -176,10 +176,20 @@ def tick_interval(tick_cpu_s: float) -> float:
     return min(TICK_MAX_S, max(TICK_S, tick_cpu_s / TICK_CPU_SHARE))
 
 
+def worker_pool(out: Path, settings: Settings, workers: int) -> LocalPool:
+    """The W local worker processes of a run on --out (not started), each with its share of the cores."""
+    threads = max(1, cpu_count() // workers)
+    conf = WorkerConfig(out=str(out), settings=settings.model_dump(mode="json", exclude=SECRET_SETTINGS),
+                        render_threads=threads, parent_pid=os.getpid())
+    return LocalPool(workers, conf)
+
+
 def drive(sessions: sessionmaker[Session], store: ObjectStore, settings: Settings, out: Path, job_id: int, workers: int, *,
-          progress: bool, loaded_spaces: dict[str, LoadedSpace] | None = None) -> int:
+          progress: bool, loaded_spaces: dict[str, LoadedSpace] | None = None, pool: LocalPool | None = None) -> int:
     """Run the scheduler loop with W local workers until the job is final; returns the exit status.
-    `loaded_spaces`: spaces this run has loaded already (Prepared.loaded), planned without a second parse."""
+    `loaded_spaces`: spaces this run has loaded already (Prepared.loaded), planned without a second parse.
+    `pool`: workers started held (LocalPool.start(held=True)) while the caller prepared the job; released here,
+    and stopped when the job is final."""
     with sessions() as s:
         job = s.get(Job, job_id)
         assert job is not None
@@ -190,16 +200,17 @@ def drive(sessions: sessionmaker[Session], store: ObjectStore, settings: Setting
             print_report(rep, out)
             return 0 if rep.ok else 1
 
-    threads = max(1, cpu_count() // workers)
-    conf = WorkerConfig(out=str(out), settings=settings.model_dump(mode="json", exclude=SECRET_SETTINGS),
-                        render_threads=threads, parent_pid=os.getpid())
-    pool = LocalPool(workers, conf)
+    if pool is None:
+        pool = worker_pool(out, settings, workers)
     transport = QueueTransport(pool.tasks)
     sched = Scheduler(sessions, store, transport, settings, scheduler_id=f"generate:{os.getpid()}",
                       cache_dir=out / STATE_DIR / "cache", loaded_spaces=loaded_spaces)
     bar = Progress(progress)
     try:
-        pool.start()
+        if pool.procs:
+            pool.release()
+        else:
+            pool.start()
         run_until_final(sessions, sched, pool, job_id, bar)
     except KeyboardInterrupt:
         bar.close()

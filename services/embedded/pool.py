@@ -3,6 +3,7 @@ fed task ids through a multiprocessing queue (the embedded mode's stand-in for R
 
 from __future__ import annotations
 
+import importlib
 import logging
 import multiprocessing as mp
 import os
@@ -47,8 +48,10 @@ class WorkerConfig:
 WorkerMessage = tuple[object, ...]
 
 
-def worker_main(conf: WorkerConfig, tasks: Queue[int | None], results: Queue[WorkerMessage], stop: Event) -> None:
-    """Body of a local worker process: take task ids from `tasks`, run them, report outcomes on `results`."""
+def worker_main(conf: WorkerConfig, tasks: Queue[int | None], results: Queue[WorkerMessage], stop: Event,
+                go: Event) -> None:
+    """Body of a local worker process: import what a task needs (Blender included), wait for `go`, then take task
+    ids from `tasks`, run them and report outcomes on `results`. Nothing touches the state or --out before `go`."""
     # Ctrl-C reaches the whole process group: the parent decides when workers stop. SIGTERM (sent when
     # the grace period is over) unwinds the stack, so an in-flight write removes its temporary file.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -61,10 +64,16 @@ def worker_main(conf: WorkerConfig, tasks: Queue[int | None], results: Queue[Wor
     from services.core.db.engine import make_engine, make_sessionmaker
     from services.core.settings import get_settings
     from services.core.storage import LocalStore
+    from services.worker.blender.threads import import_bpy
     from services.worker.claim import TransientError
     from services.worker.heartbeat import Heartbeat
     from services.worker.runner import TaskRunner
 
+    import_bpy(conf.render_threads)  # the first render's import, done while the parent validates and plans
+    importlib.import_module("services.worker.blender.scene")
+    while not go.wait(0.2):  # held (LocalPool.start(held=True)) until the job exists
+        if stop.is_set() or os.getppid() != conf.parent_pid:
+            return
     settings = get_settings(**{**conf.settings, "render_threads": conf.render_threads})
     engine = make_engine(settings.database_url)
     sessions = make_sessionmaker(engine)
@@ -121,22 +130,30 @@ class LocalPool:
         self.tasks = self.ctx.Queue()
         self.results = self.ctx.Queue()
         self.stop_event = self.ctx.Event()
+        self.go = self.ctx.Event()  # workers take tasks once it is set (start(held=False), or release())
         self.worker_ids: dict[int | None, str] = {}  # by pid (None only before a process starts)
         self.started = 0
         self.stopped = False
 
     def _spawn(self) -> None:
-        p = self.ctx.Process(target=worker_main, args=(self.conf, self.tasks, self.results, self.stop_event),
+        p = self.ctx.Process(target=worker_main, args=(self.conf, self.tasks, self.results, self.stop_event, self.go),
                              name=f"omnidata-worker-{self.started}", daemon=False)
         p.start()
         self.started += 1
         self.worker_ids[p.pid] = f"{socket.gethostname()}:{p.pid}"
         self.procs.append(p)
 
-    def start(self) -> None:
-        """Start the workers."""
+    def start(self, *, held: bool = False) -> None:
+        """Start the workers. Held workers only import (Python, numba kernels, Blender: ~2 CPU-s each) until
+        release(): started before the job is validated and planned, that start-up overlaps the parent's work."""
+        if not held:
+            self.go.set()
         for _ in range(self.size):
             self._spawn()
+
+    def release(self) -> None:
+        """Let held workers take tasks."""
+        self.go.set()
 
     def replace_dead(self) -> list[str]:
         """Start a new process for each one that exited; returns the worker ids of those that exited."""
@@ -166,6 +183,8 @@ class LocalPool:
             return
         self.stopped = True
         self.stop_event.set()
+        if not self.go.is_set():  # held workers have nothing to finish: no grace (a refused input exits at once)
+            grace = 0.0
         for _ in self.procs:
             try:
                 self.tasks.put_nowait(None)

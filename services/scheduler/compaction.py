@@ -11,13 +11,18 @@ of rows at a time, for at most `compact_pass_s` a pass. Deleted rows leave the i
 skips them; a chunk of a running job with no done row at all, or with finished views but none due yet, sends the
 cursor back to the start (dispatch runs oldest first, so the views after it have not run, or finished later). A
 terminal job whose whole walk compacted nothing is not walked again until its state changes.
+
+A pass that walked every job to its end (not cut short by `compact_pass_s`) knows when the next view can be due:
+the earliest finished-but-not-due view's last finish plus `compact_after_s`, and no sooner than `compact_after_s`
+from now for everything still running. Passes before then do nothing, so a job whose views are not due is not
+re-read every second (a 66-view `generate` read its 1,210 rows 40 times: 3% of its CPU).
 """
 
 from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
 from typing import Any
@@ -66,11 +71,17 @@ class Compactor:
     chunk_rows: int = CHUNK_ROWS
     _walks: dict[int, _Walk] = field(default_factory=dict)
     _settled: dict[int, str] = field(default_factory=dict)  # terminal job -> the state its last walk ended in
+    _idle_until: datetime | None = None  # no view can be due before this (set by a pass that walked everything)
+    _next_due: datetime | None = None  # earliest due time of a finished view seen by this pass
 
     def run_once(self, now: datetime | None = None) -> CompactionResult:
         """Compact finished views for at most `pass_s` seconds (at least one chunk when there is work)."""
         t0 = time.perf_counter()
         res = CompactionResult()
+        now = now or utcnow()
+        if self._idle_until is not None and now < self._idle_until:
+            return res
+        self._next_due = now + timedelta(seconds=self.after_s)  # a view finishing from now on
         with self.sessionmaker() as s:
             jobs = [(int(j), str(st)) for j, st in s.execute(
                 select(Job.id, Job.state).where(Job.state.in_(COMPACTED_STATES)).order_by(Job.id))]
@@ -92,6 +103,7 @@ class Compactor:
             if time.perf_counter() - t0 >= self.pass_s:
                 break
         res.seconds = time.perf_counter() - t0
+        self._idle_until = None if res.seconds >= self.pass_s else self._next_due
         return res
 
     def compact_chunk(self, job_id: int, state: str, now: datetime | None = None) -> tuple[int, int, bool]:
@@ -120,6 +132,7 @@ class Compactor:
                 walk.cursor = (-1, -1, -1)  # the rest of a running job has not run yet
                 return 0, 0, False
             ready = {k: v for k, v in views.items() if _finished(v, cutoff)}
+            self._note_due(v for k, v in views.items() if k not in ready)
             if not ready and not end and state == JobState.RUNNING and any(_finished(v, None) for v in views.values()):
                 # views finish about in walk order: after a chunk of views done but not due, the rest is not due
                 # either (walking it anew every pass cost ~8 us of CPU a row: 60 s of a fleet's views a second)
@@ -131,6 +144,16 @@ class Compactor:
         if end:
             self._restart(job_id, state, walk)
         return n_views, n_tasks, not end
+
+    def _note_due(self, waiting: Iterable[Sequence[Any]]) -> None:
+        """Lower `_next_due` to the due time of each finished view among `waiting` (not due yet)."""
+        for rows in waiting:
+            if _finished(rows, None):
+                last = max((r.finished_at for r in rows if r.finished_at is not None), default=None)
+                if last is not None:
+                    due = last + timedelta(seconds=self.after_s)
+                    if self._next_due is None or due < self._next_due:
+                        self._next_due = due
 
     def _restart(self, job_id: int, state: str, walk: _Walk) -> int:
         # a terminal job walked to its end without compacting anything has nothing left to compact

@@ -98,6 +98,7 @@ class TaskRunner:
         self.inputs = TaskInputs(sessionmaker, store, self.ledger.db,
                                  int(VIEW_CACHE_MEMORY_FRACTION * settings.worker_max_memory_mb * 2**20))
         self.space_cache = SpaceCache()
+        # Messages run (a view batch is one, like Celery's worker_max_tasks_per_child counts it): the recycle count.
         self.tasks_run = 0
         self.renders = 0  # pass sets rendered by this process (one per view, unless a cache was lost)
         self.batched: deque[int] = deque(maxlen=BATCHED_MEMORY)  # ids this process ran in view batches lately
@@ -137,7 +138,6 @@ class TaskRunner:
         """The rest of the claimed task's view (ledger.claim_view_rest), remembered, and leased by the beats."""
         rest, elsewhere = self.ledger.claim_view_rest(claimed, with_pending=with_pending)
         self.batched.extend(c.id for c in rest)
-        self.tasks_run += len(rest)
         if self.heartbeat is not None:
             self.heartbeat.set_current(claimed.id, [c.id for c in rest])
         return rest, elsewhere
@@ -209,7 +209,9 @@ class TaskRunner:
         return [failed.get(t.id) or recorded[t.id] for t in order]
 
     def should_recycle(self) -> bool:
-        """True when this process should exit after the task: RSS above worker_max_memory_mb or too many tasks."""
+        """True when this process should exit after the task: RSS above worker_max_memory_mb or worker_max_tasks
+        messages run. A view batch counts once: counted by its ~18 tasks, a 66-view `generate` restarted its worker
+        twice, each restart paying imports, the space load and Cycles' first render again (~3 CPU-s)."""
         return self.tasks_run >= self.settings.worker_max_tasks or should_recycle(self.settings.worker_max_memory_mb)
 
     def close(self) -> None:

@@ -226,10 +226,21 @@ def test_a_running_job_walk_stops_at_views_finished_but_not_due(any_sm, local_st
     # the chunk of views finished a moment ago ends the walk: points 3-9 are not read (40 rows, 6 a chunk)
     assert len(chunks) == 3
     assert comp._walks[job.id].cursor == (-1, -1, -1)
-    with any_sm() as s:  # once they are due, the next pass packs them all
-        s.execute(update(Task).where(Task.job_id == job.id).values(finished_at=old))
-        s.commit()
-    comp.run_once()
+    # Until the first of them is due (a minute after it finished), passes read nothing at all.
+    chunks.clear()
+    assert comp.run_once(now=datetime.now(UTC) + timedelta(seconds=30)).chunks == 0
+    assert chunks == []
+    comp.run_once(now=datetime.now(UTC) + timedelta(seconds=61))  # then the next pass packs them all
     with any_sm() as s:
         assert s.scalar(select(func.count()).select_from(ViewOutput)) == 20
         assert task_ids(s, job.id) == []
+
+
+def test_a_pass_cut_short_by_its_time_bound_does_not_idle(any_sm, local_store):
+    with any_sm() as s:
+        job = make_running_job(s, local_store, cues=["rgb"], n_points=10, views=2)
+        _run_all(s, job)
+    comp = Compactor(any_sm, after_s=0, pass_s=1e-9, chunk_rows=6)  # every pass stops after its first chunk
+    for _ in range(3):
+        assert comp.run_once().chunks == 1
+    assert comp._idle_until is None

@@ -136,3 +136,16 @@ def test_a_batch_whose_worker_dies_is_requeued_and_run_once_by_another(sm, banan
         assert (row.state, row.worker_id, row.attempts) == ("done", "w2", 2)
         assert hashlib.sha256(banana.store.get_bytes(row.output_key)).hexdigest() == row.sha256
     assert counters_match(sm, job_id)
+
+
+def test_a_view_batch_counts_once_towards_the_recycle_limit(sm, banana):
+    # worker_max_tasks counts messages, as Celery's worker_max_tasks_per_child does: a batch of a view's ~17
+    # tasks is one, so a worker is not restarted (imports, space load, first render again) every ~28 views.
+    job_id = make_job(sm, banana)
+    r = runner(sm, banana, "w1", worker_max_tasks=2)
+    render(sm, banana, job_id)
+    first = r.run(queue_view(sm, job_id, 0, 0)["rgb"])
+    assert len(first.all()) > 2 and all(o.status == "done" for o in first.all())
+    assert not first.recycle
+    second = r.run(queue(sm, job_id, "rgb", 0, 1))
+    assert second.status == "done" and second.recycle

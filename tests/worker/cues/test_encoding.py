@@ -5,6 +5,7 @@ from __future__ import annotations
 import io
 import json
 import tempfile
+import zlib
 
 import numpy as np
 import OpenEXR
@@ -14,10 +15,15 @@ from pydantic import ValidationError
 
 from services.core.domain.cues import CATALOG, OUTPUT_CUES, UnknownCueError
 from services.core.domain.jobspec import CueParams
+from services.datasets.decode import read_png
+from services.worker.context import ViewContext
 from services.worker.cues import REGISTRY, encode, get_impl
-from services.worker.cues.encoding import decode_exr_rgb, encode_png
+from services.worker.cues.encoding import decode_exr_rgb, encode_exr_rgb, encode_png, zlib_deflater
+from services.worker.cues.registry import cue_value
 from services.worker.cues.semantic import pack_panoptic, unpack_panoptic
-from tests.fixtures.png import png_header
+from tests.fixtures.exr import openexr_file_bytes
+from tests.fixtures.png import png_chunks, png_header
+from tests.fixtures.raycast import make_room, raycast_passes, room_view
 
 
 def test_every_catalog_cue_is_registered() -> None:
@@ -162,3 +168,78 @@ def test_png_refuses_unsupported_layouts() -> None:
         encode_png(np.zeros((4, 4, 3), dtype=np.uint16))
     with pytest.raises(ValueError, match="H x W x 3"):
         encode_png(np.zeros((4, 4, 4), dtype=np.uint8))
+
+
+def awkward_floats(shape: tuple[int, int, int]) -> np.ndarray:
+    """Random floats with the bit patterns a copy could alter: NaNs (quiet, signalling, with payloads, negative),
+    infinities, -0.0, subnormals and the extremes."""
+    rng = np.random.default_rng(sum(shape))
+    a = rng.normal(size=shape).astype(np.float32)
+    specials = np.array([0x7FC00000, 0x7F800001, 0xFFC12345, 0x7FA00000, 0x7F800000, 0xFF800000, 0x80000000,
+                         0x00000001, 0x807FFFFF, 0x7F7FFFFF, 0xFF7FFFFF], dtype=np.uint32).view(np.float32)
+    flat = a.reshape(-1)
+    flat[: min(flat.size, specials.size)] = specials[: flat.size]
+    return a
+
+
+@pytest.mark.parametrize("shape", [(1, 1, 3), (2, 3, 3), (7, 5, 3), (64, 33, 3), (3, 200, 3)])
+def test_uncompressed_exr_is_the_file_openexr_writes_byte_for_byte(shape) -> None:
+    pos = awkward_floats(shape)
+    data = encode_exr_rgb(pos)
+    assert data == openexr_file_bytes(pos)  # so every reader of OpenEXR's files opens these
+    back = decode_exr_rgb(data)
+    assert back.dtype == np.float32 and np.array_equal(back.view(np.uint32), pos.view(np.uint32))
+
+
+def test_exr_refuses_what_is_not_float32_rgb() -> None:
+    with pytest.raises(ValueError, match="H x W x 3 float32"):
+        encode_exr_rgb(np.zeros((4, 4, 3), dtype=np.float64))
+    with pytest.raises(ValueError, match="H x W x 3 float32"):
+        encode_exr_rgb(np.zeros((4, 4, 4), dtype=np.float32))
+
+
+def test_zip_exr_is_still_openexrs_file() -> None:
+    pos = awkward_floats((16, 9, 3))
+    assert encode_exr_rgb(pos, OpenEXR.ZIP_COMPRESSION) == openexr_file_bytes(pos, OpenEXR.ZIP_COMPRESSION)
+
+
+@pytest.fixture(scope="module")
+def room_values() -> dict[str, np.ndarray]:
+    """Every PNG cue's array and the position of a ray-cast view of the synthetic room (128 px)."""
+    mesh, cls, inst = make_room()
+    g = room_view(128)
+    ctx = ViewContext(g, CueParams(), passes=raycast_passes(mesh, g, face_class=cls, face_instance=inst))
+    cues = [c for c in REGISTRY if (CATALOG[c].ext == "png" or c == "position")
+            and c not in ("principal_curvature", "mask_photo")]  # (no mesh curvature, no photos here)
+    return {c: cue_value(ctx, c) for c in cues}
+
+
+def test_png_cues_decode_to_the_same_arrays_as_the_zlib_encoder_before(room_values) -> None:
+    """ISA-L's deflate against zlib level 1 + Z_RLE (the encoder before): other bytes, the same arrays, read by
+    Pillow and by the dataset's explicit 16-bit decoder; every chunk's CRC right."""
+    before = zlib_deflater(1, zlib.Z_RLE)
+    pngs = {c: a for c, a in room_values.items() if CATALOG[c].ext == "png"}
+    assert {"depth_zbuffer", "rgb", "segment_panoptic", "mask_valid"} <= set(pngs)
+    for cue, a in pngs.items():
+        new, old = encode(cue, a), encode_png(a, before)
+        assert [k for k, _ in png_chunks(new)] == [b"IHDR", b"IDAT", b"IEND"]
+        assert png_header(new) == png_header(old)
+        assert zlib.decompress(png_chunks(new)[1][1]) == zlib.decompress(png_chunks(old)[1][1]), cue
+        with Image.open(io.BytesIO(new)) as img:
+            img.verify()
+        np.testing.assert_array_equal(read_png(new), a, err_msg=cue)
+        np.testing.assert_array_equal(np.array(Image.open(io.BytesIO(new))), np.array(Image.open(io.BytesIO(old))))
+
+
+def test_position_of_a_room_view_is_openexrs_file(room_values) -> None:
+    pos = room_values["position"]  # (every pixel sees the room here; NaNs: the byte-for-byte test above)
+    data = encode("position", pos)
+    assert data == openexr_file_bytes(pos)
+    with tempfile.NamedTemporaryFile(suffix=".exr") as f:
+        f.write(data)
+        f.flush()
+        with OpenEXR.File(f.name, separate_channels=True) as exr:
+            ch = exr.channels()
+            assert sorted(ch) == ["B", "G", "R"]
+            for i, name in enumerate("RGB"):
+                assert np.array_equal(ch[name].pixels.view(np.uint32), pos[..., i].view(np.uint32))

@@ -9,6 +9,7 @@ reference_keypoints2d.py and reference_keypoints3d.py.
 
 from __future__ import annotations
 
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -19,9 +20,11 @@ from services.core.domain.cues import default_cues
 from services.core.domain.exr import decode_exr_rgb
 from services.core.domain.jobspec import CueParams, JobSpec
 from services.core.ingest.loading import load_space
+from services.datasets.decode import read_png
 from services.scheduler.planning import make_plan, space_rng
 from services.worker.context import ViewContext
 from services.worker.cues.common import grey, to_uint16_scaled, valid
+from services.worker.cues.encoding import encode_png, zlib_deflater
 from services.worker.cues.felzenszwalb import Felzenszwalb
 from services.worker.cues.keypoints import keypoints2d, narf_interest
 from services.worker.cues.registry import cue_value
@@ -30,6 +33,7 @@ from services.worker.executor import make_context, produce
 from services.worker.passes import ViewGeometry, ViewPasses
 from services.worker.space_cache import SpaceContext
 from tests.fixtures import reference_keypoints2d, reference_keypoints3d, reference_segmentation
+from tests.fixtures.exr import openexr_file_bytes
 from tests.fixtures.raycast import decode_png, object_view
 
 pytestmark = pytest.mark.bpy  # the views are Cycles renders
@@ -157,19 +161,30 @@ def test_keypoints2d_matches_the_previous_implementation_on_colour_views(room_pa
 
 
 def test_every_png_cue_of_a_room_view_decodes_to_its_array(room_passes):
-    """The PNG encoder's zlib level trades size for speed only: files decode to the exact arrays."""
-    ctx = ViewContext(None, CueParams(), passes=room_passes[0])
+    """The PNG deflater trades size for speed only: ISA-L's files decode to the exact arrays, as the files of zlib
+    level 1 + Z_RLE (the encoder before) do, 16-bit ones read explicitly as uint16."""
+    before = zlib_deflater(1, zlib.Z_RLE)
     pngs = [c for c in default_cues(False) if c not in ("fragments", "position", "point_info", "nonfixated",
                                                         "vanishing_points")]
-    for cue in pngs:
-        assert np.array_equal(decode_png(produce(cue, ctx)), cue_value(ctx, cue)), cue
+    for p in room_passes:
+        ctx = ViewContext(None, CueParams(), passes=p)
+        for cue in pngs:
+            value, data = cue_value(ctx, cue), produce(cue, ctx)
+            assert np.array_equal(read_png(data), value), cue
+            assert np.array_equal(decode_png(data), decode_png(encode_png(value, before))), cue
 
 
 def test_position_exr_of_a_room_view_decodes_to_its_array_bit_for_bit(room_passes):
-    ctx = ViewContext(None, CueParams(), passes=room_passes[0])
-    position = cue_value(ctx, "position")
-    back = decode_exr_rgb(produce("position", ctx))
-    assert back.dtype == np.float32 and np.array_equal(back.view(np.uint32), position.view(np.uint32))
+    """The position (compiled loop) is the pass set's numpy arithmetic bit for bit, and its file the bytes OpenEXR's
+    writer makes of it (written here without OpenEXR's temp file)."""
+    for p in room_passes:
+        ctx = ViewContext(None, CueParams(), passes=p)
+        position = cue_value(ctx, "position")
+        assert np.array_equal(position.view(np.uint32), p.position_world().view(np.uint32))
+        data = produce("position", ctx)
+        assert data == openexr_file_bytes(position)
+        back = decode_exr_rgb(data)
+        assert back.dtype == np.float32 and np.array_equal(back.view(np.uint32), position.view(np.uint32))
 
 
 @pytest.mark.parametrize("resolution,fov", [(1, 1.0), (7, 0.3), (64, 2.1), (192, 1.35)])

@@ -82,9 +82,24 @@ def mask_valid(ctx: ViewContext) -> np.ndarray:
 
 def reshading_intensity(ctx: ViewContext) -> np.ndarray:
     """float32 H x W: albedo * max(0, n.l), l = unit vector from the surface to the camera (no falloff)."""
-    n_cv = normal_cam(ctx) * np.array([1.0, -1.0, -1.0], dtype=np.float32)  # back to OpenCV axes
-    cos = -np.einsum("hwc,hwc->hw", n_cv, ray_dirs_cam(ctx))  # l = -ray direction
-    return (ctx.params.reshading_albedo * np.maximum(cos, 0.0)).astype(np.float32)
+    return _reshading_intensity(normal_cam(ctx), ray_dirs_cam(ctx), np.float32(ctx.params.reshading_albedo))
+
+
+@njit(cache=True, nogil=True)
+def _reshading_intensity(n: np.ndarray, d: np.ndarray, albedo: np.float32) -> np.ndarray:
+    """albedo * maximum(-einsum(n (1, -1, -1), d), 0) per pixel: the float32 operations of the numpy expression it
+    replaced, in its order (einsum adds left to right from 0, then the output's 0; numpy's maximum gives its
+    second operand on ties, so -0 becomes +0, and keeps NaN), in one pass."""
+    h, w, _ = n.shape
+    out = np.empty((h, w), np.float32)
+    zero, one, minus = np.float32(0.0), np.float32(1.0), np.float32(-1.0)
+    for y in range(h):
+        for x in range(w):
+            dot = ((zero + (n[y, x, 0] * one) * d[y, x, 0]) + (n[y, x, 1] * minus) * d[y, x, 1]) \
+                + (n[y, x, 2] * minus) * d[y, x, 2]
+            cos = -(dot + zero)
+            out[y, x] = albedo * (cos if cos > zero or np.isnan(cos) else zero)
+    return out
 
 
 @register("reshading", passes={"normal"})
@@ -96,8 +111,22 @@ def reshading(ctx: ViewContext) -> np.ndarray:
     not fall off with distance (a 1/d^2 falloff would make the image depend on the scene's scale and need an
     exposure knob; shading is what this cue is about).
     """
-    i = reshading_intensity(ctx)
-    return np.where(hit(ctx), np.rint(255.0 * i), 0).astype(np.uint8)
+    return _reshading_pixels(reshading_intensity(ctx), hit(ctx))
+
+
+@njit(cache=True, nogil=True)
+def _reshading_pixels(i: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """rint(255 i) as uint8 where seen, 0 elsewhere (i in [0, 1]: albedo <= 1; NaN, which numpy's cast makes 0,
+    too): the numpy expression it replaced, in one pass."""
+    h, w = i.shape
+    out = np.zeros((h, w), np.uint8)
+    full = np.float32(255.0)
+    for y in range(h):
+        for x in range(w):
+            v = np.rint(full * i[y, x])
+            if seen[y, x] and not np.isnan(v):
+                out[y, x] = np.uint8(v)
+    return out
 
 
 @register("principal_curvature", passes={"curvature"})

@@ -7,6 +7,7 @@ magnitude (a unit step gives 4): for texture edges of a [0, 1] grey image, for o
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 from services.worker.context import ViewContext
 from services.worker.cues.common import depth_m, gaussian_blur, grey, sobel_magnitude, to_uint16_scaled, valid
@@ -31,14 +32,24 @@ def occlusion_response(ctx: ViewContext) -> np.ndarray:
 
     def compute() -> np.ndarray:
         v = valid(ctx)
-        d = np.where(v, depth_m(ctx), ctx.params.max_depth_m).astype(np.float32)
-        s = np.sqrt(d)
+        s = _sqrt_depth(v, depth_m(ctx), np.float32(ctx.params.max_depth_m))
         sig = ctx.params.edge_occlusion_sigma
         if sig > 0:
             s = gaussian_blur(s, sig)
-        return np.where(v, sobel_magnitude(s), 0.0).astype(np.float32)
+        return sobel_magnitude(s, mask=v)
 
     return ctx.memo("occlusion_response", compute)
+
+
+@njit(cache=True, nogil=True)
+def _sqrt_depth(v: np.ndarray, depth: np.ndarray, far: np.float32) -> np.ndarray:
+    """float32 sqrt of the depth where valid, of `far` elsewhere (numpy's where, cast and sqrt in one pass)."""
+    h, w = v.shape
+    out = np.empty((h, w), np.float32)
+    for y in range(h):
+        for x in range(w):
+            out[y, x] = np.sqrt(depth[y, x] if v[y, x] else far)
+    return out
 
 
 @register("edge_occlusion")

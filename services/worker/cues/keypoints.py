@@ -38,7 +38,18 @@ from services.worker.cues.common import (
     to_uint16_scaled,
     valid,
 )
-from services.worker.cues.narf_kernels import blend, range_normals, scale_split, tensor_planes
+from services.worker.cues.narf_kernels import (
+    blend,
+    double,
+    half_means,
+    interest,
+    isotropy,
+    mark_borders,
+    range_normals,
+    scale_split,
+    surface_change,
+    tensor_planes,
+)
 from services.worker.cues.registry import register
 
 KP3D_SCALES_PX = (1, 2, 4, 8, 16, 32, 64)
@@ -65,20 +76,32 @@ def doh_response(g: np.ndarray, sigmas: tuple[float, ...]) -> np.ndarray:
 @njit(cache=True, nogil=True)
 def _max_doh(L: np.ndarray, s4: np.float32, out: np.ndarray) -> None:
     """out = max(out, s4 * (lxx lyy - lxy^2)) with central differences of L (edges clamped), in float32 and in
-    the order numpy's in-place version took (so the values are the same bit for bit), fused in one pass."""
+    the order numpy's in-place version took (so the values are the same bit for bit), fused in one pass: row by row
+    over row slices, the clamped first and last columns apart (the unclamped inner loop vectorises)."""
     h, w = L.shape
-    two, sixteenth = np.float32(2.0), np.float32(0.0625)
     for y in range(h):
-        ym, yp = max(y - 1, 0), min(y + 1, h - 1)
-        for x in range(w):
+        up, row, down, o = L[max(y - 1, 0)], L[y], L[min(y + 1, h - 1)], out[y]
+        if w > 2:
+            _doh_row(row[1:w - 1], row[0:w - 2], row[2:w], up[1:w - 1], up[0:w - 2], up[2:w], down[1:w - 1],
+                     down[0:w - 2], down[2:w], s4, o[1:w - 1])
+        for x in (0, w - 1):
             xm, xp = max(x - 1, 0), min(x + 1, w - 1)
-            c = L[y, x]
-            lxx = (L[y, xp] + L[y, xm]) - two * c
-            lyy = (L[yp, x] + L[ym, x]) - two * c
-            lxy = ((L[yp, xp] - L[yp, xm]) - L[ym, xp]) + L[ym, xm]  # 4 x the mixed derivative
-            v = (lxx * lyy - (lxy * lxy) * sixteenth) * s4
-            if v > out[y, x]:
-                out[y, x] = v
+            _doh_row(row[x:x + 1], row[xm:xm + 1], row[xp:xp + 1], up[x:x + 1], up[xm:xm + 1], up[xp:xp + 1],
+                     down[x:x + 1], down[xm:xm + 1], down[xp:xp + 1], s4, o[x:x + 1])
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _doh_row(c: np.ndarray, left: np.ndarray, right: np.ndarray, up: np.ndarray, up_left: np.ndarray,
+             up_right: np.ndarray, down: np.ndarray, down_left: np.ndarray, down_right: np.ndarray, s4: np.float32,
+             out: np.ndarray) -> None:
+    two, sixteenth = np.float32(2.0), np.float32(0.0625)
+    for x in range(len(c)):
+        lxx = (right[x] + left[x]) - two * c[x]
+        lyy = (down[x] + up[x]) - two * c[x]
+        lxy = ((down_right[x] - down_left[x]) - up_right[x]) + up_left[x]  # 4 x the mixed derivative
+        v = (lxx * lyy - (lxy * lxy) * sixteenth) * s4
+        if v > out[x]:
+            out[x] = v
 
 
 @register("keypoints2d")
@@ -134,52 +157,57 @@ def _box_rows(img: np.ndarray, size: int) -> np.ndarray:
 
 @njit(cache=True, nogil=True)
 def _box_cols(img: np.ndarray, size: int) -> np.ndarray:
-    """Mean over `size` columns centred on each pixel, zeros outside (scipy's running sum along a line)."""
+    """Mean over `size` columns centred on each pixel, zeros outside (scipy's running sum along a line). Four rows
+    at a time: their running sums are independent chains the CPU overlaps, and the divisions run afterwards as a
+    vectorised loop over the row (~1.7x faster than one row at a time)."""
     h, w = img.shape
     r = size // 2
     out = np.empty((h, w), np.float32)
-    line = np.zeros(w + size, np.float64)
-    for y in range(h):
-        for x in range(w):
-            line[x + r] = img[y, x]
-        total = 0.0
+    line = np.zeros((4, w + size), np.float64)  # rows with `r` zeros before and `size - r` after
+    sums = np.empty((4, w), np.float64)
+    fsize = np.float64(size)
+    for y0 in range(0, h, 4):
+        nb = min(4, h - y0)
+        for b in range(4):
+            dst = line[b, r:r + w]
+            if b < nb:
+                row = img[y0 + b]
+                for x in range(w):
+                    dst[x] = row[x]
+            else:
+                dst[:] = 0.0
+        l0, l1, l2, l3 = line[0], line[1], line[2], line[3]
+        t0 = t1 = t2 = t3 = 0.0
         for k in range(size):
-            total += line[k]
-        out[y, 0] = np.float32(total / size)
-        for x in range(1, w):
-            total += line[x + size - 1] - line[x - 1]
-            out[y, x] = np.float32(total / size)
+            t0 += l0[k]
+            t1 += l1[k]
+            t2 += l2[k]
+            t3 += l3[k]
+        s0, s1, s2, s3 = sums[0], sums[1], sums[2], sums[3]
+        s0[0], s1[0], s2[0], s3[0] = t0, t1, t2, t3
+        n0, n1, n2, n3 = l0[size - 1:], l1[size - 1:], l2[size - 1:], l3[size - 1:]
+        for x in range(1, w):  # sum += new - old
+            t0 += n0[x] - l0[x - 1]
+            t1 += n1[x] - l1[x - 1]
+            t2 += n2[x] - l2[x - 1]
+            t3 += n3[x] - l3[x - 1]
+            s0[x], s1[x], s2[x], s3[x] = t0, t1, t2, t3
+        for b in range(nb):
+            sb, ob = sums[b], out[y0 + b]
+            for x in range(w):
+                ob[x] = np.float32(sb[x] / fsize)
     return out
 
 
 def _half(x: np.ndarray) -> np.ndarray:
-    """2 x 2 block means of a C x H x W array (edge-padded to even size)."""
-    h, w = x.shape[1:]
-    if h % 2 or w % 2:
-        x = np.pad(x, ((0, 0), (0, h % 2), (0, w % 2)), mode="edge")
-    return (x[:, 0::2, 0::2] + x[:, 1::2, 0::2] + x[:, 0::2, 1::2] + x[:, 1::2, 1::2]) * 0.25
+    """2 x 2 block means of a C x H x W float32 array (edge-padded to even size), one compiled pass."""
+    return half_means(np.ascontiguousarray(x, dtype=np.float32))
 
 
 def _double(x: np.ndarray) -> np.ndarray:
     """Bilinear 2x upsampling at pixel centres (weights 3/4, 1/4; edges clamped) of an H x W float32 array: rows
-    first, then columns, each output 0.75 * x + 0.25 * neighbour in float32 (a compiled loop; numpy's version
-    spent most of its time building index and stacked temporaries)."""
-    return _double_axis(_double_axis(np.ascontiguousarray(x, dtype=np.float32)).T).T
-
-
-@njit(cache=True, nogil=True)
-def _double_axis(x: np.ndarray) -> np.ndarray:
-    """Rows of x doubled: out[2i] = 0.75 x[i] + 0.25 x[i-1], out[2i+1] = 0.75 x[i] + 0.25 x[i+1] (clamped)."""
-    n, m = x.shape
-    near, far = np.float32(0.75), np.float32(0.25)
-    out = np.empty((2 * n, m), np.float32)
-    for i in range(n):
-        prev, nxt = max(i - 1, 0), min(i + 1, n - 1)
-        for j in range(m):
-            c = near * x[i, j]
-            out[2 * i, j] = c + far * x[prev, j]
-            out[2 * i + 1, j] = c + far * x[nxt, j]
-    return out
+    first, then columns, each output 0.75 * x + 0.25 * neighbour in float32 (one compiled pass, C order)."""
+    return double(np.ascontiguousarray(x, dtype=np.float32))
 
 
 class _Pyramid:
@@ -217,18 +245,12 @@ class _Pyramid:
 
 def _surface_change(b: np.ndarray) -> np.ndarray:
     """Spread of the mean normal, from b = the blurred [w, n * w] (0 where no surface was averaged)."""
-    cnt, m = b[0], b[1:] / np.maximum(b[:1], 1e-6)
-    c = np.sqrt(np.clip(1.0 - np.einsum("chw,chw->hw", m, m), 0.0, 1.0))
-    return np.where(cnt > 1e-6, c, 0.0).astype(np.float32)
+    return surface_change(np.ascontiguousarray(b, dtype=np.float32))
 
 
 def _isotropy(b: np.ndarray) -> np.ndarray:
     """2 x the smaller eigenvalue over the trace of b = the blurred structure tensor [jxx, jyy, jxy]."""
-    a, bb, c = b[0], b[1], b[2]
-    tr = a + bb
-    disc = np.sqrt(np.maximum((a - bb) ** 2 / 4 + c * c, 0.0))
-    lo, hi = tr / 2 - disc, tr / 2 + disc
-    return np.where(tr > 1e-6, 2 * np.maximum(lo, 0.0) / np.maximum(lo + hi, 1e-12), 0.0).astype(np.float32)
+    return isotropy(np.ascontiguousarray(b, dtype=np.float32))
 
 
 def narf_interest(ctx: ViewContext) -> np.ndarray:
@@ -252,15 +274,13 @@ def narf_interest(ctx: ViewContext) -> np.ndarray:
     change = np.zeros(v.shape, dtype=np.float32)
     for ki in used:
         blend(change, k0, t, int(ki), top, wn.blurred(KP3D_SCALES_PX[ki], _surface_change))
-    change[border] = 1.0
-    change[~v] = 0.0
+    mark_borders(change, border, v)
     gx, gy = sobel_xy(change)
     tensor = _Pyramid(tensor_planes(gx, gy))
     iso = np.zeros(v.shape, dtype=np.float32)
     for ki in used:
         blend(iso, k0, t, int(ki), top, tensor.blurred(KP3D_SCALES_PX[ki], _isotropy))
-    iso[~v] = 0.0
-    return np.clip(change * iso, 0.0, 1.0).astype(np.float32)
+    return interest(change, iso, v)
 
 
 @register("keypoints3d")

@@ -12,16 +12,17 @@ from numba import njit
 
 @njit(cache=True, nogil=True)
 def _range(v: np.ndarray, z: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Euclidean range (inf off v) and camera-space points d * range (d * 0 off v: signed zeros as numpy's)."""
+    """Euclidean range (inf off v) and camera-space points d * range as 3 x H x W planes (d * 0 off v: signed
+    zeros as numpy's)."""
     h, w = v.shape
     rng = np.empty((h, w), np.float32)
-    P = np.empty((h, w, 3), np.float32)
+    P = np.empty((3, h, w), np.float32)
     for y in range(h):
         for x in range(w):
             r = z[y, x] / d[y, x, 2] if v[y, x] else np.float32(0.0)
             rng[y, x] = r if v[y, x] else np.float32(np.inf)
             for c in range(3):
-                P[y, x, c] = d[y, x, c] * r
+                P[c, y, x] = d[y, x, c] * r
     return rng, P
 
 
@@ -45,54 +46,69 @@ def _borders(v: np.ndarray, rng: np.ndarray, f: np.float32, footprints: np.float
 
 
 @njit(cache=True, nogil=True)
-def _differences(P: np.ndarray, y: int, x: int) -> tuple:
-    """du, dv = P[i + 1] - P[i - 1] along x and y at (y, x), zeros outside (keypoints' central difference)."""
-    h, w = P.shape[:2]
-    if x == 0:
-        du0, du1, du2 = P[y, 1, 0], P[y, 1, 1], P[y, 1, 2]
-    elif x == w - 1:
-        du0, du1, du2 = -P[y, x - 1, 0], -P[y, x - 1, 1], -P[y, x - 1, 2]
-    else:
-        du0, du1, du2 = P[y, x + 1, 0] - P[y, x - 1, 0], P[y, x + 1, 1] - P[y, x - 1, 1], P[y, x + 1, 2] - P[y, x - 1, 2]
-    if y == 0:
-        dv0, dv1, dv2 = P[1, x, 0], P[1, x, 1], P[1, x, 2]
-    elif y == h - 1:
-        dv0, dv1, dv2 = -P[y - 1, x, 0], -P[y - 1, x, 1], -P[y - 1, x, 2]
-    else:
-        dv0, dv1, dv2 = P[y + 1, x, 0] - P[y - 1, x, 0], P[y + 1, x, 1] - P[y - 1, x, 1], P[y + 1, x, 2] - P[y - 1, x, 2]
-    return du0, du1, du2, dv0, dv1, dv2
-
-
-@njit(cache=True, nogil=True)
 def _normal_planes(v: np.ndarray, border: np.ndarray, P: np.ndarray, d: np.ndarray) -> np.ndarray:
     """4 x H x W float32 [w, n * w]: w = 1 where the pixel and its 4 neighbours are smooth surface, n the unit
-    normal du x dv of the central differences, turned to face the camera."""
+    normal du x dv of the central differences (P[i + 1] - P[i - 1], zeros outside), turned to face the camera.
+    Row by row: the differences into row buffers, then one branch-free loop that LLVM vectorises."""
     h, wd = v.shape
     smooth = np.zeros((h + 2, wd + 2), np.bool_)  # padded with False: no neighbour outside the image
     for y in range(h):
         for x in range(wd):
             smooth[y + 1, x + 1] = v[y, x] and not border[y, x]
     out = np.empty((4, h, wd), np.float32)
+    du = np.empty((3, wd), np.float32)
+    dv = np.empty((3, wd), np.float32)
+    weight = np.empty(wd, np.float32)
     eps, zero, one = np.float32(1e-12), np.float32(0.0), np.float32(1.0)
     for y in range(h):
+        for c in range(3):
+            _differences(P[c], y, du[c], dv[c])
+        mid, below, above = smooth[y + 1], smooth[y + 2], smooth[y]
         for x in range(wd):
-            ok = smooth[y + 1, x + 1] and smooth[y + 1, x + 2] and smooth[y + 1, x] and smooth[y + 2, x + 1] \
-                and smooth[y, x + 1]
-            du0, du1, du2, dv0, dv1, dv2 = _differences(P, y, x)
-            n0 = du1 * dv2 - du2 * dv1
-            n1 = du2 * dv0 - du0 * dv2
-            n2 = du0 * dv1 - du1 * dv0
+            weight[x] = one if mid[x + 1] and mid[x + 2] and mid[x] and below[x + 1] and above[x + 1] else zero
+        du0, du1, du2, dv0, dv1, dv2 = du[0], du[1], du[2], dv[0], dv[1], dv[2]
+        o0, o1, o2, o3, dy = out[0, y], out[1, y], out[2, y], out[3, y], d[y]
+        for x in range(wd):
+            n0 = du1[x] * dv2[x] - du2[x] * dv1[x]
+            n1 = du2[x] * dv0[x] - du0[x] * dv2[x]
+            n2 = du0[x] * dv1[x] - du1[x] * dv0[x]
             norm = np.sqrt((n0 * n0 + n1 * n1) + n2 * n2)
             den = norm if norm > eps else eps
             n0, n1, n2 = n0 / den, n1 / den, n2 / den
-            if (n0 * d[y, x, 0] + n1 * d[y, x, 1]) + n2 * d[y, x, 2] > zero:
-                n0, n1, n2 = -n0, -n1, -n2
-            wgt = one if ok else zero
-            out[0, y, x] = wgt
-            out[1, y, x] = n0 * wgt
-            out[2, y, x] = n1 * wgt
-            out[3, y, x] = n2 * wgt
+            flip = (n0 * dy[x, 0] + n1 * dy[x, 1]) + n2 * dy[x, 2] > zero
+            n0 = -n0 if flip else n0
+            n1 = -n1 if flip else n1
+            n2 = -n2 if flip else n2
+            wgt = weight[x]
+            o0[x] = wgt
+            o1[x] = n0 * wgt
+            o2[x] = n1 * wgt
+            o3[x] = n2 * wgt
     return out
+
+
+@njit(cache=True, nogil=True)
+def _differences(plane: np.ndarray, y: int, du: np.ndarray, dv: np.ndarray) -> None:
+    """Row y of plane[i + 1] - plane[i - 1] along x (du) and y (dv), zeros outside the image."""
+    h, w = plane.shape
+    row = plane[y]
+    du[0] = row[1]
+    du[w - 1] = -row[w - 2]
+    left, right, inner = row[0:w - 2], row[2:w], du[1:w - 1]
+    for x in range(w - 2):
+        inner[x] = right[x] - left[x]
+    if y == 0:
+        nxt = plane[1]
+        for x in range(w):
+            dv[x] = nxt[x]
+    elif y == h - 1:
+        prv = plane[y - 1]
+        for x in range(w):
+            dv[x] = -prv[x]
+    else:
+        nxt, prv = plane[y + 1], plane[y - 1]
+        for x in range(w):
+            dv[x] = nxt[x] - prv[x]
 
 
 def range_normals(v: np.ndarray, z: np.ndarray, d: np.ndarray, f: float,
@@ -146,4 +162,116 @@ def tensor_planes(gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
             out[0, y, x] = gx[y, x] * gx[y, x]
             out[1, y, x] = gy[y, x] * gy[y, x]
             out[2, y, x] = gx[y, x] * gy[y, x]
+    return out
+
+
+@njit(cache=True, nogil=True)
+def half_means(x: np.ndarray) -> np.ndarray:
+    """2 x 2 block means of a C x H x W float32 array, edge-padded to even size: ((x00 + x10) + x01 + x11) * 0.25
+    in float32, the order numpy's sum of the four strided slices took."""
+    c, h, w = x.shape
+    hh, hw = (h + 1) // 2, (w + 1) // 2
+    out = np.empty((c, hh, hw), np.float32)
+    quarter = np.float32(0.25)
+    for p in range(c):
+        for i in range(hh):
+            top, bottom, o = x[p, 2 * i], x[p, min(2 * i + 1, h - 1)], out[p, i]
+            for j in range(w // 2):
+                o[j] = (((top[2 * j] + bottom[2 * j]) + top[2 * j + 1]) + bottom[2 * j + 1]) * quarter
+            if w % 2:  # the last column edge-padded
+                o[hw - 1] = (((top[w - 1] + bottom[w - 1]) + top[w - 1]) + bottom[w - 1]) * quarter
+    return out
+
+
+@njit(cache=True, nogil=True)
+def double(x: np.ndarray) -> np.ndarray:
+    """Bilinear 2x upsampling at pixel centres of an H x W float32 array, C order: rows first (row 2i + a of
+    0.75 x[i] + 0.25 x[i -+ 1], clamped), then columns alike, each output c + 0.25 neighbour with c = 0.75 x in
+    float32 (keypoints' two transposed passes, bit for bit, without the transposes)."""
+    n, m = x.shape
+    near, far = np.float32(0.75), np.float32(0.25)
+    out = np.empty((2 * n, 2 * m), np.float32)
+    row = np.empty(m, np.float32)
+    for i in range(n):
+        for a in range(2):
+            src, nb = x[i], x[max(i - 1, 0) if a == 0 else min(i + 1, n - 1)]
+            for j in range(m):
+                row[j] = near * src[j] + far * nb[j]
+            o = out[2 * i + a]
+            for j in range(m):
+                c = near * row[j]
+                o[2 * j] = c + far * row[max(j - 1, 0)]
+                o[2 * j + 1] = c + far * row[min(j + 1, m - 1)]
+    return out
+
+
+@njit(cache=True, nogil=True)
+def surface_change(b: np.ndarray) -> np.ndarray:
+    """Spread of the mean normal sqrt(clip(1 - |m|^2, 0, 1)), m = b[1:] / max(b[0], 1e-6), 0 where b[0] <= 1e-6,
+    from b = the blurred [w, n * w]: numpy's float32 steps per pixel (maximum and clip give their second operand
+    on ties, keep NaN; einsum adds the channels in order)."""
+    _, h, w = b.shape
+    out = np.empty((h, w), np.float32)
+    zero, one, tiny = np.float32(0.0), np.float32(1.0), np.float32(1e-6)
+    for y in range(h):
+        cnt, b1, b2, b3, o = b[0, y], b[1, y], b[2, y], b[3, y], out[y]
+        for x in range(w):
+            c = cnt[x]
+            den = c if c > tiny or np.isnan(c) else tiny
+            m1, m2, m3 = b1[x] / den, b2[x] / den, b3[x] / den
+            v = one - ((m1 * m1 + m2 * m2) + m3 * m3)
+            v = v if v > zero or np.isnan(v) else zero
+            v = v if v < one or np.isnan(v) else one
+            o[x] = np.sqrt(v) if c > tiny else zero
+    return out
+
+
+@njit(cache=True, nogil=True)
+def isotropy(b: np.ndarray) -> np.ndarray:
+    """2 max(lo, 0) / max(lo + hi, 1e-12) of the eigenvalues lo, hi = tr/2 -+ sqrt(max((a - b)^2 / 4 + c^2, 0))
+    of b = the blurred structure tensor [a, b, c], 0 where tr <= 1e-6: numpy's float32 steps per pixel."""
+    _, h, w = b.shape
+    out = np.empty((h, w), np.float32)
+    zero, two, four, tiny, eps = np.float32(0.0), np.float32(2.0), np.float32(4.0), np.float32(1e-6), \
+        np.float32(1e-12)
+    for y in range(h):
+        ra, rb, rc, o = b[0, y], b[1, y], b[2, y], out[y]
+        for x in range(w):
+            a, bb, c = ra[x], rb[x], rc[x]
+            tr = a + bb
+            diff = a - bb
+            q = (diff * diff) / four + c * c
+            disc = np.sqrt(q if q > zero or np.isnan(q) else zero)
+            half = tr / two
+            lo, hi = half - disc, half + disc
+            num = two * (lo if lo > zero or np.isnan(lo) else zero)
+            s = lo + hi
+            o[x] = num / (s if s > eps or np.isnan(s) else eps) if tr > tiny else zero
+    return out
+
+
+@njit(cache=True, nogil=True)
+def mark_borders(change: np.ndarray, border: np.ndarray, v: np.ndarray) -> None:
+    """In place: change = 1 on borders, then 0 off valid depth."""
+    h, w = change.shape
+    for y in range(h):
+        for x in range(w):
+            if not v[y, x]:
+                change[y, x] = 0.0
+            elif border[y, x]:
+                change[y, x] = 1.0
+
+
+@njit(cache=True, nogil=True)
+def interest(change: np.ndarray, iso: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """clip(change * iso, 0, 1) with iso 0 off valid depth, in float32 (clip gives its bound on ties, keeps NaN)."""
+    h, w = change.shape
+    out = np.empty((h, w), np.float32)
+    zero, one = np.float32(0.0), np.float32(1.0)
+    for y in range(h):
+        c, i, m, o = change[y], iso[y], v[y], out[y]
+        for x in range(w):
+            p = c[x] * (i[x] if m[x] else zero)
+            p = p if p > zero or np.isnan(p) else zero
+            o[x] = p if p < one or np.isnan(p) else one
     return out

@@ -91,14 +91,13 @@ def run(args: argparse.Namespace) -> int:
     from services.core.settings import load_settings
     from services.embedded.pool import cpu_count
     from services.worker.celery_app import create_app
+    from services.worker.numeric_threads import pin_numeric_threads
 
     env_threads = os.environ.get("OMNIDATA_RENDER_THREADS", "")
     wanted = args.render_threads or (int(env_threads) if env_threads.isdigit() else None)
     args.concurrency, threads = process_layout(args.concurrency, wanted, cpu_count())
     os.environ["OMNIDATA_RENDER_THREADS"] = str(threads)  # Settings.render_threads of each child
-    # numeric libraries in the children get the same budget (numpy is not loaded yet in this process)
-    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
-        os.environ.setdefault(var, str(threads))
+    pin_numeric_threads()  # for the children too (numpy is not loaded yet in this process)
     settings = load_settings()
     require_schema(settings.database_url)
     node = node_name(args.hostname)

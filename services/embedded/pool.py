@@ -18,6 +18,8 @@ from multiprocessing.queues import Queue
 from multiprocessing.synchronize import Event
 from pathlib import Path
 
+from services.worker.numeric_threads import pin_numeric_threads
+
 log = logging.getLogger("omnidata.generate")
 
 STATE_DIR = ".omnidata"  # the embedded mode's state under --out: state.db, space sources, pass cache
@@ -56,11 +58,9 @@ def worker_main(conf: WorkerConfig, tasks: Queue[int | None], results: Queue[Wor
     # the grace period is over) unwinds the stack, so an in-flight write removes its temporary file.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
-    # W workers share the cores: numeric libraries get the same thread budget as Cycles (set before numpy loads).
-    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
-        os.environ.setdefault(var, str(conf.render_threads))
+    pin_numeric_threads()  # before numpy loads: outputs must not depend on the thread count
     logging.basicConfig(level=conf.log_level, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s")
-    # Imported here, after the thread variables above: numpy reads them when it loads.
+    # Imported here, after the thread variables: numpy reads them when it loads.
     from services.core.db.engine import make_engine, make_sessionmaker
     from services.core.settings import get_settings
     from services.core.storage import LocalStore

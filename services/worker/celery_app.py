@@ -4,7 +4,7 @@ scheduler's so sending a task never imports the worker.
 Postgres is the source of truth; Redis only carries `render.cue(task_id)` messages. Messages are acked after
 the task ran (acks_late) and given back when the worker process dies (reject_on_worker_lost), one at a time
 (prefetch 1); a lost message is harmless because the scheduler's reaper re-queues tasks that stay queued
-too long. Child processes recycle after `worker_max_tasks` tasks or above `worker_max_memory_mb`.
+too long. Child processes recycle after `worker_max_tasks` messages or above `worker_max_memory_mb`.
 
 `celery -A services.worker.celery_app worker` also works: the module exposes `app` lazily.
 """
@@ -15,6 +15,9 @@ from celery import Celery
 
 from services.core.celery_config import celery_conf
 from services.core.settings import Settings, get_settings
+from services.worker.numeric_threads import pin_numeric_threads
+
+pin_numeric_threads()  # `celery -A` starts here, before the task modules load numpy (`omnidata worker` did it already)
 
 TASK_MODULES = ("services.worker.tasks",)
 

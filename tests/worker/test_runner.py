@@ -345,6 +345,12 @@ class StallingStore:
             self.on_put()
         return self.inner.put_bytes(key, data, content_type)
 
+    def put_many(self, items: list[tuple[str, bytes]]) -> list[ObjectInfo]:
+        if not self.fired:
+            self.fired = True
+            self.on_put()
+        return self.inner.put_many(items)
+
     def __getattr__(self, name: str) -> Any:
         return getattr(self.inner, name)
 

@@ -98,16 +98,16 @@ def test_a_batch_whose_worker_dies_is_requeued_and_run_once_by_another(sm, banan
     view0 = queue_view(sm, job_id, 0, 0)
 
     dying = runner(sm, banana, "dying")
-    real_execute = TaskRunner.execute
+    real_make = TaskRunner.make
     ran: list[str] = []
 
     def execute_then_die(self, t):
-        if len(ran) == 2:  # two outputs stored, none recorded: the process is killed here
+        if len(ran) == 2:  # two outputs made, none stored or recorded: the process is killed here
             raise Died()
         ran.append(t.cue)
-        return real_execute(self, t)
+        return real_make(self, t)
 
-    monkeypatch.setattr(TaskRunner, "execute", execute_then_die)
+    monkeypatch.setattr(TaskRunner, "make", execute_then_die)
     with pytest.raises(Died):
         dying.run(view0["depth_zbuffer"])
     monkeypatch.undo()

@@ -98,14 +98,14 @@ def test_the_pass_set_is_stored_when_a_reader_of_it_runs_elsewhere(sm, banana):
 
 def test_a_failure_in_the_batch_hands_its_dependents_back_to_pending(sm, banana, monkeypatch):
     job_id = make_job(sm, banana)
-    real_execute = TaskRunner.execute
+    real_make = TaskRunner.make
 
     def depth_fails(self, t):
         if t.cue == "depth_zbuffer":
             raise RuntimeError("depth broke")
-        return real_execute(self, t)
+        return real_make(self, t)
 
-    monkeypatch.setattr(TaskRunner, "execute", depth_fails)
+    monkeypatch.setattr(TaskRunner, "make", depth_fails)
     out = runner(sm, banana, "w1").run(queue(sm, job_id, "passes", 0, 0))
     monkeypatch.undo()
     got = {o.cue: o.status for o in out.all()}
@@ -137,19 +137,19 @@ def test_a_whole_view_whose_worker_dies_is_leased_by_its_beats_then_requeued_tas
     hb.extend_after_s = 0.0  # every beat extends the held leases
     dying = TaskRunner(sm, banana.store, runner(sm, banana).settings, "dying", heartbeat=hb,
                        cache_dir=banana.cache_dir, render_threads=1, render_device="cpu", db_retry_s=2.0)
-    real_execute = TaskRunner.execute
+    real_make = TaskRunner.make
     ran: list[str] = []
 
     def execute_then_die(self, t):
-        if len(ran) == 3:  # three outputs stored, none recorded: the process is killed here
+        if len(ran) == 3:  # three outputs made, none stored or recorded: the process is killed here
             expire_leases(sm, ["dying"])
             hb.beat()  # a beat before it dies extends every task of the batch, the pending-claimed ones too
             assert all(task(sm, tid).lease_until > utcnow() for tid in view_ids(sm, job_id).values())
             raise Died()
         ran.append(t.cue)
-        return real_execute(self, t)
+        return real_make(self, t)
 
-    monkeypatch.setattr(TaskRunner, "execute", execute_then_die)
+    monkeypatch.setattr(TaskRunner, "make", execute_then_die)
     passes = queue(sm, job_id, "passes", 0, 0)
     with pytest.raises(Died):
         dying.run(passes)

@@ -8,7 +8,9 @@ empty segments, '.', '..' and backslashes are refused with ValueError, so no key
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Iterator
+import os
+from collections.abc import Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol, runtime_checkable
@@ -78,12 +80,29 @@ def join_key(prefix: str, key: str) -> str:
     return f"{prefix}/{key}" if prefix else key
 
 
+_io: tuple[int, ThreadPoolExecutor] | None = None
+
+
+def io_pool() -> ThreadPoolExecutor:
+    """Threads for a store's blocking calls (fsync, S3 requests), made in this process (a forked child makes its
+    own: a parent's threads do not survive a fork)."""
+    global _io
+    if _io is None or _io[0] != os.getpid():
+        _io = (os.getpid(), ThreadPoolExecutor(max_workers=8, thread_name_prefix="store-io"))
+    return _io[1]
+
+
 @runtime_checkable
 class ObjectStore(Protocol):
     """A flat key -> bytes store. Writes are atomic: readers see the old object or the new one, never a part."""
 
     def put_bytes(self, key: str, data: bytes, content_type: str | None = None) -> ObjectInfo:
         """Store `data` under `key`, replacing any object there."""
+        ...
+
+    def put_many(self, items: Sequence[tuple[str, bytes]]) -> list[ObjectInfo]:
+        """Store each (key, data) as put_bytes does, together: a view's ~18 files cost one wait for the disk
+        (local) or the network (S3) instead of one each. All stored, or StorageError (some may be stored)."""
         ...
 
     def put_file(self, key: str, path: str | Path, content_type: str | None = None) -> ObjectInfo:
@@ -140,6 +159,10 @@ class PrefixedStore:
     def put_bytes(self, key: str, data: bytes, content_type: str | None = None) -> ObjectInfo:
         info = self.store.put_bytes(self._k(key), data, content_type)
         return ObjectInfo(key, info.size, info.sha256)
+
+    def put_many(self, items: Sequence[tuple[str, bytes]]) -> list[ObjectInfo]:
+        infos = self.store.put_many([(self._k(key), data) for key, data in items])
+        return [ObjectInfo(key, info.size, info.sha256) for (key, _), info in zip(items, infos, strict=True)]
 
     def put_file(self, key: str, path: str | Path, content_type: str | None = None) -> ObjectInfo:
         info = self.store.put_file(self._k(key), path, content_type)

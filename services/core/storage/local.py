@@ -7,7 +7,7 @@ import os
 import re
 import shutil
 import uuid
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager, suppress
 from pathlib import Path
 
@@ -18,6 +18,7 @@ from services.core.storage.base import (
     StorageError,
     check_key,
     check_prefix,
+    io_pool,
     sha256_file,
 )
 
@@ -52,11 +53,7 @@ class LocalStore:
 
     def _commit(self, tmp: Path, target: Path) -> None:
         if self.fsync:
-            fd = os.open(tmp, os.O_RDONLY)
-            try:
-                os.fsync(fd)
-            finally:
-                os.close(fd)
+            _fsync(tmp)
         os.replace(tmp, target)
 
     @contextmanager
@@ -78,6 +75,28 @@ class LocalStore:
             tmp.write_bytes(data)
             self._commit(tmp, target)
         return ObjectInfo(key, len(data), hashlib.sha256(data).hexdigest())
+
+    def put_many(self, items: Sequence[tuple[str, bytes]]) -> list[ObjectInfo]:
+        """Every temp file written, then flushed concurrently (the file system commits the flushes together: one
+        journal commit instead of one per file, ~30-100 ms of waiting a view on this disk), then renamed."""
+        targets = [self.path(key) for key, _ in items]
+        tmps: list[Path] = []
+        try:
+            for target, (_, data) in zip(targets, items, strict=True):
+                target.parent.mkdir(parents=True, exist_ok=True)
+                tmps.append(self._tmp(target))
+                tmps[-1].write_bytes(data)
+            if self.fsync:
+                list(io_pool().map(_fsync, tmps))
+            for tmp, target in zip(tmps, targets, strict=True):
+                os.replace(tmp, target)
+        except OSError as e:  # permission, read-only or full file system
+            raise StorageError(f"cannot write to the object folder {self.root}: {e.strerror or e}") from e
+        finally:
+            for tmp in tmps:
+                with suppress(OSError):
+                    tmp.unlink(missing_ok=True)
+        return [ObjectInfo(key, len(data), hashlib.sha256(data).hexdigest()) for key, data in items]
 
     def put_file(self, key: str, path: str | Path, content_type: str | None = None) -> ObjectInfo:
         target = self.path(key)
@@ -193,3 +212,11 @@ class LocalStore:
     def presigned_url(self, key: str, expires_s: int = 3600) -> str:
         """file:// URI of the object (local files need no signature; `expires_s` is ignored)."""
         return self.path(key).as_uri()
+
+
+def _fsync(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)

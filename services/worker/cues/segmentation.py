@@ -10,8 +10,8 @@ with occlusion edges weakening the graph's links (segment25d_weights; see segmen
    boundary)), plus self-loops of weight 1 (as skimage.graph.cut_normalized);
 3. recursive two-way normalized cuts (Shi & Malik 2000) exactly as skimage.graph.cut_normalized: the second
    smallest eigenvector of D^-1/2 (D - W) D^-1/2, segment_num_cuts thresholds, split while the best ncut value
-   is below segment_ncut_thresh. Written here on dense matrices (scipy.linalg.eigh, two eigenpairs) because
-   skimage's sparse/networkx version takes seconds per image;
+   is below segment_ncut_thresh. On dense matrices (LAPACK, two eigenpairs; ncuts.py) because skimage's
+   sparse/networkx version takes seconds per image;
 4. labels 1..K numbered in raster order of first appearance; 0 = no surface (2d: nothing seen; 2.5d: no valid
    depth). Pixels off the surface take the nearest surface pixel's features before step 1, so the background
    neither forms segments nor leaves halo regions along silhouettes.
@@ -19,18 +19,17 @@ with occlusion edges weakening the graph's links (segment25d_weights; see segmen
 
 from __future__ import annotations
 
-import functools
 import hashlib
 
 import numpy as np
 from numba import njit
-from scipy.linalg.lapack import _compute_lwork, get_lapack_funcs
 
 from services.worker.context import ViewContext
 from services.worker.cues.common import depth_m, hit, normal_cam, valid
 from services.worker.cues.edges import occlusion_response
 from services.worker.cues.feature_transform import nearest_site
 from services.worker.cues.felzenszwalb import Felzenszwalb
+from services.worker.cues.ncuts import normalized_cuts
 from services.worker.cues.registry import register
 
 
@@ -55,50 +54,60 @@ def region_graph(labels: np.ndarray, features255: np.ndarray, sigma: float,
     """
     n = int(labels.max()) + 1
     cnt, sums = _region_sums(np.ascontiguousarray(labels), np.ascontiguousarray(features255), n)
-    means = sums / np.maximum(cnt, 1)[:, None]
     has_boundary = boundary is not None
     boundary_or_none = np.zeros((1, 1), np.float32) if boundary is None else boundary
     links, boundary_sum = _adjacent_pairs(labels, boundary_or_none, n, has_boundary)
-    ea, eb = np.nonzero(links)  # row-major: pairs (a < b) in increasing a * n + b
-    w = np.exp(-((means[ea] - means[eb]) ** 2).sum(axis=1) / sigma)
+    ea, eb, dist2, strength = _link_terms(links, boundary_sum, cnt, sums)
+    w = np.exp(-dist2 / sigma)  # numpy's exp (its own vector code): kept, as every value it rounds
     if has_boundary:
-        strength = boundary_sum[ea, eb] / links[ea, eb]
         w = w * np.exp(-BOUNDARY_GAIN * strength)
-    W = np.zeros((n, n), dtype=np.float64)
-    W[ea, eb] = w
-    W[eb, ea] = w
-    np.fill_diagonal(W, 1.0)
-    return W
-
-
-# Links weaker than this count as absent when looking for disconnected parts (self-loops weigh 1; an RBF weight
-# this small is exp(-23)): a cut through them costs < 1e-9, far below any useful segment_ncut_thresh.
-LINK_EPS = 1e-10
+    return _dense_graph(n, ea, eb, w)
 
 
 @njit(cache=True, nogil=True)
-def _components(w: np.ndarray, eps: float) -> tuple[int, np.ndarray]:
-    """Connected components of the graph whose links are the entries of w above eps: (count, id per node)."""
-    n = len(w)
-    part = np.full(n, -1, np.int64)
-    stack = np.empty(n, np.int64)
+def _link_terms(links: np.ndarray, boundary_sum: np.ndarray, cnt: np.ndarray,
+                sums: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The linked pairs (a < b, increasing a * n + b: np.nonzero's order), the squared distance of their mean
+    features (channels added in order from 0, as numpy sums fewer than 8) and their mean boundary value."""
+    n, c = sums.shape
+    means = np.empty((n, c), np.float64)
+    for a in range(n):
+        for k in range(c):
+            means[a, k] = sums[a, k] / max(cnt[a], 1.0)
     count = 0
-    for seed in range(n):
-        if part[seed] >= 0:
-            continue
-        part[seed] = count
-        stack[0] = seed
-        top = 1
-        while top:
-            top -= 1
-            i = stack[top]
-            for j in range(n):
-                if part[j] < 0 and w[i, j] > eps:
-                    part[j] = count
-                    stack[top] = j
-                    top += 1
-        count += 1
-    return count, part
+    for a in range(n):
+        for b in range(n):
+            count += links[a, b] != 0
+    ea = np.empty(count, np.int64)
+    eb = np.empty(count, np.int64)
+    dist2 = np.empty(count, np.float64)
+    strength = np.empty(count, np.float64)
+    e = 0
+    for a in range(n):
+        for b in range(n):
+            if links[a, b] == 0:
+                continue
+            ea[e], eb[e] = a, b
+            s = 0.0
+            for k in range(c):
+                t = means[a, k] - means[b, k]
+                s += t * t
+            dist2[e] = s
+            strength[e] = boundary_sum[a, b] / links[a, b]
+            e += 1
+    return ea, eb, dist2, strength
+
+
+@njit(cache=True, nogil=True)
+def _dense_graph(n: int, ea: np.ndarray, eb: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """n x n float64: w on the pairs both ways, 1 on the diagonal (self-loops), 0 elsewhere."""
+    W = np.zeros((n, n), np.float64)
+    for e in range(len(w)):
+        W[ea[e], eb[e]] = w[e]
+        W[eb[e], ea[e]] = w[e]
+    for i in range(n):
+        W[i, i] = 1.0
+    return W
 
 
 @njit(cache=True, nogil=True)
@@ -154,74 +163,6 @@ def _adjacent_pairs(labels: np.ndarray, boundary: np.ndarray, n: int,
                 if has_boundary:
                     total[lo, hi] += np.float64(max(boundary[y, x], boundary[y2, x2]))
     return links, total
-
-
-def normalized_cuts(W: np.ndarray, thresh: float, num_cuts: int) -> np.ndarray:
-    """Recursive two-way normalized cuts on a dense similarity matrix; returns a segment id per node.
-
-    A subgraph falling apart into (numerically) disconnected parts is split into them directly: its eigenproblem
-    then has a multiple zero eigenvalue, so the dense solver (O(n^3), most of a segmentation's cost at 512 px)
-    would only return some mix of the parts' indicator vectors, and every threshold between them cuts at ~0 cost:
-    the cuts end at the same parts, peeled off one eigenproblem at a time."""
-    out = np.zeros(len(W), dtype=np.int64)
-    next_id = 0
-    stack = [np.arange(len(W))]
-    while stack:
-        idx = stack.pop()
-        best_mask = None
-        if len(idx) > 2:
-            w = W[np.ix_(idx, idx)]
-            n_parts, part = _components(w, LINK_EPS)
-            if n_parts > 1:
-                stack.extend(idx[part == k] for k in range(n_parts))
-                continue
-            best_mask = _best_split(w, thresh, num_cuts)
-        if best_mask is None:
-            out[idx] = next_id
-            next_id += 1
-        else:
-            stack.append(idx[~best_mask])
-            stack.append(idx[best_mask])
-    return out
-
-
-_SYEVR, _SYEVR_LWORK = get_lapack_funcs(("syevr", "syevr_lwork"), dtype=np.float64)
-
-
-@functools.lru_cache(maxsize=4096)
-def _syevr_work(n: int) -> tuple[int, int]:
-    """LAPACK's workspace sizes for dsyevr of an n x n matrix, as scipy.linalg.eigh asks for them."""
-    lwork, liwork = _compute_lwork(_SYEVR_LWORK, n=n, lower=True)
-    return int(lwork), int(liwork)
-
-
-def second_eigenvector(A: np.ndarray) -> np.ndarray:
-    """The eigenvector of the second smallest eigenvalue of a symmetric matrix: the dsyevr call of
-    scipy.linalg.eigh(A, subset_by_index=[0, 1], driver="evr"), same arguments and workspace, bit for bit, without
-    its checks and workspace query per call (a normalized cut makes ~100 such calls per view)."""
-    lwork, liwork = _syevr_work(len(A))
-    _, vecs, _, _, info = _SYEVR(A, compute_v=1, range="I", il=1, iu=2, lower=True, lwork=lwork, liwork=liwork)
-    if info != 0:
-        raise np.linalg.LinAlgError(f"dsyevr failed (info {info})")
-    return vecs[:, 1]
-
-
-def _best_split(w: np.ndarray, thresh: float, num_cuts: int) -> np.ndarray | None:
-    """The two-way normalized cut of a connected similarity matrix (a node mask), None when none is below thresh."""
-    d = w.sum(axis=1)
-    dis = 1.0 / np.sqrt(d)
-    A = (np.diag(d) - w) * dis[:, None] * dis[None, :]
-    ev = second_eigenvector(A) * dis
-    # All thresholds at once: row t of `masks` is one candidate split, cut_t = m_t^T w (1 - m_t).
-    masks = ev[None, :] > np.linspace(ev.min(), ev.max(), num_cuts, endpoint=False)[:, None]
-    m = masks.astype(np.float64)
-    cut = ((m @ w) * (1.0 - m)).sum(axis=1)
-    assoc = m @ d
-    proper = masks.any(axis=1) & ~masks.all(axis=1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        cost = np.where(proper, cut / assoc + cut / (d.sum() - assoc), np.inf)
-    best = int(np.argmin(cost))  # the first of equal minima, as the loop over thresholds took
-    return masks[best] if cost[best] < thresh else None
 
 
 def _relabel(labels: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -308,16 +249,35 @@ def features25d(ctx: ViewContext) -> np.ndarray:
 
     Log-depth is 0.5 * ln(metres) relative to the nearest pixel: doubling the depth (0.35) weighs about like
     turning the normal by 40 degrees, so a slanted plane stays one segment while objects at clearly different
-    depths separate.
+    depths separate. The logarithm is numpy's (its float32 log); the rest one compiled pass in float32, the
+    arithmetic of the numpy expressions it replaces (tests/worker/cues/test_kernels.py).
     """
     wd, wn, _ = ctx.params.segment25d_weights
     v = valid(ctx)
-    logd = LOG_DEPTH_SCALE * np.log(np.where(v, depth_m(ctx), 1.0))
-    if v.any():
-        logd = logd - float(logd[v].min())
-    logd = np.where(v, logd, 0.0)
-    n = (normal_cam(ctx) + 1.0) * 0.5
-    return np.concatenate([wd * logd[..., None], wn * n], axis=-1).astype(np.float32)
+    log_depth = np.log(np.where(v, depth_m(ctx), np.float32(1.0)))
+    return _features25d(log_depth, v, normal_cam(ctx), np.float32(wd), np.float32(wn))
+
+
+@njit(cache=True, nogil=True)
+def _features25d(log_depth: np.ndarray, v: np.ndarray, normals: np.ndarray, wd: np.float32,
+                 wn: np.float32) -> np.ndarray:
+    """[wd * (LOG_DEPTH_SCALE * log_depth - its minimum over v) (0 off v), wn * (normals + 1) * 0.5], float32."""
+    h, w = log_depth.shape
+    scale, one, half = np.float32(LOG_DEPTH_SCALE), np.float32(1.0), np.float32(0.5)
+    lo = np.float32(np.inf)
+    for y in range(h):
+        for x in range(w):
+            if v[y, x]:
+                d = scale * log_depth[y, x]
+                if d < lo or np.isnan(d):  # np.min's: a NaN wins
+                    lo = d
+    out = np.empty((h, w, 4), np.float32)
+    for y in range(h):
+        for x in range(w):
+            out[y, x, 0] = wd * (scale * log_depth[y, x] - lo if v[y, x] else np.float32(0.0))
+            for k in range(3):
+                out[y, x, k + 1] = wn * ((normals[y, x, k] + one) * half)
+    return out
 
 
 @register("segment_unsup25d", passes={"normal"})
@@ -330,5 +290,16 @@ def segment_unsup25d(ctx: ViewContext) -> np.ndarray:
     """
     _, _, we = ctx.params.segment25d_weights
     occ = occlusion_response(ctx)
-    boundary = np.clip(we * occ / max(float(occ.max()), 1e-6), 0.0, None)
+    boundary = _boundary(occ, np.float32(we), np.float32(max(float(occ.max()), 1e-6)))
     return segment(ctx, features25d(ctx), valid(ctx), sigma=0.0, boundary=boundary)
+
+
+@njit(cache=True, nogil=True)
+def _boundary(occ: np.ndarray, we: np.float32, top: np.float32) -> np.ndarray:
+    """np.clip(we * occ / top, 0, None) in float32 (occ >= 0: no signed zeros or NaNs to order)."""
+    out = np.empty_like(occ)
+    for y in range(occ.shape[0]):
+        for x in range(occ.shape[1]):
+            v = we * occ[y, x] / top
+            out[y, x] = v if v >= 0 else np.float32(0.0)
+    return out

@@ -170,6 +170,20 @@ def test_prefixed_view(store: ObjectStore) -> None:
     assert list(store.list()) == ["jobs/420/rgb/a.png"]
 
 
+def test_put_many_stores_each_object_as_put_bytes_would(store: ObjectStore) -> None:
+    items = [(f"{cue}/c/s/point_0_view_0_domain_{cue}.png", os.urandom(n)) for cue, n in
+             (("rgb", 5_000), ("normal", 70_000), ("position", 3_000_000), ("mask_valid", 0))]
+    infos = store.put_many(items)
+    assert [(i.key, i.size, i.sha256) for i in infos] == [
+        (key, len(data), hashlib.sha256(data).hexdigest()) for key, data in items]
+    assert all(store.get_bytes(key) == data for key, data in items)
+    assert list(store.list()) == sorted(key for key, _ in items)
+    view = prefixed(store, "jobs/7")  # a job's output root, as the worker writes through it
+    (info,) = view.put_many([("rgb/a.png", b"1")])
+    assert info.key == "rgb/a.png" and store.get_bytes("jobs/7/rgb/a.png") == b"1"
+    assert store.put_many([]) == []
+
+
 # ---------------------------------------------------------------------------------------------- backend specifics
 
 
@@ -267,6 +281,11 @@ def test_a_local_store_that_cannot_write_is_a_named_storage_error(tmp_path: Path
     with pytest.raises(StorageError, match=rf"cannot write to the object folder {st.root}: "):
         st.put_bytes("spaces/1/scan.ply", b"ply")
     assert [p.name for p in st.root.iterdir()] == ["spaces"]  # no temp file left behind
+    with pytest.raises(StorageError, match=rf"cannot write to the object folder {st.root}: "):
+        st.put_many([("rgb/a.png", b"1"), ("spaces/1/scan.ply", b"ply")])  # the second cannot be written
+    assert sorted(p.name for p in st.root.iterdir()) == ["rgb", "spaces"] and list(st.list()) == ["spaces"]
+    assert list((st.root / "rgb").iterdir()) == []  # the first was never renamed in, and its temp file is gone
+    (st.root / "rgb").rmdir()
     (st.root / "spaces").unlink()
     st.root.rmdir()
     with pytest.raises(StorageError, match="does not exist"):

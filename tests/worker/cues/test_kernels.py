@@ -9,20 +9,20 @@ from services.core.domain.cues import CURVATURE_FLAT, NORMAL_BACKGROUND
 from services.core.domain.jobspec import CueParams
 from services.worker.context import ViewContext
 from services.worker.cues.basic import _curvature_pixels, _normal_pixels
-from services.worker.cues.common import gaussian_blur, sobel_xy
+from services.worker.cues.common import gaussian_blur, sobel_xy, valid
 from services.worker.cues.feature_transform import nearest_site
 from services.worker.cues.felzenszwalb import Felzenszwalb
 from services.worker.cues.keypoints import _blur, _double, doh_response, narf_interest
+from services.worker.cues.ncuts import _pairwise_sum, normalized_cuts, second_eigenvector
 from services.worker.cues.registry import cue_value
 from services.worker.cues.segmentation import (
     _relabel,
     _uniform_in_mask,
-    normalized_cuts,
+    features25d,
     region_graph,
-    second_eigenvector,
     segment_unsup2d,
 )
-from tests.fixtures import reference_felzenszwalb, reference_narf, reference_segmentation
+from tests.fixtures import reference_felzenszwalb, reference_narf, reference_ncuts, reference_segmentation
 from tests.fixtures.raycast import cube_scene, make_room, raycast_passes, room_view
 from tests.fixtures.reference_segmentation import reference_relabel
 
@@ -298,3 +298,45 @@ def test_nearest_site_is_scipys_feature_transform_index_for_index() -> None:
         assert iy.dtype == ix.dtype == np.int32
         assert np.array_equal(iy, old[0]) and np.array_equal(ix, old[1]), mask.shape
     assert (nearest_site(np.zeros((3, 4), bool))[0] == -1).all()
+
+
+@pytest.mark.parametrize("n", [0, 1, 7, 8, 9, 127, 128, 129, 255, 256, 257, 1000, 4096, 8191, 8192, 8193, 20000])
+def test_pairwise_sum_is_numpys_sum_bit_for_bit(n) -> None:
+    rng = np.random.default_rng(n)
+    for _ in range(5):
+        a = rng.random((2, n)) * 10.0 ** rng.uniform(-6, 6, (2, n)) * rng.choice([-1.0, 1.0], (2, n))
+        rows = a.sum(axis=1)  # a contiguous axis of a matrix (degrees) and a vector (their total)
+        assert _pairwise_sum(a[0]) == rows[0] and _pairwise_sum(a[1]) == rows[1]
+        assert _pairwise_sum(a[1]) == a[1].sum()
+    assert _pairwise_sum(np.array([-0.0])) == 0.0 and not np.signbit(_pairwise_sum(np.array([-0.0])))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_normalized_cuts_are_the_numpy_versions_bit_for_bit(seed) -> None:
+    """Region graphs of blocky random label images (dense, sparse, with a disconnected part and a constant
+    block, so splits, ties, refusals and component peeling all occur)."""
+    rng = np.random.default_rng(seed)
+    side = int(rng.integers(6, 22))
+    blocks = rng.permutation(side * side).reshape(side, side)
+    labels = np.kron(blocks, np.ones((4, 4), dtype=np.int64))
+    features = (rng.random((side * 4, side * 4, 3)) * 40.0 + (rng.random((1, side * 4, 3)) * 200.0)).astype(np.float32)
+    W = region_graph(labels, features, 255.0 * (1 + seed))
+    if seed % 2:  # cut one node off numerically
+        W[0, 1:] = W[1:, 0] = 1e-30
+    for thresh, num_cuts in ((0.005, 10), (0.2, 10), (1.0, 3), (0.05, 1)):
+        new = normalized_cuts(W, thresh, num_cuts)
+        old = reference_ncuts.normalized_cuts(W, thresh, num_cuts)
+        assert np.array_equal(new, old)
+    assert len(np.unique(normalized_cuts(W, 0.2, 10))) > 1
+
+
+def test_features25d_is_the_numpy_version_on_a_room_with_holes() -> None:
+    ctxs = _narf_views()[:2]  # the room with a hole, then also cut at 2.5 m: pixels off valid depth
+    for weights in ((1.0, 1.0, 1.0), (0.3, 2.5, 0.0), (0.0, 1.0, 1.0)):
+        for ctx in ctxs:
+            params = ctx.params.model_copy(update={"segment25d_weights": weights})
+            new = features25d(ViewContext(ctx.view, params, passes=ctx.passes))
+            old = reference_ncuts.features25d(ViewContext(ctx.view, params, passes=ctx.passes))
+            assert new.dtype == old.dtype == np.float32
+            assert np.array_equal(new.view(np.uint32), old.view(np.uint32))
+    assert 0.05 < 1 - valid(ctxs[1]).mean() < 0.95  # the off-surface branch is compared too

@@ -59,6 +59,7 @@ def _normal_planes(v: np.ndarray, border: np.ndarray, P: np.ndarray, d: np.ndarr
     du = np.empty((3, wd), np.float32)
     dv = np.empty((3, wd), np.float32)
     weight = np.empty(wd, np.float32)
+    ray = np.empty((3, wd), np.float32)  # the row's ray directions as planes: strided loads kept the loop slow
     eps, zero, one = np.float32(1e-12), np.float32(0.0), np.float32(1.0)
     for y in range(h):
         for c in range(3):
@@ -69,13 +70,16 @@ def _normal_planes(v: np.ndarray, border: np.ndarray, P: np.ndarray, d: np.ndarr
         du0, du1, du2, dv0, dv1, dv2 = du[0], du[1], du[2], dv[0], dv[1], dv[2]
         o0, o1, o2, o3, dy = out[0, y], out[1, y], out[2, y], out[3, y], d[y]
         for x in range(wd):
+            ray[0, x], ray[1, x], ray[2, x] = dy[x, 0], dy[x, 1], dy[x, 2]
+        r0, r1, r2 = ray[0], ray[1], ray[2]
+        for x in range(wd):
             n0 = du1[x] * dv2[x] - du2[x] * dv1[x]
             n1 = du2[x] * dv0[x] - du0[x] * dv2[x]
             n2 = du0[x] * dv1[x] - du1[x] * dv0[x]
             norm = np.sqrt((n0 * n0 + n1 * n1) + n2 * n2)
             den = norm if norm > eps else eps
             n0, n1, n2 = n0 / den, n1 / den, n2 / den
-            flip = (n0 * dy[x, 0] + n1 * dy[x, 1]) + n2 * dy[x, 2] > zero
+            flip = (n0 * r0[x] + n1 * r1[x]) + n2 * r2[x] > zero
             n0 = -n0 if flip else n0
             n1 = -n1 if flip else n1
             n2 = -n2 if flip else n2

@@ -43,6 +43,7 @@ TICK_S = 0.1  # scheduler ticks at most 10 times a second (planning, dispatch, r
 # 10 ticks a second). A slower tick starves nobody: the dispatch window holds seconds of work per worker.
 TICK_CPU_SHARE = 0.05
 TICK_MAX_S = 1.0  # the slowest rate, so a finished job or a dead worker is still seen within a second
+SHORT_QUEUE_PER_WORKER = 2  # a worker's message brings a tick only when its queue is this short (or nearly)
 SECRET_SETTINGS = {"api_tokens", "secret_key", "aws_access_key_id", "aws_secret_access_key"}
 
 
@@ -138,21 +139,27 @@ def prepare_job(sessions: sessionmaker[Session], store: ObjectStore, spec: JobSp
 
 def run_until_final(sessions: sessionmaker[Session], sched: Scheduler, pool: LocalPool, job_id: int, bar: Progress | None = None,
                     *, timeout: float | None = None) -> tuple[str, float | None]:
-    """Tick the scheduler (at most every TICK_S) until the job is final; keep the pool full and the bar fresh.
+    """Tick the scheduler until the job is final; keep the pool full and the bar fresh.
 
     Returns (final state, time.monotonic() when the job's planning finished, or None if it was planned before).
     Ticks are rate-limited because on a small machine the loop competes with the workers for the CPU; the
-    dispatch window is wide enough that workers never wait for a tick.
+    dispatch window is wide enough that workers never wait for a tick. Between workers' messages nothing the
+    tick reads changes (this run holds the only job and the only workers of its folder), so then it ticks only
+    every TICK_MAX_S (a dead worker, the reaper); a message (a task's outcome, a worker ready) while the workers'
+    queue runs short, or a busy tick, brings the next tick at the rate-limited pace. Once the job is past planning, the planning step is skipped.
     """
     bar = bar or Progress(False)
     planned_at: float | None = None
     deadline = None if timeout is None else time.monotonic() + timeout
-    next_tick = 0.0
+    next_tick = 0.0  # the earliest next tick (rate limit) ...
+    quiet_until = 0.0  # ... and the latest, when no worker has reported since the last one
+    changed = True
+    plan = True
     while True:
         now = time.monotonic()
-        if now >= next_tick:
+        if now >= next_tick and (changed or now >= quiet_until):
             cpu0 = time.process_time()
-            res = sched.tick()
+            res = sched.tick(plan=plan)
             if job_id in res.planned:
                 planned_at = time.monotonic()
             with sessions() as s:
@@ -162,13 +169,28 @@ def run_until_final(sessions: sessionmaker[Session], sched: Scheduler, pool: Loc
                 bar.update(sessions, job, final=state in JOB_TERMINAL_STATES)
             if state in JOB_TERMINAL_STATES:
                 return state, planned_at
+            plan = state in (JobState.PENDING, JobState.PLANNING)
             dead = pool.replace_dead()
             if dead:
                 expire_leases(sessions, dead)
             if deadline is not None and time.monotonic() > deadline:
                 raise TimeoutError(f"job {job_id} did not finish in {timeout} s")
-            next_tick = time.monotonic() + (0.0 if res.busy else tick_interval(time.process_time() - cpu0))
-        pool.drain(max(0.0, next_tick - time.monotonic()))
+            changed = res.busy or plan or bool(dead)
+            done = time.monotonic()
+            next_tick = done + (0.0 if res.busy else tick_interval(time.process_time() - cpu0))
+            quiet_until = max(next_tick, done + TICK_MAX_S)
+        wake = next_tick if changed else quiet_until
+        if pool.drain(max(0.0, wake - time.monotonic())) and _short_of_work(pool):
+            changed = True
+
+
+def _short_of_work(pool: LocalPool) -> bool:
+    """Whether the workers' queue holds at most SHORT_QUEUE_PER_WORKER tasks each: then a tick may dispatch more,
+    or find the job done (it cannot be while tasks wait in the queue; the quiet tick is the safety net)."""
+    try:
+        return pool.tasks.qsize() <= SHORT_QUEUE_PER_WORKER * max(1, len(pool.procs))
+    except NotImplementedError:  # macOS: no qsize
+        return True
 
 
 def tick_interval(tick_cpu_s: float) -> float:

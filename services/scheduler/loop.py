@@ -315,10 +315,12 @@ class Scheduler:
         with self.sessionmaker() as s:
             return complete_once(s, self.store)
 
-    def tick(self) -> TickResult:
-        """One round of every step (the reaper only every REAP_INTERVAL_S, completion when a job settled)."""
+    def tick(self, *, plan: bool = True) -> TickResult:
+        """One round of every step (the reaper only every REAP_INTERVAL_S, completion when a job settled).
+        `plan=False` skips planning: a caller that knows no job waits for it (the embedded run's one job, planned)."""
         res = TickResult(budget=self.budget)
-        res.planned = self.plan_pending()
+        if plan:
+            res.planned = self.plan_pending()
         if time.monotonic() - self._last_reap >= REAP_INTERVAL_S:
             res.reaped = self.reap_once()
         res.dispatched = self.dispatch_once()

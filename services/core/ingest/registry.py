@@ -120,8 +120,9 @@ def _files_to_pack(source: Path, mesh_file: Path) -> tuple[Path, list[Path]]:
     return base, files
 
 
-def pack_source(source: Path, mesh_file: Path, workdir: Path) -> Path:
-    """The single file to upload for `source`: itself, or a deterministic zip of what the mesh needs."""
+def pack_source(source: Path, mesh_file: Path, workdir: Path, *, remember: bool = False) -> Path:
+    """The single file to upload for `source`: itself, or a deterministic zip of what the mesh needs.
+    `remember`: keep the zip's bytes for the next pack_source of the same files in this process (which takes them)."""
     if (source.is_file() and source.suffix.lower() in SINGLE_FILE_SUFFIXES and scannet_companions(source) is None
             and _dataset_pack(source) is None):
         from services.core.ingest.archive import MESH_SUFFIXES
@@ -134,8 +135,9 @@ def pack_source(source: Path, mesh_file: Path, workdir: Path) -> Path:
     if total > MAX_PACKED_BYTES:
         raise SpaceError(f"{source.name}: {total} bytes of mesh files exceed the limit {MAX_PACKED_BYTES}")
     out = workdir / f"{mesh_file.stem}.zip"
-    key = (str(base), tuple((str(f), (st := f.stat()).st_size, st.st_mtime_ns, st.st_ino) for f in files))
-    if (packed := _PACKED.get(key)) is not None:  # zipped earlier in this process (checksum, then register)
+    key = (str(base), tuple((str(f), (st := f.stat()).st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino)
+                                for f in files))
+    if (packed := _PACKED.pop(key, None)) is not None:  # zipped earlier in this process (checksum, then register)
         out.write_bytes(packed)
         return out
     with zipfile.ZipFile(out, "w", compression=zipfile.ZIP_DEFLATED) as zf:
@@ -143,18 +145,20 @@ def pack_source(source: Path, mesh_file: Path, workdir: Path) -> Path:
             info = zipfile.ZipInfo(f.relative_to(base).as_posix(), date_time=(1980, 1, 1, 0, 0, 0))
             info.compress_type = zipfile.ZIP_DEFLATED
             zf.writestr(info, f.read_bytes())  # fixed timestamps: same files -> same checksum
-    _remember_pack(key, out.read_bytes())
+    if remember:
+        _remember_pack(key, out.read_bytes())
     return out
 
 
-# Zips made by pack_source in this process, by their files (path, size, mtime, inode): `omnidata generate` and
-# `submit` zip a source for its checksum (source_checksum) and again to store it (register_space); deflate costs
-# ~0.15 CPU-s for ICL's 2.7 MB OBJ, ~0.7 for the 7-Scenes kitchen. Bounded: the oldest go first.
-_PACKED: dict[tuple[str, tuple[tuple[str, int, int, int], ...]], bytes] = {}
-_PACKED_MAX_BYTES = 256 << 20
+# Zips source_checksum made in this process, by their files (path, size, mtime, ctime, inode), until the next
+# pack_source of the same files takes them: `omnidata generate` zips a source for its checksum and again to store
+# it (register_space); deflate costs ~0.15 CPU-s for ICL's 2.7 MB OBJ, ~0.6 for the 7-Scenes kitchen (15 MB zip).
+# Bounded (a dataset root's scenes are all checksummed before any is stored): past it, the oldest go first.
+_PACKED: dict[tuple[str, tuple[tuple[str, int, int, int, int], ...]], bytes] = {}
+_PACKED_MAX_BYTES = 128 << 20
 
 
-def _remember_pack(key: tuple[str, tuple[tuple[str, int, int, int], ...]], data: bytes) -> None:
+def _remember_pack(key: tuple[str, tuple[tuple[str, int, int, int, int], ...]], data: bytes) -> None:
     if len(data) > _PACKED_MAX_BYTES:
         return
     _PACKED[key] = data
@@ -295,4 +299,4 @@ def source_checksum(path: Path) -> str:
     with tempfile.TemporaryDirectory(prefix="omnidata-source-") as tmp:
         work = Path(tmp)
         mesh = resolve_source(path, work / "x") if path.suffix.lower() == ".zip" else resolve_source(path)
-        return sha256_file(pack_source(path, mesh, work))
+        return sha256_file(pack_source(path, mesh, work, remember=True))

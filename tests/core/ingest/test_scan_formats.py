@@ -164,3 +164,28 @@ def test_bad_clouds_refused_clearly(tmp_path: Path) -> None:
         load_space(junk, cloud_cache_dir=tmp_path / "c")
     with pytest.raises(CloudError):
         read_text_cloud(tmp_path / "missing.xyz")
+
+
+def test_a_source_zipped_twice_in_a_process_is_deflated_once_and_stays_in_step_with_its_files(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from services.core.ingest import registry
+    from services.core.storage.base import sha256_file
+
+    src = tmp_path / "room"
+    src.mkdir()
+    (src / "room.obj").write_text("mtllib room.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    (src / "room.mtl").write_text("newmtl a\nKd 1 0 0\n")
+    first = registry.source_checksum(src)
+    writes = []
+    real = zipfile.ZipFile.writestr
+    monkeypatch.setattr(zipfile.ZipFile, "writestr", lambda self, *a, **k: (writes.append(a[0]), real(self, *a, **k)))
+    (tmp_path / "w").mkdir()
+    again = pack_source(src, src / "room.obj", tmp_path / "w")
+    assert sha256_file(again) == first and writes == []  # the same bytes, not deflated again
+    (src / "room.mtl").write_text("newmtl a\nKd 0 1 0.5\n")  # a changed file: zipped afresh
+    assert registry.source_checksum(src) != first and len(writes) == 2
+    (tmp_path / "w2").mkdir()
+    pack_source(src, src / "room.obj", tmp_path / "w")  # taken by its register: the next pack deflates again
+    assert len(writes) == 2
+    pack_source(src, src / "room.obj", tmp_path / "w2")
+    assert len(writes) == 4 and registry._PACKED == {}  # only source_checksum's zips are kept

@@ -57,6 +57,7 @@ from services.worker.context import ViewContext
 from services.worker.executor import produce, render_passes_for
 from services.worker.heartbeat import Heartbeat
 from services.worker.passes import ViewPasses
+from services.worker.loaded_cache import read_loaded
 from services.worker.space_cache import SpaceCache, SpaceContext, should_recycle
 
 Recorded = tuple[Claimed, str, ObjectInfo, float]  # a stored task: its key, object and seconds
@@ -281,10 +282,15 @@ class TaskRunner:
         def loader() -> SpaceContext:
             from services.worker.photos import painter_for
 
-            path = fetch_space(self.store, space, self.cache_dir)
-            loaded = load_space(path, **frame)
-            ctx = SpaceContext.from_loaded(loaded, key=key, device=self.render_device, threads=self.render_threads)
-            ctx.photos = painter_for(loaded, spec, refined)
+            # `omnidata generate` keeps the spaces it loaded in the run's cache folder: no second parse here
+            cached = None if spec.uses_photos() else read_loaded(self.cache_dir, space.checksum, frame)
+            if cached is not None:
+                ctx = SpaceContext.from_loaded(cached, key=key, device=self.render_device, threads=self.render_threads)
+            else:
+                path = fetch_space(self.store, space, self.cache_dir)
+                loaded = load_space(path, **frame)
+                ctx = SpaceContext.from_loaded(loaded, key=key, device=self.render_device, threads=self.render_threads)
+                ctx.photos = painter_for(loaded, spec, refined)
             ctx.curvature_dir = self.cache_dir / "curvature"  # computed once for this machine's workers
             return ctx
 

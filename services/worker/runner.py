@@ -56,8 +56,8 @@ from services.worker.claim import DB_RETRY_S, Claimed, Outcome, TaskLedger
 from services.worker.context import ViewContext
 from services.worker.executor import produce, render_passes_for
 from services.worker.heartbeat import Heartbeat
-from services.worker.passes import ViewPasses
 from services.worker.loaded_cache import read_loaded
+from services.worker.passes import ViewPasses
 from services.worker.space_cache import SpaceCache, SpaceContext, should_recycle
 
 Recorded = tuple[Claimed, str, ObjectInfo, float]  # a stored task: its key, object and seconds

@@ -38,8 +38,8 @@ log = logging.getLogger(__name__)
 
 FORMAT = 1  # bump when the layout or what it must equal changes: older files are then ignored
 FOLDER = "loaded"
-_PLAIN_IMAGE_INFO = {"dpi", "aspect", "jfif", "jfif_version", "jfif_unit", "jfif_density", "progression",
-                     "progressive"}  # PIL info keys that do not reach the PNG the Blender scene writes
+_PNG_IMAGE_INFO = {"icc_profile", "transparency", "default_image"}  # what PIL writes into the PNG the Blender
+# scene makes of the texture, besides the pixels: an image holding one is not kept (its pixels alone are)
 
 
 @dataclass
@@ -94,7 +94,7 @@ def _visual_arrays(mesh: trimesh.Trimesh) -> dict[str, np.ndarray] | None:
         out["uv"] = np.asarray(visual.uv)
     img = mat.image
     if img is not None:
-        if img.mode not in ("RGB", "RGBA") or set(img.info) - _PLAIN_IMAGE_INFO:
+        if img.mode not in ("RGB", "RGBA") or _PNG_IMAGE_INFO & set(img.info):
             return None
         out["image"] = np.asarray(img)
     return out
@@ -167,7 +167,7 @@ def _rebuild(arrays: dict[str, np.ndarray], checksum: str, want: np.ndarray) -> 
     labels = {}
     for name in ("face_class", "face_instance"):
         a = arrays.get(name)
-        if a is not None and a.shape != (len(f),):
+        if a is not None and (a.size != len(f) or a.dtype.kind not in "iu"):  # kept as loaded: F or F x 1
             raise ValueError(f"{name} has the wrong length")
         labels[name] = a
     kind = str(arrays["visual"])
@@ -191,7 +191,7 @@ def _rebuild(arrays: dict[str, np.ndarray], checksum: str, want: np.ndarray) -> 
         if img is not None:
             if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] not in (3, 4):
                 raise ValueError("bad texture image")
-            image = Image.fromarray(img, "RGB" if img.shape[2] == 3 else "RGBA")
+            image = Image.fromarray(img)  # RGB or RGBA by the last axis
         mat = trimesh.visual.material.SimpleMaterial(image=image, diffuse=arrays["main_color"])
         visual = trimesh.visual.TextureVisuals(uv=arrays.get("uv"), material=mat)
         mesh = trimesh.Trimesh(vertices=v, faces=f, visual=visual, process=False, validate=False)

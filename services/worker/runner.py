@@ -40,7 +40,6 @@ from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
-from celery.utils.log import current_process_index
 from sqlalchemy.orm import Session
 
 from services.core.db.models import Space
@@ -331,5 +330,9 @@ def default_worker_id(name: str | None = None) -> str:
     stays the same when Celery replaces a recycled child; `host:pid` without a name."""
     if not name:
         return f"{socket.gethostname()}:{os.getpid()}"
+    from celery.utils.log import (
+        current_process_index,  # here: a local worker of `generate` never imports Celery
+    )
+
     index = current_process_index(base=0)  # pool child 0, 1, ...; None outside a pool
     return f"{name}-{index}" if index else name

@@ -9,7 +9,8 @@ For each room it runs, on one core (`taskset -c CORE`, so the whole process tree
 Each repeat runs 1 then 2, so a neighbour's load moves both; the ratio is taken per repeat and reported as the
 median and the worst case over repeats, with the load average beside each figure.
 With --cores 0,1 it also runs generate with its default worker settings on those cores (all-cores figure) and
-compares views/s with the one-core run of the same repeat.
+compares views/s with the one-core run of the same repeat; with the 3-view runs on both settings, also the views/s
+of the views a longer job adds (the slope, start-ups left out: what a long job on many cores approaches).
 
 A 3-view run of the same room on the same core (unless --no-startup) splits generate's CPU into what a run pays
 whatever its size (start-up: imports, space loads, curvature, planning) and the CPU of one more view (the slope),
@@ -142,6 +143,11 @@ def summarise(repeats: list[dict]) -> dict:
     multi = [r["all_cores"]["views_per_s"] / r["generate"]["views_per_s"] for r in repeats if "all_cores" in r]
     if multi:
         out["all_cores_to_one_core_views_per_s"] = {"median": round(median(multi), 2), "worst": round(min(multi), 2)}
+    steady = [marginal_views_per_s(r["all_cores"], r["all_cores_startup"])
+              / marginal_views_per_s(r["generate"], r["startup"]) for r in repeats if "all_cores_startup" in r]
+    if steady:  # a long job's ratio: one more view's wall time, on all cores against one (start-ups left out)
+        out["all_cores_to_one_core_marginal_views_per_s"] = {"median": round(median(steady), 2),
+                                                             "worst": round(min(steady), 2)}
     starts = [r for r in repeats if "startup" in r]
     if starts:
         # what a run pays whatever its size (imports, space loads, curvature, planning) and the cost of one more view
@@ -151,6 +157,11 @@ def summarise(repeats: list[dict]) -> dict:
         out["marginal_cpu_per_view_to_floor_cpu"] = {"median": round(median(marginal), 2),
                                                      "worst": round(max(marginal), 2)}
     return out
+
+
+def marginal_views_per_s(big: dict, small: dict) -> float:
+    """Views a second of the views a bigger run adds: the slope of wall time between two runs of one setting."""
+    return (big["views"] - small["views"]) / max(1e-9, big["wall_s"] - small["wall_s"])
 
 
 def marginal_cpu(rep: dict) -> float:
@@ -196,6 +207,9 @@ def main() -> int:
                 if args.cores:
                     rep["all_cores"] = generate(room, args.cores, Path(tmp) / f"{room}-{i}-all", spec, None)
                     rep["all_cores"]["cores"] = args.cores
+                    if args.startup:
+                        rep["all_cores_startup"] = generate(room, args.cores, Path(tmp) / f"{room}-{i}-all-small",
+                                                            small, None)
                 repeats.append(rep)
                 print(room, i, json.dumps({k: {kk: v for kk, v in r.items() if kk != "task_s_per_view"}
                                            for k, r in rep.items()}), flush=True)
@@ -204,6 +218,8 @@ def main() -> int:
     result["wall_s"] = round(time.perf_counter() - t0, 1)
     doc = json.loads(args.out.read_text()) if args.out.exists() else {}
     if "room_cost" in doc:
+        if "room_cost_before" in doc:  # earlier rounds' figures are kept, oldest first
+            doc.setdefault("room_cost_history", []).append(doc["room_cost_before"])
         doc["room_cost_before"] = doc["room_cost"]
     doc["room_cost"] = result
     args.out.write_text(json.dumps(doc, indent=1) + "\n")

@@ -34,6 +34,7 @@ from services.embedded.report import Progress, build_report, print_report
 from services.scheduler.loop import Scheduler, loaded_space_key
 from services.scheduler.transport import QueueTransport
 from services.worker.heartbeat import expire_leases
+from services.worker.loaded_cache import keep_loaded
 
 OWNER = "local"
 SPACES_PREFIX = ".omnidata/spaces"
@@ -222,11 +223,14 @@ def drive(sessions: sessionmaker[Session], store: ObjectStore, settings: Setting
             print_report(rep, out)
             return 0 if rep.ok else 1
 
+    cache_dir = out / STATE_DIR / "cache"
+    for key, loaded in (loaded_spaces or {}).items():  # the workers read these instead of parsing the scans again
+        keep_loaded(cache_dir, key.split(":", 1)[0], loaded)  # key: loaded_space_key(space checksum, frame)
     if pool is None:
         pool = worker_pool(out, settings, workers)
     transport = QueueTransport(pool.tasks)
     sched = Scheduler(sessions, store, transport, settings, scheduler_id=f"generate:{os.getpid()}",
-                      cache_dir=out / STATE_DIR / "cache", loaded_spaces=loaded_spaces)
+                      cache_dir=cache_dir, loaded_spaces=loaded_spaces)
     bar = Progress(progress)
     try:
         if pool.procs:

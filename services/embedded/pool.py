@@ -54,26 +54,21 @@ def worker_main(conf: WorkerConfig, tasks: Queue[int | None], results: Queue[Wor
                 go: Event) -> None:
     """Body of a local worker process: import what a task needs (Blender included), wait for `go`, then take task
     ids from `tasks`, run them and report outcomes on `results`. Nothing touches the state or --out before `go`."""
-    # Ctrl-C reaches the whole process group: the parent decides when workers stop. SIGTERM (sent when
-    # the grace period is over) unwinds the stack, so an in-flight write removes its temporary file.
+    # Ctrl-C reaches the whole process group: the parent decides when workers stop. SIGTERM (after the grace
+    # period) unwinds the stack, so an in-flight write removes its temporary file.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
-    pin_numeric_threads()  # before numpy loads: outputs must not depend on the thread count
+    pin_numeric_threads()  # before numpy loads (the imports below): outputs must not depend on the thread count
     logging.basicConfig(level=conf.log_level, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s")
-    # Imported here, after the thread variables: numpy reads them when it loads.
     from services.core.db.engine import make_engine, make_sessionmaker
     from services.core.settings import get_settings
     from services.core.storage import LocalStore
-    from services.worker.blender.threads import import_bpy
     from services.worker.claim import TransientError
     from services.worker.heartbeat import Heartbeat
     from services.worker.runner import TaskRunner
 
-    import_bpy(conf.render_threads)  # the first render's import, done while the parent validates and plans
-    importlib.import_module("services.worker.blender.scene")
-    while not go.wait(0.2):  # held (LocalPool.start(held=True)) until the job exists
-        if stop.is_set() or os.getppid() != conf.parent_pid:
-            return
+    if not _warmed_up_and_released(conf, stop, go):
+        return
     settings = get_settings(**{**conf.settings, "render_threads": conf.render_threads})
     engine = make_engine(settings.database_url)
     sessions = make_sessionmaker(engine)
@@ -115,6 +110,19 @@ def worker_main(conf: WorkerConfig, tasks: Queue[int | None], results: Queue[Wor
     sys.stdout.flush()
     sys.stderr.flush()
     os._exit(0)
+
+
+def _warmed_up_and_released(conf: WorkerConfig, stop: Event, go: Event) -> bool:
+    """Import Blender for the first render (while the parent validates and plans), then wait for `go` (held:
+    LocalPool.start(held=True)); False when the pool stopped, or the parent died, first."""
+    from services.worker.blender.threads import import_bpy
+
+    import_bpy(conf.render_threads)
+    importlib.import_module("services.worker.blender.scene")
+    while not go.wait(0.2):
+        if stop.is_set() or os.getppid() != conf.parent_pid:
+            return False
+    return True
 
 
 @dataclass

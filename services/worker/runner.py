@@ -40,7 +40,6 @@ from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
-from celery.utils.log import current_process_index
 from sqlalchemy.orm import Session
 
 from services.core.db.models import Space
@@ -56,6 +55,7 @@ from services.worker.claim import DB_RETRY_S, Claimed, Outcome, TaskLedger
 from services.worker.context import ViewContext
 from services.worker.executor import produce, render_passes_for
 from services.worker.heartbeat import Heartbeat
+from services.worker.loaded_cache import read_loaded
 from services.worker.passes import ViewPasses
 from services.worker.space_cache import SpaceCache, SpaceContext, should_recycle
 
@@ -281,10 +281,15 @@ class TaskRunner:
         def loader() -> SpaceContext:
             from services.worker.photos import painter_for
 
-            path = fetch_space(self.store, space, self.cache_dir)
-            loaded = load_space(path, **frame)
-            ctx = SpaceContext.from_loaded(loaded, key=key, device=self.render_device, threads=self.render_threads)
-            ctx.photos = painter_for(loaded, spec, refined)
+            # `omnidata generate` keeps the spaces it loaded in the run's cache folder: no second parse here
+            cached = None if spec.uses_photos() else read_loaded(self.cache_dir, space.checksum, frame)
+            if cached is not None:
+                ctx = SpaceContext.from_loaded(cached, key=key, device=self.render_device, threads=self.render_threads)
+            else:
+                path = fetch_space(self.store, space, self.cache_dir)
+                loaded = load_space(path, **frame)
+                ctx = SpaceContext.from_loaded(loaded, key=key, device=self.render_device, threads=self.render_threads)
+                ctx.photos = painter_for(loaded, spec, refined)
             ctx.curvature_dir = self.cache_dir / "curvature"  # computed once for this machine's workers
             return ctx
 
@@ -325,5 +330,9 @@ def default_worker_id(name: str | None = None) -> str:
     stays the same when Celery replaces a recycled child; `host:pid` without a name."""
     if not name:
         return f"{socket.gethostname()}:{os.getpid()}"
+    from celery.utils.log import (
+        current_process_index,  # here: a local worker of `generate` never imports Celery
+    )
+
     index = current_process_index(base=0)  # pool child 0, 1, ...; None outside a pool
     return f"{name}-{index}" if index else name

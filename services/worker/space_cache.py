@@ -28,6 +28,7 @@ from services.worker.shared_curvature import shared_curvature
 if TYPE_CHECKING:
     from services.core.ingest.loading import LoadedSpace
     from services.worker.blender.scene import BlenderScene
+    from services.worker.loaded_cache import CachedSpace
     from services.worker.photos import PhotoPainter
 
 log = logging.getLogger(__name__)
@@ -54,9 +55,10 @@ class SpaceContext:
     _scene_curvature_radius: float | None = field(default=None, repr=False)
 
     @classmethod
-    def from_loaded(cls, loaded: LoadedSpace, *, key: str | None = None, device: str = "cpu",
+    def from_loaded(cls, loaded: LoadedSpace | CachedSpace, *, key: str | None = None, device: str = "cpu",
                     threads: int | None = None) -> SpaceContext:
-        """Wrap a services.core.ingest.loading.LoadedSpace (mesh in the world frame, optional per-face labels)."""
+        """Wrap a services.core.ingest.loading.LoadedSpace (mesh in the world frame, optional per-face labels), or
+        the same read back from the run's cache (services.worker.loaded_cache)."""
         fc = getattr(loaded, "face_class", None)
         fi = getattr(loaded, "face_instance", None)
         if fc is not None and fi is None:  # class-only labels: every face its own "stuff" instance 0

@@ -147,7 +147,8 @@ def run_until_final(sessions: sessionmaker[Session], sched: Scheduler, pool: Loc
     dispatch window is wide enough that workers never wait for a tick. Between workers' messages nothing the
     tick reads changes (this run holds the only job and the only workers of its folder), so then it ticks only
     every TICK_MAX_S (a dead worker, the reaper); a message (a task's outcome, a worker ready) while the workers'
-    queue runs short, or a busy tick, brings the next tick at the rate-limited pace. Once the job is past planning, the planning step is skipped.
+    queue runs short, a worker recycling (until it is replaced) or a busy tick brings the next tick at the
+    rate-limited pace. Once the job is past planning, the planning step is skipped.
     """
     bar = bar or Progress(False)
     planned_at: float | None = None
@@ -156,6 +157,7 @@ def run_until_final(sessions: sessionmaker[Session], sched: Scheduler, pool: Loc
     quiet_until = 0.0  # ... and the latest, when no worker has reported since the last one
     changed = True
     plan = True
+    recycling = 0  # workers that said they exit (memory or task limit), not yet replaced
     while True:
         now = time.monotonic()
         if now >= next_tick and (changed or now >= quiet_until):
@@ -176,12 +178,15 @@ def run_until_final(sessions: sessionmaker[Session], sched: Scheduler, pool: Loc
                 expire_leases(sessions, dead)
             if deadline is not None and time.monotonic() > deadline:
                 raise TimeoutError(f"job {job_id} did not finish in {timeout} s")
-            changed = res.busy or plan or bool(dead)
+            recycling = max(0, recycling - len(dead))
+            changed = res.busy or plan or bool(dead) or recycling > 0
             done = time.monotonic()
             next_tick = done + (0.0 if res.busy else tick_interval(time.process_time() - cpu0))
             quiet_until = max(next_tick, done + TICK_MAX_S)
         wake = next_tick if changed else quiet_until
-        if pool.drain(max(0.0, wake - time.monotonic())) and _short_of_work(pool):
+        msgs = pool.drain(max(0.0, wake - time.monotonic()))
+        recycling += sum(1 for m in msgs if m[0] == "recycle")  # exiting: ticks at pace until it is replaced
+        if msgs and (_short_of_work(pool) or recycling):
             changed = True
 
 

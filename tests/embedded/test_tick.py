@@ -34,11 +34,13 @@ class _FakeTasks:
 class _FakePool:
     """A pool whose workers report on a script: drain(timeout) returns the messages due by then."""
 
-    def __init__(self, messages: list[float]) -> None:
+    def __init__(self, messages: list[float], kind: str = "outcome", exits_at: float | None = None) -> None:
         import time
 
         self.t0 = time.monotonic()
         self.due = sorted(messages)  # seconds after start
+        self.kind = kind
+        self.exits_at = exits_at  # a worker process found gone from then on (once)
         self.tasks = _FakeTasks()
         self.procs = [object()]
 
@@ -49,11 +51,16 @@ class _FakePool:
         while time.monotonic() < end:
             if self.due and time.monotonic() - self.t0 >= self.due[0]:
                 self.due.pop(0)
-                return [("outcome",)]
+                return [(self.kind,)]
             time.sleep(0.005)
         return []
 
-    def replace_dead(self) -> list[int]:
+    def replace_dead(self) -> list[str]:
+        import time
+
+        if self.exits_at is not None and time.monotonic() - self.t0 >= self.exits_at:
+            self.exits_at = None
+            return ["w"]
         return []
 
 
@@ -71,7 +78,8 @@ class _FakeScheduler:
         return TickResult(planned=[self.job_id] if len(self.ticks) == 1 else [])
 
 
-def _run_fake(tmp_path, messages: list[float], done_at: float, queued: int = 0):  # type: ignore[no-untyped-def]
+def _run_fake(tmp_path, messages: list[float], done_at: float, queued: int = 0,  # type: ignore[no-untyped-def]
+              **pool_kw):
     import time
 
     from services.core.db.engine import make_engine, make_sessionmaker
@@ -83,7 +91,7 @@ def _run_fake(tmp_path, messages: list[float], done_at: float, queued: int = 0):
 
     migrate(url)
     sessions = make_sessionmaker(make_engine(url))
-    pool = _FakePool(messages)
+    pool = _FakePool(messages, **pool_kw)
     pool.tasks.size = queued
     sched = _FakeScheduler(0, done_at, pool.t0)
     with sessions() as s:
@@ -127,3 +135,9 @@ def test_messages_with_a_full_queue_wait_for_the_quiet_tick(tmp_path) -> None:  
     state, ticks, _ = _run_fake(tmp_path, messages=[0.2, 0.25, 0.3, 0.35, 0.4, 0.45], done_at=1.5, queued=50)
     assert state == "done"
     assert len(ticks) <= 4  # ~ once a second, not once per outcome
+
+
+def test_a_recycling_worker_is_replaced_promptly_even_with_a_full_queue(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    state, ticks, _ = _run_fake(tmp_path, messages=[0.2], done_at=1.9, queued=50, kind="recycle", exits_at=0.35)
+    assert state == "done"
+    assert any(0.3 <= t <= 0.7 for t, _ in ticks)  # ticks at pace after the message until the worker is replaced

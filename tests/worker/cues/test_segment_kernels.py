@@ -27,11 +27,11 @@ from services.worker.cues.segmentation import (
     region_graph,
     superpixels,
 )
-from services.worker.executor import make_context, produce
+from services.worker.executor import make_context
 from services.worker.passes import ViewGeometry, ViewPasses
 from services.worker.space_cache import SpaceContext
 from tests.fixtures import reference_ncuts, reference_segmentation
-from tests.fixtures.raycast import decode_png
+from tests.worker.cues.test_equivalence import colour_from_normals
 
 pytestmark = pytest.mark.bpy  # the views are Cycles renders
 
@@ -57,13 +57,6 @@ def room_views(request: pytest.FixtureRequest, scenes_dir: Path) -> list[ViewPas
                 for v in views]
     finally:
         space.close()
-
-
-def colour_from_normals(p: ViewPasses) -> ViewPasses:
-    """The view with its rendered normal image as the colour image (ICL's colour is one grey)."""
-    normal_png = produce("normal", ViewContext(None, passes=p))
-    return ViewPasses(geometry=p.geometry, depth_z=p.depth_z, normal_world=p.normal_world,
-                      rgb=decode_png(normal_png), face_index=p.face_index)
 
 
 def test_segment_cues_are_the_numpy_versions_bit_for_bit(room_views) -> None:

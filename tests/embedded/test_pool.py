@@ -4,10 +4,15 @@
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 from services.core.settings import get_settings
 from services.embedded.job import worker_pool
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _wait_alive(pool, seconds: float = 30.0) -> None:
@@ -36,3 +41,21 @@ def test_held_workers_touch_nothing_and_stop_when_the_run_is_refused(tmp_path):
             continue
         raise AssertionError(f"worker {pid} still runs after the held pool stopped")
     assert not out.exists()
+
+
+def test_a_worker_spawned_by_a_process_that_imported_blender_still_imports_it():
+    # A spawned child inherits its parent's sys.path, Blender's script folders included once the parent imported
+    # bpy (as the test process has, or a service embedding generate): their pure-Python `bpy` package came first
+    # and the worker failed with "No module named '_bpy'".
+    import bpy  # noqa: F401  (puts Blender's script folders on this process's sys.path)
+
+    probe = ("import sys\n"
+             f"sys.path[:0] = {[p for p in sys.path if 'scripts' in p and 'bpy' in p]!r}\n"
+             "from services.worker.blender.threads import import_bpy\n"
+             "import_bpy(1)\n"
+             "import bpy\n"
+             "print(bpy.app.version_string)\n")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                         env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip()

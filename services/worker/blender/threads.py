@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 import os
 import sys
+from pathlib import Path
 
 log = logging.getLogger(__name__)
 
@@ -22,6 +23,7 @@ def import_bpy(threads: int | None) -> None:
     """Import bpy (once per process) with a TBB pool of at most `threads` threads (None: every allowed CPU)."""
     if "bpy" in sys.modules:
         return
+    _drop_inherited_script_dirs()
     cpus = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else set()
     if not threads or threads >= len(cpus):
         import bpy  # noqa: F401
@@ -32,3 +34,14 @@ def import_bpy(threads: int | None) -> None:
     finally:
         os.sched_setaffinity(0, cpus)
     log.info("bpy imported with a thread pool of %d of this process's %d CPUs", threads, len(cpus))
+
+
+def _drop_inherited_script_dirs() -> None:
+    """Blender's script folders on sys.path before bpy is imported came from a parent that had imported it (a
+    spawned child inherits its sys.path): their pure-Python `bpy` package would shadow the module itself
+    ("No module named '_bpy'"). bpy puts them back when it loads."""
+    def inherited(entry: str) -> bool:
+        parts = Path(entry).parts
+        return "bpy" in parts and "scripts" in parts[parts.index("bpy"):]
+
+    sys.path[:] = [p for p in sys.path if not inherited(p)]

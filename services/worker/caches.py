@@ -166,6 +166,10 @@ class TaskInputs:
         self.views[key] = ctx
         trim_lru(self.views, self.view_budget_bytes)
 
+    def forget_view(self, key: ViewKey) -> None:
+        """Drop a view's context (its arrays go back to the allocator for the next view's)."""
+        self.views.pop(key, None)
+
     def max_attempts(self, job_id: int, default: int) -> int:
         """The job's max_attempts when its spec was read, else `default` (the settings')."""
         info = self.jobs.get(job_id)

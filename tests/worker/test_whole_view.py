@@ -47,6 +47,7 @@ def test_the_renderer_runs_the_whole_view_in_two_claims_and_the_same_bytes(sm, b
     assert order == [c for c in closure(CUES) if c in CUES]  # inputs before the cues made from them
     # one render; every reader of the pass set ran here, so it was never stored
     assert r.renders == 1 and not banana.store.exists(out.key)
+    assert not r.inputs.views  # nothing of the view is left to run: its arrays are freed, not kept in the LRU
     assert (task(sm, out.task_id).size, task(sm, out.task_id).sha256) == (0, None)
     rows = [task(sm, tid) for tid in view0.values()]
     assert {(t.state, t.worker_id, t.attempts) for t in rows} == {("done", "w1", 1)}
@@ -90,8 +91,10 @@ def test_the_pass_set_is_stored_when_a_reader_of_it_runs_elsewhere(sm, banana):
         transition(s, job_id=job_id, task_ids=[passes], from_state="done", to_state="pending")
         s.commit()
     banana.store.delete(task(sm, passes).output_key)
-    out = runner(sm, banana, "w1").run(queue(sm, job_id, "passes", 0, 1))
+    w1 = runner(sm, banana, "w1")
+    out = w1.run(queue(sm, job_id, "passes", 0, 1))
     assert out.status == "done" and mask not in {o.task_id for o in out.batch}
+    assert len(w1.inputs.views) == 1  # a task of the view may still come here: its context is kept
     assert banana.store.exists(out.key) and task(sm, passes).size == len(banana.store.get_bytes(out.key))
     assert counters_match(sm, job_id)
 
@@ -106,8 +109,10 @@ def test_a_failure_in_the_batch_hands_its_dependents_back_to_pending(sm, banana,
         return real_make(self, t)
 
     monkeypatch.setattr(TaskRunner, "make", depth_fails)
-    out = runner(sm, banana, "w1").run(queue(sm, job_id, "passes", 0, 0))
+    w1 = runner(sm, banana, "w1")
+    out = w1.run(queue(sm, job_id, "passes", 0, 0))
     monkeypatch.undo()
+    assert len(w1.inputs.views) == 1  # the failed cue's retry may come here: the context is kept
     got = {o.cue: o.status for o in out.all()}
     assert got == {"passes": "done", "point_info": "done", "rgb": "done", "vanishing_points": "done",
                    "depth_zbuffer": "retry", "mask_valid": "skipped"}

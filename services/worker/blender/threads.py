@@ -7,10 +7,16 @@ affinity), the surplus TBB workers keep spinning in sched_yield (oneTBB issue 14
 the calling thread's CPU affinity when Blender initialises it during `import bpy`, so the import runs with the
 affinity narrowed to `threads` CPUs and the affinity is restored right after: the pool then never exceeds the
 budget, and the OS still schedules the render threads on any CPU.
+
+Blender also starts OpenEXR's global thread pool with a thread per CPU. A pass EXR is written uncompressed, so its
+512 scanline blocks have nothing worth a thread, yet each wakes one: ~800 context switches a view, 3% of the
+render task's CPU on one core. The pool is set to 0 threads after the import (OpenEXR then writes in the calling
+thread; the same bytes).
 """
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import os
 import sys
@@ -27,13 +33,44 @@ def import_bpy(threads: int | None) -> None:
     cpus = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else set()
     if not threads or threads >= len(cpus):
         import bpy  # noqa: F401
-        return
-    os.sched_setaffinity(0, set(sorted(cpus)[:threads]))
+    else:
+        os.sched_setaffinity(0, set(sorted(cpus)[:threads]))
+        try:
+            import bpy  # noqa: F401, F811
+        finally:
+            os.sched_setaffinity(0, cpus)
+        log.info("bpy imported with a thread pool of %d of this process's %d CPUs", threads, len(cpus))
+    set_exr_threads(0)
+
+
+# OpenEXR's C++ namespace carries its version (Imf_3_3 in bpy 4.5): the mangled setter, tried newest first
+_EXR_NAMESPACES = ("Imf_3_4", "Imf_3_3", "Imf_3_2")
+
+
+def blender_openexr() -> ctypes.CDLL | None:
+    """The OpenEXR library Blender loaded (under bpy's folder; not the OpenEXR wheel's copy), or None."""
     try:
-        import bpy  # noqa: F401, F811
-    finally:
-        os.sched_setaffinity(0, cpus)
-    log.info("bpy imported with a thread pool of %d of this process's %d CPUs", threads, len(cpus))
+        with open("/proc/self/maps") as maps:
+            paths = {line.split()[-1] for line in maps if "libOpenEXR.so" in line and "/bpy/" in line}
+    except OSError:  # not Linux
+        return None
+    return ctypes.CDLL(sorted(paths)[0]) if paths else None
+
+
+def set_exr_threads(n: int) -> int | None:
+    """Set Blender's OpenEXR global thread count; returns the count now in force, or None where the library
+    or its setter is not found (nothing changed: only a cost)."""
+    lib = blender_openexr()
+    for ns in _EXR_NAMESPACES if lib is not None else ():
+        try:
+            setter = getattr(lib, f"_ZN{len(ns)}{ns}20setGlobalThreadCountEi")
+            getter = getattr(lib, f"_ZN{len(ns)}{ns}17globalThreadCountEv")
+        except AttributeError:
+            continue
+        setter(ctypes.c_int(n))
+        return int(getter())
+    log.debug("Blender's OpenEXR thread pool not found: EXR writes keep its threads")
+    return None
 
 
 def _drop_inherited_script_dirs() -> None:

@@ -3,7 +3,8 @@
 The embedded default (a laptop, no services), composed from the SAME parts as the service: SQLite at
 DIR/.omnidata/state.db, a LocalStore rooted at DIR (space sources under `.omnidata/spaces`, outputs with an empty
 output root), the scheduler's planning/dispatch/reaper/completion loop in this process, and W local worker
-processes (spawned) each running the worker's TaskRunner. A multiprocessing queue replaces Redis.
+processes (forked from this one, or spawned: services.embedded.pool) each running the worker's TaskRunner. A
+multiprocessing queue replaces Redis.
 
 At the end DIR holds `<cue>/<component>/<space>/point_<p>_view_<v>_domain_<cue>.<ext>`, `manifest.jsonl` and
 `job.json`. Exit status: 0 when every requested output exists; 1 with a summary of what failed; 2 for bad input
@@ -18,17 +19,23 @@ import logging
 import sys
 from pathlib import Path
 
-from services.cli import CliError
-from services.cli.spec_args import add_spec_arguments, build_spec, check_sources, refused_summary, usable
-from services.core.db.engine import make_engine, make_sessionmaker, migrate
-from services.core.domain.jobspec import JobSpec, cues_for_space
-from services.core.ingest.errors import SpaceError
-from services.core.ingest.loading import load_space
-from services.core.ingest.registry import Source
-from services.core.settings import Settings
-from services.core.storage import LocalStore
-from services.embedded.job import STATE_DIR, drive, embedded_settings, find_spaces, prepare_job, worker_pool
-from services.embedded.pool import LocalPool, cpu_count
+from services.worker.numeric_threads import pin_numeric_threads
+
+# Before numpy loads (the imports below): the local workers forked from this process keep its BLAS, which must run
+# one thread (services.worker.numeric_threads); this process's own linear algebra is small (planning).
+pin_numeric_threads()
+
+from services.cli import CliError  # noqa: E402
+from services.cli.spec_args import add_spec_arguments, build_spec, check_sources, refused_summary, usable  # noqa: E402
+from services.core.db.engine import make_engine, make_sessionmaker, migrate  # noqa: E402
+from services.core.domain.jobspec import JobSpec, cues_for_space  # noqa: E402
+from services.core.ingest.errors import SpaceError  # noqa: E402
+from services.core.ingest.loading import load_space  # noqa: E402
+from services.core.ingest.registry import Source  # noqa: E402
+from services.core.settings import Settings  # noqa: E402
+from services.core.storage import LocalStore  # noqa: E402
+from services.embedded.job import STATE_DIR, drive, embedded_settings, find_spaces, prepare_job, worker_pool  # noqa: E402
+from services.embedded.pool import LocalPool, cpu_count  # noqa: E402
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -91,6 +91,11 @@ class Settings(BaseSettings):
         "task claims its view's queued tasks alike); false: one task per message",
     )
     worker_max_memory_mb: int = Field(4096, ge=64, description="a worker recycles above this resident size")
+    worker_start: Literal["auto", "spawn"] = Field(
+        "auto", description="how `generate` starts its local workers: auto forks the first ones from its own "
+        "process when that is safe (Linux, one thread, numeric libraries pinned, Blender not loaded), so they "
+        "inherit its imports (~1 CPU-s each), and spawns the rest and any replacement; spawn: always spawn",
+    )
     plan_memory_mb: int = Field(
         4096, ge=256, description="memory one job's planning may use (its process's limit); bigger specs are refused"
     )

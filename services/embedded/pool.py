@@ -1,5 +1,10 @@
-"""Local worker processes of `omnidata generate`: W spawned processes each running the worker's TaskRunner,
-fed task ids through a multiprocessing queue (the embedded mode's stand-in for Redis)."""
+"""Local worker processes of `omnidata generate`: W processes each running the worker's TaskRunner, fed task ids
+through a multiprocessing queue (the embedded mode's stand-in for Redis).
+
+The first workers are forked from `generate` when that is safe (start_method): they inherit its imports (numpy,
+SQLAlchemy, trimesh, pydantic, the domain: ~1 of the ~1.6 CPU-s a spawned worker spends importing) and import
+only the worker's own modules and Blender. A replacement (recycled or dead worker) is spawned: by then the parent
+has threads and open database connections, which a fork must not copy."""
 
 from __future__ import annotations
 
@@ -11,14 +16,16 @@ import queue
 import signal
 import socket
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
-from multiprocessing.context import SpawnContext, SpawnProcess
+from multiprocessing.context import ForkContext, SpawnContext
+from multiprocessing.process import BaseProcess
 from multiprocessing.queues import Queue
 from multiprocessing.synchronize import Event
 from pathlib import Path
 
-from services.worker.numeric_threads import pin_numeric_threads
+from services.worker.numeric_threads import numeric_threads_pinned, pin_numeric_threads
 
 log = logging.getLogger("omnidata.generate")
 
@@ -58,7 +65,7 @@ def worker_main(conf: WorkerConfig, tasks: Queue[int | None], results: Queue[Wor
     # period) unwinds the stack, so an in-flight write removes its temporary file.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
-    pin_numeric_threads()  # before numpy loads (the imports below): outputs must not depend on the thread count
+    pin_numeric_threads()  # before numpy loads (spawned; a forked worker's parent pinned them before it loaded numpy)
     logging.basicConfig(level=conf.log_level, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s")
     from services.core.db.engine import make_engine, make_sessionmaker
     from services.core.settings import get_settings
@@ -125,14 +132,27 @@ def _warmed_up_and_released(conf: WorkerConfig, stop: Event, go: Event) -> bool:
     return True
 
 
+def start_method(setting: str = "auto") -> str:
+    """"fork" when this process can be forked safely for a worker, else "spawn". Safe: fork exists (not Windows or
+    macOS's default), the setting allows it, only this thread runs (a lock held by another thread would stay held
+    in the child), the numeric libraries were pinned before numpy loaded (a worker's BLAS must run one thread, and
+    a forked one keeps its parent's), and Blender is not loaded (its thread pools do not survive a fork)."""
+    if setting != "auto" or "fork" not in mp.get_all_start_methods() or sys.platform == "darwin":
+        return "spawn"
+    if threading.active_count() > 1 or not numeric_threads_pinned() or "bpy" in sys.modules:
+        return "spawn"
+    return "fork"
+
+
 @dataclass
 class LocalPool:
-    """W worker processes (spawn context) fed by one task queue; dead or recycled ones are replaced."""
+    """W worker processes fed by one task queue (queues and events of the spawn context, which forked processes
+    share as well); dead or recycled ones are replaced."""
 
     size: int
     conf: WorkerConfig
     ctx: SpawnContext = field(default_factory=lambda: mp.get_context("spawn"))
-    procs: list[SpawnProcess] = field(default_factory=list)
+    procs: list[BaseProcess] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         self.tasks = self.ctx.Queue()
@@ -141,11 +161,13 @@ class LocalPool:
         self.go = self.ctx.Event()  # workers take tasks once it is set (start(held=False), or release())
         self.worker_ids: dict[int | None, str] = {}  # by pid (None only before a process starts)
         self.started = 0
+        self.method = "spawn"  # how start() started the first workers (start_method)
         self.stopped = False
 
-    def _spawn(self) -> None:
-        p = self.ctx.Process(target=worker_main, args=(self.conf, self.tasks, self.results, self.stop_event, self.go),
-                             name=f"omnidata-worker-{self.started}", daemon=False)
+    def _spawn(self, method: str = "spawn") -> None:
+        ctx: SpawnContext | ForkContext = self.ctx if method == "spawn" else mp.get_context("fork")
+        p = ctx.Process(target=worker_main, args=(self.conf, self.tasks, self.results, self.stop_event, self.go),
+                        name=f"omnidata-worker-{self.started}", daemon=False)
         p.start()
         self.started += 1
         self.worker_ids[p.pid] = f"{socket.gethostname()}:{p.pid}"
@@ -156,8 +178,9 @@ class LocalPool:
         release(): started before the job is validated and planned, that start-up overlaps the parent's work."""
         if not held:
             self.go.set()
+        self.method = start_method(str(self.conf.settings.get("worker_start", "auto")))
         for _ in range(self.size):
-            self._spawn()
+            self._spawn(self.method)
 
     def release(self) -> None:
         """Let held workers take tasks."""

@@ -32,7 +32,6 @@ from typing import Literal
 
 import bpy
 import numpy as np
-import OpenEXR
 from mathutils import Matrix
 
 from services.core.domain.camera import blender_matrix_world
@@ -261,6 +260,8 @@ def render_passes(scene: bpy.types.Scene, cam: bpy.types.Object, g: ViewGeometry
 
 def _read_openexr(path: str) -> dict[str, np.ndarray]:
     """Channel name -> H x W array with the OpenEXR module (RGBA layers come as one H x W x 4 array: split)."""
+    import OpenEXR  # the fallback of read_channels only: not loaded otherwise
+
     out = {}
     for name, ch in OpenEXR.File(path).parts[0].channels.items():
         px = ch.pixels

@@ -15,7 +15,6 @@ import zlib
 from collections.abc import Callable
 
 import numpy as np
-import OpenEXR
 from isal import isal_zlib
 
 from services.core.domain.cues import get_cue
@@ -59,9 +58,8 @@ def zlib_deflater(level: int, strategy: int = zlib.Z_DEFAULT_STRATEGY) -> Callab
 # compress, so ZIP spent 17% of a bare render's CPU (0.12 s) to save 1.2 MB; ZSTD and HTJ2K need OpenEXR >= 3.5 /
 # 3.4 (2025) to read, where an uncompressed file opens in every EXR reader. Uncompressed files are written here
 # (the bytes OpenEXR's own writer gives, without its temp file); ZIP (a job's position_compression) goes through
-# OpenEXR.
-EXR_COMPRESSION = OpenEXR.NO_COMPRESSION
-EXR_CODECS = {"none": OpenEXR.NO_COMPRESSION, "zip": OpenEXR.ZIP_COMPRESSION}  # CueParams.position_compression
+# OpenEXR, imported then only (its module costs a worker ~0.09 CPU-s to load).
+EXR_CODECS = ("none", "zip")  # CueParams.position_compression
 
 
 def encode(cue: str, value: CueValue, *, exr_compression: str = "none") -> bytes:
@@ -86,7 +84,7 @@ def encode(cue: str, value: CueValue, *, exr_compression: str = "none") -> bytes
     if spec.ext == "npy":
         return encode_npy(arr)
     if spec.ext == "exr":
-        return encode_exr_rgb(arr, EXR_CODECS[exr_compression])
+        return encode_exr_rgb(arr, exr_compression)
     raise ValueError(f"cue {cue!r}: no encoder for .{spec.ext}")
 
 
@@ -129,14 +127,19 @@ def encode_npy(arr: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-def encode_exr_rgb(arr: np.ndarray, compression: OpenEXR.Compression = EXR_COMPRESSION) -> bytes:
-    """A scanline float32 EXR with R, G, B channels of an H x W x 3 float32 array."""
+def encode_exr_rgb(arr: np.ndarray, compression: str = "none") -> bytes:
+    """A scanline float32 EXR with R, G, B channels of an H x W x 3 float32 array; `compression` one of
+    EXR_CODECS."""
     arr = np.asarray(arr)
     if arr.dtype != np.float32 or arr.ndim != 3 or arr.shape[2] != 3:
         raise ValueError(f"an RGB EXR needs an H x W x 3 float32 array, got {arr.dtype} {arr.shape}")
-    if compression == OpenEXR.NO_COMPRESSION:
+    if compression not in EXR_CODECS:
+        raise ValueError(f"EXR compression {compression!r} is not one of {', '.join(EXR_CODECS)}")
+    if compression == "none":
         return _exr_uncompressed_rgb(arr)
-    header = {"compression": compression, "type": OpenEXR.scanlineimage}
+    import OpenEXR
+
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     shm = "/dev/shm" if os.access("/dev/shm", os.W_OK) else None
     fd, path = tempfile.mkstemp(prefix=owned_prefix("exr"), suffix=".exr", dir=shm)
     os.close(fd)

@@ -184,7 +184,7 @@ class LocalPool:
         self.method = "spawn"  # how start() started the first workers (start_method)
         self.stopped = False
 
-    def _spawn(self, method: str = "spawn") -> None:
+    def _start_worker(self, method: str = "spawn") -> None:
         ctx: SpawnContext | ForkContext = self.ctx if method == "spawn" else mp.get_context("fork")
         p = ctx.Process(target=worker_main, args=(self.conf, self.tasks, self.results, self.stop_event, self.go),
                         name=f"omnidata-worker-{self.started}", daemon=False)
@@ -205,7 +205,7 @@ class LocalPool:
                     importlib.import_module(name)
             gc.freeze()  # the children's collections then leave the inherited objects (and their pages) untouched
         for _ in range(self.size):
-            self._spawn(self.method)
+            self._start_worker(self.method)
 
     def release(self) -> None:
         """Let held workers take tasks."""
@@ -219,7 +219,7 @@ class LocalPool:
                 p.join(0)
                 self.procs.remove(p)
                 gone.append(self.worker_ids.get(p.pid, f"{socket.gethostname()}:{p.pid}"))
-                self._spawn()
+                self._start_worker()  # spawned: see the module docstring
         return gone
 
     def drain(self, timeout: float) -> list[WorkerMessage]:

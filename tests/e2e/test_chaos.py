@@ -52,7 +52,11 @@ points: {{count: 4, min_views: 2, max_views: 2}}
 views: {{resolution: 32}}
 cues: [rgb, normal, depth_zbuffer, edge_texture, point_info, segment_unsup2d]
 seed: {seed}
+max_attempts: 6
 """
+# max_attempts: each fault that stops a worker mid-task costs its tasks an attempt. With 12 faults in 40 s on 3
+# workers a task can meet 3 (a CI run had one caught by two kills, then by a heartbeat cut off by a dropped Postgres
+# connection), which the default of 3 turns into a failed job. The soak tests recovery, not the attempt limit.
 BUNNY = "stanford_bunny/bun_zipper_res2.ply"
 JOBS = [("ycb_banana", 1), (BUNNY, 2), ("ycb_banana", 3), (BUNNY, 4), ("ycb_banana", 5), (BUNNY, 6)]  # (scene, seed)
 

@@ -25,8 +25,12 @@ from multiprocessing.process import BaseProcess
 from multiprocessing.queues import Queue
 from multiprocessing.synchronize import Event
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from services.worker.numeric_threads import numeric_threads_pinned, pin_numeric_threads
+
+if TYPE_CHECKING:  # imported by the worker after its hold, not here (a spawned worker imports this module first)
+    from services.worker.runner import TaskRunner
 
 log = logging.getLogger("omnidata.generate")
 
@@ -71,7 +75,6 @@ def worker_main(conf: WorkerConfig, tasks: Queue[int | None], results: Queue[Wor
     from services.core.db.engine import make_engine, make_sessionmaker
     from services.core.settings import get_settings
     from services.core.storage import LocalStore
-    from services.worker.claim import TransientError
     from services.worker.heartbeat import Heartbeat
     from services.worker.runner import TaskRunner
 
@@ -86,32 +89,8 @@ def worker_main(conf: WorkerConfig, tasks: Queue[int | None], results: Queue[Wor
     runner = TaskRunner(sessions, store, settings, worker_id, heartbeat=hb, cache_dir=Path(conf.out) / STATE_DIR / "cache")
     _freeze_long_lived()  # modules, Blender
     results.put(("ready", os.getpid(), worker_id))
-    first = True
     try:
-        while not stop.is_set():
-            if os.getppid() != conf.parent_pid:  # the parent died: do not linger as an orphan
-                break
-            try:
-                task_id = tasks.get(timeout=0.5)
-            except queue.Empty:
-                continue
-            if task_id is None:
-                break
-            try:
-                o = runner.run(int(task_id))
-            except TransientError as e:  # the database was busy for a long time: try the message again later
-                log.warning("task %s: %s", task_id, e)
-                time.sleep(1.0)
-                tasks.put(task_id)
-                continue
-            for each in o.all():  # the task of the message, then the rest of its view batch
-                results.put(("outcome", os.getpid(), each.task_id, each.status, each.cue, each.labels, each.error))
-            if first:  # the space, its plan and the compiled kernels the first view loaded
-                _freeze_long_lived()
-                first = False
-            if o.recycle:  # memory or task limit: exit, the parent starts a fresh process
-                results.put(("recycle", os.getpid(), worker_id))
-                break
+        _serve(runner, conf, tasks, results, stop, worker_id)
     finally:
         hb.stop(timeout=1.0)
         runner.close()
@@ -123,6 +102,38 @@ def worker_main(conf: WorkerConfig, tasks: Queue[int | None], results: Queue[Wor
     sys.stdout.flush()
     sys.stderr.flush()
     os._exit(0)
+
+
+def _serve(runner: TaskRunner, conf: WorkerConfig, tasks: Queue[int | None], results: Queue[WorkerMessage],
+           stop: Event, worker_id: str) -> None:
+    """Take task ids from `tasks` and run them until told to stop, the parent dies or the worker should recycle."""
+    from services.worker.claim import TransientError
+
+    first = True
+    while not stop.is_set():
+        if os.getppid() != conf.parent_pid:  # the parent died: do not linger as an orphan
+            return
+        try:
+            task_id = tasks.get(timeout=0.5)
+        except queue.Empty:
+            continue
+        if task_id is None:
+            return
+        try:
+            o = runner.run(int(task_id))
+        except TransientError as e:  # the database was busy for a long time: try the message again later
+            log.warning("task %s: %s", task_id, e)
+            time.sleep(1.0)
+            tasks.put(task_id)
+            continue
+        for each in o.all():  # the task of the message, then the rest of its view batch
+            results.put(("outcome", os.getpid(), each.task_id, each.status, each.cue, each.labels, each.error))
+        if first:  # the space, its plan and the compiled kernels the first view loaded
+            _freeze_long_lived()
+            first = False
+        if o.recycle:  # memory or task limit: exit, the parent starts a fresh process
+            results.put(("recycle", os.getpid(), worker_id))
+            return
 
 
 def _freeze_long_lived() -> None:

@@ -33,7 +33,7 @@ from tests.e2e.test_distributed import assert_exactly_once, submit_direct_togeth
 
 pytestmark = pytest.mark.slow
 
-CHAOS_S = 40.0  # seconds of fault injection: shorter than the workload, so every fault lands on pending work
+CHAOS_S = 40.0  # seconds of fault injection; the workload is topped up while it runs (TOP_UP_BELOW)
 FAULTS = ["kill_worker"] * 8 + ["kill_scheduler", "drop_postgres", "drop_redis"] * 2  # injected in random order
 SETTLE_S = 120.0  # then every job must be done within this
 N_WORKERS = 3
@@ -57,6 +57,10 @@ max_attempts: 6
 # max_attempts: each fault that stops a worker mid-task costs its tasks an attempt. With 12 faults in 40 s on 3
 # workers a task can meet 3 (a CI run had one caught by two kills, then by a heartbeat cut off by a dropped Postgres
 # connection), which the default of 3 turns into a failed job. The soak tests recovery, not the attempt limit.
+# A job is added whenever fewer than this many are unfinished before a fault, so every fault lands on pending work
+# whatever the machine's speed (the six jobs took ~80 s on a loaded host, ~22 s on an idle one: kills then found
+# every worker idle).
+TOP_UP_BELOW = 2
 BUNNY = "stanford_bunny/bun_zipper_res2.ply"
 JOBS = [("ycb_banana", 1), (BUNNY, 2), ("ycb_banana", 3), (BUNNY, 4), ("ycb_banana", 5), (BUNNY, 6)]  # (scene, seed)
 
@@ -128,8 +132,20 @@ def test_chaos_soak(bare_cluster: Cluster, scenes_dir: Path, tmp_path: Path) -> 
     schedule = FAULTS.copy()
     rng.shuffle(schedule)
     n_worker = N_WORKERS
+    top_up_seeds = iter(range(100, 200))
+
+    def unfinished() -> int:
+        with cluster.sm() as s:
+            return int(s.scalar(select(func.count()).select_from(Job).where(
+                Job.id.in_(job_ids), Job.state.not_in(["done", "failed", "cancelled"]))) or 0)
+
     for fault in schedule:  # at random moments, about CHAOS_S / len(FAULTS) apart
         time.sleep(rng.uniform(0.5, 1.5) * CHAOS_S / len(schedule))
+        if unfinished() < TOP_UP_BELOW:
+            seed = next(top_up_seeds)
+            spec = write_spec(tmp_path, SPEC.format(seed=seed), f"seed{seed}")
+            job_ids += submit_direct_together(cluster, [(scenes_dir / "ycb_banana", spec)])
+            wait(running, 120, "a topped-up job to be planned", cluster)
         if fault == "kill_worker":
             victim = rng.choice([w for w in workers if w.alive()])
             held_by_victim = kill_9(cluster, victim)

@@ -54,7 +54,7 @@ cues: [rgb, normal, depth_zbuffer, edge_texture, point_info, segment_unsup2d]
 seed: {seed}
 max_attempts: 6
 """
-# max_attempts: each fault that stops a worker mid-task costs its tasks an attempt. With 12 faults in 40 s on 3
+# max_attempts: each fault that stops a worker mid-task costs its tasks an attempt. With 14 faults in 40 s on 3
 # workers a task can meet 3 (a CI run had one caught by two kills, then by a heartbeat cut off by a dropped Postgres
 # connection), which the default of 3 turns into a failed job. The soak tests recovery, not the attempt limit.
 # A job is added whenever fewer than this many are unfinished before a fault, so every fault lands on pending work

@@ -24,14 +24,8 @@ from sqlalchemy.exc import DBAPIError, DisconnectionError, InterfaceError, Opera
 from sqlalchemy.orm import Session
 
 from services.core.db.models import Job, JobState, Task, TaskState, utcnow
-from services.core.db.states import (
-    claim_task,
-    claim_view_tasks,
-    finish_task,
-    finish_tasks,
-    task_state,
-    transition,
-)
+from services.core.db.states import transition
+from services.core.db.worker_moves import claim_task, claim_view_tasks, finish_task, finish_tasks, task_state
 from services.core.domain.cues import CATALOG, topological_order
 from services.core.storage import ObjectInfo
 from services.worker.failure_policy import HANDBACK_DELAY, count_failure, is_blocked, retry_delay
@@ -280,7 +274,7 @@ class TaskLedger:
 
         def step() -> set[int]:
             with self.sessionmaker() as s:
-                return finish_tasks(s, job_id=done[0][0].job_id, worker_id=self.worker_id, results=results,
+                return finish_tasks(s, worker_id=self.worker_id, results=results,
                                     now=utcnow())
 
         try:
@@ -316,7 +310,7 @@ class TaskLedger:
         """running -> done with the stored object's size and sha256; 'lost' when the database stays away."""
         def step() -> bool:
             with self.sessionmaker() as s:
-                return finish_task(s, task_id=t.id, job_id=t.job_id, worker_id=self.worker_id, key=key,
+                return finish_task(s, task_id=t.id, worker_id=self.worker_id, key=key,
                                    size=int(info.size), sha256=info.sha256, duration_s=float(duration), now=utcnow())
 
         try:

@@ -1,13 +1,15 @@
-"""Sharded progress counters and a worker's one-statement moves (states.claim_task / finish_task), on a real
-Postgres with concurrent connections: the counts stay exact while writers spread over shards, and a claim
-still refuses a paused job, a blocked worker and a task that is not queued; a view batch's claim and result
-(claim_view_tasks / finish_tasks, fixed statements over arrays) move exactly the rows they should."""
+"""Sharded progress counters and a worker's fixed-SQL moves (worker_moves.claim_task / finish_task), on a real
+Postgres with concurrent connections: the counts stay exact while writers spread over shards. On Postgres and on
+SQLite (the embedded default's own statements): a claim still refuses a paused job, a blocked worker and a task
+that is not queued; a view batch's claim and result (claim_view_tasks / finish_tasks) move exactly the rows they
+should, and the counters stay equal to the task rows."""
 
 from __future__ import annotations
 
 import threading
 from collections.abc import Iterator
 from datetime import timedelta
+from pathlib import Path
 
 import pytest
 from sqlalchemy import Engine, func, select
@@ -17,25 +19,30 @@ from services.core.db.bulk import bulk_insert
 from services.core.db.counters import add_counts, job_progress
 from services.core.db.engine import make_engine, make_sessionmaker, migrate
 from services.core.db.models import Job, JobCounter, Task, WorkerBlock, utcnow
-from services.core.db.states import (
-    claim_task,
-    claim_view_tasks,
-    finish_task,
-    finish_tasks,
-    task_state,
-    transition,
-)
+from services.core.db.states import transition
+from services.core.db.worker_moves import claim_task, claim_view_tasks, finish_task, finish_tasks, task_state
 from services.worker.tasks import worker_engine
 
 CUES = ["rgb", "normal", "depth_zbuffer"]
 
 
-@pytest.fixture()
-def engine(empty_pg_url: str) -> Iterator[Engine]:
-    migrate(empty_pg_url)
-    eng = make_engine(empty_pg_url)
+def _migrated(url: str) -> Iterator[Engine]:
+    migrate(url)
+    eng = make_engine(url)
     yield eng
     eng.dispose()
+
+
+@pytest.fixture()
+def engine(empty_pg_url: str) -> Iterator[Engine]:
+    yield from _migrated(empty_pg_url)
+
+
+@pytest.fixture(params=["postgres", "sqlite"])
+def any_engine(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Engine]:
+    """Postgres (one statement a move) and SQLite (an UPDATE ... RETURNING and the counter upserts)."""
+    url = request.getfixturevalue("empty_pg_url") if request.param == "postgres" else f"sqlite:///{tmp_path / 'm.db'}"
+    yield from _migrated(url)
 
 
 def _queued_job(session: Session, n_views: int) -> int:
@@ -83,7 +90,7 @@ def test_concurrent_workers_keep_counters_exact_across_shards(engine: Engine) ->
                 claimed.append(tid)
             if tid % 2 == 0:  # half finish, half stay running
                 with wsm() as s:
-                    assert finish_task(s, task_id=tid, job_id=job_id, worker_id=f"w{k}", key=f"k{tid}", size=1,
+                    assert finish_task(s, task_id=tid, worker_id=f"w{k}", key=f"k{tid}", size=1,
                                        sha256="0" * 64, duration_s=0.01, now=utcnow())
 
     threads = [threading.Thread(target=worker, args=(k,)) for k in range(8)]
@@ -101,7 +108,7 @@ def test_concurrent_workers_keep_counters_exact_across_shards(engine: Engine) ->
         # a finish by a worker that does not hold the task moves nothing
         running = s.scalar(select(Task).where(Task.job_id == job_id, Task.state == "running").limit(1))
         assert running is not None
-        assert not finish_task(s, task_id=running.id, job_id=job_id, worker_id="someone-else", key="x", size=1,
+        assert not finish_task(s, task_id=running.id, worker_id="someone-else", key="x", size=1,
                                sha256="0" * 64, duration_s=0.0, now=utcnow())
         # and a transition through the generic path lands in the same sums
         transition(s, job_id=job_id, from_state="running", to_state="pending", task_ids=[running.id])
@@ -109,8 +116,8 @@ def test_concurrent_workers_keep_counters_exact_across_shards(engine: Engine) ->
         assert job_progress(s, job_id) == _truth(s, job_id)
 
 
-def test_claim_refuses_paused_jobs_blocked_workers_and_tasks_not_queued(engine: Engine) -> None:
-    sm = make_sessionmaker(engine)
+def test_claim_refuses_paused_jobs_blocked_workers_and_tasks_not_queued(any_engine: Engine) -> None:
+    sm = make_sessionmaker(any_engine)
     with sm() as s:
         job_id = _queued_job(s, 3)
         a, b, c = list(s.scalars(select(Task.id).where(Task.job_id == job_id, Task.cue == "rgb").order_by(Task.id)))
@@ -123,7 +130,10 @@ def test_claim_refuses_paused_jobs_blocked_workers_and_tasks_not_queued(engine: 
     with sm() as s:
         row = claim_task(s, task_id=a, worker_id="good", now=now, lease_until=lease)
         assert row is not None and (row.id, row.cue, row.job_id, row.attempts) == (a, "rgb", job_id, 1)
-    with sm() as s:
+    with sm() as s:  # the times read back through the ORM as written (SQLite: the same text SQLAlchemy stores)
+        claimed = s.get(Task, a)
+        assert claimed is not None and (claimed.started_at, claimed.lease_until) == (now, lease)
+        assert s.scalar(select(func.count()).where(Task.id == a, Task.lease_until > now)) == 1
         assert claim_task(s, task_id=a, worker_id="other", now=now, lease_until=lease) is None  # not queued any more
         job = s.get(Job, job_id)
         assert job is not None
@@ -135,8 +145,8 @@ def test_claim_refuses_paused_jobs_blocked_workers_and_tasks_not_queued(engine: 
         assert job_progress(s, job_id) == _truth(s, job_id)
 
 
-def test_view_batch_claim_and_result_move_only_their_rows_and_keep_counters_exact(engine: Engine) -> None:
-    sm = make_sessionmaker(engine)
+def test_view_batch_claim_and_result_move_only_their_rows_and_keep_counters_exact(any_engine: Engine) -> None:
+    sm = make_sessionmaker(any_engine)
     with sm() as s:
         job_id = _queued_job(s, 2)
         ids = {(int(p), str(c)): int(i) for i, p, c in s.execute(
@@ -161,8 +171,8 @@ def test_view_batch_claim_and_result_move_only_their_rows_and_keep_counters_exac
         mine = [ids[(0, c)] for c in CUES]
         results = [(tid, f"k{tid}", 10 + k, None if k == 1 else f"{k:064x}", 0.5 * k) for k, tid in enumerate(mine)]
         not_mine = (ids[(1, "rgb")], "stray", 1, None, 0.0)  # queued, not held by "w": left alone
-        assert finish_tasks(s, job_id=job_id, worker_id="other", results=results, now=now) == set()
-        assert finish_tasks(s, job_id=job_id, worker_id="w", results=[*results, not_mine], now=now) == set(mine)
+        assert finish_tasks(s, worker_id="other", results=results, now=now) == set()
+        assert finish_tasks(s, worker_id="w", results=[*results, not_mine], now=now) == set(mine)
         got = {int(r.id): (r.state, r.output_key, r.size, r.sha256, r.duration_s)
                for r in s.execute(select(Task).where(Task.job_id == job_id)).scalars()}
         for tid, key, size, sha, dur in results:

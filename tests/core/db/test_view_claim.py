@@ -19,7 +19,8 @@ from services.core.db.bulk import bulk_insert
 from services.core.db.counters import add_counts, job_progress
 from services.core.db.engine import make_engine, make_sessionmaker, migrate
 from services.core.db.models import Job, Task, WorkerBlock, utcnow
-from services.core.db.states import TASK_EDGES, TaskState, claim_view_tasks, transition
+from services.core.db.states import TASK_EDGES, TaskState, transition
+from services.core.db.worker_moves import claim_view_tasks
 from services.worker.tasks import worker_engine
 
 # one view: passes (running, ours) and its cues in the states a real view has after its render

@@ -25,7 +25,7 @@ from multiprocessing.process import BaseProcess
 from multiprocessing.queues import Queue
 from multiprocessing.synchronize import Event
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NoReturn
 
 from services.worker.numeric_threads import numeric_threads_pinned, pin_numeric_threads
 
@@ -66,10 +66,12 @@ def worker_main(conf: WorkerConfig, tasks: Queue[int | None], results: Queue[Wor
                 go: Event) -> None:
     """Body of a local worker process: import what a task needs (Blender included), wait for `go`, then take task
     ids from `tasks`, run them and report outcomes on `results`. Nothing touches the state or --out before `go`."""
-    # Ctrl-C reaches the whole process group: the parent decides when workers stop. SIGTERM (after the grace
-    # period) unwinds the stack, so an in-flight write removes its temporary file.
+    # Ctrl-C reaches the whole process group: the parent decides when workers stop. Held, a worker has written
+    # nothing, so SIGTERM ends it at once: a SystemExit raised while Blender's start-up runs Python from C would
+    # reach PyErr_Print, which exits through Blender's C++ destructors (its leak report on the user's terminal,
+    # and at times a deadlock in them that only the parent's kill ends).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
+    signal.signal(signal.SIGTERM, lambda *_: _exit_quietly(143))
     pin_numeric_threads()  # before numpy loads (spawned; a forked worker's parent pinned them before it loaded numpy)
     logging.basicConfig(level=conf.log_level, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s")
     from services.core.db.engine import make_engine, make_sessionmaker
@@ -79,7 +81,10 @@ def worker_main(conf: WorkerConfig, tasks: Queue[int | None], results: Queue[Wor
     from services.worker.runner import TaskRunner
 
     if not _warmed_up_and_released(conf, stop, go):
-        return
+        _exit_quietly(0)
+    # Released: SIGTERM (after the stop's grace period) unwinds the stack, so an in-flight write removes its
+    # temporary file.
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     settings = get_settings(**{**conf.settings, "render_threads": conf.render_threads})
     engine = make_engine(settings.database_url)
     sessions = make_sessionmaker(engine)
@@ -97,11 +102,15 @@ def worker_main(conf: WorkerConfig, tasks: Queue[int | None], results: Queue[Wor
         engine.dispose()
         results.close()
         results.join_thread()  # our messages are flushed before we leave
-    # Skip interpreter teardown: Blender's static destructors only print noise ("Freeing memory after the
-    # leak detector has run") and nothing is left to flush.
+    _exit_quietly(0)
+
+
+def _exit_quietly(code: int) -> NoReturn:
+    """Leave without interpreter teardown: Blender's static destructors only print noise ("Freeing memory after
+    the leak detector has run") and nothing is left to flush but the standard streams."""
     sys.stdout.flush()
     sys.stderr.flush()
-    os._exit(0)
+    os._exit(code)
 
 
 def _serve(runner: TaskRunner, conf: WorkerConfig, tasks: Queue[int | None], results: Queue[WorkerMessage],
@@ -149,6 +158,8 @@ def _warmed_up_and_released(conf: WorkerConfig, stop: Event, go: Event) -> bool:
     LocalPool.start(held=True)); False when the pool stopped, or the parent died, first."""
     from services.worker.blender.threads import import_bpy
 
+    if stop.is_set():  # stopped before it began (a finished job resumed): no Blender to load
+        return False
     import_bpy(conf.render_threads)
     importlib.import_module("services.worker.blender.scene")
     while not go.wait(0.2):

@@ -59,3 +59,36 @@ def test_a_worker_spawned_by_a_process_that_imported_blender_still_imports_it():
                          env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip()
+
+
+HELD_STOP_PROBE = """
+import sys, time
+from pathlib import Path
+from services.core.settings import get_settings
+from services.embedded.job import worker_pool
+
+tmp = Path(sys.argv[1])
+pool = worker_pool(tmp / "out", get_settings(database_url=f"sqlite:///{tmp / 'state.db'}"), 1)
+pool.start(held=True)
+proc = pool.procs[0]
+maps = Path(f"/proc/{proc.pid}/maps")
+deadline = time.monotonic() + 60
+while "bpy/__init__" not in maps.read_text() and time.monotonic() < deadline:  # Blender's library is loading
+    time.sleep(0.002)
+time.sleep(float(sys.argv[2]))
+pool.stop()
+print(proc.exitcode)
+"""
+
+
+def test_a_held_worker_stopped_while_it_loads_blender_exits_at_once_and_quietly(tmp_path):
+    # A finished job resumed stops its held workers as they load Blender. SIGTERM used to raise SystemExit inside
+    # Blender's start-up scripts, run from C: PyErr_Print then exited through Blender's C++ destructors, which
+    # printed their leak report on the user's terminal, or deadlocked until the pool's kill 3 s later.
+    for delay in (0.0, 0.05, 0.15, 0.3):
+        run = subprocess.run([sys.executable, "-c", HELD_STOP_PROBE, str(tmp_path), str(delay)], capture_output=True,
+                             text=True, timeout=120, env={**os.environ, "PYTHONPATH": str(ROOT)})
+        assert run.returncode == 0, run.stderr[-2000:]
+        assert run.stdout.split()[-1] in ("0", "143"), (delay, run.stdout, run.stderr[-2000:])  # not killed (-9)
+        assert "leak detector" not in run.stderr and "Not freed memory" not in run.stderr, (delay, run.stderr[-2000:])
+    assert not (tmp_path / "out").exists()

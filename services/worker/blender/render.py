@@ -35,6 +35,7 @@ import numpy as np
 from mathutils import Matrix
 
 from services.core.domain.camera import blender_matrix_world
+from services.worker.blender.calls import in_blender
 from services.worker.blender.decode import (  # srgb_encode: the reference formula, imported from here before
     curvature_pair,
     faces_hit,
@@ -233,7 +234,7 @@ def render_floor(scene: bpy.types.Scene, cam: bpy.types.Object, g: ViewGeometry)
     """Seconds of one render of `scene` from view `g`, nothing written (the bare-render floor of the benchmarks)."""
     set_camera(scene, cam, g)
     t0 = time.perf_counter()
-    with _quiet_stdout():
+    with in_blender(), _quiet_stdout():
         bpy.ops.render.render(write_still=False, scene=scene.name)
     return time.perf_counter() - t0
 
@@ -248,7 +249,7 @@ def render_passes(scene: bpy.types.Scene, cam: bpy.types.Object, g: ViewGeometry
     """
     set_camera(scene, cam, g)
     t0 = time.perf_counter()
-    with _quiet_stdout():
+    with in_blender(), _quiet_stdout():
         bpy.ops.render.render(write_still=True, scene=scene.name)
     t1 = time.perf_counter()
     channels = read_channels(scene.render.filepath) or _read_openexr(scene.render.filepath)

@@ -1,6 +1,6 @@
-"""A whole-view batch claim (states.claim_view_tasks with_pending=True, issue 20/23): after its render, one
-statement moves the rest of a view from pending AND queued to running, on a real Postgres (a fixed statement
-whose counter deltas subtract each row's own old state) and on SQLite (the transition path). The counter shards
+"""A whole-view batch claim (worker_moves.claim_view_tasks with_pending=True, issue 20/23): after its render, the
+rest of a view moves from pending AND queued to running, on a real Postgres (one fixed statement whose counter
+deltas subtract each row's own old state) and on SQLite (an UPDATE per source state, then the counters). The counter shards
 must still sum to the task rows; the claim must respect a paused job, a blocked worker, a failed task of the
 view and rows of other views; concurrent claims of the same view take each task once."""
 

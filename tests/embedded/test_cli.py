@@ -57,12 +57,12 @@ def done_tasks(out: Path) -> int:
         return 0
 
 
-def wait_for(cond, timeout: float, proc: subprocess.Popen[str]) -> None:
+def wait_for(cond, timeout: float, proc: subprocess.Popen[str], poll_s: float = 0.2) -> None:
     deadline = time.monotonic() + timeout
     while not cond():
         assert proc.poll() is None, f"generate ended early: {proc.communicate()}"
         assert time.monotonic() < deadline, "timed out waiting for progress"
-        time.sleep(0.2)
+        time.sleep(poll_s)
 
 
 def stray_temp_files(out: Path) -> list[Path]:
@@ -152,8 +152,9 @@ def test_same_seed_gives_identical_bytes_and_a_rerun_renders_nothing(banana_run,
 @pytest.mark.slow
 def test_ctrl_c_then_kill_then_resume_renders_only_what_is_missing(scenes_dir, tmp_path):
     spec = tmp_path / "job.yaml"
-    # big enough that the interrupts below land mid-run however fast the renders are
-    points = 12
+    # big enough that the interrupts below land mid-run however fast the renders are (a whole view is claimed and
+    # recorded at once: with 12 points, what step 1 left finished between two polls of the kill below on a fast host)
+    points = 30
     spec.write_text(f"cameras: {{mode: object, object_count: 8}}\npoints: {{count: {points}, min_views: 3, max_views: 3}}\n"
                     "views: {resolution: 96}\n")
     out = tmp_path / "out"
@@ -176,7 +177,7 @@ def test_ctrl_c_then_kill_then_resume_renders_only_what_is_missing(scenes_dir, t
     # 2. kill -9 of everything mid-run (a crash): leaves running/queued tasks behind.
     proc = start_generate(*args)
     before = done_tasks(out)
-    wait_for(lambda: done_tasks(out) >= before + 3, 240, proc)
+    wait_for(lambda: done_tasks(out) >= before + 3, 240, proc, poll_s=0.02)
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait(timeout=30)
     time.sleep(0.5)

@@ -71,7 +71,9 @@ def _run(scenes_dir: Path, out: Path, spec: Path, start: str) -> tuple[list[str]
     proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env={**os.environ, "OMNIDATA_WORKER_START": start, "PYTHONPATH": str(REPO)})
     seen: list[str] = []
-    while proc.poll() is None and len(seen) < 2:  # held workers start at once, before the job exists
+    # Held workers start at once, before the job exists. A spawned child shows its parent's command line until its
+    # exec: wait for the spawned ones' own.
+    while proc.poll() is None and (len(seen) < 2 or start == "spawn" and not all("spawn_main" in c for c in seen)):
         seen = _worker_cmdlines(proc.pid)
         time.sleep(0.02)
     _, err = proc.communicate(timeout=300)

@@ -27,7 +27,7 @@ from multiprocessing.synchronize import Event
 from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn
 
-from services.worker.blender.calls import inside_blender
+from services.worker.blender.calls import exit_at_once_inside_blender
 from services.worker.numeric_threads import numeric_threads_pinned, pin_numeric_threads
 
 if TYPE_CHECKING:  # imported by the worker after its hold, not here (a spawned worker imports this module first)
@@ -83,7 +83,10 @@ def worker_main(conf: WorkerConfig, tasks: Queue[int | None], results: Queue[Wor
 
     if not _warmed_up_and_released(conf, stop, go):
         _exit_quietly(0)
-    signal.signal(signal.SIGTERM, _on_sigterm_released)
+    # Released: SIGTERM (after the stop's grace period) unwinds the stack, so an in-flight write removes its
+    # temporary file; inside a render it ends the worker at once (services.worker.blender.calls).
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
+    exit_at_once_inside_blender(signal.SIGTERM)
     settings = get_settings(**{**conf.settings, "render_threads": conf.render_threads})
     engine = make_engine(settings.database_url)
     sessions = make_sessionmaker(engine)
@@ -102,15 +105,6 @@ def worker_main(conf: WorkerConfig, tasks: Queue[int | None], results: Queue[Wor
         results.close()
         results.join_thread()  # our messages are flushed before we leave
     _exit_quietly(0)
-
-
-def _on_sigterm_released(*_: object) -> None:
-    """SIGTERM (after the stop's grace period) to a released worker: unwind the stack, so an in-flight write removes
-    its temporary file; inside a render, end at once (services.worker.blender.calls: raised there, the exit would
-    go through Blender's C++ teardown)."""
-    if inside_blender():
-        _exit_quietly(143)
-    sys.exit(143)
 
 
 def _exit_quietly(code: int) -> NoReturn:

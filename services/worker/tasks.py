@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
 import threading
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -143,6 +144,19 @@ def _shutdown_child(**_: object) -> None:
         _runtime = None
 
 
+def guard_renders_from_sigterm() -> None:
+    """In a prefork child, billiard's SIGTERM handler (installed after worker_process_init, hence here) raises
+    SystemExit; raised inside a render it would exit through Blender's C++ teardown and hang
+    (services.worker.blender.calls), so there the child ends at once instead. Another pool's handler stays as it
+    is: the solo pool's warm shutdown lets the running task finish."""
+    from billiard.common import _shutdown_cleanup  # the child's handler (billiard.pool.Worker.after_fork)
+
+    from services.worker.blender.calls import exit_at_once_inside_blender
+
+    if signal.getsignal(signal.SIGTERM) is _shutdown_cleanup:
+        exit_at_once_inside_blender(signal.SIGTERM)
+
+
 def _task_id(payload: object) -> int | None:
     if isinstance(payload, bool):
         return None
@@ -163,6 +177,7 @@ def render_cue(self: CeleryTask, task_id: object) -> str:
     if tid is None:  # a malformed message can never succeed: drop it (acked), do not retry
         log.error("render.cue: invalid task id %r; message dropped", task_id)
         return "invalid"
+    guard_renders_from_sigterm()
     try:
         outcome = get_runtime(self.app).runner.run(tid)
     except TransientError as exc:

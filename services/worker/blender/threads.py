@@ -22,6 +22,8 @@ import os
 import sys
 from pathlib import Path
 
+from services.worker.blender.calls import in_blender
+
 log = logging.getLogger(__name__)
 
 
@@ -31,15 +33,16 @@ def import_bpy(threads: int | None) -> None:
         return
     _drop_inherited_script_dirs()
     cpus = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else set()
-    if not threads or threads >= len(cpus):
-        import bpy  # noqa: F401
-    else:
-        os.sched_setaffinity(0, set(sorted(cpus)[:threads]))
-        try:
-            import bpy  # noqa: F401, F811
-        finally:
-            os.sched_setaffinity(0, cpus)
-        log.info("bpy imported with a thread pool of %d of this process's %d CPUs", threads, len(cpus))
+    with in_blender():  # Blender's start-up runs its Python scripts from C (services.worker.blender.calls)
+        if not threads or threads >= len(cpus):
+            import bpy  # noqa: F401
+        else:
+            os.sched_setaffinity(0, set(sorted(cpus)[:threads]))
+            try:
+                import bpy  # noqa: F401, F811
+            finally:
+                os.sched_setaffinity(0, cpus)
+            log.info("bpy imported with a thread pool of %d of this process's %d CPUs", threads, len(cpus))
     set_exr_threads(0)
 
 

@@ -1,5 +1,6 @@
-"""A worker told to stop (SIGTERM) while it renders ends at once and quietly (services.worker.blender.calls): the
-embedded pool's released worker, and a Celery prefork child under billiard's handler. Raised inside Blender's
+"""A worker told to stop (SIGTERM) while it renders or loads Blender ends at once and quietly
+(services.worker.blender.calls): the embedded pool's released worker, and a Celery prefork child under billiard's
+handler. Raised inside Blender's
 render, a handler's SystemExit reached PyErr_Print, which exited through Blender's C++ destructors: their leak
 report on the user's terminal, then a deadlock that only a kill ended."""
 
@@ -17,30 +18,38 @@ ROOT = Path(__file__).resolve().parents[3]
 pytestmark = pytest.mark.bpy
 
 # Renders the banana in a loop, as a worker's main thread does, with the SIGTERM handling of argv[3]; a timer
-# thread sends SIGTERM after argv[2] seconds. A SystemExit that unwinds to here leaves as the worker process would
-# (multiprocessing and billiard end it with os._exit).
+# thread sends SIGTERM argv[2] seconds after that handling is in place: before Blender's import for
+# "celery-import" (a Celery child loads Blender in its first task), else before the renders. A SystemExit that
+# unwinds to here leaves as the worker process would (multiprocessing and billiard end it with os._exit).
 PROBE = r"""
 import os, signal, sys, threading
-from services.worker.blender.threads import import_bpy
-import_bpy(1)
-from services.core.ingest.loading import load_space
-from services.worker.space_cache import SpaceContext
-from tests.fixtures.raycast import object_view
-space = SpaceContext.from_loaded(load_space(sys.argv[1]), key="probe")
-scene = space.scene()
-g = object_view(space.mesh, [0.3, -0.5, 1.0], 384)
-scene.render(g)
-if sys.argv[3] == "embedded":  # what worker_main installs once released
-    from services.worker.blender.calls import exit_at_once_inside_blender
-    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
-    exit_at_once_inside_blender(signal.SIGTERM)
-else:  # a Celery prefork child: billiard's handler, then what the render task adds
-    from billiard.common import reset_signals
-    from services.worker.tasks import guard_renders_from_sigterm
-    reset_signals()
-    guard_renders_from_sigterm()
-threading.Timer(float(sys.argv[2]), lambda: os.kill(os.getpid(), signal.SIGTERM)).start()
+
+def stop_soon():
+    if sys.argv[3] == "embedded":  # what worker_main installs once released
+        from services.worker.blender.calls import exit_at_once_inside_blender
+        signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
+        exit_at_once_inside_blender(signal.SIGTERM)
+    else:  # a Celery prefork child: billiard's handler, then what the render task adds
+        from billiard.common import reset_signals
+        from services.worker.tasks import guard_renders_from_sigterm
+        reset_signals()
+        guard_renders_from_sigterm()
+    threading.Timer(float(sys.argv[2]), lambda: os.kill(os.getpid(), signal.SIGTERM)).start()
+
 try:
+    if sys.argv[3] == "celery-import":
+        stop_soon()
+    from services.worker.blender.threads import import_bpy
+    import_bpy(1)
+    from services.core.ingest.loading import load_space
+    from services.worker.space_cache import SpaceContext
+    from tests.fixtures.raycast import object_view
+    space = SpaceContext.from_loaded(load_space(sys.argv[1]), key="probe")
+    scene = space.scene()
+    g = object_view(space.mesh, [0.3, -0.5, 1.0], 384)
+    scene.render(g)
+    if sys.argv[3] != "celery-import":
+        stop_soon()
     for _ in range(1000):
         scene.render(g)
 except SystemExit as e:
@@ -49,12 +58,15 @@ except SystemExit as e:
 print("not stopped")
 """
 
+# exit codes: 143 (128 + SIGTERM) ended inside Blender; billiard's own exit, -(256 - 15), is 15 elsewhere
+CASES = [("embedded", (0.3, 0.5, 0.8), {143}), ("celery", (0.3, 0.5, 0.8), {143, 15}),
+         ("celery-import", (0.05, 0.1, 0.2), {143, 15})]
 
-@pytest.mark.parametrize(("kind", "codes"), [("embedded", {143}), ("celery", {143, 15})])
-def test_sigterm_during_renders_ends_the_worker_at_once_and_quietly(banana_path: Path, kind: str,
-                                                                    codes: set[int]) -> None:
-    # exit codes: 143 (128 + SIGTERM) ended inside a render; billiard's own exit, -(256 - 15), is 15 elsewhere
-    for delay in (0.3, 0.5, 0.8):
+
+@pytest.mark.parametrize(("kind", "delays", "codes"), CASES, ids=[c[0] for c in CASES])
+def test_sigterm_inside_blender_ends_the_worker_at_once_and_quietly(banana_path: Path, kind: str,
+                                                                    delays: tuple[float, ...], codes: set[int]) -> None:
+    for delay in delays:
         run = subprocess.run([sys.executable, "-c", PROBE, str(banana_path), str(delay), kind], capture_output=True,
                              text=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=60)
         assert run.returncode in codes, (delay, run.returncode, run.stdout[-500:], run.stderr[-2000:])

@@ -19,6 +19,14 @@ TOKEN_BYTES = 32  # 256 bits of randomness, 43 URL-safe characters
 TENANT_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._@-]{0,127}$")
 
 
+def new_token() -> str:
+    """A random URL-safe token that does not start with '-': `--token -x...` would read as an option on a command
+    line (argparse: "expected one argument"), and one token in 64 began so."""
+    while (token := secrets.token_urlsafe(TOKEN_BYTES)).startswith("-"):
+        pass
+    return token
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `omnidata token`."""
     sub = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
@@ -36,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"--tenant {args.tenant!r}: use 1-128 letters, digits, '.', '_', '@' or '-', "
                        "starting with a letter or digit")
     settings = load_settings()  # the current entries, so the printed line keeps them
-    token = secrets.token_urlsafe(TOKEN_BYTES)
+    token = new_token()
     digest = hash_token(token)
     if args.operator:
         variable, value = "OMNIDATA_OPERATOR_TOKENS", json.dumps([*settings.operator_tokens, digest])

@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 
 from services.cli import main
+from services.cli.main import build_parser
 from services.core.db.engine import make_engine, schema_problem
 from services.core.settings import Settings, get_settings, hash_token
 from tests.conftest import REPO_ROOT
@@ -125,3 +126,19 @@ def test_a_database_from_newer_code_is_refused_not_downgraded(
     assert main(["migrate"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("omnidata migrate: error: cannot migrate the database: ") and "\n" not in err
+
+
+def test_a_new_token_never_starts_with_a_dash(monkeypatch: pytest.MonkeyPatch) -> None:
+    # `--token -x...` reads as an option (argparse: "expected one argument"): a token drawn so is drawn again
+    from services.cli import token_create
+
+    draws = iter(["-starts-with-a-dash", "_fine-token"])
+    monkeypatch.setattr(token_create.secrets, "token_urlsafe", lambda _n: next(draws))
+    assert token_create.new_token() == "_fine-token"
+    monkeypatch.undo()
+    token = token_create.new_token()
+    argv = ["submit", "--spec", "job.yaml", "--token", "-" + token, "space.obj"]
+    with pytest.raises(SystemExit):  # what a token starting with '-' did
+        build_parser(argv).parse_args(argv)
+    argv[4] = token
+    assert build_parser(argv).parse_args(argv).token == token

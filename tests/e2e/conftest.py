@@ -23,6 +23,7 @@ import redis
 from sqlalchemy import Engine, text
 from sqlalchemy.orm import Session, sessionmaker
 
+from services.cli.token_create import new_token
 from services.core.db.engine import make_engine, make_sessionmaker, migrate
 from services.core.settings import Settings, hash_token
 from services.core.storage import ObjectStore, open_store
@@ -199,7 +200,7 @@ def bare_cluster(deployment: dict[str, Any], s3_server: S3Server, tmp_path: Path
                  request: pytest.FixtureRequest) -> Iterator[Cluster]:
     """The deployment's environment with no process started yet (for tests that start theirs with other settings);
     every process started on it is stopped after the test."""
-    token = secrets.token_urlsafe(24)
+    token = new_token()  # as `omnidata token create` makes them: never starting with '-'
     url, prefix = deployment["pg_url"], deployment["prefix"]
     env = {k: v for k, v in os.environ.items() if not k.startswith("OMNIDATA_")}
     env.update(s3_server.env)

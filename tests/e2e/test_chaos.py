@@ -83,7 +83,11 @@ def kill_9(cluster: Cluster, proc: Proc, patience_s: float = 3.0) -> list[int]:
         os.killpg(proc.popen.pid, signal.SIGCONT)
         time.sleep(0.05)
     proc.stop(signal.SIGKILL)
-    return held
+    # A result the worker sent just before it froze still lands (its statement runs on in Postgres): such a task is
+    # done, not orphaned. The tasks it left running are the ones the recovery must rerun.
+    time.sleep(0.5)
+    still = set(held_tasks(cluster, proc))
+    return [t for t in held if t in still]
 
 
 def unacked_queued(cluster: Cluster) -> list[int]:

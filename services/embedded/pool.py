@@ -19,6 +19,7 @@ import socket
 import sys
 import threading
 import time
+import traceback
 from dataclasses import dataclass, field
 from multiprocessing.context import ForkContext, SpawnContext
 from multiprocessing.process import BaseProcess
@@ -67,12 +68,27 @@ def worker_main(conf: WorkerConfig, tasks: Queue[int | None], results: Queue[Wor
                 go: Event) -> None:
     """Body of a local worker process: import what a task needs (Blender included), wait for `go`, then take task
     ids from `tasks`, run them and report outcomes on `results`. Nothing touches the state or --out before `go`."""
-    # Ctrl-C reaches the whole process group: the parent decides when workers stop. Held, a worker has written
-    # nothing, so SIGTERM ends it at once: a SystemExit raised while Blender's start-up runs Python from C would
-    # reach PyErr_Print, which exits through Blender's C++ destructors (its leak report on the user's terminal,
-    # and at times a deadlock in them that only the parent's kill ends).
+    # Ctrl-C reaches the whole process group: the parent decides when workers stop. SIGTERM (a held worker stopped,
+    # or the stop's grace period over) unwinds the stack, so an in-flight write removes its temporary file; inside
+    # Blender (loading, rendering) it ends the worker at once (services.worker.blender.calls). Either way the
+    # worker leaves without interpreter teardown, which a spawned worker would otherwise run.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, lambda *_: _exit_quietly(143))
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
+    exit_at_once_inside_blender(signal.SIGTERM)
+    code = 0
+    try:
+        _work(conf, tasks, results, stop, go)
+    except SystemExit as e:
+        code = e.code if isinstance(e.code, int) else 1
+    except Exception:
+        traceback.print_exc()
+        code = 1
+    _exit_quietly(code)
+
+
+def _work(conf: WorkerConfig, tasks: Queue[int | None], results: Queue[WorkerMessage], stop: Event,
+          go: Event) -> None:
+    """worker_main's work: warm up held, then serve tasks once released (returns when stopped or recycling)."""
     pin_numeric_threads()  # before numpy loads (spawned; a forked worker's parent pinned them before it loaded numpy)
     logging.basicConfig(level=conf.log_level, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s")
     from services.core.db.engine import make_engine, make_sessionmaker
@@ -82,11 +98,7 @@ def worker_main(conf: WorkerConfig, tasks: Queue[int | None], results: Queue[Wor
     from services.worker.runner import TaskRunner
 
     if not _warmed_up_and_released(conf, stop, go):
-        _exit_quietly(0)
-    # Released: SIGTERM (after the stop's grace period) unwinds the stack, so an in-flight write removes its
-    # temporary file; inside a render it ends the worker at once (services.worker.blender.calls).
-    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
-    exit_at_once_inside_blender(signal.SIGTERM)
+        return
     settings = get_settings(**{**conf.settings, "render_threads": conf.render_threads})
     engine = make_engine(settings.database_url)
     sessions = make_sessionmaker(engine)
@@ -104,7 +116,6 @@ def worker_main(conf: WorkerConfig, tasks: Queue[int | None], results: Queue[Wor
         engine.dispose()
         results.close()
         results.join_thread()  # our messages are flushed before we leave
-    _exit_quietly(0)
 
 
 def _exit_quietly(code: int) -> NoReturn:

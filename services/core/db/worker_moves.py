@@ -12,15 +12,18 @@ Each takes only task edges of states.TASK_EDGES (checked at import) and keeps th
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from datetime import UTC, datetime
+import functools
+from collections import Counter
+from collections.abc import Callable, Sequence
+from datetime import datetime
 from typing import Any
 
-from sqlalchemy.engine import Connection
+from sqlalchemy.engine import Connection, Dialect
 from sqlalchemy.orm import Session
 
 from services.core.db.bulk import connection_of
 from services.core.db.counters import COUNTER_SHARDS, add_counts
+from services.core.db.models import Task
 from services.core.db.states import COUNT_MOVED_SQL, TaskState, check_task_edge
 from services.core.domain.cues import CATALOG, closure
 
@@ -119,11 +122,16 @@ SQLITE_FINISH_SQL = (
 SQLITE_TASK_STATE_SQL = "SELECT state FROM task WHERE id = :task_id"
 
 
-def sqlite_time(t: datetime) -> str:
-    """A datetime as SQLite stores UTCDateTime columns (SQLAlchemy's text: naive UTC, always 6 fraction digits), so
-    that fixed SQL compares and writes the same strings."""
-    t = t.replace(tzinfo=UTC) if t.tzinfo is None else t.astimezone(UTC)
-    return t.strftime("%Y-%m-%d %H:%M:%S.%f")
+def _bound_time(conn: Connection, t: datetime) -> Any:
+    """`t` as the ORM writes a UTCDateTime column on this connection (SQLite: naive UTC text), so that fixed SQL
+    writes and compares the same values: the column type's own bind processor."""
+    return _time_binder(conn.dialect)(t)
+
+
+@functools.cache
+def _time_binder(dialect: Dialect) -> Callable[[datetime], Any]:
+    process = Task.__table__.c.started_at.type.bind_processor(dialect)
+    return process if process is not None else (lambda t: t)
 
 
 def _autocommit(session: Session) -> Connection | None:
@@ -137,11 +145,12 @@ def _autocommit(session: Session) -> Connection | None:
 def _count_sqlite(conn: Connection, rows: Sequence[Sequence[Any]], src: str | None, dst: str) -> None:
     """Counter deltas of moved rows (id, cue, job_id, ...): -1 from `src` (None: the row's 5th column, its old
     state), +1 to `dst`."""
-    per_job: dict[int, dict[tuple[str, str], int]] = {}
+    per_job: dict[int, Counter[tuple[str, str]]] = {}
     for r in rows:
-        deltas = per_job.setdefault(int(r[2]), {})
-        for key, d in (((str(r[1]), src if src is not None else str(r[4])), -1), ((str(r[1]), dst), 1)):
-            deltas[key] = deltas.get(key, 0) + d
+        cue, old = str(r[1]), src if src is not None else str(r[4])
+        deltas = per_job.setdefault(int(r[2]), Counter())
+        deltas[(cue, old)] -= 1
+        deltas[(cue, dst)] += 1
     for job_id, deltas in per_job.items():
         add_counts(conn, job_id, deltas)
 
@@ -156,7 +165,7 @@ def claim_task(session: Session, *, task_id: int, worker_id: str, now: datetime,
                                                 "lease": lease_until}).first()
     conn = connection_of(session)
     rows = list(conn.exec_driver_sql(SQLITE_CLAIM_SQL, {
-        "task_id": task_id, "worker": worker_id, "now": sqlite_time(now), "lease": sqlite_time(lease_until)}))
+        "task_id": task_id, "worker": worker_id, "now": _bound_time(conn, now), "lease": _bound_time(conn, lease_until)}))
     _count_sqlite(conn, rows, TaskState.QUEUED.value, TaskState.RUNNING.value)
     session.commit()
     return rows[0] if rows else None
@@ -185,7 +194,7 @@ def claim_view_tasks(
     if conn is not None:
         return list(conn.exec_driver_sql(CLAIM_VIEW_SQL, {**params, "pending": with_pending}))
     conn = connection_of(session)
-    params.update(now=sqlite_time(now), lease=sqlite_time(lease_until))
+    params.update(now=_bound_time(conn, now), lease=_bound_time(conn, lease_until))
     rows: list[tuple[Any, ...]] = []
     for src in (TaskState.QUEUED, TaskState.PENDING) if with_pending else (TaskState.QUEUED,):
         # RETURNING gives the new state: the old one is the source state this UPDATE moved from
@@ -211,11 +220,12 @@ def finish_tasks(
             "worker": worker_id, "now": now})
         return {int(r[0]) for r in rows}
     conn = connection_of(session)
+    finished = _bound_time(conn, now)
     moved: list[Any] = []
     for tid, key, size, sha256, duration in results:
         moved += conn.exec_driver_sql(SQLITE_FINISH_SQL, {
             "task_id": tid, "key": key, "size": size, "sha256": sha256, "duration_s": duration, "worker": worker_id,
-            "now": sqlite_time(now)}).all()
+            "now": finished}).all()
     _count_sqlite(conn, moved, TaskState.RUNNING.value, TaskState.DONE.value)
     session.commit()
     return {int(r[0]) for r in moved}

@@ -25,7 +25,7 @@ PROBE = r"""
 import os, signal, sys, threading
 
 def stop_soon():
-    if sys.argv[3] == "embedded":  # what worker_main installs once released
+    if sys.argv[3] == "embedded":  # what worker_main installs
         from services.worker.blender.calls import exit_at_once_inside_blender
         signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
         exit_at_once_inside_blender(signal.SIGTERM)

@@ -7,7 +7,8 @@ vectorised here (no per-vertex Python). The estimator:
 
 1. sample the surface uniformly (area-weighted, fixed seed) at a spacing of radius/4, so every neighbourhood holds
    ~50 samples whatever the tessellation (at most MAX_SAMPLES; meshes with more vertices add their vertices);
-2. for each vertex, take up to MAX_NEIGHBOURS samples within the radius, Gaussian-weighted by distance
+2. for each vertex, take its MAX_NEIGHBOURS nearest samples within the radius (found in a grid of radius-wide
+   cells; where balls hold far more, in a k-d tree, which stops at the nearest), Gaussian-weighted by distance
    (sigma = radius/2), dropping samples whose normal points away (> ~70 deg) so thin walls do not mix sides;
 3. express them in the vertex's tangent frame (u, v along the surface, h along the vertex normal) and fit
    h = a u^2 + b uv + c v^2 + d u + e v + g by weighted least squares;
@@ -30,6 +31,7 @@ MAX_SAMPLES = 4_000_000  # ~200 MB of samples; beyond it (huge area, tiny radius
 MIN_SAMPLES = 2_000
 MAX_NEIGHBOURS = 96  # > the ~50 samples a full ball holds, so the cap does not shrink the radius
 SAMPLES_PER_RADIUS = 4.0
+GRID_MAX_BALL = MAX_NEIGHBOURS  # samples expected in a ball (the sampling alone gives ~50) up to which a grid searches
 CHUNK = 16_384  # vertices per batch: bounds memory at CHUNK * MAX_NEIGHBOURS * 6 floats
 _SEED = 0  # fixed: the same mesh gives the same curvature in every worker
 
@@ -53,12 +55,50 @@ def principal_curvatures(mesh: trimesh.Trimesh, radius: float) -> np.ndarray:
     if len(verts) > n_samples:  # dense meshes: their own vertices are the better samples
         pts = np.concatenate([pts, verts])
         snormals = np.concatenate([snormals, vnormals])
+    t1, t2 = _tangent_frames(vnormals)
+    k = min(MAX_NEIGHBOURS, len(pts))
+    if len(pts) / max(mesh.area, 1e-300) * np.pi * radius**2 <= GRID_MAX_BALL:
+        grid = _SampleGrid(pts, verts, radius)
+        return _fit_in_grid(verts, vnormals, t1, t2, pts[grid.order], snormals[grid.order], grid.keys, grid.lo,
+                            grid.cell, grid.dims, float(radius), k)
+    # Crowded balls (a dense mesh's own vertices): a k-d tree finds the k nearest without visiting the rest.
     tree = cKDTree(pts)
     out = np.zeros((len(verts), 2), dtype=np.float32)
     for s in range(0, len(verts), CHUNK):
         sl = slice(s, min(s + CHUNK, len(verts)))
-        out[sl] = _fit_chunk(verts[sl], vnormals[sl], pts, snormals, tree, radius)
+        dist, idx = tree.query(verts[sl], k=k, distance_upper_bound=radius)
+        out[sl] = _fit_rows(verts[sl], vnormals[sl], t1[sl], t2[sl], pts, snormals, dist.reshape(-1, k),
+                            idx.reshape(-1, k), float(radius))
     return out
+
+
+class _SampleGrid:
+    """The samples bucketed in cubic cells at least `radius` wide, sorted by cell: a vertex's neighbours within the
+    radius lie in its cell's 3 x 3 x 3 block, whose z-runs are 9 ranges of the sorted keys. On a room it finds a
+    ball's samples in a fraction of a k-d tree query's time, and the same ones (`bench/curvature.py`)."""
+
+    def __init__(self, pts: np.ndarray, verts: np.ndarray, radius: float):
+        lo = np.minimum(pts.min(axis=0), verts.min(axis=0))
+        hi = np.maximum(pts.max(axis=0), verts.max(axis=0))
+        # At most 2^20 cells an axis (keys fit int64); a wider cell only adds candidates, each one is checked.
+        self.cell = max(float(radius), float((hi - lo).max()) / 2**20)
+        self.lo = lo - self.cell  # one empty cell below every axis: a block never leaves the grid
+        self.dims = ((hi - self.lo) // self.cell).astype(np.int64) + 3
+        keys = _cell_keys(pts, self.lo, self.cell, self.dims)
+        self.order = np.argsort(keys, kind="stable")
+        self.keys = keys[self.order]
+
+
+@njit(cache=True, nogil=True)
+def _cell_keys(x: np.ndarray, lo: np.ndarray, cell: float, dims: np.ndarray) -> np.ndarray:
+    """Linear cell index of every point, z last: a column's cells are consecutive keys."""
+    keys = np.empty(len(x), np.int64)
+    for i in range(len(x)):
+        cx = int((x[i, 0] - lo[0]) / cell)
+        cy = int((x[i, 1] - lo[1]) / cell)
+        cz = int((x[i, 2] - lo[2]) / cell)
+        keys[i] = (cx * dims[1] + cy) * dims[2] + cz
+    return keys
 
 
 def _sample_surface(mesh: trimesh.Trimesh, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -82,60 +122,110 @@ def _tangent_frames(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return t1, np.cross(n, t1)
 
 
-def _fit_chunk(p: np.ndarray, n: np.ndarray, pts: np.ndarray, snormals: np.ndarray, tree: cKDTree,
-               radius: float) -> np.ndarray:
-    """Quadric fits for a batch of vertices; returns float32 B x 2 (k1 >= k2, positive convex)."""
-    k = min(MAX_NEIGHBOURS, len(pts))
-    dist, idx = tree.query(p, k=k, distance_upper_bound=radius)
-    dist, idx = dist.reshape(len(p), k), idx.reshape(len(p), k)
-    t1, t2 = _tangent_frames(n)
-    return _fit_kernel(p, n, t1, t2, pts, snormals, dist, idx, float(radius))
+@njit(cache=True, nogil=True)
+def _fit_rows(p: np.ndarray, n: np.ndarray, t1: np.ndarray, t2: np.ndarray, pts: np.ndarray, snormals: np.ndarray,
+              dist: np.ndarray, idx: np.ndarray, radius: float) -> np.ndarray:
+    """The fits of a batch of vertices from a k-d tree's rows (nearest first, misses last at infinity)."""
+    out = np.zeros((len(p), 2), np.float32)
+    for b in range(len(p)):
+        m = 0
+        while m < dist.shape[1] and np.isfinite(dist[b, m]):
+            m += 1
+        out[b, 0], out[b, 1] = _fit_one(p[b], n[b], t1[b], t2[b], pts, snormals, dist[b], idx[b], m, radius)
+    return out
 
 
 @njit(cache=True, nogil=True)
-def _fit_kernel(p: np.ndarray, n: np.ndarray, t1: np.ndarray, t2: np.ndarray, pts: np.ndarray,
-                snormals: np.ndarray, dist: np.ndarray, idx: np.ndarray, radius: float) -> np.ndarray:
-    """One vertex at a time (compiled: no B x k x 6 temporaries): weighted least squares of
-    h = a u^2 + b uv + c v^2 + d u + e v + g on the neighbours, then the shape operator's eigenvalues."""
+def _fit_in_grid(p: np.ndarray, n: np.ndarray, t1: np.ndarray, t2: np.ndarray, pts: np.ndarray,
+                 snormals: np.ndarray, keys: np.ndarray, lo: np.ndarray, cell: float, dims: np.ndarray,
+                 radius: float, k: int) -> np.ndarray:
+    """The fits of every vertex on its k nearest samples strictly within the radius, nearest first (what a k-d tree
+    query with that bound returns), found in the grid (_SampleGrid: samples sorted by cell)."""
     out = np.zeros((len(p), 2), np.float32)
-    sigma = radius / 2.0
-    phi = np.empty(6)
+    r2 = radius * radius
+    near_d2 = np.empty(256)
+    near_q = np.empty(256, np.int64)
     for b in range(len(p)):
-        A = np.zeros((6, 6))
-        rhs = np.zeros(6)
-        count = 0
-        for j in range(dist.shape[1]):
-            dj = dist[b, j]
-            if not np.isfinite(dj):
-                continue
-            q = idx[b, j]
-            agree = snormals[q, 0] * n[b, 0] + snormals[q, 1] * n[b, 1] + snormals[q, 2] * n[b, 2]
-            if not abs(agree) > 0.35:
-                continue
-            w = np.exp(-0.5 * (dj / sigma) ** 2)
-            if w > 0:
-                count += 1
-            dx, dy, dz = pts[q, 0] - p[b, 0], pts[q, 1] - p[b, 1], pts[q, 2] - p[b, 2]
-            # Scale coordinates by the radius so the normal equations are well conditioned for any mesh unit.
-            u = (dx * t1[b, 0] + dy * t1[b, 1] + dz * t1[b, 2]) / radius
-            v = (dx * t2[b, 0] + dy * t2[b, 1] + dz * t2[b, 2]) / radius
-            h = (dx * n[b, 0] + dy * n[b, 1] + dz * n[b, 2]) / radius
-            phi[0], phi[1], phi[2], phi[3], phi[4], phi[5] = u * u, u * v, v * v, u, v, 1.0
-            for r in range(6):
-                wr = w * phi[r]
-                rhs[r] += wr * h
-                for c in range(6):
-                    A[r, c] += wr * phi[c]
-        if count < 8:
-            continue
-        trace = 0.0
-        for r in range(6):
-            trace += A[r, r]
-        for r in range(6):
-            A[r, r] += 1e-9 * (trace + 1e-12)
-        coef = np.linalg.solve(A, rhs)
-        out[b, 0], out[b, 1] = _principal(coef[0], coef[1], coef[2], coef[3], coef[4], radius)
+        cx = int((p[b, 0] - lo[0]) / cell)
+        cy = int((p[b, 1] - lo[1]) / cell)
+        cz = int((p[b, 2] - lo[2]) / cell)
+        m = 0
+        for ix in range(cx - 1, cx + 2):
+            for iy in range(cy - 1, cy + 2):
+                first = (ix * dims[1] + iy) * dims[2] + cz - 1
+                for q in range(np.searchsorted(keys, first), np.searchsorted(keys, first + 2, side="right")):
+                    dx, dy, dz = pts[q, 0] - p[b, 0], pts[q, 1] - p[b, 1], pts[q, 2] - p[b, 2]
+                    d2 = dx * dx + dy * dy + dz * dz
+                    if d2 < r2:
+                        if m == len(near_d2):  # a crowded spot: grow the buffers
+                            near_d2 = np.concatenate((near_d2, np.empty(m)))
+                            near_q = np.concatenate((near_q, np.empty(m, np.int64)))
+                        near_d2[m] = d2
+                        near_q[m] = q
+                        m += 1
+        if m > 64:  # a crowded spot: a merge sort (the insertion sort's cost grows with m^2)
+            order = np.argsort(near_d2[:m], kind="mergesort")[:k]
+            m = len(order)
+            near_d2[:m], near_q[:m] = near_d2[order], near_q[order]
+        else:
+            _insertion_sort(near_d2, near_q, m)
+            m = min(m, k)
+        out[b, 0], out[b, 1] = _fit_one(p[b], n[b], t1[b], t2[b], pts, snormals, np.sqrt(near_d2[:m]), near_q, m,
+                                        radius)
     return out
+
+
+@njit(cache=True, nogil=True)
+def _insertion_sort(d2: np.ndarray, q: np.ndarray, m: int) -> None:
+    """Sort d2[:m] increasing, q[:m] along, in place, stable: for a ball's ~50 samples, where a library sort's
+    allocations cost more than the comparisons."""
+    for i in range(1, m):
+        d, s = d2[i], q[i]
+        j = i - 1
+        while j >= 0 and d2[j] > d:
+            d2[j + 1], q[j + 1] = d2[j], q[j]
+            j -= 1
+        d2[j + 1], q[j + 1] = d, s
+
+
+@njit(cache=True, nogil=True)
+def _fit_one(p: np.ndarray, n: np.ndarray, t1: np.ndarray, t2: np.ndarray, pts: np.ndarray, snormals: np.ndarray,
+             dist: np.ndarray, idx: np.ndarray, m: int, radius: float) -> tuple[float, float]:
+    """One vertex's (k1, k2) from its m neighbours (distances and sample indices, nearest first): weighted least
+    squares of h = a u^2 + b uv + c v^2 + d u + e v + g, then the shape operator's eigenvalues; 0 when < 8."""
+    sigma = radius / 2.0
+    A = np.zeros((6, 6))
+    rhs = np.zeros(6)
+    phi = np.empty(6)
+    count = 0
+    for j in range(m):
+        q = idx[j]
+        agree = snormals[q, 0] * n[0] + snormals[q, 1] * n[1] + snormals[q, 2] * n[2]
+        if not abs(agree) > 0.35:
+            continue
+        w = np.exp(-0.5 * (dist[j] / sigma) ** 2)
+        if w > 0:
+            count += 1
+        dx, dy, dz = pts[q, 0] - p[0], pts[q, 1] - p[1], pts[q, 2] - p[2]
+        # Scale coordinates by the radius so the normal equations are well conditioned for any mesh unit.
+        u = (dx * t1[0] + dy * t1[1] + dz * t1[2]) / radius
+        v = (dx * t2[0] + dy * t2[1] + dz * t2[2]) / radius
+        h = (dx * n[0] + dy * n[1] + dz * n[2]) / radius
+        phi[0], phi[1], phi[2], phi[3], phi[4], phi[5] = u * u, u * v, v * v, u, v, 1.0
+        for r in range(6):
+            wr = w * phi[r]
+            rhs[r] += wr * h
+            for c in range(6):
+                A[r, c] += wr * phi[c]
+    if count < 8:
+        return 0.0, 0.0
+    trace = 0.0
+    for r in range(6):
+        trace += A[r, r]
+    for r in range(6):
+        A[r, r] += 1e-9 * (trace + 1e-12)
+    coef = np.linalg.solve(A, rhs)
+    return _principal(coef[0], coef[1], coef[2], coef[3], coef[4], radius)
 
 
 @njit(cache=True, nogil=True)

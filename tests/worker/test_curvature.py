@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import trimesh
 
+from services.core.ingest.loading import load_space
+from services.worker import curvature
 from services.worker.curvature import principal_curvatures
+from tests.fixtures import reference_curvature
 
 
 def tube(radius: float, length: float, sections: int = 128, rings: int = 81) -> trimesh.Trimesh:
@@ -65,3 +70,31 @@ def test_plane_is_flat_and_result_is_deterministic() -> None:
 def test_radius_must_be_positive() -> None:
     with pytest.raises(ValueError, match="positive"):
         principal_curvatures(trimesh.creation.icosphere(), radius=0.0)
+
+
+def _noisy_dense_sphere() -> trimesh.Trimesh:
+    """40,962 vertices on the unit sphere, jittered so no two samples tie in distance: ~400 in a 0.2 ball."""
+    sphere = trimesh.creation.icosphere(subdivisions=6, radius=1.0)
+    jitter = np.random.default_rng(1).normal(0, 1e-3, sphere.vertices.shape)
+    return trimesh.Trimesh(sphere.vertices + jitter, sphere.faces, process=False)
+
+
+def test_a_room_is_searched_in_the_grid_and_fitted_as_the_kd_tree_queries_were(
+        scenes_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The same samples, nearest first, so the same sums and curvatures, bit for bit (the old estimator is
+    tests/fixtures/reference_curvature.py); no k-d tree is built for a room."""
+    room = load_space(scenes_dir / "icl_livingroom").mesh
+    want = reference_curvature.principal_curvatures(room, 0.05)
+    monkeypatch.setattr(curvature, "cKDTree", None)  # calling it would raise
+    np.testing.assert_array_equal(principal_curvatures(room, 0.05), want)
+
+
+def test_crowded_balls_give_the_same_curvature_by_either_search(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A dense mesh adds its vertices to the samples: its balls overflow the neighbour cap (96) and the grid's first
+    buffer (256). It goes to the k-d tree, and the grid, made to take it, keeps the same 96 nearest."""
+    dense = _noisy_dense_sphere()
+    want = reference_curvature.principal_curvatures(dense, 0.2)
+    np.testing.assert_array_equal(principal_curvatures(dense, 0.2), want)
+    monkeypatch.setattr(curvature, "GRID_MAX_BALL", np.inf)
+    monkeypatch.setattr(curvature, "cKDTree", None)
+    np.testing.assert_array_equal(principal_curvatures(dense, 0.2), want)

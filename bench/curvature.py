@@ -1,0 +1,71 @@
+"""Benchmark: the per-vertex curvature a worker computes once per space (issue 20: part of every run's start-up), on
+the real rooms at the default radius, one core: the grid neighbour search against the k-d tree search it replaced
+on rooms (the same estimator with services.worker.curvature.GRID_MAX_BALL = 0, which sends every mesh to the tree),
+interleaved, CPU seconds (medians of --repeats), and whether the two give the same array bit for bit.
+Writes bench/results/curvature.json. Run: .venv/bin/python bench/curvature.py [--repeats 5]
+"""
+
+from __future__ import annotations
+
+import os
+
+if hasattr(os, "sched_setaffinity"):  # one core, before numpy/numba start their pools
+    os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[-1]})
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench.rooms import ROOMS  # noqa: E402
+from services.core.domain.jobspec import CueParams  # noqa: E402
+from services.core.ingest.loading import load_space  # noqa: E402
+from services.worker import curvature  # noqa: E402
+
+RESULTS = Path(__file__).resolve().parent / "results" / "curvature.json"
+
+
+def timed(mesh: object, radius: float, grid_max_ball: float) -> tuple[float, np.ndarray]:
+    """CPU seconds and result of one principal_curvatures call with the given search threshold."""
+    saved, curvature.GRID_MAX_BALL = curvature.GRID_MAX_BALL, grid_max_ball
+    try:
+        t0 = time.process_time()
+        out = curvature.principal_curvatures(mesh, radius)  # type: ignore[arg-type]
+        return time.process_time() - t0, out
+    finally:
+        curvature.GRID_MAX_BALL = saved
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeats", type=int, default=5)
+    args = ap.parse_args()
+    radius = CueParams().curvature_radius_m
+    result: dict = {"radius_m": radius, "clock": "process CPU seconds, one core, medians", "rooms": {}}
+    for room, (path, frame) in ROOMS.items():
+        mesh = load_space(path, **frame).mesh
+        timed(mesh, radius, curvature.GRID_MAX_BALL)  # numba kernels loaded (or compiled) outside the timing
+        timed(mesh, radius, 0)
+        grid, tree = [], []
+        for _ in range(args.repeats):
+            g, a = timed(mesh, radius, curvature.GRID_MAX_BALL)
+            t, b = timed(mesh, radius, 0)
+            grid.append(g)
+            tree.append(t)
+        row = {"vertices": len(mesh.vertices), "faces": len(mesh.faces), "grid_s": round(float(np.median(grid)), 3),
+               "kd_tree_s": round(float(np.median(tree)), 3), "bit_identical": bool(np.array_equal(a, b))}
+        row["speedup"] = round(row["kd_tree_s"] / row["grid_s"], 2)
+        result["rooms"][room] = row
+        print(room, json.dumps(row), flush=True)
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    RESULTS.write_text(json.dumps(result, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

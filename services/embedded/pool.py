@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING, NoReturn
 
 from services.worker.blender.calls import exit_at_once_inside_blender
 from services.worker.numeric_threads import numeric_threads_pinned, pin_numeric_threads
+from services.worker.stop_signal import stop_within
 
 if TYPE_CHECKING:  # imported by the worker after its hold, not here (a spawned worker imports this module first)
     from services.worker.runner import TaskRunner
@@ -80,9 +81,11 @@ def worker_main(conf: WorkerConfig, tasks: Queue[int | None], results: Queue[Wor
         _work(conf, tasks, results, stop, go)
     except SystemExit as e:
         code = e.code if isinstance(e.code, int) else 1
-    except Exception:
-        traceback.print_exc()
-        code = 1
+    except Exception as e:
+        wrapped = stop_within(e)  # SIGTERM's exit raised while a numba kernel was called comes back wrapped
+        if not isinstance(wrapped, SystemExit):
+            traceback.print_exc()
+        code = wrapped.code if isinstance(wrapped, SystemExit) and isinstance(wrapped.code, int) else 1
     _exit_quietly(code)
 
 

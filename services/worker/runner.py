@@ -58,6 +58,7 @@ from services.worker.heartbeat import Heartbeat
 from services.worker.loaded_cache import read_loaded
 from services.worker.passes import ViewPasses
 from services.worker.space_cache import SpaceCache, SpaceContext, should_recycle
+from services.worker.stop_signal import reraise_stop
 
 Recorded = tuple[Claimed, str, ObjectInfo, float]  # a stored task: its key, object and seconds
 
@@ -154,6 +155,7 @@ class TaskRunner:
         try:
             key = self.render_view(passes)
         except Exception as exc:
+            reraise_stop(exc)
             return [self._record_failure(passes, exc, t0)]
         render_s = time.perf_counter() - t0
         rest, elsewhere = self._claim_rest(passes, with_pending=True)
@@ -164,6 +166,7 @@ class TaskRunner:
             try:
                 key, info = self.execute(passes)  # serialised from the pass set in memory, and stored
             except Exception as exc:
+                reraise_stop(exc)
                 failed[passes.id] = self._record_failure(passes, exc, t1 - render_s)
         if passes.id not in failed:
             done.insert(0, (passes, key, info, render_s + time.perf_counter() - t1))
@@ -194,7 +197,8 @@ class TaskRunner:
                 t0 = time.perf_counter()
             t1 = time.perf_counter()
             infos = self.store.put_many([(key, data) for _, key, data, _ in made])
-        except Exception:
+        except Exception as exc:
+            reraise_stop(exc)
             # Something failed: one task at a time, so each failure is recorded and only its dependents wait.
             return self._compute_one_by_one(claimed, t_batch)
         store_s, total = time.perf_counter() - t1, max(1, sum(len(d) for _, _, d, _ in made))
@@ -216,6 +220,7 @@ class TaskRunner:
             try:
                 key, info = self.execute(t)
             except Exception as exc:
+                reraise_stop(exc)
                 failed[t.id] = self._record_failure(t, exc, t0)
                 lost.add(t.cue)
                 failed_cues.append(t.cue)

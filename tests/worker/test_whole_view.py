@@ -132,6 +132,33 @@ def test_a_failure_in_the_batch_hands_its_dependents_back_to_pending(sm, banana,
     assert task(sm, mask.id).attempts == 1 and counters_match(sm, job_id)
 
 
+def test_a_stop_that_comes_back_wrapped_from_a_kernel_stops_the_worker_and_fails_nothing(sm, banana, monkeypatch):
+    """SIGTERM's SystemExit raised while a numba kernel is being called returns from the call as a SystemError caused
+    by it (services.worker.stop_signal). Recorded as the task's failure, the stop was lost: the worker went on."""
+    job_id = make_job(sm, banana)
+    real_make = TaskRunner.make
+
+    def stopped_in_a_kernel(self, t):
+        if t.cue == "depth_zbuffer":
+            try:
+                raise SystemExit(143)  # what the worker's SIGTERM handler raised
+            except SystemExit as stop:
+                raise SystemError("CPUDispatcher(<function k>) returned a result with an exception set") from stop
+        return real_make(self, t)
+
+    monkeypatch.setattr(TaskRunner, "make", stopped_in_a_kernel)
+    passes = queue(sm, job_id, "passes", 0, 0)
+    with pytest.raises(SystemExit) as stopped:
+        runner(sm, banana, "w1").run(passes)
+    monkeypatch.undo()
+    assert stopped.value.code == 143
+    view0 = {**view_ids(sm, job_id), "passes": passes}
+    # nothing recorded: the view stays the stopped worker's until its leases lapse, then it is requeued whole
+    assert {(task(sm, t).state, task(sm, t).attempts, task(sm, t).error) for t in view0.values()} == {
+        ("running", 1, None)}
+    assert counters_match(sm, job_id)
+
+
 class Died(BaseException):
     """Stands for the worker process dying mid-batch: nothing after it runs (no record, no failure)."""
 

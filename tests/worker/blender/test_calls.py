@@ -52,6 +52,12 @@ try:
         stop_soon()
     for _ in range(1000):
         scene.render(g)
+except Exception as e:  # the stop raised while a numba kernel was called comes back wrapped: the runner unwraps it
+    from services.worker.stop_signal import stop_within
+    if not isinstance(stop_within(e), SystemExit):
+        raise
+    sys.stderr.flush()
+    os._exit(int(stop_within(e).code) & 0xFF)
 except SystemExit as e:
     sys.stderr.flush()
     os._exit(int(e.code) & 0xFF)

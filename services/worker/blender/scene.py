@@ -187,6 +187,9 @@ class BlenderScene:
 
     def _build_material(self, mesh: trimesh.Trimesh) -> bpy.types.Material:
         mat = bpy.data.materials.new("space")
+        # No light source: the camera sees the emission directly (no bounces). Cycles' automatic emission sampling
+        # evaluated the shader on every coloured or textured triangle at each sync to build its light tree.
+        mat.cycles.emission_sampling = "NONE"
         mat.use_nodes = True
         nt = mat.node_tree
         nt.nodes.clear()

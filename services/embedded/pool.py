@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn
 
 from services.worker.blender.calls import exit_at_once_inside_blender
+from services.worker.heap import keep_freed_memory
 from services.worker.numeric_threads import numeric_threads_pinned, pin_numeric_threads
 from services.worker.stop_signal import stop_within
 
@@ -93,6 +94,7 @@ def _work(conf: WorkerConfig, tasks: Queue[int | None], results: Queue[WorkerMes
           go: Event) -> None:
     """worker_main's work: warm up held, then serve tasks once released (returns when stopped or recycling)."""
     pin_numeric_threads()  # before numpy loads (spawned; a forked worker's parent pinned them before it loaded numpy)
+    keep_freed_memory()
     logging.basicConfig(level=conf.log_level, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s")
     from services.core.db.engine import make_engine, make_sessionmaker
     from services.core.settings import get_settings

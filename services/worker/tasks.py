@@ -88,9 +88,11 @@ def build_runtime(settings: Settings, *, queues: list[str] | None = None, name: 
     """Engine, store, TaskRunner and a started heartbeat for this process (worker id: see default_worker_id)."""
     from services.core.db.engine import make_sessionmaker
     from services.core.storage import open_store
+    from services.worker.heap import keep_freed_memory
     from services.worker.heartbeat import Heartbeat, expire_leases, heartbeat_interval
     from services.worker.runner import TaskRunner, default_worker_id
 
+    keep_freed_memory()  # the process that runs tasks reuses the pages it frees (prefork child or solo)
     engine = worker_engine(settings.database_url)
     sessions = make_sessionmaker(engine)
     store = open_store(settings.storage_url, settings)

@@ -2,11 +2,11 @@
 
 glibc returns a freed block of 128 KB or more to the kernel at once (it was mmapped), and trims the heap's free top
 past 128 KB; the next allocation of that size then faults in fresh, zeroed pages. A worker allocates the same
-arrays every view (pass sets, derivations' intermediates, Cycles' per-render buffers), so with glibc's defaults a
-66-view job of the 7-Scenes kitchen faulted in ~1.6 GB of pages, and ~3 GB with the space's material no light
-source (Cycles then allocates its render state afresh each view). Blocks up to MMAP_THRESHOLD now come from the
-heap, and up to TRIM_THRESHOLD of free heap is kept: the pages are reused. Larger blocks (a point cloud's arrays)
-still go straight back. glibc only (mallopt); elsewhere nothing changes.
+arrays every view (pass sets, derivations' intermediates, Cycles' per-render state), so a 66-view job of the 7-Scenes
+kitchen took 221k page faults with glibc's defaults, and 630k-1,030k once the space was no light source to Cycles
+(which then allocates its render state afresh each view); 182-190k with these thresholds. Blocks up to
+MMAP_THRESHOLD now come from the heap, and up to TRIM_THRESHOLD of free heap is kept: the pages are reused. Larger
+blocks (a point cloud's arrays) still go straight back. glibc only (mallopt); elsewhere nothing changes.
 """
 
 from __future__ import annotations

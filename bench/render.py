@@ -69,8 +69,9 @@ BEFORE = RESULTS / "render_room_before.json"
 # The figures of issue 10's first pass (segmentations, NARF pyramid, pass selection, PNG settings: commit 7469639, run
 # in the same hour on the same views), the baseline of its second pass: bench/results/render_issue10_first.json.
 FIRST_PASS = RESULTS / "render_issue10_first.json"
-GPU_NOTE = ("no accelerator was lent to this task (device tool: not drawn, can_start_another false), so no GPU figures;"
-            " a CUDA/OptiX/auto request falls back to the CPU with a log line (tests/worker/blender/test_render.py)")
+GPU_NOTE = ("no GPU figures: no GPU run has been made (bench/gpu_cost.py measures one, into bench/results/gpu.json,"
+            " from the parts scripts/device_bundle.py packs); a CUDA/OptiX/auto request without a GPU falls back to"
+            " the CPU with a log line (tests/worker/blender/test_render.py)")
 
 
 def room_plan(loaded: object, resolution: int, seed: int = 0) -> SpacePlan:

@@ -2,12 +2,15 @@
 
 One render per scene (module-scoped, small resolutions): a textured scan (ycb_banana), an untextured scan
 (stanford_bunny) and a labelled synthetic room with face colours and a sphere of known radius.
+OMNIDATA_TEST_RENDER_DEVICE (cpu, cuda, optix; default cpu) renders them on that device: on a GPU machine the same
+oracles check the GPU path, and a run that fell back to the CPU fails instead of passing as a GPU check.
 """
 
 from __future__ import annotations
 
 import io
 import logging
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -40,6 +43,7 @@ from tests.fixtures.raycast import (
 )
 
 SCENES = ("banana", "bunny", "room")
+RENDER_DEVICE = os.environ.get("OMNIDATA_TEST_RENDER_DEVICE", "cpu")
 
 pytestmark = pytest.mark.bpy  # every test renders with Cycles
 
@@ -72,7 +76,8 @@ def plan_for(name: str, g: ViewGeometry, target: np.ndarray) -> tuple[SpacePlan,
 
 def render_scene(name: str, mesh: trimesh.Trimesh, g: ViewGeometry, face_class: np.ndarray | None = None,
                  face_instance: np.ndarray | None = None) -> Rendered:
-    space = SpaceContext(key=name, mesh=mesh, face_class=face_class, face_instance=face_instance)
+    space = SpaceContext(key=name, mesh=mesh, face_class=face_class, face_instance=face_instance,
+                         device=RENDER_DEVICE)
     plan, view = plan_for(name, g, mesh.bounds.mean(axis=0))
     cues = ["passes", *default_cues(space.has_semantics)]
     ctx = make_context(space, view, cues, plan=plan)
@@ -102,6 +107,10 @@ def r(request: pytest.FixtureRequest, rendered: dict[str, Rendered]) -> Rendered
 def test_one_render_per_view(r: Rendered) -> None:
     assert r.renders == 1
     assert r.ctx.timings["render"] > 0
+
+
+def test_renders_on_the_requested_device(r: Rendered) -> None:
+    assert r.space.scene().device == RENDER_DEVICE
 
 
 def test_depth_zbuffer_matches_raycast(r: Rendered) -> None:

@@ -1,0 +1,339 @@
+"""Benchmark: cost per view on a GPU machine, and the CPU path on 1, 8 and all cores of the same machine (issue 20).
+
+For each real room, on the machine it runs on:
+1. `omnidata generate ROOM` with its default worker settings (a worker per core) rendering on the GPU
+   (OMNIDATA_RENDER_DEVICE, default auto = OptiX, else CUDA), its views/s and wall per view end to end, the job's
+   own task rows, and the GPU's busy fraction: nvidia-smi's utilization.gpu (the share of each sample period in
+   which a kernel ran) sampled every 100 ms, over the whole run and over the job's task window;
+2. the bare 1-sample render (Image + Depth + Normal) of the same views on the GPU, and on one CPU core;
+3. the same `generate` on the CPU (OMNIDATA_RENDER_DEVICE=cpu) pinned to 1 core, 8 cores and every core:
+   views/s against one core's;
+4. every cue file of the GPU run against the CPU run of the same plan (same seed and spec) on the most cores: the
+   share of pixels equal, within one code value, and the adjusted Rand index of the segmentations.
+Each setting runs a 3-view job and its main job (--points on one core, --points-many on the GPU and on many cores);
+the views/s of the views the main job adds (the slope, start-ups left out) is what a long job approaches.
+A 1-point run first (one worker) fills the caches a first run on a new machine pays once (numba's compiled
+kernels, the driver's OptiX module cache), so the figures are those of a machine in use.
+Run: python bench/gpu_cost.py [--rooms icl_livingroom] [--points 22] [--cores 1,8,16] [--out FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import sqlite3
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Callable
+from datetime import UTC, datetime
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from room_cost import children_cpu_s, load, median  # noqa: E402  (bench/ is no package)
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "bench" / "results" / "gpu.json"
+ROOM_ARGS = {  # name -> (path under --scenes, extra generate flags): as bench/room_cost.py
+    "icl_livingroom": ("icl_livingroom", []),
+    "7scenes_redkitchen": ("7scenes_redkitchen/mesh_tsdf_2cm_from_1000frames.ply", ["--up", "0.009,-0.904,-0.427"]),
+}
+
+FLOOR_PROBE = r"""
+import json, sys, time
+from pathlib import Path
+sys.path.insert(0, sys.argv[1])
+from services.core.domain.plan import plan_from_json
+from services.core.ingest.loading import load_space
+from services.worker.passes import ViewGeometry
+from services.worker.space_cache import SpaceContext
+space_path, plan_path, frame, device = sys.argv[2], sys.argv[3], json.loads(sys.argv[4]), sys.argv[5]
+plan = plan_from_json(Path(plan_path).read_bytes())
+scene = SpaceContext.from_loaded(load_space(space_path, **frame), key="floor", device=device).scene()
+views = [ViewGeometry.of(v) for v in plan.views]
+t0 = time.perf_counter()
+scene.render_floor(views[0])  # kernels and the BVH: a worker pays them once per space, not per view
+first = time.perf_counter() - t0
+walls = [scene.render_floor(g) for g in views]
+print(json.dumps({"wall": walls, "first_s": first, "device": scene.device}))
+"""
+
+
+class GpuSampler:
+    """nvidia-smi's utilization.gpu (%) and memory used (MiB) every 100 ms, each with the wall clock it was read at,
+    and the most processes seen holding a context on the GPU at once (polled twice a second)."""
+
+    def __init__(self) -> None:
+        self.samples: list[tuple[float, float, float]] = []
+        self.processes = 0
+        self.done = threading.Event()
+        smi = shutil.which("nvidia-smi") or "true"  # no GPU: no samples
+        threading.Thread(target=self._count_processes, args=(smi,), daemon=True).start()
+        self.proc = subprocess.Popen(
+            [smi, "--query-gpu=utilization.gpu,memory.used", "--format=csv,noheader,nounits", "-lms", "100"],
+            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+        self.thread = threading.Thread(target=self._read, daemon=True)
+        self.thread.start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            try:
+                util, mem = (float(x) for x in line.split(","))
+            except ValueError:
+                continue
+            self.samples.append((time.time(), util, mem))
+
+    def _count_processes(self, smi: str) -> None:
+        while not self.done.wait(0.5):
+            apps = subprocess.run([smi, "--query-compute-apps=pid", "--format=csv,noheader"],
+                                  capture_output=True, text=True).stdout.split()
+            self.processes = max(self.processes, len(apps))
+
+    def stop(self) -> list[tuple[float, float, float]]:
+        self.done.set()
+        self.proc.terminate()
+        self.proc.wait()
+        self.thread.join(timeout=2)
+        return self.samples
+
+
+def busy(samples: list[tuple[float, float, float]], start: float, end: float) -> dict:
+    """Mean utilization (as a fraction) and peak memory of the samples read between `start` and `end`."""
+    inside = [(u, m) for t, u, m in samples if start <= t <= end]
+    if not inside:
+        return {"samples": 0}
+    return {"samples": len(inside), "busy_fraction": round(sum(u for u, _ in inside) / len(inside) / 100, 3),
+            "peak_memory_mib": max(m for _, m in inside)}
+
+
+def task_window(out: Path) -> tuple[float, float]:
+    """Unix times of the job's first task start and last task finish (its task rows, UTC)."""
+    with sqlite3.connect(out / ".omnidata" / "state.db") as db:
+        first, last = db.execute("SELECT MIN(started_at), MAX(finished_at) FROM task WHERE state = 'done'").fetchone()
+
+    def unix(text: str) -> float:
+        stamp = datetime.fromisoformat(text)
+        return (stamp if stamp.tzinfo else stamp.replace(tzinfo=UTC)).timestamp()
+
+    return unix(first), unix(last)
+
+
+def pinned(cores: str) -> Callable[[], None]:
+    """Pins a child (and the processes it starts) to `cores` ("0", "0-7"): what `taskset -c` does."""
+    first, _, last = cores.partition("-")
+    wanted = set(range(int(first), int(last or first) + 1))
+    return lambda: os.sched_setaffinity(0, wanted)
+
+
+def generate(space: Path, extra: list[str], cores: str, out: Path, spec: Path, device: str,
+             workers: int | None = None, gpu: bool = False) -> dict:
+    """`omnidata generate` pinned to `cores` on `device`: wall, views/s, per-cue task seconds (and GPU samples)."""
+    cmd = [sys.executable, "-m", "services.cli", "generate", str(space), "--out", str(out),
+           "--spec", str(spec), "--seed", "0", "--no-progress", *extra]
+    if workers is not None:
+        cmd += ["--workers", str(workers)]
+    sampler = GpuSampler() if gpu else None
+    t0, cpu0, start = time.perf_counter(), children_cpu_s(), time.time()
+    run = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, preexec_fn=pinned(cores),
+                         env={**os.environ, "PYTHONPATH": str(ROOT), "OMNIDATA_RENDER_DEVICE": device})
+    wall, cpu, end = time.perf_counter() - t0, children_cpu_s() - cpu0, time.time()
+    samples = sampler.stop() if sampler else []
+    processes = sampler.processes if sampler else 0
+    if run.returncode != 0:
+        raise RuntimeError(f"generate {space.name} on {device} failed ({run.returncode}): {run.stderr[-3000:]}")
+    views = len((out / "manifest.jsonl").read_text().splitlines())
+    with sqlite3.connect(out / ".omnidata" / "state.db") as db:
+        rows = db.execute("SELECT cue, SUM(duration_s) FROM task WHERE state = 'done' GROUP BY cue").fetchall()
+    per_cue = {cue: round(total / views, 4) for cue, total in rows}
+    result = {"cores": cores, "device": device, "views": views, "wall_s": round(wall, 2),
+              "wall_s_per_view": round(wall / views, 4), "views_per_s": round(views / wall, 3),
+              "cpu_s": round(cpu, 2), "cpu_s_per_view": round(cpu / views, 4), "load_before_after": load(),
+              "task_s_per_view": dict(sorted(per_cue.items(), key=lambda kv: -kv[1])),
+              "task_s_per_view_total": round(sum(per_cue.values()), 4)}
+    if gpu:
+        first, last = task_window(out)
+        result["gpu_whole_run"] = busy(samples, start, end)
+        result["gpu_task_window"] = {**busy(samples, first, last), "seconds": round(last - first, 2)}
+        result["gpu_processes_peak"] = processes  # the workers that rendered on the GPU
+    return result
+
+
+def floor(space: Path, out: Path, device: str, cores: str) -> dict:
+    """Bare renders of the views `generate` planned into `out`, in one fresh process on `cores`."""
+    frame = json.loads((out / "job.json").read_text()).get("spec", {})
+    frame = {k: frame[k] for k in ("up_axis", "up", "unit_scale", "source_to_world") if k in frame}
+    plans = sorted((out / "_plan").glob("*.json"))
+    run = subprocess.run([sys.executable, "-c", FLOOR_PROBE, str(ROOT), str(space), str(plans[0]), json.dumps(frame),
+                          device], cwd=ROOT, capture_output=True, text=True, preexec_fn=pinned(cores),
+                         env={**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"})
+    if run.returncode != 0:
+        raise RuntimeError(f"floor on {device} failed ({run.returncode}): {run.stderr[-3000:]}")
+    probe = json.loads(run.stdout.strip().splitlines()[-1])
+    wall = probe["wall"]
+    return {"device": probe["device"], "cores": cores, "views": len(wall), "first_render_s": round(probe["first_s"], 3),
+            "s_per_view_median": round(median(wall), 4), "s_per_view_mean": round(sum(wall) / len(wall), 4),
+            "s_per_view_worst": round(max(wall), 4)}
+
+
+def adjusted_rand(a: np.ndarray, b: np.ndarray) -> float:
+    """Adjusted Rand index of two labellings of the same pixels (pair counting over their contingency table)."""
+    _, ai = np.unique(a.ravel(), return_inverse=True)
+    _, bi = np.unique(b.ravel(), return_inverse=True)
+    table = np.zeros((ai.max() + 1, bi.max() + 1), dtype=np.int64)
+    np.add.at(table, (ai, bi), 1)
+
+    def pairs(x: np.ndarray) -> float:
+        return float((x * (x - 1) // 2).sum())
+
+    n = ai.size
+    both, rows, cols, total = pairs(table), pairs(table.sum(1)), pairs(table.sum(0)), n * (n - 1) / 2
+    expected = rows * cols / total
+    top = 0.5 * (rows + cols) - expected
+    return 1.0 if top == 0 else (both - expected) / top
+
+
+def compare_outputs(gpu_out: Path, cpu_out: Path) -> dict:
+    """Per cue over every view: pixels equal and within one code value (worst view, mean), ARI for segmentations."""
+    from services.datasets.decode import read_raw
+
+    per_cue: dict[str, dict[str, list[float]]] = {}
+    for path in sorted(gpu_out.rglob("point_*_domain_*")):
+        rel = path.relative_to(gpu_out)
+        cue = rel.parts[0]
+        other = cpu_out / rel
+        stats = per_cue.setdefault(cue, {"equal": [], "within_1": [], "ari": [], "missing": []})
+        if not other.exists():
+            stats["missing"].append(1.0)
+            continue
+        a, b = read_raw(cue, path.read_bytes()), read_raw(cue, other.read_bytes())
+        if not isinstance(a, np.ndarray) or not isinstance(b, np.ndarray):
+            stats["equal"].append(float(a == b))
+            continue
+        if a.dtype.kind == "f":
+            same = (a == b) | (np.isnan(a) & np.isnan(b))
+            near = same | (np.abs(a.astype(np.float64) - b) <= 1e-3)  # position in metres: within a millimetre
+        else:
+            same = a == b
+            near = np.abs(a.astype(np.int64) - b.astype(np.int64)) <= 1
+        stats["equal"].append(float(same.mean()))
+        stats["within_1"].append(float(near.mean()))
+        if cue.startswith("segment_unsup"):
+            stats["ari"].append(adjusted_rand(a, b))
+    summary = {}
+    for cue, stats in per_cue.items():
+        summary[cue] = {name: {"worst": round(min(v), 4), "mean": round(sum(v) / len(v), 4)}
+                        for name, v in stats.items() if v and name != "missing"}
+        summary[cue]["files"] = len(stats["equal"]) + len(stats["missing"])
+        if stats["missing"]:
+            summary[cue]["missing_on_cpu"] = len(stats["missing"])
+    return summary
+
+
+def gpu_info() -> dict:
+    """The GPU and driver nvidia-smi reports, and this machine's cores."""
+    try:
+        info = subprocess.run(["nvidia-smi", "--query-gpu=name,driver_version,memory.total", "--format=csv,noheader"],
+                              capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError) as e:
+        info = f"no nvidia-smi: {e}"
+    return {"gpu": info, "cores": os.cpu_count()}
+
+
+def spec_file(tmp: Path, name: str, points: int) -> Path:
+    path = tmp / name
+    path.write_text(json.dumps({"points": {"count": points, "max_views": 3}, "views": {"resolution": 512}}))
+    return path
+
+
+def run_setting(space: Path, extra: list[str], cores: str, out: Path, specs: dict[str, Path], device: str,
+                gpu: bool) -> dict:
+    """One setting's 3-view run and its main run; views/s of the views the main run adds (start-ups left out)."""
+    small = generate(space, extra, cores, out.with_name(out.name + "-small"), specs["small"], device, gpu=gpu)
+    main = generate(space, extra, cores, out, specs["one" if cores == "0" else "many"], device, gpu=gpu)
+    main["small_run"] = {k: small[k] for k in ("views", "wall_s", "cpu_s")}
+    main["marginal_views_per_s"] = round((main["views"] - small["views"]) / max(1e-9, main["wall_s"] - small["wall_s"]),
+                                         3)
+    return main
+
+
+def run_room(room: str, args: argparse.Namespace, tmp: Path, specs: dict[str, Path]) -> dict:
+    """Every figure of one room (module docstring, steps 1-4)."""
+    rel, extra = ROOM_ARGS[room]
+    space = args.scenes / rel
+    all_cores = f"0-{os.cpu_count() - 1}"
+    result: dict = {}
+    gpu_out = tmp / f"{room}-gpu"
+    result["gpu_generate"] = run_setting(space, extra, all_cores, gpu_out, specs, args.device, gpu=True)
+    print(room, "gpu generate", json.dumps(result["gpu_generate"]), flush=True)
+    result["gpu_floor"] = floor(space, gpu_out, args.device, all_cores)
+    result["cpu_floor_one_core"] = floor(space, gpu_out, "cpu", "0")
+    print(room, "floors", json.dumps([result["gpu_floor"], result["cpu_floor_one_core"]]), flush=True)
+    cpu_runs = {}
+    for n in args.cores:
+        cores = "0" if n == 1 else f"0-{n - 1}"
+        cpu_runs[str(n)] = run_setting(space, extra, cores, tmp / f"{room}-cpu{n}", specs, "cpu", gpu=False)
+        print(room, f"cpu generate on {n} cores", json.dumps(cpu_runs[str(n)]), flush=True)
+    result["cpu_generate"] = cpu_runs
+    result["gpu_floor_to_cpu_floor"] = round(result["gpu_floor"]["s_per_view_mean"]
+                                             / result["cpu_floor_one_core"]["s_per_view_mean"], 3)
+    one = cpu_runs.get("1")
+    if one:
+        for key in ("views_per_s", "marginal_views_per_s"):
+            base = one[key] or float("nan")  # a main job no bigger than its 3-view run has no slope
+            result[f"cores_to_one_core_{key}"] = {n: round(r[key] / base, 2) for n, r in cpu_runs.items()}
+            result[f"gpu_to_one_core_{key}"] = round(result["gpu_generate"][key] / base, 2)
+    many = [n for n in args.cores if n > 1]
+    if many:  # the same plan (spec and seed) on the CPU: every cue file of the GPU run against it
+        top = cpu_runs[str(max(many))]
+        result["gpu_to_all_cores_cpu_views_per_s"] = round(result["gpu_generate"]["views_per_s"] / top["views_per_s"],
+                                                           2)
+        result["cues_gpu_vs_cpu"] = compare_outputs(gpu_out, tmp / f"{room}-cpu{max(many)}")
+    return result
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--rooms", default=",".join(ROOM_ARGS), help="comma-separated: " + ",".join(ROOM_ARGS))
+    ap.add_argument("--scenes", type=Path, default=ROOT.parent / "shared" / "scenes")
+    ap.add_argument("--points", type=int, default=22, help="points per room (x 3 views) of the one-core runs")
+    ap.add_argument("--points-many", type=int, default=44, help="points per room of the GPU and many-core runs")
+    ap.add_argument("--device", default="auto", choices=("auto", "optix", "cuda", "cpu"), help="the GPU run's device")
+    ap.add_argument("--cores", default="1,8,16", help="CPU runs on these core counts (those above nproc are left out)")
+    ap.add_argument("--out", type=Path, default=RESULTS)
+    args = ap.parse_args()
+    args.cores = [n for n in (int(c) for c in args.cores.split(",")) if n <= (os.cpu_count() or 1)]
+    t0 = time.perf_counter()
+    result: dict = {"machine": gpu_info(), "resolution": 512, "points_one_core": args.points,
+                    "points_gpu_and_many_cores": args.points_many, "rooms": {}}
+    with tempfile.TemporaryDirectory(prefix="omnidata-gpucost-") as tmp_name:
+        tmp = Path(tmp_name)
+        rooms = args.rooms.split(",")
+        warm = generate(args.scenes / ROOM_ARGS[rooms[0]][0], ROOM_ARGS[rooms[0]][1], "0-0", tmp / "warm-up",
+                        spec_file(tmp, "warm.json", 1), args.device, workers=1, gpu=True)
+        result["warm_up"] = {k: warm[k] for k in ("wall_s", "gpu_processes_peak", "gpu_whole_run")}
+        print("warm-up", json.dumps(result["warm_up"]), flush=True)
+        specs = {"small": spec_file(tmp, "small.json", 1), "one": spec_file(tmp, "one.json", args.points),
+                 "many": spec_file(tmp, "many.json", args.points_many)}
+        for room in rooms:
+            try:
+                result["rooms"][room] = run_room(room, args, tmp, specs)
+            except Exception as e:  # keep what the other rooms measured
+                result["rooms"][room] = {"error": str(e)[-2000:]}
+                print(room, "failed:", e, flush=True)
+            args.out.write_text(json.dumps(result, indent=1) + "\n")
+    result["wall_s"] = round(time.perf_counter() - t0, 1)
+    args.out.write_text(json.dumps(result, indent=1) + "\n")
+    print(json.dumps({room: {k: v for k, v in r.items() if k not in ("cpu_generate", "gpu_generate")}
+                      for room, r in result["rooms"].items()}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,48 @@
+#!/usr/bin/env bash
+# On a lent GPU machine (the device tool's): the parts scripts/device_bundle.py made arrive in .gpu/, one or two a
+# call, and are kept in /root/stage; `stage` keeps this call's, `run` unpacks them all at their absolute paths,
+# adds the system libraries that machine lacks, then runs the GPU oracle tests and bench/gpu_cost.py into $OUT.
+# Usage: bash scripts/device_run.sh stage | probe | run [gpu_cost.py flags...]
+set -uo pipefail
+what=${1:-run}
+shift || true
+stage=/root/stage
+out=${OUT:-/tmp/od-out}
+mkdir -p "$stage" "$out"
+cp .gpu/part_* "$stage"/ 2>/dev/null
+ls -la "$stage"
+[ "$what" = stage ] && exit 0
+
+py=/root/.pyenv/versions/3.11.7/bin/python3.11
+if [ "$what" = probe ]; then
+  nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv; nproc; python3 --version
+  ls /usr/local/nvidia/lib64 2>/dev/null | grep -iE "optix|libcuda" ; which xz zstd taskset
+  ldconfig -p | grep -cE "libX11.so.6|libGL.so.1|libxkbcommon.so.0|libSM.so.6|libsqlite3.so.0"
+  exit 0
+fi
+
+if [ ! -x "$py" ]; then
+  t0=$(date +%s)
+  if command -v xz >/dev/null; then cat "$stage"/part_* | xz -d -T0 | tar -x -C /
+  else cat "$stage"/part_* | python3 -c "import sys, tarfile; tarfile.open(fileobj=sys.stdin.buffer, mode='r|xz').extractall('/')"
+  fi
+  echo "unpacked in $(( $(date +%s) - t0 )) s"
+fi
+mkdir -p /root/od-fallback
+for lib in /root/od-syslibs/*; do
+  ldconfig -p | grep -q "[[:space:]]$(basename "$lib") " || cp "$lib" /root/od-fallback/
+done
+echo "system libraries added: $(ls /root/od-fallback | tr '\n' ' ')"
+export LD_LIBRARY_PATH=/root/od-fallback:/usr/local/nvidia/lib64:${LD_LIBRARY_PATH:-}
+export PYTHONPATH=$PWD PYTHONUNBUFFERED=1
+"$py" -c "
+from services.worker.blender.threads import import_bpy; import_bpy(None); import bpy
+prefs = bpy.context.preferences.addons['cycles'].preferences
+for kind in ('OPTIX', 'CUDA'):
+    prefs.compute_device_type = kind; prefs.refresh_devices()
+    print(kind, [d.name for d in prefs.devices if d.type == kind])
+" 2>&1 | tail -3
+OMNIDATA_TEST_RENDER_DEVICE=${TEST_DEVICE:-optix} PYTEST_DISABLE_PLUGIN_AUTOLOAD=1 timeout 150 "$py" -m pytest -q -p no:cacheprovider -p pytest_timeout \
+  tests/worker/blender/test_render.py 2>&1 | tee "$out/oracle_tests.txt" | tail -15
+timeout "${BENCH_TIMEOUT:-330}" "$py" bench/gpu_cost.py --scenes /root/od-scenes --out "$out/gpu.json" "$@" 2>&1 \
+  | tee "$out/gpu_cost.log" | tail -40

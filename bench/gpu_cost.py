@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from room_cost import children_cpu_s, load, median  # noqa: E402  (bench/ is no package)
+from room_cost import FLOOR_PROBE, children_cpu_s, load, median  # noqa: E402  (bench/ is no package)
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results" / "gpu.json"
@@ -44,25 +44,6 @@ ROOM_ARGS = {  # name -> (path under --scenes, extra generate flags): as bench/r
     "icl_livingroom": ("icl_livingroom", []),
     "7scenes_redkitchen": ("7scenes_redkitchen/mesh_tsdf_2cm_from_1000frames.ply", ["--up", "0.009,-0.904,-0.427"]),
 }
-
-FLOOR_PROBE = r"""
-import json, sys, time
-from pathlib import Path
-sys.path.insert(0, sys.argv[1])
-from services.core.domain.plan import plan_from_json
-from services.core.ingest.loading import load_space
-from services.worker.passes import ViewGeometry
-from services.worker.space_cache import SpaceContext
-space_path, plan_path, frame, device = sys.argv[2], sys.argv[3], json.loads(sys.argv[4]), sys.argv[5]
-plan = plan_from_json(Path(plan_path).read_bytes())
-scene = SpaceContext.from_loaded(load_space(space_path, **frame), key="floor", device=device).scene()
-views = [ViewGeometry.of(v) for v in plan.views]
-t0 = time.perf_counter()
-scene.render_floor(views[0])  # kernels and the BVH: a worker pays them once per space, not per view
-first = time.perf_counter() - t0
-walls = [scene.render_floor(g) for g in views]
-print(json.dumps({"wall": walls, "first_s": first, "device": scene.device}))
-"""
 
 
 class GpuSampler:
@@ -258,9 +239,14 @@ def run_setting(space: Path, extra: list[str], cores: str, out: Path, specs: dic
     small = generate(space, extra, cores, out.with_name(out.name + "-small"), specs["small"], device, gpu=gpu)
     main = generate(space, extra, cores, out, specs["one" if cores == "0" else "many"], device, gpu=gpu)
     main["small_run"] = {k: small[k] for k in ("views", "wall_s", "cpu_s")}
-    main["marginal_views_per_s"] = round((main["views"] - small["views"]) / max(1e-9, main["wall_s"] - small["wall_s"]),
-                                         3)
+    added = main["wall_s"] - small["wall_s"]  # no slope when the main job took no longer (noise on tiny jobs)
+    main["marginal_views_per_s"] = round((main["views"] - small["views"]) / added, 3) if added > 0 else None
     return main
+
+
+def ratio(a: float | None, b: float | None) -> float | None:
+    """a / b to two places; None where either is missing (a run with no slope)."""
+    return round(a / b, 2) if a and b else None
 
 
 def run_room(room: str, args: argparse.Namespace, tmp: Path, specs: dict[str, Path]) -> dict:
@@ -281,19 +267,17 @@ def run_room(room: str, args: argparse.Namespace, tmp: Path, specs: dict[str, Pa
         cpu_runs[str(n)] = run_setting(space, extra, cores, tmp / f"{room}-cpu{n}", specs, "cpu", gpu=False)
         print(room, f"cpu generate on {n} cores", json.dumps(cpu_runs[str(n)]), flush=True)
     result["cpu_generate"] = cpu_runs
-    result["gpu_floor_to_cpu_floor"] = round(result["gpu_floor"]["s_per_view_mean"]
-                                             / result["cpu_floor_one_core"]["s_per_view_mean"], 3)
+    result["gpu_floor_to_cpu_floor"] = ratio(result["gpu_floor"]["s_per_view_mean"],
+                                             result["cpu_floor_one_core"]["s_per_view_mean"])
     one = cpu_runs.get("1")
     if one:
         for key in ("views_per_s", "marginal_views_per_s"):
-            base = one[key] or float("nan")  # a main job no bigger than its 3-view run has no slope
-            result[f"cores_to_one_core_{key}"] = {n: round(r[key] / base, 2) for n, r in cpu_runs.items()}
-            result[f"gpu_to_one_core_{key}"] = round(result["gpu_generate"][key] / base, 2)
+            result[f"cores_to_one_core_{key}"] = {n: ratio(r[key], one[key]) for n, r in cpu_runs.items()}
+            result[f"gpu_to_one_core_{key}"] = ratio(result["gpu_generate"][key], one[key])
     many = [n for n in args.cores if n > 1]
     if many:  # the same plan (spec and seed) on the CPU: every cue file of the GPU run against it
         top = cpu_runs[str(max(many))]
-        result["gpu_to_all_cores_cpu_views_per_s"] = round(result["gpu_generate"]["views_per_s"] / top["views_per_s"],
-                                                           2)
+        result["gpu_to_all_cores_cpu_views_per_s"] = ratio(result["gpu_generate"]["views_per_s"], top["views_per_s"])
         result["cues_gpu_vs_cpu"] = compare_outputs(gpu_out, tmp / f"{room}-cpu{max(many)}")
     return result
 

@@ -54,16 +54,17 @@ from services.core.ingest.loading import load_space
 from services.worker.passes import ViewGeometry
 from services.worker.space_cache import SpaceContext
 space_path, plan_path, frame = sys.argv[2], sys.argv[3], json.loads(sys.argv[4])
+device = sys.argv[5] if len(sys.argv) > 5 else "cpu"
 plan = plan_from_json(Path(plan_path).read_bytes())
-scene = SpaceContext.from_loaded(load_space(space_path, **frame), key="floor").scene()
+scene = SpaceContext.from_loaded(load_space(space_path, **frame), key="floor", device=device).scene()
 views = [ViewGeometry.of(v) for v in plan.views]
-scene.render_floor(views[0])  # Cycles kernels and the BVH: a worker pays them once per space, not per view
+first = scene.render_floor(views[0])  # Cycles kernels and the BVH: a worker pays them once per space, not per view
 walls, cpus = [], []
 for g in views:
     c0 = time.process_time()
     walls.append(scene.render_floor(g))
     cpus.append(time.process_time() - c0)
-print(json.dumps({"wall": walls, "cpu": cpus}))
+print(json.dumps({"wall": walls, "cpu": cpus, "first_s": first, "device": scene.device}))
 """
 
 

@@ -6,7 +6,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: venv services test test-fast lint bench demo clean
+.PHONY: venv services test test-fast lint bench gpu-bundle demo clean
 
 venv: $(STAMP)
 
@@ -32,6 +32,11 @@ lint: venv
 bench: venv services
 	@mkdir -p bench/results
 	@set -e; for f in bench/*.py; do echo "== $$f"; $(BIN)/python $$f; done
+
+# The project's install in parts for a lent GPU machine (no registry there, 64 MiB a call): .gpu/part_*; the calls
+# that carry and run them are in scripts/device_bundle.py's docstring. Needs strace, zstd, xz and CUDA's ptxas.
+gpu-bundle: venv
+	$(BIN)/python scripts/device_bundle.py
 
 # The main job on the embedded default (SQLite + local folder + local worker processes): two real scans
 # shipped in examples/scans (licenses in their SOURCE.md), every default cue, then a contact sheet.

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import re
+import shutil
 import subprocess
 import sys
 import tarfile
@@ -158,6 +159,10 @@ def main() -> int:
     ap.add_argument("--out", type=Path, default=ROOT / ".gpu")
     ap.add_argument("--part-mib", type=int, default=55, help="part size: with the ~7 MiB tree, under 64 MiB a call")
     args = ap.parse_args()
+    tools = ["strace", "zstd", "xz", "strip", "split"] + ([] if args.cubin else ["ptxas"])
+    missing = [tool for tool in tools if shutil.which(tool) is None]
+    if missing:  # strace, zstd and xz-utils are Debian packages; ptxas comes with CUDA's toolkit
+        raise SystemExit(f"device_bundle: needs {', '.join(missing)} on PATH")
     args.out.mkdir(exist_ok=True)
     cubin = args.cubin or hopper_cubin(args.sm)
     with tempfile.TemporaryDirectory(prefix="omnidata-bundle-") as tmp_name:

@@ -20,6 +20,7 @@ Run: .venv/bin/python scripts/device_bundle.py [--sm 90 | --cubin PATH] [--out .
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import shutil
 import subprocess
@@ -59,8 +60,9 @@ def traced_files(tmp: Path) -> set[Path]:
                         "--no-progress", "--workers", "1"], cwd=ROOT, check=True, capture_output=True)
         for line in log.read_text().splitlines():
             match = re.search(r'open(?:at)?\((?:AT_FDCWD, )?"([^"]+)".*= \d+$', line)
-            if match and Path(match.group(1)).is_file():
-                opened.add(Path(match.group(1)).resolve())
+            path = Path(os.path.normpath(ROOT / match.group(1))) if match else None
+            if path and path.is_file():  # as opened: a system library by the name the loader asked for (its soname)
+                opened.add(path)
     return opened
 
 
@@ -110,8 +112,8 @@ def select(opened: set[Path], cubin: Path, tmp: Path) -> tuple[list[tuple[Path, 
     packed = tmp / f"{cubin.stem}.cubin.zst"  # kernel_sm_90.cubin.zst: the name Cycles looks for first
     subprocess.run(["zstd", "-q", "-19", "-f", str(cubin), "-o", str(packed)], check=True)
     members[str(target / CYCLES_LIB / packed.name)] = packed
-    system = sorted({p for p in opened if str(p).startswith(("/lib/", "/usr/lib/")) and ".so" in p.name
-                     and not GLIBC.match(p.name) and "ld-linux" not in p.name})
+    system = sorted({p.name: p for p in opened if str(p).startswith(("/lib/", "/usr/lib/")) and ".so" in p.name
+                     and not GLIBC.match(p.name) and "ld-linux" not in p.name}.values())
     for scene in ("icl_livingroom", "7scenes_redkitchen/mesh_tsdf_2cm_from_1000frames.ply"):
         path = SCENES / scene
         for sub in ([path] if path.is_file() else sorted(path.iterdir())):
@@ -173,7 +175,7 @@ def main() -> int:
             for path, name in members:
                 tar.add(stripped(path, tmp), arcname=name.lstrip("/"), recursive=False)
             for lib in system:
-                tar.add(lib, arcname=f"root/od-syslibs/{lib.name}")
+                tar.add(lib.resolve(), arcname=f"root/od-syslibs/{lib.name}")  # the file, under its soname
         size = archive.stat().st_size
         subprocess.run(["xz", "-T0", "-7", "-f", str(archive)], check=True)
         packed = archive.with_suffix(".tar.xz")

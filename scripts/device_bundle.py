@@ -70,9 +70,9 @@ def select(opened: set[Path], cubin: Path, tmp: Path) -> tuple[list[tuple[Path, 
     """(file, name in the archive) pairs of the install, and the system libraries it loaded."""
     members: dict[str, Path] = {}
 
-    def add(path: Path, name: str | None = None) -> None:
+    def add(path: Path) -> None:  # a file or a folder of the interpreter, at its own path
         if path.is_file() and "__pycache__" not in path.parts:
-            members[name or str(path)] = path
+            members[str(path)] = path
         elif path.is_dir():
             for sub in path.rglob("*"):
                 if sub.is_file() and "__pycache__" not in sub.parts:
@@ -99,8 +99,8 @@ def select(opened: set[Path], cubin: Path, tmp: Path) -> tuple[list[tuple[Path, 
     big = [p for p in opened if p.is_relative_to(SITE) and p.relative_to(SITE).parts[0] in BIG]
     big += [p.parent.parent / (p.name.split(".")[0] + ".py") for p in big if p.parent.name == "__pycache__"]
     big += [p for d in BLENDER_DIRS for p in (SITE / d).rglob("*") if p.is_file() and "__pycache__" not in p.parts]
-    for path in big:
-        if path.is_file():  # a pyc's source, which the import system needs beside it
+    for path in big:  # with each bytecode file's source, which the import system needs beside it
+        if path.is_file():
             members[str(target / path.relative_to(SITE))] = path
     for libs in SITE.glob("*.libs"):  # the libraries auditwheel vendored beside a package that was loaded
         if libs.name.split(".")[0].replace("pillow", "PIL") not in touched | BIG:

@@ -29,21 +29,26 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable
 from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from room_cost import FLOOR_PROBE, children_cpu_s, load, median  # noqa: E402  (bench/ is no package)
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import room_cost  # noqa: E402  (bench/ is no package)
+from room_cost import ROOMS, SCENES, floor  # noqa: E402
+
+from tests.fixtures.segment_agreement import adjusted_rand_index  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results" / "gpu.json"
-ROOM_ARGS = {  # name -> (path under --scenes, extra generate flags): as bench/room_cost.py
-    "icl_livingroom": ("icl_livingroom", []),
-    "7scenes_redkitchen": ("7scenes_redkitchen/mesh_tsdf_2cm_from_1000frames.ply", ["--up", "0.009,-0.904,-0.427"]),
-}
+
+
+def room_space(room: str, scenes: Path) -> tuple[Path, list[str]]:
+    """bench/room_cost.py's room (SPACE argument, generate flags), with its scenes folder at `scenes`."""
+    space, extra = ROOMS[room]
+    return scenes / space.relative_to(SCENES), extra
 
 
 class GpuSampler:
@@ -106,78 +111,20 @@ def task_window(out: Path) -> tuple[float, float]:
     return unix(first), unix(last)
 
 
-def pinned(cores: str) -> Callable[[], None]:
-    """Pins a child (and the processes it starts) to `cores` ("0", "0-7"): what `taskset -c` does."""
-    first, _, last = cores.partition("-")
-    wanted = set(range(int(first), int(last or first) + 1))
-    return lambda: os.sched_setaffinity(0, wanted)
-
-
 def generate(space: Path, extra: list[str], cores: str, out: Path, spec: Path, device: str,
              workers: int | None = None, gpu: bool = False) -> dict:
-    """`omnidata generate` pinned to `cores` on `device`: wall, views/s, per-cue task seconds (and GPU samples)."""
-    cmd = [sys.executable, "-m", "services.cli", "generate", str(space), "--out", str(out),
-           "--spec", str(spec), "--seed", "0", "--no-progress", *extra]
-    if workers is not None:
-        cmd += ["--workers", str(workers)]
-    sampler = GpuSampler() if gpu else None
-    t0, cpu0, start = time.perf_counter(), children_cpu_s(), time.time()
-    run = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, preexec_fn=pinned(cores),
-                         env={**os.environ, "PYTHONPATH": str(ROOT), "OMNIDATA_RENDER_DEVICE": device})
-    wall, cpu, end = time.perf_counter() - t0, children_cpu_s() - cpu0, time.time()
-    samples = sampler.stop() if sampler else []
-    processes = sampler.processes if sampler else 0
-    if run.returncode != 0:
-        raise RuntimeError(f"generate {space.name} on {device} failed ({run.returncode}): {run.stderr[-3000:]}")
-    views = len((out / "manifest.jsonl").read_text().splitlines())
-    with sqlite3.connect(out / ".omnidata" / "state.db") as db:
-        rows = db.execute("SELECT cue, SUM(duration_s) FROM task WHERE state = 'done' GROUP BY cue").fetchall()
-    per_cue = {cue: round(total / views, 4) for cue, total in rows}
-    result = {"cores": cores, "device": device, "views": views, "wall_s": round(wall, 2),
-              "wall_s_per_view": round(wall / views, 4), "views_per_s": round(views / wall, 3),
-              "cpu_s": round(cpu, 2), "cpu_s_per_view": round(cpu / views, 4), "load_before_after": load(),
-              "task_s_per_view": dict(sorted(per_cue.items(), key=lambda kv: -kv[1])),
-              "task_s_per_view_total": round(sum(per_cue.values()), 4)}
-    if gpu:
+    """bench/room_cost.py's `generate` run, with the GPU sampled while it runs when `gpu`."""
+    sampler, start = (GpuSampler() if gpu else None), time.time()
+    try:
+        result = room_cost.generate(space, extra, cores, out, spec, workers, device)
+    finally:
+        samples = sampler.stop() if sampler else []
+    if sampler:
         first, last = task_window(out)
-        result["gpu_whole_run"] = busy(samples, start, end)
+        result["gpu_whole_run"] = busy(samples, start, time.time())
         result["gpu_task_window"] = {**busy(samples, first, last), "seconds": round(last - first, 2)}
-        result["gpu_processes_peak"] = processes  # the workers that rendered on the GPU
+        result["gpu_processes_peak"] = sampler.processes  # the workers that rendered on the GPU
     return result
-
-
-def floor(space: Path, out: Path, device: str, cores: str) -> dict:
-    """Bare renders of the views `generate` planned into `out`, in one fresh process on `cores`."""
-    frame = json.loads((out / "job.json").read_text()).get("spec", {})
-    frame = {k: frame[k] for k in ("up_axis", "up", "unit_scale", "source_to_world") if k in frame}
-    plans = sorted((out / "_plan").glob("*.json"))
-    run = subprocess.run([sys.executable, "-c", FLOOR_PROBE, str(ROOT), str(space), str(plans[0]), json.dumps(frame),
-                          device], cwd=ROOT, capture_output=True, text=True, preexec_fn=pinned(cores),
-                         env={**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"})
-    if run.returncode != 0:
-        raise RuntimeError(f"floor on {device} failed ({run.returncode}): {run.stderr[-3000:]}")
-    probe = json.loads(run.stdout.strip().splitlines()[-1])
-    wall = probe["wall"]
-    return {"device": probe["device"], "cores": cores, "views": len(wall), "first_render_s": round(probe["first_s"], 3),
-            "s_per_view_median": round(median(wall), 4), "s_per_view_mean": round(sum(wall) / len(wall), 4),
-            "s_per_view_worst": round(max(wall), 4)}
-
-
-def adjusted_rand(a: np.ndarray, b: np.ndarray) -> float:
-    """Adjusted Rand index of two labellings of the same pixels (pair counting over their contingency table)."""
-    _, ai = np.unique(a.ravel(), return_inverse=True)
-    _, bi = np.unique(b.ravel(), return_inverse=True)
-    table = np.zeros((ai.max() + 1, bi.max() + 1), dtype=np.int64)
-    np.add.at(table, (ai, bi), 1)
-
-    def pairs(x: np.ndarray) -> float:
-        return float((x * (x - 1) // 2).sum())
-
-    n = ai.size
-    both, rows, cols, total = pairs(table), pairs(table.sum(1)), pairs(table.sum(0)), n * (n - 1) / 2
-    expected = rows * cols / total
-    top = 0.5 * (rows + cols) - expected
-    return 1.0 if top == 0 else (both - expected) / top
 
 
 def compare_outputs(gpu_out: Path, cpu_out: Path) -> dict:
@@ -206,7 +153,7 @@ def compare_outputs(gpu_out: Path, cpu_out: Path) -> dict:
         stats["equal"].append(float(same.mean()))
         stats["within_1"].append(float(near.mean()))
         if cue.startswith("segment_unsup"):
-            stats["ari"].append(adjusted_rand(a, b))
+            stats["ari"].append(adjusted_rand_index(a, b))
     summary = {}
     for cue, stats in per_cue.items():
         summary[cue] = {name: {"worst": round(min(v), 4), "mean": round(sum(v) / len(v), 4)}
@@ -251,15 +198,14 @@ def ratio(a: float | None, b: float | None) -> float | None:
 
 def run_room(room: str, args: argparse.Namespace, tmp: Path, specs: dict[str, Path]) -> dict:
     """Every figure of one room (module docstring, steps 1-4)."""
-    rel, extra = ROOM_ARGS[room]
-    space = args.scenes / rel
+    space, extra = room_space(room, args.scenes)
     all_cores = f"0-{os.cpu_count() - 1}"
     result: dict = {}
     gpu_out = tmp / f"{room}-gpu"
     result["gpu_generate"] = run_setting(space, extra, all_cores, gpu_out, specs, args.device, gpu=True)
     print(room, "gpu generate", json.dumps(result["gpu_generate"]), flush=True)
-    result["gpu_floor"] = floor(space, gpu_out, args.device, all_cores)
-    result["cpu_floor_one_core"] = floor(space, gpu_out, "cpu", "0")
+    result["gpu_floor"] = floor(space, all_cores, gpu_out, args.device)
+    result["cpu_floor_one_core"] = floor(space, "0", gpu_out, "cpu")
     print(room, "floors", json.dumps([result["gpu_floor"], result["cpu_floor_one_core"]]), flush=True)
     cpu_runs = {}
     for n in args.cores:
@@ -284,7 +230,7 @@ def run_room(room: str, args: argparse.Namespace, tmp: Path, specs: dict[str, Pa
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--rooms", default=",".join(ROOM_ARGS), help="comma-separated: " + ",".join(ROOM_ARGS))
+    ap.add_argument("--rooms", default=",".join(ROOMS), help="comma-separated: " + ",".join(ROOMS))
     ap.add_argument("--scenes", type=Path, default=ROOT.parent / "shared" / "scenes")
     ap.add_argument("--points", type=int, default=22, help="points per room (x 3 views) of the one-core runs")
     ap.add_argument("--points-many", type=int, default=44, help="points per room of the GPU and many-core runs")
@@ -299,7 +245,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory(prefix="omnidata-gpucost-") as tmp_name:
         tmp = Path(tmp_name)
         rooms = args.rooms.split(",")
-        warm = generate(args.scenes / ROOM_ARGS[rooms[0]][0], ROOM_ARGS[rooms[0]][1], "0-0", tmp / "warm-up",
+        warm = generate(*room_space(rooms[0], args.scenes), "0-0", tmp / "warm-up",
                         spec_file(tmp, "warm.json", 1), args.device, workers=1, gpu=True)
         result["warm_up"] = {k: warm[k] for k in ("wall_s", "gpu_processes_peak", "gpu_whole_run")}
         print("warm-up", json.dumps(result["warm_up"]), flush=True)

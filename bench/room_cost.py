@@ -1,6 +1,7 @@
 """Benchmark: cost per view on real rooms as a user sees it, against the bare render of the same views (issue 20).
 
-For each room it runs, on one core (`taskset -c CORE`, so the whole process tree shares it), interleaved:
+For each room it runs, on one core (pinned as `taskset -c CORE` would, so the whole process tree shares it),
+interleaved:
 1. `omnidata generate ROOM --workers 1` at 512x512 with every default cue: wall time per view end to end
    (start-up, planning, space loading, render, derivations, orchestration), and the job's own task rows
    (sum of `duration_s` per cue / views) from its SQLite state;
@@ -32,6 +33,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -85,46 +87,64 @@ def children_cpu_s() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
-def generate(room: str, cores: str, out: Path, spec: Path, workers: int | None) -> dict:
-    """Run `omnidata generate` pinned to `cores`; wall seconds, views, and per-cue task seconds from its task rows."""
-    space, extra = ROOMS[room]
-    cmd = ["taskset", "-c", cores, sys.executable, "-m", "services.cli", "generate", str(space), "--out", str(out),
+def pinned(cores: str) -> Callable[[], None]:
+    """Pins a child (and the processes it starts) to `cores`, a CPU list as `taskset -c` takes it ("0", "0,1",
+    "0-7"), without taskset (which some machines lack)."""
+    wanted: set[int] = set()
+    for part in cores.split(","):
+        first, _, last = part.partition("-")
+        wanted.update(range(int(first), int(last or first) + 1))
+    return lambda: os.sched_setaffinity(0, wanted)
+
+
+def generate(space: Path, extra: list[str], cores: str, out: Path, spec: Path, workers: int | None,
+             device: str = "auto") -> dict:
+    """Run `omnidata generate` pinned to `cores` rendering on `device` (OMNIDATA_RENDER_DEVICE); wall seconds, views,
+    and per-cue task seconds from its task rows."""
+    cmd = [sys.executable, "-m", "services.cli", "generate", str(space), "--out", str(out),
            "--spec", str(spec), "--seed", "0", "--no-progress", *extra]
     if workers is not None:
         cmd += ["--workers", str(workers)]
     before = load()
     t0, cpu0 = time.perf_counter(), children_cpu_s()
-    run = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True,
-                         env={**os.environ, "PYTHONPATH": str(ROOT)})
+    run = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, preexec_fn=pinned(cores),
+                         env={**os.environ, "PYTHONPATH": str(ROOT), "OMNIDATA_RENDER_DEVICE": device})
     wall, cpu = time.perf_counter() - t0, children_cpu_s() - cpu0
     if run.returncode != 0:
-        raise RuntimeError(f"generate {room} failed ({run.returncode}): {run.stderr[-2000:]}")
+        raise RuntimeError(f"generate {space.name} on {device} failed ({run.returncode}): {run.stderr[-2000:]}")
     views = len((out / "manifest.jsonl").read_text().splitlines())
     with sqlite3.connect(out / ".omnidata" / "state.db") as db:
         rows = db.execute("SELECT cue, SUM(duration_s), COUNT(*) FROM task WHERE state = 'done' GROUP BY cue")
         per_cue = {cue: round(total / views, 4) for cue, total, _ in rows}
         # a view batch's tasks share their claim's started_at: claims = distinct (worker, started_at)
         tasks, claims = db.execute("SELECT COUNT(*), COUNT(DISTINCT worker_id || started_at) FROM task").fetchone()
-    return {"views": views, "wall_s": round(wall, 2), "wall_s_per_view": round(wall / views, 4),
-            "views_per_s": round(views / wall, 3), "cpu_s": round(cpu, 2), "cpu_s_per_view": round(cpu / views, 4),
-            "load_before": before, "load_after": load(), "tasks": tasks, "claims": claims,
-            "task_s_per_view": dict(sorted(per_cue.items(), key=lambda kv: -kv[1])),
+    return {"cores": cores, "device": device, "views": views, "wall_s": round(wall, 2),
+            "wall_s_per_view": round(wall / views, 4), "views_per_s": round(views / wall, 3), "cpu_s": round(cpu, 2),
+            "cpu_s_per_view": round(cpu / views, 4), "load_before": before, "load_after": load(), "tasks": tasks,
+            "claims": claims, "task_s_per_view": dict(sorted(per_cue.items(), key=lambda kv: -kv[1])),
             "task_s_per_view_total": round(sum(per_cue.values()), 4)}
 
 
-def floor(room: str, core: str, out: Path, frame: dict) -> dict:
-    """Bare 1-sample renders of the views `generate` planned into `out`, in a fresh process on `core`."""
-    space, _ = ROOMS[room]
+def plan_frame(out: Path) -> dict:
+    """The space frame a `generate` into `out` used (job.json's spec), to load the space the same way."""
+    spec = json.loads((out / "job.json").read_text()).get("spec", {})
+    return {k: spec[k] for k in ("up_axis", "up", "unit_scale", "source_to_world") if k in spec}
+
+
+def floor(space: Path, cores: str, out: Path, device: str = "cpu") -> dict:
+    """Bare 1-sample renders of the views `generate` planned into `out`, in a fresh process on `cores`."""
     plans = sorted((out / "_plan").glob("*.json"))
     before = load()
-    run = subprocess.run(["taskset", "-c", core, sys.executable, "-c", FLOOR_PROBE, str(ROOT), str(space),
-                          str(plans[0]), json.dumps(frame)], cwd=ROOT, capture_output=True, text=True, check=True,
-                         env={**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"})
+    run = subprocess.run([sys.executable, "-c", FLOOR_PROBE, str(ROOT), str(space), str(plans[0]),
+                          json.dumps(plan_frame(out)), device], cwd=ROOT, capture_output=True, text=True,
+                         preexec_fn=pinned(cores), env={**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"})
+    if run.returncode != 0:
+        raise RuntimeError(f"floor of {space.name} on {device} failed ({run.returncode}): {run.stderr[-2000:]}")
     times = json.loads(run.stdout.strip().splitlines()[-1])
     wall = times["wall"]
-    return {"views": len(wall), "s_per_view_median": round(median(wall), 4), "s_per_view_mean": round(
-        sum(wall) / len(wall), 4), "s_per_view_worst": round(max(wall), 4),
-            "cpu_s_per_view_median": round(median(times["cpu"]), 4),
+    return {"device": times["device"], "cores": cores, "views": len(wall), "first_render_s": round(times["first_s"], 3),
+            "s_per_view_median": round(median(wall), 4), "s_per_view_mean": round(sum(wall) / len(wall), 4),
+            "s_per_view_worst": round(max(wall), 4), "cpu_s_per_view_median": round(median(times["cpu"]), 4),
             "cpu_s_per_view_mean": round(sum(times["cpu"]) / len(wall), 4), "load_before": before, "load_after": load()}
 
 
@@ -200,21 +220,18 @@ def main() -> int:
             repeats = []
             for i in range(args.repeats):
                 out = Path(tmp) / f"{room}-{i}"
-                rep: dict = {"generate": generate(room, args.core, out, spec, 1)}
-                frame = json.loads((out / "job.json").read_text()).get("spec", {})
-                frame = {k: frame[k] for k in ("up_axis", "up", "unit_scale", "source_to_world") if k in frame}
-                rep["floor"] = floor(room, args.core, out, frame)
+                rep: dict = {"generate": generate(*ROOMS[room], args.core, out, spec, 1)}
+                rep["floor"] = floor(ROOMS[room][0], args.core, out)
                 if args.startup:
                     small = Path(tmp) / "spec-small.json"
                     small.write_text(json.dumps({"points": {"count": 1, "max_views": 3},
                                                  "views": {"resolution": args.resolution}}))
-                    rep["startup"] = generate(room, args.core, Path(tmp) / f"{room}-{i}-small", small, 1)
+                    rep["startup"] = generate(*ROOMS[room], args.core, Path(tmp) / f"{room}-{i}-small", small, 1)
                 if args.cores:
-                    rep["all_cores"] = generate(room, args.cores, Path(tmp) / f"{room}-{i}-all", spec, None)
-                    rep["all_cores"]["cores"] = args.cores
+                    rep["all_cores"] = generate(*ROOMS[room], args.cores, Path(tmp) / f"{room}-{i}-all", spec, None)
                     if args.startup:
-                        rep["all_cores_startup"] = generate(room, args.cores, Path(tmp) / f"{room}-{i}-all-small",
-                                                            small, None)
+                        rep["all_cores_startup"] = generate(*ROOMS[room], args.cores,
+                                                            Path(tmp) / f"{room}-{i}-all-small", small, None)
                 repeats.append(rep)
                 print(room, i, json.dumps({k: {kk: v for kk, v in r.items() if kk != "task_s_per_view"}
                                            for k, r in rep.items()}), flush=True)

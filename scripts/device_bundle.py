@@ -29,10 +29,12 @@ import tarfile
 import tempfile
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+from room_cost import ROOMS, SCENES  # noqa: E402  (the real rooms the benchmarks run: their files are what a run opens)
+
 ROOT = Path(__file__).resolve().parents[1]
 PREFIX = Path(sys.base_prefix)  # the interpreter the venv was made from (pyenv's 3.11)
 SITE = Path(next(p for p in sys.path if p.endswith("site-packages") and p.startswith(str(ROOT))))
-SCENES = ROOT.parent / "shared" / "scenes"
 BIG = {"bpy", "scipy"}  # packed file by file; numba compiles on a new machine: it, llvmlite and numpy go whole
 # The oracle tests' runner, and OpenEXR (they read a position EXR back; so does a ZIP-compressed position).
 EXTRA_PACKAGES = ("pytest", "_pytest", "pluggy", "iniconfig", "packaging", "pytest_timeout.py", "py.py",
@@ -44,8 +46,6 @@ GLIBC = re.compile(r"lib(c|m|dl|rt|pthread|util|resolv|stdc\+\+|gcc_s)\.so")
 BLENDER_DIRS = ("bpy/4.5/scripts/startup", "bpy/4.5/scripts/modules")
 CYCLES_LIB = "bpy/4.5/scripts/addons_core/cycles/lib"
 GPU_KERNELS = ("kernel_compute_75.ptx.zst", "kernel_optix.ptx.zst", "kernel_optix_shader_raytrace.ptx.zst")
-ROOMS = (["../shared/scenes/icl_livingroom"],
-         ["../shared/scenes/7scenes_redkitchen/mesh_tsdf_2cm_from_1000frames.ply", "--up", "0.009,-0.904,-0.427"])
 
 
 def traced_files(tmp: Path) -> set[Path]:
@@ -53,10 +53,10 @@ def traced_files(tmp: Path) -> set[Path]:
     spec = tmp / "spec.json"
     spec.write_text('{"points": {"count": 1, "max_views": 3}, "views": {"resolution": 64}}')
     opened: set[Path] = set()
-    for i, room in enumerate(ROOMS):
+    for i, (space, extra) in enumerate(ROOMS.values()):
         log = tmp / f"trace{i}.txt"
         subprocess.run(["strace", "-f", "-z", "-e", "trace=openat,open,execve", "-o", str(log), sys.executable,
-                        "-m", "services.cli", "generate", *room, "--out", str(tmp / f"out{i}"), "--spec", str(spec),
+                        "-m", "services.cli", "generate", str(space), *extra, "--out", str(tmp / f"out{i}"), "--spec", str(spec),
                         "--no-progress", "--workers", "1"], cwd=ROOT, check=True, capture_output=True)
         for line in log.read_text().splitlines():
             match = re.search(r'open(?:at)?\((?:AT_FDCWD, )?"([^"]+)".*= \d+$', line)
@@ -114,8 +114,7 @@ def select(opened: set[Path], cubin: Path, tmp: Path) -> tuple[list[tuple[Path, 
     members[str(target / CYCLES_LIB / packed.name)] = packed
     system = sorted({p.name: p for p in opened if str(p).startswith(("/lib/", "/usr/lib/")) and ".so" in p.name
                      and not GLIBC.match(p.name) and "ld-linux" not in p.name}.values())
-    for scene in ("icl_livingroom", "7scenes_redkitchen/mesh_tsdf_2cm_from_1000frames.ply"):
-        path = SCENES / scene
+    for path, _ in ROOMS.values():  # the rooms bench/gpu_cost.py runs there (--scenes /root/od-scenes)
         for sub in ([path] if path.is_file() else sorted(path.iterdir())):
             members[f"/root/od-scenes/{sub.relative_to(SCENES)}"] = sub
     return sorted((path, name) for name, path in members.items()), system

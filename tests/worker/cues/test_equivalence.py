@@ -35,26 +35,12 @@ from services.worker.space_cache import SpaceContext
 from tests.fixtures import reference_keypoints2d, reference_keypoints3d, reference_segmentation
 from tests.fixtures.exr import openexr_file_bytes
 from tests.fixtures.raycast import decode_png, object_view
+from tests.fixtures.segment_agreement import adjusted_rand_index
 
 pytestmark = pytest.mark.bpy  # the views are Cycles renders
 
 RESOLUTION = 192
 N_VIEWS = 4
-
-
-def adjusted_rand_index(a: np.ndarray, b: np.ndarray) -> float:
-    """Hubert & Arabie's adjusted Rand index of two labelings of the same pixels (1 = identical partitions)."""
-    a = np.unique(a.ravel(), return_inverse=True)[1]
-    b = np.unique(b.ravel(), return_inverse=True)[1]
-    pairs = np.bincount(a * (b.max() + 1) + b).astype(np.float64)
-
-    def comb2(counts: np.ndarray) -> float:
-        return float((counts * (counts - 1) / 2).sum())
-
-    both, in_a, in_b = comb2(pairs), comb2(np.bincount(a).astype(np.float64)), comb2(np.bincount(b).astype(np.float64))
-    expected = in_a * in_b / (a.size * (a.size - 1) / 2)
-    top = (in_a + in_b) / 2
-    return 1.0 if top == expected else (both - expected) / (top - expected)
 
 
 def test_adjusted_rand_index_is_one_for_relabelings_and_low_for_unrelated_partitions():

@@ -26,7 +26,7 @@ from services.core.domain.errors import Conflict, Invalid
 from services.core.domain.jobspec import JobSpec
 from services.core.domain.keys import JOB_JSON_KEY, MANIFEST_KEY
 from services.core.ingest.loading import LoadedSpace
-from services.core.ingest.registry import Source, register_space
+from services.core.ingest.registry import Source, legacy_source_checksum, register_space
 from services.core.settings import Settings, load_settings
 from services.core.storage import ObjectStore
 from services.embedded.pool import STATE_DIR, LocalPool, WorkerConfig, cpu_count
@@ -71,12 +71,13 @@ def find_spaces(session: Session, sources: list[Source]) -> dict[str, Space]:
         space = rows.get(src.name)
         if space is None:
             continue
-        if space.checksum != src.checksum:
+        if space.checksum != src.checksum and space.checksum != legacy_source_checksum(src.path):
             raise Conflict(
                 f"the output folder already holds a different space named {src.name!r} (its files changed); "
                 "use a new --out folder"
             )
         found[src.name] = space
+        src.checksum = space.checksum  # the same files, zipped as an earlier version did: that job resumes
         src.has_semantics = bool(space.has_semantics)
     return found
 

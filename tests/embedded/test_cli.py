@@ -7,6 +7,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import shutil
 import signal
 import sqlite3
 import subprocess
@@ -144,6 +145,26 @@ def test_same_seed_gives_identical_bytes_and_a_rerun_renders_nothing(banana_run,
     assert {p: p.stat().st_mtime_ns for p in out.rglob("*.png")} == stamps
     # Its workers, stopped while they load Blender, leave quietly: no leak report of Blender's C++ teardown.
     assert "leak detector" not in res.stderr and "Not freed memory" not in res.stderr, res.stderr
+
+
+def test_a_folder_whose_sources_were_zipped_by_an_earlier_version_resumes(banana_run, scenes_dir, tiny_spec,
+                                                                            tmp_path):
+    """Sources are zipped with photos and textures stored since 2026-11, which changed their checksums: a folder
+    of a run before that (its space row holds the old zip's checksum) is the same job, not a Conflict."""
+    from services.core.ingest.registry import legacy_source_checksum, source_checksum
+
+    out = tmp_path / "before"
+    shutil.copytree(banana_run[0], out)
+    src = scenes_dir / "ycb_banana"
+    legacy, current = legacy_source_checksum(src), source_checksum(src)
+    assert legacy is not None and legacy != current  # the banana's texture is stored now, deflated before
+    with sqlite3.connect(out / ".omnidata" / "state.db") as db:
+        assert db.execute("UPDATE space SET checksum = ? WHERE checksum = ?", (legacy, current)).rowcount == 1
+    stamps = {p: p.stat().st_mtime_ns for p in out.rglob("*.png")}
+    res = generate(src, "--out", out, "--spec", tiny_spec, "--seed", 7, "--workers", 1, "--name", "tiny")
+    assert res.returncode == 0, res.stderr
+    assert "resuming job 1" in res.stderr and "0 missing" in res.stderr
+    assert {p: p.stat().st_mtime_ns for p in out.rglob("*.png")} == stamps
 
 
 # ------------------------------------------------------------------------------------------ interrupt, resume

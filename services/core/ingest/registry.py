@@ -36,6 +36,11 @@ from services.core.temp_dirs import owned_temp_dir
 
 SINGLE_FILE_SUFFIXES = {".ply", ".glb", ".stl", ".off", ".zip", ".xyz", ".pts"}
 MAX_PACKED_BYTES = 4 << 30
+# A source's zip stores members that are compressed already (photos, depth PNGs, textures) and deflates the rest
+# at level 1: on the 7-Scenes kitchen (a 7.7 MB PLY and 200 frames) deflating the frames saved 12 KB of 16 MB for
+# 0.23 CPU-s, and level 6 saved 1% more than level 1 for 0.18 CPU-s, paid on every `generate` (its checksum).
+STORED_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".webp", ".ktx2", ".zip", ".gz"})
+PACK_DEFLATE_LEVEL = 1
 
 
 def _obj_companions(obj: Path) -> list[Path]:
@@ -123,13 +128,8 @@ def _files_to_pack(source: Path, mesh_file: Path) -> tuple[Path, list[Path]]:
 def pack_source(source: Path, mesh_file: Path, workdir: Path, *, remember: bool = False) -> Path:
     """The single file to upload for `source`: itself, or a deterministic zip of what the mesh needs.
     `remember`: keep the zip's bytes for the next pack_source of the same files in this process (which takes them)."""
-    if (source.is_file() and source.suffix.lower() in SINGLE_FILE_SUFFIXES and scannet_companions(source) is None
-            and _dataset_pack(source) is None):
-        from services.core.ingest.archive import MESH_SUFFIXES
-        from services.core.ingest.capture.attach import capture_files_beside
-
-        if source.suffix.lower() == ".zip" or not capture_files_beside(source, MESH_SUFFIXES):
-            return source
+    if _stored_as_is(source):
+        return source
     base, files = _files_to_pack(source, mesh_file)
     total = sum(f.stat().st_size for f in files)
     if total > MAX_PACKED_BYTES:
@@ -140,19 +140,39 @@ def pack_source(source: Path, mesh_file: Path, workdir: Path, *, remember: bool 
     if (packed := _PACKED.pop(key, None)) is not None:  # zipped earlier in this process (checksum, then register)
         out.write_bytes(packed)
         return out
-    with zipfile.ZipFile(out, "w", compression=zipfile.ZIP_DEFLATED) as zf:
-        for f in files:
-            info = zipfile.ZipInfo(f.relative_to(base).as_posix(), date_time=(1980, 1, 1, 0, 0, 0))
-            info.compress_type = zipfile.ZIP_DEFLATED
-            zf.writestr(info, f.read_bytes())  # fixed timestamps: same files -> same checksum
+    _write_zip(out, base, files)
     if remember:
         _remember_pack(key, out.read_bytes())
     return out
 
 
+def _stored_as_is(source: Path) -> bool:
+    """True when `source` is uploaded itself: one file that needs nothing beside it, or a zip."""
+    if (source.is_file() and source.suffix.lower() in SINGLE_FILE_SUFFIXES and scannet_companions(source) is None
+            and _dataset_pack(source) is None):
+        from services.core.ingest.archive import MESH_SUFFIXES
+        from services.core.ingest.capture.attach import capture_files_beside
+
+        return source.suffix.lower() == ".zip" or not capture_files_beside(source, MESH_SUFFIXES)
+    return False
+
+
+def _write_zip(out: Path, base: Path, files: list[Path], *, before_stored_members: bool = False) -> None:
+    """The deterministic zip of `files` (named relative to `base`): fixed timestamps and settings, so the same
+    files give the same checksum. `before_stored_members`: every member deflated at zlib's default level, as
+    sources were packed until 2026-11 (legacy_source_checksum)."""
+    with zipfile.ZipFile(out, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        for f in files:
+            info = zipfile.ZipInfo(f.relative_to(base).as_posix(), date_time=(1980, 1, 1, 0, 0, 0))
+            stored = f.suffix.lower() in STORED_SUFFIXES and not before_stored_members
+            info.compress_type = zipfile.ZIP_STORED if stored else zipfile.ZIP_DEFLATED
+            level = None if stored or before_stored_members else PACK_DEFLATE_LEVEL
+            zf.writestr(info, f.read_bytes(), compresslevel=level)
+
+
 # Zips source_checksum made in this process, by their files (path, size, mtime, ctime, inode), until the next
 # pack_source of the same files takes them: `omnidata generate` zips a source for its checksum and again to store
-# it (register_space); deflate costs ~0.15 CPU-s for ICL's 2.7 MB OBJ, ~0.6 for the 7-Scenes kitchen (15 MB zip).
+# it (register_space); zipping costs ~0.02 CPU-s for ICL's 2.7 MB OBJ, ~0.19 for the 7-Scenes kitchen (16 MB zip).
 # Bounded (a dataset root's scenes are all checksummed before any is stored): past it, the oldest go first.
 _PACKED: dict[tuple[str, tuple[tuple[str, int, int, int, int], ...]], bytes] = {}
 _PACKED_MAX_BYTES = 128 << 20
@@ -300,3 +320,15 @@ def source_checksum(path: Path) -> str:
         work = Path(tmp)
         mesh = resolve_source(path, work / "x") if path.suffix.lower() == ".zip" else resolve_source(path)
         return sha256_file(pack_source(path, mesh, work, remember=True))
+
+
+def legacy_source_checksum(path: Path) -> str | None:
+    """The checksum `path` had when sources were zipped with every member deflated at zlib's default level (before
+    2026-11), so an output folder of that time still resumes; None when `path` is stored as it is (not zipped)."""
+    if _stored_as_is(path):
+        return None
+    with tempfile.TemporaryDirectory(prefix="omnidata-source-") as tmp:
+        base, files = _files_to_pack(path, resolve_source(path))
+        out = Path(tmp) / "legacy.zip"
+        _write_zip(out, base, files, before_stored_members=True)
+        return sha256_file(out)

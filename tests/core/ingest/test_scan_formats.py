@@ -190,3 +190,42 @@ def test_a_source_zipped_twice_in_a_process_is_deflated_once_and_stays_in_step_w
     assert len(writes) == 2
     pack_source(src, src / "room.obj", tmp_path / "w2")
     assert len(writes) == 4 and registry._PACKED == {}  # only source_checksum's zips are kept
+
+
+def test_a_source_zip_stores_compressed_members_and_deflates_the_rest_byte_for_byte(tmp_path: Path) -> None:
+    src = tmp_path / "room"
+    src.mkdir()
+    (src / "room.obj").write_text("mtllib room.mtl\nusemtl a\nv 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf 1/1 2/1 3/1\n" * 50)
+    (src / "room.mtl").write_text("newmtl a\nmap_Kd wall.jpg\n")
+    rng = np.random.default_rng(0)
+    Image.fromarray(rng.integers(0, 255, (64, 64, 3), dtype=np.uint8)).save(src / "wall.jpg", quality=90)
+    packed = pack_source(src, src / "room.obj", tmp_path)
+    with zipfile.ZipFile(packed) as zf:
+        methods = {i.filename: i.compress_type for i in zf.infolist()}
+        assert methods == {"room.obj": zipfile.ZIP_DEFLATED, "room.mtl": zipfile.ZIP_DEFLATED,
+                           "wall.jpg": zipfile.ZIP_STORED}
+        assert all(zf.read(name) == (src / name).read_bytes() for name in methods)
+    assert zipfile.ZipFile(packed).getinfo("room.obj").compress_size < (src / "room.obj").stat().st_size / 5
+    again = load_space(resolve_source(packed, tmp_path / "x"))
+    assert len(again.mesh.faces) == 50
+
+
+def test_the_legacy_checksum_is_that_of_the_zip_every_member_deflated(tmp_path: Path) -> None:
+    from services.core.ingest import registry
+    from services.core.storage.base import sha256_file
+
+    src = tmp_path / "room"
+    src.mkdir()
+    (src / "room.obj").write_text("mtllib room.mtl\nusemtl a\nv 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf 1/1 2/1 3/1\n")
+    (src / "room.mtl").write_text("newmtl a\nmap_Kd wall.png\n")
+    Image.fromarray(np.full((8, 8, 3), 90, np.uint8)).save(src / "wall.png")
+    before = tmp_path / "before.zip"  # as pack_source wrote zips until 2026-11
+    with zipfile.ZipFile(before, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        for name in ("room.mtl", "room.obj", "wall.png"):
+            info = zipfile.ZipInfo(name, date_time=(1980, 1, 1, 0, 0, 0))
+            info.compress_type = zipfile.ZIP_DEFLATED
+            zf.writestr(info, (src / name).read_bytes())
+    assert registry.legacy_source_checksum(src) == sha256_file(before) != registry.source_checksum(src)
+    ply = tmp_path / "alone.ply"
+    trimesh.creation.box().export(ply)
+    assert registry.legacy_source_checksum(ply) is None  # stored as it is: its checksum never changed

@@ -6,7 +6,10 @@ each view's full pass set once (cached under --cache as .npz, so reruns skip Ble
 builds a fresh ViewContext on the pass set and produces every default cue in catalog order in that one context
 (what a worker batching a view's cues does: shared intermediates are paid by the first cue that needs them).
 Per cue it records the CPU seconds (time.process_time) of its derivation (value, including intermediates it is the
-first to need) and of its encoding, medians over views x repeats; the total per view against the floor.
+first to need) and of its encoding, medians over views x repeats; the total per view against the floor. The two
+segmentations, most of the total, are also timed step by step ("segment_steps_s": features, background fill,
+Felzenszwalb's blur, edge sort, merge pass and min-size pass, the region graph, normalized cuts' eigenvectors and
+the rest).
 
 Floor: the bare render's CPU seconds per view measured by bench/room_cost.py on the same rooms (a separate process
 per room, one core; bench/results/render.json "room_cost"), or FLOOR_CPU_S when that file has none.
@@ -101,6 +104,88 @@ def time_view(passes: ViewPasses, view: object, plan: SpacePlan, cues: list[str]
     return out
 
 
+def segment_input(ctx: ViewContext, kind: str) -> tuple[np.ndarray, np.ndarray, float, np.ndarray | None]:
+    """What `segment` gets for the 2d or 2.5d segmentation: features, mask, blur sigma and occlusion boundary."""
+    from services.worker.cues import segmentation as seg
+    from services.worker.cues.common import hit, valid
+    from services.worker.cues.edges import occlusion_response
+
+    p = ctx.params
+    if kind == "2d":
+        return ctx.passes.rgb.astype(np.float32) / 255.0, hit(ctx), p.segment2d_sigma, None
+    occ = occlusion_response(ctx)
+    boundary = seg._boundary(occ, np.float32(p.segment25d_weights[2]), np.float32(max(float(occ.max()), 1e-6)))
+    return seg.features25d(ctx), valid(ctx), 0.0, boundary
+
+
+def segment_stages(passes: list[ViewPasses], repeats: int) -> dict[str, dict[str, float]]:
+    """Per segmentation (2d, 2.5d), the median CPU seconds of each step of `segment` on these views: the feature
+    image (2.5d: log-depth, normals and occlusion boundary; the occlusion response counted as edge_occlusion's),
+    the background fill, Felzenszwalb's blur, edge sort, merge pass and min-size pass with labels, the region
+    graph, and the normalized cuts split into LAPACK's eigenvectors and the rest."""
+    from services.worker.cues import felzenszwalb as fz
+    from services.worker.cues import ncuts
+    from services.worker.cues import segmentation as seg
+    from services.worker.cues.common import gaussian_blur
+    from services.worker.cues.edges import occlusion_response
+
+    params = CueParams()
+    eig_s = [0.0]
+    solve = ncuts.second_eigenvector
+
+    def timed_solve(a: np.ndarray) -> np.ndarray:
+        c0 = time.process_time()
+        try:
+            return solve(a)
+        finally:
+            eig_s[0] += time.process_time() - c0
+
+    steps: dict[str, defaultdict[str, list[float]]] = {"2d": defaultdict(list), "25d": defaultdict(list)}
+    ncuts.second_eigenvector = timed_solve
+    try:
+        for _ in range(repeats):
+            for p in passes:
+                ctx = ViewContext(None, params, passes=p)
+                occlusion_response(ctx)
+                for kind in ("2d", "25d"):
+                    t = steps[kind]
+                    c0 = time.process_time()
+                    features, mask, sigma, boundary = segment_input(ctx, kind)
+                    c1 = time.process_time()
+                    if not mask.all():
+                        iy, ix = seg.nearest_in_mask(ctx, mask)
+                        features = seg._gather(features, iy, ix)
+                    c2 = time.process_time()
+                    img = np.ascontiguousarray(features, dtype=np.float32)
+                    if sigma > 0:
+                        img = np.stack([gaussian_blur(img[..., c], sigma, mode="reflect")
+                                        for c in range(img.shape[-1])], axis=-1)
+                    c3 = time.process_time()
+                    h, w = img.shape[:2]
+                    code, cost = fz._sorted_edges(img, fz.SORT_LEVELS)
+                    c4 = time.process_time()
+                    fz._merge(code, cost, w, h * w, float(params.segment2d_scale) / 255.0)
+                    c5 = time.process_time()
+                    labels = seg.superpixels(features, params.segment2d_scale, sigma, params.segment2d_min_size,
+                                             params.segment_max_superpixels)
+                    c6 = time.process_time()
+                    graph = seg.region_graph(labels, features * 255.0, params.segment_ncut_sigma, boundary)
+                    c7 = time.process_time()
+                    eig_s[0] = 0.0
+                    ncuts.normalized_cuts(graph, params.segment_ncut_thresh, params.segment_num_cuts)
+                    c8 = time.process_time()
+                    whole = c6 - c5  # the superpixel step run again: the rest of it once its blur, sort and merge
+                    for name, v in (("features", c1 - c0), ("background_fill", c2 - c1), ("blur", c3 - c2),
+                                    ("edge_sort", c4 - c3), ("merge_pass", c5 - c4),
+                                    ("min_size_and_labels", whole - (c5 - c2)), ("superpixels_total", whole),
+                                    ("region_graph", c7 - c6), ("ncuts_eigenvectors", eig_s[0]),
+                                    ("ncuts_rest", c8 - c7 - eig_s[0]), ("superpixels", float(labels.max() + 1))):
+                        t[name].append(v)
+    finally:
+        ncuts.second_eigenvector = solve
+    return {kind: {name: round(float(np.median(v)), 4) for name, v in t.items()} for kind, t in steps.items()}
+
+
 def run_room(room: str, n_views: int, repeats: int, resolution: int, cache: Path) -> dict:
     passes, plan, views = room_views(room, n_views, resolution, cache)
     cues = default_cues(has_semantics=False)
@@ -125,6 +210,7 @@ def run_room(room: str, n_views: int, repeats: int, resolution: int, cache: Path
         "ratio_to_floor": round(total / floor, 2),
         "encode_s_total": round(sum(v["encode_s"] for v in per_cue.values()), 4),
         "per_cue": dict(sorted(per_cue.items(), key=lambda kv: -(kv[1]["derive_s"] + kv[1]["encode_s"]))),
+        "segment_steps_s": segment_stages(passes, repeats),
     }
 
 
@@ -156,6 +242,8 @@ def main() -> int:
               f"({res['floor_cpu_s']:.3f}); encode {res['encode_s_total']:.3f}")
         for c, v in res["per_cue"].items():
             print(f"  {c:20s} derive {v['derive_s']:.4f}  encode {v['encode_s']:.4f}")
+        for kind, steps in res["segment_steps_s"].items():
+            print(f"  segment {kind}: " + ", ".join(f"{k} {v}" for k, v in steps.items()))
     print("load", run["load_before"], "->", run["load_after"], "wall", run["wall_s"], "cpu", run["cpu_s"])
     return 0
 

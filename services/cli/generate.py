@@ -34,6 +34,7 @@ from services.core.ingest.loading import load_space  # noqa: E402
 from services.core.ingest.registry import Source  # noqa: E402
 from services.core.settings import Settings  # noqa: E402
 from services.core.storage import LocalStore  # noqa: E402
+from services.embedded.curvature_ahead import curvature_ahead  # noqa: E402
 from services.embedded.job import STATE_DIR, drive, embedded_settings, find_spaces, prepare_job, worker_pool  # noqa: E402
 from services.embedded.pool import LocalPool, cpu_count  # noqa: E402
 
@@ -116,6 +117,9 @@ def _run(args: argparse.Namespace, spec: JobSpec, sources: list[Source], out: Pa
     if refused:
         print(f"omnidata generate: refused scene(s), left out of the job:\n{refused}", file=sys.stderr)
 
+    # The workers' curvature, computed while they import (several would otherwise wait on the first one's)
+    ahead = curvature_ahead([s.loaded.mesh for s in sources if s.loaded is not None], spec,
+                            out / STATE_DIR / "cache", workers)
     migrate(settings.database_url)
     engine = make_engine(settings.database_url)
     sessions = make_sessionmaker(engine)
@@ -133,3 +137,5 @@ def _run(args: argparse.Namespace, spec: JobSpec, sources: list[Source], out: Pa
         return status
     finally:
         engine.dispose()
+        if ahead is not None:
+            ahead.join()

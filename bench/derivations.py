@@ -151,6 +151,8 @@ def segment_stages(passes: list[ViewPasses], repeats: int) -> dict[str, dict[str
                     t = steps[kind]
                     c0 = time.process_time()
                     features, mask, sigma, boundary = segment_input(ctx, kind)
+                    if seg._uniform_in_mask(features, mask):  # one colour (an untextured room's rgb): no graph
+                        continue
                     c1 = time.process_time()
                     if not mask.all():
                         iy, ix = seg.nearest_in_mask(ctx, mask)
@@ -183,7 +185,8 @@ def segment_stages(passes: list[ViewPasses], repeats: int) -> dict[str, dict[str
                         t[name].append(v)
     finally:
         ncuts.second_eigenvector = solve
-    return {kind: {name: round(float(np.median(v)), 4) for name, v in t.items()} for kind, t in steps.items()}
+    # a segmentation every view short-cut (uniform features) has no steps
+    return {kind: {name: round(float(np.median(v)), 4) for name, v in t.items()} for kind, t in steps.items() if t}
 
 
 def run_room(room: str, n_views: int, repeats: int, resolution: int, cache: Path) -> dict:

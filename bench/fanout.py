@@ -56,11 +56,11 @@ from services.core.domain.plan import CameraPose, PlannedView, PointOfInterest, 
 from services.core.ingest.registry import register_space  # noqa: E402
 from services.core.settings import get_settings  # noqa: E402
 from services.core.storage import LocalStore  # noqa: E402
+from services.scheduler.celery_transport import CeleryTransport  # noqa: E402
 from services.scheduler.compile import compile_tasks  # noqa: E402
 from services.scheduler.completion import complete_once  # noqa: E402
 from services.scheduler.loop import Scheduler  # noqa: E402
 from services.scheduler.persist import persist_space  # noqa: E402
-from services.scheduler.transport import CeleryTransport  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 PG_ADMIN_URL = os.environ.get("OMNIDATA_TEST_PG_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/postgres")

@@ -29,6 +29,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -196,23 +197,25 @@ def ratio(a: float | None, b: float | None) -> float | None:
     return round(a / b, 2) if a and b else None
 
 
-def run_room(room: str, args: argparse.Namespace, tmp: Path, specs: dict[str, Path]) -> dict:
-    """Every figure of one room (module docstring, steps 1-4)."""
+def run_room(room: str, args: argparse.Namespace, tmp: Path, specs: dict[str, Path], result: dict,
+             save: Callable[[], None]) -> None:
+    """Every figure of one room (module docstring, steps 1-4) into `result`, saved after each step (a device
+    machine's lease can end mid-run: what was measured stays)."""
     space, extra = room_space(room, args.scenes)
     all_cores = f"0-{os.cpu_count() - 1}"
-    result: dict = {}
     gpu_out = tmp / f"{room}-gpu"
     result["gpu_generate"] = run_setting(space, extra, all_cores, gpu_out, specs, args.device, gpu=True)
     print(room, "gpu generate", json.dumps(result["gpu_generate"]), flush=True)
+    save()
     result["gpu_floor"] = floor(space, all_cores, gpu_out, args.device)
     result["cpu_floor_one_core"] = floor(space, "0", gpu_out, "cpu")
     print(room, "floors", json.dumps([result["gpu_floor"], result["cpu_floor_one_core"]]), flush=True)
-    cpu_runs = {}
+    cpu_runs = result["cpu_generate"] = {}
     for n in args.cores:
         cores = "0" if n == 1 else f"0-{n - 1}"
         cpu_runs[str(n)] = run_setting(space, extra, cores, tmp / f"{room}-cpu{n}", specs, "cpu", gpu=False)
         print(room, f"cpu generate on {n} cores", json.dumps(cpu_runs[str(n)]), flush=True)
-    result["cpu_generate"] = cpu_runs
+        save()
     result["gpu_floor_to_cpu_floor"] = ratio(result["gpu_floor"]["s_per_view_mean"],
                                              result["cpu_floor_one_core"]["s_per_view_mean"])
     one = cpu_runs.get("1")
@@ -225,7 +228,6 @@ def run_room(room: str, args: argparse.Namespace, tmp: Path, specs: dict[str, Pa
         top = cpu_runs[str(max(many))]
         result["gpu_to_all_cores_cpu_views_per_s"] = ratio(result["gpu_generate"]["views_per_s"], top["views_per_s"])
         result["cues_gpu_vs_cpu"] = compare_outputs(gpu_out, tmp / f"{room}-cpu{max(many)}")
-    return result
 
 
 def main() -> int:
@@ -251,13 +253,17 @@ def main() -> int:
         print("warm-up", json.dumps(result["warm_up"]), flush=True)
         specs = {"small": spec_file(tmp, "small.json", 1), "one": spec_file(tmp, "one.json", args.points),
                  "many": spec_file(tmp, "many.json", args.points_many)}
-        for room in rooms:
-            try:
-                result["rooms"][room] = run_room(room, args, tmp, specs)
-            except Exception as e:  # keep what the other rooms measured
-                result["rooms"][room] = {"error": str(e)[-2000:]}
-                print(room, "failed:", e, flush=True)
+        def save() -> None:
             args.out.write_text(json.dumps(result, indent=1) + "\n")
+
+        for room in rooms:
+            room_result = result["rooms"][room] = {}
+            try:
+                run_room(room, args, tmp, specs, room_result, save)
+            except Exception as e:  # keep what the other rooms measured
+                room_result["error"] = str(e)[-2000:]
+                print(room, "failed:", e, flush=True)
+            save()
     result["wall_s"] = round(time.perf_counter() - t0, 1)
     args.out.write_text(json.dumps(result, indent=1) + "\n")
     print(json.dumps({room: {k: v for k, v in r.items() if k not in ("cpu_generate", "gpu_generate")}

@@ -78,10 +78,10 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
     import redis
 
     from services.api.jobs.service import fetch_job_detail
+    from services.scheduler.celery_transport import CeleryTransport
     from services.scheduler.compaction import Compactor
     from services.scheduler.loop import Scheduler
     from services.scheduler.reaper import reap_once
-    from services.scheduler.transport import CeleryTransport
 
     red = PrivateRedis()
     url = create_database()

@@ -158,7 +158,7 @@ class PrivateRedis:
 def publish_cost(n: int = 20_000, batch: int = 1_000) -> dict[str, float]:
     """CPU per message of the scheduler's CeleryTransport (kombu's pipelined batch publish) and of a private Redis."""
     from services.core.settings import get_settings
-    from services.scheduler.transport import CeleryTransport
+    from services.scheduler.celery_transport import CeleryTransport
 
     redis = PrivateRedis()
     try:

@@ -186,9 +186,9 @@ class CountingTransport:
 
 def scheduler_process(settings: Settings, plan: Any, stop: Any, out: Any) -> None:
     """The real Scheduler loop (plan, dispatch, reap, complete) with the synthetic plan; reports its counts."""
+    from services.scheduler.celery_transport import CeleryTransport
     from services.scheduler.compaction import Compactor
     from services.scheduler.loop import Scheduler
-    from services.scheduler.transport import CeleryTransport
 
     engine = make_engine(settings.database_url, pool_size=2)
     transport = CountingTransport(CeleryTransport(settings=settings))

@@ -25,8 +25,8 @@ def run(args: argparse.Namespace) -> int:
     from services.core.db.engine import make_engine, make_sessionmaker, migrate, require_schema
     from services.core.settings import load_settings
     from services.core.storage import open_store
+    from services.scheduler.celery_transport import CeleryTransport
     from services.scheduler.loop import Scheduler
-    from services.scheduler.transport import CeleryTransport
 
     if args.interval <= 0:
         raise CliError(f"--interval must be positive, got {args.interval}")

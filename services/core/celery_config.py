@@ -7,9 +7,12 @@ that never imports the worker (and so never bpy): tasks are sent with
 
 from __future__ import annotations
 
-from celery import Celery
+from typing import TYPE_CHECKING
 
 from services.core.settings import Settings
+
+if TYPE_CHECKING:  # the names and queues below are read where Celery never runs (an embedded generate)
+    from celery import Celery
 
 TASK_RENDER_CUE = "render.cue"  # args=[task_id]; the worker loads everything else from the database
 RENDER_CUES: frozenset[str] = frozenset({"passes"})  # cues that run Cycles; all others are light derivations
@@ -53,6 +56,8 @@ def celery_conf(settings: Settings) -> dict[str, object]:
 
 def make_celery_app(settings: Settings, main: str = "omnidata") -> Celery:
     """A Celery app configured from settings, with no tasks registered (senders use send_task by name)."""
+    from celery import Celery
+
     app = Celery(main, set_as_current=False)
     app.conf.update(celery_conf(settings))
     return app

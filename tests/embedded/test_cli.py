@@ -167,6 +167,20 @@ def test_a_folder_whose_sources_were_zipped_by_an_earlier_version_resumes(banana
     assert {p: p.stat().st_mtime_ns for p in out.rglob("*.png")} == stamps
 
 
+def test_an_embedded_run_never_imports_celery(banana_run, scenes_dir, tiny_spec, tmp_path):
+    """Celery, kombu and redis are the cluster's transport: an embedded `generate` (every job's start-up) pays
+    ~80 ms to import them for nothing. Its own interpreter runs the whole job, then says what it imported."""
+    out = tmp_path / "embedded"
+    probe = ("import sys\nfrom services.cli.main import main\n"
+             f"rc = main(['generate', {str(scenes_dir / 'ycb_banana')!r}, '--out', {str(out)!r}, '--spec', "
+             f"{str(tiny_spec)!r}, '--seed', '7', '--workers', '1', '--name', 'tiny', '--no-progress'])\n"
+             "print(rc, sorted({m.split('.')[0] for m in sys.modules} & {'celery', 'kombu', 'billiard', 'redis'}))\n")
+    res = subprocess.run([sys.executable, "-c", probe], cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.split("\n")[-2] == "0 []", res.stdout
+    assert (out / "manifest.jsonl").read_bytes() == (banana_run[0] / "manifest.jsonl").read_bytes()  # the whole job
+
+
 # ------------------------------------------------------------------------------------------ interrupt, resume
 
 

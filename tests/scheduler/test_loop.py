@@ -26,8 +26,9 @@ from services.core.domain.jobspec import JobSpec
 from services.core.ingest.registry import register_space
 from services.core.settings import get_settings
 from services.core.storage import LocalStore
+from services.scheduler.celery_transport import CeleryTransport
 from services.scheduler.loop import Scheduler
-from services.scheduler.transport import CeleryTransport, NullTransport
+from services.scheduler.transport import NullTransport
 from tests.conftest import PG_ADMIN_URL, create_pg_database, drop_pg_database
 from tests.fixtures.jobs import any_sm, assert_counters_exact, finish, pg_sm, sqlite_sm, task_ids  # noqa: F401  (fixtures)
 

@@ -10,7 +10,7 @@ import redis
 
 from services.core.celery_config import TASK_RENDER_CUE, queue_for_cue
 from services.core.settings import get_settings
-from services.scheduler.transport import CeleryTransport
+from services.scheduler.celery_transport import CeleryTransport
 
 
 def _messages_on(redis_url: str, queue: str) -> list[dict]:

@@ -146,7 +146,7 @@ def stop_worker(proc: subprocess.Popen[bytes]) -> None:
 
 @pytest.mark.slow
 def test_real_worker_consumes_heartbeats_and_recycles_its_child(pg_url, pg_sm, redis_url, banana, tmp_path):  # noqa: F811
-    from services.scheduler.transport import CeleryTransport
+    from services.scheduler.celery_transport import CeleryTransport
 
     # one task per message (no view batch), so that two messages are two tasks and recycle the child
     env = worker_env(pg_url, redis_url, banana.store.root, tmp_path / "data", OMNIDATA_WORKER_MAX_TASKS="2",
@@ -216,7 +216,7 @@ def tree_cpu_s(root_pid: int) -> float:
 @pytest.mark.slow
 def test_idle_worker_with_one_render_thread_does_not_spin(pg_url, pg_sm, redis_url, banana, tmp_path):  # noqa: F811
     """After a render, a worker started with --render-threads 1 sleeps: its process tree uses < 5% of a core."""
-    from services.scheduler.transport import CeleryTransport
+    from services.scheduler.celery_transport import CeleryTransport
 
     env = worker_env(pg_url, redis_url, banana.store.root, tmp_path / "data")
     log = (tmp_path / "worker.log").open("wb")

@@ -11,7 +11,8 @@ For each real room, on the machine it runs on:
 4. every cue file of the GPU run against the CPU run of the same plan (same seed and spec) on the most cores: the
    share of pixels equal, within one code value, and the adjusted Rand index of the segmentations.
 Each setting runs a 3-view job and its main job (--points on one core, --points-many on the GPU and on many cores);
-the views/s of the views the main job adds (the slope, start-ups left out) is what a long job approaches.
+the views/s of the views the main job adds (the slope, start-ups left out) is what a long job approaches, and so
+is each run's rate over its task window (first task start to last task finish: its workers' first renders in).
 A 1-point run first (one worker) fills the caches a first run on a new machine pays once (numba's compiled
 kernels, the driver's OptiX module cache), so the figures are those of a machine in use.
 Run: python bench/gpu_cost.py [--rooms icl_livingroom] [--points 22] [--cores 1,8,16] [--out FILE]
@@ -120,8 +121,10 @@ def generate(space: Path, extra: list[str], cores: str, out: Path, spec: Path, d
         result = room_cost.generate(space, extra, cores, out, spec, workers, device)
     finally:
         samples = sampler.stop() if sampler else []
+    first, last = task_window(out)  # a long job's rate: its views over first task start to last task finish
+    result["task_window_s"] = round(last - first, 2)
+    result["task_window_views_per_s"] = round(result["views"] / (last - first), 3)
     if sampler:
-        first, last = task_window(out)
         result["gpu_whole_run"] = busy(samples, start, time.time())
         result["gpu_task_window"] = {**busy(samples, first, last), "seconds": round(last - first, 2)}
         result["gpu_processes_peak"] = sampler.processes  # the workers that rendered on the GPU
@@ -216,18 +219,28 @@ def run_room(room: str, args: argparse.Namespace, tmp: Path, specs: dict[str, Pa
         cpu_runs[str(n)] = run_setting(space, extra, cores, tmp / f"{room}-cpu{n}", specs, "cpu", gpu=False)
         print(room, f"cpu generate on {n} cores", json.dumps(cpu_runs[str(n)]), flush=True)
         save()
-    result["gpu_floor_to_cpu_floor"] = ratio(result["gpu_floor"]["s_per_view_mean"],
-                                             result["cpu_floor_one_core"]["s_per_view_mean"])
-    one = cpu_runs.get("1")
-    if one:
-        for key in ("views_per_s", "marginal_views_per_s"):
-            result[f"cores_to_one_core_{key}"] = {n: ratio(r[key], one[key]) for n, r in cpu_runs.items()}
-            result[f"gpu_to_one_core_{key}"] = ratio(result["gpu_generate"][key], one[key])
+    room_ratios(result)
+    save()
     many = [n for n in args.cores if n > 1]
     if many:  # the same plan (spec and seed) on the CPU: every cue file of the GPU run against it
-        top = cpu_runs[str(max(many))]
-        result["gpu_to_all_cores_cpu_views_per_s"] = ratio(result["gpu_generate"]["views_per_s"], top["views_per_s"])
         result["cues_gpu_vs_cpu"] = compare_outputs(gpu_out, tmp / f"{room}-cpu{max(many)}")
+
+
+def room_ratios(result: dict) -> None:
+    """The room's ratios from its runs: GPU floor to one core's, N cores and the GPU to one core (end to end, the
+    slope, the task window), the GPU to the most cores."""
+    result["gpu_floor_to_cpu_floor"] = ratio(result["gpu_floor"]["s_per_view_mean"],
+                                             result["cpu_floor_one_core"]["s_per_view_mean"])
+    cpu_runs, gpu = result["cpu_generate"], result["gpu_generate"]
+    one = cpu_runs.get("1")
+    if one:
+        for key in [k for k in ("views_per_s", "marginal_views_per_s", "task_window_views_per_s") if k in one]:
+            result[f"cores_to_one_core_{key}"] = {n: ratio(r.get(key), one.get(key)) for n, r in cpu_runs.items()}
+            result[f"gpu_to_one_core_{key}"] = ratio(gpu.get(key), one.get(key))
+    many = [n for n in cpu_runs if n != "1"]
+    if many:
+        top = cpu_runs[max(many, key=int)]
+        result["gpu_to_all_cores_cpu_views_per_s"] = ratio(gpu["views_per_s"], top["views_per_s"])
 
 
 def main() -> int:

@@ -45,6 +45,7 @@ STRIP = {"__init__.so", "libllvmlite.so"}
 GLIBC = re.compile(r"lib(c|m|dl|rt|pthread|util|resolv|stdc\+\+|gcc_s)\.so")
 BLENDER_DIRS = ("bpy/4.5/scripts/startup", "bpy/4.5/scripts/modules")
 CYCLES_LIB = "bpy/4.5/scripts/addons_core/cycles/lib"
+TEST_SCENES = ("ycb_banana", "stanford_bunny")  # tests/worker/blender/test_render.py's objects (its room is ICL's)
 GPU_KERNELS = ("kernel_compute_75.ptx.zst", "kernel_optix.ptx.zst", "kernel_optix_shader_raytrace.ptx.zst")
 
 
@@ -114,8 +115,9 @@ def select(opened: set[Path], cubin: Path, tmp: Path) -> tuple[list[tuple[Path, 
     members[str(target / CYCLES_LIB / packed.name)] = packed
     system = sorted({p.name: p for p in opened if str(p).startswith(("/lib/", "/usr/lib/")) and ".so" in p.name
                      and not GLIBC.match(p.name) and "ld-linux" not in p.name}.values())
-    for path, _ in ROOMS.values():  # the rooms bench/gpu_cost.py runs there (--scenes /root/od-scenes)
-        for sub in ([path] if path.is_file() else sorted(path.iterdir())):
+    # The rooms bench/gpu_cost.py runs there (--scenes /root/od-scenes), and the oracle tests' scenes.
+    for path in [path for path, _ in ROOMS.values()] + [SCENES / name for name in TEST_SCENES]:
+        for sub in ([path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file())):
             members[f"/root/od-scenes/{sub.relative_to(SCENES)}"] = sub
     return sorted((path, name) for name, path in members.items()), system
 
@@ -158,7 +160,7 @@ def main() -> int:
     ap.add_argument("--sm", type=int, default=90, help="the GPU's compute capability (90: H100, H200)")
     ap.add_argument("--cubin", type=Path, help="a kernel_sm_XX.cubin already built (default: build or reuse --sm's)")
     ap.add_argument("--out", type=Path, default=ROOT / ".gpu")
-    ap.add_argument("--part-mib", type=int, default=55, help="part size: with the ~7 MiB tree, under 64 MiB a call")
+    ap.add_argument("--part-mib", type=int, default=56, help="part size: with the ~7 MiB tree, under 64 MiB a call")
     args = ap.parse_args()
     tools = ["strace", "zstd", "xz", "strip", "split"] + ([] if args.cubin else ["ptxas"])
     missing = [tool for tool in tools if shutil.which(tool) is None]

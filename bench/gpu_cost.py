@@ -15,7 +15,8 @@ the views/s of the views the main job adds (the slope, start-ups left out) is wh
 is each run's rate over its task window (first task start to last task finish: its workers' first renders in).
 A 1-point run first (one worker) fills the caches a first run on a new machine pays once (numba's compiled
 kernels, the driver's OptiX module cache), so the figures are those of a machine in use.
-Run: python bench/gpu_cost.py [--rooms icl_livingroom] [--points 22] [--cores 1,8,16] [--out FILE]
+Run: python bench/gpu_cost.py [--rooms icl_livingroom] [--points 22] [--cores 1,8,16] [--gpu-workers 2,4,8]
+     [--out FILE]
 """
 
 from __future__ import annotations
@@ -210,6 +211,11 @@ def run_room(room: str, args: argparse.Namespace, tmp: Path, specs: dict[str, Pa
     result["gpu_generate"] = run_setting(space, extra, all_cores, gpu_out, specs, args.device, gpu=True)
     print(room, "gpu generate", json.dumps(result["gpu_generate"]), flush=True)
     save()
+    for n in args.gpu_workers:  # fewer workers: fewer CUDA contexts, kernel loads and scene uploads on the one GPU
+        run = generate(space, extra, all_cores, tmp / f"{room}-gpu-w{n}", specs["many"], args.device, workers=n, gpu=True)
+        result.setdefault("gpu_generate_by_workers", {})[str(n)] = run
+        print(room, f"gpu generate, {n} workers", json.dumps(run), flush=True)
+        save()
     result["gpu_floor"] = floor(space, all_cores, gpu_out, args.device)
     result["cpu_floor_one_core"] = floor(space, "0", gpu_out, "cpu")
     print(room, "floors", json.dumps([result["gpu_floor"], result["cpu_floor_one_core"]]), flush=True)
@@ -251,8 +257,10 @@ def main() -> int:
     ap.add_argument("--points-many", type=int, default=44, help="points per room of the GPU and many-core runs")
     ap.add_argument("--device", default="auto", choices=("auto", "optix", "cuda", "cpu"), help="the GPU run's device")
     ap.add_argument("--cores", default="1,8,16", help="CPU runs on these core counts (those above nproc are left out)")
+    ap.add_argument("--gpu-workers", default="", help="also the GPU main job with these worker counts (e.g. 2,4,8)")
     ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args()
+    args.gpu_workers = [int(n) for n in args.gpu_workers.split(",") if n]
     args.cores = [n for n in (int(c) for c in args.cores.split(",")) if n <= (os.cpu_count() or 1)]
     t0 = time.perf_counter()
     result: dict = {"machine": gpu_info(), "resolution": 512, "points_one_core": args.points,

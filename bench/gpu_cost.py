@@ -32,7 +32,6 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable
-from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -40,7 +39,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import room_cost  # noqa: E402  (bench/ is no package)
-from room_cost import ROOMS, SCENES, floor  # noqa: E402
+from room_cost import ROOMS, SCENES, floor, unix  # noqa: E402
 
 from tests.fixtures.segment_agreement import adjusted_rand_index  # noqa: E402
 
@@ -106,11 +105,6 @@ def task_window(out: Path) -> tuple[float, float]:
     """Unix times of the job's first task start and last task finish (its task rows, UTC)."""
     with sqlite3.connect(out / ".omnidata" / "state.db") as db:
         first, last = db.execute("SELECT MIN(started_at), MAX(finished_at) FROM task WHERE state = 'done'").fetchone()
-
-    def unix(text: str) -> float:
-        stamp = datetime.fromisoformat(text)
-        return (stamp if stamp.tzinfo else stamp.replace(tzinfo=UTC)).timestamp()
-
     return unix(first), unix(last)
 
 

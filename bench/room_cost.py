@@ -34,6 +34,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
+from datetime import UTC, datetime
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -106,7 +107,7 @@ def generate(space: Path, extra: list[str], cores: str, out: Path, spec: Path, w
     if workers is not None:
         cmd += ["--workers", str(workers)]
     before = load()
-    t0, cpu0 = time.perf_counter(), children_cpu_s()
+    t0, cpu0, started = time.perf_counter(), children_cpu_s(), time.time()
     run = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, preexec_fn=pinned(cores),
                          env={**os.environ, "PYTHONPATH": str(ROOT), "OMNIDATA_RENDER_DEVICE": device})
     wall, cpu = time.perf_counter() - t0, children_cpu_s() - cpu0
@@ -118,11 +119,32 @@ def generate(space: Path, extra: list[str], cores: str, out: Path, spec: Path, w
         per_cue = {cue: round(total / views, 4) for cue, total, _ in rows}
         # a view batch's tasks share their claim's started_at: claims = distinct (worker, started_at)
         tasks, claims = db.execute("SELECT COUNT(*), COUNT(DISTINCT worker_id || started_at) FROM task").fetchone()
+        steps = timeline(db, started, started + wall)
     return {"cores": cores, "device": device, "views": views, "wall_s": round(wall, 2),
             "wall_s_per_view": round(wall / views, 4), "views_per_s": round(views / wall, 3), "cpu_s": round(cpu, 2),
             "cpu_s_per_view": round(cpu / views, 4), "load_before": before, "load_after": load(), "tasks": tasks,
             "claims": claims, "task_s_per_view": dict(sorted(per_cue.items(), key=lambda kv: -kv[1])),
-            "task_s_per_view_total": round(sum(per_cue.values()), 4)}
+            "task_s_per_view_total": round(sum(per_cue.values()), 4), "timeline_s": steps}
+
+
+def unix(stamp: str) -> float:
+    """Unix time of a task row's timestamp (UTC, stored without its zone)."""
+    moment = datetime.fromisoformat(stamp)
+    return (moment if moment.tzinfo else moment.replace(tzinfo=UTC)).timestamp()
+
+
+def timeline(db: sqlite3.Connection, start: float, end: float) -> dict:
+    """Where a run's wall time went, in seconds from its start (task rows): its first task queued (the parent's
+    validation and planning), started, each worker's first task (its start-up: first, median, last worker), the
+    last task finished, and the process's end."""
+    queued, first, last = db.execute(
+        "SELECT MIN(queued_at), MIN(started_at), MAX(finished_at) FROM task WHERE state = 'done'").fetchone()
+    per_worker = sorted(unix(t) - start for (t,) in db.execute(
+        "SELECT MIN(started_at) FROM task WHERE state = 'done' GROUP BY worker_id"))
+    return {"first_task_queued": round(unix(queued) - start, 2), "first_task_started": round(unix(first) - start, 2),
+            "workers": len(per_worker), "worker_first_task": [round(per_worker[i], 2) for i in
+                                                              (0, len(per_worker) // 2, len(per_worker) - 1)],
+            "last_task_finished": round(unix(last) - start, 2), "process_end": round(end - start, 2)}
 
 
 def plan_frame(out: Path) -> dict:

@@ -15,8 +15,10 @@ the views/s of the views the main job adds (the slope, start-ups left out) is wh
 is each run's rate over its task window (first task start to last task finish: its workers' first renders in).
 A 1-point run first (one worker) fills the caches a first run on a new machine pays once (numba's compiled
 kernels, the driver's OptiX module cache), so the figures are those of a machine in use.
+With --render-workers R,..., also the GPU main job with every worker of which only R render (`generate
+--render-workers`: R device contexts, the other workers derive from the pass sets the renderers store).
 Run: python bench/gpu_cost.py [--rooms icl_livingroom] [--points 22] [--cores 1,8,16] [--gpu-workers 2,4,8]
-     [--out FILE]
+     [--render-workers 1,2] [--out FILE]
 """
 
 from __future__ import annotations
@@ -210,6 +212,12 @@ def run_room(room: str, args: argparse.Namespace, tmp: Path, specs: dict[str, Pa
         result.setdefault("gpu_generate_by_workers", {})[str(n)] = run
         print(room, f"gpu generate, {n} workers", json.dumps(run), flush=True)
         save()
+    for n in args.render_workers:  # one context per renderer, every other core deriving
+        run = generate(space, [*extra, "--render-workers", str(n)], all_cores, tmp / f"{room}-gpu-r{n}",
+                       specs["many"], args.device, gpu=True)
+        result.setdefault("gpu_generate_by_render_workers", {})[str(n)] = run
+        print(room, f"gpu generate, {n} render workers", json.dumps(run), flush=True)
+        save()
     result["gpu_floor"] = floor(space, all_cores, gpu_out, args.device)
     result["cpu_floor_one_core"] = floor(space, "0", gpu_out, "cpu")
     print(room, "floors", json.dumps([result["gpu_floor"], result["cpu_floor_one_core"]]), flush=True)
@@ -252,9 +260,12 @@ def main() -> int:
     ap.add_argument("--device", default="auto", choices=("auto", "optix", "cuda", "cpu"), help="the GPU run's device")
     ap.add_argument("--cores", default="1,8,16", help="CPU runs on these core counts (those above nproc are left out)")
     ap.add_argument("--gpu-workers", default="", help="also the GPU main job with these worker counts (e.g. 2,4,8)")
+    ap.add_argument("--render-workers", default="",
+                    help="also the GPU main job with every worker, these many of them rendering (e.g. 1,2)")
     ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args()
     args.gpu_workers = [int(n) for n in args.gpu_workers.split(",") if n]
+    args.render_workers = [int(n) for n in args.render_workers.split(",") if n]
     args.cores = [n for n in (int(c) for c in args.cores.split(",")) if n <= (os.cpu_count() or 1)]
     t0 = time.perf_counter()
     result: dict = {"machine": gpu_info(), "resolution": 512, "points_one_core": args.points,

@@ -81,7 +81,8 @@ def measure(workers: int, args: argparse.Namespace) -> dict[str, Any]:
         conf = WorkerConfig(out=str(out), settings=settings.model_dump(mode="json", exclude=SECRET_SETTINGS),
             render_threads=1, parent_pid=os.getpid())
         pool = LocalPool(workers, conf)
-        sched = Scheduler(sm, store, QueueTransport(pool.tasks), settings, scheduler_id=f"bench:{os.getpid()}",
+        transport = QueueTransport(pool.queues.derive, pool.queues.render)
+        sched = Scheduler(sm, store, transport, settings, scheduler_id=f"bench:{os.getpid()}",
                           cache_dir=out / ".omnidata" / "cache")
         try:
             pool.start()

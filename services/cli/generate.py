@@ -46,6 +46,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", "-o", required=True, metavar="DIR", help="output folder (created; reused to resume)")
     add_spec_arguments(parser)
     parser.add_argument("--workers", type=int, metavar="W", help="local worker processes (default: CPU cores)")
+    parser.add_argument("--render-workers", type=int, metavar="R",
+                        help="of the W workers, R render and the others only derive (default: all render; on a GPU, "
+                        "1 gives it one device context, fed by every core)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar (log lines only)")
 
 
@@ -91,7 +94,13 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"--out {args.out}: exists and is not a folder")
     state_db = out / STATE_DIR / "state.db"
 
-    settings = embedded_settings(out, workers)
+    if args.render_workers is not None and args.render_workers < 1:
+        raise CliError(f"--render-workers must be at least 1, got {args.render_workers}")
+    settings = embedded_settings(out, workers, args.render_workers)
+    if settings.render_workers is not None and settings.render_workers > workers:
+        given = "--render-workers" if args.render_workers is not None else "OMNIDATA_RENDER_WORKERS"
+        raise CliError(f"{given} {settings.render_workers} is more than the {workers} worker(s) of this run "
+                       "(--workers)")
     # The workers import (Python, numba kernels, Blender: ~2 CPU-s each) while this process validates and plans;
     # held, they touch nothing until the job exists, and a refused input stops them at once.
     pool = worker_pool(out, settings, workers)

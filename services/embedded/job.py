@@ -48,12 +48,14 @@ SHORT_QUEUE_PER_WORKER = 2  # a worker's message brings a tick only when its que
 SECRET_SETTINGS = {"api_tokens", "secret_key", "aws_access_key_id", "aws_secret_access_key"}
 
 
-def embedded_settings(out: Path, workers: int) -> Settings:
-    """Settings of the embedded mode: SQLite and the object folder in DIR, whatever OMNIDATA_* says."""
+def embedded_settings(out: Path, workers: int, render_workers: int | None = None) -> Settings:
+    """Settings of the embedded mode: SQLite and the object folder in DIR, whatever OMNIDATA_* says; `render_workers`
+    (--render-workers) overrides OMNIDATA_RENDER_WORKERS."""
     state = out / STATE_DIR
+    chosen = {} if render_workers is None else {"render_workers": render_workers}
     return load_settings(
         data_dir=str(state), database_url=f"sqlite:///{state / 'state.db'}", storage_url=str(out),
-        dispatch_window=max(128, 64 * workers), env="development",
+        dispatch_window=max(128, 64 * workers), env="development", **chosen,
     )
 
 
@@ -195,7 +197,7 @@ def _short_of_work(pool: LocalPool) -> bool:
     """Whether the workers' queue holds at most SHORT_QUEUE_PER_WORKER tasks each: then a tick may dispatch more,
     or find the job done (it cannot be while tasks wait in the queue; the quiet tick is the safety net)."""
     try:
-        return pool.tasks.qsize() <= SHORT_QUEUE_PER_WORKER * max(1, len(pool.procs))
+        return pool.queues.waiting() <= SHORT_QUEUE_PER_WORKER * max(1, len(pool.procs))
     except NotImplementedError:  # macOS: no qsize
         return True
 
@@ -206,11 +208,12 @@ def tick_interval(tick_cpu_s: float) -> float:
 
 
 def worker_pool(out: Path, settings: Settings, workers: int) -> LocalPool:
-    """The W local worker processes of a run on --out (not started), each with its share of the cores."""
+    """The W local worker processes of a run on --out (not started), each with its share of the cores; R of them
+    render when settings.render_workers says R < W (services.embedded.pool)."""
     threads = max(1, cpu_count() // workers)
     conf = WorkerConfig(out=str(out), settings=settings.model_dump(mode="json", exclude=SECRET_SETTINGS),
                         render_threads=threads, parent_pid=os.getpid())
-    return LocalPool(workers, conf)
+    return LocalPool(workers, conf, render_workers=settings.render_workers)
 
 
 def drive(sessions: sessionmaker[Session], store: ObjectStore, settings: Settings, out: Path, job_id: int, workers: int, *,
@@ -234,7 +237,7 @@ def drive(sessions: sessionmaker[Session], store: ObjectStore, settings: Setting
         keep_loaded(cache_dir, key.split(":", 1)[0], loaded)  # key: loaded_space_key(space checksum, frame)
     if pool is None:
         pool = worker_pool(out, settings, workers)
-    transport = QueueTransport(pool.tasks)
+    transport = QueueTransport(pool.queues.derive, pool.queues.render)
     sched = Scheduler(sessions, store, transport, settings, scheduler_id=f"generate:{os.getpid()}",
                       cache_dir=cache_dir, loaded_spaces=loaded_spaces)
     bar = Progress(progress)

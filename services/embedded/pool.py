@@ -1,6 +1,11 @@
 """Local worker processes of `omnidata generate`: W processes each running the worker's TaskRunner, fed task ids
 through a multiprocessing queue (the embedded mode's stand-in for Redis).
 
+Roles (settings.render_workers): by default every worker renders and derives its own views ("all"). With R
+renderers of W workers, R "render" workers take the render queue's `passes` tasks first (storing each pass set
+for whoever derives it) and derive only while no render waits, and W - R "derive" workers take only the derive
+queue and never load Blender: one device context per renderer on a GPU, and no Blender start-up in the others.
+
 The first workers are forked from `generate` when that is safe (start_method): they inherit its imports (numpy,
 SQLAlchemy, trimesh, pydantic, the domain: ~1 of the ~1.6 CPU-s a spawned worker spends importing) and import
 only the worker's own modules and Blender. A replacement (recycled or dead worker) is spawned: by then the parent
@@ -20,13 +25,13 @@ import sys
 import threading
 import time
 import traceback
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from multiprocessing.context import ForkContext, SpawnContext
 from multiprocessing.process import BaseProcess
 from multiprocessing.queues import Queue
 from multiprocessing.synchronize import Event
 from pathlib import Path
-from typing import TYPE_CHECKING, NoReturn
+from typing import TYPE_CHECKING, Literal, NoReturn
 
 from services.worker.blender.calls import exit_at_once_inside_blender
 from services.worker.heap import keep_freed_memory
@@ -50,6 +55,11 @@ def cpu_count() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+# "all": renders its views and derives them (view batches); "render": takes renders first and hands the views off;
+# "derive": only derives, from stored pass sets (module docstring)
+Role = Literal["all", "render", "derive"]
+
+
 @dataclass(frozen=True)
 class WorkerConfig:
     """What a local worker process needs (plain data: it crosses a spawn)."""
@@ -59,6 +69,7 @@ class WorkerConfig:
     render_threads: int
     parent_pid: int
     log_level: int = logging.WARNING
+    role: Role = "all"
 
 
 # what a worker reports: ("ready", pid, worker id), ("outcome", pid, task id, status, cue, labels, error) or
@@ -66,10 +77,11 @@ class WorkerConfig:
 WorkerMessage = tuple[object, ...]
 
 
-def worker_main(conf: WorkerConfig, tasks: Queue[int | None], results: Queue[WorkerMessage], stop: Event,
+def worker_main(conf: WorkerConfig, tasks: TaskQueues, results: Queue[WorkerMessage], stop: Event,
                 go: Event) -> None:
-    """Body of a local worker process: import what a task needs (Blender included), wait for `go`, then take task
-    ids from `tasks`, run them and report outcomes on `results`. Nothing touches the state or --out before `go`."""
+    """Body of a local worker process: import what a task needs (Blender, unless it only derives), wait for `go`,
+    then take task ids from `tasks`, run them and report outcomes on `results`. Nothing touches the state or
+    --out before `go`."""
     # Ctrl-C reaches the whole process group: the parent decides when workers stop. SIGTERM (a held worker stopped,
     # or the stop's grace period over) unwinds the stack, so an in-flight write removes its temporary file; inside
     # Blender (loading, rendering) it ends the worker at once (services.worker.blender.calls). Either way the
@@ -90,7 +102,7 @@ def worker_main(conf: WorkerConfig, tasks: Queue[int | None], results: Queue[Wor
     _exit_quietly(code)
 
 
-def _work(conf: WorkerConfig, tasks: Queue[int | None], results: Queue[WorkerMessage], stop: Event,
+def _work(conf: WorkerConfig, tasks: TaskQueues, results: Queue[WorkerMessage], stop: Event,
           go: Event) -> None:
     """worker_main's work: warm up held, then serve tasks once released (returns when stopped or recycling)."""
     pin_numeric_threads()  # before numpy loads (spawned; a forked worker's parent pinned them before it loaded numpy)
@@ -110,7 +122,8 @@ def _work(conf: WorkerConfig, tasks: Queue[int | None], results: Queue[WorkerMes
     store = LocalStore(conf.out)
     worker_id = f"{socket.gethostname()}:{os.getpid()}"
     hb = Heartbeat(sessions, worker_id, queues=["local"], lease_s=settings.lease_s).start()
-    runner = TaskRunner(sessions, store, settings, worker_id, heartbeat=hb, cache_dir=Path(conf.out) / STATE_DIR / "cache")
+    runner = TaskRunner(sessions, store, settings, worker_id, heartbeat=hb,
+                        cache_dir=Path(conf.out) / STATE_DIR / "cache", hand_off_views=conf.role == "render")
     _freeze_long_lived()  # modules, Blender
     results.put(("ready", os.getpid(), worker_id))
     try:
@@ -131,7 +144,7 @@ def _exit_quietly(code: int) -> NoReturn:
     os._exit(code)
 
 
-def _serve(runner: TaskRunner, conf: WorkerConfig, tasks: Queue[int | None], results: Queue[WorkerMessage],
+def _serve(runner: TaskRunner, conf: WorkerConfig, tasks: TaskQueues, results: Queue[WorkerMessage],
            stop: Event, worker_id: str) -> None:
     """Take task ids from `tasks` and run them until told to stop, the parent dies or the worker should recycle."""
     from services.worker.claim import TransientError
@@ -141,7 +154,7 @@ def _serve(runner: TaskRunner, conf: WorkerConfig, tasks: Queue[int | None], res
         if os.getppid() != conf.parent_pid:  # the parent died: do not linger as an orphan
             return
         try:
-            task_id = tasks.get(timeout=0.5)
+            task_id, came_from = tasks.next_for(conf.role)
         except queue.Empty:
             continue
         if task_id is None:
@@ -151,7 +164,7 @@ def _serve(runner: TaskRunner, conf: WorkerConfig, tasks: Queue[int | None], res
         except TransientError as e:  # the database was busy for a long time: try the message again later
             log.warning("task %s: %s", task_id, e)
             time.sleep(1.0)
-            tasks.put(task_id)
+            came_from.put(task_id)
             continue
         for each in o.all():  # the task of the message, then the rest of its view batch
             results.put(("outcome", os.getpid(), each.task_id, each.status, each.cue, each.labels, each.error))
@@ -172,14 +185,16 @@ def _freeze_long_lived() -> None:
 
 
 def _warmed_up_and_released(conf: WorkerConfig, stop: Event, go: Event) -> bool:
-    """Import Blender for the first render (while the parent validates and plans), then wait for `go` (held:
-    LocalPool.start(held=True)); False when the pool stopped, or the parent died, first."""
+    """Import Blender for the first render (while the parent validates and plans; not in a worker that only
+    derives), then wait for `go` (held: LocalPool.start(held=True)); False when the pool stopped, or the parent
+    died, first."""
     from services.worker.blender.threads import import_bpy
 
     if stop.is_set():  # stopped before it began (a finished job resumed): no Blender to load
         return False
-    import_bpy(conf.render_threads)
-    importlib.import_module("services.worker.blender.scene")
+    if conf.role != "derive":
+        import_bpy(conf.render_threads)
+        importlib.import_module("services.worker.blender.scene")
     while not go.wait(0.2):
         if stop.is_set() or os.getppid() != conf.parent_pid:
             return False
@@ -204,18 +219,66 @@ WORKER_MODULES = ("services.worker.runner", "services.worker.heartbeat", "servic
                   "services.core.db.engine")
 
 
+class TaskQueues:
+    """The workers' task queues: `derive` holds every task but `passes`, which goes to `render`; without
+    renderers of their own (every worker renders) both are one queue."""
+
+    def __init__(self, ctx: SpawnContext, split: bool) -> None:
+        self.derive: Queue[int | None] = ctx.Queue()
+        self.render: Queue[int | None] = ctx.Queue() if split else self.derive
+
+    @property
+    def split(self) -> bool:
+        return self.render is not self.derive
+
+    def all(self) -> tuple[Queue[int | None], ...]:
+        return (self.derive, self.render) if self.split else (self.derive,)
+
+    def next_for(self, role: Role, timeout: float = 0.5) -> tuple[int | None, Queue[int | None]]:
+        """A task id for a worker of `role` and the queue it came from (queue.Empty after `timeout`): a renderer
+        takes a waiting render first, and derives only while none waits."""
+        if role == "render" and self.split:
+            try:
+                return self.render.get_nowait(), self.render
+            except queue.Empty:
+                pass
+            # wait on the derive queue in short steps, so a render that comes meanwhile waits at most one step
+            deadline = time.monotonic() + timeout
+            while True:
+                try:
+                    return self.derive.get(timeout=RENDER_POLL_S), self.derive
+                except queue.Empty:
+                    try:
+                        return self.render.get_nowait(), self.render
+                    except queue.Empty:
+                        if time.monotonic() >= deadline:
+                            raise
+        return self.derive.get(timeout=timeout), self.derive
+
+    def waiting(self) -> int:
+        """Task ids waiting in the queues (raises NotImplementedError where qsize does not exist: macOS)."""
+        return sum(q.qsize() for q in self.all())
+
+
+RENDER_POLL_S = 0.02  # a renderer waiting for derive work looks at the render queue this often
+
+
 @dataclass
 class LocalPool:
-    """W worker processes fed by one task queue (queues and events of the spawn context, which forked processes
-    share as well); dead or recycled ones are replaced."""
+    """W worker processes fed by task queues (queues and events of the spawn context, which forked processes
+    share as well); dead or recycled ones are replaced in the same role. `render_workers` R < W: R of them
+    render (module docstring)."""
 
     size: int
     conf: WorkerConfig
+    render_workers: int | None = None
     ctx: SpawnContext = field(default_factory=lambda: mp.get_context("spawn"))
     procs: list[BaseProcess] = field(default_factory=list)
 
     def __post_init__(self) -> None:
-        self.tasks = self.ctx.Queue()
+        split = self.render_workers is not None and self.render_workers < self.size
+        self.queues = TaskQueues(self.ctx, split)
+        self.roles: dict[int | None, Role] = {}  # by pid: a replacement takes over its predecessor's role
         self.results = self.ctx.Queue()
         self.stop_event = self.ctx.Event()
         self.go = self.ctx.Event()  # workers take tasks once it is set (start(held=False), or release())
@@ -224,13 +287,21 @@ class LocalPool:
         self.method = "spawn"  # how start() started the first workers (start_method)
         self.stopped = False
 
-    def _start_worker(self, method: str = "spawn") -> None:
+    def role_of(self, index: int) -> Role:
+        """The role of the pool's `index`-th worker: the first R render, the others derive (module docstring)."""
+        if not self.queues.split:
+            return "all"
+        return "render" if index < (self.render_workers or 0) else "derive"
+
+    def _start_worker(self, method: str = "spawn", role: Role = "all") -> None:
         ctx: SpawnContext | ForkContext = self.ctx if method == "spawn" else mp.get_context("fork")
-        p = ctx.Process(target=worker_main, args=(self.conf, self.tasks, self.results, self.stop_event, self.go),
+        conf = replace(self.conf, role=role)
+        p = ctx.Process(target=worker_main, args=(conf, self.queues, self.results, self.stop_event, self.go),
                         name=f"omnidata-worker-{self.started}", daemon=False)
         p.start()
         self.started += 1
         self.worker_ids[p.pid] = f"{socket.gethostname()}:{p.pid}"
+        self.roles[p.pid] = role
         self.procs.append(p)
 
     def start(self, *, held: bool = False) -> None:
@@ -244,8 +315,8 @@ class LocalPool:
                 for name in WORKER_MODULES:
                     importlib.import_module(name)
             gc.freeze()  # the children's collections then leave the inherited objects (and their pages) untouched
-        for _ in range(self.size):
-            self._start_worker(self.method)
+        for i in range(self.size):
+            self._start_worker(self.method, self.role_of(i))
 
     def release(self) -> None:
         """Let held workers take tasks."""
@@ -259,7 +330,7 @@ class LocalPool:
                 p.join(0)
                 self.procs.remove(p)
                 gone.append(self.worker_ids.get(p.pid, f"{socket.gethostname()}:{p.pid}"))
-                self._start_worker()  # spawned: see the module docstring
+                self._start_worker(role=self.roles.pop(p.pid, "all"))  # spawned: see the module docstring
         return gone
 
     def drain(self, timeout: float) -> list[WorkerMessage]:
@@ -281,11 +352,12 @@ class LocalPool:
         self.stop_event.set()
         if not self.go.is_set():  # held workers have nothing to finish: no grace (a refused input exits at once)
             grace = 0.0
-        for _ in self.procs:
-            try:
-                self.tasks.put_nowait(None)
-            except Exception:
-                pass
+        for q in self.queues.all():
+            for _ in self.procs:
+                try:
+                    q.put_nowait(None)
+                except Exception:
+                    pass
         deadline = time.monotonic() + grace
         for p in self.procs:
             p.join(max(0.0, deadline - time.monotonic()))
@@ -298,6 +370,6 @@ class LocalPool:
                 p.kill()
                 p.join(1.0)
         self.procs.clear()
-        for q in (self.tasks, self.results):
+        for q in (*self.queues.all(), self.results):
             q.cancel_join_thread()  # do not block exit on messages nobody will read
             q.close()

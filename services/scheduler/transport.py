@@ -11,6 +11,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Protocol
 
+from services.core.celery_config import RENDER_CUES
+
 
 class Transport(Protocol):
     """Delivers (task_id, cue) pairs to workers; raises when it could not."""
@@ -38,14 +40,16 @@ class TaskIdQueue(Protocol):
 
 
 class QueueTransport:
-    """Sends task ids into a queue (a multiprocessing queue of the embedded mode's local workers)."""
+    """Sends task ids into a queue (a multiprocessing queue of the embedded mode's local workers); with
+    `render_q`, the tasks that render go there instead (the embedded mode's render queue)."""
 
-    def __init__(self, q: TaskIdQueue) -> None:
+    def __init__(self, q: TaskIdQueue, render_q: TaskIdQueue | None = None) -> None:
         self.q = q
+        self.render_q = render_q if render_q is not None else q
         self.sent = 0
 
     def send(self, batch: Sequence[tuple[int, str]]) -> None:
-        """Put one task id per message on the queue."""
-        for task_id, _cue in batch:
-            self.q.put(int(task_id))
+        """Put one task id per message on its queue."""
+        for task_id, cue in batch:
+            (self.render_q if cue in RENDER_CUES else self.q).put(int(task_id))
         self.sent += len(batch)

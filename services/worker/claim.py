@@ -202,8 +202,9 @@ class TaskLedger:
     def claim_view_rest(self, t: Claimed, *, with_pending: bool = False) -> tuple[list[Claimed], bool]:
         """The view batch: -> running for this worker, in ONE statement, of the rest of `t`'s view (same job,
         space, point, view; not its `passes` task) while the job runs and the worker is not kept off it: the
-        queued tasks, and with `with_pending` (t is the view's rendered `passes`) the pending ones too. Every
-        input of those is a cue of the same view, derived from the pass set this worker holds. A queued task's
+        queued tasks, and with `with_pending` (t is the view's rendered `passes`, or a cue read from the view's
+        pass set) the pending ones too. Every input of those is a cue of the same view, derived from the pass set
+        this worker holds. A queued task's
         message, when it comes, finds it running or done and is skipped at the claim; a pending one has none.
         Returns them in topological order of their cues, and whether another task of the view that reads the
         pass set may still run elsewhere (True when nothing was claimed: unknown). ([], True) when the database

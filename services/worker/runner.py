@@ -16,8 +16,11 @@
    the view, computed in memory by its ViewContext in topological order), derives and stores each, and records
    them all done, `passes` included, in one statement: ~3 statements a view instead of ~2 per task. When the
    batch made every task of the view that reads the pass set, the pass set is never stored (`passes` is
-   recorded with size 0, no sha256). A derived cue's task (a view the batch did not take whole, e.g. after a
-   resume) claims its view's queued tasks alike.
+   recorded with size 0, no sha256). A derived cue's task (a view the batch did not take whole: a renderer's
+   of `generate --render-workers` (hand_off_views: it stores the pass set and leaves the view to the others), a
+   retry, a resume) claims its view's queued tasks alike, and when it reads the
+   pass set (so the pass set is done) the pending ones too: the pass set, read once, gives every cue of the view,
+   where queued-only took one batch and one read of the pass set per DAG level.
    Each task keeps its row; a pending task claimed so gets no message, a queued one's message is skipped when
    it comes (a read, no claim). A task whose input failed in the batch is handed back to pending unrun. A batch
    whose worker dies stays `running` under its lease (the beats extend all of it): the reaper re-queues every
@@ -86,6 +89,7 @@ class TaskRunner:
         render_threads: int | None = None,
         render_device: str | None = None,
         db_retry_s: float = DB_RETRY_S,
+        hand_off_views: bool = False,
     ) -> None:
         self.sessionmaker = sessionmaker
         self.store = store
@@ -96,6 +100,9 @@ class TaskRunner:
         self.render_threads = render_threads if render_threads is not None else settings.render_threads
         self.render_device = render_device or settings.render_device
         self.db_retry_s = db_retry_s
+        # A renderer of `generate --render-workers`: a `passes` task stores its pass set for the workers that only
+        # derive, instead of deriving the view itself (a view batch).
+        self.hand_off_views = hand_off_views
         self.ledger = TaskLedger(sessionmaker, worker_id, settings.lease_s, db_retry_s)
         self.inputs = TaskInputs(sessionmaker, store, self.ledger.db,
                                  int(VIEW_CACHE_MEMORY_FRACTION * settings.worker_max_memory_mb * 2**20))
@@ -108,8 +115,9 @@ class TaskRunner:
     def run(self, task_id: int) -> Outcome:
         """Claim and run one task, and with it the rest of its view (a view batch, when
         settings.worker_batch_views): after a `passes` task, the view's pending and queued tasks; after a derived
-        cue's, the view's queued ones. Never raises for task failures (they are recorded), only TransientError.
-        The returned Outcome is the message's task's; `batch` holds the others'."""
+        cue's, the view's queued ones, and pending ones too when it reads the pass set. Never raises for task
+        failures (they are recorded), only TransientError. The returned Outcome is the message's task's; `batch`
+        holds the others'."""
         t0 = time.perf_counter()
         if task_id in self.batched and self.ledger.is_settled(task_id):
             # Its message came after a view batch of ours ran it: no claim attempt (no write lock) for a no-op.
@@ -124,9 +132,9 @@ class TaskRunner:
             if not self.settings.worker_batch_views:
                 outcomes = self._run_claimed([claimed], t0)
             elif claimed.cue == "passes":
-                outcomes = self._run_view(claimed, t0)
+                outcomes = self._hand_off_view(claimed, t0) if self.hand_off_views else self._run_view(claimed, t0)
             else:
-                outcomes = self._run_claimed([claimed, *self._claim_rest(claimed, with_pending=False)[0]], t0)
+                outcomes = self._run_derived(claimed, t0)
         finally:
             if self.heartbeat is not None:
                 self.heartbeat.set_current(None)
@@ -173,6 +181,23 @@ class TaskRunner:
         if not elsewhere and not failed:  # nothing of the view is left to run: free its arrays for the next view
             self.inputs.forget_view((passes.job_id, passes.space_id, passes.point, passes.view))
         return self._record([passes, *rest], done, failed)
+
+    def _hand_off_view(self, passes: Claimed, t0: float) -> list[Outcome]:
+        """Render the view and store its pass set for whoever derives it; its arrays leave this process at once."""
+        outcomes = self._run_claimed([passes], t0)
+        self.inputs.forget_view((passes.job_id, passes.space_id, passes.point, passes.view))
+        return outcomes
+
+    def _run_derived(self, claimed: Claimed, t0: float) -> list[Outcome]:
+        """A derived cue's task and the rest of its view this worker could claim: the queued tasks, and the pending
+        ones too when it reads the pass set (module docstring). Once nothing of the view reads the pass set any
+        more, its arrays leave the memory LRU (see _run_view)."""
+        reads = _needs_passes(claimed.cue)
+        rest, elsewhere = self._claim_rest(claimed, with_pending=reads)
+        outcomes = self._run_claimed([claimed, *rest], t0)
+        if reads and rest and not elsewhere and all(o.status == "done" for o in outcomes):
+            self.inputs.forget_view((claimed.job_id, claimed.space_id, claimed.point, claimed.view))
+        return outcomes
 
     def _record_failure(self, t: Claimed, exc: Exception, t0: float) -> Outcome:
         max_attempts = self.inputs.max_attempts(t.job_id, self.settings.max_attempts)

@@ -23,11 +23,11 @@ def test_however_costly_a_tick_the_job_is_still_seen_within_the_slowest_interval
     assert tick_interval(5.0) == TICK_MAX_S
 
 
-class _FakeTasks:
+class _FakeQueues:
     def __init__(self) -> None:
         self.size = 0
 
-    def qsize(self) -> int:
+    def waiting(self) -> int:
         return self.size
 
 
@@ -41,7 +41,7 @@ class _FakePool:
         self.due = sorted(messages)  # seconds after start
         self.kind = kind
         self.exits_at = exits_at  # a worker process found gone from then on (once)
-        self.tasks = _FakeTasks()
+        self.queues = _FakeQueues()
         self.procs = [object()]
 
     def drain(self, timeout: float) -> list[tuple[object, ...]]:
@@ -92,7 +92,7 @@ def _run_fake(tmp_path, messages: list[float], done_at: float, queued: int = 0, 
     migrate(url)
     sessions = make_sessionmaker(make_engine(url))
     pool = _FakePool(messages, **pool_kw)
-    pool.tasks.size = queued
+    pool.queues.size = queued
     sched = _FakeScheduler(0, done_at, pool.t0)
     with sessions() as s:
         job = Job(owner="local", name="j", spec={}, state=JobState.RUNNING, output_root="")

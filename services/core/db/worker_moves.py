@@ -74,7 +74,7 @@ _PG_CLAIM_VIEW = (
     "ON CONFLICT (job_id, cue, state, shard) DO UPDATE SET n = job_counter.n + excluded.n) "
     "SELECT moved.*, (SELECT count(*) FROM task AS v WHERE v.job_id = %(job_id)s AND v.space_id = %(space_id)s "
     "AND v.point_idx = %(point)s AND v.view_idx = %(view)s AND v.state <> 'done' AND v.cue NOT IN ({no_passes}) "
-    "AND v.id NOT IN (SELECT id FROM moved)) AS reading_elsewhere FROM moved"
+    "AND v.id <> %(task_id)s AND v.id NOT IN (SELECT id FROM moved)) AS reading_elsewhere FROM moved"
 )
 _PG_FINISH_MANY = (
     "WITH moved AS (UPDATE task SET state = 'done', output_key = v.key, size = v.size, sha256 = v.sha256, "
@@ -186,8 +186,8 @@ def claim_view_tasks(
     tasks (same job, space, point and view; not `task_id`, not its `passes` task) while the job runs and the worker
     is not kept off it; pending ones only while no task of the view failed. Returns the rows (id, cue, job_id,
     attempts counting this one, old state, reading_elsewhere: how many other tasks of the view that read its pass
-    set are not done and not claimed here). Postgres: one statement; SQLite: an UPDATE per source state, a read
-    of the view's readers and the counters, in one transaction."""
+    set are not done and not claimed here, `task_id` counting as claimed here). Postgres: one statement; SQLite: an
+    UPDATE per source state, a read of the view's readers and the counters, in one transaction."""
     params: dict[str, Any] = {"task_id": task_id, "job_id": job_id, "space_id": space_id, "point": point,
                               "view": view, "worker": worker_id, "now": now, "lease": lease_until}
     conn = _autocommit(session)
@@ -203,7 +203,7 @@ def claim_view_tasks(
     moved = {int(r[0]) for r in rows}
     readers = {int(r[0]) for r in conn.exec_driver_sql(SQLITE_VIEW_READERS_SQL, params)}
     session.commit()
-    return [(*r, len(readers - moved)) for r in rows]
+    return [(*r, len(readers - moved - {task_id})) for r in rows]
 
 
 def finish_tasks(

@@ -1,0 +1,127 @@
+"""`omnidata generate --render-workers R`: R of the W local workers render (the render queue first, storing each
+pass set), the others only derive and never load Blender; the same files byte for byte as every worker rendering,
+and each view derived in one batch from its pass set, read once."""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import queue
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from services.cli.main import main
+from services.core.domain.cues import CATALOG
+from services.core.settings import get_settings
+from services.embedded.job import worker_pool
+from services.embedded.pool import TaskQueues
+from services.scheduler.transport import QueueTransport
+from tests.fixtures.cli import REPO
+
+SPEC = """
+cameras: {mode: object, object_count: 6}
+points: {count: 3, min_views: 2, max_views: 2}
+views: {resolution: 32}
+"""
+
+
+def test_the_render_queue_gets_the_renders_and_a_renderer_takes_them_first():
+    qs = TaskQueues(mp.get_context("spawn"), split=True)
+    QueueTransport(qs.derive, qs.render).send([(1, "rgb"), (2, "passes"), (3, "point_info"), (4, "passes")])
+    time.sleep(0.2)  # a multiprocessing queue's feeder thread delivers in the background
+    assert [qs.next_for("render")[0] for _ in range(3)] == [2, 4, 1]  # the renders first, then what waits
+    assert qs.next_for("derive")[0] == 3
+    with pytest.raises(queue.Empty):
+        qs.next_for("derive", timeout=0.1)  # a worker that only derives never takes a render
+    QueueTransport(qs.derive, qs.render).send([(5, "passes")])
+    with pytest.raises(queue.Empty):
+        qs.next_for("derive", timeout=0.3)
+    assert qs.next_for("render", timeout=0.3) == (5, qs.render)
+
+    one = TaskQueues(mp.get_context("spawn"), split=False)  # every worker renders: one queue, in order
+    assert one.render is one.derive and one.all() == (one.derive,)
+    QueueTransport(one.derive, one.render).send([(1, "rgb"), (2, "passes")])
+    assert [one.next_for("all")[0] for _ in range(2)] == [1, 2]
+
+
+def _maps_mention(pid: int, name: str) -> bool:
+    return name in Path(f"/proc/{pid}/maps").read_text()
+
+
+@pytest.mark.bpy
+def test_a_worker_that_only_derives_never_loads_blender(tmp_path):
+    settings = get_settings(database_url=f"sqlite:///{tmp_path / 'absent' / 'state.db'}", render_workers=1)
+    pool = worker_pool(tmp_path / "out", settings, 2)
+    assert [pool.role_of(i) for i in range(2)] == ["render", "derive"]
+    pool.start(held=True)
+    try:
+        renderer, deriver = pool.procs
+        deadline = time.monotonic() + 120
+        while not _maps_mention(renderer.pid, "bpy/") and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert _maps_mention(renderer.pid, "bpy/"), "the renderer did not load Blender"
+        time.sleep(2.0)  # the deriver had as long as the renderer to import everything it ever will before a task
+        assert deriver.is_alive() and not _maps_mention(deriver.pid, "bpy/")
+    finally:
+        pool.stop()
+
+
+def generate(scene: Path, out: Path, spec: Path, *extra: str) -> None:
+    cmd = [sys.executable, "-m", "services.cli", "generate", str(scene), "--out", str(out), "--spec", str(spec),
+           "--seed", "3", "--workers", "2", "--name", "split", "--no-progress", *extra]
+    res = subprocess.run(cmd, cwd=REPO, env=dict(os.environ), capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr
+
+
+def files(out: Path) -> dict[str, bytes]:
+    """Every file of the dataset by its path under `out`: not the embedded state, nor job.json (it has times)."""
+    return {str(p.relative_to(out)): p.read_bytes() for p in sorted(out.rglob("*"))
+            if p.is_file() and ".omnidata" not in p.parts and p.name != "job.json"}
+
+
+@pytest.mark.bpy
+def test_renderers_and_derivers_give_the_same_files_as_every_worker_rendering(scenes_dir: Path, tmp_path: Path):
+    spec = tmp_path / "job.yaml"
+    spec.write_text(SPEC)
+    whole, split = tmp_path / "whole", tmp_path / "split"
+    generate(scenes_dir / "ycb_banana", whole, spec)
+    generate(scenes_dir / "ycb_banana", split, spec, "--render-workers", "1")
+    assert files(whole) == files(split)  # manifest, plan, every cue file
+
+    with sqlite3.connect(split / ".omnidata" / "state.db") as db:
+        rows = db.execute("SELECT point_idx, view_idx, cue, worker_id, started_at, size, sha256, attempts, state "
+                          "FROM task").fetchall()
+    assert {r[8] for r in rows} == {"done"} and {r[7] for r in rows} == {1}  # each task run once
+    passes = [r for r in rows if r[2] == "passes"]
+    assert len(passes) == 6 and len({r[3] for r in passes}) == 1  # one renderer rendered every view ...
+    assert all(r[5] > 0 and r[6] for r in passes)  # ... and stored each pass set for the derivers
+    # The claim of a cue read straight from the pass set took the view's last DAG level with it (pending then):
+    # the view is derived from one read of its pass set, not one batch per level. (Two workers may take two of a
+    # view's messages at once: the first level may be split between them, so this asks for one shared claim.)
+    first_level = {c for c in CATALOG if CATALOG[c].inputs == ("passes",)}
+    for view in {(r[0], r[1]) for r in passes}:
+        claims = {(r[3], r[4]) for r in rows if (r[0], r[1]) == view and r[2] in first_level}
+        last = [(r[3], r[4]) for r in rows if (r[0], r[1]) == view and r[2] == "segment_unsup25d"]
+        assert len(last) == 1 and last[0] in claims, (view, last, claims)
+
+
+def test_render_workers_out_of_range_are_refused_and_nothing_is_created(capsys, scenes_dir, tmp_path, monkeypatch):
+    out = tmp_path / "out"
+    banana = scenes_dir / "ycb_banana"
+    for args, message in (
+        (["--render-workers", "0"], "--render-workers must be at least 1, got 0"),
+        (["--workers", "2", "--render-workers", "3"], "--render-workers 3 is more than the 2 worker(s) of this run"),
+    ):
+        code = main(["generate", str(banana), "--out", str(out), "--no-progress", *args])
+        err = capsys.readouterr().err
+        assert code == 2 and message in err, err
+    monkeypatch.setenv("OMNIDATA_RENDER_WORKERS", "4")
+    code = main(["generate", str(banana), "--out", str(out), "--no-progress", "--workers", "1"])
+    err = capsys.readouterr().err
+    assert code == 2 and "OMNIDATA_RENDER_WORKERS 4 is more than the 1 worker(s)" in err, err
+    assert not out.exists()

@@ -30,10 +30,19 @@ views: {resolution: 32}
 """
 
 
+def _delivered(*queues: object) -> None:
+    """Wait until each multiprocessing queue's feeder thread has written to its pipe (puts deliver in the
+    background), then a moment for the rest of the batch it writes."""
+    deadline = time.monotonic() + 10
+    while any(q.empty() for q in queues) and time.monotonic() < deadline:  # type: ignore[attr-defined]
+        time.sleep(0.01)
+    time.sleep(0.1)
+
+
 def test_the_render_queue_gets_the_renders_and_a_renderer_takes_them_first():
     qs = TaskQueues(mp.get_context("spawn"), split=True)
     QueueTransport(qs.derive, qs.render).send([(1, "rgb"), (2, "passes"), (3, "point_info"), (4, "passes")])
-    time.sleep(0.2)  # a multiprocessing queue's feeder thread delivers in the background
+    _delivered(qs.render, qs.derive)
     assert [qs.next_for("render")[0] for _ in range(3)] == [2, 4, 1]  # the renders first, then what waits
     assert qs.next_for("derive")[0] == 3
     with pytest.raises(queue.Empty):

@@ -16,11 +16,11 @@
    the view, computed in memory by its ViewContext in topological order), derives and stores each, and records
    them all done, `passes` included, in one statement: ~3 statements a view instead of ~2 per task. When the
    batch made every task of the view that reads the pass set, the pass set is never stored (`passes` is
-   recorded with size 0, no sha256). A derived cue's task (a view the batch did not take whole: a renderer's
-   of `generate --render-workers` (hand_off_views: it stores the pass set and leaves the view to the others), a
-   retry, a resume) claims its view's queued tasks alike, and when it reads the
-   pass set (so the pass set is done) the pending ones too: the pass set, read once, gives every cue of the view,
-   where queued-only took one batch and one read of the pass set per DAG level.
+   recorded with size 0, no sha256). A derived cue's task (a view the batch did not take whole: rendered by a
+   renderer of `generate --render-workers`, which stores the pass set and leaves the view to the others
+   (hand_off_views); a retry; a resume) claims its view's queued tasks alike, and when it reads the pass set (so
+   the pass set is done) the pending ones too: the pass set, read once, gives every cue of the view, where
+   queued-only took one batch and one read of the pass set per DAG level.
    Each task keeps its row; a pending task claimed so gets no message, a queued one's message is skipped when
    it comes (a read, no claim). A task whose input failed in the batch is handed back to pending unrun. A batch
    whose worker dies stays `running` under its lease (the beats extend all of it): the reaper re-queues every

@@ -195,7 +195,7 @@ class TaskRunner:
         reads = _needs_passes(claimed.cue)
         rest, elsewhere = self._claim_rest(claimed, with_pending=reads)
         outcomes = self._run_claimed([claimed, *rest], t0)
-        if reads and rest and not elsewhere and all(o.status == "done" for o in outcomes):
+        if reads and not elsewhere and all(o.status == "done" for o in outcomes):  # elsewhere also when none claimed
             self.inputs.forget_view((claimed.job_id, claimed.space_id, claimed.point, claimed.view))
         return outcomes
 

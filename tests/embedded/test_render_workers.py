@@ -5,11 +5,8 @@ and each view derived in one batch from its pass set, read once."""
 from __future__ import annotations
 
 import multiprocessing as mp
-import os
 import queue
 import sqlite3
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -21,7 +18,7 @@ from services.core.settings import get_settings
 from services.embedded.job import worker_pool
 from services.embedded.pool import TaskQueues
 from services.scheduler.transport import QueueTransport
-from tests.fixtures.cli import REPO
+from tests.fixtures.cli import dataset_files, omnidata
 
 SPEC = """
 cameras: {mode: object, object_count: 6}
@@ -81,16 +78,9 @@ def test_a_worker_that_only_derives_never_loads_blender(tmp_path):
 
 
 def generate(scene: Path, out: Path, spec: Path, *extra: str) -> None:
-    cmd = [sys.executable, "-m", "services.cli", "generate", str(scene), "--out", str(out), "--spec", str(spec),
-           "--seed", "3", "--workers", "2", "--name", "split", "--no-progress", *extra]
-    res = subprocess.run(cmd, cwd=REPO, env=dict(os.environ), capture_output=True, text=True, timeout=600)
+    res = omnidata("generate", scene, "--out", out, "--spec", spec, "--seed", 3, "--workers", 2, "--name", "split",
+                   "--no-progress", *extra, timeout=600)
     assert res.returncode == 0, res.stderr
-
-
-def files(out: Path) -> dict[str, bytes]:
-    """Every file of the dataset by its path under `out`: not the embedded state, nor job.json (it has times)."""
-    return {str(p.relative_to(out)): p.read_bytes() for p in sorted(out.rglob("*"))
-            if p.is_file() and ".omnidata" not in p.parts and p.name != "job.json"}
 
 
 @pytest.mark.bpy
@@ -100,7 +90,7 @@ def test_renderers_and_derivers_give_the_same_files_as_every_worker_rendering(sc
     whole, split = tmp_path / "whole", tmp_path / "split"
     generate(scenes_dir / "ycb_banana", whole, spec)
     generate(scenes_dir / "ycb_banana", split, spec, "--render-workers", "1")
-    assert files(whole) == files(split)  # manifest, plan, every cue file
+    assert dataset_files(whole) == dataset_files(split)  # manifest, plan, every cue file
 
     with sqlite3.connect(split / ".omnidata" / "state.db") as db:
         rows = db.execute("SELECT point_idx, view_idx, cue, worker_id, started_at, size, sha256, attempts, state "

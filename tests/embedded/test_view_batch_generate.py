@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.fixtures.cli import REPO
+from tests.fixtures.cli import REPO, dataset_files
 
 SPEC = """
 cameras: {mode: object, object_count: 6}
@@ -26,12 +26,6 @@ def generate(scene: Path, out: Path, spec: Path, *, batched: bool) -> None:
            "--seed", "3", "--workers", "1", "--name", "batch", "--no-progress"]
     res = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stderr
-
-
-def files(out: Path) -> dict[str, bytes]:
-    """Every file of the dataset by its path under `out`: not the embedded state, nor job.json (it has times)."""
-    return {str(p.relative_to(out)): p.read_bytes() for p in sorted(out.rglob("*"))
-            if p.is_file() and ".omnidata" not in p.parts and p.name != "job.json"}
 
 
 def task_rows(out: Path) -> list[tuple]:
@@ -53,7 +47,7 @@ def test_view_batches_give_the_same_files_and_exact_counts(scenes_dir: Path, tmp
     for batched in (True, False):
         outs[batched] = tmp_path / f"batched-{batched}"
         generate(scenes_dir / "ycb_banana", outs[batched], spec, batched=batched)
-    assert files(outs[True]) == files(outs[False])  # manifest, plan, every cue file
+    assert dataset_files(outs[True]) == dataset_files(outs[False])  # manifest, plan, every cue file
 
     for batched, out in outs.items():
         rows = task_rows(out)

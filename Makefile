@@ -10,10 +10,12 @@ STAMP := $(VENV)/.installed
 
 venv: $(STAMP)
 
-# Re-install only when pyproject.toml changed since the last install.
+# Re-install only when pyproject.toml changed since the last install. The worker's kernels are compiled once here
+# (~40 s on one core) instead of in every worker of the first `generate` (services/worker/kernel_warm_up.py).
 $(STAMP): pyproject.toml
 	@if [ ! -x $(BIN)/python ]; then $(PY) -m venv $(VENV); fi
 	$(BIN)/pip install -q -e '.[dev]'
+	$(BIN)/omnidata compile-kernels
 	@touch $(STAMP)
 
 services:

@@ -72,6 +72,17 @@ def test_dockerfile_targets_python_311_and_installs_the_project():
             assert (ROOT / src).exists(), f"Dockerfile copies missing {src}"
 
 
+def test_dockerfile_compiles_the_kernels_into_a_cache_the_service_user_can_use():
+    lines = [ln for ln in (ROOT / "deploy" / "Dockerfile").read_text().splitlines() if ln and not ln.startswith("#")]
+    at = {key: next(i for i, ln in enumerate(lines) if key in ln)
+          for key in ("pip install", "NUMBA_CACHE_DIR=", "omnidata compile-kernels", "chown", "USER omnidata")}
+    # installed, then compiled (as root, into the cache numba will read), then handed to the user the pods run as
+    assert at["pip install"] < at["NUMBA_CACHE_DIR="] < at["omnidata compile-kernels"] < at["chown"] < at["USER omnidata"]
+    assert lines[at["NUMBA_CACHE_DIR="]].startswith("ENV ")  # an ENV: the running pods read the same folder
+    assert "--every-level" in lines[at["omnidata compile-kernels"]]  # pods run on CPUs of any level, not the builder's
+    assert "compile-kernels" in COMMANDS
+
+
 @pytest.mark.parametrize("doc", _k8s_docs(), ids=lambda d: f"{d['kind']}-{d['metadata']['name']}")
 def test_k8s_manifests_are_well_formed(doc):
     assert doc["apiVersion"] and doc["kind"] and doc["metadata"]["name"]

@@ -26,6 +26,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "sheet": ("services.cli.contact_sheet", "draw a contact sheet PNG of every cue of a few views of an output folder"),
     "export": ("services.cli.export", "export an output as WebDataset shards or the public Omnidata loader's tree"),
     "preview": ("services.cli.preview", "preview PNGs of an output's cues, or one MP4 per cue (--video)"),
+    "compile-kernels": ("services.cli.compile_kernels", "compile the worker's kernels into numba's on-disk cache "
+                        "(image build, `make venv`): workers then only load them"),
     "migrate": ("services.cli.migrate", "upgrade the database schema to this version's head (Alembic)"),
     "token": ("services.cli.token_create", "create an API token for a tenant (or an operator) and print its settings entry"),
 }

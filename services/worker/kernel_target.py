@@ -8,7 +8,8 @@ machine of that level, as fast as the host's own target where the level has the 
 (bench/kernel_cache.py, on an AVX-512 host: x86-64-v4 as fast as the host's own code; x86-64-v3 runs keypoints3d
 10-15% slower; the baseline "generic" x86-64 costs ~18% more in all, keypoints3d 50%). A process takes the highest
 level its CPU has; a machine with none (or not x86-64) compiles for itself, as numba does by default; so does one
-whose NUMBA_CPU_NAME is set by its operator.
+whose NUMBA_CPU_NAME is set by its operator, and a process that compiled something with numba before this package
+loaded (its code generator is made once: entries cached under a level must hold that level's code).
 
 `select()` must run before the process compiles or loads its first kernel: the `services.worker` package calls
 it on import, before any of its kernel modules loads.
@@ -60,9 +61,18 @@ def select(environ: MutableMapping[str, str] = os.environ, features: Callable[[]
     levels = levels_for(machine or platform.machine(), features())
     if not levels:
         return None
+    if environ is os.environ and _codegen_started():  # built for the host already: a level now would mislabel them
+        return None
     environ.update(level_environment(levels[0]))
     if environ is os.environ and "numba.core.config" in sys.modules:  # numba read its settings already: again
         from numba.core import config
 
         config.reload_config()
     return levels[0]
+
+
+def _codegen_started() -> bool:
+    """Whether numba has made its CPU code generator in this process (it is made once, for the CPU its settings
+    name then): the target context is a cached property of numba's CPU target."""
+    registry = sys.modules.get("numba.core.registry")
+    return registry is not None and "_toplevel_target_context" in vars(registry.cpu_target)

@@ -66,6 +66,13 @@ def test_a_worker_process_compiles_for_its_level_whether_or_not_numba_was_import
             assert not magic[1].startswith("x86-64-v")
 
 
+def test_a_process_that_compiled_for_its_host_already_keeps_that_target():
+    # Its cache entries would otherwise be filed under the level with the host's code in them.
+    magic = probe("import json, numba; numba.njit(lambda x: x + 1)(1); import os, services.worker; "
+                  f"assert 'NUMBA_CPU_NAME' not in os.environ; {MAGIC}")
+    assert not magic[1].startswith("x86-64-v")
+
+
 def test_compile_kernels_every_level_runs_once_per_level_of_the_machine(monkeypatch):
     from services.cli import compile_kernels
     from services.worker import kernel_target

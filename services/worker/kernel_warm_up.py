@@ -25,6 +25,7 @@ import numpy as np
 import trimesh
 
 import services.worker
+from services.core.domain.camera import look_at
 from services.core.domain.cues import CATALOG
 from services.core.domain.jobspec import CueParams
 
@@ -67,18 +68,6 @@ def synthetic_room(rng: np.random.Generator) -> trimesh.Trimesh:
     return mesh
 
 
-def looking_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """OpenCV world_to_camera (x right, y down, z forward) of a camera at `eye` looking at `target`, +Z up."""
-    forward = (target - eye) / np.linalg.norm(target - eye)
-    right = np.cross(forward, [0.0, 0.0, 1.0])
-    right /= np.linalg.norm(right)
-    down = np.cross(forward, right)
-    W = np.eye(4)
-    W[:3, :3] = np.stack([right, down, forward])
-    W[:3, 3] = -W[:3, :3] @ eye
-    return W
-
-
 def compile_kernels(resolution: int = RESOLUTION) -> WarmUpReport:
     """Run every kernel of the worker once with a job's argument types (compiling into numba's cache those it
     does not find there); the report says which kernels it reached."""
@@ -97,7 +86,7 @@ def compile_kernels(resolution: int = RESOLUTION) -> WarmUpReport:
         space = SpaceContext.from_loaded(loaded, key="kernel-warm-up")
         try:
             # From a corner, so the view holds walls, the table, the ball and a crease of every orientation.
-            view = ViewGeometry(looking_at(np.array([3.6, 2.6, 1.6]), np.array([1.0, 0.8, 0.5])), np.radians(90.0),
+            view = ViewGeometry(look_at(np.array([3.6, 2.6, 1.6]), np.array([1.0, 0.8, 0.5])), np.radians(90.0),
                                 resolution)
             cues = warm_up_cues()
             ctx = make_context(space, view, cues, params)

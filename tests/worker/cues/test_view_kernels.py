@@ -110,7 +110,7 @@ def test_every_changed_cue_is_the_previous_code_bit_for_bit_on_raycast_views() -
             assert same_bits(a, b), name
 
 
-def test_normal_cam_is_numpys_matmul_and_facing_flip_on_random_normals() -> None:
+def test_normal_cam_is_the_fused_matmul_and_facing_flip_on_random_normals() -> None:
     rng = np.random.default_rng(3)
     g = room_view(48)
     for scale in (1.0, 1e-20, 1e20):

@@ -6,6 +6,9 @@ points, two views each), the space loaded once (load, curvature and the Blender 
 Per view, interleaved so that a neighbour's load moves every figure alike:
 - bare: a 1-sample render with Image + Depth + Normal only (BlenderScene.render_floor), nothing written;
 - aov:<set>: the same render with only these AOVs in the view layer (a scene of its own each), nothing written;
+- <...>+exr_write: the pass scene's settings (Combined + Depth, no Normal pass: the normals come from the face
+  index) with these AOVs, its EXR written; aov:old+exr_write is the render before issue 20 part 3 and
+  aov:pass+normal+exr_write the one of rounds 9-12 (both with the Normal pass);
 - the passes task as the worker runs it (ViewContext render of every pass, produce("passes"), put_bytes into a
   LocalStore): task_in_batch is what it costs when a worker's view batch takes the whole view (runner._run_view:
   render, EXR read, decode; the pass set is never stored), task_stored adds the npz encode and the store put (a
@@ -72,9 +75,11 @@ def aov_sets(faces: int) -> dict[str, tuple[str, ...]]:
     return {k: v for k, v in sets.items() if all(a in r.AOVS for a in v)}
 
 
-def variant_scene(space: SpaceContext, aovs: tuple[str, ...], write: bool = False) -> Callable[[ViewGeometry], float]:
+def variant_scene(space: SpaceContext, aovs: tuple[str, ...], write: bool = False,
+                  normal: bool = False) -> Callable[[ViewGeometry], float]:
     """A scene of its own with the bare render's settings plus `aovs` (and, with `write`, the pass scene's EXR
-    output written); returns a function rendering a view that gives its wall seconds."""
+    output written: no Normal pass, unless `normal`, as before round 13); returns a function rendering a view that
+    gives its wall seconds."""
     import bpy
 
     from services.worker.blender import render as r
@@ -89,6 +94,7 @@ def variant_scene(space: SpaceContext, aovs: tuple[str, ...], write: bool = Fals
         layer = sc.view_layers[0]
         for a in [a for a in layer.aovs if a.name not in aovs]:
             layer.aovs.remove(a)
+        layer.use_pass_normal = normal
     else:
         r.configure_floor_scene(sc, r.RenderOptions(threads=1))
         for name in aovs:
@@ -143,7 +149,9 @@ def run_room(name: str, n_views: int, repeats: int, resolution: int) -> dict:
     variants["bare+exr_write"] = variant_scene(space, (), write=True)
     for k in ("old", "pass"):
         if k in sets:
-            variants[f"aov:{k}+exr_write"] = variant_scene(space, sets[k], write=True)
+            variants[f"aov:{k}+exr_write"] = variant_scene(space, sets[k], write=True, normal=k == "old")
+    if "pass" in sets:  # the pass render of rounds 9-12: the same AOVs and the Normal pass
+        variants["aov:pass+normal+exr_write"] = variant_scene(space, sets["pass"], write=True, normal=True)
     cpu: defaultdict[str, list[float]] = defaultdict(list)
     wall: defaultdict[str, list[float]] = defaultdict(list)
     with tempfile.TemporaryDirectory(prefix="omnidata-passes-cost-") as tmp:

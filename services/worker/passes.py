@@ -22,9 +22,9 @@ from services.core.domain.cues import FRAGMENT_NONE
 NO_FACE = np.uint32(FRAGMENT_NONE)
 NO_LABEL = -1
 
-# Passes read back from a render only when a requested cue needs them (colour and depth always are): normals,
-# the face index, the class/instance ids (labelled spaces; looked up from the face index) and the curvature AOVs
-# (whose per-vertex curvature is then not computed either).
+# Passes read back from a render only when a requested cue needs them (colour and depth always are): normals
+# (derived from the face index), the face index, the class/instance ids (labelled spaces; looked up from the face
+# index) and the curvature AOVs (whose per-vertex curvature is then not computed either).
 RENDER_PASSES: frozenset[str] = frozenset({"normal", "faces", "labels", "curvature"})
 
 

@@ -1,5 +1,6 @@
 """Decoding the pass render's EXR channels: sRGB encoding of the Combined pass to 8 bits (the reference formula and
-an exact table lookup), and single-pass kernels for the face index, depth and curvature arrays (no bpy here).
+an exact table lookup), single-pass kernels for the face index, depth and curvature arrays, and the normals derived
+from the face index (no bpy here).
 
 sRGB:
 
@@ -118,20 +119,42 @@ def curvature_pair(k1: np.ndarray, k2: np.ndarray, hit: np.ndarray) -> np.ndarra
     return out
 
 
+def unit_face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """float32 F x 3 unit normals (v1 - v0) x (v2 - v0) of the triangles, in float64 from the float32 vertices
+    Blender renders; 0 for a zero-area triangle (whose Normal pass normalises to 0 too)."""
+    v = np.asarray(vertices, dtype=np.float32).astype(np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    c = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    length = np.linalg.norm(c, axis=1)
+    ok = length > 0
+    c[ok] /= length[ok, None]
+    c[~ok] = 0.0
+    return c.astype(np.float32)
+
+
 @njit(cache=True, nogil=True)
-def unit_normals_kernel(nx: np.ndarray, ny: np.ndarray, nz: np.ndarray, hit: np.ndarray) -> np.ndarray:
-    """render.unit_normals in one pass: the same float32 operations in the same order (IEEE, no fast-math)."""
+def facing_normals(face: np.ndarray, hit: np.ndarray, face_normals: np.ndarray, rotation: np.ndarray, f: float,
+                   cx: float, cy: float) -> np.ndarray:
+    """float32 H x W x 3 world normal of the seen triangle, turned against the pixel's ray where the ray meets its
+    back (as Cycles turns a back-facing hit's normal), 0 where nothing is hit.
+
+    What the Normal pass gives for flat-shaded triangles, without rendering it: Cycles' float32 normal of the same
+    vertices differs by at most a few 1e-7 (tests/worker/blender/test_pass_identity.py). The side is the sign of
+    n . (R^T (u + 0.5 - cx, v + 0.5 - cy, f)), the ray's world direction up to a positive factor.
+    """
     h, w = hit.shape
     out = np.zeros((h, w, 3), np.float32)
-    tiny = np.float32(1e-12)
     for y in range(h):
+        ray_y = (y + 0.5 - cy) / f
         for x in range(w):
-            a, b, c = nx[y, x], ny[y, x], nz[y, x]
-            norm = np.sqrt(a * a + b * b + c * c)
-            if not hit[y, x] or not norm > 0:
+            if not hit[y, x]:
                 continue
-            scale = max(norm, tiny)
-            out[y, x, 0] = a / scale
-            out[y, x, 1] = b / scale
-            out[y, x, 2] = c / scale
+            ray_x = (x + 0.5 - cx) / f
+            i = face[y, x]
+            along = 0.0
+            for k in range(3):
+                along += np.float64(face_normals[i, k]) * (rotation[0, k] * ray_x + rotation[1, k] * ray_y
+                                                           + rotation[2, k])
+            for k in range(3):
+                out[y, x, k] = -face_normals[i, k] if along > 0 else face_normals[i, k]
     return out

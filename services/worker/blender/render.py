@@ -10,8 +10,10 @@ Passes read back (linear float32, row 0 = top):
 - Combined: the emission shader = unlit colour (scene-linear; sRGB-encoded here so that 8-bit output reproduces
   the texture's 8-bit values: the same as view transform Standard, look None, exposure 0, gamma 1, display sRGB);
 - Depth: Cycles' Z pass is the distance along the camera's optical axis (planar z), 1e10 where nothing is hit;
-- Normal: world-space shading normal; faces are flat-shaded, so it is the triangle's geometric normal, and Cycles
-  turns it towards the incoming ray for back-facing hits;
+- normals are not rendered: faces are flat-shaded, so Cycles' Normal pass is the seen triangle's geometric normal,
+  turned towards the incoming ray for back-facing hits; the decode gives that from the face index, to float32
+  rounding and the same on every device (decode.facing_normals; the pass cost 3 EXR channels and ~7% of the
+  render, bench/results/passes_cost.json);
 - AOVs (float32, exact integers below 2^24): face index + 1 in one AOV when the mesh has fewer than 2^24 faces,
   else split into two 16-bit halves (exact for any mesh below 2^32 - 1 faces, so no ray-cast fallback is
   needed), curvature k1 and k2 (per-vertex values interpolated barycentrically over the triangle). Class and
@@ -39,9 +41,9 @@ from services.worker.blender.calls import in_blender
 from services.worker.blender.decode import (  # srgb_encode: the reference formula, imported from here before
     curvature_pair,
     faces_hit,
+    facing_normals,
     srgb_encode,  # noqa: F401
     srgb_masked,
-    unit_normals_kernel,
 )
 from services.worker.blender.exr import read_channels
 from services.worker.passes import NO_FACE, NO_LABEL, RENDER_PASSES, ViewGeometry, ViewPasses
@@ -126,6 +128,7 @@ def configure_scene(scene: bpy.types.Scene, options: RenderOptions, output_path:
     # The AOVs stay the same for every view: Cycles' persistent session compiles its shaders for the AOVs present
     # at the first render and writes zeros into AOVs added later. A view's cues choose what is read back.
     layer = scene.view_layers[0]
+    layer.use_pass_normal = False  # derived from the face index (module docstring)
     for name in aovs:
         if name not in [a.name for a in layer.aovs]:
             aov = layer.aovs.add()
@@ -135,7 +138,7 @@ def configure_scene(scene: bpy.types.Scene, options: RenderOptions, output_path:
 
 
 def configure_floor_scene(scene: bpy.types.Scene, options: RenderOptions) -> str:
-    """The same Cycles settings with Image, Depth and Normal passes only (no AOVs): the bare render."""
+    """The same Cycles settings with Image, Depth and Normal passes (no AOVs): the bare render of the benchmarks."""
     _configure_cycles(scene, options)
     return configure_device(scene, options.device)
 
@@ -215,21 +218,6 @@ def _quiet_stdout() -> Iterator[None]:
         os.close(devnull)
 
 
-def unit_normals(x: np.ndarray, y: np.ndarray, z: np.ndarray, hit: np.ndarray) -> np.ndarray:
-    """H x W x 3 float32 unit normals from the Normal pass's channels, 0 where nothing (or a zero normal) is hit.
-
-    The float32 operations of `n / max(np.linalg.norm(n), 1e-12)` in the same order (norm = sqrt((x*x + y*y) +
-    z*z)), so the values are bit for bit the same, without stacking the channels for a norm first (7x less CPU).
-    """
-    norm = np.sqrt(x * x + y * y + z * z)
-    scale = np.maximum(norm, np.float32(1e-12))
-    out = np.empty((*x.shape, 3), dtype=np.float32)
-    for i, c in enumerate((x, y, z)):
-        np.divide(c, scale, out=out[..., i])
-    out[~(hit & (norm > 0))] = 0.0
-    return out
-
-
 def render_floor(scene: bpy.types.Scene, cam: bpy.types.Object, g: ViewGeometry) -> float:
     """Seconds of one render of `scene` from view `g`, nothing written (the bare-render floor of the benchmarks)."""
     set_camera(scene, cam, g)
@@ -240,13 +228,16 @@ def render_floor(scene: bpy.types.Scene, cam: bpy.types.Object, g: ViewGeometry)
 
 
 def render_passes(scene: bpy.types.Scene, cam: bpy.types.Object, g: ViewGeometry,
-                  passes: frozenset[str] = RENDER_PASSES, labels: tuple[np.ndarray, np.ndarray] | None = None
-                  ) -> ViewPasses:
+                  passes: frozenset[str] = RENDER_PASSES, labels: tuple[np.ndarray, np.ndarray] | None = None,
+                  face_normals: np.ndarray | None = None) -> ViewPasses:
     """Render one view and read back colour, depth and the optional `passes` (module docstring: frames, units).
 
     "curvature" needs the scene's curvature attribute, "labels" its label attribute (class and instance AOVs) or
-    `labels`: int32 class and instance ids per face, read at the face index (BlenderScene checks).
+    `labels`: int32 class and instance ids per face, read at the face index; "normal" needs `face_normals`, the
+    mesh's decode.unit_face_normals (BlenderScene checks and gives them).
     """
+    if "normal" in passes and face_normals is None:
+        raise ValueError("the normal pass is derived from the face index: render_passes needs face_normals")
     set_camera(scene, cam, g)
     t0 = time.perf_counter()
     with in_blender(), _quiet_stdout():
@@ -254,7 +245,7 @@ def render_passes(scene: bpy.types.Scene, cam: bpy.types.Object, g: ViewGeometry
     t1 = time.perf_counter()
     channels = read_channels(scene.render.filepath) or _read_openexr(scene.render.filepath)
     t2 = time.perf_counter()
-    out = _decode(channels, scene.view_layers[0].name, g, passes, labels)
+    out = _decode(channels, scene.view_layers[0].name, g, passes, labels, face_normals)
     out.meta.update(render_call_s=t1 - t0, exr_read_s=t2 - t1, decode_s=time.perf_counter() - t2)
     return out
 
@@ -272,7 +263,7 @@ def _read_openexr(path: str) -> dict[str, np.ndarray]:
 
 
 def _decode(channels: dict[str, np.ndarray], layer: str, g: ViewGeometry, passes: frozenset[str],
-            labels: tuple[np.ndarray, np.ndarray] | None) -> ViewPasses:
+            labels: tuple[np.ndarray, np.ndarray] | None, face_normals: np.ndarray | None) -> ViewPasses:
     """The pass set from the EXR's channels (`layer`.<pass>[.<channel>])."""
     def ch(name: str) -> np.ndarray:
         return channels[f"{layer}.{name}"]
@@ -286,7 +277,7 @@ def _decode(channels: dict[str, np.ndarray], layer: str, g: ViewGeometry, passes
 
     depth = ch("Depth.Z") if f"{layer}.Depth.Z" in channels else ch("Depth")
     face_index = None
-    if "faces" in passes or ("labels" in passes and not has(AOV_CLASS)):
+    if "faces" in passes or "normal" in passes or ("labels" in passes and not has(AOV_CLASS)):
         if has(AOV_FACE):
             face1 = aov(AOV_FACE)  # face index + 1 (exact float32 integers)
         else:
@@ -297,7 +288,10 @@ def _decode(channels: dict[str, np.ndarray], layer: str, g: ViewGeometry, passes
         depth_z = np.where(hit, depth, np.inf).astype(np.float32)
     normal = None
     if "normal" in passes:
-        normal = unit_normals_kernel(ch("Normal.X"), ch("Normal.Y"), ch("Normal.Z"), hit)
+        assert face_index is not None and face_normals is not None  # read above; render_passes checked
+        K = g.K
+        normal = facing_normals(face_index, hit, face_normals, np.ascontiguousarray(g.rotation, dtype=np.float64),
+                                float(K[0, 0]), float(K[0, 2]), float(K[1, 2]))
     rgb = srgb_masked(ch("Combined.R"), ch("Combined.G"), ch("Combined.B"), hit)
     out = ViewPasses(geometry=g, depth_z=depth_z, normal_world=normal, rgb=rgb,
                      face_index=face_index if "faces" in passes else None)

@@ -25,6 +25,7 @@ import trimesh
 from PIL import Image
 
 from services.core.temp_dirs import owned_prefix, sweep_orphans
+from services.worker.blender.decode import unit_face_normals
 from services.worker.blender.render import (
     AOV_CLASS,
     AOV_FACE,
@@ -109,6 +110,7 @@ class BlenderScene:
         nf = len(faces)
         if nf > MAX_FACES:
             raise ValueError(f"mesh has {nf} faces; the face index pass supports at most {MAX_FACES}")
+        self.face_normals = unit_face_normals(verts, faces)  # of the vertices Cycles renders (float32)
         me = bpy.data.meshes.new("space")
         me.vertices.add(len(verts))
         me.vertices.foreach_set("co", verts.ravel())
@@ -118,7 +120,8 @@ class BlenderScene:
         me.polygons.foreach_set("loop_start", np.arange(0, faces.size, 3, dtype=np.int32))
         # No me.validate(): it may drop degenerate faces and shift every later face index.
         me.update(calc_edges=True)
-        # Flat shading: the normal pass is the triangle's geometric normal, faithful to the scanned mesh.
+        # Flat shading: a pixel's normal is its triangle's geometric normal, faithful to the scanned mesh (and
+        # derived from the face index: render.facing_normals).
         me.polygons.foreach_set("use_smooth", np.zeros(nf, dtype=bool))
         idx1 = np.arange(1, nf + 1, dtype=np.int64)
         self._set_attr(me, ATTR_FACE, "FACE", np.stack([idx1 // 65536, idx1 % 65536, idx1], axis=1))
@@ -269,7 +272,7 @@ class BlenderScene:
             wanted.discard("labels")
         if not self.has_curvature:
             wanted.discard("curvature")
-        out = render_passes(self.scene, self.camera, view, frozenset(wanted), self.labels)
+        out = render_passes(self.scene, self.camera, view, frozenset(wanted), self.labels, self.face_normals)
         out.meta["render_s"] = time.perf_counter() - t0
         self.renders += 1
         return out

@@ -93,11 +93,13 @@ def to_uint16_depth(ctx: ViewContext, metres: np.ndarray, mask: np.ndarray) -> n
 def normal_cam(ctx: ViewContext) -> np.ndarray:
     """float32 H x W x 3 unit normals in camera axes x right, y up, z towards the viewer; 0 where no surface.
 
-    The world normal turned to OpenCV camera axes (R n, as numpy's float32 matmul by R^T computes it: OpenBLAS's
-    sgemm, one fused multiply-add per term from a zero accumulator, terms in order), turned to face the camera
-    (Cycles already flips back-facing hits; this guards interpolated or user normals), then the OpenCV (x right,
+    The world normal turned to OpenCV camera axes (R n: one fused multiply-add per term from a zero accumulator, terms
+    in order, as numpy's float32 matmul by R^T computed it with OpenBLAS's AMD Zen kernel; its Intel AVX-512 kernel
+    rounds each product, so numpy's bits depend on the CPU and these do not), turned to face the camera
+    (the decode already turns back-facing hits; this guards interpolated or user normals), then the OpenCV (x right,
     y down, z forward) -> DESIGN axes flip, each an exact multiplication by +-1; one compiled pass (numpy's
-    matmul, einsum and where's took ~10 ms at 512 px) giving the numpy expressions' values bit for bit."""
+    matmul, einsum and where's took ~10 ms at 512 px) giving the numpy expressions' values bit for bit (the matmul
+    as tests/fixtures/reference_view_cues.normal_cam writes it out)."""
 
     def compute() -> np.ndarray:
         n_world, d = ctx.passes.require("normal_world"), ray_dirs_cam(ctx)
@@ -135,7 +137,7 @@ _fma32: Callable[[np.float32, np.float32, np.float32], np.float32] = intrinsic(_
 
 @njit(cache=True, nogil=True)
 def _normal_cam(n_world: np.ndarray, R: np.ndarray, d: np.ndarray, seen: np.ndarray) -> np.ndarray:
-    """normal_cam's numpy expressions per pixel: n_cv = n @ R^T (sgemm's FMA chain), facing = einsum(n_cv, d) > 0
+    """normal_cam's numpy expressions per pixel: n_cv = n @ R^T (the FMA chain), facing = einsum(n_cv, d) > 0
     (float32, left to right from 0), out = n_cv * sign (+0 where not seen)."""
     h, w, _ = n_world.shape
     out = np.empty((h, w, 3), np.float32)

@@ -1,11 +1,14 @@
-"""The pass decode's kernels give the bytes of the numpy expressions they replace (services.worker.blender.decode)."""
+"""The pass decode's kernels give the bytes of the numpy expressions they replace, and the normals derived from the
+face index are the triangles' normals turned against each pixel's ray (services.worker.blender.decode)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from services.worker.blender.decode import srgb_encode, srgb_masked, tables, unit_normals_kernel
+from services.core.domain.camera import look_at
+from services.worker.blender.decode import facing_normals, srgb_encode, srgb_masked, tables, unit_face_normals
+from services.worker.passes import ViewGeometry
 
 ONE = int(np.float32(1.0).view(np.uint32))
 
@@ -48,14 +51,35 @@ def test_srgb_table_is_exact_for_every_float32_in_0_1():
         assert np.array_equal(got[0, :, 1], srgb_encode(f)), start
 
 
-def test_unit_normals_kernel_is_bit_identical_to_unit_normals():
-    from services.worker.blender.render import unit_normals
-
+def test_unit_face_normals_are_the_triangles_normals_and_zero_for_zero_area():
     rng = np.random.default_rng(7)
-    for scale in (1e-3, 1.0, 1e3):
-        x, y, z = ((rng.random((64, 64), dtype=np.float32) - 0.5) * np.float32(scale) for _ in range(3))
-        x[:4], y[:4], z[:4] = 0, 0, 0
-        hit = rng.random((64, 64)) > 0.2
-        want = unit_normals(x, y, z, hit)
-        got = unit_normals_kernel(x, y, z, hit)
-        assert got.dtype == np.float32 and np.array_equal(got.view(np.uint32), want.view(np.uint32))
+    v = (rng.random((300, 3)) * 4 - 2).astype(np.float32)
+    f = np.array([rng.choice(300, 3, replace=False) for _ in range(500)])
+    f[:5, 2] = f[:5, 1]  # two corners the same: no area
+    n = unit_face_normals(v, f)
+    assert n.dtype == np.float32 and n.shape == (500, 3)
+    assert (n[:5] == 0).all()
+    e1, e2 = v[f[5:, 1]].astype(float) - v[f[5:, 0]], v[f[5:, 2]].astype(float) - v[f[5:, 0]]
+    assert np.allclose(np.linalg.norm(n[5:], axis=1), 1.0, atol=1e-6)
+    assert np.allclose((n[5:] * e1).sum(1), 0, atol=1e-5) and np.allclose((n[5:] * e2).sum(1), 0, atol=1e-5)
+    assert (np.einsum("ij,ij->i", np.cross(e1, e2), n[5:]) > 0).all()  # (v1 - v0) x (v2 - v0), not its opposite
+
+
+def test_facing_normals_turn_each_triangle_normal_against_the_pixel_ray():
+    rng = np.random.default_rng(11)
+    g = ViewGeometry(look_at(np.array([0.3, -2.0, 1.2]), np.array([0.1, 0.4, 0.9])), np.radians(70.0), 48)
+    face_normals = rng.normal(size=(40, 3))
+    face_normals = (face_normals / np.linalg.norm(face_normals, axis=1, keepdims=True)).astype(np.float32)
+    face_normals[3] = 0.0  # a zero-area triangle
+    face = rng.integers(0, 40, (48, 48)).astype(np.uint32)
+    hit = rng.random((48, 48)) > 0.25
+    K = g.K
+    got = facing_normals(face, hit, face_normals, g.rotation, K[0, 0], K[0, 2], K[1, 2])
+    # Independently: the pixel-centre rays of the camera (ViewGeometry.rays_world), each normal against its ray.
+    _, d = g.rays_world()
+    n = face_normals[face.ravel()]
+    want = np.where(((n * d).sum(1) > 0)[:, None], -n, n).reshape(48, 48, 3)
+    want[~hit] = 0.0
+    assert got.dtype == np.float32 and np.array_equal(got, want)
+    assert ((got[hit] * d.reshape(48, 48, 3)[hit]).sum(-1) <= 0).all()  # every seen normal faces the camera
+    assert (np.linalg.norm(got[hit & (face != 3)], axis=-1) > 0.99).all() and (got[face == 3] == 0).all()

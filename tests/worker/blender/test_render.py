@@ -429,18 +429,3 @@ def test_a_view_renders_only_the_passes_its_cues_need(rendered: dict[str, Render
         assert again.face_index is None and np.array_equal(again.hit, p.hit)
     finally:
         space.close()
-
-
-def test_unit_normals_are_bit_identical_to_normalising_the_stacked_pass():
-    from services.worker.blender.render import unit_normals
-
-    rng = np.random.default_rng(5)
-    for scale in (1e-3, 1.0, 1e3):  # Cycles' normals are unit length; the decode must not depend on it
-        x, y, z = ((rng.random((64, 64), dtype=np.float32) - 0.5) * np.float32(scale) for _ in range(3))
-        x[:4], y[:4], z[:4] = 0, 0, 0  # zero normals stay 0
-        hit = rng.random((64, 64)) > 0.2
-        n = np.stack([x, y, z], axis=-1)
-        norm = np.linalg.norm(n, axis=-1, keepdims=True)
-        want = np.where(hit[..., None] & (norm > 0), n / np.maximum(norm, 1e-12), 0.0).astype(np.float32)
-        got = unit_normals(x, y, z, hit)
-        assert got.dtype == np.float32 and np.array_equal(got.view(np.uint32), want.view(np.uint32))

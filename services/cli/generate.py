@@ -29,6 +29,7 @@ from services.cli import CliError  # noqa: E402
 from services.cli.spec_args import add_spec_arguments, build_spec, check_sources, refused_summary, usable  # noqa: E402
 from services.core.db.engine import make_engine, make_sessionmaker, migrate  # noqa: E402
 from services.core.domain.jobspec import JobSpec, cues_for_space  # noqa: E402
+from services.core.ingest.capture.detect import captures_kept  # noqa: E402
 from services.core.ingest.errors import SpaceError  # noqa: E402
 from services.core.ingest.loading import load_space  # noqa: E402
 from services.core.ingest.registry import Source  # noqa: E402
@@ -88,6 +89,11 @@ def run(args: argparse.Namespace) -> int:
     if workers < 1:
         raise CliError(f"--workers must be at least 1, got {workers}")
     spec = build_spec(args)
+    with captures_kept():  # a capture beside a scan is looked for by every step below: read once
+        return _checked_run(args, spec, workers)
+
+
+def _checked_run(args: argparse.Namespace, spec: JobSpec, workers: int) -> int:
     sources = check_sources(args.spaces)
     out = Path(args.out).expanduser().resolve()
     if out.exists() and not out.is_dir():

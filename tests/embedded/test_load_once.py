@@ -77,3 +77,28 @@ def test_generate_loads_each_space_once_and_plans_the_same(room: bool, scenes_di
     assert len(loads) == 2 * len(paths)  # the old path: validation, then the store's copy again
     for key in ("plans", "tasks", "summary"):
         assert once[key] == twice[key], key
+
+
+def test_generate_reads_the_capture_beside_a_scan_once(scenes_dir: Path, tmp_path: Path,
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """The 7-Scenes kitchen's capture (500 poses and photos beside the mesh) is looked for by the checksum, the
+    validation, the packing and the registering: within generate's captures_kept() it is read once."""
+    from services.cli.main import build_parser
+    from services.core.ingest.capture import detect
+
+    reads: list[Path] = []
+    real = detect.read_sevenscenes
+    monkeypatch.setattr(detect, "read_sevenscenes", lambda root, files: reads.append(root) or real(root, files))
+    kitchen = scenes_dir / "7scenes_redkitchen" / "mesh_tsdf_2cm_from_1000frames.ply"
+    spec = JobSpec.model_validate({**ROOM_SPEC, "up": (0.009, -0.904, -0.427)})
+    with detect.captures_kept():
+        plan_job(tmp_path / "kept", [kitchen], spec, hand_over=True)
+    assert len(reads) == 1
+    plan_job(tmp_path / "each", [kitchen], spec, hand_over=True)
+    assert len(reads) > 3  # outside it, each step reads the capture again
+
+    inside: list[int] = []  # and generate runs its steps inside it
+    monkeypatch.setattr(generate_cli, "_checked_run", lambda *a: inside.append(detect._keeping) or 0)
+    argv = ["generate", str(kitchen), "--out", str(tmp_path / "out"), "--workers", "1"]
+    args = build_parser(argv).parse_args(argv)
+    assert generate_cli.run(args) == 0 and inside == [1] and detect._keeping == 0

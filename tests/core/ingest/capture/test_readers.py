@@ -43,6 +43,37 @@ def test_sevenscenes_layout(tmp_path):
     assert cap.frames[0].image == "seq-01/frame-000000.color.jpg"
 
 
+def test_a_capture_is_read_once_per_unchanged_folder_while_kept_and_again_when_a_file_changes(tmp_path, monkeypatch):
+    from services.core.ingest.capture import detect
+
+    reads = []
+    real = detect.read_sevenscenes
+    monkeypatch.setattr(detect, "read_sevenscenes", lambda *a: reads.append(a) or real(*a))
+    frames = toy_frames(4)
+    d = write_sevenscenes(tmp_path, frames)
+    find_capture(tmp_path)
+    find_capture(tmp_path)
+    assert len(reads) == 2  # outside captures_kept(): every call reads
+    with detect.captures_kept():
+        first = find_capture(tmp_path)
+        with detect.captures_kept():  # nested (a command inside a command): one store
+            assert find_capture(tmp_path) is first and len(reads) == 3  # the same folder, unchanged: not read again
+        pose = d / "frame-000002.pose.txt"
+        pose.write_text("\n".join(["-inf -inf -inf -inf"] * 4) + "\n")  # a changed file: read again, and seen
+        again = find_capture(tmp_path)
+        assert len(reads) == 4 and len(again.frames) == 3 and "frame-000002" in again.problems[0]
+        pose.unlink()  # a file gone: read again
+        assert len(find_capture(tmp_path).frames) == 3 and len(reads) == 5
+        for i in range(detect.KEPT_CAPTURES + 1):  # others asked for since: the least recent is dropped
+            (tmp_path / f"other{i}").mkdir()
+            assert find_capture(tmp_path / f"other{i}") is None
+        find_capture(tmp_path)
+        assert len(reads) == 6
+    assert not detect._kept  # nothing kept once the command is done
+    find_capture(tmp_path)
+    assert len(reads) == 7
+
+
 def test_bundlefusion_info_txt_and_lost_frames(tmp_path):
     frames = toy_frames(4)
     d = write_sevenscenes(tmp_path, frames, info_txt=True)

@@ -106,12 +106,27 @@ def _sample_surface(mesh: trimesh.Trimesh, n: int, rng: np.random.Generator) -> 
     area = np.asarray(mesh.area_faces, dtype=np.float64)
     cdf = np.cumsum(area)
     fidx = np.searchsorted(cdf, rng.random(n) * cdf[-1], side="right").clip(0, len(area) - 1)
-    tri = np.asarray(mesh.triangles, dtype=np.float64)[fidx]
     r1, r2 = rng.random(n), rng.random(n)
-    flip = r1 + r2 > 1.0  # fold the unit square onto the triangle
-    r1[flip], r2[flip] = 1.0 - r1[flip], 1.0 - r2[flip]
-    pts = tri[:, 0] + r1[:, None] * (tri[:, 1] - tri[:, 0]) + r2[:, None] * (tri[:, 2] - tri[:, 0])
-    return pts, fidx
+    verts = np.asarray(mesh.vertices, dtype=np.float64)
+    return _points_on_faces(verts, np.asarray(mesh.faces, dtype=np.int64), fidx, r1, r2), fidx
+
+
+@njit(cache=True, nogil=True)
+def _points_on_faces(verts: np.ndarray, faces: np.ndarray, fidx: np.ndarray, r1: np.ndarray,
+                     r2: np.ndarray) -> np.ndarray:
+    """v0 + r1 (v1 - v0) + r2 (v2 - v0) on each sample's face, (r1, r2) folded onto the triangle where r1 + r2 > 1:
+    numpy's float64 expression on the gathered triangles, one sample at a time, without the n x 3 x 3 copy of
+    the triangles (ICL: 0.15 of the 0.64 CPU-s its curvature took; tests/worker/test_curvature.py: the same bits)."""
+    out = np.empty((len(fidx), 3))
+    for i in range(len(fidx)):
+        s, t = r1[i], r2[i]
+        if s + t > 1.0:
+            s, t = 1.0 - s, 1.0 - t
+        a, b, c = faces[fidx[i], 0], faces[fidx[i], 1], faces[fidx[i], 2]
+        for k in range(3):
+            v0 = verts[a, k]
+            out[i, k] = v0 + s * (verts[b, k] - v0) + t * (verts[c, k] - v0)
+    return out
 
 
 def _tangent_frames(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -98,3 +98,19 @@ def test_crowded_balls_give_the_same_curvature_by_either_search(monkeypatch: pyt
     monkeypatch.setattr(curvature, "GRID_MAX_BALL", np.inf)
     monkeypatch.setattr(curvature, "cKDTree", None)
     np.testing.assert_array_equal(principal_curvatures(dense, 0.2), want)
+
+
+def test_surface_samples_are_numpys_expression_on_the_gathered_triangles_bit_for_bit(scenes_dir: Path) -> None:
+    room = load_space(scenes_dir / "icl_livingroom").mesh
+    pts, fidx = curvature._sample_surface(room, 50_000, np.random.default_rng(4))
+    rng = np.random.default_rng(4)  # the same draws, in the same order, through the expression it replaced
+    area = np.asarray(room.area_faces, dtype=np.float64)
+    cdf = np.cumsum(area)
+    want_f = np.searchsorted(cdf, rng.random(50_000) * cdf[-1], side="right").clip(0, len(area) - 1)
+    tri = np.asarray(room.triangles, dtype=np.float64)[want_f]
+    r1, r2 = rng.random(50_000), rng.random(50_000)
+    flip = r1 + r2 > 1.0
+    r1[flip], r2[flip] = 1.0 - r1[flip], 1.0 - r2[flip]
+    want = tri[:, 0] + r1[:, None] * (tri[:, 1] - tri[:, 0]) + r2[:, None] * (tri[:, 2] - tri[:, 0])
+    assert flip.any() and np.array_equal(fidx, want_f)
+    assert pts.tobytes() == want.tobytes()

@@ -97,7 +97,8 @@ class ViewPasses:
 
     depth_z: float32 H x W, metres along the optical axis (Cycles' Z pass is planar z), inf = no surface.
     normal_world: float32 H x W x 3, unit geometric normal of the seen triangle in world axes, turned to face
-        the camera (Cycles flips back-facing hits); 0 = no surface. None when not read back (pass "normal").
+        the camera (as Cycles turns back-facing hits; derived from the face index, not rendered); 0 = no surface.
+        None when not asked for (pass "normal").
     rgb: uint8 H x W x 3, unlit sRGB colour (texture / vertex colour / constant grey), 0 = no surface.
     face_index: uint32 H x W, index of the seen triangle in the space's mesh, 4294967295 = no surface. None when
         not read back (pass "faces").

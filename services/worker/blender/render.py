@@ -12,8 +12,8 @@ Passes read back (linear float32, row 0 = top):
 - Depth: Cycles' Z pass is the distance along the camera's optical axis (planar z), 1e10 where nothing is hit;
 - normals are not rendered: faces are flat-shaded, so Cycles' Normal pass is the seen triangle's geometric normal,
   turned towards the incoming ray for back-facing hits; the decode gives that from the face index, to float32
-  rounding and the same on every device (decode.facing_normals; the pass cost 3 EXR channels and ~7% of the
-  render, bench/results/passes_cost.json);
+  rounding and the same on every device (decode.facing_normals; the pass cost 3 EXR channels and 4-7% of the
+  passes task's CPU: README, round 13's A/B);
 - AOVs (float32, exact integers below 2^24): face index + 1 in one AOV when the mesh has fewer than 2^24 faces,
   else split into two 16-bit halves (exact for any mesh below 2^32 - 1 faces, so no ray-cast fallback is
   needed), curvature k1 and k2 (per-vertex values interpolated barycentrically over the triangle). Class and

@@ -121,7 +121,7 @@ class BlenderScene:
         # No me.validate(): it may drop degenerate faces and shift every later face index.
         me.update(calc_edges=True)
         # Flat shading: a pixel's normal is its triangle's geometric normal, faithful to the scanned mesh (and
-        # derived from the face index: render.facing_normals).
+        # derived from the face index: decode.facing_normals).
         me.polygons.foreach_set("use_smooth", np.zeros(nf, dtype=bool))
         idx1 = np.arange(1, nf + 1, dtype=np.int64)
         self._set_attr(me, ATTR_FACE, "FACE", np.stack([idx1 // 65536, idx1 % 65536, idx1], axis=1))

@@ -40,12 +40,15 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results" / "render.json"
 SCENES = ROOT.parent / "shared" / "scenes"
+SCANS = ROOT / "bench" / "scans"
 # name -> (SPACE argument, extra generate flags). The kitchen's fused mesh is not gravity aligned; its capture
 # ships the gravity direction (gravity-direction.txt: up is its negative), given so no low-confidence guess is used.
+# The copy room (textured, in its first camera's frame) is refused as ambiguous without one: its measured up.
 ROOMS: dict[str, tuple[Path, list[str]]] = {
     "icl_livingroom": (SCENES / "icl_livingroom", []),
     "7scenes_redkitchen": (SCENES / "7scenes_redkitchen" / "mesh_tsdf_2cm_from_1000frames.ply",
                            ["--up", "0.009,-0.904,-0.427"]),
+    "copyroom": (SCANS / "copyroom", ["--up", "-0.0023,-0.8052,-0.5930"]),
 }
 
 FLOOR_PROBE = r"""

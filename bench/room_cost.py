@@ -48,7 +48,7 @@ ROOMS: dict[str, tuple[Path, list[str]]] = {
     "icl_livingroom": (SCENES / "icl_livingroom", []),
     "7scenes_redkitchen": (SCENES / "7scenes_redkitchen" / "mesh_tsdf_2cm_from_1000frames.ply",
                            ["--up", "0.009,-0.904,-0.427"]),
-    "copyroom": (SCANS / "copyroom", ["--up", "-0.0023,-0.8052,-0.5930"]),
+    "copyroom": (SCANS / "copyroom", ["--up=-0.0023,-0.8052,-0.5930"]),  # "=": a value starting with "-"
 }
 
 FLOOR_PROBE = r"""
@@ -262,15 +262,20 @@ def main() -> int:
                                            for k, r in rep.items()}), flush=True)
             result["rooms"][room] = {"summary": summarise(repeats), "repeats": repeats}
             print(room, json.dumps(result["rooms"][room]["summary"]), flush=True)
-    result["wall_s"] = round(time.perf_counter() - t0, 1)
-    doc = json.loads(args.out.read_text()) if args.out.exists() else {}
-    if "room_cost" in doc:
+            result["wall_s"] = round(time.perf_counter() - t0, 1)
+            write_result(args.out, result, first=len(result["rooms"]) == 1)  # a later room's failure keeps this one
+    return 0
+
+
+def write_result(out: Path, result: dict, *, first: bool) -> None:
+    """This run's figures as "room_cost"; on its first write the previous run's move to "room_cost_before"."""
+    doc = json.loads(out.read_text()) if out.exists() else {}
+    if first and "room_cost" in doc:
         if "room_cost_before" in doc:  # earlier rounds' figures are kept, oldest first
             doc.setdefault("room_cost_history", []).append(doc["room_cost_before"])
         doc["room_cost_before"] = doc["room_cost"]
     doc["room_cost"] = result
-    args.out.write_text(json.dumps(doc, indent=1) + "\n")
-    return 0
+    out.write_text(json.dumps(doc, indent=1) + "\n")
 
 
 if __name__ == "__main__":

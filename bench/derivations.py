@@ -51,8 +51,8 @@ from services.worker.passes import RENDER_PASSES, ViewPasses  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results" / "derivations.json"
-# Bare 1-sample render, CPU s per view, one core (bench/room_cost.py, issue 20's closing note).
-FLOOR_CPU_S = {"icl_livingroom": 0.077, "7scenes_redkitchen": 0.086}
+# Bare 1-sample render, CPU s per view, one core (bench/room_cost.py, issue 20's closing notes; the copy room: round 14).
+FLOOR_CPU_S = {"icl_livingroom": 0.077, "7scenes_redkitchen": 0.086, "copyroom": 0.18}
 
 
 def floor_cpu_s(room: str) -> tuple[float, str]:

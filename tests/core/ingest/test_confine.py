@@ -8,14 +8,16 @@ import os
 import subprocess
 import sys
 import zipfile
+import zlib
 from pathlib import Path
 
 import pytest
 import trimesh
 
 from services.core.db.models import Space
+from services.core.ingest import archive_rules
 from services.core.ingest.archive import safe_extract_zip
-from services.core.ingest.archive_rules import archive_refusal, file_expansion_refusal
+from services.core.ingest.archive_rules import archive_refusal, expansion_refusal, file_expansion_refusal
 from services.core.ingest.confine import ConfinedResolver, ReferenceRefused
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.loading import load_space
@@ -94,6 +96,26 @@ def test_one_compression_rule_for_upload_packing_and_extraction(tmp_path: Path) 
     with zipfile.ZipFile(tmp_path / "ok.zip", "w", compression=zipfile.ZIP_DEFLATED) as zf:
         zf.write(ok, "ok.obj")
     assert file_expansion_refusal(ok) is None and archive_refusal(tmp_path / "ok.zip") is None
+
+
+@pytest.mark.parametrize("period", [1, 100])
+def test_file_expansion_verdict_is_the_whole_files_whatever_the_piece_size(tmp_path: Path, period: int,
+                                                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    # period 1: one repeated face line (680x); 100: just over the limit at level 6 (203x), far under it at level 1
+    body = b"v 0 0 0\nv 1 0 0\nv 0 1 0\n" + b"".join(b"f 1 2 %d\n" % (3 + i % period) for i in range(300_000))
+    obj = tmp_path / "near.obj"
+    obj.write_bytes(body)
+    whole = zlib.compressobj(zlib.Z_DEFAULT_COMPRESSION, zlib.DEFLATED, -15)
+    expected = expansion_refusal("the mesh file", len(body), len(whole.compress(body) + whole.flush()))
+    assert expected is not None  # both refused: the check is stricter than the level-1 packed zip (59x for 100)
+    for piece in (1 << 12, 1 << 16, 1 << 20, 1 << 24):
+        monkeypatch.setattr(archive_rules, "_CHUNK", piece)
+        assert file_expansion_refusal(obj) == expected
+    ok = tmp_path / "ok.obj"  # a scan: under the limit after its first pieces, the same verdict for every size
+    ok.write_bytes(trimesh.creation.icosphere(subdivisions=6).export(file_type="obj").encode())
+    for piece in (1 << 12, 1 << 16, 1 << 24):
+        monkeypatch.setattr(archive_rules, "_CHUNK", piece)
+        assert file_expansion_refusal(ok) is None
 
 
 def test_local_store_never_reads_through_a_link(tmp_path: Path) -> None:

@@ -1,7 +1,8 @@
 """Attaching the capture found with a scan to the loaded space, in its world frame.
 
-Where to look: the folder (or extracted zip) the user gave, else the mesh file's own folder. Only that folder
-is read (services.core.ingest.capture.detect bounds the walk), so a capture is never taken from elsewhere.
+Where to look: the folder (or extracted zip) the user gave, else the mesh file's own folder, there only as deep as
+the formats' layouts go (detect.BESIDE_DEPTH). Only that folder is read (services.core.ingest.capture.detect bounds
+the walk), so a capture is never taken from elsewhere.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from services.core.ingest.capture.detect import find_capture
+from services.core.ingest.capture.detect import BESIDE_DEPTH, MAX_DEPTH, find_capture
 from services.core.ingest.capture.model import Capture
 
 if TYPE_CHECKING:  # loading.py imports this module
@@ -33,7 +34,7 @@ def capture_near(given: Path) -> Capture | None:
     """The capture found for `given` (a scan file, its folder, or an extracted zip's folder), source frame."""
     root = capture_root(given)
     try:
-        return find_capture(root)
+        return find_capture(root, MAX_DEPTH if given.is_dir() else BESIDE_DEPTH)
     except (OSError, ValueError) as e:  # an unreadable capture never stops the scan from loading
         log.warning("%s: capture not read (%s)", root, e)
         return None
@@ -61,11 +62,11 @@ def attach_capture(loaded: LoadedSpace, capture: Capture | None) -> LoadedSpace:
 
 
 def capture_files_beside(mesh_file: Path, mesh_suffixes: tuple[str, ...]) -> list[Path]:
-    """Files to store with a single mesh file that has a capture in its folder (the folder's files, without the
-    other meshes there); [] when there is no capture beside it."""
+    """Files to store with a single mesh file that has a capture beside it (the folder's files as deep as the
+    capture was looked for, without the other meshes there); [] when there is no capture beside it."""
     from services.core.ingest.capture.detect import list_files
 
     folder = mesh_file.parent
-    if find_capture(folder) is None:
+    if find_capture(folder, BESIDE_DEPTH) is None:
         return []
-    return [p for p in list_files(folder) if p == mesh_file or p.suffix.lower() not in mesh_suffixes]
+    return [p for p in list_files(folder, BESIDE_DEPTH) if p == mesh_file or p.suffix.lower() not in mesh_suffixes]

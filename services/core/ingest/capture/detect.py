@@ -3,6 +3,9 @@
 The walk is bounded (depth, number of entries) and never follows links out of the root, so pointing at a mesh in
 a big folder costs little and reads nothing outside it. The first format found wins, in this order:
 transforms.json, a COLMAP model, a ScanNet export, the 7-Scenes/BundleFusion layout, camera_poses.json.
+A folder (or zip) the user gave is walked MAX_DEPTH folders deep; beside a single mesh file only BESIDE_DEPTH, the
+deepest the formats' own layouts go (COLMAP's sparse/0/): a scan saved in a busy folder (a home, Downloads, /tmp)
+does not take a capture from someone else's project further down.
 
 Within `captures_kept()`, what was read is kept, keyed by the folder's listing (each file's path, size, times and
 inode): `generate` looks for the capture beside a scan five times (checksum, validation, loading, packing,
@@ -26,6 +29,7 @@ from services.core.ingest.capture.scannet import export_folders, read_scannet
 from services.core.ingest.capture.sevenscenes import FRAME_RE, read_sevenscenes
 
 MAX_DEPTH = 4
+BESIDE_DEPTH = 2  # a capture next to a single mesh file: sparse/0/cameras.bin, frames/*.pose.txt, color/, ...
 MAX_ENTRIES = 400_000
 FORMATS = ("transforms", "colmap", "scannet", "7scenes", "camera_poses")
 KEPT_CAPTURES = 8  # captures (or their absence) kept, the least recently asked for dropped first
@@ -59,13 +63,13 @@ def list_files(root: Path, max_depth: int = MAX_DEPTH, max_entries: int = MAX_EN
     return sorted(out)
 
 
-def find_capture(root: str | Path) -> Capture | None:
-    """The capture under `root` (a folder), or None when it holds none of the known formats (Capture is frozen:
-    the one kept for an unchanged folder is handed out again)."""
+def find_capture(root: str | Path, max_depth: int = MAX_DEPTH) -> Capture | None:
+    """The capture under `root` (a folder, walked max_depth folders deep), or None when it holds none of the known
+    formats (Capture is frozen: the one kept for an unchanged folder is handed out again)."""
     root = Path(root)
     if not root.is_dir():
         return None
-    files = list_files(root)
+    files = list_files(root, max_depth)
     key = _listing_key(root, files) if _keeping else None
     if key is not None and key in _kept:
         _kept.move_to_end(key)

@@ -9,9 +9,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import trimesh
 
+from services.core.ingest.archive import MESH_SUFFIXES
 from services.core.ingest.capture import find_capture
+from services.core.ingest.capture.attach import capture_files_beside, capture_near
 from services.core.ingest.capture.distortion import distort, undistort
+from services.core.ingest.loading import load_space
+from services.core.ingest.registry import pack_source
 from tests.fixtures.captures import (
     toy_frames,
     write_camera_poses,
@@ -245,6 +250,29 @@ def test_real_7scenes_capture_every_frame():
     # up from the cameras (right axes horizontal) is within 5 degrees of the recorded gravity
     up = -np.loadtxt(root / "gravity-direction.txt")
     assert np.degrees(np.arccos(cap.mean_up() @ (up / np.linalg.norm(up)))) < 5.0
+
+
+def test_beside_a_single_mesh_file_a_capture_is_looked_for_only_as_deep_as_the_layouts_go(tmp_path):
+    # A scan saved in a busy folder with someone else's project further down (the 7-Scenes layout, 3 folders deep)
+    busy = tmp_path / "Downloads"
+    busy.mkdir()
+    trimesh.creation.box(extents=(4.0, 3.0, 2.5)).export(busy / "scan.ply")
+    write_sevenscenes(busy / "projects" / "kitchen", toy_frames(2), folder="frames")
+    (busy / "projects" / "taxes.pdf").write_bytes(b"%PDF- not part of any scan")
+    scan = busy / "scan.ply"
+    assert capture_near(scan) is None and capture_files_beside(scan, MESH_SUFFIXES) == []
+    assert load_space(scan, up_axis="+z", unit_scale=1.0).capture is None
+    assert pack_source(scan, scan, tmp_path) == scan  # the scan is stored alone: nothing else of the folder
+    assert capture_near(busy).format == "7scenes"  # the folder itself, given by the user, is walked deeper
+    # Beside a single file, the formats' own layouts are found: COLMAP's sparse/0/ (2 deep), 7-Scenes frames (1)
+    for name, write, fmt in (("colmap", write_colmap, "colmap"), ("7scenes", write_sevenscenes, "7scenes")):
+        own = tmp_path / name
+        write(own, toy_frames(2))
+        trimesh.creation.box(extents=(4.0, 3.0, 2.5)).export(own / "scan.ply")
+        assert capture_near(own / "scan.ply").format == fmt
+        packed = {p.relative_to(own).as_posix() for p in capture_files_beside(own / "scan.ply", MESH_SUFFIXES)}
+        assert "scan.ply" in packed and any(p.endswith(".jpg") for p in packed)
+        assert load_space(own / "scan.ply", up_axis="+z", unit_scale=1.0).capture.format == fmt
 
 
 def test_capture_inside_a_zip(tmp_path):

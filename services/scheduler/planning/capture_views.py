@@ -24,6 +24,7 @@ from services.core.domain.camera import intrinsics
 from services.core.domain.capture_records import CapturePlanRecord, RefinedCamera
 from services.core.domain.jobspec import JobSpec
 from services.core.domain.plan import PlanError, SpacePlan
+from services.core.ingest.capture.detect import BESIDE_DEPTH
 from services.core.ingest.capture.model import Capture, CaptureFrame
 from services.core.ingest.capture.resample import coverage_fraction, load_photo
 from services.scheduler.planning.alignment import alignment_score, score_summary
@@ -42,7 +43,9 @@ def require_capture(space: LoadedSpace, space_name: str) -> Capture:
     capture = getattr(space, "capture", None)
     if capture is None:
         raise PlanError(f"space {space_name!r}: cameras.mode capture (or views.rgb_source photos) needs a posed capture "
-                        f"next to the scan (looked for {FORMATS_LOOKED_FOR}); none was found")
+                        f"next to the scan (looked for {FORMATS_LOOKED_FOR}, in the folder or zip given, or at most "
+                        f"{BESIDE_DEPTH} folders down beside a single mesh file: give the folder for a deeper one); "
+                        "none was found")
     if not capture.frames:
         why = "; ".join(capture.problems[:5]) or "no frames"
         raise PlanError(f"space {space_name!r}: the {capture.format} capture has no usable frame ({why})")

@@ -4,7 +4,8 @@ For each room it runs, on one core (pinned as `taskset -c CORE` would, so the wh
 interleaved:
 1. `omnidata generate ROOM --workers 1` at 512x512 with every default cue: wall time per view end to end
    (start-up, planning, space loading, render, derivations, orchestration), and the job's own task rows
-   (sum of `duration_s` per cue / views) from its SQLite state;
+   (sum of `duration_s` per cue / views) from its SQLite state, and per view its passes task and its derived
+   tasks together (first view, which carries the worker's one-off set-up, and the median view);
 2. in a fresh process on the same core, the bare 1-sample Cycles render (Image + Depth + Normal, no AOVs, nothing
    read back) of the very views that job rendered (its stored plan): wall seconds per view.
 Each repeat runs 1 then 2, so a neighbour's load moves both; the ratio is taken per repeat and reported as the
@@ -27,6 +28,7 @@ import argparse
 import compileall
 import json
 import os
+import platform
 import resource
 import sqlite3
 import subprocess
@@ -79,6 +81,14 @@ def load() -> list[float]:
     return [round(x, 2) for x in os.getloadavg()]
 
 
+def cpu_model() -> str:
+    """The processor's name (ratios to the floor move little between hosts; seconds do, ~2x)."""
+    for line in Path("/proc/cpuinfo").read_text().splitlines() if Path("/proc/cpuinfo").exists() else []:
+        if line.startswith("model name"):
+            return line.split(":", 1)[1].strip()
+    return platform.processor() or "unknown processor"
+
+
 def median(values: list[float]) -> float:
     s = sorted(values)
     n = len(s)
@@ -123,11 +133,22 @@ def generate(space: Path, extra: list[str], cores: str, out: Path, spec: Path, w
         # a view batch's tasks share their claim's started_at: claims = distinct (worker, started_at)
         tasks, claims = db.execute("SELECT COUNT(*), COUNT(DISTINCT worker_id || started_at) FROM task").fetchone()
         steps = timeline(db, started, started + wall)
+        # Per view, in the order they started: the passes task, and the view's derived tasks together. The first
+        # view's carry what a worker pays once (the space's scene, curvature, first kernel loads); the median is a
+        # view in the steady state.
+        renders = [d for (d,) in db.execute("SELECT duration_s FROM task WHERE state = 'done' AND cue = 'passes' "
+                                            "ORDER BY started_at")]
+        derivations = [d for (d,) in db.execute(
+            "SELECT SUM(duration_s) FROM task WHERE state = 'done' AND cue != 'passes' "
+            "GROUP BY space_id, point_idx, view_idx ORDER BY MIN(started_at)")]
     return {"cores": cores, "device": device, "views": views, "wall_s": round(wall, 2),
             "wall_s_per_view": round(wall / views, 4), "views_per_s": round(views / wall, 3), "cpu_s": round(cpu, 2),
             "cpu_s_per_view": round(cpu / views, 4), "load_before": before, "load_after": load(), "tasks": tasks,
             "claims": claims, "task_s_per_view": dict(sorted(per_cue.items(), key=lambda kv: -kv[1])),
-            "task_s_per_view_total": round(sum(per_cue.values()), 4), "timeline_s": steps}
+            "task_s_per_view_total": round(sum(per_cue.values()), 4),
+            "passes_task_s": {"first": round(renders[0], 4), "median": round(median(renders), 4)},
+            "derivations_s_per_view": {"first": round(derivations[0], 4), "median": round(median(derivations), 4)},
+            "timeline_s": steps}
 
 
 def unix(stamp: str) -> float:
@@ -187,6 +208,14 @@ def summarise(repeats: list[dict]) -> dict:
            "end_to_end_cpu_to_floor_cpu": {"median": round(median(e2e_cpu), 2), "worst": round(max(e2e_cpu), 2)},
            "passes_task_to_floor": {"median": round(median(passes), 2), "worst": round(max(passes), 2)},
            "derivations_to_floor": {"median": round(median(derived), 2), "worst": round(max(derived), 2)}}
+    # The steady state: a median view's passes task and derivations against the floor's median view (the means
+    # above also carry the first view's one-off set-up)
+    for name, key in (("passes_task_median_view_to_floor", "passes_task_s"),
+                      ("derivations_median_view_to_floor", "derivations_s_per_view")):
+        ratios = [r["generate"][key]["median"] / r["floor"]["s_per_view_median"] for r in repeats
+                  if key in r["generate"]]
+        if ratios:
+            out[name] = {"median": round(median(ratios), 2), "worst": round(max(ratios), 2)}
     multi = [r["all_cores"]["views_per_s"] / r["generate"]["views_per_s"] for r in repeats if "all_cores" in r]
     if multi:
         out["all_cores_to_one_core_views_per_s"] = {"median": round(median(multi), 2), "worst": round(min(multi), 2)}
@@ -235,8 +264,8 @@ def main() -> int:
     compileall.compile_dir(ROOT / "services", quiet=1)
     t0 = time.perf_counter()
     result: dict = {"resolution": args.resolution, "core": args.core, "clock": "wall seconds",
-                    "machine": f"{os.cpu_count()} cores, shared with other developers' work (load averages beside "
-                               "each figure)", "rooms": {}}
+                    "machine": f"{os.cpu_count()} cores ({cpu_model()}, Linux {platform.release()}), shared with "
+                               "other developers' work (load averages beside each figure)", "rooms": {}}
     with tempfile.TemporaryDirectory(prefix="omnidata-roomcost-") as tmp:
         spec = Path(tmp) / "spec.json"
         spec.write_text(json.dumps({"points": {"count": args.points, "max_views": args.max_views},

@@ -63,6 +63,7 @@ _BASE_DOMINANCE = 3.0
 _SNAP_RAD = 1e-3  # a direction this close to a source axis is that axis (1 mm per metre)
 _BASE_SNAP_RAD = np.radians(2.0)  # object bases are rougher than floors (the bunny's is 1.1 degrees off its axis)
 _N_BINS = 2000  # Fibonacci bins on the hemisphere (about 2.6 degrees apart)
+_NEIGHBOUR_COS = float(np.cos(np.radians(6.0)))  # bins this close smooth each other's votes
 _SAMPLE_FACES = 50_000  # faces (drawn by area) that vote for bins; refinement uses every face
 _SUPPRESS_COS = float(np.cos(np.radians(25.0)))
 _MAX_FAMILIES = 6
@@ -187,9 +188,16 @@ def _bin_tree() -> cKDTree:
 
 @functools.cache
 def _bin_neighbours() -> sparse.csr_matrix:
-    """Bins within 6 degrees of each other (antipodes folded): smooths the histogram into peaks."""
-    near = np.abs(_BINS @ _BINS.T) > np.cos(np.radians(6.0))
-    return sparse.csr_matrix(near.astype(np.float64))
+    """Bins within 6 degrees of each other (antipodes folded): smooths the histogram into peaks. The pairs come
+    from the bin tree (unit vectors: a.b > c exactly when |a - b| < sqrt(2 - 2c)) and are then tested as defined;
+    the dense 2000 x 2000 product this replaces was 0.16 CPU-s of every generate's start-up."""
+    near = _bin_tree().query_ball_point(_BINS, np.sqrt(2.0 - 2.0 * _NEIGHBOUR_COS) * (1.0 + 1e-6))
+    rows = np.repeat(np.arange(_N_BINS), [len(n) for n in near])
+    cols = np.concatenate([np.asarray(n, dtype=np.int64) for n in near]) % _N_BINS
+    keep = np.abs((_BINS[rows] * _BINS[cols]).sum(axis=1)) > _NEIGHBOUR_COS
+    rows, cols = rows[keep], cols[keep]
+    order = np.lexsort((cols, rows))  # each row's columns ascending, as a dense matrix's conversion gives them
+    return sparse.csr_matrix((np.ones(len(order)), (rows[order], cols[order])), shape=(_N_BINS, _N_BINS))
 
 
 def _mean_shift(axis: np.ndarray, normals: np.ndarray, areas: np.ndarray) -> np.ndarray:

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
+from scipy import sparse
 
 from services.core.ingest.errors import SpaceError, UpAmbiguous
 from services.core.ingest.gravity import UnitError, choose_unit_scale, estimate_up, plane_families
@@ -44,6 +45,19 @@ def test_plane_families_find_tilted_walls_and_floor() -> None:
     want = [R[:3, :3] @ e for e in np.eye(3)]
     for axis, _ in fams:
         assert max(abs(float(axis @ w)) for w in want) > 1 - 1e-9
+
+
+def test_the_histogram_smoothing_pairs_are_the_bins_within_six_degrees_antipodes_folded() -> None:
+    """The neighbour matrix found through the bin tree is the defined one: |a.b| > cos 6 degrees over all pairs."""
+    from services.core.ingest import gravity
+
+    found = gravity._bin_neighbours()
+    bins = gravity._BINS
+    defined = np.abs(bins @ bins.T) > np.cos(np.radians(6.0))
+    np.testing.assert_array_equal(found.toarray() != 0, defined)
+    assert found.has_sorted_indices and set(found.data) == {1.0}
+    hist = np.random.default_rng(0).random(len(bins))
+    np.testing.assert_array_equal(found @ hist, sparse.csr_matrix(defined.astype(np.float64)) @ hist)
 
 
 def test_confidence_recorded_and_an_empty_box_refused_naming_both_candidates(tmp_path: Path) -> None:

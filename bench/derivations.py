@@ -47,6 +47,7 @@ from services.scheduler.planning import make_plan, space_rng  # noqa: E402
 from services.worker.context import ViewContext  # noqa: E402
 from services.worker.cues.registry import cue_value  # noqa: E402
 from services.worker.executor import produce  # noqa: E402
+from services.worker.heap import keep_freed_memory  # noqa: E402
 from services.worker.passes import RENDER_PASSES, ViewPasses  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -218,6 +219,7 @@ def run_room(room: str, n_views: int, repeats: int, resolution: int, cache: Path
 
 
 def main() -> int:
+    keep_freed_memory()  # the worker's heap settings (services.worker.heap): timings as a worker's
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--views", type=int, default=6)
     ap.add_argument("--repeats", type=int, default=3)

@@ -105,6 +105,7 @@ class GeneratedRun:
 
     out: Path
     stdout: str
+    tmpdir: Path | None = None  # the run's TMPDIR, when it had one of its own
 
 
 @pytest.fixture(scope="session")
@@ -117,10 +118,12 @@ def tiny_banana(tmp_path_factory: pytest.TempPathFactory, scenes_dir: Path) -> G
     out = tmp_path_factory.mktemp("tiny_banana") / "banana"
     spec = out.parent / "tiny.yaml"
     spec.write_text(WIDE)
+    tmpdir = out.parent / "tmp"  # its own, so a test can see what the run leaves in the temp dir
+    tmpdir.mkdir()
     res = omnidata("generate", scenes_dir / "ycb_banana", "--out", out, "--spec", spec, "--seed", 7, "--workers", 2,
-                   "--name", "tiny", "--no-progress")
+                   "--name", "tiny", "--no-progress", env={"TMPDIR": str(tmpdir)})
     assert res.returncode == 0, res.stderr
-    return GeneratedRun(out, res.stdout)
+    return GeneratedRun(out, res.stdout, tmpdir)
 
 
 @pytest.fixture(scope="session")

@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Literal, NoReturn
 
 from services.worker.blender.calls import exit_at_once_inside_blender
+from services.worker.blender.threads import remove_session_temp_dir
 from services.worker.heap import keep_freed_memory
 from services.worker.numeric_threads import numeric_threads_pinned, pin_numeric_threads
 from services.worker.stop_signal import stop_within
@@ -138,7 +139,9 @@ def _work(conf: WorkerConfig, tasks: TaskQueues, results: Queue[WorkerMessage], 
 
 def _exit_quietly(code: int) -> NoReturn:
     """Leave without interpreter teardown: Blender's static destructors only print noise ("Freeing memory after
-    the leak detector has run") and nothing is left to flush but the standard streams."""
+    the leak detector has run") and nothing is left to flush but the standard streams, and Blender's temp folder
+    to remove."""
+    remove_session_temp_dir()
     sys.stdout.flush()
     sys.stderr.flush()
     os._exit(code)

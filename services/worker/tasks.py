@@ -144,6 +144,9 @@ def _shutdown_child(**_: object) -> None:
         except Exception:
             log.exception("closing the worker runtime failed")
         _runtime = None
+    from services.worker.blender.threads import remove_session_temp_dir
+
+    remove_session_temp_dir()  # a prefork child leaves through os._exit, past Blender's own removal
 
 
 def guard_renders_from_sigterm() -> None:

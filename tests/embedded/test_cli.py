@@ -86,6 +86,17 @@ def banana_run(tiny_banana: GeneratedRun) -> tuple[Path, str]:
 # ------------------------------------------------------------------------------------------ a full run
 
 
+def test_a_run_leaves_no_blender_temp_folder_behind(tiny_banana: GeneratedRun, tmp_path):
+    """`import bpy` makes $TMPDIR/blender_XXXXXX and only Blender's own exit removes it; workers leave through
+    os._exit, so each used to leave one behind. The run's two workers had the run's TMPDIR."""
+    probe = "import bpy, os, sys; sys.stdout.write(bpy.app.tempdir); sys.stdout.flush(); os._exit(0)"
+    res = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120,
+                         env={**os.environ, "TMPDIR": str(tmp_path)})
+    assert Path(res.stdout).parent == tmp_path and Path(res.stdout).is_dir()  # bpy's folder follows TMPDIR, kept
+    assert tiny_banana.tmpdir is not None
+    assert not list(tiny_banana.tmpdir.glob("blender_*"))
+
+
 @pytest.mark.slow
 def test_every_default_cue_is_written_in_the_omnidata_layout(banana_run):
     out, stdout = banana_run

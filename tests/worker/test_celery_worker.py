@@ -149,8 +149,10 @@ def test_real_worker_consumes_heartbeats_and_recycles_its_child(pg_url, pg_sm, r
     from services.scheduler.celery_transport import CeleryTransport
 
     # one task per message (no view batch), so that two messages are two tasks and recycle the child
+    tmpdir = tmp_path / "tmp"  # its own: what the worker's children leave in the temp dir shows
+    tmpdir.mkdir()
     env = worker_env(pg_url, redis_url, banana.store.root, tmp_path / "data", OMNIDATA_WORKER_MAX_TASKS="2",
-                     OMNIDATA_WORKER_BATCH_VIEWS="false")
+                     OMNIDATA_WORKER_BATCH_VIEWS="false", TMPDIR=str(tmpdir))
     log = (tmp_path / "worker.log").open("wb")
     name = f"w-{secrets.token_hex(3)}@%h"
     proc = subprocess.Popen([sys.executable, "-m", "services.cli", "worker", "--concurrency", "1",
@@ -191,6 +193,8 @@ def test_real_worker_consumes_heartbeats_and_recycles_its_child(pg_url, pg_sm, r
         stop_worker(proc)
         log.close()
     assert proc.returncode == 0, (tmp_path / "worker.log").read_text()[-3000:]
+    # both children rendered (bpy made a session folder in TMPDIR each) and left through os._exit: none is left
+    assert not list(tmpdir.glob("blender_*"))
 
 
 def tree_cpu_s(root_pid: int) -> float:

@@ -19,6 +19,7 @@ from __future__ import annotations
 import ctypes
 import logging
 import os
+import shutil
 import sys
 from pathlib import Path
 
@@ -44,6 +45,18 @@ def import_bpy(threads: int | None) -> None:
                 os.sched_setaffinity(0, cpus)
             log.info("bpy imported with a thread pool of %d of this process's %d CPUs", threads, len(cpus))
     set_exr_threads(0)
+
+
+def remove_session_temp_dir() -> None:
+    """Remove Blender's session temp folder ($TMPDIR/blender_XXXXXX, made by `import bpy`), for a process that
+    leaves through os._exit: Blender removes it only in its own exit, so every worker left one behind (an empty
+    folder in /tmp a run, thousands on a busy host). Nothing when this process never imported bpy."""
+    bpy = sys.modules.get("bpy")
+    if bpy is None:
+        return
+    session = Path(bpy.app.tempdir)
+    if session.name.startswith("blender_"):  # the session folder, never the base temp dir a user configured
+        shutil.rmtree(session, ignore_errors=True)
 
 
 # OpenEXR's C++ namespace carries its version (Imf_3_3 in bpy 4.5): the mangled setter, tried newest first

@@ -213,8 +213,9 @@ class JobCounter(Base):
     job_id: Mapped[int] = mapped_column(BigIntId, ForeignKey("job.id", ondelete="CASCADE"), primary_key=True)
     cue: Mapped[str] = mapped_column(String(64), primary_key=True)
     state: Mapped[TaskState] = mapped_column(StateColumn(TaskState), primary_key=True)
-    shard: Mapped[int] = mapped_column(SmallInteger, primary_key=True, default=0, server_default=text("0"))
+    # n before shard: the migrated table's column order (0003 added shard last), which create_all then gives too
     n: Mapped[int] = mapped_column(BigInteger, default=0, server_default=text("0"))
+    shard: Mapped[int] = mapped_column(SmallInteger, primary_key=True, default=0, server_default=text("0"))
 
 
 class Camera(Base):

@@ -97,7 +97,7 @@ def migrate(url: str, revision: str = "head") -> None:
 
 def _create_sqlite_at_head(path: Path) -> bool:
     """A new SQLite database at `path`: the models' tables stamped at SCHEMA_HEAD, the schema Alembic's upgrade of an
-    empty file gives (a test compares them), without loading Alembic (0.17 CPU-s of every embedded run's start-up).
+    empty file gives (a test compares them), without loading Alembic (0.12-0.17 CPU-s of every embedded run's start-up).
     Built beside `path` and hard-linked into place, so a database another process created meanwhile is never
     touched: False then, or where the file system has no hard links (Alembic's upgrade takes over)."""
     from services.core.db.models import Base

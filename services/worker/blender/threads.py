@@ -50,7 +50,7 @@ def import_bpy(threads: int | None) -> None:
 def remove_session_temp_dir() -> None:
     """Remove Blender's session temp folder ($TMPDIR/blender_XXXXXX, made by `import bpy`), for a process that
     leaves through os._exit: Blender removes it only in its own exit, so every worker left one behind (an empty
-    folder in /tmp a run, thousands on a busy host). Nothing when this process never imported bpy."""
+    folder in /tmp per worker and run). Nothing when this process never imported bpy."""
     bpy = sys.modules.get("bpy")
     if bpy is None:
         return

@@ -36,14 +36,13 @@ inches in that order) and the plausibility check of objects, which keep 1.0 unle
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 
 import numpy as np
 import trimesh
-from scipy import sparse
-from scipy.spatial import ConvexHull, QhullError, cKDTree
+from scipy.spatial import ConvexHull, QhullError
 
+from services.core.ingest.direction_bins import BINS, N_BINS, bin_neighbours, bin_tree
 from services.core.ingest.frame_records import UnitCandidateRecord, UnitsRecord, UpRecord
 from services.core.ingest.up_evidence import CandidateFacts, UpDecision, decide, unit_capture_up
 
@@ -62,8 +61,6 @@ _TIE_REL = 0.02
 _BASE_DOMINANCE = 3.0
 _SNAP_RAD = 1e-3  # a direction this close to a source axis is that axis (1 mm per metre)
 _BASE_SNAP_RAD = np.radians(2.0)  # object bases are rougher than floors (the bunny's is 1.1 degrees off its axis)
-_N_BINS = 2000  # Fibonacci bins on the hemisphere (about 2.6 degrees apart)
-_NEIGHBOUR_COS = float(np.cos(np.radians(6.0)))  # bins this close smooth each other's votes
 _SAMPLE_FACES = 50_000  # faces (drawn by area) that vote for bins; refinement uses every face
 _SUPPRESS_COS = float(np.cos(np.radians(25.0)))
 _MAX_FAMILIES = 6
@@ -169,37 +166,6 @@ def snap_to_axis(u: np.ndarray, tol_rad: float = _SNAP_RAD) -> np.ndarray:
     return u
 
 
-def _fibonacci_hemisphere(n: int) -> np.ndarray:
-    i = np.arange(n) + 0.5
-    z = i / n  # upper hemisphere, z in (0, 1]
-    phi = np.pi * (1 + 5**0.5) * i
-    r = np.sqrt(1 - z * z)
-    return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
-
-
-_BINS = _fibonacci_hemisphere(_N_BINS)
-
-
-@functools.cache
-def _bin_tree() -> cKDTree:
-    """Nearest bin of a normal: a tree over the bins and their antipodes (index modulo the bin count)."""
-    return cKDTree(np.vstack([_BINS, -_BINS]))
-
-
-@functools.cache
-def _bin_neighbours() -> sparse.csr_matrix:
-    """Bins within 6 degrees of each other (antipodes folded): smooths the histogram into peaks. The pairs come
-    from the bin tree (unit vectors: a.b > c exactly when |a - b| < sqrt(2 - 2c)) and are then tested as defined;
-    the dense 2000 x 2000 product this replaces was 0.16 CPU-s of every generate's start-up."""
-    near = _bin_tree().query_ball_point(_BINS, np.sqrt(2.0 - 2.0 * _NEIGHBOUR_COS) * (1.0 + 1e-6))
-    rows = np.repeat(np.arange(_N_BINS), [len(n) for n in near])
-    cols = np.concatenate([np.asarray(n, dtype=np.int64) for n in near]) % _N_BINS
-    keep = np.abs((_BINS[rows] * _BINS[cols]).sum(axis=1)) > _NEIGHBOUR_COS
-    rows, cols = rows[keep], cols[keep]
-    order = np.lexsort((cols, rows))  # each row's columns ascending, as a dense matrix's conversion gives them
-    return sparse.csr_matrix((np.ones(len(order)), (rows[order], cols[order])), shape=(_N_BINS, _N_BINS))
-
-
 def _mean_shift(axis: np.ndarray, normals: np.ndarray, areas: np.ndarray) -> np.ndarray:
     for cone in (10.0, 10.0, 5.0, 5.0):
         d = normals @ axis
@@ -225,19 +191,19 @@ def plane_families(normals: np.ndarray, areas: np.ndarray) -> list[tuple[np.ndar
         votes_n, votes_w = normals[pick], np.full(_SAMPLE_FACES, total / _SAMPLE_FACES)
     else:
         votes_n, votes_w = normals, areas
-    _, nearest = _bin_tree().query(votes_n)
-    hist = np.bincount(nearest % _N_BINS, weights=votes_w, minlength=_N_BINS)
-    score = _bin_neighbours() @ hist
+    _, nearest = bin_tree().query(votes_n)
+    hist = np.bincount(nearest % N_BINS, weights=votes_w, minlength=N_BINS)
+    score = bin_neighbours() @ hist
     families: list[tuple[np.ndarray, float]] = []
     for _ in range(_MAX_FAMILIES):
         b = int(np.argmax(score))
         if score[b] < _MIN_FAMILY_SHARE * total:
             break
-        axis = _mean_shift(_BINS[b], normals, areas)
+        axis = _mean_shift(BINS[b], normals, areas)
         area = float(areas[np.abs(normals @ axis) > np.cos(np.radians(10.0))].sum())
         if all(abs(float(axis @ f)) < _SUPPRESS_COS for f, _ in families):
             families.append((axis, area))
-        score[np.abs(_BINS @ axis) > _SUPPRESS_COS] = 0.0
+        score[np.abs(BINS @ axis) > _SUPPRESS_COS] = 0.0
         score[b] = 0.0
     families.sort(key=lambda fa: -fa[1])
     return families

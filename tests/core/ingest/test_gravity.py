@@ -49,10 +49,10 @@ def test_plane_families_find_tilted_walls_and_floor() -> None:
 
 def test_the_histogram_smoothing_pairs_are_the_bins_within_six_degrees_antipodes_folded() -> None:
     """The neighbour matrix found through the bin tree is the defined one: |a.b| > cos 6 degrees over all pairs."""
-    from services.core.ingest import gravity
+    from services.core.ingest.direction_bins import BINS, bin_neighbours
 
-    found = gravity._bin_neighbours()
-    bins = gravity._BINS
+    found = bin_neighbours()
+    bins = BINS
     defined = np.abs(bins @ bins.T) > np.cos(np.radians(6.0))
     np.testing.assert_array_equal(found.toarray() != 0, defined)
     assert found.has_sorted_indices and set(found.data) == {1.0}

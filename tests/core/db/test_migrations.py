@@ -164,7 +164,7 @@ def _sqlite_schema(url: str) -> set[tuple[str, str, str, str | None]]:
 def test_a_new_sqlite_file_is_made_at_the_head_as_alembic_makes_it_without_loading_alembic(repo_root: Path,
                                                                                          tmp_path: Path) -> None:
     """The embedded default's new database comes from the models, stamped at the head, without importing Alembic
-    (0.17 CPU-s of every `generate`'s start-up): every table, index and the version table as Alembic's upgrade of an
+    (0.12-0.17 CPU-s of every `generate`'s start-up): every table, index and the version table as Alembic's upgrade of an
     empty file writes them, and at the revision the schema check wants."""
     assert SCHEMA_HEAD == _head()
     by_alembic = f"sqlite:///{tmp_path / 'alembic.db'}"

@@ -50,9 +50,10 @@ RESULTS = ROOT / "bench" / "results" / "gpu.json"
 
 
 def room_space(room: str, scenes: Path) -> tuple[Path, list[str]]:
-    """bench/room_cost.py's room (SPACE argument, generate flags), with its scenes folder at `scenes`."""
+    """bench/room_cost.py's room (SPACE argument, generate flags), with its scenes folder at `scenes` (a room kept in
+    the repository, bench/scans/, stays where it is: it travels with the tree)."""
     space, extra = ROOMS[room]
-    return scenes / space.relative_to(SCENES), extra
+    return (scenes / space.relative_to(SCENES) if space.is_relative_to(SCENES) else space), extra
 
 
 class GpuSampler:

@@ -115,8 +115,9 @@ def select(opened: set[Path], cubin: Path, tmp: Path) -> tuple[list[tuple[Path, 
     members[str(target / CYCLES_LIB / packed.name)] = packed
     system = sorted({p.name: p for p in opened if str(p).startswith(("/lib/", "/usr/lib/")) and ".so" in p.name
                      and not GLIBC.match(p.name) and "ld-linux" not in p.name}.values())
-    # The rooms bench/gpu_cost.py runs there (--scenes /root/od-scenes), and the oracle tests' scenes.
-    for path in [path for path, _ in ROOMS.values()] + [SCENES / name for name in TEST_SCENES]:
+    # The rooms bench/gpu_cost.py runs there (--scenes /root/od-scenes; bench/scans/ travels with the tree), and the
+    # oracle tests' scenes.
+    for path in [path for path, _ in ROOMS.values() if path.is_relative_to(SCENES)] + [SCENES / n for n in TEST_SCENES]:
         for sub in ([path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file())):
             members[f"/root/od-scenes/{sub.relative_to(SCENES)}"] = sub
     return sorted((path, name) for name, path in members.items()), system

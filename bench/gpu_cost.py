@@ -1,8 +1,8 @@
 """Benchmark: cost per view on a GPU machine, and the CPU path on 1, 8 and all cores of the same machine (issue 20).
 
 For each real room, on the machine it runs on:
-1. `omnidata generate ROOM` with its default worker settings (a worker per core) rendering on the GPU
-   (OMNIDATA_RENDER_DEVICE, default auto = OptiX, else CUDA), its views/s and wall per view end to end, the job's
+1. `omnidata generate ROOM` with its default worker settings (a worker per core, one in 8 of them rendering on the
+   GPU: OMNIDATA_RENDER_DEVICE, default auto = OptiX, else CUDA), its views/s and wall per view end to end, the job's
    own task rows, and the GPU's busy fraction: nvidia-smi's utilization.gpu (the share of each sample period in
    which a kernel ran) sampled every 100 ms, over the whole run and over the job's task window;
 2. the bare 1-sample render (Image + Depth + Normal) of the same views on the GPU, and on one CPU core;
@@ -16,7 +16,8 @@ is each run's rate over its task window (first task start to last task finish: i
 A 1-point run first (one worker) fills the caches a first run on a new machine pays once (numba's compiled
 kernels, the driver's OptiX module cache), so the figures are those of a machine in use.
 With --render-workers R,..., also the GPU main job with every worker of which only R render (`generate
---render-workers`: R device contexts, the other workers derive from the pass sets the renderers store).
+--render-workers`: R device contexts, the other workers derive from the pass sets the renderers store); R = the
+core count is every worker rendering (the default before one in 8).
 Run: python bench/gpu_cost.py [--rooms icl_livingroom] [--points 22] [--cores 1,8,16] [--gpu-workers 2,4,8]
      [--render-workers 1,2] [--out FILE]
 """
@@ -173,7 +174,22 @@ def gpu_info() -> dict:
                               capture_output=True, text=True, check=True).stdout.strip()
     except (OSError, subprocess.CalledProcessError) as e:
         info = f"no nvidia-smi: {e}"
-    return {"gpu": info, "cores": os.cpu_count()}
+    return {"gpu": info, "cores": os.cpu_count(), "cpu": room_cost.cpu_model(), **cpu_topology()}
+
+
+def cpu_topology() -> dict:
+    """Hardware threads per physical core (/proc/cpuinfo's siblings over cpu cores): with 2, a 16-core machine's
+    16 workers share 8 cores' caches and units, and each task slows down (what limits its scaling)."""
+    fields: dict[str, str] = {}
+    for line in Path("/proc/cpuinfo").read_text().splitlines() if Path("/proc/cpuinfo").exists() else []:
+        if not line.strip():
+            break  # the first processor's block is enough
+        key, _, value = line.partition(":")
+        fields[key.strip()] = value.strip()
+    try:
+        return {"threads_per_core": int(fields["siblings"]) // int(fields["cpu cores"])}
+    except (KeyError, ValueError, ZeroDivisionError):
+        return {}
 
 
 def spec_file(tmp: Path, name: str, points: int) -> Path:

@@ -3,7 +3,7 @@ libraries they load) into parts small enough to carry to a GPU machine that reac
 
 Such a machine (the device tool's) has another Python (3.12: no bpy wheel), no Blender, maybe no X11/GL libraries,
 and takes 64 MiB a call. What to pack is found, not guessed: `strace` records every file that `omnidata generate`
-opens on two real rooms (here, on the CPU); each small package that was touched goes whole, bpy and scipy file by
+opens on the real rooms (here, on the CPU); each small package that was touched goes whole, bpy and scipy file by
 file (numba, llvmlite and numpy whole: a new machine compiles the kernels), plus the Cycles kernels only a GPU
 loads: the OptiX modules and a cubin for the GPU's architecture. Blender's wheel ships none for Hopper, so the
 driver would JIT its compute_75 PTX on that machine (the compile that takes ptxas 15 minutes of one core here);
@@ -14,7 +14,9 @@ On the GPU machine, one call a part, each within the 30 s that machine stays war
   run "bash scripts/device_run.sh probe"  carry [".gpu/part_00"]       (starts the machine; what it has)
   run "bash scripts/device_run.sh stage"  carry [".gpu/part_0N"]       (each middle part)
   run "bash scripts/device_run.sh run"    carry [the last part]        (unpacks; oracle tests; bench/gpu_cost.py)
-Run: .venv/bin/python scripts/device_bundle.py [--sm 90 | --cubin PATH] [--out .gpu] [--part-mib 55]
+Measured (2026-11-28): 6 parts of 50 MiB (282 MiB packed), each staging call ~4 s of device time, the unpack 4 s;
+the cubin took ptxas 13.5 minutes here, the bundle 6.5 minutes (strace runs and xz).
+Run: .venv/bin/python scripts/device_bundle.py [--sm 90 | --cubin PATH] [--out .gpu] [--part-mib 50]
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ PREFIX = Path(sys.base_prefix)  # the interpreter the venv was made from (pyenv'
 SITE = Path(next(p for p in sys.path if p.endswith("site-packages") and p.startswith(str(ROOT))))
 BIG = {"bpy", "scipy"}  # packed file by file; numba compiles on a new machine: it, llvmlite and numpy go whole
 # The oracle tests' runner, and OpenEXR (they read a position EXR back; so does a ZIP-compressed position).
-EXTRA_PACKAGES = ("pytest", "_pytest", "pluggy", "iniconfig", "packaging", "pytest_timeout.py", "py.py",
+EXTRA_PACKAGES = ("pytest", "_pytest", "pluggy", "iniconfig", "packaging", "pygments", "pytest_timeout.py", "py.py",
                   "OpenEXR.cpython-311-x86_64-linux-gnu.so")
 STDLIB_SKIP = {"test", "idlelib", "tkinter", "turtledemo", "ensurepip", "lib2to3", "site-packages", "__pycache__",
                "config-3.11-x86_64-linux-gnu"}  # the last: the static libpython, for building extensions
@@ -161,7 +163,7 @@ def main() -> int:
     ap.add_argument("--sm", type=int, default=90, help="the GPU's compute capability (90: H100, H200)")
     ap.add_argument("--cubin", type=Path, help="a kernel_sm_XX.cubin already built (default: build or reuse --sm's)")
     ap.add_argument("--out", type=Path, default=ROOT / ".gpu")
-    ap.add_argument("--part-mib", type=int, default=56, help="part size: with the ~7 MiB tree, under 64 MiB a call")
+    ap.add_argument("--part-mib", type=int, default=50, help="part size: with the ~10 MiB tree, under 64 MiB a call")
     args = ap.parse_args()
     tools = ["strace", "zstd", "xz", "strip", "split"] + ([] if args.cubin else ["ptxas"])
     missing = [tool for tool in tools if shutil.which(tool) is None]

@@ -48,8 +48,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_spec_arguments(parser)
     parser.add_argument("--workers", type=int, metavar="W", help="local worker processes (default: CPU cores)")
     parser.add_argument("--render-workers", type=int, metavar="R",
-                        help="of the W workers, R render and the others only derive (default: all render; on a GPU, "
-                        "1 gives it one device context, fed by every core)")
+                        help="of the W workers, R render and the others only derive (default: all render; on a "
+                        "machine with an NVIDIA GPU, one in 8: each renderer holds a device context)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar (log lines only)")
 
 
@@ -107,6 +107,9 @@ def _checked_run(args: argparse.Namespace, spec: JobSpec, workers: int) -> int:
         given = "--render-workers" if args.render_workers is not None else "OMNIDATA_RENDER_WORKERS"
         raise CliError(f"{given} {settings.render_workers} is more than the {workers} worker(s) of this run "
                        "(--workers)")
+    if args.render_workers is None and settings.render_workers is not None and settings.render_workers < workers:
+        print(f"omnidata generate: {settings.render_workers} of the {workers} workers render, the others derive "
+              "(on a GPU by default; --render-workers to choose)", file=sys.stderr)
     # The workers import (Python, numba kernels, Blender: ~2 CPU-s each) while this process validates and plans;
     # held, they touch nothing until the job exists, and a refused input stops them at once.
     pool = worker_pool(out, settings, workers)

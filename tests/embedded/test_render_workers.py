@@ -15,7 +15,8 @@ import pytest
 from services.cli.main import main
 from services.core.domain.cues import CATALOG
 from services.core.settings import get_settings
-from services.embedded.job import worker_pool
+from services.embedded import job as embedded_job
+from services.embedded.job import embedded_settings, worker_pool
 from services.embedded.pool import TaskQueues
 from services.scheduler.transport import QueueTransport
 from tests.fixtures.cli import dataset_files, omnidata
@@ -124,3 +125,40 @@ def test_render_workers_out_of_range_are_refused_and_nothing_is_created(capsys, 
     err = capsys.readouterr().err
     assert code == 2 and "OMNIDATA_RENDER_WORKERS 4 is more than the 1 worker(s)" in err, err
     assert not out.exists()
+
+
+@pytest.fixture
+def gpu_machine(tmp_path, monkeypatch):
+    """A machine whose driver made /dev/nvidia0 (and the control file, which is no GPU), seen through a folder."""
+    dev = tmp_path / "dev"
+    dev.mkdir()
+    (dev / "nvidiactl").touch()
+    monkeypatch.setattr(embedded_job, "GPU_DEVICE_NODES", str(dev / "nvidia[0-9]*"))
+    monkeypatch.delenv("OMNIDATA_RENDER_WORKERS", raising=False)
+    monkeypatch.delenv("OMNIDATA_RENDER_DEVICE", raising=False)
+    return dev
+
+
+def test_on_a_gpu_one_worker_in_eight_renders_unless_told(gpu_machine, tmp_path, monkeypatch):
+    out = tmp_path / "out"
+    assert embedded_settings(out, 16).render_workers is None  # only the control file: no GPU
+    (gpu_machine / "nvidia0").touch()
+    assert [embedded_settings(out, w).render_workers for w in (1, 2, 8, 16, 24)] == [None, 1, 1, 2, 3]
+    pool = worker_pool(out, embedded_settings(out, 16), 16)  # not started: the roles it would give
+    assert [pool.role_of(i) for i in range(16)] == ["render"] * 2 + ["derive"] * 14
+    assert embedded_settings(out, 16, render_workers=5).render_workers == 5  # --render-workers
+    monkeypatch.setenv("OMNIDATA_RENDER_WORKERS", "16")  # every worker renders: no split
+    assert embedded_settings(out, 16).render_workers == 16 and not worker_pool(out, embedded_settings(out, 16), 16).queues.split
+    monkeypatch.delenv("OMNIDATA_RENDER_WORKERS")
+    monkeypatch.setenv("OMNIDATA_RENDER_DEVICE", "cpu")  # renders on the CPU whatever the machine has
+    assert embedded_settings(out, 16).render_workers is None
+
+
+def test_generate_says_how_many_workers_render_on_a_gpu(gpu_machine, capsys, tmp_path):
+    (gpu_machine / "nvidia0").touch()
+    empty = tmp_path / "empty.obj"
+    empty.write_text("# no faces\n")  # refused when loaded: the run stops before any render
+    code = main(["generate", str(empty), "--out", str(tmp_path / "out"), "--no-progress", "--workers", "2"])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert "omnidata generate: 1 of the 2 workers render, the others derive" in err, err

@@ -7,7 +7,6 @@ service's own operations (services.core.db.jobs.reopen_job / requeue_inflight).
 
 from __future__ import annotations
 
-import glob
 import hashlib
 import json
 import os
@@ -20,6 +19,7 @@ from pathlib import Path
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
+from services.core import gpu_devices
 from services.core.db.jobs import cancel_job, create_job, job_spaces, reopen_job, requeue_inflight
 from services.core.db.manifest import write_job_files
 from services.core.db.models import JOB_TERMINAL_STATES, Job, JobState, Space
@@ -47,7 +47,6 @@ TICK_CPU_SHARE = 0.05
 TICK_MAX_S = 1.0  # the slowest rate, so a finished job or a dead worker is still seen within a second
 SHORT_QUEUE_PER_WORKER = 2  # a worker's message brings a tick only when its queue is this short (or nearly)
 SECRET_SETTINGS = {"api_tokens", "secret_key", "aws_access_key_id", "aws_secret_access_key"}
-GPU_DEVICE_NODES = "/dev/nvidia[0-9]*"  # one per NVIDIA GPU, made by its driver
 # On a GPU, one renderer per 8 workers: on an H200 with 16 vCPUs (ICL, 132 views, bench/results/gpu.json), 2 of 16
 # rendering ran 10.6 views/s end to end against 7.4 with all 16 rendering (each paying its own context).
 WORKERS_PER_GPU_RENDERER = 8
@@ -70,9 +69,8 @@ def embedded_settings(out: Path, workers: int, render_workers: int | None = None
 def gpu_renderers(workers: int) -> int | None:
     """How many of W workers render on a machine with an NVIDIA GPU (None: no GPU, every worker renders). Each
     renderer opens its own device context, loads the kernels and uploads the scene (~1.5-4 s of a core on an
-    H200); the others derive. The GPU is seen by its device files: CUDA must not start in this process, whose
-    workers are forked."""
-    if workers < 2 or not glob.glob(GPU_DEVICE_NODES):
+    H200); the others derive."""
+    if workers < 2 or not gpu_devices.nvidia_gpus():
         return None
     return max(1, workers // WORKERS_PER_GPU_RENDERER)
 

@@ -13,9 +13,9 @@ from pathlib import Path
 import pytest
 
 from services.cli.main import main
+from services.core import gpu_devices
 from services.core.domain.cues import CATALOG
 from services.core.settings import get_settings
-from services.embedded import job as embedded_job
 from services.embedded.job import embedded_settings, worker_pool
 from services.embedded.pool import TaskQueues
 from services.scheduler.transport import QueueTransport
@@ -133,7 +133,7 @@ def gpu_machine(tmp_path, monkeypatch):
     dev = tmp_path / "dev"
     dev.mkdir()
     (dev / "nvidiactl").touch()
-    monkeypatch.setattr(embedded_job, "GPU_DEVICE_NODES", str(dev / "nvidia[0-9]*"))
+    monkeypatch.setattr(gpu_devices, "NVIDIA_DEVICE_NODES", str(dev / "nvidia[0-9]*"))
     monkeypatch.delenv("OMNIDATA_RENDER_WORKERS", raising=False)
     monkeypatch.delenv("OMNIDATA_RENDER_DEVICE", raising=False)
     return dev

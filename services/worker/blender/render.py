@@ -37,6 +37,7 @@ import numpy as np
 from mathutils import Matrix
 
 from services.core.domain.camera import blender_matrix_world
+from services.core.gpu_devices import nvidia_gpus
 from services.worker.blender.calls import in_blender
 from services.worker.blender.decode import (  # srgb_encode: the reference formula, imported from here before
     curvature_pair,
@@ -108,9 +109,12 @@ def configure_device(scene: bpy.types.Scene, device: str) -> str:
             log.info("Cycles renders on %s: %s", kind, ", ".join(d.name for d in gpus))
             return kind.lower()
     prefs.compute_device_type = "NONE"
-    level = logging.INFO if device == "auto" else logging.WARNING
-    log.log(level, "render device %r requested but no %s device found: rendering on the CPU", device,
-            "/".join(kinds))
+    # "auto" on a machine without a GPU is the expected CPU render; with one (whose presence also made `generate`
+    # give fewer workers the renders) it is a driver Cycles cannot use, and worth a warning.
+    present = nvidia_gpus()
+    level = logging.INFO if device == "auto" and not present else logging.WARNING
+    log.log(level, "render device %r requested but no %s device found%s: rendering on the CPU", device,
+            "/".join(kinds), f" (an NVIDIA GPU is present: {', '.join(present)})" if present else "")
     return "cpu"
 
 

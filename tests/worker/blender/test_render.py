@@ -373,6 +373,30 @@ def test_gpu_request_falls_back_to_cpu(caplog: pytest.LogCaptureFixture,
         scene.close()
 
 
+def test_auto_falling_back_beside_an_nvidia_device_file_is_a_warning(caplog: pytest.LogCaptureFixture, tmp_path: Path,
+                                                                     monkeypatch: pytest.MonkeyPatch,
+                                                                     rendered: dict[str, Rendered]) -> None:
+    """A machine whose driver made /dev/nvidia0 but where Cycles finds no device (`generate` gave fewer workers the
+    renders there): "auto" rendering on the CPU is a warning naming the device file, not the usual info line."""
+    from services.core import gpu_devices
+    from services.worker.blender.render import RenderOptions
+    from services.worker.blender.scene import BlenderScene
+
+    (tmp_path / "nvidia0").touch()
+    monkeypatch.setattr(gpu_devices, "NVIDIA_DEVICE_NODES", str(tmp_path / "nvidia[0-9]*"))
+    with caplog.at_level(logging.INFO, logger="services.worker.blender"):
+        scene = BlenderScene(trimesh.creation.box(), options=RenderOptions(device="auto"))
+    try:
+        if scene.device == "cpu":
+            [record] = [r for r in caplog.records if "rendering on the CPU" in r.getMessage()]
+            assert record.levelno == logging.WARNING
+            assert f"an NVIDIA GPU is present: {tmp_path / 'nvidia0'}" in record.getMessage()
+        else:  # a machine with a GPU Cycles can use
+            assert "Cycles renders on" in caplog.text
+    finally:
+        scene.close()
+
+
 @pytest.mark.parametrize("device", ["auto", "optix"])
 def test_worker_device_selection_renders_on_the_cpu_when_no_gpu_is_found(
         device: str, caplog: pytest.LogCaptureFixture, rendered: dict[str, Rendered]) -> None:

@@ -189,8 +189,9 @@ def _freeze_long_lived() -> None:
 
 def _warmed_up_and_released(conf: WorkerConfig, stop: Event, go: Event) -> bool:
     """Import Blender for the first render (while the parent validates and plans; not in a worker that only
-    derives), then wait for `go` (held: LocalPool.start(held=True)); False when the pool stopped, or the parent
-    died, first."""
+    derives) and make the kernels' compiler target (its first view would), then wait for `go` (held:
+    LocalPool.start(held=True)); False when the pool stopped, or the parent died, first."""
+    from services.worker import kernel_target
     from services.worker.blender.threads import import_bpy
 
     if stop.is_set():  # stopped before it began (a finished job resumed): no Blender to load
@@ -198,6 +199,7 @@ def _warmed_up_and_released(conf: WorkerConfig, stop: Event, go: Event) -> bool:
     if conf.role != "derive":
         import_bpy(conf.render_threads)
         importlib.import_module("services.worker.blender.scene")
+    kernel_target.load()
     while not go.wait(0.2):
         if stop.is_set() or os.getppid() != conf.parent_pid:
             return False

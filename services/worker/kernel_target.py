@@ -76,3 +76,14 @@ def _codegen_started() -> bool:
     name then): the target context is a cached property of numba's CPU target."""
     registry = sys.modules.get("numba.core.registry")
     return registry is not None and "_toplevel_target_context" in vars(registry.cpu_target)
+
+
+def load() -> None:
+    """Make numba's CPU target now (its typing and lowering registries, and its code generator for the level
+    `select` chose). The first kernel a process loads pays for it otherwise: ~0.4-0.6 CPU-s here, inside that
+    process's first view. A worker does it while it waits for its first task; a process that forks workers does it
+    once for all of them (it survives the fork; no thread is started)."""
+    from numba.core.registry import cpu_target
+
+    cpu_target.target_context.refresh()
+    cpu_target.typing_context.refresh()

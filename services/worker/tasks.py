@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 from celery import Celery, shared_task
 from celery import Task as CeleryTask
-from celery.signals import worker_process_init, worker_process_shutdown
+from celery.signals import worker_init, worker_process_init, worker_process_shutdown
 
 from services.core.celery_config import TASK_RENDER_CUE
 from services.core.settings import Settings, get_settings
@@ -119,6 +119,18 @@ def get_runtime(app: Celery | None = None) -> Runtime:
             name = app.conf.get("omnidata_worker_name") if app is not None else None
             _runtime = build_runtime(settings, queues=queues, name=name)
         return _runtime
+
+
+@worker_init.connect
+def _load_kernel_target(**_: object) -> None:
+    # In the worker's main process, before its pool forks: every child, recycled ones too, inherits numba's target
+    # instead of making it in its first view (kernel_target.load).
+    from services.worker import kernel_target
+
+    try:
+        kernel_target.load()
+    except Exception:  # each child makes it at its first kernel instead
+        log.exception("numba's target could not be made ahead of the pool")
 
 
 @worker_process_init.connect

@@ -89,3 +89,20 @@ def test_compile_kernels_every_level_runs_once_per_level_of_the_machine(monkeypa
     assert compile_kernels.run(compile_kernels.argparse.Namespace(every_level=True)) == 0
     assert envs == [{"NUMBA_CPU_NAME": "x86-64-v4", "NUMBA_CPU_FEATURES": ""},
                     {"NUMBA_CPU_NAME": "x86-64-v3", "NUMBA_CPU_FEATURES": ""}]
+
+
+def test_load_makes_the_target_for_the_level_before_any_kernel_and_starts_no_thread():
+    """What a held worker (and Celery's parent, before it forks) runs: numba's target made for the selected level,
+    with every registry a first kernel would load, the process still single-threaded (safe to fork)."""
+    levels = levels_for(platform.machine(), host_features())
+    made = probe("import json, threading, numba; from services.worker import kernel_target as k; "
+                 "before = k._codegen_started(); k.load(); from numba.core.registry import cpu_target as t; "
+                 "loaded = len(t.typing_context._registries); threads = threading.active_count(); "
+                 "numba.njit(lambda x: x + 1)(1); "
+                 "print(json.dumps([before, k._codegen_started(), threads, loaded, len(t.typing_context._registries), "
+                 "list(t.target_context.codegen().magic_tuple())]))")
+    before, after, threads, loaded, after_a_kernel, magic = made
+    assert (before, after, threads) == (False, True, 1)
+    assert loaded > 0 and loaded == after_a_kernel  # a first kernel found nothing left to load
+    if levels:
+        assert magic[1:] == [levels[0], ""]

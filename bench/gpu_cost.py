@@ -180,12 +180,7 @@ def gpu_info() -> dict:
 def cpu_topology() -> dict:
     """Hardware threads per physical core (/proc/cpuinfo's siblings over cpu cores): with 2, a 16-core machine's
     16 workers share 8 cores' caches and units, and each task slows down (what limits its scaling)."""
-    fields: dict[str, str] = {}
-    for line in Path("/proc/cpuinfo").read_text().splitlines() if Path("/proc/cpuinfo").exists() else []:
-        if not line.strip():
-            break  # the first processor's block is enough
-        key, _, value = line.partition(":")
-        fields[key.strip()] = value.strip()
+    fields = room_cost.cpuinfo()
     try:
         return {"threads_per_core": int(fields["siblings"]) // int(fields["cpu cores"])}
     except (KeyError, ValueError, ZeroDivisionError):

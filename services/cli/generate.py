@@ -109,7 +109,7 @@ def _checked_run(args: argparse.Namespace, spec: JobSpec, workers: int) -> int:
                        "(--workers)")
     if args.render_workers is None and settings.render_workers is not None and settings.render_workers < workers:
         print(f"omnidata generate: {settings.render_workers} of the {workers} workers render, the others derive "
-              "(on a GPU by default; --render-workers to choose)", file=sys.stderr)
+              "(OMNIDATA_RENDER_WORKERS, else one in 8 on a GPU; --render-workers chooses)", file=sys.stderr)
     # The workers import (Python, numba kernels, Blender: ~2 CPU-s each) while this process validates and plans;
     # held, they touch nothing until the job exists, and a refused input stops them at once.
     pool = worker_pool(out, settings, workers)

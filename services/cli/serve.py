@@ -20,7 +20,7 @@ def run(args: argparse.Namespace) -> int:
     """Start uvicorn on the app factory; returns when the server stops."""
     import uvicorn
 
-    from services.core.db.engine import migrate, require_schema
+    from services.core.db.engine import migrate, require_schema, wait_for_database
     from services.core.settings import load_settings
 
     if not 0 < args.port < 65536:
@@ -31,8 +31,8 @@ def run(args: argparse.Namespace) -> int:
     if not settings.api_tokens:
         print("omnidata serve: warning: OMNIDATA_API_TOKENS is empty, every request but /health will get 401")
     if args.migrate:
-        migrate(settings.database_url)
-    require_schema(settings.database_url)
+        wait_for_database(lambda: migrate(settings.database_url), settings.db_wait_s)
+    require_schema(settings.database_url, settings.db_wait_s)
     uvicorn.run(
         "services.api.app:app_from_env",
         factory=True,

@@ -75,14 +75,17 @@ def worker_argv(args: argparse.Namespace, queues: list[str]) -> list[str]:
 
 
 def _live_holder(settings: Settings, node: str) -> str | None:
-    from services.core.db.engine import make_engine, make_sessionmaker
+    from services.core.db.engine import make_engine, make_sessionmaker, wait_for_database
     from services.worker.heartbeat import live_holder
 
-    engine = make_engine(settings.database_url)
-    try:
-        return live_holder(make_sessionmaker(engine), node, within_s=WORKER_NAME_HELD_S)
-    finally:
-        engine.dispose()
+    def holder() -> str | None:
+        engine = make_engine(settings.database_url)
+        try:
+            return live_holder(make_sessionmaker(engine), node, within_s=WORKER_NAME_HELD_S)
+        finally:
+            engine.dispose()
+
+    return wait_for_database(holder, settings.db_wait_s)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -99,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
     os.environ["OMNIDATA_RENDER_THREADS"] = str(threads)  # Settings.render_threads of each child
     pin_numeric_threads()  # for the children too (numpy is not loaded yet in this process)
     settings = load_settings()
-    require_schema(settings.database_url)
+    require_schema(settings.database_url, settings.db_wait_s)
     node = node_name(args.hostname)
     holder = _live_holder(settings, node)
     if holder is not None:

@@ -41,6 +41,10 @@ class Settings(BaseSettings):
     env: Literal["development", "production"] = "development"
     data_dir: Path = Field(default_factory=lambda: Path.home() / ".omnidata")
     database_url: str = Field("", description="SQLAlchemy URL; default sqlite:///{data_dir}/omnidata.db")
+    db_wait_s: float = Field(
+        60.0, ge=0, description="a worker, scheduler or API starting while the database does not answer (a restart, "
+        "a failover) waits this long for it before it exits, s"
+    )
     broker_url: str = "redis://127.0.0.1:6379/0"
     storage_url: str = Field("", description="file:///abs/path or s3://bucket/prefix; default {data_dir}/objects")
     s3_endpoint_url: str | None = None

@@ -50,11 +50,27 @@ def test_services_refuse_an_unmigrated_database_until_omnidata_migrate(empty_pg_
     assert again.returncode == 0 and "at the head" in again.stdout
 
 
-def test_unreachable_database_is_one_line(tmp_path: Path) -> None:
+def test_unreachable_database_is_waited_for_then_one_line(tmp_path: Path) -> None:
+    """Nothing listens: the worker waits OMNIDATA_DB_WAIT_S (a Postgres restarting refuses connections too), saying
+    so once, then exits with one line."""
     res = omnidata("worker", OMNIDATA_DATABASE_URL="postgresql+psycopg://postgres@127.0.0.1:1/none",
-                   OMNIDATA_DATA_DIR=str(tmp_path))
+                   OMNIDATA_DATA_DIR=str(tmp_path), OMNIDATA_DB_WAIT_S="1")
+    lines = res.stderr.strip().splitlines()
     assert res.returncode == 2 and "Traceback" not in res.stderr
-    assert res.stderr.strip().startswith("omnidata worker: error: cannot reach the database (")
+    assert len(lines) == 2 and lines[0].startswith("waiting up to 1 s for the database ("), res.stderr
+    assert lines[1].startswith("omnidata worker: error: cannot reach the database (")
+
+
+@pytest.mark.parametrize("url, reason", [
+    ("postgresql+psycopg://no_such_role@127.0.0.1:5432/test", 'role "no_such_role" does not exist'),
+    ("postgresql+psycopg://postgres@127.0.0.1:5432/no_such_database", 'database "no_such_database" does not exist'),
+])
+def test_a_refusal_no_wait_fixes_is_one_line_at_once(url: str, reason: str, tmp_path: Path) -> None:
+    """A wrong user or database name is not waited for (the default wait is 60 s; the call's limit is 120 s)."""
+    res = omnidata("scheduler", OMNIDATA_DATABASE_URL=url, OMNIDATA_DATA_DIR=str(tmp_path), OMNIDATA_DB_WAIT_S="100")
+    lines = res.stderr.strip().splitlines()
+    assert res.returncode == 2 and len(lines) == 1, res.stderr
+    assert lines[0].startswith("omnidata scheduler: error: cannot reach the database (") and reason in lines[0]
 
 
 @pytest.mark.parametrize("value, expected", [

@@ -180,7 +180,8 @@ def test_chaos_soak(bare_cluster: Cluster, scenes_dir: Path, tmp_path: Path) -> 
         jobs = {j.id: (j.state, j.error) for j in s.scalars(select(Job).where(Job.id.in_(job_ids)))}
     assert all(state == "done" for state, _ in jobs.values()), f"{jobs}\n{cluster.logs()}"
     outputs = sum(sum(len(e["outputs"]) for e in assert_exactly_once(cluster, j)) for j in job_ids)
-    assert all(p.alive() for p in [scheduler, *workers]), cluster.logs()
+    dead = [f"{p.name} (exit {p.popen.returncode})" for p in [scheduler, *workers] if not p.alive()]
+    assert not dead, f"{dead}\n{cluster.logs()}"
 
     held = [t for _, ids in kills for t in ids]
     with cluster.sm() as s:

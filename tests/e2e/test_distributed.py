@@ -21,14 +21,16 @@ import numpy as np
 import pytest
 from PIL import Image
 from sqlalchemy import func, select
+from sqlalchemy.engine import make_url
 
 from services.core.db.compacted import compacted_tasks
 from services.core.db.counters import job_progress
 from services.core.db.models import Job, Task
 from services.core.domain.cues import CATALOG
 from tests.conftest import GeneratedRun
-from tests.e2e.conftest import REPO, SCHEDULER_APP, WORKER_APP, Cluster, Proc, restart_redis
+from tests.e2e.conftest import REPO, SCHEDULER_APP, WORKER_APP, Cluster, Proc, free_port, restart_redis
 from tests.fixtures.cli import WIDE
+from tests.fixtures.holding_proxy import HoldingProxy
 
 pytestmark = pytest.mark.slow
 
@@ -251,3 +253,28 @@ def test_postgres_connections_dropped_mid_job(cluster: Cluster, scenes_dir, tmp_
     wait_done(cluster, job_id, 180)
     assert_exactly_once(cluster, job_id)
     assert all(p.alive() for p in cluster.procs)
+
+
+
+def test_services_started_while_the_database_does_not_answer_wait_for_it_then_run_a_job(bare_cluster: Cluster,
+                                                                                         scenes_dir, tmp_path):
+    """A scheduler and a worker started while their database refuses connections (Postgres restarting, a failover)
+    wait for it (OMNIDATA_DB_WAIT_S) instead of exiting: they used to exit at once with `cannot reach the database`
+    (as a worker whose connection the chaos soak cut while it started would). Then they run a job."""
+    cluster = bare_cluster
+    port = free_port()  # nothing listens there until the proxy to the real database starts
+    db_url = make_url(cluster.pg_url).set(port=port).render_as_string(hide_password=False)
+    procs = [cluster.start_scheduler(OMNIDATA_DATABASE_URL=db_url),
+             cluster.start_worker("w0", OMNIDATA_DATABASE_URL=db_url)]
+    wait(lambda: all("waiting up to 60 s for the database (" in p.tail() for p in procs), 60,
+         "both to say they wait for the database", cluster)
+    time.sleep(2.0)
+    assert all(p.alive() for p in procs), cluster.logs()
+    proxy = HoldingProxy(f"tcp://127.0.0.1:{make_url(cluster.pg_url).port or 5432}", port=port)
+    try:
+        job_id = submit_direct(cluster, scenes_dir / "ycb_banana", write_spec(tmp_path, FAULTS))
+        wait_done(cluster, job_id, 180)
+        assert_exactly_once(cluster, job_id)
+        assert all(p.alive() for p in procs), cluster.logs()
+    finally:
+        proxy.close()

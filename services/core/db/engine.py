@@ -8,10 +8,13 @@ services.core.db.states.transition(), which adjusts the counters in the same tra
 from __future__ import annotations
 
 import os
+import re
+import sys
+import time
 import uuid
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from sqlalchemy import Engine, create_engine, event, text
 from sqlalchemy.engine import make_url
@@ -29,6 +32,7 @@ if TYPE_CHECKING:  # alembic is imported where used: the API and workers start w
 MIGRATIONS_DIR = Path(__file__).resolve().parents[3] / "migrations"
 SCHEMA_HEAD = "0006"  # the head revision of migrations/ (tests/core/db/test_migrations.py keeps them equal)
 SQLITE_BUSY_TIMEOUT_MS = 30_000
+T = TypeVar("T")
 # Alembic's own version table, as its upgrade creates it on SQLite
 _ALEMBIC_VERSION_DDL = ("CREATE TABLE alembic_version (\n\tversion_num VARCHAR(32) NOT NULL, \n\t"
                         "CONSTRAINT alembic_version_pkc PRIMARY KEY (version_num)\n)")
@@ -129,6 +133,13 @@ class DatabaseUnreachable(ConfigurationError):
     """The database did not answer at start-up; the message names the driver's reason."""
 
 
+# Refusals no wait fixes: a wrong password or user, no such database. At connect time psycopg gives no SQLSTATE
+# (28xxx, 3D000), only the server's FATAL line.
+_PERMANENT_SQLSTATE_CLASSES = ("28", "3D")
+_PERMANENT_REFUSAL = re.compile(r"FATAL:\s+(.*authentication failed|role .* does not exist|database .* does not exist|"
+                                r"no pg_hba\.conf entry)")
+
+
 def _scripts() -> ScriptDirectory:
     from alembic.script import ScriptDirectory
 
@@ -162,21 +173,46 @@ def schema_problem(engine: Engine, heads: Sequence[str] | None = None) -> str | 
     return f"the database schema is at revision {', '.join(current)}, this code needs {', '.join(heads)}: {fix}"
 
 
-def require_schema(url: str) -> None:
+def require_schema(url: str, wait_s: float = 0.0) -> None:
     """Raise SchemaNotCurrent (one line naming the fix) unless the database at `url` is at the code's head.
 
-    DatabaseUnreachable when it does not answer.
+    DatabaseUnreachable when it does not answer, after waiting up to `wait_s` for it (wait_for_database).
     """
-    engine = make_engine(url, poolclass=NullPool)
-    try:
-        problem = schema_problem(engine)
-    except OperationalError as e:
-        reason = str(e.orig or e).strip().splitlines()[0]
-        raise DatabaseUnreachable(f"cannot reach the database ({reason}): check OMNIDATA_DATABASE_URL") from None
-    finally:
-        engine.dispose()
+    def check() -> str | None:
+        engine = make_engine(url, poolclass=NullPool)
+        try:
+            return schema_problem(engine)
+        finally:
+            engine.dispose()
+
+    problem = wait_for_database(check, wait_s)
     if problem:
         raise SchemaNotCurrent(problem)
+
+
+def wait_for_database(call: Callable[[], T], wait_s: float) -> T:
+    """call() (which opens its own connection), tried again while the database does not answer for up to `wait_s`
+    seconds: a service starting during a Postgres restart or failover, or whose connection an operator cut,
+    waits instead of exiting. Refusals that waiting cannot fix (a wrong password or user, no such database)
+    and the end of the wait raise DatabaseUnreachable naming the driver's reason."""
+    deadline = time.monotonic() + wait_s
+    delay = 0.1
+    told = False
+    while True:
+        try:
+            return call()
+        except OperationalError as e:
+            reason = str(e.orig or e).strip().splitlines()[0]
+            sqlstate = str(getattr(e.orig, "sqlstate", None) or "")
+            permanent = sqlstate[:2] in _PERMANENT_SQLSTATE_CLASSES or _PERMANENT_REFUSAL.search(reason) is not None
+            if permanent or time.monotonic() + delay > deadline:
+                raise DatabaseUnreachable(
+                    f"cannot reach the database ({reason}): check OMNIDATA_DATABASE_URL") from None
+            if not told:  # one line, not one per try
+                print(f"waiting up to {wait_s:g} s for the database ({reason})", file=sys.stderr, flush=True)
+                told = True
+            time.sleep(delay)
+            delay = min(2 * delay, 2.0)
 
 
 def downgrade(url: str, revision: str = "base") -> None:

@@ -35,6 +35,7 @@ from services.core.ingest.loading import load_space  # noqa: E402
 from services.core.ingest.registry import Source  # noqa: E402
 from services.core.settings import Settings  # noqa: E402
 from services.core.storage import LocalStore  # noqa: E402
+from services.embedded.ctrl_c import latched_sigint  # noqa: E402
 from services.embedded.curvature_ahead import curvature_ahead  # noqa: E402
 from services.embedded.job import STATE_DIR, drive, embedded_settings, find_spaces, prepare_job, worker_pool  # noqa: E402
 from services.embedded.pool import LocalPool, cpu_count  # noqa: E402
@@ -115,7 +116,8 @@ def _checked_run(args: argparse.Namespace, spec: JobSpec, workers: int) -> int:
     pool = worker_pool(out, settings, workers)
     pool.start(held=True)
     try:
-        return _run(args, spec, sources, out, state_db, settings, workers, pool)
+        with latched_sigint():  # a Ctrl-C while the job is prepared is not lost either (drive's loop raises it)
+            return _run(args, spec, sources, out, state_db, settings, workers, pool)
     finally:
         pool.stop()
 

@@ -26,9 +26,10 @@ def _on_sigint(signum: int, frame: FrameType | None) -> None:
 @contextmanager
 def latched_sigint() -> Iterator[None]:
     """SIGINT raises KeyboardInterrupt and is remembered until the block ends (main thread only: elsewhere no
-    handler can be installed, and Python's own stays)."""
+    handler can be installed, and Python's own stays). Inside an outer block this one changes nothing: what the
+    outer one remembered stays remembered."""
     global _interrupted
-    if threading.current_thread() is not threading.main_thread():
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is _on_sigint:
         yield
         return
     previous = signal.signal(signal.SIGINT, _on_sigint)

@@ -54,3 +54,17 @@ def test_the_generate_loop_stops_on_a_dropped_ctrl_c(tmp_path, monkeypatch: pyte
     monkeypatch.setattr(ctrl_c, "_interrupted", True)  # as a finalizer's dropped KeyboardInterrupt leaves it
     with pytest.raises(KeyboardInterrupt):
         _run_fake(tmp_path, messages=[], done_at=60.0)
+
+
+def test_an_inner_latch_keeps_what_the_outer_one_remembered(monkeypatch: pytest.MonkeyPatch) -> None:
+    """generate latches while it prepares the job, and drive again around its loop: a Ctrl-C dropped while the job
+    was prepared still stops the loop."""
+    monkeypatch.setattr(sys, "unraisablehook", lambda u: None)
+    with latched_sigint():
+        _sigint_inside_a_finalizer()
+        with latched_sigint():
+            with pytest.raises(KeyboardInterrupt):
+                raise_if_interrupted()
+        with pytest.raises(KeyboardInterrupt):
+            raise_if_interrupted()
+    raise_if_interrupted()

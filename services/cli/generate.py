@@ -116,7 +116,7 @@ def _checked_run(args: argparse.Namespace, spec: JobSpec, workers: int) -> int:
     pool = worker_pool(out, settings, workers)
     pool.start(held=True)
     try:
-        with latched_sigint():  # a Ctrl-C while the job is prepared is not lost either (drive's loop raises it)
+        with latched_sigint():  # a Ctrl-C dropped by a finalizer, while preparing or driving, stops drive's loop
             return _run(args, spec, sources, out, state_db, settings, workers, pool)
     finally:
         pool.stop()

@@ -33,7 +33,8 @@ def run(args: argparse.Namespace) -> int:
     settings = load_settings()
     if settings.is_sqlite:
         migrate(settings.database_url)  # embedded: nobody else runs the migrations
-    require_schema(settings.database_url, settings.db_wait_s)  # before logging is set up: a refusal is one line, not Alembic's chatter
+    # before logging is set up: a refusal is one line, not Alembic's chatter
+    require_schema(settings.database_url, settings.db_wait_s)
     logging.basicConfig(
         level=getattr(logging, args.log_level), stream=sys.stderr,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",

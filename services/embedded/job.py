@@ -30,7 +30,7 @@ from services.core.ingest.loading import LoadedSpace
 from services.core.ingest.registry import Source, legacy_source_checksum, register_space
 from services.core.settings import Settings, load_settings
 from services.core.storage import ObjectStore
-from services.embedded.ctrl_c import latched_sigint, raise_if_interrupted
+from services.embedded.ctrl_c import raise_if_interrupted
 from services.embedded.pool import STATE_DIR, LocalPool, WorkerConfig, cpu_count
 from services.embedded.report import Progress, build_report, print_report
 from services.scheduler.loop import Scheduler, loaded_space_key
@@ -179,7 +179,7 @@ def run_until_final(sessions: sessionmaker[Session], sched: Scheduler, pool: Loc
     plan = True
     recycling = 0  # workers that said they exit (memory or task limit), not yet replaced
     while True:
-        raise_if_interrupted()  # a Ctrl-C a finalizer dropped (services.embedded.ctrl_c)
+        raise_if_interrupted()  # a Ctrl-C a finalizer dropped (generate latches SIGINT: services.embedded.ctrl_c)
         now = time.monotonic()
         if now >= next_tick and (changed or now >= quiet_until):
             cpu0 = time.process_time()
@@ -260,12 +260,11 @@ def drive(sessions: sessionmaker[Session], store: ObjectStore, settings: Setting
                       cache_dir=cache_dir, loaded_spaces=loaded_spaces)
     bar = Progress(progress)
     try:
-        with latched_sigint():
-            if pool.procs:
-                pool.release()
-            else:
-                pool.start()
-            run_until_final(sessions, sched, pool, job_id, bar)
+        if pool.procs:
+            pool.release()
+        else:
+            pool.start()
+        run_until_final(sessions, sched, pool, job_id, bar)
     except KeyboardInterrupt:
         bar.close()
         print("omnidata generate: interrupted; stopping workers (run the same command again to resume)",

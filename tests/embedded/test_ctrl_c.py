@@ -57,8 +57,7 @@ def test_the_generate_loop_stops_on_a_dropped_ctrl_c(tmp_path, monkeypatch: pyte
 
 
 def test_an_inner_latch_keeps_what_the_outer_one_remembered(monkeypatch: pytest.MonkeyPatch) -> None:
-    """generate latches while it prepares the job, and drive again around its loop: a Ctrl-C dropped while the job
-    was prepared still stops the loop."""
+    """A block inside a latched one (latched_sigint composes) does not forget a Ctrl-C the outer one caught."""
     monkeypatch.setattr(sys, "unraisablehook", lambda u: None)
     with latched_sigint():
         _sigint_inside_a_finalizer()

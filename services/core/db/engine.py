@@ -135,7 +135,6 @@ class DatabaseUnreachable(ConfigurationError):
 
 # Refusals no wait fixes: a wrong password or user, no such database. At connect time psycopg gives no SQLSTATE
 # (28xxx, 3D000), only the server's FATAL line.
-_PERMANENT_SQLSTATE_CLASSES = ("28", "3D")
 _PERMANENT_REFUSAL = re.compile(r"FATAL:\s+(.*authentication failed|role .* does not exist|database .* does not exist|"
                                 r"no pg_hba\.conf entry)")
 
@@ -203,9 +202,7 @@ def wait_for_database(call: Callable[[], T], wait_s: float) -> T:
             return call()
         except OperationalError as e:
             reason = str(e.orig or e).strip().splitlines()[0]
-            sqlstate = str(getattr(e.orig, "sqlstate", None) or "")
-            permanent = sqlstate[:2] in _PERMANENT_SQLSTATE_CLASSES or _PERMANENT_REFUSAL.search(reason) is not None
-            if permanent or time.monotonic() + delay > deadline:
+            if _PERMANENT_REFUSAL.search(reason) or time.monotonic() + delay > deadline:
                 raise DatabaseUnreachable(
                     f"cannot reach the database ({reason}): check OMNIDATA_DATABASE_URL") from None
             if not told:  # one line, not one per try

@@ -44,6 +44,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import room_cost  # noqa: E402  (bench/ is no package)
 from room_cost import ROOMS, SCENES, floor, unix  # noqa: E402
 
+from services.core.db.view_outputs import unpack  # noqa: E402
 from tests.fixtures.segment_agreement import adjusted_rand_index  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -106,10 +107,18 @@ def busy(samples: list[tuple[float, float, float]], start: float, end: float) ->
 
 
 def task_window(out: Path) -> tuple[float, float]:
-    """Unix times of the job's first task start and last task finish (its task rows, UTC)."""
+    """Unix times of the job's first task start and last task finish: its task rows (UTC), and the views a long run
+    compacted (services.scheduler.compaction drops their start times: a packed task started its duration before it
+    finished). Without the packed views, a long run's window would start late and its views/s read high."""
     with sqlite3.connect(out / ".omnidata" / "state.db") as db:
         first, last = db.execute("SELECT MIN(started_at), MAX(finished_at) FROM task WHERE state = 'done'").fetchone()
-    return unix(first), unix(last)
+        packed = [t for (blob,) in db.execute("SELECT outputs FROM view_output") for t in unpack(blob, lambda c: "")
+                  if t.finished_at is not None]
+    starts = [unix(first)] if first else []
+    ends = [unix(last)] if last else []
+    starts += [t.finished_at.timestamp() - (t.duration_s or 0.0) for t in packed]
+    ends += [t.finished_at.timestamp() for t in packed]
+    return min(starts), max(ends)
 
 
 def generate(space: Path, extra: list[str], cores: str, out: Path, spec: Path, device: str,

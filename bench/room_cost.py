@@ -5,7 +5,9 @@ interleaved:
 1. `omnidata generate ROOM --workers 1` at 512x512 with every default cue: wall time per view end to end
    (start-up, planning, space loading, render, derivations, orchestration), and the job's own task rows
    (sum of `duration_s` per cue / views) from its SQLite state, and per view its passes task and its derived
-   tasks together (first view, which carries the worker's one-off set-up, and the median view);
+   tasks together (first view, which carries the worker's one-off set-up, and the median view). A long run's
+   finished views are compacted into one row each (services.scheduler.compaction): their durations are read
+   from those rows; its timeline (queue and start times, which compaction drops) is then left out;
 2. in a fresh process on the same core, the bare 1-sample Cycles render (Image + Depth + Normal, no AOVs, nothing
    read back) of the very views that job rendered (its stored plan): wall seconds per view.
 Each repeat runs 1 then 2, so a neighbour's load moves both; the ratio is taken per repeat and reported as the
@@ -17,9 +19,10 @@ of the views a longer job adds (the slope, start-ups left out: what a long job o
 A 3-view run of the same room on the same core (unless --no-startup) splits generate's CPU into what a run pays
 whatever its size (start-up: imports, space loads, curvature, planning) and the CPU of one more view (the slope),
 set against the floor's. `claims` counts task claims (a view batch claims a view's derived tasks at once).
-Figures go to bench/results/render.json under "room_cost" (the previous run's figures kept as
-"room_cost_before"; the rest of the file, written by bench/render.py, is left as it is).
-Run: .venv/bin/python bench/room_cost.py [--points 14] [--max-views 3] [--repeats 2] [--core 1]
+Figures go to bench/results/render.json under "room_cost", or --key (the previous run's figures kept as
+"<key>_before"; the rest of the file, written by bench/render.py, is left as it is). A long job, where start-up
+is spread over a thousand views and more: --points 22 --max-views 60 --no-startup --key room_cost_long.
+Run: .venv/bin/python bench/room_cost.py [--points 14] [--max-views 3] [--repeats 2] [--core 1] [--key K]
 """
 
 from __future__ import annotations
@@ -36,10 +39,15 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from services.core.db.view_outputs import unpack  # noqa: E402
+
 RESULTS = ROOT / "bench" / "results" / "render.json"
 SCENES = ROOT.parent / "shared" / "scenes"
 SCANS = ROOT / "bench" / "scans"
@@ -138,27 +146,55 @@ def generate(space: Path, extra: list[str], cores: str, out: Path, spec: Path, w
         raise RuntimeError(f"generate {space.name} on {device} failed ({run.returncode}): {run.stderr[-2000:]}")
     views = len((out / "manifest.jsonl").read_text().splitlines())
     with sqlite3.connect(out / ".omnidata" / "state.db") as db:
-        rows = db.execute("SELECT cue, SUM(duration_s), COUNT(*) FROM task WHERE state = 'done' GROUP BY cue")
-        per_cue = {cue: round(total / views, 4) for cue, total, _ in rows}
         # a view batch's tasks share their claim's started_at: claims = distinct (worker, started_at)
         tasks, claims = db.execute("SELECT COUNT(*), COUNT(DISTINCT worker_id || started_at) FROM task").fetchone()
-        steps = timeline(db, started, started + wall)
-        # Per view, in the order they started: the passes task, and the view's derived tasks together. The first
-        # view's carry what a worker pays once (the space's scene, curvature, first kernel loads); the median is a
-        # view in the steady state.
-        renders = [d for (d,) in db.execute("SELECT duration_s FROM task WHERE state = 'done' AND cue = 'passes' "
-                                            "ORDER BY started_at")]
-        derivations = [d for (d,) in db.execute(
-            "SELECT SUM(duration_s) FROM task WHERE state = 'done' AND cue != 'passes' "
-            "GROUP BY space_id, point_idx, view_idx ORDER BY MIN(started_at)")]
+        done = view_durations(db)
+        # A long run compacts its finished views (services.scheduler.compaction): their rows, queue and start times
+        # are gone, so the timeline reads only from a run that compacted nothing.
+        steps = timeline(db, started, started + wall) if not done.compacted else None
+    # Per view, in the order they ran: the passes task, and the view's derived tasks together. The first view's
+    # carry what a worker pays once (the space's scene, curvature, first kernel loads); the median is a view in
+    # the steady state.
+    renders = [d.get("passes", 0.0) for d in done.per_view]
+    derivations = [sum(s for cue, s in d.items() if cue != "passes") for d in done.per_view]
+    per_cue: dict[str, float] = {}
+    for d in done.per_view:
+        for cue, s in d.items():
+            per_cue[cue] = per_cue.get(cue, 0.0) + s
+    per_cue = {cue: round(total / views, 4) for cue, total in per_cue.items()}
     return {"cores": cores, "device": device, "views": views, "wall_s": round(wall, 2),
             "wall_s_per_view": round(wall / views, 4), "views_per_s": round(views / wall, 3), "cpu_s": round(cpu, 2),
             "cpu_s_per_view": round(cpu / views, 4), "load_before": before, "load_after": load(), "tasks": tasks,
-            "claims": claims, "task_s_per_view": dict(sorted(per_cue.items(), key=lambda kv: -kv[1])),
+            "claims": claims, "compacted_views": done.compacted,
+            "task_s_per_view": dict(sorted(per_cue.items(), key=lambda kv: -kv[1])),
             "task_s_per_view_total": round(sum(per_cue.values()), 4),
             "passes_task_s": {"first": round(renders[0], 4), "median": round(median(renders), 4)},
             "derivations_s_per_view": {"first": round(derivations[0], 4), "median": round(median(derivations), 4)},
             "timeline_s": steps}
+
+
+@dataclass
+class ViewDurations:
+    """Each view's task seconds by cue, in the order the views ran, and how many of them were compacted."""
+
+    per_view: list[dict[str, float]]
+    compacted: int
+
+
+def view_durations(db: sqlite3.Connection) -> ViewDurations:
+    """Task seconds of every view of a run's state: its done task rows, and the views compaction packed into one
+    `view_output` row each (services.core.db.view_outputs; those ran first, so they come first, by finish time)."""
+    packed = []
+    for (blob,) in db.execute("SELECT outputs FROM view_output"):
+        tasks = unpack(blob, lambda cue: "")
+        packed.append((min(t.finished_at for t in tasks if t.finished_at),
+                       {t.cue: t.duration_s or 0.0 for t in tasks}))
+    rows: dict[tuple, dict[str, float]] = {}
+    for space, point, view, cue, seconds in db.execute(
+            "SELECT space_id, point_idx, view_idx, cue, duration_s FROM task WHERE state = 'done' "
+            "ORDER BY started_at"):
+        rows.setdefault((space, point, view), {})[cue] = seconds or 0.0
+    return ViewDurations([d for _, d in sorted(packed, key=lambda p: p[0])] + list(rows.values()), len(packed))
 
 
 def unix(stamp: str) -> float:
@@ -268,6 +304,8 @@ def main() -> int:
     ap.add_argument("--no-startup", dest="startup", action="store_false",
                     help="skip the 3-view run that splits the CPU into start-up and per-view cost")
     ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument("--key", default="room_cost",
+                    help='the entry of --out to write (e.g. room_cost_long for a run of thousands of views)')
     args = ap.parse_args()
     # The project's bytecode, written now: with PYTHONDONTWRITEBYTECODE set (as on CI machines) every generate would
     # otherwise compile its modules again (~0.3 CPU-s of start-up) where an installed package has them compiled.
@@ -302,18 +340,18 @@ def main() -> int:
             result["rooms"][room] = {"summary": summarise(repeats), "repeats": repeats}
             print(room, json.dumps(result["rooms"][room]["summary"]), flush=True)
             result["wall_s"] = round(time.perf_counter() - t0, 1)
-            write_result(args.out, result, first=len(result["rooms"]) == 1)  # a later room's failure keeps this one
+            write_result(args.out, args.key, result, first=len(result["rooms"]) == 1)  # a later failure keeps it
     return 0
 
 
-def write_result(out: Path, result: dict, *, first: bool) -> None:
-    """This run's figures as "room_cost"; on its first write the previous run's move to "room_cost_before"."""
+def write_result(out: Path, key: str, result: dict, *, first: bool) -> None:
+    """This run's figures as `key`; on its first write the previous run's move to "<key>_before"."""
     doc = json.loads(out.read_text()) if out.exists() else {}
-    if first and "room_cost" in doc:
-        if "room_cost_before" in doc:  # earlier rounds' figures are kept, oldest first
-            doc.setdefault("room_cost_history", []).append(doc["room_cost_before"])
-        doc["room_cost_before"] = doc["room_cost"]
-    doc["room_cost"] = result
+    if first and key in doc:
+        if f"{key}_before" in doc:  # earlier rounds' figures are kept, oldest first
+            doc.setdefault(f"{key}_history", []).append(doc[f"{key}_before"])
+        doc[f"{key}_before"] = doc[key]
+    doc[key] = result
     out.write_text(json.dumps(doc, indent=1) + "\n")
 
 

@@ -42,9 +42,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import room_cost  # noqa: E402  (bench/ is no package)
-from room_cost import ROOMS, SCENES, floor, unix  # noqa: E402
+from room_cost import ROOMS, SCENES, floor, packed_views, unix  # noqa: E402
 
-from services.core.db.view_outputs import unpack  # noqa: E402
 from tests.fixtures.segment_agreement import adjusted_rand_index  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -112,8 +111,7 @@ def task_window(out: Path) -> tuple[float, float]:
     finished). Without the packed views, a long run's window would start late and its views/s read high."""
     with sqlite3.connect(out / ".omnidata" / "state.db") as db:
         first, last = db.execute("SELECT MIN(started_at), MAX(finished_at) FROM task WHERE state = 'done'").fetchone()
-        packed = [t for (blob,) in db.execute("SELECT outputs FROM view_output") for t in unpack(blob, lambda c: "")
-                  if t.finished_at is not None]
+        packed = [t for tasks in packed_views(db) for t in tasks if t.finished_at is not None]
     starts = [unix(first)] if first else []
     ends = [unix(last)] if last else []
     starts += [t.finished_at.timestamp() - (t.duration_s or 0.0) for t in packed]

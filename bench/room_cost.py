@@ -46,7 +46,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from services.core.db.view_outputs import unpack  # noqa: E402
+from services.core.db.view_outputs import DoneTask, unpack  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results" / "render.json"
 SCENES = ROOT.parent / "shared" / "scenes"
@@ -181,14 +181,16 @@ class ViewDurations:
     compacted: int
 
 
+def packed_views(db: sqlite3.Connection) -> list[list[DoneTask]]:
+    """The done tasks of each view a long run compacted into one `view_output` row (services.core.db.view_outputs)."""
+    return [unpack(blob, lambda cue: "") for (blob,) in db.execute("SELECT outputs FROM view_output")]
+
+
 def view_durations(db: sqlite3.Connection) -> ViewDurations:
     """Task seconds of every view of a run's state: its done task rows, and the views compaction packed into one
     `view_output` row each (services.core.db.view_outputs; those ran first, so they come first, by finish time)."""
-    packed = []
-    for (blob,) in db.execute("SELECT outputs FROM view_output"):
-        tasks = unpack(blob, lambda cue: "")
-        packed.append((min(t.finished_at for t in tasks if t.finished_at),
-                       {t.cue: t.duration_s or 0.0 for t in tasks}))
+    packed = [(min(t.finished_at for t in tasks if t.finished_at), {t.cue: t.duration_s or 0.0 for t in tasks})
+              for tasks in packed_views(db)]
     rows: dict[tuple, dict[str, float]] = {}
     for space, point, view, cue, seconds in db.execute(
             "SELECT space_id, point_idx, view_idx, cue, duration_s FROM task WHERE state = 'done' "

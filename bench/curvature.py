@@ -1,8 +1,11 @@
 """Benchmark: the per-vertex curvature a worker computes once per space (issue 20: part of every run's start-up), on
 the real rooms at the default radius, one core: the grid neighbour search against the k-d tree search it replaced
 on rooms (the same estimator with services.worker.curvature.GRID_MAX_BALL = 0, which sends every mesh to the tree),
-interleaved, CPU seconds (medians of --repeats), and whether the two give the same array bit for bit.
-Writes bench/results/curvature.json. Run: .venv/bin/python bench/curvature.py [--repeats 5]
+interleaved, CPU seconds (medians of --repeats), and whether the two give the same array bit for bit. With
+--against REV, also the estimator as it was at git revision REV (its module loaded from `git show`, compiled before
+the timing), interleaved with today's: an A/B of a change on the same host and moment.
+Writes bench/results/curvature.json (the previous run's figures kept under "before").
+Run: .venv/bin/python bench/curvature.py [--repeats 5] [--against REV]
 """
 
 from __future__ import annotations
@@ -13,21 +16,27 @@ if hasattr(os, "sched_setaffinity"):  # one core, before numpy/numba start their
     os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[-1]})
 
 import argparse  # noqa: E402
+import importlib.util  # noqa: E402
 import json  # noqa: E402
+import subprocess  # noqa: E402
 import sys  # noqa: E402
+import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
+from types import ModuleType  # noqa: E402
 
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.room_cost import cpu_model, load  # noqa: E402
 from bench.rooms import ROOMS  # noqa: E402
 from services.core.domain.jobspec import CueParams  # noqa: E402
 from services.core.ingest.loading import load_space  # noqa: E402
 from services.worker import curvature  # noqa: E402
 
-RESULTS = Path(__file__).resolve().parent / "results" / "curvature.json"
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "bench" / "results" / "curvature.json"
 
 
 def timed(mesh: object, radius: float, grid_max_ball: float) -> tuple[float, np.ndarray]:
@@ -41,28 +50,59 @@ def timed(mesh: object, radius: float, grid_max_ball: float) -> tuple[float, np.
         curvature.GRID_MAX_BALL = saved
 
 
+def module_at(rev: str, folder: Path) -> ModuleType:
+    """services/worker/curvature.py as it was at git revision `rev`, as a module of its own (kernels not cached)."""
+    source = subprocess.run(["git", "show", f"{rev}:services/worker/curvature.py"], cwd=ROOT, capture_output=True,
+                            text=True, check=True).stdout
+    path = folder / f"curvature_{rev}.py"
+    path.write_text(source.replace("cache=True", "cache=False"))
+    spec = importlib.util.spec_from_file_location(path.stem, path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--against", default="", help="a git revision whose estimator is timed beside today's")
     args = ap.parse_args()
     radius = CueParams().curvature_radius_m
-    result: dict = {"radius_m": radius, "clock": "process CPU seconds, one core, medians", "rooms": {}}
-    for room, (path, frame) in ROOMS.items():
-        mesh = load_space(path, **frame).mesh
-        timed(mesh, radius, curvature.GRID_MAX_BALL)  # numba kernels loaded (or compiled) outside the timing
-        timed(mesh, radius, 0)
-        grid, tree = [], []
-        for _ in range(args.repeats):
-            g, a = timed(mesh, radius, curvature.GRID_MAX_BALL)
-            t, b = timed(mesh, radius, 0)
-            grid.append(g)
-            tree.append(t)
-        row = {"vertices": len(mesh.vertices), "faces": len(mesh.faces), "grid_s": round(float(np.median(grid)), 3),
-               "kd_tree_s": round(float(np.median(tree)), 3), "bit_identical": bool(np.array_equal(a, b))}
-        row["speedup"] = round(row["kd_tree_s"] / row["grid_s"], 2)
-        result["rooms"][room] = row
-        print(room, json.dumps(row), flush=True)
+    result: dict = {"radius_m": radius, "clock": "process CPU seconds, one core, medians",
+                    "machine": f"{os.cpu_count()} cores ({cpu_model()}), shared", "load_before": load(), "rooms": {}}
+    with tempfile.TemporaryDirectory(prefix="omnidata-curvature-") as tmp:
+        old = module_at(args.against, Path(tmp)) if args.against else None
+        for room, (path, frame) in ROOMS.items():
+            mesh = load_space(path, **frame).mesh
+            timed(mesh, radius, curvature.GRID_MAX_BALL)  # numba kernels loaded (or compiled) outside the timing
+            timed(mesh, radius, 0)
+            if old is not None:
+                old.principal_curvatures(mesh, radius)
+            grid, tree, before = [], [], []
+            for _ in range(args.repeats):
+                g, a = timed(mesh, radius, curvature.GRID_MAX_BALL)
+                t, b = timed(mesh, radius, 0)
+                grid.append(g)
+                tree.append(t)
+                if old is not None:
+                    t0 = time.process_time()
+                    c = old.principal_curvatures(mesh, radius)
+                    before.append(time.process_time() - t0)
+            row = {"vertices": len(mesh.vertices), "faces": len(mesh.faces),
+                   "grid_s": round(float(np.median(grid)), 3), "kd_tree_s": round(float(np.median(tree)), 3),
+                   "bit_identical": bool(np.array_equal(a, b))}
+            row["speedup"] = round(row["kd_tree_s"] / row["grid_s"], 2)
+            if old is not None:
+                row["against"] = {"rev": args.against, "s": round(float(np.median(before)), 3),
+                                  "to_today": round(float(np.median(before)) / row["grid_s"], 2),
+                                  "bit_identical": bool(np.array_equal(a, c))}
+            result["rooms"][room] = row
+            print(room, json.dumps(row), flush=True)
+    result["load_after"] = load()
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    if RESULTS.exists():
+        result["before"] = {k: v for k, v in json.loads(RESULTS.read_text()).items() if k != "before"}
     RESULTS.write_text(json.dumps(result, indent=1) + "\n")
     return 0
 

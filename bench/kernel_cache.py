@@ -9,8 +9,9 @@
    (services/worker/kernel_target.py) and for numba's baseline "generic" x86-64, each in a fresh process with its
    own cache; the order of the targets rotates between repeats.
 
-Writes bench/results/kernel_cache.json (a part not run keeps its last figures).
-Run: .venv/bin/python bench/kernel_cache.py [--core 1] [--cores 0,1] [--parts first,derive] [--repeats 6]
+Writes bench/results/kernel_cache.json (a part not run keeps its last figures; --key puts the derive part's under
+another entry, e.g. another host's beside this one's).
+Run: .venv/bin/python bench/kernel_cache.py [--core 1] [--cores 0,1] [--parts first,derive] [--repeats 6] [--key K]
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.room_cost import children_cpu_s, load, median, pinned  # noqa: E402
+from bench.room_cost import children_cpu_s, cpu_model, load, median, pinned  # noqa: E402
 from services.worker.kernel_target import host_features, level_environment, levels_for  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -121,6 +122,8 @@ def main() -> int:
     ap.add_argument("--parts", default="first,derive", help="first (the first generate), derive (the targets)")
     ap.add_argument("--rooms", default="icl_livingroom,7scenes_redkitchen")
     ap.add_argument("--passes-cache", type=Path, default=Path("/tmp/omnidata-derivations-passes"))
+    ap.add_argument("--key", default="derivations_by_target",
+                    help="entry of the derive part (another host's figures beside this one's)")
     args = ap.parse_args()
     t0 = time.perf_counter()
     parts = set(args.parts.split(","))
@@ -133,8 +136,10 @@ def main() -> int:
             for run in data["first_generate"]:
                 print(json.dumps(run), flush=True)
         if "derive" in parts:
-            data["derivations_by_target"] = derivations(tmp, args.core, args.repeats, args.rooms, args.passes_cache)
-            print(json.dumps({k: v for k, v in data["derivations_by_target"].items() if k != "runs"}), flush=True)
+            data[args.key] = {"machine": f"{os.cpu_count()} cores ({cpu_model()})", "load_before": load(),
+                              **derivations(tmp, args.core, args.repeats, args.rooms, args.passes_cache),
+                              "load_after": load()}
+            print(json.dumps({k: v for k, v in data[args.key].items() if k != "runs"}), flush=True)
     data.update(commit=subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
                                       text=True).stdout.strip(),
                 machine=f"{os.cpu_count()} cores, shared", wall_s=round(time.perf_counter() - t0, 1))

@@ -111,7 +111,21 @@ def measure(mesh: trimesh.Trimesh, up: np.ndarray, ceiling_fraction: float | Non
     across = float(np.linalg.norm(centre - (centre @ up) * up))
     inside = 0.0 < origin_h <= 1.5 * height and across <= spans[0]
     return ScanMeasures(height, (spans[0], spans[1], height), ceiling_fraction >= 0.3,
-                        origin_h if inside else None, low_top, float(np.median(mesh.edges_unique_length)))
+                        origin_h if inside else None, low_top, median_edge_length(mesh))
+
+
+def median_edge_length(mesh: trimesh.Trimesh) -> float:
+    """np.median(mesh.edges_unique_length), the same value, without trimesh's unique rows, which hash every edge
+    (the 7-Scenes kitchen's 577k edges: 0.24 CPU-s against 0.08 here): each face edge as one int64 key, low vertex
+    first, and np.unique of the keys. The lengths are trimesh's (v[low] - v[high], util.row_norm's arithmetic), and
+    a median does not depend on their order."""
+    faces = np.asarray(mesh.faces, dtype=np.int64)
+    edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    n = max(len(mesh.vertices), 1)
+    keys = np.unique(edges[:, 0] * n + edges[:, 1])
+    v = np.asarray(mesh.vertices)
+    d = v[keys // n] - v[keys % n]
+    return float(np.median(np.sqrt(np.dot(d**2, [1, 1, 1]))))  # trimesh.util.row_norm's expression
 
 
 def _terms(m: ScanMeasures, scale: float) -> dict[str, float] | None:

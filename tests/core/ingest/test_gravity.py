@@ -200,3 +200,16 @@ def test_unit_evidence_picks_centimetres_or_refuses_never_guesses() -> None:
     closed = decide_units(ScanMeasures(150.0, (340.0, 250.0, 150.0), True, None, None, 100.0))
     assert [c.unit for c in closed.ranked] == ["inches"] and not closed.ambiguous
     assert [c.unit for c in decide_units(ScanMeasures(2.5, (5.0, 4.0, 2.5), True, 1.2, 0.7, 0.03)).ranked] == ["metres"]
+
+
+def test_the_median_edge_length_is_trimeshs_median_of_its_unique_edges(scenes_dir: Path) -> None:
+    from services.core.ingest.unit_evidence import median_edge_length
+
+    rng = np.random.default_rng(3)
+    faces = rng.integers(0, 200, (400, 3))
+    faces[:40] = faces[40:80]  # duplicate faces: their edges count once
+    faces[80:90, 1] = faces[80:90, 0]  # degenerate faces: an edge from a vertex to itself is an edge too
+    soup = trimesh.Trimesh(rng.normal(size=(200, 3)), faces, process=False)
+    kitchen = load_space(scenes_dir / "7scenes_redkitchen" / "mesh_tsdf_2cm_from_1000frames.ply").mesh
+    for mesh in (soup, kitchen, trimesh.creation.box()):
+        assert median_edge_length(mesh) == float(np.median(mesh.copy().edges_unique_length))

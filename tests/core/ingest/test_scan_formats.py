@@ -229,3 +229,26 @@ def test_the_legacy_checksum_is_that_of_the_zip_every_member_deflated(tmp_path: 
     ply = tmp_path / "alone.ply"
     trimesh.creation.box().export(ply)
     assert registry.legacy_source_checksum(ply) is None  # stored as it is: its checksum never changed
+
+
+def test_a_scan_loads_as_trimeshs_forced_mesh_without_its_copies(tmp_path: Path, scenes_dir: Path) -> None:
+    """_single_mesh gives what trimesh.load(force="mesh") gave: one mesh placed once is taken as it is (vertex
+    colours, textures and PLY properties kept), anything else goes through the scene's concatenation."""
+    from services.core.ingest.loading import _single_mesh
+
+    kitchen = scenes_dir / "7scenes_redkitchen" / "mesh_tsdf_2cm_from_1000frames.ply"
+    icl = scenes_dir / "icl_livingroom" / "livingroom.obj"
+    moved = trimesh.Scene()
+    moved.add_geometry(trimesh.creation.box(), transform=trimesh.transformations.translation_matrix([1.0, 2, 3]))
+    two = trimesh.Scene([trimesh.creation.box(), trimesh.creation.icosphere(2)])
+    for name, scene in (("moved.glb", moved), ("two.glb", two)):
+        scene.export(tmp_path / name)
+    for source in (kitchen, icl, tmp_path / "moved.glb", tmp_path / "two.glb"):
+        want = trimesh.load(source, force="mesh")
+        got = _single_mesh(trimesh.load_scene(source))
+        assert np.array_equal(got.vertices, want.vertices) and np.array_equal(got.faces, want.faces), source.name
+        assert got.visual.kind == want.visual.kind, source.name
+    assert np.array_equal(got.vertices, want.vertices) and len(got.faces) == 12 + 320  # both, concatenated
+    coloured = _single_mesh(trimesh.load_scene(kitchen))
+    assert "_ply_raw" in coloured.metadata
+    assert np.array_equal(coloured.visual.vertex_colors, trimesh.load(kitchen, force="mesh").visual.vertex_colors)

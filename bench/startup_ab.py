@@ -1,0 +1,101 @@
+"""Benchmark: what a change saves of a run's start-up, as an A/B of two revisions on the same host and moment.
+
+`omnidata generate` of 3 views (1 point) of each real room, --workers 1, pinned to one core: its CPU is mostly
+start-up (imports, validation, levelling, planning, Blender, the kernels, the curvature, the first render). The run
+of this checkout and the run of git revision --against (a worktree of it, its kernels compiled ahead as `make venv`
+does) alternate, first one then the other, so a neighbour's load moves both; per room, each side's CPU seconds per
+repeat, their medians and the paired differences (against minus this checkout).
+Writes bench/results/startup.json under "ab" (the rest of the file, written by bench/startup_cpu.py, is kept).
+Run: .venv/bin/python bench/startup_ab.py --against REV [--repeats 5] [--core 1] [--worktree DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from bench.room_cost import ROOMS, children_cpu_s, cpu_model, load, median, pinned  # noqa: E402
+
+RESULTS = ROOT / "bench" / "results" / "startup.json"
+SPEC = {"points": {"count": 1, "max_views": 3}, "views": {"resolution": 512}}
+
+
+def worktree(rev: str, folder: Path) -> Path:
+    """A checkout of `rev` in `folder` (reused when it holds one), with its kernels compiled, beside ../shared."""
+    if not (folder / "services").is_dir():
+        subprocess.run(["git", "worktree", "add", "--detach", str(folder), rev], cwd=ROOT, check=True,
+                       capture_output=True)
+    shared = folder.parent / "shared"
+    if not shared.exists():
+        shared.symlink_to(ROOT.parent / "shared")
+    subprocess.run([sys.executable, "-m", "services.cli", "compile-kernels"], cwd=folder, check=True,
+                   capture_output=True, env={**os.environ, "PYTHONPATH": str(folder)})
+    return folder
+
+
+def run_cpu_s(root: Path, space: Path, extra: list[str], core: str, spec: Path) -> float:
+    """CPU seconds of one 3-view generate of `space` by the checkout at `root`."""
+    with tempfile.TemporaryDirectory(prefix="omnidata-startup-ab-") as out:
+        cmd = [sys.executable, "-m", "services.cli", "generate", str(space), "--out", f"{out}/o", "--spec",
+               str(spec), "--seed", "0", "--no-progress", "--workers", "1", *extra]
+        cpu0 = children_cpu_s()
+        run = subprocess.run(cmd, cwd=root, capture_output=True, text=True, preexec_fn=pinned(core),
+                             env={**os.environ, "PYTHONPATH": str(root)})
+        if run.returncode != 0:
+            raise RuntimeError(f"generate {space.name} in {root} failed: {run.stderr[-2000:]}")
+        return children_cpu_s() - cpu0
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--against", required=True, help="the git revision before the change")
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--core", default=str(sorted(os.sched_getaffinity(0))[-1]))
+    ap.add_argument("--rooms", default=",".join(ROOMS))
+    ap.add_argument("--worktree", type=Path, default=None, help="a folder for the revision's checkout (kept)")
+    args = ap.parse_args()
+    rev = subprocess.run(["git", "rev-parse", "--short", args.against], cwd=ROOT, check=True, capture_output=True,
+                         text=True).stdout.strip()
+    here = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, check=True, capture_output=True,
+                          text=True).stdout.strip()
+    with tempfile.TemporaryDirectory(prefix="omnidata-startup-ab-") as tmp:
+        old = worktree(rev, args.worktree or Path(tmp) / "before" / "main")
+        spec = Path(tmp) / "spec.json"
+        spec.write_text(json.dumps(SPEC))
+        sides = {"against": old, "this": ROOT}
+        cpu: dict[str, dict[str, list[float]]] = {room: {k: [] for k in sides} for room in args.rooms.split(",")}
+        before = load()
+        for rep in range(args.repeats):
+            for room, runs in cpu.items():
+                space, extra = ROOMS[room]
+                for side in list(sides)[:: 1 if rep % 2 == 0 else -1]:
+                    root = sides[side]
+                    source = root / space.relative_to(ROOT) if space.is_relative_to(ROOT) else space  # its own copy
+                    runs[side].append(round(run_cpu_s(root, source, extra, args.core, spec), 2))
+            print(rep, json.dumps(cpu), flush=True)
+        if args.worktree is None:
+            subprocess.run(["git", "worktree", "remove", "--force", str(old)], cwd=ROOT, capture_output=True)
+    rooms = {room: {"cpu_s": runs, "median_s": {k: median(v) for k, v in runs.items()},
+                    "paired_saving_s": sorted(round(a - b, 2) for a, b in zip(runs["against"], runs["this"],
+                                                                              strict=True))}
+             for room, runs in cpu.items()}
+    for room, row in rooms.items():
+        print(room, json.dumps({k: v for k, v in row.items() if k != "cpu_s"}))
+    data = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
+    data["ab"] = {"against": rev, "this": here, "views": 3, "core": args.core, "clock": "CPU seconds of the run",
+                  "machine": f"{os.cpu_count()} cores ({cpu_model()}), shared", "load_before": before,
+                  "load_after": load(), "rooms": rooms}
+    RESULTS.write_text(json.dumps(data, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

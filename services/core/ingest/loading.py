@@ -258,12 +258,14 @@ def _read_mesh(
 def _single_mesh(scene: trimesh.Scene) -> trimesh.Trimesh:
     """scene.to_mesh(), what trimesh.load(force="mesh") returns, without its two copies of a scene that is one mesh
     placed once, untransformed (a PLY or OBJ of one object): that mesh itself, as trimesh.load without `force`
-    returns it for those formats (each copy also converts a coloured mesh's colours: the 7-Scenes kitchen's PLY
-    loads in 0.14 CPU-s instead of 0.35)."""
+    returns it for those formats, its cache cleared as the copies' was (vertex normals a file states are dropped and
+    computed from the faces, as before). Each copy also converted a coloured mesh's colours: the 7-Scenes kitchen's
+    PLY loads in 0.14 CPU-s instead of 0.35."""
     if len(scene.geometry) == 1 and len(scene.graph.nodes_geometry) == 1:
         transform, name = scene.graph[scene.graph.nodes_geometry[0]]
         mesh = scene.geometry[name]
         if isinstance(mesh, trimesh.Trimesh) and np.array_equal(np.asarray(transform), np.eye(4)):
+            mesh._cache.clear()  # type: ignore[no-untyped-call]  # as to_mesh's copies: the file's normals go
             return mesh
     return scene.to_mesh()
 

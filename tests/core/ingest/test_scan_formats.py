@@ -236,18 +236,21 @@ def test_a_scan_loads_as_trimeshs_forced_mesh_without_its_copies(tmp_path: Path,
     colours, textures and PLY properties kept), anything else goes through the scene's concatenation."""
     from services.core.ingest.loading import _single_mesh
 
-    kitchen = scenes_dir / "7scenes_redkitchen" / "mesh_tsdf_2cm_from_1000frames.ply"
+    kitchen = scenes_dir / "7scenes_redkitchen" / "mesh_tsdf_2cm_from_1000frames.ply"  # with vertex normals
     icl = scenes_dir / "icl_livingroom" / "livingroom.obj"
+    banana = next((scenes_dir / "ycb_banana").glob("*.obj"))  # with vertex normals
     moved = trimesh.Scene()
     moved.add_geometry(trimesh.creation.box(), transform=trimesh.transformations.translation_matrix([1.0, 2, 3]))
     two = trimesh.Scene([trimesh.creation.box(), trimesh.creation.icosphere(2)])
     for name, scene in (("moved.glb", moved), ("two.glb", two)):
         scene.export(tmp_path / name)
-    for source in (kitchen, icl, tmp_path / "moved.glb", tmp_path / "two.glb"):
+    for source in (kitchen, icl, banana, tmp_path / "moved.glb", tmp_path / "two.glb"):
         want = trimesh.load(source, force="mesh")
         got = _single_mesh(trimesh.load_scene(source))
         assert np.array_equal(got.vertices, want.vertices) and np.array_equal(got.faces, want.faces), source.name
         assert got.visual.kind == want.visual.kind, source.name
+        # the file's own vertex normals were dropped by to_mesh's copies: the curvature reads normals of the faces
+        assert np.array_equal(got.vertex_normals, want.vertex_normals), source.name
     assert np.array_equal(got.vertices, want.vertices) and len(got.faces) == 12 + 320  # both, concatenated
     coloured = _single_mesh(trimesh.load_scene(kitchen))
     assert "_ply_raw" in coloured.metadata

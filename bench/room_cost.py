@@ -130,17 +130,17 @@ def pinned(cores: str) -> Callable[[], None]:
 
 
 def generate(space: Path, extra: list[str], cores: str, out: Path, spec: Path, workers: int | None,
-             device: str = "auto") -> dict:
-    """Run `omnidata generate` pinned to `cores` rendering on `device` (OMNIDATA_RENDER_DEVICE); wall seconds, views,
-    and per-cue task seconds from its task rows."""
+             device: str = "auto", root: Path = ROOT) -> dict:
+    """Run `omnidata generate` of the checkout at `root` pinned to `cores` rendering on `device`
+    (OMNIDATA_RENDER_DEVICE); wall seconds, views, and per-cue task seconds from its task rows."""
     cmd = [sys.executable, "-m", "services.cli", "generate", str(space), "--out", str(out),
            "--spec", str(spec), "--seed", "0", "--no-progress", *extra]
     if workers is not None:
         cmd += ["--workers", str(workers)]
     before = load()
     t0, cpu0, started = time.perf_counter(), children_cpu_s(), time.time()
-    run = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, preexec_fn=pinned(cores),
-                         env={**os.environ, "PYTHONPATH": str(ROOT), "OMNIDATA_RENDER_DEVICE": device})
+    run = subprocess.run(cmd, cwd=root, capture_output=True, text=True, preexec_fn=pinned(cores),
+                         env={**os.environ, "PYTHONPATH": str(root), "OMNIDATA_RENDER_DEVICE": device})
     wall, cpu = time.perf_counter() - t0, children_cpu_s() - cpu0
     if run.returncode != 0:
         raise RuntimeError(f"generate {space.name} on {device} failed ({run.returncode}): {run.stderr[-2000:]}")

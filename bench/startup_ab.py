@@ -22,7 +22,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.room_cost import ROOMS, children_cpu_s, cpu_model, load, median, pinned  # noqa: E402
+from bench.room_cost import ROOMS, cpu_model, generate, load, median  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results" / "startup.json"
 SPEC = {"points": {"count": 1, "max_views": 3}, "views": {"resolution": 512}}
@@ -39,19 +39,6 @@ def worktree(rev: str, folder: Path) -> Path:
     subprocess.run([sys.executable, "-m", "services.cli", "compile-kernels"], cwd=folder, check=True,
                    capture_output=True, env={**os.environ, "PYTHONPATH": str(folder)})
     return folder
-
-
-def run_cpu_s(root: Path, space: Path, extra: list[str], core: str, spec: Path) -> float:
-    """CPU seconds of one 3-view generate of `space` by the checkout at `root`."""
-    with tempfile.TemporaryDirectory(prefix="omnidata-startup-ab-") as out:
-        cmd = [sys.executable, "-m", "services.cli", "generate", str(space), "--out", f"{out}/o", "--spec",
-               str(spec), "--seed", "0", "--no-progress", "--workers", "1", *extra]
-        cpu0 = children_cpu_s()
-        run = subprocess.run(cmd, cwd=root, capture_output=True, text=True, preexec_fn=pinned(core),
-                             env={**os.environ, "PYTHONPATH": str(root)})
-        if run.returncode != 0:
-            raise RuntimeError(f"generate {space.name} in {root} failed: {run.stderr[-2000:]}")
-        return children_cpu_s() - cpu0
 
 
 def main() -> int:
@@ -79,7 +66,9 @@ def main() -> int:
                 for side in list(sides)[:: 1 if rep % 2 == 0 else -1]:
                     root = sides[side]
                     source = root / space.relative_to(ROOT) if space.is_relative_to(ROOT) else space  # its own copy
-                    runs[side].append(round(run_cpu_s(root, source, extra, args.core, spec), 2))
+                    with tempfile.TemporaryDirectory(prefix="omnidata-startup-ab-") as out:
+                        run = generate(source, extra, args.core, Path(out) / "o", spec, 1, root=root)
+                    runs[side].append(run["cpu_s"])
             print(rep, json.dumps(cpu), flush=True)
         if args.worktree is None:
             subprocess.run(["git", "worktree", "remove", "--force", str(old)], cwd=ROOT, capture_output=True)

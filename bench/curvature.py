@@ -16,19 +16,17 @@ if hasattr(os, "sched_setaffinity"):  # one core, before numpy/numba start their
     os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[-1]})
 
 import argparse  # noqa: E402
-import importlib.util  # noqa: E402
 import json  # noqa: E402
-import subprocess  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
-from types import ModuleType  # noqa: E402
 
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.revision import module_at  # noqa: E402
 from bench.room_cost import cpu_model, load  # noqa: E402
 from bench.rooms import ROOMS  # noqa: E402
 from services.core.domain.jobspec import CueParams  # noqa: E402
@@ -50,19 +48,6 @@ def timed(mesh: object, radius: float, grid_max_ball: float) -> tuple[float, np.
         curvature.GRID_MAX_BALL = saved
 
 
-def module_at(rev: str, folder: Path) -> ModuleType:
-    """services/worker/curvature.py as it was at git revision `rev`, as a module of its own (kernels not cached)."""
-    source = subprocess.run(["git", "show", f"{rev}:services/worker/curvature.py"], cwd=ROOT, capture_output=True,
-                            text=True, check=True).stdout
-    path = folder / f"curvature_{rev}.py"
-    path.write_text(source.replace("cache=True", "cache=False"))
-    spec = importlib.util.spec_from_file_location(path.stem, path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=5)
@@ -72,7 +57,7 @@ def main() -> int:
     result: dict = {"radius_m": radius, "clock": "process CPU seconds, one core, medians",
                     "machine": f"{os.cpu_count()} cores ({cpu_model()}), shared", "load_before": load(), "rooms": {}}
     with tempfile.TemporaryDirectory(prefix="omnidata-curvature-") as tmp:
-        old = module_at(args.against, Path(tmp)) if args.against else None
+        old = module_at(args.against, "services/worker/curvature.py", Path(tmp)) if args.against else None
         for room, (path, frame) in ROOMS.items():
             mesh = load_space(path, **frame).mesh
             timed(mesh, radius, curvature.GRID_MAX_BALL)  # numba kernels loaded (or compiled) outside the timing

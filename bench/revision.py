@@ -1,0 +1,26 @@
+"""A module of the project as it was at a git revision, loaded beside today's (not a benchmark itself: the A/B
+benchmarks' helper; `make bench` runs it as a no-op)."""
+
+from __future__ import annotations
+
+import importlib.util
+import subprocess
+from pathlib import Path
+from types import ModuleType
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def module_at(rev: str, relpath: str, folder: Path) -> ModuleType:
+    """The file `relpath` (e.g. services/worker/curvature.py) at git revision `rev`, written to `folder` and loaded
+    as a module of its own; its numba kernels are compiled in this process, not cached (the A/B's first call, outside
+    the timing, compiles them). Its imports of the project resolve to today's modules."""
+    source = subprocess.run(["git", "show", f"{rev}:{relpath}"], cwd=ROOT, capture_output=True, text=True,
+                            check=True).stdout
+    path = folder / f"{Path(relpath).stem}_{rev.replace('/', '_')}.py"
+    path.write_text(source.replace("cache=True", "cache=False"))
+    spec = importlib.util.spec_from_file_location(path.stem, path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

@@ -8,6 +8,7 @@ import re
 import shutil
 import uuid
 from collections.abc import Iterator, Sequence
+from concurrent.futures import Future, wait
 from contextlib import contextmanager, suppress
 from pathlib import Path
 
@@ -78,25 +79,31 @@ class LocalStore:
 
     def put_many(self, items: Sequence[tuple[str, bytes]]) -> list[ObjectInfo]:
         """Every temp file written, then flushed concurrently (the file system commits the flushes together: one
-        journal commit instead of one per file, ~30-100 ms of waiting a view on this disk), then renamed."""
+        journal commit instead of one per file, ~30-100 ms of waiting a view on this disk), then renamed. The
+        checksums are computed while the disk flushes (a view's ~6 MB: ~4 ms of CPU that waited for the disk)."""
         targets = [self.path(key) for key, _ in items]
         tmps: list[Path] = []
+        flushes: list[Future[None]] = []
         try:
             for target, (_, data) in zip(targets, items, strict=True):
                 target.parent.mkdir(parents=True, exist_ok=True)
                 tmps.append(self._tmp(target))
                 tmps[-1].write_bytes(data)
             if self.fsync:
-                list(io_pool().map(_fsync, tmps))
+                flushes = [io_pool().submit(_fsync, tmp) for tmp in tmps]
+            digests = [hashlib.sha256(data).hexdigest() for _, data in items]
+            for flushed in flushes:
+                flushed.result()
             for tmp, target in zip(tmps, targets, strict=True):
                 os.replace(tmp, target)
         except OSError as e:  # permission, read-only or full file system
             raise StorageError(f"cannot write to the object folder {self.root}: {e.strerror or e}") from e
         finally:
+            wait(flushes)  # no flush left running on a temp file removed below
             for tmp in tmps:
                 with suppress(OSError):
                     tmp.unlink(missing_ok=True)
-        return [ObjectInfo(key, len(data), hashlib.sha256(data).hexdigest()) for key, data in items]
+        return [ObjectInfo(key, len(data), digest) for (key, data), digest in zip(items, digests, strict=True)]
 
     def put_file(self, key: str, path: str | Path, content_type: str | None = None) -> ObjectInfo:
         target = self.path(key)

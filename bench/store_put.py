@@ -1,5 +1,6 @@
 """Benchmark: storing a view's outputs in the local object folder (LocalStore.put_many: every file a worker writes for
-a view, flushed to disk and checksummed), what each view of `generate` pays after its derivations, one core.
+a view, flushed to disk and checksummed, kept out of the page cache as a worker asks), what each view of `generate`
+pays after its derivations, one core.
 The files: every default cue of one real view of the 7-Scenes kitchen (bench/derivations.py's views; ~6 MB), stored
 --views times under fresh names in folders that exist (as a job's views after its first); wall and CPU seconds per
 view (medians and 75th percentiles). With --against REV, also services/core/storage/local.py as it was at git
@@ -16,6 +17,7 @@ if hasattr(os, "sched_setaffinity"):  # one core, as the room benchmarks' worker
     os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[-1]})
 
 import argparse  # noqa: E402
+import inspect  # noqa: E402
 import json  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
@@ -71,8 +73,9 @@ def main() -> int:
             order = list(stores) if v % 2 == 0 else list(stores)[::-1]
             for side in order:
                 items = [(output_key(cue, "omnidata", ROOM, v + 1, 0), data) for cue, data in files]
+                hint = {"keep_cached": False} if "keep_cached" in inspect.signature(stores[side].put_many).parameters else {}
                 t0, c0 = time.perf_counter(), time.process_time()
-                stores[side].put_many(items)
+                stores[side].put_many(items, **hint)
                 if v >= 0:
                     wall[side].append(time.perf_counter() - t0)
                     cpu[side].append(time.process_time() - c0)

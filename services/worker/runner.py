@@ -221,7 +221,9 @@ class TaskRunner:
                 made.append((t, key, data, time.perf_counter() - t0))
                 t0 = time.perf_counter()
             t1 = time.perf_counter()
-            infos = self.store.put_many([(key, data) for _, key, data, _ in made])
+            # A pass set is read again (by the view's other tasks elsewhere); the cues' files are not.
+            infos = self.store.put_many([(key, data) for _, key, data, _ in made],
+                                        keep_cached=any(t.cue == "passes" for t, _, _, _ in made))
         except Exception as exc:
             reraise_stop(exc)
             # Something failed: one task at a time, so each failure is recorded and only its dependents wait.

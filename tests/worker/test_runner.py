@@ -211,6 +211,32 @@ def test_render_once_then_derive_from_the_pass_cache(sm, banana):
     assert counters_match(sm, job_id)
 
 
+class CacheHintStore:
+    """The local store, recording each put_many's keys and whether it asked to keep the files cached."""
+
+    def __init__(self, inner: LocalStore) -> None:
+        self.inner, self.puts = inner, []
+
+    def put_many(self, items: list[tuple[str, bytes]], *, keep_cached: bool = True) -> list[ObjectInfo]:
+        self.puts.append(([key for key, _ in items], keep_cached))
+        return self.inner.put_many(items, keep_cached=keep_cached)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.inner, name)
+
+
+def test_a_pass_set_stays_in_the_page_cache_and_cue_files_leave_it(sm, banana):
+    """The pass set is read again (by the view's tasks on other workers); a cue's file is not."""
+    job_id = make_job(sm, banana)
+    store = CacheHintStore(banana.store)
+    r = runner(sm, banana, store=store, worker_batch_views=False)
+    assert r.run(queue(sm, job_id, "passes", 0, 0)).status == "done"
+    assert r.run(queue(sm, job_id, "rgb", 0, 0)).status == "done"
+    (passes, passes_kept), (rgb, rgb_kept) = store.puts
+    assert passes[0].endswith(".npz") and passes_kept
+    assert rgb[0].endswith("_domain_rgb.png") and not rgb_kept
+
+
 @dataclass
 class Sized:
     size: int
@@ -345,11 +371,11 @@ class StallingStore:
             self.on_put()
         return self.inner.put_bytes(key, data, content_type)
 
-    def put_many(self, items: list[tuple[str, bytes]]) -> list[ObjectInfo]:
+    def put_many(self, items: list[tuple[str, bytes]], *, keep_cached: bool = True) -> list[ObjectInfo]:
         if not self.fired:
             self.fired = True
             self.on_put()
-        return self.inner.put_many(items)
+        return self.inner.put_many(items, keep_cached=keep_cached)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.inner, name)

@@ -100,9 +100,11 @@ class ObjectStore(Protocol):
         """Store `data` under `key`, replacing any object there."""
         ...
 
-    def put_many(self, items: Sequence[tuple[str, bytes]]) -> list[ObjectInfo]:
+    def put_many(self, items: Sequence[tuple[str, bytes]], *, keep_cached: bool = True) -> list[ObjectInfo]:
         """Store each (key, data) as put_bytes does, together: a view's ~18 files cost one wait for the disk
-        (local) or the network (S3) instead of one each. All stored, or StorageError (some may be stored)."""
+        (local) or the network (S3) instead of one each. All stored, or StorageError (some may be stored).
+        keep_cached=False: nothing here reads them back soon (a worker's outputs), so a store that caches what it
+        writes (the local folder: the page cache) need not keep them."""
         ...
 
     def put_file(self, key: str, path: str | Path, content_type: str | None = None) -> ObjectInfo:
@@ -160,8 +162,8 @@ class PrefixedStore:
         info = self.store.put_bytes(self._k(key), data, content_type)
         return ObjectInfo(key, info.size, info.sha256)
 
-    def put_many(self, items: Sequence[tuple[str, bytes]]) -> list[ObjectInfo]:
-        infos = self.store.put_many([(self._k(key), data) for key, data in items])
+    def put_many(self, items: Sequence[tuple[str, bytes]], *, keep_cached: bool = True) -> list[ObjectInfo]:
+        infos = self.store.put_many([(self._k(key), data) for key, data in items], keep_cached=keep_cached)
         return [ObjectInfo(key, info.size, info.sha256) for (key, _), info in zip(items, infos, strict=True)]
 
     def put_file(self, key: str, path: str | Path, content_type: str | None = None) -> ObjectInfo:

@@ -135,8 +135,9 @@ class S3Store:
             )
         return ObjectInfo(key, len(data), digest)
 
-    def put_many(self, items: Sequence[tuple[str, bytes]]) -> list[ObjectInfo]:
-        """The PUTs in flight together (the client is thread-safe), so a view waits for one round trip, not ~18."""
+    def put_many(self, items: Sequence[tuple[str, bytes]], *, keep_cached: bool = True) -> list[ObjectInfo]:
+        """The PUTs in flight together (the client is thread-safe), so a view waits for one round trip, not ~18.
+        Nothing is cached here: keep_cached changes nothing."""
         return list(io_pool().map(lambda item: self.put_bytes(*item), items))
 
     def put_file(self, key: str, path: str | Path, content_type: str | None = None) -> ObjectInfo:

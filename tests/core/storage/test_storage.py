@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import hashlib
+import mmap
 import os
 import secrets
+import sys
 import urllib.request
 from collections.abc import Iterator
 from pathlib import Path
@@ -168,6 +172,38 @@ def test_prefixed_view(store: ObjectStore) -> None:
     assert nested.get_bytes("a.png") == b"1"
     assert view.delete_prefix("") == 2
     assert list(store.list()) == ["jobs/420/rgb/a.png"]
+
+
+def resident_fraction(path: Path) -> float:
+    """The fraction of the file's pages in the page cache (mincore over a shared read-only mapping of it)."""
+    libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+    libc.mmap.restype = ctypes.c_void_p
+    libc.mmap.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int, ctypes.c_int, ctypes.c_int, ctypes.c_long]
+    libc.mincore.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_char_p]
+    libc.munmap.argtypes = [ctypes.c_void_p, ctypes.c_size_t]
+    size, page = path.stat().st_size, mmap.PAGESIZE
+    pages = (size + page - 1) // page
+    with path.open("rb") as f:
+        addr = libc.mmap(None, size, mmap.PROT_READ, mmap.MAP_SHARED, f.fileno(), 0)
+        assert addr not in (None, ctypes.c_void_p(-1).value), os.strerror(ctypes.get_errno())
+        try:
+            vec = ctypes.create_string_buffer(pages)
+            assert libc.mincore(addr, size, vec) == 0, os.strerror(ctypes.get_errno())
+            return sum(b & 1 for b in vec.raw) / pages
+        finally:
+            libc.munmap(addr, size)
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="mincore and posix_fadvise as Linux has them")
+def test_put_many_leaves_files_it_need_not_keep_cached_out_of_the_page_cache(tmp_path: Path) -> None:
+    store = LocalStore(tmp_path / "objects")
+    data = os.urandom(4 << 20)
+    store.put_many([("passes/a.npz", data)])
+    store.put_many([("rgb/a.png", data), ("depth/a.png", data[:5000])], keep_cached=False)
+    assert resident_fraction(store.path("passes/a.npz")) > 0.9  # written and kept: in the page cache
+    assert resident_fraction(store.path("rgb/a.png")) == 0.0  # flushed, then dropped
+    assert resident_fraction(store.path("depth/a.png")) == 0.0
+    assert store.get_bytes("rgb/a.png") == data and store.get_bytes("depth/a.png") == data[:5000]  # from the disk
 
 
 def test_put_many_stores_each_object_as_put_bytes_would(store: ObjectStore) -> None:

@@ -1,12 +1,15 @@
-"""Benchmark: what a change saves of a run's start-up, as an A/B of two revisions on the same host and moment.
+"""Benchmark: what a change saves of a run, as an A/B of two revisions on the same host and moment.
 
-`omnidata generate` of 3 views (1 point) of each real room, --workers 1, pinned to one core: its CPU is mostly
-start-up (imports, validation, levelling, planning, Blender, the kernels, the curvature, the first render). The run
-of this checkout and the run of git revision --against (a worktree of it, its kernels compiled ahead as `make venv`
-does) alternate, first one then the other, so a neighbour's load moves both; per room, each side's CPU seconds per
-repeat, their medians and the paired differences (against minus this checkout).
-Writes bench/results/startup.json under "ab" (the rest of the file, written by bench/startup_cpu.py, is kept).
-Run: .venv/bin/python bench/startup_ab.py --against REV [--repeats 5] [--core 1] [--worktree DIR]
+`omnidata generate` of --points x 3 views of each real room, --workers 1, pinned to one core. With the default
+single point (3 views) its CPU is mostly start-up (imports, validation, levelling, planning, Blender, the kernels,
+the curvature, the first render); with --points 22, the 66-view job of bench/room_cost.py, end to end. The run of
+this checkout and the run of git revision --against (a worktree of it, its kernels compiled ahead as `make venv`
+does) alternate, first one then the other, so a neighbour's load moves both; per room, each side's CPU and wall
+seconds per repeat, their medians and the paired differences (against minus this checkout).
+Writes bench/results/startup.json under --key ("ab"; the rest of the file, written by bench/startup_cpu.py, is
+kept).
+Run: .venv/bin/python bench/startup_ab.py --against REV [--points 1] [--repeats 5] [--core 1] [--worktree DIR]
+     [--key ab]
 """
 
 from __future__ import annotations
@@ -25,7 +28,10 @@ sys.path.insert(0, str(ROOT))
 from bench.room_cost import ROOMS, cpu_model, generate, load, median  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results" / "startup.json"
-SPEC = {"points": {"count": 1, "max_views": 3}, "views": {"resolution": 512}}
+
+
+def job_spec(points: int) -> dict:
+    return {"points": {"count": points, "max_views": 3}, "views": {"resolution": 512}}
 
 
 def worktree(rev: str, folder: Path) -> Path:
@@ -48,6 +54,8 @@ def main() -> int:
     ap.add_argument("--core", default=str(sorted(os.sched_getaffinity(0))[-1]))
     ap.add_argument("--rooms", default=",".join(ROOMS))
     ap.add_argument("--worktree", type=Path, default=None, help="a folder for the revision's checkout (kept)")
+    ap.add_argument("--points", type=int, default=1, help="points of the job (3 views each)")
+    ap.add_argument("--key", default="ab", help="the entry of bench/results/startup.json to write")
     args = ap.parse_args()
     rev = subprocess.run(["git", "rev-parse", "--short", args.against], cwd=ROOT, check=True, capture_output=True,
                          text=True).stdout.strip()
@@ -56,9 +64,10 @@ def main() -> int:
     with tempfile.TemporaryDirectory(prefix="omnidata-startup-ab-") as tmp:
         old = worktree(rev, args.worktree or Path(tmp) / "before" / "main")
         spec = Path(tmp) / "spec.json"
-        spec.write_text(json.dumps(SPEC))
+        spec.write_text(json.dumps(job_spec(args.points)))
         sides = {"against": old, "this": ROOT}
         cpu: dict[str, dict[str, list[float]]] = {room: {k: [] for k in sides} for room in args.rooms.split(",")}
+        wall: dict[str, dict[str, list[float]]] = {room: {k: [] for k in sides} for room in cpu}
         before = load()
         for rep in range(args.repeats):
             for room, runs in cpu.items():
@@ -69,21 +78,29 @@ def main() -> int:
                     with tempfile.TemporaryDirectory(prefix="omnidata-startup-ab-") as out:
                         run = generate(source, extra, args.core, Path(out) / "o", spec, 1, root=root)
                     runs[side].append(run["cpu_s"])
-            print(rep, json.dumps(cpu), flush=True)
+                    wall[room][side].append(run["wall_s"])
+            print(rep, json.dumps({"cpu_s": cpu, "wall_s": wall}), flush=True)
         if args.worktree is None:
             subprocess.run(["git", "worktree", "remove", "--force", str(old)], cwd=ROOT, capture_output=True)
-    rooms = {room: {"cpu_s": runs, "median_s": {k: median(v) for k, v in runs.items()},
-                    "paired_saving_s": sorted(round(a - b, 2) for a, b in zip(runs["against"], runs["this"],
-                                                                              strict=True))}
+    rooms = {room: {"cpu_s": runs, "wall_s": wall[room],
+                    "median_s": {k: median(v) for k, v in runs.items()},
+                    "median_wall_s": {k: median(v) for k, v in wall[room].items()},
+                    "paired_saving_s": paired(runs), "paired_wall_saving_s": paired(wall[room])}
              for room, runs in cpu.items()}
     for room, row in rooms.items():
-        print(room, json.dumps({k: v for k, v in row.items() if k != "cpu_s"}))
+        print(room, json.dumps({k: v for k, v in row.items() if k not in ("cpu_s", "wall_s")}))
     data = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
-    data["ab"] = {"against": rev, "this": here, "views": 3, "core": args.core, "clock": "CPU seconds of the run",
-                  "machine": f"{os.cpu_count()} cores ({cpu_model()}), shared", "load_before": before,
-                  "load_after": load(), "rooms": rooms}
+    data[args.key] = {"against": rev, "this": here, "views": 3 * args.points, "core": args.core,
+                      "clock": "CPU and wall seconds of the run",
+                      "machine": f"{os.cpu_count()} cores ({cpu_model()}), shared", "load_before": before,
+                      "load_after": load(), "rooms": rooms}
     RESULTS.write_text(json.dumps(data, indent=1) + "\n")
     return 0
+
+
+def paired(runs: dict[str, list[float]]) -> list[float]:
+    """Each repeat's against minus this checkout, sorted."""
+    return sorted(round(a - b, 2) for a, b in zip(runs["against"], runs["this"], strict=True))
 
 
 if __name__ == "__main__":

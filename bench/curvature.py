@@ -26,7 +26,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.revision import module_at  # noqa: E402
+from bench.ab import module_at, write_keeping_before  # noqa: E402
 from bench.room_cost import cpu_model, load  # noqa: E402
 from bench.rooms import ROOMS  # noqa: E402
 from services.core.domain.jobspec import CueParams  # noqa: E402
@@ -85,10 +85,7 @@ def main() -> int:
             result["rooms"][room] = row
             print(room, json.dumps(row), flush=True)
     result["load_after"] = load()
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    if RESULTS.exists():
-        result["before"] = {k: v for k, v in json.loads(RESULTS.read_text()).items() if k != "before"}
-    RESULTS.write_text(json.dumps(result, indent=1) + "\n")
+    write_keeping_before(RESULTS, result)
     return 0
 
 

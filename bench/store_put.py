@@ -28,8 +28,8 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.ab import module_at, write_keeping_before  # noqa: E402
 from bench.derivations import room_views  # noqa: E402
-from bench.revision import module_at  # noqa: E402
 from bench.room_cost import cpu_model, load  # noqa: E402
 from services.core.domain.cues import default_cues  # noqa: E402
 from services.core.domain.jobspec import CueParams  # noqa: E402
@@ -89,9 +89,7 @@ def main() -> int:
                                                   4)
     result["load_after"] = load()
     print(json.dumps(result, indent=1))
-    if RESULTS.exists():
-        result["before"] = {k: v for k, v in json.loads(RESULTS.read_text()).items() if k != "before"}
-    RESULTS.write_text(json.dumps(result, indent=1) + "\n")
+    write_keeping_before(RESULTS, result)
     return 0
 
 

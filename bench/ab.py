@@ -1,9 +1,10 @@
-"""A module of the project as it was at a git revision, loaded beside today's (not a benchmark itself: the A/B
-benchmarks' helper; `make bench` runs it as a no-op)."""
+"""Helpers of the A/B benchmarks (not a benchmark itself: `make bench` runs it as a no-op): a module of the project
+as it was at a git revision, loaded beside today's, and a results file written with the previous run kept."""
 
 from __future__ import annotations
 
 import importlib.util
+import json
 import subprocess
 from pathlib import Path
 from types import ModuleType
@@ -24,3 +25,11 @@ def module_at(rev: str, relpath: str, folder: Path) -> ModuleType:
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def write_keeping_before(path: Path, result: dict) -> None:
+    """Write `result` to the JSON file `path`, the run it replaces kept under "before" (one level deep)."""
+    if path.exists():
+        result["before"] = {k: v for k, v in json.loads(path.read_text()).items() if k != "before"}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(result, indent=1) + "\n")

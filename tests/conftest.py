@@ -58,12 +58,21 @@ def pytest_ignore_collect(collection_path: Path, config: pytest.Config) -> bool 
 BPY_FIXTURES = frozenset({"tiny_banana", "small_job", "trajectory_job", "banana_run", "room_passes", "banana_passes"})
 
 
+# Fixtures of the shared Redis server (a flushed database, a deployment whose tests restart Redis or kill its
+# clients): under pytest-xdist (`make test` runs two or more processes) their tests form one group, run one at a
+# time by one process, so a restart or a flush never lands on another test's connection.
+SERVICE_FIXTURES = frozenset({"redis_url", "deployment"})
+
+
 @pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Mark `bpy` the tests that use a rendering fixture (before -m selects)."""
+    """Mark `bpy` the tests that use a rendering fixture (before -m selects); group the shared-Redis tests."""
     for item in items:
-        if BPY_FIXTURES & set(getattr(item, "fixturenames", ())):
+        fixtures = set(getattr(item, "fixturenames", ()))
+        if BPY_FIXTURES & fixtures:
             item.add_marker(pytest.mark.bpy)
+        if SERVICE_FIXTURES & fixtures:
+            item.add_marker(pytest.mark.xdist_group("services"))
 
 
 REPO_ROOT = Path(__file__).resolve().parents[1]

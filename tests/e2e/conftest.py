@@ -30,15 +30,12 @@ from services.core.storage import ObjectStore, open_store
 from tests.conftest import S3Server, create_pg_database, drop_pg_database
 
 REPO = Path(__file__).resolve().parents[2]
-REDIS_DB_URL = os.environ.get("OMNIDATA_TEST_REDIS_URL", "redis://127.0.0.1:6379/13")  # flushed per module
+# Flushed per module. `make test` gives the run of the `alone` tests, beside the rest, a database of its own.
+REDIS_DB_URL = os.environ.get("OMNIDATA_TEST_E2E_REDIS_URL") or os.environ.get("OMNIDATA_TEST_REDIS_URL",
+                                                                               "redis://127.0.0.1:6379/13")
 LEASE_S = 10  # short leases: a killed worker's task comes back within seconds
 WORKER_APP = "omnidata-e2e-worker"
 SCHEDULER_APP = "omnidata-e2e-scheduler"
-# The command the CI environment uses to (re)start Redis (see the environment notes).
-REDIS_START = ["redis-server", "--daemonize", "yes", "--bind", "127.0.0.1", "-::1", "--port", "6379", "--save", "",
-               "--appendonly", "no", "--dir", "/var/lib/redis", "--logfile", "/var/log/redis/ci.log"]
-
-
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -165,19 +162,42 @@ class Cluster:
             admin.dispose()
 
 
-def restart_redis() -> None:
-    """Stop Redis without saving (every message is lost) and start it again with the CI command."""
-    subprocess.run(["redis-cli", "-p", "6379", "shutdown", "nosave"], capture_output=True, timeout=20)
+def redis_up(port: int) -> bool:
+    return subprocess.run(["redis-cli", "-p", str(port), "ping"], capture_output=True).returncode == 0
+
+
+def wait_for_redis(port: int, up: bool) -> None:
     deadline = time.monotonic() + 20
-    while subprocess.run(["redis-cli", "-p", "6379", "ping"], capture_output=True).returncode == 0:
-        assert time.monotonic() < deadline, "redis did not stop"
+    while redis_up(port) != up:
+        assert time.monotonic() < deadline, f"redis on :{port} did not {'start' if up else 'stop'}"
         time.sleep(0.1)
-    time.sleep(1.0)  # the workers and the scheduler notice the broker is gone
-    subprocess.run(REDIS_START, check=True, capture_output=True, timeout=20)
-    deadline = time.monotonic() + 20
-    while subprocess.run(["redis-cli", "-p", "6379", "ping"], capture_output=True).returncode != 0:
-        assert time.monotonic() < deadline, "redis did not come back"
-        time.sleep(0.1)
+
+
+def start_redis(port: int, folder: Path) -> None:
+    """A redis-server on `port` as the CI machine runs its own (no persistence), logging into `folder`."""
+    folder.mkdir(parents=True, exist_ok=True)
+    subprocess.run(["redis-server", "--daemonize", "yes", "--bind", "127.0.0.1", "--port", str(port), "--save", "",
+                    "--appendonly", "no", "--dir", str(folder), "--logfile", str(folder / "redis.log")],
+                   check=True, capture_output=True, timeout=20)
+    wait_for_redis(port, up=True)
+
+
+def stop_redis(port: int) -> None:
+    """Stop it without saving: every message it held is lost."""
+    subprocess.run(["redis-cli", "-p", str(port), "shutdown", "nosave"], capture_output=True, timeout=20)
+    wait_for_redis(port, up=False)
+
+
+@pytest.fixture()
+def own_redis(tmp_path: Path) -> Iterator[int]:
+    """The port of a Redis server of the test's own: restarting it drops no other test's connections (the suite
+    runs in several processes, tests/conftest.py)."""
+    port = free_port()
+    start_redis(port, tmp_path / "redis")
+    try:
+        yield port
+    finally:
+        stop_redis(port)
 
 
 @pytest.fixture(scope="module")

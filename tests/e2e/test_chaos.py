@@ -31,7 +31,7 @@ from services.core.db.models import Job, Task, utcnow
 from tests.e2e.conftest import REDIS_DB_URL, SCHEDULER_APP, WORKER_APP, Cluster, Proc
 from tests.e2e.test_distributed import assert_exactly_once, submit_direct_together, wait, write_spec
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.alone]
 
 CHAOS_S = 40.0  # seconds of fault injection; the workload is topped up while it runs (TOP_UP_BELOW)
 FAULTS = ["kill_worker"] * 8 + ["kill_scheduler", "drop_postgres", "drop_redis"] * 2  # injected in random order

@@ -28,7 +28,16 @@ from services.core.db.counters import job_progress
 from services.core.db.models import Job, Task
 from services.core.domain.cues import CATALOG
 from tests.conftest import GeneratedRun
-from tests.e2e.conftest import REPO, SCHEDULER_APP, WORKER_APP, Cluster, Proc, free_port, restart_redis
+from tests.e2e.conftest import (
+    REPO,
+    SCHEDULER_APP,
+    WORKER_APP,
+    Cluster,
+    Proc,
+    free_port,
+    start_redis,
+    stop_redis,
+)
 from tests.fixtures.cli import WIDE
 from tests.fixtures.holding_proxy import HoldingProxy
 
@@ -211,6 +220,7 @@ def assert_rerun_elsewhere(cluster: Cluster, held: list[int], victim_ids: list[s
     assert held and all(r.attempts >= 2 and r.worker_id not in victim_ids for r in rows), rows  # reaped, rerun
 
 
+@pytest.mark.alone
 def test_kill_9_of_a_worker_mid_task_is_rerun_at_the_heartbeat_timeout_not_the_lease(bare_cluster: Cluster,
                                                                                     scenes_dir, tmp_path):
     # The deployment's defaults: 300 s leases, workers declared dead after 30 s without a heartbeat. One run for
@@ -230,10 +240,17 @@ def test_kill_9_of_a_worker_mid_task_is_rerun_at_the_heartbeat_timeout_not_the_l
     assert_rerun_elsewhere(cluster, held, victim_ids)
 
 
-def test_redis_restart_mid_job(cluster: Cluster, scenes_dir, tmp_path):
+def test_redis_restart_mid_job(own_redis: int, bare_cluster: Cluster, scenes_dir, tmp_path):
+    cluster = bare_cluster
+    broker = {"OMNIDATA_BROKER_URL": f"redis://127.0.0.1:{own_redis}/0"}
+    cluster.start_scheduler(**broker)
+    for name in ("worker-a", "worker-b"):
+        cluster.start_worker(name, **broker)
     job_id = submit_direct(cluster, scenes_dir / "ycb_banana", write_spec(tmp_path, FAULTS))
     wait(lambda: done_count(cluster, job_id) >= 2, 120, "first outputs", cluster)
-    restart_redis()  # every queued message is gone; workers and scheduler must reconnect
+    stop_redis(own_redis)  # every queued message is gone; workers and scheduler must reconnect
+    time.sleep(1.0)  # they notice the broker is gone
+    start_redis(own_redis, tmp_path / "redis")
     assert job_state(cluster, job_id) == "running"  # the fault hit the job mid-way
     wait_done(cluster, job_id, 180)
     assert_exactly_once(cluster, job_id)

@@ -27,7 +27,7 @@ from tests.e2e.conftest import REDIS_DB_URL, WORKER_APP, Cluster, Proc
 from tests.e2e.test_distributed import assert_exactly_once, submit_direct, wait, write_spec
 from tests.fixtures.holding_proxy import HoldingProxy
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.alone]
 
 HEARTBEAT_TIMEOUT_S = 6
 BOUND_S = HEARTBEAT_TIMEOUT_S + 30  # the promise: heartbeat timeout + 30 s from the kill to the job's completion

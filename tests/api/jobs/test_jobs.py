@@ -110,6 +110,10 @@ def test_progress_counters_throughput_and_eta(api: Api, space_id: int) -> None:
     with api.session() as s:
         run_tasks(s, api.store, job_id, task_ids(s, job_id, cue="passes"))
         run_tasks(s, api.store, job_id, task_ids(s, job_id, cue="rgb")[:2], fail=True)
+    # A fresh tracker: one reading, so the rate is the average since the start. With the first GET's reading
+    # kept, a machine that took over 2 s (min_span_s) between them showed the windowed rate instead
+    # (test_rate_tracker_uses_recent_window tests that one).
+    api.app.state.rates = RateTracker()
     r = api.client.get(f"/jobs/{job_id}", headers=api.a.headers).json()
     p = r["progress"]
     assert p["by_state"]["done"] == 6 and p["by_state"]["failed"] == 2 and p["finished"] == 8

@@ -113,6 +113,7 @@ def _run(api: Any, base: str, ctx: Any, bunny: Path, artifacts: Path) -> None:
     # job page: plan plot, throughput chart, gallery with every cue side by side
     page.click(f'tr[data-job-id="{job_id}"] td a')
     page.wait_for_selector("#job-gallery .view-row")
+    page.wait_for_selector("#job-plan svg circle.point")  # each panel loads on its own: the plan may come last
     assert len(page.query_selector_all("#job-plan svg circle.point")) == 2
     assert len(page.query_selector_all("#job-plan svg polygon.camera")) == 4
     page.wait_for_selector("#job-throughput svg rect", state="attached")
@@ -126,7 +127,7 @@ def _run(api: Any, base: str, ctx: Any, bunny: Path, artifacts: Path) -> None:
     imgs = rows[0].query_selector_all("img")
     assert [i.get_attribute("alt") for i in imgs] == ["rgb", "normal", "depth_zbuffer"]  # 16-bit depth shown too
     assert all("/previews/" in (i.get_attribute("src") or "") for i in imgs)  # readable previews, not raw files
-    assert "No failed tasks" in page.inner_text("#job-failures")
+    page.wait_for_selector("#job-failures:has-text('No failed tasks')")
     page.screenshot(path=str(artifacts / "dashboard-04-job-page.png"), full_page=True)
 
     # workers page

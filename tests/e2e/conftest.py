@@ -36,6 +36,8 @@ REDIS_DB_URL = os.environ.get("OMNIDATA_TEST_E2E_REDIS_URL") or os.environ.get("
 LEASE_S = 10  # short leases: a killed worker's task comes back within seconds
 WORKER_APP = "omnidata-e2e-worker"
 SCHEDULER_APP = "omnidata-e2e-scheduler"
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -27,10 +27,10 @@ alone_pid=$!
 rest_mark="not alone${MARK:+ and ($MARK)}"
 nice -n 10 "$BIN/pytest" -q -n "$PROCS" --dist loadgroup -m "$rest_mark" "${args[@]}"
 rest=$?
+wait "$alone_pid"
+alone=$?
+alone_pid=
 if [ "$rest" -eq 1 ]; then  # tests failed (not an interrupt or a usage error): once more, alone, in one process
-  wait "$alone_pid"
-  alone=$?
-  alone_pid=
   echo
   echo "== the tests that failed in the parallel run, again in one process:"
   "$BIN/pytest" -q --last-failed --last-failed-no-failures none -m "$rest_mark" "${args[@]}"
@@ -38,11 +38,6 @@ if [ "$rest" -eq 1 ]; then  # tests failed (not an interrupt or a usage error): 
   [ "$rest" -eq 0 ] && echo "== they passed alone: they fail only under load (named above); fix their timing"
 fi
 
-if [ -n "$alone_pid" ]; then
-  wait "$alone_pid"
-  alone=$?
-  alone_pid=
-fi
 echo
 echo "== the tests that assert a recovery deadline (marker alone), run beside the rest at normal priority:"
 cat "$alone_log"

@@ -58,9 +58,9 @@ def pytest_ignore_collect(collection_path: Path, config: pytest.Config) -> bool 
 BPY_FIXTURES = frozenset({"tiny_banana", "small_job", "trajectory_job", "banana_run", "room_passes", "banana_passes"})
 
 
-# Fixtures of the shared Redis server (a flushed database, a deployment whose tests restart Redis or kill its
-# clients): under pytest-xdist (`make test` runs two or more processes) their tests form one group, run one at a
-# time by one process, so a restart or a flush never lands on another test's connection.
+# Fixtures of the shared Redis server (a database flushed per test; a deployment's, flushed per module, whose
+# tests kill its clients): under pytest-xdist (`make test` runs two or more processes) their tests form one group,
+# run one at a time by one process, so a flush or a kill never lands on another test's connection.
 SERVICE_FIXTURES = frozenset({"redis_url", "deployment"})
 
 

@@ -165,7 +165,7 @@ def segment_stages(passes: list[ViewPasses], repeats: int) -> dict[str, dict[str
                                         for c in range(img.shape[-1])], axis=-1)
                     c3 = time.process_time()
                     h, w = img.shape[:2]
-                    code, cost = fz._sorted_edges(img, fz.SORT_LEVELS)
+                    code, cost = fz._sorted_edges(img, fz.SORT_LEVELS, fz.DIRECTIONS[8])
                     c4 = time.process_time()
                     fz._merge(code, cost, w, h * w, float(params.segment2d_scale) / 255.0)
                     c5 = time.process_time()

@@ -33,26 +33,28 @@ def _find(parent: np.ndarray, i: int) -> int:
     return i
 
 
-# The 8-connected grid's edge directions (dy, dx): right, down, down-right, up-right (skimage's edge set). An edge
-# is coded a * 4 + direction (a = the pixel at its start): one array to scatter in the sort instead of two.
+# The 8-connected grid's edge directions (dy, dx): right, down, down-right, up-right (skimage's edge set); the
+# 4-connected grid has the first two (`directions`). An edge is coded a * 4 + direction (a = the pixel at its
+# start): one array to scatter in the sort instead of two.
 _DY = np.array([0, 1, 1, -1], np.int64)
 _DX = np.array([1, 0, 1, 1], np.int64)
+DIRECTIONS = {8: 4, 4: 2}  # connectivity -> how many of the directions above
 
 
 @njit(cache=True, nogil=True)
-def _edge_count(h: int, w: int) -> int:
-    return h * (w - 1) + (h - 1) * w + 2 * (h - 1) * (w - 1)
+def _edge_count(h: int, w: int, directions: int) -> int:
+    return h * (w - 1) + (h - 1) * w + (2 * (h - 1) * (w - 1) if directions == 4 else 0)
 
 
 @njit(cache=True, nogil=True)
-def _edge_costs(img: np.ndarray) -> tuple[np.ndarray, float]:
+def _edge_costs(img: np.ndarray, directions: int) -> tuple[np.ndarray, float]:
     """Feature distance of every grid edge in generation order (direction by direction, rows, columns), and the
     largest."""
     h, w, c = img.shape
-    cost = np.empty(_edge_count(h, w), np.float32)
+    cost = np.empty(_edge_count(h, w, directions), np.float32)
     top = np.float32(0.0)
     e = 0
-    for d in range(4):
+    for d in range(directions):
         dy, dx = _DY[d], _DX[d]
         for y in range(max(0, -dy), h - max(0, dy)):
             for x in range(w - dx):
@@ -67,14 +69,14 @@ def _edge_costs(img: np.ndarray) -> tuple[np.ndarray, float]:
 
 
 @njit(cache=True, nogil=True)
-def _sorted_edges(img: np.ndarray, levels: int) -> tuple[np.ndarray, np.ndarray]:
+def _sorted_edges(img: np.ndarray, levels: int, directions: int) -> tuple[np.ndarray, np.ndarray]:
     """The grid's edges (codes a * 4 + direction) and feature distances in increasing distance quantised to
     `levels` (<= 2^16) steps of the largest, ties in generation order (a stable counting sort), so the merge passes
     read them in sequence."""
     if levels > 1 << 16:
         raise ValueError("at most 2^16 levels (buckets are kept as uint16)")
     h, w, _ = img.shape
-    cost, top = _edge_costs(img)
+    cost, top = _edge_costs(img, directions)
     scale = (levels - 1) / top if top > 0 else 0.0
     q = np.empty(len(cost), np.uint16)  # each edge's bucket, kept for the scatter pass (half an int32's traffic)
     start = np.zeros(levels + 1, np.int64)
@@ -87,7 +89,7 @@ def _sorted_edges(img: np.ndarray, levels: int) -> tuple[np.ndarray, np.ndarray]
     code = np.empty(len(cost), np.int32)
     sorted_cost = np.empty(len(cost), np.float32)
     e = 0
-    for d in range(4):
+    for d in range(directions):
         dy, dx = _DY[d], _DX[d]
         for y in range(max(0, -dy), h - max(0, dy)):
             for x in range(w - dx):
@@ -214,9 +216,15 @@ def _raster_labels(comp: np.ndarray, parent: np.ndarray) -> np.ndarray:
 
 
 class Felzenszwalb:
-    """The merge pass of one image, done once; `labels(min_size)` then gives its superpixels for any min_size."""
+    """The merge pass of one image, done once; `labels(min_size)` then gives its superpixels for any min_size.
 
-    def __init__(self, features: np.ndarray, scale: float, sigma: float):
+    `connectivity` (8, skimage's and the segment cues'; or 4) and `levels` (the sort's quantisation) are for
+    measuring other definitions (bench/segment_stability.py); the defaults are the cues'."""
+
+    def __init__(self, features: np.ndarray, scale: float, sigma: float, *, connectivity: int = 8,
+                 levels: int = SORT_LEVELS):
+        if connectivity not in DIRECTIONS:
+            raise ValueError(f"connectivity must be 4 or 8, got {connectivity}")
         img = np.ascontiguousarray(features, dtype=np.float32)
         if img.ndim == 2:
             img = img[..., None]
@@ -224,7 +232,7 @@ class Felzenszwalb:
             img = np.stack([gaussian_blur(img[..., c], sigma, mode="reflect") for c in range(img.shape[-1])], axis=-1)
         self.shape = img.shape[:2]
         h, w = self.shape
-        code, cost = _sorted_edges(img, SORT_LEVELS)
+        code, cost = _sorted_edges(img, levels, DIRECTIONS[connectivity])
         parent, size, kept = _merge(code, cost, w, h * w, float(scale) / 255.0)
         self._comp, self._size, self._ca, self._cb = _components(kept, parent, size, w)
         self._last: tuple[int, np.ndarray, int] | None = None

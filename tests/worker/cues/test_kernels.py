@@ -236,6 +236,24 @@ def test_felzenszwalb_is_the_previous_kernel_bit_for_bit(shape, channels, sigma)
         assert 1 < new.labels(5).max() < new.labels(1).max()  # real merges at both passes, not a trivial case
 
 
+def test_felzenszwalb_connectivity_4_leaves_out_the_diagonal_edges() -> None:
+    """A checkerboard: its like colours touch only diagonally, so the 8-connected grid joins each colour into one
+    region at zero cost and the 4-connected grid joins nothing (every edge it has crosses the full colour step,
+    above a tiny scale's threshold). bench/segment_stability.py measures the 4-connected grid on real rooms."""
+    board = (np.indices((6, 8)).sum(axis=0) % 2).astype(np.float32)[..., None]
+    eight = Felzenszwalb(board, 1e-3, 0.0).labels(1)
+    four = Felzenszwalb(board, 1e-3, 0.0, connectivity=4).labels(1)
+    assert np.array_equal(eight, (board[..., 0] != board[0, 0, 0]).astype(np.int64))
+    assert np.array_equal(four, np.arange(48).reshape(6, 8))
+    img = _test_image(np.random.default_rng(3), 37, 53, 3)
+    assert np.array_equal(Felzenszwalb(img, 200.0, 0.8, connectivity=8, levels=1 << 16).labels(50),
+                          reference_felzenszwalb.Felzenszwalb(img, 200.0, 0.8).labels(50))  # the defaults
+    assert not np.array_equal(Felzenszwalb(img, 200.0, 0.8, levels=16).labels(1),
+                              Felzenszwalb(img, 200.0, 0.8).labels(1))  # a coarser sort orders the edges otherwise
+    with pytest.raises(ValueError, match="connectivity"):
+        Felzenszwalb(board, 1.0, 0.0, connectivity=6)
+
+
 def _narf_views() -> list[ViewContext]:
     """A raycast room (boxes, a sphere: folds, corners, occlusion borders) with depth holes and a far cut, and a
     cube on an empty background."""

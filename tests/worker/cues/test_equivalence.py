@@ -35,7 +35,11 @@ from services.worker.space_cache import SpaceContext
 from tests.fixtures import reference_keypoints2d, reference_keypoints3d, reference_segmentation
 from tests.fixtures.exr import openexr_file_bytes
 from tests.fixtures.raycast import decode_png, object_view
-from tests.fixtures.segment_agreement import adjusted_rand_index
+from tests.fixtures.segment_agreement import (
+    adjusted_rand_index,
+    equivalence_failures,
+    imperceptibly_perturbed,
+)
 
 pytestmark = pytest.mark.bpy  # the views are Cycles renders
 
@@ -83,9 +87,7 @@ def colour_from_normals(p: ViewPasses) -> ViewPasses:
 
 
 def assert_same_segmentation(old: np.ndarray, new: np.ndarray) -> None:
-    assert np.array_equal(old == 0, new == 0)  # the same pixels are "no surface"
-    assert adjusted_rand_index(old, new) >= 0.9
-    assert abs(int(new.max()) - int(old.max())) <= max(1, 0.2 * int(old.max())), (old.max(), new.max())
+    assert not equivalence_failures(old, new), equivalence_failures(old, new)
 
 
 def test_segment_unsup25d_matches_the_previous_implementation_on_room_views(room_passes):
@@ -106,6 +108,18 @@ def test_segment_unsup2d_matches_the_previous_implementation_on_colour_views(roo
         assert_same_segmentation(old, new)
         counts.append(int(old.max()))
     assert sum(counts) >= 5 * len(counts)
+
+
+def test_segment_unsup25d_does_not_move_under_imperceptible_depth_noise(room_passes):
+    """The 2.5d segmentation is a stable function of the geometry (bench/segment_stability.py: ARI 0.97-1.0 on the
+    real rooms), which is what lets a cheaper definition of it be held to the bound above; the colour segmentation
+    of a real texture is not (the same perturbation of its pixels moves it to ARI 0.27-0.56 on some views)."""
+    for i, p in enumerate(room_passes):
+        old = segment_unsup25d(ViewContext(None, passes=p))
+        new = segment_unsup25d(ViewContext(None, passes=imperceptibly_perturbed(p, i)))
+        assert not np.array_equal(p.depth_z, imperceptibly_perturbed(p, i).depth_z)  # the input did change
+        assert_same_segmentation(old, new)
+        assert adjusted_rand_index(old, new) >= 0.97
 
 
 def test_felzenszwalb_kernel_matches_skimage_superpixels(room_passes):

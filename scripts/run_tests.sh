@@ -7,7 +7,12 @@
 # Most of the deadline tests' time is waiting (heartbeat timeouts), which the rest fills. A test that fails in the
 # parallel run runs again in one process once that run is over, as the suite ran before: one that passes then is
 # named as failing only under load (a timing assumption to fix) and does not fail the run; one that fails again
-# does. Exit status: the first run's that failed. ARGS are passed to both runs (e.g. ARGS="-x").
+# does. A deadline test that fails beside the rest runs again after both, on the quiet machine, and the same rule
+# holds: on a 2-core host half as fast as usual the nice'd suite still slowed the chaos soak's worst recovery from
+# 24.7 s (alone) to 52 s (its Postgres backends and Redis serve both at normal priority), past the 36 s bound that
+# a deployment is promised, not a deployment sharing its cores with a test suite. A recovery that misses the bound
+# on the quiet machine too fails the run. Exit status: the first run's that failed. ARGS are passed to both runs
+# (e.g. ARGS="-x").
 set -uo pipefail
 cd "$(dirname "$0")/.."
 BIN=${BIN:-.venv/bin}
@@ -16,12 +21,14 @@ MARK=${TEST_MARK:-}  # e.g. "not slow" (make test-fast): narrows both runs
 read -r -a args <<<"${ARGS:-}"
 
 alone_log=$(mktemp)
+alone_cache=$(mktemp -d)  # the deadline run's own last-failed record (the rest's is .pytest_cache)
 alone_pid=
-trap 'rm -f "$alone_log"; [ -n "$alone_pid" ] && kill "$alone_pid" 2>/dev/null' EXIT
+trap 'rm -rf "$alone_log" "$alone_cache"; [ -n "$alone_pid" ] && kill "$alone_pid" 2>/dev/null' EXIT
 trap 'exit 130' INT TERM
 
+alone_mark="alone${MARK:+ and ($MARK)}"
 OMNIDATA_TEST_E2E_REDIS_URL=redis://127.0.0.1:6379/11 \
-  "$BIN/pytest" -q -p no:cacheprovider -m "alone${MARK:+ and ($MARK)}" "${args[@]}" >"$alone_log" 2>&1 &
+  "$BIN/pytest" -q -o cache_dir="$alone_cache" -m "$alone_mark" "${args[@]}" >"$alone_log" 2>&1 &
 alone_pid=$!
 
 rest_mark="not alone${MARK:+ and ($MARK)}"
@@ -42,5 +49,14 @@ echo
 echo "== the tests that assert a recovery deadline (marker alone), run beside the rest at normal priority:"
 cat "$alone_log"
 [ "$alone" -eq 5 ] && [ -n "$MARK${ARGS:-}" ] && alone=0  # a narrowed run may select none of them
+if [ "$alone" -eq 1 ]; then  # a deadline missed beside the rest: once more on the quiet machine
+  echo
+  echo "== the deadline tests that failed beside the rest, again alone:"
+  OMNIDATA_TEST_E2E_REDIS_URL=redis://127.0.0.1:6379/11 \
+    "$BIN/pytest" -q -o cache_dir="$alone_cache" --last-failed --last-failed-no-failures none -m "$alone_mark" \
+    "${args[@]}"
+  alone=$?
+  [ "$alone" -eq 0 ] && echo "== they met their deadlines alone: they miss them only beside the suite (named above)"
+fi
 if [ "$rest" -ne 0 ]; then exit "$rest"; fi
 exit "$alone"

@@ -34,9 +34,10 @@ import functools  # noqa: E402
 import json  # noqa: E402
 import subprocess  # noqa: E402
 import time  # noqa: E402
-from collections.abc import Callable, Iterator  # noqa: E402
-from contextlib import contextmanager  # noqa: E402
+from collections.abc import Callable  # noqa: E402
+from contextlib import AbstractContextManager  # noqa: E402
 from pathlib import Path  # noqa: E402
+from unittest.mock import patch  # noqa: E402
 
 import numpy as np  # noqa: E402
 
@@ -90,24 +91,14 @@ def _flipped_second_eigenvector(A: np.ndarray) -> np.ndarray:
     return -_SECOND_EIGENVECTOR(A)
 
 
-@contextmanager
-def swapped(module: object, name: str, value: object) -> Iterator[None]:
-    old = getattr(module, name)
-    setattr(module, name, value)
-    try:
-        yield
-    finally:
-        setattr(module, name, old)
-
-
 # name -> what makes the variant current for the duration of a `with`
-CANDIDATES: dict[str, Callable[[], object]] = {
-    "connectivity_4": lambda: swapped(segmentation, "Felzenszwalb", functools.partial(Felzenszwalb, connectivity=4)),
-    "sort_levels_4096": lambda: swapped(segmentation, "Felzenszwalb", functools.partial(Felzenszwalb, levels=4096)),
-    "max_superpixels_384": lambda: swapped(segmentation, "superpixels", _capped_superpixels),
-    "float32_eigenvector": lambda: swapped(ncuts, "second_eigenvector", _f32_second_eigenvector),
+CANDIDATES: dict[str, Callable[[], AbstractContextManager[object]]] = {
+    "connectivity_4": lambda: patch.object(segmentation, "Felzenszwalb", functools.partial(Felzenszwalb, connectivity=4)),
+    "sort_levels_4096": lambda: patch.object(segmentation, "Felzenszwalb", functools.partial(Felzenszwalb, levels=4096)),
+    "max_superpixels_384": lambda: patch.object(segmentation, "superpixels", _capped_superpixels),
+    "float32_eigenvector": lambda: patch.object(ncuts, "second_eigenvector", _f32_second_eigenvector),
     # not cheaper: how much the labels hang on the eigenvector's sign, which dsyevr leaves arbitrary
-    "eigenvector_sign_flipped": lambda: swapped(ncuts, "second_eigenvector", _flipped_second_eigenvector),
+    "eigenvector_sign_flipped": lambda: patch.object(ncuts, "second_eigenvector", _flipped_second_eigenvector),
 }
 
 
@@ -152,18 +143,19 @@ def run_room(room: str, n_views: int, repeats: int, cache: Path) -> dict:
     for name, make in CANDIDATES.items():
         with make():
             both_cues(passes[0], params)  # a variant's kernels compiled outside the timing
-        rows, saved = [], []
+        rows, saved, current_s = [], [], []
         for _ in range(repeats):
             for c, p in zip(current, passes, strict=True):
                 _, t_current = both_cues(p, params)
                 with make():
                     labels, t_variant = both_cues(p, params)
                 saved.append(t_current - t_variant)
+                current_s.append(t_current)
                 if len(rows) < len(passes):
                     rows.append(agreement(c, labels))
         result["candidates"][name] = {
             "cpu_s_saved_per_view_median": round(float(np.median(saved)), 4),
-            "cpu_s_current_per_view_median": round(float(np.median([both_cues(p, params)[1] for p in passes])), 4),
+            "cpu_s_current_per_view_median": round(float(np.median(current_s)), 4),
             **{cue: summary([r[k] for r in rows]) for k, cue in enumerate(CUES)}}
         print(room, name, json.dumps(result["candidates"][name]), flush=True)
     print(room, "noise floor", json.dumps(result["noise_floor"]), flush=True)

@@ -115,9 +115,10 @@ def test_segment_unsup25d_does_not_move_under_imperceptible_depth_noise(room_pas
     real rooms), which is what lets a cheaper definition of it be held to the bound above; the colour segmentation
     of a real texture is not (the same perturbation of its pixels moves it to ARI 0.27-0.56 on some views)."""
     for i, p in enumerate(room_passes):
+        noisy = imperceptibly_perturbed(p, i)
+        assert not np.array_equal(p.depth_z, noisy.depth_z)  # the input did change
         old = segment_unsup25d(ViewContext(None, passes=p))
-        new = segment_unsup25d(ViewContext(None, passes=imperceptibly_perturbed(p, i)))
-        assert not np.array_equal(p.depth_z, imperceptibly_perturbed(p, i).depth_z)  # the input did change
+        new = segment_unsup25d(ViewContext(None, passes=noisy))
         assert_same_segmentation(old, new)
         assert adjusted_rand_index(old, new) >= 0.97
 

@@ -87,7 +87,7 @@ def _nearest_in_columns(mask: np.ndarray) -> np.ndarray:
 @njit(cache=True, nogil=True)
 def nearest_site(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(row, column) int32 H x W of the nearest True pixel of mask to every pixel; -1 everywhere when mask has
-    none."""
+    none. A row that is all mask is its own answer (each pixel its own site, at distance 0): no row pass there."""
     h, w = mask.shape
     iy = _nearest_in_columns(mask)
     ix = np.empty((h, w), np.int64)
@@ -97,6 +97,20 @@ def nearest_site(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     g = np.empty(w, np.int64)
     d0 = np.empty(w, np.int64)
     o0 = np.empty(w, np.int64)
+    out_y = np.empty((h, w), np.int32)
+    out_x = np.empty((h, w), np.int32)
     for y in range(h):  # along each row: the line's coordinate is the column
-        _nearest_on_row(ix[y], iy[y], y, g, d0, o0)
-    return iy.astype(np.int32), ix.astype(np.int32)
+        if not _all_true(mask[y]):
+            _nearest_on_row(ix[y], iy[y], y, g, d0, o0)
+        for x in range(w):
+            out_y[y, x] = iy[y, x]
+            out_x[y, x] = ix[y, x]
+    return out_y, out_x
+
+
+@njit(cache=True, nogil=True)
+def _all_true(row: np.ndarray) -> bool:
+    for v in row:
+        if not v:
+            return False
+    return True

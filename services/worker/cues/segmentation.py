@@ -192,14 +192,17 @@ def _uniform_in_mask(features: np.ndarray, mask: np.ndarray) -> bool:
 
 
 @njit(cache=True, nogil=True)
-def _gather(features: np.ndarray, iy: np.ndarray, ix: np.ndarray) -> np.ndarray:
-    """features[iy, ix] (H x W x C) as one compiled pass."""
+def _gather(features: np.ndarray, mask: np.ndarray, iy: np.ndarray, ix: np.ndarray) -> np.ndarray:
+    """features[iy, ix] (H x W x C) as one compiled pass, where (iy, ix) is each pixel's nearest mask pixel: a mask
+    pixel is its own nearest, so only the pixels off the mask are gathered (the rest is one copy)."""
     h, w, c = features.shape
-    out = np.empty_like(features)
+    out = features.copy()
     for y in range(h):
         for x in range(w):
-            for k in range(c):
-                out[y, x, k] = features[iy[y, x], ix[y, x], k]
+            if not mask[y, x]:
+                sy, sx = iy[y, x], ix[y, x]
+                for k in range(c):
+                    out[y, x, k] = features[sy, sx, k]
     return out
 
 
@@ -226,7 +229,7 @@ def segment(ctx: ViewContext, features: np.ndarray, mask: np.ndarray, *, sigma: 
         # Background pixels take the nearest surface pixel's features, so silhouettes do not spawn thin
         # mixed-colour regions (Felzenszwalb blurs first) and the background merges into its neighbours.
         iy, ix = nearest_in_mask(ctx, mask)
-        features = _gather(features, iy, ix)
+        features = _gather(features, mask, iy, ix)
     superpixel_ids = superpixels(features, p.segment2d_scale, sigma, p.segment2d_min_size, p.segment_max_superpixels)
     W = region_graph(superpixel_ids, features * 255.0, p.segment_ncut_sigma, boundary)
     merged = normalized_cuts(W, p.segment_ncut_thresh, p.segment_num_cuts)[superpixel_ids]

@@ -16,6 +16,7 @@ from services.worker.cues.keypoints import _blur, _double, doh_response, narf_in
 from services.worker.cues.ncuts import _pairwise_sum, normalized_cuts, second_eigenvector
 from services.worker.cues.registry import cue_value
 from services.worker.cues.segmentation import (
+    _gather,
     _relabel,
     _uniform_in_mask,
     features25d,
@@ -316,6 +317,18 @@ def test_nearest_site_is_scipys_feature_transform_index_for_index() -> None:
         assert iy.dtype == ix.dtype == np.int32
         assert np.array_equal(iy, old[0]) and np.array_equal(ix, old[1]), mask.shape
     assert (nearest_site(np.zeros((3, 4), bool))[0] == -1).all()
+
+
+def test_background_fill_is_numpys_gather_at_the_nearest_sites() -> None:
+    """The segment cues' fill (each pixel takes its nearest mask pixel's features) copies the mask pixels and
+    gathers only the others: the same floats as features[iy, ix] for every pixel."""
+    rng = np.random.default_rng(5)
+    for mask in _site_masks():
+        if not mask.any():
+            continue
+        features = rng.random((*mask.shape, 4)).astype(np.float32)
+        iy, ix = nearest_site(mask)
+        assert np.array_equal(_gather(features, mask, iy, ix), features[iy, ix]), mask.shape
 
 
 @pytest.mark.parametrize("n", [0, 1, 7, 8, 9, 127, 128, 129, 255, 256, 257, 1000, 4096, 8191, 8192, 8193, 20000])

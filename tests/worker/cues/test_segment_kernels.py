@@ -87,7 +87,7 @@ def test_every_split_of_a_view_is_the_numpy_versions_bit_for_bit(room_views) -> 
         params = ctx.params
         mask = valid(ctx)
         iy, ix = nearest_in_mask(ctx, mask)
-        features = _gather(features25d(ctx), iy, ix)
+        features = _gather(features25d(ctx), mask, iy, ix)
         ids = superpixels(features, params.segment2d_scale, 0.0, params.segment2d_min_size,
                           params.segment_max_superpixels)
         W = region_graph(ids, features * 255.0, params.segment_ncut_sigma)

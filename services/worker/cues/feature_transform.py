@@ -110,6 +110,7 @@ def nearest_site(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 @njit(cache=True, nogil=True)
 def _all_true(row: np.ndarray) -> bool:
+    """Whether every entry of a bool row is True (stops at the first False)."""
     for v in row:
         if not v:
             return False

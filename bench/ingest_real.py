@@ -1,180 +1,161 @@
-"""Real-corpus figures of bench/ingest.py: levelling of real reconstructions in any rotation and unit,
-refusals, and each evidence term's contribution (ablation).
+"""Benchmark: real rooms levelled as users bring them, without asking.
 
-Corpus: the 7-Scenes redkitchen TSDF mesh at full resolution (../shared/scenes, 192k faces) and the ICL-NUIM
-living room, plus the decimated real scans of tests/fixtures/real_scans: six partial kitchen scans meshed
-from 15 neighbouring 7-Scenes depth frames each (no ceiling, holes, walls as large as the visible floor) and
-the BundleFusion copy room. Each as stored, in random rotations and the 24 axis-aligned ones, cycling through
-mm, cm, inches and metres; the scans with capture poses also with their mean camera up (`capture_up`).
+Corpus: bench/scans/rooms/truth.json (real reconstructions and scans from several public sources, each with its
+true up, how that truth is known, its source and licence; SOURCE.md beside each file). Every room is tried
+- as delivered (the file's own frame and format),
+- exported levelled as a Z-up PLY and as a Y-up GLB,
+- under 5 random rotations, in metres, centimetres, millimetres, inches and metres again (PLY),
+through `resolve_frame`, the call `load_space` makes once the file is read (point clouds meshed once by the
+service's reconstruction, in their delivered frame). Outcome per case: levelled (within 3 degrees), wrong (planned
+more than 3 degrees off without asking) or refused (with the true up as the first candidate, or not). Single depth
+frames (one sensor view, not a room) are reported apart from the rooms.
+
+Run: `.venv/bin/python bench/ingest_real.py [--out FILE]`; writes the "real_rooms" section of
+bench/results/ingest.json (the rest of that file is bench/ingest.py's) and prints the table per source.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+import argparse
+import json
+import platform
+import sys
+import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import trimesh
+from scipy.spatial.transform import Rotation
 
-from services.core.ingest.gravity import UnitError, estimate_up, floor_evidence, up_candidate_facts
-from services.core.ingest.unit_evidence import ScanMeasures, choose_units, decide_units, measure
-from services.core.ingest.up_evidence import WEIGHTS, decide
-from tests.fixtures import rotation_corpus as corpus
-from tests.fixtures.real_corpus import RealCase, real_cases, real_rooms
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
 
+from services.core.ingest.errors import SpaceError, UnitsAmbiguous, UpAmbiguous  # noqa: E402
+from services.core.ingest.frame import FrameRequest, resolve_frame, rotation_to_z  # noqa: E402
+from services.core.ingest.loading import load_space  # noqa: E402
 
-def shared_rooms(scenes: Path) -> list[tuple[corpus.Room, np.ndarray | None]]:
-    """The full-resolution real meshes of ../shared/scenes with their measured up (and mean camera up)."""
-    kitchen = scenes / "7scenes_redkitchen"
-    mesh = trimesh.load(kitchen / "mesh_tsdf_2cm_from_1000frames.ply", process=False)
-    up = -np.loadtxt(kitchen / "gravity-direction.txt").ravel()
-    poses = [np.loadtxt(p) for p in sorted((kitchen / "frames").glob("frame-*.pose.txt"))]
-    capture = np.mean([-p[:3, 1] for p in poses], axis=0)
-    icl = corpus.icl_room(scenes)
-    return [(corpus.Room("7scenes_redkitchen_full", mesh, up / np.linalg.norm(up)), capture), (icl, None)]
+ROOMS = REPO / "bench" / "scans" / "rooms" / "truth.json"
+SCALES = (1.0, 0.01, 0.001, 0.0254, 1.0)  # metres per unit of the rotated copies, in turn
+LEVEL_DEG = 3.0
+FIRST_DEG = 10.0  # a refusal's first candidate this close to the truth offers the true up first
+Y_UP = Rotation.from_euler("x", -90, degrees=True).as_matrix()  # +Z -> +Y
 
 
-def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    """Up error (degrees) over the levelled cases, share refused as ambiguous, share levelled wrong."""
-    levelled = [r["error"] for r in rows if not r["refused"]]
-    e = np.asarray(levelled) if levelled else np.asarray([np.nan])
-    refused = [r for r in rows if r["refused"]]
-    return {
-        "cases": len(rows),
-        "up_error_deg_median": round(float(np.median(e)), 4),
-        "up_error_deg_p95": round(float(np.percentile(e, 95)), 4),
-        "up_error_deg_max": round(float(np.max(e)), 4),
-        "share_within_3deg": round(float(np.mean([not r["refused"] and r["error"] < 3.0 for r in rows])), 4),
-        "share_refused_ambiguous": round(len(refused) / max(len(rows), 1), 4),
-        "share_levelled_wrong_without_refusal": round(float(np.mean([not r["refused"] and r["error"] >= 3.0
-                                                                     for r in rows])), 4),
-        "share_refusals_naming_the_right_candidate": (round(float(np.mean([r["named_right"] for r in refused])), 4)
-                                                      if refused else None),
-        "units_correct": round(float(np.mean([r["units_ok"] for r in rows])), 4),
-        **({"units": units_shares(rows, "units")} if rows and "units" in rows[0] else {}),
-    }
+def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """Angle between two directions, degrees."""
+    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
+    return float(np.degrees(np.arccos(np.clip(a @ b, -1.0, 1.0))))
 
 
-def units_shares(rows: list[dict[str, Any]], key: str) -> dict[str, Any]:
-    """Units right / refused as ambiguous / wrong: over every case (detected up, as the old units_correct),
-    over the cases whose up was levelled (what a user gets without any flag), and with the true up given
-    (what a user gets after picking up with --up)."""
-    def shares(sel: list[dict[str, Any]], k: str) -> dict[str, Any]:
-        n = max(len(sel), 1)
-        return {"cases": len(sel), **{s: round(sum(r[k] == s for r in sel) / n, 4) for s in ("right", "refused", "wrong")}}
-
-    out = {"detected_up_all": shares(rows, key),
-           "detected_up_levelled": shares([r for r in rows if not r["refused"]], key)}
-    if key + "_true_up" in rows[0]:
-        out["true_up_given"] = shares(rows, key + "_true_up")
-    return out
+def cases(suffix: str, up: np.ndarray, seed: int) -> Iterator[tuple[str, np.ndarray, float, str]]:
+    """(case, rotation of the delivered frame, metres per unit, file suffix) of one room."""
+    yield "delivered", np.eye(3), 1.0, suffix
+    yield "levelled_z_ply", rotation_to_z(up), 1.0, ".ply"
+    yield "levelled_y_glb", Y_UP @ rotation_to_z(up), 1.0, ".glb"
+    rotations = Rotation.random(len(SCALES), random_state=np.random.default_rng(seed)).as_matrix()
+    for i, (R, scale) in enumerate(zip(rotations, SCALES, strict=True)):
+        yield f"rotated_{i}", R, scale, ".ply"
 
 
-def units_outcome(mesh: trimesh.Trimesh, up: np.ndarray, storey: float | None, scale: float) -> str:
-    """right | refused | wrong: the units `load_space` would choose along `up` (auto unit_scale)."""
+def run_case(mesh: Any, R: np.ndarray, scale: float, suffix: str, up: np.ndarray, name: str) -> dict[str, Any]:
+    """One case through resolve_frame: its outcome against the truth."""
+    copy = mesh.copy()
+    T = np.eye(4)
+    T[:3, :3] = R / scale
+    copy.apply_transform(T)
+    truth = R @ up
     try:
-        units = choose_units(mesh, up, storey)
-    except UnitError:
-        return "refused"
-    return "refused" if units.ambiguous else "right" if units.scale == scale else "wrong"
+        _, est, units = resolve_frame(copy, suffix, FrameRequest("auto", "auto", None, None), name)
+    except UpAmbiguous as e:
+        first = angle_deg(np.asarray(e.candidates[0]["up"], dtype=float), truth)
+        return {"outcome": "refused", "true_first": first < FIRST_DEG, "first_error_deg": round(first, 2)}
+    except UnitsAmbiguous:
+        return {"outcome": "units_refused"}
+    except SpaceError as e:
+        return {"outcome": "error", "message": str(e)[:200]}
+    error = angle_deg(est.up, truth)
+    record = est.record(units.scale)
+    return {"outcome": "levelled" if error <= LEVEL_DEG else "wrong", "error_deg": round(error, 2),
+            "units_right": bool(abs(units.scale - scale) <= 1e-9 * scale), "method": est.method,
+            "reason": record.get("reason"), "probability": record.get("probability"),
+            "margin": None if est.margin is None or not np.isfinite(est.margin) else round(est.margin, 3)}
 
 
-def run_case(case: RealCase, posed: bool) -> dict[str, Any]:
-    """Estimate up (with the capture's camera up when `posed`) and score it against the truth."""
-    est = estimate_up(case.mesh, ".ply", case.capture_up if posed else None)
-    units = units_outcome(case.mesh, est.up, est.storey_height, case.scale)
-    given = floor_evidence(case.mesh, case.up)
-    units_true_up = units_outcome(case.mesh, case.up, None if given is None else given.storey_height, case.scale)
-    named = [est.up] + ([c.up for c in est.decision.shown] if est.decision is not None else [])
-    return {"room": case.room, "kind": case.kind, "posed": posed, "refused": est.ambiguous,
-            "error": corpus.up_error_deg(est.up, case.up), "units_ok": units == "right", "units": units,
-            "units_true_up": units_true_up,
-            "named_right": min(corpus.up_error_deg(u, case.up) for u in named) < 5.0,
-            "probability": est.confidence}
+def shares(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Levelled / wrong / refused (true up first or not) / other, as counts and shares of the cases."""
+    n = len(rows)
+    refused = [r for r in rows if r["outcome"] == "refused"]
+    counts = {"cases": n, "levelled": sum(r["outcome"] == "levelled" for r in rows),
+              "wrong": sum(r["outcome"] == "wrong" for r in rows), "refused": len(refused),
+              "refused_true_first": sum(r["true_first"] for r in refused),
+              "other": sum(r["outcome"] in ("units_refused", "error") for r in rows)}
+    counts["share_levelled"] = round(counts["levelled"] / max(n, 1), 4)
+    counts["share_true_first_of_refused"] = round(counts["refused_true_first"] / len(refused), 4) if refused else None
+    return counts
 
 
-def calibration(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Stated probability against the observed share of right winners (refused or not), in bins."""
-    out = []
-    for lo, hi in ((0.5, 0.7), (0.7, 0.9), (0.9, 0.97), (0.97, 1.01)):
-        sel = [r for r in rows if r["probability"] is not None and lo <= r["probability"] < hi]
-        if sel:
-            out.append({"probability": f"{lo:g}-{min(hi, 1.0):g}", "cases": len(sel),
-                        "stated_mean": round(float(np.mean([r["probability"] for r in sel])), 4),
-                        "observed_right": round(float(np.mean([r["error"] < 3.0 for r in sel])), 4)})
-    return out
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--rooms", nargs="*", help="only these rooms (names in truth.json)")
+    ap.add_argument("--extra", type=Path, action="append", default=[],
+                    help="another truth.json of the same form (rooms that may not be redistributed), measured alike")
+    ap.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "ingest.json")
+    args = ap.parse_args()
 
-
-def ablation(cases: Iterable[tuple[Any, np.ndarray, np.ndarray | None]]) -> dict[str, Any]:
-    """Per evidence term: the figures with that term left out (the winner's unrefined direction)."""
-    facts = [(up_candidate_facts(mesh), truth, capture) for mesh, truth, capture in cases]
-    out: dict[str, Any] = {}
-    for left_out in ("none", *WEIGHTS):
-        rows = []
-        for cands, truth, capture in facts:
-            d = decide(cands, capture, disabled=() if left_out == "none" else (left_out,))
-            named = [c.up for c in d.shown]
-            rows.append({"refused": d.ambiguous, "error": corpus.up_error_deg(d.best.up, truth), "units_ok": True,
-                         "named_right": min(corpus.up_error_deg(u, truth) for u in named) < 5.0})
-        s = summary(rows)
-        out[f"without_{left_out}" if left_out != "none" else "all_terms"] = {
-            k: s[k] for k in ("cases", "share_within_3deg", "share_refused_ambiguous",
-                              "share_levelled_wrong_without_refusal")}
-    return out
-
-
-UNIT_TERMS = ("storey", "camera", "furniture", "spacing")
-
-
-def unit_ablation(measured: list[tuple[ScanMeasures, float]]) -> dict[str, Any]:
-    """Per unit evidence term: units right / refused / wrong with that term left out (the true up given,
-    cases where some unit makes the storey plausible)."""
-    out: dict[str, Any] = {}
-    for left_out in ("none", *UNIT_TERMS):
-        outcomes = []
-        for m, scale in measured:
-            d = decide_units(m, () if left_out == "none" else (left_out,))
-            if d.ranked:
-                outcomes.append("refused" if d.ambiguous else "right" if d.ranked[0].scale == scale else "wrong")
-        n = max(len(outcomes), 1)
-        out["all_terms" if left_out == "none" else f"without_{left_out}"] = {
-            "cases": len(outcomes), **{k: round(outcomes.count(k) / n, 4) for k in ("right", "refused", "wrong")}}
-    return out
-
-
-def real_figures(scenes: Path, n_random: int, seed: int, log: Callable[[str], None]) -> dict[str, Any]:
-    """The real-corpus section of bench/results/ingest.json."""
-    rooms = shared_rooms(scenes) + real_rooms()
+    truth = json.loads(ROOMS.read_text())
+    for extra in args.extra:
+        truth.update({name: {**room, "extra": True} for name, room in json.loads(extra.read_text()).items()})
     rows: list[dict[str, Any]] = []
-    ablation_cases: list[tuple[Any, np.ndarray, np.ndarray | None]] = []
-    posed_cases: list[tuple[Any, np.ndarray, np.ndarray | None]] = []
-    unit_cases: list[tuple[ScanMeasures, float]] = []
-    for case in real_cases(rooms, n_random, seed=seed):
-        rows.append(run_case(case, posed=False))
-        unit_cases.append((measure(case.mesh, case.up), case.scale))
-        if case.capture_up is not None:
-            rows.append(run_case(case, posed=True))
-        if case.kind != "axis":
-            ablation_cases.append((case.mesh, case.up, None))
-            if case.capture_up is not None:
-                posed_cases.append((case.mesh, case.up, case.capture_up))
-    log(f"real corpus: {len(rows)} cases")
+    t_start = time.perf_counter()
+    for i, (name, room) in enumerate(sorted(truth.items())):
+        if args.rooms and name not in args.rooms:
+            continue
+        path = REPO / room["file"]  # an absolute path stays as it is
+        # the file read and meshed as on ingest, kept in its own frame (identity source_to_world)
+        mesh = load_space(path, source_to_world=np.eye(4).tolist()).mesh
+        up = np.asarray(room["up"], dtype=float)
+        delivered = room.get("delivered_as") or path.suffix.lower()  # converted copies: the format as delivered
+        for case, R, scale, suffix in cases(delivered, up / np.linalg.norm(up), args.seed + i):
+            row = {"room": name, "place": room.get("place", name), "source": room["source"], "kind": room["kind"],
+                   "single_frame": bool(room.get("single_frame")), "extra": bool(room.get("extra")), "case": case,
+                   **run_case(mesh, R, scale, suffix, up, name)}
+            rows.append(row)
+            print(json.dumps(row), flush=True)
 
-    def pick(**kw: object) -> list[dict[str, Any]]:
-        return [r for r in rows if all(r[k] == v for k, v in kw.items())]
+    def pick(single: bool, **kw: object) -> list[dict[str, Any]]:
+        return [r for r in rows if r["single_frame"] == single and all(r[k] == v for k, v in kw.items())]
 
-    names = [room.name for room, _ in rooms]
-    return {
-        "corpus": {"rooms": names, "random_rotations_per_room": n_random, "axis_rotations_per_room": 24,
-                   "stored_frame_per_room": 1, "scales_m_per_unit": list(corpus.SCALES), "seed": seed,
-                   "posed": [room.name for room, cap in rooms if cap is not None]},
-        "without_poses": summary(pick(posed=False)),
-        "without_poses_as_stored": summary(pick(posed=False, kind="stored")),
-        "with_capture_poses": summary(pick(posed=True)),
-        "per_room_without_poses": {n: summary(pick(posed=False, room=n)) for n in names},
-        "calibration_without_poses": calibration(pick(posed=False)),
-        "ablation_without_poses": ablation(ablation_cases),
-        "ablation_with_capture_poses": ablation(posed_cases),
-        "unit_ablation_true_up": unit_ablation(unit_cases),
+    places = sorted({r["place"] for r in rows})
+    sources = sorted({r["source"] for r in rows})
+    result = {
+        "protocol": "each room as delivered, levelled Z-up PLY, levelled Y-up GLB, 5 random rotations in "
+                    "m/cm/mm/in/m; levelled = within 3 degrees without asking",
+        "corpus": {"places": len(places), "sources": len(sources), "files": len({r["room"] for r in rows}),
+                   "extra_files": sorted({r["room"] for r in rows if r["extra"]})},
+        "rooms": shares(pick(False)),
+        "rooms_by_case": {c: shares(pick(False, case=c)) for c in dict.fromkeys(r["case"] for r in rows)},
+        "by_source": {s: shares([r for r in rows if r["source"] == s]) for s in sources},
+        "by_room": {n: [r["outcome"] + ("" if r["outcome"] != "refused" else "+" if r["true_first"] else "-")
+                        for r in rows if r["room"] == n] for n in sorted({r["room"] for r in rows})},
+        "single_depth_frames": shares(pick(True)),
+        "wrong_cases": [r for r in rows if r["outcome"] == "wrong"],
+        "seconds": round(time.perf_counter() - t_start, 1),
+        "machine": {"python": platform.python_version(), "cpu": platform.processor() or platform.machine()},
+        "rows": rows,
     }
+    document = json.loads(args.out.read_text()) if args.out.exists() else {}
+    document["real_rooms"] = result
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(document, indent=2) + "\n")
+    print("\n| source | cases | levelled | wrong | refused (true up first) |\n|---|---|---|---|---|")
+    for label, s in [*result["by_source"].items(), ("all rooms (multi-view)", result["rooms"]),
+                     ("single depth frames", result["single_depth_frames"])]:
+        print(f"| {label} | {s['cases']} | {s['levelled']} ({s['share_levelled']:.0%}) | {s['wrong']} | "
+              f"{s['refused']} ({s['refused_true_first']}) |")
+    print(f"{len(places)} places from {len(sources)} sources; wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -22,6 +22,7 @@ from services.core.ingest.gravity import (
     axis_vector,
     estimate_up,
     floor_evidence,
+    guess_candidates,
 )
 from services.core.ingest.unit_evidence import choose_units, units_ambiguity_line
 from services.core.ingest.up_evidence import ambiguity_line
@@ -101,6 +102,30 @@ def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: FrameRequest,
     if est.ambiguous and not frame.accept_up_guess:
         rec = est.record(units.scale)
         raise UpAmbiguous(ambiguity_line(name, rec["candidates"], est.margin), rec["candidates"])
+    if est.method in ("convention", "base") and not frame.accept_up_guess:
+        _refuse_space_sized_guess(mesh, suffix, est.up, units.scale, name)
     if units.ambiguous and not frame.accept_up_guess:
         raise UnitsAmbiguous(units_ambiguity_line(name, list(units.candidates)), list(units.candidates))
     return source_to_world_matrix(est.up, units.scale), est, units
+
+
+AGREE_DEG = 3.0
+SPACE_EXTENT_M = 3.0  # an object this large is a space: a room needs its up found, not an object's rule
+
+
+def _refuse_space_sized_guess(mesh: trimesh.Trimesh, suffix: str, up: np.ndarray, unit_scale: float,
+                              name: str) -> None:
+    """UpAmbiguous when no floor was found in a scan the size of a space, unless every candidate's evidence agrees
+    with the object rule's `up` (the format's up, or a support base)."""
+    extent_m = float(mesh.extents.max()) * unit_scale
+    if extent_m < SPACE_EXTENT_M:
+        return
+    decision = guess_candidates(mesh, suffix)
+    if decision is None or decision.runner_up is None:
+        raise SpaceError(f"{name}: no floor and no dominant planes found in a space {extent_m:.3g} m across, so its "
+                         "up cannot be told; give it with --up=X,Y,Z or --up-axis (API: spec field up or up_axis)")
+    if not decision.ambiguous and float(decision.best.up @ up) >= np.cos(np.radians(AGREE_DEG)):
+        return
+    candidates = [c.record(unit_scale) for c in decision.shown]
+    raise UpAmbiguous(ambiguity_line(f"{name}: no floor found in a space {extent_m:.3g} m across, so", candidates,
+                                     None), candidates)

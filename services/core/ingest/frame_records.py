@@ -37,6 +37,8 @@ class UpRecord(TypedDict):
     ambiguous: NotRequired[bool]
     evidence: NotRequired[dict[str, float]]
     candidates: NotRequired[list[UpCandidateRecord]]
+    reason: NotRequired[str]  # why this up, in words: the evidence that set it apart, or the rule that gave it
+    geometry_prefers: NotRequired[UpCandidateRecord]  # the geometry's own winner, when the file's frame overruled it
 
 
 class UnitCandidateRecord(TypedDict):

@@ -44,17 +44,37 @@ from scipy.spatial import ConvexHull, QhullError
 
 from services.core.ingest.direction_bins import BINS, N_BINS, bin_neighbours, bin_tree
 from services.core.ingest.frame_records import UnitCandidateRecord, UnitsRecord, UpRecord
-from services.core.ingest.up_evidence import CandidateFacts, UpDecision, decide, unit_capture_up
+from services.core.ingest.single_view import single_view
+from services.core.ingest.up_evidence import (
+    WEIGHTS,
+    CandidateFacts,
+    FileFrame,
+    UpDecision,
+    decide,
+    nearest_axis,
+    reason_words,
+    unit_capture_up,
+)
 
 CONVENTION_UP = {".obj": "+y", ".gltf": "+y", ".glb": "+y", ".ply": "+z"}
 _SPECIFIED_UP = (".gltf", ".glb")  # formats whose specification fixes up (+Y): no capture convention
+
+
+def file_frame(suffix: str) -> FileFrame:
+    """What a file of this format says about its up before any geometry is looked at."""
+    specified = suffix in _SPECIFIED_UP
+    return FileFrame(axis_vector(CONVENTION_UP.get(suffix, "+z")), binding=specified, first_camera=not specified)
+
 
 # The one floor rule: a floor face's normal lies within 15 degrees of up. The planner's detect_floors
 # (services.scheduler.planning.cameras) uses the same cone, so a scan levelled here has the floors planned there.
 FLOOR_CONE_DEG = 15.0
 FLOOR_CONE_COS = float(np.cos(np.radians(FLOOR_CONE_DEG)))
 _END_BAND = 0.10
-_FLOOR_MIN_FRACTION = 0.30  # floor area / the scan's cross-section: below it the scan is an object, not a room
+# furniture lies between bands this wide at both ends: narrower ones take soffits, ceiling steps and lamps near a
+# ceiling for furniture undersides (a phone scan's soffit 0.85-0.93 of the way up turned its sign)
+_FURNITURE_BAND = 0.20
+_FLOOR_MIN_FRACTION = 0.15  # floor area / the scan's cross-section: below it the scan is an object, not a room
 _GIVEN_FLOOR_MIN_FRACTION = 0.10  # up given: a partial scan may see only a strip of its floor
 _BASE_MIN_FRACTION = 0.15
 _TIE_REL = 0.02
@@ -79,6 +99,17 @@ UNIT_CANDIDATES: tuple[tuple[str, float], ...] = (
     ("metres", 1.0), ("centimetres", 0.01), ("millimetres", 0.001), ("inches", 0.0254),
 )
 OBJECT_EXTENT_RANGE_M = (0.001, 50.0)
+
+
+# why up is what it is, when no scoring of candidates decided it (`UpEstimate.record`'s "reason")
+METHOD_WORDS = {
+    "floor": "the floor",
+    "convention": "the file format's convention (no floor or support base found)",
+    "convention-tie": "the file format's convention (floor and ceiling look alike)",
+    "base": "an object's support base",
+    "given": "the up given",
+    "source_to_world": "the source_to_world given",
+}
 
 
 @dataclass(frozen=True)
@@ -144,6 +175,9 @@ class UpEstimate:
             out["ambiguous"] = d.ambiguous
             out["evidence"] = d.best.record(unit_scale)["evidence"]
             out["candidates"] = [c.record(unit_scale) for c in d.shown]
+            if d.geometry_prefers is not None:
+                out["geometry_prefers"] = d.geometry_prefers.record(unit_scale)
+        out["reason"] = reason_words(self.decision) if self.decision is not None else METHOD_WORDS[self.method]
         return out
 
 
@@ -268,10 +302,12 @@ def _floor_candidate(geom: _Geometry, u: np.ndarray) -> _Candidate:
     facing_up, facing_down = c > FLOOR_CONE_COS, c < -FLOOR_CONE_COS
     floor = facing_up & (h <= 0.5 * (lo + hi))  # <=: a scan of a flat floor alone has lo == hi
     floor_area = float(areas[floor].sum())
-    band = _END_BAND * (hi - lo)
+    band = _FURNITURE_BAND * (hi - lo)
     middle = (h > lo + band) & (h < hi - band)  # furniture, not floor or ceiling
     mid_up, mid_down = float(areas[facing_up & middle].sum()), float(areas[facing_down & middle].sum())
-    surplus = max(0.0, mid_up - mid_down)
+    band = _END_BAND * (hi - lo)
+    wide_middle = (h > lo + band) & (h < hi - band)
+    surplus = max(0.0, float(areas[facing_up & wide_middle].sum()) - float(areas[facing_down & wide_middle].sum()))
     cross = _cross_section(geom.hull_points, u)
     fraction = floor_area / cross if cross > 0 else 0.0
     ceiling_area = float(areas[facing_down & (h >= 0.5 * (lo + hi))].sum())
@@ -323,7 +359,8 @@ def estimate_up(mesh: trimesh.Trimesh, suffix: str, capture_up: np.ndarray | Non
         return UpEstimate(conv, "convention")
     cands = [_floor_candidate(geom, s * f) for f, _ in families for s in (1.0, -1.0)]
     if any(c.floor_fraction >= _FLOOR_MIN_FRACTION for c in cands):
-        decision = decide([c.facts() for c in cands], cam_up, suffix not in _SPECIFIED_UP, disabled_evidence)
+        decision = decide([c.facts() for c in cands], cam_up, file_frame(suffix), disabled_evidence,
+                          single_view(geom.vertices))
         best = next(c for c in cands if c.up is decision.best.up)
         runner = decision.runner_up
         angle = _angle_deg(best.up, runner.up) if runner is not None else None
@@ -332,11 +369,28 @@ def estimate_up(mesh: trimesh.Trimesh, suffix: str, capture_up: np.ndarray | Non
             sign = float(np.sign(conv @ best.up)) or 1.0
             return UpEstimate(snap_to_axis(sign * best.up), "convention-tie", best.floor_area, best.floor_fraction,
                               angle, decision.margin, best.height)
-        up = _refine_floor(geom, best) if best.floor_area > 0 else snap_to_axis(best.up)
+        if decision.best.terms.get("levelled_axis", 0.0) > 0:
+            up = nearest_axis(best.up)  # the exporter's levelling is exact; a scanned floor's mean normal is not
+        elif decision.best.terms.get("format_up", 0.0) >= WEIGHTS["format_up_binding"]:
+            up = file_frame(suffix).axis  # the specification's up, which the floor confirmed
+        else:
+            up = _refine_floor(geom, best) if best.floor_area > 0 else snap_to_axis(best.up)
         return UpEstimate(up, "floor", best.floor_area, best.floor_fraction, angle, decision.margin, best.height,
                           decision)
     base = _support_base(geom, [f for f, _ in families])
     return base if base is not None else UpEstimate(conv, "convention")
+
+
+def guess_candidates(mesh: trimesh.Trimesh, suffix: str) -> UpDecision | None:
+    """Every plane-family direction scored as an up candidate, for a scan where no floor was found (None: no planes).
+
+    Offered when such a scan is space-sized: its up would otherwise be the file format's guess."""
+    geom = _Geometry.of(mesh)
+    families = plane_families(geom.normals, geom.areas)
+    if not families:
+        return None
+    facts = [_floor_candidate(geom, s * f).facts() for f, _ in families for s in (1.0, -1.0)]
+    return decide(facts, None, file_frame(suffix), view=single_view(geom.vertices))
 
 
 def up_candidate_facts(mesh: trimesh.Trimesh) -> list[CandidateFacts]:

@@ -61,6 +61,7 @@ from services.core.ingest.pointcloud import (
     read_text_cloud,
 )
 from services.core.ingest.texture_limits import loaded_texture_refusal
+from services.core.ingest.up_evidence import reason_words
 from services.core.storage.base import sha256_file
 from services.core.temp_dirs import owned_prefix
 
@@ -122,6 +123,8 @@ class LoadedSpace:
             line += f", floor {up['floor_area_m2']:.3g} m2"
         if up["runner_up_angle_deg"] is not None:
             line += f", runner-up {up['runner_up_angle_deg']:.0f} deg away"
+        if "reason" in up:
+            line += f"; chosen for {up['reason']}"  # records stored before reasons were written have none
         line += ")"
         if "units" in rec:
             line += f"; units: {rec['units']['unit']} x{rec['units']['unit_scale']:g} ({rec['units']['reason']})"
@@ -346,6 +349,10 @@ def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Pa
             notes.extend(more)
     T, est, units = resolve_frame(mesh, source.suffix.lower(), frame, name)
     _check_extent(name, float(mesh.extents.max()), units.scale)
+    if est.decision is not None and est.decision.geometry_prefers is not None:
+        other = ", ".join(f"{x:.3g}" for x in est.decision.geometry_prefers.up)
+        notes.append(f"the file's frame and the geometry disagree: the geometry alone would level it with up {other}; "
+                     f"the file's frame decided ({reason_words(est.decision)})")
     if est.low_confidence:
         notes.append(f"up found with low confidence ({est.doubt()}): check it with `omnidata plan`, or set up/up_axis")
     has_texture = _has_texture(mesh)

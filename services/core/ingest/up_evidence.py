@@ -17,14 +17,24 @@ candidate with the best one that would level the scan differently (more than `DI
 - `storey`: whether the extent along `u` is a storey (2.2-3.5 m, or 1.2-3.5 m for a scan without a
   ceiling: partial scans rarely see it) in one of the units we accept; a penalty when it fits none.
 - `capture_convention`: RGB-D reconstructions are stored in their first camera's OpenCV frame, so up
-  lies within ~50 degrees of -Y; not for glTF, whose specification says +Y. Weak: a rotated file breaks it. Its weight is below `REFUSE_MARGIN`,
-  so on its own it can turn a guess into a refusal but never into a confident answer.
+  lies within ~50 degrees of -Y; not for glTF, whose specification says +Y. Weak: a rotated file breaks it. Its
+  weight is below `REFUSE_MARGIN`, so on its own it can turn a guess into a refusal but never into a confident answer.
+- `levelled_axis`: a plausible floor within `AXIS_DEG` of a source axis. A random orientation puts a given
+  direction that close to one of the six axis directions with odds of about 1 in 1,000, while people and devices
+  export levelled files far more often than rotated ones: strong evidence that the file is levelled. When the walls
+  are axis-aligned too, every family gets it and the rest of the evidence picks among them.
+- `format_up`: the candidate on the format's own up axis (`FileFrame`): glTF's +Y is the specification's
+  (binding, as strong as an axis-aligned floor, for a floor within `FORMAT_DEG` of it); PLY's +Z and OBJ's +Y are habits, weighted below
+  `REFUSE_MARGIN` (Y-up PLYs and Z-up OBJs are common): they order a refusal, they never decide alone.
 - `capture_up`: the mean up vector of the capture's cameras (-Y of OpenCV cameras, averaged), when the
   caller has poses. Cameras are held upright, give or take their pitch: strong evidence.
+- `view_direction`, `view_aspect`: a single view (`services.core.ingest.single_view`): up lies across the view
+  direction within the camera's pitch (`VIEW_PITCH_DEG`; a wall the camera faced is no floor), near the frustum's
+  short axis (landscape frames). `extent` is left out for it: a frustum's extent is not the room's.
 
-The confidence is a logistic function of the margin (best score minus the runner-up's), calibrated on
-the real and synthetic corpus of bench/ingest.py; below `REFUSE_MARGIN` the estimate is ambiguous and
-planning does not go ahead on it unless the user accepted guesses.
+The confidence is a logistic function of the margin (best score minus the runner-up's), fitted on the real rooms
+of bench/ingest_real.py; below `REFUSE_MARGIN` (`SINGLE_VIEW_REFUSE_MARGIN` for one depth frame) the estimate is
+ambiguous and planning does not go ahead on it unless the user accepted guesses.
 """
 
 from __future__ import annotations
@@ -35,26 +45,71 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from services.core.ingest.frame_records import UpCandidateRecord
+from services.core.ingest.single_view import SingleView
 
 DISTINCT_DEG = 30.0  # candidates closer than this level the scan the same way
-# score margin below which the estimate is ambiguous: on the bench corpus (real and synthetic, random
-# rotations) no wrong winner scored more than 0.9 above its runner-up with these weights
-REFUSE_MARGIN = 1.2
-CONFIDENCE_SLOPE = 2.7  # logistic slope of P(right | margin), fitted on the bench corpus
+# score margin below which the estimate is ambiguous: on the real rooms of bench/ingest_real.py (as delivered,
+# levelled, rotated) no wrong winner scored more than 1.65 above its runner-up with these weights
+REFUSE_MARGIN = 1.8
+# one depth frame: on the real frames of bench/ingest_real.py wrong winners led by up to 4.4 (a floor out of view)
+SINGLE_VIEW_REFUSE_MARGIN = 4.5
+CONFIDENCE_SLOPE = 1.7  # logistic slope of P(right | margin), the likeliest on bench/ingest_real.py's real rooms
 CAPTURE_CONE_DEG = 50.0
+VIEW_PITCH_DEG = 50.0
+CAMERA_FRAME_DEG = 10.0  # a single view looking this close to +Z is stored in its camera's (OpenCV) frame  # a depth camera pointed further up or down than this sees no room
 POSE_CONE_DEG = 45.0
 STOREY_M = (2.2, 3.5)
 OPEN_STOREY_M = (1.2, 3.5)  # no ceiling scanned
 UNIT_SCALES = (1.0, 0.01, 0.001, 0.0254)
 
+AXIS_DEG = 1.5  # a floor this close to a source axis was levelled by whoever exported the file
+FORMAT_DEG = 5.0  # a floor this close to the up a format's specification fixes is that up (a drifted scan's floor)
+# what the file says counts for a candidate the geometry does not rule out: one this far below the geometry's best
+# (a wall left on an axis by a rotation about it) is no floor, whatever the file's axes
+FILE_TRUST = 4.0
+PLAUSIBLE_FLOOR_FRACTION = 0.1  # a candidate whose lower half faces it over this share of its cross-section (a strip)
+
 WEIGHTS = {
-    "floor_area": 1.5,
-    "furniture": 2.0,
-    "extent": 3.0,
+    "levelled_axis": 6.0,
+    "format_up_binding": 6.0,
+    "format_up_habit": 1.0,
+    "floor_area": 1.0,
+    "furniture": 3.0,
+    "extent": 6.0,
     "storey": 0.5,
     "capture_convention": 0.8,
     "capture_up": 4.0,
+    "view_direction": 6.0,
+    "view_aspect": 3.0,
 }
+
+
+@dataclass(frozen=True)
+class FileFrame:
+    """What a file says about its up, before any geometry: the format's up axis (source frame), whether the
+    format's specification fixes it (glTF) or it is a habit (PLY, OBJ), and whether the file may be an RGB-D
+    reconstruction stored in its first camera's frame."""
+
+    axis: np.ndarray
+    binding: bool = False
+    first_camera: bool = True
+
+
+def _on_axis(u: np.ndarray, axis: np.ndarray) -> bool:
+    return float(u @ axis) >= np.cos(np.radians(AXIS_DEG))
+
+
+def nearest_axis(u: np.ndarray) -> np.ndarray:
+    """The signed source axis nearest to the unit vector `u`."""
+    e = np.zeros(3)
+    i = int(np.argmax(np.abs(u)))
+    e[i] = np.sign(u[i]) or 1.0
+    return e
+
+
+def on_a_source_axis(u: np.ndarray) -> bool:
+    """True when `u` lies within `AXIS_DEG` of a source axis."""
+    return _on_axis(u, nearest_axis(u))
 
 
 @dataclass(frozen=True)
@@ -116,6 +171,8 @@ class UpDecision:
     margin: float  # best score - runner-up score (inf without a runner-up)
     confidence: float  # calibrated P(the best is right | margin), 0.5-1
     third: ScoredCandidate | None = None  # the best candidate levelling differently from both (shown on refusal)
+    geometry_prefers: ScoredCandidate | None = None  # the geometry's own winner, when the file's frame overruled it
+    single_view: bool = False  # scored as one depth frame: a frustum shows less of a room, so more margin is needed
 
     @property
     def shown(self) -> tuple[ScoredCandidate, ...]:
@@ -130,7 +187,7 @@ class UpDecision:
     @property
     def ambiguous(self) -> bool:
         """True when the winner does not clearly beat a candidate that levels the scan differently."""
-        return self.margin < REFUSE_MARGIN
+        return self.margin < (SINGLE_VIEW_REFUSE_MARGIN if self.single_view else REFUSE_MARGIN)
 
 
 def _furniture_term(f: CandidateFacts) -> float:
@@ -145,22 +202,48 @@ def _storey_term(f: CandidateFacts) -> float:
     return 0.0 if fits else -1.0
 
 
+def _file_terms(f: CandidateFacts, file: FileFrame, plausible: bool, levelled: bool = True) -> dict[str, float]:
+    """What the file says of this candidate (see the module docstring); `plausible`: it could be the floor;
+    `levelled`: an axis-aligned floor may mean a levelled export (not in a depth frame's own camera frame, where it
+    only means a camera held level)."""
+    terms = {"levelled_axis": WEIGHTS["levelled_axis"] if levelled and plausible and on_a_source_axis(f.up) else 0.0}
+    if file.binding:
+        near = float(f.up @ file.axis) >= np.cos(np.radians(FORMAT_DEG))
+        terms["format_up"] = WEIGHTS["format_up_binding"] if near and plausible else 0.0
+    else:
+        terms["format_up"] = WEIGHTS["format_up_habit"] if _on_axis(f.up, file.axis) else 0.0
+    if file.first_camera:  # a floor on an axis was levelled by the exporter, not seen by a pitched first camera
+        in_cone = -float(f.up[1]) > np.cos(np.radians(CAPTURE_CONE_DEG)) and not on_a_source_axis(f.up)
+        terms["capture_convention"] = WEIGHTS["capture_convention"] if in_cone else 0.0
+    return terms
+
+
+def _view_terms(f: CandidateFacts, view: SingleView) -> dict[str, float]:
+    along = float(f.up @ view.direction)
+    terms = {"view_direction": -WEIGHTS["view_direction"] if abs(along) > np.sin(np.radians(VIEW_PITCH_DEG)) else 0.0}
+    if view.short_axis is not None:
+        across = f.up - along * view.direction
+        alignment = abs(float(across @ view.short_axis)) / max(float(np.linalg.norm(across)), 1e-12)
+        terms["view_aspect"] = WEIGHTS["view_aspect"] * (2.0 * alignment - 1.0)
+    return terms
+
+
 def evidence_terms(f: CandidateFacts, all_facts: list[CandidateFacts], capture_up: np.ndarray | None,
-                   capture_convention: bool = True) -> dict[str, float]:
-    """The log-odds terms of one candidate among all (see the module docstring)."""
+                   view: SingleView | None = None) -> dict[str, float]:
+    """The log-odds terms of the geometry (and capture poses) for one candidate among all (module docstring)."""
     best_area = max(c.area_score for c in all_facts)
     ratios = [c.height / np.sqrt(c.cross_section) for c in all_facts if c.cross_section > 0 and c.height > 0]
     thinnest = min(ratios) if ratios else 1.0
     ratio = f.height / np.sqrt(f.cross_section) if f.cross_section > 0 and f.height > 0 else 10 * thinnest
     terms = {
         "floor_area": WEIGHTS["floor_area"] * float(np.log(max(f.area_score, 1e-12 * best_area) / best_area)),
-        "furniture": WEIGHTS["furniture"] * min(0.0, _furniture_term(f)),
+        "furniture": WEIGHTS["furniture"] * _furniture_term(f),
         "extent": -WEIGHTS["extent"] * float(np.log(ratio / thinnest)),
         "storey": WEIGHTS["storey"] * _storey_term(f),
     }
-    if capture_convention:
-        in_cone = -float(f.up[1]) > np.cos(np.radians(CAPTURE_CONE_DEG))
-        terms["capture_convention"] = WEIGHTS["capture_convention"] if in_cone else 0.0
+    if view is not None:
+        del terms["extent"]
+        terms.update(_view_terms(f, view))
     if capture_up is not None:
         cos_pose = float(f.up @ capture_up)
         terms["capture_up"] = WEIGHTS["capture_up"] * (1.0 if cos_pose > np.cos(np.radians(POSE_CONE_DEG)) else
@@ -179,27 +262,61 @@ def unit_capture_up(capture_up: ArrayLike | None) -> np.ndarray | None:
     return None if n < 1e-6 else v / n
 
 
-def decide(all_facts: list[CandidateFacts], capture_up: np.ndarray | None = None, capture_convention: bool = True,
-           disabled: tuple[str, ...] = ()) -> UpDecision:
+def decide(all_facts: list[CandidateFacts], capture_up: np.ndarray | None = None, file: FileFrame | None = None,
+           disabled: tuple[str, ...] = (), view: SingleView | None = None) -> UpDecision:
     """Score every candidate and compare the best with the best that levels differently.
 
-    `capture_convention`: False for formats with an up convention of their own (glTF: +Y).
-    `disabled`: evidence terms left out (the bench's ablation).
+    `file`: what the file says (format, axes); None scores the geometry (and capture poses) alone.
+    `disabled`: evidence terms left out (the bench's ablation). `view`: the scan is a single view.
     """
-    scored = []
-    for f in all_facts:
-        terms = {k: v for k, v in evidence_terms(f, all_facts, capture_up, capture_convention).items()
-                 if k not in disabled}
-        scored.append(ScoredCandidate(f, terms))
+    geometry = [ScoredCandidate(f, {k: v for k, v in evidence_terms(f, all_facts, capture_up, view).items()
+                                    if k not in disabled}) for f in all_facts]
+    scored = geometry
+    if file is not None:  # a floor candidate the geometry does not rule out (see FILE_TRUST)
+        best_geometry = max(c.score for c in geometry)
+        levelled = view is None or float(view.direction[2]) < np.cos(np.radians(CAMERA_FRAME_DEG))
+        scored = [ScoredCandidate(c.facts, {**c.terms, **{k: v for k, v in _file_terms(
+            c.facts, file, c.facts.floor_fraction >= PLAUSIBLE_FLOOR_FRACTION
+            and c.score >= best_geometry - FILE_TRUST, levelled).items() if k not in disabled}}) for c in geometry]
     ranked = tuple(sorted(scored, key=lambda c: -c.score))
     best = ranked[0]
-    distinct_cos = np.cos(np.radians(DISTINCT_DEG))
-    runner = next((c for c in ranked[1:] if float(c.up @ best.up) < distinct_cos), None)
-    third = None if runner is None else next(
-        (c for c in ranked[1:] if float(c.up @ best.up) < distinct_cos and float(c.up @ runner.up) < distinct_cos), None)
+    runner = _first_distinct(ranked[1:], (best,))
+    third = None if runner is None else _first_distinct(ranked[1:], (best, runner))
     margin = float("inf") if runner is None else best.score - runner.score
     confidence = 1.0 if runner is None else float(1.0 / (1.0 + np.exp(-CONFIDENCE_SLOPE * margin)))
-    return UpDecision(ranked, runner, margin, confidence, third)
+    geometry_best = max(geometry, key=lambda c: c.score)
+    geometry_prefers = None if float(geometry_best.up @ best.up) >= np.cos(np.radians(DISTINCT_DEG)) else geometry_best
+    return UpDecision(ranked, runner, margin, confidence, third, geometry_prefers, view is not None)
+
+
+def _first_distinct(ranked: tuple[ScoredCandidate, ...], others: tuple[ScoredCandidate, ...]) -> ScoredCandidate | None:
+    """The first candidate that levels the scan differently from every one of `others`."""
+    distinct_cos = np.cos(np.radians(DISTINCT_DEG))
+    return next((c for c in ranked if all(float(c.up @ o.up) < distinct_cos for o in others)), None)
+
+
+TERM_WORDS = {
+    "levelled_axis": "a floor on a source axis (the file was levelled)",
+    "format_up": "the format's up axis",
+    "capture_convention": "the first camera's frame of an RGB-D reconstruction",
+    "capture_up": "the capture's cameras",
+    "floor_area": "the floor's area",
+    "furniture": "furniture tops seen from above",
+    "extent": "a room wider than tall",
+    "storey": "a storey's height",
+    "view_direction": "a single view's direction",
+    "view_aspect": "a single view's landscape frame",
+}
+
+
+def reason_words(decision: UpDecision) -> str:
+    """Which evidence set the chosen up apart from the runner-up, in words (the one or two largest terms)."""
+    best, runner = decision.best, decision.runner_up
+    if runner is None:
+        return "no other candidate levels the scan differently"
+    gains = sorted(((v - runner.terms.get(k, 0.0), k) for k, v in best.terms.items()), reverse=True)
+    named = [TERM_WORDS.get(k, k) for gain, k in gains[:2] if gain > 0.25]
+    return ", ".join(named) if named else "the sum of weak evidence"
 
 
 def _candidate_words(rec: UpCandidateRecord) -> str:

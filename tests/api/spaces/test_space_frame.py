@@ -4,6 +4,7 @@ candidates, side-view PNGs of each, and the person's pick stored with the space 
 from __future__ import annotations
 
 import io
+import json
 from pathlib import Path
 
 import numpy as np
@@ -158,10 +159,17 @@ def test_pick_and_preview_parse_the_scan_in_the_limited_child(api: Api, monkeypa
 
 
 def test_ambiguous_units_held_refused_then_picked(api: Api, tmp_path: Path) -> None:
-    """A partial scan in centimetres whose origin says nothing: cm or inches; the job is refused naming both."""
+    """A levelled partial scan in centimetres whose origin says nothing: cm or inches; the job is refused naming
+    both."""
     import trimesh
 
+    from services.core.ingest.frame import rotation_to_z
+
     mesh = trimesh.load(COPYROOM.parent / "kitchen_partial_000.ply", process=False)
+    truth = json.loads((COPYROOM.parent / "truth.json").read_text())["kitchen_partial_000.ply"]["up"]
+    levelled = np.eye(4)
+    levelled[:3, :3] = rotation_to_z(np.asarray(truth))  # exported levelled: its up is not in question
+    mesh.apply_transform(levelled)
     mesh.apply_scale(100.0)
     mesh.apply_translation([5000.0, 0.0, 5000.0])
     src = tmp_path / "partial_cm.ply"

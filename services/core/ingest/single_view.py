@@ -1,0 +1,48 @@
+"""A scan seen from one place: a single depth frame (or a few taken from one spot), stored in its camera's frame.
+
+Frames and units: the source frame, any unit. A depth frame back-projected into its camera's frame (and later rotated
+or scaled about that frame's origin, as exports do) has the camera at the source origin, and every point lies in
+the camera's frustum: a narrow cone about the view direction, wider across the image's rows than down its columns
+(depth cameras are held in landscape). Up then lies across the view direction within the camera's pitch, close to
+the frustum's short axis. Room-scale evidence (a room wider than tall) measures the frustum instead of the room in
+such a scan, so `up_evidence` scores a single view by these instead.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+VIEW_CONE_DEG = 36.0  # 98 % of the points this close to the mean direction: one view (a Kinect's half diagonal ~35)
+LANDSCAPE_ASPECT = 1.15  # the frustum's wide axis over its short one: below it the frame's rows are not known
+_SAMPLE = 20_000
+
+
+@dataclass(frozen=True)
+class SingleView:
+    """Where a single view looked (unit vector, source frame) and the frame's short axis across it, if known."""
+
+    direction: np.ndarray
+    short_axis: np.ndarray | None
+
+
+def single_view(vertices: np.ndarray) -> SingleView | None:
+    """The view of a scan whose points all lie in one camera's frustum at the source origin, else None."""
+    v = np.asarray(vertices, dtype=np.float64)
+    v = v[:: len(v) // _SAMPLE + 1]
+    norms = np.linalg.norm(v, axis=1)
+    v, norms = v[norms > 0], norms[norms > 0]
+    if len(v) < 100:
+        return None
+    d = v / norms[:, None]
+    mean = d.mean(axis=0)
+    if np.linalg.norm(mean) < 0.5:  # points all around the origin: the scan surrounds it
+        return None
+    mean /= np.linalg.norm(mean)
+    if np.percentile(np.degrees(np.arccos(np.clip(d @ mean, -1.0, 1.0))), 98) > VIEW_CONE_DEG:
+        return None
+    across = d - np.outer(d @ mean, mean)
+    values, vectors = np.linalg.eigh(across.T @ across)  # ascending: ~0 along the view, short axis, wide axis
+    landscape = values[1] > 0 and np.sqrt(values[2] / values[1]) >= LANDSCAPE_ASPECT
+    return SingleView(mean, vectors[:, 1] if landscape else None)

@@ -1,0 +1,101 @@
+"""Real rooms as users bring them (bench/scans/rooms, a small subset): the file each case would be, written and read
+back through `load_space`, the loader that really runs. Levelled within 3 degrees, or refused with the true up as
+the first candidate; never levelled wrong. The whole corpus is measured by bench/ingest_real.py."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial.transform import Rotation
+
+from services.core.ingest.errors import UpAmbiguous
+from services.core.ingest.frame import rotation_to_z
+from services.core.ingest.gravity import plane_families
+from services.core.ingest.loading import load_space
+from tests.fixtures.rotation_corpus import up_error_deg
+
+REPO = Path(__file__).resolve().parents[3]
+ROOMS = json.loads((REPO / "bench" / "scans" / "rooms" / "truth.json").read_text())
+SUBSET = ("scannet_scene0470_00_scan2cad", "sun3d_mit76_studyroom_nvblox_tsdf", "slambook2_dining_room_tsdf",
+          "kitchen_partial_170")
+Y_UP = Rotation.from_euler("x", -90, degrees=True).as_matrix()
+
+
+def _as_exported(name: str, case: str, folder: Path) -> tuple[Path, np.ndarray, float]:
+    """The room written as `case` would deliver it: (file, true up in that file's frame, metres per unit)."""
+    room = ROOMS[name]
+    source = REPO / room["file"]
+    up = np.asarray(room["up"], dtype=float)
+    if case == "delivered":
+        return source, up, 1.0
+    R, scale, suffix = {"levelled_z_ply": (rotation_to_z(up), 1.0, ".ply"),
+                        "levelled_y_glb": (Y_UP @ rotation_to_z(up), 1.0, ".glb"),
+                        "rotated_mm": (Rotation.from_euler("xyz", [37, -64, 121], degrees=True).as_matrix(),
+                                       0.001, ".ply")}[case]
+    mesh = trimesh.load(source, force="mesh", process=False)
+    T = np.eye(4)
+    T[:3, :3] = R / scale
+    mesh.apply_transform(T)
+    path = folder / f"{name}_{case}{suffix}"
+    mesh.export(path)
+    return path, R @ up, scale
+
+
+def test_real_rooms_levelled_or_refused_true_up_first_never_wrong(tmp_path: Path) -> None:
+    levelled = []
+    for name in SUBSET:
+        for case in ("delivered", "levelled_z_ply", "levelled_y_glb", "rotated_mm"):
+            path, truth, scale = _as_exported(name, case, tmp_path)
+            try:
+                space = load_space(path)
+            except UpAmbiguous as refusal:
+                first = np.asarray(refusal.candidates[0]["up"], dtype=float)
+                assert up_error_deg(first, truth) < 10.0, (name, case, "refused, the true up not first")
+                continue
+            world_up = space.source_to_world[:3, :3] @ truth
+            assert up_error_deg(world_up, np.array([0.0, 0.0, 1.0])) < 3.0, (name, case, space.frame_summary())
+            assert space.units is not None and space.units.scale == pytest.approx(scale), (name, case)
+            levelled.append((name, case))
+    # what the file says (an axis-aligned floor, glTF's +Y) and the geometry level most of them without asking
+    assert len(levelled) >= 13, levelled
+
+
+def test_a_levelled_y_up_glb_follows_gltf_and_says_so(tmp_path: Path) -> None:
+    """glTF's +Y is up by its specification: a levelled partial room written as a Y-up GLB is levelled on +Y, and
+    the recorded reason names the file's frame."""
+    path, truth, _ = _as_exported("kitchen_partial_170", "levelled_y_glb", tmp_path)
+    space = load_space(path)
+    np.testing.assert_allclose(space.up_source, [0.0, 1.0, 0.0])
+    up = space.frame_record()["up"]
+    assert "the format's up axis" in up["reason"] or "source axis" in up["reason"]
+    assert "chosen for" in space.frame_summary()
+
+
+def _transform(mesh: trimesh.Trimesh, R: np.ndarray) -> None:
+    T = np.eye(4)
+    T[:3, :3] = R
+    mesh.apply_transform(T)
+
+
+def test_a_wall_left_on_an_axis_by_a_rotation_about_it_is_not_taken_for_a_levelled_floor(tmp_path: Path) -> None:
+    """A real room levelled, turned so that a wall faces +X, then tilted 9 degrees about +X: the wall stays on a
+    source axis while the floor leaves every axis. An axis-aligned plane is evidence of a levelled file, not proof:
+    the wall's axis does not outweigh the geometry, and the floor is found."""
+    room = ROOMS["scannet_scene0470_00_scan2cad"]
+    mesh = trimesh.load(REPO / room["file"], force="mesh", process=False)
+    _transform(mesh, rotation_to_z(np.asarray(room["up"], dtype=float)))
+    wall = next(axis for axis, _ in plane_families(mesh.face_normals, mesh.area_faces) if abs(axis[2]) < 0.1)
+    yaw = np.arctan2(wall[1], wall[0])
+    _transform(mesh, Rotation.from_euler("z", -yaw).as_matrix())
+    tilt = Rotation.from_euler("x", 9, degrees=True).as_matrix()
+    _transform(mesh, tilt)
+    path = tmp_path / "tilted.ply"
+    mesh.export(path)
+    space = load_space(path)
+    assert up_error_deg(space.source_to_world[:3, :3] @ tilt[:, 2], np.array([0.0, 0.0, 1.0])) < 3.0, \
+        space.frame_summary()
+    assert abs(space.up_source[0]) < 0.2  # not the wall on +X

@@ -16,15 +16,13 @@ import trimesh
 from services.core.domain.jobspec import similarity_scale
 from services.core.ingest.errors import SpaceError, UnitsAmbiguous, UpAmbiguous
 from services.core.ingest.gravity import (
-    UnitChoice,
-    UnitError,
     UpEstimate,
     axis_vector,
     estimate_up,
     floor_evidence,
     guess_candidates,
 )
-from services.core.ingest.unit_evidence import choose_units, units_ambiguity_line
+from services.core.ingest.unit_evidence import UnitChoice, UnitError, choose_units, units_ambiguity_line
 from services.core.ingest.up_evidence import ambiguity_line
 
 FRAME_KEYS = ("up", "units", "reconstruction", "class_names", "valid_fraction", "capture")

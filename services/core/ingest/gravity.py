@@ -1,4 +1,4 @@
-"""Gravity (the up direction) and units of a scan from its geometry, in any orientation.
+"""Gravity (the up direction) of a scan from its geometry, in any orientation.
 
 Frames: everything here is in the *source frame* (the coordinates `trimesh.load(source, force="mesh")`
 gives, in the file's units); directions are unit 3-vectors in that frame.
@@ -27,11 +27,6 @@ Confidence (rooms): every candidate direction is scored on more evidence than pl
 the scan's extent, the capture convention, capture poses when given; `services.core.ingest.up_evidence`), and the
 winner's margin over the best candidate that levels the scan differently gives a calibrated confidence.
 Below `up_evidence.REFUSE_MARGIN` the estimate is *ambiguous*: loading refuses it unless guesses are accepted.
-
-Units: rooms are scored on more than their storey height in `services.core.ingest.unit_evidence` (which
-refuses cm against inches when the evidence does not pick one); `choose_unit_scale` here is the storey rule
-alone (a storey is 1.8 to 6 m, then 1.2 to 6 m without a ceiling; metres, centimetres, millimetres and
-inches in that order) and the plausibility check of objects, which keep 1.0 unless their extent is implausible.
 """
 
 from __future__ import annotations
@@ -43,7 +38,7 @@ import trimesh
 from scipy.spatial import ConvexHull, QhullError
 
 from services.core.ingest.direction_bins import BINS, N_BINS, bin_neighbours, bin_tree
-from services.core.ingest.frame_records import UnitCandidateRecord, UnitsRecord, UpRecord
+from services.core.ingest.frame_records import UpRecord
 from services.core.ingest.single_view import single_view
 from services.core.ingest.up_evidence import (
     WEIGHTS,
@@ -88,17 +83,6 @@ _MIN_FAMILY_SHARE = 0.03
 _HULL_POINTS = 5_000
 LOW_MARGIN = 1.25  # support bases: best area / runner-up below this is low confidence
 
-# storey height (floor to top of the scan) that a room must have once scaled, metres
-STOREY_RANGE_M = (1.8, 6.0)
-# tried only when no unit fits STOREY_RANGE_M: a partial scan without its ceiling (a few seconds of RGB-D
-# capture reach 1.3-2 m above the floor)
-PARTIAL_STOREY_RANGE_M = (1.2, 6.0)
-# tried in this order: the first that puts the storey height in range wins (cm before inches: the
-# ranges overlap for 180-236 units, and centimetre exports are far more common)
-UNIT_CANDIDATES: tuple[tuple[str, float], ...] = (
-    ("metres", 1.0), ("centimetres", 0.01), ("millimetres", 0.001), ("inches", 0.0254),
-)
-OBJECT_EXTENT_RANGE_M = (0.001, 50.0)
 
 
 # why up is what it is, when no scoring of candidates decided it (`UpEstimate.record`'s "reason")
@@ -427,48 +411,3 @@ def _support_base(geom: _Geometry, axes: list[np.ndarray]) -> UpEstimate | None:
     margin = base / found[1][0] if len(found) > 1 else float("inf")
     angle = _angle_deg(up, found[1][1]) if len(found) > 1 else None
     return UpEstimate(snap_to_axis(up, _BASE_SNAP_RAD), "base", 0.0, 0.0, angle, margin)
-
-
-@dataclass(frozen=True)
-class UnitChoice:
-    """Metres per source unit and why."""
-
-    scale: float
-    unit: str  # metres | centimetres | millimetres | inches | given | source_to_world
-    reason: str
-    ambiguous: bool = False  # another unit is about as plausible (services.core.ingest.unit_evidence)
-    candidates: tuple[UnitCandidateRecord, ...] = ()  # the plausible units, best first, when more than one
-
-    def record(self) -> UnitsRecord:
-        """JSON-ready summary."""
-        out: UnitsRecord = {"unit_scale": self.scale, "unit": self.unit, "reason": self.reason}
-        if self.candidates:
-            out["ambiguous"] = self.ambiguous
-            out["candidates"] = list(self.candidates)
-        return out
-
-
-class UnitError(ValueError):
-    """No plausible unit; the message names `unit_scale`."""
-
-
-def choose_unit_scale(storey_height: float | None, extent: float) -> UnitChoice:
-    """Metres per source unit from a storey height (rooms) or a plausibility check (objects); source units."""
-    if storey_height is not None and storey_height > 0:
-        for lo, hi in (STOREY_RANGE_M, PARTIAL_STOREY_RANGE_M):
-            for unit, scale in UNIT_CANDIDATES:
-                if lo <= storey_height * scale <= hi:
-                    return UnitChoice(scale, unit, f"storey height {storey_height:.4g} units is "
-                                      f"{storey_height * scale:.3g} m in {unit} ({lo:g}-{hi:g} m)")
-    omin, omax = OBJECT_EXTENT_RANGE_M
-    if not omin <= extent <= omax:
-        what = "a storey height" if storey_height else "an extent"
-        raise UnitError(
-            f"cannot tell the units: {what} of {storey_height or extent:.4g} units fits no storey in metres, "
-            f"cm, mm or inches, and {extent:.4g} m across is implausible for an object ({omin * 1000:g} mm to "
-            f"{omax:g} m): set unit_scale (metres per source unit)"
-        )
-    if storey_height:
-        return UnitChoice(1.0, "metres", f"storey height {storey_height:.4g} units fits no unit; "
-                          f"kept metres ({extent:.4g} m across)")
-    return UnitChoice(1.0, "metres", f"an object {extent:.4g} units across: kept metres")

@@ -47,10 +47,7 @@ from services.core.ingest.datasets import DatasetError, DatasetScene, scene_of
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.frame import FrameRequest, resolve_frame
 from services.core.ingest.frame_records import FrameRecord
-from services.core.ingest.gravity import (
-    UnitChoice,
-    UpEstimate,
-)
+from services.core.ingest.gravity import UpEstimate
 from services.core.ingest.labels import read_ply_semantics, scannet_labels
 from services.core.ingest.mesh_checks import check_source
 from services.core.ingest.pointcloud import (
@@ -61,6 +58,7 @@ from services.core.ingest.pointcloud import (
     read_text_cloud,
 )
 from services.core.ingest.texture_limits import loaded_texture_refusal
+from services.core.ingest.unit_evidence import UnitChoice
 from services.core.ingest.up_evidence import reason_words
 from services.core.storage.base import sha256_file
 from services.core.temp_dirs import owned_prefix

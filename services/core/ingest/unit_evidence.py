@@ -1,4 +1,5 @@
-"""Units of a room scan from more than its storey height, and a refusal when they stay ambiguous.
+"""Units of a scan: the storey rule and the objects' plausibility check (`choose_unit_scale`), and for rooms more
+evidence than the storey height, with a refusal when the units stay ambiguous.
 
 Frames and units: the mesh in its source frame and the file's units; `up` is a unit vector in that frame.
 The storey height (floor to top of the scan along up) admits more than one unit only for centimetres
@@ -28,8 +29,65 @@ from dataclasses import dataclass, field
 import numpy as np
 import trimesh
 
-from services.core.ingest.frame_records import UnitCandidateRecord
-from services.core.ingest.gravity import UnitChoice, choose_unit_scale
+from services.core.ingest.frame_records import UnitCandidateRecord, UnitsRecord
+
+# storey height (floor to top of the scan) that a room must have once scaled, metres
+STOREY_RANGE_M = (1.8, 6.0)
+# tried only when no unit fits STOREY_RANGE_M: a partial scan without its ceiling (a few seconds of RGB-D
+# capture reach 1.3-2 m above the floor)
+PARTIAL_STOREY_RANGE_M = (1.2, 6.0)
+# tried in this order: the first that puts the storey height in range wins (cm before inches: the
+# ranges overlap for 180-236 units, and centimetre exports are far more common)
+UNIT_CANDIDATES: tuple[tuple[str, float], ...] = (
+    ("metres", 1.0), ("centimetres", 0.01), ("millimetres", 0.001), ("inches", 0.0254),
+)
+OBJECT_EXTENT_RANGE_M = (0.001, 50.0)
+
+
+@dataclass(frozen=True)
+class UnitChoice:
+    """Metres per source unit and why."""
+
+    scale: float
+    unit: str  # metres | centimetres | millimetres | inches | given | source_to_world
+    reason: str
+    ambiguous: bool = False  # another unit is about as plausible (`decide_units`)
+    candidates: tuple[UnitCandidateRecord, ...] = ()  # the plausible units, best first, when more than one
+
+    def record(self) -> UnitsRecord:
+        """JSON-ready summary."""
+        out: UnitsRecord = {"unit_scale": self.scale, "unit": self.unit, "reason": self.reason}
+        if self.candidates:
+            out["ambiguous"] = self.ambiguous
+            out["candidates"] = list(self.candidates)
+        return out
+
+
+class UnitError(ValueError):
+    """No plausible unit; the message names `unit_scale`."""
+
+
+def choose_unit_scale(storey_height: float | None, extent: float) -> UnitChoice:
+    """Metres per source unit from a storey height (rooms) or a plausibility check (objects); source units."""
+    if storey_height is not None and storey_height > 0:
+        for lo, hi in (STOREY_RANGE_M, PARTIAL_STOREY_RANGE_M):
+            for unit, scale in UNIT_CANDIDATES:
+                if lo <= storey_height * scale <= hi:
+                    return UnitChoice(scale, unit, f"storey height {storey_height:.4g} units is "
+                                      f"{storey_height * scale:.3g} m in {unit} ({lo:g}-{hi:g} m)")
+    omin, omax = OBJECT_EXTENT_RANGE_M
+    if not omin <= extent <= omax:
+        what = "a storey height" if storey_height else "an extent"
+        raise UnitError(
+            f"cannot tell the units: {what} of {storey_height or extent:.4g} units fits no storey in metres, "
+            f"cm, mm or inches, and {extent:.4g} m across is implausible for an object ({omin * 1000:g} mm to "
+            f"{omax:g} m): set unit_scale (metres per source unit)"
+        )
+    if storey_height:
+        return UnitChoice(1.0, "metres", f"storey height {storey_height:.4g} units fits no unit; "
+                          f"kept metres ({extent:.4g} m across)")
+    return UnitChoice(1.0, "metres", f"an object {extent:.4g} units across: kept metres")
+
 
 UNIT_SCALES: tuple[tuple[str, float], ...] = (
     ("metres", 1.0), ("centimetres", 0.01), ("millimetres", 0.001), ("inches", 0.0254),

@@ -10,8 +10,9 @@ import trimesh
 from scipy import sparse
 
 from services.core.ingest.errors import SpaceError, UpAmbiguous
-from services.core.ingest.gravity import UnitError, choose_unit_scale, estimate_up, plane_families
+from services.core.ingest.gravity import estimate_up, plane_families
 from services.core.ingest.loading import load_space
+from services.core.ingest.unit_evidence import UnitError, choose_unit_scale
 from tests.fixtures import rotation_corpus as corpus
 from tests.fixtures import scenes
 

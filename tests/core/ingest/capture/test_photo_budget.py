@@ -115,3 +115,36 @@ def test_upload_of_a_zip_with_a_member_named_dot(scenes_dir: Path, tmp_path: Pat
         zf.writestr(".", b"x")
     with pytest.raises(SpaceError, match=r"^scan\.zip: member '\.' names no file"):
         load_space_limited(archive, max_faces=10**6, memory_mb=4096, timeout_s=120)
+
+
+def test_a_photo_that_does_not_fit_the_memory_left_is_named(tmp_path: Path) -> None:
+    """The loader under a real address-space limit (as the planner runs): the MemoryError names the photo."""
+    import subprocess
+    import sys
+    import textwrap
+
+    path = tmp_path / "wide.png"
+    Image.new("RGB", (8000, 6000), (10, 20, 30)).save(path)  # 48 Mpx: 144 MB decoded
+    script = textwrap.dedent(f"""
+        import resource, sys
+        from pathlib import Path
+        import numpy as np
+        from services.core.ingest.capture.model import CaptureFrame
+        from services.core.ingest.capture.photos import PhotoRefused, load_photo
+        K = np.diag([6000.0, 6000.0, 1.0])
+        frame = CaptureFrame("f", "wide.png", 8000, 6000, K, "none", (), np.eye(4))
+        status = Path("/proc/self/status").read_text().splitlines()
+        mapped = next(int(line.split()[1]) * 1024 for line in status if line.startswith("VmSize:"))
+        resource.setrlimit(resource.RLIMIT_AS, (mapped + (64 << 20),) * 2)
+        try:
+            load_photo({str(path)!r}, frame, 100.0)
+        except PhotoRefused as e:
+            print(e)
+            sys.exit(0)
+        sys.exit(1)
+    """)
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120,
+                         cwd=Path(__file__).resolve().parents[4])
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert run.stdout.strip() == ("photo wide.png (8,000 x 6,000 pixels) does not fit in this process's "
+                                  "memory budget: downscale the capture's photos")

@@ -45,7 +45,8 @@ KITCHEN = REPO.parent / "shared" / "scenes" / "7scenes_redkitchen"
 BANANA = REPO.parent / "shared" / "scenes" / "ycb_banana" / "textured_simple_reoriented.obj"
 BIG_UPSCALE = 40  # the fixture's 200 x 150 photos made 8000 x 6000: 48 Mpx, a phone's full-resolution photo
 BIG_NOTE = ("wall: the whole generate (Blender start-up included) on a shared 2-core machine; peak RSS: the "
-            "largest process of the run (/usr/bin/time -v); *_baseline: the same captures with the code before")
+            "largest process of the run (/usr/bin/time -v); *_baseline: the same captures, the code before "
+            "(--baseline-code)")
 
 
 def import_figures(tmp: Path) -> dict[str, float]:

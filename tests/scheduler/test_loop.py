@@ -301,8 +301,8 @@ def test_planning_errors_are_retried_then_fail_the_job(sqlite_sm, local_store, s
 
 
 @pytest.mark.parametrize("views", [{}, {"rgb_source": "photos"}])
-def test_running_out_of_the_planning_memory_budget_names_the_cause(sqlite_sm, local_store, scenes_dir, tmp_path,
-                                                                   views):
+def test_running_out_of_the_planning_memory_budget_names_the_cause(sqlite_sm, local_store, scenes_dir,
+                                                                   tmp_path, views):
     job_id = _submit(sqlite_sm, local_store, scenes_dir, views={**SPEC.get("views", {}), **views})
 
     def out_of_memory(*_args):

@@ -235,6 +235,8 @@ def _gltf_json(source: Path) -> dict[str, object]:
         doc = json.loads(source.read_bytes())
     except (ValueError, UnicodeDecodeError) as e:
         raise SpaceError(f"{source.name}: not valid glTF JSON ({e})") from None
+    except RecursionError:  # json's decoder recurses once per nesting level
+        raise SpaceError(f"{source.name}: not valid glTF JSON (nested too deep)") from None
     return doc if isinstance(doc, dict) else {}
 
 
@@ -259,6 +261,8 @@ def _glb_json(source: Path) -> dict[str, object]:
         doc = json.loads(raw)
     except (ValueError, UnicodeDecodeError) as e:
         raise SpaceError(f"{name}: the GLB's JSON chunk is corrupt ({e})") from None
+    except RecursionError:
+        raise SpaceError(f"{name}: the GLB's JSON chunk is corrupt (nested too deep)") from None
     return doc if isinstance(doc, dict) else {}
 
 

@@ -7,17 +7,25 @@
   with mesh rgb (the pass set, rgb and mask_photo), CPU seconds of this process;
 - photo texturing: seconds per novel view and the share of its surface pixels some photo covers, for views
   0.3 m beside capture cameras (passes from an embree ray cast, so Blender is not timed);
-- alignment: score distribution of the raw depth-camera poses and of SOURCE.md's fitted colour camera, all frames.
-Run: `.venv/bin/python bench/capture.py` (about 4 minutes on a shared 2-core machine). Writes
-bench/results/capture.json.
+- alignment: score distribution of the raw depth-camera poses and of SOURCE.md's fitted colour camera, all
+  frames;
+- big photos (issue 51): `omnidata generate` end to end, as a user runs it, of the banana with two
+  48-megapixel photos (8000 x 6000; PNG in a transforms.json capture, JPEG in a COLMAP one), two exact capture
+  views at 128 px with every default cue: wall seconds and the peak RSS of the largest process
+  (/usr/bin/time -v), beside the same capture with its 200 x 150 photos.
+Run: `.venv/bin/python bench/capture.py` (about 4 minutes on a shared 2-core machine); `--only big_photos`
+runs the last alone and updates its key. Writes bench/results/capture.json.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
+import re
 import shutil
+import subprocess
 import sys
 import tempfile
 import time
@@ -28,11 +36,17 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from services.core.ingest.capture import find_capture  # noqa: E402
-from services.core.ingest.capture.resample import load_photo  # noqa: E402
+from services.core.ingest.capture.photos import Photo, load_photo  # noqa: E402
 from services.core.ingest.loading import load_space  # noqa: E402
 from tests.fixtures.captures import toy_frames, write_colmap, write_transforms  # noqa: E402
 
-KITCHEN = Path(__file__).resolve().parents[2] / "shared" / "scenes" / "7scenes_redkitchen"
+REPO = Path(__file__).resolve().parents[1]
+KITCHEN = REPO.parent / "shared" / "scenes" / "7scenes_redkitchen"
+BANANA = REPO.parent / "shared" / "scenes" / "ycb_banana" / "textured_simple_reoriented.obj"
+BIG_UPSCALE = 40  # the fixture's 200 x 150 photos made 8000 x 6000: 48 Mpx, a phone's full-resolution photo
+BIG_NOTE = ("wall: the whole generate (Blender start-up included) on a shared 2-core machine; peak RSS: the "
+            "largest process of the run (/usr/bin/time -v); *_baseline: the same captures, the code before "
+            "(--baseline-code)")
 
 
 def import_figures(tmp: Path) -> dict[str, float]:
@@ -98,11 +112,12 @@ def texture_figures(space, n_views: int, resolution: int) -> dict[str, float]:
 
     cap = space.capture
     tex = PhotoTexturer(space.mesh, cap, k=3)
-    photos: dict[int, np.ndarray] = {}
+    photos: dict[int, Photo] = {}
+    focal = resolution / 2 / np.tan(np.radians(60.0) / 2)
 
-    def photo(i: int) -> np.ndarray:
+    def photo(i: int) -> Photo:
         if i not in photos:
-            photos[i] = load_photo(str(cap.image_path(cap.frames[i])), cap.frames[i])
+            photos[i] = load_photo(str(cap.image_path(cap.frames[i])), cap.frames[i], focal)
         return photos[i]
 
     times, shares = [], []
@@ -149,12 +164,72 @@ def alignment_figures(space) -> dict[str, object]:
             "colour_beats_raw_share": round(float(np.mean(c > r)), 3), "s_per_score": round(seconds, 3)}
 
 
+def timed_generate(folder: Path, out: Path, spec: Path, code: Path = REPO) -> dict[str, float]:
+    """Wall seconds and peak RSS (MB, the largest process of the run) of `omnidata generate` under
+    /usr/bin/time, run from the checkout `code`."""
+    cmd = ["/usr/bin/time", "-v", sys.executable, "-m", "services.cli", "generate", str(folder),
+           "--out", str(out), "--spec", str(spec), "--workers", "1", "--no-progress"]
+    t0 = time.perf_counter()
+    run = subprocess.run(cmd, cwd=code, capture_output=True, text=True, timeout=1800,
+                         env={**os.environ, "PYTHONPATH": str(code)})
+    wall = time.perf_counter() - t0
+    if run.returncode != 0:
+        raise RuntimeError(f"generate failed ({run.returncode}): {run.stderr[-2000:]}")
+    peak = re.search(r"Maximum resident set size \(kbytes\): (\d+)", run.stderr)
+    assert peak is not None, run.stderr[-2000:]
+    peak_kb = int(peak.group(1))
+    views = len(list((out / "rgb").rglob("*.png")))
+    return {"wall_s": round(wall, 1), "peak_rss_mb": round(peak_kb / 1024), "views": views}
+
+
+def big_photo_figures(tmp: Path, baseline: Path | None = None) -> dict[str, object]:
+    """The big-photo cases of the module docstring: one generate each, two views at 128 px, every default
+    cue; with `baseline` (another checkout), its generate of the same 48-megapixel captures as well."""
+    from tests.fixtures.photo_capture import banana_capture
+
+    spec = tmp / "capture.yaml"
+    spec.write_text("cameras: {mode: capture}\nviews: {resolution: 128}\n")
+    out: dict[str, object] = {"views": 2, "resolution": 128, "cues": "every default cue",
+                              "photos": f"2 x {200 * BIG_UPSCALE} x {150 * BIG_UPSCALE}", "note": BIG_NOTE}
+    for label, upscale, writer in (("small_photos_200x150_jpeg_colmap", 1, write_colmap),
+                                   ("48mp_png_transforms", BIG_UPSCALE, write_transforms),
+                                   ("48mp_jpeg_colmap", BIG_UPSCALE, write_colmap)):
+        folder = tmp / label / "banana_capture"
+        banana_capture(BANANA, folder, n=2, upscale=upscale, writer=writer)
+        photo_mb = sum(p.stat().st_size for p in folder.rglob("*") if p.suffix in (".png", ".jpg") and
+                       "images" in p.parts) / 2**20
+        figures = timed_generate(folder, tmp / label / "out", spec)
+        out[label] = {**figures, "photo_files_mb": round(photo_mb, 1)}
+        print(label, json.dumps(out[label]), flush=True)
+        if baseline is not None and upscale > 1:
+            key = f"{label}_baseline"
+            out[key] = {**timed_generate(folder, tmp / label / "out_baseline", spec, baseline),
+                        "code": _revision(baseline)}
+            print(key, json.dumps(out[key]), flush=True)
+    return out
+
+
+def _revision(code: Path) -> str:
+    """The commit a checkout is at (its short hash and subject)."""
+    return subprocess.run(["git", "-C", str(code), "log", "-1", "--format=%h %s"], capture_output=True,
+                          text=True).stdout.strip()[:100]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--views", type=int, default=6)
     parser.add_argument("--resolution", type=int, default=256)
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "capture.json")
+    parser.add_argument("--only", choices=["big_photos"], help="run this scenario alone and update its key")
+    parser.add_argument("--baseline-code", type=Path, help="big photos: also generate with this checkout")
     args = parser.parse_args()
+    if args.only == "big_photos":
+        kept = json.loads(args.out.read_text()) if args.out.exists() else {}
+        with tempfile.TemporaryDirectory(prefix="bench-capture-") as tmp:
+            kept["big_photos"] = big_photo_figures(Path(tmp), args.baseline_code)
+        args.out.write_text(json.dumps(kept, indent=2) + "\n")
+        print(f"wrote {args.out}")
+        return
     result: dict[str, object] = {"machine": f"{platform.machine()} {platform.node()}",
                                  "note": "shared machine: 2 cores, loaded by other developers' work"}
     with tempfile.TemporaryDirectory(prefix="bench-capture-") as tmp:
@@ -167,6 +242,8 @@ def main() -> None:
     print(json.dumps(result["texture"]))
     result["capture_view_cost"] = view_cost(space, args.views, args.resolution)
     print(json.dumps(result["capture_view_cost"]))
+    with tempfile.TemporaryDirectory(prefix="bench-capture-") as tmp:
+        result["big_photos"] = big_photo_figures(Path(tmp), args.baseline_code)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
     print(f"wrote {args.out}")
 

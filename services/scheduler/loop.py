@@ -211,6 +211,7 @@ class Scheduler:
         """Plan a job this scheduler has claimed, chunk by chunk (services.scheduler.chunked_plan), each chunk in
         its own transaction, and the job's switch to running in the last; True when it is now running."""
         t0 = time.perf_counter()
+        spec: JobSpec | None = None
         try:
             with self.sessionmaker() as s:
                 job = s.get(Job, job_id)
@@ -250,7 +251,7 @@ class Scheduler:
             log.info("job %d changed while planning; plan dropped", job_id)
             return False
         except Exception as exc:
-            self._planning_failed(job_id, exc)
+            self._planning_failed(job_id, exc, spec)
             return False
         finally:
             self.loaded_spaces.clear()
@@ -271,10 +272,14 @@ class Scheduler:
             s.commit()
         return True
 
-    def _planning_failed(self, job_id: int, exc: BaseException) -> None:
+    def _planning_failed(self, job_id: int, exc: BaseException, spec: JobSpec | None) -> None:
         if isinstance(exc, MemoryError):
+            # a photo that ran out decoding says so itself (PhotoRefused); past that, photos are still held
+            photos = spec is not None and (spec.uses_photos() or spec.cameras.mode == "capture")
+            advice = ("downscale the capture's photos, or lower points.count or points.max_views" if photos
+                      else "lower points.count or points.max_views")
             exc = PlanningError(f"planning ran out of its memory budget of {self.settings.plan_memory_mb} MB "
-                                "(OMNIDATA_PLAN_MEMORY_MB): lower points.count or points.max_views")
+                                f"(OMNIDATA_PLAN_MEMORY_MB): {advice}")
         record_planning_failure(self.sessionmaker, job_id, self.scheduler_id, exc)
 
     # ------------------------------------------------------------------------------------------ steps

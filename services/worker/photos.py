@@ -15,7 +15,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from services.core.ingest.capture.model import Capture
-from services.core.ingest.capture.resample import load_photo, photo_for_view
+from services.core.ingest.capture.photos import Photo, load_photo, reduction
+from services.core.ingest.capture.resample import photo_for_view
 from services.worker.passes import ViewGeometry, ViewPasses
 
 if TYPE_CHECKING:  # imported where used: the worker loads them only for jobs with photos
@@ -25,7 +26,7 @@ if TYPE_CHECKING:  # imported where used: the worker loads them only for jobs wi
     from services.worker.phototexture import PhotoTexturer
 
 SAME_CENTRE_M = 1e-5  # a view this close to a capture centre sees through it (parallax below a pixel)
-PHOTO_CACHE = 8  # decoded photos kept per worker process
+PHOTO_CACHE = 8  # decoded photos kept per worker process (each no larger than the views asking for it need)
 
 
 class PhotoPainter:
@@ -37,16 +38,19 @@ class PhotoPainter:
         self.capture = capture
         self.centres = np.stack([f.center for f in capture.frames])
         self.texture = texture  # a PhotoTexturer for views away from every capture centre, or None
-        self._photos: OrderedDict[int, np.ndarray] = OrderedDict()
+        self._photos: OrderedDict[int, Photo] = OrderedDict()
 
-    def photo(self, i: int) -> np.ndarray:
-        """The decoded photo of frame i."""
-        if i in self._photos:
-            self._photos.move_to_end(i)
-            return self._photos[i]
+    def photo(self, i: int, focal_px: float) -> Photo:
+        """The photo of frame i decoded for a view of focal length `focal_px` pixels (a kept one when it is
+        dense enough for that view)."""
         frame = self.capture.frames[i]
-        img = load_photo(str(self.capture.image_path(frame)), frame)
+        kept = self._photos.get(i)
+        if kept is not None and round(1.0 / kept.scale) <= reduction(frame, focal_px):
+            self._photos.move_to_end(i)
+            return kept
+        img = load_photo(str(self.capture.image_path(frame)), frame, focal_px)
         self._photos[i] = img
+        self._photos.move_to_end(i)
         while len(self._photos) > PHOTO_CACHE:
             self._photos.popitem(last=False)
         return img
@@ -58,18 +62,21 @@ class PhotoPainter:
     def paint(self, view: ViewGeometry, passes: ViewPasses) -> ViewPasses:
         """The pass set with rgb from the photos and photo_coverage set (see the module docstring)."""
         n = view.resolution
+        focal = float(view.K[0, 0])
         same = self.frames_at(view.center)
         if len(same):
             best: tuple[np.ndarray, np.ndarray] | None = None
             for i in same:  # several frames from one centre (a panorama): the one covering most of the view
-                rgb, covered = photo_for_view(self.photo(int(i)), self.capture.frames[int(i)], view.K,
+                rgb, covered = photo_for_view(self.photo(int(i), focal), self.capture.frames[int(i)], view.K,
                                               view.world_to_camera, n, n)
                 if best is None or covered.sum() > best[1].sum():
                     best = (rgb, covered)
             assert best is not None
             passes.rgb, passes.photo_coverage = best
         elif self.texture is not None:
-            passes.rgb, passes.photo_coverage = self.texture.paint(view, passes, self.photo)
+            # a photo seen from another point: its density on the surface there is taken as the view's own
+            passes.rgb, passes.photo_coverage = self.texture.paint(view, passes,
+                                                                   lambda j: self.photo(j, focal))
         else:
             raise ValueError("this view's centre is no capture camera's centre, and photo texturing is off")
         return passes

@@ -20,7 +20,8 @@ import trimesh
 
 from services.core.ingest.capture.distortion import project_to_photo
 from services.core.ingest.capture.model import Capture
-from services.core.ingest.capture.resample import sample_bilinear
+from services.core.ingest.capture.photos import Photo
+from services.core.ingest.capture.resample import sample_photo
 from services.worker.passes import ViewGeometry, ViewPasses
 
 DEPTH_TOLERANCE_M = 0.02  # plus 1% of the distance: TSDF meshes and photo poses are this good, not better
@@ -80,7 +81,7 @@ class PhotoTexturer:
         return order[counts[order] > 0]
 
     def paint(self, view: ViewGeometry, passes: ViewPasses,
-              photo: Callable[[int], np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+              photo: Callable[[int], Photo]) -> tuple[np.ndarray, np.ndarray]:
         """(uint8 H x W x 3 rgb, bool H x W covered) of the view (see the module docstring)."""
         n = view.resolution
         points = passes.position_world().reshape(-1, 3).astype(np.float64)
@@ -108,7 +109,7 @@ class PhotoTexturer:
             facing = np.einsum("ij,ij->i", normals, to_photo)
             w = facing * np.clip(-np.einsum("ij,ij->i", view_dir, to_photo), 0, None) / np.maximum(dist, 1e-3) ** 2
             weights[c] = np.where(seen & (facing >= MIN_COS), w, 0.0)
-            colours[c, seen] = sample_bilinear(photo(int(j)), uv[seen])
+            colours[c, seen] = sample_photo(photo(int(j)), uv[seen])
         if len(candidates) > self.k:  # keep the k largest weights per pixel
             cut = np.partition(weights, -self.k, axis=0)[-self.k]
             weights = np.where(weights >= cut[None, :], weights, 0.0)

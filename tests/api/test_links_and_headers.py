@@ -84,6 +84,22 @@ def test_a_link_serves_only_its_own_jobs_keys(api: Api, bunny: Path) -> None:
     assert api.client.get(link["url"]).status_code == 404
 
 
+def test_a_link_giving_a_signed_parameter_twice_is_refused(api: Api, bunny: Path) -> None:
+    job_id, space_id = _done_job(api, bunny)
+    link = _rgb_link(api, job_id, space_id)
+    url = urlparse(link["url"])
+    q = {k: v[0] for k, v in parse_qs(url.query).items()}
+    assert api.client.get(link["url"]).status_code == 200
+    forged = "0" * 64
+    for query in (f"job={job_id}&expires={q['expires']}&signature={forged}&signature={q['signature']}",
+                  f"job={job_id}&expires={q['expires']}&signature={q['signature']}&signature={forged}",
+                  f"job={job_id}&expires=1&expires={q['expires']}&signature={q['signature']}",
+                  f"job=999999&job={job_id}&expires={q['expires']}&signature={q['signature']}"):
+        for route in ("/blobs/", "/previews/"):
+            r = api.client.get(f"{url.path.replace('/blobs/', route, 1)}?{query}")
+            assert r.status_code == 403 and "more than once" in r.json()["detail"], (route, query, r.text)
+
+
 def test_dashboard_and_docs_headers(api: Api) -> None:
     for path in ("/ui/", "/ui/app.js", "/docs"):
         r = api.client.get(path)

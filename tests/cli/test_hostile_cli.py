@@ -80,3 +80,31 @@ def test_plan_and_generate_never_open_a_file_outside_the_scan(
         opened = watch.opened()
     assert not failures, failures
     assert opened == [], f"a hostile scan made the CLI open {opened}"
+
+
+def test_plan_of_a_capture_whose_photos_are_over_the_budget_names_them(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], scenes_dir: Path
+) -> None:
+    import shutil
+
+    from services.core.ingest.capture.photos import MAX_PHOTO_PIXELS
+    from tests.fixtures.captures import toy_frames, write_colmap
+    from tests.fixtures.hostile_corpus import png_declaring
+
+    folder = tmp_path / "scan"
+    folder.mkdir()
+    shutil.copy(scenes_dir / "stanford_bunny" / "bun_zipper_res2.ply", folder / "bunny.ply")
+    frames = toy_frames(2)
+    write_colmap(folder, frames)
+    cameras = folder / "sparse" / "0" / "cameras.txt"  # the cameras agree with the photos' headers
+    cameras.write_text(cameras.read_text().replace(" 64 48 ", " 12000 12000 "))
+    for f in frames:
+        (folder / "images" / f"{f.name}.jpg").write_bytes(png_declaring(12000, 12000))
+    spec = tmp_path / "capture.yaml"
+    spec.write_text("cameras: {mode: capture}\nviews: {resolution: 64}\n")
+    out = tmp_path / "out"
+    code = main(["plan", str(folder), "--out", str(out), "--spec", str(spec)])
+    err = capsys.readouterr().err
+    limit = f"more than the limit of {MAX_PHOTO_PIXELS:,}"
+    assert _refused_in_one_line(code, err, "plan", (limit,)), err
+    assert all(f"photo {f.name}.jpg declares 12,000 x 12,000 pixels" in err for f in frames), err

@@ -12,7 +12,8 @@ from PIL import Image
 
 from services.core.domain.camera import intrinsics
 from services.core.domain.plan import plan_from_json
-from services.core.ingest.capture.resample import load_photo, photo_for_view
+from services.core.ingest.capture.photos import load_photo
+from services.core.ingest.capture.resample import photo_for_view
 from tests.fixtures.cli import omnidata
 
 pytestmark = [pytest.mark.slow, pytest.mark.bpy]
@@ -38,10 +39,12 @@ def test_generate_capture_views_from_a_folder(banana_capture_folder, tmp_path: P
     assert item["mask_photo"].dtype == bool and item["mask_photo"].all()
     plan = plan_from_json((out / "_plan" / "banana_capture.json").read_bytes())
     for view in plan.views:
-        # the rgb file is exactly the photo resampled to the view (nothing of the mesh texture in it)
+        # the rgb file is exactly the photo resampled to the view (nothing of the mesh texture in it), decoded
+        # no larger than the 48 px view needs
         frame = space.capture.frames[view.camera_idx]
-        want, _ = photo_for_view(load_photo(str(space.capture.image_path(frame)), frame), frame,
-                                 intrinsics(view.fov, 48), view.world_to_camera, 48, 48)
+        K = intrinsics(view.fov, 48)
+        photo = load_photo(str(space.capture.image_path(frame)), frame, float(K[0, 0]))
+        want, _ = photo_for_view(photo, frame, K, view.world_to_camera, 48, 48)
         got = np.array(Image.open(out / "rgb" / "omnidata" / "banana_capture" /
                                   f"point_{view.point_idx}_view_{view.v}_domain_rgb.png"))
         np.testing.assert_array_equal(got, want)

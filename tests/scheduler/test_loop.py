@@ -298,3 +298,22 @@ def test_planning_errors_are_retried_then_fail_the_job(sqlite_sm, local_store, s
         job = s.get(Job, job_id)
         assert job.state == "failed" and "RuntimeError: storage hiccup" in job.error
     assert len(calls) == 3
+
+
+@pytest.mark.parametrize("views", [{}, {"rgb_source": "photos"}])
+def test_running_out_of_the_planning_memory_budget_names_the_cause(sqlite_sm, local_store, scenes_dir,
+                                                                   tmp_path, views):
+    job_id = _submit(sqlite_sm, local_store, scenes_dir, views={**SPEC.get("views", {}), **views})
+
+    def out_of_memory(*_args):
+        raise MemoryError
+
+    sched = Scheduler(sqlite_sm, local_store, NullTransport(), get_settings(data_dir=tmp_path), "s",
+                      plan_fn=out_of_memory)
+    assert sched.tick().planned == []
+    with sqlite_sm() as s:
+        job = s.get(Job, job_id)
+        assert job.state == "failed" and job.error.startswith("planning ran out of its memory budget of ")
+        photos = "downscale the capture's photos, or lower points.count or points.max_views"
+        assert job.error.endswith(photos if views else "(OMNIDATA_PLAN_MEMORY_MB): lower points.count or "
+                                  "points.max_views"), job.error

@@ -32,6 +32,7 @@ Index = Annotated[int, Path(ge=0, le=2**31 - 1)]
 def _signed_key(route: str) -> Callable[..., str]:
     def signed_key(
         key: str,
+        request: Request,
         settings: SettingsDep,
         session: ReadSessionDep,
         job: Annotated[int, Query(ge=1, le=2**63 - 1, description="the job the link belongs to")],
@@ -39,6 +40,7 @@ def _signed_key(route: str) -> Callable[..., str]:
         signature: Annotated[str, Query(pattern="^[0-9a-f]{64}$", description="hex HMAC from the link")],
     ) -> str:
         """The `{key:path}` of a signed link, once its signature checked out (403) and it is the job's (404)."""
+        service.check_single_link_params(request.query_params.multi_items())
         service.verify_blob(settings, route=route, job_id=job, key=key, expires=expires, signature=signature)
         service.check_job_key(session, job_id=job, key=key)
         return key

@@ -59,6 +59,18 @@ def blob_signature(settings: Settings, key: str, expires: int, *, route: str = "
     return hmac.new(settings.secret_key.get_secret_value().encode(), msg, hashlib.sha256).hexdigest()
 
 
+LINK_PARAMS = ("job", "expires", "signature")
+
+
+def check_single_link_params(items: list[tuple[str, str]]) -> None:
+    """403 when a link gives one of its signed parameters more than once: the route would read the last one,
+    which need not be the one a checker of the first would have seen."""
+    names = [name for name, _ in items]
+    repeated = sorted({name for name in names if name in LINK_PARAMS and names.count(name) > 1})
+    if repeated:
+        raise Forbidden(f"link parameter {', '.join(repeated)} given more than once")
+
+
 def verify_blob(
     settings: Settings, *, route: str, job_id: int, key: str, expires: int, signature: str, now: float | None = None
 ) -> None:

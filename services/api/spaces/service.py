@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from sqlalchemy import func, select
+from sqlalchemy import delete, func, select
 from sqlalchemy.orm import Session
 
 from services.api.pagination import PageParams
@@ -146,6 +146,10 @@ def delete_space(session: Session, store: ObjectStore, *, owner: str, space_id: 
     ).all()
     if job_ids:
         raise Conflict(f"space {space_id} is used by job(s) {', '.join(map(str, job_ids))}; delete those jobs first")
-    session.delete(space)
+    # a DELETE that matches no row lost a race with another delete of the space: that one answered 204
+    res = session.execute(delete(Space).where(Space.id == space.id, Space.owner == owner))
+    if int(res.rowcount or 0) != 1:  # type: ignore[attr-defined]
+        session.rollback()
+        raise not_found("space", str(space_id))
     session.commit()
     store.delete_prefix(f"spaces/{space_id}/")

@@ -87,6 +87,9 @@ def _check_member(name: str, info: zipfile.ZipInfo) -> None:
         raise SpaceError(f"{name}: member {raw!r} has an absolute path; refusing to extract")
     if ".." in pure.parts:
         raise SpaceError(f"{name}: member {raw!r} climbs out of the archive ('..'); refusing to extract")
+    if not pure.parts or pure.parts == (".",):
+        raise SpaceError(f"{name}: member {raw!r} names no file (it is the archive's own folder); "
+                         "refusing to extract")
     mode = info.external_attr >> 16
     if stat.S_ISLNK(mode):
         raise SpaceError(f"{name}: member {raw!r} is a symbolic link; refusing to extract")
@@ -132,6 +135,10 @@ def _extract_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, target: Path, na
     except (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError, ValueError) as e:
         # bad CRC, corrupt deflate stream, cut-off member, unknown compression method
         raise SpaceError(f"{name}: member {info.filename!r} is corrupt ({e}); re-create the archive") from None
+    except OSError as e:  # a file member where a folder of the same name was extracted, and the like
+        raise SpaceError(
+            f"{name}: member {info.filename!r} cannot be extracted ({e.strerror or e})"
+        ) from None
     return written
 
 

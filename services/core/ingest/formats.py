@@ -51,6 +51,8 @@ def _read_json(path: Path, mesh_path: Path) -> dict:
         doc = json.loads(read_confined(path, mesh_path))  # never through a link out of the scan's folder
     except (OSError, ValueError) as e:
         raise ScanFormatError(f"{path.name}: not readable JSON ({e})") from None
+    except RecursionError:  # json's decoder recurses once per nesting level
+        raise ScanFormatError(f"{path.name}: not readable JSON (nested too deep)") from None
     if not isinstance(doc, dict):
         raise ScanFormatError(f"{path.name}: expected a JSON object")
     return doc

@@ -37,7 +37,7 @@ MAX_FACES = 50_000_000  # beyond every scan we render; trimesh needs ~100 bytes 
 MAX_VERTICES = 3 * MAX_FACES
 MAX_HEADER_BYTES = 1 << 20  # a PLY header larger than this is not a scan
 
-_PLY_ELEMENT = re.compile(rb"^element\s+(\S+)\s+(\d+)\s*$")
+_PLY_ELEMENT = re.compile(rb"^element\s+(\S+)\s+(\S+)\s*$")
 _OBJ_REF = re.compile(r"^-?\d+(/-?\d*)?(/-?\d+)?$")
 _MTL_MAP = re.compile(r"^\s*(map_\w+|bump|disp|decal|norm)\s+(?:-\S+\s+\S+\s+)*(.+?)\s*$", re.IGNORECASE)
 _OBJ_MIN_FIELDS = {"v": 3, "vn": 3, "vt": 1, "f": 3, "l": 2}
@@ -92,7 +92,7 @@ def _check_ply(source: Path, max_faces: int) -> None:
         if end < 0:
             raise SpaceError(f"{name}: no 'end_header' in the first {MAX_HEADER_BYTES:,} bytes: not a readable PLY mesh")
         lines = header[:end].splitlines()
-        counts = {m.group(1).decode("latin-1"): int(m.group(2)) for ln in lines if (m := _PLY_ELEMENT.match(ln.strip()))}
+        counts = _ply_counts(name, lines)
         check_face_count(name, counts.get("face", 0), max_faces)
         if counts.get("vertex", 0) > MAX_VERTICES:
             raise SpaceError(f"{name}: {counts['vertex']:,} vertices, more than the limit of {MAX_VERTICES:,}")
@@ -107,6 +107,26 @@ def _check_ply(source: Path, max_faces: int) -> None:
             f"{name}: the file is truncated: its header declares {expected:,} element lines "
             f"({', '.join(f'{n} {c:,}' for n, c in counts.items())}) but only {rows:,} follow"
         )
+
+
+def _ply_counts(name: str, lines: list[bytes]) -> dict[str, int]:
+    """Each element's count as the PLY readers take it: Python's int() of the token, so '+4000000000' and
+    '4_000_000_000' count in full; a negative count is refused, a token int() refuses is trimesh's to
+    judge."""
+    counts: dict[str, int] = {}
+    for line in lines:
+        m = _PLY_ELEMENT.match(line.strip())
+        if m is None:
+            continue
+        element = m.group(1).decode("latin-1")
+        try:
+            count = int(m.group(2))
+        except ValueError:
+            continue
+        if count < 0:
+            raise SpaceError(f"{name}: its header declares {count:,} {element} elements: not a count")
+        counts[element] = count
+    return counts
 
 
 # ---------------------------------------------------------------------------------------------- OBJ
@@ -215,6 +235,8 @@ def _gltf_json(source: Path) -> dict[str, object]:
         doc = json.loads(source.read_bytes())
     except (ValueError, UnicodeDecodeError) as e:
         raise SpaceError(f"{source.name}: not valid glTF JSON ({e})") from None
+    except RecursionError:  # json's decoder recurses once per nesting level
+        raise SpaceError(f"{source.name}: not valid glTF JSON (nested too deep)") from None
     return doc if isinstance(doc, dict) else {}
 
 
@@ -239,6 +261,8 @@ def _glb_json(source: Path) -> dict[str, object]:
         doc = json.loads(raw)
     except (ValueError, UnicodeDecodeError) as e:
         raise SpaceError(f"{name}: the GLB's JSON chunk is corrupt ({e})") from None
+    except RecursionError:
+        raise SpaceError(f"{name}: the GLB's JSON chunk is corrupt (nested too deep)") from None
     return doc if isinstance(doc, dict) else {}
 
 

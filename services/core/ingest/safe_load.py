@@ -120,5 +120,7 @@ def _child(sender: Connection, path: str, frame: SpaceFrame, limits: dict[str, i
         result = ("memory", None) if "MemoryError" in str(e) else ("space_error", str(e))
     except MemoryError:
         result = ("memory", None)
+    except Exception as e:  # a reader's own error (RecursionError, OSError, ...): one line naming the file
+        result = ("space_error", f"{Path(path).name}: the reader failed ({type(e).__name__}: {str(e)[:300]})")
     sender.send(result)
     sender.close()

@@ -17,6 +17,7 @@ from scipy.ndimage import binary_erosion, gaussian_filter, sobel
 
 from services.core.domain.camera import intrinsics
 from services.core.ingest.capture.model import CaptureFrame
+from services.core.ingest.capture.photos import Photo, load_photo
 from services.core.ingest.capture.resample import photo_for_view
 from services.scheduler.planning.visibility import MeshQueries
 
@@ -67,7 +68,13 @@ def gradient(image: np.ndarray, blur: float) -> tuple[np.ndarray, np.ndarray]:
     return sobel(smooth, axis=1), sobel(smooth, axis=0)
 
 
-def alignment_score(q: MeshQueries, photo: np.ndarray, frame: CaptureFrame, world_to_camera: np.ndarray, fov: float,
+def scoring_photo(path: str, frame: CaptureFrame, fov: float, size: int = ALIGN_PX) -> Photo:
+    """The frame's photo decoded no larger than a score at `size` pixels and field of view `fov` needs."""
+    return load_photo(path, frame, float(intrinsics(fov, size)[0, 0]))
+
+
+def alignment_score(q: MeshQueries, photo: Photo, frame: CaptureFrame, world_to_camera: np.ndarray,
+                    fov: float,
                     size: int = ALIGN_PX) -> float | None:
     """The score of one view whose camera shares the frame's centre (see the module docstring); None when the view
     shows too few geometric edges inside the photo to tell."""

@@ -26,8 +26,8 @@ from services.core.domain.jobspec import JobSpec
 from services.core.domain.plan import PlanError, SpacePlan
 from services.core.ingest.capture.detect import BESIDE_DEPTH
 from services.core.ingest.capture.model import Capture, CaptureFrame
-from services.core.ingest.capture.resample import coverage_fraction, load_photo
-from services.scheduler.planning.alignment import alignment_score, score_summary
+from services.core.ingest.capture.resample import coverage_fraction
+from services.scheduler.planning.alignment import alignment_score, score_summary, scoring_photo
 from services.scheduler.planning.points import SampledPoints, visibility_matrix
 from services.scheduler.planning.views import ViewArrays, fraction_summary, obliqueness, valid_fractions
 from services.scheduler.planning.visibility import MeshQueries
@@ -126,7 +126,7 @@ def alignment_scores(q: MeshQueries, capture: Capture, views: ViewArrays) -> lis
     scores: list[float | None] = []
     for i in range(len(views)):
         frame = capture.frames[int(views.camera_idx[i])]
-        photo = load_photo(str(capture.image_path(frame)), frame)
+        photo = scoring_photo(str(capture.image_path(frame)), frame, float(views.fov[i]))
         scores.append(alignment_score(q, photo, frame, views.world_to_camera[i], float(views.fov[i])))
     return scores
 

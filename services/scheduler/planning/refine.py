@@ -15,8 +15,8 @@ import numpy as np
 from services.core.domain.capture_records import RefinedCamera
 from services.core.ingest.capture.calibration import ColourCorrection
 from services.core.ingest.capture.model import Capture
-from services.core.ingest.capture.resample import load_photo
-from services.scheduler.planning.alignment import alignment_score
+from services.core.ingest.capture.photos import Photo
+from services.scheduler.planning.alignment import alignment_score, scoring_photo
 from services.scheduler.planning.visibility import MeshQueries
 
 REFINE_FRAMES = 12
@@ -24,9 +24,11 @@ REFINE_PX = 128
 # (field, first step): focal scale, principal point px, offset metres
 STEPS = (("focal_scale", 0.04), ("dcx", 8.0), ("dcy", 8.0), ("ox", 0.02), ("oy", 0.02))
 HALVINGS = 3
+FOCAL_MARGIN = 1.25  # photos are decoded for a focal length this much above the start's: the search scales it
 
 
-def _score(q: MeshQueries, photos: list[np.ndarray], capture: Capture, picks: list[int], c: ColourCorrection) -> float:
+def _score(q: MeshQueries, photos: list[Photo], capture: Capture, picks: list[int],
+           c: ColourCorrection) -> float:
     scores = []
     for photo, i in zip(photos, picks, strict=True):
         f = c.frame(capture.frames[i])
@@ -47,7 +49,8 @@ def refine_colour_camera(q: MeshQueries, capture: Capture, frames: int = REFINE_
                          halvings: int = HALVINGS) -> tuple[ColourCorrection, RefinedCamera]:
     """The correction that maximises the median alignment score, and the record of the search."""
     picks = sorted({int(i) for i in np.linspace(0, len(capture.frames) - 1, min(frames, len(capture.frames)))})
-    photos = [load_photo(str(capture.image_path(capture.frames[i])), capture.frames[i]) for i in picks]
+    photos = [scoring_photo(str(capture.image_path(capture.frames[i])), capture.frames[i],
+                            capture.frames[i].inscribed_fov(), int(REFINE_PX * FOCAL_MARGIN)) for i in picks]
     best = ColourCorrection()
     best_score = start = _score(q, photos, capture, picks, best)
     evaluations = 1

@@ -46,3 +46,33 @@ def test_capture_part_must_be_a_zip(api: Api, bunny: Path) -> None:
     r = api.client.post("/spaces", files=[("file", ("bunny.ply", bunny.read_bytes())),
                                           ("capture", ("a.zip", b"not a zip"))], headers=api.a.headers)
     assert r.status_code == 422 and "zip" in r.text
+
+
+def test_upload_names_each_photo_over_the_budget_and_keeps_the_others(api: Api, bunny: Path,
+                                                                     tmp_path: Path) -> None:
+    from services.core.ingest.capture.photos import MAX_PHOTO_PIXELS
+    from tests.fixtures.captures import write_colmap
+    from tests.fixtures.hostile_corpus import png_declaring
+
+    folder = tmp_path / "cap"
+    folder.mkdir()
+    frames = toy_frames(3)
+    write_colmap(folder, frames)
+    images = folder / "images"
+    (images / f"{frames[0].name}.jpg").write_bytes(png_declaring(20000, 20000))  # past Pillow's limit
+    (images / f"{frames[2].name}.jpg").write_bytes(png_declaring(9000, 9000))  # past ours
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as zf:
+        for p in sorted(folder.rglob("*")):
+            if p.is_file():
+                zf.write(p, p.relative_to(folder).as_posix())
+    r = api.client.post("/spaces", files=[("file", ("bunny.ply", bunny.read_bytes())),
+                                          ("capture", ("capture.zip", buf.getvalue()))],
+                        data={"name": "bunny_big_photos", "up_axis": "+y"}, headers=api.a.headers)
+    assert r.status_code == 201, r.text
+    capture = r.json()["frame"]["capture"]
+    assert capture["frames"] == 1 and capture["problems"] == 2
+    limit = f"more than the limit of {MAX_PHOTO_PIXELS:,}"
+    for f in (frames[0], frames[2]):
+        messages = capture["problem_messages"]
+        assert any(f"photo {f.name}.jpg declares" in m and limit in m for m in messages), capture

@@ -237,3 +237,37 @@ def test_upload_reports_the_detected_frame_and_refuses_bad_units(api: Api, tmp_p
     r = upload(api, "ball.ply", ball)
     assert r.status_code == 422 and "unit_scale" in r.json()["detail"]
     assert _spaces_of(api, api.a.name) == 1
+
+
+def _racing_deletes(client: Any, path: str, headers: dict[str, str], n: int) -> list[int]:
+    """The status codes of `n` DELETEs of `path` released together from `n` threads."""
+    import threading
+
+    start = threading.Barrier(n)
+    codes: list[int] = []
+
+    def delete() -> None:
+        start.wait()
+        codes.append(client.delete(path, headers=headers).status_code)
+
+    threads = [threading.Thread(target=delete) for _ in range(n)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return codes
+
+
+def test_concurrent_deletes_of_one_space_answer_204_exactly_once(api: Api, bunny: Path) -> None:
+    import httpx
+
+    from tests.fixtures.api import live_server
+
+    data = bunny.read_bytes()
+    ids = [upload(api, "b.ply", data, name=f"race{i}").json()["id"] for i in range(4)]
+    with live_server(api.app) as base, httpx.Client(base_url=base, timeout=60) as client:
+        for space_id in ids:
+            codes = _racing_deletes(client, f"/spaces/{space_id}", api.a.headers, 6)
+            assert sorted(codes) == [204] + [404] * 5, (space_id, codes)
+    with api.session() as s:
+        assert s.scalar(select(func.count()).select_from(Space).where(Space.id.in_(ids))) == 0

@@ -14,7 +14,7 @@ from services.core.domain.jobspec import JobSpec
 from services.core.domain.plan import PlanError, plan_from_json, plan_to_json
 from services.core.domain.plan_cues import point_info
 from services.core.ingest.capture.model import CaptureFrame
-from services.core.ingest.capture.resample import load_photo
+from services.core.ingest.capture.photos import Photo, load_photo
 from services.core.ingest.loading import load_space
 from services.scheduler.planning import make_plan, space_rng
 from services.scheduler.planning.alignment import alignment_score
@@ -79,7 +79,7 @@ def test_exact_views_at_every_capture_camera(kitchen):
     assert sum(hist["counts"]) == 100
 
 
-def frame_scores(q: MeshQueries, frame: CaptureFrame, photo: np.ndarray) -> tuple:
+def frame_scores(q: MeshQueries, frame: CaptureFrame, photo: Photo) -> tuple:
     """(raw, colour, [perturbed x 4]) scores of one frame."""
     def score(f: CaptureFrame) -> float | None:
         return alignment_score(q, photo, f, f.world_to_camera, f.inscribed_fov())

@@ -13,9 +13,9 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 from numpy.typing import ArrayLike
-from PIL import Image, UnidentifiedImageError
 
 from services.core.ingest.capture.model import Capture, CaptureFrame
+from services.core.ingest.capture.photos import PhotoRefused, photo_header
 
 ROTATION_TOLERANCE = 1e-3  # |R^T R - I| and |det R - 1| beyond this: not a rotation (re-orthonormalised below it)
 MAX_FRAMES = 100_000
@@ -48,6 +48,8 @@ def read_capture_json(root: Path, path: Path, fmt: str) -> tuple[object, Capture
         return json.loads(read_text(path, root)), None
     except (OSError, ValueError) as e:
         return None, Capture(fmt, root, (), (f"{path.name}: not readable JSON ({e})",))
+    except RecursionError:  # json's decoder recurses once per nesting level
+        return None, Capture(fmt, root, (), (f"{path.name}: not readable JSON (nested too deep)",))
 
 
 def rigid_pose(matrix: ArrayLike) -> tuple[np.ndarray | None, str | None]:
@@ -76,11 +78,11 @@ def rigid_pose(matrix: ArrayLike) -> tuple[np.ndarray | None, str | None]:
 
 
 def image_size(path: Path) -> tuple[int, int] | None:
-    """(width, height) from the image header, None when it is not a readable image."""
+    """(width, height) from the image header, None when it is not a readable image or over the photo budget
+    (the frame's check then says which)."""
     try:
-        with Image.open(path) as im:
-            return int(im.width), int(im.height)
-    except (OSError, UnidentifiedImageError, ValueError):
+        return photo_header(path)
+    except PhotoRefused:
         return None
 
 
@@ -118,7 +120,11 @@ class FrameCollector:
                 self.problem(f"frame {name}: image {image} is missing; skipped")
                 return
             if self.check_images or size is None:
-                actual = image_size(path)
+                try:
+                    actual = photo_header(path)
+                except PhotoRefused as e:
+                    self.problem(f"frame {name}: {e}; skipped")
+                    return
                 if actual is None:
                     self.problem(f"frame {name}: {image} is not a readable image; skipped")
                     return

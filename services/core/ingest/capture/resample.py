@@ -5,27 +5,19 @@ For each pixel centre of the view (K_view, world_to_camera_view; pixel centres a
 the photo's camera axes, distorted by the photo's lens and sampled bilinearly from the photo. This is exact when
 the two cameras share a centre (any rotation between them); translation between the centres is parallax and is
 not handled here (photo-textured views project through the mesh instead). When the view samples the photo
-sparser than its pixels, the photo is low-pass filtered first so the view does not alias.
+sparser than its pixels, the photo is low-pass filtered first so the view does not alias. Photos come decoded
+no larger than the view needs (services.core.ingest.capture.photos), so that filter works on few pixels.
 """
 
 from __future__ import annotations
 
 import numpy as np
-from PIL import Image
 
 from services.core.ingest.capture.distortion import project_to_photo
 from services.core.ingest.capture.model import CaptureFrame
+from services.core.ingest.capture.photos import Photo
 
 COVERAGE_MARGIN_PX = 0.5  # a pixel is covered when its bilinear footprint lies inside the photo
-
-
-def load_photo(path: str, frame: CaptureFrame) -> np.ndarray:
-    """uint8 H x W x 3 sRGB photo of a frame, its size checked against the frame's camera."""
-    with Image.open(path) as im:
-        rgb = np.asarray(im.convert("RGB"))
-    if frame.width is not None and (rgb.shape[1], rgb.shape[0]) != (frame.width, frame.height):
-        raise ValueError(f"photo {path} is {rgb.shape[1]}x{rgb.shape[0]}, its camera says {frame.width}x{frame.height}")
-    return rgb
 
 
 def view_rays_cam(K: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -65,16 +57,25 @@ def sample_bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     fx = (x - x0)[..., None].astype(np.float32)
     fy = (y - y0)[..., None].astype(np.float32)
     x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
-    img = image.astype(np.float32)
-    top = img[y0, x0] * (1 - fx) + img[y0, x1] * fx
-    bottom = img[y1, x0] * (1 - fx) + img[y1, x1] * fx
+    def at(yi: np.ndarray, xi: np.ndarray) -> np.ndarray:  # gathered, then float: no float copy of the photo
+        return image[yi, xi].astype(np.float32)
+
+    top = at(y0, x0) * (1 - fx) + at(y0, x1) * fx
+    bottom = at(y1, x0) * (1 - fx) + at(y1, x1) * fx
     return top * (1 - fy) + bottom * fy
 
 
-def prefilter(image: np.ndarray, frame: CaptureFrame, K_view: np.ndarray) -> np.ndarray:
-    """The photo low-pass filtered for a view that samples it `scale` photo pixels apart (no-op when scale <= 1.5)."""
+def sample_photo(photo: Photo, uv: np.ndarray) -> np.ndarray:
+    """float32 (..., 3) bilinear samples of a photo at the full photo's continuous coordinates `uv`."""
+    return sample_bilinear(photo.pixels, uv * photo.scale)
+
+
+def prefilter(photo: Photo, frame: CaptureFrame, K_view: np.ndarray) -> np.ndarray:
+    """The photo's pixels low-pass filtered for a view that samples them `scale` pixels apart (no-op when
+    scale <= 1.5)."""
     assert frame.K is not None
-    scale = float(np.sqrt(frame.K[0, 0] * frame.K[1, 1]) / np.sqrt(K_view[0, 0] * K_view[1, 1]))
+    image = photo.pixels
+    scale = photo.scale * float(np.sqrt(frame.K[0, 0] * frame.K[1, 1]) / np.sqrt(K_view[0, 0] * K_view[1, 1]))
     if scale <= 1.5:
         return image
     from scipy.ndimage import gaussian_filter
@@ -83,11 +84,11 @@ def prefilter(image: np.ndarray, frame: CaptureFrame, K_view: np.ndarray) -> np.
     return gaussian_filter(image.astype(np.float32), sigma=(sigma, sigma, 0), mode="nearest")
 
 
-def photo_for_view(image: np.ndarray, frame: CaptureFrame, K_view: np.ndarray, world_to_camera_view: np.ndarray,
+def photo_for_view(photo: Photo, frame: CaptureFrame, K_view: np.ndarray, world_to_camera_view: np.ndarray,
                    width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
     """(uint8 H x W x 3 rgb, bool H x W coverage) of the photo resampled to the view; 0 where it does not reach."""
     uv, covered = photo_coords(frame, K_view, world_to_camera_view, width, height)
-    rgb = sample_bilinear(prefilter(image, frame, K_view), uv)
+    rgb = sample_bilinear(prefilter(photo, frame, K_view), uv * photo.scale)
     rgb = np.where(covered[..., None], np.clip(np.rint(rgb), 0, 255), 0).astype(np.uint8)
     return rgb, covered
 

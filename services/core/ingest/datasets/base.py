@@ -74,6 +74,8 @@ def read_json(path: Path) -> Any:  # json.loads; each reader checks the keys it 
         return json.loads(path.read_text())
     except (OSError, ValueError) as e:
         raise DatasetError(f"{path.name}: not readable JSON ({e})") from None
+    except RecursionError:  # json's decoder recurses once per nesting level
+        raise DatasetError(f"{path.name}: not readable JSON (nested too deep)") from None
 
 
 def _records(data: np.ndarray | Mapping[str, ArrayLike]) -> np.ndarray:

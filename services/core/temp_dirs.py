@@ -5,7 +5,8 @@ runs its cleanup, so its temporary folder would stay forever (uploads are gigaby
 memory). Every such folder is named `omnidata-<kind>-<pid>-<random>`; `sweep_orphans` removes those
 whose owner is no longer running, and those without a pid in their name (from before pids were
 recorded) once older than `max_age_s`. The API sweeps when it starts, workers
-whenever they set up a render scene, and the upload checker right after killing a reader.
+whenever they set up a render scene, the upload checker right after killing a reader, and a scheduler
+when it starts and whenever one of its planner processes ended without cleaning up.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ log = logging.getLogger(__name__)
 
 DAY_S = 24 * 3600.0
 UPLOAD_KINDS = ("upload", "register", "space")  # what the API and the mesh readers it starts leave behind
+PLANNER_KINDS = ("plan", "space")  # what a planner process leaves: its plan JSON parts, a loaded capture
 _OURS = re.compile(r"^omnidata-([a-z]+)-(?:(\d+)-)?")
 
 

@@ -59,8 +59,8 @@ def clear_plan(session: Session, job_id: int) -> None:
 
 
 def drop_cancelled_plan(sm: sessionmaker[Session], job_id: int) -> None:
-    """Remove the chunks a stopped planner wrote for a job cancelled while planning (a cancel leaves them to the
-    planner's side: see cancel_job). The key lock waits for the planner's open chunk, killed or rolled back."""
+    """Remove the chunks a stopped planner wrote for a job cancelled while planning (a cancel leaves them
+    to the planner's side: see cancel_job). The key lock waits for the planner's open chunk to end."""
     with sm() as s:
         stmt = select(Job.state).where(Job.id == job_id)
         if s.get_bind().dialect.name == "postgresql":

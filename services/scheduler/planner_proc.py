@@ -55,8 +55,9 @@ PRELOAD = ("services.scheduler.loop", "services.scheduler.planning", "services.c
 
 @dataclass
 class PlannerChild:
-    """A planner process: its job and tenant, when its job's lease was last extended and when it started (monotonic
-    seconds), whether it is paused and for how long it was, and how many connections it holds (shared with it)."""
+    """A planner process: its job and tenant, when its job's lease was last extended and when it started
+    (monotonic seconds), whether it is paused and for how long it was, and how many connections it holds
+    (a counter shared with it)."""
 
     job_id: int
     owner: str
@@ -69,12 +70,13 @@ class PlannerChild:
 
     def active_s(self, now: float) -> float:
         """Seconds it has planned (paused time left out)."""
-        return now - self.started - self.paused_s - (now - self.paused_at if self.paused_at is not None else 0.0)
+        paused_now = now - self.paused_at if self.paused_at is not None else 0.0
+        return now - self.started - self.paused_s - paused_now
 
 
 def plan_to_pause(running: list[PlannerChild]) -> PlannerChild | None:
-    """Which running plan yields its slot to a tenant with nothing planning: the newest of the tenant holding the
-    most slots, if it holds two or more (a tenant's only plan is never paused)."""
+    """Which running plan yields its slot to a tenant with nothing planning: the newest of the tenant
+    holding the most slots, if it holds two or more (a tenant's only plan is never paused)."""
     by_owner: dict[str, list[PlannerChild]] = {}
     for child in running:
         by_owner.setdefault(child.owner, []).append(child)
@@ -131,8 +133,8 @@ class PlannerProcesses:
         log.info("job %d: planning in process %s", job_id, proc.pid)
 
     def make_room(self, tenant_waits: bool) -> None:
-        """With a tenant that has nothing planning waiting and no slot free, pause one plan of a tenant holding
-        several; with none waiting, resume paused plans into the free slots."""
+        """With a tenant that has nothing planning waiting and no slot free, pause one plan of a tenant
+        holding several; with none waiting, resume paused plans into the free slots."""
         if tenant_waits:
             if self.free <= 0 and len(self.paused) < self.max_children:
                 victim = plan_to_pause(self.running)
@@ -157,7 +159,7 @@ class PlannerProcesses:
             if child.in_db.value or pid is None or not child.process.is_alive():
                 return False
             os.kill(pid, signal.SIGSTOP)
-            # hold the counter's lock until it has stopped: it cannot stop while holding the lock (or a connection)
+            # the counter's lock is held until it has stopped: it cannot stop holding it (or a connection)
             if not _wait_stopped(pid):
                 os.kill(pid, signal.SIGCONT)
                 return False
@@ -261,7 +263,7 @@ def _wait_stopped(pid: int, timeout_s: float = 1.0) -> bool:
 
 
 def _count_connections(engine: Engine, in_db: Synchronized) -> None:
-    """Keep `in_db` at the number of connections this process has checked out (its scheduler pauses it only at 0)."""
+    """Keep `in_db` at the number of connections this process has checked out (paused only at 0)."""
 
     def add(delta: int) -> None:
         with in_db.get_lock():
@@ -308,7 +310,9 @@ def limit_memory(memory_mb: int) -> None:
     resource.setrlimit(resource.RLIMIT_AS, (limit if hard == resource.RLIM_INFINITY else min(limit, hard), hard))
 
 
-def plan_in_child(job_id: int, scheduler_id: str, settings: Settings, scheduler_pid: int, in_db: Synchronized) -> None:
+def plan_in_child(
+    job_id: int, scheduler_id: str, settings: Settings, scheduler_pid: int, in_db: Synchronized,
+) -> None:
     """Child process entry: plan and persist one job under the memory budget, as its claiming scheduler."""
     from services.core.db.engine import make_engine, make_sessionmaker
     from services.core.storage import open_store

@@ -26,7 +26,8 @@ from services.scheduler.loop import Scheduler
 from services.scheduler.transport import NullTransport
 from tests.fixtures.api import Api, make_api
 
-BIG = {"cameras": {"mode": "object", "object_count": 40}, "points": {"count": 4000, "min_views": 2, "max_views": 30},
+BIG = {"cameras": {"mode": "object", "object_count": 40},
+       "points": {"count": 4000, "min_views": 2, "max_views": 30},
        "cues": ["rgb", "depth_euclidean", "normal"]}
 
 
@@ -58,41 +59,46 @@ def writing(env: dict) -> bool:
     with env["sm"]() as s:
         return bool(s.scalar(text(
             "SELECT count(*) FROM pg_stat_activity WHERE datname = current_database() "
-            "AND pid <> pg_backend_pid() AND state = 'active' AND (query ILIKE 'COPY%' OR query ILIKE 'INSERT%')")))
+            "AND pid <> pg_backend_pid() AND state = 'active' "
+            "AND (query ILIKE 'COPY%' OR query ILIKE 'INSERT%')")))
 
 
 def rows_of(env: dict, job_id: int) -> dict[str, int]:
     with env["sm"]() as s:
-        return {m.__tablename__: int(s.scalar(select(func.count()).select_from(m).where(m.job_id == job_id)) or 0)
+        count = func.count()
+        return {m.__tablename__: int(s.scalar(select(count).select_from(m).where(m.job_id == job_id)) or 0)
                 for m in (Task, View, Camera, JobCounter)}
 
 
 def start_planning(env: dict, owner: str) -> tuple[Scheduler, int]:
-    sched = Scheduler(env["sm"], env["store"], NullTransport(), env["settings"], "sched-1", plan_in_processes=True)
+    sched = Scheduler(env["sm"], env["store"], NullTransport(), env["settings"], "sched-1",
+                      plan_in_processes=True)
     job_id = submit(env, owner)
     sched.plan_pending()
     t0 = time.monotonic()
-    while not (rows_of(env, job_id)["task"] > 0 and writing(env)):  # some chunks in, the next one being written
+    while not (rows_of(env, job_id)["task"] > 0 and writing(env)):  # chunks in, the next being written
         assert time.monotonic() - t0 < 120, "the planner never wrote a chunk"
-        assert sched.planners.children, "the planner ended before the test could catch it writing"  # type: ignore[union-attr]
+        assert sched.planners.children, "the planner ended too soon"  # type: ignore[union-attr]
         sched.plan_pending()
         time.sleep(0.01)
     return sched, job_id
 
 
 def waiting_on_counters(env: dict) -> bool:
-    """Whether the planner's chunk transaction waits to add its counts (its task rows are in: KEY SHARE on the job)."""
+    """Whether the planner's chunk transaction waits to add its counts (its task rows are in: KEY SHARE on
+    the job row)."""
     with env["sm"]() as s:
         return bool(s.scalar(text(
-            "SELECT count(*) FROM pg_stat_activity WHERE datname = current_database() AND wait_event_type = 'Lock' "
-            "AND query ILIKE 'INSERT INTO job_counter%'")))
+            "SELECT count(*) FROM pg_stat_activity WHERE datname = current_database() "
+            "AND wait_event_type = 'Lock' AND query ILIKE 'INSERT INTO job_counter%'")))
 
 
 def deadlocks(env: dict) -> int:
     """Deadlocks Postgres has detected in this database (either side may be the one it aborts)."""
     with env["sm"]() as s:
         s.execute(text("SELECT pg_stat_clear_snapshot()"))
-        return int(s.scalar(text("SELECT deadlocks FROM pg_stat_database WHERE datname = current_database()")) or 0)
+        sql = "SELECT deadlocks FROM pg_stat_database WHERE datname = current_database()"
+        return int(s.scalar(text(sql)) or 0)
 
 
 def test_delete_while_the_plan_is_being_written_answers_204_and_stops_the_planner(env: dict) -> None:
@@ -101,8 +107,8 @@ def test_delete_while_the_plan_is_being_written_answers_204_and_stops_the_planne
     before = deadlocks(env)
     child = sched.planners.children[job_id].process  # type: ignore[union-attr]
     answer: list[int] = []
-    # Widen the window the probe hit by chance on 400k views: the planner's chunk transaction is held open (its
-    # counts wait on a table lock) while the DELETE arrives, then both go on.
+    # Widen the window the probe hit by chance on 400k views: the planner's chunk transaction is held open
+    # (its counts wait on a table lock) while the DELETE arrives, then both go on.
     with env["sm"]() as hold:
         hold.execute(text("LOCK TABLE job_counter IN SHARE MODE"))
         t0 = time.monotonic()

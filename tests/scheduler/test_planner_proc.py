@@ -203,8 +203,8 @@ def test_planning_slots_are_shared_between_tenants(env: dict) -> None:
 
 
 def test_a_planner_killed_mid_plan_leaves_no_temp_folder(env: dict) -> None:
-    # kill -9 of the scheduler kills its planners (their parent-death signal) before they clean up: their folders
-    # carry their pid, and the next scheduler's start (or this one's next look at its children) removes them
+    # kill -9 of the scheduler kills its planners (their parent-death signal) before they clean up: their
+    # folders carry their pid, and the next scheduler's start (or this one's next look at them) removes them
     sched = scheduler(env)
     job_id = submit(env, SLOW)
     sched.plan_pending()
@@ -239,8 +239,8 @@ def stopped(pid: int) -> bool:
 
 
 def test_a_slow_plan_yields_its_slot_to_a_tenant_with_nothing_planning(env: dict) -> None:
-    # tenant A's two slow plans hold both slots; tenant B's small job is planned while both are still planning,
-    # one of them paused (not killed: it goes on where it was once B's plan is done)
+    # tenant A's two slow plans hold both slots; tenant B's small job is planned while both are still
+    # planning, one of them paused (not killed: it goes on where it was once B's plan is done)
     sched = scheduler(env)
     a_jobs = [submit(env, SLOW, owner="tenant-a") for _ in range(2)]
     sched.plan_pending()
@@ -251,10 +251,12 @@ def test_a_slow_plan_yields_its_slot_to_a_tenant_with_nothing_planning(env: dict
     took = tick_until(sched, lambda: job(env, b_job).state not in ("pending", "planning"), 60)
     assert job(env, b_job).state == "running", job(env, b_job).error
     assert [job(env, a).state for a in a_jobs] == ["planning", "planning"]  # B did not wait for A's plans
-    paused = [c for c in sched.planners.children.values() if c.paused_at is not None]  # type: ignore[union-attr]
-    assert [c.job_id for c in paused] == [a_jobs[1]] and stopped(paused[0].process.pid)  # type: ignore[arg-type]
+    paused = sched.planners.paused  # type: ignore[union-attr]
+    assert [c.job_id for c in paused] == [a_jobs[1]]
+    assert stopped(paused[0].process.pid)  # type: ignore[arg-type]
     print(f"B planned {took:.1f} s after it was submitted, A's two plans under way")
     sched.plan_pending()  # nobody waits any more: the paused plan goes on
-    assert not sched.planners.paused and not stopped(paused[0].process.pid)  # type: ignore[union-attr,arg-type]
+    assert not sched.planners.paused  # type: ignore[union-attr]
+    assert not stopped(paused[0].process.pid)  # type: ignore[arg-type]
     tick_until(sched, lambda: all(job(env, a).state != "planning" for a in a_jobs), 240)
     assert [job(env, a).state for a in a_jobs] == ["running", "running"], [job(env, a).error for a in a_jobs]

@@ -30,6 +30,9 @@ from services.scheduler.transport import NullTransport
 SMALL = {"cameras": {"mode": "object", "object_count": 4}, "points": {"count": 2, "min_views": 2, "max_views": 2},
          "cues": ["rgb"]}
 SLOW = {"cameras": {"mode": "object", "object_count": 40}, "points": {"count": 2000, "min_views": 2, "max_views": 40}}
+# sampling-bound: ~600 x 6,000 camera-point pairs, few views (tens of seconds here, seconds on an idle machine)
+MINUTES = {"cameras": {"mode": "object", "object_count": 600},
+           "points": {"count": 6000, "min_views": 2, "max_views": 2}, "cues": ["rgb"]}
 HEARTBEAT_S = 3
 
 
@@ -242,7 +245,7 @@ def test_a_slow_plan_yields_its_slot_to_a_tenant_with_nothing_planning(env: dict
     # tenant A's two slow plans hold both slots; tenant B's small job is planned while both are still
     # planning, one of them paused (not killed: it goes on where it was once B's plan is done)
     sched = scheduler(env)
-    a_jobs = [submit(env, SLOW, owner="tenant-a") for _ in range(2)]
+    a_jobs = [submit(env, MINUTES, owner="tenant-a") for _ in range(2)]
     sched.plan_pending()
     sched.plan_pending()
     assert sorted(sched.planners.children) == a_jobs  # type: ignore[union-attr]

@@ -52,8 +52,8 @@ REDIS_URL = os.environ.get("OMNIDATA_BENCH_REDIS_URL", "redis://127.0.0.1:6379/4
 BIG = "cameras: {mode: object, object_count: 40}\npoints: {count: 20, min_views: 2, max_views: 15}\n" \
       "views: {resolution: 32}\ncues: [rgb]\npriority: 9\nseed: 1\n"
 # planning that takes minutes on this machine and little else: many points, two views each
-SLOW_PLAN = "cameras: {mode: object, object_count: 2000}\npoints: {count: 12000, min_views: 2, max_views: 2}\n" \
-            "views: {resolution: 32}\ncues: [rgb]\nseed: 3\n"
+SLOW_PLAN = "cameras: {mode: object, object_count: 2000}\n" \
+            "points: {count: 12000, min_views: 2, max_views: 2}\nviews: {resolution: 32}\ncues: [rgb]\nseed: 3\n"
 FINAL = ("done", "failed", "cancelled")
 SMALL = "cameras: {mode: object, object_count: 4}\npoints: {count: 1, min_views: 2, max_views: 2}\n" \
         "views: {resolution: 32}\ncues: [rgb]\npriority: 0\nseed: 2\n"

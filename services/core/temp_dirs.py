@@ -6,7 +6,8 @@ memory). Every such folder is named `omnidata-<kind>-<pid>-<random>`; `sweep_orp
 whose owner is no longer running, and those without a pid in their name (from before pids were
 recorded) once older than `max_age_s`. The API sweeps when it starts, workers
 whenever they set up a render scene, the upload checker right after killing a reader, and a scheduler
-when it starts and whenever one of its planner processes ended without cleaning up.
+when it starts, whenever one of its planner processes ended without cleaning up, and with each reaper pass
+(a planner of a scheduler killed with -9 may outlive the next scheduler's start by a moment).
 """
 
 from __future__ import annotations
@@ -45,7 +46,12 @@ def _alive(pid: int) -> bool:
         return False
     except PermissionError:  # someone else's process: alive
         return True
-    return True
+    # a zombie has exited and holds nothing (a container's init may never reap one, e.g. a killed planner)
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return not Path("/proc").is_dir()  # gone meanwhile; or no /proc here (not Linux): signal 0 decides
+    return stat[stat.rindex(")") + 2] != "Z"
 
 
 def sweep_orphans(

@@ -309,6 +309,8 @@ class Scheduler:
             res = reap_once(s, queued_timeout_s=self.settings.lease_s, default_max_attempts=self.settings.max_attempts,
                             dead_after_s=self.settings.heartbeat_timeout_s)
             expire_worker_rows(s, older_than_s=self.settings.worker_expiry_s)
+        if self.planners is not None:
+            self.planners.sweep()
         with self.sessionmaker() as s:  # messages a dead worker held, or stuck while workers sit idle
             resend_stuck(s, self.transport, self.settings, self._idle_watch,
                          dead_after_s=self.settings.heartbeat_timeout_s, stuck_after_s=self.settings.heartbeat_timeout_s)

@@ -100,7 +100,7 @@ class PlannerProcesses:
         # connections), it imports the planning stack up front and forks each planner from there in milliseconds.
         self._ctx = mp.get_context("forkserver")
         self._ctx.set_forkserver_preload(list(PRELOAD))
-        sweep_orphans(PLANNER_KINDS)  # folders of planners killed with an earlier scheduler (kill -9)
+        self.sweep()
 
     @property
     def running(self) -> list[PlannerChild]:
@@ -203,6 +203,11 @@ class PlannerProcesses:
                 self._extend(job_id)
                 child.extended = time.monotonic()
         return ended
+
+    @staticmethod
+    def sweep() -> None:
+        """Remove the temporary folders of dead planners on this host (an earlier scheduler's, killed)."""
+        sweep_orphans(PLANNER_KINDS)
 
     def stop_all(self) -> None:
         """Kill every child (the scheduler stops; the jobs are re-taken after their lease)."""

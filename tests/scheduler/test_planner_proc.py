@@ -30,7 +30,7 @@ from services.scheduler.transport import NullTransport
 SMALL = {"cameras": {"mode": "object", "object_count": 4}, "points": {"count": 2, "min_views": 2, "max_views": 2},
          "cues": ["rgb"]}
 SLOW = {"cameras": {"mode": "object", "object_count": 40}, "points": {"count": 2000, "min_views": 2, "max_views": 40}}
-# sampling-bound: ~600 x 6,000 camera-point pairs, few views (tens of seconds here, seconds on an idle machine)
+# sampling-bound: ~600 x 6,000 camera-point pairs, few views (tens of seconds here, seconds when idle)
 MINUTES = {"cameras": {"mode": "object", "object_count": 600},
            "points": {"count": 6000, "min_views": 2, "max_views": 2}, "cues": ["rgb"]}
 HEARTBEAT_S = 3

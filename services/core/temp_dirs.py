@@ -5,7 +5,9 @@ runs its cleanup, so its temporary folder would stay forever (uploads are gigaby
 memory). Every such folder is named `omnidata-<kind>-<pid>-<random>`; `sweep_orphans` removes those
 whose owner is no longer running, and those without a pid in their name (from before pids were
 recorded) once older than `max_age_s`. The API sweeps when it starts, workers
-whenever they set up a render scene, and the upload checker right after killing a reader.
+whenever they set up a render scene, the upload checker right after killing a reader, and a scheduler
+when it starts, whenever one of its planner processes ended without cleaning up, and with each reaper pass
+(a planner of a scheduler killed with -9 may outlive the next scheduler's start by a moment).
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ log = logging.getLogger(__name__)
 
 DAY_S = 24 * 3600.0
 UPLOAD_KINDS = ("upload", "register", "space")  # what the API and the mesh readers it starts leave behind
+PLANNER_KINDS = ("plan", "space")  # what a planner process leaves: its plan JSON parts, a loaded capture
 _OURS = re.compile(r"^omnidata-([a-z]+)-(?:(\d+)-)?")
 
 
@@ -43,7 +46,12 @@ def _alive(pid: int) -> bool:
         return False
     except PermissionError:  # someone else's process: alive
         return True
-    return True
+    # a zombie has exited and holds nothing (a container's init may never reap one, e.g. a killed planner)
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return not Path("/proc").is_dir()  # gone meanwhile; or no /proc here (not Linux): signal 0 decides
+    return stat[stat.rindex(")") + 2] != "Z"
 
 
 def sweep_orphans(

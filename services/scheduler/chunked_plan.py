@@ -85,6 +85,11 @@ def plan_and_persist_space(target: ChunkTarget, loaded: LoadedSpace, spec: JobSp
         assert chunks.whole is not None
         if chunks.views:
             target.store.put_file(plan_key, json_file.finish(chunks.whole), content_type="application/json")
+            with target.sessionmaker() as s:  # a delete or cancel after the last chunk missed this object
+                state = s.scalar(select(Job.state).where(Job.id == target.job_id))
+            if state is None or state == JobState.CANCELLED:  # (a re-taking planner writes the key itself)
+                target.store.delete(plan_key)
+                raise PlanDropped(f"job {target.job_id} was deleted or cancelled while it was planned")
         return SpaceWritten(chunks.cameras, chunks.points, chunks.views, tasks_written, chunks.whole)
     finally:
         json_file.close()

@@ -23,6 +23,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from services.core.db.jobs import claim_pending_jobs, job_spaces, job_spec
 from services.core.db.models import Job, JobState, Space, utcnow
+from services.core.db.plan_claims import tenants_waiting_idle
 from services.core.db.states import set_job_state
 from services.core.db.worker_rows import expire_worker_rows
 from services.core.domain.jobspec import JobSpec, SpaceFrame
@@ -36,7 +37,7 @@ from services.scheduler.compaction import CompactionResult, Compactor
 from services.scheduler.completion import Finished, complete_once
 from services.scheduler.dispatch import DEFAULT_BUDGET, DispatchResult, dispatch_once
 from services.scheduler.fairness import CAPPED_WAIT_S, queued_cap
-from services.scheduler.persist import clear_plan, plan_key
+from services.scheduler.persist import clear_plan, drop_cancelled_plan, plan_key
 from services.scheduler.plan_space import JobPlanSummary, PlanFn, load_for_job, plan_summary_of
 from services.scheduler.planner_proc import PlannerProcesses
 from services.scheduler.reaper import ReapResult, reap_once
@@ -188,14 +189,17 @@ class Scheduler:
         processes: starts them, and returns the ids of jobs whose planning ended)."""
         if self.planners is not None:
             ended = self.planners.watch()
+            if self.planners.children:  # a plan may have to yield its slot, or a paused one may go on
+                with self.sessionmaker() as s:
+                    self.planners.make_room(bool(tenants_waiting_idle(s)))
             if self.planners.free > 0:
                 with self.sessionmaker() as s:
                     jobs = claim_pending_jobs(s, self.scheduler_id, min(limit, self.planners.free),
                                               lease_s=self.settings.heartbeat_timeout_s)
-                    ids = [j.id for j in jobs]
+                    claimed = [(j.id, j.owner) for j in jobs]
                     s.commit()
-                for job_id in ids:
-                    self.planners.start(job_id)
+                for job_id, owner in claimed:
+                    self.planners.start(job_id, owner)
             return ended
         with self.sessionmaker() as s:
             jobs = claim_pending_jobs(s, self.scheduler_id, limit)
@@ -249,6 +253,7 @@ class Scheduler:
                 return False
         except PlanDropped:
             log.info("job %d changed while planning; plan dropped", job_id)
+            drop_cancelled_plan(self.sessionmaker, job_id)
             return False
         except Exception as exc:
             self._planning_failed(job_id, exc, spec)
@@ -309,6 +314,8 @@ class Scheduler:
             res = reap_once(s, queued_timeout_s=self.settings.lease_s, default_max_attempts=self.settings.max_attempts,
                             dead_after_s=self.settings.heartbeat_timeout_s)
             expire_worker_rows(s, older_than_s=self.settings.worker_expiry_s)
+        if self.planners is not None:
+            self.planners.sweep()
         with self.sessionmaker() as s:  # messages a dead worker held, or stuck while workers sit idle
             resend_stuck(s, self.transport, self.settings, self._idle_watch,
                          dead_after_s=self.settings.heartbeat_timeout_s, stuck_after_s=self.settings.heartbeat_timeout_s)

@@ -8,21 +8,31 @@ whole plan. A planner that dies leaves some chunks of its job: the next attempt 
 from __future__ import annotations
 
 import json
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TextIO
 
 import numpy as np
-from sqlalchemy import delete
-from sqlalchemy.orm import Session
+from sqlalchemy import delete, select
+from sqlalchemy.orm import Session, sessionmaker
 
 from services.core.db.bulk import bulk_insert
 from services.core.db.counters import init_counts
 from services.core.db.jobs import root_key
-from services.core.db.models import Camera, CompactedDuration, Job, JobCounter, Point, Task, View, ViewOutput
+from services.core.db.models import (
+    Camera,
+    CompactedDuration,
+    Job,
+    JobCounter,
+    JobState,
+    Point,
+    Task,
+    View,
+    ViewOutput,
+)
 from services.core.domain.plan import CameraRecord, SpacePlan, plan_to_dict, plan_to_json
 from services.core.storage import ObjectStore
+from services.core.temp_dirs import owned_temp_dir
 from services.scheduler.compile import CompiledTasks
 
 
@@ -46,6 +56,18 @@ def clear_plan(session: Session, job_id: int) -> None:
     """Delete every planned row of a job (a re-plan after a planner died starts from nothing)."""
     for model in (Task, ViewOutput, CompactedDuration, View, Point, Camera, JobCounter):
         session.execute(delete(model).where(model.job_id == job_id))
+
+
+def drop_cancelled_plan(sm: sessionmaker[Session], job_id: int) -> None:
+    """Remove the chunks a stopped planner wrote for a job cancelled while planning (a cancel leaves them
+    to the planner's side: see cancel_job). The key lock waits for the planner's open chunk to end."""
+    with sm() as s:
+        stmt = select(Job.state).where(Job.id == job_id)
+        if s.get_bind().dialect.name == "postgresql":
+            stmt = stmt.with_for_update()
+        if s.scalar(stmt) == JobState.CANCELLED:
+            clear_plan(s, job_id)
+        s.commit()
 
 
 def plan_rows(plan: SpacePlan, job_id: int, space_id: int) -> tuple[dict, dict, dict]:
@@ -135,7 +157,7 @@ class PlanJsonFile:
     the keys, and the plan's own fields come between them); `finish` gives the file of the whole text."""
 
     def __init__(self) -> None:
-        self._dir = tempfile.TemporaryDirectory(prefix="omnidata-plan-")
+        self._dir = owned_temp_dir("plan")  # named after this planner: swept if it is killed
         self._cameras: list[CameraRecord] = []
         self._parts = {name: open(Path(self._dir.name) / name, "w", encoding="utf-8")  # noqa: SIM115
                        for name in ("points", "views")}

@@ -14,6 +14,7 @@ import json
 import os
 import signal
 import socket
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -189,6 +190,13 @@ def test_kill_9_of_the_scheduler_while_planning(quiet_cluster, scenes_dir: Path,
             return job is not None and job.state == "planning" and len(descendants(scheduler.popen.pid)) >= 2
 
     wait(planning, 120, "the scheduler to plan the job in a planner process", cluster)
+
+    def plan_folders() -> list[Path]:  # the planner's temporary folders, named after its pid
+        return [f for pid in descendants(scheduler.popen.pid)
+                for f in Path(tempfile.gettempdir()).glob(f"omnidata-plan-{pid}-*")]
+
+    wait(lambda: bool(plan_folders()), 120, "the planner's temporary folder", cluster)
+    left = plan_folders()
     with cluster.sm() as s:
         first_planner = s.get(Job, job_id).planner  # type: ignore[union-attr]
     below = descendants(scheduler.popen.pid)
@@ -210,6 +218,7 @@ def test_kill_9_of_the_scheduler_while_planning(quiet_cluster, scenes_dir: Path,
     while (survivors := [p for p in below if running(p)]) and time.monotonic() < deadline:
         time.sleep(0.2)
     assert not survivors, f"a planner process outlived its scheduler: {survivors}"
+    assert not [f for f in left if f.exists()]  # swept by the restarted scheduler (no cleanup of its own)
     wait(lambda: job_state_of(cluster, job_id) == "running", 180, "the job to be planned again", cluster)
     with cluster.sm() as s:
         job = s.get(Job, job_id)

@@ -6,6 +6,9 @@ real planning of the bunny.
 
 from __future__ import annotations
 
+import os
+import signal
+import tempfile
 import time
 from collections.abc import Iterator
 from datetime import timedelta
@@ -27,6 +30,9 @@ from services.scheduler.transport import NullTransport
 SMALL = {"cameras": {"mode": "object", "object_count": 4}, "points": {"count": 2, "min_views": 2, "max_views": 2},
          "cues": ["rgb"]}
 SLOW = {"cameras": {"mode": "object", "object_count": 40}, "points": {"count": 2000, "min_views": 2, "max_views": 40}}
+# sampling-bound: ~600 x 6,000 camera-point pairs, few views (tens of seconds here, seconds when idle)
+MINUTES = {"cameras": {"mode": "object", "object_count": 600},
+           "points": {"count": 6000, "min_views": 2, "max_views": 2}, "cues": ["rgb"]}
 HEARTBEAT_S = 3
 
 
@@ -197,3 +203,63 @@ def test_planning_slots_are_shared_between_tenants(env: dict) -> None:
         first = [j.id for j in claim_pending_jobs(s, "probe", 2)]
         s.rollback()
     assert first == [a_jobs[0], b_job]
+
+
+def test_a_planner_killed_mid_plan_leaves_no_temp_folder(env: dict) -> None:
+    # kill -9 of the scheduler kills its planners (their parent-death signal) before they clean up: their
+    # folders carry their pid, and the next scheduler's start (or this one's next look at them) removes them
+    sched = scheduler(env)
+    job_id = submit(env, SLOW)
+    sched.plan_pending()
+    child = sched.planners.children[job_id].process  # type: ignore[union-attr]
+    t0 = time.monotonic()
+    while not (folders := list(Path(tempfile.gettempdir()).glob(f"omnidata-plan-{child.pid}-*"))):
+        assert time.monotonic() - t0 < 60 and child.is_alive(), "the planner never made its temp folder"
+        time.sleep(0.05)
+    os.kill(child.pid, signal.SIGKILL)  # type: ignore[arg-type]
+    child.join(10)
+    assert all(f.exists() for f in folders)  # nothing of the planner's own ran
+    scheduler(env, "sched-restarted")  # a scheduler starting on this host sweeps what dead planners left
+    assert not any(f.exists() for f in folders)
+    other = submit(env, SLOW, owner="bob")  # and a running scheduler, on its next look at a planner it killed
+    sched.plan_pending()
+    second = sched.planners.children[other].process  # type: ignore[union-attr]
+    t0 = time.monotonic()
+    while not (folders := list(Path(tempfile.gettempdir()).glob(f"omnidata-plan-{second.pid}-*"))):
+        assert time.monotonic() - t0 < 60 and second.is_alive(), "the planner never made its temp folder"
+        time.sleep(0.05)
+    with env["sm"]() as s:
+        cancel_job(s, s.get(Job, other))  # type: ignore[arg-type]
+        s.commit()
+    sched.plan_pending()
+    assert not second.is_alive() and not any(f.exists() for f in folders)
+    sched.planners.stop_all()  # type: ignore[union-attr]
+
+
+def stopped(pid: int) -> bool:
+    stat = Path(f"/proc/{pid}/stat").read_text()
+    return stat[stat.rindex(")") + 2] in "Tt"
+
+
+def test_a_slow_plan_yields_its_slot_to_a_tenant_with_nothing_planning(env: dict) -> None:
+    # tenant A's two slow plans hold both slots; tenant B's small job is planned while both are still
+    # planning, one of them paused (not killed: it goes on where it was once B's plan is done)
+    sched = scheduler(env)
+    a_jobs = [submit(env, MINUTES, owner="tenant-a") for _ in range(2)]
+    sched.plan_pending()
+    sched.plan_pending()
+    assert sorted(sched.planners.children) == a_jobs  # type: ignore[union-attr]
+    time.sleep(1.0)  # well into sampling
+    b_job = submit(env, SMALL, owner="tenant-b")
+    took = tick_until(sched, lambda: job(env, b_job).state not in ("pending", "planning"), 60)
+    assert job(env, b_job).state == "running", job(env, b_job).error
+    assert [job(env, a).state for a in a_jobs] == ["planning", "planning"]  # B did not wait for A's plans
+    paused = sched.planners.paused  # type: ignore[union-attr]
+    assert [c.job_id for c in paused] == [a_jobs[1]]
+    assert stopped(paused[0].process.pid)  # type: ignore[arg-type]
+    print(f"B planned {took:.1f} s after it was submitted, A's two plans under way")
+    sched.plan_pending()  # nobody waits any more: the paused plan goes on
+    assert not sched.planners.paused  # type: ignore[union-attr]
+    assert not stopped(paused[0].process.pid)  # type: ignore[arg-type]
+    tick_until(sched, lambda: all(job(env, a).state != "planning" for a in a_jobs), 240)
+    assert [job(env, a).state for a in a_jobs] == ["running", "running"], [job(env, a).error for a in a_jobs]

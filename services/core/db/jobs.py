@@ -149,18 +149,36 @@ def _lock_job(session: Session, job: Job) -> Job:
     return locked
 
 
+def _lock_job_key(session: Session, job_id: int) -> Job | None:
+    """The job re-read under FOR UPDATE (the lock a delete of the row needs), or None once it is gone. Taken
+    before any other row of the job is touched: it waits for a planner's open chunk transaction (KEY SHARE on
+    the row) to end, while that planner's own look at the job (FOR SHARE) does not wait for it."""
+    stmt = select(Job).where(Job.id == job_id).execution_options(populate_existing=True)
+    if session.get_bind().dialect.name == "postgresql":
+        stmt = stmt.with_for_update()
+    return session.scalars(stmt).one_or_none()
+
+
 def cancel_job(session: Session, job: Job) -> int:
     """Cancel a non-final job: job -> cancelled, its pending and queued tasks -> cancelled at once.
 
     Running tasks finish (their result is kept) or are discarded by the worker. Returns the number of
     tasks cancelled. Raises JobStateError for a job that is already done, failed or cancelled.
+
+    A job still planning changes its own row only: its planner may be inside a chunk's transaction, holding
+    task and counter rows while it waits to re-read the job (which this lock makes it do), so touching those
+    rows here could deadlock. The planner sees the cancel and stops; whoever stops it removes the chunks
+    already written (services.scheduler.persist.drop_cancelled_plan), as a delete does.
     """
     job = _lock_job(session, job)
     if job.state in JOB_TERMINAL_STATES:
         raise JobStateError(f"job {job.id} is {job.state}; only unfinished jobs can be cancelled")
     now = utcnow()
+    planning = job.state == JobState.PLANNING
     set_job_state(job, JobState.CANCELLED, finished_at=now)
     session.flush()
+    if planning:
+        return 0
     # pending first, then queued: a task a dispatcher moves pending -> queued meanwhile is caught second.
     n = len(transition(session, job_id=job.id, from_state=TaskState.PENDING, to_state=TaskState.CANCELLED,
                        finished_at=now))
@@ -213,12 +231,19 @@ def retry_failed(session: Session, job: Job) -> int:
 def delete_job(session: Session, store: ObjectStore, job: Job) -> int:
     """Delete a job: its outputs in the store, then its rows (tasks, plan, counters); returns objects deleted.
 
-    An unfinished job is cancelled first. With an empty output root (embedded layout) only the job's
-    own files are removed, never the rest of the folder.
+    An unfinished job is cancelled first, in a transaction of its own (committed here): a planner then stops
+    at its next look at the job, and the delete waits only for the planner's open chunk, never the reverse
+    (one transaction that both cancelled and deleted deadlocked with the planner's chunk inserts). With an
+    empty output root (embedded layout) only the job's own files are removed, never the rest of the folder.
     """
     job = _lock_job(session, job)
     if job.state not in JOB_TERMINAL_STATES:
         cancel_job(session, job)
+        session.commit()
+    locked = _lock_job_key(session, job.id)
+    if locked is None:  # deleted meanwhile by another request
+        return 0
+    job = locked
     deleted = 0
     root = job_root(job)
     if root:

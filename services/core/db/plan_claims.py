@@ -6,6 +6,9 @@ the tenant with the fewest plans under way (every scheduler's, from the live pla
 to the tenant whose oldest waiting job waited longest; within a tenant, higher priority first, then oldest.
 A tenant's priority never outranks another tenant's jobs. So while others wait, a tenant holds no more
 slots than its even share: tenant B's job is planned before tenant A's third, whatever A submitted first.
+A slot already held for minutes is made free by the scheduler itself: a tenant with nothing planning
+(`tenants_waiting_idle`) makes a scheduler whose slots are all busy pause one plan of a tenant holding several
+(services.scheduler.planner_proc), and the claim order above then gives the freed slot to that tenant.
 """
 
 from __future__ import annotations
@@ -112,3 +115,10 @@ def claim_pending_jobs(
     jobs = {j.id: j for j in session.scalars(
         select(Job).where(Job.id.in_(claimed)).execution_options(populate_existing=True))}
     return [jobs[i] for i in claimed]
+
+
+def tenants_waiting_idle(session: Session, now: datetime | None = None) -> set[str]:
+    """Tenants with a job waiting to be planned and no plan under way on any scheduler."""
+    now = now or utcnow()
+    waiting = {str(owner) for owner in session.scalars(select(Job.owner).where(_claimable(now)).distinct())}
+    return waiting - set(_under_way(session, now)) if waiting else set()

@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import time
 import zipfile
 import zlib
 from pathlib import Path
@@ -152,6 +153,21 @@ def test_sweep_removes_folders_of_dead_owners_only(tmp_path: Path) -> None:
     removed = sweep_orphans(("upload", "exr"), (tmp_path,))
     assert sorted(removed) == sorted([theirs, old_unnamed, exr_dead])
     assert mine.exists() and other_kind.exists() and not theirs.exists() and exr_live.exists()
+
+
+def test_a_zombie_owner_counts_as_dead(tmp_path: Path) -> None:
+    # a killed process nobody reaps (a container's init may not) stays a zombie: its pid, nothing else
+    child = subprocess.Popen([sys.executable, "-c", "pass"])
+    deadline = time.monotonic() + 30
+    while Path(f"/proc/{child.pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z":
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    folder = tmp_path / f"{owned_prefix('plan', child.pid)}abc"
+    folder.mkdir()
+    try:
+        assert sweep_orphans(("plan",), (tmp_path,)) == [folder] and not folder.exists()
+    finally:
+        child.wait()
 
 
 def test_killed_api_leaves_no_upload_folder(tmp_path: Path, pg_url: str) -> None:

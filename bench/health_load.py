@@ -14,7 +14,9 @@ Writes bench/results/health_load.json. Run: .venv/bin/python bench/health_load.p
 
 from __future__ import annotations
 
+import argparse
 import asyncio
+import contextlib
 import json
 import multiprocessing as mp
 import os
@@ -26,6 +28,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -122,20 +125,19 @@ def summary(seconds: list[float]) -> dict[str, float]:
     return percentiles(seconds)
 
 
-def main() -> None:
+@contextlib.contextmanager
+def served(tokens: list[str], env_extra: dict[str, str] | None = None) -> Iterator[tuple[str, str, Path]]:
+    """`omnidata serve` on a fresh database and store, for tenants tenant-0.. of `tokens`; (base URL, db URL, tmp)."""
     url = create_database()
     tmp = Path(tempfile.mkdtemp(prefix="bench-health-"))
-    tokens = [secrets.token_urlsafe(16) for _ in range(TENANTS)]
     port = free_port()
     base = f"http://127.0.0.1:{port}"
     env = {k: v for k, v in os.environ.items() if not k.startswith("OMNIDATA_")}
     env.update(OMNIDATA_DATABASE_URL=url, OMNIDATA_STORAGE_URL=f"file://{tmp / 'store'}", OMNIDATA_DATA_DIR=str(tmp),
                OMNIDATA_BROKER_URL=os.environ.get("OMNIDATA_BENCH_REDIS_URL", "redis://127.0.0.1:6379/4"),
-               OMNIDATA_API_TOKENS=json.dumps({hash_token(t): f"tenant-{k}" for k, t in enumerate(tokens)}))
+               OMNIDATA_API_TOKENS=json.dumps({hash_token(t): f"tenant-{k}" for k, t in enumerate(tokens)}),
+               **(env_extra or {}))
     server = None
-    results: dict[str, Any] = {"machine": f"{platform.node()} ({os.cpu_count()} cores, loaded by other developers' work)",
-                               "streams": TENANTS * STREAMS_PER_TENANT, "uploaders": UPLOADERS}
-    ctx = mp.get_context("spawn")
     try:
         migrate(url)
         server = subprocess.Popen([sys.executable, "-m", "services.cli", "serve", "--port", str(port), "--log-level",
@@ -150,6 +152,20 @@ def main() -> None:
                 pass
             assert time.monotonic() < deadline, (tmp / "api.log").read_text()[-2000:]
             time.sleep(0.3)
+        yield base, url, tmp
+    finally:
+        if server is not None:
+            os.killpg(server.pid, signal.SIGTERM)
+            server.wait(30)
+        drop_database(url)
+
+
+def streams_scenario(results: dict[str, Any]) -> None:
+    """/health while 200 event streams are open, then with 50 uploaders on top (issue 19)."""
+    tokens = [secrets.token_urlsafe(16) for _ in range(TENANTS)]
+    results.update(streams=TENANTS * STREAMS_PER_TENANT, uploaders=UPLOADERS)
+    ctx = mp.get_context("spawn")
+    with served(tokens) as (base, _url, _tmp):
         results["idle"] = summary(probe(base, PHASE_S["idle"]))
         ready, stop, refused, uploaded = ctx.Event(), ctx.Event(), ctx.Value("i", 0), ctx.Value("i", 0)
         streams = ctx.Process(target=hold_streams, args=(base, tokens, ready, stop, refused), daemon=True)
@@ -166,11 +182,22 @@ def main() -> None:
         results["uploads_wall_s"] = round(time.monotonic() - t0, 1)
         stop.set()
         streams.join(30)
-    finally:
-        if server is not None:
-            os.killpg(server.pid, signal.SIGTERM)
-            server.wait(30)
-        drop_database(url)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenario", choices=["streams", "tenants"], default="streams",
+                        help="streams: 200 event streams + 50 uploaders (issue 19); tenants: one tenant's up-choice "
+                        "storm, stalled manifest readers and views bursts against another tenant's reads (issue 51)")
+    args = parser.parse_args()
+    results: dict[str, Any] = {"machine": f"{platform.node()} ({os.cpu_count()} cores, loaded by other developers' work)",
+                               "scenario": args.scenario}
+    if args.scenario == "streams":
+        streams_scenario(results)
+    else:
+        from bench.tenant_load import tenants_scenario
+
+        tenants_scenario(results, served)
     results["load_avg_end"] = [round(x, 2) for x in os.getloadavg()]  # 1, 5, 15 min: the machine is shared
     results["label"] = os.environ.get("BENCH_LABEL", "")
     print(json.dumps(results, indent=1))

@@ -20,7 +20,15 @@ from pydantic_core import ErrorDetails
 from sqlalchemy.exc import DataError, IntegrityError, OperationalError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from services.core.domain.errors import Conflict, DomainError, Forbidden, Invalid, NotFound, TooLarge
+from services.core.domain.errors import (
+    Conflict,
+    DomainError,
+    Forbidden,
+    Invalid,
+    NotFound,
+    TooLarge,
+    TooManyRequests,
+)
 from services.core.storage import StorageError
 
 log = logging.getLogger("omnidata.api")
@@ -85,6 +93,7 @@ DOMAIN_STATUS: tuple[tuple[type[DomainError], int], ...] = (
     (Conflict, status.HTTP_409_CONFLICT),
     (Forbidden, status.HTTP_403_FORBIDDEN),
     (TooLarge, status.HTTP_413_CONTENT_TOO_LARGE),
+    (TooManyRequests, status.HTTP_429_TOO_MANY_REQUESTS),
     (Invalid, status.HTTP_422_UNPROCESSABLE_CONTENT),
 )
 
@@ -95,7 +104,10 @@ def domain_status(exc: DomainError) -> int:
 
 
 async def _domain_error(request: Request, exc: DomainError) -> JSONResponse:
-    return error_response(domain_status(exc), clip(str(exc), 2000))
+    response = error_response(domain_status(exc), clip(str(exc), 2000))
+    if isinstance(exc, TooManyRequests):  # when to try again, in whole seconds (RFC 9110)
+        response.headers["Retry-After"] = str(exc.retry_after_s)
+    return response
 
 
 async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:

@@ -15,7 +15,8 @@ from services.api.jobs.service import get_job
 from services.api.outputs import service
 from services.api.outputs.schemas import ViewOutputs
 from services.api.spaces.service import not_found
-from services.core.db.manifest import iter_manifest_lines, job_document
+from services.api.throttle import BulkSlot
+from services.core.db.manifest import iter_manifest_chunks, job_document, manifest_line
 from services.core.db.models import Space, View
 from services.core.domain import keys
 from services.core.domain.errors import NotFound
@@ -81,23 +82,26 @@ def view_outputs(
     return ViewOutputs(job_id=job.id, space_id=space_id, space=row[1], point=point, view=view, outputs=outputs)
 
 
+MANIFEST_CHUNK_POINTS = 100  # points read per short session while streaming: ~300 lines, a few hundred KB
+
+
 @router.get(
     "/jobs/{job_id}/manifest.jsonl",
     summary="The job's manifest (one JSON line per view)",
     response_class=StreamingResponse,
-    responses={200: {"content": {"application/x-ndjson": {}}}},
+    responses={200: {"content": {"application/x-ndjson": {}}}, 429: {"description": "too many bulk reads"}},
+    dependencies=[BulkSlot],
 )
 def manifest(job_id: JobId, request: Request, session: ReadSessionDep, tenant: TenantDep) -> StreamingResponse:
     """manifest.jsonl rebuilt from the database: {space, point, view, outputs: {cue: {key, size, sha256}}} per line."""
-    get_job(session, owner=tenant, job_id=job_id)  # 404 before the stream starts
+    job = get_job(session, owner=tenant, job_id=job_id)  # 404 before the stream starts
     maker = request.app.state.read_sessionmaker
 
     def lines() -> Iterator[bytes]:
-        # The request's session may be closed before the body is sent: stream from a session of our own.
-        with maker() as s:
-            job = get_job(s, owner=tenant, job_id=job_id)
-            for line in iter_manifest_lines(s, job):
-                yield line.encode("utf-8")
+        # Each chunk is read in a session closed before it is sent: a reader that stops reading holds no
+        # database connection, only its place in the tenant's bulk reads (BulkSlot) until the stream ends.
+        for chunk in iter_manifest_chunks(maker, job, points=MANIFEST_CHUNK_POINTS):
+            yield "".join(manifest_line(entry) for entry in chunk).encode("utf-8")
 
     return StreamingResponse(
         lines(),
@@ -106,7 +110,8 @@ def manifest(job_id: JobId, request: Request, session: ReadSessionDep, tenant: T
     )
 
 
-@router.get("/jobs/{job_id}/job.json", summary="The job's job.json (spec, conventions, cue encodings, spaces)")
+@router.get("/jobs/{job_id}/job.json", summary="The job's job.json (spec, conventions, cue encodings, spaces)",
+            dependencies=[BulkSlot])
 def job_json(job_id: JobId, session: ReadSessionDep, tenant: TenantDep) -> JSONResponse:
     """job.json rebuilt from the database."""
     job = get_job(session, owner=tenant, job_id=job_id)

@@ -11,6 +11,7 @@ from services.api.jobs.service import get_job
 from services.api.outputs.service import link_base, links
 from services.api.pagination import Page, PageDep
 from services.api.spaces.service import not_found
+from services.api.throttle import BulkSlot
 from services.api.views import service
 from services.api.views.compacted import find_compacted_task
 from services.api.views.schemas import Plan, TaskRead, Throughput, ViewRead
@@ -28,7 +29,8 @@ StateFilter = Annotated[TaskState | None, Query(description="task state")]
 CueFilter = Annotated[CueName | None, Query(description="cue name")]  # type: ignore[valid-type]
 
 
-@router.get("/views", response_model=Page[ViewRead], summary="Views of a job with their task states")
+@router.get("/views", response_model=Page[ViewRead], summary="Views of a job with their task states",
+            dependencies=[BulkSlot])
 def list_views(
     job_id: JobId,
     session: ReadSessionDep,
@@ -60,7 +62,8 @@ def list_views(
     return Page[ViewRead](items=items, total=total, limit=page.limit, offset=page.offset)
 
 
-@router.get("/tasks", response_model=Page[TaskRead], summary="Tasks of a job")
+@router.get("/tasks", response_model=Page[TaskRead], summary="Tasks of a job",
+            dependencies=[BulkSlot])
 def list_tasks(
     job_id: JobId,
     session: ReadSessionDep,
@@ -94,7 +97,8 @@ def get_task(
     return service.task_read(task)
 
 
-@router.get("/plan", response_model=Plan, summary="Cameras and points of a job (for a top-down plot)")
+@router.get("/plan", response_model=Plan, summary="Cameras and points of a job (for a top-down plot)",
+            dependencies=[BulkSlot])
 def get_plan(
     job_id: JobId,
     session: ReadSessionDep,

@@ -27,7 +27,6 @@ from pathlib import Path
 from typing import Any
 
 import httpx
-from sqlalchemy import text
 
 from bench.fanout import percentiles
 from services.core.db.engine import make_engine, make_sessionmaker
@@ -50,7 +49,7 @@ def _auth(token: str) -> dict[str, str]:
 
 def _setup(base: str, db_url: str, loud: str, quiet: str) -> tuple[list[int], int, int]:
     """The loud tenant's rooms and big job, the quiet tenant's small job: (room ids, loud job, quiet job)."""
-    from tests.fixtures.api import fake_plan
+    from tests.fixtures.api import fake_plan, mark_all_done
 
     rooms = []
     with httpx.Client(timeout=600) as client:
@@ -69,11 +68,7 @@ def _setup(base: str, db_url: str, loud: str, quiet: str) -> tuple[list[int], in
     engine = make_engine(db_url)
     with make_sessionmaker(engine)() as session:
         fake_plan(session, loud_job, points=MANIFEST_POINTS, views=MANIFEST_VIEWS)
-        session.execute(text(
-            "UPDATE task SET state = 'done', size = 123456, sha256 = repeat('ab', 32), "
-            "output_key = 'outputs/bench/' || cue || '/bench/room0/point_' || point_idx || '_view_' || view_idx "
-            "|| '_domain_' || cue || '.png' WHERE job_id = :job"), {"job": loud_job})
-        session.commit()
+        mark_all_done(session, loud_job)
     engine.dispose()
     return rooms, loud_job, quiet_job
 

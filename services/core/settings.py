@@ -122,8 +122,10 @@ class Settings(BaseSettings):
         4, ge=1, description="a tenant's bulk reads (views, tasks, plan, manifest, job.json) at once, a stream "
         "until its last byte is sent; one more gets 429 with Retry-After"
     )
-    tenant_bulk_rate: float = Field(10.0, gt=0, description="bulk reads a tenant may start per second, on average")
-    tenant_bulk_burst: int = Field(20, ge=1, description="bulk reads a tenant may start at once above its rate")
+    tenant_bulk_rate: float = Field(20.0, gt=0, description="bulk reads a tenant may start per second, on average")
+    tenant_bulk_burst: int = Field(
+        100, ge=1, description="bulk reads a tenant may start in a burst above its rate (a client paging quickly)"
+    )
     sse_max_per_tenant: int = Field(20, ge=1, description="open event streams per tenant; one more gets 429")
     sse_poll_threads: int = Field(4, ge=1, description="threads the event streams' database polls share")
     worker_prefetch: int = Field(

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, Path, Query
+from fastapi import APIRouter, Path, Query, Response
 
 from services.api.deps import ReadSessionDep, SettingsDep, StoreDep, TenantDep
 from services.api.jobs.service import get_job
 from services.api.outputs.service import link_base, links
-from services.api.pagination import Page, PageDep
+from services.api.pagination import Page, PageDep, page_response
 from services.api.spaces.service import not_found
 from services.api.throttle import BulkSlot
 from services.api.views import service
@@ -44,7 +44,7 @@ def list_views(
     cue: CueFilter = None,
     complete: Annotated[bool, Query(description="only views whose every task is done")] = False,
     urls: Annotated[bool, Query(description="include pre-signed links to finished outputs")] = False,
-) -> Page[ViewRead]:
+) -> Response:
     """Views in (space, point, view) order; `state`/`cue` keep views having such a task."""
     job = get_job(session, owner=tenant, job_id=job_id)
     rows, total = service.list_views(
@@ -59,7 +59,7 @@ def list_views(
                 view=view.v,
             )
         items.append(item)
-    return Page[ViewRead](items=items, total=total, limit=page.limit, offset=page.offset)
+    return page_response(Page[ViewRead](items=items, total=total, limit=page.limit, offset=page.offset))
 
 
 @router.get("/tasks", response_model=Page[TaskRead], summary="Tasks of a job",
@@ -72,12 +72,13 @@ def list_tasks(
     state: StateFilter = None,
     cue: CueFilter = None,
     space_id: SpaceFilter = None,
-) -> Page[TaskRead]:
+) -> Response:
     """Tasks by id with their state, attempts, worker, error (when failed), output key and duration; done tasks of
     compacted views (services.scheduler.compaction) follow in view order, without worker or queued/started times."""
     job = get_job(session, owner=tenant, job_id=job_id)
     rows, total = service.list_tasks(session, job=job, page=page, state=state, cue=cue, space_id=space_id)
-    return Page[TaskRead](items=[service.task_read(t) for t in rows], total=total, limit=page.limit, offset=page.offset)
+    items = [service.task_read(t) for t in rows]
+    return page_response(Page[TaskRead](items=items, total=total, limit=page.limit, offset=page.offset))
 
 
 @router.get("/tasks/{task_id}", response_model=TaskRead, summary="One task of a job")
@@ -105,10 +106,11 @@ def get_plan(
     tenant: TenantDep,
     space_id: SpaceFilter = None,
     max_items: Annotated[int, Query(ge=1, le=service.MAX_PLAN_ITEMS)] = service.MAX_PLAN_ITEMS,
-) -> Plan:
+) -> Response:
     """Per space: bounds, cameras [x, y, z, yaw], points [x, y, z, n_views], views [point, camera] (metres)."""
     job = get_job(session, owner=tenant, job_id=job_id)
-    return Plan(job_id=job.id, spaces=service.plan(session, job=job, space_id=space_id, max_items=max_items))
+    plan = Plan(job_id=job.id, spaces=service.plan(session, job=job, space_id=space_id, max_items=max_items))
+    return Response(plan.model_dump_json(), media_type="application/json")  # serialized here, off the event loop
 
 
 @router.get("/throughput", response_model=Throughput, summary="Finished tasks over time")

@@ -82,6 +82,7 @@ def _set_state(app: FastAPI, settings: Settings, engine: Engine, store: ObjectSt
     # so 50 uploads or 40 up choices do not starve the server; each tenant's share is capped by the throttle.
     app.state.scan_reads = LazyLimiter(settings.upload_parse_concurrency)
     app.state.throttle = TenantThrottle(budgets(settings))
+    app.state.preview_draws = LazyLimiter(settings.preview_concurrency)
     app.state.metrics_cache = {}
     app.state.schema_heads = schema_heads()  # what /ready expects the database's revision to be
     app.state.storage_probe = None  # (time, outcome) of /ready's last storage probe

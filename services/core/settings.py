@@ -114,6 +114,9 @@ class Settings(BaseSettings):
         2, ge=1, description="scans the API reads at once, each in a child process (upload checks, up choices and "
         "their side views); more wait, the API stays responsive"
     )
+    preview_concurrency: int = Field(
+        2, ge=1, description="output previews the API draws at once (each decodes a cue file); more wait their turn"
+    )
     tenant_scan_concurrency: int = Field(
         2, ge=1, description="a tenant's requests that read a scan (uploads, registers, up choices, side views) at "
         "once, waiting or running; one more gets 429 with Retry-After"

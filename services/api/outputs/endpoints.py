@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import functools
 import json
 from collections.abc import Callable, Iterator
 from typing import Annotated
 
+import anyio
 from fastapi import APIRouter, Depends, Path, Query, Request
 from fastapi.responses import FileResponse, JSONResponse, Response, StreamingResponse
 from sqlalchemy import select
@@ -20,7 +22,7 @@ from services.core.db.manifest import iter_manifest_chunks, job_document, manife
 from services.core.db.models import Space, View
 from services.core.domain import keys
 from services.core.domain.errors import NotFound
-from services.core.storage import LocalStore, ObjectNotFoundError, check_key, prefixed
+from services.core.storage import LocalStore, ObjectNotFoundError, ObjectStore, check_key, prefixed
 from services.datasets.previews import PIXEL_JSON_CUES, cached_preview, parse_preview_key
 
 router = APIRouter(tags=["outputs"])
@@ -151,8 +153,16 @@ def blob(key: SignedBlobKey, store: StoreDep) -> Response:
     summary="A cue file's preview PNG through a signed link (made on first request, then cached)",
     responses={200: {"content": {"image/png": {}}}, 403: {"description": "bad or expired link"}},
 )
-def preview(key: SignedPreviewKey, store: StoreDep) -> Response:
+async def preview(key: SignedPreviewKey, request: Request, store: StoreDep) -> Response:
     """Serve the preview named by a `preview_url` of the outputs routes, making and storing it when missing."""
+    # decoding a cue file and drawing it is CPU work: a few at a time, so a gallery of 100 does not starve the rest
+    limiter = request.app.state.preview_draws.get()
+    data = await anyio.to_thread.run_sync(functools.partial(_preview_png, store, key), limiter=limiter)
+    return Response(data, media_type="image/png", headers={"Cache-Control": "private, max-age=300"})
+
+
+def _preview_png(store: ObjectStore, key: str) -> bytes:
+    """The PNG of the preview `key`, made and stored when missing (NotFound for a bad key or a missing output)."""
     try:
         root, output_key, cue, point, view = parse_preview_key(check_key(key))
     except ValueError:
@@ -170,4 +180,4 @@ def preview(key: SignedPreviewKey, store: StoreDep) -> Response:
         _key, data = cached_preview(job_store, output_key, cue, point=point, view=view, resolution=resolution)
     except ObjectNotFoundError:
         raise NotFound("no such output") from None
-    return Response(data, media_type="image/png", headers={"Cache-Control": "private, max-age=300"})
+    return data

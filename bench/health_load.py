@@ -9,7 +9,12 @@ processes so the prober's own event loop is not the one under load:
 The prober GETs /health every 20 ms over one keep-alive connection: p50/p99/max per phase (idle, streams,
 streams + uploads). All on 127.0.0.1, every loop bounded.
 
-Writes bench/results/health_load.json. Run: .venv/bin/python bench/health_load.py  (about 1.5 minutes)
+`--scenario tenants` (issue 51, bench/tenant_load.py): one tenant's 40 concurrent up choices, 45 stalled
+manifest readers and 20 concurrent `views?limit=1000&urls=true`, against /health and another tenant's GET
+/jobs/{id}.
+
+Appends a run to bench/results/health_load.json.
+Run: .venv/bin/python bench/health_load.py [--scenario tenants]  (about 1.5 minutes; tenants: about 2)
 """
 
 from __future__ import annotations
@@ -127,7 +132,7 @@ def summary(seconds: list[float]) -> dict[str, float]:
 
 @contextlib.contextmanager
 def served(tokens: list[str], env_extra: dict[str, str] | None = None) -> Iterator[tuple[str, str, Path]]:
-    """`omnidata serve` on a fresh database and store, for tenants tenant-0.. of `tokens`; (base URL, db URL, tmp)."""
+    """`omnidata serve` on a fresh database and store, tenants tenant-0.. of `tokens`: (base, db URL, tmp)."""
     url = create_database()
     tmp = Path(tempfile.mkdtemp(prefix="bench-health-"))
     port = free_port()
@@ -187,11 +192,12 @@ def streams_scenario(results: dict[str, Any]) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenario", choices=["streams", "tenants"], default="streams",
-                        help="streams: 200 event streams + 50 uploaders (issue 19); tenants: one tenant's up-choice "
-                        "storm, stalled manifest readers and views bursts against another tenant's reads (issue 51)")
+                        help="streams: 200 event streams + 50 uploaders (issue 19); tenants: one tenant's "
+                        "up-choice storm, stalled manifest readers and views bursts against another tenant's "
+                        "reads (issue 51)")
     args = parser.parse_args()
-    results: dict[str, Any] = {"machine": f"{platform.node()} ({os.cpu_count()} cores, loaded by other developers' work)",
-                               "scenario": args.scenario}
+    machine = f"{platform.node()} ({os.cpu_count()} cores, loaded by other developers' work)"
+    results: dict[str, Any] = {"machine": machine, "scenario": args.scenario}
     if args.scenario == "streams":
         streams_scenario(results)
     else:

@@ -1,9 +1,9 @@
 """One tenant's heavy load against another's reads (issue 51): the `tenants` scenario of bench/health_load.py.
 
-Tenant 0 (the loud one) uploads 10 copies of the ICL living room and gets a job whose manifest is several MB
-(a synthetic plan, its tasks marked done with long keys); tenant 1 (the quiet one) has a small job. A prober in
-this process GETs /health and tenant 1's GET /jobs/{id} in turn, every 20 ms, over keep-alive connections,
-while the loud tenant, from separate processes:
+Tenant 0 (the loud one) uploads 10 copies of the ICL living room and gets a job whose manifest is several
+MB (a synthetic plan, its tasks marked done with long keys); tenant 1 (the quiet one) has a small job. A
+prober in this process GETs /health and tenant 1's GET /jobs/{id} in turn, every 20 ms, over keep-alive
+connections, while the loud tenant, from separate processes:
 - up_choice: runs 40 concurrent `PUT /spaces/{id}/up` over its 10 rooms (each loads the mesh), in a loop; a
   429 is retried after its Retry-After (at most 1 s), as a well-behaved client would;
 - stalled_manifest: opens 45 readers of its manifest.jsonl that read the first bytes and then stop reading
@@ -54,15 +54,18 @@ def _setup(base: str, db_url: str, loud: str, quiet: str) -> tuple[list[int], in
     rooms = []
     with httpx.Client(timeout=600) as client:
         for k in range(ROOMS):
-            r = client.post(f"{base}/spaces", files={"file": (f"room{k}.obj", ROOM.read_bytes())}, headers=_auth(loud))
+            r = client.post(f"{base}/spaces", files={"file": (f"room{k}.obj", ROOM.read_bytes())},
+                            headers=_auth(loud))
             assert r.status_code == 201, r.text
             rooms.append(r.json()["id"])
         r = client.post(f"{base}/jobs", json={"space_ids": rooms[:1], "spec": SPEC}, headers=_auth(loud))
         assert r.status_code == 201, r.text
         loud_job = r.json()["id"]
-        r = client.post(f"{base}/spaces", files={"file": ("bunny.ply", BUNNY.read_bytes())}, headers=_auth(quiet))
+        r = client.post(f"{base}/spaces", files={"file": ("bunny.ply", BUNNY.read_bytes())},
+                        headers=_auth(quiet))
         assert r.status_code == 201, r.text
-        r = client.post(f"{base}/jobs", json={"space_ids": [r.json()["id"]], "spec": SPEC}, headers=_auth(quiet))
+        r = client.post(f"{base}/jobs", json={"space_ids": [r.json()["id"]], "spec": SPEC},
+                        headers=_auth(quiet))
         assert r.status_code == 201, r.text
         quiet_job = r.json()["id"]
     engine = make_engine(db_url)
@@ -74,7 +77,7 @@ def _setup(base: str, db_url: str, loud: str, quiet: str) -> tuple[list[int], in
 
 
 def probe(base: str, quiet: str, quiet_job: int, seconds: float) -> dict[str, Any]:
-    """/health and the quiet tenant's GET /jobs/{id}, in turn every 20 ms: latencies and its non-200 answers."""
+    """/health and the quiet tenant's GET /jobs/{id} in turn, every 20 ms: latencies, its non-200 answers."""
     health: list[float] = []
     reads: list[float] = []
     failed: Counter[str] = Counter()
@@ -123,11 +126,11 @@ def stalled_readers(base: str, token: str, job: int, ready: Any, stop: Any, code
     socks = []
     for _ in range(STALLED_READERS):
         sock = socket.socket()
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)  # the server's writes block within a few KB
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)  # the server's writes block within KBs
         sock.settimeout(60)
         sock.connect((host, int(port)))
-        sock.sendall(f"GET /jobs/{job}/manifest.jsonl HTTP/1.1\r\nHost: {host}\r\nAuthorization: Bearer {token}\r\n"
-                     "\r\n".encode())
+        sock.sendall(f"GET /jobs/{job}/manifest.jsonl HTTP/1.1\r\nHost: {host}\r\n"
+                     f"Authorization: Bearer {token}\r\n\r\n".encode())
         socks.append(sock)
     for sock in socks:
         try:

@@ -78,8 +78,8 @@ def _set_state(app: FastAPI, settings: Settings, engine: Engine, store: ObjectSt
     app.state.sse = sse
     app.state.sse_limits = StreamLimits(settings.sse_max_per_tenant, settings.sse_poll_threads)
     app.state.sse_polls = SharedPolls(app.state.read_sessionmaker, max_age_s=sse.poll_s / 2)
-    # Each scan read (an upload's check, an up choice, a side view) is a CPU-bound child process: a few at a time,
-    # so 50 uploads or 40 up choices do not starve the server; each tenant's share is capped by the throttle.
+    # Each scan read (an upload's check, an up choice, a side view) is a CPU-bound child process: a few at a
+    # time, so 50 uploads or 40 up choices do not starve the server; the throttle caps each tenant's share.
     app.state.scan_reads = LazyLimiter(settings.upload_parse_concurrency)
     app.state.throttle = TenantThrottle(budgets(settings))
     app.state.preview_draws = LazyLimiter(settings.preview_concurrency)

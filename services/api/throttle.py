@@ -2,11 +2,12 @@
 
 One tenant's 40 concurrent up choices, or 45 manifest readers that stop reading, must not take the threads,
 the database connections or the CPU the other tenants need. An expensive route names its kind: `scan` (it
-reads a scan in a child process: uploads, registers, up choices and their side views) or `bulk` (a large read
-or a stream: views, tasks, plan, manifest, job.json). A tenant has at most `concurrent` requests of a kind under
-way, each counted until the last byte of its response is sent, and starts at most `rate` a second on average
-beyond a `burst`. One more is refused at once (TooManyRequests: 429 with Retry-After) rather than queued: a queue
-would hold a connection and a session or a thread per waiting request, which is what the limit is for.
+reads a scan in a child process: uploads, registers, up choices and their side views) or `bulk` (a large
+read or a stream: views, tasks, plan, manifest, job.json). A tenant has at most `concurrent` requests of a
+kind under way, each counted until the last byte of its response is sent, and starts at most `rate` a second
+on average beyond a `burst`. One more is refused at once (TooManyRequests: 429 with Retry-After) rather than
+queued: a queue would hold a connection and a session or a thread per waiting request, which is what the
+limit is for.
 
 The counts live on the event loop (the dependency is async), so they need no lock; each API process counts its
 own requests.
@@ -27,7 +28,7 @@ from services.core.domain.errors import TooManyRequests
 from services.core.settings import Settings
 
 Kind = Literal["scan", "bulk"]
-BUSY_RETRY_S = 1  # what a request over a concurrency limit is told to wait: most expensive requests take seconds
+BUSY_RETRY_S = 1  # what a request over a concurrency limit is told to wait: expensive requests take seconds
 
 
 @dataclass(frozen=True)
@@ -47,9 +48,9 @@ def budgets(settings: Settings) -> dict[Kind, Budget]:
     return {
         "scan": Budget("requests that read a scan (uploads, registers, up choices, side views)",
                        settings.tenant_scan_concurrency, "OMNIDATA_TENANT_SCAN_CONCURRENCY"),
-        "bulk": Budget("bulk reads (views, tasks, plan, manifest, job.json)", settings.tenant_bulk_concurrency,
-                       "OMNIDATA_TENANT_BULK_CONCURRENCY", settings.tenant_bulk_rate, settings.tenant_bulk_burst,
-                       "OMNIDATA_TENANT_BULK_RATE"),
+        "bulk": Budget("bulk reads (views, tasks, plan, manifest, job.json)",
+                       settings.tenant_bulk_concurrency, "OMNIDATA_TENANT_BULK_CONCURRENCY",
+                       settings.tenant_bulk_rate, settings.tenant_bulk_burst, "OMNIDATA_TENANT_BULK_RATE"),
     }
 
 
@@ -91,8 +92,8 @@ class TenantThrottle:
             self._buckets[(kind, tenant)] = (tokens, now)
             wait_s = math.ceil((1.0 - tokens) / budget.rate)
             raise TooManyRequests(
-                f"too many {budget.what}: at most {budget.rate:g} a second per tenant, {budget.burst} at once "
-                f"({budget.rate_setting}); try again in {wait_s} s", retry_after_s=wait_s)
+                f"too many {budget.what}: at most {budget.rate:g} a second per tenant, {budget.burst} at "
+                f"once ({budget.rate_setting}); try again in {wait_s} s", retry_after_s=wait_s)
         self._buckets[(kind, tenant)] = (tokens - 1.0, now)
 
 

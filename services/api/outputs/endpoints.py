@@ -112,8 +112,8 @@ def manifest(job_id: JobId, request: Request, session: ReadSessionDep, tenant: T
     )
 
 
-@router.get("/jobs/{job_id}/job.json", summary="The job's job.json (spec, conventions, cue encodings, spaces)",
-            dependencies=[BulkSlot])
+@router.get("/jobs/{job_id}/job.json", dependencies=[BulkSlot],
+            summary="The job's job.json (spec, conventions, cue encodings, spaces)")
 def job_json(job_id: JobId, session: ReadSessionDep, tenant: TenantDep) -> JSONResponse:
     """job.json rebuilt from the database."""
     job = get_job(session, owner=tenant, job_id=job_id)
@@ -155,14 +155,14 @@ def blob(key: SignedBlobKey, store: StoreDep) -> Response:
 )
 async def preview(key: SignedPreviewKey, request: Request, store: StoreDep) -> Response:
     """Serve the preview named by a `preview_url` of the outputs routes, making and storing it when missing."""
-    # decoding a cue file and drawing it is CPU work: a few at a time, so a gallery of 100 does not starve the rest
+    # decoding a cue file and drawing it is CPU work: a few at a time, or a gallery of 100 starves the rest
     limiter = request.app.state.preview_draws.get()
     data = await anyio.to_thread.run_sync(functools.partial(_preview_png, store, key), limiter=limiter)
     return Response(data, media_type="image/png", headers={"Cache-Control": "private, max-age=300"})
 
 
 def _preview_png(store: ObjectStore, key: str) -> bytes:
-    """The PNG of the preview `key`, made and stored when missing (NotFound for a bad key or a missing output)."""
+    """The PNG of the preview `key`, made and stored when missing (NotFound: a bad key, a missing output)."""
     try:
         root, output_key, cue, point, view = parse_preview_key(check_key(key))
     except ValueError:

@@ -28,7 +28,7 @@ from services.core.temp_dirs import owned_temp_dir
 router = APIRouter(prefix="/spaces", tags=["spaces"])
 
 T = TypeVar("T")
-_BUSY: dict[int | str, JSONObject] = {429: {"description": "too many of your requests that read a scan at once"}}
+_BUSY: dict[int | str, JSONObject] = {429: {"description": "too many of your scan reads at once"}}
 
 SpaceId = Annotated[int, PathParam(ge=1, le=2**63 - 1, description="space id")]
 
@@ -73,7 +73,8 @@ _UPLOAD_BODY: JSONObject = {
     response_model=SpaceRead,
     openapi_extra=_UPLOAD_BODY,
     summary="Upload a scan",
-    responses={413: {"description": "larger than the upload limit"}, 422: {"description": "unusable scan"}, **_BUSY},
+    responses={413: {"description": "larger than the upload limit"}, 422: {"description": "unusable scan"},
+               **_BUSY},
     dependencies=[ScanSlot],
 )
 async def upload_space(
@@ -159,8 +160,8 @@ def delete_space(space_id: SpaceId, session: SessionDep, store: StoreDep, tenant
 
 
 async def _read_scan(request: Request, func: Callable[..., T], *args: Any) -> T:
-    """`func(*args)` (work that reads a scan, in a child process) in a thread of the API's few scan-reading slots:
-    40 up choices at once wait for a slot instead of starting 40 readers that starve the event loop."""
+    """`func(*args)` (work that reads a scan, in a child process) in a thread of the API's few scan-reading
+    slots: 40 up choices at once wait for a slot instead of starting 40 readers that starve the event loop."""
     limiter: anyio.CapacityLimiter = request.app.state.scan_reads.get()
     return await anyio.to_thread.run_sync(functools.partial(func, *args), limiter=limiter)
 
@@ -171,8 +172,9 @@ CandidateIndex = Annotated[int, PathParam(ge=0, le=2, description="0: detection'
 @router.get("/{space_id}/up-candidates/{index}.png", summary="Side view of a space under an up candidate",
             response_class=Response, responses={200: {"content": {"image/png": {}}}, **_BUSY},
             dependencies=[ScanSlot])
-async def up_candidate_preview(space_id: SpaceId, index: CandidateIndex, request: Request, session: ReadSessionDep,
-                               store: StoreDep, settings: SettingsDep, tenant: TenantDep) -> Response:
+async def up_candidate_preview(space_id: SpaceId, index: CandidateIndex, request: Request,
+                               session: ReadSessionDep, store: StoreDep, settings: SettingsDep,
+                               tenant: TenantDep) -> Response:
     """A small PNG: the scan seen from the side with up candidate `index` pointing to the top of the picture."""
     space = await run_in_threadpool(service.get_space_released, session, owner=tenant, space_id=space_id)
     png = await _read_scan(request, up_choice.candidate_preview, store, settings, space, index)
@@ -185,6 +187,7 @@ async def choose_up(space_id: SpaceId, body: UpChoice, request: Request, session
                     settings: SettingsDep, tenant: TenantDep) -> SpaceRead:
     """Store the up (source coordinates) and/or units a person picked; later jobs plan the space in that frame."""
     space = await run_in_threadpool(service.get_space_released, session, owner=tenant, space_id=space_id)
-    loaded = await _read_scan(request, up_choice.load_choice, store, settings, space, body.up, body.unit_scale)
+    loaded = await _read_scan(request, up_choice.load_choice, store, settings, space, body.up,
+                              body.unit_scale)
     space = await run_in_threadpool(up_choice.record_up, session, space, loaded, tenant)
     return SpaceRead.from_row(space)

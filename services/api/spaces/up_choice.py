@@ -68,8 +68,8 @@ def candidate_preview(store: ObjectStore, settings: Settings, space: Space, inde
 def load_choice(store: ObjectStore, settings: Settings, space: Space, up: list[float] | None,
                 unit_scale: float | None = None) -> LoadedSpace:
     """The space loaded under `up` (source coordinates; None: the detected one) and `unit_scale` (None: the
-    upload's, or chosen from the storey), without its mesh; Invalid when they give none (ambiguous units name the
-    candidates). Needs no database session: the caller's is not held while the scan is read."""
+    upload's, or chosen from the storey), without its mesh; Invalid when they give none (ambiguous units name
+    the candidates). Needs no database session: the caller's is not held while the scan is read."""
     validation = space.validation or {}
     if up is None:
         up = [float(x) for x in (validation.get("up") or {}).get("source_direction", [0.0, 0.0, 1.0])]

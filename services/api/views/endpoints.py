@@ -110,7 +110,8 @@ def get_plan(
     """Per space: bounds, cameras [x, y, z, yaw], points [x, y, z, n_views], views [point, camera] (metres)."""
     job = get_job(session, owner=tenant, job_id=job_id)
     plan = Plan(job_id=job.id, spaces=service.plan(session, job=job, space_id=space_id, max_items=max_items))
-    return Response(plan.model_dump_json(), media_type="application/json")  # serialized here, off the event loop
+    # serialized here, in the route's thread: FastAPI would do it on the event loop
+    return Response(plan.model_dump_json(), media_type="application/json")
 
 
 @router.get("/throughput", response_model=Throughput, summary="Finished tasks over time")

@@ -111,7 +111,8 @@ def iter_manifest_chunks(
     public = [n for n, c in CATALOG.items() if not c.internal]
     with sessions() as session:
         names = space_names(session, job.id)
-        spaces = sorted((space for _job_space, space in job_spaces(session, job.id)), key=lambda space: space.name)
+        spaces = sorted((space for _job_space, space in job_spaces(session, job.id)),
+                        key=lambda space: space.name)
         max_points = {space.id: session.scalar(  # one index lookup per space
             select(func.max(View.point_idx)).where(View.job_id == job.id, View.space_id == space.id)
         ) for space in spaces}

@@ -28,7 +28,7 @@ from services.core.temp_dirs import UPLOAD_KINDS, sweep_orphans
 _CONTEXT = multiprocessing.get_context("forkserver")
 _CONTEXT.set_forkserver_preload(["services.core.ingest.loading", "services.core.ingest.mesh_checks", "trimesh"])
 _RESULT_GRACE_S = 10.0  # for a child to exit once it has sent its result
-CHILD_NICENESS = 10  # a reader yields the CPU to the process that waits on it (the API serving other requests)
+CHILD_NICENESS = 10  # a reader yields the CPU to the process waiting on it (the API serving other requests)
 
 
 def load_space_limited(
@@ -48,8 +48,8 @@ def load_space_limited(
 
     An upload accepts detection's guesses (`accept_up_guess`): an ambiguous frame is recorded, and the space
     waits for a person to pick one; a pick (`up`) or a stored frame (`source_to_world`) is loaded as given.
-    Without `keep_mesh` the result's mesh is empty: a caller that needs only the frame, bounds and counts is not
-    sent the geometry (unpickling it would hold the caller's interpreter).
+    Without `keep_mesh` the result's mesh is empty: a caller that needs only the frame, bounds and counts is
+    not sent the geometry (unpickling it would hold the caller's interpreter).
     """
     name = Path(path).name
     receiver, sender = _CONTEXT.Pipe(duplex=False)

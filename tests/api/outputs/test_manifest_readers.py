@@ -82,7 +82,8 @@ def test_stalled_manifest_readers_hold_no_connection(small_pool: Api, bunny: Pat
             own = httpx.get(f"{base}/jobs/{loud}", headers=api.a.headers, timeout=30)
             assert own.status_code == 200  # the stalled tenant's own small reads go on too
             more = httpx.get(f"{base}/jobs/{loud}/manifest.jsonl", headers=api.a.headers, timeout=30)
-            assert more.status_code == 429 and more.headers["retry-after"] == "1"  # but not one more bulk read
+            # but not one more bulk read
+            assert more.status_code == 429 and more.headers["retry-after"] == "1"
             assert "OMNIDATA_TENANT_BULK_CONCURRENCY" in more.json()["detail"]
             body = _rest_of_body(readers[0])  # a stalled stream resumes and is whole
         finally:

@@ -66,7 +66,8 @@ def test_up_choices_share_a_few_slots_and_each_tenant_is_capped(
     with live_server(api.app) as base:
 
         def put(tenant: Tenant) -> None:
-            r = httpx.put(f"{base}/spaces/{spaces[tenant.name]}/up", json={}, headers=tenant.headers, timeout=120)
+            r = httpx.put(f"{base}/spaces/{spaces[tenant.name]}/up", json={}, headers=tenant.headers,
+                          timeout=120)
             answers.append(r.status_code)
 
         callers = [threading.Thread(target=put, args=(t,)) for t in (api.a, api.a, api.b, api.b)]
@@ -82,7 +83,8 @@ def test_up_choices_share_a_few_slots_and_each_tenant_is_capped(
             t0 = time.monotonic()
             assert httpx.get(f"{base}/health", timeout=10).status_code == 200
             assert time.monotonic() - t0 < 1.0
-            over = httpx.put(f"{base}/spaces/{spaces[api.a.name]}/up", json={}, headers=api.a.headers, timeout=10)
+            over = httpx.put(f"{base}/spaces/{spaces[api.a.name]}/up", json={}, headers=api.a.headers,
+                             timeout=10)
             assert over.status_code == 429 and over.headers["retry-after"] == "1"
             assert "OMNIDATA_TENANT_SCAN_CONCURRENCY" in over.json()["detail"]
             assert "at most 2 per tenant" in over.json()["detail"]

@@ -83,6 +83,7 @@ def _set_state(app: FastAPI, settings: Settings, engine: Engine, store: ObjectSt
     app.state.scan_reads = LazyLimiter(settings.upload_parse_concurrency)
     app.state.throttle = TenantThrottle(budgets(settings))
     app.state.preview_draws = LazyLimiter(settings.preview_concurrency)
+    app.state.bulk_reads = LazyLimiter(settings.bulk_read_threads)
     app.state.metrics_cache = {}
     app.state.schema_heads = schema_heads()  # what /ready expects the database's revision to be
     app.state.storage_probe = None  # (time, outcome) of /ready's last storage probe

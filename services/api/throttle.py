@@ -19,8 +19,9 @@ import math
 import time
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, TypeVar
 
+import anyio
 from fastapi import Depends, Request
 
 from services.api.deps import TenantDep
@@ -28,6 +29,7 @@ from services.core.domain.errors import TooManyRequests
 from services.core.settings import Settings
 
 Kind = Literal["scan", "bulk"]
+T = TypeVar("T")
 BUSY_RETRY_S = 1  # what a request over a concurrency limit is told to wait: expensive requests take seconds
 
 
@@ -112,3 +114,11 @@ def _hold(kind: Kind) -> Callable[..., AsyncIterator[None]]:
 # route decorators take these in `dependencies=[...]`: they run before the route's session is opened
 ScanSlot = Depends(_hold("scan"))
 BulkSlot = Depends(_hold("bulk"))
+
+
+async def run_bulk(request: Request, work: Callable[[], T]) -> T:
+    """`work()` (a bulk read: queries, links, serialization) in one of the few threads all tenants' bulk reads
+    share: each is seconds of interpreter time, and the event loop waits its turn for the interpreter behind
+    every such thread (four at once held /health for hundreds of milliseconds)."""
+    limiter: anyio.CapacityLimiter = request.app.state.bulk_reads.get()
+    return await anyio.to_thread.run_sync(work, limiter=limiter)

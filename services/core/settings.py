@@ -117,6 +117,9 @@ class Settings(BaseSettings):
     preview_concurrency: int = Field(
         2, ge=1, description="output previews the API draws at once (each decodes a cue file); more wait"
     )
+    bulk_read_threads: int = Field(
+        2, ge=1, description="threads all tenants' bulk reads (views, tasks, plan pages) share; more wait"
+    )
     tenant_scan_concurrency: int = Field(
         2, ge=1, description="a tenant's requests that read a scan (uploads, registers, up choices, side "
         "views) at once, waiting or running; one more gets 429 with Retry-After"

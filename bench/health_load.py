@@ -5,7 +5,8 @@ processes so the prober's own event loop is not the one under load:
 - streams: 10 tenants x 20 `/events` streams each (the per-tenant cap, OMNIDATA_SSE_MAX_PER_TENANT=20), read
   continuously; one more stream per tenant is attempted and must get 429;
 - uploads: 50 clients uploading the bunny (660 KB PLY) to POST /spaces concurrently, each a bounded number of
-  times (every upload is parsed in its own capped child process on the server).
+  times (every upload is parsed in its own capped child process on the server); a 429 (a tenant's uploads
+  beyond OMNIDATA_TENANT_SCAN_CONCURRENCY) is retried after its Retry-After.
 The prober GETs /health every 20 ms over one keep-alive connection: p50/p99/max per phase (idle, streams,
 streams + uploads). All on 127.0.0.1, every loop bounded.
 
@@ -101,8 +102,12 @@ def upload_load(base: str, tokens: list[str], done: Any) -> None:
     async def one(client: httpx.AsyncClient, k: int) -> None:
         token = tokens[k % len(tokens)]
         for n in range(UPLOADS_EACH):
-            r = await client.post(f"{base}/spaces", files={"file": (f"bunny-{k}-{n}.ply", body)},
-                                  headers={"Authorization": f"Bearer {token}"})
+            while True:  # a tenant has a few uploads under way at once (429 beyond): wait as told, then retry
+                r = await client.post(f"{base}/spaces", files={"file": (f"bunny-{k}-{n}.ply", body)},
+                                      headers={"Authorization": f"Bearer {token}"})
+                if r.status_code != 429:
+                    break
+                await asyncio.sleep(float(r.headers.get("retry-after", "1")))
             done.value += int(r.status_code == 201)
 
     async def main() -> None:

@@ -5,16 +5,24 @@ processes so the prober's own event loop is not the one under load:
 - streams: 10 tenants x 20 `/events` streams each (the per-tenant cap, OMNIDATA_SSE_MAX_PER_TENANT=20), read
   continuously; one more stream per tenant is attempted and must get 429;
 - uploads: 50 clients uploading the bunny (660 KB PLY) to POST /spaces concurrently, each a bounded number of
-  times (every upload is parsed in its own capped child process on the server).
+  times (every upload is parsed in its own capped child process on the server); a 429 (a tenant's uploads
+  beyond OMNIDATA_TENANT_SCAN_CONCURRENCY) is retried after its Retry-After.
 The prober GETs /health every 20 ms over one keep-alive connection: p50/p99/max per phase (idle, streams,
 streams + uploads). All on 127.0.0.1, every loop bounded.
 
-Writes bench/results/health_load.json. Run: .venv/bin/python bench/health_load.py  (about 1.5 minutes)
+`--scenario tenants` (issue 51, bench/tenant_load.py): one tenant's 40 concurrent up choices, 45 stalled
+manifest readers and 20 concurrent `views?limit=1000&urls=true`, against /health and another tenant's GET
+/jobs/{id}.
+
+Appends a run to bench/results/health_load.json.
+Run: .venv/bin/python bench/health_load.py [--scenario tenants]  (about 1.5 minutes; tenants: about 2)
 """
 
 from __future__ import annotations
 
+import argparse
 import asyncio
+import contextlib
 import json
 import multiprocessing as mp
 import os
@@ -26,6 +34,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -93,8 +102,12 @@ def upload_load(base: str, tokens: list[str], done: Any) -> None:
     async def one(client: httpx.AsyncClient, k: int) -> None:
         token = tokens[k % len(tokens)]
         for n in range(UPLOADS_EACH):
-            r = await client.post(f"{base}/spaces", files={"file": (f"bunny-{k}-{n}.ply", body)},
-                                  headers={"Authorization": f"Bearer {token}"})
+            while True:  # a tenant has a few uploads under way at once (429 beyond): wait as told, then retry
+                r = await client.post(f"{base}/spaces", files={"file": (f"bunny-{k}-{n}.ply", body)},
+                                      headers={"Authorization": f"Bearer {token}"})
+                if r.status_code != 429:
+                    break
+                await asyncio.sleep(float(r.headers.get("retry-after", "1")))
             done.value += int(r.status_code == 201)
 
     async def main() -> None:
@@ -122,20 +135,19 @@ def summary(seconds: list[float]) -> dict[str, float]:
     return percentiles(seconds)
 
 
-def main() -> None:
+@contextlib.contextmanager
+def served(tokens: list[str], env_extra: dict[str, str] | None = None) -> Iterator[tuple[str, str, Path]]:
+    """`omnidata serve` on a fresh database and store, tenants tenant-0.. of `tokens`: (base, db URL, tmp)."""
     url = create_database()
     tmp = Path(tempfile.mkdtemp(prefix="bench-health-"))
-    tokens = [secrets.token_urlsafe(16) for _ in range(TENANTS)]
     port = free_port()
     base = f"http://127.0.0.1:{port}"
     env = {k: v for k, v in os.environ.items() if not k.startswith("OMNIDATA_")}
     env.update(OMNIDATA_DATABASE_URL=url, OMNIDATA_STORAGE_URL=f"file://{tmp / 'store'}", OMNIDATA_DATA_DIR=str(tmp),
                OMNIDATA_BROKER_URL=os.environ.get("OMNIDATA_BENCH_REDIS_URL", "redis://127.0.0.1:6379/4"),
-               OMNIDATA_API_TOKENS=json.dumps({hash_token(t): f"tenant-{k}" for k, t in enumerate(tokens)}))
+               OMNIDATA_API_TOKENS=json.dumps({hash_token(t): f"tenant-{k}" for k, t in enumerate(tokens)}),
+               **(env_extra or {}))
     server = None
-    results: dict[str, Any] = {"machine": f"{platform.node()} ({os.cpu_count()} cores, loaded by other developers' work)",
-                               "streams": TENANTS * STREAMS_PER_TENANT, "uploaders": UPLOADERS}
-    ctx = mp.get_context("spawn")
     try:
         migrate(url)
         server = subprocess.Popen([sys.executable, "-m", "services.cli", "serve", "--port", str(port), "--log-level",
@@ -150,6 +162,20 @@ def main() -> None:
                 pass
             assert time.monotonic() < deadline, (tmp / "api.log").read_text()[-2000:]
             time.sleep(0.3)
+        yield base, url, tmp
+    finally:
+        if server is not None:
+            os.killpg(server.pid, signal.SIGTERM)
+            server.wait(30)
+        drop_database(url)
+
+
+def streams_scenario(results: dict[str, Any]) -> None:
+    """/health while 200 event streams are open, then with 50 uploaders on top (issue 19)."""
+    tokens = [secrets.token_urlsafe(16) for _ in range(TENANTS)]
+    results.update(streams=TENANTS * STREAMS_PER_TENANT, uploaders=UPLOADERS)
+    ctx = mp.get_context("spawn")
+    with served(tokens) as (base, _url, _tmp):
         results["idle"] = summary(probe(base, PHASE_S["idle"]))
         ready, stop, refused, uploaded = ctx.Event(), ctx.Event(), ctx.Value("i", 0), ctx.Value("i", 0)
         streams = ctx.Process(target=hold_streams, args=(base, tokens, ready, stop, refused), daemon=True)
@@ -166,11 +192,23 @@ def main() -> None:
         results["uploads_wall_s"] = round(time.monotonic() - t0, 1)
         stop.set()
         streams.join(30)
-    finally:
-        if server is not None:
-            os.killpg(server.pid, signal.SIGTERM)
-            server.wait(30)
-        drop_database(url)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenario", choices=["streams", "tenants"], default="streams",
+                        help="streams: 200 event streams + 50 uploaders (issue 19); tenants: one tenant's "
+                        "up-choice storm, stalled manifest readers and views bursts against another tenant's "
+                        "reads (issue 51)")
+    args = parser.parse_args()
+    machine = f"{platform.node()} ({os.cpu_count()} cores, loaded by other developers' work)"
+    results: dict[str, Any] = {"machine": machine, "scenario": args.scenario}
+    if args.scenario == "streams":
+        streams_scenario(results)
+    else:
+        from bench.tenant_load import tenants_scenario
+
+        tenants_scenario(results, served)
     results["load_avg_end"] = [round(x, 2) for x in os.getloadavg()]  # 1, 5, 15 min: the machine is shared
     results["label"] = os.environ.get("BENCH_LABEL", "")
     print(json.dumps(results, indent=1))

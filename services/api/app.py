@@ -33,6 +33,7 @@ from services.api.progress.shared import SharedPolls
 from services.api.query_token import QueryTokenScrubber
 from services.api.security_headers import SecurityHeaders
 from services.api.spaces.endpoints import router as spaces_router
+from services.api.throttle import TenantThrottle, budgets
 from services.api.views.endpoints import router as views_router
 from services.api.workers.endpoints import router as workers_router
 from services.core.db.engine import make_engine, make_sessionmaker, schema_heads
@@ -77,8 +78,12 @@ def _set_state(app: FastAPI, settings: Settings, engine: Engine, store: ObjectSt
     app.state.sse = sse
     app.state.sse_limits = StreamLimits(settings.sse_max_per_tenant, settings.sse_poll_threads)
     app.state.sse_polls = SharedPolls(app.state.read_sessionmaker, max_age_s=sse.poll_s / 2)
-    # Each upload's check is a CPU-bound child process: a few at a time, so 50 uploads do not starve the server.
-    app.state.upload_checks = LazyLimiter(settings.upload_parse_concurrency)
+    # Each scan read (an upload's check, an up choice, a side view) is a CPU-bound child process: a few at a
+    # time, so 50 uploads or 40 up choices do not starve the server; the throttle caps each tenant's share.
+    app.state.scan_reads = LazyLimiter(settings.upload_parse_concurrency)
+    app.state.throttle = TenantThrottle(budgets(settings))
+    app.state.preview_draws = LazyLimiter(settings.preview_concurrency)
+    app.state.bulk_reads = LazyLimiter(settings.bulk_read_threads)
     app.state.metrics_cache = {}
     app.state.schema_heads = schema_heads()  # what /ready expects the database's revision to be
     app.state.storage_probe = None  # (time, outcome) of /ready's last storage probe

@@ -87,8 +87,10 @@ async def get_tenant_sse(
 
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]
-SessionDep = Annotated[Session, Depends(get_session)]
-ReadSessionDep = Annotated[Session, Depends(get_read_session)]
+# Sessions close when the route returns, before its response is sent: a client that reads slowly (a big page,
+# a stream) never holds a database connection ("request" scope would keep it until the last byte).
+SessionDep = Annotated[Session, Depends(get_session, scope="function")]
+ReadSessionDep = Annotated[Session, Depends(get_read_session, scope="function")]
 StoreDep = Annotated[ObjectStore, Depends(get_store)]
 TenantDep = Annotated[str, Depends(get_tenant)]
 SSETenantDep = Annotated[str, Depends(get_tenant_sse)]

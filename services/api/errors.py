@@ -18,9 +18,18 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic_core import ErrorDetails
 from sqlalchemy.exc import DataError, IntegrityError, OperationalError
+from sqlalchemy.exc import TimeoutError as PoolTimeout
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from services.core.domain.errors import Conflict, DomainError, Forbidden, Invalid, NotFound, TooLarge
+from services.core.domain.errors import (
+    Conflict,
+    DomainError,
+    Forbidden,
+    Invalid,
+    NotFound,
+    TooLarge,
+    TooManyRequests,
+)
 from services.core.storage import StorageError
 
 log = logging.getLogger("omnidata.api")
@@ -85,6 +94,7 @@ DOMAIN_STATUS: tuple[tuple[type[DomainError], int], ...] = (
     (Conflict, status.HTTP_409_CONFLICT),
     (Forbidden, status.HTTP_403_FORBIDDEN),
     (TooLarge, status.HTTP_413_CONTENT_TOO_LARGE),
+    (TooManyRequests, status.HTTP_429_TOO_MANY_REQUESTS),
     (Invalid, status.HTTP_422_UNPROCESSABLE_CONTENT),
 )
 
@@ -95,7 +105,10 @@ def domain_status(exc: DomainError) -> int:
 
 
 async def _domain_error(request: Request, exc: DomainError) -> JSONResponse:
-    return error_response(domain_status(exc), clip(str(exc), 2000))
+    response = error_response(domain_status(exc), clip(str(exc), 2000))
+    if isinstance(exc, TooManyRequests):  # when to try again, in whole seconds (RFC 9110)
+        response.headers["Retry-After"] = str(exc.retry_after_s)
+    return response
 
 
 async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
@@ -120,6 +133,14 @@ async def _operational_error(request: Request, exc: OperationalError) -> JSONRes
     return error_response(status.HTTP_503_SERVICE_UNAVAILABLE, "database unavailable, try again shortly")
 
 
+async def _pool_timeout(request: Request, exc: PoolTimeout) -> JSONResponse:
+    # Every database connection stayed busy for the pool's whole timeout: an overloaded service, not a bug.
+    log.warning("no database connection free on %s %s: %s", request.method, request.url.path, exc)
+    response = error_response(status.HTTP_503_SERVICE_UNAVAILABLE, "the service is busy, try again shortly")
+    response.headers["Retry-After"] = "5"
+    return response
+
+
 async def _storage_error(request: Request, exc: StorageError) -> JSONResponse:
     # The object store is missing or refuses writes: the operator's problem, named, never a bare 500.
     log.error("object storage failed on %s %s: %s", request.method, request.url.path, exc)
@@ -139,5 +160,6 @@ def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(DataError, _data_error)  # type: ignore[arg-type]
     app.add_exception_handler(IntegrityError, _integrity_error)  # type: ignore[arg-type]
     app.add_exception_handler(OperationalError, _operational_error)  # type: ignore[arg-type]
+    app.add_exception_handler(PoolTimeout, _pool_timeout)  # type: ignore[arg-type]
     app.add_exception_handler(StorageError, _storage_error)  # type: ignore[arg-type]
     app.add_exception_handler(Exception, _unhandled)

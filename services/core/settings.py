@@ -111,7 +111,26 @@ class Settings(BaseSettings):
         900, ge=10, description="time one job's planning may take; its process is ended after it, bigger specs refused"
     )
     upload_parse_concurrency: int = Field(
-        2, ge=1, description="uploads checked at once (each in a child process); more wait, the API stays responsive"
+        2, ge=1, description="scans the API reads at once, each in a child process (upload checks, up "
+        "choices and their side views); more wait, the API stays responsive"
+    )
+    preview_concurrency: int = Field(
+        2, ge=1, description="output previews the API draws at once (each decodes a cue file); more wait"
+    )
+    bulk_read_threads: int = Field(
+        2, ge=1, description="threads all tenants' bulk reads (views, tasks, plan pages) share; more wait"
+    )
+    tenant_scan_concurrency: int = Field(
+        2, ge=1, description="a tenant's requests that read a scan (uploads, registers, up choices, side "
+        "views) at once, waiting or running; one more gets 429 with Retry-After"
+    )
+    tenant_bulk_concurrency: int = Field(
+        4, ge=1, description="a tenant's bulk reads (views, tasks, plan, manifest, job.json) at once, a "
+        "stream until its last byte is sent; one more gets 429 with Retry-After"
+    )
+    tenant_bulk_rate: float = Field(20.0, gt=0, description="bulk reads a tenant may start a second, average")
+    tenant_bulk_burst: int = Field(
+        100, ge=1, description="bulk reads a tenant may start in a burst above its rate (a fast pager)"
     )
     sse_max_per_tenant: int = Field(20, ge=1, description="open event streams per tenant; one more gets 429")
     sse_poll_threads: int = Field(4, ge=1, description="threads the event streams' database polls share")

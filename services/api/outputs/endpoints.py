@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import functools
 import json
 from collections.abc import Callable, Iterator
 from typing import Annotated
 
+import anyio
 from fastapi import APIRouter, Depends, Path, Query, Request
 from fastapi.responses import FileResponse, JSONResponse, Response, StreamingResponse
 from sqlalchemy import select
@@ -15,11 +17,12 @@ from services.api.jobs.service import get_job
 from services.api.outputs import service
 from services.api.outputs.schemas import ViewOutputs
 from services.api.spaces.service import not_found
-from services.core.db.manifest import iter_manifest_lines, job_document
+from services.api.throttle import BulkSlot
+from services.core.db.manifest import iter_manifest_chunks, job_document, manifest_line
 from services.core.db.models import Space, View
 from services.core.domain import keys
 from services.core.domain.errors import NotFound
-from services.core.storage import LocalStore, ObjectNotFoundError, check_key, prefixed
+from services.core.storage import LocalStore, ObjectNotFoundError, ObjectStore, check_key, prefixed
 from services.datasets.previews import PIXEL_JSON_CUES, cached_preview, parse_preview_key
 
 router = APIRouter(tags=["outputs"])
@@ -83,23 +86,26 @@ def view_outputs(
     return ViewOutputs(job_id=job.id, space_id=space_id, space=row[1], point=point, view=view, outputs=outputs)
 
 
+MANIFEST_CHUNK_POINTS = 100  # points read per short session while streaming: ~300 lines, a few hundred KB
+
+
 @router.get(
     "/jobs/{job_id}/manifest.jsonl",
     summary="The job's manifest (one JSON line per view)",
     response_class=StreamingResponse,
-    responses={200: {"content": {"application/x-ndjson": {}}}},
+    responses={200: {"content": {"application/x-ndjson": {}}}, 429: {"description": "too many bulk reads"}},
+    dependencies=[BulkSlot],
 )
 def manifest(job_id: JobId, request: Request, session: ReadSessionDep, tenant: TenantDep) -> StreamingResponse:
     """manifest.jsonl rebuilt from the database: {space, point, view, outputs: {cue: {key, size, sha256}}} per line."""
-    get_job(session, owner=tenant, job_id=job_id)  # 404 before the stream starts
+    job = get_job(session, owner=tenant, job_id=job_id)  # 404 before the stream starts
     maker = request.app.state.read_sessionmaker
 
     def lines() -> Iterator[bytes]:
-        # The request's session may be closed before the body is sent: stream from a session of our own.
-        with maker() as s:
-            job = get_job(s, owner=tenant, job_id=job_id)
-            for line in iter_manifest_lines(s, job):
-                yield line.encode("utf-8")
+        # Each chunk is read in a session closed before it is sent: a reader that stops reading holds no
+        # database connection, only its place in the tenant's bulk reads (BulkSlot) until the stream ends.
+        for chunk in iter_manifest_chunks(maker, job, points=MANIFEST_CHUNK_POINTS):
+            yield "".join(manifest_line(entry) for entry in chunk).encode("utf-8")
 
     return StreamingResponse(
         lines(),
@@ -108,7 +114,8 @@ def manifest(job_id: JobId, request: Request, session: ReadSessionDep, tenant: T
     )
 
 
-@router.get("/jobs/{job_id}/job.json", summary="The job's job.json (spec, conventions, cue encodings, spaces)")
+@router.get("/jobs/{job_id}/job.json", dependencies=[BulkSlot],
+            summary="The job's job.json (spec, conventions, cue encodings, spaces)")
 def job_json(job_id: JobId, session: ReadSessionDep, tenant: TenantDep) -> JSONResponse:
     """job.json rebuilt from the database."""
     job = get_job(session, owner=tenant, job_id=job_id)
@@ -148,8 +155,16 @@ def blob(key: SignedBlobKey, store: StoreDep) -> Response:
     summary="A cue file's preview PNG through a signed link (made on first request, then cached)",
     responses={200: {"content": {"image/png": {}}}, 403: {"description": "bad or expired link"}},
 )
-def preview(key: SignedPreviewKey, store: StoreDep) -> Response:
+async def preview(key: SignedPreviewKey, request: Request, store: StoreDep) -> Response:
     """Serve the preview named by a `preview_url` of the outputs routes, making and storing it when missing."""
+    # decoding a cue file and drawing it is CPU work: a few at a time, or a gallery of 100 starves the rest
+    limiter = request.app.state.preview_draws.get()
+    data = await anyio.to_thread.run_sync(functools.partial(_preview_png, store, key), limiter=limiter)
+    return Response(data, media_type="image/png", headers={"Cache-Control": "private, max-age=300"})
+
+
+def _preview_png(store: ObjectStore, key: str) -> bytes:
+    """The PNG of the preview `key`, made and stored when missing (NotFound: a bad key, a missing output)."""
     try:
         root, output_key, cue, point, view = parse_preview_key(check_key(key))
     except ValueError:
@@ -167,4 +182,4 @@ def preview(key: SignedPreviewKey, store: StoreDep) -> Response:
         _key, data = cached_preview(job_store, output_key, cue, point=point, view=view, resolution=resolution)
     except ObjectNotFoundError:
         raise NotFound("no such output") from None
-    return Response(data, media_type="image/png", headers={"Cache-Control": "private, max-age=300"})
+    return data

@@ -12,13 +12,13 @@ from __future__ import annotations
 from collections.abc import AsyncIterator
 from typing import Annotated
 
-from fastapi import APIRouter, HTTPException, Path, Request, status
+from fastapi import APIRouter, Path, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import StreamingResponse
 
 from services.api.deps import SSETenantDep
 from services.api.jobs.service import get_job
-from services.api.progress.limits import StreamLimits, TooManyStreams
+from services.api.progress.limits import StreamLimits
 from services.api.progress.service import Snapshot, event_stream
 from services.api.progress.shared import SharedPolls
 from services.core.domain.json_types import JSONObject
@@ -34,10 +34,7 @@ _SSE_RESPONSES: dict[int | str, JSONObject] = {
 def _stream(request: Request, tenant: str, job_id: int | None) -> StreamingResponse:
     app = request.app
     limits: StreamLimits = app.state.sse_limits
-    try:
-        limits.acquire(tenant)
-    except TooManyStreams as e:
-        raise HTTPException(status.HTTP_429_TOO_MANY_REQUESTS, str(e)) from None
+    limits.acquire(tenant)  # TooManyStreams: 429
 
     def poll(snap: Snapshot) -> tuple[list[JSONObject], list[int]]:
         shared: SharedPolls = app.state.sse_polls

@@ -3,7 +3,7 @@
 A stream holds no thread between polls, but each poll (a short database read) runs in a worker thread; with
 the default pool shared by every synchronous route, a few hundred streams polling twice a second left the
 other routes waiting for a thread. Polls get their own small limiter instead, and a tenant may hold at most
-`OMNIDATA_SSE_MAX_PER_TENANT` streams (one more is answered 429 with a message).
+`OMNIDATA_SSE_MAX_PER_TENANT` streams (one more is answered 429 with a message and Retry-After).
 """
 
 from __future__ import annotations
@@ -11,10 +11,11 @@ from __future__ import annotations
 import anyio
 
 from services.api.limits import LazyLimiter
+from services.core.domain.errors import TooManyRequests
 
 
-class TooManyStreams(Exception):
-    """A tenant already holds as many event streams as allowed."""
+class TooManyStreams(TooManyRequests):
+    """A tenant already holds as many event streams as allowed (429: one closes when its client goes)."""
 
 
 class StreamLimits:

@@ -4,8 +4,9 @@ side views of an ambiguous space's up candidates and the person's pick."""
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any, TypeVar
 
 import anyio
 from fastapi import APIRouter, Request, Response, status
@@ -20,10 +21,14 @@ from services.api.pagination import Page, PageDep
 from services.api.spaces import service, up_choice
 from services.api.spaces.schemas import SpaceOptions, SpaceRead, SpaceRegister, UpChoice
 from services.api.spaces.upload import receive_upload
+from services.api.throttle import ScanSlot
 from services.core.domain.json_types import JSONObject
 from services.core.temp_dirs import owned_temp_dir
 
 router = APIRouter(prefix="/spaces", tags=["spaces"])
+
+T = TypeVar("T")
+_BUSY: dict[int | str, JSONObject] = {429: {"description": "too many of your scan reads at once"}}
 
 SpaceId = Annotated[int, PathParam(ge=1, le=2**63 - 1, description="space id")]
 
@@ -68,7 +73,9 @@ _UPLOAD_BODY: JSONObject = {
     response_model=SpaceRead,
     openapi_extra=_UPLOAD_BODY,
     summary="Upload a scan",
-    responses={413: {"description": "larger than the upload limit"}, 422: {"description": "unusable scan"}},
+    responses={413: {"description": "larger than the upload limit"}, 422: {"description": "unusable scan"},
+               **_BUSY},
+    dependencies=[ScanSlot],
 )
 async def upload_space(
     request: Request, response: Response, session: SessionDep, store: StoreDep, settings: SettingsDep, tenant: TenantDep
@@ -102,7 +109,7 @@ async def upload_space(
             up_axis=opts.up_axis,
             unit_scale=opts.unit_scale,
         )
-        space = await anyio.to_thread.run_sync(create, limiter=request.app.state.upload_checks.get())
+        space = await _read_scan(request, create)
     finally:
         await run_in_threadpool(temp.cleanup)
     response.headers["Location"] = f"/spaces/{space.id}"
@@ -114,22 +121,18 @@ async def upload_space(
     status_code=status.HTTP_201_CREATED,
     response_model=SpaceRead,
     summary="Register a scan already in object storage",
+    responses=_BUSY,
+    dependencies=[ScanSlot],
 )
-def register_space(
-    body: SpaceRegister, response: Response, session: SessionDep, store: StoreDep, settings: SettingsDep, tenant: TenantDep
+async def register_space(
+    body: SpaceRegister, request: Request, response: Response, session: SessionDep, store: StoreDep,
+    settings: SettingsDep, tenant: TenantDep,
 ) -> SpaceRead:
     """Register an object staged under `uploads/<tenant>/` in the service's store (validated like an upload)."""
     key = service.staged_key(settings, owner=tenant, key=body.key, uri=body.uri)
-    space = service.register_staged(
-        session,
-        store,
-        settings,
-        owner=tenant,
-        key=key,
-        name=body.name,
-        up_axis=body.up_axis,
-        unit_scale=body.unit_scale,
-    )
+    register = functools.partial(service.register_staged, session, store, settings, owner=tenant, key=key,
+                                  name=body.name, up_axis=body.up_axis, unit_scale=body.unit_scale)
+    space = await _read_scan(request, register)
     response.headers["Location"] = f"/spaces/{space.id}"
     return SpaceRead.from_row(space)
 
@@ -156,24 +159,35 @@ def delete_space(space_id: SpaceId, session: SessionDep, store: StoreDep, tenant
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
+async def _read_scan(request: Request, func: Callable[..., T], *args: Any) -> T:
+    """`func(*args)` (work that reads a scan, in a child process) in a thread of the API's few scan-reading
+    slots: 40 up choices at once wait for a slot instead of starting 40 readers that starve the event loop."""
+    limiter: anyio.CapacityLimiter = request.app.state.scan_reads.get()
+    return await anyio.to_thread.run_sync(functools.partial(func, *args), limiter=limiter)
+
+
 CandidateIndex = Annotated[int, PathParam(ge=0, le=2, description="0: detection's best, 1: the runner-up, 2: the next")]
 
 
 @router.get("/{space_id}/up-candidates/{index}.png", summary="Side view of a space under an up candidate",
-            response_class=Response, responses={200: {"content": {"image/png": {}}}})
-async def up_candidate_preview(space_id: SpaceId, index: CandidateIndex, session: ReadSessionDep, store: StoreDep,
-                               settings: SettingsDep, tenant: TenantDep) -> Response:
+            response_class=Response, responses={200: {"content": {"image/png": {}}}, **_BUSY},
+            dependencies=[ScanSlot])
+async def up_candidate_preview(space_id: SpaceId, index: CandidateIndex, request: Request,
+                               session: ReadSessionDep, store: StoreDep, settings: SettingsDep,
+                               tenant: TenantDep) -> Response:
     """A small PNG: the scan seen from the side with up candidate `index` pointing to the top of the picture."""
-    space = service.get_space(session, owner=tenant, space_id=space_id)
-    png = await run_in_threadpool(up_choice.candidate_preview, store, settings, space, index)
+    space = await run_in_threadpool(service.get_space_released, session, owner=tenant, space_id=space_id)
+    png = await _read_scan(request, up_choice.candidate_preview, store, settings, space, index)
     return Response(png, media_type="image/png", headers={"Cache-Control": "private, max-age=3600"})
 
 
-@router.put("/{space_id}/up", response_model=SpaceRead, summary="Pick the up direction of a space")
-async def choose_up(space_id: SpaceId, body: UpChoice, session: SessionDep, store: StoreDep, settings: SettingsDep,
-                    tenant: TenantDep) -> SpaceRead:
+@router.put("/{space_id}/up", response_model=SpaceRead, summary="Pick the up direction of a space",
+            responses=_BUSY, dependencies=[ScanSlot])
+async def choose_up(space_id: SpaceId, body: UpChoice, request: Request, session: SessionDep, store: StoreDep,
+                    settings: SettingsDep, tenant: TenantDep) -> SpaceRead:
     """Store the up (source coordinates) and/or units a person picked; later jobs plan the space in that frame."""
-    space = service.get_space(session, owner=tenant, space_id=space_id)
-    space = await run_in_threadpool(up_choice.choose_up, session, store, settings, space, body.up, tenant,
-                                    body.unit_scale)
+    space = await run_in_threadpool(service.get_space_released, session, owner=tenant, space_id=space_id)
+    loaded = await _read_scan(request, up_choice.load_choice, store, settings, space, body.up,
+                              body.unit_scale)
+    space = await run_in_threadpool(up_choice.record_up, session, space, loaded, tenant)
     return SpaceRead.from_row(space)

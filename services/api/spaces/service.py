@@ -42,6 +42,14 @@ def get_space(session: Session, *, owner: str, space_id: int) -> Space:
     return space
 
 
+def get_space_released(session: Session, *, owner: str, space_id: int) -> Space:
+    """get_space, then the session's connection back to the pool (the row stays readable, and writable
+    through the same session later): for routes that read the space's scan for seconds before they write."""
+    space = get_space(session, owner=owner, space_id=space_id)
+    session.commit()
+    return space
+
+
 def _check_name_free(session: Session, *, owner: str, name: str) -> None:
     existing = session.scalar(select(Space.id).where(Space.owner == owner, Space.name == name))
     if existing is not None:

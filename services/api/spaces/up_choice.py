@@ -65,10 +65,11 @@ def candidate_preview(store: ObjectStore, settings: Settings, space: Space, inde
     return side_view_png(mesh, np.asarray(candidates[index]["up"], dtype=float))
 
 
-def choose_up(session: Session, store: ObjectStore, settings: Settings, space: Space, up: list[float] | None,
-              by: str, unit_scale: float | None = None) -> Space:
-    """Store `up` (source coordinates; None: the detected one) and `unit_scale` (None: the upload's, or chosen
-    from the storey) as the space's frame; Invalid when they give none (ambiguous units name the candidates)."""
+def load_choice(store: ObjectStore, settings: Settings, space: Space, up: list[float] | None,
+                unit_scale: float | None = None) -> LoadedSpace:
+    """The space loaded under `up` (source coordinates; None: the detected one) and `unit_scale` (None: the
+    upload's, or chosen from the storey), without its mesh; Invalid when they give none (ambiguous units name
+    the candidates). Needs no database session: the caller's is not held while the scan is read."""
     validation = space.validation or {}
     if up is None:
         up = [float(x) for x in (validation.get("up") or {}).get("source_direction", [0.0, 0.0, 1.0])]
@@ -76,10 +77,16 @@ def choose_up(session: Session, store: ObjectStore, settings: Settings, space: S
     scale: float | str = unit_scale if unit_scale is not None else (
         space.unit_scale if units.get("unit") == "given" else "auto")
     path = fetch_space(store, space, _cache_dir(settings))
+    max_faces, memory_mb, timeout_s = _limits(settings)
     try:
-        loaded = _load_limited(_limits(settings), path, up=up, unit_scale=scale, accept_up_guess=False)
+        return load_space_limited(path, max_faces=max_faces, memory_mb=memory_mb, timeout_s=timeout_s, up=up,
+                                  unit_scale=scale, accept_up_guess=False, keep_mesh=False)
     except SpaceError as e:
         raise Invalid(f"up {up} does not work for space {space.id}: {e}") from None
+
+
+def record_up(session: Session, space: Space, loaded: LoadedSpace, by: str) -> Space:
+    """Store the frame of `loaded` (from load_choice) as the space's, picked by `by`."""
     record_choice(space, loaded.up_source, loaded.source_to_world, loaded.bounds,
                   loaded.units.scale if loaded.units is not None else space.unit_scale, by)
     session.commit()

@@ -10,7 +10,8 @@ from __future__ import annotations
 import json
 import os
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from contextlib import AbstractContextManager, nullcontext
 from datetime import datetime
 from itertools import chain
 from pathlib import Path
@@ -97,26 +98,41 @@ def iter_manifest(session: Session, job: Job) -> Iterator[ManifestEntry]:
     Sorted by space name, point, view; internal cues (the pass cache) are left out; per-point cues
     appear on view 0 of their point; only done tasks are listed (task rows and compacted views alike).
     """
+    for chunk in iter_manifest_chunks(lambda: nullcontext(session), job):
+        yield from chunk
+
+
+def iter_manifest_chunks(
+    sessions: Callable[[], AbstractContextManager[Session]], job: Job, *, points: int = POINT_CHUNK
+) -> Iterator[list[ManifestEntry]]:
+    """The entries of iter_manifest, `points` points of a space at a time, each chunk read in a session of its
+    own from `sessions` and closed before the chunk is handed out: a consumer that stops between chunks (a
+    client reading a streamed manifest slowly) holds no database connection."""
     public = [n for n, c in CATALOG.items() if not c.internal]
-    names = space_names(session, job.id)
-    spaces = sorted(job_spaces(session, job.id), key=lambda pair: pair[1].name)
+    with sessions() as session:
+        names = space_names(session, job.id)
+        spaces = sorted((space for _job_space, space in job_spaces(session, job.id)),
+                        key=lambda space: space.name)
+        max_points = {space.id: session.scalar(  # one index lookup per space
+            select(func.max(View.point_idx)).where(View.job_id == job.id, View.space_id == space.id)
+        ) for space in spaces}
     planned = (job.plan_summary or {}).get("spaces", {})
-    for _job_space, space in spaces:
+    for space in spaces:
         # capture views: the photo/geometry alignment score of each view, "point/view" -> score
         alignment = (planned.get(space.name, {}).get("capture_plan") or {}).get("view_alignment") or {}
-        max_point = session.scalar(
-            select(func.max(View.point_idx)).where(View.job_id == job.id, View.space_id == space.id)
-        )
+        max_point = max_points.get(space.id)
         if max_point is None:
             continue
-        for p0 in range(0, int(max_point) + 1, POINT_CHUNK):
-            p1 = p0 + POINT_CHUNK
-            views = session.execute(
-                select(View.point_idx, View.v)
-                .where(View.job_id == job.id, View.space_id == space.id, View.point_idx >= p0, View.point_idx < p1)
-                .order_by(View.point_idx, View.v)
-            ).all()
-            outputs = _done_outputs(session, job, space, (p0, p0 + POINT_CHUNK), public, names)
+        for p0 in range(0, int(max_point) + 1, points):
+            with sessions() as session:
+                views = session.execute(
+                    select(View.point_idx, View.v)
+                    .where(View.job_id == job.id, View.space_id == space.id, View.point_idx >= p0,
+                           View.point_idx < p0 + points)
+                    .order_by(View.point_idx, View.v)
+                ).all()
+                outputs = _done_outputs(session, job, space, (p0, p0 + points), public, names)
+            chunk: list[ManifestEntry] = []
             for p, v in views:
                 outs = outputs.get((int(p), int(v)), {})
                 entry: ManifestEntry = {
@@ -127,13 +143,19 @@ def iter_manifest(session: Session, job: Job) -> Iterator[ManifestEntry]:
                 }
                 if f"{p}/{v}" in alignment:
                     entry["alignment"] = alignment[f"{p}/{v}"]
-                yield entry
+                chunk.append(entry)
+            yield chunk
+
+
+def manifest_line(entry: ManifestEntry) -> str:
+    """One line of manifest.jsonl (ending in a newline)."""
+    return json.dumps(entry, separators=(",", ":"), sort_keys=False) + "\n"
 
 
 def iter_manifest_lines(session: Session, job: Job) -> Iterator[str]:
     """The manifest as JSON lines (each ending in a newline)."""
     for entry in iter_manifest(session, job):
-        yield json.dumps(entry, separators=(",", ":"), sort_keys=False) + "\n"
+        yield manifest_line(entry)
 
 
 def manifest_bytes(session: Session, job: Job) -> bytes:

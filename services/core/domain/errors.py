@@ -30,3 +30,11 @@ class Forbidden(DomainError):
 
 class TooLarge(DomainError):
     """The input is over a configured size limit (HTTP 413)."""
+
+
+class TooManyRequests(DomainError):
+    """The caller is over a per-tenant rate or concurrency limit (HTTP 429, with Retry-After)."""
+
+    def __init__(self, message: str, *, retry_after_s: int = 1) -> None:
+        super().__init__(message)
+        self.retry_after_s = max(1, int(retry_after_s))

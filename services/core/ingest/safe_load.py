@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import multiprocessing
+import os
 import signal
 from collections.abc import Sequence
 from multiprocessing.connection import Connection
@@ -27,6 +28,7 @@ from services.core.temp_dirs import UPLOAD_KINDS, sweep_orphans
 _CONTEXT = multiprocessing.get_context("forkserver")
 _CONTEXT.set_forkserver_preload(["services.core.ingest.loading", "services.core.ingest.mesh_checks", "trimesh"])
 _RESULT_GRACE_S = 10.0  # for a child to exit once it has sent its result
+CHILD_NICENESS = 10  # a reader yields the CPU to the process waiting on it (the API serving other requests)
 
 
 def load_space_limited(
@@ -40,15 +42,19 @@ def load_space_limited(
     up: Sequence[float] | None = None,
     source_to_world: Sequence[Sequence[float]] | None = None,
     accept_up_guess: bool = True,
+    keep_mesh: bool = True,
 ) -> LoadedSpace:
     """`load_space(path)` in a child process with limits; SpaceError for an unusable scan or a limit hit.
 
     An upload accepts detection's guesses (`accept_up_guess`): an ambiguous frame is recorded, and the space
     waits for a person to pick one; a pick (`up`) or a stored frame (`source_to_world`) is loaded as given.
+    Without `keep_mesh` the result's mesh is empty: a caller that needs only the frame, bounds and counts is
+    not sent the geometry (unpickling it would hold the caller's interpreter).
     """
     name = Path(path).name
     receiver, sender = _CONTEXT.Pipe(duplex=False)
-    limits = {"memory_mb": memory_mb, "cpu_s": max(1, int(timeout_s)), "max_faces": max_faces}
+    limits = {"memory_mb": memory_mb, "cpu_s": max(1, int(timeout_s)), "max_faces": max_faces,
+              "keep_mesh": int(keep_mesh)}
     frame: SpaceFrame = {"up_axis": up_axis, "unit_scale": unit_scale, "up": up, "source_to_world": source_to_world,
              "accept_up_guess": accept_up_guess}
     proc = _CONTEXT.Process(
@@ -110,11 +116,13 @@ def _child(sender: Connection, path: str, frame: SpaceFrame, limits: dict[str, i
     memory = _mapped_bytes() + int(limits["memory_mb"]) * 2**20
     resource.setrlimit(resource.RLIMIT_AS, (memory, memory))
     resource.setrlimit(resource.RLIMIT_CPU, (int(limits["cpu_s"]), int(limits["cpu_s"]) + 1))
+    os.nice(CHILD_NICENESS)
     try:
         loaded = load_space(path, **frame)
         check_face_count(Path(path).name, loaded.face_count, int(limits["max_faces"]))
         # register_space reads the counts and transforms, not the visuals or parser metadata: leave those here
-        slim = trimesh.Trimesh(vertices=loaded.mesh.vertices, faces=loaded.mesh.faces, process=False)
+        slim = (trimesh.Trimesh(vertices=loaded.mesh.vertices, faces=loaded.mesh.faces, process=False)
+                if limits["keep_mesh"] else trimesh.Trimesh())
         result: tuple[str, object] = ("ok", dataclasses.replace(loaded, mesh=slim))
     except SpaceError as e:  # load_space reports a parser's MemoryError as unreadable: name the limit instead
         result = ("memory", None) if "MemoryError" in str(e) else ("space_error", str(e))

@@ -29,7 +29,7 @@ def test_a_tenant_over_its_stream_cap_gets_429_and_others_are_unaffected(capped:
         second = streams.enter_context(httpx.stream("GET", url_a, timeout=timeout))
         assert first.status_code == second.status_code == 200
         over = httpx.get(url_a, timeout=timeout)
-        assert over.status_code == 429
+        assert over.status_code == 429 and over.headers["retry-after"] == "1"
         assert "at most 2 per tenant" in over.json()["detail"] and "OMNIDATA_SSE_MAX_PER_TENANT" in over.json()["detail"]
         with httpx.stream("GET", f"{base}/events?token={api.b.token}", timeout=timeout) as other:
             assert other.status_code == 200  # another tenant's cap is its own

@@ -12,8 +12,10 @@ from services.core.storage.base import (
     ObjectStore,
     PrefixedStore,
     StorageError,
+    StorageUnavailable,
     check_key,
     prefixed,
+    storage_outage,
 )
 from services.core.storage.local import LocalStore
 
@@ -27,9 +29,11 @@ __all__ = [
     "ObjectStore",
     "PrefixedStore",
     "StorageError",
+    "StorageUnavailable",
     "check_key",
     "open_store",
     "prefixed",
+    "storage_outage",
 ]
 
 

@@ -20,8 +20,19 @@ depends_on: str | Sequence[str] | None = None
 
 
 def upgrade() -> None:
-    with op.batch_alter_table("job") as batch:
-        batch.add_column(sa.Column("paused_by", sa.String(16), nullable=True))
+    column = sa.Column("paused_by", sa.String(16), nullable=True)
+    if op.get_bind().dialect.name == "sqlite":
+        # rebuilt, not ALTER TABLE ADD COLUMN, with the defaults as the models write them (reflected, they come back
+        # in parentheses): its schema text is then the one the models create
+        defaults = [sa.Column("output_root", sa.String(1024), server_default="", nullable=False),
+                    sa.Column("created_at", sa.DateTime(), server_default=sa.func.now(), nullable=False)]
+        # The rebuild drops the old table: with foreign keys enforced, that would cascade to every job's rows.
+        op.execute("PRAGMA foreign_keys=OFF")
+        with op.batch_alter_table("job", recreate="always", reflect_args=defaults) as batch:
+            batch.add_column(column)
+        op.execute("PRAGMA foreign_keys=ON")
+    else:
+        op.add_column("job", column)
 
 
 def downgrade() -> None:

@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 from sqlalchemy import select
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, sessionmaker
 
-from services.core.db.engine import make_engine, migrate
+from services.core.db.engine import make_engine, make_sessionmaker, migrate
 from services.core.db.models import Job, Space, Task, WorkerBlock
 from services.core.domain.jobspec import JobSpec
 from services.core.ingest.loading import load_space
@@ -21,9 +21,17 @@ from services.core.ingest.registry import register_space
 from services.core.storage import LocalStore
 from services.scheduler.store_watch import StoreWatch
 from tests.fixtures.small_disk import fill, small_tmpfs
-from tests.worker.test_runner import CUES, SPEC, Banana, counters_match, make_job, queue, runner, sm  # noqa: F401
+from tests.worker.test_runner import CUES, SPEC, Banana, counters_match, make_job, queue, runner
 
-__all__ = ["sm"]  # the database fixture, parametrised over Postgres and SQLite
+
+@pytest.fixture(params=["postgres", "sqlite"])
+def sm(request: pytest.FixtureRequest, tmp_path: Path, empty_pg_url: str) -> Iterator[sessionmaker[Session]]:
+    """A database of the test's own: a job held for its store there would fail other tests' /ready meanwhile."""
+    url = empty_pg_url if request.param == "postgres" else f"sqlite:///{tmp_path / 'runner.db'}"
+    migrate(url)
+    engine = make_engine(url)
+    yield make_sessionmaker(engine)
+    engine.dispose()
 
 
 @pytest.fixture()
@@ -47,7 +55,7 @@ def banana_on_tmpfs(tmp_path: Path, scenes_dir: Path) -> Iterator[Banana]:
         yield Banana(store, fields, plan, tmp_path / "cache")
 
 
-def view_tasks(sm, job_id: int) -> list[Task]:  # noqa: F811
+def view_tasks(sm, job_id: int) -> list[Task]:
     with sm() as s:
         return list(s.scalars(select(Task).where(Task.job_id == job_id, Task.point_idx == 0, Task.view_idx == 0)))
 

@@ -15,7 +15,7 @@ from concurrent.futures import Future, wait
 
 from sqlalchemy.orm import Session, sessionmaker
 
-from services.core.db.jobs import release_storage_holds, storage_held_jobs
+from services.core.db.jobs import hold_for_storage, release_storage_holds, storage_held_jobs
 from services.core.storage import ObjectStore
 from services.core.storage.base import io_pool
 
@@ -52,8 +52,12 @@ class StoreWatch:
         probe, self._probe = self._probe, None
         problem = probe.exception()
         if problem is not None:
-            if str(problem) != self.last_problem:
+            if str(problem) != self.last_problem:  # the jobs say the latest reason (e.g. "7.0 MiB left ...")
                 log.warning("jobs wait for the object store: %s", problem)
+                with self.sessions() as s:
+                    for job_id, _ in storage_held_jobs(s):
+                        hold_for_storage(s, job_id, str(problem))
+                    s.commit()
             self.last_problem = str(problem)
             return []
         with self.sessions() as s:

@@ -99,8 +99,8 @@ def complete_job(session: Session, store: ObjectStore, job_id: int) -> Finished 
 
 
 def complete_once(session: Session, store: ObjectStore) -> list[Finished]:
-    """Finish every running job that has nothing left to do; a job whose files fail to write is retried later (held
-    for its store when the store is full or down)."""
+    """Finish every running job that has nothing left to do; a job whose files fail to write is retried later
+    (held for its store when the store is full or down)."""
     done: list[Finished] = []
     for job_id in finished_job_ids(session):
         session.rollback()  # end the read transaction before taking the job's lock
@@ -111,7 +111,8 @@ def complete_once(session: Session, store: ObjectStore) -> list[Finished]:
             if outage is None:
                 log.exception("finishing job %d failed; will retry", job_id)
                 continue
-            # its files cannot be written for now: held like its tasks, so the job says why (StoreWatch resumes it)
+            # its files cannot be written for now: held like its tasks, so the job says why (StoreWatch
+            # resumes it)
             log.warning("finishing job %d waits for the store: %s", job_id, outage)
             hold_for_storage(session, job_id, str(outage))
             session.commit()

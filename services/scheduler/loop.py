@@ -56,9 +56,9 @@ COMPLETE_INTERVAL_S = 2.0  # completion's own look at the counters; sooner when 
 MAX_BACKOFF_S = 30.0
 PLAN_RETRY_S = 30  # a planning attempt that failed for a transient reason is retried after this
 MAX_PLAN_ATTEMPTS = 3
-# A local folder's temp files of writes that never committed (a worker killed mid-write) are swept this often, on a
-# thread (a walk of the folder), once idle for TEMP_STALE_S: a write in flight touches its file every chunk and
-# renames it within seconds.
+# A local folder's temp files of writes that never committed (a worker killed mid-write) are swept this often,
+# on a thread (a walk of the folder), once idle for TEMP_STALE_S: a write in flight touches its file every
+# chunk and renames it within seconds.
 TEMP_SWEEP_INTERVAL_S = 600.0
 TEMP_STALE_S = 600.0
 
@@ -331,9 +331,11 @@ class Scheduler:
         return res
 
     def sweep_temp_files(self) -> None:
-        """Start a sweep of the local folder's stale temp files (LocalStore.remove_temp_files) on a thread, at most
-        every TEMP_SWEEP_INTERVAL_S; S3 keeps none (an interrupted upload is never an object)."""
-        if not isinstance(self.store, LocalStore) or time.monotonic() - self._last_sweep < TEMP_SWEEP_INTERVAL_S:
+        """Start a sweep of the local folder's stale temp files (LocalStore.remove_temp_files) on a thread, at
+        most every TEMP_SWEEP_INTERVAL_S; S3 keeps none (an interrupted upload is never an object)."""
+        if not isinstance(self.store, LocalStore):
+            return
+        if time.monotonic() - self._last_sweep < TEMP_SWEEP_INTERVAL_S:
             return
         if self.sweep is not None and not self.sweep.done():
             return

@@ -1,10 +1,10 @@
-"""Resuming the jobs held for their object store (services.core.db.jobs.hold_for_storage) once it takes writes again.
+"""Resuming jobs held for their object store (jobs.hold_for_storage) once it takes writes again.
 
 A worker whose outputs the store would not take (a full folder, S3 answering 5xx) pauses the job; nothing here
-retries the tasks one by one. While a job is held, the scheduler probes the store every CHECK_INTERVAL_S (a small
-write and delete; a folder also needs room for a few views, LocalStore.probe) and resumes the held jobs when it
-passes: the next dispatch pass sends their tasks. The probe runs on a thread of its own, so an S3 endpoint that
-does not answer (botocore's retries take tens of seconds) never stalls the loop.
+retries the tasks one by one. While a job is held, the scheduler probes the store every CHECK_INTERVAL_S (a
+small write and delete; a folder also needs room for a few views, LocalStore.probe) and resumes the held jobs
+when it passes: the next dispatch pass sends their tasks. The probe runs on a thread of its own, so an S3
+endpoint that does not answer (botocore's retries take tens of seconds) never stalls the loop.
 """
 
 from __future__ import annotations
@@ -22,13 +22,15 @@ from services.core.storage.base import io_pool
 log = logging.getLogger(__name__)
 
 CHECK_INTERVAL_S = 2.0  # probes a held store this often: work resumes within about this of the store's return
-PROBE_WAIT_S = 0.25  # a probe's answer is awaited this long in the tick (a folder's: milliseconds), else next tick
+PROBE_WAIT_S = 0.25  # a probe's answer is awaited this long in the tick (a folder's: ms), else next tick
 
 
 class StoreWatch:
-    """Probes the store while a job is held for it; `check()` (each scheduler tick) resumes them once it passes."""
+    """Probes the store while a job is held for it; `check()` (each scheduler tick) resumes them once it
+    passes."""
 
-    def __init__(self, sessions: sessionmaker[Session], store: ObjectStore, interval_s: float = CHECK_INTERVAL_S):
+    def __init__(self, sessions: sessionmaker[Session], store: ObjectStore,
+                 interval_s: float = CHECK_INTERVAL_S) -> None:
         self.sessions = sessions
         self.store = store
         self.interval_s = interval_s
@@ -37,7 +39,7 @@ class StoreWatch:
         self.last_problem: str | None = None  # the probe's last failure (logged when it changes)
 
     def check(self) -> list[int]:
-        """Ids of the held jobs resumed now ([] most ticks: one query every interval while nothing is held)."""
+        """Ids of the held jobs resumed now ([] most ticks: a query every interval while nothing is held)."""
         if self._probe is None:
             if time.monotonic() < self._next:
                 return []

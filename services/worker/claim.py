@@ -50,13 +50,12 @@ class TransientError(Exception):
 class Outcome:
     """What `TaskRunner.run` did with one task.
 
-    status: done (output stored and recorded) | skipped (stale/duplicate message, or the job is not running, or
-    handed back to pending unrun because an input failed in its view batch) |
-    paused / blocked (handed back to pending) | held (the object store failed: back to pending, its attempt not
-    counted, and the job paused until the store takes writes again) | retry (failed, back to pending after a
-    backoff) | failed (for
-    good) | discarded (computed, but the task was no longer ours: reaped or cancelled) | lost (could not record
-    the result; the lease runs out and the reaper retries it).
+    status: done (output stored and recorded) | skipped (stale/duplicate message, or the job is not running,
+    or handed back to pending unrun because an input failed in its view batch) | paused / blocked (handed back
+    to pending) | held (the object store failed: back to pending, its attempt not counted, and the job paused
+    until the store takes writes again) | retry (failed, back to pending after a backoff) | failed (for good)
+    | discarded (computed, but the task was no longer ours: reaped or cancelled) | lost (could not record the
+    result; the lease runs out and the reaper retries it).
     """
 
     task_id: int
@@ -329,10 +328,11 @@ class TaskLedger:
         return Outcome(t.id, status, t.cue, t.job_id, key, int(info.size), info.sha256, None, duration)
 
     def hold_for_storage(self, tasks: list[Claimed], problem: BaseException) -> list[Outcome]:
-        """running -> pending of tasks whose outputs the store would not take (`problem`: a StorageUnavailable),
-        their attempt not counted and no failure counted against this worker (the store failed, not the task nor
-        the worker), and their job paused for its store (services.core.db.jobs.hold_for_storage): no attempt budget
-        burnt and no worker kept off the job for a full disk. 'lost' when the database stays away."""
+        """running -> pending of tasks whose outputs the store would not take (`problem`: a
+        StorageUnavailable), their attempt not counted and no failure counted against this worker (the store
+        failed, not the task nor the worker), and their job paused for its store
+        (services.core.db.jobs.hold_for_storage): no attempt budget burnt and no worker kept off the job for a
+        full disk. 'lost' when the database stays away."""
         error = format_error(problem)
 
         def step() -> set[int]:

@@ -26,8 +26,8 @@
    whose worker dies stays `running` under its lease (the beats extend all of it): the reaper re-queues every
    task of it.
 5. Failure: retry after a backoff or fail for good, and keep a failing worker off the job
-   (services.worker.failure_policy); a store that fails (full, S3 5xx) holds the job instead, its tasks' attempts
-   not counted (TaskLedger.hold_for_storage), until the scheduler sees the store take writes again.
+   (services.worker.failure_policy); a store that fails (full, S3 5xx) holds the job instead, its tasks'
+   attempts not counted (TaskLedger.hold_for_storage), until the scheduler sees the store take writes again.
 
 Bytes, not files, flow through here; all geometry is in the plan (world metres, OpenCV camera axes).
 """
@@ -202,7 +202,7 @@ class TaskRunner:
 
     def _record_failure(self, t: Claimed, exc: Exception, t0: float) -> Outcome:
         outage = storage_outage(exc)
-        if outage is not None:  # the store failed, not the task: it waits for the store, its attempt not counted
+        if outage is not None:  # the store failed, not the task: it waits for the store, uncounted
             return self.ledger.hold_for_storage([t], outage)[0]
         max_attempts = self.inputs.max_attempts(t.job_id, self.settings.max_attempts)
         return self.ledger.record_failure(t, exc, time.perf_counter() - t0, max_attempts)
@@ -231,7 +231,7 @@ class TaskRunner:
         except Exception as exc:
             reraise_stop(exc)
             outage = storage_outage(exc)
-            if outage is not None:  # the store is down or full: every task of the batch waits for it, none re-run
+            if outage is not None:  # the store is down or full: the whole batch waits for it, none re-run
                 return [], {o.task_id: o for o in self.ledger.hold_for_storage(claimed, outage)}
             # Something failed: one task at a time, so each failure is recorded and only its dependents wait.
             return self._compute_one_by_one(claimed, t_batch)

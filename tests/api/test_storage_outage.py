@@ -1,6 +1,6 @@
-"""A full object folder through the real API app: /ready says "storage full", and a job held for its store reads
-as paused by the store with the reason, until the scheduler's StoreWatch sees space back. On a real full tmpfs and
-a database of the test's own (a held job fails /ready for everyone using that database)."""
+"""A full object folder through the real API app: /ready says "storage full", and a job held for its store
+reads as paused by the store with the reason, until the scheduler's StoreWatch sees space back. On a real full
+tmpfs and a database of the test's own (a held job fails /ready for everyone using that database)."""
 
 from __future__ import annotations
 
@@ -48,7 +48,7 @@ def test_ready_and_the_job_say_storage_full_until_space_returns(empty_pg_url: st
 
         ballast.unlink()
         api.app.state.storage_probe = None
-        r = api.client.get("/ready", headers=api.a.headers)  # space back, but the job still waits: not ready yet
+        r = api.client.get("/ready", headers=api.a.headers)  # space back, but a job still waits: not ready
         assert r.status_code == 503 and "1 job(s) wait for the store" in r.json()["detail"], r.text
         assert StoreWatch(api.sessions, api.store, interval_s=0.0).check() == [job_id]
         api.app.state.storage_probe = None
@@ -77,7 +77,8 @@ def test_deleting_a_job_removes_the_temp_files_its_killed_writers_left(pg_url: s
             fake_plan(s, job["id"])
         root = api.client.get(f"/jobs/{job['id']}", headers=api.a.headers).json()["output_root"].strip("/")
         local_store.put_bytes(f"{root}/rgb/x/a.png", b"done")
-        left = local_store.root / root / "rgb" / "x" / ".b.png.tmp-0123456789abcdef0123456789abcdef"  # a kill -9
+        # a writer killed mid-write left its temp file
+        left = local_store.root / root / "rgb" / "x" / ".b.png.tmp-0123456789abcdef0123456789abcdef"
         left.write_bytes(b"partial")
         assert api.client.delete(f"/jobs/{job['id']}", headers=api.a.headers).status_code == 204
         assert not left.exists() and not (local_store.root / root).exists()

@@ -1,10 +1,10 @@
 """A store that fills up mid-job, on a real deployment (Postgres, Redis, the API, the scheduler and two Celery
-workers as users start them) whose object store is a local folder on a small tmpfs: the ballast that fills it is
-real, and so is every ENOSPC the workers meet.
+workers as users start them) whose object store is a local folder on a small tmpfs: the ballast that fills it
+is real, and so is every ENOSPC the workers meet.
 
-The promise: within seconds the job reads paused "storage full" (API and database) and /ready says "storage full";
-no task fails and no attempt is spent meanwhile; once the ballast goes, work resumes within 30 s and the job
-completes with every output present exactly once. The figures are printed (`pytest -s`).
+The promise: within seconds the job reads paused "storage full" (API and database) and /ready says "storage
+full"; no task fails and no attempt is spent meanwhile; once the ballast goes, work resumes within 30 s and
+the job completes with every output present exactly once. The figures are printed (`pytest -s`).
 """
 
 from __future__ import annotations
@@ -54,7 +54,8 @@ def done_tasks(cluster: Cluster, job_id: int) -> int:
         return sum(by_state.get("done", 0) for by_state in job_progress(s, job_id).values())
 
 
-def test_a_full_store_pauses_the_job_visibly_and_it_resumes_when_space_returns(folder_cluster, scenes_dir, tmp_path):
+def test_a_full_store_pauses_the_job_visibly_and_it_resumes_when_space_returns(folder_cluster, scenes_dir,
+                                                                               tmp_path):
     cluster = folder_cluster
     api = cluster.start_api()
     auth = {"Authorization": f"Bearer {cluster.token}"}

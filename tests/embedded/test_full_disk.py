@@ -1,6 +1,6 @@
-"""`omnidata generate` whose --out fills up mid-run (a real tmpfs and a ballast file): the run's database lives on
-that disk too. The run waits, saying "storage full" on its bar, instead of crashing with "database or disk is
-full", and finishes once space is back with every output present exactly once."""
+"""`omnidata generate` whose --out fills up mid-run (a real tmpfs and a ballast file): the run's database
+lives on that disk too. The run waits, saying "storage full" on its bar, instead of crashing with "database or
+disk is full", and finishes once space is back with every output present exactly once."""
 
 from __future__ import annotations
 
@@ -26,18 +26,21 @@ seed: 5
 """
 
 
-def test_generate_waits_for_a_full_disk_and_finishes_once_space_returns(tmp_path: Path, scenes_dir: Path) -> None:
+def test_generate_waits_for_a_full_disk_and_finishes_once_space_returns(tmp_path: Path,
+                                                                         scenes_dir: Path) -> None:
     spec = tmp_path / "spec.yaml"
     spec.write_text(SPEC)
     with small_tmpfs(tmp_path / "out", 128) as out:
         log = (tmp_path / "generate.log").open("w")
-        run = subprocess.Popen([sys.executable, "-m", "services.cli", "generate", str(scenes_dir / "ycb_banana"),
-                                "--out", str(out), "--spec", str(spec), "--workers", "2"], cwd=REPO, stdout=log,
+        args = ["generate", str(scenes_dir / "ycb_banana"), "--out", str(out), "--spec", str(spec),
+                "--workers", "2"]
+        run = subprocess.Popen([sys.executable, "-m", "services.cli", *args], cwd=REPO, stdout=log,
                                stderr=subprocess.STDOUT)
         try:
             deadline = time.monotonic() + 180
             while not any((out / "rgb").rglob("*.png")):
-                assert run.poll() is None and time.monotonic() < deadline, (tmp_path / "generate.log").read_text()
+                assert run.poll() is None and time.monotonic() < deadline, \
+                    (tmp_path / "generate.log").read_text()
                 time.sleep(0.1)
             ballast = fill(out)
             time.sleep(10)  # full for a while: workers, scheduler and the database meet ENOSPC

@@ -1,7 +1,7 @@
 # ruff: noqa: F811  -- the fixtures imported from tests.fixtures.jobs are redefined as test arguments
-"""The scheduler's care of the store: a job whose files cannot be written for a full store is held (paused, saying
-why) and finished once space is back; temp files of writers killed mid-write are swept. SQLite only: a held job
-on the shared Postgres database would fail other tests' /ready meanwhile."""
+"""The scheduler's care of the store: a job whose files cannot be written for a full store is held (paused,
+saying why) and finished once space is back; temp files of writers killed mid-write are swept. SQLite only: a
+held job on the shared Postgres database would fail other tests' /ready meanwhile."""
 
 from __future__ import annotations
 

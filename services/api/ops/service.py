@@ -76,9 +76,9 @@ async def _run(fn: Callable[[], object]) -> Check:
 
 
 async def _storage_check(app: FastAPI) -> Check:
-    """The store's probe (a write and a delete; a folder's free space), then whether jobs wait for the store (a
-    worker's outputs refused since: a 5xx on big writes only, a full disk the probe's bytes still fit on), at most
-    once per STORAGE_PROBE_TTL_S: /ready needs no token."""
+    """The store's probe (a write and a delete; a folder's free space), then whether jobs wait for the store
+    (a worker's outputs refused since: a 5xx on big writes only, a full disk the probe's bytes still fit on),
+    at most once per STORAGE_PROBE_TTL_S: /ready needs no token."""
     last: tuple[float, Check] | None = app.state.storage_probe
     if last is not None and time.monotonic() - last[0] < STORAGE_PROBE_TTL_S:
         return last[1]

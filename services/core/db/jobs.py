@@ -170,14 +170,15 @@ def cancel_job(session: Session, job: Job) -> int:
 
 
 def pause_job(session: Session, job: Job) -> None:
-    """Pause a running job: nothing more is dispatched; queued tasks go back to pending when received. A job the
-    service paused for its store becomes its owner's pause: it stays paused when the store comes back."""
+    """Pause a running job: nothing more is dispatched; queued tasks go back to pending when received. A job
+    the service paused for its store becomes its owner's pause: it stays paused when the store comes back."""
     job = _switch(session, job, JobState.RUNNING, JobState.PAUSED, "paused")
     job.paused_by = None
 
 
 def resume_job(session: Session, job: Job) -> None:
-    """Resume a paused job (one held for its store too: if the store still fails, the next task holds it again)."""
+    """Resume a paused job (one held for its store too: if the store still fails, the next task holds it
+    again)."""
     job = _switch(session, job, JobState.PAUSED, JobState.RUNNING, "resumed")
     if job.paused_by is not None:
         job.paused_by = job.error = None
@@ -189,9 +190,9 @@ HELD_SUFFIX = "; the job waits and resumes on its own once the store takes write
 
 
 def hold_for_storage(session: Session, job_id: int, problem: str) -> bool:
-    """running -> paused because the object store failed (`problem`: StorageUnavailable's message, kept as the job's
-    error, so the job read and the dashboard say it); a job already held takes the newer problem. True when this call
-    paused it. Its tasks wait in pending, their attempts not counted."""
+    """running -> paused because the object store failed (`problem`: StorageUnavailable's message, kept as the
+    job's error, so the job read and the dashboard say it); a job already held takes the newer problem. True
+    when this call paused it. Its tasks wait in pending, their attempts not counted."""
     job = session.get(Job, job_id)
     if job is None:
         return False
@@ -213,8 +214,8 @@ def storage_held_jobs(session: Session) -> list[tuple[int, str | None]]:
 
 
 def release_storage_holds(session: Session, job_ids: Sequence[int]) -> list[int]:
-    """paused -> running for those of `job_ids` still held for their store (not since paused or cancelled by their
-    owner); returns their ids."""
+    """paused -> running for those of `job_ids` still held for their store (not since paused or cancelled by
+    their owner); returns their ids."""
     released = []
     for job_id in job_ids:
         job = session.get(Job, job_id)
@@ -229,7 +230,8 @@ def release_storage_holds(session: Session, job_ids: Sequence[int]) -> list[int]
 
 
 def _switch(session: Session, job: Job, src: JobState, dst: JobState, done: str) -> Job:
-    # Idempotent: a job already in `dst` is left alone; any state but `src` is refused. Returns the locked row.
+    # Idempotent: a job already in `dst` is left alone; any state but `src` is refused. Returns the locked
+    # row.
     job = _lock_job(session, job)
     if job.state == dst:
         return job

@@ -191,8 +191,8 @@ class Job(Base):
     )
     plan_summary: Mapped[dict[str, Any] | None] = mapped_column(JSONDoc)
     paused_by: Mapped[str | None] = mapped_column(
-        String(16), doc="'storage': paused by the service while its store fails (services.core.db.storage_hold); "
-        "NULL: paused by its owner, or not paused")
+        String(16), doc="'storage': paused by the service while its store fails "
+        "(services.core.db.jobs.hold_for_storage); NULL: paused by its owner, or not paused")
 
 
 class JobSpace(Base):

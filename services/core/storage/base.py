@@ -51,9 +51,9 @@ class StorageError(OSError):
 
 class StorageUnavailable(StorageError):
     """The store cannot take work for now, for a reason outside the task: no space left (or over quota) in the
-    object folder, an S3 endpoint answering 5xx, throttling or not answering. Work that meets it waits for the store
-    (its attempt not counted) instead of failing; the message starts with what a person should read first
-    ("storage full: ..." or "storage unavailable: ...")."""
+    object folder, an S3 endpoint answering 5xx, throttling or not answering. Work that meets it waits for the
+    store (its attempt not counted) instead of failing; the message starts with what a person should read
+    first ("storage full: ..." or "storage unavailable: ...")."""
 
 
 def storage_outage(exc: BaseException | None) -> StorageUnavailable | None:

@@ -25,11 +25,12 @@ from services.core.storage.base import (
     sha256_file,
 )
 
-_TMP = re.compile(r"^\.(.+)\.tmp-[0-9a-f]{32}$")  # in-flight writes (group 1: the target's name), never listed
+# in-flight writes (group 1: the target's name), never listed
+_TMP = re.compile(r"^\.(.+)\.tmp-[0-9a-f]{32}$")
 _CHUNK = 1024 * 1024
 _FULL = (errno.ENOSPC, errno.EDQUOT)
-# The probe's bar for "has room": a few views' outputs at 512 px (~6 MB a view). A folder that takes the probe's
-# two bytes but not a view would let waiting work start only to fail again.
+# The probe's bar for "has room": a few views' outputs at 512 px (~6 MB a view). A folder that takes the
+# probe's two bytes but not a view would let waiting work start only to fail again.
 PROBE_MIN_FREE_BYTES = 8 * 2**20
 
 
@@ -64,8 +65,8 @@ class LocalStore:
         os.replace(tmp, target)
 
     def _write_failed(self, e: OSError) -> StorageError:
-        """The error of a failed write: StorageUnavailable for a full folder (it passes once space is freed), else
-        StorageError (permission, read-only file system)."""
+        """The error of a failed write: StorageUnavailable for a full folder (it passes once space is freed),
+        else StorageError (permission, read-only file system)."""
         if e.errno in _FULL:
             return StorageUnavailable(f"storage full: no space left in the object folder {self.root} "
                                       f"({e.strerror or e})")
@@ -128,16 +129,16 @@ class LocalStore:
         return ObjectInfo(key, size, h.hexdigest())
 
     def probe(self) -> None:
-        """The root folder exists (it is not re-created here: a vanished mount must show), takes writes and has
-        PROBE_MIN_FREE_BYTES free (StorageUnavailable "storage full" below that)."""
+        """The root folder exists (it is not re-created here: a vanished mount must show), takes writes and
+        has PROBE_MIN_FREE_BYTES free (StorageUnavailable "storage full" below that)."""
         if not self.root.is_dir():
             raise StorageError(f"the object folder {self.root} does not exist")
         self.put_bytes(PROBE_KEY, b"ok")
         self.delete(PROBE_KEY)
         free = shutil.disk_usage(self.root).free
         if free < PROBE_MIN_FREE_BYTES:
-            raise StorageUnavailable(f"storage full: {free / 2**20:.1f} MiB left in the object folder {self.root} "
-                                     f"(work waits for {PROBE_MIN_FREE_BYTES // 2**20} MiB)")
+            raise StorageUnavailable(f"storage full: {free / 2**20:.1f} MiB left in the object folder "
+                                     f"{self.root} (work waits for {PROBE_MIN_FREE_BYTES // 2**20} MiB)")
 
     def get_bytes(self, key: str) -> bytes:
         try:
@@ -239,9 +240,9 @@ class LocalStore:
     def remove_temp_files(self, older_than_s: float | None = None) -> int:
         """Delete the temp files of writes that never committed (a writer killed mid-write); returns how many.
 
-        Without `older_than_s`: every one, for when no writer runs on this folder (before an interrupted job is
-        resumed). With it: those not written to for that long, safe beside running writers (a write in flight
-        touches its file every chunk and renames it within seconds).
+        Without `older_than_s`: every one, for when no writer runs on this folder (before an interrupted job
+        is resumed). With it: those not written to for that long, safe beside running writers (a write in
+        flight touches its file every chunk and renames it within seconds).
         """
         cutoff = None if older_than_s is None else time.time() - older_than_s
         removed = 0

@@ -205,14 +205,15 @@ def test_alembic_command_line_takes_the_url_from_settings(repo_root: Path, tmp_p
 
 
 def test_upgrading_a_sqlite_file_keeps_the_rows_that_reference_a_job(tmp_path: Path) -> None:
-    """0007 rebuilds the job table on SQLite; with foreign keys enforced, dropping the old one would have cascaded to
-    every row that references a job (an embedded run's tasks, counters, blocks)."""
+    """0007 rebuilds the job table on SQLite; with foreign keys enforced, dropping the old one would have
+    cascaded to every row that references a job (an embedded run's tasks, counters, blocks)."""
     url = f"sqlite:///{tmp_path / 'old.db'}"
     migrate(url, "0006")
     engine = make_engine(url)
     try:
         with engine.begin() as conn:
-            conn.execute(text("INSERT INTO job (id, owner, name, spec, state) VALUES (1, 'o', 'n', '{}', 'running')"))
+            conn.execute(text("INSERT INTO job (id, owner, name, spec, state) "
+                              "VALUES (1, 'o', 'n', '{}', 'running')"))
             conn.execute(text("INSERT INTO worker_block (worker_id, job_id, failures) VALUES ('w', 1, 2)"))
         migrate(url)
         with engine.connect() as conn:

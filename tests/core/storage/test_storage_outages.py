@@ -1,6 +1,6 @@
-"""Store failures that pass (a full disk, an S3 endpoint answering 5xx) are told apart from those that do not, on
-real parts: a full tmpfs for the folder, a loopback endpoint answering 503 for S3. Temp files of killed writers are
-swept."""
+"""Store failures that pass (a full disk, an S3 endpoint answering 5xx) are told apart from those that do not,
+on real parts: a full tmpfs for the folder, a loopback endpoint answering 503 for S3. Temp files of killed
+writers are swept."""
 
 from __future__ import annotations
 
@@ -77,7 +77,7 @@ class _Answer503(BaseHTTPRequestHandler):
         length = int(self.headers.get("Content-Length") or 0)
         if length:
             self.rfile.read(length)
-        body = b"<Error><Code>ServiceUnavailable</Code><Message>Please reduce your request rate.</Message></Error>"
+        body = b"<Error><Code>ServiceUnavailable</Code><Message>Reduce your request rate.</Message></Error>"
         self.send_response(503)
         self.send_header("Content-Length", str(len(body)))
         self.end_headers()
@@ -102,12 +102,15 @@ def endpoint_503() -> Iterator[str]:
 def _client(endpoint: str, s3: S3Server):
     return boto3.client("s3", endpoint_url=endpoint, region_name=s3.region, aws_access_key_id=s3.access_key,
                         aws_secret_access_key=s3.secret_key,
-                        config=Config(retries={"max_attempts": 1, "mode": "standard"}, s3={"addressing_style": "path"}))
+                        config=Config(retries={"max_attempts": 1, "mode": "standard"},
+                                      s3={"addressing_style": "path"}))
 
 
-def test_s3_5xx_and_no_answer_are_outages_but_a_missing_bucket_is_not(endpoint_503: str, s3_server: S3Server) -> None:
+def test_s3_5xx_and_no_answer_are_outages_but_a_missing_bucket_is_not(endpoint_503: str,
+                                                                      s3_server: S3Server) -> None:
     down = S3Store(s3_server.bucket, "p", client=_client(endpoint_503, s3_server))
-    with pytest.raises(StorageUnavailable, match=r"storage unavailable: s3://\S+ answered 503 \(ServiceUnavailable\)"):
+    answered = r"storage unavailable: s3://\S+ answered 503 \(ServiceUnavailable\)"
+    with pytest.raises(StorageUnavailable, match=answered):
         down.put_bytes("rgb/a.png", b"x")
     with pytest.raises(StorageUnavailable):
         down.probe()

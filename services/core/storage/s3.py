@@ -89,6 +89,7 @@ class S3Store:
         region: str = "us-east-1",
         credentials: tuple[str, str] | None = None,
         client: Any = None,  # a boto3 S3 client (boto3 builds its clients at run time: untyped)
+        max_attempts: int = 10,
     ):
         if not bucket:
             raise ValueError("S3Store needs a bucket name")
@@ -98,7 +99,8 @@ class S3Store:
             config = Config(
                 region_name=region,
                 signature_version="s3v4",
-                retries={"max_attempts": 10, "mode": "standard"},  # throttling and 5xx are retried with backoff
+                # throttling and 5xx are retried with backoff (10 tries: up to about a minute)
+                retries={"max_attempts": max_attempts, "mode": "standard"},
                 max_pool_connections=32,
                 connect_timeout=10,
                 read_timeout=120,

@@ -10,6 +10,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import sqlite3
 import sys
 import time
 from collections.abc import Sequence
@@ -17,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from sqlalchemy import select
+from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import Session, sessionmaker
 
 from services.core import gpu_devices
@@ -183,7 +185,15 @@ def run_until_final(sessions: sessionmaker[Session], sched: Scheduler, pool: Loc
         now = time.monotonic()
         if now >= next_tick and (changed or now >= quiet_until):
             cpu0 = time.process_time()
-            res = sched.tick(plan=plan)
+            try:
+                res = sched.tick(plan=plan)
+            except OperationalError as exc:
+                if not disk_full(exc):
+                    raise
+                # --out's disk holds the run's database too: wait for space, as the workers' writes do
+                bar.waiting(f"storage full: no space left for the run's database in {STATE_DIR}")
+                next_tick = quiet_until = time.monotonic() + TICK_MAX_S
+                continue
             if job_id in res.planned:
                 planned_at = time.monotonic()
             with sessions() as s:
@@ -209,6 +219,11 @@ def run_until_final(sessions: sessionmaker[Session], sched: Scheduler, pool: Loc
         recycling += sum(1 for m in msgs if m[0] == "recycle")  # exiting: ticks at pace until it is replaced
         if msgs and (_short_of_work(pool) or recycling):
             changed = True
+
+
+def disk_full(exc: OperationalError) -> bool:
+    """Whether SQLite refused a write for want of disk space (SQLITE_FULL)."""
+    return getattr(exc.orig, "sqlite_errorcode", None) == sqlite3.SQLITE_FULL
 
 
 def _short_of_work(pool: LocalPool) -> bool:

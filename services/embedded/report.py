@@ -50,9 +50,17 @@ class Progress:
             self.bar = tqdm(total=total, initial=done, unit="label", file=sys.stderr, dynamic_ncols=True,
                             mininterval=0.5, desc="generate")
         self.bar.total = total
-        self.bar.set_postfix_str(self.views_text, refresh=final)
+        # a job held for its store says why on the bar ("storage full: ..."), until it resumes on its own
+        held = job.state == JobState.PAUSED and job.paused_by is not None and job.error
+        waiting = f" | waiting: {job.error.split(';')[0]}" if held and job.error else ""
+        self.bar.set_postfix_str(self.views_text + waiting, refresh=final or bool(waiting))
         if done > self.bar.n:
             self.bar.update(done - self.bar.n)  # redraws at most every mininterval
+
+    def waiting(self, why: str) -> None:
+        """Say on the bar what the run waits for (a full disk), until the next update."""
+        if self.bar is not None:
+            self.bar.set_postfix_str(f"{self.views_text} | waiting: {why}", refresh=True)
 
     def close(self) -> None:
         """Finish the bar."""

@@ -13,11 +13,11 @@ from sqlalchemy import exists, func, select
 from sqlalchemy.orm import Session
 
 from services.core.db.counters import job_progress
-from services.core.db.jobs import root_key
+from services.core.db.jobs import hold_for_storage, root_key
 from services.core.db.manifest import write_job_files
 from services.core.db.models import TASK_ACTIVE_STATES, Job, JobCounter, JobState, Task, TaskState, utcnow
 from services.core.db.states import set_job_state
-from services.core.storage import ObjectStore
+from services.core.storage import ObjectStore, storage_outage
 
 log = logging.getLogger(__name__)
 
@@ -99,14 +99,23 @@ def complete_job(session: Session, store: ObjectStore, job_id: int) -> Finished 
 
 
 def complete_once(session: Session, store: ObjectStore) -> list[Finished]:
-    """Finish every running job that has nothing left to do; a job whose files fail to write is retried later."""
+    """Finish every running job that has nothing left to do; a job whose files fail to write is retried later
+    (held for its store when the store is full or down)."""
     done: list[Finished] = []
     for job_id in finished_job_ids(session):
         session.rollback()  # end the read transaction before taking the job's lock
         try:
             fin = complete_job(session, store, job_id)
-        except Exception:
-            log.exception("finishing job %d failed; will retry", job_id)
+        except Exception as exc:
+            outage = storage_outage(exc)
+            if outage is None:
+                log.exception("finishing job %d failed; will retry", job_id)
+                continue
+            # its files cannot be written for now: held like its tasks, so the job says why (StoreWatch
+            # resumes it)
+            log.warning("finishing job %d waits for the store: %s", job_id, outage)
+            hold_for_storage(session, job_id, str(outage))
+            session.commit()
             continue
         if fin is not None:
             done.append(fin)

@@ -14,6 +14,7 @@ import socket
 import threading
 import time
 import traceback
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from datetime import timedelta
 from pathlib import Path
@@ -31,7 +32,8 @@ from services.core.domain.plan_budget import check_plan_budget
 from services.core.ingest.frame_choice import space_frame_for
 from services.core.ingest.loading import LoadedSpace
 from services.core.settings import Settings
-from services.core.storage import ObjectStore
+from services.core.storage import LocalStore, ObjectStore
+from services.core.storage.base import io_pool
 from services.scheduler.chunked_plan import ChunkTarget, PlanDropped, plan_and_persist_space
 from services.scheduler.compaction import CompactionResult, Compactor
 from services.scheduler.completion import Finished, complete_once
@@ -42,6 +44,7 @@ from services.scheduler.plan_space import JobPlanSummary, PlanFn, load_for_job, 
 from services.scheduler.planner_proc import PlannerProcesses
 from services.scheduler.reaper import ReapResult, reap_once
 from services.scheduler.resend import IdleWatch, resend_stuck
+from services.scheduler.store_watch import StoreWatch
 from services.scheduler.transport import Transport
 
 log = logging.getLogger(__name__)
@@ -54,6 +57,11 @@ COMPLETE_INTERVAL_S = 2.0  # completion's own look at the counters; sooner when 
 MAX_BACKOFF_S = 30.0
 PLAN_RETRY_S = 30  # a planning attempt that failed for a transient reason is retried after this
 MAX_PLAN_ATTEMPTS = 3
+# A local folder's temp files of writes that never committed (a worker killed mid-write) are swept this often,
+# on a thread (a walk of the folder), once idle for TEMP_STALE_S: a write in flight touches its file every
+# chunk and renames it within seconds.
+TEMP_SWEEP_INTERVAL_S = 600.0
+TEMP_STALE_S = 600.0
 
 
 def loaded_space_key(checksum: str, frame: SpaceFrame) -> str:
@@ -114,6 +122,7 @@ class TickResult:
     reaped: ReapResult | None = None
     finished: list[Finished] = field(default_factory=list)
     compacted: CompactionResult | None = None
+    resumed: list[int] = field(default_factory=list)  # jobs held for their store, resumed now
 
     budget: int = DEFAULT_BUDGET
 
@@ -121,6 +130,13 @@ class TickResult:
     def busy(self) -> bool:
         """Whether there is probably more work right away (a full dispatch budget or a job planned)."""
         return bool(self.planned) or self.dispatched.sent >= self.budget
+
+
+def _log_sweep(done: Future[int]) -> None:
+    if done.exception() is not None:
+        log.warning("sweeping the object folder's temp files failed: %s", done.exception())
+    elif done.result():
+        log.info("removed %d temp files of writes that never committed", done.result())
 
 
 class Scheduler:
@@ -158,6 +174,9 @@ class Scheduler:
         self._last_thorough = time.monotonic()  # the first passes use the (cheap) bounded scans
         self._stalled = False
         self._idle_watch = IdleWatch()
+        self.store_watch = StoreWatch(sessionmaker, store)
+        self._last_sweep = -TEMP_SWEEP_INTERVAL_S  # the first reaper pass sweeps
+        self.sweep: Future[int] | None = None
         # The service plans in child processes (off this loop, memory-capped, leases beaten every tick); the
         # embedded runner and tests plan inline.
         self.planners = PlannerProcesses(sessionmaker, settings, self.scheduler_id) if plan_in_processes else None
@@ -320,7 +339,21 @@ class Scheduler:
             resend_stuck(s, self.transport, self.settings, self._idle_watch,
                          dead_after_s=self.settings.heartbeat_timeout_s, stuck_after_s=self.settings.heartbeat_timeout_s)
         self._last_reap = time.monotonic()
+        self.sweep_temp_files()
         return res
+
+    def sweep_temp_files(self) -> None:
+        """Start a sweep of the local folder's stale temp files (LocalStore.remove_temp_files) on a thread, at
+        most every TEMP_SWEEP_INTERVAL_S; S3 keeps none (an interrupted upload is never an object)."""
+        if not isinstance(self.store, LocalStore):
+            return
+        if time.monotonic() - self._last_sweep < TEMP_SWEEP_INTERVAL_S:
+            return
+        if self.sweep is not None and not self.sweep.done():
+            return
+        self._last_sweep = time.monotonic()
+        self.sweep = io_pool().submit(self.store.remove_temp_files, TEMP_STALE_S)
+        self.sweep.add_done_callback(_log_sweep)
 
     def complete_once(self) -> list[Finished]:
         """Finish running jobs with nothing left to do (manifest, job.json, pass cache removed)."""
@@ -335,6 +368,7 @@ class Scheduler:
             res.planned = self.plan_pending()
         if time.monotonic() - self._last_reap >= REAP_INTERVAL_S:
             res.reaped = self.reap_once()
+        res.resumed = self.store_watch.check()
         res.dispatched = self.dispatch_once()
         # the dispatch pass has just read every running job's counters: completion's own read of them (a scan of
         # each job's counter shards) is needed only when a job settled there, or now and then as a safety net

@@ -23,6 +23,7 @@ from sqlalchemy import select
 from sqlalchemy.exc import DBAPIError, DisconnectionError, InterfaceError, OperationalError
 from sqlalchemy.orm import Session
 
+from services.core.db.jobs import hold_for_storage
 from services.core.db.models import Job, JobState, Task, TaskState, utcnow
 from services.core.db.states import transition
 from services.core.db.worker_moves import claim_task, claim_view_tasks, finish_task, finish_tasks, task_state
@@ -38,7 +39,7 @@ DB_RETRY_S = 60.0  # how long one database step is retried through a connection 
 ERROR_MAX_CHARS = 4000
 
 CUE_ORDER = {cue: k for k, cue in enumerate(topological_order(CATALOG))}  # a batch runs inputs first
-STATUSES = ("done", "skipped", "paused", "blocked", "retry", "failed", "discarded", "lost")
+STATUSES = ("done", "skipped", "paused", "blocked", "held", "retry", "failed", "discarded", "lost")
 
 
 class TransientError(Exception):
@@ -49,11 +50,12 @@ class TransientError(Exception):
 class Outcome:
     """What `TaskRunner.run` did with one task.
 
-    status: done (output stored and recorded) | skipped (stale/duplicate message, or the job is not running, or
-    handed back to pending unrun because an input failed in its view batch) |
-    paused / blocked (handed back to pending) | retry (failed, back to pending after a backoff) | failed (for
-    good) | discarded (computed, but the task was no longer ours: reaped or cancelled) | lost (could not record
-    the result; the lease runs out and the reaper retries it).
+    status: done (output stored and recorded) | skipped (stale/duplicate message, or the job is not running,
+    or handed back to pending unrun because an input failed in its view batch) | paused / blocked (handed back
+    to pending) | held (the object store failed: back to pending, its attempt not counted, and the job paused
+    until the store takes writes again) | retry (failed, back to pending after a backoff) | failed (for good)
+    | discarded (computed, but the task was no longer ours: reaped or cancelled) | lost (could not record the
+    result; the lease runs out and the reaper retries it).
     """
 
     task_id: int
@@ -324,6 +326,36 @@ class TaskLedger:
         if not ok:
             log.info("task %d finished but is no longer ours (reaped or cancelled); result discarded", t.id)
         return Outcome(t.id, status, t.cue, t.job_id, key, int(info.size), info.sha256, None, duration)
+
+    def hold_for_storage(self, tasks: list[Claimed], problem: BaseException) -> list[Outcome]:
+        """running -> pending of tasks whose outputs the store would not take (`problem`: a
+        StorageUnavailable), their attempt not counted and no failure counted against this worker (the store
+        failed, not the task nor the worker), and their job paused for its store
+        (services.core.db.jobs.hold_for_storage): no attempt budget burnt and no worker kept off the job for a
+        full disk. 'lost' when the database stays away."""
+        error = format_error(problem)
+
+        def step() -> set[int]:
+            with self.sessionmaker() as s:
+                # the job's row first, as cancel and delete lock it: the same order, no deadlock with them
+                if hold_for_storage(s, tasks[0].job_id, str(problem)):
+                    log.warning("job %d paused: %s", tasks[0].job_id, problem)
+                moved = transition(s, job_id=tasks[0].job_id, task_ids=[t.id for t in tasks],
+                                   from_state=TaskState.RUNNING, to_state=TaskState.PENDING,
+                                   where=[Task.worker_id == self.worker_id], worker_id=None, lease_until=None,
+                                   started_at=None, queued_at=None, not_before=None, error=error,
+                                   attempts=Task.attempts - 1)
+                s.commit()
+                return {tid for tid, _ in moved}
+
+        try:
+            ours = self.db(step, f"hand back {len(tasks)} tasks the store did not take")
+        except Exception as exc:
+            log.error("tasks %s: not handed back (%s); the reaper will retry them", [t.id for t in tasks],
+                      format_error(exc, 0))
+            return [Outcome(t.id, "lost", t.cue, t.job_id, error=format_error(exc)) for t in tasks]
+        return [Outcome(t.id, "held" if t.id in ours else "discarded", t.cue, t.job_id, error=error)
+                for t in tasks]
 
     def record_failure(self, t: Claimed, exc: BaseException, duration: float, max_attempts: int) -> Outcome:
         """running -> pending after a backoff while attempts remain, else failed; counts the worker's failure."""

@@ -26,7 +26,8 @@
    whose worker dies stays `running` under its lease (the beats extend all of it): the reaper re-queues every
    task of it.
 5. Failure: retry after a backoff or fail for good, and keep a failing worker off the job
-   (services.worker.failure_policy).
+   (services.worker.failure_policy); a store that fails (full, S3 5xx) holds the job instead, its tasks'
+   attempts not counted (TaskLedger.hold_for_storage), until the scheduler sees the store take writes again.
 
 Bytes, not files, flow through here; all geometry is in the plan (world metres, OpenCV camera axes).
 """
@@ -52,7 +53,7 @@ from services.core.domain.plan import PlannedView, SpacePlan
 from services.core.ingest.loading import load_space
 from services.core.ingest.registry import fetch_space
 from services.core.settings import Settings
-from services.core.storage import ObjectInfo, ObjectStore
+from services.core.storage import ObjectInfo, ObjectStore, storage_outage
 from services.worker.caches import VIEW_CACHE_MEMORY_FRACTION, JobInfo, TaskInputs
 from services.worker.claim import DB_RETRY_S, Claimed, Outcome, TaskLedger
 from services.worker.context import ViewContext
@@ -200,6 +201,9 @@ class TaskRunner:
         return outcomes
 
     def _record_failure(self, t: Claimed, exc: Exception, t0: float) -> Outcome:
+        outage = storage_outage(exc)
+        if outage is not None:  # the store failed, not the task: it waits for the store, uncounted
+            return self.ledger.hold_for_storage([t], outage)[0]
         max_attempts = self.inputs.max_attempts(t.job_id, self.settings.max_attempts)
         return self.ledger.record_failure(t, exc, time.perf_counter() - t0, max_attempts)
 
@@ -226,6 +230,9 @@ class TaskRunner:
                                         keep_cached=any(t.cue == "passes" for t, _, _, _ in made))
         except Exception as exc:
             reraise_stop(exc)
+            outage = storage_outage(exc)
+            if outage is not None:  # the store is down or full: the whole batch waits for it, none re-run
+                return [], {o.task_id: o for o in self.ledger.hold_for_storage(claimed, outage)}
             # Something failed: one task at a time, so each failure is recorded and only its dependents wait.
             return self._compute_one_by_one(claimed, t_batch)
         store_s, total = time.perf_counter() - t1, max(1, sum(len(d) for _, _, d, _ in made))

@@ -32,6 +32,10 @@ log = logging.getLogger(__name__)
 
 MAX_TRANSIENT_RETRIES = 20  # broker-level retries of a task whose claim could not reach the database
 RETRY_CAP_S = 30.0
+# A worker's S3 request tries this often through 5xx (up to ~7 s of backoff, not a minute): past that its job
+# is held for the store (TaskLedger.hold_for_storage), which says so at once and retries it for as long as it
+# takes.
+WORKER_S3_ATTEMPTS = 4
 
 
 @dataclass
@@ -95,7 +99,7 @@ def build_runtime(settings: Settings, *, queues: list[str] | None = None, name: 
     keep_freed_memory()  # the process that runs tasks reuses the pages it frees (prefork child or solo)
     engine = worker_engine(settings.database_url)
     sessions = make_sessionmaker(engine)
-    store = open_store(settings.storage_url, settings)
+    store = open_store(settings.storage_url, settings, s3_attempts=WORKER_S3_ATTEMPTS)
     worker_id = default_worker_id(name)
     if name:
         # One process holds a named id at a time: a task still running under it was left by the child this

@@ -1,7 +1,8 @@
 """Chaos soak (DESIGN.md section 7, issue 11 item 16): several jobs run on a real deployment while workers are
-killed with kill -9 at random (and replaced), the scheduler is killed and restarted, and Redis and Postgres
-connections are dropped under the services. Afterwards every job is done, every output is present exactly
-once with a matching sha256, no task is left queued or running, and each killed worker's task ran again.
+killed with kill -9 at random (and replaced), the scheduler is killed and restarted, Redis and Postgres
+connections are dropped under the services, and the S3 endpoint answers 503 for a few seconds (issue 51).
+Afterwards every job is done, every output is present exactly once with a matching sha256, no task is left
+queued or running, and each killed worker's task ran again.
 
 Bounded: about CHAOS_S seconds of faults, then the jobs must finish within SETTLE_S. The figures (run length,
 faults, jobs and tasks completed, recovery time after each kill -9) are printed (`pytest -s` shows them).
@@ -17,6 +18,7 @@ import signal
 import socket
 import time
 from collections import Counter
+from collections.abc import Iterator
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -28,13 +30,17 @@ from sqlalchemy import func, select
 
 from services.core.db.compacted import compacted_tasks
 from services.core.db.models import Job, Task, utcnow
+from tests.conftest import S3Server
 from tests.e2e.conftest import REDIS_DB_URL, SCHEDULER_APP, WORKER_APP, Cluster, Proc
 from tests.e2e.test_distributed import assert_exactly_once, submit_direct_together, wait, write_spec
+from tests.fixtures.holding_proxy import HoldingProxy
 
 pytestmark = [pytest.mark.slow, pytest.mark.alone]
 
 CHAOS_S = 40.0  # seconds of fault injection; the workload is topped up while it runs (TOP_UP_BELOW)
-FAULTS = ["kill_worker"] * 8 + ["kill_scheduler", "drop_postgres", "drop_redis"] * 2  # injected in random order
+# injected in random order; store_503: the S3 endpoint answers the deployment's writes 503 for STORE_OUTAGE_S
+FAULTS = ["kill_worker"] * 8 + ["kill_scheduler", "drop_postgres", "drop_redis", "store_503"] * 2
+STORE_OUTAGE_S = 3.0
 SETTLE_S = 120.0  # then every job must be done within this
 N_WORKERS = 3
 # A worker is declared dead after 6 s without a heartbeat (its running task comes back then, and the messages it
@@ -115,11 +121,41 @@ def drop_redis_clients(url: str) -> int:
         r.close()
 
 
-def test_chaos_soak(bare_cluster: Cluster, scenes_dir: Path, tmp_path: Path) -> None:
+def store_outage(cluster: Cluster, proxy: HoldingProxy, bucket: str) -> float | None:
+    """The S3 endpoint answers the deployment's writes 503 for STORE_OUTAGE_S, then recovers; returns the
+    seconds from its recovery until no job waits for the store any more (None: no job was held)."""
+    proxy.fail(f"PUT /{bucket}/{cluster.prefix}/".encode())
+    time.sleep(STORE_OUTAGE_S)
+
+    def held() -> int:
+        with cluster.sm() as s:
+            return int(s.scalar(select(func.count()).select_from(Job).where(Job.paused_by == "storage")) or 0)
+
+    was_held = held() > 0
+    proxy.fail()
+    recovered = time.monotonic()
+    wait(lambda: held() == 0, 60, "the jobs held for the store to resume", cluster)
+    return round(time.monotonic() - recovered, 1) if was_held else None
+
+
+@pytest.fixture()
+def s3_proxy(s3_server: S3Server) -> Iterator[HoldingProxy]:
+    """A proxy the scheduler and the workers reach S3 through (store_503 makes it answer 503 a while)."""
+    proxy = HoldingProxy(s3_server.endpoint_url)
+    try:
+        yield proxy
+    finally:
+        proxy.close()
+
+
+def test_chaos_soak(bare_cluster: Cluster, scenes_dir: Path, tmp_path: Path, s3_proxy: HoldingProxy,
+                    s3_server: S3Server) -> None:
     cluster = bare_cluster
     rng = random.Random(11)
-    scheduler = cluster.start_scheduler(**CHAOS_ENV)
-    workers = [cluster.start_worker(f"worker-{k}", **CHAOS_ENV) for k in range(N_WORKERS)]
+    env = {**CHAOS_ENV, "OMNIDATA_S3_ENDPOINT_URL": s3_proxy.url}
+    scheduler = cluster.start_scheduler(**env)
+    workers = [cluster.start_worker(f"worker-{k}", **env) for k in range(N_WORKERS)]
+    store_resumed: list[float | None] = []  # per store_503: seconds from its recovery to no job held
     t_start = time.monotonic()
     jobs = [(scenes_dir / scene, write_spec(tmp_path, SPEC.format(seed=seed), f"seed{seed}")) for scene, seed in JOBS]
     # the first job of each space registers it; the rest reuse it
@@ -156,11 +192,13 @@ def test_chaos_soak(bare_cluster: Cluster, scenes_dir: Path, tmp_path: Path) -> 
             kills.append((utcnow(), held_by_victim))
             reserved.append(unacked_queued(cluster))
             workers.remove(victim)
-            workers.append(cluster.start_worker(f"worker-{n_worker}", **CHAOS_ENV))  # as an orchestrator would
+            workers.append(cluster.start_worker(f"worker-{n_worker}", **env))  # as an orchestrator would
             n_worker += 1
         elif fault == "kill_scheduler":
             scheduler.stop(signal.SIGKILL)
-            scheduler = cluster.start_scheduler(**CHAOS_ENV)
+            scheduler = cluster.start_scheduler(**env)
+        elif fault == "store_503":
+            store_resumed.append(store_outage(cluster, s3_proxy, s3_server.bucket))
         elif fault == "drop_postgres":
             cluster.terminate_connections(WORKER_APP)
             cluster.terminate_connections(SCHEDULER_APP)
@@ -215,6 +253,7 @@ def test_chaos_soak(bare_cluster: Cluster, scenes_dir: Path, tmp_path: Path) -> 
         "reserved_at_kill": sum(len(r) for r in reserved),
         "recovery_after_kill9_s": {"worst": round(max(recovery), 1), "each": [round(x, 1) for x in recovery]},
         "kills_that_interrupted_work": len(recovery),
+        "store_503_s": STORE_OUTAGE_S, "store_503_resumed_after_s": store_resumed,
         "bound_s": HEARTBEAT_TIMEOUT_S + 30,
         "note": "2-core machine shared with other developers' work",
     }

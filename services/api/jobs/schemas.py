@@ -94,6 +94,10 @@ class JobRead(BaseModel):
     state: str
     priority: int
     error: str | None
+    paused_by: str | None = Field(
+        None, description="'storage': the service paused the job because its object store failed (full, "
+        "or S3 answering 5xx); `error` says how, and the job resumes on its own once the store takes writes "
+        "again. null: not paused, or paused by you")
     created_at: datetime
     started_at: datetime | None
     finished_at: datetime | None

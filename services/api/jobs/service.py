@@ -57,6 +57,7 @@ def job_read(job: Job, counters: Counters, space_ids: list[int], rates: RateTrac
         state=job.state,
         priority=job.priority,
         error=job.error,
+        paused_by=job.paused_by,
         created_at=job.created_at,
         started_at=job.started_at,
         finished_at=job.finished_at,

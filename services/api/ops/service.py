@@ -18,10 +18,12 @@ from typing import TypeVar
 import redis as redis_lib
 from fastapi import FastAPI
 from sqlalchemy import Select, case, func, select, text
+from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.orm import InstrumentedAttribute, Session
 
 from services.core.db.durations import DURATION_BUCKETS_S
 from services.core.db.engine import SchemaNotCurrent, schema_problem
+from services.core.db.jobs import HELD_SUFFIX, storage_held_jobs
 from services.core.db.models import (
     JOB_STATES,
     TASK_STATES,
@@ -33,6 +35,7 @@ from services.core.db.models import (
     Worker,
     utcnow,
 )
+from services.core.storage import StorageUnavailable
 
 CHECK_TIMEOUT_S = 3.0
 METRICS_TTL_S = 5.0
@@ -73,11 +76,25 @@ async def _run(fn: Callable[[], object]) -> Check:
 
 
 async def _storage_check(app: FastAPI) -> Check:
-    """The store's probe (a write and a delete), at most once per STORAGE_PROBE_TTL_S: /ready needs no token."""
+    """The store's probe (a write and a delete; a folder's free space), then whether jobs wait for the store
+    (a worker's outputs refused since: a 5xx on big writes only, a full disk the probe's bytes still fit on),
+    at most once per STORAGE_PROBE_TTL_S: /ready needs no token."""
     last: tuple[float, Check] | None = app.state.storage_probe
     if last is not None and time.monotonic() - last[0] < STORAGE_PROBE_TTL_S:
         return last[1]
-    check = await _run(app.state.store.probe)
+
+    def probe() -> None:
+        app.state.store.probe()
+        try:
+            with app.state.read_sessionmaker() as session:
+                held = storage_held_jobs(session)
+        except SQLAlchemyError:  # the database check reports that
+            return
+        if held:
+            problem = (held[0][1] or "").removesuffix(HELD_SUFFIX)
+            raise StorageUnavailable(f"{problem} ({len(held)} job(s) wait for the store)")
+
+    check = await _run(probe)
     app.state.storage_probe = (time.monotonic(), check)
     return check
 

@@ -30,7 +30,7 @@ if TYPE_CHECKING:  # alembic is imported where used: the API and workers start w
     from alembic.script import ScriptDirectory
 
 MIGRATIONS_DIR = Path(__file__).resolve().parents[3] / "migrations"
-SCHEMA_HEAD = "0006"  # the head revision of migrations/ (tests/core/db/test_migrations.py keeps them equal)
+SCHEMA_HEAD = "0007"  # the head revision of migrations/ (tests/core/db/test_migrations.py keeps them equal)
 SQLITE_BUSY_TIMEOUT_MS = 30_000
 T = TypeVar("T")
 # Alembic's own version table, as its upgrade creates it on SQLite

@@ -188,24 +188,76 @@ def cancel_job(session: Session, job: Job) -> int:
 
 
 def pause_job(session: Session, job: Job) -> None:
-    """Pause a running job: nothing more is dispatched; queued tasks go back to pending when received."""
-    _switch(session, job, JobState.RUNNING, JobState.PAUSED, "paused")
+    """Pause a running job: nothing more is dispatched; queued tasks go back to pending when received. A job
+    the service paused for its store becomes its owner's pause: it stays paused when the store comes back."""
+    job = _switch(session, job, JobState.RUNNING, JobState.PAUSED, "paused")
+    job.paused_by = None
 
 
 def resume_job(session: Session, job: Job) -> None:
-    """Resume a paused job."""
-    _switch(session, job, JobState.PAUSED, JobState.RUNNING, "resumed")
+    """Resume a paused job (one held for its store too: if the store still fails, the next task holds it
+    again)."""
+    job = _switch(session, job, JobState.PAUSED, JobState.RUNNING, "resumed")
+    if job.paused_by is not None:
+        job.paused_by = job.error = None
 
 
-def _switch(session: Session, job: Job, src: JobState, dst: JobState, done: str) -> None:
-    # Idempotent: a job already in `dst` is left alone; any state but `src` is refused.
+# A job held for its store: paused by the service, not its owner, and resumed by the scheduler (StoreWatch).
+PAUSED_BY_STORAGE = "storage"
+HELD_SUFFIX = "; the job waits and resumes on its own once the store takes writes again"
+
+
+def hold_for_storage(session: Session, job_id: int, problem: str) -> bool:
+    """running -> paused because the object store failed (`problem`: StorageUnavailable's message, kept as the
+    job's error, so the job read and the dashboard say it); a job already held takes the newer problem. True
+    when this call paused it. Its tasks wait in pending, their attempts not counted."""
+    job = session.get(Job, job_id)
+    if job is None:
+        return False
+    job = _lock_job(session, job)
+    if job.state == JobState.RUNNING:
+        set_job_state(job, JobState.PAUSED, paused_by=PAUSED_BY_STORAGE, error=problem + HELD_SUFFIX)
+        session.flush()
+        return True
+    if job.state == JobState.PAUSED and job.paused_by == PAUSED_BY_STORAGE:
+        job.error = problem + HELD_SUFFIX
+    return False
+
+
+def storage_held_jobs(session: Session) -> list[tuple[int, str | None]]:
+    """(id, error) of the jobs held for their store, oldest first."""
+    rows = session.execute(select(Job.id, Job.error).where(
+        Job.state == JobState.PAUSED, Job.paused_by == PAUSED_BY_STORAGE).order_by(Job.id))
+    return [(int(i), e) for i, e in rows]
+
+
+def release_storage_holds(session: Session, job_ids: Sequence[int]) -> list[int]:
+    """paused -> running for those of `job_ids` still held for their store (not since paused or cancelled by
+    their owner); returns their ids."""
+    released = []
+    for job_id in job_ids:
+        job = session.get(Job, job_id)
+        if job is None:
+            continue
+        job = _lock_job(session, job)
+        if job.state == JobState.PAUSED and job.paused_by == PAUSED_BY_STORAGE:
+            set_job_state(job, JobState.RUNNING, paused_by=None, error=None)
+            released.append(job_id)
+    session.flush()
+    return released
+
+
+def _switch(session: Session, job: Job, src: JobState, dst: JobState, done: str) -> Job:
+    # Idempotent: a job already in `dst` is left alone; any state but `src` is refused. Returns the locked
+    # row.
     job = _lock_job(session, job)
     if job.state == dst:
-        return
+        return job
     if job.state != src:
         raise JobStateError(f"job {job.id} is {job.state}; only a {src} job can be {done}")
     set_job_state(job, dst)
     session.flush()
+    return job
 
 
 def retry_failed(session: Session, job: Job) -> int:
@@ -299,8 +351,8 @@ def reopen_job(session: Session, store: ObjectStore, job: Job) -> Reopened:
         return done
     if job.state == JobState.PENDING:
         return done
-    if job.state == JobState.PAUSED:
-        set_job_state(job, JobState.RUNNING)
+    if job.state == JobState.PAUSED:  # a hold for the store ends too: the tasks show if it still fails
+        set_job_state(job, JobState.RUNNING, **({"paused_by": None, "error": None} if job.paused_by else {}))
     done.requeued = requeue_inflight(session, job.id)
     # Done outputs whose file is gone are made again (the internal pass cache is rebuilt on demand); a compacted
     # view with such an output is put back as task rows first.

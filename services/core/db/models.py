@@ -190,6 +190,9 @@ class Job(Base):
         UTCDateTime(), doc="another planner may take the job over after this"
     )
     plan_summary: Mapped[dict[str, Any] | None] = mapped_column(JSONDoc)
+    paused_by: Mapped[str | None] = mapped_column(
+        String(16), doc="'storage': paused by the service while its store fails "
+        "(services.core.db.jobs.hold_for_storage); NULL: paused by its owner, or not paused")
 
 
 class JobSpace(Base):

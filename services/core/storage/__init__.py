@@ -12,8 +12,10 @@ from services.core.storage.base import (
     ObjectStore,
     PrefixedStore,
     StorageError,
+    StorageUnavailable,
     check_key,
     prefixed,
+    storage_outage,
 )
 from services.core.storage.local import LocalStore
 
@@ -27,14 +29,17 @@ __all__ = [
     "ObjectStore",
     "PrefixedStore",
     "StorageError",
+    "StorageUnavailable",
     "check_key",
     "open_store",
     "prefixed",
+    "storage_outage",
 ]
 
 
-def open_store(url: str, settings: Settings | None = None) -> ObjectStore:
-    """Open the store at `url`; S3 endpoint, region and credentials come from `settings` (default: environment)."""
+def open_store(url: str, settings: Settings | None = None, *, s3_attempts: int | None = None) -> ObjectStore:
+    """Open the store at `url`; S3 endpoint, region and credentials come from `settings` (default:
+    environment). `s3_attempts`: tries of an S3 request through 5xx and throttling (default S3Store's)."""
     parsed = urlparse(url)
     if parsed.scheme == "s3":
         from services.core.settings import get_settings
@@ -46,7 +51,7 @@ def open_store(url: str, settings: Settings | None = None) -> ObjectStore:
             creds = (s.aws_access_key_id.get_secret_value(), s.aws_secret_access_key.get_secret_value())
         return S3Store(
             parsed.netloc, parsed.path.strip("/"), endpoint_url=s.s3_endpoint_url, region=s.s3_region,
-            credentials=creds,
+            credentials=creds, **({"max_attempts": s3_attempts} if s3_attempts else {}),
         )
     if parsed.scheme == "file":
         if parsed.netloc not in ("", "localhost"):

@@ -49,6 +49,24 @@ class StorageError(OSError):
     """
 
 
+class StorageUnavailable(StorageError):
+    """The store cannot take work for now, for a reason outside the task: no space left (or over quota) in the
+    object folder, an S3 endpoint answering 5xx, throttling or not answering. Work that meets it waits for the
+    store (its attempt not counted) instead of failing; the message starts with what a person should read
+    first ("storage full: ..." or "storage unavailable: ...")."""
+
+
+def storage_outage(exc: BaseException | None) -> StorageUnavailable | None:
+    """The StorageUnavailable `exc` is or was raised from (its causes and contexts), else None."""
+    seen: set[int] = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, StorageUnavailable):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
 PROBE_KEY = "_ready/probe"  # written and deleted by `probe()`
 
 

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import os
 import re
 import shutil
+import time
 import uuid
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager, suppress
@@ -16,14 +18,20 @@ from services.core.storage.base import (
     ObjectInfo,
     ObjectNotFoundError,
     StorageError,
+    StorageUnavailable,
     check_key,
     check_prefix,
     io_pool,
     sha256_file,
 )
 
-_TMP = re.compile(r"^\..+\.tmp-[0-9a-f]{32}$")  # in-flight writes, never listed
+# in-flight writes (group 1: the target's name), never listed
+_TMP = re.compile(r"^\.(.+)\.tmp-[0-9a-f]{32}$")
 _CHUNK = 1024 * 1024
+_FULL = (errno.ENOSPC, errno.EDQUOT)
+# The probe's bar for "has room": a few views' outputs at 512 px (~6 MB a view). A folder that takes the
+# probe's two bytes but not a view would let waiting work start only to fail again.
+PROBE_MIN_FREE_BYTES = 8 * 2**20
 
 
 class LocalStore:
@@ -56,6 +64,14 @@ class LocalStore:
             _flush(tmp, drop_cached=False)
         os.replace(tmp, target)
 
+    def _write_failed(self, e: OSError) -> StorageError:
+        """The error of a failed write: StorageUnavailable for a full folder (it passes once space is freed),
+        else StorageError (permission, read-only file system)."""
+        if e.errno in _FULL:
+            return StorageUnavailable(f"storage full: no space left in the object folder {self.root} "
+                                      f"({e.strerror or e})")
+        return StorageError(f"cannot write to the object folder {self.root}: {e.strerror or e}")
+
     @contextmanager
     def _writing(self, target: Path) -> Iterator[Path]:
         """A temp file beside `target`, renamed onto it by the caller; failures to write name the folder."""
@@ -64,7 +80,7 @@ class LocalStore:
             target.parent.mkdir(parents=True, exist_ok=True)
             yield tmp
         except OSError as e:  # permission, read-only or full file system
-            raise StorageError(f"cannot write to the object folder {self.root}: {e.strerror or e}") from e
+            raise self._write_failed(e) from e
         finally:
             with suppress(OSError):  # the folder may not exist (the failure above): nothing to remove
                 tmp.unlink(missing_ok=True)
@@ -92,7 +108,7 @@ class LocalStore:
             for tmp, target in zip(tmps, targets, strict=True):
                 os.replace(tmp, target)
         except OSError as e:  # permission, read-only or full file system
-            raise StorageError(f"cannot write to the object folder {self.root}: {e.strerror or e}") from e
+            raise self._write_failed(e) from e
         finally:
             for tmp in tmps:
                 with suppress(OSError):
@@ -113,11 +129,16 @@ class LocalStore:
         return ObjectInfo(key, size, h.hexdigest())
 
     def probe(self) -> None:
-        """The root folder exists (it is not re-created here: a vanished mount must show) and takes writes."""
+        """The root folder exists (it is not re-created here: a vanished mount must show), takes writes and
+        has PROBE_MIN_FREE_BYTES free (StorageUnavailable "storage full" below that)."""
         if not self.root.is_dir():
             raise StorageError(f"the object folder {self.root} does not exist")
         self.put_bytes(PROBE_KEY, b"ok")
         self.delete(PROBE_KEY)
+        free = shutil.disk_usage(self.root).free
+        if free < PROBE_MIN_FREE_BYTES:
+            raise StorageUnavailable(f"storage full: {free / 2**20:.1f} MiB left in the object folder "
+                                     f"{self.root} (work waits for {PROBE_MIN_FREE_BYTES // 2**20} MiB)")
 
     def get_bytes(self, key: str) -> bytes:
         try:
@@ -174,16 +195,35 @@ class LocalStore:
             folder = folder.parent
 
     def delete_prefix(self, prefix: str) -> int:
+        """Delete the objects under `prefix`, and the temp files of writes to keys under it (a writer killed
+        mid-write left them; one still writing fails its rename, which is what deleting its key asks)."""
         n = 0
         for key in list(self.list(prefix)):
             n += self.delete(key)
+        for tmp in self._temp_files(self._walk_base(prefix)):
+            rel = tmp.parent.relative_to(self.root).as_posix()
+            match = _TMP.match(tmp.name)
+            target = match.group(1) if match else ""
+            if (target if rel == "." else f"{rel}/{target}").startswith(prefix):
+                tmp.unlink(missing_ok=True)
+                self._prune(tmp.parent)
         return n
+
+    def _walk_base(self, prefix: str) -> Path:
+        # The deepest folder a listing prefix names: keys under it are all in there.
+        folder_part = prefix.rsplit("/", 1)[0] if "/" in prefix else ""
+        return self.root.joinpath(*folder_part.split("/")) if folder_part else self.root
+
+    def _temp_files(self, base: Path) -> Iterator[Path]:
+        for dirpath, _dirs, files in os.walk(base):
+            for name in files:
+                if _TMP.match(name):
+                    yield Path(dirpath) / name
 
     def list(self, prefix: str = "") -> Iterator[str]:
         check_prefix(prefix)
         # Walk only the deepest folder the prefix names, then filter by the string prefix (S3 semantics).
-        folder_part = prefix.rsplit("/", 1)[0] if "/" in prefix else ""
-        base = self.root.joinpath(*folder_part.split("/")) if folder_part else self.root
+        base = self._walk_base(prefix)
         if not base.is_dir():
             return iter(())
         keys = []
@@ -197,17 +237,23 @@ class LocalStore:
                     keys.append(key)
         return iter(sorted(keys))
 
-    def remove_temp_files(self) -> int:
+    def remove_temp_files(self, older_than_s: float | None = None) -> int:
         """Delete the temp files of writes that never committed (a writer killed mid-write); returns how many.
 
-        Only for when no writer is running on this folder, e.g. before an interrupted job is resumed.
+        Without `older_than_s`: every one, for when no writer runs on this folder (before an interrupted job
+        is resumed). With it: those not written to for that long, safe beside running writers (a write in
+        flight touches its file every chunk and renames it within seconds).
         """
+        cutoff = None if older_than_s is None else time.time() - older_than_s
         removed = 0
-        for dirpath, _dirs, files in os.walk(self.root):
-            for name in files:
-                if _TMP.match(name):
-                    (Path(dirpath) / name).unlink(missing_ok=True)
-                    removed += 1
+        for tmp in self._temp_files(self.root):
+            try:
+                if cutoff is not None and tmp.stat().st_mtime > cutoff:
+                    continue
+                tmp.unlink()
+            except FileNotFoundError:  # its writer committed or cleaned it meanwhile
+                continue
+            removed += 1
         return removed
 
     def presigned_url(self, key: str, expires_s: int = 3600) -> str:

@@ -22,6 +22,7 @@ from services.core.storage.base import (
     ObjectInfo,
     ObjectNotFoundError,
     StorageError,
+    StorageUnavailable,
     check_key,
     check_prefix,
     io_pool,
@@ -58,6 +59,24 @@ def _code(e: Exception) -> str:
     return _code(cause) if isinstance(cause, ClientError) else ""
 
 
+def _status(e: BaseException | None) -> int:
+    """The HTTP status of the S3 reply behind `e` (0: none, e.g. the endpoint did not answer)."""
+    if isinstance(e, ClientError):
+        return int(e.response.get("ResponseMetadata", {}).get("HTTPStatusCode") or 0)
+    return _status(e.__context__) if e is not None and e.__context__ is not e else 0
+
+
+_THROTTLED = {"SlowDown", "Throttling", "ThrottlingException", "RequestTimeout", "ServiceUnavailable",
+              "InternalError"}
+
+
+def _passing(e: Exception) -> bool:
+    """A failure of the endpoint that passes (5xx, throttling, no answer), not of the request (4xx)."""
+    if isinstance(e, BotoCoreError):  # connection refused or reset, timeouts: nothing answered
+        return True
+    return _status(e) >= 500 or _code(e) in _THROTTLED
+
+
 class S3Store:
     """Keys live under `prefix` in `bucket`; the sha256 of each object is kept in its metadata."""
 
@@ -70,6 +89,7 @@ class S3Store:
         region: str = "us-east-1",
         credentials: tuple[str, str] | None = None,
         client: Any = None,  # a boto3 S3 client (boto3 builds its clients at run time: untyped)
+        max_attempts: int = 10,
     ):
         if not bucket:
             raise ValueError("S3Store needs a bucket name")
@@ -79,7 +99,8 @@ class S3Store:
             config = Config(
                 region_name=region,
                 signature_version="s3v4",
-                retries={"max_attempts": 10, "mode": "standard"},  # throttling and 5xx are retried with backoff
+                # throttling and 5xx are retried with backoff (10 tries: up to about a minute)
+                retries={"max_attempts": max_attempts, "mode": "standard"},
                 max_pool_connections=32,
                 connect_timeout=10,
                 read_timeout=120,
@@ -119,6 +140,11 @@ class S3Store:
                 problem = f"the bucket {where} does not exist"
             elif code in ("AccessDenied", "403", "AllAccessDisabled"):
                 problem = f"no permission to {doing} {where}"
+            elif _passing(e):
+                status = _status(e)
+                answer = f"answered {status} ({code})" if status else f"did not answer ({type(e).__name__})"
+                raise StorageUnavailable(f"storage unavailable: {where} {answer} to a {doing.split()[0]}: "
+                                         f"{str(e).splitlines()[0][:200]}") from e
             else:
                 problem = f"cannot {doing} {where}: {type(e).__name__}: {str(e).splitlines()[0][:200]}"
             raise StorageError(problem) from e

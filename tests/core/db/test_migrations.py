@@ -202,3 +202,23 @@ def test_alembic_command_line_takes_the_url_from_settings(repo_root: Path, tmp_p
     )
     assert out.returncode == 0, out.stderr
     assert _revision(f"sqlite:///{db}") == _head()
+
+
+def test_upgrading_a_sqlite_file_keeps_the_rows_that_reference_a_job(tmp_path: Path) -> None:
+    """0007 rebuilds the job table on SQLite; with foreign keys enforced, dropping the old one would have
+    cascaded to every row that references a job (an embedded run's tasks, counters, blocks)."""
+    url = f"sqlite:///{tmp_path / 'old.db'}"
+    migrate(url, "0006")
+    engine = make_engine(url)
+    try:
+        with engine.begin() as conn:
+            conn.execute(text("INSERT INTO job (id, owner, name, spec, state) "
+                              "VALUES (1, 'o', 'n', '{}', 'running')"))
+            conn.execute(text("INSERT INTO worker_block (worker_id, job_id, failures) VALUES ('w', 1, 2)"))
+        migrate(url)
+        with engine.connect() as conn:
+            assert conn.execute(text("SELECT id, state, paused_by FROM job")).all() == [(1, "running", None)]
+            assert conn.execute(text("SELECT worker_id, failures FROM worker_block")).all() == [("w", 2)]
+            assert conn.execute(text("PRAGMA foreign_keys")).scalar_one() == 1
+    finally:
+        engine.dispose()

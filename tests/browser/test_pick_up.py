@@ -3,6 +3,7 @@ and the choice stored with the space (headless Chromium against a real uvicorn s
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -49,10 +50,16 @@ def test_pick_up_with_one_click(pg_url: str, local_store: LocalStore, dashboard_
 
 
 def test_pick_units_with_one_click(pg_url: str, local_store: LocalStore, dashboard_page: DashboardPage, tmp_path: Path) -> None:
-    """A partial scan in centimetres whose origin says nothing: cm or inches, each with the size it gives."""
+    """A levelled partial scan in centimetres whose origin says nothing: cm or inches, each with the size it gives."""
     import trimesh
 
+    from services.core.ingest.frame import rotation_to_z
+
     mesh = trimesh.load(COPYROOM.parent / "kitchen_partial_000.ply", process=False)
+    truth = json.loads((COPYROOM.parent / "truth.json").read_text())["kitchen_partial_000.ply"]["up"]
+    levelled = np.eye(4)
+    levelled[:3, :3] = rotation_to_z(np.asarray(truth))  # exported levelled: only the units are in question
+    mesh.apply_transform(levelled)
     mesh.apply_scale(100.0)
     mesh.apply_translation([5000.0, 0.0, 5000.0])
     src = tmp_path / "partial_cm.ply"

@@ -55,14 +55,15 @@ REFUSE_MARGIN = 1.8
 SINGLE_VIEW_REFUSE_MARGIN = 4.5
 CONFIDENCE_SLOPE = 1.7  # logistic slope of P(right | margin), the likeliest on bench/ingest_real.py's real rooms
 CAPTURE_CONE_DEG = 50.0
-VIEW_PITCH_DEG = 50.0
-CAMERA_FRAME_DEG = 10.0  # a single view looking this close to +Z is stored in its camera's (OpenCV) frame  # a depth camera pointed further up or down than this sees no room
+VIEW_PITCH_DEG = 50.0  # a depth camera pointed further up or down than this sees no room
+CAMERA_FRAME_DEG = 10.0  # a single view looking this close to +Z is stored in its camera's (OpenCV) frame
 POSE_CONE_DEG = 45.0
 STOREY_M = (2.2, 3.5)
 OPEN_STOREY_M = (1.2, 3.5)  # no ceiling scanned
 UNIT_SCALES = (1.0, 0.01, 0.001, 0.0254)
 
 AXIS_DEG = 1.5  # a floor this close to a source axis was levelled by whoever exported the file
+LOOKS_LEVELLED_DEG = 3.0  # a floor this close to an axis: not a first camera's frame (`_with_file_terms`)
 FORMAT_DEG = 5.0  # a floor this close to the up a format's specification fixes is that up (a drifted scan's floor)
 # what the file says counts for a candidate the geometry does not rule out: one this far below the geometry's best
 # (a wall left on an axis by a rotation about it) is no floor, whatever the file's axes
@@ -172,7 +173,7 @@ class UpDecision:
     confidence: float  # calibrated P(the best is right | margin), 0.5-1
     third: ScoredCandidate | None = None  # the best candidate levelling differently from both (shown on refusal)
     geometry_prefers: ScoredCandidate | None = None  # the geometry's own winner, when the file's frame overruled it
-    single_view: bool = False  # scored as one depth frame: a frustum shows less of a room, so more margin is needed
+    refuse_below: float = REFUSE_MARGIN  # the margin a winner needs (`_required_margin`)
 
     @property
     def shown(self) -> tuple[ScoredCandidate, ...]:
@@ -187,7 +188,7 @@ class UpDecision:
     @property
     def ambiguous(self) -> bool:
         """True when the winner does not clearly beat a candidate that levels the scan differently."""
-        return self.margin < (SINGLE_VIEW_REFUSE_MARGIN if self.single_view else REFUSE_MARGIN)
+        return self.margin < self.refuse_below
 
 
 def _furniture_term(f: CandidateFacts) -> float:
@@ -202,18 +203,19 @@ def _storey_term(f: CandidateFacts) -> float:
     return 0.0 if fits else -1.0
 
 
-def _file_terms(f: CandidateFacts, file: FileFrame, plausible: bool, levelled: bool = True) -> dict[str, float]:
-    """What the file says of this candidate (see the module docstring); `plausible`: it could be the floor;
+def _file_terms(f: CandidateFacts, file: FileFrame, plausible: bool, levelled: bool, camera_frame: bool
+                ) -> dict[str, float]:
+    """What the file says of this candidate (see the module docstring). `plausible`: it could be the floor;
     `levelled`: an axis-aligned floor may mean a levelled export (not in a depth frame's own camera frame, where it
-    only means a camera held level)."""
+    only means a camera held level); `camera_frame`: the file may be in its first camera's frame."""
     terms = {"levelled_axis": WEIGHTS["levelled_axis"] if levelled and plausible and on_a_source_axis(f.up) else 0.0}
     if file.binding:
         near = float(f.up @ file.axis) >= np.cos(np.radians(FORMAT_DEG))
         terms["format_up"] = WEIGHTS["format_up_binding"] if near and plausible else 0.0
     else:
         terms["format_up"] = WEIGHTS["format_up_habit"] if _on_axis(f.up, file.axis) else 0.0
-    if file.first_camera:  # a floor on an axis was levelled by the exporter, not seen by a pitched first camera
-        in_cone = -float(f.up[1]) > np.cos(np.radians(CAPTURE_CONE_DEG)) and not on_a_source_axis(f.up)
+    if camera_frame:
+        in_cone = -float(f.up[1]) > np.cos(np.radians(CAPTURE_CONE_DEG))
         terms["capture_convention"] = WEIGHTS["capture_convention"] if in_cone else 0.0
     return terms
 
@@ -236,7 +238,8 @@ def evidence_terms(f: CandidateFacts, all_facts: list[CandidateFacts], capture_u
     thinnest = min(ratios) if ratios else 1.0
     ratio = f.height / np.sqrt(f.cross_section) if f.cross_section > 0 and f.height > 0 else 10 * thinnest
     terms = {
-        "floor_area": WEIGHTS["floor_area"] * float(np.log(max(f.area_score, 1e-12 * best_area) / best_area)),
+        "floor_area": 0.0 if best_area <= 0 else  # no candidate sees any floor (a space-sized guess)
+        WEIGHTS["floor_area"] * float(np.log(max(f.area_score, 1e-12 * best_area) / best_area)),
         "furniture": WEIGHTS["furniture"] * _furniture_term(f),
         "extent": -WEIGHTS["extent"] * float(np.log(ratio / thinnest)),
         "storey": WEIGHTS["storey"] * _storey_term(f),
@@ -262,6 +265,24 @@ def unit_capture_up(capture_up: ArrayLike | None) -> np.ndarray | None:
     return None if n < 1e-6 else v / n
 
 
+def _with_file_terms(geometry: list[ScoredCandidate], file: FileFrame, view: SingleView | None,
+                     disabled: tuple[str, ...]) -> list[ScoredCandidate]:
+    """The candidates scored on the geometry, with what the file says added (see `_file_terms`)."""
+    best_geometry = max(c.score for c in geometry)
+    # the file's axes count for a floor candidate the geometry does not rule out (FILE_TRUST)
+    plausible = [c.facts.floor_fraction >= PLAUSIBLE_FLOOR_FRACTION and c.score >= best_geometry - FILE_TRUST
+                 for c in geometry]
+    levelled = view is None or float(view.direction[2]) < np.cos(np.radians(CAMERA_FRAME_DEG))
+    # a plausible floor within a few degrees of an axis: the file was levelled, not stored in a pitched first
+    # camera's frame (a first camera held that level is rare), so its -Y says nothing of up
+    near_axis = np.cos(np.radians(LOOKS_LEVELLED_DEG))
+    camera_frame = file.first_camera and not any(
+        p and float(np.max(np.abs(c.up))) >= near_axis for c, p in zip(geometry, plausible, strict=True))
+    return [ScoredCandidate(c.facts, {**c.terms, **{k: v for k, v in _file_terms(
+        c.facts, file, p, levelled, camera_frame).items() if k not in disabled}})
+        for c, p in zip(geometry, plausible, strict=True)]
+
+
 def decide(all_facts: list[CandidateFacts], capture_up: np.ndarray | None = None, file: FileFrame | None = None,
            disabled: tuple[str, ...] = (), view: SingleView | None = None) -> UpDecision:
     """Score every candidate and compare the best with the best that levels differently.
@@ -271,13 +292,7 @@ def decide(all_facts: list[CandidateFacts], capture_up: np.ndarray | None = None
     """
     geometry = [ScoredCandidate(f, {k: v for k, v in evidence_terms(f, all_facts, capture_up, view).items()
                                     if k not in disabled}) for f in all_facts]
-    scored = geometry
-    if file is not None:  # a floor candidate the geometry does not rule out (see FILE_TRUST)
-        best_geometry = max(c.score for c in geometry)
-        levelled = view is None or float(view.direction[2]) < np.cos(np.radians(CAMERA_FRAME_DEG))
-        scored = [ScoredCandidate(c.facts, {**c.terms, **{k: v for k, v in _file_terms(
-            c.facts, file, c.facts.floor_fraction >= PLAUSIBLE_FLOOR_FRACTION
-            and c.score >= best_geometry - FILE_TRUST, levelled).items() if k not in disabled}}) for c in geometry]
+    scored = geometry if file is None else _with_file_terms(geometry, file, view, disabled)
     ranked = tuple(sorted(scored, key=lambda c: -c.score))
     best = ranked[0]
     runner = _first_distinct(ranked[1:], (best,))
@@ -286,7 +301,16 @@ def decide(all_facts: list[CandidateFacts], capture_up: np.ndarray | None = None
     confidence = 1.0 if runner is None else float(1.0 / (1.0 + np.exp(-CONFIDENCE_SLOPE * margin)))
     geometry_best = max(geometry, key=lambda c: c.score)
     geometry_prefers = None if float(geometry_best.up @ best.up) >= np.cos(np.radians(DISTINCT_DEG)) else geometry_best
-    return UpDecision(ranked, runner, margin, confidence, third, geometry_prefers, view is not None)
+    return UpDecision(ranked, runner, margin, confidence, third, geometry_prefers, _required_margin(best, view))
+
+
+def _required_margin(best: ScoredCandidate, view: SingleView | None) -> float:
+    """The margin a winner needs: more for a single depth frame (a frustum shows less of a room), and a square
+    frame's geometry alone never suffices (nothing tells its rows from its columns) unless the file says."""
+    if view is None:
+        return REFUSE_MARGIN
+    file_says = best.terms.get("levelled_axis", 0.0) > 0 or best.terms.get("format_up", 0.0) > WEIGHTS["format_up_habit"]
+    return SINGLE_VIEW_REFUSE_MARGIN if view.short_axis is not None or file_says else float("inf")
 
 
 def _first_distinct(ranked: tuple[ScoredCandidate, ...], others: tuple[ScoredCandidate, ...]) -> ScoredCandidate | None:

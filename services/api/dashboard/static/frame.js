@@ -4,11 +4,19 @@
    helpers (h, api, fmtNum, token, API) only when called. */
 "use strict";
 
-async function authedImageUrl(path) {
-  // <img> cannot send the Authorization header: fetch the picture and show it from a blob URL.
-  const r = await fetch(API + path, { headers: { Authorization: `Bearer ${token()}` } });
-  if (!r.ok) throw new Error(`HTTP ${r.status}`);
-  return URL.createObjectURL(await r.blob());
+async function authedImageUrl(path, retries = 6) {
+  // <img> cannot send the Authorization header: fetch the picture and show it from a blob URL. A tenant's side
+  // views are drawn a few at a time: a 429 is asked again after the Retry-After it names.
+  for (let attempt = 0; ; attempt++) {
+    const r = await fetch(API + path, { headers: { Authorization: `Bearer ${token()}` } });
+    if (r.status === 429 && attempt < retries) {
+      const seconds = Number(r.headers.get("Retry-After")) || 1;
+      await new Promise((resume) => setTimeout(resume, seconds * 1000));
+      continue;
+    }
+    if (!r.ok) throw new Error(`HTTP ${r.status}`);
+    return URL.createObjectURL(await r.blob());
+  }
 }
 
 function upCandidateFigure(space, cand, index, status, onPicked) {

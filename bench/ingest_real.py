@@ -1,14 +1,14 @@
 """Benchmark: real rooms levelled as users bring them, without asking.
 
-Corpus: bench/scans/rooms/truth.json (real reconstructions and scans from several public sources, each with its
-true up, how that truth is known, its source and licence; SOURCE.md beside each file). Every room is tried
+Corpus: bench/scans/rooms/truth.json (real reconstructions and scans from several public sources, each with
+its true up, how that truth is known, its source and licence; SOURCE.md beside each file). Every room is tried
 - as delivered (the file's own frame and format),
 - exported levelled as a Z-up PLY and as a Y-up GLB,
 - under 5 random rotations, in metres, centimetres, millimetres, inches and metres again (PLY),
 through `resolve_frame`, the call `load_space` makes once the file is read (point clouds meshed once by the
-service's reconstruction, in their delivered frame). Outcome per case: levelled (within 3 degrees), wrong (planned
-more than 3 degrees off without asking) or refused (with the true up as the first candidate, or not). Single depth
-frames (one sensor view, not a room) are reported apart from the rooms.
+service's reconstruction, in their delivered frame). Outcome per case: levelled (within 3 degrees), wrong
+(planned more than 3 degrees off without asking) or refused (with the true up as the first candidate, or not).
+Single depth frames (one sensor view, not a room) are reported apart from the rooms.
 
 Run: `.venv/bin/python bench/ingest_real.py [--out FILE]`; writes the "real_rooms" section of
 bench/results/ingest.json (the rest of that file is bench/ingest.py's) and prints the table per source.
@@ -58,7 +58,8 @@ def cases(suffix: str, up: np.ndarray, seed: int) -> Iterator[tuple[str, np.ndar
         yield f"rotated_{i}", R, scale, ".ply"
 
 
-def run_case(mesh: Any, R: np.ndarray, scale: float, suffix: str, up: np.ndarray, name: str) -> dict[str, Any]:
+def run_case(mesh: Any, R: np.ndarray, scale: float, suffix: str, up: np.ndarray,
+             name: str) -> dict[str, Any]:
     """One case through resolve_frame: its outcome against the truth."""
     copy = mesh.copy()
     T = np.eye(4)
@@ -91,7 +92,8 @@ def shares(rows: list[dict[str, Any]]) -> dict[str, Any]:
               "refused_true_first": sum(r["true_first"] for r in refused),
               "other": sum(r["outcome"] in ("units_refused", "error") for r in rows)}
     counts["share_levelled"] = round(counts["levelled"] / max(n, 1), 4)
-    counts["share_true_first_of_refused"] = round(counts["refused_true_first"] / len(refused), 4) if refused else None
+    counts["share_true_first_of_refused"] = (round(counts["refused_true_first"] / len(refused), 4)
+                                             if refused else None)
     return counts
 
 
@@ -100,7 +102,8 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--rooms", nargs="*", help="only these rooms (names in truth.json)")
     ap.add_argument("--extra", type=Path, action="append", default=[],
-                    help="another truth.json of the same form (rooms that may not be redistributed), measured alike")
+                    help="another truth.json of the same form (rooms that may not be redistributed), "
+                    "measured alike")
     ap.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "ingest.json")
     args = ap.parse_args()
 
@@ -116,10 +119,12 @@ def main() -> None:
         # the file read and meshed as on ingest, kept in its own frame (identity source_to_world)
         mesh = load_space(path, source_to_world=np.eye(4).tolist()).mesh
         up = np.asarray(room["up"], dtype=float)
-        delivered = room.get("delivered_as") or path.suffix.lower()  # converted copies: the format as delivered
+        # converted copies: the format as delivered
+        delivered = room.get("delivered_as") or path.suffix.lower()
         for case, R, scale, suffix in cases(delivered, up / np.linalg.norm(up), args.seed + i):
-            row = {"room": name, "place": room.get("place", name), "source": room["source"], "kind": room["kind"],
-                   "single_frame": bool(room.get("single_frame")), "extra": bool(room.get("extra")), "case": case,
+            row = {"room": name, "place": room.get("place", name), "source": room["source"],
+                   "kind": room["kind"], "single_frame": bool(room.get("single_frame")),
+                   "extra": bool(room.get("extra")), "case": case,
                    **run_case(mesh, R, scale, suffix, up, name)}
             rows.append(row)
             print(json.dumps(row), flush=True)

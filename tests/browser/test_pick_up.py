@@ -18,7 +18,8 @@ pytestmark = pytest.mark.slow
 COPYROOM = Path(__file__).resolve().parents[1] / "fixtures" / "real_scans" / "copyroom.ply"
 
 
-def test_pick_up_with_one_click(pg_url: str, local_store: LocalStore, dashboard_page: DashboardPage, artifacts: Path) -> None:
+def test_pick_up_with_one_click(pg_url: str, local_store: LocalStore, dashboard_page: DashboardPage,
+                                artifacts: Path) -> None:
     with make_api(pg_url, local_store) as api, live_server(api.app) as base:
         r = api.client.post("/spaces", files={"file": ("copyroom.ply", COPYROOM.read_bytes())},
                             data={"name": "copyroom"}, headers=api.a.headers)
@@ -39,18 +40,22 @@ def test_pick_up_with_one_click(pg_url: str, local_store: LocalStore, dashboard_
             assert all("floor" in c and "storey" in c and "extent" in c for c in captions)  # the evidence too
             page.screenshot(path=str(artifacts / "dashboard-pick-up.png"), full_page=True)
             page.click('#needs-frame button.pick-up[data-index="1"]')
-            page.wait_for_selector("#needs-frame", state="detached", timeout=30_000)  # the panel goes once picked
+            # the panel goes once picked
+            page.wait_for_selector("#needs-frame", state="detached", timeout=30_000)
             assert errors == []
         stored = api.client.get(f"/spaces/{space['id']}", headers=api.a.headers).json()
         assert not stored["needs_frame"]
         np.testing.assert_allclose(stored["up_choice"]["up"], runner_up, atol=1e-5)
-        r = api.client.post("/jobs", json={"space_ids": [space["id"]], "spec": {"name": "lev", "cues": ["rgb"]}},
+        r = api.client.post("/jobs",
+                            json={"space_ids": [space["id"]], "spec": {"name": "lev", "cues": ["rgb"]}},
                             headers=api.a.headers)
         assert r.status_code == 201, r.text
 
 
-def test_pick_units_with_one_click(pg_url: str, local_store: LocalStore, dashboard_page: DashboardPage, tmp_path: Path) -> None:
-    """A levelled partial scan in centimetres whose origin says nothing: cm or inches, each with the size it gives."""
+def test_pick_units_with_one_click(pg_url: str, local_store: LocalStore, dashboard_page: DashboardPage,
+                                   tmp_path: Path) -> None:
+    """A levelled partial scan in centimetres whose origin says nothing: cm or inches, each with the size it
+    gives."""
     import trimesh
 
     from services.core.ingest.frame import rotation_to_z
@@ -65,8 +70,8 @@ def test_pick_units_with_one_click(pg_url: str, local_store: LocalStore, dashboa
     src = tmp_path / "partial_cm.ply"
     mesh.export(src)
     with make_api(pg_url, local_store) as api, live_server(api.app) as base:
-        r = api.client.post("/spaces", files={"file": ("partial_cm.ply", src.read_bytes())}, data={"name": "partial"},
-                            headers=api.a.headers)
+        r = api.client.post("/spaces", files={"file": ("partial_cm.ply", src.read_bytes())},
+                            data={"name": "partial"}, headers=api.a.headers)
         assert r.status_code == 201, r.text
         space = r.json()
         assert space["needs_frame"] and space["frame"]["units"]["ambiguous"]

@@ -56,7 +56,8 @@ def rotation_to_z(up: np.ndarray) -> np.ndarray:
 
 
 def source_to_world_matrix(up_source: np.ndarray, unit_scale: float) -> np.ndarray:
-    """4x4 source -> world: scale by `unit_scale` (metres per unit), rotate `up_source` to +Z, no translation."""
+    """4x4 source -> world: scale by `unit_scale` (metres per unit), rotate `up_source` to +Z, no
+    translation."""
     T = np.eye(4)
     T[:3, :3] = unit_scale * rotation_to_z(up_source)
     return T
@@ -76,7 +77,8 @@ class FrameRequest:
 
 def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: FrameRequest,
                   name: str = "the scan") -> tuple[np.ndarray, UpEstimate, UnitChoice]:
-    """(source_to_world 4x4, how up was found, the units) of a mesh in its source frame; UpAmbiguous or UnitsAmbiguous (`name`)."""
+    """(source_to_world 4x4, how up was found, the units) of a mesh in its source frame; UpAmbiguous or
+    UnitsAmbiguous (`name`)."""
     if frame.source_to_world is not None:
         T = frame.source_to_world
         scale = similarity_scale(T)
@@ -113,25 +115,27 @@ SPACE_EXTENT_M = 3.0  # an object this large is a space: a room needs its up fou
 
 def _refuse_space_sized_guess(mesh: trimesh.Trimesh, suffix: str, up: np.ndarray, unit_scale: float,
                               name: str) -> None:
-    """UpAmbiguous when no floor was found in a scan the size of a space, unless every candidate's evidence agrees
-    with the object rule's `up` (the format's up, or a support base)."""
+    """UpAmbiguous when no floor was found in a scan the size of a space, unless every candidate's evidence
+    agrees with the object rule's `up` (the format's up, or a support base)."""
     extent_m = float(mesh.extents.max()) * unit_scale
     if extent_m < SPACE_EXTENT_M or _faces_outward(mesh):
         return
     decision = guess_candidates(mesh, suffix)
     if decision is None or decision.runner_up is None:
-        raise SpaceError(f"{name}: no floor and no dominant planes found in a space {extent_m:.3g} m across, so its "
-                         "up cannot be told; give it with --up=X,Y,Z or --up-axis (API: spec field up or up_axis)")
+        raise SpaceError(f"{name}: no floor and no dominant planes found in a space {extent_m:.3g} m across, "
+                         "so its up cannot be told; give it with --up=X,Y,Z or --up-axis (API: spec field "
+                         "up or up_axis)")
     if not decision.ambiguous and float(decision.best.up @ up) >= np.cos(np.radians(AGREE_DEG)):
         return
     candidates = [c.record(unit_scale) for c in decision.shown]
-    raise UpAmbiguous(ambiguity_line(f"{name}: no floor found in a space {extent_m:.3g} m across, so", candidates,
-                                     None), candidates)
+    raise UpAmbiguous(ambiguity_line(f"{name}: no floor found in a space {extent_m:.3g} m across, so",
+                                     candidates, None), candidates)
 
 
 def _faces_outward(mesh: trimesh.Trimesh) -> bool:
-    """True for a shape seen from outside (an object, whatever its size): its faces, weighted by area, face away
-    from its centre; a space scanned from inside faces in (-0.3 to -0.6 on the real rooms of bench/scans)."""
+    """True for a shape seen from outside (an object, whatever its size): its faces, weighted by area, face
+    away from its centre; a space scanned from inside faces in (-0.3 to -0.6 on the real rooms of
+    bench/scans)."""
     centers, normals, areas = mesh.triangles_center, mesh.face_normals, mesh.area_faces
     offsets = centers - np.average(centers, axis=0, weights=areas)
     lengths = np.linalg.norm(offsets, axis=1)

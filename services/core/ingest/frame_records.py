@@ -1,5 +1,5 @@
-"""The JSON records of what ingest found about a scan's frame (up, units, point-cloud meshing): stored with the
-space (`validation`), in job.json's space records and in the API's frame fields."""
+"""The JSON records of what ingest found about a scan's frame (up, units, point-cloud meshing): stored with
+the space (`validation`), in job.json's space records and in the API's frame fields."""
 
 from __future__ import annotations
 
@@ -37,8 +37,10 @@ class UpRecord(TypedDict):
     ambiguous: NotRequired[bool]
     evidence: NotRequired[dict[str, float]]
     candidates: NotRequired[list[UpCandidateRecord]]
-    reason: NotRequired[str]  # why this up, in words: the evidence that set it apart, or the rule that gave it
-    geometry_prefers: NotRequired[UpCandidateRecord]  # the geometry's own winner, when the file's frame overruled it
+    # why this up, in words: the evidence that set it apart, or the rule that gave it
+    reason: NotRequired[str]
+    # the geometry's own winner, when the file's frame overruled it
+    geometry_prefers: NotRequired[UpCandidateRecord]
 
 
 class UnitCandidateRecord(TypedDict):

@@ -12,10 +12,10 @@ gives, in the file's units); directions are unit 3-vectors in that frame.
    both signs, is scored by the area facing +u in the lower half of the extent along u (a floor seen
    from above; halves rather than thin bands because a tilted floor spans part of the height) plus
    the surplus of area facing +u over area facing -u between the end bands (furniture tops face up
-   and their bottoms are rarely scanned; walls at mid height face both ways). A candidate is a floor when that lower area covers >= 30 % of the
-   convex cross-section of the scan across u. Walls also face inwards from both ends, but in pairs
-   (no surplus) and over less area than the floor of a room that is wider than tall. The best score
-   wins; a tie between the two signs of one family (a closed empty box) falls back to the file
+   and their bottoms are rarely scanned; walls at mid height face both ways). A candidate is a floor when that
+   lower area covers >= 30 % of the convex cross-section of the scan across u. Walls also face inwards from
+   both ends, but in pairs (no surplus) and over less area than the floor of a room that is wider than tall.
+   The best score wins; a tie between the two signs of one family (a closed empty box) falls back to the file
    convention. The direction is refined to the area-weighted mean normal of the floor faces and kept
    exactly on a source axis when it lies within 1 mrad of one (axis-aligned scans stay exact).
 3. *Support base* (single objects, normals facing outwards): outward-facing area in the end 10 % of a
@@ -24,8 +24,8 @@ gives, in the file's units); directions are unit 3-vectors in that frame.
 4. Otherwise the file convention: +Y up for .obj/.gltf/.glb, +Z up for .ply and point clouds.
 
 Confidence (rooms): every candidate direction is scored on more evidence than plane area (storey height,
-the scan's extent, the capture convention, capture poses when given; `services.core.ingest.up_evidence`), and the
-winner's margin over the best candidate that levels the scan differently gives a calibrated confidence.
+the scan's extent, the capture convention, capture poses when given; `services.core.ingest.up_evidence`), and
+the winner's margin over the best candidate that levels the scan differently gives a calibrated confidence.
 Below `up_evidence.REFUSE_MARGIN` the estimate is *ambiguous*: loading refuses it unless guesses are accepted.
 """
 
@@ -58,24 +58,28 @@ _SPECIFIED_UP = (".gltf", ".glb")  # formats whose specification fixes up (+Y): 
 def file_frame(suffix: str) -> FileFrame:
     """What a file of this format says about its up before any geometry is looked at."""
     specified = suffix in _SPECIFIED_UP
-    return FileFrame(axis_vector(CONVENTION_UP.get(suffix, "+z")), binding=specified, first_camera=not specified)
+    return FileFrame(axis_vector(CONVENTION_UP.get(suffix, "+z")), binding=specified,
+                     first_camera=not specified)
 
 
 # The one floor rule: a floor face's normal lies within 15 degrees of up. The planner's detect_floors
-# (services.scheduler.planning.cameras) uses the same cone, so a scan levelled here has the floors planned there.
+# (services.scheduler.planning.cameras) uses the same cone, so a scan levelled here has the floors planned
+# there.
 FLOOR_CONE_DEG = 15.0
 FLOOR_CONE_COS = float(np.cos(np.radians(FLOOR_CONE_DEG)))
 _END_BAND = 0.10
-# furniture lies between bands this wide at both ends: narrower ones take soffits, ceiling steps and lamps near a
-# ceiling for furniture undersides (a phone scan's soffit 0.85-0.93 of the way up turned its sign)
+# furniture lies between bands this wide at both ends: narrower ones take soffits, ceiling steps and lamps
+# near a ceiling for furniture undersides (a phone scan's soffit 0.85-0.93 of the way up turned its sign)
 _FURNITURE_BAND = 0.20
-_FLOOR_MIN_FRACTION = 0.15  # floor area / the scan's cross-section: below it the scan is an object, not a room
+# floor area / the scan's cross-section: below it the scan is an object, not a room
+_FLOOR_MIN_FRACTION = 0.15
 _GIVEN_FLOOR_MIN_FRACTION = 0.10  # up given: a partial scan may see only a strip of its floor
 _BASE_MIN_FRACTION = 0.15
 _TIE_REL = 0.02
 _BASE_DOMINANCE = 3.0
 _SNAP_RAD = 1e-3  # a direction this close to a source axis is that axis (1 mm per metre)
-_BASE_SNAP_RAD = np.radians(2.0)  # object bases are rougher than floors (the bunny's is 1.1 degrees off its axis)
+# object bases are rougher than floors (the bunny's is 1.1 degrees off its axis)
+_BASE_SNAP_RAD = np.radians(2.0)
 _SAMPLE_FACES = 50_000  # faces (drawn by area) that vote for bins; refinement uses every face
 _SUPPRESS_COS = float(np.cos(np.radians(25.0)))
 _MAX_FAMILIES = 6
@@ -105,7 +109,8 @@ class UpEstimate:
     floor_area: float = 0.0  # source units^2 of the faces taken as floor (0 when none)
     floor_fraction: float = 0.0  # floor area / convex cross-section of the scan across up
     runner_up_angle_deg: float | None = None  # angle between up and the runner-up candidate
-    margin: float | None = None  # rooms: score of up - runner-up's (log-odds); bases: area ratio; inf: no runner-up
+    # rooms: score of up - runner-up's (log-odds); bases: area ratio; inf: no runner-up
+    margin: float | None = None
     storey_height: float | None = None  # source units, floor to top (spaces with a floor)
     decision: UpDecision | None = None  # rooms: every candidate's evidence, the runner-up and the confidence
 
@@ -127,7 +132,8 @@ class UpEstimate:
 
     @property
     def confidence(self) -> float | None:
-        """Calibrated probability that a room's up is right (None for objects, conventions and given frames)."""
+        """Calibrated probability that a room's up is right (None for objects, conventions and given
+        frames)."""
         return None if self.decision is None else round(self.decision.confidence, 4)
 
     def doubt(self) -> str:
@@ -143,14 +149,16 @@ class UpEstimate:
 
     def record(self, unit_scale: float = 1.0) -> UpRecord:
         """JSON-ready summary (areas in m^2 with `unit_scale` metres per source unit)."""
-        margin = None if self.margin is None else (None if not np.isfinite(self.margin) else round(self.margin, 3))
+        margin = None if self.margin is None else (
+            None if not np.isfinite(self.margin) else round(self.margin, 3))
         out: UpRecord = {
             "source_direction": [float(x) for x in self.up],
             "method": self.method,
             "confidence": "low" if self.low_confidence else "high",
             "floor_area_m2": round(self.floor_area * unit_scale**2, 4),
             "floor_fraction": round(self.floor_fraction, 4),
-            "runner_up_angle_deg": None if self.runner_up_angle_deg is None else round(self.runner_up_angle_deg, 2),
+            "runner_up_angle_deg": (None if self.runner_up_angle_deg is None
+                                    else round(self.runner_up_angle_deg, 2)),
             "margin": margin,
         }
         if self.decision is not None:  # scored by the evidence: its probability, terms and candidates
@@ -161,7 +169,8 @@ class UpEstimate:
             out["candidates"] = [c.record(unit_scale) for c in d.shown]
             if d.geometry_prefers is not None:
                 out["geometry_prefers"] = d.geometry_prefers.record(unit_scale)
-        out["reason"] = reason_words(self.decision) if self.decision is not None else METHOD_WORDS[self.method]
+        out["reason"] = (reason_words(self.decision) if self.decision is not None
+                         else METHOD_WORDS[self.method])
         return out
 
 
@@ -253,8 +262,8 @@ class _Geometry:
     def of(cls, mesh: trimesh.Trimesh) -> _Geometry:
         v = np.asarray(mesh.vertices)
         step = len(v) // _HULL_POINTS + 1
-        return cls(np.asarray(mesh.face_normals), np.asarray(mesh.area_faces), np.asarray(mesh.triangles_center),
-                   v, v[::step])
+        return cls(np.asarray(mesh.face_normals), np.asarray(mesh.area_faces),
+                   np.asarray(mesh.triangles_center), v, v[::step])
 
 
 @dataclass(frozen=True)
@@ -291,7 +300,8 @@ def _floor_candidate(geom: _Geometry, u: np.ndarray) -> _Candidate:
     mid_up, mid_down = float(areas[facing_up & middle].sum()), float(areas[facing_down & middle].sum())
     band = _END_BAND * (hi - lo)
     wide_middle = (h > lo + band) & (h < hi - band)
-    surplus = max(0.0, float(areas[facing_up & wide_middle].sum()) - float(areas[facing_down & wide_middle].sum()))
+    surplus = max(0.0, float(areas[facing_up & wide_middle].sum())
+                  - float(areas[facing_down & wide_middle].sum()))
     cross = _cross_section(geom.hull_points, u)
     fraction = floor_area / cross if cross > 0 else 0.0
     ceiling_area = float(areas[facing_down & (h >= 0.5 * (lo + hi))].sum())
@@ -351,22 +361,24 @@ def estimate_up(mesh: trimesh.Trimesh, suffix: str, capture_up: np.ndarray | Non
         if runner is not None and angle is not None and angle > 179.0 and _alike(best.facts(), runner.facts):
             # floor and ceiling alike (a closed, empty box): no evidence can pick, the file convention does
             sign = float(np.sign(conv @ best.up)) or 1.0
-            return UpEstimate(snap_to_axis(sign * best.up), "convention-tie", best.floor_area, best.floor_fraction,
-                              angle, decision.margin, best.height)
+            return UpEstimate(snap_to_axis(sign * best.up), "convention-tie", best.floor_area,
+                              best.floor_fraction, angle, decision.margin, best.height)
         if decision.best.terms.get("levelled_axis", 0.0) > 0:
-            up = nearest_axis(best.up)  # the exporter's levelling is exact; a scanned floor's mean normal is not
+            # the exporter's levelling is exact; a scanned floor's mean normal is not
+            up = nearest_axis(best.up)
         elif decision.best.terms.get("format_up", 0.0) >= WEIGHTS["format_up_binding"]:
             up = file_frame(suffix).axis  # the specification's up, which the floor confirmed
         else:
             up = _refine_floor(geom, best) if best.floor_area > 0 else snap_to_axis(best.up)
-        return UpEstimate(up, "floor", best.floor_area, best.floor_fraction, angle, decision.margin, best.height,
-                          decision)
+        return UpEstimate(up, "floor", best.floor_area, best.floor_fraction, angle, decision.margin,
+                          best.height, decision)
     base = _support_base(geom, [f for f, _ in families])
     return base if base is not None else UpEstimate(conv, "convention")
 
 
 def guess_candidates(mesh: trimesh.Trimesh, suffix: str) -> UpDecision | None:
-    """Every plane-family direction scored as an up candidate, for a scan where no floor was found (None: no planes).
+    """Every plane-family direction scored as an up candidate, for a scan where no floor was found (None: no
+    planes).
 
     Offered when such a scan is space-sized: its up would otherwise be the file format's guess."""
     geom = _Geometry.of(mesh)

@@ -76,7 +76,8 @@ class LoadedSpace:
 
     mesh: trimesh.Trimesh  # world frame; faces in the order of trimesh.load(source, force="mesh")
     source_path: Path  # the mesh file that was loaded (a zip's path when extracted to a temporary folder)
-    source_to_world: np.ndarray  # 4x4: source coordinates -> world metres (+Z up); translation only when given
+    # 4x4: source coordinates -> world metres (+Z up); translation only when given
+    source_to_world: np.ndarray
     has_texture: bool  # UV coordinates and a texture image
     has_vertex_colors: bool
     face_class: np.ndarray | None  # int32 class id per face
@@ -96,7 +97,8 @@ class LoadedSpace:
 
     def frame_record(self) -> FrameRecord:
         """What was detected about the frame, for job.json and `omnidata plan` (JSON-ready)."""
-        scale = self.units.scale if self.units is not None else float(np.cbrt(np.linalg.det(self.source_to_world[:3, :3])))
+        scale = (self.units.scale if self.units is not None
+                 else float(np.cbrt(np.linalg.det(self.source_to_world[:3, :3]))))
         est = self.up_estimate or UpEstimate(self.up_source, self.up_method)
         out: FrameRecord = {"up": est.record(scale)}
         if self.units is not None:
@@ -125,7 +127,8 @@ class LoadedSpace:
             line += f"; chosen for {up['reason']}"  # records stored before reasons were written have none
         line += ")"
         if "units" in rec:
-            line += f"; units: {rec['units']['unit']} x{rec['units']['unit_scale']:g} ({rec['units']['reason']})"
+            line += (f"; units: {rec['units']['unit']} x{rec['units']['unit_scale']:g} "
+                     f"({rec['units']['reason']})")
         return line
 
 
@@ -186,8 +189,10 @@ def load_space(
     """
     if up_axis not in UP_AXES:
         raise SpaceError(f"up_axis {up_axis!r} is not one of {', '.join(UP_AXES)}")
-    if unit_scale != "auto" and (isinstance(unit_scale, str) or not np.isfinite(unit_scale) or unit_scale <= 0):
-        raise SpaceError(f"unit_scale must be 'auto' or a positive number of metres per unit, got {unit_scale!r}")
+    if unit_scale != "auto" and (isinstance(unit_scale, str) or not np.isfinite(unit_scale)
+                                 or unit_scale <= 0):
+        raise SpaceError(f"unit_scale must be 'auto' or a positive number of metres per unit, "
+                         f"got {unit_scale!r}")
     if up is not None and (len(up) != 3 or not np.isfinite(up).all() or np.linalg.norm(up) < 1e-9):
         raise SpaceError(f"up must be a finite, non-zero vector [x, y, z], got {list(up)}")
     if source_to_world is not None:
@@ -203,13 +208,16 @@ def load_space(
     try:
         source = resolve_source(p, extract_dir)
         if p.is_dir() and not is_inside(source, Path(os.path.realpath(p))):
-            raise SpaceError(f"{source.name}: a symbolic link to a file outside the folder {p.name}; refusing it")
+            raise SpaceError(f"{source.name}: a symbolic link to a file outside the folder {p.name}; "
+                             "refusing it")
         capture = capture_near(Path(extract_dir) if p.suffix.lower() == ".zip" and extract_dir else p)
         if capture_up is None and capture is not None:
             capture_up = capture.mean_up()  # the cameras' up, source frame: evidence for levelling
         frame = FrameRequest(up_axis, unit_scale, None if up is None else np.asarray(up, dtype=np.float64),
-                             None if source_to_world is None else np.asarray(source_to_world, dtype=np.float64),
-                             accept_up_guess, None if capture_up is None else np.asarray(capture_up, dtype=np.float64))
+                             None if source_to_world is None
+                             else np.asarray(source_to_world, dtype=np.float64),
+                             accept_up_guess,
+                             None if capture_up is None else np.asarray(capture_up, dtype=np.float64))
         loaded = _load(source, p if tmp is not None else source, frame,
                        None if cloud_cache_dir is None else Path(cloud_cache_dir))
         return attach_capture(loaded, capture)
@@ -219,13 +227,15 @@ def load_space(
 
 
 def _load_confined(source: Path, **kwargs: Any) -> Any:  # trimesh.load's keywords and its untyped result
-    """`trimesh.load(source)` whose every named file comes from the mesh's own folder (SpaceError otherwise)."""
+    """`trimesh.load(source)` whose every named file comes from the mesh's own folder (SpaceError
+    otherwise)."""
     resolver = ConfinedResolver(source)
     try:
         loaded = trimesh.load(source, resolver=resolver, **kwargs)
     except Exception as e:  # trimesh raises many kinds on corrupt input
         refused = resolver.refusal()  # a refused buffer surfaces as trimesh's error: name the refusal instead
-        raise SpaceError(f"{source.name}: {refused or f'could not read the mesh ({type(e).__name__}: {e})'}") from None
+        raise SpaceError(
+            f"{source.name}: {refused or f'could not read the mesh ({type(e).__name__}: {e})'}") from None
     refused = resolver.refusal() or loaded_texture_refusal(loaded)
     if refused is not None:  # trimesh carried on without the file (an untextured mesh): refuse the scan
         raise SpaceError(f"{source.name}: {refused}")
@@ -235,7 +245,8 @@ def _load_confined(source: Path, **kwargs: Any) -> Any:  # trimesh.load's keywor
 def _read_mesh(
     source: Path, checksum: str, cloud_cache_dir: Path | None
 ) -> tuple[trimesh.Trimesh, JSONObject | None]:
-    """The triangle mesh of a source (sha256 `checksum`), and the reconstruction record when it was a point cloud."""
+    """The triangle mesh of a source (sha256 `checksum`), and the reconstruction record when it was a point
+    cloud."""
     name = source.name
     suffix = source.suffix.lower()
     try:
@@ -257,11 +268,11 @@ def _read_mesh(
 
 
 def _single_mesh(scene: trimesh.Scene) -> trimesh.Trimesh:
-    """scene.to_mesh(), what trimesh.load(force="mesh") returns, without its two copies of a scene that is one mesh
-    placed once, untransformed (a PLY or OBJ of one object): that mesh itself, as trimesh.load without `force`
-    returns it for those formats, its cache cleared as the copies' was (vertex normals a file states are dropped and
-    computed from the faces, as before). Each copy also converted a coloured mesh's colours: the 7-Scenes kitchen's
-    PLY loads in 0.14 CPU-s instead of 0.35."""
+    """scene.to_mesh(), what trimesh.load(force="mesh") returns, without its two copies of a scene that is one
+    mesh placed once, untransformed (a PLY or OBJ of one object): that mesh itself, as trimesh.load without
+    `force` returns it for those formats, its cache cleared as the copies' was (vertex normals a file states
+    are dropped and computed from the faces, as before). Each copy also converted a coloured mesh's colours:
+    the 7-Scenes kitchen's PLY loads in 0.14 CPU-s instead of 0.35."""
     if len(scene.geometry) == 1 and len(scene.graph.nodes_geometry) == 1:
         transform, name = scene.graph[scene.graph.nodes_geometry[0]]
         mesh = scene.geometry[name]
@@ -282,9 +293,11 @@ def _dataset_scene(source: Path, frame: FrameRequest) -> tuple[DatasetScene | No
         return None, frame
     auto_up = frame.up_axis == "auto" and frame.up is None and frame.source_to_world is None
     if auto_up and frame.unit_scale == "auto" and scene.source_to_world is not None:
-        return scene, replace(frame, up_axis="auto", unit_scale="auto", up=None, source_to_world=scene.source_to_world)
+        return scene, replace(frame, up_axis="auto", unit_scale="auto", up=None,
+                              source_to_world=scene.source_to_world)
     up_axis = scene.up_axis if auto_up and scene.up_axis is not None else frame.up_axis
-    unit_scale = scene.unit_scale if frame.unit_scale == "auto" and scene.unit_scale is not None else frame.unit_scale
+    unit_scale = (scene.unit_scale if frame.unit_scale == "auto" and scene.unit_scale is not None
+                  else frame.unit_scale)
     return scene, replace(frame, up_axis=up_axis, unit_scale=unit_scale)
 
 
@@ -322,14 +335,16 @@ def _check_extent(name: str, extent_source: float, scale: float) -> None:
 def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Path | None) -> LoadedSpace:
     name = source.name
     scene, frame = _dataset_scene(source, frame)
-    if problem := file_expansion_refusal(source):  # the rule its packed zip meets when planned: before parsing
+    # the rule its packed zip meets when planned: before parsing
+    if problem := file_expansion_refusal(source):
         raise SpaceError(f"{name}: {problem}")
     source_notes = check_source(source)  # truncation, counts over the limits, unsafe paths: before parsing
     checksum = sha256_file(source)
     mesh, reconstruction = _read_mesh(source, checksum, cloud_cache_dir)
     _check_mesh(source, mesh, reconstruction)
 
-    face_class, face_instance, notes = read_ply_semantics(mesh, source) if reconstruction is None else (None, None, [])
+    face_class, face_instance, notes = (read_ply_semantics(mesh, source) if reconstruction is None
+                                        else (None, None, []))
     notes = source_notes + notes
     class_names = None
     if scene is not None and face_class is None and face_instance is None:
@@ -338,7 +353,8 @@ def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Pa
         except DatasetError as e:
             raise SpaceError(f"{scene.dataset} scene {scene.scene_id}: {e}") from None
         if labels is not None:
-            face_class, face_instance, class_names = labels.face_class, labels.face_instance, labels.class_names
+            face_class, face_instance, class_names = (labels.face_class, labels.face_instance,
+                                                      labels.class_names)
             notes.extend(labels.notes)
     if face_class is None and face_instance is None and reconstruction is None:
         scannet = scannet_labels(mesh, source) if source.suffix.lower() == ".ply" else None
@@ -349,10 +365,11 @@ def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Pa
     _check_extent(name, float(mesh.extents.max()), units.scale)
     if est.decision is not None and est.decision.geometry_prefers is not None:
         other = ", ".join(f"{x:.3g}" for x in est.decision.geometry_prefers.up)
-        notes.append(f"the file's frame and the geometry disagree: the geometry alone would level it with up {other}; "
-                     f"the file's frame decided ({reason_words(est.decision)})")
+        notes.append(f"the file's frame and the geometry disagree: the geometry alone would level it with up "
+                     f"{other}; the file's frame decided ({reason_words(est.decision)})")
     if est.low_confidence:
-        notes.append(f"up found with low confidence ({est.doubt()}): check it with `omnidata plan`, or set up/up_axis")
+        notes.append(f"up found with low confidence ({est.doubt()}): check it with `omnidata plan`, "
+                     "or set up/up_axis")
     has_texture = _has_texture(mesh)
     has_vertex_colors = getattr(mesh.visual, "kind", None) == "vertex"
     mesh.apply_transform(T)
@@ -362,16 +379,12 @@ def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Pa
         mesh=mesh,
         source_path=recorded,
         source_to_world=T,
-        has_texture=has_texture,
-        has_vertex_colors=has_vertex_colors,
-        face_class=face_class,
-        face_instance=face_instance,
+        has_texture=has_texture, has_vertex_colors=has_vertex_colors,
+        face_class=face_class, face_instance=face_instance,
         has_semantics=face_class is not None and face_instance is not None,
         bounds=np.array(mesh.bounds, dtype=np.float64),
-        checksum=checksum,
-        face_count=int(len(mesh.faces)),
-        up_source=np.asarray(est.up, dtype=np.float64),
-        up_method=est.method,
+        checksum=checksum, face_count=int(len(mesh.faces)),
+        up_source=np.asarray(est.up, dtype=np.float64), up_method=est.method,
         warnings=tuple(notes),
         up_estimate=est,
         units=units,

@@ -1,11 +1,12 @@
-"""A scan seen from one place: a single depth frame (or a few taken from one spot), stored in its camera's frame.
+"""A scan seen from one place: a single depth frame (or a few taken from one spot), stored in its camera's
+frame.
 
-Frames and units: the source frame, any unit. A depth frame back-projected into its camera's frame (and later rotated
-or scaled about that frame's origin, as exports do) has the camera at the source origin, and every point lies in
-the camera's frustum: a narrow cone about the view direction, wider across the image's rows than down its columns
-(depth cameras are held in landscape). Up then lies across the view direction within the camera's pitch, close to
-the frustum's short axis. Room-scale evidence (a room wider than tall) measures the frustum instead of the room in
-such a scan, so `up_evidence` scores a single view by these instead.
+Frames and units: the source frame, any unit. A depth frame back-projected into its camera's frame (and later
+rotated or scaled about that frame's origin, as exports do) has the camera at the source origin, and every
+point lies in the camera's frustum: a narrow cone about the view direction, wider across the image's rows than
+down its columns (depth cameras are held in landscape). Up then lies across the view direction within the
+camera's pitch, close to the frustum's short axis. Room-scale evidence (a room wider than tall) measures the
+frustum instead of the room in such a scan, so `up_evidence` scores a single view by these instead.
 """
 
 from __future__ import annotations
@@ -14,14 +15,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-VIEW_CONE_DEG = 36.0  # 98 % of the points this close to the mean direction: one view (a Kinect's half diagonal ~35)
+# 98 % of the points this close to the mean direction: one view (a Kinect's half diagonal ~35)
+VIEW_CONE_DEG = 36.0
 LANDSCAPE_ASPECT = 1.15  # the frustum's wide axis over its short one: below it the frame's rows are not known
 _SAMPLE = 20_000
 
 
 @dataclass(frozen=True)
 class SingleView:
-    """Where a single view looked (unit vector, source frame) and the frame's short axis across it, if known."""
+    """Where a single view looked (unit vector, source frame) and the frame's short axis across it, if
+    known."""
 
     direction: np.ndarray
     short_axis: np.ndarray | None

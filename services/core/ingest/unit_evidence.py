@@ -1,5 +1,5 @@
-"""Units of a scan: the storey rule and the objects' plausibility check (`choose_unit_scale`), and for rooms more
-evidence than the storey height, with a refusal when the units stay ambiguous.
+"""Units of a scan: the storey rule and the objects' plausibility check (`choose_unit_scale`), and for rooms
+more evidence than the storey height, with a refusal when the units stay ambiguous.
 
 Frames and units: the mesh in its source frame and the file's units; `up` is a unit vector in that frame.
 The storey height (floor to top of the scan along up) admits more than one unit only for centimetres
@@ -80,8 +80,8 @@ def choose_unit_scale(storey_height: float | None, extent: float) -> UnitChoice:
         what = "a storey height" if storey_height else "an extent"
         raise UnitError(
             f"cannot tell the units: {what} of {storey_height or extent:.4g} units fits no storey in metres, "
-            f"cm, mm or inches, and {extent:.4g} m across is implausible for an object ({omin * 1000:g} mm to "
-            f"{omax:g} m): set unit_scale (metres per source unit)"
+            f"cm, mm or inches, and {extent:.4g} m across is implausible for an object "
+            f"({omin * 1000:g} mm to {omax:g} m): set unit_scale (metres per source unit)"
         )
     if storey_height:
         return UnitChoice(1.0, "metres", f"storey height {storey_height:.4g} units fits no unit; "
@@ -173,10 +173,10 @@ def measure(mesh: trimesh.Trimesh, up: np.ndarray, ceiling_fraction: float | Non
 
 
 def median_edge_length(mesh: trimesh.Trimesh) -> float:
-    """np.median(mesh.edges_unique_length), the same value, without trimesh's unique rows, which hash every edge
-    (the 7-Scenes kitchen's 577k edges: 0.24 CPU-s against 0.05 here): each face edge as one int64 key, low vertex
-    first, and np.unique of the keys. The lengths are trimesh's (v[low] - v[high], util.row_norm's arithmetic), and
-    a median does not depend on their order."""
+    """np.median(mesh.edges_unique_length), the same value, without trimesh's unique rows, which hash every
+    edge (the 7-Scenes kitchen's 577k edges: 0.24 CPU-s against 0.05 here): each face edge as one int64 key,
+    low vertex first, and np.unique of the keys. The lengths are trimesh's (v[low] - v[high], util.row_norm's
+    arithmetic), and a median does not depend on their order."""
     faces = np.asarray(mesh.faces, dtype=np.int64)
     a, b = faces.ravel(), faces[:, [1, 2, 0]].ravel()  # each face's edges (0, 1), (1, 2), (2, 0)
     n = max(len(mesh.vertices), 1)
@@ -194,7 +194,8 @@ def _terms(m: ScanMeasures, scale: float) -> dict[str, float] | None:
     terms = {"storey": -1.0 if storey < FULL_STOREY_M[0] else -0.5 if storey > TYPICAL_TOP_M else 0.0}
     if m.origin_height is not None:
         cam = m.origin_height * scale
-        terms["camera"] = 0.5 if CAMERA_HELD_M[0] <= cam <= CAMERA_HELD_M[1] else -1.0 if cam > CAMERA_TOO_HIGH_M else 0.0
+        terms["camera"] = (0.5 if CAMERA_HELD_M[0] <= cam <= CAMERA_HELD_M[1]
+                           else -1.0 if cam > CAMERA_TOO_HIGH_M else 0.0)
     if m.furniture_low_top is not None:
         terms["furniture"] = -1.0 if m.furniture_low_top * scale > FURNITURE_TOO_HIGH_M else 0.0
     edge = m.median_edge * scale
@@ -237,8 +238,9 @@ def units_ambiguity_line(name: str, candidates: list[UnitCandidateRecord]) -> st
     """One line naming each candidate unit, what it makes the scan, and the flag that picks one."""
     words = [f"{c['unit']} (--unit-scale={c['unit_scale']:g}: storey {c['storey_height_m']:.3g} m, "
              f"{' x '.join(f'{x:.3g}' for x in c['extent_m'])} m)" for c in candidates]
-    return (f"{name}: units are ambiguous: {' or '.join(words)}; pick one with --unit-scale=M (metres per unit; "
-            "API: spec field unit_scale), or accept the guess with --accept-up-guess (accept_up_guess)")
+    return (f"{name}: units are ambiguous: {' or '.join(words)}; pick one with --unit-scale=M "
+            "(metres per unit; API: spec field unit_scale), or accept the guess with --accept-up-guess "
+            "(accept_up_guess)")
 
 
 def choose_units(mesh: trimesh.Trimesh, up: np.ndarray, storey_height: float | None) -> UnitChoice:

@@ -17,24 +17,26 @@ candidate with the best one that would level the scan differently (more than `DI
 - `storey`: whether the extent along `u` is a storey (2.2-3.5 m, or 1.2-3.5 m for a scan without a
   ceiling: partial scans rarely see it) in one of the units we accept; a penalty when it fits none.
 - `capture_convention`: RGB-D reconstructions are stored in their first camera's OpenCV frame, so up
-  lies within ~50 degrees of -Y; not for glTF, whose specification says +Y. Weak: a rotated file breaks it. Its
-  weight is below `REFUSE_MARGIN`, so on its own it can turn a guess into a refusal but never into a confident answer.
+  lies within ~50 degrees of -Y; not for glTF, whose specification says +Y. Weak: a rotated file breaks it.
+  Its weight is below `REFUSE_MARGIN`, so on its own it can turn a guess into a refusal but never into a
+  confident answer.
 - `levelled_axis`: a plausible floor within `AXIS_DEG` of a source axis. A random orientation puts a given
-  direction that close to one of the six axis directions with odds of about 1 in 1,000, while people and devices
-  export levelled files far more often than rotated ones: strong evidence that the file is levelled. When the walls
-  are axis-aligned too, every family gets it and the rest of the evidence picks among them.
+  direction that close to one of the six axis directions with odds of about 1 in 1,000, while people and
+  devices export levelled files far more often than rotated ones: strong evidence that the file is levelled.
+  When the walls are axis-aligned too, every family gets it and the rest of the evidence picks among them.
 - `format_up`: the candidate on the format's own up axis (`FileFrame`): glTF's +Y is the specification's
-  (binding, as strong as an axis-aligned floor, for a floor within `FORMAT_DEG` of it); PLY's +Z and OBJ's +Y are habits, weighted below
-  `REFUSE_MARGIN` (Y-up PLYs and Z-up OBJs are common): they order a refusal, they never decide alone.
+  (binding, as strong as an axis-aligned floor, for a floor within `FORMAT_DEG` of it); PLY's +Z and OBJ's +Y
+  are habits, weighted below `REFUSE_MARGIN` (Y-up PLYs and Z-up OBJs are common): they order a refusal, they
+  never decide alone.
 - `capture_up`: the mean up vector of the capture's cameras (-Y of OpenCV cameras, averaged), when the
   caller has poses. Cameras are held upright, give or take their pitch: strong evidence.
 - `view_direction`, `view_aspect`: a single view (`services.core.ingest.single_view`): up lies across the view
-  direction within the camera's pitch (`VIEW_PITCH_DEG`; a wall the camera faced is no floor), near the frustum's
-  short axis (landscape frames). `extent` is left out for it: a frustum's extent is not the room's.
+  direction within the camera's pitch (`VIEW_PITCH_DEG`; a wall the camera faced is no floor), near the
+  frustum's short axis (landscape frames). `extent` is left out for it: a frustum's extent is not the room's.
 
-The confidence is a logistic function of the margin (best score minus the runner-up's), fitted on the real rooms
-of bench/ingest_real.py; below `REFUSE_MARGIN` (`SINGLE_VIEW_REFUSE_MARGIN` for one depth frame) the estimate is
-ambiguous and planning does not go ahead on it unless the user accepted guesses.
+The confidence is a logistic function of the margin (best score minus the runner-up's), fitted on the real
+rooms of bench/ingest_real.py; below `REFUSE_MARGIN` (`SINGLE_VIEW_REFUSE_MARGIN` for one depth frame) the
+estimate is ambiguous and planning does not go ahead on it unless the user accepted guesses.
 """
 
 from __future__ import annotations
@@ -51,9 +53,11 @@ DISTINCT_DEG = 30.0  # candidates closer than this level the scan the same way
 # score margin below which the estimate is ambiguous: on the real rooms of bench/ingest_real.py (as delivered,
 # levelled, rotated) no wrong winner scored more than 1.65 above its runner-up with these weights
 REFUSE_MARGIN = 1.8
-# one depth frame: on the real frames of bench/ingest_real.py wrong winners led by up to 4.4 (a floor out of view)
+# one depth frame: on the real frames of bench/ingest_real.py wrong winners led by up to 4.4 (a floor out of
+# view)
 SINGLE_VIEW_REFUSE_MARGIN = 4.5
-CONFIDENCE_SLOPE = 1.7  # logistic slope of P(right | margin), the likeliest on bench/ingest_real.py's real rooms
+# logistic slope of P(right | margin), the likeliest on bench/ingest_real.py's real rooms
+CONFIDENCE_SLOPE = 1.7
 CAPTURE_CONE_DEG = 50.0
 VIEW_PITCH_DEG = 50.0  # a depth camera pointed further up or down than this sees no room
 CAMERA_FRAME_DEG = 10.0  # a single view looking this close to +Z is stored in its camera's (OpenCV) frame
@@ -64,11 +68,13 @@ UNIT_SCALES = (1.0, 0.01, 0.001, 0.0254)
 
 AXIS_DEG = 1.5  # a floor this close to a source axis was levelled by whoever exported the file
 LOOKS_LEVELLED_DEG = 3.0  # a floor this close to an axis: not a first camera's frame (`_with_file_terms`)
-FORMAT_DEG = 5.0  # a floor this close to the up a format's specification fixes is that up (a drifted scan's floor)
-# what the file says counts for a candidate the geometry does not rule out: one this far below the geometry's best
-# (a wall left on an axis by a rotation about it) is no floor, whatever the file's axes
+# a floor this close to the up a format's specification fixes is that up (a drifted scan's floor)
+FORMAT_DEG = 5.0
+# what the file says counts for a candidate the geometry does not rule out: one this far below the geometry's
+# best (a wall left on an axis by a rotation about it) is no floor, whatever the file's axes
 FILE_TRUST = 4.0
-PLAUSIBLE_FLOOR_FRACTION = 0.1  # a candidate whose lower half faces it over this share of its cross-section (a strip)
+# a candidate whose lower half faces it over this share of its cross-section (a strip)
+PLAUSIBLE_FLOOR_FRACTION = 0.1
 
 WEIGHTS = {
     "levelled_axis": 6.0,
@@ -171,8 +177,10 @@ class UpDecision:
     runner_up: ScoredCandidate | None
     margin: float  # best score - runner-up score (inf without a runner-up)
     confidence: float  # calibrated P(the best is right | margin), 0.5-1
-    third: ScoredCandidate | None = None  # the best candidate levelling differently from both (shown on refusal)
-    geometry_prefers: ScoredCandidate | None = None  # the geometry's own winner, when the file's frame overruled it
+    # the best candidate levelling differently from both (shown on refusal)
+    third: ScoredCandidate | None = None
+    # the geometry's own winner, when the file's frame overruled it
+    geometry_prefers: ScoredCandidate | None = None
     refuse_below: float = REFUSE_MARGIN  # the margin a winner needs (`_required_margin`)
 
     @property
@@ -192,7 +200,8 @@ class UpDecision:
 
 
 def _furniture_term(f: CandidateFacts) -> float:
-    """+1 when mid-height horizontal surfaces all face up (tops seen, undersides not), -1 when all face down."""
+    """+1 when mid-height horizontal surfaces all face up (tops seen, undersides not), -1 when all face
+    down."""
     total = f.mid_up + f.mid_down
     return 0.0 if total <= 0 else (f.mid_up - f.mid_down) / total
 
@@ -206,9 +215,10 @@ def _storey_term(f: CandidateFacts) -> float:
 def _file_terms(f: CandidateFacts, file: FileFrame, plausible: bool, levelled: bool, camera_frame: bool
                 ) -> dict[str, float]:
     """What the file says of this candidate (see the module docstring). `plausible`: it could be the floor;
-    `levelled`: an axis-aligned floor may mean a levelled export (not in a depth frame's own camera frame, where it
-    only means a camera held level); `camera_frame`: the file may be in its first camera's frame."""
-    terms = {"levelled_axis": WEIGHTS["levelled_axis"] if levelled and plausible and on_a_source_axis(f.up) else 0.0}
+    `levelled`: an axis-aligned floor may mean a levelled export (not in a depth frame's own camera frame,
+    where it only means a camera held level); `camera_frame`: the file may be in its first camera's frame."""
+    terms = {"levelled_axis": WEIGHTS["levelled_axis"]
+             if levelled and plausible and on_a_source_axis(f.up) else 0.0}
     if file.binding:
         near = float(f.up @ file.axis) >= np.cos(np.radians(FORMAT_DEG))
         terms["format_up"] = WEIGHTS["format_up_binding"] if near and plausible else 0.0
@@ -222,7 +232,8 @@ def _file_terms(f: CandidateFacts, file: FileFrame, plausible: bool, levelled: b
 
 def _view_terms(f: CandidateFacts, view: SingleView) -> dict[str, float]:
     along = float(f.up @ view.direction)
-    terms = {"view_direction": -WEIGHTS["view_direction"] if abs(along) > np.sin(np.radians(VIEW_PITCH_DEG)) else 0.0}
+    terms = {"view_direction": -WEIGHTS["view_direction"]
+             if abs(along) > np.sin(np.radians(VIEW_PITCH_DEG)) else 0.0}
     if view.short_axis is not None:
         across = f.up - along * view.direction
         alignment = abs(float(across @ view.short_axis)) / max(float(np.linalg.norm(across)), 1e-12)
@@ -232,7 +243,8 @@ def _view_terms(f: CandidateFacts, view: SingleView) -> dict[str, float]:
 
 def evidence_terms(f: CandidateFacts, all_facts: list[CandidateFacts], capture_up: np.ndarray | None,
                    view: SingleView | None = None) -> dict[str, float]:
-    """The log-odds terms of the geometry (and capture poses) for one candidate among all (module docstring)."""
+    """The log-odds terms of the geometry (and capture poses) for one candidate among all (module
+    docstring)."""
     best_area = max(c.area_score for c in all_facts)
     ratios = [c.height / np.sqrt(c.cross_section) for c in all_facts if c.cross_section > 0 and c.height > 0]
     thinnest = min(ratios) if ratios else 1.0
@@ -249,8 +261,8 @@ def evidence_terms(f: CandidateFacts, all_facts: list[CandidateFacts], capture_u
         terms.update(_view_terms(f, view))
     if capture_up is not None:
         cos_pose = float(f.up @ capture_up)
-        terms["capture_up"] = WEIGHTS["capture_up"] * (1.0 if cos_pose > np.cos(np.radians(POSE_CONE_DEG)) else
-                                                      -1.0 if cos_pose < 0.0 else 0.0)
+        terms["capture_up"] = WEIGHTS["capture_up"] * (
+            1.0 if cos_pose > np.cos(np.radians(POSE_CONE_DEG)) else -1.0 if cos_pose < 0.0 else 0.0)
     return terms
 
 
@@ -283,8 +295,9 @@ def _with_file_terms(geometry: list[ScoredCandidate], file: FileFrame, view: Sin
         for c, p in zip(geometry, plausible, strict=True)]
 
 
-def decide(all_facts: list[CandidateFacts], capture_up: np.ndarray | None = None, file: FileFrame | None = None,
-           disabled: tuple[str, ...] = (), view: SingleView | None = None) -> UpDecision:
+def decide(all_facts: list[CandidateFacts], capture_up: np.ndarray | None = None,
+           file: FileFrame | None = None, disabled: tuple[str, ...] = (),
+           view: SingleView | None = None) -> UpDecision:
     """Score every candidate and compare the best with the best that levels differently.
 
     `file`: what the file says (format, axes); None scores the geometry (and capture poses) alone.
@@ -300,8 +313,10 @@ def decide(all_facts: list[CandidateFacts], capture_up: np.ndarray | None = None
     margin = float("inf") if runner is None else best.score - runner.score
     confidence = 1.0 if runner is None else float(1.0 / (1.0 + np.exp(-CONFIDENCE_SLOPE * margin)))
     geometry_best = max(geometry, key=lambda c: c.score)
-    geometry_prefers = None if float(geometry_best.up @ best.up) >= np.cos(np.radians(DISTINCT_DEG)) else geometry_best
-    return UpDecision(ranked, runner, margin, confidence, third, geometry_prefers, _required_margin(best, view))
+    geometry_prefers = (None if float(geometry_best.up @ best.up) >= np.cos(np.radians(DISTINCT_DEG))
+                        else geometry_best)
+    return UpDecision(ranked, runner, margin, confidence, third, geometry_prefers,
+                      _required_margin(best, view))
 
 
 def _required_margin(best: ScoredCandidate, view: SingleView | None) -> float:
@@ -309,11 +324,13 @@ def _required_margin(best: ScoredCandidate, view: SingleView | None) -> float:
     frame's geometry alone never suffices (nothing tells its rows from its columns) unless the file says."""
     if view is None:
         return REFUSE_MARGIN
-    file_says = best.terms.get("levelled_axis", 0.0) > 0 or best.terms.get("format_up", 0.0) > WEIGHTS["format_up_habit"]
+    file_says = (best.terms.get("levelled_axis", 0.0) > 0
+                 or best.terms.get("format_up", 0.0) > WEIGHTS["format_up_habit"])
     return SINGLE_VIEW_REFUSE_MARGIN if view.short_axis is not None or file_says else float("inf")
 
 
-def _first_distinct(ranked: tuple[ScoredCandidate, ...], others: tuple[ScoredCandidate, ...]) -> ScoredCandidate | None:
+def _first_distinct(ranked: tuple[ScoredCandidate, ...], others: tuple[ScoredCandidate, ...]
+                    ) -> ScoredCandidate | None:
     """The first candidate that levels the scan differently from every one of `others`."""
     distinct_cos = np.cos(np.radians(DISTINCT_DEG))
     return next((c for c in ranked if all(float(c.up @ o.up) < distinct_cos for o in others)), None)
@@ -347,14 +364,18 @@ def _candidate_words(rec: UpCandidateRecord) -> str:
     up = ",".join(f"{x:.3g}" for x in rec["up"])
     if "floor_area_m2" in rec:
         return f"up {up} (floor {rec['floor_area_m2']:.3g} m2, storey {rec['storey_height_m']:.3g} m)"
-    return f"up {up} (floor {rec['floor_area_units2']:.4g} units2, storey {rec['storey_height_units']:.4g} units)"
+    return (f"up {up} (floor {rec['floor_area_units2']:.4g} units2, "
+            f"storey {rec['storey_height_units']:.4g} units)")
 
 
 def ambiguity_line(name: str, candidates: list[UpCandidateRecord], margin: float | None) -> str:
-    """One line naming both candidates (and a third, when recorded; source coordinates) and the flag that picks one."""
+    """One line naming both candidates (and a third, when recorded; source coordinates) and the flag that
+    picks one."""
     first, second = candidates[0], candidates[1]
     by = "" if margin is None else f" by only {margin:.2f}"
     third = f" (next: {_candidate_words(candidates[2])})" if len(candidates) > 2 else ""
-    return (f"{name}: up is ambiguous: {_candidate_words(first)} beats {_candidate_words(second)}{by}{third}; "
+    return (f"{name}: up is ambiguous: {_candidate_words(first)} beats "
+            f"{_candidate_words(second)}{by}{third}; "
             f"pick one with --up=X,Y,Z (e.g. --up={','.join(f'{x:.3g}' for x in first['up'])}; API: spec "
-            "field up or the space's chosen up), or accept the guess with --accept-up-guess (accept_up_guess)")
+            "field up or the space's chosen up), or accept the guess with --accept-up-guess "
+            "(accept_up_guess)")

@@ -22,8 +22,8 @@ SPEC = {"name": "lev", "cues": ["rgb"], "points": {"count": 2, "min_views": 1}}
 
 
 def _upload(api: Api) -> dict:
-    r = api.client.post("/spaces", files={"file": ("copyroom.ply", COPYROOM.read_bytes())}, data={"name": "copyroom"},
-                        headers=api.a.headers)
+    r = api.client.post("/spaces", files={"file": ("copyroom.ply", COPYROOM.read_bytes())},
+                        data={"name": "copyroom"}, headers=api.a.headers)
     assert r.status_code == 201, r.text
     return r.json()
 
@@ -31,7 +31,8 @@ def _upload(api: Api) -> dict:
 def test_ambiguous_space_held_refused_previewed_then_picked(api: Api) -> None:
     space = _upload(api)
     up = space["frame"]["up"]
-    assert space["needs_frame"] and up["ambiguous"] and up["confidence"] == "low" and space["up_choice"] is None
+    assert (space["needs_frame"] and up["ambiguous"] and up["confidence"] == "low"
+            and space["up_choice"] is None)
     assert 0.5 <= up["probability"] < 0.95 and set(up["evidence"]) >= {"floor_area", "extent", "storey"}
     first, second = up["candidates"][:2]
     assert first["storey_height_m"] > 2 and second["floor_area_m2"] > 1
@@ -41,7 +42,8 @@ def test_ambiguous_space_held_refused_previewed_then_picked(api: Api) -> None:
     r = api.client.post("/jobs", json={"space_ids": [space["id"]], "spec": SPEC}, headers=api.a.headers)
     assert r.status_code == 422, r.text
     detail = r.json()["detail"]
-    assert "up is ambiguous" in detail and "--up=X,Y,Z" in detail and f"PUT /spaces/{space['id']}/up" in detail
+    assert ("up is ambiguous" in detail and "--up=X,Y,Z" in detail
+            and f"PUT /spaces/{space['id']}/up" in detail)
     assert detail.count("floor ") == detail.count("storey ") == len(up["candidates"]) >= 2
     # ... unless the spec accepts the guess
     r = api.client.post("/jobs", json={"space_ids": [space["id"]], "spec": {**SPEC, "accept_up_guess": True}},
@@ -57,8 +59,10 @@ def test_ambiguous_space_held_refused_previewed_then_picked(api: Api) -> None:
         assert img.shape == (150, 240) and (img < 200).mean() > 0.05
         pictures.append(img)
     assert (pictures[0] != pictures[1]).mean() > 0.1
-    assert api.client.get(f"/spaces/{space['id']}/up-candidates/3.png", headers=api.a.headers).status_code == 422
-    assert api.client.get(f"/spaces/{space['id']}/up-candidates/0.png", headers=api.b.headers).status_code == 404
+    assert api.client.get(f"/spaces/{space['id']}/up-candidates/3.png",
+                          headers=api.a.headers).status_code == 422
+    assert api.client.get(f"/spaces/{space['id']}/up-candidates/0.png",
+                          headers=api.b.headers).status_code == 404
 
     # the pick is stored with the space and changes its frame
     bad = api.client.put(f"/spaces/{space['id']}/up", json={"up": [0, 0, 0]}, headers=api.a.headers)
@@ -71,7 +75,8 @@ def test_ambiguous_space_held_refused_previewed_then_picked(api: Api) -> None:
     T = np.array(picked["source_to_world"])
     world_up = T[:3, :3] @ np.array(second["up"])
     assert world_up[2] > 0 and np.allclose(world_up[:2], 0, atol=1e-9)
-    assert api.client.get(f"/spaces/{space['id']}", headers=api.a.headers).json()["up_choice"] == picked["up_choice"]
+    assert (api.client.get(f"/spaces/{space['id']}", headers=api.a.headers).json()["up_choice"]
+            == picked["up_choice"])
 
     # later jobs are accepted and plan (and render) in the chosen frame
     r = api.client.post("/jobs", json={"space_ids": [space["id"]], "spec": SPEC}, headers=api.a.headers)
@@ -109,7 +114,8 @@ def test_a_repick_while_a_job_renders_keeps_the_planners_frame(api: Api, tmp_pat
     with api.sessions() as s:  # claim this job only (the database is shared with other tests' jobs)
         job = s.get(Job, job_id)
         assert job is not None
-        job.state, job.planner, job.planner_lease_until = JobState.PLANNING, "s17b", utcnow() + timedelta(minutes=5)
+        job.state, job.planner, job.planner_lease_until = (JobState.PLANNING, "s17b",
+                                                           utcnow() + timedelta(minutes=5))
         s.commit()
     sched = Scheduler(api.sessions, api.store, NullTransport(), get_settings(data_dir=tmp_path), "s17b")
     assert sched.plan_job(job_id)
@@ -131,12 +137,13 @@ def test_a_repick_while_a_job_renders_keeps_the_planners_frame(api: Api, tmp_pat
     np.testing.assert_allclose(loaded.source_to_world, planned_T, atol=1e-12)
     # a job planned now would take the new pick
     assert space_frame_for(JobSpec.model_validate(SPEC), row)["up"] == row.validation["up_choice"]["up"]
-    assert not np.allclose(load_space(COPYROOM, **space_frame_for(JobSpec.model_validate(SPEC), row)).source_to_world,
-                           planned_T)
+    assert not np.allclose(
+        load_space(COPYROOM, **space_frame_for(JobSpec.model_validate(SPEC), row)).source_to_world, planned_T)
 
 
 def test_pick_and_preview_parse_the_scan_in_the_limited_child(api: Api, monkeypatch) -> None:
-    """Neither route parses the stored scan in the API process: with the parser disabled there, both still work."""
+    """Neither route parses the stored scan in the API process: with the parser disabled there, both still
+    work."""
     import trimesh
 
     from services.api.spaces import up_choice
@@ -159,8 +166,8 @@ def test_pick_and_preview_parse_the_scan_in_the_limited_child(api: Api, monkeypa
 
 
 def test_ambiguous_units_held_refused_then_picked(api: Api, tmp_path: Path) -> None:
-    """A levelled partial scan in centimetres whose origin says nothing: cm or inches; the job is refused naming
-    both."""
+    """A levelled partial scan in centimetres whose origin says nothing: cm or inches; the job is refused
+    naming both."""
     import trimesh
 
     from services.core.ingest.frame import rotation_to_z
@@ -174,8 +181,8 @@ def test_ambiguous_units_held_refused_then_picked(api: Api, tmp_path: Path) -> N
     mesh.apply_translation([5000.0, 0.0, 5000.0])
     src = tmp_path / "partial_cm.ply"
     mesh.export(src)
-    r = api.client.post("/spaces", files={"file": ("partial_cm.ply", src.read_bytes())}, data={"name": "partial"},
-                        headers=api.a.headers)
+    r = api.client.post("/spaces", files={"file": ("partial_cm.ply", src.read_bytes())},
+                        data={"name": "partial"}, headers=api.a.headers)
     assert r.status_code == 201, r.text
     space = r.json()
     units = space["frame"]["units"]
@@ -184,7 +191,8 @@ def test_ambiguous_units_held_refused_then_picked(api: Api, tmp_path: Path) -> N
     r = api.client.post("/jobs", json={"space_ids": [space["id"]], "spec": SPEC}, headers=api.a.headers)
     assert r.status_code == 422, r.text
     detail = r.json()["detail"]
-    assert "units are ambiguous" in detail and "--unit-scale=0.01" in detail and "--unit-scale=0.0254" in detail
+    assert ("units are ambiguous" in detail and "--unit-scale=0.01" in detail
+            and "--unit-scale=0.0254" in detail)
     assert "storey" in detail and f"PUT /spaces/{space['id']}/up" in detail
     ok = api.client.post("/jobs", json={"space_ids": [space["id"]], "spec": {**SPEC, "unit_scale": 0.01}},
                          headers=api.a.headers)

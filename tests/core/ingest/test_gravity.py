@@ -1,4 +1,5 @@
-"""Gravity and units of scans in any orientation and unit (services.core.ingest.gravity, through load_space too)."""
+"""Gravity and units of scans in any orientation and unit (services.core.ingest.gravity, through load_space
+too)."""
 
 from __future__ import annotations
 
@@ -49,7 +50,8 @@ def test_plane_families_find_tilted_walls_and_floor() -> None:
 
 
 def test_the_histogram_smoothing_pairs_are_the_bins_within_six_degrees_antipodes_folded() -> None:
-    """The neighbour matrix found through the bin tree is the defined one: |a.b| > cos 6 degrees over all pairs."""
+    """The neighbour matrix found through the bin tree is the defined one: |a.b| > cos 6 degrees over all
+    pairs."""
     from services.core.ingest.direction_bins import BINS, bin_neighbours
 
     found = bin_neighbours()
@@ -85,7 +87,8 @@ def test_confidence_recorded_and_an_empty_box_refused_naming_both_candidates(tmp
 
 
 def test_a_wall_as_large_as_the_floor_is_refused_naming_both_candidates(tmp_path: Path) -> None:
-    """An L-shaped partial scan (floor and one wall of the same size, no ceiling): refused, or taken with a guess."""
+    """An L-shaped partial scan (floor and one wall of the same size, no ceiling): refused, or taken with a
+    guess."""
     floor = trimesh.Trimesh([[0, 0, 0], [4, 0, 0], [4, 3, 0], [0, 3, 0]], [[0, 1, 2], [0, 2, 3]])
     wall = trimesh.Trimesh([[0, 0, 0], [0, 3, 0], [0, 3, 4], [0, 0, 4]], [[0, 1, 2], [0, 2, 3]])
     scan = trimesh.util.concatenate([floor, wall])
@@ -150,7 +153,8 @@ def test_a_room_in_millimetres_far_from_every_axis_loads_levelled(tmp_path: Path
 
 def test_given_up_vector_and_source_to_world(tmp_path: Path) -> None:
     src = tmp_path / "room.ply"
-    scenes.furnished_room().apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0])).export(src)
+    scenes.furnished_room().apply_transform(
+        trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0])).export(src)
     given = load_space(src, up=[0.0, -2.0, 0.0])  # any length; +Z went to -Y
     assert given.up_method == "given" and given.units.unit == "metres"  # storey height from the given up
     np.testing.assert_allclose(given.source_to_world[:3, :3] @ [0, -1, 0], [0, 0, 1], atol=1e-12)
@@ -176,7 +180,8 @@ def test_given_up_vector_and_source_to_world(tmp_path: Path) -> None:
 def test_a_flat_scan_is_seen_from_the_side_its_faces_face(normal: list[float]) -> None:
     """A scan of a floor alone (no height at all) is a floor: up is its normal, not the opposite."""
     grid = trimesh.creation.box((3.0, 2.0, 1.0))
-    flat = trimesh.Trimesh(*trimesh.remesh.subdivide(grid.vertices, grid.faces[grid.face_normals[:, 2] > 0.9]))
+    flat = trimesh.Trimesh(*trimesh.remesh.subdivide(grid.vertices,
+                                                     grid.faces[grid.face_normals[:, 2] > 0.9]))
     flat.vertices[:, 2] = 0.0
     n = np.asarray(normal) / np.linalg.norm(normal)
     R = trimesh.geometry.align_vectors([0.0, 0.0, 1.0], n)
@@ -189,18 +194,20 @@ def test_unit_evidence_picks_centimetres_or_refuses_never_guesses() -> None:
     from services.core.ingest.unit_evidence import ScanMeasures, decide_units
 
     # 150 units tall, no ceiling: 1.5 m in cm or 3.81 m in inches
-    partial = ScanMeasures(storey=150.0, extent=(340.0, 250.0, 150.0), ceiling_seen=False, origin_height=145.0,
-                           furniture_low_top=75.0, median_edge=4.0)
+    partial = ScanMeasures(storey=150.0, extent=(340.0, 250.0, 150.0), ceiling_seen=False,
+                           origin_height=145.0, furniture_low_top=75.0, median_edge=4.0)
     d = decide_units(partial)
     assert [c.unit for c in d.ranked] == ["centimetres", "inches"] and not d.ambiguous
-    assert d.ranked[1].terms["camera"] < 0 and d.ranked[1].terms["furniture"] < 0  # a 3.7 m camera, 1.9 m tables
+    # a 3.7 m camera, 1.9 m tables
+    assert d.ranked[1].terms["camera"] < 0 and d.ranked[1].terms["furniture"] < 0
     # nothing but the storey: no camera at the origin, no furniture, coarse triangles
     bare = ScanMeasures(150.0, (340.0, 250.0, 150.0), False, None, None, 100.0)
     assert decide_units(bare).ambiguous
     # a ceiling seen: 1.5 m is no storey, inches (3.81 m) is the only candidate
     closed = decide_units(ScanMeasures(150.0, (340.0, 250.0, 150.0), True, None, None, 100.0))
     assert [c.unit for c in closed.ranked] == ["inches"] and not closed.ambiguous
-    assert [c.unit for c in decide_units(ScanMeasures(2.5, (5.0, 4.0, 2.5), True, 1.2, 0.7, 0.03)).ranked] == ["metres"]
+    assert [c.unit for c in decide_units(
+        ScanMeasures(2.5, (5.0, 4.0, 2.5), True, 1.2, 0.7, 0.03)).ranked] == ["metres"]
 
 
 def test_the_median_edge_length_is_trimeshs_median_of_its_unique_edges(scenes_dir: Path) -> None:

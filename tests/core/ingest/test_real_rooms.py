@@ -1,6 +1,7 @@
-"""Real rooms as users bring them (bench/scans/rooms, a small subset): the file each case would be, written and read
-back through `load_space`, the loader that really runs. Levelled within 3 degrees, or refused with the true up as
-the first candidate; never levelled wrong. The whole corpus is measured by bench/ingest_real.py."""
+"""Real rooms as users bring them (bench/scans/rooms, a small subset): the file each case would be, written
+and read back through `load_space`, the loader that really runs. Levelled within 3 degrees, or refused with
+the true up as the first candidate; never levelled wrong. The whole corpus is measured by
+bench/ingest_real.py."""
 
 from __future__ import annotations
 
@@ -57,7 +58,8 @@ def test_real_rooms_levelled_or_refused_true_up_first_never_wrong(tmp_path: Path
                 assert up_error_deg(first, truth) < 10.0, (name, case, "refused, the true up not first")
                 continue
             world_up = space.source_to_world[:3, :3] @ truth
-            assert up_error_deg(world_up, np.array([0.0, 0.0, 1.0])) < 3.0, (name, case, space.frame_summary())
+            assert up_error_deg(world_up, np.array([0.0, 0.0, 1.0])) < 3.0, (
+                name, case, space.frame_summary())
             assert space.units is not None and space.units.scale == pytest.approx(scale), (name, case)
             levelled.append((name, case))
     # what the file says (an axis-aligned floor, glTF's +Y) and the geometry level most of them without asking
@@ -65,8 +67,8 @@ def test_real_rooms_levelled_or_refused_true_up_first_never_wrong(tmp_path: Path
 
 
 def test_a_levelled_y_up_glb_follows_gltf_and_says_so(tmp_path: Path) -> None:
-    """glTF's +Y is up by its specification: a levelled partial room written as a Y-up GLB is levelled on +Y, and
-    the recorded reason names the file's frame."""
+    """glTF's +Y is up by its specification: a levelled partial room written as a Y-up GLB is levelled on +Y,
+    and the recorded reason names the file's frame."""
     path, truth, _ = _as_exported("kitchen_partial_170", "levelled_y_glb", tmp_path)
     space = load_space(path)
     np.testing.assert_allclose(space.up_source, [0.0, 1.0, 0.0])
@@ -81,10 +83,11 @@ def _transform(mesh: trimesh.Trimesh, R: np.ndarray) -> None:
     mesh.apply_transform(T)
 
 
-def test_a_wall_left_on_an_axis_by_a_rotation_about_it_is_not_taken_for_a_levelled_floor(tmp_path: Path) -> None:
-    """A real room levelled, turned so that a wall faces +X, then tilted 9 degrees about +X: the wall stays on a
-    source axis while the floor leaves every axis. An axis-aligned plane is evidence of a levelled file, not proof:
-    the wall's axis does not outweigh the geometry, and the floor is found."""
+def test_a_wall_left_on_an_axis_by_a_rotation_about_it_is_not_taken_for_a_levelled_floor(
+        tmp_path: Path) -> None:
+    """A real room levelled, turned so that a wall faces +X, then tilted 9 degrees about +X: the wall stays on
+    a source axis while the floor leaves every axis. An axis-aligned plane is evidence of a levelled file, not
+    proof: the wall's axis does not outweigh the geometry, and the floor is found."""
     room = ROOMS["scannet_scene0470_00_scan2cad"]
     mesh = trimesh.load(REPO / room["file"], force="mesh", process=False)
     _transform(mesh, rotation_to_z(np.asarray(room["up"], dtype=float)))

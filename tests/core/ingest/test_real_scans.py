@@ -1,6 +1,7 @@
 """Real reconstructions in any rotation and unit: levelled within 3 degrees, or refused naming both
 candidates (one of them right); never levelled wrong without a refusal. With the capture's camera poses,
-always levelled. Units: right or refused naming each candidate, never wrong. Decimated copies of the real corpus (tests/fixtures/real_scans), fast enough for every CI run."""
+always levelled. Units: right or refused naming each candidate, never wrong. Decimated copies of the real
+corpus (tests/fixtures/real_scans), fast enough for every CI run."""
 
 from __future__ import annotations
 
@@ -32,7 +33,8 @@ def test_real_scans_levelled_or_refused_never_wrong(rooms: list) -> None:
             refused += 1
             assert est.decision is not None and est.decision.runner_up is not None
             named = [c.up for c in est.decision.shown]
-            assert min(up_error_deg(u, case.up) for u in named) < 5.0, where  # the user can pick the right one
+            # the user can pick the right one
+            assert min(up_error_deg(u, case.up) for u in named) < 5.0, where
         else:
             levelled += 1
             assert err < 3.0, where
@@ -52,8 +54,9 @@ def test_with_capture_poses_every_real_scan_is_levelled(rooms: list) -> None:
 
 
 def test_partial_kitchen_scan_in_millimetres_levelled_without_asking(tmp_path: Path) -> None:
-    """As a user would: a partial scan (no ceiling, a wall of cabinets as large as its floor) stored in its first
-    camera's frame, exported in millimetres: levelled within 3 degrees, in millimetres, and `plan` can say why."""
+    """As a user would: a partial scan (no ceiling, a wall of cabinets as large as its floor) stored in its
+    first camera's frame, exported in millimetres: levelled within 3 degrees, in millimetres, and `plan` can
+    say why."""
     import trimesh
 
     mesh = trimesh.load(REAL_SCANS / "kitchen_partial_170.ply", process=False)
@@ -68,7 +71,8 @@ def test_partial_kitchen_scan_in_millimetres_levelled_without_asking(tmp_path: P
 
 
 def _partial_cm(name: str, tmp_path: Path, shift: bool = False) -> tuple[Path, np.ndarray]:
-    """A partial kitchen scan exported in centimetres (its first camera at the origin, unless `shift`ed away)."""
+    """A partial kitchen scan exported in centimetres (its first camera at the origin, unless `shift`ed
+    away)."""
     import trimesh
 
     mesh = trimesh.load(REAL_SCANS / f"{name}.ply", process=False)
@@ -81,35 +85,41 @@ def _partial_cm(name: str, tmp_path: Path, shift: bool = False) -> tuple[Path, n
 
 
 def test_partial_scan_in_centimetres_is_not_read_as_inches(tmp_path: Path) -> None:
-    """1.8 m tall without a ceiling: 180 units read as inches would make it a 4.6 m storey (the old answer)."""
+    """1.8 m tall without a ceiling: 180 units read as inches would make it a 4.6 m storey (the old
+    answer)."""
     src, truth = _partial_cm("kitchen_partial_170", tmp_path)
     space = load_space(src, up=truth)
     assert space.units is not None and space.units.scale == 0.01 and space.units.unit == "centimetres"
-    inches = next(c for c in space.units.candidates if c["unit"] == "inches")  # the alternative, and why it lost
+    # the alternative, and why it lost
+    inches = next(c for c in space.units.candidates if c["unit"] == "inches")
     assert inches["storey_height_m"] > 4 and inches["evidence"]["camera"] < 0 and not space.units.ambiguous
     assert space.frame_record()["units"]["candidates"][0]["unit"] == "centimetres"
 
 
 def test_ambiguous_units_refused_naming_both_then_picked(tmp_path: Path) -> None:
-    """No camera at the origin and no furniture above 1.5 m either way: cm or inches is a coin toss; refused."""
+    """No camera at the origin and no furniture above 1.5 m either way: cm or inches is a coin toss;
+    refused."""
     src, truth = _partial_cm("kitchen_partial_000", tmp_path, shift=True)
     with pytest.raises(UnitsAmbiguous) as err:
         load_space(src, up=truth)
     line = str(err.value)
     assert "\n" not in line and "units are ambiguous" in line
-    assert "centimetres (--unit-scale=0.01: storey 1.4" in line and "inches (--unit-scale=0.0254: storey 3.7" in line
+    assert ("centimetres (--unit-scale=0.01: storey 1.4" in line
+            and "inches (--unit-scale=0.0254: storey 3.7" in line)
     assert {c["unit"] for c in err.value.candidates} == {"centimetres", "inches"}
     picked = load_space(src, up=truth, unit_scale=0.01).units
     assert picked is not None and picked.scale == 0.01 and picked.unit == "given"
     guessed = load_space(src, up=truth, accept_up_guess=True)
-    assert guessed.units is not None and guessed.units.ambiguous and guessed.frame_record()["units"]["ambiguous"]
+    assert (guessed.units is not None and guessed.units.ambiguous
+            and guessed.frame_record()["units"]["ambiguous"])
 
 
-def test_rotated_7scenes_kitchen_in_mm_levelled_or_refused_true_up_first(scenes_dir: Path, tmp_path: Path) -> None:
-    """The full fused 7-Scenes kitchen (a partial room: no ceiling, a wall of cabinets as large as its floor), turned
-    by a rotation under which the capture-frame prior favours a wall and exported in millimetres: levelled within 3
-    degrees of the capture's measured gravity, or refused with that gravity first and levelled with the --up the
-    refusal suggests; in millimetres either way."""
+def test_rotated_7scenes_kitchen_in_mm_levelled_or_refused_true_up_first(
+        scenes_dir: Path, tmp_path: Path) -> None:
+    """The full fused 7-Scenes kitchen (a partial room: no ceiling, a wall of cabinets as large as its floor),
+    turned by a rotation under which the capture-frame prior favours a wall and exported in millimetres:
+    levelled within 3 degrees of the capture's measured gravity, or refused with that gravity first and
+    levelled with the --up the refusal suggests; in millimetres either way."""
     import trimesh
     from scipy.spatial.transform import Rotation
 

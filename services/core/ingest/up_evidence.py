@@ -8,12 +8,14 @@ candidate with the best one that would level the scan differently (more than `DI
 - `floor_area`: the floor seen from above plus the furniture surplus (gravity's area score), as the log
   of its ratio to the best candidate's. Plane area alone is what fails on partial scans: a wall or a
   row of cabinet fronts can be as large as the visible floor.
-- `furniture`: furniture tops face up and their undersides are rarely scanned, so the horizontal area at
-  mid height faces down along the opposite of up: a penalty up to -1 for a candidate that sees mostly
-  undersides (the ceiling taken as floor). No bonus: cabinet fronts do the same along a wall's normal.
+- `furniture`: furniture tops face up and their undersides are rarely scanned: the horizontal area between
+  bands of a fifth of the height at both ends (soffits and lamps sit nearer the ceiling), facing up minus
+  facing down over their sum, from +1 (tops seen) to -1 (the ceiling taken as floor). It decides the sign of
+  a family; cabinet fronts score along a wall's normal too, which is why it weighs less than `extent`.
 - `extent`: rooms are wider than tall. Height along `u` over the square root of the cross-section
   across `u`, as the log of its ratio to the thinnest candidate's (a wall taken as floor turns the
-  room's width into its "height").
+  room's width into its "height"). On the real rooms of bench/ingest_real.py it ranks the floor's family
+  first in every multi-view room: the heaviest geometric term.
 - `storey`: whether the extent along `u` is a storey (2.2-3.5 m, or 1.2-3.5 m for a scan without a
   ceiling: partial scans rarely see it) in one of the units we accept; a penalty when it fits none.
 - `capture_convention`: RGB-D reconstructions are stored in their first camera's OpenCV frame, so up

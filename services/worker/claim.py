@@ -17,7 +17,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime, timedelta
 from pathlib import Path
-from typing import TypeVar
+from typing import Any, TypeVar
 
 from sqlalchemy import select
 from sqlalchemy.exc import DBAPIError, DisconnectionError, InterfaceError, OperationalError
@@ -233,23 +233,7 @@ class TaskLedger:
         """running -> pending, as before their claim (attempts, no worker, no lease), of batch tasks that did not
         run because an input of theirs failed in the batch: the dispatcher queues them once their inputs are
         done, or fails them with the input. 'lost' when the database stays away (the reaper retries them)."""
-        def step() -> set[int]:
-            with self.sessionmaker() as s:
-                moved = transition(s, job_id=tasks[0].job_id, task_ids=[t.id for t in tasks],
-                                   from_state=TaskState.RUNNING, to_state=TaskState.PENDING,
-                                   where=[Task.worker_id == self.worker_id], worker_id=None, lease_until=None,
-                                   started_at=None, queued_at=None, attempts=Task.attempts - 1)
-                s.commit()
-                return {tid for tid, _ in moved}
-
-        try:
-            ours = self.db(step, f"hand back {len(tasks)} tasks of a view batch")
-        except Exception as exc:
-            log.error("tasks %s: not handed back (%s); the reaper will retry them", [t.id for t in tasks],
-                      format_error(exc, 0))
-            return [Outcome(t.id, "lost", t.cue, t.job_id, error=format_error(exc)) for t in tasks]
-        return [Outcome(t.id, "skipped" if t.id in ours else "discarded", t.cue, t.job_id, error=why)
-                for t in tasks]
+        return self._to_pending(tasks, "skipped", why, f"hand back {len(tasks)} tasks of a view batch")
 
     def is_settled(self, task_id: int) -> bool:
         """True when the task is neither queued nor pending (a read, no lock, no transaction on Postgres): a
@@ -335,27 +319,37 @@ class TaskLedger:
         full disk. 'lost' when the database stays away."""
         error = format_error(problem)
 
+        def pause_job(s: Session) -> None:
+            # the job's row first, as cancel and delete lock it: the same order, no deadlock with them
+            if hold_for_storage(s, tasks[0].job_id, str(problem)):
+                log.warning("job %d paused: %s", tasks[0].job_id, problem)
+
+        return self._to_pending(tasks, "held", error, f"hand back {len(tasks)} tasks the store did not take",
+                                before=pause_job, not_before=None, error=error)
+
+    def _to_pending(self, tasks: list[Claimed], status: str, why: str, what: str,
+                    before: Callable[[Session], None] | None = None, **columns: Any) -> list[Outcome]:
+        """running -> pending of this worker's `tasks`, their attempt not counted, in one transaction (`before`
+        runs first in it); each Outcome is `status`, or 'discarded' for a task no longer this worker's, or 'lost'
+        when the database stays away (the reaper retries them)."""
         def step() -> set[int]:
             with self.sessionmaker() as s:
-                # the job's row first, as cancel and delete lock it: the same order, no deadlock with them
-                if hold_for_storage(s, tasks[0].job_id, str(problem)):
-                    log.warning("job %d paused: %s", tasks[0].job_id, problem)
+                if before is not None:
+                    before(s)
                 moved = transition(s, job_id=tasks[0].job_id, task_ids=[t.id for t in tasks],
                                    from_state=TaskState.RUNNING, to_state=TaskState.PENDING,
                                    where=[Task.worker_id == self.worker_id], worker_id=None, lease_until=None,
-                                   started_at=None, queued_at=None, not_before=None, error=error,
-                                   attempts=Task.attempts - 1)
+                                   started_at=None, queued_at=None, attempts=Task.attempts - 1, **columns)
                 s.commit()
                 return {tid for tid, _ in moved}
 
         try:
-            ours = self.db(step, f"hand back {len(tasks)} tasks the store did not take")
+            ours = self.db(step, what)
         except Exception as exc:
             log.error("tasks %s: not handed back (%s); the reaper will retry them", [t.id for t in tasks],
                       format_error(exc, 0))
             return [Outcome(t.id, "lost", t.cue, t.job_id, error=format_error(exc)) for t in tasks]
-        return [Outcome(t.id, "held" if t.id in ours else "discarded", t.cue, t.job_id, error=error)
-                for t in tasks]
+        return [Outcome(t.id, status if t.id in ours else "discarded", t.cue, t.job_id, error=why) for t in tasks]
 
     def record_failure(self, t: Claimed, exc: BaseException, duration: float, max_attempts: int) -> Outcome:
         """running -> pending after a backoff while attempts remain, else failed; counts the worker's failure."""

@@ -1,6 +1,6 @@
-"""`omnidata plan`/`generate` on a real partial scan, rotated and in millimetres: stop with one line naming
-the candidates and --up; plan with the --up the user picks, or on the guess when --accept-up-guess is given;
-job.json reports the probability and the evidence."""
+"""`omnidata plan`/`generate` on a real room whose walls are as large as its floor (the BundleFusion copy room),
+rotated and in millimetres: stop with one line naming the candidates and --up; plan with the --up the user picks,
+or on the guess when --accept-up-guess is given; job.json reports the probability and the evidence."""
 
 from __future__ import annotations
 
@@ -18,9 +18,9 @@ from tests.fixtures.rotation_corpus import up_error_deg
 
 
 def _rotated_mm(tmp_path: Path) -> tuple[Path, np.ndarray]:
-    room = next(r for r, _ in real_rooms() if r.name == "kitchen_partial_170")
+    room = next(r for r, _ in real_rooms() if r.name == "copyroom")
     R = Rotation.from_euler("xyz", [63, -21, 140], degrees=True).as_matrix()
-    mesh = trimesh.load(REAL_SCANS / "kitchen_partial_170.ply", process=False)
+    mesh = trimesh.load(REAL_SCANS / "copyroom.ply", process=False)
     mesh.vertices = (mesh.vertices @ R.T) * 1000.0
     src = tmp_path / "partial_rot_mm.ply"
     mesh.export(src)
@@ -58,7 +58,7 @@ def test_plan_stops_then_plans_with_the_picked_up(tmp_path: Path) -> None:
     _, space = _level_error(tmp_path / "r" / "job.json", truth)
     up = space["up"]
     assert up["ambiguous"] and up["confidence"] == "low" and 0.5 <= up["probability"] < 1.0
-    assert {"floor_area", "extent", "storey", "capture_convention"} <= set(up["evidence"])
+    assert {"floor_area", "extent", "storey", "levelled_axis", "format_up"} <= set(up["evidence"])
     assert len(up["candidates"]) >= 2 and "low confidence" in res.stderr
 
 

@@ -52,14 +52,12 @@ from services.core.ingest.up_evidence import (
 )
 
 CONVENTION_UP = {".obj": "+y", ".gltf": "+y", ".glb": "+y", ".ply": "+z"}
-_SPECIFIED_UP = (".gltf", ".glb")  # formats whose specification fixes up (+Y): no capture convention
+_SPECIFIED_UP = (".gltf", ".glb")  # formats whose specification fixes up (+Y)
 
 
 def file_frame(suffix: str) -> FileFrame:
-    """What a file of this format says about its up before any geometry is looked at."""
-    specified = suffix in _SPECIFIED_UP
-    return FileFrame(axis_vector(CONVENTION_UP.get(suffix, "+z")), binding=specified,
-                     first_camera=not specified)
+    """What a file of this format says about its up before any floor is looked at."""
+    return FileFrame(axis_vector(CONVENTION_UP.get(suffix, "+z")), binding=suffix in _SPECIFIED_UP)
 
 
 # The one floor rule: a floor face's normal lies within 15 degrees of up. The planner's detect_floors
@@ -353,8 +351,8 @@ def estimate_up(mesh: trimesh.Trimesh, suffix: str, capture_up: np.ndarray | Non
         return UpEstimate(conv, "convention")
     cands = [_floor_candidate(geom, s * f) for f, _ in families for s in (1.0, -1.0)]
     if any(c.floor_fraction >= _FLOOR_MIN_FRACTION for c in cands):
-        decision = decide([c.facts() for c in cands], cam_up, file_frame(suffix), disabled_evidence,
-                          single_view(geom.vertices))
+        decision = decide([c.facts() for c in cands], cam_up, file_frame(suffix),
+                          disabled_evidence, single_view(geom.vertices))
         best = next(c for c in cands if c.up is decision.best.up)
         runner = decision.runner_up
         angle = _angle_deg(best.up, runner.up) if runner is not None else None

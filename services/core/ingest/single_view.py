@@ -30,22 +30,37 @@ class SingleView:
     short_axis: np.ndarray | None
 
 
-def single_view(vertices: np.ndarray) -> SingleView | None:
-    """The view of a scan whose points all lie in one camera's frustum at the source origin, else None."""
+def _directions(vertices: np.ndarray) -> np.ndarray | None:
+    """Unit directions from the source origin to (a sample of) the vertices; None for fewer than 100."""
     v = np.asarray(vertices, dtype=np.float64)
     v = v[:: len(v) // _SAMPLE + 1]
     norms = np.linalg.norm(v, axis=1)
     v, norms = v[norms > 0], norms[norms > 0]
-    if len(v) < 100:
+    return None if len(v) < 100 else v / norms[:, None]
+
+
+def _seen_from_origin(vertices: np.ndarray) -> np.ndarray | None:
+    """The mean direction (unit) from the source origin to the scan, when the scan lies on one side of the
+    origin (a capture stored in its first camera's frame: that camera stood there, looking along +Z); None when
+    the scan surrounds the origin or lies every way from it."""
+    d = _directions(vertices)
+    if d is None:
         return None
-    d = v / norms[:, None]
     mean = d.mean(axis=0)
-    if np.linalg.norm(mean) < 0.5:  # points all around the origin: the scan surrounds it
+    n = float(np.linalg.norm(mean))
+    return None if n < 0.5 else mean / n
+
+
+def single_view(vertices: np.ndarray) -> SingleView | None:
+    """The view of a scan whose points all lie in one camera's frustum at the source origin, else None."""
+    d = _directions(vertices)
+    mean = None if d is None else _seen_from_origin(vertices)
+    if d is None or mean is None:
         return None
-    mean /= np.linalg.norm(mean)
     if np.percentile(np.degrees(np.arccos(np.clip(d @ mean, -1.0, 1.0))), 98) > VIEW_CONE_DEG:
         return None
     across = d - np.outer(d @ mean, mean)
-    values, vectors = np.linalg.eigh(across.T @ across)  # ascending: ~0 along the view, short axis, wide axis
+    # ascending: ~0 along the view, short axis, wide axis
+    values, vectors = np.linalg.eigh(across.T @ across)
     landscape = values[1] > 0 and np.sqrt(values[2] / values[1]) >= LANDSCAPE_ASPECT
     return SingleView(mean, vectors[:, 1] if landscape else None)

@@ -18,10 +18,6 @@ candidate with the best one that would level the scan differently (more than `DI
   first in every multi-view room: the heaviest geometric term.
 - `storey`: whether the extent along `u` is a storey (2.2-3.5 m, or 1.2-3.5 m for a scan without a
   ceiling: partial scans rarely see it) in one of the units we accept; a penalty when it fits none.
-- `capture_convention`: RGB-D reconstructions are stored in their first camera's OpenCV frame, so up
-  lies within ~50 degrees of -Y; not for glTF, whose specification says +Y. Weak: a rotated file breaks it.
-  Its weight is below `REFUSE_MARGIN`, so on its own it can turn a guess into a refusal but never into a
-  confident answer.
 - `levelled_axis`: a plausible floor within `AXIS_DEG` of a source axis. A random orientation puts a given
   direction that close to one of the six axis directions with odds of about 1 in 1,000, while people and
   devices export levelled files far more often than rotated ones: strong evidence that the file is levelled.
@@ -53,14 +49,14 @@ from services.core.ingest.single_view import SingleView
 
 DISTINCT_DEG = 30.0  # candidates closer than this level the scan the same way
 # score margin below which the estimate is ambiguous: on the real rooms of bench/ingest_real.py (as delivered,
-# levelled, rotated) no wrong winner scored more than 1.65 above its runner-up with these weights
-REFUSE_MARGIN = 1.8
+# levelled, rotated) no wrong winner scored more than 0.85 above its runner-up with these weights
+REFUSE_MARGIN = 1.2
 # one depth frame: on the real frames of bench/ingest_real.py wrong winners led by up to 4.4 (a floor out of
 # view)
 SINGLE_VIEW_REFUSE_MARGIN = 4.5
-# logistic slope of P(right | margin), the likeliest on bench/ingest_real.py's real rooms
+# logistic slope of P(right | margin): the likeliest on bench/ingest_real.py's real rooms while a wrong winner
+# still reached 1.65; none does now, so the probability it states above REFUSE_MARGIN (>= 88 %) is conservative
 CONFIDENCE_SLOPE = 1.7
-CAPTURE_CONE_DEG = 50.0
 VIEW_PITCH_DEG = 50.0  # a depth camera pointed further up or down than this sees no room
 CAMERA_FRAME_DEG = 10.0  # a single view looking this close to +Z is stored in its camera's (OpenCV) frame
 POSE_CONE_DEG = 45.0
@@ -69,7 +65,6 @@ OPEN_STOREY_M = (1.2, 3.5)  # no ceiling scanned
 UNIT_SCALES = (1.0, 0.01, 0.001, 0.0254)
 
 AXIS_DEG = 1.5  # a floor this close to a source axis was levelled by whoever exported the file
-LOOKS_LEVELLED_DEG = 3.0  # a floor this close to an axis: not a first camera's frame (`_with_file_terms`)
 # a floor this close to the up a format's specification fixes is that up (a drifted scan's floor)
 FORMAT_DEG = 5.0
 # what the file says counts for a candidate the geometry does not rule out: one this far below the geometry's
@@ -86,7 +81,6 @@ WEIGHTS = {
     "furniture": 3.0,
     "extent": 6.0,
     "storey": 0.5,
-    "capture_convention": 0.8,
     "capture_up": 4.0,
     "view_direction": 6.0,
     "view_aspect": 3.0,
@@ -95,13 +89,11 @@ WEIGHTS = {
 
 @dataclass(frozen=True)
 class FileFrame:
-    """What a file says about its up, before any geometry: the format's up axis (source frame), whether the
-    format's specification fixes it (glTF) or it is a habit (PLY, OBJ), and whether the file may be an RGB-D
-    reconstruction stored in its first camera's frame."""
+    """What a file says about its up, before any geometry: the format's up axis (source frame) and whether the
+    format's specification fixes it (glTF) or it is a habit (PLY, OBJ)."""
 
     axis: np.ndarray
     binding: bool = False
-    first_camera: bool = True
 
 
 def _on_axis(u: np.ndarray, axis: np.ndarray) -> bool:
@@ -214,11 +206,10 @@ def _storey_term(f: CandidateFacts) -> float:
     return 0.0 if fits else -1.0
 
 
-def _file_terms(f: CandidateFacts, file: FileFrame, plausible: bool, levelled: bool, camera_frame: bool
-                ) -> dict[str, float]:
+def _file_terms(f: CandidateFacts, file: FileFrame, plausible: bool, levelled: bool) -> dict[str, float]:
     """What the file says of this candidate (see the module docstring). `plausible`: it could be the floor;
     `levelled`: an axis-aligned floor may mean a levelled export (not in a depth frame's own camera frame,
-    where it only means a camera held level); `camera_frame`: the file may be in its first camera's frame."""
+    where it only means a camera held level)."""
     terms = {"levelled_axis": WEIGHTS["levelled_axis"]
              if levelled and plausible and on_a_source_axis(f.up) else 0.0}
     if file.binding:
@@ -226,9 +217,6 @@ def _file_terms(f: CandidateFacts, file: FileFrame, plausible: bool, levelled: b
         terms["format_up"] = WEIGHTS["format_up_binding"] if near and plausible else 0.0
     else:
         terms["format_up"] = WEIGHTS["format_up_habit"] if _on_axis(f.up, file.axis) else 0.0
-    if camera_frame:
-        in_cone = -float(f.up[1]) > np.cos(np.radians(CAPTURE_CONE_DEG))
-        terms["capture_convention"] = WEIGHTS["capture_convention"] if in_cone else 0.0
     return terms
 
 
@@ -287,13 +275,8 @@ def _with_file_terms(geometry: list[ScoredCandidate], file: FileFrame, view: Sin
     plausible = [c.facts.floor_fraction >= PLAUSIBLE_FLOOR_FRACTION and c.score >= best_geometry - FILE_TRUST
                  for c in geometry]
     levelled = view is None or float(view.direction[2]) < np.cos(np.radians(CAMERA_FRAME_DEG))
-    # a plausible floor within a few degrees of an axis: the file was levelled, not stored in a pitched first
-    # camera's frame (a first camera held that level is rare), so its -Y says nothing of up
-    near_axis = np.cos(np.radians(LOOKS_LEVELLED_DEG))
-    camera_frame = file.first_camera and not any(
-        p and float(np.max(np.abs(c.up))) >= near_axis for c, p in zip(geometry, plausible, strict=True))
     return [ScoredCandidate(c.facts, {**c.terms, **{k: v for k, v in _file_terms(
-        c.facts, file, p, levelled, camera_frame).items() if k not in disabled}})
+        c.facts, file, p, levelled).items() if k not in disabled}})
         for c, p in zip(geometry, plausible, strict=True)]
 
 
@@ -341,7 +324,6 @@ def _first_distinct(ranked: tuple[ScoredCandidate, ...], others: tuple[ScoredCan
 TERM_WORDS = {
     "levelled_axis": "a floor on a source axis (the file was levelled)",
     "format_up": "the format's up axis",
-    "capture_convention": "the first camera's frame of an RGB-D reconstruction",
     "capture_up": "the capture's cameras",
     "floor_area": "the floor's area",
     "furniture": "furniture tops seen from above",

@@ -12,21 +12,23 @@ gives, in the file's units); directions are unit 3-vectors in that frame.
    both signs, is scored by the area facing +u in the lower half of the extent along u (a floor seen
    from above; halves rather than thin bands because a tilted floor spans part of the height) plus
    the surplus of area facing +u over area facing -u between the end bands (furniture tops face up
-   and their bottoms are rarely scanned; walls at mid height face both ways). A candidate is a floor when that
-   lower area covers >= 30 % of the convex cross-section of the scan across u. Walls also face inwards from
-   both ends, but in pairs (no surplus) and over less area than the floor of a room that is wider than tall.
-   The best score wins; a tie between the two signs of one family (a closed empty box) falls back to the file
-   convention. The direction is refined to the area-weighted mean normal of the floor faces and kept
-   exactly on a source axis when it lies within 1 mrad of one (axis-aligned scans stay exact).
+   and their bottoms are rarely scanned; walls at mid height face both ways). The scan is a room when some
+   candidate's lower area covers >= 15 % of the convex cross-section of the scan across u. Walls also face
+   inwards from both ends, but in pairs (no surplus) and over less area than the floor of a room that is
+   wider than tall. The best score wins; a tie between the two signs of one family (a closed empty box) falls
+   back to the file convention. The direction is refined to the area-weighted mean normal of the floor
+   faces, or set exactly to the source axis when the file's levelling decided (`up_evidence.AXIS_DEG`) or
+   glTF's +Y did.
 3. *Support base* (single objects, normals facing outwards): outward-facing area in the end 10 % of a
    family that covers >= 15 % of the cross-section and >= 3 times the opposite end (the flat base of
    the bunny): up points away from the base.
 4. Otherwise the file convention: +Y up for .obj/.gltf/.glb, +Z up for .ply and point clouds.
 
-Confidence (rooms): every candidate direction is scored on more evidence than plane area (storey height,
-the scan's extent, the capture convention, capture poses when given; `services.core.ingest.up_evidence`), and
-the winner's margin over the best candidate that levels the scan differently gives a calibrated confidence.
-Below `up_evidence.REFUSE_MARGIN` the estimate is *ambiguous*: loading refuses it unless guesses are accepted.
+Confidence (rooms): every candidate direction is scored on more evidence than plane area (what the file
+says, furniture, the scan's extent, storey height, a single frame's view, capture poses when given;
+`services.core.ingest.up_evidence`), and the winner's margin over the best candidate that levels the scan
+differently gives a calibrated confidence. Below the refusal margin the estimate is *ambiguous*: loading
+refuses it unless guesses are accepted.
 """
 
 from __future__ import annotations

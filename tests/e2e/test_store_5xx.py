@@ -11,11 +11,9 @@ import time
 
 import httpx
 import pytest
-from sqlalchemy import func, select
 
-from services.core.db.models import Task, WorkerBlock
-from tests.e2e.test_distributed import assert_exactly_once, submit_direct, wait, wait_done, write_spec
-from tests.e2e.test_store_full import ENV, RESUME_BOUND_S, SPEC, done_tasks
+from tests.e2e.test_distributed import assert_exactly_once, wait, wait_done
+from tests.e2e.test_store_full import ENV, RESUME_BOUND_S, assert_held_not_failed, done_tasks, start_job
 from tests.fixtures.holding_proxy import HoldingProxy
 
 pytestmark = [pytest.mark.slow, pytest.mark.alone]
@@ -30,14 +28,8 @@ def test_an_s3_endpoint_answering_503_pauses_the_job_and_it_resumes(bare_cluster
     cluster = bare_cluster
     proxy = HoldingProxy(s3_server.endpoint_url)
     try:
-        via = {"OMNIDATA_S3_ENDPOINT_URL": proxy.url, **ENV}
-        api = cluster.start_api()
-        auth = {"Authorization": f"Bearer {cluster.token}"}
-        cluster.start_scheduler(**via)
-        job_id = submit_direct(cluster, scenes_dir / "ycb_banana", write_spec(tmp_path, SPEC))
-        cluster.start_worker("worker-a", **via)
-        cluster.start_worker("worker-b", **via)
-        wait(lambda: done_tasks(cluster, job_id) >= 1, 180, "the job to store its first outputs", cluster)
+        api, auth, job_id = start_job(cluster, scenes_dir, tmp_path, OMNIDATA_S3_ENDPOINT_URL=proxy.url,
+                                      **ENV)
 
         proxy.fail(f"PUT /{s3_server.bucket}/{cluster.prefix}/".encode())
         failing = time.monotonic()
@@ -53,11 +45,7 @@ def test_an_s3_endpoint_answering_503_pauses_the_job_and_it_resumes(bare_cluster
         wait(lambda: httpx.get(f"{api}/ready", timeout=10).status_code == 503, 30, "/ready to fail", cluster)
         ready = httpx.get(f"{api}/ready", headers=auth, timeout=10).json()
         assert ready["failed"] == ["storage"] and "job(s) wait for the store" in ready["detail"], ready
-        with cluster.sm() as s:
-            assert s.scalar(select(func.count()).select_from(Task).where(Task.job_id == job_id,
-                                                                          Task.state == "failed")) == 0
-            assert s.scalar(select(func.max(Task.attempts)).where(Task.job_id == job_id)) <= 1
-            assert s.scalars(select(WorkerBlock).where(WorkerBlock.job_id == job_id)).all() == []
+        assert_held_not_failed(cluster, job_id)
 
         stored_before = done_tasks(cluster, job_id)  # the writes in flight when it began included
         proxy.fail()

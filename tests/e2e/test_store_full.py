@@ -54,16 +54,33 @@ def done_tasks(cluster: Cluster, job_id: int) -> int:
         return sum(by_state.get("done", 0) for by_state in job_progress(s, job_id).values())
 
 
+def start_job(cluster: Cluster, scenes_dir: Path, tmp_path: Path,
+              **env: str) -> tuple[str, dict[str, str], int]:
+    """The API, a scheduler and two workers (the last two with `env`) running SPEC on the banana, once its
+    first outputs are stored: (API url, auth headers, job id)."""
+    api = cluster.start_api()
+    cluster.start_scheduler(**env)
+    job_id = submit_direct(cluster, scenes_dir / "ycb_banana", write_spec(tmp_path, SPEC))
+    cluster.start_worker("worker-a", **env)
+    cluster.start_worker("worker-b", **env)
+    wait(lambda: done_tasks(cluster, job_id) >= 1, 180, "the job to store its first outputs", cluster)
+    return api, {"Authorization": f"Bearer {cluster.token}"}, job_id
+
+
+def assert_held_not_failed(cluster: Cluster, job_id: int) -> None:
+    """While the store refuses writes: no task failed, no attempt spent beyond the first, no worker kept
+    off."""
+    with cluster.sm() as s:
+        assert s.scalar(select(func.count()).select_from(Task).where(Task.job_id == job_id,
+                                                                      Task.state == "failed")) == 0
+        assert s.scalar(select(func.max(Task.attempts)).where(Task.job_id == job_id)) <= 1
+        assert s.scalars(select(WorkerBlock).where(WorkerBlock.job_id == job_id)).all() == []
+
+
 def test_a_full_store_pauses_the_job_visibly_and_it_resumes_when_space_returns(folder_cluster, scenes_dir,
                                                                                tmp_path):
     cluster = folder_cluster
-    api = cluster.start_api()
-    auth = {"Authorization": f"Bearer {cluster.token}"}
-    cluster.start_scheduler(**ENV)
-    job_id = submit_direct(cluster, scenes_dir / "ycb_banana", write_spec(tmp_path, SPEC))
-    cluster.start_worker("worker-a", **ENV)
-    cluster.start_worker("worker-b", **ENV)
-    wait(lambda: done_tasks(cluster, job_id) >= 1, 180, "the job to store its first outputs", cluster)
+    api, auth, job_id = start_job(cluster, scenes_dir, tmp_path, **ENV)
 
     ballast = fill(Path(cluster.env["OMNIDATA_STORAGE_URL"]))
     filled = time.monotonic()
@@ -81,11 +98,8 @@ def test_a_full_store_pauses_the_job_visibly_and_it_resumes_when_space_returns(f
     assert ready["failed"] == ["storage"] and "storage full" in ready["detail"], ready
 
     time.sleep(5)  # paused: nothing fails, nothing spends an attempt, no worker is kept off the job
+    assert_held_not_failed(cluster, job_id)
     with cluster.sm() as s:
-        assert s.scalar(select(func.count()).select_from(Task).where(Task.job_id == job_id,
-                                                                      Task.state == "failed")) == 0
-        assert s.scalar(select(func.max(Task.attempts)).where(Task.job_id == job_id)) <= 1
-        assert s.scalars(select(WorkerBlock).where(WorkerBlock.job_id == job_id)).all() == []
         assert s.get(Job, job_id).state == "paused"  # type: ignore[union-attr]
         # held by the workers (not by completion): tasks the store refused wait in pending, the reason kept
         assert s.scalar(select(func.count()).select_from(Task).where(

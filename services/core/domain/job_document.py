@@ -2,7 +2,7 @@
 
 A consumer reads the same keys whichever command made the file; a value that a stage cannot know is null
 (a plan has no job id, no task counts in the database). `format` names the schema version: readers check it
-before relying on a key. The schema is documented in the README ("job.json").
+before relying on a key. The schema is documented in docs/conventions.md ("job.json").
 """
 
 from __future__ import annotations

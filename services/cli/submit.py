@@ -1,4 +1,6 @@
-"""`omnidata submit SPACE ... --spec job.yaml [--api URL --token T] [--no-follow]`: submit a job to the service.
+"""`omnidata submit SPACE ... [--spec job.yaml] [--points N ...] [--api URL --token T] [--no-follow]`:
+submit a job to the service. The spec is built as `generate` and `plan` build it (services/cli/spec_args.py):
+the file's fields, or the defaults, with the flags overriding them.
 
 With an API URL (--api or $OMNIDATA_API_URL) the spaces are uploaded (POST /spaces, multipart) and the job is
 created over HTTP (POST /jobs {space_ids, spec}); its progress is read from GET /jobs/{id}. With --direct, the
@@ -37,7 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `omnidata submit`."""
     parser.add_argument("spaces", nargs="+", metavar="SPACE",
                         help="mesh file (.obj with .mtl/textures, .ply, .glb/.gltf) or a folder or .zip holding one")
-    add_spec_arguments(parser, spec_required=True)
+    add_spec_arguments(parser)
     parser.add_argument("--api", default=os.environ.get("OMNIDATA_API_URL"), metavar="URL",
                         help="API base URL (default $OMNIDATA_API_URL)")
     parser.add_argument("--direct", action="store_true",

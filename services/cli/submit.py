@@ -28,8 +28,6 @@ from services.cli.spec_args import add_spec_arguments, build_spec, check_sources
 from services.core.db.models import JOB_TERMINAL_STATES, TASK_TERMINAL_STATES, JobState, TaskState
 
 if TYPE_CHECKING:  # imported where used: `omnidata --help` stays fast
-    import httpx
-
     from services.core.domain.jobspec import JobSpec
     from services.core.ingest.registry import Source
     from services.core.settings import Settings
@@ -98,13 +96,12 @@ class JobReply(TypedDict):
 class Api:
     """The few API calls `submit` makes (httpx, bearer token); HTTP errors become CliError with the detail."""
 
-    def __init__(self, base_url: str, token: str | None, *, timeout: float = 300.0,
-                 client: httpx.Client | None = None) -> None:
+    def __init__(self, base_url: str, token: str | None, *, timeout: float = 300.0) -> None:
         import httpx
 
         headers = {"Authorization": f"Bearer {token}"} if token else {}
         self.base_url = base_url.rstrip("/")
-        self.client = client or httpx.Client(base_url=self.base_url, headers=headers, timeout=timeout)
+        self.client = httpx.Client(base_url=self.base_url, headers=headers, timeout=timeout)
 
     def _call(self, method: str, path: str, **kw: Any) -> Any:  # httpx's request keywords; its JSON is Any
         import httpx

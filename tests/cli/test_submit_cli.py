@@ -115,14 +115,13 @@ def test_submit_without_a_service_says_so_and_writes_nothing(
 
 
 def test_submit_over_http_uploads_once_and_reads_progress(pg_url, local_store, scenes_dir):
-    from tests.fixtures.api import make_api
+    from tests.fixtures.api import live_server, make_api
 
     spec = JobSpec.model_validate({"cameras": {"mode": "object", "object_count": 6},
                                    "points": {"count": 1, "min_views": 2, "max_views": 2}})
     sources = check_sources([str(scenes_dir / "ycb_banana")])
-    with make_api(pg_url, local_store) as a:
-        api = Api("http://testserver", a.a.token, client=a.client)
-        api.client.headers["Authorization"] = f"Bearer {a.a.token}"
+    with make_api(pg_url, local_store) as a, live_server(a.app) as base:
+        api = Api(base, a.a.token)
         job_id = submit_http(api, spec, sources)
         st = api.status(job_id)
         assert isinstance(st, Status) and st.state == "pending" and st.total == 0

@@ -236,7 +236,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         # -- 1. job creation -> first tasks on the broker
         transport = TimedTransport(CeleryTransport(settings=settings))
         plan_is(plan)
-        sched = Scheduler(sm, store, transport, settings, "bench", budget=args.budget, cache_dir=tmp / "cache")
+        sched = Scheduler(sm, store, transport, settings, "bench", budget=args.budget,
+                          cache_dir=tmp / "cache")
         t0 = time.perf_counter()
         with sm() as s:
             space = s.get(Space, space_id)
@@ -324,7 +325,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             s.commit()
             job2_id = job2.id
         transport2 = TimedTransport(CeleryTransport(settings=settings))
-        sched2 = Scheduler(sm, store, transport2, settings, "bench2", budget=args.budget, cache_dir=tmp / "cache")
+        sched2 = Scheduler(sm, store, transport2, settings, "bench2", budget=args.budget,
+                           cache_dir=tmp / "cache")
         stop = mp.Event()
         done_count = mp.Value("q", 0)
         cons = mp.Process(target=consumer, args=(db_url, args.redis, job2_id, queues, stop, done_count))

@@ -39,7 +39,14 @@ from sqlalchemy import text
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.fanout import create_database, drop_database, labelled_space, percentiles, plan_is, synthetic_plan  # noqa: E402
+from bench.fanout import (  # noqa: E402
+    create_database,
+    drop_database,
+    labelled_space,
+    percentiles,
+    plan_is,
+    synthetic_plan,
+)
 from bench.scale_cost import ROOM_CUES, PrivateRedis, cpu_seconds, with_app_name  # noqa: E402
 from bench.scale_procs import SleepingRunner, task_id_of  # noqa: E402
 from services.core.db.engine import make_engine, make_sessionmaker, migrate  # noqa: E402

@@ -274,7 +274,8 @@ def test_a_job_cancelled_while_planning_keeps_no_plan(own_sm, tmp_path, scenes_d
         assert task_ids(s, job_id) == []
 
 
-def test_planning_errors_are_retried_then_fail_the_job(sqlite_sm, local_store, scenes_dir, tmp_path, monkeypatch):
+def test_planning_errors_are_retried_then_fail_the_job(sqlite_sm, local_store, scenes_dir, tmp_path,
+                                                       monkeypatch):
     from sqlalchemy import update
 
     from services.core.db.models import utcnow

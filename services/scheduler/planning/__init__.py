@@ -73,7 +73,7 @@ def make_plan(
 
 def plan_chunks(space: LoadedSpace, spec: JobSpec, rng: np.random.Generator, space_name: str,
                 chunk_views: int) -> PlanChunks:
-    """The plan of `space` in chunks of whole points holding about `chunk_views` views (at least one point)."""
+    """The plan of `space` in chunks of whole points of about `chunk_views` views (at least one point)."""
     check_name("space", space_name)
     if plans_in_chunks(spec):
         return stream_plan(space, spec, rng, space_name, chunk_views)

@@ -35,9 +35,9 @@ def check_enough_cameras(n_cameras: int, spec: JobSpec, space_name: str) -> None
     ps = spec.points
     if n_cameras < ps.min_views:
         raise PlanError(
-            f"space {space_name!r} has {n_cameras} cameras (mode {spec.cameras.mode!r}) but points.min_views is "
-            f"{ps.min_views}: no point could be seen by enough cameras; lower min_views or "
-            "cameras.min_spacing_m, or raise cameras.max_count"
+            f"space {space_name!r} has {n_cameras} cameras (mode {spec.cameras.mode!r}) but "
+            f"points.min_views is {ps.min_views}: no point could be seen by enough cameras; lower "
+            "min_views or cameras.min_spacing_m, or raise cameras.max_count"
         )
 
 
@@ -61,10 +61,13 @@ def sample_space_points(q: MeshQueries, cams: np.ndarray, spec: JobSpec, space_n
     return sample_points(q, cams, ps, count, rng)
 
 
-def camera_poses(cams: np.ndarray, source: str, camera_spec: CameraSpec, salt: bytes) -> tuple[CameraPose, ...]:
+def camera_poses(cams: np.ndarray, source: str, camera_spec: CameraSpec,
+                 salt: bytes) -> tuple[CameraPose, ...]:
     """The plan's cameras: given poses keep their uuids, the others get one from the plan's salt."""
-    given = [p.uuid for p in camera_spec.poses] if source == "provided" and camera_spec.poses else [None] * len(cams)
-    return tuple(CameraPose(idx=i, position=cams[i], source=source, uuid=given[i] or plan_uuid(salt, "camera", i))
+    poses = camera_spec.poses
+    given = [p.uuid for p in poses] if source == "provided" and poses else [None] * len(cams)
+    return tuple(CameraPose(idx=i, position=cams[i], source=source,
+                            uuid=given[i] or plan_uuid(salt, "camera", i))
                  for i in range(len(cams)))
 
 
@@ -79,7 +82,7 @@ def points_of(sampled: SampledPoints, sampled_idx: Sequence[int] | np.ndarray, f
 def planned_views(views: ViewArrays, resolution: int) -> tuple[PlannedView, ...]:
     return tuple(
         PlannedView(point_idx=int(views.point_idx[i]), v=int(views.v[i]), camera_idx=int(views.camera_idx[i]),
-                    world_to_camera=views.world_to_camera[i], fov=float(views.fov[i]), roll=float(views.roll[i]),
-                    resolution=int(resolution), obliqueness=float(views.obliqueness[i]),
-                    in_sight=bool(views.in_sight[i]))
+                    world_to_camera=views.world_to_camera[i], fov=float(views.fov[i]),
+                    roll=float(views.roll[i]), resolution=int(resolution),
+                    obliqueness=float(views.obliqueness[i]), in_sight=bool(views.in_sight[i]))
         for i in range(len(views)))

@@ -69,7 +69,8 @@ class PlanChunks:
 
 def stream_plan(space: LoadedSpace, spec: JobSpec, rng: np.random.Generator, space_name: str,
                 chunk_views: int | None, timings: dict[str, float] | None = None) -> PlanChunks:
-    """The plan of `space` in chunks of about `chunk_views` views (None: one chunk); `timings` as make_plan's."""
+    """The plan of `space` in chunks of about `chunk_views` views (None: one chunk); `timings` as
+    make_plan's."""
     out = PlanChunks(iter(()))
     out.chunks = _stream(space, spec, rng, space_name, chunk_views or sys.maxsize, out, timings)
     return out

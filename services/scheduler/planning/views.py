@@ -138,8 +138,9 @@ def wide_baseline_span(
     lo, hi = span
     chosen = [cap_views(visible[p], max_views, choice_rng) for p in range(lo, hi)]
     P = np.repeat(np.arange(lo, hi, dtype=np.int64), [len(c) for c in chosen])
-    C = np.concatenate(chosen) if chosen else np.zeros(0, dtype=np.int64)
-    V = np.concatenate([np.arange(len(c), dtype=np.int64) for c in chosen]) if chosen else np.zeros(0, dtype=np.int64)
+    none = np.zeros(0, dtype=np.int64)
+    C = np.concatenate(chosen) if chosen else none
+    V = np.concatenate([np.arange(len(c), dtype=np.int64) for c in chosen]) if chosen else none
     n = len(P)
     fov = truncated_normal(
         fov_rng, np.radians(spec.fov_mean_deg), np.radians(spec.fov_std_deg),

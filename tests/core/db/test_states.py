@@ -86,7 +86,8 @@ def test_a_state_name_that_does_not_exist_is_refused(sqlite_session: Session) ->
 
 def test_the_fixed_sql_builder_takes_only_edges_of_the_table() -> None:
     with pytest.raises(IllegalTransition, match="from 'done' to 'running'"):
-        task_update_sql([TaskState.QUEUED, TaskState.DONE], TaskState.RUNNING, "worker_id = :w", "task.id = :id")
+        task_update_sql([TaskState.QUEUED, TaskState.DONE], TaskState.RUNNING, "worker_id = :w",
+                        "task.id = :id")
     sql = task_update_sql([TaskState.RUNNING], TaskState.DONE, "size = :size", "task.id = :id")
     assert sql.startswith("UPDATE task SET state = 'done', size = :size WHERE task.id = :id "
                           "AND task.state = 'running'")

@@ -68,6 +68,14 @@ REDIS_URL = os.environ.get("OMNIDATA_BENCH_REDIS_URL", "redis://127.0.0.1:6379/1
 BUNNY = Path(__file__).resolve().parents[2] / "shared" / "scenes" / "stanford_bunny" / "bun_zipper_res2.ply"
 
 
+def plan_is(plan: SpacePlan) -> None:
+    """The scheduler's planner gives `plan` (a synthetic plan of any size) instead of planning the space."""
+    from services.scheduler import chunked_plan
+    from services.scheduler.planning.stream import cut_plan
+
+    chunked_plan.plan_chunks = lambda *args: cut_plan(plan, args[-1])  # type: ignore[assignment]
+
+
 def synthetic_plan(space_name: str, n_points: int, views_per_point: int, resolution: int = 512) -> SpacePlan:
     """A plan with n_points x views_per_point views around a unit cube (no mesh): cameras on a circle."""
     n_cams = 64
@@ -227,8 +235,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
         # -- 1. job creation -> first tasks on the broker
         transport = TimedTransport(CeleryTransport(settings=settings))
+        plan_is(plan)
         sched = Scheduler(sm, store, transport, settings, "bench", budget=args.budget,
-                          plan_fn=lambda *_a: plan, cache_dir=tmp / "cache")
+                          cache_dir=tmp / "cache")
         t0 = time.perf_counter()
         with sm() as s:
             space = s.get(Space, space_id)
@@ -317,7 +326,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             job2_id = job2.id
         transport2 = TimedTransport(CeleryTransport(settings=settings))
         sched2 = Scheduler(sm, store, transport2, settings, "bench2", budget=args.budget,
-                           plan_fn=lambda *_a: plan, cache_dir=tmp / "cache")
+                           cache_dir=tmp / "cache")
         stop = mp.Event()
         done_count = mp.Value("q", 0)
         cons = mp.Process(target=consumer, args=(db_url, args.redis, job2_id, queues, stop, done_count))

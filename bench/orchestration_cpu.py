@@ -39,7 +39,14 @@ from sqlalchemy import text
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.fanout import create_database, drop_database, labelled_space, percentiles, synthetic_plan  # noqa: E402
+from bench.fanout import (  # noqa: E402
+    create_database,
+    drop_database,
+    labelled_space,
+    percentiles,
+    plan_is,
+    synthetic_plan,
+)
 from bench.scale_cost import ROOM_CUES, PrivateRedis, cpu_seconds, with_app_name  # noqa: E402
 from bench.scale_procs import SleepingRunner, task_id_of  # noqa: E402
 from services.core.db.engine import make_engine, make_sessionmaker, migrate  # noqa: E402
@@ -119,8 +126,9 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
         plan = synthetic_plan("orch", args.views // 4, 4, resolution=32)
         transport = CeleryTransport(settings=settings, **({"prebuilt": False} if args.kombu else {}))
         prebuilt = hasattr(transport, "_push") and not args.kombu  # (a tree before prebuilt messages has kombu's only)
-        sched = Scheduler(sched_part.sm, store, transport, settings, "orch", plan_fn=lambda *_a: plan,
-                          cache_dir=tmp / "cache", budget=args.window)
+        plan_is(plan)
+        sched = Scheduler(sched_part.sm, store, transport, settings, "orch", cache_dir=tmp / "cache",
+                          budget=args.window)
         sched.plan_pending()
         runner = SleepingRunner(worker_part.sm, store, settings, "orch-worker", task_s=1e-6, killed=threading.Event())
         beat = Heartbeat(worker_part.sm, "orch-worker", queues=["render", "derive"], lease_s=300)

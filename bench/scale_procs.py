@@ -186,14 +186,16 @@ class CountingTransport:
 
 def scheduler_process(settings: Settings, plan: Any, stop: Any, out: Any) -> None:
     """The real Scheduler loop (plan, dispatch, reap, complete) with the synthetic plan; reports its counts."""
+    from bench.fanout import plan_is
     from services.scheduler.celery_transport import CeleryTransport
     from services.scheduler.compaction import Compactor
     from services.scheduler.loop import Scheduler
 
     engine = make_engine(settings.database_url, pool_size=2)
     transport = CountingTransport(CeleryTransport(settings=settings))
+    plan_is(plan)  # this process's planner
     sched = Scheduler(make_sessionmaker(engine), LocalStore(settings.data_dir / "objects"), transport, settings,
-                      "sim-scheduler", plan_fn=lambda *_a: plan, cache_dir=settings.data_dir / "cache")
+                      "sim-scheduler", cache_dir=settings.data_dir / "cache")
     passes: list[float] = []
     reaped = 0
     original = sched.dispatch_once

@@ -12,7 +12,6 @@ import logging
 import sys
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
-from dataclasses import dataclass
 
 from fastapi import FastAPI
 from fastapi.responses import RedirectResponse
@@ -56,15 +55,7 @@ OPENAPI_TAGS = [
 ]
 
 
-@dataclass(frozen=True)
-class SSEConfig:
-    """How often the SSE routes poll the counters and send heartbeat comments (seconds)."""
-
-    poll_s: float = 0.5
-    heartbeat_s: float = 15.0
-
-
-def _set_state(app: FastAPI, settings: Settings, engine: Engine, store: ObjectStore, sse: SSEConfig) -> None:
+def _set_state(app: FastAPI, settings: Settings, engine: Engine, store: ObjectStore) -> None:
     """What the routes find on `app.state`: settings, sessions, store, rate tracker, caches."""
     app.state.settings = settings
     app.state.engine = engine
@@ -75,9 +66,8 @@ def _set_state(app: FastAPI, settings: Settings, engine: Engine, store: ObjectSt
     app.state.store = store
     app.state.redis = None  # created on first use by ops.service.redis_client
     app.state.rates = RateTracker()
-    app.state.sse = sse
     app.state.sse_limits = StreamLimits(settings.sse_max_per_tenant, settings.sse_poll_threads)
-    app.state.sse_polls = SharedPolls(app.state.read_sessionmaker, max_age_s=sse.poll_s / 2)
+    app.state.sse_polls = SharedPolls(app.state.read_sessionmaker, max_age_s=settings.sse_poll_s / 2)
     # Each scan read (an upload's check, an up choice, a side view) is a CPU-bound child process: a few at a
     # time, so 50 uploads or 40 up choices do not starve the server; the throttle caps each tenant's share.
     app.state.scan_reads = LazyLimiter(settings.upload_parse_concurrency)
@@ -94,7 +84,6 @@ def create_app(
     *,
     store: ObjectStore | None = None,
     engine: Engine | None = None,
-    sse: SSEConfig | None = None,
 ) -> FastAPI:
     """Build the API for `settings` (default: from the environment); `store`/`engine` override the settings'."""
     settings = settings or get_settings()
@@ -129,7 +118,7 @@ def create_app(
         docs_url=None,  # FastAPI's pages load Swagger UI and ReDoc from a CDN: /docs is served offline below
         redoc_url=None,
     )
-    _set_state(app, settings, engine, store, sse or SSEConfig())
+    _set_state(app, settings, engine, store)
     install_error_handlers(app)
     app.add_middleware(RequestGuard, settings=settings)  # token and size checked before a body is read
     app.add_middleware(QueryTokenScrubber)  # ?token= never reaches a log line

@@ -42,9 +42,9 @@ def _cue_list(text: str) -> list[str]:
     return [c.strip() for c in text.split(",") if c.strip()]
 
 
-def add_spec_arguments(parser: argparse.ArgumentParser, *, spec_required: bool = False) -> None:
-    """--spec and the flags that override its fields."""
-    parser.add_argument("--spec", required=spec_required, metavar="job.yaml",
+def add_spec_arguments(parser: argparse.ArgumentParser) -> None:
+    """--spec (optional: the JobSpec defaults without it) and the flags that override its fields."""
+    parser.add_argument("--spec", metavar="job.yaml",
                         help="JobSpec as YAML or JSON; the options below override it")
     parser.add_argument("--cues", type=_cue_list, metavar="a,b,...", help="cues to produce (default: all the spaces support)")
     parser.add_argument("--points", type=int, metavar="N", help="points of interest per space (points.count)")

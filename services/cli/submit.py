@@ -1,4 +1,6 @@
-"""`omnidata submit SPACE ... --spec job.yaml [--api URL --token T] [--no-follow]`: submit a job to the service.
+"""`omnidata submit SPACE ... [--spec job.yaml] [--points N ...] [--api URL --token T] [--no-follow]`:
+submit a job to the service. The spec is built as `generate` and `plan` build it (services/cli/spec_args.py):
+the file's fields, or the defaults, with the flags overriding them.
 
 With an API URL (--api or $OMNIDATA_API_URL) the spaces are uploaded (POST /spaces, multipart) and the job is
 created over HTTP (POST /jobs {space_ids, spec}); its progress is read from GET /jobs/{id}. With --direct, the
@@ -26,8 +28,6 @@ from services.cli.spec_args import add_spec_arguments, build_spec, check_sources
 from services.core.db.models import JOB_TERMINAL_STATES, TASK_TERMINAL_STATES, JobState, TaskState
 
 if TYPE_CHECKING:  # imported where used: `omnidata --help` stays fast
-    import httpx
-
     from services.core.domain.jobspec import JobSpec
     from services.core.ingest.registry import Source
     from services.core.settings import Settings
@@ -37,7 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `omnidata submit`."""
     parser.add_argument("spaces", nargs="+", metavar="SPACE",
                         help="mesh file (.obj with .mtl/textures, .ply, .glb/.gltf) or a folder or .zip holding one")
-    add_spec_arguments(parser, spec_required=True)
+    add_spec_arguments(parser)
     parser.add_argument("--api", default=os.environ.get("OMNIDATA_API_URL"), metavar="URL",
                         help="API base URL (default $OMNIDATA_API_URL)")
     parser.add_argument("--direct", action="store_true",
@@ -96,13 +96,12 @@ class JobReply(TypedDict):
 class Api:
     """The few API calls `submit` makes (httpx, bearer token); HTTP errors become CliError with the detail."""
 
-    def __init__(self, base_url: str, token: str | None, *, timeout: float = 300.0,
-                 client: httpx.Client | None = None) -> None:
+    def __init__(self, base_url: str, token: str | None, *, timeout: float = 300.0) -> None:
         import httpx
 
         headers = {"Authorization": f"Bearer {token}"} if token else {}
         self.base_url = base_url.rstrip("/")
-        self.client = client or httpx.Client(base_url=self.base_url, headers=headers, timeout=timeout)
+        self.client = httpx.Client(base_url=self.base_url, headers=headers, timeout=timeout)
 
     def _call(self, method: str, path: str, **kw: Any) -> Any:  # httpx's request keywords; its JSON is Any
         import httpx

@@ -134,6 +134,8 @@ class Settings(BaseSettings):
     )
     sse_max_per_tenant: int = Field(20, ge=1, description="open event streams per tenant; one more gets 429")
     sse_poll_threads: int = Field(4, ge=1, description="threads the event streams' database polls share")
+    sse_poll_s: float = Field(0.5, gt=0, le=60, description="seconds between an event stream's counter polls")
+    sse_heartbeat_s: float = Field(15.0, gt=0, le=300, description="seconds between a stream's heartbeats")
     worker_prefetch: int = Field(
         1, ge=1, le=64, description="messages a worker process reserves (running included); more suits tiny tasks"
     )

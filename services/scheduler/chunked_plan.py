@@ -22,9 +22,7 @@ from services.core.ingest.loading import LoadedSpace
 from services.core.storage import ObjectStore
 from services.scheduler.compile import compile_tasks
 from services.scheduler.persist import PlanJsonFile, persist_chunk
-from services.scheduler.plan_space import PlanFn, plan_space
-from services.scheduler.planning import space_rng
-from services.scheduler.planning.stream import PlanChunks, cut_plan, plan_chunks
+from services.scheduler.planning import plan_chunks, space_rng
 
 
 class PlanDropped(Exception):
@@ -64,12 +62,9 @@ def still_ours(session: Session, job_id: int, planner: str) -> bool:
 
 
 def plan_and_persist_space(target: ChunkTarget, loaded: LoadedSpace, spec: JobSpec, space: Space, cues: list[str],
-                           plan_key: str, plan_fn: PlanFn | None = None) -> SpaceWritten:
+                           plan_key: str) -> SpaceWritten:
     """Plan one space of the job in chunks, commit each chunk's rows, then store the plan JSON under `plan_key`."""
-    if plan_fn is not None:  # a given plan function (tests) plans whole
-        chunks: PlanChunks = cut_plan(plan_space(loaded, spec, space.name, plan_fn), target.chunk_views)
-    else:
-        chunks = plan_chunks(loaded, spec, space_rng(spec.seed, space.name), space.name, target.chunk_views)
+    chunks = plan_chunks(loaded, spec, space_rng(spec.seed, space.name), space.name, target.chunk_views)
     json_file = PlanJsonFile()
     try:
         tasks_written = 0

@@ -40,7 +40,7 @@ from services.scheduler.completion import Finished, complete_once
 from services.scheduler.dispatch import DEFAULT_BUDGET, DispatchResult, dispatch_once
 from services.scheduler.fairness import CAPPED_WAIT_S, queued_cap
 from services.scheduler.persist import clear_plan, drop_cancelled_plan, plan_key
-from services.scheduler.plan_space import JobPlanSummary, PlanFn, load_for_job, plan_summary_of
+from services.scheduler.plan_space import JobPlanSummary, load_for_job, plan_summary_of
 from services.scheduler.planner_proc import PlannerProcesses
 from services.scheduler.reaper import ReapResult, reap_once
 from services.scheduler.resend import IdleWatch, resend_stuck
@@ -152,7 +152,6 @@ class Scheduler:
         *,
         cache_dir: Path | None = None,
         budget: int = DEFAULT_BUDGET,
-        plan_fn: PlanFn | None = None,
         plan_in_processes: bool = False,
         cap_queue: bool = False,
         loaded_spaces: dict[str, LoadedSpace] | None = None,
@@ -164,7 +163,6 @@ class Scheduler:
         self.scheduler_id = scheduler_id or default_scheduler_id()
         self.cache_dir = cache_dir or settings.data_dir / "cache" / "spaces"
         self.budget = budget
-        self.plan_fn = plan_fn
         self._rotation = 0
         self._last_reap = 0.0
         self._last_complete = 0.0
@@ -255,7 +253,7 @@ class Scheduler:
             total = 0
             for cues, space, key in spaces:
                 loaded = self.load_space(space, spec)
-                done = plan_and_persist_space(target, loaded, spec, space, cues, key, self.plan_fn)
+                done = plan_and_persist_space(target, loaded, spec, space, cues, key)
                 if not done.views:
                     raise PlanningError(
                         f"space {space.name!r} yields no views"

@@ -8,7 +8,7 @@ job.json space record (services.core.domain.job_document.space_record).
 from __future__ import annotations
 
 from pathlib import Path
-from typing import NotRequired, Protocol, TypedDict
+from typing import NotRequired, TypedDict
 
 import numpy as np
 
@@ -65,12 +65,6 @@ class _CapturePlanPart(TypedDict, total=False):
     capture_plan: CapturePlanRecord  # capture plans only
 
 
-class PlanFn(Protocol):
-    """make_plan's signature: (space, spec, rng, space_name) -> SpacePlan."""
-
-    def __call__(self, space: LoadedSpace, spec: JobSpec, rng: np.random.Generator, space_name: str, /) -> SpacePlan: ...
-
-
 def load_for_job(source: str | Path, spec: JobSpec, extract_dir: str | Path | None = None,
                  frame: SpaceFrame | None = None) -> LoadedSpace:
     """The space loaded in the frame the job's spec asks for (up_axis, up, unit_scale, source_to_world), or in
@@ -78,9 +72,9 @@ def load_for_job(source: str | Path, spec: JobSpec, extract_dir: str | Path | No
     return load_space(source, **(frame if frame is not None else spec.space_frame()), extract_dir=extract_dir)
 
 
-def plan_space(loaded: LoadedSpace, spec: JobSpec, name: str, plan_fn: PlanFn | None = None) -> SpacePlan:
+def plan_space(loaded: LoadedSpace, spec: JobSpec, name: str) -> SpacePlan:
     """The plan of one space of a job (PlanError when the spec cannot be met at all)."""
-    return (plan_fn or make_plan)(loaded, spec, space_rng(spec.seed, name), name)
+    return make_plan(loaded, spec, space_rng(spec.seed, name), name)
 
 
 def plan_summary_of(loaded: LoadedSpace, plan: SpacePlan, spec: JobSpec) -> PlanSpaceSummary:

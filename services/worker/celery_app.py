@@ -23,21 +23,17 @@ TASK_MODULES = ("services.worker.tasks",)
 
 
 def worker_conf(settings: Settings) -> dict[str, object]:
-    """Celery configuration of a worker: the shared one plus worker-side reliability options."""
+    """Celery configuration of a worker: the shared one (acks_late, prefetch, child recycling: celery_conf)
+    plus the options only a consuming worker reads."""
     conf = celery_conf(settings)
     conf.update(
         {
-            "task_acks_late": True,
             "task_reject_on_worker_lost": True,  # a killed child's message goes back to the queue
             "task_acks_on_failure_or_timeout": True,  # failures are recorded in Postgres; never loop a message
-            "worker_prefetch_multiplier": settings.worker_prefetch,
-            "broker_connection_retry_on_startup": True,
             "broker_connection_retry": True,
             "broker_connection_max_retries": None,  # a restarted Redis is waited for, however long it takes
             "broker_channel_error_retry": True,
             "worker_cancel_long_running_tasks_on_connection_loss": False,  # the lease protects them instead
-            "worker_max_tasks_per_child": settings.worker_max_tasks,
-            "worker_max_memory_per_child": settings.worker_max_memory_mb * 1024,  # KiB
             "worker_send_task_events": False,
             "worker_proc_alive_timeout": 60.0,  # child start imports numpy/sqlalchemy; slow disks need time
         }

@@ -115,14 +115,13 @@ def test_submit_without_a_service_says_so_and_writes_nothing(
 
 
 def test_submit_over_http_uploads_once_and_reads_progress(pg_url, local_store, scenes_dir):
-    from tests.fixtures.api import make_api
+    from tests.fixtures.api import live_server, make_api
 
     spec = JobSpec.model_validate({"cameras": {"mode": "object", "object_count": 6},
                                    "points": {"count": 1, "min_views": 2, "max_views": 2}})
     sources = check_sources([str(scenes_dir / "ycb_banana")])
-    with make_api(pg_url, local_store) as a:
-        api = Api("http://testserver", a.a.token, client=a.client)
-        api.client.headers["Authorization"] = f"Bearer {a.a.token}"
+    with make_api(pg_url, local_store) as a, live_server(a.app) as base:
+        api = Api(base, a.a.token)
         job_id = submit_http(api, spec, sources)
         st = api.status(job_id)
         assert isinstance(st, Status) and st.state == "pending" and st.total == 0
@@ -135,3 +134,24 @@ def test_submit_over_http_uploads_once_and_reads_progress(pg_url, local_store, s
         api.client.headers["Authorization"] = "Bearer wrong"
         with pytest.raises(CliError, match="401"):
             api.status(job_id)
+
+
+def test_submit_takes_the_spec_flags_with_or_without_a_spec_file(capsys, pg_url, local_store, scenes_dir,
+                                                                 spec_file):
+    from tests.fixtures.api import live_server, make_api
+
+    banana = str(scenes_dir / "ycb_banana")
+    with make_api(pg_url, local_store) as a, live_server(a.app) as base:
+        given = ["--api", base, "--token", a.a.token, "--no-follow"]
+        assert main(["submit", banana, "--points", "3", "--resolution", "64", "--cues", "rgb,normal",
+                     "--seed", "5", *given]) == 0  # no --spec: the defaults and the flags
+        bare = int(capsys.readouterr().out.strip())
+        assert main(["submit", banana, "--spec", str(spec_file), "--points", "2", "--name", "fruit",
+                     *given]) == 0
+        over = int(capsys.readouterr().out.strip())  # the flags override the file's fields, the rest stays
+        with a.session() as s:
+            bare_spec, over_spec = (JobSpec.model_validate(s.get(Job, i).spec) for i in (bare, over))
+    assert (bare_spec.points.count, bare_spec.views.resolution, bare_spec.seed) == (3, 64, 5)
+    assert bare_spec.cues == ["rgb", "normal"] and bare_spec.cameras == JobSpec().cameras
+    assert (over_spec.points.count, over_spec.points.min_views, over_spec.name) == (2, 2, "fruit")
+    assert over_spec.cameras.mode == "object" and over_spec.cameras.object_count == 6

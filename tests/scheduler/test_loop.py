@@ -252,30 +252,34 @@ def test_cli_once_plans_and_dispatches(own_pg, own_sm, redis_url, tmp_path, scen
         assert s.get(Job, job_id).state == "running"
 
 
-def test_a_job_cancelled_while_planning_keeps_no_plan(own_sm, tmp_path, scenes_dir):
+def test_a_job_cancelled_while_planning_keeps_no_plan(own_sm, tmp_path, scenes_dir, monkeypatch):
     from services.core.db.jobs import cancel_job
-    from services.scheduler.planning import make_plan
+    from services.scheduler import chunked_plan
 
     store = LocalStore(tmp_path / "objects")
     job_id = _submit(own_sm, store, scenes_dir)
+    plan_chunks = chunked_plan.plan_chunks
 
-    def plan_then_cancel(space, spec, rng, name):
+    def plan_then_cancel(*args):
         with own_sm() as other:  # the API cancels while the planner is busy
             cancel_job(other, other.get(Job, job_id))
             other.commit()
-        return make_plan(space, spec, rng, name)
+        return plan_chunks(*args)
 
-    sched = Scheduler(own_sm, store, NullTransport(), get_settings(data_dir=tmp_path), "s", plan_fn=plan_then_cancel)
+    monkeypatch.setattr(chunked_plan, "plan_chunks", plan_then_cancel)
+    sched = Scheduler(own_sm, store, NullTransport(), get_settings(data_dir=tmp_path), "s")
     assert sched.tick().planned == []
     with own_sm() as s:
         assert s.get(Job, job_id).state == "cancelled"
         assert task_ids(s, job_id) == []
 
 
-def test_planning_errors_are_retried_then_fail_the_job(sqlite_sm, local_store, scenes_dir, tmp_path):
+def test_planning_errors_are_retried_then_fail_the_job(sqlite_sm, local_store, scenes_dir, tmp_path,
+                                                       monkeypatch):
     from sqlalchemy import update
 
     from services.core.db.models import utcnow
+    from services.scheduler import chunked_plan
 
     job_id = _submit(sqlite_sm, local_store, scenes_dir)
     calls = []
@@ -284,7 +288,8 @@ def test_planning_errors_are_retried_then_fail_the_job(sqlite_sm, local_store, s
         calls.append(1)
         raise RuntimeError("storage hiccup")
 
-    sched = Scheduler(sqlite_sm, local_store, NullTransport(), get_settings(data_dir=tmp_path), "s", plan_fn=flaky)
+    monkeypatch.setattr(chunked_plan, "plan_chunks", flaky)
+    sched = Scheduler(sqlite_sm, local_store, NullTransport(), get_settings(data_dir=tmp_path), "s")
     for attempt in (1, 2, 3):
         assert sched.tick().planned == []
         with sqlite_sm() as s:
@@ -302,14 +307,16 @@ def test_planning_errors_are_retried_then_fail_the_job(sqlite_sm, local_store, s
 
 @pytest.mark.parametrize("views", [{}, {"rgb_source": "photos"}])
 def test_running_out_of_the_planning_memory_budget_names_the_cause(sqlite_sm, local_store, scenes_dir,
-                                                                   tmp_path, views):
+                                                                   tmp_path, views, monkeypatch):
+    from services.scheduler import chunked_plan
+
     job_id = _submit(sqlite_sm, local_store, scenes_dir, views={**SPEC.get("views", {}), **views})
 
     def out_of_memory(*_args):
         raise MemoryError
 
-    sched = Scheduler(sqlite_sm, local_store, NullTransport(), get_settings(data_dir=tmp_path), "s",
-                      plan_fn=out_of_memory)
+    monkeypatch.setattr(chunked_plan, "plan_chunks", out_of_memory)
+    sched = Scheduler(sqlite_sm, local_store, NullTransport(), get_settings(data_dir=tmp_path), "s")
     assert sched.tick().planned == []
     with sqlite_sm() as s:
         job = s.get(Job, job_id)

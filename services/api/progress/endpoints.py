@@ -40,12 +40,12 @@ def _stream(request: Request, tenant: str, job_id: int | None) -> StreamingRespo
         shared: SharedPolls = app.state.sse_polls
         return shared.poll(tenant, job_id, snap, app.state.rates)
 
-    cfg = app.state.sse
+    settings = app.state.settings
     gen = event_stream(
         request,
         poll,
-        poll_s=cfg.poll_s,
-        heartbeat_s=cfg.heartbeat_s,
+        poll_s=settings.sse_poll_s,
+        heartbeat_s=settings.sse_heartbeat_s,
         stop_when_gone=job_id is not None,
         stop_when_final=job_id is not None,
         limiter=limits.limiter,

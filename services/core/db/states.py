@@ -2,15 +2,17 @@
 
 Every task state change goes through `transition()`, which moves the tasks with one conditional UPDATE and
 adjusts the job's progress counters (`job_counter`) in the same transaction (on Postgres in the same statement),
-except a worker's own moves (claim and result: services.core.db.worker_moves, fixed SQL over edges checked here,
-keeping the counters alike); every job state change goes through `set_job_state()` (or, for the planner's
-conditional claim, `check_job_edge()` first). A change not in the tables below raises IllegalTransition, so a
-new code path cannot invent an edge silently.
+except a worker's own moves (claim and result: services.core.db.worker_moves), fixed SQL text built here once
+for both engines (`task_update_sql`, `counted_sql`, `count_moved_rows`) over edges checked here. Every job
+state change goes through `set_job_state()` (or, for the planner's conditional claim, `check_job_edge()`
+first). A change not in the tables below raises IllegalTransition, so a new code path cannot invent an edge
+silently.
 """
 
 from __future__ import annotations
 
 import functools
+import re
 from collections import Counter
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
@@ -25,8 +27,9 @@ from services.core.db.counters import COUNTER_SHARDS, add_counts
 from services.core.db.models import Job, JobState, Task, TaskState
 
 __all__ = [
-    "COUNT_MOVED_SQL", "JOB_EDGES", "TASK_EDGES", "IllegalTransition", "JobState", "TaskState", "check_job_edge",
-    "check_task_edge", "set_job_state", "transition", "transition_rows",
+    "JOB_EDGES", "TASK_EDGES", "IllegalTransition", "JobState", "TaskState", "check_job_edge",
+    "check_task_edge", "count_moved_rows", "count_moved_sql", "counted_sql", "set_job_state",
+    "task_update_sql", "transition", "transition_rows",
 ]
 
 # from -> the states a task may go to, and who takes that edge
@@ -142,15 +145,7 @@ def transition_rows(
             continue
         got = list(conn.execute(part))
         moved.extend(got)
-        per_job: dict[int, Counter[str]] = {}
-        for r in got:
-            per_job.setdefault(int(r[2]), Counter())[str(r[1])] += 1
-        for jid, per_cue in per_job.items():
-            deltas: dict[tuple[str, str], int] = {}
-            for cue, k in per_cue.items():
-                deltas[(cue, src.value)] = -k
-                deltas[(cue, dst.value)] = k
-            add_counts(conn, jid, deltas)
+        count_moved_rows(conn, got, src.value, dst)
     return moved
 
 
@@ -158,19 +153,22 @@ def transition_rows(
 # INSERT ... ON CONFLICT DO UPDATE construct (its cache key is None), and compiling the whole statement anew
 # for every claim and result cost more CPU than Postgres spent running it. States are inlined: they come from
 # the TaskState enum, never from input.
-COUNT_MOVED_SQL = (
-    "INSERT INTO job_counter (job_id, cue, state, shard, n) "
-    "SELECT m.job_id, m.cue, d.state, mod(pg_backend_pid(), {shards}), d.sign * count(*) "
-    "FROM moved AS m CROSS JOIN (VALUES ('{src}', -1), ('{dst}', 1)) AS d (state, sign) "
-    "GROUP BY m.job_id, m.cue, d.state, d.sign ORDER BY m.job_id, m.cue, d.state "  # a fixed order, as add_counts:
-    "ON CONFLICT (job_id, cue, state, shard) DO UPDATE SET n = job_counter.n + excluded.n"  # rows locked alike
-)
+def count_moved_sql(src_sql: str, dst: TaskState) -> str:
+    """INSERT INTO job_counter the deltas of the rows of the CTE `moved` (job_id, cue): -1 in the state
+    `src_sql` (a quoted state, or SQL naming a moved row's old state), +1 in `dst`."""
+    return (
+        "INSERT INTO job_counter (job_id, cue, state, shard, n) "
+        f"SELECT m.job_id, m.cue, d.state, mod(pg_backend_pid(), {COUNTER_SHARDS}), sum(d.sign) "
+        f"FROM moved AS m CROSS JOIN LATERAL (VALUES ({src_sql}, -1), ('{dst.value}', 1)) AS d (state, sign) "
+        # a fixed order, as add_counts: rows locked alike
+        "GROUP BY m.job_id, m.cue, d.state ORDER BY m.job_id, m.cue, d.state "
+        "ON CONFLICT (job_id, cue, state, shard) DO UPDATE SET n = job_counter.n + excluded.n"
+    )
 
 
 @functools.cache
 def _count_moved(src: str, dst: str) -> TextualSelect:
-    sql = COUNT_MOVED_SQL.format(shards=COUNTER_SHARDS, src=TaskState(src).value, dst=TaskState(dst).value)
-    return text(sql).columns()
+    return text(count_moved_sql(f"'{TaskState(src).value}'", TaskState(dst))).columns()
 
 
 def _counted(move: Update, src: str, dst: str) -> Select[Any]:
@@ -179,6 +177,42 @@ def _counted(move: Update, src: str, dst: str) -> Select[Any]:
     moved = move.cte("moved")
     counted = _count_moved(src, dst).cte("counted")
     return select(moved).add_cte(moved, counted)  # in this order: counted reads moved
+
+
+def count_moved_rows(conn: Connection, rows: Sequence[Sequence[Any]], src: str | None,
+                     dst: TaskState) -> None:
+    """The counter deltas of moved rows (id, cue, job_id, ...) where no statement moved them (SQLite): -1 from
+    `src` (None: the row's last column, its old state), +1 to `dst`."""
+    per_job: dict[int, Counter[tuple[str, str]]] = {}
+    for r in rows:
+        cue, old = str(r[1]), src if src is not None else str(r[-1])
+        deltas = per_job.setdefault(int(r[2]), Counter())
+        deltas[(cue, old)] -= 1
+        deltas[(cue, dst.value)] += 1
+    for job_id, job_deltas in per_job.items():
+        add_counts(conn, job_id, job_deltas)
+
+
+def task_update_sql(srcs: Sequence[TaskState], dst: TaskState, sets: str, where: str, *, returning: str = "",
+                    rows: str = "") -> str:
+    """UPDATE task from `srcs` (each an edge to `dst`, IllegalTransition if not) to `dst`, setting `sets`
+    where `where` (one source: in that state; several: `where` says which), optionally FROM `rows`,
+    returning (id, cue, job_id, `returning`): the SQL text both engines run, parameters written `:name`."""
+    for src in srcs:
+        check_task_edge(src, dst)
+    state = f" AND task.state = '{srcs[0].value}'" if len(srcs) == 1 else ""
+    source = f" FROM {rows}" if rows else ""
+    more = f", {returning}" if returning else ""
+    return (f"UPDATE task SET state = '{dst.value}', {sets}{source} WHERE {where}{state} "
+            f"RETURNING task.id, task.cue, task.job_id{more}")
+
+
+def counted_sql(update: str, src_sql: str, dst: TaskState, *, before: str = "",
+                select: str = "SELECT * FROM moved") -> str:
+    """Postgres: `update` (task_update_sql) and its counter deltas as ONE statement (a data-modifying CTE
+    after the CTEs `before`), parameters in psycopg's `%(name)s` style."""
+    sql = f"WITH {before}moved AS ({update}), counted AS ({count_moved_sql(src_sql, dst)}) {select}"
+    return re.sub(r"(?<![:\w]):(\w+)", r"%(\1)s", sql)  # :name, not a ::cast
 
 
 def set_job_state(job: Job, to_state: str, **values: object) -> None:

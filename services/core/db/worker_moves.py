@@ -3,17 +3,17 @@
 A worker claims and finishes tasks one at a time, hundreds of them a second across a fleet, and an embedded run's
 single worker does so for every view it renders: so these moves are SQL text sent as is, never a statement built,
 keyed and compiled per call (that cost a worker ~2 ms of CPU a move on Postgres, ~5 ms a view on SQLite).
+Each move is written once and built for both engines by states.task_update_sql (which checks its edges):
 - Postgres: each move is ONE statement with its counter deltas (a data-modifying CTE), outside a transaction.
 - SQLite: no data-modifying CTEs, so a move is its UPDATE ... RETURNING, then the counter upserts
-  (counters.add_counts), in one transaction. SQLite has one writer at a time: the first UPDATE holds the write lock
-  to the commit.
-Each takes only task edges of states.TASK_EDGES (checked at import) and keeps the counters as `transition` does.
+  (states.count_moved_rows), in one transaction. SQLite has one writer at a time: the first UPDATE holds
+  the write lock to the commit.
 """
 
 from __future__ import annotations
 
 import functools
-from collections import Counter
+import json
 from collections.abc import Callable, Sequence
 from datetime import datetime
 from typing import Any
@@ -22,103 +22,84 @@ from sqlalchemy.engine import Connection, Dialect
 from sqlalchemy.orm import Session
 
 from services.core.db.bulk import connection_of
-from services.core.db.counters import COUNTER_SHARDS, add_counts
 from services.core.db.models import Task
-from services.core.db.states import COUNT_MOVED_SQL, TaskState, check_task_edge
+from services.core.db.states import TaskState, count_moved_rows, counted_sql, task_update_sql
 from services.core.domain.cues import CATALOG, closure
 
 __all__ = ["NO_PASSES", "claim_task", "claim_view_tasks", "finish_task", "finish_tasks", "task_state"]
+
+QUEUED, PENDING, RUNNING, DONE = TaskState.QUEUED, TaskState.PENDING, TaskState.RUNNING, TaskState.DONE
 
 # Cues whose task never reads the view's pass set (the plan's), and `passes` itself: a view claim counts the view's
 # other unfinished tasks, which may still need the stored pass set.
 NO_PASSES: tuple[str, ...] = tuple(c for c in CATALOG if "passes" not in closure([c]) or c == "passes")
 _NO_PASSES_SQL = ", ".join(f"'{c}'" for c in NO_PASSES)
 
-for _edge in ((TaskState.QUEUED, TaskState.RUNNING), (TaskState.PENDING, TaskState.RUNNING),
-              (TaskState.RUNNING, TaskState.DONE)):
-    check_task_edge(*_edge)
 
-# ------------------------------------------------------------------------------------------------------- Postgres
-_PG_CLAIM = (
-    "WITH moved AS (UPDATE task SET state = 'running', worker_id = %(worker)s, attempts = task.attempts + 1, "
-    "started_at = %(now)s, finished_at = NULL, lease_until = %(lease)s "
-    "WHERE task.id = %(task_id)s AND task.state = 'queued' "
-    "AND EXISTS (SELECT 1 FROM job WHERE job.id = task.job_id AND job.state = 'running') "
-    "AND NOT EXISTS (SELECT 1 FROM worker_block AS b WHERE b.worker_id = %(worker)s AND b.job_id = task.job_id "
-    "AND (b.until IS NULL OR b.until > %(now)s)) "
-    "RETURNING task.id, task.cue, task.job_id, task.space_id, task.point_idx, task.view_idx, task.attempts), "
-    "counted AS ({count}) SELECT * FROM moved"
-)
-# A view batch: the rest of one view's tasks in one claim, and the finished ones in one result (their values as
-# arrays, so the text stays the same whatever the batch's size). The claim takes queued tasks and, after the
-# view's render (%(pending)s), pending ones too, unless a task of the view failed (then the dispatcher's rule,
-# "fail what an input failed for", decides). The candidates are locked first (skipping rows another transaction
-# holds, e.g. a dispatch pass queueing them), so the counter deltas subtract from each row's own old state.
-_PG_CLAIM_VIEW = (
-    "WITH cand AS (SELECT t.id, t.state AS old_state FROM task AS t "
-    "WHERE t.job_id = %(job_id)s AND t.space_id = %(space_id)s AND t.point_idx = %(point)s "
-    "AND t.view_idx = %(view)s AND t.cue <> 'passes' AND t.id <> %(task_id)s "
-    "AND (t.state = 'queued' OR (%(pending)s AND t.state = 'pending' AND NOT EXISTS (SELECT 1 FROM task AS f "
-    "WHERE f.job_id = t.job_id AND f.space_id = t.space_id AND f.point_idx = t.point_idx "
-    "AND f.view_idx = t.view_idx AND f.state = 'failed'))) "
-    "AND EXISTS (SELECT 1 FROM job WHERE job.id = t.job_id AND job.state = 'running') "
-    "AND NOT EXISTS (SELECT 1 FROM worker_block AS b WHERE b.worker_id = %(worker)s AND b.job_id = t.job_id "
-    "AND (b.until IS NULL OR b.until > %(now)s)) ORDER BY t.id FOR UPDATE OF t SKIP LOCKED), "
-    "moved AS (UPDATE task SET state = 'running', worker_id = %(worker)s, attempts = task.attempts + 1, "
-    "started_at = %(now)s, finished_at = NULL, lease_until = %(lease)s FROM cand "
-    "WHERE task.id = cand.id RETURNING task.id, task.cue, task.job_id, task.attempts, cand.old_state), "
-    "counted AS (INSERT INTO job_counter (job_id, cue, state, shard, n) "
-    "SELECT m.job_id, m.cue, d.state, mod(pg_backend_pid(), {shards}), sum(d.sign) FROM moved AS m "
-    "CROSS JOIN LATERAL (VALUES (m.old_state, -1), ('running', 1)) AS d (state, sign) "
-    "GROUP BY m.job_id, m.cue, d.state ORDER BY m.job_id, m.cue, d.state "
-    "ON CONFLICT (job_id, cue, state, shard) DO UPDATE SET n = job_counter.n + excluded.n) "
-    "SELECT moved.*, (SELECT count(*) FROM task AS v WHERE v.job_id = %(job_id)s AND v.space_id = %(space_id)s "
-    "AND v.point_idx = %(point)s AND v.view_idx = %(view)s AND v.state <> 'done' AND v.cue NOT IN ({no_passes}) "
-    "AND v.id <> %(task_id)s AND v.id NOT IN (SELECT id FROM moved)) AS reading_elsewhere FROM moved"
-)
-_PG_FINISH_MANY = (
-    "WITH moved AS (UPDATE task SET state = 'done', output_key = v.key, size = v.size, sha256 = v.sha256, "
-    "duration_s = v.duration_s, finished_at = %(now)s, lease_until = NULL, error = NULL "
-    "FROM unnest(%(ids)s::bigint[], %(keys)s::text[], %(sizes)s::bigint[], %(sha256s)s::text[], "
-    "%(durations)s::float8[]) AS v (id, key, size, sha256, duration_s) "
-    "WHERE task.id = v.id AND task.state = 'running' AND task.worker_id = %(worker)s "
-    "RETURNING task.id, task.cue, task.job_id), counted AS ({count}) SELECT * FROM moved"
-)
+def _may_claim(t: str) -> str:
+    """The task `t`'s job runs and the worker is not kept off it."""
+    return (f"EXISTS (SELECT 1 FROM job WHERE job.id = {t}.job_id AND job.state = 'running') "
+            "AND NOT EXISTS (SELECT 1 FROM worker_block AS b WHERE b.worker_id = :worker "
+            f"AND b.job_id = {t}.job_id AND (b.until IS NULL OR b.until > :now))")
+
+
+def _same_view(t: str) -> str:
+    return (f"{t}.job_id = :job_id AND {t}.space_id = :space_id AND {t}.point_idx = :point "
+            f"AND {t}.view_idx = :view")
+
+
+_CLAIMED = ("worker_id = :worker, attempts = task.attempts + 1, started_at = :now, finished_at = NULL, "
+            "lease_until = :lease")
+_CLAIM = task_update_sql([QUEUED], RUNNING, _CLAIMED, f"task.id = :task_id AND {_may_claim('task')}",
+                         returning="task.space_id, task.point_idx, task.view_idx, task.attempts")
+CLAIM_SQL = counted_sql(_CLAIM, f"'{QUEUED.value}'", RUNNING)
+SQLITE_CLAIM_SQL = _CLAIM
+
+# A view batch: the rest of one view's tasks in one claim, and the finished ones in one result. The claim
+# takes queued tasks and, after the view's render (pending), pending ones too, unless a task of the view
+# failed (then the dispatcher's rule, "fail what an input failed for", decides).
+_VIEW_CANDIDATES = f"{_same_view('t')} AND t.cue <> 'passes' AND t.id <> :task_id AND {_may_claim('t')}"
+_NONE_FAILED = ("NOT EXISTS (SELECT 1 FROM task AS f WHERE f.job_id = t.job_id AND f.space_id = t.space_id "
+                "AND f.point_idx = t.point_idx AND f.view_idx = t.view_idx AND f.state = 'failed')")
+_READERS = f"{_same_view('v')} AND v.state <> 'done' AND v.cue NOT IN ({_NO_PASSES_SQL})"
+# Postgres: the candidates are locked first (skipping rows another transaction holds, e.g. a dispatch pass
+# queueing them), so the counter deltas subtract from each row's own old state.
+CLAIM_VIEW_SQL = counted_sql(
+    task_update_sql([QUEUED, PENDING], RUNNING, _CLAIMED, "task.id = cand.id",
+                    returning="task.attempts, cand.old_state", rows="cand"),
+    "m.old_state", RUNNING,
+    before=(f"cand AS (SELECT t.id, t.state AS old_state FROM task AS t WHERE {_VIEW_CANDIDATES} AND "
+            f"(t.state = 'queued' OR (:pending AND t.state = 'pending' AND {_NONE_FAILED})) "
+            "ORDER BY t.id FOR UPDATE OF t SKIP LOCKED), "),
+    select=(f"SELECT moved.*, (SELECT count(*) FROM task AS v WHERE {_READERS} AND v.id <> :task_id "
+            "AND v.id NOT IN (SELECT id FROM moved)) AS reading_elsewhere FROM moved"))
+# SQLite: one UPDATE per source state (RETURNING names only the updated table, not its old state)
+SQLITE_CLAIM_VIEW_SQL = {
+    src: task_update_sql([src], RUNNING, _CLAIMED,
+                         f"task.id IN (SELECT t.id FROM task AS t WHERE {_VIEW_CANDIDATES}"
+                         + (f" AND {_NONE_FAILED})" if src == PENDING else ")"), returning="task.attempts")
+    for src in (QUEUED, PENDING)}
+SQLITE_VIEW_READERS_SQL = f"SELECT v.id FROM task AS v WHERE {_READERS}"
+
+# The results as rows (the same text whatever the batch's size): arrays on Postgres, a JSON array on SQLite
+_RESULTS = ("id", "key", "size", "sha256", "duration_s")
+_RESULT_ROWS = {
+    "postgresql": "unnest(:ids::bigint[], :keys::text[], :sizes::bigint[], :sha256s::text[], "
+                  f":durations::float8[]) AS v ({', '.join(_RESULTS)})",
+    "sqlite": "(SELECT " + ", ".join(f"j.value ->> {i} AS {c}" for i, c in enumerate(_RESULTS))
+              + " FROM json_each(:results) AS j) AS v",
+}
+
+
+def _finish(dialect: str) -> str:
+    return task_update_sql([RUNNING], DONE, "output_key = v.key, size = v.size, sha256 = v.sha256, "
+                           "duration_s = v.duration_s, finished_at = :now, lease_until = NULL, error = NULL",
+                           "task.id = v.id AND task.worker_id = :worker", rows=_RESULT_ROWS[dialect])
+
+
+FINISH_MANY_SQL = counted_sql(_finish("postgresql"), f"'{RUNNING.value}'", DONE)
+SQLITE_FINISH_SQL = _finish("sqlite")
 TASK_STATE_SQL = "SELECT state FROM task WHERE id = %(task_id)s"
-
-
-def _with_counts(template: str, src: TaskState, dst: TaskState) -> str:
-    return template.format(count=COUNT_MOVED_SQL.format(shards=COUNTER_SHARDS, src=src.value, dst=dst.value))
-
-
-CLAIM_SQL = _with_counts(_PG_CLAIM, TaskState.QUEUED, TaskState.RUNNING)
-CLAIM_VIEW_SQL = _PG_CLAIM_VIEW.format(shards=COUNTER_SHARDS, no_passes=_NO_PASSES_SQL)
-FINISH_MANY_SQL = _with_counts(_PG_FINISH_MANY, TaskState.RUNNING, TaskState.DONE)
-
-# --------------------------------------------------------------------------------------------------------- SQLite
-# The same conditions; each UPDATE returns the moved rows, whose counters add_counts then moves.
-_MAY_CLAIM = (  # the job runs and the worker is not kept off it
-    "EXISTS (SELECT 1 FROM job WHERE job.id = task.job_id AND job.state = 'running') "
-    "AND NOT EXISTS (SELECT 1 FROM worker_block AS b WHERE b.worker_id = :worker AND b.job_id = task.job_id "
-    "AND (b.until IS NULL OR b.until > :now))"
-)
-_CLAIMED = ("UPDATE task SET state = 'running', worker_id = :worker, attempts = attempts + 1, started_at = :now, "
-            "finished_at = NULL, lease_until = :lease ")
-SQLITE_CLAIM_SQL = (f"{_CLAIMED}WHERE id = :task_id AND state = 'queued' AND {_MAY_CLAIM} "
-                    "RETURNING id, cue, job_id, space_id, point_idx, view_idx, attempts")
-_SAME_VIEW = "job_id = :job_id AND space_id = :space_id AND point_idx = :point AND view_idx = :view"
-SQLITE_CLAIM_VIEW_SQL = (  # :src is 'queued' or 'pending' (a pending task only while no task of its view failed)
-    f"{_CLAIMED}WHERE {_SAME_VIEW} AND cue <> 'passes' AND id <> :task_id AND state = :src "
-    "AND (:src = 'queued' OR NOT EXISTS (SELECT 1 FROM task AS f WHERE f.job_id = task.job_id "
-    "AND f.space_id = task.space_id AND f.point_idx = task.point_idx AND f.view_idx = task.view_idx "
-    f"AND f.state = 'failed')) AND {_MAY_CLAIM} RETURNING id, cue, job_id, attempts"
-)
-SQLITE_VIEW_READERS_SQL = f"SELECT id FROM task WHERE {_SAME_VIEW} AND state <> 'done' AND cue NOT IN ({_NO_PASSES_SQL})"
-SQLITE_FINISH_SQL = (
-    "UPDATE task SET state = 'done', output_key = :key, size = :size, sha256 = :sha256, duration_s = :duration_s, "
-    "finished_at = :now, lease_until = NULL, error = NULL WHERE id = :task_id AND state = 'running' "
-    "AND worker_id = :worker RETURNING id, cue, job_id"
-)
 SQLITE_TASK_STATE_SQL = "SELECT state FROM task WHERE id = :task_id"
 
 
@@ -142,19 +123,6 @@ def _autocommit(session: Session) -> Connection | None:
     return session.connection(execution_options={"isolation_level": "AUTOCOMMIT"})
 
 
-def _count_sqlite(conn: Connection, rows: Sequence[Sequence[Any]], src: str | None, dst: str) -> None:
-    """Counter deltas of moved rows (id, cue, job_id, ...): -1 from `src` (None: the row's 5th column, its old
-    state), +1 to `dst`."""
-    per_job: dict[int, Counter[tuple[str, str]]] = {}
-    for r in rows:
-        cue, old = str(r[1]), src if src is not None else str(r[4])
-        deltas = per_job.setdefault(int(r[2]), Counter())
-        deltas[(cue, old)] -= 1
-        deltas[(cue, dst)] += 1
-    for job_id, deltas in per_job.items():
-        add_counts(conn, job_id, deltas)
-
-
 def claim_task(session: Session, *, task_id: int, worker_id: str, now: datetime, lease_until: datetime) -> Any:
     """queued -> running for `worker_id` while the task's job runs and the worker is not kept off the job (a
     current WorkerBlock); returns the row (id, cue, job_id, space_id, point_idx, view_idx, attempts, attempts
@@ -166,7 +134,7 @@ def claim_task(session: Session, *, task_id: int, worker_id: str, now: datetime,
     conn = connection_of(session)
     rows = list(conn.exec_driver_sql(SQLITE_CLAIM_SQL, {
         "task_id": task_id, "worker": worker_id, "now": _bound_time(conn, now), "lease": _bound_time(conn, lease_until)}))
-    _count_sqlite(conn, rows, TaskState.QUEUED.value, TaskState.RUNNING.value)
+    count_moved_rows(conn, rows, QUEUED.value, RUNNING)
     session.commit()
     return rows[0] if rows else None
 
@@ -196,10 +164,10 @@ def claim_view_tasks(
     conn = connection_of(session)
     params.update(now=_bound_time(conn, now), lease=_bound_time(conn, lease_until))
     rows: list[tuple[Any, ...]] = []
-    for src in (TaskState.QUEUED, TaskState.PENDING) if with_pending else (TaskState.QUEUED,):
+    for src in (QUEUED, PENDING) if with_pending else (QUEUED,):
         # RETURNING gives the new state: the old one is the source state this UPDATE moved from
-        rows += [(*r[:4], src.value) for r in conn.exec_driver_sql(SQLITE_CLAIM_VIEW_SQL, {**params, "src": src.value})]
-    _count_sqlite(conn, rows, None, TaskState.RUNNING.value)
+        rows += [(*r[:4], src.value) for r in conn.exec_driver_sql(SQLITE_CLAIM_VIEW_SQL[src], params)]
+    count_moved_rows(conn, rows, None, RUNNING)
     moved = {int(r[0]) for r in rows}
     readers = {int(r[0]) for r in conn.exec_driver_sql(SQLITE_VIEW_READERS_SQL, params)}
     session.commit()
@@ -210,8 +178,8 @@ def finish_tasks(
     session: Session, *, worker_id: str, results: Sequence[tuple[int, str, int, str | None, float]], now: datetime,
 ) -> set[int]:
     """running -> done of the tasks `worker_id` still holds, each with its own output (task id, key, size, sha256,
-    seconds); returns the ids moved. Postgres: one fixed statement over arrays, outside a transaction; SQLite: one
-    UPDATE per task in one transaction."""
+    seconds); returns the ids moved. One fixed statement over the results: Postgres (arrays) outside a
+    transaction, SQLite (a JSON array) with its counters in one transaction."""
     conn = _autocommit(session)
     if conn is not None:
         ids, keys, sizes, sha256s, durations = (list(col) for col in zip(*results, strict=True))
@@ -220,13 +188,10 @@ def finish_tasks(
             "worker": worker_id, "now": now})
         return {int(r[0]) for r in rows}
     conn = connection_of(session)
-    finished = _bound_time(conn, now)
-    moved: list[Any] = []
-    for tid, key, size, sha256, duration in results:
-        moved += conn.exec_driver_sql(SQLITE_FINISH_SQL, {
-            "task_id": tid, "key": key, "size": size, "sha256": sha256, "duration_s": duration, "worker": worker_id,
-            "now": finished}).all()
-    _count_sqlite(conn, moved, TaskState.RUNNING.value, TaskState.DONE.value)
+    results_json = json.dumps([[int(t), k, int(n), sha, float(d)] for t, k, n, sha, d in results])
+    moved = conn.exec_driver_sql(SQLITE_FINISH_SQL, {"results": results_json, "worker": worker_id,
+                                                     "now": _bound_time(conn, now)}).all()
+    count_moved_rows(conn, moved, RUNNING.value, DONE)
     session.commit()
     return {int(r[0]) for r in moved}
 

@@ -3,6 +3,10 @@
 `make_plan(space, spec, rng, space_name)` runs cameras -> points -> views with the given
 `numpy.random.Generator` only (no global RNG, bpy, SQL, S3 or Celery), so the same seed and inputs
 give a byte-identical `plan_to_json`. World frame: metres, +Z up (see services.core.ingest.loading).
+
+`plan_chunks` gives the same plan in chunks of whole points. The specs that plan in chunks (`plans_in_chunks`)
+have one planner, planning.stream, and `make_plan` collects its chunks; the others (capture cameras,
+trajectories, filters that need every view) are planned whole here and cut into chunks.
 """
 
 from __future__ import annotations
@@ -10,26 +14,27 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import time
-import uuid as uuidlib
 
 import numpy as np
 
 from services.core.domain.jobspec import CameraSpec, JobSpec
 from services.core.domain.keys import check_name
-from services.core.domain.plan import (
-    CameraPose,
-    PlanError,
-    PlannedView,
-    PointOfInterest,
-    SpacePlan,
-    ValidFractionSummary,
-    clip_shortfall,
-)
+from services.core.domain.plan import PlanError, SpacePlan, ValidFractionSummary, clip_shortfall
+from services.core.domain.plan_budget import plans_in_chunks
 from services.core.ingest.capture.model import Capture
 from services.core.ingest.loading import LoadedSpace
-from services.scheduler.planning.cameras import generate_cameras, object_cameras, provided_cameras
+from services.scheduler.planning.parts import (
+    VALID_REPORT_VIEWS,
+    camera_poses,
+    join_notes,
+    place_cameras,
+    planned_views,
+    points_of,
+    sample_space_points,
+)
 from services.scheduler.planning.paths import longest_run
-from services.scheduler.planning.points import SampledPoints, sample_points
+from services.scheduler.planning.points import SampledPoints
+from services.scheduler.planning.stream import PlanChunks, cut_plan, stream_plan
 from services.scheduler.planning.trajectory import ClipNote, trajectory
 from services.scheduler.planning.views import (
     ViewArrays,
@@ -40,9 +45,7 @@ from services.scheduler.planning.views import (
 )
 from services.scheduler.planning.visibility import MeshQueries
 
-__all__ = ["make_plan", "space_rng", "PlanError"]
-
-VALID_REPORT_VIEWS = 2000  # views probed for job.json's valid-fraction distribution when none are dropped
+__all__ = ["make_plan", "plan_chunks", "space_rng", "PlanError"]
 
 
 def space_rng(seed: int, space_name: str) -> np.random.Generator:
@@ -50,11 +53,6 @@ def space_rng(seed: int, space_name: str) -> np.random.Generator:
     adding a space to a job does not change the plans of the others."""
     digest = hashlib.sha256(space_name.encode()).digest()
     return np.random.default_rng([int(seed), int.from_bytes(digest[:8], "little")])
-
-
-def plan_uuid(salt: bytes, kind: str, idx: int) -> str:
-    h = hashlib.sha256(salt + f"/{kind}/{idx}".encode()).digest()
-    return str(uuidlib.UUID(bytes=h[:16], version=4))
 
 
 def make_plan(
@@ -68,6 +66,23 @@ def make_plan(
     """Sample cameras, points and views of `space` as `spec` says; `timings` (if given) receives
     seconds per stage and the number of rays cast."""
     check_name("space", space_name)
+    if plans_in_chunks(spec):
+        return stream_plan(space, spec, rng, space_name, None, timings).collect()
+    return _plan_whole(space, spec, rng, space_name, timings)
+
+
+def plan_chunks(space: LoadedSpace, spec: JobSpec, rng: np.random.Generator, space_name: str,
+                chunk_views: int) -> PlanChunks:
+    """The plan of `space` in chunks of whole points of about `chunk_views` views (at least one point)."""
+    check_name("space", space_name)
+    if plans_in_chunks(spec):
+        return stream_plan(space, spec, rng, space_name, chunk_views)
+    return cut_plan(_plan_whole(space, spec, rng, space_name, None), chunk_views)
+
+
+def _plan_whole(space: LoadedSpace, spec: JobSpec, rng: np.random.Generator, space_name: str,
+                timings: dict[str, float] | None) -> SpacePlan:
+    """make_plan of the specs that need every view at once before any is final."""
     t0 = time.perf_counter()
     stamp: dict[str, float] = {}
     q = MeshQueries(space.mesh)
@@ -84,10 +99,7 @@ def make_plan(
     else:
         cams, source, orbit = place_cameras(space, camera_spec, q, rng)
     stamp["cameras"] = (t1 := time.perf_counter()) - t0
-    ps = spec.points
-    check_enough_cameras(len(cams), spec, space_name)
-    count = ps.count if ps.count is not None else max(1, int(round(ps.per_camera * len(cams))))
-    sampled = sample_points(q, cams, ps, count, rng)
+    sampled = sample_space_points(q, cams, spec, space_name, rng)
     stamp["points"] = (t2 := time.perf_counter()) - t1
 
     vs = spec.views
@@ -127,17 +139,6 @@ def _exact_capture_plan(space: LoadedSpace, spec: JobSpec, space_name: str, q: M
         space, spec, space_name, q, lambda name, pidx, cams, pts, views, short: _assemble(
             name, salt, cams, "capture", spec.cameras, pts, np.unique(pidx), views, spec.views.resolution,
             short, []))
-
-
-def check_enough_cameras(n_cameras: int, spec: JobSpec, space_name: str) -> None:
-    """PlanError when fewer cameras exist than a point needs views: no point could be planned."""
-    ps = spec.points
-    if n_cameras < ps.min_views:
-        raise PlanError(
-            f"space {space_name!r} has {n_cameras} cameras (mode {spec.cameras.mode!r}) but points.min_views is "
-            f"{ps.min_views}: no point could be seen by enough cameras; lower min_views or "
-            "cameras.min_spacing_m, or raise cameras.max_count"
-        )
 
 
 def _keep_photo_covered(capture: Capture, views: ViewArrays, n_points: int, spec: JobSpec) -> tuple[ViewArrays, int]:
@@ -184,17 +185,6 @@ def _valid_fractions(q: MeshQueries, views: ViewArrays, spec: JobSpec) -> tuple[
     summary = fraction_summary(valid_fractions(q, views.subset(sample), spec.params.max_depth_m), 0.0)
     summary["sampled_of"] = len(views)
     return None, summary
-
-
-def place_cameras(space: LoadedSpace, camera_spec: CameraSpec, q: MeshQueries, rng: np.random.Generator
-                   ) -> tuple[np.ndarray, str, tuple[np.ndarray, float] | None]:
-    """(camera positions, their source, an object's camera sphere (centre, radius) or None)."""
-    if camera_spec.mode == "generate":
-        return generate_cameras(q, camera_spec, rng), "generated", None
-    if camera_spec.mode == "provided":
-        return provided_cameras(camera_spec), "provided", None
-    cams, centre, radius = object_cameras(space.mesh, camera_spec, rng)
-    return cams, "object", (centre, radius)  # trajectory clips orbit the object's points
 
 
 def _choose_views(sampled: SampledPoints, cams: np.ndarray, spec: JobSpec, q: MeshQueries, rng: np.random.Generator,
@@ -263,11 +253,6 @@ def _longest_runs(point_idx: np.ndarray, ok: np.ndarray, min_frames: int) -> np.
     return keep
 
 
-def join_notes(*parts: str | None) -> str | None:
-    text = "; ".join(p for p in parts if p)
-    return text or None
-
-
 def _assemble(
     space_name: str,
     salt: bytes,
@@ -281,34 +266,17 @@ def _assemble(
     shortfall: str | None,
     notes: list[ClipNote],
 ) -> SpacePlan:
-    given = [p.uuid for p in camera_spec.poses] if source == "provided" and camera_spec.poses else [None] * len(cams)
-    cameras = tuple(
-        CameraPose(idx=i, position=cams[i], source=source, uuid=given[i] or plan_uuid(salt, "camera", i))
-        for i in range(len(cams))
-    )
+    cameras = camera_poses(cams, source, camera_spec, salt)
     new_idx = np.full(len(sampled.positions), -1, dtype=np.int64)
     new_idx[keep_points] = np.arange(len(keep_points))
-    points = tuple(
-        PointOfInterest(
-            idx=k, position=sampled.positions[p], normal=sampled.normals[p],
-            uuid=plan_uuid(salt, "point", k), camera_idxs=sampled.visible[p],
-        )
-        for k, p in enumerate(keep_points)
-    )
+    points = points_of(sampled, keep_points, 0, salt)
     # renumber v within each point after pruning
     pidx = new_idx[views.point_idx]
     order = np.lexsort((views.v, pidx))
     pidx = pidx[order]
     counts = np.bincount(pidx, minlength=len(points)) if len(pidx) else np.zeros(len(points), dtype=np.int64)
     v = np.arange(len(pidx)) - np.repeat(np.cumsum(counts) - counts, counts)
-    planned = tuple(
-        PlannedView(
-            point_idx=int(pidx[i]), v=int(v[i]), camera_idx=int(views.camera_idx[o]),
-            world_to_camera=views.world_to_camera[o], fov=float(views.fov[o]), roll=float(views.roll[o]),
-            resolution=int(resolution), obliqueness=float(views.obliqueness[o]), in_sight=bool(views.in_sight[o]),
-        )
-        for i, o in enumerate(order)
-    )
+    planned = planned_views(dataclasses.replace(views.subset(order), point_idx=pidx, v=v), resolution)
     # clip notes name the points by their index in the plan (None: dropped)
     clip_notes = tuple(n.as_dict(int(new_idx[n.point]) if new_idx[n.point] >= 0 else None) for n in notes)
     shortfall = join_notes(shortfall, clip_shortfall(clip_notes, len(sampled.positions)))

@@ -115,24 +115,39 @@ def wide_baseline(
     rng: np.random.Generator,
 ) -> ViewArrays:
     """One fixated view per visible camera-point pair (at most max_views per point, chosen by rng)."""
-    pidx: list[np.ndarray] = []
-    cidx: list[np.ndarray] = []
-    vidx: list[np.ndarray] = []
-    for p, cams in enumerate(visible):
-        cams = cap_views(cams, max_views, rng)
-        pidx.append(np.full(len(cams), p, dtype=np.int64))
-        cidx.append(cams)
-        vidx.append(np.arange(len(cams), dtype=np.int64))
-    P = np.concatenate(pidx) if pidx else np.zeros(0, dtype=np.int64)
-    C = np.concatenate(cidx) if cidx else np.zeros(0, dtype=np.int64)
-    V = np.concatenate(vidx) if vidx else np.zeros(0, dtype=np.int64)
+    return wide_baseline_span(positions, normals, visible, cameras, spec, max_views, (0, len(visible)),
+                              (rng, rng, rng))
+
+
+def wide_baseline_span(
+    positions: np.ndarray,
+    normals: np.ndarray,
+    visible: tuple[np.ndarray, ...],
+    cameras: np.ndarray,
+    spec: ViewSpec,
+    max_views: int | None,
+    span: tuple[int, int],
+    rngs: tuple[np.random.Generator, np.random.Generator, np.random.Generator],
+) -> ViewArrays:
+    """wide_baseline's views of points span[0]..span[1]-1; rngs = (camera choices, fovs, rolls).
+
+    One generator three times draws all choices, then all fovs, then all rolls: the whole plan's order, which
+    a chunk reproduces from copies of the generator advanced to its first draw of each kind.
+    """
+    choice_rng, fov_rng, roll_rng = rngs
+    lo, hi = span
+    chosen = [cap_views(visible[p], max_views, choice_rng) for p in range(lo, hi)]
+    P = np.repeat(np.arange(lo, hi, dtype=np.int64), [len(c) for c in chosen])
+    none = np.zeros(0, dtype=np.int64)
+    C = np.concatenate(chosen) if chosen else none
+    V = np.concatenate([np.arange(len(c), dtype=np.int64) for c in chosen]) if chosen else none
     n = len(P)
     fov = truncated_normal(
-        rng, np.radians(spec.fov_mean_deg), np.radians(spec.fov_std_deg),
+        fov_rng, np.radians(spec.fov_mean_deg), np.radians(spec.fov_std_deg),
         np.radians(spec.fov_min_deg), np.radians(spec.fov_max_deg), n,
     )
     rmax = np.radians(spec.roll_max_deg)
-    roll = rng.uniform(-rmax, rmax, n)
+    roll = roll_rng.uniform(-rmax, rmax, n)
     W = look_at_batch(cameras[C], positions[P], roll) if n else np.zeros((0, 4, 4))
     obl = obliqueness(normals[P], positions[P], cameras[C]) if n else np.zeros(0)
     return ViewArrays(P, V, C, W, fov, roll, obl, np.ones(n, dtype=bool))

@@ -19,7 +19,9 @@ from services.core.db.states import (
     TASK_EDGES,
     IllegalTransition,
     check_job_edge,
+    counted_sql,
     set_job_state,
+    task_update_sql,
     transition,
 )
 
@@ -80,6 +82,17 @@ def test_a_state_name_that_does_not_exist_is_refused(sqlite_session: Session) ->
     job = _job_with_tasks(sqlite_session, TaskState.PENDING)
     with pytest.raises(ValueError):
         transition(sqlite_session, job_id=job.id, from_state="pending", to_state="lost")
+
+
+def test_the_fixed_sql_builder_takes_only_edges_of_the_table() -> None:
+    with pytest.raises(IllegalTransition, match="from 'done' to 'running'"):
+        task_update_sql([TaskState.QUEUED, TaskState.DONE], TaskState.RUNNING, "worker_id = :w",
+                        "task.id = :id")
+    sql = task_update_sql([TaskState.RUNNING], TaskState.DONE, "size = :size", "task.id = :id")
+    assert sql.startswith("UPDATE task SET state = 'done', size = :size WHERE task.id = :id "
+                          "AND task.state = 'running'")
+    pg = counted_sql(sql, "'running'", TaskState.DONE, before="v AS (SELECT '1'::int AS a), ")
+    assert "size = %(size)s WHERE task.id = %(id)s" in pg and "'1'::int" in pg and ":size" not in pg
 
 
 @pytest.mark.parametrize(("src", "dst"), JOB_PAIRS, ids=[f"{a}->{b}" for a, b in JOB_PAIRS])

@@ -11,8 +11,8 @@ from datetime import datetime
 
 from sqlalchemy.orm import Session
 
+from services.api.jobs.rates import RateTracker
 from services.api.jobs.schemas import CueProgress, Progress
-from services.api.progress.rates import RateTracker
 from services.core.db.counters import summed_counters
 from services.core.db.models import (
     JOB_TERMINAL_STATES,

@@ -22,6 +22,7 @@ from pathlib import Path
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
+from services.core.db.frame_choice import space_frame_for
 from services.core.db.jobs import claim_pending_jobs, job_spaces, job_spec
 from services.core.db.models import Job, JobState, Space, utcnow
 from services.core.db.plan_claims import tenants_waiting_idle
@@ -29,7 +30,6 @@ from services.core.db.states import set_job_state
 from services.core.db.worker_rows import expire_worker_rows
 from services.core.domain.jobspec import JobSpec, SpaceFrame
 from services.core.domain.plan_budget import check_plan_budget
-from services.core.ingest.frame_choice import space_frame_for
 from services.core.ingest.loading import LoadedSpace
 from services.core.settings import Settings
 from services.core.storage import LocalStore, ObjectStore

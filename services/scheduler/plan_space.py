@@ -13,6 +13,7 @@ from typing import NotRequired, Protocol, TypedDict
 import numpy as np
 
 from services.core.domain.capture_records import CapturePlanRecord
+from services.core.domain.frame_records import FrameRecord
 from services.core.domain.job_document import SpaceRecord, space_record
 from services.core.domain.jobspec import JobSpec, SpaceFrame
 from services.core.domain.plan import (
@@ -22,7 +23,6 @@ from services.core.domain.plan import (
     ValidFractionSummary,
     clip_summary,
 )
-from services.core.ingest.frame_records import FrameRecord
 from services.core.ingest.loading import LoadedSpace, load_space
 from services.scheduler.planning import make_plan, space_rng
 

@@ -16,11 +16,11 @@ from typing import Protocol, TypeVar
 
 from sqlalchemy.orm import Session
 
+from services.core.db.frame_choice import space_frame_for
 from services.core.db.jobs import job_root
 from services.core.db.models import Job, Space
 from services.core.domain.jobspec import JobSpec, SpaceFrame
 from services.core.domain.plan import SpacePlan, plan_from_json
-from services.core.ingest.frame_choice import space_frame_for
 from services.core.storage import ObjectStore
 from services.worker.context import ViewContext
 

@@ -16,11 +16,11 @@ import numpy as np
 import trimesh
 from sqlalchemy.orm import Session
 
+from services.core.db.frame_choice import record_choice
 from services.core.db.models import Space
 from services.core.domain.errors import Invalid, NotFound
 from services.core.domain.jobspec import SpaceFrame
 from services.core.ingest.errors import SpaceError
-from services.core.ingest.frame_choice import record_choice
 from services.core.ingest.loading import LoadedSpace
 from services.core.ingest.registry import fetch_space
 from services.core.ingest.safe_load import load_space_limited

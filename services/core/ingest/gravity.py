@@ -39,8 +39,8 @@ import numpy as np
 import trimesh
 from scipy.spatial import ConvexHull, QhullError
 
+from services.core.domain.frame_records import UpRecord
 from services.core.ingest.direction_bins import BINS, N_BINS, bin_neighbours, bin_tree
-from services.core.ingest.frame_records import UpRecord
 from services.core.ingest.single_view import single_view
 from services.core.ingest.up_evidence import (
     WEIGHTS,

@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 import trimesh
 
+from services.core.domain.frame_records import FrameRecord
 from services.core.domain.jobspec import UP_AXES, similarity_scale
 from services.core.domain.json_types import JSONObject
 from services.core.ingest.archive import resolve_source
@@ -46,7 +47,6 @@ from services.core.ingest.confine import ConfinedResolver, is_inside
 from services.core.ingest.datasets import DatasetError, DatasetScene, scene_of
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.frame import FrameRequest, resolve_frame
-from services.core.ingest.frame_records import FrameRecord
 from services.core.ingest.gravity import UpEstimate
 from services.core.ingest.labels import read_ply_semantics, scannet_labels
 from services.core.ingest.mesh_checks import check_source

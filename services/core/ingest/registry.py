@@ -243,7 +243,7 @@ def register_space(
 
     `loaded`: the result of `validate_source` for the same path and options, so a caller that validated
     first does not load the mesh twice. An ambiguous up does not refuse the space: it is recorded (with
-    both candidates) and the space needs a frame before a job may plan it (`services.core.ingest.frame_choice`);
+    both candidates) and the space needs a frame before a job may plan it (`services.core.db.frame_choice`);
     `accept_up_guess` is accepted for the frame keywords of a JobSpec and does not change that.
     """
     try:

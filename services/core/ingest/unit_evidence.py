@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import trimesh
 
-from services.core.ingest.frame_records import UnitCandidateRecord, UnitsRecord
+from services.core.domain.frame_records import UnitCandidateRecord, UnitsRecord
 
 # storey height (floor to top of the scan) that a room must have once scaled, metres
 STOREY_RANGE_M = (1.8, 6.0)

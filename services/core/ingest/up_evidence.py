@@ -44,7 +44,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike
 
-from services.core.ingest.frame_records import UpCandidateRecord
+from services.core.domain.frame_records import UpCandidateRecord
 from services.core.ingest.single_view import SingleView
 
 DISTINCT_DEG = 30.0  # candidates closer than this level the scan the same way

@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from services.core.db.frame_choice import space_frame_for
 from services.core.db.models import Space
 from services.core.domain.jobspec import JobSpec
-from services.core.ingest.frame_choice import space_frame_for
 from services.core.ingest.loading import load_space
 from tests.fixtures.api import Api
 

@@ -16,9 +16,8 @@ from datetime import UTC, datetime
 import numpy as np
 
 from services.core.db.models import Space
+from services.core.domain.frame_words import ambiguity_line, units_ambiguity_line
 from services.core.domain.jobspec import JobSpec, SpaceFrame
-from services.core.ingest.unit_evidence import units_ambiguity_line
-from services.core.ingest.up_evidence import ambiguity_line
 
 
 def chosen_up(space: Space) -> list[float] | None:

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
+from services.core.domain.frame_words import ambiguity_line, units_ambiguity_line
 from services.core.domain.jobspec import similarity_scale
 from services.core.ingest.errors import SpaceError, UnitsAmbiguous, UpAmbiguous
 from services.core.ingest.gravity import (
@@ -22,8 +23,7 @@ from services.core.ingest.gravity import (
     floor_evidence,
     guess_candidates,
 )
-from services.core.ingest.unit_evidence import UnitChoice, UnitError, choose_units, units_ambiguity_line
-from services.core.ingest.up_evidence import ambiguity_line
+from services.core.ingest.unit_evidence import UnitChoice, UnitError, choose_units
 
 FRAME_KEYS = ("up", "units", "reconstruction", "class_names", "valid_fraction", "capture")
 

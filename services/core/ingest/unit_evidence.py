@@ -234,15 +234,6 @@ def decide_units(m: ScanMeasures, disabled: tuple[str, ...] = ()) -> UnitDecisio
     return UnitDecision(tuple(sorted(cands, key=lambda c: (-c.score, order[c.unit]))))
 
 
-def units_ambiguity_line(name: str, candidates: list[UnitCandidateRecord]) -> str:
-    """One line naming each candidate unit, what it makes the scan, and the flag that picks one."""
-    words = [f"{c['unit']} (--unit-scale={c['unit_scale']:g}: storey {c['storey_height_m']:.3g} m, "
-             f"{' x '.join(f'{x:.3g}' for x in c['extent_m'])} m)" for c in candidates]
-    return (f"{name}: units are ambiguous: {' or '.join(words)}; pick one with --unit-scale=M "
-            "(metres per unit; API: spec field unit_scale), or accept the guess with --accept-up-guess "
-            "(accept_up_guess)")
-
-
 def choose_units(mesh: trimesh.Trimesh, up: np.ndarray, storey_height: float | None) -> UnitChoice:
     """Metres per source unit of a scan levelled along `up`: the evidence above for rooms (`storey_height`
     set), gravity's plausibility check for objects; `ambiguous` when another unit is about as plausible."""

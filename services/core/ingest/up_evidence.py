@@ -342,24 +342,3 @@ def reason_words(decision: UpDecision) -> str:
     gains = sorted(((v - runner.terms.get(k, 0.0), k) for k, v in best.terms.items()), reverse=True)
     named = [TERM_WORDS.get(k, k) for gain, k in gains[:2] if gain > 0.25]
     return ", ".join(named) if named else "the sum of weak evidence"
-
-
-def _candidate_words(rec: UpCandidateRecord) -> str:
-    up = ",".join(f"{x:.3g}" for x in rec["up"])
-    if "floor_area_m2" in rec:
-        return f"up {up} (floor {rec['floor_area_m2']:.3g} m2, storey {rec['storey_height_m']:.3g} m)"
-    return (f"up {up} (floor {rec['floor_area_units2']:.4g} units2, "
-            f"storey {rec['storey_height_units']:.4g} units)")
-
-
-def ambiguity_line(name: str, candidates: list[UpCandidateRecord], margin: float | None) -> str:
-    """One line naming both candidates (and a third, when recorded; source coordinates) and the flag that
-    picks one."""
-    first, second = candidates[0], candidates[1]
-    by = "" if margin is None else f" by only {margin:.2f}"
-    third = f" (next: {_candidate_words(candidates[2])})" if len(candidates) > 2 else ""
-    return (f"{name}: up is ambiguous: {_candidate_words(first)} beats "
-            f"{_candidate_words(second)}{by}{third}; "
-            f"pick one with --up=X,Y,Z (e.g. --up={','.join(f'{x:.3g}' for x in first['up'])}; API: spec "
-            "field up or the space's chosen up), or accept the guess with --accept-up-guess "
-            "(accept_up_guess)")

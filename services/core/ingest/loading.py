@@ -41,7 +41,7 @@ from services.core.domain.jobspec import UP_AXES, similarity_scale
 from services.core.domain.json_types import JSONObject
 from services.core.ingest.archive import resolve_source
 from services.core.ingest.archive_rules import file_expansion_refusal
-from services.core.ingest.capture.attach import attach_capture, capture_near  # a capture with the scan
+from services.core.ingest.capture.attach import capture_near  # a capture with the scan
 from services.core.ingest.capture.model import Capture
 from services.core.ingest.confine import ConfinedResolver, is_inside
 from services.core.ingest.datasets import DatasetError, DatasetScene, scene_of
@@ -68,6 +68,7 @@ log = logging.getLogger(__name__)
 
 MAX_EXTENT_M = 10_000.0  # a 10 km scan means the units are wrong
 MIN_EXTENT_M = 0.001  # everything inside 1 mm: same
+CAPTURE_UP_WARN_DEG = 10.0  # the cameras' up this far from the scan's: the levelling (or the capture) is suspect
 
 
 @dataclass(frozen=True, eq=False)
@@ -391,3 +392,26 @@ def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Pa
         reconstruction=reconstruction,
         class_names=class_names,
     )
+
+
+def attach_capture(loaded: LoadedSpace, capture: Capture | None) -> LoadedSpace:
+    """`loaded` (a LoadedSpace) with `capture` (source frame) moved into its world frame, when there is one."""
+    if capture is None:
+        return loaded
+    for problem in capture.problems[:20]:
+        log.warning("%s capture: %s", capture.format, problem)
+    if capture.problems:  # shown by `omnidata plan` and kept in job.json with the other warnings
+        more = len(capture.problems) - 5
+        shown = "; ".join(capture.problems[:5]) + (f"; and {more} more" if more > 0 else "")
+        note = (f"{capture.format} capture: {len(capture.frames)} frames read, "
+                f"{len(capture.problems)} problems: {shown}")
+        loaded = replace(loaded, warnings=(*loaded.warnings, note))
+    world = capture.in_world(loaded.source_to_world)
+    up = world.mean_up()  # the cameras' evidence of up, checked against the scan's levelling
+    if up is not None:
+        angle = float(np.degrees(np.arccos(np.clip(up[2], -1.0, 1.0))))
+        note = f"the cameras' up (right axes level) is {angle:.1f} deg from the scan's up"
+        world = replace(world, notes=(*world.notes, note), up_angle_deg=angle)
+        if angle > CAPTURE_UP_WARN_DEG:
+            loaded = replace(loaded, warnings=(*loaded.warnings, f"{note}: check the levelling"))
+    return replace(loaded, capture=world)

@@ -101,7 +101,7 @@ def test_a_repick_while_a_job_renders_keeps_the_planners_frame(api: Api, tmp_pat
     from services.core.settings import get_settings
     from services.scheduler.loop import Scheduler
     from services.scheduler.transport import NullTransport
-    from services.worker.caches import TaskInputs
+    from services.worker.inputs.caches import TaskInputs
 
     space = _upload(api)
     first, second = space["frame"]["up"]["candidates"][:2]

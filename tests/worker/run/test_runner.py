@@ -37,10 +37,10 @@ from services.core.storage import LocalStore, ObjectInfo
 from services.scheduler.compile import compile_tasks
 from services.scheduler.persist import persist_space
 from services.scheduler.reaper import reap_once
-from services.worker.caches import trim_lru
-from services.worker.claim import Outcome, format_error
-from services.worker.heartbeat import Heartbeat
-from services.worker.runner import TaskRunner
+from services.worker.inputs.caches import trim_lru
+from services.worker.run.claim import Outcome, format_error
+from services.worker.run.heartbeat import Heartbeat
+from services.worker.run.runner import TaskRunner
 
 SPEC = {
     "cameras": {"mode": "object", "object_count": 6},

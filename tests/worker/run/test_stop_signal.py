@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from services.worker.stop_signal import reraise_stop, stop_within
+from services.worker.run.stop_signal import reraise_stop, stop_within
 
 
 def _wrapped(stop: BaseException) -> SystemError:

@@ -4,7 +4,7 @@ Claim: queued -> running (worker_id = me, attempts + 1, lease) only while the jo
 duplicate message claims nothing; a paused job's task, or one of a job this worker is blocked on, is handed
 back to pending so another worker (or the resumed job) takes it. Done: running -> done with size, sha256 and
 duration, only WHERE worker_id = me AND state = 'running' (a reaped-and-rerun task wrote identical bytes
-anyway). Failure: see services.worker.failure_policy. Every step is retried through dropped database
+anyway). Failure: see services.worker.run.failure_policy. Every step is retried through dropped database
 connections (a Postgres restart) for `db_retry_s`, so a blip does not fail work that was done.
 """
 
@@ -29,7 +29,7 @@ from services.core.db.states import transition
 from services.core.db.worker_moves import claim_task, claim_view_tasks, finish_task, finish_tasks, task_state
 from services.core.domain.cues import CATALOG, topological_order
 from services.core.storage import ObjectInfo
-from services.worker.failure_policy import HANDBACK_DELAY, count_failure, is_blocked, retry_delay
+from services.worker.run.failure_policy import HANDBACK_DELAY, count_failure, is_blocked, retry_delay
 
 log = logging.getLogger(__name__)
 

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from services.worker import curvature as estimator
+from services.worker.inputs import curvature as estimator
 
 log = logging.getLogger(__name__)
 

@@ -1,4 +1,4 @@
-"""The loaded space `omnidata generate` hands to its local workers (services.worker.loaded_cache, issue 20): read
+"""The loaded space `omnidata generate` hands to its local workers (services.worker.inputs.loaded_cache, issue 20): read
 back, it equals a fresh `load_space(source, source_to_world=...)` (what a worker parsed before) in every array
 the worker reads; a stale, foreign or damaged file is ignored and the scan is parsed; a worker's outputs are the
 same bytes whichever way it got the space."""
@@ -14,14 +14,14 @@ import numpy as np
 import pytest
 import trimesh
 
-import services.worker.runner as runner_mod
+import services.worker.run.runner as runner_mod
 from services.core.db.jobs import job_spaces
 from services.core.db.models import Job
 from services.core.ingest.loading import LoadedSpace, load_space
-from services.worker.loaded_cache import keep_loaded, loaded_path, read_loaded
+from services.worker.inputs.loaded_cache import keep_loaded, loaded_path, read_loaded
 from tests.fixtures.scenes import write_ply_with_labels
-from tests.worker.test_runner import banana, make_job, runner, sm
-from tests.worker.test_view_batch import outputs, queue_view, render
+from tests.worker.run.test_runner import banana, make_job, runner, sm
+from tests.worker.run.test_view_batch import outputs, queue_view, render
 
 __all__ = ["banana", "sm"]  # fixtures used by name
 

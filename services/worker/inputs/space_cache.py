@@ -22,14 +22,14 @@ import numpy as np
 import trimesh
 
 from services.core.domain.jobspec import CueParams
+from services.worker.inputs.shared_curvature import shared_curvature
 from services.worker.passes import RENDER_PASSES, ViewGeometry, ViewPasses
-from services.worker.shared_curvature import shared_curvature
 
 if TYPE_CHECKING:
     from services.core.ingest.loading import LoadedSpace
     from services.worker.blender.scene import BlenderScene
-    from services.worker.loaded_cache import CachedSpace
-    from services.worker.photos import PhotoPainter
+    from services.worker.inputs.loaded_cache import CachedSpace
+    from services.worker.inputs.photos import PhotoPainter
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +58,7 @@ class SpaceContext:
     def from_loaded(cls, loaded: LoadedSpace | CachedSpace, *, key: str | None = None, device: str = "cpu",
                     threads: int | None = None) -> SpaceContext:
         """Wrap a services.core.ingest.loading.LoadedSpace (mesh in the world frame, optional per-face labels), or
-        the same read back from the run's cache (services.worker.loaded_cache)."""
+        the same read back from the run's cache (services.worker.inputs.loaded_cache)."""
         fc = getattr(loaded, "face_class", None)
         fi = getattr(loaded, "face_instance", None)
         if fc is not None and fi is None:  # class-only labels: every face its own "stuff" instance 0

@@ -9,9 +9,9 @@ import subprocess
 import sys
 from pathlib import Path
 
-from services.worker.numeric_threads import NUMERIC_THREAD_VARS, pin_numeric_threads
+from services.worker.process.numeric_threads import NUMERIC_THREAD_VARS, pin_numeric_threads
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 
 
 def test_pinning_overrides_a_users_setting():
@@ -25,7 +25,7 @@ def test_pinned_before_numpy_loads_openblas_runs_one_thread():
     # What the worker entry points (the embedded pool's worker body, `omnidata worker`, the Celery app) do first,
     # in a process whose user asked for 8 threads: numpy's OpenBLAS, loaded afterwards, runs one.
     probe = (
-        "from services.worker.numeric_threads import pin_numeric_threads\n"
+        "from services.worker.process.numeric_threads import pin_numeric_threads\n"
         "pin_numeric_threads()\n"
         "import ctypes, numpy\n"
         "lib = next(line.split()[-1] for line in open('/proc/self/maps') if 'openblas' in line)\n"

@@ -4,7 +4,7 @@
 and adds `photo_coverage` (where that rgb came from a photo). A view whose centre is a capture camera's centre
 (exact capture views, fixated views from capture positions) takes that frame's photo through the rotation
 homography (services.core.ingest.capture.resample): exact, no parallax. Any other view is photo-textured
-(services.worker.phototexture) when that is enabled. Frames: world metres, OpenCV camera axes.
+(services.worker.inputs.phototexture) when that is enabled. Frames: world metres, OpenCV camera axes.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ if TYPE_CHECKING:  # imported where used: the worker loads them only for jobs wi
     from services.core.domain.capture_records import RefinedCamera
     from services.core.domain.jobspec import JobSpec
     from services.core.ingest.loading import LoadedSpace
-    from services.worker.phototexture import PhotoTexturer
+    from services.worker.inputs.phototexture import PhotoTexturer
 
 SAME_CENTRE_M = 1e-5  # a view this close to a capture centre sees through it (parallax below a pixel)
 PHOTO_CACHE = 8  # decoded photos kept per worker process (each no larger than the views asking for it need)
@@ -96,7 +96,7 @@ def painter_for(loaded: LoadedSpace, spec: JobSpec, refined: RefinedCamera | Non
         capture = ColourCorrection.from_dict(refined["correction"]).capture(capture)
     texture = None
     if spec.cameras.mode != "capture":
-        from services.worker.phototexture import PhotoTexturer
+        from services.worker.inputs.phototexture import PhotoTexturer
 
         texture = PhotoTexturer(loaded.mesh, capture, k=spec.views.photo_count)
     return PhotoPainter(capture, texture=texture)

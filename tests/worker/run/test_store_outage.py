@@ -21,7 +21,7 @@ from services.core.ingest.registry import register_space
 from services.core.storage import LocalStore
 from services.scheduler.store_watch import StoreWatch
 from tests.fixtures.small_disk import fill, small_tmpfs
-from tests.worker.test_runner import CUES, SPEC, Banana, counters_match, make_job, queue, runner
+from tests.worker.run.test_runner import CUES, SPEC, Banana, counters_match, make_job, queue, runner
 
 
 @pytest.fixture(params=["postgres", "sqlite"])

@@ -1,8 +1,8 @@
 """Compute a batch of claimed tasks, store their files together and record what became of each.
 
 The files of a batch go to the store in one call (store.put_many: one wait for the disk or the network a
-view), then every stored task is recorded done in one statement (services.worker.claim). A failure is
-retried or failed for good (services.worker.failure_policy), a task whose input failed in the batch is
+view), then every stored task is recorded done in one statement (services.worker.run.claim). A failure is
+retried or failed for good (services.worker.run.failure_policy), a task whose input failed in the batch is
 handed back to pending unrun, and a store that fails (full, S3 5xx) holds the job instead, the tasks'
 attempts not counted (TaskLedger.hold_for_storage).
 """
@@ -15,9 +15,9 @@ from typing import Protocol
 from services.core.domain.cues import CATALOG
 from services.core.settings import Settings
 from services.core.storage import ObjectInfo, ObjectStore, storage_outage
-from services.worker.caches import TaskInputs
-from services.worker.claim import Claimed, Outcome, TaskLedger
-from services.worker.stop_signal import reraise_stop
+from services.worker.inputs.caches import TaskInputs
+from services.worker.run.claim import Claimed, Outcome, TaskLedger
+from services.worker.run.stop_signal import reraise_stop
 
 Recorded = tuple[Claimed, str, ObjectInfo, float]  # a stored task: its key, object and seconds
 

@@ -45,7 +45,7 @@ Measured_T = TypeVar("Measured_T", bound=Measured)
 
 
 class DbStep(Protocol):
-    """Runs a database step with the worker's retry policy (services.worker.claim.TaskLedger.db)."""
+    """Runs a database step with the worker's retry policy (services.worker.run.claim.TaskLedger.db)."""
 
     def __call__(self, fn: Callable[[], T], what: str) -> T: ...
 

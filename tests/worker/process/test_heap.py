@@ -1,4 +1,4 @@
-"""A worker process reuses the memory it frees (services.worker.heap): the same arrays allocated view after view
+"""A worker process reuses the memory it frees (services.worker.process.heap): the same arrays allocated view after view
 fault in no fresh pages. With glibc's defaults every such array came back from the kernel zeroed again."""
 
 from __future__ import annotations
@@ -10,13 +10,13 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 
 # Faults per allocation of a 24 MB array (a pass set's size) once one was freed, with and without the tuning.
 PROBE = r"""
 import json, resource, sys
 import numpy as np
-from services.worker.heap import keep_freed_memory
+from services.worker.process.heap import keep_freed_memory
 tuned = keep_freed_memory() if sys.argv[1] == "tuned" else None
 def faults():
     return resource.getrusage(resource.RUSAGE_SELF).ru_minflt

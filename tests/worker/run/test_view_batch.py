@@ -14,9 +14,9 @@ import pytest
 
 from services.core.db.models import Task, utcnow
 from services.scheduler.reaper import reap_once
-from services.worker.heartbeat import expire_leases
-from services.worker.runner import TaskRunner
-from tests.worker.test_runner import CUES, banana, counters_match, make_job, queue, runner, sm, task
+from services.worker.run.heartbeat import expire_leases
+from services.worker.run.runner import TaskRunner
+from tests.worker.run.test_runner import CUES, banana, counters_match, make_job, queue, runner, sm, task
 
 __all__ = ["banana", "sm"]  # fixtures used by name
 

@@ -1,5 +1,5 @@
 """`omnidata compile-kernels` leaves nothing for a job to compile: after it, real jobs on a real room with holes
-and on a textured object add nothing to numba's cache (services/worker/kernel_warm_up.py)."""
+and on a textured object add nothing to numba's cache (services/worker/process/kernel_warm_up.py)."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from services.worker.kernel_target import host_features, levels_for
-from services.worker.kernel_warm_up import warm_up_cues, worker_kernels
+from services.worker.process.kernel_target import host_features, levels_for
+from services.worker.process.kernel_warm_up import warm_up_cues, worker_kernels
 from tests.fixtures.cli import REPO
 
 ROOM = '{"points": {"count": 1, "max_views": 3}, "views": {"resolution": 48}}'
@@ -30,7 +30,7 @@ def test_the_warm_up_makes_every_cue_with_a_kernel_and_none_it_cannot():
 def test_every_compiled_function_of_the_worker_is_listed_but_inlined_ones():
     kernels = worker_kernels()
     assert {"services.worker.cues.felzenszwalb._merge", "services.worker.blender.decode.faces_hit",
-            "services.worker.curvature._fit_one", "services.worker.cues.ncuts._laplacian"} <= set(kernels)
+            "services.worker.inputs.curvature._fit_one", "services.worker.cues.ncuts._laplacian"} <= set(kernels)
     assert "services.worker.cues.keypoints._doh_row" not in kernels  # inline="always": compiled into _max_doh
     assert len(kernels) >= 60
 
@@ -49,7 +49,7 @@ def run(args: list[str], env: dict[str, str], timeout: float = 600) -> subproces
 
 PARTIAL = """
 import json
-from services.worker import kernel_warm_up
+from services.worker.process import kernel_warm_up
 kernel_warm_up.warm_up_cues = lambda: [c for c in kernel_warm_up.CATALOG if c in ("passes", "rgb", "depth_zbuffer")]
 print(json.dumps(kernel_warm_up.compile_kernels().missed))
 """

@@ -72,10 +72,10 @@ def compile_kernels(resolution: int = RESOLUTION) -> WarmUpReport:
     """Run every kernel of the worker once with a job's argument types (compiling into numba's cache those it
     does not find there); the report says which kernels it reached."""
     from services.core.ingest.loading import load_space
-    from services.worker.curvature import principal_curvatures
     from services.worker.executor import make_context, produce
+    from services.worker.inputs.curvature import principal_curvatures
+    from services.worker.inputs.space_cache import SpaceContext
     from services.worker.passes import ViewGeometry
-    from services.worker.space_cache import SpaceContext
 
     t0 = time.perf_counter()
     params = CueParams()

@@ -13,9 +13,9 @@ from PIL import Image
 from services.core.domain.jobspec import JobSpec
 from services.scheduler.planning import make_plan, space_rng
 from services.worker.executor import make_context, produce
+from services.worker.inputs.photos import PhotoPainter
+from services.worker.inputs.space_cache import SpaceContext
 from services.worker.passes import ViewGeometry
-from services.worker.photos import PhotoPainter
-from services.worker.space_cache import SpaceContext
 from tests.fixtures.raycast import cast_normals_cam, raycast, smooth_mask
 
 pytestmark = pytest.mark.bpy
@@ -90,7 +90,7 @@ def test_photo_textured_novel_view(capture_renders, banana_path):
     equal the mesh rgb where a photo saw it; the rest (seen by no photo) is masked."""
     from services.core.domain.camera import look_at
     from services.core.domain.plan import CameraPose, PlannedView, PointOfInterest, SpacePlan
-    from services.worker.phototexture import PhotoTexturer
+    from services.worker.inputs.phototexture import PhotoTexturer
 
     space, frames, _, _ = capture_renders
     mesh = space.mesh

@@ -3,15 +3,15 @@
     runner = TaskRunner(sessionmaker, store, settings, worker_id)
     outcome = runner.run(task_id)
 
-1. Claim the task (services.worker.claim: queued -> running, or why not).
-2. Load the job spec, the space (kept loaded between tasks: SpaceCache) and the plan JSON (services.worker.caches;
-   services.worker.making computes a task's bytes from them).
+1. Claim the task (services.worker.run.claim: queued -> running, or why not).
+2. Load the job spec, the space (kept loaded between tasks: SpaceCache) and the plan JSON (services.worker.inputs.caches;
+   services.worker.run.making computes a task's bytes from them).
 3. Compute: the `passes` task renders the view once into this process's memory; every other cue is derived from
    that pass set, read from this process's memory LRU or the store's pass cache (.npz, written only when a task of
    the view may need it after the view batch below), and rendered again only if the cache is gone (e.g. after
    a resume of a finished job).
 4. Write the objects atomically to their deterministic keys, a batch's together (store.put_many: one wait for
-   the disk or the network a view), then record them done (services.worker.results, services.worker.claim).
+   the disk or the network a view), then record them done (services.worker.run.results, services.worker.run.claim).
    View batch (settings.worker_batch_views): the worker that rendered a view's `passes` claims, in one
    statement, the rest of that view's tasks, pending or queued (every DAG level: all their inputs are cues of
    the view, computed in memory by its ViewContext in topological order), derives and stores each, and records
@@ -27,7 +27,7 @@
    whose worker dies stays `running` under its lease (the beats extend all of it): the reaper re-queues every
    task of it.
 5. Failure: retry after a backoff or fail for good, and keep a failing worker off the job
-   (services.worker.failure_policy); a store that fails (full, S3 5xx) holds the job instead, its tasks'
+   (services.worker.run.failure_policy); a store that fails (full, S3 5xx) holds the job instead, its tasks'
    attempts not counted (TaskLedger.hold_for_storage), until the scheduler sees the store take writes again.
 
 Bytes, not files, flow through here; all geometry is in the plan (world metres, OpenCV camera axes).
@@ -47,13 +47,13 @@ from sqlalchemy.orm import Session
 
 from services.core.settings import Settings
 from services.core.storage import ObjectInfo, ObjectStore
-from services.worker.caches import VIEW_CACHE_MEMORY_FRACTION, TaskInputs
-from services.worker.claim import DB_RETRY_S, Claimed, Outcome, TaskLedger
-from services.worker.heartbeat import Heartbeat
-from services.worker.making import TaskMaker, needs_passes
-from services.worker.results import BatchResults
-from services.worker.space_cache import SpaceCache, should_recycle
-from services.worker.stop_signal import reraise_stop
+from services.worker.inputs.caches import VIEW_CACHE_MEMORY_FRACTION, TaskInputs
+from services.worker.inputs.space_cache import SpaceCache, should_recycle
+from services.worker.run.claim import DB_RETRY_S, Claimed, Outcome, TaskLedger
+from services.worker.run.heartbeat import Heartbeat
+from services.worker.run.making import TaskMaker, needs_passes
+from services.worker.run.results import BatchResults
+from services.worker.run.stop_signal import reraise_stop
 
 BATCHED_MEMORY = 4096  # task ids of recent view batches remembered, so their late messages skip the claim
 

@@ -1,4 +1,4 @@
-"""Curvature shared between a machine's worker processes (services.worker.shared_curvature): computed once,
+"""Curvature shared between a machine's worker processes (services.worker.inputs.shared_curvature): computed once,
 read back bit for bit, and the principal_curvature cue's bytes the same with or without the shared file."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import trimesh
 
-import services.worker.curvature as estimator
-from services.worker.shared_curvature import shared_curvature
+import services.worker.inputs.curvature as estimator
+from services.worker.inputs.shared_curvature import shared_curvature
 
 RADIUS = 0.2
 
@@ -83,7 +83,7 @@ def test_processes_started_together_compute_it_once(tmp_path: Path) -> None:
 @pytest.mark.bpy
 def test_the_curvature_cue_has_the_same_bytes_with_the_shared_file(tmp_path: Path) -> None:
     from services.worker.executor import make_context, produce
-    from services.worker.space_cache import SpaceContext
+    from services.worker.inputs.space_cache import SpaceContext
     from tests.fixtures.raycast import object_view
 
     g = object_view(room_like(), np.array([2.5, 1.5, 1.0]), 48)

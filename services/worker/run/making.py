@@ -1,7 +1,7 @@
 """A task's bytes from its inputs: the job, the space loaded into the job's world frame (kept between tasks),
 the plan, and the view's pass set from this process's memory, the store's pass cache or a render.
 
-The runner (services.worker.runner) decides which tasks run together; this module only computes one.
+The runner (services.worker.run.runner) decides which tasks run together; this module only computes one.
 Bytes, not files, come out; all geometry is in the plan (world metres, OpenCV camera axes).
 """
 
@@ -18,14 +18,14 @@ from services.core.domain.plan import PlannedView, SpacePlan
 from services.core.ingest.loading import load_space
 from services.core.ingest.registry import fetch_space
 from services.core.storage import ObjectStore
-from services.worker.caches import JobInfo, TaskInputs
-from services.worker.claim import Claimed
 from services.worker.context import ViewContext
 from services.worker.executor import produce, render_passes_for
-from services.worker.loaded_cache import read_loaded
+from services.worker.inputs.caches import JobInfo, TaskInputs
+from services.worker.inputs.loaded_cache import read_loaded
+from services.worker.inputs.photos import painter_for
+from services.worker.inputs.space_cache import SpaceCache, SpaceContext
 from services.worker.passes import ViewPasses
-from services.worker.photos import painter_for
-from services.worker.space_cache import SpaceCache, SpaceContext
+from services.worker.run.claim import Claimed
 
 log = logging.getLogger(__name__)
 

@@ -17,10 +17,10 @@ from services.core.db.models import Task, utcnow
 from services.core.db.states import transition
 from services.core.domain.cues import closure
 from services.scheduler.reaper import reap_once
-from services.worker.heartbeat import Heartbeat, expire_leases
-from services.worker.runner import TaskRunner
-from tests.worker.test_runner import CUES, banana, counters_match, make_job, queue, runner, sm, task
-from tests.worker.test_view_batch import outputs
+from services.worker.run.heartbeat import Heartbeat, expire_leases
+from services.worker.run.runner import TaskRunner
+from tests.worker.run.test_runner import CUES, banana, counters_match, make_job, queue, runner, sm, task
+from tests.worker.run.test_view_batch import outputs
 
 __all__ = ["banana", "sm"]  # fixtures used by name
 
@@ -136,7 +136,7 @@ def test_a_failure_in_the_batch_hands_its_dependents_back_to_pending(sm, banana,
 
 def test_a_stop_that_comes_back_wrapped_from_a_kernel_stops_the_worker_and_fails_nothing(sm, banana, monkeypatch):
     """SIGTERM's SystemExit raised while a numba kernel is being called returns from the call as a SystemError caused
-    by it (services.worker.stop_signal). Recorded as the task's failure, the stop was lost: the worker went on."""
+    by it (services.worker.run.stop_signal). Recorded as the task's failure, the stop was lost: the worker went on."""
     job_id = make_job(sm, banana)
     real_make = TaskRunner.make
 

@@ -9,8 +9,8 @@ import pytest
 import trimesh
 
 from services.core.ingest.loading import load_space
-from services.worker import curvature
-from services.worker.curvature import principal_curvatures
+from services.worker.inputs import curvature
+from services.worker.inputs.curvature import principal_curvatures
 from tests.fixtures import reference_curvature
 
 

@@ -1,5 +1,5 @@
 """The kernels are built for the best x86-64 level a machine runs, so one kernel cache serves every machine of that
-level (services/worker/kernel_target.py)."""
+level (services/worker/process/kernel_target.py)."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ import subprocess
 import sys
 from pathlib import Path
 
-from services.worker.kernel_target import LEVELS, host_features, levels_for, select
+from services.worker.process.kernel_target import LEVELS, host_features, levels_for, select
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 V4, V3 = (features for _, features in LEVELS)
 
 
@@ -75,7 +75,7 @@ def test_a_process_that_compiled_for_its_host_already_keeps_that_target():
 
 def test_compile_kernels_every_level_runs_once_per_level_of_the_machine(monkeypatch):
     from services.cli import compile_kernels
-    from services.worker import kernel_target
+    from services.worker.process import kernel_target
 
     envs = []
 
@@ -95,7 +95,7 @@ def test_load_makes_the_target_for_the_level_before_any_kernel_and_starts_no_thr
     """What a held worker (and Celery's parent, before it forks) runs: numba's target made for the selected level,
     with every registry a first kernel would load, the process still single-threaded (safe to fork)."""
     levels = levels_for(platform.machine(), host_features())
-    made = probe("import json, threading, numba; from services.worker import kernel_target as k; "
+    made = probe("import json, threading, numba; from services.worker.process import kernel_target as k; "
                  "before = k._codegen_started(); k.load(); from numba.core.registry import cpu_target as t; "
                  "loaded = len(t.typing_context._registries); threads = threading.active_count(); "
                  "numba.njit(lambda x: x + 1)(1); "

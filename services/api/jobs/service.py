@@ -30,7 +30,7 @@ from services.core.db.models import (
 )
 from services.core.domain.errors import Conflict, Invalid
 from services.core.domain.plan_budget import DEFAULT_CHUNK_VIEWS, check_plan_budget
-from services.core.ingest.frame import frame_of
+from services.core.ingest.frame.resolve import frame_of
 from services.core.storage import ObjectStore
 
 

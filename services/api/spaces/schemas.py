@@ -13,7 +13,7 @@ from services.core.db.models import Space
 from services.core.domain.cues import default_cues
 from services.core.domain.jobspec import MAX_UNIT_SCALE, parse_unit_scale
 from services.core.domain.keys import check_name
-from services.core.ingest.frame import frame_of
+from services.core.ingest.frame.resolve import frame_of
 
 UpAxis = Literal["auto", "+x", "-x", "+y", "-y", "+z", "-z"]
 

@@ -21,10 +21,10 @@ from services.core.db.models import Space
 from services.core.domain.errors import Invalid, NotFound
 from services.core.domain.jobspec import SpaceFrame
 from services.core.ingest.errors import SpaceError
+from services.core.ingest.frame.up_preview import side_view_png
+from services.core.ingest.guard.safe_load import load_space_limited
 from services.core.ingest.loading import LoadedSpace
 from services.core.ingest.registry import fetch_space
-from services.core.ingest.safe_load import load_space_limited
-from services.core.ingest.up_preview import side_view_png
 from services.core.settings import Settings
 from services.core.storage import ObjectStore
 

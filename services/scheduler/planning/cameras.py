@@ -32,7 +32,7 @@ from scipy.spatial import cKDTree
 from services.core.domain.camera import quaternion_wxyz_to_rotation
 from services.core.domain.jobspec import CameraSpec
 from services.core.domain.plan import PlanError
-from services.core.ingest.gravity import FLOOR_CONE_COS
+from services.core.ingest.frame.gravity import FLOOR_CONE_COS
 from services.scheduler.planning.visibility import MeshQueries
 
 FLOOR_GAP_M = 0.05

@@ -170,7 +170,7 @@ def test_ambiguous_units_held_refused_then_picked(api: Api, tmp_path: Path) -> N
     naming both."""
     import trimesh
 
-    from services.core.ingest.frame import rotation_to_z
+    from services.core.ingest.frame.resolve import rotation_to_z
 
     mesh = trimesh.load(COPYROOM.parent / "kitchen_partial_000.ply", process=False)
     truth = json.loads((COPYROOM.parent / "truth.json").read_text())["kitchen_partial_000.ply"]["up"]

@@ -27,7 +27,7 @@ from urllib.parse import unquote
 
 from trimesh.resolvers import Resolver
 
-from services.core.ingest.texture_limits import texture_refusal
+from services.core.ingest.guard.texture_limits import texture_refusal
 
 _URL_SCHEME = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]+:")  # file:, http:, ... (one letter would be a drive)
 _DRIVE = re.compile(r"^[A-Za-z]:")

@@ -10,11 +10,11 @@ user when:
   its header's length;
 - a PLY header or an OBJ declares more faces than MAX_FACES (refused before any array is allocated);
 - an OBJ has vertices but no faces (a triangle mesh is needed), or is big and mostly degenerate faces
-  (`services.core.ingest.degenerate`: sampled, before the full parse);
+  (`services.core.ingest.guard.degenerate`: sampled, before the full parse);
 - a material library, texture, glTF buffer or image is named by an absolute path or one climbing out of the
   mesh's folder ('..'), or a texture an .mtl names is missing (these give the clearer messages; that no
-  file outside the scan's folder is ever read is the confined resolver's guarantee, `services.core.ingest.confine`);
-- an image a GLB or glTF embeds declares more pixels than the texture limit (`services.core.ingest.texture_limits`).
+  file outside the scan's folder is ever read is the confined resolver's guarantee, `services.core.ingest.guard.confine`);
+- an image a GLB or glTF embeds declares more pixels than the texture limit (`services.core.ingest.guard.texture_limits`).
 
 It returns warnings: an .mtl that is missing (the mesh renders untextured), an OBJ whose last line is whole
 but has no newline (exporters end with one: it may have been cut at a token's end).
@@ -28,10 +28,10 @@ import struct
 from pathlib import Path, PurePosixPath
 from urllib.parse import unquote
 
-from services.core.ingest.confine import ReferenceRefused, read_confined
-from services.core.ingest.degenerate import CHECKED_FROM_FACES, FaceSample, degenerate_refusal
 from services.core.ingest.errors import SpaceError
-from services.core.ingest.texture_limits import embedded_refusal, glb_bin_offset
+from services.core.ingest.guard.confine import ReferenceRefused, read_confined
+from services.core.ingest.guard.degenerate import CHECKED_FROM_FACES, FaceSample, degenerate_refusal
+from services.core.ingest.guard.texture_limits import embedded_refusal, glb_bin_offset
 
 MAX_FACES = 50_000_000  # beyond every scan we render; trimesh needs ~100 bytes per face while loading
 MAX_VERTICES = 3 * MAX_FACES

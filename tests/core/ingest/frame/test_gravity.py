@@ -1,4 +1,4 @@
-"""Gravity and units of scans in any orientation and unit (services.core.ingest.gravity, through load_space
+"""Gravity and units of scans in any orientation and unit (services.core.ingest.frame.gravity, through load_space
 too)."""
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ import trimesh
 from scipy import sparse
 
 from services.core.ingest.errors import SpaceError, UpAmbiguous
-from services.core.ingest.gravity import estimate_up, plane_families
+from services.core.ingest.frame.gravity import estimate_up, plane_families
+from services.core.ingest.frame.unit_evidence import UnitError, choose_unit_scale
 from services.core.ingest.loading import load_space
-from services.core.ingest.unit_evidence import UnitError, choose_unit_scale
 from tests.fixtures import rotation_corpus as corpus
 from tests.fixtures import scenes
 
@@ -52,7 +52,7 @@ def test_plane_families_find_tilted_walls_and_floor() -> None:
 def test_the_histogram_smoothing_pairs_are_the_bins_within_six_degrees_antipodes_folded() -> None:
     """The neighbour matrix found through the bin tree is the defined one: |a.b| > cos 6 degrees over all
     pairs."""
-    from services.core.ingest.direction_bins import BINS, bin_neighbours
+    from services.core.ingest.frame.direction_bins import BINS, bin_neighbours
 
     found = bin_neighbours()
     bins = BINS
@@ -191,7 +191,7 @@ def test_a_flat_scan_is_seen_from_the_side_its_faces_face(normal: list[float]) -
 
 
 def test_unit_evidence_picks_centimetres_or_refuses_never_guesses() -> None:
-    from services.core.ingest.unit_evidence import ScanMeasures, decide_units
+    from services.core.ingest.frame.unit_evidence import ScanMeasures, decide_units
 
     # 150 units tall, no ceiling: 1.5 m in cm or 3.81 m in inches
     partial = ScanMeasures(storey=150.0, extent=(340.0, 250.0, 150.0), ceiling_seen=False,
@@ -211,7 +211,7 @@ def test_unit_evidence_picks_centimetres_or_refuses_never_guesses() -> None:
 
 
 def test_the_median_edge_length_is_trimeshs_median_of_its_unique_edges(scenes_dir: Path) -> None:
-    from services.core.ingest.unit_evidence import median_edge_length
+    from services.core.ingest.frame.unit_evidence import median_edge_length
 
     rng = np.random.default_rng(3)
     faces = rng.integers(0, 200, (400, 3))

@@ -26,7 +26,7 @@ from services.core.temp_dirs import UPLOAD_KINDS, sweep_orphans
 # milliseconds instead of the second a fresh interpreter needs to import trimesh, and the fork happens in a
 # single-threaded process (the API's is not).
 _CONTEXT = multiprocessing.get_context("forkserver")
-_CONTEXT.set_forkserver_preload(["services.core.ingest.loading", "services.core.ingest.mesh_checks", "trimesh"])
+_CONTEXT.set_forkserver_preload(["services.core.ingest.loading", "services.core.ingest.guard.mesh_checks", "trimesh"])
 _RESULT_GRACE_S = 10.0  # for a child to exit once it has sent its result
 CHILD_NICENESS = 10  # a reader yields the CPU to the process waiting on it (the API serving other requests)
 
@@ -109,8 +109,8 @@ def _child(sender: Connection, path: str, frame: SpaceFrame, limits: dict[str, i
 
     import trimesh
 
+    from services.core.ingest.guard.mesh_checks import check_face_count
     from services.core.ingest.loading import load_space
-    from services.core.ingest.mesh_checks import check_face_count
 
     # on top of what the process has mapped already (thread arenas and libraries: GBs on many-core hosts)
     memory = _mapped_bytes() + int(limits["memory_mb"]) * 2**20

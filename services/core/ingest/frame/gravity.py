@@ -26,7 +26,7 @@ gives, in the file's units); directions are unit 3-vectors in that frame.
 
 Confidence (rooms): every candidate direction is scored on more evidence than plane area (what the file
 says, furniture, the scan's extent, storey height, a single frame's view, capture poses when given;
-`services.core.ingest.up_evidence`), and the winner's margin over the best candidate that levels the scan
+`services.core.ingest.frame.up_evidence`), and the winner's margin over the best candidate that levels the scan
 differently gives a calibrated confidence. Below the refusal margin the estimate is *ambiguous*: loading
 refuses it unless guesses are accepted.
 """
@@ -40,9 +40,9 @@ import trimesh
 from scipy.spatial import ConvexHull, QhullError
 
 from services.core.domain.frame_records import UpRecord
-from services.core.ingest.direction_bins import BINS, N_BINS, bin_neighbours, bin_tree
-from services.core.ingest.single_view import single_view
-from services.core.ingest.up_evidence import (
+from services.core.ingest.frame.direction_bins import BINS, N_BINS, bin_neighbours, bin_tree
+from services.core.ingest.frame.single_view import single_view
+from services.core.ingest.frame.up_evidence import (
     WEIGHTS,
     CandidateFacts,
     FileFrame,

@@ -13,10 +13,10 @@ import zlib
 from pathlib import Path, PurePosixPath
 from typing import TypedDict, Unpack
 
-from services.core.ingest.archive_rules import MAX_RATIO, expansion_refusal
 from services.core.ingest.datasets import scene_mesh_in
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.formats import SCANNET_MESH_SUFFIX
+from services.core.ingest.guard.archive_rules import MAX_RATIO, expansion_refusal
 from services.core.ingest.pointcloud import CLOUD_SUFFIXES
 from services.core.temp_dirs import owned_prefix
 

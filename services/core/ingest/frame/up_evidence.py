@@ -1,7 +1,7 @@
 """Evidence for each up candidate of a room scan, combined into one score and a calibrated confidence.
 
 Frames and units: the source frame and the file's units (unknown here: every term is unit free).
-A candidate is a plane-family direction `u` (one sign) proposed by `services.core.ingest.gravity`. Each term
+A candidate is a plane-family direction `u` (one sign) proposed by `services.core.ingest.frame.gravity`. Each term
 below is a log-odds contribution; a candidate's score is their sum, and the decision compares the best
 candidate with the best one that would level the scan differently (more than `DISTINCT_DEG` away):
 
@@ -28,7 +28,7 @@ candidate with the best one that would level the scan differently (more than `DI
   never decide alone.
 - `capture_up`: the mean up vector of the capture's cameras (-Y of OpenCV cameras, averaged), when the
   caller has poses. Cameras are held upright, give or take their pitch: strong evidence.
-- `view_direction`, `view_aspect`: a single view (`services.core.ingest.single_view`): up lies across the view
+- `view_direction`, `view_aspect`: a single view (`services.core.ingest.frame.single_view`): up lies across the view
   direction within the camera's pitch (`VIEW_PITCH_DEG`; a wall the camera faced is no floor), near the
   frustum's short axis (landscape frames). `extent` is left out for it: a frustum's extent is not the room's.
 
@@ -45,7 +45,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from services.core.domain.frame_records import UpCandidateRecord
-from services.core.ingest.single_view import SingleView
+from services.core.ingest.frame.single_view import SingleView
 
 DISTINCT_DEG = 30.0  # candidates closer than this level the scan the same way
 # score margin below which the estimate is ambiguous: on the real rooms of bench/ingest_real.py (as delivered,

@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from services.core.ingest import mesh_checks
 from services.core.ingest.errors import SpaceError
-from services.core.ingest.mesh_checks import check_source
+from services.core.ingest.guard import mesh_checks
+from services.core.ingest.guard.mesh_checks import check_source
 
 QUAD = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\n"
 

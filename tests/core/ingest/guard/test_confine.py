@@ -16,14 +16,18 @@ import pytest
 import trimesh
 
 from services.core.db.models import Space
-from services.core.ingest import archive_rules
-from services.core.ingest.archive import safe_extract_zip
-from services.core.ingest.archive_rules import archive_refusal, expansion_refusal, file_expansion_refusal
-from services.core.ingest.confine import ConfinedResolver, ReferenceRefused
 from services.core.ingest.errors import SpaceError
+from services.core.ingest.guard import archive_rules
+from services.core.ingest.guard.archive import safe_extract_zip
+from services.core.ingest.guard.archive_rules import (
+    archive_refusal,
+    expansion_refusal,
+    file_expansion_refusal,
+)
+from services.core.ingest.guard.confine import ConfinedResolver, ReferenceRefused
+from services.core.ingest.guard.texture_limits import MAX_TEXTURE_SIDE, texture_refusal
 from services.core.ingest.loading import load_space
 from services.core.ingest.registry import fetch_space
-from services.core.ingest.texture_limits import MAX_TEXTURE_SIDE, texture_refusal
 from services.core.storage import LocalStore, ObjectNotFoundError
 from services.core.temp_dirs import owned_prefix, sweep_orphans
 from tests.fixtures.file_watch import OpenWatch
@@ -178,7 +182,7 @@ def test_killed_api_leaves_no_upload_folder(tmp_path: Path, pg_url: str) -> None
         [sys.executable, "-c", "import sys, time; sys.path.insert(0, '.');"
          "from services.core.temp_dirs import owned_temp_dir; d = owned_temp_dir('upload');"
          "open(d.name + '/scan.zip', 'wb').write(b'x' * 1000); print(d.name, flush=True); time.sleep(60)"],
-        stdout=subprocess.PIPE, text=True, cwd=Path(__file__).resolve().parents[3],
+        stdout=subprocess.PIPE, text=True, cwd=Path(__file__).resolve().parents[4],
     )
     assert child.stdout is not None
     folder = Path(child.stdout.readline().strip())
@@ -192,7 +196,7 @@ def test_killed_api_leaves_no_upload_folder(tmp_path: Path, pg_url: str) -> None
 
 def test_packing_keeps_the_library_trimesh_reads_behind_a_comment(tmp_path: Path) -> None:
     """What the loader textured at upload is what the stored zip holds, so planning renders the same."""
-    from services.core.ingest.archive import resolve_source
+    from services.core.ingest.guard.archive import resolve_source
     from services.core.ingest.registry import pack_source
 
     (tmp_path / "scan").mkdir()

@@ -14,7 +14,7 @@ import numpy as np
 import trimesh
 from PIL import Image
 
-from services.core.ingest.frame import rotation_to_z
+from services.core.ingest.frame.resolve import rotation_to_z
 
 WIDTH, HEIGHT = 240, 150
 SAMPLES = 60_000

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from services.core.ingest.errors import SpaceError
+from services.core.ingest.guard.safe_load import load_space_limited
 from services.core.ingest.loading import load_space
-from services.core.ingest.safe_load import load_space_limited
 
 
 @pytest.fixture(scope="module")

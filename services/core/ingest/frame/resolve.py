@@ -16,14 +16,14 @@ import trimesh
 from services.core.domain.frame_words import ambiguity_line, units_ambiguity_line
 from services.core.domain.jobspec import similarity_scale
 from services.core.ingest.errors import SpaceError, UnitsAmbiguous, UpAmbiguous
-from services.core.ingest.gravity import (
+from services.core.ingest.frame.gravity import (
     UpEstimate,
     axis_vector,
     estimate_up,
     floor_evidence,
     guess_candidates,
 )
-from services.core.ingest.unit_evidence import UnitChoice, UnitError, choose_units
+from services.core.ingest.frame.unit_evidence import UnitChoice, UnitError, choose_units
 
 FRAME_KEYS = ("up", "units", "reconstruction", "class_names", "valid_fraction", "capture")
 

@@ -74,7 +74,7 @@ class PlanFn(Protocol):
 def load_for_job(source: str | Path, spec: JobSpec, extract_dir: str | Path | None = None,
                  frame: SpaceFrame | None = None) -> LoadedSpace:
     """The space loaded in the frame the job's spec asks for (up_axis, up, unit_scale, source_to_world), or in
-    `frame` (`load_space`'s frame keywords: a registered space's chosen up, `ingest.frame_choice`)."""
+    `frame` (`load_space`'s frame keywords: a registered space's chosen up, `db.frame_choice`)."""
     return load_space(source, **(frame if frame is not None else spec.space_frame()), extract_dir=extract_dir)
 
 

@@ -1,8 +1,8 @@
 """A space whose up detection could not decide: side views of its candidates and the person's pick.
 
-The pick is stored with the space (its validation record and frame columns, `ingest.frame_choice`), after
+The pick is stored with the space (its validation record and frame columns, `db.frame_choice`), after
 which jobs plan it in that frame. Both load the space's stored source in the upload's limited child process
-(`ingest.safe_load`), never in the API process.
+(`ingest.guard.safe_load`), never in the API process.
 """
 
 from __future__ import annotations

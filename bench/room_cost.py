@@ -70,7 +70,8 @@ from services.core.ingest.loading import load_space
 from services.worker.passes import ViewGeometry
 from services.worker.process.heap import keep_freed_memory
 from services.worker.inputs.space_cache import SpaceContext
-keep_freed_memory()  # a worker's heap (services.worker.process.heap): without it the bare render refaults its buffers
+# a worker's heap (services.worker.process.heap): without it the bare render refaults its buffers
+keep_freed_memory()
 space_path, plan_path, frame = sys.argv[2], sys.argv[3], json.loads(sys.argv[4])
 device = sys.argv[5] if len(sys.argv) > 5 else "cpu"
 plan = plan_from_json(Path(plan_path).read_bytes())

@@ -125,7 +125,8 @@ def test_the_checker_sees_type_checking_imports_and_passes_a_tree(tmp_path: Path
     pkg.mkdir()
     (pkg / "__init__.py").write_text("")
     (pkg / "one.py").write_text("from pkg import two\n")
-    (pkg / "two.py").write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from . import one\n")
+    (pkg / "two.py").write_text("from typing import TYPE_CHECKING\n"
+                                "if TYPE_CHECKING:\n    from . import one\n")
     assert find_cycle(module_graph(pkg, tmp_path)) == ["pkg.one", "pkg.two", "pkg.one"]
     (pkg / "two.py").write_text("import os\n")
     assert find_cycle(module_graph(pkg, tmp_path)) is None

@@ -4,8 +4,8 @@ job needs them.
 Run where the workers will run from: `make venv` does (the editable install: the cache sits beside the sources, for
 this machine's x86-64 level), and so does the image build with --every-level (NUMBA_CACHE_DIR of deploy/Dockerfile:
 one set of kernels per level the build machine runs, so a pod on any machine of those levels only loads them). See
-services/worker/process/kernel_warm_up.py and kernel_target.py. Exit status 1 when a kernel was not reached (a job would
-compile it itself).
+services/worker/process/kernel_warm_up.py and kernel_target.py. Exit status 1 when a kernel was not reached (a
+job would compile it itself).
 """
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""A running job's load as dispatch and fairness see it: its priority, tenant and task counts by cue and state."""
+"""A running job's load as dispatch and fairness see it: its priority, tenant and task counts by cue and
+state."""
 
 from __future__ import annotations
 

@@ -379,13 +379,14 @@ def plan_in_child(
 ) -> None:
     """Child process entry: plan and persist one job under the memory budget, as its claiming scheduler."""
     die_with_scheduler(scheduler_pid)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s planner %(process)d: %(message)s")
+    logging.basicConfig(level=logging.INFO,
+                        format="%(asctime)s %(levelname)s planner %(process)d: %(message)s")
     limit_memory(settings.plan_memory_mb)
     engine = make_engine(settings.database_url)
     count_connections(engine, in_db)
     try:
-        sched = Scheduler(make_sessionmaker(engine), open_store(settings.storage_url, settings), NullTransport(),
-                          settings, scheduler_id)
+        store = open_store(settings.storage_url, settings)
+        sched = Scheduler(make_sessionmaker(engine), store, NullTransport(), settings, scheduler_id)
         sched.plan_job(job_id)
     finally:
         engine.dispose()

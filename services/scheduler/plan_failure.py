@@ -30,10 +30,13 @@ class PlanningError(Exception):
 
 def _permanent(exc: BaseException) -> bool:
     """Errors that re-planning cannot fix (the job fails), as opposed to connection trouble (retried)."""
-    return isinstance(exc, PlanningError | PlanError | SpaceError | ObjectNotFoundError | ValueError | KeyError)
+    permanent = PlanningError | PlanError | SpaceError | ObjectNotFoundError | ValueError | KeyError
+    return isinstance(exc, permanent)
 
 
-def record_planning_failure(sm: sessionmaker[Session], job_id: int, scheduler_id: str, exc: BaseException) -> None:
+def record_planning_failure(
+    sm: sessionmaker[Session], job_id: int, scheduler_id: str, exc: BaseException,
+) -> None:
     """Count a failed planning attempt of a job this scheduler holds: fail it (permanent error, or out of
     attempts) or leave it claimed for a retry after PLAN_RETRY_S."""
     permanent = _permanent(exc)
@@ -52,8 +55,8 @@ def record_planning_failure(sm: sessionmaker[Session], job_id: int, scheduler_id
         if permanent or attempts >= MAX_PLAN_ATTEMPTS:
             clear_plan(s, job_id)  # the chunks written before the failure
             tail = "".join(traceback.format_exception_only(type(exc), exc)).strip()
-            set_job_state(job, JobState.FAILED, finished_at=utcnow(),
-                          error=f"planning failed: {tail}" if not isinstance(exc, PlanningError) else str(exc))
+            error = str(exc) if isinstance(exc, PlanningError) else f"planning failed: {tail}"
+            set_job_state(job, JobState.FAILED, finished_at=utcnow(), error=error)
         else:  # leave it claimed; any scheduler may take it again once the lease runs out
             job.planner_lease_until = utcnow() + timedelta(seconds=PLAN_RETRY_S)
         s.commit()

@@ -1,5 +1,6 @@
 """The one-line refusals that name a frame's candidates (up, units) from their records, and the flag that
-picks one: the same words when a scan is loaded and when a job over a space with an ambiguous frame is refused."""
+picks one: the same words when a scan is loaded and when a job over a space with an ambiguous frame is
+refused."""
 
 from __future__ import annotations
 

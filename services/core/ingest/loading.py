@@ -12,10 +12,10 @@ poses the planner chose. Frames and units:
   whole `source_to_world` (rotation, uniform scale and translation), which is used as it is.
 
 Up is given (`up_axis` name or `up` vector in source coordinates) or detected in any orientation
-(`services.core.ingest.frame.gravity`: plane families of the face normals, then the floor, a support base or the
-file convention); units are given or chosen from the storey height of rooms. How, and how sure, is
-kept in `LoadedSpace.frame_record()` for job.json. Point clouds (.xyz, .pts, PLY without faces) are
-meshed first (`services.core.ingest.pointcloud`); that mesh's faces are then the `fragments` reference.
+(`services.core.ingest.frame.gravity`: plane families of the face normals, then the floor, a support base or
+the file convention); units are given or chosen from the storey height of rooms. How, and how sure, is kept in
+`LoadedSpace.frame_record()` for job.json. Point clouds (.xyz, .pts, PLY without faces) are meshed first
+(`services.core.ingest.pointcloud`); that mesh's faces are then the `fragments` reference.
 
 Semantic labels are read by `services.core.ingest.labels`, the zip/folder is resolved by
 `services.core.ingest.guard.archive` and the frame by `services.core.ingest.frame.resolve`.
@@ -68,7 +68,8 @@ log = logging.getLogger(__name__)
 
 MAX_EXTENT_M = 10_000.0  # a 10 km scan means the units are wrong
 MIN_EXTENT_M = 0.001  # everything inside 1 mm: same
-CAPTURE_UP_WARN_DEG = 10.0  # the cameras' up this far from the scan's: the levelling (or the capture) is suspect
+# the cameras' up this far from the scan's: the levelling (or the capture) is suspect
+CAPTURE_UP_WARN_DEG = 10.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -395,7 +396,7 @@ def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Pa
 
 
 def attach_capture(loaded: LoadedSpace, capture: Capture | None) -> LoadedSpace:
-    """`loaded` (a LoadedSpace) with `capture` (source frame) moved into its world frame, when there is one."""
+    """`loaded` with `capture` (source frame) moved into its world frame, when there is one."""
     if capture is None:
         return loaded
     for problem in capture.problems[:20]:

@@ -116,7 +116,8 @@ def _points_on_faces(verts: np.ndarray, faces: np.ndarray, fidx: np.ndarray, r1:
                      r2: np.ndarray) -> np.ndarray:
     """v0 + r1 (v1 - v0) + r2 (v2 - v0) on each sample's face, (r1, r2) folded onto the triangle where r1 + r2 > 1:
     numpy's float64 expression on the gathered triangles, one sample at a time, without the n x 3 x 3 copy of
-    the triangles (ICL: 0.15 of the 0.64 CPU-s its curvature took; tests/worker/inputs/test_curvature.py: the same bits)."""
+    the triangles (ICL: 0.15 of the 0.64 CPU-s its curvature took; tests/worker/inputs/test_curvature.py:
+    the same bits)."""
     out = np.empty((len(fidx), 3))
     for i in range(len(fidx)):
         s, t = r1[i], r2[i]

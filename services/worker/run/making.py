@@ -66,7 +66,8 @@ class TaskMaker:
         return key, produce(t.cue, ctx)
 
     def render_view(self, t: Claimed) -> str:
-        """Render the view of a `passes` task into this process's memory (nothing stored); its pass set's key."""
+        """Render the view of a `passes` task into this process's memory (nothing stored); returns its pass
+        set's key."""
         job = self.inputs.job(t.job_id)
         space = self.inputs.space(t.space_id)
         plan = self.inputs.plan(job, space)
@@ -105,7 +106,8 @@ class TaskMaker:
 
     def _view_context(self, t: Claimed, job: JobInfo, space: Space, plan: SpacePlan,
                       view: PlannedView) -> ViewContext:
-        """A ViewContext holding the view's pass set: memory LRU, else the store's pass cache, else a render."""
+        """A ViewContext holding the view's pass set: memory LRU, else the store's pass cache, else a
+        render."""
         vk = (t.job_id, t.space_id, t.point, t.view)
         ctx = self.inputs.cached_view(vk)
         if ctx is not None:

@@ -50,10 +50,10 @@ class BatchResults:
         return self.ledger.record_failure(t, exc, time.perf_counter() - t0, max_attempts)
 
     def compute(self, claimed: list[Claimed], t0: float) -> tuple[list[Recorded], dict[int, Outcome]]:
-        """Compute each claimed task in order, then store their files together (store.put_many); failures are
-        recorded one by one, and a task an input of which failed here is handed back to pending unrun (the DAG's
-        rule: a cue is queued when its inputs exist). Returns the stored tasks, and the Outcomes of the others by
-        task id. A task's seconds are its computation's plus its share (by bytes) of the store's."""
+        """Compute each claimed task in order, then store their files together (store.put_many); failures
+        are recorded one by one, and a task an input of which failed here is handed back to pending unrun (the
+        DAG's rule: a cue is queued when its inputs exist). Returns the stored tasks, and the Outcomes of the
+        others by task id. A task's seconds are its computation's plus its share (by bytes) of the store's."""
         made: list[tuple[Claimed, str, bytes, float]] = []
         t_batch = t0
         try:
@@ -76,7 +76,9 @@ class BatchResults:
         return [(t, key, info, s + store_s * len(data) / total)
                 for (t, key, data, s), info in zip(made, infos, strict=True)], {}
 
-    def _compute_one_by_one(self, claimed: list[Claimed], t0: float) -> tuple[list[Recorded], dict[int, Outcome]]:
+    def _compute_one_by_one(
+        self, claimed: list[Claimed], t0: float,
+    ) -> tuple[list[Recorded], dict[int, Outcome]]:
         """compute's path when a task of the batch failed: compute and store each task on its own."""
         failed: dict[int, Outcome] = {}
         done: list[Recorded] = []

@@ -4,14 +4,15 @@
     outcome = runner.run(task_id)
 
 1. Claim the task (services.worker.run.claim: queued -> running, or why not).
-2. Load the job spec, the space (kept loaded between tasks: SpaceCache) and the plan JSON (services.worker.inputs.caches;
-   services.worker.run.making computes a task's bytes from them).
+2. Load the job spec, the space (kept loaded between tasks: SpaceCache) and the plan JSON
+   (services.worker.inputs.caches; services.worker.run.making computes a task's bytes from them).
 3. Compute: the `passes` task renders the view once into this process's memory; every other cue is derived from
    that pass set, read from this process's memory LRU or the store's pass cache (.npz, written only when a task of
    the view may need it after the view batch below), and rendered again only if the cache is gone (e.g. after
    a resume of a finished job).
 4. Write the objects atomically to their deterministic keys, a batch's together (store.put_many: one wait for
-   the disk or the network a view), then record them done (services.worker.run.results, services.worker.run.claim).
+   the disk or the network a view), then record them done (services.worker.run.results and
+   services.worker.run.claim).
    View batch (settings.worker_batch_views): the worker that rendered a view's `passes` claims, in one
    statement, the rest of that view's tasks, pending or queued (every DAG level: all their inputs are cues of
    the view, computed in memory by its ViewContext in topological order), derives and stores each, and records

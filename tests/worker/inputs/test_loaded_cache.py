@@ -1,7 +1,7 @@
-"""The loaded space `omnidata generate` hands to its local workers (services.worker.inputs.loaded_cache, issue 20): read
-back, it equals a fresh `load_space(source, source_to_world=...)` (what a worker parsed before) in every array
-the worker reads; a stale, foreign or damaged file is ignored and the scan is parsed; a worker's outputs are the
-same bytes whichever way it got the space."""
+"""The loaded space `omnidata generate` hands to its local workers (services.worker.inputs.loaded_cache, issue
+20): read back, it equals a fresh `load_space(source, source_to_world=...)` (what a worker parsed before) in
+every array the worker reads; a stale, foreign or damaged file is ignored and the scan is parsed; a worker's
+outputs are the same bytes whichever way it got the space."""
 
 from __future__ import annotations
 

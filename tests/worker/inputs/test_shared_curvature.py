@@ -1,5 +1,6 @@
-"""Curvature shared between a machine's worker processes (services.worker.inputs.shared_curvature): computed once,
-read back bit for bit, and the principal_curvature cue's bytes the same with or without the shared file."""
+"""Curvature shared between a machine's worker processes (services.worker.inputs.shared_curvature): computed
+once, read back bit for bit, and the principal_curvature cue's bytes the same with or without the shared
+file."""
 
 from __future__ import annotations
 

@@ -1,5 +1,6 @@
-"""A worker process reuses the memory it frees (services.worker.process.heap): the same arrays allocated view after view
-fault in no fresh pages. With glibc's defaults every such array came back from the kernel zeroed again."""
+"""A worker process reuses the memory it frees (services.worker.process.heap): the same arrays allocated view
+after view fault in no fresh pages. With glibc's defaults every such array came back from the kernel zeroed
+again."""
 
 from __future__ import annotations
 

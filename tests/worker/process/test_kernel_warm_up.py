@@ -30,7 +30,8 @@ def test_the_warm_up_makes_every_cue_with_a_kernel_and_none_it_cannot():
 def test_every_compiled_function_of_the_worker_is_listed_but_inlined_ones():
     kernels = worker_kernels()
     assert {"services.worker.cues.felzenszwalb._merge", "services.worker.blender.decode.faces_hit",
-            "services.worker.inputs.curvature._fit_one", "services.worker.cues.ncuts._laplacian"} <= set(kernels)
+            "services.worker.inputs.curvature._fit_one", "services.worker.cues.ncuts._laplacian",
+            } <= set(kernels)
     assert "services.worker.cues.keypoints._doh_row" not in kernels  # inline="always": compiled into _max_doh
     assert len(kernels) >= 60
 

@@ -136,7 +136,8 @@ def test_a_failure_in_the_batch_hands_its_dependents_back_to_pending(sm, banana,
 
 def test_a_stop_that_comes_back_wrapped_from_a_kernel_stops_the_worker_and_fails_nothing(sm, banana, monkeypatch):
     """SIGTERM's SystemExit raised while a numba kernel is being called returns from the call as a SystemError caused
-    by it (services.worker.run.stop_signal). Recorded as the task's failure, the stop was lost: the worker went on."""
+    by it (services.worker.run.stop_signal). Recorded as the task's failure, the stop was lost: the worker
+    went on."""
     job_id = make_job(sm, banana)
     real_make = TaskRunner.make
 

@@ -1,5 +1,5 @@
-"""Directions binned on the hemisphere, antipodes folded: the histogram the levelling (services.core.ingest.frame.gravity)
-votes plane orientations into, smoothed over neighbouring bins."""
+"""Directions binned on the hemisphere, antipodes folded: the histogram the levelling
+(services.core.ingest.frame.gravity) votes plane orientations into, smoothed over neighbouring bins."""
 
 from __future__ import annotations
 

@@ -26,8 +26,8 @@ gives, in the file's units); directions are unit 3-vectors in that frame.
 
 Confidence (rooms): every candidate direction is scored on more evidence than plane area (what the file
 says, furniture, the scan's extent, storey height, a single frame's view, capture poses when given;
-`services.core.ingest.frame.up_evidence`), and the winner's margin over the best candidate that levels the scan
-differently gives a calibrated confidence. Below the refusal margin the estimate is *ambiguous*: loading
+`services.core.ingest.frame.up_evidence`), and the winner's margin over the best candidate that levels the
+scan differently gives a calibrated confidence. Below the refusal margin the estimate is *ambiguous*: loading
 refuses it unless guesses are accepted.
 """
 

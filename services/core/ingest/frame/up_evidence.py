@@ -1,8 +1,8 @@
 """Evidence for each up candidate of a room scan, combined into one score and a calibrated confidence.
 
 Frames and units: the source frame and the file's units (unknown here: every term is unit free).
-A candidate is a plane-family direction `u` (one sign) proposed by `services.core.ingest.frame.gravity`. Each term
-below is a log-odds contribution; a candidate's score is their sum, and the decision compares the best
+A candidate is a plane-family direction `u` (one sign) proposed by `services.core.ingest.frame.gravity`. Each
+term below is a log-odds contribution; a candidate's score is their sum, and the decision compares the best
 candidate with the best one that would level the scan differently (more than `DISTINCT_DEG` away):
 
 - `floor_area`: the floor seen from above plus the furniture surplus (gravity's area score), as the log
@@ -28,9 +28,10 @@ candidate with the best one that would level the scan differently (more than `DI
   never decide alone.
 - `capture_up`: the mean up vector of the capture's cameras (-Y of OpenCV cameras, averaged), when the
   caller has poses. Cameras are held upright, give or take their pitch: strong evidence.
-- `view_direction`, `view_aspect`: a single view (`services.core.ingest.frame.single_view`): up lies across the view
-  direction within the camera's pitch (`VIEW_PITCH_DEG`; a wall the camera faced is no floor), near the
-  frustum's short axis (landscape frames). `extent` is left out for it: a frustum's extent is not the room's.
+- `view_direction`, `view_aspect`: a single view (`services.core.ingest.frame.single_view`): up lies across
+  the view direction within the camera's pitch (`VIEW_PITCH_DEG`; a wall the camera faced is no floor), near
+  the frustum's short axis (landscape frames). `extent` is left out for it: a frustum's extent is not the
+  room's.
 
 The confidence is a logistic function of the margin (best score minus the runner-up's), fitted on the real
 rooms of bench/ingest_real.py; below `REFUSE_MARGIN` (`SINGLE_VIEW_REFUSE_MARGIN` for one depth frame) the

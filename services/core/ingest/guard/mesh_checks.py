@@ -13,8 +13,10 @@ user when:
   (`services.core.ingest.guard.degenerate`: sampled, before the full parse);
 - a material library, texture, glTF buffer or image is named by an absolute path or one climbing out of the
   mesh's folder ('..'), or a texture an .mtl names is missing (these give the clearer messages; that no
-  file outside the scan's folder is ever read is the confined resolver's guarantee, `services.core.ingest.guard.confine`);
-- an image a GLB or glTF embeds declares more pixels than the texture limit (`services.core.ingest.guard.texture_limits`).
+  file outside the scan's folder is ever read is the confined resolver's guarantee,
+  `services.core.ingest.guard.confine`);
+- an image a GLB or glTF embeds declares more pixels than the texture limit
+  (`services.core.ingest.guard.texture_limits`).
 
 It returns warnings: an .mtl that is missing (the mesh renders untextured), an OBJ whose last line is whole
 but has no newline (exporters end with one: it may have been cut at a token's end).

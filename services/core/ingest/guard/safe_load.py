@@ -26,7 +26,8 @@ from services.core.temp_dirs import UPLOAD_KINDS, sweep_orphans
 # milliseconds instead of the second a fresh interpreter needs to import trimesh, and the fork happens in a
 # single-threaded process (the API's is not).
 _CONTEXT = multiprocessing.get_context("forkserver")
-_CONTEXT.set_forkserver_preload(["services.core.ingest.loading", "services.core.ingest.guard.mesh_checks", "trimesh"])
+_CONTEXT.set_forkserver_preload(
+    ["services.core.ingest.loading", "services.core.ingest.guard.mesh_checks", "trimesh"])
 _RESULT_GRACE_S = 10.0  # for a child to exit once it has sent its result
 CHILD_NICENESS = 10  # a reader yields the CPU to the process waiting on it (the API serving other requests)
 

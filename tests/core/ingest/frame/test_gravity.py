@@ -1,5 +1,5 @@
-"""Gravity and units of scans in any orientation and unit (services.core.ingest.frame.gravity, through load_space
-too)."""
+"""Gravity and units of scans in any orientation and unit (services.core.ingest.frame.gravity, through
+load_space too)."""
 
 from __future__ import annotations
 

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import trimesh
 
-import services.worker.run.runner as runner_mod
+import services.worker.run.making as making_mod
 from services.core.db.jobs import job_spaces
 from services.core.db.models import Job
 from services.core.ingest.loading import LoadedSpace, load_space
@@ -148,13 +148,13 @@ def test_another_frame_source_or_request_is_not_used(scenes_dir: Path, tmp_path:
 def test_a_worker_renders_the_same_bytes_from_the_kept_space_and_from_the_scan(sm, banana, scenes_dir, tmp_path,
                                                                               monkeypatch):
     loads: list[str] = []
-    real_load = runner_mod.load_space
+    real_load = making_mod.load_space
 
     def counting(path: Any, **kw: Any) -> Any:
         loads.append(str(path))
         return real_load(path, **kw)
 
-    monkeypatch.setattr(runner_mod, "load_space", counting)
+    monkeypatch.setattr(making_mod, "load_space", counting)
     loaded = load_space(scenes_dir / "ycb_banana")  # the banana fixture's frame: auto, as its plan was made
     frame = loaded.source_to_world.tolist()
 

@@ -11,10 +11,11 @@ STAMP := $(VENV)/.installed
 venv: $(STAMP)
 
 # Re-install only when pyproject.toml changed since the last install. The worker's kernels are compiled once here
-# (~40 s on one core) instead of in every worker of the first `generate` (services/worker/kernel_warm_up.py).
-# The project's bytecode too, as pip compiles an installed package's: an editable install has none, and with
-# PYTHONDONTWRITEBYTECODE set (CI machines) every process compiled the ~30k lines it imports again (~0.3 CPU-s
-# for generate's and a worker's modules). A source edited later is recompiled as before (the .pyc is stale).
+# (~40 s on one core) instead of in every worker of the first `generate`
+# (services/worker/process/kernel_warm_up.py). The project's bytecode too, as pip compiles an installed
+# package's: an editable install has none, and with PYTHONDONTWRITEBYTECODE set (CI machines) every process
+# compiled the ~30k lines it imports again (~0.3 CPU-s for generate's and a worker's modules). A source edited
+# later is recompiled as before (the .pyc is stale).
 $(STAMP): pyproject.toml
 	@if [ ! -x $(BIN)/python ]; then $(PY) -m venv $(VENV); fi
 	$(BIN)/pip install -q -e '.[dev]'

@@ -13,9 +13,10 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def module_at(rev: str, relpath: str, folder: Path) -> ModuleType:
-    """The file `relpath` (e.g. services/worker/curvature.py) at git revision `rev`, written to `folder` and loaded
-    as a module of its own; its numba kernels are compiled in this process, not cached (the A/B's first call, outside
-    the timing, compiles them). Its imports of the project resolve to today's modules."""
+    """The file `relpath` (e.g. services/worker/inputs/curvature.py) at git revision `rev`, written to
+    `folder` and loaded as a module of its own; its numba kernels are compiled in this process, not cached
+    (the A/B's first call, outside the timing, compiles them). Its imports of the project resolve to today's
+    modules."""
     source = subprocess.run(["git", "show", f"{rev}:{relpath}"], cwd=ROOT, capture_output=True, text=True,
                             check=True).stdout
     path = folder / f"{Path(relpath).stem}_{rev.replace('/', '_')}.py"

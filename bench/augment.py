@@ -32,9 +32,9 @@ from bench.render import ROOM, ROOM_NAME, room_plan  # noqa: E402
 from services.core.domain.jobspec import CueParams  # noqa: E402
 from services.core.ingest.loading import load_space  # noqa: E402
 from services.worker.executor import make_context, produce  # noqa: E402
-from services.worker.heap import keep_freed_memory  # noqa: E402
+from services.worker.inputs.space_cache import SpaceContext  # noqa: E402
 from services.worker.passes import ViewGeometry  # noqa: E402
-from services.worker.space_cache import SpaceContext  # noqa: E402
+from services.worker.process.heap import keep_freed_memory  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 AUGMENTATIONS = ("rgb_refocus", "rgb_fog", "rgb_motion_blur", "rgb_flash")
@@ -85,7 +85,7 @@ def measure(n_views: int, resolution: int) -> dict:
 
 
 def main() -> int:
-    keep_freed_memory()  # the worker's heap settings (services.worker.heap): timings as a worker's
+    keep_freed_memory()  # the worker's heap settings (services.worker.process.heap): timings as a worker's
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--views", type=int, default=4)
     ap.add_argument("--resolution", type=int, default=512)

@@ -79,8 +79,8 @@ def view_cost(space, n_views: int, resolution: int) -> dict[str, float]:
     from services.core.domain.jobspec import JobSpec
     from services.scheduler.planning import make_plan, space_rng
     from services.worker.executor import make_context, produce
-    from services.worker.photos import PhotoPainter
-    from services.worker.space_cache import SpaceContext
+    from services.worker.inputs.photos import PhotoPainter
+    from services.worker.inputs.space_cache import SpaceContext
 
     spec = JobSpec.model_validate({"cameras": {"mode": "capture"}, "views": {"resolution": resolution}})
     plan = make_plan(space, spec, space_rng(0, "kitchen"), "kitchen")
@@ -106,8 +106,8 @@ def view_cost(space, n_views: int, resolution: int) -> dict[str, float]:
 
 def texture_figures(space, n_views: int, resolution: int) -> dict[str, float]:
     """Seconds per photo-textured novel view and the covered share of its surface pixels."""
+    from services.worker.inputs.phototexture import PhotoTexturer
     from services.worker.passes import ViewGeometry
-    from services.worker.phototexture import PhotoTexturer
     from tests.fixtures.raycast import raycast_passes
 
     cap = space.capture

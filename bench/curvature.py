@@ -1,9 +1,10 @@
 """Benchmark: the per-vertex curvature a worker computes once per space (issue 20: part of every run's start-up), on
 the real rooms at the default radius, one core: the grid neighbour search against the k-d tree search it replaced
-on rooms (the same estimator with services.worker.curvature.GRID_MAX_BALL = 0, which sends every mesh to the tree),
-interleaved, CPU seconds (medians of --repeats), and whether the two give the same array bit for bit. With
---against REV, also the estimator as it was at git revision REV (its module loaded from `git show`, compiled before
-the timing), interleaved with today's: an A/B of a change on the same host and moment.
+on rooms (the same estimator with services.worker.inputs.curvature.GRID_MAX_BALL = 0, which sends every mesh
+to the tree), interleaved, CPU seconds (medians of --repeats), and whether the two give the same array bit
+for bit. With --against REV, also the estimator as it was at git revision REV (its module loaded from
+`git show`, compiled before the timing), interleaved with today's: an A/B of a change on the same host and
+moment.
 Writes bench/results/curvature.json (the previous run's figures kept under "before").
 Run: .venv/bin/python bench/curvature.py [--repeats 5] [--against REV]
 """
@@ -31,7 +32,7 @@ from bench.room_cost import cpu_model, load  # noqa: E402
 from bench.rooms import ROOMS  # noqa: E402
 from services.core.domain.jobspec import CueParams  # noqa: E402
 from services.core.ingest.loading import load_space  # noqa: E402
-from services.worker import curvature  # noqa: E402
+from services.worker.inputs import curvature  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results" / "curvature.json"
@@ -57,7 +58,8 @@ def main() -> int:
     result: dict = {"radius_m": radius, "clock": "process CPU seconds, one core, medians",
                     "machine": f"{os.cpu_count()} cores ({cpu_model()}), shared", "load_before": load(), "rooms": {}}
     with tempfile.TemporaryDirectory(prefix="omnidata-curvature-") as tmp:
-        old = module_at(args.against, "services/worker/curvature.py", Path(tmp)) if args.against else None
+        old = (module_at(args.against, "services/worker/inputs/curvature.py", Path(tmp))
+               if args.against else None)
         for room, (path, frame) in ROOMS.items():
             mesh = load_space(path, **frame).mesh
             timed(mesh, radius, curvature.GRID_MAX_BALL)  # numba kernels loaded (or compiled) outside the timing

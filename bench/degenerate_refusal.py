@@ -1,9 +1,9 @@
 """Time to refuse a big OBJ of varied degenerate faces (issue 19 section 4): 10M faces, no two lines alike.
 
 Each face is three distinct points on a line, or names a vertex twice; the lines vary, so the compression rule
-(`archive_rules`) passes them, and before `services.core.ingest.degenerate` the full parse ran (45 s for 10M
-faces in the issue). Measures `load_space` (what upload, register, plan and generate run) refusing the file:
-process CPU and wall time, and the load average. Writes bench/results/degenerate_refusal.json.
+(`archive_rules`) passes them, and before `services.core.ingest.guard.degenerate` the full parse ran (45 s for
+10M faces in the issue). Measures `load_space` (what upload, register, plan and generate run) refusing the
+file: process CPU and wall time, and the load average. Writes bench/results/degenerate_refusal.json.
 Run: .venv/bin/python bench/degenerate_refusal.py [faces]
 """
 

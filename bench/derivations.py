@@ -47,8 +47,8 @@ from services.scheduler.planning import make_plan, space_rng  # noqa: E402
 from services.worker.context import ViewContext  # noqa: E402
 from services.worker.cues.registry import cue_value  # noqa: E402
 from services.worker.executor import produce  # noqa: E402
-from services.worker.heap import keep_freed_memory  # noqa: E402
 from services.worker.passes import RENDER_PASSES, ViewPasses  # noqa: E402
+from services.worker.process.heap import keep_freed_memory  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results" / "derivations.json"
@@ -80,7 +80,7 @@ def room_views(room: str, n_views: int, resolution: int, cache: Path) -> tuple[l
     cache.mkdir(parents=True, exist_ok=True)
     files = [cache / f"{room}-{resolution}-p{v.point_idx}v{v.v}.npz" for v in views]
     if not all(f.exists() for f in files):
-        from services.worker.space_cache import SpaceContext
+        from services.worker.inputs.space_cache import SpaceContext
 
         space = SpaceContext.from_loaded(loaded, key=f"{room}-derivations")
         try:
@@ -219,7 +219,7 @@ def run_room(room: str, n_views: int, repeats: int, resolution: int, cache: Path
 
 
 def main() -> int:
-    keep_freed_memory()  # the worker's heap settings (services.worker.heap): timings as a worker's
+    keep_freed_memory()  # the worker's heap settings (services.worker.process.heap): timings as a worker's
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--views", type=int, default=6)
     ap.add_argument("--repeats", type=int, default=3)

@@ -40,8 +40,8 @@ from services.worker.context import ViewContext  # noqa: E402
 from services.worker.cues.common import hit, position_world, ray_dirs_cam64  # noqa: E402
 from services.worker.cues.encoding import deflate_png, encode_exr_rgb, encode_png, zlib_deflater  # noqa: E402
 from services.worker.cues.registry import cue_value  # noqa: E402
-from services.worker.heap import keep_freed_memory  # noqa: E402
 from services.worker.passes import ViewPasses  # noqa: E402
+from services.worker.process.heap import keep_freed_memory  # noqa: E402
 from tests.fixtures.raycast import decode_png  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -155,7 +155,7 @@ def room_figures(files: list[Path], repeats: int) -> dict:
 
 
 def main() -> int:
-    keep_freed_memory()  # the worker's heap settings (services.worker.heap): timings as a worker's
+    keep_freed_memory()  # the worker's heap settings (services.worker.process.heap): timings as a worker's
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--label", default="now")

@@ -35,8 +35,8 @@ from bench.rooms import ROOMS  # noqa: E402
 from services.core.domain.jobspec import CueParams  # noqa: E402
 from services.worker.context import ViewContext  # noqa: E402
 from services.worker.cues import segmentation  # noqa: E402
-from services.worker.heap import keep_freed_memory  # noqa: E402
 from services.worker.passes import ViewPasses  # noqa: E402
+from services.worker.process.heap import keep_freed_memory  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results" / "felzenszwalb.json"

@@ -27,7 +27,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.ingest_corpus import real_figures, summary, units_outcome  # noqa: E402
-from services.core.ingest.gravity import estimate_up  # noqa: E402
+from services.core.ingest.frame.gravity import estimate_up  # noqa: E402
 from tests.fixtures import rotation_corpus as corpus  # noqa: E402
 
 

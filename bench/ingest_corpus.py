@@ -17,9 +17,15 @@ from typing import Any
 import numpy as np
 import trimesh
 
-from services.core.ingest.gravity import estimate_up, floor_evidence, up_candidate_facts
-from services.core.ingest.unit_evidence import ScanMeasures, UnitError, choose_units, decide_units, measure
-from services.core.ingest.up_evidence import WEIGHTS, decide
+from services.core.ingest.frame.gravity import estimate_up, floor_evidence, up_candidate_facts
+from services.core.ingest.frame.unit_evidence import (
+    ScanMeasures,
+    UnitError,
+    choose_units,
+    decide_units,
+    measure,
+)
+from services.core.ingest.frame.up_evidence import WEIGHTS, decide
 from tests.fixtures import rotation_corpus as corpus
 from tests.fixtures.real_corpus import RealCase, real_cases, real_rooms
 

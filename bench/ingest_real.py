@@ -32,7 +32,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from services.core.ingest.errors import SpaceError, UnitsAmbiguous, UpAmbiguous  # noqa: E402
-from services.core.ingest.frame import FrameRequest, resolve_frame, rotation_to_z  # noqa: E402
+from services.core.ingest.frame.resolve import FrameRequest, resolve_frame, rotation_to_z  # noqa: E402
 from services.core.ingest.loading import load_space  # noqa: E402
 
 ROOMS = REPO / "bench" / "scans" / "rooms" / "truth.json"

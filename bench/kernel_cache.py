@@ -6,8 +6,8 @@
    one worker, and on --cores with the default workers (one a core: each compiles the same kernels at once).
 3. Derivation CPU seconds per view (every default cue but the render, encodings included; bench/derivations.py's
    views and clock; per cue too) with the kernels built for this machine's own CPU, for each x86-64 level it runs
-   (services/worker/kernel_target.py) and for numba's baseline "generic" x86-64, each in a fresh process with its
-   own cache; the order of the targets rotates between repeats.
+   (services/worker/process/kernel_target.py) and for numba's baseline "generic" x86-64, each in a fresh
+   process with its own cache; the order of the targets rotates between repeats.
 
 Writes bench/results/kernel_cache.json (a part not run keeps its last figures; --key puts the derive part's under
 another entry, e.g. another host's beside this one's).
@@ -29,7 +29,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.room_cost import children_cpu_s, cpu_model, load, median, pinned  # noqa: E402
-from services.worker.kernel_target import host_features, level_environment, levels_for  # noqa: E402
+from services.worker.process.kernel_target import host_features, level_environment, levels_for  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results" / "kernel_cache.json"

@@ -55,7 +55,7 @@ from services.core.db.models import Space  # noqa: E402
 from services.core.domain.jobspec import JobSpec  # noqa: E402
 from services.core.settings import get_settings  # noqa: E402
 from services.core.storage import LocalStore  # noqa: E402
-from services.worker.heartbeat import HEARTBEAT_INTERVAL_S, Heartbeat  # noqa: E402
+from services.worker.run.heartbeat import HEARTBEAT_INTERVAL_S, Heartbeat  # noqa: E402
 from services.worker.tasks import worker_engine  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"

@@ -47,9 +47,9 @@ from services.core.storage.local import LocalStore  # noqa: E402
 from services.scheduler.planning import make_plan, space_rng  # noqa: E402
 from services.worker.context import ViewContext  # noqa: E402
 from services.worker.executor import produce  # noqa: E402
-from services.worker.heap import keep_freed_memory  # noqa: E402
+from services.worker.inputs.space_cache import SpaceContext  # noqa: E402
 from services.worker.passes import RENDER_PASSES, ViewGeometry  # noqa: E402
-from services.worker.space_cache import SpaceContext  # noqa: E402
+from services.worker.process.heap import keep_freed_memory  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "bench" / "results" / "passes_cost.json"
@@ -187,7 +187,7 @@ def run_room(name: str, n_views: int, repeats: int, resolution: int) -> dict:
 
 
 def main() -> int:
-    keep_freed_memory()  # the worker's heap settings (services.worker.heap): timings as a worker's
+    keep_freed_memory()  # the worker's heap settings (services.worker.process.heap): timings as a worker's
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rooms", default=",".join(ROOMS), help="comma-separated: " + ",".join(ROOMS))
     ap.add_argument("--views", type=int, default=8)

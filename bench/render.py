@@ -51,9 +51,9 @@ from services.scheduler.planning import make_plan, space_rng  # noqa: E402
 from services.worker.cues.encoding import encode_png, zlib_deflater  # noqa: E402
 from services.worker.cues.registry import cue_value  # noqa: E402
 from services.worker.executor import make_context, produce  # noqa: E402
-from services.worker.heap import keep_freed_memory  # noqa: E402
+from services.worker.inputs.space_cache import SpaceContext, peak_rss_bytes, rss_bytes  # noqa: E402
 from services.worker.passes import ViewGeometry  # noqa: E402
-from services.worker.space_cache import SpaceContext, peak_rss_bytes, rss_bytes  # noqa: E402
+from services.worker.process.heap import keep_freed_memory  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
@@ -141,7 +141,7 @@ import numpy as np, trimesh
 from services.core.domain.jobspec import CueParams
 from services.worker.passes import ViewGeometry
 from services.core.domain.camera import look_at
-from services.worker.space_cache import SpaceContext
+from services.worker.inputs.space_cache import SpaceContext
 space = SpaceContext(key="box", mesh=trimesh.creation.box(), threads=1)
 space.render(ViewGeometry(look_at(np.array([3.0, 2.0, 1.0]), np.zeros(3)), 1.0, 64), CueParams())
 time.sleep(1.0)
@@ -386,7 +386,7 @@ def run_scene(name: str, path: Path, n_views: int, resolution: int, naive_views:
 
 
 def main() -> int:
-    keep_freed_memory()  # the worker's heap settings (services.worker.heap): timings as a worker's
+    keep_freed_memory()  # the worker's heap settings (services.worker.process.heap): timings as a worker's
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--views", type=int, default=8, help="views per scan")
     ap.add_argument("--naive-views", type=int, default=1, help="views per scan measured the naive way")

@@ -68,9 +68,10 @@ sys.path.insert(0, sys.argv[1])
 from services.core.domain.plan import plan_from_json
 from services.core.ingest.loading import load_space
 from services.worker.passes import ViewGeometry
-from services.worker.heap import keep_freed_memory
-from services.worker.space_cache import SpaceContext
-keep_freed_memory()  # a worker's heap (services.worker.heap): without it the bare render refaults its buffers
+from services.worker.process.heap import keep_freed_memory
+from services.worker.inputs.space_cache import SpaceContext
+# a worker's heap (services.worker.process.heap): without it the bare render refaults its buffers
+keep_freed_memory()
 space_path, plan_path, frame = sys.argv[2], sys.argv[3], json.loads(sys.argv[4])
 device = sys.argv[5] if len(sys.argv) > 5 else "cpu"
 plan = plan_from_json(Path(plan_path).read_bytes())

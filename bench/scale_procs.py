@@ -19,9 +19,9 @@ from bench.scale_cost import task_seconds
 from services.core.db.engine import make_engine, make_sessionmaker
 from services.core.settings import Settings
 from services.core.storage import LocalStore
-from services.worker.claim import Claimed
-from services.worker.heartbeat import Heartbeat
-from services.worker.runner import TaskRunner
+from services.worker.run.claim import Claimed
+from services.worker.run.heartbeat import Heartbeat
+from services.worker.run.runner import TaskRunner
 from services.worker.tasks import worker_engine
 
 LEASE_S = 300

@@ -50,8 +50,8 @@ from services.worker.context import ViewContext  # noqa: E402
 from services.worker.cues import ncuts, segmentation  # noqa: E402
 from services.worker.cues.edges import occlusion_response  # noqa: E402
 from services.worker.cues.felzenszwalb import Felzenszwalb  # noqa: E402
-from services.worker.heap import keep_freed_memory  # noqa: E402
 from services.worker.passes import ViewPasses  # noqa: E402
+from services.worker.process.heap import keep_freed_memory  # noqa: E402
 from tests.fixtures.segment_agreement import (  # noqa: E402
     adjusted_rand_index,
     equivalence_failures,
@@ -163,7 +163,7 @@ def run_room(room: str, n_views: int, repeats: int, cache: Path) -> dict:
 
 
 def main() -> int:
-    keep_freed_memory()  # the worker's heap settings (services.worker.heap): timings as a worker's
+    keep_freed_memory()  # the worker's heap settings (services.worker.process.heap): timings as a worker's
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--views", type=int, default=8)
     ap.add_argument("--repeats", type=int, default=2)

@@ -3,7 +3,7 @@
 Each part in a fresh process (so imports and caches start cold as in a run), process CPU seconds:
 - parent: validate, register and plan one room as generate does, with the scheduler planning from the space the
   run validated (`loaded_spaces`, now) against loading the stored copy again (before);
-- worker imports: `services.worker.runner` and the modules a worker process imports before its first task;
+- worker imports: `services.worker.run.runner` and the modules a worker process imports before its first task;
 - curvature: the room's per-vertex curvature computed (the first worker of a machine) against read back from the
   shared file (every other worker process).
 Figures go to bench/results/startup.json with the load average. Run: .venv/bin/python bench/startup_cpu.py
@@ -58,9 +58,9 @@ c0 = time.process_time()
 from services.core.db.engine import make_engine, make_sessionmaker
 from services.core.settings import get_settings
 from services.core.storage import LocalStore
-from services.worker.claim import TransientError
-from services.worker.heartbeat import Heartbeat
-from services.worker.runner import TaskRunner
+from services.worker.run.claim import TransientError
+from services.worker.run.heartbeat import Heartbeat
+from services.worker.run.runner import TaskRunner
 import sys
 print(json.dumps({"cpu_s": time.process_time() - c0, "scipy_stats": "scipy.stats" in sys.modules}))
 """
@@ -70,7 +70,7 @@ import json, sys, time
 from pathlib import Path
 from services.core.domain.jobspec import CueParams
 from services.core.ingest.loading import load_space
-from services.worker.shared_curvature import shared_curvature
+from services.worker.inputs.shared_curvature import shared_curvature
 space, frame, folder = sys.argv[1], json.loads(sys.argv[2]), Path(sys.argv[3])
 mesh = load_space(space, **frame).mesh
 import trimesh

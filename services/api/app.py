@@ -22,12 +22,12 @@ from services.api.docs_page import mount_docs
 from services.api.errors import install_error_handlers
 from services.api.guard import RequestGuard
 from services.api.jobs.endpoints import router as jobs_router
+from services.api.jobs.rates import RateTracker
 from services.api.limits import LazyLimiter
 from services.api.ops.endpoints import router as ops_router
 from services.api.outputs.endpoints import router as outputs_router
 from services.api.progress.endpoints import router as progress_router
 from services.api.progress.limits import StreamLimits
-from services.api.progress.rates import RateTracker
 from services.api.progress.shared import SharedPolls
 from services.api.query_token import QueryTokenScrubber
 from services.api.security_headers import SecurityHeaders

@@ -4,8 +4,8 @@ job needs them.
 Run where the workers will run from: `make venv` does (the editable install: the cache sits beside the sources, for
 this machine's x86-64 level), and so does the image build with --every-level (NUMBA_CACHE_DIR of deploy/Dockerfile:
 one set of kernels per level the build machine runs, so a pod on any machine of those levels only loads them). See
-services/worker/kernel_warm_up.py and kernel_target.py. Exit status 1 when a kernel was not reached (a job would
-compile it itself).
+services/worker/process/kernel_warm_up.py and kernel_target.py. Exit status 1 when a kernel was not reached (a
+job would compile it itself).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import platform
 import subprocess
 import sys
 
-from services.worker.numeric_threads import pin_numeric_threads
+from services.worker.process.numeric_threads import pin_numeric_threads
 
 pin_numeric_threads()  # before numpy loads: the kernels' linear algebra as a worker runs it
 
@@ -32,7 +32,7 @@ def run(args: argparse.Namespace) -> int:
     """Compile (or load) every kernel; one line per CPU target with what was done and where."""
     if args.every_level:
         return _every_level()
-    from services.worker.kernel_warm_up import compile_kernels
+    from services.worker.process.kernel_warm_up import compile_kernels
 
     report = compile_kernels()
     target = os.environ.get("NUMBA_CPU_NAME") or "this machine's CPU"
@@ -48,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _every_level() -> int:
     """This command once per level the machine runs, in a child process whose numba builds for that level."""
-    from services.worker.kernel_target import host_features, level_environment, levels_for
+    from services.worker.process.kernel_target import host_features, level_environment, levels_for
 
     levels = levels_for(platform.machine(), host_features())
     if not levels:

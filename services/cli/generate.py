@@ -19,10 +19,10 @@ import logging
 import sys
 from pathlib import Path
 
-from services.worker.numeric_threads import pin_numeric_threads
+from services.worker.process.numeric_threads import pin_numeric_threads
 
 # Before numpy loads (the imports below): the local workers forked from this process keep its BLAS, which must run
-# one thread (services.worker.numeric_threads); this process's own linear algebra is small (planning).
+# one thread (services.worker.process.numeric_threads); this process's own linear algebra is small (planning).
 pin_numeric_threads()
 
 from services.cli import CliError  # noqa: E402

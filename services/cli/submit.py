@@ -152,7 +152,7 @@ class Api:
 def submit_http(api: Api, spec: JobSpec, sources: list[Source]) -> int:
     """Upload (or reuse) the spaces and create the job over HTTP; returns the job id."""
     from services.core.domain.jobspec import similarity_scale
-    from services.core.ingest.archive import resolve_source
+    from services.core.ingest.guard.archive import resolve_source
     from services.core.ingest.registry import pack_source
 
     ids = []

@@ -76,7 +76,7 @@ def worker_argv(args: argparse.Namespace, queues: list[str]) -> list[str]:
 
 def _live_holder(settings: Settings, node: str) -> str | None:
     from services.core.db.engine import make_engine, make_sessionmaker, wait_for_database
-    from services.worker.heartbeat import live_holder
+    from services.worker.run.heartbeat import live_holder
 
     def holder() -> str | None:
         engine = make_engine(settings.database_url)
@@ -94,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
     from services.core.settings import load_settings
     from services.embedded.pool import cpu_count
     from services.worker.celery_app import create_app
-    from services.worker.numeric_threads import pin_numeric_threads
+    from services.worker.process.numeric_threads import pin_numeric_threads
 
     env_threads = os.environ.get("OMNIDATA_RENDER_THREADS", "")
     wanted = args.render_threads or (int(env_threads) if env_threads.isdigit() else None)

@@ -7,9 +7,9 @@ holds the validated spaces already: a thread of it computes their curvature into
 they import and load their scenes, and a worker then reads the file. With one worker there is nothing to overlap:
 that worker computes it as before, and `generate` does not import the compiled kernels.
 
-The file is named by a digest of the mesh arrays (services.worker.shared_curvature): the thread works on a mesh
-built from the same arrays the workers rebuild from the run's loaded-space cache, so a worker finds it; were the
-digests ever to differ, the worker would compute its own, as without this.
+The file is named by a digest of the mesh arrays (services.worker.inputs.shared_curvature): the thread works
+on a mesh built from the same arrays the workers rebuild from the run's loaded-space cache, so a worker finds
+it; were the digests ever to differ, the worker would compute its own, as without this.
 """
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ def curvature_ahead(meshes: Iterable[trimesh.Trimesh], spec: JobSpec, cache_dir:
     own = [trimesh.Trimesh(vertices=m.vertices, faces=m.faces, process=False, validate=False) for m in meshes]
 
     def compute() -> None:
-        from services.worker.shared_curvature import shared_curvature
+        from services.worker.inputs.shared_curvature import shared_curvature
 
         for mesh in own:
             try:

@@ -37,8 +37,8 @@ from services.embedded.pool import STATE_DIR, LocalPool, WorkerConfig, cpu_count
 from services.embedded.report import Progress, build_report, print_report
 from services.scheduler.loop import Scheduler, loaded_space_key
 from services.scheduler.transport import QueueTransport
-from services.worker.heartbeat import expire_leases
-from services.worker.loaded_cache import keep_loaded
+from services.worker.inputs.loaded_cache import keep_loaded
+from services.worker.run.heartbeat import expire_leases
 
 OWNER = "local"
 SPACES_PREFIX = ".omnidata/spaces"

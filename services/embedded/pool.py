@@ -35,12 +35,12 @@ from typing import TYPE_CHECKING, Literal, NoReturn
 
 from services.worker.blender.calls import exit_at_once_inside_blender
 from services.worker.blender.threads import remove_session_temp_dir
-from services.worker.heap import keep_freed_memory
-from services.worker.numeric_threads import numeric_threads_pinned, pin_numeric_threads
-from services.worker.stop_signal import stop_within
+from services.worker.process.heap import keep_freed_memory
+from services.worker.process.numeric_threads import numeric_threads_pinned, pin_numeric_threads
+from services.worker.run.stop_signal import stop_within
 
 if TYPE_CHECKING:  # imported by the worker after its hold, not here (a spawned worker imports this module first)
-    from services.worker.runner import TaskRunner
+    from services.worker.run.runner import TaskRunner
 
 log = logging.getLogger("omnidata.generate")
 
@@ -112,8 +112,8 @@ def _work(conf: WorkerConfig, tasks: TaskQueues, results: Queue[WorkerMessage], 
     from services.core.db.engine import make_engine, make_sessionmaker
     from services.core.settings import get_settings
     from services.core.storage import LocalStore
-    from services.worker.heartbeat import Heartbeat
-    from services.worker.runner import TaskRunner
+    from services.worker.run.heartbeat import Heartbeat
+    from services.worker.run.runner import TaskRunner
 
     if not _warmed_up_and_released(conf, stop, go):
         return
@@ -150,7 +150,7 @@ def _exit_quietly(code: int) -> NoReturn:
 def _serve(runner: TaskRunner, conf: WorkerConfig, tasks: TaskQueues, results: Queue[WorkerMessage],
            stop: Event, worker_id: str) -> None:
     """Take task ids from `tasks` and run them until told to stop, the parent dies or the worker should recycle."""
-    from services.worker.claim import TransientError
+    from services.worker.run.claim import TransientError
 
     first = True
     while not stop.is_set():
@@ -191,8 +191,8 @@ def _warmed_up_and_released(conf: WorkerConfig, stop: Event, go: Event) -> bool:
     """Import Blender for the first render (while the parent validates and plans; not in a worker that only
     derives) and make the kernels' compiler target (its first view would), then wait for `go` (held:
     LocalPool.start(held=True)); False when the pool stopped, or the parent died, first."""
-    from services.worker import kernel_target
     from services.worker.blender.threads import import_bpy
+    from services.worker.process import kernel_target
 
     if stop.is_set():  # stopped before it began (a finished job resumed): no Blender to load
         return False
@@ -220,7 +220,7 @@ def start_method(setting: str = "auto") -> str:
 
 # What a worker imports past its parent's `generate` imports (not Blender): imported once in the parent before it
 # forks several workers, instead of once in each (~0.25 CPU-s).
-WORKER_MODULES = ("services.worker.runner", "services.worker.heartbeat", "services.core.storage",
+WORKER_MODULES = ("services.worker.run.runner", "services.worker.run.heartbeat", "services.core.storage",
                   "services.core.db.engine")
 
 

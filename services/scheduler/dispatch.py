@@ -29,6 +29,7 @@ from services.core.db.models import Job, JobCounter, JobState, Task, TaskState, 
 from services.core.db.states import transition
 from services.core.domain.cues import CATALOG
 from services.scheduler.fairness import queued_now, tenant_turns
+from services.scheduler.job_load import INFLIGHT, JobLoad
 from services.scheduler.transport import Transport
 
 log = logging.getLogger(__name__)
@@ -43,7 +44,6 @@ SCAN_CAP = 200_000  # rows looked at per cue and pass at most
 # inputs, so reading up to SCAN_CAP of every cue took 17 s a pass on a 620k-task job under load and would take
 # minutes on a starter-sized one (bench/scale_sim.py, bench/big_job.py). Ready tasks are the oldest ones.
 THOROUGH_SCAN_ROWS = 10_000
-INFLIGHT = (TaskState.QUEUED, TaskState.RUNNING)
 UPSTREAM_FAILED = (TaskState.FAILED, TaskState.CANCELLED)
 
 
@@ -62,31 +62,6 @@ class DispatchResult:
     def sent(self) -> int:
         """Number of tasks handed to the transport."""
         return sum(self.per_job.values())
-
-
-@dataclass
-class JobLoad:
-    """A running job's dispatch inputs, from its counters: priority and task counts by cue and state."""
-
-    job_id: int
-    priority: int
-    counts: dict[str, dict[str, int]] = field(default_factory=dict)
-    owner: str = ""  # the tenant: dispatch is shared fairly between tenants
-
-    def n(self, cue: str, *states: str) -> int:
-        """Tasks of `cue` in any of `states`."""
-        per = self.counts.get(cue, {})
-        return sum(per.get(s, 0) for s in states)
-
-    @property
-    def pending(self) -> int:
-        """Pending tasks of the job."""
-        return sum(per.get(TaskState.PENDING, 0) for per in self.counts.values())
-
-    @property
-    def inflight(self) -> int:
-        """Queued + running tasks of the job."""
-        return sum(per.get(s, 0) for per in self.counts.values() for s in INFLIGHT)
 
 
 def running_job_loads(session: Session) -> list[JobLoad]:

@@ -17,15 +17,12 @@ from __future__ import annotations
 from collections.abc import Sequence
 from datetime import datetime, timedelta
 from itertools import groupby
-from typing import TYPE_CHECKING
 
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from services.core.db.models import TaskState, Worker, utcnow
-
-if TYPE_CHECKING:
-    from services.scheduler.dispatch import JobLoad
+from services.scheduler.job_load import JobLoad
 
 QUEUED_PER_WORKER = 2  # tasks waiting in the broker per live worker (the loop tops the queue up every CAPPED_WAIT_S)
 QUEUED_MIN = 8  # ... and at least this many, so a fleet of one or two workers never starves between passes

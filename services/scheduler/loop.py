@@ -13,26 +13,26 @@ import os
 import socket
 import threading
 import time
-import traceback
 from concurrent.futures import Future
 from dataclasses import dataclass, field
-from datetime import timedelta
+from multiprocessing.sharedctypes import Synchronized
 from pathlib import Path
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
+from services.core.db.engine import make_engine, make_sessionmaker
+from services.core.db.frame_choice import space_frame_for
 from services.core.db.jobs import claim_pending_jobs, job_spaces, job_spec
-from services.core.db.models import Job, JobState, Space, utcnow
+from services.core.db.models import Job, JobState, Space
 from services.core.db.plan_claims import tenants_waiting_idle
 from services.core.db.states import set_job_state
 from services.core.db.worker_rows import expire_worker_rows
 from services.core.domain.jobspec import JobSpec, SpaceFrame
 from services.core.domain.plan_budget import check_plan_budget
-from services.core.ingest.frame_choice import space_frame_for
 from services.core.ingest.loading import LoadedSpace
 from services.core.settings import Settings
-from services.core.storage import LocalStore, ObjectStore
+from services.core.storage import LocalStore, ObjectStore, open_store
 from services.core.storage.base import io_pool
 from services.scheduler.chunked_plan import ChunkTarget, PlanDropped, plan_and_persist_space
 from services.scheduler.compaction import CompactionResult, Compactor
@@ -40,12 +40,18 @@ from services.scheduler.completion import Finished, complete_once
 from services.scheduler.dispatch import DEFAULT_BUDGET, DispatchResult, dispatch_once
 from services.scheduler.fairness import CAPPED_WAIT_S, queued_cap
 from services.scheduler.persist import clear_plan, drop_cancelled_plan, plan_key
+from services.scheduler.plan_failure import PlanningError, record_planning_failure
 from services.scheduler.plan_space import JobPlanSummary, load_for_job, plan_summary_of
-from services.scheduler.planner_proc import PlannerProcesses
+from services.scheduler.planner_proc import (
+    PlannerProcesses,
+    count_connections,
+    die_with_scheduler,
+    limit_memory,
+)
 from services.scheduler.reaper import ReapResult, reap_once
 from services.scheduler.resend import IdleWatch, resend_stuck
 from services.scheduler.store_watch import StoreWatch
-from services.scheduler.transport import Transport
+from services.scheduler.transport import NullTransport, Transport
 
 log = logging.getLogger(__name__)
 
@@ -55,8 +61,6 @@ THOROUGH_STALLED_S = 5.0  # ... and sooner when a job has pending tasks but noth
 COMPACT_INTERVAL_S = 1.0  # finished views compacted at most this often (each pass bounded by compact_pass_s)
 COMPLETE_INTERVAL_S = 2.0  # completion's own look at the counters; sooner when a dispatch pass saw a job settle
 MAX_BACKOFF_S = 30.0
-PLAN_RETRY_S = 30  # a planning attempt that failed for a transient reason is retried after this
-MAX_PLAN_ATTEMPTS = 3
 # A local folder's temp files of writes that never committed (a worker killed mid-write) are swept this often,
 # on a thread (a walk of the folder), once idle for TEMP_STALE_S: a write in flight touches its file every
 # chunk and renames it within seconds.
@@ -69,48 +73,9 @@ def loaded_space_key(checksum: str, frame: SpaceFrame) -> str:
     return f"{checksum}:{json.dumps(frame, sort_keys=True)}"
 
 
-class PlanningError(Exception):
-    """A job that cannot be planned (bad source, impossible spec, a space with no views): it fails."""
-
-
 def default_scheduler_id() -> str:
     """`host:pid` of this process."""
     return f"{socket.gethostname()}:{os.getpid()}"
-
-
-def _permanent(exc: BaseException) -> bool:
-    """Errors that re-planning cannot fix (the job fails), as opposed to connection trouble (retried)."""
-    from services.core.domain.plan import PlanError
-    from services.core.ingest.errors import SpaceError
-    from services.core.storage import ObjectNotFoundError
-
-    return isinstance(exc, PlanningError | PlanError | SpaceError | ObjectNotFoundError | ValueError | KeyError)
-
-
-def record_planning_failure(sm: sessionmaker[Session], job_id: int, scheduler_id: str, exc: BaseException) -> None:
-    """Count a failed planning attempt of a job this scheduler holds: fail it (permanent error, or out of
-    attempts) or leave it claimed for a retry after PLAN_RETRY_S."""
-    permanent = _permanent(exc)
-    log.log(
-        logging.WARNING if permanent else logging.ERROR, "planning job %d failed: %s", job_id, exc,
-        exc_info=not permanent,
-    )
-    with sm() as s:
-        job = s.get(Job, job_id)
-        if job is None or job.state != JobState.PLANNING or job.planner != scheduler_id:
-            return
-        summary = dict(job.plan_summary or {})
-        attempts = int(summary.get("attempts", 0)) + 1
-        summary["attempts"] = attempts
-        job.plan_summary = summary
-        if permanent or attempts >= MAX_PLAN_ATTEMPTS:
-            clear_plan(s, job_id)  # the chunks written before the failure
-            tail = "".join(traceback.format_exception_only(type(exc), exc)).strip()
-            set_job_state(job, JobState.FAILED, finished_at=utcnow(),
-                          error=f"planning failed: {tail}" if not isinstance(exc, PlanningError) else str(exc))
-        else:  # leave it claimed; any scheduler may take it again once the lease runs out
-            job.planner_lease_until = utcnow() + timedelta(seconds=PLAN_RETRY_S)
-        s.commit()
 
 
 @dataclass
@@ -177,7 +142,8 @@ class Scheduler:
         self.sweep: Future[int] | None = None
         # The service plans in child processes (off this loop, memory-capped, leases beaten every tick); the
         # embedded runner and tests plan inline.
-        self.planners = PlannerProcesses(sessionmaker, settings, self.scheduler_id) if plan_in_processes else None
+        self.planners = (PlannerProcesses(sessionmaker, settings, self.scheduler_id, plan_in_child)
+                         if plan_in_processes else None)
         # The service keeps the broker queue short (tenants share it fairly); the embedded runner, with one user
         # and local workers fed between rate-limited ticks, keeps the whole window queued.
         self.cap_queue = cap_queue
@@ -404,3 +370,21 @@ class Scheduler:
         if self.planners is not None:
             self.planners.stop_all()
         log.info("scheduler %s stopped", self.scheduler_id)
+
+
+def plan_in_child(
+    job_id: int, scheduler_id: str, settings: Settings, scheduler_pid: int, in_db: Synchronized,
+) -> None:
+    """Child process entry: plan and persist one job under the memory budget, as its claiming scheduler."""
+    die_with_scheduler(scheduler_pid)
+    logging.basicConfig(level=logging.INFO,
+                        format="%(asctime)s %(levelname)s planner %(process)d: %(message)s")
+    limit_memory(settings.plan_memory_mb)
+    engine = make_engine(settings.database_url)
+    count_connections(engine, in_db)
+    try:
+        store = open_store(settings.storage_url, settings)
+        sched = Scheduler(make_sessionmaker(engine), store, NullTransport(), settings, scheduler_id)
+        sched.plan_job(job_id)
+    finally:
+        engine.dispose()

@@ -13,6 +13,7 @@ from typing import NotRequired, TypedDict
 import numpy as np
 
 from services.core.domain.capture_records import CapturePlanRecord
+from services.core.domain.frame_records import FrameRecord
 from services.core.domain.job_document import SpaceRecord, space_record
 from services.core.domain.jobspec import JobSpec, SpaceFrame
 from services.core.domain.plan import (
@@ -22,7 +23,6 @@ from services.core.domain.plan import (
     ValidFractionSummary,
     clip_summary,
 )
-from services.core.ingest.frame_records import FrameRecord
 from services.core.ingest.loading import LoadedSpace, load_space
 from services.scheduler.planning import make_plan, space_rng
 
@@ -68,7 +68,7 @@ class _CapturePlanPart(TypedDict, total=False):
 def load_for_job(source: str | Path, spec: JobSpec, extract_dir: str | Path | None = None,
                  frame: SpaceFrame | None = None) -> LoadedSpace:
     """The space loaded in the frame the job's spec asks for (up_axis, up, unit_scale, source_to_world), or in
-    `frame` (`load_space`'s frame keywords: a registered space's chosen up, `ingest.frame_choice`)."""
+    `frame` (`load_space`'s frame keywords: a registered space's chosen up, `db.frame_choice`)."""
     return load_space(source, **(frame if frame is not None else spec.space_frame()), extract_dir=extract_dir)
 
 

@@ -31,6 +31,7 @@ import resource
 import signal
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import timedelta
 from multiprocessing.process import BaseProcess
@@ -45,11 +46,14 @@ from services.core.db.models import Job, JobState, utcnow
 from services.core.settings import Settings
 from services.core.temp_dirs import PLANNER_KINDS, sweep_orphans
 from services.scheduler.persist import drop_cancelled_plan
+from services.scheduler.plan_failure import PlanningError, record_planning_failure
 
 log = logging.getLogger(__name__)
 
 PR_SET_PDEATHSIG = 1
 WATCHDOG_S = 0.5  # how often a planner checks that its scheduler is alive
+# A child's entry point: (job_id, scheduler_id, settings, scheduler_pid, connections counter) -> None.
+PlanTarget = Callable[[int, str, Settings, int, Synchronized], None]
 PRELOAD = ("services.scheduler.loop", "services.scheduler.planning", "services.core.ingest.loading", "services.core.db.engine")
 
 
@@ -88,9 +92,11 @@ class PlannerProcesses:
     """At most `max_children` (OMNIDATA_PLAN_PROCESSES) planner processes of one scheduler, watched from its loop."""
 
     def __init__(
-        self, sm: sessionmaker[Session], settings: Settings, scheduler_id: str, *, max_children: int | None = None,
+        self, sm: sessionmaker[Session], settings: Settings, scheduler_id: str, target: PlanTarget, *,
+        max_children: int | None = None,
     ) -> None:
         self.sessionmaker = sm
+        self.target = target  # the child's entry point, given by the scheduler that plans the job
         self.settings = settings
         self.scheduler_id = scheduler_id
         self.max_children = max_children or settings.plan_processes
@@ -124,7 +130,7 @@ class PlannerProcesses:
             return
         in_db = self._ctx.Value("i", 0)
         proc = self._ctx.Process(
-            target=plan_in_child, args=(job_id, self.scheduler_id, self.settings, os.getpid(), in_db),
+            target=self.target, args=(job_id, self.scheduler_id, self.settings, os.getpid(), in_db),
             name=f"planner-{job_id}", daemon=True,
         )
         proc.start()  # the first start also starts the fork server: seconds, so the lease starts over after it
@@ -191,8 +197,6 @@ class PlannerProcesses:
                 ended.append(job_id)
                 drop_cancelled_plan(self.sessionmaker, job_id)
             elif child.active_s(time.monotonic()) > self.settings.plan_timeout_s:
-                from services.scheduler.loop import PlanningError  # permanent: the job fails
-
                 self._kill(child)
                 del self.children[job_id]
                 ended.append(job_id)
@@ -248,8 +252,6 @@ class PlannerProcesses:
             f"{self.settings.plan_memory_mb}"))
 
     def _failed(self, job_id: int, exc: BaseException) -> None:
-        from services.scheduler.loop import record_planning_failure
-
         record_planning_failure(self.sessionmaker, job_id, self.scheduler_id, exc)
 
 
@@ -267,7 +269,7 @@ def _wait_stopped(pid: int, timeout_s: float = 1.0) -> bool:
     return False
 
 
-def _count_connections(engine: Engine, in_db: Synchronized) -> None:
+def count_connections(engine: Engine, in_db: Synchronized) -> None:
     """Keep `in_db` at the number of connections this process has checked out (paused only at 0)."""
 
     def add(delta: int) -> None:
@@ -282,7 +284,7 @@ class PlannerDied(RuntimeError):
     """A planner process ended without recording a result (killed, crashed): the attempt is counted and retried."""
 
 
-def _die_with_scheduler(scheduler_pid: int) -> None:
+def die_with_scheduler(scheduler_pid: int) -> None:
     """End this process when the scheduler that started it is gone (kill -9 included).
 
     The fork server is this process's parent, and it lives as long as any process it forked holds its
@@ -313,25 +315,3 @@ def limit_memory(memory_mb: int) -> None:
     limit = int(memory_mb) * 2**20
     _soft, hard = resource.getrlimit(resource.RLIMIT_AS)
     resource.setrlimit(resource.RLIMIT_AS, (limit if hard == resource.RLIM_INFINITY else min(limit, hard), hard))
-
-
-def plan_in_child(
-    job_id: int, scheduler_id: str, settings: Settings, scheduler_pid: int, in_db: Synchronized,
-) -> None:
-    """Child process entry: plan and persist one job under the memory budget, as its claiming scheduler."""
-    from services.core.db.engine import make_engine, make_sessionmaker
-    from services.core.storage import open_store
-    from services.scheduler.loop import Scheduler
-    from services.scheduler.transport import NullTransport
-
-    _die_with_scheduler(scheduler_pid)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s planner %(process)d: %(message)s")
-    limit_memory(settings.plan_memory_mb)
-    engine = make_engine(settings.database_url)
-    _count_connections(engine, in_db)
-    try:
-        sched = Scheduler(make_sessionmaker(engine), open_store(settings.storage_url, settings), NullTransport(),
-                          settings, scheduler_id)
-        sched.plan_job(job_id)
-    finally:
-        engine.dispose()

@@ -4,6 +4,6 @@ Its compiled kernels are built for the best x86-64 level the machine runs (kerne
 of that level: chosen here, before any kernel module of the package loads.
 """
 
-from services.worker import kernel_target
+from services.worker.process import kernel_target
 
 kernel_target.select()

@@ -15,7 +15,7 @@ from celery import Celery
 
 from services.core.celery_config import celery_conf
 from services.core.settings import Settings, get_settings
-from services.worker.numeric_threads import pin_numeric_threads
+from services.worker.process.numeric_threads import pin_numeric_threads
 
 pin_numeric_threads()  # `celery -A` starts here, before the task modules load numpy (`omnidata worker` did it already)
 

@@ -17,7 +17,7 @@ from services.worker.passes import OPTIONAL_ARRAYS, RENDER_PASSES, ViewGeometry,
 
 if TYPE_CHECKING:
     from services.core.domain.plan import SpacePlan
-    from services.worker.space_cache import SpaceContext
+    from services.worker.inputs.space_cache import SpaceContext
 
 T = TypeVar("T")
 

@@ -19,8 +19,8 @@ from services.core.domain.plan import SpacePlan
 from services.worker.context import SemanticsUnavailableError, ViewContext
 from services.worker.cues import encode, get_impl
 from services.worker.cues.registry import cue_value
+from services.worker.inputs.space_cache import SpaceContext
 from services.worker.passes import RENDER_PASSES, ViewPose
-from services.worker.space_cache import SpaceContext
 
 __all__ = ["SemanticsUnavailableError", "ViewContext", "check_cues", "make_context", "produce", "render_passes_for",
            "render_view_cues"]

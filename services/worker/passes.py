@@ -105,7 +105,7 @@ class ViewPasses:
     face_class, face_instance: int32 H x W or None (unlabelled space): the space's ids as given (a scan may use
         negative ids for unlabelled faces), -1 where nothing is seen (tell the two apart with `hit`).
     curvature: float32 H x W x 2 (k1 >= k2, 1/m, positive = convex) or None when not rendered; NaN = no surface.
-    photo_coverage: bool H x W where rgb is a photograph's (services.worker.photos), None for mesh rgb.
+    photo_coverage: bool H x W where rgb is a photograph's (services.worker.inputs.photos), None for mesh rgb.
     """
 
     geometry: ViewGeometry

@@ -25,8 +25,8 @@ from services.core.settings import Settings, get_settings
 if TYPE_CHECKING:  # imported lazily at run time: the Celery app imports this module and must stay light
     from sqlalchemy import Engine
 
-    from services.worker.heartbeat import Heartbeat
-    from services.worker.runner import TaskRunner
+    from services.worker.run.heartbeat import Heartbeat
+    from services.worker.run.runner import TaskRunner
 
 log = logging.getLogger(__name__)
 
@@ -92,9 +92,9 @@ def build_runtime(settings: Settings, *, queues: list[str] | None = None, name: 
     """Engine, store, TaskRunner and a started heartbeat for this process (worker id: see default_worker_id)."""
     from services.core.db.engine import make_sessionmaker
     from services.core.storage import open_store
-    from services.worker.heap import keep_freed_memory
-    from services.worker.heartbeat import Heartbeat, expire_leases, heartbeat_interval
-    from services.worker.runner import TaskRunner, default_worker_id
+    from services.worker.process.heap import keep_freed_memory
+    from services.worker.run.heartbeat import Heartbeat, expire_leases, heartbeat_interval
+    from services.worker.run.runner import TaskRunner, default_worker_id
 
     keep_freed_memory()  # the process that runs tasks reuses the pages it frees (prefork child or solo)
     engine = worker_engine(settings.database_url)
@@ -129,7 +129,7 @@ def get_runtime(app: Celery | None = None) -> Runtime:
 def _load_kernel_target(**_: object) -> None:
     # In the worker's main process, before its pool forks: every child, recycled ones too, inherits numba's target
     # instead of making it in its first view (kernel_target.load).
-    from services.worker import kernel_target
+    from services.worker.process import kernel_target
 
     try:
         kernel_target.load()
@@ -192,7 +192,7 @@ def _task_id(payload: object) -> int | None:
              max_retries=MAX_TRANSIENT_RETRIES)
 def render_cue(self: CeleryTask, task_id: object) -> str:
     """Run one point-view-cue task by id; returns the outcome status (done, skipped, retry, failed, ...)."""
-    from services.worker.claim import TransientError
+    from services.worker.run.claim import TransientError
 
     tid = _task_id(task_id)
     if tid is None:  # a malformed message can never succeed: drop it (acked), do not retry

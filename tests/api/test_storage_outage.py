@@ -33,7 +33,7 @@ def test_ready_and_the_job_say_storage_full_until_space_returns(empty_pg_url: st
         assert "storage full" in r.json()["detail"]
         assert api.client.get("/ready").json()["failed"] == ["storage"]  # no token: the name, not the reason
 
-        try:  # what a worker does when the store refuses a view's outputs (services.worker.claim)
+        try:  # what a worker does when the store refuses a view's outputs (services.worker.run.claim)
             api.store.put_bytes("jobs/x/rgb/a.png", b"x" * 100_000)
         except StorageUnavailable as e:
             problem = str(e)

@@ -58,7 +58,7 @@ def test_pick_units_with_one_click(pg_url: str, local_store: LocalStore, dashboa
     gives."""
     import trimesh
 
-    from services.core.ingest.frame import rotation_to_z
+    from services.core.ingest.frame.resolve import rotation_to_z
 
     mesh = trimesh.load(COPYROOM.parent / "kitchen_partial_000.ply", process=False)
     truth = json.loads((COPYROOM.parent / "truth.json").read_text())["kitchen_partial_000.ply"]["up"]

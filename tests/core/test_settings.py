@@ -84,7 +84,7 @@ def test_invalid_values_name_the_field(clean_env: Path, monkeypatch: pytest.Monk
 
 def test_render_threads_is_a_setting_the_runner_uses(clean_env: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     from services.core.storage import LocalStore
-    from services.worker.runner import TaskRunner
+    from services.worker.run.runner import TaskRunner
 
     assert get_settings().render_threads is None  # Blender's own choice
     monkeypatch.setenv("OMNIDATA_RENDER_THREADS", "3")

@@ -12,10 +12,10 @@ from services.core.domain.cues import CATALOG
 from services.core.domain.jobspec import JobSpec
 from services.core.ingest.loading import load_space
 from services.embedded.curvature_ahead import CURVATURE_CUES, FOLDER, curvature_ahead, needs_curvature
-from services.worker import curvature as estimator
 from services.worker.cues import get_impl
-from services.worker.loaded_cache import keep_loaded, read_loaded
-from services.worker.space_cache import SpaceContext
+from services.worker.inputs import curvature as estimator
+from services.worker.inputs.loaded_cache import keep_loaded, read_loaded
+from services.worker.inputs.space_cache import SpaceContext
 
 
 def test_the_curvature_cues_are_those_whose_render_reads_the_curvature_pass() -> None:

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from services.embedded import pool
-from services.worker import numeric_threads
+from services.worker.process import numeric_threads
 from tests.fixtures.cli import REPO, WIDE
 
 
@@ -99,7 +99,7 @@ def test_forked_workers_write_the_same_bytes_as_spawned_ones(scenes_dir, tmp_pat
 def test_a_worker_moves_its_long_lived_objects_out_of_the_collectors_reach():
     # A full collection traversed every object a worker had imported or loaded (~130 ms each, 3 a 66-view run);
     # after _freeze_long_lived they sit in the permanent generation, which no collection walks.
-    probe = ("import gc, services.embedded.pool as pool, services.worker.runner\n"
+    probe = ("import gc, services.embedded.pool as pool, services.worker.run.runner\n"
              "before = len(gc.get_objects())\n"
              "pool._freeze_long_lived()\n"
              "print(before, len(gc.get_objects()), gc.get_freeze_count())\n")

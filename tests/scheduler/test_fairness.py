@@ -8,8 +8,9 @@ from datetime import timedelta
 from sqlalchemy import select
 
 from services.core.db.models import Task, Worker, utcnow
-from services.scheduler.dispatch import JobLoad, dispatch_once
+from services.scheduler.dispatch import dispatch_once
 from services.scheduler.fairness import QUEUED_MIN, QUEUED_PER_WORKER, queued_cap, tenant_turns
+from services.scheduler.job_load import JobLoad
 from services.scheduler.transport import NullTransport
 from tests.fixtures.jobs import (  # noqa: F401  (fixtures)
     any_sm,

@@ -28,9 +28,9 @@ from services.core.db.models import Task, Worker
 from services.core.settings import get_settings
 from services.worker import tasks
 from services.worker.celery_app import create_app
-from services.worker.claim import TransientError
-from services.worker.runner import TaskRunner
-from tests.worker.test_runner import banana, make_job, queue  # noqa: F401  (banana is a fixture)
+from services.worker.run.claim import TransientError
+from services.worker.run.runner import TaskRunner
+from tests.worker.run.test_runner import banana, make_job, queue  # noqa: F401  (banana is a fixture)
 
 REPO = Path(__file__).resolve().parents[2]
 

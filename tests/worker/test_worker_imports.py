@@ -13,7 +13,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 def test_a_worker_loads_openexr_only_for_a_zip_compressed_position():
     probe = ("import sys\n"
-             "import services.embedded.pool, services.worker.runner, services.worker.cues.registry\n"
+             "import services.embedded.pool, services.worker.run.runner, services.worker.cues.registry\n"
              "import numpy as np\n"
              "from services.worker.cues.encoding import encode_exr_rgb\n"
              "from services.core.domain.exr import decode_exr_rgb\n"

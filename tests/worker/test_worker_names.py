@@ -16,10 +16,10 @@ from services.cli.worker import WORKER_NAME_HELD_S, node_name
 from services.core.db.models import Task, Worker, utcnow
 from services.core.settings import get_settings
 from services.worker import tasks
-from services.worker.heartbeat import live_holder
-from services.worker.runner import default_worker_id
+from services.worker.run.heartbeat import live_holder
+from services.worker.run.runner import default_worker_id
+from tests.worker.run.test_runner import banana, make_job, queue  # noqa: F401  (banana is a fixture)
 from tests.worker.test_celery_worker import pg_sm, runtime_reset  # noqa: F401  (fixtures)
-from tests.worker.test_runner import banana, make_job, queue  # noqa: F401  (banana is a fixture)
 
 
 def test_node_name_expands_like_celery_and_defaults_to_a_unique_name() -> None:

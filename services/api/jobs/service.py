@@ -1,4 +1,4 @@
-"""Job logic: create, list, read with progress (services.api.progress.compute), lifecycle actions, delete."""
+"""Job logic: create, list, read with progress (services.api.jobs.progress), lifecycle actions, delete."""
 
 from __future__ import annotations
 
@@ -10,6 +10,8 @@ from typing import Any
 from sqlalchemy import Executable, bindparam, func, select
 from sqlalchemy.orm import Session, defer
 
+from services.api.jobs.progress import Counters, compute_progress, read_counters
+from services.api.jobs.rates import RateTracker
 from services.api.jobs.schemas import (
     JobCreate,
     JobDetail,
@@ -18,8 +20,6 @@ from services.api.jobs.schemas import (
     JobSpaceRead,
 )
 from services.api.pagination import PageParams
-from services.api.progress.compute import Counters, compute_progress, read_counters
-from services.api.progress.rates import RateTracker
 from services.api.spaces.service import not_found
 from services.core.db import jobs as core_jobs
 from services.core.db.counters import summed_counters
@@ -30,7 +30,7 @@ from services.core.db.models import (
 )
 from services.core.domain.errors import Conflict, Invalid
 from services.core.domain.plan_budget import DEFAULT_CHUNK_VIEWS, check_plan_budget
-from services.core.ingest.frame import frame_of
+from services.core.ingest.frame.resolve import frame_of
 from services.core.storage import ObjectStore
 
 

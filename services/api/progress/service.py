@@ -22,9 +22,9 @@ from sqlalchemy import select
 from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import Session, load_only
 
+from services.api.jobs.progress import Counters, read_counters
+from services.api.jobs.rates import RateTracker
 from services.api.jobs.service import job_event
-from services.api.progress.compute import Counters, read_counters
-from services.api.progress.rates import RateTracker
 from services.core.db.models import JOB_TERMINAL_STATES, Job
 from services.core.domain.json_types import JSONObject
 

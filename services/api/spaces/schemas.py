@@ -8,12 +8,12 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from services.core.db.frame_choice import needs_frame
 from services.core.db.models import Space
 from services.core.domain.cues import default_cues
 from services.core.domain.jobspec import MAX_UNIT_SCALE, parse_unit_scale
 from services.core.domain.keys import check_name
-from services.core.ingest.frame import frame_of
-from services.core.ingest.frame_choice import needs_frame
+from services.core.ingest.frame.resolve import frame_of
 
 UpAxis = Literal["auto", "+x", "-x", "+y", "-y", "+z", "-z"]
 

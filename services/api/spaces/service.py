@@ -11,8 +11,8 @@ from services.api.pagination import PageParams
 from services.core.db.models import Job, JobSpace, Space
 from services.core.domain.errors import Conflict, Invalid, NotFound, TooLarge
 from services.core.ingest.errors import SpaceError
+from services.core.ingest.guard.safe_load import load_space_limited
 from services.core.ingest.registry import register_space
-from services.core.ingest.safe_load import load_space_limited
 from services.core.settings import Settings
 from services.core.storage import ObjectNotFoundError, ObjectStore, check_key
 from services.core.temp_dirs import owned_temp_dir

@@ -1,8 +1,8 @@
 """A space whose up detection could not decide: side views of its candidates and the person's pick.
 
-The pick is stored with the space (its validation record and frame columns, `ingest.frame_choice`), after
+The pick is stored with the space (its validation record and frame columns, `db.frame_choice`), after
 which jobs plan it in that frame. Both load the space's stored source in the upload's limited child process
-(`ingest.safe_load`), never in the API process.
+(`ingest.guard.safe_load`), never in the API process.
 """
 
 from __future__ import annotations
@@ -16,15 +16,15 @@ import numpy as np
 import trimesh
 from sqlalchemy.orm import Session
 
+from services.core.db.frame_choice import record_choice
 from services.core.db.models import Space
 from services.core.domain.errors import Invalid, NotFound
 from services.core.domain.jobspec import SpaceFrame
 from services.core.ingest.errors import SpaceError
-from services.core.ingest.frame_choice import record_choice
+from services.core.ingest.frame.up_preview import side_view_png
+from services.core.ingest.guard.safe_load import load_space_limited
 from services.core.ingest.loading import LoadedSpace
 from services.core.ingest.registry import fetch_space
-from services.core.ingest.safe_load import load_space_limited
-from services.core.ingest.up_preview import side_view_png
 from services.core.settings import Settings
 from services.core.storage import ObjectStore
 

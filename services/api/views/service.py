@@ -12,8 +12,8 @@ from typing import Any
 from sqlalchemy import ColumnElement, Integer, and_, cast, exists, func, literal_column, select, tuple_
 from sqlalchemy.orm import Session
 
+from services.api.jobs.progress import read_counters
 from services.api.pagination import PageParams
-from services.api.progress.compute import read_counters
 from services.api.views.compacted import compacted_count, done_states, page_with_compacted
 from services.api.views.schemas import PlanSpace, TaskBrief, TaskRead, ThroughputBucket, ViewRead
 from services.core.db.compacted import compacted_tasks, cue_filter, has_compacted

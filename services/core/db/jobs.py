@@ -14,6 +14,7 @@ from sqlalchemy import case, delete, select
 from sqlalchemy.orm import Session
 
 from services.core.db.compacted import expand_missing
+from services.core.db.frame_choice import check_frame_decided
 from services.core.db.models import (
     JOB_TERMINAL_STATES,
     Camera,
@@ -37,7 +38,6 @@ from services.core.db.states import set_job_state, transition
 from services.core.domain.cues import CATALOG, closure
 from services.core.domain.errors import Conflict
 from services.core.domain.jobspec import JobSpec, cues_for_space
-from services.core.ingest.frame_choice import check_frame_decided
 from services.core.storage import ObjectStore
 
 RETRY_BACKOFF_BASE_S = 5.0

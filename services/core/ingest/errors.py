@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 from services.core.domain.errors import Invalid
 
 if TYPE_CHECKING:
-    from services.core.ingest.frame_records import UnitCandidateRecord, UpCandidateRecord
+    from services.core.domain.frame_records import UnitCandidateRecord, UpCandidateRecord
 
 
 class SpaceError(Invalid):

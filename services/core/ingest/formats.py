@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from services.core.ingest.confine import read_confined
+from services.core.ingest.guard.confine import read_confined
 
 SCANNET_MESH_SUFFIX = "_vh_clean_2.ply"
 

@@ -19,9 +19,9 @@ from typing import Any
 import numpy as np
 import trimesh
 
-from services.core.ingest.confine import ReferenceRefused, read_confined
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.formats import ScanFormatError, scannet_vertex_labels
+from services.core.ingest.guard.confine import ReferenceRefused, read_confined
 
 # Replica: class_id + object_id; Matterport3D region/house PLYs: category_id + segment_id
 _CLASS_FIELDS = ("class_id", "category_id")

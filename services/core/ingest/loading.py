@@ -12,13 +12,13 @@ poses the planner chose. Frames and units:
   whole `source_to_world` (rotation, uniform scale and translation), which is used as it is.
 
 Up is given (`up_axis` name or `up` vector in source coordinates) or detected in any orientation
-(`services.core.ingest.gravity`: plane families of the face normals, then the floor, a support base or the
-file convention); units are given or chosen from the storey height of rooms. How, and how sure, is
-kept in `LoadedSpace.frame_record()` for job.json. Point clouds (.xyz, .pts, PLY without faces) are
-meshed first (`services.core.ingest.pointcloud`); that mesh's faces are then the `fragments` reference.
+(`services.core.ingest.frame.gravity`: plane families of the face normals, then the floor, a support base or
+the file convention); units are given or chosen from the storey height of rooms. How, and how sure, is kept in
+`LoadedSpace.frame_record()` for job.json. Point clouds (.xyz, .pts, PLY without faces) are meshed first
+(`services.core.ingest.pointcloud`); that mesh's faces are then the `fragments` reference.
 
 Semantic labels are read by `services.core.ingest.labels`, the zip/folder is resolved by
-`services.core.ingest.archive` and the frame by `services.core.ingest.frame`.
+`services.core.ingest.guard.archive` and the frame by `services.core.ingest.frame.resolve`.
 """
 
 from __future__ import annotations
@@ -36,20 +36,23 @@ from typing import Any
 import numpy as np
 import trimesh
 
+from services.core.domain.frame_records import FrameRecord
 from services.core.domain.jobspec import UP_AXES, similarity_scale
 from services.core.domain.json_types import JSONObject
-from services.core.ingest.archive import resolve_source
-from services.core.ingest.archive_rules import file_expansion_refusal
-from services.core.ingest.capture.attach import attach_capture, capture_near  # a capture with the scan
+from services.core.ingest.capture.attach import capture_near  # a capture with the scan
 from services.core.ingest.capture.model import Capture
-from services.core.ingest.confine import ConfinedResolver, is_inside
 from services.core.ingest.datasets import DatasetError, DatasetScene, scene_of
 from services.core.ingest.errors import SpaceError
-from services.core.ingest.frame import FrameRequest, resolve_frame
-from services.core.ingest.frame_records import FrameRecord
-from services.core.ingest.gravity import UpEstimate
+from services.core.ingest.frame.gravity import UpEstimate
+from services.core.ingest.frame.resolve import FrameRequest, resolve_frame
+from services.core.ingest.frame.unit_evidence import UnitChoice
+from services.core.ingest.frame.up_evidence import reason_words
+from services.core.ingest.guard.archive import resolve_source
+from services.core.ingest.guard.archive_rules import file_expansion_refusal
+from services.core.ingest.guard.confine import ConfinedResolver, is_inside
+from services.core.ingest.guard.mesh_checks import check_source
+from services.core.ingest.guard.texture_limits import loaded_texture_refusal
 from services.core.ingest.labels import read_ply_semantics, scannet_labels
-from services.core.ingest.mesh_checks import check_source
 from services.core.ingest.pointcloud import (
     CLOUD_SUFFIXES,
     CloudError,
@@ -57,9 +60,6 @@ from services.core.ingest.pointcloud import (
     mesh_cloud_cached,
     read_text_cloud,
 )
-from services.core.ingest.texture_limits import loaded_texture_refusal
-from services.core.ingest.unit_evidence import UnitChoice
-from services.core.ingest.up_evidence import reason_words
 from services.core.storage.base import sha256_file
 from services.core.temp_dirs import owned_prefix
 
@@ -68,6 +68,8 @@ log = logging.getLogger(__name__)
 
 MAX_EXTENT_M = 10_000.0  # a 10 km scan means the units are wrong
 MIN_EXTENT_M = 0.001  # everything inside 1 mm: same
+# the cameras' up this far from the scan's: the levelling (or the capture) is suspect
+CAPTURE_UP_WARN_DEG = 10.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -391,3 +393,26 @@ def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Pa
         reconstruction=reconstruction,
         class_names=class_names,
     )
+
+
+def attach_capture(loaded: LoadedSpace, capture: Capture | None) -> LoadedSpace:
+    """`loaded` with `capture` (source frame) moved into its world frame, when there is one."""
+    if capture is None:
+        return loaded
+    for problem in capture.problems[:20]:
+        log.warning("%s capture: %s", capture.format, problem)
+    if capture.problems:  # shown by `omnidata plan` and kept in job.json with the other warnings
+        more = len(capture.problems) - 5
+        shown = "; ".join(capture.problems[:5]) + (f"; and {more} more" if more > 0 else "")
+        note = (f"{capture.format} capture: {len(capture.frames)} frames read, "
+                f"{len(capture.problems)} problems: {shown}")
+        loaded = replace(loaded, warnings=(*loaded.warnings, note))
+    world = capture.in_world(loaded.source_to_world)
+    up = world.mean_up()  # the cameras' evidence of up, checked against the scan's levelling
+    if up is not None:
+        angle = float(np.degrees(np.arccos(np.clip(up[2], -1.0, 1.0))))
+        note = f"the cameras' up (right axes level) is {angle:.1f} deg from the scan's up"
+        world = replace(world, notes=(*world.notes, note), up_angle_deg=angle)
+        if angle > CAPTURE_UP_WARN_DEG:
+            loaded = replace(loaded, warnings=(*loaded.warnings, f"{note}: check the levelling"))
+    return replace(loaded, capture=world)

@@ -25,7 +25,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from services.core.domain.json_types import JSONObject
-from services.core.ingest.confine import ConfinedResolver
+from services.core.ingest.guard.confine import ConfinedResolver
 
 CLOUD_SUFFIXES = (".xyz", ".pts")
 MIN_POINTS = 1000

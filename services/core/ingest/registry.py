@@ -24,12 +24,12 @@ from sqlalchemy.orm import Session
 from services.core.db.models import Space
 from services.core.domain.jobspec import SpaceFrame
 from services.core.domain.keys import check_name
-from services.core.ingest.archive import resolve_source
-from services.core.ingest.archive_rules import archive_refusal
-from services.core.ingest.confine import is_inside, read_confined, real_folder
 from services.core.ingest.datasets import DatasetError, scene_mesh_in, scene_of
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.formats import scannet_companions
+from services.core.ingest.guard.archive import resolve_source
+from services.core.ingest.guard.archive_rules import archive_refusal
+from services.core.ingest.guard.confine import is_inside, read_confined, real_folder
 from services.core.ingest.loading import LoadedSpace, load_space
 from services.core.storage.base import ObjectStore, sha256_file
 from services.core.temp_dirs import owned_temp_dir
@@ -89,8 +89,8 @@ def _dataset_pack(source: Path) -> tuple[Path, list[Path]] | None:
         raise SpaceError(str(e)) from None
     if scene is None:
         return None
-    from services.core.ingest.archive import MESH_SUFFIXES
     from services.core.ingest.capture.attach import capture_files_beside
+    from services.core.ingest.guard.archive import MESH_SUFFIXES
 
     extra = _obj_companions(scene.mesh) if scene.mesh.suffix.lower() == ".obj" else []
     capture = capture_files_beside(scene.mesh, MESH_SUFFIXES)  # a posed capture beside the scan goes along
@@ -102,8 +102,8 @@ def _dataset_pack(source: Path) -> tuple[Path, list[Path]] | None:
 
 def _files_to_pack(source: Path, mesh_file: Path) -> tuple[Path, list[Path]]:
     """(base folder, files) that a mesh needs, for zipping (with a posed capture beside it: the capture too)."""
-    from services.core.ingest.archive import MESH_SUFFIXES
     from services.core.ingest.capture.attach import capture_files_beside
+    from services.core.ingest.guard.archive import MESH_SUFFIXES
 
     if (dataset := _dataset_pack(source)) is not None:
         return dataset
@@ -150,8 +150,8 @@ def _stored_as_is(source: Path) -> bool:
     """True when `source` is uploaded itself: one file that needs nothing beside it, or a zip."""
     if (source.is_file() and source.suffix.lower() in SINGLE_FILE_SUFFIXES and scannet_companions(source) is None
             and _dataset_pack(source) is None):
-        from services.core.ingest.archive import MESH_SUFFIXES
         from services.core.ingest.capture.attach import capture_files_beside
+        from services.core.ingest.guard.archive import MESH_SUFFIXES
 
         return source.suffix.lower() == ".zip" or not capture_files_beside(source, MESH_SUFFIXES)
     return False
@@ -243,7 +243,7 @@ def register_space(
 
     `loaded`: the result of `validate_source` for the same path and options, so a caller that validated
     first does not load the mesh twice. An ambiguous up does not refuse the space: it is recorded (with
-    both candidates) and the space needs a frame before a job may plan it (`services.core.ingest.frame_choice`);
+    both candidates) and the space needs a frame before a job may plan it (`services.core.db.frame_choice`);
     `accept_up_guess` is accepted for the frame keywords of a JobSpec and does not change that.
     """
     try:

@@ -1,7 +1,7 @@
 """Camera positions (world metres, +Z up): generated in free space, provided, or on a sphere (objects).
 
 generate: a 3D Poisson-disc sample of the free space inside the scan.
-  1. Floors: faces whose normal is within 15 degrees of +Z (the floor rule of core.ingest.gravity),
+  1. Floors: faces whose normal is within 15 degrees of +Z (the floor rule of core.ingest.frame.gravity),
      grouped by height (a gap > 5 cm starts a new group); groups with >= 20 % of the largest group's area (and >= 0.5 m^2) are floors, so each
      storey of a multi-floor scan counts and table tops or stair steps do not.
   2. Candidates: area-uniform points on the floor faces, raised by a height ~ U[height_min, height_max].
@@ -32,7 +32,7 @@ from scipy.spatial import cKDTree
 from services.core.domain.camera import quaternion_wxyz_to_rotation
 from services.core.domain.jobspec import CameraSpec
 from services.core.domain.plan import PlanError
-from services.core.ingest.gravity import FLOOR_CONE_COS
+from services.core.ingest.frame.gravity import FLOOR_CONE_COS
 from services.scheduler.planning.visibility import MeshQueries
 
 FLOOR_GAP_M = 0.05

@@ -218,7 +218,7 @@ TEXTURE_NEAREST = 16  # photos tried per view (the nearest capture cameras)
 def textured_coverage(q: MeshQueries, capture: Capture, world_to_camera: np.ndarray, fov: np.ndarray) -> np.ndarray:
     """(n,) predicted share of each view's surface pixels that some photo saw (views.rgb_source photos for cameras
     away from the capture): an 8 x 8 probe's surface points projected into the nearest photos, depth-tested
-    from each photo's camera as the worker's texturing does (services.worker.phototexture)."""
+    from each photo's camera as the worker's texturing does (services.worker.inputs.phototexture)."""
     from services.core.ingest.capture.distortion import project_to_photo
 
     n = len(world_to_camera)

@@ -133,8 +133,9 @@ def _reshading_pixels(i: np.ndarray, seen: np.ndarray) -> np.ndarray:
 def principal_curvature(ctx: ViewContext) -> np.ndarray:
     """uint8 H x W x 3: R, G = k1, k2 clipped to +-1/curvature_clip_m mapped linearly to 0..254 (127 = flat), B = 0.
 
-    Curvature is per vertex (services.worker.curvature, 1/m, positive = convex, k1 >= k2), interpolated over the
-    seen triangle by the renderer. Where nothing is seen all three channels are 0 (background, see mask_valid).
+    Curvature is per vertex (services.worker.inputs.curvature, 1/m, positive = convex, k1 >= k2), interpolated
+    over the seen triangle by the renderer. Where nothing is seen all three channels are 0 (background, see
+    mask_valid).
     """
     k = ctx.passes.curvature
     if k is None:

@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 from sqlalchemy import select
 
-from services.api.progress.compute import compute_progress
-from services.api.progress.rates import RateTracker
+from services.api.jobs.progress import compute_progress
+from services.api.jobs.rates import RateTracker
 from services.core.db.models import Job, JobCounter, Task
 from tests.fixtures.api import Api, fake_plan, run_tasks, task_ids
 

@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from services.core.db.frame_choice import space_frame_for
 from services.core.db.models import Space
 from services.core.domain.jobspec import JobSpec
-from services.core.ingest.frame_choice import space_frame_for
 from services.core.ingest.loading import load_space
 from tests.fixtures.api import Api
 
@@ -101,7 +101,7 @@ def test_a_repick_while_a_job_renders_keeps_the_planners_frame(api: Api, tmp_pat
     from services.core.settings import get_settings
     from services.scheduler.loop import Scheduler
     from services.scheduler.transport import NullTransport
-    from services.worker.caches import TaskInputs
+    from services.worker.inputs.caches import TaskInputs
 
     space = _upload(api)
     first, second = space["frame"]["up"]["candidates"][:2]
@@ -170,7 +170,7 @@ def test_ambiguous_units_held_refused_then_picked(api: Api, tmp_path: Path) -> N
     naming both."""
     import trimesh
 
-    from services.core.ingest.frame import rotation_to_z
+    from services.core.ingest.frame.resolve import rotation_to_z
 
     mesh = trimesh.load(COPYROOM.parent / "kitchen_partial_000.ply", process=False)
     truth = json.loads((COPYROOM.parent / "truth.json").read_text())["kitchen_partial_000.ply"]["up"]

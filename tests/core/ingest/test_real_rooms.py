@@ -14,8 +14,8 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from services.core.ingest.errors import UpAmbiguous
-from services.core.ingest.frame import rotation_to_z
-from services.core.ingest.gravity import plane_families
+from services.core.ingest.frame.gravity import plane_families
+from services.core.ingest.frame.resolve import rotation_to_z
 from services.core.ingest.loading import load_space
 from tests.fixtures.rotation_corpus import up_error_deg
 

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from services.core.ingest.errors import UnitsAmbiguous, UpAmbiguous
-from services.core.ingest.gravity import estimate_up
+from services.core.ingest.frame.gravity import estimate_up
+from services.core.ingest.frame.unit_evidence import choose_units
 from services.core.ingest.loading import load_space
-from services.core.ingest.unit_evidence import choose_units
 from tests.fixtures.real_corpus import REAL_SCANS, real_cases, real_rooms
 from tests.fixtures.rotation_corpus import up_error_deg
 

@@ -12,8 +12,8 @@ import trimesh
 from PIL import Image
 from scipy.spatial import cKDTree
 
-from services.core.ingest.archive import resolve_source
 from services.core.ingest.errors import SpaceError
+from services.core.ingest.guard.archive import resolve_source
 from services.core.ingest.loading import load_space
 from services.core.ingest.pointcloud import CloudError, poisson_depth, read_text_cloud
 from services.core.ingest.registry import pack_source

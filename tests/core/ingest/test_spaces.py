@@ -13,9 +13,9 @@ import pytest
 import trimesh
 from PIL import Image
 
-from services.core.ingest.archive import resolve_source
 from services.core.ingest.errors import SpaceError
-from services.core.ingest.frame import rotation_to_z
+from services.core.ingest.frame.resolve import rotation_to_z
+from services.core.ingest.guard.archive import resolve_source
 from services.core.ingest.loading import load_space
 from tests.fixtures import scenes
 

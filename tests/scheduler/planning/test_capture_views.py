@@ -180,7 +180,7 @@ def test_refining_the_colour_camera_moves_towards_the_fitted_one(kitchen):
 def test_capture_refine_plan_and_worker_agree(kitchen, capture_plan, monkeypatch):
     from services.core.ingest.capture.calibration import ColourCorrection
     from services.scheduler.planning import refine
-    from services.worker.photos import painter_for
+    from services.worker.inputs.photos import painter_for
 
     # What the plan does with a refinement is the subject here, not the search (test_refining_... above): the real
     # search on 6 frames with 1 halving, as there, instead of 12 frames and 3 halvings (28 -> 5 CPU s).

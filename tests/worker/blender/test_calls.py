@@ -42,7 +42,7 @@ try:
     from services.worker.blender.threads import import_bpy
     import_bpy(1)
     from services.core.ingest.loading import load_space
-    from services.worker.space_cache import SpaceContext
+    from services.worker.inputs.space_cache import SpaceContext
     from tests.fixtures.raycast import object_view
     space = SpaceContext.from_loaded(load_space(sys.argv[1]), key="probe")
     scene = space.scene()
@@ -53,7 +53,7 @@ try:
     for _ in range(1000):
         scene.render(g)
 except Exception as e:  # the stop raised while a numba kernel was called comes back wrapped: the runner unwraps it
-    from services.worker.stop_signal import stop_within
+    from services.worker.run.stop_signal import stop_within
     if not isinstance(stop_within(e), SystemExit):
         raise
     sys.stderr.flush()

@@ -16,8 +16,8 @@ from services.core.ingest.loading import load_space
 from services.worker.blender.render import srgb_encode
 from services.worker.blender.scene import srgb_to_linear
 from services.worker.executor import render_view_cues
+from services.worker.inputs.space_cache import SpaceContext
 from services.worker.passes import ViewGeometry
-from services.worker.space_cache import SpaceContext
 from tests.fixtures.raycast import object_view, raycast, smooth_mask
 from tests.fixtures.scans import room_cloud, scannet_scene
 from tests.worker.blender.test_render import sample_texture

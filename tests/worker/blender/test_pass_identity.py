@@ -19,8 +19,8 @@ import pytest
 from services.core.domain.jobspec import CueParams, JobSpec
 from services.core.ingest.loading import load_space
 from services.scheduler.planning import make_plan, space_rng
+from services.worker.inputs.space_cache import SpaceContext
 from services.worker.passes import NO_FACE, NO_LABEL, RENDER_PASSES, ViewGeometry, ViewPasses
-from services.worker.space_cache import SpaceContext
 
 pytestmark = pytest.mark.bpy
 

@@ -27,8 +27,8 @@ from services.core.ingest.loading import load_space
 from services.worker.context import SemanticsUnavailableError, ViewContext
 from services.worker.cues.encoding import decode_exr_rgb
 from services.worker.executor import make_context, produce, render_view_cues
+from services.worker.inputs.space_cache import SpaceCache, SpaceContext, rss_bytes
 from services.worker.passes import ViewGeometry, ViewPasses
-from services.worker.space_cache import SpaceCache, SpaceContext, rss_bytes
 from tests.fixtures.png import png_header
 from tests.fixtures.raycast import (
     ROOM_CLASSES,

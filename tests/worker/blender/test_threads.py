@@ -21,7 +21,7 @@ from services.worker.blender.threads import import_bpy, set_exr_threads
 import_bpy(1)
 print("threads", set_exr_threads(2) if sys.argv[1] == "pool" else set_exr_threads(0))
 from services.core.ingest.loading import load_space
-from services.worker.space_cache import SpaceContext
+from services.worker.inputs.space_cache import SpaceContext
 from tests.fixtures.raycast import object_view
 space = SpaceContext.from_loaded(load_space(sys.argv[2]), key="probe")
 scene = space.scene()

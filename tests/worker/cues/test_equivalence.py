@@ -30,8 +30,8 @@ from services.worker.cues.keypoints import keypoints2d, narf_interest
 from services.worker.cues.registry import cue_value
 from services.worker.cues.segmentation import segment_unsup2d, segment_unsup25d
 from services.worker.executor import make_context, produce
+from services.worker.inputs.space_cache import SpaceContext
 from services.worker.passes import ViewGeometry, ViewPasses
-from services.worker.space_cache import SpaceContext
 from tests.fixtures import reference_keypoints2d, reference_keypoints3d, reference_segmentation
 from tests.fixtures.exr import openexr_file_bytes
 from tests.fixtures.raycast import decode_png, object_view

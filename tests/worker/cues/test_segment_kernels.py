@@ -28,8 +28,8 @@ from services.worker.cues.segmentation import (
     superpixels,
 )
 from services.worker.executor import make_context
+from services.worker.inputs.space_cache import SpaceContext
 from services.worker.passes import ViewGeometry, ViewPasses
-from services.worker.space_cache import SpaceContext
 from tests.fixtures import reference_ncuts, reference_segmentation
 from tests.worker.cues.test_equivalence import colour_from_normals
 

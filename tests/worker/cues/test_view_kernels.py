@@ -20,8 +20,8 @@ from services.worker.context import ViewContext
 from services.worker.cues import basic, common, edges, keypoints
 from services.worker.cues.registry import cue_value
 from services.worker.executor import make_context
+from services.worker.inputs.space_cache import SpaceContext
 from services.worker.passes import ViewGeometry, ViewPasses
-from services.worker.space_cache import SpaceContext
 from tests.fixtures import reference_narf
 from tests.fixtures import reference_view_cues as ref
 from tests.fixtures.raycast import make_room, raycast_passes, room_view

@@ -1,13 +1,13 @@
 """A scan and its capture sent as two parts (multipart upload: the scan file or zip, and a .zip of the capture)
 put into one folder, which is then loaded and stored like a folder upload. Both archives are extracted with the
-same zip checks as every upload (services.core.ingest.archive.safe_extract_zip)."""
+same zip checks as every upload (services.core.ingest.guard.archive.safe_extract_zip)."""
 
 from __future__ import annotations
 
 import shutil
 from pathlib import Path
 
-from services.core.ingest.archive import safe_extract_zip
+from services.core.ingest.guard.archive import safe_extract_zip
 
 
 def bundle_scan_and_capture(scan: Path, capture_zip: Path, dest: Path) -> Path:

@@ -21,7 +21,7 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from services.core.ingest.capture.model import CaptureError, CaptureFrame
-from services.core.ingest.texture_limits import MAX_TEXTURE_PIXELS, MAX_TEXTURE_SIDE
+from services.core.ingest.guard.texture_limits import MAX_TEXTURE_PIXELS, MAX_TEXTURE_SIDE
 
 MAX_PHOTO_PIXELS = MAX_TEXTURE_PIXELS  # 67 Mpx: a 48 Mpx phone photo fits, 10000 x 10000 does not
 _REDUCIBLE = {"L", "LA", "RGB", "RGBA", "RGBX", "I", "F"}  # modes Pillow's reduce takes as they are

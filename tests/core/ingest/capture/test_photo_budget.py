@@ -19,8 +19,8 @@ from services.core.ingest.capture.model import CaptureFrame
 from services.core.ingest.capture.photos import MAX_PHOTO_PIXELS, PhotoRefused, load_photo
 from services.core.ingest.capture.resample import photo_for_view
 from services.core.ingest.errors import SpaceError
-from services.core.ingest.safe_load import load_space_limited
-from services.worker.photos import PhotoPainter
+from services.core.ingest.guard.safe_load import load_space_limited
+from services.worker.inputs.photos import PhotoPainter
 from tests.fixtures.captures import toy_frames, write_colmap, write_transforms
 from tests.fixtures.hostile_corpus import png_declaring
 

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from services.core.ingest.archive import MESH_SUFFIXES
 from services.core.ingest.capture import find_capture
 from services.core.ingest.capture.attach import capture_files_beside, capture_near
 from services.core.ingest.capture.distortion import distort, undistort
+from services.core.ingest.guard.archive import MESH_SUFFIXES
 from services.core.ingest.loading import load_space
 from services.core.ingest.registry import pack_source
 from tests.fixtures.captures import (
@@ -285,7 +285,7 @@ def test_capture_inside_a_zip(tmp_path):
         for p in src.rglob("*"):
             if p.is_file():
                 zf.write(p, p.relative_to(src).as_posix())
-    from services.core.ingest.archive import safe_extract_zip
+    from services.core.ingest.guard.archive import safe_extract_zip
 
     safe_extract_zip(zpath, tmp_path / "x")
     cap = find_capture(tmp_path / "x")

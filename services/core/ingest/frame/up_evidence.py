@@ -1,0 +1,345 @@
+"""Evidence for each up candidate of a room scan, combined into one score and a calibrated confidence.
+
+Frames and units: the source frame and the file's units (unknown here: every term is unit free).
+A candidate is a plane-family direction `u` (one sign) proposed by `services.core.ingest.frame.gravity`. Each
+term below is a log-odds contribution; a candidate's score is their sum, and the decision compares the best
+candidate with the best one that would level the scan differently (more than `DISTINCT_DEG` away):
+
+- `floor_area`: the floor seen from above plus the furniture surplus (gravity's area score), as the log
+  of its ratio to the best candidate's. Plane area alone is what fails on partial scans: a wall or a
+  row of cabinet fronts can be as large as the visible floor.
+- `furniture`: furniture tops face up and their undersides are rarely scanned: the horizontal area between
+  bands of a fifth of the height at both ends (soffits and lamps sit nearer the ceiling), facing up minus
+  facing down over their sum, from +1 (tops seen) to -1 (the ceiling taken as floor). It decides the sign of
+  a family; cabinet fronts score along a wall's normal too, which is why it weighs less than `extent`.
+- `extent`: rooms are wider than tall. Height along `u` over the square root of the cross-section
+  across `u`, as the log of its ratio to the thinnest candidate's (a wall taken as floor turns the
+  room's width into its "height"). On the real rooms of bench/ingest_real.py it ranks the floor's family
+  first in every multi-view room: the heaviest geometric term.
+- `storey`: whether the extent along `u` is a storey (2.2-3.5 m, or 1.2-3.5 m for a scan without a
+  ceiling: partial scans rarely see it) in one of the units we accept; a penalty when it fits none.
+- `levelled_axis`: a plausible floor within `AXIS_DEG` of a source axis. A random orientation puts a given
+  direction that close to one of the six axis directions with odds of about 1 in 1,000, while people and
+  devices export levelled files far more often than rotated ones: strong evidence that the file is levelled.
+  When the walls are axis-aligned too, every family gets it and the rest of the evidence picks among them.
+- `format_up`: the candidate on the format's own up axis (`FileFrame`): glTF's +Y is the specification's
+  (binding, as strong as an axis-aligned floor, for a floor within `FORMAT_DEG` of it); PLY's +Z and OBJ's +Y
+  are habits, weighted below `REFUSE_MARGIN` (Y-up PLYs and Z-up OBJs are common): they order a refusal, they
+  never decide alone.
+- `capture_up`: the mean up vector of the capture's cameras (-Y of OpenCV cameras, averaged), when the
+  caller has poses. Cameras are held upright, give or take their pitch: strong evidence.
+- `view_direction`, `view_aspect`: a single view (`services.core.ingest.frame.single_view`): up lies across
+  the view direction within the camera's pitch (`VIEW_PITCH_DEG`; a wall the camera faced is no floor), near
+  the frustum's short axis (landscape frames). `extent` is left out for it: a frustum's extent is not the
+  room's.
+
+The confidence is a logistic function of the margin (best score minus the runner-up's), fitted on the real
+rooms of bench/ingest_real.py; below `REFUSE_MARGIN` (`SINGLE_VIEW_REFUSE_MARGIN` for one depth frame) the
+estimate is ambiguous and planning does not go ahead on it unless the user accepted guesses.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from services.core.domain.frame_records import UpCandidateRecord
+from services.core.ingest.frame.single_view import SingleView
+
+DISTINCT_DEG = 30.0  # candidates closer than this level the scan the same way
+# score margin below which the estimate is ambiguous: on the real rooms of bench/ingest_real.py (as delivered,
+# levelled, rotated) no wrong winner scored more than 0.85 above its runner-up with these weights
+REFUSE_MARGIN = 1.2
+# one depth frame: on the real frames of bench/ingest_real.py wrong winners led by up to 4.4 (a floor out of
+# view)
+SINGLE_VIEW_REFUSE_MARGIN = 4.5
+# logistic slope of P(right | margin): the likeliest on bench/ingest_real.py's real rooms while a wrong winner
+# still reached 1.65; none does now, so the probability it states above REFUSE_MARGIN (>= 88 %) is conservative
+CONFIDENCE_SLOPE = 1.7
+VIEW_PITCH_DEG = 50.0  # a depth camera pointed further up or down than this sees no room
+CAMERA_FRAME_DEG = 10.0  # a single view looking this close to +Z is stored in its camera's (OpenCV) frame
+POSE_CONE_DEG = 45.0
+STOREY_M = (2.2, 3.5)
+OPEN_STOREY_M = (1.2, 3.5)  # no ceiling scanned
+UNIT_SCALES = (1.0, 0.01, 0.001, 0.0254)
+
+AXIS_DEG = 1.5  # a floor this close to a source axis was levelled by whoever exported the file
+# a floor this close to the up a format's specification fixes is that up (a drifted scan's floor)
+FORMAT_DEG = 5.0
+# what the file says counts for a candidate the geometry does not rule out: one this far below the geometry's
+# best (a wall left on an axis by a rotation about it) is no floor, whatever the file's axes
+FILE_TRUST = 4.0
+# a candidate whose lower half faces it over this share of its cross-section (a strip)
+PLAUSIBLE_FLOOR_FRACTION = 0.1
+
+WEIGHTS = {
+    "levelled_axis": 6.0,
+    "format_up_binding": 6.0,
+    "format_up_habit": 1.0,
+    "floor_area": 1.0,
+    "furniture": 3.0,
+    "extent": 6.0,
+    "storey": 0.5,
+    "capture_up": 4.0,
+    "view_direction": 6.0,
+    "view_aspect": 3.0,
+}
+
+
+@dataclass(frozen=True)
+class FileFrame:
+    """What a file says about its up, before any geometry: the format's up axis (source frame) and whether the
+    format's specification fixes it (glTF) or it is a habit (PLY, OBJ)."""
+
+    axis: np.ndarray
+    binding: bool = False
+
+
+def _on_axis(u: np.ndarray, axis: np.ndarray) -> bool:
+    return float(u @ axis) >= np.cos(np.radians(AXIS_DEG))
+
+
+def nearest_axis(u: np.ndarray) -> np.ndarray:
+    """The signed source axis nearest to the unit vector `u`."""
+    e = np.zeros(3)
+    i = int(np.argmax(np.abs(u)))
+    e[i] = np.sign(u[i]) or 1.0
+    return e
+
+
+def on_a_source_axis(u: np.ndarray) -> bool:
+    """True when `u` lies within `AXIS_DEG` of a source axis."""
+    return _on_axis(u, nearest_axis(u))
+
+
+@dataclass(frozen=True)
+class CandidateFacts:
+    """What gravity measured along one candidate direction (source frame, source units)."""
+
+    up: np.ndarray
+    area_score: float  # floor area + furniture surplus
+    floor_area: float
+    floor_fraction: float
+    height: float  # extent along up
+    cross_section: float  # convex cross-section area across up
+    ceiling_fraction: float  # area facing down in the top half / cross-section
+    mid_up: float  # area facing up between the end bands (furniture tops)
+    mid_down: float  # area facing down between the end bands
+
+
+@dataclass(frozen=True)
+class ScoredCandidate:
+    """A candidate and its evidence terms (log-odds)."""
+
+    facts: CandidateFacts
+    terms: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def up(self) -> np.ndarray:
+        """The candidate up direction, source frame."""
+        return self.facts.up
+
+    @property
+    def score(self) -> float:
+        """The sum of the evidence terms."""
+        return float(sum(self.terms.values()))
+
+    def record(self, unit_scale: float | None = None) -> UpCandidateRecord:
+        """JSON-ready: direction, floor area and storey height (metres when `unit_scale` is known), terms."""
+        f = self.facts
+        out: UpCandidateRecord = {
+            "up": [round(float(x), 6) for x in f.up],
+            "score": round(self.score, 3),
+            "evidence": {k: round(v, 3) for k, v in self.terms.items()},
+            "floor_fraction": round(f.floor_fraction, 4),
+        }
+        if unit_scale is not None:
+            out["floor_area_m2"] = round(f.floor_area * unit_scale**2, 3)
+            out["storey_height_m"] = round(f.height * unit_scale, 3)
+        else:
+            out["floor_area_units2"] = round(f.floor_area, 6)
+            out["storey_height_units"] = round(f.height, 6)
+        return out
+
+
+@dataclass(frozen=True)
+class UpDecision:
+    """The scored candidates (best first), the runner-up that levels differently and how sure we are."""
+
+    ranked: tuple[ScoredCandidate, ...]
+    runner_up: ScoredCandidate | None
+    margin: float  # best score - runner-up score (inf without a runner-up)
+    confidence: float  # calibrated P(the best is right | margin), 0.5-1
+    # the best candidate levelling differently from both (shown on refusal)
+    third: ScoredCandidate | None = None
+    # the geometry's own winner, when the file's frame overruled it
+    geometry_prefers: ScoredCandidate | None = None
+    refuse_below: float = REFUSE_MARGIN  # the margin a winner needs (`_required_margin`)
+
+    @property
+    def shown(self) -> tuple[ScoredCandidate, ...]:
+        """The candidates a person chooses from: best, runner-up and the third when there is one."""
+        return tuple(c for c in (self.best, self.runner_up, self.third) if c is not None)
+
+    @property
+    def best(self) -> ScoredCandidate:
+        """The winning candidate."""
+        return self.ranked[0]
+
+    @property
+    def ambiguous(self) -> bool:
+        """True when the winner does not clearly beat a candidate that levels the scan differently."""
+        return self.margin < self.refuse_below
+
+
+def _furniture_term(f: CandidateFacts) -> float:
+    """+1 when mid-height horizontal surfaces all face up (tops seen, undersides not), -1 when all face
+    down."""
+    total = f.mid_up + f.mid_down
+    return 0.0 if total <= 0 else (f.mid_up - f.mid_down) / total
+
+
+def _storey_term(f: CandidateFacts) -> float:
+    lo, hi = STOREY_M if f.ceiling_fraction >= 0.3 else OPEN_STOREY_M
+    fits = any(lo <= f.height * s <= hi for s in UNIT_SCALES)
+    return 0.0 if fits else -1.0
+
+
+def _file_terms(f: CandidateFacts, file: FileFrame, plausible: bool, levelled: bool) -> dict[str, float]:
+    """What the file says of this candidate (see the module docstring). `plausible`: it could be the floor;
+    `levelled`: an axis-aligned floor may mean a levelled export (not in a depth frame's own camera frame,
+    where it only means a camera held level)."""
+    terms = {"levelled_axis": WEIGHTS["levelled_axis"]
+             if levelled and plausible and on_a_source_axis(f.up) else 0.0}
+    if file.binding:
+        near = float(f.up @ file.axis) >= np.cos(np.radians(FORMAT_DEG))
+        terms["format_up"] = WEIGHTS["format_up_binding"] if near and plausible else 0.0
+    else:
+        terms["format_up"] = WEIGHTS["format_up_habit"] if _on_axis(f.up, file.axis) else 0.0
+    return terms
+
+
+def _view_terms(f: CandidateFacts, view: SingleView) -> dict[str, float]:
+    along = float(f.up @ view.direction)
+    terms = {"view_direction": -WEIGHTS["view_direction"]
+             if abs(along) > np.sin(np.radians(VIEW_PITCH_DEG)) else 0.0}
+    if view.short_axis is not None:
+        across = f.up - along * view.direction
+        alignment = abs(float(across @ view.short_axis)) / max(float(np.linalg.norm(across)), 1e-12)
+        terms["view_aspect"] = WEIGHTS["view_aspect"] * (2.0 * alignment - 1.0)
+    return terms
+
+
+def evidence_terms(f: CandidateFacts, all_facts: list[CandidateFacts], capture_up: np.ndarray | None,
+                   view: SingleView | None = None) -> dict[str, float]:
+    """The log-odds terms of the geometry (and capture poses) for one candidate among all (module
+    docstring)."""
+    best_area = max(c.area_score for c in all_facts)
+    ratios = [c.height / np.sqrt(c.cross_section) for c in all_facts if c.cross_section > 0 and c.height > 0]
+    thinnest = min(ratios) if ratios else 1.0
+    ratio = f.height / np.sqrt(f.cross_section) if f.cross_section > 0 and f.height > 0 else 10 * thinnest
+    terms = {
+        "floor_area": 0.0 if best_area <= 0 else  # no candidate sees any floor (a space-sized guess)
+        WEIGHTS["floor_area"] * float(np.log(max(f.area_score, 1e-12 * best_area) / best_area)),
+        "furniture": WEIGHTS["furniture"] * _furniture_term(f),
+        "extent": -WEIGHTS["extent"] * float(np.log(ratio / thinnest)),
+        "storey": WEIGHTS["storey"] * _storey_term(f),
+    }
+    if view is not None:
+        del terms["extent"]
+        terms.update(_view_terms(f, view))
+    if capture_up is not None:
+        cos_pose = float(f.up @ capture_up)
+        terms["capture_up"] = WEIGHTS["capture_up"] * (
+            1.0 if cos_pose > np.cos(np.radians(POSE_CONE_DEG)) else -1.0 if cos_pose < 0.0 else 0.0)
+    return terms
+
+
+def unit_capture_up(capture_up: ArrayLike | None) -> np.ndarray | None:
+    """The mean camera up as a unit vector, or None when absent or degenerate (cameras pointing every way)."""
+    if capture_up is None:
+        return None
+    v = np.asarray(capture_up, dtype=np.float64).reshape(-1)
+    if v.shape != (3,) or not np.isfinite(v).all():
+        raise ValueError(f"capture_up must be a finite 3-vector, got {v.tolist()}")
+    n = float(np.linalg.norm(v))
+    return None if n < 1e-6 else v / n
+
+
+def _with_file_terms(geometry: list[ScoredCandidate], file: FileFrame, view: SingleView | None,
+                     disabled: tuple[str, ...]) -> list[ScoredCandidate]:
+    """The candidates scored on the geometry, with what the file says added (see `_file_terms`)."""
+    best_geometry = max(c.score for c in geometry)
+    # the file's axes count for a floor candidate the geometry does not rule out (FILE_TRUST)
+    plausible = [c.facts.floor_fraction >= PLAUSIBLE_FLOOR_FRACTION and c.score >= best_geometry - FILE_TRUST
+                 for c in geometry]
+    levelled = view is None or float(view.direction[2]) < np.cos(np.radians(CAMERA_FRAME_DEG))
+    return [ScoredCandidate(c.facts, {**c.terms, **{k: v for k, v in _file_terms(
+        c.facts, file, p, levelled).items() if k not in disabled}})
+        for c, p in zip(geometry, plausible, strict=True)]
+
+
+def decide(all_facts: list[CandidateFacts], capture_up: np.ndarray | None = None,
+           file: FileFrame | None = None, disabled: tuple[str, ...] = (),
+           view: SingleView | None = None) -> UpDecision:
+    """Score every candidate and compare the best with the best that levels differently.
+
+    `file`: what the file says (format, axes); None scores the geometry (and capture poses) alone.
+    `disabled`: evidence terms left out (the bench's ablation). `view`: the scan is a single view.
+    """
+    geometry = [ScoredCandidate(f, {k: v for k, v in evidence_terms(f, all_facts, capture_up, view).items()
+                                    if k not in disabled}) for f in all_facts]
+    scored = geometry if file is None else _with_file_terms(geometry, file, view, disabled)
+    ranked = tuple(sorted(scored, key=lambda c: -c.score))
+    best = ranked[0]
+    runner = _first_distinct(ranked[1:], (best,))
+    third = None if runner is None else _first_distinct(ranked[1:], (best, runner))
+    margin = float("inf") if runner is None else best.score - runner.score
+    confidence = 1.0 if runner is None else float(1.0 / (1.0 + np.exp(-CONFIDENCE_SLOPE * margin)))
+    geometry_best = max(geometry, key=lambda c: c.score)
+    geometry_prefers = (None if float(geometry_best.up @ best.up) >= np.cos(np.radians(DISTINCT_DEG))
+                        else geometry_best)
+    return UpDecision(ranked, runner, margin, confidence, third, geometry_prefers,
+                      _required_margin(best, view))
+
+
+def _required_margin(best: ScoredCandidate, view: SingleView | None) -> float:
+    """The margin a winner needs: more for a single depth frame (a frustum shows less of a room), and a square
+    frame's geometry alone never suffices (nothing tells its rows from its columns) unless the file says."""
+    if view is None:
+        return REFUSE_MARGIN
+    file_says = (best.terms.get("levelled_axis", 0.0) > 0
+                 or best.terms.get("format_up", 0.0) > WEIGHTS["format_up_habit"])
+    return SINGLE_VIEW_REFUSE_MARGIN if view.short_axis is not None or file_says else float("inf")
+
+
+def _first_distinct(ranked: tuple[ScoredCandidate, ...], others: tuple[ScoredCandidate, ...]
+                    ) -> ScoredCandidate | None:
+    """The first candidate that levels the scan differently from every one of `others`."""
+    distinct_cos = np.cos(np.radians(DISTINCT_DEG))
+    return next((c for c in ranked if all(float(c.up @ o.up) < distinct_cos for o in others)), None)
+
+
+TERM_WORDS = {
+    "levelled_axis": "a floor on a source axis (the file was levelled)",
+    "format_up": "the format's up axis",
+    "capture_up": "the capture's cameras",
+    "floor_area": "the floor's area",
+    "furniture": "furniture tops seen from above",
+    "extent": "a room wider than tall",
+    "storey": "a storey's height",
+    "view_direction": "a single view's direction",
+    "view_aspect": "a single view's landscape frame",
+}
+
+
+def reason_words(decision: UpDecision) -> str:
+    """Which evidence set the chosen up apart from the runner-up, in words (the one or two largest terms)."""
+    best, runner = decision.best, decision.runner_up
+    if runner is None:
+        return "no other candidate levels the scan differently"
+    gains = sorted(((v - runner.terms.get(k, 0.0), k) for k, v in best.terms.items()), reverse=True)
+    named = [TERM_WORDS.get(k, k) for gain, k in gains[:2] if gain > 0.25]
+    return ", ".join(named) if named else "the sum of weak evidence"

@@ -1,0 +1,85 @@
+"""Per-vertex curvature computed once per machine, not once per worker process.
+
+Every worker process of a run needs the same space's curvature (1.5-2 CPU-s a room), and they all meet it at
+their first render. The first to get here computes it under an exclusive file lock and writes it to the local
+cache folder; the others wait on the lock and read the array back. The file's name is a digest of everything
+the estimator reads (vertices, faces, vertex normals, the radius) and of the estimator's own source, so a
+changed mesh, frame or estimator never meets an old file; what is read back is the computed array itself, so
+the result is bit-identical to computing it. Any trouble with the folder falls back to computing.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import hashlib
+import logging
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from services.worker.inputs import curvature as estimator
+
+log = logging.getLogger(__name__)
+
+_ESTIMATOR_DIGEST = hashlib.sha256(Path(estimator.__file__).read_bytes()).hexdigest()
+
+
+def curvature_digest(mesh: trimesh.Trimesh, radius: float) -> str:
+    """sha256 of the estimator's inputs: vertices, faces, vertex normals, radius, and the estimator's source."""
+    h = hashlib.sha256(_ESTIMATOR_DIGEST.encode())
+    for arr in (mesh.vertices, mesh.faces, mesh.vertex_normals):
+        a = np.ascontiguousarray(arr)
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        h.update(a.tobytes())
+    h.update(np.float64(radius).tobytes())
+    return h.hexdigest()
+
+
+def shared_curvature(mesh: trimesh.Trimesh, radius: float, folder: Path | None) -> np.ndarray:
+    """`principal_curvatures(mesh, radius)`, read from `folder` when another process computed it there."""
+    if folder is None:
+        return estimator.principal_curvatures(mesh, radius)
+    digest = curvature_digest(mesh, radius)
+    path = folder / f"{digest}.npy"
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        lock = open(folder / f"{digest}.lock", "a+b")  # noqa: SIM115 (held across the compute below)
+    except OSError as e:
+        log.warning("curvature cache %s unusable (%s); computing", folder, e)
+        return estimator.principal_curvatures(mesh, radius)
+    with lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # one process computes, the others wait for its file
+        found = _read(path, len(mesh.vertices))
+        if found is not None:
+            return found
+        out = estimator.principal_curvatures(mesh, radius)
+        _write(path, out)
+        return out
+
+
+def _read(path: Path, vertices: int) -> np.ndarray | None:
+    """The array at `path` when it is a float32 V x 2 array of this mesh, else None."""
+    try:
+        arr = np.load(path, allow_pickle=False)
+    except (OSError, ValueError):
+        return None
+    if arr.dtype != np.float32 or arr.shape != (vertices, 2):
+        return None
+    return arr
+
+
+def _write(path: Path, arr: np.ndarray) -> None:
+    """Write `arr` to `path` atomically (a reader sees the whole file or none); failures are only logged."""
+    tmp = None
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=".curvature-", suffix=".npy", dir=path.parent)
+        with os.fdopen(fd, "wb") as fh:
+            np.save(fh, arr, allow_pickle=False)
+        os.replace(tmp, path)
+    except OSError as e:
+        log.warning("could not keep the curvature at %s: %s", path, e)
+        if tmp is not None:
+            Path(tmp).unlink(missing_ok=True)

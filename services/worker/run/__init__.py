@@ -1,0 +1,1 @@
+"""Running tasks: claiming, heartbeats, the view batch, computing and recording results."""

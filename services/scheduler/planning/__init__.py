@@ -211,8 +211,8 @@ def _choose_views(sampled: SampledPoints, cams: np.ndarray, spec: JobSpec, q: Me
 
 
 def _kept_points(views: ViewArrays, n_points: int, dropped: bool, vs: ViewSpec) -> np.ndarray:
-    """The points that kept views when some may have lost them all (cut clips, photo coverage, pitch thinning),
-    else every point."""
+    """The points that kept views when some may have lost them all (cut clips, photo coverage, pitch
+    thinning), else every point."""
     if dropped or vs.pitch_quantiles_deg is not None:
         return np.unique(views.point_idx)
     return np.arange(n_points)

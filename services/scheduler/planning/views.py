@@ -85,7 +85,7 @@ def sample_fov(rng: np.random.Generator, spec: ViewSpec, size: int) -> np.ndarra
 
 
 def pitch_deg(cameras: np.ndarray, targets: np.ndarray) -> np.ndarray:
-    """Pitch (degrees, + up: the optical axis above the horizontal) of views from cameras fixated on targets."""
+    """Pitch in degrees (+ up: the optical axis above the horizontal) of views fixated on targets."""
     d = targets - cameras
     return np.degrees(np.arctan2(d[:, 2], np.linalg.norm(d[:, :2], axis=1)))
 

@@ -56,7 +56,7 @@ def test_pitch_acceptance_reshapes_candidates_to_the_target() -> None:
 
 
 def test_fitted_knobs_move_the_plan_to_the_target() -> None:
-    """A small room: heights, fovs and pitches drawn from quantiles follow them (KS well under an unsteered plan's)."""
+    """A small room: heights, fovs and pitches drawn from quantiles follow them (KS far below unsteered)."""
     base = {"cameras": {"max_count": 40, "min_spacing_m": 0.4}, "points": {"count": 60, "min_views": 2},
             "views": {"resolution": 64}}
     rng = np.random.default_rng(2)
@@ -66,11 +66,13 @@ def test_fitted_knobs_move_the_plan_to_the_target() -> None:
     q = {k: np.quantile(v, levels).tolist() for k, v in target.items()}
     steered = {"cameras": {**base["cameras"], "height_quantiles_m": q["height_m"]},
                "points": base["points"],
-               "views": {**base["views"], "fov_quantiles_deg": q["fov_deg"], "pitch_quantiles_deg": q["pitch_deg"]}}
+               "views": {**base["views"], "fov_quantiles_deg": q["fov_deg"],
+                         "pitch_quantiles_deg": q["pitch_deg"]}}
     before = view_distributions(_plan(base), floor_z=0.0)
     after = view_distributions(_plan(steered), floor_z=0.0)
     assert len(after["pitch_deg"]) > 50
     for name in ("height_m", "fov_deg", "pitch_deg"):
-        ks_before, ks_after = ks_statistic(before[name], target[name]), ks_statistic(after[name], target[name])
+        ks_before = ks_statistic(before[name], target[name])
+        ks_after = ks_statistic(after[name], target[name])
         assert ks_before > 0.4 and ks_after < 0.25, (name, ks_before, ks_after)
     assert after["views_per_point"].min() >= 2  # thinned points keep min_views or go

@@ -7,6 +7,7 @@ defaults to None, which keeps the sampling (and the random draws) of the paramet
 
 from __future__ import annotations
 
+import math
 from typing import Annotated, Literal
 
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, model_validator
@@ -28,6 +29,8 @@ def check_quantiles(name: str, q: tuple[float, ...] | None, lo: float, hi: float
         return
     if not 2 <= len(q) <= MAX_QUANTILES:
         raise ValueError(f"{name} needs 2 to {MAX_QUANTILES} quantiles, got {len(q)}")
+    if not all(math.isfinite(x) for x in q):
+        raise ValueError(f"{name} must be finite numbers")
     if any(b < a for a, b in zip(q, q[1:], strict=False)):
         raise ValueError(f"{name} must be non-decreasing (quantiles at equally spaced levels 0..1)")
     if q[0] < lo or q[-1] > hi:

@@ -37,8 +37,8 @@ from services.scheduler.planning.fit import (  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 KITCHEN = REPO.parent / "shared" / "scenes" / "7scenes_redkitchen"
 OUT = REPO / "bench" / "results" / "designer_fit.json"
-BASE = {"cameras": {"min_spacing_m": 0.08}, "points": {"count": 400, "max_views": 10}}
-OTHER_SEEDS = (1, 2, 3)
+BASE = {"cameras": {"min_spacing_m": 0.05}, "points": {"count": 400, "max_views": 10}}
+OTHER_SEEDS = (1, 2, 3, 4)
 DONE_KS = 0.1
 
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +33,8 @@ from services.core.ingest.targets import TargetError
 from services.scheduler.plan_space import load_for_job, plan_space, scan_floor_z
 from services.scheduler.planning import make_plan, space_rng
 from services.scheduler.planning.fit import FITTED, fit_spec, load_target, target_enclosed
+
+FEW_VIEWS = 500
 
 
 def add_steering_arguments(parser: argparse.ArgumentParser) -> None:
@@ -99,6 +102,9 @@ def fit_to(args: argparse.Namespace, spec: JobSpec, given: str, name: str, space
     for n in FITTED:
         if n in fit.ks:
             print(f"{name}: {n} KS to the target {ks_before.get(n, 1.0):.3f} -> {fit.ks[n]:.3f}")
+    if len(fit.values["pitch_deg"]) < FEW_VIEWS:  # the KS of a small sample is mostly its noise
+        print(f"omnidata plan: note: the fitted plan has {len(fit.values['pitch_deg'])} views; to match more "
+              "closely, plan more (lower cameras.min_spacing_m, raise points.count)", file=sys.stderr)
     out_spec: Path = args.out_spec or args.out / "fitted.yaml"
     out_spec.parent.mkdir(parents=True, exist_ok=True)
     out_spec.write_text(yaml.safe_dump(fit.spec.model_dump(mode="json"), sort_keys=False))

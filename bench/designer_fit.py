@@ -79,8 +79,8 @@ def main() -> dict:
         "fitted_summary": summary({k: fit.values[k] for k in FITTED}),
         "fitted_spec": {"cameras": fit.spec.cameras.model_dump(mode="json"),
                         "views": fit.spec.views.model_dump(mode="json")},
-        "note": "two-sample KS between the target's frames and the plan's views (fov, pitch, height above "
-                "the lowest floor); fit_seconds on a shared 2-core machine",
+        "note": "KS: the target's frames vs the plan's views (height above the lowest floor); "
+                "fit_seconds: a shared 2-core machine",
         "machine": platform.platform(),
     }
 

@@ -28,6 +28,7 @@ def test_unset_by_default_and_lists_become_tuples() -> None:
     ({"cameras": {"height_quantiles_m": [-1.0, 1.0]}}, r"must lie in \[0.0, 100.0\]"),
     ({"cameras": {"height_quantiles_m": list(range(102))}}, "needs 2 to 101"),
     ({"cameras": {"floors": "upper"}}, "all"),
+    ({"views": {"roll_quantiles_deg": [-200.0, 0.0]}}, r"must lie in \[-180.0, 180.0\]"),
 ])
 def test_bad_quantiles_are_refused_naming_the_field(data: dict[str, Any], message: str) -> None:
     with pytest.raises(ValidationError, match=message) as e:

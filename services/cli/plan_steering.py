@@ -85,6 +85,8 @@ def write_report(out: Path, name: str, space: LoadedSpace, plan: SpacePlan,
 def fit_to(args: argparse.Namespace, spec: JobSpec, given: str, name: str, space: LoadedSpace
            ) -> tuple[JobSpec, dict[str, np.ndarray]]:
     """The spec fitted to --fit-to on this space (written to --out-spec), and the target's distributions."""
+    if spec.cameras.mode != "generate":
+        raise CliError(f"--fit-to fits generated cameras (cameras.mode generate), not {spec.cameras.mode!r}")
     try:
         target = load_target(args.fit_to, (Path(given), space))
     except (TargetError, SpaceError, OSError) as e:

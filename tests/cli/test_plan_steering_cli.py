@@ -85,3 +85,13 @@ def test_fit_to_a_csv_target_writes_a_spec_that_matches_it(tmp_path: Path, room:
     assert "to match more closely, plan more" in captured.err  # a small plan: its KS is mostly noise
     job = json.loads((out / "job.json").read_text())
     assert job["spec"]["views"]["pitch_quantiles_deg"] == list(spec.views.pitch_quantiles_deg or ())
+
+
+def test_fit_to_refuses_what_it_cannot_fit(tmp_path: Path, room: Path, capsys) -> None:
+    csv = tmp_path / "target.csv"
+    csv.write_text("pitch_deg\n-10\n-20\n")
+    spec = _spec(tmp_path, "object.yaml", {"cameras": {"mode": "object"}})
+    assert main(["plan", str(room), "--out", str(tmp_path / "o"), "--spec", str(spec), "--fit-to", str(csv)]) == 2
+    assert "fits generated cameras" in capsys.readouterr().err
+    assert main(["plan", str(room), "--out", str(tmp_path / "o"), "--fit-to", str(tmp_path / "none.csv")]) == 2
+    assert "--fit-to" in capsys.readouterr().err and not (tmp_path / "o").exists()

@@ -91,6 +91,8 @@ def fit_spec(space: LoadedSpace, spec: JobSpec, target: dict[str, np.ndarray], *
     (see target_enclosed) lets cameras stand where the mesh does not enclose."""
     lv = np.linspace(0.0, 1.0, min(levels, MAX_QUANTILES))
     names = [n for n in FITTED if n in target and len(target[n])]
+    if spec.views.mode == "trajectory":  # a clip's pitch follows its path: not a knob
+        names = [n for n in names if n != "pitch_deg"]
     want = {n: np.quantile(np.asarray(target[n], dtype=np.float64), lv) for n in names}
     q = {n: np.clip(want[n], *KNOBS[n][2]) for n in names}
     best: FitResult | None = None

@@ -91,7 +91,8 @@ def test_fit_to_refuses_what_it_cannot_fit(tmp_path: Path, room: Path, capsys) -
     csv = tmp_path / "target.csv"
     csv.write_text("pitch_deg\n-10\n-20\n")
     spec = _spec(tmp_path, "object.yaml", {"cameras": {"mode": "object"}})
-    assert main(["plan", str(room), "--out", str(tmp_path / "o"), "--spec", str(spec), "--fit-to", str(csv)]) == 2
+    out = str(tmp_path / "o")
+    assert main(["plan", str(room), "--out", out, "--spec", str(spec), "--fit-to", str(csv)]) == 2
     assert "fits generated cameras" in capsys.readouterr().err
-    assert main(["plan", str(room), "--out", str(tmp_path / "o"), "--fit-to", str(tmp_path / "none.csv")]) == 2
+    assert main(["plan", str(room), "--out", out, "--fit-to", str(tmp_path / "none.csv")]) == 2
     assert "--fit-to" in capsys.readouterr().err and not (tmp_path / "o").exists()

@@ -17,7 +17,7 @@ import math
 import re
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal, cast
+from typing import Literal, cast
 
 import numpy as np
 from PIL import Image, ImageDraw
@@ -34,10 +34,8 @@ from services.datasets.decode import (
     curvature_per_m,
     read_raw,
 )
+from services.datasets.point_info import StoredPointInfo, camera_of
 from services.datasets.source import ViewRecord, job_document
-
-if TYPE_CHECKING:  # dataset.py imports this module
-    from services.datasets.dataset import StoredPointInfo
 
 PREVIEW_VERSION = 1  # bump when the mapping changes: cached previews live under a versioned prefix
 PREVIEW_PREFIX = f"_previews/v{PREVIEW_VERSION}"
@@ -151,7 +149,6 @@ def _dot(draw: ImageDraw.ImageDraw, xy: tuple[float, float], r: float, colour: t
 def _draw_point_info(doc: StoredPointInfo, size: int) -> Image.Image:
     """The fixated point where the view sees it, and the camera's field of view and distance."""
     from services.core.domain.camera import project
-    from services.datasets.dataset import camera_of
 
     img, draw = _tile(size)
     K, w2c = camera_of(doc)

@@ -17,6 +17,7 @@ from services.core.domain.job_document import JobDocument
 from services.core.domain.plan import plan_from_json
 from services.core.domain.steering import DISTRIBUTIONS, PER_POINT, camera_distributions, view_distributions
 from services.core.storage import ObjectNotFoundError, ObjectStore
+from services.datasets.point_info import camera_of
 from services.datasets.source import ViewRecord
 
 Ranges = Mapping[str, tuple[float, float]]
@@ -63,7 +64,6 @@ def _from_point_info(store: ObjectStore, records: list[ViewRecord], floor: float
     keys = [(r.point, r.view) for r in posed]
     if not infos:
         return {}
-    from services.datasets.dataset import camera_of  # the one reading of a point_info's camera
 
     W = np.stack([camera_of(i)[1] for i in infos]).astype(np.float64)
     low = min(float(i["point_location"][2]) for i in infos) if floor is None else floor

@@ -1,0 +1,106 @@
+"""The designer's warm processes: a few long-lived children that plan specs and render small previews.
+
+Why warm processes and not the render queue: a preview wants 4 views of 96 px now, and a worker's task grain
+(load the space, build the Blender scene, render, store, commit) costs seconds before the first pixel, queued
+behind other tenants' jobs; a warm child keeps the loaded space, its last plans and its Blender scene, so a knob
+change costs a plan and a few renders of tens of milliseconds. The pool is bounded (OMNIDATA_DESIGNER_PROCESSES),
+each call waits in a thread of the API's limiter, and each answer is awaited within OMNIDATA_DESIGNER_TIMEOUT_S:
+a process past it is killed (the plan or render stops at once) and the next call starts a fresh one. The API
+itself never imports the planner or Blender: the child runs the function named by TARGET.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import threading
+from multiprocessing.connection import Connection
+from multiprocessing.process import BaseProcess
+from typing import Any
+
+from services.core.domain.errors import Invalid
+from services.core.named_call import call_named
+
+log = logging.getLogger("omnidata.designer")
+
+TARGET = "services.embedded.design_preview:serve"
+_CONTEXT = mp.get_context("spawn")  # the API process has threads: a fork could copy a held lock
+
+
+class DesignFailed(RuntimeError):
+    """The preview process failed for a reason other than the spec (it crashed, or a bug)."""
+
+
+class _Child:
+    def __init__(self) -> None:
+        self.conn, child_conn = _CONTEXT.Pipe()
+        self.process: BaseProcess = _CONTEXT.Process(
+            target=call_named, args=(TARGET, child_conn), name="omnidata-designer", daemon=True)
+        self.process.start()
+        child_conn.close()
+
+    def end(self) -> None:
+        self.conn.close()
+        if self.process.is_alive():
+            self.process.kill()
+        self.process.join(5)
+
+
+class DesignPool:
+    """At most `size` warm designer processes, each serving one call at a time."""
+
+    def __init__(self, size: int, timeout_s: float) -> None:
+        self.timeout_s = timeout_s
+        self._slots = threading.BoundedSemaphore(size)
+        self._idle: list[_Child] = []
+        self._children: list[_Child] = []  # every process started, to end them all at shutdown
+        self._lock = threading.Lock()
+
+    def call(self, kind: str, payload: dict[str, Any]) -> dict[str, Any]:
+        """The answer of a warm process to (kind, payload): Invalid for a spec the spaces cannot meet or one
+        that runs past the time budget, DesignFailed when the process fails. Blocks: call it from a thread."""
+        with self._slots:
+            with self._lock:
+                child = self._idle.pop() if self._idle else None
+            if child is None or not child.process.is_alive():
+                child = _Child()
+                with self._lock:
+                    self._children = [c for c in self._children if c.process.is_alive()] + [child]
+            try:
+                child.conn.send((kind, payload))
+                if not child.conn.poll(self.timeout_s):
+                    child.end()
+                    raise Invalid(f"the designer's {kind} took longer than {self.timeout_s:g} s "
+                                  "(OMNIDATA_DESIGNER_TIMEOUT_S): lower points.count or points.max_views")
+                outcome, value = child.conn.recv()
+            except (EOFError, OSError) as e:
+                child.end()
+                raise DesignFailed(f"the designer's process ended during a {kind} (exit code "
+                                   f"{child.process.exitcode})") from e
+            with self._lock:
+                self._idle.append(child)
+        if outcome == "invalid":
+            raise Invalid(value)
+        if outcome != "ok":
+            raise DesignFailed(value)
+        return dict(value)
+
+    def warm(self) -> None:
+        """Start a process and load its imports and Blender ahead of the first call (in a background thread)."""
+        def run() -> None:
+            try:
+                self.call("warm", {})
+            except (Invalid, DesignFailed) as e:
+                log.warning("designer warm-up failed: %s", e)
+
+        with self._lock:
+            if self._idle:
+                return
+        threading.Thread(target=run, name="designer-warm", daemon=True).start()
+
+    def close(self) -> None:
+        """End the processes (the API is shutting down)."""
+        with self._lock:
+            children, self._children, self._idle = self._children, [], []
+        for child in children:
+            child.end()

@@ -54,7 +54,7 @@ OPENAPI_TAGS = [
     {"name": "outputs", "description": "Pre-signed links to a view's cue files; the job's manifest and job.json."},
     {"name": "progress", "description": "Server-sent events with live progress counters."},
     {"name": "workers", "description": "Render workers and their heartbeats."},
-    {"name": "designer", "description": "A spec's plan, distributions and small previews before a job exists."},
+    {"name": "designer", "description": "A spec's plan, distributions and previews before a job exists."},
     {"name": "ops", "description": "Health, readiness and Prometheus metrics."},
 ]
 
@@ -139,8 +139,8 @@ def create_app(
     app.add_middleware(RequestGuard, settings=settings)  # token and size checked before a body is read
     app.add_middleware(QueryTokenScrubber)  # ?token= never reaches a log line
     app.add_middleware(SecurityHeaders, settings=settings)  # CSP, no framing, nosniff
-    routers = (ops_router, spaces_router, jobs_router, views_router, outputs_router, progress_router, workers_router,
-               designer_router)
+    routers = (ops_router, spaces_router, jobs_router, views_router, outputs_router, progress_router,
+               workers_router, designer_router)
     for router in routers:
         app.include_router(router)
     mount_dashboard(app)

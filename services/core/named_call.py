@@ -1,8 +1,7 @@
 """Run a function named by "package.module:function" in a child process.
 
-The API starts the designer's preview process this way: it names the work, as it names a Celery task, and never
-imports the scheduler, the worker or bpy itself; only the child imports them.
-"""
+The API starts the designer's preview process this way: it names the work, as it names a Celery task, and
+never imports the scheduler, the worker or bpy itself; only the child imports them."""
 
 from __future__ import annotations
 

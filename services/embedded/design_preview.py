@@ -1,14 +1,13 @@
 """The designer page's warm process: plans a spec over stored spaces and renders a few small previews.
 
-The API starts one (or a few) of these by name (services.core.named_call) and talks to it over a pipe; it stays up
-between requests with the loaded spaces, the last plans and a Blender scene in memory, so a knob change costs a
-plan (tenths of a second on a room) and a few 96 px renders (tens of milliseconds each), not the seconds that
-importing Blender and building a scene take. The API waits for each answer within a time budget and ends the
-process when it runs past it; the next request starts a fresh one.
+The API starts one (or a few) of these by name (services.core.named_call) and talks to it over a pipe; it
+stays up between requests with the loaded spaces, the last plans and a Blender scene in memory, so a knob
+change costs a plan (tenths of a second on a room) and a few 96 px renders (tens of milliseconds each), not
+the seconds that importing Blender and building a scene take. The API waits for each answer within a time
+budget and ends the process when it runs past it; the next request starts a fresh one.
 
 Requests are (kind, payload) tuples, answers ("ok", result), ("invalid", message) for a spec the space cannot
-meet, or ("error", message). Positions are world metres (+Z up); angles in the report are degrees.
-"""
+meet, or ("error", message). Positions are world metres (+Z up); angles in the report are degrees."""
 
 from __future__ import annotations
 
@@ -30,7 +29,9 @@ from services.core.ingest.loading import LoadedSpace
 
 PREVIEW_CUES = ("rgb", "depth_zbuffer", "normal", "segment_unsup2d")
 PREVIEW_PX = 96
-MAX_DRAWN = 1500  # cameras, points and camera-point lines sent for the top and side views (a sample past that)
+MAX_DRAWN = (
+    1500  # cameras, points and camera-point lines sent for the top and side views (a sample past that)
+)
 CACHED_SPACES = 4
 CACHED_PLANS = 8
 NICENESS = 5  # the API process serving other requests comes first
@@ -62,8 +63,9 @@ class DesignState:
         from services.scheduler.plan_space import load_for_job
 
         key = json.dumps([source["path"], source["checksum"], source["frame"]], sort_keys=True)
-        return key, _cached(self.spaces, key, lambda: load_for_job(source["path"], spec, frame=source["frame"]),
-                            CACHED_SPACES)
+        return key, _cached(
+            self.spaces, key, lambda: load_for_job(source["path"], spec, frame=source["frame"]), CACHED_SPACES
+        )
 
     def plan(self, source: dict[str, Any], spec: JobSpec) -> tuple[str, LoadedSpace, SpacePlan]:
         """(space key, loaded space, its plan under `spec`), planned once per space and spec."""
@@ -97,10 +99,15 @@ def _drawing(source: dict[str, Any], loaded: LoadedSpace, plan: SpacePlan) -> di
     cam_at = {int(c): i for i, c in enumerate(cams)}
     point_at = {int(p): i for i, p in enumerate(points)}
     views_per_point = np.bincount([v.point_idx for v in plan.views], minlength=len(plan.points))
-    lines = [[point_at[v.point_idx], cam_at[v.camera_idx]] for v in plan.views
-             if v.point_idx in point_at and v.camera_idx in cam_at]
+    lines = [
+        [point_at[v.point_idx], cam_at[v.camera_idx]]
+        for v in plan.views
+        if v.point_idx in point_at and v.camera_idx in cam_at
+    ]
     return {
-        "id": source["id"], "name": source["name"], "shortfall": plan.shortfall,
+        "id": source["id"],
+        "name": source["name"],
+        "shortfall": plan.shortfall,
         "counts": {"cameras": len(plan.cameras), "points": len(plan.points), "views": len(plan.views)},
         "bounds": np.round(np.asarray(loaded.bounds, dtype=float), 3).tolist(),
         "cameras": [np.round(plan.cameras[c].position, 3).tolist() for c in cams],
@@ -110,7 +117,7 @@ def _drawing(source: dict[str, Any], loaded: LoadedSpace, plan: SpacePlan) -> di
 
 
 def plan_report(state: DesignState, payload: dict[str, Any]) -> dict[str, Any]:
-    """The plan of `payload["spec"]` over its spaces: per-space drawings, and the distributions of all views."""
+    """The plan of `payload["spec"]` over its spaces: per-space drawings, the distributions of all views."""
     from services.core.domain.steering import histograms, summary, view_distributions
 
     t0 = time.perf_counter()
@@ -121,12 +128,17 @@ def plan_report(state: DesignState, payload: dict[str, Any]) -> dict[str, Any]:
         drawn.append(_drawing(source, loaded, plan))
         values.append(view_distributions(plan, floor_z=float(np.asarray(loaded.bounds)[0][2])))
     merged = {name: np.concatenate([v[name] for v in values]) for name in values[0]} if values else {}
-    return {"spaces": drawn, "histograms": histograms(merged), "summary": summary(merged),
-            "planning_s": round(time.perf_counter() - t0, 3)}
+    return {
+        "spaces": drawn,
+        "histograms": histograms(merged),
+        "summary": summary(merged),
+        "planning_s": round(time.perf_counter() - t0, 3),
+    }
 
 
 def previews(state: DesignState, payload: dict[str, Any]) -> dict[str, Any]:
-    """PNG previews (readable renderings) of `payload["count"]` views spread over the plan, PREVIEW_PX square."""
+    """PNG previews (readable renderings) of `payload["count"]` views spread over the plan, PREVIEW_PX
+    square."""
     from services.datasets.previews import png_bytes, preview_array
     from services.worker.executor import render_view_cues
 
@@ -140,9 +152,17 @@ def previews(state: DesignState, payload: dict[str, Any]) -> dict[str, Any]:
         key, loaded, plan = planned[i]
         small = dataclasses.replace(view, resolution=PREVIEW_PX)
         files = render_view_cues(state.context(key, loaded), small, PREVIEW_CUES, spec.params, plan=plan)
-        out.append({"space": payload["spaces"][i]["name"], "point": view.point_idx, "view": view.v,
-                    "fov_deg": round(float(np.degrees(view.fov)), 1),
-                    "images": {cue: png_bytes(preview_array(cue, data, spec.params)) for cue, data in files.items()}})
+        out.append(
+            {
+                "space": payload["spaces"][i]["name"],
+                "point": view.point_idx,
+                "view": view.v,
+                "fov_deg": round(float(np.degrees(view.fov)), 1),
+                "images": {
+                    cue: png_bytes(preview_array(cue, data, spec.params)) for cue, data in files.items()
+                },
+            }
+        )
     return {"previews": out, "render_s": round(time.perf_counter() - t0, 3)}
 
 
@@ -156,7 +176,9 @@ def warm(_state: DesignState, _payload: dict[str, Any]) -> dict[str, Any]:
 
 
 HANDLERS: dict[str, Callable[[DesignState, dict[str, Any]], dict[str, Any]]] = {
-    "plan": plan_report, "previews": previews, "warm": warm,
+    "plan": plan_report,
+    "previews": previews,
+    "warm": warm,
 }
 
 

@@ -1,8 +1,9 @@
-"""Designer routes: a spec's plan (drawings and distributions) and a few small previews, before any job exists.
+"""Designer routes: a spec's plan (drawings and distributions) and a few small previews, before any job
+exists.
 
 Each call plans in one of the API's warm designer processes (services.api.designer.pool) within a time budget,
-never in the API process; a tenant has at most OMNIDATA_TENANT_DESIGN_CONCURRENCY of them under way (429 past it).
-"""
+never in the API process; a tenant has at most OMNIDATA_TENANT_DESIGN_CONCURRENCY of them under way (429 past
+it)."""
 
 from __future__ import annotations
 
@@ -23,7 +24,9 @@ router = APIRouter(prefix="/designer", tags=["designer"])
 
 _REFUSALS: dict[int | str, dict[str, Any]] = {
     404: {"description": "a space that is not yours"},
-    422: {"description": "a bad spec (each failing field named), or one the spaces cannot meet in the budget"},
+    422: {
+        "description": "a bad spec (each failing field named), or one the spaces cannot meet in the budget"
+    },
     429: {"description": "too many designer calls of this tenant under way"},
 }
 
@@ -40,28 +43,53 @@ def schema(request: Request, tenant: TenantDep) -> dict[str, Any]:
     return JobSpec.model_json_schema()
 
 
-async def _prepared(body: DesignRequest, session: Any, store: Any, settings: Any,
-                    tenant: str) -> tuple[JobSpec, list[dict[str, Any]]]:
+async def _prepared(
+    body: DesignRequest, session: Any, store: Any, settings: Any, tenant: str
+) -> tuple[JobSpec, list[dict[str, Any]]]:
     spec = service.spec_of(body)
-    spaces = await run_in_threadpool(service.sources, session, store, settings, owner=tenant,
-                                     space_ids=body.space_ids, spec=spec)
+    spaces = await run_in_threadpool(
+        service.sources, session, store, settings, owner=tenant, space_ids=body.space_ids, spec=spec
+    )
     return spec, spaces
 
 
-@router.post("/plan", response_model=DesignPlan, summary="Plan a spec over spaces: drawings and distributions",
-             responses=_REFUSALS, dependencies=[DesignSlot])
-async def design_plan(body: DesignRequest, request: Request, session: ReadSessionDep, store: StoreDep,
-                      settings: SettingsDep, tenant: TenantDep) -> DesignPlan:
+@router.post(
+    "/plan",
+    response_model=DesignPlan,
+    summary="Plan a spec over spaces: drawings and distributions",
+    responses=_REFUSALS,
+    dependencies=[DesignSlot],
+)
+async def design_plan(
+    body: DesignRequest,
+    request: Request,
+    session: ReadSessionDep,
+    store: StoreDep,
+    settings: SettingsDep,
+    tenant: TenantDep,
+) -> DesignPlan:
     """The spec (JSON and YAML), a sample of its cameras, points and views per space, and histograms of its
     views' field of view, pitch, roll, height, distance, obliqueness and views per point (fixed bin edges)."""
     spec, spaces = await _prepared(body, session, store, settings, tenant)
     return await anyio.to_thread.run_sync(service.plan, _pool(request), spec, spaces)
 
 
-@router.post("/previews", response_model=DesignPreviews, summary="Small previews of a few planned views",
-             responses=_REFUSALS, dependencies=[DesignSlot])
-async def design_previews(body: DesignRequest, request: Request, session: ReadSessionDep, store: StoreDep,
-                          settings: SettingsDep, tenant: TenantDep) -> DesignPreviews:
-    """rgb, depth, normal and segment previews (96 px PNG data URLs) of `previews` views spread over the plan."""
+@router.post(
+    "/previews",
+    response_model=DesignPreviews,
+    summary="Small previews of a few planned views",
+    responses=_REFUSALS,
+    dependencies=[DesignSlot],
+)
+async def design_previews(
+    body: DesignRequest,
+    request: Request,
+    session: ReadSessionDep,
+    store: StoreDep,
+    settings: SettingsDep,
+    tenant: TenantDep,
+) -> DesignPreviews:
+    """rgb, depth, normal and segment previews (96 px PNG data URLs) of `previews` views spread over
+    the plan."""
     spec, spaces = await _prepared(body, session, store, settings, tenant)
     return await anyio.to_thread.run_sync(service.previews, _pool(request), spec, spaces, body.previews)

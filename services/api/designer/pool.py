@@ -2,12 +2,12 @@
 
 Why warm processes and not the render queue: a preview wants 4 views of 96 px now, and a worker's task grain
 (load the space, build the Blender scene, render, store, commit) costs seconds before the first pixel, queued
-behind other tenants' jobs; a warm child keeps the loaded space, its last plans and its Blender scene, so a knob
-change costs a plan and a few renders of tens of milliseconds. The pool is bounded (OMNIDATA_DESIGNER_PROCESSES),
-each call waits in a thread of the API's limiter, and each answer is awaited within OMNIDATA_DESIGNER_TIMEOUT_S:
-a process past it is killed (the plan or render stops at once) and the next call starts a fresh one. The API
-itself never imports the planner or Blender: the child runs the function named by TARGET.
-"""
+behind other tenants' jobs; a warm child keeps the loaded space, its last plans and its Blender scene, so a
+knob change costs a plan and a few renders of tens of milliseconds. The pool is bounded
+(OMNIDATA_DESIGNER_PROCESSES), each call waits for a free process in a thread, and each answer is awaited
+within OMNIDATA_DESIGNER_TIMEOUT_S: a process past it is killed (the plan or render stops at once) and the
+next call starts a fresh one. The API itself never imports the planner or Blender: the child runs the function
+named by TARGET."""
 
 from __future__ import annotations
 
@@ -34,7 +34,8 @@ class _Child:
     def __init__(self) -> None:
         self.conn, child_conn = _CONTEXT.Pipe()
         self.process: BaseProcess = _CONTEXT.Process(
-            target=call_named, args=(TARGET, child_conn), name="omnidata-designer", daemon=True)
+            target=call_named, args=(TARGET, child_conn), name="omnidata-designer", daemon=True
+        )
         self.process.start()
         child_conn.close()
 
@@ -69,13 +70,16 @@ class DesignPool:
                 child.conn.send((kind, payload))
                 if not child.conn.poll(self.timeout_s):
                     child.end()
-                    raise Invalid(f"the designer's {kind} took longer than {self.timeout_s:g} s "
-                                  "(OMNIDATA_DESIGNER_TIMEOUT_S): lower points.count or points.max_views")
+                    raise Invalid(
+                        f"the designer's {kind} took longer than {self.timeout_s:g} s "
+                        "(OMNIDATA_DESIGNER_TIMEOUT_S): lower points.count or points.max_views"
+                    )
                 outcome, value = child.conn.recv()
             except (EOFError, OSError) as e:
                 child.end()
-                raise DesignFailed(f"the designer's process ended during a {kind} (exit code "
-                                   f"{child.process.exitcode})") from e
+                raise DesignFailed(
+                    f"the designer's process ended during a {kind} (exit code {child.process.exitcode})"
+                ) from e
             with self._lock:
                 self._idle.append(child)
         if outcome == "invalid":
@@ -85,7 +89,8 @@ class DesignPool:
         return dict(value)
 
     def warm(self) -> None:
-        """Start a process and load its imports and Blender ahead of the first call (in a background thread)."""
+        """Start a process and load its imports and Blender before the first call (in a background thread)."""
+
         def run() -> None:
             try:
                 self.call("warm", {})
@@ -93,7 +98,7 @@ class DesignPool:
                 log.warning("designer warm-up failed: %s", e)
 
         with self._lock:
-            if self._idle:
+            if self._children:  # started already (warm, or busy serving)
                 return
         threading.Thread(target=run, name="designer-warm", daemon=True).start()
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from services.api.jobs.schemas import DbId
 from services.core.domain.jobspec import JobSpec
@@ -19,10 +19,23 @@ class DesignRequest(BaseModel):
 
     model_config = ConfigDict(extra="forbid", strict=True)
 
-    space_ids: list[DbId] = Field(min_length=1, max_length=MAX_SPACES, description="ids of your spaces, in order")
+    space_ids: list[DbId] = Field(
+        min_length=1, max_length=MAX_SPACES, description="ids of your spaces, in order"
+    )
     spec: JobSpec | None = Field(None, description="the steering knobs (default: all defaults)")
-    spec_yaml: str | None = Field(None, max_length=MAX_YAML_CHARS, description="the same knobs as a YAML document")
-    previews: int = Field(4, ge=0, le=MAX_PREVIEWS, description="views to render small previews of (/previews)")
+    spec_yaml: str | None = Field(
+        None, max_length=MAX_YAML_CHARS, description="the same knobs as a YAML document"
+    )
+    previews: int = Field(
+        4, ge=0, le=MAX_PREVIEWS, description="views to render small previews of (/previews)"
+    )
+
+    @field_validator("space_ids")
+    @classmethod
+    def _unique(cls, v: list[int]) -> list[int]:
+        if len(set(v)) < len(v):
+            raise ValueError("each space once")
+        return v
 
     @model_validator(mode="after")
     def _one_spec(self) -> DesignRequest:
@@ -41,11 +54,13 @@ class SpaceDrawing(BaseModel):
     bounds: list[list[float]] = Field(description="world-frame box, metres, +Z up")
     cameras: list[list[float]] = Field(description="[x, y, z] metres")
     points: list[list[float]] = Field(description="[x, y, z, views of the point]")
-    lines: list[list[int]] = Field(description="[point index, camera index] into the lists above, one per view")
+    lines: list[list[int]] = Field(
+        description="[point index, camera index] into the lists above, one per view"
+    )
 
 
 class DesignPlan(BaseModel):
-    """A spec's plan: the spec as JSON (knobs that differ from the defaults) and YAML, spaces, distributions."""
+    """A spec's plan: the spec as JSON (knobs off their defaults) and YAML, spaces, distributions."""
 
     spec: dict[str, Any]
     yaml: str

@@ -1,4 +1,5 @@
-"""The designer's logic: the spec from JSON or YAML, the caller's spaces as sources, the calls to the warm pool."""
+"""The designer's logic: the spec from JSON or YAML, the caller's spaces as sources, the calls to the warm
+pool."""
 
 from __future__ import annotations
 
@@ -54,10 +55,18 @@ def spec_yaml(spec: JobSpec) -> str:
     return yaml.safe_dump(knobs, sort_keys=False) if knobs else "{}\n"
 
 
-def sources(session: Session, store: ObjectStore, settings: Settings, *, owner: str, space_ids: list[int],
-            spec: JobSpec) -> list[dict[str, Any]]:
-    """What the warm process needs of each of the caller's spaces (NotFound for another's): the local path of its
-    source, its checksum and the frame a job with `spec` plans it in. Refuses a spec over the planning budget."""
+def sources(
+    session: Session,
+    store: ObjectStore,
+    settings: Settings,
+    *,
+    owner: str,
+    space_ids: list[int],
+    spec: JobSpec,
+) -> list[dict[str, Any]]:
+    """What the warm process needs of each of the caller's spaces (NotFound for another's): the local path
+    of its source, its checksum and the frame a job with `spec` plans it in. Refuses a spec over the
+    planning budget."""
     try:
         check_plan_budget(spec, memory_mb=settings.plan_memory_mb, timeout_s=settings.designer_timeout_s)
     except PlanOverBudget as e:
@@ -71,21 +80,32 @@ def sources(session: Session, store: ObjectStore, settings: Settings, *, owner: 
         except ValueError as e:
             raise Invalid(str(e)) from None
         path = fetch_space(store, space, Path(settings.data_dir) / "api-space-cache")
-        out.append({"id": space.id, "name": space.name, "path": str(path), "checksum": space.checksum,
-                    "frame": dict(space_frame_for(spec, space))})
+        out.append(
+            {
+                "id": space.id,
+                "name": space.name,
+                "path": str(path),
+                "checksum": space.checksum,
+                "frame": dict(space_frame_for(spec, space)),
+            }
+        )
     return out
 
 
 def plan(pool: DesignPool, spec: JobSpec, spaces: list[dict[str, Any]]) -> DesignPlan:
     """The plan report of `spec` over `spaces` (from `sources`), from a warm process."""
     report = pool.call("plan", {"spec": spec.model_dump(mode="json"), "spaces": spaces})
-    return DesignPlan(spec=spec.model_dump(mode="json", exclude_defaults=True), yaml=spec_yaml(spec), **report)
+    return DesignPlan(
+        spec=spec.model_dump(mode="json", exclude_defaults=True), yaml=spec_yaml(spec), **report
+    )
 
 
 def previews(pool: DesignPool, spec: JobSpec, spaces: list[dict[str, Any]], count: int) -> DesignPreviews:
     """Small previews of `count` views of the plan, as PNG data URLs."""
     out = pool.call("previews", {"spec": spec.model_dump(mode="json"), "spaces": spaces, "count": count})
     for view in out["previews"]:
-        view["images"] = {cue: "data:image/png;base64," + base64.b64encode(png).decode("ascii")
-                          for cue, png in view["images"].items()}
+        view["images"] = {
+            cue: "data:image/png;base64," + base64.b64encode(png).decode("ascii")
+            for cue, png in view["images"].items()
+        }
     return DesignPreviews(**out)

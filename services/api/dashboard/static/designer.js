@@ -1,15 +1,16 @@
-/* The designer page (#/designer): pick spaces, edit every JobSpec knob in a form built from the spec's JSON schema or
-   as YAML (each updates the other through the server, which validates both), and see the plan's top and side views,
-   the histograms of its view distributions and a few small previews within seconds. Two specs, A and B, keep their
-   own results; their histograms are drawn overlaid. Loaded before app.js; uses its helpers (h, svg, api, flash,
-   fmtNum) only when called. */
+/* The designer page (#/designer): pick spaces, edit every JobSpec knob in a form built from the spec's
+   JSON schema or as YAML (each updates the other through the server, which validates both), and see the
+   plan's top and side views, the histograms of its view distributions and a few small previews within
+   seconds. Two specs, A and B, keep their own results; their histograms are drawn overlaid. Loaded before
+   app.js; uses its helpers (h, svg, api, fmtNum) only when called. */
 "use strict";
 
 const DESIGN_CUES = ["rgb", "depth_zbuffer", "normal", "segment_unsup2d"];
 const DIST_LABELS = { fov_deg: "field of view (°)", pitch_deg: "pitch (°)", roll_deg: "roll (°)",
   height_m: "camera height (m)", distance_m: "distance to the point (m)", obliqueness_deg: "obliqueness (°)",
   views_per_point: "views per point" };
-const DESIGN_START = { points: { count: 100, max_views: 5 }, views: { resolution: 256 } };  // 500 views on a room
+// 500 views on a room
+const DESIGN_START = { points: { count: 100, max_views: 5 }, views: { resolution: 256 } };
 
 // ------------------------------------------------------------------------------------------ schema form
 
@@ -17,7 +18,8 @@ function resolveRef(schema, node) {
   return node && node.$ref ? schema.$defs[node.$ref.split("/").pop()] : node;
 }
 
-function knobKind(node) {  // "number" | "integer" | "boolean" | "enum" | "string" | "json" | "object", nullable
+// {kind: number | integer | boolean | enum | string | json | object, nullable}
+function knobKind(node) {
   const options = node.anyOf || [node];
   const real = options.filter((o) => o.type !== "null");
   const nullable = real.length < options.length;
@@ -30,7 +32,9 @@ function knobKind(node) {  // "number" | "integer" | "boolean" | "enum" | "strin
   return { kind: "json", nullable };
 }
 
-function getPath(obj, path) { return path.reduce((o, k) => (o && typeof o === "object" ? o[k] : undefined), obj); }
+function getPath(obj, path) {
+  return path.reduce((o, k) => (o && typeof o === "object" ? o[k] : undefined), obj);
+}
 
 function setPath(obj, path, value) {
   let o = obj;
@@ -54,14 +58,16 @@ function knobInput(path, node, kind, onChange) {
     el = h("select", { id }, kind.nullable ? h("option", { value: "" }, "none") : null,
       kind.values.map((v) => h("option", { value: v }, v)));
   } else {
-    el = h("input", { id, type: kind.kind === "number" || kind.kind === "integer" ? "number" : "text", step: "any",
+    const numeric = kind.kind === "number" || kind.kind === "integer";
+    el = h("input", { id, type: numeric ? "number" : "text", step: "any",
                       placeholder: kind.nullable ? "none" : "" });
   }
   el.dataset.path = JSON.stringify(path);
   el.dataset.kind = kind.kind;
-  el.addEventListener(kind.kind === "boolean" || kind.kind === "enum" ? "change" : "input", () => onChange(path, read(el)));
-  return h("label", { class: kind.kind === "boolean" ? "check" : "", title: node.description || "" },
-    kind.kind === "boolean" ? el : null, path[path.length - 1].replace(/_/g, " "), kind.kind === "boolean" ? null : el);
+  const box = kind.kind === "boolean";
+  el.addEventListener(box || kind.kind === "enum" ? "change" : "input", () => onChange(path, read(el)));
+  return h("label", { class: box ? "check" : "", title: node.description || "" },
+    box ? el : null, path[path.length - 1].replace(/_/g, " "), box ? null : el);
 }
 
 function specForm(schema, onChange, node = schema, path = [], depth = 0) {
@@ -70,7 +76,8 @@ function specForm(schema, onChange, node = schema, path = [], depth = 0) {
     const kind = knobKind(prop);
     if (kind.kind === "object") {
       const sub = resolveRef(schema, kind.ref);
-      nested.push(h("details", { class: "knobs", open: depth === 0 && ["cameras", "points", "views"].includes(name) },
+      const open = depth === 0 && ["cameras", "points", "views"].includes(name);
+      nested.push(h("details", { class: "knobs", open },
         h("summary", {}, name), specForm(schema, onChange, sub, [...path, name], depth + 1)));
     } else simple.push(knobInput([...path, name], prop, kind, onChange));
   }
@@ -95,7 +102,8 @@ function fillForm(form, defaults, spec) {
     if (value === undefined) value = getPath(defaults, path);
     if (el.dataset.kind === "boolean") el.checked = !!value;
     else if (value === null || value === undefined) el.value = "";
-    else el.value = el.dataset.kind === "json" && typeof value !== "string" ? JSON.stringify(value) : String(value);
+    else if (el.dataset.kind === "json" && typeof value !== "string") el.value = JSON.stringify(value);
+    else el.value = String(value);
   }
 }
 
@@ -104,11 +112,13 @@ function fillForm(form, defaults, spec) {
 function designPlot(space, axes, slot) {  // axes [0, 1]: top-down (x, y); [0, 2]: side (x, z)
   const W = 300, H = axes[1] === 1 ? 240 : 130, pad = 10;
   const [b0, b1] = space.bounds, [i, j] = axes;
-  const s = Math.min((W - 2 * pad) / Math.max(b1[i] - b0[i], 1e-6), (H - 2 * pad) / Math.max(b1[j] - b0[j], 1e-6));
+  const s = Math.min((W - 2 * pad) / Math.max(b1[i] - b0[i], 1e-6),
+                     (H - 2 * pad) / Math.max(b1[j] - b0[j], 1e-6));
   const X = (p) => pad + (p[i] - b0[i]) * s, Y = (p) => H - pad - (p[j] - b0[j]) * s;
   const g = svg("svg", { viewBox: `0 0 ${W} ${H}`, class: `plot design-plot slot-${slot}`, role: "img",
     "aria-label": `${axes[1] === 1 ? "top-down" : "side"} view of ${space.name}` });
-  g.append(svg("rect", { x: X(b0), y: Y(b1), width: (b1[i] - b0[i]) * s, height: (b1[j] - b0[j]) * s, class: "bounds" }));
+  g.append(svg("rect", { x: X(b0), y: Y(b1), width: (b1[i] - b0[i]) * s, height: (b1[j] - b0[j]) * s,
+                         class: "bounds" }));
   const edges = svg("g", { class: "edges" });
   for (const [p, c] of space.lines) {
     const P = space.points[p], C = space.cameras[c];
@@ -116,17 +126,21 @@ function designPlot(space, axes, slot) {  // axes [0, 1]: top-down (x, y); [0, 2
   }
   g.append(edges);
   for (const p of space.points) g.append(svg("circle", { cx: X(p), cy: Y(p), r: 1.6, class: "point" }));
-  for (const c of space.cameras) g.append(svg("rect", { x: X(c) - 2, y: Y(c) - 2, width: 4, height: 4, class: "camera" }));
+  for (const c of space.cameras) {
+    g.append(svg("rect", { x: X(c) - 2, y: Y(c) - 2, width: 4, height: 4, class: "camera" }));
+  }
   return g;
 }
 
-function overlayHistogram(name, series) {  // series: [{slot, histogram}], each drawn as fractions of its total
+// series: [{slot, histogram}], each drawn as fractions of its own total so that A and B compare
+function overlayHistogram(name, series) {
   const W = 260, H = 120, pad = 18;
   const edges = series[0].histogram.edges, bins = edges.length - 1;
   const fracs = series.map((s) => { const n = s.histogram.counts.reduce((a, b) => a + b, 0) || 1;
     return s.histogram.counts.map((c) => c / n); });
   const max = Math.max(1e-9, ...fracs.flat()), bw = (W - 2 * pad) / bins;
-  const g = svg("svg", { viewBox: `0 0 ${W} ${H}`, class: "chart hist", role: "img", "aria-label": DIST_LABELS[name] || name });
+  const label = DIST_LABELS[name] || name;
+  const g = svg("svg", { viewBox: `0 0 ${W} ${H}`, class: "chart hist", role: "img", "aria-label": label });
   g.dataset.name = name;
   series.forEach((s, k) => {
     g.dataset[`counts${s.slot.toUpperCase()}`] = s.histogram.counts.join(",");
@@ -135,14 +149,16 @@ function overlayHistogram(name, series) {  // series: [{slot, histogram}], each 
       if (!f) return;
       const bh = (H - 2 * pad) * (f / max);
       grp.append(svg("rect", { x: pad + b * bw, y: H - pad - bh, width: Math.max(bw - 0.5, 0.5), height: bh },
-        svg("title", {}, `${s.slot.toUpperCase()}: ${s.histogram.counts[b]} in ${fmtNum(edges[b], 2)}–${fmtNum(edges[b + 1], 2)}`)));
+        svg("title", {}, `${s.slot.toUpperCase()}: ${s.histogram.counts[b]} in ` +
+          `${fmtNum(edges[b], 2)}–${fmtNum(edges[b + 1], 2)}`)));
     });
     g.append(grp);
   });
   g.append(svg("line", { x1: pad, y1: H - pad, x2: W - pad, y2: H - pad, class: "axis" }));
-  g.append(svg("text", { x: pad, y: 12, class: "chart-label" }, DIST_LABELS[name] || name));
+  g.append(svg("text", { x: pad, y: 12, class: "chart-label" }, label));
   g.append(svg("text", { x: pad, y: H - 4, class: "chart-label" }, fmtNum(edges[0], 1)));
-  g.append(svg("text", { x: W - pad, y: H - 4, class: "chart-label", "text-anchor": "end" }, fmtNum(edges[bins], 1)));
+  g.append(svg("text", { x: W - pad, y: H - 4, class: "chart-label", "text-anchor": "end" },
+    fmtNum(edges[bins], 1)));
   return g;
 }
 
@@ -159,9 +175,10 @@ function summaryLine(report) {
 
 function previewRow(p) {
   return h("div", { class: "design-preview", dataset: { point: p.point, view: p.view, fov: p.fov_deg } },
-    h("div", { class: "muted" }, `${p.space} · point ${p.point} · view ${p.view} · fov ${fmtNum(p.fov_deg, 1)}°`),
-    h("div", { class: "tiles" }, DESIGN_CUES.filter((c) => p.images[c]).map((c) =>
-      h("div", { class: "tile" }, h("img", { src: p.images[c], alt: c, width: 96, height: 96 }), h("span", {}, c)))));
+    h("div", { class: "muted" },
+      `${p.space} · point ${p.point} · view ${p.view} · fov ${fmtNum(p.fov_deg, 1)}°`),
+    h("div", { class: "tiles" }, DESIGN_CUES.filter((c) => p.images[c]).map((c) => h("div", { class: "tile" },
+      h("img", { src: p.images[c], alt: c, width: 96, height: 96 }), h("span", {}, c)))));
 }
 
 async function viewDesigner(root) {
@@ -171,25 +188,30 @@ async function viewDesigner(root) {
                                pending: null, timer: null });
   const ds = { active: "a", slots: { a: newSlot(DESIGN_START), b: null } };
   const spaces = page.items;
+  const replanAll = () => {
+    for (const n of ["a", "b"]) if (ds.slots[n]) schedule(n, { spec: ds.slots[n].spec });
+  };
   const picks = h("div", { class: "cue-picks", id: "design-spaces" }, spaces.map((s, k) =>
-    h("label", { class: "check" }, h("input", { type: "checkbox", class: "design-space", value: s.id, checked: k === 0,
-      onchange: () => { for (const n of ["a", "b"]) if (ds.slots[n]) schedule(n, { spec: ds.slots[n].spec }); } }),
+    h("label", { class: "check" }, h("input", { type: "checkbox", class: "design-space", value: s.id,
+                                                checked: k === 0, onchange: replanAll }),
       `${s.name} (#${s.id})`)));
   const spaceIds = () => [...picks.querySelectorAll("input:checked")].map((i) => Number(i.value));
   const error = h("p", { class: "error", id: "design-error", role: "alert" });
   const status = h("p", { class: "muted", id: "design-status", role: "status" });
   const yamlBox = h("textarea", { id: "design-yaml", rows: 18, spellcheck: "false",
     "aria-label": "the spec as YAML", oninput: () => schedule(ds.active, { spec_yaml: yamlBox.value }) });
-  const form = h("form", { id: "design-form", onsubmit: (e) => e.preventDefault() }, specForm(schema, (path, value) => {
+  const onKnob = (path, value) => {
     const slot = ds.slots[ds.active];
     setPath(slot.spec, path, value);
     schedule(ds.active, { spec: slot.spec });
-  }));
+  };
+  const form = h("form", { id: "design-form", onsubmit: (e) => e.preventDefault() },
+    specForm(schema, onKnob));
   const hists = h("div", { id: "design-hists", class: "hists" });
   const cards = { a: slotCard("a"), b: slotCard("b") };
   cards.b.hidden = true;
-  const tab = (n) => h("button", { type: "button", id: `slot-${n}`, class: "slot-tab", onclick: () => activate(n) },
-    `Spec ${n.toUpperCase()}`);
+  const tab = (n) => h("button", { type: "button", id: `slot-${n}`, class: "slot-tab",
+                                   onclick: () => activate(n) }, `Spec ${n.toUpperCase()}`);
   const tabs = { a: tab("a"), b: tab("b") };
   tabs.b.hidden = true;
   const compare = h("button", { type: "button", id: "design-compare", onclick: () => {
@@ -231,8 +253,9 @@ async function viewDesigner(root) {
   function drawHists() {
     const a = ds.slots.a.report, b = ds.slots.b && ds.slots.b.report;
     if (!a) return;
-    hists.replaceChildren(...Object.keys(a.histograms).map((name) => overlayHistogram(name,
-      [{ slot: "a", histogram: a.histograms[name] }, ...(b ? [{ slot: "b", histogram: b.histograms[name] }] : [])])));
+    const series = (name) => [{ slot: "a", histogram: a.histograms[name] },
+                              ...(b ? [{ slot: "b", histogram: b.histograms[name] }] : [])];
+    hists.replaceChildren(...Object.keys(a.histograms).map((name) => overlayHistogram(name, series(name))));
   }
 
   function drawSlot(n) {
@@ -284,7 +307,8 @@ async function viewDesigner(root) {
     card.dataset.planSeq = String(++slot.seq);
     if (slot.pending) { card.classList.remove("busy"); return; }  // a newer edit: its previews instead
     try {
-      const out = await api("/designer/previews", { method: "POST", body: { space_ids: ids, spec: report.spec } });
+      const body = { space_ids: ids, spec: report.spec };
+      const out = await api("/designer/previews", { method: "POST", body });
       const box = card.querySelector(".previews");
       box.replaceChildren(...out.previews.map(previewRow),
         h("p", { class: "muted" }, `rendered in ${fmtNum(out.render_s, 2)} s`));
@@ -295,7 +319,7 @@ async function viewDesigner(root) {
 
   root.append(h("section", { id: "designer" },
     h("div", { class: "row" }, h("h1", {}, "Designer"),
-      h("span", { class: "muted" }, "a spec's cameras, points, view distributions and previews before any job")),
+      h("span", { class: "muted" }, "a spec's cameras, points, distributions and previews before any job")),
     h("div", { class: "card" }, h("h2", {}, "Spaces"),
       spaces.length ? picks : h("p", { class: "muted" }, "Upload a space first (Jobs page).")),
     h("div", { class: "design-top" },
@@ -304,7 +328,8 @@ async function viewDesigner(root) {
         error, status,
         h("div", { class: "design-spec" }, h("div", { class: "design-form-box" }, form),
           h("label", { class: "design-yaml-box" }, "YAML (edit either side)", yamlBox))),
-      h("div", { class: "card" }, h("h2", {}, "Distributions (A filled, B outlined; share of views)"), hists)),
+      h("div", { class: "card" }, h("h2", {}, "Distributions (A filled, B outlined; share of views)"),
+        hists)),
     h("div", { class: "two" }, cards.a, cards.b)));
   activate("a");
   if (spaces.length) schedule("a", { spec: ds.slots.a.spec });

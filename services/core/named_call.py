@@ -6,6 +6,8 @@ never imports the scheduler, the worker or bpy itself; only the child imports th
 from __future__ import annotations
 
 import importlib
+import sys
+from multiprocessing.connection import Connection
 from typing import Any
 
 
@@ -13,3 +15,7 @@ def call_named(target: str, *args: Any) -> Any:
     """Import `target` ("module:function") and call it with `args`."""
     module, _, name = target.partition(":")
     return getattr(importlib.import_module(module), name)(*args)
+
+
+if __name__ == "__main__":  # python -m services.core.named_call TARGET FD: serve TARGET on the socket FD
+    call_named(sys.argv[1], Connection(int(sys.argv[2])))

@@ -12,18 +12,22 @@ named by TARGET."""
 from __future__ import annotations
 
 import logging
-import multiprocessing as mp
+import os
+import socket
+import subprocess
+import sys
 import threading
-from multiprocessing.process import BaseProcess
+from multiprocessing.connection import Connection
+from pathlib import Path
 from typing import Any
 
 from services.core.domain.errors import Invalid
-from services.core.named_call import call_named
 
 log = logging.getLogger("omnidata.designer")
 
 TARGET = "services.embedded.design_preview:serve"
-_CONTEXT = mp.get_context("spawn")  # the API process has threads: a fork could copy a held lock
+# where `services` is imported from, for the child (a checkout run without installing it)
+_SOURCE_ROOT = str(Path(__file__).resolve().parents[3])
 
 
 class DesignFailed(RuntimeError):
@@ -31,19 +35,27 @@ class DesignFailed(RuntimeError):
 
 
 class _Child:
+    """A fresh interpreter (not a fork of the API's threads, and not a multiprocessing spawn, which would run the
+    API's main module again) serving TARGET over a socket pair; it exits when its socket closes."""
+
     def __init__(self) -> None:
-        self.conn, child_conn = _CONTEXT.Pipe()
-        self.process: BaseProcess = _CONTEXT.Process(
-            target=call_named, args=(TARGET, child_conn), name="omnidata-designer", daemon=True
-        )
-        self.process.start()
-        child_conn.close()
+        mine, theirs = socket.socketpair()
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+            p for p in (_SOURCE_ROOT, os.environ.get("PYTHONPATH")) if p))
+        with theirs:
+            self.process = subprocess.Popen(
+                [sys.executable, "-m", "services.core.named_call", TARGET, str(theirs.fileno())],
+                pass_fds=[theirs.fileno()], env=env, stdin=subprocess.DEVNULL)
+        self.conn = Connection(mine.detach())
+
+    def alive(self) -> bool:
+        return self.process.poll() is None
 
     def end(self) -> None:
         self.conn.close()
-        if self.process.is_alive():
+        if self.alive():
             self.process.kill()
-        self.process.join(5)
+        self.process.wait(5)
 
 
 class DesignPool:
@@ -62,10 +74,10 @@ class DesignPool:
         with self._slots:
             with self._lock:
                 child = self._idle.pop() if self._idle else None
-            if child is None or not child.process.is_alive():
+            if child is None or not child.alive():
                 child = _Child()
                 with self._lock:
-                    self._children = [c for c in self._children if c.process.is_alive()] + [child]
+                    self._children = [c for c in self._children if c.alive()] + [child]
             try:
                 child.conn.send((kind, payload))
                 if not child.conn.poll(self.timeout_s):
@@ -78,7 +90,7 @@ class DesignPool:
             except (EOFError, OSError) as e:
                 child.end()
                 raise DesignFailed(
-                    f"the designer's process ended during a {kind} (exit code {child.process.exitcode})"
+                    f"the designer's process ended during a {kind} (exit code {child.process.poll()})"
                 ) from e
             with self._lock:
                 self._idle.append(child)

@@ -152,7 +152,7 @@ def test_a_plan_past_the_time_budget_is_ended_and_the_api_stays_up(
         r = api.client.post("/designer/plan", json={"space_ids": [r.json()["id"]]}, headers=api.a.headers)
         assert r.status_code == 422 and "took longer than 0.05 s" in r.json()["detail"], r.text
         assert api.client.get("/health").status_code == 200
-        assert not [c for c in api.app.state.designer._children if c.process.is_alive()]
+        assert not [c for c in api.app.state.designer._children if c.alive()]
 
 
 def test_the_api_process_imports_neither_the_planner_nor_blender() -> None:

@@ -137,4 +137,5 @@ def _report(times: list[float], views: int, first_s: float) -> None:
             "views": views, "knob_to_histograms_and_previews_s": [round(t, 3) for t in times],
             "median_s": round(median, 3), "page_open_to_first_previews_s": round(first_s, 3),
             "machine": f"{platform.machine()}, {os.cpu_count()} cores, shared with other work",
+            "load_average_1m_after": round(os.getloadavg()[0], 2),
         }, indent=2) + "\n")

@@ -184,8 +184,8 @@ function previewRow(p) {
 async function viewDesigner(root) {
   const [schema, page] = await Promise.all([api("/designer/schema"), api("/spaces?limit=1000")]);
   const defaults = schemaDefaults(schema);
-  const newSlot = (spec) => ({ spec: JSON.parse(JSON.stringify(spec)), report: null, seq: 0, busy: false,
-                               pending: null, timer: null });
+  const newSlot = (spec) => ({ spec: JSON.parse(JSON.stringify(spec)), report: null, seq: 0, sent: 0,
+                               busy: false, pending: null, timer: null });
   const ds = { active: "a", slots: { a: newSlot(DESIGN_START), b: null } };
   const spaces = page.items;
   const replanAll = () => {
@@ -287,7 +287,7 @@ async function viewDesigner(root) {
 
   async function refresh(n, body) {
     const slot = ds.slots[n], card = cards[n];
-    const ids = spaceIds();
+    const ids = spaceIds(), sent = ++slot.sent;
     if (!ids.length) { error.textContent = "Pick a space."; return; }
     card.classList.add("busy");
     let report;
@@ -295,6 +295,9 @@ async function viewDesigner(root) {
       report = await api("/designer/plan", { method: "POST", body: { space_ids: ids, ...body } });
     } catch (ex) {
       card.classList.remove("busy");
+      if (ex.status === 429) {  // this tenant's other tabs hold its slots: ask again soon, unless edited since
+        setTimeout(() => { if (slot.sent === sent && !slot.pending) schedule(n, body); }, 1000);
+      }
       if (n === ds.active) error.textContent = `Spec ${n.toUpperCase()}: ${ex.message}`;
       return;
     }

@@ -295,7 +295,7 @@ async function viewDesigner(root) {
       report = await api("/designer/plan", { method: "POST", body: { space_ids: ids, ...body } });
     } catch (ex) {
       card.classList.remove("busy");
-      if (ex.status === 429) {  // this tenant's other tabs hold its slots: ask again soon, unless edited since
+      if (ex.status === 429) {  // other tabs hold this tenant's slots: ask again soon, unless edited since
         setTimeout(() => { if (slot.sent === sent && !slot.pending) schedule(n, body); }, 1000);
       }
       if (n === ds.active) error.textContent = `Spec ${n.toUpperCase()}: ${ex.message}`;

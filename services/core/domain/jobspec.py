@@ -17,10 +17,10 @@ from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_valida
 from services.core.domain.augment_spec import AugmentParams
 from services.core.domain.cues import validate_cue_names
 from services.core.domain.keys import check_name
+from services.core.domain.steering_spec import FOV_LIMITS_DEG, CameraSteering, ViewSteering
 
 MAX_RESOLUTION = 4096
 MIN_RESOLUTION = 16
-FOV_LIMITS_DEG = (1.0, 179.0)
 MAX_SIGMA_PX = 64.0  # Gaussian blurs: the kernel grows with sigma (a sigma of 1e9 asks for a 60 GiB kernel)
 MAX_KEYPOINT_SCALES = 16  # every scale is one more blur of the whole image
 MAX_PROVIDED_POSES = 50_000
@@ -72,7 +72,7 @@ class ProvidedPose(_Strict):
     uuid: str | None = None
 
 
-class CameraSpec(_Strict):
+class CameraSpec(CameraSteering, _Strict):
     mode: Literal["generate", "provided", "object", "capture"] = Field(
         "generate", description="generate: Poisson-disc in free space; provided: poses; object: on a sphere; "
         "capture: the cameras of the posed capture next to the scan (services.core.ingest.capture)"
@@ -133,7 +133,7 @@ class PointSpec(_Strict):
         return self
 
 
-class ViewSpec(_Strict):
+class ViewSpec(ViewSteering, _Strict):
     mode: Literal["wide_baseline", "trajectory"] = "wide_baseline"
     fov_mean_deg: float = Field(77.5, description="truncated-normal mean of the field of view")
     fov_std_deg: float = Field(15.0, ge=0, le=180)

@@ -1,7 +1,7 @@
 """What a plan's views look like as distributions: the facts a user steers a dataset by (pure numpy).
 
 Per view: field of view, pitch, roll, camera height above the floor, distance to the fixated point and
-obliqueness; per point: its number of views. Degrees and metres, world frame +Z up (services.core.domain.plan).
+obliqueness; per point: its number of views. Degrees and metres, world frame +Z up (as in the plan).
 
 - pitch: the angle of the optical axis above the horizontal, positive looking up (-90 straight down).
 - roll: the turn of the image about the optical axis relative to gravity, as `camera.look_at` makes it
@@ -24,7 +24,9 @@ import numpy as np
 
 from services.core.domain.plan import SpacePlan
 
-DISTRIBUTIONS = ("fov_deg", "pitch_deg", "roll_deg", "height_m", "distance_m", "obliqueness_deg", "views_per_point")
+DISTRIBUTIONS = (
+    "fov_deg", "pitch_deg", "roll_deg", "height_m", "distance_m", "obliqueness_deg", "views_per_point",
+)
 PER_POINT = ("views_per_point",)  # the others are per view
 QUANTILES = {"q05": 0.05, "q25": 0.25, "q50": 0.5, "q75": 0.75, "q95": 0.95}
 
@@ -49,7 +51,7 @@ def _unit(v: np.ndarray) -> np.ndarray:
 
 
 def pitch_roll_deg(world_to_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Pitch and roll (degrees) of (n, 4, 4) world_to_camera matrices (OpenCV axes), as the module docstring says."""
+    """Pitch and roll in degrees (module docstring) of (n, 4, 4) world_to_camera matrices, OpenCV axes."""
     R = np.asarray(world_to_camera, dtype=np.float64).reshape(-1, 4, 4)[:, :3, :3]
     x, z = R[:, 0], R[:, 2]  # camera right and forward axes in world coordinates
     pitch = np.degrees(np.arcsin(np.clip(z[:, 2], -1.0, 1.0)))
@@ -69,7 +71,9 @@ def camera_centres(world_to_camera: np.ndarray) -> np.ndarray:
     return -np.einsum("nji,nj->ni", W[:, :3, :3], W[:, :3, 3])
 
 
-def camera_distributions(world_to_camera: np.ndarray, fov_rad: np.ndarray, floor_z: float) -> dict[str, np.ndarray]:
+def camera_distributions(
+    world_to_camera: np.ndarray, fov_rad: np.ndarray, floor_z: float
+) -> dict[str, np.ndarray]:
     """fov, pitch, roll and height of any posed cameras: (n, 4, 4) world_to_camera, (n,) fov in radians."""
     pitch, roll = pitch_roll_deg(world_to_camera)
     return {
@@ -129,7 +133,9 @@ def histogram(values: np.ndarray, edges: np.ndarray) -> Histogram:
     return {"edges": edges.tolist(), "counts": counts.astype(int).tolist()}
 
 
-def histograms(values: dict[str, np.ndarray], *, bins: dict[str, np.ndarray] | None = None) -> dict[str, Histogram]:
+def histograms(
+    values: dict[str, np.ndarray], *, bins: dict[str, np.ndarray] | None = None
+) -> dict[str, Histogram]:
     """A histogram per distribution on fixed edges (DEFAULT_BINS unless `bins` names others)."""
     edges = {**DEFAULT_BINS, **(bins or {})}
     out = {}

@@ -14,7 +14,7 @@ import uuid as uuidlib
 
 import numpy as np
 
-from services.core.domain.jobspec import CameraSpec, JobSpec
+from services.core.domain.jobspec import CameraSpec, JobSpec, ViewSpec
 from services.core.domain.keys import check_name
 from services.core.domain.plan import (
     CameraPose,
@@ -99,7 +99,7 @@ def make_plan(
     elif spec.uses_photos() and len(views):  # photo-textured views: enough surface some photo saw
         views, photo_dropped, shortfall = _keep_photo_textured(space, space_name, q, views, len(sampled.positions),
                                                                spec, shortfall)
-    keep_points = np.unique(views.point_idx) if notes or photo_dropped else np.arange(len(sampled.positions))
+    keep_points = _kept_points(views, len(sampled.positions), bool(notes or photo_dropped), vs)
     if vs.nonfixated_pruning and len(views):
         views, keep_points, shortfall = _prune_nonfixated(views, sampled, spec, shortfall)
     fractions, valid_summary = _valid_fractions(q, views, spec)
@@ -202,11 +202,20 @@ def _choose_views(sampled: SampledPoints, cams: np.ndarray, spec: JobSpec, q: Me
     """The views of the sampled points: wide-baseline views, or trajectory clips (with notes on cut clips)."""
     vs, ps = spec.views, spec.points
     if vs.mode == "wide_baseline":
-        return wide_baseline(sampled.positions, sampled.normals, sampled.visible, cams, vs, ps.max_views, rng), []
+        return wide_baseline(sampled.positions, sampled.normals, sampled.visible, cams, vs, ps.max_views, rng,
+                             ps.min_views), []
     return trajectory(
         sampled.positions, sampled.normals, sampled.visible, cams, vs, ps.max_views, q,
         ps.los_tolerance_m, spec.cameras.clearance_m, rng, orbit,
     )
+
+
+def _kept_points(views: ViewArrays, n_points: int, dropped: bool, vs: ViewSpec) -> np.ndarray:
+    """The points that kept views when some may have lost them all (cut clips, photo coverage, pitch
+    thinning), else every point."""
+    if dropped or vs.pitch_quantiles_deg is not None:
+        return np.unique(views.point_idx)
+    return np.arange(n_points)
 
 
 def _prune_nonfixated(views: ViewArrays, sampled: SampledPoints, spec: JobSpec, shortfall: str | None

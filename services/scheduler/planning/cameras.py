@@ -4,16 +4,18 @@ generate: a 3D Poisson-disc sample of the free space inside the scan.
   1. Floors: faces whose normal is within 15 degrees of +Z (the floor rule of core.ingest.gravity),
      grouped by height (a gap > 5 cm starts a new group); groups with >= 20 % of the largest group's area (and >= 0.5 m^2) are floors, so each
      storey of a multi-floor scan counts and table tops or stair steps do not.
-  2. Candidates: area-uniform points on the floor faces, raised by a height ~ U[height_min, height_max].
+  2. Candidates: area-uniform points on the floor faces, raised by a height ~ U[height_min, height_max]
+     (or drawn from height_quantiles_m; floors 'lowest' keeps the lowest floor only).
   3. Filters, cheapest first: the vertical segment from the floor point to the camera (plus the
      clearance) is free (so the camera is above *that* floor, under any ceiling); the exact distance to
      the mesh is >= clearance (KD-tree of face centroids, exact point-triangle distances near the
      surface: `MeshQueries.near_mesh`); inside by ray parity (odd number of crossings) in 7 fixed
      directions, majority vote, so a hole in the scan flips only the rays that pass through it. The
-     directions lean horizontal and downward because scans often lack ceilings.
+     directions lean horizontal and downward because scans often lack ceilings (enclosed false skips it).
   4. Poisson disc: candidates in their (random) order, each kept if no kept camera is within
      min_spacing; stops at max_count. Enough candidates are drawn to nearly saturate the space when
-     its capacity is below max_count.
+     its capacity is below max_count. With height_quantiles_m the spacing is between the floor points
+     (the heights then keep their distribution).
 provided: the JobSpec poses (world frame).
 object: on a sphere around a single object: centre = bounding-sphere centre, radius =
   object_distance_factor * bounding radius; a Fibonacci lattice turned by a random rotation, each
@@ -33,6 +35,7 @@ from services.core.domain.camera import quaternion_wxyz_to_rotation
 from services.core.domain.jobspec import CameraSpec
 from services.core.domain.plan import PlanError
 from services.core.ingest.gravity import FLOOR_CONE_COS
+from services.scheduler.planning.views import quantile_sample
 from services.scheduler.planning.visibility import MeshQueries
 
 FLOOR_GAP_M = 0.05
@@ -139,15 +142,22 @@ def generate_cameras(q: MeshQueries, spec: CameraSpec, rng: np.random.Generator)
             "no floor found (no large upward-facing horizontal surface in the world frame, +Z up): "
             "for a single object use cameras.mode 'object'; for a scan check up_axis and unit_scale"
         )
+    if spec.floors == "lowest":
+        floors = floors[:1]
     faces = np.concatenate([f.faces for f in floors])
     floor_area = float(sum(f.area for f in floors))
     band = spec.height_max_m - spec.height_min_m
-    # random sequential packing of spheres of diameter s jams near 0.73 V / s^3 centres
+    # random sequential packing of spheres of diameter s jams near 0.73 V / s^3 centres (discs: 0.70 A / s^2)
     capacity = 0.73 * floor_area * band / spec.min_spacing_m**3
+    if spec.height_quantiles_m is not None:
+        capacity = 0.70 * floor_area / spec.min_spacing_m**2
     wanted = max(1.0, min(float(spec.max_count), capacity))
     n = int(np.clip(CANDIDATES_PER_CAMERA * wanted, 2000, MAX_CANDIDATES))
     base = _sample_on_faces(mesh, faces, n, rng)
-    h = rng.uniform(spec.height_min_m, spec.height_max_m, n)
+    if spec.height_quantiles_m is not None:
+        h = quantile_sample(rng, spec.height_quantiles_m, n)
+    else:
+        h = rng.uniform(spec.height_min_m, spec.height_max_m, n)
     cand = base + h[:, None] * np.array([0.0, 0.0, 1.0])
 
     lift = 1e-5 * q.scale  # start above the floor face so the ray does not hit it at t = 0
@@ -156,9 +166,12 @@ def generate_cameras(q: MeshQueries, spec: CameraSpec, rng: np.random.Generator)
     idx = np.flatnonzero(ok)
     if spec.clearance_m > 0 and len(idx):
         idx = idx[~q.near_mesh(cand[idx], spec.clearance_m)]
-    if len(idx):
+    if len(idx) and spec.enclosed:
         idx = idx[inside_by_parity(q, cand[idx])]
-    chosen = idx[poisson_select(cand[idx], spec.min_spacing_m, spec.max_count)]
+    # with height quantiles the spacing is kept between floor points: a 3D packing of a thin band would favour
+    # its sparse heights (blue noise evens out density) and lose the heights' distribution
+    spaced = base if spec.height_quantiles_m is not None else cand
+    chosen = idx[poisson_select(spaced[idx], spec.min_spacing_m, spec.max_count)]
     return cand[chosen]
 
 

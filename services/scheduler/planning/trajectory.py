@@ -94,7 +94,7 @@ from services.scheduler.planning.views import (
     cap_views,
     look_at_batch,
     obliqueness,
-    truncated_normal,
+    sample_fov,
 )
 from services.scheduler.planning.visibility import MeshQueries
 
@@ -153,8 +153,6 @@ def trajectory(
     v numbers the frames of a point. orbit: (centre, radius m) of an object's camera sphere (cameras.mode
     object): clips orbit the point, their lengths scaled by radius / OBJECT_REFERENCE_M."""
     rmax = np.radians(spec.roll_max_deg)
-    fov_args = (np.radians(spec.fov_mean_deg), np.radians(spec.fov_std_deg),
-                np.radians(spec.fov_min_deg), np.radians(spec.fov_max_deg))
     clearance = attainable_clearance(cameras, q, clearance)
     lim = Limits.of(spec, clearance, tol, orbit[1] / OBJECT_REFERENCE_M if orbit is not None else 1.0)
     budget = BUDGET_MARGIN * lim.spacing * (lim.max_frames - 1)
@@ -170,7 +168,7 @@ def trajectory(
     for p, cams in enumerate(visible):
         cams = cap_views(cams, max_views, rng)
         roll_pair = rng.uniform(-rmax, rmax, 2)
-        fov = float(truncated_normal(rng, *fov_args, 1)[0])
+        fov = float(sample_fov(rng, spec, 1)[0])
         clips: list[Clip] = []
         if orbit is not None:
             loops = object_orbits(positions[p], normals[p], cameras[cams], orbit[1], lim, rng)

@@ -67,6 +67,53 @@ def truncated_normal(
     return np.clip(mean + std * x, lo, hi)
 
 
+def quantile_sample(rng: np.random.Generator, quantiles: Sequence[float], size: int) -> np.ndarray:
+    """Samples of the distribution with these quantiles at equally spaced levels 0..1 (piecewise-linear
+    inverse CDF, one uniform per sample)."""
+    q = np.asarray(quantiles, dtype=np.float64)
+    return np.interp(rng.random(size), np.linspace(0.0, 1.0, len(q)), q)
+
+
+def sample_fov(rng: np.random.Generator, spec: ViewSpec, size: int) -> np.ndarray:
+    """(size,) fields of view in radians: the truncated normal, or fov_quantiles_deg when given."""
+    if spec.fov_quantiles_deg is not None:
+        return np.radians(quantile_sample(rng, spec.fov_quantiles_deg, size))
+    return truncated_normal(
+        rng, np.radians(spec.fov_mean_deg), np.radians(spec.fov_std_deg),
+        np.radians(spec.fov_min_deg), np.radians(spec.fov_max_deg), size,
+    )
+
+
+def pitch_deg(cameras: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    """Pitch in degrees (+ up: the optical axis above the horizontal) of views fixated on targets."""
+    d = targets - cameras
+    return np.degrees(np.arctan2(d[:, 2], np.linalg.norm(d[:, :2], axis=1)))
+
+
+def pitch_acceptance(pitch: np.ndarray, quantiles: Sequence[float]) -> np.ndarray:
+    """Per candidate, the probability of keeping it so that the kept pitches follow the quantiles: in each bin
+    between consecutive quantiles, the target's share over the candidates' share, scaled so the largest is 1.
+    Bins no candidate falls in cannot be reached and are left out (the rest keep their proportions)."""
+    q = np.asarray(quantiles, dtype=np.float64)
+    edges, first = np.unique(q, return_index=True)
+    levels = np.linspace(0.0, 1.0, len(q))
+    if len(edges) == 1:  # a point mass: the candidates within half a degree of it
+        return (np.abs(pitch - edges[0]) <= 0.5).astype(np.float64)
+    # the level of each distinct edge is its last occurrence (a run of equal quantiles is a jump of the CDF)
+    last = np.r_[first[1:] - 1, len(q) - 1]
+    target = np.diff(levels[last])
+    target[0] += levels[last[0]]  # mass at the lowest edge (a jump there) goes to the first bin
+    b = np.searchsorted(edges, pitch, side="right") - 1
+    b[pitch == edges[-1]] = len(edges) - 2
+    inside = (b >= 0) & (b < len(edges) - 1)
+    have = np.bincount(b[inside], minlength=len(edges) - 1) / max(len(pitch), 1)
+    ratio = np.where(have > 0, target / np.maximum(have, 1e-300), 0.0)
+    accept = np.zeros(len(pitch))
+    if ratio.max() > 0:
+        accept[inside] = ratio[b[inside]] / ratio.max()
+    return accept
+
+
 def look_at_batch(positions: np.ndarray, targets: np.ndarray, rolls: np.ndarray) -> np.ndarray:
     """(n, 4, 4) world_to_camera, the vectorised twin of services.core.domain.camera.look_at (same result)."""
     positions = np.asarray(positions, dtype=np.float64)
@@ -113,11 +160,15 @@ def wide_baseline(
     spec: ViewSpec,
     max_views: int | None,
     rng: np.random.Generator,
+    min_views: int = 1,
 ) -> ViewArrays:
-    """One fixated view per visible camera-point pair (at most max_views per point, chosen by rng)."""
+    """One fixated view per visible camera-point pair (at most max_views per point, chosen by rng); with
+    views.pitch_quantiles_deg, of the pairs thinned by pitch (a point left with < min_views gets none)."""
     pidx: list[np.ndarray] = []
     cidx: list[np.ndarray] = []
     vidx: list[np.ndarray] = []
+    if spec.pitch_quantiles_deg is not None:
+        visible = thin_by_pitch(positions, visible, cameras, spec.pitch_quantiles_deg, min_views, rng)
     for p, cams in enumerate(visible):
         cams = cap_views(cams, max_views, rng)
         pidx.append(np.full(len(cams), p, dtype=np.int64))
@@ -127,15 +178,28 @@ def wide_baseline(
     C = np.concatenate(cidx) if cidx else np.zeros(0, dtype=np.int64)
     V = np.concatenate(vidx) if vidx else np.zeros(0, dtype=np.int64)
     n = len(P)
-    fov = truncated_normal(
-        rng, np.radians(spec.fov_mean_deg), np.radians(spec.fov_std_deg),
-        np.radians(spec.fov_min_deg), np.radians(spec.fov_max_deg), n,
-    )
+    fov = sample_fov(rng, spec, n)
     rmax = np.radians(spec.roll_max_deg)
     roll = rng.uniform(-rmax, rmax, n)
     W = look_at_batch(cameras[C], positions[P], roll) if n else np.zeros((0, 4, 4))
     obl = obliqueness(normals[P], positions[P], cameras[C]) if n else np.zeros(0)
     return ViewArrays(P, V, C, W, fov, roll, obl, np.ones(n, dtype=bool))
+
+
+def thin_by_pitch(
+    positions: np.ndarray, visible: tuple[np.ndarray, ...], cameras: np.ndarray, quantiles: Sequence[float],
+    min_views: int, rng: np.random.Generator,
+) -> tuple[np.ndarray, ...]:
+    """The cameras of each point kept by pitch_acceptance (one uniform per pair); none if < min_views stay."""
+    if not visible:
+        return visible
+    counts = np.array([len(c) for c in visible], dtype=np.int64)
+    C = np.concatenate(visible).astype(np.int64)
+    P = np.repeat(np.arange(len(visible)), counts)
+    keep = rng.random(len(C)) < pitch_acceptance(pitch_deg(cameras[C], positions[P]), quantiles)
+    parts = np.split(keep, np.cumsum(counts)[:-1])
+    kept = tuple(np.asarray(c, dtype=np.int64)[k] for c, k in zip(visible, parts, strict=True))
+    return tuple(c if len(c) >= min_views else c[:0] for c in kept)
 
 
 def nonfixated_keep(

@@ -18,7 +18,7 @@ from services.core.domain.steering import (
 
 
 def _plan() -> SpacePlan:
-    """Two cameras at 1.5 m and 0.5 m; point 0 on the floor (seen by both), point 1 on a wall at 1.5 m (one view)."""
+    """Cameras at 1.5 m and 0.5 m; point 0 on the floor (seen by both), point 1 on a wall at 1.5 m."""
     cams = [np.array([0.0, 0.0, 1.5]), np.array([2.0, 0.0, 0.5])]
     points = [(np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0])),
               (np.array([0.0, 3.0, 1.5]), np.array([0.0, -1.0, 0.0]))]

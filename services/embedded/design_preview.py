@@ -55,6 +55,7 @@ class DesignState:
 
     spaces: OrderedDict[str, LoadedSpace] = dataclasses.field(default_factory=OrderedDict)
     plans: OrderedDict[str, SpacePlan] = dataclasses.field(default_factory=OrderedDict)
+    floors: dict[str, float] = dataclasses.field(default_factory=dict)
     scene_key: str | None = None
     scene: Any = None  # services.worker.space_cache.SpaceContext once a preview was rendered
 
@@ -75,6 +76,16 @@ class DesignState:
         plan_key = json.dumps([key, source["name"], spec.model_dump(mode="json")], sort_keys=True)
         plan = _cached(self.plans, plan_key, lambda: plan_space(loaded, spec, source["name"]), CACHED_PLANS)
         return key, loaded, plan
+
+    def floor_z(self, key: str, loaded: LoadedSpace) -> float:
+        """Heights are measured above the scan's lowest floor (the bottom of its box when it has none), as
+        the fit to a capture measures them."""
+        from services.scheduler.planning.fit import floor_z
+
+        if key not in self.floors:
+            found = floor_z(loaded)
+            self.floors[key] = float(np.asarray(loaded.bounds)[0][2]) if found is None else found
+        return self.floors[key]
 
     def context(self, key: str, loaded: LoadedSpace) -> Any:
         """The Blender scene of a space: one at a time (a room's scene holds hundreds of MB)."""
@@ -124,9 +135,9 @@ def plan_report(state: DesignState, payload: dict[str, Any]) -> dict[str, Any]:
     spec = JobSpec.model_validate(payload["spec"])
     drawn, values = [], []
     for source in payload["spaces"]:
-        _key, loaded, plan = state.plan(source, spec)
+        key, loaded, plan = state.plan(source, spec)
         drawn.append(_drawing(source, loaded, plan))
-        values.append(view_distributions(plan, floor_z=float(np.asarray(loaded.bounds)[0][2])))
+        values.append(view_distributions(plan, floor_z=state.floor_z(key, loaded)))
     merged = {name: np.concatenate([v[name] for v in values]) for name in values[0]} if values else {}
     return {
         "spaces": drawn,
@@ -166,6 +177,37 @@ def previews(state: DesignState, payload: dict[str, Any]) -> dict[str, Any]:
     return {"previews": out, "render_s": round(time.perf_counter() - t0, 3)}
 
 
+def fit(state: DesignState, payload: dict[str, Any]) -> dict[str, Any]:
+    """`payload["spec"]` fitted to the posed capture stored with the first space (its fov, pitch, height and
+    roll), and the capture's histograms."""
+    from services.core.domain.steering import histograms
+    from services.core.ingest.targets import capture_target
+    from services.scheduler.planning.fit import fit_spec, target_enclosed
+
+    t0 = time.perf_counter()
+    spec = JobSpec.model_validate(payload["spec"])
+    source = payload["spaces"][0]
+    key, loaded = state.loaded(source, spec)
+    if loaded.capture is None:
+        raise ValueError(
+            f"space {source['name']!r} has no posed capture to fit to (upload one with the scan)"
+        )
+    floor = state.floor_z(key, loaded)
+    target = capture_target(loaded.capture, floor)
+    enclosed = target_enclosed(loaded, target.centres) if target.centres is not None else True
+    result = fit_spec(
+        loaded, spec, target.values, floor_z=floor, space_name=source["name"], rounds=4, enclosed=enclosed
+    )
+    return {
+        "spec": result.spec.model_dump(mode="json"),
+        "ks": result.ks,
+        "target": histograms(target.values),
+        "source": target.source,
+        "frames": len(target.values["fov_deg"]),
+        "fit_s": round(time.perf_counter() - t0, 3),
+    }
+
+
 def warm(_state: DesignState, _payload: dict[str, Any]) -> dict[str, Any]:
     """Import the planner, the cue code and Blender ahead of the first request (a few seconds, once)."""
     import services.scheduler.plan_space  # noqa: F401
@@ -178,6 +220,7 @@ def warm(_state: DesignState, _payload: dict[str, Any]) -> dict[str, Any]:
 HANDLERS: dict[str, Callable[[DesignState, dict[str, Any]], dict[str, Any]]] = {
     "plan": plan_report,
     "previews": previews,
+    "fit": fit,
     "warm": warm,
 }
 

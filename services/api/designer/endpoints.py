@@ -16,7 +16,7 @@ from fastapi.concurrency import run_in_threadpool
 from services.api.deps import ReadSessionDep, SettingsDep, StoreDep, TenantDep
 from services.api.designer import service
 from services.api.designer.pool import DesignPool
-from services.api.designer.schemas import DesignPlan, DesignPreviews, DesignRequest
+from services.api.designer.schemas import DesignFit, DesignPlan, DesignPreviews, DesignRequest
 from services.api.throttle import DesignSlot
 from services.core.domain.jobspec import JobSpec
 
@@ -93,3 +93,24 @@ async def design_previews(
     the plan."""
     spec, spaces = await _prepared(body, session, store, settings, tenant)
     return await anyio.to_thread.run_sync(service.previews, _pool(request), spec, spaces, body.previews)
+
+
+@router.post(
+    "/fit",
+    response_model=DesignFit,
+    summary="Fit a spec to a space's posed capture",
+    responses=_REFUSALS,
+    dependencies=[DesignSlot],
+)
+async def design_fit(
+    body: DesignRequest,
+    request: Request,
+    session: ReadSessionDep,
+    store: StoreDep,
+    settings: SettingsDep,
+    tenant: TenantDep,
+) -> DesignFit:
+    """The spec with its fov, pitch, height and roll knobs fitted to the capture uploaded with the first space
+    (re-planned a few rounds), how close each came (KS statistic), and the capture's histograms."""
+    spec, spaces = await _prepared(body, session, store, settings, tenant)
+    return await anyio.to_thread.run_sync(service.fit, _pool(request), spec, spaces)

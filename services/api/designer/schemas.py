@@ -85,3 +85,16 @@ class DesignPreviews(BaseModel):
 
     previews: list[Preview]
     render_s: float
+
+
+class DesignFit(BaseModel):
+    """A spec fitted to a space's posed capture: the spec (JSON and YAML), the two-sample KS statistic of each
+    fitted distribution between the capture and the fitted plan, and the capture's histograms."""
+
+    spec: dict[str, Any]
+    yaml: str
+    ks: dict[str, float]
+    target: dict[str, dict[str, list[float]]]
+    source: str
+    frames: int
+    fit_s: float

@@ -12,7 +12,7 @@ from pydantic import ValidationError
 from sqlalchemy.orm import Session
 
 from services.api.designer.pool import DesignPool
-from services.api.designer.schemas import DesignPlan, DesignPreviews, DesignRequest
+from services.api.designer.schemas import DesignFit, DesignPlan, DesignPreviews, DesignRequest
 from services.api.errors import summarize, validation_errors
 from services.api.spaces.service import get_space
 from services.core.domain.errors import Invalid
@@ -109,3 +109,12 @@ def previews(pool: DesignPool, spec: JobSpec, spaces: list[dict[str, Any]], coun
             for cue, png in view["images"].items()
         }
     return DesignPreviews(**out)
+
+
+def fit(pool: DesignPool, spec: JobSpec, spaces: list[dict[str, Any]]) -> DesignFit:
+    """`spec` fitted to the capture of the first of `spaces`, from a warm process."""
+    out = pool.call("fit", {"spec": spec.model_dump(mode="json"), "spaces": spaces[:1]})
+    fitted = JobSpec.model_validate(out.pop("spec"))
+    return DesignFit(
+        spec=fitted.model_dump(mode="json", exclude_defaults=True), yaml=spec_yaml(fitted), **out
+    )

@@ -21,6 +21,7 @@ import pytest
 from services.core.storage import LocalStore
 from tests.browser.conftest import DashboardPage
 from tests.fixtures.api import live_server, make_api
+from tests.fixtures.captures import transforms_zip
 
 pytestmark = pytest.mark.slow
 
@@ -139,3 +140,26 @@ def _report(times: list[float], views: int, first_s: float) -> None:
             "machine": f"{platform.machine()}, {os.cpu_count()} cores, shared with other work",
             "load_average_1m_after": round(os.getloadavg()[0], 2),
         }, indent=2) + "\n")
+
+
+def test_designer_fits_b_to_the_capture_of_a_space(
+    pg_url: str, local_store: LocalStore, scenes_dir: Path, tmp_path: Path, dashboard_page: DashboardPage
+) -> None:
+    room = scenes_dir / "icl_livingroom" / "livingroom.obj"
+    parts = [("file", ("livingroom.obj", room.read_bytes())),
+             ("capture", ("capture.zip", transforms_zip(tmp_path / "cap", 12)))]
+    with make_api(pg_url, local_store, data_dir=str(tmp_path)) as api, live_server(api.app) as base:
+        r = api.client.post("/spaces", files=parts, headers=api.a.headers)
+        assert r.status_code == 201, r.text
+        with dashboard_page(base, api.a.token) as (page, errors):
+            page.wait_for_selector("#nav:not([hidden])")
+            page.goto(f"{base}/ui/#/designer")
+            page.wait_for_selector("#previews-a img", timeout=90_000)
+            page.click("#design-fit")
+            page.wait_for_function(
+                "() => JSON.parse(document.querySelector('#previews-b')?.dataset.spec || '{}')"
+                ".views?.fov_quantiles_deg?.length > 0", timeout=90_000)
+            assert page.locator(".hist[data-name=fov_deg] .series-t rect").count() > 0
+            assert "capture:transforms capture (12 frames)" in (page.text_content("#design-status") or "")
+            assert "fov_quantiles_deg" in page.input_value("#design-yaml")
+            assert not errors, errors

@@ -3,10 +3,8 @@ tenants."""
 
 from __future__ import annotations
 
-import io
 import subprocess
 import sys
-import zipfile
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -15,7 +13,7 @@ import pytest
 from services.core.storage import LocalStore
 from tests.conftest import REPO_ROOT
 from tests.fixtures.api import Api, make_api
-from tests.fixtures.captures import toy_frames, write_transforms
+from tests.fixtures.captures import transforms_zip
 
 SMALL = {
     "points": {"count": 20, "max_views": 5},
@@ -123,23 +121,13 @@ def test_several_spaces_are_planned_and_their_views_pooled(
     assert r.status_code == 422 and "each space once" in r.json()["detail"]
 
 
-def _capture_zip(folder: Path, frames: int) -> bytes:
-    write_transforms(folder, toy_frames(frames))
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w") as zf:
-        for p in sorted(folder.rglob("*")):
-            if p.is_file():
-                zf.write(p, p.relative_to(folder).as_posix())
-    return buf.getvalue()
-
-
 def test_a_spec_is_fitted_to_the_capture_uploaded_with_the_scan(
     room_api: tuple[Api, int], scenes_dir: Path, tmp_path: Path
 ) -> None:
     api, bare = room_api
     room = scenes_dir / "icl_livingroom" / "livingroom.obj"
     parts = [("file", ("livingroom.obj", room.read_bytes())),
-             ("capture", ("capture.zip", _capture_zip(tmp_path / "cap", 12)))]
+             ("capture", ("capture.zip", transforms_zip(tmp_path / "cap", 12)))]
     r = api.client.post("/spaces", files=parts, data={"name": "room_cap"}, headers=api.a.headers)
     assert r.status_code == 201, r.text
     spec = {"points": {"count": 30, "max_views": 5}}

@@ -186,9 +186,11 @@ async function viewDesigner(root) {
   const defaults = schemaDefaults(schema);
   const newSlot = (spec) => ({ spec: JSON.parse(JSON.stringify(spec)), report: null, seq: 0, sent: 0,
                                busy: false, pending: null, timer: null });
-  const ds = { active: "a", slots: { a: newSlot(DESIGN_START), b: null } };
+  const ds = { active: "a", slots: { a: newSlot(DESIGN_START), b: null }, target: null };
   const spaces = page.items;
   const replanAll = () => {
+    ds.target = null;  // the capture fitted to belongs to the spaces picked then
+    showFit();
     for (const n of ["a", "b"]) if (ds.slots[n]) schedule(n, { spec: ds.slots[n].spec });
   };
   const picks = h("div", { class: "cue-picks", id: "design-spaces" }, spaces.map((s, k) =>
@@ -214,13 +216,32 @@ async function viewDesigner(root) {
                                    onclick: () => activate(n) }, `Spec ${n.toUpperCase()}`);
   const tabs = { a: tab("a"), b: tab("b") };
   tabs.b.hidden = true;
-  const compare = h("button", { type: "button", id: "design-compare", onclick: () => {
-    ds.slots.b = newSlot(ds.slots.a.spec);
+  const openB = (spec) => {
+    ds.slots.b = Object.assign(ds.slots.b || newSlot(spec), { spec: JSON.parse(JSON.stringify(spec)) });
     cards.b.hidden = tabs.b.hidden = false;
     compare.hidden = true;
     activate("b");
     schedule("b", { spec: ds.slots.b.spec });
-  } }, "Compare: copy A to B");
+  };
+  const compare = h("button", { type: "button", id: "design-compare", onclick: () => openB(ds.slots.a.spec) },
+    "Compare: copy A to B");
+  const fitButton = h("button", { type: "button", id: "design-fit", hidden: true, onclick: async () => {
+    fitButton.disabled = true;
+    status.textContent = "Fitting spec A to the capture (a few plans)…";
+    try {
+      const body = { space_ids: spaceIds(), spec: ds.slots.a.spec };
+      const out = await api("/designer/fit", { method: "POST", body });
+      ds.target = out.target;
+      openB(out.spec);
+      status.textContent = `B is A fitted to the ${out.source} capture (${out.frames} frames) in ` +
+        `${fmtNum(out.fit_s, 1)} s; KS ` +
+        Object.entries(out.ks).map(([k, v]) => `${k} ${fmtNum(v, 3)}`).join(", ");
+    } catch (ex) { status.textContent = ""; error.textContent = `Fit: ${ex.message}`; }
+    fitButton.disabled = false;
+  } }, "Fit B to the capture");
+  const showFit = () => {
+    fitButton.hidden = !spaces.some((s) => spaceIds().includes(s.id) && s.frame && s.frame.capture);
+  };
   const create = h("button", { type: "button", id: "design-create", onclick: async () => {
     const slot = ds.slots[ds.active];
     try {
@@ -253,8 +274,10 @@ async function viewDesigner(root) {
   function drawHists() {
     const a = ds.slots.a.report, b = ds.slots.b && ds.slots.b.report;
     if (!a) return;
+    const t = ds.target;
     const series = (name) => [{ slot: "a", histogram: a.histograms[name] },
-                              ...(b ? [{ slot: "b", histogram: b.histograms[name] }] : [])];
+                              ...(b ? [{ slot: "b", histogram: b.histograms[name] }] : []),
+                              ...(t && t[name] ? [{ slot: "t", histogram: t[name] }] : [])];
     hists.replaceChildren(...Object.keys(a.histograms).map((name) => overlayHistogram(name, series(name))));
   }
 
@@ -327,13 +350,16 @@ async function viewDesigner(root) {
       spaces.length ? picks : h("p", { class: "muted" }, "Upload a space first (Jobs page).")),
     h("div", { class: "design-top" },
       h("div", { class: "card design-edit" },
-        h("div", { class: "row" }, tabs.a, tabs.b, compare, h("span", { class: "spacer" }), create, download),
+        h("div", { class: "row" }, tabs.a, tabs.b, compare, fitButton, h("span", { class: "spacer" }),
+          create, download),
         error, status,
         h("div", { class: "design-spec" }, h("div", { class: "design-form-box" }, form),
           h("label", { class: "design-yaml-box" }, "YAML (edit either side)", yamlBox))),
-      h("div", { class: "card" }, h("h2", {}, "Distributions (A filled, B outlined; share of views)"),
+      h("div", { class: "card" },
+        h("h2", {}, "Distributions (A filled, B outlined, capture dashed; share of views)"),
         hists)),
     h("div", { class: "two" }, cards.a, cards.b)));
   activate("a");
+  showFit();
   if (spaces.length) schedule("a", { spec: ds.slots.a.spec });
 }

@@ -133,8 +133,9 @@ class Settings(BaseSettings):
         100, ge=1, description="bulk reads a tenant may start in a burst above its rate (a fast pager)"
     )
     designer_processes: int = Field(
-        1, ge=1, le=16,
-        description="warm processes the dashboard's designer plans and renders previews in; more wait",
+        2, ge=1, le=16,
+        description="warm processes the dashboard's designer plans and renders previews in (~0.5 GB each "
+        "with a room loaded), one at a time per tenant; more wait",
     )
     designer_timeout_s: float = Field(
         30.0, gt=0, le=600,

@@ -71,7 +71,7 @@ async def design_plan(
     """The spec (JSON and YAML), a sample of its cameras, points and views per space, and histograms of its
     views' field of view, pitch, roll, height, distance, obliqueness and views per point (fixed bin edges)."""
     spec, spaces = await _prepared(body, session, store, settings, tenant)
-    return await anyio.to_thread.run_sync(service.plan, _pool(request), spec, spaces)
+    return await anyio.to_thread.run_sync(service.plan, _pool(request), spec, spaces, tenant)
 
 
 @router.post(
@@ -92,7 +92,9 @@ async def design_previews(
     """rgb, depth, normal and segment previews (96 px PNG data URLs) of `previews` views spread over
     the plan."""
     spec, spaces = await _prepared(body, session, store, settings, tenant)
-    return await anyio.to_thread.run_sync(service.previews, _pool(request), spec, spaces, body.previews)
+    return await anyio.to_thread.run_sync(
+        service.previews, _pool(request), spec, spaces, body.previews, tenant
+    )
 
 
 @router.post(
@@ -113,4 +115,4 @@ async def design_fit(
     """The spec with its fov, pitch, height and roll knobs fitted to the capture uploaded with the first space
     (re-planned a few rounds), how close each came (KS statistic), and the capture's histograms."""
     spec, spaces = await _prepared(body, session, store, settings, tenant)
-    return await anyio.to_thread.run_sync(service.fit, _pool(request), spec, spaces)
+    return await anyio.to_thread.run_sync(service.fit, _pool(request), spec, spaces, tenant)

@@ -59,7 +59,8 @@ class _Child:
 
 
 class DesignPool:
-    """At most `size` warm designer processes, each serving one call at a time."""
+    """At most `size` warm designer processes, each serving one call at a time; a tenant's calls take one
+    process at a time, so with two or more another tenant's call never waits behind a tenant's slow plans."""
 
     def __init__(self, size: int, timeout_s: float) -> None:
         self.timeout_s = timeout_s
@@ -67,11 +68,14 @@ class DesignPool:
         self._idle: list[_Child] = []
         self._children: list[_Child] = []  # every process started, to end them all at shutdown
         self._lock = threading.Lock()
+        self._tenants: dict[str, threading.Lock] = {}
 
-    def call(self, kind: str, payload: dict[str, Any]) -> dict[str, Any]:
+    def call(self, kind: str, payload: dict[str, Any], *, tenant: str = "") -> dict[str, Any]:
         """The answer of a warm process to (kind, payload): Invalid for a spec the spaces cannot meet or one
         that runs past the time budget, DesignFailed when the process fails. Blocks: call it from a thread."""
-        with self._slots:
+        with self._lock:
+            turn = self._tenants.setdefault(tenant, threading.Lock())
+        with turn, self._slots:
             with self._lock:
                 child = self._idle.pop() if self._idle else None
             if child is None or not child.alive():

@@ -92,17 +92,19 @@ def sources(
     return out
 
 
-def plan(pool: DesignPool, spec: JobSpec, spaces: list[dict[str, Any]]) -> DesignPlan:
+def plan(pool: DesignPool, spec: JobSpec, spaces: list[dict[str, Any]], tenant: str) -> DesignPlan:
     """The plan report of `spec` over `spaces` (from `sources`), from a warm process."""
-    report = pool.call("plan", {"spec": spec.model_dump(mode="json"), "spaces": spaces})
+    report = pool.call("plan", {"spec": spec.model_dump(mode="json"), "spaces": spaces}, tenant=tenant)
     return DesignPlan(
         spec=spec.model_dump(mode="json", exclude_defaults=True), yaml=spec_yaml(spec), **report
     )
 
 
-def previews(pool: DesignPool, spec: JobSpec, spaces: list[dict[str, Any]], count: int) -> DesignPreviews:
+def previews(pool: DesignPool, spec: JobSpec, spaces: list[dict[str, Any]], count: int,
+             tenant: str) -> DesignPreviews:
     """Small previews of `count` views of the plan, as PNG data URLs."""
-    out = pool.call("previews", {"spec": spec.model_dump(mode="json"), "spaces": spaces, "count": count})
+    payload = {"spec": spec.model_dump(mode="json"), "spaces": spaces, "count": count}
+    out = pool.call("previews", payload, tenant=tenant)
     for view in out["previews"]:
         view["images"] = {
             cue: "data:image/png;base64," + base64.b64encode(png).decode("ascii")
@@ -111,9 +113,9 @@ def previews(pool: DesignPool, spec: JobSpec, spaces: list[dict[str, Any]], coun
     return DesignPreviews(**out)
 
 
-def fit(pool: DesignPool, spec: JobSpec, spaces: list[dict[str, Any]]) -> DesignFit:
+def fit(pool: DesignPool, spec: JobSpec, spaces: list[dict[str, Any]], tenant: str) -> DesignFit:
     """`spec` fitted to the capture of the first of `spaces`, from a warm process."""
-    out = pool.call("fit", {"spec": spec.model_dump(mode="json"), "spaces": spaces[:1]})
+    out = pool.call("fit", {"spec": spec.model_dump(mode="json"), "spaces": spaces[:1]}, tenant=tenant)
     fitted = JobSpec.model_validate(out.pop("spec"))
     return DesignFit(
         spec=fitted.model_dump(mode="json", exclude_defaults=True), yaml=spec_yaml(fitted), **out

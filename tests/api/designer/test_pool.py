@@ -1,5 +1,5 @@
-"""The designer's pool of warm processes, with a stand-in process: one tenant's slow calls leave a process to the
-others, a call past the time budget ends its process, and the next call starts a fresh one."""
+"""The designer's pool of warm processes, with a stand-in process: one tenant's slow calls leave a process to
+the others, a call past the time budget ends its process, and the next call starts a fresh one."""
 
 from __future__ import annotations
 

@@ -1,5 +1,4 @@
-"""A stand-in for the designer's warm process: answers each request after sleeping `payload["sleep"]` seconds.
-"""
+"""A stand-in for the designer's warm process: answers each request after `payload["sleep"]` seconds."""
 
 from __future__ import annotations
 

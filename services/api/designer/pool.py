@@ -47,6 +47,7 @@ class _Child:
                 [sys.executable, "-m", "services.core.named_call", TARGET, str(theirs.fileno())],
                 pass_fds=[theirs.fileno()], env=env, stdin=subprocess.DEVNULL)
         self.conn = Connection(mine.detach())
+        self.owed = 0  # answers to requests sent without waiting (the warm-up), read before the next request
 
     def alive(self) -> bool:
         return self.process.poll() is None
@@ -83,14 +84,11 @@ class DesignPool:
                 with self._lock:
                     self._children = [c for c in self._children if c.alive()] + [child]
             try:
+                while child.owed:  # a warming process: its warm-up first (the imports this call needs)
+                    self._answer(child, "warm-up")
+                    child.owed -= 1
                 child.conn.send((kind, payload))
-                if not child.conn.poll(self.timeout_s):
-                    child.end()
-                    raise Invalid(
-                        f"the designer's {kind} took longer than {self.timeout_s:g} s "
-                        "(OMNIDATA_DESIGNER_TIMEOUT_S): lower points.count or points.max_views"
-                    )
-                outcome, value = child.conn.recv()
+                outcome, value = self._answer(child, kind)
             except (EOFError, OSError) as e:
                 child.end()
                 raise DesignFailed(
@@ -104,19 +102,30 @@ class DesignPool:
             raise DesignFailed(value)
         return dict(value)
 
+    def _answer(self, child: _Child, kind: str) -> tuple[str, Any]:
+        """The next answer of `child`, within the time budget (Invalid past it: the process is ended)."""
+        if not child.conn.poll(self.timeout_s):
+            child.end()
+            raise Invalid(
+                f"the designer's {kind} took longer than {self.timeout_s:g} s "
+                "(OMNIDATA_DESIGNER_TIMEOUT_S): lower points.count or points.max_views"
+            )
+        outcome, value = child.conn.recv()
+        if outcome not in ("ok", "invalid"):
+            log.warning("designer %s failed: %s", kind, value)
+        return outcome, value
+
     def warm(self) -> None:
-        """Start a process and load its imports and Blender before the first call (in a background thread)."""
-
-        def run() -> None:
-            try:
-                self.call("warm", {})
-            except (Invalid, DesignFailed) as e:
-                log.warning("designer warm-up failed: %s", e)
-
+        """Start a process that loads its imports and Blender now, unless one was started: the first call
+        waits for that warm-up rather than starting a second cold process beside it (returns at once)."""
         with self._lock:
-            if self._children:  # started already (warm, or busy serving)
+            if self._children:
                 return
-        threading.Thread(target=run, name="designer-warm", daemon=True).start()
+            child = _Child()
+            self._children.append(child)
+            child.conn.send(("warm", {}))
+            child.owed = 1
+            self._idle.append(child)
 
     def close(self) -> None:
         """End the processes (the API is shutting down)."""

@@ -55,3 +55,16 @@ def test_a_call_past_the_budget_ends_its_process_and_the_next_starts_fresh(fake_
         assert pool.call("ping", {})["pid"] != first
     finally:
         pool.close()
+
+
+def test_the_first_call_takes_the_warming_process(fake_target: None) -> None:
+    pool = DesignPool(2, timeout_s=30)
+    try:
+        pool.warm()
+        pool.warm()  # the page opened twice: one process
+        assert len(pool._children) == 1
+        warming = pool._children[0].process.pid
+        assert pool.call("ping", {}, tenant="x")["pid"] == warming
+        assert pool._children[0].owed == 0
+    finally:
+        pool.close()

@@ -1,13 +1,14 @@
 """The designer's warm processes: a few long-lived children that plan specs and render small previews.
 
-Why warm processes and not the render queue: a preview wants 4 views of 96 px now, and a worker's task grain
-(load the space, build the Blender scene, render, store, commit) costs seconds before the first pixel, queued
-behind other tenants' jobs; a warm child keeps the loaded space, its last plans and its Blender scene, so a
-knob change costs a plan and a few renders of tens of milliseconds. The pool is bounded
-(OMNIDATA_DESIGNER_PROCESSES), each call waits for a free process in a thread, and each answer is awaited
-within OMNIDATA_DESIGNER_TIMEOUT_S: a process past it is killed (the plan or render stops at once) and the
-next call starts a fresh one. The API itself never imports the planner or Blender: the child runs the function
-named by TARGET."""
+Why warm processes and not the render queue: a preview wants 4 views of 96 px now, while the workers are busy
+with jobs' 512 px views (seconds each) and a task goes through the database, the broker and object storage;
+and a cold process needs 3-7 s (imports, Blender, the room's scene) before its first pixel. A warm child keeps
+the loaded space, its last plans and its Blender scene: on the ICL room a knob change costs a plan (0.3-0.5 s
+for 500 views) and 16 small renders (0.05-0.1 s). The pool is bounded (OMNIDATA_DESIGNER_PROCESSES), a call
+waits for a free process in a thread, and each answer is awaited within OMNIDATA_DESIGNER_TIMEOUT_S: a process
+past it is killed (the plan or render stops at once) and the next call starts a fresh one. The API itself never
+imports the planner or Blender: the child runs the function named by TARGET.
+"""
 
 from __future__ import annotations
 

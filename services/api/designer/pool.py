@@ -6,8 +6,8 @@ and a cold process needs 3-7 s (imports, Blender, the room's scene) before its f
 the loaded space, its last plans and its Blender scene: on the ICL room a knob change costs a plan (0.3-0.5 s
 for 500 views) and 16 small renders (0.05-0.1 s). The pool is bounded (OMNIDATA_DESIGNER_PROCESSES), a call
 waits for a free process in a thread, and each answer is awaited within OMNIDATA_DESIGNER_TIMEOUT_S: a process
-past it is killed (the plan or render stops at once) and the next call starts a fresh one. The API itself never
-imports the planner or Blender: the child runs the function named by TARGET.
+past it is killed (the plan or render stops at once) and the next call starts a fresh one. The API itself
+never imports the planner or Blender: the child runs the function named by TARGET.
 """
 
 from __future__ import annotations

@@ -1,13 +1,15 @@
-"""The designer page's warm process: plans a spec over stored spaces and renders a few small previews.
+"""The designer page's warm process: plans a spec over stored spaces, renders a few small previews, and fits a
+spec to a space's capture.
 
-The API starts one (or a few) of these by name (services.core.named_call) and talks to it over a pipe; it
+The API starts one (or a few) of these by name (services.core.named_call) and talks to it over a socket; it
 stays up between requests with the loaded spaces, the last plans and a Blender scene in memory, so a knob
-change costs a plan (tenths of a second on a room) and a few 96 px renders (tens of milliseconds each), not
-the seconds that importing Blender and building a scene take. The API waits for each answer within a time
-budget and ends the process when it runs past it; the next request starts a fresh one.
+change costs a plan (tenths of a second on a room) and a few 96 px renders (milliseconds each), not the
+seconds that importing Blender and building a scene take. The API waits for each answer within a time budget
+and ends the process when it runs past it; the next request starts a fresh one.
 
 Requests are (kind, payload) tuples, answers ("ok", result), ("invalid", message) for a spec the space cannot
-meet, or ("error", message). Positions are world metres (+Z up); angles in the report are degrees."""
+meet, or ("error", message). Positions are world metres (+Z up); angles in the report are degrees.
+"""
 
 from __future__ import annotations
 

@@ -356,7 +356,7 @@ async function viewDesigner(root) {
         h("div", { class: "design-spec" }, h("div", { class: "design-form-box" }, form),
           h("label", { class: "design-yaml-box" }, "YAML (edit either side)", yamlBox))),
       h("div", { class: "card" },
-        h("h2", {}, "Distributions (A filled, B outlined, capture dashed; share of views)"),
+        h("h2", {}, "Distributions: A filled, B outlined, capture dashed"),
         hists)),
     h("div", { class: "two" }, cards.a, cards.b)));
   activate("a");

@@ -5,9 +5,10 @@ widest square the photo fills), pitch, roll and height above the scan's lowest f
 JobSpec with a camera spacing and point count that give the small kitchen scan enough views to measure (BASE),
 fitted by services.scheduler.planning.fit.fit_spec on the kitchen's mesh. Reported: the two-sample KS
 statistic between the target and the fitted spec's plan for fov, pitch and height (done when each is
-<= 0.1), the same for the plan of BASE (before fitting) and for the fitted spec re-planned with other seeds
-(does the fit hold beyond its own draws), the rounds of the fit, and its wall time. Writes
-bench/results/designer_fit.json. Run: `.venv/bin/python bench/designer_fit.py` (about 10 s).
+<= 0.1; roll is fitted and reported too), the same for the plan of BASE (before fitting) and for the
+fitted spec re-planned with other seeds (does the fit hold beyond its own draws), the rounds of the fit,
+and its wall time. Writes bench/results/designer_fit.json. Run: `.venv/bin/python bench/designer_fit.py`
+(about 20 s).
 """
 
 from __future__ import annotations
@@ -37,9 +38,10 @@ from services.scheduler.planning.fit import (  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 KITCHEN = REPO.parent / "shared" / "scenes" / "7scenes_redkitchen"
 OUT = REPO / "bench" / "results" / "designer_fit.json"
-BASE = {"cameras": {"min_spacing_m": 0.08}, "points": {"count": 400, "max_views": 10}}
-OTHER_SEEDS = (1, 2, 3)
+BASE = {"cameras": {"min_spacing_m": 0.05}, "points": {"count": 400, "max_views": 10}}
+OTHER_SEEDS = (1, 2, 3, 4)
 DONE_KS = 0.1
+DONE_ON = ("fov_deg", "pitch_deg", "height_m")
 
 
 def _ks(space, spec: JobSpec, target: dict[str, np.ndarray], floor: float) -> dict[str, float]:
@@ -64,7 +66,7 @@ def main() -> dict:
     for seed in OTHER_SEEDS:
         spec = JobSpec.model_validate({**fit.spec.model_dump(mode="json"), "seed": seed})
         seeds[str(seed)] = _ks(space, spec, target.values, floor)
-    worst = max(fit.ks.values())
+    worst = max(fit.ks[n] for n in DONE_ON)
     return {
         "target": {"source": target.source, "frames": len(target.centres), "enclosed_by_mesh": enclosed,
                    "floor_z": floor, "summary": summary(target.values)},
@@ -79,8 +81,8 @@ def main() -> dict:
         "fitted_summary": summary({k: fit.values[k] for k in FITTED}),
         "fitted_spec": {"cameras": fit.spec.cameras.model_dump(mode="json"),
                         "views": fit.spec.views.model_dump(mode="json")},
-        "note": "two-sample KS between the target's frames and the plan's views (fov, pitch, height above "
-                "the lowest floor); fit_seconds on a shared 2-core machine",
+        "note": "KS: the target's frames vs the plan's views (height above the lowest floor); "
+                "fit_seconds: a shared 2-core machine",
         "machine": platform.platform(),
     }
 

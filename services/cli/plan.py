@@ -5,6 +5,7 @@ point_info and vanishing_points JSON per view, nonfixated JSON per point; plus `
 (the full SpacePlan, services.core.domain.plan.plan_to_json) and `job.json` in the one schema
 (services.core.domain.job_document, stage "plan"). A space that yields fewer points
 than requested is reported (stderr and job.json) but is not an error: exit status 0.
+--report, --compare and --fit-to: services/cli/plan_steering.py.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import tempfile
 from pathlib import Path
 
 from services.cli import CliError
+from services.cli.plan_steering import add_steering_arguments, compare_or_check, fit_to, write_report
 from services.cli.spec_args import add_spec_arguments, build_spec, distinct_space_names
 from services.core.domain.job_document import JobDocument, SpaceRecord, job_document, job_json_bytes
 from services.core.domain.jobspec import JobSpec, cues_for_space
@@ -35,6 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="mesh file (.obj/.ply/.glb/.gltf), or a folder or .zip holding one")
     parser.add_argument("--out", required=True, type=Path, metavar="DIR", help="output folder")
     add_spec_arguments(parser)
+    add_steering_arguments(parser)
 
 
 def _write_json(root: Path, key: str, data: object) -> None:
@@ -83,6 +86,9 @@ def run(args: argparse.Namespace) -> int:
     out: Path = args.out
     if out.exists() and not out.is_dir():
         raise CliError(f"--out {out}: exists and is not a folder")
+    if (rc := compare_or_check(args, given_spaces, names)) is not None:
+        return rc
+    target = None
     component = spec.name
     spaces: dict[str, SpaceRecord] = {}
     with tempfile.TemporaryDirectory(prefix="omnidata-plan-") as tmp:
@@ -95,6 +101,8 @@ def run(args: argparse.Namespace) -> int:
                 raise CliError(str(e)) from None
             except ValueError as e:  # cues the space cannot give
                 raise CliError(f"{given}: {e}") from None
+            if args.fit_to:
+                spec, target = fit_to(args, spec, given, name, space)
             loaded.append((given, name, space))
         plans = []
         for given, name, space in loaded:
@@ -113,6 +121,8 @@ def run(args: argparse.Namespace) -> int:
         spaces[name] = plan_record(space, plan, spec, position=position, cues=list(PLAN_CUES), plan_key=plan_key)
         print(f"{name}: {len(plan.cameras)} cameras, {len(plan.points)} points, {len(plan.views)} views")
         print(f"{name}: {space.frame_summary()}")
+        if args.report or args.fit_to:
+            write_report(out, name, space, plan, target)
         for note in space.warnings:
             print(f"omnidata plan: warning: {name}: {note}", file=sys.stderr)
         if plan.shortfall:

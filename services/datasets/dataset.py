@@ -7,7 +7,7 @@ Works with torch's DataLoader and its default collate without importing torch: i
 from __future__ import annotations
 
 import json
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import TypedDict, cast
 
@@ -27,6 +27,7 @@ from services.datasets.source import (
     select_cues,
 )
 from services.datasets.splits import DEFAULT_RATIOS, SPLITS, assign_splits, read_split_csv
+from services.datasets.steering_filter import keep_in_ranges
 
 # cue name -> decoded array (JSON cues: their text); space, point, view; K and world_to_camera. Items of several
 # views hold a list (text, names) or a stacked array per key.
@@ -72,7 +73,9 @@ class OmnidataDataset:
     split: 'train', 'val' or 'test', by space: from `split_csv` (Omnidata format) when given, else from
     `split_seed` and `split_ratios`. views_per_sample > 1: each item stacks that many views of the same point
     (the anchor, then the point's next views in order); points with fewer views are left out.
-    verify_sha256: check every file read against its manifest checksum.
+    verify_sha256: check every file read against its manifest checksum. where: keep the views whose steering
+    values lie in these ranges, e.g. {"pitch_deg": (-10, 10), "height_m": (1.0, 1.8)}
+    (services.datasets.steering_filter; names as services.core.domain.steering.DISTRIBUTIONS).
     """
 
     def __init__(
@@ -88,6 +91,7 @@ class OmnidataDataset:
         split_csv: str | Path | None = None,
         verify_sha256: bool = False,
         settings: Settings | None = None,
+        where: Mapping[str, tuple[float, float]] | None = None,
     ):
         self.cues = validate_cue_names([cues] if isinstance(cues, str) else list(cues))
         if views_per_sample < 1:
@@ -112,6 +116,8 @@ class OmnidataDataset:
             records = [r for r in records if r.space in wanted]
         if split is not None:
             records = self._in_split(records, split, split_csv, split_seed, split_ratios)
+        if where:
+            records = keep_in_ranges(store, self.job, records, where)
         if records:
             select_cues(records, self.cues)  # a cue no view has is a mistake, not an empty dataset
         complete = [r for r in records if all(c in r.files for c in self.cues)]

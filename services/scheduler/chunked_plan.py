@@ -18,11 +18,12 @@ from sqlalchemy.orm import Session, sessionmaker
 from services.core.db.models import Job, JobState, Space
 from services.core.domain.jobspec import JobSpec
 from services.core.domain.plan import SpacePlan
+from services.core.domain.steering import PlanDistributions
 from services.core.ingest.loading import LoadedSpace
 from services.core.storage import ObjectStore
 from services.scheduler.compile import compile_tasks
 from services.scheduler.persist import PlanJsonFile, persist_chunk
-from services.scheduler.plan_space import PlanFn, plan_space
+from services.scheduler.plan_space import PlanFn, plan_space, scan_floor_z
 from services.scheduler.planning import space_rng
 from services.scheduler.planning.stream import PlanChunks, cut_plan, plan_chunks
 
@@ -40,6 +41,7 @@ class SpaceWritten:
     views: int
     tasks: int
     whole: SpacePlan
+    distributions: dict[str, object] | None = None  # steering.PlanDistributions.record()
 
 
 @dataclass(frozen=True)
@@ -71,6 +73,7 @@ def plan_and_persist_space(target: ChunkTarget, loaded: LoadedSpace, spec: JobSp
     else:
         chunks = plan_chunks(loaded, spec, space_rng(spec.seed, space.name), space.name, target.chunk_views)
     json_file = PlanJsonFile()
+    gathered = PlanDistributions(scan_floor_z(loaded))
     try:
         tasks_written = 0
         for chunk in chunks:
@@ -82,6 +85,7 @@ def plan_and_persist_space(target: ChunkTarget, loaded: LoadedSpace, spec: JobSp
                     raise PlanDropped(f"job {target.job_id} is no longer planning under {target.planner}")
                 s.commit()
             json_file.add(chunk)
+            gathered.add(chunk)
         assert chunks.whole is not None
         if chunks.views:
             target.store.put_file(plan_key, json_file.finish(chunks.whole), content_type="application/json")
@@ -90,6 +94,7 @@ def plan_and_persist_space(target: ChunkTarget, loaded: LoadedSpace, spec: JobSp
             if state is None or state == JobState.CANCELLED:  # (a re-taking planner writes the key itself)
                 target.store.delete(plan_key)
                 raise PlanDropped(f"job {target.job_id} was deleted or cancelled while it was planned")
-        return SpaceWritten(chunks.cameras, chunks.points, chunks.views, tasks_written, chunks.whole)
+        return SpaceWritten(chunks.cameras, chunks.points, chunks.views, tasks_written, chunks.whole,
+                            gathered.record())
     finally:
         json_file.close()

@@ -265,6 +265,7 @@ class Scheduler:
                 summary["spaces"][space.name] = {
                     "cameras": done.cameras, "points": done.points, "views": done.views, "tasks": done.tasks,
                     "plan_key": key, **plan_summary_of(loaded, done.whole, spec),
+                    "distributions": done.distributions,
                 }
             summary["shortfall"] = any(v["shortfall"] for v in summary["spaces"].values())
             summary["planning_s"] = round(time.perf_counter() - t0, 3)

@@ -22,9 +22,11 @@ from services.core.domain.plan import (
     ValidFractionSummary,
     clip_summary,
 )
+from services.core.domain.steering import PlanDistributions
 from services.core.ingest.frame_records import FrameRecord
 from services.core.ingest.loading import LoadedSpace, load_space
 from services.scheduler.planning import make_plan, space_rng
+from services.scheduler.planning.cameras import detect_floors
 
 
 class PlanSpaceSummary(FrameRecord):
@@ -50,6 +52,7 @@ class PlannedSpaceSummary(PlanSpaceSummary):
     views: int
     tasks: int
     plan_key: str
+    distributions: dict[str, object] | None  # steering.PlanDistributions.record()
 
 
 class JobPlanSummary(TypedDict):
@@ -112,5 +115,19 @@ def plan_record(loaded: LoadedSpace, plan: SpacePlan, spec: JobSpec, *, position
         has_semantics=loaded.has_semantics,
         counts={"cameras": len(plan.cameras), "points": len(plan.points), "views": len(plan.views)},
         shortfall=plan.shortfall, valid_fraction=plan.valid_fraction, clips=summary["clips"], plan=plan_key,
-        warnings=summary["warnings"], frame=summary,
+        warnings=summary["warnings"], frame=summary, distributions=plan_distributions(loaded, plan),
     )
+
+
+def scan_floor_z(loaded: LoadedSpace) -> float | None:
+    """The lowest floor of a world-frame scan (planning.cameras.detect_floors): what camera heights in
+    job.json are measured from; None when it has none (object scans)."""
+    floors = detect_floors(loaded.mesh)
+    return floors[0].z if floors else None
+
+
+def plan_distributions(loaded: LoadedSpace, plan: SpacePlan) -> dict[str, object]:
+    """The job.json record of a whole plan's steering distributions (gathered as the scheduler does)."""
+    gathered = PlanDistributions(scan_floor_z(loaded))
+    gathered.add(plan)
+    return gathered.record()

@@ -181,7 +181,7 @@ def _space_records(session: Session, job: Job) -> dict[str, SpaceRecord]:
             has_semantics=space.has_semantics, counts=planned, shortfall=planned.get("shortfall"),
             valid_fraction=planned.get("valid_fraction"), clips=planned.get("clips"),
             plan=_relative(job, planned.get("plan_key"), "") or None, warnings=planned.get("warnings", []),
-            frame=planned,
+            frame=planned, distributions=planned.get("distributions"),
         )
     return spaces
 

@@ -75,6 +75,8 @@ class SpaceRecord(TypedDict):
     class_names: object
     capture: object
     capture_plan: object
+    # steering facts (services.core.domain.steering.PlanDistributions.record): floor_z, summary, histograms
+    distributions: object
 
 
 class JobDocument(TypedDict):
@@ -160,6 +162,7 @@ def space_record(
     plan: str | None,
     warnings: Sequence[str],
     frame: Mapping[str, object],
+    distributions: object = None,
 ) -> SpaceRecord:
     """One space of job.json: the source, its frame (source_to_world, up, units), its plan and counts."""
     return {
@@ -188,6 +191,7 @@ def space_record(
         "class_names": frame.get("class_names"),
         "capture": frame.get("capture"),
         "capture_plan": frame.get("capture_plan"),
+        "distributions": distributions,
     }
 
 

@@ -40,7 +40,8 @@ def plans_in_chunks(spec: JobSpec) -> bool:
     vs = spec.views
     return (spec.cameras.mode in ("object", "generate", "provided") and vs.mode == "wide_baseline"
             and not vs.nonfixated_pruning and vs.min_valid_fraction == 0 and not spec.uses_photos()
-            and vs.fov_quantiles_deg is None and vs.pitch_quantiles_deg is None)  # steered: planned whole
+            and vs.fov_quantiles_deg is None and vs.pitch_quantiles_deg is None
+            and vs.roll_quantiles_deg is None)  # steered: planned whole
 
 
 def plan_memory_estimate_mb(spec: JobSpec, chunk_views: int = DEFAULT_CHUNK_VIEWS) -> int:

@@ -157,3 +157,51 @@ def ks_statistic(a: np.ndarray, b: np.ndarray) -> float:
     cdf_a = np.searchsorted(a, x, side="right") / len(a)
     cdf_b = np.searchsorted(b, x, side="right") / len(b)
     return float(np.abs(cdf_a - cdf_b).max())
+
+
+def histogram_quantile(hist: Histogram, level: float) -> float:
+    """The quantile at `level` of the values a histogram counts, linear within its bin."""
+    counts = np.asarray(hist["counts"], dtype=np.float64)
+    edges = np.asarray(hist["edges"], dtype=np.float64)
+    cdf = np.concatenate([[0.0], np.cumsum(counts)]) / max(counts.sum(), 1.0)
+    i = int(np.clip(np.searchsorted(cdf, level, side="left"), 1, len(edges) - 1))
+    lo, hi = cdf[i - 1], cdf[i]
+    t = 0.0 if hi <= lo else (level - lo) / (hi - lo)
+    return float(edges[i - 1] + t * (edges[i] - edges[i - 1]))
+
+
+class PlanDistributions:
+    """A plan's distributions gathered chunk by chunk in bounded memory (the scheduler plans in chunks):
+    counts on DEFAULT_BINS, and sums for the means. Quantiles are read off the histograms (within a bin)."""
+
+    def __init__(self, floor_z: float | None):
+        self.floor_z = floor_z
+        self.counts = {name: np.zeros(len(DEFAULT_BINS[name]) - 1, dtype=np.int64) for name in DISTRIBUTIONS}
+        self.sums = dict.fromkeys(DISTRIBUTIONS, 0.0)
+        self.n = dict.fromkeys(DISTRIBUTIONS, 0)
+
+    def add(self, plan: SpacePlan) -> None:
+        """Count the views (and points) of a plan or of one chunk of it."""
+        floor = self.floor_z if self.floor_z is not None else plan_floor_z(plan)
+        values = view_distributions(plan, floor_z=floor)
+        for name, v in values.items():
+            v = v[np.isfinite(v)]
+            self.counts[name] += np.asarray(histogram(v, DEFAULT_BINS[name])["counts"], dtype=np.int64)
+            self.sums[name] += float(v.sum())
+            self.n[name] += len(v)
+
+    def record(self) -> dict[str, object]:
+        """JSON-ready: floor_z, a summary per distribution (as `summary`, quantiles from the histograms)
+        and the histograms themselves."""
+        hists: dict[str, Histogram] = {
+            name: {"edges": DEFAULT_BINS[name].tolist(), "counts": self.counts[name].tolist()}
+            for name in DISTRIBUTIONS
+        }
+        out: dict[str, dict[str, float]] = {}
+        for name in DISTRIBUTIONS:
+            n = self.n[name]
+            out[name] = {"n": float(n)}
+            if n:
+                out[name] = {k: histogram_quantile(hists[name], q) for k, q in QUANTILES.items()}
+                out[name].update(mean=self.sums[name] / n, n=float(n))
+        return {"floor_z": self.floor_z, "summary": out, "histograms": hists}

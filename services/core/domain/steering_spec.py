@@ -7,6 +7,7 @@ defaults to None, which keeps the sampling (and the random draws) of the paramet
 
 from __future__ import annotations
 
+import math
 from typing import Annotated, Literal
 
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, model_validator
@@ -28,6 +29,8 @@ def check_quantiles(name: str, q: tuple[float, ...] | None, lo: float, hi: float
         return
     if not 2 <= len(q) <= MAX_QUANTILES:
         raise ValueError(f"{name} needs 2 to {MAX_QUANTILES} quantiles, got {len(q)}")
+    if not all(math.isfinite(x) for x in q):
+        raise ValueError(f"{name} must be finite numbers")
     if any(b < a for a, b in zip(q, q[1:], strict=False)):
         raise ValueError(f"{name} must be non-decreasing (quantiles at equally spaced levels 0..1)")
     if q[0] < lo or q[-1] > hi:
@@ -65,6 +68,11 @@ class ViewSteering(BaseModel):
         "piecewise-linear inverse CDF, within [1, 179] degrees) instead of the truncated normal of "
         "fov_mean/std/min/max_deg; None: the truncated normal (the default)",
     )
+    roll_quantiles_deg: Quantiles | None = Field(
+        None, description="roll about the optical axis (relative to gravity) drawn from these quantiles "
+        "(equally spaced levels 0..1, within [-180, 180] degrees) instead of uniform in [-roll_max_deg, "
+        "roll_max_deg]; None: uniform (the default)",
+    )
     pitch_quantiles_deg: Quantiles | None = Field(
         None, description="wide_baseline: the views' pitch (optical axis above the horizontal, + up) follows "
         "these quantiles (equally spaced levels 0..1). A fixated view's pitch is set by its camera and "
@@ -76,6 +84,7 @@ class ViewSteering(BaseModel):
     @model_validator(mode="after")
     def _check_steering(self) -> ViewSteering:
         check_quantiles("fov_quantiles_deg", self.fov_quantiles_deg, *FOV_LIMITS_DEG)
+        check_quantiles("roll_quantiles_deg", self.roll_quantiles_deg, -180.0, 180.0)
         check_quantiles("pitch_quantiles_deg", self.pitch_quantiles_deg, -90.0, 90.0)
         if self.pitch_quantiles_deg is not None and getattr(self, "mode", None) == "trajectory":
             raise ValueError("pitch_quantiles_deg steers wide_baseline views; a trajectory's pitch follows "

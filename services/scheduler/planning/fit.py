@@ -6,7 +6,7 @@ The method, in the target's own terms: each fitted distribution is given to the 
   pitch_deg -> views.pitch_quantiles_deg (camera-point pairs thinned by pitch),
   height_m  -> cameras.height_quantiles_m, with cameras.floors 'lowest' (heights are measured above the lowest
                floor, as steering.view_distributions takes them),
-  roll_deg  -> views.roll_max_deg = the 95th percentile of |roll| (roll stays uniform),
+  roll_deg  -> views.roll_quantiles_deg (drawn exactly),
   and cameras.enclosed false when most target cameras are not enclosed by the mesh (a partial scan).
 A plan's views do not follow the camera heights and pair pitches exactly (Poisson-disc spacing, clearance,
 which cameras see the points, points dropped below min_views), so the spec is re-planned and each quantile
@@ -37,6 +37,7 @@ KNOBS = {
     "fov_deg": ("views", "fov_quantiles_deg", FOV_LIMITS_DEG),
     "pitch_deg": ("views", "pitch_quantiles_deg", (-90.0, 90.0)),
     "height_m": ("cameras", "height_quantiles_m", (0.0, 100.0)),
+    "roll_deg": ("views", "roll_quantiles_deg", (-180.0, 180.0)),
 }
 FITTED = tuple(KNOBS)
 
@@ -59,7 +60,7 @@ def with_knobs(spec: JobSpec, cameras: dict[str, object], views: dict[str, objec
     return JobSpec.model_validate(data)
 
 
-def _knob_update(quantiles: dict[str, np.ndarray], target: dict[str, np.ndarray], enclosed: bool
+def _knob_update(quantiles: dict[str, np.ndarray], enclosed: bool
                  ) -> tuple[dict[str, object], dict[str, object]]:
     cameras: dict[str, object] = {}
     views: dict[str, object] = {}
@@ -70,8 +71,6 @@ def _knob_update(quantiles: dict[str, np.ndarray], target: dict[str, np.ndarray]
         cameras["floors"] = "lowest"
     if not enclosed:
         cameras["enclosed"] = False
-    if "roll_deg" in target and len(target["roll_deg"]):
-        views["roll_max_deg"] = float(min(180.0, np.quantile(np.abs(target["roll_deg"]), 0.95)))
     return cameras, views
 
 
@@ -87,17 +86,19 @@ def _corrected(q: np.ndarray, want: np.ndarray, got: np.ndarray, bounds: tuple[f
 def fit_spec(space: LoadedSpace, spec: JobSpec, target: dict[str, np.ndarray], *, floor_z: float,
              enclosed: bool = True, space_name: str = "space", rounds: int = 6, levels: int = 21,
              tolerance: float = 0.05) -> FitResult:
-    """Fit `spec`'s fov, pitch and height to `target` (arrays named as steering.DISTRIBUTIONS; any subset)
+    """Fit `spec`'s fov, pitch, height and roll to `target` (named as steering.DISTRIBUTIONS; any subset)
     on `space` (module docstring); stops early once every KS statistic is <= tolerance. `enclosed` false
     (see target_enclosed) lets cameras stand where the mesh does not enclose."""
     lv = np.linspace(0.0, 1.0, min(levels, MAX_QUANTILES))
     names = [n for n in FITTED if n in target and len(target[n])]
+    if spec.views.mode == "trajectory":  # a clip's pitch follows its path: not a knob
+        names = [n for n in names if n != "pitch_deg"]
     want = {n: np.quantile(np.asarray(target[n], dtype=np.float64), lv) for n in names}
     q = {n: np.clip(want[n], *KNOBS[n][2]) for n in names}
     best: FitResult | None = None
     history: list[dict[str, float]] = []
     for _ in range(max(1, rounds)):
-        fitted = with_knobs(spec, *_knob_update(q, target, enclosed))
+        fitted = with_knobs(spec, *_knob_update(q, enclosed))
         plan = make_plan(space, fitted, space_rng(fitted.seed, space_name), space_name)
         values = view_distributions(plan, floor_z=floor_z)
         ks = {n: ks_statistic(values[n], target[n]) for n in names}

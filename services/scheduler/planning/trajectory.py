@@ -95,6 +95,7 @@ from services.scheduler.planning.views import (
     look_at_batch,
     obliqueness,
     sample_fov,
+    sample_roll,
 )
 from services.scheduler.planning.visibility import MeshQueries
 
@@ -152,7 +153,6 @@ def trajectory(
     """Frames of one clip per point (module docstring) and notes on the clips cut short or dropped;
     v numbers the frames of a point. orbit: (centre, radius m) of an object's camera sphere (cameras.mode
     object): clips orbit the point, their lengths scaled by radius / OBJECT_REFERENCE_M."""
-    rmax = np.radians(spec.roll_max_deg)
     clearance = attainable_clearance(cameras, q, clearance)
     lim = Limits.of(spec, clearance, tol, orbit[1] / OBJECT_REFERENCE_M if orbit is not None else 1.0)
     budget = BUDGET_MARGIN * lim.spacing * (lim.max_frames - 1)
@@ -167,7 +167,7 @@ def trajectory(
     notes: list[ClipNote] = []
     for p, cams in enumerate(visible):
         cams = cap_views(cams, max_views, rng)
-        roll_pair = rng.uniform(-rmax, rmax, 2)
+        roll_pair = sample_roll(rng, spec, 2)
         fov = float(sample_fov(rng, spec, 1)[0])
         clips: list[Clip] = []
         if orbit is not None:

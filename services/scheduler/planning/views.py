@@ -84,6 +84,14 @@ def sample_fov(rng: np.random.Generator, spec: ViewSpec, size: int) -> np.ndarra
     )
 
 
+def sample_roll(rng: np.random.Generator, spec: ViewSpec, size: int) -> np.ndarray:
+    """(size,) rolls in radians: uniform in [-roll_max, roll_max], or roll_quantiles_deg when given."""
+    if spec.roll_quantiles_deg is not None:
+        return np.radians(quantile_sample(rng, spec.roll_quantiles_deg, size))
+    rmax = np.radians(spec.roll_max_deg)
+    return rng.uniform(-rmax, rmax, size)
+
+
 def pitch_deg(cameras: np.ndarray, targets: np.ndarray) -> np.ndarray:
     """Pitch in degrees (+ up: the optical axis above the horizontal) of views fixated on targets."""
     d = targets - cameras
@@ -179,8 +187,7 @@ def wide_baseline(
     V = np.concatenate(vidx) if vidx else np.zeros(0, dtype=np.int64)
     n = len(P)
     fov = sample_fov(rng, spec, n)
-    rmax = np.radians(spec.roll_max_deg)
-    roll = rng.uniform(-rmax, rmax, n)
+    roll = sample_roll(rng, spec, n)
     W = look_at_batch(cameras[C], positions[P], roll) if n else np.zeros((0, 4, 4))
     obl = obliqueness(normals[P], positions[P], cameras[C]) if n else np.zeros(0)
     return ViewArrays(P, V, C, W, fov, roll, obl, np.ones(n, dtype=bool))

@@ -10,8 +10,10 @@ import pytest
 
 from services.core.domain.jobspec import JobSpec
 from services.core.domain.plan import SpacePlan, plan_to_json
+from services.core.domain.plan_budget import plans_in_chunks
 from services.core.domain.steering import ks_statistic, view_distributions
 from services.scheduler.planning import make_plan, space_rng
+from services.scheduler.planning.stream import plan_chunks
 from services.scheduler.planning.views import pitch_acceptance, quantile_sample
 from tests.fixtures import scenes
 
@@ -76,3 +78,23 @@ def test_fitted_knobs_move_the_plan_to_the_target() -> None:
         ks_after = ks_statistic(after[name], target[name])
         assert ks_before > 0.4 and ks_after < 0.25, (name, ks_before, ks_after)
     assert after["views_per_point"].min() >= 2  # thinned points keep min_views or go
+
+
+@pytest.mark.parametrize("knobs", [
+    {"cameras": {"height_quantiles_m": [1.0, 1.2, 1.6]}},  # planned chunk by chunk
+    {"views": {"pitch_quantiles_deg": [-40.0, -10.0, 5.0]}},  # planned whole, then cut
+])
+def test_the_scheduler_plans_steered_specs_as_make_plan_does(knobs: dict[str, dict[str, object]]) -> None:
+    base = PINNED["wide"][0]
+    data = {key: {**base.get(key, {}), **knobs.get(key, {})} for key in ("cameras", "points", "views")}
+    spec = JobSpec.model_validate(data)
+    space = scenes.as_space(scenes.l_room())
+    whole = make_plan(space, spec, space_rng(spec.seed, "lroom"), "lroom")
+    chunks = list(plan_chunks(space, spec, space_rng(spec.seed, "lroom"), "lroom", 16))
+    assert plans_in_chunks(spec) == ("cameras" in knobs)
+    assert [plan_to_json(v) for v in _views(chunks)] == [plan_to_json(v) for v in _views([whole])]
+
+
+def _views(plans: list[SpacePlan]) -> list[SpacePlan]:
+    """Each view as a one-view plan (comparable across chunkings)."""
+    return [SpacePlan("x", (), (), (v,)) for plan in plans for v in plan.views]

@@ -135,7 +135,8 @@ def test_a_spec_is_fitted_to_the_capture_uploaded_with_the_scan(
     assert r.status_code == 200, r.text
     fit = r.json()
     assert fit["source"] == "capture:transforms" and fit["frames"] == 12
-    assert sum(fit["target"]["fov_deg"]["counts"]) == 12 and set(fit["ks"]) <= {"fov_deg", "pitch_deg", "height_m"}
+    assert sum(fit["target"]["fov_deg"]["counts"]) == 12
+    assert set(fit["ks"]) <= {"fov_deg", "pitch_deg", "height_m", "roll_deg"}
     assert fit["spec"]["views"]["fov_quantiles_deg"] and fit["spec"]["points"] == spec["points"]
     assert "fov_quantiles_deg" in fit["yaml"]
     r = api.client.post("/designer/fit", json={"space_ids": [bare]}, headers=api.a.headers)

@@ -18,6 +18,8 @@ from fastapi.responses import RedirectResponse
 from sqlalchemy import Engine
 
 from services.api.dashboard.endpoints import mount_dashboard
+from services.api.designer.endpoints import router as designer_router
+from services.api.designer.pool import DesignPool
 from services.api.docs_page import mount_docs
 from services.api.errors import install_error_handlers
 from services.api.guard import RequestGuard
@@ -51,6 +53,7 @@ OPENAPI_TAGS = [
     {"name": "outputs", "description": "Pre-signed links to a view's cue files; the job's manifest and job.json."},
     {"name": "progress", "description": "Server-sent events with live progress counters."},
     {"name": "workers", "description": "Render workers and their heartbeats."},
+    {"name": "designer", "description": "A spec's plan, distributions and previews before a job exists."},
     {"name": "ops", "description": "Health, readiness and Prometheus metrics."},
 ]
 
@@ -74,6 +77,7 @@ def _set_state(app: FastAPI, settings: Settings, engine: Engine, store: ObjectSt
     app.state.throttle = TenantThrottle(budgets(settings))
     app.state.preview_draws = LazyLimiter(settings.preview_concurrency)
     app.state.bulk_reads = LazyLimiter(settings.bulk_read_threads)
+    app.state.designer = DesignPool(settings.designer_processes, settings.designer_timeout_s)
     app.state.metrics_cache = {}
     app.state.schema_heads = schema_heads()  # what /ready expects the database's revision to be
     app.state.storage_probe = None  # (time, outcome) of /ready's last storage probe
@@ -101,6 +105,7 @@ def create_app(
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         sweep_orphans(UPLOAD_KINDS)  # upload folders of an API (or mesh reader) killed mid-upload
         yield
+        app.state.designer.close()
         redis = app.state.redis
         if redis is not None:
             redis.close()
@@ -123,7 +128,8 @@ def create_app(
     app.add_middleware(RequestGuard, settings=settings)  # token and size checked before a body is read
     app.add_middleware(QueryTokenScrubber)  # ?token= never reaches a log line
     app.add_middleware(SecurityHeaders, settings=settings)  # CSP, no framing, nosniff
-    routers = (ops_router, spaces_router, jobs_router, views_router, outputs_router, progress_router, workers_router)
+    routers = (ops_router, spaces_router, jobs_router, views_router, outputs_router, progress_router,
+               workers_router, designer_router)
     for router in routers:
         app.include_router(router)
     mount_dashboard(app)

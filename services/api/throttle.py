@@ -28,7 +28,7 @@ from services.api.deps import TenantDep
 from services.core.domain.errors import TooManyRequests
 from services.core.settings import Settings
 
-Kind = Literal["scan", "bulk"]
+Kind = Literal["scan", "bulk", "design"]
 T = TypeVar("T")
 BUSY_RETRY_S = 1  # what a request over a concurrency limit is told to wait: expensive requests take seconds
 
@@ -53,6 +53,8 @@ def budgets(settings: Settings) -> dict[Kind, Budget]:
         "bulk": Budget("bulk reads (views, tasks, plan, manifest, job.json)",
                        settings.tenant_bulk_concurrency, "OMNIDATA_TENANT_BULK_CONCURRENCY",
                        settings.tenant_bulk_rate, settings.tenant_bulk_burst, "OMNIDATA_TENANT_BULK_RATE"),
+        "design": Budget("designer plans and previews", settings.tenant_design_concurrency,
+                         "OMNIDATA_TENANT_DESIGN_CONCURRENCY"),
     }
 
 
@@ -114,6 +116,7 @@ def _hold(kind: Kind) -> Callable[..., AsyncIterator[None]]:
 # route decorators take these in `dependencies=[...]`: they run before the route's session is opened
 ScanSlot = Depends(_hold("scan"))
 BulkSlot = Depends(_hold("bulk"))
+DesignSlot = Depends(_hold("design"))
 
 
 async def run_bulk(request: Request, work: Callable[[], T]) -> T:

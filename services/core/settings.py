@@ -132,6 +132,19 @@ class Settings(BaseSettings):
     tenant_bulk_burst: int = Field(
         100, ge=1, description="bulk reads a tenant may start in a burst above its rate (a fast pager)"
     )
+    designer_processes: int = Field(
+        2, ge=1, le=16,
+        description="warm processes the dashboard's designer plans and renders previews in (~0.5 GB each "
+        "with a room loaded), one at a time per tenant; more wait",
+    )
+    designer_timeout_s: float = Field(
+        30.0, gt=0, le=600,
+        description="time one designer plan or preview may take; its process is ended after it",
+    )
+    tenant_design_concurrency: int = Field(
+        2, ge=1,
+        description="a tenant's designer plans and previews at once; one more gets 429 with Retry-After",
+    )
     sse_max_per_tenant: int = Field(20, ge=1, description="open event streams per tenant; one more gets 429")
     sse_poll_threads: int = Field(4, ge=1, description="threads the event streams' database polls share")
     sse_poll_s: float = Field(0.5, gt=0, le=60, description="seconds between an event stream's counter polls")

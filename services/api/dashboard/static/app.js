@@ -532,6 +532,7 @@ async function route() {
     let m;
     if (hash === "#/login") root.append(viewLogin());
     else if (hash === "#/workers") await viewWorkers(root);
+    else if (hash === "#/designer") await viewDesigner(root);
     else if ((m = hash.match(/^#\/jobs\/(\d+)$/))) await viewJob(root, Number(m[1]));
     else await viewJobs(root);
   } catch (ex) {

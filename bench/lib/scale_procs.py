@@ -49,9 +49,10 @@ class SleepingRunner(TaskRunner):
         """The whole-view path's render (kept in memory, nothing stored): the `passes` task's sleep."""
         return self._sleep(t)
 
-    def execute(self, t: Claimed) -> tuple[str, Any]:
-        key = self._sleep(t)
-        return key, self.store.put_bytes(key, f"{t.id}".encode())
+    def make(self, t: Claimed) -> tuple[str, bytes]:
+        """The compute step every path takes (execute and the view batches' _compute): a sleep, never a render.
+        Left to TaskRunner it rendered in bpy, from every thread at once (bpy initialised twice: the process died)."""
+        return self._sleep(t), f"{t.id}".encode()
 
     def _sleep(self, t: Claimed) -> str:
         # `slept` adds up over a message (a whole view sleeps its render and every derivation); the caller resets it

@@ -34,7 +34,7 @@ from sqlalchemy.engine import make_url
 from sqlalchemy.orm import Session
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
+from bench.lib.results import results_dir  # noqa: E402
 from services.api.jobs.service import detail_statement, fetch_job_detail
 from services.api.progress.rates import RateTracker
 from services.core.db.bulk import bulk_insert
@@ -44,7 +44,7 @@ from services.core.db.models import Job, JobCounter, JobSpace, Space, Task, utcn
 from services.core.domain.cues import closure, default_cues  # noqa: E402
 from services.core.settings import hash_token  # noqa: E402
 
-RESULTS = Path(__file__).resolve().parents[1] / "results"
+RESULTS = results_dir()
 REPO = Path(__file__).resolve().parents[2]
 PG_ADMIN_URL = os.environ.get("OMNIDATA_TEST_PG_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/postgres")
 TASKS = 1_000_000  # at least: views x (default cues of an unlabelled space + passes)
@@ -81,12 +81,12 @@ def drop_database(url: str) -> None:
     admin.dispose()
 
 
-def populate(url: str, owner: str) -> tuple[int, int]:
-    """One space and one running job with ~1M tasks (a third done); returns (job id, task count)."""
+def populate(url: str, owner: str, tasks: int = TASKS) -> tuple[int, int]:
+    """One space and one running job with ~`tasks` tasks (a third done); returns (job id, task count)."""
     migrate(url)
     engine = make_engine(url)
     cues = closure(default_cues(False))
-    views = -(-TASKS // len(cues))
+    views = -(-tasks // len(cues))
     with Session(engine) as s:
         space = Space(owner=owner, name="bench", source_key="spaces/1/bench.ply", source_format="ply", checksum="0" * 64)
         s.add(space)
@@ -230,6 +230,7 @@ def main() -> int:
     parser.add_argument("--interval", type=float, default=0.5, help="seconds between a paced client's polls")
     parser.add_argument("--workers", default="1,2", help="uvicorn worker processes, comma-separated configurations")
     parser.add_argument("--keep", action="store_true", help="keep the benchmark database")
+    parser.add_argument("--tasks", type=int, default=TASKS, help="task rows of the job (fewer: a smoke run)")
     args = parser.parse_args()
     worker_counts = [int(w) for w in args.workers.split(",")]
 
@@ -238,7 +239,7 @@ def main() -> int:
     runs: dict[str, Any] = {}
     try:
         t0 = time.perf_counter()
-        job_id, n_tasks = populate(url, owner)
+        job_id, n_tasks = populate(url, owner, args.tasks)
         populate_s = time.perf_counter() - t0
         print(f"populated {n_tasks} tasks in {populate_s:.1f} s", flush=True)
         load_before = machine_load()

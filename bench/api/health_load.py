@@ -41,19 +41,22 @@ from typing import Any
 import httpx
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
+from bench.lib.results import results_dir  # noqa: E402
+from bench.lib.smoke import SMOKE, SMOKE_HELP  # noqa: E402
 from bench.scale.fanout import create_database, drop_database, percentiles  # noqa: E402
 from services.core.db.engine import migrate  # noqa: E402
 from services.core.settings import hash_token  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 BUNNY = REPO.parent / "shared" / "scenes" / "stanford_bunny" / "bun_zipper_res2.ply"
-OUT = REPO / "bench" / "results" / "health_load.json"
-TENANTS = 10
-STREAMS_PER_TENANT = 20
-UPLOADERS = 50
-UPLOADS_EACH = 2
+OUT = results_dir() / "health_load.json"
+TENANTS = 2 if SMOKE else 10
+STREAMS_PER_TENANT = 2 if SMOKE else 20
+UPLOADERS = 2 if SMOKE else 50
+UPLOADS_EACH = 1 if SMOKE else 2
 PHASE_S = {"idle": 5.0, "streams": 15.0, "streams_and_uploads": 30.0}
+if SMOKE:
+    PHASE_S = dict.fromkeys(PHASE_S, 1.0)
 
 
 def free_port() -> int:
@@ -200,6 +203,7 @@ def main() -> None:
                         help="streams: 200 event streams + 50 uploaders (issue 19); tenants: one tenant's "
                         "up-choice storm, stalled manifest readers and views bursts against another tenant's "
                         "reads (issue 51)")
+    parser.add_argument("--smoke", action="store_true", help=SMOKE_HELP)
     args = parser.parse_args()
     machine = f"{platform.node()} ({os.cpu_count()} cores, loaded by other developers' work)"
     results: dict[str, Any] = {"machine": machine, "scenario": args.scenario}

@@ -27,7 +27,7 @@ from typing import Any
 import httpx
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
+from bench.lib.results import results_dir  # noqa: E402
 from services.core.db.engine import migrate  # noqa: E402
 from services.core.settings import hash_token  # noqa: E402
 
@@ -100,7 +100,7 @@ def _measure(port: int, pid: int, body: bytes, headers: dict[str, str]) -> dict[
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repo", type=Path, default=Path(__file__).resolve().parents[2])
-    ap.add_argument("--out", type=Path, default=Path(__file__).resolve().parents[1] / "results" / "hostile_requests.json")
+    ap.add_argument("--out", type=Path, default=results_dir() / "hostile_requests.json")
     args = ap.parse_args()
     token = secrets.token_urlsafe(24)
     with tempfile.TemporaryDirectory(prefix="omnidata-bench-") as tmp:

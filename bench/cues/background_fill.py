@@ -28,9 +28,9 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
 from bench.cues.derivations import room_views  # noqa: E402
 from bench.lib.ab import module_at, write_keeping_before  # noqa: E402
+from bench.lib.results import results_dir  # noqa: E402
 from bench.lib.rooms import ROOMS  # noqa: E402
 from bench.render.room_cost import cpu_model, load  # noqa: E402
 from services.core.domain.jobspec import CueParams  # noqa: E402
@@ -38,7 +38,7 @@ from services.worker.context import ViewContext  # noqa: E402
 from services.worker.cues import feature_transform, registry, segmentation  # noqa: E402
 from services.worker.cues.common import valid  # noqa: E402
 
-RESULTS = Path(__file__).resolve().parents[2] / "bench" / "results" / "background_fill.json"
+RESULTS = results_dir() / "background_fill.json"
 
 
 def best_ms(fn: Callable[[], object], repeats: int) -> float:

@@ -25,8 +25,8 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
 from bench.lib.ab import module_at, write_keeping_before  # noqa: E402
+from bench.lib.results import results_dir  # noqa: E402
 from bench.lib.rooms import ROOMS  # noqa: E402
 from bench.render.room_cost import cpu_model, load  # noqa: E402
 from services.core.domain.jobspec import CueParams  # noqa: E402
@@ -34,7 +34,7 @@ from services.core.ingest.loading import load_space  # noqa: E402
 from services.worker import curvature  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
-RESULTS = ROOT / "bench" / "results" / "curvature.json"
+RESULTS = results_dir() / "curvature.json"
 
 
 def timed(mesh: object, radius: float, grid_max_ball: float) -> tuple[float, np.ndarray]:
@@ -52,13 +52,15 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--against", default="", help="a git revision whose estimator is timed beside today's")
+    ap.add_argument("--rooms", default=",".join(ROOMS), help="comma-separated: " + ",".join(ROOMS))
     args = ap.parse_args()
     radius = CueParams().curvature_radius_m
     result: dict = {"radius_m": radius, "clock": "process CPU seconds, one core, medians",
                     "machine": f"{os.cpu_count()} cores ({cpu_model()}), shared", "load_before": load(), "rooms": {}}
     with tempfile.TemporaryDirectory(prefix="omnidata-curvature-") as tmp:
         old = module_at(args.against, "services/worker/curvature.py", Path(tmp)) if args.against else None
-        for room, (path, frame) in ROOMS.items():
+        for room in args.rooms.split(","):
+            path, frame = ROOMS[room]
             mesh = load_space(path, **frame).mesh
             timed(mesh, radius, curvature.GRID_MAX_BALL)  # numba kernels loaded (or compiled) outside the timing
             timed(mesh, radius, 0)

@@ -12,7 +12,7 @@ Felzenszwalb's blur, edge sort, merge pass and min-size pass, the region graph, 
 the rest).
 
 Floor: the bare render's CPU seconds per view measured by bench/render/room_cost.py on the same rooms (a separate process
-per room, one core; bench/results/render.json "room_cost"), or FLOOR_CPU_S when that file has none.
+per room, one core; bench/results/room_cost.json "room_cost"), or FLOOR_CPU_S when that file has none.
 Writes bench/results/derivations.json ("before" kept from a run with --label before).
 Run: .venv/bin/python bench/cues/derivations.py [--views 6] [--repeats 3] [--label after]
 """
@@ -37,7 +37,7 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
+from bench.lib.results import RECORDED, results_dir  # noqa: E402
 from bench.lib.rooms import ROOMS  # noqa: E402
 from services.core.domain.cues import default_cues  # noqa: E402
 from services.core.domain.jobspec import CueParams, JobSpec  # noqa: E402
@@ -51,7 +51,7 @@ from services.worker.heap import keep_freed_memory  # noqa: E402
 from services.worker.passes import RENDER_PASSES, ViewPasses  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
-RESULTS = ROOT / "bench" / "results" / "derivations.json"
+RESULTS = results_dir() / "derivations.json"
 # Bare 1-sample render, CPU s per view, one core (bench/render/room_cost.py, issue 20's closing notes; the copy room: round 14).
 FLOOR_CPU_S = {"icl_livingroom": 0.077, "7scenes_redkitchen": 0.086, "copyroom": 0.18}
 
@@ -59,9 +59,9 @@ FLOOR_CPU_S = {"icl_livingroom": 0.077, "7scenes_redkitchen": 0.086, "copyroom":
 def floor_cpu_s(room: str) -> tuple[float, str]:
     """The room's bare-render CPU seconds per view and where the figure comes from."""
     try:
-        rooms = json.loads((ROOT / "bench" / "results" / "render.json").read_text())["room_cost"]["rooms"]
+        rooms = json.loads((RECORDED / "room_cost.json").read_text())["room_cost"]["rooms"]
         med = float(np.median([r["floor"]["cpu_s_per_view_median"] for r in rooms[room]["repeats"]]))
-        return med, "bench/results/render.json room_cost (bench/render/room_cost.py), median over repeats"
+        return med, "bench/results/room_cost.json room_cost (bench/render/room_cost.py), median over repeats"
     except (KeyError, OSError, ValueError):
         return FLOOR_CPU_S[room], "issue 20 closing note"
 

@@ -27,9 +27,9 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
 from bench.cues.derivations import room_views  # noqa: E402
 from bench.lib.ab import module_at, write_keeping_before  # noqa: E402
+from bench.lib.results import results_dir  # noqa: E402
 from bench.lib.rooms import ROOMS  # noqa: E402
 from bench.render.room_cost import cpu_model, load  # noqa: E402
 from services.core.domain.jobspec import CueParams  # noqa: E402
@@ -39,7 +39,7 @@ from services.worker.heap import keep_freed_memory  # noqa: E402
 from services.worker.passes import ViewPasses  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
-RESULTS = ROOT / "bench" / "results" / "felzenszwalb.json"
+RESULTS = results_dir() / "felzenszwalb.json"
 CUES = {"segment_unsup2d": segmentation.segment_unsup2d, "segment_unsup25d": segmentation.segment_unsup25d}
 
 
@@ -66,6 +66,7 @@ def main() -> int:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--against", default="", help="a git revision whose felzenszwalb.py is timed beside today's")
     ap.add_argument("--cache", type=Path, default=Path("/tmp/omnidata-derivations-passes"))
+    ap.add_argument("--rooms", default=",".join(ROOMS), help="comma-separated: " + ",".join(ROOMS))
     args = ap.parse_args()
     keep_freed_memory()  # as a worker: freed arrays are reused, not faulted in afresh each view
     result: dict = {"resolution": 512, "clock": "process CPU seconds per view, one core, medians",
@@ -75,7 +76,7 @@ def main() -> int:
         if args.against:
             old = module_at(args.against, "services/worker/cues/felzenszwalb.py", Path(tmp))
             sides = {"against": old.Felzenszwalb, **sides}
-        for room in ROOMS:
+        for room in args.rooms.split(","):
             passes = room_views(room, args.views, 512, args.cache)[0]
             times: dict[str, dict[str, list[float]]] = {side: {c: [] for c in CUES} for side in sides}
             same = True

@@ -42,8 +42,8 @@ from unittest.mock import patch  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
 from bench.cues.derivations import room_views  # noqa: E402
+from bench.lib.results import results_dir  # noqa: E402
 from bench.lib.rooms import ROOMS  # noqa: E402
 from services.core.domain.jobspec import CueParams  # noqa: E402
 from services.worker.context import ViewContext  # noqa: E402
@@ -59,7 +59,7 @@ from tests.fixtures.segment_agreement import (  # noqa: E402
 )
 
 ROOT = Path(__file__).resolve().parents[2]
-RESULTS = ROOT / "bench" / "results" / "segment_stability.json"
+RESULTS = results_dir() / "segment_stability.json"
 NOISE_SHARE = 0.01  # of the pixels changed by the noise floor's perturbation
 DEPTH_NOISE = 1e-6  # relative
 CUES = ("segment_unsup2d", "segment_unsup25d")

@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
+from bench.lib.results import results_dir  # noqa: E402
 from services.core.ingest.capture import find_capture  # noqa: E402
 from services.core.ingest.capture.photos import Photo, load_photo  # noqa: E402
 from services.core.ingest.loading import load_space  # noqa: E402
@@ -219,7 +219,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--views", type=int, default=6)
     parser.add_argument("--resolution", type=int, default=256)
-    parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parents[1] / "results" / "capture.json")
+    parser.add_argument("--out", type=Path, default=results_dir() / "capture.json")
     parser.add_argument("--only", choices=["big_photos"], help="run this scenario alone and update its key")
     parser.add_argument("--baseline-code", type=Path, help="big photos: also generate with this checkout")
     args = parser.parse_args()

@@ -17,12 +17,12 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
+from bench.lib.results import results_dir  # noqa: E402
 from services.core.ingest.errors import SpaceError  # noqa: E402
 from services.core.ingest.loading import load_space  # noqa: E402
 from tests.fixtures.hostile_corpus import varied_degenerate_obj  # noqa: E402
 
-OUT = Path(__file__).resolve().parents[1] / "results" / "degenerate_refusal.json"
+OUT = results_dir() / "degenerate_refusal.json"
 
 
 def main() -> None:

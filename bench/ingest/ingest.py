@@ -25,8 +25,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
 from bench.lib.ingest_corpus import real_figures, summary, units_outcome  # noqa: E402
+from bench.lib.results import results_dir  # noqa: E402
 from services.core.ingest.gravity import estimate_up  # noqa: E402
 from tests.fixtures import rotation_corpus as corpus  # noqa: E402
 
@@ -90,7 +90,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--real-rotations", type=int, default=30, help="random rotations per real scan (plus stored, 24 axis)")
     ap.add_argument("--scenes", type=Path, default=Path(__file__).resolve().parents[3] / "shared" / "scenes")
-    ap.add_argument("--out", type=Path, default=Path(__file__).resolve().parents[1] / "results" / "ingest.json")
+    ap.add_argument("--out", type=Path, default=results_dir() / "ingest.json")
     args = ap.parse_args()
 
     rng = np.random.default_rng(args.seed)

@@ -30,7 +30,7 @@ from scipy.spatial.transform import Rotation
 
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
-
+from bench.lib.results import results_dir  # noqa: E402
 from services.core.ingest.errors import SpaceError, UnitsAmbiguous, UpAmbiguous  # noqa: E402
 from services.core.ingest.frame import FrameRequest, resolve_frame, rotation_to_z  # noqa: E402
 from services.core.ingest.loading import load_space  # noqa: E402
@@ -104,7 +104,7 @@ def main() -> None:
     ap.add_argument("--extra", type=Path, action="append", default=[],
                     help="another truth.json of the same form (rooms that may not be redistributed), "
                     "measured alike")
-    ap.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "ingest.json")
+    ap.add_argument("--out", type=Path, default=results_dir() / "ingest.json")
     args = ap.parse_args()
 
     truth = json.loads(ROOMS.read_text())

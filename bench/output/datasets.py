@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
+from bench.lib.results import results_dir  # noqa: E402
 from services.cli import main  # noqa: E402
 from services.core.domain.cues import default_cues  # noqa: E402
 from services.core.storage import LocalStore  # noqa: E402
@@ -99,7 +99,7 @@ def cli() -> None:
     result = run(args.resolution, args.views)
     result["machine"] = {"python": platform.python_version(), "cpu": platform.processor() or platform.machine()}
     print(json.dumps(result, indent=2))
-    out = REPO / "bench" / "results" / "datasets.json"
+    out = results_dir() / "datasets.json"
     out.write_text(json.dumps(result, indent=2) + "\n")
     print(f"wrote {out}")
 

@@ -33,7 +33,7 @@ import OpenEXR  # noqa: E402
 from isal import isal_zlib  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
+from bench.lib.results import results_dir  # noqa: E402
 from services.core.domain.cues import default_cues, get_cue  # noqa: E402
 from services.core.domain.exr import decode_exr_rgb  # noqa: E402
 from services.worker.context import ViewContext  # noqa: E402
@@ -45,7 +45,7 @@ from services.worker.passes import ViewPasses  # noqa: E402
 from tests.fixtures.raycast import decode_png  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
-RESULTS = ROOT / "bench" / "results" / "encodings.json"
+RESULTS = results_dir() / "encodings.json"
 BEFORE, NOW = "zlib level 1, Z_RLE (before)", "isal level 1 (now)"
 DEFLATERS: dict[str, Callable[[memoryview], bytes]] = {
     BEFORE: zlib_deflater(1, zlib.Z_RLE),

@@ -27,7 +27,7 @@ import numpy as np  # noqa: E402
 import OpenEXR  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
+from bench.lib.results import results_dir  # noqa: E402
 from services.core.domain.cues import default_cues, get_cue  # noqa: E402
 from services.core.domain.exr import decode_exr_rgb  # noqa: E402
 from services.worker.context import ViewContext  # noqa: E402
@@ -37,7 +37,7 @@ from services.worker.passes import ViewPasses  # noqa: E402
 from tests.fixtures.raycast import decode_png  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
-RESULTS = ROOT / "bench" / "results" / "derivations.json"
+RESULTS = results_dir() / "derivations.json"
 EXR_CODECS = ("NO", "RLE", "ZIPS", "ZIP", "PIZ", "ZSTD", "HTJ2K32", "HTJ2K256")  # lossless ones; PXR24 is lossy
 PNG_SETTINGS = {"level 1, Z_RLE": zlib_deflater(1, zlib.Z_RLE),
                 "level 1, Z_FILTERED": zlib_deflater(1, zlib.Z_FILTERED),

@@ -27,9 +27,9 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
 from bench.cues.derivations import room_views  # noqa: E402
 from bench.lib.ab import module_at, write_keeping_before  # noqa: E402
+from bench.lib.results import results_dir  # noqa: E402
 from bench.render.room_cost import cpu_model, load  # noqa: E402
 from services.core.domain.cues import default_cues  # noqa: E402
 from services.core.domain.jobspec import CueParams  # noqa: E402
@@ -39,7 +39,7 @@ from services.worker.context import ViewContext  # noqa: E402
 from services.worker.executor import produce  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
-RESULTS = ROOT / "bench" / "results" / "store_put.json"
+RESULTS = results_dir() / "store_put.json"
 ROOM = "7scenes_redkitchen"
 
 

@@ -21,6 +21,7 @@ Writes bench/results/planner.json. Run: .venv/bin/python bench/plan/planner.py  
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import platform
@@ -32,7 +33,8 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
+from bench.lib.results import results_dir  # noqa: E402
+from bench.lib.smoke import SMOKE, SMOKE_HELP  # noqa: E402
 from bench.scale.fanout import create_database, drop_database  # noqa: E402
 from services.core.db.engine import make_engine, make_sessionmaker, migrate  # noqa: E402
 from services.core.db.jobs import cancel_job, create_job  # noqa: E402
@@ -47,12 +49,14 @@ from services.scheduler.transport import NullTransport  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 BUNNY = REPO.parent / "shared" / "scenes" / "stanford_bunny" / "bun_zipper_res2.ply"
-OUT = REPO / "bench" / "results" / "planner.json"
+OUT = results_dir() / "planner.json"
 SPEC_20M = {"cameras": {"mode": "object", "object_count": 100},
             "points": {"count": 200000, "min_views": 2, "max_views": 100}}
 SMALL = {"cameras": {"mode": "object", "object_count": 4}, "points": {"count": 1, "min_views": 2, "max_views": 2},
          "views": {"resolution": 32}, "cues": ["rgb"]}
 SIZES = [(40, 500), (40, 2000)]  # (cameras, points): 20k and 80k views, every default cue
+if SMOKE:
+    SIZES = [(4, 5), (4, 10)]
 # chunked planning: rgb only (the task rows per view stay few), 100 cameras per point; sizes from the command line
 STREAM_SIZES = [int(a) for a in os.environ.get("BENCH_STREAM_VIEWS", "100000,400000").split(",")]
 
@@ -229,6 +233,9 @@ def big_beside_small(sm: Any, store: LocalStore, settings: Any, big_spec: dict[s
 
 
 def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--smoke", action="store_true", help=SMOKE_HELP + "; the plan sizes only")
+    ap.parse_args()
     results: dict[str, Any] = {"machine": f"{platform.node()} ({os.cpu_count()} cores, loaded by other developers' work)"}
     try:
         check_plan_budget(JobSpec.model_validate(SPEC_20M), memory_mb=get_settings().plan_memory_mb)
@@ -248,6 +255,9 @@ def main() -> None:
             results["streamed"] = streamed(sm, store, settings.model_copy(update={"plan_timeout_s": 36000}))
             raise SystemExit(_save(results))
         results["per_view"] = per_view(sm, store, settings)
+        if SMOKE:
+            engine.dispose()
+            raise SystemExit(_save(results))
         low = settings.model_copy(update={"plan_memory_mb": 1536})
         # the 20M spec written past the API: the scheduler refuses it before planning, B goes on
         results["spec_20m_beside_small"] = big_beside_small(sm, store, low, SPEC_20M, cancel_after_s=90)

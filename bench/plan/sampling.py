@@ -26,7 +26,7 @@ import numpy as np  # noqa: E402
 import trimesh  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
+from bench.lib.results import results_dir  # noqa: E402
 from services.core.domain.jobspec import JobSpec  # noqa: E402
 from services.core.domain.plan import plan_to_json  # noqa: E402
 from services.core.ingest.loading import LoadedSpace  # noqa: E402
@@ -94,7 +94,7 @@ def build_hall(cell: float = 0.049) -> trimesh.Trimesh:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--cell", type=float, default=0.049, help="grid size of the hall's triangles, metres")
-    ap.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "results" / "sampling.json"))
+    ap.add_argument("--out", default=str(results_dir() / "sampling.json"))
     args = ap.parse_args()
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})

@@ -37,7 +37,7 @@ from scipy.spatial import cKDTree  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
-
+from bench.lib.results import results_dir  # noqa: E402
 from services.core.domain.camera import camera_center  # noqa: E402
 from services.core.domain.jobspec import JobSpec  # noqa: E402
 from services.core.domain.plan import SpacePlan, clip_summary  # noqa: E402
@@ -167,7 +167,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--points", type=int, default=20, help="points (clips) per space")
     ap.add_argument("--rooms", type=int, default=6, help="synthetic furnished rooms")
-    ap.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "results" / "trajectory.json"))
+    ap.add_argument("--out", default=str(results_dir() / "trajectory.json"))
     args = ap.parse_args()
     if hasattr(os, "sched_setaffinity"):  # one core, like the sampling benchmark
         os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})

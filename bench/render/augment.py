@@ -4,7 +4,7 @@ real room (../shared/scenes/icl_livingroom, the planner's views, 512x512, defaul
 Per view: a bare 1-sample render (the floor of any bpy renderer, as in bench/render/render.py), then one pass render and
 the augmentation cues derived from it; each cue's exclusive CPU seconds (its value and its PNG encoding; the
 inputs rgb/depth/reshading are timed apart, since a job that asks for augmentations has them anyway), medians
-over views. Writes the key "augmentations" of bench/results/render.json, leaving its other figures as they are.
+over views. Writes the key "augmentations" of bench/results/augment.json.
 Run: .venv/bin/python bench/render/augment.py [--views 4] [--resolution 512]
 """
 
@@ -27,7 +27,7 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
+from bench.lib.results import results_dir  # noqa: E402
 from bench.render.render import ROOM, ROOM_NAME, room_plan  # noqa: E402
 from services.core.domain.jobspec import CueParams  # noqa: E402
 from services.core.ingest.loading import load_space  # noqa: E402
@@ -36,7 +36,7 @@ from services.worker.heap import keep_freed_memory  # noqa: E402
 from services.worker.passes import ViewGeometry  # noqa: E402
 from services.worker.space_cache import SpaceContext  # noqa: E402
 
-RESULTS = Path(__file__).resolve().parents[1] / "results"
+RESULTS = results_dir()
 AUGMENTATIONS = ("rgb_refocus", "rgb_fog", "rgb_motion_blur", "rgb_flash")
 INPUTS = ("rgb", "depth_zbuffer", "depth_euclidean", "reshading", "augment_params")
 
@@ -89,7 +89,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--views", type=int, default=4)
     ap.add_argument("--resolution", type=int, default=512)
-    ap.add_argument("--out", type=Path, default=RESULTS / "render.json")
+    ap.add_argument("--out", type=Path, default=RESULTS / "augment.json")
     args = ap.parse_args()
     figures = measure(args.views, args.resolution)
     doc = json.loads(args.out.read_text()) if args.out.exists() else {}

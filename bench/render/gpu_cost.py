@@ -44,10 +44,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 import room_cost  # noqa: E402  (bench/ is no package)
 from room_cost import ROOMS, SCENES, floor, packed_views, unix  # noqa: E402
 
+from bench.lib.results import results_dir  # noqa: E402
 from tests.fixtures.segment_agreement import adjusted_rand_index  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
-RESULTS = ROOT / "bench" / "results" / "gpu.json"
+RESULTS = results_dir() / "gpu.json"
 
 
 def room_space(room: str, scenes: Path) -> tuple[Path, list[str]]:

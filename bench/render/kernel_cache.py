@@ -27,12 +27,12 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
+from bench.lib.results import results_dir  # noqa: E402
 from bench.render.room_cost import children_cpu_s, cpu_model, load, median, pinned  # noqa: E402
 from services.worker.kernel_target import host_features, level_environment, levels_for  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
-RESULTS = ROOT / "bench" / "results" / "kernel_cache.json"
+RESULTS = results_dir() / "kernel_cache.json"
 ICL = ROOT.parent / "shared" / "scenes" / "icl_livingroom"
 SPEC = '{"points": {"count": 1, "max_views": 3}, "views": {"resolution": 512}}'
 

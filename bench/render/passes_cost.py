@@ -39,7 +39,7 @@ from collections.abc import Callable  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
+from bench.lib.results import results_dir  # noqa: E402
 from bench.lib.rooms import ROOMS  # noqa: E402
 from services.core.domain.jobspec import CueParams, JobSpec  # noqa: E402
 from services.core.ingest.loading import load_space  # noqa: E402
@@ -52,7 +52,7 @@ from services.worker.passes import RENDER_PASSES, ViewGeometry  # noqa: E402
 from services.worker.space_cache import SpaceContext  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
-OUT = ROOT / "bench" / "results" / "passes_cost.json"
+OUT = results_dir() / "passes_cost.json"
 
 
 def median(values: list[float]) -> float:

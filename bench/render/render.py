@@ -41,7 +41,7 @@ import trimesh  # noqa: E402
 from PIL import Image  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
+from bench.lib.results import RECORDED, results_dir  # noqa: E402
 from services.core.domain.camera import look_at  # noqa: E402
 from services.core.domain.cues import CATALOG, default_cues  # noqa: E402
 from services.core.domain.jobspec import CueParams, JobSpec  # noqa: E402
@@ -56,20 +56,18 @@ from services.worker.passes import ViewGeometry  # noqa: E402
 from services.worker.space_cache import SpaceContext, peak_rss_bytes, rss_bytes  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
-RESULTS = ROOT / "bench" / "results"
+RESULTS = results_dir()
 SCENES = {
     "ycb_banana": ROOT.parent / "shared" / "scenes" / "ycb_banana" / "textured_simple_reoriented.obj",
     "stanford_bunny": ROOT.parent / "shared" / "scenes" / "stanford_bunny" / "bun_zipper.ply",
 }
 ROOM = ROOT.parent / "shared" / "scenes" / "icl_livingroom"
 ROOM_NAME = "icl_livingroom"
-# The room's figures before issue 10's changes (this bench's room part run on commit 564a87b with only the floor
-# render and the CPU-clock hook added, same machine, same hour), kept to
-# compare: bench/results/render_room_before.json.
-BEFORE = RESULTS / "render_room_before.json"
-# The figures of issue 10's first pass (segmentations, NARF pyramid, pass selection, PNG settings: commit 7469639, run
-# in the same hour on the same views), the baseline of its second pass: bench/results/render_issue10_first.json.
-FIRST_PASS = RESULTS / "render_issue10_first.json"
+# The runs this one is compared against, kept under "baseline" of the recorded render.json: "before_issue10" (this
+# bench's room part on commit 564a87b with only the floor render and the CPU-clock hook added, same machine, same
+# hour) and "issue10_first_pass" (segmentations, NARF pyramid, pass selection, PNG settings: commit 7469639, run in
+# the same hour on the same views).
+RECORDED_RUN = RECORDED / "render.json"
 GPU_NOTE = ("no GPU figures: no GPU run has been made (bench/render/gpu_cost.py measures one, into bench/results/gpu.json,"
             " from the parts scripts/device_bundle.py packs); a CUDA/OptiX/auto request without a GPU falls back to"
             " the CPU with a log line (tests/worker/blender/test_render.py)")
@@ -409,18 +407,19 @@ def main() -> int:
     result: dict = {"benchmark": "render", "resolution": args.resolution, "cores": cores, "device": "cpu",
                     "target_labels_per_s_per_core": 10, "target_ratio_to_floor": 5.0}
     result["gpu"] = GPU_NOTE
+    baseline = json.loads(RECORDED_RUN.read_text()).get("baseline", {}) if RECORDED_RUN.exists() else {}
     if room is not None:
         result["room"] = {ROOM_NAME: room}
-        if BEFORE.exists():
-            before = json.loads(BEFORE.read_text())
+        if "before_issue10" in baseline:
+            before = baseline["before_issue10"]
             b = before["room"][ROOM_NAME]
             room["before"] = {k: b[k] for k in ("floor_s_median", "view_s_median", "ratio_view_to_floor",
                                                 "labels_per_s_per_core", "per_cue_s_median",
                                                 "intermediates_s_median")}
             if "room_end_to_end" in before:
                 room["before"]["end_to_end"] = before["room_end_to_end"]
-        if FIRST_PASS.exists():
-            first = json.loads(FIRST_PASS.read_text())
+        if "issue10_first_pass" in baseline:
+            first = baseline["issue10_first_pass"]
             room["first_pass"] = {k: first["room"][ROOM_NAME][k] for k in (
                 "floor_s_median", "view_s_median", "ratio_view_to_floor", "labels_per_s_per_core",
                 "per_cue_s_median", "intermediates_s_median")}
@@ -458,6 +457,7 @@ def main() -> int:
                  " labels_per_s_amortised_incl_load adds load_space; steady = views after the first;"
                  " naive = one render per label with the scene kept loaded (Cycles persistent data);"
                  " naive_cold = one render per label that also builds the Blender scene (+ curvature when needed)",
+        "baseline": baseline,
     })
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1) + "\n")

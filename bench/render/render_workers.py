@@ -24,7 +24,9 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import room_cost  # noqa: E402
 
-RESULTS = room_cost.ROOT / "bench" / "results" / "render_workers.json"
+from bench.lib.results import results_dir  # noqa: E402
+
+RESULTS = results_dir() / "render_workers.json"
 
 
 def run(room: str, cores: str, out: Path, spec: Path, render_workers: int | None) -> dict:

@@ -19,8 +19,8 @@ of the views a longer job adds (the slope, start-ups left out: what a long job o
 A 3-view run of the same room on the same core (unless --no-startup) splits generate's CPU into what a run pays
 whatever its size (start-up: imports, space loads, curvature, planning) and the CPU of one more view (the slope),
 set against the floor's. `claims` counts task claims (a view batch claims a view's derived tasks at once).
-Figures go to bench/results/render.json under "room_cost", or --key (the previous run's figures kept as
-"<key>_before"; the rest of the file, written by bench/render/render.py, is left as it is). A long job, where start-up
+Figures go to bench/results/room_cost.json under "room_cost", or --key (the previous run's figures kept as
+"<key>_before"; the file's other keys are left as they are). A long job, where start-up
 is spread over a thousand views and more: --points 22 --max-views 60 --no-startup --key room_cost_long.
 Run: .venv/bin/python bench/render/room_cost.py [--points 14] [--max-views 3] [--repeats 2] [--core 1] [--key K]
 """
@@ -45,10 +45,10 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
-
+from bench.lib.results import results_dir  # noqa: E402
 from services.core.db.view_outputs import DoneTask, unpack  # noqa: E402
 
-RESULTS = ROOT / "bench" / "results" / "render.json"
+RESULTS = results_dir() / "room_cost.json"
 SCENES = ROOT.parent / "shared" / "scenes"
 SCANS = ROOT / "bench" / "scans"
 # name -> (SPACE argument, extra generate flags). The kitchen's fused mesh is not gravity aligned; its capture

@@ -6,8 +6,7 @@ the curvature, the first render); with --points 22, the 66-view job of bench/ren
 this checkout and the run of git revision --against (a worktree of it, its kernels compiled ahead as `make venv`
 does) alternate, first one then the other, so a neighbour's load moves both; per room, each side's CPU and wall
 seconds per repeat, their medians and the paired differences (against minus this checkout).
-Writes bench/results/startup.json under --key ("ab"; the rest of the file, written by bench/render/startup_cpu.py, is
-kept).
+Writes bench/results/startup_ab.json under --key ("ab"; its other keys kept).
 Run: .venv/bin/python bench/render/startup_ab.py --against REV [--points 1] [--repeats 5] [--core 1] [--worktree DIR]
      [--key ab]
 """
@@ -24,10 +23,10 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
-
+from bench.lib.results import results_dir  # noqa: E402
 from bench.render.room_cost import ROOMS, cpu_model, generate, load, median  # noqa: E402
 
-RESULTS = ROOT / "bench" / "results" / "startup.json"
+RESULTS = results_dir() / "startup_ab.json"
 
 
 def job_spec(points: int) -> dict:
@@ -55,7 +54,7 @@ def main() -> int:
     ap.add_argument("--rooms", default=",".join(ROOMS))
     ap.add_argument("--worktree", type=Path, default=None, help="a folder for the revision's checkout (kept)")
     ap.add_argument("--points", type=int, default=1, help="points of the job (3 views each)")
-    ap.add_argument("--key", default="ab", help="the entry of bench/results/startup.json to write")
+    ap.add_argument("--key", default="ab", help="the entry of bench/results/startup_ab.json to write")
     args = ap.parse_args()
     rev = subprocess.run(["git", "rev-parse", "--short", args.against], cwd=ROOT, check=True, capture_output=True,
                          text=True).stdout.strip()

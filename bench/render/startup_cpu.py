@@ -6,11 +6,13 @@ Each part in a fresh process (so imports and caches start cold as in a run), pro
 - worker imports: `services.worker.runner` and the modules a worker process imports before its first task;
 - curvature: the room's per-vertex curvature computed (the first worker of a machine) against read back from the
   shared file (every other worker process).
-Figures go to bench/results/startup.json with the load average. Run: .venv/bin/python bench/render/startup_cpu.py
+Figures go to bench/results/startup_cpu.json with the load average.
+Run: .venv/bin/python bench/render/startup_cpu.py [--rooms icl_livingroom,...]
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import subprocess
@@ -19,11 +21,11 @@ import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
+from bench.lib.results import results_dir  # noqa: E402
 from bench.lib.rooms import ROOMS  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
-RESULTS = ROOT / "bench" / "results" / "startup.json"
+RESULTS = results_dir() / "startup_cpu.json"
 
 PARENT = r"""
 import json, sys, time
@@ -90,10 +92,14 @@ def probe(code: str, *args: str) -> dict:
 
 
 def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--rooms", default=",".join(ROOMS), help="comma-separated: " + ",".join(ROOMS))
+    args = ap.parse_args()
     report: dict = {"load_before": [round(x, 2) for x in os.getloadavg()], "unit": "process CPU seconds",
                     "rooms": {}}
     report["worker_imports"] = probe(IMPORTS)
-    for room, (space, frame) in ROOMS.items():
+    for room in args.rooms.split(","):
+        space, frame = ROOMS[room]
         rec: dict = {}
         with tempfile.TemporaryDirectory(prefix="omnidata-startup-") as tmp:
             for label, hand_over in (("parent_before", "0"), ("parent_now", "1")):

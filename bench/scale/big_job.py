@@ -11,7 +11,7 @@ transaction, as the planner does; then measures what the service needs to keep r
   finished between passes as a fleet would, pass time and tasks/s;
 - progress: the API's job detail query (one statement over the sharded counters) p50/p99, and its plan.
 
-Writes `big_job` into bench/results/scale.json (other keys kept) and drops its database.
+Writes `big_job` into bench/results/big_job.json (other keys kept) and drops its database.
 Run: .venv/bin/python bench/scale/big_job.py [--views 1000000] [--chunk-views 50000]
 """
 
@@ -31,7 +31,7 @@ import numpy as np
 from sqlalchemy import select, text
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
+from bench.lib.results import results_dir  # noqa: E402
 from bench.lib.scale_cost import ROOM_CUES  # noqa: E402
 from bench.scale.fanout import create_database, drop_database, labelled_space, percentiles  # noqa: E402
 from services.core.db.bulk import bulk_insert  # noqa: E402
@@ -47,7 +47,7 @@ from services.scheduler.compile import task_cues  # noqa: E402
 from services.scheduler.dispatch import dispatch_once  # noqa: E402
 from services.scheduler.transport import NullTransport  # noqa: E402
 
-RESULTS = Path(__file__).resolve().parents[1] / "results"
+RESULTS = results_dir()
 VIEWS_PER_POINT = 4
 STARTER_VIEWS = 14_600_000
 
@@ -215,7 +215,7 @@ def progress(sm: Any, job_id: int, polls: int) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Persist, measure, dispatch, poll; write big_job into scale.json; drop the database."""
+    """Persist, measure, dispatch, poll; write big_job into big_job.json; drop the database."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--views", type=int, default=1_000_000)
     p.add_argument("--chunk-views", type=int, default=50_000)
@@ -223,8 +223,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--passes", type=int, default=20)
     p.add_argument("--finish-all", action="store_true",
                    help="then finish every task and measure the footprint of the finished job (size_finished)")
-    p.add_argument("--key", default="big_job", help="the key of scale.json the figures go to")
-    p.add_argument("--out", type=Path, default=RESULTS / "scale.json")
+    p.add_argument("--key", default="big_job", help="the key of big_job.json the figures go to")
+    p.add_argument("--out", type=Path, default=RESULTS / "big_job.json")
     args = p.parse_args(argv)
     db_url = create_database()
     tmp = Path(tempfile.mkdtemp(prefix="omnidata-big-job-"))
@@ -255,7 +255,7 @@ def main(argv: list[str] | None = None) -> int:
         engine.dispose()
     finally:
         drop_database(db_url)
-    out = json.loads(args.out.read_text()) if args.out.exists() else {"benchmark": "scale_sim"}
+    out = json.loads(args.out.read_text()) if args.out.exists() else {"benchmark": "big_job"}
     out[args.key] = {**doc, "views_arg": args.views}
     args.out.write_text(json.dumps(out, indent=2) + "\n")
     print(json.dumps(doc, indent=2))

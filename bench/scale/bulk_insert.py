@@ -21,12 +21,12 @@ from sqlalchemy.engine import make_url
 from sqlalchemy.orm import Session
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
+from bench.lib.results import results_dir  # noqa: E402
 from services.core.db.bulk import bulk_insert
 from services.core.db.engine import make_engine, migrate
 from services.core.db.models import Job, Task  # noqa: E402
 
-RESULTS = Path(__file__).resolve().parents[1] / "results"
+RESULTS = results_dir()
 PG_ADMIN_URL = os.environ.get("OMNIDATA_TEST_PG_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/postgres")
 CUES = ("rgb", "normal", "depth_zbuffer", "depth_euclidean", "mask_valid", "reshading", "edge_texture")
 

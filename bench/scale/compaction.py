@@ -9,7 +9,7 @@ the deleted rows need timed on its own after), VACUUM FULL again and measures ta
 view_output (+ compacted_duration) per view, with the starter dataset's extrapolation. It also times the manifest
 (iter_manifest_lines) over task rows and over compacted views, and checks that they are byte-identical.
 
-Writes `compaction` into bench/results/scale.json (other keys kept) and drops its database.
+Writes `compaction` into bench/results/compaction.json (other keys kept) and drops its database.
 Run: .venv/bin/python bench/scale/compaction.py [--views 40000]
 """
 
@@ -28,7 +28,7 @@ from typing import Any
 from sqlalchemy import text
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
+from bench.lib.results import results_dir  # noqa: E402
 from bench.lib.scale_cost import ROOM_CUES  # noqa: E402
 from bench.scale.big_job import STARTER_VIEWS, persist  # noqa: E402
 from bench.scale.fanout import create_database, drop_database, labelled_space  # noqa: E402
@@ -42,7 +42,7 @@ from services.core.domain.jobspec import JobSpec  # noqa: E402
 from services.core.storage import LocalStore  # noqa: E402
 from services.scheduler.compaction import Compactor  # noqa: E402
 
-RESULTS = Path(__file__).resolve().parents[1] / "results"
+RESULTS = results_dir()
 
 
 def finish_like_workers(sm: Any, job_id: int, root: str, space: str, component: str) -> float:
@@ -154,13 +154,13 @@ def compact_all(sm: Any, pass_s: float) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Persist, finish, measure, compact, measure; write `compaction` into scale.json; drop the database."""
+    """Persist, finish, measure, compact, measure; write `compaction` into compaction.json; drop the database."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--views", type=int, default=40_000)
     p.add_argument("--chunk-views", type=int, default=20_000)
     p.add_argument("--pass-s", type=float, default=0.25, help="compact_pass_s: time one compaction pass may take")
     p.add_argument("--key", default="compaction")
-    p.add_argument("--out", type=Path, default=RESULTS / "scale.json")
+    p.add_argument("--out", type=Path, default=RESULTS / "compaction.json")
     args = p.parse_args(argv)
     db_url = create_database()
     tmp = Path(tempfile.mkdtemp(prefix="omnidata-compaction-"))
@@ -213,7 +213,7 @@ def main(argv: list[str] | None = None) -> int:
         engine.dispose()
     finally:
         drop_database(db_url)
-    out = json.loads(args.out.read_text()) if args.out.exists() else {"benchmark": "scale_sim"}
+    out = json.loads(args.out.read_text()) if args.out.exists() else {"benchmark": "compaction"}
     out[args.key] = doc
     args.out.write_text(json.dumps(out, indent=2) + "\n")
     print(json.dumps(doc, indent=2))

@@ -40,14 +40,14 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session, sessionmaker
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
+from bench.lib.results import results_dir  # noqa: E402
 from bench.scale.fanout import create_database, drop_database  # noqa: E402
 from services.core.db.engine import make_engine, make_sessionmaker, migrate  # noqa: E402
 from services.core.db.models import Job, Task, utcnow  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 BUNNY = REPO.parent / "shared" / "scenes" / "stanford_bunny" / "bun_zipper_res2.ply"
-OUT = REPO / "bench" / "results" / "fairness.json"
+OUT = results_dir() / "fairness.json"
 REDIS_URL = os.environ.get("OMNIDATA_BENCH_REDIS_URL", "redis://127.0.0.1:6379/4")
 BIG = "cameras: {mode: object, object_count: 40}\npoints: {count: 20, min_views: 2, max_views: 15}\n" \
       "views: {resolution: 32}\ncues: [rgb]\npriority: 9\nseed: 1\n"

@@ -44,7 +44,7 @@ from sqlalchemy import create_engine, func, select, text, update
 from sqlalchemy.engine import make_url
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
+from bench.lib.results import results_dir  # noqa: E402
 from services.core.db.counters import job_progress
 from services.core.db.engine import make_engine, make_sessionmaker, migrate
 from services.core.db.jobs import create_job  # noqa: E402
@@ -62,7 +62,7 @@ from services.scheduler.completion import complete_once  # noqa: E402
 from services.scheduler.loop import Scheduler  # noqa: E402
 from services.scheduler.persist import persist_space  # noqa: E402
 
-RESULTS = Path(__file__).resolve().parents[1] / "results"
+RESULTS = results_dir()
 PG_ADMIN_URL = os.environ.get("OMNIDATA_TEST_PG_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/postgres")
 REDIS_URL = os.environ.get("OMNIDATA_BENCH_REDIS_URL", "redis://127.0.0.1:6379/12")
 BUNNY = Path(__file__).resolve().parents[3] / "shared" / "scenes" / "stanford_bunny" / "bun_zipper_res2.ply"

@@ -19,7 +19,7 @@ Per task, orchestration = scheduler (Python) + its Postgres backend + Redis + th
 + compaction (Python + backend) + heartbeats and reaper passes scaled to a fleet (`--workers` beating every 5 s, a reaper pass every 5 s, at
 `--rate` tasks/s). The worker's own Python is not orchestration (it scales with the workers).
 
-Writes bench/results/scale.json under `orchestration_cpu[--label]` (`--key` for another key).
+Writes bench/results/orchestration_cpu.json under `orchestration_cpu[--label]` (`--key` for another key).
 Run: .venv/bin/python bench/scale/orchestration_cpu.py [--views 4000] [--rounds 6] [--label NAME]
 """
 
@@ -38,7 +38,7 @@ from typing import Any
 from sqlalchemy import text
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
+from bench.lib.results import results_dir  # noqa: E402
 from bench.lib.scale_cost import ROOM_CUES, PrivateRedis, cpu_seconds, with_app_name  # noqa: E402
 from bench.lib.scale_procs import SleepingRunner, task_id_of  # noqa: E402
 from bench.scale.fanout import create_database, drop_database, labelled_space, percentiles, synthetic_plan  # noqa: E402
@@ -51,7 +51,7 @@ from services.core.storage import LocalStore  # noqa: E402
 from services.worker.heartbeat import HEARTBEAT_INTERVAL_S, Heartbeat  # noqa: E402
 from services.worker.tasks import worker_engine  # noqa: E402
 
-RESULTS = Path(__file__).resolve().parents[1] / "results"
+RESULTS = results_dir()
 
 
 def _backend(sm: Any) -> int:
@@ -235,7 +235,7 @@ def _cpu_ms(fn: Any, part: Part, n: int) -> dict[str, float]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run and store the figures under orchestration_cpu[label] in scale.json."""
+    """Run and store the figures under orchestration_cpu[label] in orchestration_cpu.json."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--views", type=int, default=4000)
     p.add_argument("--window", type=int, default=2000, help="dispatch window and budget (tasks per pass)")
@@ -247,12 +247,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-compaction", action="store_true", help="leave out compaction of finished views")
     p.add_argument("--kombu", action="store_true", help="publish through kombu (the path before prebuilt messages)")
     p.add_argument("--label", default="now")
-    p.add_argument("--key", default="orchestration_cpu", help="the key of scale.json the run is stored under")
-    p.add_argument("--out", type=Path, default=RESULTS / "scale.json")
+    p.add_argument("--key", default="orchestration_cpu", help="the key of orchestration_cpu.json the run is stored under")
+    p.add_argument("--out", type=Path, default=RESULTS / "orchestration_cpu.json")
     args = p.parse_args(argv)
     res = measure(args)
     print(json.dumps(res), flush=True)
-    doc = json.loads(args.out.read_text()) if args.out.exists() else {"benchmark": "scale_sim"}
+    doc = json.loads(args.out.read_text()) if args.out.exists() else {"benchmark": "orchestration_cpu"}
     doc.setdefault(args.key, {})[args.label] = {
         **res, "when": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }

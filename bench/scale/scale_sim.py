@@ -10,7 +10,7 @@ with a synthetic plan (no mesh sampling), 4 views per point.
 The grain (default): the 18 cues of an unlabelled room, each task sleeping its cue's measured time
 (bench/scale_cost.CUE_SECONDS: the render ~0.3 s, derivations 5-200 ms; 0.059 s a task on average), so 1,000 workers
 ideally finish ~17,000 tasks/s. `--task-s S` instead gives every task S seconds (+-20%) of `rgb, normal,
-depth_zbuffer` (the first figures, kept at the top level of scale.json).
+depth_zbuffer` (the first figures, kept at the top level of scale_sim.json).
 
 For each worker count (default 100, 300, 1000), on a fresh database and a private redis-server, for `--seconds`:
 - throughput: tasks done per second against the ideal (utilisation), queue wait and task overhead p50/p99;
@@ -20,14 +20,14 @@ For each worker count (default 100, 300, 1000), on a fresh database and a privat
 - reaper: `--kill-fraction` of the workers are "killed -9" a third of the way in: seconds until their tasks came back;
 - progress query: p50/p99 of the API's job detail query polled every 50 ms meanwhile.
 
-History (scale.json keeps every step): 5-second tasks first showed heartbeats falling behind at 1,000 workers (fixed:
+History (scale_sim.json keeps every step): 5-second tasks first showed heartbeats falling behind at 1,000 workers (fixed:
 a beat is one upsert). At the real grain (`steps`), claims and results queued on the row locks of the job's few
 counter rows (Lock:transactionid); step 1 shards those rows and moves tasks and counters in one statement; step 2
 makes a worker's claim and result one fixed SQL statement each (SQLAlchemy compiled them anew on every call: ~2 ms
 of worker CPU per move, its ON CONFLICT construct cannot be cached). What limits next is the dispatch pass: a
 readiness lookup per pending row, cue by cue.
 
-Writes bench/results/scale.json. Run: .venv/bin/python bench/scale/scale_sim.py [--workers 100,300,1000] [--seconds 30]
+Writes bench/results/scale_sim.json. Run: .venv/bin/python bench/scale/scale_sim.py [--workers 100,300,1000] [--seconds 30]
     [--step NAME --label TEXT]
 """
 
@@ -48,7 +48,7 @@ from typing import Any
 from sqlalchemy import func, select, text
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
+from bench.lib.results import results_dir  # noqa: E402
 from bench.lib.scale_cost import (  # noqa: E402
     ROOM_CUES,
     PrivateRedis,
@@ -71,7 +71,7 @@ from services.core.domain.jobspec import JobSpec  # noqa: E402
 from services.core.settings import get_settings  # noqa: E402
 from services.core.storage import LocalStore  # noqa: E402
 
-RESULTS = Path(__file__).resolve().parents[1] / "results"
+RESULTS = results_dir()
 CUES = ["rgb", "normal", "depth_zbuffer"]
 
 
@@ -329,7 +329,7 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Parse arguments, run each worker count, write bench/results/scale.json."""
+    """Parse arguments, run each worker count, write bench/results/scale_sim.json."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--workers", default="100,300,1000", help="comma-separated simulated worker counts")
     p.add_argument("--seconds", type=float, default=30.0, help="measured seconds per worker count")
@@ -354,7 +354,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--key", default="", help="store the run under KEY[LABEL] of the results, every other key kept")
     p.add_argument("--publish-cost", action="store_true",
                    help="also measure the CPU per message of publishing alone (stored under `publishing`)")
-    p.add_argument("--out", type=Path, default=RESULTS / "scale.json")
+    p.add_argument("--out", type=Path, default=RESULTS / "scale_sim.json")
     p.add_argument("--before", type=Path, default=None,
                    help="an earlier run's JSON (e.g. before a fix), kept in the results under `before`")
     args = p.parse_args(argv)

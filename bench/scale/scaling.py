@@ -23,8 +23,9 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from bench.lib.results import results_dir  # noqa: E402
 
-RESULTS = Path(__file__).resolve().parents[1] / "results"
+RESULTS = results_dir()
 SCENE = Path(__file__).resolve().parents[3] / "shared" / "scenes" / "ycb_banana"
 
 

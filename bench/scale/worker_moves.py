@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import tempfile
 import time
 from datetime import timedelta
@@ -20,6 +21,10 @@ from pathlib import Path
 
 from sqlalchemy import select
 
+# appended, not prepended: an older checkout on PYTHONPATH keeps its services ahead of this one's
+sys.path.append(str(Path(__file__).resolve().parents[2]))
+
+from bench.lib.results import results_dir  # noqa: E402
 from services.core.db.bulk import bulk_insert
 from services.core.db.counters import add_counts, job_progress
 from services.core.db.engine import make_engine, make_sessionmaker, migrate
@@ -31,7 +36,7 @@ try:
 except ImportError:  # an older checkout
     from services.core.db import states as moves  # type: ignore[no-redef]
 
-RESULTS = Path(__file__).resolve().parents[1] / "results" / "worker_moves.json"
+RESULTS = results_dir() / "worker_moves.json"
 
 
 def make_job(sm, cues: list[str], views: int) -> tuple[int, dict[tuple[int, str], int]]:

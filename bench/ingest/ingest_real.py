@@ -11,7 +11,7 @@ service's reconstruction, in their delivered frame). Outcome per case: levelled 
 Single depth frames (one sensor view, not a room) are reported apart from the rooms.
 
 Run: `.venv/bin/python bench/ingest/ingest_real.py [--out FILE]`; writes the "real_rooms" section of
-bench/results/ingest.json (the rest of that file is bench/ingest/ingest.py's) and prints the table per source.
+bench/results/ingest_real.json and prints the table per source.
 """
 
 from __future__ import annotations
@@ -104,7 +104,7 @@ def main() -> None:
     ap.add_argument("--extra", type=Path, action="append", default=[],
                     help="another truth.json of the same form (rooms that may not be redistributed), "
                     "measured alike")
-    ap.add_argument("--out", type=Path, default=results_dir() / "ingest.json")
+    ap.add_argument("--out", type=Path, default=results_dir() / "ingest_real.json")
     args = ap.parse_args()
 
     truth = json.loads(ROOMS.read_text())

@@ -6,7 +6,7 @@ its array bit for bit.
 
 Views: the pass sets bench/cues/derivations.py caches (run it first; the same planner views of ICL and the kitchen).
 Clock: process CPU seconds (time.process_time), one core, median over views x repeats.
-Writes bench/results/encodings.json (keys of other runs kept; this run under --label).
+Writes bench/results/encode_cost.json (keys of other runs kept; this run under --label).
 Run: .venv/bin/python bench/output/encode_cost.py [--repeats 5] [--label now]
 """
 
@@ -45,7 +45,7 @@ from services.worker.passes import ViewPasses  # noqa: E402
 from tests.fixtures.raycast import decode_png  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
-RESULTS = results_dir() / "encodings.json"
+RESULTS = results_dir() / "encode_cost.json"
 BEFORE, NOW = "zlib level 1, Z_RLE (before)", "isal level 1 (now)"
 DEFLATERS: dict[str, Callable[[memoryview], bytes]] = {
     BEFORE: zlib_deflater(1, zlib.Z_RLE),

@@ -4,7 +4,7 @@ arrays checked identical to the values.
 
 Views: the pass sets bench/cues/derivations.py caches (run it first; the same planner views of ICL and the kitchen).
 Clock: process CPU seconds (time.process_time), one core, median over views x repeats.
-Writes the "encodings" entry of bench/results/derivations.json.
+Writes the "encodings" entry of bench/results/encodings.json.
 Run: .venv/bin/python bench/output/encodings.py [--repeats 3]
 """
 
@@ -37,7 +37,7 @@ from services.worker.passes import ViewPasses  # noqa: E402
 from tests.fixtures.raycast import decode_png  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
-RESULTS = results_dir() / "derivations.json"
+RESULTS = results_dir() / "encodings.json"
 EXR_CODECS = ("NO", "RLE", "ZIPS", "ZIP", "PIZ", "ZSTD", "HTJ2K32", "HTJ2K256")  # lossless ones; PXR24 is lossy
 PNG_SETTINGS = {"level 1, Z_RLE": zlib_deflater(1, zlib.Z_RLE),
                 "level 1, Z_FILTERED": zlib_deflater(1, zlib.Z_FILTERED),
@@ -116,7 +116,7 @@ def main() -> int:
     run = {"views": [f.stem for f in files], "clock": "process CPU, one core, median over views x repeats",
            "load": [round(x, 2) for x in os.getloadavg()],
            "position_exr": exr_figures(positions, args.repeats), "png_cues": png_figures(values, args.repeats)}
-    data = json.loads(RESULTS.read_text())
+    data = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
     data["encodings"] = run
     RESULTS.write_text(json.dumps(data, indent=1) + "\n")
     print(json.dumps({k: run[k] for k in ("position_exr", "png_cues", "load")}, indent=1))

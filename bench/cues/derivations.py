@@ -157,7 +157,7 @@ def segment_stages(passes: list[ViewPasses], repeats: int) -> dict[str, dict[str
                     c1 = time.process_time()
                     if not mask.all():
                         iy, ix = seg.nearest_in_mask(ctx, mask)
-                        features = seg._gather(features, iy, ix)
+                        features = seg._gather(features, mask, iy, ix)
                     c2 = time.process_time()
                     img = np.ascontiguousarray(features, dtype=np.float32)
                     if sigma > 0:

@@ -1,5 +1,5 @@
-"""Helpers of the A/B benchmarks (not a benchmark itself: `make bench` runs it as a no-op): a module of the project
-as it was at a git revision, loaded beside today's, and a results file written with the previous run kept."""
+"""Helpers of the A/B benchmarks: a module of the project as it was at a git revision, loaded beside today's,
+and a results file written with the previous run kept."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The real rooms the cost benchmarks load in-process (not a benchmark itself: `make bench` runs it as a no-op).
+"""The real rooms the cost benchmarks load in-process.
 
 name -> (space path, load_space frame arguments). The kitchen's fused mesh ships its gravity direction; up is its
 negative, as bench/render/room_cost.py gives it to `generate`. The copy room's up is the measured one

@@ -222,6 +222,8 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=results_dir() / "capture.json")
     parser.add_argument("--only", choices=["big_photos"], help="run this scenario alone and update its key")
     parser.add_argument("--baseline-code", type=Path, help="big photos: also generate with this checkout")
+    parser.add_argument("--no-big-photos", dest="big_photos", action="store_false",
+                        help="leave out the big-photo generates (minutes; a smoke run)")
     args = parser.parse_args()
     if args.only == "big_photos":
         kept = json.loads(args.out.read_text()) if args.out.exists() else {}
@@ -242,8 +244,9 @@ def main() -> None:
     print(json.dumps(result["texture"]))
     result["capture_view_cost"] = view_cost(space, args.views, args.resolution)
     print(json.dumps(result["capture_view_cost"]))
-    with tempfile.TemporaryDirectory(prefix="bench-capture-") as tmp:
-        result["big_photos"] = big_photo_figures(Path(tmp), args.baseline_code)
+    if args.big_photos:
+        with tempfile.TemporaryDirectory(prefix="bench-capture-") as tmp:
+            result["big_photos"] = big_photo_figures(Path(tmp), args.baseline_code)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
     print(f"wrote {args.out}")
 

@@ -45,7 +45,7 @@ from services.core.domain.cues import default_cues
 cues = default_cues(has_semantics=False)
 out, per_cue = {}, {}
 for room in sys.argv[2].split(","):
-    passes, plan, views = room_views(room, 6, 512, __import__("pathlib").Path(sys.argv[3]))
+    passes, plan, views = room_views(room, int(sys.argv[4]), 512, __import__("pathlib").Path(sys.argv[3]))
     time_view(passes[0], views[0], plan, cues)  # compiles this target's kernels (its own cache)
     runs = [time_view(p, v, plan, cues) for _ in range(3) for p, v in zip(passes, views)]
     out[room] = float(np.median([sum(d + e for d, e in t.values()) for t in runs]))
@@ -88,7 +88,8 @@ def first_generate(tmp: Path, cores: str, workers: int | None, warm: bool) -> di
     return out
 
 
-def derivations(tmp: Path, core: str, repeats: int, rooms: str, passes_cache: Path) -> dict:
+def derivations(tmp: Path, core: str, repeats: int, rooms: str, passes_cache: Path, views: int = 6,
+                only: str = "") -> dict:
     """Derivation CPU-s per view with the kernels built for the host CPU, each x86-64 level it runs and generic
     x86-64."""
     levels = levels_for(platform.machine(), host_features())
@@ -96,12 +97,14 @@ def derivations(tmp: Path, core: str, repeats: int, rooms: str, passes_cache: Pa
                           capture_output=True, text=True).stdout.strip()
     targets = {"host": {"NUMBA_CPU_NAME": host}, **{level: level_environment(level) for level in levels},
                "generic": {"NUMBA_CPU_NAME": "generic"}}
+    if only:
+        targets = {name: targets[name] for name in only.split(",")}
     runs: dict[str, list[dict]] = {t: [] for t in targets}
     names = list(targets)
     for r in range(repeats):
         for name in names[r % len(names):] + names[:r % len(names)]:
             env = environment(tmp / f"derive-{name}", **targets[name])
-            res = timed([sys.executable, "-c", DERIVE, str(ROOT), rooms, str(passes_cache)], env, core)
+            res = timed([sys.executable, "-c", DERIVE, str(ROOT), rooms, str(passes_cache), str(views)], env, core)
             runs[name].append({**json.loads(res.pop("stdout")), **res})
     summary = {name: {room: round(median([x["per_view_s"][room] for x in rs]), 4) for room in rooms.split(",")}
                for name, rs in runs.items()}
@@ -109,7 +112,7 @@ def derivations(tmp: Path, core: str, repeats: int, rooms: str, passes_cache: Pa
                           for c in rs[0]["per_cue_s"][room]} for room in rooms.split(",")} for name, rs in runs.items()}
     return {"host_cpu": host, "per_view_s_median": summary,
             "to_host": {name: {room: round(v / summary["host"][room], 3) for room, v in s.items()}
-                        for name, s in summary.items()},
+                        for name, s in summary.items()} if "host" in summary else None,
             "per_cue_s_median": cues,
             "runs": runs}
 
@@ -122,6 +125,8 @@ def main() -> int:
     ap.add_argument("--parts", default="first,derive", help="first (the first generate), derive (the targets)")
     ap.add_argument("--rooms", default="icl_livingroom,7scenes_redkitchen")
     ap.add_argument("--passes-cache", type=Path, default=Path("/tmp/omnidata-derivations-passes"))
+    ap.add_argument("--views", type=int, default=6, help="views per room of the derive part")
+    ap.add_argument("--targets", default="", help="only these targets of the derive part (e.g. host,generic)")
     ap.add_argument("--key", default="derivations_by_target",
                     help="entry of the derive part (another host's figures beside this one's)")
     args = ap.parse_args()
@@ -137,7 +142,8 @@ def main() -> int:
                 print(json.dumps(run), flush=True)
         if "derive" in parts:
             data[args.key] = {"machine": f"{os.cpu_count()} cores ({cpu_model()})", "load_before": load(),
-                              **derivations(tmp, args.core, args.repeats, args.rooms, args.passes_cache),
+                              **derivations(tmp, args.core, args.repeats, args.rooms, args.passes_cache, args.views,
+                                            args.targets),
                               "load_after": load()}
             print(json.dumps({k: v for k, v in data[args.key].items() if k != "runs"}), flush=True)
     data.update(commit=subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,

@@ -41,6 +41,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from bench.lib.results import results_dir  # noqa: E402
+from bench.lib.smoke import SMOKE, SMOKE_HELP  # noqa: E402
 from bench.scale.fanout import create_database, drop_database  # noqa: E402
 from services.core.db.engine import make_engine, make_sessionmaker, migrate  # noqa: E402
 from services.core.db.models import Job, Task, utcnow  # noqa: E402
@@ -118,7 +119,8 @@ class Bench:
 
 def big_job(bench: Bench) -> dict[str, Any]:
     big = submit(bench.env, "tenant-a", BIG, bench.tmp)
-    assert bench.wait("A's first 20 tasks", lambda: bench.done(big) >= 20, 240)
+    stride = 2 if SMOKE else 20
+    assert bench.wait(f"A's first {stride} tasks", lambda: bench.done(big) >= stride, 240)
     a_before = bench.done(big)
     t_submit = time.monotonic()
     small = submit(bench.env, "tenant-b", SMALL, bench.tmp)
@@ -150,6 +152,7 @@ def main() -> None:
     ap.add_argument("--code", type=Path, default=REPO, help="checkout whose scheduler and worker run")
     ap.add_argument("--head-start", type=float, default=10.0, help="seconds A plans before B submits")
     ap.add_argument("--limit", type=float, default=300.0, help="longest wait for B's job (slow_planning)")
+    ap.add_argument("--smoke", action="store_true", help=SMOKE_HELP + "; B comes after A's first 2 tasks")
     args = ap.parse_args()
     url = create_database()
     tmp = Path(tempfile.mkdtemp(prefix="bench-fairness-"))

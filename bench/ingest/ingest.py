@@ -89,6 +89,8 @@ def main() -> None:
     ap.add_argument("--cloud-points", type=int, default=200_000, help="points of the meshed-cloud check (0: skip)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--real-rotations", type=int, default=30, help="random rotations per real scan (plus stored, 24 axis)")
+    ap.add_argument("--no-real-corpus", dest="real_corpus", action="store_false",
+                    help="leave out the real scans (most of the run; a smoke run)")
     ap.add_argument("--scenes", type=Path, default=Path(__file__).resolve().parents[3] / "shared" / "scenes")
     ap.add_argument("--out", type=Path, default=results_dir() / "ingest.json")
     args = ap.parse_args()
@@ -130,7 +132,7 @@ def main() -> None:
         "synthetic_and_icl_refusals": {k: v for k, v in summary(rows).items() if "share" in k},
         "synthetic_and_icl_units": {s: round(float(np.mean([r["units"] == s for r in rows])), 4)
                                     for s in ("right", "refused", "wrong")},
-        "real_corpus": real_figures(args.scenes, args.real_rotations, args.seed, print),
+        "real_corpus": real_figures(args.scenes, args.real_rotations, args.seed, print) if args.real_corpus else None,
         "point_cloud": cloud_figures(args.cloud_points, args.seed) if args.cloud_points else None,
         "seconds_per_case": {"median": round(float(np.median(seconds)), 4), "max": round(float(np.max(seconds)), 4),
                              "icl_median": round(float(np.median([s for s, r in zip(seconds, rows, strict=True)
@@ -145,7 +147,7 @@ def main() -> None:
                                                  if k in old}
         if result["point_cloud"] is None and old.get("point_cloud"):  # not re-run: keep its last figures
             result["point_cloud"] = {**old["point_cloud"], "note": "kept from the previous run (--cloud-points 0)"}
-        if "before_unit_evidence" not in old and "real_corpus" in old:  # units by storey height alone
+        if "before_unit_evidence" not in old and old.get("real_corpus"):  # units by storey height alone
             real = old["real_corpus"]
             result["before_unit_evidence"] = {
                 "synthetic_and_icl_units_correct": old["all"]["units_correct"],

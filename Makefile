@@ -37,9 +37,10 @@ lint: venv
 	$(BIN)/ruff check services tests bench
 	$(BIN)/mypy services
 
-# Every benchmark with a main, full size, into bench/results/ (bench/README.md; hours on a small machine). bench/lib
-# is their shared code; startup_ab.py compares two revisions (--against REV) and runs by hand.
-BENCH_SCRIPTS = $(filter-out bench/render/startup_ab.py,$(shell grep -l '^if __name__ == "__main__":' bench/*/*.py))
+# Every benchmark with a main, full size, into bench/results/ (bench/README.md; hours on a small machine).
+# bench/lib is their shared code; startup_ab.py compares two revisions (--against REV) and runs by hand.
+BENCH_MAINS = $(shell grep -l '^if __name__ == "__main__":' bench/*/*.py)
+BENCH_SCRIPTS = $(filter-out bench/render/startup_ab.py,$(BENCH_MAINS))
 bench: venv services
 	@set -e; for f in $(BENCH_SCRIPTS); do echo "== $$f"; $(BIN)/python $$f; done
 

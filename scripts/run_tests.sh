@@ -20,7 +20,7 @@ PROCS=${TEST_PROCS:-$(($(nproc) + 1))}
 MARK=${TEST_MARK:-}  # e.g. "not slow" (make test-fast): narrows both runs
 read -r -a args <<<"${ARGS:-}"
 
-# What the checkout looks like before the run (tracked changes and untracked files git does not ignore): a test
+# What the checkout looks like before the run (tracked changes, untracked files git does not ignore): a test
 # that writes into the checkout (recorded benchmark figures, say) is named at the end and fails the run.
 tree_state() { git status --porcelain --untracked-files=all 2>/dev/null; git diff HEAD 2>/dev/null | cksum; }
 tree_before=$(tree_state)

@@ -2,11 +2,11 @@
 features: services.worker.cues.feature_transform.nearest_site, then segmentation._gather) on real room views at
 512 px, one core, against the two modules as they were at git revision --against, interleaved.
 
-Per view (bench/cues/derivations.py's views: the planner's views of each room, their pass sets rendered once and
-cached): the nearest sites of the surface mask, and the gather of the 2.5d feature image (4 channels) at them;
-each side's best of --repeats runs (the kernels take a few ms, so the best run is the one the host did not
-disturb), and whether both sides give the same arrays bit for bit. A view pays one nearest-site search (the two
-segmentations share it) and one gather per segmentation whose feature image is not one colour.
+Per view (bench/cues/derivations.py's views: the planner's views of each room, their pass sets rendered once
+and cached): the nearest sites of the surface mask, and the gather of the 2.5d feature image (4 channels) at
+them; each side's best of --repeats runs (the kernels take a few ms, so the best run is the one the host did
+not disturb), and whether both sides give the same arrays bit for bit. A view pays one nearest-site search
+(the two segmentations share it) and one gather per segmentation whose feature image is not one colour.
 Writes bench/results/background_fill.json (the previous run kept under "before").
 Run: .venv/bin/python bench/cues/background_fill.py [--against REV] [--views 6] [--repeats 7]
 """

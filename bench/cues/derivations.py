@@ -11,9 +11,9 @@ segmentations, most of the total, are also timed step by step ("segment_steps_s"
 Felzenszwalb's blur, edge sort, merge pass and min-size pass, the region graph, normalized cuts' eigenvectors and
 the rest).
 
-Floor: the bare render's CPU seconds per view measured by bench/render/room_cost.py on the same rooms (a separate process
-per room, one core; bench/results/room_cost.json "room_cost"), or FLOOR_CPU_S when that file has none.
-Writes bench/results/derivations.json ("before" kept from a run with --label before).
+Floor: the bare render's CPU seconds per view measured by bench/render/room_cost.py on the same rooms (a
+separate process per room, one core; bench/results/room_cost.json "room_cost"), or FLOOR_CPU_S when that file
+has none. Writes bench/results/derivations.json ("before" kept from a run with --label before).
 Run: .venv/bin/python bench/cues/derivations.py [--views 6] [--repeats 3] [--label after]
 """
 
@@ -52,7 +52,8 @@ from services.worker.passes import RENDER_PASSES, ViewPasses  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 RESULTS = results_dir() / "derivations.json"
-# Bare 1-sample render, CPU s per view, one core (bench/render/room_cost.py, issue 20's closing notes; the copy room: round 14).
+# Bare 1-sample render, CPU s per view, one core (bench/render/room_cost.py, issue 20's closing notes; the
+# copy room: round 14).
 FLOOR_CPU_S = {"icl_livingroom": 0.077, "7scenes_redkitchen": 0.086, "copyroom": 0.18}
 
 
@@ -238,8 +239,9 @@ def main() -> int:
            "wall_s": round(time.perf_counter() - t0, 1), "cpu_s": round(time.process_time() - cpu0, 1),
            "rooms": rooms}
     data = json.loads(RESULTS.read_text()) if RESULTS.exists() else {
-        "benchmark": "bench/cues/derivations.py", "target": "derivations (all default cues but the render, encodings "
-        "included) <= 1x the bare 1-sample render per view, 512 px, one core"}
+        "benchmark": "bench/cues/derivations.py",
+        "target": "derivations (all default cues but the render, encodings included) <= 1x the bare 1-sample "
+                  "render per view, 512 px, one core"}
     data[args.label] = run
     RESULTS.write_text(json.dumps(data, indent=1) + "\n")
     for r, res in rooms.items():

@@ -3,8 +3,8 @@ segment cues' largest step) on real room views at 512 px, one core, CPU seconds 
 of each whole segment cue (segment_unsup2d, segment_unsup25d: features, background fill, superpixels, region graph,
 normalized cuts). With --against REV, the same with services/worker/cues/felzenszwalb.py as it was at git revision
 REV swapped in, interleaved with today's, and whether every label image is the same bit for bit.
-Views: bench/cues/derivations.py's (the planner's views of each room, their pass sets rendered once and cached).
-Writes bench/results/felzenszwalb.json (the previous run's figures kept under "before").
+Views: bench/cues/derivations.py's (the planner's views of each room, their pass sets rendered once and
+cached). Writes bench/results/felzenszwalb.json (the previous run's figures kept under "before").
 Run: .venv/bin/python bench/cues/felzenszwalb.py [--views 6] [--repeats 5] [--against REV]
 """
 

@@ -2,8 +2,9 @@
 (issue 20: the two segmentations are most of a view's derivations, and a change to them is held to ARI >= 0.9 per
 view, segment counts within 20%, against the current labels: tests/worker/cues/test_equivalence.py).
 
-For each room (bench/lib/rooms.py) it takes --views planner views at 512 px (the pass sets bench/cues/derivations.py renders
-and caches) and makes both segment cues as they are. Then, on the same views:
+For each room (bench/lib/rooms.py) it takes --views planner views at 512 px (the pass sets
+bench/cues/derivations.py renders and caches) and makes both segment cues as they are. Then, on the same
+views:
 - the noise floor: the cues as they are, on the view with an imperceptible change of its input. 2d: one of 255
   added or taken on 1% of the colour pixels (within the 8-bit image's own quantisation); 2.5d: the depth of 1% of
   the pixels scaled by 1 +- 1e-6 (a micrometre a metre). How far the labels move then is how far the current
@@ -180,7 +181,8 @@ def main() -> int:
            "bound": "per view: ARI >= 0.9, segment count within 20%, the same 'no surface' pixels",
            "load_before": [round(x, 2) for x in load_before], "load_after": [round(x, 2) for x in os.getloadavg()],
            "wall_s": round(time.perf_counter() - t0, 1), "rooms": rooms}
-    data = json.loads(RESULTS.read_text()) if RESULTS.exists() else {"benchmark": "bench/cues/segment_stability.py"}
+    data = (json.loads(RESULTS.read_text()) if RESULTS.exists()
+            else {"benchmark": "bench/cues/segment_stability.py"})
     if "after" in data:
         data["before"] = data["after"]
     data["after"] = run

@@ -13,8 +13,8 @@
   48-megapixel photos (8000 x 6000; PNG in a transforms.json capture, JPEG in a COLMAP one), two exact capture
   views at 128 px with every default cue: wall seconds and the peak RSS of the largest process
   (/usr/bin/time -v), beside the same capture with its 200 x 150 photos.
-Run: `.venv/bin/python bench/ingest/capture.py` (about 4 minutes on a shared 2-core machine); `--only big_photos`
-runs the last alone and updates its key. Writes bench/results/capture.json.
+Run: `.venv/bin/python bench/ingest/capture.py` (about 4 minutes on a shared 2-core machine); `--only
+big_photos` runs the last alone and updates its key. Writes bench/results/capture.json.
 """
 
 from __future__ import annotations

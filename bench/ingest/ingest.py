@@ -132,7 +132,8 @@ def main() -> None:
         "synthetic_and_icl_refusals": {k: v for k, v in summary(rows).items() if "share" in k},
         "synthetic_and_icl_units": {s: round(float(np.mean([r["units"] == s for r in rows])), 4)
                                     for s in ("right", "refused", "wrong")},
-        "real_corpus": real_figures(args.scenes, args.real_rotations, args.seed, print) if args.real_corpus else None,
+        "real_corpus": (real_figures(args.scenes, args.real_rotations, args.seed, print) if args.real_corpus
+                        else None),
         "point_cloud": cloud_figures(args.cloud_points, args.seed) if args.cloud_points else None,
         "seconds_per_case": {"median": round(float(np.median(seconds)), 4), "max": round(float(np.max(seconds)), 4),
                              "icl_median": round(float(np.median([s for s, r in zip(seconds, rows, strict=True)

@@ -1,5 +1,5 @@
-"""Real-corpus figures of bench/ingest/ingest.py (a library it imports): levelling of real reconstructions in any rotation
-and unit, refusals, and each evidence term's contribution (ablation).
+"""Real-corpus figures of bench/ingest/ingest.py (a library it imports): levelling of real reconstructions in
+any rotation and unit, refusals, and each evidence term's contribution (ablation).
 
 Corpus: the 7-Scenes redkitchen TSDF mesh at full resolution (../shared/scenes, 192k faces) and the ICL-NUIM
 living room, plus the decimated real scans of tests/fixtures/real_scans: six partial kitchen scans meshed

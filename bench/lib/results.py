@@ -1,6 +1,6 @@
 """Where a benchmark writes its figures: bench/results/ (the recorded runs, committed), or the folder named by
-OMNIDATA_BENCH_RESULTS (the test suite's smoke runs, a trial run), so that a run that is not meant to be recorded
-leaves the checkout as it was."""
+OMNIDATA_BENCH_RESULTS (the test suite's smoke runs, a trial run), so that a run that is not meant to be
+recorded leaves the checkout as it was."""
 
 from __future__ import annotations
 
@@ -9,7 +9,8 @@ from pathlib import Path
 
 RESULTS_ENV = "OMNIDATA_BENCH_RESULTS"
 REPO = Path(__file__).resolve().parents[2]
-RECORDED = REPO / "bench" / "results"  # the committed figures (read them from here: a smoke run's folder is empty)
+# the committed figures: comparisons read them from here (a smoke run's folder is empty)
+RECORDED = REPO / "bench" / "results"
 
 
 def results_dir() -> Path:

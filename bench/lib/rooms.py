@@ -10,7 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 
 SCENES = Path(__file__).resolve().parents[3] / "shared" / "scenes"
-SCANS = Path(__file__).resolve().parents[1] / "scans"  # real scans the project carries (each with its SOURCE.md)
+SCANS = Path(__file__).resolve().parents[1] / "scans"  # real scans the project carries (each with SOURCE.md)
 ROOMS: dict[str, tuple[Path, dict]] = {
     "icl_livingroom": (SCENES / "icl_livingroom", {}),
     "7scenes_redkitchen": (SCENES / "7scenes_redkitchen" / "mesh_tsdf_2cm_from_1000frames.ply",

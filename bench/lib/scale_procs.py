@@ -50,8 +50,9 @@ class SleepingRunner(TaskRunner):
         return self._sleep(t)
 
     def make(self, t: Claimed) -> tuple[str, bytes]:
-        """The compute step every path takes (execute and the view batches' _compute): a sleep, never a render.
-        Left to TaskRunner it rendered in bpy, from every thread at once (bpy initialised twice: the process died)."""
+        """The compute step every path takes (execute and the view batches' _compute): a sleep, never a
+        render. Left to TaskRunner it rendered in bpy, from every thread at once (bpy initialised twice: the
+        process died)."""
         return self._sleep(t), f"{t.id}".encode()
 
     def _sleep(self, t: Claimed) -> str:

@@ -1,4 +1,5 @@
-"""One tenant's heavy load against another's reads (issue 51): the `tenants` scenario of bench/api/health_load.py.
+"""One tenant's heavy load against another's reads (issue 51): the `tenants` scenario of
+bench/api/health_load.py.
 
 Tenant 0 (the loud one) uploads 10 copies of the ICL living room and gets a job whose manifest is several
 MB (a synthetic plan, its tasks marked done with long keys); tenant 1 (the quiet one) has a small job. A

@@ -4,8 +4,8 @@ chunks and CRCs), and the position cue's derivation and EXR file, before (numpy 
 file read back) and now (one compiled loop; the file's bytes written directly). Every file is checked to decode to
 its array bit for bit.
 
-Views: the pass sets bench/cues/derivations.py caches (run it first; the same planner views of ICL and the kitchen).
-Clock: process CPU seconds (time.process_time), one core, median over views x repeats.
+Views: the pass sets bench/cues/derivations.py caches (run it first; the same planner views of ICL and the
+kitchen). Clock: process CPU seconds (time.process_time), one core, median over views x repeats.
 Writes bench/results/encode_cost.json (keys of other runs kept; this run under --label).
 Run: .venv/bin/python bench/output/encode_cost.py [--repeats 5] [--label now]
 """
@@ -172,7 +172,8 @@ def main() -> int:
            "rooms": {r: room_figures([f for f in files if f.name.startswith(r + "-512-")], args.repeats)
                      for r in rooms}}
     run["load_after"] = [round(x, 2) for x in os.getloadavg()]
-    data = json.loads(RESULTS.read_text()) if RESULTS.exists() else {"benchmark": "bench/output/encode_cost.py"}
+    data = (json.loads(RESULTS.read_text()) if RESULTS.exists()
+            else {"benchmark": "bench/output/encode_cost.py"})
     data[args.label] = run
     RESULTS.write_text(json.dumps(data, indent=1) + "\n")
     for r, res in run["rooms"].items():

@@ -2,8 +2,8 @@
 compression OpenEXR offers for the position cue, and of deflaters (zlib settings, ISA-L) for the PNG cues, decoded
 arrays checked identical to the values.
 
-Views: the pass sets bench/cues/derivations.py caches (run it first; the same planner views of ICL and the kitchen).
-Clock: process CPU seconds (time.process_time), one core, median over views x repeats.
+Views: the pass sets bench/cues/derivations.py caches (run it first; the same planner views of ICL and the
+kitchen). Clock: process CPU seconds (time.process_time), one core, median over views x repeats.
 Writes the "encodings" entry of bench/results/encodings.json.
 Run: .venv/bin/python bench/output/encodings.py [--repeats 3]
 """
@@ -44,7 +44,8 @@ PNG_SETTINGS = {"level 1, Z_RLE": zlib_deflater(1, zlib.Z_RLE),
                 "level 1, default": zlib_deflater(1, zlib.Z_DEFAULT_STRATEGY),
                 "level 1, Z_HUFFMAN_ONLY": zlib_deflater(1, zlib.Z_HUFFMAN_ONLY),
                 "level 6, default": zlib_deflater(6, zlib.Z_DEFAULT_STRATEGY),
-                "isal level 1 (the encoder's)": deflate_png}  # the zlib ones: bench/output/encode_cost.py compares
+                # the zlib ones: bench/output/encode_cost.py compares
+                "isal level 1 (the encoder's)": deflate_png}
 
 
 def _exr_bytes(arr: np.ndarray, codec: str, path: str) -> bytes:

@@ -1,10 +1,10 @@
 """Benchmark: cost per view of the 3D augmentation cues (rgb_refocus, rgb_fog, rgb_motion_blur, rgb_flash) on the
 real room (../shared/scenes/icl_livingroom, the planner's views, 512x512, default distributions), one core.
 
-Per view: a bare 1-sample render (the floor of any bpy renderer, as in bench/render/render.py), then one pass render and
-the augmentation cues derived from it; each cue's exclusive CPU seconds (its value and its PNG encoding; the
-inputs rgb/depth/reshading are timed apart, since a job that asks for augmentations has them anyway), medians
-over views. Writes the key "augmentations" of bench/results/augment.json.
+Per view: a bare 1-sample render (the floor of any bpy renderer, as in bench/render/render.py), then one pass
+render and the augmentation cues derived from it; each cue's exclusive CPU seconds (its value and its PNG
+encoding; the inputs rgb/depth/reshading are timed apart, since a job that asks for augmentations has them
+anyway), medians over views. Writes the key "augmentations" of bench/results/augment.json.
 Run: .venv/bin/python bench/render/augment.py [--views 4] [--resolution 512]
 """
 

@@ -4,14 +4,15 @@
 2. The first `omnidata generate` a user or a new worker pod meets, ICL living room, 3 views at 512 px: with an empty
    cache (every kernel compiled by the job's workers), and with the cache compile-kernels filled; on one core with
    one worker, and on --cores with the default workers (one a core: each compiles the same kernels at once).
-3. Derivation CPU seconds per view (every default cue but the render, encodings included; bench/cues/derivations.py's
-   views and clock; per cue too) with the kernels built for this machine's own CPU, for each x86-64 level it runs
-   (services/worker/kernel_target.py) and for numba's baseline "generic" x86-64, each in a fresh process with its
-   own cache; the order of the targets rotates between repeats.
+3. Derivation CPU seconds per view (every default cue but the render, encodings included;
+   bench/cues/derivations.py's views and clock; per cue too) with the kernels built for this machine's own
+   CPU, for each x86-64 level it runs (services/worker/kernel_target.py) and for numba's baseline "generic"
+   x86-64, each in a fresh process with its own cache; the order of the targets rotates between repeats.
 
 Writes bench/results/kernel_cache.json (a part not run keeps its last figures; --key puts the derive part's under
 another entry, e.g. another host's beside this one's).
-Run: .venv/bin/python bench/render/kernel_cache.py [--core 1] [--cores 0,1] [--parts first,derive] [--repeats 6] [--key K]
+Run: .venv/bin/python bench/render/kernel_cache.py [--core 1] [--cores 0,1] [--parts first,derive] [--repeats
+6] [--key K]
 """
 
 from __future__ import annotations
@@ -104,7 +105,8 @@ def derivations(tmp: Path, core: str, repeats: int, rooms: str, passes_cache: Pa
     for r in range(repeats):
         for name in names[r % len(names):] + names[:r % len(names)]:
             env = environment(tmp / f"derive-{name}", **targets[name])
-            res = timed([sys.executable, "-c", DERIVE, str(ROOT), rooms, str(passes_cache), str(views)], env, core)
+            cmd = [sys.executable, "-c", DERIVE, str(ROOT), rooms, str(passes_cache), str(views)]
+            res = timed(cmd, env, core)
             runs[name].append({**json.loads(res.pop("stdout")), **res})
     summary = {name: {room: round(median([x["per_view_s"][room] for x in rs]), 4) for room in rooms.split(",")}
                for name, rs in runs.items()}
@@ -132,7 +134,8 @@ def main() -> int:
     args = ap.parse_args()
     t0 = time.perf_counter()
     parts = set(args.parts.split(","))
-    data = json.loads(RESULTS.read_text()) if RESULTS.exists() else {"benchmark": "bench/render/kernel_cache.py"}
+    data = (json.loads(RESULTS.read_text()) if RESULTS.exists()
+            else {"benchmark": "bench/render/kernel_cache.py"})
     with tempfile.TemporaryDirectory(prefix="omnidata-kernelcache-") as tmp_name:
         tmp = Path(tmp_name)
         if "first" in parts:
@@ -141,9 +144,11 @@ def main() -> int:
             for run in data["first_generate"]:
                 print(json.dumps(run), flush=True)
         if "derive" in parts:
-            data[args.key] = {"machine": f"{os.cpu_count()} cores ({cpu_model()})", "load_before": load(),
-                              **derivations(tmp, args.core, args.repeats, args.rooms, args.passes_cache, args.views,
-                                            args.targets),
+            before = load()
+            figures = derivations(tmp, args.core, args.repeats, args.rooms, args.passes_cache, args.views,
+                                  args.targets)
+            data[args.key] = {"machine": f"{os.cpu_count()} cores ({cpu_model()})", "load_before": before,
+                              **figures,
                               "load_after": load()}
             print(json.dumps({k: v for k, v in data[args.key].items() if k != "runs"}), flush=True)
     data.update(commit=subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,

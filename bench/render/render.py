@@ -63,14 +63,17 @@ SCENES = {
 }
 ROOM = ROOT.parent / "shared" / "scenes" / "icl_livingroom"
 ROOM_NAME = "icl_livingroom"
-# The runs this one is compared against, kept under "baseline" of the recorded render.json: "before_issue10" (this
-# bench's room part on commit 564a87b with only the floor render and the CPU-clock hook added, same machine, same
-# hour) and "issue10_first_pass" (segmentations, NARF pyramid, pass selection, PNG settings: commit 7469639, run in
+# The runs this one is compared against, kept under "baseline" of the recorded render.json: "before_issue10"
+# (this
+# bench's room part on commit 564a87b with only the floor render and the CPU-clock hook added, same machine,
+# same
+# hour) and "issue10_first_pass" (segmentations, NARF pyramid, pass selection, PNG settings: commit 7469639,
+# run in
 # the same hour on the same views).
 RECORDED_RUN = RECORDED / "render.json"
-GPU_NOTE = ("no GPU figures: no GPU run has been made (bench/render/gpu_cost.py measures one, into bench/results/gpu.json,"
-            " from the parts scripts/device_bundle.py packs); a CUDA/OptiX/auto request without a GPU falls back to"
-            " the CPU with a log line (tests/worker/blender/test_render.py)")
+GPU_NOTE = ("no GPU figures: no GPU run has been made (bench/render/gpu_cost.py measures one, into"
+            " bench/results/gpu.json, from the parts scripts/device_bundle.py packs); a CUDA/OptiX/auto"
+            " request without a GPU falls back to the CPU with a log line (tests/worker/blender/test_render.py)")
 
 
 def room_plan(loaded: object, resolution: int, seed: int = 0) -> SpacePlan:

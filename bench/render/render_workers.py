@@ -7,7 +7,8 @@ each room at 512 px, every default cue, a worker per core, the two settings inte
 load moves both): wall time end to end, task seconds per view by cue (the job's task rows), the stored pass set's
 size, and the timeline (bench/render/room_cost.py: when each worker took its first task).
 Figures go to bench/results/render_workers.json.
-Run: .venv/bin/python bench/render/render_workers.py [--rooms icl_livingroom] [--points 14] [--repeats 2] [--render-workers 1]
+Run: .venv/bin/python bench/render/render_workers.py [--rooms icl_livingroom] [--points 14] [--repeats 2]
+[--render-workers 1]
 """
 
 from __future__ import annotations

@@ -22,7 +22,8 @@ set against the floor's. `claims` counts task claims (a view batch claims a view
 Figures go to bench/results/room_cost.json under "room_cost", or --key (the previous run's figures kept as
 "<key>_before"; the file's other keys are left as they are). A long job, where start-up
 is spread over a thousand views and more: --points 22 --max-views 60 --no-startup --key room_cost_long.
-Run: .venv/bin/python bench/render/room_cost.py [--points 14] [--max-views 3] [--repeats 2] [--core 1] [--key K]
+Run: .venv/bin/python bench/render/room_cost.py [--points 14] [--max-views 3] [--repeats 2] [--core 1] [--key
+K]
 """
 
 from __future__ import annotations

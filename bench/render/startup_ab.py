@@ -2,13 +2,13 @@
 
 `omnidata generate` of --points x 3 views of each real room, --workers 1, pinned to one core. With the default
 single point (3 views) its CPU is mostly start-up (imports, validation, levelling, planning, Blender, the kernels,
-the curvature, the first render); with --points 22, the 66-view job of bench/render/room_cost.py, end to end. The run of
-this checkout and the run of git revision --against (a worktree of it, its kernels compiled ahead as `make venv`
-does) alternate, first one then the other, so a neighbour's load moves both; per room, each side's CPU and wall
-seconds per repeat, their medians and the paired differences (against minus this checkout).
-Writes bench/results/startup_ab.json under --key ("ab"; its other keys kept).
-Run: .venv/bin/python bench/render/startup_ab.py --against REV [--points 1] [--repeats 5] [--core 1] [--worktree DIR]
-     [--key ab]
+the curvature, the first render); with --points 22, the 66-view job of bench/render/room_cost.py, end to end.
+The run of this checkout and the run of git revision --against (a worktree of it, its kernels compiled ahead
+as `make venv` does) alternate, first one then the other, so a neighbour's load moves both; per room, each
+side's CPU and wall seconds per repeat, their medians and the paired differences (against minus this
+checkout). Writes bench/results/startup_ab.json under --key ("ab"; its other keys kept).
+Run: .venv/bin/python bench/render/startup_ab.py --against REV [--points 1] [--repeats 5] [--core 1]
+     [--worktree DIR] [--key ab]
 """
 
 from __future__ import annotations

@@ -1,6 +1,7 @@
 """Benchmark: 200k task rows through services.core.db.bulk.bulk_insert on a fresh Postgres database and on SQLite.
 
-Writes bench/results/bulk_insert.json. Times include the commit. Run: .venv/bin/python bench/scale/bulk_insert.py
+Writes bench/results/bulk_insert.json. Times include the commit. Run: .venv/bin/python
+bench/scale/bulk_insert.py
 """
 
 from __future__ import annotations

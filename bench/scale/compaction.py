@@ -154,7 +154,8 @@ def compact_all(sm: Any, pass_s: float) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Persist, finish, measure, compact, measure; write `compaction` into compaction.json; drop the database."""
+    """Persist, finish, measure, compact, measure; write `compaction` into compaction.json; drop the
+    database."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--views", type=int, default=40_000)
     p.add_argument("--chunk-views", type=int, default=20_000)

@@ -3,8 +3,8 @@
 On a fresh Postgres database and real Redis (Celery send_task by name, pipelined):
 1. first_dispatch: a 10,000-view job over all 21 output cues of a labelled space (+ the internal `passes`
    render: 21 tasks per view, plus one `nonfixated` per point), planned from a prebuilt synthetic
-   SpacePlan (no mesh sampling: that is bench/plan/sampling.py). Seconds from the job's creation (commit) until
-   the first batch of tasks is on the broker: claim, fetch + load of the (tiny) source mesh, compile,
+   SpacePlan (no mesh sampling: that is bench/plan/sampling.py). Seconds from the job's creation (commit)
+   until the first batch of tasks is on the broker: claim, fetch + load of the (tiny) source mesh, compile,
    COPY of cameras/points/views/tasks, counters, plan JSON, commit, then the first dispatch pass.
 2a. dispatch throughput (the target): the rest of that job is dispatched in full-budget passes (select
    ready tasks per cue, mark queued, commit, send to Redis); between passes an untimed no-op consumer

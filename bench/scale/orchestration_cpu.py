@@ -41,7 +41,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from bench.lib.results import results_dir  # noqa: E402
 from bench.lib.scale_cost import ROOM_CUES, PrivateRedis, cpu_seconds, with_app_name  # noqa: E402
 from bench.lib.scale_procs import SleepingRunner, task_id_of  # noqa: E402
-from bench.scale.fanout import create_database, drop_database, labelled_space, percentiles, synthetic_plan  # noqa: E402
+from bench.scale.fanout import (  # noqa: E402
+    create_database,
+    drop_database,
+    labelled_space,
+    percentiles,
+    synthetic_plan,
+)
 from services.core.db.engine import make_engine, make_sessionmaker, migrate  # noqa: E402
 from services.core.db.jobs import create_job  # noqa: E402
 from services.core.db.models import Space  # noqa: E402
@@ -247,7 +253,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-compaction", action="store_true", help="leave out compaction of finished views")
     p.add_argument("--kombu", action="store_true", help="publish through kombu (the path before prebuilt messages)")
     p.add_argument("--label", default="now")
-    p.add_argument("--key", default="orchestration_cpu", help="the key of orchestration_cpu.json the run is stored under")
+    p.add_argument("--key", default="orchestration_cpu", help="the key the run is stored under")
     p.add_argument("--out", type=Path, default=RESULTS / "orchestration_cpu.json")
     args = p.parse_args(argv)
     res = measure(args)

@@ -1,11 +1,12 @@
 """Scale simulation: hundreds of simulated workers against the real scheduler, Postgres and Redis.
 
-A simulated worker is a thread that does what a real worker child does, through the same code (bench/lib/scale_procs.py):
-it pops a real `render.cue` message (made by the real scheduler's CeleryTransport) from Redis, runs it with the
-worker's TaskRunner (claim, record done, counters) whose compute step sleeps instead of rendering and stores a few
-bytes, and has a real Heartbeat. Workers are spread over a few processes, each sharing a small connection pool (as
-a deployment of this size would share PgBouncer). The scheduler is the real Scheduler loop in its own process,
-with a synthetic plan (no mesh sampling), 4 views per point.
+A simulated worker is a thread that does what a real worker child does, through the same code
+(bench/lib/scale_procs.py): it pops a real `render.cue` message (made by the real scheduler's CeleryTransport)
+from Redis, runs it with the worker's TaskRunner (claim, record done, counters) whose compute step sleeps
+instead of rendering and stores a few bytes, and has a real Heartbeat. Workers are spread over a few
+processes, each sharing a small connection pool (as a deployment of this size would share PgBouncer). The
+scheduler is the real Scheduler loop in its own process, with a synthetic plan (no mesh sampling), 4 views per
+point.
 
 The grain (default): the 18 cues of an unlabelled room, each task sleeping its cue's measured time
 (bench/scale_cost.CUE_SECONDS: the render ~0.3 s, derivations 5-200 ms; 0.059 s a task on average), so 1,000 workers
@@ -20,15 +21,15 @@ For each worker count (default 100, 300, 1000), on a fresh database and a privat
 - reaper: `--kill-fraction` of the workers are "killed -9" a third of the way in: seconds until their tasks came back;
 - progress query: p50/p99 of the API's job detail query polled every 50 ms meanwhile.
 
-History (scale_sim.json keeps every step): 5-second tasks first showed heartbeats falling behind at 1,000 workers (fixed:
-a beat is one upsert). At the real grain (`steps`), claims and results queued on the row locks of the job's few
-counter rows (Lock:transactionid); step 1 shards those rows and moves tasks and counters in one statement; step 2
-makes a worker's claim and result one fixed SQL statement each (SQLAlchemy compiled them anew on every call: ~2 ms
-of worker CPU per move, its ON CONFLICT construct cannot be cached). What limits next is the dispatch pass: a
-readiness lookup per pending row, cue by cue.
+History (scale_sim.json keeps every step): 5-second tasks first showed heartbeats falling behind at 1,000
+workers (fixed: a beat is one upsert). At the real grain (`steps`), claims and results queued on the row locks
+of the job's few counter rows (Lock:transactionid); step 1 shards those rows and moves tasks and counters in
+one statement; step 2 makes a worker's claim and result one fixed SQL statement each (SQLAlchemy compiled them
+anew on every call: ~2 ms of worker CPU per move, its ON CONFLICT construct cannot be cached). What limits
+next is the dispatch pass: a readiness lookup per pending row, cue by cue.
 
-Writes bench/results/scale_sim.json. Run: .venv/bin/python bench/scale/scale_sim.py [--workers 100,300,1000] [--seconds 30]
-    [--step NAME --label TEXT]
+Writes bench/results/scale_sim.json. Run: .venv/bin/python bench/scale/scale_sim.py [--workers 100,300,1000]
+    [--seconds 30] [--step NAME --label TEXT]
 """
 
 from __future__ import annotations
@@ -61,7 +62,13 @@ from bench.lib.scale_cost import (  # noqa: E402
     with_app_name,
 )
 from bench.lib.scale_procs import LEASE_S, isolated_overhead, scheduler_process, worker_process  # noqa: E402
-from bench.scale.fanout import create_database, drop_database, labelled_space, percentiles, synthetic_plan  # noqa: E402
+from bench.scale.fanout import (  # noqa: E402
+    create_database,
+    drop_database,
+    labelled_space,
+    percentiles,
+    synthetic_plan,
+)
 from services.core.db.counters import job_progress  # noqa: E402
 from services.core.db.engine import make_engine, make_sessionmaker, migrate  # noqa: E402
 from services.core.db.jobs import create_job  # noqa: E402

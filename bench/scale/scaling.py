@@ -6,8 +6,8 @@ Each worker count gets a fresh folder; a small warm-up job first loads bpy and t
 the measured job is timed from the end of its planning to its completion (manifest written).
 DESIGN.md section 7 target: N workers >= 0.9 N x one worker (here: 2 workers >= 1.8x).
 
-Run: .venv/bin/python bench/scale/scaling.py [--workers 1,2,4,8,16] [--resolution 256] [--points 12] [--views 3] [--repeat 3]
-Writes bench/results/scaling.json.
+Run: .venv/bin/python bench/scale/scaling.py [--workers 1,2,4,8,16] [--resolution 256] [--points 12] [--views
+3] [--repeat 3] Writes bench/results/scaling.json.
 """
 
 from __future__ import annotations

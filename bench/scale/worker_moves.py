@@ -4,8 +4,9 @@ view): claim the view's render task, claim the rest of the view with it, record 
 A fresh SQLite file (the embedded default's settings: WAL, synchronous NORMAL) holds one running job of `--views`
 views of the default cues (the render queued, the rest pending, as after dispatch); one process makes the three
 moves per view as a worker does (services.core.db.worker_moves) and times each with process CPU time.
-Run: .venv/bin/python bench/scale/worker_moves.py [--views 200] [--label NAME]; writes bench/results/worker_moves.json.
-With PYTHONPATH set to an older checkout it measures that code (its moves lived in services.core.db.states).
+Run: .venv/bin/python bench/scale/worker_moves.py [--views 200] [--label NAME]; writes
+bench/results/worker_moves.json. With PYTHONPATH set to an older checkout it measures that code (its moves
+lived in services.core.db.states).
 """
 
 from __future__ import annotations

@@ -50,7 +50,7 @@ from services.core.db.engine import make_engine, make_sessionmaker, migrate
 from services.core.db.jobs import create_job  # noqa: E402
 from services.core.db.models import Job, Space, Task, utcnow  # noqa: E402
 from services.core.db.states import transition  # noqa: E402
-from services.core.domain.cues import OUTPUT_CUES  # noqa: E402
+from services.core.domain.cues import default_cues  # noqa: E402
 from services.core.domain.jobspec import JobSpec  # noqa: E402
 from services.core.domain.plan import CameraPose, PlannedView, PointOfInterest, SpacePlan  # noqa: E402
 from services.core.ingest.registry import register_space  # noqa: E402
@@ -215,7 +215,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         settings = get_settings(
             data_dir=tmp, database_url=db_url, broker_url=args.redis, dispatch_window=args.window,
         )
-        cues = list(OUTPUT_CUES)
+        cues = default_cues(has_semantics=True)  # the 21 cues of a labelled space (DESIGN's fan-out target)
         space_id = labelled_space(sm, store, "fanout")
         n_points = args.views // args.views_per_point
         t = time.perf_counter()
@@ -366,7 +366,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
         # -- 3. progress query on a ~1M-task job
         big_space = labelled_space(sm, store, "fanout-1m")
-        per_view = len(OUTPUT_CUES)  # passes + 20 per-view cues; + 1 nonfixated per point
+        per_view = len(cues)  # passes + 20 per-view cues; + 1 nonfixated per point
         big_points = args.big_tasks // (args.views_per_point * per_view + 1)
         big_plan = synthetic_plan("fanout-1m", big_points, args.views_per_point)
         with sm() as s:

@@ -98,13 +98,14 @@ def derivations(tmp: Path, core: str, repeats: int, rooms: str, passes_cache: Pa
                           capture_output=True, text=True).stdout.strip()
     targets = {"host": {"NUMBA_CPU_NAME": host}, **{level: level_environment(level) for level in levels},
                "generic": {"NUMBA_CPU_NAME": "generic"}}
-    if only:
-        targets = {name: targets[name] for name in only.split(",")}
+    if only:  # "worker": the worker's own choice and the checkout's cache (compile-kernels'), nothing compiled
+        targets = {name: targets.get(name, {}) for name in only.split(",")}
     runs: dict[str, list[dict]] = {t: [] for t in targets}
     names = list(targets)
     for r in range(repeats):
         for name in names[r % len(names):] + names[:r % len(names)]:
-            env = environment(tmp / f"derive-{name}", **targets[name])
+            env = (environment(tmp / f"derive-{name}", **targets[name]) if name != "worker"
+                   else {**os.environ, "PYTHONPATH": str(ROOT)})
             cmd = [sys.executable, "-c", DERIVE, str(ROOT), rooms, str(passes_cache), str(views)]
             res = timed(cmd, env, core)
             runs[name].append({**json.loads(res.pop("stdout")), **res})
@@ -128,7 +129,8 @@ def main() -> int:
     ap.add_argument("--rooms", default="icl_livingroom,7scenes_redkitchen")
     ap.add_argument("--passes-cache", type=Path, default=Path("/tmp/omnidata-derivations-passes"))
     ap.add_argument("--views", type=int, default=6, help="views per room of the derive part")
-    ap.add_argument("--targets", default="", help="only these targets of the derive part (e.g. host,generic)")
+    ap.add_argument("--targets", default="", help="only these targets of the derive part (e.g. host,generic; "
+                    "worker: the worker's own, from the checkout's kernel cache, nothing compiled)")
     ap.add_argument("--key", default="derivations_by_target",
                     help="entry of the derive part (another host's figures beside this one's)")
     args = ap.parse_args()

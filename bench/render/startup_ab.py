@@ -8,7 +8,7 @@ as `make venv` does) alternate, first one then the other, so a neighbour's load 
 side's CPU and wall seconds per repeat, their medians and the paired differences (against minus this
 checkout). Writes bench/results/startup_ab.json under --key ("ab"; its other keys kept).
 Run: .venv/bin/python bench/render/startup_ab.py --against REV [--points 1] [--repeats 5] [--core 1]
-     [--worktree DIR] [--key ab]
+     [--worktree DIR] [--key ab]; --against-code DIR runs an existing checkout as the other side instead.
 """
 
 from __future__ import annotations
@@ -48,7 +48,9 @@ def worktree(rev: str, folder: Path) -> Path:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--against", required=True, help="the git revision before the change")
+    ap.add_argument("--against", default="HEAD", help="the git revision before the change")
+    ap.add_argument("--against-code", type=Path, default=None,
+                    help="an existing checkout (kernels compiled) to run instead of a worktree of --against")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--core", default=str(sorted(os.sched_getaffinity(0))[-1]))
     ap.add_argument("--rooms", default=",".join(ROOMS))
@@ -56,12 +58,13 @@ def main() -> int:
     ap.add_argument("--points", type=int, default=1, help="points of the job (3 views each)")
     ap.add_argument("--key", default="ab", help="the entry of bench/results/startup_ab.json to write")
     args = ap.parse_args()
-    rev = subprocess.run(["git", "rev-parse", "--short", args.against], cwd=ROOT, check=True, capture_output=True,
-                         text=True).stdout.strip()
+    code = args.against_code.resolve() if args.against_code else None
+    rev = subprocess.run(["git", "rev-parse", "--short", "HEAD" if code else args.against], cwd=code or ROOT,
+                         check=True, capture_output=True, text=True).stdout.strip()
     here = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, check=True, capture_output=True,
                           text=True).stdout.strip()
     with tempfile.TemporaryDirectory(prefix="omnidata-startup-ab-") as tmp:
-        old = worktree(rev, args.worktree or Path(tmp) / "before" / "main")
+        old = code or worktree(rev, args.worktree or Path(tmp) / "before" / "main")
         spec = Path(tmp) / "spec.json"
         spec.write_text(json.dumps(job_spec(args.points)))
         sides = {"against": old, "this": ROOT}
@@ -79,7 +82,7 @@ def main() -> int:
                     runs[side].append(run["cpu_s"])
                     wall[room][side].append(run["wall_s"])
             print(rep, json.dumps({"cpu_s": cpu, "wall_s": wall}), flush=True)
-        if args.worktree is None:
+        if args.worktree is None and code is None:
             subprocess.run(["git", "worktree", "remove", "--force", str(old)], cwd=ROOT, capture_output=True)
     rooms = {room: {"cpu_s": runs, "wall_s": wall[room],
                     "median_s": {k: median(v) for k, v in runs.items()},

@@ -178,7 +178,8 @@ def streams_scenario(results: dict[str, Any]) -> None:
     tokens = [secrets.token_urlsafe(16) for _ in range(TENANTS)]
     results.update(streams=TENANTS * STREAMS_PER_TENANT, uploaders=UPLOADERS)
     ctx = mp.get_context("spawn")
-    with served(tokens) as (base, _url, _tmp):
+    # the server's cap is the streams each tenant holds: the one more each opens is refused (429)
+    with served(tokens, {"OMNIDATA_SSE_MAX_PER_TENANT": str(STREAMS_PER_TENANT)}) as (base, _url, _tmp):
         results["idle"] = summary(probe(base, PHASE_S["idle"]))
         ready, stop, refused, uploaded = ctx.Event(), ctx.Event(), ctx.Value("i", 0), ctx.Value("i", 0)
         streams = ctx.Process(target=hold_streams, args=(base, tokens, ready, stop, refused), daemon=True)

@@ -52,7 +52,7 @@ SMOKE: dict[str, tuple[str, str]] = {
                                " --passes-cache {passes}", "kernel_cache.json"),
     "render/passes_cost.py": ("--rooms icl_livingroom --views 1 --repeats 1 --resolution 64",
                               "passes_cost.json"),
-    "render/render.py": ("--views 1 --scenes ycb_banana --room-views 1 --room-repeats 1 --e2e-points 1"
+    "render/render.py": ("--views 1 --scenes= --room-views 1 --room-repeats 1 --e2e-points 1"
                          " --e2e-max-views 3 --idle-s 0.5 --resolution 64", "render.json"),
     "render/render_workers.py": ("--rooms icl_livingroom --points 1 --repeats 1", "render_workers.json"),
     "render/room_cost.py": ("--rooms icl_livingroom --points 1 --max-views 3 --resolution 64 --repeats 1"

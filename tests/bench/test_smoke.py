@@ -18,7 +18,7 @@ from tests.conftest import REPO_ROOT
 
 BENCH = REPO_ROOT / "bench"
 # script -> (tiny arguments, the results file it writes). {passes}: the room views' pass sets, rendered by
-# the first benchmark that needs them and read by the others (the smoke runs share one xdist group).
+# the first benchmark that needs them and read by the others.
 SMOKE: dict[str, tuple[str, str]] = {
     "api/api_progress.py": ("--clients 2 --seconds 1 --workers 1 --tasks 2000", "api_progress.json"),
     "api/health_load.py": ("--smoke", "health_load.json"),
@@ -95,9 +95,14 @@ def passes_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return tmp_path_factory.mktemp("bench-passes")
 
 
+def smoke_params() -> list[pytest.ParameterSet]:
+    """Each script; those sharing the pass sets in one xdist group (one at a time: one renders, the rest read)."""
+    return [pytest.param(script, marks=[pytest.mark.xdist_group("bench-passes")] if "{passes}" in args else [])
+            for script, (args, _) in sorted(SMOKE.items())]
+
+
 @pytest.mark.slow
-@pytest.mark.xdist_group("bench")
-@pytest.mark.parametrize("script", sorted(SMOKE))
+@pytest.mark.parametrize("script", smoke_params())
 def test_benchmark_runs_tiny(script: str, tmp_path: Path, passes_cache: Path) -> None:
     args, results = SMOKE[script]
     out = tmp_path / "results"

@@ -136,8 +136,9 @@ def texture_figures(space, n_views: int, resolution: int) -> dict[str, float]:
             "covered_share_min": round(float(np.min(shares)), 3)}
 
 
-def alignment_figures(space) -> dict[str, object]:
-    """Alignment score quantiles of the raw depth-camera poses and the fitted colour camera (SOURCE.md)."""
+def alignment_figures(space, frames: int = 0) -> dict[str, object]:
+    """Alignment score quantiles of the raw depth-camera poses and the fitted colour camera (SOURCE.md), over the
+    first `frames` frames (0: all)."""
     from services.core.ingest.capture.model import CaptureFrame
     from services.scheduler.planning.alignment import alignment_score
     from services.scheduler.planning.visibility import MeshQueries
@@ -148,7 +149,7 @@ def alignment_figures(space) -> dict[str, object]:
     q = MeshQueries(space.mesh)
     raw, colour = [], []
     t0 = time.perf_counter()
-    for f in space.capture.frames:
+    for f in space.capture.frames[:frames or None]:
         img = load_photo(str(space.capture.image_path(f)), f)
         raw.append(alignment_score(q, img, f, f.world_to_camera, f.inscribed_fov()))
         c = CaptureFrame(f.name, f.image, f.width, f.height, K, "none", (), f.camera_to_world @ shift)
@@ -222,6 +223,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=results_dir() / "capture.json")
     parser.add_argument("--only", choices=["big_photos"], help="run this scenario alone and update its key")
     parser.add_argument("--baseline-code", type=Path, help="big photos: also generate with this checkout")
+    parser.add_argument("--alignment-frames", type=int, default=0, help="frames the alignment scores (0: all)")
     parser.add_argument("--no-big-photos", dest="big_photos", action="store_false",
                         help="leave out the big-photo generates (minutes; a smoke run)")
     args = parser.parse_args()
@@ -238,7 +240,7 @@ def main() -> None:
         result["import"] = import_figures(Path(tmp))
     print(json.dumps(result["import"]))
     space = load_space(KITCHEN)
-    result["alignment"] = alignment_figures(space)
+    result["alignment"] = alignment_figures(space, args.alignment_frames)
     print(json.dumps(result["alignment"]))
     result["texture"] = texture_figures(space, args.views, args.resolution)
     print(json.dumps(result["texture"]))

@@ -32,7 +32,7 @@ SMOKE: dict[str, tuple[str, str]] = {
                              "felzenszwalb.json"),
     "cues/segment_stability.py": ("--views 1 --repeats 1 --rooms icl_livingroom --cache {passes}",
                                   "segment_stability.json"),
-    "ingest/capture.py": ("--views 1 --resolution 64 --no-big-photos", "capture.json"),
+    "ingest/capture.py": ("--views 1 --resolution 64 --alignment-frames 5 --no-big-photos", "capture.json"),
     "ingest/degenerate_refusal.py": ("10000", "degenerate_refusal.json"),
     "ingest/ingest.py": ("--rotations 1 --synthetic 1 --closed 1 --cloud-points 0 --no-real-corpus",
                          "ingest.json"),

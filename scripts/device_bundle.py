@@ -14,9 +14,9 @@ On the GPU machine, one call a part, each within the 30 s that machine stays war
   run "bash scripts/device_run.sh probe"  carry [".gpu/part_00"]       (starts the machine; what it has)
   run "bash scripts/device_run.sh stage"  carry [".gpu/part_0N"]       (each middle part)
   run "bash scripts/device_run.sh run"    carry [the last part]        (unpacks; oracle tests;
-bench/render/gpu_cost.py) Measured (2026-11-28): 6 parts of 50 MiB (282 MiB packed), each staging call ~4 s of
-device time, the unpack 4 s; the cubin took ptxas 13.5 minutes here, the bundle 6.5 minutes (strace runs and
-xz).
+                                                                        bench/render/gpu_cost.py)
+Measured (2026-11-28): 6 parts of 50 MiB (282 MiB packed), each staging call ~4 s of device time, the unpack 4 s;
+the cubin took ptxas 13.5 minutes here, the bundle 6.5 minutes (strace runs and xz).
 Run: .venv/bin/python scripts/device_bundle.py [--sm 90 | --cubin PATH] [--out .gpu] [--part-mib 50]
 """
 

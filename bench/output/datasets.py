@@ -5,8 +5,8 @@ Renders a small job of the banana (every default cue) with `omnidata generate`, 
 - preview time per cue (made from the file, then read back from the cache);
 - `omnidata export --format webdataset` views/s.
 
-Writes bench/results/datasets.json. Run: .venv/bin/python bench/output/datasets.py [--resolution 512] [--views
-4]
+Writes bench/results/datasets.json.
+Run: .venv/bin/python bench/output/datasets.py [--resolution 512] [--views 4]
 """
 
 from __future__ import annotations

@@ -18,8 +18,8 @@ kernels, the driver's OptiX module cache), so the figures are those of a machine
 With --render-workers R,..., also the GPU main job with every worker of which only R render (`generate
 --render-workers`: R device contexts, the other workers derive from the pass sets the renderers store); R = the
 core count is every worker rendering (the default before one in 8).
-Run: python bench/render/gpu_cost.py [--rooms icl_livingroom] [--points 22] [--cores 1,8,16] [--gpu-workers
-     2,4,8] [--render-workers 1,2] [--out FILE]
+Run: python bench/render/gpu_cost.py [--rooms icl_livingroom] [--points 22] [--cores 1,8,16]
+     [--gpu-workers 2,4,8] [--render-workers 1,2] [--out FILE]
 """
 
 from __future__ import annotations

@@ -3,8 +3,8 @@ a view, flushed to disk and checksummed, kept out of the page cache as a worker 
 pays after its derivations, one core.
 The files: every default cue of one real view of the 7-Scenes kitchen (bench/cues/derivations.py's views;
 ~6 MB), stored --views times under fresh names in folders that exist (as a job's views after its first); wall
-and CPU seconds per view (medians and 75th percentiles). With --against REV, also services/core/storage/local.py as it was at git
-revision REV, interleaved view by view with today's in its own folder.
+and CPU seconds per view (medians and 75th percentiles). With --against REV, also services/core/storage/local.py
+as it was at git revision REV, interleaved view by view with today's in its own folder.
 Writes bench/results/store_put.json (the previous run's figures kept under "before").
 Run: .venv/bin/python bench/output/store_put.py [--views 40] [--against REV]
      [--folder DIR (default: the system's temp)]

@@ -94,6 +94,8 @@ def build_hall(cell: float = 0.049) -> trimesh.Trimesh:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--cell", type=float, default=0.049, help="grid size of the hall's triangles, metres")
+    ap.add_argument("--cameras", type=int, default=1000, help="cameras (the target's: 1,000)")
+    ap.add_argument("--points", type=int, default=5000, help="points (the target's: 5,000)")
     ap.add_argument("--out", default=str(results_dir() / "sampling.json"))
     args = ap.parse_args()
     if hasattr(os, "sched_setaffinity"):
@@ -109,8 +111,8 @@ def main() -> int:
     )
     spec = JobSpec.model_validate({
         "seed": 1,
-        "cameras": {"mode": "generate", "max_count": 1000, "min_spacing_m": 0.5},
-        "points": {"count": 5000, "min_views": 3, "max_views": 3},
+        "cameras": {"mode": "generate", "max_count": args.cameras, "min_spacing_m": 0.5},
+        "points": {"count": args.points, "min_views": 3, "max_views": 3},
         "views": {"mode": "wide_baseline"},
     })
 
@@ -148,7 +150,8 @@ def main() -> int:
         "rays_per_s_in_stages": round(rays / max(ray_s, 1e-9)),
         "mesh_build_s_excluded": round(build_s, 3),
         "plan_json_bytes": len(text),
-        "meets_target": total < 10.0,
+        # the target holds for its own sizes only: a smaller run (a smoke run) is not judged
+        "meets_target": total < 10.0 if (args.cameras, args.points) == (1000, 5000) else None,
         "cpu_affinity": sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
         "load_average_1m": round(os.getloadavg()[0], 2),  # other processes on the machine inflate times
         "machine": platform.platform(),
@@ -161,7 +164,7 @@ def main() -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=2) + "\n")
     print(json.dumps(result, indent=2))
-    return 0 if result["meets_target"] else 1
+    return 1 if result["meets_target"] is False else 0
 
 
 if __name__ == "__main__":

@@ -42,7 +42,7 @@ SMOKE: dict[str, tuple[str, str]] = {
     "output/encodings.py": ("--repeats 1 --cache {passes}", "encodings.json"),
     "output/store_put.py": ("--views 2 --cache {passes}", "store_put.json"),
     "plan/planner.py": ("--smoke", "planner.json"),
-    "plan/sampling.py": ("--cell 0.5", "sampling.json"),
+    "plan/sampling.py": ("--cell 0.5 --cameras 100 --points 500", "sampling.json"),
     "plan/trajectory.py": ("--points 2 --rooms 1", "trajectory.json"),
     "render/augment.py": ("--views 1 --resolution 64", "augment.json"),
     # no CPU-path runs: a core count above the machine's is left out

@@ -38,9 +38,12 @@ lint: venv
 	$(BIN)/ruff check services tests bench
 	$(BIN)/mypy services
 
+# Every benchmark with a main, full size, into bench/results/ (bench/README.md; hours on a small machine).
+# bench/lib is their shared code; startup_ab.py compares two revisions (--against REV) and runs by hand.
+BENCH_MAINS = $(shell grep -l '^if __name__ == "__main__":' bench/*/*.py)
+BENCH_SCRIPTS = $(filter-out bench/render/startup_ab.py,$(BENCH_MAINS))
 bench: venv services
-	@mkdir -p bench/results
-	@set -e; for f in bench/*.py; do echo "== $$f"; $(BIN)/python $$f; done
+	@set -e; for f in $(BENCH_SCRIPTS); do echo "== $$f"; $(BIN)/python $$f; done
 
 # The project's install in parts for a lent GPU machine (no registry there, 64 MiB a call): .gpu/part_*; the calls
 # that carry and run them are in scripts/device_bundle.py's docstring. Needs strace, zstd, xz and CUDA's ptxas.

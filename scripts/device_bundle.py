@@ -13,7 +13,8 @@ The parts unpack at the same absolute paths (the interpreter's RUNPATH and prefi
 On the GPU machine, one call a part, each within the 30 s that machine stays warm (scripts/device_run.sh):
   run "bash scripts/device_run.sh probe"  carry [".gpu/part_00"]       (starts the machine; what it has)
   run "bash scripts/device_run.sh stage"  carry [".gpu/part_0N"]       (each middle part)
-  run "bash scripts/device_run.sh run"    carry [the last part]        (unpacks; oracle tests; bench/gpu_cost.py)
+  run "bash scripts/device_run.sh run"    carry [the last part]        (unpacks; oracle tests;
+                                                                        bench/render/gpu_cost.py)
 Measured (2026-11-28): 6 parts of 50 MiB (282 MiB packed), each staging call ~4 s of device time, the unpack 4 s;
 the cubin took ptxas 13.5 minutes here, the bundle 6.5 minutes (strace runs and xz).
 Run: .venv/bin/python scripts/device_bundle.py [--sm 90 | --cubin PATH] [--out .gpu] [--part-mib 50]
@@ -31,7 +32,7 @@ import tarfile
 import tempfile
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench" / "render"))
 from room_cost import ROOMS, SCENES  # noqa: E402  (the real rooms the benchmarks run: their files are what a run opens)
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -117,7 +118,8 @@ def select(opened: set[Path], cubin: Path, tmp: Path) -> tuple[list[tuple[Path, 
     members[str(target / CYCLES_LIB / packed.name)] = packed
     system = sorted({p.name: p for p in opened if str(p).startswith(("/lib/", "/usr/lib/")) and ".so" in p.name
                      and not GLIBC.match(p.name) and "ld-linux" not in p.name}.values())
-    # The rooms bench/gpu_cost.py runs there (--scenes /root/od-scenes; bench/scans/ travels with the tree), and the
+    # The rooms bench/render/gpu_cost.py runs there (--scenes /root/od-scenes; bench/scans/ travels with the
+    # tree), and the
     # oracle tests' scenes.
     for path in [path for path, _ in ROOMS.values() if path.is_relative_to(SCENES)] + [SCENES / n for n in TEST_SCENES]:
         for sub in ([path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file())):

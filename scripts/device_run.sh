@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # On a lent GPU machine (the device tool's): the parts scripts/device_bundle.py made arrive in .gpu/, one or two a
 # call, and are kept in /root/stage; `stage` keeps this call's, `run` unpacks them all at their absolute paths,
-# adds the system libraries that machine lacks, then runs the GPU oracle tests and bench/gpu_cost.py into $OUT.
+# adds the system libraries that machine lacks, then runs the GPU oracle tests and bench/render/gpu_cost.py into
+# $OUT.
 # Usage: bash scripts/device_run.sh stage | probe | run [gpu_cost.py flags...]
 set -uo pipefail
 what=${1:-run}
@@ -52,5 +53,5 @@ tests_rc=${PIPESTATUS[0]}
 device=auto
 [ "$tests_rc" = 0 ] || { [ "$test_device" = optix ] && device=cuda; }
 echo "benchmark on --device $device"
-timeout "${BENCH_TIMEOUT:-330}" "$py" bench/gpu_cost.py --scenes /root/od-scenes --out "$out/gpu.json" --device "$device" \
-  "$@" 2>&1 | tee "$out/gpu_cost.log" | tail -40
+timeout "${BENCH_TIMEOUT:-330}" "$py" bench/render/gpu_cost.py --scenes /root/od-scenes --out "$out/gpu.json" \
+  --device "$device" "$@" 2>&1 | tee "$out/gpu_cost.log" | tail -40

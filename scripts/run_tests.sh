@@ -20,6 +20,11 @@ PROCS=${TEST_PROCS:-$(($(nproc) + 1))}
 MARK=${TEST_MARK:-}  # e.g. "not slow" (make test-fast): narrows both runs
 read -r -a args <<<"${ARGS:-}"
 
+# What the checkout looks like before the run (tracked changes, untracked files git does not ignore): a test
+# that writes into the checkout (recorded benchmark figures, say) is named at the end and fails the run.
+tree_state() { git status --porcelain --untracked-files=all 2>/dev/null; git diff HEAD 2>/dev/null | cksum; }
+tree_before=$(tree_state)
+
 alone_log=$(mktemp)
 alone_cache=$(mktemp -d)  # the deadline run's own last-failed record (the rest's is .pytest_cache)
 alone_pid=
@@ -57,6 +62,12 @@ if [ "$alone" -eq 1 ]; then  # a deadline missed beside the rest: once more on t
     "${args[@]}"
   alone=$?
   [ "$alone" -eq 0 ] && echo "== they met their deadlines alone: they miss them only beside the suite (named above)"
+fi
+if [ "$(tree_state)" != "$tree_before" ]; then
+  echo
+  echo "== the tests left the checkout changed (they must write into temp folders only):"
+  diff <(echo "$tree_before") <(tree_state)
+  [ "$rest" -eq 0 ] && rest=1
 fi
 if [ "$rest" -ne 0 ]; then exit "$rest"; fi
 exit "$alone"

@@ -59,7 +59,7 @@ class DesignState:
     plans: OrderedDict[str, SpacePlan] = dataclasses.field(default_factory=OrderedDict)
     floors: dict[str, float] = dataclasses.field(default_factory=dict)
     scene_key: str | None = None
-    scene: Any = None  # services.worker.space_cache.SpaceContext once a preview was rendered
+    scene: Any = None  # services.worker.inputs.space_cache.SpaceContext once a preview was rendered
 
     def loaded(self, source: dict[str, Any], spec: JobSpec) -> tuple[str, LoadedSpace]:
         """(key, the space loaded in its stored frame) for a source sent by the API."""
@@ -91,7 +91,7 @@ class DesignState:
 
     def context(self, key: str, loaded: LoadedSpace) -> Any:
         """The Blender scene of a space: one at a time (a room's scene holds hundreds of MB)."""
-        from services.worker.space_cache import SpaceContext
+        from services.worker.inputs.space_cache import SpaceContext
 
         if self.scene_key != key:
             if self.scene is not None:

@@ -42,7 +42,8 @@ PENDING_LITERAL: ColumnElement[str] = literal_column(f"'{TaskState.PENDING.value
 SCAN_CAP = 200_000  # rows looked at per cue and pass at most
 # Rows per cue a thorough pass (the safety net, every minute) reads, oldest first: each costs a lookup of its
 # inputs, so reading up to SCAN_CAP of every cue took 17 s a pass on a 620k-task job under load and would take
-# minutes on a starter-sized one (bench/scale_sim.py, bench/big_job.py). Ready tasks are the oldest ones.
+# minutes on a starter-sized one (bench/scale/scale_sim.py, bench/scale/big_job.py). Ready tasks are the
+# oldest ones.
 THOROUGH_SCAN_ROWS = 10_000
 UPSTREAM_FAILED = (TaskState.FAILED, TaskState.CANCELLED)
 

@@ -70,10 +70,10 @@ def worker_engine(database_url: str, **kwargs: Any) -> Engine:
     """The worker's database engine; on Postgres its commits do not wait for the WAL flush (synchronous_commit off).
 
     Every claim and result of the whole fleet updates the same few counter rows of a job, and a commit that holds
-    their row locks through an fsync serialises the workers (bench/scale_sim.py: at 1,000 workers backends wait
-    on those locks and claims take seconds). A server crash can lose the last fraction of a second of worker
-    commits, which tasks survive by design: a lost claim leaves a queued task the reaper sends again, a lost
-    result a running task whose lease runs out and whose rerun writes identical bytes.
+    their row locks through an fsync serialises the workers (bench/scale/scale_sim.py: at 1,000 workers
+    backends wait on those locks and claims take seconds). A server crash can lose the last fraction of a
+    second of worker commits, which tasks survive by design: a lost claim leaves a queued task the reaper
+    sends again, a lost result a running task whose lease runs out and whose rerun writes identical bytes.
     """
     from sqlalchemy.engine import make_url
 

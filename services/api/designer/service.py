@@ -18,7 +18,7 @@ from services.api.spaces.service import get_space
 from services.core.domain.errors import Invalid
 from services.core.domain.jobspec import JobSpec
 from services.core.domain.plan_budget import PlanOverBudget, check_plan_budget
-from services.core.ingest.frame_choice import check_frame_decided, space_frame_for
+from services.core.db.frame_choice import check_frame_decided, space_frame_for
 from services.core.ingest.registry import fetch_space
 from services.core.settings import Settings
 from services.core.storage import ObjectStore

@@ -18,12 +18,14 @@ from __future__ import annotations
 
 from services.core.domain.jobspec import JobSpec
 
-# Measured peak planner RSS per planned view, with the cues' tasks and persistence included (bench/planner.py:
+# Measured peak planner RSS per planned view, with the cues' tasks and persistence included
+# (bench/plan/planner.py:
 # object mode on the bunny, 200k views, all default cues), rounded up; plus the process's fixed part (numpy,
 # trimesh, embree, SQLAlchemy, the loaded mesh).
 PLAN_BYTES_PER_VIEW = 6_000
 PLAN_BASE_MB = 400
-PLAN_SECONDS_PER_VIEW = 0.002  # measured 0.8 ms per view (bench/planner.py, loaded 2-core machine), rounded up
+# measured 0.8 ms per view (bench/plan/planner.py, loaded 2-core machine), rounded up
+PLAN_SECONDS_PER_VIEW = 0.002
 
 
 class PlanOverBudget(ValueError):

@@ -264,8 +264,8 @@ class LocalStore:
 def _flush(path: Path, *, drop_cached: bool) -> None:
     """fsync the file; with drop_cached, then drop its pages (clean once flushed) from the page cache. A worker
     writes a view's ~6 MB of outputs and never reads them again: kept, they only grow the cache and push out what is
-    read again (the scan, the code), and every view's writes take pages afresh (bench/store_put.py; a 66-view ICL
-    job: 0.5-0.7 s less, `generate` alternated with and without it)."""
+    read again (the scan, the code), and every view's writes take pages afresh (bench/output/store_put.py; a
+    66-view ICL job: 0.5-0.7 s less, `generate` alternated with and without it)."""
     fd = os.open(path, os.O_RDONLY)
     try:
         os.fsync(fd)

@@ -24,7 +24,8 @@ from services.core.temp_dirs import owned_prefix
 from services.worker.cues.registry import CueValue
 
 # PNGs are written here, not by Pillow: every row "Up"-filtered (the difference to the row above, vectorised) and
-# deflated by ISA-L (isal_zlib, level 1). On a room view's 13 PNG cues at 512 px (bench/encode_cost.py, one core)
+# deflated by ISA-L (isal_zlib, level 1). On a room view's 13 PNG cues at 512 px (bench/output/encode_cost.py,
+# one core)
 # that is ~7 ms against ~30 ms for zlib level 1 + Z_RLE (the encoder before) and ~135 ms for Pillow at level 3 +
 # Z_RLE, files ~5% smaller than zlib's; the Up filter gives the smallest files of None / Sub / Up with ISA-L, which
 # is as fast on all three. Any deflater's stream decodes to the same array. ISA-L is a hard dependency (wheels for
@@ -52,7 +53,8 @@ def zlib_deflater(level: int, strategy: int = zlib.Z_DEFAULT_STRATEGY) -> Callab
     return deflate
 
 
-# The position EXR is stored uncompressed. bench/encodings.py on 12 room views at 512 px (bench/results/
+# The position EXR is stored uncompressed. bench/output/encodings.py on 12 room views at 512 px
+# (bench/results/
 # derivations.json "encodings"), write CPU ms / MB: none 1.8 / 3.15, RLE 5.3 / 3.15, ZIPS 21 / 2.22, ZIP (before)
 # 23 / 1.93, PIZ 73 / 1.82, ZSTD 16 / 1.03, HTJ2K 13 / 0.97; all decode bit for bit. World XYZ floats hardly
 # compress, so ZIP spent 17% of a bare render's CPU (0.12 s) to save 1.2 MB; ZSTD and HTJ2K need OpenEXR >= 3.5 /

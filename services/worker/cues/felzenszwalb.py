@@ -219,7 +219,7 @@ class Felzenszwalb:
     """The merge pass of one image, done once; `labels(min_size)` then gives its superpixels for any min_size.
 
     `connectivity` (8, skimage's and the segment cues'; or 4) and `levels` (the sort's quantisation) are for
-    measuring other definitions (bench/segment_stability.py); the defaults are the cues'."""
+    measuring other definitions (bench/cues/segment_stability.py); the defaults are the cues'."""
 
     def __init__(self, features: np.ndarray, scale: float, sigma: float, *, connectivity: int = 8,
                  levels: int = SORT_LEVELS):

@@ -75,7 +75,7 @@ def principal_curvatures(mesh: trimesh.Trimesh, radius: float) -> np.ndarray:
 class _SampleGrid:
     """The samples bucketed in cubic cells at least `radius` wide, sorted by cell: a vertex's neighbours within the
     radius lie in its cell's 3 x 3 x 3 block, whose z-runs are 9 ranges of the sorted keys. On a room it finds a
-    ball's samples in a fraction of a k-d tree query's time, and the same ones (`bench/curvature.py`)."""
+    ball's samples in a fraction of a k-d tree query's time, and the same ones (`bench/cues/curvature.py`)."""
 
     def __init__(self, pts: np.ndarray, verts: np.ndarray, radius: float):
         lo = np.minimum(pts.min(axis=0), verts.min(axis=0))
@@ -198,7 +198,7 @@ def _ball(c: np.ndarray, pts: np.ndarray, first_q: np.ndarray, end_q: np.ndarray
     """The samples of the runs [first_q, end_q) strictly within sqrt(r2) of c, in run order, written to near_d2
     (squared distances) and near_q (indices), which hold every candidate; returns how many. A function of its own,
     with buffers that cannot change under it: grown inside the scan (as before), they cost the kitchen's curvature
-    ~40% more CPU (bench/curvature.py)."""
+    ~40% more CPU (bench/cues/curvature.py)."""
     m = 0
     for run in range(len(first_q)):
         for q in range(first_q[run], end_q[run]):

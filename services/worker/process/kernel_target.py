@@ -5,11 +5,12 @@ machine where both match exactly. Built for the host ("znver4" and its 60 featur
 the worker image is built, or by `make venv`, is ignored on any other CPU model: each new worker compiles all ~70
 kernels again (~40 CPU-s on one core before its first view). Built for an x86-64 level, the same cache serves every
 machine of that level, as fast as the host's own target where the level has the host's vector width
-(bench/kernel_cache.py, on an AVX-512 host: x86-64-v4 as fast as the host's own code; x86-64-v3 runs keypoints3d
-10-15% slower; the baseline "generic" x86-64 costs ~18% more in all, keypoints3d 50%). A process takes the highest
-level its CPU has; a machine with none (or not x86-64) compiles for itself, as numba does by default; so does one
-whose NUMBA_CPU_NAME is set by its operator, and a process that compiled something with numba before this package
-loaded (its code generator is made once: entries cached under a level must hold that level's code).
+(bench/render/kernel_cache.py, on an AVX-512 host: x86-64-v4 as fast as the host's own code; x86-64-v3 runs
+keypoints3d 10-15% slower; the baseline "generic" x86-64 costs ~18% more in all, keypoints3d 50%). A process
+takes the highest level its CPU has; a machine with none (or not x86-64) compiles for itself, as numba does by
+default; so does one whose NUMBA_CPU_NAME is set by its operator, and a process that compiled something with
+numba before this package loaded (its code generator is made once: entries cached under a level must hold that
+level's code).
 
 `select()` must run before the process compiles or loads its first kernel: the `services.worker` package calls
 it on import, before any of its kernel modules loads.

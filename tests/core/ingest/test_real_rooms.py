@@ -1,7 +1,7 @@
 """Real rooms as users bring them (bench/scans/rooms, a small subset): the file each case would be, written
 and read back through `load_space`, the loader that really runs. Levelled within 3 degrees, or refused with
 the true up as the first candidate; never levelled wrong. The whole corpus is measured by
-bench/ingest_real.py."""
+bench/ingest/ingest_real.py."""
 
 from __future__ import annotations
 

@@ -111,9 +111,10 @@ def test_segment_unsup2d_matches_the_previous_implementation_on_colour_views(roo
 
 
 def test_segment_unsup25d_does_not_move_under_imperceptible_depth_noise(room_passes):
-    """The 2.5d segmentation is a stable function of the geometry (bench/segment_stability.py: ARI 0.97-1.0 on the
-    real rooms), which is what lets a cheaper definition of it be held to the bound above; the colour segmentation
-    of a real texture is not (the same perturbation of its pixels moves it to ARI 0.27-0.56 on some views)."""
+    """The 2.5d segmentation is a stable function of the geometry (bench/cues/segment_stability.py: ARI
+    0.97-1.0 on the real rooms), which is what lets a cheaper definition of it be held to the bound above; the
+    colour segmentation of a real texture is not (the same perturbation of its pixels moves it to ARI
+    0.27-0.56 on some views)."""
     for i, p in enumerate(room_passes):
         noisy = imperceptibly_perturbed(p, i)
         assert not np.array_equal(p.depth_z, noisy.depth_z)  # the input did change

@@ -240,7 +240,8 @@ def test_felzenszwalb_is_the_previous_kernel_bit_for_bit(shape, channels, sigma)
 def test_felzenszwalb_connectivity_4_leaves_out_the_diagonal_edges() -> None:
     """A checkerboard: its like colours touch only diagonally, so the 8-connected grid joins each colour into one
     region at zero cost and the 4-connected grid joins nothing (every edge it has crosses the full colour step,
-    above a tiny scale's threshold). bench/segment_stability.py measures the 4-connected grid on real rooms."""
+    above a tiny scale's threshold). bench/cues/segment_stability.py measures the 4-connected grid on real
+    rooms."""
     board = (np.indices((6, 8)).sum(axis=0) % 2).astype(np.float32)[..., None]
     eight = Felzenszwalb(board, 1e-3, 0.0).labels(1)
     four = Felzenszwalb(board, 1e-3, 0.0, connectivity=4).labels(1)

@@ -28,7 +28,7 @@ from tests.fixtures.raycast import make_room, raycast_passes, room_view
 
 RESOLUTION = 160
 VIEWS_PER_ROOM = 3
-# name -> (space path under the scenes folder, load_space frame arguments), as bench/rooms.py
+# name -> (space path under the scenes folder, load_space frame arguments), as bench/lib/rooms.py
 ROOMS = {
     "icl_livingroom": ("icl_livingroom", {}),
     "7scenes_redkitchen": ("7scenes_redkitchen/mesh_tsdf_2cm_from_1000frames.ply", {"up": (0.009, -0.904, -0.427)}),

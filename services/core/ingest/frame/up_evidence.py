@@ -14,8 +14,8 @@ candidate with the best one that would level the scan differently (more than `DI
   a family; cabinet fronts score along a wall's normal too, which is why it weighs less than `extent`.
 - `extent`: rooms are wider than tall. Height along `u` over the square root of the cross-section
   across `u`, as the log of its ratio to the thinnest candidate's (a wall taken as floor turns the
-  room's width into its "height"). On the real rooms of bench/ingest_real.py it ranks the floor's family
-  first in every multi-view room: the heaviest geometric term.
+  room's width into its "height"). On the real rooms of bench/ingest/ingest_real.py it ranks the floor's
+  family first in every multi-view room: the heaviest geometric term.
 - `storey`: whether the extent along `u` is a storey (2.2-3.5 m, or 1.2-3.5 m for a scan without a
   ceiling: partial scans rarely see it) in one of the units we accept; a penalty when it fits none.
 - `levelled_axis`: a plausible floor within `AXIS_DEG` of a source axis. A random orientation puts a given
@@ -34,8 +34,8 @@ candidate with the best one that would level the scan differently (more than `DI
   room's.
 
 The confidence is a logistic function of the margin (best score minus the runner-up's), fitted on the real
-rooms of bench/ingest_real.py; below `REFUSE_MARGIN` (`SINGLE_VIEW_REFUSE_MARGIN` for one depth frame) the
-estimate is ambiguous and planning does not go ahead on it unless the user accepted guesses.
+rooms of bench/ingest/ingest_real.py; below `REFUSE_MARGIN` (`SINGLE_VIEW_REFUSE_MARGIN` for one depth frame)
+the estimate is ambiguous and planning does not go ahead on it unless the user accepted guesses.
 """
 
 from __future__ import annotations
@@ -49,13 +49,16 @@ from services.core.domain.frame_records import UpCandidateRecord
 from services.core.ingest.frame.single_view import SingleView
 
 DISTINCT_DEG = 30.0  # candidates closer than this level the scan the same way
-# score margin below which the estimate is ambiguous: on the real rooms of bench/ingest_real.py (as delivered,
+# score margin below which the estimate is ambiguous: on the real rooms of bench/ingest/ingest_real.py (as
+# delivered,
 # levelled, rotated) no wrong winner scored more than 0.85 above its runner-up with these weights
 REFUSE_MARGIN = 1.2
-# one depth frame: on the real frames of bench/ingest_real.py wrong winners led by up to 4.4 (a floor out of
+# one depth frame: on the real frames of bench/ingest/ingest_real.py wrong winners led by up to 4.4 (a floor
+# out of
 # view)
 SINGLE_VIEW_REFUSE_MARGIN = 4.5
-# logistic slope of P(right | margin): the likeliest on bench/ingest_real.py's real rooms while a wrong winner
+# logistic slope of P(right | margin): the likeliest on bench/ingest/ingest_real.py's real rooms while a wrong
+# winner
 # still reached 1.65; none does now, so the probability it states above REFUSE_MARGIN (>= 88 %) is conservative
 CONFIDENCE_SLOPE = 1.7
 VIEW_PITCH_DEG = 50.0  # a depth camera pointed further up or down than this sees no room

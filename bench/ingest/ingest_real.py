@@ -1,0 +1,166 @@
+"""Benchmark: real rooms levelled as users bring them, without asking.
+
+Corpus: bench/scans/rooms/truth.json (real reconstructions and scans from several public sources, each with
+its true up, how that truth is known, its source and licence; SOURCE.md beside each file). Every room is tried
+- as delivered (the file's own frame and format),
+- exported levelled as a Z-up PLY and as a Y-up GLB,
+- under 5 random rotations, in metres, centimetres, millimetres, inches and metres again (PLY),
+through `resolve_frame`, the call `load_space` makes once the file is read (point clouds meshed once by the
+service's reconstruction, in their delivered frame). Outcome per case: levelled (within 3 degrees), wrong
+(planned more than 3 degrees off without asking) or refused (with the true up as the first candidate, or not).
+Single depth frames (one sensor view, not a room) are reported apart from the rooms.
+
+Run: `.venv/bin/python bench/ingest/ingest_real.py [--out FILE]`; writes the "real_rooms" section of
+bench/results/ingest_real.json and prints the table per source.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO))
+from bench.lib.results import results_dir  # noqa: E402
+from services.core.ingest.errors import SpaceError, UnitsAmbiguous, UpAmbiguous  # noqa: E402
+from services.core.ingest.frame.resolve import FrameRequest, resolve_frame, rotation_to_z  # noqa: E402
+from services.core.ingest.loading import load_space  # noqa: E402
+
+ROOMS = REPO / "bench" / "scans" / "rooms" / "truth.json"
+SCALES = (1.0, 0.01, 0.001, 0.0254, 1.0)  # metres per unit of the rotated copies, in turn
+LEVEL_DEG = 3.0
+FIRST_DEG = 10.0  # a refusal's first candidate this close to the truth offers the true up first
+Y_UP = Rotation.from_euler("x", -90, degrees=True).as_matrix()  # +Z -> +Y
+
+
+def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """Angle between two directions, degrees."""
+    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
+    return float(np.degrees(np.arccos(np.clip(a @ b, -1.0, 1.0))))
+
+
+def cases(suffix: str, up: np.ndarray, seed: int) -> Iterator[tuple[str, np.ndarray, float, str]]:
+    """(case, rotation of the delivered frame, metres per unit, file suffix) of one room."""
+    yield "delivered", np.eye(3), 1.0, suffix
+    yield "levelled_z_ply", rotation_to_z(up), 1.0, ".ply"
+    yield "levelled_y_glb", Y_UP @ rotation_to_z(up), 1.0, ".glb"
+    rotations = Rotation.random(len(SCALES), random_state=np.random.default_rng(seed)).as_matrix()
+    for i, (R, scale) in enumerate(zip(rotations, SCALES, strict=True)):
+        yield f"rotated_{i}", R, scale, ".ply"
+
+
+def run_case(mesh: Any, R: np.ndarray, scale: float, suffix: str, up: np.ndarray,
+             name: str) -> dict[str, Any]:
+    """One case through resolve_frame: its outcome against the truth."""
+    copy = mesh.copy()
+    T = np.eye(4)
+    T[:3, :3] = R / scale
+    copy.apply_transform(T)
+    truth = R @ up
+    try:
+        _, est, units = resolve_frame(copy, suffix, FrameRequest("auto", "auto", None, None), name)
+    except UpAmbiguous as e:
+        first = angle_deg(np.asarray(e.candidates[0]["up"], dtype=float), truth)
+        return {"outcome": "refused", "true_first": first < FIRST_DEG, "first_error_deg": round(first, 2)}
+    except UnitsAmbiguous:
+        return {"outcome": "units_refused"}
+    except SpaceError as e:
+        return {"outcome": "error", "message": str(e)[:200]}
+    error = angle_deg(est.up, truth)
+    record = est.record(units.scale)
+    return {"outcome": "levelled" if error <= LEVEL_DEG else "wrong", "error_deg": round(error, 2),
+            "units_right": bool(abs(units.scale - scale) <= 1e-9 * scale), "method": est.method,
+            "reason": record.get("reason"), "probability": record.get("probability"),
+            "margin": None if est.margin is None or not np.isfinite(est.margin) else round(est.margin, 3)}
+
+
+def shares(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Levelled / wrong / refused (true up first or not) / other, as counts and shares of the cases."""
+    n = len(rows)
+    refused = [r for r in rows if r["outcome"] == "refused"]
+    counts = {"cases": n, "levelled": sum(r["outcome"] == "levelled" for r in rows),
+              "wrong": sum(r["outcome"] == "wrong" for r in rows), "refused": len(refused),
+              "refused_true_first": sum(r["true_first"] for r in refused),
+              "other": sum(r["outcome"] in ("units_refused", "error") for r in rows)}
+    counts["share_levelled"] = round(counts["levelled"] / max(n, 1), 4)
+    counts["share_true_first_of_refused"] = (round(counts["refused_true_first"] / len(refused), 4)
+                                             if refused else None)
+    return counts
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--rooms", nargs="*", help="only these rooms (names in truth.json)")
+    ap.add_argument("--extra", type=Path, action="append", default=[],
+                    help="another truth.json of the same form (rooms that may not be redistributed), "
+                    "measured alike")
+    ap.add_argument("--out", type=Path, default=results_dir() / "ingest_real.json")
+    args = ap.parse_args()
+
+    truth = json.loads(ROOMS.read_text())
+    for extra in args.extra:
+        truth.update({name: {**room, "extra": True} for name, room in json.loads(extra.read_text()).items()})
+    rows: list[dict[str, Any]] = []
+    t_start = time.perf_counter()
+    for i, (name, room) in enumerate(sorted(truth.items())):
+        if args.rooms and name not in args.rooms:
+            continue
+        path = REPO / room["file"]  # an absolute path stays as it is
+        # the file read and meshed as on ingest, kept in its own frame (identity source_to_world)
+        mesh = load_space(path, source_to_world=np.eye(4).tolist()).mesh
+        up = np.asarray(room["up"], dtype=float)
+        # converted copies: the format as delivered
+        delivered = room.get("delivered_as") or path.suffix.lower()
+        for case, R, scale, suffix in cases(delivered, up / np.linalg.norm(up), args.seed + i):
+            row = {"room": name, "place": room.get("place", name), "source": room["source"],
+                   "kind": room["kind"], "single_frame": bool(room.get("single_frame")),
+                   "extra": bool(room.get("extra")), "case": case,
+                   **run_case(mesh, R, scale, suffix, up, name)}
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+
+    def pick(single: bool, **kw: object) -> list[dict[str, Any]]:
+        return [r for r in rows if r["single_frame"] == single and all(r[k] == v for k, v in kw.items())]
+
+    places = sorted({r["place"] for r in rows})
+    sources = sorted({r["source"] for r in rows})
+    result = {
+        "protocol": "each room as delivered, levelled Z-up PLY, levelled Y-up GLB, 5 random rotations in "
+                    "m/cm/mm/in/m; levelled = within 3 degrees without asking",
+        "corpus": {"places": len(places), "sources": len(sources), "files": len({r["room"] for r in rows}),
+                   "extra_files": sorted({r["room"] for r in rows if r["extra"]})},
+        "rooms": shares(pick(False)),
+        "rooms_by_case": {c: shares(pick(False, case=c)) for c in dict.fromkeys(r["case"] for r in rows)},
+        "by_source": {s: shares([r for r in rows if r["source"] == s]) for s in sources},
+        "by_room": {n: [r["outcome"] + ("" if r["outcome"] != "refused" else "+" if r["true_first"] else "-")
+                        for r in rows if r["room"] == n] for n in sorted({r["room"] for r in rows})},
+        "single_depth_frames": shares(pick(True)),
+        "wrong_cases": [r for r in rows if r["outcome"] == "wrong"],
+        "seconds": round(time.perf_counter() - t_start, 1),
+        "machine": {"python": platform.python_version(), "cpu": platform.processor() or platform.machine()},
+        "rows": rows,
+    }
+    document = json.loads(args.out.read_text()) if args.out.exists() else {}
+    document["real_rooms"] = result
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(document, indent=2) + "\n")
+    print("\n| source | cases | levelled | wrong | refused (true up first) |\n|---|---|---|---|---|")
+    for label, s in [*result["by_source"].items(), ("all rooms (multi-view)", result["rooms"]),
+                     ("single depth frames", result["single_depth_frames"])]:
+        print(f"| {label} | {s['cases']} | {s['levelled']} ({s['share_levelled']:.0%}) | {s['wrong']} | "
+              f"{s['refused']} ({s['refused_true_first']}) |")
+    print(f"{len(places)} places from {len(sources)} sources; wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,117 @@
+"""Benchmark: the fixed start-up CPU of `omnidata generate` on the real rooms, part by part (issue 20).
+
+Each part in a fresh process (so imports and caches start cold as in a run), process CPU seconds:
+- parent: validate, register and plan one room as generate does, with the scheduler planning from the space the
+  run validated (`loaded_spaces`, now) against loading the stored copy again (before);
+- worker imports: `services.worker.run.runner` and the modules a worker process imports before its first task;
+- curvature: the room's per-vertex curvature computed (the first worker of a machine) against read back from the
+  shared file (every other worker process).
+Figures go to bench/results/startup_cpu.json with the load average.
+Run: .venv/bin/python bench/render/startup_cpu.py [--rooms icl_livingroom,...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from bench.lib.results import results_dir  # noqa: E402
+from bench.lib.rooms import ROOMS  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[2]
+RESULTS = results_dir() / "startup_cpu.json"
+
+PARENT = r"""
+import json, sys, time
+from pathlib import Path
+from services.cli.generate import validate_sources
+from services.cli.spec_args import check_sources
+from services.core.db.engine import make_engine, make_sessionmaker, migrate
+from services.core.domain.jobspec import JobSpec
+from services.core.storage import LocalStore
+from services.embedded.job import STATE_DIR, embedded_settings, prepare_job
+from services.scheduler.loop import Scheduler
+from services.scheduler.transport import NullTransport
+space, frame, out, hand_over = sys.argv[1], json.loads(sys.argv[2]), Path(sys.argv[3]), sys.argv[4] == "1"
+spec = JobSpec.model_validate({"points": {"count": 1, "max_views": 3}, "views": {"resolution": 512}, **frame})
+settings = embedded_settings(out, 1)
+migrate(settings.database_url)
+sessions = make_sessionmaker(make_engine(settings.database_url))
+store = LocalStore(out)
+c0 = time.process_time()
+sources = check_sources([space])
+validate_sources(sources, spec)
+prepared = prepare_job(sessions, store, spec, sources)
+sched = Scheduler(sessions, store, NullTransport(), settings, cache_dir=out / STATE_DIR / "cache",
+                  loaded_spaces=prepared.loaded if hand_over else None)
+assert sched.plan_pending() == [prepared.job_id]
+print(json.dumps({"cpu_s": time.process_time() - c0}))
+"""
+
+IMPORTS = r"""
+import json, time
+c0 = time.process_time()
+from services.core.db.engine import make_engine, make_sessionmaker
+from services.core.settings import get_settings
+from services.core.storage import LocalStore
+from services.worker.run.claim import TransientError
+from services.worker.run.heartbeat import Heartbeat
+from services.worker.run.runner import TaskRunner
+import sys
+print(json.dumps({"cpu_s": time.process_time() - c0, "scipy_stats": "scipy.stats" in sys.modules}))
+"""
+
+CURVATURE = r"""
+import json, sys, time
+from pathlib import Path
+from services.core.domain.jobspec import CueParams
+from services.core.ingest.loading import load_space
+from services.worker.inputs.shared_curvature import shared_curvature
+space, frame, folder = sys.argv[1], json.loads(sys.argv[2]), Path(sys.argv[3])
+mesh = load_space(space, **frame).mesh
+import trimesh
+shared_curvature(trimesh.creation.icosphere(), 0.3, None)  # the estimator's compiled kernels loaded
+c0 = time.process_time()
+shared_curvature(mesh, CueParams().curvature_radius_m, folder)
+print(json.dumps({"cpu_s": time.process_time() - c0, "vertices": len(mesh.vertices)}))
+"""
+
+
+def probe(code: str, *args: str) -> dict:
+    run = subprocess.run([sys.executable, "-c", code, *args], cwd=ROOT, capture_output=True, text=True,
+                         env={**os.environ, "PYTHONPATH": str(ROOT)}, check=False)
+    if run.returncode != 0:
+        raise RuntimeError(run.stderr[-2000:])
+    return json.loads(run.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--rooms", default=",".join(ROOMS), help="comma-separated: " + ",".join(ROOMS))
+    args = ap.parse_args()
+    report: dict = {"load_before": [round(x, 2) for x in os.getloadavg()], "unit": "process CPU seconds",
+                    "rooms": {}}
+    report["worker_imports"] = probe(IMPORTS)
+    for room in args.rooms.split(","):
+        space, frame = ROOMS[room]
+        rec: dict = {}
+        with tempfile.TemporaryDirectory(prefix="omnidata-startup-") as tmp:
+            for label, hand_over in (("parent_before", "0"), ("parent_now", "1")):
+                rec[label] = probe(PARENT, str(space), json.dumps(frame), f"{tmp}/{label}", hand_over)["cpu_s"]
+            for label in ("curvature_computed", "curvature_shared"):  # the second reads the first's file
+                rec[label] = probe(CURVATURE, str(space), json.dumps(frame), f"{tmp}/curvature")["cpu_s"]
+        report["rooms"][room] = {k: round(v, 3) for k, v in rec.items()}
+        print(room, report["rooms"][room], flush=True)
+    report["load_after"] = [round(x, 2) for x in os.getloadavg()]
+    RESULTS.write_text(json.dumps(report, indent=2) + "\n")
+    print(json.dumps(report, indent=2))
+
+
+if __name__ == "__main__":
+    main()

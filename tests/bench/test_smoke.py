@@ -41,6 +41,7 @@ SMOKE: dict[str, tuple[str, str]] = {
     "output/encode_cost.py": ("--repeats 1 --cache {passes}", "encode_cost.json"),
     "output/encodings.py": ("--repeats 1 --cache {passes}", "encodings.json"),
     "output/store_put.py": ("--views 2 --cache {passes}", "store_put.json"),
+    "plan/designer_fit.py": ("--other-seeds=", "designer_fit.json"),
     "plan/planner.py": ("--smoke", "planner.json"),
     "plan/sampling.py": ("--cell 0.5 --cameras 100 --points 500", "sampling.json"),
     "plan/trajectory.py": ("--points 2 --rooms 1", "trajectory.json"),

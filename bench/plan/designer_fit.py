@@ -7,12 +7,13 @@ fitted by services.scheduler.planning.fit.fit_spec on the kitchen's mesh. Report
 statistic between the target and the fitted spec's plan for fov, pitch and height (done when each is
 <= 0.1; roll is fitted and reported too), the same for the plan of BASE (before fitting) and for the
 fitted spec re-planned with other seeds (does the fit hold beyond its own draws), the rounds of the fit,
-and its wall time. Writes bench/results/designer_fit.json. Run: `.venv/bin/python bench/designer_fit.py`
-(about 20 s).
+and its wall time. Writes bench/results/designer_fit.json. Run: `.venv/bin/python bench/plan/designer_fit.py
+[--other-seeds 1,2,3,4]` (about 20 s).
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import platform
 import sys
@@ -21,7 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+from bench.lib.results import results_path  # noqa: E402
 
 from services.core.domain.jobspec import JobSpec  # noqa: E402
 from services.core.domain.steering import ks_statistic, summary, view_distributions  # noqa: E402
@@ -35,9 +38,8 @@ from services.scheduler.planning.fit import (  # noqa: E402
     target_enclosed,
 )
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 KITCHEN = REPO.parent / "shared" / "scenes" / "7scenes_redkitchen"
-OUT = REPO / "bench" / "results" / "designer_fit.json"
 BASE = {"cameras": {"min_spacing_m": 0.05}, "points": {"count": 400, "max_views": 10}}
 OTHER_SEEDS = (1, 2, 3, 4)
 DONE_KS = 0.1
@@ -52,7 +54,7 @@ def _ks(space, spec: JobSpec, target: dict[str, np.ndarray], floor: float) -> di
     return out
 
 
-def main() -> dict:
+def main(other_seeds: tuple[int, ...] = OTHER_SEEDS) -> dict:
     space = load_space(KITCHEN)
     target = load_target(KITCHEN, (KITCHEN, space))
     floor = floor_z(space)
@@ -63,7 +65,7 @@ def main() -> dict:
     fit = fit_spec(space, base, target.values, floor_z=floor, enclosed=enclosed, space_name="kitchen")
     seconds = time.perf_counter() - t0
     seeds = {}
-    for seed in OTHER_SEEDS:
+    for seed in other_seeds:
         spec = JobSpec.model_validate({**fit.spec.model_dump(mode="json"), "seed": seed})
         seeds[str(seed)] = _ks(space, spec, target.values, floor)
     worst = max(fit.ks[n] for n in DONE_ON)
@@ -88,8 +90,11 @@ def main() -> dict:
 
 
 if __name__ == "__main__":
-    result = main()
-    OUT.parent.mkdir(parents=True, exist_ok=True)
-    OUT.write_text(json.dumps(result, indent=1) + "\n")
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--other-seeds", default=",".join(map(str, OTHER_SEEDS)),
+                        help="seeds the fitted spec is planned again with ('' for none)")
+    args = parser.parse_args()
+    result = main(tuple(int(s) for s in args.other_seeds.split(",") if s))
+    results_path("designer_fit.json").write_text(json.dumps(result, indent=1) + "\n")
     print(json.dumps({k: result[k] for k in ("ks_base", "ks_fitted", "ks_fitted_other_seeds", "done",
                                              "fit_seconds")}, indent=1))

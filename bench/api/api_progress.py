@@ -35,8 +35,8 @@ from sqlalchemy.orm import Session
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from bench.lib.results import results_dir  # noqa: E402
-from services.api.jobs.service import detail_statement, fetch_job_detail
 from services.api.jobs.rates import RateTracker
+from services.api.jobs.service import detail_statement, fetch_job_detail
 from services.core.db.bulk import bulk_insert
 from services.core.db.counters import init_counts
 from services.core.db.engine import make_engine, migrate

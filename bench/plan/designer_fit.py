@@ -25,7 +25,6 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from bench.lib.results import results_path  # noqa: E402
-
 from services.core.domain.jobspec import JobSpec  # noqa: E402
 from services.core.domain.steering import ks_statistic, summary, view_distributions  # noqa: E402
 from services.core.ingest.loading import load_space  # noqa: E402

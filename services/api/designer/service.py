@@ -15,10 +15,10 @@ from services.api.designer.pool import DesignPool
 from services.api.designer.schemas import DesignFit, DesignPlan, DesignPreviews, DesignRequest
 from services.api.errors import summarize, validation_errors
 from services.api.spaces.service import get_space
+from services.core.db.frame_choice import check_frame_decided, space_frame_for
 from services.core.domain.errors import Invalid
 from services.core.domain.jobspec import JobSpec
 from services.core.domain.plan_budget import PlanOverBudget, check_plan_budget
-from services.core.db.frame_choice import check_frame_decided, space_frame_for
 from services.core.ingest.registry import fetch_space
 from services.core.settings import Settings
 from services.core.storage import ObjectStore

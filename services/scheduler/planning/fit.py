@@ -24,8 +24,8 @@ import numpy as np
 from services.core.domain.jobspec import JobSpec
 from services.core.domain.steering import ks_statistic, view_distributions
 from services.core.domain.steering_spec import FOV_LIMITS_DEG, MAX_QUANTILES
-from services.core.ingest.guard.archive import MESH_SUFFIXES
 from services.core.ingest.capture import find_capture
+from services.core.ingest.guard.archive import MESH_SUFFIXES
 from services.core.ingest.loading import LoadedSpace, load_space
 from services.core.ingest.targets import Target, TargetError, capture_target, csv_target, point_info_target
 from services.scheduler.planning import make_plan, space_rng

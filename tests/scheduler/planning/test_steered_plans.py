@@ -12,8 +12,7 @@ from services.core.domain.jobspec import JobSpec
 from services.core.domain.plan import SpacePlan, plan_to_json
 from services.core.domain.plan_budget import plans_in_chunks
 from services.core.domain.steering import ks_statistic, view_distributions
-from services.scheduler.planning import make_plan, space_rng
-from services.scheduler.planning import plan_chunks
+from services.scheduler.planning import make_plan, plan_chunks, space_rng
 from services.scheduler.planning.views import pitch_acceptance, quantile_sample
 from tests.fixtures import scenes
 

@@ -3,7 +3,8 @@
 Nothing is skipped when a service is down: the fixture fails with a message (`make services` starts them).
 Database tests run the Alembic migrations once per session and roll back each test's work.
 Tests that need Blender (bpy, in this process or in the commands they run) are marked `bpy`:
-`pytest -m "not bpy"` runs the pure ones; with OMNIDATA_TEST_WITHOUT_BPY=1 importing bpy here fails, to prove it.
+`pytest -m "not bpy"` runs the pure ones; with OMNIDATA_TEST_WITHOUT_BPY=1 importing bpy here fails, to prove
+it.
 """
 
 from __future__ import annotations
@@ -35,7 +36,9 @@ from services.core.storage import LocalStore
 class _NoBpy(importlib.abc.MetaPathFinder):
     def find_spec(self, name: str, path: object = None, target: object = None) -> None:
         if name == "bpy" or name.startswith("bpy."):
-            raise ModuleNotFoundError("bpy is blocked by OMNIDATA_TEST_WITHOUT_BPY (a test not marked bpy needs it)")
+            raise ModuleNotFoundError(
+                "bpy is blocked by OMNIDATA_TEST_WITHOUT_BPY (a test not marked bpy needs it)"
+            )
 
 
 if os.environ.get("OMNIDATA_TEST_WITHOUT_BPY"):
@@ -55,12 +58,14 @@ def pytest_ignore_collect(collection_path: Path, config: pytest.Config) -> bool 
 
 
 # Fixtures that render with Blender (here or in an `omnidata generate` they run): their tests are `bpy` tests.
-BPY_FIXTURES = frozenset({"tiny_banana", "small_job", "trajectory_job", "banana_run", "room_passes", "banana_passes"})
+BPY_FIXTURES = frozenset(
+    {"tiny_banana", "small_job", "trajectory_job", "banana_run", "room_passes", "banana_passes"}
+)
 
 
 # Fixtures of the shared Redis server (a database flushed per test; a deployment's, flushed per module, whose
-# tests kill its clients): under pytest-xdist (`make test` runs two or more processes) their tests form one group,
-# run one at a time by one process, so a flush or a kill never lands on another test's connection.
+# tests kill its clients): under pytest-xdist (`make test` runs two or more processes) their tests form one
+# group, run one at a time by one process, so a flush or a kill never lands on another test's connection.
 SERVICE_FIXTURES = frozenset({"redis_url", "deployment"})
 
 
@@ -119,9 +124,9 @@ class GeneratedRun:
 
 @pytest.fixture(scope="session")
 def tiny_banana(tmp_path_factory: pytest.TempPathFactory, scenes_dir: Path) -> GeneratedRun:
-    """One real `omnidata generate` of the banana shared by the embedded, dataset, gallery and end-to-end tests:
-    2 points x 2 wide-baseline views (WIDE), every default cue, 32 px, seed 7, component 'tiny', 2 workers.
-    Tests only read it (copy it before changing anything)."""
+    """One real `omnidata generate` of the banana shared by the embedded, dataset, gallery and end-to-end
+    tests: 2 points x 2 wide-baseline views (WIDE), every default cue, 32 px, seed 7, component 'tiny', 2
+    workers. Tests only read it (copy it before changing anything)."""
     from tests.fixtures.cli import WIDE, omnidata
 
     out = tmp_path_factory.mktemp("tiny_banana") / "banana"
@@ -129,15 +134,20 @@ def tiny_banana(tmp_path_factory: pytest.TempPathFactory, scenes_dir: Path) -> G
     spec.write_text(WIDE)
     tmpdir = out.parent / "tmp"  # its own, so a test can see what the run leaves in the temp dir
     tmpdir.mkdir()
-    res = omnidata("generate", scenes_dir / "ycb_banana", "--out", out, "--spec", spec, "--seed", 7, "--workers", 2,
-                   "--name", "tiny", "--no-progress", env={"TMPDIR": str(tmpdir)})
+    res = omnidata(
+        "generate", scenes_dir / "ycb_banana", "--out", out, "--spec", spec, "--seed", 7, "--workers", 2,
+        "--name", "tiny", "--no-progress", env={"TMPDIR": str(tmpdir)},
+    )
     assert res.returncode == 0, res.stderr
     return GeneratedRun(out, res.stdout, tmpdir)
 
 
 @pytest.fixture(scope="session")
-def banana_capture_folder(tmp_path_factory: pytest.TempPathFactory, scenes_dir: Path) -> tuple[Path, Any, Any]:
-    """tests.fixtures.photo_capture.banana_capture made once: (folder, loaded space, world frames), read only."""
+def banana_capture_folder(
+    tmp_path_factory: pytest.TempPathFactory, scenes_dir: Path
+) -> tuple[Path, Any, Any]:
+    """tests.fixtures.photo_capture.banana_capture made once: (folder, loaded space, world frames), read
+    only."""
     from tests.fixtures.photo_capture import banana_capture
 
     folder = tmp_path_factory.mktemp("capture") / "banana_capture"
@@ -229,7 +239,8 @@ def rolled_back(engine: Engine) -> Iterator[Connection]:
 
 @pytest.fixture()
 def db_session(pg_engine: Engine) -> Iterator[Session]:
-    """A Session on an empty database inside a transaction rolled back after the test (commits become savepoints)."""
+    """A Session on an empty database inside a transaction rolled back after the test (commits become
+    savepoints)."""
     with rolled_back(pg_engine) as conn:
         session = Session(bind=conn, join_transaction_mode="create_savepoint", expire_on_commit=False)
         try:
@@ -309,7 +320,8 @@ class S3Server:
 
 @pytest.fixture(scope="session")
 def s3_server() -> Iterator[S3Server]:
-    """moto's ThreadedMotoServer on 127.0.0.1 (free port, plain HTTP) with a bucket; boto3 talks to it as to S3."""
+    """moto's ThreadedMotoServer on 127.0.0.1 (free port, plain HTTP) with a bucket; boto3 talks to it as to
+    S3."""
     import boto3
     from moto.server import ThreadedMotoServer
 

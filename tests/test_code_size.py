@@ -32,7 +32,9 @@ def test_the_checker_finds_a_long_nested_function() -> None:
 
 def test_no_module_in_services_is_too_long() -> None:
     sizes = {p: len(p.read_text().splitlines()) for p in SERVICES.rglob("*.py")}
-    too_long = [f"{p.relative_to(REPO_ROOT)} ({n} lines)" for p, n in sorted(sizes.items()) if n > MAX_FILE_LINES]
+    too_long = [
+        f"{p.relative_to(REPO_ROOT)} ({n} lines)" for p, n in sorted(sizes.items()) if n > MAX_FILE_LINES
+    ]
     assert not too_long, f"split these modules (at most {MAX_FILE_LINES} lines): {too_long}"
 
 

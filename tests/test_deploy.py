@@ -1,4 +1,5 @@
-"""docker-compose.yml, the Dockerfile and the Kubernetes manifests, checked by parsing (no Docker engine here)."""
+"""docker-compose.yml, the Dockerfile and the Kubernetes manifests, checked by parsing (no Docker engine
+here)."""
 
 from __future__ import annotations
 
@@ -73,13 +74,27 @@ def test_dockerfile_targets_python_311_and_installs_the_project():
 
 
 def test_dockerfile_compiles_the_kernels_into_a_cache_the_service_user_can_use():
-    lines = [ln for ln in (ROOT / "deploy" / "Dockerfile").read_text().splitlines() if ln and not ln.startswith("#")]
-    at = {key: next(i for i, ln in enumerate(lines) if key in ln)
-          for key in ("pip install", "NUMBA_CACHE_DIR=", "omnidata compile-kernels", "chown", "USER omnidata")}
-    # installed, then compiled (as root, into the cache numba will read), then handed to the user the pods run as
-    assert at["pip install"] < at["NUMBA_CACHE_DIR="] < at["omnidata compile-kernels"] < at["chown"] < at["USER omnidata"]
+    lines = [
+        ln
+        for ln in (ROOT / "deploy" / "Dockerfile").read_text().splitlines()
+        if ln and not ln.startswith("#")
+    ]
+    at = {
+        key: next(i for i, ln in enumerate(lines) if key in ln)
+        for key in ("pip install", "NUMBA_CACHE_DIR=", "omnidata compile-kernels", "chown", "USER omnidata")
+    }
+    # installed, then compiled (as root, into the cache numba will read), then handed to the user the pods run
+    # as
+    assert (
+        at["pip install"]
+        < at["NUMBA_CACHE_DIR="]
+        < at["omnidata compile-kernels"]
+        < at["chown"]
+        < at["USER omnidata"]
+    )
     assert lines[at["NUMBA_CACHE_DIR="]].startswith("ENV ")  # an ENV: the running pods read the same folder
-    assert "--every-level" in lines[at["omnidata compile-kernels"]]  # pods run on CPUs of any level, not the builder's
+    # pods run on CPUs of any level, not the builder's
+    assert "--every-level" in lines[at["omnidata compile-kernels"]]
     assert "compile-kernels" in COMMANDS
 
 

@@ -1,5 +1,5 @@
-"""The README and docs/: a user's README (short, no lab notebook), links and cited files that exist, real set-up
-commands."""
+"""The README and docs/: a user's README (short, no lab notebook), links and cited files that exist, real
+set-up commands."""
 
 from __future__ import annotations
 
@@ -16,7 +16,9 @@ README_MAX_LINES = 350
 
 LINK = re.compile(r"(?<!!)\[[^\]]*\]\(([^)\s]+)\)")
 # a repository path in code spans or prose: bench/x.py, services/a/b.py, scripts/..., examples/..., tests/...
-CITED_PATH = re.compile(r"(?<![\w./-])((?:bench|services|scripts|examples|tests|deploy|migrations)/[\w./-]*[\w/])")
+CITED_PATH = re.compile(
+    r"(?<![\w./-])((?:bench|services|scripts|examples|tests|deploy|migrations)/[\w./-]*[\w/])"
+)
 # what a lab notebook says and a user's page does not
 NARRATIVE = [
     re.compile(r"\bround \d+", re.IGNORECASE),
@@ -80,7 +82,11 @@ def test_relative_links_resolve(page: Path) -> None:
 @pytest.mark.parametrize("page", PAGES, ids=_page_id)
 def test_cited_repository_paths_exist(page: Path) -> None:
     missing = sorted(
-        {p for p in CITED_PATH.findall(page.read_text()) if "*" not in p and not (ROOT / p.rstrip("/")).exists()}
+        {
+            p
+            for p in CITED_PATH.findall(page.read_text())
+            if "*" not in p and not (ROOT / p.rstrip("/")).exists()
+        }
     )
     assert not missing, f"{_page_id(page)} cites paths that do not exist: {missing}"
 
@@ -100,5 +106,7 @@ def _makefile_targets() -> set[str]:
 @pytest.mark.parametrize("target", ["demo", "test"])
 def test_setup_commands_are_real_make_targets(target: str) -> None:
     text = README.read_text()
-    assert re.search(rf"^make {target}\b", text, re.MULTILINE), f"README.md lost its set-up command `make {target}`"
+    assert re.search(rf"^make {target}\b", text, re.MULTILINE), (
+        f"README.md lost its set-up command `make {target}`"
+    )
     assert target in _makefile_targets(), f"`make {target}` is no Makefile target"

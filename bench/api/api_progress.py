@@ -1,8 +1,9 @@
 """Benchmark: latency of GET /jobs/{id} (job progress) with 1M task rows, 50 concurrent clients, real uvicorn.
 
 Builds a fresh Postgres database with one job of >= 1,000,000 tasks (views x the 19 default cues of an
-unlabelled space incl. passes, a third of them done, counters maintained like the workers do), starts `uvicorn services.api.app:app_from_env` in its own
-process, and measures with httpx (asyncio, one connection per client):
+unlabelled space incl. passes, a third of them done, counters maintained like the workers do), starts
+`uvicorn services.api.app:app_from_env` in its own process, and measures with httpx (asyncio, one connection
+per client):
 
 - closed loop: 50 clients each sending the next request as soon as the previous answer arrives (saturation);
 - paced: 50 clients each polling every `--interval` seconds (a dashboard-like load), the latency a user sees;
@@ -88,10 +89,15 @@ def populate(url: str, owner: str, tasks: int = TASKS) -> tuple[int, int]:
     cues = closure(default_cues(False))
     views = -(-tasks // len(cues))
     with Session(engine) as s:
-        space = Space(owner=owner, name="bench", source_key="spaces/1/bench.ply", source_format="ply", checksum="0" * 64)
+        space = Space(
+            owner=owner, name="bench", source_key="spaces/1/bench.ply", source_format="ply", checksum="0" * 64
+        )
         s.add(space)
         s.flush()
-        job = Job(owner=owner, name="bench", spec={"cues": None}, state="running", started_at=utcnow(), output_root="jobs/1")
+        job = Job(
+            owner=owner, name="bench", spec={"cues": None}, state="running", started_at=utcnow(),
+            output_root="jobs/1",
+        )
         s.add(job)
         s.flush()
         s.add(JobSpace(job_id=job.id, space_id=space.id, position=0, cues=default_cues(False)))
@@ -113,7 +119,9 @@ def populate(url: str, owner: str, tasks: int = TASKS) -> tuple[int, int]:
         per_cue: dict[str, int] = {
             str(cue): int(k)
             for cue, k in s.execute(
-                select(Task.cue, func.count()).where(Task.job_id == job.id, Task.state == "done").group_by(Task.cue)
+                select(Task.cue, func.count())
+                .where(Task.job_id == job.id, Task.state == "done")
+                .group_by(Task.cue)
             )
         }
         for cue, k in per_cue.items():
@@ -228,7 +236,9 @@ def main() -> int:
     parser.add_argument("--clients", type=int, default=50)
     parser.add_argument("--seconds", type=float, default=15.0)
     parser.add_argument("--interval", type=float, default=0.5, help="seconds between a paced client's polls")
-    parser.add_argument("--workers", default="1,2", help="uvicorn worker processes, comma-separated configurations")
+    parser.add_argument(
+        "--workers", default="1,2", help="uvicorn worker processes, comma-separated configurations"
+    )
     parser.add_argument("--keep", action="store_true", help="keep the benchmark database")
     parser.add_argument("--tasks", type=int, default=TASKS, help="task rows of the job (fewer: a smoke run)")
     args = parser.parse_args()
@@ -248,11 +258,19 @@ def main() -> int:
         for workers in worker_counts:
             proc, base = start_server(url, token, owner, workers)
             try:
-                paced = asyncio.run(load(base, token, job_id, n_tasks, clients=args.clients, seconds=args.seconds,
-                                         interval=args.interval))
+                paced = asyncio.run(
+                    load(
+                        base, token, job_id, n_tasks, clients=args.clients, seconds=args.seconds,
+                        interval=args.interval,
+                    )
+                )
                 print(f"{workers} worker(s), paced ({args.interval} s polls): {paced}", flush=True)
-                closed = asyncio.run(load(base, token, job_id, n_tasks, clients=args.clients, seconds=args.seconds,
-                                          interval=None))
+                closed = asyncio.run(
+                    load(
+                        base, token, job_id, n_tasks, clients=args.clients, seconds=args.seconds,
+                        interval=None,
+                    )
+                )
                 print(f"{workers} worker(s), closed loop: {closed}", flush=True)
             finally:
                 proc.terminate()
@@ -265,7 +283,7 @@ def main() -> int:
     result = {
         "benchmark": "api_progress",
         "what": "GET /jobs/{id} (progress from JobCounter rows) on a job with >= 1M task rows, httpx clients "
-                "against uvicorn (separate process) on Postgres; client, server and Postgres share the CPUs",
+        "against uvicorn (separate process) on Postgres; client, server and Postgres share the CPUs",
         "tasks": n_tasks,
         "clients": args.clients,
         "p99_ms": best["paced_clients"]["p99_ms"],
@@ -273,7 +291,8 @@ def main() -> int:
         "progress_query_db_only": db,
         "runs": runs,
         "target": "progress query < 20 ms p99 on a 1M-task job (DESIGN.md section 7)",
-        "note": "closed-loop latency ~= clients / throughput (queueing): it measures saturation, not a poll's cost",
+        "note": "closed-loop latency ~= clients / throughput (queueing): it measures saturation, not a "
+        "poll's cost",
         "load_average_before": load_before,
         "load_average_after": machine_load(),
         "populate_s": round(populate_s, 1),

@@ -1,4 +1,5 @@
-"""/health latency under load (issue 19 section 3): 200 event-stream clients, then 50 concurrent uploads on top.
+"""/health latency under load (issue 19 section 3): 200 event-stream clients, then 50 concurrent uploads on
+top.
 
 `omnidata serve` (one uvicorn process, Postgres, a local folder store) on loopback. Load comes from separate
 processes so the prober's own event loop is not the one under load:
@@ -66,7 +67,8 @@ def free_port() -> int:
 
 
 def hold_streams(base: str, tokens: list[str], ready: Any, stop: Any, refused: Any) -> None:
-    """Open STREAMS_PER_TENANT streams per tenant and read them until `stop`; count the 429s of one more each."""
+    """Open STREAMS_PER_TENANT streams per tenant and read them until `stop`; count the 429s of one more
+    each."""
     async def one(client: httpx.AsyncClient, token: str, opened: asyncio.Event) -> None:
         async with client.stream("GET", f"{base}/events?token={token}") as r:
             opened.set()
@@ -114,7 +116,9 @@ def upload_load(base: str, tokens: list[str], done: Any) -> None:
             done.value += int(r.status_code == 201)
 
     async def main() -> None:
-        async with httpx.AsyncClient(timeout=httpx.Timeout(300.0), limits=httpx.Limits(max_connections=UPLOADERS)) as c:
+        async with httpx.AsyncClient(
+            timeout=httpx.Timeout(300.0), limits=httpx.Limits(max_connections=UPLOADERS)
+        ) as c:
             await asyncio.gather(*(one(c, k) for k in range(UPLOADERS)))
 
     asyncio.run(main())
@@ -146,16 +150,20 @@ def served(tokens: list[str], env_extra: dict[str, str] | None = None) -> Iterat
     port = free_port()
     base = f"http://127.0.0.1:{port}"
     env = {k: v for k, v in os.environ.items() if not k.startswith("OMNIDATA_")}
-    env.update(OMNIDATA_DATABASE_URL=url, OMNIDATA_STORAGE_URL=f"file://{tmp / 'store'}", OMNIDATA_DATA_DIR=str(tmp),
-               OMNIDATA_BROKER_URL=os.environ.get("OMNIDATA_BENCH_REDIS_URL", "redis://127.0.0.1:6379/4"),
-               OMNIDATA_API_TOKENS=json.dumps({hash_token(t): f"tenant-{k}" for k, t in enumerate(tokens)}),
-               **(env_extra or {}))
+    env.update(
+        OMNIDATA_DATABASE_URL=url, OMNIDATA_STORAGE_URL=f"file://{tmp / 'store'}", OMNIDATA_DATA_DIR=str(tmp),
+        OMNIDATA_BROKER_URL=os.environ.get("OMNIDATA_BENCH_REDIS_URL", "redis://127.0.0.1:6379/4"),
+        OMNIDATA_API_TOKENS=json.dumps({hash_token(t): f"tenant-{k}" for k, t in enumerate(tokens)}),
+        **(env_extra or {}),
+    )
     server = None
     try:
         migrate(url)
-        server = subprocess.Popen([sys.executable, "-m", "services.cli", "serve", "--port", str(port), "--log-level",
-                                   "warning"], cwd=REPO, env=env, start_new_session=True,
-                                  stdout=(tmp / "api.log").open("ab"), stderr=subprocess.STDOUT)
+        server = subprocess.Popen(
+            [sys.executable, "-m", "services.cli", "serve", "--port", str(port), "--log-level", "warning"],
+            cwd=REPO, env=env, start_new_session=True, stdout=(tmp / "api.log").open("ab"),
+            stderr=subprocess.STDOUT,
+        )
         deadline = time.monotonic() + 60
         while True:
             try:

@@ -1,9 +1,10 @@
 """Benchmark: what a hostile request body costs the API (issue 11, bug 3), on a real uvicorn process.
 
 Starts `uvicorn services.api.app:app_from_env` from `--repo` (default: this checkout; pass another checkout to
-compare) on a fresh SQLite database, then sends 50 MB JSON bodies to POST /jobs (without a token, and with one)
-while a client polls /health, and a spec with a 5 MB field (422). Reports per case the status, seconds until the
-answer, the worst /health latency meanwhile, the size of the answer, and the server's peak resident memory.
+compare) on a fresh SQLite database, then sends 50 MB JSON bodies to POST /jobs (without a token, and with
+one) while a client polls /health, and a spec with a 5 MB field (422). Reports per case the status, seconds
+until the answer, the worst /health latency meanwhile, the size of the answer, and the server's peak resident
+memory.
 
 Writes bench/results/hostile_requests.json. Run: .venv/bin/python bench/api/hostile_requests.py [--repo DIR]
 """
@@ -49,7 +50,9 @@ def _peak_rss_mb(pid: int) -> float:
 
 def _post(port: int, body: bytes, headers: dict[str, str]) -> tuple[int, float, int]:
     """POST /jobs with `body` over a raw socket; (status, seconds to the answer, answer bytes)."""
-    head = f"POST /jobs HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: {len(body)}\r\n"
+    head = (
+        f"POST /jobs HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: {len(body)}\r\n"
+    )
     head += "".join(f"{k}: {v}\r\n" for k, v in headers.items()) + "Connection: close\r\n\r\n"
     with socket.create_connection(("127.0.0.1", port), timeout=120) as s:
         t0 = time.monotonic()
@@ -111,8 +114,11 @@ def main() -> None:
                "OMNIDATA_STORAGE_URL": Path(tmp, "objects").as_uri(), "OMNIDATA_DATA_DIR": tmp,
                "OMNIDATA_API_TOKENS": json.dumps({hash_token(token): "bench"})}
         server = subprocess.Popen(
-            [sys.executable, "-m", "uvicorn", "--factory", "services.api.app:app_from_env", "--port", str(port),
-             "--log-level", "warning"], env=env, cwd=args.repo,
+            [
+                sys.executable, "-m", "uvicorn", "--factory", "services.api.app:app_from_env", "--port",
+                str(port), "--log-level", "warning",
+            ],
+            env=env, cwd=args.repo,
         )
         try:
             deadline = time.monotonic() + 60
@@ -125,7 +131,9 @@ def main() -> None:
                 if time.monotonic() > deadline:
                     raise RuntimeError("the API did not start")
                 time.sleep(0.2)
-            big = json.dumps({"space_ids": [1], "spec": {"cues": ["x" * 64] * (BODY_MB * 2**20 // 70)}}).encode()
+            big = json.dumps(
+                {"space_ids": [1], "spec": {"cues": ["x" * 64] * (BODY_MB * 2**20 // 70)}}
+            ).encode()
             field = json.dumps({"space_ids": [1], "spec": {"name": "x" * (5 * 2**20)}}).encode()
             auth = {"Authorization": f"Bearer {token}"}
             results = {

@@ -1,6 +1,6 @@
 """Benchmark: the segment cues' background fill (every pixel off the surface takes its nearest surface pixel's
-features: services.worker.cues.feature_transform.nearest_site, then segmentation._gather) on real room views at
-512 px, one core, against the two modules as they were at git revision --against, interleaved.
+features: services.worker.cues.feature_transform.nearest_site, then segmentation._gather) on real room views
+at 512 px, one core, against the two modules as they were at git revision --against, interleaved.
 
 Per view (bench/cues/derivations.py's views: the planner's views of each room, their pass sets rendered once
 and cached): the nearest sites of the surface mask, and the gather of the 2.5d feature image (4 channels) at
@@ -62,8 +62,10 @@ def old_gather(old_seg: object, features: np.ndarray, mask: np.ndarray, iy: np.n
 def time_view(mask: np.ndarray, features: np.ndarray, sites: tuple[np.ndarray, np.ndarray], old_ft: object,
               old_seg: object, repeats: int) -> dict[str, float]:
     """Best-of-repeats ms of each side's nearest-site search and gather (both gathers at the same sites)."""
-    sides = {"against": (old_ft.nearest_site, lambda: old_gather(old_seg, features, mask, *sites)),  # type: ignore[attr-defined]
-             "this": (feature_transform.nearest_site, lambda: segmentation._gather(features, mask, *sites))}
+    sides = {
+        "against": (old_ft.nearest_site, lambda: old_gather(old_seg, features, mask, *sites)),  # type: ignore[attr-defined]
+        "this": (feature_transform.nearest_site, lambda: segmentation._gather(features, mask, *sites)),
+    }
     out = {}
     for side, (nearest, gather) in sides.items():
         out[f"nearest_ms_{side}"] = round(best_ms(lambda nearest=nearest: nearest(mask), repeats), 3)
@@ -73,8 +75,11 @@ def time_view(mask: np.ndarray, features: np.ndarray, sites: tuple[np.ndarray, n
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--against", default="6a8582c", help="the git revision before the change (default: the one "
-                    "before the fill gathered only the pixels off the surface)")
+    ap.add_argument(
+        "--against", default="6a8582c",
+        help="the git revision before the change (default: the one "
+        "before the fill gathered only the pixels off the surface)",
+    )
     ap.add_argument("--views", type=int, default=6)
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--rooms", default=",".join(ROOMS))
@@ -83,12 +88,15 @@ def main() -> int:
     cues = dict(registry.REGISTRY)
     with tempfile.TemporaryDirectory(prefix="omnidata-fill-ab-") as tmp:
         old_ft = module_at(args.against, "services/worker/cues/feature_transform.py", Path(tmp))
-        registry.REGISTRY.clear()  # the revision's module registers its cues again: today's stay the registered ones
+        # the revision's module registers its cues again: today's stay the registered ones
+        registry.REGISTRY.clear()
         old_seg = module_at(args.against, "services/worker/cues/segmentation.py", Path(tmp))
         registry.REGISTRY.clear()
         registry.REGISTRY.update(cues)
-    result: dict = {"against": args.against, "resolution": 512, "clock": "wall ms, best of the repeats, one core",
-                    "machine": cpu_model(), "load_before": load(), "rooms": {}}
+    result: dict = {
+        "against": args.against, "resolution": 512, "clock": "wall ms, best of the repeats, one core",
+        "machine": cpu_model(), "load_before": load(), "rooms": {},
+    }
     for room in args.rooms.split(","):
         passes, plan, views = room_views(room, args.views, 512, args.cache)
         rows = []
@@ -103,8 +111,11 @@ def main() -> int:
             row = {"off_surface_share": round(float((~mask).mean()), 3), "identical": bool(same),
                    **time_view(mask, features, new_sites, old_ft, old_seg, args.repeats)}
             rows.append(row)
-        summary = {k: round(float(np.median([r[k] for r in rows])), 3) for k in rows[0] if k.endswith("_ms_this")
-                   or k.endswith("_ms_against")}
+        summary = {
+            k: round(float(np.median([r[k] for r in rows])), 3)
+            for k in rows[0]
+            if k.endswith("_ms_this") or k.endswith("_ms_against")
+        }
         summary["identical_views"] = f"{sum(r['identical'] for r in rows)} of {len(rows)}"
         result["rooms"][room] = {"median": summary, "views": rows}
         print(room, summary)

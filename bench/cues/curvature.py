@@ -1,10 +1,10 @@
-"""Benchmark: the per-vertex curvature a worker computes once per space (issue 20: part of every run's start-up), on
-the real rooms at the default radius, one core: the grid neighbour search against the k-d tree search it replaced
-on rooms (the same estimator with services.worker.inputs.curvature.GRID_MAX_BALL = 0, which sends every mesh to the tree),
-interleaved, CPU seconds (medians of --repeats), and whether the two give the same array bit for bit. With
---against REV, also the estimator as it was at git revision REV (its module loaded from `git show`, compiled before
-the timing), interleaved with today's: an A/B of a change on the same host and moment.
-Writes bench/results/curvature.json (the previous run's figures kept under "before").
+"""Benchmark: the per-vertex curvature a worker computes once per space (issue 20: part of every run's
+start-up), on the real rooms at the default radius, one core: the grid neighbour search against the k-d tree
+search it replaced on rooms (the same estimator with services.worker.inputs.curvature.GRID_MAX_BALL = 0, which
+sends every mesh to the tree), interleaved, CPU seconds (medians of --repeats), and whether the two give the
+same array bit for bit. With --against REV, also the estimator as it was at git revision REV (its module
+loaded from `git show`, compiled before the timing), interleaved with today's: an A/B of a change on the same
+host and moment. Writes bench/results/curvature.json (the previous run's figures kept under "before").
 Run: .venv/bin/python bench/cues/curvature.py [--repeats 5] [--against REV]
 """
 
@@ -55,14 +55,21 @@ def main() -> int:
     ap.add_argument("--rooms", default=",".join(ROOMS), help="comma-separated: " + ",".join(ROOMS))
     args = ap.parse_args()
     radius = CueParams().curvature_radius_m
-    result: dict = {"radius_m": radius, "clock": "process CPU seconds, one core, medians",
-                    "machine": f"{os.cpu_count()} cores ({cpu_model()}), shared", "load_before": load(), "rooms": {}}
+    result: dict = {
+        "radius_m": radius, "clock": "process CPU seconds, one core, medians",
+        "machine": f"{os.cpu_count()} cores ({cpu_model()}), shared", "load_before": load(), "rooms": {},
+    }
     with tempfile.TemporaryDirectory(prefix="omnidata-curvature-") as tmp:
-        old = module_at(args.against, "services/worker/inputs/curvature.py", Path(tmp)) if args.against else None
+        old = (
+            module_at(args.against, "services/worker/inputs/curvature.py", Path(tmp))
+            if args.against
+            else None
+        )
         for room in args.rooms.split(","):
             path, frame = ROOMS[room]
             mesh = load_space(path, **frame).mesh
-            timed(mesh, radius, curvature.GRID_MAX_BALL)  # numba kernels loaded (or compiled) outside the timing
+            # numba kernels loaded (or compiled) outside the timing
+            timed(mesh, radius, curvature.GRID_MAX_BALL)
             timed(mesh, radius, 0)
             if old is not None:
                 old.principal_curvatures(mesh, radius)

@@ -1,15 +1,15 @@
-"""Benchmark: CPU cost of a view's derivations (every default cue but the render, with its file encoding) on real
-rooms at 512x512 on one core, against the bare 1-sample render of the same view (issue 20, target <= 1x).
+"""Benchmark: CPU cost of a view's derivations (every default cue but the render, with its file encoding) on
+real rooms at 512x512 on one core, against the bare 1-sample render of the same view (issue 20, target <= 1x).
 
-For each room it loads the space, takes the real planner's views (a handful, spread over the room's points), renders
-each view's full pass set once (cached under --cache as .npz, so reruns skip Blender), then for each repeat and view
-builds a fresh ViewContext on the pass set and produces every default cue in catalog order in that one context
-(what a worker batching a view's cues does: shared intermediates are paid by the first cue that needs them).
-Per cue it records the CPU seconds (time.process_time) of its derivation (value, including intermediates it is the
-first to need) and of its encoding, medians over views x repeats; the total per view against the floor. The two
-segmentations, most of the total, are also timed step by step ("segment_steps_s": features, background fill,
-Felzenszwalb's blur, edge sort, merge pass and min-size pass, the region graph, normalized cuts' eigenvectors and
-the rest).
+For each room it loads the space, takes the real planner's views (a handful, spread over the room's points),
+renders each view's full pass set once (cached under --cache as .npz, so reruns skip Blender), then for each
+repeat and view builds a fresh ViewContext on the pass set and produces every default cue in catalog order in
+that one context (what a worker batching a view's cues does: shared intermediates are paid by the first cue
+that needs them). Per cue it records the CPU seconds (time.process_time) of its derivation (value, including
+intermediates it is the first to need) and of its encoding, medians over views x repeats; the total per view
+against the floor. The two segmentations, most of the total, are also timed step by step ("segment_steps_s":
+features, background fill, Felzenszwalb's blur, edge sort, merge pass and min-size pass, the region graph,
+normalized cuts' eigenvectors and the rest).
 
 Floor: the bare render's CPU seconds per view measured by bench/render/room_cost.py on the same rooms (a
 separate process per room, one core; bench/results/room_cost.json "room_cost"), or FLOOR_CPU_S when that file
@@ -67,14 +67,16 @@ def floor_cpu_s(room: str) -> tuple[float, str]:
         return FLOOR_CPU_S[room], "issue 20 closing note"
 
 
-def room_views(room: str, n_views: int, resolution: int, cache: Path) -> tuple[list[ViewPasses], SpacePlan, list]:
+def room_views(
+    room: str, n_views: int, resolution: int, cache: Path
+) -> tuple[list[ViewPasses], SpacePlan, list]:
     """Pass sets (every render pass) of n_views planner views of the room, rendered once and cached."""
     path, frame = ROOMS[room]
     loaded = load_space(path, **frame)
     spec = JobSpec.model_validate({"views": {"resolution": resolution}})
     plan = make_plan(loaded, spec, space_rng(0, room), room)  # type: ignore[arg-type]
-    # Two consecutive views of points spread over the room, as a worker meets them (the per-point nonfixated JSON
-    # is shared by a point's views and encoded once for them, as in a job).
+    # Two consecutive views of points spread over the room, as a worker meets them (the per-point nonfixated
+    # JSON is shared by a point's views and encoded once for them, as in a job).
     points = sorted({v.point_idx for v in plan.views})
     points = points[:: max(1, len(points) // max(1, n_views // 2))][: max(1, n_views // 2)]
     views = [v for p in points for v in plan.views_of(p)[:2]]
@@ -93,7 +95,9 @@ def room_views(room: str, n_views: int, resolution: int, cache: Path) -> tuple[l
     return [ViewPasses.from_bytes(f.read_bytes()) for f in files], plan, views
 
 
-def time_view(passes: ViewPasses, view: object, plan: SpacePlan, cues: list[str]) -> dict[str, tuple[float, float]]:
+def time_view(
+    passes: ViewPasses, view: object, plan: SpacePlan, cues: list[str]
+) -> dict[str, tuple[float, float]]:
     """{cue: (derive CPU s, encode CPU s)} of every cue made in one fresh context, in order."""
     ctx = ViewContext(view, CueParams(), passes=passes, plan=plan)
     out = {}
@@ -101,13 +105,15 @@ def time_view(passes: ViewPasses, view: object, plan: SpacePlan, cues: list[str]
         c0 = time.process_time()
         cue_value(ctx, c)
         c1 = time.process_time()
-        produce(c, ctx)  # the value is memoised: this is the encoding (a JSON shared by views is encoded once)
+        # the value is memoised: this is the encoding (a JSON shared by views is encoded once)
+        produce(c, ctx)
         out[c] = (c1 - c0, time.process_time() - c1)
     return out
 
 
 def segment_input(ctx: ViewContext, kind: str) -> tuple[np.ndarray, np.ndarray, float, np.ndarray | None]:
-    """What `segment` gets for the 2d or 2.5d segmentation: features, mask, blur sigma and occlusion boundary."""
+    """What `segment` gets for the 2d or 2.5d segmentation: features, mask, blur sigma and occlusion
+    boundary."""
     from services.worker.cues import segmentation as seg
     from services.worker.cues.common import hit, valid
     from services.worker.cues.edges import occlusion_response
@@ -116,15 +122,17 @@ def segment_input(ctx: ViewContext, kind: str) -> tuple[np.ndarray, np.ndarray, 
     if kind == "2d":
         return ctx.passes.rgb.astype(np.float32) / 255.0, hit(ctx), p.segment2d_sigma, None
     occ = occlusion_response(ctx)
-    boundary = seg._boundary(occ, np.float32(p.segment25d_weights[2]), np.float32(max(float(occ.max()), 1e-6)))
+    boundary = seg._boundary(
+        occ, np.float32(p.segment25d_weights[2]), np.float32(max(float(occ.max()), 1e-6))
+    )
     return seg.features25d(ctx), valid(ctx), 0.0, boundary
 
 
 def segment_stages(passes: list[ViewPasses], repeats: int) -> dict[str, dict[str, float]]:
-    """Per segmentation (2d, 2.5d), the median CPU seconds of each step of `segment` on these views: the feature
-    image (2.5d: log-depth, normals and occlusion boundary; the occlusion response counted as edge_occlusion's),
-    the background fill, Felzenszwalb's blur, edge sort, merge pass and min-size pass with labels, the region
-    graph, and the normalized cuts split into LAPACK's eigenvectors and the rest."""
+    """Per segmentation (2d, 2.5d), the median CPU seconds of each step of `segment` on these views: the
+    feature image (2.5d: log-depth, normals and occlusion boundary; the occlusion response counted as
+    edge_occlusion's), the background fill, Felzenszwalb's blur, edge sort, merge pass and min-size pass with
+    labels, the region graph, and the normalized cuts split into LAPACK's eigenvectors and the rest."""
     from services.worker.cues import felzenszwalb as fz
     from services.worker.cues import ncuts
     from services.worker.cues import segmentation as seg
@@ -153,7 +161,8 @@ def segment_stages(passes: list[ViewPasses], repeats: int) -> dict[str, dict[str
                     t = steps[kind]
                     c0 = time.process_time()
                     features, mask, sigma, boundary = segment_input(ctx, kind)
-                    if seg._uniform_in_mask(features, mask):  # one colour (an untextured room's rgb): no graph
+                    # one colour (an untextured room's rgb): no graph
+                    if seg._uniform_in_mask(features, mask):
                         continue
                     c1 = time.process_time()
                     if not mask.all():
@@ -170,25 +179,32 @@ def segment_stages(passes: list[ViewPasses], repeats: int) -> dict[str, dict[str
                     c4 = time.process_time()
                     fz._merge(code, cost, w, h * w, float(params.segment2d_scale) / 255.0)
                     c5 = time.process_time()
-                    labels = seg.superpixels(features, params.segment2d_scale, sigma, params.segment2d_min_size,
-                                             params.segment_max_superpixels)
+                    labels = seg.superpixels(
+                        features, params.segment2d_scale, sigma, params.segment2d_min_size,
+                        params.segment_max_superpixels,
+                    )
                     c6 = time.process_time()
                     graph = seg.region_graph(labels, features * 255.0, params.segment_ncut_sigma, boundary)
                     c7 = time.process_time()
                     eig_s[0] = 0.0
                     ncuts.normalized_cuts(graph, params.segment_ncut_thresh, params.segment_num_cuts)
                     c8 = time.process_time()
-                    whole = c6 - c5  # the superpixel step run again: the rest of it once its blur, sort and merge
-                    for name, v in (("features", c1 - c0), ("background_fill", c2 - c1), ("blur", c3 - c2),
-                                    ("edge_sort", c4 - c3), ("merge_pass", c5 - c4),
-                                    ("min_size_and_labels", whole - (c5 - c2)), ("superpixels_total", whole),
-                                    ("region_graph", c7 - c6), ("ncuts_eigenvectors", eig_s[0]),
-                                    ("ncuts_rest", c8 - c7 - eig_s[0]), ("superpixels", float(labels.max() + 1))):
+                    # the superpixel step run again: the rest of it once its blur, sort and merge
+                    whole = c6 - c5
+                    for name, v in (
+                        ("features", c1 - c0), ("background_fill", c2 - c1), ("blur", c3 - c2),
+                        ("edge_sort", c4 - c3), ("merge_pass", c5 - c4),
+                        ("min_size_and_labels", whole - (c5 - c2)), ("superpixels_total", whole),
+                        ("region_graph", c7 - c6), ("ncuts_eigenvectors", eig_s[0]),
+                        ("ncuts_rest", c8 - c7 - eig_s[0]), ("superpixels", float(labels.max() + 1)),
+                    ):
                         t[name].append(v)
     finally:
         ncuts.second_eigenvector = solve
     # a segmentation every view short-cut (uniform features) has no steps
-    return {kind: {name: round(float(np.median(v)), 4) for name, v in t.items()} for kind, t in steps.items() if t}
+    return {
+        kind: {name: round(float(np.median(v)), 4) for name, v in t.items()} for kind, t in steps.items() if t
+    }
 
 
 def run_room(room: str, n_views: int, repeats: int, resolution: int, cache: Path) -> dict:
@@ -206,8 +222,10 @@ def run_room(room: str, n_views: int, repeats: int, resolution: int, cache: Path
                 enc[c].append(e)
             totals.append(sum(d + e for d, e in t.values()))
     floor, floor_src = floor_cpu_s(room)
-    per_cue = {c: {"derive_s": round(float(np.median(derive[c])), 4), "encode_s": round(float(np.median(enc[c])), 4)}
-               for c in cues}
+    per_cue = {
+        c: {"derive_s": round(float(np.median(derive[c])), 4), "encode_s": round(float(np.median(enc[c])), 4)}
+        for c in cues
+    }
     total = float(np.median(totals))
     return {
         "views": len(views), "repeats": repeats, "floor_cpu_s": floor, "floor_source": floor_src,
@@ -231,13 +249,18 @@ def main() -> int:
     args = ap.parse_args()
     t0, cpu0 = time.perf_counter(), time.process_time()
     load_before = os.getloadavg()
-    rooms = {r: run_room(r, args.views, args.repeats, args.resolution, args.cache) for r in args.rooms.split(",")}
+    rooms = {
+        r: run_room(r, args.views, args.repeats, args.resolution, args.cache) for r in args.rooms.split(",")
+    }
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
                             text=True).stdout.strip()
-    run = {"commit": commit, "resolution": args.resolution, "clock": "process CPU seconds (time.process_time), one core",
-           "load_before": [round(x, 2) for x in load_before], "load_after": [round(x, 2) for x in os.getloadavg()],
-           "wall_s": round(time.perf_counter() - t0, 1), "cpu_s": round(time.process_time() - cpu0, 1),
-           "rooms": rooms}
+    run = {
+        "commit": commit, "resolution": args.resolution,
+        "clock": "process CPU seconds (time.process_time), one core",
+        "load_before": [round(x, 2) for x in load_before],
+        "load_after": [round(x, 2) for x in os.getloadavg()], "wall_s": round(time.perf_counter() - t0, 1),
+        "cpu_s": round(time.process_time() - cpu0, 1), "rooms": rooms,
+    }
     data = json.loads(RESULTS.read_text()) if RESULTS.exists() else {
         "benchmark": "bench/cues/derivations.py",
         "target": "derivations (all default cues but the render, encodings included) <= 1x the bare 1-sample "

@@ -1,11 +1,12 @@
-"""Benchmark: the superpixels of the two unsupervised segmentations (Felzenszwalb's merge and min-size passes, the
-segment cues' largest step) on real room views at 512 px, one core, CPU seconds per view (medians over --repeats)
-of each whole segment cue (segment_unsup2d, segment_unsup25d: features, background fill, superpixels, region graph,
-normalized cuts). With --against REV, the same with services/worker/cues/felzenszwalb.py as it was at git revision
-REV swapped in, interleaved with today's, and whether every label image is the same bit for bit.
-Views: bench/cues/derivations.py's (the planner's views of each room, their pass sets rendered once and
-cached). Writes bench/results/felzenszwalb.json (the previous run's figures kept under "before").
-Run: .venv/bin/python bench/cues/felzenszwalb.py [--views 6] [--repeats 5] [--against REV]
+"""Benchmark: the superpixels of the two unsupervised segmentations (Felzenszwalb's merge and min-size passes,
+the segment cues' largest step) on real room views at 512 px, one core, CPU seconds per view (medians over
+--repeats) of each whole segment cue (segment_unsup2d, segment_unsup25d: features, background fill,
+superpixels, region graph, normalized cuts). With --against REV, the same with
+services/worker/cues/felzenszwalb.py as it was at git revision REV swapped in, interleaved with today's, and
+whether every label image is the same bit for bit. Views: bench/cues/derivations.py's (the planner's views of
+each room, their pass sets rendered once and cached). Writes bench/results/felzenszwalb.json (the previous
+run's figures kept under "before"). Run: .venv/bin/python bench/cues/felzenszwalb.py [--views 6] [--repeats 5]
+[--against REV]
 """
 
 from __future__ import annotations
@@ -49,7 +50,8 @@ def segment_view(passes: ViewPasses, felzenszwalb: type) -> tuple[dict[str, floa
     saved, segmentation.Felzenszwalb = segmentation.Felzenszwalb, felzenszwalb
     try:
         ctx = ViewContext(None, CueParams(), passes=passes)
-        segmentation.occlusion_response(ctx)  # edge_occlusion's (the 2.5d graph's input), made before the timing
+        # edge_occlusion's (the 2.5d graph's input), made before the timing
+        segmentation.occlusion_response(ctx)
         seconds, labels = {}, []
         for name, cue in CUES.items():
             t0 = time.process_time()
@@ -64,13 +66,17 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--views", type=int, default=6)
     ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--against", default="", help="a git revision whose felzenszwalb.py is timed beside today's")
+    ap.add_argument(
+        "--against", default="", help="a git revision whose felzenszwalb.py is timed beside today's"
+    )
     ap.add_argument("--cache", type=Path, default=Path("/tmp/omnidata-derivations-passes"))
     ap.add_argument("--rooms", default=",".join(ROOMS), help="comma-separated: " + ",".join(ROOMS))
     args = ap.parse_args()
     keep_freed_memory()  # as a worker: freed arrays are reused, not faulted in afresh each view
-    result: dict = {"resolution": 512, "clock": "process CPU seconds per view, one core, medians",
-                    "machine": f"{os.cpu_count()} cores ({cpu_model()}), shared", "load_before": load(), "rooms": {}}
+    result: dict = {
+        "resolution": 512, "clock": "process CPU seconds per view, one core, medians",
+        "machine": f"{os.cpu_count()} cores ({cpu_model()}), shared", "load_before": load(), "rooms": {},
+    }
     with tempfile.TemporaryDirectory(prefix="omnidata-felzenszwalb-") as tmp:
         sides = {"this": segmentation.Felzenszwalb}
         if args.against:
@@ -93,7 +99,9 @@ def main() -> int:
                     if args.against:
                         same &= all(np.array_equal(a, b) for a, b in zip(labels["against"], labels["this"],
                                                                           strict=True))
-            row: dict = {side: {c: round(float(np.median(v)), 4) for c, v in t.items()} for side, t in times.items()}
+            row: dict = {
+                side: {c: round(float(np.median(v)), 4) for c, v in t.items()} for side, t in times.items()
+            }
             if args.against:
                 row["against_rev"] = args.against
                 row["labels_bit_identical"] = bool(same)

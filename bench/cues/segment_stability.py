@@ -1,22 +1,24 @@
-"""Benchmark: how stable the segment cues' labels are on real rooms, and what cheaper definitions of them change
-(issue 20: the two segmentations are most of a view's derivations, and a change to them is held to ARI >= 0.9 per
-view, segment counts within 20%, against the current labels: tests/worker/cues/test_equivalence.py).
+"""Benchmark: how stable the segment cues' labels are on real rooms, and what cheaper definitions of them
+change (issue 20: the two segmentations are most of a view's derivations, and a change to them is held to ARI
+>= 0.9 per view, segment counts within 20%, against the current labels:
+tests/worker/cues/test_equivalence.py).
 
 For each room (bench/lib/rooms.py) it takes --views planner views at 512 px (the pass sets
 bench/cues/derivations.py renders and caches) and makes both segment cues as they are. Then, on the same
 views:
 - the noise floor: the cues as they are, on the view with an imperceptible change of its input. 2d: one of 255
-  added or taken on 1% of the colour pixels (within the 8-bit image's own quantisation); 2.5d: the depth of 1% of
-  the pixels scaled by 1 +- 1e-6 (a micrometre a metre). How far the labels move then is how far the current
-  definition itself is from "the same labels": no change of definition can be held closer than that.
-- each candidate definition, a cheaper variant of one step: Felzenszwalb on the 4-connected grid (half the edges),
-  its sort quantised to 4,096 levels instead of 65,536, at most 384 superpixels instead of 512, the normalized cuts'
-  eigenvector in float32 (ssyevr); and one that is no cheaper, the eigenvector's sign flipped (dsyevr's sign is
-  arbitrary: how much the labels hang on it). Each is timed against the current definition on the same view in the
-  same process, the two alternating (CPU seconds of both cues, their inputs made once).
-Per room, cue and variant: the ARI against the current labels (minimum, 10th percentile, median), the share of views
-within the per-view bound, and (candidates) the CPU seconds a view saved: the median of the paired differences.
-Writes bench/results/segment_stability.json (the previous run kept under "before").
+  added or taken on 1% of the colour pixels (within the 8-bit image's own quantisation); 2.5d: the depth of 1%
+  of the pixels scaled by 1 +- 1e-6 (a micrometre a metre). How far the labels move then is how far the
+  current definition itself is from "the same labels": no change of definition can be held closer than that.
+- each candidate definition, a cheaper variant of one step: Felzenszwalb on the 4-connected grid (half the
+  edges), its sort quantised to 4,096 levels instead of 65,536, at most 384 superpixels instead of 512, the
+  normalized cuts' eigenvector in float32 (ssyevr); and one that is no cheaper, the eigenvector's sign flipped
+  (dsyevr's sign is arbitrary: how much the labels hang on it). Each is timed against the current definition
+  on the same view in the same process, the two alternating (CPU seconds of both cues, their inputs made
+  once).
+Per room, cue and variant: the ARI against the current labels (minimum, 10th percentile, median), the share of
+views within the per-view bound, and (candidates) the CPU seconds a view saved: the median of the paired
+differences. Writes bench/results/segment_stability.json (the previous run kept under "before").
 Run: .venv/bin/python bench/cues/segment_stability.py [--views 8] [--repeats 2] [--rooms icl_livingroom,...]
 """
 
@@ -81,7 +83,9 @@ def _f32_second_eigenvector(A: np.ndarray) -> np.ndarray:
 _SUPERPIXELS = segmentation.superpixels
 
 
-def _capped_superpixels(features: np.ndarray, scale: float, sigma: float, min_size: int, max_count: int) -> np.ndarray:
+def _capped_superpixels(
+    features: np.ndarray, scale: float, sigma: float, min_size: int, max_count: int
+) -> np.ndarray:
     return _SUPERPIXELS(features, scale, sigma, min_size, min(max_count, 384))
 
 
@@ -94,12 +98,18 @@ def _flipped_second_eigenvector(A: np.ndarray) -> np.ndarray:
 
 # name -> what makes the variant current for the duration of a `with`
 CANDIDATES: dict[str, Callable[[], AbstractContextManager[object]]] = {
-    "connectivity_4": lambda: patch.object(segmentation, "Felzenszwalb", functools.partial(Felzenszwalb, connectivity=4)),
-    "sort_levels_4096": lambda: patch.object(segmentation, "Felzenszwalb", functools.partial(Felzenszwalb, levels=4096)),
+    "connectivity_4": lambda: patch.object(
+        segmentation, "Felzenszwalb", functools.partial(Felzenszwalb, connectivity=4)
+    ),
+    "sort_levels_4096": lambda: patch.object(
+        segmentation, "Felzenszwalb", functools.partial(Felzenszwalb, levels=4096)
+    ),
     "max_superpixels_384": lambda: patch.object(segmentation, "superpixels", _capped_superpixels),
     "float32_eigenvector": lambda: patch.object(ncuts, "second_eigenvector", _f32_second_eigenvector),
     # not cheaper: how much the labels hang on the eigenvector's sign, which dsyevr leaves arbitrary
-    "eigenvector_sign_flipped": lambda: patch.object(ncuts, "second_eigenvector", _flipped_second_eigenvector),
+    "eigenvector_sign_flipped": lambda: patch.object(
+        ncuts, "second_eigenvector", _flipped_second_eigenvector
+    ),
 }
 
 
@@ -114,22 +124,26 @@ def both_cues(p: ViewPasses, params: CueParams) -> tuple[list[np.ndarray], float
 
 
 def agreement(current: list[np.ndarray], other: list[np.ndarray]) -> list[dict]:
-    """Per cue: ARI, and whether the view is within the per-view bound (tests/worker/cues/test_equivalence.py)."""
+    """Per cue: ARI, and whether the view is within the per-view bound
+    (tests/worker/cues/test_equivalence.py)."""
     return [{"ari": adjusted_rand_index(a, b), "within": not equivalence_failures(a, b),
              "identical": bool(np.array_equal(a, b)), "segments": [int(a.max()), int(b.max())]}
             for a, b in zip(current, other, strict=True)]
 
 
 def summary(rows: list[dict]) -> dict:
-    """ARI distribution over views whose current labels have more than one segment (ICL's grey colour image has one)."""
+    """ARI distribution over views whose current labels have more than one segment (ICL's grey colour image
+    has one)."""
     rows = [r for r in rows if r["segments"][0] > 1]
     if not rows:
         return {"views": 0}
     ari = np.array([r["ari"] for r in rows])
-    return {"views": len(rows), "ari_min": round(float(ari.min()), 3), "ari_p10": round(float(np.quantile(ari, 0.1)), 3),
-            "ari_median": round(float(np.median(ari)), 3),
-            "within_bound": round(float(np.mean([r["within"] for r in rows])), 3),
-            "identical": round(float(np.mean([r["identical"] for r in rows])), 3)}
+    return {
+        "views": len(rows), "ari_min": round(float(ari.min()), 3),
+        "ari_p10": round(float(np.quantile(ari, 0.1)), 3), "ari_median": round(float(np.median(ari)), 3),
+        "within_bound": round(float(np.mean([r["within"] for r in rows])), 3),
+        "identical": round(float(np.mean([r["identical"] for r in rows])), 3),
+    }
 
 
 def run_room(room: str, n_views: int, repeats: int, cache: Path) -> dict:
@@ -175,12 +189,15 @@ def main() -> int:
     rooms = {r: run_room(r, args.views, args.repeats, args.cache) for r in args.rooms.split(",")}
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
                             text=True).stdout.strip()
-    run = {"commit": commit, "resolution": 512, "clock": "process CPU seconds, one core",
-           "noise": f"2d: +-1/255 on {NOISE_SHARE:.0%} of the colour pixels; 2.5d: depth x (1 +- {DEPTH_NOISE}) on "
-                    f"{NOISE_SHARE:.0%} of the pixels",
-           "bound": "per view: ARI >= 0.9, segment count within 20%, the same 'no surface' pixels",
-           "load_before": [round(x, 2) for x in load_before], "load_after": [round(x, 2) for x in os.getloadavg()],
-           "wall_s": round(time.perf_counter() - t0, 1), "rooms": rooms}
+    run = {
+        "commit": commit, "resolution": 512, "clock": "process CPU seconds, one core",
+        "noise": f"2d: +-1/255 on {NOISE_SHARE:.0%} of the colour pixels; 2.5d: depth x (1 +- "
+        f"{DEPTH_NOISE}) on {NOISE_SHARE:.0%} of the pixels",
+        "bound": "per view: ARI >= 0.9, segment count within 20%, the same 'no surface' pixels",
+        "load_before": [round(x, 2) for x in load_before],
+        "load_after": [round(x, 2) for x in os.getloadavg()], "wall_s": round(time.perf_counter() - t0, 1),
+        "rooms": rooms,
+    }
     data = (json.loads(RESULTS.read_text()) if RESULTS.exists()
             else {"benchmark": "bench/cues/segment_stability.py"})
     if "after" in data:

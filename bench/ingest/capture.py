@@ -131,14 +131,17 @@ def texture_figures(space, n_views: int, resolution: int) -> dict[str, float]:
         times.append(time.perf_counter() - t0)
         hit = passes.hit
         shares.append(float(covered[hit].mean()) if hit.any() else 0.0)
-    return {"views": len(times), "resolution": resolution, "k": 3, "s_per_view_median": round(float(np.median(times)), 3),
-            "covered_share_median": round(float(np.median(shares)), 3),
-            "covered_share_min": round(float(np.min(shares)), 3)}
+    return {
+        "views": len(times), "resolution": resolution, "k": 3,
+        "s_per_view_median": round(float(np.median(times)), 3),
+        "covered_share_median": round(float(np.median(shares)), 3),
+        "covered_share_min": round(float(np.min(shares)), 3),
+    }
 
 
 def alignment_figures(space, frames: int = 0) -> dict[str, object]:
-    """Alignment score quantiles of the raw depth-camera poses and the fitted colour camera (SOURCE.md), over the
-    first `frames` frames (0: all)."""
+    """Alignment score quantiles of the raw depth-camera poses and the fitted colour camera (SOURCE.md), over
+    the first `frames` frames (0: all)."""
     from services.core.ingest.capture.model import CaptureFrame
     from services.scheduler.planning.alignment import alignment_score
     from services.scheduler.planning.visibility import MeshQueries
@@ -223,7 +226,9 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=results_dir() / "capture.json")
     parser.add_argument("--only", choices=["big_photos"], help="run this scenario alone and update its key")
     parser.add_argument("--baseline-code", type=Path, help="big photos: also generate with this checkout")
-    parser.add_argument("--alignment-frames", type=int, default=0, help="frames the alignment scores (0: all)")
+    parser.add_argument(
+        "--alignment-frames", type=int, default=0, help="frames the alignment scores (0: all)"
+    )
     parser.add_argument("--no-big-photos", dest="big_photos", action="store_false",
                         help="leave out the big-photo generates (minutes; a smoke run)")
     args = parser.parse_args()

@@ -1,9 +1,9 @@
 """Time to refuse a big OBJ of varied degenerate faces (issue 19 section 4): 10M faces, no two lines alike.
 
 Each face is three distinct points on a line, or names a vertex twice; the lines vary, so the compression rule
-(`archive_rules`) passes them, and before `services.core.ingest.guard.degenerate` the full parse ran (45 s for 10M
-faces in the issue). Measures `load_space` (what upload, register, plan and generate run) refusing the file:
-process CPU and wall time, and the load average. Writes bench/results/degenerate_refusal.json.
+(`archive_rules`) passes them, and before `services.core.ingest.guard.degenerate` the full parse ran (45 s for
+10M faces in the issue). Measures `load_space` (what upload, register, plan and generate run) refusing the
+file: process CPU and wall time, and the load average. Writes bench/results/degenerate_refusal.json.
 Run: .venv/bin/python bench/ingest/degenerate_refusal.py [faces]
 """
 
@@ -38,10 +38,15 @@ def main() -> None:
                 refusal = None
             except SpaceError as e:
                 refusal = str(e)
-            rows.append({"faces": faces, "kind": "collinear" if collinear else "repeated vertex",
-                         "file_mb": round(path.stat().st_size / 2**20, 1), "refused": refusal,
-                         "cpu_s": round(time.process_time() - cpu, 2), "wall_s": round(time.perf_counter() - wall, 2),
-                         "load_avg_1m": round(os.getloadavg()[0], 2)})
+            rows.append(
+                {
+                    "faces": faces, "kind": "collinear" if collinear else "repeated vertex",
+                    "file_mb": round(path.stat().st_size / 2**20, 1), "refused": refusal,
+                    "cpu_s": round(time.process_time() - cpu, 2),
+                    "wall_s": round(time.perf_counter() - wall, 2),
+                    "load_avg_1m": round(os.getloadavg()[0], 2),
+                }
+            )
             print(rows[-1], flush=True)
     OUT.write_text(json.dumps({"machine": f"{os.cpu_count()} cores, shared", "runs": rows}, indent=1) + "\n")
 

@@ -44,7 +44,8 @@ def _summary(errors: list[float], units_ok: list[bool]) -> dict[str, float | int
 
 
 def cloud_figures(n_points: int, seed: int) -> dict[str, float | int]:
-    """Mesh a cloud sampled from a known room (no normals given) and compare ray-cast depth with the room's."""
+    """Mesh a cloud sampled from a known room (no normals given) and compare ray-cast depth with the
+    room's."""
     import tempfile
 
     from trimesh.ray.ray_pyembree import RayMeshIntersector
@@ -77,18 +78,27 @@ def cloud_figures(n_points: int, seed: int) -> dict[str, float | int]:
         ok = (np.abs(depths[0] - depths[1]) <= 0.05) | (np.isnan(depths[0]) & np.isnan(depths[1]))
         agree, total = agree + int(ok.sum()), total + len(ok)
     rec = space.reconstruction or {}
-    return {"points": n_points, "faces": int(rec.get("face_count", 0)), "poisson_depth": rec["parameters"]["depth"],
-            "ingest_s": round(seconds, 2), "depth_within_5cm_share": round(agree / total, 4), "views": 8}
+    return {
+        "points": n_points, "faces": int(rec.get("face_count", 0)),
+        "poisson_depth": rec["parameters"]["depth"], "ingest_s": round(seconds, 2),
+        "depth_within_5cm_share": round(agree / total, 4), "views": 8,
+    }
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--rotations", type=int, default=60, help="random rotations per room (plus 24 axis-aligned)")
+    ap.add_argument(
+        "--rotations", type=int, default=60, help="random rotations per room (plus 24 axis-aligned)"
+    )
     ap.add_argument("--synthetic", type=int, default=8, help="synthetic furnished rooms")
     ap.add_argument("--closed", type=int, default=4, help="synthetic rooms with their whole ceiling")
-    ap.add_argument("--cloud-points", type=int, default=200_000, help="points of the meshed-cloud check (0: skip)")
+    ap.add_argument(
+        "--cloud-points", type=int, default=200_000, help="points of the meshed-cloud check (0: skip)"
+    )
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--real-rotations", type=int, default=30, help="random rotations per real scan (plus stored, 24 axis)")
+    ap.add_argument(
+        "--real-rotations", type=int, default=30, help="random rotations per real scan (plus stored, 24 axis)"
+    )
     ap.add_argument("--no-real-corpus", dest="real_corpus", action="store_false",
                     help="leave out the real scans (most of the run; a smoke run)")
     ap.add_argument("--scenes", type=Path, default=Path(__file__).resolve().parents[3] / "shared" / "scenes")
@@ -96,7 +106,9 @@ def main() -> None:
     args = ap.parse_args()
 
     rng = np.random.default_rng(args.seed)
-    rooms = [corpus.icl_room(args.scenes)] + [corpus.synthetic_room(rng, f"synthetic_{i}") for i in range(args.synthetic)]
+    rooms = [corpus.icl_room(args.scenes)] + [
+        corpus.synthetic_room(rng, f"synthetic_{i}") for i in range(args.synthetic)
+    ]
     # the hard case: a complete ceiling, so only furniture tells the floor from the ceiling
     rooms += [corpus.synthetic_room(rng, f"closed_{i}", ceiling_missing_p=0.0) for i in range(args.closed)]
     rows: list[dict] = []
@@ -106,48 +118,86 @@ def main() -> None:
         est = estimate_up(case.mesh, ".ply")
         units = units_outcome(case.mesh, est.up, est.storey_height, case.scale)
         seconds.append(time.perf_counter() - t0)
-        rows.append({"room": case.room, "kind": case.kind, "faces": len(case.mesh.faces),
-                     "error": corpus.up_error_deg(est.up, case.up), "units_ok": units == "right", "units": units,
-                     "exact": bool(np.array_equal(est.up, np.round(case.up))), "low": est.low_confidence,
-                     "refused": est.ambiguous, "named_right": True})
+        rows.append(
+            {
+                "room": case.room, "kind": case.kind, "faces": len(case.mesh.faces),
+                "error": corpus.up_error_deg(est.up, case.up), "units_ok": units == "right", "units": units,
+                "exact": bool(np.array_equal(est.up, np.round(case.up))), "low": est.low_confidence,
+                "refused": est.ambiguous, "named_right": True,
+            }
+        )
 
     def pick(**kw: object) -> list[dict]:
         return [r for r in rows if all(r[k] == v for k, v in kw.items())]
 
-    per_room = {room.name: _summary([r["error"] for r in pick(room=room.name)], [r["units_ok"] for r in pick(room=room.name)])
-                for room in rooms}
+    per_room = {
+        room.name: _summary(
+            [r["error"] for r in pick(room=room.name)], [r["units_ok"] for r in pick(room=room.name)]
+        )
+        for room in rooms
+    }
     result = {
         "benchmark": "ingest",
         "target": "rooms levelled within 3 degrees: >= 98 % (100 % axis-aligned); units right: 100 %",
-        "corpus": {"rooms": [r.name for r in rooms], "random_rotations_per_room": args.rotations,
-                   "axis_rotations_per_room": 24, "scales_m_per_unit": list(corpus.SCALES), "seed": args.seed},
+        "corpus": {
+            "rooms": [r.name for r in rooms], "random_rotations_per_room": args.rotations,
+            "axis_rotations_per_room": 24, "scales_m_per_unit": list(corpus.SCALES), "seed": args.seed,
+        },
         "all": _summary([r["error"] for r in rows], [r["units_ok"] for r in rows]),
-        "random_rotations": _summary([r["error"] for r in pick(kind="random")], [r["units_ok"] for r in pick(kind="random")]),
-        "axis_aligned": {**_summary([r["error"] for r in pick(kind="axis")], [r["units_ok"] for r in pick(kind="axis")]),
-                         "exact_axis_share_icl": round(float(np.mean([r["exact"] for r in pick(kind="axis", room="icl_livingroom")])), 4)},
-        "icl_livingroom_random": _summary([r["error"] for r in pick(kind="random", room="icl_livingroom")],
-                                          [r["units_ok"] for r in pick(kind="random", room="icl_livingroom")]),
+        "random_rotations": _summary(
+            [r["error"] for r in pick(kind="random")], [r["units_ok"] for r in pick(kind="random")]
+        ),
+        "axis_aligned": {
+            **_summary([r["error"] for r in pick(kind="axis")], [r["units_ok"] for r in pick(kind="axis")]),
+            "exact_axis_share_icl": round(
+                float(np.mean([r["exact"] for r in pick(kind="axis", room="icl_livingroom")])), 4
+            ),
+        },
+        "icl_livingroom_random": _summary(
+            [r["error"] for r in pick(kind="random", room="icl_livingroom")],
+            [r["units_ok"] for r in pick(kind="random", room="icl_livingroom")],
+        ),
         "per_room": per_room,
         "low_confidence_share": round(float(np.mean([r["low"] for r in rows])), 4),
         "synthetic_and_icl_refusals": {k: v for k, v in summary(rows).items() if "share" in k},
-        "synthetic_and_icl_units": {s: round(float(np.mean([r["units"] == s for r in rows])), 4)
-                                    for s in ("right", "refused", "wrong")},
-        "real_corpus": (real_figures(args.scenes, args.real_rotations, args.seed, print) if args.real_corpus
-                        else None),
+        "synthetic_and_icl_units": {
+            s: round(float(np.mean([r["units"] == s for r in rows])), 4)
+            for s in ("right", "refused", "wrong")
+        },
+        "real_corpus": (
+            real_figures(args.scenes, args.real_rotations, args.seed, print) if args.real_corpus else None
+        ),
         "point_cloud": cloud_figures(args.cloud_points, args.seed) if args.cloud_points else None,
-        "seconds_per_case": {"median": round(float(np.median(seconds)), 4), "max": round(float(np.max(seconds)), 4),
-                             "icl_median": round(float(np.median([s for s, r in zip(seconds, rows, strict=True)
-                                                                  if r["room"] == "icl_livingroom"])), 4)},
-        "machine": {"python": platform.python_version(), "cpu": platform.processor() or platform.machine(),
-                    "note": "shared machine, loaded by other work"},
+        "seconds_per_case": {
+            "median": round(float(np.median(seconds)), 4), "max": round(float(np.max(seconds)), 4),
+            "icl_median": round(
+                float(
+                    np.median(
+                        [s for s, r in zip(seconds, rows, strict=True) if r["room"] == "icl_livingroom"]
+                    )
+                ),
+                4,
+            ),
+        },
+        "machine": {
+            "python": platform.python_version(), "cpu": platform.processor() or platform.machine(),
+            "note": "shared machine, loaded by other work",
+        },
     }
     if args.out.exists():  # keep the figures this run replaces beside the new ones
         old = json.loads(args.out.read_text())
-        result["before"] = old.get("before") or {k: old[k] for k in ("all", "random_rotations", "axis_aligned",
-                                                                       "icl_livingroom_random", "low_confidence_share")
-                                                 if k in old}
+        result["before"] = old.get("before") or {
+            k: old[k]
+            for k in (
+                "all", "random_rotations", "axis_aligned", "icl_livingroom_random", "low_confidence_share",
+            )
+            if k in old
+        }
         if result["point_cloud"] is None and old.get("point_cloud"):  # not re-run: keep its last figures
-            result["point_cloud"] = {**old["point_cloud"], "note": "kept from the previous run (--cloud-points 0)"}
+            result["point_cloud"] = {
+                **old["point_cloud"],
+                "note": "kept from the previous run (--cloud-points 0)",
+            }
         if "before_unit_evidence" not in old and old.get("real_corpus"):  # units by storey height alone
             real = old["real_corpus"]
             result["before_unit_evidence"] = {
@@ -158,9 +208,19 @@ def main() -> None:
             result["before_unit_evidence"] = old["before_unit_evidence"]
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
-    print(json.dumps({k: result[k] for k in ("all", "random_rotations", "axis_aligned", "icl_livingroom_random",
-                                            "low_confidence_share", "synthetic_and_icl_refusals", "real_corpus",
-                                            "seconds_per_case", "point_cloud")}, indent=2))
+    print(
+        json.dumps(
+            {
+                k: result[k]
+                for k in (
+                    "all", "random_rotations", "axis_aligned", "icl_livingroom_random",
+                    "low_confidence_share", "synthetic_and_icl_refusals", "real_corpus", "seconds_per_case",
+                    "point_cloud",
+                )
+            },
+            indent=2,
+        )
+    )
     print(f"wrote {args.out}")
 
 

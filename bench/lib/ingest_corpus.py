@@ -53,10 +53,12 @@ def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "up_error_deg_max": round(float(np.max(e)), 4),
         "share_within_3deg": round(float(np.mean([not r["refused"] and r["error"] < 3.0 for r in rows])), 4),
         "share_refused_ambiguous": round(len(refused) / max(len(rows), 1), 4),
-        "share_levelled_wrong_without_refusal": round(float(np.mean([not r["refused"] and r["error"] >= 3.0
-                                                                     for r in rows])), 4),
-        "share_refusals_naming_the_right_candidate": (round(float(np.mean([r["named_right"] for r in refused])), 4)
-                                                      if refused else None),
+        "share_levelled_wrong_without_refusal": round(
+            float(np.mean([not r["refused"] and r["error"] >= 3.0 for r in rows])), 4
+        ),
+        "share_refusals_naming_the_right_candidate": (
+            round(float(np.mean([r["named_right"] for r in refused])), 4) if refused else None
+        ),
         "units_correct": round(float(np.mean([r["units_ok"] for r in rows])), 4),
         **({"units": units_shares(rows, "units")} if rows and "units" in rows[0] else {}),
     }
@@ -68,7 +70,10 @@ def units_shares(rows: list[dict[str, Any]], key: str) -> dict[str, Any]:
     (what a user gets after picking up with --up)."""
     def shares(sel: list[dict[str, Any]], k: str) -> dict[str, Any]:
         n = max(len(sel), 1)
-        return {"cases": len(sel), **{s: round(sum(r[k] == s for r in sel) / n, 4) for s in ("right", "refused", "wrong")}}
+        return {
+            "cases": len(sel),
+            **{s: round(sum(r[k] == s for r in sel) / n, 4) for s in ("right", "refused", "wrong")},
+        }
 
     out = {"detected_up_all": shares(rows, key),
            "detected_up_levelled": shares([r for r in rows if not r["refused"]], key)}
@@ -91,7 +96,9 @@ def run_case(case: RealCase, posed: bool) -> dict[str, Any]:
     est = estimate_up(case.mesh, ".ply", case.capture_up if posed else None)
     units = units_outcome(case.mesh, est.up, est.storey_height, case.scale)
     given = floor_evidence(case.mesh, case.up)
-    units_true_up = units_outcome(case.mesh, case.up, None if given is None else given.storey_height, case.scale)
+    units_true_up = units_outcome(
+        case.mesh, case.up, None if given is None else given.storey_height, case.scale
+    )
     named = [est.up] + ([c.up for c in est.decision.shown] if est.decision is not None else [])
     return {"room": case.room, "kind": case.kind, "posed": posed, "refused": est.ambiguous,
             "error": corpus.up_error_deg(est.up, case.up), "units_ok": units == "right", "units": units,
@@ -121,8 +128,12 @@ def ablation(cases: Iterable[tuple[Any, np.ndarray, np.ndarray | None]]) -> dict
         for cands, truth, capture in facts:
             d = decide(cands, capture, disabled=() if left_out == "none" else (left_out,))
             named = [c.up for c in d.shown]
-            rows.append({"refused": d.ambiguous, "error": corpus.up_error_deg(d.best.up, truth), "units_ok": True,
-                         "named_right": min(corpus.up_error_deg(u, truth) for u in named) < 5.0})
+            rows.append(
+                {
+                    "refused": d.ambiguous, "error": corpus.up_error_deg(d.best.up, truth), "units_ok": True,
+                    "named_right": min(corpus.up_error_deg(u, truth) for u in named) < 5.0,
+                }
+            )
         s = summary(rows)
         out[f"without_{left_out}" if left_out != "none" else "all_terms"] = {
             k: s[k] for k in ("cases", "share_within_3deg", "share_refused_ambiguous",
@@ -142,10 +153,14 @@ def unit_ablation(measured: list[tuple[ScanMeasures, float]]) -> dict[str, Any]:
         for m, scale in measured:
             d = decide_units(m, () if left_out == "none" else (left_out,))
             if d.ranked:
-                outcomes.append("refused" if d.ambiguous else "right" if d.ranked[0].scale == scale else "wrong")
+                outcomes.append(
+                    "refused" if d.ambiguous else "right" if d.ranked[0].scale == scale else "wrong"
+                )
         n = max(len(outcomes), 1)
         out["all_terms" if left_out == "none" else f"without_{left_out}"] = {
-            "cases": len(outcomes), **{k: round(outcomes.count(k) / n, 4) for k in ("right", "refused", "wrong")}}
+            "cases": len(outcomes),
+            **{k: round(outcomes.count(k) / n, 4) for k in ("right", "refused", "wrong")},
+        }
     return out
 
 

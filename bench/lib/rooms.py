@@ -1,7 +1,7 @@
 """The real rooms the cost benchmarks load in-process.
 
-name -> (space path, load_space frame arguments). The kitchen's fused mesh ships its gravity direction; up is its
-negative, as bench/render/room_cost.py gives it to `generate`. The copy room's up is the measured one
+name -> (space path, load_space frame arguments). The kitchen's fused mesh ships its gravity direction; up is
+its negative, as bench/render/room_cost.py gives it to `generate`. The copy room's up is the measured one
 (bench/scans/copyroom/SOURCE.md).
 """
 

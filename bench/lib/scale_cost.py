@@ -33,19 +33,22 @@ CUE_SECONDS: dict[str, float] = {
     "depth_zbuffer": 0.010, "depth_euclidean": 0.010, "mask_valid": 0.010, "reshading": 0.010,
     "fragments": 0.010, "point_info": 0.010, "nonfixated": 0.010, "vanishing_points": 0.010,
 }
-# The 18 cues of an unlabelled room (every output cue but the three semantic ones); 19 tasks on view 0 with passes.
+# The 18 cues of an unlabelled room (every output cue but the three semantic ones); 19 tasks on view 0 with
+# passes.
 ROOM_CUES = [c for c in CUE_SECONDS if c != "passes"]
 JITTER_SIGMA = 0.25  # log-normal spread of one task's time around its cue's mean
 
 
 def task_seconds(cue: str, rng: random.Random, scale: float = 1.0) -> float:
-    """One draw of a task's work time: the cue's mean (unknown cues 10 ms) times a mean-1 log-normal factor."""
+    """One draw of a task's work time: the cue's mean (unknown cues 10 ms) times a mean-1 log-normal
+    factor."""
     mean = CUE_SECONDS.get(cue, 0.010) * scale
     return mean * math.exp(rng.gauss(-JITTER_SIGMA**2 / 2, JITTER_SIGMA))
 
 
 def mean_task_seconds(cues: Iterable[str], scale: float = 1.0) -> float:
-    """Mean work per task of a view with these cues plus its render (what one worker does per task on average)."""
+    """Mean work per task of a view with these cues plus its render (what one worker does per task on
+    average)."""
     per_view = ["passes", *[c for c in cues if c != "nonfixated"]]
     return scale * sum(CUE_SECONDS.get(c, 0.010) for c in per_view) / len(per_view)
 
@@ -63,7 +66,8 @@ def cpu_seconds(pid: int) -> float:
 
 
 class ProcessCpu:
-    """CPU seconds of named groups of processes between `start()` and `stop()` (a pid new at stop counts from 0)."""
+    """CPU seconds of named groups of processes between `start()` and `stop()` (a pid new at stop counts from
+    0)."""
 
     def __init__(self) -> None:
         self.first: dict[str, dict[int, float]] = {}
@@ -156,7 +160,8 @@ class PrivateRedis:
 
 
 def publish_cost(n: int = 20_000, batch: int = 1_000) -> dict[str, float]:
-    """CPU per message of the scheduler's CeleryTransport (kombu's pipelined batch publish) and of a private Redis."""
+    """CPU per message of the scheduler's CeleryTransport (kombu's pipelined batch publish) and of a private
+    Redis."""
     from services.core.settings import get_settings
     from services.scheduler.celery_transport import CeleryTransport
 
@@ -171,9 +176,13 @@ def publish_cost(n: int = 20_000, batch: int = 1_000) -> dict[str, float]:
         own1 = os.times()
         wall = time.perf_counter() - t0
         transport.close()
-        return {"messages": n, "batch": batch,
-                "scheduler_cpu_us_per_message": round(1e6 * (own1.user + own1.system - own0.user - own0.system) / n, 1),
-                "redis_cpu_us_per_message": round(1e6 * (cpu_seconds(redis.pid) - redis0) / n, 1),
-                "wall_us_per_message": round(1e6 * wall / n, 1)}
+        return {
+            "messages": n, "batch": batch,
+            "scheduler_cpu_us_per_message": round(
+                1e6 * (own1.user + own1.system - own0.user - own0.system) / n, 1
+            ),
+            "redis_cpu_us_per_message": round(1e6 * (cpu_seconds(redis.pid) - redis0) / n, 1),
+            "wall_us_per_message": round(1e6 * wall / n, 1),
+        }
     finally:
         redis.close()

@@ -1,9 +1,10 @@
 """The processes of the scale simulation (bench/scale/scale_sim.py): simulated workers and the real scheduler.
 
-A simulated worker is a thread running the worker's real TaskRunner (claim, record done, counters) whose compute
-step sleeps instead of rendering (`SleepingRunner`), fed with real `render.cue` messages popped from Redis, with a
-real Heartbeat; a process hosts many of them around one small connection pool. The scheduler process runs the
-real Scheduler loop with a synthetic plan and counts what it sends and how long its dispatch passes take.
+A simulated worker is a thread running the worker's real TaskRunner (claim, record done, counters) whose
+compute step sleeps instead of rendering (`SleepingRunner`), fed with real `render.cue` messages popped from
+Redis, with a real Heartbeat; a process hosts many of them around one small connection pool. The scheduler
+process runs the real Scheduler loop with a synthetic plan and counts what it sends and how long its dispatch
+passes take.
 """
 
 from __future__ import annotations
@@ -56,7 +57,8 @@ class SleepingRunner(TaskRunner):
         return self._sleep(t), f"{t.id}".encode()
 
     def _sleep(self, t: Claimed) -> str:
-        # `slept` adds up over a message (a whole view sleeps its render and every derivation); the caller resets it
+        # `slept` adds up over a message (a whole view sleeps its render and every derivation); the caller
+        # resets it
         s = self.task_s * self.rng.uniform(0.8, 1.2) if self.task_s > 0 else task_seconds(t.cue, self.rng)
         self.slept += s
         if self.killed.wait(s):
@@ -77,9 +79,9 @@ def worker_process(
     """`n_workers` simulated workers (threads) sharing one connection pool; reports stats into `out`.
 
     `nice` lowers the process's CPU priority: a real fleet runs on other machines, so the host's orchestrator
-    (scheduler, Postgres, Redis, API) should not queue behind the simulation's threads for CPU. A `probe` is one
-    worker alone in its process at normal priority, as a real worker process is: its task overhead is what a
-    worker of the fleet would see, without the harness's hundreds of threads per interpreter.
+    (scheduler, Postgres, Redis, API) should not queue behind the simulation's threads for CPU. A `probe` is
+    one worker alone in its process at normal priority, as a real worker process is: its task overhead is what
+    a worker of the fleet would see, without the harness's hundreds of threads per interpreter.
     """
     import os
 
@@ -87,7 +89,9 @@ def worker_process(
 
     if nice:
         os.nice(nice)
-    engine = worker_engine(settings.database_url, pool_size=POOL_PER_PROCESS, max_overflow=0, pool_timeout=120)
+    engine = worker_engine(
+        settings.database_url, pool_size=POOL_PER_PROCESS, max_overflow=0, pool_timeout=120
+    )
     sm = make_sessionmaker(engine)
     store = LocalStore(settings.data_dir / "objects")
     queues = [settings.queue_render, settings.queue_derive]
@@ -129,7 +133,8 @@ def worker_process(
         r.close()
 
     def drive_heartbeats() -> None:
-        # Each worker beats every interval, spread evenly over the interval (real workers start at random times).
+        # Each worker beats every interval, spread evenly over the interval (real workers start at random
+        # times).
         interval = beats[0][0].interval_s if beats else 5.0
         while not stop.is_set():
             t0 = time.monotonic()
@@ -160,7 +165,10 @@ def worker_process(
         t.start()
     while len(beats) < n_workers:
         time.sleep(0.05)
-    helpers = [threading.Thread(target=drive_heartbeats, daemon=True), threading.Thread(target=watch_kill, daemon=True)]
+    helpers = [
+        threading.Thread(target=drive_heartbeats, daemon=True),
+        threading.Thread(target=watch_kill, daemon=True),
+    ]
     for t in helpers:
         t.start()
     stop.wait()
@@ -187,7 +195,8 @@ class CountingTransport:
 
 
 def scheduler_process(settings: Settings, plan: Any, stop: Any, out: Any) -> None:
-    """The real Scheduler loop (plan, dispatch, reap, complete) with the synthetic plan; reports its counts."""
+    """The real Scheduler loop (plan, dispatch, reap, complete) with the synthetic plan; reports its
+    counts."""
     from bench.scale.fanout import plan_is
     from services.scheduler.celery_transport import CeleryTransport
     from services.scheduler.compaction import Compactor
@@ -196,8 +205,10 @@ def scheduler_process(settings: Settings, plan: Any, stop: Any, out: Any) -> Non
     engine = make_engine(settings.database_url, pool_size=2)
     transport = CountingTransport(CeleryTransport(settings=settings))
     plan_is(plan)  # this process's planner
-    sched = Scheduler(make_sessionmaker(engine), LocalStore(settings.data_dir / "objects"), transport, settings,
-                      "sim-scheduler", cache_dir=settings.data_dir / "cache")
+    sched = Scheduler(
+        make_sessionmaker(engine), LocalStore(settings.data_dir / "objects"), transport, settings,
+        "sim-scheduler", cache_dir=settings.data_dir / "cache",
+    )
     passes: list[float] = []
     reaped = 0
     original = sched.dispatch_once
@@ -220,7 +231,8 @@ def scheduler_process(settings: Settings, plan: Any, stop: Any, out: Any) -> Non
 
     def counted_compaction() -> Any:
         assert compactor is not None
-        c = time.thread_time()  # the tick's thread: the scheduler's own CPU in compaction (its backend's is not split)
+        # the tick's thread: the scheduler's own CPU in compaction (its backend's is not split)
+        c = time.thread_time()
         res = Compactor.run_once(compactor)
         compacted["cpu_s"] += time.thread_time() - c
         compacted["views"] += res.views

@@ -49,9 +49,14 @@ def run(resolution: int, views: int) -> dict[str, Any]:
                         f"views: {{resolution: {resolution}}}\n")
         out = tmp / "job"
         t0 = time.perf_counter()
-        subprocess.run([sys.executable, "-m", "services.cli", "generate", str(REPO.parent / "shared/scenes/ycb_banana"),
-                        "--out", str(out), "--spec", str(spec), "--workers", "1", "--no-progress"],
-                       cwd=REPO, check=True, capture_output=True)
+        subprocess.run(
+            [
+                sys.executable, "-m", "services.cli", "generate",
+                str(REPO.parent / "shared/scenes/ycb_banana"), "--out", str(out), "--spec", str(spec),
+                "--workers", "1", "--no-progress",
+            ],
+            cwd=REPO, check=True, capture_output=True,
+        )
         render_s = time.perf_counter() - t0
         cues = default_cues(has_semantics=False)
         full = OmnidataDataset(out, cues)
@@ -98,7 +103,9 @@ def cli() -> None:
     p.add_argument("--views", type=int, default=4)
     args = p.parse_args()
     result = run(args.resolution, args.views)
-    result["machine"] = {"python": platform.python_version(), "cpu": platform.processor() or platform.machine()}
+    result["machine"] = {
+        "python": platform.python_version(), "cpu": platform.processor() or platform.machine(),
+    }
     print(json.dumps(result, indent=2))
     out = results_dir() / "datasets.json"
     out.write_text(json.dumps(result, indent=2) + "\n")

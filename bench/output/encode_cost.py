@@ -1,8 +1,8 @@
-"""Benchmark: CPU cost of encoding a view's cue files (issue 20, cost per view): each PNG cue with the deflaters
-compared (zlib level 1 + Z_RLE, the encoder before; ISA-L levels 0-2), the PNG encoder's steps (Up filter, deflate,
-chunks and CRCs), and the position cue's derivation and EXR file, before (numpy temporaries; OpenEXR writing a temp
-file read back) and now (one compiled loop; the file's bytes written directly). Every file is checked to decode to
-its array bit for bit.
+"""Benchmark: CPU cost of encoding a view's cue files (issue 20, cost per view): each PNG cue with the
+deflaters compared (zlib level 1 + Z_RLE, the encoder before; ISA-L levels 0-2), the PNG encoder's steps (Up
+filter, deflate, chunks and CRCs), and the position cue's derivation and EXR file, before (numpy temporaries;
+OpenEXR writing a temp file read back) and now (one compiled loop; the file's bytes written directly). Every
+file is checked to decode to its array bit for bit.
 
 Views: the pass sets bench/cues/derivations.py caches (run it first; the same planner views of ICL and the
 kitchen). Clock: process CPU seconds (time.process_time), one core, median over views x repeats.
@@ -80,7 +80,9 @@ def exr_before(arr: np.ndarray) -> bytes:
     fd, path = tempfile.mkstemp(suffix=".exr", dir="/dev/shm" if os.access("/dev/shm", os.W_OK) else None)
     os.close(fd)
     try:
-        with OpenEXR.File({"compression": OpenEXR.NO_COMPRESSION, "type": OpenEXR.scanlineimage}, {"RGB": arr}) as f:
+        with OpenEXR.File(
+            {"compression": OpenEXR.NO_COMPRESSION, "type": OpenEXR.scanlineimage}, {"RGB": arr}
+        ) as f:
             f.write(path)
         with open(path, "rb") as fh:
             return fh.read()
@@ -89,7 +91,8 @@ def exr_before(arr: np.ndarray) -> bytes:
 
 
 def png_steps(arr: np.ndarray, repeats: int) -> dict[str, float]:
-    """CPU ms of encode_png's steps on one array: filter (+ chunks, with a no-op deflate), and each deflater alone."""
+    """CPU ms of encode_png's steps on one array: filter (+ chunks, with a no-op deflate), and each deflater
+    alone."""
     captured: list[bytes] = []
     encode_png(arr, lambda data: captured.append(bytes(data)) or b"")
     filtered = captured[0]
@@ -143,13 +146,17 @@ def room_figures(files: list[Path], repeats: int) -> dict:
 
     png = {}
     for name in DEFLATERS:
-        cues = {c: {"ms": med(per_cue_ms[name][c]), "kb": round(float(np.mean(per_cue_bytes[name][c])) / 1e3, 1)}
-                for c in png_cues}
+        cues = {
+            c: {"ms": med(per_cue_ms[name][c]), "kb": round(float(np.mean(per_cue_bytes[name][c])) / 1e3, 1)}
+            for c in png_cues
+        }
         png[name] = {"ms_per_view": round(sum(v["ms"] for v in cues.values()), 2),
                      "mb_per_view": round(sum(v["kb"] for v in cues.values()) / 1e3, 3),
                      "identical": identical[name], "per_cue": cues}
-    position = {**{k: med(v) for k, v in pos.items()}, "mb_per_view": round(float(np.mean(exr_bytes)) / 1e6, 3),
-                "identical_to_before": pos_same}
+    position = {
+        **{k: med(v) for k, v in pos.items()},
+        "mb_per_view": round(float(np.mean(exr_bytes)) / 1e6, 3), "identical_to_before": pos_same,
+    }
     return {"views": len(files), "png": png, "png_steps_ms_per_view": {k: med(v) for k, v in steps.items()},
             "position": position}
 
@@ -167,10 +174,13 @@ def main() -> int:
         return 1
     rooms = sorted({f.name.split("-512-")[0] for f in files})
     load = [round(x, 2) for x in os.getloadavg()]
-    run = {"clock": "process CPU ms, one core, median over views x repeats (per cue), summed over a view's cues",
-           "repeats": args.repeats, "load_before": load,
-           "rooms": {r: room_figures([f for f in files if f.name.startswith(r + "-512-")], args.repeats)
-                     for r in rooms}}
+    run = {
+        "clock": "process CPU ms, one core, median over views x repeats (per cue), summed over a view's cues",
+        "repeats": args.repeats, "load_before": load,
+        "rooms": {
+            r: room_figures([f for f in files if f.name.startswith(r + "-512-")], args.repeats) for r in rooms
+        },
+    }
     run["load_after"] = [round(x, 2) for x in os.getloadavg()]
     data = (json.loads(RESULTS.read_text()) if RESULTS.exists()
             else {"benchmark": "bench/output/encode_cost.py"})

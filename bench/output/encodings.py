@@ -1,6 +1,6 @@
 """Benchmark: the file codecs of a view's cues on real rooms (issue 20): time and bytes of every lossless EXR
-compression OpenEXR offers for the position cue, and of deflaters (zlib settings, ISA-L) for the PNG cues, decoded
-arrays checked identical to the values.
+compression OpenEXR offers for the position cue, and of deflaters (zlib settings, ISA-L) for the PNG cues,
+decoded arrays checked identical to the values.
 
 Views: the pass sets bench/cues/derivations.py caches (run it first; the same planner views of ICL and the
 kitchen). Clock: process CPU seconds (time.process_time), one core, median over views x repeats.
@@ -38,7 +38,8 @@ from tests.fixtures.raycast import decode_png  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 RESULTS = results_dir() / "encodings.json"
-EXR_CODECS = ("NO", "RLE", "ZIPS", "ZIP", "PIZ", "ZSTD", "HTJ2K32", "HTJ2K256")  # lossless ones; PXR24 is lossy
+# lossless ones; PXR24 is lossy
+EXR_CODECS = ("NO", "RLE", "ZIPS", "ZIP", "PIZ", "ZSTD", "HTJ2K32", "HTJ2K256")
 PNG_SETTINGS = {"level 1, Z_RLE": zlib_deflater(1, zlib.Z_RLE),
                 "level 1, Z_FILTERED": zlib_deflater(1, zlib.Z_FILTERED),
                 "level 1, default": zlib_deflater(1, zlib.Z_DEFAULT_STRATEGY),
@@ -83,7 +84,8 @@ def exr_figures(positions: list[np.ndarray], repeats: int) -> dict:
 
 
 def png_figures(values: list[dict[str, np.ndarray]], repeats: int) -> dict:
-    """Per deflater: CPU ms and MB of a view's PNG cues together, and whether every file decodes to its array."""
+    """Per deflater: CPU ms and MB of a view's PNG cues together, and whether every file decodes to its
+    array."""
     out = {}
     for name, deflate in PNG_SETTINGS.items():
         per_view_s, per_view_b, same = [], [], True
@@ -114,9 +116,11 @@ def main() -> int:
         ctx = ViewContext(None, passes=ViewPasses.from_bytes(f.read_bytes()))
         positions.append(cue_value(ctx, "position"))
         values.append({c: cue_value(ctx, c) for c in png_cues})
-    run = {"views": [f.stem for f in files], "clock": "process CPU, one core, median over views x repeats",
-           "load": [round(x, 2) for x in os.getloadavg()],
-           "position_exr": exr_figures(positions, args.repeats), "png_cues": png_figures(values, args.repeats)}
+    run = {
+        "views": [f.stem for f in files], "clock": "process CPU, one core, median over views x repeats",
+        "load": [round(x, 2) for x in os.getloadavg()], "position_exr": exr_figures(positions, args.repeats),
+        "png_cues": png_figures(values, args.repeats),
+    }
     data = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
     data["encodings"] = run
     RESULTS.write_text(json.dumps(data, indent=1) + "\n")

@@ -1,11 +1,11 @@
-"""Benchmark: storing a view's outputs in the local object folder (LocalStore.put_many: every file a worker writes for
-a view, flushed to disk and checksummed, kept out of the page cache as a worker asks), what each view of `generate`
-pays after its derivations, one core.
+"""Benchmark: storing a view's outputs in the local object folder (LocalStore.put_many: every file a worker
+writes for a view, flushed to disk and checksummed, kept out of the page cache as a worker asks), what each
+view of `generate` pays after its derivations, one core.
 The files: every default cue of one real view of the 7-Scenes kitchen (bench/cues/derivations.py's views;
 ~6 MB), stored --views times under fresh names in folders that exist (as a job's views after its first); wall
-and CPU seconds per view (medians and 75th percentiles). With --against REV, also services/core/storage/local.py
-as it was at git revision REV, interleaved view by view with today's in its own folder.
-Writes bench/results/store_put.json (the previous run's figures kept under "before").
+and CPU seconds per view (medians and 75th percentiles). With --against REV, also
+services/core/storage/local.py as it was at git revision REV, interleaved view by view with today's in its own
+folder. Writes bench/results/store_put.json (the previous run's figures kept under "before").
 Run: .venv/bin/python bench/output/store_put.py [--views 40] [--against REV]
      [--folder DIR (default: the system's temp)]
 """
@@ -55,18 +55,24 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--views", type=int, default=40)
     ap.add_argument("--against", default="", help="a git revision whose local.py is timed beside today's")
-    ap.add_argument("--folder", type=Path, default=None, help="where the stores' folders go (a temp folder in it)")
+    ap.add_argument(
+        "--folder", type=Path, default=None, help="where the stores' folders go (a temp folder in it)"
+    )
     ap.add_argument("--cache", type=Path, default=Path("/tmp/omnidata-derivations-passes"))
     args = ap.parse_args()
     files = view_files(args.cache)
-    result: dict = {"files_per_view": len(files), "bytes_per_view": sum(len(d) for _, d in files),
-                    "clock": "seconds per view, one core (CPU: the process's, the flushing threads' included)",
-                    "machine": f"{os.cpu_count()} cores ({cpu_model()}), shared", "load_before": load()}
+    result: dict = {
+        "files_per_view": len(files), "bytes_per_view": sum(len(d) for _, d in files),
+        "clock": "seconds per view, one core (CPU: the process's, the flushing threads' included)",
+        "machine": f"{os.cpu_count()} cores ({cpu_model()}), shared", "load_before": load(),
+    }
     with tempfile.TemporaryDirectory(prefix="omnidata-store-put-", dir=args.folder) as tmp:
         classes = {"this": LocalStore}
         if args.against:
-            classes = {"against": module_at(args.against, "services/core/storage/local.py", Path(tmp)).LocalStore,
-                       **classes}
+            classes = {
+                "against": module_at(args.against, "services/core/storage/local.py", Path(tmp)).LocalStore,
+                **classes,
+            }
         stores = {side: cls(Path(tmp) / side) for side, cls in classes.items()}
         wall: dict[str, list[float]] = {side: [] for side in stores}
         cpu: dict[str, list[float]] = {side: [] for side in stores}
@@ -74,7 +80,11 @@ def main() -> int:
             order = list(stores) if v % 2 == 0 else list(stores)[::-1]
             for side in order:
                 items = [(output_key(cue, "omnidata", ROOM, v + 1, 0), data) for cue, data in files]
-                hint = {"keep_cached": False} if "keep_cached" in inspect.signature(stores[side].put_many).parameters else {}
+                hint = (
+                    {"keep_cached": False}
+                    if "keep_cached" in inspect.signature(stores[side].put_many).parameters
+                    else {}
+                )
                 t0, c0 = time.perf_counter(), time.process_time()
                 stores[side].put_many(items, **hint)
                 if v >= 0:
@@ -86,8 +96,9 @@ def main() -> int:
                             "cpu_s_median": round(float(np.median(cpu[side])), 4)}
         if args.against:
             result["against_rev"] = args.against
-            result["wall_saved_s_median"] = round(result["against"]["wall_s_median"] - result["this"]["wall_s_median"],
-                                                  4)
+            result["wall_saved_s_median"] = round(
+                result["against"]["wall_s_median"] - result["this"]["wall_s_median"], 4
+            )
     result["load_after"] = load()
     print(json.dumps(result, indent=1))
     write_keeping_before(RESULTS, result)

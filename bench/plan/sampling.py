@@ -48,7 +48,9 @@ def _grid(origin: np.ndarray, u: np.ndarray, v: np.ndarray, cell: float) -> tupl
     return verts, faces
 
 
-def _box_quads(lo: np.ndarray, hi: np.ndarray, inward: bool) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+def _box_quads(
+    lo: np.ndarray, hi: np.ndarray, inward: bool
+) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     x0, y0, z0 = lo
     dx, dy, dz = hi - lo
     X, Y, Z = np.array([dx, 0, 0.0]), np.array([0, dy, 0.0]), np.array([0, 0, dz])
@@ -68,7 +70,9 @@ def build_hall(cell: float = 0.049) -> trimesh.Trimesh:
     rects = _box_quads(np.zeros(3), np.array([24.0, 18.0, 3.0]), inward=True)
     for x in (6.0, 12.0, 18.0):
         for y in (6.0, 12.0):
-            rects += _box_quads(np.array([x - 0.25, y - 0.25, 0.0]), np.array([x + 0.25, y + 0.25, 3.0]), False)[2:]
+            rects += _box_quads(
+                np.array([x - 0.25, y - 0.25, 0.0]), np.array([x + 0.25, y + 0.25, 3.0]), False
+            )[2:]
     rng = np.random.default_rng(7)
     for _ in range(14):
         c = rng.uniform([2, 2], [22, 16])

@@ -114,14 +114,19 @@ def summarise(
         "clips": clips,
         "frames": frames,
         "mean_frames_per_clip": round(frames / max(clips, 1), 1),
-        "frames_per_clip": {"median": pct(figs["length"], 50), "min": pct(figs["length"], 0),
-                            "max": pct(figs["length"], 100)},
-        "turn_deg_per_frame": {"median": pct(figs["turn"], 50), "p95": pct(figs["turn"], 95),
-                               "max": pct(figs["turn"], 100)},
-        "view_deg_per_frame": {"median": pct(figs["view"], 50), "p95": pct(figs["view"], 95),
-                               "max": pct(figs["view"], 100)},
-        "spacing_m": {"spec": round(spec.views.trajectory_spacing_m * scale, 6), "median": pct(figs["spacing"], 50),
-                      "min": pct(figs["spacing"], 0), "max": pct(figs["spacing"], 100)},
+        "frames_per_clip": {
+            "median": pct(figs["length"], 50), "min": pct(figs["length"], 0), "max": pct(figs["length"], 100),
+        },
+        "turn_deg_per_frame": {
+            "median": pct(figs["turn"], 50), "p95": pct(figs["turn"], 95), "max": pct(figs["turn"], 100),
+        },
+        "view_deg_per_frame": {
+            "median": pct(figs["view"], 50), "p95": pct(figs["view"], 95), "max": pct(figs["view"], 100),
+        },
+        "spacing_m": {
+            "spec": round(spec.views.trajectory_spacing_m * scale, 6), "median": pct(figs["spacing"], 50),
+            "min": pct(figs["spacing"], 0), "max": pct(figs["spacing"], 100),
+        },
         "frames_closer_than_clearance": int((figs["clearance"] < clearance - 1e-9).sum()),
         "min_clearance_m": pct(figs["clearance"], 0),
         "frames_point_hidden": int(figs["hidden"].sum()),
@@ -145,7 +150,9 @@ def meets_targets(fig: dict[str, Any]) -> bool:
     return bool(ok and (fig["look"] == "ahead" or fig["hidden_fraction"] < 0.01))
 
 
-def run(name: str, spaces: list[tuple[str, LoadedSpace]], spec: JobSpec, scale: float = 1.0) -> dict[str, Any]:
+def run(
+    name: str, spaces: list[tuple[str, LoadedSpace]], spec: JobSpec, scale: float = 1.0
+) -> dict[str, Any]:
     """Plan every space and measure its clips; scale: object clip lengths (module docstring)."""
     plans, figs = [], []
     t0 = time.perf_counter()
@@ -172,7 +179,10 @@ def main() -> int:
     if hasattr(os, "sched_setaffinity"):  # one core, like the sampling benchmark
         os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
 
-    rooms = [(f"room{i}", as_space(random_furnished_room(np.random.default_rng(100 + i)))) for i in range(args.rooms)]
+    rooms = [
+        (f"room{i}", as_space(random_furnished_room(np.random.default_rng(100 + i))))
+        for i in range(args.rooms)
+    ]
     icl = load_space(SCENES / "icl_livingroom", up_axis="-y")
     results = []
     for look in ("point", "ahead"):
@@ -194,8 +204,10 @@ def main() -> int:
     results.append(run("stanford_bunny_object", [("bunny", bunny)], spec, radius / OBJECT_REFERENCE_M))
     result = {
         "benchmark": "trajectory",
-        "targets": {"turn_deg_per_frame": {"p95": 10, "max": 30}, "view_deg_per_frame": {"p95": 3},
-                    "spacing_median_within": 0.15, "frames_closer_than_clearance": 0, "hidden_fraction_below": 0.01},
+        "targets": {
+            "turn_deg_per_frame": {"p95": 10, "max": 30}, "view_deg_per_frame": {"p95": 3},
+            "spacing_median_within": 0.15, "frames_closer_than_clearance": 0, "hidden_fraction_below": 0.01,
+        },
         "runs": results,
         "mean_frames_per_clip_before": BEFORE,
         "load_average_1m": round(os.getloadavg()[0], 2),  # other processes on the machine inflate times

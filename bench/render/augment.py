@@ -1,5 +1,6 @@
-"""Benchmark: cost per view of the 3D augmentation cues (rgb_refocus, rgb_fog, rgb_motion_blur, rgb_flash) on the
-real room (../shared/scenes/icl_livingroom, the planner's views, 512x512, default distributions), one core.
+"""Benchmark: cost per view of the 3D augmentation cues (rgb_refocus, rgb_fog, rgb_motion_blur, rgb_flash) on
+the real room (../shared/scenes/icl_livingroom, the planner's views, 512x512, default distributions), one
+core.
 
 Per view: a bare 1-sample render (the floor of any bpy renderer, as in bench/render/render.py), then one pass
 render and the augmentation cues derived from it; each cue's exclusive CPU seconds (its value and its PNG

@@ -1,23 +1,25 @@
-"""Benchmark: cost per view on a GPU machine, and the CPU path on 1, 8 and all cores of the same machine (issue 20).
+"""Benchmark: cost per view on a GPU machine, and the CPU path on 1, 8 and all cores of the same machine
+(issue 20).
 
 For each real room, on the machine it runs on:
-1. `omnidata generate ROOM` with its default worker settings (a worker per core, one in 8 of them rendering on the
-   GPU: OMNIDATA_RENDER_DEVICE, default auto = OptiX, else CUDA), its views/s and wall per view end to end, the job's
-   own task rows, and the GPU's busy fraction: nvidia-smi's utilization.gpu (the share of each sample period in
-   which a kernel ran) sampled every 100 ms, over the whole run and over the job's task window;
+1. `omnidata generate ROOM` with its default worker settings (a worker per core, one in 8 of them rendering on
+   the GPU: OMNIDATA_RENDER_DEVICE, default auto = OptiX, else CUDA), its views/s and wall per view end to
+   end, the job's own task rows, and the GPU's busy fraction: nvidia-smi's utilization.gpu (the share of each
+   sample period in which a kernel ran) sampled every 100 ms, over the whole run and over the job's task
+   window;
 2. the bare 1-sample render (Image + Depth + Normal) of the same views on the GPU, and on one CPU core;
 3. the same `generate` on the CPU (OMNIDATA_RENDER_DEVICE=cpu) pinned to 1 core, 8 cores and every core:
    views/s against one core's;
-4. every cue file of the GPU run against the CPU run of the same plan (same seed and spec) on the most cores: the
-   share of pixels equal, within one code value, and the adjusted Rand index of the segmentations.
-Each setting runs a 3-view job and its main job (--points on one core, --points-many on the GPU and on many cores);
-the views/s of the views the main job adds (the slope, start-ups left out) is what a long job approaches, and so
-is each run's rate over its task window (first task start to last task finish: its workers' first renders in).
-A 1-point run first (one worker) fills the caches a first run on a new machine pays once (numba's compiled
-kernels, the driver's OptiX module cache), so the figures are those of a machine in use.
+4. every cue file of the GPU run against the CPU run of the same plan (same seed and spec) on the most cores:
+   the share of pixels equal, within one code value, and the adjusted Rand index of the segmentations.
+Each setting runs a 3-view job and its main job (--points on one core, --points-many on the GPU and on many
+cores); the views/s of the views the main job adds (the slope, start-ups left out) is what a long job
+approaches, and so is each run's rate over its task window (first task start to last task finish: its workers'
+first renders in). A 1-point run first (one worker) fills the caches a first run on a new machine pays once
+(numba's compiled kernels, the driver's OptiX module cache), so the figures are those of a machine in use.
 With --render-workers R,..., also the GPU main job with every worker of which only R render (`generate
---render-workers`: R device contexts, the other workers derive from the pass sets the renderers store); R = the
-core count is every worker rendering (the default before one in 8).
+--render-workers`: R device contexts, the other workers derive from the pass sets the renderers store); R =
+the core count is every worker rendering (the default before one in 8).
 Run: python bench/render/gpu_cost.py [--rooms icl_livingroom] [--points 22] [--cores 1,8,16]
      [--gpu-workers 2,4,8] [--render-workers 1,2] [--out FILE]
 """
@@ -59,8 +61,8 @@ def room_space(room: str, scenes: Path) -> tuple[Path, list[str]]:
 
 
 class GpuSampler:
-    """nvidia-smi's utilization.gpu (%) and memory used (MiB) every 100 ms, each with the wall clock it was read at,
-    and the most processes seen holding a context on the GPU at once (polled twice a second)."""
+    """nvidia-smi's utilization.gpu (%) and memory used (MiB) every 100 ms, each with the wall clock it was
+    read at, and the most processes seen holding a context on the GPU at once (polled twice a second)."""
 
     def __init__(self) -> None:
         self.samples: list[tuple[float, float, float]] = []
@@ -107,11 +109,15 @@ def busy(samples: list[tuple[float, float, float]], start: float, end: float) ->
 
 
 def task_window(out: Path) -> tuple[float, float]:
-    """Unix times of the job's first task start and last task finish: its task rows (UTC), and the views a long run
-    compacted (services.scheduler.compaction drops their start times: a packed task started its duration before it
-    finished). Without the packed views, a long run's window would start late and its views/s read high."""
+    """Unix times of the job's first task start and last task finish: its task rows (UTC), and the views a
+    long run compacted (services.scheduler.compaction drops their start times: a packed task started its
+    duration before it finished). Without the packed views, a long run's window would start late and its
+    views/s read
+    high."""
     with sqlite3.connect(out / ".omnidata" / "state.db") as db:
-        first, last = db.execute("SELECT MIN(started_at), MAX(finished_at) FROM task WHERE state = 'done'").fetchone()
+        first, last = db.execute(
+            "SELECT MIN(started_at), MAX(finished_at) FROM task WHERE state = 'done'"
+        ).fetchone()
         packed = [t for tasks in packed_views(db) for t in tasks if t.finished_at is not None]
     starts = [unix(first)] if first else []
     ends = [unix(last)] if last else []
@@ -139,7 +145,8 @@ def generate(space: Path, extra: list[str], cores: str, out: Path, spec: Path, d
 
 
 def compare_outputs(gpu_out: Path, cpu_out: Path) -> dict:
-    """Per cue over every view: pixels equal and within one code value (worst view, mean), ARI for segmentations."""
+    """Per cue over every view: pixels equal and within one code value (worst view, mean), ARI for
+    segmentations."""
     from services.datasets.decode import read_raw
 
     per_cue: dict[str, dict[str, list[float]]] = {}
@@ -157,7 +164,8 @@ def compare_outputs(gpu_out: Path, cpu_out: Path) -> dict:
             continue
         if a.dtype.kind == "f":
             same = (a == b) | (np.isnan(a) & np.isnan(b))
-            near = same | (np.abs(a.astype(np.float64) - b) <= 1e-3)  # position in metres: within a millimetre
+            # position in metres: within a millimetre
+            near = same | (np.abs(a.astype(np.float64) - b) <= 1e-3)
         else:
             same = a == b
             near = np.abs(a.astype(np.int64) - b.astype(np.int64)) <= 1
@@ -178,16 +186,19 @@ def compare_outputs(gpu_out: Path, cpu_out: Path) -> dict:
 def gpu_info() -> dict:
     """The GPU and driver nvidia-smi reports, and this machine's cores."""
     try:
-        info = subprocess.run(["nvidia-smi", "--query-gpu=name,driver_version,memory.total", "--format=csv,noheader"],
-                              capture_output=True, text=True, check=True).stdout.strip()
+        info = subprocess.run(
+            ["nvidia-smi", "--query-gpu=name,driver_version,memory.total", "--format=csv,noheader"],
+            capture_output=True, text=True, check=True,
+        ).stdout.strip()
     except (OSError, subprocess.CalledProcessError) as e:
         info = f"no nvidia-smi: {e}"
     return {"gpu": info, "cores": os.cpu_count(), "cpu": room_cost.cpu_model(), **cpu_topology()}
 
 
 def cpu_topology() -> dict:
-    """Hardware threads per physical core (/proc/cpuinfo's siblings over cpu cores): with 2, a 16-core machine's
-    16 workers share 8 cores' caches and units, and each task slows down (what limits its scaling)."""
+    """Hardware threads per physical core (/proc/cpuinfo's siblings over cpu cores): with 2, a 16-core
+    machine's 16 workers share 8 cores' caches and units, and each task slows down (what limits its
+    scaling)."""
     fields = room_cost.cpuinfo()
     try:
         return {"threads_per_core": int(fields["siblings"]) // int(fields["cpu cores"])}
@@ -203,7 +214,8 @@ def spec_file(tmp: Path, name: str, points: int) -> Path:
 
 def run_setting(space: Path, extra: list[str], cores: str, out: Path, specs: dict[str, Path], device: str,
                 gpu: bool) -> dict:
-    """One setting's 3-view run and its main run; views/s of the views the main run adds (start-ups left out)."""
+    """One setting's 3-view run and its main run; views/s of the views the main run adds (start-ups left
+    out)."""
     small = generate(space, extra, cores, out.with_name(out.name + "-small"), specs["small"], device, gpu=gpu)
     main = generate(space, extra, cores, out, specs["one" if cores == "0" else "many"], device, gpu=gpu)
     main["small_run"] = {k: small[k] for k in ("views", "wall_s", "cpu_s")}
@@ -227,8 +239,11 @@ def run_room(room: str, args: argparse.Namespace, tmp: Path, specs: dict[str, Pa
     result["gpu_generate"] = run_setting(space, extra, all_cores, gpu_out, specs, args.device, gpu=True)
     print(room, "gpu generate", json.dumps(result["gpu_generate"]), flush=True)
     save()
-    for n in args.gpu_workers:  # fewer workers: fewer CUDA contexts, kernel loads and scene uploads on the one GPU
-        run = generate(space, extra, all_cores, tmp / f"{room}-gpu-w{n}", specs["many"], args.device, workers=n, gpu=True)
+    # fewer workers: fewer CUDA contexts, kernel loads and scene uploads on the one GPU
+    for n in args.gpu_workers:
+        run = generate(
+            space, extra, all_cores, tmp / f"{room}-gpu-w{n}", specs["many"], args.device, workers=n, gpu=True
+        )
         result.setdefault("gpu_generate_by_workers", {})[str(n)] = run
         print(room, f"gpu generate, {n} workers", json.dumps(run), flush=True)
         save()
@@ -255,15 +270,19 @@ def run_room(room: str, args: argparse.Namespace, tmp: Path, specs: dict[str, Pa
 
 
 def room_ratios(result: dict) -> None:
-    """The room's ratios from its runs: GPU floor to one core's, N cores and the GPU to one core (end to end, the
-    slope, the task window), the GPU to the most cores."""
+    """The room's ratios from its runs: GPU floor to one core's, N cores and the GPU to one core (end to end,
+    the slope, the task window), the GPU to the most cores."""
     result["gpu_floor_to_cpu_floor"] = ratio(result["gpu_floor"]["s_per_view_mean"],
                                              result["cpu_floor_one_core"]["s_per_view_mean"])
     cpu_runs, gpu = result["cpu_generate"], result["gpu_generate"]
     one = cpu_runs.get("1")
     if one:
-        for key in [k for k in ("views_per_s", "marginal_views_per_s", "task_window_views_per_s") if k in one]:
-            result[f"cores_to_one_core_{key}"] = {n: ratio(r.get(key), one.get(key)) for n, r in cpu_runs.items()}
+        for key in [
+            k for k in ("views_per_s", "marginal_views_per_s", "task_window_views_per_s") if k in one
+        ]:
+            result[f"cores_to_one_core_{key}"] = {
+                n: ratio(r.get(key), one.get(key)) for n, r in cpu_runs.items()
+            }
             result[f"gpu_to_one_core_{key}"] = ratio(gpu.get(key), one.get(key))
     many = [n for n in cpu_runs if n != "1"]
     if many:
@@ -276,10 +295,18 @@ def main() -> int:
     ap.add_argument("--rooms", default=",".join(ROOMS), help="comma-separated: " + ",".join(ROOMS))
     ap.add_argument("--scenes", type=Path, default=ROOT.parent / "shared" / "scenes")
     ap.add_argument("--points", type=int, default=22, help="points per room (x 3 views) of the one-core runs")
-    ap.add_argument("--points-many", type=int, default=44, help="points per room of the GPU and many-core runs")
-    ap.add_argument("--device", default="auto", choices=("auto", "optix", "cuda", "cpu"), help="the GPU run's device")
-    ap.add_argument("--cores", default="1,8,16", help="CPU runs on these core counts (those above nproc are left out)")
-    ap.add_argument("--gpu-workers", default="", help="also the GPU main job with these worker counts (e.g. 2,4,8)")
+    ap.add_argument(
+        "--points-many", type=int, default=44, help="points per room of the GPU and many-core runs"
+    )
+    ap.add_argument(
+        "--device", default="auto", choices=("auto", "optix", "cuda", "cpu"), help="the GPU run's device"
+    )
+    ap.add_argument(
+        "--cores", default="1,8,16", help="CPU runs on these core counts (those above nproc are left out)"
+    )
+    ap.add_argument(
+        "--gpu-workers", default="", help="also the GPU main job with these worker counts (e.g. 2,4,8)"
+    )
     ap.add_argument("--render-workers", default="",
                     help="also the GPU main job with every worker, these many of them rendering (e.g. 1,2)")
     ap.add_argument("--out", type=Path, default=RESULTS)

@@ -1,18 +1,20 @@
-"""Benchmark: what the `passes` task (one Cycles render per view with every pass, stored as .npz) costs on real
-rooms, part by part, against the bare render of the same views (issue 20, part 3).
+"""Benchmark: what the `passes` task (one Cycles render per view with every pass, stored as .npz) costs on
+real rooms, part by part, against the bare render of the same views (issue 20, part 3).
 
-On one core (this process pins itself to --core before bpy starts), for each room: the real planner's views (a few
-points, two views each), the space loaded once (load, curvature and the Blender scene are space set-up, excluded).
-Per view, interleaved so that a neighbour's load moves every figure alike:
+On one core (this process pins itself to --core before bpy starts), for each room: the real planner's views (a
+few points, two views each), the space loaded once (load, curvature and the Blender scene are space set-up,
+excluded). Per view, interleaved so that a neighbour's load moves every figure alike:
 - bare: a 1-sample render with Image + Depth + Normal only (BlenderScene.render_floor), nothing written;
-- aov:<set>: the same render with only these AOVs in the view layer (a scene of its own each), nothing written;
+- aov:<set>: the same render with only these AOVs in the view layer (a scene of its own each), nothing
+  written;
 - <...>+exr_write: the pass scene's settings (Combined + Depth, no Normal pass: the normals come from the face
   index) with these AOVs, its EXR written; aov:old+exr_write is the render before issue 20 part 3 and
   aov:pass+normal+exr_write the one of rounds 9-12 (both with the Normal pass);
 - the passes task as the worker runs it (ViewContext render of every pass, produce("passes"), put_bytes into a
-  LocalStore): task_in_batch is what it costs when a worker's view batch takes the whole view (runner._run_view:
-  render, EXR read, decode; the pass set is never stored), task_stored adds the npz encode and the store put (a
-  view not batched whole); wall_render_call_s (Cycles + EXR write), wall_exr_read_s and wall_decode_s split it.
+  LocalStore): task_in_batch is what it costs when a worker's view batch takes the whole view
+  (runner._run_view: render, EXR read, decode; the pass set is never stored), task_stored adds the npz encode
+  and the store put (a view not batched whole); wall_render_call_s (Cycles + EXR write), wall_exr_read_s and
+  wall_decode_s split it.
 Figures are CPU seconds of this process (time.process_time; all its threads) per view, medians over views x
 repeats, with wall medians and the load average beside them. Written to bench/results/passes_cost.json (the
 previous run kept under "before").
@@ -62,8 +64,8 @@ def median(values: list[float]) -> float:
 
 
 def aov_sets(faces: int) -> dict[str, tuple[str, ...]]:
-    """The AOV subsets timed on their own (render only, nothing written); "old" is every AOV the pass render had
-    before issue 20 part 3, "pass" the pass render's own (render.pass_aovs, absent before)."""
+    """The AOV subsets timed on their own (render only, nothing written); "old" is every AOV the pass render
+    had before issue 20 part 3, "pass" the pass render's own (render.pass_aovs, absent before)."""
     from services.worker.blender import render as r
 
     face1 = getattr(r, "AOV_FACE", None)
@@ -79,8 +81,8 @@ def aov_sets(faces: int) -> dict[str, tuple[str, ...]]:
 def variant_scene(space: SpaceContext, aovs: tuple[str, ...], write: bool = False,
                   normal: bool = False) -> Callable[[ViewGeometry], float]:
     """A scene of its own with the bare render's settings plus `aovs` (and, with `write`, the pass scene's EXR
-    output written: no Normal pass, unless `normal`, as before round 13); returns a function rendering a view that
-    gives its wall seconds."""
+    output written: no Normal pass, unless `normal`, as before round 13); returns a function rendering a view
+    that gives its wall seconds."""
     import bpy
 
     from services.worker.blender import render as r
@@ -123,7 +125,9 @@ def room_views(path: Path, frame: dict, resolution: int, n: int) -> tuple[SpaceC
     return SpaceContext.from_loaded(loaded, key=path.name, threads=1), views
 
 
-def task(space: SpaceContext, g: ViewGeometry, params: CueParams, store: LocalStore, i: int) -> dict[str, float]:
+def task(
+    space: SpaceContext, g: ViewGeometry, params: CueParams, store: LocalStore, i: int
+) -> dict[str, float]:
     """The passes task as runner.execute runs it; CPU seconds of its parts."""
     c0 = time.process_time()
     ctx = ViewContext(g, params, space=space, render_passes=RENDER_PASSES)
@@ -177,11 +181,15 @@ def run_room(name: str, n_views: int, repeats: int, resolution: int) -> dict:
                         wall[key].append(w)
                         cpu[key].append(time.process_time() - c0)
     bare = median(cpu["bare"])
-    out = {"views": len(views), "faces": len(space.mesh.faces), "load_avg": [round(x, 2) for x in os.getloadavg()],
-           "cpu_s_per_view_median": {k: round(median(v), 4) for k, v in cpu.items()},
-           "wall_s_per_view_median": {k: round(median(v), 4) for k, v in wall.items()},
-           "to_bare_cpu": {k: round(median(v) / bare, 2) for k, v in cpu.items() if not k.startswith(("npz_mb",
-                                                                                                       "wall_"))}}
+    out = {
+        "views": len(views), "faces": len(space.mesh.faces),
+        "load_avg": [round(x, 2) for x in os.getloadavg()],
+        "cpu_s_per_view_median": {k: round(median(v), 4) for k, v in cpu.items()},
+        "wall_s_per_view_median": {k: round(median(v), 4) for k, v in wall.items()},
+        "to_bare_cpu": {
+            k: round(median(v) / bare, 2) for k, v in cpu.items() if not k.startswith(("npz_mb", "wall_"))
+        },
+    }
     space.close()
     return out
 

@@ -1,4 +1,5 @@
-"""Benchmark: render throughput of one worker process on one CPU core, 512x512, all default cues (DESIGN.md s7).
+"""Benchmark: render throughput of one worker process on one CPU core, 512x512, all default cues (DESIGN.md
+s7).
 
 For each real scan (ycb_banana: textured OBJ; stanford_bunny full resolution: untextured PLY) it plans a few
 fixated views (cameras on a sphere, object mode; fov ~ truncated normal, roll +-10 deg), then:
@@ -71,9 +72,11 @@ ROOM_NAME = "icl_livingroom"
 # run in
 # the same hour on the same views).
 RECORDED_RUN = RECORDED / "render.json"
-GPU_NOTE = ("no GPU figures: no GPU run has been made (bench/render/gpu_cost.py measures one, into"
-            " bench/results/gpu.json, from the parts scripts/device_bundle.py packs); a CUDA/OptiX/auto"
-            " request without a GPU falls back to the CPU with a log line (tests/worker/blender/test_render.py)")
+GPU_NOTE = (
+    "no GPU figures: no GPU run has been made (bench/render/gpu_cost.py measures one, into"
+    " bench/results/gpu.json, from the parts scripts/device_bundle.py packs); a CUDA/OptiX/auto"
+    " request without a GPU falls back to the CPU with a log line (tests/worker/blender/test_render.py)"
+)
 
 
 def room_plan(loaded: object, resolution: int, seed: int = 0) -> SpacePlan:
@@ -86,7 +89,8 @@ PNG_SETTINGS = ((0, 0), (1, 0), (3, 0), (6, 0), (1, 3), (3, 3))  # (zlib level, 
 
 
 def png_settings(arrays: dict[str, np.ndarray], repeats: int = 3) -> dict[str, dict]:
-    """Seconds and bytes to encode one view's PNG cues per zlib (level, strategy); every file must decode back."""
+    """Seconds and bytes to encode one view's PNG cues per zlib (level, strategy); every file must decode
+    back."""
     out = {}
     for level, strategy in PNG_SETTINGS:
         times, size = [], 0
@@ -97,23 +101,28 @@ def png_settings(arrays: dict[str, np.ndarray], repeats: int = 3) -> dict[str, d
         for c, data in files.items():
             with Image.open(io.BytesIO(data)) as im:
                 back = np.asarray(im).astype(arrays[c].dtype)
-            assert np.array_equal(back, arrays[c]), f"{c}: PNG level {level} strategy {strategy} is not lossless"
+            assert np.array_equal(back, arrays[c]), (
+                f"{c}: PNG level {level} strategy {strategy} is not lossless"
+            )
             size += len(data)
         out[f"level{level}_strategy{strategy}"] = {"s": round(float(np.median(times)), 4), "bytes": size}
     return out
 
 
-# The position EXR's lossless codecs every OpenEXR reader knows (ZSTD, new in OpenEXR 3.5, and HTJ2K are left out:
-# older readers such as OpenCV's can not open them; PXR24, B44, DWA are lossy for float32).
+# The position EXR's lossless codecs every OpenEXR reader knows (ZSTD, new in OpenEXR 3.5, and HTJ2K are left
+# out: older readers such as OpenCV's can not open them; PXR24, B44, DWA are lossy for float32).
 EXR_CODECS = ("zip", "zips", "piz", "rle", "none")
 
 
 def exr_settings(position: np.ndarray, repeats: int = 3) -> dict[str, dict]:
-    """CPU seconds and bytes of the position EXR per lossless codec (the cue writes ZIP); each decodes back."""
+    """CPU seconds and bytes of the position EXR per lossless codec (the cue writes ZIP); each decodes
+    back."""
     import OpenEXR
 
-    codecs = {"zip": OpenEXR.ZIP_COMPRESSION, "zips": OpenEXR.ZIPS_COMPRESSION, "piz": OpenEXR.PIZ_COMPRESSION,
-              "rle": OpenEXR.RLE_COMPRESSION, "none": OpenEXR.NO_COMPRESSION}
+    codecs = {
+        "zip": OpenEXR.ZIP_COMPRESSION, "zips": OpenEXR.ZIPS_COMPRESSION, "piz": OpenEXR.PIZ_COMPRESSION,
+        "rle": OpenEXR.RLE_COMPRESSION, "none": OpenEXR.NO_COMPRESSION,
+    }
     out = {}
     for name in EXR_CODECS:
         times = []
@@ -127,14 +136,17 @@ def exr_settings(position: np.ndarray, repeats: int = 3) -> dict[str, dict]:
                 size = os.path.getsize(fh.name)
                 with OpenEXR.File(fh.name) as f:
                     back = np.asarray(f.channels()["RGB"].pixels, dtype=np.float32)
-            assert np.array_equal(back.view(np.uint32), position.view(np.uint32)), f"EXR {name} is not lossless"
+            assert np.array_equal(back.view(np.uint32), position.view(np.uint32)), (
+                f"EXR {name} is not lossless"
+            )
         out[name] = {"s": round(float(np.median(times)), 4), "bytes": size}
     return out
 
 
 IDLE_PROBE = """
 import os, sys, time
-os.sched_setaffinity(0, set(range(os.cpu_count())))  # a worker on a multi-core host, not this bench's one core
+# a worker on a multi-core host, not this bench's one core
+os.sched_setaffinity(0, set(range(os.cpu_count())))
 sys.path.insert(0, sys.argv[2])
 if sys.argv[1] == "plain-import":
     import bpy  # noqa: F401  (what the worker did before: Blender's thread pool sized to every CPU)
@@ -153,18 +165,23 @@ print((sum(os.times()[:2]) - c0) / (time.monotonic() - t0))
 
 
 def idle_cpu(seconds: float = 5.0) -> dict:
-    """CPU (fraction of one core) of an idle process that rendered once with 1 render thread on all CPUs: as the
-    worker imports bpy now (services.worker.blender.threads) and with a plain `import bpy` (the sched_yield spin)."""
+    """CPU (fraction of one core) of an idle process that rendered once with 1 render thread on all CPUs: as
+    the worker imports bpy now (services.worker.blender.threads) and with a plain `import bpy` (the
+    sched_yield
+    spin)."""
     out: dict = {"cpus": os.cpu_count(), "seconds": seconds}
     for mode in ("worker", "plain-import"):
-        run = subprocess.run([sys.executable, "-c", IDLE_PROBE, mode, str(ROOT), str(seconds)], capture_output=True,
-                             text=True, check=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
+        run = subprocess.run(
+            [sys.executable, "-c", IDLE_PROBE, mode, str(ROOT), str(seconds)], capture_output=True, text=True,
+            check=True, env={**os.environ, "PYTHONPATH": str(ROOT)},
+        )
         out[mode.replace("-", "_")] = round(float(run.stdout.strip().splitlines()[-1]), 3)
     return out
 
 
 def end_to_end(points: int, max_views: int, resolution: int, out_dir: Path) -> dict:
-    """`omnidata generate --workers 1` on the room, pinned to one core (scheduler, worker and planning share it).
+    """`omnidata generate --workers 1` on the room, pinned to one core (scheduler, worker and planning share
+    it).
 
     Labels per second of wall time, and per CPU second of the whole process tree (generate, its worker and
     planning processes: RUSAGE_CHILDREN), which is labels/s/core on an otherwise idle core."""
@@ -175,15 +192,21 @@ def end_to_end(points: int, max_views: int, resolution: int, out_dir: Path) -> d
     target = out_dir / "out"
     core = str(sorted(os.sched_getaffinity(0))[0])
     t0, cpu0 = time.perf_counter(), _children_cpu_s()
-    subprocess.run(["taskset", "-c", core, sys.executable, "-m", "services.cli", "generate", str(ROOM),
-                    "--out", str(target), "--spec", str(spec), "--workers", "1", "--seed", "0", "--no-progress"],
-                   cwd=ROOT, check=True, capture_output=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    subprocess.run(
+        [
+            "taskset", "-c", core, sys.executable, "-m", "services.cli", "generate", str(ROOM), "--out",
+            str(target), "--spec", str(spec), "--workers", "1", "--seed", "0", "--no-progress",
+        ],
+        cwd=ROOT, check=True, capture_output=True, env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
     wall, cpu = time.perf_counter() - t0, _children_cpu_s() - cpu0
     lines = (target / "manifest.jsonl").read_text().splitlines()
     labels = sum(len(json.loads(line)["outputs"]) for line in lines)
-    return {"views": len(lines), "labels": labels, "wall_s": round(wall, 2), "cpu_s": round(cpu, 2),
-            "labels_per_cpu_s": round(labels / cpu, 2), "cpu_s_per_view": round(cpu / max(1, len(lines)), 3),
-            "labels_per_s_wall": round(labels / wall, 2), "wall_s_per_view": round(wall / max(1, len(lines)), 3)}
+    return {
+        "views": len(lines), "labels": labels, "wall_s": round(wall, 2), "cpu_s": round(cpu, 2),
+        "labels_per_cpu_s": round(labels / cpu, 2), "cpu_s_per_view": round(cpu / max(1, len(lines)), 3),
+        "labels_per_s_wall": round(labels / wall, 2), "wall_s_per_view": round(wall / max(1, len(lines)), 3),
+    }
 
 
 def _children_cpu_s() -> float:
@@ -197,8 +220,9 @@ def run_room(n_views: int, resolution: int, repeats: int) -> dict:
     Each repeat walks the views; for each view it first times a bare 1-sample render (services.worker.blender
     BlenderScene.render_floor: Image, Depth and Normal only, same resolution and threads), then makes every
     default cue from one pass render. Medians over views x repeats, so a busy neighbour moves both alike.
-    Times are this process's CPU seconds (time.process_time, all its threads), which other processes on a shared
-    machine do not inflate; on an idle core they equal wall time (the wall-clock medians are reported beside).
+    Times are this process's CPU seconds (time.process_time, all its threads), which other processes on a
+    shared machine do not inflate; on an idle core they equal wall time (the wall-clock medians are reported
+    beside).
     """
     params = CueParams()
     t0 = time.perf_counter()
@@ -265,13 +289,17 @@ def run_room(n_views: int, resolution: int, repeats: int) -> dict:
         "floor_s_median": round(floor, 4),
         "view_s_median": round(view_med, 4),
         "ratio_view_to_floor": round(view_med / floor, 2),
-        "wall_clock": {"floor_s_median": round(float(np.median(floor_wall)), 4),
-                       "view_s_median": round(float(np.median(view_wall)), 4),
-                       "ratio_view_to_floor": round(float(np.median(view_wall) / np.median(floor_wall)), 2)},
+        "wall_clock": {
+            "floor_s_median": round(float(np.median(floor_wall)), 4),
+            "view_s_median": round(float(np.median(view_wall)), 4),
+            "ratio_view_to_floor": round(float(np.median(view_wall) / np.median(floor_wall)), 2),
+        },
         "labels_per_s_per_core": round(len(cues) / view_med, 2),
         "per_cue_s_median": dict(sorted(med.items(), key=lambda kv: -kv[1])),
-        "intermediates_s_median": {k: round(float(np.median(v)), 4)
-                                   for k, v in sorted(inter.items(), key=lambda kv: -float(np.median(kv[1])))},
+        "intermediates_s_median": {
+            k: round(float(np.median(v)), 4)
+            for k, v in sorted(inter.items(), key=lambda kv: -float(np.median(kv[1])))
+        },
         "render_parts_s_median": {k: round(float(np.median(v)), 4) for k, v in render_parts.items()},
         "png_settings": png,
         "position_exr": exr,
@@ -372,9 +400,12 @@ def run_scene(name: str, path: Path, n_views: int, resolution: int, naive_views:
         "view_s": [round(v, 3) for v in view_s],
         "render_s_first": round(render_s[0], 3),
         "render_s_mean_after_first": round(float(np.mean(render_s[1:] or render_s)), 3),
-        "per_cue_s_mean": {k: round(v / n_views, 4) for k, v in sorted(per_cue.items(), key=lambda kv: -kv[1])},
-        "intermediates_s_mean": {k: round(v / n_views, 4)
-                                 for k, v in sorted(intermediates.items(), key=lambda kv: -kv[1])},
+        "per_cue_s_mean": {
+            k: round(v / n_views, 4) for k, v in sorted(per_cue.items(), key=lambda kv: -kv[1])
+        },
+        "intermediates_s_mean": {
+            k: round(v / n_views, 4) for k, v in sorted(intermediates.items(), key=lambda kv: -kv[1])
+        },
         "naive_labels": naive_labels,
         "naive_renders": naive_renders,
         "naive_s": round(naive_s, 3),
@@ -429,7 +460,9 @@ def main() -> int:
             room["first_pass"]["end_to_end"] = first["room_end_to_end"]
     if args.e2e_points > 0:
         with tempfile.TemporaryDirectory(prefix="omnidata-bench-") as tmp:
-            result["room_end_to_end"] = end_to_end(args.e2e_points, args.e2e_max_views, args.resolution, Path(tmp))
+            result["room_end_to_end"] = end_to_end(
+                args.e2e_points, args.e2e_max_views, args.resolution, Path(tmp)
+            )
     if args.idle_s > 0:
         result["idle_worker_cpu"] = idle_cpu(args.idle_s)
     if scenes:
@@ -445,23 +478,26 @@ def main() -> int:
                 sum(s["naive_cold_labels"] for s in scenes.values())
                 / sum(s["naive_cold_labels"] / s["labels_per_s_naive_cold"] for s in scenes.values())), 2),
         })
-    result.update({
-        "peak_rss_mb": round(peak_rss_bytes() / 2**20, 1),
-        "rss_end_mb": round(rss_bytes() / 2**20, 1),
-        "wall_s": round(time.perf_counter() - t0, 2),
-        "scenes": scenes,
-        "machine": {"python": platform.python_version(), "platform": platform.platform(),
-                    "cpu": platform.processor() or platform.machine()},
-        "notes": "the machine may be shared (these figures: 2 cores under other engineers' builds and tests), so room"
-                 " timings are this process's CPU seconds and end to end is per CPU second of its process tree;"
-                 " room: medians over views x repeats, the floor (a bare 1-sample render of the same view: Image,"
-                 " Depth and Normal passes, no AOVs, nothing written or read back) timed just before each view;"
-                 " amortised = all views incl. the first render (Cycles kernel/scene sync) and the space's curvature;"
-                 " labels_per_s_amortised_incl_load adds load_space; steady = views after the first;"
-                 " naive = one render per label with the scene kept loaded (Cycles persistent data);"
-                 " naive_cold = one render per label that also builds the Blender scene (+ curvature when needed)",
-        "baseline": baseline,
-    })
+    result.update(
+        {
+            "peak_rss_mb": round(peak_rss_bytes() / 2**20, 1), "rss_end_mb": round(rss_bytes() / 2**20, 1),
+            "wall_s": round(time.perf_counter() - t0, 2), "scenes": scenes,
+            "machine": {
+                "python": platform.python_version(), "platform": platform.platform(),
+                "cpu": platform.processor() or platform.machine(),
+            },
+            "notes": "the machine may be shared (these figures: 2 cores under other engineers' builds and "
+            "tests), so room timings are this process's CPU seconds and end to end is per CPU second of "
+            "its process tree; room: medians over views x repeats, the floor (a bare 1-sample render of the "
+            "same view: Image, Depth and Normal passes, no AOVs, nothing written or read back) timed just "
+            "before each view; amortised = all views incl. the first render (Cycles kernel/scene sync) and "
+            "the space's curvature;"
+            " labels_per_s_amortised_incl_load adds load_space; steady = views after the first;"
+            " naive = one render per label with the scene kept loaded (Cycles persistent data);"
+            " naive_cold = one render per label that also builds the Blender scene (+ curvature when needed)",
+            "baseline": baseline,
+        }
+    )
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1) + "\n")
     print(json.dumps({k: v for k, v in result.items() if k not in ("scenes", "room")}, indent=1))

@@ -1,4 +1,5 @@
-"""Benchmark: cost per view on real rooms as a user sees it, against the bare render of the same views (issue 20).
+"""Benchmark: cost per view on real rooms as a user sees it, against the bare render of the same views (issue
+20).
 
 For each room it runs, on one core (pinned as `taskset -c CORE` would, so the whole process tree shares it),
 interleaved:
@@ -8,19 +9,20 @@ interleaved:
    tasks together (first view, which carries the worker's one-off set-up, and the median view). A long run's
    finished views are compacted into one row each (services.scheduler.compaction): their durations are read
    from those rows; its timeline (queue and start times, which compaction drops) is then left out;
-2. in a fresh process on the same core, the bare 1-sample Cycles render (Image + Depth + Normal, no AOVs, nothing
-   read back) of the very views that job rendered (its stored plan): wall seconds per view.
+2. in a fresh process on the same core, the bare 1-sample Cycles render (Image + Depth + Normal, no AOVs,
+   nothing read back) of the very views that job rendered (its stored plan): wall seconds per view.
 Each repeat runs 1 then 2, so a neighbour's load moves both; the ratio is taken per repeat and reported as the
 median and the worst case over repeats, with the load average beside each figure.
 With --cores 0,1 it also runs generate with its default worker settings on those cores (all-cores figure) and
-compares views/s with the one-core run of the same repeat; with the 3-view runs on both settings, also the views/s
-of the views a longer job adds (the slope, start-ups left out: what a long job on many cores approaches).
+compares views/s with the one-core run of the same repeat; with the 3-view runs on both settings, also the
+views/s of the views a longer job adds (the slope, start-ups left out: what a long job on many cores
+approaches).
 
-A 3-view run of the same room on the same core (unless --no-startup) splits generate's CPU into what a run pays
-whatever its size (start-up: imports, space loads, curvature, planning) and the CPU of one more view (the slope),
-set against the floor's. `claims` counts task claims (a view batch claims a view's derived tasks at once).
-Figures go to bench/results/room_cost.json under "room_cost", or --key (the previous run's figures kept as
-"<key>_before"; the file's other keys are left as they are). A long job, where start-up
+A 3-view run of the same room on the same core (unless --no-startup) splits generate's CPU into what a run
+pays whatever its size (start-up: imports, space loads, curvature, planning) and the CPU of one more view (the
+slope), set against the floor's. `claims` counts task claims (a view batch claims a view's derived tasks at
+once). Figures go to bench/results/room_cost.json under "room_cost", or --key (the previous run's figures kept
+as "<key>_before"; the file's other keys are left as they are). A long job, where start-up
 is spread over a thousand views and more: --points 22 --max-views 60 --no-startup --key room_cost_long.
 Run: .venv/bin/python bench/render/room_cost.py [--points 14] [--max-views 3] [--repeats 2] [--core 1] [--key
 K]
@@ -53,8 +55,9 @@ RESULTS = results_dir() / "room_cost.json"
 SCENES = ROOT.parent / "shared" / "scenes"
 SCANS = ROOT / "bench" / "scans"
 # name -> (SPACE argument, extra generate flags). The kitchen's fused mesh is not gravity aligned; its capture
-# ships the gravity direction (gravity-direction.txt: up is its negative), given so no low-confidence guess is used.
-# The copy room (textured, in its first camera's frame) is refused as ambiguous without one: its measured up.
+# ships the gravity direction (gravity-direction.txt: up is its negative), given so no low-confidence guess is
+# used. The copy room (textured, in its first camera's frame) is refused as ambiguous without one: its
+# measured up.
 ROOMS: dict[str, tuple[Path, list[str]]] = {
     "icl_livingroom": (SCENES / "icl_livingroom", []),
     "7scenes_redkitchen": (SCENES / "7scenes_redkitchen" / "mesh_tsdf_2cm_from_1000frames.ply",
@@ -78,7 +81,8 @@ device = sys.argv[5] if len(sys.argv) > 5 else "cpu"
 plan = plan_from_json(Path(plan_path).read_bytes())
 scene = SpaceContext.from_loaded(load_space(space_path, **frame), key="floor", device=device).scene()
 views = [ViewGeometry.of(v) for v in plan.views]
-first = scene.render_floor(views[0])  # Cycles kernels and the BVH: a worker pays them once per space, not per view
+# Cycles kernels and the BVH: a worker pays them once per space, not per view
+first = scene.render_floor(views[0])
 walls, cpus = [], []
 for g in views:
     c0 = time.process_time()
@@ -145,18 +149,22 @@ def generate(space: Path, extra: list[str], cores: str, out: Path, spec: Path, w
                          env={**os.environ, "PYTHONPATH": str(root), "OMNIDATA_RENDER_DEVICE": device})
     wall, cpu = time.perf_counter() - t0, children_cpu_s() - cpu0
     if run.returncode != 0:
-        raise RuntimeError(f"generate {space.name} on {device} failed ({run.returncode}): {run.stderr[-2000:]}")
+        raise RuntimeError(
+            f"generate {space.name} on {device} failed ({run.returncode}): {run.stderr[-2000:]}"
+        )
     views = len((out / "manifest.jsonl").read_text().splitlines())
     with sqlite3.connect(out / ".omnidata" / "state.db") as db:
         # a view batch's tasks share their claim's started_at: claims = distinct (worker, started_at)
-        tasks, claims = db.execute("SELECT COUNT(*), COUNT(DISTINCT worker_id || started_at) FROM task").fetchone()
+        tasks, claims = db.execute(
+            "SELECT COUNT(*), COUNT(DISTINCT worker_id || started_at) FROM task"
+        ).fetchone()
         done = view_durations(db)
-        # A long run compacts its finished views (services.scheduler.compaction): their rows, queue and start times
-        # are gone, so the timeline reads only from a run that compacted nothing.
+        # A long run compacts its finished views (services.scheduler.compaction): their rows, queue and start
+        # times are gone, so the timeline reads only from a run that compacted nothing.
         steps = timeline(db, started, started + wall) if not done.compacted else None
-    # Per view, in the order they ran: the passes task, and the view's derived tasks together. The first view's
-    # carry what a worker pays once (the space's scene, curvature, first kernel loads); the median is a view in
-    # the steady state.
+    # Per view, in the order they ran: the passes task, and the view's derived tasks together. The first
+    # view's carry what a worker pays once (the space's scene, curvature, first kernel loads); the median is a
+    # view in the steady state.
     renders = [d.get("passes", 0.0) for d in done.per_view]
     derivations = [sum(s for cue, s in d.items() if cue != "passes") for d in done.per_view]
     per_cue: dict[str, float] = {}
@@ -164,15 +172,19 @@ def generate(space: Path, extra: list[str], cores: str, out: Path, spec: Path, w
         for cue, s in d.items():
             per_cue[cue] = per_cue.get(cue, 0.0) + s
     per_cue = {cue: round(total / views, 4) for cue, total in per_cue.items()}
-    return {"cores": cores, "device": device, "views": views, "wall_s": round(wall, 2),
-            "wall_s_per_view": round(wall / views, 4), "views_per_s": round(views / wall, 3), "cpu_s": round(cpu, 2),
-            "cpu_s_per_view": round(cpu / views, 4), "load_before": before, "load_after": load(), "tasks": tasks,
-            "claims": claims, "compacted_views": done.compacted,
-            "task_s_per_view": dict(sorted(per_cue.items(), key=lambda kv: -kv[1])),
-            "task_s_per_view_total": round(sum(per_cue.values()), 4),
-            "passes_task_s": {"first": round(renders[0], 4), "median": round(median(renders), 4)},
-            "derivations_s_per_view": {"first": round(derivations[0], 4), "median": round(median(derivations), 4)},
-            "timeline_s": steps}
+    return {
+        "cores": cores, "device": device, "views": views, "wall_s": round(wall, 2),
+        "wall_s_per_view": round(wall / views, 4), "views_per_s": round(views / wall, 3),
+        "cpu_s": round(cpu, 2), "cpu_s_per_view": round(cpu / views, 4), "load_before": before,
+        "load_after": load(), "tasks": tasks, "claims": claims, "compacted_views": done.compacted,
+        "task_s_per_view": dict(sorted(per_cue.items(), key=lambda kv: -kv[1])),
+        "task_s_per_view_total": round(sum(per_cue.values()), 4),
+        "passes_task_s": {"first": round(renders[0], 4), "median": round(median(renders), 4)},
+        "derivations_s_per_view": {
+            "first": round(derivations[0], 4), "median": round(median(derivations), 4),
+        },
+        "timeline_s": steps,
+    }
 
 
 @dataclass
@@ -184,21 +196,27 @@ class ViewDurations:
 
 
 def packed_views(db: sqlite3.Connection) -> list[list[DoneTask]]:
-    """The done tasks of each view a long run compacted into one `view_output` row (services.core.db.view_outputs)."""
+    """The done tasks of each view a long run compacted into one `view_output` row
+    (services.core.db.view_outputs)."""
     return [unpack(blob, lambda cue: "") for (blob,) in db.execute("SELECT outputs FROM view_output")]
 
 
 def view_durations(db: sqlite3.Connection) -> ViewDurations:
-    """Task seconds of every view of a run's state: its done task rows, and the views compaction packed into one
-    `view_output` row each (services.core.db.view_outputs; those ran first, so they come first, by finish time)."""
-    packed = [(min(t.finished_at for t in tasks if t.finished_at), {t.cue: t.duration_s or 0.0 for t in tasks})
-              for tasks in packed_views(db)]
+    """Task seconds of every view of a run's state: its done task rows, and the views compaction packed into
+    one `view_output` row each (services.core.db.view_outputs; those ran first, so they come first, by finish
+    time)."""
+    packed = [
+        (min(t.finished_at for t in tasks if t.finished_at), {t.cue: t.duration_s or 0.0 for t in tasks})
+        for tasks in packed_views(db)
+    ]
     rows: dict[tuple, dict[str, float]] = {}
     for space, point, view, cue, seconds in db.execute(
             "SELECT space_id, point_idx, view_idx, cue, duration_s FROM task WHERE state = 'done' "
             "ORDER BY started_at"):
         rows.setdefault((space, point, view), {})[cue] = seconds or 0.0
-    return ViewDurations([d for _, d in sorted(packed, key=lambda p: p[0])] + list(rows.values()), len(packed))
+    return ViewDurations(
+        [d for _, d in sorted(packed, key=lambda p: p[0])] + list(rows.values()), len(packed)
+    )
 
 
 def unix(stamp: str) -> float:
@@ -208,17 +226,21 @@ def unix(stamp: str) -> float:
 
 
 def timeline(db: sqlite3.Connection, start: float, end: float) -> dict:
-    """Where a run's wall time went, in seconds from its start (task rows): its first task queued (the parent's
-    validation and planning), started, each worker's first task (its start-up: first, median, last worker), the
-    last task finished, and the process's end."""
+    """Where a run's wall time went, in seconds from its start (task rows): its first task queued (the
+    parent's validation and planning), started, each worker's first task (its start-up: first, median, last
+    worker), the last task finished, and the process's end."""
     queued, first, last = db.execute(
         "SELECT MIN(queued_at), MIN(started_at), MAX(finished_at) FROM task WHERE state = 'done'").fetchone()
     per_worker = sorted(unix(t) - start for (t,) in db.execute(
         "SELECT MIN(started_at) FROM task WHERE state = 'done' GROUP BY worker_id"))
-    return {"first_task_queued": round(unix(queued) - start, 2), "first_task_started": round(unix(first) - start, 2),
-            "workers": len(per_worker), "worker_first_task": [round(per_worker[i], 2) for i in
-                                                              (0, len(per_worker) // 2, len(per_worker) - 1)],
-            "last_task_finished": round(unix(last) - start, 2), "process_end": round(end - start, 2)}
+    return {
+        "first_task_queued": round(unix(queued) - start, 2),
+        "first_task_started": round(unix(first) - start, 2), "workers": len(per_worker),
+        "worker_first_task": [
+            round(per_worker[i], 2) for i in (0, len(per_worker) // 2, len(per_worker) - 1)
+        ],
+        "last_task_finished": round(unix(last) - start, 2), "process_end": round(end - start, 2),
+    }
 
 
 def plan_frame(out: Path) -> dict:
@@ -231,33 +253,49 @@ def floor(space: Path, cores: str, out: Path, device: str = "cpu") -> dict:
     """Bare 1-sample renders of the views `generate` planned into `out`, in a fresh process on `cores`."""
     plans = sorted((out / "_plan").glob("*.json"))
     before = load()
-    run = subprocess.run([sys.executable, "-c", FLOOR_PROBE, str(ROOT), str(space), str(plans[0]),
-                          json.dumps(plan_frame(out)), device], cwd=ROOT, capture_output=True, text=True,
-                         preexec_fn=pinned(cores), env={**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"})
+    run = subprocess.run(
+        [
+            sys.executable, "-c", FLOOR_PROBE, str(ROOT), str(space), str(plans[0]),
+            json.dumps(plan_frame(out)), device,
+        ],
+        cwd=ROOT, capture_output=True, text=True, preexec_fn=pinned(cores),
+        env={**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"},
+    )
     if run.returncode != 0:
-        raise RuntimeError(f"floor of {space.name} on {device} failed ({run.returncode}): {run.stderr[-2000:]}")
+        raise RuntimeError(
+            f"floor of {space.name} on {device} failed ({run.returncode}): {run.stderr[-2000:]}"
+        )
     times = json.loads(run.stdout.strip().splitlines()[-1])
     wall = times["wall"]
-    return {"device": times["device"], "cores": cores, "views": len(wall), "first_render_s": round(times["first_s"], 3),
-            "s_per_view_median": round(median(wall), 4), "s_per_view_mean": round(sum(wall) / len(wall), 4),
-            "s_per_view_worst": round(max(wall), 4), "cpu_s_per_view_median": round(median(times["cpu"]), 4),
-            "cpu_s_per_view_mean": round(sum(times["cpu"]) / len(wall), 4), "load_before": before, "load_after": load()}
+    return {
+        "device": times["device"], "cores": cores, "views": len(wall),
+        "first_render_s": round(times["first_s"], 3), "s_per_view_median": round(median(wall), 4),
+        "s_per_view_mean": round(sum(wall) / len(wall), 4), "s_per_view_worst": round(max(wall), 4),
+        "cpu_s_per_view_median": round(median(times["cpu"]), 4),
+        "cpu_s_per_view_mean": round(sum(times["cpu"]) / len(wall), 4), "load_before": before,
+        "load_after": load(),
+    }
 
 
 DERIVED_EXCLUDE = ("passes",)  # the render task; every other task is a derivation (and its encoding)
 
 
 def summarise(repeats: list[dict]) -> dict:
-    """Per-repeat ratios to the floor (mean floor per view, as the end-to-end figure is a mean), median and worst."""
+    """Per-repeat ratios to the floor (mean floor per view, as the end-to-end figure is a mean), median and
+    worst."""
     e2e = [r["generate"]["wall_s_per_view"] / r["floor"]["s_per_view_mean"] for r in repeats]
     e2e_cpu = [r["generate"]["cpu_s_per_view"] / r["floor"]["cpu_s_per_view_mean"] for r in repeats]
-    passes = [r["generate"]["task_s_per_view"].get("passes", 0.0) / r["floor"]["s_per_view_mean"] for r in repeats]
+    passes = [
+        r["generate"]["task_s_per_view"].get("passes", 0.0) / r["floor"]["s_per_view_mean"] for r in repeats
+    ]
     derived = [sum(v for k, v in r["generate"]["task_s_per_view"].items() if k not in DERIVED_EXCLUDE)
                / r["floor"]["s_per_view_mean"] for r in repeats]
-    out = {"end_to_end_to_floor": {"median": round(median(e2e), 2), "worst": round(max(e2e), 2)},
-           "end_to_end_cpu_to_floor_cpu": {"median": round(median(e2e_cpu), 2), "worst": round(max(e2e_cpu), 2)},
-           "passes_task_to_floor": {"median": round(median(passes), 2), "worst": round(max(passes), 2)},
-           "derivations_to_floor": {"median": round(median(derived), 2), "worst": round(max(derived), 2)}}
+    out = {
+        "end_to_end_to_floor": {"median": round(median(e2e), 2), "worst": round(max(e2e), 2)},
+        "end_to_end_cpu_to_floor_cpu": {"median": round(median(e2e_cpu), 2), "worst": round(max(e2e_cpu), 2)},
+        "passes_task_to_floor": {"median": round(median(passes), 2), "worst": round(max(passes), 2)},
+        "derivations_to_floor": {"median": round(median(derived), 2), "worst": round(max(derived), 2)},
+    }
     # The steady state: a median view's passes task and derivations against the floor's median view (the means
     # above also carry the first view's one-off set-up)
     for name, key in (("passes_task_median_view_to_floor", "passes_task_s"),
@@ -266,17 +304,26 @@ def summarise(repeats: list[dict]) -> dict:
                   if key in r["generate"]]
         if ratios:
             out[name] = {"median": round(median(ratios), 2), "worst": round(max(ratios), 2)}
-    multi = [r["all_cores"]["views_per_s"] / r["generate"]["views_per_s"] for r in repeats if "all_cores" in r]
+    multi = [
+        r["all_cores"]["views_per_s"] / r["generate"]["views_per_s"] for r in repeats if "all_cores" in r
+    ]
     if multi:
-        out["all_cores_to_one_core_views_per_s"] = {"median": round(median(multi), 2), "worst": round(min(multi), 2)}
-    steady = [marginal_views_per_s(r["all_cores"], r["all_cores_startup"])
-              / marginal_views_per_s(r["generate"], r["startup"]) for r in repeats if "all_cores_startup" in r]
+        out["all_cores_to_one_core_views_per_s"] = {
+            "median": round(median(multi), 2), "worst": round(min(multi), 2),
+        }
+    steady = [
+        marginal_views_per_s(r["all_cores"], r["all_cores_startup"])
+        / marginal_views_per_s(r["generate"], r["startup"])
+        for r in repeats
+        if "all_cores_startup" in r
+    ]
     if steady:  # a long job's ratio: one more view's wall time, on all cores against one (start-ups left out)
         out["all_cores_to_one_core_marginal_views_per_s"] = {"median": round(median(steady), 2),
                                                              "worst": round(min(steady), 2)}
     starts = [r for r in repeats if "startup" in r]
     if starts:
-        # what a run pays whatever its size (imports, space loads, curvature, planning) and the cost of one more view
+        # what a run pays whatever its size (imports, space loads, curvature, planning) and the cost of one
+        # more view
         fixed = [r["startup"]["cpu_s"] - r["startup"]["views"] * marginal_cpu(r) for r in starts]
         marginal = [marginal_cpu(r) / r["floor"]["cpu_s_per_view_mean"] for r in starts]
         out["startup_cpu_s"] = {"median": round(median(fixed), 2), "worst": round(max(fixed), 2)}
@@ -286,7 +333,8 @@ def summarise(repeats: list[dict]) -> dict:
 
 
 def marginal_views_per_s(big: dict, small: dict) -> float:
-    """Views a second of the views a bigger run adds: the slope of wall time between two runs of one setting."""
+    """Views a second of the views a bigger run adds: the slope of wall time between two runs of one
+    setting."""
     return (big["views"] - small["views"]) / max(1e-9, big["wall_s"] - small["wall_s"])
 
 
@@ -311,13 +359,16 @@ def main() -> int:
     ap.add_argument("--key", default="room_cost",
                     help='the entry of --out to write (e.g. room_cost_long for a run of thousands of views)')
     args = ap.parse_args()
-    # The project's bytecode, written now: with PYTHONDONTWRITEBYTECODE set (as on CI machines) every generate would
-    # otherwise compile its modules again (~0.3 CPU-s of start-up) where an installed package has them compiled.
+    # The project's bytecode, written now: with PYTHONDONTWRITEBYTECODE set (as on CI machines) every generate
+    # would otherwise compile its modules again (~0.3 CPU-s of start-up) where an installed package has them
+    # compiled.
     compileall.compile_dir(ROOT / "services", quiet=1)
     t0 = time.perf_counter()
-    result: dict = {"resolution": args.resolution, "core": args.core, "clock": "wall seconds",
-                    "machine": f"{os.cpu_count()} cores ({cpu_model()}, Linux {platform.release()}), shared with "
-                               "other developers' work (load averages beside each figure)", "rooms": {}}
+    result: dict = {
+        "resolution": args.resolution, "core": args.core, "clock": "wall seconds",
+        "machine": f"{os.cpu_count()} cores ({cpu_model()}, Linux {platform.release()}), shared "
+        "with other developers' work (load averages beside each figure)", "rooms": {},
+    }
     with tempfile.TemporaryDirectory(prefix="omnidata-roomcost-") as tmp:
         spec = Path(tmp) / "spec.json"
         spec.write_text(json.dumps({"points": {"count": args.points, "max_views": args.max_views},
@@ -332,9 +383,13 @@ def main() -> int:
                     small = Path(tmp) / "spec-small.json"
                     small.write_text(json.dumps({"points": {"count": 1, "max_views": 3},
                                                  "views": {"resolution": args.resolution}}))
-                    rep["startup"] = generate(*ROOMS[room], args.core, Path(tmp) / f"{room}-{i}-small", small, 1)
+                    rep["startup"] = generate(
+                        *ROOMS[room], args.core, Path(tmp) / f"{room}-{i}-small", small, 1
+                    )
                 if args.cores:
-                    rep["all_cores"] = generate(*ROOMS[room], args.cores, Path(tmp) / f"{room}-{i}-all", spec, None)
+                    rep["all_cores"] = generate(
+                        *ROOMS[room], args.cores, Path(tmp) / f"{room}-{i}-all", spec, None
+                    )
                     if args.startup:
                         rep["all_cores_startup"] = generate(*ROOMS[room], args.cores,
                                                             Path(tmp) / f"{room}-{i}-all-small", small, None)
@@ -344,7 +399,8 @@ def main() -> int:
             result["rooms"][room] = {"summary": summarise(repeats), "repeats": repeats}
             print(room, json.dumps(result["rooms"][room]["summary"]), flush=True)
             result["wall_s"] = round(time.perf_counter() - t0, 1)
-            write_result(args.out, args.key, result, first=len(result["rooms"]) == 1)  # a later failure keeps it
+            # a later failure keeps it
+            write_result(args.out, args.key, result, first=len(result["rooms"]) == 1)
     return 0
 
 

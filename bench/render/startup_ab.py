@@ -1,11 +1,11 @@
 """Benchmark: what a change saves of a run, as an A/B of two revisions on the same host and moment.
 
 `omnidata generate` of --points x 3 views of each real room, --workers 1, pinned to one core. With the default
-single point (3 views) its CPU is mostly start-up (imports, validation, levelling, planning, Blender, the kernels,
-the curvature, the first render); with --points 22, the 66-view job of bench/render/room_cost.py, end to end.
-The run of this checkout and the run of git revision --against (a worktree of it, its kernels compiled ahead
-as `make venv` does) alternate, first one then the other, so a neighbour's load moves both; per room, each
-side's CPU and wall seconds per repeat, their medians and the paired differences (against minus this
+single point (3 views) its CPU is mostly start-up (imports, validation, levelling, planning, Blender, the
+kernels, the curvature, the first render); with --points 22, the 66-view job of bench/render/room_cost.py, end
+to end. The run of this checkout and the run of git revision --against (a worktree of it, its kernels compiled
+ahead as `make venv` does) alternate, first one then the other, so a neighbour's load moves both; per room,
+each side's CPU and wall seconds per repeat, their medians and the paired differences (against minus this
 checkout). Writes bench/results/startup_ab.json under --key ("ab"; its other keys kept).
 Run: .venv/bin/python bench/render/startup_ab.py --against REV [--points 1] [--repeats 5] [--core 1]
      [--worktree DIR] [--key ab]; --against-code DIR runs an existing checkout as the other side instead.
@@ -34,7 +34,8 @@ def job_spec(points: int) -> dict:
 
 
 def worktree(rev: str, folder: Path) -> Path:
-    """A checkout of `rev` in `folder` (reused when it holds one), with its kernels compiled, beside ../shared."""
+    """A checkout of `rev` in `folder` (reused when it holds one), with its kernels compiled, beside
+    ../shared."""
     if not (folder / "services").is_dir():
         subprocess.run(["git", "worktree", "add", "--detach", str(folder), rev], cwd=ROOT, check=True,
                        capture_output=True)
@@ -68,7 +69,9 @@ def main() -> int:
         spec = Path(tmp) / "spec.json"
         spec.write_text(json.dumps(job_spec(args.points)))
         sides = {"against": old, "this": ROOT}
-        cpu: dict[str, dict[str, list[float]]] = {room: {k: [] for k in sides} for room in args.rooms.split(",")}
+        cpu: dict[str, dict[str, list[float]]] = {
+            room: {k: [] for k in sides} for room in args.rooms.split(",")
+        }
         wall: dict[str, dict[str, list[float]]] = {room: {k: [] for k in sides} for room in cpu}
         before = load()
         for rep in range(args.repeats):
@@ -76,7 +79,8 @@ def main() -> int:
                 space, extra = ROOMS[room]
                 for side in list(sides)[:: 1 if rep % 2 == 0 else -1]:
                     root = sides[side]
-                    source = root / space.relative_to(ROOT) if space.is_relative_to(ROOT) else space  # its own copy
+                    # its own copy
+                    source = root / space.relative_to(ROOT) if space.is_relative_to(ROOT) else space
                     with tempfile.TemporaryDirectory(prefix="omnidata-startup-ab-") as out:
                         run = generate(source, extra, args.core, Path(out) / "o", spec, 1, root=root)
                     runs[side].append(run["cpu_s"])

@@ -1,11 +1,11 @@
 """Benchmark: the fixed start-up CPU of `omnidata generate` on the real rooms, part by part (issue 20).
 
 Each part in a fresh process (so imports and caches start cold as in a run), process CPU seconds:
-- parent: validate, register and plan one room as generate does, with the scheduler planning from the space the
-  run validated (`loaded_spaces`, now) against loading the stored copy again (before);
+- parent: validate, register and plan one room as generate does, with the scheduler planning from the space
+  the run validated (`loaded_spaces`, now) against loading the stored copy again (before);
 - worker imports: `services.worker.run.runner` and the modules a worker process imports before its first task;
-- curvature: the room's per-vertex curvature computed (the first worker of a machine) against read back from the
-  shared file (every other worker process).
+- curvature: the room's per-vertex curvature computed (the first worker of a machine) against read back from
+  the shared file (every other worker process).
 Figures go to bench/results/startup_cpu.json with the load average.
 Run: .venv/bin/python bench/render/startup_cpu.py [--rooms icl_livingroom,...]
 """
@@ -103,7 +103,9 @@ def main() -> None:
         rec: dict = {}
         with tempfile.TemporaryDirectory(prefix="omnidata-startup-") as tmp:
             for label, hand_over in (("parent_before", "0"), ("parent_now", "1")):
-                rec[label] = probe(PARENT, str(space), json.dumps(frame), f"{tmp}/{label}", hand_over)["cpu_s"]
+                rec[label] = probe(PARENT, str(space), json.dumps(frame), f"{tmp}/{label}", hand_over)[
+                    "cpu_s"
+                ]
             for label in ("curvature_computed", "curvature_shared"):  # the second reads the first's file
                 rec[label] = probe(CURVATURE, str(space), json.dumps(frame), f"{tmp}/curvature")["cpu_s"]
         report["rooms"][room] = {k: round(v, 3) for k, v in rec.items()}

@@ -53,7 +53,8 @@ STARTER_VIEWS = 14_600_000
 
 
 def task_columns(job_id: int, space_id: int, p0: int, p1: int) -> dict[str, Any]:
-    """Task columns of points [p0, p1), 4 views each, in compile_tasks' order (view by view, cues topological)."""
+    """Task columns of points [p0, p1), 4 views each, in compile_tasks' order (view by view, cues
+    topological)."""
     order = task_cues(ROOM_CUES)
     per_view = [c for c in order if not CATALOG[c].per_point]
     points, views, cues = [], [], []
@@ -72,10 +73,13 @@ def view_columns(job_id: int, space_id: int, p0: int, p1: int) -> dict[str, Any]
     """View rows of points [p0, p1): pose as 16 floats, fov/roll/obliqueness in radians."""
     n = (p1 - p0) * VIEWS_PER_POINT
     pose = [float(x) for x in np.eye(4).reshape(16)]
-    return {"job_id": [job_id] * n, "space_id": [space_id] * n,
-            "point_idx": np.repeat(np.arange(p0, p1), VIEWS_PER_POINT), "v": np.tile(np.arange(VIEWS_PER_POINT), p1 - p0),
-            "camera_idx": np.arange(n) % 64, "fov": [1.35] * n, "roll": [0.0] * n, "resolution": [512] * n,
-            "obliqueness": [0.3] * n, "world_to_camera": [pose] * n, "in_sight": [True] * n}
+    return {
+        "job_id": [job_id] * n, "space_id": [space_id] * n,
+        "point_idx": np.repeat(np.arange(p0, p1), VIEWS_PER_POINT),
+        "v": np.tile(np.arange(VIEWS_PER_POINT), p1 - p0), "camera_idx": np.arange(n) % 64, "fov": [1.35] * n,
+        "roll": [0.0] * n, "resolution": [512] * n, "obliqueness": [0.3] * n, "world_to_camera": [pose] * n,
+        "in_sight": [True] * n,
+    }
 
 
 def vm_hwm_kb(pid: int) -> int:
@@ -90,7 +94,8 @@ def vm_hwm_kb(pid: int) -> int:
 
 
 def persist(sm: Any, job_id: int, space_id: int, n_views: int, chunk_views: int) -> dict[str, Any]:
-    """Every view and task row of the job in one transaction, chunk by chunk; counters; returns the figures."""
+    """Every view and task row of the job in one transaction, chunk by chunk; counters; returns the
+    figures."""
     n_points = n_views // VIEWS_PER_POINT
     chunk_points = max(1, chunk_views // VIEWS_PER_POINT)
     totals: dict[str, int] = {}
@@ -114,21 +119,33 @@ def persist(sm: Any, job_id: int, space_id: int, n_views: int, chunk_views: int)
         s.commit()
         backend_hwm = vm_hwm_kb(backend)
     wall = time.perf_counter() - t0
-    return {"views": n_views, "task_rows": rows, "wall_s": round(wall, 1), "task_rows_per_s": round(rows / wall),
-            "chunk_views": chunk_views, "peak_rss_mb": {
-                "persisting_process": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
-                "postgres_backend": round(backend_hwm / 1024, 1)}}
+    return {
+        "views": n_views, "task_rows": rows, "wall_s": round(wall, 1), "task_rows_per_s": round(rows / wall),
+        "chunk_views": chunk_views,
+        "peak_rss_mb": {
+            "persisting_process": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+            "postgres_backend": round(backend_hwm / 1024, 1),
+        },
+    }
 
 
 def sizes(sm: Any, rows: int, views: int) -> dict[str, Any]:
-    """Bytes of the task heap and of each task index per row, database size, and the starter-size extrapolation."""
+    """Bytes of the task heap and of each task index per row, database size, and the starter-size
+    extrapolation."""
     with sm() as s:
         s.execute(text("ANALYZE task"))
         heap = int(s.scalar(text("SELECT pg_relation_size('task')")) or 0)
         toast = int(s.scalar(text("SELECT pg_total_relation_size('task') - pg_relation_size('task') "
                                   "- pg_indexes_size('task')")) or 0)
-        idx = {str(n): int(b) for n, b in s.execute(text(
-            "SELECT indexrelname, pg_relation_size(indexrelid) FROM pg_stat_user_indexes WHERE relname = 'task'"))}
+        idx = {
+            str(n): int(b)
+            for n, b in s.execute(
+                text(
+                    "SELECT indexrelname, pg_relation_size(indexrelid) FROM pg_stat_user_indexes WHERE "
+                    "relname = 'task'"
+                )
+            )
+        }
         view_bytes = int(s.scalar(text("SELECT pg_total_relation_size('view')")) or 0)
         db = int(s.scalar(text("SELECT pg_database_size(current_database())")) or 0)
         s.commit()
@@ -150,8 +167,8 @@ def sizes(sm: Any, rows: int, views: int) -> dict[str, Any]:
 
 
 def finish_all(sm: Any, db_url: str, job_id: int, rows: int, views: int) -> dict[str, Any]:
-    """Every task of the job done, as a finished job leaves them (output key, size, sha256, times), then VACUUM FULL:
-    the footprint a finished job keeps (the pending-only dispatch index holds nothing of it)."""
+    """Every task of the job done, as a finished job leaves them (output key, size, sha256, times), then
+    VACUUM FULL: the footprint a finished job keeps (the pending-only dispatch index holds nothing of it)."""
     t0 = time.perf_counter()
     with sm() as s:
         s.execute(text(
@@ -169,7 +186,8 @@ def finish_all(sm: Any, db_url: str, job_id: int, rows: int, views: int) -> dict
 
 
 def dispatch_passes(sm: Any, job_id: int, window: int, passes: int) -> dict[str, Any]:
-    """`passes` dispatch passes over the big table; what each sent is finished (queued -> running -> done) after."""
+    """`passes` dispatch passes over the big table; what each sent is finished (queued -> running -> done)
+    after."""
     transport = NullTransport()
     times: list[float] = []
     t_all = time.perf_counter()
@@ -179,7 +197,9 @@ def dispatch_passes(sm: Any, job_id: int, window: int, passes: int) -> dict[str,
             dispatch_once(s, transport, window=window)
             times.append(time.perf_counter() - t)
         with sm() as s:
-            ids = [i for (i,) in s.execute(select(Task.id).where(Task.job_id == job_id, Task.state == "queued"))]
+            ids = [
+                i for (i,) in s.execute(select(Task.id).where(Task.job_id == job_id, Task.state == "queued"))
+            ]
             transition(s, job_id=job_id, task_ids=ids, from_state="queued", to_state="running")
             transition(s, job_id=job_id, task_ids=ids, from_state="running", to_state="done")
             s.commit()
@@ -188,13 +208,17 @@ def dispatch_passes(sm: Any, job_id: int, window: int, passes: int) -> dict[str,
         t = time.perf_counter()
         res = dispatch_once(s, NullTransport(), window=window, thorough=True)
         thorough_ms = 1000 * (time.perf_counter() - t)
-    return {"window": window, "passes": passes, "tasks_sent": sent, "pass_ms": percentiles(times),
-            "tasks_per_s_dispatch_only": round(sent / sum(times)), "wall_s": round(time.perf_counter() - t_all, 1),
-            "thorough_pass_ms": round(thorough_ms), "thorough_pass_sent": res.sent}
+    return {
+        "window": window, "passes": passes, "tasks_sent": sent, "pass_ms": percentiles(times),
+        "tasks_per_s_dispatch_only": round(sent / sum(times)),
+        "wall_s": round(time.perf_counter() - t_all, 1), "thorough_pass_ms": round(thorough_ms),
+        "thorough_pass_sent": res.sent,
+    }
 
 
 def progress(sm: Any, job_id: int, polls: int) -> dict[str, Any]:
-    """The API's job detail query (counters summed over shards) polled `polls` times, and its server-side plan."""
+    """The API's job detail query (counters summed over shards) polled `polls` times, and its server-side
+    plan."""
     from services.api.jobs.service import fetch_job_detail
 
     lat = []
@@ -204,7 +228,9 @@ def progress(sm: Any, job_id: int, polls: int) -> dict[str, Any]:
             fetch_job_detail(s, owner="bench", job_id=job_id, rates=None)
             s.rollback()
             lat.append(time.perf_counter() - t)
-        counter_rows = int(s.scalar(text("SELECT count(*) FROM job_counter WHERE job_id = :j"), {"j": job_id}) or 0)
+        counter_rows = int(
+            s.scalar(text("SELECT count(*) FROM job_counter WHERE job_id = :j"), {"j": job_id}) or 0
+        )
         plan = s.execute(text(
             "EXPLAIN (ANALYZE, FORMAT JSON) SELECT cue, state, sum(n) FROM job_counter WHERE job_id = :j "
             "GROUP BY cue, state HAVING sum(n) <> 0"), {"j": job_id}).scalar()
@@ -221,8 +247,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--chunk-views", type=int, default=50_000)
     p.add_argument("--window", type=int, default=2_000, help="dispatch window (2 x 1000 workers)")
     p.add_argument("--passes", type=int, default=20)
-    p.add_argument("--finish-all", action="store_true",
-                   help="then finish every task and measure the footprint of the finished job (size_finished)")
+    p.add_argument(
+        "--finish-all", action="store_true",
+        help="then finish every task and measure the footprint of the finished job (size_finished)",
+    )
     p.add_argument("--key", default="big_job", help="the key of big_job.json the figures go to")
     p.add_argument("--out", type=Path, default=RESULTS / "big_job.json")
     args = p.parse_args(argv)
@@ -235,7 +263,9 @@ def main(argv: list[str] | None = None) -> int:
         store = LocalStore(tmp / "objects")
         space_id = labelled_space(sm, store, "big")
         with sm() as s:
-            job = create_job(s, owner="bench", spec=JobSpec(cues=ROOM_CUES, name="big"), spaces=[s.get(Space, space_id)])
+            job = create_job(
+                s, owner="bench", spec=JobSpec(cues=ROOM_CUES, name="big"), spaces=[s.get(Space, space_id)]
+            )
             s.commit()
             job_id = job.id
         doc: dict[str, Any] = {"cues": len(ROOM_CUES), "load_avg_1m_start": round(os.getloadavg()[0], 2)}

@@ -1,4 +1,5 @@
-"""Benchmark: 200k task rows through services.core.db.bulk.bulk_insert on a fresh Postgres database and on SQLite.
+"""Benchmark: 200k task rows through services.core.db.bulk.bulk_insert on a fresh Postgres database and on
+SQLite.
 
 Writes bench/results/bulk_insert.json. Times include the commit. Run: .venv/bin/python
 bench/scale/bulk_insert.py
@@ -86,7 +87,8 @@ def main() -> int:
 
     result = {
         "benchmark": "bulk_insert",
-        "what": "task rows inserted by services.core.db.bulk.bulk_insert in one transaction (commit included)",
+        "what": "task rows inserted by services.core.db.bulk.bulk_insert in one transaction "
+        "(commit included)",
         "postgres_copy": pg,
         "sqlite_executemany": lite,
         "python": platform.python_version(),

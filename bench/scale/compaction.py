@@ -1,13 +1,15 @@
-"""Compaction of finished views (services.scheduler.compaction): bytes per view before and after, and its rate.
+"""Compaction of finished views (services.scheduler.compaction): bytes per view before and after, and its
+rate.
 
-Persists a big_job-style job (`--views` views x the 18 cues of an unlabelled room, 4 views a point) through the
-product's bulk path, finishes every task as workers would leave it (the deterministic output key with the job's
-root, size, a 64-hex sha256, duration, finish time two minutes ago), VACUUM FULL, and measures the task table per
-view; then runs the scheduler's Compactor (its own passes, `compact_pass_s` each) until nothing is left, timing
-wall, this process's CPU and the Postgres backends' CPU (/proc; autovacuum off on task meanwhile, the VACUUM
-the deleted rows need timed on its own after), VACUUM FULL again and measures task +
-view_output (+ compacted_duration) per view, with the starter dataset's extrapolation. It also times the manifest
-(iter_manifest_lines) over task rows and over compacted views, and checks that they are byte-identical.
+Persists a big_job-style job (`--views` views x the 18 cues of an unlabelled room, 4 views a point) through
+the product's bulk path, finishes every task as workers would leave it (the deterministic output key with the
+job's root, size, a 64-hex sha256, duration, finish time two minutes ago), VACUUM FULL, and measures the task
+table per view; then runs the scheduler's Compactor (its own passes, `compact_pass_s` each) until nothing is
+left, timing wall, this process's CPU and the Postgres backends' CPU (/proc; autovacuum off on task meanwhile,
+the VACUUM the deleted rows need timed on its own after), VACUUM FULL again and measures task +
+view_output (+ compacted_duration) per view, with the starter dataset's extrapolation. It also times the
+manifest (iter_manifest_lines) over task rows and over compacted views, and checks that they are
+byte-identical.
 
 Writes `compaction` into bench/results/compaction.json (other keys kept) and drops its database.
 Run: .venv/bin/python bench/scale/compaction.py [--views 40000]
@@ -50,17 +52,25 @@ def finish_like_workers(sm: Any, job_id: int, root: str, space: str, component: 
     cues = ", ".join(f"('{name}', '{c.ext}', {str(c.per_point).lower()}, {str(c.internal).lower()})"
                      for name, c in CATALOG.items())
     base = f"'{root}/' || t.cue || '/{component}/{space}/point_' || t.point_idx"
-    key = (f"CASE WHEN c.internal THEN '{root}/_cache/passes/{space}/point_' || t.point_idx || '_view_' || t.view_idx "
-           f"|| '.npz' WHEN c.per_point THEN {base} || '_domain_' || t.cue || '.' || c.ext "
-           f"ELSE {base} || '_view_' || t.view_idx || '_domain_' || t.cue || '.' || c.ext END")
+    key = (
+        f"CASE WHEN c.internal THEN '{root}/_cache/passes/{space}/point_' || t.point_idx || '_view_' "
+        f"|| t.view_idx || '.npz' WHEN c.per_point THEN {base} || '_domain_' || t.cue || '.' || c.ext "
+        f"ELSE {base} || '_view_' || t.view_idx || '_domain_' || t.cue || '.' || c.ext END"
+    )
     t0 = time.perf_counter()
     with sm() as s:
-        s.execute(text(
-            f"UPDATE task t SET state = 'done', worker_id = 'w-' || (t.id % 1000), attempts = 1, output_key = {key}, "
-            "size = 40000 + t.id % 1000, sha256 = md5(t.id::text) || md5(t.cue), duration_s = 0.05 + (t.id % 7) / 100.0, "
-            "queued_at = now() - interval '3 minutes', started_at = now() - interval '2 minutes', "
-            f"finished_at = now() - interval '2 minutes' FROM (VALUES {cues}) AS c(cue, ext, per_point, internal) "
-            "WHERE c.cue = t.cue AND t.job_id = :j"), {"j": job_id})
+        s.execute(
+            text(
+                "UPDATE task t SET state = 'done', worker_id = 'w-' || (t.id % 1000), attempts = 1, "
+                f"output_key = {key}, "
+                "size = 40000 + t.id % 1000, sha256 = md5(t.id::text) || md5(t.cue), duration_s = "
+                "0.05 + (t.id % 7) / 100.0, "
+                "queued_at = now() - interval '3 minutes', started_at = now() - interval '2 minutes', "
+                f"finished_at = now() - interval '2 minutes' FROM (VALUES {cues}) AS c(cue, ext, "
+                "per_point, internal) WHERE c.cue = t.cue AND t.job_id = :j"
+            ),
+            {"j": job_id},
+        )
         s.execute(text("UPDATE job_counter SET state = 'done' WHERE job_id = :j"), {"j": job_id})
         s.execute(text("UPDATE job SET state = 'done', finished_at = now() WHERE id = :j"), {"j": job_id})
         s.commit()
@@ -159,20 +169,26 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--views", type=int, default=40_000)
     p.add_argument("--chunk-views", type=int, default=20_000)
-    p.add_argument("--pass-s", type=float, default=0.25, help="compact_pass_s: time one compaction pass may take")
+    p.add_argument(
+        "--pass-s", type=float, default=0.25, help="compact_pass_s: time one compaction pass may take"
+    )
     p.add_argument("--key", default="compaction")
     p.add_argument("--out", type=Path, default=RESULTS / "compaction.json")
     args = p.parse_args(argv)
     db_url = create_database()
     tmp = Path(tempfile.mkdtemp(prefix="omnidata-compaction-"))
-    doc: dict[str, Any] = {"cues": len(ROOM_CUES), "views": args.views, "load_avg_1m_start": round(os.getloadavg()[0], 2)}
+    doc: dict[str, Any] = {
+        "cues": len(ROOM_CUES), "views": args.views, "load_avg_1m_start": round(os.getloadavg()[0], 2),
+    }
     try:
         migrate(db_url)
         engine = make_engine(db_url, pool_size=2)
         sm = make_sessionmaker(engine)
         space_id = labelled_space(sm, LocalStore(tmp / "objects"), "big")
         with sm() as s:
-            job = create_job(s, owner="bench", spec=JobSpec(cues=ROOM_CUES, name="big"), spaces=[s.get(Space, space_id)])
+            job = create_job(
+                s, owner="bench", spec=JobSpec(cues=ROOM_CUES, name="big"), spaces=[s.get(Space, space_id)]
+            )
             s.commit()
             job_id, root = job.id, job.output_root
         doc["persist"] = persist(sm, job_id, space_id, args.views, args.chunk_views)
@@ -208,8 +224,10 @@ def main(argv: list[str] | None = None) -> int:
                 "compaction_cpu_h": round(STARTER_VIEWS / doc["compact"]["views_per_cpu_s"] / 3600, 2),
             },
         }
-        doc["manifest"] = {"identical": True, "task_rows": {"wall_s": round(wall_rows, 2), "cpu_s": round(cpu_rows, 2)},
-                           "compacted": {"wall_s": round(wall_packed, 2), "cpu_s": round(cpu_packed, 2)}}
+        doc["manifest"] = {
+            "identical": True, "task_rows": {"wall_s": round(wall_rows, 2), "cpu_s": round(cpu_rows, 2)},
+            "compacted": {"wall_s": round(wall_packed, 2), "cpu_s": round(cpu_packed, 2)},
+        }
         doc["load_avg_1m_end"] = round(os.getloadavg()[0], 2)
         engine.dispose()
     finally:

@@ -53,8 +53,10 @@ REDIS_URL = os.environ.get("OMNIDATA_BENCH_REDIS_URL", "redis://127.0.0.1:6379/4
 BIG = "cameras: {mode: object, object_count: 40}\npoints: {count: 20, min_views: 2, max_views: 15}\n" \
       "views: {resolution: 32}\ncues: [rgb]\npriority: 9\nseed: 1\n"
 # planning that takes minutes on this machine and little else: many points, two views each
-SLOW_PLAN = "cameras: {mode: object, object_count: 2000}\n" \
-            "points: {count: 12000, min_views: 2, max_views: 2}\nviews: {resolution: 32}\ncues: [rgb]\nseed: 3\n"
+SLOW_PLAN = (
+    "cameras: {mode: object, object_count: 2000}\n"
+    "points: {count: 12000, min_views: 2, max_views: 2}\nviews: {resolution: 32}\ncues: [rgb]\nseed: 3\n"
+)
 FINAL = ("done", "failed", "cancelled")
 SMALL = "cameras: {mode: object, object_count: 4}\npoints: {count: 1, min_views: 2, max_views: 2}\n" \
         "views: {resolution: 32}\ncues: [rgb]\npriority: 0\nseed: 2\n"
@@ -68,8 +70,13 @@ def start(env: dict[str, str], log: Path, code: Path, *args: str) -> subprocess.
 def submit(env: dict[str, str], owner: str, spec: str, tmp: Path, name: str | None = None) -> int:
     path = tmp / f"{name or owner}.yaml"
     path.write_text(spec)
-    res = subprocess.run([sys.executable, "-m", "services.cli", "submit", str(BUNNY), "--spec", str(path), "--direct",
-                          "--no-follow", "--owner", owner], cwd=REPO, env=env, capture_output=True, text=True, check=True)
+    res = subprocess.run(
+        [
+            sys.executable, "-m", "services.cli", "submit", str(BUNNY), "--spec", str(path), "--direct",
+            "--no-follow", "--owner", owner,
+        ],
+        cwd=REPO, env=env, capture_output=True, text=True, check=True,
+    )
     return int(res.stdout.strip().splitlines()[-1])
 
 
@@ -163,9 +170,11 @@ def main() -> None:
         migrate(url)
         engine = make_engine(url)
         env = {k: v for k, v in os.environ.items() if not k.startswith("OMNIDATA_")}
-        env.update(OMNIDATA_DATABASE_URL=url, OMNIDATA_BROKER_URL=REDIS_URL, OMNIDATA_STORAGE_URL=f"file://{tmp / 'store'}",
-                   OMNIDATA_DATA_DIR=str(tmp / "data"), OMNIDATA_RENDER_DEVICE="cpu", PYTHONUNBUFFERED="1",
-                   OMNIDATA_PLAN_PROCESSES="2")
+        env.update(
+            OMNIDATA_DATABASE_URL=url, OMNIDATA_BROKER_URL=REDIS_URL,
+            OMNIDATA_STORAGE_URL=f"file://{tmp / 'store'}", OMNIDATA_DATA_DIR=str(tmp / "data"),
+            OMNIDATA_RENDER_DEVICE="cpu", PYTHONUNBUFFERED="1", OMNIDATA_PLAN_PROCESSES="2",
+        )
         service_env = {**env, "PYTHONPATH": str(args.code.resolve())}
         procs.append(start(service_env, tmp / "scheduler.log", args.code, "scheduler", "--interval", "0.3"))
         procs.append(start(service_env, tmp / "worker.log", args.code, "worker", "--render-threads", "1",

@@ -15,8 +15,9 @@ On a fresh Postgres database and real Redis (Celery send_task by name, pipelined
    no-op consumer process pops the messages from Redis and marks the tasks done (queued -> running ->
    done, in batches). Reported: tasks / wall second from the first to the last send. Here the scheduler,
    the consumer, Postgres and Redis compete for the same cores, so this is a floor, not the capacity.
-3. progress: p50/p99 of services.core.db.counters.job_progress on a job with ~1M task rows (idle database), and
-   under load (polled every 20 ms from another process during step 2b). COUNT(*) by state on the 1M job for comparison.
+3. progress: p50/p99 of services.core.db.counters.job_progress on a job with ~1M task rows (idle database),
+   and under load (polled every 20 ms from another process during step 2b). COUNT(*) by state on the 1M job
+   for comparison.
 
 Writes bench/results/fanout.json. Run: .venv/bin/python bench/scale/fanout.py [--views 10000]
 """
@@ -162,8 +163,10 @@ def consumer(db_url: str, redis_url: str, job_id: int, queues: list[str], stop: 
             now = utcnow()
             moved = transition(s, job_id=job_id, task_ids=ids, from_state="queued", to_state="running",
                                worker_id="bench", attempts=Task.attempts + 1, started_at=now)
-            transition(s, job_id=job_id, task_ids=[i for i, _ in moved], from_state="running", to_state="done",
-                       finished_at=now)
+            transition(
+                s, job_id=job_id, task_ids=[i for i, _ in moved], from_state="running", to_state="done",
+                finished_at=now,
+            )
             s.commit()
         with done_count.get_lock():
             done_count.value += len(ids)
@@ -390,15 +393,20 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             s.commit()
             t_persist = time.perf_counter() - t
             big_id = big.id
-            ids = [int(i) for (i,) in s.execute(select(Task.id).where(Task.job_id == big_id).order_by(Task.id))]
+            ids = [
+                int(i) for (i,) in s.execute(select(Task.id).where(Task.job_id == big_id).order_by(Task.id))
+            ]
             # a job in full swing: 40% done, a window of queued/running, some failures
             n = len(ids)
             spans = [("done", 0, int(0.4 * n)), ("queued", int(0.4 * n), int(0.4 * n) + 2000),
                      ("running", int(0.4 * n) + 2000, int(0.4 * n) + 3000), ("failed", int(0.4 * n) + 3000,
                                                                              int(0.4 * n) + 3100)]
-            # along allowed transitions only (services/core/db/states.py): pending -> queued -> running -> final
-            path = {"queued": ["queued"], "running": ["queued", "running"], "done": ["queued", "running", "done"],
-                    "failed": ["queued", "running", "failed"]}
+            # along allowed transitions only (services/core/db/states.py): pending -> queued -> running ->
+            # final
+            path = {
+                "queued": ["queued"], "running": ["queued", "running"], "done": ["queued", "running", "done"],
+                "failed": ["queued", "running", "failed"],
+            }
             for state, a, b in spans:
                 for src, dst in zip(["pending", *path[state]], path[state], strict=False):
                     transition(s, job_id=big_id, task_ids=ids[a:b], from_state=src, to_state=dst)

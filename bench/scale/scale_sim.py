@@ -9,16 +9,18 @@ scheduler is the real Scheduler loop in its own process, with a synthetic plan (
 point.
 
 The grain (default): the 18 cues of an unlabelled room, each task sleeping its cue's measured time
-(bench/scale_cost.CUE_SECONDS: the render ~0.3 s, derivations 5-200 ms; 0.059 s a task on average), so 1,000 workers
-ideally finish ~17,000 tasks/s. `--task-s S` instead gives every task S seconds (+-20%) of `rgb, normal,
-depth_zbuffer` (the first figures, kept at the top level of scale_sim.json).
+(bench/scale_cost.CUE_SECONDS: the render ~0.3 s, derivations 5-200 ms; 0.059 s a task on average), so 1,000
+workers ideally finish ~17,000 tasks/s. `--task-s S` instead gives every task S seconds (+-20%) of `rgb,
+normal, depth_zbuffer` (the first figures, kept at the top level of scale_sim.json).
 
-For each worker count (default 100, 300, 1000), on a fresh database and a private redis-server, for `--seconds`:
+For each worker count (default 100, 300, 1000), on a fresh database and a private redis-server, for
+`--seconds`:
 - throughput: tasks done per second against the ideal (utilisation), queue wait and task overhead p50/p99;
 - orchestration CPU: CPU seconds (/proc) of the scheduler, of the Postgres backends (by client: scheduler,
   workers, api) and of Redis, per task done, and the tasks/s one orchestrator core would sustain at that cost;
 - where Postgres waits (pg_stat_activity sampled every 0.5 s), dispatch pass times, heartbeat writes;
-- reaper: `--kill-fraction` of the workers are "killed -9" a third of the way in: seconds until their tasks came back;
+- reaper: `--kill-fraction` of the workers are "killed -9" a third of the way in: seconds until their tasks
+  came back;
 - progress query: p50/p99 of the API's job detail query polled every 50 ms meanwhile.
 
 History (scale_sim.json keeps every step): 5-second tasks first showed heartbeats falling behind at 1,000
@@ -103,10 +105,18 @@ def pg_stats(sm: Any, db: str) -> dict[str, int]:
     """Cumulative commits of the database and row updates of the worker and task tables."""
     with sm() as s:
         commits = s.scalar(text("SELECT xact_commit FROM pg_stat_database WHERE datname = :d"), {"d": db})
-        ups = dict(s.execute(text(
-            "SELECT relname, n_tup_upd + n_tup_ins FROM pg_stat_user_tables WHERE relname IN ('worker', 'task')"
-        )).all())
-    return {"commits": int(commits or 0), "worker_rows": int(ups.get("worker", 0)), "task_rows": int(ups.get("task", 0))}
+        ups = dict(
+            s.execute(
+                text(
+                    "SELECT relname, n_tup_upd + n_tup_ins FROM pg_stat_user_tables WHERE relname IN "
+                    "('worker', 'task')"
+                )
+            ).all()
+        )
+    return {
+        "commits": int(commits or 0), "worker_rows": int(ups.get("worker", 0)),
+        "task_rows": int(ups.get("task", 0)),
+    }
 
 
 def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
@@ -137,13 +147,15 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
         # enough views that the job outlasts the run even at the ideal rate (4 views per point)
         tasks_per_view = len(cues) + 1
         n_views = int(1.5 * n_workers * (args.seconds + 60) / mean_s / tasks_per_view) + 100
-        # ... but no more than this host can plan and get through (at the ideal rate of 1,000 workers the job would
-        # be 2M tasks, and the planner would still be persisting them when the measurement starts)
+        # ... but no more than this host can plan and get through (at the ideal rate of 1,000 workers the job
+        # would be 2M tasks, and the planner would still be persisting them when the measurement starts)
         n_views = min(n_views, args.max_views)
         plan = synthetic_plan("scale", n_views // 4 + 1, 4, resolution=32)
         space_id = labelled_space(sm, store, "scale")
         with sm() as s:
-            job = create_job(s, owner="bench", spec=JobSpec(cues=cues, name="scale"), spaces=[s.get(Space, space_id)])
+            job = create_job(
+                s, owner="bench", spec=JobSpec(cues=cues, name="scale"), spaces=[s.get(Space, space_id)]
+            )
             s.commit()
             job_id = job.id
 
@@ -159,12 +171,26 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
         worker_settings = settings.model_copy(update={"database_url": with_app_name(db_url, "workers")})
         sched = ctx.Process(target=scheduler_process, args=(sched_settings, plan, stop, outq))
         sched.start()
-        procs = [ctx.Process(target=worker_process, args=(p, counts[p], worker_settings, args.redis, args.task_s, kill_ids,
-                                                          kill_at, stop, outq, measuring, args.worker_nice))
-                 for p in range(args.processes)]
+        procs = [
+            ctx.Process(
+                target=worker_process,
+                args=(
+                    p, counts[p], worker_settings, args.redis, args.task_s, kill_ids, kill_at, stop, outq,
+                    measuring, args.worker_nice,
+                ),
+            )
+            for p in range(args.processes)
+        ]
         # one more worker, alone in its process at normal priority (a real worker's view of the task overhead)
-        procs.append(ctx.Process(target=worker_process, args=(args.processes, 1, worker_settings, args.redis, args.task_s,
-                                                              [], kill_at, stop, outq, measuring, 0, True)))
+        procs.append(
+            ctx.Process(
+                target=worker_process,
+                args=(
+                    args.processes, 1, worker_settings, args.redis, args.task_s, [], kill_at, stop, outq,
+                    measuring, 0, True,
+                ),
+            )
+        )
         for p in procs:
             p.start()
 
@@ -184,9 +210,12 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
         def groups() -> dict[str, list[int]]:
             with sm() as s:
                 pg = backend_pids(s)
-            return {"scheduler": [int(sched.pid or 0)], "postgres": [p for ps in pg.values() for p in ps],
-                    "redis": [args.redis_pid] if args.redis_pid else [], "sim_workers": [int(p.pid or 0) for p in procs],
-                    **pg}
+            return {
+                "scheduler": [int(sched.pid or 0)], "postgres": [p for ps in pg.values() for p in ps],
+                "redis": [args.redis_pid] if args.redis_pid else [],
+                "sim_workers": [int(p.pid or 0) for p in procs],
+                **pg,
+            }
 
         cpu = ProcessCpu()
         cpu.start(groups())
@@ -200,8 +229,8 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
         next_wait_sample = 0.0
         progress_cpu: list[float] = []
         progress_runq: list[float] = []  # time the poller thread and its backend sat runnable without a CPU
-        # GET /jobs/{id}'s own work (services.api.jobs.endpoints.get_job): an autocommit read session, one statement,
-        # the JSON; its wall time, and its CPU (this thread's plus its Postgres backend's)
+        # GET /jobs/{id}'s own work (services.api.jobs.endpoints.get_job): an autocommit read session, one
+        # statement, the JSON; its wall time, and its CPU (this thread's plus its Postgres backend's)
         poll_engine = make_engine(with_app_name(db_url, "api"), pool_size=1, max_overflow=0)
         read_sm = make_sessionmaker(poll_engine.execution_options(isolation_level="AUTOCOMMIT"))
         with read_sm() as probe_session:
@@ -235,8 +264,14 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
         done1, stats1 = count("done"), pg_stats(sm, engine.url.database or "")
         cpu_s = cpu.stop(groups())
         with sm() as s:
-            waits = [(b - a).total_seconds() for a, b in s.execute(select(Task.queued_at, Task.started_at).where(
-                Task.job_id == job_id, Task.started_at.is_not(None), Task.queued_at.is_not(None)))]
+            waits = [
+                (b - a).total_seconds()
+                for a, b in s.execute(
+                    select(Task.queued_at, Task.started_at).where(
+                        Task.job_id == job_id, Task.started_at.is_not(None), Task.queued_at.is_not(None)
+                    )
+                )
+            ]
         measuring.clear()
         stop.set()
         kill_at.set()
@@ -254,7 +289,9 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
                                    .order_by(Task.id).limit(500)))
             transition(s, job_id=job_id, task_ids=alone, from_state="pending", to_state="queued")
             s.commit()
-        overhead_alone, alone_pg_ms = isolated_overhead(with_app_name(db_url, "alone"), worker_settings, alone)
+        overhead_alone, alone_pg_ms = isolated_overhead(
+            with_app_name(db_url, "alone"), worker_settings, alone
+        )
         with sm() as s:
             s.execute(text("UPDATE job SET state = 'cancelled' WHERE id = :j"), {"j": job_id})
             s.commit()
@@ -267,7 +304,9 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
         return {
             "workers": n_workers,
             "processes": args.processes,
-            "grain": "real (per-cue times of a room, CUE_SECONDS)" if real_grain else f"{args.task_s} s per task",
+            "grain": "real (per-cue times of a room, CUE_SECONDS)"
+            if real_grain
+            else f"{args.task_s} s per task",
             "mean_task_s": round(mean_s, 4),
             "dispatch_window": settings.dispatch_window,
             "measured_s": round(elapsed, 1),
@@ -275,14 +314,18 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
             "tasks_per_s": round(rate, 1),
             "ideal_tasks_per_s": round(n_workers / mean_s, 1),
             "utilisation": round(rate * mean_s / n_workers, 3),
-            "queue_wait": pct(waits),  # of the task rows still there at the end (compaction removed older ones)
+            # of the task rows still there at the end (compaction removed older ones)
+            "queue_wait": pct(waits),
             "task_overhead": pct(overhead_s),  # a worker's claim + record done (pool wait included), per task
             # per message: a whole view (render + the rest of the view claimed and recorded) is one message
             "message_overhead": pct(message_overhead_s),
-            "task_overhead_probe_worker": pct(probe_overhead_s),  # one worker in its own process, under the load
+            # one worker in its own process, under the load
+            "task_overhead_probe_worker": pct(probe_overhead_s),
             "worker_nice": args.worker_nice,
-            "task_overhead_one_worker_alone": pct(overhead_alone[20:]),  # the same without the fleet's contention
-            "postgres_cpu_ms_per_task_one_worker_alone": round(alone_pg_ms, 3),  # its claim + result statements
+            # the same without the fleet's contention
+            "task_overhead_one_worker_alone": pct(overhead_alone[20:]),
+            # its claim + result statements
+            "postgres_cpu_ms_per_task_one_worker_alone": round(alone_pg_ms, 3),
             "cpu_s": cpu_s,
             "orchestration_cpu_ms_per_task": {
                 "total": round(per_task_ms, 3),
@@ -303,31 +346,39 @@ def run_config(args: argparse.Namespace, n_workers: int) -> dict[str, Any]:
                 "after_s": args.compact_after_s if args.compact_after_s >= 0 else None,
                 "views": sched_stats["compacted_views"], "tasks": sched_stats["compacted_tasks"],
                 "passes": len(sched_stats["compact_passes"]), "pass_ms": pct(sched_stats["compact_passes"]),
-                "scheduler_cpu_s": round(sched_stats["compact_cpu_s"], 3),  # over the whole run, warm-up included
+                # over the whole run, warm-up included
+                "scheduler_cpu_s": round(sched_stats["compact_cpu_s"], 3),
             },
             "heartbeats": {
                 "beats_per_s": round(len(beat_s) / max(elapsed, 1e-9), 1),
                 "beat_ms": pct(beat_s),
                 "pg_commits_per_s": round((stats1["commits"] - stats0["commits"]) / elapsed, 1),
-                "pg_worker_row_writes_per_s": round((stats1["worker_rows"] - stats0["worker_rows"]) / elapsed, 1),
+                "pg_worker_row_writes_per_s": round(
+                    (stats1["worker_rows"] - stats0["worker_rows"]) / elapsed, 1
+                ),
                 "pg_task_row_writes_per_s": round((stats1["task_rows"] - stats0["task_rows"]) / elapsed, 1),
             },
             "reaper": {
                 "killed_workers": len(kill_ids) if args.kill_fraction > 0 else 0,
                 "tasks_held_by_killed": len(held),
                 "requeued": len(requeued),
-                "requeue_after_kill_s": {"max": round(max(requeued.values()), 1),
-                                         "mean": round(sum(requeued.values()) / len(requeued), 1)}
-                if requeued else None,
+                "requeue_after_kill_s": {
+                    "max": round(max(requeued.values()), 1),
+                    "mean": round(sum(requeued.values()) / len(requeued), 1),
+                }
+                if requeued
+                else None,
                 "heartbeat_timeout_s": args.heartbeat_timeout_s,
                 "lease_s": LEASE_S,
                 "reaped_total": sched_stats["reaped"],
             },
             "progress_query": pct(progress_lat),
-            "progress_query_cpu": pct(progress_cpu),  # the poller thread's + its Postgres backend's CPU per query
+            # the poller thread's + its Postgres backend's CPU per query
+            "progress_query_cpu": pct(progress_cpu),
             # (the backend's from /proc, in 10 ms ticks: a query's p99 is a tick; the mean is what it costs)
             "progress_query_cpu_mean_ms": round(1000 * sum(progress_cpu) / max(len(progress_cpu), 1), 3),
-            "progress_query_runqueue_wait": pct(progress_runq),  # CPU starvation (schedstat run_delay) per query
+            # CPU starvation (schedstat run_delay) per query
+            "progress_query_runqueue_wait": pct(progress_runq),
             "load_avg_1m": round(os.getloadavg()[0], 2),
         }
     finally:
@@ -347,18 +398,28 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--heartbeat-timeout-s", type=int, default=10)
     p.add_argument("--window", type=int, default=0, help="dispatch window (0: 2 x workers, at least 20)")
     p.add_argument("--max-views", type=int, default=20_000, help="views of the simulated job at most")
-    p.add_argument("--worker-nice", type=int, default=10,
-                   help="niceness of the simulated-worker processes (a real fleet's CPU is not the orchestrator's)")
-    p.add_argument("--compact-after-s", type=float, default=5.0,
-                   help="compact_after_s of the scheduler (the product's 60 s would compact nothing in a short run); "
-                        "negative: compaction off")
-    p.add_argument("--warmup", type=float, default=5.0, help="seconds after the workers got busy before measuring")
-    p.add_argument("--redis", default="", help="a running Redis (default: a private redis-server, CPU ours alone)")
+    p.add_argument(
+        "--worker-nice", type=int, default=10,
+        help="niceness of the simulated-worker processes (a real fleet's CPU is not the orchestrator's)",
+    )
+    p.add_argument(
+        "--compact-after-s", type=float, default=5.0,
+        help="compact_after_s of the scheduler (the product's 60 s would compact nothing "
+        "in a short run); negative: compaction off",
+    )
+    p.add_argument(
+        "--warmup", type=float, default=5.0, help="seconds after the workers got busy before measuring"
+    )
+    p.add_argument(
+        "--redis", default="", help="a running Redis (default: a private redis-server, CPU ours alone)"
+    )
     p.add_argument("--step", default="",
                    help="store the run under steps[STEP] of the results (each bottleneck removed is a step), "
                         "keeping every other figure there; without it the top-level configs are replaced")
     p.add_argument("--label", default="", help="a note stored with the results (e.g. before/after a change)")
-    p.add_argument("--key", default="", help="store the run under KEY[LABEL] of the results, every other key kept")
+    p.add_argument(
+        "--key", default="", help="store the run under KEY[LABEL] of the results, every other key kept"
+    )
     p.add_argument("--publish-cost", action="store_true",
                    help="also measure the CPU per message of publishing alone (stored under `publishing`)")
     p.add_argument("--out", type=Path, default=RESULTS / "scale_sim.json")
@@ -387,7 +448,8 @@ def main(argv: list[str] | None = None) -> int:
         }
     elif args.step:
         doc.setdefault("steps", {})[args.step] = {
-            "label": args.label, "configs": configs, "when": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            "label": args.label, "configs": configs,
+            "when": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         }
     else:
         doc.update({"label": args.label, "configs": configs})
@@ -396,9 +458,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.publish_cost:
         doc["publishing"] = publish_cost()
         print(json.dumps(doc["publishing"]))
-    doc.update({"python": platform.python_version(), "cpus": os.cpu_count(), "note": "one shared host (2 cores, "
-                "seven other developers' work) runs Postgres, Redis, the scheduler and every simulated worker; "
-                "figures are floors, not capacity"})
+    doc.update(
+        {
+            "python": platform.python_version(), "cpus": os.cpu_count(),
+            "note": "one shared host (2 cores, "
+            "seven other developers' work) runs Postgres, Redis, the scheduler and every simulated worker; "
+            "figures are floors, not capacity",
+        }
+    )
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(doc, indent=2) + "\n")
     print(f"wrote {args.out}")

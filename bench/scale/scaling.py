@@ -42,7 +42,8 @@ def job_spec(resolution: int, points: int, views: int, seed: int) -> Any:
 
 
 def run_job(sm: Any, sched: Any, pool: Any, job_id: int, timeout: float = 1800) -> tuple[float, int, int]:
-    """Drive the job with generate's loop; returns (seconds from the end of planning to done, labels, views)."""
+    """Drive the job with generate's loop; returns (seconds from the end of planning to done, labels,
+    views)."""
     from sqlalchemy import func, select
 
     from services.core.db.models import Task, View
@@ -132,12 +133,14 @@ def main() -> int:
             r["efficiency"] = round(r["speedup"] / r["workers"], 3)
     result = {
         "benchmark": "scaling",
-        "what": "labels/s of one job (banana, every default cue) with N local worker processes, 1 Cycles thread "
-                "each; timed from the end of planning to job completion, after a warm-up job; best of the "
-                "interleaved repeats (samples listed)",
+        "what": "labels/s of one job (banana, every default cue) with N local worker processes, 1 Cycles "
+        "thread each; timed from the end of planning to job completion, after a warm-up job; best of the "
+        "interleaved repeats (samples listed)",
         "target": "N workers >= 0.9 N x one worker (DESIGN.md section 7)",
-        "job": {"scene": args.scene.name, "resolution": args.resolution, "points": args.points,
-                "views_per_point": args.views},
+        "job": {
+            "scene": args.scene.name, "resolution": args.resolution, "points": args.points,
+            "views_per_point": args.views,
+        },
         "runs": runs,
         "python": platform.python_version(),
         "machine": platform.machine(),

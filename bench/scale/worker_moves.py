@@ -1,10 +1,10 @@
-"""CPU per view of the embedded worker's own database moves on SQLite (issue 20: the embedded default's cost per
-view): claim the view's render task, claim the rest of the view with it, record the whole view done.
+"""CPU per view of the embedded worker's own database moves on SQLite (issue 20: the embedded default's cost
+per view): claim the view's render task, claim the rest of the view with it, record the whole view done.
 
-A fresh SQLite file (the embedded default's settings: WAL, synchronous NORMAL) holds one running job of `--views`
-views of the default cues (the render queued, the rest pending, as after dispatch); one process makes the three
-moves per view as a worker does (services.core.db.worker_moves) and times each with process CPU time.
-Run: .venv/bin/python bench/scale/worker_moves.py [--views 200] [--label NAME]; writes
+A fresh SQLite file (the embedded default's settings: WAL, synchronous NORMAL) holds one running job of
+`--views` views of the default cues (the render queued, the rest pending, as after dispatch); one process
+makes the three moves per view as a worker does (services.core.db.worker_moves) and times each with process
+CPU time. Run: .venv/bin/python bench/scale/worker_moves.py [--views 200] [--label NAME]; writes
 bench/results/worker_moves.json. With PYTHONPATH set to an older checkout it measures that code (its moves
 lived in services.core.db.states).
 """
@@ -45,7 +45,9 @@ def make_job(sm, cues: list[str], views: int) -> tuple[int, dict[tuple[int, str]
         job = Job(owner="bench", name="moves", spec={}, state="running")
         s.add(job)
         s.flush()
-        cols: dict[str, list[object]] = {k: [] for k in ("job_id", "space_id", "point_idx", "view_idx", "cue", "state")}
+        cols: dict[str, list[object]] = {
+            k: [] for k in ("job_id", "space_id", "point_idx", "view_idx", "cue", "state")
+        }
         deltas: dict[tuple[str, str], int] = {}
         for v in range(views):
             for cue in cues:
@@ -82,11 +84,15 @@ def run(views: int) -> dict[str, float]:
             lease = now + timedelta(seconds=60)
             t0 = time.process_time()
             with sm() as s:
-                assert moves.claim_task(s, task_id=ids[(v, "passes")], worker_id="w", now=now, lease_until=lease)
+                assert moves.claim_task(
+                    s, task_id=ids[(v, "passes")], worker_id="w", now=now, lease_until=lease
+                )
             t1 = time.process_time()
             with sm() as s:
-                rows = moves.claim_view_tasks(s, task_id=ids[(v, "passes")], job_id=job_id, space_id=1, point=v,
-                                              view=0, worker_id="w", now=now, lease_until=lease, with_pending=True)
+                rows = moves.claim_view_tasks(
+                    s, task_id=ids[(v, "passes")], job_id=job_id, space_id=1, point=v, view=0, worker_id="w",
+                    now=now, lease_until=lease, with_pending=True,
+                )
             assert len(rows) == len(cues) - 1
             t2 = time.process_time()
             with sm() as s:

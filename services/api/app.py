@@ -48,9 +48,18 @@ API_VERSION = "0.1.0"
 
 OPENAPI_TAGS = [
     {"name": "spaces", "description": "Upload and register scans (meshes, or .zip/.glb with textures)."},
-    {"name": "jobs", "description": "Generation jobs: create, list, progress, cancel/pause/resume/retry, delete."},
-    {"name": "views", "description": "Plans and tasks of a job: cameras, points, views, task states and errors."},
-    {"name": "outputs", "description": "Pre-signed links to a view's cue files; the job's manifest and job.json."},
+    {
+        "name": "jobs",
+        "description": "Generation jobs: create, list, progress, cancel/pause/resume/retry, delete.",
+    },
+    {
+        "name": "views",
+        "description": "Plans and tasks of a job: cameras, points, views, task states and errors.",
+    },
+    {
+        "name": "outputs",
+        "description": "Pre-signed links to a view's cue files; the job's manifest and job.json.",
+    },
     {"name": "progress", "description": "Server-sent events with live progress counters."},
     {"name": "workers", "description": "Render workers and their heartbeats."},
     {"name": "designer", "description": "A spec's plan, distributions and previews before a job exists."},
@@ -89,14 +98,17 @@ def create_app(
     store: ObjectStore | None = None,
     engine: Engine | None = None,
 ) -> FastAPI:
-    """Build the API for `settings` (default: from the environment); `store`/`engine` override the settings'."""
+    """Build the API for `settings` (default: from the environment); `store`/`engine` override the
+    settings'."""
     settings = settings or get_settings()
     # 50+ concurrent progress pollers share the pool with SSE pollers: a bigger pool than SQLAlchemy's 5+10.
     # No pre-ping: it is one more round trip per request (a third of a progress poll). After a Postgres
     # restart the first request on a dead connection gets a 503, SQLAlchemy invalidates the pool, and the
     # next requests reconnect.
     engine_kwargs: dict[str, int | bool] = (
-        {} if settings.is_sqlite else {"pool_size": 20, "max_overflow": 20, "pool_pre_ping": False, "pool_recycle": 1800}
+        {}
+        if settings.is_sqlite
+        else {"pool_size": 20, "max_overflow": 20, "pool_pre_ping": False, "pool_recycle": 1800}
     )
     engine = engine or make_engine(settings.database_url, **engine_kwargs)
     store = store if store is not None else open_store(settings.storage_url, settings)
@@ -148,8 +160,8 @@ GIL_SWITCH_INTERVAL_S = 0.001  # Python's default is 5 ms
 def app_from_env() -> FastAPI:
     """Factory for `uvicorn --factory services.api.app:app_from_env` (settings from OMNIDATA_* variables).
 
-    The served process hands the GIL around every millisecond instead of every 5: the event loop (/health, event
-    streams) waits for it behind the request threads (uploads' packing and storing, database calls), and each
-    wait could last a whole interval per busy thread."""
+    The served process hands the GIL around every millisecond instead of every 5: the event loop (/health,
+    event streams) waits for it behind the request threads (uploads' packing and storing, database calls), and
+    each wait could last a whole interval per busy thread."""
     sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
     return create_app(get_settings())

@@ -2,9 +2,9 @@
 routes stay thin and tests can swap them.
 
 Routes take the `Annotated` aliases below. The cheap ones are `async def` so FastAPI runs them on the event
-loop instead of handing each to the thread pool. Authentication is a bearer token (`Authorization: Bearer <token>`)
-whose sha256 maps to a tenant in `Settings.api_tokens`; the SSE routes also accept `?token=` because a
-browser's EventSource cannot set headers.
+loop instead of handing each to the thread pool. Authentication is a bearer token (`Authorization: Bearer
+<token>`) whose sha256 maps to a tenant in `Settings.api_tokens`; the SSE routes also accept `?token=` because
+a browser's EventSource cannot set headers.
 """
 
 from __future__ import annotations
@@ -49,7 +49,8 @@ async def get_store(request: Request) -> ObjectStore:
 
 
 def tenant_for(settings: Settings, token: str | None) -> str:
-    """The tenant whose token this is (401 without one or with an unknown one); the body guard checks it too."""
+    """The tenant whose token this is (401 without one or with an unknown one); the body guard checks it
+    too."""
     if not token:
         raise HTTPException(
             status.HTTP_401_UNAUTHORIZED,

@@ -39,7 +39,8 @@ MAX_ERROR_TEXT = 300  # characters of a message or location part: messages may q
 
 
 def clip(text: str, limit: int = MAX_ERROR_TEXT) -> str:
-    """`text` cut to `limit` characters, saying how much was left out (error responses never echo huge inputs)."""
+    """`text` cut to `limit` characters, saying how much was left out (error responses never echo huge
+    inputs)."""
     if len(text) <= limit:
         return text
     return f"{text[:limit]}... ({len(text) - limit} more characters)"
@@ -85,7 +86,9 @@ def error_response(status_code: int, detail: str, **extra: object) -> JSONRespon
 
 async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
     detail = clip(exc.detail if isinstance(exc.detail, str) else str(exc.detail), 2000)
-    return JSONResponse({"detail": detail}, status_code=exc.status_code, headers=getattr(exc, "headers", None))
+    return JSONResponse(
+        {"detail": detail}, status_code=exc.status_code, headers=getattr(exc, "headers", None)
+    )
 
 
 # most specific first: a domain error class is matched by isinstance in this order
@@ -100,8 +103,11 @@ DOMAIN_STATUS: tuple[tuple[type[DomainError], int], ...] = (
 
 
 def domain_status(exc: DomainError) -> int:
-    """The HTTP status of a domain error (422 for one of no listed kind: the request cannot be done as asked)."""
-    return next((code for cls, code in DOMAIN_STATUS if isinstance(exc, cls)), status.HTTP_422_UNPROCESSABLE_CONTENT)
+    """The HTTP status of a domain error (422 for one of no listed kind: the request cannot be done as
+    asked)."""
+    return next(
+        (code for cls, code in DOMAIN_STATUS if isinstance(exc, cls)), status.HTTP_422_UNPROCESSABLE_CONTENT
+    )
 
 
 async def _domain_error(request: Request, exc: DomainError) -> JSONResponse:

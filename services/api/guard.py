@@ -61,7 +61,9 @@ class RequestGuard:
         try:
             tenant_for(self.settings, _bearer(headers))
         except HTTPException as e:
-            await JSONResponse({"detail": e.detail}, status_code=e.status_code, headers=e.headers)(scope, receive, send)
+            await JSONResponse({"detail": e.detail}, status_code=e.status_code, headers=e.headers)(
+                scope, receive, send
+            )
             return
         if headers.get("content-type", "").lower().startswith("multipart/form-data"):
             await self.app(scope, receive, send)  # streamed to disk under upload_max_bytes

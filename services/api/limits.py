@@ -1,4 +1,5 @@
-"""A capacity limiter for worker threads, made on first use (anyio builds limiters inside a running event loop)."""
+"""A capacity limiter for worker threads, made on first use (anyio builds limiters inside a running event
+loop)."""
 
 from __future__ import annotations
 
@@ -6,7 +7,8 @@ import anyio
 
 
 class LazyLimiter:
-    """At most `slots` threads at once for the work run under it (uploads' mesh checks, event-stream polls)."""
+    """At most `slots` threads at once for the work run under it (uploads' mesh checks, event-stream
+    polls)."""
 
     def __init__(self, slots: int) -> None:
         self.slots = slots

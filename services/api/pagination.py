@@ -1,4 +1,5 @@
-"""Limit/offset pagination shared by the list routes: `?limit=&offset=` in, `{items, total, limit, offset}` out."""
+"""Limit/offset pagination shared by the list routes: `?limit=&offset=` in, `{items, total, limit, offset}`
+out."""
 
 from __future__ import annotations
 

@@ -2,7 +2,8 @@
 
 Reads a dataset (a folder in the output layout, or s3://bucket/prefix of a job root) through its
 manifest.jsonl and draws each file's preview (services/datasets/previews.py: colour maps, palettes, hashed
-fragments, drawn JSON cues), cached under the root's `_previews/` like the dashboard's; the files are untouched.
+fragments, drawn JSON cues), cached under the root's `_previews/` like the dashboard's; the files are
+untouched.
 """
 
 from __future__ import annotations
@@ -21,7 +22,11 @@ from services.datasets.source import ViewRecord, index_manifest, missing_file_me
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("dir", help="output folder of `omnidata generate` (holds manifest.jsonl), s3://bucket/prefix or a service job id")
+    p.add_argument(
+        "dir",
+        help="output folder of `omnidata generate` (holds manifest.jsonl), s3://bucket/prefix or a "
+        "service job id",
+    )
     p.add_argument("--out", type=Path, default=None, help="PNG to write (default DIR/contact_sheet.png)")
     p.add_argument("--views", type=int, default=4, help="how many views (rows)")
     p.add_argument("--thumb", type=int, default=128, help="thumbnail size in pixels")
@@ -54,8 +59,10 @@ def build_sheet(root: Path | str, *, views: int = 4, thumb: int = 128) -> Image.
         raise CliError(f"{root}/manifest.jsonl lists no views")
     cues = select_cues(picked, None)
     label_h, pad = 14, 4
-    sheet = Image.new("RGB", (len(cues) * (thumb + pad) + pad, len(picked) * (thumb + label_h + pad) + label_h),
-                      (32, 32, 32))
+    sheet = Image.new(
+        "RGB", (len(cues) * (thumb + pad) + pad, len(picked) * (thumb + label_h + pad) + label_h),
+        (32, 32, 32),
+    )
     draw = ImageDraw.Draw(sheet)
     for j, cue in enumerate(cues):
         draw.text((pad + j * (thumb + pad), 2), cue[:20], fill=(230, 230, 230))
@@ -66,7 +73,11 @@ def build_sheet(root: Path | str, *, views: int = 4, thumb: int = 128) -> Image.
         tiles = previewer.previews(record, cues)
         for j, cue in enumerate(cues):
             if cue in tiles:
-                tile = Image.open(io.BytesIO(tiles[cue])).convert("RGB").resize((thumb, thumb), Image.Resampling.NEAREST)
+                tile = (
+                    Image.open(io.BytesIO(tiles[cue]))
+                    .convert("RGB")
+                    .resize((thumb, thumb), Image.Resampling.NEAREST)
+                )
                 sheet.paste(tile, (pad + j * (thumb + pad), y + label_h))
     return sheet
 

@@ -36,21 +36,32 @@ from services.datasets.splits import DEFAULT_RATIOS, SPLITS, assign_splits, read
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("source", help="output folder of a job, s3://bucket/prefix of a job root, or a service job id")
+    p.add_argument(
+        "source", help="output folder of a job, s3://bucket/prefix of a job root, or a service job id"
+    )
     p.add_argument("--format", choices=FORMATS, help="webdataset tar shards or the Omnidata tree")
     p.add_argument("--out", type=Path, help="folder to create (must not exist or be empty)")
     p.add_argument("--shard-size", type=int, default=1000, help="webdataset: samples (views) per shard")
-    p.add_argument("--flat-keys", action="store_true", help="webdataset: keys without '/' (<space>__point_..)")
+    p.add_argument(
+        "--flat-keys", action="store_true", help="webdataset: keys without '/' (<space>__point_..)"
+    )
     p.add_argument("--cues", default=None, help="comma-separated cues to export (default: all the job has)")
-    p.add_argument("--component", default=None,
-                   help=f"omnidata: the loader class's component, one of {', '.join(COMPONENTS)} (default: the job's name)")
-    p.add_argument("--loader-dir", type=Path, default=None,
-                   help="omnidata: a checkout of the public dataloader to install the split CSVs into; with no "
-                        "--format, SOURCE is an omnidata export whose splits to install")
+    p.add_argument(
+        "--component", default=None,
+        help=f"omnidata: the loader class's component, one of {', '.join(COMPONENTS)} "
+        "(default: the job's name)",
+    )
+    p.add_argument(
+        "--loader-dir", type=Path, default=None,
+        help="omnidata: a checkout of the public dataloader to install the split CSVs "
+        "into; with no --format, SOURCE is an omnidata export whose splits to install",
+    )
     p.add_argument("--split-seed", type=int, default=0, help="omnidata: seed of the split by space")
     p.add_argument("--split-ratios", default=",".join(map(str, DEFAULT_RATIOS)),
                    help="omnidata: train,val,test fractions of spaces")
-    p.add_argument("--split-csv", type=Path, default=None, help="omnidata: use this split CSV (id,train,val,test)")
+    p.add_argument(
+        "--split-csv", type=Path, default=None, help="omnidata: use this split CSV (id,train,val,test)"
+    )
     p.add_argument("--verify", action="store_true", help="check every file's sha256 against the manifest")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -92,7 +103,9 @@ def _split_warnings(splits: dict[str, str]) -> list[str]:
 
 def _component(args: argparse.Namespace, exporter: Exporter) -> LoaderComponent:
     job_name = exporter.job["job"].get("name") if exporter.job is not None else None
-    name = args.component or (job_name if isinstance(job_name, str) else None) or exporter.records[0].component
+    name = (
+        args.component or (job_name if isinstance(job_name, str) else None) or exporter.records[0].component
+    )
     try:
         check_name("--component", name)
         return component(name)
@@ -119,11 +132,14 @@ def run(args: argparse.Namespace) -> int:
             print(f"omnidata export: {line}")
         return 0
     if args.format is None or args.out is None:
-        raise CliError("--format and --out are required (or only --loader-dir, to install an export's splits)")
+        raise CliError(
+            "--format and --out are required (or only --loader-dir, to install an export's splits)"
+        )
     if args.shard_size < 1:
         raise CliError(f"--shard-size must be >= 1, got {args.shard_size}")
     try:
-        cues = None if args.cues is None else validate_cue_names(c.strip() for c in args.cues.split(",") if c.strip())
+        cues = (None if args.cues is None
+                else validate_cue_names(c.strip() for c in args.cues.split(",") if c.strip()))
         store = open_root(args.source)
         exporter = Exporter(store, cues, verify=args.verify, progress=not args.no_progress)
     except (UnknownCueError, FileNotFoundError, ValueError) as e:
@@ -161,7 +177,8 @@ def run(args: argparse.Namespace) -> int:
     for line in notes:
         print(f"omnidata export: {line}", file=sys.stderr)
     if args.format == "omnidata":
-        lines = _install(args.out, args.loader_dir) if args.loader_dir is not None else [_remaining_command(args.out)]
+        lines = (_install(args.out, args.loader_dir) if args.loader_dir is not None
+                 else [_remaining_command(args.out)])
         for line in lines:
             print(f"omnidata export: {line}")
     return 0

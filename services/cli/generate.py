@@ -1,15 +1,15 @@
 """`omnidata generate SPACE [SPACE ...] --out DIR`: plan and render a dataset on this machine, no services.
 
 The embedded default (a laptop, no services), composed from the SAME parts as the service: SQLite at
-DIR/.omnidata/state.db, a LocalStore rooted at DIR (space sources under `.omnidata/spaces`, outputs with an empty
-output root), the scheduler's planning/dispatch/reaper/completion loop in this process, and W local worker
-processes (forked from this one, or spawned: services.embedded.pool) each running the worker's TaskRunner. A
-multiprocessing queue replaces Redis.
+DIR/.omnidata/state.db, a LocalStore rooted at DIR (space sources under `.omnidata/spaces`, outputs with an
+empty output root), the scheduler's planning/dispatch/reaper/completion loop in this process, and W local
+worker processes (forked from this one, or spawned: services.embedded.pool) each running the worker's
+TaskRunner. A multiprocessing queue replaces Redis.
 
 At the end DIR holds `<cue>/<component>/<space>/point_<p>_view_<v>_domain_<cue>.<ext>`, `manifest.jsonl` and
-`job.json`. Exit status: 0 when every requested output exists; 1 with a summary of what failed; 2 for bad input
-(nothing is created); 130 on Ctrl-C (writes are atomic; run the same command again to resume: the same job is
-reused, interrupted tasks go back to pending, missing files are made again, nothing else renders).
+`job.json`. Exit status: 0 when every requested output exists; 1 with a summary of what failed; 2 for bad
+input (nothing is created); 130 on Ctrl-C (writes are atomic; run the same command again to resume: the same
+job is reused, interrupted tasks go back to pending, missing files are made again, nothing else renders).
 """
 
 from __future__ import annotations
@@ -21,8 +21,9 @@ from pathlib import Path
 
 from services.worker.process.numeric_threads import pin_numeric_threads
 
-# Before numpy loads (the imports below): the local workers forked from this process keep its BLAS, which must run
-# one thread (services.worker.process.numeric_threads); this process's own linear algebra is small (planning).
+# Before numpy loads (the imports below): the local workers forked from this process keep its BLAS, which must
+# run one thread (services.worker.process.numeric_threads); this process's own linear algebra is small
+# (planning).
 pin_numeric_threads()
 
 from services.cli import CliError  # noqa: E402
@@ -43,14 +44,22 @@ from services.embedded.pool import LocalPool, cpu_count  # noqa: E402
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `omnidata generate`."""
-    parser.add_argument("spaces", nargs="+", metavar="SPACE",
-                        help="mesh file (.obj with .mtl/textures, .ply, .glb/.gltf) or a folder or .zip holding one")
-    parser.add_argument("--out", "-o", required=True, metavar="DIR", help="output folder (created; reused to resume)")
+    parser.add_argument(
+        "spaces", nargs="+", metavar="SPACE",
+        help="mesh file (.obj with .mtl/textures, .ply, .glb/.gltf) or a folder or .zip holding one",
+    )
+    parser.add_argument(
+        "--out", "-o", required=True, metavar="DIR", help="output folder (created; reused to resume)"
+    )
     add_spec_arguments(parser)
-    parser.add_argument("--workers", type=int, metavar="W", help="local worker processes (default: CPU cores)")
-    parser.add_argument("--render-workers", type=int, metavar="R",
-                        help="of the W workers, R render and the others only derive (default: all render; on a "
-                        "machine with an NVIDIA GPU, one in 8: each renderer holds a device context)")
+    parser.add_argument(
+        "--workers", type=int, metavar="W", help="local worker processes (default: CPU cores)"
+    )
+    parser.add_argument(
+        "--render-workers", type=int, metavar="R",
+        help="of the W workers, R render and the others only derive (default: all "
+        "render; on a machine with an NVIDIA GPU, one in 8: each renderer holds a device context)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar (log lines only)")
 
 
@@ -83,7 +92,9 @@ def validate_sources(sources: list[Source], spec: JobSpec, *, progress: bool = F
 
 def run(args: argparse.Namespace) -> int:
     """Plan and render the dataset into --out; see the module docstring for exit statuses."""
-    logging.basicConfig(level=logging.WARNING, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=logging.WARNING, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s"
+    )
     for noisy in ("alembic", "trimesh"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
     workers = args.workers if args.workers is not None else cpu_count()
@@ -108,15 +119,23 @@ def _checked_run(args: argparse.Namespace, spec: JobSpec, workers: int) -> int:
         given = "--render-workers" if args.render_workers is not None else "OMNIDATA_RENDER_WORKERS"
         raise CliError(f"{given} {settings.render_workers} is more than the {workers} worker(s) of this run "
                        "(--workers)")
-    if args.render_workers is None and settings.render_workers is not None and settings.render_workers < workers:
-        print(f"omnidata generate: {settings.render_workers} of the {workers} workers render, the others derive "
-              "(OMNIDATA_RENDER_WORKERS, else one in 8 on a GPU; --render-workers chooses)", file=sys.stderr)
-    # The workers import (Python, numba kernels, Blender: ~2 CPU-s each) while this process validates and plans;
-    # held, they touch nothing until the job exists, and a refused input stops them at once.
+    if (
+        args.render_workers is None
+        and settings.render_workers is not None
+        and settings.render_workers < workers
+    ):
+        print(
+            f"omnidata generate: {settings.render_workers} of the {workers} workers render, the "
+            "others derive (OMNIDATA_RENDER_WORKERS, else one in 8 on a GPU; --render-workers chooses)",
+            file=sys.stderr,
+        )
+    # The workers import (Python, numba kernels, Blender: ~2 CPU-s each) while this process validates and
+    # plans; held, they touch nothing until the job exists, and a refused input stops them at once.
     pool = worker_pool(out, settings, workers)
     pool.start(held=True)
     try:
-        with latched_sigint():  # a Ctrl-C dropped by a finalizer, while preparing or driving, stops drive's loop
+        # a Ctrl-C dropped by a finalizer, while preparing or driving, stops drive's loop
+        with latched_sigint():
             return _run(args, spec, sources, out, state_db, settings, workers, pool)
     finally:
         pool.stop()
@@ -131,7 +150,8 @@ def _run(args: argparse.Namespace, spec: JobSpec, sources: list[Source], out: Pa
         with sessions() as s:
             find_spaces(s, sources)
         engine.dispose()
-    validate_sources(sources, spec, progress=not args.no_progress)  # bad input refused before anything is created
+    # bad input refused before anything is created
+    validate_sources(sources, spec, progress=not args.no_progress)
     refused = refused_summary(sources)
     sources = usable(sources)
     if refused:
@@ -148,12 +168,20 @@ def _run(args: argparse.Namespace, spec: JobSpec, sources: list[Source], out: Pa
         prepared = prepare_job(sessions, store, spec, sources)
         if prepared.resumed:
             store.remove_temp_files()  # writes the interrupted run never committed; no worker runs yet
-            print(f"omnidata generate: resuming job {prepared.job_id} in {out} ({prepared.requeued} interrupted, "
-                  f"{prepared.redo} missing, {prepared.retried} failed tasks to redo)", file=sys.stderr)
-        status = drive(sessions, store, settings, out, prepared.job_id, workers, progress=not args.no_progress,
-                       loaded_spaces=prepared.loaded, pool=pool)
+            print(
+                f"omnidata generate: resuming job {prepared.job_id} in {out} ({prepared.requeued} "
+                f"interrupted, {prepared.redo} missing, {prepared.retried} failed tasks to redo)",
+                file=sys.stderr,
+            )
+        status = drive(
+            sessions, store, settings, out, prepared.job_id, workers, progress=not args.no_progress,
+            loaded_spaces=prepared.loaded, pool=pool,
+        )
         if refused:
-            print(f"omnidata generate: {len(sources)} space(s) done; refused scene(s):\n{refused}", file=sys.stderr)
+            print(
+                f"omnidata generate: {len(sources)} space(s) done; refused scene(s):\n{refused}",
+                file=sys.stderr,
+            )
         return status
     finally:
         engine.dispose()

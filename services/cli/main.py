@@ -18,24 +18,39 @@ from services.core.domain.errors import DomainError
 # subcommand -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "plan": ("services.cli.plan", "sample cameras, points and views of spaces (no rendering)"),
-    "generate": ("services.cli.generate", "plan and render a dataset locally (SQLite, local folder, local workers)"),
+    "generate": (
+        "services.cli.generate", "plan and render a dataset locally (SQLite, local folder, local workers)",
+    ),
     "serve": ("services.cli.serve", "run the REST API and dashboard"),
     "scheduler": ("services.cli.scheduler", "run the scheduler (plans jobs, dispatches tasks)"),
     "worker": ("services.cli.worker", "run a Celery render worker"),
     "submit": ("services.cli.submit", "submit a job to a running service and follow its progress"),
-    "sheet": ("services.cli.contact_sheet", "draw a contact sheet PNG of every cue of a few views of an output folder"),
-    "export": ("services.cli.export", "export an output as WebDataset shards or the public Omnidata loader's tree"),
+    "sheet": (
+        "services.cli.contact_sheet",
+        "draw a contact sheet PNG of every cue of a few views of an output folder",
+    ),
+    "export": (
+        "services.cli.export", "export an output as WebDataset shards or the public Omnidata loader's tree",
+    ),
     "preview": ("services.cli.preview", "preview PNGs of an output's cues, or one MP4 per cue (--video)"),
-    "compile-kernels": ("services.cli.compile_kernels", "compile the worker's kernels into numba's on-disk cache "
-                        "(image build, `make venv`): workers then only load them"),
+    "compile-kernels": (
+        "services.cli.compile_kernels",
+        "compile the worker's kernels into numba's on-disk cache "
+        "(image build, `make venv`): workers then only load them",
+    ),
     "migrate": ("services.cli.migrate", "upgrade the database schema to this version's head (Alembic)"),
-    "token": ("services.cli.token_create", "create an API token for a tenant (or an operator) and print its settings entry"),
+    "token": (
+        "services.cli.token_create",
+        "create an API token for a tenant (or an operator) and print its settings entry",
+    ),
 }
 
 
 def build_parser(argv: list[str]) -> argparse.ArgumentParser:
     """The parser, with the arguments of the subcommand named in argv (only that module is imported)."""
-    parser = argparse.ArgumentParser(prog="omnidata", description="Omnidata: multi-task vision datasets from 3D scans")
+    parser = argparse.ArgumentParser(
+        prog="omnidata", description="Omnidata: multi-task vision datasets from 3D scans"
+    )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, (module, help_text) in COMMANDS.items():
         p = sub.add_parser(name, help=help_text, description=help_text)

@@ -12,8 +12,10 @@ import sys
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `omnidata migrate`."""
-    parser.add_argument("--check", action="store_true",
-                        help="change nothing: exit 0 when the schema is at the head, 1 (with the reason) when not")
+    parser.add_argument(
+        "--check", action="store_true",
+        help="change nothing: exit 0 when the schema is at the head, 1 (with the reason) when not",
+    )
 
 
 def run(args: argparse.Namespace) -> int:

@@ -64,11 +64,17 @@ def _plan_document(spec: JobSpec, component: str, spaces: dict[str, SpaceRecord]
     points = sum(len(plan.points) for plan in plans)
     return job_document(
         stage="plan",
-        job={"id": None, "name": component, "owner": None, "state": "planned", "error": None, "output_root": None,
-             "created_at": None, "started_at": None, "finished_at": None, "total_tasks": 0},
+        job={
+            "id": None, "name": component, "owner": None, "state": "planned", "error": None,
+            "output_root": None, "created_at": None, "started_at": None, "finished_at": None,
+            "total_tasks": 0,
+        },
         component=component, spec=spec.model_dump(mode="json"), cues=PLAN_CUES, spaces=spaces,
         plan_summary={"shortfall": any(rec["shortfall"] for rec in spaces.values())},
-        counts={"point_info": {"done": views}, "vanishing_points": {"done": views}, "nonfixated": {"done": points}},
+        counts={
+            "point_info": {"done": views}, "vanishing_points": {"done": views},
+            "nonfixated": {"done": points},
+        },
     )
 
 
@@ -118,7 +124,8 @@ def run(args: argparse.Namespace) -> int:
         plan_key = f"plans/{name}.json"
         (out / "plans").mkdir(parents=True, exist_ok=True)
         (out / plan_key).write_text(plan_to_json(plan))
-        spaces[name] = plan_record(space, plan, spec, position=position, cues=list(PLAN_CUES), plan_key=plan_key)
+        spaces[name] = plan_record(space, plan, spec, position=position, cues=list(PLAN_CUES),
+                                   plan_key=plan_key)
         print(f"{name}: {len(plan.cameras)} cameras, {len(plan.points)} points, {len(plan.views)} views")
         print(f"{name}: {space.frame_summary()}")
         if args.report or args.fit_to:
@@ -127,6 +134,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"omnidata plan: warning: {name}: {note}", file=sys.stderr)
         if plan.shortfall:
             print(f"omnidata plan: warning: {name}: {plan.shortfall}", file=sys.stderr)
-    (out / JOB_JSON_KEY).write_bytes(job_json_bytes(_plan_document(spec, component, spaces, [p for *_, p in plans])))
+    document = _plan_document(spec, component, spaces, [p for *_, p in plans])
+    (out / JOB_JSON_KEY).write_bytes(job_json_bytes(document))
     print(f"wrote {out}")
     return 0

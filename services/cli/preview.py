@@ -1,5 +1,5 @@
-"""`omnidata preview SOURCE [--video]`: preview PNGs of every output (cached under `_previews/`), or one MP4 per cue
-and trajectory (one frame per view, in view order) with --video.
+"""`omnidata preview SOURCE [--video]`: preview PNGs of every output (cached under `_previews/`), or one MP4
+per cue and trajectory (one frame per view, in view order) with --video.
 
 SOURCE is a job's output folder or s3://bucket/prefix of a job root. Videos go to --out (default
 SOURCE/_previews/video for folders) as `<space>/point_<p>_<cue>.mp4`.
@@ -31,9 +31,15 @@ from services.datasets.source import (
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("source", help="output folder of a job, s3://bucket/prefix of a job root, or a service job id")
-    p.add_argument("--video", action="store_true", help="one MP4 per cue and trajectory (point), a frame per view")
-    p.add_argument("--out", type=Path, default=None, help="folder for the videos (default SOURCE/_previews/video)")
+    p.add_argument(
+        "source", help="output folder of a job, s3://bucket/prefix of a job root, or a service job id"
+    )
+    p.add_argument(
+        "--video", action="store_true", help="one MP4 per cue and trajectory (point), a frame per view"
+    )
+    p.add_argument(
+        "--out", type=Path, default=None, help="folder for the videos (default SOURCE/_previews/video)"
+    )
     p.add_argument("--cues", default=None, help="comma-separated cues (default: every cue the job has)")
     p.add_argument("--fps", type=float, default=10.0, help="video frames per second")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -69,7 +75,11 @@ def videos(store: ObjectStore, records: list[ViewRecord], cues: list[str], out: 
 
 def run(args: argparse.Namespace) -> int:
     try:
-        wanted = None if args.cues is None else validate_cue_names(c.strip() for c in args.cues.split(",") if c.strip())
+        wanted = (
+            None
+            if args.cues is None
+            else validate_cue_names(c.strip() for c in args.cues.split(",") if c.strip())
+        )
         store = open_root(args.source)
         records = index_root(store)
         if not records:

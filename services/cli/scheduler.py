@@ -13,7 +13,9 @@ from services.cli import CliError
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `omnidata scheduler`."""
-    parser.add_argument("--once", action="store_true", help="run one tick (plan, reap, dispatch, complete) and exit")
+    parser.add_argument(
+        "--once", action="store_true", help="run one tick (plan, reap, dispatch, complete) and exit"
+    )
     parser.add_argument("--interval", type=float, default=1.0, metavar="S",
                         help="seconds between ticks when idle (default 1)")
     parser.add_argument("--id", dest="scheduler_id", default=None, help="scheduler id (default host:pid)")
@@ -42,7 +44,8 @@ def run(args: argparse.Namespace) -> int:
     engine = make_engine(settings.database_url)
     store = open_store(settings.storage_url, settings)
     transport = CeleryTransport(settings=settings)
-    # The service loop plans in capped child processes; a single --once tick plans inline (it waits for it anyway).
+    # The service loop plans in capped child processes; a single --once tick plans inline (it waits for it
+    # anyway).
     sched = Scheduler(make_sessionmaker(engine), store, transport, settings, args.scheduler_id,
                       plan_in_processes=not args.once, cap_queue=True)
     try:

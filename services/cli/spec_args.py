@@ -46,11 +46,15 @@ def add_spec_arguments(parser: argparse.ArgumentParser) -> None:
     """--spec (optional: the JobSpec defaults without it) and the flags that override its fields."""
     parser.add_argument("--spec", metavar="job.yaml",
                         help="JobSpec as YAML or JSON; the options below override it")
-    parser.add_argument("--cues", type=_cue_list, metavar="a,b,...", help="cues to produce (default: all the spaces support)")
+    parser.add_argument(
+        "--cues", type=_cue_list, metavar="a,b,...", help="cues to produce (default: all the spaces support)"
+    )
     parser.add_argument("--points", type=int, metavar="N", help="points of interest per space (points.count)")
     parser.add_argument("--min-views", type=int, metavar="K", help="views a point needs (points.min_views)")
     parser.add_argument("--resolution", type=int, metavar="R", help="square image size in pixels")
-    parser.add_argument("--seed", type=int, metavar="S", help="random seed (same seed, same inputs: same outputs)")
+    parser.add_argument(
+        "--seed", type=int, metavar="S", help="random seed (same seed, same inputs: same outputs)"
+    )
     parser.add_argument("--name", metavar="COMPONENT", help="component name in the output layout (spec name)")
     add_frame_arguments(parser)
 

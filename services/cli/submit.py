@@ -5,10 +5,10 @@ the file's fields, or the defaults, with the flags overriding them.
 With an API URL (--api or $OMNIDATA_API_URL) the spaces are uploaded (POST /spaces, multipart) and the job is
 created over HTTP (POST /jobs {space_ids, spec}); its progress is read from GET /jobs/{id}. With --direct, the
 spaces are registered and the job created directly in the service's database and object store
-(OMNIDATA_DATABASE_URL, which must be set, / OMNIDATA_STORAGE_URL), for operators on the cluster. With neither,
-submit refuses (exit 2): a job written to a database no service reads would wait forever. Either way the job id is printed
-on stdout, then progress follows on stderr until the job is final (exit 0 when done, 1 when failed or
-cancelled). A space already registered under the same name with the same content is reused.
+(OMNIDATA_DATABASE_URL, which must be set, / OMNIDATA_STORAGE_URL), for operators on the cluster. With
+neither, submit refuses (exit 2): a job written to a database no service reads would wait forever. Either way
+the job id is printed on stdout, then progress follows on stderr until the job is final (exit 0 when done, 1
+when failed or cancelled). A space already registered under the same name with the same content is reused.
 """
 
 from __future__ import annotations
@@ -35,22 +35,30 @@ if TYPE_CHECKING:  # imported where used: `omnidata --help` stays fast
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `omnidata submit`."""
-    parser.add_argument("spaces", nargs="+", metavar="SPACE",
-                        help="mesh file (.obj with .mtl/textures, .ply, .glb/.gltf) or a folder or .zip holding one")
+    parser.add_argument(
+        "spaces", nargs="+", metavar="SPACE",
+        help="mesh file (.obj with .mtl/textures, .ply, .glb/.gltf) or a folder or .zip holding one",
+    )
     add_spec_arguments(parser)
     parser.add_argument("--api", default=os.environ.get("OMNIDATA_API_URL"), metavar="URL",
                         help="API base URL (default $OMNIDATA_API_URL)")
-    parser.add_argument("--direct", action="store_true",
-                        help="no API: write to the service's database ($OMNIDATA_DATABASE_URL) directly (operators)")
+    parser.add_argument(
+        "--direct", action="store_true",
+        help="no API: write to the service's database ($OMNIDATA_DATABASE_URL) directly (operators)",
+    )
     parser.add_argument("--token", default=os.environ.get("OMNIDATA_API_TOKEN"), metavar="T",
                         help="API token (default $OMNIDATA_API_TOKEN)")
-    parser.add_argument("--owner", default=os.environ.get("OMNIDATA_OWNER", "local"),
-                        help="tenant owning spaces and job without an API (default $OMNIDATA_OWNER or 'local')")
+    parser.add_argument(
+        "--owner", default=os.environ.get("OMNIDATA_OWNER", "local"),
+        help="tenant owning spaces and job without an API (default $OMNIDATA_OWNER or 'local')",
+    )
     follow = parser.add_mutually_exclusive_group()
     follow.add_argument("--follow", dest="follow", action="store_true", default=True,
                         help="follow progress until the job is final (default)")
     follow.add_argument("--no-follow", dest="follow", action="store_false", help="print the job id and exit")
-    parser.add_argument("--interval", type=float, default=2.0, metavar="S", help="seconds between progress polls")
+    parser.add_argument(
+        "--interval", type=float, default=2.0, metavar="S", help="seconds between progress polls"
+    )
 
 
 @dataclass
@@ -145,13 +153,15 @@ class Api:
         job = self._call("GET", f"/jobs/{job_id}")
         p = job.get("progress") or {}
         by = p.get("by_state") or {}
-        return Status(job["state"], int(p.get("total", 0)), int(p.get("finished", 0)), int(by.get(TaskState.FAILED, 0)),
-                      p.get("labels_per_s"), p.get("eta_s"), job.get("error"))
+        return Status(
+            job["state"], int(p.get("total", 0)), int(p.get("finished", 0)), int(by.get(TaskState.FAILED, 0)),
+            p.get("labels_per_s"), p.get("eta_s"), job.get("error"),
+        )
 
 
 def submit_http(api: Api, spec: JobSpec, sources: list[Source]) -> int:
     """Upload (or reuse) the spaces and create the job over HTTP; returns the job id."""
-    from services.core.domain.jobspec import similarity_scale
+    from services.core.domain.frame_values import similarity_scale
     from services.core.ingest.guard.archive import resolve_source
     from services.core.ingest.registry import pack_source
 
@@ -160,15 +170,24 @@ def submit_http(api: Api, spec: JobSpec, sources: list[Source]) -> int:
         existing = api.find_space(src.name)
         if existing is not None:
             if existing.get("checksum") != src.checksum:
-                raise CliError(f"a different space named {src.name!r} already exists on the service; rename yours")
+                raise CliError(
+                    f"a different space named {src.name!r} already exists on the service; rename yours"
+                )
             ids.append(int(existing["id"]))
             continue
         with tempfile.TemporaryDirectory(prefix="omnidata-submit-") as tmp:
             work = Path(tmp)
-            mesh = resolve_source(src.path, work / "x") if src.path.suffix.lower() == ".zip" else resolve_source(src.path)
+            mesh = (
+                resolve_source(src.path, work / "x")
+                if src.path.suffix.lower() == ".zip"
+                else resolve_source(src.path)
+            )
             upload = pack_source(src.path, mesh, work)  # the file itself, or a zip with its .mtl and textures
-            # the space's own record; the job's spec (up, source_to_world) still decides its frame when planned
-            scale = spec.unit_scale if spec.source_to_world is None else similarity_scale(spec.source_to_world)
+            # the space's own record; the job's spec (up, source_to_world) still decides its frame when
+            # planned
+            scale = (
+                spec.unit_scale if spec.source_to_world is None else similarity_scale(spec.source_to_world)
+            )
             created = api.upload_space(upload, name=src.name, up_axis=spec.up_axis, unit_scale=scale)
         print(f"omnidata submit: uploaded space {src.name!r} (id {created['id']})", file=sys.stderr)
         ids.append(int(created["id"]))
@@ -201,7 +220,9 @@ def submit_db(settings: Settings, spec: JobSpec, sources: list[Source], owner: s
             for src in sources:
                 space = s.scalars(select(Space).where(Space.owner == owner, Space.name == src.name)).first()
                 if space is not None and space.checksum != src.checksum:
-                    raise CliError(f"a different space named {src.name!r} already exists for {owner!r}; rename yours")
+                    raise CliError(
+                        f"a different space named {src.name!r} already exists for {owner!r}; rename yours"
+                    )
                 if space is None:
                     try:
                         space = register_space(s, store, owner=owner, name=src.name, source_path=src.path,
@@ -244,8 +265,10 @@ def db_status_fn(settings: Settings) -> tuple[Callable[[int], Status], Callable[
         first_labels = labels if first_labels is None else first_labels
         dt = time.monotonic() - t0
         rate = (labels - first_labels) / dt if dt > 1 else None
-        return Status(job.state, total, finished, sum(st.get(TaskState.FAILED, 0) for st in prog.values()), rate, None,
-                      job.error)
+        return Status(
+            job.state, total, finished, sum(st.get(TaskState.FAILED, 0) for st in prog.values()), rate, None,
+            job.error,
+        )
 
     return status, engine.dispose
 
@@ -272,8 +295,10 @@ def run(args: argparse.Namespace) -> int:
     if args.interval <= 0:
         raise CliError(f"--interval must be positive, got {args.interval}")
     if not args.api and not args.direct:
-        raise CliError("no service configured: pass --api URL or set OMNIDATA_API_URL (--direct writes to "
-                       "OMNIDATA_DATABASE_URL instead; `omnidata generate` renders locally without a service)")
+        raise CliError(
+            "no service configured: pass --api URL or set OMNIDATA_API_URL (--direct writes to "
+            "OMNIDATA_DATABASE_URL instead; `omnidata generate` renders locally without a service)"
+        )
     if args.direct and not os.environ.get("OMNIDATA_DATABASE_URL"):
         raise CliError("--direct needs OMNIDATA_DATABASE_URL: the database the service's scheduler reads")
     spec = build_spec(args)

@@ -1,7 +1,8 @@
 """`omnidata token create --tenant NAME | --operator`: a new random API token and the settings entry to add.
 
-Only the token's sha256 is kept in settings (OMNIDATA_API_TOKENS maps sha256 -> tenant; OMNIDATA_OPERATOR_TOKENS
-lists operators' sha256, who see service-wide /metrics). The token itself is printed once, here: store it.
+Only the token's sha256 is kept in settings (OMNIDATA_API_TOKENS maps sha256 -> tenant;
+OMNIDATA_OPERATOR_TOKENS lists operators' sha256, who see service-wide /metrics). The token itself is printed
+once, here: store it.
 """
 
 from __future__ import annotations
@@ -20,8 +21,8 @@ TENANT_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._@-]{0,127}$")
 
 
 def new_token() -> str:
-    """A random URL-safe token that does not start with '-': `--token -x...` would read as an option on a command
-    line (argparse: "expected one argument"), and one token in 64 began so."""
+    """A random URL-safe token that does not start with '-': `--token -x...` would read as an option on a
+    command line (argparse: "expected one argument"), and one token in 64 began so."""
     while (token := secrets.token_urlsafe(TOKEN_BYTES)).startswith("-"):
         pass
     return token
@@ -32,12 +33,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
     create = sub.add_parser("create", help="print a new token and the settings entry that enables it")
     who = create.add_mutually_exclusive_group(required=True)
-    who.add_argument("--tenant", metavar="NAME", help="the tenant the token acts for (owner of its spaces and jobs)")
+    who.add_argument(
+        "--tenant", metavar="NAME", help="the tenant the token acts for (owner of its spaces and jobs)"
+    )
     who.add_argument("--operator", action="store_true", help="an operator token: service-wide /metrics")
 
 
 def run(args: argparse.Namespace) -> int:
-    """Create a token: the token on stdout's first line, then the settings line to add (merged with the current)."""
+    """Create a token: the token on stdout's first line, then the settings line to add (merged with the
+    current)."""
     from services.core.settings import hash_token, load_settings
 
     if args.tenant is not None and not TENANT_NAME.match(args.tenant):
@@ -54,6 +58,9 @@ def run(args: argparse.Namespace) -> int:
         who = f"tenant {args.tenant!r}"
     print(token)
     print(f"{variable}={shlex.quote(value)}")
-    print(f"omnidata token: the first line is a new token for {who}; it is shown only this once. Set the second "
-          "line in the services' environment (it keeps the current entries) and restart them.", file=sys.stderr)
+    print(
+        f"omnidata token: the first line is a new token for {who}; it is shown only this once. Set "
+        "the second line in the services' environment (it keeps the current entries) and restart them.",
+        file=sys.stderr,
+    )
     return 0

@@ -29,7 +29,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="worker processes (default: one per core this process may use, so renders and "
                              "derivations use every core; each renders with cores / processes threads)")
     parser.add_argument("--loglevel", "-l", default="INFO", type=str.upper, choices=LOG_LEVELS)
-    parser.add_argument("--hostname", "-n", default=None, help="Celery node name (default omnidata-<pid>@<host>)")
+    parser.add_argument(
+        "--hostname", "-n", default=None, help="Celery node name (default omnidata-<pid>@<host>)"
+    )
     parser.add_argument("--render-threads", type=int, default=None,
                         help="Cycles CPU threads per process (default: the process's CPU affinity)")
     parser.add_argument("--pool", default="prefork", choices=["prefork", "solo", "threads"],
@@ -47,9 +49,10 @@ def node_name(hostname: str | None) -> str:
 
 
 def process_layout(concurrency: int | None, render_threads: int | None, cores: int) -> tuple[int, int]:
-    """(worker processes, render threads per process) on `cores` cores: by default one process per core with one
-    thread each, as `omnidata generate` does (a view's derivations run on one core, so a single process with many
-    render threads would leave the other cores idle between renders); CliError for values below 1."""
+    """(worker processes, render threads per process) on `cores` cores: by default one process per core with
+    one thread each, as `omnidata generate` does (a view's derivations run on one core, so a single process
+    with many render threads would leave the other cores idle between renders); CliError for values below
+    1."""
     if concurrency is not None and concurrency < 1:
         raise CliError(f"--concurrency must be at least 1, got {concurrency}")
     if render_threads is not None and render_threads < 1:
@@ -107,7 +110,9 @@ def run(args: argparse.Namespace) -> int:
     holder = _live_holder(settings, node)
     if holder is not None:
         raise CliError(f"a worker named {node!r} is alive on {holder}: give this one another --hostname")
-    queues = [q.strip() for q in (args.queues or f"{settings.queue_render},{settings.queue_derive}").split(",")]
+    queues = [
+        q.strip() for q in (args.queues or f"{settings.queue_render},{settings.queue_derive}").split(",")
+    ]
     queues = [q for q in queues if q]
     if not queues:
         raise CliError("--queues names no queue")

@@ -42,7 +42,8 @@ def celery_conf(settings: Settings) -> dict[str, object]:
         "result_backend": None,
         "task_ignore_result": True,  # results live in Postgres, not in the broker
         "task_acks_late": True,  # a worker killed mid-task leaves the message to be redelivered
-        # long tasks: never hoard messages another worker could run (a dead worker's reserved ones are re-sent)
+        # long tasks: never hoard messages another worker could run (a dead worker's reserved ones are
+        # re-sent)
         "worker_prefetch_multiplier": settings.worker_prefetch,
         "task_default_queue": settings.queue_derive,
         "task_create_missing_queues": True,

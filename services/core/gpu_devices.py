@@ -1,5 +1,5 @@
-"""NVIDIA GPUs on this machine, seen by the device files their driver makes (/dev/nvidia0, ...): no CUDA call, so a
-process that forks workers may ask (CUDA started before a fork is unusable in the children)."""
+"""NVIDIA GPUs on this machine, seen by the device files their driver makes (/dev/nvidia0, ...): no CUDA call,
+so a process that forks workers may ask (CUDA started before a fork is unusable in the children)."""
 
 from __future__ import annotations
 

@@ -18,7 +18,9 @@ from pydantic_settings import BaseSettings, SettingsConfigDict, SettingsError
 DEFAULT_SECRET_KEY = "dev-secret-change-me"
 MIN_SECRET_KEY_LEN = 32  # characters of a production secret
 _HEX64 = re.compile(r"^[0-9a-f]{64}$")
-TOKENS_HINT = 'a JSON object {"<sha256 hex of a token>": "<tenant>"}; `omnidata token create --tenant NAME` prints one'
+TOKENS_HINT = (
+    'a JSON object {"<sha256 hex of a token>": "<tenant>"}; `omnidata token create --tenant NAME` prints one'
+)
 
 
 def hash_token(token: str) -> str:
@@ -42,11 +44,14 @@ class Settings(BaseSettings):
     data_dir: Path = Field(default_factory=lambda: Path.home() / ".omnidata")
     database_url: str = Field("", description="SQLAlchemy URL; default sqlite:///{data_dir}/omnidata.db")
     db_wait_s: float = Field(
-        60.0, ge=0, description="a worker, scheduler or API starting while the database does not answer (a restart, "
-        "a failover) waits this long for it before it exits, s"
+        60.0, ge=0,
+        description="a worker, scheduler or API starting while the database does not answer (a restart, "
+        "a failover) waits this long for it before it exits, s",
     )
     broker_url: str = "redis://127.0.0.1:6379/0"
-    storage_url: str = Field("", description="file:///abs/path or s3://bucket/prefix; default {data_dir}/objects")
+    storage_url: str = Field(
+        "", description="file:///abs/path or s3://bucket/prefix; default {data_dir}/objects"
+    )
     s3_endpoint_url: str | None = None
     s3_region: str = "us-east-1"
     aws_access_key_id: SecretStr | None = None
@@ -64,15 +69,17 @@ class Settings(BaseSettings):
     upload_parse_memory_mb: int = Field(
         4096, ge=512, description="memory the process reading an uploaded mesh may map on top of its own, MiB"
     )
-    upload_parse_timeout_s: float = Field(300.0, gt=0, description="time limit for reading an uploaded mesh, s")
+    upload_parse_timeout_s: float = Field(
+        300.0, gt=0, description="time limit for reading an uploaded mesh, s"
+    )
     request_max_bytes: int = Field(
         8 * 1024**2, gt=0, description="largest request body other than an upload (JSON job specs), bytes"
     )
     presign_expiry_s: int = Field(3600, gt=0, le=7 * 24 * 3600)
     public_base_url: str | None = Field(
         None,
-        description="the URL clients reach the API at (https://omnidata.example.org); signed links start with it, "
-        "never with a request's Host header. Unset: links are root-relative (/blobs/...)",
+        description="the URL clients reach the API at (https://omnidata.example.org); signed links start "
+        "with it, never with a request's Host header. Unset: links are root-relative (/blobs/...)",
     )
     lease_s: int = Field(300, gt=0, description="seconds a running task holds its lease")
     heartbeat_timeout_s: int = Field(
@@ -84,31 +91,44 @@ class Settings(BaseSettings):
         True, description="the scheduler replaces the task rows of finished views by one packed row per view "
         "(view_output), so a finished job's database holds ~1.2 KB a view instead of ~6 KB",
     )
-    compact_after_s: float = Field(60.0, ge=0, description="a view is compacted once its last task finished this long ago")
-    compact_pass_s: float = Field(0.25, gt=0, description="time one compaction pass of the scheduler may take, s")
+    compact_after_s: float = Field(
+        60.0, ge=0, description="a view is compacted once its last task finished this long ago"
+    )
+    compact_pass_s: float = Field(
+        0.25, gt=0, description="time one compaction pass of the scheduler may take, s"
+    )
     worker_max_tasks: int = Field(
-        500, ge=1, description="a worker process recycles after running this many task messages (a view batch is one)"
+        500, ge=1,
+        description="a worker process recycles after running this many task messages (a view batch is one)",
     )
     worker_batch_views: bool = Field(
-        True, description="the worker that rendered a view claims the rest of its tasks, pending or queued, in one "
-        "statement, derives them from the pass set it holds and records them in one statement (a derived cue's "
-        "task claims its view's queued tasks alike); false: one task per message",
+        True,
+        description="the worker that rendered a view claims the rest of its tasks, pending or queued, in one "
+        "statement, derives them from the pass set it holds and records them in one statement (a "
+        "derived cue's task claims its view's queued tasks alike); false: one task per message",
     )
     worker_max_memory_mb: int = Field(4096, ge=64, description="a worker recycles above this resident size")
     worker_start: Literal["auto", "spawn"] = Field(
-        "auto", description="how `generate` starts its local workers: auto forks the first ones from its own "
-        "process when that is safe (Linux, one thread, numeric libraries pinned, Blender not loaded), so they "
+        "auto",
+        description="how `generate` starts its local workers: auto forks the first ones from its own "
+        "process when that is safe (Linux, one thread, numeric libraries pinned, Blender not "
+        "loaded), so they "
         "inherit its imports (~1 CPU-s each), and spawns the rest and any replacement; spawn: always spawn",
     )
     plan_memory_mb: int = Field(
-        4096, ge=256, description="memory one job's planning may use (its process's limit); bigger specs are refused"
+        4096, ge=256,
+        description="memory one job's planning may use (its process's limit); bigger specs are refused",
     )
     plan_chunk_views: int = Field(
-        20000, ge=1, description="views planned and written at a time: a planner's memory beyond the sampled points"
+        20000, ge=1,
+        description="views planned and written at a time: a planner's memory beyond the sampled points",
     )
-    plan_processes: int = Field(2, ge=1, le=64, description="jobs one scheduler plans at once, each in its own process")
+    plan_processes: int = Field(
+        2, ge=1, le=64, description="jobs one scheduler plans at once, each in its own process"
+    )
     plan_timeout_s: int = Field(
-        900, ge=10, description="time one job's planning may take; its process is ended after it, bigger specs refused"
+        900, ge=10,
+        description="time one job's planning may take; its process is ended after it, bigger specs refused",
     )
     upload_parse_concurrency: int = Field(
         2, ge=1, description="scans the API reads at once, each in a child process (upload checks, up "
@@ -150,16 +170,22 @@ class Settings(BaseSettings):
     sse_poll_s: float = Field(0.5, gt=0, le=60, description="seconds between an event stream's counter polls")
     sse_heartbeat_s: float = Field(15.0, gt=0, le=300, description="seconds between a stream's heartbeats")
     worker_prefetch: int = Field(
-        1, ge=1, le=64, description="messages a worker process reserves (running included); more suits tiny tasks"
+        1, ge=1, le=64,
+        description="messages a worker process reserves (running included); more suits tiny tasks",
     )
-    render_threads: int | None = Field(None, ge=1, description="CPU threads per render (default: Blender's choice)")
+    render_threads: int | None = Field(
+        None, ge=1, description="CPU threads per render (default: Blender's choice)"
+    )
     render_device: Literal["auto", "cpu", "cuda", "optix"] = "auto"
     render_workers: int | None = Field(
-        None, ge=1, description="`omnidata generate`: how many of its local workers render (each holds Blender and, "
-        "on a GPU, its own device context); the others only derive, from the pass sets the renderers store, and "
-        "never load Blender. A renderer derives only while no view waits for a render. Unset: on a machine with an "
-        "NVIDIA GPU one worker in 8 renders (at least one), elsewhere every worker renders and derives its own views "
-        "(view batches)",
+        None, ge=1,
+        description="`omnidata generate`: how many of its local workers render (each holds Blender and, "
+        "on a GPU, its own device context); the others only derive, from the pass sets the "
+        "renderers store, and "
+        "never load Blender. A renderer derives only while no view waits for a render. Unset: on "
+        "a machine with an "
+        "NVIDIA GPU one worker in 8 renders (at least one), elsewhere every worker renders and "
+        "derives its own views (view batches)",
     )
     queue_render: str = Field("render", min_length=1, description="heavy queue: tasks that render")
     queue_derive: str = Field("derive", min_length=1, description="light queue: derived cues, plan cues")
@@ -197,7 +223,8 @@ class Settings(BaseSettings):
     @model_validator(mode="before")
     @classmethod
     def _fill_defaults(cls, data: object) -> object:
-        # database_url and storage_url default to paths under data_dir, so derive them after data_dir is known.
+        # database_url and storage_url default to paths under data_dir, so derive them after data_dir is
+        # known.
         if not isinstance(data, dict):
             return data
         data_dir = Path(data.get("data_dir") or Path.home() / ".omnidata").expanduser().resolve()
@@ -257,13 +284,15 @@ class InvalidSettings(ConfigurationError):
 
 
 def load_settings(**overrides: Any) -> Settings:  # as get_settings
-    """get_settings() for the command line: a bad OMNIDATA_* value raises InvalidSettings with one clear line."""
+    """get_settings() for the command line: a bad OMNIDATA_* value raises InvalidSettings with one clear
+    line."""
     try:
         return get_settings(**overrides)
     except ValidationError as e:
         parts = []
         for err in e.errors():
-            field = str(err["loc"][0]) if err["loc"] else ""  # empty for checks of the whole model (secret key)
+            # empty for checks of the whole model (secret key)
+            field = str(err["loc"][0]) if err["loc"] else ""
             where = f"OMNIDATA_{field.upper()}: " if field else ""
             hint = f" ({TOKENS_HINT})" if field in ("api_tokens", "operator_tokens") else ""
             parts.append(f"{where}{err['msg'].removeprefix('Value error, ')}{hint}")

@@ -1,4 +1,5 @@
-"""`OmnidataDataset`: a job's output (local folder or S3) as a map-style dataset of decoded arrays in metric units.
+"""`OmnidataDataset`: a job's output (local folder or S3) as a map-style dataset of decoded arrays in metric
+units.
 
 Works with torch's DataLoader and its default collate without importing torch: items are dicts of numpy arrays
 (channels first), Python ints and strings. Units and encodings are in services/datasets/decode.py.
@@ -29,18 +30,19 @@ from services.datasets.source import (
 from services.datasets.splits import DEFAULT_RATIOS, SPLITS, assign_splits, read_split_csv
 from services.datasets.steering_filter import keep_in_ranges
 
-# cue name -> decoded array (JSON cues: their text); space, point, view; K and world_to_camera. Items of several
-# views hold a list (text, names) or a stacked array per key.
+# cue name -> decoded array (JSON cues: their text); space, point, view; K and world_to_camera. Items of
+# several views hold a list (text, names) or a stacked array per key.
 ItemValue = np.ndarray | str | int | list[np.ndarray | str | int]
 Item = dict[str, ItemValue]
 
 
 class OmnidataDataset:
-    """Views of a job's output as dicts of arrays: one item per view, or per anchor view and its point's others.
+    """Views of a job's output as dicts of arrays: one item per view, or per anchor view and its point's
+    others.
 
     root: output folder, file:// or s3://bucket/prefix URL of a job root (S3 is read through manifest.jsonl),
-    or an open ObjectStore. cues: the cues to decode (views lacking one are left out). spaces: keep only these.
-    split: 'train', 'val' or 'test', by space: from `split_csv` (Omnidata format) when given, else from
+    or an open ObjectStore. cues: the cues to decode (views lacking one are left out). spaces: keep only
+    these. split: 'train', 'val' or 'test', by space: from `split_csv` (Omnidata format) when given, else from
     `split_seed` and `split_ratios`. views_per_sample > 1: each item stacks that many views of the same point
     (the anchor, then the point's next views in order); points with fewer views are left out.
     verify_sha256: check every file read against its manifest checksum. where: keep the views whose steering
@@ -96,12 +98,17 @@ class OmnidataDataset:
         self.samples = self._samples(complete)
 
     def _in_split(
-        self, records: list[ViewRecord], split: str, csv: str | Path | None, seed: int, ratios: Sequence[float]
+        self, records: list[ViewRecord], split: str, csv: str | Path | None, seed: int,
+        ratios: Sequence[float],
     ) -> list[ViewRecord]:
         if csv is not None:
             members = read_split_csv(Path(csv))[split]
         else:
-            members = {s for s, name in assign_splits(self.all_spaces, seed=seed, ratios=ratios).items() if name == split}
+            members = {
+                s
+                for s, name in assign_splits(self.all_spaces, seed=seed, ratios=ratios).items()
+                if name == split
+            }
         return [r for r in records if r.space in members]
 
     def _samples(self, records: list[ViewRecord]) -> list[tuple[int, ...]]:
@@ -120,7 +127,8 @@ class OmnidataDataset:
                 out.append(tuple(members[(j + k) % len(members)] for k in range(n)))
         return out
 
-    # ------------------------------------------------------------------ storage (reopened in each worker process)
+    # ------------------------------------------------------------------ storage (reopened in each worker
+    # process)
 
     @property
     def store(self) -> ObjectStore:
@@ -144,10 +152,15 @@ class OmnidataDataset:
         return len(self.samples)
 
     def load_view(self, record: ViewRecord) -> Item:
-        """One view: every requested cue decoded, plus K, world_to_camera (when it has point_info) and its names."""
+        """One view: every requested cue decoded, plus K, world_to_camera (when it has point_info) and its
+        names."""
         item: Item = {cue: decode_cue(cue, self.read(record, cue), self.params) for cue in self.cues}
         if "point_info" in record.files:
-            text = item["point_info"] if "point_info" in item else self.read(record, "point_info").decode("utf-8")
+            text = (
+                item["point_info"]
+                if "point_info" in item
+                else self.read(record, "point_info").decode("utf-8")
+            )
             item["K"], item["world_to_camera"] = camera_of(json.loads(cast(str, text)))
         item.update(space=record.space, point=record.point, view=record.view)
         return item

@@ -5,9 +5,9 @@ from Pillow's raw buffer and reinterpreted as unsigned, so no Pillow version can
 that wrap 65535 ("no depth") or keypoint responses above 32767 negative.
 
 Units (what a training loop receives):
-  rgb, rgb_*           float32 3xHxW in [0, 1] (rgb_refocus, rgb_fog, rgb_motion_blur, rgb_flash: augmentations)
-  normal               float32 3xHxW unit vectors, camera frame x right, y up, z towards the viewer; NaN = none
-  depth_*              float32 1xHxW metres; NaN = no surface
+  rgb, rgb_*           float32 3xHxW in [0, 1] (rgb_refocus, rgb_fog, rgb_motion_blur, rgb_flash:
+  augmentations) normal               float32 3xHxW unit vectors, camera frame x right, y up, z towards the
+  viewer; NaN = none depth_*              float32 1xHxW metres; NaN = no surface
   mask_valid           bool 1xHxW
   mask_photo           bool 1xHxW (capture views: the rgb is a photo's here)
   reshading            float32 1xHxW in [0, 1]
@@ -103,7 +103,9 @@ def _grey(a: np.ndarray) -> np.ndarray:
 def depth_metres(raw: np.ndarray, params: CueParams) -> np.ndarray:
     """float32 metres of a 16-bit depth image; NaN where it says no surface (65535)."""
     d = as_uint16(_grey(raw))
-    return np.where(d == UINT16_NONE, np.nan, d.astype(np.float64) / params.depth_units_per_m).astype(np.float32)
+    return np.where(d == UINT16_NONE, np.nan, d.astype(np.float64) / params.depth_units_per_m).astype(
+        np.float32
+    )
 
 
 def normal_vectors(raw: np.ndarray) -> np.ndarray:
@@ -120,7 +122,8 @@ def normal_vectors(raw: np.ndarray) -> np.ndarray:
 
 
 def curvature_per_m(raw: np.ndarray, params: CueParams) -> np.ndarray:
-    """HxWx2 float32 principal curvatures k1, k2 in 1/m; NaN where nothing is seen (stored as R = G = B = 0)."""
+    """HxWx2 float32 principal curvatures k1, k2 in 1/m; NaN where nothing is seen (stored as R = G = B =
+    0)."""
     kmax = 1.0 / params.curvature_clip_m
     k = (raw[..., :2].astype(np.float64) / CURVATURE_FLAT - 1.0) * kmax
     k[(raw[..., :3] == 0).all(axis=-1)] = np.nan

@@ -7,13 +7,13 @@ file's bytes unchanged, and `<key>.json` with {space, component, point, view, po
 
 omnidata: the tree the public Omnidata dataloader (omnidata_tools/torch/dataloader) reads:
 `OUT/<cue>/<component>/<space>/point_<p>_view_<v>_domain_<cue>.<ext>` (per-point files copied per view, since
-that loader parses every name as point_<p>_view_<v>_domain_<cue>), and the split CSVs its component class opens
-(`OUT/component_datasets/<component>/train_val_test_*.csv`, id,train,val,test by space). That loader reads
-them only from its own package folder: the command's `--loader-dir CHECKOUT` installs them there
+that loader parses every name as point_<p>_view_<v>_domain_<cue>), and the split CSVs its component class
+opens (`OUT/component_datasets/<component>/train_val_test_*.csv`, id,train,val,test by space). That loader
+reads them only from its own package folder: the command's `--loader-dir CHECKOUT` installs them there
 (services.datasets.public_loader), or prints the one command that remains.
 
-SOURCE is a job's output folder, s3://bucket/prefix of a job root, or a service job's id (its root `jobs/<id>` in
-OMNIDATA_STORAGE_URL), read through its manifest. The output is
+SOURCE is a job's output folder, s3://bucket/prefix of a job root, or a service job's id (its root `jobs/<id>`
+in OMNIDATA_STORAGE_URL), read through its manifest. The output is
 built in a temporary sibling folder and renamed into place at the end, so a failed export leaves nothing.
 """
 
@@ -57,7 +57,8 @@ def omnidata_path(cue: str, component: str, record: ViewRecord) -> str:
 
 def _tar_member(tar: tarfile.TarFile, name: str, data: bytes) -> None:
     info = tarfile.TarInfo(name)
-    info.size, info.mtime, info.mode = len(data), 0, 0o644  # fixed metadata: identical input, identical shards
+    # fixed metadata: identical input, identical shards
+    info.size, info.mtime, info.mode = len(data), 0, 0o644
     tar.addfile(info, io.BytesIO(data))
 
 

@@ -31,7 +31,9 @@ def camera_of(point_info: StoredPointInfo) -> tuple[np.ndarray, np.ndarray]:
     (services.core.domain.camera).
     """
     if "K" in point_info and "world_to_camera" in point_info:
-        return (np.asarray(point_info["K"], np.float32), np.asarray(point_info["world_to_camera"], np.float32))
+        return (
+            np.asarray(point_info["K"], np.float32), np.asarray(point_info["world_to_camera"], np.float32),
+        )
     res = int(point_info["resolution"])
     K = intrinsics(float(point_info["field_of_view_rads"]), res)
     w2c = world_to_camera_from_blender(np.asarray(point_info["camera_location"]),

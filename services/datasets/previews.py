@@ -45,11 +45,14 @@ _AXIS_COLOURS: tuple[tuple[Literal["x", "y", "z"], tuple[int, int, int]], ...] =
     ("x", (230, 60, 60)), ("y", (60, 200, 60)), ("z", (80, 120, 255)))
 LABEL_CUES = {"segment_unsup2d", "segment_unsup25d", "segment_semantic", "segment_instance"}
 MAGNITUDE_CUES = {"edge_texture", "edge_occlusion", "keypoints2d", "keypoints3d"}
-PIXEL_JSON_CUES = {"nonfixated", "vanishing_points"}  # JSON cues holding pixel positions (need the resolution)
+# JSON cues holding pixel positions (need the resolution)
+PIXEL_JSON_CUES = {"nonfixated", "vanishing_points"}
 
 # Colour maps as anchor colours, linearly interpolated (0 -> first anchor, 1 -> last).
 SEQUENTIAL = ((0, 0, 4), (80, 18, 123), (183, 55, 121), (252, 137, 97), (252, 253, 191))
-DEPTH_NEAR_TO_FAR = ((180, 4, 38), (244, 109, 67), (254, 224, 139), (171, 221, 164), (50, 136, 189), (40, 30, 110))
+DEPTH_NEAR_TO_FAR = (
+    (180, 4, 38), (244, 109, 67), (254, 224, 139), (171, 221, 164), (50, 136, 189), (40, 30, 110),
+)
 DIVERGING = ((59, 76, 192), (221, 221, 221), (180, 4, 38))
 NO_SURFACE = (0, 0, 0)
 
@@ -59,14 +62,18 @@ def colour_map(values: np.ndarray, anchors: Sequence[tuple[int, int, int]]) -> n
     stops = np.linspace(0.0, 1.0, len(anchors))
     colours = np.asarray(anchors, dtype=np.float64)
     ramp = np.linspace(0.0, 1.0, 256)  # 256 entries: an 8-bit preview cannot show finer steps
-    table = np.rint(np.stack([np.interp(ramp, stops, colours[:, c]) for c in range(3)], axis=-1)).astype(np.uint8)
+    table = np.rint(np.stack([np.interp(ramp, stops, colours[:, c]) for c in range(3)], axis=-1)).astype(
+        np.uint8
+    )
     index = np.rint(np.clip(np.nan_to_num(values, nan=0.0), 0.0, 1.0) * 255).astype(np.intp)
     rgb = table[index]
     rgb[~np.isfinite(values)] = NO_SURFACE
     return rgb
 
 
-def stretch(a: np.ndarray, valid: np.ndarray | None = None, lo_pct: float = 1, hi_pct: float = 99) -> np.ndarray:
+def stretch(
+    a: np.ndarray, valid: np.ndarray | None = None, lo_pct: float = 1, hi_pct: float = 99
+) -> np.ndarray:
     """Values scaled to [0, 1] between two percentiles of the valid finite ones (NaN outside `valid`)."""
     a = a.astype(np.float64)
     mask = np.isfinite(a) if valid is None else (valid & np.isfinite(a))
@@ -85,7 +92,8 @@ def stretch(a: np.ndarray, valid: np.ndarray | None = None, lo_pct: float = 1, h
 
 
 def hashed_colours(ids: np.ndarray, none: int | None = None) -> np.ndarray:
-    """HxWx3 uint8: a stable pseudo-random colour per integer id (Knuth's multiplicative hash); `none` is black.
+    """HxWx3 uint8: a stable pseudo-random colour per integer id (Knuth's multiplicative hash); `none` is
+    black.
 
     Colours stay above a floor of 48 per channel, so no id (label 0 included) looks like "none".
     """
@@ -103,7 +111,8 @@ def _grey_to_rgb(a: np.ndarray) -> np.ndarray:
 
 def _image_preview(cue: str, raw: np.ndarray, params: CueParams) -> np.ndarray:
     """HxWx3 uint8 of an image cue's stored array."""
-    if cue in ("rgb", "normal", "reshading", "mask_valid", "mask_photo") or cue.startswith("rgb_"):  # rgb_*: augmentations
+    # rgb_*: augmentations
+    if cue in ("rgb", "normal", "reshading", "mask_valid", "mask_photo") or cue.startswith("rgb_"):
         return _grey_to_rgb(raw).astype(np.uint8)
     if cue.startswith("depth_"):
         d = as_uint16(raw)
@@ -210,7 +219,11 @@ def _draw_augment_params(doc: Mapping[str, Mapping[str, JSONValue]], size: int) 
     lines = [
         f"focus {refocus.get('focus_distance_m', 0):.2f} m f/{refocus.get('f_number', 0):.1f}",
         f"fog beta {fog.get('beta_per_m', 0):.3f}/m A {fog.get('airlight', 0):.2f}",
-        "move " + " ".join(f"{1000 * float(cast(float, x)):.0f}" for x in cast(list[JSONValue], motion.get("translation_m", [])))
+        "move "
+        + " ".join(
+            f"{1000 * float(cast(float, x)):.0f}"
+            for x in cast(list[JSONValue], motion.get("translation_m", []))
+        )
         + " mm",
         f"flash {flash.get('power_m2', 0):.2f} amb {flash.get('ambient', 0):.2f}",
     ]
@@ -248,7 +261,8 @@ def preview_array(
     raw = read_raw(cue, data)
     if isinstance(raw, dict):
         return json_preview(cue, raw, view=view, resolution=resolution)
-    step = -(-max(raw.shape[:2]) // MAX_PREVIEW_PX)  # thumbnails: subsample before mapping (cheaper, exact labels)
+    # thumbnails: subsample before mapping (cheaper, exact labels)
+    step = -(-max(raw.shape[:2]) // MAX_PREVIEW_PX)
     return _image_preview(cue, raw[::step, ::step], params)
 
 
@@ -260,9 +274,11 @@ def png_bytes(img: np.ndarray) -> bytes:
 
 
 def preview_key(output_key: str, cue: str, point: int, view: int) -> str:
-    """Where the preview of an output (relative to the job root) is cached: `_previews/v<N>/<cue>/.../<file>.png`.
+    """Where the preview of an output (relative to the job root) is cached:
+    `_previews/v<N>/<cue>/.../<file>.png`.
 
-    Per-point files get one preview per view (the drawing depends on the view), so the name always has the view.
+    Per-point files get one preview per view (the drawing depends on the view), so the name always has the
+    view.
     """
     folder = output_key.rsplit("/", 1)[0]
     get_cue(cue)
@@ -273,9 +289,12 @@ _PREVIEW_NAME = re.compile(r"^point_(?P<point>\d+)_view_(?P<view>\d+)_domain_(?P
 
 
 def parse_preview_key(key: str) -> tuple[str, str, str, int, int]:
-    """(job root, output key relative to it, cue, point, view) of a preview key; ValueError if it names none."""
+    """(job root, output key relative to it, cue, point, view) of a preview key; ValueError if it names
+    none."""
     marker = PREVIEW_PREFIX + "/"
-    root, sep, rest = key.rpartition("/" + marker) if not key.startswith(marker) else ("", marker, key[len(marker):])
+    root, sep, rest = (
+        key.rpartition("/" + marker) if not key.startswith(marker) else ("", marker, key[len(marker) :])
+    )
     parts = rest.split("/")
     m = _PREVIEW_NAME.match(parts[-1]) if sep and len(parts) == 4 else None
     if m is None or m["cue"] != parts[0]:
@@ -300,7 +319,9 @@ def cached_preview(
     key = preview_key(output_key, cue, point, view)
     if store.exists(key):
         return key, store.get_bytes(key)
-    data = png_bytes(preview_array(cue, store.get_bytes(output_key), params, view=view, resolution=resolution))
+    data = png_bytes(
+        preview_array(cue, store.get_bytes(output_key), params, view=view, resolution=resolution)
+    )
     store.put_bytes(key, data, content_type="image/png")
     return key, data
 

@@ -3,13 +3,14 @@ the files: its component names, the split CSVs it opens, and where it opens them
 
 Facts about that loader, read from its source (nothing of it is copied here):
 - each component class (`TaskonomyDataset`, `ReplicaDataset`, ...) reads its split CSV from its own package
-  folder, `<dataloader>/component_datasets/<component>/train_val_test_<component>.csv`, never from the data root,
-  so a new dataset loads 0 items, silently, until that file is installed there;
-- `TaskonomyDataset` also reads one CSV per data amount (`train_val_test_{debug,tiny,medium,full,fullplus}.csv`)
-  when its module is imported, and picks the spaces of `<data_amount>-<split>` from it;
+  folder, `<dataloader>/component_datasets/<component>/train_val_test_<component>.csv`, never from the data
+  root, so a new dataset loads 0 items, silently, until that file is installed there;
+- `TaskonomyDataset` also reads one CSV per data amount
+  (`train_val_test_{debug,tiny,medium,full,fullplus}.csv`) when its module is imported, and picks the spaces
+  of `<data_amount>-<split>` from it;
 - `HypersimDataset` looks a folder up by the part of its name before the first '-' (`ai_001_001-cam_00`);
-- every class caches its file index under `<data_path>/.data_cache/<Class>_<amount>_<split>/`, and a cache made
-  before the split was installed keeps 0 items until it is removed.
+- every class caches its file index under `<data_path>/.data_cache/<Class>_<amount>_<split>/`, and a cache
+  made before the split was installed keeps 0 items until it is removed.
 """
 
 from __future__ import annotations
@@ -37,8 +38,10 @@ class LoaderComponent:
 COMPONENTS: dict[str, LoaderComponent] = {
     c.name: c
     for c in (
-        LoaderComponent("taskonomy", "TaskonomyDataset",
-                        ("train_val_test_taskonomy.csv", *(f"train_val_test_{a}.csv" for a in TASKONOMY_DATA_AMOUNTS))),
+        LoaderComponent(
+            "taskonomy", "TaskonomyDataset",
+            ("train_val_test_taskonomy.csv", *(f"train_val_test_{a}.csv" for a in TASKONOMY_DATA_AMOUNTS)),
+        ),
         LoaderComponent("replica", "ReplicaDataset", ("train_val_test_replica.csv",)),
         LoaderComponent("replica_gso", "GSOReplicaDataset", ("train_val_test_replica_gso.csv",)),
         LoaderComponent("hypersim", "HypersimDataset", ("train_val_test_hypersim.csv",)),
@@ -48,12 +51,13 @@ COMPONENTS: dict[str, LoaderComponent] = {
 
 # cues the loader's default transforms cannot decode as we store them; said once per export
 CUE_NOTES = {
-    "fragments": "fragments are ours (.npy, HxW uint32 face indices); the loader's transform_fragment expects an "
-                 "HxWx3 array and fails: pass transform={'fragments': lambda a: torch.from_numpy(a.astype('int64'))}",
+    "fragments": "fragments are ours (.npy, HxW uint32 face indices); the loader's transform_fragment "
+    "expects an HxWx3 array and fails: pass transform={'fragments': lambda a: "
+    "torch.from_numpy(a.astype('int64'))}",
     "segment_unsup2d": "segment_unsup2d has no default transform in the loader: pass "
-                       "transform={'segment_unsup2d': transform_dense_labels} (from its transforms module)",
+    "transform={'segment_unsup2d': transform_dense_labels} (from its transforms module)",
     "segment_unsup25d": "segment_unsup25d has no default transform in the loader: pass "
-                        "transform={'segment_unsup25d': transform_dense_labels} (from its transforms module)",
+    "transform={'segment_unsup25d': transform_dense_labels} (from its transforms module)",
 }
 
 
@@ -86,8 +90,10 @@ def find_dataloader(path: Path) -> Path:
     for candidate in (path, path / "omnidata_tools" / "torch" / "dataloader", path / "torch" / "dataloader"):
         if _holds_components(candidate):
             return candidate
-    raise LoaderDirError(f"{path} is not the public Omnidata dataloader: expected component_datasets/<component>/ "
-                         "in it or in omnidata_tools/torch/dataloader below it")
+    raise LoaderDirError(
+        f"{path} is not the public Omnidata dataloader: expected component_datasets/<component>/ "
+        "in it or in omnidata_tools/torch/dataloader below it"
+    )
 
 
 def exported_components(export_root: Path) -> list[LoaderComponent]:

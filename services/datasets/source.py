@@ -2,7 +2,8 @@
 
 A root with a manifest.jsonl (every job's output) is indexed from the manifest alone: only the listed keys
 are ever read, so an S3 prefix is never listed. A local folder without one (the released Omnidata starter
-dataset, or a copied tree) is indexed by walking `<cue>/<component>/<space>/point_<p>_view_<v>_domain_<cue>.<ext>`.
+dataset, or a copied tree) is indexed by walking
+`<cue>/<component>/<space>/point_<p>_view_<v>_domain_<cue>.<ext>`.
 """
 
 from __future__ import annotations
@@ -22,7 +23,9 @@ from services.core.settings import Settings
 from services.core.storage import LocalStore, ObjectNotFoundError, ObjectStore, open_store, prefixed
 
 # Omnidata's file names; per-point cues (nonfixated) drop the view
-FILE_RE = re.compile(r"^point_(?P<point>\d+)(?:_view_(?P<view>\d+))?_domain_(?P<cue>\w+?)\.(?P<ext>[A-Za-z0-9]+)$")
+FILE_RE = re.compile(
+    r"^point_(?P<point>\d+)(?:_view_(?P<view>\d+))?_domain_(?P<cue>\w+?)\.(?P<ext>[A-Za-z0-9]+)$"
+)
 
 JOB_REF = re.compile(r"^(?:job:)?(?P<id>[1-9][0-9]{0,18})$")
 
@@ -41,7 +44,8 @@ class FileRef:
 
 @dataclass
 class ViewRecord:
-    """One view of a dataset and its files by cue (per-point cues are attached to every view of their point)."""
+    """One view of a dataset and its files by cue (per-point cues are attached to every view of their
+    point)."""
 
     space: str
     point: int
@@ -60,8 +64,9 @@ class DatasetIntegrityError(ValueError):
 
 
 def open_root(root: str | Path | ObjectStore, settings: Settings | None = None) -> ObjectStore:
-    """The store of a dataset root: a folder path, file:// or s3://bucket/prefix URL, an open store, or the id of
-    a service job (`42` or `job:42`: its outputs under `jobs/<id>` of the service's OMNIDATA_STORAGE_URL)."""
+    """The store of a dataset root: a folder path, file:// or s3://bucket/prefix URL, an open store, or the id
+    of a service job (`42` or `job:42`: its outputs under `jobs/<id>` of the service's
+    OMNIDATA_STORAGE_URL)."""
     if isinstance(root, ObjectStore):
         return root
     text = str(root)
@@ -74,7 +79,9 @@ def open_root(root: str | Path | ObjectStore, settings: Settings | None = None) 
     if "://" not in text:
         path = Path(text).expanduser()
         if not path.is_dir():
-            raise FileNotFoundError(f"{path} is not a folder (give a job's output folder, job id or s3:// URL)")
+            raise FileNotFoundError(
+                f"{path} is not a folder (give a job's output folder, job id or s3:// URL)"
+            )
         return LocalStore(path, fsync=False)
     return open_store(text, settings)
 
@@ -91,7 +98,9 @@ def read_json(store: ObjectStore, key: str) -> JSONObject | None:
 def check_sha256(ref: FileRef, data: bytes) -> bytes:
     """`data` if it matches the recorded checksum (or none is recorded), else DatasetIntegrityError."""
     if ref.sha256 and hashlib.sha256(data).hexdigest() != ref.sha256:
-        raise DatasetIntegrityError(f"{ref.key}: sha256 differs from manifest.jsonl (corrupt or changed file)")
+        raise DatasetIntegrityError(
+            f"{ref.key}: sha256 differs from manifest.jsonl (corrupt or changed file)"
+        )
     return data
 
 
@@ -102,7 +111,8 @@ def read_file(store: ObjectStore, ref: FileRef, *, verify: bool) -> bytes:
 
 
 def missing_file_message(e: ObjectNotFoundError) -> str:
-    """One line for a file the dataset lists but its root lacks (the commands print it instead of a traceback)."""
+    """One line for a file the dataset lists but its root lacks (the commands print it instead of a
+    traceback)."""
     return f"{e.key}: listed in manifest.jsonl but missing from the dataset root (deleted or moved?)"
 
 
@@ -184,7 +194,8 @@ def index_root(store: ObjectStore) -> list[ViewRecord]:
 
 
 def select_cues(records: list[ViewRecord], cues: list[str] | None) -> list[str]:
-    """The requested cues (default: every cue some view has), in catalog order; ValueError naming any absent one."""
+    """The requested cues (default: every cue some view has), in catalog order; ValueError naming any absent
+    one."""
     present = [c for c in CATALOG if any(c in r.files for r in records)]
     if cues is None:
         return present

@@ -20,7 +20,9 @@ def check_ratios(ratios: Iterable[float]) -> tuple[float, float, float]:
     """Three non-negative fractions (train, val, test) summing to 1."""
     r = tuple(float(x) for x in ratios)
     if len(r) != 3 or min(r) < 0 or abs(sum(r) - 1.0) > 1e-6:
-        raise ValueError(f"split ratios must be three non-negative fractions (train, val, test) summing to 1, got {r}")
+        raise ValueError(
+            f"split ratios must be three non-negative fractions (train, val, test) summing to 1, got {r}"
+        )
     return r  # type: ignore[return-value]
 
 
@@ -39,14 +41,17 @@ def split_of(space: str, *, seed: int = 0, ratios: Iterable[float] = DEFAULT_RAT
     return "val" if u < r[0] + r[1] else "test"
 
 
-def assign_splits(spaces: Iterable[str], *, seed: int = 0, ratios: Iterable[float] = DEFAULT_RATIOS) -> dict[str, str]:
+def assign_splits(
+    spaces: Iterable[str], *, seed: int = 0, ratios: Iterable[float] = DEFAULT_RATIOS
+) -> dict[str, str]:
     """Split name per space."""
     r = check_ratios(ratios)
     return {s: split_of(s, seed=seed, ratios=r) for s in spaces}
 
 
 def read_split_csv(path_or_text: str | Path) -> dict[str, set[str]]:
-    """Spaces per split from an Omnidata split CSV (header `id,train,val,test`, 1 = member; a space may be in several)."""
+    """Spaces per split from an Omnidata split CSV (header `id,train,val,test`, 1 = member; a space may be in
+    several)."""
     text = Path(path_or_text).read_text() if isinstance(path_or_text, Path) else path_or_text
     rows = list(csv.reader(io.StringIO(text)))
     if not rows or [c.strip() for c in rows[0]] != ["id", *SPLITS]:

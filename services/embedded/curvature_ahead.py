@@ -1,11 +1,12 @@
-"""The spaces' curvature, computed by `generate` itself while its workers start, when several workers would wait on it.
+"""The spaces' curvature, computed by `generate` itself while its workers start, when several workers would
+wait on it.
 
 Every worker needs its space's per-vertex curvature at its first render. The first to get there computes it
 (shared_curvature: 0.35 CPU-s on the ICL living room, 0.9 on the 7-Scenes kitchen) under a file lock while the
-others wait on the lock, so on N cores N - 1 of them sat idle for that long at the start of every run. `generate`
-holds the validated spaces already: a thread of it computes their curvature into the workers' shared folder while
-they import and load their scenes, and a worker then reads the file. With one worker there is nothing to overlap:
-that worker computes it as before, and `generate` does not import the compiled kernels.
+others wait on the lock, so on N cores N - 1 of them sat idle for that long at the start of every run.
+`generate` holds the validated spaces already: a thread of it computes their curvature into the workers'
+shared folder while they import and load their scenes, and a worker then reads the file. With one worker there
+is nothing to overlap: that worker computes it as before, and `generate` does not import the compiled kernels.
 
 The file is named by a digest of the mesh arrays (services.worker.inputs.shared_curvature): the thread works
 on a mesh built from the same arrays the workers rebuild from the run's loaded-space cache, so a worker finds
@@ -26,7 +27,8 @@ from services.core.domain.jobspec import JobSpec
 
 log = logging.getLogger(__name__)
 
-# The cues whose render reads the curvature pass (the worker registry's passes={"curvature"}; a test keeps them equal).
+# The cues whose render reads the curvature pass (the worker registry's passes={"curvature"}; a test keeps
+# them equal).
 CURVATURE_CUES = frozenset({"principal_curvature"})
 FOLDER = "curvature"  # under the run's cache folder, as the workers' TaskRunner.cache_dir / "curvature"
 
@@ -38,8 +40,8 @@ def needs_curvature(spec: JobSpec) -> bool:
 
 def curvature_ahead(meshes: Iterable[trimesh.Trimesh], spec: JobSpec, cache_dir: Path,
                     workers: int) -> threading.Thread | None:
-    """Start computing the curvature of `meshes` (the loaded spaces, world frame) into `cache_dir`/curvature on a
-    thread, when `workers` > 1 and the job needs it; the thread (join it before exiting), else None."""
+    """Start computing the curvature of `meshes` (the loaded spaces, world frame) into `cache_dir`/curvature
+    on a thread, when `workers` > 1 and the job needs it; the thread (join it before exiting), else None."""
     meshes = list(meshes)
     if workers < 2 or not meshes or not needs_curvature(spec):
         return None

@@ -1,5 +1,5 @@
-"""The embedded job of `omnidata generate`: SQLite and a local folder under --out, the same job reused to resume,
-and the scheduler's loop driving W local worker processes until the job is final.
+"""The embedded job of `omnidata generate`: SQLite and a local folder under --out, the same job reused to
+resume, and the scheduler's loop driving W local worker processes until the job is final.
 
 Resuming (in-flight tasks back to pending, missing outputs made again) and requeueing on Ctrl-C are the
 service's own operations (services.core.db.jobs.reopen_job / requeue_inflight).
@@ -43,21 +43,23 @@ from services.worker.run.heartbeat import expire_leases
 OWNER = "local"
 SPACES_PREFIX = ".omnidata/spaces"
 TICK_S = 0.1  # scheduler ticks at most 10 times a second (planning, dispatch, reaper, completion)
-# ... and at most TICK_CPU_SHARE of one core: a tick costs tens of milliseconds of CPU (SQLite scans through the
-# ORM) whatever the job's size, and with one core the workers pay for it (issue 20: ~0.1-0.3 CPU-s per view at
-# 10 ticks a second). A slower tick starves nobody: the dispatch window holds seconds of work per worker.
+# ... and at most TICK_CPU_SHARE of one core: a tick costs tens of milliseconds of CPU (SQLite scans through
+# the ORM) whatever the job's size, and with one core the workers pay for it (issue 20: ~0.1-0.3 CPU-s per
+# view at 10 ticks a second). A slower tick starves nobody: the dispatch window holds seconds of work per
+# worker.
 TICK_CPU_SHARE = 0.05
 TICK_MAX_S = 1.0  # the slowest rate, so a finished job or a dead worker is still seen within a second
 SHORT_QUEUE_PER_WORKER = 2  # a worker's message brings a tick only when its queue is this short (or nearly)
 SECRET_SETTINGS = {"api_tokens", "secret_key", "aws_access_key_id", "aws_secret_access_key"}
-# On a GPU, one renderer per 8 workers: on an H200 with 16 vCPUs (ICL, 132 views, bench/results/gpu.json), 2 of 16
-# rendering ran 10.6 views/s end to end against 7.4 with all 16 rendering (each paying its own context).
+# On a GPU, one renderer per 8 workers: on an H200 with 16 vCPUs (ICL, 132 views, bench/results/gpu.json), 2
+# of 16 rendering ran 10.6 views/s end to end against 7.4 with all 16 rendering (each paying its own context).
 WORKERS_PER_GPU_RENDERER = 8
 
 
 def embedded_settings(out: Path, workers: int, render_workers: int | None = None) -> Settings:
-    """Settings of the embedded mode: SQLite and the object folder in DIR, whatever OMNIDATA_* says; `render_workers`
-    (--render-workers) overrides OMNIDATA_RENDER_WORKERS, and with neither a GPU machine gets gpu_renderers'."""
+    """Settings of the embedded mode: SQLite and the object folder in DIR, whatever OMNIDATA_* says;
+    `render_workers` (--render-workers) overrides OMNIDATA_RENDER_WORKERS, and with neither a GPU machine gets
+    gpu_renderers'."""
     state = out / STATE_DIR
     chosen = {} if render_workers is None else {"render_workers": render_workers}
     settings = load_settings(
@@ -79,7 +81,8 @@ def gpu_renderers(workers: int) -> int | None:
 
 
 def job_fingerprint(spec: JobSpec, checksums: Sequence[str]) -> str:
-    """sha256 of the canonical spec and the space checksums (in order): the same request gives the same job."""
+    """sha256 of the canonical spec and the space checksums (in order): the same request gives the same
+    job."""
     doc = json.dumps({"spec": spec.model_dump(mode="json"), "spaces": list(checksums)}, sort_keys=True)
     return hashlib.sha256(doc.encode()).hexdigest()
 
@@ -106,7 +109,9 @@ def find_spaces(session: Session, sources: list[Source]) -> dict[str, Space]:
 def find_job(session: Session, spec: JobSpec, sources: list[Source]) -> Job | None:
     """The newest job of this folder made from the same spec and spaces (not cancelled), or None."""
     want = job_fingerprint(spec, [s.checksum for s in sources])
-    for job in session.scalars(select(Job).where(Job.owner == OWNER, Job.state != JobState.CANCELLED).order_by(Job.id.desc())):
+    for job in session.scalars(
+        select(Job).where(Job.owner == OWNER, Job.state != JobState.CANCELLED).order_by(Job.id.desc())
+    ):
         try:
             job_spec = JobSpec.model_validate(job.spec)
         except ValueError:
@@ -130,7 +135,9 @@ class Prepared:
     loaded: dict[str, LoadedSpace] = field(default_factory=dict)
 
 
-def prepare_job(sessions: sessionmaker[Session], store: ObjectStore, spec: JobSpec, sources: list[Source]) -> Prepared:
+def prepare_job(
+    sessions: sessionmaker[Session], store: ObjectStore, spec: JobSpec, sources: list[Source]
+) -> Prepared:
     """Register the spaces and create the job, or find the same job again and make it resumable."""
     with sessions() as s:
         spaces = find_spaces(s, sources)
@@ -138,7 +145,9 @@ def prepare_job(sessions: sessionmaker[Session], store: ObjectStore, spec: JobSp
         if job is not None:
             done = reopen_job(s, store, job)
             s.commit()
-            return Prepared(job.id, resumed=True, requeued=done.requeued, redo=done.redo, retried=done.retried)
+            return Prepared(
+                job.id, resumed=True, requeued=done.requeued, redo=done.redo, retried=done.retried
+            )
         # A new request in this folder: unfinished jobs of earlier requests stop (their files stay).
         for old in s.scalars(select(Job).where(Job.owner == OWNER, Job.state.not_in(JOB_TERMINAL_STATES))):
             cancel_job(s, old)
@@ -148,7 +157,8 @@ def prepare_job(sessions: sessionmaker[Session], store: ObjectStore, spec: JobSp
             if space is None:
                 space = register_space(s, store, owner=OWNER, name=src.name, source_path=src.path,
                                     key_prefix=SPACES_PREFIX, **spec.space_frame(), loaded=src.loaded)
-            if src.loaded is not None:  # the scheduler plans from it, then drops it (the workers load their own)
+            # the scheduler plans from it, then drops it (the workers load their own)
+            if src.loaded is not None:
                 loaded[loaded_space_key(space.checksum, spec.space_frame())] = src.loaded
             src.loaded = None
             ordered.append(space)
@@ -160,17 +170,17 @@ def prepare_job(sessions: sessionmaker[Session], store: ObjectStore, spec: JobSp
         return Prepared(job.id, resumed=False, loaded=loaded)
 
 
-def run_until_final(sessions: sessionmaker[Session], sched: Scheduler, pool: LocalPool, job_id: int, bar: Progress | None = None,
-                    *, timeout: float | None = None) -> tuple[str, float | None]:
+def run_until_final(sessions: sessionmaker[Session], sched: Scheduler, pool: LocalPool, job_id: int,
+                    bar: Progress | None = None, *, timeout: float | None = None) -> tuple[str, float | None]:
     """Tick the scheduler until the job is final; keep the pool full and the bar fresh.
 
-    Returns (final state, time.monotonic() when the job's planning finished, or None if it was planned before).
-    Ticks are rate-limited because on a small machine the loop competes with the workers for the CPU; the
-    dispatch window is wide enough that workers never wait for a tick. Between workers' messages nothing the
-    tick reads changes (this run holds the only job and the only workers of its folder), so then it ticks only
-    every TICK_MAX_S (a dead worker, the reaper); a message (a task's outcome, a worker ready) while the workers'
-    queue runs short, a worker recycling (until it is replaced) or a busy tick brings the next tick at the
-    rate-limited pace. Once the job is past planning, the planning step is skipped.
+    Returns (final state, time.monotonic() when the job's planning finished, or None if it was planned
+    before). Ticks are rate-limited because on a small machine the loop competes with the workers for the CPU;
+    the dispatch window is wide enough that workers never wait for a tick. Between workers' messages nothing
+    the tick reads changes (this run holds the only job and the only workers of its folder), so then it ticks
+    only every TICK_MAX_S (a dead worker, the reaper); a message (a task's outcome, a worker ready) while the
+    workers' queue runs short, a worker recycling (until it is replaced) or a busy tick brings the next tick
+    at the rate-limited pace. Once the job is past planning, the planning step is skipped.
     """
     bar = bar or Progress(False)
     planned_at: float | None = None
@@ -181,7 +191,8 @@ def run_until_final(sessions: sessionmaker[Session], sched: Scheduler, pool: Loc
     plan = True
     recycling = 0  # workers that said they exit (memory or task limit), not yet replaced
     while True:
-        raise_if_interrupted()  # a Ctrl-C a finalizer dropped (generate latches SIGINT: services.embedded.ctrl_c)
+        # a Ctrl-C a finalizer dropped (generate latches SIGINT: services.embedded.ctrl_c)
+        raise_if_interrupted()
         now = time.monotonic()
         if now >= next_tick and (changed or now >= quiet_until):
             cpu0 = time.process_time()
@@ -227,8 +238,9 @@ def disk_full(exc: OperationalError) -> bool:
 
 
 def _short_of_work(pool: LocalPool) -> bool:
-    """Whether the workers' queue holds at most SHORT_QUEUE_PER_WORKER tasks each: then a tick may dispatch more,
-    or find the job done (it cannot be while tasks wait in the queue; the quiet tick is the safety net)."""
+    """Whether the workers' queue holds at most SHORT_QUEUE_PER_WORKER tasks each: then a tick may dispatch
+    more, or find the job done (it cannot be while tasks wait in the queue; the quiet tick is the safety
+    net)."""
     try:
         return pool.queues.waiting() <= SHORT_QUEUE_PER_WORKER * max(1, len(pool.procs))
     except NotImplementedError:  # macOS: no qsize
@@ -241,20 +253,24 @@ def tick_interval(tick_cpu_s: float) -> float:
 
 
 def worker_pool(out: Path, settings: Settings, workers: int) -> LocalPool:
-    """The W local worker processes of a run on --out (not started), each with its share of the cores; R of them
-    render when settings.render_workers says R < W (services.embedded.pool)."""
+    """The W local worker processes of a run on --out (not started), each with its share of the cores; R of
+    them render when settings.render_workers says R < W (services.embedded.pool)."""
     threads = max(1, cpu_count() // workers)
     conf = WorkerConfig(out=str(out), settings=settings.model_dump(mode="json", exclude=SECRET_SETTINGS),
                         render_threads=threads, parent_pid=os.getpid())
     return LocalPool(workers, conf, render_workers=settings.render_workers)
 
 
-def drive(sessions: sessionmaker[Session], store: ObjectStore, settings: Settings, out: Path, job_id: int, workers: int, *,
-          progress: bool, loaded_spaces: dict[str, LoadedSpace] | None = None, pool: LocalPool | None = None) -> int:
+def drive(
+    sessions: sessionmaker[Session], store: ObjectStore, settings: Settings, out: Path, job_id: int,
+    workers: int,
+    *,
+    progress: bool, loaded_spaces: dict[str, LoadedSpace] | None = None, pool: LocalPool | None = None,
+) -> int:
     """Run the scheduler loop with W local workers until the job is final; returns the exit status.
     `loaded_spaces`: spaces this run has loaded already (Prepared.loaded), planned without a second parse.
-    `pool`: workers started held (LocalPool.start(held=True)) while the caller prepared the job; released here,
-    and stopped when the job is final."""
+    `pool`: workers started held (LocalPool.start(held=True)) while the caller prepared the job; released
+    here, and stopped when the job is final."""
     with sessions() as s:
         job = s.get(Job, job_id)
         assert job is not None
@@ -266,7 +282,8 @@ def drive(sessions: sessionmaker[Session], store: ObjectStore, settings: Setting
             return 0 if rep.ok else 1
 
     cache_dir = out / STATE_DIR / "cache"
-    for key, loaded in (loaded_spaces or {}).items():  # the workers read these instead of parsing the scans again
+    # the workers read these instead of parsing the scans again
+    for key, loaded in (loaded_spaces or {}).items():
         keep_loaded(cache_dir, key.split(":", 1)[0], loaded)  # key: loaded_space_key(space checksum, frame)
     if pool is None:
         pool = worker_pool(out, settings, workers)

@@ -1,15 +1,15 @@
-"""Local worker processes of `omnidata generate`: W processes each running the worker's TaskRunner, fed task ids
-through a multiprocessing queue (the embedded mode's stand-in for Redis).
+"""Local worker processes of `omnidata generate`: W processes each running the worker's TaskRunner, fed task
+ids through a multiprocessing queue (the embedded mode's stand-in for Redis).
 
 Roles (settings.render_workers): by default every worker renders and derives its own views ("all"). With R
 renderers of W workers, R "render" workers take the render queue's `passes` tasks first (storing each pass set
 for whoever derives it) and derive only while no render waits, and W - R "derive" workers take only the derive
 queue and never load Blender: one device context per renderer on a GPU, and no Blender start-up in the others.
 
-The first workers are forked from `generate` when that is safe (start_method): they inherit its imports (numpy,
-SQLAlchemy, trimesh, pydantic, the domain: ~1 of the ~1.6 CPU-s a spawned worker spends importing) and import
-only the worker's own modules and Blender. A replacement (recycled or dead worker) is spawned: by then the parent
-has threads and open database connections, which a fork must not copy."""
+The first workers are forked from `generate` when that is safe (start_method): they inherit its imports
+(numpy, SQLAlchemy, trimesh, pydantic, the domain: ~1 of the ~1.6 CPU-s a spawned worker spends importing) and
+import only the worker's own modules and Blender. A replacement (recycled or dead worker) is spawned: by then
+the parent has threads and open database connections, which a fork must not copy."""
 
 from __future__ import annotations
 
@@ -39,7 +39,8 @@ from services.worker.process.heap import keep_freed_memory
 from services.worker.process.numeric_threads import numeric_threads_pinned, pin_numeric_threads
 from services.worker.run.stop_signal import stop_within
 
-if TYPE_CHECKING:  # imported by the worker after its hold, not here (a spawned worker imports this module first)
+# imported by the worker after its hold, not here (a spawned worker imports this module first)
+if TYPE_CHECKING:
     from services.worker.run.runner import TaskRunner
 
 log = logging.getLogger("omnidata.generate")
@@ -56,8 +57,8 @@ def cpu_count() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-# "all": renders its views and derives them (view batches); "render": takes renders first and hands the views off;
-# "derive": only derives, from stored pass sets (module docstring)
+# "all": renders its views and derives them (view batches); "render": takes renders first and hands the views
+# off; "derive": only derives, from stored pass sets (module docstring)
 Role = Literal["all", "render", "derive"]
 
 
@@ -80,13 +81,13 @@ WorkerMessage = tuple[object, ...]
 
 def worker_main(conf: WorkerConfig, tasks: TaskQueues, results: Queue[WorkerMessage], stop: Event,
                 go: Event) -> None:
-    """Body of a local worker process: import what a task needs (Blender, unless it only derives), wait for `go`,
-    then take task ids from `tasks`, run them and report outcomes on `results`. Nothing touches the state or
-    --out before `go`."""
-    # Ctrl-C reaches the whole process group: the parent decides when workers stop. SIGTERM (a held worker stopped,
-    # or the stop's grace period over) unwinds the stack, so an in-flight write removes its temporary file; inside
-    # Blender (loading, rendering) it ends the worker at once (services.worker.blender.calls). Either way the
-    # worker leaves without interpreter teardown, which a spawned worker would otherwise run.
+    """Body of a local worker process: import what a task needs (Blender, unless it only derives), wait for
+    `go`, then take task ids from `tasks`, run them and report outcomes on `results`. Nothing touches the
+    state or --out before `go`."""
+    # Ctrl-C reaches the whole process group: the parent decides when workers stop. SIGTERM (a held worker
+    # stopped, or the stop's grace period over) unwinds the stack, so an in-flight write removes its temporary
+    # file; inside Blender (loading, rendering) it ends the worker at once (services.worker.blender.calls).
+    # Either way the worker leaves without interpreter teardown, which a spawned worker would otherwise run.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     exit_at_once_inside_blender(signal.SIGTERM)
@@ -105,8 +106,10 @@ def worker_main(conf: WorkerConfig, tasks: TaskQueues, results: Queue[WorkerMess
 
 def _work(conf: WorkerConfig, tasks: TaskQueues, results: Queue[WorkerMessage], stop: Event,
           go: Event) -> None:
-    """worker_main's work: warm up held, then serve tasks once released (returns when stopped or recycling)."""
-    pin_numeric_threads()  # before numpy loads (spawned; a forked worker's parent pinned them before it loaded numpy)
+    """worker_main's work: warm up held, then serve tasks once released (returns when stopped or
+    recycling)."""
+    # before numpy loads (spawned; a forked worker's parent pinned them before it loaded numpy)
+    pin_numeric_threads()
     keep_freed_memory()
     logging.basicConfig(level=conf.log_level, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s")
     from services.core.db.engine import make_engine, make_sessionmaker
@@ -138,9 +141,9 @@ def _work(conf: WorkerConfig, tasks: TaskQueues, results: Queue[WorkerMessage], 
 
 
 def _exit_quietly(code: int) -> NoReturn:
-    """Leave without interpreter teardown: Blender's static destructors only print noise ("Freeing memory after
-    the leak detector has run") and nothing is left to flush but the standard streams, and Blender's temp folder
-    to remove."""
+    """Leave without interpreter teardown: Blender's static destructors only print noise ("Freeing memory
+    after the leak detector has run") and nothing is left to flush but the standard streams, and Blender's
+    temp folder to remove."""
     remove_session_temp_dir()
     sys.stdout.flush()
     sys.stderr.flush()
@@ -149,7 +152,8 @@ def _exit_quietly(code: int) -> NoReturn:
 
 def _serve(runner: TaskRunner, conf: WorkerConfig, tasks: TaskQueues, results: Queue[WorkerMessage],
            stop: Event, worker_id: str) -> None:
-    """Take task ids from `tasks` and run them until told to stop, the parent dies or the worker should recycle."""
+    """Take task ids from `tasks` and run them until told to stop, the parent dies or the worker should
+    recycle."""
     from services.worker.run.claim import TransientError
 
     first = True
@@ -170,7 +174,9 @@ def _serve(runner: TaskRunner, conf: WorkerConfig, tasks: TaskQueues, results: Q
             came_from.put(task_id)
             continue
         for each in o.all():  # the task of the message, then the rest of its view batch
-            results.put(("outcome", os.getpid(), each.task_id, each.status, each.cue, each.labels, each.error))
+            results.put(
+                ("outcome", os.getpid(), each.task_id, each.status, each.cue, each.labels, each.error)
+            )
         if first:  # the space, its plan and the compiled kernels the first view loaded
             _freeze_long_lived()
             first = False
@@ -180,9 +186,9 @@ def _serve(runner: TaskRunner, conf: WorkerConfig, tasks: TaskQueues, results: Q
 
 
 def _freeze_long_lived() -> None:
-    """Move every object alive now out of the cyclic collector's reach (gc.freeze): a worker's full collections
-    traversed the ~10^6 objects of its imports, Blender and the loaded space each time (~130 ms, 3 a 66-view run);
-    garbage is still freed by reference counting, and later objects are still collected."""
+    """Move every object alive now out of the cyclic collector's reach (gc.freeze): a worker's full
+    collections traversed the ~10^6 objects of its imports, Blender and the loaded space each time (~130 ms, 3
+    a 66-view run); garbage is still freed by reference counting, and later objects are still collected."""
     gc.collect()
     gc.freeze()
 
@@ -207,10 +213,12 @@ def _warmed_up_and_released(conf: WorkerConfig, stop: Event, go: Event) -> bool:
 
 
 def start_method(setting: str = "auto") -> str:
-    """"fork" when this process can be forked safely for a worker, else "spawn". Safe: fork exists (not Windows or
-    macOS's default), the setting allows it, only this thread runs (a lock held by another thread would stay held
-    in the child), the numeric libraries were pinned before numpy loaded (a worker's BLAS must run one thread, and
-    a forked one keeps its parent's), and Blender is not loaded (its thread pools do not survive a fork)."""
+    """"fork" when this process can be forked safely for a worker, else "spawn". Safe: fork exists (not
+    Windows or macOS's default), the setting allows it, only this thread runs (a lock held by another thread
+    would stay held in the child), the numeric libraries were pinned before numpy loaded (a worker's BLAS must
+    run one thread, and a forked one keeps its parent's), and Blender is not loaded (its thread pools do not
+    survive a
+    fork)."""
     if setting != "auto" or "fork" not in mp.get_all_start_methods() or sys.platform == "darwin":
         return "spawn"
     if threading.active_count() > 1 or not numeric_threads_pinned() or "bpy" in sys.modules:
@@ -218,8 +226,8 @@ def start_method(setting: str = "auto") -> str:
     return "fork"
 
 
-# What a worker imports past its parent's `generate` imports (not Blender): imported once in the parent before it
-# forks several workers, instead of once in each (~0.25 CPU-s).
+# What a worker imports past its parent's `generate` imports (not Blender): imported once in the parent before
+# it forks several workers, instead of once in each (~0.25 CPU-s).
 WORKER_MODULES = ("services.worker.run.runner", "services.worker.run.heartbeat", "services.core.storage",
                   "services.core.db.engine")
 
@@ -240,8 +248,8 @@ class TaskQueues:
         return (self.derive, self.render) if self.split else (self.derive,)
 
     def next_for(self, role: Role, timeout: float = 0.5) -> tuple[int | None, Queue[int | None]]:
-        """A task id for a worker of `role` and the queue it came from (queue.Empty after `timeout`): a renderer
-        takes a waiting render first, and derives only while none waits."""
+        """A task id for a worker of `role` and the queue it came from (queue.Empty after `timeout`): a
+        renderer takes a waiting render first, and derives only while none waits."""
         if role == "render" and self.split:
             try:
                 return self.render.get_nowait(), self.render
@@ -293,7 +301,8 @@ class LocalPool:
         self.stopped = False
 
     def role_of(self, index: int) -> Role:
-        """The role of the pool's `index`-th worker: the first R render, the others derive (module docstring)."""
+        """The role of the pool's `index`-th worker: the first R render, the others derive (module
+        docstring)."""
         if not self.queues.split:
             return "all"
         return "render" if index < (self.render_workers or 0) else "derive"
@@ -311,7 +320,8 @@ class LocalPool:
 
     def start(self, *, held: bool = False) -> None:
         """Start the workers. Held workers only import (Python, numba kernels, Blender: ~2 CPU-s each) until
-        release(): started before the job is validated and planned, that start-up overlaps the parent's work."""
+        release(): started before the job is validated and planned, that start-up overlaps the parent's
+        work."""
         if not held:
             self.go.set()
         self.method = start_method(str(self.conf.settings.get("worker_start", "auto")))
@@ -319,7 +329,8 @@ class LocalPool:
             if self.size > 1:
                 for name in WORKER_MODULES:
                     importlib.import_module(name)
-            gc.freeze()  # the children's collections then leave the inherited objects (and their pages) untouched
+            # the children's collections then leave the inherited objects (and their pages) untouched
+            gc.freeze()
         for i in range(self.size):
             self._start_worker(self.method, self.role_of(i))
 
@@ -355,7 +366,8 @@ class LocalPool:
             return
         self.stopped = True
         self.stop_event.set()
-        if not self.go.is_set():  # held workers have nothing to finish: no grace (a refused input exits at once)
+        # held workers have nothing to finish: no grace (a refused input exits at once)
+        if not self.go.is_set():
             grace = 0.0
         for q in self.queues.all():
             for _ in self.procs:

@@ -1,4 +1,5 @@
-"""What `omnidata generate` shows: a progress bar while the job runs, and a report of what was written or failed."""
+"""What `omnidata generate` shows: a progress bar while the job runs, and a report of what was written or
+failed."""
 
 from __future__ import annotations
 
@@ -31,7 +32,8 @@ class Progress:
         self.views_text = ""
 
     def update(self, sessions: sessionmaker[Session], job: Job, *, final: bool = False) -> None:
-        """Refresh from the job's counters (and, every few seconds or at the end, the number of finished views)."""
+        """Refresh from the job's counters (and, every few seconds or at the end, the number of finished
+        views)."""
         if not self.enabled:
             return
         with sessions() as s:
@@ -85,7 +87,9 @@ def views_done(s: Session, job_id: int) -> tuple[int, int]:
         .subquery()
     )
     done = int(s.scalar(select(func.count()).select_from(per_view)) or 0)
-    compacted = int(s.scalar(select(func.count()).select_from(ViewOutput).where(ViewOutput.job_id == job_id)) or 0)
+    compacted = int(
+        s.scalar(select(func.count()).select_from(ViewOutput).where(ViewOutput.job_id == job_id)) or 0
+    )
     return done + compacted, total
 
 
@@ -122,7 +126,8 @@ def build_report(sessions: sessionmaker[Session], store: ObjectStore, job_id: in
                  for t in compacted_tasks(s, job) if t.cue not in internal]
         # Failed internal tasks (a render that kept failing) explain the missing outputs that depend on them.
         failed_internal = s.execute(
-            select(Task.cue, Task.error).where(Task.job_id == job_id, Task.state == TaskState.FAILED, Task.cue.in_(internal))
+            select(Task.cue, Task.error)
+            .where(Task.job_id == job_id, Task.state == TaskState.FAILED, Task.cue.in_(internal))
             .order_by(Task.id)
         ).all()
     for cue, state, key, error, p, v in rows:
@@ -152,5 +157,7 @@ def print_report(rep: Report, out: Path) -> None:
     for cue, (n, first) in sorted(rep.failed.items()):
         print(f"  {cue}: {n} failed; first error: {first.splitlines()[0] if first else ''}", file=sys.stderr)
     if rep.missing:
-        shown = ", ".join(rep.missing[:5]) + (f" and {len(rep.missing) - 5} more" if len(rep.missing) > 5 else "")
+        shown = ", ".join(rep.missing[:5]) + (
+            f" and {len(rep.missing) - 5} more" if len(rep.missing) > 5 else ""
+        )
         print(f"  {len(rep.missing)} outputs missing: {shown}", file=sys.stderr)

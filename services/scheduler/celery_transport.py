@@ -1,7 +1,7 @@
 """The Celery (Redis) transport: `render.cue(task_id)` messages on the cue's queue.
 
-The scheduler marks tasks queued and commits before it calls `send`, so a send that fails or is lost leaves tasks
-that the reaper (or the dispatcher's own rollback) puts back to pending.
+The scheduler marks tasks queued and commits before it calls `send`, so a send that fails or is lost leaves
+tasks that the reaper (or the dispatcher's own rollback) puts back to pending.
 """
 
 from __future__ import annotations
@@ -25,11 +25,11 @@ class CeleryTransport:
     """Sends `render.cue(task_id)` by name through Celery; passes go to the render queue, the rest to derive.
 
     One producer (one broker connection) is reused for a whole batch. On Redis the fast path builds each
-    queue's message once (services.scheduler.envelope: Celery's own protocol-2 message laid out as kombu stores
-    it) and pushes PUBLISH_BATCH messages per LPUSH: one round trip and ~10 us of CPU a message instead of ~50.
-    Other brokers get the two halves of `app.send_task` (`amqp.create_task_message` + `amqp.send_task_message`)
-    pipelined where kombu supports it (also on Redis with `prebuilt=False`); `fast=False` calls `app.send_task(TASK_RENDER_CUE, args=[task_id],
-    queue=...)` for each task.
+    queue's message once (services.scheduler.envelope: Celery's own protocol-2 message laid out as kombu
+    stores it) and pushes PUBLISH_BATCH messages per LPUSH: one round trip and ~10 us of CPU a message instead
+    of ~50. Other brokers get the two halves of `app.send_task` (`amqp.create_task_message` +
+    `amqp.send_task_message`) pipelined where kombu supports it (also on Redis with `prebuilt=False`);
+    `fast=False` calls `app.send_task(TASK_RENDER_CUE, args=[task_id], queue=...)` for each task.
     """
 
     def __init__(

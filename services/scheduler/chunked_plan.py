@@ -64,9 +64,11 @@ def still_ours(session: Session, job_id: int, planner: str) -> bool:
     return row is not None and row.state == JobState.PLANNING and row.planner == planner
 
 
-def plan_and_persist_space(target: ChunkTarget, loaded: LoadedSpace, spec: JobSpec, space: Space, cues: list[str],
-                           plan_key: str) -> SpaceWritten:
-    """Plan one space of the job in chunks, commit each chunk's rows, then store the plan JSON under `plan_key`."""
+def plan_and_persist_space(
+    target: ChunkTarget, loaded: LoadedSpace, spec: JobSpec, space: Space, cues: list[str], plan_key: str
+) -> SpaceWritten:
+    """Plan one space of the job in chunks, commit each chunk's rows, then store the plan JSON under
+    `plan_key`."""
     chunks = plan_chunks(loaded, spec, space_rng(spec.seed, space.name), space.name, target.chunk_views)
     json_file = PlanJsonFile()
     gathered = PlanDistributions(scan_floor_z(loaded))

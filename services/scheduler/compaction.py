@@ -1,21 +1,22 @@
 """Compaction: the task rows of finished views replaced by one `view_output` row per view.
 
-A view whose every task is done (its ~18 rows, the internal `passes` task included) and whose last task finished
-more than `compact_after_s` ago is packed (services.core.db.view_outputs) into one row, in one transaction per chunk
-of views: its task rows are deleted (DELETE ... RETURNING, so a task that left `done` meanwhile, a resume, makes the
-chunk roll back) and the compact rows inserted. The job_counter counters are left alone: the done counts still
-count these tasks, which is what they are.
+A view whose every task is done (its ~18 rows, the internal `passes` task included) and whose last task
+finished more than `compact_after_s` ago is packed (services.core.db.view_outputs) into one row, in one
+transaction per chunk of views: its task rows are deleted (DELETE ... RETURNING, so a task that left `done`
+meanwhile, a resume, makes the chunk roll back) and the compact rows inserted. The job_counter counters are
+left alone: the done counts still count these tasks, which is what they are.
 
-Each job is walked in the order of its unique index (space, point, view, cue) from a cursor kept in memory, a chunk
-of rows at a time, for at most `compact_pass_s` a pass. Deleted rows leave the index, so the next walk from the start
-skips them; a chunk of a running job with no done row at all, or with finished views but none due yet, sends the
-cursor back to the start (dispatch runs oldest first, so the views after it have not run, or finished later). A
-terminal job whose whole walk compacted nothing is not walked again until its state changes.
+Each job is walked in the order of its unique index (space, point, view, cue) from a cursor kept in memory, a
+chunk of rows at a time, for at most `compact_pass_s` a pass. Deleted rows leave the index, so the next walk
+from the start skips them; a chunk of a running job with no done row at all, or with finished views but none
+due yet, sends the cursor back to the start (dispatch runs oldest first, so the views after it have not run,
+or finished later). A terminal job whose whole walk compacted nothing is not walked again until its state
+changes.
 
-A pass that walked every job to its end (not cut short by `compact_pass_s`) knows when the next view can be due:
-the earliest finished-but-not-due view's last finish plus `compact_after_s`, and no sooner than `compact_after_s`
-from now for everything still running. Passes before then do nothing, so a job whose views are not due is not
-re-read every second (a 66-view `generate` read its 1,210 rows 40 times: 3% of its CPU).
+A pass that walked every job to its end (not cut short by `compact_pass_s`) knows when the next view can be
+due: the earliest finished-but-not-due view's last finish plus `compact_after_s`, and no sooner than
+`compact_after_s` from now for everything still running. Passes before then do nothing, so a job whose views
+are not due is not re-read every second (a 66-view `generate` read its 1,210 rows 40 times: 3% of its CPU).
 """
 
 from __future__ import annotations
@@ -37,7 +38,8 @@ from services.core.db.view_outputs import DoneTask, cue_mask, keys_of, pack
 
 log = logging.getLogger(__name__)
 
-CHUNK_ROWS = 2_000  # task rows read (~110 views compacted) per transaction: a chunk is ~0.1 s of scheduler CPU
+# task rows read (~110 views compacted) per transaction: a chunk is ~0.1 s of scheduler CPU
+CHUNK_ROWS = 2_000
 COMPACTED_STATES = (JobState.RUNNING, JobState.PAUSED, JobState.DONE, JobState.FAILED, JobState.CANCELLED)
 _COLUMNS = (Task.space_id, Task.point_idx, Task.view_idx, Task.cue, Task.id, Task.state, Task.attempts,
             Task.output_key, Task.size, Task.sha256, Task.duration_s, Task.finished_at)
@@ -71,7 +73,8 @@ class Compactor:
     chunk_rows: int = CHUNK_ROWS
     _walks: dict[int, _Walk] = field(default_factory=dict)
     _settled: dict[int, str] = field(default_factory=dict)  # terminal job -> the state its last walk ended in
-    _idle_until: datetime | None = None  # no view can be due before this (set by a pass that walked everything)
+    # no view can be due before this (set by a pass that walked everything)
+    _idle_until: datetime | None = None
     _next_due: datetime | None = None  # earliest due time of a finished view seen by this pass
 
     def run_once(self, now: datetime | None = None) -> CompactionResult:
@@ -107,25 +110,28 @@ class Compactor:
         return res
 
     def compact_chunk(self, job_id: int, state: str, now: datetime | None = None) -> tuple[int, int, bool]:
-        """Compact the finished views of one chunk of the job's rows after its cursor; (views, tasks, more to walk
-        in this pass). Commits."""
+        """Compact the finished views of one chunk of the job's rows after its cursor; (views, tasks, more to
+        walk in this pass). Commits."""
         walk = self._walks.setdefault(job_id, _Walk())
         cutoff = (now or utcnow()) - timedelta(seconds=self.after_s)
         with self.sessionmaker() as s:
             if s.get_bind().dialect.name == "postgresql":
-                # The planner underestimates the rows after a row-value cursor and would read every remaining row
-                # of the job (bitmap scan) and sort them, per chunk; the unique index gives them in order.
+                # The planner underestimates the rows after a row-value cursor and would read every remaining
+                # row of the job (bitmap scan) and sort them, per chunk; the unique index gives them in order.
                 s.execute(text("SET LOCAL enable_bitmapscan = off"))
                 s.execute(text("SET LOCAL enable_sort = off"))
             rows = s.execute(
                 select(*_COLUMNS)
-                .where(Task.job_id == job_id, tuple_(Task.space_id, Task.point_idx, Task.view_idx) > walk.cursor)
+                .where(
+                    Task.job_id == job_id, tuple_(Task.space_id, Task.point_idx, Task.view_idx) > walk.cursor
+                )
                 .order_by(Task.space_id, Task.point_idx, Task.view_idx, Task.cue)
                 .limit(self.chunk_rows)
             ).all()
             end = len(rows) < self.chunk_rows
             views = _group(rows, complete_only=not end)
-            if not views:  # one view bigger than a chunk cannot happen (<= 255 tasks); an empty job has no rows
+            # one view bigger than a chunk cannot happen (<= 255 tasks); an empty job has no rows
+            if not views:
                 return self._restart(job_id, state, walk), 0, False
             walk.cursor = max(views)
             if not end and state == JobState.RUNNING and all(r.state != TaskState.DONE for r in rows):
@@ -133,9 +139,15 @@ class Compactor:
                 return 0, 0, False
             ready = {k: v for k, v in views.items() if _finished(v, cutoff)}
             self._note_due(v for k, v in views.items() if k not in ready)
-            if not ready and not end and state == JobState.RUNNING and any(_finished(v, None) for v in views.values()):
-                # views finish about in walk order: after a chunk of views done but not due, the rest is not due
-                # either (walking it anew every pass cost ~8 us of CPU a row: 60 s of a fleet's views a second)
+            if (
+                not ready
+                and not end
+                and state == JobState.RUNNING
+                and any(_finished(v, None) for v in views.values())
+            ):
+                # views finish about in walk order: after a chunk of views done but not due, the rest is not
+                # due either (walking it anew every pass cost ~8 us of CPU a row: 60 s of a fleet's views a
+                # second)
                 walk.cursor = (-1, -1, -1)
                 return 0, 0, False
             n_views, n_tasks = _compact(s, job_id, ready) if ready else (0, 0)
@@ -207,13 +219,19 @@ def _compact(s: Session, job_id: int, views: dict[ViewKey, list[Any]]) -> tuple[
     assert job is not None
     names = space_names(s, job_id)
     ids = [int(r.id) for rows in views.values() for r in rows]
-    if len(_delete_done(s, ids)) != len(ids):  # a resume took some back meanwhile: leave this chunk to a later pass
+    # a resume took some back meanwhile: leave this chunk to a later pass
+    if len(_delete_done(s, ids)) != len(ids):
         s.rollback()
         return 0, 0
     compact = []
     for (space_id, point, view), rows in views.items():
-        tasks = [DoneTask(int(r.id), str(r.cue), int(r.attempts), r.output_key, r.size, r.sha256, r.duration_s,
-                          r.finished_at) for r in rows]
+        tasks = [
+            DoneTask(
+                int(r.id), str(r.cue), int(r.attempts), r.output_key, r.size, r.sha256, r.duration_s,
+                r.finished_at,
+            )
+            for r in rows
+        ]
         name = names[space_id]
         compact.append({
             "job_id": job_id, "space_id": space_id, "point_idx": point, "view_idx": view,

@@ -65,7 +65,9 @@ def failure_summary(session: Session, job: Job, progress: dict[str, dict[str, in
         err = (first.error or "no error recorded").strip().splitlines()
         head = err[0] if err else ""
         tail = err[-1] if len(err) > 1 else ""
-        msg += f"; first: task {first.id} ({first.cue}, point {first.point_idx}, view {first.view_idx}): {head}"
+        msg += (
+            f"; first: task {first.id} ({first.cue}, point {first.point_idx}, view {first.view_idx}): {head}"
+        )
         if tail and tail != head:
             msg += f" ... {tail}"
     return msg

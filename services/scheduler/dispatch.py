@@ -11,8 +11,9 @@ too ("UpstreamFailed"), so the job can finish.
 
 Each running job keeps at most `window` tasks queued + running (counters, never COUNT(*)). Tenants
 split the pass budget evenly; within a tenant jobs are served by priority (higher first, strictly) and
-jobs of equal priority split evenly, each from a rotating position (round robin; `fairness` module). Ready tasks of a job go out oldest (lowest id) first,
-which is view by view: a view's derived cues before the next view's render. Postgres and SQLite.
+jobs of equal priority split evenly, each from a rotating position (round robin; `fairness` module). Ready
+tasks of a job go out oldest (lowest id) first, which is view by view: a view's derived cues before the next
+view's render. Postgres and SQLite.
 """
 
 from __future__ import annotations
@@ -88,7 +89,8 @@ def running_job_loads(session: Session) -> list[JobLoad]:
 
 
 def _input_rank(cue: str, t: Any, i: Any) -> Any:
-    """Correlated SQL scalar: 0/NULL all inputs done, 1 an input not done yet, 2 an input failed or cancelled."""
+    """Correlated SQL scalar: 0/NULL all inputs done, 1 an input not done yet, 2 an input failed or
+    cancelled."""
     inputs = CATALOG[cue].inputs
     view_inputs = [c for c in inputs if not CATALOG[c].per_point]
     point_inputs = [c for c in inputs if CATALOG[c].per_point]
@@ -120,7 +122,8 @@ def scan_cue(
     rank = _input_rank(cue, t.c, i.c) if CATALOG[cue].inputs else literal(0)
     base = select(t.c.id, rank).where(
         t.c.job_id == job_id,
-        t.c.state == PENDING_LITERAL,  # inline, as the partial index's predicate (a bound value would not match it)
+        # inline, as the partial index's predicate (a bound value would not match it)
+        t.c.state == PENDING_LITERAL,
         t.c.cue == cue,
         or_(t.c.not_before.is_(None), t.c.not_before <= now),
     )
@@ -240,7 +243,8 @@ def dispatch_once(
     loads = running_job_loads(session)
     result.settled = any(load.pending == 0 and load.inflight == 0 for load in loads)
     if queued_cap is not None and queued_cap - queued_now(loads) < budget:
-        budget = max(0, queued_cap - queued_now(loads))  # a short broker queue: a newcomer waits behind few others
+        # a short broker queue: a newcomer waits behind few others
+        budget = max(0, queued_cap - queued_now(loads))
         result.capped = True
     tenants = tenant_turns(loads, window, rotation)
     for t, groups in enumerate(tenants):
@@ -275,20 +279,26 @@ def _send(session: Session, transport: Transport, picked: list[tuple[int, list[t
                     continue
                 except Exception:
                     broken = True
-                    log.exception("sending tasks of job %d failed; putting the unsent ones back to pending", job_id)
+                    log.exception(
+                        "sending tasks of job %d failed; putting the unsent ones back to pending", job_id
+                    )
             result.requeued += _unqueue(session, job_id, part)
 
 
 def _pick(
     session: Session, load: JobLoad, take: int, now: datetime, thorough: bool, result: DispatchResult,
 ) -> list[tuple[int, str]]:
-    """Mark up to `take` ready tasks of one job queued (not committed); fails those whose input failed for good."""
+    """Mark up to `take` ready tasks of one job queued (not committed); fails those whose input failed for
+    good."""
     ready, doomed = ready_tasks(session, load.job_id, take, now, load, thorough)
     if doomed:
-        result.upstream_failed += len(transition(
-            session, job_id=load.job_id, task_ids=doomed, from_state=TaskState.PENDING, to_state=TaskState.FAILED,
-            finished_at=now, error="UpstreamFailed: an input cue task of this view failed or was cancelled",
-        ))
+        result.upstream_failed += len(
+            transition(
+                session, job_id=load.job_id, task_ids=doomed, from_state=TaskState.PENDING,
+                to_state=TaskState.FAILED, finished_at=now,
+                error="UpstreamFailed: an input cue task of this view failed or was cancelled",
+            )
+        )
     if not ready:
         if load.inflight == 0 and not doomed:
             result.stalled.append(load.job_id)

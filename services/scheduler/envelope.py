@@ -1,11 +1,12 @@
 """`render.cue` messages built once per queue and pushed straight into Redis (the scheduler's hot send path).
 
 Celery + kombu spend ~50 us of CPU per message (header dicts, option merging, serialising, base64, retry
-wrappers) to publish what is, for the scheduler, always the same message with three values changed: the task id
-argument, the Celery task id (also the correlation and root id) and kombu's delivery tag. An `Envelope` asks
-Celery for that message once (`amqp.create_task_message`: the exact protocol-2 headers), lays it out the way
-kombu's Redis transport stores a message (a JSON envelope with a base64 body, `Channel._put`'s LPUSH onto the
-queue's list) with placeholders, and then fills the placeholders in per task: one LPUSH per queue and batch.
+wrappers) to publish what is, for the scheduler, always the same message with three values changed: the task
+id argument, the Celery task id (also the correlation and root id) and kombu's delivery tag. An `Envelope`
+asks Celery for that message once (`amqp.create_task_message`: the exact protocol-2 headers), lays it out the
+way kombu's Redis transport stores a message (a JSON envelope with a base64 body, `Channel._put`'s LPUSH onto
+the queue's list) with placeholders, and then fills the placeholders in per task: one LPUSH per queue and
+batch.
 
 The layout is kombu's, not a public API: tests/scheduler/test_transport.py compares an Envelope's message with
 one kombu itself published, so an upgrade that changes the layout fails there rather than in production.
@@ -29,12 +30,14 @@ _ID = "\x00celery-id\x00"  # placeholders; they cannot occur in Celery's headers
 _TAG = "\x00delivery-tag\x00"
 _BODY = "\x00body\x00"
 _ARGS = "\x00argsrepr\x00"
-# protocol 2's body: (args, kwargs, embed) as kombu's JSON serializer writes it, then base64 (kombu's Redis channel)
+# protocol 2's body: (args, kwargs, embed) as kombu's JSON serializer writes it, then base64 (kombu's Redis
+# channel)
 _BODY_JSON = '[[{}], {{}}, {{"callbacks": null, "errbacks": null, "chain": null, "chord": null}}]'
 
 
 def _uuid4_text(h: str) -> str:
-    """A version-4 UUID's text from 32 random hex digits (what str(uuid.uuid4()) gives, for a third of the CPU)."""
+    """A version-4 UUID's text from 32 random hex digits (what str(uuid.uuid4()) gives, for a third of the
+    CPU)."""
     variant = "89ab"[int(h[16], 16) & 3]
     return f"{h[:8]}-{h[8:12]}-4{h[13:16]}-{variant}{h[17:20]}-{h[20:32]}"
 
@@ -68,7 +71,8 @@ class Envelope:
                 "delivery_tag": _TAG,
             },
         }
-        # the JSON text split at the placeholders (json.dumps writes \x00 as \u0000): parts and slots alternate
+        # the JSON text split at the placeholders (json.dumps writes \x00 as \u0000): parts and slots
+        # alternate
         marks = {json.dumps(m)[1:-1]: m for m in (_ID, _TAG, _BODY, _ARGS)}
         pieces = re.split("(" + "|".join(re.escape(k) for k in marks) + ")", json.dumps(envelope))
         self._parts = pieces[0::2]

@@ -24,13 +24,15 @@ from sqlalchemy.orm import Session
 from services.core.db.models import TaskState, Worker, utcnow
 from services.scheduler.job_load import JobLoad
 
-QUEUED_PER_WORKER = 2  # tasks waiting in the broker per live worker (the loop tops the queue up every CAPPED_WAIT_S)
+# tasks waiting in the broker per live worker (the loop tops the queue up every CAPPED_WAIT_S)
+QUEUED_PER_WORKER = 2
 QUEUED_MIN = 8  # ... and at least this many, so a fleet of one or two workers never starves between passes
 CAPPED_WAIT_S = 0.1  # the loop's pause while the queue is at its cap (instead of its idle interval)
 
 
 def tenant_turns(loads: Sequence[JobLoad], window: int, rotation: int = 0) -> list[list[list[JobLoad]]]:
-    """Eligible jobs as tenants (rotated) -> priority groups (highest first) -> jobs (rotated within a group)."""
+    """Eligible jobs as tenants (rotated) -> priority groups (highest first) -> jobs (rotated within a
+    group)."""
     eligible = [j for j in loads if j.pending > 0 and j.inflight < window]
     by_tenant: dict[str, list[JobLoad]] = {}
     for load in sorted(eligible, key=lambda j: (j.owner, -j.priority, j.job_id)):
@@ -58,7 +60,12 @@ def queued_cap(session: Session, *, alive_within_s: float, now: datetime | None 
     """How many tasks may wait in the broker: QUEUED_PER_WORKER per live worker (at least QUEUED_MIN), or None
     when no worker has beaten within `alive_within_s` (nothing to size the queue by: no cap)."""
     now = now or utcnow()
-    live = int(session.scalar(
-        select(func.count()).select_from(Worker).where(Worker.last_heartbeat > now - timedelta(seconds=alive_within_s))
-    ) or 0)
+    live = int(
+        session.scalar(
+            select(func.count())
+            .select_from(Worker)
+            .where(Worker.last_heartbeat > now - timedelta(seconds=alive_within_s))
+        )
+        or 0
+    )
     return max(QUEUED_MIN, QUEUED_PER_WORKER * live) if live else None

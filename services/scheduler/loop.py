@@ -59,7 +59,8 @@ REAP_INTERVAL_S = 5.0
 THOROUGH_DISPATCH_S = 60.0  # a dispatch pass that ignores the counter-based scan bounds (a safety net) ...
 THOROUGH_STALLED_S = 5.0  # ... and sooner when a job has pending tasks but nothing ready or in flight
 COMPACT_INTERVAL_S = 1.0  # finished views compacted at most this often (each pass bounded by compact_pass_s)
-COMPLETE_INTERVAL_S = 2.0  # completion's own look at the counters; sooner when a dispatch pass saw a job settle
+# completion's own look at the counters; sooner when a dispatch pass saw a job settle
+COMPLETE_INTERVAL_S = 2.0
 MAX_BACKOFF_S = 30.0
 # A local folder's temp files of writes that never committed (a worker killed mid-write) are swept this often,
 # on a thread (a walk of the folder), once idle for TEMP_STALE_S: a write in flight touches its file every
@@ -132,8 +133,11 @@ class Scheduler:
         self._last_reap = 0.0
         self._last_complete = 0.0
         self._last_compact = 0.0
-        self.compactor = (Compactor(sessionmaker, after_s=settings.compact_after_s, pass_s=settings.compact_pass_s)
-                          if settings.compact_views else None)
+        self.compactor = (
+            Compactor(sessionmaker, after_s=settings.compact_after_s, pass_s=settings.compact_pass_s)
+            if settings.compact_views
+            else None
+        )
         self._last_thorough = time.monotonic()  # the first passes use the (cheap) bounded scans
         self._stalled = False
         self._idle_watch = IdleWatch()
@@ -144,12 +148,12 @@ class Scheduler:
         # embedded runner and tests plan inline.
         self.planners = (PlannerProcesses(sessionmaker, settings, self.scheduler_id, plan_in_child)
                          if plan_in_processes else None)
-        # The service keeps the broker queue short (tenants share it fairly); the embedded runner, with one user
-        # and local workers fed between rate-limited ticks, keeps the whole window queued.
+        # The service keeps the broker queue short (tenants share it fairly); the embedded runner, with one
+        # user and local workers fed between rate-limited ticks, keeps the whole window queued.
         self.cap_queue = cap_queue
-        # Spaces the caller has already loaded (`omnidata generate` validated them), by `loaded_space_key`: the
-        # next job planned takes them instead of parsing them a second time (~2 CPU-s a room); the dict is taken
-        # over and emptied then, so no mesh stays in this process.
+        # Spaces the caller has already loaded (`omnidata generate` validated them), by `loaded_space_key`:
+        # the next job planned takes them instead of parsing them a second time (~2 CPU-s a room); the dict is
+        # taken over and emptied then, so no mesh stays in this process.
         self.loaded_spaces = loaded_spaces if loaded_spaces is not None else {}
 
     # ------------------------------------------------------------------------------------------ planning
@@ -161,8 +165,8 @@ class Scheduler:
         return Path(fetch_space(self.store, space, self.cache_dir))
 
     def load_space(self, space: Space, spec: JobSpec) -> LoadedSpace:
-        """The space in the frame the job plans it in: the caller's loaded copy when it was loaded from the same
-        source (checksum) in the same frame, else loaded from the store's copy."""
+        """The space in the frame the job plans it in: the caller's loaded copy when it was loaded from the
+        same source (checksum) in the same frame, else loaded from the store's copy."""
         frame = space_frame_for(spec, space)
         given = self.loaded_spaces.pop(loaded_space_key(space.checksum, frame), None)
         return given if given is not None else load_for_job(self.fetch_source(space), spec, frame=frame)
@@ -195,8 +199,8 @@ class Scheduler:
         return planned
 
     def plan_job(self, job_id: int) -> bool:
-        """Plan a job this scheduler has claimed, chunk by chunk (services.scheduler.chunked_plan), each chunk in
-        its own transaction, and the job's switch to running in the last; True when it is now running."""
+        """Plan a job this scheduler has claimed, chunk by chunk (services.scheduler.chunked_plan), each chunk
+        in its own transaction, and the job's switch to running in the last; True when it is now running."""
         t0 = time.perf_counter()
         spec: JobSpec | None = None
         try:
@@ -206,11 +210,15 @@ class Scheduler:
                     return False
                 spec = job_spec(job)
                 # refused before any work: a spec over the planning budget (the API refuses it too)
-                check_plan_budget(spec, memory_mb=self.settings.plan_memory_mb, timeout_s=self.settings.plan_timeout_s,
-                                  chunk_views=self.settings.plan_chunk_views)
+                check_plan_budget(
+                    spec, memory_mb=self.settings.plan_memory_mb, timeout_s=self.settings.plan_timeout_s,
+                    chunk_views=self.settings.plan_chunk_views,
+                )
                 clear_plan(s, job.id)  # the chunks an earlier attempt left
                 attempts = (job.plan_summary or {}).get("attempts", 0) + 1
-                spaces = [(list(js.cues), space, plan_key(job, space.name)) for js, space in job_spaces(s, job.id)]
+                spaces = [
+                    (list(js.cues), space, plan_key(job, space.name)) for js, space in job_spaces(s, job.id)
+                ]
                 s.expunge_all()
                 s.commit()
             summary: JobPlanSummary = {"spaces": {}, "attempts": attempts}
@@ -257,7 +265,9 @@ class Scheduler:
             if job.state != JobState.PLANNING or job.planner != self.scheduler_id:
                 log.info("job %d changed to %s while planning; plan dropped", job_id, job.state)
                 return False
-            set_job_state(job, JobState.RUNNING, total_tasks=total, plan_summary=summary, planner_lease_until=None)
+            set_job_state(
+                job, JobState.RUNNING, total_tasks=total, plan_summary=summary, planner_lease_until=None
+            )
             s.commit()
         return True
 
@@ -282,7 +292,9 @@ class Scheduler:
             res = dispatch_once(
                 s, self.transport, window=self.settings.dispatch_window, budget=self.budget,
                 rotation=self._rotation, thorough=thorough,
-                queued_cap=queued_cap(s, alive_within_s=self.settings.heartbeat_timeout_s) if self.cap_queue else None,
+                queued_cap=queued_cap(s, alive_within_s=self.settings.heartbeat_timeout_s)
+                if self.cap_queue
+                else None,
             )
         if thorough:
             self._last_thorough = time.monotonic()
@@ -293,16 +305,22 @@ class Scheduler:
         return res
 
     def reap_once(self) -> ReapResult:
-        """Return dead workers' tasks, expired and lost tasks to pending (or fail them when out of attempts)."""
+        """Return dead workers' tasks, expired and lost tasks to pending (or fail them when out of
+        attempts)."""
         with self.sessionmaker() as s:
-            res = reap_once(s, queued_timeout_s=self.settings.lease_s, default_max_attempts=self.settings.max_attempts,
-                            dead_after_s=self.settings.heartbeat_timeout_s)
+            res = reap_once(
+                s, queued_timeout_s=self.settings.lease_s, default_max_attempts=self.settings.max_attempts,
+                dead_after_s=self.settings.heartbeat_timeout_s,
+            )
             expire_worker_rows(s, older_than_s=self.settings.worker_expiry_s)
         if self.planners is not None:
             self.planners.sweep()
         with self.sessionmaker() as s:  # messages a dead worker held, or stuck while workers sit idle
-            resend_stuck(s, self.transport, self.settings, self._idle_watch,
-                         dead_after_s=self.settings.heartbeat_timeout_s, stuck_after_s=self.settings.heartbeat_timeout_s)
+            resend_stuck(
+                s, self.transport, self.settings, self._idle_watch,
+                dead_after_s=self.settings.heartbeat_timeout_s,
+                stuck_after_s=self.settings.heartbeat_timeout_s,
+            )
         self._last_reap = time.monotonic()
         self.sweep_temp_files()
         return res
@@ -327,7 +345,8 @@ class Scheduler:
 
     def tick(self, *, plan: bool = True) -> TickResult:
         """One round of every step (the reaper only every REAP_INTERVAL_S, completion when a job settled).
-        `plan=False` skips planning: a caller that knows no job waits for it (the embedded run's one job, planned)."""
+        `plan=False` skips planning: a caller that knows no job waits for it (the embedded run's one job,
+        planned)."""
         res = TickResult(budget=self.budget)
         if plan:
             res.planned = self.plan_pending()
@@ -335,8 +354,9 @@ class Scheduler:
             res.reaped = self.reap_once()
         res.resumed = self.store_watch.check()
         res.dispatched = self.dispatch_once()
-        # the dispatch pass has just read every running job's counters: completion's own read of them (a scan of
-        # each job's counter shards) is needed only when a job settled there, or now and then as a safety net
+        # the dispatch pass has just read every running job's counters: completion's own read of them (a scan
+        # of each job's counter shards) is needed only when a job settled there, or now and then as a safety
+        # net
         if res.dispatched.settled or time.monotonic() - self._last_complete >= COMPLETE_INTERVAL_S:
             res.finished = self.complete_once()
             self._last_complete = time.monotonic()
@@ -346,7 +366,8 @@ class Scheduler:
         return res
 
     def run_forever(self, stop_event: threading.Event, interval: float = 1.0) -> None:
-        """Tick until `stop_event` is set; errors (a database restart) are logged and backed off, never fatal."""
+        """Tick until `stop_event` is set; errors (a database restart) are logged and backed off, never
+        fatal."""
         backoff = 0.0
         log.info("scheduler %s started (interval %.1f s)", self.scheduler_id, interval)
         while not stop_event.is_set():
@@ -354,7 +375,9 @@ class Scheduler:
                 res = self.tick()
             except Exception as exc:
                 backoff = min(MAX_BACKOFF_S, max(1.0, backoff * 2))
-                log.error("scheduler tick failed (%s: %s); retrying in %.0f s", type(exc).__name__, exc, backoff)
+                log.error(
+                    "scheduler tick failed (%s: %s); retrying in %.0f s", type(exc).__name__, exc, backoff
+                )
                 log.debug("tick failure", exc_info=True)
                 stop_event.wait(backoff)
                 continue

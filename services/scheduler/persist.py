@@ -85,8 +85,10 @@ def plan_rows(plan: SpacePlan, job_id: int, space_id: int) -> tuple[dict, dict, 
     n_views = np.zeros(len(pts), dtype=np.int64)
     if views and pts:  # a chunk's points are consecutive: count by offset from its first
         first = pts[0].idx
-        counted = np.bincount(np.fromiter((v.point_idx - first for v in views), dtype=np.int64, count=len(views)),
-                              minlength=len(pts))
+        counted = np.bincount(
+            np.fromiter((v.point_idx - first for v in views), dtype=np.int64, count=len(views)),
+            minlength=len(pts),
+        )
         n_views[: len(counted)] = counted[: len(pts)]
     pos = np.array([p.position for p in pts], dtype=np.float64).reshape(-1, 3)
     nrm = np.array([p.normal for p in pts], dtype=np.float64).reshape(-1, 3)
@@ -109,7 +111,9 @@ def plan_rows(plan: SpacePlan, job_id: int, space_id: int) -> tuple[dict, dict, 
         "roll": [float(v.roll) for v in views],
         "resolution": [int(v.resolution) for v in views],
         "obliqueness": [float(v.obliqueness) for v in views],
-        "world_to_camera": [np.asarray(v.world_to_camera, dtype=np.float64).reshape(16).tolist() for v in views],
+        "world_to_camera": [
+            np.asarray(v.world_to_camera, dtype=np.float64).reshape(16).tolist() for v in views
+        ],
         "in_sight": [bool(v.in_sight) for v in views],
     }
     return cameras, points, view_rows
@@ -135,7 +139,9 @@ def persist_space(
     return PersistedSpace(len(plan.cameras), len(plan.points), len(plan.views), n_tasks, key)
 
 
-def persist_chunk(session: Session, job_id: int, space_id: int, chunk: SpacePlan, tasks: CompiledTasks) -> int:
+def persist_chunk(
+    session: Session, job_id: int, space_id: int, chunk: SpacePlan, tasks: CompiledTasks
+) -> int:
     """Write one chunk of a space's plan (cameras, points, views), its task rows (pending) and their counts;
     returns the number of tasks."""
     cameras, points, views = plan_rows(chunk, job_id, space_id)
@@ -153,8 +159,9 @@ def _dumps(item: object) -> str:
 
 
 class PlanJsonFile:
-    """A plan's JSON built from its chunks in temporary files (points and views kept apart: `plan_to_json` sorts
-    the keys, and the plan's own fields come between them); `finish` gives the file of the whole text."""
+    """A plan's JSON built from its chunks in temporary files (points and views kept apart: `plan_to_json`
+    sorts the keys, and the plan's own fields come between them); `finish` gives the file of the whole
+    text."""
 
     def __init__(self) -> None:
         self._dir = owned_temp_dir("plan")  # named after this planner: swept if it is killed

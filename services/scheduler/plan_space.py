@@ -81,7 +81,8 @@ def plan_space(loaded: LoadedSpace, spec: JobSpec, name: str) -> SpacePlan:
 
 
 def plan_summary_of(loaded: LoadedSpace, plan: SpacePlan, spec: JobSpec) -> PlanSpaceSummary:
-    """What the scheduler keeps per space in `job.plan_summary` (JSON-ready; the counts are added by the caller)."""
+    """What the scheduler keeps per space in `job.plan_summary` (JSON-ready; the counts are added by the
+    caller)."""
     capture_part: _CapturePlanPart = {"capture_plan": plan.capture} if plan.capture is not None else {}
     return {
         "shortfall": plan.shortfall,

@@ -2,8 +2,9 @@
 
 A big plan takes seconds to minutes of CPU and grows with its views; done inside the loop it stopped every
 other tenant's dispatch meanwhile and grew the scheduler itself. Here the loop claims a job, starts a child
-(forked from a fork server, so it shares no connection or thread with the loop) that plans and persists it in its own
-transaction under an address-space limit of `OMNIDATA_PLAN_MEMORY_MB`, and goes on dispatching. Each tick it
+(forked from a fork server, so it shares no connection or thread with the loop) that plans and persists it in
+its own transaction under an address-space limit of `OMNIDATA_PLAN_MEMORY_MB`, and goes on dispatching. Each
+tick it
 
 - ends the child of a job that is no longer planning under this scheduler (cancelled, or re-taken): cancel
   stops the planning within a tick, and the child's final check would drop its plan anyway;
@@ -54,7 +55,10 @@ PR_SET_PDEATHSIG = 1
 WATCHDOG_S = 0.5  # how often a planner checks that its scheduler is alive
 # A child's entry point: (job_id, scheduler_id, settings, scheduler_pid, connections counter) -> None.
 PlanTarget = Callable[[int, str, Settings, int, Synchronized], None]
-PRELOAD = ("services.scheduler.loop", "services.scheduler.planning", "services.core.ingest.loading", "services.core.db.engine")
+PRELOAD = (
+    "services.scheduler.loop", "services.scheduler.planning", "services.core.ingest.loading",
+    "services.core.db.engine",
+)
 
 
 @dataclass
@@ -89,7 +93,8 @@ def plan_to_pause(running: list[PlannerChild]) -> PlannerChild | None:
 
 
 class PlannerProcesses:
-    """At most `max_children` (OMNIDATA_PLAN_PROCESSES) planner processes of one scheduler, watched from its loop."""
+    """At most `max_children` (OMNIDATA_PLAN_PROCESSES) planner processes of one scheduler, watched from its
+    loop."""
 
     def __init__(
         self, sm: sessionmaker[Session], settings: Settings, scheduler_id: str, target: PlanTarget, *,
@@ -103,7 +108,8 @@ class PlannerProcesses:
         self.lease_s = float(settings.heartbeat_timeout_s)
         self.children: dict[int, PlannerChild] = {}
         # A fork server: started once (a fresh interpreter, nothing shared with this loop's threads and
-        # connections), it imports the planning stack up front and forks each planner from there in milliseconds.
+        # connections), it imports the planning stack up front and forks each planner from there in
+        # milliseconds.
         self._ctx = mp.get_context("forkserver")
         self._ctx.set_forkserver_preload(list(PRELOAD))
         self.sweep()
@@ -133,7 +139,8 @@ class PlannerProcesses:
             target=self.target, args=(job_id, self.scheduler_id, self.settings, os.getpid(), in_db),
             name=f"planner-{job_id}", daemon=True,
         )
-        proc.start()  # the first start also starts the fork server: seconds, so the lease starts over after it
+        # the first start also starts the fork server: seconds, so the lease starts over after it
+        proc.start()
         self._extend(job_id)
         self.children[job_id] = PlannerChild(job_id, owner, proc, time.monotonic(), time.monotonic(), in_db)
         log.info("job %d: planning in process %s", job_id, proc.pid)
@@ -175,8 +182,8 @@ class PlannerProcesses:
         return True
 
     def watch(self) -> list[int]:
-        """One look at every child: end those whose job is gone, extend leases, reap the exited; returns the ids of
-        jobs whose planning ended (planned, failed or dropped)."""
+        """One look at every child: end those whose job is gone, extend leases, reap the exited; returns the
+        ids of jobs whose planning ended (planned, failed or dropped)."""
         if not self.children:
             return []
         ended = []
@@ -246,7 +253,11 @@ class PlannerProcesses:
             s.commit()
 
     def _died(self, job_id: int, exitcode: int | None) -> None:
-        why = (f"killed by signal {-exitcode}" if exitcode is not None and exitcode < 0 else f"exit code {exitcode}")
+        why = (
+            f"killed by signal {-exitcode}"
+            if exitcode is not None and exitcode < 0
+            else f"exit code {exitcode}"
+        )
         self._failed(job_id, PlannerDied(
             f"the planner process died ({why}); planning is limited to OMNIDATA_PLAN_MEMORY_MB="
             f"{self.settings.plan_memory_mb}"))
@@ -281,7 +292,8 @@ def count_connections(engine: Engine, in_db: Synchronized) -> None:
 
 
 class PlannerDied(RuntimeError):
-    """A planner process ended without recording a result (killed, crashed): the attempt is counted and retried."""
+    """A planner process ended without recording a result (killed, crashed): the attempt is counted and
+    retried."""
 
 
 def die_with_scheduler(scheduler_pid: int) -> None:
@@ -294,7 +306,8 @@ def die_with_scheduler(scheduler_pid: int) -> None:
     try:
         libc = ctypes.CDLL("libc.so.6", use_errno=True)
         libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
-    except (OSError, AttributeError):  # not Linux: the watchdog, the lease and the final ownership check still hold
+    # not Linux: the watchdog, the lease and the final ownership check still hold
+    except (OSError, AttributeError):
         pass
 
     def watch() -> None:
@@ -311,7 +324,10 @@ def die_with_scheduler(scheduler_pid: int) -> None:
 
 
 def limit_memory(memory_mb: int) -> None:
-    """Cap this process's address space (allocations beyond it raise MemoryError instead of growing the host)."""
+    """Cap this process's address space (allocations beyond it raise MemoryError instead of growing the
+    host)."""
     limit = int(memory_mb) * 2**20
     _soft, hard = resource.getrlimit(resource.RLIMIT_AS)
-    resource.setrlimit(resource.RLIMIT_AS, (limit if hard == resource.RLIM_INFINITY else min(limit, hard), hard))
+    resource.setrlimit(
+        resource.RLIMIT_AS, (limit if hard == resource.RLIM_INFINITY else min(limit, hard), hard)
+    )

@@ -44,7 +44,8 @@ class ReapResult:
     expired_failed: int = 0  # running -> failed (worker dead or lease expired, no attempts left)
     expired_cancelled: int = 0  # running -> cancelled (job cancelled meanwhile)
     lost_requeued: int = 0  # queued -> pending (message lost)
-    dead_worker: int = 0  # of the running tasks moved, those whose worker was declared dead before the lease ran out
+    # of the running tasks moved, those whose worker was declared dead before the lease ran out
+    dead_worker: int = 0
 
     @property
     def total(self) -> int:
@@ -67,14 +68,17 @@ def _why(row: _ExpiredRow, now: datetime, dead_after_s: float | None) -> str:
     """How the worker of an expired row was lost, for the task's error text."""
     if row.lease_until is not None and row.lease_until < now:
         return f"LeaseExpired: worker {row.worker_id} stopped heart-beating (lost or killed)"
-    return f"WorkerDead: worker {row.worker_id} sent no heartbeat for over {dead_after_s:.0f} s (lost or killed)"
+    return (
+        f"WorkerDead: worker {row.worker_id} sent no heartbeat for over {dead_after_s:.0f} s (lost or killed)"
+    )
 
 
 def reap_once(
     session: Session, *, queued_timeout_s: float, now: datetime | None = None, default_max_attempts: int = 3,
     dead_after_s: float | None = None,
 ) -> ReapResult:
-    """One reaper pass over dead workers' tasks, expired leases and lost queued tasks; commits. Returns the counts.
+    """One reaper pass over dead workers' tasks, expired leases and lost queued tasks; commits. Returns the
+    counts.
 
     `dead_after_s`: a worker whose last heartbeat is older than this is dead (None: leases only).
     """
@@ -87,7 +91,8 @@ def reap_once(
         log.info(
             "reaper: %d tasks of lost workers retried, %d failed, %d cancelled (%d of dead workers, before "
             "their lease ran out); %d lost queued tasks requeued",
-            res.expired_retried, res.expired_failed, res.expired_cancelled, res.dead_worker, res.lost_requeued,
+            res.expired_retried, res.expired_failed, res.expired_cancelled, res.dead_worker,
+            res.lost_requeued,
         )
     return res
 
@@ -100,7 +105,9 @@ def _reap_running(session: Session, res: ReapResult, now: datetime, default_max_
     if dead_after_s is not None:
         silent_since = now - timedelta(seconds=dead_after_s)
         # started_at too: a task claimed after the worker's last beat proves the worker was alive then
-        lost_worker = or_(lost_worker, and_(Worker.last_heartbeat < silent_since, Task.started_at < silent_since))
+        lost_worker = or_(
+            lost_worker, and_(Worker.last_heartbeat < silent_since, Task.started_at < silent_since)
+        )
     expired = _locked(
         session,
         select(Task.id, Task.job_id, Task.attempts, Task.worker_id, Task.lease_until, Job.state, Job.spec)
@@ -131,20 +138,24 @@ def _reap_running(session: Session, res: ReapResult, now: datetime, default_max_
             else:
                 fail.append(r)
         for (backoff, why), ids in retry.items():
-            res.expired_retried += len(transition(
-                session, job_id=job_id, task_ids=ids, from_state=TaskState.RUNNING, to_state=TaskState.PENDING,
-                lease_until=None, worker_id=None, queued_at=None,
-                not_before=now + timedelta(seconds=backoff), error=f"{why}; retrying",
-            ))
+            res.expired_retried += len(
+                transition(
+                    session, job_id=job_id, task_ids=ids, from_state=TaskState.RUNNING,
+                    to_state=TaskState.PENDING, lease_until=None, worker_id=None, queued_at=None,
+                    not_before=now + timedelta(seconds=backoff), error=f"{why}; retrying",
+                )
+            )
         for r in fail:  # one by one: each keeps its own error text (few: only tasks out of attempts)
-            res.expired_failed += len(transition(
-                session, job_id=job_id, task_ids=[r.id], from_state=TaskState.RUNNING, to_state=TaskState.FAILED,
-                lease_until=None, finished_at=now,
-                error=(
-                    f"{_why(r, now, dead_after_s)} while running this task; "
-                    f"gave up after {r.attempts} attempt(s) (max_attempts={max_attempts})"
-                ),
-            ))
+            res.expired_failed += len(
+                transition(
+                    session, job_id=job_id, task_ids=[r.id], from_state=TaskState.RUNNING,
+                    to_state=TaskState.FAILED, lease_until=None, finished_at=now,
+                    error=(
+                        f"{_why(r, now, dead_after_s)} while running this task; "
+                        f"gave up after {r.attempts} attempt(s) (max_attempts={max_attempts})"
+                    ),
+                )
+            )
 
 
 def _requeue_lost(session: Session, res: ReapResult, now: datetime, queued_timeout_s: float) -> None:
@@ -161,6 +172,9 @@ def _requeue_lost(session: Session, res: ReapResult, now: datetime, queued_timeo
     for row in lost:
         lost_by_job[int(row.job_id)].append(int(row.id))
     for job_id, ids in lost_by_job.items():
-        res.lost_requeued += len(transition(
-            session, job_id=job_id, task_ids=ids, from_state=TaskState.QUEUED, to_state=TaskState.PENDING, queued_at=None,
-        ))
+        res.lost_requeued += len(
+            transition(
+                session, job_id=job_id, task_ids=ids, from_state=TaskState.QUEUED, to_state=TaskState.PENDING,
+                queued_at=None,
+            )
+        )

@@ -48,7 +48,8 @@ class WorkerSeen:
 
 @dataclass
 class IdleWatch:
-    """Remembers each worker's row from the previous pass, to tell a worker idle for a while from one between tasks."""
+    """Remembers each worker's row from the previous pass, to tell a worker idle for a while from one between
+    tasks."""
 
     seen: dict[str, WorkerSeen] = field(default_factory=dict)
 
@@ -102,7 +103,8 @@ def _cutoffs(
 ) -> tuple[dict[str, datetime], set[str]]:
     """Per queue, the moment its most recently dead consumer was declared dead (within the lease), and the
     queues with an idle live consumer."""
-    horizon = now - timedelta(seconds=dead_after_s + settings.lease_s)  # older deaths: the lost-message rule ran
+    # older deaths: the lost-message rule ran
+    horizon = now - timedelta(seconds=dead_after_s + settings.lease_s)
     rows = session.execute(
         select(Worker.id, Worker.queues, Worker.last_heartbeat, Worker.current_task_id, Worker.tasks_done)
         .where(Worker.last_heartbeat > horizon)
@@ -115,7 +117,9 @@ def _cutoffs(
         if declared <= now:
             for q in queues:
                 dead_at[q] = max(dead_at.get(q, declared), declared)
-        elif watch.idle(str(row.id), WorkerSeen(row.last_heartbeat, row.current_task_id, int(row.tasks_done or 0))):
+        elif watch.idle(
+            str(row.id), WorkerSeen(row.last_heartbeat, row.current_task_id, int(row.tasks_done or 0))
+        ):
             idle.update(queues)
     watch.forget_except(str(r.id) for r in rows)
     return dead_at, idle
@@ -125,7 +129,8 @@ def resend_stuck(
     session: Session, transport: Transport, settings: Settings, watch: IdleWatch, *,
     dead_after_s: float, stuck_after_s: float, now: datetime | None = None,
 ) -> ResendResult:
-    """One pass: move `queued_at` of stuck queued tasks to now, commit, then send them again. Returns the counts."""
+    """One pass: move `queued_at` of stuck queued tasks to now, commit, then send them again. Returns the
+    counts."""
     now = now or utcnow()
     res = ResendResult()
     dead_at, idle = _cutoffs(session, settings, watch, now, dead_after_s)

@@ -17,7 +17,8 @@ from services.core.celery_config import celery_conf
 from services.core.settings import Settings, get_settings
 from services.worker.process.numeric_threads import pin_numeric_threads
 
-pin_numeric_threads()  # `celery -A` starts here, before the task modules load numpy (`omnidata worker` did it already)
+# `celery -A` starts here, before the task modules load numpy (`omnidata worker` did it already)
+pin_numeric_threads()
 
 TASK_MODULES = ("services.worker.tasks",)
 
@@ -29,7 +30,8 @@ def worker_conf(settings: Settings) -> dict[str, object]:
     conf.update(
         {
             "task_reject_on_worker_lost": True,  # a killed child's message goes back to the queue
-            "task_acks_on_failure_or_timeout": True,  # failures are recorded in Postgres; never loop a message
+            # failures are recorded in Postgres; never loop a message
+            "task_acks_on_failure_or_timeout": True,
             "broker_connection_retry": True,
             "broker_connection_max_retries": None,  # a restarted Redis is waited for, however long it takes
             "broker_channel_error_retry": True,

@@ -27,12 +27,15 @@ class SemanticsUnavailableError(ValueError):
 
 
 class ViewContext:
-    """Inputs and memo of one view. `view` is a ViewGeometry or anything with world_to_camera/fov/resolution."""
+    """Inputs and memo of one view. `view` is a ViewGeometry or anything with
+    world_to_camera/fov/resolution."""
 
-    def __init__(self, view: ViewPose | None, params: CueParams | None = None, *, passes: ViewPasses | None = None,
-                 space: SpaceContext | None = None, plan: SpacePlan | None = None,
-                 point_info: Mapping[str, object] | None = None,
-                 render_passes: frozenset[str] = RENDER_PASSES):
+    def __init__(
+        self, view: ViewPose | None, params: CueParams | None = None,
+        *,
+        passes: ViewPasses | None = None, space: SpaceContext | None = None, plan: SpacePlan | None = None,
+        point_info: Mapping[str, object] | None = None, render_passes: frozenset[str] = RENDER_PASSES,
+    ):
         self.view = view
         if view is not None:
             self.geometry = ViewGeometry.of(view)
@@ -44,7 +47,8 @@ class ViewContext:
         self.space = space
         self.plan = plan
         self.point_info_override = point_info
-        self.render_passes = render_passes  # optional passes rendered (passes.RENDER_PASSES); colour, depth always
+        # optional passes rendered (passes.RENDER_PASSES); colour, depth always
+        self.render_passes = render_passes
         self._passes = passes
         self._memo: dict[str, object] = {}
         self.timings: dict[str, float] = {}  # exclusive seconds per cue value / intermediate / "render"
@@ -66,7 +70,8 @@ class ViewContext:
         return self._passes
 
     def nbytes(self) -> int:
-        """Bytes of the arrays this context holds (pass set, memoised values): what keeping it in a cache costs."""
+        """Bytes of the arrays this context holds (pass set, memoised values): what keeping it in a cache
+        costs."""
         values: list[object] = list(self._memo.values())
         if self._passes is not None:
             values += [getattr(self._passes, n) for n in ("depth_z", "rgb", *OPTIONAL_ARRAYS)]

@@ -6,7 +6,8 @@ a view costs one Cycles render however many cues it asks for.
     files = render_view_cues(space, view, cues, params)  # {cue: bytes} for a whole view
 
 A context built from a cached pass set (ViewContext(view, params, passes=ViewPasses.from_bytes(...))) produces
-every render/derived cue without Blender. Plan cues need `plan` (services.core.domain.plan) or a ready `point_info`.
+every render/derived cue without Blender. Plan cues need `plan` (services.core.domain.plan) or a ready
+`point_info`.
 """
 
 from __future__ import annotations
@@ -22,12 +23,15 @@ from services.worker.cues.registry import cue_value
 from services.worker.inputs.space_cache import SpaceContext
 from services.worker.passes import RENDER_PASSES, ViewPose
 
-__all__ = ["SemanticsUnavailableError", "ViewContext", "check_cues", "make_context", "produce", "render_passes_for",
-           "render_view_cues"]
+__all__ = [
+    "SemanticsUnavailableError", "ViewContext", "check_cues", "make_context", "produce", "render_passes_for",
+    "render_view_cues",
+]
 
 
 def check_cues(cues: Iterable[str], *, has_semantics: bool) -> list[str]:
-    """Validate cue names against the registry (UnknownCueError lists the known ones) and the space's labels."""
+    """Validate cue names against the registry (UnknownCueError lists the known ones) and the space's
+    labels."""
     names = list(dict.fromkeys(cues))
     for name in names:
         get_impl(name)
@@ -38,8 +42,8 @@ def check_cues(cues: Iterable[str], *, has_semantics: bool) -> list[str]:
 def render_passes_for(cues: Iterable[str]) -> frozenset[str]:
     """The optional render passes (passes.RENDER_PASSES) that `cues` and the cues they are made from read.
 
-    The internal `passes` cue (the cached pass set) is an input of every render cue in the catalog; it asks for
-    every pass only when it is requested itself.
+    The internal `passes` cue (the cached pass set) is an input of every render cue in the catalog; it asks
+    for every pass only when it is requested itself.
     """
     names = set(cues)
     if "passes" in names:
@@ -47,8 +51,11 @@ def render_passes_for(cues: Iterable[str]) -> frozenset[str]:
     return frozenset().union(*(get_impl(c).passes for c in closure(names) if c != "passes"))
 
 
-def make_context(space: SpaceContext | None, view: ViewPose, cues: Iterable[str], params: CueParams | None = None, *,
-                 plan: SpacePlan | None = None, point_info: Mapping[str, object] | None = None) -> ViewContext:
+def make_context(
+    space: SpaceContext | None, view: ViewPose, cues: Iterable[str], params: CueParams | None = None,
+    *,
+    plan: SpacePlan | None = None, point_info: Mapping[str, object] | None = None,
+) -> ViewContext:
     """A ViewContext that renders from `space` on first need, only the passes the cues need."""
     names = check_cues(cues, has_semantics=space.has_semantics if space is not None else True)
     return ViewContext(view, params, space=space, plan=plan, point_info=point_info,
@@ -76,8 +83,11 @@ def produce(cue: str, ctx: ViewContext) -> bytes:
     return data
 
 
-def render_view_cues(space_ctx: SpaceContext, view: ViewPose, cues: Iterable[str], params: CueParams | None = None,
-                     *, plan: SpacePlan | None = None, point_info: Mapping[str, object] | None = None) -> dict[str, bytes]:
+def render_view_cues(
+    space_ctx: SpaceContext, view: ViewPose, cues: Iterable[str], params: CueParams | None = None,
+    *,
+    plan: SpacePlan | None = None, point_info: Mapping[str, object] | None = None,
+) -> dict[str, bytes]:
     """{cue: file bytes} for one view: one Cycles render, then every cue derived from its passes."""
     names = list(dict.fromkeys(cues))
     ctx = make_context(space_ctx, view, names, params, plan=plan, point_info=point_info)

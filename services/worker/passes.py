@@ -1,7 +1,8 @@
 """The pass set of one rendered view (the internal `passes` cue) and the view geometry it was rendered with.
 
 Frames and units (services/core/domain/camera.py, the conventions planning and rendering share):
-- world: metres, +Z up; `world_to_camera` takes world points to OpenCV camera axes (x right, y down, z forward);
+- world: metres, +Z up; `world_to_camera` takes world points to OpenCV camera axes (x right, y down, z
+  forward);
 - pixel (u, v) has its centre at (u + 0.5, v + 0.5); K = [[f,0,W/2],[0,f,H/2],[0,0,1]], f = (W/2)/tan(fov/2).
 
 Arrays are row-major H x W (row 0 = top of the image). "No surface" is marked per array: depth_z = inf,
@@ -23,8 +24,8 @@ NO_FACE = np.uint32(FRAGMENT_NONE)
 NO_LABEL = -1
 
 # Passes read back from a render only when a requested cue needs them (colour and depth always are): normals
-# (derived from the face index), the face index, the class/instance ids (labelled spaces; looked up from the face
-# index) and the curvature AOVs (whose per-vertex curvature is then not computed either).
+# (derived from the face index), the face index, the class/instance ids (labelled spaces; looked up from the
+# face index) and the curvature AOVs (whose per-vertex curvature is then not computed either).
 RENDER_PASSES: frozenset[str] = frozenset({"normal", "faces", "labels", "curvature"})
 
 
@@ -41,7 +42,8 @@ class ViewPose(Protocol):
 
 @dataclass(frozen=True)
 class ViewGeometry:
-    """Pose and intrinsics of one view: OpenCV world_to_camera (4x4, metres), horizontal fov (radians), square size."""
+    """Pose and intrinsics of one view: OpenCV world_to_camera (4x4, metres), horizontal fov (radians), square
+    size."""
 
     world_to_camera: np.ndarray
     fov: float
@@ -49,7 +51,8 @@ class ViewGeometry:
 
     @classmethod
     def of(cls, view: ViewPose) -> ViewGeometry:
-        """Accept a ViewGeometry, or anything with `world_to_camera`, `fov` (rad) and `resolution` (a PlannedView)."""
+        """Accept a ViewGeometry, or anything with `world_to_camera`, `fov` (rad) and `resolution` (a
+        PlannedView)."""
         if isinstance(view, ViewGeometry):
             return view
         W = np.asarray(view.world_to_camera, dtype=np.float64).reshape(4, 4)
@@ -77,7 +80,8 @@ class ViewGeometry:
         centres = np.arange(n) + 0.5
         x = ((centres - K[0, 2]) / K[0, 0])[None, :]
         y = ((centres - K[1, 2]) / K[1, 1])[:, None]
-        # (x, y, 1) / its norm, from a row and a column (5x faster than a meshgrid; the same sums in the same order).
+        # (x, y, 1) / its norm, from a row and a column (5x faster than a meshgrid; the same sums in the same
+        # order).
         norm = np.sqrt(x * x + y * y + 1.0)
         d = np.empty((n, n, 3))
         d[..., 0], d[..., 1], d[..., 2] = x / norm, y / norm, 1.0 / norm
@@ -93,19 +97,23 @@ OPTIONAL_ARRAYS = ("normal_world", "face_index", "face_class", "face_instance", 
 
 @dataclass
 class ViewPasses:
-    """Every per-pixel quantity one Cycles render gives for a view (see the module docstring for 'none' markers).
+    """Every per-pixel quantity one Cycles render gives for a view (see the module docstring for 'none'
+    markers).
 
     depth_z: float32 H x W, metres along the optical axis (Cycles' Z pass is planar z), inf = no surface.
     normal_world: float32 H x W x 3, unit geometric normal of the seen triangle in world axes, turned to face
-        the camera (as Cycles turns back-facing hits; derived from the face index, not rendered); 0 = no surface.
-        None when not asked for (pass "normal").
+        the camera (as Cycles turns back-facing hits; derived from the face index, not rendered); 0 = no
+        surface. None when not asked for (pass "normal").
     rgb: uint8 H x W x 3, unlit sRGB colour (texture / vertex colour / constant grey), 0 = no surface.
-    face_index: uint32 H x W, index of the seen triangle in the space's mesh, 4294967295 = no surface. None when
+    face_index: uint32 H x W, index of the seen triangle in the space's mesh, 4294967295 = no surface. None
+    when
         not read back (pass "faces").
-    face_class, face_instance: int32 H x W or None (unlabelled space): the space's ids as given (a scan may use
+    face_class, face_instance: int32 H x W or None (unlabelled space): the space's ids as given (a scan may
+    use
         negative ids for unlabelled faces), -1 where nothing is seen (tell the two apart with `hit`).
-    curvature: float32 H x W x 2 (k1 >= k2, 1/m, positive = convex) or None when not rendered; NaN = no surface.
-    photo_coverage: bool H x W where rgb is a photograph's (services.worker.inputs.photos), None for mesh rgb.
+    curvature: float32 H x W x 2 (k1 >= k2, 1/m, positive = convex) or None when not rendered; NaN = no
+    surface. photo_coverage: bool H x W where rgb is a photograph's (services.worker.inputs.photos), None for
+    mesh rgb.
     """
 
     geometry: ViewGeometry
@@ -116,7 +124,8 @@ class ViewPasses:
     face_class: np.ndarray | None = None
     face_instance: np.ndarray | None = None
     curvature: np.ndarray | None = None
-    photo_coverage: np.ndarray | None = None  # bool H x W: rgb came from a photo here (capture views); else None
+    # bool H x W: rgb came from a photo here (capture views); else None
+    photo_coverage: np.ndarray | None = None
     meta: dict[str, float] = field(default_factory=dict)  # render timings etc., not part of the contract
 
     @property
@@ -127,11 +136,14 @@ class ViewPasses:
         return np.isfinite(self.depth_z)
 
     def require(self, name: str) -> np.ndarray:
-        """The array `name` (normal_world, face_index, face_class, ...), or a clear error when it was not rendered."""
+        """The array `name` (normal_world, face_index, face_class, ...), or a clear error when it was not
+        rendered."""
         value = getattr(self, name)
         if value is None:
-            raise RuntimeError(f"this view's pass set has no {name} (not read back: the cues asked of the render "
-                               "did not need it)")
+            raise RuntimeError(
+                f"this view's pass set has no {name} (not read back: the cues asked of the render "
+                "did not need it)"
+            )
         return value
 
     def position_world(self) -> np.ndarray:

@@ -67,10 +67,11 @@ def _settings_from_app(app: Celery | None) -> Settings:
 
 
 def worker_engine(database_url: str, **kwargs: Any) -> Engine:
-    """The worker's database engine; on Postgres its commits do not wait for the WAL flush (synchronous_commit off).
+    """The worker's database engine; on Postgres its commits do not wait for the WAL flush (synchronous_commit
+    off).
 
-    Every claim and result of the whole fleet updates the same few counter rows of a job, and a commit that holds
-    their row locks through an fsync serialises the workers (bench/scale/scale_sim.py: at 1,000 workers
+    Every claim and result of the whole fleet updates the same few counter rows of a job, and a commit that
+    holds their row locks through an fsync serialises the workers (bench/scale/scale_sim.py: at 1,000 workers
     backends wait on those locks and claims take seconds). A server crash can lose the last fraction of a
     second of worker commits, which tasks survive by design: a lost claim leaves a queued task the reaper
     sends again, a lost result a running task whose lease runs out and whose rerun writes identical bytes.
@@ -89,7 +90,8 @@ def worker_engine(database_url: str, **kwargs: Any) -> Engine:
 
 
 def build_runtime(settings: Settings, *, queues: list[str] | None = None, name: str | None = None) -> Runtime:
-    """Engine, store, TaskRunner and a started heartbeat for this process (worker id: see default_worker_id)."""
+    """Engine, store, TaskRunner and a started heartbeat for this process (worker id: see
+    default_worker_id)."""
     from services.core.db.engine import make_sessionmaker
     from services.core.storage import open_store
     from services.worker.process.heap import keep_freed_memory
@@ -127,8 +129,8 @@ def get_runtime(app: Celery | None = None) -> Runtime:
 
 @worker_init.connect
 def _load_kernel_target(**_: object) -> None:
-    # In the worker's main process, before its pool forks: every child, recycled ones too, inherits numba's target
-    # instead of making it in its first view (kernel_target.load).
+    # In the worker's main process, before its pool forks: every child, recycled ones too, inherits numba's
+    # target instead of making it in its first view (kernel_target.load).
     from services.worker.process import kernel_target
 
     try:
@@ -168,8 +170,8 @@ def _shutdown_child(**_: object) -> None:
 def guard_renders_from_sigterm() -> None:
     """In a prefork child, billiard's SIGTERM handler (installed after worker_process_init, hence here) raises
     SystemExit; raised inside a render it would exit through Blender's C++ teardown and hang
-    (services.worker.blender.calls), so there the child ends at once instead. Another pool's handler stays as it
-    is: the solo pool's warm shutdown lets the running task finish."""
+    (services.worker.blender.calls), so there the child ends at once instead. Another pool's handler stays as
+    it is: the solo pool's warm shutdown lets the running task finish."""
     from billiard.common import _shutdown_cleanup  # the child's handler (billiard.pool.Worker.after_fork)
 
     from services.worker.blender.calls import exit_at_once_inside_blender

@@ -8,7 +8,8 @@ import pytest
 
 from tests.fixtures.api import Api
 
-PUBLIC = {"/health", "/ready", "/blobs/{key}", "/previews/{key}"}  # signed links: the signature is the credential
+# signed links: the signature is the credential
+PUBLIC = {"/health", "/ready", "/blobs/{key}", "/previews/{key}"}
 
 
 def _routes(api: Api) -> list[tuple[str, str]]:
@@ -27,7 +28,9 @@ def test_every_route_needs_a_token(api: Api) -> None:
     for method, path in routes:
         r = api.client.request(method, path)
         assert r.status_code == 401, (method, path, r.status_code)
-        assert r.json()["detail"].startswith("missing API token") and r.headers["www-authenticate"] == "Bearer"
+        assert (
+            r.json()["detail"].startswith("missing API token") and r.headers["www-authenticate"] == "Bearer"
+        )
         r = api.client.request(method, path, headers={"Authorization": "Bearer not-a-token"})
         assert r.status_code == 401 and r.json()["detail"] == "invalid API token", (method, path)
         r = api.client.request(method, path, headers={"Authorization": "Basic dXNlcjpwYXNz"})
@@ -59,5 +62,7 @@ def test_unknown_route_and_method_are_json(api: Api) -> None:
     assert r.status_code == 404 and r.json() == {"detail": "Not Found"}
     r = api.client.put("/jobs", headers=api.a.headers)
     assert r.status_code == 405 and "detail" in r.json()
-    r = api.client.post("/jobs", content=b"{not json", headers={**api.a.headers, "Content-Type": "application/json"})
+    r = api.client.post(
+        "/jobs", content=b"{not json", headers={**api.a.headers, "Content-Type": "application/json"}
+    )
     assert r.status_code == 422 and "json" in r.json()["detail"].lower()

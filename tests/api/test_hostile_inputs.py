@@ -1,6 +1,6 @@
-"""Hostile inputs through the real API (issues 11 and 19): every file of the corpus, every JobSpec field out of
-range and loosely typed values get a 4xx naming the problem; the service stays up and stores nothing, and no
-upload or registration makes it open a file outside the upload (watched with inotify)."""
+"""Hostile inputs through the real API (issues 11 and 19): every file of the corpus, every JobSpec field out
+of range and loosely typed values get a 4xx naming the problem; the service stays up and stores nothing, and
+no upload or registration makes it open a file outside the upload (watched with inotify)."""
 
 from __future__ import annotations
 
@@ -58,9 +58,12 @@ def test_no_upload_makes_the_service_open_a_file_outside_it(api: Api) -> None:
     with OpenWatch(secrets.values()) as watch:  # built above: from here on nobody has a reason to open them
         for case, (filename, data, needles) in hostile.items():
             r = _upload(api, filename, data)
-            assert 400 <= r.status_code < 500 and any(n in r.json()["detail"].lower() for n in needles), (case, r.text)
+            assert 400 <= r.status_code < 500 and any(n in r.json()["detail"].lower() for n in needles), (
+                case, r.text,
+            )
             _assert_nothing_stored(api)
-        # MTL fields trimesh does not read, behind a commented mtllib the pre-checks do not see: accepted, unread
+        # MTL fields trimesh does not read, behind a commented mtllib the pre-checks do not see: accepted,
+        # unread
         for case, (filename, data) in accepted.items():
             r = _upload(api, filename, data)
             assert r.status_code == 201, (case, r.text)
@@ -80,7 +83,9 @@ def test_register_never_follows_a_link_out_of_the_staging_area(api: Api, local_s
     (area / "linked").symlink_to(secrets["obj"].parent, target_is_directory=True)
     with OpenWatch([*secrets.values(), local_store.path(other)]) as watch:
         for key in ("secret.obj", "theirs.ply", "linked/outside.obj"):
-            r = api.client.post("/spaces/register", json={"key": f"uploads/{api.a.name}/{key}"}, headers=api.a.headers)
+            r = api.client.post(
+                "/spaces/register", json={"key": f"uploads/{api.a.name}/{key}"}, headers=api.a.headers
+            )
             assert r.status_code == 404 and "not found" in r.json()["detail"], (key, r.text)
             _assert_nothing_stored(api)
         assert watch.opened() == []
@@ -131,7 +136,10 @@ EXTRA_SPEC_CASES: list[tuple[str, Any, str]] = [
     ("params.segment2d_sigma", 1e9, "params.segment2d_sigma"),
     ("params.segment25d_weights", [1, 1, 1e9], "params.segment25d_weights.2"),
     ("points.count", 1_000_000, "could plan"),
-    ("points", {"count": 100_000, "max_views": 3, "max_tries_per_point": 100_000}, "points.max_tries_per_point"),
+    (
+        "points", {"count": 100_000, "max_views": 3, "max_tries_per_point": 100_000},
+        "points.max_tries_per_point",
+    ),
     # loose types: no coercion
     ("points.count", "3", "points.count"),
     ("points.count", True, "points.count"),
@@ -168,10 +176,16 @@ def test_every_jobspec_field_out_of_range_is_422_naming_it(api: Api, space_id: i
     cases = [(f, v, f) for f, v in BOUND_CASES] + EXTRA_SPEC_CASES
     failures = []
     for field, value, needle in cases:
-        r = api.client.post("/jobs", json={"space_ids": [space_id], "spec": _nested(field, value)}, headers=api.a.headers)
+        r = api.client.post(
+            "/jobs", json={"space_ids": [space_id], "spec": _nested(field, value)}, headers=api.a.headers
+        )
         if r.status_code != 422 or needle not in r.json()["detail"]:
-            failures.append((field, value if not isinstance(value, list) else f"list of {len(value)}", r.status_code,
-                             r.text[:200]))
+            failures.append(
+                (
+                    field, value if not isinstance(value, list) else f"list of {len(value)}", r.status_code,
+                    r.text[:200],
+                )
+            )
         assert len(r.content) < 20_000
     assert not failures, failures
     assert _rows(api, Job) == 0
@@ -179,7 +193,9 @@ def test_every_jobspec_field_out_of_range_is_422_naming_it(api: Api, space_id: i
     for bad in (["1"], [True], [1.0]):
         r = api.client.post("/jobs", json={"space_ids": bad}, headers=api.a.headers)
         assert r.status_code == 422 and "space_ids.0" in r.json()["detail"], r.text
-    r = api.client.post("/jobs", json={"space_ids": [space_id], "spec": {"points": {"count": 3}}}, headers=api.a.headers)
+    r = api.client.post(
+        "/jobs", json={"space_ids": [space_id], "spec": {"points": {"count": 3}}}, headers=api.a.headers
+    )
     assert r.status_code == 201, r.text
 
 
@@ -188,10 +204,13 @@ def test_every_jobspec_field_out_of_range_is_422_naming_it(api: Api, space_id: i
     [
         (b'{"space_ids": [1], "spec": {"views": {"fov_mean_deg": NaN}}}', "fov_mean_deg (nan)"),
         (b'{"space_ids": [1], "spec": {"unit_scale": Infinity}}', "unit_scale"),
-        (b'{"space_ids": [1], "spec": {"params": {"segment25d_weights": [1, -Infinity, 1]}}}', "segment25d_weights"),
+        (
+            b'{"space_ids": [1], "spec": {"params": {"segment25d_weights": [1, -Infinity, 1]}}}',
+            "segment25d_weights",
+        ),
         (b'{"space_ids": [1], "spec": {"name": "a\\u0000b"}}', "name"),
         (b'{"space_ids": [1], "spec": ', "json"),
-        (b'[' * 100_000, "pars"),  # nested past the parser's depth: FastAPI's 400
+        (b"[" * 100_000, "pars"),  # nested past the parser's depth: FastAPI's 400
     ],
 )
 def test_non_finite_and_malformed_json_is_4xx(api: Api, raw: bytes, needle: str) -> None:

@@ -1,6 +1,6 @@
-"""Signed links (issue 19): built from the configured public base URL, never the Host header; bound to the route,
-the job and the job's own keys. The dashboard and the docs: CSP without inline script, no framing, nosniff,
-and /docs served from installed files (no CDN)."""
+"""Signed links (issue 19): built from the configured public base URL, never the Host header; bound to the
+route, the job and the job's own keys. The dashboard and the docs: CSP without inline script, no framing,
+nosniff, and /docs served from installed files (no CDN)."""
 
 from __future__ import annotations
 
@@ -18,7 +18,9 @@ def _done_job(api: Api, bunny: Path, name: str = "bunny") -> tuple[int, int]:
     r = api.client.post("/spaces", files={"file": (f"{name}.ply", bunny.read_bytes())}, headers=api.a.headers)
     assert r.status_code == 201, r.text
     space_id = int(r.json()["id"])
-    r = api.client.post("/jobs", json={"space_ids": [space_id], "spec": {"cues": ["rgb"]}}, headers=api.a.headers)
+    r = api.client.post(
+        "/jobs", json={"space_ids": [space_id], "spec": {"cues": ["rgb"]}}, headers=api.a.headers
+    )
     assert r.status_code == 201, r.text
     job_id = int(r.json()["id"])
     with api.session() as s:
@@ -28,7 +30,9 @@ def _done_job(api: Api, bunny: Path, name: str = "bunny") -> tuple[int, int]:
 
 
 def _rgb_link(api: Api, job_id: int, space_id: int, host: str = "evil.example") -> dict[str, str]:
-    r = api.client.get(f"/jobs/{job_id}/views/{space_id}/0/0/outputs", headers={**api.a.headers, "Host": host})
+    r = api.client.get(
+        f"/jobs/{job_id}/views/{space_id}/0/0/outputs", headers={**api.a.headers, "Host": host}
+    )
     assert r.status_code == 200, r.text
     link: dict[str, str] = r.json()["outputs"]["rgb"]
     return link
@@ -42,7 +46,9 @@ def test_links_use_the_configured_base_url_never_the_host_header(
         link = _rgb_link(api, job_id, space_id)
         for url in (link["url"], link["preview_url"]):
             assert url.startswith("https://omnidata.example.org/api/") and "evil" not in url, url
-        listed = api.client.get(f"/jobs/{job_id}/views?urls=true", headers={**api.a.headers, "Host": "evil.example"})
+        listed = api.client.get(
+            f"/jobs/{job_id}/views?urls=true", headers={**api.a.headers, "Host": "evil.example"}
+        )
         assert "evil.example" not in listed.text and "omnidata.example.org" in listed.text
     with make_api(pg_url, local_store) as api:  # unset: root-relative links, still not the Host header
         job_id, space_id = _done_job(api, bunny)
@@ -61,7 +67,9 @@ def test_a_link_serves_only_its_own_jobs_keys(api: Api, bunny: Path) -> None:
     settings = api.app.state.settings
     future = int(time.time()) + 60
 
-    def get(route: str, key: str, job: int, *, sign_route: str | None = None, sign_job: int | None = None) -> int:
+    def get(
+        route: str, key: str, job: int, *, sign_route: str | None = None, sign_job: int | None = None
+    ) -> int:
         sig = blob_signature(settings, key, future, route=sign_route or route,
                              job_id=job if sign_job is None else sign_job)
         return api.client.get(f"/{route}/{quote(key)}?job={job}&expires={future}&signature={sig}").status_code
@@ -111,7 +119,9 @@ def test_dashboard_and_docs_headers(api: Api) -> None:
         assert r.headers["x-frame-options"] == "DENY" and r.headers["x-content-type-options"] == "nosniff"
     assert api.client.get("/health").headers["x-content-type-options"] == "nosniff"
     index = api.client.get("/ui/").text
-    assert all(re.search(r"\bsrc=", tag) for tag in re.findall(r"<script[^>]*>", index)), "inline script in /ui"
+    assert all(re.search(r"\bsrc=", tag) for tag in re.findall(r"<script[^>]*>", index)), (
+        "inline script in /ui"
+    )
     assert not re.search(r"\son[a-z]+=", index), "inline event handler in /ui"
 
 

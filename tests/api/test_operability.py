@@ -30,7 +30,9 @@ OPERATOR = {"Authorization": f"Bearer {OPERATOR_TOKEN}"}
 # ---------------------------------------------------------------------------------------------- /ready
 
 
-def test_ready_fails_on_an_unmigrated_then_an_outdated_database(empty_pg_url: str, local_store: LocalStore) -> None:
+def test_ready_fails_on_an_unmigrated_then_an_outdated_database(
+    empty_pg_url: str, local_store: LocalStore
+) -> None:
     with make_api(empty_pg_url, local_store) as api:
         r = api.client.get("/ready")
         assert r.status_code == 503 and r.json()["failed"] == ["schema"], r.text
@@ -98,7 +100,9 @@ def _samples(text: str) -> dict[str, float]:
     return {k: float(v) for k, v in (ln.rsplit(" ", 1) for ln in text.splitlines() if ln and ln[0] != "#")}
 
 
-def test_metrics_are_scoped_to_the_tenant_unless_operator(pg_url: str, local_store: LocalStore, bunny: Path) -> None:
+def test_metrics_are_scoped_to_the_tenant_unless_operator(
+    pg_url: str, local_store: LocalStore, bunny: Path
+) -> None:
     with make_api(pg_url, local_store, operator_tokens=[hash_token(OPERATOR_TOKEN)]) as api:
         sid = api.client.post("/spaces", files={"file": ("b.ply", bunny.read_bytes())},
                               headers=api.a.headers).json()["id"]
@@ -122,17 +126,23 @@ def test_metrics_are_scoped_to_the_tenant_unless_operator(pg_url: str, local_sto
         assert mine['omnidata_jobs{state="running"}'] == 1
         assert sum(v for k, v in theirs.items() if k.startswith("omnidata_tasks{")) == 0
         assert sum(v for k, v in theirs.items() if k.startswith("omnidata_jobs{")) == 0
-        assert not any(k.startswith("omnidata_queue_depth") for k in {**mine, **theirs})  # other tenants' work
+        # other tenants' work
+        assert not any(k.startswith("omnidata_queue_depth") for k in {**mine, **theirs})
         # the operator sees every tenant's tasks (other tests' too: the database is shared) and the queues
         assert sum(v for k, v in service.items() if k.startswith("omnidata_tasks{")) >= n_tasks
         assert any(k.startswith("omnidata_queue_depth") for k in service)
 
 
-# ---------------------------------------------------------------------------------------------- tokens in logs
+# ---------------------------------------------------------------------------------------------- tokens in
+# logs
 
 
-def test_query_token_never_reaches_the_access_log(api: Api, bunny: Path, caplog: pytest.LogCaptureFixture) -> None:
-    sid = api.client.post("/spaces", files={"file": ("b.ply", bunny.read_bytes())}, headers=api.a.headers).json()["id"]
+def test_query_token_never_reaches_the_access_log(
+    api: Api, bunny: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    sid = api.client.post(
+        "/spaces", files={"file": ("b.ply", bunny.read_bytes())}, headers=api.a.headers
+    ).json()["id"]
     job_id = api.client.post("/jobs", json={"space_ids": [sid], "spec": {"cues": ["rgb"]}},
                              headers=api.a.headers).json()["id"]
     secret = api.a.token
@@ -157,7 +167,9 @@ def test_query_token_never_reaches_the_access_log(api: Api, bunny: Path, caplog:
 
 
 def test_silent_worker_rows_expire_unless_they_hold_a_running_task(api: Api, bunny: Path) -> None:
-    sid = api.client.post("/spaces", files={"file": ("b.ply", bunny.read_bytes())}, headers=api.a.headers).json()["id"]
+    sid = api.client.post(
+        "/spaces", files={"file": ("b.ply", bunny.read_bytes())}, headers=api.a.headers
+    ).json()["id"]
     job_id = api.client.post("/jobs", json={"space_ids": [sid], "spec": {"cues": ["rgb"]}},
                              headers=api.a.headers).json()["id"]
     name = f"w-{api.a.name}"
@@ -165,12 +177,22 @@ def test_silent_worker_rows_expire_unless_they_hold_a_running_task(api: Api, bun
     with api.session() as s:
         fake_plan(s, job_id)
         tid = task_ids(s, job_id)[0]
-        s.execute(Task.__table__.update().where(Task.id == tid).values(state="running", worker_id=f"{name}-held"))
-        s.add_all([
-            Worker(id=f"{name}-alive", host="h", queues=["render"], last_heartbeat=now - timedelta(seconds=5)),
-            Worker(id=f"{name}-gone", host="h", queues=["render"], last_heartbeat=now - timedelta(hours=2)),
-            Worker(id=f"{name}-held", host="h", queues=["render"], last_heartbeat=now - timedelta(hours=2)),
-        ])
+        s.execute(
+            Task.__table__.update().where(Task.id == tid).values(state="running", worker_id=f"{name}-held")
+        )
+        s.add_all(
+            [
+                Worker(
+                    id=f"{name}-alive", host="h", queues=["render"], last_heartbeat=now - timedelta(seconds=5)
+                ),
+                Worker(
+                    id=f"{name}-gone", host="h", queues=["render"], last_heartbeat=now - timedelta(hours=2)
+                ),
+                Worker(
+                    id=f"{name}-held", host="h", queues=["render"], last_heartbeat=now - timedelta(hours=2)
+                ),
+            ]
+        )
         s.commit()
         assert expire_worker_rows(s, older_than_s=3600) >= 1
     ids = {w["id"] for w in api.client.get("/workers?limit=1000", headers=api.a.headers).json()["items"]}

@@ -21,7 +21,10 @@ def _raw_post(base: str, path: str, headers: dict[str, str], declared: int, sent
     """POST declaring `declared` body bytes but sending only `sent`; (status, seconds to the response)."""
     u = urlparse(base)
     with socket.create_connection((u.hostname, u.port), timeout=10) as s:
-        head = f"POST {path} HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: {declared}\r\n"
+        head = (
+            f"POST {path} HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: "
+            f"{declared}\r\n"
+        )
         head += "".join(f"{k}: {v}\r\n" for k, v in headers.items()) + "\r\n"
         t0 = time.monotonic()
         s.sendall(head.encode() + sent)
@@ -57,10 +60,14 @@ def test_a_body_without_a_token_is_refused_before_it_is_read(api: Api) -> None:
                 for _ in range(50):
                     yield b" " * 2**20
 
-            r = httpx.post(f"{base}/jobs", content=chunks(), headers={**api.a.headers, "Content-Type": "application/json"})
+            r = httpx.post(
+                f"{base}/jobs", content=chunks(),
+                headers={**api.a.headers, "Content-Type": "application/json"},
+            )
             assert r.status_code == 413 and "OMNIDATA_REQUEST_MAX_BYTES" in r.json()["detail"]
         finally:
-            # the posts can all be answered before the poller's first request is (a loaded machine): let it finish one
+            # the posts can all be answered before the poller's first request is (a loaded machine): let it
+            # finish one
             deadline = time.monotonic() + 10
             while not health_times and t.is_alive() and time.monotonic() < deadline:
                 time.sleep(0.01)
@@ -83,14 +90,20 @@ def test_validation_errors_do_not_echo_huge_inputs(pg_url: str, local_store: Loc
             {"space_ids": [1], "spec": {"params": {"keypoints2d_sigmas": [1e9] * 100_000}}},
         ]
         for body in bodies:
-            r = api.client.post("/jobs", content=json.dumps(body), headers={**api.a.headers, "Content-Type": "application/json"})
+            r = api.client.post(
+                "/jobs", content=json.dumps(body),
+                headers={**api.a.headers, "Content-Type": "application/json"},
+            )
             assert r.status_code == 422, r.text[:300]
             assert len(r.content) < 20_000, (len(r.content), r.text[:300])
             assert r.json()["detail"]
 
 
 def test_many_errors_are_listed_up_to_a_limit_and_counted(api: Api) -> None:
-    body = {"space_ids": [1], "spec": {"cues": [f"c{i}" for i in range(5)], **{f"x{i}": 1 for i in range(50)}}}
+    body = {
+        "space_ids": [1], "spec": {"cues": [f"c{i}" for i in range(5)], **{f"x{i}": 1 for i in range(50)}},
+    }
     r = api.client.post("/jobs", json=body, headers=api.a.headers)
     assert r.status_code == 422
-    assert len(r.json()["errors"]) == 20 and r.json()["detail"].endswith("... and 41 more")  # 51 errors: the cues and 50 unknown fields, r.json()["detail"][-80:]
+    # 51 errors: the cues and 50 unknown fields, r.json()["detail"][-80:]
+    assert len(r.json()["errors"]) == 20 and r.json()["detail"].endswith("... and 41 more")

@@ -1,6 +1,7 @@
 """Property-based run over the OpenAPI schema (schemathesis): no generated request gets a server error.
 
-The SSE routes never end by themselves, so they are left to progress/test_sse.py. Bounded examples keep it < 60 s.
+The SSE routes never end by themselves, so they are left to progress/test_sse.py. Bounded examples keep it <
+60 s.
 """
 
 from __future__ import annotations
@@ -19,8 +20,12 @@ from tests.fixtures.api import Api, fake_plan, run_tasks, task_ids
 
 def test_no_server_errors_over_the_schema(api: Api, bunny: Path) -> None:
     # Give the generator something real to find: a space, and a planned job with some outputs.
-    sid = api.client.post("/spaces", files={"file": ("b.ply", bunny.read_bytes())}, headers=api.a.headers).json()["id"]
-    job_id = api.client.post("/jobs", json={"space_ids": [sid], "spec": {"cues": ["rgb"]}}, headers=api.a.headers).json()["id"]
+    sid = api.client.post(
+        "/spaces", files={"file": ("b.ply", bunny.read_bytes())}, headers=api.a.headers
+    ).json()["id"]
+    job_id = api.client.post(
+        "/jobs", json={"space_ids": [sid], "spec": {"cues": ["rgb"]}}, headers=api.a.headers
+    ).json()["id"]
     with api.session() as s:
         fake_plan(s, job_id)
         run_tasks(s, api.store, job_id, task_ids(s, job_id)[:3])
@@ -52,7 +57,9 @@ def test_no_server_errors_over_the_schema(api: Api, bunny: Path) -> None:
             tested += 1
             for check in event.result.checks:
                 if check.value.name == "failure":
-                    failures.append(f"{event.result.method} {event.result.path}: {check.message or check.name}")
+                    failures.append(
+                        f"{event.result.method} {event.result.path}: {check.message or check.name}"
+                    )
             for err in event.result.errors:
                 errors.append(f"{event.result.method} {event.result.path}: {err.exception}")
     assert tested >= 20

@@ -12,8 +12,12 @@ def test_api_on_sqlite(sqlite_url: str, local_store: LocalStore, scenes_dir: Pat
     bunny = scenes_dir / "stanford_bunny" / "bun_zipper_res2.ply"
     with make_api(sqlite_url, local_store) as api:
         h = api.a.headers
-        sid = api.client.post("/spaces", files={"file": ("bunny.ply", bunny.read_bytes())}, headers=h).json()["id"]
-        job_id = api.client.post("/jobs", json={"space_ids": [sid], "spec": {"cues": ["rgb"]}}, headers=h).json()["id"]
+        sid = api.client.post("/spaces", files={"file": ("bunny.ply", bunny.read_bytes())}, headers=h).json()[
+            "id"
+        ]
+        job_id = api.client.post(
+            "/jobs", json={"space_ids": [sid], "spec": {"cues": ["rgb"]}}, headers=h
+        ).json()["id"]
         with api.session() as s:
             fake_plan(s, job_id)
             run_tasks(s, api.store, job_id, task_ids(s, job_id)[:5])

@@ -97,9 +97,12 @@ def passes_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def smoke_params() -> list[pytest.ParameterSet]:
-    """Each script; those sharing the pass sets in one xdist group (one at a time: one renders, the rest read)."""
-    return [pytest.param(script, marks=[pytest.mark.xdist_group("bench-passes")] if "{passes}" in args else [])
-            for script, (args, _) in sorted(SMOKE.items())]
+    """Each script; those sharing the pass sets in one xdist group (one at a time: one renders, the rest
+    read)."""
+    return [
+        pytest.param(script, marks=[pytest.mark.xdist_group("bench-passes")] if "{passes}" in args else [])
+        for script, (args, _) in sorted(SMOKE.items())
+    ]
 
 
 @pytest.mark.slow

@@ -113,20 +113,26 @@ def _run(api: Any, base: str, ctx: Any, bunny: Path, artifacts: Path) -> None:
     # job page: plan plot, throughput chart, gallery with every cue side by side
     page.click(f'tr[data-job-id="{job_id}"] td a')
     page.wait_for_selector("#job-gallery .view-row")
-    page.wait_for_selector("#job-plan svg circle.point")  # each panel loads on its own: the plan may come last
+    # each panel loads on its own: the plan may come last
+    page.wait_for_selector("#job-plan svg circle.point")
     assert len(page.query_selector_all("#job-plan svg circle.point")) == 2
     assert len(page.query_selector_all("#job-plan svg polygon.camera")) == 4
     page.wait_for_selector("#job-throughput svg rect", state="attached")
-    heights = page.eval_on_selector_all("#job-throughput svg rect", "rs => rs.map(r => +r.getAttribute('height'))")
+    heights = page.eval_on_selector_all(
+        "#job-throughput svg rect", "rs => rs.map(r => +r.getAttribute('height'))"
+    )
     assert max(heights) > 0
     rows = page.query_selector_all("#job-gallery .view-row")
     assert len(rows) == 4
     page.wait_for_function(
-        "() => [...document.querySelectorAll('#job-gallery img')].every(i => i.complete && i.naturalWidth > 0)"
+        "() => [...document.querySelectorAll('#job-gallery img')].every(i => i.complete && "
+        "i.naturalWidth > 0)"
     )
     imgs = rows[0].query_selector_all("img")
-    assert [i.get_attribute("alt") for i in imgs] == ["rgb", "normal", "depth_zbuffer"]  # 16-bit depth shown too
-    assert all("/previews/" in (i.get_attribute("src") or "") for i in imgs)  # readable previews, not raw files
+    # 16-bit depth shown too
+    assert [i.get_attribute("alt") for i in imgs] == ["rgb", "normal", "depth_zbuffer"]
+    # readable previews, not raw files
+    assert all("/previews/" in (i.get_attribute("src") or "") for i in imgs)
     page.wait_for_selector("#job-failures:has-text('No failed tasks')")
     page.screenshot(path=str(artifacts / "dashboard-04-job-page.png"), full_page=True)
 

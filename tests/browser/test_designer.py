@@ -89,7 +89,9 @@ def test_designer_steers_a_room(
             times = [_steer(page, "a", NARROW, (125, 4, 40.0))]
             after_hist, after_previews = page.evaluate(HIST_A), page.evaluate(PREVIEWS_A)
             assert after_hist != before_hist and after_previews != before_previews
-            fovs = page.eval_on_selector_all("#previews-a .design-preview", "els => els.map(e => e.dataset.fov)")
+            fovs = page.eval_on_selector_all(
+                "#previews-a .design-preview", "els => els.map(e => e.dataset.fov)"
+            )
             assert fovs and all(40 <= float(f) <= 60 for f in fovs), fovs
             views_after = _views(page, "a")
             assert "fov_min_deg: 40" in page.input_value("#design-yaml")
@@ -101,10 +103,14 @@ def test_designer_steers_a_room(
             page.click("#design-compare")
             _steer(page, "b", WIDE, (125, 4, 80.0), 2)
             page.wait_for_selector(".hist[data-name=fov_deg] .series-b rect")
-            hist = page.eval_on_selector(".hist[data-name=fov_deg]", "e => [e.dataset.countsA, e.dataset.countsB]")
+            hist = page.eval_on_selector(
+                ".hist[data-name=fov_deg]", "e => [e.dataset.countsA, e.dataset.countsB]"
+            )
             assert hist[0] and hist[1] and hist[0] != hist[1]
             assert page.locator(".hist .series-a").count() == page.locator(".hist .series-b").count() == 7
-            page.screenshot(path=os.environ.get(SCREENSHOT_ENV) or str(artifacts / "designer.png"), full_page=True)
+            page.screenshot(
+                path=os.environ.get(SCREENSHOT_ENV) or str(artifacts / "designer.png"), full_page=True
+            )
 
             # B as a job, and as a YAML file
             with page.expect_download() as download:
@@ -112,14 +118,18 @@ def test_designer_steers_a_room(
             assert "fov_min_deg: 80" in Path(download.value.path()).read_text()
             page.click("#design-create")
             page.wait_for_selector("#design-status a[href^='#/jobs/']")
-            job = api.client.get(page.get_attribute("#design-status a", "href")[1:], headers=api.a.headers).json()
+            job = api.client.get(
+                page.get_attribute("#design-status a", "href")[1:], headers=api.a.headers
+            ).json()
             assert job["spec"]["views"]["fov_min_deg"] == 80.0 and job["spec"]["points"]["count"] == 125
 
             # YAML -> form, and a bad spec's message in the page
             page.fill("#design-yaml", "points:\n  count: 60\n  max_views: 5\n")
             page.wait_for_function("() => document.querySelector('#knob-points-count').value === '60'")
             page.fill("#design-yaml", "views:\n  resolution: 1\n")
-            page.wait_for_function("() => document.querySelector('#design-error').textContent.includes('resolution')")
+            page.wait_for_function(
+                "() => document.querySelector('#design-error').textContent.includes('resolution')"
+            )
             assert not errors, errors
     _report(times, views_after, first_s)
 

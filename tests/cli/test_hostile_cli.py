@@ -21,7 +21,9 @@ def _write(tmp_path: Path, case: str) -> Path:
     return path
 
 
-def test_plan_refuses_every_hostile_file_in_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_plan_refuses_every_hostile_file_in_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     failures = []
     for case, (_filename, _make, needles) in sorted(HOSTILE_FILES.items()):
         out = tmp_path / "out" / case
@@ -40,8 +42,12 @@ def test_plan_refuses_every_hostile_file_in_one_line(tmp_path: Path, capsys: pyt
     assert not failures, failures
 
 
-@pytest.mark.parametrize("case", ["zip_bad_crc", "zip_corrupt_deflate", "obj_truncated_mid_token", "texture_dotdot_path"])
-def test_generate_refuses_corrupt_files_in_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str], case: str) -> None:
+@pytest.mark.parametrize(
+    "case", ["zip_bad_crc", "zip_corrupt_deflate", "obj_truncated_mid_token", "texture_dotdot_path"]
+)
+def test_generate_refuses_corrupt_files_in_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], case: str
+) -> None:
     out = tmp_path / "out"
     code = main(["generate", str(_write(tmp_path, case)), "--out", str(out), "--no-progress"])
     lines = capsys.readouterr().err.strip().splitlines()

@@ -1,5 +1,6 @@
-"""`omnidata migrate`, `omnidata token create`, and the services' refusal to start on an unmigrated database or
-bad settings: one line naming the fix, exit 2, no traceback (real subprocesses where the line is the contract)."""
+"""`omnidata migrate`, `omnidata token create`, and the services' refusal to start on an unmigrated database
+or bad settings: one line naming the fix, exit 2, no traceback (real subprocesses where the line is the
+contract)."""
 
 from __future__ import annotations
 
@@ -26,7 +27,9 @@ def omnidata(*args: str, **env: str) -> subprocess.CompletedProcess[str]:
                           capture_output=True, text=True, timeout=120)
 
 
-def test_services_refuse_an_unmigrated_database_until_omnidata_migrate(empty_pg_url: str, tmp_path: Path) -> None:
+def test_services_refuse_an_unmigrated_database_until_omnidata_migrate(
+    empty_pg_url: str, tmp_path: Path
+) -> None:
     env = {"OMNIDATA_DATABASE_URL": empty_pg_url, "OMNIDATA_DATA_DIR": str(tmp_path),
            "OMNIDATA_BROKER_URL": "redis://127.0.0.1:1/0"}  # never reached: the refusal comes first
     for command in ("serve", "scheduler", "worker"):
@@ -51,8 +54,8 @@ def test_services_refuse_an_unmigrated_database_until_omnidata_migrate(empty_pg_
 
 
 def test_unreachable_database_is_waited_for_then_one_line(tmp_path: Path) -> None:
-    """Nothing listens: the worker waits OMNIDATA_DB_WAIT_S (a Postgres restarting refuses connections too), saying
-    so once, then exits with one line."""
+    """Nothing listens: the worker waits OMNIDATA_DB_WAIT_S (a Postgres restarting refuses connections too),
+    saying so once, then exits with one line."""
     res = omnidata("worker", OMNIDATA_DATABASE_URL="postgresql+psycopg://postgres@127.0.0.1:1/none",
                    OMNIDATA_DATA_DIR=str(tmp_path), OMNIDATA_DB_WAIT_S="1")
     lines = res.stderr.strip().splitlines()
@@ -61,16 +64,27 @@ def test_unreachable_database_is_waited_for_then_one_line(tmp_path: Path) -> Non
     assert lines[1].startswith("omnidata worker: error: cannot reach the database (")
 
 
-@pytest.mark.parametrize("url, reason", [
-    ("postgresql+psycopg://no_such_role@127.0.0.1:5432/test", 'role "no_such_role" does not exist'),
-    ("postgresql+psycopg://postgres@127.0.0.1:5432/no_such_database", 'database "no_such_database" does not exist'),
-])
+@pytest.mark.parametrize(
+    "url, reason",
+    [
+        ("postgresql+psycopg://no_such_role@127.0.0.1:5432/test", 'role "no_such_role" does not exist'),
+        (
+            "postgresql+psycopg://postgres@127.0.0.1:5432/no_such_database",
+            'database "no_such_database" does not exist',
+        ),
+    ],
+)
 def test_a_refusal_no_wait_fixes_is_one_line_at_once(url: str, reason: str, tmp_path: Path) -> None:
-    """A wrong user or database name is not waited for (the default wait is 60 s; the call's limit is 120 s)."""
-    res = omnidata("scheduler", OMNIDATA_DATABASE_URL=url, OMNIDATA_DATA_DIR=str(tmp_path), OMNIDATA_DB_WAIT_S="100")
+    """A wrong user or database name is not waited for (the default wait is 60 s; the call's limit is 120
+    s)."""
+    res = omnidata(
+        "scheduler", OMNIDATA_DATABASE_URL=url, OMNIDATA_DATA_DIR=str(tmp_path), OMNIDATA_DB_WAIT_S="100"
+    )
     lines = res.stderr.strip().splitlines()
     assert res.returncode == 2 and len(lines) == 1, res.stderr
-    assert lines[0].startswith("omnidata scheduler: error: cannot reach the database (") and reason in lines[0]
+    assert (
+        lines[0].startswith("omnidata scheduler: error: cannot reach the database (") and reason in lines[0]
+    )
 
 
 @pytest.mark.parametrize("value, expected", [
@@ -105,7 +119,9 @@ def test_token_create_prints_a_token_and_the_entry_that_enables_it(
     assert name == "OMNIDATA_API_TOKENS"
     monkeypatch.setenv(name, value)
     settings = get_settings()  # the printed entry is valid settings, keeps the old tenant, and maps the token
-    assert settings.tenant_for_token(token) == "alice" and settings.tenant_for_token("old-token") == "old-tenant"
+    assert (
+        settings.tenant_for_token(token) == "alice" and settings.tenant_for_token("old-token") == "old-tenant"
+    )
     assert token not in value  # only its digest is stored
 
     assert main(["token", "create", "--tenant", "alice"]) == 0

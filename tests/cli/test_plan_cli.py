@@ -62,7 +62,11 @@ def test_plan_writes_the_dataset_layout(tmp_path: Path, room: Path, spec_file: P
         info_path = out / "point_info" / base / file_name("point_info", view.point_idx, view.v)
         info = json.loads(info_path.read_text())
         assert info == json.loads(json.dumps(point_info(plan, view)))
-        vp = json.loads((out / "vanishing_points" / base / file_name("vanishing_points", view.point_idx, view.v)).read_text())
+        vp = json.loads(
+            (
+                out / "vanishing_points" / base / file_name("vanishing_points", view.point_idx, view.v)
+            ).read_text()
+        )
         assert vp == json.loads(json.dumps(vanishing_points(info)))
     for p in plan.points:
         doc = json.loads((out / "nonfixated" / base / f"point_{p.idx}_domain_nonfixated.json").read_text())
@@ -73,8 +77,15 @@ def test_plan_writes_the_dataset_layout(tmp_path: Path, room: Path, spec_file: P
     assert "my_room: 12 cameras, 6 points, 18 views" in capsys.readouterr().out
 
     again = tmp_path / "again"
-    assert main(["plan", str(room), "--out", str(again), "--spec", str(spec_file), "--points", "6", "--seed", "3",
-                 "--resolution", "128"]) == 0
+    assert (
+        main(
+            [
+                "plan", str(room), "--out", str(again), "--spec", str(spec_file), "--points", "6", "--seed",
+                "3", "--resolution", "128",
+            ]
+        )
+        == 0
+    )
     assert (again / rec["plan"]).read_bytes() == (out / rec["plan"]).read_bytes()  # same seed, same bytes
 
 
@@ -98,7 +109,10 @@ def test_plan_from_a_zip_and_a_shortfall_warning(tmp_path: Path, room: Path, cap
     ("spec", "extra", "message"),
     [
         ({"points": {"min_views": 0}}, [], "points.min_views: Input should be greater than or equal to 1"),
-        ({}, ["--min-views", "0"], "points.min_views (--min-views): Input should be greater than or equal to 1"),
+        (
+            {}, ["--min-views", "0"],
+            "points.min_views (--min-views): Input should be greater than or equal to 1",
+        ),
         ({"cameras": {"colour": 1}}, [], "cameras.colour: Extra inputs are not permitted"),
         ({"views": {"resolution": 8}}, [], "views.resolution: Input should be greater than or equal to 16"),
         ({"cues": ["segment_semantic"]}, [], "needs semantic labels"),
@@ -106,7 +120,9 @@ def test_plan_from_a_zip_and_a_shortfall_warning(tmp_path: Path, room: Path, cap
         ({}, ["--name", "../up"], "name (--name): name '../up' is not a valid name"),
     ],
 )
-def test_bad_specs_are_refused_naming_the_field(tmp_path: Path, room: Path, capsys, spec, extra, message) -> None:
+def test_bad_specs_are_refused_naming_the_field(
+    tmp_path: Path, room: Path, capsys, spec, extra, message
+) -> None:
     path = tmp_path / "job.yaml"
     path.write_text(yaml.safe_dump(spec))
     rc = main(["plan", str(room), "--out", str(tmp_path / "o"), "--spec", str(path), *extra])
@@ -144,7 +160,8 @@ def test_bad_inputs_are_refused_clearly(tmp_path: Path, room: Path, capsys) -> N
 
 
 def test_plan_prints_and_records_the_detected_frame(tmp_path: Path, capsys) -> None:
-    """A room in millimetres, tilted off every axis: plan says what it found; --up and --source-to-world override."""
+    """A room in millimetres, tilted off every axis: plan says what it found; --up and --source-to-world
+    override."""
     R = trimesh.geometry.align_vectors([0, 0, 1], [1.0, 2.0, 2.0])
     src = tmp_path / "scan.ply"
     scenes.furnished_room().apply_transform(R).apply_scale(1000.0).export(src)
@@ -156,7 +173,9 @@ def test_plan_prints_and_records_the_detected_frame(tmp_path: Path, capsys) -> N
     assert rec["up"]["method"] == "floor" and rec["up"]["confidence"] in ("high", "low")
     np.testing.assert_allclose(rec["up"]["source_direction"], [1 / 3, 2 / 3, 2 / 3], atol=1e-6)
     assert rec["units"] == {"unit_scale": 0.001, "unit": "millimetres", "reason": rec["units"]["reason"]}
-    assert rec["valid_fraction"]["views"] == rec["counts"]["views"] and 0 < rec["valid_fraction"]["median"] <= 1
+    assert (
+        rec["valid_fraction"]["views"] == rec["counts"]["views"] and 0 < rec["valid_fraction"]["median"] <= 1
+    )
 
     T = np.eye(4)
     T[:3, :3] = 0.001 * R[:3, :3].T
@@ -193,10 +212,17 @@ def test_plan_reports_trajectory_clips_in_job_json(tmp_path: Path, capsys) -> No
     room = tmp_path / "room.ply"
     scenes.random_furnished_room(np.random.default_rng(41)).export(room)
     spec = tmp_path / "video.yaml"
-    spec.write_text(yaml.safe_dump({
-        "points": {"count": 6},
-        "views": {"mode": "trajectory", "trajectory_max_frames": 60, "trajectory_min_frames": 30, "resolution": 32},
-    }))
+    spec.write_text(
+        yaml.safe_dump(
+            {
+                "points": {"count": 6},
+                "views": {
+                    "mode": "trajectory", "trajectory_max_frames": 60, "trajectory_min_frames": 30,
+                    "resolution": 32,
+                },
+            }
+        )
+    )
     out = tmp_path / "out"
     assert main(["plan", str(room), "--out", str(out), "--spec", str(spec), "--seed", "1"]) == 0
     assert "trajectory clips of 6 points" in capsys.readouterr().err

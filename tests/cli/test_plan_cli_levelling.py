@@ -1,6 +1,7 @@
-"""`omnidata plan`/`generate` on a real room whose walls are as large as its floor (the BundleFusion copy room),
-rotated and in millimetres: stop with one line naming the candidates and --up; plan with the --up the user picks,
-or on the guess when --accept-up-guess is given; job.json reports the probability and the evidence."""
+"""`omnidata plan`/`generate` on a real room whose walls are as large as its floor (the BundleFusion copy
+room), rotated and in millimetres: stop with one line naming the candidates and --up; plan with the --up the
+user picks, or on the guess when --accept-up-guess is given; job.json reports the probability and the
+evidence."""
 
 from __future__ import annotations
 
@@ -43,7 +44,10 @@ def test_plan_stops_then_plans_with_the_picked_up(tmp_path: Path) -> None:
     assert line.count("storey ") >= 2 and line.count("floor ") >= 2
     assert not (tmp_path / "p" / "job.json").exists()
     # the candidates in the line are source vectors: one of them is the measured up
-    named = [np.array(m.split(","), dtype=float) for m in re.findall(r"up ([-\d.e+]+,[-\d.e+]+,[-\d.e+]+) \(floor", line)]
+    named = [
+        np.array(m.split(","), dtype=float)
+        for m in re.findall(r"up ([-\d.e+]+,[-\d.e+]+,[-\d.e+]+) \(floor", line)
+    ]
     assert len(named) >= 2
     right = min(named, key=lambda v: up_error_deg(v, truth))
     assert up_error_deg(right, truth) < 3.0
@@ -66,7 +70,9 @@ def test_generate_stops_before_rendering(tmp_path: Path) -> None:
     src, _ = _rotated_mm(tmp_path)
     res = omnidata("generate", src, "--out", tmp_path / "g", "--workers", 1, "--no-progress", timeout=120)
     assert res.returncode == 2, res.stdout + res.stderr
-    assert "up is ambiguous" in res.stderr and "--up=X,Y,Z" in res.stderr and "--accept-up-guess" in res.stderr
+    assert (
+        "up is ambiguous" in res.stderr and "--up=X,Y,Z" in res.stderr and "--accept-up-guess" in res.stderr
+    )
 
 
 def test_plan_stops_on_ambiguous_units_then_plans_with_unit_scale(tmp_path: Path) -> None:
@@ -82,7 +88,10 @@ def test_plan_stops_on_ambiguous_units_then_plans_with_unit_scale(tmp_path: Path
     res = omnidata("plan", src, "--out", tmp_path / "p", up, *args)
     assert res.returncode == 2, res.stdout + res.stderr
     line = res.stderr.strip()
-    assert "\n" not in line and "partial_cm.ply: units are ambiguous: centimetres (--unit-scale=0.01: storey" in line
+    assert (
+        "\n" not in line
+        and "partial_cm.ply: units are ambiguous: centimetres (--unit-scale=0.01: storey" in line
+    )
     assert "inches (--unit-scale=0.0254: storey" in line and not (tmp_path / "p" / "job.json").exists()
     res = omnidata("plan", src, "--out", tmp_path / "q", up, "--unit-scale", "0.01", *args)
     assert res.returncode == 0, res.stderr

@@ -1,4 +1,5 @@
-"""`omnidata serve`: argument checks, and a real server process answering with settings from the environment."""
+"""`omnidata serve`: argument checks, and a real server process answering with settings from the
+environment."""
 
 from __future__ import annotations
 
@@ -17,7 +18,9 @@ from services.core.settings import hash_token
 from tests.fixtures.api import free_port
 
 
-def test_serve_refuses_a_bad_port(capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+def test_serve_refuses_a_bad_port(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
     monkeypatch.setattr(sys, "argv", ["omnidata"])  # main() rewrites sys.argv
     assert main(["serve", "--port", "70000"]) == 2
     assert "--port 70000 is not a TCP port" in capsys.readouterr().err
@@ -33,7 +36,10 @@ def test_serve_runs_the_api(pg_url: str, tmp_path: Path, repo_root: Path) -> Non
         "OMNIDATA_API_TOKENS": json.dumps({hash_token("cli-token"): "cli-tenant"}),
     })
     proc = subprocess.Popen(
-        [sys.executable, "-m", "services.cli", "serve", "--host", "127.0.0.1", "--port", str(port), "--log-level", "warning"],
+        [
+            sys.executable, "-m", "services.cli", "serve", "--host", "127.0.0.1", "--port", str(port),
+            "--log-level", "warning",
+        ],
         cwd=repo_root, env=env,
     )
     try:

@@ -1,4 +1,5 @@
-"""services/cli/spec_args.py: the one parser of SPACE arguments and JobSpec flags for plan, generate and submit."""
+"""services/cli/spec_args.py: the one parser of SPACE arguments and JobSpec flags for plan, generate and
+submit."""
 
 from __future__ import annotations
 
@@ -12,8 +13,10 @@ from services.cli.main import build_parser
 from services.cli.spec_args import build_spec, check_sources, distinct_space_names
 from services.core.domain.keys import space_name
 
-SPEC_FLAGS = {"--spec", "--cues", "--points", "--min-views", "--resolution", "--seed", "--name", "--up-axis", "--up",
-              "--unit-scale", "--source-to-world"}
+SPEC_FLAGS = {
+    "--spec", "--cues", "--points", "--min-views", "--resolution", "--seed", "--name", "--up-axis", "--up",
+    "--unit-scale", "--source-to-world",
+}
 
 
 def options(command: str) -> set[str]:
@@ -47,9 +50,13 @@ def test_flags_override_the_spec_file_and_errors_name_field_and_flag(tmp_path: P
     spec.write_text("seed: 1\npoints:\nviews: {resolution: 64}\ncues: [rgb]\n")
     got = build_spec(parse("--spec", str(spec), "--points", "4", "--cues", "rgb, normal", "--seed", "9"))
     assert (got.seed, got.points.count, got.views.resolution, got.cues) == (9, 4, 64, ["rgb", "normal"])
-    with pytest.raises(CliError, match=r"points.min_views \(--min-views\): Input should be greater than or equal to 1"):
+    with pytest.raises(
+        CliError, match=r"points.min_views \(--min-views\): Input should be greater than or equal to 1"
+    ):
         build_spec(parse("--min-views", "0"))
-    with pytest.raises(CliError, match=r"^invalid job spec: name \(--name\): name '\.\./x' is not a valid name"):
+    with pytest.raises(
+        CliError, match=r"^invalid job spec: name \(--name\): name '\.\./x' is not a valid name"
+    ):
         build_spec(parse("--name", "../x"))
     with pytest.raises(CliError, match="missing.yaml: no such file"):
         build_spec(parse("--spec", str(tmp_path / "missing.yaml")))

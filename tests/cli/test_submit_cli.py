@@ -1,5 +1,6 @@
 """`omnidata submit`: straight into the configured database and store, and through the real API (HTTP client
-against the FastAPI app on Postgres). The distributed runs that follow such jobs to the end are in tests/e2e."""
+against the FastAPI app on Postgres). The distributed runs that follow such jobs to the end are in
+tests/e2e."""
 
 from __future__ import annotations
 
@@ -38,11 +39,24 @@ def embedded_env(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> str:
     return url
 
 
-def test_submit_to_the_database_prints_the_id_and_reuses_the_space(capsys, embedded_env, spec_file, scenes_dir):
+def test_submit_to_the_database_prints_the_id_and_reuses_the_space(
+    capsys, embedded_env, spec_file, scenes_dir
+):
     banana = scenes_dir / "ycb_banana"
-    assert main(["submit", str(banana), "--spec", str(spec_file), "--no-follow", "--owner", "ana", "--direct"]) == 0
+    assert (
+        main(["submit", str(banana), "--spec", str(spec_file), "--no-follow", "--owner", "ana", "--direct"])
+        == 0
+    )
     first = int(capsys.readouterr().out.strip())
-    assert main(["submit", str(banana), "--spec", str(spec_file), "--seed", "5", "--no-follow", "--owner", "ana", "--direct"]) == 0
+    assert (
+        main(
+            [
+                "submit", str(banana), "--spec", str(spec_file), "--seed", "5", "--no-follow", "--owner",
+                "ana", "--direct",
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr()
     second = int(out.out.strip())
     assert "registered space" not in out.err  # same name, same content: reused
@@ -80,7 +94,9 @@ def test_follow_ends_with_the_job_and_exit_1_unless_done(capsys, embedded_env, s
 
     t = threading.Thread(target=cancel_soon)
     t.start()
-    code = main(["submit", str(scenes_dir / "ycb_banana"), "--spec", str(spec_file), "--interval", "0.1", "--direct"])
+    code = main(
+        ["submit", str(scenes_dir / "ycb_banana"), "--spec", str(spec_file), "--interval", "0.1", "--direct"]
+    )
     t.join()
     engine.dispose()
     out = capsys.readouterr()

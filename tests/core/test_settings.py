@@ -82,7 +82,9 @@ def test_invalid_values_name_the_field(clean_env: Path, monkeypatch: pytest.Monk
     assert e.value.errors()[0]["loc"] == ("lease_s",)
 
 
-def test_render_threads_is_a_setting_the_runner_uses(clean_env: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_render_threads_is_a_setting_the_runner_uses(
+    clean_env: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     from services.core.storage import LocalStore
     from services.worker.run.runner import TaskRunner
 
@@ -99,7 +101,9 @@ def test_render_threads_is_a_setting_the_runner_uses(clean_env: Path, monkeypatc
     assert e.value.errors()[0]["loc"] == ("render_threads",)
 
 
-def test_production_refuses_default_and_short_secrets(clean_env: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_production_refuses_default_and_short_secrets(
+    clean_env: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     monkeypatch.setenv("OMNIDATA_ENV", "production")
     with pytest.raises(ValidationError, match="OMNIDATA_SECRET_KEY"):
         get_settings()

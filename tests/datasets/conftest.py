@@ -1,4 +1,5 @@
-"""Small real jobs (the embedded `omnidata generate`, 32 px renders of the banana) that the dataset tests read."""
+"""Small real jobs (the embedded `omnidata generate`, 32 px renders of the banana) that the dataset tests
+read."""
 
 from __future__ import annotations
 
@@ -20,4 +21,6 @@ def small_job(tiny_banana: GeneratedRun) -> Path:
 @pytest.fixture(scope="session")
 def trajectory_job(tmp_path_factory: pytest.TempPathFactory, scenes_dir: Path) -> Path:
     """One trajectory (a few frames) around the banana, every default cue."""
-    return generate(scenes_dir / "ycb_banana", tmp_path_factory.mktemp("traj") / "banana", TRAJECTORY, "traj", 3)
+    return generate(
+        scenes_dir / "ycb_banana", tmp_path_factory.mktemp("traj") / "banana", TRAJECTORY, "traj", 3
+    )

@@ -19,7 +19,8 @@ cameras: {mode: object, object_count: 6}
 points: {count: 2, min_views: 2, max_views: 2}
 views: {resolution: 32}
 cues: [rgb, rgb_refocus, rgb_fog, rgb_motion_blur, rgb_flash]
-params: {augment: {fog_beta_per_m: 2.0, fog_airlight: 0.9, refocus_f_number: {dist: uniform, low: 1.4, high: 2.0}}}
+params:
+  augment: {fog_beta_per_m: 2.0, fog_airlight: 0.9, refocus_f_number: {dist: uniform, low: 1.4, high: 2.0}}
 """
 CUES = ["rgb", "rgb_refocus", "rgb_fog", "rgb_motion_blur", "rgb_flash", "augment_params"]
 
@@ -41,7 +42,9 @@ def test_augmentations_of_a_real_job(tmp_path: Path, scenes_dir: Path) -> None:
         # fog adds light where the banana is seen (airlight 0.9 over a darker object) and is the fog elsewhere
         rgb, fog = item["rgb"], item["rgb_fog"]
         seen = rgb.sum(axis=0) > 0
-        assert (fog[:, seen].mean() > rgb[:, seen].mean()) and np.allclose(fog[:, ~seen], fog[0, ~seen].mean(), atol=0.01)
+        assert (fog[:, seen].mean() > rgb[:, seen].mean()) and np.allclose(
+            fog[:, ~seen], fog[0, ~seen].mean(), atol=0.01
+        )
     assert len(set(draws)) == len(draws)  # one draw per view
     key = next((out / "rgb_fog" / "aug" / "ycb_banana").glob("*.png"))
     assert preview_array("rgb_fog", key.read_bytes()).shape == (32, 32, 3)

@@ -29,9 +29,10 @@ RES = 32
 CONTRACT: dict[str, tuple[Any, int]] = {
     "rgb": (np.float32, 3), "normal": (np.float32, 3), "depth_zbuffer": (np.float32, 1),
     "depth_euclidean": (np.float32, 1), "mask_valid": (np.bool_, 1), "reshading": (np.float32, 1),
-    "principal_curvature": (np.float32, 2), "edge_texture": (np.float32, 1), "edge_occlusion": (np.float32, 1),
-    "keypoints2d": (np.float32, 1), "keypoints3d": (np.float32, 1), "segment_unsup2d": (np.int64, 1),
-    "segment_unsup25d": (np.int64, 1), "fragments": (np.int64, 1), "position": (np.float32, 3),
+    "principal_curvature": (np.float32, 2), "edge_texture": (np.float32, 1),
+    "edge_occlusion": (np.float32, 1), "keypoints2d": (np.float32, 1), "keypoints3d": (np.float32, 1),
+    "segment_unsup2d": (np.int64, 1), "segment_unsup25d": (np.int64, 1), "fragments": (np.int64, 1),
+    "position": (np.float32, 3),
 }
 JSON_CUES = {"point_info", "nonfixated", "vanishing_points"}
 
@@ -123,7 +124,9 @@ def _starter_tree(job: Path, dest: Path, spaces: list[str]) -> Path:
             target.parent.mkdir(parents=True, exist_ok=True)
             if cue == "point_info":
                 info = json.loads(src.read_text())
-                target.write_text(json.dumps({k: v for k, v in info.items() if k not in ("K", "world_to_camera")}))
+                target.write_text(
+                    json.dumps({k: v for k, v in info.items() if k not in ("K", "world_to_camera")})
+                )
             else:
                 shutil.copyfile(src, target)
     return dest
@@ -134,7 +137,9 @@ def test_reads_the_released_starter_layout(small_job: Path, tmp_path: Path) -> N
     ds = OmnidataDataset(root, ["rgb", "normal", "depth_zbuffer", "point_info", "nonfixated"])
     ours = OmnidataDataset(small_job, ["rgb", "normal", "depth_zbuffer"])
     assert len(ds) == 8 and {v.component for v in ds.views} == {"replica"}
-    assert [(v.space, v.point, v.view) for v in ds.views[:4]] == [("frl_apartment_0", p, v) for p in (0, 1) for v in (0, 1)]
+    assert [(v.space, v.point, v.view) for v in ds.views[:4]] == [
+        ("frl_apartment_0", p, v) for p in (0, 1) for v in (0, 1)
+    ]
     for i in range(4):
         a, b = ds[i], ours[i]
         for cue in ("rgb", "normal", "depth_zbuffer", "K"):
@@ -156,8 +161,10 @@ def test_splits_by_space_are_deterministic(small_job: Path, tmp_path: Path) -> N
     # a fresh interpreter (other hash seed) agrees: nothing depends on Python's str hash
     code = ("import json; from services.datasets import assign_splits; "
             f"print(json.dumps(assign_splits({spaces!r}, seed=5)))")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
-                         cwd=Path(__file__).resolve().parents[2], env={"PYTHONHASHSEED": "123", "PATH": "/usr/bin"})
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True,
+        cwd=Path(__file__).resolve().parents[2], env={"PYTHONHASHSEED": "123", "PATH": "/usr/bin"},
+    )
     assert json.loads(out.stdout) == want
     # a space keeps its split when others join, and the ratios hold on many spaces
     assert assign_splits(spaces + ["new_a", "new_b"], seed=5)["space_03"] == want["space_03"]
@@ -166,7 +173,9 @@ def test_splits_by_space_are_deterministic(small_job: Path, tmp_path: Path) -> N
     # an Omnidata split CSV decides instead
     csv = tmp_path / "train_val_test_replica.csv"
     csv.write_text(split_csv_text({"space_00": "val", "space_01": "val", "space_02": "train"}))
-    assert {v.space for v in OmnidataDataset(root, ["rgb"], split="val", split_csv=csv).views} == {"space_00", "space_01"}
+    assert {v.space for v in OmnidataDataset(root, ["rgb"], split="val", split_csv=csv).views} == {
+        "space_00", "space_01",
+    }
 
 
 class RecordingStore:
@@ -209,12 +218,19 @@ def test_s3_reads_only_the_manifests_keys_and_checks_sha256(small_job: Path, s3_
         a, b = ds[i], local[i]
         for cue in CONTRACT:
             np.testing.assert_array_equal(a[cue], b[cue])
-    assert not rec.listed and set(rec.read) <= listed and listed - {"job.json", "manifest.jsonl"} <= set(rec.read)
+    assert (
+        not rec.listed
+        and set(rec.read) <= listed
+        and listed - {"job.json", "manifest.jsonl"} <= set(rec.read)
+    )
     # the same through a URL (what users type), and a changed object is caught
     by_url = OmnidataDataset(settings.storage_url, ["depth_zbuffer"], settings=settings, verify_sha256=True)
     np.testing.assert_array_equal(by_url[0]["depth_zbuffer"], local[0]["depth_zbuffer"])
-    copy = pickle.loads(pickle.dumps(by_url))  # what a spawned DataLoader worker gets: it opens its own client
-    assert copy._store is None and np.array_equal(copy[1]["depth_zbuffer"], local[1]["depth_zbuffer"], equal_nan=True)
+    # what a spawned DataLoader worker gets: it opens its own client
+    copy = pickle.loads(pickle.dumps(by_url))
+    assert copy._store is None and np.array_equal(
+        copy[1]["depth_zbuffer"], local[1]["depth_zbuffer"], equal_nan=True
+    )
     s3.put_bytes("depth_zbuffer/tiny/ycb_banana/point_0_view_0_domain_depth_zbuffer.png", b"\x89PNG broken")
     with pytest.raises(DatasetIntegrityError, match="point_0_view_0_domain_depth_zbuffer.png: sha256"):
         by_url[0]

@@ -49,7 +49,9 @@ def test_decoding_does_not_depend_on_how_pillow_widens_16_bit(monkeypatch: pytes
 
     def big_endian(f: io.BytesIO) -> Image.Image:
         img = real_open(f)
-        return Image.frombuffer("I;16B", img.size, np.asarray(img).astype(">u2").tobytes(), "raw", "I;16B", 0, 1)
+        return Image.frombuffer(
+            "I;16B", img.size, np.asarray(img).astype(">u2").tobytes(), "raw", "I;16B", 0, 1
+        )
 
     for opener in (lambda f: real_open(f).convert("I"), big_endian):
         monkeypatch.setattr(dec.Image, "open", opener)
@@ -93,9 +95,15 @@ def test_normals_curvature_labels_fragments() -> None:
 def test_scaled_16_bit_cues_use_the_jobs_scales() -> None:
     params = CueParams(edge_scale=100.0, keypoints2d_scale=1000.0)
     data = png16(np.array([[0, 50, 65535]], np.uint16))
-    np.testing.assert_allclose(dec.decode_cue("edge_texture", data, params)[0, 0], [0, 0.5, 655.35], rtol=1e-6)
-    np.testing.assert_allclose(dec.decode_cue("keypoints2d", data, params)[0, 0], [0, 0.05, 65.535], rtol=1e-6)
-    np.testing.assert_allclose(dec.decode_cue("keypoints3d", data, params)[0, 0], [0, 50 / 65535, 1.0], rtol=1e-6)
+    np.testing.assert_allclose(
+        dec.decode_cue("edge_texture", data, params)[0, 0], [0, 0.5, 655.35], rtol=1e-6
+    )
+    np.testing.assert_allclose(
+        dec.decode_cue("keypoints2d", data, params)[0, 0], [0, 0.05, 65.535], rtol=1e-6
+    )
+    np.testing.assert_allclose(
+        dec.decode_cue("keypoints3d", data, params)[0, 0], [0, 50 / 65535, 1.0], rtol=1e-6
+    )
     assert dec.decode_cue("point_info", b'{"a": 1}') == '{"a": 1}'
     assert dec.cue_params({"spec": {"params": {"edge_scale": 5.0}}}).edge_scale == 5.0
     assert dec.cue_params(None) == CueParams()

@@ -1,5 +1,6 @@
 """`omnidata export`: WebDataset shards (every view a sample, every cue a member) and the public Omnidata
-loader's tree (its path, file name and split CSV rules, re-stated here from its source), from a folder or S3."""
+loader's tree (its path, file name and split CSV rules, re-stated here from its source), from a folder or
+S3."""
 
 from __future__ import annotations
 
@@ -25,8 +26,9 @@ from tests.datasets.test_dataset import _upload
 
 # WebDataset's rule: a member's key is its path up to the first '.' of the file name, the rest its extension
 WDS_MEMBER = re.compile(r"^((?:.*/|)[^./]+)\.([^/]*)$")
-# the public Omnidata loader: <data_path>/<task>/<component>/<building>/point_<p>_view_<v>_domain_<task>.<ext>,
-# building = the parent folder, split CSV id,train,val,test with 1 = member
+# the public Omnidata loader:
+# <data_path>/<task>/<component>/<building>/point_<p>_view_<v>_domain_<task>.<ext>, building = the parent
+# folder, split CSV id,train,val,test with 1 = member
 OMNIDATA_NAME = re.compile(r".*point_(?P<point>\d+)_view_(?P<view>\d+)_domain_(?P<domain>\w+)")
 
 
@@ -53,7 +55,9 @@ def read_shards(folder: Path) -> dict[str, dict[str, bytes]]:
 
 
 def test_webdataset_round_trip(small_job: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    code, out, err = run(capsys, small_job, "--format", "webdataset", "--out", tmp_path / "wds", "--shard-size", 3)
+    code, out, err = run(
+        capsys, small_job, "--format", "webdataset", "--out", tmp_path / "wds", "--shard-size", 3
+    )
     assert code == 0, err
     assert "4 samples in 2 shard(s)" in out
     assert sorted(p.name for p in (tmp_path / "wds").iterdir()) == ["shard-000000.tar", "shard-000001.tar"]
@@ -68,14 +72,20 @@ def test_webdataset_round_trip(small_job: Path, tmp_path: Path, capsys: pytest.C
         for cue, o in outputs.items():  # every file byte-exact
             assert hashlib.sha256(sample[f"{cue}.{CATALOG[cue].ext}"]).hexdigest() == o["sha256"]
         meta = json.loads(sample["json"])
-        assert (meta["space"], meta["point"], meta["view"], meta["component"]) == (e["space"], e["point"], e["view"], "tiny")
+        assert (meta["space"], meta["point"], meta["view"], meta["component"]) == (
+            e["space"], e["point"], e["view"], "tiny",
+        )
         assert meta["point_info"]["view_id"] == e["view"] and "K" in meta["point_info"]
     # members decode to what the dataset gives
     item = OmnidataDataset(small_job, ["depth_zbuffer"])[1]
     np.testing.assert_array_equal(
-        decode_cue("depth_zbuffer", samples["ycb_banana/point_0_view_1"]["depth_zbuffer.png"]), item["depth_zbuffer"])
+        decode_cue("depth_zbuffer", samples["ycb_banana/point_0_view_1"]["depth_zbuffer.png"]),
+        item["depth_zbuffer"],
+    )
     # identical input, identical shards; flat keys have no '/'
-    code, _, _ = run(capsys, small_job, "--format", "webdataset", "--out", tmp_path / "again", "--shard-size", 3)
+    code, _, _ = run(
+        capsys, small_job, "--format", "webdataset", "--out", tmp_path / "again", "--shard-size", 3
+    )
     assert code == 0
     for shard in ("shard-000000.tar", "shard-000001.tar"):
         assert (tmp_path / "wds" / shard).read_bytes() == (tmp_path / "again" / shard).read_bytes()
@@ -104,7 +114,9 @@ def test_omnidata_tree_follows_the_public_loaders_rules(
     assert set(cues) == {c for e in manifest(small_job) for c in e["outputs"]}
     bpv: dict[str, set[tuple[str, int, int]]] = {}
     for task in cues:
-        folders = [p for p in (out / task / "replica").iterdir() if in_split.get(p.name, {}).get(split) == "1"]
+        folders = [
+            p for p in (out / task / "replica").iterdir() if in_split.get(p.name, {}).get(split) == "1"
+        ]
         paths = [str(f) for folder in folders for f in folder.iterdir()]
         parsed = set()
         for path in paths:
@@ -113,25 +125,34 @@ def test_omnidata_tree_follows_the_public_loaders_rules(
             parsed.add((path.split("/")[-2], int(m["point"]), int(m["view"])))
         bpv[task] = parsed
     everything = {(e["space"], e["point"], e["view"]) for e in manifest(small_job)}
-    assert all(views == everything for views in bpv.values())  # every view has every task (their intersection)
+    # every view has every task (their intersection)
+    assert all(views == everything for views in bpv.values())
     src = small_job / "depth_zbuffer/tiny/ycb_banana/point_1_view_0_domain_depth_zbuffer.png"
-    assert (out / "depth_zbuffer/replica/ycb_banana/point_1_view_0_domain_depth_zbuffer.png").read_bytes() == src.read_bytes()
+    assert (
+        out / "depth_zbuffer/replica/ycb_banana/point_1_view_0_domain_depth_zbuffer.png"
+    ).read_bytes() == src.read_bytes()
     assert json.loads((out / "job.json").read_text())["job"]["name"] == "tiny"
 
 
-def test_export_from_s3(small_job: Path, s3_server: S3Server, tmp_path: Path, capsys: pytest.CaptureFixture[str],
-                        monkeypatch: pytest.MonkeyPatch) -> None:
+def test_export_from_s3(
+    small_job: Path, s3_server: S3Server, tmp_path: Path, capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     settings = s3_server.settings(prefix="exports/jobs/7")
     store = open_store(settings.storage_url, settings)
     _upload(small_job, store)
     for k, v in s3_server.env.items():
         monkeypatch.setenv(k, v)
-    code, out, err = run(capsys, settings.storage_url, "--format", "webdataset", "--out", tmp_path / "wds", "--verify")
+    code, out, err = run(
+        capsys, settings.storage_url, "--format", "webdataset", "--out", tmp_path / "wds", "--verify"
+    )
     assert code == 0, err
     assert len(read_shards(tmp_path / "wds")) == 4
     # a service job by id: its root jobs/<id> in the service's store
     monkeypatch.setenv("OMNIDATA_STORAGE_URL", f"s3://{s3_server.bucket}/exports")
-    code, out, err = run(capsys, "job:7", "--format", "omnidata", "--out", tmp_path / "omni", "--component", "replica")
+    code, out, err = run(
+        capsys, "job:7", "--format", "omnidata", "--out", tmp_path / "omni", "--component", "replica"
+    )
     assert code == 0, err
     assert (tmp_path / "omni/rgb/replica/ycb_banana/point_1_view_1_domain_rgb.png").read_bytes() == (
         small_job / "rgb/tiny/ycb_banana/point_1_view_1_domain_rgb.png").read_bytes()
@@ -148,18 +169,43 @@ def test_bad_exports_are_refused_and_leave_nothing(
     (taken / "x").write_text("mine")
     cases = [
         ((small_job, "--format", "webdataset", "--out", taken), "exists and is not an empty folder"),
-        ((small_job, "--format", "webdataset", "--out", tmp_path / "a", "--cues", "rgb,bogus"), "unknown cue"),
-        ((small_job, "--format", "webdataset", "--out", tmp_path / "b", "--cues", "segment_semantic"), "not in this dataset"),
+        (
+            (small_job, "--format", "webdataset", "--out", tmp_path / "a", "--cues", "rgb,bogus"),
+            "unknown cue",
+        ),
+        (
+            (small_job, "--format", "webdataset", "--out", tmp_path / "b", "--cues", "segment_semantic"),
+            "not in this dataset",
+        ),
         ((small_job, "--format", "webdataset", "--out", tmp_path / "c", "--shard-size", 0), "--shard-size"),
-        ((small_job, "--format", "omnidata", "--out", tmp_path / "d", "--component", "replica",
-          "--split-ratios", "0.5,0.6,0"), "--split-ratios"),
-        ((small_job, "--format", "omnidata", "--out", tmp_path / "e", "--component", "../up"), "not a valid name"),
+        (
+            (
+                small_job, "--format", "omnidata", "--out", tmp_path / "d", "--component", "replica",
+                "--split-ratios", "0.5,0.6,0",
+            ),
+            "--split-ratios",
+        ),
+        (
+            (small_job, "--format", "omnidata", "--out", tmp_path / "e", "--component", "../up"),
+            "not a valid name",
+        ),
         ((tmp_path / "missing", "--format", "omnidata", "--out", tmp_path / "f"), "is not a folder"),
         # a component no loader class reads: named, and the known ones listed (the job's name 'tiny' too)
-        ((small_job, "--format", "omnidata", "--out", tmp_path / "h", "--component", "gso"), "known: taskonomy"),
-        ((small_job, "--format", "omnidata", "--out", tmp_path / "i"), "'tiny' is not one the public Omnidata loader"),
-        ((small_job, "--format", "omnidata", "--out", tmp_path / "j", "--component", "replica",
-          "--loader-dir", tmp_path / "taken"), "is not the public Omnidata dataloader"),
+        (
+            (small_job, "--format", "omnidata", "--out", tmp_path / "h", "--component", "gso"),
+            "known: taskonomy",
+        ),
+        (
+            (small_job, "--format", "omnidata", "--out", tmp_path / "i"),
+            "'tiny' is not one the public Omnidata loader",
+        ),
+        (
+            (
+                small_job, "--format", "omnidata", "--out", tmp_path / "j", "--component", "replica",
+                "--loader-dir", tmp_path / "taken",
+            ),
+            "is not the public Omnidata dataloader",
+        ),
     ]
     for args, message in cases:
         code, _, err = run(capsys, *args)

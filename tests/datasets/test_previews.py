@@ -40,7 +40,8 @@ def test_mappings_show_what_the_values_mean(small_job: Path) -> None:
     depth = np.full((8, 8), 65535, np.uint16)
     depth[2:6, 2:6] = np.arange(16).reshape(4, 4) * 100 + 512
     img = preview_array("depth_zbuffer", png16(depth))
-    assert (img[0, 0] == 0).all() and img[2:6, 2:6].reshape(-1, 3).std(axis=0).max() > 20  # none black, depth coloured
+    # none black, depth coloured
+    assert (img[0, 0] == 0).all() and img[2:6, 2:6].reshape(-1, 3).std(axis=0).max() > 20
     assert not np.array_equal(img[2, 2], img[5, 5])  # near and far differ
     labels = np.array([[1, 1, 2, 40000]], np.uint16)
     tile = preview_array("segment_unsup2d", png16(labels))
@@ -56,20 +57,27 @@ def test_mappings_show_what_the_values_mean(small_job: Path) -> None:
     curv = np.zeros((1, 3, 3), np.uint8)
     curv[0, 1], curv[0, 2] = (127, 127, 0), (254, 254, 0)
     c = preview_array("principal_curvature", png8(curv)).astype(int)
-    assert (c[0, 0] == 0).all() and abs(c[0, 1] - c[0, 1].mean()).max() < 10 and c[0, 2, 0] > c[0, 2, 2]  # grey flat, red convex
+    # grey flat, red convex
+    assert (c[0, 0] == 0).all() and abs(c[0, 1] - c[0, 1].mean()).max() < 10 and c[0, 2, 0] > c[0, 2, 2]
     normal = (small_job / "normal/tiny/ycb_banana/point_0_view_0_domain_normal.png").read_bytes()
     assert np.array_equal(preview_array("normal", normal), np.asarray(Image.open(io.BytesIO(normal))))
     big = preview_array("rgb", png8(np.zeros((600, 300, 3), np.uint8)))
     assert big.shape == (200, 100, 3) and max(big.shape) <= previews.MAX_PREVIEW_PX  # every 3rd pixel
 
 
-def test_previews_are_cached_next_to_the_outputs(small_job: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_previews_are_cached_next_to_the_outputs(
+    small_job: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     root = tmp_path / "job"
     shutil.copytree(small_job, root)
     store = LocalStore(root)
     key = "nonfixated/tiny/ycb_banana/point_1_domain_nonfixated.json"
     pkey, data = cached_preview(store, key, "nonfixated", point=1, view=1, resolution=32)
-    assert pkey == preview_key(key, "nonfixated", 1, 1) == "_previews/v1/nonfixated/tiny/ycb_banana/point_1_view_1_domain_nonfixated.png"
+    assert (
+        pkey
+        == preview_key(key, "nonfixated", 1, 1)
+        == "_previews/v1/nonfixated/tiny/ycb_banana/point_1_view_1_domain_nonfixated.png"
+    )
     assert store.get_bytes(pkey) == data and data[:8] == b"\x89PNG\r\n\x1a\n"
     monkeypatch.setattr(previews, "preview_array", lambda *a, **k: pytest.fail("the cache was not used"))
     assert cached_preview(store, key, "nonfixated", point=1, view=1)[1] == data
@@ -100,7 +108,10 @@ def test_trajectory_video_has_one_frame_per_view(trajectory_job: Path, tmp_path:
         decoded = [np.frombuffer(f, np.uint8) for f in reader]
         assert len(decoded) == frames, video.name
         assert meta["size"][0] >= 32 and meta["size"][0] % 2 == 0
-    depth = [np.frombuffer(f, np.uint8) for f in list(imageio_ffmpeg.read_frames(str(out / "ycb_banana/point_0_depth_zbuffer.mp4")))[1:]]
+    depth = [
+        np.frombuffer(f, np.uint8)
+        for f in list(imageio_ffmpeg.read_frames(str(out / "ycb_banana/point_0_depth_zbuffer.mp4")))[1:]
+    ]
     assert all(f.std() > 5 for f in depth) and not np.array_equal(depth[0], depth[-1])  # the camera moves
 
 

@@ -46,7 +46,9 @@ def package_copy(tmp_path: Path) -> Path:
 
 def published_splits(package_root: Path) -> dict:
     env = {**os.environ, "PYTHONPATH": str(package_root)}
-    done = subprocess.run([sys.executable, "-c", READ_SPLITS], env=env, capture_output=True, text=True, timeout=120)
+    done = subprocess.run(
+        [sys.executable, "-c", READ_SPLITS], env=env, capture_output=True, text=True, timeout=120
+    )
     assert done.returncode == 0, done.stderr
     result = json.loads(done.stdout.splitlines()[-1])
     assert result["file"].startswith(str(package_root))  # the copy was imported, not the installed package
@@ -95,15 +97,22 @@ def test_without_loader_dir_one_command_remains_and_it_also_drops_a_stale_cache(
     code, text, err = run(capsys, out, "--loader-dir", checkout)
     assert code == 0, err
     assert "removed the loader's stale file index" in text and not (out / ".data_cache").exists()
-    installed = checkout / "omnidata_tools/torch/dataloader/component_datasets/replica/train_val_test_replica.csv"
-    assert installed.read_text() == (out / "component_datasets/replica/train_val_test_replica.csv").read_text()
+    installed = (
+        checkout / "omnidata_tools/torch/dataloader/component_datasets/replica/train_val_test_replica.csv"
+    )
+    assert (
+        installed.read_text() == (out / "component_datasets/replica/train_val_test_replica.csv").read_text()
+    )
     code, _, err = run(capsys, tmp_path / "checkout", "--loader-dir", checkout)
     assert code == 2 and "holds no component_datasets" in err
 
 
 def test_hypersim_splits_by_the_scene_the_class_looks_up() -> None:
     hypersim = component("hypersim")
-    assert hypersim.split_id("ai_001_001-cam_00") == "ai_001_001" and component("replica").split_id("a-b") == "a-b"
+    assert (
+        hypersim.split_id("ai_001_001-cam_00") == "ai_001_001"
+        and component("replica").split_id("a-b") == "a-b"
+    )
     with pytest.raises(ValueError, match="known: taskonomy .*replica_gso .*blended_mvg"):
         component("gso")
     assert set(COMPONENTS) == {"taskonomy", "replica", "replica_gso", "hypersim", "blended_mvg"}

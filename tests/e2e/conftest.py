@@ -178,9 +178,13 @@ def wait_for_redis(port: int, up: bool) -> None:
 def start_redis(port: int, folder: Path) -> None:
     """A redis-server on `port` as the CI machine runs its own (no persistence), logging into `folder`."""
     folder.mkdir(parents=True, exist_ok=True)
-    subprocess.run(["redis-server", "--daemonize", "yes", "--bind", "127.0.0.1", "--port", str(port), "--save", "",
-                    "--appendonly", "no", "--dir", str(folder), "--logfile", str(folder / "redis.log")],
-                   check=True, capture_output=True, timeout=20)
+    subprocess.run(
+        [
+            "redis-server", "--daemonize", "yes", "--bind", "127.0.0.1", "--port", str(port), "--save", "",
+            "--appendonly", "no", "--dir", str(folder), "--logfile", str(folder / "redis.log"),
+        ],
+        check=True, capture_output=True, timeout=20,
+    )
     wait_for_redis(port, up=True)
 
 
@@ -192,8 +196,8 @@ def stop_redis(port: int) -> None:
 
 @pytest.fixture()
 def own_redis(tmp_path: Path) -> Iterator[int]:
-    """The port of a Redis server of the test's own: restarting it drops no other test's connections (the suite
-    runs in several processes, tests/conftest.py)."""
+    """The port of a Redis server of the test's own: restarting it drops no other test's connections (the
+    suite runs in several processes, tests/conftest.py)."""
     port = free_port()
     start_redis(port, tmp_path / "redis")
     try:
@@ -220,22 +224,25 @@ def deployment(s3_server: S3Server, tmp_path_factory: pytest.TempPathFactory) ->
 @pytest.fixture()
 def bare_cluster(deployment: dict[str, Any], s3_server: S3Server, tmp_path: Path,
                  request: pytest.FixtureRequest) -> Iterator[Cluster]:
-    """The deployment's environment with no process started yet (for tests that start theirs with other settings);
-    every process started on it is stopped after the test."""
+    """The deployment's environment with no process started yet (for tests that start theirs with other
+    settings); every process started on it is stopped after the test."""
     token = new_token()  # as `omnidata token create` makes them: never starting with '-'
     url, prefix = deployment["pg_url"], deployment["prefix"]
     env = {k: v for k, v in os.environ.items() if not k.startswith("OMNIDATA_")}
     env.update(s3_server.env)
     env.update(
-        OMNIDATA_DATABASE_URL=url, OMNIDATA_BROKER_URL=REDIS_DB_URL, OMNIDATA_STORAGE_URL=f"s3://{s3_server.bucket}/{prefix}",
-        OMNIDATA_DATA_DIR=str(tmp_path / "data"), OMNIDATA_LEASE_S=str(LEASE_S), OMNIDATA_DISPATCH_WINDOW="6",
-        OMNIDATA_RENDER_DEVICE="cpu", OMNIDATA_API_TOKENS=json.dumps({hash_token(token): "e2e"}),
-        OMNIDATA_OWNER="e2e", PYTHONUNBUFFERED="1",
+        OMNIDATA_DATABASE_URL=url, OMNIDATA_BROKER_URL=REDIS_DB_URL,
+        OMNIDATA_STORAGE_URL=f"s3://{s3_server.bucket}/{prefix}", OMNIDATA_DATA_DIR=str(tmp_path / "data"),
+        OMNIDATA_LEASE_S=str(LEASE_S), OMNIDATA_DISPATCH_WINDOW="6", OMNIDATA_RENDER_DEVICE="cpu",
+        OMNIDATA_API_TOKENS=json.dumps({hash_token(token): "e2e"}), OMNIDATA_OWNER="e2e",
+        PYTHONUNBUFFERED="1",
     )
     settings = s3_server.settings(prefix=prefix, database_url=url, broker_url=REDIS_DB_URL, lease_s=LEASE_S)
     engine = make_engine(url)
-    c = Cluster(env, settings, url, engine, make_sessionmaker(engine), open_store(settings.storage_url, settings),
-                prefix, tmp_path, token)
+    c = Cluster(
+        env, settings, url, engine, make_sessionmaker(engine), open_store(settings.storage_url, settings),
+        prefix, tmp_path, token,
+    )
     try:
         yield c
     finally:

@@ -43,14 +43,17 @@ FAULTS = ["kill_worker"] * 8 + ["kill_scheduler", "drop_postgres", "drop_redis",
 STORE_OUTAGE_S = 3.0
 SETTLE_S = 120.0  # then every job must be done within this
 N_WORKERS = 3
-# A worker is declared dead after 6 s without a heartbeat (its running task comes back then, and the messages it
-# may have reserved are sent again); leases and the lost-message timeout are 120 s, longer than the promised
-# recovery (heartbeat timeout + 30 s), so they cannot be what meets it. Workers reserve 2 messages each, so a kill
-# often lands on a worker holding a reserved message.
+# A worker is declared dead after 6 s without a heartbeat (its running task comes back then, and the messages
+# it may have reserved are sent again); leases and the lost-message timeout are 120 s, longer than the
+# promised recovery (heartbeat timeout + 30 s), so they cannot be what meets it. Workers reserve 2 messages
+# each, so a kill often lands on a worker holding a reserved message.
 HEARTBEAT_TIMEOUT_S = 6
-# finished views are compacted at once (services.scheduler.compaction), so the faults land on compacted views too
-CHAOS_ENV = {"OMNIDATA_LEASE_S": "120", "OMNIDATA_HEARTBEAT_TIMEOUT_S": str(HEARTBEAT_TIMEOUT_S),
-             "OMNIDATA_DISPATCH_WINDOW": "8", "OMNIDATA_WORKER_PREFETCH": "2", "OMNIDATA_COMPACT_AFTER_S": "0"}
+# finished views are compacted at once (services.scheduler.compaction), so the faults land on compacted views
+# too
+CHAOS_ENV = {
+    "OMNIDATA_LEASE_S": "120", "OMNIDATA_HEARTBEAT_TIMEOUT_S": str(HEARTBEAT_TIMEOUT_S),
+    "OMNIDATA_DISPATCH_WINDOW": "8", "OMNIDATA_WORKER_PREFETCH": "2", "OMNIDATA_COMPACT_AFTER_S": "0",
+}
 # the soak appends its figures to this file when set (bench/results/chaos.json to record a run); a test run
 # leaves the checkout as it found it
 RESULTS_ENV = "OMNIDATA_CHAOS_RESULTS"
@@ -62,22 +65,26 @@ cues: [rgb, normal, depth_zbuffer, edge_texture, point_info, segment_unsup2d]
 seed: {seed}
 max_attempts: 6
 """
-# max_attempts: each fault that stops a worker mid-task costs its tasks an attempt. With 14 faults in 40 s on 3
-# workers a task can meet 3 (a CI run had one caught by two kills, then by a heartbeat cut off by a dropped Postgres
-# connection), which the default of 3 turns into a failed job. The soak tests recovery, not the attempt limit.
-# A job is added whenever fewer than this many are unfinished before a fault, so every fault lands on pending work
-# whatever the machine's speed (the six jobs took ~80 s on a loaded host, ~22 s on an idle one: kills then found
-# every worker idle).
+# max_attempts: each fault that stops a worker mid-task costs its tasks an attempt. With 14 faults in 40 s on
+# 3 workers a task can meet 3 (a CI run had one caught by two kills, then by a heartbeat cut off by a dropped
+# Postgres connection), which the default of 3 turns into a failed job. The soak tests recovery, not the
+# attempt limit. A job is added whenever fewer than this many are unfinished before a fault, so every fault
+# lands on pending work whatever the machine's speed (the six jobs took ~80 s on a loaded host, ~22 s on an
+# idle one: kills then found every worker idle).
 TOP_UP_BELOW = 2
 BUNNY = "stanford_bunny/bun_zipper_res2.ply"
-JOBS = [("ycb_banana", 1), (BUNNY, 2), ("ycb_banana", 3), (BUNNY, 4), ("ycb_banana", 5), (BUNNY, 6)]  # (scene, seed)
+# (scene, seed)
+JOBS = [("ycb_banana", 1), (BUNNY, 2), ("ycb_banana", 3), (BUNNY, 4), ("ycb_banana", 5), (BUNNY, 6)]
 
 
 def held_tasks(cluster: Cluster, proc: Proc) -> list[int]:
     """Tasks the worker is running now (its id is its --hostname, name@host)."""
     worker_id = f"{proc.name}@{socket.gethostname()}"
     with cluster.sm() as s:
-        return [int(i) for (i,) in s.execute(select(Task.id).where(Task.state == "running", Task.worker_id == worker_id))]
+        return [
+            int(i)
+            for (i,) in s.execute(select(Task.id).where(Task.state == "running", Task.worker_id == worker_id))
+        ]
 
 
 def kill_9(cluster: Cluster, proc: Proc, patience_s: float = 3.0) -> list[int]:
@@ -91,8 +98,8 @@ def kill_9(cluster: Cluster, proc: Proc, patience_s: float = 3.0) -> list[int]:
         os.killpg(proc.popen.pid, signal.SIGCONT)
         time.sleep(0.05)
     proc.stop(signal.SIGKILL)
-    # A result the worker sent just before it froze still lands (its statement runs on in Postgres): such a task is
-    # done, not orphaned. The tasks it left running are the ones the recovery must rerun.
+    # A result the worker sent just before it froze still lands (its statement runs on in Postgres): such a
+    # task is done, not orphaned. The tasks it left running are the ones the recovery must rerun.
     time.sleep(0.5)
     still = set(held_tasks(cluster, proc))
     return [t for t in held if t in still]
@@ -102,7 +109,9 @@ def unacked_queued(cluster: Cluster) -> list[int]:
     """Tasks still queued whose message Redis holds as delivered to some worker but not acknowledged."""
     r = redis.Redis.from_url(REDIS_DB_URL)
     try:
-        ids = [int(json.loads(base64.b64decode(json.loads(raw)[0]["body"]))[0][0]) for raw in r.hvals("unacked")]
+        ids = [
+            int(json.loads(base64.b64decode(json.loads(raw)[0]["body"]))[0][0]) for raw in r.hvals("unacked")
+        ]
     finally:
         r.close()
     with cluster.sm() as s:
@@ -110,7 +119,8 @@ def unacked_queued(cluster: Cluster) -> list[int]:
 
 
 def drop_redis_clients(url: str) -> int:
-    """CLIENT KILL every connection to this deployment's Redis database (workers' consumers, the scheduler)."""
+    """CLIENT KILL every connection to this deployment's Redis database (workers' consumers, the
+    scheduler)."""
     db = int(urlparse(url).path.lstrip("/") or 0)
     r = redis.Redis.from_url(url)
     try:
@@ -159,7 +169,10 @@ def test_chaos_soak(bare_cluster: Cluster, scenes_dir: Path, tmp_path: Path, s3_
     workers = [cluster.start_worker(f"worker-{k}", **env) for k in range(N_WORKERS)]
     store_resumed: list[float | None] = []  # per store_503: seconds from its recovery to no job held
     t_start = time.monotonic()
-    jobs = [(scenes_dir / scene, write_spec(tmp_path, SPEC.format(seed=seed), f"seed{seed}")) for scene, seed in JOBS]
+    jobs = [
+        (scenes_dir / scene, write_spec(tmp_path, SPEC.format(seed=seed), f"seed{seed}"))
+        for scene, seed in JOBS
+    ]
     # the first job of each space registers it; the rest reuse it
     job_ids = submit_direct_together(cluster, jobs[:2]) + submit_direct_together(cluster, jobs[2:])
 
@@ -226,19 +239,23 @@ def test_chaos_soak(bare_cluster: Cluster, scenes_dir: Path, tmp_path: Path, s3_
     held = [t for _, ids in kills for t in ids]
     with cluster.sm() as s:
         tasks = s.scalar(select(func.count()).select_from(Task).where(Task.job_id.in_(job_ids)))
-        first, last = s.execute(select(func.min(Job.created_at), func.max(Job.finished_at)).where(Job.id.in_(job_ids))).one()
+        first, last = s.execute(
+            select(func.min(Job.created_at), func.max(Job.finished_at)).where(Job.id.in_(job_ids))
+        ).one()
         wanted = set(held + [t for r in reserved for t in r])
         rerun: dict[int, Any] = {int(r.id): r for r in s.execute(
             select(Task.id, Task.attempts, Task.finished_at).where(Task.id.in_(wanted)))}
-        packed = [t for j in job_ids for t in compacted_tasks(s, s.get(Job, j))]  # compacted views keep ids too
+        # compacted views keep ids too
+        packed = [t for j in job_ids for t in compacted_tasks(s, s.get(Job, j))]
         rerun.update({t.id: t for t in packed if t.id in wanted})
         tasks += len(packed)
     assert packed, "no view was compacted during the chaos (OMNIDATA_COMPACT_AFTER_S=0)"
     assert held, "no worker was killed mid-task"
     assert all(rerun[t].attempts >= 2 for t in held), rerun  # each killed worker's task was reaped and rerun
-    # A kill's recovery: from the kill to the last of the tasks it interrupted (running on the victim, or queued with
-    # a reserved message, possibly the victim's) being done. A task caught again by a later kill (its message was
-    # reserved by a worker killed next) counts for that later kill, the last fault that held it up.
+    # A kill's recovery: from the kill to the last of the tasks it interrupted (running on the victim, or
+    # queued with a reserved message, possibly the victim's) being done. A task caught again by a later kill
+    # (its message was reserved by a worker killed next) counts for that later kill, the last fault that held
+    # it up.
     recovery = []
     later: set[int] = set()
     for (when, ids), res in reversed(list(zip(kills, reserved, strict=True))):
@@ -248,10 +265,10 @@ def test_chaos_soak(bare_cluster: Cluster, scenes_dir: Path, tmp_path: Path, s3_
             recovery.append(max((rerun[t].finished_at - when).total_seconds() for t in mine))
     recovery.reverse()
     figures = {
-        "run_s": round(run_s, 1), "chaos_s": round(chaos_s, 1), "workload_s": round((last - first).total_seconds(), 1),
-        "faults": dict(faults), "compacted_tasks": len(packed),
-        "faults_total": sum(faults.values()), "jobs_done": len(jobs), "tasks_done": int(tasks or 0),
-        "outputs_once_sha256_ok": outputs, "killed_mid_task": len(held),
+        "run_s": round(run_s, 1), "chaos_s": round(chaos_s, 1),
+        "workload_s": round((last - first).total_seconds(), 1), "faults": dict(faults),
+        "compacted_tasks": len(packed), "faults_total": sum(faults.values()), "jobs_done": len(jobs),
+        "tasks_done": int(tasks or 0), "outputs_once_sha256_ok": outputs, "killed_mid_task": len(held),
         "reserved_at_kill": sum(len(r) for r in reserved),
         "recovery_after_kill9_s": {"worst": round(max(recovery), 1), "each": [round(x, 1) for x in recovery]},
         "kills_that_interrupted_work": len(recovery),
@@ -262,5 +279,8 @@ def test_chaos_soak(bare_cluster: Cluster, scenes_dir: Path, tmp_path: Path, s3_
     print("\nchaos soak:", json.dumps(figures))
     results = Path(os.environ.get(RESULTS_ENV) or tmp_path / "chaos.json")
     runs = json.loads(results.read_text()) if results.exists() else []
-    results.write_text(json.dumps([*runs, {"at": utcnow().isoformat(timespec="seconds"), **figures}], indent=1) + "\n")
-    assert max(recovery) <= HEARTBEAT_TIMEOUT_S + 30, recovery  # the promise, for the worst kill, not the mean
+    results.write_text(
+        json.dumps([*runs, {"at": utcnow().isoformat(timespec="seconds"), **figures}], indent=1) + "\n"
+    )
+    # the promise, for the worst kill, not the mean
+    assert max(recovery) <= HEARTBEAT_TIMEOUT_S + 30, recovery

@@ -1,6 +1,6 @@
-"""End to end on a real deployment (API, scheduler, two Celery workers, Postgres, Redis, S3 over HTTP), and the
-faults DESIGN.md section 7 names: kill -9 of a worker, a Redis restart and dropped Postgres connections mid-job.
-Each time the job must complete with every output present exactly once and no task left running.
+"""End to end on a real deployment (API, scheduler, two Celery workers, Postgres, Redis, S3 over HTTP), and
+the faults DESIGN.md section 7 names: kill -9 of a worker, a Redis restart and dropped Postgres connections
+mid-job. Each time the job must complete with every output present exactly once and no task left running.
 """
 
 from __future__ import annotations
@@ -59,9 +59,13 @@ def write_spec(tmp_path: Path, text: str, name: str = "job") -> Path:
     return p
 
 
-def submit(cluster: Cluster, space: Path, spec: Path, *extra: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "services.cli", "submit", str(space), "--spec", str(spec), *extra],
-                          cwd=REPO, env=cluster.env, capture_output=True, text=True, timeout=timeout)
+def submit(
+    cluster: Cluster, space: Path, spec: Path, *extra: str, timeout: float = 60
+) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "services.cli", "submit", str(space), "--spec", str(spec), *extra], cwd=REPO,
+        env=cluster.env, capture_output=True, text=True, timeout=timeout,
+    )
 
 
 def submit_direct(cluster: Cluster, space: Path, spec: Path) -> int:
@@ -72,11 +76,18 @@ def submit_direct(cluster: Cluster, space: Path, spec: Path) -> int:
 
 
 def submit_direct_together(cluster: Cluster, jobs: list[tuple[Path, Path]]) -> list[int]:
-    """`submit_direct` of several (space, spec) at once, each in its own process; returns the job ids in order.
-    Jobs of one space must not be in one call: two processes registering the same space would race."""
-    procs = [subprocess.Popen([sys.executable, "-m", "services.cli", "submit", str(space), "--spec", str(spec),
-                               "--no-follow", "--direct"], cwd=REPO, env=cluster.env, text=True,
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE) for space, spec in jobs]
+    """`submit_direct` of several (space, spec) at once, each in its own process; returns the job ids in
+    order. Jobs of one space must not be in one call: two processes registering the same space would race."""
+    procs = [
+        subprocess.Popen(
+            [
+                sys.executable, "-m", "services.cli", "submit", str(space), "--spec", str(spec),
+                "--no-follow", "--direct",
+            ],
+            cwd=REPO, env=cluster.env, text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        )
+        for space, spec in jobs
+    ]
     ids = []
     for p in procs:
         out, err = p.communicate(timeout=60)
@@ -117,7 +128,8 @@ def wait_done(cluster: Cluster, job_id: int, timeout: float) -> None:
 
 
 def assert_exactly_once(cluster: Cluster, job_id: int) -> list[dict]:
-    """Every task done once, counters exact, and the store holds exactly the manifest's outputs (sha256 ok)."""
+    """Every task done once, counters exact, and the store holds exactly the manifest's outputs (sha256
+    ok)."""
     with cluster.sm() as s:
         truth: dict[str, dict[str, int]] = {}
         for cue, state, n in s.execute(select(Task.cue, Task.state, func.count()).where(Task.job_id == job_id)
@@ -129,13 +141,21 @@ def assert_exactly_once(cluster: Cluster, job_id: int) -> list[dict]:
             per = truth.setdefault(t.cue, {})
             per["done"] = per.get("done", 0) + 1
         assert job_progress(s, job_id) == truth
-        assert {st for states in truth.values() for st in states} == {"done"}  # nothing running, queued, failed
+        # nothing running, queued, failed
+        assert {st for states in truth.values() for st in states} == {"done"}
         root = job.output_root
         internal = [n for n, c in CATALOG.items() if c.internal]
-        keys = [k for (k,) in s.execute(select(Task.output_key).where(Task.job_id == job_id, Task.cue.not_in(internal)))]
+        keys = [
+            k
+            for (k,) in s.execute(
+                select(Task.output_key).where(Task.job_id == job_id, Task.cue.not_in(internal))
+            )
+        ]
         keys += [t.output_key for t in packed if t.cue not in internal]
     assert len(keys) == len(set(keys))
-    manifest = [json.loads(line) for line in cluster.store.get_bytes(f"{root}/manifest.jsonl").decode().splitlines()]
+    manifest = [
+        json.loads(line) for line in cluster.store.get_bytes(f"{root}/manifest.jsonl").decode().splitlines()
+    ]
     outputs = {f"{root}/{o['key']}": o for e in manifest for o in e["outputs"].values()}
     assert set(outputs) == set(keys)
     stored = {k for k in cluster.store.list(f"{root}/") if not k.startswith(f"{root}/_plan/")}
@@ -155,20 +175,26 @@ def differing_outputs(service: list[dict], local: list[dict], service_bytes: Cal
             other = theirs["outputs"].get(cue)
             if out == other:
                 continue
-            line = f"{out['key']}: service {out.get('size')} bytes, generate {other and other.get('size')} bytes"
+            line = (
+                f"{out['key']}: service {out.get('size')} bytes, generate {other and other.get('size')} bytes"
+            )
             if other and out["key"].endswith(".png"):
                 a = np.asarray(Image.open(io.BytesIO(service_bytes(out["key"]))), dtype=np.int64)
                 b = np.asarray(Image.open(generated / other["key"]), dtype=np.int64)
                 if a.shape == b.shape:
-                    line += f"; {int((a != b).any(axis=-1).sum() if a.ndim == 3 else (a != b).sum())} pixels differ, " \
-                            f"by up to {int(np.abs(a - b).max())}"
+                    line += (
+                        f"; {int((a != b).any(axis=-1).sum() if a.ndim == 3 else (a != b).sum())} "
+                        f"pixels differ, by up to {int(np.abs(a - b).max())}"
+                    )
             lines.append(line)
     return "\n".join(lines or [f"{len(service)} records against {len(local)}"])
 
 
-def test_job_over_the_api_completes_and_matches_generate(cluster: Cluster, tiny_banana: GeneratedRun, scenes_dir,
-                                                          tmp_path):
-    generated = tiny_banana.out  # what the embedded `omnidata generate` wrote for the same spec, seed and name
+def test_job_over_the_api_completes_and_matches_generate(
+    cluster: Cluster, tiny_banana: GeneratedRun, scenes_dir, tmp_path
+):
+    # what the embedded `omnidata generate` wrote for the same spec, seed and name
+    generated = tiny_banana.out
     url = cluster.start_api()
     spec = write_spec(tmp_path, WIDE)
     res = submit(cluster, scenes_dir / "ycb_banana", spec, "--seed", "7", "--name", "tiny", "--api", url,
@@ -179,9 +205,11 @@ def test_job_over_the_api_completes_and_matches_generate(cluster: Cluster, tiny_
     manifest = assert_exactly_once(cluster, job_id)
     local = [json.loads(line) for line in (generated / "manifest.jsonl").read_text().splitlines()]
     root = f"jobs/{job_id}"
-    # same keys, sizes and sha256: the service and the embedded mode agree (else: which files, and by how much)
-    assert manifest == local, differing_outputs(manifest, local, lambda key: cluster.store.get_bytes(f"{root}/{key}"),
-                                                generated)
+    # same keys, sizes and sha256: the service and the embedded mode agree (else: which files, and by how
+    # much)
+    assert manifest == local, differing_outputs(
+        manifest, local, lambda key: cluster.store.get_bytes(f"{root}/{key}"), generated
+    )
     for key in ("rgb/tiny/ycb_banana/point_0_view_0_domain_rgb.png",
                 "fragments/tiny/ycb_banana/point_1_view_1_domain_fragments.npy",
                 "position/tiny/ycb_banana/point_1_view_0_domain_position.exr"):
@@ -191,7 +219,8 @@ def test_job_over_the_api_completes_and_matches_generate(cluster: Cluster, tiny_
 
 
 def kill_9_mid_task(cluster: Cluster, victim: Proc, job_id: int) -> tuple[list[int], list[str]]:
-    """kill -9 the victim (Celery parent and pool child) while it runs a task; returns (its tasks, its worker ids)."""
+    """kill -9 the victim (Celery parent and pool child) while it runs a task; returns (its tasks, its worker
+    ids)."""
     victim_ids = [f"{victim.name}@{socket.gethostname()}"]  # its --hostname, kept by every pool child
 
     def victim_running() -> list[int]:
@@ -217,14 +246,15 @@ def kill_9_mid_task(cluster: Cluster, victim: Proc, job_id: int) -> tuple[list[i
 def assert_rerun_elsewhere(cluster: Cluster, held: list[int], victim_ids: list[str]) -> None:
     with cluster.sm() as s:
         rows = s.execute(select(Task.id, Task.attempts, Task.worker_id).where(Task.id.in_(held))).all()
-    assert held and all(r.attempts >= 2 and r.worker_id not in victim_ids for r in rows), rows  # reaped, rerun
+    # reaped, rerun
+    assert held and all(r.attempts >= 2 and r.worker_id not in victim_ids for r in rows), rows
 
 
 @pytest.mark.alone
 def test_kill_9_of_a_worker_mid_task_is_rerun_at_the_heartbeat_timeout_not_the_lease(bare_cluster: Cluster,
                                                                                     scenes_dir, tmp_path):
-    # The deployment's defaults: 300 s leases, workers declared dead after 30 s without a heartbeat. One run for
-    # what used to be two (a kill -9 under 10 s leases, and this): lease expiry itself is tested in
+    # The deployment's defaults: 300 s leases, workers declared dead after 30 s without a heartbeat. One run
+    # for what used to be two (a kill -9 under 10 s leases, and this): lease expiry itself is tested in
     # tests/scheduler/test_reaper.py.
     cluster = bare_cluster
     defaults = {"OMNIDATA_LEASE_S": "300", "OMNIDATA_HEARTBEAT_TIMEOUT_S": "30"}
@@ -235,7 +265,10 @@ def test_kill_9_of_a_worker_mid_task_is_rerun_at_the_heartbeat_timeout_not_the_l
     held, victim_ids = kill_9_mid_task(cluster, workers[0], job_id)
     killed_at = time.monotonic()
     wait_done(cluster, job_id, 90)  # DESIGN section 7: a small job finishes within 90 s of a kill -9
-    print(f"\njob done {time.monotonic() - killed_at:.1f} s after the kill -9 (lease 300 s, heartbeat timeout 30 s)")
+    print(
+        f"\njob done {time.monotonic() - killed_at:.1f} s after the kill -9 (lease 300 s, heartbeat "
+        "timeout 30 s)"
+    )
     assert_exactly_once(cluster, job_id)
     assert_rerun_elsewhere(cluster, held, victim_ids)
 
@@ -273,11 +306,14 @@ def test_postgres_connections_dropped_mid_job(cluster: Cluster, scenes_dir, tmp_
 
 
 
-def test_services_started_while_the_database_does_not_answer_wait_for_it_then_run_a_job(bare_cluster: Cluster,
-                                                                                         scenes_dir, tmp_path):
-    """A scheduler and a worker started while their database refuses connections (Postgres restarting, a failover)
-    wait for it (OMNIDATA_DB_WAIT_S) instead of exiting: they used to exit at once with `cannot reach the database`
-    (as a worker whose connection the chaos soak cut while it started would). Then they run a job."""
+def test_services_started_while_the_database_does_not_answer_wait_for_it_then_run_a_job(
+    bare_cluster: Cluster, scenes_dir, tmp_path
+):
+    """A scheduler and a worker started while their database refuses connections (Postgres restarting, a
+    failover) wait for it (OMNIDATA_DB_WAIT_S) instead of exiting: they used to exit at once with `cannot
+    reach the database` (as a worker whose connection the chaos soak cut while it started would). Then they
+    run a
+    job."""
     cluster = bare_cluster
     port = free_port()  # nothing listens there until the proxy to the real database starts
     db_url = make_url(cluster.pg_url).set(port=port).render_as_string(hide_password=False)

@@ -1,5 +1,5 @@
-"""Recovery from kill -9 at the moments that used to cost a whole timeout, on a real deployment (Postgres, Redis,
-an S3 endpoint over HTTP, the real scheduler and Celery worker processes).
+"""Recovery from kill -9 at the moments that used to cost a whole timeout, on a real deployment (Postgres,
+Redis, an S3 endpoint over HTTP, the real scheduler and Celery worker processes).
 
 Each test freezes a worker at the moment that matters, deterministically, then kills its process group with
 SIGKILL, starts a replacement (as an orchestrator would) and checks the promise: the job completes within the
@@ -31,9 +31,10 @@ from tests.fixtures.holding_proxy import HoldingProxy
 pytestmark = [pytest.mark.slow, pytest.mark.alone]
 
 HEARTBEAT_TIMEOUT_S = 6
-BOUND_S = HEARTBEAT_TIMEOUT_S + 30  # the promise: heartbeat timeout + 30 s from the kill to the job's completion
-# A lease of 10 minutes: neither the lease nor the lost-message rule (queued longer than the lease) can rescue the job
-# within the bound, and Redis' visibility timeout (an hour) certainly not.
+# the promise: heartbeat timeout + 30 s from the kill to the job's completion
+BOUND_S = HEARTBEAT_TIMEOUT_S + 30
+# A lease of 10 minutes: neither the lease nor the lost-message rule (queued longer than the lease) can rescue
+# the job within the bound, and Redis' visibility timeout (an hour) certainly not.
 ENV = {"OMNIDATA_LEASE_S": "600", "OMNIDATA_HEARTBEAT_TIMEOUT_S": str(HEARTBEAT_TIMEOUT_S),
        "OMNIDATA_DISPATCH_WINDOW": "6"}
 SPEC = """
@@ -47,7 +48,8 @@ seed: 3
 
 @pytest.fixture()
 def quiet_cluster(bare_cluster: Cluster) -> Cluster:
-    """The deployment with only a scheduler, started with the test's timeouts (the tests start their workers)."""
+    """The deployment with only a scheduler, started with the test's timeouts (the tests start their
+    workers)."""
     bare_cluster.start_scheduler(**ENV)
     return bare_cluster
 
@@ -63,7 +65,9 @@ def has_beaten(cluster: Cluster, proc: Proc) -> bool:
 
 def queued_ids(cluster: Cluster, job_id: int) -> list[int]:
     with cluster.sm() as s:
-        return [int(i) for i in s.scalars(select(Task.id).where(Task.job_id == job_id, Task.state == "queued"))]
+        return [
+            int(i) for i in s.scalars(select(Task.id).where(Task.job_id == job_id, Task.state == "queued"))
+        ]
 
 
 def unacked_task_ids(r: redis.Redis) -> set[int]:
@@ -85,7 +89,8 @@ def lock_waiters(cluster: Cluster) -> int:
 
 
 def finish_within_bound(cluster: Cluster, job_id: int, killed_at: Any) -> float:
-    """Wait for the job to be done; returns seconds from the kill to its completion, asserted within the bound."""
+    """Wait for the job to be done; returns seconds from the kill to its completion, asserted within the
+    bound."""
     def final() -> bool:
         with cluster.sm() as s:
             return s.get(Job, job_id).state in ("done", "failed", "cancelled")  # type: ignore[union-attr]
@@ -93,7 +98,9 @@ def finish_within_bound(cluster: Cluster, job_id: int, killed_at: Any) -> float:
     wait(final, BOUND_S + 60, "the job to finish after the kill", cluster)
     with cluster.sm() as s:
         job = s.get(Job, job_id)
-        assert job is not None and job.state == "done", (job.state if job else None, job.error if job else None)
+        assert job is not None and job.state == "done", (
+            job.state if job else None, job.error if job else None,
+        )
         took = (job.finished_at - killed_at).total_seconds()  # type: ignore[operator]
     assert_exactly_once(cluster, job_id)
     print(f"\nkill -9 to job completion: {took:.1f} s (bound {BOUND_S} s)")
@@ -101,27 +108,36 @@ def finish_within_bound(cluster: Cluster, job_id: int, killed_at: Any) -> float:
     return took
 
 
-def test_kill_9_of_a_worker_holding_a_reserved_message_and_one_mid_claim(quiet_cluster, scenes_dir: Path, tmp_path):
+def test_kill_9_of_a_worker_holding_a_reserved_message_and_one_mid_claim(
+    quiet_cluster, scenes_dir: Path, tmp_path
+):
     cluster = quiet_cluster
     job_id = submit_direct(cluster, scenes_dir / "ycb_banana", write_spec(tmp_path, SPEC))
     wait(lambda: len(queued_ids(cluster, job_id)) >= 2, 120, "tasks to be dispatched", cluster)
     r = redis.Redis.from_url(REDIS_DB_URL)
-    # Hold the queued tasks' rows: the worker's claim (queued -> running) blocks on the lock, mid-claim, while its
-    # main process reserves a second message (prefetch 2). Neither is in any queue any more: Redis keeps them in
-    # its unacked hash until the visibility timeout.
+    # Hold the queued tasks' rows: the worker's claim (queued -> running) blocks on the lock, mid-claim, while
+    # its main process reserves a second message (prefetch 2). Neither is in any queue any more: Redis keeps
+    # them in its unacked hash until the visibility timeout.
     with cluster.engine.connect() as lock:
-        lock.execute(text("SELECT id FROM task WHERE job_id = :j AND state = 'queued' FOR UPDATE"), {"j": job_id})
+        lock.execute(
+            text("SELECT id FROM task WHERE job_id = :j AND state = 'queued' FOR UPDATE"), {"j": job_id}
+        )
         victim = cluster.start_worker("victim", OMNIDATA_WORKER_PREFETCH="2", **ENV)
-        wait(lambda: lock_waiters(cluster) >= 1 and len(unacked_task_ids(r)) >= 2 and has_beaten(cluster, victim),
-             120, "the victim to block in its claim while holding a second, reserved message", cluster)
+        wait(
+            lambda: (
+                lock_waiters(cluster) >= 1 and len(unacked_task_ids(r)) >= 2 and has_beaten(cluster, victim)
+            ),
+            120, "the victim to block in its claim while holding a second, reserved message", cluster,
+        )
         held = unacked_task_ids(r)
         victim.stop(signal.SIGKILL)
         killed_at = utcnow()
         lock.rollback()
     cluster.start_worker("replacement", **ENV)
     with cluster.sm() as s:
-        # The reserved one was never claimed; the blocked claim (one autocommit statement) may have gone through
-        # once the lock was released, under the dead worker's name: its task is then the dead worker's to reap.
+        # The reserved one was never claimed; the blocked claim (one autocommit statement) may have gone
+        # through once the lock was released, under the dead worker's name: its task is then the dead worker's
+        # to reap.
         states = dict(s.execute(select(Task.id, Task.state).where(Task.id.in_(held))).all())
         assert "queued" in states.values() and set(states.values()) <= {"queued", "running"}, states
     finish_within_bound(cluster, job_id, killed_at)
@@ -135,7 +151,8 @@ def test_kill_9_of_a_worker_mid_upload(quiet_cluster, scenes_dir: Path, tmp_path
     cluster = quiet_cluster
     proxy = HoldingProxy(s3_server.endpoint_url)
     try:
-        proxy.arm(f"PUT /{s3_server.bucket}/{cluster.prefix}/jobs/".encode())  # a job's output (or pass cache)
+        # a job's output (or pass cache)
+        proxy.arm(f"PUT /{s3_server.bucket}/{cluster.prefix}/jobs/".encode())
         job_id = submit_direct(cluster, scenes_dir / "ycb_banana", write_spec(tmp_path, SPEC))
         victim = cluster.start_worker("victim", OMNIDATA_S3_ENDPOINT_URL=proxy.url, **ENV)
         wait(proxy.held.is_set, 180, "the victim to upload an output", cluster)
@@ -180,9 +197,12 @@ def descendants(pid: int) -> set[int]:
 def test_kill_9_of_the_scheduler_while_planning(quiet_cluster, scenes_dir: Path, tmp_path):
     cluster = quiet_cluster
     scheduler = next(p for p in cluster.procs if p.name == "scheduler" and p.alive())
-    slow = SPEC.replace("object_count: 4", "object_count: 40").replace("count: 1, min_views: 2, max_views: 2",
-                                                                        "count: 2000, min_views: 2, max_views: 40")
-    job_id = submit_direct(cluster, scenes_dir / "stanford_bunny" / "bun_zipper_res2.ply", write_spec(tmp_path, slow))
+    slow = SPEC.replace("object_count: 4", "object_count: 40").replace(
+        "count: 1, min_views: 2, max_views: 2", "count: 2000, min_views: 2, max_views: 40"
+    )
+    job_id = submit_direct(
+        cluster, scenes_dir / "stanford_bunny" / "bun_zipper_res2.ply", write_spec(tmp_path, slow)
+    )
 
     def planning() -> bool:
         with cluster.sm() as s:
@@ -212,7 +232,10 @@ def test_kill_9_of_the_scheduler_while_planning(quiet_cluster, scenes_dir: Path,
 
     wait(retaken, HEARTBEAT_TIMEOUT_S + 60, "another scheduler to take the job", cluster)
     took = time.monotonic() - killed
-    print(f"\nscheduler kill -9 while planning -> job re-taken after {took:.1f} s (heartbeat timeout {HEARTBEAT_TIMEOUT_S} s)")
+    print(
+        f"\nscheduler kill -9 while planning -> job re-taken after {took:.1f} s (heartbeat timeout "
+        f"{HEARTBEAT_TIMEOUT_S} s)"
+    )
     assert took <= HEARTBEAT_TIMEOUT_S + 15, took  # not the old 605 s planner lease
     deadline = time.monotonic() + 5
     while (survivors := [p for p in below if running(p)]) and time.monotonic() < deadline:

@@ -1,5 +1,6 @@
-"""`omnidata generate` on a scan with its capture beside it, as a user runs it: the capture travels with the scan
-into the object store, the workers take rgb from the photos, and job.json / the manifest carry the capture."""
+"""`omnidata generate` on a scan with its capture beside it, as a user runs it: the capture travels with the
+scan into the object store, the workers take rgb from the photos, and job.json / the manifest carry the
+capture."""
 
 from __future__ import annotations
 
@@ -24,8 +25,10 @@ def test_generate_capture_views_from_a_folder(banana_capture_folder, tmp_path: P
     spec = tmp_path / "capture.yaml"
     spec.write_text("cameras: {mode: capture}\nviews: {resolution: 48}\n")
     out = tmp_path / "out"
-    res = omnidata("generate", folder, "--out", out, "--spec", spec, "--cues", "rgb,depth_zbuffer,mask_photo,point_info",
-                   "--workers", 1, "--no-progress", timeout=600)
+    res = omnidata(
+        "generate", folder, "--out", out, "--spec", spec, "--cues", "rgb,depth_zbuffer,mask_photo,point_info",
+        "--workers", 1, "--no-progress", timeout=600,
+    )
     assert res.returncode == 0, res.stderr
     job = json.loads((out / "job.json").read_text())
     record = job["spaces"]["banana_capture"]

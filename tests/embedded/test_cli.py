@@ -1,5 +1,6 @@
 """`omnidata generate`: the embedded default end to end (SQLite, a local folder, local worker processes, real
-renders), as a user runs it: layout, manifest and job.json, determinism, interrupt and resume, failures, bad input.
+renders), as a user runs it: layout, manifest and job.json, determinism, interrupt and resume, failures, bad
+input.
 """
 
 from __future__ import annotations
@@ -37,10 +38,13 @@ def generate(*args: str | Path, timeout: float = 300) -> subprocess.CompletedPro
 def start_generate(*args: str | Path) -> subprocess.Popen[str]:
     """Start `omnidata generate` in its own process group (so the test can signal or kill all of it)."""
     cmd = [sys.executable, "-m", "services.cli", "generate", *map(str, args), "--no-progress"]
-    # A terminal's Ctrl-C reaches a program whose SIGINT is not ignored; a test runner started in the background
-    # of a non-interactive shell inherits SIGINT ignored, so give the child the default disposition back.
-    return subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    # A terminal's Ctrl-C reaches a program whose SIGINT is not ignored; a test runner started in the
+    # background of a non-interactive shell inherits SIGINT ignored, so give the child the default disposition
+    # back.
+    return subprocess.Popen(
+        cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
 
 
 def manifest(out: Path) -> list[dict]:
@@ -53,7 +57,9 @@ def done_tasks(out: Path) -> int:
         return 0
     try:
         with sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=5) as c:
-            return int(c.execute("SELECT count(*) FROM task WHERE state = 'done' AND cue != 'passes'").fetchone()[0])
+            return int(
+                c.execute("SELECT count(*) FROM task WHERE state = 'done' AND cue != 'passes'").fetchone()[0]
+            )
     except sqlite3.OperationalError:  # not migrated yet
         return 0
 
@@ -79,7 +85,8 @@ def tiny_spec(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="module")
 def banana_run(tiny_banana: GeneratedRun) -> tuple[Path, str]:
-    """One full run on the banana: every default cue, 2 points x 2 views, 32 px, seed 7, 2 workers (read only)."""
+    """One full run on the banana: every default cue, 2 points x 2 views, 32 px, seed 7, 2 workers (read
+    only)."""
     return tiny_banana.out, tiny_banana.stdout
 
 
@@ -92,7 +99,8 @@ def test_a_run_leaves_no_blender_temp_folder_behind(tiny_banana: GeneratedRun, t
     probe = "import bpy, os, sys; sys.stdout.write(bpy.app.tempdir); sys.stdout.flush(); os._exit(0)"
     res = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120,
                          env={**os.environ, "TMPDIR": str(tmp_path)})
-    assert Path(res.stdout).parent == tmp_path and Path(res.stdout).is_dir()  # bpy's folder follows TMPDIR, kept
+    # bpy's folder follows TMPDIR, kept
+    assert Path(res.stdout).parent == tmp_path and Path(res.stdout).is_dir()
     assert tiny_banana.tmpdir is not None
     assert not list(tiny_banana.tmpdir.glob("blender_*"))
 
@@ -116,7 +124,9 @@ def test_every_default_cue_is_written_in_the_omnidata_layout(banana_run):
             assert len(data) == o["size"] and hashlib.sha256(data).hexdigest() == o["sha256"]
     # the catalog's file names and encodings, checked on a few files
     rgb = np.asarray(Image.open(out / "rgb/tiny/ycb_banana/point_0_view_0_domain_rgb.png"))
-    depth = np.asarray(Image.open(out / "depth_zbuffer/tiny/ycb_banana/point_0_view_0_domain_depth_zbuffer.png"))
+    depth = np.asarray(
+        Image.open(out / "depth_zbuffer/tiny/ycb_banana/point_0_view_0_domain_depth_zbuffer.png")
+    )
     frags = np.load(out / "fragments/tiny/ycb_banana/point_1_view_1_domain_fragments.npy")
     assert rgb.shape == (32, 32, 3) and rgb.dtype == np.uint8
     assert depth.dtype == np.uint16 and (depth < 65535).any() and (depth == 65535).any()
@@ -135,7 +145,9 @@ def test_every_default_cue_is_written_in_the_omnidata_layout(banana_run):
 
 
 @pytest.mark.slow
-def test_same_seed_gives_identical_bytes_and_a_rerun_renders_nothing(banana_run, scenes_dir, tiny_spec, tmp_path):
+def test_same_seed_gives_identical_bytes_and_a_rerun_renders_nothing(
+    banana_run, scenes_dir, tiny_spec, tmp_path
+):
     first, _ = banana_run
     out = tmp_path / "again"
     res = generate(scenes_dir / "ycb_banana", "--out", out, "--spec", tiny_spec, "--seed", 7, "--workers", 1,
@@ -160,8 +172,9 @@ def test_same_seed_gives_identical_bytes_and_a_rerun_renders_nothing(banana_run,
 
 def test_a_folder_whose_sources_were_zipped_by_an_earlier_version_resumes(banana_run, scenes_dir, tiny_spec,
                                                                             tmp_path):
-    """Sources are zipped with photos and textures stored since 2026-11, which changed their checksums: a folder
-    of a run before that (its space row holds the old zip's checksum) is the same job, not a Conflict."""
+    """Sources are zipped with photos and textures stored since 2026-11, which changed their checksums: a
+    folder of a run before that (its space row holds the old zip's checksum) is the same job, not a
+    Conflict."""
     from services.core.ingest.registry import legacy_source_checksum, source_checksum
 
     out = tmp_path / "before"
@@ -182,14 +195,18 @@ def test_an_embedded_run_never_imports_celery(banana_run, scenes_dir, tiny_spec,
     """Celery, kombu and redis are the cluster's transport: an embedded `generate` (every job's start-up) pays
     ~80 ms to import them for nothing. Its own interpreter runs the whole job, then says what it imported."""
     out = tmp_path / "embedded"
-    probe = ("import sys\nfrom services.cli.main import main\n"
-             f"rc = main(['generate', {str(scenes_dir / 'ycb_banana')!r}, '--out', {str(out)!r}, '--spec', "
-             f"{str(tiny_spec)!r}, '--seed', '7', '--workers', '1', '--name', 'tiny', '--no-progress'])\n"
-             "print(rc, sorted({m.split('.')[0] for m in sys.modules} & {'celery', 'kombu', 'billiard', 'redis'}))\n")
+    probe = (
+        "import sys\nfrom services.cli.main import main\n"
+        f"rc = main(['generate', {str(scenes_dir / 'ycb_banana')!r}, '--out', {str(out)!r}, '--spec', "
+        f"{str(tiny_spec)!r}, '--seed', '7', '--workers', '1', '--name', 'tiny', '--no-progress'])\n"
+        "print(rc, sorted({m.split('.')[0] for m in sys.modules} & {'celery', 'kombu', "
+        "'billiard', 'redis'}))\n"
+    )
     res = subprocess.run([sys.executable, "-c", probe], cwd=REPO, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr
     assert res.stdout.split("\n")[-2] == "0 []", res.stdout
-    assert (out / "manifest.jsonl").read_bytes() == (banana_run[0] / "manifest.jsonl").read_bytes()  # the whole job
+    # the whole job
+    assert (out / "manifest.jsonl").read_bytes() == (banana_run[0] / "manifest.jsonl").read_bytes()
 
 
 # ------------------------------------------------------------------------------------------ interrupt, resume
@@ -198,11 +215,15 @@ def test_an_embedded_run_never_imports_celery(banana_run, scenes_dir, tiny_spec,
 @pytest.mark.slow
 def test_ctrl_c_then_kill_then_resume_renders_only_what_is_missing(scenes_dir, tmp_path):
     spec = tmp_path / "job.yaml"
-    # big enough that the interrupts below land mid-run however fast the renders are (a whole view is claimed and
-    # recorded at once: with 12 points, what step 1 left finished between two polls of the kill below on a fast host)
+    # big enough that the interrupts below land mid-run however fast the renders are (a whole view is claimed
+    # and recorded at once: with 12 points, what step 1 left finished between two polls of the kill below on a
+    # fast host)
     points = 30
-    spec.write_text(f"cameras: {{mode: object, object_count: 8}}\npoints: {{count: {points}, min_views: 3, max_views: 3}}\n"
-                    "views: {resolution: 96}\n")
+    spec.write_text(
+        "cameras: {mode: object, object_count: 8}\npoints: "
+        f"{{count: {points}, min_views: 3, max_views: 3}}\n"
+        "views: {resolution: 96}\n"
+    )
     out = tmp_path / "out"
     args = (scenes_dir / "ycb_banana", "--out", out, "--spec", spec, "--cues",
             "rgb,normal,depth_zbuffer,edge_texture,point_info", "--workers", 2)
@@ -229,7 +250,9 @@ def test_ctrl_c_then_kill_then_resume_renders_only_what_is_missing(scenes_dir, t
     time.sleep(0.5)
     with sqlite3.connect(out / ".omnidata" / "state.db") as c:
         finished = dict(c.execute("SELECT id, finished_at FROM task WHERE state = 'done'").fetchall())
-        keys = [k for (k,) in c.execute("SELECT output_key FROM task WHERE state = 'done' AND cue != 'passes'")]
+        keys = [
+            k for (k,) in c.execute("SELECT output_key FROM task WHERE state = 'done' AND cue != 'passes'")
+        ]
     assert 0 < len(finished) and done_tasks(out) < total
     files = {out / k: (out / k).stat().st_mtime_ns for k in keys}  # recorded done: must not be made again
 
@@ -264,7 +287,8 @@ def test_ctrl_c_then_kill_then_resume_renders_only_what_is_missing(scenes_dir, t
     assert {p: p.stat().st_mtime_ns for p in others} == others
 
 
-# ------------------------------------------------------------------------------------------ semantics, failures
+# ------------------------------------------------------------------------------------------ semantics,
+# failures
 
 
 def write_labelled_ply(path: Path) -> None:
@@ -295,8 +319,10 @@ def test_semantic_cues_of_a_labelled_space(tmp_path):
     ply = tmp_path / "boxes.ply"
     write_labelled_ply(ply)
     spec = tmp_path / "job.yaml"
-    spec.write_text("cameras: {mode: object, object_count: 6}\npoints: {count: 1, min_views: 2, max_views: 2}\n"
-                    "views: {resolution: 32}\nup_axis: '+z'\n")
+    spec.write_text(
+        "cameras: {mode: object, object_count: 6}\npoints: {count: 1, min_views: 2, max_views: 2}\n"
+        "views: {resolution: 32}\nup_axis: '+z'\n"
+    )
     out = tmp_path / "out"
     res = generate(ply, "--out", out, "--spec", spec, "--cues",
                    "segment_semantic,segment_instance,segment_panoptic", "--workers", 2)
@@ -368,7 +394,12 @@ def test_bad_spec_files_and_values_are_refused(capsys, scenes_dir, tmp_path):
     squash = tmp_path / "squash.json"
     squash.write_text(json.dumps([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0.5, 0], [0, 0, 0, 1]]))
     code, err = run_cli(capsys, banana, "--out", out, "--source-to-world", squash)
-    assert code == 2 and "source_to_world" in err and "uniform scale" in err and len(err.strip().splitlines()) == 1
+    assert (
+        code == 2
+        and "source_to_world" in err
+        and "uniform scale" in err
+        and len(err.strip().splitlines()) == 1
+    )
     code, err = run_cli(capsys, banana, "--out", out, "--unit-scale", "5000")  # a 1 km banana
     assert code == 2 and "unit_scale" in err
     assert not out.exists()

@@ -27,7 +27,8 @@ def _sigint_inside_a_finalizer() -> None:
 
 def test_a_ctrl_c_dropped_by_a_finalizer_is_raised_by_the_loop(monkeypatch: pytest.MonkeyPatch) -> None:
     dropped: list[type[BaseException] | None] = []
-    monkeypatch.setattr(sys, "unraisablehook", lambda u: dropped.append(u.exc_type))  # what prints "Exception ignored"
+    # what prints "Exception ignored"
+    monkeypatch.setattr(sys, "unraisablehook", lambda u: dropped.append(u.exc_type))
     with latched_sigint():
         _sigint_inside_a_finalizer()  # returns: Python lost the KeyboardInterrupt ...
         assert dropped == [KeyboardInterrupt]
@@ -57,7 +58,8 @@ def test_the_generate_loop_stops_on_a_dropped_ctrl_c(tmp_path, monkeypatch: pyte
 
 
 def test_an_inner_latch_keeps_what_the_outer_one_remembered(monkeypatch: pytest.MonkeyPatch) -> None:
-    """A block inside a latched one (latched_sigint composes) does not forget a Ctrl-C the outer one caught."""
+    """A block inside a latched one (latched_sigint composes) does not forget a Ctrl-C the outer one
+    caught."""
     monkeypatch.setattr(sys, "unraisablehook", lambda u: None)
     with latched_sigint():
         _sigint_inside_a_finalizer()

@@ -1,5 +1,7 @@
-"""generate computes its spaces' curvature while its workers start (services/embedded/curvature_ahead.py): a worker
-must find that file through its own path (the run's loaded-space cache, SpaceContext.curvature), not compute it."""
+"""generate computes its spaces' curvature while its workers start (services/embedded/curvature_ahead.py): a
+worker must find that file through its own path (the run's loaded-space cache, SpaceContext.curvature), not
+compute
+it."""
 
 from __future__ import annotations
 
@@ -22,7 +24,9 @@ def test_the_curvature_cues_are_those_whose_render_reads_the_curvature_pass() ->
     assert CURVATURE_CUES == {c for c in CATALOG if c != "passes" and "curvature" in get_impl(c).passes}
     assert needs_curvature(JobSpec())
     assert needs_curvature(JobSpec.model_validate({"cues": ["principal_curvature"]}))
-    assert not needs_curvature(JobSpec.model_validate({"cues": ["depth_zbuffer", "normal", "segment_unsup25d"]}))
+    assert not needs_curvature(
+        JobSpec.model_validate({"cues": ["depth_zbuffer", "normal", "segment_unsup25d"]})
+    )
 
 
 def test_a_worker_reads_the_curvature_generate_computed_ahead(scenes_dir: Path, tmp_path: Path,
@@ -32,8 +36,10 @@ def test_a_worker_reads_the_curvature_generate_computed_ahead(scenes_dir: Path, 
               "bunny": load_space(Path(__file__).resolve().parents[2] / "examples/scans/stanford_bunny")}
     cache = tmp_path / "cache"
     for name, loaded in spaces.items():
-        keep_loaded(cache, name * 8, loaded)  # what drive() writes for its workers (keyed by the source checksum)
-    assert curvature_ahead([s.mesh for s in spaces.values()], spec, cache, workers=1) is None  # nothing to overlap
+        # what drive() writes for its workers (keyed by the source checksum)
+        keep_loaded(cache, name * 8, loaded)
+    # nothing to overlap
+    assert curvature_ahead([s.mesh for s in spaces.values()], spec, cache, workers=1) is None
     assert not (cache / FOLDER).exists()
     thread = curvature_ahead([s.mesh for s in spaces.values()], spec, cache, workers=2)
     assert thread is not None
@@ -44,7 +50,9 @@ def test_a_worker_reads_the_curvature_generate_computed_ahead(scenes_dir: Path, 
     computed = {}
     for name, loaded in spaces.items():
         computed[name] = estimator.principal_curvatures(loaded.mesh, spec.params.curvature_radius_m)
-    monkeypatch.setattr(estimator, "principal_curvatures", lambda *a: pytest.fail("the worker computed it again"))
+    monkeypatch.setattr(
+        estimator, "principal_curvatures", lambda *a: pytest.fail("the worker computed it again")
+    )
     for name, loaded in spaces.items():
         cached = read_loaded(cache, name * 8, {"source_to_world": loaded.source_to_world})
         assert cached is not None

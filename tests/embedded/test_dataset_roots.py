@@ -1,6 +1,6 @@
-"""`omnidata generate` on dataset roots as downloaded (ScanNet/scans/, hm3d/train/): one job, one space per scene
-named by its scene id, a refused scene summarised (the others rendered), and the semantic cues carrying the
-dataset's own ids, checked pixel by pixel against an independent ray cast of the fixture room."""
+"""`omnidata generate` on dataset roots as downloaded (ScanNet/scans/, hm3d/train/): one job, one space per
+scene named by its scene id, a refused scene summarised (the others rendered), and the semantic cues carrying
+the dataset's own ids, checked pixel by pixel against an independent ray cast of the fixture room."""
 
 from __future__ import annotations
 
@@ -27,25 +27,35 @@ views: {resolution: 48}
 def room_world() -> trimesh.Trimesh:
     vertices = ds.room_quads().reshape(-1, 3)
     quads = np.arange(28).reshape(7, 4)
-    return trimesh.Trimesh(vertices, np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]]), process=False)
+    return trimesh.Trimesh(
+        vertices, np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]]), process=False
+    )
 
 
 def check_view(out: Path, space: str, point_info: Path, expected_class: dict[str, int],
                expected_instance: dict[int, int]) -> None:
     """The rendered class / instance of each pixel is the dataset's id of the part the reference ray hits."""
     info = json.loads(point_info.read_text())
-    geometry = ViewGeometry(np.asarray(info["world_to_camera"], dtype=np.float64), float(info["field_of_view_rads"]),
-                            int(info["resolution"]))
+    geometry = ViewGeometry(
+        np.asarray(info["world_to_camera"], dtype=np.float64), float(info["field_of_view_rads"]),
+        int(info["resolution"]),
+    )
     cast = raycast(room_world(), geometry)
     stem = point_info.name.replace("_domain_point_info.json", "")
-    semantic = np.array(Image.open(out / "segment_semantic" / "datasets" / space / f"{stem}_domain_segment_semantic.png"))
-    instance = np.array(Image.open(out / "segment_instance" / "datasets" / space / f"{stem}_domain_segment_instance.png"))
+    semantic = np.array(
+        Image.open(out / "segment_semantic" / "datasets" / space / f"{stem}_domain_segment_semantic.png")
+    )
+    instance = np.array(
+        Image.open(out / "segment_instance" / "datasets" / space / f"{stem}_domain_segment_instance.png")
+    )
     part = np.where(cast.hit, ds.triangle_part()[np.maximum(cast.tri, 0)], -1)
     want_class = np.vectorize(lambda p: expected_class[ds.PARTS[p]] if p >= 0 else 0)(part)
     want_instance = np.vectorize(lambda p: expected_instance[p] if p >= 0 else 0)(part)
     agree = (semantic == want_class) & (instance.astype(np.int64) == want_instance)
     assert agree.mean() > 0.97, (space, stem, agree.mean())  # pixels on a part boundary may differ
-    assert len(np.unique(semantic[cast.hit])) >= 1 and set(np.unique(semantic)) <= set(expected_class.values()) | {0}
+    assert len(np.unique(semantic[cast.hit])) >= 1 and set(np.unique(semantic)) <= set(
+        expected_class.values()
+    ) | {0}
 
 
 @pytest.mark.slow
@@ -79,7 +89,9 @@ def test_generate_on_dataset_roots(tmp_path: Path) -> None:
         "scene0000_00": (ds.NYU40, in_order),
         "scene0001_01": (ds.NYU40, in_order),
         "00800-TEEsavR23oF": (hm3d_ids, in_order),
-        "17DRP5sb8fy": ({n: i for n, (i, _) in ds.MPCAT40.items()}, {0: 1, 1: 2, 2: 3, 4: 4, 6: 5, 3: 6, 5: 7}),
+        "17DRP5sb8fy": (
+            {n: i for n, (i, _) in ds.MPCAT40.items()}, {0: 1, 1: 2, 2: 3, 4: 4, 6: 5, 3: 6, 5: 7},
+        ),
         "room_0": (ds.REPLICA, {p: 3 * p + 2 for p in range(7)}),
         "f62fd5fd-9a3f-2f44-883a-1e5cf819608e": (ds.NYU40, in_order),
         "0a5c013435": (hm3d_ids, in_order),  # metadata/semantic_classes.txt happens to list them sorted

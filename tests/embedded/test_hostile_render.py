@@ -1,5 +1,6 @@
 """A scan that names server files where trimesh does not look (issue 19) renders with its own texture only:
-`omnidata generate` with real Blender renders, the secret's pixels in no RGB output, the secret never opened."""
+`omnidata generate` with real Blender renders, the secret's pixels in no RGB output, the secret never
+opened."""
 
 from __future__ import annotations
 
@@ -31,8 +32,10 @@ def _scan(folder: Path) -> Path:
     secret = secret_files()
     own = io.BytesIO()
     Image.new("RGB", (8, 8), OWN_RGB).save(own, format="PNG")
-    mtl = (f"newmtl m\nKd 1 1 1\nmap_Kd own.png\nmap_Ks {secret['png']}\nbump {'../' * 16}{str(secret['png'])[1:]}\n"
-           f"map_d {secret['png']}\n")
+    mtl = (
+        f"newmtl m\nKd 1 1 1\nmap_Kd own.png\nmap_Ks {secret['png']}\nbump "
+        f"{'../' * 16}{str(secret['png'])[1:]}\nmap_d {secret['png']}\n"
+    )
     path = folder / "scan.zip"
     with zipfile.ZipFile(path, "w") as zf:
         zf.writestr("scan.obj", b"# mtllib evil.mtl\no xmtllib_is_not_a_statement\nusemtl m\n" + TETRA)
@@ -53,7 +56,10 @@ def test_generate_renders_no_pixel_of_a_file_outside_the_scan(tmp_path: Path) ->
         opened = watch.opened()
     assert res.returncode == 0, res.stderr[-2000:]
     assert opened == [], f"generate opened {opened}"
-    rgbs = [np.asarray(Image.open(p).convert("RGB")).reshape(-1, 3).astype(int) for p in sorted(out.rglob("*_rgb.png"))]
+    rgbs = [
+        np.asarray(Image.open(p).convert("RGB")).reshape(-1, 3).astype(int)
+        for p in sorted(out.rglob("*_rgb.png"))
+    ]
     assert len(rgbs) == 2
     pixels = np.concatenate(rgbs)
     near = lambda colour: (np.abs(pixels - np.array(colour)).max(axis=1) <= 12).sum()  # noqa: E731

@@ -1,5 +1,6 @@
 """`omnidata generate` parses each space once in its own process: the scheduler plans from the space the run
-validated (Scheduler(loaded_spaces=...)) instead of loading the stored copy again, and the plan is the same."""
+validated (Scheduler(loaded_spaces=...)) instead of loading the stored copy again, and the plan is the
+same."""
 
 from __future__ import annotations
 
@@ -19,13 +20,16 @@ from services.embedded.job import STATE_DIR, embedded_settings, prepare_job
 from services.scheduler.loop import Scheduler
 from services.scheduler.transport import NullTransport
 
-OBJECT_SPEC = {"cameras": {"mode": "object", "object_count": 6}, "points": {"count": 2, "min_views": 2, "max_views": 2},
-               "views": {"resolution": 16}, "name": "demo"}
+OBJECT_SPEC = {
+    "cameras": {"mode": "object", "object_count": 6}, "points": {"count": 2, "min_views": 2, "max_views": 2},
+    "views": {"resolution": 16}, "name": "demo",
+}
 ROOM_SPEC = {"points": {"count": 2, "max_views": 3}, "views": {"resolution": 16}, "name": "demo"}
 
 
 def plan_job(out: Path, paths: list[Path], spec: JobSpec, *, hand_over: bool) -> dict[str, Any]:
-    """Validate, register and plan as `omnidata generate` does (no workers); the plans and task rows it wrote."""
+    """Validate, register and plan as `omnidata generate` does (no workers); the plans and task rows it
+    wrote."""
     settings = embedded_settings(out, 1)
     migrate(settings.database_url)
     engine = make_engine(settings.database_url)
@@ -39,7 +43,8 @@ def plan_job(out: Path, paths: list[Path], spec: JobSpec, *, hand_over: bool) ->
                           loaded_spaces=prepared.loaded if hand_over else None)
         assert sched.plan_pending() == [prepared.job_id]
         if hand_over:
-            assert not prepared.loaded and not sched.loaded_spaces  # no mesh kept in this process after planning
+            # no mesh kept in this process after planning
+            assert not prepared.loaded and not sched.loaded_spaces
         with engine.connect() as db:
             rows = sorted(tuple(r) for r in db.exec_driver_sql(
                 "SELECT space_id, point_idx, view_idx, cue, state FROM task").fetchall())
@@ -81,14 +86,16 @@ def test_generate_loads_each_space_once_and_plans_the_same(room: bool, scenes_di
 
 def test_generate_reads_the_capture_beside_a_scan_once(scenes_dir: Path, tmp_path: Path,
                                                        monkeypatch: pytest.MonkeyPatch) -> None:
-    """The 7-Scenes kitchen's capture (500 poses and photos beside the mesh) is looked for by the checksum, the
-    validation, the packing and the registering: within generate's captures_kept() it is read once."""
+    """The 7-Scenes kitchen's capture (500 poses and photos beside the mesh) is looked for by the checksum,
+    the validation, the packing and the registering: within generate's captures_kept() it is read once."""
     from services.cli.main import build_parser
     from services.core.ingest.capture import detect
 
     reads: list[Path] = []
     real = detect.read_sevenscenes
-    monkeypatch.setattr(detect, "read_sevenscenes", lambda root, files: reads.append(root) or real(root, files))
+    monkeypatch.setattr(
+        detect, "read_sevenscenes", lambda root, files: reads.append(root) or real(root, files)
+    )
     kitchen = scenes_dir / "7scenes_redkitchen" / "mesh_tsdf_2cm_from_1000frames.ply"
     spec = JobSpec.model_validate({**ROOM_SPEC, "up": (0.009, -0.904, -0.427)})
     with detect.captures_kept():

@@ -44,16 +44,14 @@ def test_held_workers_touch_nothing_and_stop_when_the_run_is_refused(tmp_path):
 
 
 def test_a_worker_spawned_by_a_process_that_imported_blender_still_imports_it():
-    # A spawned child inherits its parent's sys.path, Blender's script folders included once the parent imported
-    # bpy (as the test process has, or a service embedding generate): their pure-Python `bpy` package came first
-    # and the worker failed with "No module named '_bpy'".
+    # A spawned child inherits its parent's sys.path, Blender's script folders included once the parent
+    # imported bpy (as the test process has, or a service embedding generate): their pure-Python `bpy` package
+    # came first and the worker failed with "No module named '_bpy'".
     import bpy  # noqa: F401  (puts Blender's script folders on this process's sys.path)
 
     probe = ("import sys\n"
              f"sys.path[:0] = {[p for p in sys.path if 'scripts' in p and 'bpy' in p]!r}\n"
-             "from services.worker.blender.threads import import_bpy\n"
-             "import_bpy(1)\n"
-             "import bpy\n"
+             "from services.worker.blender.threads import import_bpy\nimport_bpy(1)\nimport bpy\n"
              "print(bpy.app.version_string)\n")
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
                          env={**os.environ, "PYTHONPATH": str(ROOT)})
@@ -82,13 +80,19 @@ print(proc.exitcode)
 
 
 def test_a_held_worker_stopped_while_it_loads_blender_exits_at_once_and_quietly(tmp_path):
-    # A finished job resumed stops its held workers as they load Blender. SIGTERM used to raise SystemExit inside
-    # Blender's start-up scripts, run from C: PyErr_Print then exited through Blender's C++ destructors, which
-    # printed their leak report on the user's terminal, or deadlocked until the pool's kill 3 s later.
+    # A finished job resumed stops its held workers as they load Blender. SIGTERM used to raise SystemExit
+    # inside Blender's start-up scripts, run from C: PyErr_Print then exited through Blender's C++
+    # destructors, which printed their leak report on the user's terminal, or deadlocked until the pool's kill
+    # 3 s later.
     for delay in (0.0, 0.05, 0.15, 0.3):
-        run = subprocess.run([sys.executable, "-c", HELD_STOP_PROBE, str(tmp_path), str(delay)], capture_output=True,
-                             text=True, timeout=120, env={**os.environ, "PYTHONPATH": str(ROOT)})
+        run = subprocess.run(
+            [sys.executable, "-c", HELD_STOP_PROBE, str(tmp_path), str(delay)], capture_output=True,
+            text=True, timeout=120, env={**os.environ, "PYTHONPATH": str(ROOT)},
+        )
         assert run.returncode == 0, run.stderr[-2000:]
-        assert run.stdout.split()[-1] in ("0", "143"), (delay, run.stdout, run.stderr[-2000:])  # not killed (-9)
-        assert "leak detector" not in run.stderr and "Not freed memory" not in run.stderr, (delay, run.stderr[-2000:])
+        # not killed (-9)
+        assert run.stdout.split()[-1] in ("0", "143"), (delay, run.stdout, run.stderr[-2000:])
+        assert "leak detector" not in run.stderr and "Not freed memory" not in run.stderr, (
+            delay, run.stderr[-2000:],
+        )
     assert not (tmp_path / "out").exists()

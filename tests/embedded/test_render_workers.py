@@ -1,6 +1,6 @@
-"""`omnidata generate --render-workers R`: R of the W local workers render (the render queue first, storing each
-pass set), the others only derive and never load Blender; the same files byte for byte as every worker rendering,
-and each view derived in one batch from its pass set, read once."""
+"""`omnidata generate --render-workers R`: R of the W local workers render (the render queue first, storing
+each pass set), the others only derive and never load Blender; the same files byte for byte as every worker
+rendering, and each view derived in one batch from its pass set, read once."""
 
 from __future__ import annotations
 
@@ -72,20 +72,27 @@ def test_a_worker_that_only_derives_never_loads_blender(tmp_path):
         while not _maps_mention(renderer.pid, "bpy/") and time.monotonic() < deadline:
             time.sleep(0.1)
         assert _maps_mention(renderer.pid, "bpy/"), "the renderer did not load Blender"
-        time.sleep(2.0)  # the deriver had as long as the renderer to import everything it ever will before a task
+        # the deriver had as long as the renderer to import everything it ever will before a task
+        time.sleep(2.0)
         assert deriver.is_alive() and not _maps_mention(deriver.pid, "bpy/")
     finally:
         pool.stop()
 
 
 def generate(scene: Path, out: Path, spec: Path, *extra: str) -> None:
-    res = omnidata("generate", scene, "--out", out, "--spec", spec, "--seed", 3, "--workers", 2, "--name", "split",
-                   "--no-progress", *extra, timeout=600)
+    res = omnidata(
+        "generate", scene, "--out", out, "--spec", spec, "--seed", 3, "--workers", 2, "--name", "split",
+        "--no-progress",
+        *extra,
+        timeout=600,
+    )
     assert res.returncode == 0, res.stderr
 
 
 @pytest.mark.bpy
-def test_renderers_and_derivers_give_the_same_files_as_every_worker_rendering(scenes_dir: Path, tmp_path: Path):
+def test_renderers_and_derivers_give_the_same_files_as_every_worker_rendering(
+    scenes_dir: Path, tmp_path: Path
+):
     spec = tmp_path / "job.yaml"
     spec.write_text(SPEC)
     whole, split = tmp_path / "whole", tmp_path / "split"
@@ -94,15 +101,17 @@ def test_renderers_and_derivers_give_the_same_files_as_every_worker_rendering(sc
     assert dataset_files(whole) == dataset_files(split)  # manifest, plan, every cue file
 
     with sqlite3.connect(split / ".omnidata" / "state.db") as db:
-        rows = db.execute("SELECT point_idx, view_idx, cue, worker_id, started_at, size, sha256, attempts, state "
-                          "FROM task").fetchall()
+        rows = db.execute(
+            "SELECT point_idx, view_idx, cue, worker_id, started_at, size, sha256, attempts, state FROM task"
+        ).fetchall()
     assert {r[8] for r in rows} == {"done"} and {r[7] for r in rows} == {1}  # each task run once
     passes = [r for r in rows if r[2] == "passes"]
     assert len(passes) == 6 and len({r[3] for r in passes}) == 1  # one renderer rendered every view ...
     assert all(r[5] > 0 and r[6] for r in passes)  # ... and stored each pass set for the derivers
-    # The claim of a cue read straight from the pass set took the view's last DAG level with it (pending then):
-    # the view is derived from one read of its pass set, not one batch per level. (Two workers may take two of a
-    # view's messages at once: the first level may be split between them, so this asks for one shared claim.)
+    # The claim of a cue read straight from the pass set took the view's last DAG level with it (pending
+    # then): the view is derived from one read of its pass set, not one batch per level. (Two workers may take
+    # two of a view's messages at once: the first level may be split between them, so this asks for one shared
+    # claim.)
     first_level = {c for c in CATALOG if CATALOG[c].inputs == ("passes",)}
     for view in {(r[0], r[1]) for r in passes}:
         claims = {(r[3], r[4]) for r in rows if (r[0], r[1]) == view and r[2] in first_level}
@@ -110,12 +119,17 @@ def test_renderers_and_derivers_give_the_same_files_as_every_worker_rendering(sc
         assert len(last) == 1 and last[0] in claims, (view, last, claims)
 
 
-def test_render_workers_out_of_range_are_refused_and_nothing_is_created(capsys, scenes_dir, tmp_path, monkeypatch):
+def test_render_workers_out_of_range_are_refused_and_nothing_is_created(
+    capsys, scenes_dir, tmp_path, monkeypatch
+):
     out = tmp_path / "out"
     banana = scenes_dir / "ycb_banana"
     for args, message in (
         (["--render-workers", "0"], "--render-workers must be at least 1, got 0"),
-        (["--workers", "2", "--render-workers", "3"], "--render-workers 3 is more than the 2 worker(s) of this run"),
+        (
+            ["--workers", "2", "--render-workers", "3"],
+            "--render-workers 3 is more than the 2 worker(s) of this run",
+        ),
     ):
         code = main(["generate", str(banana), "--out", str(out), "--no-progress", *args])
         err = capsys.readouterr().err
@@ -129,7 +143,8 @@ def test_render_workers_out_of_range_are_refused_and_nothing_is_created(capsys, 
 
 @pytest.fixture
 def gpu_machine(tmp_path, monkeypatch):
-    """A machine whose driver made /dev/nvidia0 (and the control file, which is no GPU), seen through a folder."""
+    """A machine whose driver made /dev/nvidia0 (and the control file, which is no GPU), seen through a
+    folder."""
     dev = tmp_path / "dev"
     dev.mkdir()
     (dev / "nvidiactl").touch()
@@ -148,7 +163,10 @@ def test_on_a_gpu_one_worker_in_eight_renders_unless_told(gpu_machine, tmp_path,
     assert [pool.role_of(i) for i in range(16)] == ["render"] * 2 + ["derive"] * 14
     assert embedded_settings(out, 16, render_workers=5).render_workers == 5  # --render-workers
     monkeypatch.setenv("OMNIDATA_RENDER_WORKERS", "16")  # every worker renders: no split
-    assert embedded_settings(out, 16).render_workers == 16 and not worker_pool(out, embedded_settings(out, 16), 16).queues.split
+    assert (
+        embedded_settings(out, 16).render_workers == 16
+        and not worker_pool(out, embedded_settings(out, 16), 16).queues.split
+    )
     monkeypatch.delenv("OMNIDATA_RENDER_WORKERS")
     monkeypatch.setenv("OMNIDATA_RENDER_DEVICE", "cpu")  # renders on the CPU whatever the machine has
     assert embedded_settings(out, 16).render_workers is None

@@ -1,5 +1,6 @@
-"""One seeding rule: `omnidata plan` and `omnidata generate` (and so the service, whose scheduler generate runs)
-give the same plan for the same space + spec + seed, whatever the order or number of spaces in the job."""
+"""One seeding rule: `omnidata plan` and `omnidata generate` (and so the service, whose scheduler generate
+runs) give the same plan for the same space + spec + seed, whatever the order or number of spaces in the
+job."""
 
 from __future__ import annotations
 
@@ -32,9 +33,13 @@ def test_plan_and_generate_write_the_same_point_info_bytes(tmp_path: Path, scene
     bunny, banana = scenes_dir / "stanford_bunny" / "bun_zipper_res2.ply", scenes_dir / "ycb_banana"
     # The bunny alone with plan; second of two spaces with generate (its position in the job differs).
     omnidata("plan", bunny, "--out", tmp_path / "plan", "--spec", spec, "--seed", 3, "--name", "demo")
-    omnidata("generate", banana, bunny, "--out", tmp_path / "gen", "--spec", spec, "--seed", 3, "--name", "demo",
-             "--workers", 1, "--no-progress")
-    assert point_infos(tmp_path / "plan", "bun_zipper_res2") == point_infos(tmp_path / "gen", "bun_zipper_res2")
+    omnidata(
+        "generate", banana, bunny, "--out", tmp_path / "gen", "--spec", spec, "--seed", 3, "--name", "demo",
+        "--workers", 1, "--no-progress",
+    )
+    assert point_infos(tmp_path / "plan", "bun_zipper_res2") == point_infos(
+        tmp_path / "gen", "bun_zipper_res2"
+    )
     # and the banana's plan does not depend on the bunny being in the job
     omnidata("plan", banana, "--out", tmp_path / "plan2", "--spec", spec, "--seed", 3, "--name", "demo")
     assert point_infos(tmp_path / "plan2", "ycb_banana") == point_infos(tmp_path / "gen", "ycb_banana")

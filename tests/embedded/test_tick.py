@@ -78,8 +78,11 @@ class _FakeScheduler:
         return TickResult(planned=[self.job_id] if len(self.ticks) == 1 else [])
 
 
-def _run_fake(tmp_path, messages: list[float], done_at: float, queued: int = 0,  # type: ignore[no-untyped-def]
-              **pool_kw):
+def _run_fake(
+    tmp_path, messages: list[float], done_at: float,
+    queued: int = 0,  # type: ignore[no-untyped-def]
+    **pool_kw,
+):
     import time
 
     from services.core.db.engine import make_engine, make_sessionmaker
@@ -122,7 +125,8 @@ def test_a_quiet_run_ticks_once_a_second_and_skips_planning_once_planned(tmp_pat
     assert state == "done"
     assert [plan for _, plan in ticks] == [True] + [False] * (len(ticks) - 1)  # the job runs: planned
     gaps = [b - a for (a, _), (b, _) in zip(ticks, ticks[1:], strict=False)]
-    assert 3 <= len(ticks) <= 5 and all(g <= TICK_MAX_S + 0.3 for g in gaps)  # a dead worker is seen within ~1 s
+    # a dead worker is seen within ~1 s
+    assert 3 <= len(ticks) <= 5 and all(g <= TICK_MAX_S + 0.3 for g in gaps)
 
 
 def test_a_message_with_a_short_queue_brings_a_prompt_tick(tmp_path) -> None:  # type: ignore[no-untyped-def]
@@ -138,6 +142,9 @@ def test_messages_with_a_full_queue_wait_for_the_quiet_tick(tmp_path) -> None:  
 
 
 def test_a_recycling_worker_is_replaced_promptly_even_with_a_full_queue(tmp_path) -> None:  # type: ignore[no-untyped-def]
-    state, ticks, _ = _run_fake(tmp_path, messages=[0.2], done_at=1.9, queued=50, kind="recycle", exits_at=0.35)
+    state, ticks, _ = _run_fake(
+        tmp_path, messages=[0.2], done_at=1.9, queued=50, kind="recycle", exits_at=0.35
+    )
     assert state == "done"
-    assert any(0.3 <= t <= 0.7 for t, _ in ticks)  # ticks at pace after the message until the worker is replaced
+    # ticks at pace after the message until the worker is replaced
+    assert any(0.3 <= t <= 0.7 for t, _ in ticks)

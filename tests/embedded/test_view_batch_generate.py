@@ -1,5 +1,6 @@
-"""`omnidata generate` with view batches (the default) against one task at a time (OMNIDATA_WORKER_BATCH_VIEWS=false):
-the same files byte for byte, one task row per point-view-cue, each run once, the job's counters exact."""
+"""`omnidata generate` with view batches (the default) against one task at a time
+(OMNIDATA_WORKER_BATCH_VIEWS=false): the same files byte for byte, one task row per point-view-cue, each run
+once, the job's counters exact."""
 
 from __future__ import annotations
 
@@ -22,15 +23,19 @@ views: {resolution: 32}
 
 def generate(scene: Path, out: Path, spec: Path, *, batched: bool) -> None:
     env = {**os.environ, "OMNIDATA_WORKER_BATCH_VIEWS": "true" if batched else "false"}
-    cmd = [sys.executable, "-m", "services.cli", "generate", str(scene), "--out", str(out), "--spec", str(spec),
-           "--seed", "3", "--workers", "1", "--name", "batch", "--no-progress"]
+    cmd = [
+        sys.executable, "-m", "services.cli", "generate", str(scene), "--out", str(out), "--spec", str(spec),
+        "--seed", "3", "--workers", "1", "--name", "batch", "--no-progress",
+    ]
     res = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stderr
 
 
 def task_rows(out: Path) -> list[tuple]:
     with sqlite3.connect(out / ".omnidata" / "state.db") as db:
-        return db.execute("SELECT space_id, point_idx, view_idx, cue, state, attempts, started_at FROM task").fetchall()
+        return db.execute(
+            "SELECT space_id, point_idx, view_idx, cue, state, attempts, started_at FROM task"
+        ).fetchall()
 
 
 def counters(out: Path) -> dict[tuple[str, str], int]:

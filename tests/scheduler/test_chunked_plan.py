@@ -27,10 +27,14 @@ from services.scheduler.plan_space import load_for_job
 from services.scheduler.planning import make_plan, space_rng
 from services.scheduler.transport import NullTransport
 
-SPEC = {"cameras": {"mode": "object", "object_count": 12}, "points": {"count": 300, "min_views": 2, "max_views": 5},
-        "cues": ["rgb", "normal"]}
-SLOW = {"cameras": {"mode": "object", "object_count": 40}, "points": {"count": 2000, "min_views": 2, "max_views": 40},
-        "cues": ["rgb"]}
+SPEC = {
+    "cameras": {"mode": "object", "object_count": 12},
+    "points": {"count": 300, "min_views": 2, "max_views": 5}, "cues": ["rgb", "normal"],
+}
+SLOW = {
+    "cameras": {"mode": "object", "object_count": 40},
+    "points": {"count": 2000, "min_views": 2, "max_views": 40}, "cues": ["rgb"],
+}
 HEARTBEAT_S = 3
 
 
@@ -46,13 +50,16 @@ def env(empty_pg_url: str, tmp_path: Path, scenes_dir: Path) -> Iterator[dict]:
 
 
 def scheduler(env: dict, name: str, chunk_views: int, *, processes: bool = False) -> Scheduler:
-    settings = get_settings(database_url=env["url"], storage_url=f"file://{env['tmp'] / 'objects'}",
-                            data_dir=env["tmp"] / "data", heartbeat_timeout_s=HEARTBEAT_S, plan_chunk_views=chunk_views)
+    settings = get_settings(
+        database_url=env["url"], storage_url=f"file://{env['tmp'] / 'objects'}", data_dir=env["tmp"] / "data",
+        heartbeat_timeout_s=HEARTBEAT_S, plan_chunk_views=chunk_views,
+    )
     return Scheduler(env["sm"], env["store"], NullTransport(), settings, name, plan_in_processes=processes)
 
 
 def submit(env: dict, spec: dict, owner: str) -> int:
-    with env["sm"]() as s:  # the same space name: the same plan (the generator is seeded by job seed and name)
+    # the same space name: the same plan (the generator is seeded by job seed and name)
+    with env["sm"]() as s:
         space = register_space(s, env["store"], owner=owner, name="bunny", source_path=env["bunny"])
         job = create_job(s, owner=owner, spec=JobSpec.model_validate(spec), spaces=[space])
         s.commit()
@@ -80,8 +87,14 @@ def task_keys(env: dict, job_id: int) -> list[tuple[int, int, str]]:
 
 def view_rows(env: dict, job_id: int) -> list[tuple]:
     with env["sm"]() as s:
-        return sorted(tuple(r) for r in s.execute(select(View.point_idx, View.v, View.camera_idx, View.fov, View.roll)
-                                                  .where(View.job_id == job_id)).all())
+        return sorted(
+            tuple(r)
+            for r in s.execute(
+                select(View.point_idx, View.v, View.camera_idx, View.fov, View.roll).where(
+                    View.job_id == job_id
+                )
+            ).all()
+        )
 
 
 def plan_text(env: dict, job_id: int) -> bytes:
@@ -106,7 +119,9 @@ def test_a_plan_in_chunks_is_the_plan_in_one(env: dict) -> None:
     assert plan_text(env, small) == plan_text(env, whole) == plan_to_json(plan).encode()
     with env["sm"]() as s:
         assert job_progress(s, small) == job_progress(s, whole)
-        assert s.scalar(select(func.count()).select_from(Point).where(Point.job_id == small)) == len(plan.points)
+        assert s.scalar(select(func.count()).select_from(Point).where(Point.job_id == small)) == len(
+            plan.points
+        )
 
 
 def test_a_planner_killed_between_chunks_is_retaken_without_duplicate_rows(env: dict) -> None:
@@ -148,6 +163,10 @@ def test_cancel_between_chunks_leaves_no_pending_task(env: dict) -> None:
     sched.plan_pending()
     assert not sched.planners.children  # type: ignore[union-attr]  # stopped within a tick
     with env["sm"]() as s:
-        states = dict(s.execute(select(Task.state, func.count()).where(Task.job_id == job_id).group_by(Task.state)).all())
+        states = dict(
+            s.execute(
+                select(Task.state, func.count()).where(Task.job_id == job_id).group_by(Task.state)
+            ).all()
+        )
         assert states == {}, states  # the chunks written before the cancel are removed with their counts
         assert job_progress(s, job_id) == {}

@@ -30,8 +30,12 @@ def _run_all(s, job, fail_first_rgb: bool = False):
             return
         ids = [i for i, _ in tr.sent]
         if fail_first_rgb:  # view (0, 1)'s rgb fails for good: that view is never compacted
-            rgb = s.scalar(select(Task.id).where(Task.job_id == job.id, Task.cue == "rgb", Task.point_idx == 0,
-                                                 Task.view_idx == 1, Task.state == "queued"))
+            rgb = s.scalar(
+                select(Task.id).where(
+                    Task.job_id == job.id, Task.cue == "rgb", Task.point_idx == 0, Task.view_idx == 1,
+                    Task.state == "queued",
+                )
+            )
             if rgb is not None:
                 ids.remove(rgb)
                 transition(s, job_id=job.id, task_ids=[rgb], from_state="queued", to_state="cancelled")
@@ -42,11 +46,17 @@ def _run_all(s, job, fail_first_rgb: bool = False):
 
 
 def _default_keys_for_half(s, job):
-    """Workers record the deterministic key (with the root) for most tasks; the helper's keys stay on the rest."""
+    """Workers record the deterministic key (with the root) for most tasks; the helper's keys stay on the
+    rest."""
     names = space_names(s, job.id)
-    for tid, sid, p, v, cue in s.execute(select(Task.id, Task.space_id, Task.point_idx, Task.view_idx, Task.cue)
-                                         .where(Task.job_id == job.id, Task.id % 2 == 0)).all():
-        s.execute(update(Task).where(Task.id == tid).values(output_key=default_key(job, names[sid], cue, p, v)))
+    for tid, sid, p, v, cue in s.execute(
+        select(Task.id, Task.space_id, Task.point_idx, Task.view_idx, Task.cue).where(
+            Task.job_id == job.id, Task.id % 2 == 0
+        )
+    ).all():
+        s.execute(
+            update(Task).where(Task.id == tid).values(output_key=default_key(job, names[sid], cue, p, v))
+        )
     s.commit()
 
 
@@ -59,7 +69,8 @@ def test_pack_round_trips_every_field():
     when = datetime(2026, 11, 24, 19, 0, 0, 123457, tzinfo=UTC)
     tasks = [
         DoneTask(7, "rgb", 1, "jobs/1/rgb/c/s/point_0_view_0_domain_rgb.png", 1234, "ab" * 32, 0.25, when),
-        DoneTask(8, "passes", 3, "elsewhere/x.npz", None, "AB" * 32, None, None),  # upper-case sha kept as text
+        # upper-case sha kept as text
+        DoneTask(8, "passes", 3, "elsewhere/x.npz", None, "AB" * 32, None, None),
         DoneTask(9, "nonfixated", 0, None, 5, None, 1e-7, when + timedelta(days=400)),
     ]
 
@@ -82,15 +93,21 @@ def test_compaction_keeps_the_manifest_byte_identical_and_the_counters(any_sm, l
 
     comp = Compactor(any_sm, after_s=3600, chunk_rows=7)  # nothing finished an hour ago
     assert comp.run_once().views == 0
-    comp = Compactor(any_sm, after_s=0, pass_s=60, chunk_rows=7)  # chunks smaller than a view's 5 tasks x 2: cut views wait
+    # chunks smaller than a view's 5 tasks x 2: cut views wait
+    comp = Compactor(any_sm, after_s=0, pass_s=60, chunk_rows=7)
     for _ in range(20):
         comp.run_once()
     with any_sm() as s:
         job = s.get(Job, job.id)
         n_compact = s.scalar(select(func.count()).select_from(ViewOutput).where(ViewOutput.job_id == job.id))
         left = s.execute(select(Task.point_idx, Task.view_idx).where(Task.job_id == job.id).distinct()).all()
-        assert n_compact == 8 and {(int(p), int(v)) for p, v in left} == {(0, 1)}  # the view with a cancelled task
-        assert before_rows - s.scalar(select(func.count()).select_from(Task).where(Task.job_id == job.id)) == 8 * 4 + 3  # nonfixated on view 0 of each point
+        # the view with a cancelled task
+        assert n_compact == 8 and {(int(p), int(v)) for p, v in left} == {(0, 1)}
+        # nonfixated on view 0 of each point
+        assert (
+            before_rows - s.scalar(select(func.count()).select_from(Task).where(Task.job_id == job.id))
+            == 8 * 4 + 3
+        )
         assert job_progress(s, job.id) == before_counts
         assert manifest_bytes(s, job) == before_manifest
         assert views_done(s, job.id) == before_views
@@ -112,12 +129,16 @@ def test_resume_expands_a_compacted_view_whose_output_is_gone(any_sm, local_stor
         job = s.get(Job, job.id)
         assert s.scalar(select(func.count()).select_from(Task).where(Task.job_id == job.id)) == 0
         assert build_report(any_sm, local_store, job.id).outputs == 2 * 2 + 2
-        gone = next(t for t in compacted_tasks(s, job) if t.cue == "rgb" and (t.point_idx, t.view_idx) == (1, 1))
+        gone = next(
+            t for t in compacted_tasks(s, job) if t.cue == "rgb" and (t.point_idx, t.view_idx) == (1, 1)
+        )
         local_store.delete(gone.output_key)
         done = reopen_job(s, local_store, job)
         s.commit()
         assert done.redo == 1 and job.state == "running"
-        rows = s.execute(select(Task.cue, Task.state, Task.point_idx, Task.view_idx).where(Task.job_id == job.id)).all()
+        rows = s.execute(
+            select(Task.cue, Task.state, Task.point_idx, Task.view_idx).where(Task.job_id == job.id)
+        ).all()
         assert sorted((c, str(st)) for c, st, _, _ in rows) == [("passes", "done"), ("rgb", "pending")]
         assert {(int(p), int(v)) for _, _, p, v in rows} == {(1, 1)}
         assert s.scalar(select(func.count()).select_from(ViewOutput).where(ViewOutput.job_id == job.id)) == 3
@@ -192,7 +213,8 @@ def test_a_running_job_is_walked_from_its_start_and_a_settled_one_not_again(any_
         comp.run_once()
     with any_sm() as s:
         packed = {(int(p), int(v)) for p, v in s.execute(select(ViewOutput.point_idx, ViewOutput.view_idx))}
-        # point 9 finished too, but a chunk with nothing done sends the walk of a running job back to its start
+        # point 9 finished too, but a chunk with nothing done sends the walk of a running job back to its
+        # start
         assert packed == {(0, 0), (0, 1)}
         s.execute(update(Job).where(Job.id == job.id).values(state="failed"))
         s.commit()
@@ -200,7 +222,8 @@ def test_a_running_job_is_walked_from_its_start_and_a_settled_one_not_again(any_
     with any_sm() as s:
         packed = {(int(p), int(v)) for p, v in s.execute(select(ViewOutput.point_idx, ViewOutput.view_idx))}
         assert packed == {(0, 0), (0, 1), (9, 0), (9, 1)}  # a finished job is walked to its end
-    comp.run_once()  # a walk that compacted nothing: the job is settled, not walked again while it stays failed
+    # a walk that compacted nothing: the job is settled, not walked again while it stays failed
+    comp.run_once()
     assert comp._settled == {job.id: "failed"}
     calls = []
     comp.compact_chunk = lambda *a, **k: calls.append(a) or (0, 0, False)  # type: ignore[method-assign]

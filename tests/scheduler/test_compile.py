@@ -20,11 +20,17 @@ def test_counts_follow_the_closure_and_per_point_cues():
     assert tasks.cues.index("reshading") > max(tasks.cues.index("normal"), tasks.cues.index("depth_zbuffer"))
     assert tasks.counts == {"passes": 12, "normal": 12, "depth_zbuffer": 12, "reshading": 12, "nonfixated": 3}
     assert len(tasks) == 4 * 12 + 3
-    nonfix = [(p, v) for p, v, c in zip(tasks.point_idx, tasks.view_idx, tasks.cue, strict=True) if c == "nonfixated"]
+    nonfix = [
+        (p, v)
+        for p, v, c in zip(tasks.point_idx, tasks.view_idx, tasks.cue, strict=True)
+        if c == "nonfixated"
+    ]
     assert sorted(nonfix) == [(0, 0), (1, 0), (2, 0)]
     cols = tasks.columns(job_id=42)
     assert set(cols) == {"job_id", "space_id", "point_idx", "view_idx", "cue"}
-    assert set(np.asarray(cols["job_id"]).tolist()) == {42} and set(np.asarray(cols["space_id"]).tolist()) == {7}
+    assert set(np.asarray(cols["job_id"]).tolist()) == {42} and set(
+        np.asarray(cols["space_id"]).tolist()
+    ) == {7}
     assert check_dag(tasks) == []
 
 
@@ -60,7 +66,8 @@ def test_check_dag_reports_a_missing_input():
     tasks = compile_tasks(plan, ["rgb"], space_id=1)
     keep = [i for i, c in enumerate(tasks.cue) if not (c == "passes" and tasks.view_idx[i] == 1)]
     broken = dataclasses.replace(
-        tasks, point_idx=tasks.point_idx[keep], view_idx=tasks.view_idx[keep], cue=[tasks.cue[i] for i in keep]
+        tasks, point_idx=tasks.point_idx[keep], view_idx=tasks.view_idx[keep],
+        cue=[tasks.cue[i] for i in keep],
     )
     assert broken.counts == tasks.counts  # counts are not re-derived: check_dag looks at rows
     assert check_dag(broken) == ["rgb of point 0 view 1 needs passes, which has no task"]

@@ -1,5 +1,6 @@
 # ruff: noqa: F811  -- the fixtures imported from tests.fixtures.jobs are redefined as test arguments
-"""Completion: a finished job gets manifest.jsonl (one line per view) and job.json; failures are summarised."""
+"""Completion: a finished job gets manifest.jsonl (one line per view) and job.json; failures are
+summarised."""
 
 from __future__ import annotations
 
@@ -107,5 +108,6 @@ def test_embedded_layout_writes_at_the_store_root(any_sm, local_store):
         _run_all(s, job)
         complete_once(s, local_store)
         assert local_store.exists("manifest.jsonl") and local_store.exists("job.json")
-        assert local_store.exists("_plan/" + json.loads(local_store.get_bytes("job.json"))["spaces"].popitem()[0]
-                                  + ".json")
+        assert local_store.exists(
+            "_plan/" + json.loads(local_store.get_bytes("job.json"))["spaces"].popitem()[0] + ".json"
+        )

@@ -34,8 +34,10 @@ def _cues_of(session, ids):
 
 def test_dag_is_respected_until_the_job_is_all_done(any_sm, local_store):
     with any_sm() as s:
-        job = make_running_job(s, local_store, cues=["edge_texture", "reshading", "vanishing_points", "nonfixated"],
-                               n_points=2, views=2)
+        job = make_running_job(
+            s, local_store, cues=["edge_texture", "reshading", "vanishing_points", "nonfixated"], n_points=2,
+            views=2,
+        )
         sent_cues: list[set[str]] = []
         done: set[tuple[int, int, str]] = set()
         for _ in range(10):
@@ -45,7 +47,9 @@ def test_dag_is_respected_until_the_job_is_all_done(any_sm, local_store):
                 break
             assert res.sent == len(tr.sent)
             rows = s.execute(
-                select(Task.id, Task.point_idx, Task.view_idx, Task.cue).where(Task.id.in_([i for i, _ in tr.sent]))
+                select(Task.id, Task.point_idx, Task.view_idx, Task.cue).where(
+                    Task.id.in_([i for i, _ in tr.sent])
+                )
             ).all()
             for _tid, p, v, cue in rows:  # every input of a dispatched task is already done
                 for inp in CATALOG[cue].inputs:
@@ -163,7 +167,9 @@ def test_failed_send_puts_tasks_back_to_pending(any_sm, local_store):
 @pytest.mark.parametrize("n_jobs", [3])
 def test_only_running_jobs_are_served(pg_sm, local_store, n_jobs):
     with pg_sm() as s:
-        jobs = [make_running_job(s, local_store, cues=["point_info"], n_points=1, views=1) for _ in range(n_jobs)]
+        jobs = [
+            make_running_job(s, local_store, cues=["point_info"], n_points=1, views=1) for _ in range(n_jobs)
+        ]
         jobs[0].state = "paused"
         jobs[1].state = "done"
         s.commit()
@@ -212,7 +218,9 @@ def test_tasks_whose_input_failed_fail_too_and_the_job_finishes(any_sm, local_st
             tr = NullTransport()
             dispatch_once(s, tr, window=100)
             finish(s, job, [i for i, _ in tr.sent])
-        rows = s.execute(select(Task.view_idx, Task.cue, Task.state, Task.error).where(Task.job_id == job.id)).all()
+        rows = s.execute(
+            select(Task.view_idx, Task.cue, Task.state, Task.error).where(Task.job_id == job.id)
+        ).all()
         by = {(v, c): (st, err) for v, c, st, err in rows}
         assert by[(0, "rgb")][0] == by[(0, "edge_texture")][0] == "failed"
         assert by[(0, "rgb")][1].startswith("UpstreamFailed")
@@ -224,8 +232,10 @@ def test_tasks_whose_input_failed_fail_too_and_the_job_finishes(any_sm, local_st
 
 
 def test_scans_use_the_pending_only_index_under_a_generic_plan(pg_sm, local_store):
-    """The dispatch index holds pending tasks only (migration 0004); the scan names the predicate's literal, so even a
-    generic plan (a prepared statement after a few executions) can use it, and finished tasks have no entry in it."""
+    """The dispatch index holds pending tasks only (migration 0004); the scan names the predicate's literal,
+    so even a generic plan (a prepared statement after a few executions) can use it, and finished tasks have
+    no entry in
+    it."""
     from sqlalchemy import text
     from sqlalchemy.dialects import postgresql
 
@@ -233,22 +243,32 @@ def test_scans_use_the_pending_only_index_under_a_generic_plan(pg_sm, local_stor
 
     with pg_sm() as s:
         job = make_running_job(s, local_store, cues=["point_info"], n_points=4, views=2)
-        definition = s.scalar(text("SELECT indexdef FROM pg_indexes WHERE indexname = 'ix_task_pending_job_id_cue_id'"))
+        definition = s.scalar(
+            text("SELECT indexdef FROM pg_indexes WHERE indexname = 'ix_task_pending_job_id_cue_id'")
+        )
         assert definition is not None and "WHERE" in definition and "'pending'" in definition
-        scan = (select(Task.id).where(Task.job_id == job.id, Task.state == PENDING_LITERAL, Task.cue == "point_info")
-                .order_by(Task.id).limit(5))
+        scan = (
+            select(Task.id)
+            .where(Task.job_id == job.id, Task.state == PENDING_LITERAL, Task.cue == "point_info")
+            .order_by(Task.id)
+            .limit(5)
+        )
         sql = str(scan.compile(dialect=postgresql.dialect()))
         s.execute(text("SET LOCAL plan_cache_mode = force_generic_plan"))
         s.execute(text("SET LOCAL enable_seqscan = off"))
         prepared = sql.replace("%(job_id_1)s", "$1").replace("%(cue_1)s", "$2").replace("%(param_1)s", "$3")
         s.execute(text(f"PREPARE pending_scan (bigint, text, int) AS {prepared}"))
-        plan = "\n".join(r[0] for r in s.execute(text(f"EXPLAIN EXECUTE pending_scan ({job.id}, 'point_info', 5)")))
+        plan = "\n".join(
+            r[0] for r in s.execute(text(f"EXPLAIN EXECUTE pending_scan ({job.id}, 'point_info', 5)"))
+        )
         assert "ix_task_pending_job_id_cue_id" in plan, plan
         s.execute(text("DEALLOCATE pending_scan"))
         s.rollback()
         tr = NullTransport()
         dispatch_once(s, tr, window=100)
         finish(s, job, [i for i, _ in tr.sent])
-        left = s.scalar(text("SELECT count(*) FROM task WHERE job_id = :j AND state = 'pending'"), {"j": job.id})
+        left = s.scalar(
+            text("SELECT count(*) FROM task WHERE job_id = :j AND state = 'pending'"), {"j": job.id}
+        )
         assert left == 0 and s.scalar(text("SELECT count(*) FROM task WHERE job_id = :j"), {"j": job.id}) == 8
         assert_counters_exact(s, job.id)

@@ -1,5 +1,6 @@
 # ruff: noqa: F811  -- the fixtures imported from tests.fixtures.jobs are redefined as test arguments
-"""Dispatch fairness: tenants share each pass evenly, priority counts only within a tenant, the broker queue is short."""
+"""Dispatch fairness: tenants share each pass evenly, priority counts only within a tenant, the broker queue
+is short."""
 
 from __future__ import annotations
 
@@ -28,10 +29,16 @@ def _sent_per_job(s, tr: NullTransport, jobs) -> dict[int, int]:
     return out
 
 
-def test_a_small_job_of_another_tenant_gets_half_the_pass_despite_a_big_high_priority_job(any_sm, local_store):
+def test_a_small_job_of_another_tenant_gets_half_the_pass_despite_a_big_high_priority_job(
+    any_sm, local_store
+):
     with any_sm() as s:
-        big = make_running_job(s, local_store, cues=["point_info"], n_points=300, views=2, owner="alice", priority=9)
-        small = make_running_job(s, local_store, cues=["point_info"], n_points=2, views=2, owner="bob", priority=0)
+        big = make_running_job(
+            s, local_store, cues=["point_info"], n_points=300, views=2, owner="alice", priority=9
+        )
+        small = make_running_job(
+            s, local_store, cues=["point_info"], n_points=2, views=2, owner="bob", priority=0
+        )
         tr = NullTransport()
         dispatch_once(s, tr, window=2000, budget=10)
         per = _sent_per_job(s, tr, [big, small])
@@ -41,8 +48,12 @@ def test_a_small_job_of_another_tenant_gets_half_the_pass_despite_a_big_high_pri
 
 def test_priority_is_strict_within_a_tenant(any_sm, local_store):
     with any_sm() as s:
-        low = make_running_job(s, local_store, cues=["point_info"], n_points=20, views=1, owner="alice", priority=0)
-        high = make_running_job(s, local_store, cues=["point_info"], n_points=20, views=1, owner="alice", priority=5)
+        low = make_running_job(
+            s, local_store, cues=["point_info"], n_points=20, views=1, owner="alice", priority=0
+        )
+        high = make_running_job(
+            s, local_store, cues=["point_info"], n_points=20, views=1, owner="alice", priority=5
+        )
         tr = NullTransport()
         dispatch_once(s, tr, window=2000, budget=8)
         assert _sent_per_job(s, tr, [low, high]) == {low.id: 0, high.id: 8}
@@ -81,8 +92,10 @@ def test_queued_cap_is_sized_by_live_workers(any_sm):
 
 
 def test_tenant_turns_rotate_tenants_and_keep_priority_order():
-    loads = [JobLoad(1, 0, {"rgb": {"pending": 1}}, owner="a"), JobLoad(2, 5, {"rgb": {"pending": 1}}, owner="a"),
-             JobLoad(3, 0, {"rgb": {"pending": 1}}, owner="b"), JobLoad(4, 0, {"rgb": {"queued": 9}}, owner="c")]
+    loads = [
+        JobLoad(1, 0, {"rgb": {"pending": 1}}, owner="a"), JobLoad(2, 5, {"rgb": {"pending": 1}}, owner="a"),
+        JobLoad(3, 0, {"rgb": {"pending": 1}}, owner="b"), JobLoad(4, 0, {"rgb": {"queued": 9}}, owner="c"),
+    ]
     first = tenant_turns(loads, window=5, rotation=0)
     assert [[[j.job_id for j in g] for g in t] for t in first] == [[[2], [1]], [[3]]]  # c: nothing pending
     second = tenant_turns(loads, window=5, rotation=1)

@@ -70,7 +70,9 @@ def _submit(sm: sessionmaker[Session], store: LocalStore, scenes_dir: Path, name
             **spec_overrides: object) -> int:
     with sm() as s:
         space = register_space(s, store, owner="alice", name=name, source_path=_bunny(scenes_dir))
-        job = create_job(s, owner="alice", spec=JobSpec.model_validate({**SPEC, **spec_overrides}), spaces=[space])
+        job = create_job(
+            s, owner="alice", spec=JobSpec.model_validate({**SPEC, **spec_overrides}), spaces=[space]
+        )
         s.commit()
         return job.id
 
@@ -100,14 +102,17 @@ def test_embedded_sqlite_job_runs_to_done(sqlite_sm, local_store, scenes_dir, tm
     assert len(lines) == 6 and all(set(json.loads(x)["outputs"]) == {"point_info", "rgb"} for x in lines)
     doc = json.loads(local_store.get_bytes(f"jobs/{job_id}/job.json"))
     assert len(doc["spaces"]["bunny"]["source_to_world"]) == 4
-    planned = doc["spaces"]["bunny"]  # how the frame was found, and the predicted surface share (one job.json schema)
+    # how the frame was found, and the predicted surface share (one job.json schema)
+    planned = doc["spaces"]["bunny"]
     assert planned["up"]["method"] == "base" and planned["up"]["source_direction"] == [0.0, 1.0, 0.0]
     assert planned["units"]["unit"] == "metres" and planned["valid_fraction"]["views"] == 6
 
 
 def test_a_space_without_views_fails_the_job_clearly(sqlite_sm, local_store, scenes_dir, tmp_path):
     # no bunny surface point is seen by all 8 cameras around it
-    job_id = _submit(sqlite_sm, local_store, scenes_dir, points={"count": 3, "min_views": 8, "max_tries_per_point": 5})
+    job_id = _submit(
+        sqlite_sm, local_store, scenes_dir, points={"count": 3, "min_views": 8, "max_tries_per_point": 5}
+    )
     sched = Scheduler(sqlite_sm, local_store, NullTransport(), get_settings(data_dir=tmp_path), "s")
     assert sched.tick().planned == []
     with sqlite_sm() as s:
@@ -128,7 +133,9 @@ def test_postgres_scheduler_puts_messages_on_redis(own_sm, redis_url, tmp_path, 
         transport.close()
     assert res.planned == [job_id] and res.dispatched.sent == 12
     with own_sm() as s:
-        queued = dict(s.execute(select(Task.id, Task.cue).where(Task.job_id == job_id, Task.state == "queued")).all())
+        queued = dict(
+            s.execute(select(Task.id, Task.cue).where(Task.job_id == job_id, Task.state == "queued")).all()
+        )
     got: dict[str, list[int]] = {}
     for queue in (settings.queue_render, settings.queue_derive):
         with Connection(redis_url) as conn:
@@ -190,9 +197,12 @@ def _admin(sql: str, **params: object) -> list[object]:
 
 
 def _kill_connections(db: str) -> int:
-    return len(_admin(
-        "SELECT pg_terminate_backend(pid) FROM pg_stat_activity WHERE datname = :d AND pid <> pg_backend_pid()", d=db
-    ))
+    return len(
+        _admin(
+            "SELECT pg_terminate_backend(pid) FROM pg_stat_activity WHERE datname = :d AND pid <> "
+            "pg_backend_pid()", d=db,
+        )
+    )
 
 
 def test_loop_survives_database_outage(own_pg, own_sm, tmp_path, scenes_dir, caplog):
@@ -206,7 +216,10 @@ def test_loop_survives_database_outage(own_pg, own_sm, tmp_path, scenes_dir, cap
     loop.start()
     try:
         first = _submit(own_sm, store, scenes_dir, name="one")
-        _wait(lambda: {i for i, _ in tr.sent} >= set(_ids(own_sm, first, "passes")) > set(), "first job dispatched")
+        _wait(
+            lambda: {i for i, _ in tr.sent} >= set(_ids(own_sm, first, "passes")) > set(),
+            "first job dispatched",
+        )
         # Postgres "goes down": no new connections, every open one killed (also mid-query)
         _admin(f'ALTER DATABASE "{db}" ALLOW_CONNECTIONS false')
         try:
@@ -216,7 +229,10 @@ def test_loop_survives_database_outage(own_pg, own_sm, tmp_path, scenes_dir, cap
         finally:
             _admin(f'ALTER DATABASE "{db}" ALLOW_CONNECTIONS true')
         second = _submit(own_sm, store, scenes_dir, name="two")
-        _wait(lambda: {i for i, _ in tr.sent} >= set(_ids(own_sm, second, "passes")) > set(), "second job dispatched")
+        _wait(
+            lambda: {i for i, _ in tr.sent} >= set(_ids(own_sm, second, "passes")) > set(),
+            "second job dispatched",
+        )
         _wait(lambda: "scheduler recovered" in caplog.text, "the loop recovering")
     finally:
         stop.set()
@@ -244,8 +260,10 @@ def test_cli_once_plans_and_dispatches(own_pg, own_sm, redis_url, tmp_path, scen
     job_id = _submit(own_sm, store, scenes_dir)
     env = {**os.environ, "OMNIDATA_DATABASE_URL": own_pg, "OMNIDATA_BROKER_URL": redis_url,
            "OMNIDATA_STORAGE_URL": store.root.as_uri(), "OMNIDATA_DATA_DIR": str(tmp_path)}
-    out = subprocess.run([sys.executable, "-m", "services.cli", "scheduler", "--once"], cwd=repo_root, env=env,
-                         capture_output=True, text=True, timeout=120)
+    out = subprocess.run(
+        [sys.executable, "-m", "services.cli", "scheduler", "--once"], cwd=repo_root, env=env,
+        capture_output=True, text=True, timeout=120,
+    )
     assert out.returncode == 0, out.stderr
     assert f"planned [{job_id}]" in out.stderr and "dispatched 12" in out.stderr
     with own_sm() as s:

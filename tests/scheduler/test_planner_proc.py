@@ -1,4 +1,5 @@
-"""Planning in child processes: the loop stays free, cancel ends the planner, leases follow the heartbeat rule.
+"""Planning in child processes: the loop stays free, cancel ends the planner, leases follow the heartbeat
+rule.
 
 Real Postgres (a fresh migrated database: the child processes connect on their own), a local folder store and
 real planning of the bunny.
@@ -27,9 +28,14 @@ from services.core.storage import LocalStore
 from services.scheduler.loop import Scheduler
 from services.scheduler.transport import NullTransport
 
-SMALL = {"cameras": {"mode": "object", "object_count": 4}, "points": {"count": 2, "min_views": 2, "max_views": 2},
-         "cues": ["rgb"]}
-SLOW = {"cameras": {"mode": "object", "object_count": 40}, "points": {"count": 2000, "min_views": 2, "max_views": 40}}
+SMALL = {
+    "cameras": {"mode": "object", "object_count": 4}, "points": {"count": 2, "min_views": 2, "max_views": 2},
+    "cues": ["rgb"],
+}
+SLOW = {
+    "cameras": {"mode": "object", "object_count": 40},
+    "points": {"count": 2000, "min_views": 2, "max_views": 40},
+}
 # sampling-bound: ~600 x 6,000 camera-point pairs, few views (tens of seconds here, seconds when idle)
 MINUTES = {"cameras": {"mode": "object", "object_count": 600},
            "points": {"count": 6000, "min_views": 2, "max_views": 2}, "cues": ["rgb"]}
@@ -54,7 +60,9 @@ def env(empty_pg_url: str, tmp_path: Path, scenes_dir: Path) -> Iterator[dict]:
 def submit(env: dict, spec: dict, owner: str = "alice") -> int:
     with env["sm"]() as s:
         n = s.scalar(select(func.count()).select_from(Job).where(Job.owner == owner))
-        space = register_space(s, env["store"], owner=owner, name=f"bunny-{owner}-{n}", source_path=env["bunny"])
+        space = register_space(
+            s, env["store"], owner=owner, name=f"bunny-{owner}-{n}", source_path=env["bunny"]
+        )
         job = create_job(s, owner=owner, spec=JobSpec.model_validate(spec), spaces=[space])
         s.commit()
         return int(job.id)
@@ -90,7 +98,9 @@ def test_a_job_is_planned_in_a_child_process_while_the_loop_keeps_ticking(env: d
     row = job(env, job_id)
     assert row.state == "running" and row.total_tasks > 0, row.error
     with env["sm"]() as s:
-        assert s.scalar(select(func.count()).select_from(Task).where(Task.job_id == job_id)) == row.total_tasks
+        assert (
+            s.scalar(select(func.count()).select_from(Task).where(Task.job_id == job_id)) == row.total_tasks
+        )
 
 
 def test_cancel_ends_the_planner_process(env: dict) -> None:
@@ -146,12 +156,15 @@ def test_a_planner_that_dies_counts_an_attempt_and_the_20m_spec_fails_before_pla
     tick_until(sched, lambda: not sched.planners.children, 10)  # type: ignore[union-attr]
     row = job(env, job_id)
     assert row.state == "planning" and row.plan_summary["attempts"] == 1  # type: ignore[index]  # retried later
-    with env["sm"]() as s:  # written directly, past the API's check: the scheduler checks again before planning
+    # written directly, past the API's check: the scheduler checks again before planning
+    with env["sm"]() as s:
         s.execute(update(Job).where(Job.id == job_id).values(state="cancelled"))
         s.commit()
     big = submit(env, {"cameras": {"mode": "object", "object_count": 100},
                        "points": {"count": 200000, "min_views": 2, "max_views": 100}}, owner="bob")
-    took = tick_until(sched, lambda: job(env, big).state != "planning" and job(env, big).state != "pending", 60)
+    took = tick_until(
+        sched, lambda: job(env, big).state != "planning" and job(env, big).state != "pending", 60
+    )
     row = job(env, big)
     assert row.state == "failed" and "OMNIDATA_PLAN_" in (row.error or "") and "budget" in (row.error or "")
     assert took < 30
@@ -164,25 +177,35 @@ def test_cancel_while_the_plan_is_being_written_does_not_wait_for_it(env: dict) 
     job_id = submit(env, SLOW)
     sched.plan_pending()
 
-    def writing() -> bool:  # the planner's transaction is inserting rows that reference the job (KEY SHARE on it)
+    # the planner's transaction is inserting rows that reference the job (KEY SHARE on it)
+    def writing() -> bool:
         with env["sm"]() as s:
-            return bool(s.scalar(text(
-                "SELECT count(*) FROM pg_stat_activity WHERE datname = current_database() "
-                "AND pid <> pg_backend_pid() AND state = 'active' AND (query ILIKE 'COPY%' OR query ILIKE 'INSERT%')")))
+            return bool(
+                s.scalar(
+                    text(
+                        "SELECT count(*) FROM pg_stat_activity WHERE datname = current_database() "
+                        "AND pid <> pg_backend_pid() AND state = 'active' AND (query ILIKE 'COPY%' OR "
+                        "query ILIKE 'INSERT%')"
+                    )
+                )
+            )
 
     tick_until(sched, writing, 120)
     with env["sm"]() as s:
-        s.execute(text("SET LOCAL lock_timeout = '3s'"))  # a cancel queued behind the planning would fail here
+        # a cancel queued behind the planning would fail here
+        s.execute(text("SET LOCAL lock_timeout = '3s'"))
         cancel_job(s, s.get(Job, job_id))  # type: ignore[arg-type]
         s.commit()
     child = sched.planners.children[job_id].process  # type: ignore[union-attr]
     sched.plan_pending()
     assert not sched.planners.children and job(env, job_id).state == "cancelled"  # type: ignore[union-attr]
-    assert not child.is_alive() and child.exitcode is not None and child.exitcode < 0, child.exitcode  # killed
+    # killed
+    assert not child.is_alive() and child.exitcode is not None and child.exitcode < 0, child.exitcode
 
 
 def test_planning_slots_are_shared_between_tenants(env: dict) -> None:
-    # tenant A's three big plans and tenant B's small one: B's plan starts before A's third, though A came first
+    # tenant A's three big plans and tenant B's small one: B's plan starts before A's third, though A came
+    # first
     sched = scheduler(env)  # two planning slots (OMNIDATA_PLAN_PROCESSES)
     a_jobs = [submit(env, SLOW, owner="tenant-a") for _ in range(3)]
     sched.plan_pending()
@@ -194,7 +217,8 @@ def test_planning_slots_are_shared_between_tenants(env: dict) -> None:
         s.commit()
     tick_until(sched, lambda: job(env, b_job).state != "pending", 30)
     assert job(env, a_jobs[2]).state == "pending"  # the first free slot went to B
-    with env["sm"]() as s:  # all four waiting at once: A, B, A, A (fewest plans under way first, then the oldest)
+    # all four waiting at once: A, B, A, A (fewest plans under way first, then the oldest)
+    with env["sm"]() as s:
         s.execute(update(Job).where(Job.id.in_([*a_jobs, b_job])).values(state="pending", planner=None,
                                                                           planner_lease_until=None))
         s.commit()

@@ -48,7 +48,9 @@ def _worker(s, worker_id, beat_age_s, *, current=None, done=0, queues=("render",
 
 def _pass(s, watch, tr=None, **kw):
     tr = tr or NullTransport()
-    res = resend_stuck(s, tr, get_settings(), watch, dead_after_s=DEAD_AFTER_S, stuck_after_s=DEAD_AFTER_S, **kw)
+    res = resend_stuck(
+        s, tr, get_settings(), watch, dead_after_s=DEAD_AFTER_S, stuck_after_s=DEAD_AFTER_S, **kw
+    )
     return res, tr
 
 

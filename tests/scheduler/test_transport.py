@@ -25,7 +25,8 @@ def _messages_on(redis_url: str, queue: str) -> list[dict]:
 def test_both_send_paths_put_render_cue_messages_on_the_right_queues(redis_url):
     """The fast path and plain app.send_task enqueue the same thing: render.cue(task_id) on the cue's queue.
 
-    Real workers consuming these messages are tested end to end (tests/e2e, tests/worker/test_celery_worker.py).
+    Real workers consuming these messages are tested end to end (tests/e2e,
+    tests/worker/test_celery_worker.py).
     """
     settings = get_settings(broker_url=redis_url)
     fast = [(i, "passes" if i % 4 == 0 else "rgb") for i in range(1, 61)]
@@ -67,7 +68,8 @@ def _normalised(msg: dict) -> dict:
 
 def test_prebuilt_envelope_is_the_message_kombu_stores(redis_url):
     """The Redis fast path (services.scheduler.envelope) writes exactly what Celery + kombu write for the same
-    task, key for key, apart from the fresh ids; a kombu or Celery upgrade that changes the layout fails here."""
+    task, key for key, apart from the fresh ids; a kombu or Celery upgrade that changes the layout fails
+    here."""
     settings = get_settings(broker_url=redis_url)
     for task_id, cue in ((7, "rgb"), (8, "passes")):
         for prebuilt in (True, False):  # ours, then Celery's message published by kombu
@@ -95,4 +97,8 @@ def test_fast_path_keeps_the_dispatch_order_and_unique_ids(redis_url):
         transport.close()
     msgs = list(reversed(_messages_on(redis_url, settings.queue_derive)))
     assert [json.loads(base64.b64decode(m["body"]))[0][0] for m in msgs] == list(range(1, 2501))
-    assert len({m["headers"]["id"] for m in msgs}) == len({m["properties"]["delivery_tag"] for m in msgs}) == 2500
+    assert (
+        len({m["headers"]["id"] for m in msgs})
+        == len({m["properties"]["delivery_tag"] for m in msgs})
+        == 2500
+    )

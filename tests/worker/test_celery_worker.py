@@ -57,8 +57,10 @@ def test_worker_app_is_configured_for_long_idempotent_tasks():
     assert c.worker_max_tasks_per_child == 7 and c.worker_max_memory_per_child == 512 * 1024
     assert c.broker_transport_options["visibility_timeout"] >= 3600
     assert c.task_serializer == "json" and c.result_backend is None
-    argv = worker_argv(type("A", (), {"hostname": None, "concurrency": 3, "loglevel": "INFO", "pool": "prefork"})(),
-                       ["render", "derive"])
+    argv = worker_argv(
+        type("A", (), {"hostname": None, "concurrency": 3, "loglevel": "INFO", "pool": "prefork"})(),
+        ["render", "derive"],
+    )
     assert "--queues=render,derive" in argv and "--concurrency=3" in argv
 
 
@@ -75,7 +77,9 @@ def test_default_worker_uses_every_core_one_process_each():
 
 def test_called_task_runs_the_runner_and_maps_outcomes(pg_sm, banana, runtime_reset):  # noqa: F811
     settings = get_settings(lease_s=60)
-    runner = TaskRunner(pg_sm, banana.store, settings, "celery-test", cache_dir=banana.cache_dir, render_threads=1)
+    runner = TaskRunner(
+        pg_sm, banana.store, settings, "celery-test", cache_dir=banana.cache_dir, render_threads=1
+    )
     tasks._runtime = tasks.Runtime(os.getpid(), settings, None, runner, None)
     create_app(settings)
     job_id = make_job(pg_sm, banana)
@@ -117,8 +121,11 @@ def test_unreachable_database_is_a_retry_not_a_lost_task(banana, runtime_reset):
 
 def worker_env(pg_url: str, redis_url: str, store_root: Path, data_dir: Path, **extra: str) -> dict[str, str]:
     env = {k: v for k, v in os.environ.items() if not k.startswith("OMNIDATA_")}
-    env.update(OMNIDATA_DATABASE_URL=pg_url, OMNIDATA_BROKER_URL=redis_url, OMNIDATA_STORAGE_URL=str(store_root),
-               OMNIDATA_DATA_DIR=str(data_dir), OMNIDATA_LEASE_S="30", OMNIDATA_RENDER_DEVICE="cpu", **extra)
+    env.update(
+        OMNIDATA_DATABASE_URL=pg_url, OMNIDATA_BROKER_URL=redis_url, OMNIDATA_STORAGE_URL=str(store_root),
+        OMNIDATA_DATA_DIR=str(data_dir), OMNIDATA_LEASE_S="30", OMNIDATA_RENDER_DEVICE="cpu",
+        **extra,
+    )
     return env
 
 
@@ -133,9 +140,9 @@ def wait_until(cond: Any, timeout: float, what: str, proc: subprocess.Popen[byte
 
 
 def stop_worker(proc: subprocess.Popen[bytes]) -> None:
-    """Warm shutdown as an orchestrator does it (k8s, docker stop): SIGTERM to the main process only, which then
-    stops its pool. Signalling the whole group kills the children outright (Celery resets their SIGTERM to the
-    default) and races billiard's pool shutdown. The group is killed only if that hangs."""
+    """Warm shutdown as an orchestrator does it (k8s, docker stop): SIGTERM to the main process only, which
+    then stops its pool. Signalling the whole group kills the children outright (Celery resets their SIGTERM
+    to the default) and races billiard's pool shutdown. The group is killed only if that hangs."""
     os.kill(proc.pid, signal.SIGTERM)
     try:
         proc.wait(timeout=60)
@@ -180,7 +187,8 @@ def test_real_worker_consumes_heartbeats_and_recycles_its_child(pg_url, pg_sm, r
         wait_until(lambda: states() == {"done"}, 180, "the tasks to finish", proc)
         with pg_sm() as s:
             ran_by = set(s.scalars(select(Task.worker_id).where(Task.id.in_(ids))))
-        # worker_max_tasks=2: the child process was replaced after two tasks, and both ran under the given name
+        # worker_max_tasks=2: the child process was replaced after two tasks, and both ran under the given
+        # name
         assert ran_by == {name.replace("%h", socket.gethostname())}, ran_by
         assert ran_by == {w.id for w in workers()} - before  # one row, kept across the recycle
 
@@ -193,7 +201,8 @@ def test_real_worker_consumes_heartbeats_and_recycles_its_child(pg_url, pg_sm, r
         stop_worker(proc)
         log.close()
     assert proc.returncode == 0, (tmp_path / "worker.log").read_text()[-3000:]
-    # both children rendered (bpy made a session folder in TMPDIR each) and left through os._exit: none is left
+    # both children rendered (bpy made a session folder in TMPDIR each) and left through os._exit: none is
+    # left
     assert not list(tmpdir.glob("blender_*"))
 
 
@@ -219,14 +228,16 @@ def tree_cpu_s(root_pid: int) -> float:
 
 @pytest.mark.slow
 def test_idle_worker_with_one_render_thread_does_not_spin(pg_url, pg_sm, redis_url, banana, tmp_path):  # noqa: F811
-    """After a render, a worker started with --render-threads 1 sleeps: its process tree uses < 5% of a core."""
+    """After a render, a worker started with --render-threads 1 sleeps: its process tree uses < 5% of a
+    core."""
     from services.scheduler.celery_transport import CeleryTransport
 
     env = worker_env(pg_url, redis_url, banana.store.root, tmp_path / "data")
     log = (tmp_path / "worker.log").open("wb")
-    proc = subprocess.Popen([sys.executable, "-m", "services.cli", "worker", "--concurrency", "1",
-                             "--render-threads", "1"], cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT,
-                            start_new_session=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "services.cli", "worker", "--concurrency", "1", "--render-threads", "1"],
+        cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
+    )
     try:
         job_id = make_job(pg_sm, banana)
         tid = queue(pg_sm, job_id, "passes", 0, 0)
@@ -258,7 +269,8 @@ def test_worker_engine_commits_without_waiting_for_the_wal_flush_on_postgres(pg_
             assert c.execute(text("SHOW synchronous_commit")).scalar() == "off"
     finally:
         engine.dispose()
-    sqlite = tasks.worker_engine(f"sqlite:///{tmp_path / 'w.db'}")  # SQLite has no such option: engine as usual
+    # SQLite has no such option: engine as usual
+    sqlite = tasks.worker_engine(f"sqlite:///{tmp_path / 'w.db'}")
     with sqlite.connect() as c:
         assert c.execute(text("SELECT 1")).scalar() == 1
     sqlite.dispose()

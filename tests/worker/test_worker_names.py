@@ -58,7 +58,8 @@ def test_a_named_process_takes_over_its_predecessors_row_and_tasks(pg_url, pg_sm
         runtime.close()
     with pg_sm() as s:
         task = s.get(Task, tid)
-        assert task is not None and task.lease_until is not None and task.lease_until < utcnow()  # reaper's now
+        # reaper's now
+        assert task is not None and task.lease_until is not None and task.lease_until < utcnow()
         row = s.get(Worker, name)
         assert row is not None and row.tasks_done == 6 and row.labels == {"rgb": 6}
         assert (utcnow() - row.last_heartbeat).total_seconds() < 30
@@ -67,13 +68,20 @@ def test_a_named_process_takes_over_its_predecessors_row_and_tasks(pg_url, pg_sm
 def test_a_name_alive_on_another_host_is_refused(pg_url, pg_sm, monkeypatch, tmp_path, capsys):  # noqa: F811
     name = f"w-{tmp_path.name}@{socket.gethostname()}"
     with pg_sm() as s:
-        s.add(Worker(id=name, host="another-host", queues=["render"], last_heartbeat=utcnow() - timedelta(seconds=3)))
+        s.add(
+            Worker(
+                id=name, host="another-host", queues=["render"],
+                last_heartbeat=utcnow() - timedelta(seconds=3),
+            )
+        )
         s.commit()
     monkeypatch.setenv("OMNIDATA_DATABASE_URL", pg_url)
     monkeypatch.setenv("OMNIDATA_DATA_DIR", str(tmp_path))
     assert main(["worker", "--hostname", name]) == 2
     assert f"a worker named {name!r} is alive on another-host" in capsys.readouterr().err
     with pg_sm() as s:  # gone quiet: the name is free again (this would start the worker, so only the check)
-        s.execute(update(Worker).where(Worker.id == name).values(last_heartbeat=utcnow() - timedelta(minutes=5)))
+        s.execute(
+            update(Worker).where(Worker.id == name).values(last_heartbeat=utcnow() - timedelta(minutes=5))
+        )
         s.commit()
     assert live_holder(pg_sm, name, within_s=WORKER_NAME_HELD_S) is None

@@ -36,8 +36,8 @@ class DesignFailed(RuntimeError):
 
 
 class _Child:
-    """A fresh interpreter (not a fork of the API's threads, and not a multiprocessing spawn, which would run the
-    API's main module again) serving TARGET over a socket pair; it exits when its socket closes."""
+    """A fresh interpreter (not a fork of the API's threads, and not a multiprocessing spawn, which would run
+    the API's main module again) serving TARGET over a socket pair; it exits when its socket closes."""
 
     def __init__(self) -> None:
         mine, theirs = socket.socketpair()

@@ -31,11 +31,14 @@ def _rates(request: Request) -> service.RateTracker:
     responses={404: {"description": "a space is not yours"}, 422: {"description": "invalid spec or cue"}},
 )
 def create_job(
-    body: JobCreate, request: Request, response: Response, session: SessionDep, tenant: TenantDep, settings: SettingsDep,
+    body: JobCreate, request: Request, response: Response, session: SessionDep, tenant: TenantDep,
+    settings: SettingsDep,
 ) -> JobDetail:
     """Create a generation job over your spaces; the scheduler plans and runs it."""
-    job = service.create_job(session, owner=tenant, body=body, plan_memory_mb=settings.plan_memory_mb,
-                             plan_timeout_s=settings.plan_timeout_s, plan_chunk_views=settings.plan_chunk_views)
+    job = service.create_job(
+        session, owner=tenant, body=body, plan_memory_mb=settings.plan_memory_mb,
+        plan_timeout_s=settings.plan_timeout_s, plan_chunk_views=settings.plan_chunk_views,
+    )
     response.headers["Location"] = f"/jobs/{job.id}"
     return service.job_detail(session, job, _rates(request))
 
@@ -46,7 +49,9 @@ def list_jobs(
     session: ReadSessionDep,
     tenant: TenantDep,
     page: PageDep,
-    state: Annotated[list[JobState] | None, Query(description="only jobs in these states (repeatable)")] = None,
+    state: Annotated[
+        list[JobState] | None, Query(description="only jobs in these states (repeatable)")
+    ] = None,
 ) -> Page[JobRead]:
     """Your jobs, newest first, with progress."""
     items, total = service.list_jobs(session, owner=tenant, states=state, page=page, rates=_rates(request))

@@ -74,7 +74,9 @@ def compute_progress(
             totals[s] += n
         if cue in CATALOG and not CATALOG[cue].internal:
             labels_done += by[TaskState.DONE]
-        cues[cue] = CueProgress(by_state=by, total=total, done=by[TaskState.DONE], fraction=fin / total if total else 0.0)
+        cues[cue] = CueProgress(
+            by_state=by, total=total, done=by[TaskState.DONE], fraction=fin / total if total else 0.0
+        )
     total = sum(totals.values())
     finished = sum(totals[s] for s in FINISHED_STATES)
     remaining = sum(totals[s] for s in REMAINING_STATES)
@@ -85,7 +87,11 @@ def compute_progress(
 
     rate: float | None = None
     label_rate: float | None = None
-    recent = rates.observe(job.id, finished, labels_done) if rates is not None and job.state == JobState.RUNNING else None
+    recent = (
+        rates.observe(job.id, finished, labels_done)
+        if rates is not None and job.state == JobState.RUNNING
+        else None
+    )
     if recent is not None:
         rate, label_rate = recent
     elif job.started_at is not None and finished:

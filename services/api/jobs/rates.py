@@ -21,8 +21,11 @@ class RateTracker:
         self._samples: dict[int, deque[tuple[float, int, int]]] = {}
         self._lock = threading.Lock()
 
-    def observe(self, job_id: int, finished: int, labels: int, now: float | None = None) -> tuple[float, float] | None:
-        """Record a reading (monotonic seconds); return (tasks/s, labels/s) over the window, or None if too short."""
+    def observe(
+        self, job_id: int, finished: int, labels: int, now: float | None = None
+    ) -> tuple[float, float] | None:
+        """Record a reading (monotonic seconds); return (tasks/s, labels/s) over the window, or None if too
+        short."""
         now = time.monotonic() if now is None else now
         with self._lock:
             q = self._samples.get(job_id)
@@ -46,7 +49,8 @@ class RateTracker:
             return (n1 - n0) / (t1 - t0), max(0, l1 - l0) / (t1 - t0)
 
     def idle_s(self, job_id: int, now: float | None = None) -> float:
-        """Seconds since the job's finished count last changed, as far as the kept readings tell (0 if unknown)."""
+        """Seconds since the job's finished count last changed, as far as the kept readings tell (0 if
+        unknown)."""
         now = time.monotonic() if now is None else now
         with self._lock:
             q = self._samples.get(job_id)

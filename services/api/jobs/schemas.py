@@ -68,9 +68,13 @@ class Progress(BaseModel):
     by_state: dict[str, int] = Field(description=f"every task state: {', '.join(TASK_STATES)}")
     finished: int = Field(description="done + failed + cancelled")
     fraction: float = Field(description="finished / total, 0..1")
-    throughput_per_s: float | None = Field(None, description="tasks finished per second (last minute, else average)")
+    throughput_per_s: float | None = Field(
+        None, description="tasks finished per second (last minute, else average)"
+    )
     labels_per_s: float | None = Field(None, description="output files (internal passes excluded) per second")
-    eta_s: float | None = Field(None, description="seconds until the remaining tasks finish at this throughput")
+    eta_s: float | None = Field(
+        None, description="seconds until the remaining tasks finish at this throughput"
+    )
 
 
 class JobSpaceRead(BaseModel):
@@ -81,8 +85,9 @@ class JobSpaceRead(BaseModel):
     position: int
     cues: list[str]
     frame: dict[str, Any] | None = Field(
-        None, description="once planned: up (source direction, method, confidence), units and, for point clouds, "
-        "the reconstruction"
+        None,
+        description="once planned: up (source direction, method, confidence), units and, for point clouds, "
+        "the reconstruction",
     )
 
 

@@ -93,7 +93,11 @@ def _json_list(value: Any) -> list[Any]:  # a JSON aggregate's rows, as the driv
 def detail_statement(dialect: str) -> Executable:
     """SELECT job + counters + spaces (json aggregates) for one job and owner; built once per dialect, so
     SQLAlchemy's memoized cache key is reused instead of re-traversing the statement on every poll."""
-    agg, arr = (func.json_agg, func.json_build_array) if dialect == "postgresql" else (func.json_group_array, func.json_array)
+    agg, arr = (
+        (func.json_agg, func.json_build_array)
+        if dialect == "postgresql"
+        else (func.json_group_array, func.json_array)
+    )
     job_space_cols, t = JobSpace.__table__.c, Job.__table__.c
     summed = summed_counters(t.id).subquery()  # the counter shards of the job, summed
     counters_q = select(agg(arr(summed.c.cue, summed.c.state, summed.c.n))).scalar_subquery()
@@ -120,15 +124,19 @@ def fetch_job_detail(session: Session, *, owner: str, job_id: int, rates: RateTr
     planned = (row.plan_summary or {}).get("spaces", {})
     spaces = sorted(
         (
-            JobSpaceRead(space_id=int(sid), name=name, position=int(pos), cues=list(cues if isinstance(cues, list) else json.loads(cues)),
-                         frame=frame_of(planned.get(name)))
+            JobSpaceRead(
+                space_id=int(sid), name=name, position=int(pos),
+                cues=list(cues if isinstance(cues, list) else json.loads(cues)),
+                frame=frame_of(planned.get(name)),
+            )
             for sid, name, pos, cues in _json_list(row.spaces)
         ),
         key=lambda space: (space.position, space.space_id),
     )
     base = job_read(row, counters, [space.space_id for space in spaces], rates)  # type: ignore[arg-type]
     return JobDetail(
-        **base.model_dump(), spec=row.spec, spaces=spaces, output_root=row.output_root, plan_summary=row.plan_summary
+        **base.model_dump(),
+        spec=row.spec, spaces=spaces, output_root=row.output_root, plan_summary=row.plan_summary,
     )
 
 
@@ -140,7 +148,8 @@ def job_detail(session: Session, job: Job, rates: RateTracker | None) -> JobDeta
 def list_jobs(
     session: Session, *, owner: str, states: Sequence[str] | None, page: PageParams, rates: RateTracker | None
 ) -> tuple[list[JobRead], int]:
-    """The tenant's jobs (newest first), optionally only in `states`, with progress; and the filtered total."""
+    """The tenant's jobs (newest first), optionally only in `states`, with progress; and the filtered
+    total."""
     cond = [Job.owner == owner]
     if states:
         cond.append(Job.state.in_(list(states)))
@@ -160,14 +169,19 @@ def list_jobs(
 
 
 def create_job(
-    session: Session, *, owner: str, body: JobCreate, plan_memory_mb: int | None = None, plan_timeout_s: float | None = None,
+    session: Session,
+    *,
+    owner: str, body: JobCreate, plan_memory_mb: int | None = None, plan_timeout_s: float | None = None,
     plan_chunk_views: int = DEFAULT_CHUNK_VIEWS,
 ) -> Job:
-    """Create a pending job over the tenant's spaces; 404 for a space that is not theirs, 422 for a cue it lacks
-    or a plan over the planning budget (`plan_memory_mb`, `plan_timeout_s`, planned in `plan_chunk_views`)."""
+    """Create a pending job over the tenant's spaces; 404 for a space that is not theirs, 422 for a cue it
+    lacks or a plan over the planning budget (`plan_memory_mb`, `plan_timeout_s`, planned in
+    `plan_chunk_views`)."""
     found = {
         s.id: s
-        for s in session.scalars(select(Space).where(Space.id.in_(body.space_ids), Space.owner == owner)).all()
+        for s in session.scalars(
+            select(Space).where(Space.id.in_(body.space_ids), Space.owner == owner)
+        ).all()
     }
     missing = [i for i in body.space_ids if i not in found]
     if missing:
@@ -176,7 +190,9 @@ def create_job(
         if plan_memory_mb is not None:
             check_plan_budget(body.spec, memory_mb=plan_memory_mb, timeout_s=plan_timeout_s,
                               chunk_views=plan_chunk_views)
-        job = core_jobs.create_job(session, owner=owner, spec=body.spec, spaces=[found[i] for i in body.space_ids])
+        job = core_jobs.create_job(
+            session, owner=owner, spec=body.spec, spaces=[found[i] for i in body.space_ids]
+        )
     except ValueError as e:
         session.rollback()
         raise Invalid(str(e)) from None
@@ -193,7 +209,8 @@ ACTIONS: dict[str, Callable[[Session, Job], object]] = {
 
 
 def apply_action(session: Session, *, owner: str, job_id: int, action: str) -> Job:
-    """Run a lifecycle action (cancel, pause, resume, retry) on the tenant's job; 409 if its state forbids it."""
+    """Run a lifecycle action (cancel, pause, resume, retry) on the tenant's job; 409 if its state forbids
+    it."""
     job = get_job(session, owner=owner, job_id=job_id)
     try:
         ACTIONS[action](session, job)

@@ -38,7 +38,8 @@ async def health(request: Request) -> Health:
 async def ready(
     request: Request, creds: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer_scheme)]
 ) -> JSONResponse:
-    """200 when the database, the broker (Redis PING) and the object store answer; else 503 naming the failures.
+    """200 when the database, the broker (Redis PING) and the object store answer; else 503 naming the
+    failures.
 
     Orchestrator probes call this without a token, so it answers without one; error messages (which may
     name hosts) are included only for a caller with a valid token.

@@ -70,7 +70,9 @@ async def _run(fn: Callable[[], object]) -> Check:
         await asyncio.wait_for(asyncio.to_thread(fn), timeout=CHECK_TIMEOUT_S)
         return Check(ok=True, latency_ms=round((time.perf_counter() - t0) * 1000, 2))
     except TimeoutError:
-        return Check(False, round((time.perf_counter() - t0) * 1000, 2), f"no answer within {CHECK_TIMEOUT_S:.0f} s")
+        return Check(
+            False, round((time.perf_counter() - t0) * 1000, 2), f"no answer within {CHECK_TIMEOUT_S:.0f} s"
+        )
     except Exception as e:  # any failure of a dependency means "not ready", with the reason
         return Check(False, round((time.perf_counter() - t0) * 1000, 2), f"{type(e).__name__}: {e}"[:300])
 
@@ -127,7 +129,9 @@ async def readiness(app: FastAPI) -> dict[str, Check]:
         checks["broker"] = Check(ok=True, latency_ms=0.0, skipped=True)
     # An unreachable database is reported once (database), not again as a schema failure.
     checks["schema"] = (
-        await _run(schema) if checks["database"].ok else Check(False, 0.0, "database unreachable", skipped=True)
+        await _run(schema)
+        if checks["database"].ok
+        else Check(False, 0.0, "database unreachable", skipped=True)
     )
     return checks
 
@@ -178,8 +182,11 @@ def queue_depths(app: FastAPI) -> dict[str, int | None]:
 _Cols = TypeVar("_Cols", bound=tuple[object, ...])
 
 
-def _owned(stmt: Select[_Cols], owner: str | None, job_id: InstrumentedAttribute[int] | None = None) -> Select[_Cols]:
-    """`stmt` limited to the jobs of `owner` (None: every job), joining Job on the `job_id` column if given."""
+def _owned(
+    stmt: Select[_Cols], owner: str | None, job_id: InstrumentedAttribute[int] | None = None
+) -> Select[_Cols]:
+    """`stmt` limited to the jobs of `owner` (None: every job), joining Job on the `job_id` column if
+    given."""
     if owner is None:
         return stmt
     if job_id is not None:
@@ -188,7 +195,8 @@ def _owned(stmt: Select[_Cols], owner: str | None, job_id: InstrumentedAttribute
 
 
 def _durations(session: Session, owner: str | None) -> dict[str, tuple[list[int], int, float]]:
-    """cue -> (cumulative bucket counts, count, sum) of done tasks' run times: task rows plus compacted tasks."""
+    """cue -> (cumulative bucket counts, count, sum) of done tasks' run times: task rows plus compacted
+    tasks."""
     cols = [func.sum(case((Task.duration_s <= b, 1), else_=0)) for b in DURATION_BUCKETS_S]
     rows = session.execute(
         _owned(select(Task.cue, *cols, func.count(), func.sum(Task.duration_s)), owner, Task.job_id)
@@ -196,16 +204,21 @@ def _durations(session: Session, owner: str | None) -> dict[str, tuple[list[int]
         .group_by(Task.cue)
     ).all()
     hist: dict[str, tuple[list[int], int, float]] = {
-        str(r[0]): ([int(c or 0) for c in r[1 : 1 + len(DURATION_BUCKETS_S)]], int(r[-2]), float(r[-1] or 0.0))
+        str(r[0]): (
+            [int(c or 0) for c in r[1 : 1 + len(DURATION_BUCKETS_S)]], int(r[-2]), float(r[-1] or 0.0),
+        )
         for r in rows
     }
     d = CompactedDuration
     packed = session.execute(
-        _owned(select(d.cue, d.bucket, func.sum(d.n), func.sum(d.sum_s)), owner, d.job_id).group_by(d.cue, d.bucket)
+        _owned(select(d.cue, d.bucket, func.sum(d.n), func.sum(d.sum_s)), owner, d.job_id).group_by(
+            d.cue, d.bucket
+        )
     ).all()
     for cue, bucket, n, total_s in packed:
         counts, count, total = hist.get(str(cue), ([0] * len(DURATION_BUCKETS_S), 0, 0.0))
-        counts = [c + (int(n) if int(bucket) <= i else 0) for i, c in enumerate(counts)]  # cumulative: le >= bucket
+        # cumulative: le >= bucket
+        counts = [c + (int(n) if int(bucket) <= i else 0) for i, c in enumerate(counts)]
         hist[str(cue)] = (counts, count + int(n), total + float(total_s or 0.0))
     return hist
 
@@ -216,7 +229,9 @@ def build_metrics(session: Session, app: FastAPI, owner: str | None = None) -> s
     out = _Text()
     scope = "all jobs" if owner is None else "the caller's jobs"
     by_state = dict.fromkeys(TASK_STATES, 0)
-    counters = _owned(select(JobCounter.state, func.sum(JobCounter.n)), owner, JobCounter.job_id).group_by(JobCounter.state)
+    counters = _owned(select(JobCounter.state, func.sum(JobCounter.n)), owner, JobCounter.job_id).group_by(
+        JobCounter.state
+    )
     for state, n in session.execute(counters):
         by_state[state] = int(n or 0)
     out.family("omnidata_tasks", "gauge", f"Tasks by state over {scope} (from the progress counters).")
@@ -230,9 +245,12 @@ def build_metrics(session: Session, app: FastAPI, owner: str | None = None) -> s
     for s in JOB_STATES:
         out.sample("omnidata_jobs", jobs.get(s, 0), state=s)
 
-    dispatched = sum(by_state[s] for s in (TaskState.QUEUED, TaskState.RUNNING, TaskState.DONE, TaskState.FAILED))
+    dispatched = sum(
+        by_state[s] for s in (TaskState.QUEUED, TaskState.RUNNING, TaskState.DONE, TaskState.FAILED)
+    )
     out.family(
-        "omnidata_tasks_dispatched_total", "counter", "Tasks handed to the broker at least once (existing jobs)."
+        "omnidata_tasks_dispatched_total", "counter",
+        "Tasks handed to the broker at least once (existing jobs).",
     )
     out.sample("omnidata_tasks_dispatched_total", dispatched)
     out.family("omnidata_tasks_completed_total", "counter", "Tasks that finished, by result (existing jobs).")
@@ -240,13 +258,17 @@ def build_metrics(session: Session, app: FastAPI, owner: str | None = None) -> s
     out.sample("omnidata_tasks_completed_total", by_state[TaskState.FAILED], result="failed")
 
     if owner is None:
-        out.family("omnidata_queue_depth", "gauge", "Messages waiting in a broker queue (Redis LLEN); -1 if unknown.")
+        out.family(
+            "omnidata_queue_depth", "gauge", "Messages waiting in a broker queue (Redis LLEN); -1 if unknown."
+        )
         for q, n in queue_depths(app).items():
             out.sample("omnidata_queue_depth", -1 if n is None else n, queue=q)
 
     stale_s = app.state.settings.heartbeat_timeout_s  # the reaper's "dead" age, as /workers uses
     cutoff = utcnow() - timedelta(seconds=stale_s)
-    alive = session.scalar(select(func.count()).select_from(Worker).where(Worker.last_heartbeat >= cutoff)) or 0
+    alive = (
+        session.scalar(select(func.count()).select_from(Worker).where(Worker.last_heartbeat >= cutoff)) or 0
+    )
     total_workers = session.scalar(select(func.count()).select_from(Worker)) or 0
     out.family("omnidata_workers", "gauge", f"Workers by heartbeat (alive: within {stale_s:.0f} s).")
     out.sample("omnidata_workers", alive, status="alive")
@@ -263,7 +285,8 @@ def build_metrics(session: Session, app: FastAPI, owner: str | None = None) -> s
 
 
 def cached_metrics(app: FastAPI, owner: str | None = None) -> str:
-    """build_metrics for `owner` (None: service-wide), reused for METRICS_TTL_S seconds (one builder at a time)."""
+    """build_metrics for `owner` (None: service-wide), reused for METRICS_TTL_S seconds (one builder at a
+    time)."""
     cache: dict[str | None, tuple[float, str]] = app.state.metrics_cache  # owner -> (built at, text)
     with _metrics_lock:
         hit = cache.get(owner)

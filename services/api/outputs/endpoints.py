@@ -1,4 +1,5 @@
-"""Output routes: a view's cue files as pre-signed links, the job's manifest.jsonl and job.json, signed blobs."""
+"""Output routes: a view's cue files as pre-signed links, the job's manifest.jsonl and job.json, signed
+blobs."""
 
 from __future__ import annotations
 
@@ -42,7 +43,8 @@ def _signed_key(route: str) -> Callable[..., str]:
         expires: Annotated[int, Query(ge=0, le=2**62)],
         signature: Annotated[str, Query(pattern="^[0-9a-f]{64}$", description="hex HMAC from the link")],
     ) -> str:
-        """The `{key:path}` of a signed link, once its signature checked out (403) and it is the job's (404)."""
+        """The `{key:path}` of a signed link, once its signature checked out (403) and it is the job's
+        (404)."""
         service.check_single_link_params(request.query_params.multi_items())
         service.verify_blob(settings, route=route, job_id=job, key=key, expires=expires, signature=signature)
         service.check_job_key(session, job_id=job, key=key)
@@ -70,7 +72,8 @@ def view_outputs(
     settings: SettingsDep,
     tenant: TenantDep,
 ) -> ViewOutputs:
-    """Links to every finished cue file of view `view` of point `point`; they expire after presign_expiry_s."""
+    """Links to every finished cue file of view `view` of point `point`; they expire after
+    presign_expiry_s."""
     job = get_job(session, owner=tenant, job_id=job_id)
     row = session.execute(
         select(View.v, Space.name)
@@ -81,9 +84,12 @@ def view_outputs(
         raise not_found("view", f"{space_id}/{point}/{view} of job {job_id}")
     tasks = service.view_tasks(session, job=job, space_id=space_id, point=point, view=view)
     outputs = service.links(
-        store, settings, job=job, space_name=row[1], tasks=tasks, base_url=service.link_base(settings), view=view
+        store, settings, job=job, space_name=row[1], tasks=tasks, base_url=service.link_base(settings),
+        view=view,
     )
-    return ViewOutputs(job_id=job.id, space_id=space_id, space=row[1], point=point, view=view, outputs=outputs)
+    return ViewOutputs(
+        job_id=job.id, space_id=space_id, space=row[1], point=point, view=view, outputs=outputs
+    )
 
 
 MANIFEST_CHUNK_POINTS = 100  # points read per short session while streaming: ~300 lines, a few hundred KB
@@ -96,8 +102,11 @@ MANIFEST_CHUNK_POINTS = 100  # points read per short session while streaming: ~3
     responses={200: {"content": {"application/x-ndjson": {}}}, 429: {"description": "too many bulk reads"}},
     dependencies=[BulkSlot],
 )
-def manifest(job_id: JobId, request: Request, session: ReadSessionDep, tenant: TenantDep) -> StreamingResponse:
-    """manifest.jsonl rebuilt from the database: {space, point, view, outputs: {cue: {key, size, sha256}}} per line."""
+def manifest(
+    job_id: JobId, request: Request, session: ReadSessionDep, tenant: TenantDep
+) -> StreamingResponse:
+    """manifest.jsonl rebuilt from the database: {space, point, view, outputs: {cue: {key, size, sha256}}} per
+    line."""
     job = get_job(session, owner=tenant, job_id=job_id)  # 404 before the stream starts
     maker = request.app.state.read_sessionmaker
 
@@ -125,7 +134,9 @@ def job_json(job_id: JobId, session: ReadSessionDep, tenant: TenantDep) -> JSONR
 @router.get(
     "/blobs/{key:path}",
     summary="Fetch an output through a signed link (local stores)",
-    responses={200: {"content": {"application/octet-stream": {}}}, 403: {"description": "bad or expired link"}},
+    responses={
+        200: {"content": {"application/octet-stream": {}}}, 403: {"description": "bad or expired link"},
+    },
 )
 def blob(key: SignedBlobKey, store: StoreDep) -> Response:
     """Serve an object named by a link from the outputs routes; the signature is the credential."""
@@ -156,7 +167,8 @@ def blob(key: SignedBlobKey, store: StoreDep) -> Response:
     responses={200: {"content": {"image/png": {}}}, 403: {"description": "bad or expired link"}},
 )
 async def preview(key: SignedPreviewKey, request: Request, store: StoreDep) -> Response:
-    """Serve the preview named by a `preview_url` of the outputs routes, making and storing it when missing."""
+    """Serve the preview named by a `preview_url` of the outputs routes, making and storing it when
+    missing."""
     # decoding a cue file and drawing it is CPU work: a few at a time, or a gallery of 100 starves the rest
     limiter = request.app.state.preview_draws.get()
     data = await anyio.to_thread.run_sync(functools.partial(_preview_png, store, key), limiter=limiter)

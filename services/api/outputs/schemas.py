@@ -18,7 +18,9 @@ class OutputLink(BaseModel):
     sha256: str | None = None
     content_type: str
     preview_url: str | None = Field(
-        None, description="signed link to an 8-bit PNG preview (colour maps, palettes), made on first request and cached"
+        None,
+        description="signed link to an 8-bit PNG preview (colour maps, palettes), made on first request and "
+        "cached",
     )
 
 

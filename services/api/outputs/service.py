@@ -1,4 +1,5 @@
-"""Output links: pre-signed URLs that expire (S3's own; for a local store, HMAC-signed links served by the API).
+"""Output links: pre-signed URLs that expire (S3's own; for a local store, HMAC-signed links served by the
+API).
 
 A job's outputs are the done tasks' objects under its output root. S3 stores sign their own GET URLs; a local
 folder store has no URL a browser can fetch, so the API signs `/blobs/<key>?job=&expires=&signature=` with
@@ -53,7 +54,9 @@ def link_base(settings: Settings) -> str:
     return (settings.public_base_url or "").rstrip("/")
 
 
-def blob_signature(settings: Settings, key: str, expires: int, *, route: str = "blobs", job_id: int = 0) -> str:
+def blob_signature(
+    settings: Settings, key: str, expires: int, *, route: str = "blobs", job_id: int = 0
+) -> str:
     """HMAC-SHA256 (hex) of the route, job, `key` and expiry (unix seconds) under the service's secret key."""
     msg = f"{route}\n{job_id}\n{key}\n{expires}".encode()
     return hmac.new(settings.secret_key.get_secret_value().encode(), msg, hashlib.sha256).hexdigest()
@@ -72,7 +75,9 @@ def check_single_link_params(items: list[tuple[str, str]]) -> None:
 
 
 def verify_blob(
-    settings: Settings, *, route: str, job_id: int, key: str, expires: int, signature: str, now: float | None = None
+    settings: Settings,
+    *,
+    route: str, job_id: int, key: str, expires: int, signature: str, now: float | None = None,
 ) -> None:
     """403 unless `signature` signs (route, job, key) until `expires` and that time has not passed."""
     want = blob_signature(settings, key, expires, route=route, job_id=job_id)
@@ -92,12 +97,15 @@ def check_job_key(session: Session, *, job_id: int, key: str) -> Job:
 
 
 def signed_link(settings: Settings, route: str, *, job_id: int, key: str, base_url: str, expires: int) -> str:
-    """`<base_url>/<route>/<key>?job=&expires=&signature=`: an API route serving `key` while the HMAC holds."""
+    """`<base_url>/<route>/<key>?job=&expires=&signature=`: an API route serving `key` while the HMAC
+    holds."""
     sig = blob_signature(settings, key, expires, route=route, job_id=job_id)
     return f"{base_url.rstrip('/')}/{route}/{quote(key)}?job={job_id}&expires={expires}&signature={sig}"
 
 
-def presign(store: ObjectStore, settings: Settings, *, job_id: int, key: str, base_url: str) -> tuple[str, datetime]:
+def presign(
+    store: ObjectStore, settings: Settings, *, job_id: int, key: str, base_url: str
+) -> tuple[str, datetime]:
     """A URL fetching `key` without a token until the returned time (settings.presign_expiry_s from now)."""
     expiry_s = settings.presign_expiry_s
     expires = int(time.time()) + expiry_s
@@ -125,13 +133,16 @@ def relative_key(job: Job, key: str) -> str:
 
 
 def signed_preview_url(settings: Settings, *, job_id: int, key: str, base_url: str) -> str:
-    """`/previews/<preview key>?job=&expires=&signature=`: the preview is made on first use, then served cached."""
+    """`/previews/<preview key>?job=&expires=&signature=`: the preview is made on first use, then served
+    cached."""
     expires = int(time.time()) + settings.presign_expiry_s
     return signed_link(settings, "previews", job_id=job_id, key=key, base_url=base_url, expires=expires)
 
 
 def links(
-    store: ObjectStore, settings: Settings, *, job: Job, space_name: str, tasks: Iterable[Task], base_url: str,
+    store: ObjectStore, settings: Settings,
+    *,
+    job: Job, space_name: str, tasks: Iterable[Task], base_url: str,
     view: int | None = None,
 ) -> dict[str, OutputLink]:
     """Pre-signed links to the outputs of done, public (non-internal) tasks, by cue in catalog order.
@@ -161,7 +172,8 @@ def links(
 
 
 def view_tasks(session: Session, *, job: Job, space_id: int, point: int, view: int) -> list[Task]:
-    """The tasks of one view, plus the per-point cues of its point (stored on view 0); compacted views' too."""
+    """The tasks of one view, plus the per-point cues of its point (stored on view 0); compacted views'
+    too."""
     per_point = [n for n, c in CATALOG.items() if c.per_point]
     rows = session.scalars(
         select(Task).where(
@@ -174,5 +186,7 @@ def view_tasks(session: Session, *, job: Job, space_id: int, point: int, view: i
     at = (ViewOutput.job_id == job.id) & (ViewOutput.space_id == space_id) & (ViewOutput.point_idx == point)
     packed = compacted_tasks(session, job, at & (ViewOutput.view_idx == view))
     if view != 0:
-        packed += [t for t in compacted_tasks(session, job, at & (ViewOutput.view_idx == 0)) if t.cue in per_point]
+        packed += [
+            t for t in compacted_tasks(session, job, at & (ViewOutput.view_idx == 0)) if t.cue in per_point
+        ]
     return [*rows, *packed]

@@ -2,8 +2,8 @@
 
 Both accept the token as `Authorization: Bearer` or, for browsers' EventSource, as `?token=`.
 Events: `job` (JSON like JobEvent) when a job's counters or state change, `deleted` ({"id"}) when it is gone;
-comment lines are heartbeats. A job's own stream ends with an `end` event ({"id", "state"}) and closes once the
-job reaches a final state (done, failed, cancelled); /events stays open. A tenant holds at most
+comment lines are heartbeats. A job's own stream ends with an `end` event ({"id", "state"}) and closes once
+the job reaches a final state (done, failed, cancelled); /events stays open. A tenant holds at most
 OMNIDATA_SSE_MAX_PER_TENANT streams at once (429 beyond).
 """
 

@@ -1,4 +1,5 @@
-"""Server-sent progress events: poll the counters every ~0.5 s, send a job only when its counts or state change.
+"""Server-sent progress events: poll the counters every ~0.5 s, send a job only when its counts or state
+change.
 
 Each SSE connection polls in a worker thread with a short-lived session, so no connection is held between
 polls. Change detection ignores throughput/ETA (they drift with the clock) and compares state, error and
@@ -31,7 +32,9 @@ from services.core.domain.json_types import JSONObject
 log = logging.getLogger("omnidata.api")
 
 MAX_JOBS_PER_STREAM = 500  # /events follows the caller's most recent jobs
-_JOB_COLUMNS = (Job.id, Job.owner, Job.name, Job.state, Job.error, Job.started_at, Job.finished_at, Job.created_at)
+_JOB_COLUMNS = (
+    Job.id, Job.owner, Job.name, Job.state, Job.error, Job.started_at, Job.finished_at, Job.created_at,
+)
 
 
 @dataclass
@@ -84,13 +87,18 @@ def read_jobs(
     session.rollback()  # end the read transaction: the next poll must see new commits
     final = final if final is not None else {}
     # Counters of finished jobs do not move (unless a retry makes the job run again, which changes its state).
-    known = {j.id: final[j.id][1] for j in jobs
-             if j.state in JOB_TERMINAL_STATES and j.id in final and final[j.id][0] == (j.state, j.finished_at)}
+    known = {
+        j.id: final[j.id][1]
+        for j in jobs
+        if j.state in JOB_TERMINAL_STATES and j.id in final and final[j.id][0] == (j.state, j.finished_at)
+    }
     fresh = read_counters(session, [j.id for j in jobs if j.id not in known])
     session.rollback()
     counters = {j.id: known.get(j.id, fresh.get(j.id, {})) for j in jobs}
     final.clear()
-    final.update({j.id: ((j.state, j.finished_at), counters[j.id]) for j in jobs if j.state in JOB_TERMINAL_STATES})
+    final.update(
+        {j.id: ((j.state, j.finished_at), counters[j.id]) for j in jobs if j.state in JOB_TERMINAL_STATES}
+    )
     return JobsRead(jobs, counters)
 
 

@@ -1,10 +1,10 @@
 """One database read per tenant and poll interval, shared by all of that tenant's event streams.
 
 Every stream used to read its jobs and counters itself, twice a second: 200 streams were 400 reads a second in
-the API process, whose Python work (under the GIL) delayed everything else it served, /health included. Streams
-that follow the same jobs (the same tenant, and the same job or all of them) now share a read younger than
-`max_age_s` (half the poll interval, so an event is at most that much later), and each stream only compares it
-with what it has already sent.
+the API process, whose Python work (under the GIL) delayed everything else it served, /health included.
+Streams that follow the same jobs (the same tenant, and the same job or all of them) now share a read younger
+than `max_age_s` (half the poll interval, so an event is at most that much later), and each stream only
+compares it with what it has already sent.
 """
 
 from __future__ import annotations
@@ -52,12 +52,17 @@ class SharedPolls:
                     self._forget_oldest()
             return read
 
-    def poll(self, owner: str, job_id: int | None, snap: Snapshot, rates: RateTracker) -> tuple[list[JSONObject], list[int]]:
-        """What a stream following (owner, job_id) has not sent yet: changed jobs and deleted ids; updates `snap`."""
+    def poll(
+        self, owner: str, job_id: int | None, snap: Snapshot, rates: RateTracker
+    ) -> tuple[list[JSONObject], list[int]]:
+        """What a stream following (owner, job_id) has not sent yet: changed jobs and deleted ids; updates
+        `snap`."""
         return diff_jobs(self.read(owner, job_id), job_id=job_id, snap=snap, rates=rates)
 
     def _forget_oldest(self) -> None:
-        for key, _ in sorted(self._reads.items(), key=lambda kv: kv[1][0])[: len(self._reads) - MAX_ENTRIES // 2]:
+        for key, _ in sorted(self._reads.items(), key=lambda kv: kv[1][0])[
+            : len(self._reads) - MAX_ENTRIES // 2
+        ]:
             self._reads.pop(key, None)
             self._final.pop(key, None)
             self._locks.pop(key, None)

@@ -44,20 +44,24 @@ _UPLOAD_BODY: JSONObject = {
                         "file": {
                             "type": "string",
                             "format": "binary",
-                            "description": "a mesh (.ply, .obj, .glb, .gltf), a point cloud (.ply, .xyz, .pts) "
-                            "or a .zip with mesh + textures",
+                            "description": "a mesh (.ply, .obj, .glb, .gltf), a point cloud "
+                            "(.ply, .xyz, .pts) or a .zip with mesh + textures",
                         },
                         "capture": {
                             "type": "string",
                             "format": "binary",
-                            "description": "optional: a .zip of the scan's posed capture (COLMAP, transforms.json, "
-                            "ScanNet export, 7-Scenes frames, camera_poses.json), stored with the scan",
+                            "description": "optional: a .zip of the scan's posed capture (COLMAP, "
+                            "transforms.json, ScanNet export, 7-Scenes frames, camera_poses.json), stored "
+                            "with the scan",
                         },
                         "name": {"type": "string", "description": "default: the file name without extension"},
                         "up_axis": {"type": "string", "enum": ["auto", "+x", "-x", "+y", "-y", "+z", "-z"]},
                         "unit_scale": {
-                            "anyOf": [{"type": "number", "exclusiveMinimum": 0, "maximum": 1000}, {"const": "auto"}],
-                            "description": "metres per source unit, or auto (default: from the storey height)",
+                            "anyOf": [
+                                {"type": "number", "exclusiveMinimum": 0, "maximum": 1000}, {"const": "auto"},
+                            ],
+                            "description": "metres per source unit, or auto (default: from the storey "
+                            "height)",
                         },
                     },
                 }
@@ -78,7 +82,8 @@ _UPLOAD_BODY: JSONObject = {
     dependencies=[ScanSlot],
 )
 async def upload_space(
-    request: Request, response: Response, session: SessionDep, store: StoreDep, settings: SettingsDep, tenant: TenantDep
+    request: Request, response: Response, session: SessionDep, store: StoreDep, settings: SettingsDep,
+    tenant: TenantDep,
 ) -> SpaceRead:
     """Upload a mesh or archive; it is validated (format, counts, units, bounds) before it is stored."""
     # named after this process (swept at start-up if it is killed); made and removed off the event loop
@@ -128,7 +133,8 @@ async def register_space(
     body: SpaceRegister, request: Request, response: Response, session: SessionDep, store: StoreDep,
     settings: SettingsDep, tenant: TenantDep,
 ) -> SpaceRead:
-    """Register an object staged under `uploads/<tenant>/` in the service's store (validated like an upload)."""
+    """Register an object staged under `uploads/<tenant>/` in the service's store (validated like an
+    upload)."""
     key = service.staged_key(settings, owner=tenant, key=body.key, uri=body.uri)
     register = functools.partial(service.register_staged, session, store, settings, owner=tenant, key=key,
                                   name=body.name, up_axis=body.up_axis, unit_scale=body.unit_scale)
@@ -166,7 +172,9 @@ async def _read_scan(request: Request, func: Callable[..., T], *args: Any) -> T:
     return await anyio.to_thread.run_sync(functools.partial(func, *args), limiter=limiter)
 
 
-CandidateIndex = Annotated[int, PathParam(ge=0, le=2, description="0: detection's best, 1: the runner-up, 2: the next")]
+CandidateIndex = Annotated[
+    int, PathParam(ge=0, le=2, description="0: detection's best, 1: the runner-up, 2: the next")
+]
 
 
 @router.get("/{space_id}/up-candidates/{index}.png", summary="Side view of a space under an up candidate",
@@ -175,7 +183,8 @@ CandidateIndex = Annotated[int, PathParam(ge=0, le=2, description="0: detection'
 async def up_candidate_preview(space_id: SpaceId, index: CandidateIndex, request: Request,
                                session: ReadSessionDep, store: StoreDep, settings: SettingsDep,
                                tenant: TenantDep) -> Response:
-    """A small PNG: the scan seen from the side with up candidate `index` pointing to the top of the picture."""
+    """A small PNG: the scan seen from the side with up candidate `index` pointing to the top of the
+    picture."""
     space = await run_in_threadpool(service.get_space_released, session, owner=tenant, space_id=space_id)
     png = await _read_scan(request, up_choice.candidate_preview, store, settings, space, index)
     return Response(png, media_type="image/png", headers={"Cache-Control": "private, max-age=3600"})
@@ -185,7 +194,8 @@ async def up_candidate_preview(space_id: SpaceId, index: CandidateIndex, request
             responses=_BUSY, dependencies=[ScanSlot])
 async def choose_up(space_id: SpaceId, body: UpChoice, request: Request, session: SessionDep, store: StoreDep,
                     settings: SettingsDep, tenant: TenantDep) -> SpaceRead:
-    """Store the up (source coordinates) and/or units a person picked; later jobs plan the space in that frame."""
+    """Store the up (source coordinates) and/or units a person picked; later jobs plan the space in that
+    frame."""
     space = await run_in_threadpool(service.get_space_released, session, owner=tenant, space_id=space_id)
     loaded = await _read_scan(request, up_choice.load_choice, store, settings, space, body.up,
                               body.unit_scale)

@@ -11,7 +11,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from services.core.db.frame_choice import needs_frame
 from services.core.db.models import Space
 from services.core.domain.cues import default_cues
-from services.core.domain.jobspec import MAX_UNIT_SCALE, parse_unit_scale
+from services.core.domain.frame_values import MAX_UNIT_SCALE, parse_unit_scale
 from services.core.domain.keys import check_name
 from services.core.ingest.frame.resolve import frame_of
 
@@ -24,10 +24,14 @@ class SpaceOptions(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     name: str | None = Field(None, description="unique per tenant; default: the file name without extension")
-    up_axis: UpAxis = Field("auto", description="source axis pointing up; auto detects floors in any orientation")
+    up_axis: UpAxis = Field(
+        "auto", description="source axis pointing up; auto detects floors in any orientation"
+    )
     unit_scale: float | Literal["auto"] = Field(
         "auto", description="metres per source unit, or auto (from the storey height of rooms)",
-        json_schema_extra={"anyOf": [{"type": "number", "exclusiveMinimum": 0, "maximum": 1000}, {"const": "auto"}]},
+        json_schema_extra={
+            "anyOf": [{"type": "number", "exclusiveMinimum": 0, "maximum": 1000}, {"const": "auto"}]
+        },
     )
 
     @field_validator("name")
@@ -42,7 +46,8 @@ class SpaceOptions(BaseModel):
 
 
 class SpaceRegister(SpaceOptions):
-    """Register a scan already in the service's object store (uploaded there directly, e.g. with the AWS CLI)."""
+    """Register a scan already in the service's object store (uploaded there directly, e.g. with the AWS
+    CLI)."""
 
     model_config = ConfigDict(extra="forbid", strict=True)  # a JSON body, unlike the upload's form fields
 
@@ -56,7 +61,8 @@ class SpaceRegister(SpaceOptions):
         None,
         min_length=1,
         max_length=2048,
-        description="the same object as a URI of the service's store (s3://bucket/prefix/uploads/<tenant>/...)",
+        description="the same object as a URI of the service's store "
+        "(s3://bucket/prefix/uploads/<tenant>/...)",
     )
 
     @field_validator("unit_scale", mode="plain")
@@ -70,10 +76,15 @@ class UpChoice(BaseModel):
 
     model_config = ConfigDict(extra="forbid", strict=True)
 
-    up: list[float] | None = Field(None, min_length=3, max_length=3,
-                                   description="[x, y, z], source coordinates; any length (omitted: the detected up)")
-    unit_scale: float | None = Field(None, gt=0, le=MAX_UNIT_SCALE, description="metres per source unit, when the "
-                                     "units were ambiguous (omitted: the upload's, or chosen from the storey)")
+    up: list[float] | None = Field(
+        None, min_length=3, max_length=3,
+        description="[x, y, z], source coordinates; any length (omitted: the detected up)",
+    )
+    unit_scale: float | None = Field(
+        None, gt=0, le=MAX_UNIT_SCALE,
+        description="metres per source unit, when the "
+        "units were ambiguous (omitted: the upload's, or chosen from the storey)",
+    )
 
     @field_validator("up")
     @classmethod
@@ -98,7 +109,9 @@ class SpaceRead(BaseModel):
     checksum: str = Field(description="sha256 hex of the uploaded bytes")
     unit_scale: float
     up_axis: str
-    bounds: list[list[float]] | None = Field(None, description="[[minx,miny,minz],[maxx,maxy,maxz]] in metres, world frame")
+    bounds: list[list[float]] | None = Field(
+        None, description="[[minx,miny,minz],[maxx,maxy,maxz]] in metres, world frame"
+    )
     source_to_world: list[list[float]] | None = None
     face_count: int
     vertex_count: int
@@ -112,7 +125,9 @@ class SpaceRead(BaseModel):
     )
     needs_frame: bool = Field(False, description="up detection could not decide and nobody has picked one: "
                               "jobs are refused until PUT /spaces/{id}/up (or a job spec that sets up)")
-    up_choice: dict[str, Any] | None = Field(None, description="the up a person picked (source coordinates), by whom")
+    up_choice: dict[str, Any] | None = Field(
+        None, description="the up a person picked (source coordinates), by whom"
+    )
     created_at: datetime
 
     @classmethod

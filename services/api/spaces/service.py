@@ -21,7 +21,8 @@ STAGING_PREFIX = "uploads"  # tenants stage big scans under uploads/<tenant>/ an
 
 
 def not_found(kind: str, ident: object) -> NotFound:
-    """NotFound (404) for a missing object, and for another tenant's (never 403: existence is not revealed)."""
+    """NotFound (404) for a missing object, and for another tenant's (never 403: existence is not
+    revealed)."""
     return NotFound(f"{kind} {ident} not found")
 
 
@@ -29,7 +30,11 @@ def list_spaces(session: Session, *, owner: str, page: PageParams) -> tuple[list
     """The tenant's spaces, newest first, and how many there are."""
     total = session.scalar(select(func.count()).select_from(Space).where(Space.owner == owner)) or 0
     rows = session.scalars(
-        select(Space).where(Space.owner == owner).order_by(Space.id.desc()).limit(page.limit).offset(page.offset)
+        select(Space)
+        .where(Space.owner == owner)
+        .order_by(Space.id.desc())
+        .limit(page.limit)
+        .offset(page.offset)
     ).all()
     return list(rows), int(total)
 
@@ -53,7 +58,9 @@ def get_space_released(session: Session, *, owner: str, space_id: int) -> Space:
 def _check_name_free(session: Session, *, owner: str, name: str) -> None:
     existing = session.scalar(select(Space.id).where(Space.owner == owner, Space.name == name))
     if existing is not None:
-        raise Conflict(f"a space named {name!r} already exists (id {existing}); choose another name or delete it first")
+        raise Conflict(
+            f"a space named {name!r} already exists (id {existing}); choose another name or delete it first"
+        )
 
 
 def default_name(filename: str) -> str:
@@ -72,7 +79,8 @@ def create_space(
     up_axis: str,
     unit_scale: float | str,
 ) -> Space:
-    """Validate the scan at `source_path` and register it (stored under spaces/<id>/); 422 when it is unusable."""
+    """Validate the scan at `source_path` and register it (stored under spaces/<id>/); 422 when it is
+    unusable."""
     _check_name_free(session, owner=owner, name=name)
     try:
         # parsed in a child process with memory and time limits: a hostile file cannot take the API down
@@ -85,7 +93,8 @@ def create_space(
             timeout_s=settings.upload_parse_timeout_s,
         )
         space = register_space(
-            session, store, owner=owner, name=name, source_path=source_path, up_axis=up_axis, unit_scale=unit_scale,
+            session, store, owner=owner, name=name, source_path=source_path, up_axis=up_axis,
+            unit_scale=unit_scale,
             loaded=loaded,
         )
         session.commit()
@@ -111,7 +120,10 @@ def staged_key(settings: Settings, *, owner: str, key: str | None, uri: str | No
         raise Invalid(str(e)) from None
     area = f"{STAGING_PREFIX}/{owner}/"
     if not key.startswith(area):
-        raise Invalid(f"key {key!r} is outside your staging area: stage scans under '{area}' and register them from there")
+        raise Invalid(
+            f"key {key!r} is outside your staging area: stage scans under '{area}' and register them "
+            "from there"
+        )
     return key
 
 
@@ -131,7 +143,9 @@ def register_staged(
     if info is None:
         raise not_found("object", repr(key))
     if info.size > settings.upload_max_bytes:
-        raise TooLarge(f"object {key!r} has {info.size} bytes, above the limit of {settings.upload_max_bytes}")
+        raise TooLarge(
+            f"object {key!r} has {info.size} bytes, above the limit of {settings.upload_max_bytes}"
+        )
     filename = key.rsplit("/", 1)[-1]
     name = name or default_name(filename)
     _check_name_free(session, owner=owner, name=name)
@@ -142,7 +156,8 @@ def register_staged(
         except ObjectNotFoundError:
             raise not_found("object", repr(key)) from None
         return create_space(
-            session, store, settings, owner=owner, name=name, source_path=path, up_axis=up_axis, unit_scale=unit_scale
+            session, store, settings, owner=owner, name=name, source_path=path, up_axis=up_axis,
+            unit_scale=unit_scale,
         )
 
 
@@ -150,10 +165,15 @@ def delete_space(session: Session, store: ObjectStore, *, owner: str, space_id: 
     """Delete the space and its stored source; 409 while jobs still use it."""
     space = get_space(session, owner=owner, space_id=space_id)
     job_ids = session.scalars(
-        select(JobSpace.job_id).join(Job, Job.id == JobSpace.job_id).where(JobSpace.space_id == space.id).limit(20)
+        select(JobSpace.job_id)
+        .join(Job, Job.id == JobSpace.job_id)
+        .where(JobSpace.space_id == space.id)
+        .limit(20)
     ).all()
     if job_ids:
-        raise Conflict(f"space {space_id} is used by job(s) {', '.join(map(str, job_ids))}; delete those jobs first")
+        raise Conflict(
+            f"space {space_id} is used by job(s) {', '.join(map(str, job_ids))}; delete those jobs first"
+        )
     # a DELETE that matches no row lost a race with another delete of the space: that one answered 204
     res = session.execute(delete(Space).where(Space.id == space.id, Space.owner == owner))
     if int(res.rowcount or 0) != 1:  # type: ignore[attr-defined]

@@ -38,13 +38,16 @@ def _limits(settings: Settings) -> tuple[int, int, float]:
 
 
 def _load_limited(limits: tuple[int, int, float], path: Path, **frame: Unpack[SpaceFrame]) -> LoadedSpace:
-    """`load_space` in the upload's memory-, CPU- and time-limited child: never the scan's parser in the API."""
+    """`load_space` in the upload's memory-, CPU- and time-limited child: never the scan's parser in the
+    API."""
     max_faces, memory_mb, timeout_s = limits
     return load_space_limited(path, max_faces=max_faces, memory_mb=memory_mb, timeout_s=timeout_s, **frame)
 
 
 @functools.lru_cache(maxsize=8)
-def _source_mesh(path: str, checksum: str, source_to_world: str, limits: tuple[int, int, float]) -> trimesh.Trimesh:
+def _source_mesh(
+    path: str, checksum: str, source_to_world: str, limits: tuple[int, int, float]
+) -> trimesh.Trimesh:
     """The source-frame mesh of a space file (kept for a few spaces: its previews load it once).
 
     Loaded in the limited child in the space's stored frame, then taken back to source coordinates.

@@ -22,7 +22,8 @@ if TYPE_CHECKING:  # defined for type checkers only
     from python_multipart.multipart import MultipartCallbacks
 
 FILE_FIELD = "file"
-CAPTURE_FIELD = "capture"  # optional: a .zip of the scan's posed capture (photos + poses), sent beside the scan
+# optional: a .zip of the scan's posed capture (photos + poses), sent beside the scan
+CAPTURE_FIELD = "capture"
 MAX_FIELDS = 16
 MAX_FIELD_BYTES = 4096
 MULTIPART_OVERHEAD = 64 * 1024  # headers and boundaries a Content-Length may add on top of the file
@@ -70,7 +71,8 @@ class _FileOps:
         self.queue.append(("close", None))
 
     def run(self) -> None:
-        """Do the queued work, in order (called in a worker thread; hashlib releases the GIL on big buffers)."""
+        """Do the queued work, in order (called in a worker thread; hashlib releases the GIL on big
+        buffers)."""
         queue, self.queue = self.queue, []
         for op, arg in queue:
             if op == "open":
@@ -113,8 +115,8 @@ def _too_large(max_bytes: int) -> HTTPException:
 
 
 class _FormReader:
-    """The python-multipart callbacks of one request, sharing its parse state: the current part and its headers,
-    the file work queued for a worker thread, and the first error (raised after the chunk)."""
+    """The python-multipart callbacks of one request, sharing its parse state: the current part and its
+    headers, the file work queued for a worker thread, and the first error (raised after the chunk)."""
 
     def __init__(self, dest_dir: Path, max_bytes: int) -> None:
         self.dest_dir = dest_dir
@@ -169,7 +171,9 @@ class _FormReader:
             self.fail(status.HTTP_422_UNPROCESSABLE_CONTENT, "send at most one 'capture' part")
             return
         if not name.lower().endswith(".zip"):
-            self.fail(status.HTTP_422_UNPROCESSABLE_CONTENT, "the 'capture' part must be a .zip of the capture")
+            self.fail(
+                status.HTTP_422_UNPROCESSABLE_CONTENT, "the 'capture' part must be a .zip of the capture"
+            )
             return
         (self.dest_dir / CAPTURE_FIELD).mkdir(exist_ok=True)
         self.up.capture_path = self.dest_dir / CAPTURE_FIELD / "capture.zip"
@@ -178,8 +182,11 @@ class _FormReader:
 
     def _open_scan(self, name: str) -> None:
         if self.part.name != FILE_FIELD:
-            self.fail(status.HTTP_422_UNPROCESSABLE_CONTENT,
-                      f"unexpected file part {self.part.name!r}: send the scan as 'file' (and a capture .zip as 'capture')")
+            self.fail(
+                status.HTTP_422_UNPROCESSABLE_CONTENT,
+                f"unexpected file part {self.part.name!r}: send the scan as 'file' (and a "
+                "capture .zip as 'capture')",
+            )
             return
         if self.up.filename is not None:
             self.fail(status.HTTP_422_UNPROCESSABLE_CONTENT, "send exactly one 'file' part")
@@ -220,20 +227,26 @@ class _FormReader:
         """The upload, once the body has been read to its closing boundary."""
         up = self.up
         if up.path is None:
-            raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "the form has no 'file' part with the scan")
+            raise HTTPException(
+                status.HTTP_422_UNPROCESSABLE_CONTENT, "the form has no 'file' part with the scan"
+            )
         if up.size == 0:
-            raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"uploaded file {up.filename!r} is empty")
+            raise HTTPException(
+                status.HTTP_422_UNPROCESSABLE_CONTENT, f"uploaded file {up.filename!r} is empty"
+            )
         up.sha256 = self.files.sha.hexdigest()
         return up
 
 
 def _boundary(request: Request, max_bytes: int) -> bytes:
-    """The multipart boundary; 415 for another content type, 413 when the declared length is already too large."""
+    """The multipart boundary; 415 for another content type, 413 when the declared length is already too
+    large."""
     ctype, params = parse_options_header(request.headers.get("content-type", ""))
     if ctype != b"multipart/form-data" or b"boundary" not in params:
         raise HTTPException(
             status.HTTP_415_UNSUPPORTED_MEDIA_TYPE,
-            "send the space as multipart/form-data with a 'file' part (and optional name, up_axis, unit_scale)",
+            "send the space as multipart/form-data with a 'file' part (and optional name, "
+            "up_axis, unit_scale)",
         )
     declared = request.headers.get("content-length")
     if declared and declared.isdigit() and int(declared) > max_bytes + MULTIPART_OVERHEAD:

@@ -76,8 +76,10 @@ async def list_tasks(
     cue: CueFilter = None,
     space_id: SpaceFilter = None,
 ) -> Response:
-    """Tasks by id with their state, attempts, worker, error (when failed), output key and duration; done tasks of
-    compacted views (services.scheduler.compaction) follow in view order, without worker or queued/started times."""
+    """Tasks by id with their state, attempts, worker, error (when failed), output key and duration; done
+    tasks of compacted views (services.scheduler.compaction) follow in view order, without worker or
+    queued/started
+    times."""
 
     def work() -> Response:
         job = get_job(session, owner=tenant, job_id=job_id)
@@ -115,7 +117,8 @@ async def get_plan(
     space_id: SpaceFilter = None,
     max_items: Annotated[int, Query(ge=1, le=service.MAX_PLAN_ITEMS)] = service.MAX_PLAN_ITEMS,
 ) -> Response:
-    """Per space: bounds, cameras [x, y, z, yaw], points [x, y, z, n_views], views [point, camera] (metres)."""
+    """Per space: bounds, cameras [x, y, z, yaw], points [x, y, z, n_views], views [point, camera]
+    (metres)."""
 
     def work() -> Response:
         job = get_job(session, owner=tenant, job_id=job_id)

@@ -31,7 +31,9 @@ class ViewRead(BaseModel):
     obliqueness_deg: float
     resolution: int
     world_to_camera: list[float] = Field(description="16 floats, row-major, world -> OpenCV camera")
-    state: str = Field(description="failed if a task failed; done when every task is done; else the least advanced")
+    state: str = Field(
+        description="failed if a task failed; done when every task is done; else the least advanced"
+    )
     tasks: dict[str, TaskBrief]
     outputs: dict[str, OutputLink] | None = Field(None, description="pre-signed links (with ?urls=true)")
 

@@ -39,7 +39,8 @@ _STATE_ORDER = (TaskState.FAILED, TaskState.RUNNING, TaskState.QUEUED, TaskState
 
 
 def view_state(states: Sequence[str]) -> str:
-    """One state for a view from its tasks' states (failed > running > queued > pending > cancelled > done)."""
+    """One state for a view from its tasks' states (failed > running > queued > pending > cancelled >
+    done)."""
     if not states:
         return TaskState.PENDING
     present = set(states)
@@ -86,7 +87,8 @@ def list_views(
     cue: str | None = None,
     complete: bool = False,
 ) -> tuple[list[tuple[View, str, list[Task]]], int]:
-    """Views of the job (space, point, v order) with their tasks; filters: a task in `state` (of `cue`), complete."""
+    """Views of the job (space, point, v order) with their tasks; filters: a task in `state` (of `cue`),
+    complete."""
     cond = [View.job_id == job.id]
     if space_id is not None:
         cond.append(View.space_id == space_id)
@@ -164,8 +166,8 @@ def list_tasks(
     cue: str | None = None,
     space_id: int | None = None,
 ) -> tuple[list[Task], int]:
-    """Tasks of the job by id, filtered, then the done tasks of compacted views (in view order); the total comes from
-    the counters unless a space filter is given."""
+    """Tasks of the job by id, filtered, then the done tasks of compacted views (in view order); the total
+    comes from the counters unless a space filter is given."""
     cond = [Task.job_id == job.id]
     compacted = done_states(state) and has_compacted(session, job.id)
     if state is not None:
@@ -188,7 +190,9 @@ def list_tasks(
         )
     if compacted:
         return page_with_compacted(session, job, cond, page, cue, space_id), total
-    rows = session.scalars(select(Task).where(*cond).order_by(Task.id).limit(page.limit).offset(page.offset)).all()
+    rows = session.scalars(
+        select(Task).where(*cond).order_by(Task.id).limit(page.limit).offset(page.offset)
+    ).all()
     return list(rows), total
 
 
@@ -214,7 +218,9 @@ def task_read(t: Task) -> TaskRead:
     )
 
 
-def plan(session: Session, *, job: Job, space_id: int | None = None, max_items: int = MAX_PLAN_ITEMS) -> list[PlanSpace]:
+def plan(
+    session: Session, *, job: Job, space_id: int | None = None, max_items: int = MAX_PLAN_ITEMS
+) -> list[PlanSpace]:
     """Cameras, points and view edges per space of the job (at most `max_items` of each)."""
     q = select(JobSpace.space_id, Space.name, Space.bounds).join(Space, Space.id == JobSpace.space_id)
     q = q.where(JobSpace.job_id == job.id).order_by(JobSpace.position)
@@ -296,8 +302,8 @@ def _bucket_counts(
 
 
 def throughput(session: Session, *, job: Job, buckets: int = 60) -> tuple[float, list[ThroughputBucket]]:
-    """Done tasks per time bucket from task finished_at, `buckets` equal buckets since the job started; a compacted
-    view's tasks count at its last task's finish time."""
+    """Done tasks per time bucket from task finished_at, `buckets` equal buckets since the job started; a
+    compacted view's tasks count at its last task's finish time."""
     cached = _throughput_cache.get((job.id, buckets))
     if cached is not None:
         return cached
@@ -319,12 +325,15 @@ def throughput(session: Session, *, job: Job, buckets: int = 60) -> tuple[float,
     for k, n in _bucket_counts(session, Task.finished_at, done, start, bucket_s):
         if k is not None:
             counts[int(k)] = counts.get(int(k), 0) + int(n or 0)
-    for k, mask, n in _bucket_counts(session, ViewOutput.finished_at, packed, start, bucket_s, ViewOutput.cue_mask):
+    for k, mask, n in _bucket_counts(
+        session, ViewOutput.finished_at, packed, start, bucket_s, ViewOutput.cue_mask
+    ):
         if k is not None:
             counts[int(k)] = counts.get(int(k), 0) + int(mask or 0).bit_count() * int(n or 0)
     n_buckets = max(int(span // bucket_s) + 1, max(counts, default=-1) + 1)
     series = [
-        ThroughputBucket(t=start + timedelta(seconds=i * bucket_s), done=counts.get(i, 0)) for i in range(n_buckets)
+        ThroughputBucket(t=start + timedelta(seconds=i * bucket_s), done=counts.get(i, 0))
+        for i in range(n_buckets)
     ]
     result = (bucket_s, series)
     _throughput_cache.put((job.id, buckets), result)

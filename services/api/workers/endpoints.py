@@ -33,6 +33,7 @@ async def list_workers(
     operator = creds is not None and settings.is_operator_token(creds.credentials)
     tenant = None if operator else await get_tenant(request, creds)
     items, total = await run_in_threadpool(
-        service.list_workers, session, tenant=tenant, page=page, stale_s=settings.heartbeat_timeout_s, alive=alive
+        service.list_workers, session, tenant=tenant, page=page, stale_s=settings.heartbeat_timeout_s,
+        alive=alive,
     )
     return Page[WorkerRead](items=items, total=total, limit=page.limit, offset=page.offset)

@@ -30,8 +30,11 @@ class WorkerRead(BaseModel):
     alive: bool = Field(description="heartbeat younger than the staleness limit")
     busy: bool = Field(description="running a task (of any tenant)")
     current_task: CurrentTask | None
-    tasks_done: int | None = Field(description="tasks finished, every tenant's: operators only (null for tenants)")
+    tasks_done: int | None = Field(
+        description="tasks finished, every tenant's: operators only (null for tenants)"
+    )
     labels_per_s: float | None = Field(description="throughput over every tenant's work: operators only")
     labels: dict[str, int] = Field(
-        default_factory=dict, description="labels per cue over every tenant's work: operators only ({} for tenants)"
+        default_factory=dict,
+        description="labels per cue over every tenant's work: operators only ({} for tenants)",
     )

@@ -41,7 +41,8 @@ def list_workers(
         cond.append(Worker.last_heartbeat < cutoff)
     total = session.scalar(select(func.count()).select_from(Worker).where(*cond)) or 0
     workers = session.scalars(
-        select(Worker).where(*cond).order_by(Worker.last_heartbeat.desc(), Worker.id).limit(page.limit).offset(page.offset)
+        select(Worker).where(*cond).order_by(Worker.last_heartbeat.desc(), Worker.id)
+        .limit(page.limit).offset(page.offset)
     ).all()
     task_ids = [w.current_task_id for w in workers if w.current_task_id is not None]
     own: dict[int, Task] = {}
@@ -67,7 +68,8 @@ def list_workers(
                 busy=w.current_task_id is not None,
                 current_task=None
                 if t is None
-                else CurrentTask(id=t.id, job_id=t.job_id, cue=t.cue, space_id=t.space_id, point=t.point_idx, view=t.view_idx),
+                else CurrentTask(id=t.id, job_id=t.job_id, cue=t.cue, space_id=t.space_id,
+                                 point=t.point_idx, view=t.view_idx),
                 # every tenant's work: an operator's to see, not one tenant's
                 tasks_done=int(w.tasks_done or 0) if tenant is None else None,
                 labels_per_s=float(w.labels_per_s or 0.0) if tenant is None else None,

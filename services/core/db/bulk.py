@@ -113,7 +113,9 @@ def _copy_postgres(conn: Connection, table: Table, names: list[str], cols: list[
     # Apply the column types' Python-side conversions (JSON documents, UTC datetimes) before formatting.
     for i, name in enumerate(names):
         ctype = table.c[name].type
-        if isinstance(ctype, JSON) or isinstance(getattr(ctype, "_variant_mapping", {}).get("postgresql"), JSON):
+        if isinstance(ctype, JSON) or isinstance(
+            getattr(ctype, "_variant_mapping", {}).get("postgresql"), JSON
+        ):
             cols[i] = [None if v is None else json.dumps(v, separators=(",", ":")) for v in cols[i]]
         elif isinstance(ctype, UTCDateTime):
             cols[i] = [ctype.process_bind_param(v, conn.dialect) for v in cols[i]]
@@ -134,7 +136,8 @@ def _copy_postgres(conn: Connection, table: Table, names: list[str], cols: list[
 
 
 # Upserts are SQL text built once per shape: SQLAlchemy cannot cache the compiled form of its INSERT ... ON
-# CONFLICT DO UPDATE construct, and compiling it anew on every heartbeat cost more CPU than the database spent.
+# CONFLICT DO UPDATE construct, and compiling it anew on every heartbeat cost more CPU than the database
+# spent.
 @functools.cache
 def _upsert_sql(dialect: str, table: Table, columns: tuple[str, ...], key: tuple[str, ...],
                 insert_only: tuple[str, ...]) -> TextClause:

@@ -19,14 +19,16 @@ from sqlalchemy.orm import Session
 from services.core.db.bulk import connection_of, table_of
 from services.core.db.models import JobCounter, TaskState
 
-# Counter rows per (job, cue, state) that concurrent writers spread over (migration 0003): on Postgres a statement
-# adds its deltas to shard (backend pid mod COUNTER_SHARDS), and as a connection runs one transaction at a time,
-# two transactions share a row only when their pids collide. SQLite has one writer at a time anyway: shard 0.
+# Counter rows per (job, cue, state) that concurrent writers spread over (migration 0003): on Postgres a
+# statement adds its deltas to shard (backend pid mod COUNTER_SHARDS), and as a connection runs one
+# transaction at a time, two transactions share a row only when their pids collide. SQLite has one writer at a
+# time anyway: shard 0.
 COUNTER_SHARDS = 16
 
 
 # SQL text built once per dialect: SQLAlchemy cannot cache the compiled form of its INSERT ... ON CONFLICT DO
-# UPDATE construct, and compiling it anew on every state change cost more CPU than the database spent running it.
+# UPDATE construct, and compiling it anew on every state change cost more CPU than the database spent running
+# it.
 @functools.cache
 def _add_counts_sql(dialect: str) -> TextClause:
     shard = f"mod(pg_backend_pid(), {COUNTER_SHARDS})" if dialect == "postgresql" else "0"
@@ -37,8 +39,8 @@ def _add_counts_sql(dialect: str) -> TextClause:
 
 
 def add_counts(session: Session | Connection, job_id: int, deltas: Mapping[tuple[str, str], int]) -> None:
-    """Add `deltas[(cue, state)]` to the job's counters (UPSERT into this connection's shard: n = n + excluded.n);
-    zero deltas are skipped."""
+    """Add `deltas[(cue, state)]` to the job's counters (UPSERT into this connection's shard: n = n +
+    excluded.n); zero deltas are skipped."""
     items = sorted((k, d) for k, d in deltas.items() if d)  # fixed order: concurrent upserts lock rows alike
     if not items:
         return
@@ -71,7 +73,9 @@ def job_progress(session: Session | Connection, job_id: int) -> dict[str, dict[s
     """Task counts of a job as {cue: {state: n}}, read from job_counter only (zero counts omitted)."""
     out: dict[str, dict[str, int]] = {}
     sub = summed_counters([job_id]).subquery()
-    rows = connection_of(session).execute(select(sub.c.cue, sub.c.state, sub.c.n).order_by(sub.c.cue, sub.c.state))
+    rows = connection_of(session).execute(
+        select(sub.c.cue, sub.c.state, sub.c.n).order_by(sub.c.cue, sub.c.state)
+    )
     for cue, state, n in rows:
         out.setdefault(cue, {})[state] = int(n)
     return out

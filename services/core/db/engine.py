@@ -39,7 +39,8 @@ _ALEMBIC_VERSION_DDL = ("CREATE TABLE alembic_version (\n\tversion_num VARCHAR(3
 
 
 def make_engine(url: str, **kwargs: Any) -> Engine:
-    """Engine for `url`: SQLite gets WAL, a 30 s busy timeout and foreign keys; Postgres gets pool_pre_ping."""
+    """Engine for `url`: SQLite gets WAL, a 30 s busy timeout and foreign keys; Postgres gets
+    pool_pre_ping."""
     u = make_url(url)
     if u.get_backend_name() == "sqlite":
         if u.database and u.database != ":memory:":
@@ -100,10 +101,12 @@ def migrate(url: str, revision: str = "head") -> None:
 
 
 def _create_sqlite_at_head(path: Path) -> bool:
-    """A new SQLite database at `path`: the models' tables stamped at SCHEMA_HEAD, the schema Alembic's upgrade of an
-    empty file gives (a test compares them), without loading Alembic (0.12-0.17 CPU-s of every embedded run's start-up).
-    Built beside `path` and hard-linked into place, so a database another process created meanwhile is never
-    touched: False then, or where the file system has no hard links (Alembic's upgrade takes over)."""
+    """A new SQLite database at `path`: the models' tables stamped at SCHEMA_HEAD, the schema Alembic's
+    upgrade of an empty file gives (a test compares them), without loading Alembic (0.12-0.17 CPU-s of every
+    embedded run's start-up). Built beside `path` and hard-linked into place, so a database another process
+    created meanwhile is never touched: False then, or where the file system has no hard links (Alembic's
+    upgrade takes
+    over)."""
     from services.core.db.models import Base
 
     tmp = path.with_name(f".{path.name}.new-{uuid.uuid4().hex}")
@@ -133,10 +136,12 @@ class DatabaseUnreachable(ConfigurationError):
     """The database did not answer at start-up; the message names the driver's reason."""
 
 
-# Refusals no wait fixes: a wrong password or user, no such database. At connect time psycopg gives no SQLSTATE
-# (28xxx, 3D000), only the server's FATAL line.
-_PERMANENT_REFUSAL = re.compile(r"FATAL:\s+(.*authentication failed|role .* does not exist|database .* does not exist|"
-                                r"no pg_hba\.conf entry)")
+# Refusals no wait fixes: a wrong password or user, no such database. At connect time psycopg gives no
+# SQLSTATE (28xxx, 3D000), only the server's FATAL line.
+_PERMANENT_REFUSAL = re.compile(
+    r"FATAL:\s+(.*authentication failed|role .* does not exist|database .* does not exist|"
+    r"no pg_hba\.conf entry)"
+)
 
 
 def _scripts() -> ScriptDirectory:
@@ -169,7 +174,9 @@ def schema_problem(engine: Engine, heads: Sequence[str] | None = None) -> str | 
     if not set(current) <= known:
         return (f"the database is at schema revision {', '.join(current)}, which this code does not know "
                 f"(newer code migrated it?): run the matching omnidata version")
-    return f"the database schema is at revision {', '.join(current)}, this code needs {', '.join(heads)}: {fix}"
+    return (
+        f"the database schema is at revision {', '.join(current)}, this code needs {', '.join(heads)}: {fix}"
+    )
 
 
 def require_schema(url: str, wait_s: float = 0.0) -> None:
@@ -190,10 +197,10 @@ def require_schema(url: str, wait_s: float = 0.0) -> None:
 
 
 def wait_for_database(call: Callable[[], T], wait_s: float) -> T:
-    """call() (which opens its own connection), tried again while the database does not answer for up to `wait_s`
-    seconds: a service starting during a Postgres restart or failover, or whose connection an operator cut,
-    waits instead of exiting. Refusals that waiting cannot fix (a wrong password or user, no such database)
-    and the end of the wait raise DatabaseUnreachable naming the driver's reason."""
+    """call() (which opens its own connection), tried again while the database does not answer for up to
+    `wait_s` seconds: a service starting during a Postgres restart or failover, or whose connection an
+    operator cut, waits instead of exiting. Refusals that waiting cannot fix (a wrong password or user, no
+    such database) and the end of the wait raise DatabaseUnreachable naming the driver's reason."""
     deadline = time.monotonic() + wait_s
     delay = 0.1
     told = False

@@ -56,7 +56,8 @@ def _spec_sets_units(spec: JobSpec) -> bool:
 
 
 def space_frame_for(spec: JobSpec, space: Space) -> SpaceFrame:
-    """`load_space` keyword arguments for this space under this spec: the spec's frame, else the chosen one."""
+    """`load_space` keyword arguments for this space under this spec: the spec's frame, else the chosen
+    one."""
     frame = spec.space_frame()
     choice = chosen_up(space)
     if choice is not None and not _spec_sets_frame(spec):
@@ -75,7 +76,9 @@ def check_frame_decided(spec: JobSpec, space: Space) -> None:
         up = (space.validation or {}).get("up") or {}
         candidates = up.get("candidates") or []
         if len(candidates) < 2:
-            raise ValueError(f"space {space.name!r}: up is ambiguous; pick one (PUT /spaces/{space.id}/up) or set up")
+            raise ValueError(
+                f"space {space.name!r}: up is ambiguous; pick one (PUT /spaces/{space.id}/up) or set up"
+            )
         raise ValueError(ambiguity_line(f"space {space.name!r}", candidates, up.get("margin"))
                          + f"; or pick one for the space: PUT /spaces/{space.id}/up")
     # units detected under the detected up: a spec that sets its own up has them chosen again when planned

@@ -90,7 +90,9 @@ def create_job(
     per_space: list[list[str]] = []
     for space in spaces:
         if space.id in seen_ids or space.name in seen_names:
-            raise ValueError(f"space {space.name!r} is listed twice (space names must be distinct within a job)")
+            raise ValueError(
+                f"space {space.name!r} is listed twice (space names must be distinct within a job)"
+            )
         seen_ids.add(space.id)
         seen_names.add(space.name)
         if space.owner != owner:
@@ -309,7 +311,9 @@ def delete_job(session: Session, store: ObjectStore, job: Job) -> int:
             deleted += store.delete_prefix(prefix)
         for key in ("manifest.jsonl", "job.json"):
             deleted += int(store.delete(key))
-    for model in (Task, ViewOutput, CompactedDuration, View, Point, Camera, JobCounter, JobSpace, WorkerBlock):
+    for model in (
+        Task, ViewOutput, CompactedDuration, View, Point, Camera, JobCounter, JobSpace, WorkerBlock,
+    ):
         session.execute(delete(model).where(model.job_id == job.id))
     session.execute(delete(Job).where(Job.id == job.id))
     session.expunge(job)
@@ -331,11 +335,15 @@ class Reopened:
 
 def requeue_inflight(session: Session, job_id: int) -> int:
     """Queued and running tasks of the job back to pending, their attempt not counted (the run was stopped,
-    the task did not fail); returns how many moved. (CASE, not two-argument max(): Postgres has no such max.)"""
-    n = len(transition(
-        session, job_id=job_id, from_state=TaskState.RUNNING, to_state=TaskState.PENDING,
-        attempts=case((Task.attempts > 0, Task.attempts - 1), else_=0), worker_id=None, lease_until=None, queued_at=None, not_before=None,
-    ))
+    the task did not fail); returns how many moved. (CASE, not two-argument max(): Postgres has no such
+    max.)"""
+    n = len(
+        transition(
+            session, job_id=job_id, from_state=TaskState.RUNNING, to_state=TaskState.PENDING,
+            attempts=case((Task.attempts > 0, Task.attempts - 1), else_=0), worker_id=None, lease_until=None,
+            queued_at=None, not_before=None,
+        )
+    )
     n += len(transition(session, job_id=job_id, from_state=TaskState.QUEUED, to_state=TaskState.PENDING,
                         queued_at=None))
     return n
@@ -354,8 +362,8 @@ def reopen_job(session: Session, store: ObjectStore, job: Job) -> Reopened:
     if job.state == JobState.PAUSED:  # a hold for the store ends too: the tasks show if it still fails
         set_job_state(job, JobState.RUNNING, **({"paused_by": None, "error": None} if job.paused_by else {}))
     done.requeued = requeue_inflight(session, job.id)
-    # Done outputs whose file is gone are made again (the internal pass cache is rebuilt on demand); a compacted
-    # view with such an output is put back as task rows first.
+    # Done outputs whose file is gone are made again (the internal pass cache is rebuilt on demand); a
+    # compacted view with such an output is put back as task rows first.
     expand_missing(session, job, store.exists)
     internal = [n for n, c in CATALOG.items() if c.internal]
     missing = [

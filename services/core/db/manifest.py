@@ -60,7 +60,8 @@ class ManifestEntry(TypedDict):
 
 
 def _done_outputs(
-    session: Session, job: Job, space: Space, points: tuple[int, int], public: list[str], names: dict[int, str],
+    session: Session, job: Job, space: Space, points: tuple[int, int], public: list[str],
+    names: dict[int, str],
 ) -> dict[tuple[int, int], dict[str, ManifestOutput]]:
     """(point, view) -> cue -> output, of the done public tasks of points [p0, p1) of a space: task rows and
     compacted views."""
@@ -76,9 +77,11 @@ def _done_outputs(
     compacted = (
         (p, v, t.cue, t.output_key, t.size, t.sha256)
         for (_s, p, v), tasks in iter_compacted(
-            session, job, ViewOutput.space_id == space.id, ViewOutput.point_idx >= p0, ViewOutput.point_idx < p1,
-            names=names)
-        for t in tasks if t.cue in public
+            session, job, ViewOutput.space_id == space.id, ViewOutput.point_idx >= p0,
+            ViewOutput.point_idx < p1, names=names,
+        )
+        for t in tasks
+        if t.cue in public
     )
     outputs: dict[tuple[int, int], dict[str, ManifestOutput]] = {}
     for p, v, cue, key, size, sha in chain(rows, compacted):
@@ -92,8 +95,8 @@ def _done_outputs(
 
 
 def iter_manifest(session: Session, job: Job) -> Iterator[ManifestEntry]:
-    """One dict per view: {"space", "point", "view", "outputs": {cue: {"key", "size", "sha256"}}}, plus "alignment"
-    (the photo/geometry score) for views at capture cameras.
+    """One dict per view: {"space", "point", "view", "outputs": {cue: {"key", "size", "sha256"}}}, plus
+    "alignment" (the photo/geometry score) for views at capture cameras.
 
     Sorted by space name, point, view; internal cues (the pass cache) are left out; per-point cues
     appear on view 0 of their point; only done tasks are listed (task rows and compacted views alike).
@@ -173,15 +176,16 @@ def _space_records(session: Session, job: Job) -> dict[str, SpaceRecord]:
     for job_space, space in job_spaces(session, job.id):
         planned = plan_spaces.get(space.name, {})
         spaces[space.name] = space_record(
-            space_id=space.id, position=job_space.position, cues=job_space.cues, checksum=space.checksum, source_format=space.source_format,
+            space_id=space.id, position=job_space.position, cues=job_space.cues, checksum=space.checksum,
+            source_format=space.source_format,
             # the job's own load (its up_axis/unit_scale) wins over the space's defaults
             source_to_world=planned.get("source_to_world", space.source_to_world),
-            unit_scale=planned.get("unit_scale", space.unit_scale), up_axis=planned.get("up_axis", space.up_axis),
-            bounds=planned.get("bounds", space.bounds), face_count=space.face_count, has_texture=space.has_texture,
-            has_semantics=space.has_semantics, counts=planned, shortfall=planned.get("shortfall"),
-            valid_fraction=planned.get("valid_fraction"), clips=planned.get("clips"),
-            plan=_relative(job, planned.get("plan_key"), "") or None, warnings=planned.get("warnings", []),
-            frame=planned, distributions=planned.get("distributions"),
+            unit_scale=planned.get("unit_scale", space.unit_scale),
+            up_axis=planned.get("up_axis", space.up_axis), bounds=planned.get("bounds", space.bounds),
+            face_count=space.face_count, has_texture=space.has_texture, has_semantics=space.has_semantics,
+            counts=planned, shortfall=planned.get("shortfall"), valid_fraction=planned.get("valid_fraction"),
+            clips=planned.get("clips"), plan=_relative(job, planned.get("plan_key"), "") or None,
+            warnings=planned.get("warnings", []), frame=planned, distributions=planned.get("distributions"),
         )
     return spaces
 

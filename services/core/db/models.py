@@ -151,13 +151,19 @@ class Space(Base):
     id: Mapped[int] = mapped_column(BigIntId, primary_key=True, autoincrement=True)
     owner: Mapped[str] = mapped_column(String(128), index=True)
     name: Mapped[str] = mapped_column(String(128))
-    source_key: Mapped[str] = mapped_column(String(1024), doc="object-store key or URI of the source file/zip")
+    source_key: Mapped[str] = mapped_column(
+        String(1024), doc="object-store key or URI of the source file/zip"
+    )
     source_format: Mapped[str] = mapped_column(String(32))
     checksum: Mapped[str] = mapped_column(String(64), doc="sha256 hex of the uploaded bytes")
     unit_scale: Mapped[float] = mapped_column(Float, default=1.0, server_default=text("1.0"))
     up_axis: Mapped[str] = mapped_column(String(8), default="+z", server_default="+z")
-    source_to_world: Mapped[list[list[float]] | None] = mapped_column(JSONDoc, doc="4x4 row-major, source -> world")
-    bounds: Mapped[list[list[float]] | None] = mapped_column(JSONDoc, doc="[[minx,miny,minz],[maxx,maxy,maxz]] metres")
+    source_to_world: Mapped[list[list[float]] | None] = mapped_column(
+        JSONDoc, doc="4x4 row-major, source -> world"
+    )
+    bounds: Mapped[list[list[float]] | None] = mapped_column(
+        JSONDoc, doc="[[minx,miny,minz],[maxx,maxy,maxz]] metres"
+    )
     face_count: Mapped[int] = mapped_column(Integer, default=0, server_default=text("0"))
     vertex_count: Mapped[int] = mapped_column(Integer, default=0, server_default=text("0"))
     has_texture: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
@@ -201,22 +207,25 @@ class JobSpace(Base):
     __tablename__ = "job_space"
 
     job_id: Mapped[int] = mapped_column(BigIntId, ForeignKey("job.id", ondelete="CASCADE"), primary_key=True)
-    space_id: Mapped[int] = mapped_column(BigIntId, ForeignKey("space.id", ondelete="RESTRICT"), primary_key=True, index=True)
+    space_id: Mapped[int] = mapped_column(
+        BigIntId, ForeignKey("space.id", ondelete="RESTRICT"), primary_key=True, index=True
+    )
     position: Mapped[int] = mapped_column(Integer, default=0, server_default=text("0"))
     cues: Mapped[list[str]] = mapped_column(JSONDoc, default=list)
 
 
 class JobCounter(Base):
-    """A share of the number of a job's tasks of one cue in one state, updated in the transaction that moves the
-    tasks. Writers spread over `shard`s (so a fleet of workers does not queue on one row's lock); the count is
-    the sum over the shards."""
+    """A share of the number of a job's tasks of one cue in one state, updated in the transaction that moves
+    the tasks. Writers spread over `shard`s (so a fleet of workers does not queue on one row's lock); the
+    count is the sum over the shards."""
 
     __tablename__ = "job_counter"
 
     job_id: Mapped[int] = mapped_column(BigIntId, ForeignKey("job.id", ondelete="CASCADE"), primary_key=True)
     cue: Mapped[str] = mapped_column(String(64), primary_key=True)
     state: Mapped[TaskState] = mapped_column(StateColumn(TaskState), primary_key=True)
-    # n before shard: the migrated table's column order (0003 added shard last), which create_all then gives too
+    # n before shard: the migrated table's column order (0003 added shard last), which create_all then gives
+    # too
     n: Mapped[int] = mapped_column(BigInteger, default=0, server_default=text("0"))
     shard: Mapped[int] = mapped_column(SmallInteger, primary_key=True, default=0, server_default=text("0"))
 
@@ -270,7 +279,9 @@ class View(Base):
     roll: Mapped[float] = mapped_column(Float, default=0.0, server_default=text("0"))
     resolution: Mapped[int] = mapped_column(Integer)
     obliqueness: Mapped[float] = mapped_column(Float, default=0.0, server_default=text("0"))
-    world_to_camera: Mapped[list[float]] = mapped_column(JSONDoc, doc="16 floats, row-major, OpenCV camera axes")
+    world_to_camera: Mapped[list[float]] = mapped_column(
+        JSONDoc, doc="16 floats, row-major, OpenCV camera axes"
+    )
     in_sight: Mapped[bool] = mapped_column(Boolean, default=True, server_default=true())
 
 
@@ -282,7 +293,8 @@ class Task(Base):
     __table_args__ = (
         UniqueConstraint("job_id", "space_id", "point_idx", "view_idx", "cue"),
         Index("ix_task_job_id_state", "job_id", "state"),
-        # dispatch: the pending tasks of a cue, oldest first; partial, so leaving pending writes nothing here (0004)
+        # dispatch: the pending tasks of a cue, oldest first; partial, so leaving pending writes nothing here
+        # (0004)
         Index("ix_task_pending_job_id_cue_id", "job_id", "cue", "id",
               postgresql_where=text("state = 'pending'"), sqlite_where=text("state = 'pending'")),
         Index("ix_task_state_lease_until", "state", "lease_until"),
@@ -308,14 +320,16 @@ class Task(Base):
     queued_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
     started_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
     finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
-    not_before: Mapped[datetime | None] = mapped_column(UTCDateTime(), doc="retry backoff: not dispatched before")
+    not_before: Mapped[datetime | None] = mapped_column(
+        UTCDateTime(), doc="retry backoff: not dispatched before"
+    )
 
 
 class ViewOutput(Base):
-    """The finished tasks of one view, compacted into one row (services.scheduler.compaction): what the manifest,
-    the views API and a resume need of them, packed by services.core.db.view_outputs (per task: id, cue, attempts,
-    size, sha256, duration, finish time, and the output key only where it is not the deterministic one).
-    `cue_mask` has bit i set for the catalog's i-th cue among them."""
+    """The finished tasks of one view, compacted into one row (services.scheduler.compaction): what the
+    manifest, the views API and a resume need of them, packed by services.core.db.view_outputs (per task: id,
+    cue, attempts, size, sha256, duration, finish time, and the output key only where it is not the
+    deterministic one). `cue_mask` has bit i set for the catalog's i-th cue among them."""
 
     __tablename__ = "view_output"
 
@@ -329,7 +343,8 @@ class ViewOutput(Base):
 
 
 class CompactedDuration(Base):
-    """Run times of a job's compacted tasks of one cue in one histogram bucket (services.core.db.durations)."""
+    """Run times of a job's compacted tasks of one cue in one histogram bucket
+    (services.core.db.durations)."""
 
     __tablename__ = "compacted_duration"
 

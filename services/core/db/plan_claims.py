@@ -55,15 +55,23 @@ def _claimable(now: datetime) -> ColumnElement[bool]:
     """Pending jobs, and planning ones whose planner's lease ran out."""
     return or_(
         Job.state == JobState.PENDING,
-        and_(Job.state == JobState.PLANNING, or_(Job.planner_lease_until.is_(None), Job.planner_lease_until < now)),
+        and_(
+            Job.state == JobState.PLANNING,
+            or_(Job.planner_lease_until.is_(None), Job.planner_lease_until < now),
+        ),
     )
 
 
 def _waiting(session: Session, now: datetime, limit: int) -> list[Waiting]:
-    """Each tenant's first `limit` claimable jobs (priority, then age): enough for any fair order of `limit`."""
-    rank = func.row_number().over(partition_by=Job.owner, order_by=(Job.priority.desc(), Job.id)).label("rank")
+    """Each tenant's first `limit` claimable jobs (priority, then age): enough for any fair order of
+    `limit`."""
+    rank = (
+        func.row_number().over(partition_by=Job.owner, order_by=(Job.priority.desc(), Job.id)).label("rank")
+    )
     ranked = select(Job.id, Job.owner, Job.priority, rank).where(_claimable(now)).subquery()
-    rows = session.execute(select(ranked.c.id, ranked.c.owner, ranked.c.priority).where(ranked.c.rank <= limit))
+    rows = session.execute(
+        select(ranked.c.id, ranked.c.owner, ranked.c.priority).where(ranked.c.rank <= limit)
+    )
     return [Waiting(int(i), str(o), int(p)) for i, o, p in rows]
 
 
@@ -80,12 +88,12 @@ def claim_pending_jobs(
     session: Session, planner_id: str, limit: int = 1, *, now: datetime | None = None,
     lease_s: float = PLANNING_LEASE_S,
 ) -> list[Job]:
-    """Claim up to `limit` jobs to plan, in the fair order above: pending ones, or planning ones whose planner's
-    lease ran out.
+    """Claim up to `limit` jobs to plan, in the fair order above: pending ones, or planning ones whose
+    planner's lease ran out.
 
-    Postgres: each job is locked with FOR UPDATE SKIP LOCKED before it is taken, so concurrent schedulers never
-    take the same job, nor wait on each other. SQLite: the conditional UPDATE alone lets only one claimer win.
-    Claimed jobs are in state 'planning' with `planner = planner_id`; the caller commits.
+    Postgres: each job is locked with FOR UPDATE SKIP LOCKED before it is taken, so concurrent schedulers
+    never take the same job, nor wait on each other. SQLite: the conditional UPDATE alone lets only one
+    claimer win. Claimed jobs are in state 'planning' with `planner = planner_id`; the caller commits.
     """
     now = now or utcnow()
     cond = _claimable(now)
@@ -103,8 +111,8 @@ def claim_pending_jobs(
             update(Job)
             .where(Job.id == job_id, Job.state == seen, cond)
             .values(
-                state=JobState.PLANNING.value, planner=planner_id, planner_lease_until=now + timedelta(seconds=lease_s),
-                started_at=now, error=None,
+                state=JobState.PLANNING.value, planner=planner_id,
+                planner_lease_until=now + timedelta(seconds=lease_s), started_at=now, error=None,
             )
             .execution_options(synchronize_session=False)
         )

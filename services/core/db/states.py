@@ -1,12 +1,12 @@
 """Where a task or a job changes state: the allowed transitions and the two functions that make them.
 
 Every task state change goes through `transition()`, which moves the tasks with one conditional UPDATE and
-adjusts the job's progress counters (`job_counter`) in the same transaction (on Postgres in the same statement),
-except a worker's own moves (claim and result: services.core.db.worker_moves), fixed SQL text built here once
-for both engines (`task_update_sql`, `counted_sql`, `count_moved_rows`) over edges checked here. Every job
-state change goes through `set_job_state()` (or, for the planner's conditional claim, `check_job_edge()`
-first). A change not in the tables below raises IllegalTransition, so a new code path cannot invent an edge
-silently.
+adjusts the job's progress counters (`job_counter`) in the same transaction (on Postgres in the same
+statement), except a worker's own moves (claim and result: services.core.db.worker_moves), fixed SQL text
+built here once for both engines (`task_update_sql`, `counted_sql`, `count_moved_rows`) over edges checked
+here. Every job state change goes through `set_job_state()` (or, for the planner's conditional claim,
+`check_job_edge()` first). A change not in the tables below raises IllegalTransition, so a new code path
+cannot invent an edge silently.
 """
 
 from __future__ import annotations
@@ -36,11 +36,13 @@ __all__ = [
 TASK_EDGES: Mapping[TaskState, frozenset[TaskState]] = {
     # dispatch sends it; dispatch fails it (its pass failed for good); cancel_job; a view batch claims it with
     # its view's passes (the worker that rendered the view derives it from the pass set in memory: no message)
-    TaskState.PENDING: frozenset({TaskState.QUEUED, TaskState.FAILED, TaskState.CANCELLED, TaskState.RUNNING}),
+    TaskState.PENDING: frozenset(
+        {TaskState.QUEUED, TaskState.FAILED, TaskState.CANCELLED, TaskState.RUNNING}
+    ),
     # dispatch/reaper/worker give it back (paused job, lost message, resume); the worker claims it; cancel_job
     TaskState.QUEUED: frozenset({TaskState.PENDING, TaskState.RUNNING, TaskState.CANCELLED}),
-    # reaper/requeue (lease ran out, interrupted), or a view batch hands back a task whose in-batch input failed;
-    # the worker finishes or fails it; reaper of a cancelled job
+    # reaper/requeue (lease ran out, interrupted), or a view batch hands back a task whose in-batch input
+    # failed; the worker finishes or fails it; reaper of a cancelled job
     TaskState.RUNNING: frozenset({TaskState.PENDING, TaskState.DONE, TaskState.FAILED, TaskState.CANCELLED}),
     TaskState.DONE: frozenset({TaskState.PENDING}),  # resume: its output file is gone
     TaskState.FAILED: frozenset({TaskState.PENDING}),  # retry_failed
@@ -102,8 +104,11 @@ def transition(
     `job_id` None (a worker holding only a task id) moves the given tasks of whatever job they belong to.
     Task objects already loaded in a Session are not refreshed (reload with populate_existing=True).
     """
-    rows = transition_rows(session, job_id=job_id, from_state=from_state, to_state=to_state, task_ids=task_ids,
-                           where=where, returning=(), **values)
+    rows = transition_rows(
+        session, job_id=job_id, from_state=from_state, to_state=to_state, task_ids=task_ids, where=where,
+        returning=(),
+        **values,
+    )
     return [(int(r[0]), str(r[1])) for r in rows]
 
 

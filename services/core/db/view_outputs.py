@@ -1,9 +1,10 @@
 """Compacted views: the done tasks of a finished view packed into one `view_output` row, and back.
 
-A done task row costs ~350 bytes with its indexes; a view's ~18 of them ~6.3 KB. The packed row keeps, per task,
-what the manifest, the views API and a resume read: the task id, cue, attempts, size, sha256 (32 raw bytes),
-duration and finish time, and the output key only where it is not the deterministic one (`default_key`), about
-70 bytes a task. What it drops: the worker, queued/started times, lease and backoff columns of done tasks.
+A done task row costs ~350 bytes with its indexes; a view's ~18 of them ~6.3 KB. The packed row keeps, per
+task, what the manifest, the views API and a resume read: the task id, cue, attempts, size, sha256 (32 raw
+bytes), duration and finish time, and the output key only where it is not the deterministic one
+(`default_key`), about 70 bytes a task. What it drops: the worker, queued/started times, lease and backoff
+columns of done tasks.
 """
 
 from __future__ import annotations
@@ -18,19 +19,22 @@ from services.core.domain.cues import CATALOG
 from services.core.domain.keys import output_key, passes_key
 
 FORMAT = 1
-# The cue of a packed task is its index here (and bit `index` of `cue_mask`): rows outlive a catalog change, so
-# this list only ever grows at its end (tests/scheduler/test_compaction.py checks that it covers the catalog).
+# The cue of a packed task is its index here (and bit `index` of `cue_mask`): rows outlive a catalog change,
+# so this list only ever grows at its end (tests/scheduler/test_compaction.py checks that it covers the
+# catalog).
 CUE_NAMES = (
-    "passes", "rgb", "normal", "depth_zbuffer", "depth_euclidean", "mask_valid", "reshading", "principal_curvature",
-    "edge_texture", "edge_occlusion", "keypoints2d", "keypoints3d", "segment_unsup2d", "segment_unsup25d",
-    "segment_semantic", "segment_instance", "segment_panoptic", "fragments", "point_info", "nonfixated",
-    "vanishing_points", "position", "mask_photo", "augment_params", "rgb_refocus", "rgb_fog", "rgb_motion_blur",
+    "passes", "rgb", "normal", "depth_zbuffer", "depth_euclidean", "mask_valid", "reshading",
+    "principal_curvature", "edge_texture", "edge_occlusion", "keypoints2d", "keypoints3d", "segment_unsup2d",
+    "segment_unsup25d", "segment_semantic", "segment_instance", "segment_panoptic", "fragments", "point_info",
+    "nonfixated", "vanishing_points", "position", "mask_photo", "augment_params", "rgb_refocus", "rgb_fog",
+    "rgb_motion_blur",
     "rgb_flash",
 )
 CUE_INDEX = {name: i for i, name in enumerate(CUE_NAMES)}
 
 _HEAD = struct.Struct("<BB")  # format, number of tasks
-_FIXED = struct.Struct("<qBBHqdq")  # id, cue index, flags, attempts, size, duration_s, finished_at (us since epoch)
+# id, cue index, flags, attempts, size, duration_s, finished_at (us since epoch)
+_FIXED = struct.Struct("<qBBHqdq")
 _LEN = struct.Struct("<H")
 _EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
 _US = timedelta(microseconds=1)
@@ -56,8 +60,11 @@ class DoneTask:
 def default_key(job: Job, space_name: str, cue: str, point: int, view: int) -> str:
     """The store key a worker records for a task's output: deterministic from the job, space, cue and view."""
     root = (job.output_root or "").strip("/")
-    rel = passes_key(space_name, point, view) if CATALOG[cue].internal else output_key(cue, job.name, space_name,
-                                                                                          point, view)
+    rel = (
+        passes_key(space_name, point, view)
+        if CATALOG[cue].internal
+        else output_key(cue, job.name, space_name, point, view)
+    )
     return f"{root}/{rel}" if root else rel
 
 
@@ -98,7 +105,9 @@ def pack(tasks: Sequence[DoneTask], key_of: Callable[[str], str]) -> bytes:
             | (HAS_FINISHED if t.finished_at is not None else 0)
         )
         finished = 0 if t.finished_at is None else (t.finished_at.astimezone(UTC) - _EPOCH) // _US
-        out.append(_FIXED.pack(t.id, CUE_INDEX[t.cue], flags, t.attempts, t.size or 0, t.duration_s or 0.0, finished))
+        out.append(
+            _FIXED.pack(t.id, CUE_INDEX[t.cue], flags, t.attempts, t.size or 0, t.duration_s or 0.0, finished)
+        )
         if sha is not None:
             out.append(sha)
         elif t.sha256 is not None:
@@ -153,8 +162,9 @@ def cue_mask(cues: Iterable[str]) -> int:
 def as_task(t: DoneTask, job_id: int, space_id: int, point: int, view: int) -> Task:
     """A transient (never added to a session) Task of a compacted view, for readers written for task rows."""
     return Task(
-        id=t.id, job_id=job_id, space_id=space_id, point_idx=point, view_idx=view, cue=t.cue, state=TaskState.DONE,
-        attempts=t.attempts, output_key=t.output_key, size=t.size, sha256=t.sha256, duration_s=t.duration_s,
-        finished_at=t.finished_at, error=None, worker_id=None, lease_until=None, queued_at=None, started_at=None,
+        id=t.id, job_id=job_id, space_id=space_id, point_idx=point, view_idx=view, cue=t.cue,
+        state=TaskState.DONE, attempts=t.attempts, output_key=t.output_key, size=t.size, sha256=t.sha256,
+        duration_s=t.duration_s, finished_at=t.finished_at, error=None, worker_id=None, lease_until=None,
+        queued_at=None, started_at=None,
         not_before=None,
     )

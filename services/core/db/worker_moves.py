@@ -1,9 +1,11 @@
-"""A worker's own task moves as fixed SQL: claim a task, claim the rest of its view, record results, read a state.
+"""A worker's own task moves as fixed SQL: claim a task, claim the rest of its view, record results, read a
+state.
 
-A worker claims and finishes tasks one at a time, hundreds of them a second across a fleet, and an embedded run's
-single worker does so for every view it renders: so these moves are SQL text sent as is, never a statement built,
-keyed and compiled per call (that cost a worker ~2 ms of CPU a move on Postgres, ~5 ms a view on SQLite).
-Each move is written once and built for both engines by states.task_update_sql (which checks its edges):
+A worker claims and finishes tasks one at a time, hundreds of them a second across a fleet, and an embedded
+run's single worker does so for every view it renders: so these moves are SQL text sent as is, never a
+statement built, keyed and compiled per call (that cost a worker ~2 ms of CPU a move on Postgres, ~5 ms a view
+on SQLite). Each move is written once and built for both engines by states.task_update_sql (which checks its
+edges):
 - Postgres: each move is ONE statement with its counter deltas (a data-modifying CTE), outside a transaction.
 - SQLite: no data-modifying CTEs, so a move is its UPDATE ... RETURNING, then the counter upserts
   (states.count_moved_rows), in one transaction. SQLite has one writer at a time: the first UPDATE holds
@@ -30,8 +32,8 @@ __all__ = ["NO_PASSES", "claim_task", "claim_view_tasks", "finish_task", "finish
 
 QUEUED, PENDING, RUNNING, DONE = TaskState.QUEUED, TaskState.PENDING, TaskState.RUNNING, TaskState.DONE
 
-# Cues whose task never reads the view's pass set (the plan's), and `passes` itself: a view claim counts the view's
-# other unfinished tasks, which may still need the stored pass set.
+# Cues whose task never reads the view's pass set (the plan's), and `passes` itself: a view claim counts the
+# view's other unfinished tasks, which may still need the stored pass set.
 NO_PASSES: tuple[str, ...] = tuple(c for c in CATALOG if "passes" not in closure([c]) or c == "passes")
 _NO_PASSES_SQL = ", ".join(f"'{c}'" for c in NO_PASSES)
 
@@ -104,8 +106,8 @@ SQLITE_TASK_STATE_SQL = "SELECT state FROM task WHERE id = :task_id"
 
 
 def _bound_time(conn: Connection, t: datetime) -> Any:
-    """`t` as the ORM writes a UTCDateTime column on this connection (SQLite: naive UTC text), so that fixed SQL
-    writes and compares the same values: the column type's own bind processor."""
+    """`t` as the ORM writes a UTCDateTime column on this connection (SQLite: naive UTC text), so that fixed
+    SQL writes and compares the same values: the column type's own bind processor."""
     return _time_binder(conn.dialect)(t)
 
 
@@ -123,7 +125,9 @@ def _autocommit(session: Session) -> Connection | None:
     return session.connection(execution_options={"isolation_level": "AUTOCOMMIT"})
 
 
-def claim_task(session: Session, *, task_id: int, worker_id: str, now: datetime, lease_until: datetime) -> Any:
+def claim_task(
+    session: Session, *, task_id: int, worker_id: str, now: datetime, lease_until: datetime
+) -> Any:
     """queued -> running for `worker_id` while the task's job runs and the worker is not kept off the job (a
     current WorkerBlock); returns the row (id, cue, job_id, space_id, point_idx, view_idx, attempts, attempts
     counting this one), or None when nothing was claimed."""
@@ -132,8 +136,15 @@ def claim_task(session: Session, *, task_id: int, worker_id: str, now: datetime,
         return conn.exec_driver_sql(CLAIM_SQL, {"task_id": task_id, "worker": worker_id, "now": now,
                                                 "lease": lease_until}).first()
     conn = connection_of(session)
-    rows = list(conn.exec_driver_sql(SQLITE_CLAIM_SQL, {
-        "task_id": task_id, "worker": worker_id, "now": _bound_time(conn, now), "lease": _bound_time(conn, lease_until)}))
+    rows = list(
+        conn.exec_driver_sql(
+            SQLITE_CLAIM_SQL,
+            {
+                "task_id": task_id, "worker": worker_id, "now": _bound_time(conn, now),
+                "lease": _bound_time(conn, lease_until),
+            },
+        )
+    )
     count_moved_rows(conn, rows, QUEUED.value, RUNNING)
     session.commit()
     return rows[0] if rows else None
@@ -143,7 +154,11 @@ def finish_task(session: Session, *, task_id: int, worker_id: str, key: str, siz
                 duration_s: float, now: datetime) -> bool:
     """running -> done for a task `worker_id` still holds, with its output; False when it no longer held it
     (reaped or cancelled meanwhile)."""
-    return bool(finish_tasks(session, worker_id=worker_id, now=now, results=[(task_id, key, size, sha256, duration_s)]))
+    return bool(
+        finish_tasks(
+            session, worker_id=worker_id, now=now, results=[(task_id, key, size, sha256, duration_s)]
+        )
+    )
 
 
 def claim_view_tasks(
@@ -151,11 +166,12 @@ def claim_view_tasks(
     now: datetime, lease_until: datetime, with_pending: bool = False,
 ) -> list[Any]:
     """queued (and with `with_pending`, pending) -> running for `worker_id`, at once, of the view's other
-    tasks (same job, space, point and view; not `task_id`, not its `passes` task) while the job runs and the worker
-    is not kept off it; pending ones only while no task of the view failed. Returns the rows (id, cue, job_id,
-    attempts counting this one, old state, reading_elsewhere: how many other tasks of the view that read its pass
-    set are not done and not claimed here, `task_id` counting as claimed here). Postgres: one statement; SQLite: an
-    UPDATE per source state, a read of the view's readers and the counters, in one transaction."""
+    tasks (same job, space, point and view; not `task_id`, not its `passes` task) while the job runs and the
+    worker is not kept off it; pending ones only while no task of the view failed. Returns the rows (id, cue,
+    job_id, attempts counting this one, old state, reading_elsewhere: how many other tasks of the view that
+    read its pass set are not done and not claimed here, `task_id` counting as claimed here). Postgres: one
+    statement; SQLite: an UPDATE per source state, a read of the view's readers and the counters, in one
+    transaction."""
     params: dict[str, Any] = {"task_id": task_id, "job_id": job_id, "space_id": space_id, "point": point,
                               "view": view, "worker": worker_id, "now": now, "lease": lease_until}
     conn = _autocommit(session)
@@ -175,10 +191,12 @@ def claim_view_tasks(
 
 
 def finish_tasks(
-    session: Session, *, worker_id: str, results: Sequence[tuple[int, str, int, str | None, float]], now: datetime,
+    session: Session,
+    *,
+    worker_id: str, results: Sequence[tuple[int, str, int, str | None, float]], now: datetime,
 ) -> set[int]:
-    """running -> done of the tasks `worker_id` still holds, each with its own output (task id, key, size, sha256,
-    seconds); returns the ids moved. One fixed statement over the results: Postgres (arrays) outside a
+    """running -> done of the tasks `worker_id` still holds, each with its own output (task id, key, size,
+    sha256, seconds); returns the ids moved. One fixed statement over the results: Postgres (arrays) outside a
     transaction, SQLite (a JSON array) with its counters in one transaction."""
     conn = _autocommit(session)
     if conn is not None:
@@ -201,4 +219,8 @@ def task_state(session: Session, task_id: int) -> str | None:
     conn = _autocommit(session)
     if conn is not None:
         return conn.exec_driver_sql(TASK_STATE_SQL, {"task_id": task_id}).scalar_one_or_none()
-    return connection_of(session).exec_driver_sql(SQLITE_TASK_STATE_SQL, {"task_id": task_id}).scalar_one_or_none()
+    return (
+        connection_of(session)
+        .exec_driver_sql(SQLITE_TASK_STATE_SQL, {"task_id": task_id})
+        .scalar_one_or_none()
+    )

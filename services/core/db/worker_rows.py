@@ -16,11 +16,14 @@ from services.core.db.models import Task, TaskState, Worker, utcnow
 
 
 def expire_worker_rows(session: Session, *, older_than_s: float, now: datetime | None = None) -> int:
-    """Delete the rows of workers without a heartbeat for `older_than_s` seconds; commits; returns how many."""
+    """Delete the rows of workers without a heartbeat for `older_than_s` seconds; commits; returns how
+    many."""
     cutoff = (now or utcnow()) - timedelta(seconds=older_than_s)
     holds_a_task = exists(select(Task.id).where(Task.worker_id == Worker.id, Task.state == TaskState.RUNNING))
     res = session.execute(
-        delete(Worker).where(Worker.last_heartbeat < cutoff, ~holds_a_task).execution_options(synchronize_session=False)
+        delete(Worker)
+        .where(Worker.last_heartbeat < cutoff, ~holds_a_task)
+        .execution_options(synchronize_session=False)
     )
     session.commit()
     return int(res.rowcount or 0)  # type: ignore[attr-defined]

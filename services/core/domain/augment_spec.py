@@ -65,15 +65,31 @@ class AugmentParams(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
 
-    refocus_focus_quantile: Dist = Field(_d(0.05, 0.95), description="focus distance = this quantile of the view's depths")
-    refocus_f_number: Dist = Field(_d(1.4, 8.0, "log_uniform"), description="aperture: focal length / diameter")
-    refocus_sensor_width_mm: float = Field(36.0, gt=0, le=100, description="sensor width; the focal length follows the fov")
-    refocus_max_coc_px: float = Field(16.0, gt=0, le=MAX_COC_PX, description="circles of confusion are clipped to this radius")
-    fog_beta_per_m: Dist = Field(_d(0.05, 0.5, "log_uniform"), description="extinction coefficient: t = exp(-beta d)")
-    fog_airlight: Dist = Field(_d(0.6, 0.95), description="grey level of the fog (atmospheric light) in [0, 1]")
-    motion_x_m: Dist = Field(_d(-0.03, 0.03), description="camera translation along its x (right) during the exposure")
+    refocus_focus_quantile: Dist = Field(
+        _d(0.05, 0.95), description="focus distance = this quantile of the view's depths"
+    )
+    refocus_f_number: Dist = Field(
+        _d(1.4, 8.0, "log_uniform"), description="aperture: focal length / diameter"
+    )
+    refocus_sensor_width_mm: float = Field(
+        36.0, gt=0, le=100, description="sensor width; the focal length follows the fov"
+    )
+    refocus_max_coc_px: float = Field(
+        16.0, gt=0, le=MAX_COC_PX, description="circles of confusion are clipped to this radius"
+    )
+    fog_beta_per_m: Dist = Field(
+        _d(0.05, 0.5, "log_uniform"), description="extinction coefficient: t = exp(-beta d)"
+    )
+    fog_airlight: Dist = Field(
+        _d(0.6, 0.95), description="grey level of the fog (atmospheric light) in [0, 1]"
+    )
+    motion_x_m: Dist = Field(
+        _d(-0.03, 0.03), description="camera translation along its x (right) during the exposure"
+    )
     motion_y_m: Dist = Field(_d(-0.03, 0.03), description="camera translation along its y (down)")
-    motion_z_m: Dist = Field(_d(-0.05, 0.05), description="camera translation along its optical axis (forward)")
+    motion_z_m: Dist = Field(
+        _d(-0.05, 0.05), description="camera translation along its optical axis (forward)"
+    )
     motion_max_samples: int = Field(32, ge=2, le=128, description="poses averaged along the path, at most")
     flash_ambient: Dist = Field(_d(0.1, 0.6), description="share of the scan's own (baked) light kept")
     flash_power_m2: Dist = Field(_d(0.5, 2.0), description="flash gain: colour x power x shading / d^2")

@@ -17,7 +17,8 @@ CONVENTIONS = {
     "camera_axes": "OpenCV: x right, y down, z forward (world_to_camera)",
     "K": "[[f,0,W/2],[0,f,H/2],[0,0,1]], f=(W/2)/tan(fov/2), pixel centres at u+0.5, v+0.5",
     "blender_camera": "matrix_world = inverse(world_to_camera) @ diag(1,-1,-1,1)",
-    "depth": "uint16, metres * 512 along the optical axis (zbuffer) or to the centre (euclidean); 65535 = none",
+    "depth": "uint16, metres * 512 along the optical axis (zbuffer) or to the centre (euclidean); 65535 = "
+    "none",
     "normal": "camera space (x right, y up, z towards viewer), px = 255*(0.5-0.5x, 0.5+0.5y, 0.5+0.5z)",
     "fragments": "uint32 face index in trimesh.load(source, force='mesh'), 4294967295 = none",
     "position": "float32 EXR, world XYZ in metres, NaN = none",
@@ -86,7 +87,9 @@ def project(points: np.ndarray, K: np.ndarray, world_to_camera: np.ndarray) -> t
     return uv, z
 
 
-def pixel_rays(K: np.ndarray, world_to_camera: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+def pixel_rays(
+    K: np.ndarray, world_to_camera: np.ndarray, width: int, height: int
+) -> tuple[np.ndarray, np.ndarray]:
     """Origins and unit directions (world) of rays through every pixel centre, row-major (H*W, 3).
 
     Also usable for depth conversion: the z of a unit ray in camera axes is the cosine to the axis.
@@ -146,7 +149,8 @@ def rotation_to_euler_xyz(R: np.ndarray) -> np.ndarray:
 
 
 def euler_xyz_to_rotation(euler: np.ndarray) -> np.ndarray:
-    """Rotation matrix Rz @ Ry @ Rx of Blender 'XYZ' Euler angles (radians); inverse of rotation_to_euler_xyz."""
+    """Rotation matrix Rz @ Ry @ Rx of Blender 'XYZ' Euler angles (radians); inverse of
+    rotation_to_euler_xyz."""
     x, y, z = np.asarray(euler, dtype=np.float64)
     cx, sx, cy, sy, cz, sz = np.cos(x), np.sin(x), np.cos(y), np.sin(y), np.cos(z), np.sin(z)
     rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
@@ -156,7 +160,8 @@ def euler_xyz_to_rotation(euler: np.ndarray) -> np.ndarray:
 
 
 def world_to_camera_from_blender(location: np.ndarray, euler_xyz: np.ndarray) -> np.ndarray:
-    """OpenCV world_to_camera of a Blender camera given its location and 'XYZ' Euler rotation (Omnidata point_info)."""
+    """OpenCV world_to_camera of a Blender camera given its location and 'XYZ' Euler rotation (Omnidata
+    point_info)."""
     matrix_world = np.eye(4)
     matrix_world[:3, :3] = euler_xyz_to_rotation(euler_xyz)
     matrix_world[:3, 3] = np.asarray(location, dtype=np.float64)

@@ -1,5 +1,5 @@
-"""JSON records of a posed capture: its summary (ingest), the colour camera the planner refined, and the capture
-plan record that a SpacePlan carries to job.json, the dashboard and the workers."""
+"""JSON records of a posed capture: its summary (ingest), the colour camera the planner refined, and the
+capture plan record that a SpacePlan carries to job.json, the dashboard and the workers."""
 
 from __future__ import annotations
 

@@ -42,59 +42,111 @@ CATALOG: dict[str, Cue] = {
     for c in [
         Cue("passes", "npz", "internal pass set of one view (float32 arrays)", "float32", 0, "internal"),
         Cue("rgb", "png", "8-bit RGB, unlit texture/vertex colour", "uint8", 3, "render", ("passes",)),
-        Cue("normal", "png", "8-bit RGB camera-space normal, 255*(0.5-0.5x, 0.5+0.5y, 0.5+0.5z), bg 128",
-            "uint8", 3, "render", ("passes",)),
-        Cue("depth_zbuffer", "png", "16-bit, optical-axis distance in 1/512 m, 65535 = none", "uint16", 1,
-            "render", ("passes",)),
-        Cue("depth_euclidean", "png", "16-bit, distance to camera centre in 1/512 m, 65535 = none", "uint16",
-            1, "derive", ("depth_zbuffer",)),
-        Cue("mask_valid", "png", "8-bit, 255 where depth_zbuffer is valid", "uint8", 1, "derive",
-            ("depth_zbuffer",)),
-        Cue("reshading", "png", "8-bit grey albedo lit by a point light at the camera", "uint8", 1, "derive",
-            ("depth_zbuffer", "normal")),
-        Cue("principal_curvature", "png", "8-bit RGB, R,G = k1,k2 clipped to +-1/r mapped to 0..254", "uint8",
-            3, "render", ("passes",)),
-        Cue("edge_texture", "png", "16-bit Sobel magnitude of Gaussian-blurred grey rgb", "uint16", 1,
-            "derive", ("rgb",)),
-        Cue("edge_occlusion", "png", "16-bit Sobel magnitude of sqrt(depth), masked", "uint16", 1, "derive",
-            ("depth_zbuffer",)),
-        Cue("keypoints2d", "png", "16-bit max-over-scales determinant-of-Hessian", "uint16", 1, "derive",
-            ("rgb",)),
-        Cue("keypoints3d", "png", "16-bit NARF-like 3D interest from the range image", "uint16", 1, "derive",
-            ("depth_zbuffer",)),
-        Cue("segment_unsup2d", "png", "16-bit labels, Felzenszwalb + normalized cuts on colour", "uint16", 1,
-            "derive", ("rgb",)),
-        Cue("segment_unsup25d", "png", "16-bit labels on log-depth, normals and occlusion edges", "uint16", 1,
-            "derive", ("depth_zbuffer", "normal", "edge_occlusion")),
-        Cue("segment_semantic", "png", "8-bit class id per pixel", "uint8", 1, "render", ("passes",),
-            needs_semantics=True),
-        Cue("segment_instance", "png", "16-bit instance id per pixel", "uint16", 1, "render", ("passes",),
-            needs_semantics=True),
-        Cue("segment_panoptic", "png", "8-bit RGB, R = class, G*256+B = instance", "uint8", 3, "derive",
-            ("segment_semantic", "segment_instance"), needs_semantics=True),
-        Cue("fragments", "npy", "uint32 triangle index per pixel, 4294967295 = none", "uint32", 1, "render",
-            ("passes",)),
-        Cue("point_info", "json", "Omnidata point_info keys plus K, world_to_camera, conventions", "json", 0,
-            "plan"),
-        Cue("nonfixated", "json", "pixel positions of other points visible in each view of a point", "json",
-            0, "plan", per_point=True),
-        Cue("vanishing_points", "json", "image-space and Gaussian-sphere vanishing points of world axes",
-            "json", 0, "derive", ("point_info",)),
-        Cue("position", "exr", "float32 RGB world XYZ in metres, NaN = none", "float32", 3, "render",
-            ("passes",)),
-        Cue("mask_photo", "png", "8-bit, 255 where the rgb came from a photo (capture views), else 0", "uint8", 1,
-            "render", ("passes",), default=False),
+        Cue(
+            "normal", "png", "8-bit RGB camera-space normal, 255*(0.5-0.5x, 0.5+0.5y, 0.5+0.5z), bg 128",
+            "uint8", 3, "render", ("passes",),
+        ),
+        Cue(
+            "depth_zbuffer", "png", "16-bit, optical-axis distance in 1/512 m, 65535 = none", "uint16", 1,
+            "render", ("passes",),
+        ),
+        Cue(
+            "depth_euclidean", "png", "16-bit, distance to camera centre in 1/512 m, 65535 = none", "uint16",
+            1, "derive", ("depth_zbuffer",),
+        ),
+        Cue(
+            "mask_valid", "png", "8-bit, 255 where depth_zbuffer is valid", "uint8", 1, "derive",
+            ("depth_zbuffer",),
+        ),
+        Cue(
+            "reshading", "png", "8-bit grey albedo lit by a point light at the camera", "uint8", 1, "derive",
+            ("depth_zbuffer", "normal"),
+        ),
+        Cue(
+            "principal_curvature", "png", "8-bit RGB, R,G = k1,k2 clipped to +-1/r mapped to 0..254", "uint8",
+            3, "render", ("passes",),
+        ),
+        Cue(
+            "edge_texture", "png", "16-bit Sobel magnitude of Gaussian-blurred grey rgb", "uint16", 1,
+            "derive", ("rgb",),
+        ),
+        Cue(
+            "edge_occlusion", "png", "16-bit Sobel magnitude of sqrt(depth), masked", "uint16", 1, "derive",
+            ("depth_zbuffer",),
+        ),
+        Cue(
+            "keypoints2d", "png", "16-bit max-over-scales determinant-of-Hessian", "uint16", 1, "derive",
+            ("rgb",),
+        ),
+        Cue(
+            "keypoints3d", "png", "16-bit NARF-like 3D interest from the range image", "uint16", 1, "derive",
+            ("depth_zbuffer",),
+        ),
+        Cue(
+            "segment_unsup2d", "png", "16-bit labels, Felzenszwalb + normalized cuts on colour", "uint16", 1,
+            "derive", ("rgb",),
+        ),
+        Cue(
+            "segment_unsup25d", "png", "16-bit labels on log-depth, normals and occlusion edges", "uint16", 1,
+            "derive", ("depth_zbuffer", "normal", "edge_occlusion"),
+        ),
+        Cue(
+            "segment_semantic", "png", "8-bit class id per pixel", "uint8", 1, "render", ("passes",),
+            needs_semantics=True,
+        ),
+        Cue(
+            "segment_instance", "png", "16-bit instance id per pixel", "uint16", 1, "render", ("passes",),
+            needs_semantics=True,
+        ),
+        Cue(
+            "segment_panoptic", "png", "8-bit RGB, R = class, G*256+B = instance", "uint8", 3, "derive",
+            ("segment_semantic", "segment_instance"), needs_semantics=True,
+        ),
+        Cue(
+            "fragments", "npy", "uint32 triangle index per pixel, 4294967295 = none", "uint32", 1, "render",
+            ("passes",),
+        ),
+        Cue(
+            "point_info", "json", "Omnidata point_info keys plus K, world_to_camera, conventions", "json", 0,
+            "plan",
+        ),
+        Cue(
+            "nonfixated", "json", "pixel positions of other points visible in each view of a point", "json",
+            0, "plan", per_point=True,
+        ),
+        Cue(
+            "vanishing_points", "json", "image-space and Gaussian-sphere vanishing points of world axes",
+            "json", 0, "derive", ("point_info",),
+        ),
+        Cue(
+            "position", "exr", "float32 RGB world XYZ in metres, NaN = none", "float32", 3, "render",
+            ("passes",),
+        ),
+        Cue(
+            "mask_photo", "png", "8-bit, 255 where the rgb came from a photo (capture views), else 0",
+            "uint8", 1, "render", ("passes",), default=False,
+        ),
         # 3D augmentations (ours, optional): rgb corrupted with the view's depth; parameters drawn per view
-        Cue("augment_params", "json", "the augmentation parameters drawn for this view", "json", 0, "derive",
-            ("depth_zbuffer",), default=False),
-        Cue("rgb_refocus", "png", "8-bit RGB, thin-lens defocus at a drawn focus distance and f-number", "uint8", 3,
-            "derive", ("rgb", "depth_zbuffer", "augment_params"), default=False),
-        Cue("rgb_fog", "png", "8-bit RGB, J t + A (1 - t), t = exp(-beta d)", "uint8", 3, "derive",
-            ("rgb", "depth_euclidean", "augment_params"), default=False),
-        Cue("rgb_motion_blur", "png", "8-bit RGB, camera translation during the exposure, warped by depth", "uint8",
-            3, "derive", ("rgb", "depth_zbuffer", "augment_params"), default=False),
-        Cue("rgb_flash", "png", "8-bit RGB, a flash at the camera: ambient + power x shading / d^2", "uint8", 3,
-            "derive", ("rgb", "depth_euclidean", "reshading", "augment_params"), default=False),
+        Cue(
+            "augment_params", "json", "the augmentation parameters drawn for this view", "json", 0, "derive",
+            ("depth_zbuffer",), default=False,
+        ),
+        Cue(
+            "rgb_refocus", "png", "8-bit RGB, thin-lens defocus at a drawn focus distance and f-number",
+            "uint8", 3, "derive", ("rgb", "depth_zbuffer", "augment_params"), default=False,
+        ),
+        Cue(
+            "rgb_fog", "png", "8-bit RGB, J t + A (1 - t), t = exp(-beta d)", "uint8", 3, "derive",
+            ("rgb", "depth_euclidean", "augment_params"), default=False,
+        ),
+        Cue(
+            "rgb_motion_blur", "png", "8-bit RGB, camera translation during the exposure, warped by depth",
+            "uint8", 3, "derive", ("rgb", "depth_zbuffer", "augment_params"), default=False,
+        ),
+        Cue(
+            "rgb_flash", "png", "8-bit RGB, a flash at the camera: ambient + power x shading / d^2", "uint8",
+            3, "derive", ("rgb", "depth_euclidean", "reshading", "augment_params"), default=False,
+        ),
     ]
 }
 
@@ -130,7 +182,9 @@ def validate_cue_names(names: Iterable[str]) -> list[str]:
 
 def default_cues(has_semantics: bool) -> list[str]:
     """All output cues a space supports (semantic cues only for labelled spaces)."""
-    return [n for n in OUTPUT_CUES if CATALOG[n].default and (has_semantics or not CATALOG[n].needs_semantics)]
+    return [
+        n for n in OUTPUT_CUES if CATALOG[n].default and (has_semantics or not CATALOG[n].needs_semantics)
+    ]
 
 
 def unsupported_cues(names: Iterable[str], *, has_semantics: bool) -> dict[str, str]:
@@ -142,8 +196,11 @@ def unsupported_cues(names: Iterable[str], *, has_semantics: bool) -> dict[str, 
     return out
 
 
-def require_supported(names: Iterable[str], *, has_semantics: bool, error: type[Exception] = ValueError) -> None:
-    """Raise `error` naming each cue the space cannot give and why (the one check of the API, CLIs and worker)."""
+def require_supported(
+    names: Iterable[str], *, has_semantics: bool, error: type[Exception] = ValueError
+) -> None:
+    """Raise `error` naming each cue the space cannot give and why (the one check of the API, CLIs and
+    worker)."""
     bad = unsupported_cues(names, has_semantics=has_semantics)
     if bad:
         raise error("; ".join(f"cue {n!r} {why}" for n, why in bad.items()))

@@ -1,4 +1,5 @@
-"""Reading OpenEXR images (the float cues, e.g. position): one decoder for the worker and the dataset readers."""
+"""Reading OpenEXR images (the float cues, e.g. position): one decoder for the worker and the dataset
+readers."""
 
 from __future__ import annotations
 
@@ -11,10 +12,13 @@ from services.core.temp_dirs import owned_prefix
 
 
 def decode_exr_rgb(data: bytes) -> np.ndarray:
-    """H x W x 3 float32 of an RGB EXR file's bytes (OpenEXR reads files, so they pass through a temp file)."""
+    """H x W x 3 float32 of an RGB EXR file's bytes (OpenEXR reads files, so they pass through a temp
+    file)."""
     import OpenEXR  # here: a worker, which never reads an EXR back, does not pay its load (~0.09 CPU-s)
 
-    fd, path = tempfile.mkstemp(prefix=owned_prefix("exr"), suffix=".exr", dir="/dev/shm" if os.access("/dev/shm", os.W_OK) else None)
+    fd, path = tempfile.mkstemp(
+        prefix=owned_prefix("exr"), suffix=".exr", dir="/dev/shm" if os.access("/dev/shm", os.W_OK) else None
+    )
     try:
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)

@@ -138,7 +138,10 @@ def file_counts(by_cue: Mapping[str, Mapping[str, int]]) -> FileCounts:
     for states in by_cue.values():
         for state, n in states.items():
             by_state[state] = by_state.get(state, 0) + n
-    return {"by_state": by_state, "by_cue": {c: dict(s) for c, s in by_cue.items()}, "total": sum(by_state.values())}
+    return {
+        "by_state": by_state, "by_cue": {c: dict(s) for c, s in by_cue.items()},
+        "total": sum(by_state.values()),
+    }
 
 
 def space_record(
@@ -178,7 +181,9 @@ def space_record(
         "face_count": face_count,
         "has_texture": has_texture,
         "has_semantics": has_semantics,
-        "counts": {"cameras": counts.get("cameras"), "points": counts.get("points"), "views": counts.get("views")},
+        "counts": {
+            "cameras": counts.get("cameras"), "points": counts.get("points"), "views": counts.get("views"),
+        },
         "tasks": counts.get("tasks"),  # tasks compiled by the scheduler; null for a plan
         "shortfall": shortfall,
         "valid_fraction": valid_fraction,

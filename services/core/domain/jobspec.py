@@ -10,12 +10,11 @@ import math
 from collections.abc import Sequence
 from typing import Annotated, Literal, TypedDict
 
-import numpy as np
-from numpy.typing import ArrayLike
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator, model_validator
 
 from services.core.domain.augment_spec import AugmentParams
 from services.core.domain.cues import validate_cue_names
+from services.core.domain.frame_values import MAX_UNIT_SCALE, parse_unit_scale, similarity_scale
 from services.core.domain.keys import check_name
 from services.core.domain.steering_spec import FOV_LIMITS_DEG, CameraSteering, ViewSteering
 
@@ -29,7 +28,8 @@ MAX_SAMPLE_BUDGET = 200_000_000  # surface samples the point sampler may draw (p
 
 
 def _list_as_tuple(v: object) -> object:
-    # JSON (and a spec stored as JSON) has no tuples: take a list as one, with its items still checked strictly.
+    # JSON (and a spec stored as JSON) has no tuples: take a list as one, with its items still checked
+    # strictly.
     return tuple(v) if isinstance(v, list) else v
 
 
@@ -37,8 +37,6 @@ def _rows_as_tuples(v: object) -> object:
     return tuple(_list_as_tuple(r) for r in v) if isinstance(v, (list, tuple)) else v
 
 
-MAX_UNIT_SCALE = 1000.0
-UP_AXES = ("auto", "+x", "-x", "+y", "-y", "+z", "-z")
 Row4 = tuple[float, float, float, float]
 
 
@@ -91,8 +89,9 @@ class CameraSpec(CameraSteering, _Strict):
     )
     # posed captures (issue 18): mode=capture
     capture_views: Literal["exact", "fixated"] = Field(
-        "exact", description="exact: one view at each capture camera (its photo as RGB); fixated: the usual points "
-        "and views from the capture positions (the photo turned by a rotation homography)"
+        "exact",
+        description="exact: one view at each capture camera (its photo as RGB); fixated: the usual points "
+        "and views from the capture positions (the photo turned by a rotation homography)",
     )
     capture_fov_deg: float | None = Field(
         None, ge=FOV_LIMITS_DEG[0], le=FOV_LIMITS_DEG[1],
@@ -145,7 +144,8 @@ class ViewSpec(ViewSteering, _Strict):
     trajectory_spacing_m: float = Field(0.1, gt=0, le=100, description="frame spacing along the path")
     trajectory_max_frames: int = Field(300, ge=2, le=100_000, description="frames per point at most")
     trajectory_look: Literal["point", "ahead"] = Field(
-        "point", description="point: every frame fixated on the point; ahead: look along the path (walk-through)"
+        "point",
+        description="point: every frame fixated on the point; ahead: look along the path (walk-through)",
     )
     trajectory_max_turn_deg_per_m: float = Field(
         60.0, gt=0, le=3600, description="largest turn of the direction of motion per metre of path"
@@ -154,22 +154,26 @@ class ViewSpec(ViewSteering, _Strict):
         30.0, gt=0, le=3600, description="largest rotation of the camera (view and roll) per metre of path"
     )
     trajectory_min_frames: int = Field(
-        1, ge=1, le=100_000, description="a clip shorter than this (cut by the limits, or a short route) is dropped (reported)"
+        1, ge=1, le=100_000,
+        description="a clip shorter than this (cut by the limits, or a short route) is dropped (reported)",
     )
     # holes in scans (issue 9): views predicted to see too little surface are dropped at planning time
     min_valid_fraction: float = Field(
-        0.0, ge=0, le=1, description="drop views whose share of pixels with a surface (a low-resolution ray cast "
-        "at planning time) is below this; 0 keeps all, as Omnidata"
+        0.0, ge=0, le=1,
+        description="drop views whose share of pixels with a surface (a low-resolution ray cast "
+        "at planning time) is below this; 0 keeps all, as Omnidata",
     )
 
     # posed captures (issue 18)
     rgb_source: Literal["auto", "mesh", "photos"] = Field(
-        "auto", description="rgb from the mesh texture or the capture's photos; auto: photos for cameras.mode "
-        "capture, else the mesh"
+        "auto",
+        description="rgb from the mesh texture or the capture's photos; auto: photos for cameras.mode "
+        "capture, else the mesh",
     )
     min_alignment: float = Field(
-        0.0, ge=0, le=100, description="drop capture views whose photo/geometry alignment score is below this "
-        "(~1 is chance; 0 keeps all)"
+        0.0, ge=0, le=100,
+        description="drop capture views whose photo/geometry alignment score is below this "
+        "(~1 is chance; 0 keeps all)",
     )
     min_photo_coverage: float = Field(
         0.5, ge=0, le=1, description="drop views whose share of pixels the photos cover is below this "
@@ -220,7 +224,9 @@ class CueParams(_Strict):
     )
     keypoints3d_support_m: float = Field(0.1, gt=0, le=10, description="NARF-like support size")
     segment2d_scale: float = Field(200.0, gt=0, le=1e6)
-    segment2d_sigma: float = Field(0.8, ge=0, le=MAX_SIGMA_PX, description="Gaussian blur before Felzenszwalb, px")
+    segment2d_sigma: float = Field(
+        0.8, ge=0, le=MAX_SIGMA_PX, description="Gaussian blur before Felzenszwalb, px"
+    )
     segment2d_min_size: int = Field(50, ge=1, le=MAX_RESOLUTION**2)
     segment_ncut_thresh: float = Field(0.005, gt=0, le=10)
     segment25d_weights: Annotated[
@@ -236,32 +242,41 @@ class CueParams(_Strict):
     )
     keypoints2d_scale: float = Field(
         250_000.0, gt=0, le=1e12,
-        description="keypoints2d stores round(DoH response * scale); the DoH of a [0,1] image peaks near 0.06-0.25",
+        description="keypoints2d stores round(DoH response * scale); the DoH of a [0,1] image peaks near "
+        "0.06-0.25",
     )
     segment_max_superpixels: int = Field(
-        512, ge=2, le=4096, description="Felzenszwalb regions before normalized cuts, at most (bounds the cost)"
+        512, ge=2, le=4096,
+        description="Felzenszwalb regions before normalized cuts, at most (bounds the cost)",
     )
     segment_ncut_sigma: float = Field(
-        255.0, gt=0, le=1e9, description="RAG similarity exp(-|mean difference|^2 / sigma), features on a 0..255 scale"
+        255.0, gt=0, le=1e9,
+        description="RAG similarity exp(-|mean difference|^2 / sigma), features on a 0..255 scale",
     )
     segment_num_cuts: int = Field(10, ge=1, le=100, description="thresholds tried per normalized cut")
-    augment: AugmentParams = Field(AugmentParams(), description="distributions of the 3D augmentation cues' parameters")
+    augment: AugmentParams = Field(
+        AugmentParams(), description="distributions of the 3D augmentation cues' parameters"
+    )
 
 
 class JobSpec(_Strict):
     """What to generate: the steering knobs of a job."""
 
     name: str = Field("omnidata", description="component name in the output layout")
-    cues: list[str] | None = Field(None, max_length=256, description="subset of the catalog; None = all the space supports")
+    cues: list[str] | None = Field(
+        None, max_length=256, description="subset of the catalog; None = all the space supports"
+    )
     seed: int = Field(0, ge=0, le=2**63 - 1)
     # --- space frame: how source coordinates become world metres, +Z up
     up_axis: Literal["auto", "+x", "-x", "+y", "-y", "+z", "-z"] = Field(  # UP_AXES
         "auto", description="source axis that points up; auto detects floors in any orientation"
     )
     unit_scale: float | Literal["auto"] = Field(
-        "auto", description="metres per source unit; auto: from the storey height of rooms (m, cm, mm or inches)",
-        json_schema_extra={"anyOf": [{"type": "number", "exclusiveMinimum": 0, "maximum": MAX_UNIT_SCALE},
-                                     {"const": "auto"}]},
+        "auto",
+        description="metres per source unit; auto: from the storey height of rooms (m, cm, mm or inches)",
+        json_schema_extra={
+            "anyOf": [{"type": "number", "exclusiveMinimum": 0, "maximum": MAX_UNIT_SCALE}, {"const": "auto"}]
+        },
     )
     up: Vector3 | None = Field(
         None, description="up direction in source coordinates, instead of up_axis"
@@ -271,9 +286,10 @@ class JobSpec(_Strict):
         "overrides detection, up and unit_scale"
     )
     accept_up_guess: bool = Field(
-        False, description="when detection cannot tell two up candidates apart, plan on the better one anyway "
-        "(default: refuse the space, naming both candidates); likewise when more than one unit (cm or inches) "
-        "makes the scan plausible: plan in the better one"
+        False,
+        description="when detection cannot tell two up candidates apart, plan on the better one anyway "
+        "(default: refuse the space, naming both candidates); likewise when more than one unit "
+        "(cm or inches) makes the scan plausible: plan in the better one",
     )
     # ---
     priority: int = Field(0, ge=-100, le=100)
@@ -318,7 +334,9 @@ class JobSpec(_Strict):
 
     def uses_photos(self) -> bool:
         """True when rgb comes from the capture's photos (rgb_source photos, or auto with capture cameras)."""
-        return self.views.rgb_source == "photos" or (self.views.rgb_source == "auto" and self.cameras.mode == "capture")
+        return self.views.rgb_source == "photos" or (
+            self.views.rgb_source == "auto" and self.cameras.mode == "capture"
+        )
 
     def space_frame(self) -> SpaceFrame:
         """The keyword arguments of `services.core.ingest.loading.load_space` that set the space frame."""
@@ -335,7 +353,9 @@ class JobSpec(_Strict):
         if self.up is not None and self.up_axis != "auto":
             raise ValueError("give either up (a vector) or up_axis (an axis name), not both")
         if self.cues is not None and "mask_photo" in self.cues and not self.uses_photos():
-            raise ValueError("cue 'mask_photo' needs rgb from photos: cameras.mode capture or views.rgb_source photos")
+            raise ValueError(
+                "cue 'mask_photo' needs rgb from photos: cameras.mode capture or views.rgb_source photos"
+            )
         cams = self.cameras
         if cams.mode == "provided" and cams.poses is not None and len(cams.poses) < self.points.min_views:
             raise ValueError(
@@ -372,15 +392,15 @@ class JobSpec(_Strict):
         return n_points * per_point, n_points, per_point, what
 
     def _check_plan_size(self) -> None:
-        """Refuse a spec whose plan could exceed MAX_PLANNED_VIEWS (its rows and tasks would exhaust memory) or
-        whose point sampling could draw more than MAX_SAMPLE_BUDGET samples (hours of ray casts)."""
+        """Refuse a spec whose plan could exceed MAX_PLANNED_VIEWS (its rows and tasks would exhaust memory)
+        or whose point sampling could draw more than MAX_SAMPLE_BUDGET samples (hours of ray casts)."""
         pts = self.points
         _views, n_points, per_point, what = self.plan_size()
         if n_points * pts.max_tries_per_point > MAX_SAMPLE_BUDGET:
             raise ValueError(
                 f"{n_points} points x points.max_tries_per_point ({pts.max_tries_per_point}) could draw "
-                f"{n_points * pts.max_tries_per_point:,} surface samples, above the limit of {MAX_SAMPLE_BUDGET:,}: "
-                "lower one of them"
+                f"{n_points * pts.max_tries_per_point:,} surface samples, above the limit of "
+                f"{MAX_SAMPLE_BUDGET:,}: lower one of them"
             )
         if n_points * per_point > MAX_PLANNED_VIEWS:
             source = "points.count" if pts.count is not None else "points.per_camera x cameras"
@@ -392,48 +412,6 @@ class JobSpec(_Strict):
 
 
 Resolution = Annotated[int, Field(ge=MIN_RESOLUTION, le=MAX_RESOLUTION)]
-
-
-def parse_unit_scale(v: object, *, numbers_as_text: bool = False) -> float | str:
-    """'auto' or metres per source unit in (0, MAX_UNIT_SCALE]; ValueError naming unit_scale otherwise.
-
-    `numbers_as_text`: form fields carry numbers as text; JSON and specs must send a number.
-    """
-    if v == "auto":
-        return "auto"
-    if isinstance(v, str) and not numbers_as_text:
-        raise ValueError(f"unit_scale must be 'auto' or a number of metres per source unit, not the string {v[:40]!r}")
-    try:
-        x = float(v) if isinstance(v, int | float | str) and not isinstance(v, bool) else math.nan
-    except ValueError:
-        x = math.nan
-    if not (math.isfinite(x) and 0 < x <= MAX_UNIT_SCALE):
-        raise ValueError(f"unit_scale must be 'auto' or a number of metres per source unit greater than 0 "
-                         f"and at most {MAX_UNIT_SCALE:g}, got {v!r}")
-    return x
-
-
-def similarity_scale(matrix: ArrayLike) -> float:
-    """The uniform scale of a 4x4 rotation + uniform scale + translation; ValueError saying what is wrong."""
-    m = np.asarray(matrix, dtype=np.float64)
-    if m.shape != (4, 4) or not np.isfinite(m).all():
-        raise ValueError(f"source_to_world must be a finite 4x4 matrix, got shape {list(m.shape)}")
-    if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9):
-        raise ValueError(f"source_to_world: the last row must be [0, 0, 0, 1], got {m[3].tolist()} (no projection)")
-    sv = np.linalg.svd(m[:3, :3], compute_uv=False)
-    if sv[-1] <= 1e-12 * max(sv[0], 1e-300):
-        raise ValueError("source_to_world is degenerate: its 3x3 part is singular (it flattens the scan)")
-    if sv[0] - sv[-1] > 1e-4 * sv[0]:
-        raise ValueError(
-            f"source_to_world must be a rotation times a uniform scale (rigid); its 3x3 part scales axes by "
-            f"{', '.join(f'{x:.6g}' for x in sv)} (shear or non-uniform scale)"
-        )
-    if np.linalg.det(m[:3, :3]) < 0:
-        raise ValueError("source_to_world mirrors the scan (negative determinant): use a proper rotation")
-    scale = float(np.cbrt(np.linalg.det(m[:3, :3])))
-    if not 1e-6 <= scale <= 1000:
-        raise ValueError(f"source_to_world scales by {scale:.4g} metres per unit, outside [1e-6, 1000]")
-    return scale
 
 
 def cues_for_space(spec: JobSpec, *, has_semantics: bool) -> list[str]:

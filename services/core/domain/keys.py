@@ -36,7 +36,8 @@ def space_name(path: Path) -> str:
 
 
 def file_name(cue: str, point: int, view: int) -> str:
-    """`point_<p>_view_<v>_domain_<cue>.<ext>`; per-point cues drop the view: `point_<p>_domain_<cue>.<ext>`."""
+    """`point_<p>_view_<v>_domain_<cue>.<ext>`; per-point cues drop the view:
+    `point_<p>_domain_<cue>.<ext>`."""
     c = get_cue(cue)
     if c.per_point:
         return f"point_{point}_domain_{cue}.{c.ext}"

@@ -121,8 +121,8 @@ class ValidFractionSummary(TypedDict):
 
 
 class ClipNoteRecord(TypedDict):
-    """A trajectory clip cut short or dropped: point_idx (None when dropped), outcome, frames kept and planned,
-    and frames failed per check (keys of CLIP_CHECKS)."""
+    """A trajectory clip cut short or dropped: point_idx (None when dropped), outcome, frames kept and
+    planned, and frames failed per check (keys of CLIP_CHECKS)."""
 
     point_idx: int | None
     outcome: str  # shortened | dropped
@@ -140,7 +140,8 @@ class SpacePlan:
     points: tuple[PointOfInterest, ...]
     views: tuple[PlannedView, ...]
     shortfall: str | None = None
-    valid_fraction: ValidFractionSummary | None = None  # predicted share of pixels with a surface per view (summary)
+    # predicted share of pixels with a surface per view (summary)
+    valid_fraction: ValidFractionSummary | None = None
     # trajectory clips cut short or dropped by the motion/clearance/visibility checks: point_idx (None
     # when dropped), outcome, frames, planned_frames, reasons {check: failed frames}
     clip_notes: tuple[ClipNoteRecord, ...] = ()
@@ -212,7 +213,8 @@ def clip_shortfall(clip_notes: tuple[ClipNoteRecord, ...], n_points: int) -> str
 
 
 class PlanIndex:
-    """Lookups kept beside (not inside) a frozen plan: views by point, points seen by each camera, positions."""
+    """Lookups kept beside (not inside) a frozen plan: views by point, points seen by each camera,
+    positions."""
 
     def __init__(self, plan: SpacePlan):
         by_point: dict[int, list[PlannedView]] = {}
@@ -340,16 +342,21 @@ def plan_from_dict(data: PlanRecord) -> SpacePlan:
         raise ValueError(f"not a plan: format {data.get('format')!r}, expected {PLAN_FORMAT!r}")
     return SpacePlan(
         space_name=data["space_name"],
-        cameras=tuple(CameraPose(c["idx"], np.asarray(c["position"]), c["source"], c["uuid"]) for c in data["cameras"]),
+        cameras=tuple(
+            CameraPose(c["idx"], np.asarray(c["position"]), c["source"], c["uuid"]) for c in data["cameras"]
+        ),
         points=tuple(
-            PointOfInterest(p["idx"], np.asarray(p["position"]), np.asarray(p["normal"]), p["uuid"],
-                            tuple(p["camera_idxs"]))
+            PointOfInterest(
+                p["idx"], np.asarray(p["position"]), np.asarray(p["normal"]), p["uuid"],
+                tuple(p["camera_idxs"]),
+            )
             for p in data["points"]
         ),
         views=tuple(
             PlannedView(
-                v["point_idx"], v["v"], v["camera_idx"], np.asarray(v["world_to_camera"]), v["fov"], v["roll"],
-                v["resolution"], v["obliqueness"], v["in_sight"], v.get("alignment"), v.get("photo_coverage"),
+                v["point_idx"], v["v"], v["camera_idx"], np.asarray(v["world_to_camera"]), v["fov"],
+                v["roll"], v["resolution"], v["obliqueness"], v["in_sight"], v.get("alignment"),
+                v.get("photo_coverage"),
             )
             for v in data["views"]
         ),

@@ -4,14 +4,14 @@ Most specs are planned in chunks (`plans_in_chunks`: services.scheduler.planning
 the cameras, the sampled points (each with the cameras that see it) and one chunk of OMNIDATA_PLAN_CHUNK_VIEWS
 views, so its peak grows with the points and cameras, not with the views: PLAN_BASE_MB + points x
 (PLAN_BYTES_PER_POINT + PLAN_BYTES_PER_POINT_CAMERA x cameras) + chunk views x PLAN_BYTES_PER_VIEW.
-The other specs (capture cameras, trajectories, nonfixated pruning, a min_valid_fraction filter, photo-textured
-rgb) are planned whole: their plan lives in the planner's memory while it is built (cameras, points, views
-with their poses, compiled tasks, the rows and the plan JSON written for the workers), so its peak grows with
-the number of views. The upper estimate of a spec's views (`JobSpec.views_upper_bound`) times the measured peak bytes per view must fit
-in `OMNIDATA_PLAN_MEMORY_MB`, the address-space limit the planner process runs under; a spec that cannot is
-refused when the job is created (HTTP 422 naming the budget) instead of failing, or stalling a machine, later.
-The same for time: views times the measured seconds per view must fit in `OMNIDATA_PLAN_TIMEOUT_S`, after which
-the planner process is ended.
+The other specs (capture cameras, trajectories, nonfixated pruning, a min_valid_fraction filter,
+photo-textured rgb) are planned whole: their plan lives in the planner's memory while it is built (cameras,
+points, views with their poses, compiled tasks, the rows and the plan JSON written for the workers), so its
+peak grows with the number of views. The upper estimate of a spec's views (`JobSpec.views_upper_bound`) times
+the measured peak bytes per view must fit in `OMNIDATA_PLAN_MEMORY_MB`, the address-space limit the planner
+process runs under; a spec that cannot is refused when the job is created (HTTP 422 naming the budget) instead
+of failing, or stalling a machine, later. The same for time: views times the measured seconds per view must
+fit in `OMNIDATA_PLAN_TIMEOUT_S`, after which the planner process is ended.
 """
 
 from __future__ import annotations
@@ -47,7 +47,8 @@ def plans_in_chunks(spec: JobSpec) -> bool:
 
 
 def plan_memory_estimate_mb(spec: JobSpec, chunk_views: int = DEFAULT_CHUNK_VIEWS) -> int:
-    """Upper estimate of the planner's peak memory for a spec, in MB (per space: spaces are planned one by one)."""
+    """Upper estimate of the planner's peak memory for a spec, in MB (per space: spaces are planned one by
+    one)."""
     views, points, _per_point, _what = spec.plan_size()
     if plans_in_chunks(spec):
         cameras = spec.camera_count_bound()
@@ -69,21 +70,25 @@ def bound_is_known(spec: JobSpec) -> bool:
 
 def check_plan_budget(spec: JobSpec, *, memory_mb: int, timeout_s: float | None = None,
                       chunk_views: int = DEFAULT_CHUNK_VIEWS) -> None:
-    """Raise PlanOverBudget, naming the budget and the knobs to lower, when the spec's plan could exceed it."""
+    """Raise PlanOverBudget, naming the budget and the knobs to lower, when the spec's plan could exceed
+    it."""
     if not bound_is_known(spec):
         return
     need = plan_memory_estimate_mb(spec, chunk_views)
     views = spec.views_upper_bound()
     if timeout_s is not None and views * PLAN_SECONDS_PER_VIEW > timeout_s:
         raise PlanOverBudget(
-            f"this spec could plan {views:,} views per space, about {views * PLAN_SECONDS_PER_VIEW:,.0f} s of planning, "
+            f"this spec could plan {views:,} views per space, about "
+            f"{views * PLAN_SECONDS_PER_VIEW:,.0f} s of planning, "
             f"above the planning time budget of {timeout_s:,.0f} s (OMNIDATA_PLAN_TIMEOUT_S; about "
-            f"{int(timeout_s / PLAN_SECONDS_PER_VIEW):,} views): lower points.count or points.max_views, or split the job"
+            f"{int(timeout_s / PLAN_SECONDS_PER_VIEW):,} views): lower points.count or "
+            "points.max_views, or split the job"
         )
     if need > memory_mb:
         fits = max(0, (memory_mb - PLAN_BASE_MB) * 2**20 // PLAN_BYTES_PER_VIEW)
         raise PlanOverBudget(
-            f"this spec could plan {views:,} views per space, needing about {need:,} MB to plan, above the planning "
-            f"budget of {memory_mb:,} MB (OMNIDATA_PLAN_MEMORY_MB; about {fits:,} views): lower points.count or "
-            "points.max_views (or views.trajectory_max_frames), or split the job"
+            f"this spec could plan {views:,} views per space, needing about {need:,} MB to plan, "
+            "above the planning "
+            f"budget of {memory_mb:,} MB (OMNIDATA_PLAN_MEMORY_MB; about {fits:,} views): lower "
+            "points.count or points.max_views (or views.trajectory_max_frames), or split the job"
         )

@@ -1,8 +1,8 @@
 """The plan-stage cues, made from a SpacePlan alone: point_info, nonfixated and vanishing_points.
 
 The one implementation: `omnidata plan` writes them with `encode_json`, and the worker's cue modules
-(services.worker.cues.plan_cues) only register them with the executor. Pixel coordinates are continuous with the
-centre of pixel u at u + 0.5; depths and positions are world metres.
+(services.worker.cues.plan_cues) only register them with the executor. Pixel coordinates are continuous with
+the centre of pixel u at u + 0.5; depths and positions are world metres.
 """
 
 from __future__ import annotations

@@ -19,7 +19,8 @@ class SpaceError(Invalid):
 
 
 class FrameAmbiguous(SpaceError):
-    """Detection could not decide the frame (up or units); the message names the candidates and the flag that picks one."""
+    """Detection could not decide the frame (up or units); the message names the candidates and the flag that
+    picks one."""
 
     def __init__(self, message: str, candidates: list[UpCandidateRecord] | list[UnitCandidateRecord]):
         super().__init__(message)
@@ -27,8 +28,10 @@ class FrameAmbiguous(SpaceError):
 
 
 class UpAmbiguous(FrameAmbiguous):
-    """Up detection could not tell two candidates apart; the message names both and the flag that picks one."""
+    """Up detection could not tell two candidates apart; the message names both and the flag that picks
+    one."""
 
 
 class UnitsAmbiguous(FrameAmbiguous):
-    """More than one unit makes the scan plausible; the message names each (storey and extent) and --unit-scale."""
+    """More than one unit makes the scan plausible; the message names each (storey and extent) and
+    --unit-scale."""

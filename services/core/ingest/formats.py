@@ -58,7 +58,9 @@ def _read_json(path: Path, mesh_path: Path) -> dict:
     return doc
 
 
-def scannet_vertex_labels(mesh_path: Path, n_vertices: int) -> tuple[np.ndarray, np.ndarray, dict[int, str]] | None:
+def scannet_vertex_labels(
+    mesh_path: Path, n_vertices: int
+) -> tuple[np.ndarray, np.ndarray, dict[int, str]] | None:
     """Per raw PLY vertex (class id, instance id) and the class names, or None when not a ScanNet scene."""
     found = scannet_companions(mesh_path)
     if found is None:
@@ -69,10 +71,13 @@ def scannet_vertex_labels(mesh_path: Path, n_vertices: int) -> tuple[np.ndarray,
         groups = _read_json(agg_path, mesh_path)["segGroups"]
         objects = [(int(g["objectId"]), str(g["label"]), [int(s) for s in g["segments"]]) for g in groups]
     except (KeyError, TypeError, ValueError) as e:
-        raise ScanFormatError(f"{segs_path.name} / {agg_path.name}: missing or malformed field ({e})") from None
+        raise ScanFormatError(
+            f"{segs_path.name} / {agg_path.name}: missing or malformed field ({e})"
+        ) from None
     if len(seg_of_vertex) != n_vertices:
         raise ScanFormatError(
-            f"{segs_path.name}: {len(seg_of_vertex)} segIndices for the {n_vertices} vertices of {mesh_path.name}"
+            f"{segs_path.name}: {len(seg_of_vertex)} segIndices for the {n_vertices} vertices of "
+            f"{mesh_path.name}"
         )
     names = sorted({label for _, label, _ in objects})
     class_of_label = {label: i + 1 for i, label in enumerate(names)}

@@ -71,8 +71,11 @@ def _triangle_to_polygon(polys: list[np.ndarray] | np.ndarray) -> np.ndarray:
     return np.concatenate([tri, quad, quad, np.repeat(poly, lengths[poly] - 2)]).astype(np.int64)
 
 
-def _ply_triangle_polygons(mesh: trimesh.Trimesh, notes: list[str]) -> tuple[object, np.ndarray, np.ndarray] | None:
-    """(raw PLY face data, padded polygon vertex indices, raw polygon of each triangle), verified on positions."""
+def _ply_triangle_polygons(
+    mesh: trimesh.Trimesh, notes: list[str]
+) -> tuple[object, np.ndarray, np.ndarray] | None:
+    """(raw PLY face data, padded polygon vertex indices, raw polygon of each triangle), verified on
+    positions."""
     raw = mesh.metadata.get("_ply_raw") if isinstance(mesh.metadata, dict) else None
     data = raw["face"].get("data") if raw and "face" in raw else None
     if raw is None or data is None:
@@ -158,14 +161,18 @@ def scannet_labels(
     vertex_class, vertex_instance, names = found
     table = _ply_triangle_polygons(mesh, notes)
     if table is None:
-        raise SpaceError(f"{source.name}: ScanNet labels found but the faces could not be matched: {'; '.join(notes)}")
+        raise SpaceError(
+            f"{source.name}: ScanNet labels found but the faces could not be matched: {'; '.join(notes)}"
+        )
     _, polys, tri_to_poly = table
     poly_class = majority(vertex_class[polys])
     poly_instance = majority(vertex_instance[polys])
     return poly_class[tri_to_poly].astype(np.int32), poly_instance[tri_to_poly].astype(np.int32), names, notes
 
 
-def _classes_from_info_semantic(source: Path, face_instance: np.ndarray, notes: list[str]) -> np.ndarray | None:
+def _classes_from_info_semantic(
+    source: Path, face_instance: np.ndarray, notes: list[str]
+) -> np.ndarray | None:
     for cand in (source.parent / "info_semantic.json", source.parent / "habitat" / "info_semantic.json"):
         if not cand.is_file():
             continue

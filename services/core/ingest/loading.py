@@ -37,7 +37,7 @@ import numpy as np
 import trimesh
 
 from services.core.domain.frame_records import FrameRecord
-from services.core.domain.jobspec import UP_AXES, similarity_scale
+from services.core.domain.frame_values import UP_AXES, similarity_scale
 from services.core.domain.json_types import JSONObject
 from services.core.ingest.capture.attach import capture_near  # a capture with the scan
 from services.core.ingest.capture.model import Capture

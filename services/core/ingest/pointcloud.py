@@ -99,7 +99,9 @@ def cloud_from_ply(mesh: trimesh.PointCloud | trimesh.Trimesh) -> Cloud:
         if all(n in names for n in ("nx", "ny", "nz")):
             normals = np.column_stack([np.asarray(vdata[n], dtype=np.float64) for n in ("nx", "ny", "nz")])
         if all(n in names for n in ("red", "green", "blue")):
-            colors = _colors(np.column_stack([np.asarray(vdata[n], dtype=np.float64) for n in ("red", "green", "blue")]))
+            colors = _colors(
+                np.column_stack([np.asarray(vdata[n], dtype=np.float64) for n in ("red", "green", "blue")])
+            )
         if len(normals if normals is not None else pts) != len(pts):
             normals, colors = None, None
     if colors is None:
@@ -122,7 +124,9 @@ def _check(cloud: Cloud, name: str) -> None:
         raise CloudError(f"{name}: {n} points exceed the limit {MAX_POINTS}; subsample the cloud")
     ext = np.ptp(cloud.points, axis=0)
     if np.sort(ext)[1] <= 0:
-        raise CloudError(f"{name}: the points lie on a line or at one spot (extents {ext.tolist()}): nothing to mesh")
+        raise CloudError(
+            f"{name}: the points lie on a line or at one spot (extents {ext.tolist()}): nothing to mesh"
+        )
 
 
 def poisson_depth(n_points: int) -> int:
@@ -170,17 +174,22 @@ def reconstruct(cloud: Cloud, name: str) -> tuple[trimesh.Trimesh, JSONObject]:
     mesh = trimesh.Trimesh(verts, faces[keep], process=False)
     mesh.remove_unreferenced_vertices()
     if len(mesh.faces) == 0:
-        raise CloudError(f"{name}: nothing of the reconstructed surface lies near the points; the cloud is too sparse")
+        raise CloudError(
+            f"{name}: nothing of the reconstructed surface lies near the points; the cloud is too sparse"
+        )
     if cloud.colors is not None:
         _, nearest = cKDTree(pts).query(mesh.vertices)
         rgba = np.column_stack([cloud.colors[nearest], np.full(len(nearest), 255, np.uint8)])
         mesh.visual = trimesh.visual.ColorVisuals(mesh, vertex_colors=rgba)
     record: JSONObject = {
         "method": "screened_poisson (pymeshlab), trimmed by density and distance to the points",
-        "parameters": {"depth": depth, "samples_per_node": POISSON_SAMPLES_PER_NODE, "trim_density_quantile": TRIM_DENSITY_QUANTILE,
-                       "trim_spacings": TRIM_SPACINGS, "median_spacing": spacing,
-                       "normals": "estimated (k=10, towards the bounding-box centre)" if estimated else "given",
-                       "version": RECONSTRUCTION_VERSION},
+        "parameters": {
+            "depth": depth, "samples_per_node": POISSON_SAMPLES_PER_NODE,
+            "trim_density_quantile": TRIM_DENSITY_QUANTILE, "trim_spacings": TRIM_SPACINGS,
+            "median_spacing": spacing,
+            "normals": "estimated (k=10, towards the bounding-box centre)" if estimated else "given",
+            "version": RECONSTRUCTION_VERSION,
+        },
         "point_count": int(len(pts)),
         "face_count": int(len(mesh.faces)),
         "fragments": "face indices of this reconstruction (the cached mesh), which source_to_world also maps",

@@ -36,9 +36,10 @@ from services.core.temp_dirs import owned_temp_dir
 
 SINGLE_FILE_SUFFIXES = {".ply", ".glb", ".stl", ".off", ".zip", ".xyz", ".pts"}
 MAX_PACKED_BYTES = 4 << 30
-# A source's zip stores members that are compressed already (photos, depth PNGs, textures) and deflates the rest
-# at level 1: on the 7-Scenes kitchen (a 7.7 MB PLY and 200 frames) deflating the frames saved 12 KB of 16 MB for
-# 0.23 CPU-s, and level 6 saved 1% more than level 1 for 0.18 CPU-s, paid on every `generate` (its checksum).
+# A source's zip stores members that are compressed already (photos, depth PNGs, textures) and deflates the
+# rest at level 1: on the 7-Scenes kitchen (a 7.7 MB PLY and 200 frames) deflating the frames saved 12 KB of
+# 16 MB for 0.23 CPU-s, and level 6 saved 1% more than level 1 for 0.18 CPU-s, paid on every `generate` (its
+# checksum).
 STORED_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".webp", ".ktx2", ".zip", ".gz"})
 PACK_DEFLATE_LEVEL = 1
 
@@ -58,7 +59,8 @@ def _obj_companions(obj: Path) -> list[Path]:
     root = real_folder(obj)
     for name in dict.fromkeys(n for n in mtls if n):
         mtl = obj.parent / name
-        if not mtl.is_file() or not is_inside(mtl, root):  # never read (nor pack) a file outside the scan's folder
+        # never read (nor pack) a file outside the scan's folder
+        if not mtl.is_file() or not is_inside(mtl, root):
             continue
         out.append(mtl)
         for line in read_confined(mtl, obj).decode("utf-8", "replace").splitlines():
@@ -101,7 +103,8 @@ def _dataset_pack(source: Path) -> tuple[Path, list[Path]] | None:
 
 
 def _files_to_pack(source: Path, mesh_file: Path) -> tuple[Path, list[Path]]:
-    """(base folder, files) that a mesh needs, for zipping (with a posed capture beside it: the capture too)."""
+    """(base folder, files) that a mesh needs, for zipping (with a posed capture beside it: the capture
+    too)."""
     from services.core.ingest.capture.attach import capture_files_beside
     from services.core.ingest.guard.archive import MESH_SUFFIXES
 
@@ -127,7 +130,8 @@ def _files_to_pack(source: Path, mesh_file: Path) -> tuple[Path, list[Path]]:
 
 def pack_source(source: Path, mesh_file: Path, workdir: Path, *, remember: bool = False) -> Path:
     """The single file to upload for `source`: itself, or a deterministic zip of what the mesh needs.
-    `remember`: keep the zip's bytes for the next pack_source of the same files in this process (which takes them)."""
+    `remember`: keep the zip's bytes for the next pack_source of the same files in this process (which takes
+    them)."""
     if _stored_as_is(source):
         return source
     base, files = _files_to_pack(source, mesh_file)
@@ -137,7 +141,8 @@ def pack_source(source: Path, mesh_file: Path, workdir: Path, *, remember: bool 
     out = workdir / f"{mesh_file.stem}.zip"
     key = (str(base), tuple((str(f), (st := f.stat()).st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino)
                                 for f in files))
-    if (packed := _PACKED.pop(key, None)) is not None:  # zipped earlier in this process (checksum, then register)
+    # zipped earlier in this process (checksum, then register)
+    if (packed := _PACKED.pop(key, None)) is not None:
         out.write_bytes(packed)
         return out
     _write_zip(out, base, files)
@@ -148,8 +153,12 @@ def pack_source(source: Path, mesh_file: Path, workdir: Path, *, remember: bool 
 
 def _stored_as_is(source: Path) -> bool:
     """True when `source` is uploaded itself: one file that needs nothing beside it, or a zip."""
-    if (source.is_file() and source.suffix.lower() in SINGLE_FILE_SUFFIXES and scannet_companions(source) is None
-            and _dataset_pack(source) is None):
+    if (
+        source.is_file()
+        and source.suffix.lower() in SINGLE_FILE_SUFFIXES
+        and scannet_companions(source) is None
+        and _dataset_pack(source) is None
+    ):
         from services.core.ingest.capture.attach import capture_files_beside
         from services.core.ingest.guard.archive import MESH_SUFFIXES
 
@@ -171,9 +180,10 @@ def _write_zip(out: Path, base: Path, files: list[Path], *, before_stored_member
 
 
 # Zips source_checksum made in this process, by their files (path, size, mtime, ctime, inode), until the next
-# pack_source of the same files takes them: `omnidata generate` zips a source for its checksum and again to store
-# it (register_space); zipping costs ~0.02 CPU-s for ICL's 2.7 MB OBJ, ~0.19 for the 7-Scenes kitchen (16 MB zip).
-# Bounded (a dataset root's scenes are all checksummed before any is stored): past it, the oldest go first.
+# pack_source of the same files takes them: `omnidata generate` zips a source for its checksum and again to
+# store it (register_space); zipping costs ~0.02 CPU-s for ICL's 2.7 MB OBJ, ~0.19 for the 7-Scenes kitchen
+# (16 MB zip). Bounded (a dataset root's scenes are all checksummed before any is stored): past it, the oldest
+# go first.
 _PACKED: dict[tuple[str, tuple[tuple[str, int, int, int, int], ...]], bytes] = {}
 _PACKED_MAX_BYTES = 128 << 20
 
@@ -191,7 +201,9 @@ def validate_source(source_path: str | Path, **frame: Unpack[SpaceFrame]) -> Loa
     return load_space(source_path, **frame)
 
 
-def _frame_name(up_axis: str, up: Sequence[float] | None, source_to_world: Sequence[Sequence[float]] | None) -> str:
+def _frame_name(
+    up_axis: str, up: Sequence[float] | None, source_to_world: Sequence[Sequence[float]] | None
+) -> str:
     """What the space row's up_axis column records: the axis name, or how the frame was given."""
     return "matrix" if source_to_world is not None else "vector" if up is not None else up_axis
 
@@ -255,10 +267,14 @@ def register_space(
         raise SpaceError(f"a space named {name!r} already exists")
     with owned_temp_dir("register") as tmp:
         work = Path(tmp)
-        mesh_file = resolve_source(source, work / "x") if source.suffix.lower() == ".zip" else resolve_source(source)
+        mesh_file = (
+            resolve_source(source, work / "x") if source.suffix.lower() == ".zip" else resolve_source(source)
+        )
         if loaded is None:
-            loaded = load_space(source, up_axis=up_axis, unit_scale=unit_scale, up=up, source_to_world=source_to_world,
-                                accept_up_guess=True)
+            loaded = load_space(
+                source, up_axis=up_axis, unit_scale=unit_scale, up=up, source_to_world=source_to_world,
+                accept_up_guess=True,
+            )
         packed = pack_source(source, mesh_file, work)
         if packed.suffix.lower() == ".zip" and (problem := archive_refusal(packed)):
             raise SpaceError(f"{source.name}: packed for storage, {problem}")  # planning would refuse it
@@ -274,8 +290,8 @@ def register_space(
 
 
 def fetch_space(store: ObjectStore, space: Space, cache_dir: str | Path) -> Path:
-    """Local path of a space's mesh file (or of the folder a zipped source unpacked to), downloaded (and unzipped)
-    once per checksum into `cache_dir`."""
+    """Local path of a space's mesh file (or of the folder a zipped source unpacked to), downloaded (and
+    unzipped) once per checksum into `cache_dir`."""
     cache = Path(cache_dir) / space.checksum
     done_marker = cache / ".ready"
     if not done_marker.exists():
@@ -295,7 +311,8 @@ def fetch_space(store: ObjectStore, space: Space, cache_dir: str | Path) -> Path
                     raise
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
-    # a zipped source comes back as its folder, so what was packed beside the mesh (a capture) is found with it
+    # a zipped source comes back as its folder, so what was packed beside the mesh (a capture) is found with
+    # it
     return cache / "src" if (cache / "src").is_dir() else resolve_source(next(
         p for p in cache.iterdir() if p.is_file() and p.name != ".ready"
     ))
@@ -323,8 +340,9 @@ def source_checksum(path: Path) -> str:
 
 
 def legacy_source_checksum(path: Path) -> str | None:
-    """The checksum `path` had when sources were zipped with every member deflated at zlib's default level (before
-    2026-11), so an output folder of that time still resumes; None when `path` is stored as it is (not zipped)."""
+    """The checksum `path` had when sources were zipped with every member deflated at zlib's default level
+    (before 2026-11), so an output folder of that time still resumes; None when `path` is stored as it is (not
+    zipped)."""
     if _stored_as_is(path):
         return None
     with tempfile.TemporaryDirectory(prefix="omnidata-source-") as tmp:

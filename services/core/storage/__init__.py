@@ -1,4 +1,5 @@
-"""Object storage: `open_store(url)` picks the backend ("file:///abs/path", a plain path, "s3://bucket/prefix")."""
+"""Object storage: `open_store(url)` picks the backend ("file:///abs/path", a plain path,
+"s3://bucket/prefix")."""
 
 from __future__ import annotations
 

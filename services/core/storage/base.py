@@ -102,8 +102,8 @@ _io: tuple[int, ThreadPoolExecutor] | None = None
 
 
 def io_pool() -> ThreadPoolExecutor:
-    """Threads for a store's blocking calls (fsync, S3 requests), made in this process (a forked child makes its
-    own: a parent's threads do not survive a fork)."""
+    """Threads for a store's blocking calls (fsync, S3 requests), made in this process (a forked child makes
+    its own: a parent's threads do not survive a fork)."""
     global _io
     if _io is None or _io[0] != os.getpid():
         _io = (os.getpid(), ThreadPoolExecutor(max_workers=8, thread_name_prefix="store-io"))
@@ -112,7 +112,8 @@ def io_pool() -> ThreadPoolExecutor:
 
 @runtime_checkable
 class ObjectStore(Protocol):
-    """A flat key -> bytes store. Writes are atomic: readers see the old object or the new one, never a part."""
+    """A flat key -> bytes store. Writes are atomic: readers see the old object or the new one, never a
+    part."""
 
     def put_bytes(self, key: str, data: bytes, content_type: str | None = None) -> ObjectInfo:
         """Store `data` under `key`, replacing any object there."""
@@ -121,8 +122,8 @@ class ObjectStore(Protocol):
     def put_many(self, items: Sequence[tuple[str, bytes]], *, keep_cached: bool = True) -> list[ObjectInfo]:
         """Store each (key, data) as put_bytes does, together: a view's ~18 files cost one wait for the disk
         (local) or the network (S3) instead of one each. All stored, or StorageError (some may be stored).
-        keep_cached=False: nothing here reads them back soon (a worker's outputs), so a store that caches what it
-        writes (the local folder: the page cache) need not keep them."""
+        keep_cached=False: nothing here reads them back soon (a worker's outputs), so a store that caches what
+        it writes (the local folder: the page cache) need not keep them."""
         ...
 
     def put_file(self, key: str, path: str | Path, content_type: str | None = None) -> ObjectInfo:

@@ -35,7 +35,8 @@ PROBE_MIN_FREE_BYTES = 8 * 2**20
 
 
 class LocalStore:
-    """Keys map to files under `root`; writes go to a temp file in the same folder, then os.replace (atomic)."""
+    """Keys map to files under `root`; writes go to a temp file in the same folder, then os.replace
+    (atomic)."""
 
     def __init__(self, root: str | Path, *, fsync: bool = True):
         self.root = Path(root).expanduser().resolve()
@@ -93,8 +94,8 @@ class LocalStore:
         return ObjectInfo(key, len(data), hashlib.sha256(data).hexdigest())
 
     def put_many(self, items: Sequence[tuple[str, bytes]], *, keep_cached: bool = True) -> list[ObjectInfo]:
-        """Every temp file written, then flushed concurrently (the file system commits the flushes together: one
-        journal commit instead of one per file, ~30-100 ms of waiting a view on this disk), then renamed.
+        """Every temp file written, then flushed concurrently (the file system commits the flushes together:
+        one journal commit instead of one per file, ~30-100 ms of waiting a view on this disk), then renamed.
         keep_cached=False: each file's pages leave the page cache once flushed (_flush)."""
         targets = [self.path(key) for key, _ in items]
         tmps: list[Path] = []
@@ -262,10 +263,11 @@ class LocalStore:
 
 
 def _flush(path: Path, *, drop_cached: bool) -> None:
-    """fsync the file; with drop_cached, then drop its pages (clean once flushed) from the page cache. A worker
-    writes a view's ~6 MB of outputs and never reads them again: kept, they only grow the cache and push out what is
-    read again (the scan, the code), and every view's writes take pages afresh (bench/output/store_put.py; a
-    66-view ICL job: 0.5-0.7 s less, `generate` alternated with and without it)."""
+    """fsync the file; with drop_cached, then drop its pages (clean once flushed) from the page cache. A
+    worker writes a view's ~6 MB of outputs and never reads them again: kept, they only grow the cache and
+    push out what is read again (the scan, the code), and every view's writes take pages afresh
+    (bench/output/store_put.py; a 66-view ICL job: 0.5-0.7 s less, `generate` alternated with and without
+    it)."""
     fd = os.open(path, os.O_RDONLY)
     try:
         os.fsync(fd)

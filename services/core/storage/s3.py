@@ -39,7 +39,8 @@ _sessions: dict[int, boto3.session.Session] = {}
 
 
 def _boto_session() -> boto3.session.Session:
-    """One boto3 session per process: creating clients from it reuses the loaded service models (~0.3 s each)."""
+    """One boto3 session per process: creating clients from it reuses the loaded service models (~0.3 s
+    each)."""
     with _session_lock:  # boto3 sessions are not thread-safe while creating clients
         pid = os.getpid()  # a forked child (Celery prefork) builds its own
         if pid not in _sessions:
@@ -115,7 +116,8 @@ class S3Store:
                 client = session.client("s3", **kwargs)
         self.client = client
         self.transfer = TransferConfig(
-            multipart_threshold=MULTIPART_THRESHOLD, multipart_chunksize=MULTIPART_THRESHOLD, max_concurrency=4
+            multipart_threshold=MULTIPART_THRESHOLD, multipart_chunksize=MULTIPART_THRESHOLD,
+            max_concurrency=4,
         )
 
     def __repr__(self) -> str:
@@ -162,8 +164,8 @@ class S3Store:
         return ObjectInfo(key, len(data), digest)
 
     def put_many(self, items: Sequence[tuple[str, bytes]], *, keep_cached: bool = True) -> list[ObjectInfo]:
-        """The PUTs in flight together (the client is thread-safe), so a view waits for one round trip, not ~18.
-        Nothing is cached here: keep_cached changes nothing."""
+        """The PUTs in flight together (the client is thread-safe), so a view waits for one round trip, not
+        ~18. Nothing is cached here: keep_cached changes nothing."""
         return list(io_pool().map(lambda item: self.put_bytes(*item), items))
 
     def put_file(self, key: str, path: str | Path, content_type: str | None = None) -> ObjectInfo:
@@ -174,7 +176,9 @@ class S3Store:
             "Metadata": {"sha256": digest},
         }
         with self._failures("write to"):
-            self.client.upload_file(str(path), self.bucket, self._k(key), ExtraArgs=extra, Config=self.transfer)
+            self.client.upload_file(
+                str(path), self.bucket, self._k(key), ExtraArgs=extra, Config=self.transfer
+            )
         return ObjectInfo(key, path.stat().st_size, digest)
 
     def get_bytes(self, key: str) -> bytes:

@@ -109,8 +109,9 @@ def _plan_whole(space: LoadedSpace, spec: JobSpec, rng: np.random.Generator, spa
     if capture is not None and len(views):
         views, photo_dropped = _keep_photo_covered(capture, views, len(sampled.positions), spec)
     elif spec.uses_photos() and len(views):  # photo-textured views: enough surface some photo saw
-        views, photo_dropped, shortfall = _keep_photo_textured(space, space_name, q, views, len(sampled.positions),
-                                                               spec, shortfall)
+        views, photo_dropped, shortfall = _keep_photo_textured(
+            space, space_name, q, views, len(sampled.positions), spec, shortfall
+        )
     keep_points = _kept_points(views, len(sampled.positions), bool(notes or photo_dropped), vs)
     if vs.nonfixated_pruning and len(views):
         views, keep_points, shortfall = _prune_nonfixated(views, sampled, spec, shortfall)
@@ -131,7 +132,9 @@ def _plan_whole(space: LoadedSpace, spec: JobSpec, rng: np.random.Generator, spa
     return plan
 
 
-def _exact_capture_plan(space: LoadedSpace, spec: JobSpec, space_name: str, q: MeshQueries, salt: bytes) -> SpacePlan:
+def _exact_capture_plan(
+    space: LoadedSpace, spec: JobSpec, space_name: str, q: MeshQueries, salt: bytes
+) -> SpacePlan:
     """The plan of capture_views: exact (the captured photos' own poses are the views)."""
     from services.scheduler.planning import capture_views
 
@@ -141,8 +144,11 @@ def _exact_capture_plan(space: LoadedSpace, spec: JobSpec, space_name: str, q: M
             short, []))
 
 
-def _keep_photo_covered(capture: Capture, views: ViewArrays, n_points: int, spec: JobSpec) -> tuple[ViewArrays, int]:
-    """Capture views that show enough of their photo, and points left with enough of them; (views, dropped)."""
+def _keep_photo_covered(
+    capture: Capture, views: ViewArrays, n_points: int, spec: JobSpec
+) -> tuple[ViewArrays, int]:
+    """Capture views that show enough of their photo, and points left with enough of them; (views,
+    dropped)."""
     from services.scheduler.planning import capture_views
 
     covered, _ = capture_views.fixated_coverage_keep(capture, views, spec.views.min_photo_coverage)
@@ -152,14 +158,17 @@ def _keep_photo_covered(capture: Capture, views: ViewArrays, n_points: int, spec
     return views.subset(n_covered[views.point_idx] >= spec.points.min_views), photo_dropped
 
 
-def _keep_photo_textured(space: LoadedSpace, space_name: str, q: MeshQueries, views: ViewArrays, n_points: int,
-                         spec: JobSpec, shortfall: str | None) -> tuple[ViewArrays, int, str | None]:
+def _keep_photo_textured(
+    space: LoadedSpace, space_name: str, q: MeshQueries, views: ViewArrays, n_points: int, spec: JobSpec,
+    shortfall: str | None,
+) -> tuple[ViewArrays, int, str | None]:
     """Photo-textured views that show enough surface some photo saw; (views, dropped, shortfall)."""
     from services.scheduler.planning import capture_views as photo_views
 
     vs, ps = spec.views, spec.points
-    textured = photo_views.textured_coverage(q, photo_views.require_capture(space, space_name), views.world_to_camera,
-                                             views.fov)
+    textured = photo_views.textured_coverage(
+        q, photo_views.require_capture(space, space_name), views.world_to_camera, views.fov
+    )
     ok = textured >= vs.min_photo_coverage
     if vs.mode == "trajectory":  # as for min_valid_fraction: no gaps inside a clip
         ok = _longest_runs(views.point_idx, ok, vs.trajectory_min_frames)
@@ -169,13 +178,18 @@ def _keep_photo_textured(space: LoadedSpace, space_name: str, q: MeshQueries, vi
         n_covered = np.bincount(views.point_idx, minlength=n_points)
         views = views.subset(n_covered[views.point_idx] >= ps.min_views)
     if photo_dropped:
-        shortfall = join_notes(shortfall, f"views.min_photo_coverage {vs.min_photo_coverage} dropped {photo_dropped} "
-                                     "photo-textured views")
+        shortfall = join_notes(
+            shortfall,
+            f"views.min_photo_coverage {vs.min_photo_coverage} dropped {photo_dropped} photo-textured views",
+        )
     return views, photo_dropped, shortfall
 
 
-def _valid_fractions(q: MeshQueries, views: ViewArrays, spec: JobSpec) -> tuple[np.ndarray | None, ValidFractionSummary]:
-    """(each view's predicted valid fraction when views.min_valid_fraction filters, else None; the summary)."""
+def _valid_fractions(
+    q: MeshQueries, views: ViewArrays, spec: JobSpec
+) -> tuple[np.ndarray | None, ValidFractionSummary]:
+    """(each view's predicted valid fraction when views.min_valid_fraction filters, else None; the
+    summary)."""
     vs = spec.views
     if vs.min_valid_fraction > 0:
         fractions = valid_fractions(q, views, spec.params.max_depth_m)
@@ -187,8 +201,10 @@ def _valid_fractions(q: MeshQueries, views: ViewArrays, spec: JobSpec) -> tuple[
     return None, summary
 
 
-def _choose_views(sampled: SampledPoints, cams: np.ndarray, spec: JobSpec, q: MeshQueries, rng: np.random.Generator,
-                  orbit: tuple[np.ndarray, float] | None) -> tuple[ViewArrays, list[ClipNote]]:
+def _choose_views(
+    sampled: SampledPoints, cams: np.ndarray, spec: JobSpec, q: MeshQueries, rng: np.random.Generator,
+    orbit: tuple[np.ndarray, float] | None,
+) -> tuple[ViewArrays, list[ClipNote]]:
     """The views of the sampled points: wide-baseline views, or trajectory clips (with notes on cut clips)."""
     vs, ps = spec.views, spec.points
     if vs.mode == "wide_baseline":
@@ -228,8 +244,10 @@ def _prune_nonfixated(views: ViewArrays, sampled: SampledPoints, spec: JobSpec, 
     return views, keep_points, shortfall
 
 
-def _drop_low_valid(views: ViewArrays, fractions: np.ndarray, n_points: int, keep_points: np.ndarray, spec: JobSpec,
-                    shortfall: str | None) -> tuple[ViewArrays, np.ndarray, str | None]:
+def _drop_low_valid(
+    views: ViewArrays, fractions: np.ndarray, n_points: int, keep_points: np.ndarray, spec: JobSpec,
+    shortfall: str | None,
+) -> tuple[ViewArrays, np.ndarray, str | None]:
     """Drop views predicted to see too little surface, and the points left with too few views."""
     vs, ps = spec.views, spec.points
     passing = fractions >= vs.min_valid_fraction

@@ -1,12 +1,12 @@
 """How well a photo agrees with the scan's geometry seen from the photo's camera: the alignment score.
 
-Where the rendered geometry has an edge (a depth discontinuity, a crease between differently facing surfaces, a
-silhouette against nothing), a photo taken from that camera nearly always has a brightness edge too; a photo that
-is misregistered by a few pixels has its edges beside them. The score is the mean photo gradient across the
-geometric edges (its component along the edge map's own gradient, so texture running along or beside an edge
-counts little) at edge pixels, divided by the mean photo gradient magnitude over the whole covered image times
-2/pi (the mean of |cos| of a random angle): about 1 when the edges are unrelated (chance), higher the better
-they line up. Cast at ALIGN_PX x ALIGN_PX through the view's pinhole camera (metres,
+Where the rendered geometry has an edge (a depth discontinuity, a crease between differently facing surfaces,
+a silhouette against nothing), a photo taken from that camera nearly always has a brightness edge too; a photo
+that is misregistered by a few pixels has its edges beside them. The score is the mean photo gradient across
+the geometric edges (its component along the edge map's own gradient, so texture running along or beside an
+edge counts little) at edge pixels, divided by the mean photo gradient magnitude over the whole covered image
+times 2/pi (the mean of |cos| of a random angle): about 1 when the edges are unrelated (chance), higher the
+better they line up. Cast at ALIGN_PX x ALIGN_PX through the view's pinhole camera (metres,
 OpenCV axes), the photo resampled to the same camera (services.core.ingest.capture.resample).
 """
 
@@ -27,11 +27,15 @@ CREASE_DEG = 35.0  # normal change between neighbours that makes a crease edge
 MIN_EDGE_PIXELS = 30
 
 
-def cast_view(q: MeshQueries, world_to_camera: np.ndarray, fov: float, size: int) -> tuple[np.ndarray, np.ndarray]:
+def cast_view(
+    q: MeshQueries, world_to_camera: np.ndarray, fov: float, size: int
+) -> tuple[np.ndarray, np.ndarray]:
     """(z-depth metres, inf = none; unit face normals, 0 = none) of a square pinhole view, size x size."""
     K = intrinsics(fov, size)
     g = (np.arange(size) + 0.5 - K[0, 2]) / K[0, 0]
-    d_cam = np.stack(np.broadcast_arrays(g[None, :], g[:, None], np.ones((size, size))), axis=-1).reshape(-1, 3)
+    d_cam = np.stack(np.broadcast_arrays(g[None, :], g[:, None], np.ones((size, size))), axis=-1).reshape(
+        -1, 3
+    )
     d_cam = d_cam / np.linalg.norm(d_cam, axis=1, keepdims=True)
     R, t = world_to_camera[:3, :3], world_to_camera[:3, 3]
     origins = np.broadcast_to(-R.T @ t, d_cam.shape)
@@ -76,8 +80,8 @@ def scoring_photo(path: str, frame: CaptureFrame, fov: float, size: int = ALIGN_
 def alignment_score(q: MeshQueries, photo: Photo, frame: CaptureFrame, world_to_camera: np.ndarray,
                     fov: float,
                     size: int = ALIGN_PX) -> float | None:
-    """The score of one view whose camera shares the frame's centre (see the module docstring); None when the view
-    shows too few geometric edges inside the photo to tell."""
+    """The score of one view whose camera shares the frame's centre (see the module docstring); None when the
+    view shows too few geometric edges inside the photo to tell."""
     z, normals = cast_view(q, world_to_camera, fov, size)
     edges = geometry_edges(z, normals)
     rgb, covered = photo_for_view(photo, frame, intrinsics(fov, size), world_to_camera, size, size)

@@ -2,8 +2,8 @@
 
 generate: a 3D Poisson-disc sample of the free space inside the scan.
   1. Floors: faces whose normal is within 15 degrees of +Z (the floor rule of core.ingest.frame.gravity),
-     grouped by height (a gap > 5 cm starts a new group); groups with >= 20 % of the largest group's area (and >= 0.5 m^2) are floors, so each
-     storey of a multi-floor scan counts and table tops or stair steps do not.
+     grouped by height (a gap > 5 cm starts a new group); groups with >= 20 % of the largest group's area (and
+     >= 0.5 m^2) are floors, so each storey of a multi-floor scan counts and table tops or stair steps do not.
   2. Candidates: area-uniform points on the floor faces, raised by a height ~ U[height_min, height_max]
      (or drawn from height_quantiles_m; floors 'lowest' keeps the lowest floor only).
   3. Filters, cheapest first: the vertical segment from the floor point to the camera (plus the
@@ -89,7 +89,9 @@ def detect_floors(mesh: trimesh.Trimesh) -> list[Floor]:
     return floors
 
 
-def _sample_on_faces(mesh: trimesh.Trimesh, faces: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+def _sample_on_faces(
+    mesh: trimesh.Trimesh, faces: np.ndarray, n: int, rng: np.random.Generator
+) -> np.ndarray:
     """n area-uniform points on the given faces (world metres)."""
     area = mesh.area_faces[faces]
     cdf = np.cumsum(area)
@@ -189,7 +191,9 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
     return quaternion_wxyz_to_rotation(q / np.linalg.norm(q))
 
 
-def object_cameras(mesh: trimesh.Trimesh, spec: CameraSpec, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, float]:
+def object_cameras(
+    mesh: trimesh.Trimesh, spec: CameraSpec, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, float]:
     """(positions (n, 3), centre (3,), radius m): a turned Fibonacci lattice exactly on the camera sphere."""
     sphere = mesh.bounding_sphere.primitive
     centre = np.asarray(sphere.center, dtype=np.float64)

@@ -63,12 +63,19 @@ def room_loops(
     radius = np.minimum(np.minimum(reach[ok], free), LOOP_RADIUS_GROWTH * tight)
     best = np.argsort(-radius, kind="stable")[:LOOP_CANDIDATES]
     # each centre with its widest loop and its tightest (less often hidden by furniture in part)
-    loops = [(ok[i], r) for i in best if radius[i] >= tight for r in sorted({float(radius[i]), tight}, reverse=True)]
+    loops = [
+        (ok[i], r)
+        for i in best
+        if radius[i] >= tight
+        for r in sorted({float(radius[i]), tight}, reverse=True)
+    ]
     up = np.array([0.0, 0.0, 1.0])
     return [spiral(cams[c], up, _constant(r), _height_swing, lim, rng) for c, r in loops]
 
 
-def point_arcs(point: np.ndarray, cams: np.ndarray, lim: Limits, rng: np.random.Generator) -> list[tuple[np.ndarray, np.ndarray]]:
+def point_arcs(
+    point: np.ndarray, cams: np.ndarray, lim: Limits, rng: np.random.Generator
+) -> list[tuple[np.ndarray, np.ndarray]]:
     """Level circles round the point itself at the cameras' median height (module docstring, step 2b):
     where the room allows no loop in front of a point, the arc of such a circle that stays in the room
     and in sight is often longer than a route; the cameras that see the point are its anchors."""
@@ -78,7 +85,9 @@ def point_arcs(point: np.ndarray, cams: np.ndarray, lim: Limits, rng: np.random.
     nearest = max(1.0 / (LOOP_SHARE * (1.0 - ROLL_SHARE) * lim.view_rate), 1.0 / (LOOP_SHARE * lim.turn_rate))
     out = []
     for growth in ARC_RADII:
-        frames, _ = spiral(base, np.array([0.0, 0.0, 1.0]), _constant(growth * nearest), _height_swing, lim, rng)
+        frames, _ = spiral(
+            base, np.array([0.0, 0.0, 1.0]), _constant(growth * nearest), _height_swing, lim, rng
+        )
         out.append((frames, cams))
     return out
 
@@ -94,13 +103,18 @@ def _height_swing(phi: np.ndarray) -> np.ndarray:
 
 
 def object_orbits(
-    point: np.ndarray, normal: np.ndarray, cams: np.ndarray, distance: float, lim: Limits, rng: np.random.Generator,
+    point: np.ndarray, normal: np.ndarray, cams: np.ndarray, distance: float, lim: Limits,
+    rng: np.random.Generator,
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """Orbits `distance` from the point round an axis through it (its normal; the mean direction to the
     cameras that see it; up), tilted ORBIT_TILT_DEG from the axis with a slow swing (module docstring, 2b)."""
     mean_tilt, swing = np.radians(ORBIT_TILT_DEG)
     # and up: a steep axis would carry the camera over the point, where looking down spins the view
-    axes = [normal] + ([unit_vector(unit_vector(cams - point).mean(axis=0))] if len(cams) else []) + [np.array([0.0, 0.0, 1.0])]
+    axes = (
+        [normal]
+        + ([unit_vector(unit_vector(cams - point).mean(axis=0))] if len(cams) else [])
+        + [np.array([0.0, 0.0, 1.0])]
+    )
 
     def tilt(phi: np.ndarray) -> np.ndarray:
         return mean_tilt + swing * np.sin(LOOP_SWING_RATE * phi)

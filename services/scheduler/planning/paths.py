@@ -162,5 +162,7 @@ class Limits:
         ahead = spec.trajectory_look == "ahead"
         if ahead:  # the view follows the direction of motion
             turn_rate = min(turn_rate, (1.0 - ROLL_SHARE) * view_rate)
-        return cls(spec.trajectory_spacing_m * scale, float(turn_rate), float(view_rate), spec.trajectory_max_frames,
-                   spec.trajectory_min_frames, ahead, clearance, tol)
+        return cls(
+            spec.trajectory_spacing_m * scale, float(turn_rate), float(view_rate), spec.trajectory_max_frames,
+            spec.trajectory_min_frames, ahead, clearance, tol,
+        )

@@ -63,7 +63,11 @@ def sample_points(
     while accepted < count and drawn < budget:
         need = count - accepted
         # every sample costs one ray per camera: ask for just a little more than the observed rate needs
-        n = int(min(budget - drawn, max(64, np.ceil(1.05 * need / max(rate, 1.0 / spec.max_tries_per_point)) + 16)))
+        n = int(
+            min(
+                budget - drawn, max(64, np.ceil(1.05 * need / max(rate, 1.0 / spec.max_tries_per_point)) + 16)
+            )
+        )
         seed = int(rng.integers(0, 2**63 - 1))
         pts, face = trimesh.sample.sample_surface(mesh, n, seed=seed)
         drawn += n

@@ -1,9 +1,10 @@
 """Refining a capture's colour camera by maximising the alignment score (cameras.capture_refine).
 
 Coordinate ascent over one correction shared by all frames (services.core.ingest.capture.calibration): focal
-scale, principal point, and the colour camera's offset across the image plane (x, y; along the axis barely moves
-edges), scored as the median alignment of up to REFINE_FRAMES frames spread over the capture at REFINE_PX pixels.
-Steps halve when no move helps. The record says where it started, where it ended and what was changed.
+scale, principal point, and the colour camera's offset across the image plane (x, y; along the axis barely
+moves edges), scored as the median alignment of up to REFINE_FRAMES frames spread over the capture at
+REFINE_PX pixels. Steps halve when no move helps. The record says where it started, where it ended and what
+was changed.
 """
 
 from __future__ import annotations
@@ -48,7 +49,9 @@ def _moved(c: ColourCorrection, name: str, delta: float) -> ColourCorrection:
 def refine_colour_camera(q: MeshQueries, capture: Capture, frames: int = REFINE_FRAMES,
                          halvings: int = HALVINGS) -> tuple[ColourCorrection, RefinedCamera]:
     """The correction that maximises the median alignment score, and the record of the search."""
-    picks = sorted({int(i) for i in np.linspace(0, len(capture.frames) - 1, min(frames, len(capture.frames)))})
+    picks = sorted(
+        {int(i) for i in np.linspace(0, len(capture.frames) - 1, min(frames, len(capture.frames)))}
+    )
     photos = [scoring_photo(str(capture.image_path(capture.frames[i])), capture.frames[i],
                             capture.frames[i].inscribed_fov(), int(REFINE_PX * FOCAL_MARGIN)) for i in picks]
     best = ColourCorrection()
@@ -66,7 +69,10 @@ def refine_colour_camera(q: MeshQueries, capture: Capture, frames: int = REFINE_
                     if s > best_score + 1e-4:
                         best, best_score, improved = cand, s, True
                         break
-    record: RefinedCamera = {"correction": best.as_dict(), "score_before": start, "score_after": best_score,
-              "frames_scored": len(picks), "evaluations": evaluations,
-              "refined": "focal length scale, principal point, colour camera offset in x and y (shared by all frames)"}
+    record: RefinedCamera = {
+        "correction": best.as_dict(), "score_before": start, "score_after": best_score,
+        "frames_scored": len(picks), "evaluations": evaluations,
+        "refined": "focal length scale, principal point, colour camera offset in x and y (shared by "
+        "all frames)",
+    }
     return best, record

@@ -78,7 +78,9 @@ def free_space_graph(cameras: np.ndarray, q: MeshQueries, clearance: float) -> s
 
 def _symmetric(i: np.ndarray, j: np.ndarray, w: np.ndarray, n: int) -> sparse.csr_matrix:
     """(n, n) undirected graph with edges (i, j) of weight w."""
-    return sparse.csr_matrix((np.concatenate([w, w]), (np.concatenate([i, j]), np.concatenate([j, i]))), shape=(n, n))
+    return sparse.csr_matrix(
+        (np.concatenate([w, w]), (np.concatenate([i, j]), np.concatenate([j, i]))), shape=(n, n)
+    )
 
 
 def point_graph(
@@ -97,7 +99,9 @@ def point_graph(
     for x in (a, (a + b) / 2, b):
         pair = np.stack([look_at_batch(x, targets, np.zeros(len(x))),
                          look_at_batch(x + eps * t, targets, np.zeros(len(x)))], axis=1)
-        angle = np.arccos(np.clip((np.einsum("nij,nij->n", pair[:, 0, :3, :3], pair[:, 1, :3, :3]) - 1) / 2, -1, 1))
+        angle = np.arccos(
+            np.clip((np.einsum("nij,nij->n", pair[:, 0, :3, :3], pair[:, 1, :3, :3]) - 1) / 2, -1, 1)
+        )
         rate = np.maximum(rate, angle / eps)
     keep = rate <= view_rate
     keep[keep] = q.line_of_sight((a[keep] + b[keep]) / 2, np.tile(point, (int(keep.sum()), 1)), tol)
@@ -115,7 +119,11 @@ def choose_route(
     degree = np.diff(graph.indptr)
     open_ = degree >= MIN_WAYPOINT_DEGREE if (degree >= MIN_WAYPOINT_DEGREE).any() else degree >= 0
     start = far & open_
-    pool = np.flatnonzero(start) if start.any() else np.array([int(np.argmax(np.where(open_, np.linalg.norm(xyz - point, axis=1), -1)))])
+    pool = (
+        np.flatnonzero(start)
+        if start.any()
+        else np.array([int(np.argmax(np.where(open_, np.linalg.norm(xyz - point, axis=1), -1)))])
+    )
     route = [int(rng.choice(pool))]
     waypoints = list(route)
     length = 0.0
@@ -137,7 +145,9 @@ def _grow(
         cost, pred = csgraph.dijkstra(graph, indices=route[-1], return_predecessors=True)
         here = xyz[route[-1]]
         clear = np.linalg.norm(xyz[:, None] - xyz[waypoints][None], axis=2).min(axis=1) >= WAYPOINT_SEP * unit
-        cand = np.flatnonzero(np.isfinite(cost) & clear & open_ & (np.linalg.norm(xyz - here, axis=1) <= LEG * unit))
+        cand = np.flatnonzero(
+            np.isfinite(cost) & clear & open_ & (np.linalg.norm(xyz - here, axis=1) <= LEG * unit)
+        )
         if not len(cand):
             break
         legs = [xyz[_path(pred, route[-1], int(c))] for c in cand]

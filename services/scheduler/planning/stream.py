@@ -84,7 +84,8 @@ def cut_plan(plan: SpacePlan, chunk_views: int) -> PlanChunks:
 
 
 def _bounds(views_per_point: np.ndarray, chunk_views: int) -> list[tuple[int, int]]:
-    """[(first point, end point)] of consecutive chunks of about `chunk_views` views, each at least one point."""
+    """[(first point, end point)] of consecutive chunks of about `chunk_views` views, each at least one
+    point."""
     bounds, start, total = [], 0, 0
     for p, n in enumerate(views_per_point.tolist()):
         if total and total + n > chunk_views:
@@ -97,8 +98,10 @@ def _bounds(views_per_point: np.ndarray, chunk_views: int) -> list[tuple[int, in
 
 
 def _cut(plan: SpacePlan, chunk_views: int, out: PlanChunks) -> Iterator[SpacePlan]:
-    per_point = np.bincount(np.fromiter((v.point_idx for v in plan.views), dtype=np.int64, count=len(plan.views)),
-                            minlength=len(plan.points))
+    per_point = np.bincount(
+        np.fromiter((v.point_idx for v in plan.views), dtype=np.int64, count=len(plan.views)),
+        minlength=len(plan.points),
+    )
     first_view = np.concatenate([[0], np.cumsum(per_point)])
     out.whole = dataclasses.replace(plan, cameras=(), points=(), views=())
     for i, (lo, hi) in enumerate(_bounds(per_point, chunk_views)):
@@ -158,10 +161,12 @@ def _copy(rng: np.random.Generator) -> np.random.Generator:
 
 def _chunk_states(sampled: SampledPoints, bounds: list[tuple[int, int]], max_views: int | None,
                   rng: np.random.Generator) -> list[np.random.Generator]:
-    """Copies of the generator at each chunk's first point, replaying the camera choices; `rng` ends past them all
-    (where the fovs are drawn)."""
+    """Copies of the generator at each chunk's first point, replaying the camera choices; `rng` ends past them
+    all (where the fovs are drawn)."""
     if not isinstance(rng.bit_generator, np.random.PCG64):
-        raise TypeError(f"chunked planning needs a PCG64 generator (space_rng), not {type(rng.bit_generator)}")
+        raise TypeError(
+            f"chunked planning needs a PCG64 generator (space_rng), not {type(rng.bit_generator)}"
+        )
     starts: list[np.random.Generator] = []
     chunk = 0
     for p, visible in enumerate(sampled.visible):

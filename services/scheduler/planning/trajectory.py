@@ -121,8 +121,10 @@ class ClipNote:
     def as_dict(self, point_idx: int | None) -> ClipNoteRecord:
         """The JSON form, naming the point by its index in the plan (None: not in the plan)."""
         return {
-            "point_idx": point_idx, "outcome": "dropped" if self.frames == 0 or point_idx is None else "shortened",
-            "frames": self.frames, "planned_frames": self.planned, "reasons": dict(sorted(self.reasons.items())),
+            "point_idx": point_idx,
+            "outcome": "dropped" if self.frames == 0 or point_idx is None else "shortened",
+            "frames": self.frames, "planned_frames": self.planned,
+            "reasons": dict(sorted(self.reasons.items())),
         }
 
 
@@ -156,7 +158,9 @@ def trajectory(
     clearance = attainable_clearance(cameras, q, clearance)
     lim = Limits.of(spec, clearance, tol, orbit[1] / OBJECT_REFERENCE_M if orbit is not None else 1.0)
     budget = BUDGET_MARGIN * lim.spacing * (lim.max_frames - 1)
-    graph = free_space_graph(cameras, q, clearance) if orbit is None else sparse.csr_matrix((len(cameras),) * 2)
+    graph = (
+        free_space_graph(cameras, q, clearance) if orbit is None else sparse.csr_matrix((len(cameras),) * 2)
+    )
     unit = camera_spacing(cameras)
     tree = cKDTree(cameras)
     P: list[np.ndarray] = []
@@ -178,8 +182,12 @@ def trajectory(
                 sub = point_graph(sub, cameras[cams], positions[p], ROUTE_VIEW_SHARE * lim.view_rate, q, tol)
             node = choose_route(sub, cameras[cams], positions[p], budget, 1.0 / lim.view_rate, unit, rng)
             clips.append(fly_clip(cameras[cams][node], positions[p], lim, q, roll_pair, p))
-            loops = room_loops(positions[p], cameras[cams], lim, q, rng) + point_arcs(positions[p], cameras[cams], lim, rng)
-        clips += [verify_clip(frames, anchors, positions[p], lim, q, roll_pair, p) for frames, anchors in loops]
+            loops = room_loops(positions[p], cameras[cams], lim, q, rng) + point_arcs(
+                positions[p], cameras[cams], lim, rng
+            )
+        clips += [
+            verify_clip(frames, anchors, positions[p], lim, q, roll_pair, p) for frames, anchors in loops
+        ]
         clip = max(clips, key=lambda c: len(c.frames))  # the first of the longest
         if clip.note is not None:
             notes.append(clip.note)
@@ -192,9 +200,10 @@ def trajectory(
     return _view_arrays(P, F, T, R, FOV, len(visible), positions, normals, tree, q, tol), notes
 
 
-def _view_arrays(P: list[np.ndarray], F: list[np.ndarray], T: list[np.ndarray], R: list[np.ndarray],
-                 FOV: list[np.ndarray], n_points: int, positions: np.ndarray, normals: np.ndarray, tree: cKDTree,
-                 q: MeshQueries, tol: float) -> ViewArrays:
+def _view_arrays(
+    P: list[np.ndarray], F: list[np.ndarray], T: list[np.ndarray], R: list[np.ndarray], FOV: list[np.ndarray],
+    n_points: int, positions: np.ndarray, normals: np.ndarray, tree: cKDTree, q: MeshQueries, tol: float,
+) -> ViewArrays:
     """The clips' frames (per point: point index, positions, look targets, roll, fov) as the plan's views;
     v numbers the frames of a point, camera_idx is the nearest camera."""
     pidx = np.concatenate(P) if P else np.zeros(0, dtype=np.int64)
@@ -214,7 +223,9 @@ def _view_arrays(P: list[np.ndarray], F: list[np.ndarray], T: list[np.ndarray], 
     return ViewArrays(pidx, v, np.asarray(nearest, dtype=np.int64), W, fov_all, roll, obl, in_sight)
 
 
-def fly_clip(route: np.ndarray, point: np.ndarray, lim: Limits, q: MeshQueries, roll_pair: np.ndarray, p: int) -> Clip:
+def fly_clip(
+    route: np.ndarray, point: np.ndarray, lim: Limits, q: MeshQueries, roll_pair: np.ndarray, p: int
+) -> Clip:
     """Smooth, sample, verify and cut one clip along a route of cameras (module docstring, steps 3-5)."""
     # at most the budget of path: bounds the smoothing samples whatever the spacing
     route = trim(route, BUDGET_MARGIN * lim.spacing * (lim.max_frames - 1))
@@ -244,18 +255,24 @@ def push_out(frames: np.ndarray, q: MeshQueries, lim: Limits) -> np.ndarray:
         away = np.zeros_like(frames)
         away[near] = (frames[near] - closest[near]) / dist[near, None] * need[near, None]
         # height: the largest push nearby, smoothed; direction: the pushes nearby, averaged
-        height = gaussian_filter1d(maximum_filter1d(need, plateau, mode="constant"), sigma, mode="constant") / full
+        height = (
+            gaussian_filter1d(maximum_filter1d(need, plateau, mode="constant"), sigma, mode="constant") / full
+        )
         direction = gaussian_filter1d(away, 2 * sigma, axis=0, mode="constant")
         norm = np.linalg.norm(direction, axis=1, keepdims=True)
         shift = np.where(norm > 0, direction / np.maximum(norm, 1e-300), 0.0) * height[:, None]
         # resampled along the arc of a fine spline: a push along the path must not bunch the frames
-        frames = resample(frames_along(frames + shift, lim.spacing / DENSE_PER_PUSH), lim.spacing, keep_end=False)
+        frames = resample(
+            frames_along(frames + shift, lim.spacing / DENSE_PER_PUSH), lim.spacing, keep_end=False
+        )
     return frames
 
 
 def verify_clip(
-    frames: np.ndarray, anchors: np.ndarray, point: np.ndarray, lim: Limits, q: MeshQueries, roll_pair: np.ndarray,
-    p: int, *, lone: bool = False,
+    frames: np.ndarray, anchors: np.ndarray, point: np.ndarray, lim: Limits, q: MeshQueries,
+    roll_pair: np.ndarray, p: int,
+    *,
+    lone: bool = False,
 ) -> Clip:
     """Push out, verify and cut the frames of one clip (module docstring, steps 4-5); anchors: points in
     the free space the clip was planned through (its route's cameras, the axis of a loop), each frame in
@@ -267,7 +284,9 @@ def verify_clip(
     nearest_anchor = anchors[cKDTree(anchors).query(frames)[1]]
     link_clear = q.line_of_sight(frames[:-1], frames[1:], 0.0) if n > 1 else np.ones(0, dtype=bool)
     fail["outside"] = ~q.line_of_sight(frames, nearest_anchor, 0.0)
-    fail["hidden"] = np.zeros(n, dtype=bool) if lim.ahead else ~q.line_of_sight(frames, np.tile(point, (n, 1)), lim.tol)
+    fail["hidden"] = (
+        np.zeros(n, dtype=bool) if lim.ahead else ~q.line_of_sight(frames, np.tile(point, (n, 1)), lim.tol)
+    )
     fail["hidden"] |= np.linalg.norm(frames - point, axis=1) < 1e-6  # never look at the point from itself
     turn = np.zeros(n, dtype=bool)
     if n > 2:
@@ -282,7 +301,8 @@ def verify_clip(
     fail["view"][1:] |= ~view_ok
     good = ~(fail["clearance"] | fail["outside"] | fail["hidden"] | fail["turn"])
     a, b = longest_run(good, link_clear & view_ok)
-    # a surface between two frames cuts the clip too (a link, not a frame): reported as the later frame outside
+    # a surface between two frames cuts the clip too (a link, not a frame): reported as the later frame
+    # outside
     fail["outside"][1:] |= ~link_clear
     planned = min(n, lim.max_frames)
     if b - a > lim.max_frames:  # shorten the path, keep its middle

@@ -152,7 +152,9 @@ def obliqueness(normals: np.ndarray, points: np.ndarray, cameras: np.ndarray) ->
     return np.arccos(np.clip(np.einsum("ij,ij->i", normals, d), -1.0, 1.0))
 
 
-def cap_views(cams: Sequence[int] | np.ndarray, max_views: int | None, rng: np.random.Generator) -> np.ndarray:
+def cap_views(
+    cams: Sequence[int] | np.ndarray, max_views: int | None, rng: np.random.Generator
+) -> np.ndarray:
     """The cameras of a point, at most max_views of them chosen by rng (kept in index order)."""
     cams = np.asarray(cams, dtype=np.int64)
     if max_views is not None and len(cams) > max_views:
@@ -251,16 +253,21 @@ def nonfixated_keep(
     return keep
 
 
-VALID_PROBE_PX = 8  # rays per side of the low-resolution cast that predicts a view's share of surface (64 rays)
+# rays per side of the low-resolution cast that predicts a view's share of surface (64 rays)
+VALID_PROBE_PX = 8
 
 
-def valid_fractions(q: MeshQueries, views: ViewArrays, max_depth_m: float, size: int = VALID_PROBE_PX) -> np.ndarray:
-    """(n,) predicted share of each view's pixels that see a surface nearer than `max_depth_m` (z-depth, metres),
-    from a `size` x `size` ray cast through pixel centres (the cue `mask_valid` at low resolution)."""
+def valid_fractions(
+    q: MeshQueries, views: ViewArrays, max_depth_m: float, size: int = VALID_PROBE_PX
+) -> np.ndarray:
+    """(n,) predicted share of each view's pixels that see a surface nearer than `max_depth_m` (z-depth,
+    metres), from a `size` x `size` ray cast through pixel centres (the cue `mask_valid` at low
+    resolution)."""
     n = len(views)
     if not n:
         return np.zeros(0)
-    # pixel centres in units of the half-width: camera ray (g_x tan(fov/2), g_y tan(fov/2), 1), as camera.pixel_rays
+    # pixel centres in units of the half-width: camera ray (g_x tan(fov/2), g_y tan(fov/2), 1), as
+    # camera.pixel_rays
     g = (np.arange(size) + 0.5) / (size / 2) - 1.0
     gx, gy = np.meshgrid(g, g)
     t = np.tan(views.fov / 2)[:, None]
@@ -276,7 +283,8 @@ def valid_fractions(q: MeshQueries, views: ViewArrays, max_depth_m: float, size:
 
 
 def fraction_summary(fractions: np.ndarray, threshold: float) -> ValidFractionSummary:
-    """The distribution of predicted valid fractions (job.json): quantiles, and how many fall below `threshold`."""
+    """The distribution of predicted valid fractions (job.json): quantiles, and how many fall below
+    `threshold`."""
     if not len(fractions):
         return {"views": 0, "threshold": threshold, "dropped": 0}
     q = np.quantile(fractions, [0.0, 0.05, 0.25, 0.5, 0.75, 1.0])

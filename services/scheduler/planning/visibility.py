@@ -137,11 +137,18 @@ class _FaceIndex:
         radii = np.linalg.norm(tris - centroids[:, None, :], axis=2).max(axis=1)
         self.tris, self.centroids, self.radii = tris, centroids, radii
         r0 = max(float(np.median(radii)), 1e-12)
-        level = np.maximum(np.floor(np.log(np.maximum(radii, r0) / r0) / np.log(_LEVEL_GROWTH)), 0).astype(int)
+        level = np.maximum(np.floor(np.log(np.maximum(radii, r0) / r0) / np.log(_LEVEL_GROWTH)), 0).astype(
+            int
+        )
         self.levels: list[tuple[np.ndarray, float, cKDTree]] = []
         for lv in np.unique(level):
             ids = np.flatnonzero(level == lv)
-            self.levels.append((ids, float(radii[ids].max()), cKDTree(centroids[ids], balanced_tree=False, compact_nodes=False)))
+            self.levels.append(
+                (
+                    ids, float(radii[ids].max()),
+                    cKDTree(centroids[ids], balanced_tree=False, compact_nodes=False),
+                )
+            )
 
     def _exact_below(self, pts: np.ndarray, faces: np.ndarray, radius: float) -> np.ndarray:
         out = np.zeros(len(pts), dtype=bool)

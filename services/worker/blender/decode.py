@@ -1,15 +1,16 @@
-"""Decoding the pass render's EXR channels: sRGB encoding of the Combined pass to 8 bits (the reference formula and
-an exact table lookup), single-pass kernels for the face index, depth and curvature arrays, and the normals derived
-from the face index (no bpy here).
+"""Decoding the pass render's EXR channels: sRGB encoding of the Combined pass to 8 bits (the reference
+formula and an exact table lookup), single-pass kernels for the face index, depth and curvature arrays, and
+the normals derived from the face index (no bpy here).
 
 sRGB:
 
-The reference (IEC 61966-2-1 piecewise curve in float32, rint) is monotonic in its float32 input, so it is a step
-function with 255 steps over [0, 1]. Its output for a float32 x is found from x's bit pattern: positive float32s
-are ordered as their bits, so the top 16 bits name a bucket of 65536 consecutive floats, and no bucket holds more
-than one step (checked when the tables are built). Per bucket: the output at its first float and the first float
-(as bits) where the output goes up by one. Exactly the reference's bytes, without float32 pow (7 ms per 512x512
-view on one core -> well under 1 ms; tests/worker/blender/test_srgb.py checks every float32 in [0, 1]).
+The reference (IEC 61966-2-1 piecewise curve in float32, rint) is monotonic in its float32 input, so it is a
+step function with 255 steps over [0, 1]. Its output for a float32 x is found from x's bit pattern: positive
+float32s are ordered as their bits, so the top 16 bits name a bucket of 65536 consecutive floats, and no
+bucket holds more than one step (checked when the tables are built). Per bucket: the output at its first float
+and the first float (as bits) where the output goes up by one. Exactly the reference's bytes, without float32
+pow (7 ms per 512x512 view on one core -> well under 1 ms; tests/worker/blender/test_srgb.py checks every
+float32 in [0, 1]).
 """
 
 from __future__ import annotations
@@ -43,7 +44,10 @@ def tables() -> tuple[np.ndarray, np.ndarray]:
         up = srgb_encode(mid.astype(np.uint32).view(np.float32)).astype(np.int64) >= levels
         hi, lo = np.where(up, mid, hi), np.where(up, lo, mid)
     steps = hi.astype(np.uint32)  # steps[k - 1]: first bits with output >= k (output(0) = 0)
-    if not (srgb_encode(steps.view(np.float32)) == levels).all() or (np.diff(steps.astype(np.int64)) <= 0).any():
+    if (
+        not (srgb_encode(steps.view(np.float32)) == levels).all()
+        or (np.diff(steps.astype(np.int64)) <= 0).any()
+    ):
         raise AssertionError("the sRGB curve is not a one-level-per-step function of float32 bits")
     buckets = np.arange((_ONE_BITS >> _SHIFT) + 1, dtype=np.uint32)
     first = srgb_encode((buckets << _SHIFT).view(np.float32))
@@ -87,9 +91,9 @@ def _encode(r: np.ndarray, g: np.ndarray, b: np.ndarray, hit: np.ndarray, first:
 @njit(cache=True, nogil=True)
 def faces_hit(depth: np.ndarray, face1: np.ndarray, miss_depth: float, no_face: int
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(hit, face index (uint32, `no_face` where not hit), depth_z (float32, inf where not hit)) from the Depth pass
-    and the face-index-plus-one AOV (float32, exact integers): a pixel is hit where depth < miss_depth and the AOV
-    is > 0; the same values as the numpy expressions of render._decode, in one pass."""
+    """(hit, face index (uint32, `no_face` where not hit), depth_z (float32, inf where not hit)) from the
+    Depth pass and the face-index-plus-one AOV (float32, exact integers): a pixel is hit where depth <
+    miss_depth and the AOV is > 0; the same values as the numpy expressions of render._decode, in one pass."""
     h, w = depth.shape
     hit = np.empty((h, w), np.bool_)
     face = np.empty((h, w), np.uint32)
@@ -133,14 +137,16 @@ def unit_face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True)
-def facing_normals(face: np.ndarray, hit: np.ndarray, face_normals: np.ndarray, rotation: np.ndarray, f: float,
-                   cx: float, cy: float) -> np.ndarray:
-    """float32 H x W x 3 world normal of the seen triangle, turned against the pixel's ray where the ray meets its
-    back (as Cycles turns a back-facing hit's normal), 0 where nothing is hit.
+def facing_normals(
+    face: np.ndarray, hit: np.ndarray, face_normals: np.ndarray, rotation: np.ndarray, f: float, cx: float,
+    cy: float,
+) -> np.ndarray:
+    """float32 H x W x 3 world normal of the seen triangle, turned against the pixel's ray where the ray meets
+    its back (as Cycles turns a back-facing hit's normal), 0 where nothing is hit.
 
-    What the Normal pass gives for flat-shaded triangles, without rendering it: Cycles' float32 normal of the same
-    vertices differs by at most a few 1e-7 (tests/worker/blender/test_pass_identity.py). The side is the sign of
-    n . (R^T (u + 0.5 - cx, v + 0.5 - cy, f)), the ray's world direction up to a positive factor.
+    What the Normal pass gives for flat-shaded triangles, without rendering it: Cycles' float32 normal of the
+    same vertices differs by at most a few 1e-7 (tests/worker/blender/test_pass_identity.py). The side is the
+    sign of n . (R^T (u + 0.5 - cx, v + 0.5 - cy, f)), the ray's world direction up to a positive factor.
     """
     h, w = hit.shape
     out = np.zeros((h, w, 3), np.float32)

@@ -2,10 +2,10 @@
 
 Such a file is a header, a table of one offset per scanline, then per scanline: its y (int32), its byte count
 (int32) and each channel's W samples in the header's channel order. One structured numpy dtype describes a
-scanline, so every channel is a strided view of the file's bytes (no per-channel conversion: the OpenEXR module's
-read costs ~4 ms per 512x512 view on one core). Anything else (compression, tiles, parts, half or uint channels,
-subsampling) returns None and the caller reads it with the OpenEXR module. tests/worker/blender/test_exr.py and
-test_pass_identity.py check the arrays against OpenEXR's.
+scanline, so every channel is a strided view of the file's bytes (no per-channel conversion: the OpenEXR
+module's read costs ~4 ms per 512x512 view on one core). Anything else (compression, tiles, parts, half or
+uint channels, subsampling) returns None and the caller reads it with the OpenEXR module.
+tests/worker/blender/test_exr.py and test_pass_identity.py check the arrays against OpenEXR's.
 """
 
 from __future__ import annotations
@@ -50,9 +50,9 @@ def _channels(raw: bytes) -> list[str] | None:
 
 
 def read_channels(path: str) -> dict[str, np.ndarray] | None:
-    """Channel name -> float32 H x W view of the file's bytes (Combined's R, G, B, A as `<layer>.Combined.R`...),
-    or None when the file is not a single-part uncompressed float32 scanline EXR. The views map the file (read
-    only, no copy): decode them before the next render rewrites it."""
+    """Channel name -> float32 H x W view of the file's bytes (Combined's R, G, B, A as
+    `<layer>.Combined.R`...), or None when the file is not a single-part uncompressed float32 scanline EXR.
+    The views map the file (read only, no copy): decode them before the next render rewrites it."""
     with open(path, "rb") as f:
         buf = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
     head = _header(buf)

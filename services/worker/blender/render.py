@@ -1,24 +1,27 @@
-"""Cycles set-up and the one render per view: every pass lands in one multilayer float32 EXR, read back to numpy.
+"""Cycles set-up and the one render per view: every pass lands in one multilayer float32 EXR, read back to
+numpy.
 
 Camera: Blender's camera looks down its local -Z with +Y up; from an OpenCV world_to_camera W (metres),
-matrix_world = inverse(W) @ diag(1, -1, -1, 1) (services.core.domain.camera.blender_matrix_world). sensor_fit HORIZONTAL
-and `angle` = the horizontal fov (radians) give f = (W/2)/tan(fov/2) pixels; square images, zero shift, so the
-principal point is the image centre and pixel (u, v) is sampled at its centre (u + 0.5, v + 0.5): one sample per
-pixel with a 0.01 px box filter, fixed seed, no denoising, 0 light bounces.
+matrix_world = inverse(W) @ diag(1, -1, -1, 1) (services.core.domain.camera.blender_matrix_world). sensor_fit
+HORIZONTAL and `angle` = the horizontal fov (radians) give f = (W/2)/tan(fov/2) pixels; square images, zero
+shift, so the principal point is the image centre and pixel (u, v) is sampled at its centre (u + 0.5, v +
+0.5): one sample per pixel with a 0.01 px box filter, fixed seed, no denoising, 0 light bounces.
 
 Passes read back (linear float32, row 0 = top):
-- Combined: the emission shader = unlit colour (scene-linear; sRGB-encoded here so that 8-bit output reproduces
-  the texture's 8-bit values: the same as view transform Standard, look None, exposure 0, gamma 1, display sRGB);
+- Combined: the emission shader = unlit colour (scene-linear; sRGB-encoded here so that 8-bit output
+  reproduces the texture's 8-bit values: the same as view transform Standard, look None, exposure 0, gamma 1,
+  display sRGB);
 - Depth: Cycles' Z pass is the distance along the camera's optical axis (planar z), 1e10 where nothing is hit;
-- normals are not rendered: faces are flat-shaded, so Cycles' Normal pass is the seen triangle's geometric normal,
-  turned towards the incoming ray for back-facing hits; the decode gives that from the face index, to float32
-  rounding and the same on every device (decode.facing_normals; the pass cost 3 EXR channels and 4-7% of the
-  passes task's CPU: README, round 13's A/B);
-- AOVs (float32, exact integers below 2^24): face index + 1 in one AOV when the mesh has fewer than 2^24 faces,
-  else split into two 16-bit halves (exact for any mesh below 2^32 - 1 faces, so no ray-cast fallback is
-  needed), curvature k1 and k2 (per-vertex values interpolated barycentrically over the triangle). Class and
-  instance ids are per face: looked up from the face index (the same values the class/instance AOVs give, which
-  the material still offers; each AOV costs render time and EXR channels, see bench/results/passes_cost.json).
+- normals are not rendered: faces are flat-shaded, so Cycles' Normal pass is the seen triangle's geometric
+  normal, turned towards the incoming ray for back-facing hits; the decode gives that from the face index, to
+  float32 rounding and the same on every device (decode.facing_normals; the pass cost 3 EXR channels and 4-7%
+  of the passes task's CPU: README, round 13's A/B);
+- AOVs (float32, exact integers below 2^24): face index + 1 in one AOV when the mesh has fewer than 2^24
+  faces, else split into two 16-bit halves (exact for any mesh below 2^32 - 1 faces, so no ray-cast fallback
+  is needed), curvature k1 and k2 (per-vertex values interpolated barycentrically over the triangle). Class
+  and instance ids are per face: looked up from the face index (the same values the class/instance AOVs give,
+  which the material still offers; each AOV costs render time and EXR channels, see
+  bench/results/passes_cost.json).
 """
 
 from __future__ import annotations
@@ -62,12 +65,14 @@ AOV_CLASS = "omni_class"
 AOV_INSTANCE = "omni_instance"
 AOV_K1 = "omni_k1"
 AOV_K2 = "omni_k2"
-AOVS = (AOV_FACE, AOV_FACE_HI, AOV_FACE_LO, AOV_CLASS, AOV_INSTANCE, AOV_K1, AOV_K2)  # what the material writes
+# what the material writes
+AOVS = (AOV_FACE, AOV_FACE_HI, AOV_FACE_LO, AOV_CLASS, AOV_INSTANCE, AOV_K1, AOV_K2)
 EXACT_FACES = 2**24 - 1  # face index + 1 is an exact float32 integer up to 2^24: one AOV holds it
 
 
 def pass_aovs(faces: int) -> tuple[str, ...]:
-    """The AOVs a pass render of a mesh with `faces` faces needs (class and instance come from the face index)."""
+    """The AOVs a pass render of a mesh with `faces` faces needs (class and instance come from the face
+    index)."""
     return ((AOV_FACE,) if faces <= EXACT_FACES else (AOV_FACE_HI, AOV_FACE_LO)) + (AOV_K1, AOV_K2)
 
 CLIP_START_M = 1e-4
@@ -77,8 +82,8 @@ _MISS_DEPTH = 1e9  # Cycles writes 1e10 where a ray hits nothing
 
 @dataclass(frozen=True)
 class RenderOptions:
-    """How to run Cycles: device ("auto" tries OptiX then CUDA, else CPU) and CPU threads (None: this process's
-    CPU affinity, so `taskset -c 0` gives one thread)."""
+    """How to run Cycles: device ("auto" tries OptiX then CUDA, else CPU) and CPU threads (None: this
+    process's CPU affinity, so `taskset -c 0` gives one thread)."""
 
     device: Device = "cpu"
     threads: int | None = None
@@ -89,7 +94,8 @@ class RenderOptions:
 
 
 def configure_device(scene: bpy.types.Scene, device: str) -> str:
-    """Select the Cycles device; returns the one in use ("cpu", "cuda" or "optix"), falling back to the CPU."""
+    """Select the Cycles device; returns the one in use ("cpu", "cuda" or "optix"), falling back to the
+    CPU."""
     scene.cycles.device = "CPU"
     if device == "cpu":
         return "cpu"
@@ -109,8 +115,8 @@ def configure_device(scene: bpy.types.Scene, device: str) -> str:
             log.info("Cycles renders on %s: %s", kind, ", ".join(d.name for d in gpus))
             return kind.lower()
     prefs.compute_device_type = "NONE"
-    # "auto" on a machine without a GPU is the expected CPU render; with one (whose presence also made `generate`
-    # give fewer workers the renders) it is a driver Cycles cannot use, and worth a warning.
+    # "auto" on a machine without a GPU is the expected CPU render; with one (whose presence also made
+    # `generate` give fewer workers the renders) it is a driver Cycles cannot use, and worth a warning.
     present = nvidia_gpus()
     level = logging.INFO if device == "auto" and not present else logging.WARNING
     log.log(level, "render device %r requested but no %s device found%s: rendering on the CPU", device,
@@ -120,7 +126,8 @@ def configure_device(scene: bpy.types.Scene, device: str) -> str:
 
 def configure_scene(scene: bpy.types.Scene, options: RenderOptions, output_path: str,
                     aovs: tuple[str, ...] = AOVS) -> str:
-    """Cycles settings for pixel-centre, noise-free pass rendering with the AOVs `aovs`; returns the device in use."""
+    """Cycles settings for pixel-centre, noise-free pass rendering with the AOVs `aovs`; returns the device in
+    use."""
     _configure_cycles(scene, options)
     r = scene.render
     r.use_file_extension = False
@@ -129,8 +136,9 @@ def configure_scene(scene: bpy.types.Scene, options: RenderOptions, output_path:
     im.file_format = "OPEN_EXR_MULTILAYER"
     im.color_depth = "32"  # float: the index AOVs must stay exact
     im.exr_codec = "NONE"  # the file lives for milliseconds in a temp dir: do not spend time compressing
-    # The AOVs stay the same for every view: Cycles' persistent session compiles its shaders for the AOVs present
-    # at the first render and writes zeros into AOVs added later. A view's cues choose what is read back.
+    # The AOVs stay the same for every view: Cycles' persistent session compiles its shaders for the AOVs
+    # present at the first render and writes zeros into AOVs added later. A view's cues choose what is read
+    # back.
     layer = scene.view_layers[0]
     layer.use_pass_normal = False  # derived from the face index (module docstring)
     for name in aovs:
@@ -142,7 +150,8 @@ def configure_scene(scene: bpy.types.Scene, options: RenderOptions, output_path:
 
 
 def configure_floor_scene(scene: bpy.types.Scene, options: RenderOptions) -> str:
-    """The same Cycles settings with Image, Depth and Normal passes (no AOVs): the bare render of the benchmarks."""
+    """The same Cycles settings with Image, Depth and Normal passes (no AOVs): the bare render of the
+    benchmarks."""
     _configure_cycles(scene, options)
     return configure_device(scene, options.device)
 
@@ -223,7 +232,8 @@ def _quiet_stdout() -> Iterator[None]:
 
 
 def render_floor(scene: bpy.types.Scene, cam: bpy.types.Object, g: ViewGeometry) -> float:
-    """Seconds of one render of `scene` from view `g`, nothing written (the bare-render floor of the benchmarks)."""
+    """Seconds of one render of `scene` from view `g`, nothing written (the bare-render floor of the
+    benchmarks)."""
     set_camera(scene, cam, g)
     t0 = time.perf_counter()
     with in_blender(), _quiet_stdout():
@@ -234,11 +244,12 @@ def render_floor(scene: bpy.types.Scene, cam: bpy.types.Object, g: ViewGeometry)
 def render_passes(scene: bpy.types.Scene, cam: bpy.types.Object, g: ViewGeometry,
                   passes: frozenset[str] = RENDER_PASSES, labels: tuple[np.ndarray, np.ndarray] | None = None,
                   face_normals: np.ndarray | None = None) -> ViewPasses:
-    """Render one view and read back colour, depth and the optional `passes` (module docstring: frames, units).
+    """Render one view and read back colour, depth and the optional `passes` (module docstring: frames,
+    units).
 
-    "curvature" needs the scene's curvature attribute, "labels" its label attribute (class and instance AOVs) or
-    `labels`: int32 class and instance ids per face, read at the face index; "normal" needs `face_normals`, the
-    mesh's decode.unit_face_normals (BlenderScene checks and gives them).
+    "curvature" needs the scene's curvature attribute, "labels" its label attribute (class and instance AOVs)
+    or `labels`: int32 class and instance ids per face, read at the face index; "normal" needs `face_normals`,
+    the mesh's decode.unit_face_normals (BlenderScene checks and gives them).
     """
     if "normal" in passes and face_normals is None:
         raise ValueError("the normal pass is derived from the face index: render_passes needs face_normals")
@@ -255,7 +266,8 @@ def render_passes(scene: bpy.types.Scene, cam: bpy.types.Object, g: ViewGeometry
 
 
 def _read_openexr(path: str) -> dict[str, np.ndarray]:
-    """Channel name -> H x W array with the OpenEXR module (RGBA layers come as one H x W x 4 array: split)."""
+    """Channel name -> H x W array with the OpenEXR module (RGBA layers come as one H x W x 4 array:
+    split)."""
     import OpenEXR  # the fallback of read_channels only: not loaded otherwise
 
     out = {}
@@ -294,8 +306,10 @@ def _decode(channels: dict[str, np.ndarray], layer: str, g: ViewGeometry, passes
     if "normal" in passes:
         assert face_index is not None and face_normals is not None  # read above; render_passes checked
         K = g.K
-        normal = facing_normals(face_index, hit, face_normals, np.ascontiguousarray(g.rotation, dtype=np.float64),
-                                float(K[0, 0]), float(K[0, 2]), float(K[1, 2]))
+        normal = facing_normals(
+            face_index, hit, face_normals, np.ascontiguousarray(g.rotation, dtype=np.float64), float(K[0, 0]),
+            float(K[0, 2]), float(K[1, 2]),
+        )
     rgb = srgb_masked(ch("Combined.R"), ch("Combined.G"), ch("Combined.B"), hit)
     out = ViewPasses(geometry=g, depth_z=depth_z, normal_world=normal, rgb=rgb,
                      face_index=face_index if "faces" in passes else None)

@@ -1,9 +1,10 @@
 """The Blender scene of one space, built from trimesh arrays (never re-imported with Blender's importers).
 
-The mesh is given in the world frame (metres, +Z up) with the planner's vertex and face order; it is copied into
-one Blender mesh with foreach_set, so Blender face i is trimesh face i and world coordinates are identical (the
-triangle index pass is exact). Colour, in order of preference: the texture image of mesh.visual.material (UVs
-per vertex), vertex or face colours, the material's main colour, else a constant grey (sRGB 128).
+The mesh is given in the world frame (metres, +Z up) with the planner's vertex and face order; it is copied
+into one Blender mesh with foreach_set, so Blender face i is trimesh face i and world coordinates are
+identical (the triangle index pass is exact). Colour, in order of preference: the texture image of
+mesh.visual.material (UVs per vertex), vertex or face colours, the material's main colour, else a constant
+grey (sRGB 128).
 
 bpy holds one scene per process: building a BlenderScene resets Blender (factory settings, empty), and close()
 resets it again so the mesh, textures and Cycles' persistent data are freed when the space changes.
@@ -82,7 +83,8 @@ class BlenderScene:
         self.has_curvature = False
         self.labelled = face_class is not None or face_instance is not None
         self.labels: tuple[np.ndarray, np.ndarray] | None = None  # int32 class, instance per face (labelled)
-        sweep_orphans(("render", "exr"), (_temp_root(),))  # folders of workers killed mid-render (kill -9 skips atexit)
+        # folders of workers killed mid-render (kill -9 skips atexit)
+        sweep_orphans(("render", "exr"), (_temp_root(),))
         self._tmp = tempfile.mkdtemp(prefix=owned_prefix("render"), dir=_temp_root())
         atexit.register(shutil.rmtree, self._tmp, True)  # also when the process dies without close()
         bpy.ops.wm.read_factory_settings(use_empty=True)
@@ -130,8 +132,10 @@ class BlenderScene:
             inst = self._labels(face_instance, nf, "face_instance")
             self._set_attr(me, ATTR_LABEL, "FACE", np.stack([cls, inst, np.zeros(nf)], axis=1))
             # What the class and instance AOVs give at a pixel: the float32 attribute, rounded.
-            self.labels = cls.astype(np.float32).round().astype(np.int32), inst.astype(np.float32).round().astype(
-                np.int32)
+            self.labels = (
+                cls.astype(np.float32).round().astype(np.int32),
+                inst.astype(np.float32).round().astype(np.int32),
+            )
         visual: Any = mesh.visual
         uv = getattr(visual, "uv", None)
         if self._texture_image(mesh) is not None and uv is not None and len(uv) == len(verts):
@@ -153,7 +157,8 @@ class BlenderScene:
 
     @staticmethod
     def _labels(values: np.ndarray | None, nf: int, name: str) -> np.ndarray:
-        """Per-face ids as floats for the AOVs (exact below 2^24); range checks belong to the cues' encodings."""
+        """Per-face ids as floats for the AOVs (exact below 2^24); range checks belong to the cues'
+        encodings."""
         if values is None:
             return np.zeros(nf)
         v = np.asarray(values).reshape(-1)
@@ -190,8 +195,9 @@ class BlenderScene:
 
     def _build_material(self, mesh: trimesh.Trimesh) -> bpy.types.Material:
         mat = bpy.data.materials.new("space")
-        # No light source: the camera sees the emission directly (no bounces). Cycles' automatic emission sampling
-        # evaluated the shader on every coloured or textured triangle at each sync to build its light tree.
+        # No light source: the camera sees the emission directly (no bounces). Cycles' automatic emission
+        # sampling evaluated the shader on every coloured or textured triangle at each sync to build its light
+        # tree.
         mat.cycles.emission_sampling = "NONE"
         mat.use_nodes = True
         nt = mat.node_tree
@@ -264,7 +270,8 @@ class BlenderScene:
         self.has_curvature = True
 
     def render(self, view: ViewGeometry, passes: frozenset[str] = RENDER_PASSES) -> ViewPasses:
-        """Render one view (one Cycles render): colour, depth and the optional `passes` this scene can give."""
+        """Render one view (one Cycles render): colour, depth and the optional `passes` this scene can
+        give."""
         self._check_open()
         t0 = time.perf_counter()
         wanted = set(passes)
@@ -278,9 +285,9 @@ class BlenderScene:
         return out
 
     def render_floor(self, view: ViewGeometry) -> float:
-        """Seconds of one bare render of `view` (the benchmarks' floor): same mesh, camera, samples and threads,
-        Image, Depth and Normal passes only, no AOVs, nothing written or read back. A scene of its own, so its
-        Cycles persistent data does not disturb the pass scene's."""
+        """Seconds of one bare render of `view` (the benchmarks' floor): same mesh, camera, samples and
+        threads, Image, Depth and Normal passes only, no AOVs, nothing written or read back. A scene of its
+        own, so its Cycles persistent data does not disturb the pass scene's."""
         self._check_open()
         if self._floor is None:
             self._floor = bpy.data.scenes.new("floor")

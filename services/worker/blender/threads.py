@@ -3,15 +3,15 @@
 Cycles limits TBB with `tbb::global_control(max_allowed_parallelism, threads)` while its (persistent) session
 lives. When that limit is below the pool TBB already started (its default: one thread per CPU of the process's
 affinity), the surplus TBB workers keep spinning in sched_yield (oneTBB issue 1417): a worker started with
-`--render-threads 1` on a multi-core host burnt a whole core while idle. TBB fixes its default concurrency from
-the calling thread's CPU affinity when Blender initialises it during `import bpy`, so the import runs with the
-affinity narrowed to `threads` CPUs and the affinity is restored right after: the pool then never exceeds the
-budget, and the OS still schedules the render threads on any CPU.
+`--render-threads 1` on a multi-core host burnt a whole core while idle. TBB fixes its default concurrency
+from the calling thread's CPU affinity when Blender initialises it during `import bpy`, so the import runs
+with the affinity narrowed to `threads` CPUs and the affinity is restored right after: the pool then never
+exceeds the budget, and the OS still schedules the render threads on any CPU.
 
-Blender also starts OpenEXR's global thread pool with a thread per CPU. A pass EXR is written uncompressed, so its
-512 scanline blocks have nothing worth a thread, yet each wakes one: ~800 context switches a view, 3% of the
-render task's CPU on one core. The pool is set to 0 threads after the import (OpenEXR then writes in the calling
-thread; the same bytes).
+Blender also starts OpenEXR's global thread pool with a thread per CPU. A pass EXR is written uncompressed, so
+its 512 scanline blocks have nothing worth a thread, yet each wakes one: ~800 context switches a view, 3% of
+the render task's CPU on one core. The pool is set to 0 threads after the import (OpenEXR then writes in the
+calling thread; the same bytes).
 """
 
 from __future__ import annotations
@@ -29,7 +29,8 @@ log = logging.getLogger(__name__)
 
 
 def import_bpy(threads: int | None) -> None:
-    """Import bpy (once per process) with a TBB pool of at most `threads` threads (None: every allowed CPU)."""
+    """Import bpy (once per process) with a TBB pool of at most `threads` threads (None: every allowed
+    CPU)."""
     if "bpy" in sys.modules:
         return
     _drop_inherited_script_dirs()
@@ -49,8 +50,8 @@ def import_bpy(threads: int | None) -> None:
 
 def remove_session_temp_dir() -> None:
     """Remove Blender's session temp folder ($TMPDIR/blender_XXXXXX, made by `import bpy`), for a process that
-    leaves through os._exit: Blender removes it only in its own exit, so every worker left one behind (an empty
-    folder in /tmp per worker and run). Nothing when this process never imported bpy."""
+    leaves through os._exit: Blender removes it only in its own exit, so every worker left one behind (an
+    empty folder in /tmp per worker and run). Nothing when this process never imported bpy."""
     bpy = sys.modules.get("bpy")
     if bpy is None:
         return

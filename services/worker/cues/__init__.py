@@ -1,8 +1,8 @@
 """Cue implementations, one module per family, collected into one registry, so the executor
 looks cues up by name and a new cue touches one family module.
 
-Adding a cue: a catalog entry in services/core/domain/cues.py, an `@register("name")` function in a family module
-below, and (for a new family) one import line here.
+Adding a cue: a catalog entry in services/core/domain/cues.py, an `@register("name")` function in a family
+module below, and (for a new family) one import line here.
 """
 
 from services.worker.cues import (  # noqa: F401  (imported for their @register side effect)

@@ -1,13 +1,13 @@
 """The parameters of the 3D augmentation cues, drawn once per view and stored as that view's `augment_params`.
 
 Every parameter is drawn from its JobSpec distribution (params.augment) by a generator seeded from the view's
-identity in the plan: its point's uuid (which the planner derives from the job's seed and the space's name) and
-its view index. So the same job gives the same draws on every worker and on a retry, every augmentation cue of a
-view reads the same values, and a reader finds them in the JSON file beside the images. Draws happen in a fixed
-order, one per parameter, whichever cues a job asks for.
+identity in the plan: its point's uuid (which the planner derives from the job's seed and the space's name)
+and its view index. So the same job gives the same draws on every worker and on a retry, every augmentation
+cue of a view reads the same values, and a reader finds them in the JSON file beside the images. Draws happen
+in a fixed order, one per parameter, whichever cues a job asks for.
 
-Shared helpers of the family: sRGB <-> linear light (the corruptions are physical, so they act on light, not on
-sRGB codes) and the view's focal length in pixels.
+Shared helpers of the family: sRGB <-> linear light (the corruptions are physical, so they act on light, not
+on sRGB codes) and the view's focal length in pixels.
 """
 
 from __future__ import annotations
@@ -102,12 +102,16 @@ def draw(ctx: ViewContext) -> AugmentParams:
         return {
             "version": VERSION,
             "seeded_by": key,
-            "rgb_refocus": {"focus_quantile": quantile, "focus_distance_m": focus, "f_number": f_number,
-                            "focal_length_mm": focal_mm, "sensor_width_mm": spec.refocus_sensor_width_mm,
-                            "max_coc_px": spec.refocus_max_coc_px},
+            "rgb_refocus": {
+                "focus_quantile": quantile, "focus_distance_m": focus, "f_number": f_number,
+                "focal_length_mm": focal_mm, "sensor_width_mm": spec.refocus_sensor_width_mm,
+                "max_coc_px": spec.refocus_max_coc_px,
+            },
             "rgb_fog": {"beta_per_m": beta, "airlight": airlight},
-            "rgb_motion_blur": {"translation_m": motion, "frame": "camera, OpenCV axes (x right, y down, z forward)",
-                                "max_samples": spec.motion_max_samples},
+            "rgb_motion_blur": {
+                "translation_m": motion, "frame": "camera, OpenCV axes (x right, y down, z forward)",
+                "max_samples": spec.motion_max_samples,
+            },
             "rgb_flash": {"ambient": ambient, "power_m2": power},
         }
 

@@ -37,14 +37,15 @@ def rgb(ctx: ViewContext) -> np.ndarray:
 
 @register("normal", passes={"normal"})
 def normal(ctx: ViewContext) -> np.ndarray:
-    """uint8 H x W x 3: 255*(0.5-0.5x, 0.5+0.5y, 0.5+0.5z) of the camera-space normal; 128 where nothing is seen."""
+    """uint8 H x W x 3: 255*(0.5-0.5x, 0.5+0.5y, 0.5+0.5z) of the camera-space normal; 128 where nothing is
+    seen."""
     return _normal_pixels(normal_cam(ctx), hit(ctx))
 
 
 @njit(cache=True, nogil=True)
 def _normal_pixels(n: np.ndarray, seen: np.ndarray) -> np.ndarray:
-    """rint(255 (0.5 + 0.5 n (-1, 1, 1))) clipped to 0..255 where seen, NORMAL_BACKGROUND elsewhere: the float32
-    operations of the numpy expression it replaced, in its order, in one pass."""
+    """rint(255 (0.5 + 0.5 n (-1, 1, 1))) clipped to 0..255 where seen, NORMAL_BACKGROUND elsewhere: the
+    float32 operations of the numpy expression it replaced, in its order, in one pass."""
     h, w, _ = n.shape
     half, full = np.float32(0.5), np.float32(255.0)
     out = np.empty((h, w, 3), np.uint8)
@@ -64,13 +65,15 @@ def _normal_pixels(n: np.ndarray, seen: np.ndarray) -> np.ndarray:
 
 @register("depth_zbuffer")
 def depth_zbuffer(ctx: ViewContext) -> np.ndarray:
-    """uint16 H x W optical-axis depth in 1/512 m (depth_units_per_m); 65535 = none or deeper than max_depth_m."""
+    """uint16 H x W optical-axis depth in 1/512 m (depth_units_per_m); 65535 = none or deeper than
+    max_depth_m."""
     return to_uint16_depth(ctx, ctx.passes.depth_z, valid(ctx))
 
 
 @register("depth_euclidean")
 def depth_euclidean(ctx: ViewContext) -> np.ndarray:
-    """uint16 H x W distance to the camera centre, same units; 65535 where depth_zbuffer is none (or overflow)."""
+    """uint16 H x W distance to the camera centre, same units; 65535 where depth_zbuffer is none (or
+    overflow)."""
     return to_uint16_depth(ctx, euclidean_m(ctx), valid(ctx))
 
 
@@ -87,9 +90,9 @@ def reshading_intensity(ctx: ViewContext) -> np.ndarray:
 
 @njit(cache=True, nogil=True)
 def _reshading_intensity(n: np.ndarray, d: np.ndarray, albedo: np.float32) -> np.ndarray:
-    """albedo * maximum(-einsum(n (1, -1, -1), d), 0) per pixel: the float32 operations of the numpy expression it
-    replaced, in its order (einsum adds left to right from 0, then the output's 0; numpy's maximum gives its
-    second operand on ties, so -0 becomes +0, and keeps NaN), in one pass."""
+    """albedo * maximum(-einsum(n (1, -1, -1), d), 0) per pixel: the float32 operations of the numpy
+    expression it replaced, in its order (einsum adds left to right from 0, then the output's 0; numpy's
+    maximum gives its second operand on ties, so -0 becomes +0, and keeps NaN), in one pass."""
     h, w, _ = n.shape
     out = np.empty((h, w), np.float32)
     zero, one, minus = np.float32(0.0), np.float32(1.0), np.float32(-1.0)
@@ -106,18 +109,18 @@ def _reshading_intensity(n: np.ndarray, d: np.ndarray, albedo: np.float32) -> np
 def reshading(ctx: ViewContext) -> np.ndarray:
     """uint8 H x W grey albedo lit by a point light at the camera, no indirect light, no distance falloff.
 
-    Analytic from the rendered normal and the view ray: I = albedo * max(0, n.l) with l the unit vector from the
-    surface point to the camera centre; px = round(255 * I); 0 where nothing is seen. The light's intensity does
-    not fall off with distance (a 1/d^2 falloff would make the image depend on the scene's scale and need an
-    exposure knob; shading is what this cue is about).
+    Analytic from the rendered normal and the view ray: I = albedo * max(0, n.l) with l the unit vector from
+    the surface point to the camera centre; px = round(255 * I); 0 where nothing is seen. The light's
+    intensity does not fall off with distance (a 1/d^2 falloff would make the image depend on the scene's
+    scale and need an exposure knob; shading is what this cue is about).
     """
     return _reshading_pixels(reshading_intensity(ctx), hit(ctx))
 
 
 @njit(cache=True, nogil=True)
 def _reshading_pixels(i: np.ndarray, seen: np.ndarray) -> np.ndarray:
-    """rint(255 i) as uint8 where seen, 0 elsewhere (i in [0, 1]: albedo <= 1; NaN, which numpy's cast makes 0,
-    too): the numpy expression it replaced, in one pass."""
+    """rint(255 i) as uint8 where seen, 0 elsewhere (i in [0, 1]: albedo <= 1; NaN, which numpy's cast makes
+    0, too): the numpy expression it replaced, in one pass."""
     h, w = i.shape
     out = np.zeros((h, w), np.uint8)
     full = np.float32(255.0)
@@ -131,7 +134,8 @@ def _reshading_pixels(i: np.ndarray, seen: np.ndarray) -> np.ndarray:
 
 @register("principal_curvature", passes={"curvature"})
 def principal_curvature(ctx: ViewContext) -> np.ndarray:
-    """uint8 H x W x 3: R, G = k1, k2 clipped to +-1/curvature_clip_m mapped linearly to 0..254 (127 = flat), B = 0.
+    """uint8 H x W x 3: R, G = k1, k2 clipped to +-1/curvature_clip_m mapped linearly to 0..254 (127 = flat),
+    B = 0.
 
     Curvature is per vertex (services.worker.inputs.curvature, 1/m, positive = convex, k1 >= k2), interpolated
     over the seen triangle by the renderer. Where nothing is seen all three channels are 0 (background, see
@@ -139,14 +143,16 @@ def principal_curvature(ctx: ViewContext) -> np.ndarray:
     """
     k = ctx.passes.curvature
     if k is None:
-        raise RuntimeError("principal_curvature needs a pass set rendered with curvature (render pass 'curvature')")
+        raise RuntimeError(
+            "principal_curvature needs a pass set rendered with curvature (render pass 'curvature')"
+        )
     return _curvature_pixels(k, hit(ctx), np.float32(1.0 / ctx.params.curvature_clip_m))
 
 
 @njit(cache=True, nogil=True)
 def _curvature_pixels(k: np.ndarray, seen: np.ndarray, kmax: np.float32) -> np.ndarray:
-    """rint((clip(nan_to_num(k), -kmax, kmax) / kmax + 1) * CURVATURE_FLAT) in R, G where seen, 0 elsewhere and in
-    B: the float32 operations of the numpy expression it replaced, in its order, in one pass."""
+    """rint((clip(nan_to_num(k), -kmax, kmax) / kmax + 1) * CURVATURE_FLAT) in R, G where seen, 0 elsewhere
+    and in B: the float32 operations of the numpy expression it replaced, in its order, in one pass."""
     h, w, _ = k.shape
     out = np.zeros((h, w, 3), np.uint8)
     big = np.float32(np.finfo(np.float32).max)
@@ -165,7 +171,8 @@ def _curvature_pixels(k: np.ndarray, seen: np.ndarray, kmax: np.float32) -> np.n
 
 @register("position")
 def position(ctx: ViewContext) -> np.ndarray:
-    """float32 H x W x 3 world XYZ (metres) of the seen surface, NaN where nothing is seen; from depth and pose."""
+    """float32 H x W x 3 world XYZ (metres) of the seen surface, NaN where nothing is seen; from depth and
+    pose."""
     return position_world(ctx)
 
 

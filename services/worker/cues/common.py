@@ -29,7 +29,8 @@ def depth_m(ctx: ViewContext) -> np.ndarray:
 
 
 def ray_dirs_cam64(ctx: ViewContext) -> np.ndarray:
-    """float64 H x W x 3 unit pixel-centre ray directions, OpenCV camera axes (ViewGeometry.ray_directions_cam)."""
+    """float64 H x W x 3 unit pixel-centre ray directions, OpenCV camera axes
+    (ViewGeometry.ray_directions_cam)."""
     return ctx.memo("ray_dirs_cam64", ctx.geometry.ray_directions_cam)
 
 
@@ -43,15 +44,17 @@ def position_world(ctx: ViewContext) -> np.ndarray:
     arithmetic (float64, cast at the end) on the view's memoised rays."""
     g = ctx.geometry
     d_cam = ray_dirs_cam64(ctx)
-    return _position_world(depth_m(ctx), d_cam, d_cam @ g.rotation, np.asarray(g.center, dtype=np.float64), hit(ctx))
+    return _position_world(
+        depth_m(ctx), d_cam, d_cam @ g.rotation, np.asarray(g.center, dtype=np.float64), hit(ctx)
+    )
 
 
 @njit(cache=True, nogil=True)
 def _position_world(depth: np.ndarray, d_cam: np.ndarray, d_world: np.ndarray, center: np.ndarray,
                     hit: np.ndarray) -> np.ndarray:
-    """centre + d_world * (depth / d_cam.z) per pixel in float64, cast to float32, NaN where nothing is hit: numpy's
-    operations one pixel at a time (the same roundings, ~5x less CPU than the whole-array temporaries); the matrix
-    product d_world = d_cam @ R stays numpy's."""
+    """centre + d_world * (depth / d_cam.z) per pixel in float64, cast to float32, NaN where nothing is hit:
+    numpy's operations one pixel at a time (the same roundings, ~5x less CPU than the whole-array
+    temporaries); the matrix product d_world = d_cam @ R stays numpy's."""
     h, w = depth.shape
     out = np.empty((h, w, 3), np.float32)
     for y in range(h):
@@ -66,7 +69,8 @@ def _position_world(depth: np.ndarray, d_cam: np.ndarray, d_world: np.ndarray, c
 
 
 def euclidean_m(ctx: ViewContext) -> np.ndarray:
-    """float32 H x W distance from the camera centre in metres (z / cos of the ray's angle to the axis), inf = none."""
+    """float32 H x W distance from the camera centre in metres (z / cos of the ray's angle to the axis), inf =
+    none."""
     return ctx.memo("euclidean_m", lambda: (depth_m(ctx) / ray_dirs_cam(ctx)[..., 2]).astype(np.float32))
 
 
@@ -93,13 +97,13 @@ def to_uint16_depth(ctx: ViewContext, metres: np.ndarray, mask: np.ndarray) -> n
 def normal_cam(ctx: ViewContext) -> np.ndarray:
     """float32 H x W x 3 unit normals in camera axes x right, y up, z towards the viewer; 0 where no surface.
 
-    The world normal turned to OpenCV camera axes (R n: one fused multiply-add per term from a zero accumulator, terms
-    in order, as numpy's float32 matmul by R^T computed it with OpenBLAS's AMD Zen kernel; its Intel AVX-512 kernel
-    rounds each product, so numpy's bits depend on the CPU and these do not), turned to face the camera
-    (the decode already turns back-facing hits; this guards interpolated or user normals), then the OpenCV (x right,
-    y down, z forward) -> DESIGN axes flip, each an exact multiplication by +-1; one compiled pass (numpy's
-    matmul, einsum and where's took ~10 ms at 512 px) giving the numpy expressions' values bit for bit (the matmul
-    as tests/fixtures/reference_view_cues.normal_cam writes it out)."""
+    The world normal turned to OpenCV camera axes (R n: one fused multiply-add per term from a zero
+    accumulator, terms in order, as numpy's float32 matmul by R^T computed it with OpenBLAS's AMD Zen kernel;
+    its Intel AVX-512 kernel rounds each product, so numpy's bits depend on the CPU and these do not), turned
+    to face the camera (the decode already turns back-facing hits; this guards interpolated or user normals),
+    then the OpenCV (x right, y down, z forward) -> DESIGN axes flip, each an exact multiplication by +-1; one
+    compiled pass (numpy's matmul, einsum and where's took ~10 ms at 512 px) giving the numpy expressions'
+    values bit for bit (the matmul as tests/fixtures/reference_view_cues.normal_cam writes it out)."""
 
     def compute() -> np.ndarray:
         n_world, d = ctx.passes.require("normal_world"), ray_dirs_cam(ctx)
@@ -121,12 +125,15 @@ def _normal_cam_numpy(n_world: np.ndarray, R: np.ndarray, d: np.ndarray, seen: n
 
 
 def _fma32_typing(typingctx, a, b, c):  # type: ignore[no-untyped-def]
-    """round(a * b + c) in float32 with one rounding (llvm.fma: the FMA instruction OpenBLAS's kernels use)."""
+    """round(a * b + c) in float32 with one rounding (llvm.fma: the FMA instruction OpenBLAS's kernels
+    use)."""
     sig = types.float32(types.float32, types.float32, types.float32)
 
     def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
         f32 = ir.FloatType()
-        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(f32, [f32, f32, f32]), "llvm.fma.f32")
+        fn = cgutils.get_or_insert_function(
+            builder.module, ir.FunctionType(f32, [f32, f32, f32]), "llvm.fma.f32"
+        )
         return builder.call(fn, args)
 
     return sig, codegen
@@ -170,15 +177,18 @@ def grey(ctx: ViewContext) -> np.ndarray:
 
 
 def sobel_magnitude(img: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
-    """Sobel gradient magnitude (scipy's unnormalised 3x3 kernels: a unit step gives 4), float32, 0 off `mask` if
-    given: np.hypot of sobel_xy's two images (the same libm hypotf numpy calls, per pixel in the compiled pass)."""
+    """Sobel gradient magnitude (scipy's unnormalised 3x3 kernels: a unit step gives 4), float32, 0 off `mask`
+    if given: np.hypot of sobel_xy's two images (the same libm hypotf numpy calls, per pixel in the compiled
+    pass)."""
     if img.dtype != np.float32 or img.ndim != 2:
         gx, gy = sobel_xy(img)
         mag = np.hypot(gx, gy).astype(np.float32)
         return mag if mask is None else np.where(mask, mag, np.float32(0.0))
     gx, gy = _sobel_xy(np.ascontiguousarray(img))
-    return _hypot(gx, gy, np.ones((1, 1), np.bool_) if mask is None else np.ascontiguousarray(mask, dtype=np.bool_),
-                  mask is not None)
+    return _hypot(
+        gx, gy, np.ones((1, 1), np.bool_) if mask is None else np.ascontiguousarray(mask, dtype=np.bool_),
+        mask is not None,
+    )
 
 
 @njit(cache=True, nogil=True)
@@ -198,9 +208,9 @@ def _hypot(a: np.ndarray, b: np.ndarray, mask: np.ndarray, masked: bool) -> np.n
 
 
 def sobel_xy(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """scipy.ndimage.sobel(img, axis=1 and axis=0, mode="nearest") of an H x W float32 image, bit for bit (scipy's
-    two correlate1d passes each, [-1, 0, 1] then [1, 2, 1], in float64 rounded to float32 after each), compiled;
-    other inputs go to scipy."""
+    """scipy.ndimage.sobel(img, axis=1 and axis=0, mode="nearest") of an H x W float32 image, bit for bit
+    (scipy's two correlate1d passes each, [-1, 0, 1] then [1, 2, 1], in float64 rounded to float32 after
+    each), compiled; other inputs go to scipy."""
     if img.dtype != np.float32 or img.ndim != 2:
         from scipy.ndimage import sobel
 
@@ -213,7 +223,8 @@ def _sobel_xy(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Row by row over row slices, the clamped first and last columns apart (unclamped inner loops vectorise:
     ~3x faster than clamping every pixel)."""
     h, w = img.shape
-    dx = np.empty((h, w), np.float32)  # [-1, 0, 1] along x (scipy's antisymmetric loop: x0 * 0 + (x-1 - x+1) * -1)
+    # [-1, 0, 1] along x (scipy's antisymmetric loop: x0 * 0 + (x-1 - x+1) * -1)
+    dx = np.empty((h, w), np.float32)
     dy = np.empty((h, w), np.float32)
     for y in range(h):
         row, up, down, ox, oy = img[y], img[max(y - 1, 0)], img[min(y + 1, h - 1)], dx[y], dy[y]
@@ -222,11 +233,14 @@ def _sobel_xy(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if w > 2:
             mid, left, right, inner = row[1:w - 1], row[0:w - 2], row[2:w], ox[1:w - 1]
             for x in range(w - 2):
-                inner[x] = np.float32(np.float64(mid[x]) * 0.0 + (np.float64(left[x]) - np.float64(right[x])) * -1.0)
+                inner[x] = np.float32(
+                    np.float64(mid[x]) * 0.0 + (np.float64(left[x]) - np.float64(right[x])) * -1.0
+                )
         for x in (0, w - 1):
             xm, xp = max(x - 1, 0), min(x + 1, w - 1)
             ox[x] = np.float32(np.float64(row[x]) * 0.0 + (np.float64(row[xm]) - np.float64(row[xp])) * -1.0)
-    gx = np.empty((h, w), np.float32)  # then [1, 2, 1] across (scipy's symmetric loop: x0 * 2 + (x-1 + x+1) * 1)
+    # then [1, 2, 1] across (scipy's symmetric loop: x0 * 2 + (x-1 + x+1) * 1)
+    gx = np.empty((h, w), np.float32)
     gy = np.empty((h, w), np.float32)
     for y in range(h):
         row, up, down, ox = dx[y], dx[max(y - 1, 0)], dx[min(y + 1, h - 1)], gx[y]
@@ -236,7 +250,9 @@ def _sobel_xy(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if w > 2:
             mid, left, right, inner = row[1:w - 1], row[0:w - 2], row[2:w], oy[1:w - 1]
             for x in range(w - 2):
-                inner[x] = np.float32(np.float64(mid[x]) * 2.0 + (np.float64(left[x]) + np.float64(right[x])) * 1.0)
+                inner[x] = np.float32(
+                    np.float64(mid[x]) * 2.0 + (np.float64(left[x]) + np.float64(right[x])) * 1.0
+                )
         for x in (0, w - 1):
             xm, xp = max(x - 1, 0), min(x + 1, w - 1)
             oy[x] = np.float32(np.float64(row[x]) * 2.0 + (np.float64(row[xm]) + np.float64(row[xp])) * 1.0)
@@ -252,7 +268,8 @@ def to_uint16_scaled(values: np.ndarray, scale: float) -> np.ndarray:
 
 @njit(cache=True, nogil=True)
 def _to_uint16_scaled(values: np.ndarray, scale: np.float32) -> np.ndarray:
-    """numpy's float32 steps per pixel: rint(v * scale), clipped (NaN stays NaN, which numpy's cast makes 0)."""
+    """numpy's float32 steps per pixel: rint(v * scale), clipped (NaN stays NaN, which numpy's cast makes
+    0)."""
     h, w = values.shape
     out = np.empty((h, w), np.uint16)
     lo, hi = np.float32(0.0), np.float32(65535.0)
@@ -270,10 +287,12 @@ _GAUSS_MODES = {"nearest": GAUSS_NEAREST, "reflect": GAUSS_REFLECT, "constant": 
 
 
 def gaussian_blur(img: np.ndarray, sigma: float, truncate: float = 4.0, mode: str = "nearest") -> np.ndarray:
-    """scipy.ndimage.gaussian_filter(img, sigma, mode=mode, truncate=truncate) of an H x W float32 image, bit for
-    bit: the same kernel, taps added in the order scipy's symmetric correlate1d adds them (in float64, rounded to
-    float32 after each axis, rows first), as compiled loops over whole rows (about 3x faster than scipy's per-line
-    buffers at 512 px). Other inputs (dtype, shape, a kernel wider than a reflected image) go to scipy."""
+    """scipy.ndimage.gaussian_filter(img, sigma, mode=mode, truncate=truncate) of an H x W float32 image, bit
+    for bit: the same kernel, taps added in the order scipy's symmetric correlate1d adds them (in float64,
+    rounded to float32 after each axis, rows first), as compiled loops over whole rows (about 3x faster than
+    scipy's per-line buffers at 512 px). Other inputs (dtype, shape, a kernel wider than a reflected image) go
+    to
+    scipy."""
     from scipy.ndimage import gaussian_filter
 
     radius = int(truncate * float(sigma) + 0.5)
@@ -322,13 +341,14 @@ def _blur_rows(img: np.ndarray, taps: np.ndarray, mode: int) -> np.ndarray:
     return out
 
 
-_COL_BLOCK = 16  # rows blurred together along x: longer inner loops over a block, ~1.3x faster than row by row
+# rows blurred together along x: longer inner loops over a block, ~1.3x faster than row by row
+_COL_BLOCK = 16
 
 
 @njit(cache=True, nogil=True)
 def _blur_cols(img: np.ndarray, taps: np.ndarray, mode: int) -> np.ndarray:
-    """Along axis 1, the same sums on extended copies of the rows, a block of rows at a time (the inner loops run
-    over row slices, whose non-negative indices let LLVM vectorise them: ~3x faster than indexing the 2-d
+    """Along axis 1, the same sums on extended copies of the rows, a block of rows at a time (the inner loops
+    run over row slices, whose non-negative indices let LLVM vectorise them: ~3x faster than indexing the 2-d
     buffer)."""
     h, w = img.shape
     r = len(taps) // 2

@@ -1,7 +1,8 @@
 """Edge cues: texture edges from the colour image, occlusion edges from the depth image (16-bit PNGs).
 
 Both store round(response * edge_scale) clipped to 0..65535, where response is scipy's unnormalised 3x3 Sobel
-magnitude (a unit step gives 4): for texture edges of a [0, 1] grey image, for occlusion edges of sqrt(metres).
+magnitude (a unit step gives 4): for texture edges of a [0, 1] grey image, for occlusion edges of
+sqrt(metres).
 """
 
 from __future__ import annotations
@@ -24,7 +25,8 @@ def edge_texture(ctx: ViewContext) -> np.ndarray:
 
 
 def occlusion_response(ctx: ViewContext) -> np.ndarray:
-    """float32 H x W Sobel magnitude of sqrt(depth in metres), blurred by edge_occlusion_sigma px, 0 off valid depth.
+    """float32 H x W Sobel magnitude of sqrt(depth in metres), blurred by edge_occlusion_sigma px, 0 off valid
+    depth.
 
     Pixels without valid depth count as max_depth_m (the background is 'far', like 65535 in the original depth
     PNGs), so silhouettes against the background are occlusion edges.
@@ -43,7 +45,8 @@ def occlusion_response(ctx: ViewContext) -> np.ndarray:
 
 @njit(cache=True, nogil=True)
 def _sqrt_depth(v: np.ndarray, depth: np.ndarray, far: np.float32) -> np.ndarray:
-    """float32 sqrt of the depth where valid, of `far` elsewhere (numpy's where, cast and sqrt in one pass)."""
+    """float32 sqrt of the depth where valid, of `far` elsewhere (numpy's where, cast and sqrt in one
+    pass)."""
     h, w = v.shape
     out = np.empty((h, w), np.float32)
     for y in range(h):

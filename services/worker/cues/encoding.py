@@ -1,8 +1,8 @@
 """File encodings of the cue catalog, the output contract readers decode: PNG 8/16-bit, .npy, float32 EXR,
 JSON.
 
-The catalog entry (ext, dtype, channels) decides the encoding; a value of the wrong dtype or shape is an error,
-never silently converted, so a cue can not drift from its documented encoding.
+The catalog entry (ext, dtype, channels) decides the encoding; a value of the wrong dtype or shape is an
+error, never silently converted, so a cue can not drift from its documented encoding.
 """
 
 from __future__ import annotations
@@ -23,14 +23,15 @@ from services.core.domain.plan_cues import encode_json
 from services.core.temp_dirs import owned_prefix
 from services.worker.cues.registry import CueValue
 
-# PNGs are written here, not by Pillow: every row "Up"-filtered (the difference to the row above, vectorised) and
-# deflated by ISA-L (isal_zlib, level 1). On a room view's 13 PNG cues at 512 px (bench/output/encode_cost.py,
-# one core)
-# that is ~7 ms against ~30 ms for zlib level 1 + Z_RLE (the encoder before) and ~135 ms for Pillow at level 3 +
-# Z_RLE, files ~5% smaller than zlib's; the Up filter gives the smallest files of None / Sub / Up with ISA-L, which
-# is as fast on all three. Any deflater's stream decodes to the same array. ISA-L is a hard dependency (wheels for
-# every platform the worker runs on): one deflater everywhere, so a view's files are the same bytes on every x86-64
-# worker (ISA-L's output is the same above SSE4.2) rather than whatever zlib build a Python links.
+# PNGs are written here, not by Pillow: every row "Up"-filtered (the difference to the row above, vectorised)
+# and deflated by ISA-L (isal_zlib, level 1). On a room view's 13 PNG cues at 512 px
+# (bench/output/encode_cost.py, one core)
+# that is ~7 ms against ~30 ms for zlib level 1 + Z_RLE (the encoder before) and ~135 ms for Pillow at level 3
+# + Z_RLE, files ~5% smaller than zlib's; the Up filter gives the smallest files of None / Sub / Up with
+# ISA-L, which is as fast on all three. Any deflater's stream decodes to the same array. ISA-L is a hard
+# dependency (wheels for every platform the worker runs on): one deflater everywhere, so a view's files are
+# the same bytes on every x86-64 worker (ISA-L's output is the same above SSE4.2) rather than whatever zlib
+# build a Python links.
 PNG_DEFLATE_LEVEL = 1  # ISA-L levels 0-3: 0 is no faster and ~15% larger, 2 the same, 3 three times slower
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _PNG_FILTER_UP = 2
@@ -43,8 +44,9 @@ def deflate_png(data: memoryview) -> bytes:
 
 
 def zlib_deflater(level: int, strategy: int = zlib.Z_DEFAULT_STRATEGY) -> Callable[[memoryview], bytes]:
-    """A deflate for encode_png with Python's zlib at `level` (0-9) and `strategy` (0 default, 1 filtered, 2 Huffman
-    only, 3 RLE): the encoder before ISA-L was zlib_deflater(1, zlib.Z_RLE) (benchmarks and tests compare)."""
+    """A deflate for encode_png with Python's zlib at `level` (0-9) and `strategy` (0 default, 1 filtered, 2
+    Huffman only, 3 RLE): the encoder before ISA-L was zlib_deflater(1, zlib.Z_RLE) (benchmarks and tests
+    compare)."""
 
     def deflate(data: memoryview) -> bytes:
         compressor = zlib.compressobj(level, zlib.DEFLATED, 15, 9, strategy)
@@ -55,12 +57,13 @@ def zlib_deflater(level: int, strategy: int = zlib.Z_DEFAULT_STRATEGY) -> Callab
 
 # The position EXR is stored uncompressed. bench/output/encodings.py on 12 room views at 512 px
 # (bench/results/
-# derivations.json "encodings"), write CPU ms / MB: none 1.8 / 3.15, RLE 5.3 / 3.15, ZIPS 21 / 2.22, ZIP (before)
-# 23 / 1.93, PIZ 73 / 1.82, ZSTD 16 / 1.03, HTJ2K 13 / 0.97; all decode bit for bit. World XYZ floats hardly
-# compress, so ZIP spent 17% of a bare render's CPU (0.12 s) to save 1.2 MB; ZSTD and HTJ2K need OpenEXR >= 3.5 /
-# 3.4 (2025) to read, where an uncompressed file opens in every EXR reader. Uncompressed files are written here
-# (the bytes OpenEXR's own writer gives, without its temp file); ZIP (a job's position_compression) goes through
-# OpenEXR, imported then only (its module costs a worker ~0.09 CPU-s to load).
+# derivations.json "encodings"), write CPU ms / MB: none 1.8 / 3.15, RLE 5.3 / 3.15, ZIPS 21 / 2.22, ZIP
+# (before) 23 / 1.93, PIZ 73 / 1.82, ZSTD 16 / 1.03, HTJ2K 13 / 0.97; all decode bit for bit. World XYZ floats
+# hardly compress, so ZIP spent 17% of a bare render's CPU (0.12 s) to save 1.2 MB; ZSTD and HTJ2K need
+# OpenEXR >= 3.5 / 3.4 (2025) to read, where an uncompressed file opens in every EXR reader. Uncompressed
+# files are written here (the bytes OpenEXR's own writer gives, without its temp file); ZIP (a job's
+# position_compression) goes through OpenEXR, imported then only (its module costs a worker ~0.09 CPU-s to
+# load).
 EXR_CODECS = ("none", "zip")  # CueParams.position_compression
 
 
@@ -159,23 +162,28 @@ def _exr_attribute(name: str, kind: str, value: bytes) -> bytes:
 
 
 def _exr_uncompressed_rgb(arr: np.ndarray) -> bytes:
-    """The single-part scanline EXR OpenEXR writes for {"RGB": arr} with NO_COMPRESSION, byte for byte (the tests
-    compare with OpenEXR's file): magic and version 2, the header's attributes in name order, then the offset
-    table (uint64 per line) and one block per line: y, byte count, then the B, G, R rows (channels in name order),
-    all little-endian."""
+    """The single-part scanline EXR OpenEXR writes for {"RGB": arr} with NO_COMPRESSION, byte for byte (the
+    tests compare with OpenEXR's file): magic and version 2, the header's attributes in name order, then the
+    offset table (uint64 per line) and one block per line: y, byte count, then the B, G, R rows (channels in
+    name order), all little-endian."""
     h, w = arr.shape[:2]
     channel = struct.pack("<iB3xii", 2, 0, 1, 1)  # FLOAT, not linear, x and y sampling 1
     window = struct.pack("<4i", 0, 0, w - 1, h - 1)
-    head = b"".join((
-        b"\x76\x2f\x31\x01", struct.pack("<I", 2),
-        _exr_attribute("channels", "chlist", b"".join(c + b"\0" + channel for c in (b"B", b"G", b"R")) + b"\0"),
-        _exr_attribute("compression", "compression", b"\0"),
-        _exr_attribute("dataWindow", "box2i", window), _exr_attribute("displayWindow", "box2i", window),
-        _exr_attribute("lineOrder", "lineOrder", b"\0"),  # increasing y
-        _exr_attribute("pixelAspectRatio", "float", struct.pack("<f", 1.0)),
-        _exr_attribute("screenWindowCenter", "v2f", struct.pack("<2f", 0.0, 0.0)),
-        _exr_attribute("screenWindowWidth", "float", struct.pack("<f", 1.0)),
-        _exr_attribute("type", "string", b"scanlineimage"), b"\0"))
+    head = b"".join(
+        (
+            b"\x76\x2f\x31\x01", struct.pack("<I", 2),
+            _exr_attribute(
+                "channels", "chlist", b"".join(c + b"\0" + channel for c in (b"B", b"G", b"R")) + b"\0"
+            ),
+            _exr_attribute("compression", "compression", b"\0"),
+            _exr_attribute("dataWindow", "box2i", window), _exr_attribute("displayWindow", "box2i", window),
+            _exr_attribute("lineOrder", "lineOrder", b"\0"),  # increasing y
+            _exr_attribute("pixelAspectRatio", "float", struct.pack("<f", 1.0)),
+            _exr_attribute("screenWindowCenter", "v2f", struct.pack("<2f", 0.0, 0.0)),
+            _exr_attribute("screenWindowWidth", "float", struct.pack("<f", 1.0)),
+            _exr_attribute("type", "string", b"scanlineimage"), b"\0",
+        )
+    )
     line = 8 + 12 * w
     start = len(head) + 8 * h
     out = np.empty(start + h * line, dtype=np.uint8)

@@ -2,10 +2,11 @@
 return_distances=False, return_indices=True), index for index, as a compiled kernel (3.5 against 11 CPU-ms on
 a room view's mask at 512 px).
 
-The same algorithm as scipy's (Maurer, Qi & Raghavan, PAMI 2003, as written in scipy's ni_morphology.c): a pass
-down every column keeping the nearest site of the column, then a pass along every row over those candidates
-with the same lower-envelope test and the same ties (the earlier candidate wins). Coordinates are integers, so the
-test's arithmetic is exact in int64 as in scipy's doubles (tests/worker/cues/test_kernels.py compares the two).
+The same algorithm as scipy's (Maurer, Qi & Raghavan, PAMI 2003, as written in scipy's ni_morphology.c): a
+pass down every column keeping the nearest site of the column, then a pass along every row over those
+candidates with the same lower-envelope test and the same ties (the earlier candidate wins). Coordinates are
+integers, so the test's arithmetic is exact in int64 as in scipy's doubles (tests/worker/cues/test_kernels.py
+compares the two).
 """
 
 from __future__ import annotations
@@ -16,7 +17,8 @@ from numba import njit
 
 @njit(cache=True, nogil=True)
 def _envelope(fd: np.ndarray, fo: np.ndarray, other: int, g: np.ndarray) -> int:
-    """Indices (into g) of the candidates on the lower envelope of one line, in order; their count less one."""
+    """Indices (into g) of the candidates on the lower envelope of one line, in order; their count less
+    one."""
     last = -1
     for i in range(len(fd)):
         if fd[i] < 0:  # no candidate (fd, fo are -1 together)
@@ -62,9 +64,9 @@ def _nearest_on_row(fd: np.ndarray, fo: np.ndarray, other: int, g: np.ndarray, d
 
 @njit(cache=True, nogil=True)
 def _nearest_in_columns(mask: np.ndarray) -> np.ndarray:
-    """Row of the nearest True pixel in each pixel's column, -1 when the column has none. Down a column every site
-    stays on the envelope (no cross terms), so the scan's pick is the site above unless the one below is strictly
-    nearer: found with one sweep down and one up, row by row."""
+    """Row of the nearest True pixel in each pixel's column, -1 when the column has none. Down a column every
+    site stays on the envelope (no cross terms), so the scan's pick is the site above unless the one below is
+    strictly nearer: found with one sweep down and one up, row by row."""
     h, w = mask.shape
     above = np.full((h, w), -1, np.int64)
     last = np.full(w, -1, np.int64)
@@ -87,7 +89,8 @@ def _nearest_in_columns(mask: np.ndarray) -> np.ndarray:
 @njit(cache=True, nogil=True)
 def nearest_site(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(row, column) int32 H x W of the nearest True pixel of mask to every pixel; -1 everywhere when mask has
-    none. A row that is all mask is its own answer (each pixel its own site, at distance 0): no row pass there."""
+    none. A row that is all mask is its own answer (each pixel its own site, at distance 0): no row pass
+    there."""
     h, w = mask.shape
     iy = _nearest_in_columns(mask)
     ix = np.empty((h, w), np.int64)

@@ -1,18 +1,20 @@
-"""Felzenszwalb-Huttenlocher graph segmentation (IJCV 2004) as a compiled kernel, the superpixels of the segment cues.
+"""Felzenszwalb-Huttenlocher graph segmentation (IJCV 2004) as a compiled kernel, the superpixels of the
+segment cues.
 
-The same definition as skimage.segmentation.felzenszwalb (what the segment cues used before): a Gaussian pre-blur
-of each channel (sigma px), an 8-connected pixel grid whose edge weights are the Euclidean distances between
-feature vectors, edges visited in increasing weight, two components merged when the edge weight is below both
-internal differences Int(C) + k / |C| with k = scale / 255, then a second pass over the same order merging any
-component smaller than min_size with its neighbour. Differences from skimage, none of which changes the
-definition: features stay float32; edges are ordered by a stable counting sort of the weight quantised to 2^16
-levels of the image's largest weight (equal-looking weights keep raster order, where skimage's quicksort order is
-arbitrary); union by size; and the merge pass is kept so a larger min_size can be applied without redoing it (the
-min-size pass walks only the edges that still join two components after the merge pass, a few percent of them,
-over the merge pass's components numbered 0..C-1: arrays of C entries, not of every pixel).
-About 10x faster than skimage at 512 x 512 with 3-4 channels (no 2 x E int64 edge table, no float64 argsort); edges
-travel as one int32 code (start pixel, direction) and finds halve paths, which leaves every root, hence every
-label, as before (tests/worker/cues/test_kernels.py against tests/fixtures/reference_felzenszwalb.py).
+The same definition as skimage.segmentation.felzenszwalb (what the segment cues used before): a Gaussian
+pre-blur of each channel (sigma px), an 8-connected pixel grid whose edge weights are the Euclidean distances
+between feature vectors, edges visited in increasing weight, two components merged when the edge weight is
+below both internal differences Int(C) + k / |C| with k = scale / 255, then a second pass over the same order
+merging any component smaller than min_size with its neighbour. Differences from skimage, none of which
+changes the definition: features stay float32; edges are ordered by a stable counting sort of the weight
+quantised to 2^16 levels of the image's largest weight (equal-looking weights keep raster order, where
+skimage's quicksort order is arbitrary); union by size; and the merge pass is kept so a larger min_size can be
+applied without redoing it (the min-size pass walks only the edges that still join two components after the
+merge pass, a few percent of them, over the merge pass's components numbered 0..C-1: arrays of C entries, not
+of every pixel). About 10x faster than skimage at 512 x 512 with 3-4 channels (no 2 x E int64 edge table, no
+float64 argsort); edges travel as one int32 code (start pixel, direction) and finds halve paths, which leaves
+every root, hence every label, as before (tests/worker/cues/test_kernels.py against
+tests/fixtures/reference_felzenszwalb.py).
 """
 
 from __future__ import annotations
@@ -27,7 +29,8 @@ SORT_LEVELS = 1 << 16
 
 @njit(cache=True, nogil=True)
 def _find(parent: np.ndarray, i: int) -> int:
-    while parent[i] != i:  # path halving: one pass; the roots (all the passes read) are those of full compression
+    # path halving: one pass; the roots (all the passes read) are those of full compression
+    while parent[i] != i:
         parent[i] = parent[parent[i]]
         i = parent[i]
     return i
@@ -48,8 +51,8 @@ def _edge_count(h: int, w: int, directions: int) -> int:
 
 @njit(cache=True, nogil=True)
 def _edge_costs(img: np.ndarray, directions: int) -> tuple[np.ndarray, float]:
-    """Feature distance of every grid edge in generation order (direction by direction, rows, columns), and the
-    largest."""
+    """Feature distance of every grid edge in generation order (direction by direction, rows, columns), and
+    the largest."""
     h, w, c = img.shape
     cost = np.empty(_edge_count(h, w, directions), np.float32)
     top = np.float32(0.0)
@@ -71,14 +74,15 @@ def _edge_costs(img: np.ndarray, directions: int) -> tuple[np.ndarray, float]:
 @njit(cache=True, nogil=True)
 def _sorted_edges(img: np.ndarray, levels: int, directions: int) -> tuple[np.ndarray, np.ndarray]:
     """The grid's edges (codes a * 4 + direction) and feature distances in increasing distance quantised to
-    `levels` (<= 2^16) steps of the largest, ties in generation order (a stable counting sort), so the merge passes
-    read them in sequence."""
+    `levels` (<= 2^16) steps of the largest, ties in generation order (a stable counting sort), so the merge
+    passes read them in sequence."""
     if levels > 1 << 16:
         raise ValueError("at most 2^16 levels (buckets are kept as uint16)")
     h, w, _ = img.shape
     cost, top = _edge_costs(img, directions)
     scale = (levels - 1) / top if top > 0 else 0.0
-    q = np.empty(len(cost), np.uint16)  # each edge's bucket, kept for the scatter pass (half an int32's traffic)
+    # each edge's bucket, kept for the scatter pass (half an int32's traffic)
+    q = np.empty(len(cost), np.uint16)
     start = np.zeros(levels + 1, np.int64)
     for i in range(len(cost)):
         b = int(cost[i] * scale)
@@ -118,8 +122,8 @@ def _merge(code: np.ndarray, cost: np.ndarray, w: int, n: int, k: float) -> tupl
                                                                                    np.ndarray]:
     """The greedy merge pass over the sorted edges: parent forest, component sizes, and the edges it did not
     merge across (in order): the only ones that can still join two components afterwards. Each root keeps its
-    threshold Int(C) + k / |C| (float64, the sum the test would form), updated when it grows: one division a merge
-    instead of two an edge."""
+    threshold Int(C) + k / |C| (float64, the sum the test would form), updated when it grows: one division a
+    merge instead of two an edge."""
     offsets = _offsets(w)
     parent = np.arange(n).astype(np.int32)
     size = np.ones(n, np.int32)
@@ -147,9 +151,9 @@ def _merge(code: np.ndarray, cost: np.ndarray, w: int, n: int, k: float) -> tupl
 @njit(cache=True, nogil=True)
 def _components(kept: np.ndarray, parent: np.ndarray, size: np.ndarray,
                 w: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The merge pass's components numbered 0..C-1 (raster order of first appearance): every pixel's number, each
-    component's size, and, in edge order, the two numbers each kept edge joins when they differ: the only edges
-    the min-size pass can act on, since components only grow."""
+    """The merge pass's components numbered 0..C-1 (raster order of first appearance): every pixel's number,
+    each component's size, and, in edge order, the two numbers each kept edge joins when they differ: the only
+    edges the min-size pass can act on, since components only grow."""
     offsets = _offsets(w)
     n = len(parent)
     number = np.full(n, -1, np.int32)  # per root
@@ -178,9 +182,11 @@ def _components(kept: np.ndarray, parent: np.ndarray, size: np.ndarray,
 
 
 @njit(cache=True, nogil=True)
-def _min_size_merges(ca: np.ndarray, cb: np.ndarray, size: np.ndarray, min_size: int) -> tuple[np.ndarray, int]:
-    """Merge components below min_size along the crossing edges (components ca, cb, in the merge order), union by
-    size as the merge pass: (the components' forest, how many merges)."""
+def _min_size_merges(
+    ca: np.ndarray, cb: np.ndarray, size: np.ndarray, min_size: int
+) -> tuple[np.ndarray, int]:
+    """Merge components below min_size along the crossing edges (components ca, cb, in the merge order), union
+    by size as the merge pass: (the components' forest, how many merges)."""
     parent = np.arange(len(size)).astype(np.int32)
     size = size.copy()
     merges = 0
@@ -198,8 +204,8 @@ def _min_size_merges(ca: np.ndarray, cb: np.ndarray, size: np.ndarray, min_size:
 
 @njit(cache=True, nogil=True)
 def _raster_labels(comp: np.ndarray, parent: np.ndarray) -> np.ndarray:
-    """Labels 0..n-1 of the pixels' trees (comp: each pixel's component, parent: the components' forest) in raster
-    order of first appearance."""
+    """Labels 0..n-1 of the pixels' trees (comp: each pixel's component, parent: the components' forest) in
+    raster order of first appearance."""
     root = np.empty(len(parent), np.int32)
     for c in range(len(parent)):
         root[c] = _find(parent, c)
@@ -229,7 +235,9 @@ class Felzenszwalb:
         if img.ndim == 2:
             img = img[..., None]
         if sigma > 0:
-            img = np.stack([gaussian_blur(img[..., c], sigma, mode="reflect") for c in range(img.shape[-1])], axis=-1)
+            img = np.stack(
+                [gaussian_blur(img[..., c], sigma, mode="reflect") for c in range(img.shape[-1])], axis=-1
+            )
         self.shape = img.shape[:2]
         h, w = self.shape
         code, cost = _sorted_edges(img, levels, DIRECTIONS[connectivity])

@@ -18,7 +18,9 @@ from services.worker.cues.registry import cue_array, register
 def transmittance(distance_m: np.ndarray, beta_per_m: float) -> np.ndarray:
     """exp(-beta d) per pixel (0 where the distance is infinite)."""
     with np.errstate(over="ignore", invalid="ignore"):
-        return np.where(np.isfinite(distance_m), np.exp(-beta_per_m * np.nan_to_num(distance_m, posinf=0.0)), 0.0)
+        return np.where(
+            np.isfinite(distance_m), np.exp(-beta_per_m * np.nan_to_num(distance_m, posinf=0.0)), 0.0
+        )
 
 
 def fog(linear: np.ndarray, distance_m: np.ndarray, *, beta_per_m: float, airlight: float) -> np.ndarray:

@@ -2,21 +2,23 @@
 
 keypoints2d: max over scales s in keypoints2d_sigmas (px) of the scale-normalised determinant of the Hessian
 s^4 (Lxx Lyy - Lxy^2) of the Gaussian-blurred grey image in [0, 1] (blurred incrementally from scale to scale,
-kernels cut at 3 sigmas, second derivatives by central differences), negative responses (saddles) set to 0, stored as
-round(response * keypoints2d_scale) clipped to 0..65535. Whole image, like the other image-space cues.
+kernels cut at 3 sigmas, second derivatives by central differences), negative responses (saddles) set to 0,
+stored as round(response * keypoints2d_scale) clipped to 0..65535. Whole image, like the other image-space
+cues.
 
-keypoints3d: a NARF-like interest image (Steder et al., "Point feature extraction on 3D range scans taking into
-account object boundaries", ICRA 2011), computed from the depth image and the intrinsics only:
-1. Range image: back-project every valid pixel to camera coordinates (metres); normals from central differences
-   of the 3D points, turned to face the camera.
+keypoints3d: a NARF-like interest image (Steder et al., "Point feature extraction on 3D range scans taking
+into account object boundaries", ICRA 2011), computed from the depth image and the intrinsics only:
+1. Range image: back-project every valid pixel to camera coordinates (metres); normals from central
+   differences of the 3D points, turned to face the camera.
 2. Borders: a pixel is a foreground border when a 4-neighbour is invalid or farther by more than 10 pixel
    footprints (10 * range / f): the surface behind is occluded there.
 3. Surface change: the support radius keypoints3d_support_m is converted to pixels per pixel (f * support / z)
-   and placed between the two nearest scales of 1, 2, 4, ... 64 px (linear blend in log2); at a scale, change =
-   sqrt(1 - |mean normal|^2) over a window of that radius (near-Gaussian, sigma ~ radius/2, three box passes) (0 on a plane, towards 1 where normals spread); borders count 1.
-4. Directional variety (NARF's "interest"): the structure tensor of the surface-change gradient, averaged over the
-   same window, gives isotropy = 2 lambda_min / (lambda_max + lambda_min): ~0 along a straight fold or border
-   (change in one direction only), ~1 at corners and blobs (change in several directions).
+   and placed between the two nearest scales of 1, 2, 4, ... 64 px (linear blend in log2); at a scale, change
+   = sqrt(1 - |mean normal|^2) over a window of that radius (near-Gaussian, sigma ~ radius/2, three box
+   passes) (0 on a plane, towards 1 where normals spread); borders count 1.
+4. Directional variety (NARF's "interest"): the structure tensor of the surface-change gradient, averaged over
+   the same window, gives isotropy = 2 lambda_min / (lambda_max + lambda_min): ~0 along a straight fold or
+   border (change in one direction only), ~1 at corners and blobs (change in several directions).
 5. interest = change * isotropy in [0, 1], 0 where depth is invalid; stored as round(interest * 65535).
 """
 
@@ -53,8 +55,8 @@ from services.worker.cues.narf_kernels import (
 from services.worker.cues.registry import register
 
 KP3D_SCALES_PX = (1, 2, 4, 8, 16, 32, 64)
-# keypoints2d's Gaussian kernels end at 3 sigmas (scipy's default is 4): 25% fewer taps, the 0.3% of weight past
-# 3 sigmas moves responses by ~2% (tests/worker/cues/test_equivalence.py).
+# keypoints2d's Gaussian kernels end at 3 sigmas (scipy's default is 4): 25% fewer taps, the 0.3% of weight
+# past 3 sigmas moves responses by ~2% (tests/worker/cues/test_equivalence.py).
 DOH_TRUNCATE_SIGMAS = 3.0
 BORDER_FOOTPRINTS = 10.0
 PYRAMID_MIN_RADIUS_PX = 4  # wider blurs run on block means (a radius of >= 4 low-res pixels), then upsampled
@@ -76,8 +78,8 @@ def doh_response(g: np.ndarray, sigmas: tuple[float, ...]) -> np.ndarray:
 @njit(cache=True, nogil=True)
 def _max_doh(L: np.ndarray, s4: np.float32, out: np.ndarray) -> None:
     """out = max(out, s4 * (lxx lyy - lxy^2)) with central differences of L (edges clamped), in float32 and in
-    the order numpy's in-place version took (so the values are the same bit for bit), fused in one pass: row by row
-    over row slices, the clamped first and last columns apart (the unclamped inner loop vectorises)."""
+    the order numpy's in-place version took (so the values are the same bit for bit), fused in one pass: row
+    by row over row slices, the clamped first and last columns apart (the unclamped inner loop vectorises)."""
     h, w = L.shape
     for y in range(h):
         up, row, down, o = L[max(y - 1, 0)], L[y], L[min(y + 1, h - 1)], out[y]
@@ -91,9 +93,11 @@ def _max_doh(L: np.ndarray, s4: np.float32, out: np.ndarray) -> None:
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _doh_row(c: np.ndarray, left: np.ndarray, right: np.ndarray, up: np.ndarray, up_left: np.ndarray,
-             up_right: np.ndarray, down: np.ndarray, down_left: np.ndarray, down_right: np.ndarray, s4: np.float32,
-             out: np.ndarray) -> None:
+def _doh_row(
+    c: np.ndarray, left: np.ndarray, right: np.ndarray, up: np.ndarray, up_left: np.ndarray,
+    up_right: np.ndarray, down: np.ndarray, down_left: np.ndarray, down_right: np.ndarray, s4: np.float32,
+    out: np.ndarray,
+) -> None:
     two, sixteenth = np.float32(2.0), np.float32(0.0625)
     for x in range(len(c)):
         lxx = (right[x] + left[x]) - two * c[x]
@@ -115,8 +119,9 @@ def _blur(x: np.ndarray, radius_px: int) -> np.ndarray:
     """Approximately Gaussian blur with sigma ~ radius/2: three box passes of width ~radius (O(1) per pixel).
 
     x is H x W, or C x H x W (channel planes blurred independently). The passes are scipy's uniform_filter
-    (mode "constant") bit for bit: its running sums in float64, rounded to float32 after each axis, as compiled
-    loops (~3x faster than scipy's per-line buffers); inputs other than float32 go to scipy itself."""
+    (mode "constant") bit for bit: its running sums in float64, rounded to float32 after each axis, as
+    compiled loops (~3x faster than scipy's per-line buffers); inputs other than float32 go to scipy
+    itself."""
     size = max(1, int(radius_px)) | 1
     if x.dtype != np.float32:
         sizes = (1,) * (x.ndim - 2) + (size, size)
@@ -157,9 +162,9 @@ def _box_rows(img: np.ndarray, size: int) -> np.ndarray:
 
 @njit(cache=True, nogil=True)
 def _box_cols(img: np.ndarray, size: int) -> np.ndarray:
-    """Mean over `size` columns centred on each pixel, zeros outside (scipy's running sum along a line). Four rows
-    at a time: their running sums are independent chains the CPU overlaps, and the divisions run afterwards as a
-    vectorised loop over the row (~1.7x faster than one row at a time)."""
+    """Mean over `size` columns centred on each pixel, zeros outside (scipy's running sum along a line). Four
+    rows at a time: their running sums are independent chains the CPU overlaps, and the divisions run
+    afterwards as a vectorised loop over the row (~1.7x faster than one row at a time)."""
     h, w = img.shape
     r = size // 2
     out = np.empty((h, w), np.float32)
@@ -205,8 +210,9 @@ def _half(x: np.ndarray) -> np.ndarray:
 
 
 def _double(x: np.ndarray) -> np.ndarray:
-    """Bilinear 2x upsampling at pixel centres (weights 3/4, 1/4; edges clamped) of an H x W float32 array: rows
-    first, then columns, each output 0.75 * x + 0.25 * neighbour in float32 (one compiled pass, C order)."""
+    """Bilinear 2x upsampling at pixel centres (weights 3/4, 1/4; edges clamped) of an H x W float32 array:
+    rows first, then columns, each output 0.75 * x + 0.25 * neighbour in float32 (one compiled pass, C
+    order)."""
     return double(np.ascontiguousarray(x, dtype=np.float32))
 
 
@@ -254,8 +260,8 @@ def _isotropy(b: np.ndarray) -> np.ndarray:
 
 
 def narf_interest(ctx: ViewContext) -> np.ndarray:
-    """float32 H x W NARF-like interest in [0, 1] (module docstring), 0 off valid depth. The per-pixel steps run as
-    compiled passes (narf_kernels: the numpy expressions they replaced, bit for bit)."""
+    """float32 H x W NARF-like interest in [0, 1] (module docstring), 0 off valid depth. The per-pixel steps
+    run as compiled passes (narf_kernels: the numpy expressions they replaced, bit for bit)."""
     v = valid(ctx)
     if not v.any():
         return np.zeros(v.shape, dtype=np.float32)

@@ -2,11 +2,11 @@
 
 At time s in [-1/2, 1/2] of the exposure the camera centre sits at s t. A pixel q with depth Z sees the point
 X = Z K^-1 (q + 1/2); at time s that point projects to p_s = K (X - s t) / (X - s t)_z, so the image moves by
-d_s(q) = p_s - q: a near point moves more than a far one, a sideways move (x, y) smears along the image axes and
-a forward move (z) smears radially from the principal point. The blurred image is the mean over the exposure
-of the image at each instant, I_s(q) = I(q - d_s(q)) (the displacement at q standing for that of the point
-that lands there: exact where depth is locally constant), with as many instants as make consecutive ones at
-most 1 px apart (at most motion_max_samples), in linear light. Points at infinity (no surface) do not move.
+d_s(q) = p_s - q: a near point moves more than a far one, a sideways move (x, y) smears along the image axes
+and a forward move (z) smears radially from the principal point. The blurred image is the mean over the
+exposure of the image at each instant, I_s(q) = I(q - d_s(q)) (the displacement at q standing for that of the
+point that lands there: exact where depth is locally constant), with as many instants as make consecutive ones
+at most 1 px apart (at most motion_max_samples), in linear light. Points at infinity (no surface) do not move.
 """
 
 from __future__ import annotations
@@ -24,7 +24,9 @@ from services.worker.cues.registry import cue_array, register
 NEAREST_Z_M = 1e-3  # a point the camera would reach during the exposure stays where it is
 
 
-def displacement(depth: np.ndarray, translation: np.ndarray, focal: float, s: float) -> tuple[np.ndarray, np.ndarray]:
+def displacement(
+    depth: np.ndarray, translation: np.ndarray, focal: float, s: float
+) -> tuple[np.ndarray, np.ndarray]:
     """(du, dv) in pixels of each pixel's point at time s (0 where the depth is infinite)."""
     h, w = depth.shape
     cx, cy = 0.5 * w, 0.5 * h

@@ -1,7 +1,7 @@
 """Compiled per-pixel passes of keypoints3d's NARF-like interest (keypoints.narf_interest), each the numpy
 expressions it replaces bit for bit: the same float32 operations in the same order (numpy's float32 arithmetic
-with Python scalars stays float32; its norm and einsum over 3 channels add left to right), without the full-size
-temporaries (tests/worker/cues/test_kernels.py against tests/fixtures/reference_narf.py).
+with Python scalars stays float32; its norm and einsum over 3 channels add left to right), without the
+full-size temporaries (tests/worker/cues/test_kernels.py against tests/fixtures/reference_narf.py).
 """
 
 from __future__ import annotations
@@ -28,7 +28,8 @@ def _range(v: np.ndarray, z: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.
 
 @njit(cache=True, nogil=True)
 def _borders(v: np.ndarray, rng: np.ndarray, f: np.float32, footprints: np.float32) -> np.ndarray:
-    """Foreground borders: a 4-neighbour (inf outside the image) farther by more than footprints * range / f."""
+    """Foreground borders: a 4-neighbour (inf outside the image) farther by more than footprints * range /
+    f."""
     h, w = v.shape
     border = np.zeros((h, w), np.bool_)
     for y in range(h):
@@ -59,14 +60,17 @@ def _normal_planes(v: np.ndarray, border: np.ndarray, P: np.ndarray, d: np.ndarr
     du = np.empty((3, wd), np.float32)
     dv = np.empty((3, wd), np.float32)
     weight = np.empty(wd, np.float32)
-    ray = np.empty((3, wd), np.float32)  # the row's ray directions as planes: strided loads kept the loop slow
+    # the row's ray directions as planes: strided loads kept the loop slow
+    ray = np.empty((3, wd), np.float32)
     eps, zero, one = np.float32(1e-12), np.float32(0.0), np.float32(1.0)
     for y in range(h):
         for c in range(3):
             _differences(P[c], y, du[c], dv[c])
         mid, below, above = smooth[y + 1], smooth[y + 2], smooth[y]
         for x in range(wd):
-            weight[x] = one if mid[x + 1] and mid[x + 2] and mid[x] and below[x + 1] and above[x + 1] else zero
+            weight[x] = (
+                one if mid[x + 1] and mid[x + 2] and mid[x] and below[x + 1] and above[x + 1] else zero
+            )
         du0, du1, du2, dv0, dv1, dv2 = du[0], du[1], du[2], dv[0], dv[1], dv[2]
         o0, o1, o2, o3, dy = out[0, y], out[1, y], out[2, y], out[3, y], d[y]
         for x in range(wd):
@@ -145,7 +149,8 @@ def scale_split(kf: np.ndarray, v: np.ndarray, n_scales: int) -> tuple[np.ndarra
 
 @njit(cache=True, nogil=True)
 def blend(out: np.ndarray, k0: np.ndarray, t: np.ndarray, ki: int, top: int, value: np.ndarray) -> None:
-    """out += weight * value, weight = (1 - t where k0 == ki) + (t where min(k0 + 1, top) == ki), in float32."""
+    """out += weight * value, weight = (1 - t where k0 == ki) + (t where min(k0 + 1, top) == ki), in
+    float32."""
     h, w = out.shape
     one, zero = np.float32(1.0), np.float32(0.0)
     for y in range(h):
@@ -171,8 +176,8 @@ def tensor_planes(gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
 
 @njit(cache=True, nogil=True)
 def half_means(x: np.ndarray) -> np.ndarray:
-    """2 x 2 block means of a C x H x W float32 array, edge-padded to even size: ((x00 + x10) + x01 + x11) * 0.25
-    in float32, the order numpy's sum of the four strided slices took."""
+    """2 x 2 block means of a C x H x W float32 array, edge-padded to even size: ((x00 + x10) + x01 + x11) *
+    0.25 in float32, the order numpy's sum of the four strided slices took."""
     c, h, w = x.shape
     hh, hw = (h + 1) // 2, (w + 1) // 2
     out = np.empty((c, hh, hw), np.float32)
@@ -190,8 +195,8 @@ def half_means(x: np.ndarray) -> np.ndarray:
 @njit(cache=True, nogil=True)
 def double(x: np.ndarray) -> np.ndarray:
     """Bilinear 2x upsampling at pixel centres of an H x W float32 array, C order: rows first (row 2i + a of
-    0.75 x[i] + 0.25 x[i -+ 1], clamped), then columns alike, each output c + 0.25 neighbour with c = 0.75 x in
-    float32 (keypoints' two transposed passes, bit for bit, without the transposes)."""
+    0.75 x[i] + 0.25 x[i -+ 1], clamped), then columns alike, each output c + 0.25 neighbour with c = 0.75 x
+    in float32 (keypoints' two transposed passes, bit for bit, without the transposes)."""
     n, m = x.shape
     near, far = np.float32(0.75), np.float32(0.25)
     out = np.empty((2 * n, 2 * m), np.float32)
@@ -211,9 +216,9 @@ def double(x: np.ndarray) -> np.ndarray:
 
 @njit(cache=True, nogil=True)
 def surface_change(b: np.ndarray) -> np.ndarray:
-    """Spread of the mean normal sqrt(clip(1 - |m|^2, 0, 1)), m = b[1:] / max(b[0], 1e-6), 0 where b[0] <= 1e-6,
-    from b = the blurred [w, n * w]: numpy's float32 steps per pixel (maximum and clip give their second operand
-    on ties, keep NaN; einsum adds the channels in order)."""
+    """Spread of the mean normal sqrt(clip(1 - |m|^2, 0, 1)), m = b[1:] / max(b[0], 1e-6), 0 where b[0] <=
+    1e-6, from b = the blurred [w, n * w]: numpy's float32 steps per pixel (maximum and clip give their second
+    operand on ties, keep NaN; einsum adds the channels in order)."""
     _, h, w = b.shape
     out = np.empty((h, w), np.float32)
     zero, one, tiny = np.float32(0.0), np.float32(1.0), np.float32(1e-6)
@@ -232,8 +237,8 @@ def surface_change(b: np.ndarray) -> np.ndarray:
 
 @njit(cache=True, nogil=True)
 def isotropy(b: np.ndarray) -> np.ndarray:
-    """2 max(lo, 0) / max(lo + hi, 1e-12) of the eigenvalues lo, hi = tr/2 -+ sqrt(max((a - b)^2 / 4 + c^2, 0))
-    of b = the blurred structure tensor [a, b, c], 0 where tr <= 1e-6: numpy's float32 steps per pixel."""
+    """2 max(lo, 0) / max(lo + hi, 1e-12) of the eigenvalues lo, hi = tr/2 -+ sqrt(max((a - b)^2 / 4 + c^2,
+    0)) of b = the blurred structure tensor [a, b, c], 0 where tr <= 1e-6: numpy's float32 steps per pixel."""
     _, h, w = b.shape
     out = np.empty((h, w), np.float32)
     zero, two, four, tiny, eps = np.float32(0.0), np.float32(2.0), np.float32(4.0), np.float32(1e-6), \
@@ -268,7 +273,8 @@ def mark_borders(change: np.ndarray, border: np.ndarray, v: np.ndarray) -> None:
 
 @njit(cache=True, nogil=True)
 def interest(change: np.ndarray, iso: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """clip(change * iso, 0, 1) with iso 0 off valid depth, in float32 (clip gives its bound on ties, keeps NaN)."""
+    """clip(change * iso, 0, 1) with iso 0 off valid depth, in float32 (clip gives its bound on ties, keeps
+    NaN)."""
     h, w = change.shape
     out = np.empty((h, w), np.float32)
     zero, one = np.float32(0.0), np.float32(1.0)

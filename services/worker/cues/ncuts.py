@@ -3,10 +3,10 @@ skimage.graph.cut_normalized: the second smallest eigenvector of D^-1/2 (D - W) 
 eigenpairs), num_cuts thresholds between its extremes, split while the best ncut value is below thresh; the
 segment cues' step 3 (segmentation.py).
 
-Per split, compiled steps around the two library calls whose rounding the labels depend on (LAPACK's eigenvector,
-BLAS's products of the threshold masks with the matrix), with the arithmetic of the numpy expressions they
-replaced in the same order: sums are numpy's pairwise sums (tests/worker/cues/test_kernels.py,
-test_segment_kernels.py, against tests/fixtures/reference_ncuts.py).
+Per split, compiled steps around the two library calls whose rounding the labels depend on (LAPACK's
+eigenvector, BLAS's products of the threshold masks with the matrix), with the arithmetic of the numpy
+expressions they replaced in the same order: sums are numpy's pairwise sums
+(tests/worker/cues/test_kernels.py, test_segment_kernels.py, against tests/fixtures/reference_ncuts.py).
 """
 
 from __future__ import annotations
@@ -17,8 +17,8 @@ import numpy as np
 from numba import njit
 from scipy.linalg.lapack import _compute_lwork, get_lapack_funcs
 
-# Links weaker than this count as absent when looking for disconnected parts (self-loops weigh 1; an RBF weight
-# this small is exp(-23)): a cut through them costs < 1e-9, far below any useful segment_ncut_thresh.
+# Links weaker than this count as absent when looking for disconnected parts (self-loops weigh 1; an RBF
+# weight this small is exp(-23)): a cut through them costs < 1e-9, far below any useful segment_ncut_thresh.
 LINK_EPS = 1e-10
 
 
@@ -50,14 +50,15 @@ def _components(w: np.ndarray, eps: float) -> tuple[int, np.ndarray]:
 def normalized_cuts(W: np.ndarray, thresh: float, num_cuts: int) -> np.ndarray:
     """Recursive two-way normalized cuts on a dense similarity matrix; returns a segment id per node.
 
-    A subgraph falling apart into (numerically) disconnected parts is split into them directly: its eigenproblem
-    then has a multiple zero eigenvalue, so the dense solver (O(n^3), most of a segmentation's cost at 512 px)
-    would only return some mix of the parts' indicator vectors, and every threshold between them cuts at ~0 cost:
-    the cuts end at the same parts, peeled off one eigenproblem at a time.
+    A subgraph falling apart into (numerically) disconnected parts is split into them directly: its
+    eigenproblem then has a multiple zero eigenvalue, so the dense solver (O(n^3), most of a segmentation's
+    cost at 512 px) would only return some mix of the parts' indicator vectors, and every threshold between
+    them cuts at ~0 cost: the cuts end at the same parts, peeled off one eigenproblem at a time.
 
-    Each split is three compiled steps around the two library calls whose rounding the labels depend on (LAPACK's
-    eigenvector, BLAS's products of the threshold masks with the matrix): the same arithmetic, in the same order,
-    as the numpy expressions they replace (sums pairwise as numpy's; tests/worker/cues/test_kernels.py)."""
+    Each split is three compiled steps around the two library calls whose rounding the labels depend on
+    (LAPACK's eigenvector, BLAS's products of the threshold masks with the matrix): the same arithmetic, in
+    the same order, as the numpy expressions they replace (sums pairwise as numpy's;
+    tests/worker/cues/test_kernels.py)."""
     W = np.ascontiguousarray(W, dtype=np.float64)
     out = np.zeros(len(W), dtype=np.int64)
     next_id = 0
@@ -126,8 +127,9 @@ def _block_sum(a: np.ndarray, lo: int, n: int) -> float:
 
 @njit(cache=True, nogil=True)
 def _pairwise_run(a: np.ndarray, start: int, n: int) -> float:
-    """numpy's pairwise_sum of a[start:start + n]: blocks of up to 128 summed by _block_sum, longer runs halved
-    at a multiple of 8 and added left + right; on an explicit stack (numba's cache does not take recursion)."""
+    """numpy's pairwise_sum of a[start:start + n]: blocks of up to 128 summed by _block_sum, longer runs
+    halved at a multiple of 8 and added left + right; on an explicit stack (numba's cache does not take
+    recursion)."""
     if n <= PAIRWISE_BLOCK:
         return _block_sum(a, start, n)
     depth = 2 * 64
@@ -167,8 +169,9 @@ REDUCE_BUFFER = 8192  # numpy's default ufunc buffer: add.reduce sums a longer a
 
 @njit(cache=True, nogil=True)
 def _pairwise_sum(a: np.ndarray) -> float:
-    """a.sum() of a contiguous float64 vector bit for bit: 0.0 (add's identity, the reduction's start) plus the
-    pairwise sums (numpy's pairwise_sum, which its add.reduce uses) of its runs of REDUCE_BUFFER, in order."""
+    """a.sum() of a contiguous float64 vector bit for bit: 0.0 (add's identity, the reduction's start) plus
+    the pairwise sums (numpy's pairwise_sum, which its add.reduce uses) of its runs of REDUCE_BUFFER, in
+    order."""
     n = len(a)
     res = 0.0
     for start in range(0, n, REDUCE_BUFFER):
@@ -215,8 +218,9 @@ def _threshold_masks(vec: np.ndarray, dis: np.ndarray, num_cuts: int) -> tuple[n
 @njit(cache=True, nogil=True)
 def _cheapest_cut(masks: np.ndarray, m: np.ndarray, mw: np.ndarray, assoc: np.ndarray, d: np.ndarray,
                   thresh: float) -> int:
-    """Row of the cheapest proper split below thresh (-1 when none): cost_t = cut / assoc + cut / (d.sum() - assoc),
-    cut_t = ((m @ w) * (1 - m)).sum(axis=1)[t], the first of equal minima (np.argmin's, a NaN first of all)."""
+    """Row of the cheapest proper split below thresh (-1 when none): cost_t = cut / assoc + cut / (d.sum() -
+    assoc), cut_t = ((m @ w) * (1 - m)).sum(axis=1)[t], the first of equal minima (np.argmin's, a NaN first of
+    all)."""
     rows, n = m.shape
     total = _pairwise_sum(d)
     row = np.empty(n, np.float64)
@@ -247,20 +251,24 @@ def _syevr_work(n: int) -> tuple[int, int]:
 
 def second_eigenvector(A: np.ndarray) -> np.ndarray:
     """The eigenvector of the second smallest eigenvalue of a symmetric matrix: the dsyevr call of
-    scipy.linalg.eigh(A, subset_by_index=[0, 1], driver="evr"), same arguments and workspace, bit for bit, without
-    its checks and workspace query per call (a normalized cut makes ~100 such calls per view)."""
+    scipy.linalg.eigh(A, subset_by_index=[0, 1], driver="evr"), same arguments and workspace, bit for bit,
+    without its checks and workspace query per call (a normalized cut makes ~100 such calls per view)."""
     lwork, liwork = _syevr_work(len(A))
-    _, vecs, _, _, info = _SYEVR(A, compute_v=1, range="I", il=1, iu=2, lower=True, lwork=lwork, liwork=liwork)
+    _, vecs, _, _, info = _SYEVR(
+        A, compute_v=1, range="I", il=1, iu=2, lower=True, lwork=lwork, liwork=liwork
+    )
     if info != 0:
         raise np.linalg.LinAlgError(f"dsyevr failed (info {info})")
     return vecs[:, 1]
 
 
 def _best_split(w: np.ndarray, thresh: float, num_cuts: int) -> np.ndarray | None:
-    """The two-way normalized cut of a connected similarity matrix (a node mask), None when none is below thresh.
+    """The two-way normalized cut of a connected similarity matrix (a node mask), None when none is below
+    thresh.
 
-    Every threshold at once: row t of the masks is one candidate split, cut_t = m_t^T w (1 - m_t); the products
-    with w stay numpy's (BLAS) calls, whose summation order the costs, hence the choice, depend on."""
+    Every threshold at once: row t of the masks is one candidate split, cut_t = m_t^T w (1 - m_t); the
+    products with w stay numpy's (BLAS) calls, whose summation order the costs, hence the choice, depend
+    on."""
     d, dis, A = _laplacian(w)
     masks, m = _threshold_masks(second_eigenvector(A), dis, num_cuts)
     best = _cheapest_cut(masks, m, m @ w, m @ d, d, thresh)

@@ -29,7 +29,8 @@ def _planned_view(ctx: ViewContext, cue: str) -> PlannedView:
 
 @register("point_info")
 def point_info(ctx: ViewContext) -> Mapping[str, object]:
-    """Omnidata point_info keys plus K, world_to_camera and conventions (services.core.domain.plan_cues.point_info)."""
+    """Omnidata point_info keys plus K, world_to_camera and conventions
+    (services.core.domain.plan_cues.point_info)."""
 
     def compute() -> Mapping[str, object]:
         if ctx.point_info_override is not None:
@@ -46,7 +47,8 @@ NONFIXATED_POINTS_KEPT = 8
 
 @register("nonfixated")
 def nonfixated(ctx: ViewContext) -> Nonfixated:
-    """Per point: pixel positions of the other points visible in each of its views (one dict per point, shared)."""
+    """Per point: pixel positions of the other points visible in each of its views (one dict per point,
+    shared)."""
     plan = _need_plan(ctx, "nonfixated")
     point = int(_planned_view(ctx, "nonfixated").point_idx)
     per_point = _NONFIXATED.setdefault(plan, {})

@@ -1,10 +1,10 @@
 """rgb_refocus: the view photographed through a thin lens focused at a drawn distance (the Omnidata paper's 3D
 refocusing, with the circle of confusion of a real lens instead of a blur proportional to depth).
 
-Thin lens of focal length f (from the view's fov and the sensor width), aperture diameter A = f / N, focused at
-distance S (a drawn quantile of the view's depths): a point at depth d (along the optical axis) images to a disc
-of diameter c = A |d - S| / d * f / (S - f) on the sensor, c / sensor_width * W pixels. Pixels with no surface
-are at infinity (c = A f / (S - f)). Each pixel takes the image blurred by a disc of its own radius
+Thin lens of focal length f (from the view's fov and the sensor width), aperture diameter A = f / N, focused
+at distance S (a drawn quantile of the view's depths): a point at depth d (along the optical axis) images to a
+disc of diameter c = A |d - S| / d * f / (S - f) on the sensor, c / sensor_width * W pixels. Pixels with no
+surface are at infinity (c = A f / (S - f)). Each pixel takes the image blurred by a disc of its own radius
 (`gather`: radii quantised to half a pixel up to 4 px, whole pixels up to 16, then 2 px; at most
 refocus_max_coc_px), computed in linear light. A pixel at the focus distance keeps its colour exactly. Not
 modelled: a sharp foreground's light spilling over a blurred background (occlusion at depth edges).
@@ -62,7 +62,9 @@ def disc_blur(image: np.ndarray, radius: float) -> np.ndarray:
     kernel = disc_kernel(radius)
     pad = kernel.shape[0] // 2
     padded = np.pad(image, ((pad, pad), (pad, pad), (0, 0)), mode="edge")
-    return np.stack([fftconvolve(padded[..., c], kernel, mode="valid") for c in range(image.shape[2])], axis=-1)
+    return np.stack(
+        [fftconvolve(padded[..., c], kernel, mode="valid") for c in range(image.shape[2])], axis=-1
+    )
 
 
 def refocus(linear: np.ndarray, radius_px: np.ndarray) -> np.ndarray:
@@ -82,7 +84,9 @@ def rgb_refocus(ctx: ViewContext) -> np.ndarray:
     """uint8 H x W x 3 sRGB: rgb refocused at the view's drawn focus distance and f-number."""
     p = draw(ctx)["rgb_refocus"]
     depth = np.where(valid(ctx), depth_m(ctx), np.inf)
-    radius = coc_radius_px(depth, focus_m=p["focus_distance_m"], f_number=p["f_number"],
-                           focal_mm=p["focal_length_mm"], sensor_mm=p["sensor_width_mm"], width_px=ctx.resolution)
+    radius = coc_radius_px(
+        depth, focus_m=p["focus_distance_m"], f_number=p["f_number"], focal_mm=p["focal_length_mm"],
+        sensor_mm=p["sensor_width_mm"], width_px=ctx.resolution,
+    )
     radius = np.minimum(radius, p["max_coc_px"])
     return linear_to_srgb(refocus(srgb_to_linear(cue_array(ctx, "rgb")), radius))

@@ -1,9 +1,9 @@
 """The cue registry: each cue family module declares its cues with `@register(name)`, so the
 executor finds a cue by its catalog name without a central table to keep in step.
 
-A cue function takes the view's ViewContext and returns the cue's value: a numpy array in the catalog's dtype and
-shape (H x W or H x W x 3), a JSON-able dict for plan cues, or bytes for the internal `passes` cue. Encoding to
-file bytes is separate (services.worker.cues.encoding) and driven by the catalog entry.
+A cue function takes the view's ViewContext and returns the cue's value: a numpy array in the catalog's dtype
+and shape (H x W or H x W x 3), a JSON-able dict for plan cues, or bytes for the internal `passes` cue.
+Encoding to file bytes is separate (services.worker.cues.encoding) and driven by the catalog entry.
 """
 
 from __future__ import annotations
@@ -20,7 +20,8 @@ from services.worker.passes import RENDER_PASSES
 if TYPE_CHECKING:
     from services.worker.context import ViewContext
 
-CueValue = np.ndarray | Mapping[str, object] | bytes  # an image cue's array, a plan cue's JSON, the `passes` npz
+# an image cue's array, a plan cue's JSON, the `passes` npz
+CueValue = np.ndarray | Mapping[str, object] | bytes
 CueFn = Callable[["ViewContext"], CueValue]
 _Fn = TypeVar("_Fn", bound=CueFn)
 
@@ -31,7 +32,8 @@ class CueImpl:
 
     name: str
     fn: CueFn
-    passes: frozenset[str] = frozenset()  # optional render passes it reads (passes.RENDER_PASSES); depth, rgb always
+    # optional render passes it reads (passes.RENDER_PASSES); depth, rgb always
+    passes: frozenset[str] = frozenset()
 
     @property
     def spec(self) -> Cue:
@@ -49,11 +51,15 @@ def register(name: str, passes: Iterable[str] = ()) -> Callable[[_Fn], _Fn]:
         raise UnknownCueError([name])
     unknown = set(passes) - RENDER_PASSES
     if unknown:
-        raise ValueError(f"cue {name!r}: unknown render passes {sorted(unknown)}; known: {sorted(RENDER_PASSES)}")
+        raise ValueError(
+            f"cue {name!r}: unknown render passes {sorted(unknown)}; known: {sorted(RENDER_PASSES)}"
+        )
 
     def deco(fn: _Fn) -> _Fn:
         if name in REGISTRY:
-            raise ValueError(f"cue {name!r} is registered twice ({REGISTRY[name].fn.__module__}, {fn.__module__})")
+            raise ValueError(
+                f"cue {name!r} is registered twice ({REGISTRY[name].fn.__module__}, {fn.__module__})"
+            )
         REGISTRY[name] = CueImpl(name, fn, frozenset(passes))
         return fn
 

@@ -1,13 +1,13 @@
 """Unsupervised segmentations (16-bit label PNGs): Felzenszwalb superpixels merged by normalized cuts.
 
-segment_unsup2d works on the colour image, segment_unsup25d on a feature image of weighted log-depth and normals
-with occlusion edges weakening the graph's links (segment25d_weights; see segment_unsup25d). Steps:
-1. skimage.segmentation.felzenszwalb(features in ~[0, 1], segment2d_scale, segment2d_sigma, segment2d_min_size);
-   when it yields more than segment_max_superpixels regions it is rerun with a proportionally larger min_size,
-   which bounds the cost of step 3 (a dense eigenproblem per split);
-2. region adjacency graph (4-connectivity) with similarity weights exp(-|mean_a - mean_b|^2 / segment_ncut_sigma)
-   of the regions' mean features on a 0..255 scale (2.5d: times exp(-5 * occlusion strength along the shared
-   boundary)), plus self-loops of weight 1 (as skimage.graph.cut_normalized);
+segment_unsup2d works on the colour image, segment_unsup25d on a feature image of weighted log-depth and
+normals with occlusion edges weakening the graph's links (segment25d_weights; see segment_unsup25d). Steps:
+1. skimage.segmentation.felzenszwalb(features in ~[0, 1], segment2d_scale, segment2d_sigma,
+   segment2d_min_size); when it yields more than segment_max_superpixels regions it is rerun with a
+   proportionally larger min_size, which bounds the cost of step 3 (a dense eigenproblem per split);
+2. region adjacency graph (4-connectivity) with similarity weights exp(-|mean_a - mean_b|^2 /
+   segment_ncut_sigma) of the regions' mean features on a 0..255 scale (2.5d: times exp(-5 * occlusion
+   strength along the shared boundary)), plus self-loops of weight 1 (as skimage.graph.cut_normalized);
 3. recursive two-way normalized cuts (Shi & Malik 2000) exactly as skimage.graph.cut_normalized: the second
    smallest eigenvector of D^-1/2 (D - W) D^-1/2, segment_num_cuts thresholds, split while the best ncut value
    is below segment_ncut_thresh. On dense matrices (LAPACK, two eigenpairs; ncuts.py) because skimage's
@@ -33,7 +33,9 @@ from services.worker.cues.ncuts import normalized_cuts
 from services.worker.cues.registry import register
 
 
-def superpixels(features: np.ndarray, scale: float, sigma: float, min_size: int, max_count: int) -> np.ndarray:
+def superpixels(
+    features: np.ndarray, scale: float, sigma: float, min_size: int, max_count: int
+) -> np.ndarray:
     """int64 H x W Felzenszwalb labels 0..n-1 with n <= max_count (min_size grown when needed)."""
     fz = Felzenszwalb(features, scale, sigma)  # the merge pass does not depend on min_size: done once
     n = fz.count(min_size)  # counted without labelling the pixels: only the last min_size is labelled
@@ -49,8 +51,8 @@ def region_graph(labels: np.ndarray, features255: np.ndarray, sigma: float,
                  boundary: np.ndarray | None = None) -> np.ndarray:
     """Dense n x n similarity matrix of 4-adjacent regions (mean-feature RBF), self-loops of weight 1.
 
-    `boundary` (H x W in [0, 1], optional) weakens the link of two regions by exp(-BOUNDARY_GAIN * b), b = the mean
-    over their shared pixel pairs of the larger boundary value of the two pixels.
+    `boundary` (H x W in [0, 1], optional) weakens the link of two regions by exp(-BOUNDARY_GAIN * b), b = the
+    mean over their shared pixel pairs of the larger boundary value of the two pixels.
     """
     n = int(labels.max()) + 1
     cnt, sums = _region_sums(np.ascontiguousarray(labels), np.ascontiguousarray(features255), n)
@@ -128,8 +130,8 @@ def _first_appearance_ranks(labels: np.ndarray, mask: np.ndarray) -> np.ndarray:
 
 @njit(cache=True, nogil=True)
 def _region_sums(labels: np.ndarray, features: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel count (float64) and per-channel feature sums (float64) of every region, in one pass: each sum adds
-    in raster order, as numpy's bincount with weights did channel by channel."""
+    """Pixel count (float64) and per-channel feature sums (float64) of every region, in one pass: each sum
+    adds in raster order, as numpy's bincount with weights did channel by channel."""
     h, w, c = features.shape
     cnt = np.zeros(n, np.float64)
     sums = np.zeros((n, c), np.float64)
@@ -145,9 +147,9 @@ def _region_sums(labels: np.ndarray, features: np.ndarray, n: int) -> tuple[np.n
 @njit(cache=True, nogil=True)
 def _adjacent_pairs(labels: np.ndarray, boundary: np.ndarray, n: int,
                     has_boundary: bool) -> tuple[np.ndarray, np.ndarray]:
-    """Per region pair (a < b): how many 4-adjacent pixel pairs join them, and the sum over those of the larger
-    boundary value of the two pixels; horizontal pairs first, then vertical, each in raster order (the float sums
-    add in the order numpy's bincount over the concatenated pairs did)."""
+    """Per region pair (a < b): how many 4-adjacent pixel pairs join them, and the sum over those of the
+    larger boundary value of the two pixels; horizontal pairs first, then vertical, each in raster order (the
+    float sums add in the order numpy's bincount over the concatenated pairs did)."""
     h, w = labels.shape
     links = np.zeros((n, n), np.int64)
     total = np.zeros((n, n), np.float64)
@@ -175,7 +177,8 @@ def _relabel(labels: np.ndarray, mask: np.ndarray) -> np.ndarray:
 
 @njit(cache=True, nogil=True)
 def _uniform_in_mask(features: np.ndarray, mask: np.ndarray) -> bool:
-    """Every pixel inside mask has the same feature vector (True when mask is empty); stops at the first other."""
+    """Every pixel inside mask has the same feature vector (True when mask is empty); stops at the first
+    other."""
     h, w, c = features.shape
     first_y, first_x = -1, -1
     for y in range(h):
@@ -193,8 +196,8 @@ def _uniform_in_mask(features: np.ndarray, mask: np.ndarray) -> bool:
 
 @njit(cache=True, nogil=True)
 def _gather(features: np.ndarray, mask: np.ndarray, iy: np.ndarray, ix: np.ndarray) -> np.ndarray:
-    """features[iy, ix] (H x W x C) as one compiled pass, where (iy, ix) is each pixel's nearest mask pixel: a mask
-    pixel is its own nearest, so only the pixels off the mask are gathered (the rest is one copy)."""
+    """features[iy, ix] (H x W x C) as one compiled pass, where (iy, ix) is each pixel's nearest mask pixel: a
+    mask pixel is its own nearest, so only the pixels off the mask are gathered (the rest is one copy)."""
     h, w, c = features.shape
     out = features.copy()
     for y in range(h):
@@ -207,8 +210,8 @@ def _gather(features: np.ndarray, mask: np.ndarray, iy: np.ndarray, ix: np.ndarr
 
 
 def nearest_in_mask(ctx: ViewContext, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Row and column of the nearest mask pixel for every pixel; memoised per mask (both segmentations of a view
-    usually share theirs: surface seen = valid depth)."""
+    """Row and column of the nearest mask pixel for every pixel; memoised per mask (both segmentations of a
+    view usually share theirs: surface seen = valid depth)."""
     known: dict[bytes, tuple[np.ndarray, np.ndarray]] = ctx.memo("nearest_in_mask", dict)
     key = hashlib.blake2b(np.packbits(mask).tobytes(), digest_size=16).digest()
     if key not in known:
@@ -222,15 +225,18 @@ def segment(ctx: ViewContext, features: np.ndarray, mask: np.ndarray, *, sigma: 
     """Felzenszwalb + normalized cuts on an H x W x C feature image in ~[0, 1]; uint16 labels, 0 off mask."""
     p = ctx.params
     if _uniform_in_mask(features, mask):
-        # One colour on the whole surface (an untextured scan's rgb): Felzenszwalb merges every zero-weight edge,
-        # so one superpixel and one segment (after the background fill below), without building the graph.
+        # One colour on the whole surface (an untextured scan's rgb): Felzenszwalb merges every zero-weight
+        # edge, so one superpixel and one segment (after the background fill below), without building the
+        # graph.
         return _relabel(np.zeros(mask.shape, dtype=np.int64), mask)
     if not mask.all():
         # Background pixels take the nearest surface pixel's features, so silhouettes do not spawn thin
         # mixed-colour regions (Felzenszwalb blurs first) and the background merges into its neighbours.
         iy, ix = nearest_in_mask(ctx, mask)
         features = _gather(features, mask, iy, ix)
-    superpixel_ids = superpixels(features, p.segment2d_scale, sigma, p.segment2d_min_size, p.segment_max_superpixels)
+    superpixel_ids = superpixels(
+        features, p.segment2d_scale, sigma, p.segment2d_min_size, p.segment_max_superpixels
+    )
     W = region_graph(superpixel_ids, features * 255.0, p.segment_ncut_sigma, boundary)
     merged = normalized_cuts(W, p.segment_ncut_thresh, p.segment_num_cuts)[superpixel_ids]
     return _relabel(merged, mask)
@@ -264,7 +270,8 @@ def features25d(ctx: ViewContext) -> np.ndarray:
 @njit(cache=True, nogil=True)
 def _features25d(log_depth: np.ndarray, v: np.ndarray, normals: np.ndarray, wd: np.float32,
                  wn: np.float32) -> np.ndarray:
-    """[wd * (LOG_DEPTH_SCALE * log_depth - its minimum over v) (0 off v), wn * (normals + 1) * 0.5], float32."""
+    """[wd * (LOG_DEPTH_SCALE * log_depth - its minimum over v) (0 off v), wn * (normals + 1) * 0.5],
+    float32."""
     h, w = log_depth.shape
     scale, one, half = np.float32(LOG_DEPTH_SCALE), np.float32(1.0), np.float32(0.5)
     lo = np.float32(np.inf)
@@ -287,9 +294,9 @@ def _features25d(log_depth: np.ndarray, v: np.ndarray, normals: np.ndarray, wd: 
 def segment_unsup25d(ctx: ViewContext) -> np.ndarray:
     """uint16 H x W segmentation of log-depth, normals and occlusion edges: labels 1..K, 0 off valid depth.
 
-    Superpixels come from log-depth and normals without pre-blur (rendered geometry is noise-free; blurring would
-    leave strips of averaged normals along creases); occlusion edges (edge_occlusion's response over its maximum
-    in the view, times the third weight) weaken the links across them in the normalized-cut graph.
+    Superpixels come from log-depth and normals without pre-blur (rendered geometry is noise-free; blurring
+    would leave strips of averaged normals along creases); occlusion edges (edge_occlusion's response over its
+    maximum in the view, times the third weight) weaken the links across them in the normalized-cut graph.
     """
     _, _, we = ctx.params.segment25d_weights
     occ = occlusion_response(ctx)

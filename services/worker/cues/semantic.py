@@ -28,8 +28,10 @@ def _labels(ctx: ViewContext, cue: str) -> tuple[np.ndarray, np.ndarray]:
     inst = np.where(h, np.maximum(p.face_instance, 0), 0)
     for name, ids, limit in (("class", cls, 255), ("instance", inst, 65535)):
         if ids.size and ids.max() > limit:
-            raise ValueError(f"cue {cue!r}: {name} id {int(ids.max())} in view exceeds {limit}, the largest the "
-                             f"{'8' if limit == 255 else '16'}-bit encoding holds")
+            raise ValueError(
+                f"cue {cue!r}: {name} id {int(ids.max())} in view exceeds {limit}, the largest the "
+                f"{'8' if limit == 255 else '16'}-bit encoding holds"
+            )
     return cls, inst
 
 
@@ -50,7 +52,9 @@ def segment_instance(ctx: ViewContext) -> np.ndarray:
 def pack_panoptic(cls: np.ndarray, inst: np.ndarray) -> np.ndarray:
     """uint8 H x W x 3 with R = class, G = instance // 256, B = instance % 256."""
     inst = inst.astype(np.uint32)
-    return np.stack([cls.astype(np.uint8), (inst >> 8).astype(np.uint8), (inst & 0xFF).astype(np.uint8)], axis=-1)
+    return np.stack(
+        [cls.astype(np.uint8), (inst >> 8).astype(np.uint8), (inst & 0xFF).astype(np.uint8)], axis=-1
+    )
 
 
 def unpack_panoptic(rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -1,10 +1,10 @@
 """What a worker process keeps between tasks: job specs, space rows, plans and rendered views.
 
-A job's tasks arrive one at a time, so re-reading its spec, its space row and its plan JSON for each would cost
-a database and a store round trip per task. Views (pass set + memoised intermediates) are kept in a memory LRU
-within a byte budget: a job's renders are dispatched ahead of its derived cues, so a worker meets a view's cues
-after rendering many other views; each view it dropped meant reading its pass set back and recomputing its
-intermediates (3x per view on a room, ~0.1 CPU-s a view).
+A job's tasks arrive one at a time, so re-reading its spec, its space row and its plan JSON for each would
+cost a database and a store round trip per task. Views (pass set + memoised intermediates) are kept in a
+memory LRU within a byte budget: a job's renders are dispatched ahead of its derived cues, so a worker meets a
+view's cues after rendering many other views; each view it dropped meant reading its pass set back and
+recomputing its intermediates (3x per view on a room, ~0.1 CPU-s a view).
 """
 
 from __future__ import annotations
@@ -27,7 +27,8 @@ from services.worker.context import ViewContext
 T = TypeVar("T")
 
 PLAN_CACHE_SIZE = 4  # (job, space) plans kept in memory
-# Views kept while they hold more than this fraction of worker_max_memory_mb (and always the last VIEW_CACHE_MIN).
+# Views kept while they hold more than this fraction of worker_max_memory_mb (and always the last
+# VIEW_CACHE_MIN).
 VIEW_CACHE_MEMORY_FRACTION = 0.25
 VIEW_CACHE_MIN = 4
 

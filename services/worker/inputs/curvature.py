@@ -1,12 +1,14 @@
-"""Per-vertex principal curvatures of a mesh by weighted quadric fitting on a metric neighbourhood. Pure numpy/scipy.
+"""Per-vertex principal curvatures of a mesh by weighted quadric fitting on a metric neighbourhood. Pure
+numpy/scipy.
 
-Why not pymeshlab's APSS (what the Omnidata annotator used): APSS' filter scale is a multiple of the local point
-spacing, so the curvature it reports depends on how densely the scan was tessellated; the JobSpec asks for a
-neighbourhood radius in metres (`curvature_radius_m`), which a quadric fit honours directly and which is
+Why not pymeshlab's APSS (what the Omnidata annotator used): APSS' filter scale is a multiple of the local
+point spacing, so the curvature it reports depends on how densely the scan was tessellated; the JobSpec asks
+for a neighbourhood radius in metres (`curvature_radius_m`), which a quadric fit honours directly and which is
 vectorised here (no per-vertex Python). The estimator:
 
-1. sample the surface uniformly (area-weighted, fixed seed) at a spacing of radius/4, so every neighbourhood holds
-   ~50 samples whatever the tessellation (at most MAX_SAMPLES; meshes with more vertices add their vertices);
+1. sample the surface uniformly (area-weighted, fixed seed) at a spacing of radius/4, so every neighbourhood
+   holds ~50 samples whatever the tessellation (at most MAX_SAMPLES; meshes with more vertices add their
+   vertices);
 2. for each vertex, take its MAX_NEIGHBOURS nearest samples within the radius (found in a grid of radius-wide
    cells; where balls hold far more, in a k-d tree, which stops at the nearest), Gaussian-weighted by distance
    (sigma = radius/2), dropping samples whose normal points away (> ~70 deg) so thin walls do not mix sides;
@@ -31,7 +33,8 @@ MAX_SAMPLES = 4_000_000  # ~200 MB of samples; beyond it (huge area, tiny radius
 MIN_SAMPLES = 2_000
 MAX_NEIGHBOURS = 96  # > the ~50 samples a full ball holds, so the cap does not shrink the radius
 SAMPLES_PER_RADIUS = 4.0
-GRID_MAX_BALL = MAX_NEIGHBOURS  # samples expected in a ball (the sampling alone gives ~50) up to which a grid searches
+# samples expected in a ball (the sampling alone gives ~50) up to which a grid searches
+GRID_MAX_BALL = MAX_NEIGHBOURS
 CHUNK = 16_384  # vertices per batch: bounds memory at CHUNK * MAX_NEIGHBOURS * 6 floats
 _SEED = 0  # fixed: the same mesh gives the same curvature in every worker
 
@@ -59,8 +62,10 @@ def principal_curvatures(mesh: trimesh.Trimesh, radius: float) -> np.ndarray:
     k = min(MAX_NEIGHBOURS, len(pts))
     if len(pts) / max(mesh.area, 1e-300) * np.pi * radius**2 <= GRID_MAX_BALL:
         grid = _SampleGrid(pts, verts, radius)
-        return _fit_in_grid(verts, vnormals, t1, t2, pts[grid.order], snormals[grid.order], grid.keys, grid.lo,
-                            grid.cell, grid.dims, float(radius), k)
+        return _fit_in_grid(
+            verts, vnormals, t1, t2, pts[grid.order], snormals[grid.order], grid.keys, grid.lo, grid.cell,
+            grid.dims, float(radius), k,
+        )
     # Crowded balls (a dense mesh's own vertices): a k-d tree finds the k nearest without visiting the rest.
     tree = cKDTree(pts)
     out = np.zeros((len(verts), 2), dtype=np.float32)
@@ -73,9 +78,10 @@ def principal_curvatures(mesh: trimesh.Trimesh, radius: float) -> np.ndarray:
 
 
 class _SampleGrid:
-    """The samples bucketed in cubic cells at least `radius` wide, sorted by cell: a vertex's neighbours within the
-    radius lie in its cell's 3 x 3 x 3 block, whose z-runs are 9 ranges of the sorted keys. On a room it finds a
-    ball's samples in a fraction of a k-d tree query's time, and the same ones (`bench/cues/curvature.py`)."""
+    """The samples bucketed in cubic cells at least `radius` wide, sorted by cell: a vertex's neighbours
+    within the radius lie in its cell's 3 x 3 x 3 block, whose z-runs are 9 ranges of the sorted keys. On a
+    room it finds a ball's samples in a fraction of a k-d tree query's time, and the same ones
+    (`bench/cues/curvature.py`)."""
 
     def __init__(self, pts: np.ndarray, verts: np.ndarray, radius: float):
         lo = np.minimum(pts.min(axis=0), verts.min(axis=0))
@@ -114,10 +120,10 @@ def _sample_surface(mesh: trimesh.Trimesh, n: int, rng: np.random.Generator) -> 
 @njit(cache=True, nogil=True)
 def _points_on_faces(verts: np.ndarray, faces: np.ndarray, fidx: np.ndarray, r1: np.ndarray,
                      r2: np.ndarray) -> np.ndarray:
-    """v0 + r1 (v1 - v0) + r2 (v2 - v0) on each sample's face, (r1, r2) folded onto the triangle where r1 + r2 > 1:
-    numpy's float64 expression on the gathered triangles, one sample at a time, without the n x 3 x 3 copy of
-    the triangles (ICL: 0.15 of the 0.64 CPU-s its curvature took; tests/worker/inputs/test_curvature.py:
-    the same bits)."""
+    """v0 + r1 (v1 - v0) + r2 (v2 - v0) on each sample's face, (r1, r2) folded onto the triangle where r1 + r2
+    > 1: numpy's float64 expression on the gathered triangles, one sample at a time, without the n x 3 x 3
+    copy of the triangles (ICL: 0.15 of the 0.64 CPU-s its curvature took;
+    tests/worker/inputs/test_curvature.py: the same bits)."""
     out = np.empty((len(fidx), 3))
     for i in range(len(fidx)):
         s, t = r1[i], r2[i]
@@ -139,8 +145,10 @@ def _tangent_frames(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 @njit(cache=True, nogil=True)
-def _fit_rows(p: np.ndarray, n: np.ndarray, t1: np.ndarray, t2: np.ndarray, pts: np.ndarray, snormals: np.ndarray,
-              dist: np.ndarray, idx: np.ndarray, radius: float) -> np.ndarray:
+def _fit_rows(
+    p: np.ndarray, n: np.ndarray, t1: np.ndarray, t2: np.ndarray, pts: np.ndarray, snormals: np.ndarray,
+    dist: np.ndarray, idx: np.ndarray, radius: float,
+) -> np.ndarray:
     """The fits of a batch of vertices from a k-d tree's rows (nearest first, misses last at infinity)."""
     out = np.zeros((len(p), 2), np.float32)
     for b in range(len(p)):
@@ -155,8 +163,8 @@ def _fit_rows(p: np.ndarray, n: np.ndarray, t1: np.ndarray, t2: np.ndarray, pts:
 def _fit_in_grid(p: np.ndarray, n: np.ndarray, t1: np.ndarray, t2: np.ndarray, pts: np.ndarray,
                  snormals: np.ndarray, keys: np.ndarray, lo: np.ndarray, cell: float, dims: np.ndarray,
                  radius: float, k: int) -> np.ndarray:
-    """The fits of every vertex on its k nearest samples strictly within the radius, nearest first (what a k-d tree
-    query with that bound returns), found in the grid (_SampleGrid: samples sorted by cell)."""
+    """The fits of every vertex on its k nearest samples strictly within the radius, nearest first (what a k-d
+    tree query with that bound returns), found in the grid (_SampleGrid: samples sorted by cell)."""
     out = np.zeros((len(p), 2), np.float32)
     r2 = radius * radius
     near_d2 = np.empty(256)
@@ -187,18 +195,21 @@ def _fit_in_grid(p: np.ndarray, n: np.ndarray, t1: np.ndarray, t2: np.ndarray, p
         else:
             _insertion_sort(near_d2, near_q, m)
             m = min(m, k)
-        out[b, 0], out[b, 1] = _fit_one(p[b], n[b], t1[b], t2[b], pts, snormals, np.sqrt(near_d2[:m]), near_q, m,
-                                        radius)
+        out[b, 0], out[b, 1] = _fit_one(
+            p[b], n[b], t1[b], t2[b], pts, snormals, np.sqrt(near_d2[:m]), near_q, m, radius
+        )
     return out
 
 
 @njit(cache=True, nogil=True)
-def _ball(c: np.ndarray, pts: np.ndarray, first_q: np.ndarray, end_q: np.ndarray, r2: float, near_d2: np.ndarray,
-          near_q: np.ndarray) -> int:
-    """The samples of the runs [first_q, end_q) strictly within sqrt(r2) of c, in run order, written to near_d2
-    (squared distances) and near_q (indices), which hold every candidate; returns how many. A function of its own,
-    with buffers that cannot change under it: grown inside the scan (as before), they cost the kitchen's curvature
-    ~40% more CPU (bench/cues/curvature.py)."""
+def _ball(
+    c: np.ndarray, pts: np.ndarray, first_q: np.ndarray, end_q: np.ndarray, r2: float, near_d2: np.ndarray,
+    near_q: np.ndarray,
+) -> int:
+    """The samples of the runs [first_q, end_q) strictly within sqrt(r2) of c, in run order, written to
+    near_d2 (squared distances) and near_q (indices), which hold every candidate; returns how many. A function
+    of its own, with buffers that cannot change under it: grown inside the scan (as before), they cost the
+    kitchen's curvature ~40% more CPU (bench/cues/curvature.py)."""
     m = 0
     for run in range(len(first_q)):
         for q in range(first_q[run], end_q[run]):
@@ -225,10 +236,13 @@ def _insertion_sort(d2: np.ndarray, q: np.ndarray, m: int) -> None:
 
 
 @njit(cache=True, nogil=True)
-def _fit_one(p: np.ndarray, n: np.ndarray, t1: np.ndarray, t2: np.ndarray, pts: np.ndarray, snormals: np.ndarray,
-             dist: np.ndarray, idx: np.ndarray, m: int, radius: float) -> tuple[float, float]:
-    """One vertex's (k1, k2) from its m neighbours (distances and sample indices, nearest first): weighted least
-    squares of h = a u^2 + b uv + c v^2 + d u + e v + g, then the shape operator's eigenvalues; 0 when < 8."""
+def _fit_one(
+    p: np.ndarray, n: np.ndarray, t1: np.ndarray, t2: np.ndarray, pts: np.ndarray, snormals: np.ndarray,
+    dist: np.ndarray, idx: np.ndarray, m: int, radius: float,
+) -> tuple[float, float]:
+    """One vertex's (k1, k2) from its m neighbours (distances and sample indices, nearest first): weighted
+    least squares of h = a u^2 + b uv + c v^2 + d u + e v + g, then the shape operator's eigenvalues; 0 when <
+    8."""
     sigma = radius / 2.0
     A = np.zeros((6, 6))
     rhs = np.zeros(6)
@@ -273,7 +287,8 @@ def _principal(a: float, b: float, c: float, du: float, dv: float, radius: float
     root = np.sqrt(1 + du * du + dv * dv)
     L, M, N = 2 * a / root, b / root, 2 * c / root
     det_i = E * G - F * F
-    # Shape operator S = I^-1 II (2x2, not symmetric); its eigenvalues are real (similar to a symmetric matrix).
+    # Shape operator S = I^-1 II (2x2, not symmetric); its eigenvalues are real (similar to a symmetric
+    # matrix).
     s11 = (G * L - F * M) / det_i
     s12 = (G * M - F * N) / det_i
     s21 = (E * M - F * L) / det_i

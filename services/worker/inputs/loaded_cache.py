@@ -2,19 +2,19 @@
 
 The parent process has parsed and checked every space before the job exists (validate_sources); a worker's
 first render used to fetch the source and run `load_space` once more (0.3-0.5 CPU-s a room, plus the fetch's
-copy). `keep_loaded` writes what a worker's SpaceContext is built from (the world-frame vertices and faces, the
-colour source: UVs and the texture's pixels, or vertex/face colours, and the per-face labels) as an uncompressed
-.npz in the run's own cache folder (--out/.omnidata/cache/loaded), named by the stored source's checksum and a digest of
-the exact source_to_world; `read_loaded` gives it back as a mesh equal to `load_space(source,
-source_to_world=...)`'s, or None whenever anything does not fit (no file, another frame, a damaged or foreign
-file, an unknown layout), and the worker then loads the scan as before.
+copy). `keep_loaded` writes what a worker's SpaceContext is built from (the world-frame vertices and faces,
+the colour source: UVs and the texture's pixels, or vertex/face colours, and the per-face labels) as an
+uncompressed .npz in the run's own cache folder (--out/.omnidata/cache/loaded), named by the stored source's
+checksum and a digest of the exact source_to_world; `read_loaded` gives it back as a mesh equal to
+`load_space(source, source_to_world=...)`'s, or None whenever anything does not fit (no file, another frame, a
+damaged or foreign file, an unknown layout), and the worker then loads the scan as before.
 
 Equal means: the same vertex and face arrays, the same visual, and no cached normals (a mesh fresh from
 `trimesh.load` + `apply_transform` holds none either; both compute them on first use from the same arrays).
-Only layouts known to round-trip are written: meshes read by trimesh (not point-cloud reconstructions), with no
-visual, vertex or face colours, or a SimpleMaterial texture whose image is plain RGB/RGBA (what the Blender scene
-reads of it: the pixels, main_color). The file is written and read without pickle; its arrays carry a sha256 of
-their content, so a truncated or altered file is refused, never half used.
+Only layouts known to round-trip are written: meshes read by trimesh (not point-cloud reconstructions), with
+no visual, vertex or face colours, or a SimpleMaterial texture whose image is plain RGB/RGBA (what the Blender
+scene reads of it: the pixels, main_color). The file is written and read without pickle; its arrays carry a
+sha256 of their content, so a truncated or altered file is refused, never half used.
 """
 
 from __future__ import annotations
@@ -136,7 +136,8 @@ def keep_loaded(cache_dir: Path, checksum: str, loaded: LoadedSpace) -> Path | N
 
 
 def read_loaded(cache_dir: Path, checksum: str, frame: Mapping[str, Any]) -> CachedSpace | None:
-    """The space `keep_loaded` wrote for this source and frame (`{"source_to_world": 4x4}` only), else None."""
+    """The space `keep_loaded` wrote for this source and frame (`{"source_to_world": 4x4}` only), else
+    None."""
     if set(frame) != {"source_to_world"}:
         return None
     try:
@@ -160,7 +161,14 @@ def _rebuild(arrays: dict[str, np.ndarray], checksum: str, want: np.ndarray) -> 
     if str(arrays["checksum"]) != checksum or not np.array_equal(arrays["source_to_world"], want):
         raise ValueError("another source or frame")
     v, f = arrays["vertices"], arrays["faces"]
-    if v.dtype != np.float64 or v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3 or f.dtype.kind != "i":
+    if (
+        v.dtype != np.float64
+        or v.ndim != 2
+        or v.shape[1] != 3
+        or f.ndim != 2
+        or f.shape[1] != 3
+        or f.dtype.kind != "i"
+    ):
         raise ValueError("bad vertex or face arrays")
     if len(f) == 0 or f.min() < 0 or f.max() >= len(v):
         raise ValueError("faces refer to vertices that do not exist")

@@ -1,10 +1,11 @@
 """RGB from a capture's photographs instead of the mesh texture: the worker side of posed captures.
 
-`PhotoPainter.paint(view, passes)` replaces a freshly rendered pass set's `rgb` with the photo data for the view
-and adds `photo_coverage` (where that rgb came from a photo). A view whose centre is a capture camera's centre
-(exact capture views, fixated views from capture positions) takes that frame's photo through the rotation
-homography (services.core.ingest.capture.resample): exact, no parallax. Any other view is photo-textured
-(services.worker.inputs.phototexture) when that is enabled. Frames: world metres, OpenCV camera axes.
+`PhotoPainter.paint(view, passes)` replaces a freshly rendered pass set's `rgb` with the photo data for the
+view and adds `photo_coverage` (where that rgb came from a photo). A view whose centre is a capture camera's
+centre (exact capture views, fixated views from capture positions) takes that frame's photo through the
+rotation homography (services.core.ingest.capture.resample): exact, no parallax. Any other view is
+photo-textured (services.worker.inputs.phototexture) when that is enabled. Frames: world metres, OpenCV camera
+axes.
 """
 
 from __future__ import annotations
@@ -82,9 +83,12 @@ class PhotoPainter:
         return passes
 
 
-def painter_for(loaded: LoadedSpace, spec: JobSpec, refined: RefinedCamera | None = None) -> PhotoPainter | None:
-    """The painter a job needs for a loaded space (None when its rgb comes from the mesh); `refined`: the plan's
-    record of a refined colour camera (cameras.capture_refine), applied to the capture as the planner did."""
+def painter_for(
+    loaded: LoadedSpace, spec: JobSpec, refined: RefinedCamera | None = None
+) -> PhotoPainter | None:
+    """The painter a job needs for a loaded space (None when its rgb comes from the mesh); `refined`: the
+    plan's record of a refined colour camera (cameras.capture_refine), applied to the capture as the planner
+    did."""
     if not spec.uses_photos():
         return None
     capture = getattr(loaded, "capture", None)

@@ -26,7 +26,8 @@ from services.worker.passes import ViewGeometry, ViewPasses
 
 DEPTH_TOLERANCE_M = 0.02  # plus 1% of the distance: TSDF meshes and photo poses are this good, not better
 CANDIDATES_PER_K = 3
-MIN_COS = 0.2  # a photo seeing the surface more obliquely than ~78 degrees smears it (and its silhouette) over it
+# a photo seeing the surface more obliquely than ~78 degrees smears it (and its silhouette) over it
+MIN_COS = 0.2
 PROBE = 24  # probe points per side when ranking photos for a view
 
 
@@ -40,7 +41,8 @@ class PhotoTexturer:
         self.centres = np.stack([f.center for f in capture.frames])
 
     def _seen_by(self, j: int, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(photo pixel coordinates (n, 2), bool seen) of world points in frame j: in the photo and not hidden."""
+        """(photo pixel coordinates (n, 2), bool seen) of world points in frame j: in the photo and not
+        hidden."""
         frame = self.capture.frames[j]
         assert frame.K is not None and frame.width is not None and frame.height is not None
         cam = points @ frame.world_to_camera[:3, :3].T + frame.world_to_camera[:3, 3]
@@ -60,9 +62,11 @@ class PhotoTexturer:
             inside[idx[hidden]] = False
         return uv, inside
 
-    def _normals(self, centre: np.ndarray, view_dir: np.ndarray, passes: ViewPasses, idx: np.ndarray) -> np.ndarray:
-        """Unit surface normals, facing the view, of the surface points idx (the pass set's, else the mesh's faces
-        along the view's rays: the rgb cue alone does not read normals back)."""
+    def _normals(
+        self, centre: np.ndarray, view_dir: np.ndarray, passes: ViewPasses, idx: np.ndarray
+    ) -> np.ndarray:
+        """Unit surface normals, facing the view, of the surface points idx (the pass set's, else the mesh's
+        faces along the view's rays: the rgb cue alone does not read normals back)."""
         if passes.normal_world is not None:
             n = passes.normal_world.reshape(-1, 3)[idx].astype(np.float64)
         else:
@@ -107,7 +111,11 @@ class PhotoTexturer:
             dist = np.linalg.norm(to_photo, axis=1)
             to_photo /= dist[:, None]
             facing = np.einsum("ij,ij->i", normals, to_photo)
-            w = facing * np.clip(-np.einsum("ij,ij->i", view_dir, to_photo), 0, None) / np.maximum(dist, 1e-3) ** 2
+            w = (
+                facing
+                * np.clip(-np.einsum("ij,ij->i", view_dir, to_photo), 0, None)
+                / np.maximum(dist, 1e-3) ** 2
+            )
             weights[c] = np.where(seen & (facing >= MIN_COS), w, 0.0)
             colours[c, seen] = sample_photo(photo(int(j)), uv[seen])
         if len(candidates) > self.k:  # keep the k largest weights per pixel

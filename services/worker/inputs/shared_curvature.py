@@ -28,7 +28,8 @@ _ESTIMATOR_DIGEST = hashlib.sha256(Path(estimator.__file__).read_bytes()).hexdig
 
 
 def curvature_digest(mesh: trimesh.Trimesh, radius: float) -> str:
-    """sha256 of the estimator's inputs: vertices, faces, vertex normals, radius, and the estimator's source."""
+    """sha256 of the estimator's inputs: vertices, faces, vertex normals, radius, and the estimator's
+    source."""
     h = hashlib.sha256(_ESTIMATOR_DIGEST.encode())
     for arr in (mesh.vertices, mesh.faces, mesh.vertex_normals):
         a = np.ascontiguousarray(arr)

@@ -36,7 +36,8 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class SpaceContext:
-    """One space ready to render: the world-frame mesh (metres, +Z up, the planner's face order) and its labels.
+    """One space ready to render: the world-frame mesh (metres, +Z up, the planner's face order) and its
+    labels.
 
     The Blender scene and the per-vertex curvature are built lazily on first need and kept until close().
     """
@@ -49,7 +50,8 @@ class SpaceContext:
     threads: int | None = None
     stats: dict[str, float] = field(default_factory=dict)
     photos: PhotoPainter | None = None  # when rgb comes from a capture's photos
-    curvature_dir: Path | None = None  # where this machine's processes share computed curvature (None: not shared)
+    # where this machine's processes share computed curvature (None: not shared)
+    curvature_dir: Path | None = None
     _curvature: dict[float, np.ndarray] = field(default_factory=dict, repr=False)
     _scene: BlenderScene | None = field(default=None, repr=False)
     _scene_curvature_radius: float | None = field(default=None, repr=False)
@@ -57,8 +59,8 @@ class SpaceContext:
     @classmethod
     def from_loaded(cls, loaded: LoadedSpace | CachedSpace, *, key: str | None = None, device: str = "cpu",
                     threads: int | None = None) -> SpaceContext:
-        """Wrap a services.core.ingest.loading.LoadedSpace (mesh in the world frame, optional per-face labels), or
-        the same read back from the run's cache (services.worker.inputs.loaded_cache)."""
+        """Wrap a services.core.ingest.loading.LoadedSpace (mesh in the world frame, optional per-face
+        labels), or the same read back from the run's cache (services.worker.inputs.loaded_cache)."""
         fc = getattr(loaded, "face_class", None)
         fi = getattr(loaded, "face_instance", None)
         if fc is not None and fi is None:  # class-only labels: every face its own "stuff" instance 0
@@ -80,8 +82,10 @@ class SpaceContext:
             t0 = time.perf_counter()
             self._curvature[r] = shared_curvature(self.mesh, r, self.curvature_dir)
             self.stats["curvature_s"] = time.perf_counter() - t0
-            log.info("space %s: curvature (r=%.3g m) of %d vertices in %.2f s (computed or shared)", self.key, r,
-                     len(self.mesh.vertices), self.stats["curvature_s"])
+            log.info(
+                "space %s: curvature (r=%.3g m) of %d vertices in %.2f s (computed or shared)", self.key, r,
+                len(self.mesh.vertices), self.stats["curvature_s"],
+            )
         return self._curvature[r]
 
     def scene(self) -> BlenderScene:
@@ -89,12 +93,15 @@ class SpaceContext:
         if self._scene is None or self._scene.closed:
             from services.worker.blender.threads import import_bpy
 
-            import_bpy(self.threads)  # before the first `import bpy`: size Blender's thread pool to the budget
+            # before the first `import bpy`: size Blender's thread pool to the budget
+            import_bpy(self.threads)
             from services.worker.blender.render import RenderOptions
             from services.worker.blender.scene import BlenderScene
 
-            self._scene = BlenderScene(self.mesh, face_class=self.face_class, face_instance=self.face_instance,
-                                       options=RenderOptions(device=self.device, threads=self.threads))  # type: ignore[arg-type]
+            self._scene = BlenderScene(
+                self.mesh, face_class=self.face_class, face_instance=self.face_instance,
+                options=RenderOptions(device=self.device, threads=self.threads),  # type: ignore[arg-type]
+            )
             self._scene_curvature_radius = None
             self.stats["scene_build_s"] = self._scene.build_s
         return self._scene
@@ -126,7 +133,8 @@ class SpaceCache:
         self.loads = 0
 
     def get(self, key: str, loader: Callable[[], SpaceContext]) -> SpaceContext:
-        """The SpaceContext for `key`, loading it with `loader()` (and freeing the previous space) if needed."""
+        """The SpaceContext for `key`, loading it with `loader()` (and freeing the previous space) if
+        needed."""
         if self.current is not None and self.current.key == key:
             return self.current
         self.clear()
@@ -161,5 +169,6 @@ def peak_rss_bytes() -> int:
 
 
 def should_recycle(max_rss_mb: int) -> bool:
-    """True when this process's RSS exceeds max_rss_mb: finish the task, then exit so a fresh worker starts."""
+    """True when this process's RSS exceeds max_rss_mb: finish the task, then exit so a fresh worker
+    starts."""
     return rss_bytes() > max_rss_mb * 1024 * 1024

@@ -1,15 +1,17 @@
-"""Compile every kernel of the worker into numba's on-disk cache ahead of the first job (`omnidata compile-kernels`).
+"""Compile every kernel of the worker into numba's on-disk cache ahead of the first job (`omnidata
+compile-kernels`).
 
-A worker compiles its ~70 kernels (services.worker.cues, curvature, the EXR decode) the first time it uses them,
-into numba's cache: ~40 CPU-s before its first view, in every process that finds the cache cold, at once. That is
-every new worker pod of an image (its cache is the container's), and `generate` on a fresh install with all of its
-workers compiling the same kernels side by side. Compiled once when the image is built (or by `make venv`) for the
-x86-64 levels of kernel_target, every later process on a machine of such a level only loads them.
+A worker compiles its ~70 kernels (services.worker.cues, curvature, the EXR decode) the first time it uses
+them, into numba's cache: ~40 CPU-s before its first view, in every process that finds the cache cold, at
+once. That is every new worker pod of an image (its cache is the container's), and `generate` on a fresh
+install with all of its workers compiling the same kernels side by side. Compiled once when the image is built
+(or by `make venv`) for the x86-64 levels of kernel_target, every later process on a machine of such a level
+only loads them.
 
 The warm-up runs the worker's own code on a small synthetic room, so each kernel is compiled with the argument
-types a job passes (numba keys cached code by them, read-only and non-contiguous arrays included): one view rendered
-by Cycles with every pass and read back through the EXR reader, every cue a space without labels or photos can
-give derived and encoded from it, and the curvature estimator on both of its search paths.
+types a job passes (numba keys cached code by them, read-only and non-contiguous arrays included): one view
+rendered by Cycles with every pass and read back through the EXR reader, every cue a space without labels or
+photos can give derived and encoded from it, and the curvature estimator on both of its search paths.
 """
 
 from __future__ import annotations
@@ -29,7 +31,8 @@ from services.core.domain.camera import look_at
 from services.core.domain.cues import CATALOG
 from services.core.domain.jobspec import CueParams
 
-RESOLUTION = 128  # types, not sizes, pick a kernel's compiled version; keypoints3d's wide scales need this many px
+# types, not sizes, pick a kernel's compiled version; keypoints3d's wide scales need this many px
+RESOLUTION = 128
 ROOM_M = (4.0, 3.0, 2.6)
 PHOTO_CUES = ("mask_photo",)  # needs rgb from photos (JobSpec.uses_photos); numpy only, no kernel
 
@@ -37,21 +40,23 @@ PHOTO_CUES = ("mask_photo",)  # needs rgb from photos (JobSpec.uses_photos); num
 @dataclass(frozen=True)
 class WarmUpReport:
     kernels: int  # compiled functions of the worker's modules
-    versions: int  # their versions in the cache for this CPU target (a kernel called with other types has several)
+    # their versions in the cache for this CPU target (a kernel called with other types has several)
+    versions: int
     missed: tuple[str, ...]  # kernels with none (module.name): a job would compile them
     seconds: float
 
 
 def warm_up_cues() -> list[str]:
-    """The cues a view of a space without labels, photos or a plan gives: every one with a kernel behind it."""
+    """The cues a view of a space without labels, photos or a plan gives: every one with a kernel behind
+    it."""
     return [c.name for c in CATALOG.values() if c.source != "plan" and not c.needs_semantics
             and "point_info" not in c.inputs and c.name not in PHOTO_CUES]
 
 
 def synthetic_room(rng: np.random.Generator) -> trimesh.Trimesh:
     """A box room (normals inward) with a window (pixels with no surface: the segmentations' background fill)
-    holding a table-sized box and a sphere, with random vertex colours (so the colour segmentation does not take
-    its one-colour shortcut), in metres, +Z up."""
+    holding a table-sized box and a sphere, with random vertex colours (so the colour segmentation does not
+    take its one-colour shortcut), in metres, +Z up."""
     room = trimesh.creation.box(extents=ROOM_M).subdivide().subdivide()
     room.invert()
     c = room.triangles_center
@@ -86,8 +91,9 @@ def compile_kernels(resolution: int = RESOLUTION) -> WarmUpReport:
         space = SpaceContext.from_loaded(loaded, key="kernel-warm-up")
         try:
             # From a corner, so the view holds walls, the table, the ball and a crease of every orientation.
-            view = ViewGeometry(look_at(np.array([3.6, 2.6, 1.6]), np.array([1.0, 0.8, 0.5])), np.radians(90.0),
-                                resolution)
+            view = ViewGeometry(
+                look_at(np.array([3.6, 2.6, 1.6]), np.array([1.0, 0.8, 0.5])), np.radians(90.0), resolution
+            )
             cues = warm_up_cues()
             ctx = make_context(space, view, cues, params)
             for cue in cues:
@@ -104,9 +110,9 @@ def compile_kernels(resolution: int = RESOLUTION) -> WarmUpReport:
 
 def cached_versions(kernel: object) -> int:
     """How many compiled versions of `kernel` numba's cache holds for this process's CPU target, fresh for its
-    source. From the cache's index (numba's own structure: {(signature, codegen magic tuple, code hashes): file}):
-    a kernel only ever called from other kernels is compiled into them when they load from the cache, so its own
-    dispatcher shows no signature then, though the cache has it."""
+    source. From the cache's index (numba's own structure: {(signature, codegen magic tuple, code hashes):
+    file}): a kernel only ever called from other kernels is compiled into them when they load from the cache,
+    so its own dispatcher shows no signature then, though the cache has it."""
     from numba.core.registry import cpu_target
 
     magic = cpu_target.target_context.codegen().magic_tuple()
@@ -115,15 +121,18 @@ def cached_versions(kernel: object) -> int:
 
 
 def worker_kernels() -> dict[str, object]:
-    """module.name -> numba dispatcher of every compiled function defined in the worker's modules (all imported
-    here), those inlined into their callers left out."""
+    """module.name -> numba dispatcher of every compiled function defined in the worker's modules (all
+    imported here), those inlined into their callers left out."""
     from numba.core.dispatcher import Dispatcher
 
     found: dict[str, object] = {}
     for info in pkgutil.walk_packages(services.worker.__path__, prefix="services.worker."):
         module = importlib.import_module(info.name)
         for name, obj in vars(module).items():
-            if isinstance(obj, Dispatcher) and obj.py_func.__module__ == module.__name__ \
-                    and obj.targetoptions.get("inline") != "always":  # inlined: compiled inside its callers only
+            if (
+                isinstance(obj, Dispatcher)
+                and obj.py_func.__module__ == module.__name__
+                and obj.targetoptions.get("inline") != "always"
+            ):  # inlined: compiled inside its callers only
                 found[f"{module.__name__}.{name}"] = obj
     return found

@@ -1,9 +1,9 @@
 """One thread for the numeric libraries (BLAS, OpenMP) of a worker process, whatever its render threads.
 
 Set before numpy loads. With several BLAS threads the segmentations' eigenvectors and matrix products round
-differently, so labels would depend on the machine's cores and the worker's settings; at these sizes the threads
-also cost more than they save (an eigenproblem of 100 nodes took 16 ms instead of 0.2 ms). Cycles sizes its own
-thread pool (services.worker.blender.threads), and the derivation kernels are single-threaded.
+differently, so labels would depend on the machine's cores and the worker's settings; at these sizes the
+threads also cost more than they save (an eigenproblem of 100 nodes took 16 ms instead of 0.2 ms). Cycles
+sizes its own thread pool (services.worker.blender.threads), and the derivation kernels are single-threaded.
 """
 
 from __future__ import annotations

@@ -68,7 +68,8 @@ class Outcome:
     error: str | None = None
     duration_s: float = 0.0
     recycle: bool = False
-    batch: tuple[Outcome, ...] = ()  # the view's other tasks this worker ran along with this one (a view batch)
+    # the view's other tasks this worker ran along with this one (a view batch)
+    batch: tuple[Outcome, ...] = ()
 
     def all(self) -> tuple[Outcome, ...]:
         """This outcome and those of its batch."""
@@ -127,7 +128,9 @@ def retry_db(fn: Callable[[], T], what: str, retry_s: float) -> T:
 class TaskLedger:
     """One worker's claims and records in the database (`worker_id`, e.g. host:pid)."""
 
-    def __init__(self, sessionmaker: Callable[[], Session], worker_id: str, lease_s: float, db_retry_s: float) -> None:
+    def __init__(
+        self, sessionmaker: Callable[[], Session], worker_id: str, lease_s: float, db_retry_s: float
+    ) -> None:
         self.sessionmaker = sessionmaker
         self.worker_id = worker_id
         self.lease_s = lease_s
@@ -138,7 +141,8 @@ class TaskLedger:
         return retry_db(fn, what, self.db_retry_s)
 
     def claim(self, task_id: int) -> Claimed | Outcome:
-        """queued -> running for this worker, or the Outcome saying why not; TransientError when unreachable."""
+        """queued -> running for this worker, or the Outcome saying why not; TransientError when
+        unreachable."""
         try:
             return self.db(lambda: self._claim(task_id), f"claim task {task_id}")
         except Exception as exc:
@@ -167,9 +171,13 @@ class TaskLedger:
                 return Claimed(task_id, int(row.job_id), int(row.space_id), int(row.point_idx),
                                int(row.view_idx), str(row.cue), attempts)
 
-            if row.state == TaskState.RUNNING and row.worker_id == self.worker_id and row.job_state == JobState.RUNNING:
-                # Ours already: a claim whose commit reply was lost in a connection drop, retried. This process
-                # runs one task at a time, so nothing else here is running it.
+            if (
+                row.state == TaskState.RUNNING
+                and row.worker_id == self.worker_id
+                and row.job_state == JobState.RUNNING
+            ):
+                # Ours already: a claim whose commit reply was lost in a connection drop, retried. This
+                # process runs one task at a time, so nothing else here is running it.
                 return claimed(int(row.attempts))
             if row.state != TaskState.QUEUED:
                 return Outcome(task_id, "skipped", cue=row.cue, job_id=row.job_id,
@@ -178,20 +186,25 @@ class TaskLedger:
             if handed_back is not None:
                 return Outcome(task_id, handed_back, cue=row.cue, job_id=row.job_id)
             if row.job_state != JobState.RUNNING:
-                return Outcome(task_id, "skipped", cue=row.cue, job_id=row.job_id, error=f"job is {row.job_state}")
+                return Outcome(
+                    task_id, "skipped", cue=row.cue, job_id=row.job_id, error=f"job is {row.job_state}"
+                )
             moved = transition(
-                s, job_id=row.job_id, task_ids=[task_id], from_state=TaskState.QUEUED, to_state=TaskState.RUNNING,
-                worker_id=self.worker_id, attempts=Task.attempts + 1, started_at=now, finished_at=None,
+                s, job_id=row.job_id, task_ids=[task_id], from_state=TaskState.QUEUED,
+                to_state=TaskState.RUNNING, worker_id=self.worker_id, attempts=Task.attempts + 1,
+                started_at=now, finished_at=None,
                 lease_until=now + timedelta(seconds=self.lease_s),
             )
             s.commit()
             if not moved:  # another worker got there between our read and our update
-                return Outcome(task_id, "skipped", cue=row.cue, job_id=row.job_id, error="claimed by another worker")
+                return Outcome(
+                    task_id, "skipped", cue=row.cue, job_id=row.job_id, error="claimed by another worker"
+                )
             return claimed(int(row.attempts) + 1)
 
     def _claim_queued(self, task_id: int) -> Claimed | None:
-        """The common case in one statement (one round trip on Postgres): queued -> running for this worker while
-        its job runs and the worker is not kept off the job; None when that did not apply."""
+        """The common case in one statement (one round trip on Postgres): queued -> running for this worker
+        while its job runs and the worker is not kept off the job; None when that did not apply."""
         now = utcnow()
         with self.sessionmaker() as s:
             r = claim_task(s, task_id=task_id, worker_id=self.worker_id, now=now,
@@ -204,19 +217,21 @@ class TaskLedger:
     def claim_view_rest(self, t: Claimed, *, with_pending: bool = False) -> tuple[list[Claimed], bool]:
         """The view batch: -> running for this worker, in ONE statement, of the rest of `t`'s view (same job,
         space, point, view; not its `passes` task) while the job runs and the worker is not kept off it: the
-        queued tasks, and with `with_pending` (t is the view's rendered `passes`, or a cue read from the view's
-        pass set) the pending ones too. Every input of those is a cue of the same view, derived from the pass set
-        this worker holds. A queued task's
+        queued tasks, and with `with_pending` (t is the view's rendered `passes`, or a cue read from the
+        view's pass set) the pending ones too. Every input of those is a cue of the same view, derived from
+        the pass set this worker holds. A queued task's
         message, when it comes, finds it running or done and is skipped at the claim; a pending one has none.
         Returns them in topological order of their cues, and whether another task of the view that reads the
-        pass set may still run elsewhere (True when nothing was claimed: unknown). ([], True) when the database
-        is unreachable (they run one by one)."""
+        pass set may still run elsewhere (True when nothing was claimed: unknown). ([], True) when the
+        database is unreachable (they run one by one)."""
         def step() -> tuple[list[Claimed], bool]:
             now = utcnow()
             with self.sessionmaker() as s:
-                rows = claim_view_tasks(s, task_id=t.id, job_id=t.job_id, space_id=t.space_id, point=t.point,
-                                        view=t.view, worker_id=self.worker_id, now=now,
-                                        lease_until=now + timedelta(seconds=self.lease_s), with_pending=with_pending)
+                rows = claim_view_tasks(
+                    s, task_id=t.id, job_id=t.job_id, space_id=t.space_id, point=t.point, view=t.view,
+                    worker_id=self.worker_id, now=now, lease_until=now + timedelta(seconds=self.lease_s),
+                    with_pending=with_pending,
+                )
             claimed = sorted((Claimed(int(r[0]), t.job_id, t.space_id, t.point, t.view, str(r[1]), int(r[3]))
                               for r in rows), key=lambda c: (CUE_ORDER[c.cue], c.id))
             return claimed, not rows or int(rows[0][5]) > 0
@@ -230,9 +245,10 @@ class TaskLedger:
             return [], True
 
     def hand_back(self, tasks: list[Claimed], why: str) -> list[Outcome]:
-        """running -> pending, as before their claim (attempts, no worker, no lease), of batch tasks that did not
-        run because an input of theirs failed in the batch: the dispatcher queues them once their inputs are
-        done, or fails them with the input. 'lost' when the database stays away (the reaper retries them)."""
+        """running -> pending, as before their claim (attempts, no worker, no lease), of batch tasks that did
+        not run because an input of theirs failed in the batch: the dispatcher queues them once their inputs
+        are done, or fails them with the input. 'lost' when the database stays away (the reaper retries
+        them)."""
         return self._to_pending(tasks, "skipped", why, f"hand back {len(tasks)} tasks of a view batch")
 
     def is_settled(self, task_id: int) -> bool:
@@ -277,35 +293,48 @@ class TaskLedger:
     def _hand_back(self, s: Session, task_id: int, job_id: int, job_state: str, now: datetime) -> str | None:
         """queued -> pending for a paused job ('paused') or a job this worker is blocked on ('blocked')."""
         if job_state == JobState.PAUSED:
-            transition(s, job_id=job_id, task_ids=[task_id], from_state=TaskState.QUEUED, to_state=TaskState.PENDING,
-                       queued_at=None)
+            transition(
+                s, job_id=job_id, task_ids=[task_id], from_state=TaskState.QUEUED, to_state=TaskState.PENDING,
+                queued_at=None,
+            )
             s.commit()
             return "paused"
         if job_state == JobState.RUNNING and is_blocked(s, self.worker_id, job_id, now):
-            transition(s, job_id=job_id, task_ids=[task_id], from_state=TaskState.QUEUED, to_state=TaskState.PENDING,
-                       queued_at=None, not_before=now + HANDBACK_DELAY)
+            transition(
+                s, job_id=job_id, task_ids=[task_id], from_state=TaskState.QUEUED, to_state=TaskState.PENDING,
+                queued_at=None, not_before=now + HANDBACK_DELAY,
+            )
             s.commit()
             return "blocked"
         return None
 
     def _move_mine(self, s: Session, t: Claimed, to_state: TaskState, **values: object) -> bool:
         """running -> to_state for a task still held by this worker; counters follow (states.transition)."""
-        return bool(transition(s, job_id=t.job_id, task_ids=[t.id], from_state=TaskState.RUNNING, to_state=to_state,
-                               where=[Task.worker_id == self.worker_id], **values))
+        return bool(
+            transition(
+                s, job_id=t.job_id, task_ids=[t.id], from_state=TaskState.RUNNING, to_state=to_state,
+                where=[Task.worker_id == self.worker_id],
+                **values,
+            )
+        )
 
     def record_done(self, t: Claimed, key: str, info: ObjectInfo, duration: float) -> Outcome:
         """running -> done with the stored object's size and sha256; 'lost' when the database stays away."""
         def step() -> bool:
             with self.sessionmaker() as s:
-                return finish_task(s, task_id=t.id, worker_id=self.worker_id, key=key,
-                                   size=int(info.size), sha256=info.sha256, duration_s=float(duration), now=utcnow())
+                return finish_task(
+                    s, task_id=t.id, worker_id=self.worker_id, key=key, size=int(info.size),
+                    sha256=info.sha256, duration_s=float(duration), now=utcnow(),
+                )
 
         try:
             ok = self.db(step, f"record task {t.id} done")
         except Exception as exc:
             log.error("task %d: output stored at %s but not recorded (%s); the reaper will retry it",
                       t.id, key, format_error(exc, 0))
-            return Outcome(t.id, "lost", t.cue, t.job_id, key, info.size, info.sha256, format_error(exc), duration)
+            return Outcome(
+                t.id, "lost", t.cue, t.job_id, key, info.size, info.sha256, format_error(exc), duration
+            )
         status = "done" if ok else "discarded"
         if not ok:
             log.info("task %d finished but is no longer ours (reaped or cancelled); result discarded", t.id)
@@ -329,9 +358,9 @@ class TaskLedger:
 
     def _to_pending(self, tasks: list[Claimed], status: str, why: str, what: str,
                     before: Callable[[Session], None] | None = None, **columns: Any) -> list[Outcome]:
-        """running -> pending of this worker's `tasks`, their attempt not counted, in one transaction (`before`
-        runs first in it); each Outcome is `status`, or 'discarded' for a task no longer this worker's, or 'lost'
-        when the database stays away (the reaper retries them)."""
+        """running -> pending of this worker's `tasks`, their attempt not counted, in one transaction
+        (`before` runs first in it); each Outcome is `status`, or 'discarded' for a task no longer this
+        worker's, or 'lost' when the database stays away (the reaper retries them)."""
         def step() -> set[int]:
             with self.sessionmaker() as s:
                 if before is not None:
@@ -349,10 +378,13 @@ class TaskLedger:
             log.error("tasks %s: not handed back (%s); the reaper will retry them", [t.id for t in tasks],
                       format_error(exc, 0))
             return [Outcome(t.id, "lost", t.cue, t.job_id, error=format_error(exc)) for t in tasks]
-        return [Outcome(t.id, status if t.id in ours else "discarded", t.cue, t.job_id, error=why) for t in tasks]
+        return [
+            Outcome(t.id, status if t.id in ours else "discarded", t.cue, t.job_id, error=why) for t in tasks
+        ]
 
     def record_failure(self, t: Claimed, exc: BaseException, duration: float, max_attempts: int) -> Outcome:
-        """running -> pending after a backoff while attempts remain, else failed; counts the worker's failure."""
+        """running -> pending after a backoff while attempts remain, else failed; counts the worker's
+        failure."""
         error = format_error(exc)
         log.warning("task %d (%s, job %d) failed on attempt %d: %s", t.id, t.cue, t.job_id, t.attempts,
                     error.splitlines()[0])
@@ -363,13 +395,16 @@ class TaskLedger:
                 if t.attempts < max_attempts:
                     status = "retry"
                     ok = self._move_mine(
-                        s, t, TaskState.PENDING, error=error, lease_until=None, queued_at=None, worker_id=None,
+                        s, t, TaskState.PENDING, error=error, lease_until=None, queued_at=None,
+                        worker_id=None,
                         not_before=now + retry_delay(t.attempts),
                     )
                 else:
                     status = "failed"
-                    ok = self._move_mine(s, t, TaskState.FAILED, error=error, lease_until=None, finished_at=now,
-                                         duration_s=float(duration))
+                    ok = self._move_mine(
+                        s, t, TaskState.FAILED, error=error, lease_until=None, finished_at=now,
+                        duration_s=float(duration),
+                    )
                 count_failure(s, self.worker_id, t.job_id, now)
                 s.commit()
                 return status if ok else "discarded"

@@ -1,10 +1,10 @@
 """Worker heartbeat (execution contract: Reaper): a thread that keeps the worker's row fresh every few seconds
 and extends the lease of the task it is running before the lease runs out.
 
-The `worker` row (id: the worker's name, or host:pid) carries host, queues, last heartbeat, current task, tasks
-done, labels per cue and labels/s over the last minute; the dashboard reads it. A worker that stops beating
-(kill -9, lost node) is declared dead after OMNIDATA_HEARTBEAT_TIMEOUT_S, and the scheduler's reaper gives its
-task to another worker then, without waiting for the task's lease to run out.
+The `worker` row (id: the worker's name, or host:pid) carries host, queues, last heartbeat, current task,
+tasks done, labels per cue and labels/s over the last minute; the dashboard reads it. A worker that stops
+beating (kill -9, lost node) is declared dead after OMNIDATA_HEARTBEAT_TIMEOUT_S, and the scheduler's reaper
+gives its task to another worker then, without waiting for the task's lease to run out.
 """
 
 from __future__ import annotations
@@ -30,7 +30,8 @@ RATE_WINDOW_S = 60.0  # labels/s is measured over this trailing window
 
 
 def heartbeat_interval(lease_s: float) -> float:
-    """Seconds between beats: 5 s, or a third of `lease_s` (the lease or heartbeat timeout) when shorter, >= 0.5 s."""
+    """Seconds between beats: 5 s, or a third of `lease_s` (the lease or heartbeat timeout) when shorter, >=
+    0.5 s."""
     return max(0.5, min(HEARTBEAT_INTERVAL_S, lease_s / 3.0))
 
 
@@ -53,8 +54,9 @@ class Heartbeat:
         self.queues = list(queues)
         self.lease_s = float(lease_s)
         self.interval_s = heartbeat_interval(lease_s) if interval_s is None else float(interval_s)
-        # The worker row says it is alive every beat (the reaper's heartbeat timeout); the task row, written far
-        # less often, only needs its lease pushed before it runs out: a third of the way in, not every 5 s.
+        # The worker row says it is alive every beat (the reaper's heartbeat timeout); the task row, written
+        # far less often, only needs its lease pushed before it runs out: a third of the way in, not every 5
+        # s.
         self.extend_after_s = self.lease_s / 3.0
         self._leased_at = 0.0  # monotonic time of the current task's claim or last lease extension
         self._lock = threading.Lock()
@@ -64,7 +66,8 @@ class Heartbeat:
         self._tasks_done = 0
         self._labels: dict[str, int] = {}
         self._recent: deque[tuple[float, int]] = deque()  # (monotonic time, labels) of recent tasks
-        self._inherited: tuple[int, dict[str, int]] | None = None  # the row's counts when this process took it
+        # the row's counts when this process took it
+        self._inherited: tuple[int, dict[str, int]] | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.beats = 0
@@ -73,8 +76,8 @@ class Heartbeat:
     # ------------------------------------------------------------------ called by the runner
 
     def set_current(self, task_id: int | None, batch: Sequence[int] = ()) -> None:
-        """The task this worker has just claimed with a full lease, and the other tasks of its view batch (beats
-        extend the leases of all of them), or None when idle."""
+        """The task this worker has just claimed with a full lease, and the other tasks of its view batch
+        (beats extend the leases of all of them), or None when idle."""
         with self._lock:
             if task_id != self._current:
                 self._leased_at = time.monotonic()
@@ -114,35 +117,44 @@ class Heartbeat:
     # ------------------------------------------------------------------ the beat
 
     def beat(self) -> None:
-        """Upsert the worker row (one statement) and, once `extend_after_s` has passed since the claim or the last
-        extension, extend the current task's lease (only while it is still ours and running)."""
-        with self._beat_lock:  # the thread's beat and a direct call (stop, tests) land in the order they were made
+        """Upsert the worker row (one statement) and, once `extend_after_s` has passed since the claim or the
+        last extension, extend the current task's lease (only while it is still ours and running)."""
+        # the thread's beat and a direct call (stop, tests) land in the order they were made
+        with self._beat_lock:
             self._beat()
 
     def _beat(self) -> None:
         rate = self.labels_per_s()
         with self._lock:
-            current, held, done, labels = self._current, (self._current, *self._batch), self._tasks_done, dict(self._labels)
+            current, held, done, labels = (
+                self._current, (self._current, *self._batch), self._tasks_done, dict(self._labels),
+            )
             extend = current is not None and time.monotonic() - self._leased_at >= self.extend_after_s
         now = utcnow()
         with self._sessionmaker() as session, session.begin():
             if self._inherited is None:
                 # A named worker's row outlives its child processes (recycling): carry on its counts.
                 prev = session.get(Worker, self.worker_id)
-                self._inherited = (int(prev.tasks_done or 0), dict(prev.labels or {})) if prev is not None else (0, {})
+                self._inherited = (
+                    (int(prev.tasks_done or 0), dict(prev.labels or {})) if prev is not None else (0, {})
+                )
             base_done, base_labels = self._inherited
             row = {
                 "id": self.worker_id, "host": self.host, "queues": self.queues, "started_at": now,
                 "last_heartbeat": now, "current_task_id": current, "tasks_done": base_done + done,
                 "labels_per_s": rate,
-                "labels": {cue: int(base_labels.get(cue, 0)) + labels.get(cue, 0) for cue in {*base_labels, *labels}},
+                "labels": {
+                    cue: int(base_labels.get(cue, 0)) + labels.get(cue, 0) for cue in {*base_labels, *labels}
+                },
             }
             upsert(session, Worker, row, key=["id"], insert_only=["started_at"])
             if extend:
                 # Not a state change (counters untouched): only pushes the deadline of a task we hold.
                 session.execute(
                     update(Task)
-                    .where(Task.id.in_(held), Task.worker_id == self.worker_id, Task.state == TaskState.RUNNING)
+                    .where(
+                        Task.id.in_(held), Task.worker_id == self.worker_id, Task.state == TaskState.RUNNING
+                    )
                     .values(lease_until=now + timedelta(seconds=self.lease_s))
                     .execution_options(synchronize_session=False)
                 )

@@ -6,10 +6,10 @@
 1. Claim the task (services.worker.run.claim: queued -> running, or why not).
 2. Load the job spec, the space (kept loaded between tasks: SpaceCache) and the plan JSON
    (services.worker.inputs.caches; services.worker.run.making computes a task's bytes from them).
-3. Compute: the `passes` task renders the view once into this process's memory; every other cue is derived from
-   that pass set, read from this process's memory LRU or the store's pass cache (.npz, written only when a task of
-   the view may need it after the view batch below), and rendered again only if the cache is gone (e.g. after
-   a resume of a finished job).
+3. Compute: the `passes` task renders the view once into this process's memory; every other cue is derived
+   from that pass set, read from this process's memory LRU or the store's pass cache (.npz, written only when
+   a task of the view may need it after the view batch below), and rendered again only if the cache is gone
+   (e.g. after a resume of a finished job).
 4. Write the objects atomically to their deterministic keys, a batch's together (store.put_many: one wait for
    the disk or the network a view), then record them done (services.worker.run.results and
    services.worker.run.claim).
@@ -20,13 +20,13 @@
    batch made every task of the view that reads the pass set, the pass set is never stored (`passes` is
    recorded with size 0, no sha256). A derived cue's task (a view the batch did not take whole: rendered by a
    renderer of `generate --render-workers`, which stores the pass set and leaves the view to the others
-   (hand_off_views); a retry; a resume) claims its view's queued tasks alike, and when it reads the pass set (so
-   the pass set is done) the pending ones too: the pass set, read once, gives every cue of the view, where
+   (hand_off_views); a retry; a resume) claims its view's queued tasks alike, and when it reads the pass set
+   (so the pass set is done) the pending ones too: the pass set, read once, gives every cue of the view, where
    queued-only took one batch and one read of the pass set per DAG level.
    Each task keeps its row; a pending task claimed so gets no message, a queued one's message is skipped when
-   it comes (a read, no claim). A task whose input failed in the batch is handed back to pending unrun. A batch
-   whose worker dies stays `running` under its lease (the beats extend all of it): the reaper re-queues every
-   task of it.
+   it comes (a read, no claim). A task whose input failed in the batch is handed back to pending unrun. A
+   batch whose worker dies stays `running` under its lease (the beats extend all of it): the reaper re-queues
+   every task of it.
 5. Failure: retry after a backoff or fail for good, and keep a failing worker off the job
    (services.worker.run.failure_policy); a store that fails (full, S3 5xx) holds the job instead, its tasks'
    attempts not counted (TaskLedger.hold_for_storage), until the scheduler sees the store take writes again.
@@ -88,8 +88,8 @@ class TaskRunner:
         self.render_threads = render_threads if render_threads is not None else settings.render_threads
         self.render_device = render_device or settings.render_device
         self.db_retry_s = db_retry_s
-        # A renderer of `generate --render-workers`: a `passes` task stores its pass set for the workers that only
-        # derive, instead of deriving the view itself (a view batch).
+        # A renderer of `generate --render-workers`: a `passes` task stores its pass set for the workers that
+        # only derive, instead of deriving the view itself (a view batch).
         self.hand_off_views = hand_off_views
         self.ledger = TaskLedger(sessionmaker, worker_id, settings.lease_s, db_retry_s)
         self.inputs = TaskInputs(sessionmaker, store, self.ledger.db,
@@ -97,7 +97,8 @@ class TaskRunner:
         self.maker = TaskMaker(store, self.inputs, self.cache_dir, render_device=self.render_device,
                                render_threads=self.render_threads)
         self.results = BatchResults(self, store, self.ledger, self.inputs, settings)
-        # Messages run (a view batch is one, like Celery's worker_max_tasks_per_child counts it): the recycle count.
+        # Messages run (a view batch is one, like Celery's worker_max_tasks_per_child counts it): the recycle
+        # count.
         self.tasks_run = 0
         self.batched: deque[int] = deque(maxlen=BATCHED_MEMORY)  # ids this process ran in view batches lately
 
@@ -113,13 +114,14 @@ class TaskRunner:
 
     def run(self, task_id: int) -> Outcome:
         """Claim and run one task, and with it the rest of its view (a view batch, when
-        settings.worker_batch_views): after a `passes` task, the view's pending and queued tasks; after a derived
-        cue's, the view's queued ones, and pending ones too when it reads the pass set. Never raises for task
-        failures (they are recorded), only TransientError. The returned Outcome is the message's task's; `batch`
-        holds the others'."""
+        settings.worker_batch_views): after a `passes` task, the view's pending and queued tasks; after a
+        derived cue's, the view's queued ones, and pending ones too when it reads the pass set. Never raises
+        for task failures (they are recorded), only TransientError. The returned Outcome is the message's
+        task's; `batch` holds the others'."""
         t0 = time.perf_counter()
         if task_id in self.batched and self.ledger.is_settled(task_id):
-            # Its message came after a view batch of ours ran it: no claim attempt (no write lock) for a no-op.
+            # Its message came after a view batch of ours ran it: no claim attempt (no write lock) for a
+            # no-op.
             return Outcome(task_id, "skipped", error="done in a view batch (duplicate message)")
         claimed = self.ledger.claim(task_id)
         if isinstance(claimed, Outcome):
@@ -131,7 +133,9 @@ class TaskRunner:
             if not self.settings.worker_batch_views:
                 outcomes = self._run_claimed([claimed], t0)
             elif claimed.cue == "passes":
-                outcomes = self._hand_off_view(claimed, t0) if self.hand_off_views else self._run_view(claimed, t0)
+                outcomes = (
+                    self._hand_off_view(claimed, t0) if self.hand_off_views else self._run_view(claimed, t0)
+                )
             else:
                 outcomes = self._run_derived(claimed, t0)
         finally:
@@ -144,7 +148,8 @@ class TaskRunner:
         return replace(outcomes[0], batch=tuple(outcomes[1:]), recycle=self.should_recycle())
 
     def _claim_rest(self, claimed: Claimed, *, with_pending: bool) -> tuple[list[Claimed], bool]:
-        """The rest of the claimed task's view (ledger.claim_view_rest), remembered, and leased by the beats."""
+        """The rest of the claimed task's view (ledger.claim_view_rest), remembered, and leased by the
+        beats."""
         rest, elsewhere = self.ledger.claim_view_rest(claimed, with_pending=with_pending)
         self.batched.extend(c.id for c in rest)
         if self.heartbeat is not None:
@@ -152,13 +157,13 @@ class TaskRunner:
         return rest, elsewhere
 
     def _run_view(self, passes: Claimed, t0: float) -> list[Outcome]:
-        """The whole view on this worker: render its pass set (the `passes` task) into memory, claim the rest of
-        the view in one statement, derive it, and record everything done in one statement. The pass set is
+        """The whole view on this worker: render its pass set (the `passes` task) into memory, claim the rest
+        of the view in one statement, derive it, and record everything done in one statement. The pass set is
         stored only when a task of the view that reads it may run later (not claimed, failed or handed back):
-        otherwise nobody reads it (a re-run after a resume renders again), and `passes` is recorded with size 0
-        and no sha256, and the view's context leaves the memory LRU at once: kept, the LRU's budget held ~60 views'
-        arrays, so every view wrote into fresh pages (1.6 GB of page faults a 66-view run, ~30 ms a view). A failed
-        render is recorded alone: the rest of the view stays pending."""
+        otherwise nobody reads it (a re-run after a resume renders again), and `passes` is recorded with size
+        0 and no sha256, and the view's context leaves the memory LRU at once: kept, the LRU's budget held ~60
+        views' arrays, so every view wrote into fresh pages (1.6 GB of page faults a 66-view run, ~30 ms a
+        view). A failed render is recorded alone: the rest of the view stays pending."""
         try:
             key = self.render_view(passes)
         except Exception as exc:
@@ -177,24 +182,27 @@ class TaskRunner:
                 failed[passes.id] = self.results.record_failure(passes, exc, t1 - render_s)
         if passes.id not in failed:
             done.insert(0, (passes, key, info, render_s + time.perf_counter() - t1))
-        if not elsewhere and not failed:  # nothing of the view is left to run: free its arrays for the next view
+        # nothing of the view is left to run: free its arrays for the next view
+        if not elsewhere and not failed:
             self.inputs.forget_view((passes.job_id, passes.space_id, passes.point, passes.view))
         return self.results.record([passes, *rest], done, failed)
 
     def _hand_off_view(self, passes: Claimed, t0: float) -> list[Outcome]:
-        """Render the view and store its pass set for whoever derives it; its arrays leave this process at once."""
+        """Render the view and store its pass set for whoever derives it; its arrays leave this process at
+        once."""
         outcomes = self._run_claimed([passes], t0)
         self.inputs.forget_view((passes.job_id, passes.space_id, passes.point, passes.view))
         return outcomes
 
     def _run_derived(self, claimed: Claimed, t0: float) -> list[Outcome]:
-        """A derived cue's task and the rest of its view this worker could claim: the queued tasks, and the pending
-        ones too when it reads the pass set (module docstring). Once nothing of the view reads the pass set any
-        more, its arrays leave the memory LRU (see _run_view)."""
+        """A derived cue's task and the rest of its view this worker could claim: the queued tasks, and the
+        pending ones too when it reads the pass set (module docstring). Once nothing of the view reads the
+        pass set any more, its arrays leave the memory LRU (see _run_view)."""
         reads = needs_passes(claimed.cue)
         rest, elsewhere = self._claim_rest(claimed, with_pending=reads)
         outcomes = self._run_claimed([claimed, *rest], t0)
-        if reads and not elsewhere and all(o.status == "done" for o in outcomes):  # elsewhere also when none claimed
+        # elsewhere also when none claimed
+        if reads and not elsewhere and all(o.status == "done" for o in outcomes):
             self.inputs.forget_view((claimed.job_id, claimed.space_id, claimed.point, claimed.view))
         return outcomes
 
@@ -204,10 +212,14 @@ class TaskRunner:
         return self.results.record(claimed, done, failed)
 
     def should_recycle(self) -> bool:
-        """True when this process should exit after the task: RSS above worker_max_memory_mb or worker_max_tasks
-        messages run. A view batch counts once: counted by its ~18 tasks, a 66-view `generate` restarted its worker
-        twice, each restart paying imports, the space load and Cycles' first render again (~3 CPU-s)."""
-        return self.tasks_run >= self.settings.worker_max_tasks or should_recycle(self.settings.worker_max_memory_mb)
+        """True when this process should exit after the task: RSS above worker_max_memory_mb or
+        worker_max_tasks messages run. A view batch counts once: counted by its ~18 tasks, a 66-view
+        `generate` restarted its worker twice, each restart paying imports, the space load and Cycles' first
+        render again (~3
+        CPU-s)."""
+        return self.tasks_run >= self.settings.worker_max_tasks or should_recycle(
+            self.settings.worker_max_memory_mb
+        )
 
     def close(self) -> None:
         """Free the loaded space and cached views."""
@@ -223,7 +235,8 @@ class TaskRunner:
         return self.maker.make(t)
 
     def render_view(self, t: Claimed) -> str:
-        """Render the view of a `passes` task into this process's memory (nothing stored); its pass set's key."""
+        """Render the view of a `passes` task into this process's memory (nothing stored); its pass set's
+        key."""
         return self.maker.render_view(t)
 
 

@@ -1,9 +1,9 @@
 """A stop raised by a signal handler while native code runs can come back wrapped in another exception.
 
-SIGTERM's SystemExit (the embedded pool's handler, Celery's pool's) raised while a compiled (numba) kernel is being
-called comes back from that call as SystemError("... returned a result with an exception set") caused by the exit.
-A worker that recorded it as the task's failure would lose its stop and go on working until it was killed:
-`reraise_stop` raises the stop again, so the worker unwinds and leaves as it does from anywhere else.
+SIGTERM's SystemExit (the embedded pool's handler, Celery's pool's) raised while a compiled (numba) kernel is
+being called comes back from that call as SystemError("... returned a result with an exception set") caused by
+the exit. A worker that recorded it as the task's failure would lose its stop and go on working until it was
+killed: `reraise_stop` raises the stop again, so the worker unwinds and leaves as it does from anywhere else.
 """
 
 from __future__ import annotations

@@ -131,7 +131,9 @@ def test_a_spec_is_fitted_to_the_capture_uploaded_with_the_scan(
     r = api.client.post("/spaces", files=parts, data={"name": "room_cap"}, headers=api.a.headers)
     assert r.status_code == 201, r.text
     spec = {"points": {"count": 30, "max_views": 5}}
-    r = api.client.post("/designer/fit", json={"space_ids": [r.json()["id"]], "spec": spec}, headers=api.a.headers)
+    r = api.client.post(
+        "/designer/fit", json={"space_ids": [r.json()["id"]], "spec": spec}, headers=api.a.headers
+    )
     assert r.status_code == 200, r.text
     fit = r.json()
     assert fit["source"] == "capture:transforms" and fit["frames"] == 12

@@ -27,7 +27,9 @@ def create(api: Api, space_ids: list[int], spec: dict | None = None, headers: di
 
 
 def test_create_job(api: Api, space_id: int) -> None:
-    r = create(api, [space_id], {"name": "demo", "cues": ["rgb", "normal"], "seed": 7, "views": {"resolution": 64}})
+    r = create(
+        api, [space_id], {"name": "demo", "cues": ["rgb", "normal"], "seed": 7, "views": {"resolution": 64}}
+    )
     assert r.status_code == 201, r.text
     job = r.json()
     assert job["state"] == "pending" and job["name"] == "demo" and job["space_ids"] == [space_id]
@@ -44,17 +46,30 @@ def test_create_job(api: Api, space_id: int) -> None:
     ("spec", "loc", "needle"),
     [
         ({"views": {"resolution": 100000}}, ["body", "spec", "views", "resolution"], "less than or equal"),
-        ({"cues": ["rgb", "sparkles"]}, ["body", "spec", "cues"], "unknown cue(s): sparkles; known cues: rgb"),
+        (
+            {"cues": ["rgb", "sparkles"]}, ["body", "spec", "cues"],
+            "unknown cue(s): sparkles; known cues: rgb",
+        ),
         ({"points": {"min_views": 5, "max_views": 2}}, ["body", "spec", "points"], "max_views (2) is below"),
         ({"bogus": 1}, ["body", "spec", "bogus"], "Extra inputs are not permitted"),
-        ({"cameras": {"mode": "provided", "poses": [{"location": [0, 0, float("nan")]}] * 3}}, ["body", "spec"], "finite"),
+        (
+            {"cameras": {"mode": "provided", "poses": [{"location": [0, 0, float("nan")]}] * 3}},
+            ["body", "spec"], "finite",
+        ),
         ({"name": "../x"}, ["body", "spec", "name"], "not a valid name"),
-        ({"views": {"trajectory_look": "up"}}, ["body", "spec", "views", "trajectory_look"], "'point' or 'ahead'"),
-        ({"views": {"trajectory_min_frames": 40, "trajectory_max_frames": 20}}, ["body", "spec", "views"],
-         "trajectory_min_frames (40) exceeds"),
+        (
+            {"views": {"trajectory_look": "up"}}, ["body", "spec", "views", "trajectory_look"],
+            "'point' or 'ahead'",
+        ),
+        (
+            {"views": {"trajectory_min_frames": 40, "trajectory_max_frames": 20}}, ["body", "spec", "views"],
+            "trajectory_min_frames (40) exceeds",
+        ),
     ],
 )
-def test_invalid_spec_is_422_naming_the_field(api: Api, space_id: int, spec: dict, loc: list, needle: str) -> None:
+def test_invalid_spec_is_422_naming_the_field(
+    api: Api, space_id: int, spec: dict, loc: list, needle: str
+) -> None:
     r = api.client.post(
         "/jobs",
         content=__import__("json").dumps({"space_ids": [space_id], "spec": spec}),  # allows NaN in JSON
@@ -154,7 +169,8 @@ def test_rate_tracker_idle_time_makes_a_stalled_jobs_eta_unknown() -> None:
     job = Job(id=7, state="running", owner="t", spec={})
     assert rt.idle_s(7, now=t0 + 39) == pytest.approx(30.0)
     progress, _ = compute_progress(job, {"rgb": {"done": 9, "running": 1}}, rt)
-    assert progress.throughput_per_s and progress.throughput_per_s > 0  # the window remembers the progress ...
+    # the window remembers the progress ...
+    assert progress.throughput_per_s and progress.throughput_per_s > 0
     assert progress.eta_s is None  # ... but the ETA is unknown, not the 4 s the old rate would promise
 
 
@@ -216,7 +232,9 @@ def test_isolation_and_not_found(api: Api, space_id: int) -> None:
 
 
 def test_job_spaces_show_the_planned_frame(api: Api, space_id: int) -> None:
-    r = create(api, [space_id], {"source_to_world": [[1, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1]]})
+    r = create(
+        api, [space_id], {"source_to_world": [[1, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1]]}
+    )
     assert r.status_code == 201, r.text
     job = r.json()
     assert job["spaces"][0]["frame"] is None  # not planned yet
@@ -227,5 +245,7 @@ def test_job_spaces_show_the_planned_frame(api: Api, space_id: int) -> None:
         s.commit()
     got = api.client.get(f"/jobs/{job['id']}", headers=api.a.headers).json()
     assert got["spaces"][0]["frame"] == {"up": up}
-    bad = create(api, [space_id], {"source_to_world": [[1, 0, 0, 0], [0, 2, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]})
+    bad = create(
+        api, [space_id], {"source_to_world": [[1, 0, 0, 0], [0, 2, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}
+    )
     assert bad.status_code == 422 and "source_to_world" in bad.text and "uniform scale" in bad.text

@@ -1,4 +1,5 @@
-"""A spec whose plan could exceed the planning budget is refused when the job is created, naming the budget."""
+"""A spec whose plan could exceed the planning budget is refused when the job is created, naming the
+budget."""
 
 from __future__ import annotations
 
@@ -18,7 +19,8 @@ from services.core.domain.plan_budget import (
 from tests.fixtures.api import Api
 
 SPEC_20M = {"cameras": {"mode": "object", "object_count": 100},
-            "points": {"count": 200000, "min_views": 2, "max_views": 100}}  # exactly 20M views: within the spec limits
+            # exactly 20M views: within the spec limits
+            "points": {"count": 200000, "min_views": 2, "max_views": 100}}
 
 
 @pytest.fixture()
@@ -64,7 +66,8 @@ def test_budget_names_memory_or_time_whichever_is_short() -> None:
 
 
 def test_the_default_room_spec_is_judged_while_planning_not_refused() -> None:
-    spec = JobSpec.model_validate({})  # cameras in free space, no max_views: bounded only by cameras.max_count
+    # cameras in free space, no max_views: bounded only by cameras.max_count
+    spec = JobSpec.model_validate({})
     assert spec.views_upper_bound() >= 5_000_000
     check_plan_budget(spec, memory_mb=512, timeout_s=10)  # the planner process's limits cap it instead
     with pytest.raises(PlanOverBudget):

@@ -53,8 +53,12 @@ def test_metrics(pg_url: str, local_store: LocalStore, bunny: Path, redis_url: s
 
 def _check_metrics(api: Api, bunny: Path, redis_url: str, queue: str) -> None:
     assert api.client.get("/metrics").status_code == 401
-    sid = api.client.post("/spaces", files={"file": ("b.ply", bunny.read_bytes())}, headers=api.a.headers).json()["id"]
-    job_id = api.client.post("/jobs", json={"space_ids": [sid], "spec": {"cues": ["rgb"]}}, headers=api.a.headers).json()["id"]
+    sid = api.client.post(
+        "/spaces", files={"file": ("b.ply", bunny.read_bytes())}, headers=api.a.headers
+    ).json()["id"]
+    job_id = api.client.post(
+        "/jobs", json={"space_ids": [sid], "spec": {"cues": ["rgb"]}}, headers=api.a.headers
+    ).json()["id"]
     client = redis.Redis.from_url(redis_url)
     client.rpush(queue, b"m1", b"m2", b"m3")
     before = _metric_values(api)
@@ -92,16 +96,27 @@ def _metric_values(api: Api, text: str | None = None) -> dict[str, float]:
 
 
 def test_workers_list_hides_other_tenants_tasks(api: Api, bunny: Path) -> None:
-    sid = api.client.post("/spaces", files={"file": ("b.ply", bunny.read_bytes())}, headers=api.a.headers).json()["id"]
-    job_id = api.client.post("/jobs", json={"space_ids": [sid], "spec": {"cues": ["rgb"]}}, headers=api.a.headers).json()["id"]
+    sid = api.client.post(
+        "/spaces", files={"file": ("b.ply", bunny.read_bytes())}, headers=api.a.headers
+    ).json()["id"]
+    job_id = api.client.post(
+        "/jobs", json={"space_ids": [sid], "spec": {"cues": ["rgb"]}}, headers=api.a.headers
+    ).json()["id"]
     wid = f"w-{api.a.name}"
     with api.session() as s:
         fake_plan(s, job_id)
         tid = task_ids(s, job_id)[0]
         now = utcnow()
-        s.add(Worker(id=wid + ":1", host="hostA", queues=["render", "derive"], last_heartbeat=now - timedelta(seconds=3),
-                     current_task_id=tid, tasks_done=12, labels_per_s=3.5, labels={"rgb": 12}))
-        s.add(Worker(id=wid + ":2", host="hostB", queues=["derive"], last_heartbeat=now - timedelta(minutes=5)))
+        s.add(
+            Worker(
+                id=wid + ":1", host="hostA", queues=["render", "derive"],
+                last_heartbeat=now - timedelta(seconds=3), current_task_id=tid, tasks_done=12,
+                labels_per_s=3.5, labels={"rgb": 12},
+            )
+        )
+        s.add(
+            Worker(id=wid + ":2", host="hostB", queues=["derive"], last_heartbeat=now - timedelta(minutes=5))
+        )
         s.commit()
     items = {w["id"]: w for w in api.client.get("/workers?limit=1000", headers=api.a.headers).json()["items"]}
     w1, w2 = items[wid + ":1"], items[wid + ":2"]
@@ -118,23 +133,36 @@ def test_workers_list_hides_other_tenants_tasks(api: Api, bunny: Path) -> None:
     assert wid + ":1" in {w["id"] for w in alive} and wid + ":2" not in {w["id"] for w in alive}
 
 
-def test_worker_liveness_follows_the_configured_heartbeat_timeout(pg_url: str, local_store: LocalStore) -> None:
-    # The reaper declares a worker dead at OMNIDATA_HEARTBEAT_TIMEOUT_S: /workers and /metrics must agree with it.
-    with make_api(pg_url, local_store, heartbeat_timeout_s=10, operator_tokens=[hash_token(OPERATOR_TOKEN)]) as api:
+def test_worker_liveness_follows_the_configured_heartbeat_timeout(
+    pg_url: str, local_store: LocalStore
+) -> None:
+    # The reaper declares a worker dead at OMNIDATA_HEARTBEAT_TIMEOUT_S: /workers and /metrics must agree with
+    # it.
+    with make_api(
+        pg_url, local_store, heartbeat_timeout_s=10, operator_tokens=[hash_token(OPERATOR_TOKEN)]
+    ) as api:
         wid = f"w-timeout-{secrets.token_hex(4)}"
         with api.session() as s:
-            s.add(Worker(id=wid, host="h", queues=["render"], last_heartbeat=utcnow() - timedelta(seconds=20)))
+            s.add(
+                Worker(id=wid, host="h", queues=["render"], last_heartbeat=utcnow() - timedelta(seconds=20))
+            )
             s.commit()
-        items = {w["id"]: w for w in api.client.get("/workers?limit=1000", headers=api.a.headers).json()["items"]}
+        items = {
+            w["id"]: w for w in api.client.get("/workers?limit=1000", headers=api.a.headers).json()["items"]
+        }
         assert items[wid]["alive"] is False
         stale = api.client.get("/workers?alive=false&limit=1000", headers=api.a.headers).json()["items"]
         assert wid in {w["id"] for w in stale}
         assert "alive: within 10 s" in api.client.get("/metrics", headers=OPERATOR).text
 
 
-def test_workers_service_wide_figures_are_for_operators(pg_url: str, local_store: LocalStore, bunny: Path) -> None:
+def test_workers_service_wide_figures_are_for_operators(
+    pg_url: str, local_store: LocalStore, bunny: Path
+) -> None:
     with make_api(pg_url, local_store, operator_tokens=[hash_token(OPERATOR_TOKEN)]) as api:
-        sid = api.client.post("/spaces", files={"file": ("b.ply", bunny.read_bytes())}, headers=api.a.headers).json()["id"]
+        sid = api.client.post(
+            "/spaces", files={"file": ("b.ply", bunny.read_bytes())}, headers=api.a.headers
+        ).json()["id"]
         job_id = api.client.post("/jobs", json={"space_ids": [sid], "spec": {"cues": ["rgb"]}},
                                  headers=api.a.headers).json()["id"]
         wid = f"w-op-{secrets.token_hex(4)}"
@@ -144,10 +172,14 @@ def test_workers_service_wide_figures_are_for_operators(pg_url: str, local_store
             s.add(Worker(id=wid, host="h", queues=["render"], last_heartbeat=utcnow(), current_task_id=tid,
                          tasks_done=12, labels_per_s=3.5, labels={"rgb": 12}))
             s.commit()
-        seen = {w["id"]: w for w in api.client.get("/workers?limit=1000", headers=OPERATOR).json()["items"]}[wid]
+        seen = {w["id"]: w for w in api.client.get("/workers?limit=1000", headers=OPERATOR).json()["items"]}[
+            wid
+        ]
         assert seen["tasks_done"] == 12 and seen["labels_per_s"] == 3.5 and seen["labels"] == {"rgb": 12}
         assert seen["current_task"]["id"] == tid  # an operator sees every tenant's current task
-        tenant_b = {w["id"]: w for w in api.client.get("/workers?limit=1000", headers=api.b.headers).json()["items"]}
+        tenant_b = {
+            w["id"]: w for w in api.client.get("/workers?limit=1000", headers=api.b.headers).json()["items"]
+        }
         assert tenant_b[wid]["tasks_done"] is None and tenant_b[wid]["current_task"] is None
         assert api.client.get("/workers").status_code == 401
         assert api.client.get("/workers", headers={"Authorization": "Bearer nope"}).status_code == 401

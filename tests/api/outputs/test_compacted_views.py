@@ -1,5 +1,5 @@
-"""The API over compacted views: views, tasks, one task, a view's outputs, throughput and the manifest answer the
-same before and after compaction (services.scheduler.compaction), on Postgres and SQLite."""
+"""The API over compacted views: views, tasks, one task, a view's outputs, throughput and the manifest answer
+the same before and after compaction (services.scheduler.compaction), on Postgres and SQLite."""
 
 from __future__ import annotations
 
@@ -31,7 +31,9 @@ def _views(api: Api, job_id: int, query: str) -> tuple[int, list[Any]]:
 def _tasks(api: Api, job_id: int, query: str) -> tuple[int, list[Any]]:
     items, offset, total = [], 0, None
     while True:  # pages of 5: the last page of task rows runs into the compacted tasks
-        body = api.client.get(f"/jobs/{job_id}/tasks?{query}&limit=5&offset={offset}", headers=api.a.headers).json()
+        body = api.client.get(
+            f"/jobs/{job_id}/tasks?{query}&limit=5&offset={offset}", headers=api.a.headers
+        ).json()
         total = body["total"]
         items += [{k: v for k, v in t.items() if k not in ROW_ONLY} for t in body["items"]]
         if len(body["items"]) < 5:
@@ -73,9 +75,13 @@ def _space(api: Api, job_id: int) -> int:
 
 def _check(api: Api, bunny: Path) -> None:
     h = api.a.headers
-    sid = api.client.post("/spaces", files={"file": ("bunny.ply", bunny.read_bytes())}, headers=h).json()["id"]
-    r = api.client.post("/jobs", json={"space_ids": [sid], "spec": {"cues": ["rgb", "depth_zbuffer", "nonfixated"]}},
-                        headers=h)
+    sid = api.client.post("/spaces", files={"file": ("bunny.ply", bunny.read_bytes())}, headers=h).json()[
+        "id"
+    ]
+    r = api.client.post(
+        "/jobs", json={"space_ids": [sid], "spec": {"cues": ["rgb", "depth_zbuffer", "nonfixated"]}},
+        headers=h,
+    )
     job_id = int(r.json()["id"])
     with api.session() as s:
         fake_plan(s, job_id, points=3, views=2)

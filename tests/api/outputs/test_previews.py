@@ -58,7 +58,10 @@ def test_preview_links_are_checked(api: Api, bunny: Path) -> None:
                           headers=api.a.headers).json()["outputs"]["rgb"]["preview_url"]
     url = urlparse(link)
     q = parse_qs(url.query)
-    assert api.client.get(f"{url.path}?job={job_id}&expires={q['expires'][0]}&signature={'0' * 64}").status_code == 403
+    assert (
+        api.client.get(f"{url.path}?job={job_id}&expires={q['expires'][0]}&signature={'0' * 64}").status_code
+        == 403
+    )
     other = url.path.replace("view_0", "view_1")
     assert api.client.get(
         f"{other}?job={job_id}&expires={q['expires'][0]}&signature={q['signature'][0]}").status_code == 403
@@ -70,7 +73,10 @@ def test_preview_links_are_checked(api: Api, bunny: Path) -> None:
         return f"/previews/{key}?job={job_id}&expires={future}&signature={sig}"
 
     # signed, but not a preview key, or a preview of an output that does not exist: 404 and nothing stored
-    assert api.client.get(signed(f"jobs/{job_id}/rgb/omnidata/bunny/point_0_view_0_domain_rgb.png")).status_code == 404
+    assert (
+        api.client.get(signed(f"jobs/{job_id}/rgb/omnidata/bunny/point_0_view_0_domain_rgb.png")).status_code
+        == 404
+    )
     missing = f"jobs/{job_id}/_previews/v1/rgb/omnidata/bunny/point_9_view_0_domain_rgb.png"
     assert api.client.get(signed(missing)).status_code == 404 and not api.store.exists(missing)
     passes = f"jobs/{job_id}/_previews/v1/passes/omnidata/bunny/point_0_view_0_domain_passes.png"
@@ -98,6 +104,8 @@ def test_previews_on_s3(pg_url: str, s3_server, bunny: Path) -> None:  # type: i
         assert link["url"].startswith(s3_server.endpoint_url)  # the raw file: S3's own pre-signed URL
         got = api.client.get(link["preview_url"])
         assert got.status_code == 200 and _png_pixels(got.content).shape == (8, 8, 3)
-        pkey = f"jobs/{job_id}/_previews/v1/depth_zbuffer/omnidata/bunny/point_0_view_0_domain_depth_zbuffer.png"
+        pkey = (
+            f"jobs/{job_id}/_previews/v1/depth_zbuffer/omnidata/bunny/point_0_view_0_domain_depth_zbuffer.png"
+        )
         assert store.get_bytes(pkey) == got.content
         store.delete_prefix("")

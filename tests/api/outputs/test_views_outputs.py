@@ -1,4 +1,5 @@
-"""Views, tasks, plan, throughput, output links (local signed links and S3 pre-signed URLs), manifest, job.json."""
+"""Views, tasks, plan, throughput, output links (local signed links and S3 pre-signed URLs), manifest,
+job.json."""
 
 from __future__ import annotations
 
@@ -17,7 +18,9 @@ from tests.fixtures.api import Api, fake_plan, make_api, run_tasks, task_ids
 def _job(api: Api, bunny: Path, cues: list[str], points: int = 3, views: int = 2) -> int:
     r = api.client.post("/spaces", files={"file": ("bunny.ply", bunny.read_bytes())}, headers=api.a.headers)
     assert r.status_code == 201, r.text
-    r = api.client.post("/jobs", json={"space_ids": [r.json()["id"]], "spec": {"cues": cues}}, headers=api.a.headers)
+    r = api.client.post(
+        "/jobs", json={"space_ids": [r.json()["id"]], "spec": {"cues": cues}}, headers=api.a.headers
+    )
     assert r.status_code == 201, r.text
     job_id = int(r.json()["id"])
     with api.session() as s:
@@ -35,8 +38,12 @@ def test_views_tasks_filters_and_pagination(api: Api, bunny: Path) -> None:
 
         p0 = [t.id for t in s.query(Task).filter(Task.job_id == job_id, Task.point_idx == 0)]
         run_tasks(s, api.store, job_id, p0)
-        rgb_p1 = [t.id for t in s.query(Task).filter(Task.job_id == job_id, Task.point_idx == 1, Task.cue == "rgb")
-                  .order_by(Task.view_idx)]  # view 0 first: a row order without ORDER BY is the heap's
+        rgb_p1 = [
+            t.id
+            for t in s.query(Task)
+            .filter(Task.job_id == job_id, Task.point_idx == 1, Task.cue == "rgb")
+            .order_by(Task.view_idx)
+        ]  # view 0 first: a row order without ORDER BY is the heap's
         run_tasks(s, api.store, job_id, rgb_p1[:1], fail=True)
     r = api.client.get(f"/jobs/{job_id}/views?limit=4", headers=h).json()
     assert r["total"] == 6 and len(r["items"]) == 4
@@ -73,7 +80,9 @@ def test_plan_and_throughput(api: Api, bunny: Path) -> None:
     (sp,) = plan["spaces"]
     assert len(sp["cameras"]) == 4 and len(sp["points"]) == 5 and len(sp["views"]) == 15
     assert len(sp["bounds"]) == 2 and sp["truncated"] is False and len(sp["cameras"][0]) == 4
-    assert api.client.get(f"/jobs/{job_id}/plan?max_items=2", headers=h).json()["spaces"][0]["truncated"] is True
+    assert (
+        api.client.get(f"/jobs/{job_id}/plan?max_items=2", headers=h).json()["spaces"][0]["truncated"] is True
+    )
     assert api.client.get(f"/jobs/{job_id}/throughput", headers=h).json()["buckets"] == []
     with api.session() as s:
         run_tasks(s, api.store, job_id, task_ids(s, job_id)[:7])
@@ -95,7 +104,10 @@ def test_outputs_local_signed_links(api: Api, bunny: Path) -> None:
     outs = r.json()["outputs"]
     assert list(outs) == ["rgb", "depth_zbuffer", "point_info"]  # catalog order, internal passes left out
     rgb = outs["rgb"]
-    assert rgb["key"] == "rgb/omnidata/bunny/point_0_view_0_domain_rgb.png" and rgb["content_type"] == "image/png"
+    assert (
+        rgb["key"] == "rgb/omnidata/bunny/point_0_view_0_domain_rgb.png"
+        and rgb["content_type"] == "image/png"
+    )
     got = api.client.get(rgb["url"])  # no token: the signature is the credential
     assert got.status_code == 200 and got.content[:8] == b"\x89PNG\r\n\x1a\n"
     assert got.content == api.store.get_bytes(f"jobs/{job_id}/{rgb['key']}")
@@ -104,8 +116,10 @@ def test_outputs_local_signed_links(api: Api, bunny: Path) -> None:
     path = urlparse(rgb["url"]).path
     bad = api.client.get(f"{path}?job={job_id}&expires={q['expires'][0]}&signature={'0' * 64}")
     assert bad.status_code == 403 and "signature" in bad.json()["detail"]
+    other_path = path.replace("rgb.png", "x.png")
     other = api.client.get(
-        f"{path.replace('rgb.png', 'x.png')}?job={job_id}&expires={q['expires'][0]}&signature={q['signature'][0]}")
+        f"{other_path}?job={job_id}&expires={q['expires'][0]}&signature={q['signature'][0]}"
+    )
     assert other.status_code == 403
     from services.api.outputs.service import blob_signature
 
@@ -117,7 +131,10 @@ def test_outputs_local_signed_links(api: Api, bunny: Path) -> None:
     views = api.client.get(f"/jobs/{job_id}/views?urls=true&complete=true", headers=h).json()
     assert list(views["items"][0]["outputs"]) == ["rgb", "depth_zbuffer", "point_info"]
     # no such view
-    assert api.client.get(f"/jobs/{job_id}/views/{_space(api, job_id)}/0/9/outputs", headers=h).status_code == 404
+    assert (
+        api.client.get(f"/jobs/{job_id}/views/{_space(api, job_id)}/0/9/outputs", headers=h).status_code
+        == 404
+    )
 
 
 def _space(api: Api, job_id: int) -> int:
@@ -157,7 +174,8 @@ def test_outputs_on_s3_are_presigned_and_expire(pg_url: str, s3_server, bunny: P
         # staged registration through an s3:// URI of the same store
         store.put_file(f"uploads/{api.a.name}/b.ply", bunny)
         r = api.client.post(
-            "/spaces/register", json={"uri": f"{settings.storage_url}/uploads/{api.a.name}/b.ply", "name": "viauri"},
+            "/spaces/register",
+            json={"uri": f"{settings.storage_url}/uploads/{api.a.name}/b.ply", "name": "viauri"},
             headers=api.a.headers,
         )
         assert r.status_code == 201, r.text

@@ -49,7 +49,9 @@ class SSEReader:
 
 @pytest.fixture()
 def job_id(api: Api, bunny: Path) -> int:
-    sid = api.client.post("/spaces", files={"file": ("b.ply", bunny.read_bytes())}, headers=api.a.headers).json()["id"]
+    sid = api.client.post(
+        "/spaces", files={"file": ("b.ply", bunny.read_bytes())}, headers=api.a.headers
+    ).json()["id"]
     r = api.client.post("/jobs", json={"space_ids": [sid], "spec": {"cues": ["rgb"]}}, headers=api.a.headers)
     return int(r.json()["id"])
 
@@ -69,7 +71,10 @@ def test_job_events_follow_the_counters(api: Api, job_id: int) -> None:
         with api.session() as s:
             run_tasks(s, api.store, job_id, task_ids(s, job_id)[:4])
         half = sse.until(lambda d: d["progress"]["finished"] == 4)
-        assert half["progress"]["fraction"] == 0.5 and half["cues"]["passes"]["done"] + half["cues"]["rgb"]["done"] == 4
+        assert (
+            half["progress"]["fraction"] == 0.5
+            and half["cues"]["passes"]["done"] + half["cues"]["rgb"]["done"] == 4
+        )
         # nothing changes now: only heartbeat comments, no further event
         t0 = time.monotonic()
         n_comments = len(sse.comments)
@@ -88,7 +93,9 @@ def test_job_events_follow_the_counters(api: Api, job_id: int) -> None:
 
 
 def test_all_events_stream_is_per_tenant(api: Api, job_id: int, bunny: Path) -> None:
-    sid_b = api.client.post("/spaces", files={"file": ("b.ply", bunny.read_bytes())}, headers=api.b.headers).json()["id"]
+    sid_b = api.client.post(
+        "/spaces", files={"file": ("b.ply", bunny.read_bytes())}, headers=api.b.headers
+    ).json()["id"]
     job_b = api.client.post("/jobs", json={"space_ids": [sid_b]}, headers=api.b.headers).json()["id"]
     with live_server(api.app) as base, httpx.stream(
         "GET", f"{base}/events", headers=api.a.headers, timeout=httpx.Timeout(10.0)
@@ -97,7 +104,10 @@ def test_all_events_stream_is_per_tenant(api: Api, job_id: int, bunny: Path) -> 
         ev, first = sse.next_event()
         assert first["id"] == job_id
         job2 = api.client.post(
-            "/jobs", json={"space_ids": [api.client.get(f"/jobs/{job_id}", headers=api.a.headers).json()["space_ids"][0]]},
+            "/jobs",
+            json={
+                "space_ids": [api.client.get(f"/jobs/{job_id}", headers=api.a.headers).json()["space_ids"][0]]
+            },
             headers=api.a.headers,
         ).json()["id"]
         seen = sse.until(lambda d: d["id"] == job2)

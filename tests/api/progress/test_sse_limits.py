@@ -1,4 +1,5 @@
-"""Event streams per tenant are capped (429 with a message) and /health answers while the request pool is full."""
+"""Event streams per tenant are capped (429 with a message) and /health answers while the request pool is
+full."""
 
 from __future__ import annotations
 
@@ -30,7 +31,10 @@ def test_a_tenant_over_its_stream_cap_gets_429_and_others_are_unaffected(capped:
         assert first.status_code == second.status_code == 200
         over = httpx.get(url_a, timeout=timeout)
         assert over.status_code == 429 and over.headers["retry-after"] == "1"
-        assert "at most 2 per tenant" in over.json()["detail"] and "OMNIDATA_SSE_MAX_PER_TENANT" in over.json()["detail"]
+        assert (
+            "at most 2 per tenant" in over.json()["detail"]
+            and "OMNIDATA_SSE_MAX_PER_TENANT" in over.json()["detail"]
+        )
         with httpx.stream("GET", f"{base}/events?token={api.b.token}", timeout=timeout) as other:
             assert other.status_code == 200  # another tenant's cap is its own
         first.close()  # a closed stream frees its slot once the server notices (its next poll)
@@ -47,7 +51,8 @@ def test_health_answers_while_every_pool_thread_is_busy(capped: Api) -> None:
     release = threading.Event()
     busy = threading.Semaphore(0)
 
-    def slow() -> dict:  # a synchronous route that holds its pool thread, as a slow query or upload write would
+    # a synchronous route that holds its pool thread, as a slow query or upload write would
+    def slow() -> dict:
         busy.release()
         release.wait(30)
         return {}
@@ -55,8 +60,12 @@ def test_health_answers_while_every_pool_thread_is_busy(capped: Api) -> None:
     capped.app.add_api_route("/test-slow", slow, methods=["GET"])
     pool = 40  # anyio's default thread limiter
     with live_server(capped.app) as base:
-        holders = [threading.Thread(target=httpx.get, args=(f"{base}/test-slow",), kwargs={"timeout": 40}, daemon=True)
-                   for _ in range(pool + 10)]
+        holders = [
+            threading.Thread(
+                target=httpx.get, args=(f"{base}/test-slow",), kwargs={"timeout": 40}, daemon=True
+            )
+            for _ in range(pool + 10)
+        ]
         for t in holders:
             t.start()
         for _ in range(pool):  # every thread of the pool is now held (the rest of the requests wait for one)

@@ -36,7 +36,11 @@ def test_upload_scan_and_capture_parts(api: Api, bunny: Path, tmp_path: Path) ->
     stored = api.store.get_bytes(key)
     with zipfile.ZipFile(io.BytesIO(stored)) as zf:  # one object: the scan and its photos
         names = set(zf.namelist())
-    assert "bunny.ply" in names and "capture/transforms.json" in names and "capture/images/frame_00001.png" in names
+    assert (
+        "bunny.ply" in names
+        and "capture/transforms.json" in names
+        and "capture/images/frame_00001.png" in names
+    )
 
 
 def test_capture_part_must_be_a_zip(api: Api, bunny: Path) -> None:

@@ -1,4 +1,5 @@
-"""Spaces: upload (size limit, hostile archives), register from the store, list/get/delete, tenant isolation."""
+"""Spaces: upload (size limit, hostile archives), register from the store, list/get/delete, tenant
+isolation."""
 
 from __future__ import annotations
 
@@ -17,7 +18,8 @@ from tests.fixtures.api import Api, make_api
 
 def upload(api: Api, filename: str, data: bytes, headers: dict[str, str] | None = None, **fields: str):  # type: ignore[no-untyped-def]
     return api.client.post(
-        "/spaces", files={"file": (filename, data)}, data=fields, headers=headers if headers is not None else api.a.headers
+        "/spaces", files={"file": (filename, data)}, data=fields,
+        headers=headers if headers is not None else api.a.headers,
     )
 
 
@@ -50,11 +52,15 @@ def test_upload_ply_validates_and_stores(api: Api, bunny: Path) -> None:
     assert all(h > lo_ for lo_, h in zip(lo, hi, strict=True))
     assert r.headers["location"] == f"/spaces/{body['id']}"
     assert api.store.exists(body["source_key"]) and body["source_key"].startswith(f"spaces/{body['id']}/")
-    assert api.client.get(f"/spaces/{body['id']}", headers=api.a.headers).json()["checksum"] == body["checksum"]
+    assert (
+        api.client.get(f"/spaces/{body['id']}", headers=api.a.headers).json()["checksum"] == body["checksum"]
+    )
 
 
 def test_upload_textured_zip(api: Api, banana_dir: Path) -> None:
-    data = _zip({p.name: p.read_bytes() for p in banana_dir.iterdir() if p.suffix in (".obj", ".mtl", ".png")})
+    data = _zip(
+        {p.name: p.read_bytes() for p in banana_dir.iterdir() if p.suffix in (".obj", ".mtl", ".png")}
+    )
     r = upload(api, "banana.zip", data, name="banana", up_axis="+z")
     assert r.status_code == 201, r.text
     assert r.json()["has_texture"] is True and r.json()["up_axis"] == "+z"
@@ -75,7 +81,10 @@ def test_name_conflict_and_bad_fields(api: Api, bunny: Path) -> None:
 
 
 NAN_OBJ = b"v 0 0 0\nv 1 0 0\nv nan nan nan\nf 1 2 3\n"
-EMPTY_PLY = b"ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\nproperty float z\nelement face 0\nproperty list uchar int vertex_indices\nend_header\n"
+EMPTY_PLY = (
+    b"ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\nproperty float z\n"
+    b"element face 0\nproperty list uchar int vertex_indices\nend_header\n"
+)
 TRI_PLY = (
     b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
     b"element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n"
@@ -84,7 +93,8 @@ TRI_PLY = (
 # one bad vertex among good ones: trimesh's vertex merging would silently fold it into another vertex
 NAN_PLY = (
     b"ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\n"
-    b"element face 2\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\nnan 0 1\n3 0 1 2\n3 0 1 3\n"
+    b"element face 2\nproperty list uchar int vertex_indices\nend_header\n"
+    b"0 0 0\n1 0 0\n0 1 0\nnan 0 1\n3 0 1 2\n3 0 1 3\n"
 )
 
 
@@ -99,7 +109,9 @@ def _bomb() -> bytes:
 HOSTILE: dict[str, tuple[str, Any, str | tuple[str, ...]]] = {
     "traversal": ("t.zip", lambda: _zip({"../../evil.ply": TRI_PLY}), "climbs out"),
     "absolute": ("a.zip", lambda: _zip({"/etc/evil.ply": TRI_PLY}), "absolute"),
-    "symlink": ("s.zip", lambda: _zip({"scan.ply": TRI_PLY}, symlinks={"link.ply": "/etc/passwd"}), "symbolic link"),
+    "symlink": (
+        "s.zip", lambda: _zip({"scan.ply": TRI_PLY}, symlinks={"link.ply": "/etc/passwd"}), "symbolic link",
+    ),
     "zip_bomb": ("bomb.zip", _bomb, "zip bomb"),
     "not_a_zip": ("fake.zip", lambda: b"this is not a zip archive at all" * 10, "not a readable zip"),
     "empty_mesh": ("empty.ply", lambda: EMPTY_PLY, "empty"),
@@ -108,7 +120,9 @@ HOSTILE: dict[str, tuple[str, Any, str | tuple[str, ...]]] = {
     "no_mesh_in_zip": ("docs.zip", lambda: _zip({"README.txt": b"hello"}), "no mesh"),
     "two_meshes": ("two.zip", lambda: _zip({"a.ply": TRI_PLY, "b.ply": TRI_PLY}), "exactly one"),
     "unsupported_type": ("notes.txt", lambda: b"just text", "unsupported"),
-    "garbage_ply": ("junk.ply", lambda: b"ply\nformat binary_little_endian 1.0\nelement vertex 99999\n", "mesh"),
+    "garbage_ply": (
+        "junk.ply", lambda: b"ply\nformat binary_little_endian 1.0\nelement vertex 99999\n", "mesh",
+    ),
     "dot_dot_name": ("...", lambda: TRI_PLY, "extension"),
 }
 
@@ -128,7 +142,9 @@ def test_hostile_uploads_are_refused_and_nothing_is_stored(api: Api, case: str) 
 def test_upload_errors_without_a_usable_form(api: Api) -> None:
     r = api.client.post("/spaces", json={"file": "x"}, headers=api.a.headers)
     assert r.status_code == 415 and "multipart" in r.json()["detail"]
-    r = api.client.post("/spaces", data={"name": "x"}, files={"other": ("x.ply", b"1")}, headers=api.a.headers)
+    r = api.client.post(
+        "/spaces", data={"name": "x"}, files={"other": ("x.ply", b"1")}, headers=api.a.headers
+    )
     assert r.status_code == 422 and "'other'" in r.json()["detail"]
     r = upload(api, "empty.ply", b"")
     assert r.status_code == 422 and "empty" in r.json()["detail"]
@@ -174,7 +190,9 @@ def test_register_staged_object(api: Api, bunny: Path) -> None:
     # another tenant cannot register it: outside its staging area
     r = api.client.post("/spaces/register", json={"key": key}, headers=api.b.headers)
     assert r.status_code == 422 and "staging area" in r.json()["detail"]
-    r = api.client.post("/spaces/register", json={"key": f"uploads/{api.a.name}/nope.ply"}, headers=api.a.headers)
+    r = api.client.post(
+        "/spaces/register", json={"key": f"uploads/{api.a.name}/nope.ply"}, headers=api.a.headers
+    )
     assert r.status_code == 404
     r = api.client.post("/spaces/register", json={"key": "../x"}, headers=api.a.headers)
     assert r.status_code == 422
@@ -205,7 +223,9 @@ def test_list_get_delete_and_isolation(api: Api, bunny: Path) -> None:
     assert not api.store.exists(key)
     assert api.client.get(f"/spaces/{ids[0]}", headers=api.a.headers).status_code == 404
     # a space used by a job cannot be deleted
-    r = api.client.post("/jobs", json={"space_ids": [ids[1]], "spec": {"cues": ["rgb"]}}, headers=api.a.headers)
+    r = api.client.post(
+        "/jobs", json={"space_ids": [ids[1]], "spec": {"cues": ["rgb"]}}, headers=api.a.headers
+    )
     assert r.status_code == 201, r.text
     r = api.client.delete(f"/spaces/{ids[1]}", headers=api.a.headers)
     assert r.status_code == 409 and str(r.json()["detail"]).startswith(f"space {ids[1]} is used by job")
@@ -219,7 +239,9 @@ def test_upload_reports_the_detected_frame_and_refuses_bad_units(api: Api, tmp_p
 
     from tests.fixtures import scenes
 
-    room = scenes.furnished_room().apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
+    room = scenes.furnished_room().apply_transform(
+        trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0])
+    )
     room.apply_scale(100.0)
     data = room.export(file_type="ply")
     r = upload(api, "room.ply", data)

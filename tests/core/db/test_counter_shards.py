@@ -1,8 +1,8 @@
 """Sharded progress counters and a worker's fixed-SQL moves (worker_moves.claim_task / finish_task), on a real
-Postgres with concurrent connections: the counts stay exact while writers spread over shards. On Postgres and on
-SQLite (the embedded default's own statements): a claim still refuses a paused job, a blocked worker and a task
-that is not queued; a view batch's claim and result (claim_view_tasks / finish_tasks) move exactly the rows they
-should, and the counters stay equal to the task rows."""
+Postgres with concurrent connections: the counts stay exact while writers spread over shards. On Postgres and
+on SQLite (the embedded default's own statements): a claim still refuses a paused job, a blocked worker and a
+task that is not queued; a view batch's claim and result (claim_view_tasks / finish_tasks) move exactly the
+rows they should, and the counters stay equal to the task rows."""
 
 from __future__ import annotations
 
@@ -41,7 +41,11 @@ def engine(empty_pg_url: str) -> Iterator[Engine]:
 @pytest.fixture(params=["postgres", "sqlite"])
 def any_engine(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Engine]:
     """Postgres (one statement a move) and SQLite (an UPDATE ... RETURNING and the counter upserts)."""
-    url = request.getfixturevalue("empty_pg_url") if request.param == "postgres" else f"sqlite:///{tmp_path / 'm.db'}"
+    url = (
+        request.getfixturevalue("empty_pg_url")
+        if request.param == "postgres"
+        else f"sqlite:///{tmp_path / 'm.db'}"
+    )
     yield from _migrated(url)
 
 
@@ -52,8 +56,10 @@ def _queued_job(session: Session, n_views: int) -> int:
     rows = {"job_id": [], "space_id": [], "point_idx": [], "view_idx": [], "cue": [], "state": []}
     for v in range(n_views):
         for cue in CUES:
-            for k, val in (("job_id", job.id), ("space_id", 1), ("point_idx", v), ("view_idx", 0), ("cue", cue),
-                           ("state", "queued")):
+            for k, val in (
+                ("job_id", job.id), ("space_id", 1), ("point_idx", v), ("view_idx", 0), ("cue", cue),
+                ("state", "queued"),
+            ):
                 rows[k].append(val)
     bulk_insert(session, Task, rows)
     add_counts(session, job.id, {(cue, "queued"): n_views for cue in CUES})
@@ -83,7 +89,9 @@ def test_concurrent_workers_keep_counters_exact_across_shards(engine: Engine) ->
         for tid in ids:  # every worker tries every task: each is claimed exactly once
             now = utcnow()
             with wsm() as s:
-                row = claim_task(s, task_id=tid, worker_id=f"w{k}", now=now, lease_until=now + timedelta(seconds=60))
+                row = claim_task(
+                    s, task_id=tid, worker_id=f"w{k}", now=now, lease_until=now + timedelta(seconds=60)
+                )
             if row is None:
                 continue
             with lock:
@@ -103,7 +111,9 @@ def test_concurrent_workers_keep_counters_exact_across_shards(engine: Engine) ->
         truth = _truth(s, job_id)
         assert job_progress(s, job_id) == truth
         assert truth["rgb"] == {"running": 100, "done": 100}
-        shards = s.scalar(select(func.count(func.distinct(JobCounter.shard))).where(JobCounter.job_id == job_id))
+        shards = s.scalar(
+            select(func.count(func.distinct(JobCounter.shard))).where(JobCounter.job_id == job_id)
+        )
         assert shards is not None and shards > 1  # eight connections wrote to more than one shard
         # a finish by a worker that does not hold the task moves nothing
         running = s.scalar(select(Task).where(Task.job_id == job_id, Task.state == "running").limit(1))
@@ -120,27 +130,33 @@ def test_claim_refuses_paused_jobs_blocked_workers_and_tasks_not_queued(any_engi
     sm = make_sessionmaker(any_engine)
     with sm() as s:
         job_id = _queued_job(s, 3)
-        a, b, c = list(s.scalars(select(Task.id).where(Task.job_id == job_id, Task.cue == "rgb").order_by(Task.id)))
+        a, b, c = list(
+            s.scalars(select(Task.id).where(Task.job_id == job_id, Task.cue == "rgb").order_by(Task.id))
+        )
         now = utcnow()
         lease = now + timedelta(seconds=60)
         s.add(WorkerBlock(worker_id="bad", job_id=job_id, failures=3, until=now + timedelta(minutes=10)))
         s.commit()
     with sm() as s:
-        assert claim_task(s, task_id=a, worker_id="bad", now=now, lease_until=lease) is None  # blocked on this job
+        # blocked on this job
+        assert claim_task(s, task_id=a, worker_id="bad", now=now, lease_until=lease) is None
     with sm() as s:
         row = claim_task(s, task_id=a, worker_id="good", now=now, lease_until=lease)
         assert row is not None and (row.id, row.cue, row.job_id, row.attempts) == (a, "rgb", job_id, 1)
-    with sm() as s:  # the times read back through the ORM as written (SQLite: the same text SQLAlchemy stores)
+    # the times read back through the ORM as written (SQLite: the same text SQLAlchemy stores)
+    with sm() as s:
         claimed = s.get(Task, a)
         assert claimed is not None and (claimed.started_at, claimed.lease_until) == (now, lease)
         assert s.scalar(select(func.count()).where(Task.id == a, Task.lease_until > now)) == 1
-        assert claim_task(s, task_id=a, worker_id="other", now=now, lease_until=lease) is None  # not queued any more
+        # not queued any more
+        assert claim_task(s, task_id=a, worker_id="other", now=now, lease_until=lease) is None
         job = s.get(Job, job_id)
         assert job is not None
         job.state = "paused"
         s.commit()
     with sm() as s:
-        assert claim_task(s, task_id=b, worker_id="good", now=now, lease_until=lease) is None  # job not running
+        # job not running
+        assert claim_task(s, task_id=b, worker_id="good", now=now, lease_until=lease) is None
         assert s.get(Task, c) is not None
         assert job_progress(s, job_id) == _truth(s, job_id)
 
@@ -169,7 +185,9 @@ def test_view_batch_claim_and_result_move_only_their_rows_and_keep_counters_exac
         assert task_state(s, first) == "running" and task_state(s, ids[(1, "rgb")]) == "queued"
         assert task_state(s, 10**12) is None
         mine = [ids[(0, c)] for c in CUES]
-        results = [(tid, f"k{tid}", 10 + k, None if k == 1 else f"{k:064x}", 0.5 * k) for k, tid in enumerate(mine)]
+        results = [
+            (tid, f"k{tid}", 10 + k, None if k == 1 else f"{k:064x}", 0.5 * k) for k, tid in enumerate(mine)
+        ]
         not_mine = (ids[(1, "rgb")], "stray", 1, None, 0.0)  # queued, not held by "w": left alone
         assert finish_tasks(s, worker_id="other", results=results, now=now) == set()
         assert finish_tasks(s, worker_id="w", results=[*results, not_mine], now=now) == set(mine)

@@ -90,7 +90,9 @@ def test_bulk_insert_types_and_escaping(session: Session) -> None:
     v = {x.v: x for x in session.scalars(select(View).where(View.job_id == job.id))}
     assert v[0].world_to_camera == list(np.eye(4).ravel()) and v[1].world_to_camera == [0.5] * 16
     assert v[0].in_sight is True and v[1].in_sight is False and v[1].roll == 0.0
-    bulk_insert(session, Worker, [{"id": "h:1", "host": "h", "queues": ["render", "derive"], "labels": {"rgb": 3}}])
+    bulk_insert(
+        session, Worker, [{"id": "h:1", "host": "h", "queues": ["render", "derive"], "labels": {"rgb": 3}}]
+    )
     w = session.get(Worker, "h:1")
     assert w is not None and w.queues == ["render", "derive"] and w.labels == {"rgb": 3}
 
@@ -115,8 +117,12 @@ def test_counters_follow_transitions(session: Session) -> None:
     init_counts(session, other.id, {c: 2 for c in CUES})
     assert job_progress(session, job.id) == {c: {"pending": 10} for c in CUES}
 
-    ids = {c: list(session.scalars(select(Task.id).where(Task.job_id == job.id, Task.cue == c).order_by(Task.id)))
-           for c in CUES}
+    ids = {
+        c: list(
+            session.scalars(select(Task.id).where(Task.job_id == job.id, Task.cue == c).order_by(Task.id))
+        )
+        for c in CUES
+    }
     lease = datetime.now(UTC) + timedelta(minutes=5)
     moved = transition(session, job_id=job.id, task_ids=ids["rgb"][:6] + ids["normal"][:2],
                        from_state="pending", to_state="queued", queued_at=datetime.now(UTC))
@@ -125,13 +131,20 @@ def test_counters_follow_transitions(session: Session) -> None:
     assert job_progress(session, job.id)["normal"] == {"pending": 8, "queued": 2}
 
     # repeating the same transition moves nothing (tasks are no longer pending): racing dispatchers are safe
-    assert transition(session, job_id=job.id, task_ids=ids["rgb"][:6], from_state="pending", to_state="queued") == []
+    assert (
+        transition(session, job_id=job.id, task_ids=ids["rgb"][:6], from_state="pending", to_state="queued")
+        == []
+    )
     # another job's ids are never touched through this job
     other_ids = list(session.scalars(select(Task.id).where(Task.job_id == other.id)))
-    assert transition(session, job_id=job.id, task_ids=other_ids, from_state="pending", to_state="queued") == []
+    assert (
+        transition(session, job_id=job.id, task_ids=other_ids, from_state="pending", to_state="queued") == []
+    )
 
-    moved = transition(session, job_id=job.id, task_ids=ids["rgb"][:3], from_state="queued", to_state="running",
-                       worker_id="host:9", lease_until=lease, attempts=Task.attempts + 1)
+    moved = transition(
+        session, job_id=job.id, task_ids=ids["rgb"][:3], from_state="queued", to_state="running",
+        worker_id="host:9", lease_until=lease, attempts=Task.attempts + 1,
+    )
     assert {i for i, _ in moved} == set(ids["rgb"][:3])
     t = session.get(Task, ids["rgb"][0], populate_existing=True)
     assert t is not None and (t.state, t.worker_id, t.attempts) == ("running", "host:9", 1)
@@ -170,6 +183,8 @@ def test_transition_in_chunks(sqlite_session: Session) -> None:
     bulk_insert(sqlite_session, Task, _task_columns(job.id, 12_000))
     init_counts(sqlite_session, job.id, {c: 3_000 for c in CUES})
     ids = list(sqlite_session.scalars(select(Task.id).where(Task.job_id == job.id)))
-    moved = transition(sqlite_session, job_id=job.id, task_ids=ids, from_state="pending", to_state="cancelled")
+    moved = transition(
+        sqlite_session, job_id=job.id, task_ids=ids, from_state="pending", to_state="cancelled"
+    )
     assert len(moved) == 12_000
     assert job_progress(sqlite_session, job.id) == {c: {"cancelled": 3_000} for c in CUES}

@@ -106,7 +106,9 @@ def test_concurrent_claims_never_take_the_same_job(committed):
         assert {r.id for r in rows if r.planner == "planner-a"} == got_a
         # a planner that died: its lease runs out and another scheduler takes the job over
         victim = sorted(got_a)[0]
-        s.execute(update(Job).where(Job.id == victim).values(planner_lease_until=utcnow() - timedelta(seconds=1)))
+        s.execute(
+            update(Job).where(Job.id == victim).values(planner_lease_until=utcnow() - timedelta(seconds=1))
+        )
         s.commit()
         again = claim_pending_jobs(s, "planner-c", 10)
         s.commit()
@@ -184,7 +186,9 @@ def test_counters_equal_count_star_after_random_transitions(pg_sm, local_store, 
     the incremental counters equal COUNT(*) by cue and state."""
     rng = random.Random(seed)
     with pg_sm() as s:
-        job = make_running_job(s, local_store, cues=["reshading", "edge_texture", "nonfixated"], n_points=4, views=3)
+        job = make_running_job(
+            s, local_store, cues=["reshading", "edge_texture", "nonfixated"], n_points=4, views=3
+        )
 
         def pick(state: str) -> list[int]:
             ids = task_ids(s, job.id, state=state)
@@ -204,11 +208,15 @@ def test_counters_equal_count_star_after_random_transitions(pg_sm, local_store, 
             elif op == "done":
                 complete(s, job, pick("running"))
             elif op == "fail":
-                transition(s, job_id=job.id, task_ids=pick("running"), from_state="running", to_state="failed",
-                           error="x")
+                transition(
+                    s, job_id=job.id, task_ids=pick("running"), from_state="running", to_state="failed",
+                    error="x",
+                )
             elif op == "retry_later":
-                transition(s, job_id=job.id, task_ids=pick("running"), from_state="running", to_state="pending",
-                           not_before=utcnow() + timedelta(seconds=rng.choice([-5, 5])))
+                transition(
+                    s, job_id=job.id, task_ids=pick("running"), from_state="running", to_state="pending",
+                    not_before=utcnow() + timedelta(seconds=rng.choice([-5, 5])),
+                )
             elif op == "lease_lost":
                 s.execute(update(Task).where(Task.id.in_(pick("running")))
                           .values(lease_until=utcnow() - timedelta(seconds=1)))

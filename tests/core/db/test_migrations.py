@@ -28,8 +28,10 @@ from services.core.db.engine import (
 from services.core.db.models import Base
 from tests.conftest import create_pg_database, drop_pg_database
 
-TABLES = {"space", "job", "job_space", "job_counter", "camera", "point", "view", "task", "worker", "worker_block",
-          "view_output", "compacted_duration"}
+TABLES = {
+    "space", "job", "job_space", "job_counter", "camera", "point", "view", "task", "worker", "worker_block",
+    "view_output", "compacted_duration",
+}
 
 
 def _tables(url: str) -> set[str]:
@@ -104,9 +106,12 @@ def test_upgrade_downgrade_upgrade_postgres(fresh_pg: str) -> None:
     engine = make_engine(fresh_pg)
     try:
         with engine.connect() as conn:  # autoincrement ids are BIGINT identities on Postgres
-            kind = conn.execute(text(
-                "SELECT data_type FROM information_schema.columns WHERE table_name='task' AND column_name='id'"
-            )).scalar()
+            kind = conn.execute(
+                text(
+                    "SELECT data_type FROM information_schema.columns WHERE table_name='task' AND "
+                    "column_name='id'"
+                )
+            ).scalar()
             assert kind == "bigint"
     finally:
         engine.dispose()
@@ -116,7 +121,8 @@ def test_concurrent_migrations_on_postgres_wait_for_each_other(fresh_pg: str, re
     """API and scheduler starting together: one migrates, the other waits on the lock (polled, so 0004's
     CREATE INDEX CONCURRENTLY is not left waiting on it) and then finds nothing to do."""
     migrate(fresh_pg, "0003")
-    code = f"from services.core.db.engine import migrate; migrate({fresh_pg!r})"  # Alembic's context is per process
+    # Alembic's context is per process
+    code = f"from services.core.db.engine import migrate; migrate({fresh_pg!r})"
     procs = [subprocess.Popen([sys.executable, "-c", code], cwd=repo_root, stderr=subprocess.PIPE, text=True)
              for _ in range(3)]
     for p in procs:
@@ -127,11 +133,19 @@ def test_concurrent_migrations_on_postgres_wait_for_each_other(fresh_pg: str, re
     engine = make_engine(fresh_pg)
     try:
         with engine.connect() as conn:  # built concurrently and valid; the replaced index is gone
-            valid = dict(conn.execute(text(
-                "SELECT c.relname, i.indisvalid FROM pg_index AS i JOIN pg_class AS c ON c.oid = i.indexrelid "
-                "WHERE c.relname IN ('ix_task_pending_job_id_cue_id', 'ix_task_job_id_state_cue_id')")).all())
+            valid = dict(
+                conn.execute(
+                    text(
+                        "SELECT c.relname, i.indisvalid FROM pg_index AS i JOIN pg_class AS c ON c.oid = "
+                        "i.indexrelid "
+                        "WHERE c.relname IN ('ix_task_pending_job_id_cue_id', 'ix_task_job_id_state_cue_id')"
+                    )
+                ).all()
+            )
             assert valid == {"ix_task_pending_job_id_cue_id": True}
-            assert conn.execute(text("SELECT count(*) FROM pg_locks WHERE locktype = 'advisory'")).scalar() == 0
+            assert (
+                conn.execute(text("SELECT count(*) FROM pg_locks WHERE locktype = 'advisory'")).scalar() == 0
+            )
     finally:
         engine.dispose()
 
@@ -149,8 +163,8 @@ def test_migrate_creates_a_fresh_sqlite_file(tmp_path: Path) -> None:
 
 
 def _sqlite_schema(url: str) -> set[tuple[str, str, str, str | None]]:
-    """Every table and index of a SQLite database as its CREATE statement (a table name quoted by a rebuild, as
-    Alembic's batch operations leave it, unquoted: the same name)."""
+    """Every table and index of a SQLite database as its CREATE statement (a table name quoted by a rebuild,
+    as Alembic's batch operations leave it, unquoted: the same name)."""
     engine = make_engine(url)
     try:
         with engine.connect() as conn:
@@ -161,21 +175,28 @@ def _sqlite_schema(url: str) -> set[tuple[str, str, str, str | None]]:
             for kind, name, table, sql in rows}
 
 
-def test_a_new_sqlite_file_is_made_at_the_head_as_alembic_makes_it_without_loading_alembic(repo_root: Path,
-                                                                                         tmp_path: Path) -> None:
-    """The embedded default's new database comes from the models, stamped at the head, without importing Alembic
-    (0.12-0.17 CPU-s of every `generate`'s start-up): every table, index and the version table as Alembic's upgrade of an
-    empty file writes them, and at the revision the schema check wants."""
+def test_a_new_sqlite_file_is_made_at_the_head_as_alembic_makes_it_without_loading_alembic(
+    repo_root: Path, tmp_path: Path
+) -> None:
+    """The embedded default's new database comes from the models, stamped at the head, without importing
+    Alembic (0.12-0.17 CPU-s of every `generate`'s start-up): every table, index and the version table as
+    Alembic's upgrade of an empty file writes them, and at the revision the schema check wants."""
     assert SCHEMA_HEAD == _head()
     by_alembic = f"sqlite:///{tmp_path / 'alembic.db'}"
     command.upgrade(alembic_config(by_alembic), "head")
     fresh = f"sqlite:///{tmp_path / 'fresh.db'}"
-    code = f"import sys; from services.core.db.engine import migrate; migrate({fresh!r}); print('alembic' in sys.modules)"
-    out = subprocess.run([sys.executable, "-c", code], cwd=repo_root, capture_output=True, text=True, timeout=120)
+    code = (
+        f"import sys; from services.core.db.engine import migrate; migrate({fresh!r}); "
+        "print('alembic' in sys.modules)"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], cwd=repo_root, capture_output=True, text=True, timeout=120
+    )
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "False"
     assert _sqlite_schema(fresh) == _sqlite_schema(by_alembic)
-    assert not [p for p in tmp_path.iterdir() if ".new-" in p.name]  # the database built beside was linked, then removed
+    # the database built beside was linked, then removed
+    assert not [p for p in tmp_path.iterdir() if ".new-" in p.name]
     engine = make_engine(fresh)
     try:
         assert schema_problem(engine) is None

@@ -55,16 +55,25 @@ def test_full_plan_round_trip(session: Session) -> None:
     session.add_all([space, job])
     session.flush()
     when = datetime(2025, 1, 2, 3, 4, 5, 678901, tzinfo=timezone(timedelta(hours=2)))
-    session.add_all([
-        JobSpace(job_id=job.id, space_id=space.id, position=0, cues=["rgb", "normal"]),
-        Camera(job_id=job.id, space_id=space.id, idx=0, x=1.0, y=2.0, z=1.5, yaw=0.5, roll=-0.1, uuid="c0"),
-        Point(job_id=job.id, space_id=space.id, idx=0, x=0, y=0, z=0.1, nx=0, ny=0, nz=1, n_views=3, uuid="p0"),
-        View(job_id=job.id, space_id=space.id, point_idx=0, v=0, camera_idx=0, fov=1.35, resolution=512,
-             world_to_camera=[float(i) for i in range(16)]),
-        Task(job_id=job.id, space_id=space.id, point_idx=0, view_idx=0, cue="rgb", not_before=when),
-        Worker(id="host:1", host="host", queues=["render"]),
-        WorkerBlock(worker_id="host:1", job_id=job.id, failures=2),
-    ])
+    session.add_all(
+        [
+            JobSpace(job_id=job.id, space_id=space.id, position=0, cues=["rgb", "normal"]),
+            Camera(
+                job_id=job.id, space_id=space.id, idx=0, x=1.0, y=2.0, z=1.5, yaw=0.5, roll=-0.1, uuid="c0"
+            ),
+            Point(
+                job_id=job.id, space_id=space.id, idx=0, x=0, y=0, z=0.1, nx=0, ny=0, nz=1, n_views=3,
+                uuid="p0",
+            ),
+            View(
+                job_id=job.id, space_id=space.id, point_idx=0, v=0, camera_idx=0, fov=1.35, resolution=512,
+                world_to_camera=[float(i) for i in range(16)],
+            ),
+            Task(job_id=job.id, space_id=space.id, point_idx=0, view_idx=0, cue="rgb", not_before=when),
+            Worker(id="host:1", host="host", queues=["render"]),
+            WorkerBlock(worker_id="host:1", job_id=job.id, failures=2),
+        ]
+    )
     session.commit()
     session.expunge_all()
 

@@ -6,7 +6,9 @@ from services.core.db.plan_claims import Waiting, fair_plan_order
 
 
 def test_tenants_take_turns_and_priority_counts_only_within_a_tenant() -> None:
-    waiting = [Waiting(1, "a", 0), Waiting(2, "a", 0), Waiting(3, "a", 9), Waiting(4, "b", 0), Waiting(5, "c", 0)]
+    waiting = [
+        Waiting(1, "a", 0), Waiting(2, "a", 0), Waiting(3, "a", 9), Waiting(4, "b", 0), Waiting(5, "c", 0),
+    ]
     # a's priority 9 job goes first within a, but b and c still get their turns before a's second job
     assert fair_plan_order(waiting, {}, 5) == [3, 4, 5, 1, 2]
     assert fair_plan_order(waiting, {}, 2) == [3, 4]

@@ -1,5 +1,5 @@
-"""services.core.db.states: every allowed task and job transition works (tasks move, counters follow in the same
-transaction), and every other one is refused without touching a row."""
+"""services.core.db.states: every allowed task and job transition works (tasks move, counters follow in the
+same transaction), and every other one is refused without touching a row."""
 
 from __future__ import annotations
 

@@ -1,8 +1,9 @@
-"""A whole-view batch claim (worker_moves.claim_view_tasks with_pending=True, issue 20/23): after its render, the
-rest of a view moves from pending AND queued to running, on a real Postgres (one fixed statement whose counter
-deltas subtract each row's own old state) and on SQLite (an UPDATE per source state, then the counters). The counter shards
-must still sum to the task rows; the claim must respect a paused job, a blocked worker, a failed task of the
-view and rows of other views; concurrent claims of the same view take each task once."""
+"""A whole-view batch claim (worker_moves.claim_view_tasks with_pending=True, issue 20/23): after its render,
+the rest of a view moves from pending AND queued to running, on a real Postgres (one fixed statement whose
+counter deltas subtract each row's own old state) and on SQLite (an UPDATE per source state, then the
+counters). The counter shards must still sum to the task rows; the claim must respect a paused job, a blocked
+worker, a failed task of the view and rows of other views; concurrent claims of the same view take each task
+once."""
 
 from __future__ import annotations
 
@@ -37,7 +38,11 @@ def _migrated(url: str) -> Iterator[Engine]:
 
 @pytest.fixture(params=["postgres", "sqlite"])
 def engine(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Engine]:
-    url = request.getfixturevalue("empty_pg_url") if request.param == "postgres" else f"sqlite:///{tmp_path / 'v.db'}"
+    url = (
+        request.getfixturevalue("empty_pg_url")
+        if request.param == "postgres"
+        else f"sqlite:///{tmp_path / 'v.db'}"
+    )
     yield from _migrated(url)
 
 
@@ -51,7 +56,9 @@ def _job(s: Session, n_points: int) -> int:
     job = Job(owner="t", name="j", spec={}, state="running")
     s.add(job)
     s.flush()
-    cols: dict[str, list[object]] = {k: [] for k in ("job_id", "space_id", "point_idx", "view_idx", "cue", "state")}
+    cols: dict[str, list[object]] = {
+        k: [] for k in ("job_id", "space_id", "point_idx", "view_idx", "cue", "state")
+    }
     deltas: dict[tuple[str, str], int] = {}
     for p in range(n_points):
         for cue, state in VIEW.items():
@@ -82,9 +89,10 @@ def _claim(sm: sessionmaker[Session], ids: dict[tuple[int, str], int], job_id: i
            with_pending: bool = True) -> list[tuple[int, str, int, str]]:
     now = utcnow()
     with sm() as s:
-        rows = claim_view_tasks(s, task_id=ids[(point, "passes")], job_id=job_id, space_id=1, point=point, view=0,
-                                worker_id=worker, now=now, lease_until=now + timedelta(seconds=60),
-                                with_pending=with_pending)
+        rows = claim_view_tasks(
+            s, task_id=ids[(point, "passes")], job_id=job_id, space_id=1, point=point, view=0,
+            worker_id=worker, now=now, lease_until=now + timedelta(seconds=60), with_pending=with_pending,
+        )
     return sorted((int(r[0]), str(r[1]), int(r[3]), str(r[4])) for r in rows)
 
 
@@ -100,7 +108,8 @@ def test_a_mixed_pending_and_queued_batch_moves_its_rows_and_keeps_the_counters_
         s.add(WorkerBlock(worker_id="bad", job_id=job_id, failures=3, until=utcnow() + timedelta(minutes=10)))
         s.commit()
     assert _claim(sm, ids, job_id, 0, "bad") == []  # blocked on this job
-    assert _claim(sm, ids, job_id, 0, "w", with_pending=False) == sorted(  # the derived cue's batch: queued only
+    # the derived cue's batch: queued only
+    assert _claim(sm, ids, job_id, 0, "w", with_pending=False) == sorted(
         (ids[(0, c)], c, 1, "queued") for c in ("depth_zbuffer", "point_info"))
     got = _claim(sm, ids, job_id, 1, "w")
     # every pending or queued task of point 1's view, each with its old state; not passes, not the done one

@@ -96,7 +96,8 @@ def test_defaults_follow_semantics() -> None:
     labelled = default_cues(has_semantics=True)
     assert not any(CATALOG[n].needs_semantics for n in plain)
     assert set(labelled) - set(plain) == {"segment_semantic", "segment_instance", "segment_panoptic"}
-    optional = {"augment_params", "rgb_refocus", "rgb_fog", "rgb_motion_blur", "rgb_flash"}  # asked for by name
+    # asked for by name
+    optional = {"augment_params", "rgb_refocus", "rgb_fog", "rgb_motion_blur", "rgb_flash"}
     optional.add("mask_photo")  # mask_photo: only jobs with rgb from photos
     assert set(labelled) == set(OUTPUT_CUES) - optional and not any(CATALOG[n].default for n in optional)
     assert "passes" not in labelled

@@ -58,17 +58,26 @@ def test_json_round_trip_is_exact() -> None:
         ({"points": {"min_views": 5, "max_views": 2}}, ("points",), "max_views (2) is below min_views (5)"),
         ({"views": {"fov_mean_deg": 20}}, ("views",), "fov_mean_deg"),
         ({"views": {"fov_max_deg": 200}}, ("views",), "fov_max_deg (200.0)"),
-        ({"cameras": {"mode": "object", "object_count": 2}}, (), "points.min_views (3) exceeds cameras.object_count"),
+        (
+            {"cameras": {"mode": "object", "object_count": 2}}, (),
+            "points.min_views (3) exceeds cameras.object_count",
+        ),
         ({"unit_scale": "feet"}, ("unit_scale",), "'auto' or a number of metres per source unit"),
         ({"up": [0, 0, 0]}, ("up",), "non-zero direction"),
         ({"up": [1, 2]}, ("up", 2), "Field required"),
-        ({"source_to_world": [[1, 0, 0, 0], [1, 0, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}, ("source_to_world",),
-         "degenerate"),
-        ({"source_to_world": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 3, 0], [0, 0, 0, 1]]}, ("source_to_world",),
-         "rotation times a uniform scale"),
+        (
+            {"source_to_world": [[1, 0, 0, 0], [1, 0, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]},
+            ("source_to_world",), "degenerate",
+        ),
+        (
+            {"source_to_world": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 3, 0], [0, 0, 0, 1]]},
+            ("source_to_world",), "rotation times a uniform scale",
+        ),
         ({"up": [0, 0, 1], "up_axis": "+z"}, (), "either up (a vector) or up_axis"),
-        ({"source_to_world": [[2, 0, 0, 1], [0, 2, 0, 0], [0, 0, 2, 0], [0, 0, 0, 1]], "unit_scale": 1}, (),
-         "leave unit_scale unset"),
+        (
+            {"source_to_world": [[2, 0, 0, 1], [0, 2, 0, 0], [0, 0, 2, 0], [0, 0, 0, 1]], "unit_scale": 1},
+            (), "leave unit_scale unset",
+        ),
         ({"views": {"min_valid_fraction": 1.5}}, ("views", "min_valid_fraction"), "less than or equal to 1"),
     ],
 )
@@ -78,8 +87,10 @@ def test_refusals_name_the_field(data: dict[str, Any], loc: tuple[Any, ...], wor
     assert words in msg
     # model-level refusals carry the field name in the message itself
     if got_loc in ((), ("cameras",), ("points",), ("views",)):
-        assert any(field in msg for field in ("height_min_m", "poses", "max_views", "fov_", "min_views", "up_axis",
-                                              "unit_scale"))
+        assert any(
+            field in msg
+            for field in ("height_min_m", "poses", "max_views", "fov_", "min_views", "up_axis", "unit_scale")
+        )
 
 
 def test_provided_cameras_fewer_than_min_views_refused() -> None:
@@ -110,8 +121,10 @@ def test_space_frame_fields() -> None:
         JobSpec.model_validate({"unit_scale": "0.0254"})
     spec = JobSpec.model_validate({"unit_scale": 0.0254, "up": [0, 2, 0]})
     assert spec.unit_scale == 0.0254 and JobSpec().unit_scale == "auto"
-    assert spec.space_frame() == {"up_axis": "auto", "unit_scale": 0.0254, "up": (0.0, 2.0, 0.0), "source_to_world": None,
-                                  "accept_up_guess": False}
+    assert spec.space_frame() == {
+        "up_axis": "auto", "unit_scale": 0.0254, "up": (0.0, 2.0, 0.0), "source_to_world": None,
+        "accept_up_guess": False,
+    }
     assert JobSpec.model_validate({"accept_up_guess": True}).space_frame()["accept_up_guess"] is True
     T = [[0, -2, 0, 1], [2, 0, 0, 2], [0, 0, 2, 3], [0, 0, 0, 1]]  # a turn, 2 m per unit, a shift: accepted
     assert JobSpec.model_validate({"source_to_world": T}).space_frame()["source_to_world"][0] == (0, -2, 0, 1)
@@ -124,7 +137,9 @@ def test_capture_fields() -> None:
     assert "mask_photo" in cues_for_space(spec, has_semantics=False)
     assert not JobSpec().uses_photos() and "mask_photo" not in cues_for_space(JobSpec(), has_semantics=False)
     assert JobSpec.model_validate({"views": {"rgb_source": "photos"}}).uses_photos()
-    assert not JobSpec.model_validate({"cameras": {"mode": "capture"}, "views": {"rgb_source": "mesh"}}).uses_photos()
+    assert not JobSpec.model_validate(
+        {"cameras": {"mode": "capture"}, "views": {"rgb_source": "mesh"}}
+    ).uses_photos()
     with pytest.raises(ValidationError, match="mask_photo"):
         JobSpec.model_validate({"cues": ["rgb", "mask_photo"]})
     for bad in ({"cameras": {"mode": "capture", "capture_fov_deg": 0.5}}, {"views": {"min_alignment": -1}},

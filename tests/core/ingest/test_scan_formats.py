@@ -23,7 +23,8 @@ from tests.fixtures.scans import room_cloud, scannet_scene
 
 def test_scannet_labels_from_segments_and_aggregation(tmp_path: Path) -> None:
     ply, expected = scannet_scene(tmp_path / "scene0000_00")
-    (tmp_path / "scene0000_00" / "scene0000_00_vh_clean_2.labels.ply").write_bytes(ply.read_bytes())  # ignored
+    # ignored
+    (tmp_path / "scene0000_00" / "scene0000_00_vh_clean_2.labels.ply").write_bytes(ply.read_bytes())
     space = load_space(tmp_path / "scene0000_00")  # the folder: its _vh_clean_2.ply is the mesh
     assert space.source_path == ply and space.has_semantics and space.has_vertex_colors
     assert space.class_names == {1: "chair", 2: "floor", 3: "table"}
@@ -37,8 +38,12 @@ def test_scannet_single_file_is_packed_with_its_label_files(tmp_path: Path) -> N
     ply, _ = scannet_scene(tmp_path / "s")
     packed = pack_source(ply, ply, tmp_path)
     with zipfile.ZipFile(packed) as zf:
-        assert sorted(zf.namelist()) == sorted(["scene0000_00_vh_clean_2.ply", "scene0000_00.aggregation.json",
-                                                "scene0000_00_vh_clean_2.0.010000.segs.json"])
+        assert sorted(zf.namelist()) == sorted(
+            [
+                "scene0000_00_vh_clean_2.ply", "scene0000_00.aggregation.json",
+                "scene0000_00_vh_clean_2.0.010000.segs.json",
+            ]
+        )
     again = load_space(resolve_source(packed, tmp_path / "x"))
     assert again.has_semantics and again.class_names == {1: "chair", 2: "floor", 3: "table"}
 
@@ -137,12 +142,18 @@ def test_text_clouds_and_their_columns(tmp_path: Path) -> None:
     np.testing.assert_allclose(got.normals, normals, atol=1e-6)
     np.testing.assert_array_equal(got.colors, colours)
     pts_file = tmp_path / "b.pts"  # Leica: a count line, then x y z intensity r g b
-    pts_file.write_text(f"{len(pts)}\n" + "\n".join(
-        f"{p[0]:.6f} {p[1]:.6f} {p[2]:.6f} 0.5 {c[0]} {c[1]} {c[2]}" for p, c in zip(pts, colours, strict=True)))
+    pts_file.write_text(
+        f"{len(pts)}\n"
+        + "\n".join(
+            f"{p[0]:.6f} {p[1]:.6f} {p[2]:.6f} 0.5 {c[0]} {c[1]} {c[2]}"
+            for p, c in zip(pts, colours, strict=True)
+        )
+    )
     got = read_text_cloud(pts_file)
     assert got.normals is None
     np.testing.assert_array_equal(got.colors, colours)
-    # a coarse 1,500-point room: its up is ambiguous (issue 17 refuses it); this test is about reading the cloud
+    # a coarse 1,500-point room: its up is ambiguous (issue 17 refuses it); this test is about reading the
+    # cloud
     space = load_space(pts_file, up_axis="+z", cloud_cache_dir=tmp_path / "cache")  # normals estimated
     assert space.reconstruction["parameters"]["normals"].startswith("estimated")
     assert space.face_count > 1000
@@ -179,7 +190,9 @@ def test_a_source_zipped_twice_in_a_process_is_deflated_once_and_stays_in_step_w
     first = registry.source_checksum(src)
     writes = []
     real = zipfile.ZipFile.writestr
-    monkeypatch.setattr(zipfile.ZipFile, "writestr", lambda self, *a, **k: (writes.append(a[0]), real(self, *a, **k)))
+    monkeypatch.setattr(
+        zipfile.ZipFile, "writestr", lambda self, *a, **k: (writes.append(a[0]), real(self, *a, **k))
+    )
     (tmp_path / "w").mkdir()
     again = pack_source(src, src / "room.obj", tmp_path / "w")
     assert sha256_file(again) == first and writes == []  # the same bytes, not deflated again
@@ -195,7 +208,9 @@ def test_a_source_zipped_twice_in_a_process_is_deflated_once_and_stays_in_step_w
 def test_a_source_zip_stores_compressed_members_and_deflates_the_rest_byte_for_byte(tmp_path: Path) -> None:
     src = tmp_path / "room"
     src.mkdir()
-    (src / "room.obj").write_text("mtllib room.mtl\nusemtl a\nv 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf 1/1 2/1 3/1\n" * 50)
+    (src / "room.obj").write_text(
+        "mtllib room.mtl\nusemtl a\nv 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf 1/1 2/1 3/1\n" * 50
+    )
     (src / "room.mtl").write_text("newmtl a\nmap_Kd wall.jpg\n")
     rng = np.random.default_rng(0)
     Image.fromarray(rng.integers(0, 255, (64, 64, 3), dtype=np.uint8)).save(src / "wall.jpg", quality=90)
@@ -216,7 +231,9 @@ def test_the_legacy_checksum_is_that_of_the_zip_every_member_deflated(tmp_path: 
 
     src = tmp_path / "room"
     src.mkdir()
-    (src / "room.obj").write_text("mtllib room.mtl\nusemtl a\nv 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf 1/1 2/1 3/1\n")
+    (src / "room.obj").write_text(
+        "mtllib room.mtl\nusemtl a\nv 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf 1/1 2/1 3/1\n"
+    )
     (src / "room.mtl").write_text("newmtl a\nmap_Kd wall.png\n")
     Image.fromarray(np.full((8, 8, 3), 90, np.uint8)).save(src / "wall.png")
     before = tmp_path / "before.zip"  # as pack_source wrote zips until 2026-11
@@ -240,18 +257,25 @@ def test_a_scan_loads_as_trimeshs_forced_mesh_without_its_copies(tmp_path: Path,
     icl = scenes_dir / "icl_livingroom" / "livingroom.obj"
     banana = next((scenes_dir / "ycb_banana").glob("*.obj"))  # with vertex normals
     moved = trimesh.Scene()
-    moved.add_geometry(trimesh.creation.box(), transform=trimesh.transformations.translation_matrix([1.0, 2, 3]))
+    moved.add_geometry(
+        trimesh.creation.box(), transform=trimesh.transformations.translation_matrix([1.0, 2, 3])
+    )
     two = trimesh.Scene([trimesh.creation.box(), trimesh.creation.icosphere(2)])
     for name, scene in (("moved.glb", moved), ("two.glb", two)):
         scene.export(tmp_path / name)
     for source in (kitchen, icl, banana, tmp_path / "moved.glb", tmp_path / "two.glb"):
         want = trimesh.load(source, force="mesh")
         got = _single_mesh(trimesh.load_scene(source))
-        assert np.array_equal(got.vertices, want.vertices) and np.array_equal(got.faces, want.faces), source.name
+        assert np.array_equal(got.vertices, want.vertices) and np.array_equal(got.faces, want.faces), (
+            source.name
+        )
         assert got.visual.kind == want.visual.kind, source.name
-        # the file's own vertex normals were dropped by to_mesh's copies: the curvature reads normals of the faces
+        # the file's own vertex normals were dropped by to_mesh's copies: the curvature reads normals of the
+        # faces
         assert np.array_equal(got.vertex_normals, want.vertex_normals), source.name
     assert np.array_equal(got.vertices, want.vertices) and len(got.faces) == 12 + 320  # both, concatenated
     coloured = _single_mesh(trimesh.load_scene(kitchen))
     assert "_ply_raw" in coloured.metadata
-    assert np.array_equal(coloured.visual.vertex_colors, trimesh.load(kitchen, force="mesh").visual.vertex_colors)
+    assert np.array_equal(
+        coloured.visual.vertex_colors, trimesh.load(kitchen, force="mesh").visual.vertex_colors
+    )

@@ -19,8 +19,12 @@ def _banana(scenes_dir: Path) -> Path:
     return scenes_dir / "ycb_banana" / "textured_simple_reoriented.obj"
 
 
-def test_obj_is_packed_with_its_mtl_and_texture_and_fetched_back(db_session, local_store, scenes_dir, tmp_path):
-    space = register_space(db_session, local_store, owner="alice", name="banana", source_path=_banana(scenes_dir))
+def test_obj_is_packed_with_its_mtl_and_texture_and_fetched_back(
+    db_session, local_store, scenes_dir, tmp_path
+):
+    space = register_space(
+        db_session, local_store, owner="alice", name="banana", source_path=_banana(scenes_dir)
+    )
     assert space.source_key == f"spaces/{space.id}/textured_simple_reoriented.zip"
     with zipfile.ZipFile(local_store.root / space.source_key) as zf:
         assert sorted(zf.namelist()) == ["texture_map.png", "textured_simple_reoriented.mtl",

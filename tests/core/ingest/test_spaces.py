@@ -27,7 +27,9 @@ def shared_scenes(scenes_dir: Path) -> Path:
 
 
 def _rot(axis: str, deg: float) -> np.ndarray:
-    return trimesh.transformations.rotation_matrix(np.radians(deg), {"x": [1, 0, 0], "y": [0, 1, 0], "z": [0, 0, 1]}[axis])
+    return trimesh.transformations.rotation_matrix(
+        np.radians(deg), {"x": [1, 0, 0], "y": [0, 1, 0], "z": [0, 0, 1]}[axis]
+    )
 
 
 def _export(mesh: trimesh.Trimesh, path: Path) -> Path:
@@ -40,9 +42,7 @@ def _textured_quad_obj(folder: Path) -> Path:
     Image.new("RGB", (4, 4), (200, 10, 10)).save(folder / "tex.png")
     (folder / "quad.mtl").write_text("newmtl m\nKd 1 1 1\nmap_Kd tex.png\n")
     (folder / "quad.obj").write_text(
-        "mtllib quad.mtl\nusemtl m\n"
-        "v 0 0 0\nv 1 0 0\nv 1 0 1\nv 0 0 1\n"
-        "vt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\n"
+        "mtllib quad.mtl\nusemtl m\nv 0 0 0\nv 1 0 0\nv 1 0 1\nv 0 0 1\nvt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\n"
         "f 1/1 2/2 3/3\nf 1/1 3/3 4/4\n"
     )
     return folder / "quad.obj"
@@ -220,7 +220,9 @@ def test_up_fallbacks_and_explicit_axis(tmp_path: Path, shared_scenes: Path) -> 
     assert "floor and ceiling look alike" in note and "None" not in note
 
 
-@pytest.mark.parametrize("up", [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1], [0.1, -0.2, 0.97]])
+@pytest.mark.parametrize(
+    "up", [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1], [0.1, -0.2, 0.97]]
+)
 def test_rotation_to_z(up: list[float]) -> None:
     u = np.array(up) / np.linalg.norm(up)
     R = rotation_to_z(u)
@@ -281,7 +283,9 @@ def test_ply_face_labels_follow_triangulation(tmp_path: Path, binary: bool, mixe
 def test_replica_object_id_and_info_semantic(tmp_path: Path) -> None:
     v, polys, _, _ = _labelled_scene(mixed=False)
     path = tmp_path / "mesh.ply"
-    scenes.write_ply_with_labels(path, v, polys, None, np.array([0, 1, 1, 2]), instance_name="object_id", binary=True)
+    scenes.write_ply_with_labels(
+        path, v, polys, None, np.array([0, 1, 1, 2]), instance_name="object_id", binary=True
+    )
     only_instances = load_space(path, up_axis="+z")
     assert only_instances.face_instance is not None and only_instances.face_class is None
     assert not only_instances.has_semantics

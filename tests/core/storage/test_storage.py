@@ -1,4 +1,5 @@
-"""Object storage contract: the local folder and S3 (moto over HTTP, boto3 as for real S3) pass the same tests."""
+"""Object storage contract: the local folder and S3 (moto over HTTP, boto3 as for real S3) pass the same
+tests."""
 
 from __future__ import annotations
 
@@ -110,7 +111,8 @@ def test_big_file_multipart_round_trip(store: ObjectStore, tmp_path: Path) -> No
     assert st is not None and st.size == len(data) and st.sha256 == info.sha256
     if isinstance(store, S3Store):
         head = store.client.head_object(Bucket=store.bucket, Key=store._k("spaces/1/source.zip"))
-        assert head["ETag"].strip('"').endswith("-2"), head["ETag"]  # S3's multipart ETag: md5-of-md5s-<parts>
+        # S3's multipart ETag: md5-of-md5s-<parts>
+        assert head["ETag"].strip('"').endswith("-2"), head["ETag"]
     with pytest.raises(ObjectNotFoundError):
         store.get_file("spaces/1/missing.zip", tmp_path / "x")
 
@@ -119,7 +121,9 @@ def test_presigned_url_downloads_without_credentials(store: ObjectStore) -> None
     store.put_bytes("out/job.json", b'{"ok": true}', "application/json")
     url = store.presigned_url("out/job.json", expires_s=600)
     if isinstance(store, S3Store):
-        assert url.startswith("http://127.0.0.1:") and "X-Amz-Signature=" in url and "X-Amz-Expires=600" in url
+        assert (
+            url.startswith("http://127.0.0.1:") and "X-Amz-Signature=" in url and "X-Amz-Expires=600" in url
+        )
     else:
         assert url.startswith("file:///")
     with urllib.request.urlopen(url, timeout=10) as resp:  # plain HTTP (or file://), no boto3
@@ -178,7 +182,9 @@ def resident_fraction(path: Path) -> float:
     """The fraction of the file's pages in the page cache (mincore over a shared read-only mapping of it)."""
     libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
     libc.mmap.restype = ctypes.c_void_p
-    libc.mmap.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int, ctypes.c_int, ctypes.c_int, ctypes.c_long]
+    libc.mmap.argtypes = [
+        ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int, ctypes.c_int, ctypes.c_int, ctypes.c_long,
+    ]
     libc.mincore.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_char_p]
     libc.munmap.argtypes = [ctypes.c_void_p, ctypes.c_size_t]
     size, page = path.stat().st_size, mmap.PAGESIZE
@@ -215,7 +221,8 @@ def test_put_many_leaves_files_it_need_not_keep_cached_out_of_the_page_cache(tmp
     assert resident_fraction(store.path("passes/a.npz")) > 0.9  # written and kept: in the page cache
     assert resident_fraction(store.path("rgb/a.png")) == 0.0  # flushed, then dropped
     assert resident_fraction(store.path("depth/a.png")) == 0.0
-    assert store.get_bytes("rgb/a.png") == data and store.get_bytes("depth/a.png") == data[:5000]  # from the disk
+    # from the disk
+    assert store.get_bytes("rgb/a.png") == data and store.get_bytes("depth/a.png") == data[:5000]
 
 
 def test_put_many_stores_each_object_as_put_bytes_would(store: ObjectStore) -> None:
@@ -232,7 +239,8 @@ def test_put_many_stores_each_object_as_put_bytes_would(store: ObjectStore) -> N
     assert store.put_many([]) == []
 
 
-# ---------------------------------------------------------------------------------------------- backend specifics
+# ---------------------------------------------------------------------------------------------- backend
+# specifics
 
 
 def test_local_writes_are_atomic_and_leave_no_temp_files(local_store: LocalStore) -> None:
@@ -332,7 +340,8 @@ def test_a_local_store_that_cannot_write_is_a_named_storage_error(tmp_path: Path
     with pytest.raises(StorageError, match=rf"cannot write to the object folder {st.root}: "):
         st.put_many([("rgb/a.png", b"1"), ("spaces/1/scan.ply", b"ply")])  # the second cannot be written
     assert sorted(p.name for p in st.root.iterdir()) == ["rgb", "spaces"] and list(st.list()) == ["spaces"]
-    assert list((st.root / "rgb").iterdir()) == []  # the first was never renamed in, and its temp file is gone
+    # the first was never renamed in, and its temp file is gone
+    assert list((st.root / "rgb").iterdir()) == []
     (st.root / "rgb").rmdir()
     (st.root / "spaces").unlink()
     st.root.rmdir()

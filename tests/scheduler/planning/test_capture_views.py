@@ -85,7 +85,9 @@ def frame_scores(q: MeshQueries, frame: CaptureFrame, photo: Photo) -> tuple:
         return alignment_score(q, photo, f, f.world_to_camera, f.inscribed_fov())
 
     fitted = colour_camera(frame)
-    return score(frame), score(fitted), [score(turned(fitted, d, axis)) for axis in (0, 1) for d in (-2.0, 2.0)]
+    return (
+        score(frame), score(fitted), [score(turned(fitted, d, axis)) for axis in (0, 1) for d in (-2.0, 2.0)],
+    )
 
 
 @pytest.fixture(scope="module")
@@ -105,8 +107,8 @@ def scores_of(kitchen):
 
 
 def separation(kitchen, scores_of, stride: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
-    """Scores of every stride-th frame: raw depth camera, fitted colour camera, and the colour camera turned by
-    2 degrees up, down, left and right (n, 4)."""
+    """Scores of every stride-th frame: raw depth camera, fitted colour camera, and the colour camera turned
+    by 2 degrees up, down, left and right (n, 4)."""
     picked = range(0, len(kitchen.capture.frames), stride)
     raw, colour, perturbed = zip(*(scores_of(i) for i in picked), strict=True)
     names = [kitchen.capture.frames[i].name for i in picked]
@@ -115,9 +117,9 @@ def separation(kitchen, scores_of, stride: int) -> tuple[np.ndarray, np.ndarray,
 
 def check_separation(raw, colour, perturbed, names) -> None:
     assert np.isfinite(raw).all() and np.isfinite(colour).all() and np.isfinite(perturbed).all()
-    # The fitted colour camera is one global fit; on frame 800 the raw depth camera lines up better (an overlay of
-    # the cast edges on the photo shows it: Kinect colour and depth are not exposed at the same instant, and the
-    # camera moves), so that frame is the one allowed exception.
+    # The fitted colour camera is one global fit; on frame 800 the raw depth camera lines up better (an
+    # overlay of the cast edges on the photo shows it: Kinect colour and depth are not exposed at the same
+    # instant, and the camera moves), so that frame is the one allowed exception.
     worse = [names[i] for i in np.flatnonzero(colour <= raw)]
     assert set(worse) <= {"frames/frame-000800"}, worse
     assert np.median(colour) > np.median(raw) + 0.2
@@ -161,7 +163,9 @@ def test_fixated_views_from_capture_positions(kitchen):
 
 def test_capture_mode_without_a_capture_is_refused(scenes_dir):
     bunny = load_space(scenes_dir / "stanford_bunny" / "bun_zipper_res2.ply")
-    with pytest.raises(PlanError, match="needs a posed capture.*at most 2 folders down beside a single mesh file"):
+    with pytest.raises(
+        PlanError, match="needs a posed capture.*at most 2 folders down beside a single mesh file"
+    ):
         _plan(bunny, cameras={"mode": "capture"})
 
 
@@ -170,7 +174,9 @@ def test_refining_the_colour_camera_moves_towards_the_fitted_one(kitchen):
     fitted colour camera (526 / 585 = 0.90) and a better score; the record says what was refined."""
     from services.scheduler.planning.refine import refine_colour_camera
 
-    correction, record = refine_colour_camera(MeshQueries(kitchen.mesh), kitchen.capture, frames=6, halvings=1)
+    correction, record = refine_colour_camera(
+        MeshQueries(kitchen.mesh), kitchen.capture, frames=6, halvings=1
+    )
     assert 0.85 <= correction.focal_scale <= 0.95, record
     assert record["score_after"] > record["score_before"] + 0.2
     assert "focal length" in record["refined"] and record["frames_scored"] == 6
@@ -182,28 +188,36 @@ def test_capture_refine_plan_and_worker_agree(kitchen, capture_plan, monkeypatch
     from services.scheduler.planning import refine
     from services.worker.inputs.photos import painter_for
 
-    # What the plan does with a refinement is the subject here, not the search (test_refining_... above): the real
-    # search on 6 frames with 1 halving, as there, instead of 12 frames and 3 halvings (28 -> 5 CPU s).
+    # What the plan does with a refinement is the subject here, not the search (test_refining_... above): the
+    # real search on 6 frames with 1 halving, as there, instead of 12 frames and 3 halvings (28 -> 5 CPU s).
     monkeypatch.setattr(refine, "refine_colour_camera",
                         functools.partial(refine.refine_colour_camera, frames=6, halvings=1))
-    spec = JobSpec.model_validate({"cameras": {"mode": "capture", "capture_refine": True}, "views": {"resolution": 32}})
+    spec = JobSpec.model_validate(
+        {"cameras": {"mode": "capture", "capture_refine": True}, "views": {"resolution": 32}}
+    )
     plan = make_plan(kitchen, spec, space_rng(0, "kitchen"), "kitchen")
     refined = plan.capture["refined"]
     corrected = ColourCorrection.from_dict(refined["correction"]).capture(kitchen.capture)
     for view in plan.views:
-        np.testing.assert_allclose(view.world_to_camera, corrected.frames[view.camera_idx].world_to_camera, atol=1e-12)
+        np.testing.assert_allclose(
+            view.world_to_camera, corrected.frames[view.camera_idx].world_to_camera, atol=1e-12
+        )
     painter = painter_for(kitchen, spec, refined)
-    assert all(len(painter.frames_at(v.position)) == 1 for v in plan.views)  # the worker finds each refined camera
+    # the worker finds each refined camera
+    assert all(len(painter.frames_at(v.position)) == 1 for v in plan.views)
     base = capture_plan
     assert np.median([v.alignment for v in plan.views]) > np.median([v.alignment for v in base.views]) + 0.2
 
 
 def test_photo_textured_views_need_photo_coverage(kitchen):
-    """views.rgb_source photos on generated cameras: views whose surface the photos saw too little of are dropped."""
+    """views.rgb_source photos on generated cameras: views whose surface the photos saw too little of are
+    dropped."""
     from services.scheduler.planning.capture_views import textured_coverage
 
-    spec = {"cameras": {"mode": "generate", "max_count": 20, "min_spacing_m": 0.3}, "points": {"count": 12, "min_views": 1},
-            "views": {"resolution": 32, "rgb_source": "photos"}}
+    spec = {
+        "cameras": {"mode": "generate", "max_count": 20, "min_spacing_m": 0.3},
+        "points": {"count": 12, "min_views": 1}, "views": {"resolution": 32, "rgb_source": "photos"},
+    }
     loose = _plan(kitchen, **{**spec, "views": {**spec["views"], "min_photo_coverage": 0.0}})
     strict = _plan(kitchen, **{**spec, "views": {**spec["views"], "min_photo_coverage": 0.6}})
     q = MeshQueries(kitchen.mesh)

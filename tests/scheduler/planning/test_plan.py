@@ -151,8 +151,9 @@ def test_point_info_keys_and_camera_consistency(room_plan: SpacePlan) -> None:
         # Blender camera rotation: Euler XYZ and wxyz quaternion of matrix_world's rotation
         R_bl = blender_matrix_world(W)[:3, :3]
         np.testing.assert_allclose(_euler_xyz_to_matrix(info["camera_rotation_final"]), R_bl, atol=1e-12)
-        np.testing.assert_allclose(quaternion_wxyz_to_rotation(info["camera_rotation_final_quaternion"]), R_bl,
-                                   atol=1e-12)
+        np.testing.assert_allclose(
+            quaternion_wxyz_to_rotation(info["camera_rotation_final_quaternion"]), R_bl, atol=1e-12
+        )
         n = np.array(info["point_normal"])
         d = (centre - info["point_location"]) / info["camera_distance"]
         assert info["obliqueness_angle"] == pytest.approx(np.arccos(n @ d))
@@ -261,7 +262,8 @@ def test_dataclasses_are_frozen_values() -> None:
 
 
 def _probe_fraction(mesh, view, size: int) -> float:
-    """Independent share of pixels with a surface: trimesh's own ray caster through the K/world_to_camera pixels."""
+    """Independent share of pixels with a surface: trimesh's own ray caster through the K/world_to_camera
+    pixels."""
     from trimesh.ray.ray_pyembree import RayMeshIntersector
 
     origins, dirs = pixel_rays(intrinsics(view.fov, size), view.world_to_camera, size, size)
@@ -316,7 +318,8 @@ def test_nonfixated_pruning_cuts_trajectory_clips_without_gaps() -> None:
 
 
 def _assert_clips_without_gaps(plan: SpacePlan, min_frames: int) -> None:
-    for point in plan.points:  # every clip is one run of frames at the spec's spacing: no frame cut from inside
+    # every clip is one run of frames at the spec's spacing: no frame cut from inside
+    for point in plan.points:
         centres = np.stack([camera_center(v.world_to_camera) for v in plan.views_of(point.idx)])
         assert len(centres) >= min_frames
         np.testing.assert_allclose(np.linalg.norm(np.diff(centres, axis=0), axis=1), 0.1, atol=0.01)

@@ -73,7 +73,9 @@ def test_try_budget_returns_a_shortfall_quickly() -> None:
     assert pts.samples_drawn <= 200 * 5  # bounded by the budget, not an endless loop
     assert len(pts.positions) < 200
     assert pts.shortfall is not None
-    assert pts.shortfall.startswith(f"space yields {len(pts.positions)} of 200 requested points with >= 3 views")
+    assert pts.shortfall.startswith(
+        f"space yields {len(pts.positions)} of 200 requested points with >= 3 views"
+    )
 
 
 def test_too_few_cameras_refused_up_front() -> None:

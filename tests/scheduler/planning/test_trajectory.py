@@ -109,7 +109,9 @@ def test_free_space_graph_edges_are_clear() -> None:
     assert free_space_graph(pair, q, 0.1).nnz == 0
 
 
-def _check_clip_limits(plan: SpacePlan, spec: JobSpec, mesh, scale: float = 1.0, clearance: float | None = None) -> int:
+def _check_clip_limits(
+    plan: SpacePlan, spec: JobSpec, mesh, scale: float = 1.0, clearance: float | None = None
+) -> int:
     """Assert every clip of a plan against the spec's limits by independent geometry, lengths (spacing,
     per-metre limits) multiplied by `scale`; frames checked."""
     vs = spec.views
@@ -124,9 +126,15 @@ def _check_clip_limits(plan: SpacePlan, spec: JobSpec, mesh, scale: float = 1.0,
         if len(c) > 1:
             step = np.linalg.norm(np.diff(c, axis=0), axis=1)
             assert np.abs(step - spacing).max() < 0.01 * spacing
-            assert rotation_angles(W).max() <= np.radians(vs.trajectory_max_view_deg_per_m) * step.max() / scale + 1e-9
+            assert (
+                rotation_angles(W).max()
+                <= np.radians(vs.trajectory_max_view_deg_per_m) * step.max() / scale + 1e-9
+            )
         if len(c) > 2:
-            assert turn_angles(c).max() <= np.radians(vs.trajectory_max_turn_deg_per_m) * vs.trajectory_spacing_m + 1e-9
+            assert (
+                turn_angles(c).max()
+                <= np.radians(vs.trajectory_max_turn_deg_per_m) * vs.trajectory_spacing_m + 1e-9
+            )
         assert scenes.brute_force_distance(mesh, c).min() >= clearance
         seen = scenes.brute_force_visible(mesh, c, np.tile(point.position, (len(c), 1)), 1e-3)
         np.testing.assert_array_equal([v.in_sight for v in views], seen)
@@ -158,7 +166,8 @@ def test_clips_in_generated_rooms_meet_the_limits(look: str) -> None:
         plan = make_plan(scenes.as_space(mesh), spec, space_rng(spec.seed, f"room{k}"), f"room{k}")
         assert plan.points
         frames += _check_clip_limits(plan, spec, mesh)
-    assert frames > 12 * (40 if look == "point" else 25)  # long clips (loops for fixated ones), not single frames
+    # long clips (loops for fixated ones), not single frames
+    assert frames > 12 * (40 if look == "point" else 25)
 
 
 def test_planning_is_deterministic_for_a_seed() -> None:
@@ -173,10 +182,15 @@ def test_planning_is_deterministic_for_a_seed() -> None:
 
 def test_short_and_cut_clips_are_reported_and_dropped_points_removed() -> None:
     mesh = scenes.random_furnished_room(np.random.default_rng(41))
-    spec = JobSpec.model_validate({
-        "seed": 1, "points": {"count": 6},
-        "views": {"mode": "trajectory", "trajectory_max_frames": 100, "trajectory_min_frames": 30, "resolution": 64},
-    })
+    spec = JobSpec.model_validate(
+        {
+            "seed": 1, "points": {"count": 6},
+            "views": {
+                "mode": "trajectory", "trajectory_max_frames": 100, "trajectory_min_frames": 30,
+                "resolution": 64,
+            },
+        }
+    )
     plan = make_plan(scenes.as_space(mesh), spec, space_rng(1, "r"), "r")
     notes = plan.clip_notes
     assert notes and plan.shortfall and "trajectory clips of 6 points" in plan.shortfall
@@ -196,7 +210,8 @@ def test_short_and_cut_clips_are_reported_and_dropped_points_removed() -> None:
 def test_a_route_through_an_obstacle_is_cut_with_reasons() -> None:
     mesh = scenes.pillar_room()
     q = MeshQueries(mesh)
-    route = np.array([[0.8, 2.0, 1.2], [2.5, 2.0, 1.2], [4.0, 2.05, 1.2], [5.5, 2.0, 1.2]])  # through the pillar
+    # through the pillar
+    route = np.array([[0.8, 2.0, 1.2], [2.5, 2.0, 1.2], [4.0, 2.05, 1.2], [5.5, 2.0, 1.2]])
     point = np.array([5.9, 3.5, 1.0])  # on the +x wall, seen from both sides of the pillar
     lim = Limits.of(ViewSpec(mode="trajectory", trajectory_spacing_m=0.05), 0.1, 0.001)
     clip = fly_clip(route, point, lim, q, np.zeros(2), 0)
@@ -217,7 +232,9 @@ def test_fixated_clip_around_a_pillar_stays_in_sight() -> None:
     spec = ViewSpec(mode="trajectory", trajectory_spacing_m=0.05, resolution=256)
     sees = np.flatnonzero(scenes.brute_force_visible(mesh, cams, np.repeat(point, len(cams), axis=0), 0.001))
     assert 0 < len(sees) < len(cams)
-    views, notes = trajectory(point, normal, (sees,), cams, spec, None, q, 0.001, 0.1, np.random.default_rng(3))
+    views, notes = trajectory(
+        point, normal, (sees,), cams, spec, None, q, 0.001, 0.1, np.random.default_rng(3)
+    )
     assert len(views) > 20
     np.testing.assert_array_equal(views.v, np.arange(len(views)))
     pos = _centres(views.world_to_camera)
@@ -246,7 +263,9 @@ def test_a_single_camera_gives_a_loop_or_arc_not_one_frame_and_a_note() -> None:
     ring = np.linalg.norm((pos - point)[:, :2], axis=1)
     assert ring.min() > 2.0  # nearer, moving sideways would turn the view faster than 30 deg/m
     assert scenes.brute_force_distance(mesh, pos).min() >= 0.1
-    assert turn_angles(pos).max() <= np.radians(6.0) + 1e-9 and rotation_angles(views.world_to_camera).max() <= np.radians(3.0)
+    assert turn_angles(pos).max() <= np.radians(6.0) + 1e-9 and rotation_angles(
+        views.world_to_camera
+    ).max() <= np.radians(3.0)
 
 
 def test_trajectory_knobs_are_validated() -> None:
@@ -298,7 +317,8 @@ def test_a_clip_cut_between_two_frames_reports_why() -> None:
 def test_frames_near_a_wall_are_pushed_out_not_cut() -> None:
     mesh = scenes.pillar_room()  # pillar x 3.7..4.3, y 1.7..2.3
     q = MeshQueries(mesh)
-    line = np.stack([np.linspace(1.0, 5.5, 91), np.full(91, 1.63), np.full(91, 1.2)], axis=1)  # 7 cm from the pillar
+    # 7 cm from the pillar
+    line = np.stack([np.linspace(1.0, 5.5, 91), np.full(91, 1.63), np.full(91, 1.2)], axis=1)
     lim = Limits.of(ViewSpec(mode="trajectory"), 0.1, 0.001)
     point = np.array([5.95, 1.63, 1.2])  # on the +x wall, ahead: the view hardly turns
     clip = verify_clip(line, line, point, lim, q, np.zeros(2), 0)
@@ -324,7 +344,9 @@ def test_closest_within_matches_brute_force() -> None:
     np.testing.assert_allclose(np.linalg.norm(closest[near] - pts[near], axis=1), truth[near], atol=1e-9)
 
 
-def test_scheduler_plans_a_trajectory_job_and_reports_its_clips(sqlite_sm, local_store, scenes_dir, tmp_path) -> None:
+def test_scheduler_plans_a_trajectory_job_and_reports_its_clips(
+    sqlite_sm, local_store, scenes_dir, tmp_path
+) -> None:
     spec = JobSpec.model_validate({
         "cues": ["point_info"], "cameras": {"mode": "object", "object_count": 16}, "points": {"count": 2},
         "views": {"mode": "trajectory", "trajectory_max_frames": 24, "trajectory_min_frames": 20,
@@ -336,7 +358,9 @@ def test_scheduler_plans_a_trajectory_job_and_reports_its_clips(sqlite_sm, local
         job_id = create_job(s, owner="alice", spec=spec, spaces=[space]).id
         s.commit()
     tr = NullTransport()
-    sched = Scheduler(sqlite_sm, local_store, tr, get_settings(data_dir=tmp_path, dispatch_window=100), "sched-1")
+    sched = Scheduler(
+        sqlite_sm, local_store, tr, get_settings(data_dir=tmp_path, dispatch_window=100), "sched-1"
+    )
     assert sched.tick().planned == [job_id]
     plan = plan_from_json(local_store.get_bytes(f"jobs/{job_id}/_plan/bunny.json"))
     with sqlite_sm() as s:

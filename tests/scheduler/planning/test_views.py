@@ -59,12 +59,16 @@ def test_every_view_is_fixated_and_oblique_as_computed(sampled) -> None:
 
 def test_max_views_picks_a_subset_of_the_visible_cameras(sampled) -> None:
     cams, pts = sampled
-    views = wide_baseline(pts.positions, pts.normals, pts.visible, cams, ViewSpec(), 3, np.random.default_rng(2))
+    views = wide_baseline(
+        pts.positions, pts.normals, pts.visible, cams, ViewSpec(), 3, np.random.default_rng(2)
+    )
     for p, seen in enumerate(pts.visible):
         chosen = views.camera_idx[views.point_idx == p]
         assert len(chosen) == min(3, len(seen))
         assert set(chosen) <= set(seen.tolist())
-    other = wide_baseline(pts.positions, pts.normals, pts.visible, cams, ViewSpec(), 3, np.random.default_rng(3))
+    other = wide_baseline(
+        pts.positions, pts.normals, pts.visible, cams, ViewSpec(), 3, np.random.default_rng(3)
+    )
     assert not np.array_equal(views.camera_idx, other.camera_idx)  # chosen by the rng
 
 
@@ -115,7 +119,9 @@ def test_nonfixated_pruning_keeps_views_that_see_another_point(sampled) -> None:
         others = [p for p in range(len(pts.positions))
                   if p != views.point_idx[i] and n_views[p] >= 2 and c in pts.visible[p]]
         K = intrinsics(float(views.fov[i]), 256)
-        uv, z = project(pts.positions[others], K, views.world_to_camera[i]) if others else (np.zeros((0, 2)), [])
+        uv, z = (
+            project(pts.positions[others], K, views.world_to_camera[i]) if others else (np.zeros((0, 2)), [])
+        )
         inside = [(zz > 0) and (0 <= u < 256) and (0 <= v < 256) for (u, v), zz in zip(uv, z, strict=True)]
         assert keep[i] == any(inside)
     assert 0 < keep.sum() < len(views)  # narrow views: some are pruned, most are kept
@@ -134,4 +140,8 @@ def test_make_plan_pruning_drops_points_below_min_views() -> None:
     for p in plan.points:
         assert [v.v for v in plan.views_of(p.idx)] == list(range(len(plan.views_of(p.idx))))
     assert len(plan.points) < 40  # narrow views leave some points without enough views
-    assert plan.shortfall == f"nonfixated pruning kept {len(plan.points)} of 40 points (>= 2 views that each see another point)"
+    assert (
+        plan.shortfall
+        == f"nonfixated pruning kept {len(plan.points)} of 40 points (>= 2 views that each see another "
+        "point)"
+    )

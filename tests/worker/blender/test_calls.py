@@ -1,6 +1,6 @@
 """A worker told to stop (SIGTERM) while it renders or loads Blender ends at once and quietly
-(services.worker.blender.calls): the embedded pool's released worker, and a Celery prefork child under billiard's
-handler. Raised inside Blender's
+(services.worker.blender.calls): the embedded pool's released worker, and a Celery prefork child under
+billiard's handler. Raised inside Blender's
 render, a handler's SystemExit reached PyErr_Print, which exited through Blender's C++ destructors: their leak
 report on the user's terminal, then a deadlock that only a kill ended."""
 
@@ -52,7 +52,8 @@ try:
         stop_soon()
     for _ in range(1000):
         scene.render(g)
-except Exception as e:  # the stop raised while a numba kernel was called comes back wrapped: the runner unwraps it
+# the stop raised while a numba kernel was called comes back wrapped: the runner unwraps it
+except Exception as e:
     from services.worker.run.stop_signal import stop_within
     if not isinstance(stop_within(e), SystemExit):
         raise
@@ -70,10 +71,15 @@ CASES = [("embedded", (0.3, 0.5, 0.8), {143}), ("celery", (0.3, 0.5, 0.8), {143,
 
 
 @pytest.mark.parametrize(("kind", "delays", "codes"), CASES, ids=[c[0] for c in CASES])
-def test_sigterm_inside_blender_ends_the_worker_at_once_and_quietly(banana_path: Path, kind: str,
-                                                                    delays: tuple[float, ...], codes: set[int]) -> None:
+def test_sigterm_inside_blender_ends_the_worker_at_once_and_quietly(
+    banana_path: Path, kind: str, delays: tuple[float, ...], codes: set[int]
+) -> None:
     for delay in delays:
-        run = subprocess.run([sys.executable, "-c", PROBE, str(banana_path), str(delay), kind], capture_output=True,
-                             text=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=60)
+        run = subprocess.run(
+            [sys.executable, "-c", PROBE, str(banana_path), str(delay), kind], capture_output=True, text=True,
+            cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=60,
+        )
         assert run.returncode in codes, (delay, run.returncode, run.stdout[-500:], run.stderr[-2000:])
-        assert "leak detector" not in run.stderr and "Not freed memory" not in run.stderr, (delay, run.stderr[-2000:])
+        assert "leak detector" not in run.stderr and "Not freed memory" not in run.stderr, (
+            delay, run.stderr[-2000:],
+        )

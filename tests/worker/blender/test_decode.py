@@ -1,5 +1,6 @@
-"""The pass decode's kernels give the bytes of the numpy expressions they replace, and the normals derived from the
-face index are the triangles' normals turned against each pixel's ray (services.worker.blender.decode)."""
+"""The pass decode's kernels give the bytes of the numpy expressions they replace, and the normals derived
+from the face index are the triangles' normals turned against each pixel's ray
+(services.worker.blender.decode)."""
 
 from __future__ import annotations
 
@@ -62,7 +63,8 @@ def test_unit_face_normals_are_the_triangles_normals_and_zero_for_zero_area():
     e1, e2 = v[f[5:, 1]].astype(float) - v[f[5:, 0]], v[f[5:, 2]].astype(float) - v[f[5:, 0]]
     assert np.allclose(np.linalg.norm(n[5:], axis=1), 1.0, atol=1e-6)
     assert np.allclose((n[5:] * e1).sum(1), 0, atol=1e-5) and np.allclose((n[5:] * e2).sum(1), 0, atol=1e-5)
-    assert (np.einsum("ij,ij->i", np.cross(e1, e2), n[5:]) > 0).all()  # (v1 - v0) x (v2 - v0), not its opposite
+    # (v1 - v0) x (v2 - v0), not its opposite
+    assert (np.einsum("ij,ij->i", np.cross(e1, e2), n[5:]) > 0).all()
 
 
 def test_facing_normals_turn_each_triangle_normal_against_the_pixel_ray():
@@ -75,7 +77,8 @@ def test_facing_normals_turn_each_triangle_normal_against_the_pixel_ray():
     hit = rng.random((48, 48)) > 0.25
     K = g.K
     got = facing_normals(face, hit, face_normals, g.rotation, K[0, 0], K[0, 2], K[1, 2])
-    # Independently: the pixel-centre rays of the camera (ViewGeometry.rays_world), each normal against its ray.
+    # Independently: the pixel-centre rays of the camera (ViewGeometry.rays_world), each normal against its
+    # ray.
     _, d = g.rays_world()
     n = face_normals[face.ravel()]
     want = np.where(((n * d).sum(1) > 0)[:, None], -n, n).reshape(48, 48, 3)

@@ -86,10 +86,14 @@ def test_point_cloud_renders_depth_of_the_true_room(tmp_path: Path) -> None:
     space = SpaceContext.from_loaded(loaded, key="cloud")
     true_room = room.copy().apply_transform(loaded.source_to_world)  # the same world frame
     for eye, target in (([1.0, 1.0, 1.5], [5.0, 3.0, 0.8]), ([5.0, 3.2, 1.2], [1.0, 0.5, 0.5])):
-        g = ViewGeometry(look_at(loaded.source_to_world[:3, :3] @ eye, loaded.source_to_world[:3, :3] @ target), np.radians(70.0), 48)
+        g = ViewGeometry(
+            look_at(loaded.source_to_world[:3, :3] @ eye, loaded.source_to_world[:3, :3] @ target),
+            np.radians(70.0), 48,
+        )
         depth = _depth_m(render_view_cues(space, g, ["depth_zbuffer"])["depth_zbuffer"])
         truth = raycast(true_room, g).z
-        agree = (np.abs(depth - truth) <= 0.05) | (np.isnan(depth) & np.isnan(truth))  # both: sky above the walls
+        # both: sky above the walls
+        agree = (np.abs(depth - truth) <= 0.05) | (np.isnan(depth) & np.isnan(truth))
         assert np.mean(agree) >= 0.8, float(np.mean(agree))
         assert np.mean(np.isfinite(truth)) > 0.5
 

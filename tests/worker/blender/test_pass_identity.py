@@ -1,12 +1,12 @@
-"""The pass render is bit-identical to the render before issue 20 part 3, on real views of a real room, but for the
-normals, which are now derived from the face index and checked against Cycles' Normal pass.
+"""The pass render is bit-identical to the render before issue 20 part 3, on real views of a real room, but
+for the normals, which are now derived from the face index and checked against Cycles' Normal pass.
 
-Before: six AOVs (face index + 1 in two 16-bit halves, class, instance, k1, k2), the Normal pass and a numpy decode.
-Now: face index + 1 in one AOV (meshes below 2^24 faces), class and instance looked up from the face index, the
-normals derived from the face index (no Normal pass), single-pass decode kernels and a table sRGB encoding. The
-reference here renders the same views in a second Blender scene with the old AOVs and the Normal pass, and decodes
-them with the old numpy expressions (copied below); every other array of the pass set must have the same bytes.
-The room (../shared/scenes/icl_livingroom) gets made-up labels (negative ids too).
+Before: six AOVs (face index + 1 in two 16-bit halves, class, instance, k1, k2), the Normal pass and a numpy
+decode. Now: face index + 1 in one AOV (meshes below 2^24 faces), class and instance looked up from the face
+index, the normals derived from the face index (no Normal pass), single-pass decode kernels and a table sRGB
+encoding. The reference here renders the same views in a second Blender scene with the old AOVs and the Normal
+pass, and decodes them with the old numpy expressions (copied below); every other array of the pass set must
+have the same bytes. The room (../shared/scenes/icl_livingroom) gets made-up labels (negative ids too).
 """
 
 from __future__ import annotations
@@ -50,7 +50,9 @@ def old_decode(channels: dict[str, np.ndarray], layer: str) -> dict[str, np.ndar
         "face_index": np.where(hit, face1 - 1, int(NO_FACE)).astype(np.uint32),
         "depth_z": np.where(hit, depth, np.inf).astype(np.float32),
         "normal_world": unit_normals(*(channels[f"{layer}.Normal.{c}"] for c in "XYZ"), hit),
-        "rgb": np.where(hit[..., None], srgb_encode(channels[f"{layer}.Combined"][..., :3]), 0).astype(np.uint8),
+        "rgb": np.where(hit[..., None], srgb_encode(channels[f"{layer}.Combined"][..., :3]), 0).astype(
+            np.uint8
+        ),
         "face_class": np.where(hit, np.rint(aov("omni_class")), NO_LABEL).astype(np.int32),
         "face_instance": np.where(hit, np.rint(aov("omni_instance")), NO_LABEL).astype(np.int32),
         "curvature": np.where(hit[..., None], k, np.nan).astype(np.float32),
@@ -67,7 +69,9 @@ def renders(scenes_dir: Path) -> list[tuple[ViewPasses, dict[str, np.ndarray], V
 
     loaded = load_space(scenes_dir / "icl_livingroom")
     plan = make_plan(loaded, JobSpec(), space_rng(0, "icl_livingroom"), "icl_livingroom")
-    views = [ViewGeometry(v.world_to_camera, v.fov, RESOLUTION) for v in plan.views[:: len(plan.views) // N_VIEWS]]
+    views = [
+        ViewGeometry(v.world_to_camera, v.fov, RESOLUTION) for v in plan.views[:: len(plan.views) // N_VIEWS]
+    ]
     rng = np.random.default_rng(3)
     nf = len(loaded.mesh.faces)
     space = SpaceContext(key="icl-pass-identity", mesh=loaded.mesh, face_class=rng.integers(-3, 40, nf),
@@ -126,9 +130,9 @@ def test_every_pass_is_bit_identical_to_the_old_render(renders, name: str) -> No
 
 
 def test_normals_from_the_face_index_are_cycles_normal_pass_to_float32_rounding(renders) -> None:
-    """Cycles computes the triangle's normal in float32, the decode in float64 from the same float32 vertices: the
-    unit vectors agree to a few 1e-7, the side (turned against the ray) everywhere, and the normal cue's 8-bit
-    pixels on all but a handful (a value within 1e-7 of a rounding boundary), by one level."""
+    """Cycles computes the triangle's normal in float32, the decode in float64 from the same float32 vertices:
+    the unit vectors agree to a few 1e-7, the side (turned against the ray) everywhere, and the normal cue's
+    8-bit pixels on all but a handful (a value within 1e-7 of a rounding boundary), by one level."""
     from services.worker.cues.basic import _normal_pixels
 
     differ = total = 0

@@ -2,8 +2,8 @@
 
 One render per scene (module-scoped, small resolutions): a textured scan (ycb_banana), an untextured scan
 (stanford_bunny) and a labelled synthetic room with face colours and a sphere of known radius.
-OMNIDATA_TEST_RENDER_DEVICE (cpu, cuda, optix; default cpu) renders them on that device: on a GPU machine the same
-oracles check the GPU path, and a run that fell back to the CPU fails instead of passing as a GPU check.
+OMNIDATA_TEST_RENDER_DEVICE (cpu, cuda, optix; default cpu) renders them on that device: on a GPU machine the
+same oracles check the GPU path, and a run that fell back to the CPU fails instead of passing as a GPU check.
 """
 
 from __future__ import annotations
@@ -146,7 +146,8 @@ def test_normals_match_hit_triangles(r: Rendered) -> None:
     cos = np.einsum("nc,nc->n", n[smooth] / np.linalg.norm(n[smooth], axis=-1, keepdims=True), ref[smooth])
     angles = np.degrees(np.arccos(np.clip(cos, -1, 1)))
     assert np.median(angles) < 2.0
-    # Facing the camera: the normal points back along the pixel's ray (DESIGN axes: x right, y up, z to viewer).
+    # Facing the camera: the normal points back along the pixel's ray (DESIGN axes: x right, y up, z to
+    # viewer).
     to_cam = -r.geometry.ray_directions_cam() * np.array([1.0, -1.0, -1.0])
     assert np.all(np.einsum("nc,nc->n", n[smooth], to_cam[smooth]) > -0.02)
     assert np.all(r.png("normal")[~r.cast.hit & (r.png("mask_valid") == 0)] == 128)
@@ -227,8 +228,10 @@ def test_rgb_of_face_colours_is_exact(rendered: dict[str, Rendered]) -> None:
 
 def test_the_space_is_no_light_source_to_cycles(rendered: dict[str, Rendered]) -> None:
     """The space's emission shader is what the camera sees (no bounces: it lights nothing). Left to Cycles'
-    automatic emission sampling, every sync of a coloured or textured mesh evaluated the shader on each triangle to
-    build a light tree: 1.0 s of the 7-Scenes kitchen's first render (192k vertex-coloured triangles), for nothing."""
+    automatic emission sampling, every sync of a coloured or textured mesh evaluated the shader on each
+    triangle to build a light tree: 1.0 s of the 7-Scenes kitchen's first render (192k vertex-coloured
+    triangles), for
+    nothing."""
     scene = rendered["room"].space.scene()
     assert scene.object.active_material.cycles.emission_sampling == "NONE"
 
@@ -373,11 +376,14 @@ def test_gpu_request_falls_back_to_cpu(caplog: pytest.LogCaptureFixture,
         scene.close()
 
 
-def test_auto_falling_back_beside_an_nvidia_device_file_is_a_warning(caplog: pytest.LogCaptureFixture, tmp_path: Path,
-                                                                     monkeypatch: pytest.MonkeyPatch,
-                                                                     rendered: dict[str, Rendered]) -> None:
-    """A machine whose driver made /dev/nvidia0 but where Cycles finds no device (`generate` gave fewer workers the
-    renders there): "auto" rendering on the CPU is a warning naming the device file, not the usual info line."""
+def test_auto_falling_back_beside_an_nvidia_device_file_is_a_warning(
+    caplog: pytest.LogCaptureFixture, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+    rendered: dict[str, Rendered],
+) -> None:
+    """A machine whose driver made /dev/nvidia0 but where Cycles finds no device (`generate` gave fewer
+    workers the renders there): "auto" rendering on the CPU is a warning naming the device file, not the usual
+    info
+    line."""
     from services.core import gpu_devices
     from services.worker.blender.render import RenderOptions
     from services.worker.blender.scene import BlenderScene
@@ -400,8 +406,8 @@ def test_auto_falling_back_beside_an_nvidia_device_file_is_a_warning(caplog: pyt
 @pytest.mark.parametrize("device", ["auto", "optix"])
 def test_worker_device_selection_renders_on_the_cpu_when_no_gpu_is_found(
         device: str, caplog: pytest.LogCaptureFixture, rendered: dict[str, Rendered]) -> None:
-    """The worker's path (SpaceContext -> BlenderScene -> configure_device): a GPU request on a machine without one
-    logs the fallback naming what was asked and renders the same view as a CPU scene would."""
+    """The worker's path (SpaceContext -> BlenderScene -> configure_device): a GPU request on a machine
+    without one logs the fallback naming what was asked and renders the same view as a CPU scene would."""
     box = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
     g = object_view(box, np.array([1.0, 0.7, 0.5]), 32)
     cpu = SpaceContext(key="box-cpu", mesh=box, device="cpu")
@@ -418,7 +424,8 @@ def test_worker_device_selection_renders_on_the_cpu_when_no_gpu_is_found(
         else:  # a machine with a GPU: the log names it, and the depth agrees to float precision
             assert "Cycles renders on" in caplog.text
             np.testing.assert_allclose(got.depth_z, want.depth_z, rtol=1e-4)
-        assert got.normal_world is None and got.face_index is None  # passes=frozenset(): colour and depth only
+        # passes=frozenset(): colour and depth only
+        assert got.normal_world is None and got.face_index is None
         assert got.hit.sum() > 100
     finally:
         space.close()

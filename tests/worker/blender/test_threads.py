@@ -1,5 +1,7 @@
-"""Blender imported for a worker (services.worker.blender.threads): OpenEXR's global pool has no threads, so the
-pass EXR's scanline writes wake none (~800 context switches a view on one core), and every channel of the EXR stays the same."""
+"""Blender imported for a worker (services.worker.blender.threads): OpenEXR's global pool has no threads, so
+the pass EXR's scanline writes wake none (~800 context switches a view on one core), and every channel of the
+EXR
+stays the same."""
 
 from __future__ import annotations
 
@@ -14,7 +16,8 @@ ROOT = Path(__file__).resolve().parents[3]
 
 pytestmark = pytest.mark.bpy
 
-# Renders the banana 4 times at 256x256 in a fresh process (`pool`: OpenEXR given 2 threads back after the import).
+# Renders the banana 4 times at 256x256 in a fresh process (`pool`: OpenEXR given 2 threads back after the
+# import).
 PROBE = r"""
 import hashlib, resource, sys
 from services.worker.blender.threads import import_bpy, set_exr_threads
@@ -33,15 +36,18 @@ for _ in range(3):
 print("switches", resource.getrusage(resource.RUSAGE_SELF).ru_nvcsw - r0)
 from services.worker.blender.exr import read_channels
 channels = read_channels(scene.scene.render.filepath)  # (the header holds the render time: not the bytes)
-print("exr", hashlib.sha256(b"".join(k.encode() + channels[k].tobytes() for k in sorted(channels))).hexdigest())
+exr = b"".join(k.encode() + channels[k].tobytes() for k in sorted(channels))
+print("exr", hashlib.sha256(exr).hexdigest())
 """
 
 
 def probe(mode: str, mesh: Path) -> dict[str, str]:
-    one_core = str(min(os.sched_getaffinity(0)))  # the pool's threads then take turns with the render's thread
-    out = subprocess.run(["taskset", "-c", one_core, sys.executable, "-c", PROBE, mode, str(mesh)],
-                         capture_output=True, text=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)},
-                         timeout=300)
+    # the pool's threads then take turns with the render's thread
+    one_core = str(min(os.sched_getaffinity(0)))
+    out = subprocess.run(
+        ["taskset", "-c", one_core, sys.executable, "-c", PROBE, mode, str(mesh)], capture_output=True,
+        text=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=300,
+    )
     assert out.returncode == 0, out.stderr[-3000:]
     return dict(line.split(" ", 1) for line in out.stdout.splitlines() if " " in line)
 

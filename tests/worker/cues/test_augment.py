@@ -1,7 +1,7 @@
 """The 3D augmentation cues against their physics, each checked by an independent computation: the thin-lens
-blur spot of a point source (image distances from the lens equation), fog transmittance exp(-beta d) on ray-cast
-distances, the smear of a moving camera (f t / Z), the inverse-square flash; per-view draws seeded by the plan
-and recorded in augment_params; the JobSpec's distributions and their refusals."""
+blur spot of a point source (image distances from the lens equation), fog transmittance exp(-beta d) on
+ray-cast distances, the smear of a moving camera (f t / Z), the inverse-square flash; per-view draws seeded by
+the plan and recorded in augment_params; the JobSpec's distributions and their refusals."""
 
 from __future__ import annotations
 
@@ -50,8 +50,10 @@ def spot(depth_m: float, focus_m: float, f_number: float) -> np.ndarray:
 def test_refocus_spreads_a_point_over_its_circle_of_confusion(depth_m: float) -> None:
     out = spot(depth_m, focus_m=1.0, f_number=1.4)
     expected = blur_spot_radius_px(depth_m, 1.0, 1.4)
-    measured = math.sqrt(out.sum() / out.max() / math.pi)  # a uniform disc: light / plateau = its area, pi r^2
-    assert expected > 2 and abs(measured - expected) < 0.55, (measured, expected)  # radii are quantised (0.5 px)
+    # a uniform disc: light / plateau = its area, pi r^2
+    measured = math.sqrt(out.sum() / out.max() / math.pi)
+    # radii are quantised (0.5 px)
+    assert expected > 2 and abs(measured - expected) < 0.55, (measured, expected)
     assert out.sum() == pytest.approx(1.0, abs=1e-9)  # the light is spread, not lost
 
 
@@ -60,12 +62,16 @@ def test_refocus_leaves_the_focus_plane_sharp_and_blurs_elsewhere() -> None:
     texture = rng.random((WIDTH, WIDTH, 3))
     depth = np.full((WIDTH, WIDTH), 1.0)
     depth[:, WIDTH // 2:] = 6.0  # the right half is far behind the focus plane
-    radius = coc_radius_px(depth, focus_m=1.0, f_number=1.4, focal_mm=FOCAL_MM, sensor_mm=SENSOR_MM, width_px=WIDTH)
+    radius = coc_radius_px(
+        depth, focus_m=1.0, f_number=1.4, focal_mm=FOCAL_MM, sensor_mm=SENSOR_MM, width_px=WIDTH
+    )
     out = refocus(texture, radius)
-    assert np.array_equal(out[:, : WIDTH // 2], texture[:, : WIDTH // 2])  # in focus: exactly the scan's colour
+    # in focus: exactly the scan's colour
+    assert np.array_equal(out[:, : WIDTH // 2], texture[:, : WIDTH // 2])
     assert radius[0, -1] == pytest.approx(blur_spot_radius_px(6.0, 1.0, 1.4)) and radius[0, -1] > 4
     right = out[:, WIDTH // 2 + 16:]
-    assert right.std() < 0.5 * texture[:, WIDTH // 2 + 16:].std()  # blurred: the texture's contrast averages out
+    # blurred: the texture's contrast averages out
+    assert right.std() < 0.5 * texture[:, WIDTH // 2 + 16:].std()
     assert abs(right.mean() - texture[:, WIDTH // 2 + 16:].mean()) < 0.02
 
 
@@ -132,7 +138,9 @@ def test_cues_through_the_registry_match_their_recorded_draws() -> None:
     ctx = _context(spec.params)
     doc = json.loads(produce("augment_params", ctx))
     assert doc["rgb_fog"]["beta_per_m"] == 0.25 and 0.5 <= doc["rgb_fog"]["airlight"] <= 0.9
-    assert doc["rgb_refocus"]["focus_distance_m"] == pytest.approx(float(np.median(ctx.passes.depth_z)), rel=1e-6)
+    assert doc["rgb_refocus"]["focus_distance_m"] == pytest.approx(
+        float(np.median(ctx.passes.depth_z)), rel=1e-6
+    )
     fogged = decode_cue("rgb_fog", produce("rgb_fog", ctx))  # decoded like rgb: 3 x H x W in [0, 1]
     assert fogged.shape == (3, 32, 32) and fogged.dtype == np.float32
     cast = raycast(*plane_scene(tilt_deg=40.0, dist=3.0, resolution=32))

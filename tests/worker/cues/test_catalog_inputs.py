@@ -1,6 +1,6 @@
-"""The catalog's declared `inputs` of each cue match what its implementation reads (no Blender: a ray-cast pass
-set). Dispatch orders tasks by these declarations, so a missing one could run a cue before its input exists and
-an extra one makes a cue wait for nothing."""
+"""The catalog's declared `inputs` of each cue match what its implementation reads (no Blender: a ray-cast
+pass set). Dispatch orders tasks by these declarations, so a missing one could run a cue before its input
+exists and an extra one makes a cue wait for nothing."""
 
 from __future__ import annotations
 
@@ -70,7 +70,9 @@ def test_declared_inputs_are_what_the_implementation_reads(name: str) -> None:
             assert ctx.read_passes, f"{name} declares {inp} and never reads the pass set"
         else:
             # a derived input read through the step it shares with that cue (e.g. occlusion_response)
-            assert ctx.intermediates & produced(inp).intermediates, f"{name} declares {inp} and never reads it"
+            assert ctx.intermediates & produced(inp).intermediates, (
+                f"{name} declares {inp} and never reads it"
+            )
 
 
 def produced(name: str) -> RecordingContext:

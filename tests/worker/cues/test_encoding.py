@@ -75,7 +75,8 @@ def test_npy_and_exr_round_trip() -> None:
     data = encode("position", pos)
     assert data[:4] == b"\x76\x2f\x31\x01"  # OpenEXR magic
     back = decode_exr_rgb(data)
-    assert back.dtype == np.float32 and np.array_equal(back.view(np.uint32), pos.view(np.uint32))  # NaN bits too
+    # NaN bits too
+    assert back.dtype == np.float32 and np.array_equal(back.view(np.uint32), pos.view(np.uint32))
 
 
 def test_position_exr_is_uncompressed_float32_rgb_any_reader_opens() -> None:
@@ -134,9 +135,12 @@ def test_panoptic_packing_round_trips() -> None:
 
 
 def pillow_png(arr: np.ndarray) -> bytes:
-    """The encoder before issue 20 (Pillow, level 3, Z_RLE): the reference the hand-written PNGs must decode like."""
+    """The encoder before issue 20 (Pillow, level 3, Z_RLE): the reference the hand-written PNGs must decode
+    like."""
     if arr.dtype == np.uint16:
-        img = Image.frombuffer("I;16", (arr.shape[1], arr.shape[0]), arr.astype("<u2").tobytes(), "raw", "I;16", 0, 1)
+        img = Image.frombuffer(
+            "I;16", (arr.shape[1], arr.shape[0]), arr.astype("<u2").tobytes(), "raw", "I;16", 0, 1
+        )
     else:
         img = Image.fromarray(arr)
     buf = io.BytesIO()
@@ -144,8 +148,13 @@ def pillow_png(arr: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-@pytest.mark.parametrize("shape,dtype", [((1, 1), np.uint16), ((7, 5), np.uint16), ((33, 64), np.uint8),
-                                         ((9, 1, 3), np.uint8), ((40, 31, 3), np.uint8), ((512, 512), np.uint16)])
+@pytest.mark.parametrize(
+    "shape,dtype",
+    [
+        ((1, 1), np.uint16), ((7, 5), np.uint16), ((33, 64), np.uint8), ((9, 1, 3), np.uint8),
+        ((40, 31, 3), np.uint8), ((512, 512), np.uint16),
+    ],
+)
 def test_png_files_decode_to_the_same_arrays_as_the_previous_pillow_encoder(shape, dtype) -> None:
     rng = np.random.default_rng(sum(shape))
     top = np.iinfo(dtype).max
@@ -171,8 +180,8 @@ def test_png_refuses_unsupported_layouts() -> None:
 
 
 def awkward_floats(shape: tuple[int, int, int]) -> np.ndarray:
-    """Random floats with the bit patterns a copy could alter: NaNs (quiet, signalling, with payloads, negative),
-    infinities, -0.0, subnormals and the extremes."""
+    """Random floats with the bit patterns a copy could alter: NaNs (quiet, signalling, with payloads,
+    negative), infinities, -0.0, subnormals and the extremes."""
     rng = np.random.default_rng(sum(shape))
     a = rng.normal(size=shape).astype(np.float32)
     specials = np.array([0x7FC00000, 0x7F800001, 0xFFC12345, 0x7FA00000, 0x7F800000, 0xFF800000, 0x80000000,
@@ -215,8 +224,8 @@ def room_values() -> dict[str, np.ndarray]:
 
 
 def test_png_cues_decode_to_the_same_arrays_as_the_zlib_encoder_before(room_values) -> None:
-    """ISA-L's deflate against zlib level 1 + Z_RLE (the encoder before): other bytes, the same arrays, read by
-    Pillow and by the dataset's explicit 16-bit decoder; every chunk's CRC right."""
+    """ISA-L's deflate against zlib level 1 + Z_RLE (the encoder before): other bytes, the same arrays, read
+    by Pillow and by the dataset's explicit 16-bit decoder; every chunk's CRC right."""
     before = zlib_deflater(1, zlib.Z_RLE)
     pngs = {c: a for c, a in room_values.items() if CATALOG[c].ext == "png"}
     assert {"depth_zbuffer", "rgb", "segment_panoptic", "mask_valid"} <= set(pngs)
@@ -228,7 +237,9 @@ def test_png_cues_decode_to_the_same_arrays_as_the_zlib_encoder_before(room_valu
         with Image.open(io.BytesIO(new)) as img:
             img.verify()
         np.testing.assert_array_equal(read_png(new), a, err_msg=cue)
-        np.testing.assert_array_equal(np.array(Image.open(io.BytesIO(new))), np.array(Image.open(io.BytesIO(old))))
+        np.testing.assert_array_equal(
+            np.array(Image.open(io.BytesIO(new))), np.array(Image.open(io.BytesIO(old)))
+        )
 
 
 def test_position_of_a_room_view_is_openexrs_file(room_values) -> None:

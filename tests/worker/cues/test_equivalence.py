@@ -1,7 +1,8 @@
-"""The faster cue implementations of issue 10 give the same outputs as the ones they replaced, on real room views.
+"""The faster cue implementations of issue 10 give the same outputs as the ones they replaced, on real room
+views.
 
-Views: the real planner's cameras inside ../shared/scenes/icl_livingroom (a furnished room, every pixel a surface)
-rendered by Cycles at 192 x 192. The room is untextured (its colour image is one grey), so the colour
+Views: the real planner's cameras inside ../shared/scenes/icl_livingroom (a furnished room, every pixel a
+surface) rendered by Cycles at 192 x 192. The room is untextured (its colour image is one grey), so the colour
 segmentation is compared on the rendered normal image used as the colour input, and on the textured banana.
 References: the implementations before issue 10, kept in tests/fixtures/reference_segmentation.py,
 reference_keypoints2d.py and reference_keypoints3d.py.
@@ -130,14 +131,17 @@ def test_felzenszwalb_kernel_matches_skimage_superpixels(room_passes):
         img = decode_png(produce("normal", ViewContext(None, passes=p))).astype(np.float32) / 255.0
         old = felzenszwalb(img, scale=params.segment2d_scale, sigma=params.segment2d_sigma,
                            min_size=params.segment2d_min_size, channel_axis=-1)
-        new = Felzenszwalb(img, params.segment2d_scale, params.segment2d_sigma).labels(params.segment2d_min_size)
+        new = Felzenszwalb(img, params.segment2d_scale, params.segment2d_sigma).labels(
+            params.segment2d_min_size
+        )
         assert new.shape == old.shape and new.min() == 0
         assert adjusted_rand_index(old, new) >= 0.9
         assert abs(int(new.max()) - int(old.max())) <= 0.2 * int(old.max())
 
 
 def assert_same_response(old: np.ndarray, new: np.ndarray, min_corr: float, max_rel_err: float) -> None:
-    """Two interest images agree: correlated, close in L2, and the strongest responses of the old stay strong."""
+    """Two interest images agree: correlated, close in L2, and the strongest responses of the old stay
+    strong."""
     assert np.corrcoef(old.ravel(), new.ravel())[0, 1] >= min_corr
     assert np.linalg.norm(new - old) <= max_rel_err * np.linalg.norm(old)
     top_old = old >= np.quantile(old, 0.99)
@@ -159,12 +163,14 @@ def test_keypoints2d_matches_the_previous_implementation_on_colour_views(room_pa
         old = reference_keypoints2d.doh_response(grey(ctx), params.keypoints2d_sigmas)
         new = keypoints2d(ctx).astype(np.float64)
         assert new.max() > 1000  # a view with blobs, not an empty comparison
-        assert_same_response(to_uint16_scaled(old, params.keypoints2d_scale).astype(np.float64), new, 0.995, 0.05)
+        assert_same_response(
+            to_uint16_scaled(old, params.keypoints2d_scale).astype(np.float64), new, 0.995, 0.05
+        )
 
 
 def test_every_png_cue_of_a_room_view_decodes_to_its_array(room_passes):
-    """The PNG deflater trades size for speed only: ISA-L's files decode to the exact arrays, as the files of zlib
-    level 1 + Z_RLE (the encoder before) do, 16-bit ones read explicitly as uint16."""
+    """The PNG deflater trades size for speed only: ISA-L's files decode to the exact arrays, as the files of
+    zlib level 1 + Z_RLE (the encoder before) do, 16-bit ones read explicitly as uint16."""
     before = zlib_deflater(1, zlib.Z_RLE)
     pngs = [c for c in default_cues(False) if c not in ("fragments", "position", "point_info", "nonfixated",
                                                         "vanishing_points")]
@@ -177,8 +183,8 @@ def test_every_png_cue_of_a_room_view_decodes_to_its_array(room_passes):
 
 
 def test_position_exr_of_a_room_view_decodes_to_its_array_bit_for_bit(room_passes):
-    """The position (compiled loop) is the pass set's numpy arithmetic bit for bit, and its file the bytes OpenEXR's
-    writer makes of it (written here without OpenEXR's temp file)."""
+    """The position (compiled loop) is the pass set's numpy arithmetic bit for bit, and its file the bytes
+    OpenEXR's writer makes of it (written here without OpenEXR's temp file)."""
     for p in room_passes:
         ctx = ViewContext(None, CueParams(), passes=p)
         position = cue_value(ctx, "position")

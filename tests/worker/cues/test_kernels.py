@@ -82,7 +82,8 @@ def test_position_cue_is_the_pass_sets_position_bit_for_bit() -> None:
 @pytest.mark.parametrize("with_boundary", [False, True])
 def test_region_graph_is_bit_identical_to_the_numpy_version(with_boundary) -> None:
     rng = np.random.default_rng(7)
-    # Blocky labels (regions of 6 x 6 pixels, ids shuffled) so regions have several neighbours and long borders.
+    # Blocky labels (regions of 6 x 6 pixels, ids shuffled) so regions have several neighbours and long
+    # borders.
     blocks = rng.permutation(100).reshape(10, 10)
     labels = np.kron(blocks, np.ones((6, 6), dtype=np.int64))
     features = rng.random((60, 60, 4)).astype(np.float32) * 255.0
@@ -211,11 +212,14 @@ def test_sobel_is_scipys_bit_for_bit() -> None:
         gx, gy = sobel_xy(img)
         for new, axis in ((gx, 1), (gy, 0)):
             old = sobel(img, axis=axis, mode="nearest")
-            assert new.dtype == np.float32 and np.array_equal(new.view(np.uint32), old.view(np.uint32)), (shape, axis)
+            assert new.dtype == np.float32 and np.array_equal(new.view(np.uint32), old.view(np.uint32)), (
+                shape, axis,
+            )
 
 
 def _test_image(rng: np.random.Generator, h: int, w: int, c: int) -> np.ndarray:
-    """Blocks of flat colour (exact ties: zero-weight edges), a ramp and quantised noise (many equal weights)."""
+    """Blocks of flat colour (exact ties: zero-weight edges), a ramp and quantised noise (many equal
+    weights)."""
     blocks = rng.random((max(1, h // 8) + 1, max(1, w // 8) + 1, c))
     img = np.kron(blocks, np.ones((8, 8, 1)))[:h, :w]
     img = img + np.linspace(0, 0.3, w)[None, :, None] * (rng.random(c) > 0.5)
@@ -238,10 +242,10 @@ def test_felzenszwalb_is_the_previous_kernel_bit_for_bit(shape, channels, sigma)
 
 
 def test_felzenszwalb_connectivity_4_leaves_out_the_diagonal_edges() -> None:
-    """A checkerboard: its like colours touch only diagonally, so the 8-connected grid joins each colour into one
-    region at zero cost and the 4-connected grid joins nothing (every edge it has crosses the full colour step,
-    above a tiny scale's threshold). bench/cues/segment_stability.py measures the 4-connected grid on real
-    rooms."""
+    """A checkerboard: its like colours touch only diagonally, so the 8-connected grid joins each colour into
+    one region at zero cost and the 4-connected grid joins nothing (every edge it has crosses the full colour
+    step, above a tiny scale's threshold). bench/cues/segment_stability.py measures the 4-connected grid on
+    real rooms."""
     board = (np.indices((6, 8)).sum(axis=0) % 2).astype(np.float32)[..., None]
     eight = Felzenszwalb(board, 1e-3, 0.0).labels(1)
     four = Felzenszwalb(board, 1e-3, 0.0, connectivity=4).labels(1)
@@ -251,14 +255,15 @@ def test_felzenszwalb_connectivity_4_leaves_out_the_diagonal_edges() -> None:
     assert np.array_equal(Felzenszwalb(img, 200.0, 0.8, connectivity=8, levels=1 << 16).labels(50),
                           reference_felzenszwalb.Felzenszwalb(img, 200.0, 0.8).labels(50))  # the defaults
     assert not np.array_equal(Felzenszwalb(img, 200.0, 0.8, levels=16).labels(1),
-                              Felzenszwalb(img, 200.0, 0.8).labels(1))  # a coarser sort orders the edges otherwise
+                              # a coarser sort orders the edges otherwise
+                              Felzenszwalb(img, 200.0, 0.8).labels(1))
     with pytest.raises(ValueError, match="connectivity"):
         Felzenszwalb(board, 1.0, 0.0, connectivity=6)
 
 
 def _narf_views() -> list[ViewContext]:
-    """A raycast room (boxes, a sphere: folds, corners, occlusion borders) with depth holes and a far cut, and a
-    cube on an empty background."""
+    """A raycast room (boxes, a sphere: folds, corners, occlusion borders) with depth holes and a far cut, and
+    a cube on an empty background."""
     room = make_room()[0]
     g = room_view(96)
     passes = raycast_passes(room, g)
@@ -296,8 +301,13 @@ def test_second_eigenvector_is_scipys_eigh_bit_for_bit(n) -> None:
 
 def _site_masks() -> list[np.ndarray]:
     rng = np.random.default_rng(11)
-    masks = [rng.random(shape) < p for shape, p in (((1, 1), 1.0), ((1, 9), 0.3), ((9, 1), 0.3), ((37, 53), 0.01),
-                                                     ((64, 64), 0.5), ((50, 70), 0.003), ((96, 80), 0.9))]
+    masks = [
+        rng.random(shape) < p
+        for shape, p in (
+            ((1, 1), 1.0), ((1, 9), 0.3), ((9, 1), 0.3), ((37, 53), 0.01), ((64, 64), 0.5), ((50, 70), 0.003),
+            ((96, 80), 0.9),
+        )
+    ]
     hole = np.ones((60, 80), bool)
     hole[10:50, 20:70] = False  # a big hole: long runs with ties between its borders
     one = np.zeros((31, 31), bool)
@@ -332,7 +342,9 @@ def test_background_fill_is_numpys_gather_at_the_nearest_sites() -> None:
         assert np.array_equal(_gather(features, mask, iy, ix), features[iy, ix]), mask.shape
 
 
-@pytest.mark.parametrize("n", [0, 1, 7, 8, 9, 127, 128, 129, 255, 256, 257, 1000, 4096, 8191, 8192, 8193, 20000])
+@pytest.mark.parametrize(
+    "n", [0, 1, 7, 8, 9, 127, 128, 129, 255, 256, 257, 1000, 4096, 8191, 8192, 8193, 20000]
+)
 def test_pairwise_sum_is_numpys_sum_bit_for_bit(n) -> None:
     rng = np.random.default_rng(n)
     for _ in range(5):
@@ -351,7 +363,9 @@ def test_normalized_cuts_are_the_numpy_versions_bit_for_bit(seed) -> None:
     side = int(rng.integers(6, 22))
     blocks = rng.permutation(side * side).reshape(side, side)
     labels = np.kron(blocks, np.ones((4, 4), dtype=np.int64))
-    features = (rng.random((side * 4, side * 4, 3)) * 40.0 + (rng.random((1, side * 4, 3)) * 200.0)).astype(np.float32)
+    features = (rng.random((side * 4, side * 4, 3)) * 40.0 + (rng.random((1, side * 4, 3)) * 200.0)).astype(
+        np.float32
+    )
     W = region_graph(labels, features, 255.0 * (1 + seed))
     if seed % 2:  # cut one node off numerically
         W[0, 1:] = W[1:, 0] = 1e-30

@@ -1,7 +1,7 @@
-"""The segment cues' compiled steps (issue 20: the normalized-cut driver's per-split arithmetic, the 2.5d feature
-image) give the labels of the numpy code they replaced bit for bit, on real views of both real rooms: the ICL
-living room (untextured: its colour segmentation is one segment, so the colour cue is also run on the rendered
-normal image) and the 7-Scenes kitchen (a textured TSDF scan), planner views rendered by Cycles.
+"""The segment cues' compiled steps (issue 20: the normalized-cut driver's per-split arithmetic, the 2.5d
+feature image) give the labels of the numpy code they replaced bit for bit, on real views of both real rooms:
+the ICL living room (untextured: its colour segmentation is one segment, so the colour cue is also run on the
+rendered normal image) and the 7-Scenes kitchen (a textured TSDF scan), planner views rendered by Cycles.
 Reference: tests/fixtures/reference_ncuts.py."""
 
 from __future__ import annotations
@@ -40,7 +40,9 @@ N_VIEWS = 3
 # name -> (space under scenes_dir, load_space frame); the kitchen's up is minus its gravity-direction.txt.
 ROOMS = {
     "icl_livingroom": ("icl_livingroom", {}),
-    "7scenes_redkitchen": ("7scenes_redkitchen/mesh_tsdf_2cm_from_1000frames.ply", {"up": (0.009, -0.904, -0.427)}),
+    "7scenes_redkitchen": (
+        "7scenes_redkitchen/mesh_tsdf_2cm_from_1000frames.ply", {"up": (0.009, -0.904, -0.427)},
+    ),
 }
 
 
@@ -91,8 +93,10 @@ def test_every_split_of_a_view_is_the_numpy_versions_bit_for_bit(room_views) -> 
         ids = superpixels(features, params.segment2d_scale, 0.0, params.segment2d_min_size,
                           params.segment_max_superpixels)
         W = region_graph(ids, features * 255.0, params.segment_ncut_sigma)
-        assert np.array_equal(normalized_cuts(W, params.segment_ncut_thresh, params.segment_num_cuts),
-                              reference_ncuts.normalized_cuts(W, params.segment_ncut_thresh, params.segment_num_cuts))
+        assert np.array_equal(
+            normalized_cuts(W, params.segment_ncut_thresh, params.segment_num_cuts),
+            reference_ncuts.normalized_cuts(W, params.segment_ncut_thresh, params.segment_num_cuts),
+        )
         # The root split at several thresholds and cut counts (more kinds of ties and of outcomes).
         for thresh in (0.005, 0.05, 1.0):
             for num_cuts in (1, 10, 37):

@@ -1,9 +1,10 @@
-"""The compiled per-view passes of issue 20 (session 4) give the values of the code they replaced, bit for bit.
+"""The compiled per-view passes of issue 20 (session 4) give the values of the code they replaced, bit for
+bit.
 
-Real views: the real planner's cameras in both real rooms (../shared/scenes: the ICL living room and the 7-Scenes
-kitchen), rendered by Cycles at 160 x 160, every changed cue compared byte for byte with the frozen references
-(tests/fixtures/reference_view_cues.py, reference_narf.py: numpy and scipy). Synthetic inputs cover what real
-views do not reach: back-facing normals, signed zeros, NaN and inf, odd shapes.
+Real views: the real planner's cameras in both real rooms (../shared/scenes: the ICL living room and the
+7-Scenes kitchen), rendered by Cycles at 160 x 160, every changed cue compared byte for byte with the frozen
+references (tests/fixtures/reference_view_cues.py, reference_narf.py: numpy and scipy). Synthetic inputs cover
+what real views do not reach: back-facing normals, signed zeros, NaN and inf, odd shapes.
 """
 
 from __future__ import annotations
@@ -31,7 +32,9 @@ VIEWS_PER_ROOM = 3
 # name -> (space path under the scenes folder, load_space frame arguments), as bench/lib/rooms.py
 ROOMS = {
     "icl_livingroom": ("icl_livingroom", {}),
-    "7scenes_redkitchen": ("7scenes_redkitchen/mesh_tsdf_2cm_from_1000frames.ply", {"up": (0.009, -0.904, -0.427)}),
+    "7scenes_redkitchen": (
+        "7scenes_redkitchen/mesh_tsdf_2cm_from_1000frames.ply", {"up": (0.009, -0.904, -0.427)},
+    ),
 }
 
 
@@ -43,23 +46,31 @@ def changed_cues() -> dict:
     """name -> (current, reference) of every output the compiled passes produce."""
     return {
         "normal_cam": (common.normal_cam, ref.normal_cam),
-        "normal": (lambda c: cue_value(c, "normal"), lambda c: basic._normal_pixels(ref.normal_cam(c), common.hit(c))),
+        "normal": (
+            lambda c: cue_value(c, "normal"),
+            lambda c: basic._normal_pixels(ref.normal_cam(c), common.hit(c)),
+        ),
         "reshading_intensity": (basic.reshading_intensity, ref.reshading_intensity),
         "reshading": (lambda c: cue_value(c, "reshading"), ref.reshading),
         "occlusion_response": (edges.occlusion_response, ref.occlusion_response),
-        "edge_occlusion": (lambda c: cue_value(c, "edge_occlusion"),
-                           lambda c: ref.to_uint16_scaled(ref.occlusion_response(c), c.params.edge_scale)),
+        "edge_occlusion": (
+            lambda c: cue_value(c, "edge_occlusion"),
+            lambda c: ref.to_uint16_scaled(ref.occlusion_response(c), c.params.edge_scale),
+        ),
         "edge_texture": (lambda c: cue_value(c, "edge_texture"), ref.edge_texture),
         "keypoints2d": (lambda c: cue_value(c, "keypoints2d"), ref.keypoints2d),
         "narf_interest": (keypoints.narf_interest, reference_narf.narf_interest),
-        "keypoints3d": (lambda c: cue_value(c, "keypoints3d"),
-                        lambda c: ref.to_uint16_scaled(reference_narf.narf_interest(c), 65535.0)),
+        "keypoints3d": (
+            lambda c: cue_value(c, "keypoints3d"),
+            lambda c: ref.to_uint16_scaled(reference_narf.narf_interest(c), 65535.0),
+        ),
     }
 
 
 @pytest.fixture(scope="module")
 def real_views(scenes_dir: Path) -> list[tuple[str, ViewPasses]]:
-    """Pass sets of VIEWS_PER_ROOM planner views (spread over the points) of each real room, rendered by Cycles."""
+    """Pass sets of VIEWS_PER_ROOM planner views (spread over the points) of each real room, rendered by
+    Cycles."""
     out = []
     for room, (path, frame) in ROOMS.items():
         loaded = load_space(scenes_dir / path, **frame)
@@ -67,8 +78,15 @@ def real_views(scenes_dir: Path) -> list[tuple[str, ViewPasses]]:
         views = plan.views[:: max(1, len(plan.views) // VIEWS_PER_ROOM)][:VIEWS_PER_ROOM]
         space = SpaceContext.from_loaded(loaded, key=f"{room}-view-kernels")
         try:
-            out += [(room, make_context(space, ViewGeometry(v.world_to_camera, v.fov, RESOLUTION), ["passes"]).passes)
-                    for v in views]
+            out += [
+                (
+                    room,
+                    make_context(
+                        space, ViewGeometry(v.world_to_camera, v.fov, RESOLUTION), ["passes"]
+                    ).passes,
+                )
+                for v in views
+            ]
         finally:
             space.close()
     return out
@@ -122,7 +140,9 @@ def test_normal_cam_is_the_fused_matmul_and_facing_flip_on_random_normals() -> N
         facing = np.einsum("hwc,hwc->hw", n @ g.rotation.astype(np.float32).T, common.ray_dirs_cam(ctx)) > 0
         assert 0.2 < facing.mean() < 0.8  # both branches of the flip
         for fn in (common.normal_cam, basic.reshading_intensity, basic.reshading):
-            assert same_bits(fn(ViewContext(g, passes=passes)), getattr(ref, fn.__name__)(ViewContext(g, passes=passes)))
+            assert same_bits(
+                fn(ViewContext(g, passes=passes)), getattr(ref, fn.__name__)(ViewContext(g, passes=passes))
+            )
 
 
 def _awkward(rng: np.random.Generator, shape: tuple[int, ...], scale: float) -> np.ndarray:
@@ -158,8 +178,10 @@ def test_gaussian_blur_keeps_scipys_signed_zeros(mode) -> None:
         for sigma, truncate in ((0.8, 4.0), (2.0, 4.0), (3.0, 4.0), (48**0.5, 3.0)):
             img = _awkward(rng, shape, 2.0)
             img[~np.isfinite(img)] = -0.0
-            new, old = common.gaussian_blur(img, sigma, truncate, mode), gaussian_filter(img, sigma, mode=mode,
-                                                                                          truncate=truncate)
+            new, old = (
+                common.gaussian_blur(img, sigma, truncate, mode),
+                gaussian_filter(img, sigma, mode=mode, truncate=truncate),
+            )
             assert same_bits(new, old), (shape, sigma)
 
 

@@ -1,5 +1,5 @@
-"""Capture views end to end in the worker (real Cycles renders): the rgb cue of a view at a capture camera is the
-photo undistorted and resampled (equal to the mesh-rendered rgb within JPEG noise), and every other cue is
+"""Capture views end to end in the worker (real Cycles renders): the rgb cue of a view at a capture camera is
+the photo undistorted and resampled (equal to the mesh-rendered rgb within JPEG noise), and every other cue is
 rendered at exactly the capture camera (depth and normals equal an independent ray cast there)."""
 
 from __future__ import annotations
@@ -65,7 +65,9 @@ def test_rgb_from_photos_equals_mesh_rgb_within_jpeg_noise(capture_renders):
         assert np.median(err) <= 3, np.median(err)
         assert np.percentile(err, 90) <= 12, np.percentile(err, 90)
         # and not by accident: the photo of another capture camera does not match
-        other = png(renders[(renders.index((view, files, mesh_rgb)) + 1) % len(renders)][1]["rgb"]).astype(float)
+        other = png(renders[(renders.index((view, files, mesh_rgb)) + 1) % len(renders)][1]["rgb"]).astype(
+            float
+        )
         assert np.median(np.abs(other - mesh_rgb)[smooth]) > 2 * max(np.median(err), 1)
 
 
@@ -76,7 +78,9 @@ def test_depth_and_normals_are_the_raycast_at_the_capture_camera(capture_renders
         cast = raycast(space.mesh, g)
         smooth = smooth_mask(cast)
         z = png(files["depth_zbuffer"]).astype(np.float64) / 512.0
-        assert np.mean(np.abs(z[smooth] - cast.z[smooth]) <= np.maximum(1 / 512, 0.005 * cast.z[smooth])) >= 0.99
+        assert (
+            np.mean(np.abs(z[smooth] - cast.z[smooth]) <= np.maximum(1 / 512, 0.005 * cast.z[smooth])) >= 0.99
+        )
         px = png(files["normal"]).astype(np.float64) / 255.0
         n = np.stack([1 - 2 * px[..., 0], 2 * px[..., 1] - 1, 2 * px[..., 2] - 1], axis=-1)
         n /= np.linalg.norm(n, axis=-1, keepdims=True)
@@ -86,8 +90,8 @@ def test_depth_and_normals_are_the_raycast_at_the_capture_camera(capture_renders
 
 
 def test_photo_textured_novel_view(capture_renders, banana_path):
-    """rgb_source photos for a camera at no capture centre: the photos projected onto the surface the view sees
-    equal the mesh rgb where a photo saw it; the rest (seen by no photo) is masked."""
+    """rgb_source photos for a camera at no capture centre: the photos projected onto the surface the view
+    sees equal the mesh rgb where a photo saw it; the rest (seen by no photo) is masked."""
     from services.core.domain.camera import look_at
     from services.core.domain.plan import CameraPose, PlannedView, PointOfInterest, SpacePlan
     from services.worker.inputs.phototexture import PhotoTexturer
@@ -107,7 +111,9 @@ def test_photo_textured_novel_view(capture_renders, banana_path):
     painter = PhotoPainter(space.capture, texture=PhotoTexturer(mesh, space.capture, k=2))
     textured = make_context(SpaceContext(key="tex", mesh=mesh, photos=painter), view,
                             ["passes", "rgb", "mask_photo", "mask_valid"], plan=plan)
-    mesh_rgb = png(produce("rgb", make_context(SpaceContext(key="m", mesh=mesh), view, ["passes", "rgb"], plan=plan)))
+    mesh_rgb = png(
+        produce("rgb", make_context(SpaceContext(key="m", mesh=mesh), view, ["passes", "rgb"], plan=plan))
+    )
     rgb = png(produce("rgb", textured)).astype(np.float64)
     covered = png(produce("mask_photo", textured)) == 255
     valid = png(produce("mask_valid", textured)) == 255

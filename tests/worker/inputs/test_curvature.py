@@ -90,8 +90,8 @@ def test_a_room_is_searched_in_the_grid_and_fitted_as_the_kd_tree_queries_were(
 
 
 def test_crowded_balls_give_the_same_curvature_by_either_search(monkeypatch: pytest.MonkeyPatch) -> None:
-    """A dense mesh adds its vertices to the samples: its balls overflow the neighbour cap (96) and the grid's first
-    buffer (256). It goes to the k-d tree, and the grid, made to take it, keeps the same 96 nearest."""
+    """A dense mesh adds its vertices to the samples: its balls overflow the neighbour cap (96) and the grid's
+    first buffer (256). It goes to the k-d tree, and the grid, made to take it, keeps the same 96 nearest."""
     dense = _noisy_dense_sphere()
     want = reference_curvature.principal_curvatures(dense, 0.2)
     np.testing.assert_array_equal(principal_curvatures(dense, 0.2), want)
@@ -100,7 +100,9 @@ def test_crowded_balls_give_the_same_curvature_by_either_search(monkeypatch: pyt
     np.testing.assert_array_equal(principal_curvatures(dense, 0.2), want)
 
 
-def test_surface_samples_are_numpys_expression_on_the_gathered_triangles_bit_for_bit(scenes_dir: Path) -> None:
+def test_surface_samples_are_numpys_expression_on_the_gathered_triangles_bit_for_bit(
+    scenes_dir: Path,
+) -> None:
     room = load_space(scenes_dir / "icl_livingroom").mesh
     pts, fidx = curvature._sample_surface(room, 50_000, np.random.default_rng(4))
     rng = np.random.default_rng(4)  # the same draws, in the same order, through the expression it replaced

@@ -44,7 +44,9 @@ def _labelled(tmp: Path) -> Path:
     box = trimesh.creation.box(extents=(3.0, 2.0, 1.0))
     path = tmp / "labelled.ply"
     nf = len(box.faces)
-    write_ply_with_labels(path, np.asarray(box.vertices), box.faces.tolist(), np.arange(nf) % 3, np.arange(nf) % 5)
+    write_ply_with_labels(
+        path, np.asarray(box.vertices), box.faces.tolist(), np.arange(nf) % 3, np.arange(nf) % 5
+    )
     return path
 
 
@@ -68,7 +70,8 @@ def frame_of(loaded: LoadedSpace) -> dict[str, Any]:
 def test_the_kept_space_equals_a_fresh_load_in_its_frame(name: str, scenes_dir: Path, tmp_path: Path) -> None:
     path = source(name, scenes_dir, tmp_path)
     loaded = load_space(path)
-    _ = loaded.mesh.face_normals  # what the parent computed before does not travel (normals differ by the frame)
+    # what the parent computed before does not travel (normals differ by the frame)
+    _ = loaded.mesh.face_normals
     assert keep_loaded(tmp_path / "cache", CHECKSUM, loaded) is not None
     frame = frame_of(loaded)
     got = read_loaded(tmp_path / "cache", CHECKSUM, frame)
@@ -145,8 +148,9 @@ def test_another_frame_source_or_request_is_not_used(scenes_dir: Path, tmp_path:
 
 
 @pytest.mark.parametrize("sm", ["sqlite"], indirect=True)
-def test_a_worker_renders_the_same_bytes_from_the_kept_space_and_from_the_scan(sm, banana, scenes_dir, tmp_path,
-                                                                              monkeypatch):
+def test_a_worker_renders_the_same_bytes_from_the_kept_space_and_from_the_scan(
+    sm, banana, scenes_dir, tmp_path, monkeypatch
+):
     loads: list[str] = []
     real_load = making_mod.load_space
 

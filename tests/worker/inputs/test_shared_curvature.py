@@ -21,7 +21,9 @@ def room_like() -> trimesh.Trimesh:
     """A curved, irregular mesh (a noisy sphere) with every curvature sign."""
     mesh = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
     rng = np.random.default_rng(1)
-    return trimesh.Trimesh(mesh.vertices * (1 + 0.05 * rng.standard_normal((len(mesh.vertices), 1))), mesh.faces)
+    return trimesh.Trimesh(
+        mesh.vertices * (1 + 0.05 * rng.standard_normal((len(mesh.vertices), 1))), mesh.faces
+    )
 
 
 def test_the_shared_array_is_the_computed_one_and_is_computed_once(tmp_path: Path,

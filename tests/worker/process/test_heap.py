@@ -30,7 +30,9 @@ print(json.dumps({"tuned": tuned, "faults": (faults() - f0) / 20}))
 
 
 def _faults_per_allocation(mode: str) -> dict:
-    run = subprocess.run([sys.executable, "-c", PROBE, mode], capture_output=True, text=True, cwd=ROOT, check=True)
+    run = subprocess.run(
+        [sys.executable, "-c", PROBE, mode], capture_output=True, text=True, cwd=ROOT, check=True
+    )
     return json.loads(run.stdout.strip().splitlines()[-1])
 
 
@@ -38,5 +40,6 @@ def _faults_per_allocation(mode: str) -> dict:
 def test_a_freed_array_is_reused_not_faulted_in_again() -> None:
     tuned, plain = _faults_per_allocation("tuned"), _faults_per_allocation("plain")
     assert tuned["tuned"] is True
-    assert plain["faults"] >= 10  # glibc's defaults: the 24 MB block went back to the kernel and comes back zeroed
+    # glibc's defaults: the 24 MB block went back to the kernel and comes back zeroed
+    assert plain["faults"] >= 10
     assert tuned["faults"] < 1

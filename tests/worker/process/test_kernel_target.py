@@ -1,5 +1,5 @@
-"""The kernels are built for the best x86-64 level a machine runs, so one kernel cache serves every machine of that
-level (services/worker/process/kernel_target.py)."""
+"""The kernels are built for the best x86-64 level a machine runs, so one kernel cache serves every machine of
+that level (services/worker/process/kernel_target.py)."""
 
 from __future__ import annotations
 
@@ -58,7 +58,8 @@ MAGIC = ("from numba.core.registry import cpu_target; "
 def test_a_worker_process_compiles_for_its_level_whether_or_not_numba_was_imported_first():
     levels = levels_for(platform.machine(), host_features())
     first = probe(f"import json, services.worker.cues.felzenszwalb; {MAGIC}")
-    numba_before = probe(f"import json, numba; import services.worker; {MAGIC}")  # select() reloads its config
+    # select() reloads its config
+    numba_before = probe(f"import json, numba; import services.worker; {MAGIC}")
     for magic in (first, numba_before):
         if levels:
             assert magic[1:] == [levels[0], ""]  # the cache key: the same on every machine of the level
@@ -92,15 +93,16 @@ def test_compile_kernels_every_level_runs_once_per_level_of_the_machine(monkeypa
 
 
 def test_load_makes_the_target_for_the_level_before_any_kernel_and_starts_no_thread():
-    """What a held worker (and Celery's parent, before it forks) runs: numba's target made for the selected level,
-    with every registry a first kernel would load, the process still single-threaded (safe to fork)."""
+    """What a held worker (and Celery's parent, before it forks) runs: numba's target made for the selected
+    level, with every registry a first kernel would load, the process still single-threaded (safe to fork)."""
     levels = levels_for(platform.machine(), host_features())
-    made = probe("import json, threading, numba; from services.worker.process import kernel_target as k; "
-                 "before = k._codegen_started(); k.load(); from numba.core.registry import cpu_target as t; "
-                 "loaded = len(t.typing_context._registries); threads = threading.active_count(); "
-                 "numba.njit(lambda x: x + 1)(1); "
-                 "print(json.dumps([before, k._codegen_started(), threads, loaded, len(t.typing_context._registries), "
-                 "list(t.target_context.codegen().magic_tuple())]))")
+    made = probe(
+        "import json, threading, numba; from services.worker.process import kernel_target as k; "
+        "before = k._codegen_started(); k.load(); from numba.core.registry import cpu_target as t; "
+        "loaded = len(t.typing_context._registries); threads = threading.active_count(); "
+        "numba.njit(lambda x: x + 1)(1); print(json.dumps([before, k._codegen_started(), threads, loaded, "
+        "len(t.typing_context._registries), list(t.target_context.codegen().magic_tuple())]))"
+    )
     before, after, threads, loaded, after_a_kernel, magic = made
     assert (before, after, threads) == (False, True, 1)
     assert loaded > 0 and loaded == after_a_kernel  # a first kernel found nothing left to load

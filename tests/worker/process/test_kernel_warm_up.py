@@ -1,5 +1,5 @@
-"""`omnidata compile-kernels` leaves nothing for a job to compile: after it, real jobs on a real room with holes
-and on a textured object add nothing to numba's cache (services/worker/process/kernel_warm_up.py)."""
+"""`omnidata compile-kernels` leaves nothing for a job to compile: after it, real jobs on a real room with
+holes and on a textured object add nothing to numba's cache (services/worker/process/kernel_warm_up.py)."""
 
 from __future__ import annotations
 
@@ -17,7 +17,9 @@ from services.worker.process.kernel_warm_up import warm_up_cues, worker_kernels
 from tests.fixtures.cli import REPO
 
 ROOM = '{"points": {"count": 1, "max_views": 3}, "views": {"resolution": 48}}'
-OBJECT = '{"cameras": {"mode": "object", "object_count": 4}, "points": {"count": 1}, "views": {"resolution": 48}}'
+OBJECT = (
+    '{"cameras": {"mode": "object", "object_count": 4}, "points": {"count": 1}, "views": {"resolution": 48}}'
+)
 
 
 def test_the_warm_up_makes_every_cue_with_a_kernel_and_none_it_cannot():
@@ -43,7 +45,9 @@ def cache_files(folder: Path) -> dict[str, tuple[int, int]]:
 
 
 def run(args: list[str], env: dict[str, str], timeout: float = 600) -> subprocess.CompletedProcess[str]:
-    res = subprocess.run([sys.executable, *args], cwd=REPO, env=env, capture_output=True, text=True, timeout=timeout)
+    res = subprocess.run(
+        [sys.executable, *args], cwd=REPO, env=env, capture_output=True, text=True, timeout=timeout
+    )
     assert res.returncode == 0, res.stderr[-3000:]
     return res
 
@@ -51,7 +55,8 @@ def run(args: list[str], env: dict[str, str], timeout: float = 600) -> subproces
 PARTIAL = """
 import json
 from services.worker.process import kernel_warm_up
-kernel_warm_up.warm_up_cues = lambda: [c for c in kernel_warm_up.CATALOG if c in ("passes", "rgb", "depth_zbuffer")]
+FEW = ("passes", "rgb", "depth_zbuffer")
+kernel_warm_up.warm_up_cues = lambda: [c for c in kernel_warm_up.CATALOG if c in FEW]
 print(json.dumps(kernel_warm_up.compile_kernels().missed))
 """
 
@@ -59,10 +64,16 @@ print(json.dumps(kernel_warm_up.compile_kernels().missed))
 @pytest.mark.slow
 def test_after_compile_kernels_real_jobs_compile_nothing(tmp_path: Path, scenes_dir: Path):
     cache = tmp_path / "kernels"
-    env = {**{k: v for k, v in os.environ.items() if not k.startswith("NUMBA_")}, "NUMBA_CACHE_DIR": str(cache)}
+    env = {
+        **{k: v for k, v in os.environ.items() if not k.startswith("NUMBA_")},
+        "NUMBA_CACHE_DIR": str(cache),
+    }
     # A warm-up that skips most cues reports the kernels it left: the check can fail.
     missed = json.loads(run(["-c", PARTIAL], env).stdout.strip().splitlines()[-1])
-    assert "services.worker.cues.felzenszwalb._merge" in missed and "services.worker.cues.narf_kernels.interest" in missed
+    assert (
+        "services.worker.cues.felzenszwalb._merge" in missed
+        and "services.worker.cues.narf_kernels.interest" in missed
+    )
     assert "services.worker.blender.decode.faces_hit" not in missed  # the render's decode ran
 
     out = run(["-m", "services.cli", "compile-kernels"], env).stdout
@@ -72,11 +83,19 @@ def test_after_compile_kernels_real_jobs_compile_nothing(tmp_path: Path, scenes_
     warmed = cache_files(cache)
     assert len([f for f in warmed if f.endswith(".nbi")]) == len(worker_kernels())
 
-    # A real room with holes (the segmentations' background fill) and a textured object (the colour segmentation)
-    for i, (space, spec_text) in enumerate([(scenes_dir / "icl_livingroom", ROOM), (scenes_dir / "ycb_banana", OBJECT)]):
+    # A real room with holes (the segmentations' background fill) and a textured object (the colour
+    # segmentation)
+    for i, (space, spec_text) in enumerate(
+        [(scenes_dir / "icl_livingroom", ROOM), (scenes_dir / "ycb_banana", OBJECT)]
+    ):
         spec = tmp_path / f"spec{i}.json"
         spec.write_text(spec_text)
-        run(["-m", "services.cli", "generate", str(space), "--out", str(tmp_path / f"out{i}"), "--spec", str(spec),
-             "--seed", "0", "--workers", "1", "--no-progress"], env)
+        run(
+            [
+                "-m", "services.cli", "generate", str(space), "--out", str(tmp_path / f"out{i}"), "--spec",
+                str(spec), "--seed", "0", "--workers", "1", "--no-progress",
+            ],
+            env,
+        )
         assert (tmp_path / f"out{i}" / "manifest.jsonl").read_text().strip()
     assert cache_files(cache) == warmed  # no kernel compiled (a compile writes its cache entry)

@@ -72,7 +72,9 @@ def banana(tmp_path_factory: pytest.TempPathFactory, scenes_dir: Path) -> Banana
     with Session(engine) as s:
         sp = register_space(s, store, owner="alice", name="banana", source_path=scenes_dir / "ycb_banana")
         s.commit()
-        fields = {c.name: getattr(sp, c.name) for c in Space.__table__.columns if c.name not in ("id", "created_at")}
+        fields = {
+            c.name: getattr(sp, c.name) for c in Space.__table__.columns if c.name not in ("id", "created_at")
+        }
     engine.dispose()
     spec = JobSpec.model_validate({**SPEC, "cues": CUES})
     loaded = load_space(scenes_dir / "ycb_banana", up_axis=spec.up_axis, unit_scale=spec.unit_scale)
@@ -83,7 +85,8 @@ def banana(tmp_path_factory: pytest.TempPathFactory, scenes_dir: Path) -> Banana
 
 @pytest.fixture(params=["postgres", "sqlite"])
 def sm(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[sessionmaker[Session]]:
-    """A session factory on a database whose commits are real (Postgres: the session DB; SQLite: a new file)."""
+    """A session factory on a database whose commits are real (Postgres: the session DB; SQLite: a new
+    file)."""
     if request.param == "postgres":
         engine: Engine = request.getfixturevalue("pg_engine")
         yield make_sessionmaker(engine)
@@ -130,7 +133,9 @@ def task(sm: sessionmaker[Session], tid: int) -> Task:
         return row
 
 
-def runner(sm: sessionmaker[Session], banana: Banana, worker: str = "w1", store: Any = None, **settings: Any) -> TaskRunner:
+def runner(
+    sm: sessionmaker[Session], banana: Banana, worker: str = "w1", store: Any = None, **settings: Any
+) -> TaskRunner:
     return TaskRunner(sm, store or banana.store, get_settings(lease_s=60, **settings), worker,
                       cache_dir=banana.cache_dir, render_threads=1, render_device="cpu", db_retry_s=2.0)
 
@@ -177,8 +182,15 @@ def test_duplicate_delivery_leaves_one_output_and_one_done_row(sm, banana):
     row = task(sm, tid)
     assert (row.state, row.worker_id, row.attempts) == ("done", "w1", 1)
     with sm() as s:
-        assert s.scalar(select(Task.id).where(Task.job_id == job_id, Task.cue == "vanishing_points",
-                                              Task.point_idx == 0, Task.view_idx == 0, Task.state == "done")) == tid
+        assert (
+            s.scalar(
+                select(Task.id).where(
+                    Task.job_id == job_id, Task.cue == "vanishing_points", Task.point_idx == 0,
+                    Task.view_idx == 0, Task.state == "done",
+                )
+            )
+            == tid
+        )
     assert len([k for k in banana.store.list(row.output_key.rsplit("/", 1)[0] + "/")
                 if k.endswith("point_0_view_0_domain_vanishing_points.json")]) == 1
     assert counters_match(sm, job_id)
@@ -288,9 +300,12 @@ def test_failure_retries_with_backoff_then_fails_for_good_with_the_error(sm, ban
     row = task(sm, tid)
     assert row.state == "pending" and row.attempts == 1 and row.worker_id is None
     assert row.not_before is not None and row.not_before >= before + timedelta(seconds=4)  # backoff(1) = 5 s
-    assert "ObjectNotFoundError" in (row.error or "") and "  at " in row.error  # type, message, traceback tail
+    # type, message, traceback tail
+    assert "ObjectNotFoundError" in (row.error or "") and "  at " in row.error
     with sm() as s:  # the dispatcher would wait for not_before; the test moves it on at once
-        transition(s, job_id=job_id, task_ids=[tid], from_state="pending", to_state="queued", queued_at=utcnow())
+        transition(
+            s, job_id=job_id, task_ids=[tid], from_state="pending", to_state="queued", queued_at=utcnow()
+        )
         s.commit()
     second = runner(sm, banana, "w2").run(tid)
     assert second.status == "failed"
@@ -307,7 +322,9 @@ def test_worker_failing_three_times_is_blocked_and_hands_tasks_back(sm, banana):
         sp_name = s.get(Space, s.scalar(select(Task.space_id).where(Task.job_id == job_id).limit(1))).name
         banana.store.delete(root_key(job, f"_plan/{sp_name}.json"))
     r = runner(sm, banana, "bad-worker", worker_batch_views=False)  # one failure per message (no view batch)
-    tids = [queue(sm, job_id, "point_info", 0, v) for v in (0, 1)] + [queue(sm, job_id, "vanishing_points", 0, 0)]
+    tids = [queue(sm, job_id, "point_info", 0, v) for v in (0, 1)] + [
+        queue(sm, job_id, "vanishing_points", 0, 0)
+    ]
     assert [r.run(t).status for t in tids] == ["retry", "retry", "retry"]
     with sm() as s:
         block = s.get(WorkerBlock, ("bad-worker", job_id))
@@ -422,8 +439,10 @@ def test_heartbeat_upserts_the_worker_and_extends_only_its_own_lease(sm, banana)
     with sm() as s:
         transition(s, job_id=job_id, task_ids=[mine], from_state="queued", to_state="running", worker_id="hb",
                    lease_until=past)
-        transition(s, job_id=job_id, task_ids=[theirs], from_state="queued", to_state="running", worker_id="other",
-                   lease_until=past)
+        transition(
+            s, job_id=job_id, task_ids=[theirs], from_state="queued", to_state="running", worker_id="other",
+            lease_until=past,
+        )
         s.commit()
     hb = Heartbeat(sm, "hb", queues=["render", "derive"], lease_s=120)
     hb.set_current(mine)

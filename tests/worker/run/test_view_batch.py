@@ -1,7 +1,7 @@
-"""View batches (issue 20), the derived cue's kind (the whole-view kind, after a render: test_whole_view.py): a
-worker taking one of a view's cue tasks claims the view's other queued tasks in one statement, derives them from
-the pass set it holds and records them in one statement. Postgres and SQLite, real renders of the banana, the real reaper. Every task keeps its row and its message; each output is stored and
-counted exactly once.
+"""View batches (issue 20), the derived cue's kind (the whole-view kind, after a render: test_whole_view.py):
+a worker taking one of a view's cue tasks claims the view's other queued tasks in one statement, derives them
+from the pass set it holds and records them in one statement. Postgres and SQLite, real renders of the banana,
+the real reaper. Every task keeps its row and its message; each output is stored and counted exactly once.
 """
 
 from __future__ import annotations
@@ -65,7 +65,8 @@ def test_a_view_batch_claims_runs_and_records_the_views_queued_tasks_once(sm, ba
     assert task(sm, other_view).state == "queued"
     assert counters_match(sm, job_id)
 
-    # The batched tasks' own messages are no-ops: on this worker (a read, no claim) and on another (the claim).
+    # The batched tasks' own messages are no-ops: on this worker (a read, no claim) and on another (the
+    # claim).
     assert r.run(view0["depth_zbuffer"]).status == "skipped"
     assert runner(sm, banana, "w2").run(view0["mask_valid"]).status == "skipped"
     assert all(task(sm, tid).attempts == 1 for tid in view0.values())

@@ -1,8 +1,9 @@
-"""A whole view on the worker that rendered it (issues 20 and 23): after the `passes` task, one statement claims the
-rest of the view, pending or queued (every DAG level), the worker derives it all from the pass set in memory and
-records everything done in one statement. Postgres and SQLite, real renders of the banana, the real reaper and
-heartbeat. Each task keeps its row; outputs are byte-identical to one task at a time and stored once; a failure
-inside the batch hands its dependents back; a worker that dies mid-batch has every task of it re-queued.
+"""A whole view on the worker that rendered it (issues 20 and 23): after the `passes` task, one statement
+claims the rest of the view, pending or queued (every DAG level), the worker derives it all from the pass set
+in memory and records everything done in one statement. Postgres and SQLite, real renders of the banana, the
+real reaper and heartbeat. Each task keeps its row; outputs are byte-identical to one task at a time and
+stored once; a failure inside the batch hands its dependents back; a worker that dies mid-batch has every task
+of it re-queued.
 """
 
 from __future__ import annotations
@@ -87,7 +88,9 @@ def test_the_pass_set_is_stored_when_a_reader_of_it_runs_elsewhere(sm, banana):
     mask = queue(sm, job_id, "mask_valid", 0, 1)
     assert other.ledger.claim(mask)  # view 1's mask_valid held by another worker: not part of the batch
     with sm() as s:  # view 1's render runs again (say its first worker's record was lost)
-        passes = s.scalar(select(Task.id).where(Task.job_id == job_id, Task.cue == "passes", Task.view_idx == 1))
+        passes = s.scalar(
+            select(Task.id).where(Task.job_id == job_id, Task.cue == "passes", Task.view_idx == 1)
+        )
         transition(s, job_id=job_id, task_ids=[passes], from_state="done", to_state="pending")
         s.commit()
     banana.store.delete(task(sm, passes).output_key)
@@ -129,15 +132,18 @@ def test_a_failure_in_the_batch_hands_its_dependents_back_to_pending(sm, banana,
     w2 = runner(sm, banana, "w2")
     retried = w2.run(queue(sm, job_id, "depth_zbuffer", 0, 0))
     assert retried.status == "done" and w2.renders == 0
-    # the retry read the stored pass set, so it took the pending dependent with it: no second round for mask_valid
+    # the retry read the stored pass set, so it took the pending dependent with it: no second round for
+    # mask_valid
     assert {o.cue: o.status for o in retried.batch} == {"mask_valid": "done"}
     assert (task(sm, mask.id).state, task(sm, mask.id).attempts) == ("done", 1) and counters_match(sm, job_id)
 
 
-def test_a_stop_that_comes_back_wrapped_from_a_kernel_stops_the_worker_and_fails_nothing(sm, banana, monkeypatch):
-    """SIGTERM's SystemExit raised while a numba kernel is being called returns from the call as a SystemError caused
-    by it (services.worker.run.stop_signal). Recorded as the task's failure, the stop was lost: the worker
-    went on."""
+def test_a_stop_that_comes_back_wrapped_from_a_kernel_stops_the_worker_and_fails_nothing(
+    sm, banana, monkeypatch
+):
+    """SIGTERM's SystemExit raised while a numba kernel is being called returns from the call as a SystemError
+    caused by it (services.worker.run.stop_signal). Recorded as the task's failure, the stop was lost: the
+    worker went on."""
     job_id = make_job(sm, banana)
     real_make = TaskRunner.make
 
@@ -146,7 +152,9 @@ def test_a_stop_that_comes_back_wrapped_from_a_kernel_stops_the_worker_and_fails
             try:
                 raise SystemExit(143)  # what the worker's SIGTERM handler raised
             except SystemExit as stop:
-                raise SystemError("CPUDispatcher(<function k>) returned a result with an exception set") from stop
+                raise SystemError(
+                    "CPUDispatcher(<function k>) returned a result with an exception set"
+                ) from stop
         return real_make(self, t)
 
     monkeypatch.setattr(TaskRunner, "make", stopped_in_a_kernel)
@@ -166,7 +174,9 @@ class Died(BaseException):
     """Stands for the worker process dying mid-batch: nothing after it runs (no record, no failure)."""
 
 
-def test_a_whole_view_whose_worker_dies_is_leased_by_its_beats_then_requeued_task_by_task(sm, banana, monkeypatch):
+def test_a_whole_view_whose_worker_dies_is_leased_by_its_beats_then_requeued_task_by_task(
+    sm, banana, monkeypatch
+):
     job_id = make_job(sm, banana)
     hb = Heartbeat(sm, "dying", lease_s=60)
     hb.extend_after_s = 0.0  # every beat extends the held leases

@@ -1,5 +1,6 @@
-"""Posed captures: photographs with their cameras, read from the formats capture tools write (COLMAP, nerfstudio /
-instant-ngp transforms.json, ScanNet exports, 7-Scenes/3DMatch/BundleFusion, Omnidata camera_poses.json).
+"""Posed captures: photographs with their cameras, read from the formats capture tools write (COLMAP,
+nerfstudio / instant-ngp transforms.json, ScanNet exports, 7-Scenes/3DMatch/BundleFusion, Omnidata
+camera_poses.json).
 
     capture = find_capture(folder)          # None when the folder holds no capture
     world = capture.in_world(space.source_to_world)

@@ -1,8 +1,8 @@
 """Finding the capture that came with a scan (`loading.attach_capture` moves it into the world frame).
 
-Where to look: the folder (or extracted zip) the user gave, else the mesh file's own folder, there only as deep as
-the formats' layouts go (detect.BESIDE_DEPTH). Only that folder is read (services.core.ingest.capture.detect bounds
-the walk), so a capture is never taken from elsewhere.
+Where to look: the folder (or extracted zip) the user gave, else the mesh file's own folder, there only as
+deep as the formats' layouts go (detect.BESIDE_DEPTH). Only that folder is read
+(services.core.ingest.capture.detect bounds the walk), so a capture is never taken from elsewhere.
 """
 
 from __future__ import annotations
@@ -38,4 +38,6 @@ def capture_files_beside(mesh_file: Path, mesh_suffixes: tuple[str, ...]) -> lis
     folder = mesh_file.parent
     if find_capture(folder, BESIDE_DEPTH) is None:
         return []
-    return [p for p in list_files(folder, BESIDE_DEPTH) if p == mesh_file or p.suffix.lower() not in mesh_suffixes]
+    return [
+        p for p in list_files(folder, BESIDE_DEPTH) if p == mesh_file or p.suffix.lower() not in mesh_suffixes
+    ]

@@ -1,6 +1,6 @@
-"""A scan and its capture sent as two parts (multipart upload: the scan file or zip, and a .zip of the capture)
-put into one folder, which is then loaded and stored like a folder upload. Both archives are extracted with the
-same zip checks as every upload (services.core.ingest.guard.archive.safe_extract_zip)."""
+"""A scan and its capture sent as two parts (multipart upload: the scan file or zip, and a .zip of the
+capture) put into one folder, which is then loaded and stored like a folder upload. Both archives are
+extracted with the same zip checks as every upload (services.core.ingest.guard.archive.safe_extract_zip)."""
 
 from __future__ import annotations
 

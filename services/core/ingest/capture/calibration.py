@@ -1,10 +1,10 @@
 """A correction of a capture's colour camera, the same for every frame: what alignment refinement finds.
 
-Many RGB-D captures record the depth camera's poses and intrinsics while the photos come from a colour camera a
-few centimetres away with another focal length (7-Scenes, Kinect v1). The correction is a focal-length scale, a
-principal-point shift (pixels) and the colour camera's offset from the recorded camera (metres, in the recorded
-camera's OpenCV axes: x right, y down, z forward). Rotation is left alone: a small rotation and a principal-point
-shift move the image alike.
+Many RGB-D captures record the depth camera's poses and intrinsics while the photos come from a colour camera
+a few centimetres away with another focal length (7-Scenes, Kinect v1). The correction is a focal-length
+scale, a principal-point shift (pixels) and the colour camera's offset from the recorded camera (metres, in
+the recorded camera's OpenCV axes: x right, y down, z forward). Rotation is left alone: a small rotation and a
+principal-point shift move the image alike.
 """
 
 from __future__ import annotations
@@ -19,7 +19,8 @@ from services.core.ingest.capture.model import Capture, CaptureFrame
 
 @dataclass(frozen=True)
 class ColourCorrection:
-    """focal_scale x fx, fy; principal point + (dcx, dcy) px; camera centre moved by offset_m (camera axes)."""
+    """focal_scale x fx, fy; principal point + (dcx, dcy) px; camera centre moved by offset_m (camera
+    axes)."""
 
     focal_scale: float = 1.0
     dcx: float = 0.0
@@ -28,7 +29,10 @@ class ColourCorrection:
 
     def as_dict(self) -> ColourCorrectionRecord:
         """JSON-ready (the plan's record, which the workers apply again)."""
-        return {"focal_scale": self.focal_scale, "dcx": self.dcx, "dcy": self.dcy, "offset_m": list(self.offset_m)}
+        return {
+            "focal_scale": self.focal_scale, "dcx": self.dcx, "dcy": self.dcy,
+            "offset_m": list(self.offset_m),
+        }
 
     @classmethod
     def from_dict(cls, d: ColourCorrectionRecord) -> ColourCorrection:

@@ -1,7 +1,7 @@
-"""The Omnidata annotator's `camera_poses.json`: a list of cameras, each a `location` and the wxyz `quaternion`
-(or `rotation_quaternion`) of the Blender camera object (looking down its -z, y up), in the scan's frame;
-optionally `camera_uuid`/`uuid`, `field_of_view_rads` with `resolution`, and an `image` path. Without images
-it is a capture of poses only: views at those cameras take RGB from the mesh.
+"""The Omnidata annotator's `camera_poses.json`: a list of cameras, each a `location` and the wxyz
+`quaternion` (or `rotation_quaternion`) of the Blender camera object (looking down its -z, y up), in the
+scan's frame; optionally `camera_uuid`/`uuid`, `field_of_view_rads` with `resolution`, and an `image` path.
+Without images it is a capture of poses only: views at those cameras take RGB from the mesh.
 """
 
 from __future__ import annotations

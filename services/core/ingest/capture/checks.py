@@ -17,7 +17,8 @@ from numpy.typing import ArrayLike
 from services.core.ingest.capture.model import Capture, CaptureFrame
 from services.core.ingest.capture.photos import PhotoRefused, photo_header
 
-ROTATION_TOLERANCE = 1e-3  # |R^T R - I| and |det R - 1| beyond this: not a rotation (re-orthonormalised below it)
+# |R^T R - I| and |det R - 1| beyond this: not a rotation (re-orthonormalised below it)
+ROTATION_TOLERANCE = 1e-3
 MAX_FRAMES = 100_000
 MAX_TEXT_BYTES = 256 << 20  # a pose/camera text or JSON file larger than this is refused unread
 
@@ -43,7 +44,8 @@ def read_text(path: Path, root: Path) -> str:
 
 
 def read_capture_json(root: Path, path: Path, fmt: str) -> tuple[object, Capture | None]:
-    """(the parsed JSON of a capture file, None), or (None, an empty `fmt` capture naming why it is unreadable)."""
+    """(the parsed JSON of a capture file, None), or (None, an empty `fmt` capture naming why it is
+    unreadable)."""
     try:
         return json.loads(read_text(path, root)), None
     except (OSError, ValueError) as e:
@@ -99,10 +101,14 @@ class FrameCollector:
         """Record a problem (the frame it names is skipped)."""
         self.problems.append(message)
 
-    def add(self, name: str, image: str | None, pose: ArrayLike, *, K: ArrayLike | None = None, size: tuple[int, int] | None = None,
-            distortion: str = "none", params: tuple[float, ...] = ()) -> None:
-        """Check one frame and keep it when it is good. `size`: the (width, height) the camera says; None reads it
-        from the image header."""
+    def add(
+        self, name: str, image: str | None, pose: ArrayLike,
+        *,
+        K: ArrayLike | None = None, size: tuple[int, int] | None = None, distortion: str = "none",
+        params: tuple[float, ...] = (),
+    ) -> None:
+        """Check one frame and keep it when it is good. `size`: the (width, height) the camera says; None
+        reads it from the image header."""
         if len(self.frames) >= MAX_FRAMES:
             if len(self.problems) == 0 or not self.problems[-1].startswith("more than"):
                 self.problem(f"more than {MAX_FRAMES} frames: the rest are ignored")
@@ -129,14 +135,18 @@ class FrameCollector:
                     self.problem(f"frame {name}: {image} is not a readable image; skipped")
                     return
                 if size is not None and tuple(size) != actual:
-                    self.problem(f"frame {name}: image {image} is {actual[0]}x{actual[1]} pixels but its camera says "
-                                 f"{size[0]}x{size[1]}; skipped")
+                    self.problem(
+                        f"frame {name}: image {image} is {actual[0]}x{actual[1]} pixels but its camera says "
+                        f"{size[0]}x{size[1]}; skipped"
+                    )
                     return
                 size = actual
         if K is not None:
             K = np.asarray(K, dtype=np.float64)
             if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
-                self.problem(f"frame {name}: intrinsics are not a 3x3 matrix with positive focal lengths; skipped")
+                self.problem(
+                    f"frame {name}: intrinsics are not a 3x3 matrix with positive focal lengths; skipped"
+                )
                 return
         if not all(np.isfinite(params)):
             self.problem(f"frame {name}: distortion parameters are not finite; skipped")
@@ -144,8 +154,11 @@ class FrameCollector:
         width, height = size if size is not None else (None, None)
         self.frames.append(CaptureFrame(name, image, width, height, K, distortion, tuple(params), c2w))
 
-    def add_pose_file(self, name: str, image: str, pose_file: Path, *, shown_as: str, K: ArrayLike | None = None,
-                      size: tuple[int, int] | None = None) -> None:
+    def add_pose_file(
+        self, name: str, image: str, pose_file: Path,
+        *,
+        shown_as: str, K: ArrayLike | None = None, size: tuple[int, int] | None = None,
+    ) -> None:
         """Add a frame whose pose is a text file of 16 numbers (a row-major 4x4), or record why it is skipped
         (`shown_as`: the pose file as the message names it)."""
         try:

@@ -1,10 +1,11 @@
-"""COLMAP sparse models, text (`cameras.txt`, `images.txt`, `points3D.txt`) and binary (`.bin`), as COLMAP writes
-them (`sparse/0/` beside `images/`, or the files in one folder).
+"""COLMAP sparse models, text (`cameras.txt`, `images.txt`, `points3D.txt`) and binary (`.bin`), as COLMAP
+writes them (`sparse/0/` beside `images/`, or the files in one folder).
 
 images hold world-to-camera poses (quaternion qw qx qy qz, translation) in OpenCV axes; COLMAP's pixel
 convention is ours (centre of the top-left pixel at (0.5, 0.5)). Camera models read: SIMPLE_PINHOLE, PINHOLE,
 SIMPLE_RADIAL, RADIAL, OPENCV, OPENCV_FISHEYE; a camera of another model is reported and its images skipped.
-Images are looked up under `images/` next to the model's folder (or its parents up to the root), else beside it.
+Images are looked up under `images/` next to the model's folder (or its parents up to the root), else beside
+it.
 """
 
 from __future__ import annotations
@@ -109,7 +110,9 @@ def _read_cameras_bin(f: BinaryIO, problems: list[str]) -> dict[int, Camera]:
         cam_id, model_id, width, height = _unpack(f, "<iiQQ")
         name, count = MODELS.get(model_id, (f"model id {model_id}", -1))
         if count < 0:
-            problems.append(f"cameras.bin: camera {cam_id} has unknown model id {model_id}; the file cannot be read on")
+            problems.append(
+                f"cameras.bin: camera {cam_id} has unknown model id {model_id}; the file cannot be read on"
+            )
             break
         cams[cam_id] = (name, int(width), int(height), list(_unpack(f, f"<{count}d")))
     return cams
@@ -127,7 +130,9 @@ def _read_images_bin(f: BinaryIO) -> list[tuple[str, np.ndarray, int]]:
                 raise ValueError("an image name longer than 4096 bytes")
         (n2d,) = _unpack(f, "<Q")
         f.seek(24 * n2d, 1)  # x, y (double), point3D id (int64) per 2D point
-        out.append((name.decode("utf-8", "replace"), _w2c(np.array(values[1:5]), np.array(values[5:8])), values[8]))
+        out.append(
+            (name.decode("utf-8", "replace"), _w2c(np.array(values[1:5]), np.array(values[5:8])), values[8])
+        )
     return out
 
 
@@ -141,7 +146,9 @@ def _images_folder(root: Path, model_dir: Path) -> Path:
         here = here.parent
 
 
-def read_model(root: Path, model_dir: Path) -> tuple[dict[int, Camera], list[tuple[str, np.ndarray, int]], list[str]]:
+def read_model(
+    root: Path, model_dir: Path
+) -> tuple[dict[int, Camera], list[tuple[str, np.ndarray, int]], list[str]]:
     """(cameras, images, problems) of one model folder, text preferred over binary."""
     problems: list[str] = []
     if (model_dir / "cameras.txt").is_file() and (model_dir / "images.txt").is_file():
@@ -168,7 +175,9 @@ def point_count_note(root: Path, model_dir: Path) -> list[str]:
         if (model_dir / "points3D.txt").is_file():
             text = read_text(model_dir / "points3D.txt", root)
             n = sum(1 for line in text.splitlines() if line.strip() and not line.lstrip().startswith("#"))
-        elif (model_dir / "points3D.bin").is_file() and inside(root, (model_dir / "points3D.bin").relative_to(root).as_posix()):
+        elif (model_dir / "points3D.bin").is_file() and inside(
+            root, (model_dir / "points3D.bin").relative_to(root).as_posix()
+        ):
             with open(model_dir / "points3D.bin", "rb") as f:
                 (n,) = _unpack(f, "<Q")
         else:
@@ -197,14 +206,18 @@ def read_colmap(root: Path, model_dir: Path) -> Capture:
         found = intrinsics(cam[0], cam[3]) if len(cam[3]) == MODEL_IDS.get(cam[0], (0, -1))[1] else None
         if found is None:
             if cam_id not in reported:
-                col.problem(f"camera {cam_id}: model {cam[0]} with {len(cam[3])} parameters is not supported (use "
-                            "PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV or OPENCV_FISHEYE); its images are skipped")
+                col.problem(
+                    f"camera {cam_id}: model {cam[0]} with {len(cam[3])} parameters is not supported (use "
+                    "PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV or OPENCV_FISHEYE); its images are skipped"
+                )
                 reported.add(cam_id)
             continue
         K, dist, dp = found
         c2w = np.linalg.inv(w2c) if np.isfinite(w2c).all() else w2c
-        col.add(name, f"{prefix}/{name}" if prefix else name, c2w, K=K, size=(cam[1], cam[2]), distortion=dist,
-                params=dp)
+        col.add(
+            name, f"{prefix}/{name}" if prefix else name, c2w, K=K, size=(cam[1], cam[2]), distortion=dist,
+            params=dp,
+        )
     notes = (f"COLMAP model in {model_dir.relative_to(root).as_posix() or '.'}, images in {prefix or '.'}",
              *point_count_note(root, model_dir))
     return Capture("colmap", root, tuple(col.frames), tuple(col.problems), notes=notes)

@@ -1,17 +1,18 @@
-"""Finding a capture in an upload: the folder (or extracted zip) that holds the scan, or the scan's own folder.
+"""Finding a capture in an upload: the folder (or extracted zip) that holds the scan, or the scan's own
+folder.
 
-The walk is bounded (depth, number of entries) and never follows links out of the root, so pointing at a mesh in
-a big folder costs little and reads nothing outside it. The first format found wins, in this order:
+The walk is bounded (depth, number of entries) and never follows links out of the root, so pointing at a mesh
+in a big folder costs little and reads nothing outside it. The first format found wins, in this order:
 transforms.json, a COLMAP model, a ScanNet export, the 7-Scenes/BundleFusion layout, camera_poses.json.
-A folder (or zip) the user gave is walked MAX_DEPTH folders deep; beside a single mesh file only BESIDE_DEPTH, the
-deepest the formats' own layouts go (COLMAP's sparse/0/): a scan saved in a busy folder (a home, Downloads, /tmp)
-does not take a capture from someone else's project further down.
+A folder (or zip) the user gave is walked MAX_DEPTH folders deep; beside a single mesh file only BESIDE_DEPTH,
+the deepest the formats' own layouts go (COLMAP's sparse/0/): a scan saved in a busy folder (a home,
+Downloads, /tmp) does not take a capture from someone else's project further down.
 
-Within `captures_kept()`, what was read is kept, keyed by the folder's listing (each file's path, size, times and
-inode): `generate` looks for the capture beside a scan five times (checksum, validation, loading, packing,
-registering), and reading the 7-Scenes kitchen's 500 poses and photo headers costs ~0.11 CPU-s each time. Only a
-command that reads its inputs once holds it (a long-lived process, the API, reads every time: a file rewritten
-with the same size within a clock tick keeps its stat).
+Within `captures_kept()`, what was read is kept, keyed by the folder's listing (each file's path, size, times
+and inode): `generate` looks for the capture beside a scan five times (checksum, validation, loading, packing,
+registering), and reading the 7-Scenes kitchen's 500 poses and photo headers costs ~0.11 CPU-s each time. Only
+a command that reads its inputs once holds it (a long-lived process, the API, reads every time: a file
+rewritten with the same size within a clock tick keeps its stat).
 """
 
 from __future__ import annotations
@@ -64,8 +65,8 @@ def list_files(root: Path, max_depth: int = MAX_DEPTH, max_entries: int = MAX_EN
 
 
 def find_capture(root: str | Path, max_depth: int = MAX_DEPTH) -> Capture | None:
-    """The capture under `root` (a folder, walked max_depth folders deep), or None when it holds none of the known
-    formats (Capture is frozen: the one kept for an unchanged folder is handed out again)."""
+    """The capture under `root` (a folder, walked max_depth folders deep), or None when it holds none of the
+    known formats (Capture is frozen: the one kept for an unchanged folder is handed out again)."""
     root = Path(root)
     if not root.is_dir():
         return None
@@ -98,7 +99,9 @@ def captures_kept() -> Iterator[None]:
 def _listing_key(root: Path, files: list[Path]) -> tuple | None:
     """What a capture read from `files` depends on, or None when a file vanished while listing (not kept)."""
     try:
-        stats = tuple((str(p), (st := p.stat()).st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino) for p in files)
+        stats = tuple(
+            (str(p), (st := p.stat()).st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino) for p in files
+        )
     except OSError:
         return None
     return str(root), str(root.resolve()), stats  # the path as given too: the capture's root is kept as given

@@ -57,9 +57,11 @@ def undistort(model: str, params: Sequence[float], xy_d: np.ndarray, iterations:
     return xy
 
 
-def project_to_photo(K: np.ndarray, model: str, params: Sequence[float], cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Photo pixel coordinates (N, 2; centre of pixel u at u + 0.5) of points (N, 3) in OpenCV camera axes, and
-    which are in front of the camera."""
+def project_to_photo(
+    K: np.ndarray, model: str, params: Sequence[float], cam: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Photo pixel coordinates (N, 2; centre of pixel u at u + 0.5) of points (N, 3) in OpenCV camera axes,
+    and which are in front of the camera."""
     cam = np.asarray(cam, dtype=np.float64)
     z = cam[..., 2]
     front = z > 1e-9

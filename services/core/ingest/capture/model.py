@@ -30,7 +30,8 @@ class CaptureError(ValueError):
 
 @dataclass(frozen=True, eq=False)
 class CaptureFrame:
-    """One photograph and its camera. `image` is a path relative to the capture root (None: a pose without photo)."""
+    """One photograph and its camera. `image` is a path relative to the capture root (None: a pose without
+    photo)."""
 
     name: str
     image: str | None
@@ -47,7 +48,9 @@ class CaptureFrame:
             object.__setattr__(self, "K", frozen_array(self.K, (3, 3)))
         lo, hi = DISTORTION_PARAMS.get(self.distortion, (-1, -1))
         if lo < 0:
-            raise ValueError(f"unknown distortion model {self.distortion!r}; known: {', '.join(DISTORTION_PARAMS)}")
+            raise ValueError(
+                f"unknown distortion model {self.distortion!r}; known: {', '.join(DISTORTION_PARAMS)}"
+            )
         if not lo <= len(self.distortion_params) <= hi:
             raise ValueError(f"distortion {self.distortion!r} takes {lo}..{hi} parameters, "
                              f"got {len(self.distortion_params)}")
@@ -68,8 +71,9 @@ class CaptureFrame:
         return np.asarray(self.camera_to_world[:3, 3])
 
     def inscribed_fov(self) -> float:
-        """Field of view (radians) of the widest square pinhole view about the optical axis that the photo fills:
-        twice the smallest angle from the axis to an image edge (distortion ignored: a small margin)."""
+        """Field of view (radians) of the widest square pinhole view about the optical axis that the photo
+        fills: twice the smallest angle from the axis to an image edge (distortion ignored: a small
+        margin)."""
         if self.K is None or self.width is None or self.height is None:
             raise ValueError(f"frame {self.name}: no intrinsics")
         fx, fy, cx, cy = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]
@@ -79,7 +83,8 @@ class CaptureFrame:
 
 @dataclass(frozen=True, eq=False)
 class Capture:
-    """The good frames of one capture (format, root folder) and one message per problem found while reading it."""
+    """The good frames of one capture (format, root folder) and one message per problem found while reading
+    it."""
 
     format: str  # 7scenes | colmap | transforms | scannet | camera_poses
     root: Path  # folder every image path is relative to
@@ -87,7 +92,8 @@ class Capture:
     problems: tuple[str, ...] = ()
     frame_space: str = "source"  # source | world (after in_world)
     notes: tuple[str, ...] = field(default=())  # how the format was read (e.g. which intrinsics file)
-    up_angle_deg: float | None = None  # angle between the cameras' up (mean_up) and world +Z, once in the world
+    # angle between the cameras' up (mean_up) and world +Z, once in the world
+    up_angle_deg: float | None = None
 
     @property
     def has_photos(self) -> bool:
@@ -101,8 +107,8 @@ class Capture:
         return self.root / frame.image
 
     def in_world(self, source_to_world: np.ndarray) -> Capture:
-        """The capture with every camera moved by the space's source_to_world (rotation, uniform scale, translation);
-        the cameras stay rigid (the scale moves the centres, not the axes)."""
+        """The capture with every camera moved by the space's source_to_world (rotation, uniform scale,
+        translation); the cameras stay rigid (the scale moves the centres, not the axes)."""
         T = np.asarray(source_to_world, dtype=np.float64)
         scale = float(np.cbrt(np.linalg.det(T[:3, :3])))
         R = T[:3, :3] / scale
@@ -118,11 +124,11 @@ class Capture:
     def mean_up(self) -> np.ndarray | None:
         """Unit up vector the cameras agree on, in the capture's coordinates, or None when they do not.
 
-        People hold cameras with little roll but often pitched (looking down at a table), so the cameras' right
-        axes (x of OpenCV axes) are horizontal while their up axes are not: up is the direction most nearly
-        perpendicular to every right axis (smallest eigenvector of sum x x^T), signed like the mean camera up
-        (-y). When the right axes do not pin it down (all alike, e.g. a straight dolly), the mean camera up is
-        used if the cameras roughly agree on it (mean of unit vectors at least 0.5 long).
+        People hold cameras with little roll but often pitched (looking down at a table), so the cameras'
+        right axes (x of OpenCV axes) are horizontal while their up axes are not: up is the direction most
+        nearly perpendicular to every right axis (smallest eigenvector of sum x x^T), signed like the mean
+        camera up (-y). When the right axes do not pin it down (all alike, e.g. a straight dolly), the mean
+        camera up is used if the cameras roughly agree on it (mean of unit vectors at least 0.5 long).
         """
         if not self.frames:
             return None

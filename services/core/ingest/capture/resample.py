@@ -1,12 +1,13 @@
 """A capture photo seen through another pinhole camera at the same centre: undistortion, resampling and the
 rotation homography of fixated views, in one mapping. Pure numpy/scipy.
 
-For each pixel centre of the view (K_view, world_to_camera_view; pixel centres at u + 0.5) the ray is turned into
-the photo's camera axes, distorted by the photo's lens and sampled bilinearly from the photo. This is exact when
-the two cameras share a centre (any rotation between them); translation between the centres is parallax and is
-not handled here (photo-textured views project through the mesh instead). When the view samples the photo
-sparser than its pixels, the photo is low-pass filtered first so the view does not alias. Photos come decoded
-no larger than the view needs (services.core.ingest.capture.photos), so that filter works on few pixels.
+For each pixel centre of the view (K_view, world_to_camera_view; pixel centres at u + 0.5) the ray is turned
+into the photo's camera axes, distorted by the photo's lens and sampled bilinearly from the photo. This is
+exact when the two cameras share a centre (any rotation between them); translation between the centres is
+parallax and is not handled here (photo-textured views project through the mesh instead). When the view
+samples the photo sparser than its pixels, the photo is low-pass filtered first so the view does not alias.
+Photos come decoded no larger than the view needs (services.core.ingest.capture.photos), so that filter works
+on few pixels.
 """
 
 from __future__ import annotations
@@ -32,8 +33,8 @@ def view_rays_cam(K: np.ndarray, width: int, height: int) -> np.ndarray:
 
 def photo_coords(frame: CaptureFrame, K_view: np.ndarray, world_to_camera_view: np.ndarray, width: int,
                  height: int) -> tuple[np.ndarray, np.ndarray]:
-    """(H, W, 2) photo pixel coordinates of each view pixel centre (centre of photo pixel u at u + 0.5), and which
-    view pixels the photo covers. Both cameras' rotations must be in the same (world) frame."""
+    """(H, W, 2) photo pixel coordinates of each view pixel centre (centre of photo pixel u at u + 0.5), and
+    which view pixels the photo covers. Both cameras' rotations must be in the same (world) frame."""
     if frame.K is None or frame.width is None or frame.height is None:
         raise ValueError(f"frame {frame.name} has no intrinsics")
     d_view = view_rays_cam(K_view, width, height).reshape(-1, 3)
@@ -42,13 +43,19 @@ def photo_coords(frame: CaptureFrame, K_view: np.ndarray, world_to_camera_view: 
     d_photo = d_view @ (R_photo @ R_view.T).T  # view camera -> world -> photo camera
     uv, front = project_to_photo(frame.K, frame.distortion, frame.distortion_params, d_photo)
     m = COVERAGE_MARGIN_PX
-    inside = front & (uv[:, 0] >= m) & (uv[:, 0] <= frame.width - m) & (uv[:, 1] >= m) & (uv[:, 1] <= frame.height - m)
+    inside = (
+        front
+        & (uv[:, 0] >= m)
+        & (uv[:, 0] <= frame.width - m)
+        & (uv[:, 1] >= m)
+        & (uv[:, 1] <= frame.height - m)
+    )
     return uv.reshape(height, width, 2), inside.reshape(height, width)
 
 
 def sample_bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """float32 (..., C) bilinear samples of an H x W x C image at continuous coordinates (centre of u at u + 0.5),
-    clamped at the border."""
+    """float32 (..., C) bilinear samples of an H x W x C image at continuous coordinates (centre of u at u +
+    0.5), clamped at the border."""
     h, w = image.shape[:2]
     x = np.clip(uv[..., 0] - 0.5, 0.0, w - 1.0)
     y = np.clip(uv[..., 1] - 0.5, 0.0, h - 1.0)
@@ -86,16 +93,21 @@ def prefilter(photo: Photo, frame: CaptureFrame, K_view: np.ndarray) -> np.ndarr
 
 def photo_for_view(photo: Photo, frame: CaptureFrame, K_view: np.ndarray, world_to_camera_view: np.ndarray,
                    width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """(uint8 H x W x 3 rgb, bool H x W coverage) of the photo resampled to the view; 0 where it does not reach."""
+    """(uint8 H x W x 3 rgb, bool H x W coverage) of the photo resampled to the view; 0 where it does not
+    reach."""
     uv, covered = photo_coords(frame, K_view, world_to_camera_view, width, height)
     rgb = sample_bilinear(prefilter(photo, frame, K_view), uv * photo.scale)
     rgb = np.where(covered[..., None], np.clip(np.rint(rgb), 0, 255), 0).astype(np.uint8)
     return rgb, covered
 
 
-def coverage_fraction(frame: CaptureFrame, K_view: np.ndarray, world_to_camera_view: np.ndarray, size: int = 16) -> float:
+def coverage_fraction(
+    frame: CaptureFrame, K_view: np.ndarray, world_to_camera_view: np.ndarray, size: int = 16
+) -> float:
     """Share of a square view's pixels the frame's photo covers, from a size x size probe (planning)."""
     scale = size / (2.0 * K_view[0, 2])
-    K_probe = np.array([[K_view[0, 0] * scale, 0, size / 2.0], [0, K_view[1, 1] * scale, size / 2.0], [0, 0, 1]])
+    K_probe = np.array(
+        [[K_view[0, 0] * scale, 0, size / 2.0], [0, K_view[1, 1] * scale, size / 2.0], [0, 0, 1]]
+    )
     _, covered = photo_coords(frame, K_probe, world_to_camera_view, size, size)
     return float(covered.mean())

@@ -15,8 +15,15 @@ from services.core.ingest.capture.model import Capture
 
 def export_folders(files: list[Path]) -> list[Path]:
     """Folders holding a ScanNet export (pose/ and intrinsic/intrinsic_color.txt)."""
-    return sorted({p.parent.parent for p in files if p.name == "intrinsic_color.txt" and p.parent.name == "intrinsic"
-                   and (p.parent.parent / "pose").is_dir()})
+    return sorted(
+        {
+            p.parent.parent
+            for p in files
+            if p.name == "intrinsic_color.txt"
+            and p.parent.name == "intrinsic"
+            and (p.parent.parent / "pose").is_dir()
+        }
+    )
 
 
 def _numbers(path: Path, root: Path) -> np.ndarray:
@@ -31,7 +38,9 @@ def read_scannet(root: Path, folder: Path) -> Capture:
     except (OSError, ValueError) as e:
         return Capture("scannet", root, (), (f"intrinsic/intrinsic_color.txt: not readable ({e})",))
     if m.size != 16:
-        return Capture("scannet", root, (), (f"intrinsic/intrinsic_color.txt: {m.size} numbers, expected 16",))
+        return Capture(
+            "scannet", root, (), (f"intrinsic/intrinsic_color.txt: {m.size} numbers, expected 16",)
+        )
     K = m.reshape(4, 4)[:3, :3].copy()
     K[:2, 2] += 0.5
     poses = [p for p in (folder / "pose").iterdir() if p.suffix == ".txt" and p.stem.isdigit()]
@@ -39,8 +48,14 @@ def read_scannet(root: Path, folder: Path) -> Capture:
     prefix = "" if prefix == "." else prefix + "/"
     for pose_file in sorted(poses, key=lambda p: int(p.stem)):
         i = pose_file.stem
-        image = next((f"{prefix}color/{i}{ext}" for ext in (".jpg", ".png") if (folder / "color" / f"{i}{ext}").is_file()),
-                     None)
+        image = next(
+            (
+                f"{prefix}color/{i}{ext}"
+                for ext in (".jpg", ".png")
+                if (folder / "color" / f"{i}{ext}").is_file()
+            ),
+            None,
+        )
         if image is None:
             col.problem(f"frame {i}: color/{i}.jpg is missing; skipped")
             continue

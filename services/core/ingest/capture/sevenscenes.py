@@ -1,9 +1,10 @@
 """The 7-Scenes / 3DMatch / BundleFusion layout: `frame-NNNNNN.color.{jpg,png}` + `frame-NNNNNN.pose.txt` (4x4
-camera-to-world, metres, OpenCV axes) per frame, with `camera-intrinsics.txt` (3x3 K) or BundleFusion's `info.txt`
-(`m_calibrationColorIntrinsic = fx 0 cx 0 0 fy cy 0 ...`, `m_colorWidth`, `m_colorHeight`).
+camera-to-world, metres, OpenCV axes) per frame, with `camera-intrinsics.txt` (3x3 K) or BundleFusion's
+`info.txt` (`m_calibrationColorIntrinsic = fx 0 cx 0 0 fy cy 0 ...`, `m_colorWidth`, `m_colorHeight`).
 
 The intrinsics files put pixel centres at integer coordinates (OpenCV), so the principal point moves by +0.5.
-Lost frames (BundleFusion writes -inf poses) are reported and skipped. No distortion is given by these formats.
+Lost frames (BundleFusion writes -inf poses) are reported and skipped. No distortion is given by these
+formats.
 """
 
 from __future__ import annotations
@@ -25,8 +26,11 @@ def frame_folders(root: Path, files: list[Path]) -> list[Path]:
     return sorted({p.parent for p in files if FRAME_RE.match(p.name)})
 
 
-def _intrinsics(root: Path, folder: Path, notes: list[str]) -> tuple[np.ndarray, tuple[int, int] | None] | str:
-    """(K with pixel centres at +0.5, size or None) from the nearest intrinsics file at or above folder, or why not."""
+def _intrinsics(
+    root: Path, folder: Path, notes: list[str]
+) -> tuple[np.ndarray, tuple[int, int] | None] | str:
+    """(K with pixel centres at +0.5, size or None) from the nearest intrinsics file at or above folder, or
+    why not."""
     here = folder
     while True:
         intr, info = here / "camera-intrinsics.txt", here / "info.txt"
@@ -48,7 +52,9 @@ def _intrinsics(root: Path, folder: Path, notes: list[str]) -> tuple[np.ndarray,
         here = here.parent
 
 
-def _bundlefusion_info(root: Path, info: Path, notes: list[str]) -> tuple[np.ndarray, tuple[int, int] | None] | str:
+def _bundlefusion_info(
+    root: Path, info: Path, notes: list[str]
+) -> tuple[np.ndarray, tuple[int, int] | None] | str:
     values: dict[str, str] = {}
     for line in read_text(info, root).splitlines():
         key, sep, value = line.partition("=")
@@ -68,7 +74,8 @@ def _bundlefusion_info(root: Path, info: Path, notes: list[str]) -> tuple[np.nda
 
 
 def read_sevenscenes(root: Path, files: list[Path]) -> Capture:
-    """Every frame of the layout under root (see the module docstring); `files`: the files found under root."""
+    """Every frame of the layout under root (see the module docstring); `files`: the files found under
+    root."""
     col = FrameCollector(root)
     notes: list[str] = []
     by_folder: dict[Path, list[Path]] = {}
@@ -78,7 +85,9 @@ def read_sevenscenes(root: Path, files: list[Path]) -> Capture:
     for folder in sorted(by_folder):
         found = _intrinsics(root, folder, notes)
         if isinstance(found, str):
-            col.problem(f"{folder.relative_to(root) if folder != root else '.'}: {found}; its frames are skipped")
+            col.problem(
+                f"{folder.relative_to(root) if folder != root else '.'}: {found}; its frames are skipped"
+            )
             continue
         K, size = found
         for pose_file in sorted(by_folder[folder]):
@@ -89,6 +98,7 @@ def read_sevenscenes(root: Path, files: list[Path]) -> Capture:
             if image is None:
                 col.problem(f"frame {name}: no {stem}.color.jpg or .color.png beside its pose; skipped")
                 continue
-            col.add_pose_file(name, image.relative_to(root).as_posix(), pose_file, shown_as=pose_file.name, K=K,
-                              size=size)
+            col.add_pose_file(
+                name, image.relative_to(root).as_posix(), pose_file, shown_as=pose_file.name, K=K, size=size
+            )
     return Capture("7scenes", root, tuple(col.frames), tuple(col.problems), notes=tuple(dict.fromkeys(notes)))

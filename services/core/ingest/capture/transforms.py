@@ -1,8 +1,9 @@
-"""nerfstudio / instant-ngp `transforms.json`: camera-to-world `transform_matrix` per frame in OpenGL camera axes
-(x right, y up, z backwards), intrinsics shared at the top level or per frame (`fl_x`, `fl_y`, `cx`, `cy`, `w`, `h`,
-or instant-ngp's `camera_angle_x`/`camera_angle_y`), distortion `k1..k4`, `p1`, `p2` with `camera_model`
-OPENCV (default) or OPENCV_FISHEYE. `file_path` is relative to the JSON's folder (instant-ngp's synthetic scenes
-leave out the extension: .png, then .jpg is tried). Poses are kept as written (an `applied_transform` is noted).
+"""nerfstudio / instant-ngp `transforms.json`: camera-to-world `transform_matrix` per frame in OpenGL camera
+axes (x right, y up, z backwards), intrinsics shared at the top level or per frame (`fl_x`, `fl_y`, `cx`,
+`cy`, `w`, `h`, or instant-ngp's `camera_angle_x`/`camera_angle_y`), distortion `k1..k4`, `p1`, `p2` with
+`camera_model` OPENCV (default) or OPENCV_FISHEYE. `file_path` is relative to the JSON's folder (instant-ngp's
+synthetic scenes leave out the extension: .png, then .jpg is tried). Poses are kept as written (an
+`applied_transform` is noted).
 """
 
 from __future__ import annotations
@@ -26,12 +27,16 @@ def _num(d: Mapping[str, object], key: str) -> float | None:
 
 
 def _camera(shared: Mapping[str, object], frame: Mapping[str, object]) -> dict[str, object]:
-    keys = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y", "k1", "k2", "k3", "k4", "p1",
-            "p2", "camera_model")
+    keys = (
+        "fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y", "k1", "k2", "k3", "k4",
+        "p1", "p2", "camera_model",
+    )
     return {k: frame[k] if k in frame else shared.get(k) for k in keys}
 
 
-def _intrinsics(cam: Mapping[str, object], size: tuple[int, int] | None) -> tuple[np.ndarray, tuple[int, int] | None] | str:
+def _intrinsics(
+    cam: Mapping[str, object], size: tuple[int, int] | None
+) -> tuple[np.ndarray, tuple[int, int] | None] | str:
     w, h = _num(cam, "w"), _num(cam, "h")
     given = (int(w), int(h)) if w and h else None
     width, height = given or size or (None, None)

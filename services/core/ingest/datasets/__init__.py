@@ -27,8 +27,10 @@ LAYOUTS: tuple[ModuleType, ...] = (
 
 MAX_ROOT_DEPTH = 3  # ScanNet/scans/<scene>, hm3d/train/<scene>, Matterport v1/scans/<house>
 
-__all__ = ["DatasetError", "DatasetScene", "SceneLabels", "ScenePath", "expand_roots", "find_scenes", "scene_mesh_in",
-           "scene_of"]
+__all__ = [
+    "DatasetError", "DatasetScene", "SceneLabels", "ScenePath", "expand_roots", "find_scenes",
+    "scene_mesh_in", "scene_of",
+]
 
 
 def scene_mesh_in(folder: Path) -> Path | None:

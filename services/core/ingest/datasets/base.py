@@ -30,8 +30,9 @@ MAX_TRANSFER_FRACTION = 0.01
 NYU40_NAMES = (
     "wall", "floor", "cabinet", "bed", "chair", "sofa", "table", "door", "window", "bookshelf", "picture",
     "counter", "blinds", "desk", "shelves", "curtain", "dresser", "pillow", "mirror", "floor mat", "clothes",
-    "ceiling", "books", "refridgerator", "television", "paper", "towel", "shower curtain", "box", "whiteboard",
-    "person", "night stand", "toilet", "sink", "lamp", "bathtub", "bag", "otherstructure", "otherfurniture",
+    "ceiling", "books", "refridgerator", "television", "paper", "towel", "shower curtain", "box",
+    "whiteboard", "person", "night stand", "toilet", "sink", "lamp", "bathtub", "bag", "otherstructure",
+    "otherfurniture",
     "otherprop",
 )
 NYU40 = {i + 1: name for i, name in enumerate(NYU40_NAMES)}
@@ -65,7 +66,8 @@ class DatasetScene:
     labeller: Callable[[trimesh.Trimesh], SceneLabels] | None = field(default=None, compare=False)
 
     def labels(self, mesh: trimesh.Trimesh) -> SceneLabels | None:
-        """The labels of the rendered mesh as loaded (source coordinates), or None for an unlabelled dataset."""
+        """The labels of the rendered mesh as loaded (source coordinates), or None for an unlabelled
+        dataset."""
         return None if self.labeller is None else self.labeller(mesh)
 
 
@@ -83,7 +85,9 @@ def _records(data: np.ndarray | Mapping[str, ArrayLike]) -> np.ndarray:
     if not isinstance(data, Mapping):
         return data
     columns = {name: np.asarray(col) for name, col in data.items()}
-    columns = {name: col[:, 0] if col.ndim == 2 and col.shape[1] == 1 else col for name, col in columns.items()}
+    columns = {
+        name: col[:, 0] if col.ndim == 2 and col.shape[1] == 1 else col for name, col in columns.items()
+    }
     n = len(next(iter(columns.values()))) if columns else 0
     out = np.zeros(n, dtype=[(name, col.dtype, col.shape[1:]) for name, col in columns.items()])
     for name, col in columns.items():
@@ -116,14 +120,17 @@ def segment_indices(segments_json: Path, vertices: int, mesh_name: str) -> np.nd
     """The segment of each vertex (`segIndices`, ScanNet's format), checked against the mesh it indexes."""
     seg_indices = np.asarray(read_json(segments_json).get("segIndices", []), dtype=np.int64)
     if len(seg_indices) != vertices:
-        raise DatasetError(f"{segments_json.name}: {len(seg_indices)} segIndices for the {vertices} vertices of "
-                           f"{mesh_name}")
+        raise DatasetError(
+            f"{segments_json.name}: {len(seg_indices)} segIndices for the {vertices} vertices of {mesh_name}"
+        )
     return seg_indices
 
 
 def require_property(records: np.ndarray, name: str, path: Path) -> np.ndarray:
     if records.dtype.names is None or name not in records.dtype.names:
-        raise DatasetError(f"{path.name}: has no '{name}' property (found {', '.join(records.dtype.names or ())})")
+        raise DatasetError(
+            f"{path.name}: has no '{name}' property (found {', '.join(records.dtype.names or ())})"
+        )
     return np.asarray(records[name])
 
 
@@ -133,7 +140,9 @@ def xyz(records: np.ndarray) -> np.ndarray:
 
 def polygons(faces: np.ndarray) -> list[np.ndarray] | np.ndarray:
     """Vertex indices of each polygon of a PLY face element: (F, k) when all have k corners, else a list."""
-    indices = faces["vertex_indices"] if "vertex_indices" in (faces.dtype.names or ()) else faces["vertex_index"]
+    indices = (
+        faces["vertex_indices"] if "vertex_indices" in (faces.dtype.names or ()) else faces["vertex_index"]
+    )
     if indices.dtype.names:  # (count, values) records of a fixed-length list
         indices = indices["f1"]
     if indices.dtype != object and indices.ndim == 2:
@@ -142,7 +151,8 @@ def polygons(faces: np.ndarray) -> list[np.ndarray] | np.ndarray:
 
 
 def fan(polys: list[np.ndarray] | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(triangles (T, 3) of vertex indices, the polygon of each) of polygons split as fans from their first corner."""
+    """(triangles (T, 3) of vertex indices, the polygon of each) of polygons split as fans from their first
+    corner."""
     if isinstance(polys, np.ndarray):
         k = polys.shape[1]
         tris = np.concatenate([polys[:, [0, j, j + 1]] for j in range(1, k - 1)])
@@ -173,7 +183,9 @@ class LabelledSurface:
                    face_instance: np.ndarray) -> LabelledSurface:
         """A mesh labelled per polygon (quads and the like are split into triangles carrying its labels)."""
         tris, owner = fan(polys)
-        return LabelledSurface(vertices[tris], np.asarray(face_class)[owner], np.asarray(face_instance)[owner])
+        return LabelledSurface(
+            vertices[tris], np.asarray(face_class)[owner], np.asarray(face_instance)[owner]
+        )
 
     @staticmethod
     def from_vertices(vertices: np.ndarray, polys: list[np.ndarray] | np.ndarray, vertex_class: np.ndarray,
@@ -237,7 +249,8 @@ def transfer(mesh: trimesh.Trimesh, labelled: LabelledSurface) -> tuple[np.ndarr
 
 
 def names_from_labels(labels: list[str]) -> dict[str, int]:
-    """Class id per label string of a scene that names its classes itself: 1 + its index among the sorted names."""
+    """Class id per label string of a scene that names its classes itself: 1 + its index among the sorted
+    names."""
     return {name: i + 1 for i, name in enumerate(sorted(set(labels)))}
 
 

@@ -36,7 +36,8 @@ BASIS_EXTENSION = "KHR_texture_basisu"
 
 
 def scene_mesh(folder: Path) -> Path | None:
-    """The mesh to render in an HM3D scene folder: the plain .glb, else the .obj, else the .basis.glb (refused)."""
+    """The mesh to render in an HM3D scene folder: the plain .glb, else the .obj, else the .basis.glb
+    (refused)."""
     marks = sorted(folder.glob("*.semantic.glb")) or sorted(folder.glob("*.basis.glb"))
     if len(marks) != 1:
         return None
@@ -66,9 +67,11 @@ def basis_refusal(path: Path) -> str | None:
     if path.suffix.lower() != ".glb" or not (path.name.endswith(".basis.glb") or glb_uses_basis(path)):
         return None
     scene = path.name.removesuffix(".basis.glb").removesuffix(".glb")
-    return (f"{path.name}: its textures are Basis Universal / KTX2 compressed ({BASIS_EXTENSION}), which Blender "
-            f"and trimesh cannot decode; use the plain release of the same scene instead: {scene}.glb "
-            f"(HM3D's hm3d-*-glb-v0.2) or {scene}.obj with its textures (hm3d-*-obj-v0.2)")
+    return (
+        f"{path.name}: its textures are Basis Universal / KTX2 compressed ({BASIS_EXTENSION}), which Blender "
+        f"and trimesh cannot decode; use the plain release of the same scene instead: {scene}.glb "
+        f"(HM3D's hm3d-*-glb-v0.2) or {scene}.obj with its textures (hm3d-*-obj-v0.2)"
+    )
 
 
 def read_semantic_txt(path: Path) -> dict[int, tuple[int, str]]:
@@ -90,7 +93,9 @@ def read(mesh: Path) -> DatasetScene | None:
     folder = mesh.parent
     scene = mesh.name.removesuffix(".basis.glb").removesuffix(".glb").removesuffix(".obj")
     semantic_glb, semantic_txt = folder / f"{scene}.semantic.glb", folder / f"{scene}.semantic.txt"
-    if mesh.name.endswith(".semantic.glb") or not (semantic_glb.is_file() or mesh.name.endswith(".basis.glb")):
+    if mesh.name.endswith(".semantic.glb") or not (
+        semantic_glb.is_file() or mesh.name.endswith(".basis.glb")
+    ):
         return None
     if (why := basis_refusal(mesh)) is not None:
         raise DatasetError(why)
@@ -110,14 +115,22 @@ def read(mesh: Path) -> DatasetScene | None:
         colour = (rgb[:, 0] << 16) | (rgb[:, 1] << 8) | rgb[:, 2]
         class_of_name = names_from_labels([name for _, name in objects.values()])
         instance = np.array([objects.get(int(c), (0, ""))[0] for c in colour], dtype=np.int64)
-        cls = np.array([class_of_name.get(objects.get(int(c), (0, ""))[1], 0) for c in colour], dtype=np.int64)
+        cls = np.array(
+            [class_of_name.get(objects.get(int(c), (0, ""))[1], 0) for c in colour], dtype=np.int64
+        )
         unknown = int((instance == 0).sum())
-        notes = (f"{unknown} semantic vertices have a colour {semantic_txt.name} does not list",) if unknown else ()
+        notes = (
+            (f"{unknown} semantic vertices have a colour {semantic_txt.name} does not list",)
+            if unknown
+            else ()
+        )
         face_class, face_instance = transfer(
             loaded, LabelledSurface.from_vertices(points, np.asarray(semantic.faces), cls, instance))
         return SceneLabels(face_class, face_instance, {i: n for n, i in class_of_name.items()}, notes)
 
     labelled = semantic_glb.is_file() and semantic_txt.is_file()
     files = [p for p in (mesh, semantic_glb, semantic_txt) if p.is_file()]
-    return DatasetScene(NAME, folder.name, mesh, tuple(files), up_axis="+y" if mesh.suffix == ".glb" else None,
-                        unit_scale=1.0, labeller=label if labelled else None)
+    return DatasetScene(
+        NAME, folder.name, mesh, tuple(files), up_axis="+y" if mesh.suffix == ".glb" else None,
+        unit_scale=1.0, labeller=label if labelled else None,
+    )

@@ -2,8 +2,8 @@
 
 - `mesh.ply`: the scan as quads with vertex colours - rendered (trimesh splits each quad in two).
 - `habitat/mesh_semantic.ply`: the same surfaces with a face property `object_id`, and
-  `habitat/info_semantic.json`: `id_to_label` (class id per object id, -1 = none) and `classes` ([{id, name}]).
-  Instance id = object_id, class id = id_to_label[object_id]; both are Replica's own.
+  `habitat/info_semantic.json`: `id_to_label` (class id per object id, -1 = none) and `classes` ([{id,
+  name}]). Instance id = object_id, class id = id_to_label[object_id]; both are Replica's own.
 - Metres; up is detected (the scenes are not all stored the same way up).
 """
 
@@ -50,7 +50,9 @@ def read(mesh: Path) -> DatasetScene | None:
         object_id = require_property(faces, "object_id", semantic).astype(np.int64)
         known = (object_id >= 0) & (object_id < len(id_to_label))
         face_class = np.where(known, id_to_label[np.clip(object_id, 0, len(id_to_label) - 1)], 0)
-        surface = LabelledSurface.of_ply_faces(vertices, faces, np.maximum(face_class, 0), np.maximum(object_id, 0))
+        surface = LabelledSurface.of_ply_faces(
+            vertices, faces, np.maximum(face_class, 0), np.maximum(object_id, 0)
+        )
         cls, inst = transfer(loaded, surface)
         return SceneLabels(cls, inst, names)
 

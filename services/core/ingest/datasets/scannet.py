@@ -67,7 +67,9 @@ def axis_alignment(txt: Path) -> np.ndarray | None:
                 raise DatasetError(f"{txt.name}: axisAlignment must be 16 numbers (a row-major 4x4)")
             matrix = m.reshape(4, 4)
             rotation = matrix[:3, :3]
-            if not np.allclose(matrix[3], [0, 0, 0, 1]) or not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-4):
+            if not np.allclose(matrix[3], [0, 0, 0, 1]) or not np.allclose(
+                rotation @ rotation.T, np.eye(3), atol=1e-4
+            ):
                 raise DatasetError(f"{txt.name}: axisAlignment is not a rigid transform")
             return matrix
     return None
@@ -77,7 +79,9 @@ def _labeller(folder: Path, scene: str) -> tuple[Callable[[trimesh.Trimesh], Sce
     """The scene's labeller (None when it has no labels) and its label files."""
     labels_ply = folder / f"{scene}_vh_clean_2.labels.ply"
     segs = sorted(folder.glob(f"{scene}_vh_clean_2*.segs.json"))
-    aggregation = first_existing(folder / f"{scene}.aggregation.json", folder / f"{scene}_vh_clean.aggregation.json")
+    aggregation = first_existing(
+        folder / f"{scene}.aggregation.json", folder / f"{scene}_vh_clean.aggregation.json"
+    )
     points_ply = labels_ply if labels_ply.is_file() else folder / f"{scene}{LOW}"
 
     def label(mesh: trimesh.Trimesh) -> SceneLabels:
@@ -105,12 +109,17 @@ def _labeller(folder: Path, scene: str) -> tuple[Callable[[trimesh.Trimesh], Sce
         face_class, face_instance = transfer(
             mesh, LabelledSurface.of_ply_vertices(vertices, faces, vertex_class, vertex_instance))
         if len(mesh.faces) != len(faces):
-            notes.append(f"labels carried from {points_ply.name} to the high-resolution mesh by nearest surface")
+            notes.append(
+                f"labels carried from {points_ply.name} to the high-resolution mesh by nearest surface"
+            )
         return SceneLabels(face_class, face_instance, names, tuple(notes))
 
     has_labels = labels_ply.is_file() or (segs and aggregation is not None)
-    files = [p for p in (labels_ply, *segs[:1], aggregation, folder / f"{scene}{LOW}", folder / f"{scene}.txt")
-             if p is not None and p.is_file()]
+    files = [
+        p
+        for p in (labels_ply, *segs[:1], aggregation, folder / f"{scene}{LOW}", folder / f"{scene}.txt")
+        if p is not None and p.is_file()
+    ]
     return (label if has_labels else None), files
 
 

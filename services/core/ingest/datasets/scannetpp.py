@@ -1,9 +1,9 @@
 """ScanNet++ (`data/<scene>/scans/`) as downloaded.
 
 - `mesh_aligned_0.05.ply`: the scan, aligned (+Z up, metres), vertex colours - rendered.
-- `segments.json` (`segIndices` per vertex of that mesh) + `segments_anno.json` (`segGroups`: objectId, already
-  1-based, label, segments): instances and classes. `mesh_aligned_0.05_semantic.ply` is the same mesh coloured
-  by class for viewing; its colours carry no ids, so the JSON files are what is read.
+- `segments.json` (`segIndices` per vertex of that mesh) + `segments_anno.json` (`segGroups`: objectId,
+  already 1-based, label, segments): instances and classes. `mesh_aligned_0.05_semantic.ply` is the same mesh
+  coloured by class for viewing; its colours carry no ids, so the JSON files are what is read.
 - Class ids: 1 + the line index of the label in the release's `metadata/semantic_classes.txt` when it sits at
   the dataset root, else 1.. over the scene's own sorted label names (names recorded per space either way).
 """
@@ -41,7 +41,9 @@ def _dataset_classes(scans: Path) -> dict[str, int] | None:
     for root in list(scans.parents)[:4]:
         listing = root / "metadata" / "semantic_classes.txt"
         if listing.is_file():
-            names = [line.strip() for line in listing.read_text(errors="replace").splitlines() if line.strip()]
+            names = [
+                line.strip() for line in listing.read_text(errors="replace").splitlines() if line.strip()
+            ]
             return {name: i + 1 for i, name in enumerate(names)}
     return None
 
@@ -63,7 +65,9 @@ def read(mesh: Path) -> DatasetScene | None:
         if classes is None:
             classes = names_from_labels(labels)
         elif missing := sorted(set(labels) - set(classes)):
-            notes = (f"labels not in metadata/semantic_classes.txt stay unlabelled: {', '.join(missing[:10])}",)
+            notes = (
+                f"labels not in metadata/semantic_classes.txt stay unlabelled: {', '.join(missing[:10])}",
+            )
         vertex_class, vertex_instance = segment_groups(seg_indices, groups, classes, annotation)
         face_class, face_instance = transfer(
             loaded, LabelledSurface.of_ply_vertices(vertices, faces, vertex_class, vertex_instance))

@@ -32,13 +32,14 @@ def bin_tree() -> cKDTree:
 
 @functools.cache
 def bin_neighbours() -> sparse.csr_matrix:
-    """Bins within 6 degrees of each other (antipodes folded): smooths the histogram into peaks. The pairs come
-    from the bin tree (unit vectors: a.b > c exactly when |a - b| < sqrt(2 - 2c)) and are then tested as defined;
-    the dense 2000 x 2000 product this replaces was 0.16 CPU-s of every generate's start-up."""
+    """Bins within 6 degrees of each other (antipodes folded): smooths the histogram into peaks. The pairs
+    come from the bin tree (unit vectors: a.b > c exactly when |a - b| < sqrt(2 - 2c)) and are then tested as
+    defined; the dense 2000 x 2000 product this replaces was 0.16 CPU-s of every generate's start-up."""
     near = bin_tree().query_ball_point(BINS, np.sqrt(2.0 - 2.0 * NEIGHBOUR_COS) * (1.0 + 1e-6))
     rows = np.repeat(np.arange(N_BINS), [len(n) for n in near])
     cols = np.concatenate([np.asarray(n, dtype=np.int64) for n in near]) % N_BINS
     keep = np.abs((BINS[rows] * BINS[cols]).sum(axis=1)) > NEIGHBOUR_COS
     rows, cols = rows[keep], cols[keep]
-    order = np.lexsort((cols, rows))  # each row's columns ascending, as a dense matrix's conversion gives them
+    # each row's columns ascending, as a dense matrix's conversion gives them
+    order = np.lexsort((cols, rows))
     return sparse.csr_matrix((np.ones(len(order)), (rows[order], cols[order])), shape=(N_BINS, N_BINS))

@@ -13,8 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
+from services.core.domain.frame_values import similarity_scale
 from services.core.domain.frame_words import ambiguity_line, units_ambiguity_line
-from services.core.domain.jobspec import similarity_scale
 from services.core.ingest.errors import SpaceError, UnitsAmbiguous, UpAmbiguous
 from services.core.ingest.frame.gravity import (
     UpEstimate,

@@ -41,8 +41,8 @@ def _directions(vertices: np.ndarray) -> np.ndarray | None:
 
 def _seen_from_origin(vertices: np.ndarray) -> np.ndarray | None:
     """The mean direction (unit) from the source origin to the scan, when the scan lies on one side of the
-    origin (a capture stored in its first camera's frame: that camera stood there, looking along +Z); None when
-    the scan surrounds the origin or lies every way from it."""
+    origin (a capture stored in its first camera's frame: that camera stood there, looking along +Z); None
+    when the scan surrounds the origin or lies every way from it."""
     d = _directions(vertices)
     if d is None:
         return None

@@ -59,7 +59,8 @@ REFUSE_MARGIN = 1.2
 SINGLE_VIEW_REFUSE_MARGIN = 4.5
 # logistic slope of P(right | margin): the likeliest on bench/ingest/ingest_real.py's real rooms while a wrong
 # winner
-# still reached 1.65; none does now, so the probability it states above REFUSE_MARGIN (>= 88 %) is conservative
+# still reached 1.65; none does now, so the probability it states above REFUSE_MARGIN (>= 88 %) is
+# conservative
 CONFIDENCE_SLOPE = 1.7
 VIEW_PITCH_DEG = 50.0  # a depth camera pointed further up or down than this sees no room
 CAMERA_FRAME_DEG = 10.0  # a single view looking this close to +Z is stored in its camera's (OpenCV) frame

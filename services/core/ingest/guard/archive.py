@@ -52,7 +52,8 @@ def safe_extract_zip(
     max_ratio: float = ZIP_MAX_RATIO,
     max_members: int = ZIP_MAX_MEMBERS,
 ) -> None:
-    """Extract `zip_path` into `dest`, refusing traversal, absolute paths, links and zip bombs (SpaceError)."""
+    """Extract `zip_path` into `dest`, refusing traversal, absolute paths, links and zip bombs
+    (SpaceError)."""
     name = zip_path.name
     try:
         zf = zipfile.ZipFile(zip_path)
@@ -61,7 +62,9 @@ def safe_extract_zip(
     with zf:
         infos = zf.infolist()
         if len(infos) > max_members:
-            raise SpaceError(f"{name}: {len(infos)} members in the archive, more than the limit {max_members}")
+            raise SpaceError(
+                f"{name}: {len(infos)} members in the archive, more than the limit {max_members}"
+            )
         _check_headers(name, infos, max_total_bytes, max_ratio)
         dest = dest.resolve()
         dest.mkdir(parents=True, exist_ok=True)
@@ -105,7 +108,9 @@ def _check_headers(name: str, infos: list[zipfile.ZipInfo], max_total_bytes: int
         _check_member(name, info)
         total += info.file_size
         total_compressed += info.compress_size
-        if problem := expansion_refusal(f"member {info.filename!r}", info.file_size, info.compress_size, max_ratio):
+        if problem := expansion_refusal(
+            f"member {info.filename!r}", info.file_size, info.compress_size, max_ratio
+        ):
             raise SpaceError(f"{name}: {problem}")
     if total > max_total_bytes:
         raise SpaceError(
@@ -134,7 +139,9 @@ def _extract_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, target: Path, na
                 out.write(chunk)
     except (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError, ValueError) as e:
         # bad CRC, corrupt deflate stream, cut-off member, unknown compression method
-        raise SpaceError(f"{name}: member {info.filename!r} is corrupt ({e}); re-create the archive") from None
+        raise SpaceError(
+            f"{name}: member {info.filename!r} is corrupt ({e}); re-create the archive"
+        ) from None
     except OSError as e:  # a file member where a folder of the same name was extracted, and the like
         raise SpaceError(
             f"{name}: member {info.filename!r} cannot be extracted ({e.strerror or e})"
@@ -164,7 +171,11 @@ def resolve_source(
     if not p.exists():
         raise SpaceError(f"{p}: no such file or folder")
     if p.is_file() and p.suffix.lower() == ".zip":
-        dest = Path(extract_dir) if extract_dir is not None else Path(tempfile.mkdtemp(prefix=owned_prefix("space")))
+        dest = (
+            Path(extract_dir)
+            if extract_dir is not None
+            else Path(tempfile.mkdtemp(prefix=owned_prefix("space")))
+        )
         safe_extract_zip(p, dest, **zip_limits)
         return _one_mesh(dest, f"archive {p.name}")
     if p.is_file():

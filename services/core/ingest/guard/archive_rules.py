@@ -16,14 +16,15 @@ from pathlib import Path
 
 MAX_RATIO = 200.0  # uncompressed / compressed, per member and in total
 CHECKED_FROM_BYTES = 1_000_000  # smaller members cannot make a bomb worth refusing
-# Read and deflated in pieces this size: a real scan's first piece or two already deflate past the limit's bytes
-# (ICL's 2.7 MB OBJ: 0.010 CPU-s; in 1 MB pieces, 0.093 s: no output before the first MB). Deflate's output does not
-# depend on how its input is cut, so the verdict is the same for any piece size.
+# Read and deflated in pieces this size: a real scan's first piece or two already deflate past the limit's
+# bytes (ICL's 2.7 MB OBJ: 0.010 CPU-s; in 1 MB pieces, 0.093 s: no output before the first MB). Deflate's
+# output does not depend on how its input is cut, so the verdict is the same for any piece size.
 _CHUNK = 1 << 16
 
 
 def expansion_refusal(what: str, size: int, compressed: int, max_ratio: float = MAX_RATIO) -> str | None:
-    """The message refusing `what` (`size` bytes stored in `compressed`), or None when it is within the rule."""
+    """The message refusing `what` (`size` bytes stored in `compressed`), or None when it is within the
+    rule."""
     if size > CHECKED_FROM_BYTES and size > max_ratio * max(compressed, 1):
         return (
             f"{what} expands {size / max(compressed, 1):.0f}x (limit {max_ratio:.0f}x): "
@@ -33,15 +34,17 @@ def expansion_refusal(what: str, size: int, compressed: int, max_ratio: float = 
 
 
 def file_expansion_refusal(path: Path, max_ratio: float = MAX_RATIO) -> str | None:
-    """The rule applied to a file deflated at zlib's default level; None once the output shows it is under the limit.
+    """The rule applied to a file deflated at zlib's default level; None once the output shows it is under the
+    limit.
 
-    Stricter than the packed zip's check: the packer deflates at level 1 (services.core.ingest.registry), which
-    compresses less, so a file this passes gives a packed zip its check passes too."""
+    Stricter than the packed zip's check: the packer deflates at level 1 (services.core.ingest.registry),
+    which compresses less, so a file this passes gives a packed zip its check passes too."""
     size = path.stat().st_size
     if size <= CHECKED_FROM_BYTES:
         return None
     enough = size / max_ratio  # compressed bytes past which the file is within the rule
-    deflate = zlib.compressobj(zlib.Z_DEFAULT_COMPRESSION, zlib.DEFLATED, -15)  # what zipfile's ZIP_DEFLATED does
+    # what zipfile's ZIP_DEFLATED does
+    deflate = zlib.compressobj(zlib.Z_DEFAULT_COMPRESSION, zlib.DEFLATED, -15)
     written = 0
     with open(path, "rb") as f:
         while chunk := f.read(_CHUNK):
@@ -57,7 +60,9 @@ def archive_refusal(zip_path: Path, max_ratio: float = MAX_RATIO) -> str | None:
     with zipfile.ZipFile(zip_path) as zf:
         infos = zf.infolist()
     for info in infos:
-        problem = expansion_refusal(f"member {info.filename!r}", info.file_size, info.compress_size, max_ratio)
+        problem = expansion_refusal(
+            f"member {info.filename!r}", info.file_size, info.compress_size, max_ratio
+        )
         if problem is not None:
             return problem
     total = sum(i.file_size for i in infos)

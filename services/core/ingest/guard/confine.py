@@ -56,7 +56,9 @@ def read_confined(path: str | Path, mesh: str | Path) -> bytes:
     """The bytes of `path`, a file beside `mesh`; ReferenceRefused when its real path leaves mesh's folder."""
     root = real_folder(mesh)
     if not is_inside(path, root):
-        raise ReferenceRefused(f"{Path(path).name!r} is a symbolic link out of the scan's folder; refusing to read it")
+        raise ReferenceRefused(
+            f"{Path(path).name!r} is a symbolic link out of the scan's folder; refusing to read it"
+        )
     return _read_regular(Path(os.path.realpath(path)))
 
 
@@ -115,7 +117,9 @@ class ConfinedResolver(Resolver):
         for folder, _dirs, names in os.walk(self.root):
             rel = os.path.relpath(folder, self.root)
             for name in names:
-                if os.path.isfile(os.path.join(folder, name)) and is_inside(os.path.join(folder, name), self.root):
+                if os.path.isfile(os.path.join(folder, name)) and is_inside(
+                    os.path.join(folder, name), self.root
+                ):
                     yield name if rel == "." else f"{rel}/{name}"
 
     def write(self, name: str, data: str | bytes) -> None:
@@ -138,7 +142,8 @@ class ConfinedResolver(Resolver):
             clean = candidate.replace("\\", "/")
             if clean.startswith("/") or _DRIVE.match(clean) or _URL_SCHEME.match(clean):
                 self._refuse(
-                    f"names the file {raw!r} by an absolute path or URL; name files relative to the mesh and include them"
+                    f"names the file {raw!r} by an absolute path or URL; name files relative to "
+                    "the mesh and include them"
                 )
             # as named, then its bare file name beside the mesh (what trimesh's own resolver falls back to)
             for rel in dict.fromkeys((clean, PurePosixPath(clean).name)):
@@ -146,7 +151,11 @@ class ConfinedResolver(Resolver):
                     continue
                 path = Path(self.parent) / rel
                 if not is_inside(path, self.root):
-                    how = "which climbs out of" if ".." in PurePosixPath(rel).parts else "a symbolic link out of"
+                    how = (
+                        "which climbs out of"
+                        if ".." in PurePosixPath(rel).parts
+                        else "a symbolic link out of"
+                    )
                     self._refuse(f"names the file {raw!r}, {how} the scan's folder; refusing to read it")
                 real = Path(os.path.realpath(path))
                 if real.is_file():

@@ -58,13 +58,15 @@ def degenerate_refusal(source: Path, sample: FaceSample) -> None:
     fraction = (repeated + flat) / max(len(tris), 1)
     if fraction > MAX_DEGENERATE_FRACTION:
         raise SpaceError(
-            f"{source.name}: {fraction:.0%} of {len(tris):,} sampled faces (of {sample.seen:,}) are degenerate "
+            f"{source.name}: {fraction:.0%} of {len(tris):,} sampled faces (of {sample.seen:,}) "
+            "are degenerate "
             "(a repeated vertex or no area): the mesh would render nothing; refusing it before parsing"
         )
 
 
 def _vertices(source: Path, needed: set[int]) -> dict[int, tuple[float, float, float]]:
-    """The positions of the 1-based vertex indices `needed` (one pass up to the last, parsing only those lines)."""
+    """The positions of the 1-based vertex indices `needed` (one pass up to the last, parsing only those
+    lines)."""
     found: dict[int, tuple[float, float, float]] = {}
     n, last = 0, max(needed, default=0)
     with open(source, "rb") as f:

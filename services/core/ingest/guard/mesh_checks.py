@@ -1,4 +1,5 @@
-"""Checks of a mesh file before it is parsed: truncation, element counts past the limits, unsafe file references.
+"""Checks of a mesh file before it is parsed: truncation, element counts past the limits, unsafe file
+references.
 
 trimesh accepts a truncated ASCII PLY or OBJ silently with a fraction of its faces, reads a PLY header's
 counts before looking at the data, and follows texture paths wherever they point. `check_source` reads the
@@ -46,7 +47,8 @@ _OBJ_MIN_FIELDS = {"v": 3, "vn": 3, "vt": 1, "f": 3, "l": 2}
 
 
 def check_source(source: Path, *, max_faces: int = MAX_FACES) -> list[str]:
-    """Refuse (SpaceError) a mesh file that is truncated, over the limits or names unsafe paths; return warnings."""
+    """Refuse (SpaceError) a mesh file that is truncated, over the limits or names unsafe paths; return
+    warnings."""
     suffix = source.suffix.lower()
     if suffix == ".ply":
         _check_ply(source, max_faces)
@@ -66,7 +68,9 @@ def check_source(source: Path, *, max_faces: int = MAX_FACES) -> list[str]:
 def check_face_count(name: str, faces: int, max_faces: int) -> None:
     """SpaceError when a mesh has more faces than `max_faces`."""
     if faces > max_faces:
-        raise SpaceError(f"{name}: {faces:,} faces, more than the limit of {max_faces:,}; decimate the mesh first")
+        raise SpaceError(
+            f"{name}: {faces:,} faces, more than the limit of {max_faces:,}; decimate the mesh first"
+        )
 
 
 def check_reference(owner: Path, ref: str, what: str) -> Path:
@@ -92,12 +96,16 @@ def _check_ply(source: Path, max_faces: int) -> None:
         if not header.startswith(b"ply"):
             return  # not a PLY at all: trimesh's own error is clear enough
         if end < 0:
-            raise SpaceError(f"{name}: no 'end_header' in the first {MAX_HEADER_BYTES:,} bytes: not a readable PLY mesh")
+            raise SpaceError(
+                f"{name}: no 'end_header' in the first {MAX_HEADER_BYTES:,} bytes: not a readable PLY mesh"
+            )
         lines = header[:end].splitlines()
         counts = _ply_counts(name, lines)
         check_face_count(name, counts.get("face", 0), max_faces)
         if counts.get("vertex", 0) > MAX_VERTICES:
-            raise SpaceError(f"{name}: {counts['vertex']:,} vertices, more than the limit of {MAX_VERTICES:,}")
+            raise SpaceError(
+                f"{name}: {counts['vertex']:,} vertices, more than the limit of {MAX_VERTICES:,}"
+            )
         if not any(ln.strip() == b"format ascii 1.0" for ln in lines):
             return  # binary: trimesh checks the data length against the header
         f.seek(end + len(b"end_header"))
@@ -162,12 +170,14 @@ def _check_obj(source: Path, max_faces: int) -> list[str]:
                 mtllibs.append(rest.strip())
     if last and not last.endswith("\n") and not _complete_obj_line(last):
         raise SpaceError(
-            f"{name}: the file is truncated: its last line {last[:80]!r} stops mid-statement; upload the whole file"
+            f"{name}: the file is truncated: its last line {last[:80]!r} stops mid-statement; "
+            "upload the whole file"
         )
     if faces == 0 and vertices > 0:
         raise SpaceError(f"{name}: {vertices:,} vertices but no faces; a triangle mesh is needed")
     warnings = _check_mtllibs(source, mtllibs)
-    if last and not last.endswith("\n"):  # whole, but exporters end with a newline: maybe cut at a token's end
+    # whole, but exporters end with a newline: maybe cut at a token's end
+    if last and not last.endswith("\n"):
         warnings.append(f"the last line {last[:80]!r} has no newline: the file may be truncated")
     return warnings
 
@@ -182,8 +192,8 @@ def _check_face_refs(name: str, lineno: int, rest: str, vertices: int) -> tuple[
         i = int(head)
         if i > vertices or i == 0 or -i > vertices:
             raise SpaceError(
-                f"{name}: face on line {lineno} refers to vertex {i} but only {vertices:,} vertices come before it: "
-                "the file is truncated or corrupt"
+                f"{name}: face on line {lineno} refers to vertex {i} but only {vertices:,} "
+                "vertices come before it: the file is truncated or corrupt"
             )
         resolved.append(i if i > 0 else vertices + 1 + i)
     return tuple(resolved)
@@ -222,8 +232,8 @@ def _check_mtllibs(obj: Path, mtllibs: list[str]) -> list[str]:
                 tex = check_reference(mtl, m.group(2), "texture")
                 if not tex.is_file():
                     raise SpaceError(
-                        f"{mtl.name}: texture {m.group(2)!r} is missing: include it beside the mesh (in the .zip), "
-                        f"or remove the {m.group(1)} line to render untextured"
+                        f"{mtl.name}: texture {m.group(2)!r} is missing: include it beside the "
+                        f"mesh (in the .zip), or remove the {m.group(1)} line to render untextured"
                     )
     return warnings
 
@@ -232,7 +242,8 @@ def _check_mtllibs(obj: Path, mtllibs: list[str]) -> list[str]:
 
 
 def _gltf_json(source: Path) -> dict[str, object]:
-    # read whatever its size (embedded data: buffers make big ones): skipping a big file would skip its references
+    # read whatever its size (embedded data: buffers make big ones): skipping a big file would skip its
+    # references
     try:
         doc = json.loads(source.read_bytes())
     except (ValueError, UnicodeDecodeError) as e:
@@ -252,12 +263,15 @@ def _glb_json(source: Path) -> dict[str, object]:
         _magic, _version, length, chunk_len, chunk_type = struct.unpack("<4sIIII", head)
         if length > size:
             raise SpaceError(
-                f"{name}: the file is truncated or corrupt: its header declares {length:,} bytes, it has {size:,}"
+                f"{name}: the file is truncated or corrupt: its header declares {length:,} bytes, "
+                f"it has {size:,}"
             )
         if chunk_type != 0x4E4F534A:
             return {}  # no JSON chunk first: not a valid GLB, trimesh names it
         if chunk_len > size - 20:
-            raise SpaceError(f"{name}: the file is truncated or corrupt: its JSON chunk runs past the end of the file")
+            raise SpaceError(
+                f"{name}: the file is truncated or corrupt: its JSON chunk runs past the end of the file"
+            )
         raw = f.read(chunk_len)
     try:
         doc = json.loads(raw)
@@ -282,4 +296,6 @@ def _check_gltf_refs(source: Path, doc: dict[str, object]) -> None:
             if isinstance(uri, str) and uri and not uri.startswith("data:"):
                 ref = check_reference(source, uri, kind[:-1])
                 if not ref.is_file():
-                    raise SpaceError(f"{source.name}: {kind[:-1]} {uri!r} is missing: include it beside the mesh")
+                    raise SpaceError(
+                        f"{source.name}: {kind[:-1]} {uri!r} is missing: include it beside the mesh"
+                    )

@@ -2,9 +2,9 @@
 
 A hostile mesh (a header declaring billions of faces, a deflate stream that never ends, a file that sends
 the parser into a pathological path) must not take the API down: `load_space_limited` runs `load_space` in
-a child process that caps the growth of its address space (RLIMIT_AS) and CPU time (RLIMIT_CPU) and is killed when it
-runs past `timeout_s`. The child sends back the LoadedSpace with a slimmed mesh (vertices and faces only)
-for `register_space`; every failure becomes a SpaceError whose message names the limit that was hit.
+a child process that caps the growth of its address space (RLIMIT_AS) and CPU time (RLIMIT_CPU) and is killed
+when it runs past `timeout_s`. The child sends back the LoadedSpace with a slimmed mesh (vertices and faces
+only) for `register_space`; every failure becomes a SpaceError whose message names the limit that was hit.
 """
 
 from __future__ import annotations
@@ -56,8 +56,10 @@ def load_space_limited(
     receiver, sender = _CONTEXT.Pipe(duplex=False)
     limits = {"memory_mb": memory_mb, "cpu_s": max(1, int(timeout_s)), "max_faces": max_faces,
               "keep_mesh": int(keep_mesh)}
-    frame: SpaceFrame = {"up_axis": up_axis, "unit_scale": unit_scale, "up": up, "source_to_world": source_to_world,
-             "accept_up_guess": accept_up_guess}
+    frame: SpaceFrame = {
+        "up_axis": up_axis, "unit_scale": unit_scale, "up": up, "source_to_world": source_to_world,
+        "accept_up_guess": accept_up_guess,
+    }
     proc = _CONTEXT.Process(
         target=_child, args=(sender, str(path), frame, limits), name="omnidata-safe-load", daemon=True
     )

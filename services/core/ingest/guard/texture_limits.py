@@ -102,10 +102,17 @@ def embedded_refusal(source: Path, doc: Mapping[str, object], bin_offset: int | 
                     size = declared_size(base64.b64decode(uri.split("base64,", 1)[1]))
                 except (binascii.Error, ValueError):
                     size = None
-            elif isinstance(view, int) and bin_offset is not None and isinstance(views, list) and 0 <= view < len(views):
+            elif (
+                isinstance(view, int)
+                and bin_offset is not None
+                and isinstance(views, list)
+                and 0 <= view < len(views)
+            ):
                 bv = views[view] if isinstance(views[view], dict) else {}
                 if bv.get("buffer", 0) == 0:
-                    window = _Window(f, bin_offset + int(bv.get("byteOffset", 0)), int(bv.get("byteLength", 0)))
+                    window = _Window(
+                        f, bin_offset + int(bv.get("byteOffset", 0)), int(bv.get("byteLength", 0))
+                    )
                     size = declared_size(io.BufferedReader(window))
             problem = size_refusal(f"image {i}", size)
             if problem is not None:
@@ -128,12 +135,15 @@ def glb_bin_offset(source: Path) -> int | None:
 
 
 
-_MATERIAL_IMAGES = ("image", "baseColorTexture", "normalTexture", "emissiveTexture", "metallicRoughnessTexture",
-                    "occlusionTexture")
+_MATERIAL_IMAGES = (
+    "image", "baseColorTexture", "normalTexture", "emissiveTexture", "metallicRoughnessTexture",
+    "occlusionTexture",
+)
 
 
 def loaded_texture_refusal(loaded: object) -> str | None:
-    """After trimesh has loaded a scan: the refusal for any material image over the limit (sizes from headers)."""
+    """After trimesh has loaded a scan: the refusal for any material image over the limit (sizes from
+    headers)."""
     geometries = loaded.geometry.values() if hasattr(loaded, "geometry") else [loaded]
     for geometry in geometries:
         material = getattr(getattr(geometry, "visual", None), "material", None)

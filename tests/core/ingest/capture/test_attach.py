@@ -24,7 +24,9 @@ def _bunny_with_capture(scenes_dir: Path, folder: Path, writer=write_colmap) -> 
 def test_capture_beside_a_mesh_file_is_attached_in_world_frame(scenes_dir, tmp_path):
     ply = _bunny_with_capture(scenes_dir, tmp_path / "scan")
     space = load_space(ply, up_axis="+y")
-    assert space.capture is not None and space.capture.frame_space == "world" and len(space.capture.frames) == 3
+    assert (
+        space.capture is not None and space.capture.frame_space == "world" and len(space.capture.frames) == 3
+    )
     src = load_space(ply, up_axis="+y").capture.frames[0]
     T = space.source_to_world
     frames = toy_frames(3)
@@ -36,7 +38,9 @@ def test_a_scan_alone_has_no_capture(scenes_dir):
     assert load_space(scenes_dir / "stanford_bunny" / "bun_zipper_res2.ply").capture is None
 
 
-def test_registering_a_mesh_file_stores_its_capture_and_fetch_finds_it(db_session, local_store, scenes_dir, tmp_path):
+def test_registering_a_mesh_file_stores_its_capture_and_fetch_finds_it(
+    db_session, local_store, scenes_dir, tmp_path
+):
     ply = _bunny_with_capture(scenes_dir, tmp_path / "scan", writer=write_transforms)
     space = register_space(db_session, local_store, owner="alice", name="bunny_cap", source_path=ply)
     assert space.source_key.endswith(".zip")
@@ -59,9 +63,9 @@ def test_cameras_up_checks_the_levelling(scenes_dir):
 
 
 def test_capture_up_is_levelling_evidence(scenes_dir, tmp_path):
-    """The cameras' up goes into the up estimator (issue 17's capture_up evidence): the chosen up agrees with it,
-    the opposite candidate is marked down by it, and the result is within 3 degrees of the capture's gravity;
-    a mesh without its capture carries no such evidence."""
+    """The cameras' up goes into the up estimator (issue 17's capture_up evidence): the chosen up agrees with
+    it, the opposite candidate is marked down by it, and the result is within 3 degrees of the capture's
+    gravity; a mesh without its capture carries no such evidence."""
     kitchen = scenes_dir / "7scenes_redkitchen"
     with_capture = load_space(kitchen)
     up = with_capture.frame_record()["up"]

@@ -1,5 +1,5 @@
-"""Capture readers: each format written in its exact file names and conventions reads back as the same cameras;
-bad frames get one message each and the good ones go on; nothing outside the upload is opened."""
+"""Capture readers: each format written in its exact file names and conventions reads back as the same
+cameras; bad frames get one message each and the good ones go on; nothing outside the upload is opened."""
 
 from __future__ import annotations
 
@@ -48,7 +48,9 @@ def test_sevenscenes_layout(tmp_path):
     assert cap.frames[0].image == "seq-01/frame-000000.color.jpg"
 
 
-def test_a_capture_is_read_once_per_unchanged_folder_while_kept_and_again_when_a_file_changes(tmp_path, monkeypatch):
+def test_a_capture_is_read_once_per_unchanged_folder_while_kept_and_again_when_a_file_changes(
+    tmp_path, monkeypatch
+):
     from services.core.ingest.capture import detect
 
     reads = []
@@ -62,7 +64,8 @@ def test_a_capture_is_read_once_per_unchanged_folder_while_kept_and_again_when_a
     with detect.captures_kept():
         first = find_capture(tmp_path)
         with detect.captures_kept():  # nested (a command inside a command): one store
-            assert find_capture(tmp_path) is first and len(reads) == 3  # the same folder, unchanged: not read again
+            # the same folder, unchanged: not read again
+            assert find_capture(tmp_path) is first and len(reads) == 3
         pose = d / "frame-000002.pose.txt"
         pose.write_text("\n".join(["-inf -inf -inf -inf"] * 4) + "\n")  # a changed file: read again, and seen
         again = find_capture(tmp_path)
@@ -91,8 +94,13 @@ def test_bundlefusion_info_txt_and_lost_frames(tmp_path):
 
 
 @pytest.mark.parametrize("binary", [False, True])
-@pytest.mark.parametrize("model,params", [("none", ()), ("radial", (0.05,)), ("opencv", (0.1, -0.02, 0.001, -0.002)),
-                                          ("fisheye", (0.05, 0.01, -0.002, 0.0005))])
+@pytest.mark.parametrize(
+    "model,params",
+    [
+        ("none", ()), ("radial", (0.05,)), ("opencv", (0.1, -0.02, 0.001, -0.002)),
+        ("fisheye", (0.05, 0.01, -0.002, 0.0005)),
+    ],
+)
 def test_colmap_models(tmp_path, binary, model, params):
     frames = toy_frames(3, distortion=model, params=params)
     if model == "radial":  # SIMPLE_RADIAL has one focal length
@@ -142,7 +150,9 @@ def test_transforms_fisheye_and_bad_frames(tmp_path):
     doc = json.loads(path.read_text())
     doc["frames"][1]["transform_matrix"][0][0] = 3.0  # not a rotation
     doc["frames"][2]["file_path"] = "../../etc/passwd"  # outside the upload
-    doc["frames"].append({"file_path": "images/none.png", "transform_matrix": doc["frames"][0]["transform_matrix"]})
+    doc["frames"].append(
+        {"file_path": "images/none.png", "transform_matrix": doc["frames"][0]["transform_matrix"]}
+    )
     path.write_text(json.dumps(doc))
     cap = find_capture(tmp_path)
     assert [f.name for f in cap.frames] == [doc["frames"][0]["file_path"], doc["frames"][3]["file_path"]]
@@ -163,8 +173,8 @@ def test_scannet_export_and_wrong_size(tmp_path):
     (tmp_path / "color" / "3.jpg").rename(tmp_path / "color" / "3.jpg")
     cap = find_capture(tmp_path)
     assert cap.format == "scannet"
-    # the wrong-size photo is caught against the shared intrinsics' size? ScanNet gives no size: it is read from each
-    # image, so a 10x10 photo is a frame of its own size; frame 1 is lost
+    # the wrong-size photo is caught against the shared intrinsics' size? ScanNet gives no size: it is read
+    # from each image, so a 10x10 photo is a frame of its own size; frame 1 is lost
     assert [f.name for f in cap.frames] == ["0", "2", "3"]
     assert len(cap.problems) == 1 and "frame 1" in cap.problems[0]
 
@@ -221,7 +231,9 @@ def test_in_world_moves_like_the_mesh():
     world = cap.in_world(T)
     for src, w in zip(cap.frames, world.frames, strict=True):
         point_cam = np.array([0.1, -0.2, 2.0, 1.0])
-        np.testing.assert_allclose(w.camera_to_world[:3, :3] @ w.camera_to_world[:3, :3].T, np.eye(3), atol=1e-12)
+        np.testing.assert_allclose(
+            w.camera_to_world[:3, :3] @ w.camera_to_world[:3, :3].T, np.eye(3), atol=1e-12
+        )
         # the camera centre moves like a mesh vertex
         np.testing.assert_allclose(w.center, T[:3, :3] @ src.center + T[:3, 3])
         # a point seen along the same ray stays on it
@@ -231,8 +243,13 @@ def test_in_world_moves_like_the_mesh():
         np.testing.assert_allclose(d[:2] / d[2], point_cam[:2] / point_cam[2], atol=1e-12)
 
 
-@pytest.mark.parametrize("model,params", [("radial", (-0.1, 0.02)), ("opencv", (0.1, -0.02, 0.001, -0.002, 0.01)),
-                                          ("fisheye", (0.05, 0.01, -0.002, 0.0005))])
+@pytest.mark.parametrize(
+    "model,params",
+    [
+        ("radial", (-0.1, 0.02)), ("opencv", (0.1, -0.02, 0.001, -0.002, 0.01)),
+        ("fisheye", (0.05, 0.01, -0.002, 0.0005)),
+    ],
+)
 def test_undistort_inverts_distort(model, params):
     xy = np.random.default_rng(0).uniform(-0.6, 0.6, size=(500, 2))
     np.testing.assert_allclose(undistort(model, params, distort(model, params, xy)), xy, atol=1e-9)
@@ -246,14 +263,16 @@ def test_real_7scenes_capture_every_frame():
     np.testing.assert_allclose(cap.frames[0].K, [[585, 0, 320.5], [0, 585, 240.5], [0, 0, 1]])
     want = np.loadtxt(root / "frames" / "frame-000500.pose.txt")
     got = next(f for f in cap.frames if f.name.endswith("frame-000500"))
-    np.testing.assert_allclose(got.camera_to_world, want, atol=1e-3)  # rotation re-orthonormalised (text noise)
+    # rotation re-orthonormalised (text noise)
+    np.testing.assert_allclose(got.camera_to_world, want, atol=1e-3)
     # up from the cameras (right axes horizontal) is within 5 degrees of the recorded gravity
     up = -np.loadtxt(root / "gravity-direction.txt")
     assert np.degrees(np.arccos(cap.mean_up() @ (up / np.linalg.norm(up)))) < 5.0
 
 
 def test_beside_a_single_mesh_file_a_capture_is_looked_for_only_as_deep_as_the_layouts_go(tmp_path):
-    # A scan saved in a busy folder with someone else's project further down (the 7-Scenes layout, 3 folders deep)
+    # A scan saved in a busy folder with someone else's project further down (the 7-Scenes layout, 3 folders
+    # deep)
     busy = tmp_path / "Downloads"
     busy.mkdir()
     trimesh.creation.box(extents=(4.0, 3.0, 2.5)).export(busy / "scan.ply")
@@ -264,13 +283,16 @@ def test_beside_a_single_mesh_file_a_capture_is_looked_for_only_as_deep_as_the_l
     assert load_space(scan, up_axis="+z", unit_scale=1.0).capture is None
     assert pack_source(scan, scan, tmp_path) == scan  # the scan is stored alone: nothing else of the folder
     assert capture_near(busy).format == "7scenes"  # the folder itself, given by the user, is walked deeper
-    # Beside a single file, the formats' own layouts are found: COLMAP's sparse/0/ (2 deep), 7-Scenes frames (1)
+    # Beside a single file, the formats' own layouts are found: COLMAP's sparse/0/ (2 deep), 7-Scenes frames
+    # (1)
     for name, write, fmt in (("colmap", write_colmap, "colmap"), ("7scenes", write_sevenscenes, "7scenes")):
         own = tmp_path / name
         write(own, toy_frames(2))
         trimesh.creation.box(extents=(4.0, 3.0, 2.5)).export(own / "scan.ply")
         assert capture_near(own / "scan.ply").format == fmt
-        packed = {p.relative_to(own).as_posix() for p in capture_files_beside(own / "scan.ply", MESH_SUFFIXES)}
+        packed = {
+            p.relative_to(own).as_posix() for p in capture_files_beside(own / "scan.ply", MESH_SUFFIXES)
+        }
         assert "scan.ply" in packed and any(p.endswith(".jpg") for p in packed)
         assert load_space(own / "scan.ply", up_axis="+z", unit_scale=1.0).capture.format == fmt
 

@@ -37,7 +37,11 @@ def test_scannet_scene_nyu40_classes_aggregation_instances_and_axis_alignment(tm
     np.testing.assert_allclose(space.bounds, [[0, 0, 0], ds.ROOM], atol=1e-5)  # walls back on the axes
     for p, (classes, instances) in labels_by_part(space).items():
         assert classes == {NYU40[PARTS[p]]} and instances == {p + 1}, p
-    assert space.class_names is not None and space.class_names[22] == "ceiling" and space.class_names[7] == "table"
+    assert (
+        space.class_names is not None
+        and space.class_names[22] == "ceiling"
+        and space.class_names[7] == "table"
+    )
     # the high-resolution mesh, named: labels carried over from the decimated one
     high = load_space(folder / "scene0000_00_vh_clean.ply")
     assert len(high.mesh.faces) == 4 * 14
@@ -48,7 +52,9 @@ def test_scannet_scene_nyu40_classes_aggregation_instances_and_axis_alignment(tm
     names = set(zipfile.ZipFile(packed).namelist())
     assert "scene0000_00.sens" not in names and "scene0000_00_vh_clean_2.labels.ply" in names
     again = load_space(packed)
-    assert np.array_equal(again.face_class, space.face_class) and np.array_equal(again.face_instance, space.face_instance)
+    assert np.array_equal(again.face_class, space.face_class) and np.array_equal(
+        again.face_instance, space.face_instance
+    )
 
 
 def test_scannet_axis_alignment_must_be_rigid(tmp_path: Path) -> None:
@@ -83,7 +89,9 @@ def test_hm3d_basis_release_is_refused_naming_the_plain_glb_and_obj(tmp_path: Pa
     for given in (folder, folder / "TEEsavR23oF.basis.glb"):
         with pytest.raises(SpaceError) as e:
             load_space(given)
-        assert "Basis Universal" in str(e.value) and "TEEsavR23oF.glb" in str(e.value) and ".obj" in str(e.value)
+        assert (
+            "Basis Universal" in str(e.value) and "TEEsavR23oF.glb" in str(e.value) and ".obj" in str(e.value)
+        )
     # the same check on any glb that requires KHR_texture_basisu, whatever its name
     renamed = tmp_path / "scan.glb"
     renamed.write_bytes((folder / "TEEsavR23oF.basis.glb").read_bytes())
@@ -99,7 +107,9 @@ def test_matterport_house_obj_with_region_labels_in_mpcat40(tmp_path: Path) -> N
     for p, (classes, instances) in found.items():
         assert classes == {MPCAT40[PARTS[p]][0]} and len(instances) == 1 and 0 not in instances, p
     assert len({next(iter(i)) for _, i in found.values()}) == len(PARTS)  # one instance per object
-    assert space.class_names is not None and {space.class_names[i] for i, _ in MPCAT40.values()} == set(MPCAT40)
+    assert space.class_names is not None and {space.class_names[i] for i, _ in MPCAT40.values()} == set(
+        MPCAT40
+    )
 
 
 def test_replica_quads_with_habitat_semantic_mesh(tmp_path: Path) -> None:
@@ -108,7 +118,9 @@ def test_replica_quads_with_habitat_semantic_mesh(tmp_path: Path) -> None:
     space = load_space(folder)
     for p, (classes, instances) in labels_by_part(space).items():
         assert classes == {REPLICA[PARTS[p]]} and instances == {3 * p + 2}, p
-    assert space.class_names is not None and space.class_names[93] == "wall" and space.class_names[40] == "floor"
+    assert (
+        space.class_names is not None and space.class_names[93] == "wall" and space.class_names[40] == "floor"
+    )
 
 
 def test_3rscan_textured_obj_with_annotated_ply(tmp_path: Path) -> None:
@@ -139,7 +151,9 @@ def test_a_dataset_root_lists_its_scenes_by_id_and_the_refused_ones(tmp_path: Pa
     ds.write_hm3d_scene(split)
     ds.write_hm3d_scene(split, "00801", "HaxA7YrQdEC", plain=False)
     found = find_scenes(tmp_path / "hm3d")
-    assert [(s.scene_id, s.refused is None) for s in found] == [("00800-TEEsavR23oF", True), ("00801-HaxA7YrQdEC", False)]
+    assert [(s.scene_id, s.refused is None) for s in found] == [
+        ("00800-TEEsavR23oF", True), ("00801-HaxA7YrQdEC", False),
+    ]
     assert "HaxA7YrQdEC.glb" in (found[1].refused or "")
     mp = find_scenes(tmp_path / "v1" / "scans") if (tmp_path / "v1").exists() else []
     assert mp == []

@@ -42,8 +42,10 @@ def test_resolver_serves_inside_and_refuses_everything_else(tmp_path: Path) -> N
     resolver = ConfinedResolver(tmp_path / "scan.obj")
     assert resolver.get("sub/a.png") == b"inside" and resolver.get("sub/../sub/a.png") == b"inside"
     with OpenWatch(secrets.values()) as watch:
-        for name in (str(secrets["png"]), "../" * 20 + str(secrets["png"]).lstrip("/"), "link.png",
-                     "%2e%2e/" * 20 + str(secrets["png"]).lstrip("/"), f"file://{secrets['png']}", "C:\\x.png"):
+        for name in (
+            str(secrets["png"]), "../" * 20 + str(secrets["png"]).lstrip("/"), "link.png",
+            "%2e%2e/" * 20 + str(secrets["png"]).lstrip("/"), f"file://{secrets['png']}", "C:\\x.png",
+        ):
             with pytest.raises(ReferenceRefused):
                 resolver.get(name)
         with pytest.raises(FileNotFoundError):
@@ -53,7 +55,8 @@ def test_resolver_serves_inside_and_refuses_everything_else(tmp_path: Path) -> N
 
 
 def _store_space(store: LocalStore, tmp_path: Path, case: str) -> Space:
-    """A stored space whose source is a hostile zip, as if it had been registered before the checks existed."""
+    """A stored space whose source is a hostile zip, as if it had been registered before the checks
+    existed."""
     filename, make, _ = HOSTILE_FILES[case]
     path = tmp_path / filename
     path.write_bytes(make())
@@ -64,7 +67,9 @@ def _store_space(store: LocalStore, tmp_path: Path, case: str) -> Space:
 
 @pytest.mark.parametrize("case", ["obj_comment_mtllib_absolute_texture", "obj_comment_mtllib_dotdot_texture",
                                   "gltf_image_percent_dotdot", "texture_30000_png_behind_comment"])
-def test_the_workers_own_load_of_a_stored_space_is_confined(tmp_path: Path, local_store: LocalStore, case: str) -> None:
+def test_the_workers_own_load_of_a_stored_space_is_confined(
+    tmp_path: Path, local_store: LocalStore, case: str
+) -> None:
     space = _store_space(local_store, tmp_path, case)
     with OpenWatch(secret_files().values()) as watch:
         path = fetch_space(local_store, space, tmp_path / "cache")  # what the worker and the planner do
@@ -104,19 +109,23 @@ def test_one_compression_rule_for_upload_packing_and_extraction(tmp_path: Path) 
 
 
 @pytest.mark.parametrize("period", [1, 100])
-def test_file_expansion_verdict_is_the_whole_files_whatever_the_piece_size(tmp_path: Path, period: int,
-                                                                            monkeypatch: pytest.MonkeyPatch) -> None:
-    # period 1: one repeated face line (680x); 100: just over the limit at level 6 (203x), far under it at level 1
+def test_file_expansion_verdict_is_the_whole_files_whatever_the_piece_size(
+    tmp_path: Path, period: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # period 1: one repeated face line (680x); 100: just over the limit at level 6 (203x), far under it at
+    # level 1
     body = b"v 0 0 0\nv 1 0 0\nv 0 1 0\n" + b"".join(b"f 1 2 %d\n" % (3 + i % period) for i in range(300_000))
     obj = tmp_path / "near.obj"
     obj.write_bytes(body)
     whole = zlib.compressobj(zlib.Z_DEFAULT_COMPRESSION, zlib.DEFLATED, -15)
     expected = expansion_refusal("the mesh file", len(body), len(whole.compress(body) + whole.flush()))
-    assert expected is not None  # both refused: the check is stricter than the level-1 packed zip (59x for 100)
+    # both refused: the check is stricter than the level-1 packed zip (59x for 100)
+    assert expected is not None
     for piece in (1 << 12, 1 << 16, 1 << 20, 1 << 24):
         monkeypatch.setattr(archive_rules, "_CHUNK", piece)
         assert file_expansion_refusal(obj) == expected
-    ok = tmp_path / "ok.obj"  # a scan: under the limit after its first pieces, the same verdict for every size
+    # a scan: under the limit after its first pieces, the same verdict for every size
+    ok = tmp_path / "ok.obj"
     ok.write_bytes(trimesh.creation.icosphere(subdivisions=6).export(file_type="obj").encode())
     for piece in (1 << 12, 1 << 16, 1 << 24):
         monkeypatch.setattr(archive_rules, "_CHUNK", piece)
@@ -140,7 +149,9 @@ def test_local_store_never_reads_through_a_link(tmp_path: Path) -> None:
 
 
 def test_sweep_removes_folders_of_dead_owners_only(tmp_path: Path) -> None:
-    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    dead = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True
+    )
     dead_pid = int(dead.stdout)
     mine = tmp_path / f"{owned_prefix('upload')}abc"
     theirs = tmp_path / f"{owned_prefix('upload', dead_pid)}abc"

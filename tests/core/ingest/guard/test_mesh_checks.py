@@ -1,4 +1,5 @@
-"""Pre-parse checks of mesh files: valid OBJ variants pass, damage is named (the hostile corpus covers the rest)."""
+"""Pre-parse checks of mesh files: valid OBJ variants pass, damage is named (the hostile corpus covers the
+rest)."""
 
 from __future__ import annotations
 
@@ -75,8 +76,10 @@ def test_references_of_big_gltf_files_are_checked_too(
     """A glTF's size does not exempt it: padding one past the header limit must not let '../' through."""
     monkeypatch.setattr(mesh_checks, "MAX_HEADER_BYTES", 1024)  # a small limit keeps the file small
     (tmp_path / "outside.bin").write_bytes(b"\0" * 36)
-    doc: dict[str, object] = {"asset": {"version": "2.0"}, "buffers": [{"uri": "../outside.bin", "byteLength": 36}],
-                              "extras": "x" * (70 * mesh_checks.MAX_HEADER_BYTES)}
+    doc: dict[str, object] = {
+        "asset": {"version": "2.0"}, "buffers": [{"uri": "../outside.bin", "byteLength": 36}],
+        "extras": "x" * (70 * mesh_checks.MAX_HEADER_BYTES),
+    }
     (tmp_path / "sub").mkdir()
     path = tmp_path / "sub" / f"big{suffix}"
     path.write_bytes(json.dumps(doc).encode() if suffix == ".gltf" else _glb(doc))

@@ -1,4 +1,5 @@
-"""Reading a mesh under limits: a child process with an address-space cap, a CPU cap and a wall-clock timeout."""
+"""Reading a mesh under limits: a child process with an address-space cap, a CPU cap and a wall-clock
+timeout."""
 
 from __future__ import annotations
 
@@ -23,7 +24,9 @@ def test_the_child_gives_what_load_space_gives(bunny: Path) -> None:
     assert got.face_count == want.face_count and len(got.mesh.vertices) == len(want.mesh.vertices)
     np.testing.assert_array_equal(got.source_to_world, want.source_to_world)
     np.testing.assert_array_equal(got.bounds, want.bounds)
-    assert (got.up_method, got.checksum, got.has_semantics) == (want.up_method, want.checksum, want.has_semantics)
+    assert (got.up_method, got.checksum, got.has_semantics) == (
+        want.up_method, want.checksum, want.has_semantics,
+    )
 
 
 def test_each_limit_gives_a_clear_refusal(bunny: Path) -> None:

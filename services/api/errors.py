@@ -21,6 +21,7 @@ from sqlalchemy.exc import DataError, IntegrityError, OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from services.api.designer.pool import DesignFailed
 from services.core.domain.errors import (
     Conflict,
     DomainError,
@@ -153,6 +154,14 @@ async def _storage_error(request: Request, exc: StorageError) -> JSONResponse:
     return error_response(status.HTTP_503_SERVICE_UNAVAILABLE, f"object storage unavailable: {exc}")
 
 
+async def _design_failed(request: Request, exc: DesignFailed) -> JSONResponse:
+    # The designer's process crashed (not the spec): the next call starts a fresh one.
+    log.error("designer failed on %s %s: %s", request.method, request.url.path, exc)
+    response = error_response(status.HTTP_503_SERVICE_UNAVAILABLE, f"{exc}; try again")
+    response.headers["Retry-After"] = "1"
+    return response
+
+
 async def _unhandled(request: Request, exc: Exception) -> JSONResponse:
     log.exception("unhandled error on %s %s", request.method, request.url.path)
     return error_response(status.HTTP_500_INTERNAL_SERVER_ERROR, "internal server error")
@@ -168,4 +177,5 @@ def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(OperationalError, _operational_error)  # type: ignore[arg-type]
     app.add_exception_handler(PoolTimeout, _pool_timeout)  # type: ignore[arg-type]
     app.add_exception_handler(StorageError, _storage_error)  # type: ignore[arg-type]
+    app.add_exception_handler(DesignFailed, _design_failed)  # type: ignore[arg-type]
     app.add_exception_handler(Exception, _unhandled)

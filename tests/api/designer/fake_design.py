@@ -14,5 +14,13 @@ def serve(conn: Connection) -> None:
             _kind, payload = conn.recv()
         except (EOFError, OSError):
             return
+        if payload.get("crash"):
+            os._exit(3)
         time.sleep(float(payload.get("sleep", 0)))
         conn.send(("ok", {"pid": os.getpid()}))
+
+
+def crash(conn: Connection) -> None:
+    """A process that dies on its first request (a crash of the warm process: not the spec's fault)."""
+    conn.recv()
+    os._exit(3)

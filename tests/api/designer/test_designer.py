@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from services.api.designer import pool as pool_module
 from services.core.storage import LocalStore
 from tests.conftest import REPO_ROOT
 from tests.fixtures.api import Api, make_api
@@ -190,3 +191,18 @@ def test_the_api_process_imports_neither_the_planner_nor_blender() -> None:
         [sys.executable, "-c", code], cwd=REPO_ROOT, capture_output=True, text=True, timeout=120
     )
     assert r.returncode == 0, r.stdout + r.stderr
+
+
+def test_a_crashed_designer_process_is_503_with_retry_after(
+    pg_url: str, local_store: LocalStore, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(pool_module, "TARGET", "tests.api.designer.fake_design:crash")
+    bunny = REPO_ROOT / "examples" / "scans" / "stanford_bunny" / "bun_zipper_res2.ply"
+    with make_api(pg_url, local_store, data_dir=str(tmp_path)) as api:
+        upload = {"file": (bunny.name, bunny.read_bytes())}
+        r = api.client.post("/spaces", files=upload, headers=api.a.headers)
+        assert r.status_code == 201, r.text
+        r = api.client.post("/designer/plan", json={"space_ids": [r.json()["id"]]}, headers=api.a.headers)
+        assert r.status_code == 503 and r.headers["Retry-After"] == "1", r.text
+        assert "process ended during a plan (exit code 3)" in r.json()["detail"]
+        assert api.client.get("/health").status_code == 200

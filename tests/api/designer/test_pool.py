@@ -9,7 +9,7 @@ from collections.abc import Iterator
 import pytest
 
 from services.api.designer import pool as pool_module
-from services.api.designer.pool import DesignPool
+from services.api.designer.pool import DesignFailed, DesignPool
 from services.core.domain.errors import Invalid
 
 
@@ -52,6 +52,17 @@ def test_a_call_past_the_budget_ends_its_process_and_the_next_starts_fresh(fake_
         with pytest.raises(Invalid, match="took longer than 0.5 s"):
             pool.call("sleep", {"sleep": 5})
         assert not [c for c in pool._children if c.alive()]
+        assert pool.call("ping", {})["pid"] != first
+    finally:
+        pool.close()
+
+
+def test_a_process_that_dies_is_a_design_failure_and_the_next_call_starts_fresh(fake_target: None) -> None:
+    pool = DesignPool(1, timeout_s=30)
+    try:
+        first = pool.call("ping", {})["pid"]
+        with pytest.raises(DesignFailed, match="ended during a crash .exit code 3"):
+            pool.call("crash", {"crash": True})
         assert pool.call("ping", {})["pid"] != first
     finally:
         pool.close()

@@ -31,7 +31,7 @@ from bench.lib.rooms import ROOMS  # noqa: E402
 from bench.render.room_cost import cpu_model, load  # noqa: E402
 from services.core.domain.jobspec import CueParams  # noqa: E402
 from services.core.ingest.loading import load_space  # noqa: E402
-from services.worker import curvature  # noqa: E402
+from services.worker.inputs import curvature  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 RESULTS = results_dir() / "curvature.json"

@@ -42,7 +42,7 @@ from typing import Any
 import httpx
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-from bench.lib.results import results_dir  # noqa: E402
+from bench.lib.results import add_run, results_dir  # noqa: E402
 from bench.lib.smoke import SMOKE, SMOKE_HELP  # noqa: E402
 from bench.scale.fanout import create_database, drop_database, percentiles  # noqa: E402
 from services.core.db.engine import migrate  # noqa: E402
@@ -225,8 +225,7 @@ def main() -> None:
     results["load_avg_end"] = [round(x, 2) for x in os.getloadavg()]  # 1, 5, 15 min: the machine is shared
     results["label"] = os.environ.get("BENCH_LABEL", "")
     print(json.dumps(results, indent=1))
-    runs = json.loads(OUT.read_text()) if OUT.exists() else []
-    OUT.write_text(json.dumps([*runs, results], indent=1) + "\n")
+    add_run(OUT, results, default_scenario="streams")
 
 
 if __name__ == "__main__":

@@ -4,8 +4,10 @@ recorded leaves the checkout as it was."""
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
+from typing import Any
 
 RESULTS_ENV = "OMNIDATA_BENCH_RESULTS"
 REPO = Path(__file__).resolve().parents[2]
@@ -23,3 +25,13 @@ def results_dir() -> Path:
 def results_path(name: str) -> Path:
     """The results file `name` (e.g. "render.json") of this run."""
     return results_dir() / name
+
+
+def add_run(path: Path, run: dict[str, Any], *, default_scenario: str | None = None) -> None:
+    """Add `run` to the list of runs in `path`, keeping of its scenario (its "scenario" key) only the run
+    before it, the one it is compared against; other scenarios' runs are left as they are."""
+    runs = json.loads(path.read_text()) if path.exists() else []
+    scenario = run.get("scenario", default_scenario)
+    same = [r for r in runs if r.get("scenario", default_scenario) == scenario]
+    kept = [r for r in runs if r.get("scenario", default_scenario) != scenario or r is same[-1]]
+    path.write_text(json.dumps([*kept, run], indent=1) + "\n")

@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-from bench.lib.results import results_dir  # noqa: E402
+from bench.lib.results import add_run, results_dir  # noqa: E402
 from bench.lib.smoke import SMOKE, SMOKE_HELP  # noqa: E402
 from bench.scale.fanout import create_database, drop_database  # noqa: E402
 from services.core.db.engine import make_engine, make_sessionmaker, migrate  # noqa: E402
@@ -313,8 +313,7 @@ def main() -> None:
 def _save(results: dict[str, Any]) -> int:
     results["label"] = os.environ.get("BENCH_LABEL", "")
     print(json.dumps(results, indent=1))
-    runs = json.loads(OUT.read_text()) if OUT.exists() else []
-    OUT.write_text(json.dumps([*runs, results], indent=1) + "\n")
+    add_run(OUT, results)
     return 0
 
 

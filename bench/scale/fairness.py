@@ -40,7 +40,7 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session, sessionmaker
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-from bench.lib.results import results_dir  # noqa: E402
+from bench.lib.results import add_run, results_dir  # noqa: E402
 from bench.lib.smoke import SMOKE, SMOKE_HELP  # noqa: E402
 from bench.scale.fanout import create_database, drop_database  # noqa: E402
 from services.core.db.engine import make_engine, make_sessionmaker, migrate  # noqa: E402
@@ -200,8 +200,7 @@ def main() -> None:
         drop_database(url)
         r.flushdb()
     print(json.dumps(result, indent=1))
-    runs = json.loads(OUT.read_text()) if OUT.exists() else []
-    OUT.write_text(json.dumps([*runs, result], indent=1) + "\n")
+    add_run(OUT, result, default_scenario="big_job")
 
 
 if __name__ == "__main__":

@@ -8,7 +8,8 @@ its true up, how that truth is known, its source and licence; SOURCE.md beside e
 through `resolve_frame`, the call `load_space` makes once the file is read (point clouds meshed once by the
 service's reconstruction, in their delivered frame). Outcome per case: levelled (within 3 degrees), wrong
 (planned more than 3 degrees off without asking) or refused (with the true up as the first candidate, or not).
-Single depth frames (one sensor view, not a room) are reported apart from the rooms.
+Single depth frames (one sensor view, not a room) are reported apart from the rooms. A gravity recorded beside
+a room (`services.core.ingest.frame.recorded_gravity`) counts for the delivered case only.
 
 Run: `.venv/bin/python bench/ingest/ingest_real.py [--out FILE]`; writes the "real_rooms" section of
 bench/results/ingest_real.json and prints the table per source.
@@ -32,6 +33,7 @@ REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 from bench.lib.results import results_dir  # noqa: E402
 from services.core.ingest.errors import SpaceError, UnitsAmbiguous, UpAmbiguous  # noqa: E402
+from services.core.ingest.frame.recorded_gravity import read_recorded_up  # noqa: E402
 from services.core.ingest.frame.resolve import FrameRequest, resolve_frame, rotation_to_z  # noqa: E402
 from services.core.ingest.loading import load_space  # noqa: E402
 
@@ -59,15 +61,17 @@ def cases(suffix: str, up: np.ndarray, seed: int) -> Iterator[tuple[str, np.ndar
 
 
 def run_case(mesh: Any, R: np.ndarray, scale: float, suffix: str, up: np.ndarray,
-             name: str) -> dict[str, Any]:
-    """One case through resolve_frame: its outcome against the truth."""
+             name: str, recorded_up: np.ndarray | None = None) -> dict[str, Any]:
+    """One case through resolve_frame: its outcome against the truth. `recorded_up`: the up a gravity file
+    beside the delivered room gives (load_space reads it there)."""
     copy = mesh.copy()
     T = np.eye(4)
     T[:3, :3] = R / scale
     copy.apply_transform(T)
     truth = R @ up
+    request = FrameRequest("auto", "auto", None, None, recorded_up=recorded_up)
     try:
-        _, est, units = resolve_frame(copy, suffix, FrameRequest("auto", "auto", None, None), name)
+        _, est, units = resolve_frame(copy, suffix, request, name)
     except UpAmbiguous as e:
         first = angle_deg(np.asarray(e.candidates[0]["up"], dtype=float), truth)
         return {"outcome": "refused", "true_first": first < FIRST_DEG, "first_error_deg": round(first, 2)}
@@ -121,11 +125,15 @@ def main() -> None:
         up = np.asarray(room["up"], dtype=float)
         # converted copies: the format as delivered
         delivered = room.get("delivered_as") or path.suffix.lower()
+        # a gravity the capture recorded beside the room: only the delivered file has it (the exported and
+        # rotated copies are new files, judged on their geometry and format alone)
+        recorded = read_recorded_up(path.parent)
         for case, R, scale, suffix in cases(delivered, up / np.linalg.norm(up), args.seed + i):
+            given = recorded.up if recorded is not None and case == "delivered" else None
             row = {"room": name, "place": room.get("place", name), "source": room["source"],
                    "kind": room["kind"], "single_frame": bool(room.get("single_frame")),
-                   "extra": bool(room.get("extra")), "case": case,
-                   **run_case(mesh, R, scale, suffix, up, name)}
+                   "extra": bool(room.get("extra")), "case": case, "recorded_gravity": given is not None,
+                   **run_case(mesh, R, scale, suffix, up, name, given)}
             rows.append(row)
             print(json.dumps(row), flush=True)
 

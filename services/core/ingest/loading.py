@@ -44,6 +44,7 @@ from services.core.ingest.capture.model import Capture
 from services.core.ingest.datasets import DatasetError, DatasetScene, scene_of
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.frame.gravity import UpEstimate
+from services.core.ingest.frame.recorded_gravity import read_recorded_up
 from services.core.ingest.frame.resolve import FrameRequest, resolve_frame
 from services.core.ingest.frame.unit_evidence import UnitChoice
 from services.core.ingest.frame.up_evidence import reason_words
@@ -219,13 +220,23 @@ def load_space(
                              None if source_to_world is None
                              else np.asarray(source_to_world, dtype=np.float64),
                              accept_up_guess,
-                             None if capture_up is None else np.asarray(capture_up, dtype=np.float64))
+                             None if capture_up is None else np.asarray(capture_up, dtype=np.float64),
+                             _recorded_up(source))
         loaded = _load(source, p if tmp is not None else source, frame,
                        None if cloud_cache_dir is None else Path(cloud_cache_dir))
         return attach_capture(loaded, capture)
     finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _recorded_up(source: Path) -> np.ndarray | None:
+    """Up from a gravity recorded beside the mesh (strongest levelling evidence), source frame."""
+    recorded = read_recorded_up(source.parent)
+    if recorded is not None:
+        log.info("%s: up %s from the gravity in %s", source.name, recorded.up.round(4).tolist(),
+                 recorded.source)
+    return None if recorded is None else recorded.up
 
 
 def _load_confined(source: Path, **kwargs: Any) -> Any:  # trimesh.load's keywords and its untyped result

@@ -27,6 +27,7 @@ from services.core.domain.keys import check_name
 from services.core.ingest.datasets import DatasetError, scene_mesh_in, scene_of
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.formats import scannet_companions
+from services.core.ingest.frame.recorded_gravity import recorded_gravity_files
 from services.core.ingest.guard.archive import resolve_source
 from services.core.ingest.guard.archive_rules import archive_refusal
 from services.core.ingest.guard.confine import is_inside, read_confined, real_folder
@@ -121,8 +122,11 @@ def _files_to_pack(source: Path, mesh_file: Path) -> tuple[Path, list[Path]]:
         companions = list(scannet)
     elif mesh_file.suffix.lower() == ".obj":
         companions = _obj_companions(mesh_file)
-    else:
+    elif mesh_file.suffix.lower() == ".gltf":
         companions = _gltf_companions(mesh_file)
+    else:  # a single-file format, packed for a recorded gravity beside it
+        companions = []
+    companions += recorded_gravity_files(mesh_file.parent)  # levelling evidence: kept beside the mesh
     base = mesh_file.parent
     files = [mesh_file] + [c for c in dict.fromkeys(companions) if is_inside(c, real_folder(mesh_file))]
     return base, files
@@ -158,6 +162,7 @@ def _stored_as_is(source: Path) -> bool:
         and source.suffix.lower() in SINGLE_FILE_SUFFIXES
         and scannet_companions(source) is None
         and _dataset_pack(source) is None
+        and not recorded_gravity_files(source.parent)
     ):
         from services.core.ingest.capture.attach import capture_files_beside
         from services.core.ingest.guard.archive import MESH_SUFFIXES

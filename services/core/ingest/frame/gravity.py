@@ -97,6 +97,7 @@ METHOD_WORDS = {
     "base": "an object's support base",
     "given": "the up given",
     "source_to_world": "the source_to_world given",
+    "recorded_gravity": "the gravity recorded with the scan (no floor found to weigh against it)",
 }
 
 
@@ -105,7 +106,7 @@ class UpEstimate:
     """The up direction of a scan in its source frame, how it was found and how sure we are."""
 
     up: np.ndarray  # unit vector, source frame
-    method: str  # floor | base | convention | convention-tie | given | source_to_world
+    method: str  # floor | base | convention | convention-tie | given | source_to_world | recorded_gravity
     floor_area: float = 0.0  # source units^2 of the faces taken as floor (0 when none)
     floor_fraction: float = 0.0  # floor area / convex cross-section of the scan across up
     runner_up_angle_deg: float | None = None  # angle between up and the runner-up candidate
@@ -338,32 +339,39 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def estimate_up(mesh: trimesh.Trimesh, suffix: str, capture_up: np.ndarray | None = None,
-                *, disabled_evidence: tuple[str, ...] = ()) -> UpEstimate:
+                *, disabled_evidence: tuple[str, ...] = (), recorded_up: np.ndarray | None = None
+                ) -> UpEstimate:
     """Up direction in the source frame, how it was found and how sure (see the module docstring).
 
     `capture_up`: the mean up vector of the capture's cameras in the source frame (-Y of OpenCV camera
     axes, averaged over the poses), when the caller has poses; strong evidence for rooms.
+    `recorded_up`: up from a gravity the capture recorded (unit vector, source frame): the strongest
+    evidence; up is then exactly it when the floor agrees, and it stands alone when no floor is found.
     `disabled_evidence`: evidence terms left out (the bench's ablation).
     """
     conv = axis_vector(CONVENTION_UP.get(suffix, "+z"))
     cam_up = unit_capture_up(capture_up)
+    rec_up = unit_capture_up(recorded_up)
     geom = _Geometry.of(mesh)
     families = plane_families(geom.normals, geom.areas)
     if not families:
-        return UpEstimate(conv, "convention")
+        return UpEstimate(conv, "convention") if rec_up is None else _recorded_alone(geom, rec_up)
     cands = [_floor_candidate(geom, s * f) for f, _ in families for s in (1.0, -1.0)]
     if any(c.floor_fraction >= _FLOOR_MIN_FRACTION for c in cands):
         decision = decide([c.facts() for c in cands], cam_up, file_frame(suffix),
-                          disabled_evidence, single_view(geom.vertices))
+                          disabled_evidence, single_view(geom.vertices), rec_up)
         best = next(c for c in cands if c.up is decision.best.up)
         runner = decision.runner_up
         angle = _angle_deg(best.up, runner.up) if runner is not None else None
-        if runner is not None and angle is not None and angle > 179.0 and _alike(best.facts(), runner.facts):
+        if (rec_up is None and runner is not None and angle is not None and angle > 179.0
+                and _alike(best.facts(), runner.facts)):
             # floor and ceiling alike (a closed, empty box): no evidence can pick, the file convention does
             sign = float(np.sign(conv @ best.up)) or 1.0
             return UpEstimate(snap_to_axis(sign * best.up), "convention-tie", best.floor_area,
                               best.floor_fraction, angle, decision.margin, best.height)
-        if decision.best.terms.get("levelled_axis", 0.0) > 0:
+        if rec_up is not None and decision.best.terms.get("recorded_gravity", 0.0) > 0:
+            up = rec_up  # measured gravity is exact where a scanned floor's mean normal is not
+        elif decision.best.terms.get("levelled_axis", 0.0) > 0:
             # the exporter's levelling is exact; a scanned floor's mean normal is not
             up = nearest_axis(best.up)
         elif decision.best.terms.get("format_up", 0.0) >= WEIGHTS["format_up_binding"]:
@@ -372,8 +380,16 @@ def estimate_up(mesh: trimesh.Trimesh, suffix: str, capture_up: np.ndarray | Non
             up = _refine_floor(geom, best) if best.floor_area > 0 else snap_to_axis(best.up)
         return UpEstimate(up, "floor", best.floor_area, best.floor_fraction, angle, decision.margin,
                           best.height, decision)
+    if rec_up is not None:
+        return _recorded_alone(geom, rec_up)
     base = _support_base(geom, [f for f, _ in families])
     return base if base is not None else UpEstimate(conv, "convention")
+
+
+def _recorded_alone(geom: _Geometry, rec_up: np.ndarray) -> UpEstimate:
+    """Up from recorded gravity where no floor was found; the scan's extent along it is its storey."""
+    heights = geom.vertices @ rec_up
+    return UpEstimate(rec_up, "recorded_gravity", storey_height=float(np.ptp(heights)))
 
 
 def guess_candidates(mesh: trimesh.Trimesh, suffix: str) -> UpDecision | None:

@@ -73,6 +73,7 @@ class FrameRequest:
     source_to_world: np.ndarray | None
     accept_up_guess: bool = False
     capture_up: np.ndarray | None = None
+    recorded_up: np.ndarray | None = None  # up from a recorded gravity (`recorded_gravity`), source frame
 
 
 def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: FrameRequest,
@@ -91,7 +92,7 @@ def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: FrameRequest,
         est = floor_evidence(mesh, given) or UpEstimate(given, "given")
         est = UpEstimate(given, "given", est.floor_area, est.floor_fraction, storey_height=est.storey_height)
     else:
-        est = estimate_up(mesh, suffix, frame.capture_up)
+        est = estimate_up(mesh, suffix, frame.capture_up, recorded_up=frame.recorded_up)
     if frame.unit_scale == "auto":
         try:
             units = choose_units(mesh, est.up, est.storey_height)

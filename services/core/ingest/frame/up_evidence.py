@@ -28,6 +28,10 @@ candidate with the best one that would level the scan differently (more than `DI
   never decide alone.
 - `capture_up`: the mean up vector of the capture's cameras (-Y of OpenCV cameras, averaged), when the
   caller has poses. Cameras are held upright, give or take their pitch: strong evidence.
+- `recorded_gravity`: the gravity a capture recorded with the scan (`recorded_gravity`): an IMU's or a
+  dataset's measured down, precise to a degree or two. The strongest single term: a candidate within
+  `RECORDED_CONE_DEG` of it gains, any other loses, so it decides unless the rest of the evidence all
+  points elsewhere (a stale file beside a re-exported mesh), which the margin then shows.
 - `view_direction`, `view_aspect`: a single view (`services.core.ingest.frame.single_view`): up lies across
   the view direction within the camera's pitch (`VIEW_PITCH_DEG`; a wall the camera faced is no floor), near
   the frustum's short axis (landscape frames). `extent` is left out for it: a frustum's extent is not the
@@ -65,6 +69,7 @@ CONFIDENCE_SLOPE = 1.7
 VIEW_PITCH_DEG = 50.0  # a depth camera pointed further up or down than this sees no room
 CAMERA_FRAME_DEG = 10.0  # a single view looking this close to +Z is stored in its camera's (OpenCV) frame
 POSE_CONE_DEG = 45.0
+RECORDED_CONE_DEG = 15.0  # a plane family this close to recorded gravity is its floor (the floor cone)
 STOREY_M = (2.2, 3.5)
 OPEN_STOREY_M = (1.2, 3.5)  # no ceiling scanned
 UNIT_SCALES = (1.0, 0.01, 0.001, 0.0254)
@@ -87,6 +92,7 @@ WEIGHTS = {
     "extent": 6.0,
     "storey": 0.5,
     "capture_up": 4.0,
+    "recorded_gravity": 8.0,
     "view_direction": 6.0,
     "view_aspect": 3.0,
 }
@@ -237,7 +243,7 @@ def _view_terms(f: CandidateFacts, view: SingleView) -> dict[str, float]:
 
 
 def evidence_terms(f: CandidateFacts, all_facts: list[CandidateFacts], capture_up: np.ndarray | None,
-                   view: SingleView | None = None) -> dict[str, float]:
+                   view: SingleView | None = None, recorded_up: np.ndarray | None = None) -> dict[str, float]:
     """The log-odds terms of the geometry (and capture poses) for one candidate among all (module
     docstring)."""
     best_area = max(c.area_score for c in all_facts)
@@ -258,6 +264,9 @@ def evidence_terms(f: CandidateFacts, all_facts: list[CandidateFacts], capture_u
         cos_pose = float(f.up @ capture_up)
         terms["capture_up"] = WEIGHTS["capture_up"] * (
             1.0 if cos_pose > np.cos(np.radians(POSE_CONE_DEG)) else -1.0 if cos_pose < 0.0 else 0.0)
+    if recorded_up is not None:
+        near = float(f.up @ recorded_up) > np.cos(np.radians(RECORDED_CONE_DEG))
+        terms["recorded_gravity"] = WEIGHTS["recorded_gravity"] * (1.0 if near else -1.0)
     return terms
 
 
@@ -287,14 +296,15 @@ def _with_file_terms(geometry: list[ScoredCandidate], file: FileFrame, view: Sin
 
 def decide(all_facts: list[CandidateFacts], capture_up: np.ndarray | None = None,
            file: FileFrame | None = None, disabled: tuple[str, ...] = (),
-           view: SingleView | None = None) -> UpDecision:
+           view: SingleView | None = None, recorded_up: np.ndarray | None = None) -> UpDecision:
     """Score every candidate and compare the best with the best that levels differently.
 
     `file`: what the file says (format, axes); None scores the geometry (and capture poses) alone.
     `disabled`: evidence terms left out (the bench's ablation). `view`: the scan is a single view.
+    `recorded_up`: the up a recorded gravity gives (unit vector, source frame).
     """
-    geometry = [ScoredCandidate(f, {k: v for k, v in evidence_terms(f, all_facts, capture_up, view).items()
-                                    if k not in disabled}) for f in all_facts]
+    geometry = [ScoredCandidate(f, {k: v for k, v in evidence_terms(
+        f, all_facts, capture_up, view, recorded_up).items() if k not in disabled}) for f in all_facts]
     scored = geometry if file is None else _with_file_terms(geometry, file, view, disabled)
     ranked = tuple(sorted(scored, key=lambda c: -c.score))
     best = ranked[0]
@@ -330,6 +340,7 @@ TERM_WORDS = {
     "levelled_axis": "a floor on a source axis (the file was levelled)",
     "format_up": "the format's up axis",
     "capture_up": "the capture's cameras",
+    "recorded_gravity": "the gravity recorded with the scan",
     "floor_area": "the floor's area",
     "furniture": "furniture tops seen from above",
     "extent": "a room wider than tall",

@@ -9,7 +9,8 @@ through `resolve_frame`, the call `load_space` makes once the file is read (poin
 service's reconstruction, in their delivered frame). Outcome per case: levelled (within 3 degrees), wrong
 (planned more than 3 degrees off without asking) or refused (with the true up as the first candidate, or not).
 Single depth frames (one sensor view, not a room) are reported apart from the rooms. A gravity recorded beside
-a room (`services.core.ingest.frame.recorded_gravity`) counts for the delivered case only.
+a room (`services.core.ingest.frame.recorded_gravity`) and the camera poses delivered with it (`capture_up` in
+truth.json: the mean camera up) count for the delivered case only, as load_space reads them beside the file.
 
 Run: `.venv/bin/python bench/ingest/ingest_real.py [--out FILE]`; writes the "real_rooms" section of
 bench/results/ingest_real.json and prints the table per source.
@@ -61,15 +62,17 @@ def cases(suffix: str, up: np.ndarray, seed: int) -> Iterator[tuple[str, np.ndar
 
 
 def run_case(mesh: Any, R: np.ndarray, scale: float, suffix: str, up: np.ndarray,
-             name: str, recorded_up: np.ndarray | None = None) -> dict[str, Any]:
+             name: str, recorded_up: np.ndarray | None = None,
+             capture_up: np.ndarray | None = None) -> dict[str, Any]:
     """One case through resolve_frame: its outcome against the truth. `recorded_up`: the up a gravity file
-    beside the delivered room gives (load_space reads it there)."""
+    beside the delivered room gives (load_space reads it there); `capture_up`: the mean camera up of the
+    poses delivered with it (load_space reads a capture there)."""
     copy = mesh.copy()
     T = np.eye(4)
     T[:3, :3] = R / scale
     copy.apply_transform(T)
     truth = R @ up
-    request = FrameRequest("auto", "auto", None, None, recorded_up=recorded_up)
+    request = FrameRequest("auto", "auto", None, None, capture_up=capture_up, recorded_up=recorded_up)
     try:
         _, est, units = resolve_frame(copy, suffix, request, name)
     except UpAmbiguous as e:
@@ -125,15 +128,18 @@ def main() -> None:
         up = np.asarray(room["up"], dtype=float)
         # converted copies: the format as delivered
         delivered = room.get("delivered_as") or path.suffix.lower()
-        # a gravity the capture recorded beside the room: only the delivered file has it (the exported and
-        # rotated copies are new files, judged on their geometry and format alone)
+        # what the capture delivered beside the room (a recorded gravity, the camera poses): only the
+        # delivered file has it (the exported and rotated copies are new files, judged on their own)
         recorded = read_recorded_up(path.parent)
+        poses = room.get("capture_up")
         for case, R, scale, suffix in cases(delivered, up / np.linalg.norm(up), args.seed + i):
             given = recorded.up if recorded is not None and case == "delivered" else None
+            cameras = np.asarray(poses, dtype=float) if poses is not None and case == "delivered" else None
             row = {"room": name, "place": room.get("place", name), "source": room["source"],
                    "kind": room["kind"], "single_frame": bool(room.get("single_frame")),
                    "extra": bool(room.get("extra")), "case": case, "recorded_gravity": given is not None,
-                   **run_case(mesh, R, scale, suffix, up, name, given)}
+                   "capture_poses": cameras is not None,
+                   **run_case(mesh, R, scale, suffix, up, name, given, cameras)}
             rows.append(row)
             print(json.dumps(row), flush=True)
 

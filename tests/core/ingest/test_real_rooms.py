@@ -6,6 +6,7 @@ bench/ingest/ingest_real.py."""
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +14,7 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from services.core.ingest.errors import UpAmbiguous
+from services.core.ingest.errors import SpaceError, UpAmbiguous
 from services.core.ingest.frame.gravity import plane_families
 from services.core.ingest.frame.resolve import rotation_to_z
 from services.core.ingest.loading import load_space
@@ -102,3 +103,19 @@ def test_a_wall_left_on_an_axis_by_a_rotation_about_it_is_not_taken_for_a_levell
     assert up_error_deg(space.source_to_world[:3, :3] @ tilt[:, 2], np.array([0.0, 0.0, 1.0])) < 3.0, \
         space.frame_summary()
     assert abs(space.up_source[0]) < 0.2  # not the wall on +X
+
+
+def test_a_slam_point_cloud_levels_on_the_gravity_its_trajectory_recorded(tmp_path: Path) -> None:
+    """Project Aria's semi-dense SLAM points sample edges, not surfaces: their mesh shows no plane to level
+    on. Beside the MPS trajectory that recorded gravity (as MPS writes them) the cloud levels exactly on it;
+    without it, loading refuses rather than guess."""
+    folder = REPO / "bench" / "scans" / "rooms" / "aria_mps_sample_semidense"
+    cloud = tmp_path / "aria.ply"
+    shutil.copy(folder / "aria_mps_sample_semidense.ply", cloud)
+    with pytest.raises(SpaceError, match="no floor and no dominant planes"):
+        load_space(cloud, cloud_cache_dir=tmp_path / "meshed")
+    shutil.copy(folder / "closed_loop_trajectory.csv", tmp_path / "closed_loop_trajectory.csv")
+    space = load_space(cloud, cloud_cache_dir=tmp_path / "meshed")
+    assert space.up_source.tolist() == [0.0, 0.0, 1.0] and space.up_method == "recorded_gravity"
+    assert space.frame_record()["up"]["reason"].startswith("the gravity recorded with the scan")
+    assert space.units is not None and space.units.scale == 1.0

@@ -102,6 +102,9 @@ def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: FrameRequest,
         units = UnitChoice(float(frame.unit_scale), "given", "unit_scale given")
     if est.ambiguous and not frame.accept_up_guess:
         rec = est.record(units.scale)
+        if est.decision is not None and est.decision.gravity_conflict:
+            said = f"{name}: the gravity recorded beside it and its geometry disagree, so"
+            raise UpAmbiguous(ambiguity_line(said, rec["candidates"], None), rec["candidates"])
         raise UpAmbiguous(ambiguity_line(name, rec["candidates"], est.margin), rec["candidates"])
     if est.method in ("convention", "base") and not frame.accept_up_guess:
         _refuse_space_sized_guess(mesh, suffix, est.up, units.scale, name)

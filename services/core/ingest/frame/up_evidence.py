@@ -30,8 +30,9 @@ candidate with the best one that would level the scan differently (more than `DI
   caller has poses. Cameras are held upright, give or take their pitch: strong evidence.
 - `recorded_gravity`: the gravity a capture recorded with the scan (`recorded_gravity`): an IMU's or a
   dataset's measured down, precise to a degree or two. The strongest single term: a candidate within
-  `RECORDED_CONE_DEG` of it gains, any other loses, so it decides unless the rest of the evidence all
-  points elsewhere (a stale file beside a re-exported mesh), which the margin then shows.
+  `RECORDED_CONE_DEG` of it gains, any other loses. When no candidate agrees with it, or the geometry alone
+  clearly levels the scan another way (a stale file beside a re-exported mesh), the decision is ambiguous
+  (`UpDecision.gravity_conflict`).
 - `view_direction`, `view_aspect`: a single view (`services.core.ingest.frame.single_view`): up lies across
   the view direction within the camera's pitch (`VIEW_PITCH_DEG`; a wall the camera faced is no floor), near
   the frustum's short axis (landscape frames). `extent` is left out for it: a frustum's extent is not the
@@ -187,6 +188,8 @@ class UpDecision:
     # the geometry's own winner, when the file's frame overruled it
     geometry_prefers: ScoredCandidate | None = None
     refuse_below: float = REFUSE_MARGIN  # the margin a winner needs (`_required_margin`)
+    # a recorded gravity that the geometry alone clearly contradicts (a stale file beside a re-exported mesh?)
+    gravity_conflict: bool = False
 
     @property
     def shown(self) -> tuple[ScoredCandidate, ...]:
@@ -200,8 +203,9 @@ class UpDecision:
 
     @property
     def ambiguous(self) -> bool:
-        """True when the winner does not clearly beat a candidate that levels the scan differently."""
-        return self.margin < self.refuse_below
+        """True when the winner does not clearly beat a candidate that levels the scan differently, or a
+        recorded gravity and the geometry disagree."""
+        return self.margin < self.refuse_below or self.gravity_conflict
 
 
 def _furniture_term(f: CandidateFacts) -> float:
@@ -316,16 +320,34 @@ def decide(all_facts: list[CandidateFacts], capture_up: np.ndarray | None = None
     geometry_prefers = (None if float(geometry_best.up @ best.up) >= np.cos(np.radians(DISTINCT_DEG))
                         else geometry_best)
     return UpDecision(ranked, runner, margin, confidence, third, geometry_prefers,
-                      _required_margin(best, view))
+                      _required_margin(best, view), _gravity_conflict(ranked, view))
+
+
+def _gravity_conflict(ranked: tuple[ScoredCandidate, ...], view: SingleView | None) -> bool:
+    """True when the recording and the scan tell two different ups: no plane family agrees with the recorded
+    gravity, or without it the geometry would level the scan differently by a margin it would plan on."""
+    best = ranked[0]
+    if "recorded_gravity" not in best.terms:
+        return False
+    if best.terms["recorded_gravity"] < 0:
+        return True
+    def without(c: ScoredCandidate) -> float:
+        return c.score - c.terms["recorded_gravity"]
+    geometry_best = max(ranked, key=without)
+    if float(geometry_best.up @ best.up) >= np.cos(np.radians(DISTINCT_DEG)):
+        return False
+    return without(geometry_best) - without(best) >= _required_margin(geometry_best, view)
 
 
 def _required_margin(best: ScoredCandidate, view: SingleView | None) -> float:
     """The margin a winner needs: more for a single depth frame (a frustum shows less of a room), and a square
-    frame's geometry alone never suffices (nothing tells its rows from its columns) unless the file says."""
+    frame's geometry alone never suffices (nothing tells its rows from its columns) unless the file (or a
+    recorded gravity) says."""
     if view is None:
         return REFUSE_MARGIN
     file_says = (best.terms.get("levelled_axis", 0.0) > 0
-                 or best.terms.get("format_up", 0.0) > WEIGHTS["format_up_habit"])
+                 or best.terms.get("format_up", 0.0) > WEIGHTS["format_up_habit"]
+                 or best.terms.get("recorded_gravity", 0.0) > 0)
     return SINGLE_VIEW_REFUSE_MARGIN if view.short_axis is not None or file_says else float("inf")
 
 
@@ -338,11 +360,11 @@ def _first_distinct(ranked: tuple[ScoredCandidate, ...], others: tuple[ScoredCan
 
 TERM_WORDS = {
     "levelled_axis": "a floor on a source axis (the file was levelled)",
-    "format_up": "the format's up axis",
+    "format_up": "the format's up axis (its convention)",
     "capture_up": "the capture's cameras",
     "recorded_gravity": "the gravity recorded with the scan",
     "floor_area": "the floor's area",
-    "furniture": "furniture tops seen from above",
+    "furniture": "furniture tops seen from above (support surfaces)",
     "extent": "a room wider than tall",
     "storey": "a storey's height",
     "view_direction": "a single view's direction",

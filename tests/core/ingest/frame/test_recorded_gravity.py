@@ -9,8 +9,10 @@ import zipfile
 from pathlib import Path
 
 import numpy as np
+import pytest
 import trimesh
 
+from services.core.ingest.errors import UpAmbiguous
 from services.core.ingest.frame.recorded_gravity import read_recorded_up
 from services.core.ingest.loading import load_space
 
@@ -84,3 +86,26 @@ def test_an_aria_trajectory_beside_the_points_gives_its_gravity_and_travels_with
     assert load_space(packed).up_source.tolist() == [0.0, 0.0, 1.0]
     (tmp_path / "closed_loop_trajectory.csv").write_text("graph_uid,tx_world_device\ng,0.1\n")
     assert read_recorded_up(tmp_path) is None  # no gravity columns: not this format
+
+
+def test_a_recorded_gravity_the_geometry_clearly_contradicts_is_refused_not_followed(tmp_path: Path) -> None:
+    """A stale gravity file (down along a wall of a real room whose floor the geometry finds clearly): the two
+    disagree, so loading asks, the recorded up first and the floor next, rather than level on either."""
+    name = "kitchen_full.ply"
+    truth = json.loads((REPO / "tests" / "fixtures" / "real_scans" / "truth.json").read_text())
+    shutil.copy(REPO / "tests" / "fixtures" / "real_scans" / name, tmp_path / name)
+    up = np.asarray(truth[name]["up"], dtype=float)
+    up /= np.linalg.norm(up)
+    wall = np.cross(up, [1.0, 0.0, 0.0])
+    _write_gravity(tmp_path, (-wall / np.linalg.norm(wall)).tolist())
+    with pytest.raises(UpAmbiguous) as err:
+        load_space(tmp_path / name)
+    assert "the gravity recorded beside it and its geometry disagree" in str(err.value)
+    floor = np.asarray(err.value.candidates[1]["up"], dtype=float)
+    assert float(floor @ up) > np.cos(np.radians(5.0))
+    assert load_space(tmp_path / name, accept_up_guess=True).frame_record()["up"]["ambiguous"]
+    # a gravity no plane of the scan agrees with (45 degrees off the floor): refused the same way
+    tilted = up + wall / np.linalg.norm(wall)
+    _write_gravity(tmp_path, (-tilted / np.linalg.norm(tilted)).tolist())
+    with pytest.raises(UpAmbiguous, match="the gravity recorded beside it and its geometry disagree"):
+        load_space(tmp_path / name)

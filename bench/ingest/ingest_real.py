@@ -8,12 +8,14 @@ its true up, how that truth is known, its source and licence; SOURCE.md beside e
 through `resolve_frame`, the call `load_space` makes once the file is read (point clouds meshed once by the
 service's reconstruction, in their delivered frame). Outcome per case: levelled (within 3 degrees), wrong
 (planned more than 3 degrees off without asking) or refused (with the true up as the first candidate, or not).
-Single depth frames (one sensor view, not a room) are reported apart from the rooms. A gravity recorded beside
-a room (`services.core.ingest.frame.recorded_gravity`) and the camera poses delivered with it (`capture_up` in
-truth.json: the mean camera up) count for the delivered case only, as load_space reads them beside the file.
+Single depth frames (one sensor view, not a room) are reported apart from the rooms, and so are the held-out
+rooms (`"held_out": true`, files in shared/rooms_held_out: never tuned on), with a figure of their own. A
+gravity recorded beside a room (`services.core.ingest.frame.recorded_gravity`) and the camera poses delivered
+with it (`capture_up` in truth.json: the mean camera up) count for the delivered case only, as load_space reads
+them beside the file.
 
 Run: `.venv/bin/python bench/ingest/ingest_real.py [--out FILE]`; writes the "real_rooms" section of
-bench/results/ingest_real.json and prints the table per source.
+bench/results/ingest_real.json and prints the table per source, the held-out rooms apart.
 """
 
 from __future__ import annotations
@@ -119,7 +121,9 @@ def main() -> None:
         truth.update({name: {**room, "extra": True} for name, room in json.loads(extra.read_text()).items()})
     rows: list[dict[str, Any]] = []
     t_start = time.perf_counter()
-    for i, (name, room) in enumerate(sorted(truth.items())):
+    # held-out rooms last, so adding them leaves the other rooms' random rotations (seed + index) as they were
+    order = sorted(truth.items(), key=lambda item: (bool(item[1].get("held_out")), item[0]))
+    for i, (name, room) in enumerate(order):
         if args.rooms and name not in args.rooms:
             continue
         path = REPO / room["file"]  # an absolute path stays as it is
@@ -137,14 +141,17 @@ def main() -> None:
             cameras = np.asarray(poses, dtype=float) if poses is not None and case == "delivered" else None
             row = {"room": name, "place": room.get("place", name), "source": room["source"],
                    "kind": room["kind"], "single_frame": bool(room.get("single_frame")),
-                   "extra": bool(room.get("extra")), "case": case, "recorded_gravity": given is not None,
-                   "capture_poses": cameras is not None,
+                   "held_out": bool(room.get("held_out")), "extra": bool(room.get("extra")), "case": case,
+                   "recorded_gravity": given is not None, "capture_poses": cameras is not None,
                    **run_case(mesh, R, scale, suffix, up, name, given, cameras)}
             rows.append(row)
             print(json.dumps(row), flush=True)
 
-    def pick(single: bool, **kw: object) -> list[dict[str, Any]]:
-        return [r for r in rows if r["single_frame"] == single and all(r[k] == v for k, v in kw.items())]
+    def pick(single: bool, held_out: bool = False, **kw: object) -> list[dict[str, Any]]:
+        return [r for r in rows if r["single_frame"] == single and r["held_out"] == held_out
+                and all(r[k] == v for k, v in kw.items())]
+
+    held = [r for r in rows if r["held_out"]]
 
     places = sorted({r["place"] for r in rows})
     sources = sorted({r["source"] for r in rows})
@@ -159,6 +166,10 @@ def main() -> None:
         "by_room": {n: [r["outcome"] + ("" if r["outcome"] != "refused" else "+" if r["true_first"] else "-")
                         for r in rows if r["room"] == n] for n in sorted({r["room"] for r in rows})},
         "single_depth_frames": shares(pick(True)),
+        "held_out": {"files": sorted({r["room"] for r in held}), "rooms": shares(pick(False, True)),
+                     "single_depth_frames": shares(pick(True, True)),
+                     "by_kind": {k: shares([r for r in held if r["kind"] == k])
+                                 for k in sorted({r["kind"] for r in held})}},
         "wrong_cases": [r for r in rows if r["outcome"] == "wrong"],
         "seconds": round(time.perf_counter() - t_start, 1),
         "machine": {"python": platform.python_version(), "cpu": platform.processor() or platform.machine()},
@@ -170,7 +181,9 @@ def main() -> None:
     args.out.write_text(json.dumps(document, indent=2) + "\n")
     print("\n| source | cases | levelled | wrong | refused (true up first) |\n|---|---|---|---|---|")
     for label, s in [*result["by_source"].items(), ("all rooms (multi-view)", result["rooms"]),
-                     ("single depth frames", result["single_depth_frames"])]:
+                     ("single depth frames", result["single_depth_frames"]),
+                     ("held-out rooms (multi-view)", result["held_out"]["rooms"]),
+                     ("held-out single depth frames", result["held_out"]["single_depth_frames"])]:
         print(f"| {label} | {s['cases']} | {s['levelled']} ({s['share_levelled']:.0%}) | {s['wrong']} | "
               f"{s['refused']} ({s['refused_true_first']}) |")
     print(f"{len(places)} places from {len(sources)} sources; wrote {args.out}")

@@ -35,9 +35,9 @@ from services.worker.cues.ncuts import normalized_cuts
 from services.worker.cues.registry import register
 
 # Links weaker than this count as no link in the normalized cuts (a subgraph falling apart there is split into
-# its parts without an eigenproblem): an RBF weight of 1e-3 is a mean-feature distance of ~42 on the 0..255
-# scale. Half the cuts' eigenproblems go, and the labels move less than under one level of input noise
-# (bench/cues/segment_stability.py).
+# its parts without an eigenproblem): a weight of 1e-3 is a mean-feature distance of ~42 on the 0..255 scale
+# (~22 across a full-strength occlusion edge). Most of the cuts' eigenproblem time goes, and the labels move
+# less than under one level of input noise (bench/cues/segment_stability.py).
 UNLINKED = 1e-3
 
 

@@ -143,10 +143,10 @@ def segment_stages(passes: list[ViewPasses], repeats: int) -> dict[str, dict[str
     eig_s = [0.0]
     solve = ncuts.second_eigenvector
 
-    def timed_solve(a: np.ndarray) -> np.ndarray:
+    def timed_solve(a: np.ndarray, precision: str = "float64") -> np.ndarray:
         c0 = time.process_time()
         try:
-            return solve(a)
+            return solve(a, precision)
         finally:
             eig_s[0] += time.process_time() - c0
 
@@ -158,7 +158,8 @@ def segment_stages(passes: list[ViewPasses], repeats: int) -> dict[str, dict[str
                 ctx = ViewContext(None, params, passes=p)
                 occlusion_response(ctx)
                 for kind in ("2d", "25d"):
-                    t = steps[kind]
+                    t, definition = steps[kind], seg.DEFINITIONS["segment_unsup2d" if kind == "2d" else
+                                                                  "segment_unsup25d"]
                     c0 = time.process_time()
                     features, mask, sigma, boundary = segment_input(ctx, kind)
                     # one colour (an untextured room's rgb): no graph
@@ -175,19 +176,21 @@ def segment_stages(passes: list[ViewPasses], repeats: int) -> dict[str, dict[str
                                         for c in range(img.shape[-1])], axis=-1)
                     c3 = time.process_time()
                     h, w = img.shape[:2]
-                    code, cost = fz._sorted_edges(img, fz.SORT_LEVELS, fz.DIRECTIONS[8])
+                    code, cost = fz._sorted_edges(img, definition.sort_levels,
+                                                  fz.DIRECTIONS[definition.connectivity])
                     c4 = time.process_time()
                     fz._merge(code, cost, w, h * w, float(params.segment2d_scale) / 255.0)
                     c5 = time.process_time()
                     labels = seg.superpixels(
                         features, params.segment2d_scale, sigma, params.segment2d_min_size,
-                        params.segment_max_superpixels,
+                        params.segment_max_superpixels, definition,
                     )
                     c6 = time.process_time()
                     graph = seg.region_graph(labels, features * 255.0, params.segment_ncut_sigma, boundary)
                     c7 = time.process_time()
                     eig_s[0] = 0.0
-                    ncuts.normalized_cuts(graph, params.segment_ncut_thresh, params.segment_num_cuts)
+                    ncuts.normalized_cuts(graph, params.segment_ncut_thresh, params.segment_num_cuts,
+                                          definition.eigenvectors, definition.link_eps)
                     c8 = time.process_time()
                     # the superpixel step run again: the rest of it once its blur, sort and merge
                     whole = c6 - c5

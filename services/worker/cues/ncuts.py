@@ -1,7 +1,7 @@
 """Recursive two-way normalized cuts (Shi & Malik 2000) on a dense similarity matrix, as
-skimage.graph.cut_normalized: the second smallest eigenvector of D^-1/2 (D - W) D^-1/2 (LAPACK dsyevr, two
-eigenpairs), num_cuts thresholds between its extremes, split while the best ncut value is below thresh; the
-segment cues' step 3 (segmentation.py).
+skimage.graph.cut_normalized: the second smallest eigenvector of D^-1/2 (D - W) D^-1/2 (LAPACK ?syevr, two
+eigenpairs, in the precision the caller names), num_cuts thresholds between its extremes, split while the best
+ncut value is below thresh; the segment cues' step 3 (segmentation.py).
 
 Per split, compiled steps around the two library calls whose rounding the labels depend on (LAPACK's
 eigenvector, BLAS's products of the threshold masks with the matrix), with the arithmetic of the numpy
@@ -47,8 +47,10 @@ def _components(w: np.ndarray, eps: float) -> tuple[int, np.ndarray]:
     return count, part
 
 
-def normalized_cuts(W: np.ndarray, thresh: float, num_cuts: int) -> np.ndarray:
+def normalized_cuts(W: np.ndarray, thresh: float, num_cuts: int, precision: str = "float64",
+                    link_eps: float = LINK_EPS) -> np.ndarray:
     """Recursive two-way normalized cuts on a dense similarity matrix; returns a segment id per node.
+    `precision`: of the eigenvectors (second_eigenvector); links weaker than `link_eps` count as absent.
 
     A subgraph falling apart into (numerically) disconnected parts is split into them directly: its
     eigenproblem then has a multiple zero eigenvalue, so the dense solver (O(n^3), most of a segmentation's
@@ -67,11 +69,11 @@ def normalized_cuts(W: np.ndarray, thresh: float, num_cuts: int) -> np.ndarray:
         idx = stack.pop()
         best_mask = None
         if len(idx) > 2:
-            w, n_parts, part = _subgraph(W, idx, LINK_EPS)
+            w, n_parts, part = _subgraph(W, idx, link_eps)
             if n_parts > 1:
                 stack.extend(idx[part == k] for k in range(n_parts))
                 continue
-            best_mask = _best_split(w, thresh, num_cuts)
+            best_mask = _best_split(w, thresh, num_cuts, precision)
         if best_mask is None:
             out[idx] = next_id
             next_id += 1
@@ -239,30 +241,37 @@ def _cheapest_cut(masks: np.ndarray, m: np.ndarray, mw: np.ndarray, assoc: np.nd
     return best if best_cost < thresh else -1
 
 
-_SYEVR, _SYEVR_LWORK = get_lapack_funcs(("syevr", "syevr_lwork"), dtype=np.float64)
+# eigenvector precision -> LAPACK's ?syevr and its workspace query
+_SYEVR = {
+    name: get_lapack_funcs(("syevr", "syevr_lwork"), dtype=np.dtype(name)) for name in ("float64", "float32")
+}
 
 
 @functools.lru_cache(maxsize=4096)
-def _syevr_work(n: int) -> tuple[int, int]:
-    """LAPACK's workspace sizes for dsyevr of an n x n matrix, as scipy.linalg.eigh asks for them."""
-    lwork, liwork = _compute_lwork(_SYEVR_LWORK, n=n, lower=True)
+def _syevr_work(n: int, precision: str) -> tuple[int, int]:
+    """LAPACK's workspace sizes for ?syevr of an n x n matrix, as scipy.linalg.eigh asks for them."""
+    lwork, liwork = _compute_lwork(_SYEVR[precision][1], n=n, lower=True)
     return int(lwork), int(liwork)
 
 
-def second_eigenvector(A: np.ndarray) -> np.ndarray:
-    """The eigenvector of the second smallest eigenvalue of a symmetric matrix: the dsyevr call of
-    scipy.linalg.eigh(A, subset_by_index=[0, 1], driver="evr"), same arguments and workspace, bit for bit,
-    without its checks and workspace query per call (a normalized cut makes ~100 such calls per view)."""
-    lwork, liwork = _syevr_work(len(A))
-    _, vecs, _, _, info = _SYEVR(
-        A, compute_v=1, range="I", il=1, iu=2, lower=True, lwork=lwork, liwork=liwork
+def second_eigenvector(A: np.ndarray, precision: str = "float64") -> np.ndarray:
+    """The eigenvector (float64) of the second smallest eigenvalue of a symmetric matrix: the ?syevr call of
+    scipy.linalg.eigh(A.astype(precision), subset_by_index=[0, 1], driver="evr"), same arguments and
+    workspace, bit for bit, without its checks and workspace query per call (a normalized cut makes ~100 such
+    calls per view). float32 (ssyevr) halves the tridiagonal reduction's cost; its labels are the float64
+    ones within the segment cues' equivalence bound (bench/cues/segment_stability.py)."""
+    syevr = _SYEVR[precision][0]
+    lwork, liwork = _syevr_work(len(A), precision)
+    _, vecs, _, _, info = syevr(
+        A.astype(precision, copy=False), compute_v=1, range="I", il=1, iu=2, lower=True, lwork=lwork,
+        liwork=liwork,
     )
     if info != 0:
-        raise np.linalg.LinAlgError(f"dsyevr failed (info {info})")
-    return vecs[:, 1]
+        raise np.linalg.LinAlgError(f"?syevr failed (info {info})")
+    return vecs[:, 1].astype(np.float64, copy=False)
 
 
-def _best_split(w: np.ndarray, thresh: float, num_cuts: int) -> np.ndarray | None:
+def _best_split(w: np.ndarray, thresh: float, num_cuts: int, precision: str = "float64") -> np.ndarray | None:
     """The two-way normalized cut of a connected similarity matrix (a node mask), None when none is below
     thresh.
 
@@ -270,6 +279,6 @@ def _best_split(w: np.ndarray, thresh: float, num_cuts: int) -> np.ndarray | Non
     products with w stay numpy's (BLAS) calls, whose summation order the costs, hence the choice, depend
     on."""
     d, dis, A = _laplacian(w)
-    masks, m = _threshold_masks(second_eigenvector(A), dis, num_cuts)
+    masks, m = _threshold_masks(second_eigenvector(A, precision), dis, num_cuts)
     best = _cheapest_cut(masks, m, m @ w, m @ d, d, thresh)
     return masks[best] if best >= 0 else None

@@ -8,9 +8,10 @@ normals with occlusion edges weakening the graph's links (segment25d_weights; se
 2. region adjacency graph (4-connectivity) with similarity weights exp(-|mean_a - mean_b|^2 /
    segment_ncut_sigma) of the regions' mean features on a 0..255 scale (2.5d: times exp(-5 * occlusion
    strength along the shared boundary)), plus self-loops of weight 1 (as skimage.graph.cut_normalized);
-3. recursive two-way normalized cuts (Shi & Malik 2000) exactly as skimage.graph.cut_normalized: the second
+3. recursive two-way normalized cuts (Shi & Malik 2000) as skimage.graph.cut_normalized: the second
    smallest eigenvector of D^-1/2 (D - W) D^-1/2, segment_num_cuts thresholds, split while the best ncut value
-   is below segment_ncut_thresh. On dense matrices (LAPACK, two eigenpairs; ncuts.py) because skimage's
+   is below segment_ncut_thresh; links below UNLINKED count as absent (a subgraph falling apart there is split
+   into its parts). On dense matrices (LAPACK, two eigenpairs, in float32: ncuts.py) because skimage's
    sparse/networkx version takes seconds per image;
 4. labels 1..K numbered in raster order of first appearance; 0 = no surface (2d: nothing seen; 2.5d: no valid
    depth). Pixels off the surface take the nearest surface pixel's features before step 1, so the background
@@ -19,6 +20,7 @@ normals with occlusion edges weakening the graph's links (segment25d_weights; se
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 
 import numpy as np
@@ -28,16 +30,43 @@ from services.worker.context import ViewContext
 from services.worker.cues.common import depth_m, hit, normal_cam, valid
 from services.worker.cues.edges import occlusion_response
 from services.worker.cues.feature_transform import nearest_site
-from services.worker.cues.felzenszwalb import Felzenszwalb
+from services.worker.cues.felzenszwalb import SORT_LEVELS, Felzenszwalb
 from services.worker.cues.ncuts import normalized_cuts
 from services.worker.cues.registry import register
 
+# Links weaker than this count as no link in the normalized cuts (a subgraph falling apart there is split into
+# its parts without an eigenproblem): a weight of 1e-3 is a mean-feature distance of ~42 on the 0..255 scale
+# (~22 across a full-strength occlusion edge). Most of the cuts' eigenproblem time goes, and the labels move
+# less than under one level of input noise (bench/cues/segment_stability.py).
+UNLINKED = 1e-3
+
+
+@dataclasses.dataclass(frozen=True)
+class Definition:
+    """The choices of a segment cue's steps that its JobSpec parameters do not set: Felzenszwalb's grid
+    connectivity (8 or 4) and edge-sort quantisation (levels of the largest edge weight), the normalized cuts'
+    eigenvector precision ("float64": dsyevr, "float32": ssyevr) and the link weight below which two regions
+    count as unlinked. A change to them is accepted when the new labels agree with the old ones at least as
+    well as the old agree with themselves under imperceptible input noise (docs/conventions.md,
+    bench/cues/segment_stability.py)."""
+
+    connectivity: int = 8
+    sort_levels: int = SORT_LEVELS
+    eigenvectors: str = "float32"
+    link_eps: float = UNLINKED
+
+
+DEFINITIONS = {"segment_unsup2d": Definition(), "segment_unsup25d": Definition()}
+
 
 def superpixels(
-    features: np.ndarray, scale: float, sigma: float, min_size: int, max_count: int
+    features: np.ndarray, scale: float, sigma: float, min_size: int, max_count: int,
+    definition: Definition = Definition(),
 ) -> np.ndarray:
     """int64 H x W Felzenszwalb labels 0..n-1 with n <= max_count (min_size grown when needed)."""
-    fz = Felzenszwalb(features, scale, sigma)  # the merge pass does not depend on min_size: done once
+    # the merge pass does not depend on min_size: done once
+    fz = Felzenszwalb(features, scale, sigma, connectivity=definition.connectivity,
+                      levels=definition.sort_levels)
     n = fz.count(min_size)  # counted without labelling the pixels: only the last min_size is labelled
     for _ in range(4):
         if n <= max_count:
@@ -220,7 +249,7 @@ def nearest_in_mask(ctx: ViewContext, mask: np.ndarray) -> tuple[np.ndarray, np.
     return known[key]
 
 
-def segment(ctx: ViewContext, features: np.ndarray, mask: np.ndarray, *, sigma: float,
+def segment(ctx: ViewContext, features: np.ndarray, mask: np.ndarray, *, sigma: float, definition: Definition,
             boundary: np.ndarray | None = None) -> np.ndarray:
     """Felzenszwalb + normalized cuts on an H x W x C feature image in ~[0, 1]; uint16 labels, 0 off mask."""
     p = ctx.params
@@ -235,18 +264,20 @@ def segment(ctx: ViewContext, features: np.ndarray, mask: np.ndarray, *, sigma: 
         iy, ix = nearest_in_mask(ctx, mask)
         features = _gather(features, mask, iy, ix)
     superpixel_ids = superpixels(
-        features, p.segment2d_scale, sigma, p.segment2d_min_size, p.segment_max_superpixels
+        features, p.segment2d_scale, sigma, p.segment2d_min_size, p.segment_max_superpixels, definition
     )
     W = region_graph(superpixel_ids, features * 255.0, p.segment_ncut_sigma, boundary)
-    merged = normalized_cuts(W, p.segment_ncut_thresh, p.segment_num_cuts)[superpixel_ids]
-    return _relabel(merged, mask)
+    merged = normalized_cuts(W, p.segment_ncut_thresh, p.segment_num_cuts, definition.eigenvectors,
+                             definition.link_eps)
+    return _relabel(merged[superpixel_ids], mask)
 
 
 @register("segment_unsup2d")
 def segment_unsup2d(ctx: ViewContext) -> np.ndarray:
     """uint16 H x W colour segmentation labels 1..K, 0 where nothing is seen."""
     rgb = ctx.passes.rgb.astype(np.float32) / 255.0
-    return segment(ctx, rgb, hit(ctx), sigma=ctx.params.segment2d_sigma)
+    return segment(ctx, rgb, hit(ctx), sigma=ctx.params.segment2d_sigma,
+                   definition=DEFINITIONS["segment_unsup2d"])
 
 
 LOG_DEPTH_SCALE = 0.5
@@ -301,7 +332,8 @@ def segment_unsup25d(ctx: ViewContext) -> np.ndarray:
     _, _, we = ctx.params.segment25d_weights
     occ = occlusion_response(ctx)
     boundary = _boundary(occ, np.float32(we), np.float32(max(float(occ.max()), 1e-6)))
-    return segment(ctx, features25d(ctx), valid(ctx), sigma=0.0, boundary=boundary)
+    return segment(ctx, features25d(ctx), valid(ctx), sigma=0.0, definition=DEFINITIONS["segment_unsup25d"],
+                   boundary=boundary)
 
 
 @njit(cache=True, nogil=True)

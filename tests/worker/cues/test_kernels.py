@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+from unittest.mock import patch
+
 import numpy as np
 import pytest
 
 from services.core.domain.cues import CURVATURE_FLAT, NORMAL_BACKGROUND
 from services.core.domain.jobspec import CueParams
 from services.worker.context import ViewContext
+from services.worker.cues import ncuts
 from services.worker.cues.basic import _curvature_pixels, _normal_pixels
 from services.worker.cues.common import gaussian_blur, sobel_xy, valid
 from services.worker.cues.feature_transform import nearest_site
@@ -67,6 +70,23 @@ def test_normalized_cuts_splits_disconnected_parts_without_mixing_them() -> None
     seg = normalized_cuts(W, thresh=0.005, num_cuts=10)
     assert len(set(seg[:3])) == len(set(seg[3:6])) == len(set(seg[6:])) == 1
     assert len({seg[0], seg[3], seg[6]}) == 3
+
+    # A link below link_eps counts as absent: the graph splits there without an eigenproblem.
+    W[0, 3] = W[3, 0] = 5e-4
+    solve, sizes = ncuts.second_eigenvector, []
+
+    def counted(A: np.ndarray, *args: str) -> np.ndarray:
+        sizes.append(len(A))
+        return solve(A, *args)
+
+    with patch.object(ncuts, "second_eigenvector", counted):
+        seg = normalized_cuts(W, thresh=0.005, num_cuts=10, link_eps=1e-3)
+        assert len(set(seg[:3])) == len(set(seg[3:6])) == len(set(seg[6:])) == 1
+        assert len({seg[0], seg[3], seg[6]}) == 3
+        assert sorted(sizes) == [3, 3, 4]  # each clique's own check, nothing larger
+        sizes.clear()
+        normalized_cuts(W, thresh=0.005, num_cuts=10)  # the default keeps the weak link: the triples solved
+        assert 6 in sizes
 
 
 def test_position_cue_is_the_pass_sets_position_bit_for_bit() -> None:
@@ -294,9 +314,13 @@ def test_second_eigenvector_is_scipys_eigh_bit_for_bit(n) -> None:
     dis = 1.0 / np.sqrt(d)
     A = (np.diag(d) - w) * dis[:, None] * dis[None, :]  # as a normalized cut builds it
     old = eigh(A, subset_by_index=[0, 1], driver="evr")[1][:, 1]
+    old32 = eigh(A.astype(np.float32), subset_by_index=[0, 1], driver="evr")[1][:, 1]
+    assert old32.dtype == np.float32
     for _ in range(2):  # the second call takes the cached workspace sizes
         new = second_eigenvector(A)
         assert np.array_equal(new, old)
+        new32 = second_eigenvector(A, "float32")
+        assert new32.dtype == np.float64 and np.array_equal(new32, old32.astype(np.float64))
 
 
 def _site_masks() -> list[np.ndarray]:

@@ -77,7 +77,7 @@ def test_confidence_recorded_and_an_empty_box_refused_naming_both_candidates(tmp
     rec = estimate_up(room, ".ply").record()
     assert rec["method"] == "floor" and rec["confidence"] == "high" and not rec["ambiguous"]
     assert rec["floor_area_m2"] == pytest.approx(6 * 4 + 1.2 * 0.8, rel=1e-6)  # the floor and the table top
-    # one plane: its mirror image (a ceiling seen from below) is the nearest rival, which the file's +Z rules out
+    # one plane: its mirror image (a ceiling seen from below) is the nearest rival; the file's +Z rules it out
     assert rec["runner_up_angle_deg"] == 180.0 and rec["margin"] > 1.0 and rec["probability"] > 0.9
     assert [c["up"] for c in rec["candidates"]][0] == [0.0, 0.0, 1.0]
     # with its ceiling, only the table (its top scanned, its underside not) tells floor from ceiling
@@ -187,8 +187,9 @@ def test_given_up_vector_and_source_to_world(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("normal", [[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [0.3, -0.5, 0.81]])
 def test_a_flat_scan_is_seen_from_the_side_its_faces_face(normal: list[float]) -> None:
-    """A scan of a floor alone (no height at all) is a floor: up is its normal, not the opposite; on a negative
-    source axis it is as much a ceiling seen from below, and a levelled file's up is its positive axis."""
+    """A scan of a floor alone (no height at all) is a floor: up is its normal, not the opposite; on a
+    negative source axis it is as much a ceiling seen from below, and a levelled file's up is its positive
+    axis."""
     grid = trimesh.creation.box((3.0, 2.0, 1.0))
     flat = trimesh.Trimesh(*trimesh.remesh.subdivide(grid.vertices,
                                                      grid.faces[grid.face_normals[:, 2] > 0.9]))

@@ -11,8 +11,8 @@ service's reconstruction, in their delivered frame). Outcome per case: levelled 
 Single depth frames (one sensor view, not a room) are reported apart from the rooms, and so are the held-out
 rooms (`"held_out": true`, files in shared/rooms_held_out: never tuned on), with a figure of their own. A
 gravity recorded beside a room (`services.core.ingest.frame.recorded_gravity`) and the camera poses delivered
-with it (`capture_up` in truth.json: the mean camera up) count for the delivered case only, as load_space reads
-them beside the file.
+with it (`capture_up` in truth.json: the mean camera up) count for the delivered case only, as load_space
+reads them beside the file.
 
 Run: `.venv/bin/python bench/ingest/ingest_real.py [--out FILE]`; writes the "real_rooms" section of
 bench/results/ingest_real.json and prints the table per source, the held-out rooms apart.

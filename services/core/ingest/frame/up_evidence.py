@@ -22,6 +22,11 @@ candidate with the best one that would level the scan differently (more than `DI
   direction that close to one of the six axis directions with odds of about 1 in 1,000, while people and
   devices export levelled files far more often than rotated ones: strong evidence that the file is levelled.
   When the walls are axis-aligned too, every family gets it and the rest of the evidence picks among them.
+  Exporters write levelled files with up on the positive axis: a family showing one plane (no floor-ceiling
+  pair) gets it on its positive-axis sign only, whichever side the plane is seen from.
+- `mirror`: one plane and no opposite one is a floor seen from above or a ceiling seen from below (what hangs
+  below a ceiling looks like furniture standing on a floor), so the geometry's lead of one sign of such a
+  family over the other is capped at `MIRROR_CAP`: the file, cameras or a recorded gravity can overrule it.
 - `format_up`: the candidate on the format's own up axis (`FileFrame`): glTF's +Y is the specification's
   (binding, as strong as an axis-aligned floor, for a floor within `FORMAT_DEG` of it); PLY's +Z and OBJ's +Y
   are habits, weighted below `REFUSE_MARGIN` (Y-up PLYs and Z-up OBJs are common): they order a refusal, they
@@ -83,6 +88,14 @@ FORMAT_DEG = 5.0
 FILE_TRUST = 4.0
 # a candidate whose lower half faces it over this share of its cross-section (a strip)
 PLAUSIBLE_FLOOR_FRACTION = 0.1
+# a family flat over this share of the cross-section at both ends holds a floor and a ceiling (a pair); with
+# one plane only, the geometry's preference between its two signs is capped at MIRROR_CAP (`_mirror_terms`).
+# No measure separated the ceiling-only captures of bench/ingest/ingest_real.py from its floor-only rooms
+# (support heights, walls near the plane, point mass, extent); a cap below REFUSE_MARGIN would refuse every
+# rotated floor-only room, so it only bounds the stated probability (0.93)
+PAIR_FRACTION = 0.3
+MIRROR_CAP = 1.5
+_SIGN_FREE_TERMS = ("floor_area", "furniture", "extent", "storey")  # the geometry a mirror image keeps
 
 WEIGHTS = {
     "levelled_axis": 6.0,
@@ -221,12 +234,15 @@ def _storey_term(f: CandidateFacts) -> float:
     return 0.0 if fits else -1.0
 
 
-def _file_terms(f: CandidateFacts, file: FileFrame, plausible: bool, levelled: bool) -> dict[str, float]:
+def _file_terms(f: CandidateFacts, file: FileFrame, plausible: bool, levelled: bool,
+                one_plane: bool) -> dict[str, float]:
     """What the file says of this candidate (see the module docstring). `plausible`: it could be the floor;
     `levelled`: an axis-aligned floor may mean a levelled export (not in a depth frame's own camera frame,
-    where it only means a camera held level)."""
+    where it only means a camera held level); `one_plane`: its family shows one plane, a floor or a ceiling,
+    and exporters write levelled files with up on the positive axis, never upside down."""
+    on_axis = levelled and plausible and on_a_source_axis(f.up)
     terms = {"levelled_axis": WEIGHTS["levelled_axis"]
-             if levelled and plausible and on_a_source_axis(f.up) else 0.0}
+             if on_axis and not (one_plane and float(f.up.sum()) < 0) else 0.0}
     if file.binding:
         near = float(f.up @ file.axis) >= np.cos(np.radians(FORMAT_DEG))
         terms["format_up"] = WEIGHTS["format_up_binding"] if near and plausible else 0.0
@@ -290,12 +306,48 @@ def _with_file_terms(geometry: list[ScoredCandidate], file: FileFrame, view: Sin
     """The candidates scored on the geometry, with what the file says added (see `_file_terms`)."""
     best_geometry = max(c.score for c in geometry)
     # the file's axes count for a floor candidate the geometry does not rule out (FILE_TRUST)
-    plausible = [c.facts.floor_fraction >= PLAUSIBLE_FLOOR_FRACTION and c.score >= best_geometry - FILE_TRUST
-                 for c in geometry]
+    floor = {id(c): c.facts.floor_fraction >= PLAUSIBLE_FLOOR_FRACTION
+             and c.score >= best_geometry - FILE_TRUST for c in geometry}
+    flips = [_flip(c, geometry) for c in geometry]
+    one_plane = [f is not None and _one_plane(c, f) for c, f in zip(geometry, flips, strict=True)]
+    # one plane on an axis: the file was levelled whichever side it is seen from, and the sign is the file's
+    plausible = [floor[id(c)] or (o and f is not None and floor[id(f)])
+                 for c, f, o in zip(geometry, flips, one_plane, strict=True)]
     levelled = view is None or float(view.direction[2]) < np.cos(np.radians(CAMERA_FRAME_DEG))
     return [ScoredCandidate(c.facts, {**c.terms, **{k: v for k, v in _file_terms(
-        c.facts, file, p, levelled).items() if k not in disabled}})
-        for c, p in zip(geometry, plausible, strict=True)]
+        c.facts, file, p, levelled, o).items() if k not in disabled}})
+        for c, p, o in zip(geometry, plausible, one_plane, strict=True)]
+
+
+def _flip(c: ScoredCandidate, candidates: list[ScoredCandidate]) -> ScoredCandidate | None:
+    """The candidate of the same family with the opposite sign, if scored."""
+    return next((o for o in candidates if float(o.up @ c.up) < -0.999), None)
+
+
+def _one_plane(c: ScoredCandidate, flip: ScoredCandidate) -> bool:
+    """True when the family of `c` shows no floor-ceiling pair: at most one end of it is flat (a floor seen
+    from above and a ceiling seen from below are then mirror images)."""
+    pair = (min(c.facts.floor_fraction, c.facts.ceiling_fraction) >= PAIR_FRACTION
+            or min(flip.facts.floor_fraction, flip.facts.ceiling_fraction) >= PAIR_FRACTION)
+    return not pair
+
+
+def _mirror_terms(geometry: list[ScoredCandidate]) -> list[ScoredCandidate]:
+    """One plane seen from one side is a floor seen from above or a ceiling seen from below: what hangs below
+    a ceiling (lamps, ducts, soffits) looks like what stands on a floor (tops seen, undersides not, at
+    furniture heights), and its area is a floor's. The geometry's preference for one sign of such a family is
+    capped at MIRROR_CAP (term `mirror` lifts the other sign), so the file, cameras or a recorded gravity
+    decide the sign where they speak."""
+    out = []
+    for c in geometry:
+        flip = _flip(c, geometry)
+        lift = 0.0
+        if flip is not None and _one_plane(c, flip):
+            def sign_free(x: ScoredCandidate) -> float:
+                return sum(v for k, v in x.terms.items() if k in _SIGN_FREE_TERMS)
+            lift = max(0.0, sign_free(flip) - MIRROR_CAP - sign_free(c))
+        out.append(ScoredCandidate(c.facts, {**c.terms, "mirror": lift}) if lift > 0 else c)
+    return out
 
 
 def decide(all_facts: list[CandidateFacts], capture_up: np.ndarray | None = None,
@@ -309,6 +361,8 @@ def decide(all_facts: list[CandidateFacts], capture_up: np.ndarray | None = None
     """
     geometry = [ScoredCandidate(f, {k: v for k, v in evidence_terms(
         f, all_facts, capture_up, view, recorded_up).items() if k not in disabled}) for f in all_facts]
+    if view is None and "mirror" not in disabled:  # a single view's frustum keeps it (`_view_terms`)
+        geometry = _mirror_terms(geometry)
     scored = geometry if file is None else _with_file_terms(geometry, file, view, disabled)
     ranked = tuple(sorted(scored, key=lambda c: -c.score))
     best = ranked[0]
@@ -366,6 +420,7 @@ TERM_WORDS = {
     "floor_area": "the floor's area",
     "furniture": "furniture tops seen from above (support surfaces)",
     "extent": "a room wider than tall",
+    "mirror": "one plane only (a floor from above or a ceiling from below)",
     "storey": "a storey's height",
     "view_direction": "a single view's direction",
     "view_aspect": "a single view's landscape frame",

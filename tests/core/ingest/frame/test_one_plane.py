@@ -1,0 +1,79 @@
+"""One horizontal plane and no opposite one (a floor without its ceiling, or a ceiling-only capture): the
+geometry cannot tell its sign with certainty, and a levelled file's positive axis can
+(services.core.ingest.frame.up_evidence: `mirror`, the sign of `levelled_axis`)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from services.core.ingest.frame.up_evidence import (
+    MIRROR_CAP,
+    REFUSE_MARGIN,
+    CandidateFacts,
+    FileFrame,
+    decide,
+    reason_words,
+)
+
+Z = np.array([0.0, 0.0, 1.0])
+X = np.array([1.0, 0.0, 0.0])
+
+
+def _facts(up: np.ndarray, floor: float, ceiling: float, mid_up: float, mid_down: float,
+           height: float = 3.0, cross: float = 100.0) -> CandidateFacts:
+    area = floor * cross
+    return CandidateFacts(up, area + max(0.0, mid_up - mid_down), area, floor, height, cross, ceiling,
+                          mid_up, mid_down)
+
+
+def _room(one_side: np.ndarray, pair: bool) -> list[CandidateFacts]:
+    """A plane at the low end of `one_side` with tops over it (what stands on a floor or hangs below a
+    ceiling), walls along X; `pair`: a second plane at the other end too."""
+    other = 0.5 if pair else 0.0
+    return [_facts(one_side, 0.5, other, 8.0, 0.2), _facts(-one_side, other, 0.5, 0.2, 8.0),
+            _facts(X, 0.02, 0.02, 0.0, 0.0, 10.0, 30.0), _facts(-X, 0.02, 0.02, 0.0, 0.0, 10.0, 30.0)]
+
+
+def test_one_plane_caps_the_geometrys_sign_so_its_stated_probability_is_bounded() -> None:
+    d = decide(_room(-Z, pair=False))
+    assert float(d.best.up @ -Z) > 0.99
+    flip = next(c for c in d.ranked if float(c.up @ Z) > 0.99)
+    assert flip.terms["mirror"] > 0
+    assert d.runner_up is flip and d.margin == pytest.approx(MIRROR_CAP)
+    assert d.confidence < 0.95
+    assert not d.ambiguous and MIRROR_CAP >= REFUSE_MARGIN  # a floor-only room is still levelled
+
+
+def test_a_floor_with_its_ceiling_keeps_the_geometrys_sign_uncapped() -> None:
+    d = decide(_room(Z, pair=True))
+    assert float(d.best.up @ Z) > 0.99
+    assert all("mirror" not in c.terms for c in d.ranked)
+    assert d.margin > MIRROR_CAP
+
+
+def test_a_levelled_file_with_one_plane_follows_its_positive_axis() -> None:
+    """The plane at the top along +Z with fixtures below it (a ceiling-only capture exported Z-up): the file's
+    levelling gives +Z, not the geometry's 'floor seen from above'."""
+    d = decide(_room(-Z, pair=False), file=FileFrame(Z))
+    assert float(d.best.up @ Z) > 0.99
+    assert d.best.terms["levelled_axis"] > 0
+    assert next(c for c in d.ranked if float(c.up @ -Z) > 0.99).terms["levelled_axis"] == 0.0
+    assert not d.ambiguous
+    assert "the file was levelled" in reason_words(d)
+
+
+def test_the_sign_prior_holds_for_y_up_ply_and_gltf() -> None:
+    y = np.array([0.0, 1.0, 0.0])
+    for binding in (False, True):
+        d = decide(_room(-y, pair=False), file=FileFrame(Z if not binding else y, binding))
+        assert float(d.best.up @ y) > 0.99 and not d.ambiguous, binding
+
+
+def test_a_levelled_floor_and_ceiling_on_a_negative_axis_keep_the_geometrys_sign() -> None:
+    """A room in a camera's frame (y down) held level: with its ceiling scanned, the furniture between the two
+    planes decides the sign, the file's positive axis does not."""
+    y = np.array([0.0, 1.0, 0.0])
+    d = decide(_room(-y, pair=True), file=FileFrame(Z))
+    assert float(d.best.up @ -y) > 0.99
+    assert not d.ambiguous

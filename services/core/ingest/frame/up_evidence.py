@@ -22,8 +22,9 @@ candidate with the best one that would level the scan differently (more than `DI
   direction that close to one of the six axis directions with odds of about 1 in 1,000, while people and
   devices export levelled files far more often than rotated ones: strong evidence that the file is levelled.
   When the walls are axis-aligned too, every family gets it and the rest of the evidence picks among them.
-  Exporters write levelled files with up on the positive axis: a family showing one plane (no floor-ceiling
-  pair) gets it on its positive-axis sign only, whichever side the plane is seen from.
+  Exporters write levelled files with up on the format's up axis, not upside down: a family on that axis
+  showing one plane (no floor-ceiling pair) gets it on the format's sign only, whichever side the plane is
+  seen from. On another axis both signs get it (a PLY in a level camera's frame has its up on -Y).
 - `mirror`: one plane and no opposite one is a floor seen from above or a ceiling seen from below (what hangs
   below a ceiling looks like furniture standing on a floor), so the geometry's lead of one sign of such a
   family over the other is capped at `MIRROR_CAP`: the file, cameras or a recorded gravity can overrule it.
@@ -239,10 +240,12 @@ def _file_terms(f: CandidateFacts, file: FileFrame, plausible: bool, levelled: b
     """What the file says of this candidate (see the module docstring). `plausible`: it could be the floor;
     `levelled`: an axis-aligned floor may mean a levelled export (not in a depth frame's own camera frame,
     where it only means a camera held level); `one_plane`: its family shows one plane, a floor or a ceiling,
-    and exporters write levelled files with up on the positive axis, never upside down."""
+    and exporters write levelled files with up on the format's up axis, not upside down."""
     on_axis = levelled and plausible and on_a_source_axis(f.up)
-    terms = {"levelled_axis": WEIGHTS["levelled_axis"]
-             if on_axis and not (one_plane and float(f.up.sum()) < 0) else 0.0}
+    # the sign prior holds on the format's up axis only: a PLY's -Y is a camera frame's up (y down), as
+    # common as an ARKit +Y
+    upside_down = one_plane and float(f.up @ file.axis) < -0.99
+    terms = {"levelled_axis": WEIGHTS["levelled_axis"] if on_axis and not upside_down else 0.0}
     if file.binding:
         near = float(f.up @ file.axis) >= np.cos(np.radians(FORMAT_DEG))
         terms["format_up"] = WEIGHTS["format_up_binding"] if near and plausible else 0.0

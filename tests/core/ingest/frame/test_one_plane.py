@@ -63,11 +63,20 @@ def test_a_levelled_file_with_one_plane_follows_its_positive_axis() -> None:
     assert "the file was levelled" in reason_words(d)
 
 
-def test_the_sign_prior_holds_for_y_up_ply_and_gltf() -> None:
+def test_the_sign_prior_holds_on_the_formats_up_axis() -> None:
     y = np.array([0.0, 1.0, 0.0])
-    for binding in (False, True):
-        d = decide(_room(-y, pair=False), file=FileFrame(Z if not binding else y, binding))
-        assert float(d.best.up @ y) > 0.99 and not d.ambiguous, binding
+    for file in (FileFrame(Z), FileFrame(y), FileFrame(y, True)):  # a Z-up PLY, a Y-up OBJ, a glTF
+        d = decide(_room(-file.axis, pair=False), file=file)
+        assert float(d.best.up @ file.axis) > 0.99 and not d.ambiguous, file
+
+
+def test_a_ply_in_a_level_cameras_frame_keeps_the_geometrys_sign() -> None:
+    """A floor without its ceiling in a level first camera's frame (y down, a PLY): -Y is as much a levelled
+    up as +Y, so the furniture decides, and the stated probability stays bounded (`mirror`)."""
+    y = np.array([0.0, 1.0, 0.0])
+    d = decide(_room(-y, pair=False), file=FileFrame(Z))
+    assert float(d.best.up @ -y) > 0.99
+    assert d.best.terms["levelled_axis"] > 0
 
 
 def test_a_levelled_floor_and_ceiling_on_a_negative_axis_keep_the_geometrys_sign() -> None:

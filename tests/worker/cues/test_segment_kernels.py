@@ -15,8 +15,10 @@ from services.core.domain.jobspec import JobSpec
 from services.core.ingest.loading import load_space
 from services.scheduler.planning import make_plan, space_rng
 from services.worker.context import ViewContext
+from services.worker.cues import segmentation
 from services.worker.cues.common import valid
 from services.worker.cues.edges import occlusion_response
+from services.worker.cues.felzenszwalb import SORT_LEVELS
 from services.worker.cues.ncuts import _best_split, normalized_cuts
 from services.worker.cues.registry import cue_value
 from services.worker.cues.segmentation import (
@@ -30,7 +32,7 @@ from services.worker.cues.segmentation import (
 from services.worker.executor import make_context
 from services.worker.inputs.space_cache import SpaceContext
 from services.worker.passes import ViewGeometry, ViewPasses
-from tests.fixtures import reference_ncuts, reference_segmentation
+from tests.fixtures import reference_felzenszwalb, reference_ncuts, reference_segmentation
 from tests.fixtures.segment_agreement import previous_definitions
 from tests.worker.cues.test_equivalence import colour_from_normals
 
@@ -72,6 +74,36 @@ def test_segment_cues_are_the_numpy_versions_bit_for_bit(room_views) -> None:
                 new = cue_value(ViewContext(None, passes=p), cue)
             old = getattr(reference_ncuts, cue)(ViewContext(None, passes=p))
             assert new.dtype == old.dtype == np.uint16
+            assert np.array_equal(new, old), cue
+            counts.append(int(new.max()))
+    assert sum(c > 10 for c in counts) >= len(room_views)  # real segmentations, not one-segment views only
+
+
+class _ReferenceSuperpixels:
+    """tests/fixtures/reference_felzenszwalb.py's kernel (pixel loops, two edge-end arrays) behind the
+    interface segmentation.superpixels uses."""
+
+    def __init__(self, features: np.ndarray, scale: float, sigma: float, *, connectivity: int, levels: int):
+        assert (connectivity, levels) == (8, SORT_LEVELS)  # the only definition the reference has
+        self._fz = reference_felzenszwalb.Felzenszwalb(features, scale, sigma)
+
+    def count(self, min_size: int) -> int:
+        return int(self._fz.labels(min_size).max()) + 1
+
+    def labels(self, min_size: int) -> np.ndarray:
+        return self._fz.labels(min_size)
+
+
+def test_shipped_segment_cues_take_the_reference_superpixels_bit_for_bit(room_views, monkeypatch) -> None:
+    """The shipped definition's labels on real views are those made with the reference Felzenszwalb kernel
+    swapped in: the compiled kernel's row-wise distances and packed edges change no label."""
+    counts = []
+    for p in room_views + [colour_from_normals(p) for p in room_views]:
+        for cue in ("segment_unsup2d", "segment_unsup25d"):
+            new = cue_value(ViewContext(None, passes=p), cue)
+            with monkeypatch.context() as m:
+                m.setattr(segmentation, "Felzenszwalb", _ReferenceSuperpixels)
+                old = cue_value(ViewContext(None, passes=p), cue)
             assert np.array_equal(new, old), cue
             counts.append(int(new.max()))
     assert sum(c > 10 for c in counts) >= len(room_views)  # real segmentations, not one-segment views only

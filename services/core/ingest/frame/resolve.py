@@ -108,6 +108,8 @@ def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: FrameRequest, name:
         try:
             units = choose_units(mesh, est.up, est.storey_height)
         except UnitError as e:
+            if samples is not None and not frame.accept_up_guess:  # a cloud: ask for its up first
+                _refuse_unknown_up(mesh, suffix, name, samples)
             raise SpaceError(str(e)) from None
     else:
         units = UnitChoice(float(frame.unit_scale), "given", "unit_scale given")
@@ -148,6 +150,17 @@ def _refuse_space_sized_guess(mesh: trimesh.Trimesh, suffix: str, up: np.ndarray
     candidates = [c.record(unit_scale) for c in decision.shown]
     raise UpAmbiguous(ambiguity_line(f"{name}: no floor found in a space {extent_m:.3g} m across, so",
                                      candidates, None), candidates)
+
+
+def _refuse_unknown_up(mesh: trimesh.Trimesh, suffix: str, name: str, samples: SurfaceSamples) -> None:
+    """UpAmbiguous naming a cloud's candidates (source units) when neither a floor nor its units were found:
+    without the up, no storey tells the units, and the candidates its planes rank are the question to ask."""
+    decision = guess_candidates(mesh, suffix, samples)
+    if decision is None or decision.runner_up is None:
+        return
+    candidates = [c.record() for c in decision.shown]
+    raise UpAmbiguous(ambiguity_line(f"{name}: no floor found and its units unknown, so", candidates, None),
+                      candidates)
 
 
 def _faces_outward(mesh: trimesh.Trimesh) -> bool:

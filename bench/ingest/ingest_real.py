@@ -10,9 +10,9 @@ service's reconstruction, in their delivered frame). Outcome per case: levelled 
 (planned more than 3 degrees off without asking) or refused (with the true up as the first candidate, or not).
 Single depth frames (one sensor view, not a room) are reported apart from the rooms, and so are the held-out
 rooms (`"held_out": true`, files in shared/rooms_held_out: never tuned on), with a figure of their own. A
-gravity recorded beside a room (`services.core.ingest.frame.recorded_gravity`) and the camera poses delivered
-with it (`capture_up` in truth.json: the mean camera up) count for the delivered case only, as load_space
-reads them beside the file.
+gravity recorded beside a room (`services.core.ingest.frame.recorded_gravity`) and the camera poses
+delivered with it (`capture_up` in truth.json: the mean camera up) count for the delivered case only, as
+load_space reads them beside the file. A point cloud's own points go with its mesh, rotated alike.
 
 Run: `.venv/bin/python bench/ingest/ingest_real.py [--out FILE]`; writes the "real_rooms" section of
 bench/results/ingest_real.json and prints the table per source, the held-out rooms apart.
@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import trimesh
 from scipy.spatial.transform import Rotation
 
 REPO = Path(__file__).resolve().parents[2]
@@ -39,6 +40,7 @@ from services.core.ingest.errors import SpaceError, UnitsAmbiguous, UpAmbiguous 
 from services.core.ingest.frame.recorded_gravity import read_recorded_up  # noqa: E402
 from services.core.ingest.frame.resolve import FrameRequest, resolve_frame, rotation_to_z  # noqa: E402
 from services.core.ingest.loading import load_space  # noqa: E402
+from services.core.ingest.pointcloud import read_text_cloud  # noqa: E402
 
 ROOMS = REPO / "bench" / "scans" / "rooms" / "truth.json"
 SCALES = (1.0, 0.01, 0.001, 0.0254, 1.0)  # metres per unit of the rotated copies, in turn
@@ -65,10 +67,11 @@ def cases(suffix: str, up: np.ndarray, seed: int) -> Iterator[tuple[str, np.ndar
 
 def run_case(mesh: Any, R: np.ndarray, scale: float, suffix: str, up: np.ndarray,
              name: str, recorded_up: np.ndarray | None = None,
-             capture_up: np.ndarray | None = None) -> dict[str, Any]:
+             capture_up: np.ndarray | None = None, points: np.ndarray | None = None) -> dict[str, Any]:
     """One case through resolve_frame: its outcome against the truth. `recorded_up`: the up a gravity file
     beside the delivered room gives (load_space reads it there); `capture_up`: the mean camera up of the
-    poses delivered with it (load_space reads a capture there)."""
+    poses delivered with it (load_space reads a capture there); `points`: a point cloud's points, rotated and
+    scaled with its mesh (load_space hands them over for their own planes)."""
     copy = mesh.copy()
     T = np.eye(4)
     T[:3, :3] = R / scale
@@ -76,7 +79,8 @@ def run_case(mesh: Any, R: np.ndarray, scale: float, suffix: str, up: np.ndarray
     truth = R @ up
     request = FrameRequest("auto", "auto", None, None, capture_up=capture_up, recorded_up=recorded_up)
     try:
-        _, est, units = resolve_frame(copy, suffix, request, name)
+        _, est, units = resolve_frame(copy, suffix, request, name,
+                                      None if points is None else lambda: points @ T[:3, :3].T)
     except UpAmbiguous as e:
         first = angle_deg(np.asarray(e.candidates[0]["up"], dtype=float), truth)
         return {"outcome": "refused", "true_first": first < FIRST_DEG, "first_error_deg": round(first, 2)}
@@ -90,6 +94,13 @@ def run_case(mesh: Any, R: np.ndarray, scale: float, suffix: str, up: np.ndarray
             "units_right": bool(abs(units.scale - scale) <= 1e-9 * scale), "method": est.method,
             "reason": record.get("reason"), "probability": record.get("probability"),
             "margin": None if est.margin is None or not np.isfinite(est.margin) else round(est.margin, 3)}
+
+
+def cloud_points(path: Path) -> np.ndarray:
+    """The points of a cloud file (a PLY without faces, .xyz, .pts) as load_space reads them."""
+    if path.suffix.lower() == ".ply":
+        return np.asarray(trimesh.load(path).vertices, dtype=np.float64)
+    return read_text_cloud(path).points
 
 
 def shares(rows: list[dict[str, Any]]) -> dict[str, Any]:
@@ -128,7 +139,8 @@ def main() -> None:
             continue
         path = REPO / room["file"]  # an absolute path stays as it is
         # the file read and meshed as on ingest, kept in its own frame (identity source_to_world)
-        mesh = load_space(path, source_to_world=np.eye(4).tolist()).mesh
+        space = load_space(path, source_to_world=np.eye(4).tolist())
+        mesh, points = space.mesh, cloud_points(path) if space.reconstruction is not None else None
         up = np.asarray(room["up"], dtype=float)
         # converted copies: the format as delivered
         delivered = room.get("delivered_as") or path.suffix.lower()
@@ -143,7 +155,7 @@ def main() -> None:
                    "kind": room["kind"], "single_frame": bool(room.get("single_frame")),
                    "held_out": bool(room.get("held_out")), "extra": bool(room.get("extra")), "case": case,
                    "recorded_gravity": given is not None, "capture_poses": cameras is not None,
-                   **run_case(mesh, R, scale, suffix, up, name, given, cameras)}
+                   **run_case(mesh, R, scale, suffix, up, name, given, cameras, points)}
             rows.append(row)
             print(json.dumps(row), flush=True)
 

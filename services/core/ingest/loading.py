@@ -28,7 +28,7 @@ import os
 import re
 import shutil
 import tempfile
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -257,14 +257,15 @@ def _load_confined(source: Path, **kwargs: Any) -> Any:  # trimesh.load's keywor
 
 def _read_mesh(
     source: Path, checksum: str, cloud_cache_dir: Path | None
-) -> tuple[trimesh.Trimesh, JSONObject | None]:
-    """The triangle mesh of a source (sha256 `checksum`), and the reconstruction record when it was a point
-    cloud."""
+) -> tuple[trimesh.Trimesh, JSONObject | None, Callable[[], np.ndarray] | None]:
+    """The triangle mesh of a source (sha256 `checksum`), the reconstruction record when it was a point
+    cloud, and then a reader of its points (levelling weighs their own planes when the mesh shows none)."""
     name = source.name
     suffix = source.suffix.lower()
     try:
         if suffix in CLOUD_SUFFIXES:
-            return mesh_cloud_cached(lambda: read_text_cloud(source), checksum, name, cloud_cache_dir)
+            mesh, record = mesh_cloud_cached(lambda: read_text_cloud(source), checksum, name, cloud_cache_dir)
+            return mesh, record, lambda: read_text_cloud(source).points
         mesh = _single_mesh(_load_confined(source, force="scene"))
         if suffix == ".ply" and isinstance(mesh, trimesh.Trimesh) and len(mesh.faces) == 0:
             try:
@@ -272,12 +273,14 @@ def _read_mesh(
             except SpaceError:  # then it is not a readable cloud either: report the empty mesh
                 points = None
             if len(getattr(points, "vertices", ())) > 0:
-                return mesh_cloud_cached(lambda: cloud_from_ply(points), checksum, name, cloud_cache_dir)
+                mesh, record = mesh_cloud_cached(lambda: cloud_from_ply(points), checksum, name,
+                                                 cloud_cache_dir)
+                return mesh, record, lambda: np.asarray(points.vertices, dtype=np.float64)
     except CloudError as e:
         raise SpaceError(str(e)) from None
     if not isinstance(mesh, trimesh.Trimesh):
         raise SpaceError(f"{name}: holds no triangle mesh (got {type(mesh).__name__})")
-    return mesh, None
+    return mesh, None, None
 
 
 def _single_mesh(scene: trimesh.Scene) -> trimesh.Trimesh:
@@ -353,7 +356,7 @@ def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Pa
         raise SpaceError(f"{name}: {problem}")
     source_notes = check_source(source)  # truncation, counts over the limits, unsafe paths: before parsing
     checksum = sha256_file(source)
-    mesh, reconstruction = _read_mesh(source, checksum, cloud_cache_dir)
+    mesh, reconstruction, points = _read_mesh(source, checksum, cloud_cache_dir)
     _check_mesh(source, mesh, reconstruction)
 
     face_class, face_instance, notes = (read_ply_semantics(mesh, source) if reconstruction is None
@@ -374,7 +377,7 @@ def _load(source: Path, recorded: Path, frame: FrameRequest, cloud_cache_dir: Pa
         if scannet is not None:
             face_class, face_instance, class_names, more = scannet
             notes.extend(more)
-    T, est, units = resolve_frame(mesh, source.suffix.lower(), frame, name)
+    T, est, units = resolve_frame(mesh, source.suffix.lower(), frame, name, points)
     _check_extent(name, float(mesh.extents.max()), units.scale)
     if est.decision is not None and est.decision.geometry_prefers is not None:
         other = ", ".join(f"{x:.3g}" for x in est.decision.geometry_prefers.up)

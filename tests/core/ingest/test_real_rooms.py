@@ -14,7 +14,7 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from services.core.ingest.errors import SpaceError, UpAmbiguous
+from services.core.ingest.errors import UpAmbiguous
 from services.core.ingest.frame.gravity import plane_families
 from services.core.ingest.frame.resolve import rotation_to_z
 from services.core.ingest.loading import load_space
@@ -107,13 +107,23 @@ def test_a_wall_left_on_an_axis_by_a_rotation_about_it_is_not_taken_for_a_levell
 
 def test_a_slam_point_cloud_levels_on_the_gravity_its_trajectory_recorded(tmp_path: Path) -> None:
     """Project Aria's semi-dense SLAM points sample edges, not surfaces: their mesh shows no plane to level
-    on. Beside the MPS trajectory that recorded gravity (as MPS writes them) the cloud levels exactly on it;
-    without it, loading refuses rather than guess."""
+    on, their points' coarse planes (`point_planes`) too little floor to level alone. Levelled as delivered
+    (Z up), those planes confirm the format's up; rotated (metres or millimetres), loading refuses with the
+    true up first; beside the MPS trajectory that recorded gravity (as MPS writes them) the cloud levels
+    exactly on it."""
     folder = REPO / "bench" / "scans" / "rooms" / "aria_mps_sample_semidense"
     cloud = tmp_path / "aria.ply"
     shutil.copy(folder / "aria_mps_sample_semidense.ply", cloud)
-    with pytest.raises(SpaceError, match="no floor and no dominant planes"):
-        load_space(cloud, cloud_cache_dir=tmp_path / "meshed")
+    alone = load_space(cloud, cloud_cache_dir=tmp_path / "meshed")
+    assert alone.up_source.tolist() == [0.0, 0.0, 1.0] and alone.up_method == "convention"
+    R = Rotation.from_euler("xyz", [37, -64, 121], degrees=True).as_matrix()
+    for per_metre in (1.0, 1000.0):  # in millimetres no storey tells the units either: up is asked first
+        rotated = tmp_path / f"rotated_{per_metre:g}" / "aria.ply"
+        rotated.parent.mkdir()
+        trimesh.PointCloud(np.asarray(trimesh.load(cloud).vertices) @ R.T * per_metre).export(rotated)
+        with pytest.raises(UpAmbiguous) as refused:  # never levelled wrong: asked, the true up first
+            load_space(rotated, cloud_cache_dir=tmp_path / "meshed")
+        assert up_error_deg(np.asarray(refused.value.candidates[0]["up"], dtype=float), R[:, 2]) < 3.0
     shutil.copy(folder / "closed_loop_trajectory.csv", tmp_path / "closed_loop_trajectory.csv")
     space = load_space(cloud, cloud_cache_dir=tmp_path / "meshed")
     assert space.up_source.tolist() == [0.0, 0.0, 1.0] and space.up_method == "recorded_gravity"

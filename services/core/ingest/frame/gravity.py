@@ -267,6 +267,10 @@ class _Geometry:
                    np.asarray(mesh.triangles_center), v, v[::step])
 
 
+# surface elements from elsewhere than a mesh's faces (a point cloud's planar samples: `point_planes`)
+SurfaceSamples = _Geometry
+
+
 @dataclass(frozen=True)
 class _Candidate:
     up: np.ndarray
@@ -339,20 +343,21 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def estimate_up(mesh: trimesh.Trimesh, suffix: str, capture_up: np.ndarray | None = None,
-                *, disabled_evidence: tuple[str, ...] = (), recorded_up: np.ndarray | None = None
-                ) -> UpEstimate:
+                *, disabled_evidence: tuple[str, ...] = (), recorded_up: np.ndarray | None = None,
+                samples: SurfaceSamples | None = None) -> UpEstimate:
     """Up direction in the source frame, how it was found and how sure (see the module docstring).
 
     `capture_up`: the mean up vector of the capture's cameras in the source frame (-Y of OpenCV camera
     axes, averaged over the poses), when the caller has poses; strong evidence for rooms.
     `recorded_up`: up from a gravity the capture recorded (unit vector, source frame): the strongest
     evidence; up is then exactly it when the floor agrees, and it stands alone when no floor is found.
-    `disabled_evidence`: evidence terms left out (the bench's ablation).
+    `disabled_evidence`: evidence terms left out (the bench's ablation). `samples`: surface elements that
+    stand in for the mesh's faces (a point cloud's own planes).
     """
     conv = axis_vector(CONVENTION_UP.get(suffix, "+z"))
     cam_up = unit_capture_up(capture_up)
     rec_up = unit_capture_up(recorded_up)
-    geom = _Geometry.of(mesh)
+    geom = samples if samples is not None else _Geometry.of(mesh)
     families = plane_families(geom.normals, geom.areas)
     if not families:
         return UpEstimate(conv, "convention") if rec_up is None else _recorded_alone(geom, rec_up)
@@ -392,12 +397,14 @@ def _recorded_alone(geom: _Geometry, rec_up: np.ndarray) -> UpEstimate:
     return UpEstimate(rec_up, "recorded_gravity", storey_height=float(np.ptp(heights)))
 
 
-def guess_candidates(mesh: trimesh.Trimesh, suffix: str) -> UpDecision | None:
+def guess_candidates(mesh: trimesh.Trimesh, suffix: str, samples: SurfaceSamples | None = None
+                     ) -> UpDecision | None:
     """Every plane-family direction scored as an up candidate, for a scan where no floor was found (None: no
     planes).
 
-    Offered when such a scan is space-sized: its up would otherwise be the file format's guess."""
-    geom = _Geometry.of(mesh)
+    Offered when such a scan is space-sized: its up would otherwise be the file format's guess. `samples`:
+    as `estimate_up`'s."""
+    geom = samples if samples is not None else _Geometry.of(mesh)
     families = plane_families(geom.normals, geom.areas)
     if not families:
         return None

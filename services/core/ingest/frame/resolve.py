@@ -7,7 +7,7 @@ planner, not from z = 0), unless the user gives a whole `source_to_world`, which
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -17,12 +17,14 @@ from services.core.domain.frame_values import similarity_scale
 from services.core.domain.frame_words import ambiguity_line, units_ambiguity_line
 from services.core.ingest.errors import SpaceError, UnitsAmbiguous, UpAmbiguous
 from services.core.ingest.frame.gravity import (
+    SurfaceSamples,
     UpEstimate,
     axis_vector,
     estimate_up,
     floor_evidence,
     guess_candidates,
 )
+from services.core.ingest.frame.point_planes import point_samples
 from services.core.ingest.frame.unit_evidence import UnitChoice, UnitError, choose_units
 
 FRAME_KEYS = ("up", "units", "reconstruction", "class_names", "valid_fraction", "capture")
@@ -76,16 +78,19 @@ class FrameRequest:
     recorded_up: np.ndarray | None = None  # up from a recorded gravity (`recorded_gravity`), source frame
 
 
-def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: FrameRequest,
-                  name: str = "the scan") -> tuple[np.ndarray, UpEstimate, UnitChoice]:
+def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: FrameRequest, name: str = "the scan",
+                  points: Callable[[], np.ndarray] | None = None
+                  ) -> tuple[np.ndarray, UpEstimate, UnitChoice]:
     """(source_to_world 4x4, how up was found, the units) of a mesh in its source frame; UpAmbiguous or
-    UnitsAmbiguous (`name`)."""
+    UnitsAmbiguous (`name`). `points`: a point cloud's points (source frame), read when its mesh shows no
+    floor: their own planes are weighed instead (`point_planes`)."""
     if frame.source_to_world is not None:
         T = frame.source_to_world
         scale = similarity_scale(T)
         up = T[:3, :3].T @ [0.0, 0.0, 1.0] / scale
         return T, UpEstimate(up / np.linalg.norm(up), "source_to_world"), UnitChoice(
             scale, "source_to_world", "the scale of the given source_to_world")
+    samples: SurfaceSamples | None = None
     if frame.up is not None or frame.up_axis != "auto":
         given = frame.up if frame.up is not None else axis_vector(frame.up_axis)
         given = given / np.linalg.norm(given)
@@ -93,10 +98,18 @@ def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: FrameRequest,
         est = UpEstimate(given, "given", est.floor_area, est.floor_fraction, storey_height=est.storey_height)
     else:
         est = estimate_up(mesh, suffix, frame.capture_up, recorded_up=frame.recorded_up)
+        if est.method in _NO_FLOOR and points is not None:
+            samples = point_samples(points())
+            if samples is not None:
+                from_points = estimate_up(mesh, suffix, frame.capture_up, recorded_up=frame.recorded_up,
+                                          samples=samples)
+                est = from_points if from_points.method == "floor" else est
     if frame.unit_scale == "auto":
         try:
             units = choose_units(mesh, est.up, est.storey_height)
         except UnitError as e:
+            if samples is not None and not frame.accept_up_guess:  # a cloud: ask for its up first
+                _refuse_unknown_up(mesh, suffix, name, samples)
             raise SpaceError(str(e)) from None
     else:
         units = UnitChoice(float(frame.unit_scale), "given", "unit_scale given")
@@ -107,24 +120,27 @@ def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: FrameRequest,
             raise UpAmbiguous(ambiguity_line(said, rec["candidates"], None), rec["candidates"])
         raise UpAmbiguous(ambiguity_line(name, rec["candidates"], est.margin), rec["candidates"])
     if est.method in ("convention", "base") and not frame.accept_up_guess:
-        _refuse_space_sized_guess(mesh, suffix, est.up, units.scale, name)
+        _refuse_space_sized_guess(mesh, suffix, est.up, units.scale, name, samples)
     if units.ambiguous and not frame.accept_up_guess:
         raise UnitsAmbiguous(units_ambiguity_line(name, list(units.candidates)), list(units.candidates))
     return source_to_world_matrix(est.up, units.scale), est, units
 
 
+_NO_FLOOR = ("convention", "base")  # methods that found no floor in the mesh
 AGREE_DEG = 3.0
 SPACE_EXTENT_M = 3.0  # an object this large is a space: a room needs its up found, not an object's rule
 
 
 def _refuse_space_sized_guess(mesh: trimesh.Trimesh, suffix: str, up: np.ndarray, unit_scale: float,
-                              name: str) -> None:
+                              name: str, samples: SurfaceSamples | None = None) -> None:
     """UpAmbiguous when no floor was found in a scan the size of a space, unless every candidate's evidence
-    agrees with the object rule's `up` (the format's up, or a support base)."""
+    agrees with the object rule's `up` (the format's up, or a support base). `samples`: a cloud's own planes,
+    weighed before its mesh's."""
     extent_m = float(mesh.extents.max()) * unit_scale
     if extent_m < SPACE_EXTENT_M or _faces_outward(mesh):
         return
-    decision = guess_candidates(mesh, suffix)
+    decision = (None if samples is None else guess_candidates(mesh, suffix, samples)) or guess_candidates(
+        mesh, suffix)
     if decision is None or decision.runner_up is None:
         raise SpaceError(f"{name}: no floor and no dominant planes found in a space {extent_m:.3g} m across, "
                          "so its up cannot be told; give it with --up=X,Y,Z or --up-axis (API: spec field "
@@ -134,6 +150,17 @@ def _refuse_space_sized_guess(mesh: trimesh.Trimesh, suffix: str, up: np.ndarray
     candidates = [c.record(unit_scale) for c in decision.shown]
     raise UpAmbiguous(ambiguity_line(f"{name}: no floor found in a space {extent_m:.3g} m across, so",
                                      candidates, None), candidates)
+
+
+def _refuse_unknown_up(mesh: trimesh.Trimesh, suffix: str, name: str, samples: SurfaceSamples) -> None:
+    """UpAmbiguous naming a cloud's candidates (source units) when neither a floor nor its units were found:
+    without the up, no storey tells the units, and the candidates its planes rank are the question to ask."""
+    decision = guess_candidates(mesh, suffix, samples)
+    if decision is None or decision.runner_up is None:
+        return
+    candidates = [c.record() for c in decision.shown]
+    raise UpAmbiguous(ambiguity_line(f"{name}: no floor found and its units unknown, so", candidates, None),
+                      candidates)
 
 
 def _faces_outward(mesh: trimesh.Trimesh) -> bool:

@@ -180,4 +180,4 @@ def position(ctx: ViewContext) -> np.ndarray:
 def fragments(ctx: ViewContext) -> np.ndarray:
     """uint32 H x W index of the seen triangle in the space's mesh faces, 4294967295 = none."""
     f = np.asarray(ctx.passes.require("face_index"), dtype=np.uint32)
-    return np.where(hit(ctx), f, NO_FACE).astype(np.uint32)
+    return np.where(hit(ctx), f, NO_FACE).astype(np.uint32, copy=False)  # uint32 already: no second copy

@@ -35,35 +35,39 @@ def depth_m(ctx: ViewContext) -> np.ndarray:
 def ray_dirs_cam64(ctx: ViewContext) -> np.ndarray:
     """float64 H x W x 3 unit pixel-centre ray directions, OpenCV camera axes
     (ViewGeometry.ray_directions_cam, bit for bit)."""
-    return ctx.memo("ray_dirs_cam64", lambda: _ray_dirs(ctx, np.float64))
+    return _ray_dirs(ctx)[0]
 
 
 def ray_dirs_cam(ctx: ViewContext) -> np.ndarray:
-    """float32 H x W x 3 unit pixel-centre ray directions, OpenCV camera axes: ray_dirs_cam64 cast to float32
-    (made on its own: a cue may need this one only)."""
-    return ctx.memo("ray_dirs_cam", lambda: _ray_dirs(ctx, np.float32))
+    """float32 H x W x 3 unit pixel-centre ray directions, OpenCV camera axes (ray_dirs_cam64 cast)."""
+    return _ray_dirs(ctx)[1]
 
 
-def _ray_dirs(ctx: ViewContext, dtype: type) -> np.ndarray:
-    """ViewGeometry.ray_directions_cam's numpy expressions as one compiled pass: its x and y per column and
-    row, then per pixel the norm and three divisions in float64, cast to `dtype` when stored."""
-    n, K = ctx.resolution, ctx.geometry.K
-    centres = np.arange(n) + 0.5
-    out: np.ndarray = np.empty((n, n, 3), dtype)
-    _unit_rays((centres - K[0, 2]) / K[0, 0], (centres - K[1, 2]) / K[1, 1], out)
-    return out
+def _ray_dirs(ctx: ViewContext) -> tuple[np.ndarray, np.ndarray]:
+    """ViewGeometry.ray_directions_cam's numpy expressions as one compiled pass giving it in float64 and cast
+    to float32 together (most views need both): its x and y per column and row, then per pixel the norm and
+    three divisions in float64."""
+
+    def compute() -> tuple[np.ndarray, np.ndarray]:
+        n, K = ctx.resolution, ctx.geometry.K
+        centres = np.arange(n) + 0.5
+        d64, d32 = np.empty((n, n, 3)), np.empty((n, n, 3), np.float32)
+        _unit_rays((centres - K[0, 2]) / K[0, 0], (centres - K[1, 2]) / K[1, 1], d64, d32)
+        return d64, d32
+
+    return ctx.memo("ray_dirs_cam", compute)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _unit_rays(x: np.ndarray, y: np.ndarray, out: np.ndarray) -> None:
-    """out[i, j] = (x[j], y[i], 1) / sqrt((x[j]^2 + y[i]^2) + 1) in float64, stored in out's dtype: a row's
-    three planes (loops LLVM vectorises), then interleaved."""
-    h, w, _ = out.shape
+def _unit_rays(x: np.ndarray, y: np.ndarray, d64: np.ndarray, d32: np.ndarray) -> None:
+    """d[i, j] = (x[j], y[i], 1) / sqrt((x[j]^2 + y[i]^2) + 1) in float64, and cast: a row's three planes
+    (loops LLVM vectorises), then interleaved."""
+    h, w, _ = d64.shape
     xx = x * x
     planes = np.empty((3, w), np.float64)
     p0, p1, p2 = planes[0], planes[1], planes[2]
     for i in range(h):
-        yi, o = y[i], out[i]
+        yi, o, o32 = y[i], d64[i], d32[i]
         yy = yi * yi
         for j in range(w):
             norm = np.sqrt(xx[j] + yy + 1.0)
@@ -72,6 +76,7 @@ def _unit_rays(x: np.ndarray, y: np.ndarray, out: np.ndarray) -> None:
             p2[j] = 1.0 / norm
         for j in range(w):
             o[j, 0], o[j, 1], o[j, 2] = p0[j], p1[j], p2[j]
+            o32[j, 0], o32[j, 1], o32[j, 2] = np.float32(p0[j]), np.float32(p1[j]), np.float32(p2[j])
 
 
 def position_world(ctx: ViewContext) -> np.ndarray:

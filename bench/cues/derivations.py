@@ -14,7 +14,11 @@ normalized cuts' eigenvectors and the rest).
 Floor: the bare render's CPU seconds per view measured by bench/render/room_cost.py on the same rooms (a
 separate process per room, one core; bench/results/room_cost.json "room_cost"), or FLOOR_CPU_S when that file
 has none. Writes bench/results/derivations.json ("before" kept from a run with --label before).
-Run: .venv/bin/python bench/cues/derivations.py [--views 6] [--repeats 3] [--label after]
+
+--against REV: an A/B on a loaded machine. The image cues of each view (not the plan cues) are made by two
+processes on the same core, this checkout's and REV's (git archive), in lockstep, view by view in alternating
+order, so both see the same load; REV's run is written as "before", this one's as "after" (no segment steps).
+Run: .venv/bin/python bench/cues/derivations.py [--views 6] [--repeats 3] [--label after] [--against REV]
 """
 
 from __future__ import annotations
@@ -240,6 +244,101 @@ def run_room(room: str, n_views: int, repeats: int, resolution: int, cache: Path
     }
 
 
+# One side of --against: the image cues of the views it is sent ("room index"), one JSON line each: {cue:
+# [derive CPU s, encode CPU s]}. argv: the checkout, then the pass-set files of each room ("room=f1,f2,...").
+SERVE = r"""
+import json, sys, time
+from pathlib import Path
+sys.path.insert(0, sys.argv[1])
+from services.core.domain.cues import default_cues
+from services.core.domain.jobspec import CueParams
+from services.core.domain.cues import CATALOG
+from services.worker.context import ViewContext
+from services.worker.cues.registry import cue_value
+from services.worker.executor import produce
+from services.worker.passes import ViewPasses
+from services.worker.process.heap import keep_freed_memory
+keep_freed_memory()
+cues = [c for c in default_cues(has_semantics=False) if CATALOG[c].ext != "json"]  # plan cues need the plan
+rooms = {a.split("=")[0]: [ViewPasses.from_bytes(Path(f).read_bytes()) for f in a.split("=")[1].split(",")]
+         for a in sys.argv[2:]}
+def view(passes):
+    ctx, out = ViewContext(None, CueParams(), passes=passes), {}
+    for c in cues:
+        c0 = time.process_time()
+        cue_value(ctx, c)
+        c1 = time.process_time()
+        produce(c, ctx)
+        out[c] = [c1 - c0, time.process_time() - c1]
+    return out
+for views in rooms.values():
+    view(views[0])  # kernels loaded, caches warm
+print("ready", flush=True)
+for line in sys.stdin:
+    room, i = line.split()
+    print(json.dumps(view(rooms[room][int(i)])), flush=True)
+"""
+
+
+def lockstep(rev: str, rooms: list[str], n_views: int, repeats: int, resolution: int,
+             cache: Path) -> dict[str, dict]:
+    """{"before": REV's rooms, "after": this checkout's}: each view's image cues made by both sides in
+    turn."""
+    import tempfile
+
+    files = {}
+    for room in rooms:
+        views = room_views(room, n_views, resolution, cache)[2]
+        files[room] = [cache / f"{room}-{resolution}-p{v.point_idx}v{v.v}.npz" for v in views]
+    args = [f"{room}={','.join(map(str, fs))}" for room, fs in files.items()]
+    times: dict[str, dict[str, list[dict]]] = {"before": defaultdict(list), "after": defaultdict(list)}
+    with tempfile.TemporaryDirectory(prefix="omnidata-derivations-ab-") as tmp:
+        archive = subprocess.run(["git", "archive", rev], cwd=ROOT, capture_output=True, check=True).stdout
+        subprocess.run(["tar", "-x", "-C", tmp], input=archive, check=True)
+        sides = {side: subprocess.Popen([sys.executable, "-c", SERVE, root, *args], stdin=subprocess.PIPE,
+                                        stdout=subprocess.PIPE, text=True)
+                 for side, root in (("before", tmp), ("after", str(ROOT)))}
+        try:
+            for proc in sides.values():
+                if proc.stdout is None or proc.stdout.readline().strip() != "ready":
+                    raise RuntimeError("a side of the A/B did not start")
+            for rep in range(repeats):
+                for room, fs in files.items():
+                    for i in range(len(fs)):
+                        for side in ("before", "after") if (rep + i) % 2 == 0 else ("after", "before"):
+                            proc = sides[side]
+                            assert proc.stdin is not None and proc.stdout is not None
+                            proc.stdin.write(f"{room} {i}\n")
+                            proc.stdin.flush()
+                            times[side][room].append(json.loads(proc.stdout.readline()))
+        finally:
+            for proc in sides.values():
+                if proc.stdin is not None:
+                    proc.stdin.close()
+                proc.wait()
+    return {side: {room: ab_summary(room, views, repeats) for room, views in t.items()}
+            for side, t in times.items()}
+
+
+def ab_summary(room: str, views: list[dict], repeats: int) -> dict:
+    """One side's figures of a room in run_room's form, from its views' {cue: [derive, encode]}."""
+    floor, floor_src = floor_cpu_s(room)
+    per_cue = {c: {"derive_s": round(float(np.median([v[c][0] for v in views])), 4),
+                   "encode_s": round(float(np.median([v[c][1] for v in views])), 4)} for c in views[0]}
+    totals = [sum(d + e for d, e in v.values()) for v in views]
+    segments = ("segment_unsup2d", "segment_unsup25d")
+    others = float(np.median([sum(d + e for c, (d, e) in v.items() if c not in segments) for v in views]))
+    total = float(np.median(totals))
+    return {
+        "views": len(views) // repeats, "repeats": repeats, "floor_cpu_s": floor, "floor_source": floor_src,
+        "total_s_median": round(total, 4), "total_s_worst": round(float(max(totals)), 4),
+        "ratio_to_floor": round(total / floor, 2), "but_segments_s_median": round(others, 4),
+        "but_segments_to_floor": round(others / floor, 3),
+        "encode_s_total": round(sum(v["encode_s"] for v in per_cue.values()), 4),
+        "per_cue": dict(sorted(per_cue.items(), key=lambda kv: -(kv[1]["derive_s"] + kv[1]["encode_s"]))),
+    }
+
+
 def main() -> int:
     keep_freed_memory()  # the worker's heap settings (services.worker.process.heap): timings as a worker's
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -249,36 +348,54 @@ def main() -> int:
     ap.add_argument("--rooms", default=",".join(ROOMS))
     ap.add_argument("--label", default="after", help="key of this run in the results file (before / after)")
     ap.add_argument("--cache", type=Path, default=Path("/tmp/omnidata-derivations-passes"))
+    ap.add_argument("--against", default="", help="a git revision: lockstep A/B, written as before / after")
     args = ap.parse_args()
     t0, cpu0 = time.perf_counter(), time.process_time()
     load_before = os.getloadavg()
-    rooms = {
-        r: run_room(r, args.views, args.repeats, args.resolution, args.cache) for r in args.rooms.split(",")
-    }
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
-                            text=True).stdout.strip()
-    run = {
-        "commit": commit, "resolution": args.resolution,
-        "clock": "process CPU seconds (time.process_time), one core",
-        "load_before": [round(x, 2) for x in load_before],
-        "load_after": [round(x, 2) for x in os.getloadavg()], "wall_s": round(time.perf_counter() - t0, 1),
-        "cpu_s": round(time.process_time() - cpu0, 1), "rooms": rooms,
-    }
+    names = args.rooms.split(",")
+    if args.against:
+        sides = lockstep(args.against, names, args.views, args.repeats, args.resolution, args.cache)
+    else:
+        sides = {args.label: {r: run_room(r, args.views, args.repeats, args.resolution, args.cache)
+                              for r in names}}
+
+    def rev(name: str) -> str:
+        return subprocess.run(["git", "rev-parse", "--short", name], cwd=ROOT, capture_output=True,
+                              text=True).stdout.strip()
+
     data = json.loads(RESULTS.read_text()) if RESULTS.exists() else {
         "benchmark": "bench/cues/derivations.py",
         "target": "derivations (all default cues but the render, encodings included) <= 1x the bare 1-sample "
                   "render per view, 512 px, one core"}
-    data[args.label] = run
+    for label, rooms in sides.items():
+        data[label] = {
+            "commit": rev(args.against) if args.against and label == "before" else rev("HEAD"),
+            "resolution": args.resolution, "clock": "process CPU seconds (time.process_time), one core",
+            **({"lockstep_against": args.against} if args.against else {}),
+            "load_before": [round(x, 2) for x in load_before],
+            "load_after": [round(x, 2) for x in os.getloadavg()],
+            "wall_s": round(time.perf_counter() - t0, 1), "cpu_s": round(time.process_time() - cpu0, 1),
+            "rooms": rooms,
+        }
     RESULTS.write_text(json.dumps(data, indent=1) + "\n")
+    for label, rooms in sides.items():
+        print(label, data[label]["commit"])
+        report(rooms)
+    print("load", data[label]["load_before"], "->", data[label]["load_after"], "wall", data[label]["wall_s"],
+          "cpu", data[label]["cpu_s"])
+    return 0
+
+
+def report(rooms: dict) -> None:
     for r, res in rooms.items():
+        ratio = res.get("but_segments_to_floor")
+        others = "" if ratio is None else f"; but the segments {ratio}x"
         print(f"{r}: {res['total_s_median']:.3f} CPU-s/view = {res['ratio_to_floor']}x floor "
-              f"({res['floor_cpu_s']:.3f}); encode {res['encode_s_total']:.3f}")
+              f"({res['floor_cpu_s']:.3f}); encode {res['encode_s_total']:.3f}{others}")
         for c, v in res["per_cue"].items():
             print(f"  {c:20s} derive {v['derive_s']:.4f}  encode {v['encode_s']:.4f}")
-        for kind, steps in res["segment_steps_s"].items():
+        for kind, steps in res.get("segment_steps_s", {}).items():
             print(f"  segment {kind}: " + ", ".join(f"{k} {v}" for k, v in steps.items()))
-    print("load", run["load_before"], "->", run["load_after"], "wall", run["wall_s"], "cpu", run["cpu_s"])
-    return 0
 
 
 if __name__ == "__main__":

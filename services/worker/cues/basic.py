@@ -42,7 +42,7 @@ def normal(ctx: ViewContext) -> np.ndarray:
     return _normal_pixels(normal_cam(ctx), hit(ctx))
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _normal_pixels(n: np.ndarray, seen: np.ndarray) -> np.ndarray:
     """rint(255 (0.5 + 0.5 n (-1, 1, 1))) clipped to 0..255 where seen, NORMAL_BACKGROUND elsewhere: the
     float32 operations of the numpy expression it replaced, in its order, in one pass."""
@@ -80,7 +80,7 @@ def depth_euclidean(ctx: ViewContext) -> np.ndarray:
 @register("mask_valid")
 def mask_valid(ctx: ViewContext) -> np.ndarray:
     """uint8 H x W: 255 where depth_zbuffer is valid, else 0."""
-    return np.where(valid(ctx), 255, 0).astype(np.uint8)
+    return valid(ctx).view(np.uint8) * np.uint8(255)  # numpy's bools are the bytes 0 and 1
 
 
 def reshading_intensity(ctx: ViewContext) -> np.ndarray:
@@ -88,7 +88,7 @@ def reshading_intensity(ctx: ViewContext) -> np.ndarray:
     return _reshading_intensity(normal_cam(ctx), ray_dirs_cam(ctx), np.float32(ctx.params.reshading_albedo))
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _reshading_intensity(n: np.ndarray, d: np.ndarray, albedo: np.float32) -> np.ndarray:
     """albedo * maximum(-einsum(n (1, -1, -1), d), 0) per pixel: the float32 operations of the numpy
     expression it replaced, in its order (einsum adds left to right from 0, then the output's 0; numpy's
@@ -117,7 +117,7 @@ def reshading(ctx: ViewContext) -> np.ndarray:
     return _reshading_pixels(reshading_intensity(ctx), hit(ctx))
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _reshading_pixels(i: np.ndarray, seen: np.ndarray) -> np.ndarray:
     """rint(255 i) as uint8 where seen, 0 elsewhere (i in [0, 1]: albedo <= 1; NaN, which numpy's cast makes
     0, too): the numpy expression it replaced, in one pass."""
@@ -149,7 +149,7 @@ def principal_curvature(ctx: ViewContext) -> np.ndarray:
     return _curvature_pixels(k, hit(ctx), np.float32(1.0 / ctx.params.curvature_clip_m))
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _curvature_pixels(k: np.ndarray, seen: np.ndarray, kmax: np.float32) -> np.ndarray:
     """rint((clip(nan_to_num(k), -kmax, kmax) / kmax + 1) * CURVATURE_FLAT) in R, G where seen, 0 elsewhere
     and in B: the float32 operations of the numpy expression it replaced, in its order, in one pass."""
@@ -180,4 +180,4 @@ def position(ctx: ViewContext) -> np.ndarray:
 def fragments(ctx: ViewContext) -> np.ndarray:
     """uint32 H x W index of the seen triangle in the space's mesh faces, 4294967295 = none."""
     f = np.asarray(ctx.passes.require("face_index"), dtype=np.uint32)
-    return np.where(hit(ctx), f, NO_FACE).astype(np.uint32)
+    return np.where(hit(ctx), f, NO_FACE).astype(np.uint32, copy=False)  # uint32 already: no second copy

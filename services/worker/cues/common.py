@@ -2,6 +2,10 @@
 
 Frames: `normal_cam` uses the Omnidata camera axes for normals (x right, y up, z towards the viewer);
 `ray_dirs_cam` uses OpenCV camera axes (x right, y down, z forward). Depth in metres.
+
+The compiled kernels of the view cues (here, basic, edges, keypoints, narf_kernels) take numpy's error model:
+a float division by zero gives inf or NaN, as the numpy expressions they replace, instead of a check before
+every division that kept LLVM from vectorising the loop around it (the same values wherever the check passed).
 """
 
 from __future__ import annotations
@@ -30,13 +34,49 @@ def depth_m(ctx: ViewContext) -> np.ndarray:
 
 def ray_dirs_cam64(ctx: ViewContext) -> np.ndarray:
     """float64 H x W x 3 unit pixel-centre ray directions, OpenCV camera axes
-    (ViewGeometry.ray_directions_cam)."""
-    return ctx.memo("ray_dirs_cam64", ctx.geometry.ray_directions_cam)
+    (ViewGeometry.ray_directions_cam, bit for bit)."""
+    return _ray_dirs(ctx)[0]
 
 
 def ray_dirs_cam(ctx: ViewContext) -> np.ndarray:
-    """float32 H x W x 3 unit pixel-centre ray directions, OpenCV camera axes."""
-    return ctx.memo("ray_dirs_cam", lambda: ray_dirs_cam64(ctx).astype(np.float32))
+    """float32 H x W x 3 unit pixel-centre ray directions, OpenCV camera axes (ray_dirs_cam64 cast)."""
+    return _ray_dirs(ctx)[1]
+
+
+def _ray_dirs(ctx: ViewContext) -> tuple[np.ndarray, np.ndarray]:
+    """ViewGeometry.ray_directions_cam's numpy expressions as one compiled pass giving it in float64 and cast
+    to float32 together (most views need both): its x and y per column and row, then per pixel the norm and
+    three divisions in float64."""
+
+    def compute() -> tuple[np.ndarray, np.ndarray]:
+        n, K = ctx.resolution, ctx.geometry.K
+        centres = np.arange(n) + 0.5
+        d64, d32 = np.empty((n, n, 3)), np.empty((n, n, 3), np.float32)
+        _unit_rays((centres - K[0, 2]) / K[0, 0], (centres - K[1, 2]) / K[1, 1], d64, d32)
+        return d64, d32
+
+    return ctx.memo("ray_dirs_cam", compute)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _unit_rays(x: np.ndarray, y: np.ndarray, d64: np.ndarray, d32: np.ndarray) -> None:
+    """d[i, j] = (x[j], y[i], 1) / sqrt((x[j]^2 + y[i]^2) + 1) in float64, and cast: a row's three planes
+    (loops LLVM vectorises), then interleaved."""
+    h, w, _ = d64.shape
+    xx = x * x
+    planes = np.empty((3, w), np.float64)
+    p0, p1, p2 = planes[0], planes[1], planes[2]
+    for i in range(h):
+        yi, o, o32 = y[i], d64[i], d32[i]
+        yy = yi * yi
+        for j in range(w):
+            norm = np.sqrt(xx[j] + yy + 1.0)
+            p0[j] = x[j] / norm
+            p1[j] = yi / norm
+            p2[j] = 1.0 / norm
+        for j in range(w):
+            o[j, 0], o[j, 1], o[j, 2] = p0[j], p1[j], p2[j]
+            o32[j, 0], o32[j, 1], o32[j, 2] = np.float32(p0[j]), np.float32(p1[j]), np.float32(p2[j])
 
 
 def position_world(ctx: ViewContext) -> np.ndarray:
@@ -49,7 +89,7 @@ def position_world(ctx: ViewContext) -> np.ndarray:
     )
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _position_world(depth: np.ndarray, d_cam: np.ndarray, d_world: np.ndarray, center: np.ndarray,
                     hit: np.ndarray) -> np.ndarray:
     """centre + d_world * (depth / d_cam.z) per pixel in float64, cast to float32, NaN where nothing is hit:
@@ -87,11 +127,30 @@ def valid(ctx: ViewContext) -> np.ndarray:
 
 
 def to_uint16_depth(ctx: ViewContext, metres: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """round(metres * units) as uint16 where mask (and representable), 65535 elsewhere."""
+    """round(metres * units) as uint16 where mask (and representable), 65535 elsewhere (a float32 image: one
+    compiled pass)."""
+    if metres.dtype == np.float32 and metres.ndim == 2 and mask.shape == metres.shape:
+        return _to_uint16_depth(np.ascontiguousarray(metres), np.ascontiguousarray(mask, dtype=np.bool_),
+                                np.float32(ctx.params.depth_units_per_m))
     with np.errstate(invalid="ignore", over="ignore"):
         q = np.rint(np.where(mask, metres, 0.0) * ctx.params.depth_units_per_m)
     ok = mask & (q < UINT16_NONE)
     return np.where(ok, q, UINT16_NONE).astype(np.uint16)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _to_uint16_depth(metres: np.ndarray, mask: np.ndarray, units: np.float32) -> np.ndarray:
+    """to_uint16_depth's numpy steps per pixel in float32: q = rint(metres * units) where mask, kept where q <
+    65535 (so NaN is not), else 65535."""
+    h, w = metres.shape
+    out = np.empty((h, w), np.uint16)
+    none = np.float32(UINT16_NONE)
+    for y in range(h):
+        row, m, o = metres[y], mask[y], out[y]
+        for x in range(w):
+            q = np.rint(row[x] * units)
+            o[x] = np.uint16(q) if m[x] and q < none else UINT16_NONE
+    return out
 
 
 def normal_cam(ctx: ViewContext) -> np.ndarray:
@@ -142,7 +201,7 @@ def _fma32_typing(typingctx, a, b, c):  # type: ignore[no-untyped-def]
 _fma32: Callable[[np.float32, np.float32, np.float32], np.float32] = intrinsic(_fma32_typing)  # type: ignore[assignment]
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _normal_cam(n_world: np.ndarray, R: np.ndarray, d: np.ndarray, seen: np.ndarray) -> np.ndarray:
     """normal_cam's numpy expressions per pixel: n_cv = n @ R^T (the FMA chain), facing = einsum(n_cv, d) > 0
     (float32, left to right from 0), out = n_cv * sign (+0 where not seen)."""
@@ -178,8 +237,7 @@ def grey(ctx: ViewContext) -> np.ndarray:
 
 def sobel_magnitude(img: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
     """Sobel gradient magnitude (scipy's unnormalised 3x3 kernels: a unit step gives 4), float32, 0 off `mask`
-    if given: np.hypot of sobel_xy's two images (the same libm hypotf numpy calls, per pixel in the compiled
-    pass)."""
+    if given: np.hypot of sobel_xy's two images (glibc's hypotf, per pixel in the compiled pass)."""
     if img.dtype != np.float32 or img.ndim != 2:
         gx, gy = sobel_xy(img)
         mag = np.hypot(gx, gy).astype(np.float32)
@@ -191,14 +249,25 @@ def sobel_magnitude(img: np.ndarray, mask: np.ndarray | None = None) -> np.ndarr
     )
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _hypot(a: np.ndarray, b: np.ndarray, mask: np.ndarray, masked: bool) -> np.ndarray:
+    """np.hypot(a, b) of float32 images as glibc's hypotf (>= 2.35) computes it for finite operands: the
+    float32 of sqrt(a^2 + b^2) in float64 (squares exact, one rounding for the sum, one for the root), a loop
+    LLVM vectorises (~4x faster than calling hypotf per pixel); a row with a NaN result (an inf or NaN
+    operand) gets hypotf's own values (inf for an inf operand, even beside a NaN)."""
     h, w = a.shape
     out = np.empty((h, w), np.float32)
     for y in range(h):
         ra, rb, ro = a[y], b[y], out[y]
+        nan = False
         for x in range(w):
-            ro[x] = np.hypot(ra[x], rb[x])
+            fa, fb = np.float64(ra[x]), np.float64(rb[x])
+            v = np.float32(np.sqrt(fa * fa + fb * fb))
+            ro[x] = v
+            nan |= v != v
+        if nan:
+            for x in range(w):
+                ro[x] = np.hypot(ra[x], rb[x])
         if masked:
             m = mask[y]
             for x in range(w):
@@ -218,7 +287,7 @@ def sobel_xy(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return _sobel_xy(np.ascontiguousarray(img))
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _sobel_xy(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Row by row over row slices, the clamped first and last columns apart (unclamped inner loops vectorise:
     ~3x faster than clamping every pixel)."""
@@ -266,7 +335,7 @@ def to_uint16_scaled(values: np.ndarray, scale: float) -> np.ndarray:
     return _to_uint16_scaled(np.ascontiguousarray(values), np.float32(scale))
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _to_uint16_scaled(values: np.ndarray, scale: np.float32) -> np.ndarray:
     """numpy's float32 steps per pixel: rint(v * scale), clipped (NaN stays NaN, which numpy's cast makes
     0)."""
@@ -306,7 +375,7 @@ def gaussian_blur(img: np.ndarray, sigma: float, truncate: float = 4.0, mode: st
     return _blur_cols(_blur_rows(np.ascontiguousarray(img), taps, code), taps, code)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _extend(i: int, n: int, mode: int) -> int:
     """The index scipy's line extension reads for i outside 0..n-1 (-1: none, cval 0 in mode constant)."""
     if mode == GAUSS_NEAREST:
@@ -316,7 +385,7 @@ def _extend(i: int, n: int, mode: int) -> int:
     return -i - 1 if i < 0 else (2 * n - i - 1 if i >= n else i)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _blur_rows(img: np.ndarray, taps: np.ndarray, mode: int) -> np.ndarray:
     """Along axis 0: out = x[0] w[0] + sum over j = -r..-1 of (x[j] + x[-j]) w[j], in float64, as scipy (rows
     outside the image in mode constant are zeros: the same sums a zero-padded copy gives)."""
@@ -345,7 +414,7 @@ def _blur_rows(img: np.ndarray, taps: np.ndarray, mode: int) -> np.ndarray:
 _COL_BLOCK = 16
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _blur_cols(img: np.ndarray, taps: np.ndarray, mode: int) -> np.ndarray:
     """Along axis 1, the same sums on extended copies of the rows, a block of rows at a time (the inner loops
     run over row slices, whose non-negative indices let LLVM vectorise them: ~3x faster than indexing the 2-d

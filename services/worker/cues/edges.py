@@ -43,7 +43,7 @@ def occlusion_response(ctx: ViewContext) -> np.ndarray:
     return ctx.memo("occlusion_response", compute)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _sqrt_depth(v: np.ndarray, depth: np.ndarray, far: np.float32) -> np.ndarray:
     """float32 sqrt of the depth where valid, of `far` elsewhere (numpy's where, cast and sqrt in one
     pass)."""

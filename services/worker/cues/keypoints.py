@@ -49,6 +49,7 @@ from services.worker.cues.narf_kernels import (
     mark_borders,
     range_normals,
     scale_split,
+    support_px,
     surface_change,
     tensor_planes,
 )
@@ -75,7 +76,7 @@ def doh_response(g: np.ndarray, sigmas: tuple[float, ...]) -> np.ndarray:
     return out
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _max_doh(L: np.ndarray, s4: np.float32, out: np.ndarray) -> None:
     """out = max(out, s4 * (lxx lyy - lxy^2)) with central differences of L (edges clamped), in float32 and in
     the order numpy's in-place version took (so the values are the same bit for bit), fused in one pass: row
@@ -92,7 +93,7 @@ def _max_doh(L: np.ndarray, s4: np.float32, out: np.ndarray) -> None:
                      down[x:x + 1], down[xm:xm + 1], down[xp:xp + 1], s4, o[x:x + 1])
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _doh_row(
     c: np.ndarray, left: np.ndarray, right: np.ndarray, up: np.ndarray, up_left: np.ndarray,
     up_right: np.ndarray, down: np.ndarray, down_left: np.ndarray, down_right: np.ndarray, s4: np.float32,
@@ -137,7 +138,7 @@ def _blur(x: np.ndarray, radius_px: int) -> np.ndarray:
     return out.reshape(x.shape)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _box_rows(img: np.ndarray, size: int) -> np.ndarray:
     """Mean over `size` rows centred on each pixel, zeros outside: scipy's running sum (sum += new - old)."""
     h, w = img.shape
@@ -160,7 +161,7 @@ def _box_rows(img: np.ndarray, size: int) -> np.ndarray:
     return out
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _box_cols(img: np.ndarray, size: int) -> np.ndarray:
     """Mean over `size` columns centred on each pixel, zeros outside (scipy's running sum along a line). Four
     rows at a time: their running sums are independent chains the CPU overlaps, and the divisions run
@@ -266,14 +267,15 @@ def narf_interest(ctx: ViewContext) -> np.ndarray:
     if not v.any():
         return np.zeros(v.shape, dtype=np.float32)
     f = float(ctx.geometry.K[0, 0])
-    z = np.where(v, depth_m(ctx), 0.0).astype(np.float32)
+    z = np.asarray(depth_m(ctx), dtype=np.float32)  # read where v only
     # 1./2. foreground borders, and normals from central differences where a pixel and its 4 neighbours are
     # smooth surface: the planes [w, n * w] the surface change averages.
     border, wn_planes = range_normals(v, z, ray_dirs_cam(ctx), f, BORDER_FOOTPRINTS)
     # 3./4. per-pixel scale from the metric support size, blended linearly in log2 between the two nearest
-    # scales so the image has no seams where the depth crosses a scale boundary.
-    support_px = f * ctx.params.keypoints3d_support_m / np.where(v, z, np.inf)
-    kf = np.clip(np.log2(np.maximum(support_px, 1e-6)), 0, len(KP3D_SCALES_PX) - 1)
+    # scales so the image has no seams where the depth crosses a scale boundary (numpy's log2: its float32
+    # values, not libm's).
+    kf = support_px(v, z, np.float32(f * ctx.params.keypoints3d_support_m))
+    np.log2(kf, out=kf)
     k0, t, used = scale_split(kf, v, len(KP3D_SCALES_PX))
     top = len(KP3D_SCALES_PX) - 1
     wn = _Pyramid(wn_planes)

@@ -10,7 +10,7 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _range(v: np.ndarray, z: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Euclidean range (inf off v) and camera-space points d * range as 3 x H x W planes (d * 0 off v: signed
     zeros as numpy's)."""
@@ -26,7 +26,7 @@ def _range(v: np.ndarray, z: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.
     return rng, P
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _borders(v: np.ndarray, rng: np.ndarray, f: np.float32, footprints: np.float32) -> np.ndarray:
     """Foreground borders: a 4-neighbour (inf outside the image) farther by more than footprints * range /
     f."""
@@ -46,7 +46,7 @@ def _borders(v: np.ndarray, rng: np.ndarray, f: np.float32, footprints: np.float
     return border
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _normal_planes(v: np.ndarray, border: np.ndarray, P: np.ndarray, d: np.ndarray) -> np.ndarray:
     """4 x H x W float32 [w, n * w]: w = 1 where the pixel and its 4 neighbours are smooth surface, n the unit
     normal du x dv of the central differences (P[i + 1] - P[i - 1], zeros outside), turned to face the camera.
@@ -67,10 +67,8 @@ def _normal_planes(v: np.ndarray, border: np.ndarray, P: np.ndarray, d: np.ndarr
         for c in range(3):
             _differences(P[c], y, du[c], dv[c])
         mid, below, above = smooth[y + 1], smooth[y + 2], smooth[y]
-        for x in range(wd):
-            weight[x] = (
-                one if mid[x + 1] and mid[x + 2] and mid[x] and below[x + 1] and above[x + 1] else zero
-            )
+        for x in range(wd):  # & rather than `and`: no branches
+            weight[x] = one if mid[x + 1] & mid[x + 2] & mid[x] & below[x + 1] & above[x + 1] else zero
         du0, du1, du2, dv0, dv1, dv2 = du[0], du[1], du[2], dv[0], dv[1], dv[2]
         o0, o1, o2, o3, dy = out[0, y], out[1, y], out[2, y], out[3, y], d[y]
         for x in range(wd):
@@ -95,7 +93,7 @@ def _normal_planes(v: np.ndarray, border: np.ndarray, P: np.ndarray, d: np.ndarr
     return out
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _differences(plane: np.ndarray, y: int, du: np.ndarray, dv: np.ndarray) -> None:
     """Row y of plane[i + 1] - plane[i - 1] along x (du) and y (dv), zeros outside the image."""
     h, w = plane.shape
@@ -128,26 +126,50 @@ def range_normals(v: np.ndarray, z: np.ndarray, d: np.ndarray, f: float,
     return border, _normal_planes(v, border, P, d)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
+def support_px(v: np.ndarray, z: np.ndarray, fs: np.float32) -> np.ndarray:
+    """maximum(fs / where(v, z, inf), 1e-6) in float32: the support size in pixels (fs = f * support in
+    metres), 1e-6 off v (numpy's maximum keeps a NaN)."""
+    h, w = v.shape
+    out = np.empty((h, w), np.float32)
+    tiny = np.float32(1e-6)
+    off = fs / np.float32(np.inf)
+    for y in range(h):
+        vy, zy, o = v[y], z[y], out[y]
+        for x in range(w):
+            s = fs / zy[x]  # every pixel, then chosen: a loop LLVM vectorises
+            s = s if vy[x] else off
+            o[x] = tiny if s < tiny else s
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def scale_split(kf: np.ndarray, v: np.ndarray, n_scales: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per pixel its lower scale k0 = floor(kf) and blend fraction t = kf - k0 (float32), and the scales some
-    valid pixel uses (as k0 or k0 + 1, clipped), ascending."""
+    """kf clipped to 0..n_scales - 1 (numpy's clip: NaN kept, the bound on ties), then per pixel its lower
+    scale k0 = floor(kf) and blend fraction t = kf - k0 (float32), and the scales some valid pixel uses (as
+    k0 or k0 + 1, clipped), ascending."""
     h, w = kf.shape
     k0 = np.empty((h, w), np.int8)
     t = np.empty((h, w), np.float32)
     count = np.zeros(n_scales, np.int64)
+    lo, hi = np.float32(0.0), np.float32(n_scales - 1)
     for y in range(h):
+        ky, ty, vy, row = k0[y], t[y], v[y], kf[y]
         for x in range(w):
-            k = int(np.floor(kf[y, x]))
-            k0[y, x] = k
-            t[y, x] = np.float32(np.float64(kf[y, x]) - np.float64(k))
-            if v[y, x]:
-                count[k] += 1
-                count[min(k + 1, n_scales - 1)] += 1
+            c = row[x]
+            c = lo if c <= lo else c
+            c = hi if c >= hi else c
+            fl = np.floor(c)
+            ky[x] = np.int8(fl)
+            ty[x] = np.float32(np.float64(c) - np.float64(fl))
+        for x in range(w):
+            if vy[x]:
+                count[ky[x]] += 1
+                count[min(ky[x] + 1, n_scales - 1)] += 1
     return k0, t, np.flatnonzero(count)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def blend(out: np.ndarray, k0: np.ndarray, t: np.ndarray, ki: int, top: int, value: np.ndarray) -> None:
     """out += weight * value, weight = (1 - t where k0 == ki) + (t where min(k0 + 1, top) == ki), in
     float32."""
@@ -161,7 +183,7 @@ def blend(out: np.ndarray, k0: np.ndarray, t: np.ndarray, ki: int, top: int, val
             out[y, x] += (a + b) * value[y, x]
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def tensor_planes(gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
     """3 x H x W float32 [gx gx, gy gy, gx gy]: the structure tensor's entries before blurring."""
     h, w = gx.shape
@@ -174,7 +196,7 @@ def tensor_planes(gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
     return out
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def half_means(x: np.ndarray) -> np.ndarray:
     """2 x 2 block means of a C x H x W float32 array, edge-padded to even size: ((x00 + x10) + x01 + x11) *
     0.25 in float32, the order numpy's sum of the four strided slices took."""
@@ -192,7 +214,7 @@ def half_means(x: np.ndarray) -> np.ndarray:
     return out
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def double(x: np.ndarray) -> np.ndarray:
     """Bilinear 2x upsampling at pixel centres of an H x W float32 array, C order: rows first (row 2i + a of
     0.75 x[i] + 0.25 x[i -+ 1], clamped), then columns alike, each output c + 0.25 neighbour with c = 0.75 x
@@ -207,14 +229,22 @@ def double(x: np.ndarray) -> np.ndarray:
             for j in range(m):
                 row[j] = near * src[j] + far * nb[j]
             o = out[2 * i + a]
-            for j in range(m):
+            # the clamped ends apart: the inner loop's unclamped neighbours let LLVM vectorise it
+            for j in (0, m - 1):
                 c = near * row[j]
                 o[2 * j] = c + far * row[max(j - 1, 0)]
                 o[2 * j + 1] = c + far * row[min(j + 1, m - 1)]
+            if m > 2:
+                mid, left, right, even, odd = row[1:m - 1], row[0:m - 2], row[2:m], o[2:2 * m - 2:2], \
+                    o[3:2 * m - 2:2]
+                for j in range(m - 2):
+                    c = near * mid[j]
+                    even[j] = c + far * left[j]
+                    odd[j] = c + far * right[j]
     return out
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def surface_change(b: np.ndarray) -> np.ndarray:
     """Spread of the mean normal sqrt(clip(1 - |m|^2, 0, 1)), m = b[1:] / max(b[0], 1e-6), 0 where b[0] <=
     1e-6, from b = the blurred [w, n * w]: numpy's float32 steps per pixel (maximum and clip give their second
@@ -235,7 +265,7 @@ def surface_change(b: np.ndarray) -> np.ndarray:
     return out
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def isotropy(b: np.ndarray) -> np.ndarray:
     """2 max(lo, 0) / max(lo + hi, 1e-12) of the eigenvalues lo, hi = tr/2 -+ sqrt(max((a - b)^2 / 4 + c^2,
     0)) of b = the blurred structure tensor [a, b, c], 0 where tr <= 1e-6: numpy's float32 steps per pixel."""
@@ -259,7 +289,7 @@ def isotropy(b: np.ndarray) -> np.ndarray:
     return out
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def mark_borders(change: np.ndarray, border: np.ndarray, v: np.ndarray) -> None:
     """In place: change = 1 on borders, then 0 off valid depth."""
     h, w = change.shape
@@ -271,7 +301,7 @@ def mark_borders(change: np.ndarray, border: np.ndarray, v: np.ndarray) -> None:
                 change[y, x] = 1.0
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def interest(change: np.ndarray, iso: np.ndarray, v: np.ndarray) -> np.ndarray:
     """clip(change * iso, 0, 1) with iso 0 off valid depth, in float32 (clip gives its bound on ties, keeps
     NaN)."""

@@ -59,6 +59,11 @@ def changed_cues() -> dict:
         ),
         "edge_texture": (lambda c: cue_value(c, "edge_texture"), ref.edge_texture),
         "keypoints2d": (lambda c: cue_value(c, "keypoints2d"), ref.keypoints2d),
+        "ray_dirs_cam64": (common.ray_dirs_cam64, lambda c: c.geometry.ray_directions_cam()),
+        "ray_dirs_cam": (common.ray_dirs_cam, lambda c: c.geometry.ray_directions_cam().astype(np.float32)),
+        "depth_zbuffer": (lambda c: cue_value(c, "depth_zbuffer"), ref.depth_zbuffer),
+        "depth_euclidean": (lambda c: cue_value(c, "depth_euclidean"), ref.depth_euclidean),
+        "mask_valid": (lambda c: cue_value(c, "mask_valid"), ref.mask_valid),
         "narf_interest": (keypoints.narf_interest, reference_narf.narf_interest),
         "keypoints3d": (
             lambda c: cue_value(c, "keypoints3d"),
@@ -167,6 +172,36 @@ def test_sobel_magnitude_and_uint16_scaling_are_numpys_bit_for_bit(shape) -> Non
                              np.where(mask, ref.sobel_magnitude(img), 0.0).astype(np.float32))
             for s in (1.0, 1000.0, 65535.0):
                 assert same_bits(common.to_uint16_scaled(img, s), ref.to_uint16_scaled(img, s))
+
+
+@pytest.mark.parametrize("resolution", [1, 2, 7, 160, 333])
+def test_ray_directions_are_the_geometrys_bit_for_bit(resolution) -> None:
+    for fov in (0.2, 1.0, 1.35, 2.2):
+        g = ViewGeometry(np.eye(4), fov, resolution)
+        d = g.ray_directions_cam()
+        assert same_bits(common.ray_dirs_cam64(ViewContext(g)), d)
+        assert same_bits(common.ray_dirs_cam(ViewContext(g)), d.astype(np.float32))
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (2, 3), (37, 24)])
+def test_depth_pngs_and_scale_split_are_the_numpy_steps_on_awkward_depths(shape) -> None:
+    from services.worker.cues import narf_kernels
+
+    rng = np.random.default_rng(shape[1])
+    ctx = ViewContext(room_view(8))
+    for scale in (1.0, 100.0, 1e30):
+        metres = np.abs(_awkward(rng, shape, scale))
+        edges = np.array([127.99805, 127.999, 0.5 / 512, 1e-30], np.float32)  # around 65535 and 0 units
+        metres.flat[: min(4, metres.size)] = edges[: min(4, metres.size)]
+        mask = rng.random(shape) < 0.7
+        assert same_bits(common.to_uint16_depth(ctx, metres, mask), ref.depth_uint16(ctx, metres, mask))
+        v = mask & ~np.isnan(metres)  # valid depth is never NaN; inf, 0 and tiny ones are here
+        for fs in (0.5, 33.0, 1e6):
+            kf = narf_kernels.support_px(v, metres, np.float32(fs))
+            np.log2(kf, out=kf)
+            k0, t, used = narf_kernels.scale_split(kf, v, 7)
+            k0_ref, t_ref, used_ref = ref.support_scales(v, metres, fs, 7)
+            assert same_bits(k0, k0_ref) and same_bits(t, t_ref) and np.array_equal(used, used_ref)
 
 
 @pytest.mark.parametrize("mode", ["nearest", "reflect", "constant"])

@@ -59,15 +59,16 @@ WORKERS_PER_GPU_RENDERER = 8
 def embedded_settings(out: Path, workers: int, render_workers: int | None = None) -> Settings:
     """Settings of the embedded mode: SQLite and the object folder in DIR, whatever OMNIDATA_* says;
     `render_workers` (--render-workers) overrides OMNIDATA_RENDER_WORKERS, and with neither a GPU machine gets
-    gpu_renderers'."""
+    gpu_renderers', CPU cores cpu_renderers'."""
     state = out / STATE_DIR
     chosen = {} if render_workers is None else {"render_workers": render_workers}
     settings = load_settings(
         data_dir=str(state), database_url=f"sqlite:///{state / 'state.db'}", storage_url=str(out),
         dispatch_window=max(128, 64 * workers), env="development", **chosen,
     )
-    if settings.render_workers is None and settings.render_device != "cpu":
-        return settings.model_copy(update={"render_workers": gpu_renderers(workers)})
+    if settings.render_workers is None:
+        gpu = gpu_renderers(workers) if settings.render_device != "cpu" else None
+        return settings.model_copy(update={"render_workers": gpu or cpu_renderers(workers)})
     return settings
 
 
@@ -78,6 +79,13 @@ def gpu_renderers(workers: int) -> int | None:
     if workers < 2 or not gpu_devices.nvidia_gpus():
         return None
     return max(1, workers // WORKERS_PER_GPU_RENDERER)
+
+
+def cpu_renderers(workers: int) -> int | None:
+    """How many of W workers render on CPU cores (None: one worker renders and derives everything). Half:
+    a view's render and its derivations cost about the same (docs/performance.md), and a renderer derives
+    whenever it is RENDER_AHEAD_VIEWS ahead; the others never load Blender."""
+    return None if workers < 2 else (workers + 1) // 2
 
 
 def job_fingerprint(spec: JobSpec, checksums: Sequence[str]) -> str:

@@ -1,10 +1,12 @@
 """Local worker processes of `omnidata generate`: W processes each running the worker's TaskRunner, fed task
 ids through a multiprocessing queue (the embedded mode's stand-in for Redis).
 
-Roles (settings.render_workers): by default every worker renders and derives its own views ("all"). With R
-renderers of W workers, R "render" workers take the render queue's `passes` tasks first (storing each pass set
-for whoever derives it) and derive only while no render waits, and W - R "derive" workers take only the derive
-queue and never load Blender: one device context per renderer on a GPU, and no Blender start-up in the others.
+Roles (settings.render_workers; services.embedded.job picks R when unset): one worker alone renders and
+derives its own views ("all"). With R renderers of W workers, R "render" workers take the render queue's
+`passes` tasks first (handing each pass set to whoever derives it: services.worker.run.pass_handoff) and
+derive only while no render waits or once RENDER_AHEAD_VIEWS pass sets ahead (TaskQueues), and W - R
+"derive" workers take only the derive queue and never load Blender: one device context per renderer on a
+GPU, and no Blender start-up in the others.
 
 The first workers are forked from `generate` when that is safe (start_method): they inherit its imports
 (numpy, SQLAlchemy, trimesh, pydantic, the domain: ~1 of the ~1.6 CPU-s a spawned worker spends importing) and
@@ -116,6 +118,7 @@ def _work(conf: WorkerConfig, tasks: TaskQueues, results: Queue[WorkerMessage], 
     from services.core.settings import get_settings
     from services.core.storage import LocalStore
     from services.worker.run.heartbeat import Heartbeat
+    from services.worker.run.pass_handoff import RawPassSets
     from services.worker.run.runner import TaskRunner
 
     if not _warmed_up_and_released(conf, stop, go):
@@ -127,7 +130,8 @@ def _work(conf: WorkerConfig, tasks: TaskQueues, results: Queue[WorkerMessage], 
     worker_id = f"{socket.gethostname()}:{os.getpid()}"
     hb = Heartbeat(sessions, worker_id, queues=["local"], lease_s=settings.lease_s).start()
     runner = TaskRunner(sessions, store, settings, worker_id, heartbeat=hb,
-                        cache_dir=Path(conf.out) / STATE_DIR / "cache", hand_off_views=conf.role == "render")
+                        cache_dir=Path(conf.out) / STATE_DIR / "cache", hand_off_views=conf.role == "render",
+                        pass_sets=RawPassSets(store))
     _freeze_long_lived()  # modules, Blender
     results.put(("ready", os.getpid(), worker_id))
     try:
@@ -157,6 +161,7 @@ def _serve(runner: TaskRunner, conf: WorkerConfig, tasks: TaskQueues, results: Q
     from services.worker.run.claim import TransientError
 
     first = True
+    read = 0  # pass sets this worker has read back (TaskQueues.ahead)
     while not stop.is_set():
         if os.getppid() != conf.parent_pid:  # the parent died: do not linger as an orphan
             return
@@ -177,6 +182,9 @@ def _serve(runner: TaskRunner, conf: WorkerConfig, tasks: TaskQueues, results: Q
             results.put(
                 ("outcome", os.getpid(), each.task_id, each.status, each.cue, each.labels, each.error)
             )
+        handed = conf.role == "render" and o.cue == "passes" and o.status == "done"
+        tasks.count(handed=int(handed), read=runner.maker.pass_sets_read - read)
+        read = runner.maker.pass_sets_read
         if first:  # the space, its plan and the compiled kernels the first view loaded
             _freeze_long_lived()
             first = False
@@ -234,11 +242,14 @@ WORKER_MODULES = ("services.worker.run.runner", "services.worker.run.heartbeat",
 
 class TaskQueues:
     """The workers' task queues: `derive` holds every task but `passes`, which goes to `render`; without
-    renderers of their own (every worker renders) both are one queue."""
+    renderers of their own (every worker renders) both are one queue. With renderers, `ahead` counts the pass
+    sets handed off and not yet read back: a renderer renders ahead of the derivers by at most
+    RENDER_AHEAD_VIEWS views (the pass cache's budget), and past it derives while derive work waits."""
 
     def __init__(self, ctx: SpawnContext, split: bool) -> None:
         self.derive: Queue[int | None] = ctx.Queue()
         self.render: Queue[int | None] = ctx.Queue() if split else self.derive
+        self.ahead = ctx.Value("i", 0)
 
     @property
     def split(self) -> bool:
@@ -247,26 +258,32 @@ class TaskQueues:
     def all(self) -> tuple[Queue[int | None], ...]:
         return (self.derive, self.render) if self.split else (self.derive,)
 
+    def count(self, *, handed: int, read: int) -> None:
+        """A worker's pass sets handed off and read back since its last count (a crashed worker's reads are
+        never counted: the count errs towards rendering, never towards an idle renderer)."""
+        if self.split and (handed or read):
+            with self.ahead.get_lock():
+                self.ahead.value += handed - read
+
     def next_for(self, role: Role, timeout: float = 0.5) -> tuple[int | None, Queue[int | None]]:
         """A task id for a worker of `role` and the queue it came from (queue.Empty after `timeout`): a
-        renderer takes a waiting render first, and derives only while none waits."""
-        if role == "render" and self.split:
-            try:
-                return self.render.get_nowait(), self.render
-            except queue.Empty:
-                pass
-            # wait on the derive queue in short steps, so a render that comes meanwhile waits at most one step
-            deadline = time.monotonic() + timeout
-            while True:
+        renderer takes a waiting render first while within its budget (or when no derive work waits), and
+        derives otherwise."""
+        if role != "render" or not self.split:
+            return self.derive.get(timeout=timeout), self.derive
+        # wait on the derive queue in short steps, so a render that comes meanwhile waits at most one step
+        deadline = time.monotonic() + timeout
+        while True:
+            if self.ahead.value < RENDER_AHEAD_VIEWS or self.derive.empty():
                 try:
-                    return self.derive.get(timeout=RENDER_POLL_S), self.derive
+                    return self.render.get_nowait(), self.render
                 except queue.Empty:
-                    try:
-                        return self.render.get_nowait(), self.render
-                    except queue.Empty:
-                        if time.monotonic() >= deadline:
-                            raise
-        return self.derive.get(timeout=timeout), self.derive
+                    pass
+            try:
+                return self.derive.get(timeout=RENDER_POLL_S), self.derive
+            except queue.Empty:
+                if time.monotonic() >= deadline:
+                    raise
 
     def waiting(self) -> int:
         """Task ids waiting in the queues (raises NotImplementedError where qsize does not exist: macOS)."""
@@ -274,6 +291,8 @@ class TaskQueues:
 
 
 RENDER_POLL_S = 0.02  # a renderer waiting for derive work looks at the render queue this often
+# pass sets a renderer may have handed off and not yet read back (~8 MB each at 512 px, on --out's disk)
+RENDER_AHEAD_VIEWS = 12
 
 
 @dataclass

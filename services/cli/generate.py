@@ -41,10 +41,10 @@ from services.embedded.curvature_ahead import curvature_ahead  # noqa: E402
 from services.embedded.job import (  # noqa: E402
     STATE_DIR,
     cpu_renderers,
-    gpu_renderers,
     drive,
     embedded_settings,
     find_spaces,
+    gpu_renderers,
     prepare_job,
     worker_pool,
 )

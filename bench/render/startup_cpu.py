@@ -98,20 +98,25 @@ def lap(name):
     now = time.process_time()
     parts[name] = round(now - clock[0], 3)
     clock[0] = now
-import services.cli.generate
+from services.core.gc_pause import collections_paused  # as `omnidata` and a worker import
+with collections_paused():
+    import services.cli.generate
 lap("generate_imports")
 from services.core.db.engine import migrate
 migrate(f"sqlite:///{sys.argv[3]}/state.db")
 lap("database_created")
-import services.worker.run.runner, services.worker.run.heartbeat
+with collections_paused():
+    import services.worker.run.runner, services.worker.run.heartbeat
 lap("worker_modules")
 import importlib
 from services.worker.blender.threads import import_bpy
-import_bpy(1)
-importlib.import_module("services.worker.blender.scene")
+with collections_paused():
+    import_bpy(1)
+    importlib.import_module("services.worker.blender.scene")
 lap("blender_import")
 from services.worker.process import kernel_target
-kernel_target.load()
+with collections_paused():
+    kernel_target.load()
 lap("kernel_target")
 from services.core.ingest.loading import load_space
 loaded = load_space(sys.argv[1], **json.loads(sys.argv[2]))

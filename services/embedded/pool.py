@@ -35,6 +35,7 @@ from multiprocessing.synchronize import Event
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal, NoReturn
 
+from services.core.gc_pause import collections_paused
 from services.worker.blender.calls import exit_at_once_inside_blender
 from services.worker.blender.threads import remove_session_temp_dir
 from services.worker.process.heap import keep_freed_memory
@@ -114,14 +115,16 @@ def _work(conf: WorkerConfig, tasks: TaskQueues, results: Queue[WorkerMessage], 
     pin_numeric_threads()
     keep_freed_memory()
     logging.basicConfig(level=conf.log_level, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s")
-    from services.core.db.engine import make_engine, make_sessionmaker
-    from services.core.settings import get_settings
-    from services.core.storage import LocalStore
-    from services.worker.run.heartbeat import Heartbeat
-    from services.worker.run.pass_handoff import RawPassSets
-    from services.worker.run.runner import TaskRunner
+    with collections_paused():  # the warm-up's imports (services.core.gc_pause)
+        from services.core.db.engine import make_engine, make_sessionmaker
+        from services.core.settings import get_settings
+        from services.core.storage import LocalStore
+        from services.worker.run.heartbeat import Heartbeat
+        from services.worker.run.pass_handoff import RawPassSets
+        from services.worker.run.runner import TaskRunner
 
-    if not _warmed_up_and_released(conf, stop, go):
+        released = _warmed_up_and_released(conf, stop, go)
+    if not released:
         return
     settings = get_settings(**{**conf.settings, "render_threads": conf.render_threads})
     engine = make_engine(settings.database_url)
@@ -259,8 +262,9 @@ class TaskQueues:
         return (self.derive, self.render) if self.split else (self.derive,)
 
     def count(self, *, handed: int, read: int) -> None:
-        """A worker's pass sets handed off and read back since its last count (a crashed worker's reads are
-        never counted: the count errs towards rendering, never towards an idle renderer)."""
+        """A worker's pass sets handed off and read back since its last count. A killed worker's last reads
+        go uncounted: the count errs high, so a renderer derives sooner, but it never idles while a render
+        waits and no derive work does."""
         if self.split and (handed or read):
             with self.ahead.get_lock():
                 self.ahead.value += handed - read

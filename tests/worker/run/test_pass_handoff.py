@@ -4,10 +4,12 @@ the store's .npz read back alike, and a torn file read as missing (its view is r
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
-from services.core.storage import LocalStore
+from services.core.storage import LocalStore, StorageUnavailable
 from services.worker.passes import ViewGeometry, ViewPasses
 from services.worker.run.pass_handoff import RawPassSets, StoredPassSets, read_pass_set
+from tests.fixtures.small_disk import fill, small_tmpfs
 
 KEY = "_cache/passes/room/point_0_view_1.npz"
 ARRAYS = ("depth_z", "rgb", "normal_world", "face_index", "face_class", "face_instance", "curvature",
@@ -52,3 +54,14 @@ def test_a_torn_pass_set_reads_as_none_and_the_raw_one_is_written_whole_or_not_a
         assert read_pass_set(whole[:cut]) is None
     assert read_pass_set(_passes().to_bytes()[:1000]) is None
     assert [p.name for p in store.path(KEY).parent.iterdir()] == [store.path(KEY).name]  # no temp file left
+
+
+def test_a_raw_pass_set_on_a_full_disk_is_a_storage_outage_and_leaves_nothing(tmp_path):
+    with small_tmpfs(tmp_path / "out", 16) as out:
+        store = LocalStore(out)
+        ballast = fill(out)
+        with pytest.raises(StorageUnavailable):  # the job waits for its store (a task failure it is not)
+            RawPassSets(store).put(KEY, _passes(512))
+        assert not store.path(KEY).parent.exists() or not list(store.path(KEY).parent.iterdir())
+        ballast.unlink()
+        assert read_pass_set(store.get_bytes(RawPassSets(store).put(KEY, _passes(512)).key)) is not None

@@ -183,7 +183,7 @@ class Settings(BaseSettings):
         "on a GPU, its own device context); the others only derive, from the pass sets the "
         "renderers store, and "
         "never load Blender. A renderer derives while no view waits for a render, or once it is "
-        "RENDER_AHEAD_VIEWS pass sets ahead of the derivers. Unset: on a machine with an NVIDIA GPU "
+        "its budget of pass sets ahead of the derivers. Unset: on a machine with an NVIDIA GPU "
         "one worker in 8 renders (at least one), on CPU cores half of them (one worker alone renders "
         "and derives its own views: view batches)",
     )

@@ -4,7 +4,7 @@ ids through a multiprocessing queue (the embedded mode's stand-in for Redis).
 Roles (settings.render_workers; services.embedded.job picks R when unset): one worker alone renders and
 derives its own views ("all"). With R renderers of W workers, R "render" workers take the render queue's
 `passes` tasks first (handing each pass set to whoever derives it: services.worker.run.pass_handoff) and
-derive only while no render waits or once RENDER_AHEAD_VIEWS pass sets ahead (TaskQueues), and W - R
+derive only while no render waits or once their budget of pass sets ahead (TaskQueues), and W - R
 "derive" workers take only the derive queue and never load Blender: one device context per renderer on a
 GPU, and no Blender start-up in the others.
 
@@ -243,16 +243,29 @@ WORKER_MODULES = ("services.worker.run.runner", "services.worker.run.heartbeat",
                   "services.core.db.engine")
 
 
+RENDER_POLL_S = 0.02  # a renderer waiting for derive work looks at the render queue this often
+# pass sets the renderers may have handed off and not yet read back (~8 MB each at 512 px, on --out's disk):
+# at least this many, and RENDER_AHEAD_PER_DERIVER for each deriver (none waits for a view while one renders)
+RENDER_AHEAD_VIEWS = 12
+RENDER_AHEAD_PER_DERIVER = 2
+
+
+def ahead_budget(workers: int, renderers: int) -> int:
+    """The pass sets renderers may be ahead of the W - R derivers (RENDER_AHEAD_VIEWS)."""
+    return max(RENDER_AHEAD_VIEWS, RENDER_AHEAD_PER_DERIVER * (workers - renderers))
+
+
 class TaskQueues:
     """The workers' task queues: `derive` holds every task but `passes`, which goes to `render`; without
     renderers of their own (every worker renders) both are one queue. With renderers, `ahead` counts the pass
     sets handed off and not yet read back: a renderer renders ahead of the derivers by at most
-    RENDER_AHEAD_VIEWS views (the pass cache's budget), and past it derives while derive work waits."""
+    `budget` views (the pass cache's: ahead_budget), and past it derives while derive work waits."""
 
-    def __init__(self, ctx: SpawnContext, split: bool) -> None:
+    def __init__(self, ctx: SpawnContext, split: bool, budget: int = RENDER_AHEAD_VIEWS) -> None:
         self.derive: Queue[int | None] = ctx.Queue()
         self.render: Queue[int | None] = ctx.Queue() if split else self.derive
         self.ahead = ctx.Value("i", 0)
+        self.budget = budget
 
     @property
     def split(self) -> bool:
@@ -278,7 +291,7 @@ class TaskQueues:
         # wait on the derive queue in short steps, so a render that comes meanwhile waits at most one step
         deadline = time.monotonic() + timeout
         while True:
-            if self.ahead.value < RENDER_AHEAD_VIEWS or self.derive.empty():
+            if self.ahead.value < self.budget or self.derive.empty():
                 try:
                     return self.render.get_nowait(), self.render
                 except queue.Empty:
@@ -292,11 +305,6 @@ class TaskQueues:
     def waiting(self) -> int:
         """Task ids waiting in the queues (raises NotImplementedError where qsize does not exist: macOS)."""
         return sum(q.qsize() for q in self.all())
-
-
-RENDER_POLL_S = 0.02  # a renderer waiting for derive work looks at the render queue this often
-# pass sets a renderer may have handed off and not yet read back (~8 MB each at 512 px, on --out's disk)
-RENDER_AHEAD_VIEWS = 12
 
 
 @dataclass
@@ -313,7 +321,7 @@ class LocalPool:
 
     def __post_init__(self) -> None:
         split = self.render_workers is not None and self.render_workers < self.size
-        self.queues = TaskQueues(self.ctx, split)
+        self.queues = TaskQueues(self.ctx, split, ahead_budget(self.size, self.render_workers or self.size))
         self.roles: dict[int | None, Role] = {}  # by pid: a replacement takes over its predecessor's role
         self.results = self.ctx.Queue()
         self.stop_event = self.ctx.Event()

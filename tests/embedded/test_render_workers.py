@@ -23,7 +23,7 @@ from services.core import gpu_devices
 from services.core.domain.cues import CATALOG
 from services.core.settings import get_settings
 from services.embedded.job import embedded_settings, worker_pool
-from services.embedded.pool import RENDER_AHEAD_VIEWS, TaskQueues
+from services.embedded.pool import RENDER_AHEAD_VIEWS, TaskQueues, ahead_budget
 from services.scheduler.transport import QueueTransport
 from tests.fixtures.cli import REPO, dataset_files, omnidata
 
@@ -78,6 +78,8 @@ def test_a_renderer_past_its_budget_derives_while_derive_work_waits_and_renders_
     _delivered(qs.render, qs.derive)
     assert [qs.next_for("render")[0] for _ in range(2)] == [5, 4]
     assert qs.ahead.value == RENDER_AHEAD_VIEWS - 1
+    # on 16 workers of which 2 render, each of the 14 derivers has 2 views waiting for it
+    assert ahead_budget(2, 1) == RENDER_AHEAD_VIEWS and ahead_budget(16, 2) == 28
 
 
 def _maps_mention(pid: int, name: str) -> bool:

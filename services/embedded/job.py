@@ -33,7 +33,7 @@ from services.core.ingest.registry import Source, legacy_source_checksum, regist
 from services.core.settings import Settings, load_settings
 from services.core.storage import ObjectStore
 from services.embedded.ctrl_c import raise_if_interrupted
-from services.embedded.pool import STATE_DIR, LocalPool, WorkerConfig, cpu_count
+from services.embedded.pool import STATE_DIR, LocalPool, WorkerConfig, WorkerMessage, cpu_count
 from services.embedded.report import Progress, build_report, print_report
 from services.scheduler.loop import Scheduler, loaded_space_key
 from services.scheduler.transport import QueueTransport
@@ -236,7 +236,7 @@ def run_until_final(sessions: sessionmaker[Session], sched: Scheduler, pool: Loc
         wake = next_tick if changed else quiet_until
         msgs = pool.drain(max(0.0, wake - time.monotonic()))
         recycling += sum(1 for m in msgs if m[0] == "recycle")  # exiting: ticks at pace until it is replaced
-        if msgs and (_short_of_work(pool) or recycling):
+        if msgs and (_short_of_work(pool) or recycling or _handed_off(pool, msgs)):
             changed = True
 
 
@@ -253,6 +253,13 @@ def _short_of_work(pool: LocalPool) -> bool:
         return pool.queues.waiting() <= SHORT_QUEUE_PER_WORKER * max(1, len(pool.procs))
     except NotImplementedError:  # macOS: no qsize
         return True
+
+
+def _handed_off(pool: LocalPool, msgs: list[WorkerMessage]) -> bool:
+    """Whether a renderer handed a view off (a `passes` task done, with renderers of their own): its derived
+    tasks wait for a tick to be queued, and the render queue's backlog would otherwise keep ticks at
+    TICK_MAX_S while the derivers idle."""
+    return pool.queues.split and any(m[0] == "outcome" and m[4] == "passes" and m[3] == "done" for m in msgs)
 
 
 def tick_interval(tick_cpu_s: float) -> float:

@@ -2,13 +2,24 @@
 # On a lent GPU machine (the device tool's): the parts scripts/device_bundle.py made arrive in .gpu/, one or two a
 # call, and are kept in /root/stage; `stage` keeps this call's, `run` unpacks them all at their absolute paths,
 # adds the system libraries that machine lacks, then runs the GPU oracle tests and bench/render/gpu_cost.py into
-# $OUT.
-# Usage: bash scripts/device_run.sh stage | probe | run [gpu_cost.py flags...]
+# $OUT, and prints the busy fractions: the GPU's (nvidia-smi) beside the render process's (its time in render
+# tasks), with one render process on the GPU (--render-workers 1) as well as the default.
+# `dry` runs the same benchmark's CPU path and busy printout with this checkout's .venv (no GPU, no staging):
+# what the lent machine will print, checked here.
+# Usage: bash scripts/device_run.sh stage | probe | dry | run [gpu_cost.py flags...]
 set -uo pipefail
 what=${1:-run}
 shift || true
 stage=/root/stage
 out=${OUT:-/tmp/od-out}
+if [ "$what" = dry ]; then
+  mkdir -p "$out"
+  PYTHONPATH=$PWD .venv/bin/python bench/render/gpu_cost.py --rooms icl_livingroom --points 1 --points-many 1 \
+    --device cpu --cores 1,2 --render-workers 1 --out "$out/gpu.json" "$@" > "$out/gpu_cost.log" 2>&1 \
+    || { tail -20 "$out/gpu_cost.log"; exit 1; }
+  PYTHONPATH=$PWD .venv/bin/python bench/render/gpu_cost.py --busy "$out/gpu.json"
+  exit $?
+fi
 mkdir -p "$stage" "$out"
 cp .gpu/part_* "$stage"/ 2>/dev/null
 ls -la "$stage"
@@ -53,5 +64,8 @@ tests_rc=${PIPESTATUS[0]}
 device=auto
 [ "$tests_rc" = 0 ] || { [ "$test_device" = optix ] && device=cuda; }
 echo "benchmark on --device $device"
+flags=("$@")
+[[ " $* " == *" --render-workers"* ]] || flags+=(--render-workers 1)  # one render process on the GPU
 timeout "${BENCH_TIMEOUT:-330}" "$py" bench/render/gpu_cost.py --scenes /root/od-scenes --out "$out/gpu.json" \
-  --device "$device" "$@" 2>&1 | tee "$out/gpu_cost.log" | tail -40
+  --device "$device" "${flags[@]}" 2>&1 | tee "$out/gpu_cost.log" | tail -40
+"$py" bench/render/gpu_cost.py --busy "$out/gpu.json"

@@ -20,8 +20,10 @@ first renders in). A 1-point run first (one worker) fills the caches a first run
 With --render-workers R,..., also the GPU main job with every worker of which only R render (`generate
 --render-workers`: R device contexts, the other workers derive from the pass sets the renderers store); R =
 the core count is every worker rendering (the default before one in 8).
+It ends with the busy fractions: the GPU's (nvidia-smi) beside the render process's (its time in render
+tasks, from the task rows), for the GPU runs and the CPU runs; `--busy FILE` prints them from a results file.
 Run: python bench/render/gpu_cost.py [--rooms icl_livingroom] [--points 22] [--cores 1,8,16]
-     [--gpu-workers 2,4,8] [--render-workers 1,2] [--out FILE]
+     [--gpu-workers 2,4,8] [--render-workers 1,2] [--out FILE] [--busy FILE]
 """
 
 from __future__ import annotations
@@ -290,6 +292,24 @@ def room_ratios(result: dict) -> None:
         result["gpu_to_all_cores_cpu_views_per_s"] = ratio(gpu["views_per_s"], top["views_per_s"])
 
 
+def busy_lines(result: dict) -> list[str]:
+    """Per room and GPU or CPU run: the GPU's busy fraction (nvidia-smi, over the task window) beside the
+    render process's (its time in render tasks, from the task rows: bench/render/room_cost.py's
+    busy_fractions), of the task window and of the whole run."""
+    lines = ["room | run | GPU busy, task window | render process in render tasks: task window, whole run"]
+    for room, r in result.get("rooms", {}).items():
+        runs = [("gpu", r.get("gpu_generate"))]
+        runs += [(f"gpu, {n} rendering", v) for n, v in r.get("gpu_generate_by_render_workers", {}).items()]
+        runs += [(f"cpu, {n} cores", v) for n, v in r.get("cpu_generate", {}).items()]
+        for name, run in runs:
+            if not run:
+                continue
+            busy = run.get("busy") or {}
+            lines.append(f"{room} | {name} | {(run.get('gpu_task_window') or {}).get('busy_fraction')} | "
+                         f"{busy.get('render_busy_of_task_window')}, {busy.get('render_busy_of_wall')}")
+    return lines
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rooms", default=",".join(ROOMS), help="comma-separated: " + ",".join(ROOMS))
@@ -310,7 +330,12 @@ def main() -> int:
     ap.add_argument("--render-workers", default="",
                     help="also the GPU main job with every worker, these many of them rendering (e.g. 1,2)")
     ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument("--busy", type=Path, metavar="FILE",
+                    help="only print the busy fractions of an earlier run's results FILE")
     args = ap.parse_args()
+    if args.busy:
+        print("\n".join(busy_lines(json.loads(args.busy.read_text()))))
+        return 0
     args.gpu_workers = [int(n) for n in args.gpu_workers.split(",") if n]
     args.render_workers = [int(n) for n in args.render_workers.split(",") if n]
     args.cores = [n for n in (int(c) for c in args.cores.split(",")) if n <= (os.cpu_count() or 1)]
@@ -341,6 +366,7 @@ def main() -> int:
     args.out.write_text(json.dumps(result, indent=1) + "\n")
     print(json.dumps({room: {k: v for k, v in r.items() if k not in ("cpu_generate", "gpu_generate")}
                       for room, r in result["rooms"].items()}, indent=1))
+    print("\n".join(busy_lines(result)))
     return 0
 
 

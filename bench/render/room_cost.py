@@ -162,6 +162,7 @@ def generate(space: Path, extra: list[str], cores: str, out: Path, spec: Path, w
         # A long run compacts its finished views (services.scheduler.compaction): their rows, queue and start
         # times are gone, so the timeline reads only from a run that compacted nothing.
         steps = timeline(db, started, started + wall) if not done.compacted else None
+        busy = busy_fractions(db, wall) if not done.compacted else None
     # Per view, in the order they ran: the passes task, and the view's derived tasks together. The first
     # view's carry what a worker pays once (the space's scene, curvature, first kernel loads); the median is a
     # view in the steady state.
@@ -183,7 +184,7 @@ def generate(space: Path, extra: list[str], cores: str, out: Path, spec: Path, w
         "derivations_s_per_view": {
             "first": round(derivations[0], 4), "median": round(median(derivations), 4),
         },
-        "timeline_s": steps,
+        "timeline_s": steps, "busy": busy,
     }
 
 
@@ -240,6 +241,28 @@ def timeline(db: sqlite3.Connection, start: float, end: float) -> dict:
             round(per_worker[i], 2) for i in (0, len(per_worker) // 2, len(per_worker) - 1)
         ],
         "last_task_finished": round(unix(last) - start, 2), "process_end": round(end - start, 2),
+    }
+
+
+def busy_fractions(db: sqlite3.Connection, wall: float) -> dict:
+    """How busy each worker process was (its task rows' seconds), and the render process's share of the job's
+    wall time in render tasks: of the whole run, and of the task window (first task started to last
+    finished). The render process is the one that rendered most views (with renderers of their own, the only
+    one on two cores)."""
+    rows = db.execute(
+        "SELECT worker_id, SUM(CASE WHEN cue = 'passes' THEN duration_s ELSE 0 END), SUM(duration_s), "
+        "SUM(cue = 'passes'), MIN(started_at), MAX(finished_at) FROM task WHERE state = 'done' "
+        "GROUP BY worker_id").fetchall()
+    if not rows:
+        return {}
+    window = max(1e-9, max(unix(r[5]) for r in rows) - min(unix(r[4]) for r in rows))
+    render = max(rows, key=lambda r: r[3])
+    return {
+        "render_busy_of_wall": round(render[1] / wall, 3),
+        "render_busy_of_task_window": round(render[1] / window, 3),
+        "render_process_busy_of_task_window": round(render[2] / window, 3), "task_window_s": round(window, 2),
+        "processes": [{"views_rendered": int(r[3]), "render_s": round(r[1], 2), "busy_s": round(r[2], 2)}
+                      for r in sorted(rows, key=lambda r: -r[3])],
     }
 
 
@@ -311,6 +334,19 @@ def summarise(repeats: list[dict]) -> dict:
         out["all_cores_to_one_core_views_per_s"] = {
             "median": round(median(multi), 2), "worst": round(min(multi), 2),
         }
+    for name, run in (("one_core", "generate"), ("all_cores", "all_cores")):
+        busy = [r[run]["busy"] for r in repeats if r.get(run, {}).get("busy")]
+        if busy:  # the render process's time in render tasks: of the run's wall, of its task window
+            out[f"render_busy_{name}"] = {
+                k: round(median([b[k] for b in busy]), 3)
+                for k in ("render_busy_of_wall", "render_busy_of_task_window",
+                          "render_process_busy_of_task_window")
+            }
+    multi_floor = [r["all_cores"]["wall_s_per_view"] / r["floor"]["s_per_view_mean"] for r in repeats
+                   if "all_cores" in r]
+    if multi_floor:
+        out["all_cores_end_to_end_to_floor"] = {"median": round(median(multi_floor), 2),
+                                                "worst": round(max(multi_floor), 2)}
     steady = [
         marginal_views_per_s(r["all_cores"], r["all_cores_startup"])
         / marginal_views_per_s(r["generate"], r["startup"])
@@ -401,7 +437,64 @@ def main() -> int:
             result["wall_s"] = round(time.perf_counter() - t0, 1)
             # a later failure keeps it
             write_result(args.out, args.key, result, first=len(result["rooms"]) == 1)
+    result["segment_stability"] = segment_stability()
+    write_result(args.out, args.key, result, first=False)
+    print("\n".join(figures_table(result)), flush=True)
     return 0
+
+
+STABILITY = results_dir() / "segment_stability.json"
+
+
+def segment_stability(path: Path = STABILITY) -> list[dict]:
+    """The segment-stability decision table (bench/cues/segment_stability.py's results): per room and cheaper
+    definition, the CPU it saves a view and whether each segmentation stays within the bound on every view.
+    Empty when the file is absent or of a form this does not know."""
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return []
+    if not isinstance(doc, dict):
+        return []
+    runs = [doc] if "rooms" in doc else [v for v in doc.values() if isinstance(v, dict) and "rooms" in v]
+    rooms = runs[-1]["rooms"] if runs else None
+    rows: list[dict] = []
+    for room, r in (rooms.items() if isinstance(rooms, dict) else ()):
+        candidates = r.get("candidates") if isinstance(r, dict) else None
+        for name, c in (candidates.items() if isinstance(candidates, dict) else ()):
+            if not isinstance(c, dict):
+                continue
+            bounds = {cue: c[cue].get("within_bound") for cue in ("segment_unsup2d", "segment_unsup25d")
+                      if isinstance(c.get(cue), dict) and c[cue].get("views")}
+            holds = bool(bounds) and all(b == 1.0 for b in bounds.values())
+            rows.append({"room": room, "candidate": name,
+                         "cpu_s_saved_per_view": c.get("cpu_s_saved_per_view_median"),
+                         "within_bound": bounds,
+                         "decision": c.get("decision") or ("holds" if holds else "refused")})
+    return rows
+
+
+def figures_table(result: dict) -> list[str]:
+    """One line a room: one core and all cores x floor, all cores against one in views/s, and the render
+    process's busy fraction (of the wall, of the task window), then the segment-stability table."""
+    lines = ["room | 1 core x floor | all cores x floor | all/1 views/s | render busy 1 core | "
+             "render busy all cores (wall, task window)"]
+    for room, r in result["rooms"].items():
+        s = r["summary"]
+        one, multi = s.get("render_busy_one_core", {}), s.get("render_busy_all_cores", {})
+        lines.append(" | ".join(str(x) for x in (
+            room, s["end_to_end_to_floor"]["median"],
+            s.get("all_cores_end_to_end_to_floor", {}).get("median"),
+            s.get("all_cores_to_one_core_views_per_s", {}).get("median"), one.get("render_busy_of_wall"),
+            (multi.get("render_busy_of_wall"), multi.get("render_busy_of_task_window")),
+        )))
+    rows = result.get("segment_stability") or []
+    lines.append("segment stability (bench/results/segment_stability.json): room | candidate | CPU-s saved "
+                 "a view | within bound (share of views) | decision" if rows
+                 else "segment stability: no results")
+    lines += [f"{x['room']} | {x['candidate']} | {x['cpu_s_saved_per_view']} | {x['within_bound']} | "
+              f"{x['decision']}" for x in rows]
+    return lines
 
 
 def write_result(out: Path, key: str, result: dict, *, first: bool) -> None:

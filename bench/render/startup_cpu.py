@@ -5,7 +5,13 @@ Each part in a fresh process (so imports and caches start cold as in a run), pro
   the run validated (`loaded_spaces`, now) against loading the stored copy again (before);
 - worker imports: `services.worker.run.runner` and the modules a worker process imports before its first task;
 - curvature: the room's per-vertex curvature computed (the first worker of a machine) against read back from
-  the shared file (every other worker process).
+  the shared file (every other worker process);
+- parts: one process taking the steps of a run's start-up in order, each step's CPU: generate's imports
+  (which a forked worker inherits), the run's database created, the worker's own modules, Blender's import
+  and the kernels' target (a worker that renders), the space parsed, its Blender scene built, and the first
+  bare render against the second (Cycles' kernels and BVH). A derive process pays none of the Blender steps.
+  The numba kernels' loads show in bench/render/room_cost.py as the first view's derivations against the
+  median view's.
 Figures go to bench/results/startup_cpu.json with the load average.
 Run: .venv/bin/python bench/render/startup_cpu.py [--rooms icl_livingroom,...]
 """
@@ -83,6 +89,55 @@ print(json.dumps({"cpu_s": time.process_time() - c0, "vertices": len(mesh.vertic
 """
 
 
+PARTS = r"""
+import json, sys, time
+import numpy as np
+parts = {}
+clock = [time.process_time()]
+def lap(name):
+    now = time.process_time()
+    parts[name] = round(now - clock[0], 3)
+    clock[0] = now
+from services.core.gc_pause import collections_paused  # as `omnidata` and a worker import
+with collections_paused():
+    import services.cli.generate
+lap("generate_imports")
+from services.core.db.engine import migrate
+migrate(f"sqlite:///{sys.argv[3]}/state.db")
+lap("database_created")
+with collections_paused():
+    import services.worker.run.runner, services.worker.run.heartbeat
+lap("worker_modules")
+import importlib
+from services.worker.blender.threads import import_bpy
+with collections_paused():
+    import_bpy(1)
+    importlib.import_module("services.worker.blender.scene")
+lap("blender_import")
+from services.worker.process import kernel_target
+with collections_paused():
+    kernel_target.load()
+lap("kernel_target")
+from services.core.ingest.loading import load_space
+loaded = load_space(sys.argv[1], **json.loads(sys.argv[2]))
+lap("space_parsed")
+from services.worker.inputs.space_cache import SpaceContext
+scene = SpaceContext.from_loaded(loaded, key="probe", device="cpu", threads=1).scene()
+lap("scene_built")
+from services.core.domain.camera import look_at
+from services.worker.passes import ViewGeometry
+lo, hi = loaded.mesh.bounds
+centre = (lo + hi) / 2
+pose = look_at(centre, centre + np.array([1.0, 0.3, 0.0]))
+view = ViewGeometry(world_to_camera=pose, fov=1.0, resolution=512)
+scene.render_floor(view)
+lap("first_render")
+scene.render_floor(view)
+lap("second_render")
+print(json.dumps(parts))
+"""
+
+
 def probe(code: str, *args: str) -> dict:
     run = subprocess.run([sys.executable, "-c", code, *args], cwd=ROOT, capture_output=True, text=True,
                          env={**os.environ, "PYTHONPATH": str(ROOT)}, check=False)
@@ -108,7 +163,8 @@ def main() -> None:
                 ]
             for label in ("curvature_computed", "curvature_shared"):  # the second reads the first's file
                 rec[label] = probe(CURVATURE, str(space), json.dumps(frame), f"{tmp}/curvature")["cpu_s"]
-        report["rooms"][room] = {k: round(v, 3) for k, v in rec.items()}
+            rec["parts"] = probe(PARTS, str(space), json.dumps(frame), tmp)
+        report["rooms"][room] = {k: v if isinstance(v, dict) else round(v, 3) for k, v in rec.items()}
         print(room, report["rooms"][room], flush=True)
     report["load_after"] = [round(x, 2) for x in os.getloadavg()]
     RESULTS.write_text(json.dumps(report, indent=2) + "\n")

@@ -38,7 +38,16 @@ from services.core.settings import Settings  # noqa: E402
 from services.core.storage import LocalStore  # noqa: E402
 from services.embedded.ctrl_c import latched_sigint  # noqa: E402
 from services.embedded.curvature_ahead import curvature_ahead  # noqa: E402
-from services.embedded.job import STATE_DIR, drive, embedded_settings, find_spaces, prepare_job, worker_pool  # noqa: E402
+from services.embedded.job import (  # noqa: E402
+    STATE_DIR,
+    cpu_renderers,
+    drive,
+    embedded_settings,
+    find_spaces,
+    gpu_renderers,
+    prepare_job,
+    worker_pool,
+)
 from services.embedded.pool import LocalPool, cpu_count  # noqa: E402
 
 
@@ -123,6 +132,8 @@ def _checked_run(args: argparse.Namespace, spec: JobSpec, workers: int) -> int:
         args.render_workers is None
         and settings.render_workers is not None
         and settings.render_workers < workers
+        and (settings.render_workers != cpu_renderers(workers)
+             or (settings.render_device != "cpu" and gpu_renderers(workers) is not None))
     ):
         print(
             f"omnidata generate: {settings.render_workers} of the {workers} workers render, the "

@@ -14,6 +14,7 @@ import sys
 
 from services.cli.errors import CliError
 from services.core.domain.errors import DomainError
+from services.core.gc_pause import collections_paused
 
 # subcommand -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -56,7 +57,9 @@ def build_parser(argv: list[str]) -> argparse.ArgumentParser:
         p = sub.add_parser(name, help=help_text, description=help_text)
         p.set_defaults(_module=module)
         if name in argv[:1]:
-            importlib.import_module(module).add_arguments(p)
+            with collections_paused():  # the command's imports: most of its start-up
+                command = importlib.import_module(module)
+            command.add_arguments(p)
     return parser
 
 

@@ -182,10 +182,10 @@ class Settings(BaseSettings):
         description="`omnidata generate`: how many of its local workers render (each holds Blender and, "
         "on a GPU, its own device context); the others only derive, from the pass sets the "
         "renderers store, and "
-        "never load Blender. A renderer derives only while no view waits for a render. Unset: on "
-        "a machine with an "
-        "NVIDIA GPU one worker in 8 renders (at least one), elsewhere every worker renders and "
-        "derives its own views (view batches)",
+        "never load Blender. A renderer derives while no view waits for a render, or once it is "
+        "its budget of pass sets ahead of the derivers. Unset: on a machine with an NVIDIA GPU "
+        "one worker in 8 renders (at least one), on CPU cores half of them (one worker alone renders "
+        "and derives its own views: view batches)",
     )
     queue_render: str = Field("render", min_length=1, description="heavy queue: tasks that render")
     queue_derive: str = Field("derive", min_length=1, description="light queue: derived cues, plan cues")

@@ -33,7 +33,7 @@ from services.core.ingest.registry import Source, legacy_source_checksum, regist
 from services.core.settings import Settings, load_settings
 from services.core.storage import ObjectStore
 from services.embedded.ctrl_c import raise_if_interrupted
-from services.embedded.pool import STATE_DIR, LocalPool, WorkerConfig, cpu_count
+from services.embedded.pool import STATE_DIR, LocalPool, WorkerConfig, WorkerMessage, cpu_count
 from services.embedded.report import Progress, build_report, print_report
 from services.scheduler.loop import Scheduler, loaded_space_key
 from services.scheduler.transport import QueueTransport
@@ -59,15 +59,16 @@ WORKERS_PER_GPU_RENDERER = 8
 def embedded_settings(out: Path, workers: int, render_workers: int | None = None) -> Settings:
     """Settings of the embedded mode: SQLite and the object folder in DIR, whatever OMNIDATA_* says;
     `render_workers` (--render-workers) overrides OMNIDATA_RENDER_WORKERS, and with neither a GPU machine gets
-    gpu_renderers'."""
+    gpu_renderers', CPU cores cpu_renderers'."""
     state = out / STATE_DIR
     chosen = {} if render_workers is None else {"render_workers": render_workers}
     settings = load_settings(
         data_dir=str(state), database_url=f"sqlite:///{state / 'state.db'}", storage_url=str(out),
         dispatch_window=max(128, 64 * workers), env="development", **chosen,
     )
-    if settings.render_workers is None and settings.render_device != "cpu":
-        return settings.model_copy(update={"render_workers": gpu_renderers(workers)})
+    if settings.render_workers is None:
+        gpu = gpu_renderers(workers) if settings.render_device != "cpu" else None
+        return settings.model_copy(update={"render_workers": gpu or cpu_renderers(workers)})
     return settings
 
 
@@ -78,6 +79,13 @@ def gpu_renderers(workers: int) -> int | None:
     if workers < 2 or not gpu_devices.nvidia_gpus():
         return None
     return max(1, workers // WORKERS_PER_GPU_RENDERER)
+
+
+def cpu_renderers(workers: int) -> int | None:
+    """How many of W workers render on CPU cores (None: one worker renders and derives everything). Half:
+    a view's render and its derivations cost about the same (docs/performance.md), and a renderer derives
+    whenever it is RENDER_AHEAD_VIEWS ahead; the others never load Blender."""
+    return None if workers < 2 else (workers + 1) // 2
 
 
 def job_fingerprint(spec: JobSpec, checksums: Sequence[str]) -> str:
@@ -228,7 +236,7 @@ def run_until_final(sessions: sessionmaker[Session], sched: Scheduler, pool: Loc
         wake = next_tick if changed else quiet_until
         msgs = pool.drain(max(0.0, wake - time.monotonic()))
         recycling += sum(1 for m in msgs if m[0] == "recycle")  # exiting: ticks at pace until it is replaced
-        if msgs and (_short_of_work(pool) or recycling):
+        if msgs and (_short_of_work(pool) or recycling or _handed_off(pool, msgs)):
             changed = True
 
 
@@ -245,6 +253,13 @@ def _short_of_work(pool: LocalPool) -> bool:
         return pool.queues.waiting() <= SHORT_QUEUE_PER_WORKER * max(1, len(pool.procs))
     except NotImplementedError:  # macOS: no qsize
         return True
+
+
+def _handed_off(pool: LocalPool, msgs: list[WorkerMessage]) -> bool:
+    """Whether a renderer handed a view off (a `passes` task done, with renderers of their own): its derived
+    tasks wait for a tick to be queued, and the render queue's backlog would otherwise keep ticks at
+    TICK_MAX_S while the derivers idle."""
+    return pool.queues.split and any(m[0] == "outcome" and m[4] == "passes" and m[3] == "done" for m in msgs)
 
 
 def tick_interval(tick_cpu_s: float) -> float:

@@ -1,10 +1,12 @@
 """Local worker processes of `omnidata generate`: W processes each running the worker's TaskRunner, fed task
 ids through a multiprocessing queue (the embedded mode's stand-in for Redis).
 
-Roles (settings.render_workers): by default every worker renders and derives its own views ("all"). With R
-renderers of W workers, R "render" workers take the render queue's `passes` tasks first (storing each pass set
-for whoever derives it) and derive only while no render waits, and W - R "derive" workers take only the derive
-queue and never load Blender: one device context per renderer on a GPU, and no Blender start-up in the others.
+Roles (settings.render_workers; services.embedded.job picks R when unset): one worker alone renders and
+derives its own views ("all"). With R renderers of W workers, R "render" workers take the render queue's
+`passes` tasks first (handing each pass set to whoever derives it: services.worker.run.pass_handoff) and
+derive only while no render waits or once their budget of pass sets ahead (TaskQueues), and W - R
+"derive" workers take only the derive queue and never load Blender: one device context per renderer on a
+GPU, and no Blender start-up in the others.
 
 The first workers are forked from `generate` when that is safe (start_method): they inherit its imports
 (numpy, SQLAlchemy, trimesh, pydantic, the domain: ~1 of the ~1.6 CPU-s a spawned worker spends importing) and
@@ -33,6 +35,7 @@ from multiprocessing.synchronize import Event
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal, NoReturn
 
+from services.core.gc_pause import collections_paused
 from services.worker.blender.calls import exit_at_once_inside_blender
 from services.worker.blender.threads import remove_session_temp_dir
 from services.worker.process.heap import keep_freed_memory
@@ -112,13 +115,16 @@ def _work(conf: WorkerConfig, tasks: TaskQueues, results: Queue[WorkerMessage], 
     pin_numeric_threads()
     keep_freed_memory()
     logging.basicConfig(level=conf.log_level, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s")
-    from services.core.db.engine import make_engine, make_sessionmaker
-    from services.core.settings import get_settings
-    from services.core.storage import LocalStore
-    from services.worker.run.heartbeat import Heartbeat
-    from services.worker.run.runner import TaskRunner
+    with collections_paused():  # the warm-up's imports (services.core.gc_pause)
+        from services.core.db.engine import make_engine, make_sessionmaker
+        from services.core.settings import get_settings
+        from services.core.storage import LocalStore
+        from services.worker.run.heartbeat import Heartbeat
+        from services.worker.run.pass_handoff import RawPassSets
+        from services.worker.run.runner import TaskRunner
 
-    if not _warmed_up_and_released(conf, stop, go):
+        released = _warmed_up_and_released(conf, stop, go)
+    if not released:
         return
     settings = get_settings(**{**conf.settings, "render_threads": conf.render_threads})
     engine = make_engine(settings.database_url)
@@ -127,7 +133,8 @@ def _work(conf: WorkerConfig, tasks: TaskQueues, results: Queue[WorkerMessage], 
     worker_id = f"{socket.gethostname()}:{os.getpid()}"
     hb = Heartbeat(sessions, worker_id, queues=["local"], lease_s=settings.lease_s).start()
     runner = TaskRunner(sessions, store, settings, worker_id, heartbeat=hb,
-                        cache_dir=Path(conf.out) / STATE_DIR / "cache", hand_off_views=conf.role == "render")
+                        cache_dir=Path(conf.out) / STATE_DIR / "cache", hand_off_views=conf.role == "render",
+                        pass_sets=RawPassSets(store))
     _freeze_long_lived()  # modules, Blender
     results.put(("ready", os.getpid(), worker_id))
     try:
@@ -157,6 +164,7 @@ def _serve(runner: TaskRunner, conf: WorkerConfig, tasks: TaskQueues, results: Q
     from services.worker.run.claim import TransientError
 
     first = True
+    read = 0  # pass sets this worker has read back (TaskQueues.ahead)
     while not stop.is_set():
         if os.getppid() != conf.parent_pid:  # the parent died: do not linger as an orphan
             return
@@ -177,6 +185,9 @@ def _serve(runner: TaskRunner, conf: WorkerConfig, tasks: TaskQueues, results: Q
             results.put(
                 ("outcome", os.getpid(), each.task_id, each.status, each.cue, each.labels, each.error)
             )
+        handed = conf.role == "render" and o.cue == "passes" and o.status == "done"
+        tasks.count(handed=int(handed), read=runner.maker.pass_sets_read - read)
+        read = runner.maker.pass_sets_read
         if first:  # the space, its plan and the compiled kernels the first view loaded
             _freeze_long_lived()
             first = False
@@ -232,13 +243,29 @@ WORKER_MODULES = ("services.worker.run.runner", "services.worker.run.heartbeat",
                   "services.core.db.engine")
 
 
+RENDER_POLL_S = 0.02  # a renderer waiting for derive work looks at the render queue this often
+# pass sets the renderers may have handed off and not yet read back (~8 MB each at 512 px, on --out's disk):
+# at least this many, and RENDER_AHEAD_PER_DERIVER for each deriver (none waits for a view while one renders)
+RENDER_AHEAD_VIEWS = 12
+RENDER_AHEAD_PER_DERIVER = 2
+
+
+def ahead_budget(workers: int, renderers: int) -> int:
+    """The pass sets renderers may be ahead of the W - R derivers (RENDER_AHEAD_VIEWS)."""
+    return max(RENDER_AHEAD_VIEWS, RENDER_AHEAD_PER_DERIVER * (workers - renderers))
+
+
 class TaskQueues:
     """The workers' task queues: `derive` holds every task but `passes`, which goes to `render`; without
-    renderers of their own (every worker renders) both are one queue."""
+    renderers of their own (every worker renders) both are one queue. With renderers, `ahead` counts the pass
+    sets handed off and not yet read back: a renderer renders ahead of the derivers by at most
+    `budget` views (the pass cache's: ahead_budget), and past it derives while derive work waits."""
 
-    def __init__(self, ctx: SpawnContext, split: bool) -> None:
+    def __init__(self, ctx: SpawnContext, split: bool, budget: int = RENDER_AHEAD_VIEWS) -> None:
         self.derive: Queue[int | None] = ctx.Queue()
         self.render: Queue[int | None] = ctx.Queue() if split else self.derive
+        self.ahead = ctx.Value("i", 0)
+        self.budget = budget
 
     @property
     def split(self) -> bool:
@@ -247,33 +274,37 @@ class TaskQueues:
     def all(self) -> tuple[Queue[int | None], ...]:
         return (self.derive, self.render) if self.split else (self.derive,)
 
+    def count(self, *, handed: int, read: int) -> None:
+        """A worker's pass sets handed off and read back since its last count. A killed worker's last reads
+        go uncounted: the count errs high, so a renderer derives sooner, but it never idles while a render
+        waits and no derive work does."""
+        if self.split and (handed or read):
+            with self.ahead.get_lock():
+                self.ahead.value += handed - read
+
     def next_for(self, role: Role, timeout: float = 0.5) -> tuple[int | None, Queue[int | None]]:
         """A task id for a worker of `role` and the queue it came from (queue.Empty after `timeout`): a
-        renderer takes a waiting render first, and derives only while none waits."""
-        if role == "render" and self.split:
-            try:
-                return self.render.get_nowait(), self.render
-            except queue.Empty:
-                pass
-            # wait on the derive queue in short steps, so a render that comes meanwhile waits at most one step
-            deadline = time.monotonic() + timeout
-            while True:
+        renderer takes a waiting render first while within its budget (or when no derive work waits), and
+        derives otherwise."""
+        if role != "render" or not self.split:
+            return self.derive.get(timeout=timeout), self.derive
+        # wait on the derive queue in short steps, so a render that comes meanwhile waits at most one step
+        deadline = time.monotonic() + timeout
+        while True:
+            if self.ahead.value < self.budget or self.derive.empty():
                 try:
-                    return self.derive.get(timeout=RENDER_POLL_S), self.derive
+                    return self.render.get_nowait(), self.render
                 except queue.Empty:
-                    try:
-                        return self.render.get_nowait(), self.render
-                    except queue.Empty:
-                        if time.monotonic() >= deadline:
-                            raise
-        return self.derive.get(timeout=timeout), self.derive
+                    pass
+            try:
+                return self.derive.get(timeout=RENDER_POLL_S), self.derive
+            except queue.Empty:
+                if time.monotonic() >= deadline:
+                    raise
 
     def waiting(self) -> int:
         """Task ids waiting in the queues (raises NotImplementedError where qsize does not exist: macOS)."""
         return sum(q.qsize() for q in self.all())
-
-
-RENDER_POLL_S = 0.02  # a renderer waiting for derive work looks at the render queue this often
 
 
 @dataclass
@@ -290,7 +321,7 @@ class LocalPool:
 
     def __post_init__(self) -> None:
         split = self.render_workers is not None and self.render_workers < self.size
-        self.queues = TaskQueues(self.ctx, split)
+        self.queues = TaskQueues(self.ctx, split, ahead_budget(self.size, self.render_workers or self.size))
         self.roles: dict[int | None, Role] = {}  # by pid: a replacement takes over its predecessor's role
         self.results = self.ctx.Queue()
         self.stop_event = self.ctx.Event()

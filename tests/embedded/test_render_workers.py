@@ -4,9 +4,15 @@ rendering, and each view derived in one batch from its pass set, read once."""
 
 from __future__ import annotations
 
+import hashlib
+import json
 import multiprocessing as mp
+import os
 import queue
+import signal
 import sqlite3
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -17,9 +23,9 @@ from services.core import gpu_devices
 from services.core.domain.cues import CATALOG
 from services.core.settings import get_settings
 from services.embedded.job import embedded_settings, worker_pool
-from services.embedded.pool import TaskQueues
+from services.embedded.pool import RENDER_AHEAD_VIEWS, TaskQueues, ahead_budget
 from services.scheduler.transport import QueueTransport
-from tests.fixtures.cli import dataset_files, omnidata
+from tests.fixtures.cli import REPO, dataset_files, omnidata
 
 SPEC = """
 cameras: {mode: object, object_count: 6}
@@ -54,6 +60,26 @@ def test_the_render_queue_gets_the_renders_and_a_renderer_takes_them_first():
     assert one.render is one.derive and one.all() == (one.derive,)
     QueueTransport(one.derive, one.render).send([(1, "rgb"), (2, "passes")])
     assert [one.next_for("all")[0] for _ in range(2)] == [1, 2]
+
+
+def test_a_renderer_past_its_budget_derives_while_derive_work_waits_and_renders_when_none_does():
+    qs = TaskQueues(mp.get_context("spawn"), split=True)
+    send = QueueTransport(qs.derive, qs.render).send
+    send([(1, "passes"), (2, "rgb")])
+    _delivered(qs.render, qs.derive)
+    assert qs.next_for("render")[0] == 1  # within its budget: the render, though derive work waits
+    qs.count(handed=RENDER_AHEAD_VIEWS, read=0)  # the derivers fell RENDER_AHEAD_VIEWS views behind
+    send([(3, "passes")])
+    _delivered(qs.render)
+    assert qs.next_for("render")[0] == 2  # past it: the derive work first ...
+    assert qs.next_for("render", timeout=0.3)[0] == 3  # ... and a render when no derive work waits
+    qs.count(handed=0, read=1)  # one pass set read back: within the budget again
+    send([(4, "rgb"), (5, "passes")])
+    _delivered(qs.render, qs.derive)
+    assert [qs.next_for("render")[0] for _ in range(2)] == [5, 4]
+    assert qs.ahead.value == RENDER_AHEAD_VIEWS - 1
+    # on 16 workers of which 2 render, each of the 14 derivers has 2 views waiting for it
+    assert ahead_budget(2, 1) == RENDER_AHEAD_VIEWS and ahead_budget(16, 2) == 28
 
 
 def _maps_mention(pid: int, name: str) -> bool:
@@ -96,8 +122,8 @@ def test_renderers_and_derivers_give_the_same_files_as_every_worker_rendering(
     spec = tmp_path / "job.yaml"
     spec.write_text(SPEC)
     whole, split = tmp_path / "whole", tmp_path / "split"
-    generate(scenes_dir / "ycb_banana", whole, spec)
-    generate(scenes_dir / "ycb_banana", split, spec, "--render-workers", "1")
+    generate(scenes_dir / "ycb_banana", whole, spec, "--render-workers", "2")
+    generate(scenes_dir / "ycb_banana", split, spec)  # on CPU cores, 1 of 2 renders by default
     assert dataset_files(whole) == dataset_files(split)  # manifest, plan, every cue file
 
     with sqlite3.connect(split / ".omnidata" / "state.db") as db:
@@ -107,7 +133,7 @@ def test_renderers_and_derivers_give_the_same_files_as_every_worker_rendering(
     assert {r[8] for r in rows} == {"done"} and {r[7] for r in rows} == {1}  # each task run once
     passes = [r for r in rows if r[2] == "passes"]
     assert len(passes) == 6 and len({r[3] for r in passes}) == 1  # one renderer rendered every view ...
-    assert all(r[5] > 0 and r[6] for r in passes)  # ... and stored each pass set for the derivers
+    assert all(r[5] > 0 for r in passes)  # ... and stored each pass set for the derivers (raw: no sha256)
     # The claim of a cue read straight from the pass set took the view's last DAG level with it (pending
     # then): the view is derived from one read of its pass set, not one batch per level. (Two workers may take
     # two of a view's messages at once: the first level may be split between them, so this asks for one shared
@@ -156,7 +182,7 @@ def gpu_machine(tmp_path, monkeypatch):
 
 def test_on_a_gpu_one_worker_in_eight_renders_unless_told(gpu_machine, tmp_path, monkeypatch):
     out = tmp_path / "out"
-    assert embedded_settings(out, 16).render_workers is None  # only the control file: no GPU
+    assert embedded_settings(out, 16).render_workers == 8  # only the control file: no GPU, CPU cores' rule
     (gpu_machine / "nvidia0").touch()
     assert [embedded_settings(out, w).render_workers for w in (1, 2, 8, 16, 24)] == [None, 1, 1, 2, 3]
     pool = worker_pool(out, embedded_settings(out, 16), 16)  # not started: the roles it would give
@@ -168,8 +194,8 @@ def test_on_a_gpu_one_worker_in_eight_renders_unless_told(gpu_machine, tmp_path,
         and not worker_pool(out, embedded_settings(out, 16), 16).queues.split
     )
     monkeypatch.delenv("OMNIDATA_RENDER_WORKERS")
-    monkeypatch.setenv("OMNIDATA_RENDER_DEVICE", "cpu")  # renders on the CPU whatever the machine has
-    assert embedded_settings(out, 16).render_workers is None
+    monkeypatch.setenv("OMNIDATA_RENDER_DEVICE", "cpu")  # renders on the CPU whatever the machine has: half
+    assert [embedded_settings(out, w).render_workers for w in (1, 2, 3, 16)] == [None, 1, 2, 8]
 
 
 def test_generate_says_how_many_workers_render_on_a_gpu(gpu_machine, capsys, tmp_path):
@@ -180,3 +206,56 @@ def test_generate_says_how_many_workers_render_on_a_gpu(gpu_machine, capsys, tmp
     err = capsys.readouterr().err
     assert code == 2, err
     assert "omnidata generate: 1 of the 2 workers render, the others derive" in err, err
+
+
+def _children(pid: int) -> list[int]:
+    return [int(c) for c in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
+
+
+@pytest.mark.bpy
+def test_a_deriver_killed_mid_job_loses_no_work(scenes_dir: Path, tmp_path: Path):
+    """Two workers on CPU cores: one renders, one derives (the default). The deriver is killed -9 while the
+    job runs; its tasks go back to the queue, a new deriver takes them, and every file is made once."""
+    spec = tmp_path / "job.yaml"
+    spec.write_text(SPEC.replace("count: 3", "count: 12").replace("resolution: 32", "resolution: 128"))
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "services.cli", "generate", str(scenes_dir / "ycb_banana"), "--out",
+           str(out), "--spec", str(spec), "--seed", "3", "--workers", "2", "--no-progress"]
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 300
+        killed = None
+        while killed is None and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+            derivers = [c for c in _children(proc.pid) if not _maps_mention(c, "bpy/")]
+            if derivers and _derived(out) > 0:
+                os.kill(derivers[0], signal.SIGKILL)
+                killed = derivers[0]
+        _, err = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert killed is not None, "the job ended before a deriver was seen deriving"
+    assert proc.returncode == 0, err
+    with sqlite3.connect(out / ".omnidata" / "state.db") as db:
+        states = dict(db.execute("SELECT state, count(*) FROM task GROUP BY state").fetchall())
+        workers = {w for (w,) in db.execute("SELECT DISTINCT worker_id FROM task WHERE cue != 'passes'")}
+    assert set(states) == {"done"}, states
+    assert len(workers) >= 2  # the killed deriver's view went to another process
+    views = [json.loads(line) for line in (out / "manifest.jsonl").read_text().splitlines()]
+    assert len({(v["point"], v["view"]) for v in views}) == len(views) == 24
+    for v in views:
+        for o in v["outputs"].values():
+            assert hashlib.sha256((out / o["key"]).read_bytes()).hexdigest() == o["sha256"], o["key"]
+
+
+def _derived(out: Path) -> int:
+    db = out / ".omnidata" / "state.db"
+    if not db.exists():
+        return 0
+    try:
+        with sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=5) as c:
+            query = "SELECT count(*) FROM task WHERE state = 'done' AND cue != 'passes'"
+            return int(c.execute(query).fetchone()[0])
+    except sqlite3.OperationalError:
+        return 0

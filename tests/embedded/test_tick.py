@@ -26,6 +26,7 @@ def test_however_costly_a_tick_the_job_is_still_seen_within_the_slowest_interval
 class _FakeQueues:
     def __init__(self) -> None:
         self.size = 0
+        self.split = False  # renderers of their own
 
     def waiting(self) -> int:
         return self.size
@@ -34,7 +35,8 @@ class _FakeQueues:
 class _FakePool:
     """A pool whose workers report on a script: drain(timeout) returns the messages due by then."""
 
-    def __init__(self, messages: list[float], kind: str = "outcome", exits_at: float | None = None) -> None:
+    def __init__(self, messages: list[float], kind: str | tuple = "outcome",
+                 exits_at: float | None = None) -> None:
         import time
 
         self.t0 = time.monotonic()
@@ -51,7 +53,7 @@ class _FakePool:
         while time.monotonic() < end:
             if self.due and time.monotonic() - self.t0 >= self.due[0]:
                 self.due.pop(0)
-                return [(self.kind,)]
+                return [self.kind if isinstance(self.kind, tuple) else (self.kind,)]
             time.sleep(0.005)
         return []
 
@@ -81,6 +83,7 @@ class _FakeScheduler:
 def _run_fake(
     tmp_path, messages: list[float], done_at: float,
     queued: int = 0,  # type: ignore[no-untyped-def]
+    split: bool = False,
     **pool_kw,
 ):
     import time
@@ -96,6 +99,7 @@ def _run_fake(
     sessions = make_sessionmaker(make_engine(url))
     pool = _FakePool(messages, **pool_kw)
     pool.queues.size = queued
+    pool.queues.split = split
     sched = _FakeScheduler(0, done_at, pool.t0)
     with sessions() as s:
         job = Job(owner="local", name="j", spec={}, state=JobState.RUNNING, output_root="")
@@ -148,3 +152,13 @@ def test_a_recycling_worker_is_replaced_promptly_even_with_a_full_queue(tmp_path
     assert state == "done"
     # ticks at pace after the message until the worker is replaced
     assert any(0.3 <= t <= 0.7 for t, _ in ticks)
+
+
+def test_a_view_handed_off_brings_a_tick_even_with_a_full_queue(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    # a renderer's `passes` done: its view's derived tasks are queued by the next tick, or the derivers idle
+    handed = ("outcome", 1, 7, "done", "passes", None, None)
+    state, ticks, _ = _run_fake(tmp_path, messages=[0.2], done_at=1.9, queued=50, kind=handed, split=True)
+    assert state == "done"
+    assert any(0.15 <= t <= 0.6 for t, _ in ticks)
+    state, ticks, _ = _run_fake(tmp_path / "whole", messages=[0.2], done_at=1.9, queued=50, kind=handed)
+    assert not any(0.15 <= t <= 0.6 for t, _ in ticks)  # every worker renders: its own view, no tick needed

@@ -93,6 +93,19 @@ class LocalStore:
             self._commit(tmp, target)
         return ObjectInfo(key, len(data), hashlib.sha256(data).hexdigest())
 
+    def put_unflushed(self, key: str, buffers: Sequence[bytes | memoryview]) -> ObjectInfo:
+        """Write `buffers` one after the other as `key` (no joined copy first), renamed into place but not
+        flushed to disk and with no sha256: for a cache that a machine crash may tear and its reader
+        rebuilds (`generate`'s pass sets: services.worker.run.pass_handoff)."""
+        target = self.path(key)
+        size = 0
+        with self._writing(target) as tmp:
+            with open(tmp, "wb") as f:
+                for b in buffers:
+                    size += f.write(b)
+            os.replace(tmp, target)
+        return ObjectInfo(key, size, None)
+
     def put_many(self, items: Sequence[tuple[str, bytes]], *, keep_cached: bool = True) -> list[ObjectInfo]:
         """Every temp file written, then flushed concurrently (the file system commits the flushes together:
         one journal commit instead of one per file, ~30-100 ms of waiting a view on this disk), then renamed.

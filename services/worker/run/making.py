@@ -25,8 +25,8 @@ from services.worker.inputs.caches import JobInfo, TaskInputs
 from services.worker.inputs.loaded_cache import read_loaded
 from services.worker.inputs.photos import painter_for
 from services.worker.inputs.space_cache import SpaceCache, SpaceContext
-from services.worker.passes import ViewPasses
 from services.worker.run.claim import Claimed
+from services.worker.run.pass_handoff import read_pass_set
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +49,7 @@ class TaskMaker:
         self.render_threads = render_threads
         self.space_cache = SpaceCache()
         self.renders = 0  # pass sets rendered by this process (one per view, unless a cache was lost)
+        self.pass_sets_read = 0  # pass sets read from the store (handed off by a renderer)
 
     def make(self, t: Claimed) -> tuple[str, bytes]:
         """The task's deterministic key and file bytes (nothing stored)."""
@@ -119,9 +120,10 @@ class TaskMaker:
         passes = None
         if t.cue != "passes":
             try:
-                passes = ViewPasses.from_bytes(self.store.get_bytes(pkey))
+                passes = read_pass_set(self.store.get_bytes(pkey))
             except FileNotFoundError:  # the cache was cleared (job finished, then resumed): render again
                 log.info("task %d: no cached pass set at %s; rendering the view again", t.id, pkey)
+            self.pass_sets_read += passes is not None
         if passes is not None:
             ctx = ViewContext(view, params, passes=passes, plan=plan)
         else:

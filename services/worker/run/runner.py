@@ -53,6 +53,7 @@ from services.worker.inputs.space_cache import SpaceCache, should_recycle
 from services.worker.run.claim import DB_RETRY_S, Claimed, Outcome, TaskLedger
 from services.worker.run.heartbeat import Heartbeat
 from services.worker.run.making import TaskMaker, needs_passes
+from services.worker.run.pass_handoff import PassSets, StoredPassSets
 from services.worker.run.results import BatchResults
 from services.worker.run.stop_signal import reraise_stop
 
@@ -78,6 +79,7 @@ class TaskRunner:
         render_device: str | None = None,
         db_retry_s: float = DB_RETRY_S,
         hand_off_views: bool = False,
+        pass_sets: PassSets | None = None,
     ) -> None:
         self.sessionmaker = sessionmaker
         self.store = store
@@ -91,6 +93,8 @@ class TaskRunner:
         # A renderer of `generate --render-workers`: a `passes` task stores its pass set for the workers that
         # only derive, instead of deriving the view itself (a view batch).
         self.hand_off_views = hand_off_views
+        # where a handed-off pass set goes (`generate`: raw files, services.worker.run.pass_handoff)
+        self.pass_sets = pass_sets or StoredPassSets(store)
         self.ledger = TaskLedger(sessionmaker, worker_id, settings.lease_s, db_retry_s)
         self.inputs = TaskInputs(sessionmaker, store, self.ledger.db,
                                  int(VIEW_CACHE_MEMORY_FRACTION * settings.worker_max_memory_mb * 2**20))
@@ -188,9 +192,18 @@ class TaskRunner:
         return self.results.record([passes, *rest], done, failed)
 
     def _hand_off_view(self, passes: Claimed, t0: float) -> list[Outcome]:
-        """Render the view and store its pass set for whoever derives it; its arrays leave this process at
-        once."""
-        outcomes = self._run_claimed([passes], t0)
+        """Render the view and store its pass set (in pass_store) for whoever derives it; its arrays leave
+        this process at once."""
+        try:
+            key = self.render_view(passes)
+            ctx = self.inputs.cached_view((passes.job_id, passes.space_id, passes.point, passes.view))
+            assert ctx is not None  # render_view keeps it
+            info = self.pass_sets.put(key, ctx.passes)
+        except Exception as exc:
+            reraise_stop(exc)
+            outcomes = [self.results.record_failure(passes, exc, t0)]
+        else:
+            outcomes = self.results.record([passes], [(passes, key, info, time.perf_counter() - t0)], {})
         self.inputs.forget_view((passes.job_id, passes.space_id, passes.point, passes.view))
         return outcomes
 

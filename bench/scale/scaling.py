@@ -81,7 +81,7 @@ def measure(workers: int, args: argparse.Namespace) -> dict[str, Any]:
         sm = make_sessionmaker(engine)
         store = LocalStore(out)
         conf = WorkerConfig(out=str(out), settings=settings.model_dump(mode="json", exclude=SECRET_SETTINGS),
-            render_threads=1, parent_pid=os.getpid())
+            render_threads=1, parent_pid=os.getpid(), run=f"bench-{os.getpid()}-{time.time()}")
         pool = LocalPool(workers, conf)
         transport = QueueTransport(pool.queues.derive, pool.queues.render)
         sched = Scheduler(sm, store, transport, settings, scheduler_id=f"bench:{os.getpid()}",

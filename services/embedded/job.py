@@ -13,6 +13,7 @@ import os
 import sqlite3
 import sys
 import time
+import uuid
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -272,7 +273,7 @@ def worker_pool(out: Path, settings: Settings, workers: int) -> LocalPool:
     them render when settings.render_workers says R < W (services.embedded.pool)."""
     threads = max(1, cpu_count() // workers)
     conf = WorkerConfig(out=str(out), settings=settings.model_dump(mode="json", exclude=SECRET_SETTINGS),
-                        render_threads=threads, parent_pid=os.getpid())
+                        render_threads=threads, parent_pid=os.getpid(), run=uuid.uuid4().hex)
     return LocalPool(workers, conf, render_workers=settings.render_workers)
 
 

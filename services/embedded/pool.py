@@ -75,6 +75,7 @@ class WorkerConfig:
     parent_pid: int
     log_level: int = logging.WARNING
     role: Role = "all"
+    run: str = ""  # this run's stamp on the pass sets it hands off (services.worker.run.pass_handoff)
 
 
 # what a worker reports: ("ready", pid, worker id), ("outcome", pid, task id, status, cue, labels, error) or
@@ -134,7 +135,7 @@ def _work(conf: WorkerConfig, tasks: TaskQueues, results: Queue[WorkerMessage], 
     hb = Heartbeat(sessions, worker_id, queues=["local"], lease_s=settings.lease_s).start()
     runner = TaskRunner(sessions, store, settings, worker_id, heartbeat=hb,
                         cache_dir=Path(conf.out) / STATE_DIR / "cache", hand_off_views=conf.role == "render",
-                        pass_sets=RawPassSets(store))
+                        pass_sets=RawPassSets(store, conf.run))
     _freeze_long_lived()  # modules, Blender
     results.put(("ready", os.getpid(), worker_id))
     try:

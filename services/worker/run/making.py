@@ -26,7 +26,7 @@ from services.worker.inputs.loaded_cache import read_loaded
 from services.worker.inputs.photos import painter_for
 from services.worker.inputs.space_cache import SpaceCache, SpaceContext
 from services.worker.run.claim import Claimed
-from services.worker.run.pass_handoff import read_pass_set
+from services.worker.run.pass_handoff import PassSets
 
 log = logging.getLogger(__name__)
 
@@ -41,8 +41,9 @@ class TaskMaker:
     """Computes tasks' files for one worker process; keeps the current space and recent views loaded."""
 
     def __init__(self, store: ObjectStore, inputs: TaskInputs, cache_dir: Path, *, render_device: str,
-                 render_threads: int | None) -> None:
+                 render_threads: int | None, pass_sets: PassSets) -> None:
         self.store = store
+        self.pass_sets = pass_sets  # reads back what a renderer handed off
         self.inputs = inputs
         self.cache_dir = cache_dir
         self.render_device = render_device
@@ -120,7 +121,7 @@ class TaskMaker:
         passes = None
         if t.cue != "passes":
             try:
-                passes = read_pass_set(self.store.get_bytes(pkey))
+                passes = self.pass_sets.read(self.store.get_bytes(pkey))
             except FileNotFoundError:  # the cache was cleared (job finished, then resumed): render again
                 log.info("task %d: no cached pass set at %s; rendering the view again", t.id, pkey)
             self.pass_sets_read += passes is not None

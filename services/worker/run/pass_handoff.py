@@ -5,7 +5,9 @@ hand-off costs ~15 ms of CPU a view at 512 px with a worker's heap (the zip's CR
 then reading it back), ~30 ms without, besides the wait for the disk's flush. `generate`'s renderers write it
 raw instead (RawPassSets): a short header and each array's bytes, straight from the arrays to the file
 (LocalStore.put_unflushed), not flushed and with no checksum (a cache read back within seconds; a file a
-machine crash tore is rendered again): ~3.4 ms a view to write and ~1.2 ms to read back.
+machine crash tore is rendered again): ~3.4 ms a view to write and ~1.2 ms to read back. A raw set carries
+its run's stamp and is read only by that run: unflushed, a set that a crash left may hold zeros where its
+data was, so a later run (a resumed job) renders its view again instead of trusting it.
 read_pass_set reads either form.
 """
 
@@ -33,6 +35,8 @@ class PassSets(Protocol):
 
     def put(self, key: str, passes: ViewPasses) -> ObjectInfo: ...
 
+    def read(self, data: bytes) -> ViewPasses | None: ...
+
 
 class StoredPassSets:
     """Pass sets as .npz objects of the store (the service: a deriver may be another machine)."""
@@ -43,17 +47,24 @@ class StoredPassSets:
     def put(self, key: str, passes: ViewPasses) -> ObjectInfo:
         return self.store.put_bytes(key, passes.to_bytes())
 
+    def read(self, data: bytes) -> ViewPasses | None:
+        return read_pass_set(data)
+
 
 class RawPassSets:
     """Pass sets as raw files of a local folder, unflushed (module docstring)."""
 
-    def __init__(self, store: LocalStore) -> None:
+    def __init__(self, store: LocalStore, run: str) -> None:
         self.store = store
+        self.run = run  # the stamp of this `generate` run (every one of its processes shares it)
+
+    def read(self, data: bytes) -> ViewPasses | None:
+        return read_pass_set(data, self.run)
 
     def put(self, key: str, passes: ViewPasses) -> ObjectInfo:
         arrays = _arrays(passes)
         header = json.dumps({
-            "fov": passes.geometry.fov, "resolution": passes.geometry.resolution,
+            "run": self.run, "fov": passes.geometry.fov, "resolution": passes.geometry.resolution,
             "arrays": [[name, a.dtype.str, list(a.shape)] for name, a in arrays.items()],
         }).encode()
         chunks: list[bytes | memoryview] = [MAGIC + _LENGTH.pack(len(header)) + header]
@@ -71,20 +82,23 @@ def _arrays(passes: ViewPasses) -> dict[str, np.ndarray]:
     return arrays
 
 
-def read_pass_set(data: bytes) -> ViewPasses | None:
-    """A stored pass set of either form, or None when torn or unreadable (its view is rendered again)."""
+def read_pass_set(data: bytes, run: str | None = None) -> ViewPasses | None:
+    """A stored pass set of either form, or None when torn, unreadable or raw from a run other than `run`
+    (its view is rendered again)."""
     try:
-        return _read_raw(data) if data.startswith(MAGIC) else ViewPasses.from_bytes(data)
+        return _read_raw(data, run) if data.startswith(MAGIC) else ViewPasses.from_bytes(data)
     except (ValueError, EOFError, KeyError, TypeError, struct.error, zipfile.BadZipFile) as exc:
         log.warning("a stored pass set is unreadable (%s): its view is rendered again", exc)
         return None
 
 
-def _read_raw(data: bytes) -> ViewPasses:
+def _read_raw(data: bytes, run: str | None) -> ViewPasses:
     at = len(MAGIC)
     (length,) = _LENGTH.unpack_from(data, at)
     at += _LENGTH.size
     header = json.loads(data[at:at + length])
+    if run is None or header.get("run") != run:
+        raise ValueError("a raw pass set of another run")
     at += length
     arrays: dict[str, np.ndarray] = {}
     for name, dtype, shape in header["arrays"]:

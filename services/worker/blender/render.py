@@ -1,5 +1,6 @@
 """Cycles set-up and the one render per view: every pass copied out of the render result in memory
-(readback.py), or, where configure_scene is given a path, written to a multilayer float32 EXR and read back.
+(readback.py), or, where configure_scene is not told `memory`, written to a multilayer float32 EXR and read
+back.
 
 Camera: Blender's camera looks down its local -Z with +Y up; from an OpenCV world_to_camera W (metres),
 matrix_world = inverse(W) @ diag(1, -1, -1, 1) (services.core.domain.camera.blender_matrix_world). sensor_fit
@@ -126,18 +127,18 @@ def configure_device(scene: bpy.types.Scene, device: str) -> str:
     return "cpu"
 
 
-def configure_scene(scene: bpy.types.Scene, options: RenderOptions, output_path: str | None,
-                    aovs: tuple[str, ...] = AOVS) -> str:
+def configure_scene(scene: bpy.types.Scene, options: RenderOptions, output_path: str,
+                    aovs: tuple[str, ...] = AOVS, *, memory: bool = False) -> str:
     """Cycles settings for pixel-centre, noise-free pass rendering with the AOVs `aovs`; returns the device in
-    use. render_passes reads the passes from memory (readback.py) when `output_path` is None, else from a
-    multilayer EXR written there (where the Cycles engine cannot be wrapped)."""
+    use. render_passes reads the passes from memory with `memory` (readback.py), else from a multilayer EXR
+    written to `output_path` (where the Cycles engine cannot be wrapped)."""
     _configure_cycles(scene, options)
-    scene[_MEMORY_READBACK] = output_path is None
-    if output_path is None and not readback.install():
-        raise RuntimeError("the Cycles engine cannot be wrapped to read passes from memory: give an EXR path")
+    if memory and not readback.install():
+        raise RuntimeError("the Cycles engine cannot be wrapped to read passes from memory")
+    scene[_MEMORY_READBACK] = memory
     r = scene.render
     r.use_file_extension = False
-    r.filepath = output_path or ""
+    r.filepath = output_path
     im = r.image_settings
     im.file_format = "OPEN_EXR_MULTILAYER"
     im.color_depth = "32"  # float: the index AOVs must stay exact

@@ -99,8 +99,8 @@ class BlenderScene:
         self.scene.collection.objects.link(self.camera)
         self.scene.camera = self.camera
         # passes read from memory; an EXR only where Cycles' engine cannot be wrapped (render.configure_scene)
-        exr = None if readback.install() else os.path.join(self._tmp, "passes.exr")
-        self.device = configure_scene(self.scene, self.options, exr, pass_aovs(len(mesh.faces)))
+        self.device = configure_scene(self.scene, self.options, os.path.join(self._tmp, "passes.exr"),
+                                      pass_aovs(len(mesh.faces)), memory=readback.install())
         self.build_s = time.perf_counter() - t0
         _active = self
         log.info("Blender scene: %d faces, textured=%s, labelled=%s, device=%s, built in %.2f s",

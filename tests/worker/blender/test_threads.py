@@ -1,6 +1,6 @@
 """Blender imported for a worker (services.worker.blender.threads): OpenEXR's global pool has no threads, so
-the scanline writes of a pass render read back through an EXR (render.configure_scene with a path) wake none
-(~800 context switches a view on one core), and every channel of the EXR stays the same."""
+the scanline writes of a pass render read back through an EXR (render.configure_scene without `memory`) wake
+none (~800 context switches a view on one core), and every channel of the EXR stays the same."""
 
 from __future__ import annotations
 

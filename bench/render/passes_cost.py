@@ -22,8 +22,10 @@ previous run kept under "before").
 --against REV: an A/B on a loaded machine instead. Two processes on --core, this checkout's and REV's (git
 archive), each with the room loaded, render the same views in lockstep, view by view in alternating order: the
 passes task (task_in_batch: ViewContext's render of every pass, read back and decoded) and the floor, in
-blocks (each block's first render, a persistent-data re-sync, not counted). Written under "ab" (other keys
-kept): per side and room, CPU and wall medians, the task as x floor, and the paired differences.
+blocks (each block's first render, a persistent-data re-sync, not counted). Written under "ab" (the previous
+one kept as "ab_previous", other keys kept): per side and room, CPU and wall medians, the task as x floor, and
+the paired differences (the robust figure: task and floor run in different blocks, so x floor moves with the
+load between blocks).
 Run: .venv/bin/python bench/render/passes_cost.py [--views 8] [--repeats 2] [--core 0] [--against REV]
 """
 
@@ -317,6 +319,8 @@ def main() -> int:
         head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
                               text=True).stdout.strip()
         doc = json.loads(args.out.read_text()) if args.out.exists() else {}
+        if "ab" in doc:
+            doc["ab_previous"] = doc["ab"]
         doc["ab"] = {"before": args.against, "after": f"{head} (working tree)", "label": args.label,
                      "resolution": args.resolution, "core": args.core, "repeats": args.repeats,
                      "load_avg": [round(x, 2) for x in os.getloadavg()],

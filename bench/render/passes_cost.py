@@ -18,7 +18,15 @@ excluded). Per view, interleaved so that a neighbour's load moves every figure a
 Figures are CPU seconds of this process (time.process_time; all its threads) per view, medians over views x
 repeats, with wall medians and the load average beside them. Written to bench/results/passes_cost.json (the
 previous run kept under "before").
-Run: .venv/bin/python bench/render/passes_cost.py [--views 8] [--repeats 2] [--core 0]
+
+--against REV: an A/B on a loaded machine instead. Two processes on --core, this checkout's and REV's (git
+archive), each with the room loaded, render the same views in lockstep, view by view in alternating order: the
+passes task (task_in_batch: ViewContext's render of every pass, read back and decoded) and the floor, in
+blocks (each block's first render, a persistent-data re-sync, not counted). Written under "ab" (the previous
+one kept as "ab_previous", other keys kept): per side and room, CPU and wall medians, the task as x floor, and
+the paired differences (the robust figure: task and floor run in different blocks, so x floor moves with the
+load between blocks).
+Run: .venv/bin/python bench/render/passes_cost.py [--views 8] [--repeats 2] [--core 0] [--against REV]
 """
 
 from __future__ import annotations
@@ -34,6 +42,7 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import json  # noqa: E402
+import subprocess  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
 from collections import defaultdict  # noqa: E402
@@ -194,6 +203,104 @@ def run_room(name: str, n_views: int, repeats: int, resolution: int) -> dict:
     return out
 
 
+# One side of --against: commands on stdin ("room [path, frame]", then "task i" or "floor i"), one JSON line
+# each: the room's view count, or [CPU s, wall s] of the render. argv: checkout, resolution, views, core.
+SERVE = r"""
+import json, os, sys, time
+os.sched_setaffinity(0, {int(sys.argv[4])})
+sys.path.insert(0, sys.argv[1])
+from pathlib import Path
+from bench.render.passes_cost import room_views
+from services.core.domain.jobspec import CueParams
+from services.worker.context import ViewContext
+from services.worker.passes import RENDER_PASSES
+from services.worker.process.heap import keep_freed_memory
+keep_freed_memory()
+params, space = CueParams(), None
+def render(kind, g):
+    if kind == "task":
+        ViewContext(g, params, space=space, render_passes=RENDER_PASSES).passes
+    else:
+        space.scene().render_floor(g)
+print("ready", flush=True)
+for line in sys.stdin:
+    kind, arg = line.split(" ", 1)
+    if kind == "room":
+        if space is not None:
+            space.close()
+        path, frame = json.loads(arg)
+        space, views = room_views(Path(path), frame, int(sys.argv[2]), int(sys.argv[3]))
+        space.curvature(params.curvature_radius_m)
+        render("task", views[0]), render("floor", views[0])  # kernels, curvature, both scenes built
+        print(json.dumps(len(views)), flush=True)
+        continue
+    c0, w0 = time.process_time(), time.perf_counter()
+    render(kind, views[int(arg)])
+    print(json.dumps([time.process_time() - c0, time.perf_counter() - w0]), flush=True)
+"""
+
+
+def ask(proc: subprocess.Popen, line: str) -> object:
+    assert proc.stdin is not None and proc.stdout is not None
+    proc.stdin.write(line + "\n")
+    proc.stdin.flush()
+    return json.loads(proc.stdout.readline())
+
+
+def lockstep(rev: str, rooms: list[str], n_views: int, repeats: int, resolution: int, core: str) -> dict:
+    """{room: {side: {"task": [[cpu, wall], ...], "floor": [...]}}} of REV ("before") and this checkout
+    ("after")."""
+    out: dict = {}
+    with tempfile.TemporaryDirectory(prefix="omnidata-passes-ab-") as tmp:
+        archive = subprocess.run(["git", "archive", rev], cwd=ROOT, capture_output=True, check=True).stdout
+        subprocess.run(["tar", "-x", "-C", tmp], input=archive, check=True)
+        argv = [str(resolution), str(n_views), core]
+        sides = {side: subprocess.Popen([sys.executable, "-c", SERVE, root, *argv], stdin=subprocess.PIPE,
+                                        stdout=subprocess.PIPE, text=True)
+                 for side, root in (("before", tmp), ("after", str(ROOT)))}
+        try:
+            for proc in sides.values():
+                if proc.stdout is None or proc.stdout.readline().strip() != "ready":
+                    raise RuntimeError("a side of the A/B did not start")
+            for room in rooms:
+                path, frame = ROOMS[room]
+                n = [ask(p, "room " + json.dumps([str(path), frame])) for p in sides.values()][0]
+                times: dict = {side: {"task": [], "floor": []} for side in sides}
+                for rep in range(repeats):
+                    for kind in ("task", "floor") if rep % 2 == 0 else ("floor", "task"):
+                        for p in sides.values():
+                            ask(p, f"{kind} {n - 1}")  # the block's re-sync, not counted
+                        for i in range(int(n)):  # type: ignore[call-overload]
+                            order = ("before", "after") if (rep + i) % 2 == 0 else ("after", "before")
+                            for side in order:
+                                times[side][kind].append(ask(sides[side], f"{kind} {i}"))
+                out[room] = times
+                print(room, json.dumps(ab_summary(times)), flush=True)
+        finally:
+            for proc in sides.values():
+                if proc.stdin is not None:
+                    proc.stdin.close()
+                proc.wait()
+    return out
+
+
+def ab_summary(times: dict) -> dict:
+    """Per side: CPU and wall medians (ms) of the task and the floor, the task as x floor; the paired
+    differences (after - before) of the task's CPU, median."""
+    out: dict = {}
+    for side, t in times.items():
+        cpu = {k: median([c for c, _ in v]) for k, v in t.items()}
+        wall = {k: median([w for _, w in v]) for k, v in t.items()}
+        out[side] = {"task_cpu_ms": round(1e3 * cpu["task"], 2), "floor_cpu_ms": round(1e3 * cpu["floor"], 2),
+                     "task_wall_ms": round(1e3 * wall["task"], 2),
+                     "floor_wall_ms": round(1e3 * wall["floor"], 2),
+                     "task_to_floor_cpu": round(cpu["task"] / cpu["floor"], 3),
+                     "task_to_floor_wall": round(wall["task"] / wall["floor"], 3)}
+    pairs = zip(times["before"]["task"], times["after"]["task"], strict=True)
+    out["task_cpu_ms_after_minus_before"] = round(1e3 * median([a[0] - b[0] for b, a in pairs]), 2)
+    return out
+
+
 def main() -> int:
     keep_freed_memory()  # the worker's heap settings (services.worker.process.heap): timings as a worker's
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -204,7 +311,23 @@ def main() -> int:
     ap.add_argument("--core", default="0", help="the one core this process runs on")
     ap.add_argument("--label", default="", help="a note stored with the figures (e.g. the commit measured)")
     ap.add_argument("--out", type=Path, default=OUT)
+    ap.add_argument("--against", default="", help="a git revision: lockstep A/B, written under \"ab\"")
     args = ap.parse_args()
+    if args.against:
+        rooms = args.rooms.split(",")
+        times = lockstep(args.against, rooms, args.views, args.repeats, args.resolution, args.core)
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
+                              text=True).stdout.strip()
+        doc = json.loads(args.out.read_text()) if args.out.exists() else {}
+        if "ab" in doc:
+            doc["ab_previous"] = doc["ab"]
+        doc["ab"] = {"before": args.against, "after": f"{head} (working tree)", "label": args.label,
+                     "resolution": args.resolution, "core": args.core, "repeats": args.repeats,
+                     "load_avg": [round(x, 2) for x in os.getloadavg()],
+                     "rooms": {room: {"views": len(t["after"]["task"]) // args.repeats, **ab_summary(t),
+                                      "raw": t} for room, t in times.items()}}
+        args.out.write_text(json.dumps(doc, indent=1) + "\n")
+        return 0
     result: dict = {"resolution": args.resolution, "core": args.core, "label": args.label,
                     "clock": "CPU seconds of this process per view (medians); wall beside", "rooms": {}}
     for room in args.rooms.split(","):

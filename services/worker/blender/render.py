@@ -1,5 +1,6 @@
-"""Cycles set-up and the one render per view: every pass lands in one multilayer float32 EXR, read back to
-numpy.
+"""Cycles set-up and the one render per view: every pass copied out of the render result in memory
+(readback.py), or, where configure_scene is not told `memory`, written to a multilayer float32 EXR and read
+back.
 
 Camera: Blender's camera looks down its local -Z with +Y up; from an OpenCV world_to_camera W (metres),
 matrix_world = inverse(W) @ diag(1, -1, -1, 1) (services.core.domain.camera.blender_matrix_world). sensor_fit
@@ -41,6 +42,7 @@ from mathutils import Matrix
 
 from services.core.domain.camera import blender_matrix_world
 from services.core.gpu_devices import nvidia_gpus
+from services.worker.blender import readback
 from services.worker.blender.calls import in_blender
 from services.worker.blender.decode import (  # srgb_encode: the reference formula, imported from here before
     curvature_pair,
@@ -75,6 +77,7 @@ def pass_aovs(faces: int) -> tuple[str, ...]:
     index)."""
     return ((AOV_FACE,) if faces <= EXACT_FACES else (AOV_FACE_HI, AOV_FACE_LO)) + (AOV_K1, AOV_K2)
 
+_MEMORY_READBACK = "omnidata_memory_readback"  # scene property: configure_scene's choice of readback
 CLIP_START_M = 1e-4
 CLIP_END_M = 1e6
 _MISS_DEPTH = 1e9  # Cycles writes 1e10 where a ray hits nothing
@@ -125,10 +128,14 @@ def configure_device(scene: bpy.types.Scene, device: str) -> str:
 
 
 def configure_scene(scene: bpy.types.Scene, options: RenderOptions, output_path: str,
-                    aovs: tuple[str, ...] = AOVS) -> str:
+                    aovs: tuple[str, ...] = AOVS, *, memory: bool = False) -> str:
     """Cycles settings for pixel-centre, noise-free pass rendering with the AOVs `aovs`; returns the device in
-    use."""
+    use. render_passes reads the passes from memory with `memory` (readback.py), else from a multilayer EXR
+    written to `output_path` (where the Cycles engine cannot be wrapped)."""
     _configure_cycles(scene, options)
+    if memory and not readback.install():
+        raise RuntimeError("the Cycles engine cannot be wrapped to read passes from memory")
+    scene[_MEMORY_READBACK] = memory
     r = scene.render
     r.use_file_extension = False
     r.filepath = output_path
@@ -255,11 +262,18 @@ def render_passes(scene: bpy.types.Scene, cam: bpy.types.Object, g: ViewGeometry
         raise ValueError("the normal pass is derived from the face index: render_passes needs face_normals")
     set_camera(scene, cam, g)
     t0 = time.perf_counter()
-    with in_blender(), _quiet_stdout():
-        bpy.ops.render.render(write_still=True, scene=scene.name)
-    t1 = time.perf_counter()
-    channels = read_channels(scene.render.filepath) or _read_openexr(scene.render.filepath)
-    t2 = time.perf_counter()
+    if scene.get(_MEMORY_READBACK):
+        with in_blender(), _quiet_stdout(), readback.capture() as channels:
+            bpy.ops.render.render(write_still=False, scene=scene.name)
+        if not channels:
+            raise RuntimeError("the render left no passes to read (was it not Cycles?)")
+        t1 = t2 = time.perf_counter()  # the copy out of the render result is part of the render call
+    else:
+        with in_blender(), _quiet_stdout():
+            bpy.ops.render.render(write_still=True, scene=scene.name)
+        t1 = time.perf_counter()
+        channels = read_channels(scene.render.filepath) or _read_openexr(scene.render.filepath)
+        t2 = time.perf_counter()
     out = _decode(channels, scene.view_layers[0].name, g, passes, labels, face_normals)
     out.meta.update(render_call_s=t1 - t0, exr_read_s=t2 - t1, decode_s=time.perf_counter() - t2)
     return out

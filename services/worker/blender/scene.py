@@ -26,6 +26,7 @@ import trimesh
 from PIL import Image
 
 from services.core.temp_dirs import owned_prefix, sweep_orphans
+from services.worker.blender import readback
 from services.worker.blender.decode import unit_face_normals
 from services.worker.blender.render import (
     AOV_CLASS,
@@ -97,8 +98,9 @@ class BlenderScene:
         self.camera = bpy.data.objects.new("camera", cam_data)
         self.scene.collection.objects.link(self.camera)
         self.scene.camera = self.camera
+        # passes read from memory; an EXR only where Cycles' engine cannot be wrapped (render.configure_scene)
         self.device = configure_scene(self.scene, self.options, os.path.join(self._tmp, "passes.exr"),
-                                      pass_aovs(len(mesh.faces)))
+                                      pass_aovs(len(mesh.faces)), memory=readback.install())
         self.build_s = time.perf_counter() - t0
         _active = self
         log.info("Blender scene: %d faces, textured=%s, labelled=%s, device=%s, built in %.2f s",

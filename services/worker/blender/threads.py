@@ -8,9 +8,10 @@ from the calling thread's CPU affinity when Blender initialises it during `impor
 with the affinity narrowed to `threads` CPUs and the affinity is restored right after: the pool then never
 exceeds the budget, and the OS still schedules the render threads on any CPU.
 
-Blender also starts OpenEXR's global thread pool with a thread per CPU. A pass EXR is written uncompressed, so
-its 512 scanline blocks have nothing worth a thread, yet each wakes one: ~800 context switches a view, 3% of
-the render task's CPU on one core. The pool is set to 0 threads after the import (OpenEXR then writes in the
+Blender also starts OpenEXR's global thread pool with a thread per CPU. A pass EXR (the readback where Cycles'
+engine cannot be wrapped: render.configure_scene) is written uncompressed, so its 512 scanline blocks have
+nothing worth a thread, yet each wakes one: ~800 context switches a view, 3% of the render task's CPU on one
+core. The pool is set to 0 threads after the import (OpenEXR then writes in the
 calling thread; the same bytes).
 """
 

@@ -1,7 +1,7 @@
 """Compile every kernel of the worker into numba's on-disk cache ahead of the first job (`omnidata
 compile-kernels`).
 
-A worker compiles its ~70 kernels (services.worker.cues, curvature, the EXR decode) the first time it uses
+A worker compiles its ~70 kernels (services.worker.cues, curvature, the pass decode) the first time it uses
 them, into numba's cache: ~40 CPU-s before its first view, in every process that finds the cache cold, at
 once. That is every new worker pod of an image (its cache is the container's), and `generate` on a fresh
 install with all of its workers compiling the same kernels side by side. Compiled once when the image is built
@@ -10,7 +10,7 @@ only loads them.
 
 The warm-up runs the worker's own code on a small synthetic room, so each kernel is compiled with the argument
 types a job passes (numba keys cached code by them, read-only and non-contiguous arrays included): one view
-rendered by Cycles with every pass and read back through the EXR reader, every cue a space without labels or
+rendered by Cycles with every pass and read back as a worker reads it, every cue a space without labels or
 photos can give derived and encoded from it, and the curvature estimator on both of its search paths.
 """
 

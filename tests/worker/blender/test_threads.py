@@ -1,7 +1,6 @@
 """Blender imported for a worker (services.worker.blender.threads): OpenEXR's global pool has no threads, so
-the pass EXR's scanline writes wake none (~800 context switches a view on one core), and every channel of the
-EXR
-stays the same."""
+the scanline writes of a pass render read back through an EXR (render.configure_scene without `memory`) wake
+none (~800 context switches a view on one core), and every channel of the EXR stays the same."""
 
 from __future__ import annotations
 
@@ -28,6 +27,9 @@ from services.worker.inputs.space_cache import SpaceContext
 from tests.fixtures.raycast import object_view
 space = SpaceContext.from_loaded(load_space(sys.argv[2]), key="probe")
 scene = space.scene()
+from services.worker.blender.render import configure_scene, pass_aovs
+# the readback that writes the EXR (a worker's scene reads its passes from memory: readback.py)
+configure_scene(scene.scene, scene.options, scene._tmp + "/passes.exr", pass_aovs(len(space.mesh.faces)))
 g = object_view(space.mesh, [0.3, -0.5, 1.0], 256)
 scene.render(g)
 r0 = resource.getrusage(resource.RUSAGE_SELF).ru_nvcsw

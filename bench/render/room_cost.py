@@ -447,30 +447,29 @@ STABILITY = results_dir() / "segment_stability.json"
 
 
 def segment_stability(path: Path = STABILITY) -> list[dict]:
-    """The segment-stability decision table (bench/cues/segment_stability.py's results): per room and cheaper
-    definition, the CPU it saves a view and whether each segmentation stays within the bound on every view.
-    Empty when the file is absent or of a form this does not know."""
+    """The segment cues' equivalence decisions (bench/cues/segment_stability.py's latest run): per room, cue
+    and cheaper definition, the noise floor's ARI median/p10 (the current definition against its perturbed
+    self), the candidate's against the current one, PASS/FAIL and the ms a view it saves. Empty when the file
+    is absent or of another form."""
     try:
-        doc = json.loads(path.read_text())
-    except (OSError, ValueError):
+        return _stability_rows(json.loads(path.read_text())["after"]["rooms"])
+    except (OSError, ValueError, AttributeError, KeyError, TypeError):
         return []
-    if not isinstance(doc, dict):
-        return []
-    runs = [doc] if "rooms" in doc else [v for v in doc.values() if isinstance(v, dict) and "rooms" in v]
-    rooms = runs[-1]["rooms"] if runs else None
+
+
+def _stability_rows(rooms: dict) -> list[dict]:
     rows: list[dict] = []
-    for room, r in (rooms.items() if isinstance(rooms, dict) else ()):
-        candidates = r.get("candidates") if isinstance(r, dict) else None
-        for name, c in (candidates.items() if isinstance(candidates, dict) else ()):
-            if not isinstance(c, dict):
-                continue
-            bounds = {cue: c[cue].get("within_bound") for cue in ("segment_unsup2d", "segment_unsup25d")
-                      if isinstance(c.get(cue), dict) and c[cue].get("views")}
-            holds = bool(bounds) and all(b == 1.0 for b in bounds.values())
-            rows.append({"room": room, "candidate": name,
-                         "cpu_s_saved_per_view": c.get("cpu_s_saved_per_view_median"),
-                         "within_bound": bounds,
-                         "decision": c.get("decision") or ("holds" if holds else "refused")})
+    for room, r in rooms.items():
+        floor = r.get("noise_floor") or {}
+        for name, c in (r.get("candidates") or {}).items():
+            for cue, got in c.items():
+                noise = floor.get(cue) or {}
+                if "decision" not in got or not noise.get("views"):
+                    continue
+                rows.append({"room": room, "cue": cue, "candidate": name,
+                             "noise_ari": (noise.get("ari_median"), noise.get("ari_p10")),
+                             "candidate_ari": (got.get("ari_median"), got.get("ari_p10")),
+                             "decision": got["decision"], "ms_saved": got.get("ms_saved_per_view_median")})
     return rows
 
 
@@ -489,11 +488,12 @@ def figures_table(result: dict) -> list[str]:
             (multi.get("render_busy_of_wall"), multi.get("render_busy_of_task_window")),
         )))
     rows = result.get("segment_stability") or []
-    lines.append("segment stability (bench/results/segment_stability.json): room | candidate | CPU-s saved "
-                 "a view | within bound (share of views) | decision" if rows
-                 else "segment stability: no results")
-    lines += [f"{x['room']} | {x['candidate']} | {x['cpu_s_saved_per_view']} | {x['within_bound']} | "
-              f"{x['decision']}" for x in rows]
+    lines.append("segment cues' equivalence (bench/results/segment_stability.json): room | cue | "
+                 "definition | noise floor ARI (median, p10) | against the current (median, p10) | "
+                 "decision | "
+                 "ms saved a view" if rows else "segment stability: no results")
+    lines += [f"{x['room']} | {x['cue']} | {x['candidate']} | {x['noise_ari']} | {x['candidate_ari']} | "
+              f"{x['decision']} | {x['ms_saved']}" for x in rows]
     return lines
 
 

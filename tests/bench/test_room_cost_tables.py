@@ -1,5 +1,5 @@
 """bench/render/room_cost.py's tables: the render process's busy fractions from a run's task rows, and the
-segment-stability decision table read from another benchmark's results, whatever form they are in."""
+segment cues' equivalence decisions read from bench/cues/segment_stability.py's latest run."""
 
 from __future__ import annotations
 
@@ -12,9 +12,14 @@ from tests.conftest import REPO_ROOT
 sys.path.insert(0, str(REPO_ROOT / "bench" / "render"))
 import room_cost  # noqa: E402
 
-CANDIDATE = {"cpu_s_saved_per_view_median": 0.01,
-             "segment_unsup2d": {"views": 0},
-             "segment_unsup25d": {"views": 8, "within_bound": 1.0}}
+NOISE = {"segment_unsup2d": {"views": 0},
+         "segment_unsup25d": {"views": 8, "ari_median": 0.998, "ari_p10": 0.95}}
+
+
+def _candidate(decision: str) -> dict:
+    return {"segment_unsup2d": {"views": 8, "decision": decision},  # no noise floor: left out
+            "segment_unsup25d": {"views": 8, "ari_median": 1.0, "ari_p10": 0.99, "decision": decision,
+                                 "ms_saved_per_view_median": 5.5}}
 
 
 def test_the_render_process_is_the_one_that_rendered_and_its_busy_share_is_of_wall_and_window(tmp_path):
@@ -33,16 +38,18 @@ def test_the_render_process_is_the_one_that_rendered_and_its_busy_share_is_of_wa
     assert [p["views_rendered"] for p in busy["processes"]] == [2, 0]
 
 
-def test_segment_stability_rows_from_either_form_and_none_from_an_absent_or_foreign_file(tmp_path):
+def test_segment_stability_rows_of_the_latest_run_and_none_from_an_absent_or_foreign_file(tmp_path):
     path = tmp_path / "segment_stability.json"
     assert room_cost.segment_stability(path) == []
-    run = {"rooms": {"icl": {"candidates": {"c4": CANDIDATE, "bad": {**CANDIDATE, "segment_unsup25d": {
-        "views": 8, "within_bound": 0.875}}}}}}
-    for doc in ({"benchmark": "x", "after": run}, run):
-        path.write_text(json.dumps(doc))
-        rows = room_cost.segment_stability(path)
-        assert [(r["candidate"], r["decision"]) for r in rows] == [("c4", "holds"), ("bad", "refused")]
-        assert rows[0]["within_bound"] == {"segment_unsup25d": 1.0}  # a cue with no views is left out
-    for foreign in ("[1, 2]", "not json", json.dumps({"rooms": {"icl": {"candidates": ["x"]}}})):
+    run = {"rooms": {"icl": {"noise_floor": NOISE, "candidates": {"shipped": _candidate("PASS"),
+                                                                   "c4": _candidate("FAIL")}}}}
+    path.write_text(json.dumps({"benchmark": "x", "after": run, "before": {"rooms": {}}}))
+    rows = room_cost.segment_stability(path)
+    assert [(r["candidate"], r["cue"], r["decision"]) for r in rows] == [
+        ("shipped", "segment_unsup25d", "PASS"), ("c4", "segment_unsup25d", "FAIL")]
+    assert rows[0]["noise_ari"] == (0.998, 0.95) and rows[0]["candidate_ari"] == (1.0, 0.99)
+    assert rows[0]["ms_saved"] == 5.5
+    assert any("PASS" in line for line in room_cost.figures_table({"rooms": {}, "segment_stability": rows}))
+    for foreign in ("[1, 2]", "not json", json.dumps({"after": {"rooms": {"icl": {"candidates": ["x"]}}}})):
         path.write_text(foreign)
         assert room_cost.segment_stability(path) == []

@@ -2,8 +2,9 @@
 (issue 20).
 
 With R renderers, the other workers only derive, from the pass sets the renderers store: the layout a GPU
-needs (one device context, every core deriving). On the CPU it buys nothing and costs the hand-off: a renderer
-serialises and stores each pass set, a deriver reads it back. This measures that cost where it can be measured
+needs (one device context, every core deriving), and `generate`'s default on two CPU cores and more (half of
+them render). It costs the hand-off (a renderer writes each pass set, a deriver reads it back) and saves every
+worker's Blender start-up and scene. This measures that cost where it can be measured
 without a GPU: each room at 512 px, every default cue, a worker per core, the two settings interleaved per
 repeat (so a neighbour's load moves both): wall time end to end, task seconds per view by cue (the job's task
 rows), the stored pass set's size, and the timeline (bench/render/room_cost.py: when each worker took its
@@ -67,7 +68,7 @@ def main() -> int:
             runs: dict[str, list[dict]] = {"every_worker_renders": [], "split": []}
             for i in range(args.repeats):
                 runs["every_worker_renders"].append(
-                    run(room, cores, Path(tmp) / f"{room}-{i}-all", spec, None)
+                    run(room, cores, Path(tmp) / f"{room}-{i}-all", spec, len(cores.split(",")))
                 )
                 runs["split"].append(
                     run(room, cores, Path(tmp) / f"{room}-{i}-split", spec, args.render_workers)

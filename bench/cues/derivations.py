@@ -41,6 +41,7 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from bench.lib.ab import lockstep_sides  # noqa: E402
 from bench.lib.results import RECORDED, results_dir  # noqa: E402
 from bench.lib.rooms import ROOMS  # noqa: E402
 from services.core.domain.cues import default_cues  # noqa: E402
@@ -284,7 +285,6 @@ def lockstep(rev: str, rooms: list[str], n_views: int, repeats: int, resolution:
              cache: Path) -> dict[str, dict]:
     """{"before": REV's rooms, "after": this checkout's}: each view's image cues made by both sides in
     turn."""
-    import tempfile
 
     files = {}
     for room in rooms:
@@ -292,30 +292,16 @@ def lockstep(rev: str, rooms: list[str], n_views: int, repeats: int, resolution:
         files[room] = [cache / f"{room}-{resolution}-p{v.point_idx}v{v.v}.npz" for v in views]
     args = [f"{room}={','.join(map(str, fs))}" for room, fs in files.items()]
     times: dict[str, dict[str, list[dict]]] = {"before": defaultdict(list), "after": defaultdict(list)}
-    with tempfile.TemporaryDirectory(prefix="omnidata-derivations-ab-") as tmp:
-        archive = subprocess.run(["git", "archive", rev], cwd=ROOT, capture_output=True, check=True).stdout
-        subprocess.run(["tar", "-x", "-C", tmp], input=archive, check=True)
-        sides = {side: subprocess.Popen([sys.executable, "-c", SERVE, root, *args], stdin=subprocess.PIPE,
-                                        stdout=subprocess.PIPE, text=True)
-                 for side, root in (("before", tmp), ("after", str(ROOT)))}
-        try:
-            for proc in sides.values():
-                if proc.stdout is None or proc.stdout.readline().strip() != "ready":
-                    raise RuntimeError("a side of the A/B did not start")
-            for rep in range(repeats):
-                for room, fs in files.items():
-                    for i in range(len(fs)):
-                        for side in ("before", "after") if (rep + i) % 2 == 0 else ("after", "before"):
-                            proc = sides[side]
-                            assert proc.stdin is not None and proc.stdout is not None
-                            proc.stdin.write(f"{room} {i}\n")
-                            proc.stdin.flush()
-                            times[side][room].append(json.loads(proc.stdout.readline()))
-        finally:
-            for proc in sides.values():
-                if proc.stdin is not None:
-                    proc.stdin.close()
-                proc.wait()
+    with lockstep_sides(rev, SERVE, args) as sides:
+        for rep in range(repeats):
+            for room, fs in files.items():
+                for i in range(len(fs)):
+                    for side in ("before", "after") if (rep + i) % 2 == 0 else ("after", "before"):
+                        proc = sides[side]
+                        assert proc.stdin is not None and proc.stdout is not None
+                        proc.stdin.write(f"{room} {i}\n")
+                        proc.stdin.flush()
+                        times[side][room].append(json.loads(proc.stdout.readline()))
     return {side: {room: ab_summary(room, views, repeats) for room, views in t.items()}
             for side, t in times.items()}
 

@@ -1,11 +1,16 @@
-"""Helpers of the A/B benchmarks: a module of the project as it was at a git revision, loaded beside today's,
-and a results file written with the previous run kept."""
+"""Helpers of the A/B benchmarks: a module of the project as it was at a git revision, loaded beside today's;
+two serving processes, one of a revision's checkout and one of today's, asked in lockstep; and a results file
+written with the previous run kept."""
 
 from __future__ import annotations
 
 import importlib.util
 import json
 import subprocess
+import sys
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from types import ModuleType
 
@@ -26,6 +31,29 @@ def module_at(rev: str, relpath: str, folder: Path) -> ModuleType:
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+@contextmanager
+def lockstep_sides(rev: str, serve: str, argv: list[str]) -> Iterator[dict[str, subprocess.Popen[str]]]:
+    """{"before": a process serving REV's checkout, "after": one serving this checkout}: each runs the Python
+    source `serve` with (its checkout's root, *argv) and has printed "ready"; the caller writes requests to
+    their stdin and reads answers from their stdout. Both are ended (stdin closed, waited for) on exit."""
+    with tempfile.TemporaryDirectory(prefix="omnidata-ab-") as tmp:
+        archive = subprocess.run(["git", "archive", rev], cwd=ROOT, capture_output=True, check=True).stdout
+        subprocess.run(["tar", "-x", "-C", tmp], input=archive, check=True)
+        sides = {side: subprocess.Popen([sys.executable, "-c", serve, root, *argv], stdin=subprocess.PIPE,
+                                        stdout=subprocess.PIPE, text=True)
+                 for side, root in (("before", tmp), ("after", str(ROOT)))}
+        try:
+            for proc in sides.values():
+                if proc.stdout is None or proc.stdout.readline().strip() != "ready":
+                    raise RuntimeError("a side of the A/B did not start")
+            yield sides
+        finally:
+            for proc in sides.values():
+                if proc.stdin is not None:
+                    proc.stdin.close()
+                proc.wait()
 
 
 def write_keeping_before(path: Path, result: dict) -> None:

@@ -50,6 +50,7 @@ from collections.abc import Callable  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from bench.lib.ab import lockstep_sides  # noqa: E402
 from bench.lib.results import results_dir  # noqa: E402
 from bench.lib.rooms import ROOMS  # noqa: E402
 from services.core.domain.jobspec import CueParams, JobSpec  # noqa: E402
@@ -251,36 +252,21 @@ def lockstep(rev: str, rooms: list[str], n_views: int, repeats: int, resolution:
     """{room: {side: {"task": [[cpu, wall], ...], "floor": [...]}}} of REV ("before") and this checkout
     ("after")."""
     out: dict = {}
-    with tempfile.TemporaryDirectory(prefix="omnidata-passes-ab-") as tmp:
-        archive = subprocess.run(["git", "archive", rev], cwd=ROOT, capture_output=True, check=True).stdout
-        subprocess.run(["tar", "-x", "-C", tmp], input=archive, check=True)
-        argv = [str(resolution), str(n_views), core]
-        sides = {side: subprocess.Popen([sys.executable, "-c", SERVE, root, *argv], stdin=subprocess.PIPE,
-                                        stdout=subprocess.PIPE, text=True)
-                 for side, root in (("before", tmp), ("after", str(ROOT)))}
-        try:
-            for proc in sides.values():
-                if proc.stdout is None or proc.stdout.readline().strip() != "ready":
-                    raise RuntimeError("a side of the A/B did not start")
-            for room in rooms:
-                path, frame = ROOMS[room]
-                n = [ask(p, "room " + json.dumps([str(path), frame])) for p in sides.values()][0]
-                times: dict = {side: {"task": [], "floor": []} for side in sides}
-                for rep in range(repeats):
-                    for kind in ("task", "floor") if rep % 2 == 0 else ("floor", "task"):
-                        for p in sides.values():
-                            ask(p, f"{kind} {n - 1}")  # the block's re-sync, not counted
-                        for i in range(int(n)):  # type: ignore[call-overload]
-                            order = ("before", "after") if (rep + i) % 2 == 0 else ("after", "before")
-                            for side in order:
-                                times[side][kind].append(ask(sides[side], f"{kind} {i}"))
-                out[room] = times
-                print(room, json.dumps(ab_summary(times)), flush=True)
-        finally:
-            for proc in sides.values():
-                if proc.stdin is not None:
-                    proc.stdin.close()
-                proc.wait()
+    with lockstep_sides(rev, SERVE, [str(resolution), str(n_views), core]) as sides:
+        for room in rooms:
+            path, frame = ROOMS[room]
+            n = [ask(p, "room " + json.dumps([str(path), frame])) for p in sides.values()][0]
+            times: dict = {side: {"task": [], "floor": []} for side in sides}
+            for rep in range(repeats):
+                for kind in ("task", "floor") if rep % 2 == 0 else ("floor", "task"):
+                    for p in sides.values():
+                        ask(p, f"{kind} {n - 1}")  # the block's re-sync, not counted
+                    for i in range(int(n)):  # type: ignore[call-overload]
+                        order = ("before", "after") if (rep + i) % 2 == 0 else ("after", "before")
+                        for side in order:
+                            times[side][kind].append(ask(sides[side], f"{kind} {i}"))
+            out[room] = times
+            print(room, json.dumps(ab_summary(times)), flush=True)
     return out
 
 

@@ -45,8 +45,17 @@ alone_pid=
 if [ "$rest" -eq 1 ]; then  # tests failed (not an interrupt or a usage error): once more, alone, in one process
   echo
   echo "== the tests that failed in the parallel run, again in one process:"
-  "$BIN/pytest" -q --last-failed --last-failed-no-failures none -m "$rest_mark" "${args[@]}"
-  rest=$?
+  # by id, each without the "@group" xdist adds (a --last-failed run would not match those and skip them)
+  mapfile -t failed < <("$BIN/python" - <<'PY'
+import json, re
+with open(".pytest_cache/v/cache/lastfailed") as f:
+    print("\n".join(sorted({re.sub(r"@[^\]/]*$", "", k) for k in json.load(f)})))
+PY
+)
+  if [ "${#failed[@]}" -gt 0 ] && [ -n "${failed[0]}" ]; then
+    "$BIN/pytest" -q -m "$rest_mark" "${args[@]}" "${failed[@]}"
+    rest=$?
+  fi
   [ "$rest" -eq 0 ] && echo "== they passed alone: they fail only under load (named above); fix their timing"
 fi
 

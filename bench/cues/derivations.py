@@ -176,15 +176,16 @@ def segment_stages(passes: list[ViewPasses], repeats: int) -> dict[str, dict[str
                         features = seg._gather(features, mask, iy, ix)
                     c2 = time.process_time()
                     img = np.ascontiguousarray(features, dtype=np.float32)
-                    if sigma > 0:
-                        img = np.stack([gaussian_blur(img[..., c], sigma, mode="reflect")
-                                        for c in range(img.shape[-1])], axis=-1)
-                    c3 = time.process_time()
                     h, w = img.shape[:2]
-                    code, cost = fz._sorted_edges(img, definition.sort_levels,
-                                                  fz.DIRECTIONS[definition.connectivity])
+                    planes = np.zeros((fz.CHANNELS, h, w), np.float32)  # as felzenszwalb's superpixels
+                    for c in range(img.shape[-1]):
+                        plane = img[..., c]
+                        planes[c] = gaussian_blur(plane, sigma, mode="reflect") if sigma > 0 else plane
+                    c3 = time.process_time()
+                    edges = fz._sorted_edges(planes, definition.sort_levels,
+                                             fz.DIRECTIONS[definition.connectivity])
                     c4 = time.process_time()
-                    fz._merge(code, cost, w, h * w, float(params.segment2d_scale) / 255.0)
+                    fz._merge(edges, w, h * w, float(params.segment2d_scale) / 255.0)
                     c5 = time.process_time()
                     labels = seg.superpixels(
                         features, params.segment2d_scale, sigma, params.segment2d_min_size,

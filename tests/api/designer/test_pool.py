@@ -46,11 +46,11 @@ def test_a_tenants_slow_calls_leave_a_process_to_another_tenant(fake_target: Non
 
 
 def test_a_call_past_the_budget_ends_its_process_and_the_next_starts_fresh(fake_target: None) -> None:
-    pool = DesignPool(1, timeout_s=0.5)
+    pool = DesignPool(1, timeout_s=2.0)  # a fresh process's first answer under a loaded suite: well within
     try:
         first = pool.call("ping", {})["pid"]
-        with pytest.raises(Invalid, match="took longer than 0.5 s"):
-            pool.call("sleep", {"sleep": 5})
+        with pytest.raises(Invalid, match="took longer than 2 s"):
+            pool.call("sleep", {"sleep": 30})
         assert not [c for c in pool._children if c.alive()]
         assert pool.call("ping", {})["pid"] != first
     finally:

@@ -25,7 +25,7 @@ from services.cli import main
 from services.core.domain.cues import CATALOG, default_cues
 from services.core.domain.keys import output_key
 from tests.conftest import GeneratedRun
-from tests.fixtures.cli import REPO, WIDE, omnidata
+from tests.fixtures.cli import REPO, WIDE, done_tasks, omnidata
 
 TINY = WIDE  # the spec of the shared tiny_banana run
 
@@ -49,19 +49,6 @@ def start_generate(*args: str | Path) -> subprocess.Popen[str]:
 
 def manifest(out: Path) -> list[dict]:
     return [json.loads(line) for line in (out / "manifest.jsonl").read_text().splitlines()]
-
-
-def done_tasks(out: Path) -> int:
-    db = out / ".omnidata" / "state.db"
-    if not db.exists():
-        return 0
-    try:
-        with sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=5) as c:
-            return int(
-                c.execute("SELECT count(*) FROM task WHERE state = 'done' AND cue != 'passes'").fetchone()[0]
-            )
-    except sqlite3.OperationalError:  # not migrated yet
-        return 0
 
 
 def wait_for(cond, timeout: float, proc: subprocess.Popen[str], poll_s: float = 0.2) -> None:

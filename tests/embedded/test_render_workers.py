@@ -25,7 +25,7 @@ from services.core.settings import get_settings
 from services.embedded.job import embedded_settings, worker_pool
 from services.embedded.pool import RENDER_AHEAD_VIEWS, TaskQueues, ahead_budget
 from services.scheduler.transport import QueueTransport
-from tests.fixtures.cli import REPO, dataset_files, omnidata
+from tests.fixtures.cli import REPO, dataset_files, done_tasks, omnidata
 
 SPEC = """
 cameras: {mode: object, object_count: 6}
@@ -228,7 +228,7 @@ def test_a_deriver_killed_mid_job_loses_no_work(scenes_dir: Path, tmp_path: Path
         while killed is None and proc.poll() is None and time.monotonic() < deadline:
             time.sleep(0.05)
             derivers = [c for c in _children(proc.pid) if not _maps_mention(c, "bpy/")]
-            if derivers and _derived(out) > 0:
+            if derivers and done_tasks(out) > 0:
                 os.kill(derivers[0], signal.SIGKILL)
                 killed = derivers[0]
         _, err = proc.communicate(timeout=300)
@@ -247,15 +247,3 @@ def test_a_deriver_killed_mid_job_loses_no_work(scenes_dir: Path, tmp_path: Path
     for v in views:
         for o in v["outputs"].values():
             assert hashlib.sha256((out / o["key"]).read_bytes()).hexdigest() == o["sha256"], o["key"]
-
-
-def _derived(out: Path) -> int:
-    db = out / ".omnidata" / "state.db"
-    if not db.exists():
-        return 0
-    try:
-        with sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=5) as c:
-            query = "SELECT count(*) FROM task WHERE state = 'done' AND cue != 'passes'"
-            return int(c.execute(query).fetchone()[0])
-    except sqlite3.OperationalError:
-        return 0

@@ -14,9 +14,10 @@ interleaved:
 Each repeat runs 1 then 2, so a neighbour's load moves both; the ratio is taken per repeat and reported as the
 median and the worst case over repeats, with the load average beside each figure.
 With --cores 0,1 it also runs generate with its default worker settings on those cores (all-cores figure) and
-compares views/s with the one-core run of the same repeat; with the 3-view runs on both settings, also the
-views/s of the views a longer job adds (the slope, start-ups left out: what a long job on many cores
-approaches).
+compares views/s with the one-core run of the same repeat, and runs the bare render on each of those cores at
+once (what the machine's cores give a render at best, the ceiling of that ratio); with the 3-view runs on
+both settings, also the views/s of the views a longer job adds (the slope, start-ups left out: what a long job
+on many cores approaches).
 
 A 3-view run of the same room on the same core (unless --no-startup) splits generate's CPU into what a run
 pays whatever its size (start-up: imports, space loads, curvature, planning) and the CPU of one more view (the
@@ -83,6 +84,9 @@ scene = SpaceContext.from_loaded(load_space(space_path, **frame), key="floor", d
 views = [ViewGeometry.of(v) for v in plan.views]
 # Cycles kernels and the BVH: a worker pays them once per space, not per view
 first = scene.render_floor(views[0])
+if len(sys.argv) > 6:  # one of several probes on their own cores: all start the timed renders together
+    print("ready", flush=True)
+    sys.stdin.readline()
 walls, cpus = [], []
 for g in views:
     c0 = time.process_time()
@@ -300,6 +304,36 @@ def floor(space: Path, cores: str, out: Path, device: str = "cpu") -> dict:
     }
 
 
+def floor_all_cores(space: Path, cores: str, out: Path) -> dict:
+    """The bare renders of `out`'s views on every core of `cores` at once, one process pinned to each core,
+    their timed renders started together: the views/s the machine itself gains from its cores (shared caches,
+    memory bandwidth, the host's scheduling), the ceiling of any job's speed-up from them."""
+    plans = sorted((out / "_plan").glob("*.json"))
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", FLOOR_PROBE, str(ROOT), str(space), str(plans[0]),
+             json.dumps(plan_frame(out)), "cpu", "together"],
+            cwd=ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+            preexec_fn=pinned(core), env={**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"},
+        )
+        for core in cores.split(",")
+    ]
+    for proc in procs:  # each has loaded the space and rendered its first view
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "ready", "floor probe failed"
+    for proc in procs:
+        assert proc.stdin is not None
+        proc.stdin.write("go\n")
+        proc.stdin.flush()
+    walls = []
+    for proc in procs:
+        stdout, _ = proc.communicate()
+        if proc.returncode != 0:
+            raise RuntimeError(f"floor of {space.name} on cores {cores} failed ({proc.returncode})")
+        walls.append(json.loads(stdout.strip().splitlines()[-1])["wall"])
+    views = sum(len(w) for w in walls)
+    return {"cores": cores, "views": views, "views_per_s": round(views / max(sum(w) for w in walls), 3)}
+
+
 DERIVED_EXCLUDE = ("passes",)  # the render task; every other task is a derivation (and its encoding)
 
 
@@ -334,6 +368,11 @@ def summarise(repeats: list[dict]) -> dict:
         out["all_cores_to_one_core_views_per_s"] = {
             "median": round(median(multi), 2), "worst": round(min(multi), 2),
         }
+    machine = [r["floor_all_cores"]["views_per_s"] * r["floor"]["s_per_view_mean"] for r in repeats
+               if "floor_all_cores" in r]
+    if machine:  # the bare render alone on all cores against one: what the cores give at best
+        out["floor_all_cores_to_one_core_views_per_s"] = {"median": round(median(machine), 2),
+                                                          "worst": round(min(machine), 2)}
     for name, run in (("one_core", "generate"), ("all_cores", "all_cores")):
         busy = [r[run]["busy"] for r in repeats if r.get(run, {}).get("busy")]
         if busy:  # the render process's time in render tasks: of the run's wall, of its task window
@@ -423,6 +462,7 @@ def main() -> int:
                         *ROOMS[room], args.core, Path(tmp) / f"{room}-{i}-small", small, 1
                     )
                 if args.cores:
+                    rep["floor_all_cores"] = floor_all_cores(ROOMS[room][0], args.cores, out)
                     rep["all_cores"] = generate(
                         *ROOMS[room], args.cores, Path(tmp) / f"{room}-{i}-all", spec, None
                     )
@@ -476,15 +516,17 @@ def _stability_rows(rooms: dict) -> list[dict]:
 def figures_table(result: dict) -> list[str]:
     """One line a room: one core and all cores x floor, all cores against one in views/s, and the render
     process's busy fraction (of the wall, of the task window), then the segment-stability table."""
-    lines = ["room | 1 core x floor | all cores x floor | all/1 views/s | render busy 1 core | "
-             "render busy all cores (wall, task window)"]
+    lines = ["room | 1 core x floor | all cores x floor | all/1 views/s | bare render all/1 views/s | "
+             "render busy 1 core | render busy all cores (wall, task window)"]
     for room, r in result["rooms"].items():
         s = r["summary"]
         one, multi = s.get("render_busy_one_core", {}), s.get("render_busy_all_cores", {})
         lines.append(" | ".join(str(x) for x in (
             room, s["end_to_end_to_floor"]["median"],
             s.get("all_cores_end_to_end_to_floor", {}).get("median"),
-            s.get("all_cores_to_one_core_views_per_s", {}).get("median"), one.get("render_busy_of_wall"),
+            s.get("all_cores_to_one_core_views_per_s", {}).get("median"),
+            s.get("floor_all_cores_to_one_core_views_per_s", {}).get("median"),
+            one.get("render_busy_of_wall"),
             (multi.get("render_busy_of_wall"), multi.get("render_busy_of_task_window")),
         )))
     rows = result.get("segment_stability") or []

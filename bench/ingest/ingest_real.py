@@ -9,7 +9,8 @@ through `resolve_frame`, the call `load_space` makes once the file is read (poin
 service's reconstruction, in their delivered frame). Outcome per case: levelled (within 3 degrees), wrong
 (planned more than 3 degrees off without asking) or refused (with the true up as the first candidate, or not).
 Single depth frames (one sensor view, not a room) are reported apart from the rooms, and so are the held-out
-rooms (`"held_out": true`, files in shared/rooms_held_out: never tuned on), with a figure of their own. A
+rooms (`"held_out": true`, files in shared/rooms_held_out: never tuned on), with a figure of their own and one
+per held-out set (`"held_out_set"`, 1 where absent). A
 gravity recorded beside a room (`services.core.ingest.frame.recorded_gravity`) and the camera poses
 delivered with it (`capture_up` in truth.json: the mean camera up) count for the delivered case only, as
 load_space reads them beside the file. A point cloud's own points go with its mesh, rotated alike.
@@ -132,8 +133,10 @@ def main() -> None:
         truth.update({name: {**room, "extra": True} for name, room in json.loads(extra.read_text()).items()})
     rows: list[dict[str, Any]] = []
     t_start = time.perf_counter()
-    # held-out rooms last, so adding them leaves the other rooms' random rotations (seed + index) as they were
-    order = sorted(truth.items(), key=lambda item: (bool(item[1].get("held_out")), item[0]))
+    # held-out rooms last and each held-out set after the earlier ones, so adding rooms leaves the other
+    # rooms' random rotations (seed + index) as they were
+    order = sorted(truth.items(), key=lambda item: (bool(item[1].get("held_out")),
+                                                     int(item[1].get("held_out_set", 1)), item[0]))
     for i, (name, room) in enumerate(order):
         if args.rooms and name not in args.rooms:
             continue
@@ -152,6 +155,7 @@ def main() -> None:
             given = recorded.up if recorded is not None and case == "delivered" else None
             cameras = np.asarray(poses, dtype=float) if poses is not None and case == "delivered" else None
             row = {"room": name, "place": room.get("place", name), "source": room["source"],
+                   "held_out_set": int(room.get("held_out_set", 1)) if room.get("held_out") else None,
                    "kind": room["kind"], "single_frame": bool(room.get("single_frame")),
                    "held_out": bool(room.get("held_out")), "extra": bool(room.get("extra")), "case": case,
                    "recorded_gravity": given is not None, "capture_poses": cameras is not None,
@@ -181,7 +185,9 @@ def main() -> None:
         "held_out": {"files": sorted({r["room"] for r in held}), "rooms": shares(pick(False, True)),
                      "single_depth_frames": shares(pick(True, True)),
                      "by_kind": {k: shares([r for r in held if r["kind"] == k])
-                                 for k in sorted({r["kind"] for r in held})}},
+                                 for k in sorted({r["kind"] for r in held})},
+                     "by_set": {str(k): shares([r for r in held if r["held_out_set"] == k])
+                                for k in sorted({r["held_out_set"] for r in held})}},
         "wrong_cases": [r for r in rows if r["outcome"] == "wrong"],
         "seconds": round(time.perf_counter() - t_start, 1),
         "machine": {"python": platform.python_version(), "cpu": platform.processor() or platform.machine()},

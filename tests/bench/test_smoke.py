@@ -37,6 +37,7 @@ SMOKE: dict[str, tuple[str, str]] = {
     "ingest/ingest.py": ("--rotations 1 --synthetic 1 --closed 1 --cloud-points 0 --no-real-corpus",
                          "ingest.json"),
     "ingest/ingest_real.py": ("--rooms copyroom", "ingest_real.json"),
+    "ingest/mirror_sign.py": ("--rooms copyroom", "mirror_sign.json"),
     "output/datasets.py": ("--resolution 64 --views 1", "datasets.json"),
     "output/encode_cost.py": ("--repeats 1 --cache {passes}", "encode_cost.json"),
     "output/encodings.py": ("--repeats 1 --cache {passes}", "encodings.json"),

@@ -4,9 +4,8 @@ more evidence than the storey height, with a refusal when the units stay ambiguo
 Frames and units: the mesh in its source frame and the file's units; `up` is a unit vector in that frame.
 A unit is a candidate when it puts the scan's height (floor to top along up) in a room's range: 1.8-6 m
 with a ceiling seen (a storey), 0.8-6 m without one (a partial scan stops wherever the capture did: a floor
-around a sofa and a coffee table is 1.1 m tall). Centimetres against inches (a factor 2.54) is the usual
-pair; without a ceiling a low scan also admits a unit 10 or 25.4 times apart. Each candidate is scored with
-log-odds terms:
+around a sofa and a coffee table is 1.1 m tall). Only centimetres and inches (a factor 2.54) can both fit:
+every other pair of units is more than 6 / 0.8 apart. Each candidate is scored with log-odds terms:
 
 - `storey`: -0.5 above 3.5 m (tall rooms are rare), else 0.
 - `camera`: RGB-D reconstructions are stored in their first camera's frame, so the origin is where a
@@ -165,7 +164,7 @@ def measure(mesh: trimesh.Trimesh, up: np.ndarray, ceiling_fraction: float | Non
     found = (h[tops], areas[tops]) if floor > 0 and areas[tops].sum() >= FURNITURE_MIN_SHARE * floor else None
     if ceiling_fraction is None:
         down = float(areas[(c < -_UP_COS) & (h >= 0.5 * height)].sum())
-        ceiling_fraction = down / floor if floor > 0 else 0.0
+        ceiling_fraction = down / floor if floor > 0 else float(down > 0)  # a ceiling over no floor: seen
     centre = v.mean(axis=0)
     flat = (v - centre) - np.outer((v - centre) @ up, up)
     _, _, axes = np.linalg.svd(flat[:: max(1, len(flat) // 20000)], full_matrices=False)

@@ -254,6 +254,18 @@ def test_unit_evidence_measures_the_tops_of_a_short_partial_room_in_millimetres(
     assert units.scale == 0.001 and units.unit == "millimetres" and not units.ambiguous
 
 
+def test_a_ceiling_over_no_floor_is_a_ceiling_seen() -> None:
+    """A ceiling-only capture along its true up: 125 units is a 3.2 m storey in inches, not 1.25 m in cm."""
+    from services.core.ingest.frame.unit_evidence import choose_units
+
+    ceiling = trimesh.creation.box([300.0, 200.0, 1.0]).apply_translation([0.0, 0.0, 125.0])
+    wall = trimesh.creation.box([1.0, 200.0, 125.0]).apply_translation([150.0, 0.0, 62.5])
+    lid = trimesh.util.concatenate([ceiling, wall])
+    lid.update_faces(lid.face_normals[:, 2] < 0.5)  # seen from below: no face looks up
+    units = choose_units(lid, np.array([0.0, 0.0, 1.0]), 125.5)
+    assert units.unit == "inches" and not units.ambiguous
+
+
 def test_the_median_edge_length_is_trimeshs_median_of_its_unique_edges(scenes_dir: Path) -> None:
     from services.core.ingest.frame.unit_evidence import median_edge_length
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.core.ingest.errors import UnitsAmbiguous, UpAmbiguous
+from services.core.ingest.errors import UpAmbiguous
 from services.core.ingest.frame.gravity import estimate_up
 from services.core.ingest.frame.unit_evidence import choose_units
 from services.core.ingest.loading import load_space
@@ -94,26 +94,17 @@ def test_partial_scan_in_centimetres_is_not_read_as_inches(tmp_path: Path) -> No
     assert space.units is not None and space.units.scale == 0.01 and space.units.unit == "centimetres"
     # the alternative, and why it lost
     inches = next(c for c in space.units.candidates if c["unit"] == "inches")
-    assert inches["storey_height_m"] > 4 and inches["evidence"]["camera"] < 0 and not space.units.ambiguous
+    assert inches["storey_height_m"] > 4 and inches["evidence"]["furniture"] < 0 and not space.units.ambiguous
     assert space.frame_record()["units"]["candidates"][0]["unit"] == "centimetres"
 
 
-def test_ambiguous_units_refused_naming_both_then_picked(tmp_path: Path) -> None:
-    """No camera at the origin and no furniture above 1.5 m either way: cm or inches is a coin toss;
-    refused."""
+def test_partial_scan_in_centimetres_told_by_its_furniture_without_a_camera(tmp_path: Path) -> None:
+    """No camera at the origin: the counter tops at 0.8 m (2 m in inches) tell centimetres from inches."""
     src, truth = _partial_cm("kitchen_partial_000", tmp_path, shift=True)
-    with pytest.raises(UnitsAmbiguous) as err:
-        load_space(src, up=truth)
-    line = str(err.value)
-    assert "\n" not in line and "units are ambiguous" in line
-    assert ("centimetres (--unit-scale=0.01: storey 1.4" in line
-            and "inches (--unit-scale=0.0254: storey 3.7" in line)
-    assert {c["unit"] for c in err.value.candidates} == {"centimetres", "inches"}
-    picked = load_space(src, up=truth, unit_scale=0.01).units
-    assert picked is not None and picked.scale == 0.01 and picked.unit == "given"
-    guessed = load_space(src, up=truth, accept_up_guess=True)
-    assert (guessed.units is not None and guessed.units.ambiguous
-            and guessed.frame_record()["units"]["ambiguous"])
+    space = load_space(src, up=truth)
+    assert space.units is not None and space.units.unit == "centimetres" and not space.units.ambiguous
+    inches = next(c for c in space.units.candidates if c["unit"] == "inches")
+    assert "camera" not in inches["evidence"] and inches["evidence"]["furniture"] < 0
 
 
 def test_rotated_7scenes_kitchen_in_mm_levelled_or_refused_true_up_first(

@@ -2,18 +2,19 @@
 more evidence than the storey height, with a refusal when the units stay ambiguous.
 
 Frames and units: the mesh in its source frame and the file's units; `up` is a unit vector in that frame.
-The storey height (floor to top of the scan along up) admits more than one unit only for centimetres
-against inches (a factor 2.54): 120-236 units is a 1.2-2.4 m partial scan in centimetres or a 3-6 m
-storey in inches. Each unit that makes the storey plausible is scored with log-odds terms:
+A unit is a candidate when it puts the scan's height (floor to top along up) in a room's range: 1.8-6 m
+with a ceiling seen (a storey), 0.8-6 m without one (a partial scan stops wherever the capture did: a floor
+around a sofa and a coffee table is 1.1 m tall). Only centimetres and inches (a factor 2.54) can both fit:
+every other pair of units is more than 6 / 0.8 apart. Each candidate is scored with log-odds terms:
 
-- `storey`: 0 for a full storey (1.8-3.5 m); -1 for 1.2-1.8 m (only a partial scan without its ceiling
-  is that low; with a ceiling seen it is no candidate at all); -0.5 for 3.5-6 m (tall rooms are rare).
+- `storey`: -0.5 above 3.5 m (tall rooms are rare), else 0.
 - `camera`: RGB-D reconstructions are stored in their first camera's frame, so the origin is where a
-  person held the camera: when it lies over the scan, 0.3-2.2 m above the floor scores +0.5 and more
-  than 2.6 m scores -1 (nobody holds a camera that high; an origin on the floor says nothing).
-- `furniture`: seats, tables and counters are what a scan sees from above. When the up-facing surfaces
-  between floor and top cover at least 5 % of the floor, their lowest tenth (by area) lying above 1.5 m
-  scores -1 (a room whose every table top is over 1.5 m is no room). No bonus: low tops prove nothing.
+  person held the camera: when it lies over the scan, 0.3-2.2 m above the floor scores +0.5 (an origin
+  elsewhere says nothing: exporters put it anywhere).
+- `furniture`: seats, tables and counters are what a scan sees from above, at 0.35-1.0 m. When the
+  up-facing surfaces between floor and top cover at least 5 % of the floor, the share of their area at
+  those heights scores +1 from half of it up and -1 below a quarter (one unit puts a room's seats and
+  tables there; a unit 2.54 times off puts them at 0.9-2.5 m or 0.15-0.4 m).
 - `spacing`: RGB-D fusions are meshed at 0.5-6 cm (TSDF voxels, Poisson depth): a median triangle edge
   in that range scores +0.5 (a dense scan whose edges would be 10 cm in one unit and 4 cm in the other).
 
@@ -92,12 +93,12 @@ def choose_unit_scale(storey_height: float | None, extent: float) -> UnitChoice:
 UNIT_SCALES: tuple[tuple[str, float], ...] = (
     ("metres", 1.0), ("centimetres", 0.01), ("millimetres", 0.001), ("inches", 0.0254),
 )
-FULL_STOREY_M = (1.8, 6.0)
-PARTIAL_STOREY_M = (1.2, 6.0)  # no ceiling seen: a few seconds of RGB-D capture reach 1.3-2 m
+FULL_STOREY_M = (1.8, 6.0)  # a ceiling seen: floor to ceiling
+PARTIAL_STOREY_M = (0.8, 6.0)  # no ceiling seen: floor to wherever the capture stopped
 TYPICAL_TOP_M = 3.5
 CAMERA_HELD_M = (0.3, 2.2)
-CAMERA_TOO_HIGH_M = 2.6
-FURNITURE_TOO_HIGH_M = 1.5
+SUPPORT_HEIGHTS_M = (0.35, 1.0)  # seats 0.35-0.55, tables 0.6-0.8, counters 0.85-1.0
+SUPPORT_SHARE = (0.25, 0.5)  # share of the tops at those heights: below -1, from +1
 FURNITURE_MIN_SHARE = 0.05
 FUSION_EDGE_M = (0.005, 0.06)
 REFUSE_MARGIN = 1.0
@@ -135,8 +136,17 @@ class ScanMeasures:
     extent: tuple[float, float, float]  # the scan's extents along its own principal axes, largest first
     ceiling_seen: bool
     origin_height: float | None  # the origin's height above the floor when it lies over the scan
-    furniture_low_top: float | None  # lowest tenth (by area) of the up-facing surfaces above the floor band
+    # the up-facing surfaces between the end bands: (heights above the floor, areas), when they cover
+    # FURNITURE_MIN_SHARE of the floor
+    tops: tuple[np.ndarray, np.ndarray] | None
     median_edge: float
+
+    def support_share(self, scale: float) -> float | None:
+        """The share of the tops' area at seat-to-counter heights with `scale` metres per unit."""
+        if self.tops is None:
+            return None
+        h, a = self.tops[0] * scale, self.tops[1]
+        return float(a[(h >= SUPPORT_HEIGHTS_M[0]) & (h <= SUPPORT_HEIGHTS_M[1])].sum() / a.sum())
 
 
 def measure(mesh: trimesh.Trimesh, up: np.ndarray, ceiling_fraction: float | None = None) -> ScanMeasures:
@@ -151,14 +161,10 @@ def measure(mesh: trimesh.Trimesh, up: np.ndarray, ceiling_fraction: float | Non
     areas = np.asarray(mesh.area_faces)
     floor = float(areas[(c > _UP_COS) & (h <= _BAND * height)].sum())
     tops = (c > _UP_COS) & (h > _BAND * height) & (h < (1 - _BAND) * height)
-    low_top = None
-    if floor > 0 and areas[tops].sum() >= FURNITURE_MIN_SHARE * floor:
-        order = np.argsort(h[tops])
-        cum = np.cumsum(areas[tops][order]) / areas[tops].sum()
-        low_top = float(h[tops][order][np.searchsorted(cum, 0.1)])
+    found = (h[tops], areas[tops]) if floor > 0 and areas[tops].sum() >= FURNITURE_MIN_SHARE * floor else None
     if ceiling_fraction is None:
         down = float(areas[(c < -_UP_COS) & (h >= 0.5 * height)].sum())
-        ceiling_fraction = down / floor if floor > 0 else 0.0
+        ceiling_fraction = down / floor if floor > 0 else float(down > 0)  # a ceiling over no floor: seen
     centre = v.mean(axis=0)
     flat = (v - centre) - np.outer((v - centre) @ up, up)
     _, _, axes = np.linalg.svd(flat[:: max(1, len(flat) // 20000)], full_matrices=False)
@@ -169,7 +175,7 @@ def measure(mesh: trimesh.Trimesh, up: np.ndarray, ceiling_fraction: float | Non
     across = float(np.linalg.norm(centre - (centre @ up) * up))
     inside = 0.0 < origin_h <= 1.5 * height and across <= spans[0]
     return ScanMeasures(height, (spans[0], spans[1], height), ceiling_fraction >= 0.3,
-                        origin_h if inside else None, low_top, median_edge_length(mesh))
+                        origin_h if inside else None, found, median_edge_length(mesh))
 
 
 def median_edge_length(mesh: trimesh.Trimesh) -> float:
@@ -191,13 +197,14 @@ def _terms(m: ScanMeasures, scale: float) -> dict[str, float] | None:
     lo, hi = FULL_STOREY_M if m.ceiling_seen else PARTIAL_STOREY_M
     if not lo <= storey <= hi:
         return None
-    terms = {"storey": -1.0 if storey < FULL_STOREY_M[0] else -0.5 if storey > TYPICAL_TOP_M else 0.0}
+    terms = {"storey": -0.5 if storey > TYPICAL_TOP_M else 0.0}
     if m.origin_height is not None:
         cam = m.origin_height * scale
-        terms["camera"] = (0.5 if CAMERA_HELD_M[0] <= cam <= CAMERA_HELD_M[1]
-                           else -1.0 if cam > CAMERA_TOO_HIGH_M else 0.0)
-    if m.furniture_low_top is not None:
-        terms["furniture"] = -1.0 if m.furniture_low_top * scale > FURNITURE_TOO_HIGH_M else 0.0
+        terms["camera"] = 0.5 if CAMERA_HELD_M[0] <= cam <= CAMERA_HELD_M[1] else 0.0
+    share = m.support_share(scale)
+    if share is not None:
+        terms["furniture"] = (1.0 if share >= SUPPORT_SHARE[1] else -1.0 if share < SUPPORT_SHARE[0]
+                              else 0.0)
     edge = m.median_edge * scale
     terms["spacing"] = 0.5 if FUSION_EDGE_M[0] <= edge <= FUSION_EDGE_M[1] else 0.0
     return terms

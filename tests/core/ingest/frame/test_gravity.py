@@ -200,24 +200,70 @@ def test_a_flat_scan_is_seen_from_the_side_its_faces_face(normal: list[float]) -
     assert corpus.up_error_deg(est.up, n) < 1e-6
 
 
+def _tops(*heights_areas: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    h, a = zip(*heights_areas, strict=True)
+    return np.asarray(h, dtype=float), np.asarray(a, dtype=float)
+
+
 def test_unit_evidence_picks_centimetres_or_refuses_never_guesses() -> None:
     from services.core.ingest.frame.unit_evidence import ScanMeasures, decide_units
 
-    # 150 units tall, no ceiling: 1.5 m in cm or 3.81 m in inches
+    # 150 units tall, no ceiling: 1.5 m in cm or 3.81 m in inches; tables at 75 units (0.75 m or 1.9 m)
     partial = ScanMeasures(storey=150.0, extent=(340.0, 250.0, 150.0), ceiling_seen=False,
-                           origin_height=145.0, furniture_low_top=75.0, median_edge=4.0)
+                           origin_height=145.0, tops=_tops((75.0, 1.0), (45.0, 0.5)), median_edge=4.0)
     d = decide_units(partial)
     assert [c.unit for c in d.ranked] == ["centimetres", "inches"] and not d.ambiguous
-    # a 3.7 m camera, 1.9 m tables
-    assert d.ranked[1].terms["camera"] < 0 and d.ranked[1].terms["furniture"] < 0
-    # nothing but the storey: no camera at the origin, no furniture, coarse triangles
+    assert d.ranked[0].terms["furniture"] > 0 and d.ranked[1].terms["furniture"] < 0
+    # nothing but the height: no camera at the origin, no furniture, coarse triangles
     bare = ScanMeasures(150.0, (340.0, 250.0, 150.0), False, None, None, 100.0)
     assert decide_units(bare).ambiguous
     # a ceiling seen: 1.5 m is no storey, inches (3.81 m) is the only candidate
     closed = decide_units(ScanMeasures(150.0, (340.0, 250.0, 150.0), True, None, None, 100.0))
     assert [c.unit for c in closed.ranked] == ["inches"] and not closed.ambiguous
     assert [c.unit for c in decide_units(
-        ScanMeasures(2.5, (5.0, 4.0, 2.5), True, 1.2, 0.7, 0.03)).ranked] == ["metres"]
+        ScanMeasures(2.5, (5.0, 4.0, 2.5), True, 1.2, _tops((0.7, 1.0)), 0.03)).ranked] == ["metres"]
+
+
+def test_a_short_partial_room_in_millimetres_is_accepted_an_ambiguous_one_refused() -> None:
+    """A floor around sofas and a coffee table, 1.1 m tall (no walls or ceiling above): in millimetres it is
+    the only room (1.1 m; 11 m in cm fits nothing); 110 units is 1.1 m in cm or a 2.8 m storey in inches,
+    told apart by the seats at 42 units (0.42 m against 1.07 m). Without furniture, asked."""
+    from services.core.ingest.frame.unit_evidence import ScanMeasures, decide_units
+
+    seats = _tops((420.0, 1.0), (450.0, 0.3))
+    mm = decide_units(ScanMeasures(1100.0, (4700.0, 4000.0, 1100.0), False, None, seats, 23.0))
+    assert [c.unit for c in mm.ranked] == ["millimetres"] and not mm.ambiguous
+    cm = decide_units(ScanMeasures(110.0, (470.0, 400.0, 110.0), False, None, _tops((42.0, 1.0)), 2.3))
+    assert [c.unit for c in cm.ranked] == ["centimetres", "inches"] and not cm.ambiguous
+    bare = decide_units(ScanMeasures(110.0, (470.0, 400.0, 110.0), False, None, None, 2.3))
+    assert {c.unit for c in bare.ranked} == {"centimetres", "inches"} and bare.ambiguous
+    # lower than a room (0.5 m in metres; 5 mm in cm): no unit, whatever the furniture
+    assert not decide_units(ScanMeasures(0.5, (4.7, 4.0, 0.5), False, None, _tops((0.42, 1.0)), 0.023)).ranked
+
+
+def test_unit_evidence_measures_the_tops_of_a_short_partial_room_in_millimetres() -> None:
+    """`measure` on a mesh: a 5 x 4 m floor, a 2 x 1 m seat at 450 mm and a wall 1.1 m tall, in mm: the seat
+    puts millimetres alone among the units (11 m in cm, 28 m in inches)."""
+    from services.core.ingest.frame.unit_evidence import choose_units
+
+    floor = trimesh.creation.box([5000.0, 4000.0, 10.0])
+    seat = trimesh.creation.box([2000.0, 1000.0, 10.0]).apply_translation([0.0, 0.0, 450.0])
+    wall = trimesh.creation.box([10.0, 4000.0, 1100.0]).apply_translation([2500.0, 0.0, 550.0])
+    room = trimesh.util.concatenate([floor, seat, wall])  # tops face up: the floor's and the seat's
+    units = choose_units(room, np.array([0.0, 0.0, 1.0]), 1105.0)
+    assert units.scale == 0.001 and units.unit == "millimetres" and not units.ambiguous
+
+
+def test_a_ceiling_over_no_floor_is_a_ceiling_seen() -> None:
+    """A ceiling-only capture along its true up: 125 units is a 3.2 m storey in inches, not 1.25 m in cm."""
+    from services.core.ingest.frame.unit_evidence import choose_units
+
+    ceiling = trimesh.creation.box([300.0, 200.0, 1.0]).apply_translation([0.0, 0.0, 125.0])
+    wall = trimesh.creation.box([1.0, 200.0, 125.0]).apply_translation([150.0, 0.0, 62.5])
+    lid = trimesh.util.concatenate([ceiling, wall])
+    lid.update_faces(lid.face_normals[:, 2] < 0.5)  # seen from below: no face looks up
+    units = choose_units(lid, np.array([0.0, 0.0, 1.0]), 125.5)
+    assert units.unit == "inches" and not units.ambiguous
 
 
 def test_the_median_edge_length_is_trimeshs_median_of_its_unique_edges(scenes_dir: Path) -> None:

@@ -10,12 +10,17 @@ import re
 from pathlib import Path
 
 import numpy as np
+import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
+from services.core.ingest.loading import load_space
 from tests.fixtures.cli import omnidata
 from tests.fixtures.real_corpus import REAL_SCANS, real_rooms
 from tests.fixtures.rotation_corpus import up_error_deg
+
+HELD_OUT = Path(__file__).resolve().parents[2] / "shared" / "rooms_held_out"
+LIVING_ROOM = HELD_OUT / "teaser_uw_rgbd_living_room" / "teaser_uw_rgbd_living_room.ply"
 
 
 def _rotated_mm(tmp_path: Path) -> tuple[Path, np.ndarray]:
@@ -75,15 +80,21 @@ def test_generate_stops_before_rendering(tmp_path: Path) -> None:
     )
 
 
-def test_plan_stops_on_ambiguous_units_then_plans_with_unit_scale(tmp_path: Path) -> None:
-    """A partial scan in centimetres, re-centred away from its camera: cm or inches; the line names both."""
-    room = next(r for r, _ in real_rooms() if r.name == "kitchen_partial_000")
-    mesh = trimesh.load(REAL_SCANS / "kitchen_partial_000.ply", process=False)
+def test_plan_stops_on_ambiguous_units_then_plans_with_unit_scale(tmp_path: Path,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    """A real partial room 1.1 m tall (the held-out living room's mesh) in centimetres, every surface above
+    its floor that faces up cut away: 1.1 m in cm or a 2.8 m storey in inches; the line names both."""
+    monkeypatch.setenv("OMNIDATA_DATA_DIR", str(tmp_path / "data"))  # the meshed cloud is cached there
+    truth = np.array([-0.043295, -0.979856, -0.194957])  # bench/scans/rooms/truth.json
+    room_up = truth / np.linalg.norm(truth)
+    mesh = load_space(LIVING_ROOM, source_to_world=np.eye(4).tolist()).mesh.copy()
+    heights = mesh.triangles_center @ room_up - float((mesh.vertices @ room_up).min())
+    tall = float(np.ptp(mesh.vertices @ room_up))
+    mesh.update_faces(~((mesh.face_normals @ room_up > 0.9) & (heights > 0.1 * tall)))
     mesh.apply_scale(100.0)
-    mesh.apply_translation([5000.0, 0.0, 5000.0])
     src = tmp_path / "partial_cm.ply"
     mesh.export(src)
-    up = "--up=" + ",".join(f"{x:.6g}" for x in room.up)
+    up = "--up=" + ",".join(f"{x:.6g}" for x in room_up)
     args = ["--points", 2, "--min-views", 1, "--seed", 1]
     res = omnidata("plan", src, "--out", tmp_path / "p", up, *args)
     assert res.returncode == 2, res.stdout + res.stderr
@@ -95,5 +106,5 @@ def test_plan_stops_on_ambiguous_units_then_plans_with_unit_scale(tmp_path: Path
     assert "inches (--unit-scale=0.0254: storey" in line and not (tmp_path / "p" / "job.json").exists()
     res = omnidata("plan", src, "--out", tmp_path / "q", up, "--unit-scale", "0.01", *args)
     assert res.returncode == 0, res.stderr
-    _, space = _level_error(tmp_path / "q" / "job.json", room.up)
+    _, space = _level_error(tmp_path / "q" / "job.json", room_up)
     assert space["units"]["unit_scale"] == 0.01 and space["units"]["unit"] == "given"

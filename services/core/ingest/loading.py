@@ -44,10 +44,10 @@ from services.core.ingest.capture.model import Capture
 from services.core.ingest.datasets import DatasetError, DatasetScene, scene_of
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.frame.gravity import UpEstimate
+from services.core.ingest.frame.reason_words import reason_words
 from services.core.ingest.frame.recorded_gravity import read_recorded_up
 from services.core.ingest.frame.resolve import FrameRequest, resolve_frame
 from services.core.ingest.frame.unit_evidence import UnitChoice
-from services.core.ingest.frame.up_evidence import reason_words
 from services.core.ingest.guard.archive import resolve_source
 from services.core.ingest.guard.archive_rules import file_expansion_refusal
 from services.core.ingest.guard.confine import ConfinedResolver, is_inside

@@ -6,8 +6,9 @@ the same cloud always gives the same triangles, the reference of the `fragments`
 ways so it does not invent surfaces where nothing was scanned: vertices whose Poisson sample density is
 in the lowest `TRIM_DENSITY_QUANTILE`, and faces farther than `TRIM_SPACINGS` median point spacings
 from every point. Colours go to the vertices from the nearest point. Normals, when the cloud has none,
-are estimated from 10 neighbours and turned towards the centre of the bounding box (a room scanned from
-inside; give normals for single objects). The mesh is cached per cloud checksum and parameters.
+are estimated from 10 neighbours and turned towards a viewpoint (`viewpoint`): the camera at the origin of
+a cloud in its camera's frame, else the bounding box's centre (a room scanned from inside; give normals for
+single objects). The mesh is cached per cloud checksum and parameters.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from services.core.domain.json_types import JSONObject
+from services.core.ingest.frame.camera_frame import in_camera_frame
 from services.core.ingest.guard.confine import ConfinedResolver
 
 CLOUD_SUFFIXES = (".xyz", ".pts")
@@ -34,7 +36,7 @@ POISSON_DEPTH_RANGE = (6, 10)
 TRIM_DENSITY_QUANTILE = 0.02
 TRIM_SPACINGS = 2.5
 MAX_POINTS = 20_000_000
-RECONSTRUCTION_VERSION = 1  # bump when the method changes: cached meshes are keyed by it
+RECONSTRUCTION_VERSION = 2  # bump when the method changes: cached meshes are keyed by it
 
 
 class CloudError(ValueError):
@@ -142,6 +144,16 @@ def median_spacing(points: np.ndarray) -> float:
     return float(np.median(d[:, 1]))
 
 
+def viewpoint(points: np.ndarray) -> tuple[np.ndarray, str]:
+    """Where estimated normals are turned towards, and its name: the camera at the origin of a cloud stored in
+    its camera's frame (`in_camera_frame`: a depth frame, an RGB-D fusion in its first camera's), else the
+    bounding box's centre (a room scanned from inside). Towards the centre, a table top above the centre's
+    height would face down, as the underside of something hanging from a ceiling."""
+    if in_camera_frame(points):
+        return np.zeros(3), "the camera at the source origin (a cloud in its camera's frame)"
+    return 0.5 * (points.min(axis=0) + points.max(axis=0)), "the bounding-box centre"
+
+
 def reconstruct(cloud: Cloud, name: str) -> tuple[trimesh.Trimesh, JSONObject]:
     """Mesh a cloud (see the module docstring); returns the mesh (source frame) and its job.json record."""
     import pymeshlab
@@ -155,8 +167,8 @@ def reconstruct(cloud: Cloud, name: str) -> tuple[trimesh.Trimesh, JSONObject]:
     ms.add_mesh(pymeshlab.Mesh(**kwargs))
     estimated = cloud.normals is None
     if estimated:
-        centre = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
-        ms.compute_normal_for_point_clouds(k=10, smoothiter=0, flipflag=True, viewpos=centre)
+        eye, seen_from = viewpoint(pts)
+        ms.compute_normal_for_point_clouds(k=10, smoothiter=0, flipflag=True, viewpos=eye)
     depth = poisson_depth(len(pts))
     ms.generate_surface_reconstruction_screened_poisson(
         depth=depth, samplespernode=POISSON_SAMPLES_PER_NODE, preclean=True, threads=1)
@@ -187,7 +199,7 @@ def reconstruct(cloud: Cloud, name: str) -> tuple[trimesh.Trimesh, JSONObject]:
             "depth": depth, "samples_per_node": POISSON_SAMPLES_PER_NODE,
             "trim_density_quantile": TRIM_DENSITY_QUANTILE, "trim_spacings": TRIM_SPACINGS,
             "median_spacing": spacing,
-            "normals": "estimated (k=10, towards the bounding-box centre)" if estimated else "given",
+            "normals": f"estimated (k=10, towards {seen_from})" if estimated else "given",
             "version": RECONSTRUCTION_VERSION,
         },
         "point_count": int(len(pts)),

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import trimesh
 from scipy.spatial.transform import Rotation
 
 from services.core.ingest.errors import UpAmbiguous
@@ -26,7 +27,9 @@ def test_a_ceiling_only_capture_is_never_levelled_upside_down(tmp_path: Path,
                                                               monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("OMNIDATA_DATA_DIR", str(tmp_path))  # the meshed cloud is cached there
     mesh = load_space(CORRIDOR, source_to_world=np.eye(4).tolist()).mesh
-    _, est, _ = resolve_frame(mesh, ".ply", FrameRequest("auto", "auto", None, None))
+    points = np.asarray(trimesh.load(CORRIDOR).vertices)  # a cloud's points go with its mesh, as in loading
+    request = FrameRequest("auto", "auto", None, None)
+    _, est, _ = resolve_frame(mesh, ".ply", request, "corridor", lambda: points)
     assert up_error_deg(est.up, UP) < 3.0, est.record()
     assert "the file was levelled" in est.record()["reason"]
     R = Rotation.from_euler("xyz", [37, -64, 121], degrees=True).as_matrix()
@@ -35,7 +38,7 @@ def test_a_ceiling_only_capture_is_never_levelled_upside_down(tmp_path: Path,
     T[:3, :3] = R
     rotated.apply_transform(T)
     try:
-        _, est, _ = resolve_frame(rotated, ".ply", FrameRequest("auto", "auto", None, None))
+        _, est, _ = resolve_frame(rotated, ".ply", request, "corridor", lambda: points @ R.T)
     except UpAmbiguous:
         return  # asked, not planned on a guess
     assert up_error_deg(est.up, R @ UP) < 3.0, est.record()

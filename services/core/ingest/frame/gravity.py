@@ -41,6 +41,7 @@ from scipy.spatial import ConvexHull, QhullError
 
 from services.core.domain.frame_records import UpRecord
 from services.core.ingest.frame.direction_bins import BINS, N_BINS, bin_neighbours, bin_tree
+from services.core.ingest.frame.reason_words import reason_words
 from services.core.ingest.frame.single_view import single_view
 from services.core.ingest.frame.up_evidence import (
     WEIGHTS,
@@ -49,7 +50,6 @@ from services.core.ingest.frame.up_evidence import (
     UpDecision,
     decide,
     nearest_axis,
-    reason_words,
     unit_capture_up,
 )
 
@@ -57,9 +57,9 @@ CONVENTION_UP = {".obj": "+y", ".gltf": "+y", ".glb": "+y", ".ply": "+z"}
 _SPECIFIED_UP = (".gltf", ".glb")  # formats whose specification fixes up (+Y)
 
 
-def file_frame(suffix: str) -> FileFrame:
-    """What a file of this format says about its up before any floor is looked at."""
-    return FileFrame(axis_vector(CONVENTION_UP.get(suffix, "+z")), binding=suffix in _SPECIFIED_UP)
+def file_frame(suffix: str, cloud: bool = False, camera: bool = False) -> FileFrame:
+    """What a file of this format says about its up before any floor is looked at (FileFrame's fields)."""
+    return FileFrame(axis_vector(CONVENTION_UP.get(suffix, "+z")), suffix in _SPECIFIED_UP, cloud, camera)
 
 
 # The one floor rule: a floor face's normal lies within 15 degrees of up. The planner's detect_floors
@@ -344,7 +344,7 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
 
 def estimate_up(mesh: trimesh.Trimesh, suffix: str, capture_up: np.ndarray | None = None,
                 *, disabled_evidence: tuple[str, ...] = (), recorded_up: np.ndarray | None = None,
-                samples: SurfaceSamples | None = None) -> UpEstimate:
+                samples: SurfaceSamples | None = None, file: FileFrame | None = None) -> UpEstimate:
     """Up direction in the source frame, how it was found and how sure (see the module docstring).
 
     `capture_up`: the mean up vector of the capture's cameras in the source frame (-Y of OpenCV camera
@@ -352,7 +352,7 @@ def estimate_up(mesh: trimesh.Trimesh, suffix: str, capture_up: np.ndarray | Non
     `recorded_up`: up from a gravity the capture recorded (unit vector, source frame): the strongest
     evidence; up is then exactly it when the floor agrees, and it stands alone when no floor is found.
     `disabled_evidence`: evidence terms left out (the bench's ablation). `samples`: surface elements that
-    stand in for the mesh's faces (a point cloud's own planes).
+    stand in for the mesh's faces (a point cloud's own planes). `file`: what the file says (`file_frame`).
     """
     conv = axis_vector(CONVENTION_UP.get(suffix, "+z"))
     cam_up = unit_capture_up(capture_up)
@@ -363,7 +363,7 @@ def estimate_up(mesh: trimesh.Trimesh, suffix: str, capture_up: np.ndarray | Non
         return UpEstimate(conv, "convention") if rec_up is None else _recorded_alone(geom, rec_up)
     cands = [_floor_candidate(geom, s * f) for f, _ in families for s in (1.0, -1.0)]
     if any(c.floor_fraction >= _FLOOR_MIN_FRACTION for c in cands):
-        decision = decide([c.facts() for c in cands], cam_up, file_frame(suffix),
+        decision = decide([c.facts() for c in cands], cam_up, file or file_frame(suffix),
                           disabled_evidence, single_view(geom.vertices), rec_up)
         best = next(c for c in cands if c.up is decision.best.up)
         runner = decision.runner_up

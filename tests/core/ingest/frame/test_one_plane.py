@@ -7,13 +7,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from services.core.ingest.frame.reason_words import reason_words
 from services.core.ingest.frame.up_evidence import (
     MIRROR_CAP,
+    MIRROR_CAP_CLOUD,
     REFUSE_MARGIN,
     CandidateFacts,
     FileFrame,
     decide,
-    reason_words,
 )
 
 Z = np.array([0.0, 0.0, 1.0])
@@ -86,3 +87,24 @@ def test_a_levelled_floor_and_ceiling_on_a_negative_axis_keep_the_geometrys_sign
     d = decide(_room(-y, pair=True), file=FileFrame(Z))
     assert float(d.best.up @ -y) > 0.99
     assert not d.ambiguous
+
+
+def test_a_point_clouds_geometry_orders_its_two_signs_but_never_decides() -> None:
+    """A cloud's sides come from estimated normals: the same one-plane room as a cloud is refused, its
+    geometry's sign first, where as a mesh it is levelled."""
+    d = decide(_room(-Z, pair=False), file=FileFrame(X, cloud=True))
+    assert d.ambiguous
+    assert float(d.best.up @ -Z) > 0.99 and d.margin == pytest.approx(MIRROR_CAP_CLOUD)
+    assert not decide(_room(-Z, pair=False), file=FileFrame(X)).ambiguous
+
+
+def test_an_upright_cameras_frame_with_the_geometry_decides_a_clouds_sign() -> None:
+    """The same cloud stored in a camera's frame (y down): where its geometry and the upright camera's -Y
+    agree, it is levelled; where they disagree (an underside read as a top, or an upside-down camera's frame),
+    it is refused with the camera's sign first."""
+    y = np.array([0.0, 1.0, 0.0])
+    d = decide(_room(-y, pair=False), file=FileFrame(Z, cloud=True, camera=True))
+    assert float(d.best.up @ -y) > 0.99 and not d.ambiguous
+    assert d.best.terms["camera_frame"] > 0
+    d = decide(_room(y, pair=False), file=FileFrame(Z, cloud=True, camera=True))
+    assert d.ambiguous and float(d.best.up @ -y) > 0.99

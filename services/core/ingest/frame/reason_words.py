@@ -1,0 +1,30 @@
+"""The evidence that chose an up, in words: `omnidata plan`'s "chosen for ..." and job.json's `reason`."""
+
+from __future__ import annotations
+
+from services.core.ingest.frame.up_evidence import UpDecision
+
+TERM_WORDS = {
+    "levelled_axis": "a floor on a source axis (the file was levelled)",
+    "format_up": "the format's up axis (its convention)",
+    "camera_frame": "an upright camera's frame (the scan lies ahead of its origin)",
+    "capture_up": "the capture's cameras",
+    "recorded_gravity": "the gravity recorded with the scan",
+    "floor_area": "the floor's area",
+    "furniture": "furniture tops seen from above (support surfaces)",
+    "extent": "a room wider than tall",
+    "mirror": "one plane only (a floor from above or a ceiling from below)",
+    "storey": "a storey's height",
+    "view_direction": "a single view's direction",
+    "view_aspect": "a single view's landscape frame",
+}
+
+
+def reason_words(decision: UpDecision) -> str:
+    """Which evidence set the chosen up apart from the runner-up, in words (the one or two largest terms)."""
+    best, runner = decision.best, decision.runner_up
+    if runner is None:
+        return "no other candidate levels the scan differently"
+    gains = sorted(((v - runner.terms.get(k, 0.0), k) for k, v in best.terms.items()), reverse=True)
+    named = [TERM_WORDS.get(k, k) for gain, k in gains[:2] if gain > 0.25]
+    return ", ".join(named) if named else "the sum of weak evidence"

@@ -1,0 +1,52 @@
+"""A scan stored in an OpenCV camera's frame, told from its points alone (services.core.ingest.frame.
+camera_frame), and a cloud's normals turned towards that camera (services.core.ingest.pointcloud)."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from services.core.ingest.frame.camera_frame import in_camera_frame, visible_share
+from services.core.ingest.pointcloud import Cloud, reconstruct, viewpoint
+
+PITCH = Rotation.from_euler("x", -30, degrees=True).as_matrix()  # the camera's axes, level: 30 deg down
+UP = PITCH.T @ [0.0, -1.0, 0.0]  # up in the camera's frame
+
+
+def _corner(rng: np.random.Generator) -> np.ndarray:
+    """A room corner in a camera's frame (x right, y down, z ahead), the camera 1.5 m above the floor pitched
+    30 degrees down: a floor, two walls, a table top 0.75 m high, all ahead of it."""
+    floor = np.column_stack([rng.uniform(-1.5, 1.5, 6000), np.full(6000, 0.0), rng.uniform(1.5, 4.0, 6000)])
+    wall = np.column_stack([rng.uniform(-1.5, 1.5, 3000), rng.uniform(0.0, 2.0, 3000), np.full(3000, 4.0)])
+    side = np.column_stack([np.full(2000, 1.5), rng.uniform(0.0, 2.0, 2000), rng.uniform(2.0, 4.0, 2000)])
+    table = np.column_stack([rng.uniform(-0.6, 0.4, 2000), np.full(2000, 0.75), rng.uniform(2.0, 2.8, 2000)])
+    level = np.vstack([floor, wall, side, table]) * [1.0, -1.0, 1.0] + [0.0, 1.5, 0.0]  # y down, floor +1.5
+    return level @ PITCH  # in the pitched camera's axes
+
+
+def test_a_point_behind_another_is_not_seen() -> None:
+    pts = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 2.0], [1.0, 0.0, 1.0]])
+    assert visible_share(pts, np.zeros(3)) == 2 / 3
+
+
+def test_a_cameras_corner_is_in_its_frame_and_no_longer_once_moved_or_turned() -> None:
+    pts = _corner(np.random.default_rng(0))
+    assert in_camera_frame(pts)
+    assert not in_camera_frame(pts @ Rotation.from_euler("y", 120, degrees=True).as_matrix().T)
+    # the same frame moved off its camera, the origin under the floor: the scan still lies ahead along +Z
+    below_the_floor = pts + 2.5 * UP + [0.0, 0.0, 1.0]
+    assert not in_camera_frame(below_the_floor)
+
+
+def test_a_clouds_table_top_faces_the_camera_not_the_boxs_centre() -> None:
+    """The table top lies above the bounding box's centre: turned towards the centre it would face down, a
+    fixture's underside; turned towards the camera at the origin it faces up."""
+    pts = _corner(np.random.default_rng(1))
+    eye, named = viewpoint(pts)
+    assert np.allclose(eye, 0.0) and "origin" in named
+    mesh, record = reconstruct(Cloud(pts, None, None), "corner")
+    heights = (mesh.triangles_center - pts[:6000].mean(axis=0)) @ UP
+    top = (np.abs(heights - 0.75) < 0.05) & (np.abs(mesh.face_normals @ UP) > 0.9)
+    assert top.sum() > 50
+    assert float(np.mean(mesh.face_normals[top] @ UP > 0)) > 0.9
+    assert "origin" in record["parameters"]["normals"]

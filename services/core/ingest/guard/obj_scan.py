@@ -8,14 +8,14 @@ line-by-line check runs as before and gives its own answer (a refusal with its m
 refusal, and its wording, still comes from the one line-by-line reading.
 
 It answers only for a file that:
-- is at most MAX_BYTES, ASCII, made of printable characters, spaces, tabs and '\\n' only (no '\\r', no other
-  whitespace Python's str.split would also split at), and ends with '\\n';
+- is at most MAX_BYTES and MAX_LINES, ASCII, made of printable characters, spaces, tabs and '\\n' only (no
+  '\\r', no other whitespace Python's str.split would also split at), and ends with '\\n';
 - has no line starting with a space or tab (statements start their line);
-- has fewer than `CHECKED_FROM_FACES` faces (bigger ones are sampled for degenerate faces there) and at most
-  `max_faces`;
-- has faces whose every vertex reference is `[-]digits` (up to 18), optionally followed by '/...', and names a
-  vertex that comes before the face (positive: at most the count so far; negative: at most that many back;
-  never 0).
+- has faces (fewer than `CHECKED_FROM_FACES`: bigger files are sampled for degenerate faces there, and at most
+  `max_faces`) whose lines hold at most MAX_FACE_BYTES in all, of digits, '/', '-', spaces and tabs only;
+- has face references that are each `[-]digits` (up to 18), optionally followed by '/' and more (no '-'
+  there), and name a vertex that comes before the face (positive: at most the count so far; negative: at most
+  that many back; never 0).
 Under these rules a line's statement is the text before its first space or tab, as the line-by-line check
 reads it, and its face references are the runs of characters between spaces and tabs.
 """
@@ -24,7 +24,11 @@ from __future__ import annotations
 
 import numpy as np
 
-MAX_BYTES = 64 << 20  # a bigger file is streamed by the line-by-line check (the fast path holds it whole)
+# Past these the line-by-line check streams the file: the fast path holds it whole, with a few index arrays
+# per line and per byte of its face lines (a hostile file of empty lines or one endless face stays cheap)
+MAX_BYTES = 32 << 20
+MAX_LINES = 2_000_000
+MAX_FACE_BYTES = 8 << 20
 _MAX_DIGITS = 18  # int64 holds any 18-digit number
 _SPACE, _TAB, _NEWLINE, _SLASH, _MINUS = (ord(c) for c in " \t\n/-")
 
@@ -36,7 +40,7 @@ _FACE_BODY = b"0123456789/- \t"  # what a plain face line holds past its 'f'
 def plain_obj_mtllibs(data: bytes, max_faces: int, checked_from_faces: int) -> list[str] | None:
     """The `mtllib` references the line-by-line check would collect from the OBJ text `data`, when that check
     would accept the file; None when this fast path cannot tell (see the module docstring)."""
-    if len(data) > MAX_BYTES or not data.endswith(b"\n"):
+    if len(data) > MAX_BYTES or not data.endswith(b"\n") or data.count(b"\n") > MAX_LINES:
         return None
     if data.translate(None, _PLAIN):
         return None
@@ -77,8 +81,12 @@ def _face_refs_exist(buf: np.ndarray, starts: np.ndarray, ends: np.ndarray, vert
     # the face lines' bytes past their 'f' and its separator, one after another, each tagged with its line
     lengths = ends - starts - 2
     line_end = np.cumsum(lengths)
-    pos = np.arange(int(line_end[-1]), dtype=np.int64) + np.repeat(starts + 2 - (line_end - lengths), lengths)
-    line = np.repeat(np.arange(len(starts)), lengths)
+    if line_end[-1] > MAX_FACE_BYTES:
+        return False
+    # int32 indices: the file is at most MAX_BYTES
+    pos = np.arange(int(line_end[-1]), dtype=np.int32) + np.repeat(
+        (starts + 2 - (line_end - lengths)).astype(np.int32), lengths)
+    line = np.repeat(np.arange(len(starts), dtype=np.int32), lengths)
     chars = buf[pos]
     if chars.tobytes().translate(None, _FACE_BODY):
         return False

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from services.core.ingest.errors import SpaceError
-from services.core.ingest.guard import mesh_checks
+from services.core.ingest.guard import mesh_checks, obj_scan
 from services.core.ingest.guard.degenerate import CHECKED_FROM_FACES
 from services.core.ingest.guard.obj_scan import plain_obj_mtllibs
 
@@ -104,3 +104,11 @@ def test_mutated_files_give_the_same_verdict(folder: Path) -> None:
         answered += plain_obj_mtllibs(data, 100, CHECKED_FROM_FACES) is not None
         assert same_verdict(path), data
     assert answered > 50  # the comparison covers the fast path's answers, not only its refusals to answer
+
+
+def test_files_past_the_fast_paths_sizes_are_left_to_the_streaming_check() -> None:
+    many_lines = (BASE + "\n" * (obj_scan.MAX_LINES + 1)).encode()
+    one_long_face = (BASE + "f 1 2 3" + " " * (obj_scan.MAX_FACE_BYTES + 1) + "\n").encode()
+    assert plain_obj_mtllibs((BASE + "\n" * 1000).encode(), 100, CHECKED_FROM_FACES) is not None
+    assert plain_obj_mtllibs(many_lines, 100, CHECKED_FROM_FACES) is None
+    assert plain_obj_mtllibs(one_long_face, 100, CHECKED_FROM_FACES) is None

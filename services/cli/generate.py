@@ -19,12 +19,16 @@ import logging
 import sys
 from pathlib import Path
 
+from services.worker.process.heap import keep_freed_memory
 from services.worker.process.numeric_threads import pin_numeric_threads
 
 # Before numpy loads (the imports below): the local workers forked from this process keep its BLAS, which must
 # run one thread (services.worker.process.numeric_threads); this process's own linear algebra is small
 # (planning).
 pin_numeric_threads()
+# This process too reuses the pages it frees (services.worker.process.heap): loading, checking and planning a
+# space allocate and free the same large arrays over and over, each time faulting in fresh pages.
+keep_freed_memory()
 
 from services.cli import CliError  # noqa: E402
 from services.cli.spec_args import add_spec_arguments, build_spec, check_sources, refused_summary, usable  # noqa: E402

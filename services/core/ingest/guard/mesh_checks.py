@@ -34,6 +34,7 @@ from urllib.parse import unquote
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.guard.confine import ReferenceRefused, read_confined
 from services.core.ingest.guard.degenerate import CHECKED_FROM_FACES, FaceSample, degenerate_refusal
+from services.core.ingest.guard.obj_scan import MAX_BYTES, plain_obj_mtllibs
 from services.core.ingest.guard.texture_limits import embedded_refusal, glb_bin_offset
 
 MAX_FACES = 50_000_000  # beyond every scan we render; trimesh needs ~100 bytes per face while loading
@@ -143,6 +144,16 @@ def _ply_counts(name: str, lines: list[bytes]) -> dict[str, int]:
 
 
 def _check_obj(source: Path, max_faces: int) -> list[str]:
+    # a plain file the fast path proves acceptable; anything else (every refusal and warning) is read below
+    if source.stat().st_size <= MAX_BYTES:
+        mtllibs = plain_obj_mtllibs(source.read_bytes(), max_faces, CHECKED_FROM_FACES)
+        if mtllibs is not None:
+            return _check_mtllibs(source, mtllibs)
+    return _check_obj_lines(source, max_faces)
+
+
+def _check_obj_lines(source: Path, max_faces: int) -> list[str]:
+    """_check_obj line by line: the file streamed, every refusal and warning named."""
     name = source.name
     vertices = faces = 0
     mtllibs: list[str] = []

@@ -13,8 +13,9 @@ every other pair of units is more than 6 / 0.8 apart. Each candidate is scored w
   elsewhere says nothing: exporters put it anywhere).
 - `furniture`: seats, tables and counters are what a scan sees from above, at 0.35-1.0 m. When the
   up-facing surfaces between floor and top cover at least 5 % of the floor, the share of their area at
-  those heights scores +1 from half of it up and -1 below a quarter (one unit puts a room's seats and
-  tables there; a unit 2.54 times off puts them at 0.9-2.5 m or 0.15-0.4 m).
+  those heights scores -1 below a quarter, and +1 from half of it up where read 2.54 times off less than a
+  quarter is (one unit puts a room's seats and tables there; a unit 2.54 times off puts them at 0.9-2.5 m or
+  0.15-0.4 m, and counters at 0.9-1.0 m at seat height).
 - `spacing`: RGB-D fusions are meshed at 0.5-6 cm (TSDF voxels, Poisson depth): a median triangle edge
   in that range scores +0.5 (a dense scan whose edges would be 10 cm in one unit and 4 cm in the other).
 
@@ -98,7 +99,11 @@ PARTIAL_STOREY_M = (0.8, 6.0)  # no ceiling seen: floor to wherever the capture 
 TYPICAL_TOP_M = 3.5
 CAMERA_HELD_M = (0.3, 2.2)
 SUPPORT_HEIGHTS_M = (0.35, 1.0)  # seats 0.35-0.55, tables 0.6-0.8, counters 0.85-1.0
-SUPPORT_SHARE = (0.25, 0.5)  # share of the tops at those heights: below -1, from +1
+# share of the tops at those heights: below it -1; from the second +1 where the reading 2.54 times off holds
+# less than the first (a unit tells itself apart only where the other puts few tops there: counters at
+# 0.9-1.0 m are at seat height read 2.54 times off). Real rooms put 0.60-1.0 of their tops there in their
+# unit, up to 0.56 read 2.54 times smaller and 0.13 (one frame of low tables 0.54) read 2.54 times larger
+SUPPORT_SHARE = (0.25, 0.5)
 FURNITURE_MIN_SHARE = 0.05
 FUSION_EDGE_M = (0.005, 0.06)
 REFUSE_MARGIN = 1.0
@@ -203,8 +208,9 @@ def _terms(m: ScanMeasures, scale: float) -> dict[str, float] | None:
         terms["camera"] = 0.5 if CAMERA_HELD_M[0] <= cam <= CAMERA_HELD_M[1] else 0.0
     share = m.support_share(scale)
     if share is not None:
-        terms["furniture"] = (1.0 if share >= SUPPORT_SHARE[1] else -1.0 if share < SUPPORT_SHARE[0]
-                              else 0.0)
+        rival = max(m.support_share(scale * 2.54) or 0.0, m.support_share(scale / 2.54) or 0.0)
+        clear = share >= SUPPORT_SHARE[1] and rival < SUPPORT_SHARE[0]
+        terms["furniture"] = 1.0 if clear else -1.0 if share < SUPPORT_SHARE[0] else 0.0
     edge = m.median_edge * scale
     terms["spacing"] = 0.5 if FUSION_EDGE_M[0] <= edge <= FUSION_EDGE_M[1] else 0.0
     return terms

@@ -277,3 +277,16 @@ def test_the_median_edge_length_is_trimeshs_median_of_its_unique_edges(scenes_di
     kitchen = load_space(scenes_dir / "7scenes_redkitchen" / "mesh_tsdf_2cm_from_1000frames.ply").mesh
     for mesh in (soup, kitchen, trimesh.creation.box()):
         assert median_edge_length(mesh) == float(np.median(mesh.copy().edges_unique_length))
+
+
+def test_counters_that_read_as_seats_2_54_times_off_do_not_decide_the_units() -> None:
+    """A room in inches (97 units: a 2.47 m storey, no ceiling) whose tops are counters and cupboards at
+    0.9-1.6 m: read in centimetres they are all at 0.36-0.63 m, seat height, but read in inches almost half of
+    them are at counter height too. Neither reading separates from the other, so it is asked, never read as a
+    0.97 m room in centimetres."""
+    from services.core.ingest.frame.unit_evidence import ScanMeasures, decide_units
+
+    tops = _tops((36.0, 0.45), (55.0, 0.3), (63.0, 0.25))  # 0.91, 1.40, 1.60 m in inches
+    d = decide_units(ScanMeasures(97.0, (266.0, 198.0, 97.0), False, None, tops, 30.0))
+    assert {c.unit for c in d.ranked} == {"centimetres", "inches"} and d.ambiguous
+    assert all(c.terms["furniture"] <= 0 for c in d.ranked)

@@ -3,7 +3,6 @@ and the choice stored with the space (headless Chromium against a real uvicorn s
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +11,7 @@ import pytest
 from services.core.storage import LocalStore
 from tests.browser.conftest import DashboardPage
 from tests.fixtures.api import live_server, make_api
+from tests.fixtures.real_corpus import units_ambiguous_scan
 
 pytestmark = pytest.mark.slow
 
@@ -54,21 +54,9 @@ def test_pick_up_with_one_click(pg_url: str, local_store: LocalStore, dashboard_
 
 def test_pick_units_with_one_click(pg_url: str, local_store: LocalStore, dashboard_page: DashboardPage,
                                    tmp_path: Path) -> None:
-    """A levelled partial scan in centimetres whose origin says nothing: cm or inches, each with the size it
-    gives."""
-    import trimesh
-
-    from services.core.ingest.frame.resolve import rotation_to_z
-
-    mesh = trimesh.load(COPYROOM.parent / "kitchen_partial_000.ply", process=False)
-    truth = json.loads((COPYROOM.parent / "truth.json").read_text())["kitchen_partial_000.ply"]["up"]
-    levelled = np.eye(4)
-    levelled[:3, :3] = rotation_to_z(np.asarray(truth))  # exported levelled: only the units are in question
-    mesh.apply_transform(levelled)
-    mesh.apply_scale(100.0)
-    mesh.apply_translation([5000.0, 0.0, 5000.0])
-    src = tmp_path / "partial_cm.ply"
-    mesh.export(src)
+    """A levelled partial scan in centimetres that nothing in it tells (`units_ambiguous_scan`): cm or inches,
+    each with the size it gives."""
+    src = units_ambiguous_scan(tmp_path / "partial_cm.ply")
     with make_api(pg_url, local_store) as api, live_server(api.app) as base:
         r = api.client.post("/spaces", files={"file": ("partial_cm.ply", src.read_bytes())},
                             data={"name": "partial"}, headers=api.a.headers)
@@ -79,8 +67,8 @@ def test_pick_units_with_one_click(pg_url: str, local_store: LocalStore, dashboa
             page.wait_for_selector("#needs-frame .unit-candidate", timeout=30_000)
             assert page.query_selector_all("#needs-frame .up-candidate") == []  # its up is decided
             captions = [f.inner_text() for f in page.query_selector_all("#needs-frame .unit-candidate")]
-            assert any("centimetres" in c and "storey 1.4" in c for c in captions)
-            assert any("inches" in c and "storey 3.7" in c for c in captions)
+            assert any("centimetres" in c and "storey 0.81" in c for c in captions)
+            assert any("inches" in c and "storey 2.07" in c for c in captions)
             page.click('#needs-frame button.pick-units[data-unit="centimetres"]')
             page.wait_for_selector("#needs-frame", state="detached", timeout=30_000)
             assert errors == []

@@ -14,13 +14,9 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from services.core.ingest.loading import load_space
 from tests.fixtures.cli import omnidata
-from tests.fixtures.real_corpus import REAL_SCANS, real_rooms
+from tests.fixtures.real_corpus import REAL_SCANS, real_rooms, units_ambiguous_scan
 from tests.fixtures.rotation_corpus import up_error_deg
-
-HELD_OUT = Path(__file__).resolve().parents[2] / "shared" / "rooms_held_out"
-LIVING_ROOM = HELD_OUT / "teaser_uw_rgbd_living_room" / "teaser_uw_rgbd_living_room.ply"
 
 
 def _rotated_mm(tmp_path: Path) -> tuple[Path, np.ndarray]:
@@ -82,19 +78,12 @@ def test_generate_stops_before_rendering(tmp_path: Path) -> None:
 
 def test_plan_stops_on_ambiguous_units_then_plans_with_unit_scale(tmp_path: Path,
                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
-    """A real partial room 1.1 m tall (the held-out living room's mesh) in centimetres, every surface above
-    its floor that faces up cut away: 1.1 m in cm or a 2.8 m storey in inches; the line names both."""
+    """A real partial room 1.1 m tall in centimetres, nothing in it telling the units
+    (`units_ambiguous_scan`): 1.1 m in cm or a 2.8 m storey in inches; the line names both."""
     monkeypatch.setenv("OMNIDATA_DATA_DIR", str(tmp_path / "data"))  # the meshed cloud is cached there
-    truth = np.array([-0.043295, -0.979856, -0.194957])  # bench/scans/rooms/truth.json
-    room_up = truth / np.linalg.norm(truth)
-    mesh = load_space(LIVING_ROOM, source_to_world=np.eye(4).tolist()).mesh.copy()
-    heights = mesh.triangles_center @ room_up - float((mesh.vertices @ room_up).min())
-    tall = float(np.ptp(mesh.vertices @ room_up))
-    mesh.update_faces(~((mesh.face_normals @ room_up > 0.9) & (heights > 0.1 * tall)))
-    mesh.apply_scale(100.0)
-    src = tmp_path / "partial_cm.ply"
-    mesh.export(src)
-    up = "--up=" + ",".join(f"{x:.6g}" for x in room_up)
+    src = units_ambiguous_scan(tmp_path / "partial_cm.ply")
+    room_up = np.array([0.0, 0.0, 1.0])
+    up = "--up=0,0,1"
     args = ["--points", 2, "--min-views", 1, "--seed", 1]
     res = omnidata("plan", src, "--out", tmp_path / "p", up, *args)
     assert res.returncode == 2, res.stdout + res.stderr

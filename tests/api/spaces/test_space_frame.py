@@ -4,7 +4,6 @@ candidates, side-view PNGs of each, and the person's pick stored with the space 
 from __future__ import annotations
 
 import io
-import json
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +14,7 @@ from services.core.db.models import Space
 from services.core.domain.jobspec import JobSpec
 from services.core.ingest.loading import load_space
 from tests.fixtures.api import Api
+from tests.fixtures.real_corpus import units_ambiguous_scan
 
 # the BundleFusion copy room, decimated: a wall as large as the floor (see tests/fixtures/real_scans)
 COPYROOM = Path(__file__).resolve().parents[2] / "fixtures" / "real_scans" / "copyroom.ply"
@@ -166,21 +166,9 @@ def test_pick_and_preview_parse_the_scan_in_the_limited_child(api: Api, monkeypa
 
 
 def test_ambiguous_units_held_refused_then_picked(api: Api, tmp_path: Path) -> None:
-    """A levelled partial scan in centimetres whose origin says nothing: cm or inches; the job is refused
-    naming both."""
-    import trimesh
-
-    from services.core.ingest.frame.resolve import rotation_to_z
-
-    mesh = trimesh.load(COPYROOM.parent / "kitchen_partial_000.ply", process=False)
-    truth = json.loads((COPYROOM.parent / "truth.json").read_text())["kitchen_partial_000.ply"]["up"]
-    levelled = np.eye(4)
-    levelled[:3, :3] = rotation_to_z(np.asarray(truth))  # exported levelled: its up is not in question
-    mesh.apply_transform(levelled)
-    mesh.apply_scale(100.0)
-    mesh.apply_translation([5000.0, 0.0, 5000.0])
-    src = tmp_path / "partial_cm.ply"
-    mesh.export(src)
+    """A levelled partial scan in centimetres that nothing in it tells (`units_ambiguous_scan`): cm or inches;
+    the job is refused naming both."""
+    src = units_ambiguous_scan(tmp_path / "partial_cm.ply")
     r = api.client.post("/spaces", files={"file": ("partial_cm.ply", src.read_bytes())},
                         data={"name": "partial"}, headers=api.a.headers)
     assert r.status_code == 201, r.text

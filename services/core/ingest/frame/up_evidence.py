@@ -27,7 +27,8 @@ candidate with the best one that would level the scan differently (more than `DI
   seen from. On another axis both signs get it (a PLY in a level camera's frame has its up on -Y).
 - `mirror`: one plane and no opposite one is a floor seen from above or a ceiling seen from below (what hangs
   below a ceiling looks like furniture standing on a floor), so the geometry's lead of one sign of such a
-  family over the other is capped at `MIRROR_CAP`: the file, cameras or a recorded gravity can overrule it.
+  family over the other is capped at `MIRROR_CAP` (`MIRROR_CAP_CLOUD`, below the margin, for a point cloud,
+  whose sides were estimated): the file, cameras or a recorded gravity can overrule it.
 - `format_up`: the candidate on the format's own up axis (`FileFrame`): glTF's +Y is the specification's
   (binding, as strong as an axis-aligned floor, for a floor within `FORMAT_DEG` of it); PLY's +Z and OBJ's +Y
   are habits, weighted below `REFUSE_MARGIN` (Y-up PLYs and Z-up OBJs are common): they order a refusal, they

@@ -5,15 +5,16 @@ its true up, how that truth is known, its source and licence; SOURCE.md beside e
 - as delivered (the file's own frame and format),
 - exported levelled as a Z-up PLY and as a Y-up GLB,
 - under 5 random rotations, in metres, centimetres, millimetres, inches and metres again (PLY),
-through `resolve_frame`, the call `load_space` makes once the file is read (point clouds meshed once by the
-service's reconstruction, in their delivered frame). Outcome per case: levelled (within 3 degrees), wrong
-(planned more than 3 degrees off without asking) or refused (with the true up as the first candidate, or not).
-Single depth frames (one sensor view, not a room) are reported apart from the rooms, and so are the held-out
-rooms (`"held_out": true`, files in shared/rooms_held_out: never tuned on), with a figure of their own and one
-per held-out set (`"held_out_set"`, 1 where absent). A
-gravity recorded beside a room (`services.core.ingest.frame.recorded_gravity`) and the camera poses
-delivered with it (`capture_up` in truth.json: the mean camera up) count for the delivered case only, as
-load_space reads them beside the file. A point cloud's own points go with its mesh, rotated alike.
+through `resolve_frame`, the call `load_space` makes once the file is read. A point cloud is meshed by the
+service's reconstruction in each case's own frame and units, as that file uploaded would be (cached in
+$OMNIDATA_DATA_DIR/meshed: a first run meshes every case, ~5 s each), and its points go with its mesh.
+Outcome per case: levelled (within 3 degrees), wrong (planned more than 3 degrees off without asking) or
+refused (with the true up as the first candidate, or not). Single depth frames (one sensor view, not a room)
+are reported apart from the rooms, and so are the held-out rooms (`"held_out": true`, files in
+shared/rooms_held_out: never tuned on), with a figure of their own and one per held-out set
+(`"held_out_set"`, 1 where absent). A gravity recorded beside a room
+(`services.core.ingest.frame.recorded_gravity`) and the camera poses delivered with it (`capture_up` in
+truth.json: the mean camera up) count for the delivered case only, as load_space reads them beside the file.
 
 Run: `.venv/bin/python bench/ingest/ingest_real.py [--out FILE]`; writes the "real_rooms" section of
 bench/results/ingest_real.json and prints the table per source, the held-out rooms apart.
@@ -22,6 +23,7 @@ bench/results/ingest_real.json and prints the table per source, the held-out roo
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import platform
 import sys
@@ -41,7 +43,13 @@ from services.core.ingest.errors import SpaceError, UnitsAmbiguous, UpAmbiguous 
 from services.core.ingest.frame.recorded_gravity import read_recorded_up  # noqa: E402
 from services.core.ingest.frame.resolve import FrameRequest, resolve_frame, rotation_to_z  # noqa: E402
 from services.core.ingest.loading import load_space  # noqa: E402
-from services.core.ingest.pointcloud import read_text_cloud  # noqa: E402
+from services.core.ingest.pointcloud import (  # noqa: E402
+    CLOUD_SUFFIXES,
+    Cloud,
+    cloud_from_ply,
+    mesh_cloud_cached,
+    read_text_cloud,
+)
 
 ROOMS = REPO / "bench" / "scans" / "rooms" / "truth.json"
 SCALES = (1.0, 0.01, 0.001, 0.0254, 1.0)  # metres per unit of the rotated copies, in turn
@@ -68,20 +76,27 @@ def cases(suffix: str, up: np.ndarray, seed: int) -> Iterator[tuple[str, np.ndar
 
 def run_case(mesh: Any, R: np.ndarray, scale: float, suffix: str, up: np.ndarray,
              name: str, recorded_up: np.ndarray | None = None,
-             capture_up: np.ndarray | None = None, points: np.ndarray | None = None) -> dict[str, Any]:
+             capture_up: np.ndarray | None = None, cloud: Cloud | None = None) -> dict[str, Any]:
     """One case through resolve_frame: its outcome against the truth. `recorded_up`: the up a gravity file
     beside the delivered room gives (load_space reads it there); `capture_up`: the mean camera up of the
-    poses delivered with it (load_space reads a capture there); `points`: a point cloud's points, rotated and
-    scaled with its mesh (load_space hands them over for their own planes)."""
-    copy = mesh.copy()
+    poses delivered with it (load_space reads a capture there); `cloud`: a point cloud as delivered, meshed
+    anew in the case's frame (`mesh` is then unused), its points handed over for their own planes as
+    load_space does."""
     T = np.eye(4)
     T[:3, :3] = R / scale
-    copy.apply_transform(T)
+    if cloud is None:
+        copy = mesh.copy()
+        copy.apply_transform(T)
+        points = None
+    else:  # the points turned and scaled, then meshed as load_space meshes an uploaded cloud
+        points = cloud.points @ T[:3, :3].T
+        turned = Cloud(points, None if cloud.normals is None else cloud.normals @ R.T, cloud.colors)
+        checksum = hashlib.sha256(points.tobytes() + f"{name}".encode()).hexdigest()
+        copy, _ = mesh_cloud_cached(lambda: turned, checksum, name)
     truth = R @ up
     request = FrameRequest("auto", "auto", None, None, capture_up=capture_up, recorded_up=recorded_up)
     try:
-        _, est, units = resolve_frame(copy, suffix, request, name,
-                                      None if points is None else lambda: points @ T[:3, :3].T)
+        _, est, units = resolve_frame(copy, suffix, request, name, None if points is None else lambda: points)
     except UpAmbiguous as e:
         first = angle_deg(np.asarray(e.candidates[0]["up"], dtype=float), truth)
         return {"outcome": "refused", "true_first": first < FIRST_DEG, "first_error_deg": round(first, 2)}
@@ -97,11 +112,15 @@ def run_case(mesh: Any, R: np.ndarray, scale: float, suffix: str, up: np.ndarray
             "margin": None if est.margin is None or not np.isfinite(est.margin) else round(est.margin, 3)}
 
 
-def cloud_points(path: Path) -> np.ndarray:
-    """The points of a cloud file (a PLY without faces, .xyz, .pts) as load_space reads them."""
+def read_cloud(path: Path) -> Cloud | None:
+    """A cloud file (a PLY without faces, .xyz, .pts) as load_space reads it; None for a mesh."""
+    if path.suffix.lower() in CLOUD_SUFFIXES:
+        return read_text_cloud(path)
     if path.suffix.lower() == ".ply":
-        return np.asarray(trimesh.load(path).vertices, dtype=np.float64)
-    return read_text_cloud(path).points
+        raw = trimesh.load(path)  # as load_space reads a PLY of points
+        if len(getattr(raw, "faces", ())) == 0:
+            return cloud_from_ply(raw)
+    return None
 
 
 def shares(rows: list[dict[str, Any]]) -> dict[str, Any]:
@@ -122,6 +141,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--rooms", nargs="*", help="only these rooms (names in truth.json)")
+    ap.add_argument("--cases", nargs="*", help="only these cases (delivered, levelled_z_ply, levelled_y_glb, "
+                    "rotated_0 ... rotated_4)")
     ap.add_argument("--extra", type=Path, action="append", default=[],
                     help="another truth.json of the same form (rooms that may not be redistributed), "
                     "measured alike")
@@ -142,8 +163,8 @@ def main() -> None:
             continue
         path = REPO / room["file"]  # an absolute path stays as it is
         # the file read and meshed as on ingest, kept in its own frame (identity source_to_world)
-        space = load_space(path, source_to_world=np.eye(4).tolist())
-        mesh, points = space.mesh, cloud_points(path) if space.reconstruction is not None else None
+        cloud = read_cloud(path)  # meshed per case in run_case
+        mesh = None if cloud is not None else load_space(path, source_to_world=np.eye(4).tolist()).mesh
         up = np.asarray(room["up"], dtype=float)
         # converted copies: the format as delivered
         delivered = room.get("delivered_as") or path.suffix.lower()
@@ -152,6 +173,8 @@ def main() -> None:
         recorded = read_recorded_up(path.parent)
         poses = room.get("capture_up")
         for case, R, scale, suffix in cases(delivered, up / np.linalg.norm(up), args.seed + i):
+            if args.cases and case not in args.cases:
+                continue
             given = recorded.up if recorded is not None and case == "delivered" else None
             cameras = np.asarray(poses, dtype=float) if poses is not None and case == "delivered" else None
             row = {"room": name, "place": room.get("place", name), "source": room["source"],
@@ -159,7 +182,7 @@ def main() -> None:
                    "kind": room["kind"], "single_frame": bool(room.get("single_frame")),
                    "held_out": bool(room.get("held_out")), "extra": bool(room.get("extra")), "case": case,
                    "recorded_gravity": given is not None, "capture_poses": cameras is not None,
-                   **run_case(mesh, R, scale, suffix, up, name, given, cameras, points)}
+                   **run_case(mesh, R, scale, suffix, up, name, given, cameras, cloud)}
             rows.append(row)
             print(json.dumps(row), flush=True)
 

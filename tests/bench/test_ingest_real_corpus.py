@@ -32,11 +32,14 @@ def test_held_out_rooms_are_reported_apart(tmp_path: Path) -> None:
     assert held, "no held-out single frame to run"
     out = tmp_path / "ingest_real.json"
     script = REPO_ROOT / "bench" / "ingest" / "ingest_real.py"
-    subprocess.run([sys.executable, str(script), "--rooms", "copyroom", held[0], "--out", str(out)],
+    # one case each: a cloud is meshed anew per case, as uploaded
+    subprocess.run([sys.executable, str(script), "--rooms", "copyroom", held[0], "--cases", "delivered",
+                    "--out", str(out)],
                    check=True, cwd=REPO_ROOT, capture_output=True,
-                   env={**os.environ, "PYTHONPATH": str(REPO_ROOT), RESULTS_ENV: str(tmp_path)})
+                   env={**os.environ, "PYTHONPATH": str(REPO_ROOT), RESULTS_ENV: str(tmp_path),
+                        "OMNIDATA_DATA_DIR": str(tmp_path / "data")})
     result = json.loads(out.read_text())["real_rooms"]
     assert result["held_out"]["files"] == [held[0]]
-    assert result["held_out"]["single_depth_frames"]["cases"] == 8
-    assert result["rooms"]["cases"] == 8  # copyroom alone: the held-out frame is not in the main figure
+    assert result["held_out"]["single_depth_frames"]["cases"] == 1
+    assert result["rooms"]["cases"] == 1  # copyroom alone: the held-out frame is not in the main figure
     assert result["single_depth_frames"]["cases"] == 0

@@ -7,8 +7,8 @@ ways so it does not invent surfaces where nothing was scanned: vertices whose Po
 in the lowest `TRIM_DENSITY_QUANTILE`, and faces farther than `TRIM_SPACINGS` median point spacings
 from every point. Colours go to the vertices from the nearest point. Normals, when the cloud has none,
 are estimated from 10 neighbours and turned towards a viewpoint (`viewpoint`): the camera at the origin of
-a cloud in its camera's frame, else the bounding box's centre (a room scanned from inside; give normals for
-single objects). The mesh is cached per cloud checksum and parameters.
+a cloud stored around its camera (turned or not), else the bounding box's centre (a room scanned from
+inside; give normals for single objects). The mesh is cached per cloud checksum and parameters.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from services.core.domain.json_types import JSONObject
-from services.core.ingest.frame.camera_frame import in_camera_frame
+from services.core.ingest.frame.camera_frame import origin_is_camera
 from services.core.ingest.guard.confine import ConfinedResolver
 
 CLOUD_SUFFIXES = (".xyz", ".pts")
@@ -36,7 +36,7 @@ POISSON_DEPTH_RANGE = (6, 10)
 TRIM_DENSITY_QUANTILE = 0.02
 TRIM_SPACINGS = 2.5
 MAX_POINTS = 20_000_000
-RECONSTRUCTION_VERSION = 2  # bump when the method changes: cached meshes are keyed by it
+RECONSTRUCTION_VERSION = 3  # bump when the method changes: cached meshes are keyed by it
 
 
 class CloudError(ValueError):
@@ -145,12 +145,13 @@ def median_spacing(points: np.ndarray) -> float:
 
 
 def viewpoint(points: np.ndarray) -> tuple[np.ndarray, str]:
-    """Where estimated normals are turned towards, and its name: the camera at the origin of a cloud stored in
-    its camera's frame (`in_camera_frame`: a depth frame, an RGB-D fusion in its first camera's), else the
-    bounding box's centre (a room scanned from inside). Towards the centre, a table top above the centre's
-    height would face down, as the underside of something hanging from a ceiling."""
-    if in_camera_frame(points):
-        return np.zeros(3), "the camera at the source origin (a cloud in its camera's frame)"
+    """Where estimated normals are turned towards, and its name: the camera at the origin of a cloud stored
+    around its camera, turned or not (`origin_is_camera`: a depth frame, an RGB-D fusion in its first camera's
+    frame, a phone session started there), else the bounding box's centre (a room scanned from inside).
+    Towards the centre, a table top above the centre's height would face down, as the underside of something
+    hanging from a ceiling."""
+    if origin_is_camera(points):
+        return np.zeros(3), "the camera at the source origin (a cloud stored around its camera)"
     return 0.5 * (points.min(axis=0) + points.max(axis=0)), "the bounding-box centre"
 
 

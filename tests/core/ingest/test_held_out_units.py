@@ -19,8 +19,10 @@ UP = np.array([-0.043295, -0.979856, -0.194957])  # bench/scans/rooms/truth.json
 
 
 @pytest.fixture(scope="module")
-def room() -> trimesh.Trimesh:
-    return load_space(ROOM, source_to_world=np.eye(4).tolist()).mesh
+def room(tmp_path_factory: pytest.TempPathFactory) -> trimesh.Trimesh:
+    # the meshed cloud cached in the test's own folder, not the user's
+    cache = tmp_path_factory.mktemp("meshed")
+    return load_space(ROOM, source_to_world=np.eye(4).tolist(), cloud_cache_dir=cache).mesh
 
 
 def _export(mesh: trimesh.Trimesh, metres_per_unit: float, path: Path) -> Path:

@@ -17,6 +17,10 @@ import numpy as np
 
 # 98 % of the points this close to the mean direction: one view (a Kinect's half diagonal ~35)
 VIEW_CONE_DEG = 36.0
+# and no closer than this: a camera's scan fills much of its view (the corpus' camera-frame scans 32-70), so
+# a scan that narrow from the origin lies far from it, where no depth camera stood (a phone session's start
+# 2.7 scan diagonals away: 4)
+MIN_VIEW_DEG = 15.0
 LANDSCAPE_ASPECT = 1.15  # the frustum's wide axis over its short one: below it the frame's rows are not known
 _SAMPLE = 20_000
 
@@ -51,13 +55,26 @@ def _seen_from_origin(vertices: np.ndarray) -> np.ndarray | None:
     return None if n < 0.5 else mean / n
 
 
+def _spread_deg(d: np.ndarray, mean: np.ndarray) -> float:
+    """How far from the mean direction the scan reaches, degrees (98 % of it)."""
+    return float(np.percentile(np.degrees(np.arccos(np.clip(d @ mean, -1.0, 1.0))), 98))
+
+
+def seen_from_afar(vertices: np.ndarray) -> bool:
+    """True when the scan lies within `MIN_VIEW_DEG` of one direction from the source origin: no camera at
+    the origin took it."""
+    d = _directions(vertices)
+    mean = None if d is None else _seen_from_origin(vertices)
+    return d is not None and mean is not None and _spread_deg(d, mean) < MIN_VIEW_DEG
+
+
 def single_view(vertices: np.ndarray) -> SingleView | None:
     """The view of a scan whose points all lie in one camera's frustum at the source origin, else None."""
     d = _directions(vertices)
     mean = None if d is None else _seen_from_origin(vertices)
     if d is None or mean is None:
         return None
-    if np.percentile(np.degrees(np.arccos(np.clip(d @ mean, -1.0, 1.0))), 98) > VIEW_CONE_DEG:
+    if not MIN_VIEW_DEG <= _spread_deg(d, mean) <= VIEW_CONE_DEG:
         return None
     across = d - np.outer(d @ mean, mean)
     # ascending: ~0 along the view, short axis, wide axis

@@ -421,9 +421,12 @@ def _gravity_conflict(ranked: tuple[ScoredCandidate, ...], view: SingleView | No
 def _required_margin(best: ScoredCandidate, view: SingleView | None) -> float:
     """The margin a winner needs: more for a single depth frame (a frustum shows less of a room), and a square
     frame's geometry alone never suffices (nothing tells its rows from its columns) unless the file (or a
-    recorded gravity) says."""
+    recorded gravity) says. A frame's winner the camera faced (`view_direction`) is no floor however far it
+    leads: only its own mirror image, faced the same way, was left to beat."""
     if view is None:
         return REFUSE_MARGIN
+    if best.terms.get("view_direction", 0.0) < 0:
+        return float("inf")
     file_says = (best.terms.get("levelled_axis", 0.0) > 0
                  or best.terms.get("format_up", 0.0) > WEIGHTS["format_up_habit"]
                  or best.terms.get("recorded_gravity", 0.0) > 0)

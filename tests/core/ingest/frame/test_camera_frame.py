@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from services.core.ingest.frame.camera_frame import in_camera_frame, visible_share
+from services.core.ingest.frame.camera_frame import in_camera_frame, origin_is_camera, visible_share
+from services.core.ingest.frame.single_view import seen_from_afar, single_view
 from services.core.ingest.pointcloud import Cloud, reconstruct, viewpoint
 
 PITCH = Rotation.from_euler("x", -30, degrees=True).as_matrix()  # the camera's axes, level: 30 deg down
@@ -38,6 +39,16 @@ def test_a_cameras_corner_is_in_its_frame_and_no_longer_once_moved_or_turned() -
     assert not in_camera_frame(below_the_floor)
 
 
+def test_a_cameras_corner_turned_any_way_keeps_its_camera_at_the_origin() -> None:
+    """Where normals face must not depend on how the file was turned: turned, the origin is still the camera's
+    place (`origin_is_camera`) though the scan no longer looks along +Z; moved off it, it is not."""
+    pts = _corner(np.random.default_rng(0))
+    below_the_floor = pts + 2.5 * UP + [0.0, 0.0, 1.0]
+    for turn in Rotation.random(8, random_state=np.random.default_rng(2)).as_matrix():
+        assert origin_is_camera(pts @ turn.T)
+        assert not origin_is_camera(below_the_floor @ turn.T)
+
+
 def test_a_clouds_table_top_faces_the_camera_not_the_boxs_centre() -> None:
     """The table top lies above the bounding box's centre: turned towards the centre it would face down, a
     fixture's underside; turned towards the camera at the origin it faces up."""
@@ -50,3 +61,19 @@ def test_a_clouds_table_top_faces_the_camera_not_the_boxs_centre() -> None:
     assert top.sum() > 50
     assert float(np.mean(mesh.face_normals[top] @ UP > 0)) > 0.9
     assert "origin" in record["parameters"]["normals"]
+    turn = Rotation.from_euler("xz", [70, 140], degrees=True).as_matrix()
+    turned, _ = reconstruct(Cloud(pts @ turn.T, None, None), "corner turned")
+    up = turn @ UP
+    heights = (turned.triangles_center - pts[:6000].mean(axis=0) @ turn.T) @ up
+    top = (np.abs(heights - 0.75) < 0.05) & (np.abs(turned.face_normals @ up) > 0.9)
+    assert top.sum() > 50 and float(np.mean(turned.face_normals[top] @ up > 0)) > 0.9
+
+
+def test_a_scan_lying_far_ahead_of_the_origin_was_not_taken_from_it() -> None:
+    """A phone session's start can lie metres outside the room it scanned: every point is then within a few
+    degrees of one direction from the origin, no depth camera's view, and not a single frame either."""
+    pts = _corner(np.random.default_rng(3))
+    far = pts + 6.0 * pts.mean(axis=0) / np.linalg.norm(pts.mean(axis=0)) * np.ptp(pts, axis=0).max()
+    assert seen_from_afar(far) and not seen_from_afar(pts)
+    assert not in_camera_frame(far) and not origin_is_camera(far)
+    assert single_view(far) is None

@@ -8,10 +8,12 @@ import numpy as np
 import pytest
 
 from services.core.ingest.frame.reason_words import reason_words
+from services.core.ingest.frame.single_view import SingleView
 from services.core.ingest.frame.up_evidence import (
     MIRROR_CAP,
     MIRROR_CAP_CLOUD,
     REFUSE_MARGIN,
+    SINGLE_VIEW_REFUSE_MARGIN,
     CandidateFacts,
     FileFrame,
     decide,
@@ -108,3 +110,20 @@ def test_an_upright_cameras_frame_with_the_geometry_decides_a_clouds_sign() -> N
     assert d.best.terms["camera_frame"] > 0
     d = decide(_room(y, pair=False), file=FileFrame(Z, cloud=True, camera=True))
     assert d.ambiguous and float(d.best.up @ -y) > 0.99
+
+
+def test_a_single_frames_wall_the_camera_faced_is_never_planned_on_however_far_it_leads() -> None:
+    """A depth frame of a wall: its only family is the wall and its mirror image, both across the view's
+    direction, so the one seen from the camera leads by the whole wall's area; that lead says which side the
+    camera stood on, not where up is."""
+    ahead = np.array([0.0, 1.0, 0.0])
+    view = SingleView(direction=ahead, short_axis=Z)
+    wall = [_facts(-ahead, 0.6, 0.0, 8.0, 0.0), _facts(ahead, 0.0, 0.6, 0.0, 8.0)]
+    d = decide(wall, view=view)
+    assert float(d.best.up @ -ahead) > 0.99 and d.best.terms["view_direction"] < 0
+    assert d.margin > SINGLE_VIEW_REFUSE_MARGIN
+    assert d.ambiguous
+    # the same lead across the view's direction (a floor seen from a level camera) is planned on
+    floor = [_facts(Z, 0.6, 0.0, 8.0, 0.0), _facts(-Z, 0.0, 0.6, 0.0, 8.0)]
+    level = decide(floor, view=view)
+    assert float(level.best.up @ Z) > 0.99 and not level.ambiguous

@@ -35,7 +35,6 @@ QUEUED, PENDING, RUNNING, DONE = TaskState.QUEUED, TaskState.PENDING, TaskState.
 # Cues whose task never reads the view's pass set (the plan's), and `passes` itself: a view claim counts the
 # view's other unfinished tasks, which may still need the stored pass set.
 NO_PASSES: tuple[str, ...] = tuple(c for c in CATALOG if "passes" not in closure([c]) or c == "passes")
-_NO_PASSES_SQL = ", ".join(f"'{c}'" for c in NO_PASSES)
 
 
 def _may_claim(t: str) -> str:
@@ -63,7 +62,8 @@ SQLITE_CLAIM_SQL = _CLAIM
 _VIEW_CANDIDATES = f"{_same_view('t')} AND t.cue <> 'passes' AND t.id <> :task_id AND {_may_claim('t')}"
 _NONE_FAILED = ("NOT EXISTS (SELECT 1 FROM task AS f WHERE f.job_id = t.job_id AND f.space_id = t.space_id "
                 "AND f.point_idx = t.point_idx AND f.view_idx = t.view_idx AND f.state = 'failed')")
-_READERS = f"{_same_view('v')} AND v.state <> 'done' AND v.cue NOT IN ({_NO_PASSES_SQL})"
+# the view's other unfinished tasks: those the claim leaves (not moved) run or wait elsewhere
+_UNFINISHED = f"{_same_view('v')} AND v.state <> 'done' AND v.id <> :task_id"
 # Postgres: the candidates are locked first (skipping rows another transaction holds, e.g. a dispatch pass
 # queueing them), so the counter deltas subtract from each row's own old state.
 CLAIM_VIEW_SQL = counted_sql(
@@ -73,15 +73,15 @@ CLAIM_VIEW_SQL = counted_sql(
     before=(f"cand AS (SELECT t.id, t.state AS old_state FROM task AS t WHERE {_VIEW_CANDIDATES} AND "
             f"(t.state = 'queued' OR (:pending AND t.state = 'pending' AND {_NONE_FAILED})) "
             "ORDER BY t.id FOR UPDATE OF t SKIP LOCKED), "),
-    select=(f"SELECT moved.*, (SELECT count(*) FROM task AS v WHERE {_READERS} AND v.id <> :task_id "
-            "AND v.id NOT IN (SELECT id FROM moved)) AS reading_elsewhere FROM moved"))
+    select=(f"SELECT moved.*, ARRAY(SELECT v.cue FROM task AS v WHERE {_UNFINISHED} "
+            "AND v.id NOT IN (SELECT id FROM moved) ORDER BY v.cue) AS elsewhere FROM moved"))
 # SQLite: one UPDATE per source state (RETURNING names only the updated table, not its old state)
 SQLITE_CLAIM_VIEW_SQL = {
     src: task_update_sql([src], RUNNING, _CLAIMED,
                          f"task.id IN (SELECT t.id FROM task AS t WHERE {_VIEW_CANDIDATES}"
                          + (f" AND {_NONE_FAILED})" if src == PENDING else ")"), returning="task.attempts")
     for src in (QUEUED, PENDING)}
-SQLITE_VIEW_READERS_SQL = f"SELECT v.id FROM task AS v WHERE {_READERS}"
+SQLITE_VIEW_UNFINISHED_SQL = f"SELECT v.id, v.cue FROM task AS v WHERE {_UNFINISHED} ORDER BY v.cue"
 
 # The results as rows (the same text whatever the batch's size): arrays on Postgres, a JSON array on SQLite
 _RESULTS = ("id", "key", "size", "sha256", "duration_s")
@@ -168,15 +168,17 @@ def claim_view_tasks(
     """queued (and with `with_pending`, pending) -> running for `worker_id`, at once, of the view's other
     tasks (same job, space, point and view; not `task_id`, not its `passes` task) while the job runs and the
     worker is not kept off it; pending ones only while no task of the view failed. Returns the rows (id, cue,
-    job_id, attempts counting this one, old state, reading_elsewhere: how many other tasks of the view that
-    read its pass set are not done and not claimed here, `task_id` counting as claimed here). Postgres: one
-    statement; SQLite: an UPDATE per source state, a read of the view's readers and the counters, in one
-    transaction."""
+    job_id, attempts counting this one, old state, reading_elsewhere, elsewhere): `elsewhere` the cues of
+    the view's other tasks that are not done and not claimed here (running or waiting elsewhere, `task_id`
+    counting as claimed here), `reading_elsewhere` how many of those read the pass set. Postgres: one
+    statement; SQLite: an UPDATE per source state, a read of the view's unfinished tasks and the counters, in
+    one transaction."""
     params: dict[str, Any] = {"task_id": task_id, "job_id": job_id, "space_id": space_id, "point": point,
                               "view": view, "worker": worker_id, "now": now, "lease": lease_until}
     conn = _autocommit(session)
     if conn is not None:
-        return list(conn.exec_driver_sql(CLAIM_VIEW_SQL, {**params, "pending": with_pending}))
+        return [(*r[:5], *_elsewhere(r[5])) for r in
+                conn.exec_driver_sql(CLAIM_VIEW_SQL, {**params, "pending": with_pending})]
     conn = connection_of(session)
     params.update(now=_bound_time(conn, now), lease=_bound_time(conn, lease_until))
     rows: list[tuple[Any, ...]] = []
@@ -185,9 +187,15 @@ def claim_view_tasks(
         rows += [(*r[:4], src.value) for r in conn.exec_driver_sql(SQLITE_CLAIM_VIEW_SQL[src], params)]
     count_moved_rows(conn, rows, None, RUNNING)
     moved = {int(r[0]) for r in rows}
-    readers = {int(r[0]) for r in conn.exec_driver_sql(SQLITE_VIEW_READERS_SQL, params)}
+    unfinished = [str(c) for i, c in conn.exec_driver_sql(SQLITE_VIEW_UNFINISHED_SQL, params)
+                  if i not in moved]
     session.commit()
-    return [(*r, len(readers - moved - {task_id})) for r in rows]
+    return [(*r, *_elsewhere(unfinished)) for r in rows]
+
+
+def _elsewhere(cues: Sequence[str]) -> tuple[int, tuple[str, ...]]:
+    """(how many of the view's tasks left elsewhere read the pass set, their cues)."""
+    return sum(1 for c in cues if c not in NO_PASSES), tuple(cues)
 
 
 def finish_tasks(

@@ -125,6 +125,19 @@ def retry_db(fn: Callable[[], T], what: str, retry_s: float) -> T:
             delay = min(delay * 2, 5.0)
 
 
+def split_on_inputs(claimed: list[Claimed], others: tuple[str, ...]) -> tuple[list[Claimed], list[Claimed]]:
+    """(tasks that may run in the batch, those an input of which is among `others`, the view's cues left
+    elsewhere, directly or through another such task); `claimed` in topological order."""
+    missing, runnable, waiting = set(others), [], []
+    for c in claimed:
+        if missing.intersection(CATALOG[c.cue].inputs):
+            waiting.append(c)
+            missing.add(c.cue)
+        else:
+            runnable.append(c)
+    return runnable, waiting
+
+
 class TaskLedger:
     """One worker's claims and records in the database (`worker_id`, e.g. host:pid)."""
 
@@ -223,8 +236,10 @@ class TaskLedger:
         message, when it comes, finds it running or done and is skipped at the claim; a pending one has none.
         Returns them in topological order of their cues, and whether another task of the view that reads the
         pass set may still run elsewhere (True when nothing was claimed: unknown). ([], True) when the
-        database is unreachable (they run one by one)."""
-        def step() -> tuple[list[Claimed], bool]:
+        database is unreachable (they run one by one). A pending task whose input is left elsewhere (another
+        worker runs it and may still fail it) is handed back at once: it runs once that input is done, or
+        fails with it (the dispatcher's rule), never beside it."""
+        def step() -> tuple[list[Claimed], bool, tuple[str, ...]]:
             now = utcnow()
             with self.sessionmaker() as s:
                 rows = claim_view_tasks(
@@ -234,15 +249,21 @@ class TaskLedger:
                 )
             claimed = sorted((Claimed(int(r[0]), t.job_id, t.space_id, t.point, t.view, str(r[1]), int(r[3]))
                               for r in rows), key=lambda c: (CUE_ORDER[c.cue], c.id))
-            return claimed, not rows or int(rows[0][5]) > 0
+            return claimed, not rows or int(rows[0][5]) > 0, tuple(rows[0][6]) if rows else ()
 
         try:
-            return self.db(step, f"claim the view batch of task {t.id}")
+            claimed, elsewhere, others = self.db(step, f"claim the view batch of task {t.id}")
         except Exception as exc:
             if not is_transient_db_error(exc):
                 raise
             log.warning("task %d: view batch not claimed (%s)", t.id, format_error(exc, 0))
             return [], True
+        runnable, waiting = split_on_inputs(claimed, others)
+        if waiting:
+            log.info("view batch of task %d: %s handed back, an input runs elsewhere", t.id,
+                     ", ".join(c.cue for c in waiting))
+            self.hand_back(waiting, "handed back to pending unrun: an input of its view runs elsewhere")
+        return runnable, elsewhere or bool(waiting)
 
     def hand_back(self, tasks: list[Claimed], why: str) -> list[Outcome]:
         """running -> pending, as before their claim (attempts, no worker, no lease), of batch tasks that did

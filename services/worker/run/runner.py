@@ -24,9 +24,9 @@
    (so the pass set is done) the pending ones too: the pass set, read once, gives every cue of the view, where
    queued-only took one batch and one read of the pass set per DAG level.
    Each task keeps its row; a pending task claimed so gets no message, a queued one's message is skipped when
-   it comes (a read, no claim). A task whose input failed in the batch is handed back to pending unrun. A
-   batch whose worker dies stays `running` under its lease (the beats extend all of it): the reaper re-queues
-   every task of it.
+   it comes (a read, no claim). A task whose input failed in the batch, or runs on another worker, is handed
+   back to pending unrun. A batch whose worker dies stays `running` under its lease (the beats extend all of
+   it): the reaper re-queues every task of it.
 5. Failure: retry after a backoff or fail for good, and keep a failing worker off the job
    (services.worker.run.failure_policy); a store that fails (full, S3 5xx) holds the job instead, its tasks'
    attempts not counted (TaskLedger.hold_for_storage), until the scheduler sees the store take writes again.

@@ -11,9 +11,13 @@ import json
 from datetime import timedelta
 
 import pytest
+from sqlalchemy import select
 
 from services.core.db.models import Task, utcnow
+from services.scheduler.dispatch import dispatch_once
 from services.scheduler.reaper import reap_once
+from services.scheduler.transport import NullTransport
+from services.worker.run.claim import Claimed
 from services.worker.run.heartbeat import expire_leases
 from services.worker.run.runner import TaskRunner
 from tests.worker.run.test_runner import CUES, banana, counters_match, make_job, queue, runner, sm, task
@@ -150,3 +154,31 @@ def test_a_view_batch_counts_once_towards_the_recycle_limit(sm, banana):
     assert not first.recycle
     second = r.run(queue(sm, job_id, "rgb", 0, 1))
     assert second.status == "done" and second.recycle
+
+
+def test_a_pending_task_whose_input_runs_elsewhere_stays_out_of_a_view_batch(sm, banana):
+    # Worker A takes a view's point_info message; worker B, running the view's rgb, claims the rest of the
+    # view before A's point_info is recorded. vanishing_points (input point_info) must not run in B's batch:
+    # A's point_info may still fail, and then vanishing_points fails with it (UpstreamFailed), as the
+    # dispatcher's rule says; mask_valid (input depth_zbuffer, in B's batch) runs there.
+    job_id = make_job(sm, banana, max_attempts=1)
+    render(sm, banana, job_id)
+    tids = {cue: queue(sm, job_id, cue) for cue in ("rgb", "depth_zbuffer", "point_info")}
+    a = runner(sm, banana, "A")
+    held = a.ledger.claim(tids["point_info"])
+    assert isinstance(held, Claimed)
+
+    out = runner(sm, banana, "B").run(tids["rgb"])
+    ran = {o.cue: o.status for o in out.all()}
+    assert ran == dict.fromkeys(("rgb", "depth_zbuffer", "mask_valid"), "done")
+    with sm() as s:
+        vp = s.scalars(select(Task).where(Task.job_id == job_id, Task.cue == "vanishing_points",
+                                          Task.point_idx == 0, Task.view_idx == 0)).one()
+    assert (vp.state, vp.worker_id, vp.attempts) == ("pending", None, 0)
+    assert counters_match(sm, job_id)
+
+    assert a.ledger.record_failure(held, RuntimeError("boom"), 0.0, max_attempts=1).status == "failed"
+    with sm() as s:  # the dispatcher fails what the failed input feeds, and the job can finish
+        assert dispatch_once(s, NullTransport(), window=1000).upstream_failed >= 1
+    assert task(sm, vp.id).state == "failed" and task(sm, vp.id).error.startswith("UpstreamFailed")
+    assert counters_match(sm, job_id)

@@ -159,18 +159,33 @@ def _first_appearance_ranks(labels: np.ndarray, mask: np.ndarray) -> np.ndarray:
 
 @njit(cache=True, nogil=True)
 def _region_sums(labels: np.ndarray, features: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel count (float64) and per-channel feature sums (float64) of every region, in one pass: each sum
-    adds in raster order, as numpy's bincount with weights did channel by channel."""
+    """Pixel count (float64) and per-channel feature sums (float64; at most 4 channels) of every region, in
+    one pass: each sum adds in raster order, as numpy's bincount with weights did channel by channel. A run
+    of one label along a row adds in registers, stored once at its end (the same additions, without a store
+    and reload per pixel); counts add whole runs (integers, exact)."""
     h, w, c = features.shape
+    if c > 4:
+        raise ValueError("at most 4 feature channels")
     cnt = np.zeros(n, np.float64)
-    sums = np.zeros((n, c), np.float64)
+    sums = np.zeros((n, 4), np.float64)
     for y in range(h):
-        for x in range(w):
+        x = 0
+        while x < w:
             lab = labels[y, x]
-            cnt[lab] += 1.0
-            for k in range(c):
-                sums[lab, k] += np.float64(features[y, x, k])
-    return cnt, sums
+            s0, s1, s2, s3 = sums[lab, 0], sums[lab, 1], sums[lab, 2], sums[lab, 3]
+            start = x
+            while x < w and labels[y, x] == lab:
+                s0 += np.float64(features[y, x, 0])
+                if c > 1:
+                    s1 += np.float64(features[y, x, 1])
+                if c > 2:
+                    s2 += np.float64(features[y, x, 2])
+                if c > 3:
+                    s3 += np.float64(features[y, x, 3])
+                x += 1
+            cnt[lab] += x - start
+            sums[lab, 0], sums[lab, 1], sums[lab, 2], sums[lab, 3] = s0, s1, s2, s3
+    return cnt, sums[:, :c].copy()
 
 
 @njit(cache=True, nogil=True)

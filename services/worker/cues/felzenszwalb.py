@@ -111,6 +111,25 @@ def _edge_costs(planes: np.ndarray, directions: int) -> tuple[np.ndarray, float]
 
 
 @njit(cache=True, nogil=True)
+def _bucket_starts(q: np.ndarray, levels: int) -> np.ndarray:
+    """start[b] = how many entries of q are below b (b = 0..levels): counted into four histograms, by index
+    mod 4, so runs of one bucket (flat regions) are not one chain of increments of one counter."""
+    counts = np.zeros((4, levels + 1), np.int64)
+    n4 = len(q) - len(q) % 4
+    for i in range(0, n4, 4):
+        counts[0, q[i] + 1] += 1
+        counts[1, q[i + 1] + 1] += 1
+        counts[2, q[i + 2] + 1] += 1
+        counts[3, q[i + 3] + 1] += 1
+    for i in range(n4, len(q)):
+        counts[0, q[i] + 1] += 1
+    start = np.zeros(levels + 1, np.int64)
+    for b in range(levels):
+        start[b + 1] = start[b] + counts[0, b + 1] + counts[1, b + 1] + counts[2, b + 1] + counts[3, b + 1]
+    return start
+
+
+@njit(cache=True, nogil=True)
 def _sorted_edges(planes: np.ndarray, levels: int, directions: int) -> np.ndarray:
     """The grid's edges in increasing feature distance quantised to `levels` (<= 2^16) steps of the largest,
     ties in generation order (a stable counting sort), so the merge passes read them in sequence: each one
@@ -123,13 +142,9 @@ def _sorted_edges(planes: np.ndarray, levels: int, directions: int) -> np.ndarra
     scale = (levels - 1) / top if top > 0 else 0.0
     # each edge's bucket, kept for the scatter pass (half an int32's traffic)
     q = np.empty(len(cost), np.uint16)
-    start = np.zeros(levels + 1, np.int64)
     for i in range(len(cost)):
-        b = int(cost[i] * scale)
-        q[i] = b
-        start[b + 1] += 1
-    for i in range(levels):
-        start[i + 1] += start[i]
+        q[i] = int(cost[i] * scale)
+    start = _bucket_starts(q, levels)
     bits = cost.view(np.uint32)
     edges = np.empty(len(cost), np.int64)
     e = 0

@@ -441,9 +441,11 @@ def _blur_cols(img: np.ndarray, taps: np.ndarray, mode: int) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _extended_pair(row: np.ndarray, x: int, j: int, mode: int) -> float:
+def _extended_pair(row: np.ndarray, x: int, j: int, mode: int) -> np.float64:
     """row[x + j] + row[x - j] in float64, either read through the mode's extension (0.0 outside in mode
     constant)."""
     w = len(row)
     xa, xb = _extend(x + j, w, mode), _extend(x - j, w, mode)
-    return (np.float64(row[xa]) if xa >= 0 else 0.0) + (np.float64(row[xb]) if xb >= 0 else 0.0)
+    a = np.float64(row[xa]) if xa >= 0 else np.float64(0.0)
+    b = np.float64(row[xb]) if xb >= 0 else np.float64(0.0)
+    return a + b

@@ -412,10 +412,9 @@ def _blur_rows(img: np.ndarray, taps: np.ndarray, mode: int) -> np.ndarray:
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _blur_cols(img: np.ndarray, taps: np.ndarray, mode: int) -> np.ndarray:
-    """Along axis 1, the same sums, row by row: each tap's pairs read straight from the float32 row over the
-    columns whose two reads fall inside it (contiguous slices, which LLVM vectorises), the few columns
-    within a radius of the ends through the mode's extension (no extended float64 copy of the row: ~2x
-    faster at radii of a few pixels)."""
+    """Along axis 1, the same sums, row by row: each tap's pairs read from the float32 row where both reads
+    fall inside it (contiguous slices, which LLVM vectorises), the columns near the ends through the mode's
+    extension (no extended float64 copy of the row: ~2x faster at radii of a few pixels)."""
     h, w = img.shape
     r = len(taps) // 2
     out = np.empty((h, w), np.float32)

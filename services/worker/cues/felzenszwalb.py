@@ -9,13 +9,13 @@ merging any component smaller than min_size with its neighbour. Differences from
 changes the definition: features stay float32; edges are ordered by a stable counting sort of the weight
 quantised to 2^16 levels of the image's largest weight (equal-looking weights keep raster order, where
 skimage's quicksort order is arbitrary); union by size; and the merge pass is kept so a larger min_size can be
-applied without redoing it (the min-size pass walks only the edges that still join two components after the
-merge pass, a few percent of them, over the merge pass's components numbered 0..C-1: arrays of C entries, not
-of every pixel). About 10x faster than skimage at 512 x 512 with 3-4 channels (no 2 x E int64 edge table, no
-float64 argsort); edges travel as one int64 (code: start pixel and direction; float32 distance), finds halve
-paths, and the distances are computed a row at a time on feature planes (vectorised), which leaves every
-distance, root, hence every label, as before (tests/worker/cues/test_kernels.py and test_segment_kernels.py
-against tests/fixtures/reference_felzenszwalb.py).
+applied without redoing it (the min-size pass walks only the first edge joining each pair of components after
+the merge pass, at most about a percent of the edges, over the merge pass's components numbered 0..C-1: arrays
+of C entries, not of every pixel). About 10x faster than skimage at 512 x 512 with 3-4 channels (no 2 x E
+int64 edge table, no float64 argsort); edges travel as one int64 (code: start pixel and direction; float32
+distance), finds halve paths, and the distances are computed a row at a time on feature planes (vectorised),
+which leaves every distance, root, hence every label, as before (tests/worker/cues/test_kernels.py and
+test_segment_kernels.py against tests/fixtures/reference_felzenszwalb.py).
 """
 
 from __future__ import annotations

@@ -18,7 +18,10 @@ has none. Writes bench/results/derivations.json ("before" kept from a run with -
 --against REV: an A/B on a loaded machine. The image cues of each view (not the plan cues) are made by two
 processes on the same core, this checkout's and REV's (git archive), in lockstep, view by view in alternating
 order, so both see the same load; REV's run is written as "before", this one's as "after" (no segment steps).
+--key NAME: the run(s) go under that key of the results file, with --against also "per_cue_ms" ({room: {cue:
+[before, after]}}, median CPU ms a view, derivation and encoding), which is printed too.
 Run: .venv/bin/python bench/cues/derivations.py [--views 6] [--repeats 3] [--label after] [--against REV]
+[--key NAME]
 """
 
 from __future__ import annotations
@@ -336,6 +339,8 @@ def main() -> int:
     ap.add_argument("--label", default="after", help="key of this run in the results file (before / after)")
     ap.add_argument("--cache", type=Path, default=Path("/tmp/omnidata-derivations-passes"))
     ap.add_argument("--against", default="", help="a git revision: lockstep A/B, written as before / after")
+    ap.add_argument("--key", default="", help="write the run(s) under this key of the results file (its "
+                    "before / after, and with --against the per-cue ms of both), not at its top level")
     args = ap.parse_args()
     t0, cpu0 = time.perf_counter(), time.process_time()
     load_before = os.getloadavg()
@@ -354,8 +359,9 @@ def main() -> int:
         "benchmark": "bench/cues/derivations.py",
         "target": "derivations (all default cues but the render, encodings included) <= 1x the bare 1-sample "
                   "render per view, 512 px, one core"}
+    block = data.setdefault(args.key, {}) if args.key else data
     for label, rooms in sides.items():
-        data[label] = {
+        block[label] = {
             "commit": rev(args.against) if args.against and label == "before" else rev("HEAD"),
             "resolution": args.resolution, "clock": "process CPU seconds (time.process_time), one core",
             **({"lockstep_against": args.against} if args.against else {}),
@@ -364,13 +370,39 @@ def main() -> int:
             "wall_s": round(time.perf_counter() - t0, 1), "cpu_s": round(time.process_time() - cpu0, 1),
             "rooms": rooms,
         }
+    if args.key and {"before", "after"} <= block.keys():
+        block["per_cue_ms"] = per_cue_ms(block["before"]["rooms"], block["after"]["rooms"])
     RESULTS.write_text(json.dumps(data, indent=1) + "\n")
     for label, rooms in sides.items():
-        print(label, data[label]["commit"])
+        print(label, block[label]["commit"])
         report(rooms)
-    print("load", data[label]["load_before"], "->", data[label]["load_after"], "wall", data[label]["wall_s"],
-          "cpu", data[label]["cpu_s"])
+    if "per_cue_ms" in block:
+        print_per_cue(block["per_cue_ms"])
+    last = block[label]
+    print("load", last["load_before"], "->", last["load_after"], "wall", last["wall_s"], "cpu", last["cpu_s"])
     return 0
+
+
+def per_cue_ms(before: dict, after: dict) -> dict:
+    """{room: {cue: [before, after]}}: each cue's median CPU ms a view (derivation and encoding), and the
+    total, of the rooms both runs have."""
+    def ms(cue: dict) -> float:
+        return round(1e3 * (cue["derive_s"] + cue["encode_s"]), 2)
+
+    out = {}
+    for room in before.keys() & after.keys():
+        b, a = before[room]["per_cue"], after[room]["per_cue"]
+        out[room] = {c: [ms(b[c]), ms(a[c])] for c in b if c in a}
+        out[room]["total"] = [round(1e3 * before[room]["total_s_median"], 2),
+                              round(1e3 * after[room]["total_s_median"], 2)]
+    return out
+
+
+def print_per_cue(table: dict) -> None:
+    for room, cues in table.items():
+        print(f"{room}: CPU ms a view, before -> after")
+        for c, (b, a) in cues.items():
+            print(f"  {c:20s} {b:7.2f} -> {a:7.2f}  ({a - b:+.2f})")
 
 
 def report(rooms: dict) -> None:

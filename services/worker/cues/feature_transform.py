@@ -41,25 +41,50 @@ def _envelope(fd: np.ndarray, fo: np.ndarray, other: int, g: np.ndarray) -> int:
 
 @njit(cache=True, nogil=True)
 def _nearest_on_row(fd: np.ndarray, fo: np.ndarray, other: int, g: np.ndarray, d0: np.ndarray,
-                    o0: np.ndarray) -> None:
+                    o0: np.ndarray, first: int) -> None:
     """One row's candidates (column fd, row fo; -1 = none) replaced in place by the nearest of them to each
-    position of the row (d0, o0: scratch of the row's length)."""
+    position of the row (d0, o0: scratch of the row's length); the row may be a piece of a longer line
+    starting at column `first` (fd holds whole-line columns)."""
     top = _envelope(fd, fo, other, g)
     if top < 0:
         return
-    d0[:] = fd
-    o0[:] = fo
+    n = len(fd)
+    d0[:n] = fd
+    o0[:n] = fo
     k = 0
-    for i in range(len(fd)):
-        d1 = (d0[g[k]] - i) ** 2 + (o0[g[k]] - other) ** 2
+    for i in range(n):
+        c = first + i
+        d1 = (d0[g[k]] - c) ** 2 + (o0[g[k]] - other) ** 2
         while k < top:
-            d2 = (d0[g[k + 1]] - i) ** 2 + (o0[g[k + 1]] - other) ** 2
+            d2 = (d0[g[k + 1]] - c) ** 2 + (o0[g[k + 1]] - other) ** 2
             if d1 <= d2:
                 break
             d1 = d2
             k += 1
         fd[i] = d0[g[k]]
         fo[i] = o0[g[k]]
+
+
+@njit(cache=True, nogil=True)
+def _nearest_on_row_pieces(fd: np.ndarray, fo: np.ndarray, row_mask: np.ndarray, other: int, g: np.ndarray,
+                           d0: np.ndarray, o0: np.ndarray) -> None:
+    """_nearest_on_row of a whole row, answered one run of non-mask pixels at a time, over the run and the
+    mask pixels that bound it. A mask pixel of the row is its own candidate at distance 0: it stays on the
+    envelope (its pop test is negative), the scan's pointer reaches it at its own position, and every
+    candidate beyond it is strictly farther for the run's pixels; so each piece's envelope and scan are
+    those of the whole row there, index for index, and the mask pixels (their own nearest) need no work."""
+    w = len(fd)
+    x = 0
+    while x < w:
+        if row_mask[x]:
+            x += 1
+            continue
+        end = x
+        while end < w and not row_mask[end]:
+            end += 1
+        lo, hi = max(x - 1, 0), min(end, w - 1)  # with the bounding mask pixels
+        _nearest_on_row(fd[lo:hi + 1], fo[lo:hi + 1], other, g, d0, o0, lo)
+        x = end
 
 
 @njit(cache=True, nogil=True)
@@ -104,7 +129,7 @@ def nearest_site(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     out_x = np.empty((h, w), np.int32)
     for y in range(h):  # along each row: the line's coordinate is the column
         if not _all_true(mask[y]):
-            _nearest_on_row(ix[y], iy[y], y, g, d0, o0)
+            _nearest_on_row_pieces(ix[y], iy[y], mask[y], y, g, d0, o0)
         for x in range(w):
             out_y[y, x] = iy[y, x]
             out_x[y, x] = ix[y, x]

@@ -9,13 +9,13 @@ merging any component smaller than min_size with its neighbour. Differences from
 changes the definition: features stay float32; edges are ordered by a stable counting sort of the weight
 quantised to 2^16 levels of the image's largest weight (equal-looking weights keep raster order, where
 skimage's quicksort order is arbitrary); union by size; and the merge pass is kept so a larger min_size can be
-applied without redoing it (the min-size pass walks only the edges that still join two components after the
-merge pass, a few percent of them, over the merge pass's components numbered 0..C-1: arrays of C entries, not
-of every pixel). About 10x faster than skimage at 512 x 512 with 3-4 channels (no 2 x E int64 edge table, no
-float64 argsort); edges travel as one int64 (code: start pixel and direction; float32 distance), finds halve
-paths, and the distances are computed a row at a time on feature planes (vectorised), which leaves every
-distance, root, hence every label, as before (tests/worker/cues/test_kernels.py and test_segment_kernels.py
-against tests/fixtures/reference_felzenszwalb.py).
+applied without redoing it (the min-size pass walks only the first edge joining each pair of components after
+the merge pass, at most about a percent of the edges, over the merge pass's components numbered 0..C-1: arrays
+of C entries, not of every pixel). About 10x faster than skimage at 512 x 512 with 3-4 channels (no 2 x E
+int64 edge table, no float64 argsort); edges travel as one int64 (code: start pixel and direction; float32
+distance), finds halve paths, and the distances are computed a row at a time on feature planes (vectorised),
+which leaves every distance, root, hence every label, as before (tests/worker/cues/test_kernels.py and
+test_segment_kernels.py against tests/fixtures/reference_felzenszwalb.py).
 """
 
 from __future__ import annotations
@@ -35,6 +35,21 @@ def _find(parent: np.ndarray, i: int) -> int:
         parent[i] = parent[parent[i]]
         i = parent[i]
     return i
+
+
+@njit(cache=True, nogil=True)
+def _find_sized(parent: np.ndarray, i: int) -> int:
+    """_find on a forest whose roots hold minus their tree's size (the merge pass's): a root's size comes in
+    the cache line its find already read, not from a size array."""
+    while True:
+        p = parent[i]
+        if p < 0:
+            return i
+        g = parent[p]
+        if g < 0:
+            return p
+        parent[i] = g
+        i = g
 
 
 # The 8-connected grid's edge directions (dy, dx): right, down, down-right, up-right (skimage's edge set); the
@@ -96,6 +111,25 @@ def _edge_costs(planes: np.ndarray, directions: int) -> tuple[np.ndarray, float]
 
 
 @njit(cache=True, nogil=True)
+def _bucket_starts(q: np.ndarray, levels: int) -> np.ndarray:
+    """start[b] = how many entries of q are below b (b = 0..levels): counted into four histograms, by index
+    mod 4, so runs of one bucket (flat regions) are not one chain of increments of one counter."""
+    counts = np.zeros((4, levels + 1), np.int64)
+    n4 = len(q) - len(q) % 4
+    for i in range(0, n4, 4):
+        counts[0, q[i] + 1] += 1
+        counts[1, q[i + 1] + 1] += 1
+        counts[2, q[i + 2] + 1] += 1
+        counts[3, q[i + 3] + 1] += 1
+    for i in range(n4, len(q)):
+        counts[0, q[i] + 1] += 1
+    start = np.zeros(levels + 1, np.int64)
+    for b in range(levels):
+        start[b + 1] = start[b] + counts[0, b + 1] + counts[1, b + 1] + counts[2, b + 1] + counts[3, b + 1]
+    return start
+
+
+@njit(cache=True, nogil=True)
 def _sorted_edges(planes: np.ndarray, levels: int, directions: int) -> np.ndarray:
     """The grid's edges in increasing feature distance quantised to `levels` (<= 2^16) steps of the largest,
     ties in generation order (a stable counting sort), so the merge passes read them in sequence: each one
@@ -108,13 +142,9 @@ def _sorted_edges(planes: np.ndarray, levels: int, directions: int) -> np.ndarra
     scale = (levels - 1) / top if top > 0 else 0.0
     # each edge's bucket, kept for the scatter pass (half an int32's traffic)
     q = np.empty(len(cost), np.uint16)
-    start = np.zeros(levels + 1, np.int64)
     for i in range(len(cost)):
-        b = int(cost[i] * scale)
-        q[i] = b
-        start[b + 1] += 1
-    for i in range(levels):
-        start[i + 1] += start[i]
+        q[i] = int(cost[i] * scale)
+    start = _bucket_starts(q, levels)
     bits = cost.view(np.uint32)
     edges = np.empty(len(cost), np.int64)
     e = 0
@@ -142,14 +172,14 @@ def _offsets(w: int) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True)
-def _merge(edges: np.ndarray, w: int, n: int, k: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The greedy merge pass over the sorted edges (_sorted_edges' int64s): parent forest, component sizes,
-    and the codes of the edges it did not merge across (in order): the only ones that can still join two
-    components afterwards. Each root keeps its threshold Int(C) + k / |C| (float64, the sum the test would
-    form), updated when it grows: one division a merge instead of two an edge."""
+def _merge(edges: np.ndarray, w: int, n: int, k: float) -> tuple[np.ndarray, np.ndarray]:
+    """The greedy merge pass over the sorted edges (_sorted_edges' int64s): the parent forest, each root
+    holding minus its component's size (one array for finds and sizes: the pass waits on memory), and the
+    codes of the edges it did not merge across (in order): the only ones that can still join two components
+    afterwards. Each root keeps its threshold Int(C) + k / |C| (float64, the sum the test would form),
+    updated when it grows: one division a merge instead of two an edge."""
     offsets = _offsets(w)
-    parent = np.arange(n).astype(np.int32)
-    size = np.ones(n, np.int32)
+    parent = np.full(n, -1, np.int32)
     threshold = np.full(n, np.float32(0.0) + k / 1)  # Int = 0 (float32) and |C| = 1
     # the halves of each int64 (little-endian: the distance's bits first, then the code)
     halves, costs = edges.view(np.int32), edges.view(np.float32)
@@ -158,53 +188,72 @@ def _merge(edges: np.ndarray, w: int, n: int, k: float) -> tuple[np.ndarray, np.
     for e in range(len(edges)):
         code = halves[2 * e + 1]
         a, b = _edge_ends(code, offsets)
-        r0 = _find(parent, a)
-        r1 = _find(parent, b)
+        r0 = _find_sized(parent, a)
+        r1 = _find_sized(parent, b)
         if r0 == r1:
             continue
         cost = costs[2 * e]
         if cost < min(threshold[r0], threshold[r1]):
-            if size[r0] < size[r1]:
+            s0, s1 = -parent[r0], -parent[r1]
+            if s0 < s1:
                 r0, r1 = r1, r0
             parent[r1] = r0
-            size[r0] += size[r1]
-            threshold[r0] = cost + k / size[r0]
+            parent[r0] = -(s0 + s1)
+            threshold[r0] = cost + k / (s0 + s1)
         else:
             kept[n_kept] = code
             n_kept += 1
-    return parent, size, kept[:n_kept]
+    return parent, kept[:n_kept]
+
+
+# Most components whose pairs a bitmap marks (8 MiB) to drop the repeated crossings (_components)
+MAX_PAIR_BITMAP = 8192
 
 
 @njit(cache=True, nogil=True)
-def _components(kept: np.ndarray, parent: np.ndarray, size: np.ndarray,
+def _components(kept: np.ndarray, parent: np.ndarray,
                 w: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The merge pass's components numbered 0..C-1 (raster order of first appearance): every pixel's number,
-    each component's size, and, in edge order, the two numbers each kept edge joins when they differ: the only
-    edges the min-size pass can act on, since components only grow."""
+    """The merge pass's components (its forest: roots hold minus their size) numbered 0..C-1 (raster order of
+    first appearance): every pixel's number, each component's size, and, in edge order, the two numbers each
+    kept edge joins when they differ: the only edges the min-size pass can act on, since components only
+    grow. Of the edges joining one pair of components (either way round) only the first is listed (up to
+    MAX_PAIR_BITMAP components): the min-size pass never merges at a repeat, since at the pair's first edge
+    the two were already one tree or both trees held min_size pixels, and trees only grow; the same merges
+    from ~20x fewer edges."""
     offsets = _offsets(w)
     n = len(parent)
     number = np.full(n, -1, np.int32)  # per root
     comp = np.empty(n, np.int32)
     count = 0
     for i in range(n):
-        r = _find(parent, i)
+        r = _find_sized(parent, i)
         if number[r] < 0:
             number[r] = count
             count += 1
         comp[i] = number[r]
     comp_size = np.empty(count, np.int32)
     for i in range(n):
-        if parent[i] == i:
-            comp_size[number[i]] = size[i]
+        if parent[i] < 0:
+            comp_size[number[i]] = -parent[i]
     ca = np.empty(len(kept), np.int32)
     cb = np.empty(len(kept), np.int32)
+    first_only = count <= MAX_PAIR_BITMAP
+    seen = np.zeros((count * count + 7) // 8 if first_only else 0, np.uint8)
     j = 0
     for c in kept:
         a, b = _edge_ends(c, offsets)
-        if comp[a] != comp[b]:
-            ca[j] = comp[a]
-            cb[j] = comp[b]
-            j += 1
+        p, q = comp[a], comp[b]
+        if p == q:
+            continue
+        if first_only:
+            bit = min(p, q) * count + max(p, q)
+            byte, mask = bit >> 3, np.uint8(1 << (bit & 7))
+            if seen[byte] & mask:
+                continue
+            seen[byte] |= mask
+        ca[j] = p
+        cb[j] = q
+        j += 1
     return comp, comp_size, ca[:j], cb[:j]
 
 
@@ -269,8 +318,8 @@ class Felzenszwalb:
         for c in range(img.shape[-1]):
             planes[c] = gaussian_blur(img[..., c], sigma, mode="reflect") if sigma > 0 else img[..., c]
         edges = _sorted_edges(planes, levels, DIRECTIONS[connectivity])
-        parent, size, kept = _merge(edges, w, h * w, float(scale) / 255.0)
-        self._comp, self._size, self._ca, self._cb = _components(kept, parent, size, w)
+        parent, kept = _merge(edges, w, h * w, float(scale) / 255.0)
+        self._comp, self._size, self._ca, self._cb = _components(kept, parent, w)
         self._last: tuple[int, np.ndarray, int] | None = None
 
     def labels(self, min_size: int) -> np.ndarray:

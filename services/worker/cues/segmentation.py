@@ -142,14 +142,15 @@ def _dense_graph(n: int, ea: np.ndarray, eb: np.ndarray, w: np.ndarray) -> np.nd
 
 
 @njit(cache=True, nogil=True)
-def _first_appearance_ranks(labels: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """uint16 labels 1..K (capped at 65535) in raster order of first appearance inside mask, 0 outside."""
-    rank = np.zeros(labels.max() + 1, np.int64)
+def _first_appearance_ranks(labels: np.ndarray, mask: np.ndarray, lookup: np.ndarray) -> np.ndarray:
+    """uint16 labels 1..K (capped at 65535) of lookup[labels] in raster order of first appearance inside
+    mask, 0 outside (lookup: the segment of each superpixel, read per pixel instead of an image of them)."""
+    rank = np.zeros(lookup.max() + 1, np.int64)
     out = np.zeros(labels.shape, np.uint16)
     count = 0
     for i in range(labels.size):
         if mask[i]:
-            lab = labels[i]
+            lab = lookup[labels[i]]
             if rank[lab] == 0:
                 count += 1
                 rank[lab] = count
@@ -159,18 +160,33 @@ def _first_appearance_ranks(labels: np.ndarray, mask: np.ndarray) -> np.ndarray:
 
 @njit(cache=True, nogil=True)
 def _region_sums(labels: np.ndarray, features: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel count (float64) and per-channel feature sums (float64) of every region, in one pass: each sum
-    adds in raster order, as numpy's bincount with weights did channel by channel."""
+    """Pixel count (float64) and per-channel feature sums (float64; at most 4 channels) of every region, in
+    one pass: each sum adds in raster order, as numpy's bincount with weights did channel by channel. A run
+    of one label along a row adds in registers, stored once at its end (the same additions, without a store
+    and reload per pixel); counts add whole runs (integers, exact)."""
     h, w, c = features.shape
+    if c > 4:
+        raise ValueError("at most 4 feature channels")
     cnt = np.zeros(n, np.float64)
-    sums = np.zeros((n, c), np.float64)
+    sums = np.zeros((n, 4), np.float64)
     for y in range(h):
-        for x in range(w):
+        x = 0
+        while x < w:
             lab = labels[y, x]
-            cnt[lab] += 1.0
-            for k in range(c):
-                sums[lab, k] += np.float64(features[y, x, k])
-    return cnt, sums
+            s0, s1, s2, s3 = sums[lab, 0], sums[lab, 1], sums[lab, 2], sums[lab, 3]
+            start = x
+            while x < w and labels[y, x] == lab:
+                s0 += np.float64(features[y, x, 0])
+                if c > 1:
+                    s1 += np.float64(features[y, x, 1])
+                if c > 2:
+                    s2 += np.float64(features[y, x, 2])
+                if c > 3:
+                    s3 += np.float64(features[y, x, 3])
+                x += 1
+            cnt[lab] += x - start
+            sums[lab, 0], sums[lab, 1], sums[lab, 2], sums[lab, 3] = s0, s1, s2, s3
+    return cnt, sums[:, :c].copy()
 
 
 @njit(cache=True, nogil=True)
@@ -196,12 +212,16 @@ def _adjacent_pairs(labels: np.ndarray, boundary: np.ndarray, n: int,
     return links, total
 
 
-def _relabel(labels: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """uint16 labels 1..K in raster order of first appearance inside mask, 0 outside (labels >= 0)."""
+def _relabel(labels: np.ndarray, mask: np.ndarray, lookup: np.ndarray | None = None) -> np.ndarray:
+    """uint16 labels 1..K in raster order of first appearance inside mask, 0 outside (labels >= 0); of
+    lookup[labels] when lookup is given."""
     if labels.size == 0:
         return np.zeros(labels.shape, dtype=np.uint16)
-    flat = _first_appearance_ranks(np.ascontiguousarray(labels).ravel(), np.ascontiguousarray(mask).ravel())
-    return flat.reshape(labels.shape)
+    flat = np.ascontiguousarray(labels).ravel()
+    if lookup is None:
+        lookup = np.arange(int(flat.max()) + 1)
+    return _first_appearance_ranks(flat, np.ascontiguousarray(mask).ravel(),
+                                   np.ascontiguousarray(lookup, dtype=np.int64)).reshape(labels.shape)
 
 
 @njit(cache=True, nogil=True)
@@ -269,7 +289,7 @@ def segment(ctx: ViewContext, features: np.ndarray, mask: np.ndarray, *, sigma: 
     W = region_graph(superpixel_ids, features * 255.0, p.segment_ncut_sigma, boundary)
     merged = normalized_cuts(W, p.segment_ncut_thresh, p.segment_num_cuts, definition.eigenvectors,
                              definition.link_eps)
-    return _relabel(merged[superpixel_ids], mask)
+    return _relabel(superpixel_ids, mask, merged)
 
 
 @register("segment_unsup2d")

@@ -89,4 +89,3 @@ def _write(path: Path, arr: np.ndarray) -> None:
         log.warning("could not keep the curvature at %s: %s", path, e)
         if tmp is not None:
             Path(tmp).unlink(missing_ok=True)
-

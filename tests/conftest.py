@@ -13,8 +13,10 @@ import importlib.abc
 import os
 import re
 import secrets
+import shutil
 import socket
 import sys
+import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -43,6 +45,16 @@ class _NoBpy(importlib.abc.MetaPathFinder):
 
 if os.environ.get("OMNIDATA_TEST_WITHOUT_BPY"):
     sys.meta_path.insert(0, _NoBpy())
+
+# The user's caches (services.core.user_cache: meshed clouds, parsed spaces, curvature) go to a folder of this
+# session, never the real home; the `omnidata` commands the tests run inherit it.
+_USER_DATA_DIR = tempfile.mkdtemp(prefix="omnidata-test-user-")
+os.environ["OMNIDATA_DATA_DIR"] = _USER_DATA_DIR
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    shutil.rmtree(_USER_DATA_DIR, ignore_errors=True)
+
 
 _BPY_MODULE = re.compile(r"^pytestmark = .*pytest\.mark\.bpy\b", re.MULTILINE)
 

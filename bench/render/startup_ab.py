@@ -6,9 +6,12 @@ kernels, the curvature, the first render); with --points 22, the 66-view job of 
 to end. The run of this checkout and the run of git revision --against (a worktree of it, its kernels compiled
 ahead as `make venv` does) alternate, first one then the other, so a neighbour's load moves both; per room,
 each side's CPU and wall seconds per repeat, their medians and the paired differences (against minus this
-checkout). Writes bench/results/startup_ab.json under --key ("ab"; its other keys kept).
+checkout). Writes bench/results/startup_ab.json under --key ("ab"; its other keys kept). With --user-caches,
+this checkout against itself: each "against" run with an empty user cache ($OMNIDATA_DATA_DIR: the parsed
+space and the curvature computed), each "this" run with the cache an earlier run on the room filled.
 Run: .venv/bin/python bench/render/startup_ab.py --against REV [--points 1] [--repeats 5] [--core 1]
-     [--worktree DIR] [--key ab]; --against-code DIR runs an existing checkout as the other side instead.
+     [--worktree DIR] [--key ab]; --against-code DIR runs an existing checkout as the other side instead;
+     --user-caches [--key user_caches] runs this checkout cold against warm.
 """
 
 from __future__ import annotations
@@ -58,8 +61,10 @@ def main() -> int:
     ap.add_argument("--worktree", type=Path, default=None, help="a folder for the revision's checkout (kept)")
     ap.add_argument("--points", type=int, default=1, help="points of the job (3 views each)")
     ap.add_argument("--key", default="ab", help="the entry of bench/results/startup_ab.json to write")
+    ap.add_argument("--user-caches", action="store_true",
+                    help="this checkout with empty user caches (against) and with warm ones (this)")
     args = ap.parse_args()
-    code = args.against_code.resolve() if args.against_code else None
+    code = ROOT if args.user_caches else args.against_code.resolve() if args.against_code else None
     rev = subprocess.run(["git", "rev-parse", "--short", "HEAD" if code else args.against], cwd=code or ROOT,
                          check=True, capture_output=True, text=True).stdout.strip()
     here = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, check=True, capture_output=True,
@@ -73,12 +78,20 @@ def main() -> int:
             room: {k: [] for k in sides} for room in args.rooms.split(",")
         }
         wall: dict[str, dict[str, list[float]]] = {room: {k: [] for k in sides} for room in cpu}
+        warm = Path(tmp) / "warm-user"
+        if args.user_caches:  # one run per room fills the warm side's caches
+            os.environ["OMNIDATA_DATA_DIR"] = str(warm)
+            for room in cpu:
+                generate(ROOMS[room][0], ROOMS[room][1], args.core, Path(tmp) / f"fill-{room}", spec, 1)
         before = load()
         for rep in range(args.repeats):
             for room, runs in cpu.items():
                 space, extra = ROOMS[room]
                 for side in list(sides)[:: 1 if rep % 2 == 0 else -1]:
                     root = sides[side]
+                    if args.user_caches:
+                        cold = Path(tmp) / f"cold-{rep}-{room}"
+                        os.environ["OMNIDATA_DATA_DIR"] = str(warm if side == "this" else cold)
                     # its own copy
                     source = root / space.relative_to(ROOT) if space.is_relative_to(ROOT) else space
                     with tempfile.TemporaryDirectory(prefix="omnidata-startup-ab-") as out:
@@ -96,7 +109,8 @@ def main() -> int:
     for room, row in rooms.items():
         print(room, json.dumps({k: v for k, v in row.items() if k not in ("cpu_s", "wall_s")}))
     data = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
-    data[args.key] = {"against": rev, "this": here, "views": 3 * args.points, "core": args.core,
+    sides_are = {"sides": "against: empty user caches, this: warm ones"} if args.user_caches else {}
+    data[args.key] = {"against": rev, "this": here, **sides_are, "views": 3 * args.points, "core": args.core,
                       "clock": "CPU and wall seconds of the run",
                       "machine": f"{os.cpu_count()} cores ({cpu_model()}), shared", "load_before": before,
                       "load_after": load(), "rooms": rooms}

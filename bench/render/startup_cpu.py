@@ -13,7 +13,12 @@ Each part in a fresh process (so imports and caches start cold as in a run), pro
   The numba kernels' loads show in bench/render/room_cost.py as the first view's derivations against the
   median view's.
 Figures go to bench/results/startup_cpu.json with the load average.
-Run: .venv/bin/python bench/render/startup_cpu.py [--rooms icl_livingroom,...]
+With --user-caches instead: the user's caches that outlive a run (services.core.user_cache), each step in a
+fresh process with its modules imported first (generate imports them before it loads), --repeats times: the
+space parsed by load_space (no cache), by generate's load_space_kept with an empty cache (a miss: parsed, then
+written) and with the entry a run before wrote (a hit); the curvature computed into an empty folder (a miss)
+and read back (a hit). Medians and every repeat go to startup_cpu.json under "user_caches" (other keys kept).
+Run: .venv/bin/python bench/render/startup_cpu.py [--rooms icl_livingroom,...] [--user-caches [--repeats 5]]
 """
 
 from __future__ import annotations
@@ -21,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -137,6 +143,43 @@ lap("second_render")
 print(json.dumps(parts))
 """
 
+PARSED = r"""
+import json, sys, time
+from pathlib import Path
+from services.core.ingest.loading import load_space
+from services.core.ingest.parsed_cache import load_space_kept
+from services.core.ingest.registry import source_checksum
+space, frame, folder = Path(sys.argv[1]), json.loads(sys.argv[2]), sys.argv[3]
+checksum = source_checksum(space)  # generate's check_sources has it before loading
+c0 = time.process_time()
+if folder == "-":
+    load_space(space, **frame)
+else:
+    load_space_kept(space, checksum, frame, Path(folder))
+print(json.dumps({"cpu_s": time.process_time() - c0}))
+"""
+
+
+def user_caches(rooms: list[str], repeats: int) -> dict:
+    """Cold (no entry) against warm (the entry a run before wrote) for the parsed space and the curvature."""
+    out: dict = {}
+    for room in rooms:
+        space, frame = ROOMS[room]
+        runs: dict[str, list[float]] = {k: [] for k in ("load_space", "parsed_miss", "parsed_hit",
+                                                        "curvature_miss", "curvature_hit")}
+        for _ in range(repeats):
+            with tempfile.TemporaryDirectory(prefix="omnidata-user-cache-") as tmp:
+                args = (str(space), json.dumps(frame))
+                runs["load_space"].append(probe(PARSED, *args, "-")["cpu_s"])
+                runs["parsed_miss"].append(probe(PARSED, *args, f"{tmp}/parsed")["cpu_s"])
+                runs["parsed_hit"].append(probe(PARSED, *args, f"{tmp}/parsed")["cpu_s"])
+                runs["curvature_miss"].append(probe(CURVATURE, *args, f"{tmp}/curvature")["cpu_s"])
+                runs["curvature_hit"].append(probe(CURVATURE, *args, f"{tmp}/curvature")["cpu_s"])
+        out[room] = {"median_s": {k: round(statistics.median(v), 4) for k, v in runs.items()},
+                     "cpu_s": {k: [round(x, 4) for x in v] for k, v in runs.items()}}
+        print(room, json.dumps(out[room]["median_s"]), flush=True)
+    return out
+
 
 def probe(code: str, *args: str) -> dict:
     run = subprocess.run([sys.executable, "-c", code, *args], cwd=ROOT, capture_output=True, text=True,
@@ -149,7 +192,18 @@ def probe(code: str, *args: str) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rooms", default=",".join(ROOMS), help="comma-separated: " + ",".join(ROOMS))
+    ap.add_argument("--user-caches", action="store_true", help="measure the caches kept across runs only")
+    ap.add_argument("--repeats", type=int, default=5, help="--user-caches: fresh processes per figure")
     args = ap.parse_args()
+    if args.user_caches:
+        before = [round(x, 2) for x in os.getloadavg()]
+        rooms = user_caches(args.rooms.split(","), args.repeats)
+        data = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
+        data["user_caches"] = {"unit": "process CPU seconds", "repeats": args.repeats,
+                               "machine": f"{os.cpu_count()} cores, shared", "load_before": before,
+                               "load_after": [round(x, 2) for x in os.getloadavg()], "rooms": rooms}
+        RESULTS.write_text(json.dumps(data, indent=2) + "\n")
+        return
     report: dict = {"load_before": [round(x, 2) for x in os.getloadavg()], "unit": "process CPU seconds",
                     "rooms": {}}
     report["worker_imports"] = probe(IMPORTS)

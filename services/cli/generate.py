@@ -36,10 +36,11 @@ from services.core.db.engine import make_engine, make_sessionmaker, migrate  # n
 from services.core.domain.jobspec import JobSpec, cues_for_space  # noqa: E402
 from services.core.ingest.capture.detect import captures_kept  # noqa: E402
 from services.core.ingest.errors import SpaceError  # noqa: E402
-from services.core.ingest.loading import load_space  # noqa: E402
+from services.core.ingest.parsed_cache import load_space_kept  # noqa: E402
 from services.core.ingest.registry import Source  # noqa: E402
 from services.core.settings import Settings  # noqa: E402
 from services.core.storage import LocalStore  # noqa: E402
+from services.core.user_cache import CURVATURE, prune_user_caches, user_cache_dir  # noqa: E402
 from services.embedded.ctrl_c import latched_sigint  # noqa: E402
 from services.embedded.curvature_ahead import curvature_ahead  # noqa: E402
 from services.embedded.job import (  # noqa: E402
@@ -86,7 +87,7 @@ def validate_sources(sources: list[Source], spec: JobSpec, *, progress: bool = F
         todo = tqdm(todo, desc="spaces", unit="space", file=sys.stderr, dynamic_ncols=True)
     for src in todo:
         try:
-            loaded = load_space(src.path, **spec.space_frame())
+            loaded = load_space_kept(src.path, src.checksum, spec.space_frame())  # a rerun reads it back
         except SpaceError as e:
             if src.from_root:
                 src.refused = str(e)
@@ -174,7 +175,7 @@ def _run(args: argparse.Namespace, spec: JobSpec, sources: list[Source], out: Pa
 
     # The workers' curvature, computed while they import (several would otherwise wait on the first one's)
     ahead = curvature_ahead([s.loaded.mesh for s in sources if s.loaded is not None], spec,
-                            out / STATE_DIR / "cache", workers)
+                            user_cache_dir(CURVATURE), workers)
     migrate(settings.database_url)
     engine = make_engine(settings.database_url)
     sessions = make_sessionmaker(engine)
@@ -202,3 +203,4 @@ def _run(args: argparse.Namespace, spec: JobSpec, sources: list[Source], out: Pa
         engine.dispose()
         if ahead is not None:
             ahead.join()
+        prune_user_caches(settings.user_cache_mb * 2**20)

@@ -10,7 +10,8 @@ is nothing to overlap: that worker computes it as before, and `generate` does no
 
 The file is named by a digest of the mesh arrays (services.worker.inputs.shared_curvature): the thread works
 on a mesh built from the same arrays the workers rebuild from the run's loaded-space cache, so a worker finds
-it; were the digests ever to differ, the worker would compute its own, as without this.
+it (in the user's curvature cache, which a later run on the same scan reads too); were the digests ever to
+differ, the worker would compute its own, as without this.
 """
 
 from __future__ import annotations
@@ -30,7 +31,6 @@ log = logging.getLogger(__name__)
 # The cues whose render reads the curvature pass (the worker registry's passes={"curvature"}; a test keeps
 # them equal).
 CURVATURE_CUES = frozenset({"principal_curvature"})
-FOLDER = "curvature"  # under the run's cache folder, as the workers' TaskRunner.cache_dir / "curvature"
 
 
 def needs_curvature(spec: JobSpec) -> bool:
@@ -38,10 +38,11 @@ def needs_curvature(spec: JobSpec) -> bool:
     return bool(CURVATURE_CUES.intersection(closure(spec.cues if spec.cues is not None else OUTPUT_CUES)))
 
 
-def curvature_ahead(meshes: Iterable[trimesh.Trimesh], spec: JobSpec, cache_dir: Path,
+def curvature_ahead(meshes: Iterable[trimesh.Trimesh], spec: JobSpec, folder: Path,
                     workers: int) -> threading.Thread | None:
-    """Start computing the curvature of `meshes` (the loaded spaces, world frame) into `cache_dir`/curvature
-    on a thread, when `workers` > 1 and the job needs it; the thread (join it before exiting), else None."""
+    """Start computing the curvature of `meshes` (the loaded spaces, world frame) into `folder` (the workers'
+    curvature folder) on a thread, when `workers` > 1 and the job needs it; the thread (join it before
+    exiting), else None."""
     meshes = list(meshes)
     if workers < 2 or not meshes or not needs_curvature(spec):
         return None
@@ -54,7 +55,7 @@ def curvature_ahead(meshes: Iterable[trimesh.Trimesh], spec: JobSpec, cache_dir:
 
         for mesh in own:
             try:
-                shared_curvature(mesh, radius, cache_dir / FOLDER)
+                shared_curvature(mesh, radius, folder)
             except Exception:  # the workers compute it themselves
                 log.warning("curvature ahead of the workers failed", exc_info=True)
 

@@ -120,6 +120,7 @@ def _work(conf: WorkerConfig, tasks: TaskQueues, results: Queue[WorkerMessage], 
         from services.core.db.engine import make_engine, make_sessionmaker
         from services.core.settings import get_settings
         from services.core.storage import LocalStore
+        from services.core.user_cache import CURVATURE, user_cache_dir
         from services.worker.run.heartbeat import Heartbeat
         from services.worker.run.pass_handoff import RawPassSets
         from services.worker.run.runner import TaskRunner
@@ -135,8 +136,9 @@ def _work(conf: WorkerConfig, tasks: TaskQueues, results: Queue[WorkerMessage], 
     worker_id = f"{socket.gethostname()}:{os.getpid()}"
     hb = Heartbeat(sessions, worker_id, queues=["local"], lease_s=settings.lease_s).start()
     runner = TaskRunner(sessions, store, settings, worker_id, heartbeat=hb,
-                        cache_dir=Path(conf.out) / STATE_DIR / "cache", hand_off_views=conf.role == "render",
-                        pass_sets=RawPassSets(store, conf.run))
+                        cache_dir=Path(conf.out) / STATE_DIR / "cache",
+                        curvature_dir=user_cache_dir(CURVATURE),  # the user's: a later run reads it too
+                        hand_off_views=conf.role == "render", pass_sets=RawPassSets(store, conf.run))
     _freeze_long_lived()  # modules, Blender
     results.put(("ready", os.getpid(), worker_id))
     try:

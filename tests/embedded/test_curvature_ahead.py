@@ -13,11 +13,13 @@ import pytest
 from services.core.domain.cues import CATALOG
 from services.core.domain.jobspec import JobSpec
 from services.core.ingest.loading import load_space
-from services.embedded.curvature_ahead import CURVATURE_CUES, FOLDER, curvature_ahead, needs_curvature
+from services.embedded.curvature_ahead import CURVATURE_CUES, curvature_ahead, needs_curvature
 from services.worker.cues import get_impl
 from services.worker.inputs import curvature as estimator
 from services.worker.inputs.loaded_cache import keep_loaded, read_loaded
 from services.worker.inputs.space_cache import SpaceContext
+
+FOLDER = "curvature"
 
 
 def test_the_curvature_cues_are_those_whose_render_reads_the_curvature_pass() -> None:
@@ -39,9 +41,9 @@ def test_a_worker_reads_the_curvature_generate_computed_ahead(scenes_dir: Path, 
         # what drive() writes for its workers (keyed by the source checksum)
         keep_loaded(cache, name * 8, loaded)
     # nothing to overlap
-    assert curvature_ahead([s.mesh for s in spaces.values()], spec, cache, workers=1) is None
+    assert curvature_ahead([s.mesh for s in spaces.values()], spec, cache / FOLDER, workers=1) is None
     assert not (cache / FOLDER).exists()
-    thread = curvature_ahead([s.mesh for s in spaces.values()], spec, cache, workers=2)
+    thread = curvature_ahead([s.mesh for s in spaces.values()], spec, cache / FOLDER, workers=2)
     assert thread is not None
     thread.join(timeout=120)
     assert not thread.is_alive()

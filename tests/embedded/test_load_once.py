@@ -11,6 +11,7 @@ from typing import Any
 import pytest
 
 import services.cli.generate as generate_cli
+import services.core.ingest.parsed_cache as parsed_cache
 import services.scheduler.plan_space as plan_space
 from services.cli.spec_args import check_sources
 from services.core.db.engine import make_engine, make_sessionmaker, migrate
@@ -28,8 +29,14 @@ ROOM_SPEC = {"points": {"count": 2, "max_views": 3}, "views": {"resolution": 16}
 
 
 def plan_job(out: Path, paths: list[Path], spec: JobSpec, *, hand_over: bool) -> dict[str, Any]:
-    """Validate, register and plan as `omnidata generate` does (no workers); the plans and task rows it
-    wrote."""
+    """Validate, register and plan as `omnidata generate` does (no workers, a user cache of its own: every
+    call parses); the plans and task rows it wrote."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("OMNIDATA_DATA_DIR", str(out / "user"))
+        return _plan_job(out, paths, spec, hand_over=hand_over)
+
+
+def _plan_job(out: Path, paths: list[Path], spec: JobSpec, *, hand_over: bool) -> dict[str, Any]:
     settings = embedded_settings(out, 1)
     migrate(settings.database_url)
     engine = make_engine(settings.database_url)
@@ -68,7 +75,7 @@ def test_generate_loads_each_space_once_and_plans_the_same(room: bool, scenes_di
             return real(path, **kw)
         return load
 
-    monkeypatch.setattr(generate_cli, "load_space", counting(generate_cli.load_space))
+    monkeypatch.setattr(parsed_cache, "load_space", counting(parsed_cache.load_space))
     monkeypatch.setattr(plan_space, "load_space", counting(plan_space.load_space))
     if room:
         paths, spec = [scenes_dir / "icl_livingroom"], JobSpec.model_validate(ROOM_SPEC)

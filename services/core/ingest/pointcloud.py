@@ -28,6 +28,7 @@ from scipy.spatial import cKDTree
 from services.core.domain.json_types import JSONObject
 from services.core.ingest.frame.camera_frame import origin_is_camera
 from services.core.ingest.guard.confine import ConfinedResolver
+from services.core.user_cache import MESHED, user_cache_dir
 
 CLOUD_SUFFIXES = (".xyz", ".pts")
 MIN_POINTS = 1000
@@ -213,7 +214,7 @@ def reconstruct(cloud: Cloud, name: str) -> tuple[trimesh.Trimesh, JSONObject]:
 
 def default_cache_dir() -> Path:
     """Where meshed clouds are kept: $OMNIDATA_DATA_DIR/meshed (default ~/.omnidata/meshed)."""
-    return Path(os.environ.get("OMNIDATA_DATA_DIR") or Path.home() / ".omnidata").expanduser() / "meshed"
+    return user_cache_dir(MESHED)
 
 
 def mesh_cloud_cached(cloud_loader: Callable[[], Cloud], checksum: str, name: str,

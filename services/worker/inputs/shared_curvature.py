@@ -6,6 +6,9 @@ cache folder; the others wait on the lock and read the array back. The file's na
 the estimator reads (vertices, faces, vertex normals, the radius) and of the estimator's own source, so a
 changed mesh, frame or estimator never meets an old file; what is read back is the computed array itself, so
 the result is bit-identical to computing it. Any trouble with the folder falls back to computing.
+
+`omnidata generate` shares the user's folder ($OMNIDATA_DATA_DIR/curvature, services.core.user_cache), so a
+later run on the same scan reads the file too.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from services.core.user_cache import touch
 from services.worker.inputs import curvature as estimator
 
 log = logging.getLogger(__name__)
@@ -55,6 +59,7 @@ def shared_curvature(mesh: trimesh.Trimesh, radius: float, folder: Path | None) 
         fcntl.flock(lock, fcntl.LOCK_EX)  # one process computes, the others wait for its file
         found = _read(path, len(mesh.vertices))
         if found is not None:
+            touch(path)  # used: kept longest when the folder is pruned
             return found
         out = estimator.principal_curvatures(mesh, radius)
         _write(path, out)

@@ -41,11 +41,13 @@ class TaskMaker:
     """Computes tasks' files for one worker process; keeps the current space and recent views loaded."""
 
     def __init__(self, store: ObjectStore, inputs: TaskInputs, cache_dir: Path, *, render_device: str,
-                 render_threads: int | None, pass_sets: PassSets) -> None:
+                 render_threads: int | None, pass_sets: PassSets, curvature_dir: Path | None = None) -> None:
         self.store = store
         self.pass_sets = pass_sets  # reads back what a renderer handed off
         self.inputs = inputs
         self.cache_dir = cache_dir
+        # computed once for this machine's workers (`generate`: the user's, kept across runs)
+        self.curvature_dir = curvature_dir if curvature_dir is not None else cache_dir / "curvature"
         self.render_device = render_device
         self.render_threads = render_threads
         self.space_cache = SpaceCache()
@@ -103,7 +105,7 @@ class TaskMaker:
                 loaded = load_space(path, **frame)
                 ctx = SpaceContext.from_loaded(loaded, key=key, device=device, threads=threads)
                 ctx.photos = painter_for(loaded, spec, refined)
-            ctx.curvature_dir = self.cache_dir / "curvature"  # computed once for this machine's workers
+            ctx.curvature_dir = self.curvature_dir
             return ctx
 
         return self.space_cache.get(key, loader)

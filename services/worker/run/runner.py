@@ -75,6 +75,7 @@ class TaskRunner:
         *,
         heartbeat: Heartbeat | None = None,
         cache_dir: str | Path | None = None,
+        curvature_dir: Path | None = None,
         render_threads: int | None = None,
         render_device: str | None = None,
         db_retry_s: float = DB_RETRY_S,
@@ -99,7 +100,8 @@ class TaskRunner:
         self.inputs = TaskInputs(sessionmaker, store, self.ledger.db,
                                  int(VIEW_CACHE_MEMORY_FRACTION * settings.worker_max_memory_mb * 2**20))
         self.maker = TaskMaker(store, self.inputs, self.cache_dir, render_device=self.render_device,
-                               render_threads=self.render_threads, pass_sets=self.pass_sets)
+                               render_threads=self.render_threads, pass_sets=self.pass_sets,
+                               curvature_dir=curvature_dir)
         self.results = BatchResults(self, store, self.ledger, self.inputs, settings)
         # Messages run (a view batch is one, like Celery's worker_max_tasks_per_child counts it): the recycle
         # count.

@@ -1,0 +1,85 @@
+"""The user's caches that outlive a run: folders under $OMNIDATA_DATA_DIR (default ~/.omnidata).
+
+`omnidata generate` writes its state under --out, but what depends only on a scan (its meshed cloud, its
+parsed space, its per-vertex curvature) is kept here, so a rerun on the same scan into a new --out reads it
+back. Every entry is named by a digest of everything it was computed from, so a changed input never meets an
+old entry; a reader that finds nothing usable computes instead. A folder is kept under a size limit
+(Settings.user_cache_mb): the entries used longest ago go first (a hit touches its entry).
+"""
+
+from __future__ import annotations
+
+import fcntl
+import logging
+import os
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+MESHED, PARSED, CURVATURE = "meshed", "parsed", "curvature"  # the folders
+# Pruned after each `generate` run: folder -> the suffix of its entries. A curvature entry has a lock file
+# beside it (services.worker.inputs.shared_curvature).
+PRUNED = {PARSED: ".space", CURVATURE: ".npy"}
+
+
+def user_data_dir() -> Path:
+    """$OMNIDATA_DATA_DIR, else ~/.omnidata (the user's, not a run's --out)."""
+    return Path(os.environ.get("OMNIDATA_DATA_DIR") or Path.home() / ".omnidata").expanduser()
+
+
+def user_cache_dir(name: str) -> Path:
+    """The folder of one cache, e.g. `curvature`."""
+    return user_data_dir() / name
+
+
+def touch(path: Path) -> None:
+    """Mark an entry as used now (eviction keeps the recently used); a read-only folder is no error."""
+    try:
+        os.utime(path)
+    except OSError:
+        pass
+
+
+def prune_user_caches(max_bytes: int) -> None:
+    """Keep each folder of PRUNED under `max_bytes` (Settings.user_cache_mb)."""
+    for name, suffix in PRUNED.items():
+        evict_oldest(user_cache_dir(name), max_bytes, suffix)
+
+
+def evict_oldest(folder: Path, max_bytes: int, suffix: str) -> list[Path]:
+    """Remove the `suffix` files of `folder` used longest ago until the rest fit in `max_bytes`, with the lock
+    file beside each that no process holds; the removed paths. Trouble with the folder only logs: the cache is
+    an optimisation."""
+    try:
+        entries = []
+        for p in folder.iterdir():
+            if p.name.endswith(suffix) and not p.name.startswith("."):
+                st = p.stat()
+                entries.append((st.st_mtime, st.st_size, p))
+    except OSError as e:
+        if not isinstance(e, FileNotFoundError):
+            log.warning("cache %s not pruned: %s", folder, e)
+        return []
+    total = sum(size for _, size, _ in entries)
+    removed = []
+    for _, size, p in sorted(entries):
+        if total <= max_bytes:
+            break
+        try:
+            p.unlink()
+        except OSError as e:
+            log.warning("cache entry %s not removed: %s", p, e)
+            continue
+        total -= size
+        removed.append(p)
+        _drop_unheld(p.with_suffix(".lock"))
+    return removed
+
+
+def _drop_unheld(lock_path: Path) -> None:
+    try:
+        with open(lock_path, "r+b") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)  # held: a process is computing that entry again
+            lock_path.unlink()
+    except OSError:
+        pass

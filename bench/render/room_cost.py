@@ -25,8 +25,11 @@ slope), set against the floor's. `claims` counts task claims (a view batch claim
 once). Figures go to bench/results/room_cost.json under "room_cost", or --key (the previous run's figures kept
 as "<key>_before"; the file's other keys are left as they are). A long job, where start-up
 is spread over a thousand views and more: --points 22 --max-views 60 --no-startup --key room_cost_long.
+--phases N instead: where the worker's CPU goes per view, N runs timed inside the worker (each cue's task
+seconds as its row records them, beside its derivation's CPU; the store, the claims, the serve loop), with
+--against REV that revision's alternately; under "worker_overhead".
 Run: .venv/bin/python bench/render/room_cost.py [--points 14] [--max-views 3] [--repeats 2] [--core 1] [--key
-K]
+K] [--phases N [--against REV]]
 """
 
 from __future__ import annotations
@@ -140,17 +143,20 @@ def pinned(cores: str) -> Callable[[], None]:
 
 
 def generate(space: Path, extra: list[str], cores: str, out: Path, spec: Path, workers: int | None,
-             device: str = "auto", root: Path = ROOT) -> dict:
+             device: str = "auto", root: Path = ROOT, entry: tuple[str, ...] = ("-m", "services.cli"),
+             env: dict[str, str] | None = None) -> dict:
     """Run `omnidata generate` of the checkout at `root` pinned to `cores` rendering on `device`
-    (OMNIDATA_RENDER_DEVICE); wall seconds, views, and per-cue task seconds from its task rows."""
-    cmd = [sys.executable, "-m", "services.cli", "generate", str(space), "--out", str(out),
+    (OMNIDATA_RENDER_DEVICE); wall seconds, views, and per-cue task seconds from its task rows. `entry`: what
+    python runs (--phases: bench/lib/worker_phases.py), `env` added to its environment."""
+    cmd = [sys.executable, *entry, "generate", str(space), "--out", str(out),
            "--spec", str(spec), "--seed", "0", "--no-progress", *extra]
     if workers is not None:
         cmd += ["--workers", str(workers)]
     before = load()
     t0, cpu0, started = time.perf_counter(), children_cpu_s(), time.time()
     run = subprocess.run(cmd, cwd=root, capture_output=True, text=True, preexec_fn=pinned(cores),
-                         env={**os.environ, "PYTHONPATH": str(root), "OMNIDATA_RENDER_DEVICE": device})
+                         env={**os.environ, "PYTHONPATH": str(root), "OMNIDATA_RENDER_DEVICE": device,
+                              **(env or {})})
     wall, cpu = time.perf_counter() - t0, children_cpu_s() - cpu0
     if run.returncode != 0:
         raise RuntimeError(
@@ -433,7 +439,12 @@ def main() -> int:
     ap.add_argument("--out", type=Path, default=RESULTS)
     ap.add_argument("--key", default="room_cost",
                     help='the entry of --out to write (e.g. room_cost_long for a run of thousands of views)')
+    ap.add_argument("--phases", type=int, default=0,
+                    help="instead: N repeats of where the worker's CPU goes per view (key worker_overhead)")
+    ap.add_argument("--against", default="", help="with --phases: also this git revision, interleaved")
     args = ap.parse_args()
+    if args.phases:
+        return phases(args)
     # The project's bytecode, written now: with PYTHONDONTWRITEBYTECODE set (as on CI machines) every generate
     # would otherwise compile its modules again (~0.3 CPU-s of start-up) where an installed package has them
     # compiled.
@@ -481,6 +492,69 @@ def main() -> int:
     write_result(args.out, args.key, result, first=False)
     print("\n".join(figures_table(result)), flush=True)
     return 0
+
+
+def phases(args: argparse.Namespace) -> int:
+    """--phases: per room, N runs of generate (one worker, one core) timed inside the worker
+    (bench/lib/worker_phases.py), this checkout's and --against's alternately; per view after the first, each
+    cue's task seconds as recorded in its row (its make's and a share of the view's store write, by bytes)
+    beside its make's CPU, and the worker's phases. Medians over repeats, under "worker_overhead"."""
+    from bench.lib import worker_phases
+    from bench.lib.worker_phases import ENV, summary
+
+    entry = ("-c", worker_phases.ENTRY, str(Path(worker_phases.__file__).resolve()))
+    result: dict = {"core": args.core, "clock": "ms per view, worker process CPU (wall beside it)",
+                    "points": args.points, "max_views": args.max_views, "rooms": {}}
+    with tempfile.TemporaryDirectory(prefix="omnidata-phases-") as tmp:
+        sides = {"this": ROOT}
+        if args.against:
+            archive = subprocess.run(["git", "archive", args.against], cwd=ROOT, capture_output=True,
+                                     check=True).stdout
+            (Path(tmp) / "against").mkdir()
+            subprocess.run(["tar", "-x", "-C", str(Path(tmp) / "against")], input=archive, check=True)
+            sides = {"against": Path(tmp) / "against", **sides}
+        spec = Path(tmp) / "spec.json"
+        spec.write_text(json.dumps({"points": {"count": args.points, "max_views": args.max_views},
+                                    "views": {"resolution": args.resolution}}))
+        for room in args.rooms.split(","):
+            runs: dict[str, list[dict]] = {side: [] for side in sides}
+            for i in range(-1, args.phases):  # run -1 fills each checkout's kernel cache: not kept
+                for side in sides if i % 2 == 0 else list(sides)[::-1]:
+                    out, rec = Path(tmp) / f"{room}-{side}-{i}", Path(tmp) / f"rec-{room}-{side}-{i}"
+                    gen = generate(*ROOMS[room], args.core, out, spec, 1, root=sides[side], entry=entry,
+                                   env={ENV: str(rec)})
+                    with sqlite3.connect(out / ".omnidata" / "state.db") as db:
+                        rows = view_durations(db).per_view[1:]
+                    recorded = {c: round(1000 * sum(v.get(c, 0.0) for v in rows) / len(rows), 2)
+                                for c in rows[0]}
+                    if i < 0:
+                        continue
+                    runs[side].append({**summary(rec), "recorded_task_ms": recorded,
+                                       "load": [gen["load_before"], gen["load_after"]]})
+                    print(room, side, i, json.dumps(runs[side][-1]), flush=True)
+            result["rooms"][room] = {side: phase_medians(r) for side, r in runs.items()}
+    result["against_rev"] = args.against or None
+    write_result(args.out, "worker_overhead", result, first=True)
+    print(json.dumps(result["rooms"], indent=1))
+    return 0
+
+
+def phase_medians(runs: list[dict]) -> dict:
+    """Medians over repeats of phases()'s figures, the loads kept."""
+    def med(values: list[float]) -> float:
+        return round(median(values), 2)
+
+    makes = {c: med([r["make"][c]["cpu_ms"] for r in runs]) for c in runs[0]["make"]}
+    return {
+        "repeats": len(runs), "views": runs[0]["views"],
+        "per_cue_ms": {c: {"recorded_task": med([r["recorded_task_ms"].get(c, 0.0) for r in runs]),
+                           "make_cpu": makes[c]} for c in makes},
+        "phases_cpu_ms": {p: med([r["phases"][p]["cpu_ms"] for r in runs]) for p in runs[0]["phases"]},
+        "phases_wall_ms": {p: med([r["phases"][p]["wall_ms"] for r in runs]) for p in runs[0]["phases"]},
+        "run_cpu_ms": med([r["run_cpu_ms"] for r in runs]),
+        "between_views_cpu_ms": med([r["between_views_cpu_ms"] for r in runs]),
+        "makes_cpu_ms": round(sum(makes.values()), 2), "loads": [r["load"] for r in runs],
+    }
 
 
 STABILITY = results_dir() / "segment_stability.json"

@@ -109,7 +109,8 @@ class LocalStore:
     def put_many(self, items: Sequence[tuple[str, bytes]], *, keep_cached: bool = True) -> list[ObjectInfo]:
         """Every temp file written, then flushed concurrently (the file system commits the flushes together:
         one journal commit instead of one per file, ~30-100 ms of waiting a view on this disk), then renamed.
-        keep_cached=False: each file's pages leave the page cache once flushed (_flush)."""
+        The checksums are computed while the flushes wait for the disk (~4 ms of a view's ~6 MB off its wall
+        time). keep_cached=False: each file's pages leave the page cache once flushed (_flush)."""
         targets = [self.path(key) for key, _ in items]
         tmps: list[Path] = []
         try:
@@ -117,8 +118,11 @@ class LocalStore:
                 target.parent.mkdir(parents=True, exist_ok=True)
                 tmps.append(self._tmp(target))
                 tmps[-1].write_bytes(data)
-            if self.fsync:
-                list(io_pool().map(lambda tmp: _flush(tmp, drop_cached=not keep_cached), tmps))
+            # map submits every flush at once; its results are waited for below
+            flushed = io_pool().map(lambda tmp: _flush(tmp, drop_cached=not keep_cached),
+                                    tmps if self.fsync else [])
+            infos = [ObjectInfo(key, len(data), hashlib.sha256(data).hexdigest()) for key, data in items]
+            list(flushed)
             for tmp, target in zip(tmps, targets, strict=True):
                 os.replace(tmp, target)
         except OSError as e:  # permission, read-only or full file system
@@ -127,7 +131,7 @@ class LocalStore:
             for tmp in tmps:
                 with suppress(OSError):
                     tmp.unlink(missing_ok=True)
-        return [ObjectInfo(key, len(data), hashlib.sha256(data).hexdigest()) for key, data in items]
+        return infos
 
     def put_file(self, key: str, path: str | Path, content_type: str | None = None) -> ObjectInfo:
         target = self.path(key)

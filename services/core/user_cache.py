@@ -18,8 +18,10 @@ log = logging.getLogger(__name__)
 
 MESHED, PARSED, CURVATURE = "meshed", "parsed", "curvature"  # the folders
 # Pruned after each `generate` run: folder -> the suffix of its entries. A curvature entry has a lock file
-# beside it (services.worker.inputs.shared_curvature).
-PRUNED = {PARSED: ".space", CURVATURE: ".npy"}
+# beside it (services.worker.inputs.shared_curvature), a meshed cloud its record (services.core.ingest.
+# pointcloud.mesh_cloud_cached): each goes with its entry.
+PRUNED = {MESHED: ".ply", PARSED: ".space", CURVATURE: ".npy"}
+RECORD_SUFFIX = ".json"
 
 
 def user_data_dir() -> Path:
@@ -47,9 +49,9 @@ def prune_user_caches(max_bytes: int) -> None:
 
 
 def evict_oldest(folder: Path, max_bytes: int, suffix: str) -> list[Path]:
-    """Remove the `suffix` files of `folder` used longest ago until the rest fit in `max_bytes`, with the lock
-    file beside each that no process holds; the removed paths. Trouble with the folder only logs: the cache is
-    an optimisation."""
+    """Remove the `suffix` files of `folder` used longest ago until the rest fit in `max_bytes`, each with its
+    record and the lock file beside it that no process holds; the removed paths. Trouble with the folder only
+    logs: the cache is an optimisation."""
     try:
         entries = []
         for p in folder.iterdir():
@@ -73,6 +75,7 @@ def evict_oldest(folder: Path, max_bytes: int, suffix: str) -> list[Path]:
         total -= size
         removed.append(p)
         _drop_unheld(p.with_suffix(".lock"))
+        p.with_suffix(RECORD_SUFFIX).unlink(missing_ok=True)
     return removed
 
 

@@ -17,8 +17,9 @@ import pytest
 from services.core.domain.jobspec import JobSpec
 from services.core.ingest.loading import LoadedSpace, load_space
 from services.core.ingest.parsed_cache import SUFFIX, load_space_kept, parsed_key
+from services.core.ingest.pointcloud import Cloud, mesh_cloud_cached
 from services.core.ingest.registry import source_checksum
-from services.core.user_cache import evict_oldest
+from services.core.user_cache import MESHED, PRUNED, evict_oldest
 from tests.fixtures.cli import dataset_files, omnidata
 
 
@@ -169,6 +170,22 @@ def test_the_folders_are_pruned_to_their_limit_oldest_first(tmp_path: Path) -> N
     assert sorted(p.name for p in folder.iterdir()) == [".curvature-tmp.npy", "2.lock", "2.npy", "3.lock",
                                                          "3.npy"]
     assert evict_oldest(tmp_path / "none", 0, ".npy") == []
+
+
+def test_a_meshed_cloud_is_pruned_with_its_record_and_a_hit_keeps_it(tmp_path: Path) -> None:
+    folder = tmp_path / "meshed"
+    rng = np.random.default_rng(0)
+    pts = np.column_stack([rng.uniform(0, 2, 3000), rng.uniform(0, 2, 3000), np.zeros(3000)])
+    clouds = [Cloud(pts + [0, 0, i], None, None) for i in range(2)]
+    plys = []
+    for i, cloud in enumerate(clouds):
+        mesh_cloud_cached(lambda c=cloud: c, f"{i}" * 64, f"cloud {i}", folder)
+        plys.append(next(p for p in folder.glob("*.ply") if p not in plys))
+        os.utime(plys[-1], (1000 + i, 1000 + i))  # the first cloud's mesh used longest ago
+    mesh_cloud_cached(lambda: clouds[0], "0" * 64, "cloud 0", folder)  # a hit: now the most recent
+    evict_oldest(folder, plys[0].stat().st_size, PRUNED[MESHED])
+    kept = sorted([plys[0].name, plys[0].with_suffix(".json").name])
+    assert sorted(p.name for p in folder.iterdir()) == kept
 
 
 def test_nothing_is_pruned_under_the_limit(tmp_path: Path) -> None:

@@ -28,7 +28,7 @@ from scipy.spatial import cKDTree
 from services.core.domain.json_types import JSONObject
 from services.core.ingest.frame.camera_frame import origin_is_camera
 from services.core.ingest.guard.confine import ConfinedResolver
-from services.core.user_cache import MESHED, user_cache_dir
+from services.core.user_cache import MESHED, touch, user_cache_dir
 
 CLOUD_SUFFIXES = (".xyz", ".pts")
 MIN_POINTS = 1000
@@ -232,6 +232,7 @@ def mesh_cloud_cached(cloud_loader: Callable[[], Cloud], checksum: str, name: st
             mesh = trimesh.load(ply, force="mesh", process=False, resolver=ConfinedResolver(ply))
             record = json.loads(meta.read_text())
             if isinstance(mesh, trimesh.Trimesh) and len(mesh.faces) == record.get("face_count"):
+                touch(ply)  # used: kept longest when the folder is pruned
                 return mesh, {**record, "cached": True}
         except (OSError, ValueError):
             pass

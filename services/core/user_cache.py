@@ -5,6 +5,10 @@ parsed space, its per-vertex curvature) is kept here, so a rerun on the same sca
 back. Every entry is named by a digest of everything it was computed from, so a changed input never meets an
 old entry; a reader that finds nothing usable computes instead. A folder is kept under a size limit
 (Settings.user_cache_mb): the entries used longest ago go first (a hit touches its entry).
+
+Every entry is written to a temporary file in its folder and renamed into place; a writer killed between the
+two leaves that file behind. Pruning a folder removes such leftovers once no live writer can own them
+(remove_stale_temps): the same rule for these folders and for a run's loaded-space cache.
 """
 
 from __future__ import annotations
@@ -12,6 +16,7 @@ from __future__ import annotations
 import fcntl
 import logging
 import os
+import time
 from pathlib import Path
 
 log = logging.getLogger(__name__)
@@ -22,6 +27,12 @@ MESHED, PARSED, CURVATURE = "meshed", "parsed", "curvature"  # the folders
 # pointcloud.mesh_cloud_cached): each goes with its entry.
 PRUNED = {MESHED: ".ply", PARSED: ".space", CURVATURE: ".npy"}
 RECORD_SUFFIX = ".json"
+LOADED = "loaded"  # a run's own cache, --out/.omnidata/cache/loaded (services.worker.inputs.loaded_cache)
+# The prefix of each folder's temporary files (tempfile.mkstemp(prefix=...)), renamed into place once whole.
+TEMP_PREFIX = {MESHED: ".tmp-", PARSED: ".parsed-", CURVATURE: ".curvature-", LOADED: ".loaded-"}
+# A writer renames its temporary file seconds after creating it; one not written to for an hour is a killed
+# writer's, never a live one's.
+STALE_TEMP_S = 3600.0
 
 
 def user_data_dir() -> Path:
@@ -48,10 +59,34 @@ def prune_user_caches(max_bytes: int) -> None:
         evict_oldest(user_cache_dir(name), max_bytes, suffix)
 
 
+def remove_stale_temps(folder: Path, older_than_s: float = STALE_TEMP_S) -> list[Path]:
+    """Remove the temporary files of TEMP_PREFIX in `folder` not written to for `older_than_s`: what writers
+    killed before their rename left; the removed paths. A younger one may be a write in flight and is kept."""
+    cutoff = time.time() - older_than_s
+    removed = []
+    try:
+        temps = [p for p in folder.iterdir() if p.name.startswith(tuple(TEMP_PREFIX.values()))]
+    except OSError as e:
+        if not isinstance(e, FileNotFoundError):
+            log.warning("cache %s not cleaned: %s", folder, e)
+        return []
+    for p in temps:
+        try:
+            if p.is_file() and p.stat().st_mtime < cutoff:
+                p.unlink()
+                removed.append(p)
+        except OSError:  # renamed or removed by its writer meanwhile, or not ours to remove
+            continue
+    if removed:
+        log.info("removed %d leftover temporary file(s) from %s", len(removed), folder)
+    return removed
+
+
 def evict_oldest(folder: Path, max_bytes: int, suffix: str) -> list[Path]:
     """Remove the `suffix` files of `folder` used longest ago until the rest fit in `max_bytes`, each with its
-    record and the lock file beside it that no process holds; the removed paths. Trouble with the folder only
-    logs: the cache is an optimisation."""
+    record and the lock file beside it that no process holds; the removed paths. Stale temporary files go
+    first (remove_stale_temps). Trouble with the folder only logs: the cache is an optimisation."""
+    remove_stale_temps(folder)
     try:
         entries = []
         for p in folder.iterdir():

@@ -29,7 +29,7 @@ from pathlib import Path
 
 from services.core.domain.jobspec import SpaceFrame
 from services.core.ingest.loading import LoadedSpace, load_space
-from services.core.user_cache import PARSED, PRUNED, touch, user_cache_dir
+from services.core.user_cache import PARSED, PRUNED, TEMP_PREFIX, touch, user_cache_dir
 
 log = logging.getLogger(__name__)
 
@@ -101,7 +101,7 @@ def _write(entry: Path, loaded: LoadedSpace) -> None:
     try:
         body = pickle.dumps(loaded, protocol=pickle.HIGHEST_PROTOCOL)
         entry.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=".parsed-", suffix=SUFFIX, dir=entry.parent)
+        fd, tmp = tempfile.mkstemp(prefix=TEMP_PREFIX[PARSED], suffix=SUFFIX, dir=entry.parent)
         with os.fdopen(fd, "wb") as fh:
             fh.write(_MAGIC + hashlib.sha256(body).hexdigest().encode() + body)
         os.replace(tmp, entry)

@@ -28,7 +28,7 @@ from scipy.spatial import cKDTree
 from services.core.domain.json_types import JSONObject
 from services.core.ingest.frame.camera_frame import origin_is_camera
 from services.core.ingest.guard.confine import ConfinedResolver
-from services.core.user_cache import MESHED, touch, user_cache_dir
+from services.core.user_cache import MESHED, TEMP_PREFIX, touch, user_cache_dir
 
 CLOUD_SUFFIXES = (".xyz", ".pts")
 MIN_POINTS = 1000
@@ -246,7 +246,7 @@ def mesh_cloud_cached(cloud_loader: Callable[[], Cloud], checksum: str, name: st
     try:
         cache.mkdir(parents=True, exist_ok=True)
         for path, blob in ((ply, data), (meta, json.dumps(record).encode())):
-            fd, tmp = tempfile.mkstemp(dir=cache, prefix=".tmp-")
+            fd, tmp = tempfile.mkstemp(dir=cache, prefix=TEMP_PREFIX[MESHED])
             with os.fdopen(fd, "wb") as f:
                 f.write(blob)
             os.replace(tmp, path)  # atomic: concurrent loaders keep whichever lands last, both identical

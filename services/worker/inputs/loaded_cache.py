@@ -31,13 +31,15 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import trimesh
 
+from services.core.user_cache import LOADED, TEMP_PREFIX, remove_stale_temps
+
 if TYPE_CHECKING:
     from services.core.ingest.loading import LoadedSpace
 
 log = logging.getLogger(__name__)
 
 FORMAT = 1  # bump when the layout or what it must equal changes: older files are then ignored
-FOLDER = "loaded"
+FOLDER = LOADED
 _PNG_IMAGE_INFO = {"icc_profile", "transparency", "default_image"}  # what PIL writes into the PNG the Blender
 # scene makes of the texture, besides the pixels: an image holding one is not kept (its pixels alone are)
 
@@ -123,7 +125,8 @@ def keep_loaded(cache_dir: Path, checksum: str, loaded: LoadedSpace) -> Path | N
     tmp = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=".loaded-", suffix=".npz", dir=path.parent)
+        remove_stale_temps(path.parent)  # what writers killed in earlier runs into this --out left
+        fd, tmp = tempfile.mkstemp(prefix=TEMP_PREFIX[LOADED], suffix=".npz", dir=path.parent)
         with os.fdopen(fd, "wb") as fh:
             np.savez(fh, **arrays)
         os.replace(tmp, path)

@@ -5,7 +5,9 @@ their first render. The first to get here computes it under an exclusive file lo
 cache folder; the others wait on the lock and read the array back. The file's name is a digest of everything
 the estimator reads (vertices, faces, vertex normals, the radius) and of the estimator's own source, so a
 changed mesh, frame or estimator never meets an old file; what is read back is the computed array itself, so
-the result is bit-identical to computing it. Any trouble with the folder falls back to computing.
+the result is bit-identical to computing it. The file is the array in .npy form after a sha256 of those bytes
+(as a parsed space's entry, services.core.ingest.parsed_cache): a damaged file of the right shape is refused,
+removed and computed again, never used. Any trouble with the folder falls back to computing.
 
 `omnidata generate` shares the user's folder ($OMNIDATA_DATA_DIR/curvature, services.core.user_cache), so a
 later run on the same scan reads the file too.
@@ -15,6 +17,7 @@ from __future__ import annotations
 
 import fcntl
 import hashlib
+import io
 import logging
 import os
 import tempfile
@@ -23,18 +26,21 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from services.core.user_cache import touch
+from services.core.user_cache import CURVATURE, TEMP_PREFIX, touch
 from services.worker.inputs import curvature as estimator
 
 log = logging.getLogger(__name__)
 
 _ESTIMATOR_DIGEST = hashlib.sha256(Path(estimator.__file__).read_bytes()).hexdigest()
+FORMAT = 2  # in every file's name: bump when the layout changes, so a file of another layout is never read
+_MAGIC = f"omnidata-curvature {FORMAT}\n".encode()
+# An entry keeps the .npy suffix (though a header comes first) so that files of every layout are pruned alike.
 
 
 def curvature_digest(mesh: trimesh.Trimesh, radius: float) -> str:
-    """sha256 of the estimator's inputs: vertices, faces, vertex normals, radius, and the estimator's
-    source."""
-    h = hashlib.sha256(_ESTIMATOR_DIGEST.encode())
+    """sha256 of the estimator's inputs: vertices, faces, vertex normals, radius, and of the estimator's
+    source and the file's layout."""
+    h = hashlib.sha256(f"{FORMAT}:{_ESTIMATOR_DIGEST}".encode())
     for arr in (mesh.vertices, mesh.faces, mesh.vertex_normals):
         a = np.ascontiguousarray(arr)
         h.update(f"{a.dtype.str}{a.shape}".encode())
@@ -67,12 +73,26 @@ def shared_curvature(mesh: trimesh.Trimesh, radius: float, folder: Path | None) 
 
 
 def _read(path: Path, vertices: int) -> np.ndarray | None:
-    """The array at `path` when it is a float32 V x 2 array of this mesh, else None."""
+    """The array at `path` when it is whole (its sha256 fits) and a float32 V x 2 array of this mesh, else
+    None; a file that is not is removed (the caller holds its lock and writes it again)."""
     try:
-        arr = np.load(path, allow_pickle=False)
-    except (OSError, ValueError):
+        data = path.read_bytes()
+    except OSError:
         return None
-    if arr.dtype != np.float32 or arr.shape != (vertices, 2):
+    head = len(_MAGIC) + 64
+    body = memoryview(data)[head:]
+    arr = None
+    if data.startswith(_MAGIC) and data[len(_MAGIC):head] == hashlib.sha256(body).hexdigest().encode():
+        try:
+            arr = np.load(io.BytesIO(body), allow_pickle=False)
+        except ValueError:
+            pass
+    if arr is None or arr.dtype != np.float32 or arr.shape != (vertices, 2):
+        log.warning("curvature cache %s is damaged; computing it again", path)
+        try:
+            path.unlink(missing_ok=True)
+        except OSError:  # a read-only folder: the write after the compute fails too, and only logs
+            pass
         return None
     return arr
 
@@ -81,9 +101,12 @@ def _write(path: Path, arr: np.ndarray) -> None:
     """Write `arr` to `path` atomically (a reader sees the whole file or none); failures are only logged."""
     tmp = None
     try:
-        fd, tmp = tempfile.mkstemp(prefix=".curvature-", suffix=".npy", dir=path.parent)
+        body = io.BytesIO()
+        np.save(body, arr, allow_pickle=False)
+        fd, tmp = tempfile.mkstemp(prefix=TEMP_PREFIX[CURVATURE], suffix=".npy", dir=path.parent)
         with os.fdopen(fd, "wb") as fh:
-            np.save(fh, arr, allow_pickle=False)
+            fh.write(_MAGIC + hashlib.sha256(body.getbuffer()).hexdigest().encode())
+            fh.write(body.getbuffer())
         os.replace(tmp, path)
     except OSError as e:
         log.warning("could not keep the curvature at %s: %s", path, e)

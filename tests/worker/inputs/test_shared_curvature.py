@@ -4,6 +4,8 @@ file."""
 
 from __future__ import annotations
 
+import io
+import logging
 import multiprocessing as mp
 from pathlib import Path
 
@@ -12,7 +14,7 @@ import pytest
 import trimesh
 
 import services.worker.inputs.curvature as estimator
-from services.worker.inputs.shared_curvature import shared_curvature
+from services.worker.inputs.shared_curvature import _read, shared_curvature
 
 RADIUS = 0.2
 
@@ -52,7 +54,32 @@ def test_a_damaged_file_is_computed_again(tmp_path: Path) -> None:
     (npy,) = tmp_path.glob("*.npy")
     npy.write_bytes(npy.read_bytes()[:100])  # truncated
     assert shared_curvature(room_like(), RADIUS, tmp_path).tobytes() == direct.tobytes()
-    assert np.load(npy).tobytes() == direct.tobytes()  # rewritten whole
+    kept = _read(npy, len(direct))
+    assert kept is not None and kept.tobytes() == direct.tobytes()  # rewritten whole
+    np.save(npy, direct + 1)  # a plain .npy of the right shape (the layout without a checksum): not read
+    assert shared_curvature(room_like(), RADIUS, tmp_path).tobytes() == direct.tobytes()
+
+
+def test_a_flipped_byte_in_the_array_is_refused_and_the_file_replaced(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A file of the right size and shape whose values changed (a bad disk, a stray write) is never used."""
+    direct = estimator.principal_curvatures(room_like(), RADIUS)
+    shared_curvature(room_like(), RADIUS, tmp_path)
+    (npy,) = tmp_path.glob("*.npy")
+    good = npy.read_bytes()
+    data = bytearray(good)
+    at = len(data) - 4 * len(direct)  # a float inside the array's data (the last vertex's): its low byte
+    data[at] ^= 0x01
+    npy.write_bytes(bytes(data))
+    arr = np.load(io.BytesIO(bytes(data[data.index(b"\x93NUMPY"):])))
+    assert arr.shape == direct.shape and arr.dtype == direct.dtype and arr.tobytes() != direct.tobytes()
+
+    with caplog.at_level(logging.WARNING, logger="services.worker.inputs.shared_curvature"):
+        again = shared_curvature(room_like(), RADIUS, tmp_path)
+    assert again.tobytes() == direct.tobytes()
+    assert "damaged" in caplog.text
+    assert npy.read_bytes() == good  # replaced by a whole file
 
 
 def _worker(folder: str, log: str) -> None:

@@ -50,6 +50,9 @@ if os.environ.get("OMNIDATA_TEST_WITHOUT_BPY"):
 # session, never the real home; the `omnidata` commands the tests run inherit it.
 _USER_DATA_DIR = tempfile.mkdtemp(prefix="omnidata-test-user-")
 os.environ["OMNIDATA_DATA_DIR"] = _USER_DATA_DIR
+# Every `generate` a test runs is cold and leaves no warm-start server behind (services.cli.warm_start), but
+# in tests/cli/test_warm_start.py, which turns it on with a folder of its own.
+os.environ["OMNIDATA_WARM_START"] = "0"
 
 
 def pytest_unconfigure(config: pytest.Config) -> None:

@@ -13,6 +13,7 @@ import gc
 import importlib
 import sys
 
+from services.cli import warm_start
 from services.cli.errors import CliError
 from services.core.domain.errors import DomainError
 from services.core.gc_pause import collections_paused
@@ -68,7 +69,20 @@ def build_parser(argv: list[str]) -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The `omnidata` command: `generate` runs in the user's warm server when one is up, and starts one
+    after a cold run (services.cli.warm_start)."""
     argv = sys.argv[1:] if argv is None else argv
+    if not warm_start.wanted(argv):
+        return run_command(argv)
+    code = warm_start.run_warm(argv)
+    if code is None:
+        code = run_command(argv)
+        warm_start.start_server()
+    return code
+
+
+def run_command(argv: list[str]) -> int:
+    """Run one command line in this process: its exit status."""
     parser = build_parser(argv)
     args = parser.parse_args(argv)
     if not args.command:

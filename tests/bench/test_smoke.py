@@ -59,6 +59,8 @@ SMOKE: dict[str, tuple[str, str]] = {
     "render/render_workers.py": ("--rooms icl_livingroom --points 1 --repeats 1", "render_workers.json"),
     "render/room_cost.py": ("--rooms icl_livingroom --points 1 --max-views 3 --resolution 64 --repeats 1"
                             " --no-startup", "room_cost.json"),
+    "render/warm_start.py": ("--rooms icl_livingroom --points 1 --max-views 3 --resolution 64 --repeats 1",
+                             "warm_start.json"),
     "render/startup_ab.py": ("--against-code . --repeats 1 --rooms icl_livingroom", "startup_ab.json"),
     "render/startup_cpu.py": ("--rooms icl_livingroom", "startup_cpu.json"),
     "scale/big_job.py": ("--views 2000 --chunk-views 1000 --passes 2", "big_job.json"),

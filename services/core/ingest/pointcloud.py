@@ -13,7 +13,9 @@ inside; give normals for single objects). The mesh is cached per cloud checksum 
 
 from __future__ import annotations
 
+import ctypes
 import hashlib
+import importlib.util
 import json
 import os
 import tempfile
@@ -156,8 +158,23 @@ def viewpoint(points: np.ndarray) -> tuple[np.ndarray, str]:
     return 0.5 * (points.min(axis=0) + points.max(axis=0)), "the bounding-box centre"
 
 
+def load_blenders_embree() -> None:
+    """pymeshlab and Blender each ship Embree under one soname, libembree4.so.4 (4.3.3 and 4.4.0), and the
+    first one loaded serves the whole process: after a meshing, `import bpy` failed (undefined symbol
+    rtcGetSceneTraversable), so a worker that meshed a cloud could not render it. Where bpy is installed its
+    Embree is loaded first, without importing bpy; pymeshlab runs on it, as it does once bpy is imported."""
+    try:
+        spec = importlib.util.find_spec("bpy")
+    except (ImportError, ValueError):  # blocked (a test without bpy) or half-imported
+        return
+    lib = Path(spec.origin).parent / "lib" / "libembree4.so.4" if spec and spec.origin else None
+    if lib is not None and lib.exists():
+        ctypes.CDLL(str(lib))
+
+
 def reconstruct(cloud: Cloud, name: str) -> tuple[trimesh.Trimesh, JSONObject]:
     """Mesh a cloud (see the module docstring); returns the mesh (source frame) and its job.json record."""
+    load_blenders_embree()
     import pymeshlab
 
     _check(cloud, name)

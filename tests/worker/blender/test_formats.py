@@ -4,6 +4,8 @@ a point cloud meshed on ingest and a ScanNet scene's labels."""
 from __future__ import annotations
 
 import io
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +20,7 @@ from services.worker.blender.scene import srgb_to_linear
 from services.worker.executor import render_view_cues
 from services.worker.inputs.space_cache import SpaceContext
 from services.worker.passes import ViewGeometry
+from tests.fixtures.cli import REPO
 from tests.fixtures.raycast import object_view, raycast, smooth_mask
 from tests.fixtures.scans import room_cloud, scannet_scene
 from tests.worker.blender.test_render import sample_texture
@@ -113,3 +116,33 @@ def test_scannet_labels_render_as_semantic_and_instance(tmp_path: Path) -> None:
     assert np.mean(sem[hit] == loaded.face_class[cast.tri[hit]]) >= 0.95
     assert np.mean(inst[hit] == loaded.face_instance[cast.tri[hit]]) >= 0.95
     assert set(np.unique(sem[hit])) >= {1, 2, 3}  # chair, floor, table all seen
+
+
+MESH_THEN_RENDER = r"""
+import sys
+import numpy as np
+from services.core.domain.camera import look_at
+from services.core.ingest.loading import load_space
+from services.worker.inputs.space_cache import SpaceContext
+from services.core.domain.jobspec import CueParams
+from services.worker.passes import ViewGeometry
+loaded = load_space(sys.argv[1], cloud_cache_dir=sys.argv[2])  # meshed here: the cache is empty
+assert "bpy" not in sys.modules
+space = SpaceContext.from_loaded(loaded, key="cloud", threads=1)
+lo, hi = loaded.mesh.bounds
+passes = space.render(ViewGeometry(look_at((lo + hi) / 2, hi), 1.0, 32), CueParams())
+print("rendered", int(np.isfinite(passes.depth_z).sum()))
+"""
+
+
+def test_a_process_that_meshed_a_cloud_renders_it(tmp_path: Path) -> None:
+    """A worker meshes a cloud it has not seen (pymeshlab), then imports Blender to render it, in that order,
+    in a fresh interpreter as a worker process is: pymeshlab's older Embree, loaded first, made `import bpy`
+    fail (undefined symbol rtcGetSceneTraversable)."""
+    _room, pts, _normals, colours = room_cloud(8_000, seed=3)
+    src = tmp_path / "room.xyz"
+    np.savetxt(src, np.column_stack([pts, colours]), fmt="%.5f")
+    run = subprocess.run([sys.executable, "-c", MESH_THEN_RENDER, str(src), str(tmp_path / "cache")],
+                         cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert int(run.stdout.split()[-1]) > 0

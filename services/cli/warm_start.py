@@ -67,10 +67,12 @@ def runtime_dir() -> Path | None:
 
 
 def server_name() -> str:
-    """One server per interpreter and code location: another checkout or venv gets its own."""
+    """One server per interpreter, code location and dynamic loader setting (read when a process starts, so a
+    run could not take it over): another checkout, venv or LD_LIBRARY_PATH gets its own."""
     code = Path(__file__).resolve().parents[1]
-    key = hashlib.sha256(f"{sys.executable}\0{code}\0{sys.version}".encode()).hexdigest()[:16]
-    return f"warm-{key}"
+    loader = [os.environ.get(k, "") for k in ("LD_LIBRARY_PATH", "LD_PRELOAD")]
+    key = hashlib.sha256("\0".join([sys.executable, str(code), sys.version, *loader]).encode())
+    return f"warm-{key.hexdigest()[:16]}"
 
 
 def send(sock: socket.socket, message: dict, fds: list[int] | None = None) -> None:

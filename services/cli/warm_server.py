@@ -75,6 +75,7 @@ def code_stamp() -> str:
 
 
 def serve(folder: Path, name: str) -> None:
+    """Serve runs until retired (idle, code changed, socket gone) and the last run has ended."""
     lock = os.open(folder / f"{name}.lock", os.O_RDWR | os.O_CREAT, 0o600)
     try:
         fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -202,6 +203,7 @@ def _run(request: dict, fds: list[int], keep: socket.socket, close: list[int]) -
     """The forked run: become the client's command, run it, leave with its status (never returns)."""
     code = 1
     try:
+        os.setpgid(0, 0)  # the run and its workers: one group, which the client's Ctrl-Z stops
         signal.signal(signal.SIGINT, signal.default_int_handler)
         for s in (signal.SIGTERM, signal.SIGHUP):
             signal.signal(s, signal.SIG_DFL)

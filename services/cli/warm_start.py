@@ -5,10 +5,10 @@ start-up (bench/render/warm_start.py).
 This is the client half, imported before anything heavy. It hands the server its arguments, working folder,
 environment, umask, CPU affinity and its stdin/stdout/stderr; the forked run is the cold run's code on the
 same inputs, writing to the same terminal, and its exit status comes back. Signals the client gets (Ctrl-C,
-SIGTERM, SIGHUP) go on to the run; a client that dies ends its run as a killed `generate` ends (SIGKILL: its
-workers notice and stop, and the job resumes on the next run). With no server, the command runs cold and then
-starts one, detached; it exits after IDLE_S without a run, when the code it loaded changes on disk, or when
-its socket is removed.
+SIGTERM, SIGHUP) go on to the run, and Ctrl-Z stops the run with its workers (its own process group); a
+client that dies ends its run as a killed `generate` ends (SIGKILL: its workers notice and stop, and the job
+resumes on the next run). With no server, the command runs cold and then starts one, detached; it exits after
+IDLE_S without a run, when the code it loaded changes on disk, or when its socket is removed.
 
 OMNIDATA_WARM_START=0 turns it off (the test suite does, but for the tests of this module). Linux only: fork,
 file descriptors passed over a Unix socket, pidfds.
@@ -20,6 +20,7 @@ import fcntl
 import hashlib
 import json
 import os
+import select
 import signal
 import socket
 import stat
@@ -71,7 +72,8 @@ def server_name() -> str:
     run could not take it over): another checkout, venv or LD_LIBRARY_PATH gets its own."""
     code = Path(__file__).resolve().parents[1]
     loader = [os.environ.get(k, "") for k in ("LD_LIBRARY_PATH", "LD_PRELOAD")]
-    key = hashlib.sha256("\0".join([sys.executable, str(code), sys.version, *loader]).encode())
+    python = [sys.prefix, os.path.realpath(sys.executable), sys.version]  # `python`, `python3.11`: one
+    key = hashlib.sha256("\0".join([*python, str(code), *loader]).encode())
     return f"warm-{key.hexdigest()[:16]}"
 
 
@@ -172,14 +174,24 @@ def _follow(sock: socket.socket, pid: int) -> int:
     except OSError:  # ended already
         pidfd = -1
 
+    def running() -> bool:
+        return pidfd >= 0 and not select.select([pidfd], [], [], 0)[0]
+
     def forward(signum: int, _frame: object) -> None:
-        if pidfd >= 0:
-            try:
-                signal.pidfd_send_signal(pidfd, signum)
-            except OSError:
-                pass
+        if running():
+            signal.pidfd_send_signal(pidfd, signum)
+
+    def suspend(_signum: int, _frame: object) -> None:
+        # Ctrl-Z: the run and its workers (its process group) stop, then this process, which the shell
+        # watches; continued (fg, bg), it continues them
+        if running():
+            os.killpg(pid, signal.SIGTSTP)
+        os.kill(os.getpid(), signal.SIGSTOP)
+        if running():
+            os.killpg(pid, signal.SIGCONT)
 
     previous = {s: signal.signal(s, forward) for s in FORWARDED}
+    previous[signal.SIGTSTP] = signal.signal(signal.SIGTSTP, suspend)
     try:
         status = receive(sock)
     finally:

@@ -66,12 +66,17 @@ def wait_until(cond, timeout: float, what: str) -> float:
     return time.monotonic() - t0
 
 
-def alive(pid: int) -> bool:
+def state(pid: int) -> str:
+    """The process's state letter (R, S, T stopped, Z exited unreaped), "" when it is gone."""
     try:
         with open(f"/proc/{pid}/stat") as f:
-            return f.read().split(") ")[-1][0] != "Z"
+            return f.read().split(") ")[-1][0]
     except OSError:
-        return False
+        return ""
+
+
+def alive(pid: int) -> bool:
+    return state(pid) not in ("", "Z")
 
 
 @pytest.fixture
@@ -158,9 +163,20 @@ def test_ctrl_c_stops_a_warm_run_and_a_killed_client_takes_its_run_along(
     job = room_job(tmp_path, scenes_dir)
     out = tmp_path / "room"
 
-    # Ctrl-C: the run stops its workers and says how to resume, exit 130, as a cold run does
+    # Ctrl-Z: the client, the run and its workers stop; continued, they go on
     proc = start_generate(server, *job)
     wait_until(lambda: done_tasks(out) > 0, 120, "the first derived task")
+    pid = run_pid(server, out)
+    proc.send_signal(signal.SIGTSTP)
+    group = [proc.pid, pid, *children(pid)]
+    wait_until(lambda: all(state(p) == "T" for p in group), 10, "every process of the run to stop")
+    stopped_at = done_tasks(out)
+    time.sleep(1.0)
+    assert done_tasks(out) == stopped_at
+    proc.send_signal(signal.SIGCONT)
+    wait_until(lambda: done_tasks(out) > stopped_at, 60, "the continued run's progress")
+
+    # Ctrl-C: the run stops its workers and says how to resume, exit 130, as a cold run does
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err

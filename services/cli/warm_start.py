@@ -30,7 +30,7 @@ import sys
 import time
 from pathlib import Path
 
-IDLE_S = 600.0  # a server with no run for this long exits (it holds ~200 MB)
+IDLE_S = 600.0  # a server with no run for this long exits (it holds ~250 MB resident)
 STARTING_WAIT_S = 5.0  # a client waits this long for a server still importing (a cold run would import too)
 FORWARDED = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 HEADER = struct.Struct("!I")  # each message: its length, then that much JSON

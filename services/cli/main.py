@@ -69,8 +69,8 @@ def build_parser(argv: list[str]) -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """The `omnidata` command: `generate` runs in the user's warm server when one is up, and starts one
-    after a cold run (services.cli.warm_start)."""
+    """The `omnidata` command: `generate` and `plan` run in the user's warm server when one is up, and
+    start one after a cold run (services.cli.warm_start)."""
     argv = sys.argv[1:] if argv is None else argv
     if not warm_start.wanted(argv):
         return run_command(argv)

@@ -46,6 +46,7 @@ def preload() -> None:
 
     with collections_paused():
         import services.cli.generate  # noqa: F401  (pins the numeric libraries before numpy loads)
+        import services.cli.plan  # noqa: F401
         from services.embedded.pool import WORKER_MODULES
         from services.worker.process import kernel_target
 

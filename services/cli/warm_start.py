@@ -1,6 +1,6 @@
-"""Warm start of `omnidata generate`: a local server process keeps the command's imports and compiled kernels
-loaded between runs and forks each run from them (services.cli.warm_server), so a run skips about 1 CPU-s of
-start-up (bench/render/warm_start.py).
+"""Warm start of `omnidata generate` (and `plan`): a local server process keeps the command's imports and
+compiled kernels loaded between runs and forks each run from them (services.cli.warm_server), so a run skips
+about 1 CPU-s of start-up (bench/render/warm_start.py).
 
 This is the client half, imported before anything heavy. It hands the server its arguments, working folder,
 environment, umask, CPU affinity and its stdin/stdout/stderr; the forked run is the cold run's code on the
@@ -38,10 +38,14 @@ HEADER = struct.Struct("!I")  # each message: its length, then that much JSON
 serving = False  # True inside the server and its runs: a run never asks a server
 
 
+COMMANDS = ("generate", "plan")  # the commands that run warm (they import the same ~1 CPU-s)
+
+
 def wanted(argv: list[str]) -> bool:
-    """Whether this command line may run warm: `generate` (not its help), not turned off, on Linux."""
+    """Whether this command line may run warm: `generate` or `plan` (not their help), not turned off, on
+    Linux."""
     return (
-        argv[:1] == ["generate"]
+        bool(argv) and argv[0] in COMMANDS
         and not {"-h", "--help"} & set(argv)
         and os.environ.get("OMNIDATA_WARM_START", "1") != "0"
         and sys.platform == "linux"

@@ -134,6 +134,16 @@ def test_a_warm_run_writes_what_a_cold_run_writes_and_fails_as_it_fails(
     assert bad_warm.stderr == bad_cold.stderr and "no-such-scan.ply" in bad_warm.stderr
     assert len(server.runs()) == 2 and server.proc is not None and server.proc.poll() is None
 
+    # `plan` runs warm too
+    planned = {}
+    for mode, env in (("cold", {"OMNIDATA_WARM_START": "0"}), ("warm", server.env)):
+        out = tmp_path / mode / "plan"
+        res = omnidata("plan", banana, "--out", out, "--spec", spec, "--seed", 3, env=env)
+        assert res.returncode == 0, res.stderr
+        planned[mode] = (res.stdout.replace(str(out), "OUT"), dataset_files(out))
+    assert planned["warm"] == planned["cold"] and planned["cold"]
+    assert len(server.runs()) == 3 and "omnidata plan" in server.runs()[-1]
+
 
 def room_job(tmp_path: Path, scenes_dir: Path) -> list[str | Path]:
     spec = tmp_path / "room.yaml"
@@ -252,6 +262,7 @@ def test_no_warm_start_from_a_folder_others_can_reach(tmp_path: Path,
     shared.chmod(0o700)
     assert warm_start.runtime_dir() == shared
     assert warm_start.wanted(["generate", "x"]) and not warm_start.wanted(["generate", "--help"])
-    assert not warm_start.wanted(["plan", "x"])
+    assert warm_start.wanted(["plan", "x"])
+    assert not warm_start.wanted(["sheet", "x"]) and not warm_start.wanted([])
     monkeypatch.setenv("OMNIDATA_WARM_START", "0")
     assert not warm_start.wanted(["generate", "x"])

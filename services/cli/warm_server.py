@@ -149,7 +149,7 @@ def _accept(listener: socket.socket, socket_file: tuple[Path, int], stamp: str,
             conn.close()
             return listener
         head, fds, _, _ = socket.recv_fds(conn, warm_start.HEADER.size, 3)
-        body = warm_start._exactly(conn, warm_start.HEADER.unpack(head)[0]) if head else None
+        body = warm_start.read_exactly(conn, warm_start.HEADER.unpack(head)[0]) if head else None
         if body is None or len(fds) != 3:
             raise OSError("incomplete request")
         request = json.loads(body)

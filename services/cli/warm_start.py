@@ -35,10 +35,9 @@ STARTING_WAIT_S = 5.0  # a client waits this long for a server still importing (
 FORWARDED = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 HEADER = struct.Struct("!I")  # each message: its length, then that much JSON
 
-serving = False  # True inside the server and its runs: a run never asks a server
-
-
 COMMANDS = ("generate", "plan")  # the commands that run warm (they import the same ~1 CPU-s)
+
+serving = False  # True inside the server and its runs: a run never asks a server
 
 
 def wanted(argv: list[str]) -> bool:
@@ -91,14 +90,15 @@ def send(sock: socket.socket, message: dict, fds: list[int] | None = None) -> No
 
 def receive(sock: socket.socket) -> dict | None:
     """The next message, or None at the end of the connection."""
-    head = _exactly(sock, HEADER.size)
+    head = read_exactly(sock, HEADER.size)
     if head is None:
         return None
-    body = _exactly(sock, HEADER.unpack(head)[0])
+    body = read_exactly(sock, HEADER.unpack(head)[0])
     return None if body is None else json.loads(body)
 
 
-def _exactly(sock: socket.socket, size: int) -> bytes | None:
+def read_exactly(sock: socket.socket, size: int) -> bytes | None:
+    """`size` bytes from `sock`, or None when the connection ends first."""
     chunks, left = [], size
     while left:
         try:

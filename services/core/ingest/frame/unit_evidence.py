@@ -95,7 +95,7 @@ UNIT_SCALES: tuple[tuple[str, float], ...] = (
     ("metres", 1.0), ("centimetres", 0.01), ("millimetres", 0.001), ("inches", 0.0254),
 )
 FULL_STOREY_M = (1.8, 6.0)  # a ceiling seen: floor to ceiling
-PARTIAL_STOREY_M = (0.5, 6.0)  # no ceiling seen: floor to wherever the capture stopped
+PARTIAL_STOREY_M = (0.8, 6.0)  # no ceiling seen: floor to wherever the capture stopped
 TYPICAL_TOP_M = 3.5
 CAMERA_HELD_M = (0.3, 2.2)
 SUPPORT_HEIGHTS_M = (0.35, 1.0)  # seats 0.35-0.55, tables 0.6-0.8, counters 0.85-1.0

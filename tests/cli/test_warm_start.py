@@ -165,7 +165,6 @@ def run_pid(server: Server, out: Path) -> int:
     return int(line.split()[1].rstrip(":"))
 
 
-@pytest.mark.alone  # a promised time (CLIENT_GONE_S): measured at normal priority
 def test_ctrl_c_stops_a_warm_run_and_a_killed_client_takes_its_run_along(
     server: Server, scenes_dir: Path, tmp_path: Path
 ) -> None:

@@ -41,6 +41,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "compile the worker's kernels into numba's on-disk cache "
         "(image build, `make venv`): workers then only load them",
     ),
+    "warm": ("services.cli.warm", "the warm-start server of generate and plan: status (default) or stop"),
     "migrate": ("services.cli.migrate", "upgrade the database schema to this version's head (Alembic)"),
     "token": (
         "services.cli.token_create",

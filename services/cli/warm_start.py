@@ -144,12 +144,12 @@ def _connect(path: Path, lock: Path) -> socket.socket | None:
             return sock
         except OSError:
             sock.close()
-        if not _locked(lock) or time.monotonic() > deadline:
+        if not locked(lock) or time.monotonic() > deadline:
             return None
         time.sleep(0.05)
 
 
-def _locked(lock: Path) -> bool:
+def locked(lock: Path) -> bool:
     """Whether a server holds `lock` (one is starting or serving)."""
     try:
         fd = os.open(lock, os.O_RDONLY)
@@ -219,7 +219,7 @@ def start_server() -> None:
     """Start this user's server in the background unless one is running or starting; never fails the
     command (a warm start only saves time)."""
     folder = runtime_dir()
-    if folder is None or _locked(folder / f"{server_name()}.lock"):
+    if folder is None or locked(folder / f"{server_name()}.lock"):
         return
     try:
         with open(folder / f"{server_name()}.log", "wb") as log:

@@ -249,6 +249,19 @@ def test_a_server_leaves_when_its_socket_is_removed_or_it_idles(server: Server) 
     assert not server.socket.exists()
 
 
+def test_warm_status_and_stop(server: Server) -> None:
+    """`omnidata warm` says whether a server runs and `omnidata warm stop` retires it."""
+    assert omnidata("warm", env=server.env).returncode == 1  # none yet
+    server.start()
+    assert server.proc is not None
+    status = omnidata("warm", "status", env=server.env)
+    assert status.returncode == 0 and f"server {server.proc.pid}:" in status.stdout, status
+    stop = omnidata("warm", "stop", env=server.env)
+    assert stop.returncode == 0 and "stopped" in stop.stdout, stop
+    assert server.proc.poll() is not None and not server.socket.exists()
+    assert omnidata("warm", env=server.env).returncode == 1
+
+
 def test_no_warm_start_from_a_folder_others_can_reach(tmp_path: Path,
                                                       monkeypatch: pytest.MonkeyPatch) -> None:
     shared = tmp_path / "shared"

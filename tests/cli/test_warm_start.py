@@ -96,6 +96,13 @@ def server() -> Iterator[Server]:
     shutil.rmtree(folder, ignore_errors=True)
 
 
+def wide_spec(folder: Path) -> Path:
+    """The small banana job's spec (WIDE: 4 views at 32 px)."""
+    spec = folder / "spec.yaml"
+    spec.write_text(WIDE)
+    return spec
+
+
 def generate(server: Server, scene: Path, out: Path, spec: Path, *extra: str, warm: bool = True
              ) -> subprocess.CompletedProcess[str]:
     env = server.env if warm else {"OMNIDATA_WARM_START": "0"}
@@ -116,8 +123,7 @@ def test_a_warm_run_writes_what_a_cold_run_writes_and_fails_as_it_fails(
     server: Server, scenes_dir: Path, tmp_path: Path
 ) -> None:
     server.start()
-    spec = tmp_path / "spec.yaml"
-    spec.write_text(WIDE)
+    spec = wide_spec(tmp_path)
     banana = scenes_dir / "ycb_banana"
     cold = generate(server, banana, tmp_path / "cold", spec, warm=False)
     warm = generate(server, banana, tmp_path / "warm", spec)
@@ -218,8 +224,7 @@ def test_a_changed_source_sends_the_next_run_cold_and_retires_the_server(
     server: Server, scenes_dir: Path, tmp_path: Path
 ) -> None:
     server.start()
-    spec = tmp_path / "spec.yaml"
-    spec.write_text(WIDE)
+    spec = wide_spec(tmp_path)
     source = REPO / "services" / "cli" / "warm_start.py"
     st = source.stat()
     os.utime(source, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000_000))

@@ -156,7 +156,7 @@ def generate(space: Path, extra: list[str], cores: str, out: Path, spec: Path, w
     t0, cpu0, started = time.perf_counter(), children_cpu_s(), time.time()
     run = subprocess.run(cmd, cwd=root, capture_output=True, text=True, preexec_fn=pinned(cores),
                          env={**os.environ, "PYTHONPATH": str(root), "OMNIDATA_RENDER_DEVICE": device,
-                              "OMNIDATA_WARM_START": "0", **(env or {})})  # cold: bench/render/warm_start.py
+                              **(env or {})})
     wall, cpu = time.perf_counter() - t0, children_cpu_s() - cpu0
     if run.returncode != 0:
         raise RuntimeError(

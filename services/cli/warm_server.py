@@ -47,12 +47,14 @@ def preload() -> None:
     with collections_paused():
         import services.cli.generate  # noqa: F401  (pins the numeric libraries before numpy loads)
         import services.cli.plan  # noqa: F401
+        from services.core.ingest.parsed_cache import loader_version
         from services.embedded.pool import WORKER_MODULES
         from services.worker.process import kernel_target
 
         for name in WORKER_MODULES:
             __import__(name)
         kernel_target.load()
+        loader_version()  # a digest of the loader's sources (~0.1 CPU-s a run); a change retires the server
     gc.collect()
     gc.freeze()
 

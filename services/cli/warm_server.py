@@ -54,7 +54,7 @@ def preload() -> None:
         for name in WORKER_MODULES:
             __import__(name)
         kernel_target.load()
-        loader_version()  # a digest of the loader's sources (~0.1 CPU-s a run); a change retires the server
+        loader_version()  # the digest of the loader's sources, made once (a change retires the server)
     gc.collect()
     gc.freeze()
 

@@ -1,7 +1,7 @@
 """Warm start of `omnidata generate` (services.cli.warm_start, services.cli.warm_server), as a user meets it:
 a real server process, real `generate` commands in fresh interpreters, real renders. A warm run writes what a
-cold run writes, fails as it fails, stops on Ctrl-C and dies with a killed client as a cold one does; the
-server steps aside when its code changes, its socket goes, or it idles."""
+cold run writes, fails as it fails, stops on Ctrl-Z and Ctrl-C and dies with a killed client as a cold one
+does; the server steps aside when its code changes, its socket goes, it idles or `omnidata warm stop` asks."""
 
 from __future__ import annotations
 

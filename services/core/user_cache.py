@@ -14,8 +14,10 @@ two leaves that file behind. Pruning a folder removes such leftovers once no liv
 from __future__ import annotations
 
 import fcntl
+import hashlib
 import logging
 import os
+import tempfile
 import time
 from pathlib import Path
 
@@ -51,6 +53,38 @@ def touch(path: Path) -> None:
         os.utime(path)
     except OSError:
         pass
+
+
+def write_checked(path: Path, magic: bytes, body: bytes | memoryview, temp_prefix: str) -> None:
+    """Write `magic`, the sha256 of `body` (hex) and `body` to `path` atomically: into a temporary file of
+    `temp_prefix` beside it, renamed into place, so a reader sees the whole file or none (read_checked).
+    Raises OSError, the temporary file removed."""
+    tmp = None
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=temp_prefix, suffix=path.suffix, dir=path.parent)
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(magic + hashlib.sha256(body).hexdigest().encode())
+            fh.write(body)
+        os.replace(tmp, path)
+    except BaseException:
+        if tmp is not None:
+            Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def read_checked(path: Path, magic: bytes) -> memoryview | None:
+    """The body of the entry write_checked wrote at `path`; None when there is none, or when its header or
+    its sha256 does not fit (a damaged file, or one of another layout: logged)."""
+    try:
+        data = path.read_bytes()
+    except OSError:
+        return None
+    head = len(magic) + 64
+    body = memoryview(data)[head:]
+    if data.startswith(magic) and data[len(magic):head] == hashlib.sha256(body).hexdigest().encode():
+        return body
+    log.warning("cache entry %s is damaged (or of another layout); computing it again", path)
+    return None
 
 
 def prune_user_caches(max_bytes: int) -> None:

@@ -24,12 +24,19 @@ import logging
 import os
 import pickle
 import platform
-import tempfile
 from pathlib import Path
 
 from services.core.domain.jobspec import SpaceFrame
 from services.core.ingest.loading import LoadedSpace, load_space
-from services.core.user_cache import PARSED, PRUNED, TEMP_PREFIX, touch, user_cache_dir
+from services.core.user_cache import (
+    PARSED,
+    PRUNED,
+    TEMP_PREFIX,
+    read_checked,
+    touch,
+    user_cache_dir,
+    write_checked,
+)
 
 log = logging.getLogger(__name__)
 
@@ -77,18 +84,15 @@ def load_space_kept(path: Path, checksum: str, frame: SpaceFrame, folder: Path |
 
 def _read(entry: Path) -> LoadedSpace | None:
     try:
-        if entry.stat().st_uid != os.getuid():
+        if entry.stat().st_uid != os.getuid():  # unpickling runs what the file names: only the user's own
             return None
-        data = entry.read_bytes()
     except OSError:
         return None
-    head = len(_MAGIC) + 64
-    digest = hashlib.sha256(data[head:]).hexdigest().encode()
-    if not data.startswith(_MAGIC) or data[len(_MAGIC):head] != digest:
-        log.warning("parsed space cache %s is damaged; loading the scan", entry)
+    body = read_checked(entry, _MAGIC)  # a damaged file is refused before it is unpickled
+    if body is None:
         return None
     try:
-        loaded = pickle.loads(data[head:])
+        loaded = pickle.loads(body)
     except Exception as e:  # a library changed under the same version string: load instead
         log.warning("parsed space cache %s unusable (%s); loading the scan", entry, e)
         return None
@@ -96,16 +100,10 @@ def _read(entry: Path) -> LoadedSpace | None:
 
 
 def _write(entry: Path, loaded: LoadedSpace) -> None:
-    """Keep `loaded` at `entry` atomically (a reader sees the whole file or none); failures only log."""
-    tmp = None
+    """Keep `loaded` at `entry` (user_cache.write_checked); failures only log."""
     try:
         body = pickle.dumps(loaded, protocol=pickle.HIGHEST_PROTOCOL)
         entry.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=TEMP_PREFIX[PARSED], suffix=SUFFIX, dir=entry.parent)
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(_MAGIC + hashlib.sha256(body).hexdigest().encode() + body)
-        os.replace(tmp, entry)
+        write_checked(entry, _MAGIC, body, TEMP_PREFIX[PARSED])
     except Exception as e:  # an unpicklable object, a full or read-only disk: the next run loads again
         log.warning("could not keep the parsed space at %s: %s", entry, e)
-        if tmp is not None:
-            Path(tmp).unlink(missing_ok=True)

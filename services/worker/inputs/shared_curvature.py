@@ -6,8 +6,8 @@ cache folder; the others wait on the lock and read the array back. The file's na
 the estimator reads (vertices, faces, vertex normals, the radius) and of the estimator's own source, so a
 changed mesh, frame or estimator never meets an old file; what is read back is the computed array itself, so
 the result is bit-identical to computing it. The file is the array in .npy form after a sha256 of those bytes
-(as a parsed space's entry, services.core.ingest.parsed_cache): a damaged file of the right shape is refused,
-removed and computed again, never used. Any trouble with the folder falls back to computing.
+(services.core.user_cache.write_checked, as a parsed space's entry): a damaged file of the right shape is
+refused, removed and computed again, never used. Any trouble with the folder falls back to computing.
 
 `omnidata generate` shares the user's folder ($OMNIDATA_DATA_DIR/curvature, services.core.user_cache), so a
 later run on the same scan reads the file too.
@@ -19,14 +19,12 @@ import fcntl
 import hashlib
 import io
 import logging
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import trimesh
 
-from services.core.user_cache import CURVATURE, TEMP_PREFIX, touch
+from services.core.user_cache import CURVATURE, TEMP_PREFIX, read_checked, touch, write_checked
 from services.worker.inputs import curvature as estimator
 
 log = logging.getLogger(__name__)
@@ -75,40 +73,27 @@ def shared_curvature(mesh: trimesh.Trimesh, radius: float, folder: Path | None) 
 def _read(path: Path, vertices: int) -> np.ndarray | None:
     """The array at `path` when it is whole (its sha256 fits) and a float32 V x 2 array of this mesh, else
     None; a file that is not is removed (the caller holds its lock and writes it again)."""
-    try:
-        data = path.read_bytes()
-    except OSError:
-        return None
-    head = len(_MAGIC) + 64
-    body = memoryview(data)[head:]
+    body = read_checked(path, _MAGIC)
     arr = None
-    if data.startswith(_MAGIC) and data[len(_MAGIC):head] == hashlib.sha256(body).hexdigest().encode():
+    if body is not None:
         try:
             arr = np.load(io.BytesIO(body), allow_pickle=False)
         except ValueError:
-            pass
-    if arr is None or arr.dtype != np.float32 or arr.shape != (vertices, 2):
-        log.warning("curvature cache %s is damaged; computing it again", path)
-        try:
-            path.unlink(missing_ok=True)
-        except OSError:  # a read-only folder: the write after the compute fails too, and only logs
-            pass
-        return None
-    return arr
+            log.warning("curvature cache %s is damaged; computing it again", path)
+    if arr is not None and arr.dtype == np.float32 and arr.shape == (vertices, 2):
+        return arr
+    try:
+        path.unlink(missing_ok=True)
+    except OSError:  # a read-only folder: the write after the compute fails too, and only logs
+        pass
+    return None
 
 
 def _write(path: Path, arr: np.ndarray) -> None:
-    """Write `arr` to `path` atomically (a reader sees the whole file or none); failures are only logged."""
-    tmp = None
+    """Keep `arr` at `path` (user_cache.write_checked); failures are only logged."""
+    body = io.BytesIO()
+    np.save(body, arr, allow_pickle=False)
     try:
-        body = io.BytesIO()
-        np.save(body, arr, allow_pickle=False)
-        fd, tmp = tempfile.mkstemp(prefix=TEMP_PREFIX[CURVATURE], suffix=".npy", dir=path.parent)
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(_MAGIC + hashlib.sha256(body.getbuffer()).hexdigest().encode())
-            fh.write(body.getbuffer())
-        os.replace(tmp, path)
+        write_checked(path, _MAGIC, body.getbuffer(), TEMP_PREFIX[CURVATURE])
     except OSError as e:
         log.warning("could not keep the curvature at %s: %s", path, e)
-        if tmp is not None:
-            Path(tmp).unlink(missing_ok=True)

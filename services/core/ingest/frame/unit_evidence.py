@@ -9,8 +9,9 @@ every other pair of units is more than 6 / 0.8 apart. Each candidate is scored w
 
 - `storey`: -0.5 above 3.5 m (tall rooms are rare), else 0.
 - `camera`: RGB-D reconstructions are stored in their first camera's frame, so the origin is where a
-  person held the camera: when it lies over the scan, 0.75-2.0 m above the floor scores +1 (an origin
-  elsewhere says nothing: exporters put it anywhere, robots carry cameras lower).
+  person held the camera: when it lies over the scan, 0.75-2.0 m above the floor (a person's hands) scores
+  +1, the rest of 0.3-2.2 m (a robot's, a camera held high) +0.5 (an origin elsewhere says nothing:
+  exporters put it anywhere).
 - `furniture`: seats, tables and counters are what a scan sees from above, at 0.35-1.0 m. When the
   up-facing surfaces between floor and top cover at least 5 % of the floor, the share of their area at
   those heights scores -1 below a quarter, and +1 from half of it up where read 2.54 times off less than a
@@ -97,10 +98,12 @@ UNIT_SCALES: tuple[tuple[str, float], ...] = (
 FULL_STOREY_M = (1.8, 6.0)  # a ceiling seen: floor to ceiling
 PARTIAL_STOREY_M = (0.8, 6.0)  # no ceiling seen: floor to wherever the capture stopped
 TYPICAL_TOP_M = 3.5
-# where people hold a camera: the origins of the real hand-held RGB-D captures of
-# bench/ingest/ingest_real.py lie 0.80-1.88 m above their floors (a robot's: 0.47 m), and read 2.54 times off
-# such a height leaves this band
+# where people hold a camera (the origins of the real hand-held RGB-D captures of bench/ingest/ingest_real.py
+# lie 0.80-1.88 m above their floors), and where a camera may still be (a robot's: 0.47 m; one held high): a
+# unit that puts it in the first beats one that puts it only in the second by half the camera term, so a
+# robot's frame in centimetres, 1.2 m up in inches, is asked for, never read in inches
 CAMERA_HELD_M = (0.75, 2.0)
+CAMERA_POSSIBLE_M = (0.3, 2.2)
 SUPPORT_HEIGHTS_M = (0.35, 1.0)  # seats 0.35-0.55, tables 0.6-0.8, counters 0.85-1.0
 # share of the tops at those heights: below it -1; from the second +1 where the reading 2.54 times off holds
 # less than the first (a unit tells itself apart only where the other puts few tops there: counters at
@@ -208,7 +211,8 @@ def _terms(m: ScanMeasures, scale: float) -> dict[str, float] | None:
     terms = {"storey": -0.5 if storey > TYPICAL_TOP_M else 0.0}
     if m.origin_height is not None:
         cam = m.origin_height * scale
-        terms["camera"] = 1.0 if CAMERA_HELD_M[0] <= cam <= CAMERA_HELD_M[1] else 0.0
+        held = CAMERA_HELD_M[0] <= cam <= CAMERA_HELD_M[1]
+        terms["camera"] = 1.0 if held else 0.5 if CAMERA_POSSIBLE_M[0] <= cam <= CAMERA_POSSIBLE_M[1] else 0.0
     share = m.support_share(scale)
     if share is not None:
         rival = max(m.support_share(scale * 2.54) or 0.0, m.support_share(scale / 2.54) or 0.0)

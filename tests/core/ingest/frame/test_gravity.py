@@ -241,6 +241,19 @@ def test_a_short_partial_room_in_millimetres_is_accepted_an_ambiguous_one_refuse
     assert not decide_units(ScanMeasures(0.5, (4.7, 4.0, 0.5), False, None, _tops((0.42, 1.0)), 0.023)).ranked
 
 
+def test_a_first_camera_in_a_persons_hands_tells_centimetres_from_inches_and_a_robots_asks() -> None:
+    """Single frames in their camera's frame, no furniture to tell: a Kinect frame 1.92 m tall in centimetres
+    (bench/scans/rooms/pcl_pairwise_capture0001_kinect), its camera 0.88 m up, is 4.88 m in inches with the
+    camera 2.24 m up: read in cm. A robot's frame 1.5 m tall in cm, its camera 0.47 m up, is 3.8 m in inches
+    with the camera 1.19 m up, where a person holds one: asked, never read in inches."""
+    from services.core.ingest.frame.unit_evidence import ScanMeasures, decide_units
+
+    hands = decide_units(ScanMeasures(192.0, (311.0, 132.0, 192.0), False, 88.0, None, 1.0))
+    assert [c.unit for c in hands.ranked] == ["centimetres", "inches"] and not hands.ambiguous
+    robot = decide_units(ScanMeasures(150.0, (400.0, 300.0, 150.0), False, 47.0, None, 1.0))
+    assert {c.unit for c in robot.ranked} == {"centimetres", "inches"} and robot.ambiguous
+
+
 def test_unit_evidence_measures_the_tops_of_a_short_partial_room_in_millimetres() -> None:
     """`measure` on a mesh: a 5 x 4 m floor, a 2 x 1 m seat at 450 mm and a wall 1.1 m tall, in mm: the seat
     puts millimetres alone among the units (11 m in cm, 28 m in inches)."""

@@ -165,8 +165,9 @@ def _accept(listener: socket.socket, socket_file: tuple[Path, int], stamp: str,
             others = [r.conn.fileno() for r in runs.values() if r.conn is not None]
             _run(request, fds, keep=conn, close=[listener.fileno(), lock, *others, *runs])
         runs[os.pidfd_open(pid)] = Run(pid, conn)
-        warm_start.send(conn, {"pid": pid})
+        # logged before the client hears of the run: a quick run's client may otherwise end before the line
         print(f"run {pid}: omnidata {' '.join(request['argv'])}", file=sys.stderr, flush=True)
+        warm_start.send(conn, {"pid": pid})
     except (OSError, ValueError) as e:
         print(f"warm server: a request dropped: {e}", file=sys.stderr)
         conn.close()

@@ -54,11 +54,11 @@ def test_pick_up_with_one_click(pg_url: str, local_store: LocalStore, dashboard_
 
 def test_pick_units_with_one_click(pg_url: str, local_store: LocalStore, dashboard_page: DashboardPage,
                                    tmp_path: Path) -> None:
-    """A levelled partial scan in centimetres that nothing in it tells (`units_ambiguous_scan`): cm or inches,
+    """A levelled room scan in inches that too little in it tells (`units_ambiguous_scan`): cm or inches,
     each with the size it gives."""
-    src = units_ambiguous_scan(tmp_path / "partial_cm.ply")
+    src = units_ambiguous_scan(tmp_path / "partial_in.ply")
     with make_api(pg_url, local_store) as api, live_server(api.app) as base:
-        r = api.client.post("/spaces", files={"file": ("partial_cm.ply", src.read_bytes())},
+        r = api.client.post("/spaces", files={"file": ("partial_in.ply", src.read_bytes())},
                             data={"name": "partial"}, headers=api.a.headers)
         assert r.status_code == 201, r.text
         space = r.json()

@@ -78,10 +78,11 @@ def test_generate_stops_before_rendering(tmp_path: Path) -> None:
 
 def test_plan_stops_on_ambiguous_units_then_plans_with_unit_scale(tmp_path: Path,
                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
-    """A real partial room 1.1 m tall in centimetres, nothing in it telling the units
-    (`units_ambiguous_scan`): 1.1 m in cm or a 2.8 m storey in inches; the line names both."""
+    """A real room 2.1 m tall in inches, too little in it telling the units (`units_ambiguous_scan`): 2.1 m in
+    inches or 0.83 m in centimetres; the line names both, inches first (its first camera 1.51 m up, where a
+    person holds one, against 0.59 m in cm, where a robot's could be)."""
     monkeypatch.setenv("OMNIDATA_DATA_DIR", str(tmp_path / "data"))  # the meshed cloud is cached there
-    src = units_ambiguous_scan(tmp_path / "partial_cm.ply")
+    src = units_ambiguous_scan(tmp_path / "partial_in.ply")
     room_up = np.array([0.0, 0.0, 1.0])
     up = "--up=0,0,1"
     args = ["--points", 2, "--min-views", 1, "--seed", 1]
@@ -90,10 +91,10 @@ def test_plan_stops_on_ambiguous_units_then_plans_with_unit_scale(tmp_path: Path
     line = res.stderr.strip()
     assert (
         "\n" not in line
-        and "partial_cm.ply: units are ambiguous: centimetres (--unit-scale=0.01: storey" in line
+        and "partial_in.ply: units are ambiguous: inches (--unit-scale=0.0254: storey" in line
     )
-    assert "inches (--unit-scale=0.0254: storey" in line and not (tmp_path / "p" / "job.json").exists()
-    res = omnidata("plan", src, "--out", tmp_path / "q", up, "--unit-scale", "0.01", *args)
+    assert "centimetres (--unit-scale=0.01: storey" in line and not (tmp_path / "p" / "job.json").exists()
+    res = omnidata("plan", src, "--out", tmp_path / "q", up, "--unit-scale", "0.0254", *args)
     assert res.returncode == 0, res.stderr
     _, space = _level_error(tmp_path / "q" / "job.json", room_up)
-    assert space["units"]["unit_scale"] == 0.01 and space["units"]["unit"] == "given"
+    assert space["units"]["unit_scale"] == 0.0254 and space["units"]["unit"] == "given"

@@ -166,10 +166,10 @@ def test_pick_and_preview_parse_the_scan_in_the_limited_child(api: Api, monkeypa
 
 
 def test_ambiguous_units_held_refused_then_picked(api: Api, tmp_path: Path) -> None:
-    """A levelled partial scan in centimetres that nothing in it tells (`units_ambiguous_scan`): cm or inches;
+    """A levelled room scan in inches that too little in it tells (`units_ambiguous_scan`): cm or inches;
     the job is refused naming both."""
-    src = units_ambiguous_scan(tmp_path / "partial_cm.ply")
-    r = api.client.post("/spaces", files={"file": ("partial_cm.ply", src.read_bytes())},
+    src = units_ambiguous_scan(tmp_path / "partial_in.ply")
+    r = api.client.post("/spaces", files={"file": ("partial_in.ply", src.read_bytes())},
                         data={"name": "partial"}, headers=api.a.headers)
     assert r.status_code == 201, r.text
     space = r.json()

@@ -5,12 +5,16 @@ from __future__ import annotations
 
 import json
 import time
+from collections import Counter
+from datetime import UTC, datetime
 from pathlib import Path
 from urllib.parse import parse_qs, urlparse
 
 import httpx
 import pytest
+from sqlalchemy import select
 
+from services.core.db.models import Task, TaskState
 from services.core.storage import open_store
 from tests.fixtures.api import Api, fake_plan, make_api, run_tasks, task_ids
 
@@ -73,6 +77,11 @@ def test_views_tasks_filters_and_pagination(api: Api, bunny: Path) -> None:
     assert api.client.get(f"/jobs/{job_id}/tasks/{ids[-1] + 10_000}", headers=h).status_code == 404
 
 
+def _unix(moment: datetime | None) -> float:
+    assert moment is not None
+    return (moment if moment.tzinfo else moment.replace(tzinfo=UTC)).timestamp()
+
+
 def test_plan_and_throughput(api: Api, bunny: Path) -> None:
     h = api.a.headers
     job_id = _job(api, bunny, ["rgb"], points=5, views=3)
@@ -91,7 +100,13 @@ def test_plan_and_throughput(api: Api, bunny: Path) -> None:
     _throughput_cache._data.clear()
     tp = api.client.get(f"/jobs/{job_id}/throughput?buckets=20", headers=h).json()
     assert sum(b["done"] for b in tp["buckets"]) == 7 and tp["bucket_s"] >= 1.0
-    assert tp["buckets"][-1]["done"] == 7  # all finished just now, in the last bucket
+    # each task in the bucket its finish time falls in, counted from the first bucket's start
+    with api.session() as s:
+        finished = s.scalars(select(Task.finished_at).where(Task.job_id == job_id,
+                                                            Task.state == TaskState.DONE)).all()
+    start = _unix(datetime.fromisoformat(tp["buckets"][0]["t"]))
+    expected = Counter(int((_unix(f) - start) // tp["bucket_s"]) for f in finished)
+    assert {i: b["done"] for i, b in enumerate(tp["buckets"]) if b["done"]} == dict(expected)
 
 
 def test_outputs_local_signed_links(api: Api, bunny: Path) -> None:

@@ -156,6 +156,8 @@ def _accept(listener: socket.socket, socket_file: tuple[Path, int], stamp: str,
             raise OSError("incomplete request")
         request = json.loads(body)
         if code_stamp() != stamp:  # the code changed since this server loaded it: the client runs cold
+            print("warm server: the code changed since it started: a run refused, retiring",
+                  file=sys.stderr, flush=True)
             warm_start.send(conn, {"refused": "code changed"})
             conn.close()
             return _retire(listener, *socket_file)

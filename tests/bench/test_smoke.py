@@ -101,11 +101,14 @@ def passes_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def smoke_params() -> list[pytest.ParameterSet]:
     """Each script; those sharing the pass sets in one xdist group (one at a time: one renders, the rest
-    read)."""
-    return [
-        pytest.param(script, marks=[pytest.mark.xdist_group("bench-passes")] if "{passes}" in args else [])
-        for script, (args, _) in sorted(SMOKE.items())
-    ]
+    read); the warm-start one with tests/cli/test_warm_start.py, one of which retires every warm server of
+    this checkout."""
+    def group(script: str, args: str) -> list[pytest.MarkDecorator]:
+        if "{passes}" in args:
+            return [pytest.mark.xdist_group("bench-passes")]
+        return [pytest.mark.xdist_group("warm-server")] if script == "render/warm_start.py" else []
+
+    return [pytest.param(script, marks=group(script, args)) for script, (args, _) in sorted(SMOKE.items())]
 
 
 @pytest.mark.slow

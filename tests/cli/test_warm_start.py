@@ -22,7 +22,9 @@ import pytest
 from services.cli import warm_start
 from tests.fixtures.cli import REPO, WIDE, dataset_files, done_tasks, omnidata
 
-pytestmark = pytest.mark.bpy
+# one xdist group (one process, one test at a time): a test here changes a source's mtime, which retires every
+# server started from this checkout, another test's included
+pytestmark = [pytest.mark.bpy, pytest.mark.xdist_group("warm-server")]
 
 SERVER_START_S = 60.0  # the server imports what a run imports (a few CPU-seconds, on a loaded 2-core machine)
 CLIENT_GONE_S = 2.0  # promised: a run whose client is killed is killed at once (the server sees the hang-up)
@@ -233,7 +235,7 @@ def test_a_changed_source_sends_the_next_run_cold_and_retires_the_server(
     finally:
         os.utime(source, ns=(st.st_atime_ns, st.st_mtime_ns))  # the checkout as it was
     assert res.returncode == 0, res.stderr
-    assert server.runs() == []  # refused: the command ran cold
+    assert server.runs() == [] and "a run refused" in server.log  # refused: the command ran cold
     assert server.proc is not None
     server.proc.wait(timeout=RETIRE_S)
     # ... and started a server of the code now on disk

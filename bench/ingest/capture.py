@@ -1,8 +1,8 @@
 """Benchmark: posed captures (issue 18) on the real 7-Scenes capture of ../shared/scenes/7scenes_redkitchen.
 
 - import: seconds per 1000 frames to detect and read a capture, every frame checked (pose, image header): the
-  100 real frames copied ten times (7-Scenes layout, 1000 frames), and 1000-frame COLMAP text and nerfstudio
-  transforms.json captures of small photos;
+  100 real frames copied ten times (7-Scenes layout, 1000 frames; --import-copies), and COLMAP text and
+  nerfstudio transforms.json captures of as many small photos;
 - capture views: Cycles render + cue cost of a view at a capture camera with the photo as rgb vs the same view
   with mesh rgb (the pass set, rgb and mask_photo), CPU seconds of this process;
 - photo texturing: seconds per novel view and the share of its surface pixels some photo covers, for views
@@ -49,19 +49,21 @@ BIG_NOTE = ("wall: the whole generate (Blender start-up included) on a shared 2-
             "(--baseline-code)")
 
 
-def import_figures(tmp: Path) -> dict[str, float]:
-    """Seconds per 1000 frames to find and read a capture, per format."""
+def import_figures(tmp: Path, copies: int = 10) -> dict[str, float]:
+    """Seconds per 1000 frames to find and read a capture, per format (`copies` of the kitchen's 100 frames,
+    as many toy frames)."""
     out = {}
+    n = 100 * copies
     seven = tmp / "seven"
     (seven).mkdir()
     shutil.copy(KITCHEN / "camera-intrinsics.txt", seven)
-    for s in range(10):
+    for s in range(copies):
         d = seven / f"seq-{s:02d}"
         d.mkdir()
         for f in (KITCHEN / "frames").glob("frame-*"):
             if not f.name.endswith(".depth.png"):
                 shutil.copy(f, d / f.name)
-    frames = toy_frames(1000, size=(160, 120))
+    frames = toy_frames(n, size=(160, 120))
     write_colmap(tmp / "colmap", frames)
     write_transforms(tmp / "transforms", frames)
     for name, root in (("7scenes_real_640x480", seven), ("colmap_text", tmp / "colmap"),
@@ -69,8 +71,8 @@ def import_figures(tmp: Path) -> dict[str, float]:
         t0 = time.perf_counter()
         cap = find_capture(root)
         dt = time.perf_counter() - t0
-        assert cap is not None and len(cap.frames) == 1000, (name, cap and cap.problems[:3])
-        out[f"{name}_s_per_1000_frames"] = round(dt, 3)
+        assert cap is not None and len(cap.frames) == n, (name, cap and cap.problems[:3])
+        out[f"{name}_s_per_1000_frames"] = round(dt * 1000 / n, 3)
     return out
 
 
@@ -229,6 +231,8 @@ def main() -> None:
     parser.add_argument(
         "--alignment-frames", type=int, default=0, help="frames the alignment scores (0: all)"
     )
+    parser.add_argument("--import-copies", type=int, default=10,
+                        help="the import figures read the kitchen's 100 frames this many times over")
     parser.add_argument("--no-big-photos", dest="big_photos", action="store_false",
                         help="leave out the big-photo generates (minutes; a smoke run)")
     args = parser.parse_args()
@@ -242,7 +246,7 @@ def main() -> None:
     result: dict[str, object] = {"machine": f"{platform.machine()} {platform.node()}",
                                  "note": "shared machine: 2 cores, loaded by other developers' work"}
     with tempfile.TemporaryDirectory(prefix="bench-capture-") as tmp:
-        result["import"] = import_figures(Path(tmp))
+        result["import"] = import_figures(Path(tmp), args.import_copies)
     print(json.dumps(result["import"]))
     space = load_space(KITCHEN)
     result["alignment"] = alignment_figures(space, args.alignment_frames)

@@ -45,11 +45,9 @@ from services.embedded.ctrl_c import latched_sigint  # noqa: E402
 from services.embedded.curvature_ahead import curvature_ahead  # noqa: E402
 from services.embedded.job import (  # noqa: E402
     STATE_DIR,
-    cpu_renderers,
     drive,
     embedded_settings,
     find_spaces,
-    gpu_renderers,
     prepare_job,
     worker_pool,
 )
@@ -137,8 +135,6 @@ def _checked_run(args: argparse.Namespace, spec: JobSpec, workers: int) -> int:
         args.render_workers is None
         and settings.render_workers is not None
         and settings.render_workers < workers
-        and (settings.render_workers != cpu_renderers(workers)
-             or (settings.render_device != "cpu" and gpu_renderers(workers) is not None))
     ):
         print(
             f"omnidata generate: {settings.render_workers} of the {workers} workers render, the "

@@ -190,8 +190,8 @@ class Settings(BaseSettings):
         "renderers store, and "
         "never load Blender. A renderer derives while no view waits for a render, or once it is "
         "its budget of pass sets ahead of the derivers. Unset: on a machine with an NVIDIA GPU "
-        "one worker in 8 renders (at least one), on CPU cores half of them (one worker alone renders "
-        "and derives its own views: view batches)",
+        "one worker in 8 renders (at least one); on CPU cores every worker renders and derives its "
+        "own views (view batches)",
     )
     queue_render: str = Field("render", min_length=1, description="heavy queue: tasks that render")
     queue_derive: str = Field("derive", min_length=1, description="light queue: derived cues, plan cues")

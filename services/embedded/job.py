@@ -60,7 +60,9 @@ WORKERS_PER_GPU_RENDERER = 8
 def embedded_settings(out: Path, workers: int, render_workers: int | None = None) -> Settings:
     """Settings of the embedded mode: SQLite and the object folder in DIR, whatever OMNIDATA_* says;
     `render_workers` (--render-workers) overrides OMNIDATA_RENDER_WORKERS, and with neither a GPU machine gets
-    gpu_renderers', CPU cores cpu_renderers'."""
+    gpu_renderers' and CPU cores None: every worker renders and derives its own views (on two cores a
+    180-view job ran 1.27-1.46x faster that way than with one renderer and one deriver:
+    bench/render/render_workers.py)."""
     state = out / STATE_DIR
     chosen = {} if render_workers is None else {"render_workers": render_workers}
     settings = load_settings(
@@ -69,7 +71,7 @@ def embedded_settings(out: Path, workers: int, render_workers: int | None = None
     )
     if settings.render_workers is None:
         gpu = gpu_renderers(workers) if settings.render_device != "cpu" else None
-        return settings.model_copy(update={"render_workers": gpu or cpu_renderers(workers)})
+        return settings.model_copy(update={"render_workers": gpu})
     return settings
 
 
@@ -80,13 +82,6 @@ def gpu_renderers(workers: int) -> int | None:
     if workers < 2 or not gpu_devices.nvidia_gpus():
         return None
     return max(1, workers // WORKERS_PER_GPU_RENDERER)
-
-
-def cpu_renderers(workers: int) -> int | None:
-    """How many of W workers render on CPU cores (None: one worker renders and derives everything). Half:
-    a view's render and its derivations cost about the same (docs/performance.md), and a renderer derives
-    whenever it is RENDER_AHEAD_VIEWS ahead; the others never load Blender."""
-    return None if workers < 2 else (workers + 1) // 2
 
 
 def job_fingerprint(spec: JobSpec, checksums: Sequence[str]) -> str:

@@ -122,8 +122,8 @@ def test_renderers_and_derivers_give_the_same_files_as_every_worker_rendering(
     spec = tmp_path / "job.yaml"
     spec.write_text(SPEC)
     whole, split = tmp_path / "whole", tmp_path / "split"
-    generate(scenes_dir / "ycb_banana", whole, spec, "--render-workers", "2")
-    generate(scenes_dir / "ycb_banana", split, spec)  # on CPU cores, 1 of 2 renders by default
+    generate(scenes_dir / "ycb_banana", whole, spec)  # on CPU cores every worker renders by default
+    generate(scenes_dir / "ycb_banana", split, spec, "--render-workers", "1")
     assert dataset_files(whole) == dataset_files(split)  # manifest, plan, every cue file
 
     with sqlite3.connect(split / ".omnidata" / "state.db") as db:
@@ -182,7 +182,7 @@ def gpu_machine(tmp_path, monkeypatch):
 
 def test_on_a_gpu_one_worker_in_eight_renders_unless_told(gpu_machine, tmp_path, monkeypatch):
     out = tmp_path / "out"
-    assert embedded_settings(out, 16).render_workers == 8  # only the control file: no GPU, CPU cores' rule
+    assert embedded_settings(out, 16).render_workers is None  # only the control file: no GPU, all render
     (gpu_machine / "nvidia0").touch()
     assert [embedded_settings(out, w).render_workers for w in (1, 2, 8, 16, 24)] == [None, 1, 1, 2, 3]
     pool = worker_pool(out, embedded_settings(out, 16), 16)  # not started: the roles it would give
@@ -194,8 +194,9 @@ def test_on_a_gpu_one_worker_in_eight_renders_unless_told(gpu_machine, tmp_path,
         and not worker_pool(out, embedded_settings(out, 16), 16).queues.split
     )
     monkeypatch.delenv("OMNIDATA_RENDER_WORKERS")
-    monkeypatch.setenv("OMNIDATA_RENDER_DEVICE", "cpu")  # renders on the CPU whatever the machine has: half
-    assert [embedded_settings(out, w).render_workers for w in (1, 2, 3, 16)] == [None, 1, 2, 8]
+    monkeypatch.setenv("OMNIDATA_RENDER_DEVICE", "cpu")  # renders on the CPU whatever the machine has: all
+    assert [embedded_settings(out, w).render_workers for w in (1, 2, 3, 16)] == [None] * 4
+    assert [worker_pool(out, embedded_settings(out, 16), 16).role_of(i) for i in range(16)] == ["all"] * 16
 
 
 def test_generate_says_how_many_workers_render_on_a_gpu(gpu_machine, capsys, tmp_path):
@@ -214,13 +215,14 @@ def _children(pid: int) -> list[int]:
 
 @pytest.mark.bpy
 def test_a_deriver_killed_mid_job_loses_no_work(scenes_dir: Path, tmp_path: Path):
-    """Two workers on CPU cores: one renders, one derives (the default). The deriver is killed -9 while the
-    job runs; its tasks go back to the queue, a new deriver takes them, and every file is made once."""
+    """Two workers on CPU cores: one renders, one derives (--render-workers 1). The deriver is killed -9 while
+    the job runs; its tasks go back to the queue, a new deriver takes them, and every file is made once."""
     spec = tmp_path / "job.yaml"
     spec.write_text(SPEC.replace("count: 3", "count: 12").replace("resolution: 32", "resolution: 128"))
     out = tmp_path / "out"
     cmd = [sys.executable, "-m", "services.cli", "generate", str(scenes_dir / "ycb_banana"), "--out",
-           str(out), "--spec", str(spec), "--seed", "3", "--workers", "2", "--no-progress"]
+           str(out), "--spec", str(spec), "--seed", "3", "--workers", "2", "--render-workers", "1",
+           "--no-progress"]
     proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 300

@@ -21,6 +21,7 @@ import pytest
 
 from services.cli import warm_start
 from tests.fixtures.cli import REPO, WIDE, dataset_files, done_tasks, omnidata
+from tests.fixtures.waiting import wait_until
 
 # one xdist group (one process, one test at a time): a test here changes a source's mtime, which retires every
 # server started from this checkout, another test's included
@@ -57,15 +58,6 @@ class Server:
     def runs(self) -> list[str]:
         """The server's "run PID: omnidata ARGS" lines, one per run it forked."""
         return [line for line in self.log.splitlines() if line.startswith("run ") and " ended: " not in line]
-
-
-def wait_until(cond, timeout: float, what: str) -> float:
-    """Seconds it took `cond` to hold; fails after `timeout`."""
-    t0 = time.monotonic()
-    while not cond():
-        assert time.monotonic() - t0 < timeout, f"timed out after {timeout} s waiting for {what}"
-        time.sleep(0.05)
-    return time.monotonic() - t0
 
 
 def state(pid: int) -> str:

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 import socket
-import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,6 +17,7 @@ from sqlalchemy import Engine
 from services.core.db.engine import make_engine
 from services.core.storage import LocalStore
 from tests.fixtures.api import Api, live_server, make_api, mark_all_done, planned_job
+from tests.fixtures.waiting import wait_until
 
 POOL = 2
 READERS = 5  # more than the pool's connections
@@ -38,13 +38,6 @@ def small_pool(pg_url: str, local_store: LocalStore) -> Iterator[SmallPool]:
             yield SmallPool(api, engine)
     finally:
         engine.dispose()
-
-
-def _wait_until(cond, timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while not cond():
-        assert time.monotonic() < deadline, f"timed out after {timeout} s waiting for {what}"
-        time.sleep(0.05)
 
 
 def _stalled_reader(base: str, path: str, token: str) -> socket.socket:
@@ -91,7 +84,7 @@ def test_stalled_manifest_readers_hold_no_connection(small_pool: SmallPool, bunn
         try:
             # each stream sends what the sockets take (far less than its body), then waits for its reader: a
             # stream that kept its connection while it waits would keep it checked out for good
-            _wait_until(lambda: pool.checkedout() == 0, 30.0, "the stalled streams to give back connections")
+            wait_until(lambda: pool.checkedout() == 0, 30.0, "the stalled streams to give back connections")
             other = httpx.get(f"{base}/jobs/{quiet}", headers=api.b.headers, timeout=30)
             assert other.status_code == 200, other.text  # was a 500 after the pool's timeout
             own = httpx.get(f"{base}/jobs/{loud}", headers=api.a.headers, timeout=30)

@@ -2,13 +2,14 @@
 (issue 20).
 
 With R renderers, the other workers only derive, from the pass sets the renderers store: the layout a GPU
-needs (one device context, every core deriving), and `generate`'s default on two CPU cores and more (half of
-them render). It costs the hand-off (a renderer writes each pass set, a deriver reads it back) and saves every
-worker's Blender start-up and scene. This measures that cost where it can be measured
-without a GPU: each room at 512 px, every default cue, a worker per core, the two settings interleaved per
-repeat (so a neighbour's load moves both): wall time end to end, task seconds per view by cue (the job's task
-rows), the stored pass set's size, and the timeline (bench/render/room_cost.py: when each worker took its
-first task). Figures go to bench/results/render_workers.json.
+needs (one device context, every core deriving). On CPU cores `generate` lets every worker render by default:
+this benchmark showed the split slower there (1.27-1.46x on a 180-view job). The split costs the hand-off (a
+renderer writes each pass set, a deriver reads it back) and saves every worker's Blender start-up and scene.
+This measures that cost where it can be measured without a GPU: each room at 512 px, every default cue, a
+worker per core, the two settings interleaved per repeat (so a neighbour's load moves both): wall time end to
+end, task seconds per view by cue (the job's task rows), the stored pass set's size, and the timeline
+(bench/render/room_cost.py: when each worker took its first task). Figures go to
+bench/results/render_workers.json.
 Run: .venv/bin/python bench/render/render_workers.py [--rooms icl_livingroom] [--points 14] [--repeats 2]
 [--render-workers 1]
 """

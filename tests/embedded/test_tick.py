@@ -1,9 +1,15 @@
-"""The embedded scheduler loop's tick rate: bounded by a share of one core, never slower than TICK_MAX_S."""
+"""The embedded scheduler loop's tick rate: bounded by a share of one core, never slower than TICK_MAX_S.
+
+The loop (services.embedded.job.run_until_final) runs against a fake pool on a fake clock that only the pool's
+wait moves, so when each tick comes is computed, not timed: exact, and no test waits in real time."""
 
 from __future__ import annotations
 
+from unittest import mock
+
 import pytest
 
+from services.embedded import job as job_loop
 from services.embedded.job import TICK_CPU_SHARE, TICK_MAX_S, TICK_S, tick_interval
 
 
@@ -23,6 +29,20 @@ def test_however_costly_a_tick_the_job_is_still_seen_within_the_slowest_interval
     assert tick_interval(5.0) == TICK_MAX_S
 
 
+class _FakeClock:
+    """The loop's clock (job_loop.time): seconds since the start, moved only by the fake pool's wait; every
+    tick costs no CPU (process_time stands still), so the loop's fastest rate is TICK_S."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def monotonic(self) -> float:
+        return self.now
+
+    def process_time(self) -> float:
+        return 0.0
+
+
 class _FakeQueues:
     def __init__(self) -> None:
         self.size = 0
@@ -33,13 +53,12 @@ class _FakeQueues:
 
 
 class _FakePool:
-    """A pool whose workers report on a script: drain(timeout) returns the messages due by then."""
+    """A pool whose workers report on a script: drain(timeout) moves the clock to the next message due by then
+    and returns it, or to the end of the wait."""
 
-    def __init__(self, messages: list[float], kind: str | tuple = "outcome",
+    def __init__(self, clock: _FakeClock, messages: list[float], kind: str | tuple = "outcome",
                  exits_at: float | None = None) -> None:
-        import time
-
-        self.t0 = time.monotonic()
+        self.clock = clock
         self.due = sorted(messages)  # seconds after start
         self.kind = kind
         self.exits_at = exits_at  # a worker process found gone from then on (once)
@@ -47,36 +66,29 @@ class _FakePool:
         self.procs = [object()]
 
     def drain(self, timeout: float) -> list[tuple[object, ...]]:
-        import time
-
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
-            if self.due and time.monotonic() - self.t0 >= self.due[0]:
-                self.due.pop(0)
-                return [self.kind if isinstance(self.kind, tuple) else (self.kind,)]
-            time.sleep(0.005)
+        end = self.clock.now + timeout
+        if self.due and self.due[0] <= end:
+            self.clock.now = max(self.clock.now, self.due.pop(0))
+            return [self.kind if isinstance(self.kind, tuple) else (self.kind,)]
+        self.clock.now = end
         return []
 
     def replace_dead(self) -> list[str]:
-        import time
-
-        if self.exits_at is not None and time.monotonic() - self.t0 >= self.exits_at:
+        if self.exits_at is not None and self.clock.now >= self.exits_at:
             self.exits_at = None
             return ["w"]
         return []
 
 
 class _FakeScheduler:
-    def __init__(self, job_id: int, done_at: float, t0: float) -> None:
-        self.job_id, self.done_at, self.t0 = job_id, done_at, t0
+    def __init__(self, clock: _FakeClock, job_id: int) -> None:
+        self.clock, self.job_id = clock, job_id
         self.ticks: list[tuple[float, bool]] = []
 
     def tick(self, *, plan: bool = True):  # type: ignore[no-untyped-def]
-        import time
-
         from services.scheduler.loop import TickResult
 
-        self.ticks.append((time.monotonic() - self.t0, plan))
+        self.ticks.append((self.clock.now, plan))
         return TickResult(planned=[self.job_id] if len(self.ticks) == 1 else [])
 
 
@@ -86,32 +98,29 @@ def _run_fake(
     split: bool = False,
     **pool_kw,
 ):
-    import time
-
-    from services.core.db.engine import make_engine, make_sessionmaker
+    """(final state, [(tick time, planned?)], the time the loop returned) of a job that is done from done_at
+    (seen by the first tick from then), its workers reporting at `messages`."""
+    from services.core.db.engine import make_engine, make_sessionmaker, migrate
     from services.core.db.models import Job, JobState
-    from services.embedded.job import run_until_final
 
     url = f"sqlite:///{tmp_path / 'state.db'}"
-    from services.core.db.engine import migrate
-
     migrate(url)
     sessions = make_sessionmaker(make_engine(url))
-    pool = _FakePool(messages, **pool_kw)
+    clock = _FakeClock()
+    pool = _FakePool(clock, messages, **pool_kw)
     pool.queues.size = queued
     pool.queues.split = split
-    sched = _FakeScheduler(0, done_at, pool.t0)
     with sessions() as s:
         job = Job(owner="local", name="j", spec={}, state=JobState.RUNNING, output_root="")
         s.add(job)
         s.commit()
         job_id = job.id
-    sched.job_id = job_id
+    sched = _FakeScheduler(clock, job_id)
     real_tick = sched.tick
 
     def tick(*, plan: bool = True):  # type: ignore[no-untyped-def]
         res = real_tick(plan=plan)
-        if time.monotonic() - pool.t0 >= done_at:
+        if clock.now >= done_at:
             with sessions() as s:
                 j = s.get(Job, job_id)
                 assert j is not None
@@ -120,29 +129,35 @@ def _run_fake(
         return res
 
     sched.tick = tick  # type: ignore[method-assign]
-    state, _ = run_until_final(sessions, sched, pool, job_id)  # type: ignore[arg-type]
-    return state, sched.ticks, time.monotonic() - pool.t0
+    with mock.patch.object(job_loop, "time", clock):
+        state, _ = job_loop.run_until_final(sessions, sched, pool, job_id)  # type: ignore[arg-type]
+    return state, sched.ticks, clock.now
+
+
+def _times(ticks: list[tuple[float, bool]]) -> list[float]:
+    return [round(t, 9) for t, _ in ticks]
 
 
 def test_a_quiet_run_ticks_once_a_second_and_skips_planning_once_planned(tmp_path) -> None:  # type: ignore[no-untyped-def]
     state, ticks, _ = _run_fake(tmp_path, messages=[], done_at=2.5)
     assert state == "done"
-    assert [plan for _, plan in ticks] == [True] + [False] * (len(ticks) - 1)  # the job runs: planned
-    gaps = [b - a for (a, _), (b, _) in zip(ticks, ticks[1:], strict=False)]
-    # a dead worker is seen within ~1 s
-    assert 3 <= len(ticks) <= 5 and all(g <= TICK_MAX_S + 0.3 for g in gaps)
+    assert [plan for _, plan in ticks] == [True] + [False] * 4  # the job runs: planned
+    # the planning tick did work (busy): the next one follows at once; then, nothing reported, a tick every
+    # TICK_MAX_S (a dead worker is seen within it), the last one sees the end
+    assert _times(ticks) == [0.0, 0.0, TICK_MAX_S, 2 * TICK_MAX_S, 3 * TICK_MAX_S]
 
 
 def test_a_message_with_a_short_queue_brings_a_prompt_tick(tmp_path) -> None:  # type: ignore[no-untyped-def]
     state, ticks, took = _run_fake(tmp_path, messages=[0.3], done_at=0.3)
     assert state == "done"
-    assert took < 0.3 + 0.5  # finished as soon as the last outcome came, not at the next quiet tick
+    # finished as soon as the last outcome came, not at the next quiet tick
+    assert _times(ticks) == [0.0, 0.0, 0.3] and took == pytest.approx(0.3)
 
 
 def test_messages_with_a_full_queue_wait_for_the_quiet_tick(tmp_path) -> None:  # type: ignore[no-untyped-def]
     state, ticks, _ = _run_fake(tmp_path, messages=[0.2, 0.25, 0.3, 0.35, 0.4, 0.45], done_at=1.5, queued=50)
     assert state == "done"
-    assert len(ticks) <= 4  # ~ once a second, not once per outcome
+    assert _times(ticks) == [0.0, 0.0, TICK_MAX_S, 2 * TICK_MAX_S]  # once a second, not once per outcome
 
 
 def test_a_recycling_worker_is_replaced_promptly_even_with_a_full_queue(tmp_path) -> None:  # type: ignore[no-untyped-def]
@@ -150,8 +165,10 @@ def test_a_recycling_worker_is_replaced_promptly_even_with_a_full_queue(tmp_path
         tmp_path, messages=[0.2], done_at=1.9, queued=50, kind="recycle", exits_at=0.35
     )
     assert state == "done"
-    # ticks at pace after the message until the worker is replaced
-    assert any(0.3 <= t <= 0.7 for t, _ in ticks)
+    # at pace (TICK_S) from the message until the tick that finds the worker gone (0.4) and one more, then
+    # quiet
+    assert _times(ticks) == pytest.approx([0.0, 0.0, 0.2, 0.2 + TICK_S, 0.2 + 2 * TICK_S, 0.2 + 3 * TICK_S,
+                                           0.2 + 3 * TICK_S + TICK_MAX_S, 0.2 + 3 * TICK_S + 2 * TICK_MAX_S])
 
 
 def test_a_view_handed_off_brings_a_tick_even_with_a_full_queue(tmp_path) -> None:  # type: ignore[no-untyped-def]
@@ -159,6 +176,6 @@ def test_a_view_handed_off_brings_a_tick_even_with_a_full_queue(tmp_path) -> Non
     handed = ("outcome", 1, 7, "done", "passes", None, None)
     state, ticks, _ = _run_fake(tmp_path, messages=[0.2], done_at=1.9, queued=50, kind=handed, split=True)
     assert state == "done"
-    assert any(0.15 <= t <= 0.6 for t, _ in ticks)
+    assert 0.2 in _times(ticks)
     state, ticks, _ = _run_fake(tmp_path / "whole", messages=[0.2], done_at=1.9, queued=50, kind=handed)
-    assert not any(0.15 <= t <= 0.6 for t, _ in ticks)  # every worker renders: its own view, no tick needed
+    assert _times(ticks) == [0.0, 0.0, TICK_MAX_S, 2 * TICK_MAX_S]  # every worker renders: no tick needed

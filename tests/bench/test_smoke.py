@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import ast
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -49,6 +50,7 @@ SMOKE: dict[str, tuple[str, str]] = {
     "plan/trajectory.py": ("--points 2 --rooms 1", "trajectory.json"),
     "render/augment.py": ("--views 1 --resolution 64", "augment.json"),
     # no CPU-path runs: a core count above the machine's is left out
+    "render/cpu_profile.py": ("--rooms icl_livingroom --points 2 --resolution 64", "cpu_profile.json"),
     "render/gpu_cost.py": ("--rooms icl_livingroom --points 1 --points-many 1 --device cpu --cores 4096",
                            "gpu.json"),
     "render/kernel_cache.py": ("--parts derive --repeats 1 --rooms icl_livingroom --views 1 --targets worker"
@@ -107,6 +109,8 @@ def smoke_params() -> list[pytest.ParameterSet]:
     def group(script: str, args: str) -> list[pytest.MarkDecorator]:
         if "{passes}" in args:
             return [pytest.mark.xdist_group("bench-passes")]
+        if script == "render/cpu_profile.py":  # a sampling profiler's: the machine's, not the project's
+            return [pytest.mark.skipif(shutil.which("perf") is None, reason="Linux perf is not installed")]
         return [pytest.mark.xdist_group("warm-server")] if script == "render/warm_start.py" else []
 
     return [pytest.param(script, marks=group(script, args)) for script, (args, _) in sorted(SMOKE.items())]

@@ -49,8 +49,8 @@ SMOKE: dict[str, tuple[str, str]] = {
     "plan/sampling.py": ("--cell 0.5 --cameras 100 --points 500", "sampling.json"),
     "plan/trajectory.py": ("--points 2 --rooms 1", "trajectory.json"),
     "render/augment.py": ("--views 1 --resolution 64", "augment.json"),
-    # no CPU-path runs: a core count above the machine's is left out
     "render/cpu_profile.py": ("--rooms icl_livingroom --points 2 --resolution 64", "cpu_profile.json"),
+    # no CPU-path runs: a core count above the machine's is left out
     "render/gpu_cost.py": ("--rooms icl_livingroom --points 1 --points-many 1 --device cpu --cores 4096",
                            "gpu.json"),
     "render/kernel_cache.py": ("--parts derive --repeats 1 --rooms icl_livingroom --views 1 --targets worker"

@@ -114,6 +114,9 @@ def main() -> int:
     ap.add_argument("--core", default="1")
     ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args()
+    if args.points <= SMALL_POINTS:
+        ap.error(f"--points must be more than {SMALL_POINTS}: a view's cost is what a longer run adds over a "
+                 f"{SMALL_POINTS}-point one")
     if shutil.which("perf") is None:
         print("cpu_profile: needs Linux perf on PATH (Debian: apt install linux-perf)", file=sys.stderr)
         return 2

@@ -13,7 +13,6 @@ elsewhere nothing changes.
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import logging
 
 log = logging.getLogger(__name__)
@@ -27,9 +26,10 @@ def keep_freed_memory() -> bool:
     """Set this process's malloc thresholds (see the module docstring); False where there is no glibc
     mallopt."""
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        mallopt = libc.mallopt
-    except (OSError, AttributeError):
+        # the process's own symbols (libc's among them): ctypes.util.find_library would run ldconfig in a
+        # child process at every worker start
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError, TypeError):
         return False
     ok = mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD) == 1 and mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD) == 1
     if not ok:

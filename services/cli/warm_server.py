@@ -40,8 +40,8 @@ class Run:
 
 
 def preload() -> None:
-    """What every run imports and makes before its first task, once (gc.freeze: out of every collection's
-    walk, the runs' and their workers')."""
+    """What every run imports and makes before its first task, once, its workers' compiled kernels included
+    (gc.freeze: out of every collection's walk, the runs' and their workers')."""
     from services.core.gc_pause import collections_paused
 
     with collections_paused():
@@ -54,6 +54,7 @@ def preload() -> None:
         for name in WORKER_MODULES:
             __import__(name)
         kernel_target.load()
+        kernel_target.load_cached_kernels()
         loader_version()  # the digest of the loader's sources, made once (a change retires the server)
     gc.collect()
     gc.freeze()

@@ -93,3 +93,28 @@ def load() -> None:
 
     cpu_target.target_context.refresh()
     cpu_target.typing_context.refresh()
+
+
+def load_cached_kernels(package: str = "services") -> int:
+    """Load, without compiling any, every version numba's cache holds for this target of the kernels of the
+    loaded modules of `package`: how many. A process that forks runs or workers does it once for all of them
+    (the warm server): each would otherwise load its ~50 kernels at their first call, ~0.3 CPU-s inside its
+    first view (bench/render/warm_start.py). Versions cached for another CPU, or for an older source of the
+    kernel, are left alone (loading them would compile)."""
+    from numba.core.dispatcher import Dispatcher
+    from numba.core.registry import cpu_target
+
+    codegen = cpu_target.target_context.codegen()
+    loaded = 0
+    for name, module in list(sys.modules.items()):
+        if module is None or not (name == package or name.startswith(package + ".")):
+            continue
+        for kernel in list(vars(module).values()):
+            if not isinstance(kernel, Dispatcher) or kernel.__module__ != name:
+                continue  # imported from its own module, which is visited too
+            cache = kernel._cache  # type: ignore[attr-defined]  # numba sets it in enable_caching()
+            for key in cache._cache_file._load_index():  # {(signature, target, code hashes): file}
+                if key == cache._index_key(key[0], codegen):  # this target, this source
+                    kernel.compile(key[0])  # finds it in the cache: loads it
+                    loaded += 1
+    return loaded

@@ -108,3 +108,26 @@ def test_load_makes_the_target_for_the_level_before_any_kernel_and_starts_no_thr
     assert loaded > 0 and loaded == after_a_kernel  # a first kernel found nothing left to load
     if levels:
         assert magic[1:] == [levels[0], ""]
+
+
+def test_load_cached_kernels_loads_every_cached_version_without_compiling_one():
+    """The warm server's preload (services.cli.warm_server): each kernel of the loaded worker modules comes
+    from numba's cache (hits, no misses: nothing compiled), so a run forked from it calls them as they are."""
+    hits, misses, loaded, added = probe(
+        "import json, sys, numpy as np, services.worker.cues.segmentation\n"
+        "from numba.core.dispatcher import Dispatcher\n"
+        "from services.worker.cues import ncuts\n"
+        "from services.worker.process import kernel_target\n"
+        "kernel_target.load()\n"
+        "loaded = kernel_target.load_cached_kernels()\n"
+        "kernels = {id(d): d for name, m in list(sys.modules.items()) if name.startswith('services.')\n"
+        "           for d in vars(m).values() if isinstance(d, Dispatcher)}.values()\n"
+        "hits = sum(sum(d.stats.cache_hits.values()) for d in kernels)\n"
+        "misses = sum(sum(d.stats.cache_misses.values()) for d in kernels)\n"
+        "before = len(ncuts._subgraph.overloads)\n"
+        "ncuts._subgraph(np.eye(3), np.arange(3), 1e-10)\n"
+        "print(json.dumps([hits, misses, loaded, len(ncuts._subgraph.overloads) - before]))\n"
+    )
+    assert loaded >= 20 and hits == loaded  # the segmentations' kernels alone are ~20
+    assert misses == 0
+    assert added == 0  # a kernel called as a job calls it finds its version loaded

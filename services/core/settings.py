@@ -44,9 +44,9 @@ class Settings(BaseSettings):
     data_dir: Path = Field(default_factory=lambda: Path.home() / ".omnidata")
     user_cache_mb: int = Field(
         2048, ge=0,
-        description="`generate`'s caches of a scan that outlive a run ($OMNIDATA_DATA_DIR/meshed, /parsed "
-        "and /curvature, services.core.user_cache): each folder is pruned to this size after a run, the "
-        "entries used longest ago first (0: nothing is kept for the next run)",
+        description="`generate`'s caches of a scan that outlive a run ($OMNIDATA_DATA_DIR/meshed, /packed, "
+        "/parsed and /curvature, services.core.user_cache): each folder is pruned to this size after a "
+        "run, the entries used longest ago first (0: nothing is kept for the next run)",
     )
     database_url: str = Field("", description="SQLAlchemy URL; default sqlite:///{data_dir}/omnidata.db")
     db_wait_s: float = Field(

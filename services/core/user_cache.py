@@ -23,15 +23,16 @@ from pathlib import Path
 
 log = logging.getLogger(__name__)
 
-MESHED, PARSED, CURVATURE = "meshed", "parsed", "curvature"  # the folders
+MESHED, PARSED, CURVATURE, PACKED = "meshed", "parsed", "curvature", "packed"  # the folders
 # Pruned after each `generate` run: folder -> the suffix of its entries. A curvature entry has a lock file
 # beside it (services.worker.inputs.shared_curvature), a meshed cloud its record (services.core.ingest.
 # pointcloud.mesh_cloud_cached): each goes with its entry.
-PRUNED = {MESHED: ".ply", PARSED: ".space", CURVATURE: ".npy"}
+PRUNED = {MESHED: ".ply", PARSED: ".space", CURVATURE: ".npy", PACKED: ".zip"}
 RECORD_SUFFIX = ".json"
 LOADED = "loaded"  # a run's own cache, --out/.omnidata/cache/loaded (services.worker.inputs.loaded_cache)
 # The prefix of each folder's temporary files (tempfile.mkstemp(prefix=...)), renamed into place once whole.
-TEMP_PREFIX = {MESHED: ".tmp-", PARSED: ".parsed-", CURVATURE: ".curvature-", LOADED: ".loaded-"}
+TEMP_PREFIX = {MESHED: ".tmp-", PARSED: ".parsed-", CURVATURE: ".curvature-", PACKED: ".packed-",
+               LOADED: ".loaded-"}
 # A writer renames its temporary file seconds after creating it; one not written to for an hour is a killed
 # writer's, never a live one's.
 STALE_TEMP_S = 3600.0

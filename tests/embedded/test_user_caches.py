@@ -1,6 +1,6 @@
-"""The user's caches that outlive a run (services.core.user_cache): a parsed space and the per-vertex
-curvature that a second `omnidata generate` on the same scan reads back, keyed so that a changed file or frame
-misses, a damaged entry replaced, and the folders kept under their size limit."""
+"""The user's caches that outlive a run (services.core.user_cache): a packed source, a parsed space and the
+per-vertex curvature that a second `omnidata generate` on the same scan reads back, keyed so that a changed
+file or frame misses, a damaged entry replaced, and the folders kept under their size limit."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from services.core.domain.jobspec import JobSpec
+from services.core.ingest import registry
 from services.core.ingest.loading import LoadedSpace, load_space
 from services.core.ingest.parsed_cache import SUFFIX, load_space_kept, parsed_key
 from services.core.ingest.pointcloud import Cloud, mesh_cloud_cached
@@ -147,6 +148,46 @@ def test_a_changed_file_or_frame_misses_and_a_damaged_entry_is_replaced(scenes_d
     damaged = entry.stat().st_ino
     same_space(load_space_kept(scan, changed, frame, folder), load_space(scan, **frame))
     assert entry.stat().st_ino != damaged and entry.read_bytes() == data  # written again
+
+
+def test_a_packed_source_is_zipped_once_and_a_changed_or_damaged_one_zipped_again(
+        scenes_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """An OBJ with its material (stored as their zip): its checksum read back from the user's packed folder,
+    the same bytes, until one of its files is written; a damaged entry is zipped again."""
+    room = tmp_path / "room"
+    shutil.copytree(scenes_dir / "icl_livingroom", room)
+    user = tmp_path / "user"
+    monkeypatch.setenv("OMNIDATA_DATA_DIR", str(user))
+    first = source_checksum(room)
+    (entry,) = (user / "packed").glob("*.zip")
+    age(user / "packed")
+    registry._PACKED.clear()  # what this process zipped: as in the next run
+
+    def no_zipping(*args: object, **kwargs: object) -> None:
+        raise AssertionError("zipped again")
+
+    with monkeypatch.context() as m:
+        m.setattr(registry, "_write_zip", no_zipping)
+        assert source_checksum(room) == first  # the zip read back: the same bytes
+    assert entry.stat().st_mtime > time.time() - 1800  # a hit marks its entry used
+
+    mtl = room / "livingroom.mtl"
+    mtl.write_text(mtl.read_text() + "# changed\n")
+    registry._PACKED.clear()
+    changed = source_checksum(room)
+    assert changed != first and len(list((user / "packed").glob("*.zip"))) == 2
+
+    (kept,) = [p for p in (user / "packed").glob("*.zip") if p != entry]
+    data = kept.read_bytes()
+    kept.write_bytes(data[:-10] + b"0123456789")  # damaged: its digest no longer fits
+    registry._PACKED.clear()
+    assert source_checksum(room) == changed
+    assert kept.read_bytes() == data  # written again
+
+    mtl.write_text(mtl.read_text() + "# changed again\n")
+    (tmp_path / "upload").mkdir()
+    registry.pack_source(room, room / "livingroom.obj", tmp_path / "upload")  # the API's register: not kept
+    assert len(list((user / "packed").glob("*.zip"))) == 2
 
 
 def test_a_folder_in_the_way_falls_back_to_loading(scenes_dir: Path, tmp_path: Path) -> None:

@@ -14,6 +14,7 @@ import re
 import shutil
 import tempfile
 import zipfile
+import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,6 +25,7 @@ from sqlalchemy.orm import Session
 from services.core.db.models import Space
 from services.core.domain.jobspec import SpaceFrame
 from services.core.domain.keys import check_name
+from services.core.ingest import packed_cache
 from services.core.ingest.datasets import DatasetError, scene_mesh_in, scene_of
 from services.core.ingest.errors import SpaceError
 from services.core.ingest.formats import scannet_companions
@@ -43,6 +45,8 @@ MAX_PACKED_BYTES = 4 << 30
 # checksum).
 STORED_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".webp", ".ktx2", ".zip", ".gz"})
 PACK_DEFLATE_LEVEL = 1
+# what a zip's bytes depend on besides its files: an earlier run's zip (packed_cache) is reused under these
+PACKER = (PACK_DEFLATE_LEVEL, tuple(sorted(STORED_SUFFIXES)), zlib.ZLIB_RUNTIME_VERSION)
 
 
 def _obj_companions(obj: Path) -> list[Path]:
@@ -135,7 +139,7 @@ def _files_to_pack(source: Path, mesh_file: Path) -> tuple[Path, list[Path]]:
 def pack_source(source: Path, mesh_file: Path, workdir: Path, *, remember: bool = False) -> Path:
     """The single file to upload for `source`: itself, or a deterministic zip of what the mesh needs.
     `remember`: keep the zip's bytes for the next pack_source of the same files in this process (which takes
-    them)."""
+    them), and read and keep it in the user's packed cache (packed_cache: a command's, not the service's)."""
     if _stored_as_is(source):
         return source
     base, files = _files_to_pack(source, mesh_file)
@@ -145,13 +149,19 @@ def pack_source(source: Path, mesh_file: Path, workdir: Path, *, remember: bool 
     out = workdir / f"{mesh_file.stem}.zip"
     key = (str(base), tuple((str(f), (st := f.stat()).st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino)
                                 for f in files))
-    # zipped earlier in this process (checksum, then register)
-    if (packed := _PACKED.pop(key, None)) is not None:
+    # zipped earlier in this process (checksum, then register), else by an earlier run of this user's
+    packed = _PACKED.pop(key, None)
+    if packed is None and remember:
+        packed = packed_cache.read((PACKER, key))
+    if packed is None:
+        _write_zip(out, base, files)
+        packed = out.read_bytes()
+        if remember:
+            packed_cache.keep((PACKER, key), packed)
+    else:
         out.write_bytes(packed)
-        return out
-    _write_zip(out, base, files)
     if remember:
-        _remember_pack(key, out.read_bytes())
+        _remember_pack(key, packed)
     return out
 
 

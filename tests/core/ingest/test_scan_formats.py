@@ -187,6 +187,7 @@ def test_a_source_zipped_twice_in_a_process_is_deflated_once_and_stays_in_step_w
     (src / "room.obj").write_text("mtllib room.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
     (src / "room.mtl").write_text("newmtl a\nKd 1 0 0\n")
     monkeypatch.setattr(registry, "_PACKED", {})  # what other tests' checksums left
+    monkeypatch.setenv("OMNIDATA_DATA_DIR", str(tmp_path / "user"))  # its own packed cache: empty
     first = registry.source_checksum(src)
     writes = []
     real = zipfile.ZipFile.writestr

@@ -149,18 +149,20 @@ def pack_source(source: Path, mesh_file: Path, workdir: Path, *, remember: bool 
     out = workdir / f"{mesh_file.stem}.zip"
     key = (str(base), tuple((str(f), (st := f.stat()).st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino)
                                 for f in files))
-    # zipped earlier in this process (checksum, then register), else by an earlier run of this user's
-    packed = _PACKED.pop(key, None)
-    if packed is None and remember:
-        packed = packed_cache.read((PACKER, key))
-    if packed is None:
-        _write_zip(out, base, files)
-        packed = out.read_bytes()
-        if remember:
-            packed_cache.keep((PACKER, key), packed)
-    else:
+    # zipped earlier in this process (checksum, then register)
+    if (packed := _PACKED.pop(key, None)) is not None:
         out.write_bytes(packed)
+        return out
+    # zipped by an earlier run of this user's
+    if remember and (packed := packed_cache.read((PACKER, key))) is not None:
+        out.write_bytes(packed)
+        _remember_pack(key, packed)
+        return out
+    _write_zip(out, base, files)
     if remember:
+        packed = out.read_bytes()
+        if len(packed) <= _PACKED_MAX_BYTES:
+            packed_cache.keep((PACKER, key), packed)
         _remember_pack(key, packed)
     return out
 
@@ -198,7 +200,7 @@ def _write_zip(out: Path, base: Path, files: list[Path], *, before_stored_member
 # pack_source of the same files takes them: `omnidata generate` zips a source for its checksum and again to
 # store it (register_space); zipping costs ~0.02 CPU-s for ICL's 2.7 MB OBJ, ~0.19 for the 7-Scenes kitchen
 # (16 MB zip). Bounded (a dataset root's scenes are all checksummed before any is stored): past it, the oldest
-# go first.
+# go first. A larger zip is neither remembered here nor kept in the user's packed cache.
 _PACKED: dict[tuple[str, tuple[tuple[str, int, int, int, int], ...]], bytes] = {}
 _PACKED_MAX_BYTES = 128 << 20
 

@@ -27,7 +27,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 from bench.lib.results import results_dir  # noqa: E402
-from bench.render.room_cost import ROOMS, floor, load, pinned  # noqa: E402
+from bench.render.room_cost import ROOMS, add_room_job_arguments, floor, load, pinned  # noqa: E402
 
 RESULTS = results_dir() / "cpu_profile.json"
 # (group, substrings of a library's name perf reports), first match wins; the rest is "other"
@@ -107,10 +107,7 @@ def profile_room(room: str, points: int, max_views: int, resolution: int, core: 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--rooms", default=",".join(ROOMS))
-    ap.add_argument("--points", type=int, default=14)
-    ap.add_argument("--max-views", type=int, default=3)
-    ap.add_argument("--resolution", type=int, default=512)
+    add_room_job_arguments(ap)
     ap.add_argument("--core", default="1")
     ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args()

@@ -425,12 +425,18 @@ def marginal_cpu(rep: dict) -> float:
     return (big["cpu_s"] - small["cpu_s"]) / max(1, big["views"] - small["views"])
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def add_room_job_arguments(ap: argparse.ArgumentParser) -> None:
+    """The job every `generate` benchmark of real rooms runs: --rooms, --points x --max-views views, at
+    --resolution."""
     ap.add_argument("--rooms", default=",".join(ROOMS), help="comma-separated: " + ",".join(ROOMS))
     ap.add_argument("--points", type=int, default=14, help="points per room (x max-views = views)")
     ap.add_argument("--max-views", type=int, default=3)
     ap.add_argument("--resolution", type=int, default=512)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_room_job_arguments(ap)
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--core", default=str(sorted(os.sched_getaffinity(0))[-1]), help="the one core")
     ap.add_argument("--cores", default="", help="also run generate's defaults on these cores, e.g. 0,1")

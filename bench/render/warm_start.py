@@ -28,7 +28,15 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 from bench.lib.results import results_dir  # noqa: E402
-from bench.render.room_cost import ROOMS, floor, generate, load, median, pinned  # noqa: E402
+from bench.render.room_cost import (  # noqa: E402
+    ROOMS,
+    add_room_job_arguments,
+    floor,
+    generate,
+    load,
+    median,
+    pinned,
+)
 from services.cli import warm_start  # noqa: E402
 
 RESULTS = results_dir() / "warm_start.json"
@@ -117,10 +125,7 @@ def room_figures(room: str, args: argparse.Namespace, tmp: Path) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--rooms", default=",".join(ROOMS))
-    ap.add_argument("--points", type=int, default=14)
-    ap.add_argument("--max-views", type=int, default=3)
-    ap.add_argument("--resolution", type=int, default=512)
+    add_room_job_arguments(ap)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--core", default=str(sorted(os.sched_getaffinity(0))[-1]))
     ap.add_argument("--cores", default="", help="also the longer job on these cores, e.g. 0,1")

@@ -49,7 +49,7 @@ def _steer(page: Any, slot: str, knobs: list[tuple[str, str]], shown: tuple[int,
     for knob, value in [("seed", str(seed)), *knobs]:
         page.fill(f"#knob-{knob}", value)
     t0 = time.perf_counter()
-    page.wait_for_function(SPEC_SHOWN, arg=[f"#previews-{slot}", *shown, seed], timeout=60_000)
+    page.wait_for_function(SPEC_SHOWN, arg=[f"#previews-{slot}", *shown, seed], timeout=120_000)
     return time.perf_counter() - t0
 
 

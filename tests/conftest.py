@@ -34,6 +34,8 @@ from services.core.db.engine import make_engine, migrate
 from services.core.settings import Settings, get_settings
 from services.core.storage import LocalStore
 
+pytest_plugins = ["tests.fixtures.cpu_report"]  # --cpu-report N
+
 
 class _NoBpy(importlib.abc.MetaPathFinder):
     def find_spec(self, name: str, path: object = None, target: object = None) -> None:

@@ -1,10 +1,10 @@
 """Reaper: give back tasks whose worker died (declared dead, or lease expired) or whose message was lost.
 
 - running, and its worker declared dead: the worker's row has had no heartbeat for `dead_after_s`
-  (kill -9, node lost; beats come every 5 s) and the task started before that too. This requeues a
-  dead worker's task within about a minute instead of when its lease of minutes runs out.
-- running, lease_until < now: the lease ran out (a worker with no heartbeat row, e.g. the embedded
-  runner, or one whose beats stopped extending it).
+  (kill -9, node lost; beats come every 5 s), or it has no row at all (every runner beats once before its
+  first claim: Heartbeat.start, so it was killed before that beat landed), and the task started before that
+  too. This requeues a dead worker's task within about a minute instead of when its lease of minutes runs out.
+- running, lease_until < now: the lease ran out (a worker whose beats stopped extending it).
   Either way the attempt it made counts: with attempts < max_attempts the task goes back to pending
   after a backoff, else it fails for good with the reason kept. Tasks of a cancelled job are cancelled
   instead.
@@ -105,9 +105,8 @@ def _reap_running(session: Session, res: ReapResult, now: datetime, default_max_
     if dead_after_s is not None:
         silent_since = now - timedelta(seconds=dead_after_s)
         # started_at too: a task claimed after the worker's last beat proves the worker was alive then
-        lost_worker = or_(
-            lost_worker, and_(Worker.last_heartbeat < silent_since, Task.started_at < silent_since)
-        )
+        silent = or_(Worker.last_heartbeat < silent_since, Worker.id.is_(None))
+        lost_worker = or_(lost_worker, and_(silent, Task.started_at < silent_since))
     expired = _locked(
         session,
         select(Task.id, Task.job_id, Task.attempts, Task.worker_id, Task.lease_until, Job.state, Job.spec)

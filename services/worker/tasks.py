@@ -3,7 +3,8 @@ errors to retries (so the logic is testable without Celery). Everything else (st
 lives in the database.
 
 Each worker child process builds its own runtime (database engine, object store, TaskRunner, heartbeat thread)
-after the fork, on first use: connections and threads must not cross a fork.
+after the fork: connections and threads must not cross a fork. The main process writes the worker's row once,
+before it consumes, as the messages it reserves are the worker's from then on.
 """
 
 from __future__ import annotations
@@ -23,7 +24,10 @@ from services.core.celery_config import TASK_RENDER_CUE
 from services.core.settings import Settings, get_settings
 
 if TYPE_CHECKING:  # imported lazily at run time: the Celery app imports this module and must stay light
+    from collections.abc import Callable
+
     from sqlalchemy import Engine
+    from sqlalchemy.orm import Session
 
     from services.worker.run.heartbeat import Heartbeat
     from services.worker.run.runner import TaskRunner
@@ -95,7 +99,7 @@ def build_runtime(settings: Settings, *, queues: list[str] | None = None, name: 
     from services.core.db.engine import make_sessionmaker
     from services.core.storage import open_store
     from services.worker.process.heap import keep_freed_memory
-    from services.worker.run.heartbeat import Heartbeat, expire_leases, heartbeat_interval
+    from services.worker.run.heartbeat import expire_leases
     from services.worker.run.runner import TaskRunner, default_worker_id
 
     keep_freed_memory()  # the process that runs tasks reuses the pages it frees (prefork child or solo)
@@ -107,12 +111,20 @@ def build_runtime(settings: Settings, *, queues: list[str] | None = None, name: 
         # One process holds a named id at a time: a task still running under it was left by the child this
         # process replaces (killed mid-task). End its lease so the reaper retries it now, not minutes later.
         expire_leases(sessions, [worker_id])
-    hb = Heartbeat(sessions, worker_id, queues=queues or [settings.queue_render, settings.queue_derive],
-                   lease_s=settings.lease_s,
-                   interval_s=heartbeat_interval(min(settings.lease_s, settings.heartbeat_timeout_s)))
+    hb = worker_heartbeat(sessions, worker_id, settings, queues)
     runner = TaskRunner(sessions, store, settings, worker_id, heartbeat=hb)
     hb.start()
     return Runtime(os.getpid(), settings, engine, runner, hb)
+
+
+def worker_heartbeat(sessions: Callable[[], Session], worker_id: str, settings: Settings,
+                     queues: list[str] | None) -> Heartbeat:
+    """The heartbeat of a Celery worker's process, beating often enough for the reaper's heartbeat timeout."""
+    from services.worker.run.heartbeat import Heartbeat, heartbeat_interval
+
+    return Heartbeat(sessions, worker_id, queues=queues or [settings.queue_render, settings.queue_derive],
+                     lease_s=settings.lease_s,
+                     interval_s=heartbeat_interval(min(settings.lease_s, settings.heartbeat_timeout_s)))
 
 
 def get_runtime(app: Celery | None = None) -> Runtime:
@@ -137,6 +149,27 @@ def _load_kernel_target(**_: object) -> None:
         kernel_target.load()
     except Exception:  # each child makes it at its first kernel instead
         log.exception("numba's target could not be made ahead of the pool")
+
+
+@worker_init.connect
+def _write_worker_row(sender: Any = None, **_: object) -> None:
+    # In the main process, before it consumes: its prefetch reserves messages before the pool's children make
+    # their first beat, and a worker killed then must have a row for the scheduler to declare dead and send
+    # those messages again (services.scheduler.resend), instead of waiting for the lost-message timeout.
+    from services.core.db.engine import make_sessionmaker
+
+    app: Celery | None = getattr(sender, "app", None)
+    name = app.conf.get("omnidata_worker_name") if app is not None else None
+    if app is None or not name:  # an unnamed worker's children are host:pid: no id to write for them here
+        return
+    settings = _settings_from_app(app)
+    engine = worker_engine(settings.database_url)
+    try:
+        worker_heartbeat(make_sessionmaker(engine), name, settings, app.conf.get("omnidata_queues")).beat()
+    except Exception:  # the children beat as usual; only a kill before their first beat is recovered later
+        log.exception("the worker row could not be written before consuming")
+    finally:
+        engine.dispose()
 
 
 @worker_process_init.connect

@@ -147,6 +147,29 @@ def test_kill_9_of_a_worker_holding_a_reserved_message_and_one_mid_claim(
     r.close()
 
 
+def test_kill_9_of_a_worker_at_its_first_reserved_message(quiet_cluster, scenes_dir: Path, tmp_path):
+    # The moment: a fresh worker's main process has reserved its first message, before its pool child has made
+    # a beat of its own. Without a row written before consuming, nothing declares that worker dead, and its
+    # message waited for the lost-message timeout (the lease: 10 minutes here).
+    cluster = quiet_cluster
+    job_id = submit_direct(cluster, scenes_dir / "ycb_banana", write_spec(tmp_path, SPEC))
+    wait(lambda: len(queued_ids(cluster, job_id)) >= 2, 120, "tasks to be dispatched", cluster)
+    r = redis.Redis.from_url(REDIS_DB_URL)
+    victim = cluster.start_worker("victim", OMNIDATA_WORKER_PREFETCH="2", **ENV)
+    deadline = time.monotonic() + 120
+    while not unacked_task_ids(r):
+        assert victim.alive() and time.monotonic() < deadline, "the victim reserved no message"
+        time.sleep(0.002)
+    os.killpg(victim.popen.pid, signal.SIGSTOP)
+    registered = has_beaten(cluster, victim)
+    victim.stop(signal.SIGKILL)
+    killed_at = utcnow()
+    r.close()
+    assert registered, "the victim reserved a message before its worker row existed"
+    cluster.start_worker("replacement", **ENV)
+    finish_within_bound(cluster, job_id, killed_at)
+
+
 def test_kill_9_of_a_worker_mid_upload(quiet_cluster, scenes_dir: Path, tmp_path, s3_server):
     cluster = quiet_cluster
     proxy = HoldingProxy(s3_server.endpoint_url)

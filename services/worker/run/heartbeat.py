@@ -163,20 +163,26 @@ class Heartbeat:
                 self._leased_at = time.monotonic()
         self.beats += 1
 
+    def _try_beat(self) -> None:
+        try:
+            self.beat()
+            self.last_error = None
+        except Exception as e:  # a database hiccup must not kill the thread: the next beat retries
+            self.last_error = f"{type(e).__name__}: {e}"
+            log.warning("heartbeat of %s failed: %s", self.worker_id, self.last_error)
+
     def _run(self) -> None:
-        while not self._stop.is_set():
-            try:
-                self.beat()
-                self.last_error = None
-            except Exception as e:  # a database hiccup must not kill the thread: the next beat retries
-                self.last_error = f"{type(e).__name__}: {e}"
-                log.warning("heartbeat of %s failed: %s", self.worker_id, self.last_error)
-            self._stop.wait(self.interval_s)
+        while not self._stop.wait(self.interval_s):
+            self._try_beat()
 
     def start(self) -> Heartbeat:
-        """Start beating in a daemon thread (idempotent)."""
+        """Beat once, here, then every `interval_s` in a daemon thread (idempotent).
+
+        The first beat is made before returning, so the worker row exists before the caller claims a task: the
+        reaper takes a running task whose worker has no row for a task of a worker killed before that beat."""
         if self._thread is None or not self._thread.is_alive():
             self._stop.clear()
+            self._try_beat()
             self._thread = threading.Thread(target=self._run, name=f"heartbeat-{self.worker_id}", daemon=True)
             self._thread.start()
         return self

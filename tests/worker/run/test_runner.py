@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import io
+import threading
 import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -466,6 +467,23 @@ def test_heartbeat_upserts_the_worker_and_extends_only_its_own_lease(sm, banana)
     hb.beat()
     with sm() as s:
         assert s.get(Worker, "hb").current_task_id is None
+
+
+def test_heartbeat_start_writes_the_worker_row_before_it_returns(sm):
+    # The row must exist before the runner's first claim, so the first beat is the caller's, not the thread's.
+    beats_by: list[str] = []
+
+    def spy() -> Session:
+        beats_by.append(threading.current_thread().name)
+        return sm()
+
+    hb = Heartbeat(spy, "hb-start", lease_s=120, interval_s=3600).start()
+    try:
+        assert beats_by == [threading.current_thread().name]
+        with sm() as s:
+            assert s.get(Worker, "hb-start") is not None
+    finally:
+        hb.stop(timeout=1.0)
 
 
 def test_format_error_keeps_type_message_and_traceback_tail():

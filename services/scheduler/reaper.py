@@ -1,9 +1,10 @@
 """Reaper: give back tasks whose worker died (declared dead, or lease expired) or whose message was lost.
 
 - running, and its worker declared dead: the worker's row has had no heartbeat for `dead_after_s`
-  (kill -9, node lost; beats come every 5 s), or it has no row at all (every runner beats once before its
-  first claim: Heartbeat.start, so it was killed before that beat landed), and the task started before that
-  too. This requeues a dead worker's task within about a minute instead of when its lease of minutes runs out.
+  (kill -9, node lost; beats come every 5 s) or no row at all (each process beats once before its first
+  claim, Heartbeat.start: one without a row was killed before that beat landed), and the task started before
+  that too. This requeues a dead worker's task within about a minute instead of when its lease of minutes runs
+  out.
 - running, lease_until < now: the lease ran out (a worker whose beats stopped extending it).
   Either way the attempt it made counts: with attempts < max_attempts the task goes back to pending
   after a backoff, else it fails for good with the reason kept. Tasks of a cancelled job are cancelled

@@ -178,8 +178,8 @@ class Heartbeat:
     def start(self) -> Heartbeat:
         """Beat once, here, then every `interval_s` in a daemon thread (idempotent).
 
-        The first beat is made before returning, so the worker row exists before the caller claims a task: the
-        reaper takes a running task whose worker has no row for a task of a worker killed before that beat."""
+        The first beat is made before returning, so the worker row exists before the caller claims a task, and
+        the reaper can take a running task whose worker has no row for a killed worker's."""
         if self._thread is None or not self._thread.is_alive():
             self._stop.clear()
             self._try_beat()

@@ -8,7 +8,10 @@ knowing it. A queued task of a running job is sent again when
 
 - a worker consuming its queue was declared dead (no heartbeat for `dead_after_s`) and the task was queued
   before that moment: the dead worker may have held its message. Sending moves `queued_at` to now, which is
-  after the declaration, so one death sends a task again once, not on every pass;
+  after the declaration, so one death sends a task again once, not on every pass. A worker restarted under
+  the same name (a container restarted in place keeps its hostname and pid) beats again before it could be
+  declared dead; its new run's start, the row's `started_at` moving on between two passes, counts as that
+  death instead;
 - it has been queued longer than `stuck_after_s` while a live worker consuming its queue sat idle (no current
   task, nothing finished) across two reaper passes with a heartbeat in between: a message waiting in the queue
   would have reached that worker, so its message is held elsewhere or lost.
@@ -44,14 +47,21 @@ class WorkerSeen:
     last_heartbeat: datetime
     current_task_id: int | None
     tasks_done: int
+    started_at: datetime
 
 
 @dataclass
 class IdleWatch:
     """Remembers each worker's row from the previous pass, to tell a worker idle for a while from one between
-    tasks."""
+    tasks, and a new run of a worker from the one before it."""
 
     seen: dict[str, WorkerSeen] = field(default_factory=dict)
+
+    def restarted_at(self, worker_id: str, now_seen: WorkerSeen) -> datetime | None:
+        """The start of a new run of this worker since the previous observation (the previous run died), if
+        any."""
+        before = self.seen.get(worker_id)
+        return now_seen.started_at if before is not None and now_seen.started_at > before.started_at else None
 
     def idle(self, worker_id: str, now_seen: WorkerSeen) -> bool:
         """True when this and the previous observation both show no task, nothing finished in between, and a
@@ -106,7 +116,8 @@ def _cutoffs(
     # older deaths: the lost-message rule ran
     horizon = now - timedelta(seconds=dead_after_s + settings.lease_s)
     rows = session.execute(
-        select(Worker.id, Worker.queues, Worker.last_heartbeat, Worker.current_task_id, Worker.tasks_done)
+        select(Worker.id, Worker.queues, Worker.last_heartbeat, Worker.current_task_id, Worker.tasks_done,
+               Worker.started_at)
         .where(Worker.last_heartbeat > horizon)
     ).all()
     dead_at: dict[str, datetime] = {}
@@ -114,13 +125,18 @@ def _cutoffs(
     for row in rows:
         queues = [str(q) for q in (row.queues or [])]
         declared = row.last_heartbeat + timedelta(seconds=dead_after_s)
-        if declared <= now:
-            for q in queues:
-                dead_at[q] = max(dead_at.get(q, declared), declared)
-        elif watch.idle(
-            str(row.id), WorkerSeen(row.last_heartbeat, row.current_task_id, int(row.tasks_done or 0))
-        ):
-            idle.update(queues)
+        if declared > now:  # alive, unless this is a new run of a worker whose previous run died
+            seen = WorkerSeen(
+                row.last_heartbeat, row.current_task_id, int(row.tasks_done or 0), row.started_at
+            )
+            restarted = watch.restarted_at(str(row.id), seen)
+            if watch.idle(str(row.id), seen):
+                idle.update(queues)
+            if restarted is None:
+                continue
+            declared = restarted
+        for q in queues:
+            dead_at[q] = max(dead_at.get(q, declared), declared)
     watch.forget_except(str(r.id) for r in rows)
     return dead_at, idle
 

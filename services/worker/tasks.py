@@ -155,7 +155,8 @@ def _load_kernel_target(**_: object) -> None:
 def _write_worker_row(sender: Any = None, **_: object) -> None:
     # In the main process, before it consumes: its prefetch reserves messages before the pool's children make
     # their first beat, and a worker killed then must have a row for the scheduler to declare dead and send
-    # those messages again (services.scheduler.resend), instead of waiting for the lost-message timeout.
+    # those messages again (services.scheduler.resend), instead of waiting for the lost-message timeout. The
+    # row's start moves to now: a run of this name that died before this one counts as dead there too.
     from services.core.db.engine import make_sessionmaker
 
     app: Celery | None = getattr(sender, "app", None)
@@ -165,7 +166,8 @@ def _write_worker_row(sender: Any = None, **_: object) -> None:
     settings = _settings_from_app(app)
     engine = worker_engine(settings.database_url)
     try:
-        worker_heartbeat(make_sessionmaker(engine), name, settings, app.conf.get("omnidata_queues")).beat()
+        queues = app.conf.get("omnidata_queues")
+        worker_heartbeat(make_sessionmaker(engine), name, settings, queues).register()
     except Exception:  # the children beat as usual; only a kill before their first beat is recovered later
         log.exception("the worker row could not be written before consuming")
     finally:

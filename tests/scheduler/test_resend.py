@@ -35,11 +35,13 @@ def _queued(s, job, n, age_s):
     return ids
 
 
-def _worker(s, worker_id, beat_age_s, *, current=None, done=0, queues=("render", "derive")):
+def _worker(s, worker_id, beat_age_s, *, current=None, done=0, queues=("render", "derive"), run_age_s=None):
     row = s.get(Worker, worker_id)
     if row is None:
-        row = Worker(id=worker_id, host="h", queues=list(queues))
+        row = Worker(id=worker_id, host="h", queues=list(queues), started_at=utcnow() - timedelta(hours=1))
         s.add(row)
+    if run_age_s is not None:  # a new run of the worker began then
+        row.started_at = utcnow() - timedelta(seconds=run_age_s)
     row.last_heartbeat = utcnow() - timedelta(seconds=beat_age_s)
     row.current_task_id = current
     row.tasks_done = done
@@ -66,6 +68,26 @@ def test_tasks_queued_before_a_worker_died_are_sent_again_once(any_sm, local_sto
         assert set(states(s, before + after).values()) == {"queued"}  # no state change: only a new message
         assert_counters_exact(s, job.id)
         res, tr = _pass(s, watch)  # the same death sends nothing twice
+        assert tr.sent == [] and res.total == 0
+
+
+def test_a_worker_restarted_under_its_name_counts_as_its_previous_run_dying(any_sm, local_store):
+    with any_sm() as s:
+        job = make_running_job(s, local_store, cues=["point_info"], n_points=3, views=1)
+        before = _queued(s, job, 2, age_s=60)  # queued while the previous run lived: it may hold them
+        watch = IdleWatch()
+        _worker(s, "w", beat_age_s=2, current=before[0], done=3)
+        res, tr = _pass(s, watch)
+        assert tr.sent == [] and res.total == 0  # alive and busy
+        # killed and restarted in place within the heartbeat timeout: never silent long enough to be declared
+        # dead; its new run's row says when it began
+        _worker(s, "w", beat_age_s=0, current=None, done=3, run_age_s=1)
+        after = _queued(s, job, 1, age_s=0)
+        res, tr = _pass(s, watch)
+        assert sorted(i for i, _ in tr.sent) == sorted(before) and res.after_death == 2
+        assert states(s, after) == {after[0]: "queued"}
+        _worker(s, "w", beat_age_s=0, current=after[0], done=3)  # later beats of the same run
+        res, tr = _pass(s, watch)
         assert tr.sent == [] and res.total == 0
 
 

@@ -172,6 +172,7 @@ def test_real_worker_consumes_heartbeats_and_recycles_its_child(pg_url, pg_sm, r
 
         before = {w.id for w in workers()}
         wait_until(lambda: {w.id for w in workers()} - before, 60, "the first heartbeat", proc)
+        run_started = {w.id: w.started_at for w in workers() if w.id not in before}
         job_id = make_job(pg_sm, banana)
         ids = [queue(pg_sm, job_id, c, 0, v) for c in ("passes", "point_info") for v in (0, 1)]
         with pg_sm() as s:
@@ -196,6 +197,8 @@ def test_real_worker_consumes_heartbeats_and_recycles_its_child(pg_url, pg_sm, r
             return sum(w.tasks_done for w in workers() if w.id in ran_by)
 
         wait_until(lambda: counted() == 4, 30, "heartbeats to count the tasks of both children", proc)
+        # a recycled child is the same run of the worker (a restart is a new one, which the scheduler notes)
+        assert {w.id: w.started_at for w in workers() if w.id in ran_by} == run_started
         assert b"Celery recycles it" in (tmp_path / "worker.log").read_bytes()
     finally:
         stop_worker(proc)
@@ -204,6 +207,40 @@ def test_real_worker_consumes_heartbeats_and_recycles_its_child(pg_url, pg_sm, r
     # both children rendered (bpy made a session folder in TMPDIR each) and left through os._exit: none is
     # left
     assert not list(tmpdir.glob("blender_*"))
+
+
+@pytest.mark.slow
+def test_a_worker_restarted_under_its_name_is_a_new_run(pg_url, pg_sm, redis_url, banana, tmp_path):  # noqa: F811
+    """A container restarted in place keeps its name (hostname and pid): its row's start moves on, before it
+    consumes, which the scheduler reads as the death of the run before (services.scheduler.resend)."""
+    env = worker_env(pg_url, redis_url, banana.store.root, tmp_path / "data")
+    name = f"w-{secrets.token_hex(3)}@%h"
+    worker_id = name.replace("%h", socket.gethostname())
+
+    def start(log: str) -> subprocess.Popen[bytes]:
+        with (tmp_path / log).open("wb") as out:
+            cmd = [sys.executable, "-m", "services.cli", "worker", "--concurrency", "1", "--hostname", name]
+            return subprocess.Popen(cmd, cwd=REPO, env=env, stdout=out, stderr=subprocess.STDOUT,
+                                    start_new_session=True)
+
+    def run_start() -> Any:
+        with pg_sm() as s:
+            row = s.get(Worker, worker_id)
+            return row.started_at if row is not None else None
+
+    first = start("first.log")
+    try:
+        wait_until(lambda: run_start() is not None, 60, "the first run's row", first)
+        first_start = run_start()
+    finally:
+        os.killpg(first.pid, signal.SIGKILL)
+        first.wait()
+    second = start("second.log")
+    try:
+        wait_until(lambda: run_start() > first_start, 60, "the second run's row", second)
+    finally:
+        os.killpg(second.pid, signal.SIGKILL)
+        second.wait()
 
 
 def tree_cpu_s(root_pid: int) -> float:

@@ -116,6 +116,13 @@ class Heartbeat:
 
     # ------------------------------------------------------------------ the beat
 
+    def register(self) -> None:
+        """Beat as a new run of this worker: the row's `started_at` becomes now. The scheduler takes a start
+        that moved on for the death of the run before (services.scheduler.resend): a worker restarted under
+        its name beats again before it could be declared dead."""
+        with self._beat_lock:
+            self._beat(new_run=True)
+
     def beat(self) -> None:
         """Upsert the worker row (one statement) and, once `extend_after_s` has passed since the claim or the
         last extension, extend the current task's lease (only while it is still ours and running)."""
@@ -123,7 +130,7 @@ class Heartbeat:
         with self._beat_lock:
             self._beat()
 
-    def _beat(self) -> None:
+    def _beat(self, *, new_run: bool = False) -> None:
         rate = self.labels_per_s()
         with self._lock:
             current, held, done, labels = (
@@ -147,7 +154,7 @@ class Heartbeat:
                     cue: int(base_labels.get(cue, 0)) + labels.get(cue, 0) for cue in {*base_labels, *labels}
                 },
             }
-            upsert(session, Worker, row, key=["id"], insert_only=["started_at"])
+            upsert(session, Worker, row, key=["id"], insert_only=[] if new_run else ["started_at"])
             if extend:
                 # Not a state change (counters untouched): only pushes the deadline of a task we hold.
                 session.execute(

@@ -467,6 +467,9 @@ def test_heartbeat_upserts_the_worker_and_extends_only_its_own_lease(sm, banana)
     hb.beat()
     with sm() as s:
         assert s.get(Worker, "hb").current_task_id is None
+    hb.register()  # a new run of the worker: only then does the row's start move
+    with sm() as s:
+        assert s.get(Worker, "hb").started_at > started
 
 
 def test_heartbeat_start_writes_the_worker_row_before_it_returns(sm):

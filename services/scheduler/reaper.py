@@ -81,7 +81,8 @@ def reap_once(
     """One reaper pass over dead workers' tasks, expired leases and lost queued tasks; commits. Returns the
     counts.
 
-    `dead_after_s`: a worker whose last heartbeat is older than this is dead (None: leases only).
+    `dead_after_s`: a worker whose last heartbeat is older than this, or that has no row, is dead for the
+    tasks it started before then (None: leases only).
     """
     now = now or utcnow()
     res = ReapResult()

@@ -43,8 +43,14 @@ def test_generate_waits_for_a_full_disk_and_finishes_once_space_returns(tmp_path
                     (tmp_path / "generate.log").read_text()
                 time.sleep(0.1)
             ballast = fill(out)
-            time.sleep(10)  # full for a while: workers, scheduler and the database meet ENOSPC
-            assert run.poll() is None, (tmp_path / "generate.log").read_text()[-3000:]
+            # full for a while: workers, scheduler and the database meet ENOSPC, and the bar says so (on a
+            # loaded machine the run may need more than the 10 s to reach a write)
+            full_since = time.monotonic()
+            while (time.monotonic() - full_since < 10
+                   or "waiting: storage full" not in (tmp_path / "generate.log").read_text()):
+                assert run.poll() is None and time.monotonic() - full_since < 180, \
+                    (tmp_path / "generate.log").read_text()[-3000:]
+                time.sleep(0.2)
             ballast.unlink()
             freed = time.monotonic()
             rc = run.wait(timeout=240)

@@ -41,8 +41,8 @@ from scipy.spatial import ConvexHull, QhullError
 
 from services.core.domain.frame_records import UpRecord
 from services.core.ingest.frame.direction_bins import BINS, N_BINS, bin_neighbours, bin_tree
-from services.core.ingest.frame.reason_words import reason_words
-from services.core.ingest.frame.single_view import single_view
+from services.core.ingest.frame.reason_words import METHOD_WORDS, reason_words
+from services.core.ingest.frame.single_view import frame_view, single_view
 from services.core.ingest.frame.up_evidence import (
     WEIGHTS,
     CandidateFacts,
@@ -86,19 +86,6 @@ _MAX_FAMILIES = 6
 _MIN_FAMILY_SHARE = 0.03
 _HULL_POINTS = 5_000
 LOW_MARGIN = 1.25  # support bases: best area / runner-up below this is low confidence
-
-
-
-# why up is what it is, when no scoring of candidates decided it (`UpEstimate.record`'s "reason")
-METHOD_WORDS = {
-    "floor": "the floor",
-    "convention": "the file format's convention (no floor or support base found)",
-    "convention-tie": "the file format's convention (floor and ceiling look alike)",
-    "base": "an object's support base",
-    "given": "the up given",
-    "source_to_world": "the source_to_world given",
-    "recorded_gravity": "the gravity recorded with the scan (no floor found to weigh against it)",
-}
 
 
 @dataclass(frozen=True)
@@ -344,7 +331,8 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
 
 def estimate_up(mesh: trimesh.Trimesh, suffix: str, capture_up: np.ndarray | None = None,
                 *, disabled_evidence: tuple[str, ...] = (), recorded_up: np.ndarray | None = None,
-                samples: SurfaceSamples | None = None, file: FileFrame | None = None) -> UpEstimate:
+                samples: SurfaceSamples | None = None, file: FileFrame | None = None,
+                view_points: np.ndarray | None = None) -> UpEstimate:
     """Up direction in the source frame, how it was found and how sure (see the module docstring).
 
     `capture_up`: the mean up vector of the capture's cameras in the source frame (-Y of OpenCV camera
@@ -353,6 +341,8 @@ def estimate_up(mesh: trimesh.Trimesh, suffix: str, capture_up: np.ndarray | Non
     evidence; up is then exactly it when the floor agrees, and it stands alone when no floor is found.
     `disabled_evidence`: evidence terms left out (the bench's ablation). `samples`: surface elements that
     stand in for the mesh's faces (a point cloud's own planes). `file`: what the file says (`file_frame`).
+    `view_points`: a point cloud's own points: its single view is judged on them (`frame_view`), since its
+    mesh extrapolates and trims the frame's surfaces; without them, on the vertices (`single_view`).
     """
     conv = axis_vector(CONVENTION_UP.get(suffix, "+z"))
     cam_up = unit_capture_up(capture_up)
@@ -363,8 +353,9 @@ def estimate_up(mesh: trimesh.Trimesh, suffix: str, capture_up: np.ndarray | Non
         return UpEstimate(conv, "convention") if rec_up is None else _recorded_alone(geom, rec_up)
     cands = [_floor_candidate(geom, s * f) for f, _ in families for s in (1.0, -1.0)]
     if any(c.floor_fraction >= _FLOOR_MIN_FRACTION for c in cands):
-        decision = decide([c.facts() for c in cands], cam_up, file or file_frame(suffix),
-                          disabled_evidence, single_view(geom.vertices), rec_up)
+        view = single_view(geom.vertices) if view_points is None else frame_view(view_points)
+        decision = decide([c.facts() for c in cands], cam_up, file or file_frame(suffix), disabled_evidence,
+                          view, rec_up)
         best = next(c for c in cands if c.up is decision.best.up)
         runner = decision.runner_up
         angle = _angle_deg(best.up, runner.up) if runner is not None else None

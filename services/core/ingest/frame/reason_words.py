@@ -4,6 +4,18 @@ from __future__ import annotations
 
 from services.core.ingest.frame.up_evidence import UpDecision
 
+# why up is what it is, when no scoring of candidates decided it (`UpEstimate.record`'s "reason")
+METHOD_WORDS = {
+    "floor": "the floor",
+    "convention": "the file format's convention (no floor or support base found)",
+    "convention-tie": "the file format's convention (floor and ceiling look alike)",
+    "base": "an object's support base",
+    "given": "the up given",
+    "source_to_world": "the source_to_world given",
+    "recorded_gravity": "the gravity recorded with the scan (no floor found to weigh against it)",
+}
+
+# the evidence terms of `up_evidence`
 TERM_WORDS = {
     "levelled_axis": "a floor on a source axis (the file was levelled)",
     "format_up": "the format's up axis (its convention)",

@@ -84,8 +84,9 @@ def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: FrameRequest, name:
                   points: Callable[[], np.ndarray] | None = None
                   ) -> tuple[np.ndarray, UpEstimate, UnitChoice]:
     """(source_to_world 4x4, how up was found, the units) of a mesh in its source frame; UpAmbiguous or
-    UnitsAmbiguous (`name`). `points`: a point cloud's points (source frame), read when its mesh shows no
-    floor: their own planes are weighed instead (`point_planes`)."""
+    UnitsAmbiguous (`name`). `points`: a point cloud's points (source frame): its camera's frame and single
+    view are judged on them, and where its mesh shows no floor, their own planes are weighed
+    (`point_planes`)."""
     if frame.source_to_world is not None:
         T = frame.source_to_world
         scale = similarity_scale(T)
@@ -100,14 +101,16 @@ def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: FrameRequest, name:
         est = UpEstimate(given, "given", est.floor_area, est.floor_fraction, storey_height=est.storey_height)
     else:
         # a cloud's points, as its normals were turned (services.core.ingest.pointcloud.viewpoint)
-        camera = points is not None and in_camera_frame(points())
-        file = file_frame(suffix, cloud=points is not None, camera=camera)
-        est = estimate_up(mesh, suffix, frame.capture_up, recorded_up=frame.recorded_up, file=file)
-        if est.method in _NO_FLOOR and points is not None:
-            samples = point_samples(points())
+        cloud = None if points is None else points()
+        camera = cloud is not None and in_camera_frame(cloud)
+        file = file_frame(suffix, cloud=cloud is not None, camera=camera)
+        est = estimate_up(mesh, suffix, frame.capture_up, recorded_up=frame.recorded_up, file=file,
+                          view_points=cloud)
+        if est.method in _NO_FLOOR and cloud is not None:
+            samples = point_samples(cloud)
             if samples is not None:
                 from_points = estimate_up(mesh, suffix, frame.capture_up, recorded_up=frame.recorded_up,
-                                          samples=samples, file=file)
+                                          samples=samples, file=file, view_points=cloud)
                 est = from_points if from_points.method == "floor" else est
     if frame.unit_scale == "auto":
         try:

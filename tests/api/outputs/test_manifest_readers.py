@@ -32,7 +32,10 @@ class SmallPool:
 
 @pytest.fixture()
 def small_pool(pg_url: str, local_store: LocalStore) -> Iterator[SmallPool]:
-    engine = make_engine(pg_url, pool_size=POOL, max_overflow=0, pool_timeout=3)
+    # a stream gives its connection back once the socket buffers are full: on a loaded 2-core host that took
+    # over 3 s, and the next reader's wait for the pool was answered 503; a stream that kept its connection
+    # would still hold it after 30 s (`pool.checkedout()` below)
+    engine = make_engine(pg_url, pool_size=POOL, max_overflow=0, pool_timeout=30)
     try:
         with make_api(pg_url, local_store, engine=engine, tenant_bulk_concurrency=READERS) as api:
             yield SmallPool(api, engine)

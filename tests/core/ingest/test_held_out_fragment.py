@@ -7,6 +7,7 @@ its 5 random rotations 90 degrees off (docs/levelling.md)."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -19,9 +20,10 @@ from services.core.ingest.loading import load_space
 from tests.fixtures.rotation_corpus import up_error_deg
 
 REPO = Path(__file__).resolve().parents[3]
-FRAGMENT = (REPO / "shared" / "rooms_held_out" / "regtr_sun3d_hotel3_frag15"
-            / "regtr_sun3d_hotel3_frag15.ply")
-UP = np.array([-0.154344, -0.768368, -0.621118])  # its SOURCE.md: the fitted floor's normal
+ROOMS = json.loads((REPO / "bench" / "scans" / "rooms" / "truth.json").read_text())
+ROOM = ROOMS["regtr_sun3d_hotel3_frag15"]
+FRAGMENT = REPO / ROOM["file"]
+UP = np.asarray(ROOM["up"], dtype=float)  # the fitted floor's normal (its SOURCE.md)
 
 pytestmark = [pytest.mark.slow]
 

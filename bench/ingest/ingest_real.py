@@ -46,6 +46,7 @@ from services.core.ingest.loading import load_space  # noqa: E402
 from services.core.ingest.pointcloud import (  # noqa: E402
     CLOUD_SUFFIXES,
     Cloud,
+    CloudError,
     cloud_from_ply,
     mesh_cloud_cached,
     read_text_cloud,
@@ -92,7 +93,10 @@ def run_case(mesh: Any, R: np.ndarray, scale: float, suffix: str, up: np.ndarray
         points = cloud.points @ T[:3, :3].T
         turned = Cloud(points, None if cloud.normals is None else cloud.normals @ R.T, cloud.colors)
         checksum = hashlib.sha256(points.tobytes() + f"{name}".encode()).hexdigest()
-        copy, _ = mesh_cloud_cached(lambda: turned, checksum, name)
+        try:
+            copy, _ = mesh_cloud_cached(lambda: turned, checksum, name)
+        except CloudError as e:  # the upload would be refused so, naming the problem
+            return {"outcome": "error", "message": str(e)[:200]}
     truth = R @ up
     request = FrameRequest("auto", "auto", None, None, capture_up=capture_up, recorded_up=recorded_up)
     try:

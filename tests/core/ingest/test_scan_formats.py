@@ -134,6 +134,20 @@ def test_point_cloud_ply_is_meshed_near_the_points_and_cached(tmp_path: Path) ->
     assert space.frame_record()["reconstruction"]["point_count"] == 20_000
 
 
+def test_a_cloud_with_repeated_points_is_meshed_as_without_them(tmp_path: Path) -> None:
+    """A laser station's points repeat (the PCL room scan in shared/rooms_held_out: 54% of them coincide with
+    another): the cloud's spacing is that of its distinct points, not 0, so its surface is kept, as near the
+    room as the same cloud's without the repeats."""
+    room, pts, _, _ = room_cloud(20_000)
+    src = tmp_path / "station.xyz"
+    np.savetxt(src, np.repeat(pts, 2, axis=0), fmt="%.6f")  # every return written twice
+    space = load_space(src, up_axis="+z", cloud_cache_dir=tmp_path / "cache")
+    assert space.reconstruction["parameters"]["median_spacing"] > 0
+    dense, _ = trimesh.sample.sample_surface(room, 200_000, seed=1)
+    assert np.percentile(cKDTree(dense).query(space.mesh.vertices)[0], 99) < 0.06
+    assert np.percentile(cKDTree(space.mesh.vertices).query(pts)[0], 95) < 0.05
+
+
 def test_text_clouds_and_their_columns(tmp_path: Path) -> None:
     _, pts, normals, colours = room_cloud(1500)
     xyz = tmp_path / "a.xyz"

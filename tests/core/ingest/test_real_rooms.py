@@ -129,3 +129,29 @@ def test_a_slam_point_cloud_levels_on_the_gravity_its_trajectory_recorded(tmp_pa
     assert space.up_source.tolist() == [0.0, 0.0, 1.0] and space.up_method == "recorded_gravity"
     assert space.frame_record()["up"]["reason"].startswith("the gravity recorded with the scan")
     assert space.units is not None and space.units.scale == 1.0
+
+
+def test_a_turned_cloud_its_camera_saw_across_is_levelled_on_its_own_sides(tmp_path: Path) -> None:
+    """Five Kinect frames of the NYU dining room fused in the first camera's frame (a cloud, no ceiling),
+    turned and uploaded in metres and in millimetres: its normals are turned towards the camera at its origin,
+    which saw the room above and below its own height, so the sign of its one floor is its geometry's, as a
+    mesh's is (`up_evidence._mirror_cap`). The same cloud moved off its camera is asked, the true up first."""
+    room = ROOMS["nyuv2_dining_room_5view_slambook2"]
+    points = np.asarray(trimesh.load(REPO / room["file"]).vertices, dtype=np.float64)
+    up = np.asarray(room["up"], dtype=float)
+    R = Rotation.from_euler("xyz", [37, -64, 121], degrees=True).as_matrix()
+    for per_metre, offset in ((1.0, 0.0), (1000.0, 0.0), (1.0, 3.0)):
+        path = tmp_path / f"turned_{per_metre:g}_{offset:g}.ply"
+        # an offset along the true up puts the origin 3 m under the floor: no camera's place
+        trimesh.PointCloud((points - offset * up) @ R.T * per_metre).export(path)
+        try:
+            space = load_space(path, cloud_cache_dir=tmp_path / "meshed")
+        except UpAmbiguous as refusal:
+            assert offset > 0, (per_metre, "refused")
+            first = np.asarray(refusal.candidates[0]["up"], dtype=float)
+            assert up_error_deg(first, R @ up) < 10.0
+            continue
+        assert offset == 0, space.frame_summary()
+        assert up_error_deg(space.source_to_world[:3, :3] @ (R @ up), np.array([0.0, 0.0, 1.0])) < 3.0, (
+            per_metre, space.frame_summary())
+        assert space.units is not None and space.units.scale == pytest.approx(1.0 / per_metre)

@@ -40,13 +40,12 @@ import trimesh
 from scipy.spatial import ConvexHull, QhullError
 
 from services.core.domain.frame_records import UpRecord
+from services.core.ingest.frame.candidates import CandidateFacts, FileFrame
 from services.core.ingest.frame.direction_bins import BINS, N_BINS, bin_neighbours, bin_tree
 from services.core.ingest.frame.reason_words import METHOD_WORDS, reason_words
 from services.core.ingest.frame.single_view import frame_view, single_view
 from services.core.ingest.frame.up_evidence import (
     WEIGHTS,
-    CandidateFacts,
-    FileFrame,
     UpDecision,
     decide,
     nearest_axis,
@@ -57,9 +56,11 @@ CONVENTION_UP = {".obj": "+y", ".gltf": "+y", ".glb": "+y", ".ply": "+z"}
 _SPECIFIED_UP = (".gltf", ".glb")  # formats whose specification fixes up (+Y)
 
 
-def file_frame(suffix: str, cloud: bool = False, camera: bool = False) -> FileFrame:
+def file_frame(suffix: str, cloud: bool = False, camera: bool = False, origin_camera: bool = False
+               ) -> FileFrame:
     """What a file of this format says about its up before any floor is looked at (FileFrame's fields)."""
-    return FileFrame(axis_vector(CONVENTION_UP.get(suffix, "+z")), suffix in _SPECIFIED_UP, cloud, camera)
+    return FileFrame(axis_vector(CONVENTION_UP.get(suffix, "+z")), suffix in _SPECIFIED_UP, cloud, camera,
+                     origin_camera)
 
 
 # The one floor rule: a floor face's normal lies within 15 degrees of up. The planner's detect_floors
@@ -270,12 +271,13 @@ class _Candidate:
     ceiling_area: float  # area facing down in the upper half
     mid_up: float  # area facing up between the end bands (furniture tops)
     mid_down: float  # area facing down between the end bands (furniture undersides, rarely scanned)
+    origin_split: float  # the smaller share of the area on either side of the source origin's height
 
     def facts(self) -> CandidateFacts:
         """The measurements the evidence scoring needs."""
         ceiling = self.ceiling_area / self.cross_section if self.cross_section > 0 else 0.0
         return CandidateFacts(self.up, self.score, self.floor_area, self.floor_fraction, self.height,
-                              self.cross_section, ceiling, self.mid_up, self.mid_down)
+                              self.cross_section, ceiling, self.mid_up, self.mid_down, self.origin_split)
 
 
 def _floor_candidate(geom: _Geometry, u: np.ndarray) -> _Candidate:
@@ -297,8 +299,9 @@ def _floor_candidate(geom: _Geometry, u: np.ndarray) -> _Candidate:
     cross = _cross_section(geom.hull_points, u)
     fraction = floor_area / cross if cross > 0 else 0.0
     ceiling_area = float(areas[facing_down & (h >= 0.5 * (lo + hi))].sum())
+    above = float(areas[h > 0.0].sum()) / max(float(areas.sum()), 1e-300)
     return _Candidate(u, floor_area + surplus, floor_area, fraction, floor, hi - lo, cross, ceiling_area,
-                      mid_up, mid_down)
+                      mid_up, mid_down, min(above, 1.0 - above))
 
 
 def _refine_floor(geom: _Geometry, cand: _Candidate) -> np.ndarray:
@@ -388,19 +391,21 @@ def _recorded_alone(geom: _Geometry, rec_up: np.ndarray) -> UpEstimate:
     return UpEstimate(rec_up, "recorded_gravity", storey_height=float(np.ptp(heights)))
 
 
-def guess_candidates(mesh: trimesh.Trimesh, suffix: str, samples: SurfaceSamples | None = None
+def guess_candidates(mesh: trimesh.Trimesh, suffix: str, samples: SurfaceSamples | None = None,
+                     file: FileFrame | None = None, view_points: np.ndarray | None = None
                      ) -> UpDecision | None:
     """Every plane-family direction scored as an up candidate, for a scan where no floor was found (None: no
     planes).
 
-    Offered when such a scan is space-sized: its up would otherwise be the file format's guess. `samples`:
-    as `estimate_up`'s."""
+    Offered when such a scan is space-sized: its up would otherwise be the file format's guess. `samples`,
+    `file` and `view_points`: as `estimate_up`'s."""
     geom = samples if samples is not None else _Geometry.of(mesh)
     families = plane_families(geom.normals, geom.areas)
     if not families:
         return None
     facts = [_floor_candidate(geom, s * f).facts() for f, _ in families for s in (1.0, -1.0)]
-    return decide(facts, None, file_frame(suffix), view=single_view(geom.vertices))
+    view = single_view(geom.vertices) if view_points is None else frame_view(view_points)
+    return decide(facts, None, file or file_frame(suffix), view=view)
 
 
 def up_candidate_facts(mesh: trimesh.Trimesh) -> list[CandidateFacts]:

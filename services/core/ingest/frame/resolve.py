@@ -16,7 +16,8 @@ import trimesh
 from services.core.domain.frame_values import similarity_scale
 from services.core.domain.frame_words import ambiguity_line, units_ambiguity_line
 from services.core.ingest.errors import SpaceError, UnitsAmbiguous, UpAmbiguous
-from services.core.ingest.frame.camera_frame import in_camera_frame
+from services.core.ingest.frame.camera_frame import in_camera_frame, origin_is_camera
+from services.core.ingest.frame.candidates import FileFrame
 from services.core.ingest.frame.gravity import (
     SurfaceSamples,
     UpEstimate,
@@ -94,6 +95,8 @@ def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: FrameRequest, name:
         return T, UpEstimate(up / np.linalg.norm(up), "source_to_world"), UnitChoice(
             scale, "source_to_world", "the scale of the given source_to_world")
     samples: SurfaceSamples | None = None
+    file: FileFrame | None = None
+    cloud: np.ndarray | None = None
     if frame.up is not None or frame.up_axis != "auto":
         given = frame.up if frame.up is not None else axis_vector(frame.up_axis)
         given = given / np.linalg.norm(given)
@@ -103,7 +106,8 @@ def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: FrameRequest, name:
         # a cloud's points, as its normals were turned (services.core.ingest.pointcloud.viewpoint)
         cloud = None if points is None else points()
         camera = cloud is not None and in_camera_frame(cloud)
-        file = file_frame(suffix, cloud=cloud is not None, camera=camera)
+        file = file_frame(suffix, cloud=cloud is not None, camera=camera,
+                          origin_camera=cloud is not None and origin_is_camera(cloud))
         est = estimate_up(mesh, suffix, frame.capture_up, recorded_up=frame.recorded_up, file=file,
                           view_points=cloud)
         if est.method in _NO_FLOOR and cloud is not None:
@@ -117,7 +121,7 @@ def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: FrameRequest, name:
             units = choose_units(mesh, est.up, est.storey_height)
         except UnitError as e:
             if samples is not None and not frame.accept_up_guess:  # a cloud: ask for its up first
-                _refuse_unknown_up(mesh, suffix, name, samples)
+                _refuse_unknown_up(mesh, suffix, name, samples, file, cloud)
             raise SpaceError(str(e)) from None
     else:
         units = UnitChoice(float(frame.unit_scale), "given", "unit_scale given")
@@ -128,7 +132,7 @@ def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: FrameRequest, name:
             raise UpAmbiguous(ambiguity_line(said, rec["candidates"], None), rec["candidates"])
         raise UpAmbiguous(ambiguity_line(name, rec["candidates"], est.margin), rec["candidates"])
     if est.method in ("convention", "base") and not frame.accept_up_guess:
-        _refuse_space_sized_guess(mesh, suffix, est.up, units.scale, name, samples)
+        _refuse_space_sized_guess(mesh, suffix, est.up, units.scale, name, samples, file, cloud)
     if units.ambiguous and not frame.accept_up_guess:
         raise UnitsAmbiguous(units_ambiguity_line(name, list(units.candidates)), list(units.candidates))
     return source_to_world_matrix(est.up, units.scale), est, units
@@ -140,15 +144,17 @@ SPACE_EXTENT_M = 3.0  # an object this large is a space: a room needs its up fou
 
 
 def _refuse_space_sized_guess(mesh: trimesh.Trimesh, suffix: str, up: np.ndarray, unit_scale: float,
-                              name: str, samples: SurfaceSamples | None = None) -> None:
+                              name: str, samples: SurfaceSamples | None = None, file: FileFrame | None = None,
+                              cloud: np.ndarray | None = None) -> None:
     """UpAmbiguous when no floor was found in a scan the size of a space, unless every candidate's evidence
     agrees with the object rule's `up` (the format's up, or a support base). `samples`: a cloud's own planes,
-    weighed before its mesh's."""
+    weighed before its mesh's; `file` and `cloud`: what the file says and a cloud's points, weighed as where a
+    floor is found."""
     extent_m = float(mesh.extents.max()) * unit_scale
     if extent_m < SPACE_EXTENT_M or _faces_outward(mesh):
         return
-    decision = (None if samples is None else guess_candidates(mesh, suffix, samples)) or guess_candidates(
-        mesh, suffix)
+    decision = (None if samples is None else guess_candidates(mesh, suffix, samples, file, cloud)
+                ) or guess_candidates(mesh, suffix, None, file, cloud)
     if decision is None or decision.runner_up is None:
         raise SpaceError(f"{name}: no floor and no dominant planes found in a space {extent_m:.3g} m across, "
                          "so its up cannot be told; give it with --up=X,Y,Z or --up-axis (API: spec field "
@@ -160,10 +166,11 @@ def _refuse_space_sized_guess(mesh: trimesh.Trimesh, suffix: str, up: np.ndarray
                                      candidates, None), candidates)
 
 
-def _refuse_unknown_up(mesh: trimesh.Trimesh, suffix: str, name: str, samples: SurfaceSamples) -> None:
+def _refuse_unknown_up(mesh: trimesh.Trimesh, suffix: str, name: str, samples: SurfaceSamples,
+                       file: FileFrame | None, cloud: np.ndarray | None) -> None:
     """UpAmbiguous naming a cloud's candidates (source units) when neither a floor nor its units were found:
     without the up, no storey tells the units, and the candidates its planes rank are the question to ask."""
-    decision = guess_candidates(mesh, suffix, samples)
+    decision = guess_candidates(mesh, suffix, samples, file, cloud)
     if decision is None or decision.runner_up is None:
         return
     candidates = [c.record() for c in decision.shown]

@@ -28,7 +28,8 @@ candidate with the best one that would level the scan differently (more than `DI
 - `mirror`: one plane and no opposite one is a floor seen from above or a ceiling seen from below (what hangs
   below a ceiling looks like furniture standing on a floor), so the geometry's lead of one sign of such a
   family over the other is capped at `MIRROR_CAP` (`MIRROR_CAP_CLOUD`, below the margin, for a point cloud,
-  whose sides were estimated): the file, cameras or a recorded gravity can overrule it.
+  whose sides were estimated, unless its camera saw it from within: `_mirror_cap`): the file, cameras or a
+  recorded gravity can overrule it.
 - `format_up`: the candidate on the format's own up axis (`FileFrame`): glTF's +Y is the specification's
   (binding, as strong as an axis-aligned floor, for a floor within `FORMAT_DEG` of it); PLY's +Z and OBJ's +Y
   are habits, weighted below `REFUSE_MARGIN` (Y-up PLYs and Z-up OBJs are common): they order a refusal, they
@@ -57,12 +58,12 @@ the estimate is ambiguous and planning does not go ahead on it unless the user a
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-from services.core.domain.frame_records import UpCandidateRecord
+from services.core.ingest.frame.candidates import CandidateFacts, FileFrame, ScoredCandidate
 from services.core.ingest.frame.single_view import SingleView
 
 DISTINCT_DEG = 30.0  # candidates closer than this level the scan the same way
@@ -97,8 +98,10 @@ FORMAT_DEG = 5.0
 # what the file says counts for a candidate the geometry does not rule out: one this far below the geometry's
 # best (a wall left on an axis by a rotation about it) is no floor, whatever the file's axes
 FILE_TRUST = 4.0
-# a candidate whose lower half faces it over this share of its cross-section (a strip)
-PLAUSIBLE_FLOOR_FRACTION = 0.1
+# a candidate whose lower half faces it over this share of its cross-section (a strip: a corridor's floor seen
+# from a level depth camera covers 7-8 % of its frustum's; 0.1 left a levelled export of one refused, and no
+# outcome of bench/ingest/ingest.py or of the other real rooms moved)
+PLAUSIBLE_FLOOR_FRACTION = 0.05
 # a family flat over this share of the cross-section at both ends holds a floor and a ceiling (a pair); with
 # one plane only, the geometry's preference between its two signs is capped at MIRROR_CAP (`_mirror_terms`).
 # No measure separated the ceiling-only captures of bench/ingest/ingest_real.py from its floor-only rooms
@@ -111,6 +114,14 @@ MIRROR_CAP = 1.5
 # sign led by the full MIRROR_CAP on the wrong side: its geometry orders a cloud's two signs and decides
 # them only with a second, independent sign (an upright camera's frame, the format's up axis) agreeing
 MIRROR_CAP_CLOUD = 0.3
+# ... unless its origin is its camera (`FileFrame.origin_camera`: its normals were turned towards it, so its
+# sides are seen as a scanner's faces are), that camera saw the family on both sides of its own height (this
+# share of the surface at least on each side: it looked across the room, not only up at a ceiling or down at
+# a floor) and the family shows one plane (its flat end this many times the other's: a corridor's floor and
+# ceiling strips alike leave the sign to the furniture, which a low camera sees from below): then it is
+# capped as a mesh's (`_mirror_cap`)
+CAMERA_SPLIT_MIN = 0.05
+ONE_END_RATIO = 3.0
 _SIGN_FREE_TERMS = ("floor_area", "furniture", "extent", "storey")  # the geometry a mirror image keeps
 
 WEIGHTS = {
@@ -129,17 +140,6 @@ WEIGHTS = {
 }
 
 
-@dataclass(frozen=True)
-class FileFrame:
-    """What a file says about its up, before any geometry: the format's up axis (source frame) and whether the
-    format's specification fixes it (glTF) or it is a habit (PLY, OBJ)."""
-
-    axis: np.ndarray
-    binding: bool = False
-    cloud: bool = False  # a point cloud meshed on ingest: its sides were estimated (MIRROR_CAP_CLOUD)
-    camera: bool = False  # a cloud stored in an OpenCV camera's frame (`camera_frame`): up has a share of -Y
-
-
 def _on_axis(u: np.ndarray, axis: np.ndarray) -> bool:
     return float(u @ axis) >= np.cos(np.radians(AXIS_DEG))
 
@@ -155,56 +155,6 @@ def nearest_axis(u: np.ndarray) -> np.ndarray:
 def on_a_source_axis(u: np.ndarray) -> bool:
     """True when `u` lies within `AXIS_DEG` of a source axis."""
     return _on_axis(u, nearest_axis(u))
-
-
-@dataclass(frozen=True)
-class CandidateFacts:
-    """What gravity measured along one candidate direction (source frame, source units)."""
-
-    up: np.ndarray
-    area_score: float  # floor area + furniture surplus
-    floor_area: float
-    floor_fraction: float
-    height: float  # extent along up
-    cross_section: float  # convex cross-section area across up
-    ceiling_fraction: float  # area facing down in the top half / cross-section
-    mid_up: float  # area facing up between the end bands (furniture tops)
-    mid_down: float  # area facing down between the end bands
-
-
-@dataclass(frozen=True)
-class ScoredCandidate:
-    """A candidate and its evidence terms (log-odds)."""
-
-    facts: CandidateFacts
-    terms: dict[str, float] = field(default_factory=dict)
-
-    @property
-    def up(self) -> np.ndarray:
-        """The candidate up direction, source frame."""
-        return self.facts.up
-
-    @property
-    def score(self) -> float:
-        """The sum of the evidence terms."""
-        return float(sum(self.terms.values()))
-
-    def record(self, unit_scale: float | None = None) -> UpCandidateRecord:
-        """JSON-ready: direction, floor area and storey height (metres when `unit_scale` is known), terms."""
-        f = self.facts
-        out: UpCandidateRecord = {
-            "up": [round(float(x), 6) for x in f.up],
-            "score": round(self.score, 3),
-            "evidence": {k: round(v, 3) for k, v in self.terms.items()},
-            "floor_fraction": round(f.floor_fraction, 4),
-        }
-        if unit_scale is not None:
-            out["floor_area_m2"] = round(f.floor_area * unit_scale**2, 3)
-            out["storey_height_m"] = round(f.height * unit_scale, 3)
-        else:
-            out["floor_area_units2"] = round(f.floor_area, 6)
-            out["storey_height_units"] = round(f.height, 6)
-        return out
 
 
 @dataclass(frozen=True)
@@ -356,7 +306,17 @@ def _one_plane(c: ScoredCandidate, flip: ScoredCandidate) -> bool:
     return not pair
 
 
-def _mirror_terms(geometry: list[ScoredCandidate], cap: float) -> list[ScoredCandidate]:
+def _mirror_cap(c: ScoredCandidate, file: FileFrame | None) -> float:
+    """How far the geometry may prefer one sign of `c`'s one-plane family (constants above)."""
+    if file is None or not file.cloud:
+        return MIRROR_CAP
+    ends = sorted((c.facts.floor_fraction, c.facts.ceiling_fraction))
+    sides_seen = (file.origin_camera and c.facts.origin_split >= CAMERA_SPLIT_MIN
+                  and ends[1] >= ONE_END_RATIO * ends[0])
+    return MIRROR_CAP if sides_seen else MIRROR_CAP_CLOUD
+
+
+def _mirror_terms(geometry: list[ScoredCandidate], file: FileFrame | None) -> list[ScoredCandidate]:
     """One plane seen from one side is a floor seen from above or a ceiling seen from below: what hangs below
     a ceiling (lamps, ducts, soffits) looks like what stands on a floor (tops seen, undersides not, at
     furniture heights), and its area is a floor's. The geometry's preference for one sign of such a family is
@@ -369,7 +329,7 @@ def _mirror_terms(geometry: list[ScoredCandidate], cap: float) -> list[ScoredCan
         if flip is not None and _one_plane(c, flip):
             def sign_free(x: ScoredCandidate) -> float:
                 return sum(v for k, v in x.terms.items() if k in _SIGN_FREE_TERMS)
-            lift = max(0.0, sign_free(flip) - cap - sign_free(c))
+            lift = max(0.0, sign_free(flip) - _mirror_cap(c, file) - sign_free(c))
         out.append(ScoredCandidate(c.facts, {**c.terms, "mirror": lift}) if lift > 0 else c)
     return out
 
@@ -386,8 +346,7 @@ def decide(all_facts: list[CandidateFacts], capture_up: np.ndarray | None = None
     geometry = [ScoredCandidate(f, {k: v for k, v in evidence_terms(
         f, all_facts, capture_up, view, recorded_up).items() if k not in disabled}) for f in all_facts]
     if view is None and "mirror" not in disabled:  # a single view's frustum keeps it (`_view_terms`)
-        cap = MIRROR_CAP_CLOUD if file is not None and file.cloud else MIRROR_CAP
-        geometry = _mirror_terms(geometry, cap)
+        geometry = _mirror_terms(geometry, file)
     scored = geometry if file is None else _with_file_terms(geometry, file, view, disabled)
     ranked = tuple(sorted(scored, key=lambda c: -c.score))
     best = ranked[0]

@@ -7,15 +7,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from services.core.ingest.frame.candidates import CandidateFacts, FileFrame
 from services.core.ingest.frame.reason_words import reason_words
 from services.core.ingest.frame.single_view import SingleView
 from services.core.ingest.frame.up_evidence import (
+    CAMERA_SPLIT_MIN,
     MIRROR_CAP,
     MIRROR_CAP_CLOUD,
     REFUSE_MARGIN,
     SINGLE_VIEW_REFUSE_MARGIN,
-    CandidateFacts,
-    FileFrame,
     decide,
 )
 
@@ -24,17 +24,19 @@ X = np.array([1.0, 0.0, 0.0])
 
 
 def _facts(up: np.ndarray, floor: float, ceiling: float, mid_up: float, mid_down: float,
-           height: float = 3.0, cross: float = 100.0) -> CandidateFacts:
+           height: float = 3.0, cross: float = 100.0, origin_split: float = 0.0) -> CandidateFacts:
     area = floor * cross
     return CandidateFacts(up, area + max(0.0, mid_up - mid_down), area, floor, height, cross, ceiling,
-                          mid_up, mid_down)
+                          mid_up, mid_down, origin_split)
 
 
-def _room(one_side: np.ndarray, pair: bool) -> list[CandidateFacts]:
+def _room(one_side: np.ndarray, pair: bool, origin_split: float = 0.0) -> list[CandidateFacts]:
     """A plane at the low end of `one_side` with tops over it (what stands on a floor or hangs below a
-    ceiling), walls along X; `pair`: a second plane at the other end too."""
+    ceiling), walls along X; `pair`: a second plane at the other end too. `origin_split`: the smaller share of
+    the scan on either side of the origin's height along the plane's normal."""
     other = 0.5 if pair else 0.0
-    return [_facts(one_side, 0.5, other, 8.0, 0.2), _facts(-one_side, other, 0.5, 0.2, 8.0),
+    return [_facts(one_side, 0.5, other, 8.0, 0.2, origin_split=origin_split),
+            _facts(-one_side, other, 0.5, 0.2, 8.0, origin_split=origin_split),
             _facts(X, 0.02, 0.02, 0.0, 0.0, 10.0, 30.0), _facts(-X, 0.02, 0.02, 0.0, 0.0, 10.0, 30.0)]
 
 
@@ -98,6 +100,20 @@ def test_a_point_clouds_geometry_orders_its_two_signs_but_never_decides() -> Non
     assert d.ambiguous
     assert float(d.best.up @ -Z) > 0.99 and d.margin == pytest.approx(MIRROR_CAP_CLOUD)
     assert not decide(_room(-Z, pair=False), file=FileFrame(X)).ambiguous
+
+
+def test_a_clouds_sides_seen_from_its_camera_within_the_scan_decide_like_a_meshs() -> None:
+    """A cloud whose origin is its camera's place (its normals turned towards it) and which lies on both
+    sides of that camera's height (the camera looked across the room) has its sides as a mesh has them: its
+    one plane's sign is decided by its geometry. A camera that saw the scan on one side of its height only
+    (looking up at a ceiling, or down at a floor) leaves it refused."""
+    across = FileFrame(X, cloud=True, origin_camera=True)
+    d = decide(_room(-Z, pair=False, origin_split=CAMERA_SPLIT_MIN + 0.1), file=across)
+    assert float(d.best.up @ -Z) > 0.99 and not d.ambiguous and d.margin == pytest.approx(MIRROR_CAP)
+    assert decide(_room(-Z, pair=False, origin_split=CAMERA_SPLIT_MIN / 2), file=across).ambiguous
+    # the same split with an origin that is no camera: the sides are a guess
+    no_camera = FileFrame(X, cloud=True)
+    assert decide(_room(-Z, pair=False, origin_split=CAMERA_SPLIT_MIN + 0.1), file=no_camera).ambiguous
 
 
 def test_an_upright_cameras_frame_with_the_geometry_decides_a_clouds_sign() -> None:

@@ -135,23 +135,25 @@ def test_a_turned_cloud_its_camera_saw_across_is_levelled_on_its_own_sides(tmp_p
     """Five Kinect frames of the NYU dining room fused in the first camera's frame (a cloud, no ceiling),
     turned and uploaded in metres and in millimetres: its normals are turned towards the camera at its origin,
     which saw the room above and below its own height, so the sign of its one floor is its geometry's, as a
-    mesh's is (`up_evidence._mirror_cap`). The same cloud moved off its camera is asked, the true up first."""
+    mesh's is (`up_evidence._mirror_cap`). The same cloud moved off its camera is asked: with the origin under
+    its floor, the true up first; with the origin 4.4 m over its floor, where no one holds a camera, the
+    ceiling reading first (`camera_height`: a ceiling-only capture seen from 4.5 m below looks the same)."""
     room = ROOMS["nyuv2_dining_room_5view_slambook2"]
     points = np.asarray(trimesh.load(REPO / room["file"]).vertices, dtype=np.float64)
     up = np.asarray(room["up"], dtype=float)
     R = Rotation.from_euler("xyz", [37, -64, 121], degrees=True).as_matrix()
-    for per_metre, offset in ((1.0, 0.0), (1000.0, 0.0), (1.0, 3.0)):
-        path = tmp_path / f"turned_{per_metre:g}_{offset:g}.ply"
-        # an offset along the true up puts the origin 3 m under the floor: no camera's place
-        trimesh.PointCloud((points - offset * up) @ R.T * per_metre).export(path)
+    # the camera stood 1.4 m over the floor; the origin raised by `lift` metres along the true up
+    for per_metre, lift in ((1.0, 0.0), (1000.0, 0.0), (1.0, -3.0), (1.0, 3.0)):
+        path = tmp_path / f"turned_{per_metre:g}_{lift:g}.ply"
+        trimesh.PointCloud((points - lift * up) @ R.T * per_metre).export(path)
         try:
             space = load_space(path, cloud_cache_dir=tmp_path / "meshed")
         except UpAmbiguous as refusal:
-            assert offset > 0, (per_metre, "refused")
+            assert lift != 0, (per_metre, "refused")
             first = np.asarray(refusal.candidates[0]["up"], dtype=float)
-            assert up_error_deg(first, R @ up) < 10.0
+            assert up_error_deg(first, R @ up if lift < 0 else -(R @ up)) < 10.0, lift
             continue
-        assert offset == 0, space.frame_summary()
+        assert lift == 0, space.frame_summary()
         assert up_error_deg(space.source_to_world[:3, :3] @ (R @ up), np.array([0.0, 0.0, 1.0])) < 3.0, (
             per_metre, space.frame_summary())
         assert space.units is not None and space.units.scale == pytest.approx(1.0 / per_metre)

@@ -41,6 +41,9 @@ class CandidateFacts:
     # the smaller share of the surface on either side of the source origin's height along up: where the origin
     # is the capture's camera, whether it saw the scan both above and below its own height
     origin_split: float = 0.0
+    # the source origin's height above the floor along up: where the origin is the capture's camera, how high
+    # it was held over the floor this candidate sees
+    origin_height: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -3,11 +3,8 @@
 Frames: everything here is in the *source frame* (the coordinates `trimesh.load(source, force="mesh")`
 gives, in the file's units); directions are unit 3-vectors in that frame.
 
-1. *Plane families*: face normals are folded onto a hemisphere (a normal and its opposite belong to
-   the same family: floors and ceilings, opposite walls) and binned on a Fibonacci grid, weighted by
-   face area. The strongest bin is refined by mean shift over all faces within a shrinking cone
-   (10 then 5 degrees), its neighbourhood (25 degrees) is suppressed and the next one is taken: the
-   dominant plane families of the scan, whatever its orientation.
+1. *Plane families*: the dominant plane orientations of the scan, whatever its orientation
+   (`plane_families`).
 2. *Floor* (spaces scanned from inside, normals facing the free space): each family direction u, in
    both signs, is scored by the area facing +u in the lower half of the extent along u (a floor seen
    from above; halves rather than thin bands because a tilted floor spans part of the height) plus
@@ -17,8 +14,8 @@ gives, in the file's units); directions are unit 3-vectors in that frame.
    inwards from both ends, but in pairs (no surplus) and over less area than the floor of a room that is
    wider than tall. The best score wins; a tie between the two signs of one family (a closed empty box) falls
    back to the file convention. The direction is refined to the area-weighted mean normal of the floor
-   faces, or set exactly to the source axis when the file's levelling decided (`up_evidence.AXIS_DEG`) or
-   glTF's +Y did.
+   faces (the ceiling's, where a ceiling is the one plane the candidate shows), or set exactly to the
+   source axis when the file's levelling decided (`up_evidence.AXIS_DEG`) or glTF's +Y did.
 3. *Support base* (single objects, normals facing outwards): outward-facing area in the end 10 % of a
    family that covers >= 15 % of the cross-section and >= 3 times the opposite end (the flat base of
    the bunny): up points away from the base.
@@ -41,10 +38,11 @@ from scipy.spatial import ConvexHull, QhullError
 
 from services.core.domain.frame_records import UpRecord
 from services.core.ingest.frame.candidates import CandidateFacts, FileFrame
-from services.core.ingest.frame.direction_bins import BINS, N_BINS, bin_neighbours, bin_tree
+from services.core.ingest.frame.plane_families import plane_families
 from services.core.ingest.frame.reason_words import METHOD_WORDS, reason_words
 from services.core.ingest.frame.single_view import frame_view, single_view
 from services.core.ingest.frame.up_evidence import (
+    ONE_END_RATIO,
     WEIGHTS,
     UpDecision,
     decide,
@@ -81,10 +79,6 @@ _BASE_DOMINANCE = 3.0
 _SNAP_RAD = 1e-3  # a direction this close to a source axis is that axis (1 mm per metre)
 # object bases are rougher than floors (the bunny's is 1.1 degrees off its axis)
 _BASE_SNAP_RAD = np.radians(2.0)
-_SAMPLE_FACES = 50_000  # faces (drawn by area) that vote for bins; refinement uses every face
-_SUPPRESS_COS = float(np.cos(np.radians(25.0)))
-_MAX_FAMILIES = 6
-_MIN_FAMILY_SHARE = 0.03
 _HULL_POINTS = 5_000
 LOW_MARGIN = 1.25  # support bases: best area / runner-up below this is low confidence
 
@@ -182,49 +176,6 @@ def snap_to_axis(u: np.ndarray, tol_rad: float = _SNAP_RAD) -> np.ndarray:
     return u
 
 
-def _mean_shift(axis: np.ndarray, normals: np.ndarray, areas: np.ndarray) -> np.ndarray:
-    for cone in (10.0, 10.0, 5.0, 5.0):
-        d = normals @ axis
-        sel = np.abs(d) > np.cos(np.radians(cone))
-        if not sel.any():
-            break
-        mean = (normals[sel] * (areas[sel] * np.sign(d[sel]))[:, None]).sum(axis=0)
-        norm = np.linalg.norm(mean)
-        if norm == 0:
-            break
-        axis = mean / norm
-    return axis
-
-
-def plane_families(normals: np.ndarray, areas: np.ndarray) -> list[tuple[np.ndarray, float]]:
-    """Dominant plane orientations (unit axis, area within 10 degrees), strongest first."""
-    total = float(areas.sum())
-    if total <= 0:
-        return []
-    if len(areas) > _SAMPLE_FACES:  # a fixed draw: the same mesh gives the same families
-        rng = np.random.default_rng(0)
-        pick = rng.choice(len(areas), size=_SAMPLE_FACES, p=areas / total)
-        votes_n, votes_w = normals[pick], np.full(_SAMPLE_FACES, total / _SAMPLE_FACES)
-    else:
-        votes_n, votes_w = normals, areas
-    _, nearest = bin_tree().query(votes_n)
-    hist = np.bincount(nearest % N_BINS, weights=votes_w, minlength=N_BINS)
-    score = bin_neighbours() @ hist
-    families: list[tuple[np.ndarray, float]] = []
-    for _ in range(_MAX_FAMILIES):
-        b = int(np.argmax(score))
-        if score[b] < _MIN_FAMILY_SHARE * total:
-            break
-        axis = _mean_shift(BINS[b], normals, areas)
-        area = float(areas[np.abs(normals @ axis) > np.cos(np.radians(10.0))].sum())
-        if all(abs(float(axis @ f)) < _SUPPRESS_COS for f, _ in families):
-            families.append((axis, area))
-        score[np.abs(BINS @ axis) > _SUPPRESS_COS] = 0.0
-        score[b] = 0.0
-    families.sort(key=lambda fa: -fa[1])
-    return families
-
-
 def _cross_section(pts: np.ndarray, u: np.ndarray) -> float:
     """Area of the convex hull of the points projected on the plane across `u` (rotation invariant)."""
     a = np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0])
@@ -266,18 +217,21 @@ class _Candidate:
     floor_area: float
     floor_fraction: float
     floor_faces: np.ndarray  # bool per face
+    ceiling_faces: np.ndarray  # bool per face: facing down in the upper half
     height: float  # extent along up, source units
     cross_section: float  # convex cross-section across up, source units^2
     ceiling_area: float  # area facing down in the upper half
     mid_up: float  # area facing up between the end bands (furniture tops)
     mid_down: float  # area facing down between the end bands (furniture undersides, rarely scanned)
     origin_split: float  # the smaller share of the area on either side of the source origin's height
+    origin_height: float  # the source origin's height above the floor (its faces' area-weighted mean)
 
     def facts(self) -> CandidateFacts:
         """The measurements the evidence scoring needs."""
         ceiling = self.ceiling_area / self.cross_section if self.cross_section > 0 else 0.0
         return CandidateFacts(self.up, self.score, self.floor_area, self.floor_fraction, self.height,
-                              self.cross_section, ceiling, self.mid_up, self.mid_down, self.origin_split)
+                              self.cross_section, ceiling, self.mid_up, self.mid_down, self.origin_split,
+                              self.origin_height)
 
 
 def _floor_candidate(geom: _Geometry, u: np.ndarray) -> _Candidate:
@@ -298,21 +252,28 @@ def _floor_candidate(geom: _Geometry, u: np.ndarray) -> _Candidate:
                   - float(areas[facing_down & wide_middle].sum()))
     cross = _cross_section(geom.hull_points, u)
     fraction = floor_area / cross if cross > 0 else 0.0
-    ceiling_area = float(areas[facing_down & (h >= 0.5 * (lo + hi))].sum())
+    ceiling = facing_down & (h >= 0.5 * (lo + hi))
+    ceiling_area = float(areas[ceiling].sum())
     above = float(areas[h > 0.0].sum()) / max(float(areas.sum()), 1e-300)
-    return _Candidate(u, floor_area + surplus, floor_area, fraction, floor, hi - lo, cross, ceiling_area,
-                      mid_up, mid_down, min(above, 1.0 - above))
+    # the floor's mean height (tops in the lower half raise it: the camera then reads lower, never higher)
+    origin_height = -float(np.average(h[floor], weights=areas[floor])) if floor_area > 0 else -lo
+    return _Candidate(u, floor_area + surplus, floor_area, fraction, floor, ceiling, hi - lo, cross,
+                      ceiling_area, mid_up, mid_down, min(above, 1.0 - above), origin_height)
 
 
-def _refine_floor(geom: _Geometry, cand: _Candidate) -> np.ndarray:
+def _refine_up(geom: _Geometry, cand: _Candidate) -> np.ndarray:
+    """`cand`'s up as the mean normal of the plane it shows: its floor, or its ceiling where that is the one
+    plane it shows (a ceiling seen from below: what faces up under it is no plane)."""
     normals, areas = geom.normals, geom.areas
-    sel = cand.floor_faces
+    sign, sel = 1.0, cand.floor_faces
+    if cand.ceiling_area > ONE_END_RATIO * cand.floor_area:
+        sign, sel = -1.0, cand.ceiling_faces
     up = cand.up
     for cone in (15.0, 5.0):
-        s = sel & (normals @ up > np.cos(np.radians(cone)))
+        s = sel & (sign * (normals @ up) > np.cos(np.radians(cone)))
         if not s.any():
             break
-        mean = (normals[s] * areas[s, None]).sum(axis=0)
+        mean = sign * (normals[s] * areas[s, None]).sum(axis=0)
         up = mean / np.linalg.norm(mean)
     return snap_to_axis(up)
 
@@ -376,7 +337,7 @@ def estimate_up(mesh: trimesh.Trimesh, suffix: str, capture_up: np.ndarray | Non
         elif decision.best.terms.get("format_up", 0.0) >= WEIGHTS["format_up_binding"]:
             up = file_frame(suffix).axis  # the specification's up, which the floor confirmed
         else:
-            up = _refine_floor(geom, best) if best.floor_area > 0 else snap_to_axis(best.up)
+            up = _refine_up(geom, best) if best.floor_area + best.ceiling_area > 0 else snap_to_axis(best.up)
         return UpEstimate(up, "floor", best.floor_area, best.floor_fraction, angle, decision.margin,
                           best.height, decision)
     if rec_up is not None:

@@ -20,6 +20,7 @@ TERM_WORDS = {
     "levelled_axis": "a floor on a source axis (the file was levelled)",
     "format_up": "the format's up axis (its convention)",
     "camera_frame": "an upright camera's frame (the scan lies ahead of its origin)",
+    "camera_height": "the camera's height (no floor lies further below it than a storey)",
     "capture_up": "the capture's cameras",
     "recorded_gravity": "the gravity recorded with the scan",
     "floor_area": "the floor's area",

@@ -39,6 +39,12 @@ candidate with the best one that would level the scan differently (more than `DI
   plane gains as a habit does, below `REFUSE_MARGIN` (a turned copy can look like an upside-down camera's
   frame): with a cloud's capped geometry (`mirror`) agreeing, it decides the sign; alone, it orders a
   refusal.
+- `camera_height`: a cloud whose origin is its camera (`FileFrame.origin_camera`): a candidate whose floor
+  lies further below that camera than a storey (`CAMERA_HEIGHT_MAX_M`), in every unit that makes the scan a
+  room's height, is a ceiling taken for a floor (a tall ceiling over a camera is common, a camera held that
+  high over a floor is not). An origin hovering over a room without its ceiling passes for a camera too, so
+  it weighs just above the cloud's capped sign (`MIRROR_CAP_CLOUD`) and, with one habit against it, stays
+  below `REFUSE_MARGIN`: it orders a refusal, never decides.
 - `capture_up`: the mean up vector of the capture's cameras (-Y of OpenCV cameras, averaged), when the
   caller has poses. Cameras are held upright, give or take their pitch: strong evidence.
 - `recorded_gravity`: the gravity a capture recorded with the scan (`recorded_gravity`): an IMU's or a
@@ -65,6 +71,7 @@ from numpy.typing import ArrayLike
 
 from services.core.ingest.frame.candidates import CandidateFacts, FileFrame, ScoredCandidate
 from services.core.ingest.frame.single_view import SingleView
+from services.core.ingest.frame.unit_evidence import PARTIAL_STOREY_M
 
 DISTINCT_DEG = 30.0  # candidates closer than this level the scan the same way
 # score margin below which the estimate is ambiguous: on the real rooms of bench/ingest/ingest_real.py (as
@@ -89,6 +96,9 @@ CAMERA_PITCH_COS = float(np.cos(np.radians(60.0)))
 CAMERA_ROLL_SIN = float(np.sin(np.radians(15.0)))
 RECORDED_CONE_DEG = 15.0  # a plane family this close to recorded gravity is its floor (the floor cone)
 STOREY_M = (2.2, 3.5)
+# a camera held higher than this above the floor it saw (a storey) was not held over that floor: the real
+# clouds of bench/ingest/ingest_real.py whose origin is their camera hold it 0.3-2.7 m up
+CAMERA_HEIGHT_MAX_M = 3.5
 OPEN_STOREY_M = (1.2, 3.5)  # no ceiling scanned
 UNIT_SCALES = (1.0, 0.01, 0.001, 0.0254)
 
@@ -129,6 +139,7 @@ WEIGHTS = {
     "format_up_binding": 6.0,
     "format_up_habit": 1.0,
     "camera_frame": 1.0,
+    "camera_height": 0.4,
     "floor_area": 1.0,
     "furniture": 3.0,
     "extent": 6.0,
@@ -203,6 +214,16 @@ def _storey_term(f: CandidateFacts) -> float:
     return 0.0 if fits else -1.0
 
 
+def _camera_too_high(f: CandidateFacts) -> bool:
+    """True when the floor this candidate sees lies further below the camera at the origin than a storey in
+    every unit that makes the scan a room's height (`unit_evidence`): no one holds a camera there, so the
+    floor is a ceiling seen from below."""
+    lo, hi = PARTIAL_STOREY_M
+    room_units = [s for s in UNIT_SCALES if lo <= f.height * s <= hi]
+    return (f.floor_fraction >= PLAUSIBLE_FLOOR_FRACTION and bool(room_units)
+            and all(f.origin_height * s > CAMERA_HEIGHT_MAX_M for s in room_units))
+
+
 def _file_terms(f: CandidateFacts, file: FileFrame, plausible: bool, levelled: bool,
                 one_plane: bool) -> dict[str, float]:
     """What the file says of this candidate (see the module docstring). `plausible`: it could be the floor;
@@ -219,6 +240,8 @@ def _file_terms(f: CandidateFacts, file: FileFrame, plausible: bool, levelled: b
         terms["format_up"] = WEIGHTS["format_up_binding"] if near and plausible else 0.0
     else:
         terms["format_up"] = WEIGHTS["format_up_habit"] if _on_axis(f.up, file.axis) else 0.0
+    if file.origin_camera:
+        terms["camera_height"] = -WEIGHTS["camera_height"] if _camera_too_high(f) else 0.0
     if file.camera:  # an upright camera (image y down): pitched, hardly rolled
         upright = -float(f.up[1]) >= CAMERA_PITCH_COS and abs(float(f.up[0])) <= CAMERA_ROLL_SIN
         terms["camera_frame"] = WEIGHTS["camera_frame"] if upright else 0.0

@@ -24,19 +24,24 @@ X = np.array([1.0, 0.0, 0.0])
 
 
 def _facts(up: np.ndarray, floor: float, ceiling: float, mid_up: float, mid_down: float,
-           height: float = 3.0, cross: float = 100.0, origin_split: float = 0.0) -> CandidateFacts:
+           height: float = 3.0, cross: float = 100.0, origin_split: float = 0.0,
+           origin_height: float = 0.0) -> CandidateFacts:
     area = floor * cross
     return CandidateFacts(up, area + max(0.0, mid_up - mid_down), area, floor, height, cross, ceiling,
-                          mid_up, mid_down, origin_split)
+                          mid_up, mid_down, origin_split, origin_height)
 
 
-def _room(one_side: np.ndarray, pair: bool, origin_split: float = 0.0) -> list[CandidateFacts]:
+def _room(one_side: np.ndarray, pair: bool, origin_split: float = 0.0, origin_height: float = 1.5,
+          height: float = 3.0) -> list[CandidateFacts]:
     """A plane at the low end of `one_side` with tops over it (what stands on a floor or hangs below a
     ceiling), walls along X; `pair`: a second plane at the other end too. `origin_split`: the smaller share of
-    the scan on either side of the origin's height along the plane's normal."""
+    the scan on either side of the origin's height along the plane's normal; `origin_height`: the origin's
+    height over the plane along `one_side`; `height`: the scan's extent along it."""
     other = 0.5 if pair else 0.0
-    return [_facts(one_side, 0.5, other, 8.0, 0.2, origin_split=origin_split),
-            _facts(-one_side, other, 0.5, 0.2, 8.0, origin_split=origin_split),
+    return [_facts(one_side, 0.5, other, 8.0, 0.2, height, origin_split=origin_split,
+                   origin_height=origin_height),
+            _facts(-one_side, other, 0.5, 0.2, 8.0, height, origin_split=origin_split,
+                   origin_height=origin_height - height),
             _facts(X, 0.02, 0.02, 0.0, 0.0, 10.0, 30.0), _facts(-X, 0.02, 0.02, 0.0, 0.0, 10.0, 30.0)]
 
 
@@ -114,6 +119,35 @@ def test_a_clouds_sides_seen_from_its_camera_within_the_scan_decide_like_a_meshs
     # the same split with an origin that is no camera: the sides are a guess
     no_camera = FileFrame(X, cloud=True)
     assert decide(_room(-Z, pair=False, origin_split=CAMERA_SPLIT_MIN + 0.1), file=no_camera).ambiguous
+
+
+def test_a_plane_further_below_the_camera_than_a_storey_is_ordered_as_a_ceiling_never_decided() -> None:
+    """A ceiling-only capture whose camera, at the origin, stood 4.5 m under the ceiling: read as a floor, the
+    camera would have been held 4.5 m above it, higher than a storey; read as a ceiling, it stood under a tall
+    one. The camera's height orders the two signs of a cloud's one plane (the ceiling first), and decides
+    nothing alone, nor against one habit of the file (`camera_height`)."""
+    camera = FileFrame(X, cloud=True, origin_camera=True)
+    d = decide(_room(-Z, pair=False, origin_height=4.5), file=camera)
+    assert float(d.best.up @ Z) > 0.99 and d.ambiguous  # asked, the ceiling reading first
+    assert next(c for c in d.ranked if float(c.up @ -Z) > 0.99).terms["camera_height"] < 0
+    assert d.best.terms["camera_height"] == 0.0
+    # a camera held 1.5 m over the plane: the geometry's order stands
+    assert float(decide(_room(-Z, pair=False), file=camera).best.up @ -Z) > 0.99
+    # no camera at the origin: its height says nothing
+    no_camera = decide(_room(-Z, pair=False, origin_height=4.5), file=FileFrame(X, cloud=True))
+    assert float(no_camera.best.up @ -Z) > 0.99
+    # 110 units tall, the camera 180 units up: 1.1 m and 1.8 m in centimetres, a floor seen from a camera
+    # held by hand; only in inches (2.8 m, 4.6 m) too high. One unit where it fits is enough
+    short = decide(_room(-Z, pair=False, origin_height=180.0, height=110.0), file=camera)
+    assert float(short.best.up @ -Z) > 0.99
+    # a floor seen from 4.5 m above whose file looks like an upside-down camera's frame (a habit for the
+    # ceiling reading): an origin above a room without its ceiling may be no camera, so the two together
+    # still ask (the geometry's capped lead, the camera's height and one habit)
+    y = np.array([0.0, 1.0, 0.0])
+    framed = decide(_room(y, pair=False, origin_height=4.5),
+                    file=FileFrame(Z, cloud=True, camera=True, origin_camera=True))
+    assert float(framed.best.up @ -y) > 0.99 and framed.best.terms["camera_frame"] > 0
+    assert framed.ambiguous
 
 
 def test_an_upright_cameras_frame_with_the_geometry_decides_a_clouds_sign() -> None:

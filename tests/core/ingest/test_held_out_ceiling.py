@@ -25,8 +25,8 @@ CORRIDOR = (REPO / "shared" / "rooms_held_out" / "dardavesis_corridor808_pix4dca
 UP = np.array([0.0, 0.0, 1.0])  # its SOURCE.md: the large plane is the ceiling, at the top along +Z
 
 
-def test_a_ceiling_only_capture_is_never_levelled_upside_down_and_asked_ceiling_first(tmp_path: Path,
-                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_ceiling_only_capture_is_never_levelled_upside_down_and_asked_ceiling_first(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("OMNIDATA_DATA_DIR", str(tmp_path))  # the meshed cloud is cached there
     mesh = load_space(CORRIDOR, source_to_world=np.eye(4).tolist()).mesh
     points = np.asarray(trimesh.load(CORRIDOR).vertices)  # a cloud's points go with its mesh, as in loading

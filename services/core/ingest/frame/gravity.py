@@ -30,6 +30,7 @@ refuses it unless guesses are accepted.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -38,11 +39,12 @@ from scipy.spatial import ConvexHull, QhullError
 
 from services.core.domain.frame_records import UpRecord
 from services.core.ingest.frame.candidates import CandidateFacts, FileFrame
-from services.core.ingest.frame.plane_families import plane_families
+from services.core.ingest.frame.plane_families import plane_families, with_axes
 from services.core.ingest.frame.reason_words import METHOD_WORDS, reason_words
-from services.core.ingest.frame.single_view import frame_view, single_view
+from services.core.ingest.frame.single_view import SingleView, frame_view, single_view
 from services.core.ingest.frame.up_evidence import (
     ONE_END_RATIO,
+    VIEW_PITCH_DEG,
     WEIGHTS,
     UpDecision,
     decide,
@@ -296,7 +298,8 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
 def estimate_up(mesh: trimesh.Trimesh, suffix: str, capture_up: np.ndarray | None = None,
                 *, disabled_evidence: tuple[str, ...] = (), recorded_up: np.ndarray | None = None,
                 samples: SurfaceSamples | None = None, file: FileFrame | None = None,
-                view_points: np.ndarray | None = None) -> UpEstimate:
+                view_points: np.ndarray | None = None,
+                frame_axes: Callable[[], Sequence[np.ndarray]] | None = None) -> UpEstimate:
     """Up direction in the source frame, how it was found and how sure (see the module docstring).
 
     `capture_up`: the mean up vector of the capture's cameras in the source frame (-Y of OpenCV camera
@@ -307,17 +310,21 @@ def estimate_up(mesh: trimesh.Trimesh, suffix: str, capture_up: np.ndarray | Non
     stand in for the mesh's faces (a point cloud's own planes). `file`: what the file says (`file_frame`).
     `view_points`: a point cloud's own points: its single view is judged on them (`frame_view`), since its
     mesh extrapolates and trims the frame's surfaces; without them, on the vertices (`single_view`).
+    `frame_axes`: a cloud's plane directions read from its points (`point_planes`), asked for where its
+    single view's mesh shows no plane near the frame's short side (`_lost_floor_axes`).
     """
     conv = axis_vector(CONVENTION_UP.get(suffix, "+z"))
     cam_up = unit_capture_up(capture_up)
     rec_up = unit_capture_up(recorded_up)
     geom = samples if samples is not None else _Geometry.of(mesh)
+    view = single_view(geom.vertices) if view_points is None else frame_view(view_points)
     families = plane_families(geom.normals, geom.areas)
+    if frame_axes is not None:
+        families = with_axes(families, _lost_floor_axes(families, view, frame_axes))
     if not families:
         return UpEstimate(conv, "convention") if rec_up is None else _recorded_alone(geom, rec_up)
     cands = [_floor_candidate(geom, s * f) for f, _ in families for s in (1.0, -1.0)]
     if any(c.floor_fraction >= _FLOOR_MIN_FRACTION for c in cands):
-        view = single_view(geom.vertices) if view_points is None else frame_view(view_points)
         decision = decide([c.facts() for c in cands], cam_up, file or file_frame(suffix), disabled_evidence,
                           view, rec_up)
         best = next(c for c in cands if c.up is decision.best.up)
@@ -344,6 +351,19 @@ def estimate_up(mesh: trimesh.Trimesh, suffix: str, capture_up: np.ndarray | Non
         return _recorded_alone(geom, rec_up)
     base = _support_base(geom, [f for f, _ in families])
     return base if base is not None else UpEstimate(conv, "convention")
+
+
+def _lost_floor_axes(families: list[tuple[np.ndarray, float]], view: SingleView | None,
+                     frame_axes: Callable[[], Sequence[np.ndarray]]) -> list[np.ndarray]:
+    """The directions of `frame_axes` near a landscape frame's short side (where up lies, the camera pitched
+    at most `VIEW_PITCH_DEG`) when no family of its mesh lies there: a far, noisy floor that the mesh lost and
+    the frame's points still show."""
+    if view is None or view.short_axis is None:
+        return []
+    short = view.short_axis
+    def near(axis: np.ndarray) -> bool:
+        return abs(float(axis @ short)) >= np.cos(np.radians(VIEW_PITCH_DEG))
+    return [] if any(near(f) for f, _ in families) else [a for a in frame_axes() if near(a)]
 
 
 def _recorded_alone(geom: _Geometry, rec_up: np.ndarray) -> UpEstimate:

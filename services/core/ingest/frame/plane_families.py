@@ -9,6 +9,8 @@ Frames: the source frame; directions are unit 3-vectors.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from services.core.ingest.frame.direction_bins import BINS, N_BINS, bin_neighbours, bin_tree
@@ -60,3 +62,13 @@ def plane_families(normals: np.ndarray, areas: np.ndarray) -> list[tuple[np.ndar
         score[b] = 0.0
     families.sort(key=lambda fa: -fa[1])
     return families
+
+
+def with_axes(families: list[tuple[np.ndarray, float]], axes: Sequence[np.ndarray]
+              ) -> list[tuple[np.ndarray, float]]:
+    """`families` and, after them, each of `axes` no family already holds (within the suppression cone)."""
+    out = list(families)
+    for axis in axes:
+        if all(abs(float(axis @ f)) < _SUPPRESS_COS for f, _ in out):
+            out.append((axis, 0.0))
+    return out

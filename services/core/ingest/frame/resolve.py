@@ -27,6 +27,7 @@ from services.core.ingest.frame.gravity import (
     floor_evidence,
     guess_candidates,
 )
+from services.core.ingest.frame.plane_families import plane_families
 from services.core.ingest.frame.point_planes import point_samples
 from services.core.ingest.frame.unit_evidence import UnitChoice, UnitError, choose_units
 
@@ -109,7 +110,7 @@ def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: FrameRequest, name:
         file = file_frame(suffix, cloud=cloud is not None, camera=camera,
                           origin_camera=cloud is not None and origin_is_camera(cloud))
         est = estimate_up(mesh, suffix, frame.capture_up, recorded_up=frame.recorded_up, file=file,
-                          view_points=cloud)
+                          view_points=cloud, frame_axes=None if cloud is None else lambda: _plane_axes(cloud))
         if est.method in _NO_FLOOR and cloud is not None:
             samples = point_samples(cloud)
             if samples is not None:
@@ -136,6 +137,12 @@ def resolve_frame(mesh: trimesh.Trimesh, suffix: str, frame: FrameRequest, name:
     if units.ambiguous and not frame.accept_up_guess:
         raise UnitsAmbiguous(units_ambiguity_line(name, list(units.candidates)), list(units.candidates))
     return source_to_world_matrix(est.up, units.scale), est, units
+
+
+def _plane_axes(cloud: np.ndarray) -> list[np.ndarray]:
+    """A cloud's plane directions read from its own points (`point_planes`)."""
+    samples = point_samples(cloud)
+    return [] if samples is None else [f for f, _ in plane_families(samples.normals, samples.areas)]
 
 
 _NO_FLOOR = ("convention", "base")  # methods that found no floor in the mesh

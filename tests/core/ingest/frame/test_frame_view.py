@@ -1,5 +1,6 @@
 """One depth frame told from a fusion of several views by what lies behind what, seen from the origin
-(services.core.ingest.frame.single_view: `occluded_share`, `frame_view`)."""
+(services.core.ingest.frame.single_view: `occluded_share`, `frame_view`), and the planes its own points lend
+where its mesh lost them (services.core.ingest.frame.gravity: `_lost_floor_axes`)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,14 @@ import numpy as np
 import pytest
 import trimesh
 
-from services.core.ingest.frame.single_view import OCCLUDED_MAX_SHARE, frame_view, occluded_share, single_view
+from services.core.ingest.frame.gravity import _lost_floor_axes
+from services.core.ingest.frame.single_view import (
+    OCCLUDED_MAX_SHARE,
+    SingleView,
+    frame_view,
+    occluded_share,
+    single_view,
+)
 from services.core.ingest.pointcloud import cloud_from_ply
 
 HELD_OUT = Path(__file__).resolve().parents[4] / "shared" / "rooms_held_out"
@@ -68,3 +76,24 @@ def test_real_fusions_as_narrow_as_one_view_are_not_one_frame(name: str) -> None
     points = _held_out(name)
     assert single_view(points) is not None
     assert frame_view(points) is None
+
+
+def test_a_frames_points_lend_a_plane_only_where_its_mesh_shows_none_near_its_short_side() -> None:
+    """A landscape frame's up lies near its short side: where its mesh shows no plane there (a far floor lost
+    to meshing), the planes read from its points that lie there are weighed too, and no others; where its
+    mesh shows one, or the frame is square, its points are not read (`gravity._lost_floor_axes`)."""
+    view = SingleView(direction=np.array([0.0, 0.0, 1.0]), short_axis=np.array([0.0, 1.0, 0.0]))
+    floor = np.array([0.0, 0.96, 0.28])  # a camera pitched 16 degrees down sees this floor
+    read: list[int] = []
+
+    def points_planes() -> list[np.ndarray]:
+        read.append(1)
+        return [floor, np.array([1.0, 0.0, 0.0])]
+
+    walls = [(np.array([1.0, 0.0, 0.0]), 5.0), (np.array([0.0, 0.0, 1.0]), 9.0)]
+    added = _lost_floor_axes(walls, view, points_planes)
+    assert len(added) == 1 and np.allclose(added[0], floor)
+    read.clear()
+    assert _lost_floor_axes([*walls, (floor, 2.0)], view, points_planes) == [] and not read
+    square = SingleView(direction=view.direction, short_axis=None)
+    assert _lost_floor_axes(walls, square, points_planes) == [] and not read

@@ -25,6 +25,12 @@ class FileFrame:
     origin_camera: bool = False  # its origin is its camera's place, turned or not (`origin_is_camera`)
 
 
+# a candidate whose lower half faces it over this share of its cross-section could be a floor (a strip: a
+# corridor's floor seen from a level depth camera covers 7-8 % of its frustum's; 0.1 left a levelled export of
+# one refused, and no outcome of bench/ingest/ingest.py or of the other real rooms moved)
+PLAUSIBLE_FLOOR_FRACTION = 0.05
+
+
 @dataclass(frozen=True)
 class CandidateFacts:
     """What gravity measured along one candidate direction (source frame, source units)."""
@@ -44,6 +50,14 @@ class CandidateFacts:
     # the source origin's height above the floor along up: where the origin is the capture's camera, how high
     # it was held over the floor this candidate sees
     origin_height: float = 0.0
+    # the sine of the elevation along up of the mean direction from the source origin to the surface: where
+    # the origin is the capture's camera, how far up (> 0) or down (< 0) it looked
+    origin_gaze: float = 0.0
+
+    @property
+    def plausible_floor(self) -> bool:
+        """True when enough of the cross-section faces this up at the low end to be a floor."""
+        return self.floor_fraction >= PLAUSIBLE_FLOOR_FRACTION
 
 
 @dataclass(frozen=True)

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import trimesh
@@ -200,6 +201,15 @@ class _Geometry:
     vertices: np.ndarray
     hull_points: np.ndarray  # a subsample of the vertices for cross-sections
 
+    @cached_property
+    def gaze(self) -> np.ndarray:
+        """The mean direction from the source origin to the surface (area-weighted unit directions): where
+        the origin is the capture's camera, where it looked."""
+        d = self.centers / np.maximum(np.linalg.norm(self.centers, axis=1, keepdims=True), 1e-300)
+        mean = self.areas @ d
+        n = float(np.linalg.norm(mean))
+        return mean / n if n > 0 else mean
+
     @classmethod
     def of(cls, mesh: trimesh.Trimesh) -> _Geometry:
         v = np.asarray(mesh.vertices)
@@ -227,13 +237,14 @@ class _Candidate:
     mid_down: float  # area facing down between the end bands (furniture undersides, rarely scanned)
     origin_split: float  # the smaller share of the area on either side of the source origin's height
     origin_height: float  # the source origin's height above the floor (its faces' area-weighted mean)
+    origin_gaze: float  # the sine of the elevation of the origin's mean gaze (`_Geometry.gaze`)
 
     def facts(self) -> CandidateFacts:
         """The measurements the evidence scoring needs."""
         ceiling = self.ceiling_area / self.cross_section if self.cross_section > 0 else 0.0
         return CandidateFacts(self.up, self.score, self.floor_area, self.floor_fraction, self.height,
                               self.cross_section, ceiling, self.mid_up, self.mid_down, self.origin_split,
-                              self.origin_height)
+                              self.origin_height, self.origin_gaze)
 
 
 def _floor_candidate(geom: _Geometry, u: np.ndarray) -> _Candidate:
@@ -260,7 +271,8 @@ def _floor_candidate(geom: _Geometry, u: np.ndarray) -> _Candidate:
     # the floor's mean height (tops in the lower half raise it: the camera then reads lower, never higher)
     origin_height = -float(np.average(h[floor], weights=areas[floor])) if floor_area > 0 else -lo
     return _Candidate(u, floor_area + surplus, floor_area, fraction, floor, ceiling, hi - lo, cross,
-                      ceiling_area, mid_up, mid_down, min(above, 1.0 - above), origin_height)
+                      ceiling_area, mid_up, mid_down, min(above, 1.0 - above), origin_height,
+                      float(geom.gaze @ u))
 
 
 def _refine_up(geom: _Geometry, cand: _Candidate) -> np.ndarray:

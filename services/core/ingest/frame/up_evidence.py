@@ -40,11 +40,20 @@ candidate with the best one that would level the scan differently (more than `DI
   frame): with a cloud's capped geometry (`mirror`) agreeing, it decides the sign; alone, it orders a
   refusal.
 - `camera_height`: a cloud whose origin is its camera (`FileFrame.origin_camera`): a candidate whose floor
-  lies further below that camera than a storey (`CAMERA_HEIGHT_MAX_M`), in every unit that makes the scan a
-  room's height, is a ceiling taken for a floor (a tall ceiling over a camera is common, a camera held that
-  high over a floor is not). An origin hovering over a room without its ceiling passes for a camera too, so
-  it weighs just above the cloud's capped sign (`MIRROR_CAP_CLOUD`) and, with one habit against it, stays
-  below `REFUSE_MARGIN`: it orders a refusal, never decides.
+  lies further below that camera than a storey (`camera_place`), in every unit that makes the scan a room's
+  height, is a ceiling taken for a floor (a tall ceiling over a camera is common, a camera held that high
+  over a floor is not). An origin hovering over a room without its ceiling passes for a camera too, so it
+  weighs just above the cloud's capped sign (`MIRROR_CAP_CLOUD`) and, with one habit against it, stays below
+  `REFUSE_MARGIN`: it orders a refusal, never decides.
+- `camera_looked_down`: a cloud whose origin is its camera (`camera_place`): a candidate under which that
+  camera, at most a storey over the floor, saw everything below its own height and looked down at it (not
+  straight down: a wall it faced) is a floor looked down at, not a ceiling looked up at from just below,
+  where the camera's place singles that candidate out (it looked down so at no other, nor level across
+  another). Hand-held captures look level or down: every cloud of bench/ingest/ingest_real.py whose origin
+  is its camera looked between 44 degrees down and 2 up, but the ceiling-only captures, which looked up from
+  4.5 m under their ceilings (`camera_height`). With a cloud's capped sign (`MIRROR_CAP_CLOUD`) agreeing, it
+  decides a floor-only cloud's sign: a ceiling-only capture taken from under a storey's ceiling would be
+  levelled upside down.
 - `capture_up`: the mean up vector of the capture's cameras (-Y of OpenCV cameras, averaged), when the
   caller has poses. Cameras are held upright, give or take their pitch: strong evidence.
 - `recorded_gravity`: the gravity a capture recorded with the scan (`recorded_gravity`): an IMU's or a
@@ -69,9 +78,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
+from services.core.ingest.frame.camera_place import CAMERA_SPLIT_MIN, camera_looked_down, camera_too_high
 from services.core.ingest.frame.candidates import CandidateFacts, FileFrame, ScoredCandidate
 from services.core.ingest.frame.single_view import SingleView
-from services.core.ingest.frame.unit_evidence import PARTIAL_STOREY_M
 
 DISTINCT_DEG = 30.0  # candidates closer than this level the scan the same way
 # score margin below which the estimate is ambiguous: on the real rooms of bench/ingest/ingest_real.py (as
@@ -96,9 +105,6 @@ CAMERA_PITCH_COS = float(np.cos(np.radians(60.0)))
 CAMERA_ROLL_SIN = float(np.sin(np.radians(15.0)))
 RECORDED_CONE_DEG = 15.0  # a plane family this close to recorded gravity is its floor (the floor cone)
 STOREY_M = (2.2, 3.5)
-# a camera held higher than this above the floor it saw (a storey) was not held over that floor: the real
-# clouds of bench/ingest/ingest_real.py whose origin is their camera hold it 0.3-2.7 m up
-CAMERA_HEIGHT_MAX_M = 3.5
 OPEN_STOREY_M = (1.2, 3.5)  # no ceiling scanned
 UNIT_SCALES = (1.0, 0.01, 0.001, 0.0254)
 
@@ -108,10 +114,6 @@ FORMAT_DEG = 5.0
 # what the file says counts for a candidate the geometry does not rule out: one this far below the geometry's
 # best (a wall left on an axis by a rotation about it) is no floor, whatever the file's axes
 FILE_TRUST = 4.0
-# a candidate whose lower half faces it over this share of its cross-section (a strip: a corridor's floor seen
-# from a level depth camera covers 7-8 % of its frustum's; 0.1 left a levelled export of one refused, and no
-# outcome of bench/ingest/ingest.py or of the other real rooms moved)
-PLAUSIBLE_FLOOR_FRACTION = 0.05
 # a family flat over this share of the cross-section at both ends holds a floor and a ceiling (a pair); with
 # one plane only, the geometry's preference between its two signs is capped at MIRROR_CAP (`_mirror_terms`).
 # No measure separated the ceiling-only captures of bench/ingest/ingest_real.py from its floor-only rooms
@@ -125,14 +127,12 @@ MIRROR_CAP = 1.5
 # them only with a second, independent sign (an upright camera's frame, the format's up axis) agreeing
 MIRROR_CAP_CLOUD = 0.3
 # ... unless its origin is its camera (`FileFrame.origin_camera`: its normals were turned towards it, so its
-# sides are seen as a scanner's faces are), that camera saw the family on both sides of its own height (this
-# share of the surface at least on each side: it looked across the room, not only up at a ceiling or down at
-# a floor) and the family shows one plane (its flat end this many times the other's: a corridor's floor and
-# ceiling strips alike leave the sign to the furniture, which a low camera sees from below): then it is
-# capped as a mesh's (`_mirror_cap`)
-CAMERA_SPLIT_MIN = 0.05
+# sides are seen as a scanner's faces are), that camera saw the family on both sides of its own height
+# (`camera_place.CAMERA_SPLIT_MIN`: it looked across the room) and the family shows one plane (its flat end
+# this many times the other's: a corridor's floor and ceiling strips alike leave the sign to the furniture,
+# which a low camera sees from below): then it is capped as a mesh's (`_mirror_cap`)
 ONE_END_RATIO = 3.0
-_SIGN_FREE_TERMS = ("floor_area", "furniture", "extent", "storey")  # the geometry a mirror image keeps
+SIGN_FREE_TERMS = ("floor_area", "furniture", "extent", "storey")  # the geometry a mirror image keeps
 
 WEIGHTS = {
     "levelled_axis": 6.0,
@@ -140,6 +140,7 @@ WEIGHTS = {
     "format_up_habit": 1.0,
     "camera_frame": 1.0,
     "camera_height": 0.4,
+    "camera_looked_down": 1.0,
     "floor_area": 1.0,
     "furniture": 3.0,
     "extent": 6.0,
@@ -214,22 +215,13 @@ def _storey_term(f: CandidateFacts) -> float:
     return 0.0 if fits else -1.0
 
 
-def _camera_too_high(f: CandidateFacts) -> bool:
-    """True when the floor this candidate sees lies further below the camera at the origin than a storey in
-    every unit that makes the scan a room's height (`unit_evidence`): no one holds a camera there, so the
-    floor is a ceiling seen from below."""
-    lo, hi = PARTIAL_STOREY_M
-    room_units = [s for s in UNIT_SCALES if lo <= f.height * s <= hi]
-    return (f.floor_fraction >= PLAUSIBLE_FLOOR_FRACTION and bool(room_units)
-            and all(f.origin_height * s > CAMERA_HEIGHT_MAX_M for s in room_units))
-
-
 def _file_terms(f: CandidateFacts, file: FileFrame, plausible: bool, levelled: bool,
-                one_plane: bool) -> dict[str, float]:
+                one_plane: bool, looked_down: bool) -> dict[str, float]:
     """What the file says of this candidate (see the module docstring). `plausible`: it could be the floor;
     `levelled`: an axis-aligned floor may mean a levelled export (not in a depth frame's own camera frame,
     where it only means a camera held level); `one_plane`: its family shows one plane, a floor or a ceiling,
-    and exporters write levelled files with up on the format's up axis, not upside down."""
+    and exporters write levelled files with up on the format's up axis, not upside down; `looked_down`: the
+    one candidate the camera at the origin looked down at (`_camera_looked_down`)."""
     on_axis = levelled and plausible and on_a_source_axis(f.up)
     # the sign prior holds on the format's up axis only: a PLY's -Y is a camera frame's up (y down), as
     # common as an ARKit +Y
@@ -241,7 +233,8 @@ def _file_terms(f: CandidateFacts, file: FileFrame, plausible: bool, levelled: b
     else:
         terms["format_up"] = WEIGHTS["format_up_habit"] if _on_axis(f.up, file.axis) else 0.0
     if file.origin_camera:
-        terms["camera_height"] = -WEIGHTS["camera_height"] if _camera_too_high(f) else 0.0
+        terms["camera_height"] = -WEIGHTS["camera_height"] if camera_too_high(f) else 0.0
+        terms["camera_looked_down"] = WEIGHTS["camera_looked_down"] if looked_down else 0.0
     if file.camera:  # an upright camera (image y down): pitched, hardly rolled
         upright = -float(f.up[1]) >= CAMERA_PITCH_COS and abs(float(f.up[0])) <= CAMERA_ROLL_SIN
         terms["camera_frame"] = WEIGHTS["camera_frame"] if upright else 0.0
@@ -303,7 +296,7 @@ def _with_file_terms(geometry: list[ScoredCandidate], file: FileFrame, view: Sin
     """The candidates scored on the geometry, with what the file says added (see `_file_terms`)."""
     best_geometry = max(c.score for c in geometry)
     # the file's axes count for a floor candidate the geometry does not rule out (FILE_TRUST)
-    floor = {id(c): c.facts.floor_fraction >= PLAUSIBLE_FLOOR_FRACTION
+    floor = {id(c): c.facts.plausible_floor
              and c.score >= best_geometry - FILE_TRUST for c in geometry}
     flips = [_flip(c, geometry) for c in geometry]
     one_plane = [f is not None and _one_plane(c, f) for c, f in zip(geometry, flips, strict=True)]
@@ -311,9 +304,11 @@ def _with_file_terms(geometry: list[ScoredCandidate], file: FileFrame, view: Sin
     plausible = [floor[id(c)] or (o and f is not None and floor[id(f)])
                  for c, f, o in zip(geometry, flips, one_plane, strict=True)]
     levelled = view is None or float(view.direction[2]) < np.cos(np.radians(CAMERA_FRAME_DEG))
+    looked_down = (camera_looked_down([c.facts for c in geometry]) if file.origin_camera
+                   else [False] * len(geometry))
     return [ScoredCandidate(c.facts, {**c.terms, **{k: v for k, v in _file_terms(
-        c.facts, file, p, levelled, o).items() if k not in disabled}})
-        for c, p, o in zip(geometry, plausible, one_plane, strict=True)]
+        c.facts, file, p, levelled, o, d).items() if k not in disabled}})
+        for c, p, o, d in zip(geometry, plausible, one_plane, looked_down, strict=True)]
 
 
 def _flip(c: ScoredCandidate, candidates: list[ScoredCandidate]) -> ScoredCandidate | None:
@@ -351,7 +346,7 @@ def _mirror_terms(geometry: list[ScoredCandidate], file: FileFrame | None) -> li
         lift = 0.0
         if flip is not None and _one_plane(c, flip):
             def sign_free(x: ScoredCandidate) -> float:
-                return sum(v for k, v in x.terms.items() if k in _SIGN_FREE_TERMS)
+                return sum(v for k, v in x.terms.items() if k in SIGN_FREE_TERMS)
             lift = max(0.0, sign_free(flip) - _mirror_cap(c, file) - sign_free(c))
         out.append(ScoredCandidate(c.facts, {**c.terms, "mirror": lift}) if lift > 0 else c)
     return out

@@ -25,23 +25,24 @@ X = np.array([1.0, 0.0, 0.0])
 
 def _facts(up: np.ndarray, floor: float, ceiling: float, mid_up: float, mid_down: float,
            height: float = 3.0, cross: float = 100.0, origin_split: float = 0.0,
-           origin_height: float = 0.0) -> CandidateFacts:
+           origin_height: float = 0.0, origin_gaze: float = 0.0) -> CandidateFacts:
     area = floor * cross
     return CandidateFacts(up, area + max(0.0, mid_up - mid_down), area, floor, height, cross, ceiling,
-                          mid_up, mid_down, origin_split, origin_height)
+                          mid_up, mid_down, origin_split, origin_height, origin_gaze)
 
 
 def _room(one_side: np.ndarray, pair: bool, origin_split: float = 0.0, origin_height: float = 1.5,
-          height: float = 3.0) -> list[CandidateFacts]:
+          height: float = 3.0, origin_gaze: float = 0.0) -> list[CandidateFacts]:
     """A plane at the low end of `one_side` with tops over it (what stands on a floor or hangs below a
     ceiling), walls along X; `pair`: a second plane at the other end too. `origin_split`: the smaller share of
     the scan on either side of the origin's height along the plane's normal; `origin_height`: the origin's
-    height over the plane along `one_side`; `height`: the scan's extent along it."""
+    height over the plane along `one_side`; `height`: the scan's extent along it; `origin_gaze`: the sine of
+    the elevation of the origin's mean gaze along `one_side`."""
     other = 0.5 if pair else 0.0
     return [_facts(one_side, 0.5, other, 8.0, 0.2, height, origin_split=origin_split,
-                   origin_height=origin_height),
+                   origin_height=origin_height, origin_gaze=origin_gaze),
             _facts(-one_side, other, 0.5, 0.2, 8.0, height, origin_split=origin_split,
-                   origin_height=origin_height - height),
+                   origin_height=origin_height - height, origin_gaze=-origin_gaze),
             _facts(X, 0.02, 0.02, 0.0, 0.0, 10.0, 30.0), _facts(-X, 0.02, 0.02, 0.0, 0.0, 10.0, 30.0)]
 
 
@@ -148,6 +149,43 @@ def test_a_plane_further_below_the_camera_than_a_storey_is_ordered_as_a_ceiling_
                     file=FileFrame(Z, cloud=True, camera=True, origin_camera=True))
     assert float(framed.best.up @ -y) > 0.99 and framed.best.terms["camera_frame"] > 0
     assert framed.ambiguous
+
+
+def test_a_camera_that_looked_down_from_a_hands_height_decides_a_clouds_one_plane() -> None:
+    """A floor-only cloud whose camera, at the origin 1.5 m over the floor, saw everything below itself
+    looking 30 degrees down: read upside down, the same camera looked up at a ceiling from just below it.
+    Hand-held captures look level or down, so the floor reading is levelled (`camera_looked_down`). Looking
+    straight down (a wall the camera faced), held higher than a storey, or an origin that is no camera leave
+    the cloud's sign capped, and asked."""
+    camera = FileFrame(X, cloud=True, origin_camera=True)
+    down = -float(np.sin(np.radians(30.0)))
+    d = decide(_room(Z, pair=False, origin_gaze=down), file=camera)
+    assert float(d.best.up @ Z) > 0.99 and not d.ambiguous
+    assert d.best.terms["camera_looked_down"] > 0 and d.runner_up.terms["camera_looked_down"] == 0.0
+    # a camera that looked up at the scan looked down at nothing: asked
+    up = decide(_room(Z, pair=False, origin_gaze=-down), file=camera)
+    assert up.ambiguous and all(c.terms["camera_looked_down"] == 0.0 for c in up.ranked)
+    straight_down = -float(np.sin(np.radians(70.0)))
+    assert decide(_room(Z, pair=False, origin_gaze=straight_down), file=camera).ambiguous
+    assert decide(_room(Z, pair=False, origin_gaze=down, origin_height=4.0), file=camera).ambiguous
+    assert decide(_room(Z, pair=False, origin_gaze=down), file=FileFrame(X, cloud=True)).ambiguous
+    # saw a share of the scan above its height: the cloud's sides decide (`_mirror_cap`), not this
+    across = decide(_room(Z, pair=False, origin_gaze=down, origin_split=CAMERA_SPLIT_MIN), file=camera)
+    assert across.best.terms["camera_looked_down"] == 0.0
+    # looked down so at a wall too (a fragment cut to a cube): neither is told from a floor
+    cube = [*_room(Z, pair=False, origin_gaze=down),
+            _facts(X, 0.5, 0.0, 8.0, 0.2, origin_height=1.5, origin_gaze=-0.7)]
+    assert all(c.terms["camera_looked_down"] == 0.0 for c in decide(cube, file=camera).ranked)
+    # ... unless that wall stood further from the camera than anyone holds one over a floor
+    far = [*cube[:-1], _facts(X, 0.5, 0.0, 8.0, 0.2, origin_height=4.5, origin_gaze=-0.7)]
+    assert decide(far, file=camera).best.terms["camera_looked_down"] > 0
+    # 140 units tall, the camera 130 up: in centimetres 1.3 m, in inches 3.3 m, both under a storey; 150
+    # units tall, the camera 140 up: 3.6 m in inches, higher than a storey in one unit, so it says nothing
+    def looked_down(origin_height: float, height: float) -> float:
+        ranked = decide(_room(Z, pair=False, origin_gaze=down, origin_height=origin_height, height=height),
+                        file=camera).ranked
+        return next(c for c in ranked if float(c.up @ Z) > 0.99).terms["camera_looked_down"]
+    assert looked_down(130.0, 140.0) > 0 and looked_down(140.0, 150.0) == 0.0
 
 
 def test_an_upright_cameras_frame_with_the_geometry_decides_a_clouds_sign() -> None:

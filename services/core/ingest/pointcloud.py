@@ -39,7 +39,7 @@ POISSON_DEPTH_RANGE = (6, 10)
 TRIM_DENSITY_QUANTILE = 0.02
 TRIM_SPACINGS = 2.5
 MAX_POINTS = 20_000_000
-RECONSTRUCTION_VERSION = 4  # bump when the method changes: cached meshes are keyed by it
+RECONSTRUCTION_VERSION = 5  # bump when the method changes: cached meshes are keyed by it
 
 
 class CloudError(ValueError):

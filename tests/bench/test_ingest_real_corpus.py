@@ -34,7 +34,7 @@ def test_held_out_rooms_are_reported_apart(tmp_path: Path) -> None:
     script = REPO_ROOT / "bench" / "ingest" / "ingest_real.py"
     # one case each: a cloud is meshed anew per case, as uploaded
     subprocess.run([sys.executable, str(script), "--rooms", "copyroom", held[0], "--cases", "delivered",
-                    "--out", str(out)],
+                    "tilted_x", "--out", str(out)],
                    check=True, cwd=REPO_ROOT, capture_output=True,
                    env={**os.environ, "PYTHONPATH": str(REPO_ROOT), RESULTS_ENV: str(tmp_path),
                         "OMNIDATA_DATA_DIR": str(tmp_path / "data")})
@@ -43,3 +43,7 @@ def test_held_out_rooms_are_reported_apart(tmp_path: Path) -> None:
     assert result["held_out"]["single_depth_frames"]["cases"] == 1
     assert result["rooms"]["cases"] == 1  # copyroom alone: the held-out frame is not in the main figure
     assert result["single_depth_frames"]["cases"] == 0
+    # the tilted copies are reported apart from the protocol's cases
+    tilted = result["tilted_about_a_wall"]
+    assert tilted["rooms"]["cases"] == 1 and tilted["single_depth_frames"]["cases"] == 1
+    assert {r["case"] for r in tilted["rows"]} == {"tilted_x"}

@@ -32,18 +32,21 @@ def _facts(up: np.ndarray, floor: float, ceiling: float, mid_up: float, mid_down
 
 
 def _room(one_side: np.ndarray, pair: bool, origin_split: float = 0.0, origin_height: float = 1.5,
-          height: float = 3.0, origin_gaze: float = 0.0) -> list[CandidateFacts]:
+          height: float = 3.0, origin_gaze: float = 0.0, width: float = 1.0) -> list[CandidateFacts]:
     """A plane at the low end of `one_side` with tops over it (what stands on a floor or hangs below a
     ceiling), walls along X; `pair`: a second plane at the other end too. `origin_split`: the smaller share of
     the scan on either side of the origin's height along the plane's normal; `origin_height`: the origin's
     height over the plane along `one_side`; `height`: the scan's extent along it; `origin_gaze`: the sine of
-    the elevation of the origin's mean gaze along `one_side`."""
+    the elevation of the origin's mean gaze along `one_side`; `width`: its lengths across, in the units of a
+    room 3 wide and 10 long."""
     other = 0.5 if pair else 0.0
-    return [_facts(one_side, 0.5, other, 8.0, 0.2, height, origin_split=origin_split,
+    cross = 100.0 * width**2
+    return [_facts(one_side, 0.5, other, 8.0, 0.2, height, cross, origin_split=origin_split,
                    origin_height=origin_height, origin_gaze=origin_gaze),
-            _facts(-one_side, other, 0.5, 0.2, 8.0, height, origin_split=origin_split,
+            _facts(-one_side, other, 0.5, 0.2, 8.0, height, cross, origin_split=origin_split,
                    origin_height=origin_height - height, origin_gaze=-origin_gaze),
-            _facts(X, 0.02, 0.02, 0.0, 0.0, 10.0, 30.0), _facts(-X, 0.02, 0.02, 0.0, 0.0, 10.0, 30.0)]
+            _facts(X, 0.02, 0.02, 0.0, 0.0, 10.0 * width, 30.0 * width**2),
+            _facts(-X, 0.02, 0.02, 0.0, 0.0, 10.0 * width, 30.0 * width**2)]
 
 
 def test_one_plane_caps_the_geometrys_sign_so_its_stated_probability_is_bounded() -> None:
@@ -139,7 +142,7 @@ def test_a_plane_further_below_the_camera_than_a_storey_is_ordered_as_a_ceiling_
     assert float(no_camera.best.up @ -Z) > 0.99
     # 110 units tall, the camera 180 units up: 1.1 m and 1.8 m in centimetres, a floor seen from a camera
     # held by hand; only in inches (2.8 m, 4.6 m) too high. One unit where it fits is enough
-    short = decide(_room(-Z, pair=False, origin_height=180.0, height=110.0), file=camera)
+    short = decide(_room(-Z, pair=False, origin_height=180.0, height=110.0, width=110.0 / 3.0), file=camera)
     assert float(short.best.up @ -Z) > 0.99
     # a floor seen from 4.5 m above whose file looks like an upside-down camera's frame (a habit for the
     # ceiling reading): an origin above a room without its ceiling may be no camera, so the two together

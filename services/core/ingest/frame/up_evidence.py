@@ -173,9 +173,9 @@ def nearest_axis(u: np.ndarray) -> np.ndarray:
     return e
 
 
-def on_a_source_axis(u: np.ndarray) -> bool:
-    """True when `u` lies within `AXIS_DEG` of a source axis."""
-    return _on_axis(u, nearest_axis(u))
+def source_axis_of(u: np.ndarray) -> int | None:
+    """The source axis (0, 1, 2: X, Y, Z) the unit vector `u` lies within `AXIS_DEG` of, or None."""
+    return int(np.argmax(np.abs(u))) if _on_axis(u, nearest_axis(u)) else None
 
 
 @dataclass(frozen=True)
@@ -231,7 +231,7 @@ def _file_terms(f: CandidateFacts, file: FileFrame, plausible: bool, levelled_ax
     its family shows one plane, a floor or a ceiling, and exporters write levelled files with up on the
     format's up axis, not upside down; `looked_down`: the one candidate the camera at the origin looked down
     at (`_camera_looked_down`)."""
-    on_axis = plausible and on_a_source_axis(f.up) and int(np.argmax(np.abs(f.up))) in levelled_axes
+    on_axis = plausible and source_axis_of(f.up) in levelled_axes
     # the sign prior holds on the format's up axis only: a PLY's -Y is a camera frame's up (y down), as
     # common as an ARKit +Y
     upside_down = one_plane and float(f.up @ file.axis) < -0.99
@@ -326,7 +326,7 @@ def _levelled_axes(geometry: list[ScoredCandidate], view: SingleView | None) -> 
     two axes or more (an axis-aligned file turned by quarter turns, not a scan pitched about X)."""
     if view is not None and float(view.direction[2]) >= np.cos(np.radians(CAMERA_FRAME_DEG)):
         return ()
-    on_axes = {int(np.argmax(np.abs(c.up))) for c in geometry if on_a_source_axis(c.up)}
+    on_axes = {source_axis_of(c.up) for c in geometry} - {None}
     return (0, 1, 2) if len(on_axes) >= 2 else UP_AXES
 
 
